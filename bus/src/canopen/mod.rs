@@ -1,0 +1,79 @@
+//! CANopen (CiA 301) codecs: NMT, heartbeat, SDO, PDO, SYNC, EMCY. Pure functions and
+//! plain types; no I/O, no clocks.
+
+pub mod emcy;
+pub mod nmt;
+pub mod pdo;
+pub mod sdo;
+
+/// Predefined connection set (CiA 301 §7.3.5).
+pub mod cob {
+    pub const NMT: u16 = 0x000;
+    pub const SYNC: u16 = 0x080;
+    pub const EMCY_BASE: u16 = 0x080;
+    pub const TPDO1: u16 = 0x180;
+    pub const RPDO1: u16 = 0x200;
+    pub const TPDO2: u16 = 0x280;
+    pub const RPDO2: u16 = 0x300;
+    pub const TPDO3: u16 = 0x380;
+    pub const RPDO3: u16 = 0x400;
+    pub const TPDO4: u16 = 0x480;
+    pub const RPDO4: u16 = 0x500;
+    /// Server → client (SDO upload/download responses).
+    pub const SDO_TX: u16 = 0x580;
+    /// Client → server (SDO requests).
+    pub const SDO_RX: u16 = 0x600;
+    pub const HEARTBEAT: u16 = 0x700;
+
+    /// The function code part of a COB-ID and the node id, for the predefined set.
+    pub fn split(cob: u16) -> (u16, u8) {
+        (cob & 0x780, (cob & 0x7F) as u8)
+    }
+}
+
+/// The SYNC frame: empty, or with a 1-byte counter (1…240, CiA 301 §7.2.5.3).
+pub fn sync_frame(counter: Option<u8>) -> crate::CanFrame {
+    match counter {
+        Some(c) => crate::CanFrame::new(cob::SYNC, &[c]),
+        None => crate::CanFrame::new(cob::SYNC, &[]),
+    }
+}
+
+/// Object dictionary indices used by master and emulator.
+pub mod od {
+    pub const DEVICE_TYPE: u16 = 0x1000;
+    pub const ERROR_REGISTER: u16 = 0x1001;
+    pub const COB_ID_SYNC: u16 = 0x1005;
+    pub const COMM_CYCLE_PERIOD: u16 = 0x1006;
+    pub const DEVICE_NAME: u16 = 0x1008;
+    pub const HW_VERSION: u16 = 0x1009;
+    pub const SW_VERSION: u16 = 0x100A;
+    pub const COB_ID_EMCY: u16 = 0x1014;
+    pub const CONSUMER_HEARTBEAT: u16 = 0x1016;
+    pub const PRODUCER_HEARTBEAT: u16 = 0x1017;
+    pub const IDENTITY: u16 = 0x1018;
+    pub const RPDO_COMM: u16 = 0x1400;
+    pub const RPDO_MAP: u16 = 0x1600;
+    pub const TPDO_COMM: u16 = 0x1800;
+    pub const TPDO_MAP: u16 = 0x1A00;
+    pub const ABORT_CONNECTION: u16 = 0x6007;
+    pub const ERROR_CODE: u16 = 0x603F;
+    pub const CONTROLWORD: u16 = 0x6040;
+    pub const STATUSWORD: u16 = 0x6041;
+    pub const QUICK_STOP_OPTION: u16 = 0x605A;
+    pub const MODES_OF_OPERATION: u16 = 0x6060;
+    pub const MODES_DISPLAY: u16 = 0x6061;
+    pub const POSITION_ACTUAL: u16 = 0x6064;
+    pub const FOLLOWING_ERROR_WINDOW: u16 = 0x6065;
+    pub const FOLLOWING_ERROR_TIMEOUT: u16 = 0x6066;
+    pub const VELOCITY_ACTUAL: u16 = 0x606C;
+    pub const TARGET_POSITION: u16 = 0x607A;
+    pub const SOFTWARE_LIMIT: u16 = 0x607D;
+    pub const HOMING_METHOD: u16 = 0x6098;
+    pub const HOMING_SPEEDS: u16 = 0x6099;
+    pub const HOMING_ACCEL: u16 = 0x609A;
+    pub const INTERPOLATION_PERIOD: u16 = 0x60C2;
+    pub const FOLLOWING_ERROR_ACTUAL: u16 = 0x60F4;
+    pub const TARGET_VELOCITY: u16 = 0x60FF;
+    pub const SUPPORTED_MODES: u16 = 0x6502;
+}

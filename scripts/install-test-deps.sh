@@ -1,0 +1,105 @@
+#!/usr/bin/env bash
+# Install what the test tiers need on a Debian (bookworm) machine, as root.
+#
+#   scripts/install-test-deps.sh [--python] [--qemu]
+#
+#   --python  (or TEST_DEPS_PYTHON=1): also make build/venv with python-can, canopen, pymodbus
+#   --qemu    (or VMRUN_BACKEND=qemu): also install the QEMU fallback backend of scripts/vmrun
+#
+# Idempotent: every step checks first, and `apt-get update` runs only when something
+# must be installed, so a second run costs next to nothing (CI runs it every time).
+set -euo pipefail
+
+ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+WANT_PYTHON=${TEST_DEPS_PYTHON:-0}
+WANT_QEMU=0
+[ "${VMRUN_BACKEND:-uml}" = qemu ] && WANT_QEMU=1
+for a in "$@"; do
+    case $a in
+        --python) WANT_PYTHON=1 ;;
+        --qemu) WANT_QEMU=1 ;;
+        -h|--help) sed -n '2,10p' "$0"; exit 0 ;;
+        *) echo "install-test-deps: unknown argument: $a" >&2; exit 2 ;;
+    esac
+done
+
+export DEBIAN_FRONTEND=noninteractive
+SUDO=
+if [ "$(id -u)" != 0 ]; then
+    command -v sudo >/dev/null || { echo "install-test-deps: need root (or sudo)" >&2; exit 1; }
+    SUDO="sudo -n"
+fi
+
+log() { echo "install-test-deps: $*" >&2; }
+
+# Debian packages to install later in one apt-get call.
+MISSING=()
+need_pkg() {   # need_pkg PACKAGE...: queue each package that dpkg does not list as installed
+    local p
+    for p in "$@"; do
+        dpkg-query -W -f='${db:Status-Abbrev}' "$p" 2>/dev/null | grep -q '^ii' || MISSING+=("$p")
+    done
+}
+
+APT_UPDATED=0
+apt_update_once() {
+    [ "$APT_UPDATED" = 1 ] && return 0
+    log "apt-get update"
+    $SUDO apt-get update -qq
+    APT_UPDATED=1
+}
+
+install_missing() {
+    [ ${#MISSING[@]} -eq 0 ] && return 0
+    apt_update_once
+    log "installing: ${MISSING[*]}"
+    $SUDO apt-get install -y -qq --no-install-recommends "${MISSING[@]}" >/dev/null
+    MISSING=()
+}
+
+# --- vcan tier: guest kernel and the tools that build its initramfs (scripts/vm/) ---
+vcan_tier_deps() {
+    # user-mode-linux: the guest kernel (+ its CAN modules) as a plain host process.
+    # busybox-static: the initramfs userland (no libc in there). kmod: depmod/modprobe
+    # to resolve module order. cpio+gzip: pack the initramfs. iproute2: `ip` for the
+    # native vcan path. util-linux: setsid/flock (essential, listed for clarity).
+    need_pkg user-mode-linux busybox-static kmod cpio gzip iproute2 util-linux
+    if [ "$WANT_QEMU" = 1 ]; then
+        # The QEMU fallback boots the stock Debian kernel, fetched by the asset builder
+        # with `apt-get download`; xz-utils unpacks vmlinux from the bzImage.
+        need_pkg qemu-system-x86 xz-utils
+    fi
+    install_missing
+    if [ "$WANT_QEMU" = 1 ] && ! apt-cache show linux-image-amd64 >/dev/null 2>&1; then
+        apt_update_once   # package lists are needed for `apt-get download` of the kernel
+    fi
+}
+
+# --- other test prerequisites: add new ones here -------------------------------------
+# Planned: mbpoll, socat, tmux (Modbus / serial / terminal tests).
+# Add them with need_pkg + install_missing, as vcan_tier_deps does.
+extra_test_deps() {
+    if [ "$WANT_PYTHON" = 1 ]; then
+        python_venv
+    fi
+}
+
+# Python peers for the protocol tests (a CANopen/Modbus implementation written elsewhere).
+# Uses Debian's /usr/bin/python3, not a pyenv shim (slow under the guest, see notes).
+PY_REQS=(python-can canopen pymodbus)
+python_venv() {
+    local venv=$ROOT/build/venv
+    if [ -x "$venv/bin/python" ] && [ "$(cat "$venv/.installed" 2>/dev/null)" = "${PY_REQS[*]}" ]; then
+        return 0
+    fi
+    need_pkg python3 python3-venv
+    install_missing
+    log "making $venv with: ${PY_REQS[*]}"
+    /usr/bin/python3 -m venv "$venv"
+    "$venv/bin/pip" install -q --disable-pip-version-check "${PY_REQS[@]}"
+    echo "${PY_REQS[*]}" >"$venv/.installed"
+}
+
+vcan_tier_deps
+extra_test_deps
+log "ok"

@@ -1,0 +1,48 @@
+//! Alarms: every failure a user can cause or meet is a numbered alarm with a message that
+//! says what to do and, where there is one, the source position and block text.
+//!
+//! Numbers: the manuals' numbers where they give one (e.g. 3605). Where they are silent we
+//! use Fanuc 0i-TF numbers (PS0010 "improper G-code" → 10, …) and our own ranges:
+//! 1000–1099 configuration, 2000–2199 CANopen / drives, 2200–2299 Modbus, 2300–2399 sync and
+//! motion, 2400–2499 controller (watchdog, E-stop).
+
+use crate::canon::SrcPos;
+use std::fmt;
+
+#[derive(Clone, Debug, PartialEq)]
+pub struct Alarm {
+    pub number: u32,
+    pub message: String,
+    pub pos: Option<SrcPos>,
+    /// The offending block's text, for program errors.
+    pub block: Option<String>,
+}
+
+impl Alarm {
+    pub fn new(number: u32, message: impl Into<String>) -> Self {
+        Alarm { number, message: message.into(), pos: None, block: None }
+    }
+    pub fn at(mut self, pos: SrcPos) -> Self {
+        self.pos = Some(pos);
+        self
+    }
+    pub fn with_block(mut self, block: impl Into<String>) -> Self {
+        self.block = Some(block.into());
+        self
+    }
+}
+
+impl fmt::Display for Alarm {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        if let Some(p) = &self.pos {
+            write!(f, "{p}: ")?;
+        }
+        write!(f, "alarm {:04}: {}", self.number, self.message)?;
+        if let Some(b) = &self.block {
+            write!(f, "\n    {}", b.trim_end())?;
+        }
+        Ok(())
+    }
+}
+
+impl std::error::Error for Alarm {}

@@ -1,0 +1,169 @@
+//! Canonical moves: the contract between the interpreter and everything after it.
+//!
+//! Units: millimetres, degrees, seconds. X is held as a **radius** (the interpreter converts
+//! the programmed diameter). Positions are **machine coordinates**; each move also carries
+//! the work offset in force so that tools (`cncgw plan`) can print workpiece coordinates
+//! the way an operator reads them.
+
+use std::fmt;
+use std::sync::Arc;
+
+/// Where a move came from: file, 1-based line and column of the block.
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
+pub struct SrcPos {
+    pub file: Arc<str>,
+    pub line: u32,
+    pub col: u32,
+}
+
+impl SrcPos {
+    pub fn new(file: Arc<str>, line: u32, col: u32) -> Self {
+        Self { file, line, col }
+    }
+}
+
+impl fmt::Display for SrcPos {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{}:{}:{}", self.file, self.line, self.col)
+    }
+}
+
+/// A point in machine coordinates. `x` is a radius in mm, `z`/`y` mm, `c` degrees.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Pos {
+    pub x: f64,
+    pub y: f64,
+    pub z: f64,
+    pub c: f64,
+}
+
+impl Pos {
+    pub const ZERO: Pos = Pos { x: 0.0, y: 0.0, z: 0.0, c: 0.0 };
+    pub fn xz(x: f64, z: f64) -> Self {
+        Pos { x, z, ..Pos::ZERO }
+    }
+    pub fn sub(self, o: Pos) -> Pos {
+        Pos { x: self.x - o.x, y: self.y - o.y, z: self.z - o.z, c: self.c - o.c }
+    }
+    pub fn add(self, o: Pos) -> Pos {
+        Pos { x: self.x + o.x, y: self.y + o.y, z: self.z + o.z, c: self.c + o.c }
+    }
+}
+
+/// Feed rate as programmed (G98 per minute / G99 per revolution).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Feed {
+    /// mm/min (G98).
+    PerMin(f64),
+    /// mm per spindle revolution (G99).
+    PerRev(f64),
+}
+
+/// Interpolation plane (G17 XY, G18 ZX, G19 YZ).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum Plane {
+    Xy,
+    #[default]
+    Zx,
+    Yz,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SpindleDir {
+    /// M03
+    Cw,
+    /// M04
+    Ccw,
+    /// M05
+    Stop,
+}
+
+/// A spindle state change. `rpm` is the commanded speed under G97; under G96 `css` holds the
+/// surface speed (m/min) and the motion layer computes rpm from the actual X, clamped to
+/// `max_rpm` (G50 S).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SpindleCmd {
+    pub dir: SpindleDir,
+    pub rpm: f64,
+    pub css: Option<f64>,
+    pub max_rpm: Option<f64>,
+}
+
+/// Which canned cycle made a move, and which step of it (the manuals' numbering), so that
+/// feed hold and single block can be applied per step downstream.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CycleTag {
+    pub cycle: Arc<str>,
+    pub step: u8,
+}
+
+#[derive(Clone, Debug, PartialEq)]
+pub enum MoveKind {
+    /// G00 positioning at rapid rate.
+    Rapid { end: Pos },
+    /// G01 linear interpolation.
+    Feed { end: Pos, feed: Feed },
+    /// G02/G03 circular interpolation in `plane`; `center` in machine coordinates.
+    Arc { end: Pos, center: Pos, cw: bool, plane: Plane, feed: Feed },
+    /// Spindle-synchronized thread cut (G32/G92/G76/G78): the feed axes are slaved to the
+    /// spindle. `lead` is mm per revolution along the long axis; `start_angle` the spindle
+    /// angle (degrees) after the one-revolution signal at which the cut starts.
+    Thread { end: Pos, lead: f64, start_angle: f64 },
+    /// Rigid tap along Z: spindle angle and feed axis interpolated together, `lead` in mm
+    /// per revolution (sign gives direction), `rpm` the spindle speed of this stroke.
+    Tap { end: Pos, lead: f64, rpm: f64 },
+    /// G04: wait `seconds`.
+    Dwell { seconds: f64 },
+    /// Spindle start/stop/speed change.
+    Spindle(SpindleCmd),
+    /// An auxiliary code passed through: letter (`M`, `T`, `S`, `B`) and value.
+    Aux { letter: char, value: f64 },
+    /// M00 (optional = false) or M01 (optional = true).
+    Stop { optional: bool },
+    /// M02 or M30.
+    End { code: u16 },
+}
+
+/// One canonical move, with where it came from.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Move {
+    pub src: SrcPos,
+    pub kind: MoveKind,
+    /// Exact stop at the end of this move (G09 in the block, G61 modal, or required by the
+    /// manual, e.g. the end of every rapid).
+    pub exact_stop: bool,
+    /// Work offset in force (machine = work + offset), for printing workpiece coordinates.
+    pub work_offset: Pos,
+    /// Canned cycle and step, when a cycle made this move.
+    pub tag: Option<CycleTag>,
+}
+
+impl MoveKind {
+    /// The end point of a motion, if this move moves the axes.
+    pub fn end(&self) -> Option<Pos> {
+        match self {
+            MoveKind::Rapid { end }
+            | MoveKind::Feed { end, .. }
+            | MoveKind::Arc { end, .. }
+            | MoveKind::Thread { end, .. }
+            | MoveKind::Tap { end, .. } => Some(*end),
+            _ => None,
+        }
+    }
+
+    /// The `kind` name used by `cncgw plan`.
+    pub fn name(&self) -> &'static str {
+        match self {
+            MoveKind::Rapid { .. } => "rapid",
+            MoveKind::Feed { .. } => "feed",
+            MoveKind::Arc { .. } => "arc",
+            MoveKind::Thread { .. } => "thread",
+            MoveKind::Tap { .. } => "tap",
+            MoveKind::Dwell { .. } => "dwell",
+            MoveKind::Spindle(_) => "spindle",
+            MoveKind::Aux { .. } => "aux",
+            MoveKind::Stop { .. } => "stop",
+            MoveKind::End { .. } => "end",
+        }
+    }
+}

@@ -1,0 +1,1 @@
+//! G-code interpreter (Type A lathe dialect). Built in src/interp/.

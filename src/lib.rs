@@ -1,0 +1,16 @@
+//! cncgw: a CNC lathe / turn-mill controller core and fieldbus gateway.
+//!
+//! Data flow (see docs/ARCHITECTURE.md): part program → [`interp`] → [`canon::Move`] stream →
+//! [`motion`] planner and interpolator (+ [`sync`]) → per-cycle setpoints → [`drives`]
+//! (CiA 402 over CANopen, Modbus) → bus.
+
+pub mod alarm;
+pub mod canon;
+pub mod config;
+pub mod interp;
+pub mod motion;
+pub mod sync;
+
+pub use alarm::Alarm;
+/// The shared codecs, transports and clock (its own crate so that `sim-drives` can use them).
+pub use cncgw_bus as bus;

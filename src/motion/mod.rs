@@ -1,0 +1,1 @@
+//! Planner, interpolator and cycle loop.

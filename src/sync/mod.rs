@@ -1,0 +1,1 @@
+//! Spindle–axis synchronization (threading, rigid tapping) and its error monitor.
