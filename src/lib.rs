@@ -7,6 +7,7 @@
 pub mod alarm;
 pub mod canon;
 pub mod config;
+pub mod drives;
 pub mod interp;
 pub mod motion;
 pub mod sync;

@@ -1,0 +1,599 @@
+//! CANopen master for CiA 402 drives: start-up (boot-up, identity, configuration, PDO
+//! mapping, NMT start), cyclic PDO exchange with SYNC, the CiA 402 power state machine
+//! from the master's side, heartbeat and EMCY consumers.
+//!
+//! Alarm numbers (ours; the manuals have none for the bus): 2001 node did not boot,
+//! 2002 not a CiA 402 device, 2003 SDO failure during configuration, 2010 EMCY / drive
+//! fault, 2011 heartbeat lost, 2012 fault reset failed, 2013 enable timed out,
+//! 2014 node left operational, 2015 stale feedback, 2020 bus error.
+
+use super::sdo_client::{SdoClient, SdoError};
+use crate::config::{AxisKind, MachineConfig};
+use crate::drives::{AxisFeedback, DriveBus};
+use crate::Alarm;
+use cncgw_bus::canopen::emcy::{error_text, Emcy};
+use cncgw_bus::canopen::nmt::{decode_heartbeat, heartbeat_frame, NmtCommand, NmtState};
+use cncgw_bus::canopen::pdo::{get_i32, get_u16, MapEntry};
+use cncgw_bus::canopen::{cob, od, sync_frame};
+use cncgw_bus::cia402::{cw, mode, State};
+use cncgw_bus::{CanBus, CanFrame, Clock};
+
+/// The master's own node id for its heartbeat (consumed by the drives through 0x1016).
+pub const MASTER_NODE_ID: u8 = 0x7F;
+/// How often SDO waits look at the bus.
+const POLL_NS: u64 = 200_000;
+/// Feedback older than this many cycles is stale.
+const MAX_FEEDBACK_AGE: u32 = 5;
+
+/// One drive as the configuration describes it.
+#[derive(Clone, Debug)]
+pub struct NodeSpec {
+    pub axis: String,
+    pub node: u8,
+    pub spindle: bool,
+    pub counts_per_unit: f64,
+    /// Following-error window (0x6065) in machine units.
+    pub following_error: f64,
+    pub min: Option<f64>,
+    pub max: Option<f64>,
+}
+
+impl NodeSpec {
+    /// The drives of a machine, in the config's axis order.
+    pub fn from_config(cfg: &MachineConfig) -> Vec<NodeSpec> {
+        cfg.axes
+            .iter()
+            .map(|(name, a)| NodeSpec {
+                axis: name.clone(),
+                node: a.node,
+                spindle: a.kind == AxisKind::Spindle,
+                counts_per_unit: a.counts_per_unit,
+                following_error: a.following_error,
+                min: a.min,
+                max: a.max,
+            })
+            .collect()
+    }
+}
+
+/// Identity read at start-up (0x1000, 0x1018, 0x1008).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct NodeInfo {
+    pub node: u8,
+    pub device_type: u32,
+    pub vendor: u32,
+    pub product: u32,
+    pub revision: u32,
+    pub serial: u32,
+    pub name: String,
+}
+
+struct Node {
+    spec: NodeSpec,
+    sdo: SdoClient,
+    booted: bool,
+    nmt: Option<NmtState>,
+    last_hb_ns: u64,
+    status: u16,
+    raw_pos: i32,
+    unwrapped: i64,
+    have_fb: bool,
+    fb_cycle: u64,
+    target: i64,
+    controlword: u16,
+    enabled: bool,
+    reset_attempts: u32,
+    last_emcy: Option<Emcy>,
+    info: NodeInfo,
+}
+
+pub struct CanOpenMaster<B: CanBus> {
+    bus: B,
+    nodes: Vec<Node>,
+    cycle_ns: u64,
+    cycle_ms: f64,
+    hb_ms: u16,
+    next_hb_ns: u64,
+    boot_timeout_ms: u32,
+    cycles: u64,
+    enable_cycles: u64,
+    running: bool,
+}
+
+enum Sdo<'a> {
+    Up(u16, u8),
+    Down(u16, u8, &'a [u8]),
+}
+
+impl<B: CanBus> CanOpenMaster<B> {
+    pub fn new(bus: B, cfg: &MachineConfig) -> Self {
+        let timeout = cfg.bus.sdo_timeout_ms;
+        let nodes = NodeSpec::from_config(cfg)
+            .into_iter()
+            .map(|spec| Node {
+                sdo: SdoClient::new(spec.node, timeout),
+                spec,
+                booted: false,
+                nmt: None,
+                last_hb_ns: 0,
+                status: 0,
+                raw_pos: 0,
+                unwrapped: 0,
+                have_fb: false,
+                fb_cycle: 0,
+                target: 0,
+                controlword: 0,
+                enabled: false,
+                reset_attempts: 0,
+                last_emcy: None,
+                info: NodeInfo::default(),
+            })
+            .collect();
+        CanOpenMaster {
+            bus,
+            nodes,
+            cycle_ns: (cfg.machine.cycle_ms * 1e6).round() as u64,
+            cycle_ms: cfg.machine.cycle_ms,
+            hb_ms: cfg.bus.heartbeat_ms,
+            next_hb_ns: 0,
+            boot_timeout_ms: timeout.max(100) * 4,
+            cycles: 0,
+            enable_cycles: 0,
+            running: false,
+        }
+    }
+
+    pub fn infos(&self) -> Vec<NodeInfo> {
+        self.nodes.iter().map(|n| n.info.clone()).collect()
+    }
+
+    pub fn bus_name(&self) -> &str {
+        self.bus.name()
+    }
+
+    fn node_alarm(&self, i: usize, number: u32, msg: impl std::fmt::Display) -> Alarm {
+        let n = &self.nodes[i];
+        Alarm::new(number, format!("node {} (axis {}): {msg}", n.spec.node, n.spec.axis))
+    }
+
+    fn bus_alarm(&self, e: impl std::fmt::Display) -> Alarm {
+        Alarm::new(2020, format!("{e}"))
+    }
+
+    fn send(&mut self, f: &CanFrame) -> Result<(), Alarm> {
+        self.bus.send(f).map_err(|e| Alarm::new(2020, e.to_string()))
+    }
+
+    fn index_of(&self, node: u8) -> Option<usize> {
+        self.nodes.iter().position(|n| n.spec.node == node)
+    }
+
+    /// Handle a frame that is not the answer being waited for: boot-ups, heartbeats,
+    /// EMCY and TPDOs.
+    fn on_background(&mut self, f: &CanFrame, now_ns: u64) {
+        let (func, node) = cob::split(f.cob_id());
+        let Some(i) = self.index_of(node) else { return };
+        if let Some((_, st)) = decode_heartbeat(f) {
+            let n = &mut self.nodes[i];
+            if st == NmtState::BootUp {
+                n.booted = true;
+                n.have_fb = false;
+            }
+            n.nmt = Some(st);
+            n.last_hb_ns = now_ns;
+            return;
+        }
+        if let Some((_, e)) = Emcy::decode(f) {
+            self.nodes[i].last_emcy = if e.code == 0 { None } else { Some(e) };
+            if e.code != 0 {
+                tracing::warn!(node, code = format!("0x{:04X}", e.code), "EMCY: {}", error_text(e.code));
+            }
+            return;
+        }
+        if func == cob::TPDO1 && f.len >= 6 {
+            let n = &mut self.nodes[i];
+            n.status = get_u16(&f.data, 0);
+            let raw = get_i32(&f.data, 2);
+            if n.have_fb {
+                // INTEGER32 positions wrap; a spindle passes 2^31 counts within minutes.
+                n.unwrapped += raw.wrapping_sub(n.raw_pos) as i64;
+            } else {
+                n.unwrapped = raw as i64;
+            }
+            n.raw_pos = raw;
+            n.have_fb = true;
+            n.fb_cycle = self.cycles;
+        }
+    }
+
+    /// One SDO transfer with node `i`, waiting with `clock`. Retries once on timeout.
+    fn sdo(&mut self, clock: &mut dyn Clock, i: usize, req: Sdo<'_>) -> Result<Vec<u8>, SdoError> {
+        let mut tries = 0;
+        loop {
+            tries += 1;
+            let now = clock.now_ns();
+            let f = match req {
+                Sdo::Up(ix, sub) => self.nodes[i].sdo.start_upload(ix, sub, now),
+                Sdo::Down(ix, sub, d) => self.nodes[i].sdo.start_download(ix, sub, d, now),
+            };
+            if self.bus.send(&f).is_err() {
+                return Err(SdoError::Protocol("cannot send on the bus"));
+            }
+            let r = loop {
+                let t = clock.now_ns() + POLL_NS;
+                clock.wait_until(t);
+                let now = clock.now_ns();
+                while let Ok(Some(fr)) = self.bus.try_recv() {
+                    let (func, node) = cob::split(fr.cob_id());
+                    if func == cob::SDO_TX && node == self.nodes[i].spec.node {
+                        if let Some(out) = self.nodes[i].sdo.on_frame(&fr, now) {
+                            let _ = self.bus.send(&out);
+                        }
+                    } else {
+                        self.on_background(&fr, now);
+                    }
+                }
+                if let Some(out) = self.nodes[i].sdo.poll(now) {
+                    let _ = self.bus.send(&out);
+                }
+                if let Some(r) = self.nodes[i].sdo.take_result() {
+                    break r;
+                }
+            };
+            match r {
+                Err(SdoError::Timeout { .. }) if tries < 2 => continue,
+                r => return r,
+            }
+        }
+    }
+
+    fn read_u32(&mut self, clock: &mut dyn Clock, i: usize, ix: u16, sub: u8) -> Result<u32, SdoError> {
+        let v = self.sdo(clock, i, Sdo::Up(ix, sub))?;
+        let mut b = [0u8; 4];
+        let n = v.len().min(4);
+        b[..n].copy_from_slice(&v[..n]);
+        Ok(u32::from_le_bytes(b))
+    }
+
+    fn write(&mut self, clock: &mut dyn Clock, i: usize, ix: u16, sub: u8, data: &[u8]) -> Result<(), Alarm> {
+        self.sdo(clock, i, Sdo::Down(ix, sub, data)).map(|_| ()).map_err(|e| {
+            self.node_alarm(i, 2003, format!("writing 0x{ix:04X}:{sub:02X} failed: {e}"))
+        })
+    }
+
+    /// Drain the bus for `ms` milliseconds of clock time, handling background frames.
+    fn settle(&mut self, clock: &mut dyn Clock, ms: u64) {
+        let end = clock.now_ns() + ms * 1_000_000;
+        while clock.now_ns() < end {
+            let t = clock.now_ns() + POLL_NS;
+            clock.wait_until(t);
+            let now = clock.now_ns();
+            while let Ok(Some(f)) = self.bus.try_recv() {
+                self.on_background(&f, now);
+            }
+        }
+    }
+
+    fn configure_node(&mut self, clock: &mut dyn Clock, i: usize) -> Result<(), Alarm> {
+        let node = self.nodes[i].spec.node;
+        let dt = self
+            .read_u32(clock, i, od::DEVICE_TYPE, 0)
+            .map_err(|e| self.node_alarm(i, 2003, format!("reading the device type 0x1000 failed: {e}")))?;
+        if dt & 0xFFFF != 402 {
+            return Err(self.node_alarm(
+                i,
+                2002,
+                format!("device type 0x1000 = 0x{dt:08X} is not a CiA 402 drive (low word must be 402 = 0x0192); check the node id"),
+            ));
+        }
+        let mut info = NodeInfo { node, device_type: dt, ..NodeInfo::default() };
+        info.vendor = self
+            .read_u32(clock, i, od::IDENTITY, 1)
+            .map_err(|e| self.node_alarm(i, 2003, format!("reading the vendor id 0x1018:01 failed: {e}")))?;
+        // Product, revision, serial are optional in CiA 301: absent ones stay 0.
+        info.product = self.read_u32(clock, i, od::IDENTITY, 2).unwrap_or(0);
+        info.revision = self.read_u32(clock, i, od::IDENTITY, 3).unwrap_or(0);
+        info.serial = self.read_u32(clock, i, od::IDENTITY, 4).unwrap_or(0);
+        if let Ok(name) = self.sdo(clock, i, Sdo::Up(od::DEVICE_NAME, 0)) {
+            info.name = String::from_utf8_lossy(&name).trim_end_matches('\0').trim().to_string();
+        }
+        tracing::info!(
+            node,
+            axis = %self.nodes[i].spec.axis,
+            "CiA 402 drive \"{}\" vendor 0x{:08X} product 0x{:08X} rev 0x{:08X} serial {}",
+            info.name, info.vendor, info.product, info.revision, info.serial
+        );
+        self.nodes[i].info = info;
+
+        let spec = self.nodes[i].spec.clone();
+        let cycle_us = (self.cycle_ms * 1000.0).round() as u32;
+        self.write(clock, i, od::COMM_CYCLE_PERIOD, 0, &cycle_us.to_le_bytes())?;
+        let (val, idx) = interpolation_period(self.cycle_ms);
+        self.write(clock, i, od::INTERPOLATION_PERIOD, 1, &[val])?;
+        self.write(clock, i, od::INTERPOLATION_PERIOD, 2, &[idx as u8])?;
+        self.write(clock, i, od::MODES_OF_OPERATION, 0, &[mode::CYCLIC_SYNC_POSITION as u8])?;
+        let win = (spec.following_error * spec.counts_per_unit).round().clamp(1.0, u32::MAX as f64) as u32;
+        self.write(clock, i, od::FOLLOWING_ERROR_WINDOW, 0, &win.to_le_bytes())?;
+        // Quick stop: decelerate on the quick-stop ramp, then Switch On Disabled.
+        self.write(clock, i, od::QUICK_STOP_OPTION, 0, &2i16.to_le_bytes())?;
+        if let (Some(lo), Some(hi), false) = (spec.min, spec.max, spec.spindle) {
+            let lo = (lo * spec.counts_per_unit).floor() as i32;
+            let hi = (hi * spec.counts_per_unit).ceil() as i32;
+            self.write(clock, i, od::SOFTWARE_LIMIT, 1, &lo.to_le_bytes())?;
+            self.write(clock, i, od::SOFTWARE_LIMIT, 2, &hi.to_le_bytes())?;
+        }
+        // PDO mapping in the order real drives demand: invalidate, zero count, entries,
+        // count, transmission type, validate.
+        let rpdo = [MapEntry::new(od::CONTROLWORD, 0, 16), MapEntry::new(od::TARGET_POSITION, 0, 32)];
+        let tpdo = [MapEntry::new(od::STATUSWORD, 0, 16), MapEntry::new(od::POSITION_ACTUAL, 0, 32)];
+        self.map_pdo(clock, i, od::RPDO_COMM, od::RPDO_MAP, cob::RPDO1 + node as u16, &rpdo)?;
+        self.map_pdo(clock, i, od::TPDO_COMM, od::TPDO_MAP, cob::TPDO1 + node as u16, &tpdo)?;
+        if self.hb_ms > 0 {
+            self.write(clock, i, od::PRODUCER_HEARTBEAT, 0, &self.hb_ms.to_le_bytes())?;
+            // The drive stops by itself when our heartbeat is missing for 3 periods
+            // (0x1016 consumer + 0x6007 abort-connection option 1 = fault).
+            let consumer = ((MASTER_NODE_ID as u32) << 16) | (self.hb_ms as u32 * 3).min(0xFFFF);
+            self.write(clock, i, od::CONSUMER_HEARTBEAT, 1, &consumer.to_le_bytes())?;
+            self.write(clock, i, od::ABORT_CONNECTION, 0, &1i16.to_le_bytes())?;
+        }
+        Ok(())
+    }
+
+    fn map_pdo(
+        &mut self,
+        clock: &mut dyn Clock,
+        i: usize,
+        comm: u16,
+        map: u16,
+        cob_id: u16,
+        entries: &[MapEntry],
+    ) -> Result<(), Alarm> {
+        if cncgw_bus::canopen::pdo::mapped_len(entries).is_none() {
+            return Err(self.node_alarm(i, 2003, "PDO mapping longer than 8 bytes"));
+        }
+        self.write(clock, i, comm, 1, &(0x8000_0000u32 | cob_id as u32).to_le_bytes())?;
+        self.write(clock, i, map, 0, &[0])?;
+        for (k, e) in entries.iter().enumerate() {
+            self.write(clock, i, map, k as u8 + 1, &e.encode().to_le_bytes())?;
+        }
+        self.write(clock, i, map, 0, &[entries.len() as u8])?;
+        self.write(clock, i, comm, 2, &[1])?; // synchronous, every SYNC
+        self.write(clock, i, comm, 1, &(cob_id as u32).to_le_bytes())
+    }
+
+    fn target_raw(&self, i: usize) -> i32 {
+        self.nodes[i].target as i32 // wrapping to INTEGER32, as the drive does
+    }
+}
+
+/// 0x60C2 interpolation period as value × 10^index s, value ≤ 255.
+fn interpolation_period(cycle_ms: f64) -> (u8, i8) {
+    let mut v = cycle_ms;
+    let mut idx: i8 = -3;
+    while (v - v.round()).abs() > 1e-9 && idx > -6 {
+        v *= 10.0;
+        idx -= 1;
+    }
+    (v.round().clamp(1.0, 255.0) as u8, idx)
+}
+
+impl<B: CanBus> DriveBus for CanOpenMaster<B> {
+    fn startup(&mut self, clock: &mut dyn Clock) -> Result<(), Alarm> {
+        // Reset communication so every node reports a boot-up and starts from its default
+        // communication parameters; then wait for all of them.
+        self.send(&NmtCommand::ResetCommunication.frame(0))?;
+        let deadline = clock.now_ns() + self.boot_timeout_ms as u64 * 1_000_000;
+        while !self.nodes.iter().all(|n| n.booted) {
+            if clock.now_ns() >= deadline {
+                let i = self.nodes.iter().position(|n| !n.booted).unwrap_or(0);
+                return Err(self.node_alarm(
+                    i,
+                    2001,
+                    format!(
+                        "no boot-up message within {} ms after NMT reset communication; check power, wiring, bitrate and the node id",
+                        self.boot_timeout_ms
+                    ),
+                ));
+            }
+            self.settle(clock, 1);
+        }
+        for i in 0..self.nodes.len() {
+            self.configure_node(clock, i)?;
+        }
+        self.send(&NmtCommand::Start.frame(0))?;
+        self.next_hb_ns = clock.now_ns();
+        self.settle(clock, 1);
+        Ok(())
+    }
+
+    fn receive(&mut self, now_ns: u64) -> Result<(), Alarm> {
+        self.cycles += 1;
+        loop {
+            match self.bus.try_recv() {
+                Ok(Some(f)) => self.on_background(&f, now_ns),
+                Ok(None) => break,
+                Err(e) => return Err(self.bus_alarm(e)),
+            }
+        }
+        for i in 0..self.nodes.len() {
+            let n = &self.nodes[i];
+            if self.running {
+                if let Some(e) = n.last_emcy {
+                    return Err(self.node_alarm(
+                        i,
+                        2010,
+                        format!("drive fault EMCY 0x{:04X} {} (error register 0x{:02X}); clear the cause, then reset", e.code, error_text(e.code), e.register),
+                    ));
+                }
+                let st = State::from_statusword(n.status);
+                if n.have_fb && st != State::OperationEnabled {
+                    return Err(self.node_alarm(i, 2010, format!("drive left Operation Enabled: now {}", st.name())));
+                }
+                if matches!(n.nmt, Some(s) if s != NmtState::Operational) {
+                    return Err(self.node_alarm(i, 2014, "node left NMT operational (reset or stopped by someone else?)"));
+                }
+            }
+            if self.hb_ms > 0 && n.last_hb_ns > 0 && now_ns.saturating_sub(n.last_hb_ns) > 3 * self.hb_ms as u64 * 1_000_000 {
+                return Err(self.node_alarm(
+                    i,
+                    2011,
+                    format!("heartbeat lost (none for {} ms); check the cable and the drive's power", now_ns.saturating_sub(n.last_hb_ns) / 1_000_000),
+                ));
+            }
+            if self.running && self.cycles.saturating_sub(n.fb_cycle) > MAX_FEEDBACK_AGE as u64 {
+                return Err(self.node_alarm(i, 2015, format!("no position feedback (TPDO1) for {} cycles", self.cycles - n.fb_cycle)));
+            }
+        }
+        Ok(())
+    }
+
+    fn feedback(&self, axis: usize) -> AxisFeedback {
+        let n = &self.nodes[axis];
+        AxisFeedback {
+            pos: n.unwrapped as f64 / n.spec.counts_per_unit,
+            counts: n.unwrapped,
+            statusword: n.status,
+            age_cycles: self.cycles.saturating_sub(n.fb_cycle) as u32,
+        }
+    }
+
+    fn set_target(&mut self, axis: usize, pos: f64) {
+        let n = &mut self.nodes[axis];
+        let c = (pos * n.spec.counts_per_unit).round();
+        if c.is_finite() {
+            n.target = c as i64;
+        }
+    }
+
+    fn target_counts(&self, axis: usize) -> i64 {
+        self.nodes[axis].target
+    }
+
+    fn transmit(&mut self, now_ns: u64) -> Result<(), Alarm> {
+        for i in 0..self.nodes.len() {
+            let n = &self.nodes[i];
+            let t = self.target_raw(i).to_le_bytes();
+            let c = n.controlword.to_le_bytes();
+            let f = CanFrame::new(cob::RPDO1 + n.spec.node as u16, &[c[0], c[1], t[0], t[1], t[2], t[3]]);
+            self.send(&f)?;
+        }
+        self.send(&sync_frame(None))?;
+        if self.hb_ms > 0 && now_ns >= self.next_hb_ns {
+            self.send(&heartbeat_frame(MASTER_NODE_ID, NmtState::Operational))?;
+            self.next_hb_ns = now_ns + self.hb_ms as u64 * 1_000_000;
+        }
+        Ok(())
+    }
+
+    fn enable_step(&mut self) -> Result<bool, Alarm> {
+        self.enable_cycles += 1;
+        let limit = (5_000_000_000 / self.cycle_ns.max(1)).max(100);
+        let mut all = true;
+        for i in 0..self.nodes.len() {
+            let n = &mut self.nodes[i];
+            if !n.have_fb {
+                all = false;
+                continue;
+            }
+            // Hold the actual position while enabling so that nothing jumps.
+            if !n.enabled {
+                n.target = n.unwrapped;
+            }
+            let st = State::from_statusword(n.status);
+            match st {
+                State::OperationEnabled => {
+                    n.enabled = true;
+                    n.controlword = cw::ENABLE_OPERATION_CMD;
+                }
+                State::Fault | State::FaultReactionActive => {
+                    all = false;
+                    n.enabled = false;
+                    if n.controlword & cw::FAULT_RESET != 0 {
+                        n.controlword = 0; // prepare the next rising edge
+                    } else {
+                        n.reset_attempts += 1;
+                        if n.reset_attempts > 5 {
+                            let code = n.last_emcy.map(|e| e.code).unwrap_or(0);
+                            return Err(self.node_alarm(
+                                i,
+                                2012,
+                                format!("fault reset did not clear the fault (last EMCY 0x{code:04X} {}); fix the cause on the drive", error_text(code)),
+                            ));
+                        }
+                        tracing::warn!(node = n.spec.node, "drive in Fault: fault reset");
+                        n.last_emcy = None;
+                        n.controlword = cw::FAULT_RESET_CMD;
+                    }
+                }
+                _ => {
+                    all = false;
+                    n.enabled = false;
+                    n.controlword = st.controlword_towards(State::OperationEnabled);
+                }
+            }
+        }
+        if all {
+            self.running = true;
+            for n in &mut self.nodes {
+                n.last_emcy = None;
+            }
+        } else if self.enable_cycles > limit {
+            let i = self.nodes.iter().position(|n| !n.enabled).unwrap_or(0);
+            let st = State::from_statusword(self.nodes[i].status);
+            return Err(self.node_alarm(i, 2013, format!("did not reach Operation Enabled within 5 s (state {})", st.name())));
+        }
+        Ok(all)
+    }
+
+    fn quick_stop(&mut self) {
+        self.running = false;
+        for n in &mut self.nodes {
+            n.controlword = cw::QUICK_STOP_CMD;
+        }
+    }
+
+    fn shutdown(&mut self, clock: &mut dyn Clock) {
+        self.running = false;
+        for n in &mut self.nodes {
+            n.controlword = cw::SHUTDOWN;
+        }
+        for _ in 0..5 {
+            let t = clock.now_ns() + self.cycle_ns;
+            clock.wait_until(t);
+            let now = clock.now_ns();
+            let _ = self.receive(now);
+            let _ = self.transmit(now);
+        }
+        // Stop the drives expecting our heartbeat before we go silent.
+        for i in 0..self.nodes.len() {
+            let _ = self.sdo(clock, i, Sdo::Down(od::CONSUMER_HEARTBEAT, 1, &0u32.to_le_bytes()));
+        }
+        let _ = self.send(&NmtCommand::EnterPreOperational.frame(0));
+        self.settle(clock, 1);
+    }
+
+    fn axis_count(&self) -> usize {
+        self.nodes.len()
+    }
+
+    fn axis_name(&self, axis: usize) -> &str {
+        &self.nodes[axis].spec.axis
+    }
+
+    fn counts_per_unit(&self, axis: usize) -> f64 {
+        self.nodes[axis].spec.counts_per_unit
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn interpolation_period_encoding() {
+        assert_eq!(interpolation_period(2.0), (2, -3));
+        assert_eq!(interpolation_period(1.0), (1, -3));
+        assert_eq!(interpolation_period(0.5), (5, -4));
+        assert_eq!(interpolation_period(0.25), (25, -5));
+    }
+}

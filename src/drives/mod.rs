@@ -1,0 +1,56 @@
+//! Drives: the `DriveBus` trait the cycle loop uses, and its CANopen (CiA 402)
+//! implementation. Positions cross this boundary in machine units (mm, X as a radius;
+//! degrees for a spindle); counts exist only below it.
+
+pub mod canopen;
+
+use crate::Alarm;
+use cncgw_bus::cia402::State;
+use cncgw_bus::Clock;
+
+/// What the drive of one axis reported in the last cycle.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct AxisFeedback {
+    /// Actual position in machine units, unwrapped (a spindle's angle keeps counting).
+    pub pos: f64,
+    /// Actual position in counts, unwrapped.
+    pub counts: i64,
+    pub statusword: u16,
+    /// Cycles since the last feedback frame from this drive (0 = fresh this cycle).
+    pub age_cycles: u32,
+}
+
+impl AxisFeedback {
+    pub fn state(&self) -> State {
+        State::from_statusword(self.statusword)
+    }
+}
+
+/// A set of drives on one bus, driven cyclically. The cycle loop calls, every cycle:
+/// `receive` → (compute) → `set_target` per axis → `transmit`.
+pub trait DriveBus {
+    /// Bring every drive up: boot, identity check, configuration, NMT start. Blocking; uses
+    /// `clock` to wait, so it runs the same in simulated time.
+    fn startup(&mut self, clock: &mut dyn Clock) -> Result<(), Alarm>;
+    /// Process everything received since the last cycle. Errors are drive alarms (EMCY,
+    /// heartbeat loss, fault state).
+    fn receive(&mut self, now_ns: u64) -> Result<(), Alarm>;
+    fn feedback(&self, axis: usize) -> AxisFeedback;
+    /// Target position for the next cycle, machine units.
+    fn set_target(&mut self, axis: usize, pos: f64);
+    /// Commanded position in counts (unwrapped) last sent to `axis`.
+    fn target_counts(&self, axis: usize) -> i64;
+    /// Send targets and SYNC (and the master heartbeat when due).
+    fn transmit(&mut self, now_ns: u64) -> Result<(), Alarm>;
+    /// One cycle of walking every drive towards Operation Enabled while holding position.
+    /// Returns true once all are enabled.
+    fn enable_step(&mut self) -> Result<bool, Alarm>;
+    /// Quick stop on every drive (E-stop, fault reaction).
+    fn quick_stop(&mut self);
+    /// Orderly shutdown at exit: disable the drives, stop them expecting our heartbeat.
+    fn shutdown(&mut self, clock: &mut dyn Clock);
+    fn axis_count(&self) -> usize;
+    fn axis_name(&self, axis: usize) -> &str;
+    /// Counts per machine unit of `axis` (for reporting in counts).
+    fn counts_per_unit(&self, axis: usize) -> f64;
+}
