@@ -6,6 +6,7 @@
 
 pub mod alarm;
 pub mod canon;
+pub mod cli;
 pub mod config;
 pub mod drives;
 pub mod interp;

@@ -7,10 +7,12 @@
 //! codecs inside `cncgw`, cargo would see a package cycle. One implementation of each codec,
 //! used by both sides.
 
+pub mod busload;
 pub mod canopen;
 pub mod cia402;
 pub mod clock;
 pub mod frame;
+pub mod socketcand;
 pub mod transport;
 
 pub use clock::{Clock, RealClock};

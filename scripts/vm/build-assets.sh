@@ -80,21 +80,23 @@ qemu)
     command -v qemu-system-x86_64 >/dev/null && command -v xz >/dev/null \
         || die "qemu missing: run VMRUN_BACKEND=qemu scripts/install-test-deps.sh"
     KPKG=${KPKG:-$(apt-cache depends linux-image-amd64 2>/dev/null |
-        sed -n 's/^ *Depends: \(linux-image-[0-9].*-amd64\)$/\1/p' | head -n1)}
+        sed -n 's/^ *Depends: \(linux-image-[0-9].*-amd64\)$/\1/p' | awk 'NR == 1')}
     [ -n "$KPKG" ] || die "cannot resolve linux-image-amd64 (apt-get update needed?)"
     log "downloading $KPKG"
     # Not installed on the host: only unpacked here. (The cloud flavour lacks CAN and 9p.)
     (cd "$T" && apt-get download -q "$KPKG" >/dev/null 2>"$T/dl.log") ||
         { cat "$T/dl.log" >&2; die "apt-get download $KPKG failed"; }
     dpkg -x "$T"/"$KPKG"_*.deb "$T/kroot"
-    KREL=$(ls "$T/kroot/lib/modules" | head -n1)
+    KREL=$(ls "$T/kroot/lib/modules")
     mv "$T/kroot/lib/modules/$KREL" "$T/modroot/lib/modules/$KREL"
     depmod -b "$T/modroot" "$KREL"   # the .deb has no modules.dep (made at install time)
     # bzImage costs ~3.5 s of xz under TCG on every boot: unpack the ELF vmlinux once;
     # QEMU boots it through its PVH entry.
-    off=$(grep -obUaP '\xfd7zXZ\x00' "$T/kroot/boot/vmlinuz-$KREL" | head -n1 | cut -d: -f1)
+    off=$(LC_ALL=C grep -obUaP '\xfd7zXZ\x00' "$T/kroot/boot/vmlinuz-$KREL" | awk -F: 'NR == 1 { print $1 }')
     [ -n "$off" ] || die "no xz payload in vmlinuz-$KREL"
-    tail -c +$((off + 1)) "$T/kroot/boot/vmlinuz-$KREL" | xz -dc --single-stream >"$T/vmlinux"
+    # (xz stops at the end of its stream, so tail gets SIGPIPE: check the result instead.)
+    { tail -c +$((off + 1)) "$T/kroot/boot/vmlinuz-$KREL" || true; } | xz -dc --single-stream >"$T/vmlinux"
+    [ "$(head -c 4 "$T/vmlinux" | od -An -c | tr -d ' ')" = 177ELF ] || die "vmlinux extraction failed"
     MODS=$QEMU_MODS
     ;;
 esac

@@ -1,1 +1,2 @@
 //! Planner, interpolator and cycle loop.
+pub mod cycle;

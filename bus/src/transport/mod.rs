@@ -6,6 +6,7 @@
 
 pub mod inproc;
 pub mod socketcan;
+pub mod socketcand;
 
 use crate::frame::CanFrame;
 use std::time::Duration;

@@ -1,0 +1,39 @@
+#!/usr/bin/env bash
+# The whole test suite — the README's test command, and what CI runs.
+#
+#   ./scripts/test.sh
+#
+# 1. installs what the tests need on a fresh Debian machine (idempotent, fast when present);
+# 2. builds every binary (process-level tests start `cncgw` and `sim-drives`);
+# 3. runs every test of the workspace on the host;
+# 4. runs the vcan tier: `sim-drives --bus vcan0` and `cncgw run --bus vcan0` as separate
+#    processes over SocketCAN — on the host kernel where it has vcan, otherwise inside a
+#    throwaway User-Mode Linux guest (scripts/vmrun). It never skips: no vcan, no pass.
+set -euo pipefail
+ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+cd "$ROOT"
+
+step() { printf '\n==> %s\n' "$*"; }
+
+step "installing test prerequisites"
+./scripts/install-test-deps.sh
+
+step "building"
+cargo build --workspace --bins --quiet
+
+step "host tests (every crate of the workspace)"
+if cargo nextest --version >/dev/null 2>&1; then
+    cargo nextest run --workspace --no-fail-fast
+else
+    cargo test --workspace --no-fail-fast
+fi
+# Doc tests are not run by nextest.
+cargo test --workspace --doc --quiet
+
+step "vcan tier (SocketCAN, separate processes)"
+exe=$(cargo test --test vcan_tier --no-run --message-format=json 2>/dev/null \
+      | sed -n 's/.*"executable":"\([^"]*\)".*/\1/p' | tail -n 1)
+[ -x "$exe" ] || { echo "vcan tier: could not build tests/vcan_tier.rs" >&2; exit 1; }
+./scripts/run-vcan-tier.sh "$exe" --ignored --nocapture --test-threads=1
+
+step "all tiers passed"

@@ -1,0 +1,196 @@
+//! `cncgw run`: run a part program on the embedded emulated machine or on a real bus.
+
+use super::{load_config, MachineArgs};
+use crate::canon::Pos;
+use crate::config::{AxisKind, MachineConfig};
+use crate::drives::canopen::CanOpenMaster;
+use crate::drives::DriveBus;
+use crate::interp::Interpreter;
+use crate::motion::cycle::{CycleLoop, RunSummary};
+use crate::motion::{Limits, AX_S, AX_X, AX_Y, AX_Z};
+use cncgw_bus::transport::inproc::InprocBus;
+use cncgw_bus::transport::socketcan::SocketCan;
+use cncgw_bus::{Clock, RealClock};
+use std::path::Path;
+
+/// Exit codes.
+pub const EXIT_OK: i32 = 0;
+pub const EXIT_NOT_AT_END: i32 = 1;
+pub const EXIT_PROGRAM_ERROR: i32 = 2;
+pub const EXIT_ALARM: i32 = 3;
+pub const EXIT_SETUP: i32 = 4;
+
+pub fn run(program: &Path, machine: &MachineArgs, json: bool) -> i32 {
+    let (cfg, cfg_text) = match load_config(machine.config.as_deref()) {
+        Ok(c) => c,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return EXIT_SETUP;
+        }
+    };
+    // The whole program is checked before anything moves.
+    let interp = match Interpreter::from_file(program, &cfg) {
+        Ok(i) => i,
+        Err(alarms) => {
+            for a in &alarms {
+                eprintln!("{a}");
+            }
+            eprintln!("{} error(s); nothing was moved", alarms.len());
+            return EXIT_PROGRAM_ERROR;
+        }
+    };
+    let bus = machine.bus.clone().unwrap_or_else(|| cfg.bus.interface.clone());
+    let lines = std::fs::read_to_string(program).map(|t| t.lines().count() as u64).unwrap_or(0);
+    if bus == "inproc" {
+        let sim_cfg = match sim_drives::SimConfig::from_machine_toml(&cfg_text) {
+            Ok(c) => c,
+            Err(e) => {
+                eprintln!("error: emulated drives: {e}");
+                return EXIT_SETUP;
+            }
+        };
+        let wire = InprocBus::new();
+        let mut world = sim_drives::SimWorld::new(&wire, sim_cfg);
+        let mut master = CanOpenMaster::new(wire.endpoint(), &cfg);
+        eprintln!("cncgw: {} on the embedded emulated drives (in-process bus, simulated time)", program.display());
+        execute(&mut master, &mut world, &cfg, interp, lines, json)
+    } else {
+        let sock = match SocketCan::open(&bus) {
+            Ok(s) => s,
+            Err(e) => {
+                eprintln!("error: {e}");
+                return EXIT_SETUP;
+            }
+        };
+        let mut clock = RealClock::new();
+        let mut master = CanOpenMaster::new(sock, &cfg);
+        eprintln!("cncgw: {} on {bus} (SocketCAN, real time)", program.display());
+        execute(&mut master, &mut clock, &cfg, interp, lines, json)
+    }
+}
+
+fn execute(
+    drives: &mut dyn DriveBus,
+    clock: &mut dyn Clock,
+    cfg: &MachineConfig,
+    mut interp: Interpreter,
+    lines: u64,
+    json: bool,
+) -> i32 {
+    let spindle_drive = cfg.axes.values().position(|a| a.kind == AxisKind::Spindle);
+    let cycle_ns = (cfg.machine.cycle_ms * 1e6).round() as u64;
+    let mut lp = CycleLoop::new(drives, clock, Limits::from_config(cfg), spindle_drive, cycle_ns);
+    let mut summary = RunSummary::default();
+    let start = match lp.start(&mut summary) {
+        Ok(s) => s,
+        Err(a) => {
+            eprintln!("{a}");
+            return EXIT_ALARM;
+        }
+    };
+    interp.set_start_position(Pos { x: start[AX_X], y: start[AX_Y], z: start[AX_Z], c: start[AX_S] });
+    let (tx, rx) = std::sync::mpsc::sync_channel(256);
+    let producer = std::thread::Builder::new().name("interp".into()).spawn(move || {
+        for m in interp {
+            let stop = m.is_err();
+            if tx.send(m).is_err() || stop {
+                break;
+            }
+        }
+    });
+    if let Err(e) = producer {
+        eprintln!("error: cannot start the interpreter thread: {e}");
+        return EXIT_SETUP;
+    }
+    let bar = indicatif::ProgressBar::new(lines.max(1));
+    bar.set_style(
+        indicatif::ProgressStyle::with_template("{spinner} {elapsed_precise} line {pos}/{len} {wide_bar} {msg}")
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+    );
+    let r = lp.run(start, rx, &mut summary, &mut |p| {
+        bar.set_position(p.line as u64);
+        bar.set_message(format!(
+            "X{:.3} Z{:.3} F{:.0} S{:.0}",
+            p.pos[AX_X] * 2.0,
+            p.pos[AX_Z],
+            p.feed,
+            p.spindle_rpm
+        ));
+    });
+    bar.finish_and_clear();
+    lp.finish();
+    match r {
+        Err(a) => {
+            print_summary(&summary, json);
+            eprintln!("{a}");
+            eprintln!("the program stopped at this alarm; the axes were brought to a controlled stop");
+            EXIT_ALARM
+        }
+        Ok(()) => {
+            print_summary(&summary, json);
+            if summary.at_program_end() {
+                EXIT_OK
+            } else {
+                eprintln!("error: an axis did not reach the program's end point within one count");
+                EXIT_NOT_AT_END
+            }
+        }
+    }
+}
+
+fn print_summary(s: &RunSummary, json: bool) {
+    if json {
+        let axes: Vec<_> = s
+            .axes
+            .iter()
+            .map(|a| {
+                serde_json::json!({
+                    "axis": a.name,
+                    "max_following_error": a.max_following_error,
+                    "final_actual_counts": a.final_actual_counts,
+                    "final_target_counts": a.final_target_counts,
+                    "program_end_counts": a.program_end_counts,
+                })
+            })
+            .collect();
+        let v = serde_json::json!({
+            "blocks": s.blocks,
+            "moves": s.moves,
+            "machining_time_s": s.machining_time_s,
+            "enable_time_s": s.enable_time_s,
+            "cycles": s.cycles,
+            "simulated": s.simulated,
+            "at_program_end": s.at_program_end(),
+            "axes": axes,
+        });
+        println!("{v}");
+        return;
+    }
+    println!(
+        "blocks {}  moves {}  machining time {:.3} s{}  cycles {}  drives enabled after {:.3} s",
+        s.blocks,
+        s.moves,
+        s.machining_time_s,
+        if s.simulated { " (simulated)" } else { "" },
+        s.cycles,
+        s.enable_time_s
+    );
+    println!("{:<5} {:>18} {:>14} {:>14} {:>14}  result", "axis", "max follow. error", "final actual", "final target", "program end");
+    for a in &s.axes {
+        let unit = if a.name.starts_with('s') { "deg" } else { "mm" };
+        let (end, ok) = match a.program_end_counts {
+            Some(e) => (e.to_string(), if (a.final_actual_counts - e).abs() <= 1 { "ok (within 1 count)" } else { "NOT AT END POINT" }),
+            None => ("-".to_string(), "-"),
+        };
+        println!(
+            "{:<5} {:>14.4} {:<3} {:>14} {:>14} {:>14}  {}",
+            a.name,
+            a.max_following_error,
+            unit,
+            a.final_actual_counts,
+            a.final_target_counts,
+            end,
+            ok
+        );
+    }
+}

@@ -1,0 +1,336 @@
+//! The cycle loop: every bus cycle read the drives' feedback, advance the interpolator,
+//! write the setpoints, send SYNC. Not async; it runs on its own thread with an injected
+//! clock, so the same code runs against real drives in real time and against emulated drives
+//! in simulated time.
+//!
+//! After start-up the loop allocates nothing: moves arrive over a bounded channel from the
+//! interpreter thread, the look-ahead queue and the statistics are fixed-size.
+
+use crate::canon::{Move, Pos};
+use crate::drives::DriveBus;
+use crate::motion::{Event, Feedback, Limits, Motion, AX_S, AX_X, AX_Y, AX_Z, N_AXES};
+use crate::Alarm;
+use cncgw_bus::Clock;
+use std::sync::mpsc::{Receiver, TryRecvError};
+
+/// Progress, reported to the caller every few cycles.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Progress {
+    pub t_s: f64,
+    pub line: u32,
+    pub pos: [f64; N_AXES],
+    pub feed: f64,
+    pub spindle_rpm: f64,
+}
+
+/// Per-axis result of a run.
+#[derive(Clone, Debug, PartialEq)]
+pub struct AxisSummary {
+    pub name: String,
+    /// Largest |demand − actual| seen while running, machine units.
+    pub max_following_error: f64,
+    pub counts_per_unit: f64,
+    pub final_actual_counts: i64,
+    pub final_target_counts: i64,
+    /// The program's end point for this axis, in counts, where the program moved it.
+    pub program_end_counts: Option<i64>,
+}
+
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct RunSummary {
+    /// Blocks that produced moves or codes (consecutive moves of one block count once).
+    pub blocks: u64,
+    pub moves: u64,
+    /// Time from the first cycle of motion to the end of the program, seconds (simulated
+    /// time under the embedded emulated drives).
+    pub machining_time_s: f64,
+    /// Time from start to every drive in Operation Enabled, seconds of clock time.
+    pub enable_time_s: f64,
+    pub cycles: u64,
+    pub axes: Vec<AxisSummary>,
+    pub simulated: bool,
+}
+
+impl RunSummary {
+    /// True if every axis the program moved ended within one count of the program's end point.
+    pub fn at_program_end(&self) -> bool {
+        self.axes.iter().all(|a| match a.program_end_counts {
+            Some(e) => (a.final_actual_counts - e).abs() <= 1,
+            None => true,
+        })
+    }
+}
+
+/// A run that stopped on an alarm, with what had happened until then.
+#[derive(Debug)]
+pub struct RunFailure {
+    pub alarm: Alarm,
+    pub summary: RunSummary,
+}
+
+/// Which motion axis each drive follows (by the config's axis names: x, y, z; the spindle).
+fn motion_axis(name: &str, spindle: bool) -> Option<usize> {
+    if spindle {
+        return Some(AX_S);
+    }
+    match name {
+        "x" => Some(AX_X),
+        "y" => Some(AX_Y),
+        "z" => Some(AX_Z),
+        _ => None,
+    }
+}
+
+pub struct CycleLoop<'a> {
+    pub drives: &'a mut dyn DriveBus,
+    pub clock: &'a mut dyn Clock,
+    pub limits: Limits,
+    /// Drive index → motion axis.
+    pub spindle_drive: Option<usize>,
+    pub cycle_ns: u64,
+}
+
+impl<'a> CycleLoop<'a> {
+    pub fn new(drives: &'a mut dyn DriveBus, clock: &'a mut dyn Clock, limits: Limits, spindle_drive: Option<usize>, cycle_ns: u64) -> Self {
+        CycleLoop { drives, clock, limits, spindle_drive, cycle_ns }
+    }
+
+    fn map(&self) -> Vec<Option<usize>> {
+        (0..self.drives.axis_count())
+            .map(|d| motion_axis(self.drives.axis_name(d), Some(d) == self.spindle_drive))
+            .collect()
+    }
+
+    /// Start the drives and enable them, holding position. Returns the machine position
+    /// (motion axes) the program starts from.
+    pub fn start(&mut self, summary: &mut RunSummary) -> Result<[f64; N_AXES], Alarm> {
+        let t0 = self.clock.now_ns();
+        summary.simulated = self.clock.is_simulated();
+        self.drives.startup(self.clock)?;
+        let mut next = self.clock.now_ns();
+        loop {
+            next += self.cycle_ns;
+            self.clock.wait_until(next);
+            let now = self.clock.now_ns();
+            self.drives.receive(now)?;
+            let done = self.drives.enable_step()?;
+            self.drives.transmit(now)?;
+            if done {
+                break;
+            }
+        }
+        summary.enable_time_s = (self.clock.now_ns() - t0) as f64 * 1e-9;
+        let mut start = [0.0; N_AXES];
+        for (d, ax) in self.map().iter().enumerate() {
+            if let Some(a) = ax {
+                start[*a] = self.drives.feedback(d).pos;
+            }
+        }
+        Ok(start)
+    }
+
+    /// Run moves from `rx` to the end of the program. `progress` is called about every
+    /// 50 ms of clock time.
+    pub fn run(
+        &mut self,
+        start: [f64; N_AXES],
+        rx: Receiver<Result<Move, Alarm>>,
+        summary: &mut RunSummary,
+        progress: &mut dyn FnMut(&Progress),
+    ) -> Result<(), Alarm> {
+        let map = self.map();
+        let n = map.len();
+        let simulated = self.clock.is_simulated();
+        let dt = self.cycle_ns as f64 * 1e-9;
+        let mut motion = Motion::new(self.limits.clone(), start);
+        // Statistics, all allocated here, before the first cycle.
+        summary.axes = (0..n)
+            .map(|d| AxisSummary {
+                name: self.drives.axis_name(d).to_string(),
+                max_following_error: 0.0,
+                counts_per_unit: self.drives.counts_per_unit(d),
+                final_actual_counts: 0,
+                final_target_counts: 0,
+                program_end_counts: None,
+            })
+            .collect();
+        let mut end_pos: Option<Pos> = None;
+        // Demand history: the drive's demand at SYNC k is the target sent at k−1, and its
+        // actual at SYNC k reaches us at k+1, so compare with the target of two cycles ago.
+        let mut hist = vec![[0i64; 2]; n];
+        for (d, h) in hist.iter_mut().enumerate() {
+            let c = self.drives.feedback(d).counts;
+            *h = [c, c];
+        }
+        let mut last_line = 0u32;
+        let mut input_open = true;
+        let mut ended = false;
+        let mut settle_cycles = 0u32;
+        let mut spindle_rpm = 0.0f64;
+        let mut prev_spindle = self.spindle_drive.map(|d| self.drives.feedback(d).pos).unwrap_or(0.0);
+        let progress_every = ((0.05 / dt).round() as u64).max(1);
+        let t_start = self.clock.now_ns();
+        let mut next = t_start;
+        let max_settle = (2.0 / dt) as u32;
+        loop {
+            // Feed the look-ahead queue. Under simulated time, block for the interpreter so
+            // that every run is identical; in real time never block the cycle.
+            while input_open && motion.has_room() {
+                let item = if simulated {
+                    rx.recv().map_err(|_| TryRecvError::Disconnected)
+                } else {
+                    rx.try_recv()
+                };
+                match item {
+                    Ok(Ok(m)) => {
+                        summary.moves += 1;
+                        if m.src.line != last_line {
+                            summary.blocks += 1;
+                            last_line = m.src.line;
+                        }
+                        if let Some(e) = m.kind.end() {
+                            end_pos = Some(e);
+                        }
+                        if let Err(a) = motion.push(&m) {
+                            self.halt(&mut motion);
+                            return Err(a);
+                        }
+                    }
+                    Ok(Err(a)) => {
+                        // A run-time program alarm: stop at this block, in a controlled way.
+                        self.halt(&mut motion);
+                        return Err(a);
+                    }
+                    Err(TryRecvError::Empty) => break,
+                    Err(TryRecvError::Disconnected) => input_open = false,
+                }
+            }
+
+            next += self.cycle_ns;
+            self.clock.wait_until(next);
+            let now = self.clock.now_ns();
+            summary.cycles += 1;
+            if let Err(a) = self.drives.receive(now) {
+                self.drives.quick_stop();
+                let _ = self.drives.transmit(now);
+                return Err(a);
+            }
+            let mut fb = Feedback::default();
+            for (d, ax) in map.iter().enumerate() {
+                let f = self.drives.feedback(d);
+                if let Some(a) = ax {
+                    fb.pos[*a] = f.pos;
+                }
+                let demand = hist[d][0];
+                let err = (demand - f.counts).abs() as f64 / summary.axes[d].counts_per_unit;
+                if err > summary.axes[d].max_following_error {
+                    summary.axes[d].max_following_error = err;
+                }
+            }
+            if let Some(sd) = self.spindle_drive {
+                let p = self.drives.feedback(sd).pos;
+                let inst = (p - prev_spindle) / 360.0 / dt * 60.0;
+                prev_spindle = p;
+                // 1st-order filter, τ = 8 ms: the position difference of one cycle is
+                // quantised to a count.
+                let k = (dt / 0.008).min(1.0);
+                spindle_rpm += k * (inst - spindle_rpm);
+                fb.spindle_rpm = spindle_rpm;
+            }
+            let sp = motion.step(&fb);
+            for (d, ax) in map.iter().enumerate() {
+                if let Some(a) = ax {
+                    self.drives.set_target(d, sp.pos[*a]);
+                }
+                hist[d][0] = hist[d][1];
+                hist[d][1] = self.drives.target_counts(d);
+            }
+            if let Err(a) = self.drives.transmit(now) {
+                self.drives.quick_stop();
+                return Err(a);
+            }
+            match sp.event {
+                Event::End => ended = true,
+                Event::Stop { optional } => {
+                    // No operator panel in a batch run: M00 is logged and the program goes on.
+                    tracing::info!(line = sp.line, "M0{} program stop (batch run continues)", optional as u8);
+                }
+                Event::Aux { .. } | Event::None => {}
+            }
+            if summary.cycles % progress_every == 0 {
+                progress(&Progress {
+                    t_s: (now - t_start) as f64 * 1e-9,
+                    line: sp.line,
+                    pos: sp.pos,
+                    feed: sp.path_feed,
+                    spindle_rpm: sp.spindle_rpm,
+                });
+            }
+            if (ended || !input_open) && motion.is_idle() {
+                if summary.machining_time_s == 0.0 {
+                    summary.machining_time_s = (now - t_start) as f64 * 1e-9;
+                }
+                // Let the drives settle onto the last setpoint (within one count), bounded.
+                let settled = (0..n).all(|d| {
+                    let f = self.drives.feedback(d);
+                    (f.counts - self.drives.target_counts(d)).abs() <= 1 && f.age_cycles <= 1
+                });
+                settle_cycles += 1;
+                if settled || settle_cycles > max_settle {
+                    break;
+                }
+            }
+        }
+        for (d, ax) in map.iter().enumerate() {
+            let f = self.drives.feedback(d);
+            let a = &mut summary.axes[d];
+            a.final_actual_counts = f.counts;
+            a.final_target_counts = self.drives.target_counts(d);
+            a.program_end_counts = match (ax, end_pos) {
+                (Some(&AX_X), Some(e)) => Some((e.x * a.counts_per_unit).round() as i64),
+                (Some(&AX_Z), Some(e)) => Some((e.z * a.counts_per_unit).round() as i64),
+                (Some(&AX_Y), Some(e)) if e.y != start[AX_Y] => Some((e.y * a.counts_per_unit).round() as i64),
+                _ => None,
+            };
+        }
+        Ok(())
+    }
+
+    /// Controlled stop on a program alarm: decelerate along the path, then hold.
+    fn halt(&mut self, motion: &mut Motion) {
+        motion.stop();
+        let dt_ns = self.cycle_ns;
+        let mut next = self.clock.now_ns();
+        for _ in 0..(5_000_000_000 / dt_ns.max(1)) {
+            next += dt_ns;
+            self.clock.wait_until(next);
+            let now = self.clock.now_ns();
+            if self.drives.receive(now).is_err() {
+                self.drives.quick_stop();
+                let _ = self.drives.transmit(now);
+                return;
+            }
+            let mut fb = Feedback::default();
+            for d in 0..self.drives.axis_count() {
+                if let Some(a) = motion_axis(self.drives.axis_name(d), Some(d) == self.spindle_drive) {
+                    fb.pos[a] = self.drives.feedback(d).pos;
+                }
+            }
+            let sp = motion.step(&fb);
+            for d in 0..self.drives.axis_count() {
+                if let Some(a) = motion_axis(self.drives.axis_name(d), Some(d) == self.spindle_drive) {
+                    self.drives.set_target(d, sp.pos[a]);
+                }
+            }
+            let _ = self.drives.transmit(now);
+            if motion.is_idle() {
+                return;
+            }
+        }
+    }
+
+    /// Orderly end: disable drives.
+    pub fn finish(&mut self) {
+        self.drives.shutdown(self.clock);
+    }
+}

@@ -1,0 +1,108 @@
+//! End to end on the embedded machine: part program → interpreter → motion → CANopen master
+//! → in-process bus → emulated CiA 402 drives (sim-drives) in simulated time.
+
+use cncgw::canon::Pos;
+use cncgw::config::{MachineConfig, EMBEDDED_LATHE};
+use cncgw::drives::canopen::CanOpenMaster;
+use cncgw::interp::Interpreter;
+use cncgw::motion::cycle::{CycleLoop, RunSummary};
+use cncgw::motion::{Limits, AX_S, AX_X, AX_Y, AX_Z};
+use cncgw_bus::transport::inproc::InprocBus;
+use std::path::PathBuf;
+use std::process::Command;
+
+fn run_source(name: &str, text: &str) -> Result<(RunSummary, sim_drives::SimWorld), (cncgw::Alarm, RunSummary)> {
+    let cfg = MachineConfig::embedded();
+    let mut interp = Interpreter::from_source(name, text, &cfg).expect("program parses");
+    let wire = InprocBus::new();
+    let mut world = sim_drives::SimWorld::new(&wire, sim_drives::SimConfig::from_machine_toml(EMBEDDED_LATHE).unwrap());
+    let mut master = CanOpenMaster::new(wire.endpoint(), &cfg);
+    let spindle = cfg.axes.values().position(|a| a.kind == cncgw::config::AxisKind::Spindle);
+    let mut summary = RunSummary::default();
+    let r = {
+        let mut lp = CycleLoop::new(&mut master, &mut world, Limits::from_config(&cfg), spindle, 2_000_000);
+        match lp.start(&mut summary) {
+            Err(a) => Err(a),
+            Ok(start) => {
+                interp.set_start_position(Pos { x: start[AX_X], y: start[AX_Y], z: start[AX_Z], c: start[AX_S] });
+                let (tx, rx) = std::sync::mpsc::sync_channel(64);
+                std::thread::spawn(move || {
+                    for m in interp {
+                        if tx.send(m).is_err() {
+                            break;
+                        }
+                    }
+                });
+                let r = lp.run(start, rx, &mut summary, &mut |_| {});
+                lp.finish();
+                r
+            }
+        }
+    };
+    match r {
+        Ok(()) => Ok((summary, world)),
+        Err(a) => Err((a, summary)),
+    }
+}
+
+#[test]
+fn a_short_program_ends_within_one_count_of_its_end_point() {
+    let prog = "G21 G98\nG00 X40 Z2\nG01 Z-10 F600\nG01 X60 Z-20\nG00 X100 Z5\nM30\n";
+    let (s, world) = run_source("short.nc", prog).map_err(|(a, _)| a).unwrap();
+    assert!(s.simulated);
+    assert!(s.at_program_end(), "{s:#?}");
+    let x = s.axes.iter().find(|a| a.name == "x").unwrap();
+    let z = s.axes.iter().find(|a| a.name == "z").unwrap();
+    // X100 is a diameter: radius 50 mm × 10000 counts/mm.
+    assert_eq!(x.program_end_counts, Some(500_000));
+    assert_eq!(z.program_end_counts, Some(50_000));
+    assert!((x.final_actual_counts - 500_000).abs() <= 1);
+    assert!((z.final_actual_counts - 50_000).abs() <= 1);
+    // The emulated drives agree with what the master saw.
+    assert!((world.drive(1).unwrap().position_actual() as i64 - 500_000).abs() <= 1);
+    assert!((world.drive(2).unwrap().position_actual() as i64 - 50_000).abs() <= 1);
+    // Drives really followed: a following error, but a small one.
+    assert!(x.max_following_error > 0.0 && x.max_following_error < 0.5, "{}", x.max_following_error);
+    // Machining time is at least the feed move's length / feed (10 mm at 600 mm/min = 1 s).
+    assert!(s.machining_time_s > 1.0 && s.machining_time_s < 30.0, "{}", s.machining_time_s);
+}
+
+#[test]
+fn runs_are_deterministic_in_simulated_time() {
+    let prog = "G21 G98\nM03 S800\nG00 X30 Z1\nG01 Z-5 F300\nG02 X40 Z-10 R5\nG00 X80 Z5\nM05\nM30\n";
+    let (a, _) = run_source("det.nc", prog).map_err(|(a, _)| a).unwrap();
+    let (b, _) = run_source("det.nc", prog).map_err(|(a, _)| a).unwrap();
+    assert_eq!(a, b);
+}
+
+#[test]
+fn first_part_example_runs_from_the_cli() {
+    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    let out = Command::new(env!("CARGO_BIN_EXE_cncgw"))
+        .args(["run", "--json"])
+        .arg(root.join("examples/first_part.nc"))
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
+    let v: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+    assert_eq!(v["at_program_end"], true);
+    assert_eq!(v["simulated"], true);
+    assert!(v["blocks"].as_u64().unwrap() >= 10);
+    assert!(v["machining_time_s"].as_f64().unwrap() > 5.0);
+}
+
+#[test]
+fn a_syntax_error_is_reported_with_position_and_nothing_moves() {
+    let dir = std::env::temp_dir().join(format!("cncgw-syntax-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let p = dir.join("bad.nc");
+    std::fs::write(&p, "G21\nG00 X10 Z5\nG01 Z-5 F100\nG01 X20 Z-10 Q?\nM30\n").unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_cncgw")).arg("run").arg(&p).output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    assert!(stderr.contains("bad.nc:4:"), "{stderr}");
+    assert!(stderr.contains("G01 X20 Z-10 Q?"), "the block text is shown: {stderr}");
+    assert!(stderr.contains("nothing was moved"), "{stderr}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
