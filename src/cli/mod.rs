@@ -21,8 +21,9 @@ pub struct MachineArgs {
     /// Machine configuration (TOML). Default: the embedded config/lathe.toml.
     #[arg(long, short = 'c', value_name = "FILE")]
     pub config: Option<PathBuf>,
-    /// Bus: `inproc` (embedded emulated drives, simulated time), or a SocketCAN interface
-    /// such as `vcan0` or `can0`. Default: the config's bus.interface.
+    /// Bus: `inproc` (embedded emulated drives, simulated time), a SocketCAN interface such
+    /// as `vcan0` or `can0`, or `socketcand://HOST:PORT/IFACE`. Default: the config's
+    /// bus.interface.
     #[arg(long, value_name = "BUS")]
     pub bus: Option<String>,
 }

@@ -54,6 +54,18 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool) -> i32 {
         let mut master = CanOpenMaster::new(wire.endpoint(), &cfg);
         eprintln!("cncgw: {} on the embedded emulated drives (in-process bus, simulated time)", program.display());
         execute(&mut master, &mut world, &cfg, interp, lines, json)
+    } else if let Some((addr, iface)) = cncgw_bus::transport::socketcand::parse_url(&bus) {
+        let sock = match cncgw_bus::transport::socketcand::Socketcand::connect(&addr, &iface) {
+            Ok(s) => s,
+            Err(e) => {
+                eprintln!("error: {e}");
+                return EXIT_SETUP;
+            }
+        };
+        let mut clock = RealClock::new();
+        let mut master = CanOpenMaster::new(sock, &cfg);
+        eprintln!("cncgw: {} on {bus} (socketcand over TCP, real time)", program.display());
+        execute(&mut master, &mut clock, &cfg, interp, lines, json)
     } else {
         let sock = match SocketCan::open(&bus) {
             Ok(s) => s,
