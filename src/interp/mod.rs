@@ -1,1 +1,1074 @@
-//! G-code interpreter (Type A lathe dialect). Built in src/interp/.
+//! G-code interpreter for the Type A lathe dialect (ELESY-E3TA manual
+//! 004_5038892017d8ae23.txt): part program text → [`crate::canon::Move`] stream.
+//!
+//! Two passes, so that a long program never has to be held as parsed blocks:
+//! 1. [`Interpreter::from_source`] parses every line once to collect **all** syntax and static
+//!    errors of the file, and keeps only an index: line start offsets, program numbers (`O`),
+//!    sequence numbers (`N`, for GOTO/M99 P) and DO/END pairs.
+//! 2. [`Interpreter::next_move`] re-parses one block at a time as it executes it.
+//!
+//! Alarm numbers: the manual gives none for the program errors handled here, so they are
+//! Fanuc 0i-TF PS numbers (3 too many digits, 4 address not found, 5 no data after address,
+//! 6 illegal minus sign, 7 illegal decimal point, 9 improper address, 10 improper G code
+//! (also: two codes of one group, "not supported yet"), 11 no feed rate, 20 arc radius
+//! out of tolerance, 21 axis outside the arc plane, 22 R or I/K missing, 76 program not
+//! found, 77 subprogram nesting too deep, 78 sequence number not found, 111–128 macro
+//! errors), plus 2500 (ours) for an endless loop that produces no motion.
+//!
+//! Numbers without a decimal point: the manual gives no increment-system rule for them, so we
+//! follow Fanuc parameter No.3401#0 (DPI): 1 = calculator-type input, `X10` = 10 mm; 0 =
+//! least input increment (IS-B), `X10` = 0.010 mm (0.0010 inch under G20). When No.3401 is
+//! not in the configuration, calculator-type input applies (this project's convention).
+//! F, S, P, T and M values are never scaled.
+
+pub mod gcode;
+pub mod macros;
+pub mod parse;
+pub mod plan;
+
+use crate::canon::{Feed, Move, MoveKind, Plane, Pos, SpindleCmd, SpindleDir, SrcPos};
+use crate::config::MachineConfig;
+use crate::Alarm;
+use gcode::{Decoded, GCode, Val};
+use macros::{MErr, Vars};
+use parse::{Block, Expr, PErr, Stmt, Word};
+use std::collections::{HashMap, VecDeque};
+use std::sync::Arc;
+
+/// Our own alarm: this many blocks in a row without any move is taken as an endless loop.
+pub const ENDLESS_LOOP_ALARM: u32 = 2500;
+const ENDLESS_LOOP_BLOCKS: u64 = 10_000_000;
+/// Fanuc/manual §3.1.6: 12 levels of subprogram/macro nesting.
+pub const MAX_NESTING: usize = 12;
+
+#[derive(Clone, Debug)]
+struct ProgInfo {
+    number: Option<u32>,
+    /// First line index after the `O` line.
+    start: usize,
+    /// One past the last line index.
+    end: usize,
+}
+
+#[derive(Clone, Debug)]
+struct Frame {
+    /// Program and line to return to.
+    prog: usize,
+    line: usize,
+    /// Remaining repetitions (M98 L) including the current one.
+    repeats: u32,
+    /// G65 call: has its own local variables.
+    macro_call: bool,
+}
+
+/// Modal state of the control.
+#[derive(Clone, Debug)]
+struct Modal {
+    /// Group 01 code (×10).
+    motion: GCode,
+    per_rev: bool,
+    inch: bool,
+    css: bool,
+    plane: Plane,
+    wcs: usize,
+    exact: bool,
+    /// Last F under G98 (mm/min) and under G99 (mm/rev): manual §2.20 note 4.
+    f_min: Option<f64>,
+    f_rev: Option<f64>,
+    dir: SpindleDir,
+    rpm: f64,
+    css_v: Option<f64>,
+    max_rpm: Option<f64>,
+}
+
+pub struct Interpreter {
+    file: Arc<str>,
+    text: String,
+    /// Byte offset of the start of every line; one extra entry = text length.
+    line_starts: Vec<usize>,
+    progs: Vec<ProgInfo>,
+    labels: HashMap<(usize, u32), usize>,
+    do_end: HashMap<usize, usize>,
+    end_do: HashMap<usize, usize>,
+    // Machine facts.
+    calculator: bool,
+    arc_tol: f64,
+    arc_missing_alarm: bool,
+    has_y: bool,
+    has_c: bool,
+    // Execution state.
+    prog: usize,
+    line: usize,
+    stack: Vec<Frame>,
+    vars: Vars,
+    st: Modal,
+    pos: Pos,
+    wcs_table: [Pos; 6],
+    /// G50 shift, common to all workpiece coordinate systems (manual §2.12.2 note 4).
+    shift: Pos,
+    /// G52 local coordinate system.
+    local: Pos,
+    queue: VecDeque<Move>,
+    ended: bool,
+    block_skip: bool,
+    idle_blocks: u64,
+}
+
+fn perr_alarm(file: &Arc<str>, line_no: usize, text: &str, e: PErr) -> Alarm {
+    Alarm::new(e.number, e.message)
+        .at(SrcPos::new(file.clone(), line_no as u32 + 1, e.col))
+        .with_block(text.trim_end())
+}
+
+impl Interpreter {
+    /// Parse and statically check the whole program (syntax errors for the WHOLE file are
+    /// collected before anything runs), then return an interpreter positioned at its start.
+    pub fn from_source(file_name: &str, text: &str, cfg: &MachineConfig) -> Result<Interpreter, Vec<Alarm>> {
+        let file: Arc<str> = Arc::from(file_name);
+        let calculator = cfg.param(3401).map(|v| (v as i64) & 1 == 1).unwrap_or(true);
+        let mut it = Interpreter {
+            file: file.clone(),
+            text: text.to_string(),
+            line_starts: Vec::new(),
+            progs: Vec::new(),
+            labels: HashMap::new(),
+            do_end: HashMap::new(),
+            end_do: HashMap::new(),
+            calculator,
+            // Fanuc No.3410: arc end-point radius tolerance (mm); 0.01 mm when not configured.
+            arc_tol: cfg.param(3410).filter(|v| *v > 0.0).unwrap_or(0.01),
+            // Manual §2.3 note 2 / No.3403: G02/G03 without R and I/K → alarm (bit 5 set, or
+            // parameter absent) or a straight line (bit 5 = 0, Fanuc CIR).
+            arc_missing_alarm: cfg.param(3403).map(|_| cfg.param_bit(3403, 5)).unwrap_or(true),
+            has_y: cfg.axes.contains_key("y"),
+            has_c: cfg.spindle().is_some() || cfg.axes.contains_key("c"),
+            prog: 0,
+            line: 0,
+            stack: Vec::new(),
+            vars: Vars::new(),
+            st: Modal {
+                motion: if cfg.param(5153).unwrap_or(0.0) as i64 == 1 { 10 } else { 0 },
+                per_rev: cfg.param(5154).unwrap_or(0.0) as i64 == 1,
+                inch: cfg.param(10).unwrap_or(0.0) as i64 & 1 == 1,
+                css: false,
+                plane: Plane::Zx,
+                wcs: 0,
+                exact: false,
+                f_min: None,
+                f_rev: None,
+                dir: SpindleDir::Stop,
+                rpm: 0.0,
+                css_v: None,
+                max_rpm: None,
+            },
+            pos: Pos::ZERO,
+            wcs_table: [Pos::ZERO; 6],
+            shift: Pos::ZERO,
+            local: Pos::ZERO,
+            queue: VecDeque::new(),
+            ended: false,
+            block_skip: false,
+            idle_blocks: 0,
+        };
+        let errors = it.index();
+        if errors.is_empty() {
+            Ok(it)
+        } else {
+            Err(errors)
+        }
+    }
+
+    pub fn from_file(path: &std::path::Path, cfg: &MachineConfig) -> Result<Interpreter, Vec<Alarm>> {
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| vec![Alarm::new(76, format!("{}: cannot read the program: {e}", path.display()))])?;
+        Self::from_source(&path.display().to_string(), &text, cfg)
+    }
+
+    /// Machine position of the axes when the program starts (default all zero).
+    pub fn set_start_position(&mut self, p: Pos) {
+        self.pos = p;
+    }
+
+    /// Block skip switch (`/` blocks are skipped when on). Default off.
+    pub fn set_block_skip(&mut self, on: bool) {
+        self.block_skip = on;
+    }
+
+    /// Workpiece zero offsets of G54…G59 in machine coordinates (X as a radius, mm).
+    pub fn set_work_offsets(&mut self, table: [Pos; 6]) {
+        self.wcs_table = table;
+    }
+
+    fn line_text(&self, i: usize) -> &str {
+        let (a, b) = (self.line_starts[i], self.line_starts[i + 1]);
+        self.text[a..b].trim_end_matches(['\n', '\r'])
+    }
+
+    /// Pass 1: parse every line, collect all errors, build the index.
+    fn index(&mut self) -> Vec<Alarm> {
+        let mut starts = vec![0usize];
+        for (i, b) in self.text.bytes().enumerate() {
+            if b == b'\n' {
+                starts.push(i + 1);
+            }
+        }
+        if *starts.last().unwrap_or(&0) != self.text.len() {
+            starts.push(self.text.len());
+        }
+        self.line_starts = starts;
+        let nlines = self.line_starts.len() - 1;
+        let mut errors = Vec::new();
+        self.progs = vec![ProgInfo { number: None, start: 0, end: nlines }];
+        let mut content = false;
+        let mut loop_stack: Vec<(u8, usize)> = Vec::new();
+        let mut gotos: Vec<(usize, usize, u32, u32)> = Vec::new(); // prog, line, target, col
+        let mut seen_content_any = false;
+        for i in 0..nlines {
+            let text = self.line_text(i).to_string();
+            let b = match parse::parse_line(&text) {
+                Ok(b) => b,
+                Err(e) => {
+                    errors.push(perr_alarm(&self.file, i, &text, e));
+                    content = true;
+                    continue;
+                }
+            };
+            let p = self.progs.len() - 1;
+            match &b.stmt {
+                Stmt::Percent => {
+                    if seen_content_any {
+                        // End of tape: the rest of the file is not part of the program.
+                        if let Some(last) = self.progs.last_mut() {
+                            last.end = i;
+                        }
+                        break;
+                    }
+                    continue;
+                }
+                Stmt::Program(n) => {
+                    self.close_loops(&mut loop_stack, &mut errors, i);
+                    if !content && self.progs.len() == 1 {
+                        self.progs[0] = ProgInfo { number: Some(*n), start: i + 1, end: nlines };
+                    } else {
+                        if let Some(q) = self.progs.iter().position(|q| q.number == Some(*n)) {
+                            let _ = q;
+                            errors.push(
+                                Alarm::new(73, format!("program O{n:04} is defined twice in this file"))
+                                    .at(SrcPos::new(self.file.clone(), i as u32 + 1, b.col))
+                                    .with_block(text.trim_end()),
+                            );
+                        }
+                        if let Some(last) = self.progs.last_mut() {
+                            last.end = i;
+                        }
+                        self.progs.push(ProgInfo { number: Some(*n), start: i + 1, end: nlines });
+                    }
+                    content = true;
+                    seen_content_any = true;
+                    continue;
+                }
+                Stmt::Empty if b.n.is_none() => continue,
+                _ => {}
+            }
+            content = true;
+            seen_content_any = true;
+            if let Some(n) = b.n {
+                self.labels.entry((p, n)).or_insert(i);
+            }
+            let at = |col: u32| SrcPos::new(self.file.clone(), i as u32 + 1, col);
+            match &b.stmt {
+                Stmt::Nc(words) => {
+                    if words.iter().all(|w| w.value.is_literal()) {
+                        if let Err(a) = self.decode_words(words, &Vars::new()) {
+                            let col = a_col(&a);
+                            errors.push(a.at(at(col)).with_block(text.trim_end()));
+                        }
+                    }
+                }
+                Stmt::Do { n, .. } => {
+                    if loop_stack.len() >= 3 {
+                        errors.push(
+                            Alarm::new(126, "DO loops nest at most 3 deep").at(at(b.col)).with_block(text.trim_end()),
+                        );
+                    }
+                    loop_stack.push((*n, i));
+                }
+                Stmt::End(n) => match loop_stack.pop() {
+                    Some((m, d)) if m == *n => {
+                        self.do_end.insert(d, i);
+                        self.end_do.insert(i, d);
+                    }
+                    Some((m, d)) => {
+                        errors.push(
+                            Alarm::new(
+                                126,
+                                format!("END{n} does not match DO{m} of line {} (DO ranges may not cross)", d + 1),
+                            )
+                            .at(at(b.col))
+                            .with_block(text.trim_end()),
+                        );
+                    }
+                    None => errors.push(
+                        Alarm::new(126, format!("END{n} without a DO{n}")).at(at(b.col)).with_block(text.trim_end()),
+                    ),
+                },
+                Stmt::Goto(Expr::Num { v, .. }) | Stmt::IfGoto { target: Expr::Num { v, .. }, .. } => {
+                    gotos.push((p, i, *v as u32, b.col));
+                }
+                _ => {}
+            }
+        }
+        self.close_loops(&mut loop_stack, &mut errors, nlines);
+        for (p, i, n, col) in gotos {
+            if !self.labels.contains_key(&(p, n)) {
+                let text = self.line_text(i).to_string();
+                errors.push(
+                    Alarm::new(78, format!("GOTO {n}: there is no block N{n} in this program"))
+                        .at(SrcPos::new(self.file.clone(), i as u32 + 1, col))
+                        .with_block(text.trim_end()),
+                );
+            }
+        }
+        errors.sort_by_key(|a| a.pos.as_ref().map(|p| (p.line, p.col)));
+        self.prog = 0;
+        self.line = self.progs[0].start;
+        errors
+    }
+
+    fn close_loops(&self, stack: &mut Vec<(u8, usize)>, errors: &mut Vec<Alarm>, _at: usize) {
+        for (n, d) in stack.drain(..) {
+            let text = self.line_text(d).to_string();
+            errors.push(
+                Alarm::new(124, format!("DO{n} has no END{n}"))
+                    .at(SrcPos::new(self.file.clone(), d as u32 + 1, 1))
+                    .with_block(text.trim_end()),
+            );
+        }
+    }
+
+    /// Evaluate the words of an NC block and decode it. Errors carry the column in `pos`
+    /// (filled by the caller) via [`a_col`].
+    fn decode_words(&self, words: &[Word], vars: &Vars) -> Result<Decoded, Alarm> {
+        let mut ev = Vec::with_capacity(words.len());
+        for w in words {
+            let v = vars.eval(&w.value).map_err(|e| col_alarm(e.number, w.col, e.message))?;
+            let Some(mut v) = v else { continue }; // null variable: the word is ignored
+            let literal = w.value.is_literal();
+            let decimal = if literal { has_decimal(&w.value) } else { true };
+            if !literal && is_length(w.letter, w.comma) {
+                // §2.24.1: variable values are rounded to the least setting unit (0.001 mm).
+                v = (v * 1000.0).round() / 1000.0;
+            }
+            ev.push((w.letter, w.comma, Val { v, decimal, col: w.col }));
+        }
+        Decoded::build(&ev, self.has_y, self.has_c).map_err(|(n, col, m)| col_alarm(n, col, m))
+    }
+
+    /// Execute until the next canonical move. Ok(None) after M02/M30 has been returned or at
+    /// the end of the text.
+    pub fn next_move(&mut self) -> Result<Option<Move>, Alarm> {
+        loop {
+            if let Some(m) = self.queue.pop_front() {
+                self.idle_blocks = 0;
+                return Ok(Some(m));
+            }
+            if self.ended {
+                return Ok(None);
+            }
+            self.idle_blocks += 1;
+            if self.idle_blocks > ENDLESS_LOOP_BLOCKS {
+                self.ended = true;
+                return Err(self.alarm_here(
+                    ENDLESS_LOOP_ALARM,
+                    1,
+                    format!("{ENDLESS_LOOP_BLOCKS} blocks without any move: endless loop? Check the GOTO/WHILE logic"),
+                ));
+            }
+            if let Err(a) = self.step() {
+                self.ended = true;
+                return Err(a);
+            }
+        }
+    }
+
+    fn alarm_here(&self, number: u32, col: u32, msg: impl Into<String>) -> Alarm {
+        let i = self.line.saturating_sub(1).min(self.line_starts.len().saturating_sub(2));
+        Alarm::new(number, msg)
+            .at(SrcPos::new(self.file.clone(), i as u32 + 1, col))
+            .with_block(self.line_text(i).trim_end())
+    }
+
+    /// Execute one block (or handle the end of the current program).
+    fn step(&mut self) -> Result<(), Alarm> {
+        if self.line >= self.progs[self.prog].end {
+            // End of a program without M30/M99: a subprogram returns, the main program ends.
+            if self.stack.is_empty() {
+                self.ended = true;
+            } else {
+                self.ret(None, 1)?;
+            }
+            return Ok(());
+        }
+        let i = self.line;
+        self.line += 1;
+        let text = self.line_text(i).to_string();
+        let b: Block = parse::parse_line(&text).map_err(|e| perr_alarm(&self.file, i, &text, e))?;
+        if b.skip && self.block_skip {
+            return Ok(());
+        }
+        let src = SrcPos::new(self.file.clone(), i as u32 + 1, b.col);
+        let wrap = |e: MErr, col: u32| {
+            Alarm::new(e.number, e.message)
+                .at(SrcPos::new(self.file.clone(), i as u32 + 1, col))
+                .with_block(text.trim_end())
+        };
+        match b.stmt {
+            Stmt::Empty | Stmt::Percent => {}
+            Stmt::Program(_) => {
+                // Reaching the next program's O line ends the current program.
+                self.line = i;
+                if self.stack.is_empty() {
+                    self.ended = true;
+                } else {
+                    self.ret(None, b.col)?;
+                }
+            }
+            Stmt::Assign { var, value } => {
+                let n = self.vars.target(&var).map_err(|e| wrap(e, b.col))?;
+                let v = self.vars.eval(&value).map_err(|e| wrap(e, b.col))?;
+                self.vars.set(n, v).map_err(|e| wrap(e, b.col))?;
+            }
+            Stmt::IfThen { cond, var, value } => {
+                if truth(self.vars.eval(&cond).map_err(|e| wrap(e, b.col))?) {
+                    let n = self.vars.target(&var).map_err(|e| wrap(e, b.col))?;
+                    let v = self.vars.eval(&value).map_err(|e| wrap(e, b.col))?;
+                    self.vars.set(n, v).map_err(|e| wrap(e, b.col))?;
+                }
+            }
+            Stmt::IfGoto { cond, target } => {
+                if truth(self.vars.eval(&cond).map_err(|e| wrap(e, b.col))?) {
+                    self.goto(&target, b.col)?;
+                }
+            }
+            Stmt::Goto(target) => self.goto(&target, b.col)?,
+            Stmt::Do { cond, .. } => {
+                let go = match cond {
+                    Some(c) => truth(self.vars.eval(&c).map_err(|e| wrap(e, b.col))?),
+                    None => true,
+                };
+                if !go {
+                    match self.do_end.get(&i) {
+                        Some(&e) => self.line = e + 1,
+                        None => return Err(wrap(MErr { number: 124, message: "DO without END".into() }, b.col)),
+                    }
+                }
+            }
+            Stmt::End(_) => match self.end_do.get(&i) {
+                Some(&d) => self.line = d,
+                None => return Err(wrap(MErr { number: 126, message: "END without DO".into() }, b.col)),
+            },
+            Stmt::Nc(words) => {
+                let d = self.decode_words(&words, &self.vars).map_err(|a| {
+                    let col = a_col(&a);
+                    a.at(SrcPos::new(self.file.clone(), i as u32 + 1, col)).with_block(text.trim_end())
+                })?;
+                self.exec(&d, &src).map_err(|(n, col, m)| {
+                    Alarm::new(n, m)
+                        .at(SrcPos::new(self.file.clone(), i as u32 + 1, col.unwrap_or(b.col)))
+                        .with_block(text.trim_end())
+                })?;
+            }
+        }
+        Ok(())
+    }
+
+    fn goto(&mut self, target: &Expr, col: u32) -> Result<(), Alarm> {
+        let v = self.vars.eval(target).map_err(|e| self.alarm_here(e.number, col, e.message))?.unwrap_or(0.0);
+        let n = v.round();
+        if !(1.0..=99999.0).contains(&n) {
+            return Err(self.alarm_here(128, col, format!("GOTO {v}: the sequence number must be 1–99999")));
+        }
+        match self.labels.get(&(self.prog, n as u32)) {
+            Some(&l) => {
+                self.line = l;
+                Ok(())
+            }
+            None => Err(self.alarm_here(78, col, format!("GOTO {n}: there is no block N{n} in this program"))),
+        }
+    }
+
+    /// Return from a subprogram (M99 [P]).
+    fn ret(&mut self, p: Option<u32>, col: u32) -> Result<(), Alarm> {
+        let Some(top) = self.stack.last_mut() else {
+            // M99 in the main program: repeat it from the start (manual §3.1.7; P ignored).
+            self.line = self.progs[self.prog].start;
+            return Ok(());
+        };
+        if top.repeats > 1 {
+            top.repeats -= 1;
+            self.line = self.progs[self.prog].start;
+            return Ok(());
+        }
+        let f = self.stack.pop().expect("checked above");
+        if f.macro_call {
+            self.vars.locals.pop();
+        }
+        self.prog = f.prog;
+        self.line = f.line;
+        if let Some(n) = p {
+            match self.labels.get(&(self.prog, n)) {
+                Some(&l) => self.line = l,
+                None => return Err(self.alarm_here(78, col, format!("M99 P{n}: no block N{n} in the calling program"))),
+            }
+        }
+        Ok(())
+    }
+
+    fn call(&mut self, number: u32, repeats: u32, macro_call: bool, col: u32) -> Result<(), (u32, Option<u32>, String)> {
+        let Some(p) = self.progs.iter().position(|q| q.number == Some(number)) else {
+            return Err((76, Some(col), format!("program O{number:04} not found in this file")));
+        };
+        if p == self.prog {
+            return Err((76, Some(col), format!("O{number:04} cannot call itself (manual §3.1.6 note 3)")));
+        }
+        if self.stack.len() >= MAX_NESTING {
+            return Err((77, Some(col), format!("subprogram/macro calls nest deeper than {MAX_NESTING} levels")));
+        }
+        if repeats == 0 {
+            return Ok(());
+        }
+        self.stack.push(Frame { prog: self.prog, line: self.line, repeats, macro_call });
+        self.prog = p;
+        self.line = self.progs[p].start;
+        Ok(())
+    }
+
+    fn offset(&self) -> Pos {
+        self.wcs_table[self.st.wcs].add(self.shift).add(self.local)
+    }
+
+    fn push(&mut self, src: &SrcPos, kind: MoveKind, exact_stop: bool) {
+        self.queue.push_back(Move { src: src.clone(), kind, exact_stop, work_offset: self.offset(), tag: None });
+    }
+
+    /// Length scale of a word: inch → mm, and the least input increment without a decimal
+    /// point when No.3401#0 = 0.
+    fn len(&self, v: Val) -> f64 {
+        let unit = if self.st.inch { 25.4 } else { 1.0 };
+        let inc = if !self.calculator && !v.decimal {
+            if self.st.inch {
+                0.0001
+            } else {
+                0.001
+            }
+        } else {
+            1.0
+        };
+        v.v * inc * unit
+    }
+
+    /// Target of the axis words in machine coordinates; `None` when no axis word is given.
+    fn target(&self, d: &Decoded) -> Option<Pos> {
+        let off = self.offset();
+        let work = self.pos.sub(off);
+        let mut t = work;
+        let mut any = false;
+        let mut axis = |abs: char, inc: char, cur: f64, scale: f64, angle: bool, out: &mut f64| {
+            let conv = |v: Val| if angle { v.v } else { self.len(v) * scale };
+            if let Some(v) = d.get(abs) {
+                *out = conv(v);
+                any = true;
+            } else if let Some(v) = d.get(inc) {
+                *out = cur + conv(v);
+                any = true;
+            }
+        };
+        axis('X', 'U', work.x, 0.5, false, &mut t.x);
+        axis('Z', 'W', work.z, 1.0, false, &mut t.z);
+        if self.has_y {
+            axis('Y', 'V', work.y, 1.0, false, &mut t.y);
+        }
+        if self.has_c {
+            axis('C', 'H', work.c, 1.0, true, &mut t.c);
+        }
+        any.then(|| t.add(off))
+    }
+
+    fn feed(&self, col: Option<u32>) -> Result<Feed, (u32, Option<u32>, String)> {
+        let f = if self.st.per_rev { self.st.f_rev.map(Feed::PerRev) } else { self.st.f_min.map(Feed::PerMin) };
+        match f {
+            Some(Feed::PerRev(v) | Feed::PerMin(v)) if v > 0.0 => Ok(f.expect("matched Some")),
+            Some(_) => Err((11, col, "feed rate F is zero; program F before a cutting move".into())),
+            None => Err((
+                11,
+                col,
+                format!(
+                    "no feed rate commanded: program F ({}) before the first cutting move",
+                    if self.st.per_rev { "mm/rev under G99" } else { "mm/min under G98" }
+                ),
+            )),
+        }
+    }
+
+    fn spindle_cmd(&self, dir: SpindleDir) -> SpindleCmd {
+        let css = if self.st.css { Some(self.st.css_v.unwrap_or(0.0)) } else { None };
+        let rpm = match css {
+            Some(v) => self.css_rpm(v),
+            None => self.st.rpm,
+        };
+        SpindleCmd { dir, rpm, css, max_rpm: self.st.max_rpm }
+    }
+
+    /// Spindle speed that surface speed `v` (m/min) gives at the current X, clamped to G50 S.
+    fn css_rpm(&self, v: f64) -> f64 {
+        let d = 2.0 * (self.pos.x - self.offset().x).abs();
+        let max = self.st.max_rpm.unwrap_or(f64::INFINITY);
+        if d < 1e-9 {
+            return if max.is_finite() { max } else { 0.0 };
+        }
+        (v * 1000.0 / (std::f64::consts::PI * d)).min(max)
+    }
+
+    /// Execute a decoded NC block: modal changes, then S/T/M before the motion, the motion,
+    /// then M05/M00/M01/M02/M30. The manual leaves the order of M codes and motion in one
+    /// block to the machine (PMC); we start things (spindle, coolant, tool) before the motion
+    /// and stop them after it, as a Fanuc ladder usually does.
+    fn exec(&mut self, d: &Decoded, src: &SrcPos) -> Result<(), (u32, Option<u32>, String)> {
+        let gcol = |g: GCode| d.g.iter().find(|x| x.0 == g).map(|x| x.1);
+        // Modal groups.
+        if let Some(g) = d.group(6) {
+            self.st.inch = g == 200;
+        }
+        if let Some(g) = d.group(16) {
+            self.st.plane = match g {
+                170 => Plane::Xy,
+                190 => Plane::Yz,
+                _ => Plane::Zx,
+            };
+        }
+        if let Some(g) = d.group(5) {
+            self.st.per_rev = g == 990;
+        }
+        if let Some(g) = d.group(14) {
+            self.st.wcs = ((g - 540) / 10) as usize;
+        }
+        if let Some(g) = d.group(15) {
+            self.st.exact = g == 610;
+        }
+        let was_css = self.st.css;
+        if let Some(g) = d.group(2) {
+            if g == 970 && was_css && !d.has('S') {
+                // §2.19 note 3: G97 without S keeps the last G96 speed.
+                self.st.rpm = self.css_rpm(self.st.css_v.unwrap_or(0.0)).round();
+            }
+            self.st.css = g == 960;
+        }
+        if let Some(g) = d.group(1) {
+            self.st.motion = g;
+        }
+        let one_shot = d.group(0);
+        // F.
+        if let Some(f) = d.get('F') {
+            if f.v < 0.0 {
+                return Err((6, Some(f.col), "F cannot be negative".into()));
+            }
+            let v = if self.st.inch { f.v * 25.4 } else { f.v };
+            if self.st.per_rev {
+                self.st.f_rev = Some(v);
+            } else {
+                self.st.f_min = Some(v);
+            }
+        }
+        // S (G50 S = maximum spindle speed).
+        let mut spindle_changed = d.group(2).is_some() && self.st.css != was_css;
+        if let Some(s) = d.get('S') {
+            if s.v < 0.0 {
+                return Err((6, Some(s.col), "S cannot be negative".into()));
+            }
+            if one_shot == Some(500) {
+                self.st.max_rpm = Some(s.v);
+                spindle_changed |= self.st.css;
+            } else if self.st.css {
+                // Surface speed in m/min (ft/min under G20).
+                self.st.css_v = Some(if self.st.inch { s.v * 0.3048 } else { s.v });
+                spindle_changed = true;
+            } else {
+                self.st.rpm = s.v;
+                spindle_changed = true;
+            }
+        }
+        // Spindle M codes and T, aux M before motion.
+        let mut after: Vec<MoveKind> = Vec::new();
+        let mut started = false;
+        for &(m, col) in &d.m {
+            match m {
+                3 | 4 => {
+                    self.st.dir = if m == 3 { SpindleDir::Cw } else { SpindleDir::Ccw };
+                    let c = self.spindle_cmd(self.st.dir);
+                    self.push(src, MoveKind::Spindle(c), false);
+                    started = true;
+                }
+                5 => {
+                    self.st.dir = SpindleDir::Stop;
+                    after.push(MoveKind::Spindle(self.spindle_cmd(SpindleDir::Stop)));
+                }
+                0 => after.push(MoveKind::Stop { optional: false }),
+                1 => after.push(MoveKind::Stop { optional: true }),
+                2 | 30 => after.push(MoveKind::End { code: m as u16 }),
+                91 | 92 => {
+                    return Err((10, Some(col), format!("M{m} (jump on input signal) is not supported yet")));
+                }
+                98 | 99 => {}
+                _ => self.push(src, MoveKind::Aux { letter: 'M', value: m as f64 }, false),
+            }
+        }
+        if spindle_changed && !started && self.st.dir != SpindleDir::Stop && !d.m.iter().any(|m| m.0 == 5) {
+            let c = self.spindle_cmd(self.st.dir);
+            self.push(src, MoveKind::Spindle(c), false);
+        }
+        if let Some(t) = d.get('T') {
+            self.push(src, MoveKind::Aux { letter: 'T', value: t.v }, false);
+        }
+        let exact = self.st.exact || d.has_g(90);
+        // One-shot (group 00) codes and motion.
+        match one_shot {
+            Some(40) => {
+                // §2.6: P in ms (no decimal point), X/U in seconds; none or zero = exact stop.
+                let secs = if let Some(p) = d.get('P') {
+                    p.v / 1000.0
+                } else if let Some(x) = d.get('X').or(d.get('U')) {
+                    if !self.calculator && !x.decimal {
+                        x.v / 1000.0
+                    } else {
+                        x.v
+                    }
+                } else {
+                    0.0
+                };
+                if secs < 0.0 {
+                    return Err((6, gcol(40), "G04: the dwell time cannot be negative".into()));
+                }
+                self.push(src, MoveKind::Dwell { seconds: secs }, true);
+            }
+            Some(500) => {
+                // G50 IP: set the current position's workpiece coordinates (§2.12.1). G50 S
+                // alone only sets the maximum spindle speed.
+                if self.target(d).is_some() {
+                    self.g50(d);
+                }
+            }
+            Some(520) => {
+                // G52: local coordinate system origin in workpiece coordinates; U/W are the same
+                // origin written incrementally from the workpiece zero (G52 U0 W0 cancels).
+                let mut l = self.local;
+                for (a, u, scale, out) in [
+                    ('X', 'U', 0.5, &mut l.x as &mut f64),
+                    ('Z', 'W', 1.0, &mut l.z),
+                ] {
+                    if let Some(v) = d.get(a).or(d.get(u)) {
+                        *out = self.len(v) * scale;
+                    }
+                }
+                self.local = l;
+            }
+            Some(530) => {
+                // G53: rapid to machine coordinates, absolute words only.
+                if let Some(u) = d.letters().find(|l| matches!(l, 'U' | 'W' | 'V' | 'H')) {
+                    return Err((9, d.get(u).map(|v| v.col), format!("G53 takes absolute coordinates only, not {u}")));
+                }
+                let mut t = self.pos;
+                if let Some(v) = d.get('X') {
+                    t.x = self.len(v) * 0.5;
+                }
+                if let Some(v) = d.get('Z') {
+                    t.z = self.len(v);
+                }
+                if let Some(v) = d.get('Y') {
+                    t.y = self.len(v);
+                }
+                if let Some(v) = d.get('C') {
+                    t.c = v.v;
+                }
+                if t != self.pos {
+                    self.pos = t;
+                    self.push(src, MoveKind::Rapid { end: t }, true);
+                }
+            }
+            Some(280) | Some(300) => {
+                // Reference point = machine zero (manual §2.11.1 "参考点(机械零点)"). G30
+                // P2–P4 need reference positions this configuration does not have.
+                if one_shot == Some(300) {
+                    let p = d.get('P').map(|p| p.v).unwrap_or(2.0);
+                    if p != 1.0 {
+                        return Err((
+                            10,
+                            gcol(300),
+                            format!("G30 P{p}: reference point {p} is not configured (only P1 = machine zero)"),
+                        ));
+                    }
+                }
+                if let Some(mid) = self.target(d) {
+                    self.pos = mid;
+                    self.push(src, MoveKind::Rapid { end: mid }, true);
+                    let mut r = mid;
+                    for (a, u, out) in [('X', 'U', &mut r.x as &mut f64), ('Z', 'W', &mut r.z), ('Y', 'V', &mut r.y)] {
+                        if d.has(a) || d.has(u) {
+                            *out = 0.0;
+                        }
+                    }
+                    if d.has('C') || d.has('H') {
+                        r.c = 0.0;
+                    }
+                    self.pos = r;
+                    self.push(src, MoveKind::Rapid { end: r }, true);
+                }
+            }
+            Some(90) | None => {
+                if d.m.iter().any(|m| m.0 == 98 || m.0 == 99) {
+                    // handled below
+                } else {
+                    self.motion(d, src, exact)?;
+                }
+            }
+            Some(650) => {
+                let p = d.get('P').ok_or((9, gcol(650), "G65 needs P (the macro program number)".to_string()))?;
+                let l = d.get('L').map(|l| l.v as u32).unwrap_or(1);
+                // Argument specification I (Fanuc): A→#1 B→#2 C→#3 I→#4 J→#5 K→#6 D→#7 E→#8
+                // F→#9 H→#11 M→#13 Q→#17 R→#18 S→#19 T→#20 U→#21 V→#22 W→#23 X→#24 Y→#25 Z→#26.
+                let mut locals = HashMap::new();
+                for (l, n) in [
+                    ('A', 1), ('B', 2), ('C', 3), ('I', 4), ('J', 5), ('K', 6), ('D', 7), ('E', 8), ('F', 9),
+                    ('H', 11), ('Q', 17), ('R', 18), ('S', 19), ('T', 20), ('U', 21), ('V', 22), ('W', 23),
+                    ('X', 24), ('Y', 25), ('Z', 26),
+                ] {
+                    if let Some(v) = d.get(l) {
+                        locals.insert(n, v.v);
+                    }
+                }
+                if let Some(&(m, _)) = d.m.first() {
+                    locals.insert(13, m as f64);
+                }
+                self.call(p.v as u32, l, true, p.col)?;
+                if self.stack.last().is_some_and(|f| f.macro_call) {
+                    self.vars.locals.push(locals);
+                }
+                return Ok(());
+            }
+            Some(g) => {
+                return Err((10, gcol(g), format!("{} is not supported yet", gcode::gname(g))));
+            }
+        }
+        for k in after {
+            let exact = matches!(k, MoveKind::Stop { .. } | MoveKind::End { .. });
+            let is_end = matches!(k, MoveKind::End { .. });
+            self.push(src, k, exact);
+            if is_end {
+                self.ended = true;
+                return Ok(());
+            }
+        }
+        // Subprogram call / return last: the block's other codes run first (§3.1.6).
+        for &(m, col) in &d.m {
+            if m == 98 {
+                let p = d.get('P').ok_or((9, Some(col), "M98 needs P (the subprogram number)".to_string()))?;
+                let pv = p.v.round() as u64;
+                // Packed P: last four digits = program, leading digits = repeat count.
+                let (count, prog) = if pv > 9999 { ((pv / 10000) as u32, (pv % 10000) as u32) } else { (1, pv as u32) };
+                let l = d.get('L').map(|l| l.v.round() as u32).unwrap_or(count);
+                self.call(prog, l, false, p.col)?;
+            } else if m == 99 {
+                let p = d.get('P').map(|p| p.v.round() as u32);
+                self.ret(p, col).map_err(|a| (a.number, Some(col), a.message))?;
+            }
+        }
+        Ok(())
+    }
+
+    fn g50(&mut self, d: &Decoded) {
+        let work_now = self.pos.sub(self.offset());
+        let set = |a: char, u: char, cur: f64, scale: f64, angle: bool| -> Option<f64> {
+            let conv = |v: Val| if angle { v.v } else { self.len(v) * scale };
+            d.get(a).map(conv).or_else(|| d.get(u).map(|v| cur + conv(v)))
+        };
+        let nx = set('X', 'U', work_now.x, 0.5, false);
+        let nz = set('Z', 'W', work_now.z, 1.0, false);
+        let ny = if self.has_y { set('Y', 'V', work_now.y, 1.0, false) } else { None };
+        let nc = if self.has_c { set('C', 'H', work_now.c, 1.0, true) } else { None };
+        // The commanded axes lose their local (G52) offset (§2.12.3 note 3) and the shift is
+        // chosen so that the current position reads the new value.
+        let wcs = self.wcs_table[self.st.wcs];
+        macro_rules! apply {
+            ($v:expr, $f:ident) => {
+                if let Some(v) = $v {
+                    self.local.$f = 0.0;
+                    self.shift.$f = self.pos.$f - v - wcs.$f;
+                }
+            };
+        }
+        apply!(nx, x);
+        apply!(nz, z);
+        apply!(ny, y);
+        apply!(nc, c);
+    }
+
+    /// Modal motion (group 01) with the block's axis words.
+    fn motion(&mut self, d: &Decoded, src: &SrcPos, exact: bool) -> Result<(), (u32, Option<u32>, String)> {
+        let Some(end) = self.target(d) else {
+            return Ok(());
+        };
+        match self.st.motion {
+            0 => {
+                self.pos = end;
+                self.push(src, MoveKind::Rapid { end }, true);
+            }
+            10 => {
+                let feed = self.feed(d.get('F').map(|f| f.col))?;
+                self.pos = end;
+                self.push(src, MoveKind::Feed { end, feed }, exact);
+            }
+            20 | 30 => self.arc(d, src, end, self.st.motion == 20, exact)?,
+            g => return Err((10, None, format!("{} is not supported yet", gcode::gname(g)))),
+        }
+        Ok(())
+    }
+
+    fn arc(&mut self, d: &Decoded, src: &SrcPos, end: Pos, cw: bool, exact: bool) -> Result<(), (u32, Option<u32>, String)> {
+        let feed = self.feed(d.get('F').map(|f| f.col))?;
+        let plane = self.st.plane;
+        // In-plane coordinates (u, v) such that G03 is counter-clockwise in (u, v):
+        // G18 (Z, X), G17 (X, Y), G19 (Y, Z). I/J/K are signed radius-valued distances.
+        let (outside, ci, cj): (&[char], char, char) = match plane {
+            Plane::Zx => (&['Y', 'V', 'J', 'C', 'H'], 'K', 'I'),
+            Plane::Xy => (&['Z', 'W', 'K', 'C', 'H'], 'I', 'J'),
+            Plane::Yz => (&['X', 'U', 'I', 'C', 'H'], 'J', 'K'),
+        };
+        if let Some(l) = outside.iter().find(|l| d.has(**l)) {
+            return Err((
+                21,
+                d.get(*l).map(|v| v.col),
+                format!("address {l} is outside the arc plane {plane:?} (select the plane with G17/G18/G19)"),
+            ));
+        }
+        let uv = |p: Pos| match plane {
+            Plane::Zx => (p.z, p.x),
+            Plane::Xy => (p.x, p.y),
+            Plane::Yz => (p.y, p.z),
+        };
+        let from_uv = |base: Pos, u: f64, v: f64| {
+            let mut p = base;
+            match plane {
+                Plane::Zx => {
+                    p.z = u;
+                    p.x = v
+                }
+                Plane::Xy => {
+                    p.x = u;
+                    p.y = v
+                }
+                Plane::Yz => {
+                    p.y = u;
+                    p.z = v
+                }
+            }
+            p
+        };
+        let (su, sv) = uv(self.pos);
+        let (eu, ev) = uv(end);
+        let tol = self.arc_tol;
+        let center = if let Some(r) = d.get('R') {
+            // §2.3 note 4: R wins over I/J/K.
+            let r = self.len(r);
+            let (du, dv) = (eu - su, ev - sv);
+            let chord = du.hypot(dv);
+            if chord < 1e-9 {
+                // §2.3 note 5: same start and end with R is a 0° arc: no motion.
+                return Ok(());
+            }
+            let half = chord / 2.0;
+            if half > r.abs() + tol {
+                return Err((
+                    20,
+                    d.get('R').map(|v| v.col),
+                    format!("R{:.4}: the end point is {:.4} mm away, more than the diameter", r.abs(), chord),
+                ));
+            }
+            let h = (r * r - half * half).max(0.0).sqrt();
+            // Left normal of the chord: centre side of a CCW arc ≤ 180°; CW and R<0 flip it.
+            let (nu, nv) = (-dv / chord, du / chord);
+            let side = if cw { -1.0 } else { 1.0 } * if r < 0.0 { -1.0 } else { 1.0 };
+            let (cu, cv) = ((su + eu) / 2.0 + side * h * nu, (sv + ev) / 2.0 + side * h * nv);
+            from_uv(self.pos, cu, cv)
+        } else if d.has(ci) || d.has(cj) {
+            let oi = d.get(ci).map(|v| self.len(v)).unwrap_or(0.0);
+            let oj = d.get(cj).map(|v| self.len(v)).unwrap_or(0.0);
+            if oi == 0.0 && oj == 0.0 {
+                // §2.3 note 3: I = K = 0 is a straight line.
+                self.pos = end;
+                self.push(src, MoveKind::Feed { end, feed }, exact);
+                return Ok(());
+            }
+            let (cu, cv) = (su + oi, sv + oj);
+            let rs = (su - cu).hypot(sv - cv);
+            let re = (eu - cu).hypot(ev - cv);
+            if (rs - re).abs() > tol {
+                let col = d.get(ci).or(d.get(cj)).map(|v| v.col);
+                return Err((
+                    20,
+                    col,
+                    format!(
+                        "the end point is not on the arc: start radius {rs:.4} mm, end radius {re:.4} mm (tolerance {tol} mm, No.3410)"
+                    ),
+                ));
+            }
+            from_uv(self.pos, cu, cv)
+        } else if self.arc_missing_alarm {
+            return Err((22, None, "circular interpolation needs R or I/K (the centre)".into()));
+        } else {
+            self.pos = end;
+            self.push(src, MoveKind::Feed { end, feed }, exact);
+            return Ok(());
+        };
+        // The centre carries the start's coordinates on the axes outside the plane.
+        self.pos = end;
+        self.push(src, MoveKind::Arc { end, center, cw, plane, feed }, exact);
+        Ok(())
+    }
+}
+
+impl Iterator for Interpreter {
+    type Item = Result<Move, Alarm>;
+    fn next(&mut self) -> Option<Self::Item> {
+        self.next_move().transpose()
+    }
+}
+
+/// Column stored temporarily in an alarm's message-less position: we use `pos` only after
+/// the caller knows the line, so carry the column in a side channel.
+fn col_alarm(number: u32, col: u32, message: String) -> Alarm {
+    let mut a = Alarm::new(number, message);
+    a.pos = Some(SrcPos::new(Arc::from(""), 0, col));
+    a
+}
+
+fn a_col(a: &Alarm) -> u32 {
+    a.pos.as_ref().map(|p| p.col).unwrap_or(1)
+}
+
+fn has_decimal(e: &Expr) -> bool {
+    match e {
+        Expr::Num { decimal, .. } => *decimal,
+        Expr::Neg(e) => has_decimal(e),
+        _ => true,
+    }
+}
+
+fn is_length(l: char, comma: bool) -> bool {
+    comma || matches!(l, 'X' | 'Y' | 'Z' | 'U' | 'V' | 'W' | 'I' | 'J' | 'K' | 'R')
+}
+
+fn truth(v: macros::Value) -> bool {
+    v.is_some_and(|x| x != 0.0)
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,226 @@
+//! The Type A G-code table (manual table 1.1) with modal groups, and block decoding:
+//! evaluated words → one [`Decoded`] block, with the checks that need no modal state.
+//!
+//! The manual's table 1.1 lists the codes but not their groups; the groups are Fanuc
+//! 0i-TF's (00 one-shot, 01 motion, 02 G96/G97, 04 G22/G23, 05 G98/G99, 06 G20/G21,
+//! 07 G40–G42, 10 G80–G89, 14 G54–G59, 15 G61/G64, 16 G17–G19, 20 G50.2/G51.2,
+//! 21 G12.1/G13.1). Two codes of one group in a block → alarm 10 (the manual's §2.14 item 3
+//! ties G61/G64 to a group; Fanuc would take the last one, we refuse the ambiguity).
+
+/// A G code ×10 (`G02.1` → 21, `G54` → 540), so that the decimal codes fit an integer.
+pub type GCode = u16;
+
+pub struct GInfo {
+    pub group: u8,
+    pub name: &'static str,
+    /// None = implemented; Some(why) = recognised but not implemented yet.
+    pub unsupported: Option<&'static str>,
+}
+
+const LATER: Option<&str> = Some("not supported yet");
+
+pub fn ginfo(g: GCode) -> Option<GInfo> {
+    let (group, name, unsupported) = match g {
+        0 => (1, "rapid positioning", None),
+        10 => (1, "linear interpolation", None),
+        20 => (1, "circular interpolation CW", None),
+        30 => (1, "circular interpolation CCW", None),
+        21 => (1, "elliptical interpolation CW", None),
+        31 => (1, "elliptical interpolation CCW", None),
+        22 => (1, "parabolic interpolation CW", None),
+        32 => (1, "parabolic interpolation CCW", None),
+        40 => (0, "dwell", None),
+        90 => (0, "exact stop check", None),
+        121 => (21, "polar coordinate interpolation", LATER),
+        131 => (21, "polar coordinate interpolation cancel", LATER),
+        170 => (16, "XY plane", None),
+        180 => (16, "ZX plane", None),
+        190 => (16, "YZ plane", None),
+        200 => (6, "inch input", None),
+        210 => (6, "metric input", None),
+        220 => (4, "stored stroke check 2 on", LATER),
+        230 => (4, "stored stroke check 2 off", None),
+        280 => (0, "reference point return", None),
+        300 => (0, "2nd/3rd/4th reference point return", None),
+        320 => (1, "thread cutting", LATER),
+        340 => (1, "variable-lead thread cutting", LATER),
+        400 => (7, "tool nose radius compensation cancel", None),
+        410 => (7, "tool nose radius compensation left", LATER),
+        420 => (7, "tool nose radius compensation right", LATER),
+        500 => (0, "coordinate system setting / max spindle speed", None),
+        502 => (20, "polygon turning cancel", LATER),
+        512 => (20, "polygon turning", LATER),
+        520 => (0, "local coordinate system", None),
+        530 => (0, "machine coordinate positioning", None),
+        540 | 550 | 560 | 570 | 580 | 590 => (14, "workpiece coordinate system", None),
+        610 => (15, "exact stop mode", None),
+        640 => (15, "continuous path mode", None),
+        650 => (0, "macro call", None),
+        700 => (0, "finishing cycle", LATER),
+        710 => (0, "stock removal in turning", LATER),
+        720 => (0, "stock removal in facing", LATER),
+        730 => (0, "pattern repeating", LATER),
+        740 => (0, "face grooving cycle", LATER),
+        750 => (0, "OD/ID grooving cycle", LATER),
+        760 => (0, "multiple thread cutting cycle", LATER),
+        800 => (10, "canned drilling cycle cancel", None),
+        830 => (10, "face drilling cycle", LATER),
+        840 => (10, "face tapping cycle", LATER),
+        850 => (10, "face boring cycle", LATER),
+        870 => (10, "side drilling cycle", LATER),
+        880 => (10, "side tapping cycle", LATER),
+        890 => (10, "side boring cycle", LATER),
+        900 => (1, "OD/ID turning cycle", LATER),
+        920 => (1, "thread cutting cycle", LATER),
+        940 => (1, "facing cycle", LATER),
+        960 => (2, "constant surface speed", None),
+        970 => (2, "constant spindle speed", None),
+        980 => (5, "feed per minute", None),
+        990 => (5, "feed per revolution", None),
+        _ => return None,
+    };
+    Some(GInfo { group, name, unsupported })
+}
+
+pub fn gname(g: GCode) -> String {
+    if g % 10 == 0 {
+        format!("G{:02}", g / 10)
+    } else {
+        format!("G{:02}.{}", g / 10, g % 10)
+    }
+}
+
+/// One evaluated word.
+#[derive(Clone, Copy, Debug)]
+pub struct Val {
+    pub v: f64,
+    /// Written with a decimal point (values from variables count as having one).
+    pub decimal: bool,
+    pub col: u32,
+}
+
+/// A decoded NC block.
+#[derive(Clone, Debug, Default)]
+pub struct Decoded {
+    pub g: Vec<(GCode, u32)>,
+    pub m: Vec<(u32, u32)>,
+    addr: [Option<Val>; 26],
+    pub comma_c: Option<Val>,
+    pub comma_r: Option<Val>,
+}
+
+/// A decoding error: alarm number, column, message.
+pub type DErr = (u32, u32, String);
+
+impl Decoded {
+    pub fn get(&self, l: char) -> Option<Val> {
+        let i = (l as u8).wrapping_sub(b'A') as usize;
+        self.addr.get(i).copied().flatten()
+    }
+    pub fn has(&self, l: char) -> bool {
+        self.get(l).is_some()
+    }
+    pub fn has_g(&self, g: GCode) -> bool {
+        self.g.iter().any(|x| x.0 == g)
+    }
+    /// The code of `group` in this block, if any.
+    pub fn group(&self, group: u8) -> Option<GCode> {
+        self.g.iter().map(|x| x.0).find(|&g| ginfo(g).is_some_and(|i| i.group == group))
+    }
+    pub fn letters(&self) -> impl Iterator<Item = char> + '_ {
+        (0..26u8).filter(move |i| self.addr[*i as usize].is_some()).map(|i| (b'A' + i) as char)
+    }
+
+    /// Build from evaluated words `(letter, comma, value)`; checks that need no modal state.
+    /// `has_y` / `has_c`: whether the machine has a Y axis / a C (Cs) axis.
+    pub fn build(words: &[(char, bool, Val)], has_y: bool, has_c: bool) -> Result<Decoded, DErr> {
+        let mut d = Decoded::default();
+        for &(l, comma, val) in words {
+            if comma {
+                let slot = if l == 'C' { &mut d.comma_c } else { &mut d.comma_r };
+                // Manual §2.23 note 9: of several ,C / ,R the last is effective.
+                *slot = Some(val);
+                continue;
+            }
+            match l {
+                'G' => {
+                    let code = (val.v * 10.0).round();
+                    let g = code as GCode;
+                    if (code - val.v * 10.0).abs() > 1e-6 || !(0.0..=9999.0).contains(&code) || ginfo(g).is_none() {
+                        return Err((10, val.col, format!("G{}: not a G code of this control (Type A lathe, table 1.1)", val.v)));
+                    }
+                    d.g.push((g, val.col));
+                }
+                'M' => {
+                    if val.decimal && val.v.fract() != 0.0 {
+                        return Err((7, val.col, "an M code takes no decimal point".into()));
+                    }
+                    if d.m.len() >= 3 {
+                        return Err((9, val.col, "at most three M codes per block".into()));
+                    }
+                    d.m.push((val.v.round() as u32, val.col));
+                }
+                _ => {
+                    if matches!(l, 'Y' | 'V' | 'J') && !has_y {
+                        return Err((9, val.col, format!("address {l}: this machine has no Y axis")));
+                    }
+                    if matches!(l, 'C' | 'H') && !has_c {
+                        return Err((9, val.col, format!("address {l}: this machine has no C (Cs) axis")));
+                    }
+                    if matches!(l, 'T' | 'L' | 'D') && val.decimal && val.v.fract() != 0.0 {
+                        return Err((7, val.col, format!("address {l} takes no decimal point")));
+                    }
+                    let i = (l as u8 - b'A') as usize;
+                    if d.addr[i].is_some() {
+                        return Err((9, val.col, format!("address {l} appears twice in the block")));
+                    }
+                    d.addr[i] = Some(val);
+                }
+            }
+        }
+        // Modal groups: at most one code per group.
+        for (i, &(g, col)) in d.g.iter().enumerate() {
+            let gi = ginfo(g).map(|x| x.group).unwrap_or(0);
+            for &(h, _) in &d.g[..i] {
+                if ginfo(h).map(|x| x.group) == Some(gi) {
+                    return Err((
+                        10,
+                        col,
+                        format!("{} and {} are of the same group ({:02}); command only one", gname(h), gname(g), gi),
+                    ));
+                }
+            }
+        }
+        for &(g, col) in &d.g {
+            if let Some(GInfo { unsupported: Some(why), name, .. }) = ginfo(g) {
+                return Err((10, col, format!("{} ({name}) is {why}", gname(g))));
+            }
+        }
+        // Manual §2.9 note 2: G20/G21 must be alone in its block.
+        if let Some(&(g, col)) = d.g.iter().find(|x| x.0 == 200 || x.0 == 210) {
+            if d.g.len() > 1 || d.letters().next().is_some() || !d.m.is_empty() {
+                return Err((10, col, format!("{} must be alone in its block", gname(g))));
+            }
+        }
+        // Manual §3.1.7 note 1: M99 alone (P allowed); M98 with P/L only.
+        for &(m, col) in &d.m {
+            if (m == 98 || m == 99) && (d.m.len() > 1 || d.letters().any(|l| !matches!(l, 'P' | 'L'))) {
+                return Err((9, col, format!("M{m} must be alone in its block (with P/L only)")));
+            }
+        }
+        // P is an integer in G04 (ms, manual §2.6), M98/M99 and G65.
+        if let Some(p) = d.get('P') {
+            if p.decimal && (d.has_g(40) || d.has_g(650) || d.m.iter().any(|m| m.0 == 98 || m.0 == 99)) {
+                return Err((7, p.col, "P takes no decimal point here (G04 P is in ms: G04 P500)".into()));
+            }
+        }
+        for (l, u) in [('X', 'U'), ('Z', 'W'), ('Y', 'V'), ('C', 'H')] {
+            if let (Some(_), Some(b)) = (d.get(l), d.get(u)) {
+                if !d.has_g(40) {
+                    return Err((9, b.col, format!("{l} (absolute) and {u} (incremental) of one axis in one block")));
+                }
+            }
+        }
+        Ok(d)
+    }
+}

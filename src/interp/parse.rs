@@ -1,0 +1,699 @@
+//! Block parser: one source line → one [`Block`] (NC words or a macro statement).
+//!
+//! Lexical rules (manual §1, §2.24; Fanuc 0i-TF where the manual is silent):
+//! - `( … )` is a comment anywhere; an unclosed `(` runs to the end of the line (Fanuc
+//!   treats it as control-out up to the end of block).
+//! - `;` is the end-of-block character of the manual's listings; the rest of the line after
+//!   it is ignored (the manual puts comments there).
+//! - Spaces are ignored between tokens (Fanuc ignores them), not inside a number.
+//! - Letters may be upper or lower case; they are upper-cased.
+//! - `/` at the start of a block (after nothing but spaces) is block skip.
+//! - A line holding only `%` marks the start/end of the tape; `O1234` starts a program.
+//!
+//! Parse errors carry Fanuc PS numbers: 3 too many digits, 4 address not found (a number
+//! without an address), 5 no data after address, 6 illegal minus sign, 7 illegal decimal
+//! point, 9 improper address/character, 114 macro expression format, 118 bracket nesting
+//! over 5, 126 illegal DO/END number, 127 NC and macro statement in one block, 128 illegal
+//! sequence number in GOTO.
+
+/// A parse error: Fanuc/manual alarm number, 1-based column, message.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PErr {
+    pub number: u32,
+    pub col: u32,
+    pub message: String,
+}
+
+fn perr<T>(number: u32, col: u32, message: impl Into<String>) -> Result<T, PErr> {
+    Err(PErr { number, col, message: message.into() })
+}
+
+/// Fanuc allows at most 8 significant digits in a numeric word (PS0003).
+pub const MAX_DIGITS: usize = 8;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BinOp {
+    Add,
+    Sub,
+    Mul,
+    Div,
+    Mod,
+    And,
+    Or,
+    Xor,
+    Eq,
+    Ne,
+    Gt,
+    Ge,
+    Lt,
+    Le,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Func {
+    Sin,
+    Cos,
+    Tan,
+    Asin,
+    Acos,
+    Atan,
+    Sqrt,
+    Abs,
+    Round,
+    Fix,
+    Fup,
+    Ln,
+    Exp,
+    Max,
+    Min,
+    Bin,
+    Bcd,
+}
+
+impl Func {
+    /// Full names and the manual's two-letter abbreviations (§2.24.2 priority table).
+    fn from_name(s: &str) -> Option<Func> {
+        Some(match s {
+            "SIN" | "SI" => Func::Sin,
+            "COS" | "CO" => Func::Cos,
+            "TAN" | "TA" => Func::Tan,
+            "ASIN" | "AS" => Func::Asin,
+            "ACOS" | "AC" => Func::Acos,
+            "ATAN" | "AT" => Func::Atan,
+            "SQRT" | "SQ" => Func::Sqrt,
+            "ABS" | "AB" => Func::Abs,
+            "ROUND" | "RO" => Func::Round,
+            "FIX" | "FI" => Func::Fix,
+            "FUP" | "FU" => Func::Fup,
+            "LN" => Func::Ln,
+            "EXP" | "EX" => Func::Exp,
+            "MAX" => Func::Max,
+            "MIN" => Func::Min,
+            "BIN" => Func::Bin,
+            "BCD" => Func::Bcd,
+            _ => return None,
+        })
+    }
+}
+
+#[derive(Clone, Debug, PartialEq)]
+pub enum Expr {
+    /// A literal; `decimal` tells whether it was written with a decimal point.
+    Num { v: f64, decimal: bool },
+    /// `#n` / `#[expr]`.
+    Var(Box<Expr>),
+    Neg(Box<Expr>),
+    /// `[ expr ]` — kept so that `[#1]` passes a null through like `#1`.
+    Paren(Box<Expr>),
+    Bin(BinOp, Box<Expr>, Box<Expr>),
+    Call(Func, Vec<Expr>),
+}
+
+impl Expr {
+    /// True when the value does not depend on variables (can be checked before running).
+    pub fn is_literal(&self) -> bool {
+        match self {
+            Expr::Num { .. } => true,
+            Expr::Var(_) => false,
+            Expr::Neg(e) | Expr::Paren(e) => e.is_literal(),
+            Expr::Bin(_, a, b) => a.is_literal() && b.is_literal(),
+            Expr::Call(_, a) => a.iter().all(|e| e.is_literal()),
+        }
+    }
+}
+
+/// One address word. `comma` is set for `,C` / `,R` (chamfer / corner R).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Word {
+    pub letter: char,
+    pub comma: bool,
+    pub value: Expr,
+    pub col: u32,
+}
+
+#[derive(Clone, Debug, PartialEq)]
+pub enum Stmt {
+    /// Nothing to execute (blank, comment only).
+    Empty,
+    /// A `%` line.
+    Percent,
+    /// `O1234`: start of a program.
+    Program(u32),
+    Nc(Vec<Word>),
+    Assign { var: Expr, value: Expr },
+    IfGoto { cond: Expr, target: Expr },
+    IfThen { cond: Expr, var: Expr, value: Expr },
+    Goto(Expr),
+    /// `WHILE [cond] DO n` (cond = Some) or bare `DO n` (infinite loop).
+    Do { cond: Option<Expr>, n: u8 },
+    End(u8),
+}
+
+#[derive(Clone, Debug, PartialEq)]
+pub struct Block {
+    /// `/` block skip.
+    pub skip: bool,
+    pub n: Option<u32>,
+    pub stmt: Stmt,
+    /// Column of the first character of the block (1-based).
+    pub col: u32,
+}
+
+struct Cur<'a> {
+    c: &'a [char],
+    i: usize,
+}
+
+impl<'a> Cur<'a> {
+    fn skip_ws(&mut self) {
+        while self.i < self.c.len() && self.c[self.i].is_whitespace() {
+            self.i += 1;
+        }
+    }
+    fn peek(&mut self) -> Option<char> {
+        self.skip_ws();
+        self.c.get(self.i).copied()
+    }
+    fn peek_at(&self, k: usize) -> Option<char> {
+        self.c.get(self.i + k).copied()
+    }
+    fn col(&self) -> u32 {
+        self.i as u32 + 1
+    }
+    fn eat(&mut self, ch: char) -> bool {
+        if self.peek() == Some(ch) {
+            self.i += 1;
+            true
+        } else {
+            false
+        }
+    }
+    /// The run of letters at the cursor (upper-cased), without consuming it.
+    fn letters(&mut self) -> String {
+        self.skip_ws();
+        let mut s = String::new();
+        let mut j = self.i;
+        while j < self.c.len() && self.c[j].is_ascii_alphabetic() {
+            s.push(self.c[j].to_ascii_uppercase());
+            j += 1;
+        }
+        s
+    }
+    fn at_end(&mut self) -> bool {
+        self.peek().is_none()
+    }
+}
+
+/// Remove comments: `( … )` becomes spaces (columns stay right), `;` ends the line.
+fn strip(line: &str) -> Vec<char> {
+    let mut out = Vec::with_capacity(line.len());
+    let mut in_comment = false;
+    for ch in line.chars() {
+        if in_comment {
+            if ch == ')' {
+                in_comment = false;
+            }
+            out.push(' ');
+        } else if ch == '(' {
+            in_comment = true;
+            out.push(' ');
+        } else if ch == ';' {
+            break;
+        } else {
+            out.push(ch);
+        }
+    }
+    out
+}
+
+/// Parse one source line.
+pub fn parse_line(line: &str) -> Result<Block, PErr> {
+    let chars = strip(line);
+    let mut c = Cur { c: &chars, i: 0 };
+    let first = c.peek();
+    let col = c.col();
+    let mut b = Block { skip: false, n: None, stmt: Stmt::Empty, col };
+    match first {
+        None => return Ok(b),
+        Some('%') => {
+            c.i += 1;
+            if !c.at_end() {
+                return perr(9, c.col(), "nothing may follow `%` on its line");
+            }
+            b.stmt = Stmt::Percent;
+            return Ok(b);
+        }
+        _ => {}
+    }
+    if c.eat('/') {
+        b.skip = true;
+        // `/n` (skip switch n) is accepted like `/`.
+        if matches!(c.peek(), Some('1'..='9')) && !matches!(c.peek_at(1), Some('0'..='9' | '.')) {
+            c.i += 1;
+        }
+    }
+    // Program number.
+    if matches!(c.peek(), Some('O' | 'o')) && !c.peek_at(1).is_some_and(|x| x.is_ascii_alphabetic()) {
+        let wcol = c.col();
+        c.i += 1;
+        let (v, dec) = number(&mut c, 'O', wcol)?;
+        if dec {
+            return perr(7, wcol, "a program number takes no decimal point (O1234)");
+        }
+        if !c.at_end() {
+            return perr(9, c.col(), "an O program number must be alone in its block");
+        }
+        if !(0.0..=9999.0).contains(&v) {
+            return perr(3, wcol, "program numbers are O0000–O9999");
+        }
+        b.stmt = Stmt::Program(v as u32);
+        return Ok(b);
+    }
+    // Sequence number.
+    if matches!(c.peek(), Some('N' | 'n')) && !c.peek_at(1).is_some_and(|x| x.is_ascii_alphabetic()) {
+        let wcol = c.col();
+        c.i += 1;
+        if c.peek() == Some('-') {
+            return perr(6, c.col(), "a sequence number cannot be negative");
+        }
+        let (v, dec) = number(&mut c, 'N', wcol)?;
+        if dec {
+            return perr(7, wcol, "a sequence number takes no decimal point (N10)");
+        }
+        if v > 99999.0 {
+            return perr(3, wcol, "sequence numbers are N1–N99999");
+        }
+        b.n = Some(v as u32);
+    }
+    if c.at_end() {
+        return Ok(b);
+    }
+    let kw = c.letters();
+    let kcol = c.col();
+    b.stmt = if c.peek() == Some('#') {
+        let (var, value) = assignment(&mut c)?;
+        Stmt::Assign { var, value }
+    } else if kw == "IF" {
+        c.i += 2;
+        let cond = condition(&mut c)?;
+        let k = c.letters();
+        if k == "GOTO" {
+            c.i += 4;
+            Stmt::IfGoto { cond, target: goto_target(&mut c)? }
+        } else if k == "THEN" {
+            c.i += 4;
+            if c.peek() != Some('#') {
+                return perr(114, c.col(), "THEN must be followed by an assignment #i=…");
+            }
+            let (var, value) = assignment(&mut c)?;
+            Stmt::IfThen { cond, var, value }
+        } else {
+            return perr(114, c.col(), "IF [condition] must be followed by GOTO n or THEN #i=…");
+        }
+    } else if kw == "WHILE" {
+        c.i += 5;
+        let cond = condition(&mut c)?;
+        if c.letters() != "DO" {
+            return perr(114, c.col(), "WHILE [condition] must be followed by DO n");
+        }
+        c.i += 2;
+        Stmt::Do { cond: Some(cond), n: loop_number(&mut c)? }
+    } else if kw == "GOTO" {
+        c.i += 4;
+        Stmt::Goto(goto_target(&mut c)?)
+    } else if kw == "DO" {
+        c.i += 2;
+        Stmt::Do { cond: None, n: loop_number(&mut c)? }
+    } else if kw == "END" {
+        c.i += 3;
+        Stmt::End(loop_number(&mut c)?)
+    } else {
+        let _ = kcol;
+        Stmt::Nc(words(&mut c)?)
+    };
+    if !c.at_end() {
+        return perr(127, c.col(), "a macro statement must be alone in its block (no NC words after it)");
+    }
+    Ok(b)
+}
+
+fn is_keyword(s: &str) -> bool {
+    ["IF", "WHILE", "GOTO", "DO", "END", "THEN"].iter().any(|k| s.starts_with(k))
+}
+
+fn words(c: &mut Cur) -> Result<Vec<Word>, PErr> {
+    let mut out = Vec::new();
+    while let Some(ch) = c.peek() {
+        let col = c.col();
+        let comma = ch == ',';
+        if comma {
+            c.i += 1;
+            let l = c.peek();
+            if !matches!(l, Some('C' | 'c' | 'R' | 'r')) {
+                return perr(9, col, "after `,` only C (chamfer) or R (corner radius) may follow");
+            }
+        } else if ch == '#' {
+            return perr(127, col, "a macro statement cannot share a block with NC words");
+        } else if ch.is_ascii_digit() || ch == '-' || ch == '+' || ch == '.' {
+            return perr(4, col, format!("`{ch}` without an address letter; write e.g. X{ch}…"));
+        } else if !ch.is_ascii_alphabetic() {
+            return perr(9, col, format!("improper character `{ch}`"));
+        }
+        let run = c.letters();
+        if run.len() > 1 {
+            if is_keyword(&run) {
+                return perr(127, col, format!("{run}: a macro statement cannot share a block with NC words"));
+            }
+            return perr(9, col, format!("improper address `{run}`: an address is one letter followed by a value"));
+        }
+        let letter = run.chars().next().unwrap_or('?');
+        c.i += 1;
+        let value = word_value(c, letter, col)?;
+        if matches!(letter, 'G' | 'M' | 'N' | 'O' | 'T' | 'L') {
+            if let Expr::Neg(_) = value {
+                return perr(6, col, format!("{letter} cannot take a minus sign"));
+            }
+        }
+        if letter == 'N' {
+            return perr(9, col, "a sequence number N must stand at the start of the block");
+        }
+        if letter == 'O' {
+            return perr(9, col, "an O program number must be alone in its block");
+        }
+        out.push(Word { letter, comma, value, col });
+    }
+    Ok(out)
+}
+
+/// The value after an address: a number, `#var`, `[expr]`, optionally signed.
+fn word_value(c: &mut Cur, letter: char, col: u32) -> Result<Expr, PErr> {
+    let neg = if c.eat('-') {
+        true
+    } else {
+        c.eat('+');
+        false
+    };
+    let e = match c.peek() {
+        Some('#') => {
+            c.i += 1;
+            Expr::Var(Box::new(primary(c, 1)?))
+        }
+        Some('[') => {
+            c.i += 1;
+            let e = expr(c, 1)?;
+            if !c.eat(']') {
+                return perr(114, c.col(), "missing `]`");
+            }
+            Expr::Paren(Box::new(e))
+        }
+        Some(ch) if ch.is_ascii_digit() || ch == '.' => {
+            let (v, decimal) = number(c, letter, col)?;
+            Expr::Num { v, decimal }
+        }
+        _ => return perr(5, col, format!("no value after address {letter}")),
+    };
+    Ok(if neg { Expr::Neg(Box::new(e)) } else { e })
+}
+
+/// Digits with an optional decimal point, contiguous (no spaces inside).
+fn number(c: &mut Cur, letter: char, col: u32) -> Result<(f64, bool), PErr> {
+    c.skip_ws();
+    let start = c.i;
+    let mut decimal = false;
+    while let Some(ch) = c.c.get(c.i) {
+        if ch.is_ascii_digit() {
+            c.i += 1;
+        } else if *ch == '.' && !decimal {
+            decimal = true;
+            c.i += 1;
+        } else {
+            break;
+        }
+    }
+    let s: String = c.c[start..c.i].iter().collect();
+    if s.is_empty() || s == "." {
+        return perr(5, col, format!("no value after address {letter}"));
+    }
+    let sig = s.trim_start_matches(['0', '.']).replace('.', "");
+    let sig = if decimal { sig.trim_end_matches('0').to_string() } else { sig };
+    if sig.len() > MAX_DIGITS {
+        return perr(3, col, format!("{letter}{s}: more than {MAX_DIGITS} digits"));
+    }
+    let v: f64 = s.parse().or_else(|_| format!("{s}0").parse()).unwrap_or(0.0);
+    Ok((v, decimal))
+}
+
+fn assignment(c: &mut Cur) -> Result<(Expr, Expr), PErr> {
+    let col = c.col();
+    if !c.eat('#') {
+        return perr(114, col, "expected #variable");
+    }
+    let var = primary(c, 0)?;
+    if !c.eat('=') {
+        return perr(114, c.col(), "expected `=` after the variable (#i=expression)");
+    }
+    if c.at_end() {
+        return perr(114, c.col(), "missing expression after `=`");
+    }
+    let value = expr(c, 0)?;
+    Ok((var, value))
+}
+
+fn condition(c: &mut Cur) -> Result<Expr, PErr> {
+    if c.peek() != Some('[') {
+        return perr(114, c.col(), "the condition must be enclosed in [ ] (e.g. IF [#1 GT 0] …)");
+    }
+    primary(c, 0)
+}
+
+fn goto_target(c: &mut Cur) -> Result<Expr, PErr> {
+    let col = c.col();
+    if c.at_end() {
+        return perr(128, col, "GOTO needs a sequence number 1–99999");
+    }
+    let e = expr(c, 0)?;
+    if let Expr::Num { v, decimal } = e {
+        if decimal || !(1.0..=99999.0).contains(&v) {
+            return perr(128, col, format!("GOTO {v}: the sequence number must be an integer 1–99999"));
+        }
+    }
+    Ok(e)
+}
+
+fn loop_number(c: &mut Cur) -> Result<u8, PErr> {
+    let col = c.col();
+    let n = match c.peek() {
+        Some(d) if d.is_ascii_digit() => number(c, 'n', col)?,
+        _ => return perr(126, col, "DO/END need a loop number 1, 2 or 3"),
+    };
+    if n.1 || !(1.0..=3.0).contains(&n.0) {
+        return perr(126, col, format!("loop number {}: DO/END numbers are 1, 2 or 3", n.0));
+    }
+    Ok(n.0 as u8)
+}
+
+/// Expression with comparisons (lowest), `+ - OR XOR`, `* / AND MOD`, unary, primary.
+fn expr(c: &mut Cur, depth: u32) -> Result<Expr, PErr> {
+    let a = sum(c, depth)?;
+    let op = match c.peek() {
+        Some('=') if c.peek_at(1) == Some('=') => Some((BinOp::Eq, 2)),
+        Some('<') if c.peek_at(1) == Some('>') => Some((BinOp::Ne, 2)),
+        Some('>') if c.peek_at(1) == Some('=') => Some((BinOp::Ge, 2)),
+        Some('<') if c.peek_at(1) == Some('=') => Some((BinOp::Le, 2)),
+        Some('>') => Some((BinOp::Gt, 1)),
+        Some('<') => Some((BinOp::Lt, 1)),
+        _ => match c.letters().as_str() {
+            "EQ" => Some((BinOp::Eq, 2)),
+            "NE" => Some((BinOp::Ne, 2)),
+            "GT" => Some((BinOp::Gt, 2)),
+            "GE" => Some((BinOp::Ge, 2)),
+            "LT" => Some((BinOp::Lt, 2)),
+            "LE" => Some((BinOp::Le, 2)),
+            _ => None,
+        },
+    };
+    if let Some((op, len)) = op {
+        c.i += len;
+        let b = sum(c, depth)?;
+        return Ok(Expr::Bin(op, Box::new(a), Box::new(b)));
+    }
+    Ok(a)
+}
+
+fn sum(c: &mut Cur, depth: u32) -> Result<Expr, PErr> {
+    let mut a = term(c, depth)?;
+    loop {
+        let op = match c.peek() {
+            Some('+') => (BinOp::Add, 1),
+            Some('-') => (BinOp::Sub, 1),
+            _ => match c.letters().as_str() {
+                "OR" => (BinOp::Or, 2),
+                "XOR" => (BinOp::Xor, 3),
+                _ => return Ok(a),
+            },
+        };
+        c.i += op.1;
+        let b = term(c, depth)?;
+        a = Expr::Bin(op.0, Box::new(a), Box::new(b));
+    }
+}
+
+fn term(c: &mut Cur, depth: u32) -> Result<Expr, PErr> {
+    let mut a = unary(c, depth)?;
+    loop {
+        let op = match c.peek() {
+            Some('*') => (BinOp::Mul, 1),
+            Some('/') => (BinOp::Div, 1),
+            _ => match c.letters().as_str() {
+                "AND" => (BinOp::And, 3),
+                "AN" => (BinOp::And, 2),
+                "MOD" => (BinOp::Mod, 3),
+                _ => return Ok(a),
+            },
+        };
+        c.i += op.1;
+        let b = unary(c, depth)?;
+        a = Expr::Bin(op.0, Box::new(a), Box::new(b));
+    }
+}
+
+fn unary(c: &mut Cur, depth: u32) -> Result<Expr, PErr> {
+    if c.eat('-') {
+        return Ok(Expr::Neg(Box::new(unary(c, depth)?)));
+    }
+    if c.eat('+') {
+        return unary(c, depth);
+    }
+    primary(c, depth)
+}
+
+/// Fanuc allows brackets nested five deep (PS0118 beyond).
+const MAX_BRACKETS: u32 = 5;
+
+fn primary(c: &mut Cur, depth: u32) -> Result<Expr, PErr> {
+    let col = c.col();
+    match c.peek() {
+        Some('[') => {
+            if depth >= MAX_BRACKETS {
+                return perr(118, col, format!("brackets nested deeper than {MAX_BRACKETS}"));
+            }
+            c.i += 1;
+            let e = expr(c, depth + 1)?;
+            if !c.eat(']') {
+                return perr(114, c.col(), "missing `]`");
+            }
+            Ok(Expr::Paren(Box::new(e)))
+        }
+        Some('#') => {
+            c.i += 1;
+            Ok(Expr::Var(Box::new(primary(c, depth)?)))
+        }
+        Some(ch) if ch.is_ascii_digit() || ch == '.' => {
+            let (v, decimal) = number(c, '#', col)?;
+            Ok(Expr::Num { v, decimal })
+        }
+        Some(ch) if ch.is_ascii_alphabetic() => {
+            let name = c.letters();
+            let Some(f) = Func::from_name(&name) else {
+                return perr(114, col, format!("unknown function or operator `{name}`"));
+            };
+            c.i += name.len();
+            if c.peek() != Some('[') {
+                return perr(114, c.col(), format!("{name} needs its argument in [ ]"));
+            }
+            if depth >= MAX_BRACKETS {
+                return perr(118, c.col(), format!("brackets nested deeper than {MAX_BRACKETS}"));
+            }
+            c.i += 1;
+            let mut args = vec![expr(c, depth + 1)?];
+            while c.eat(',') {
+                args.push(expr(c, depth + 1)?);
+            }
+            if !c.eat(']') {
+                return perr(114, c.col(), "missing `]`");
+            }
+            // ATAN[a]/[b] (the manual's two-side form).
+            if f == Func::Atan && args.len() == 1 && c.peek() == Some('/') {
+                let save = c.i;
+                c.i += 1;
+                if c.peek() == Some('[') {
+                    c.i += 1;
+                    args.push(expr(c, depth + 1)?);
+                    if !c.eat(']') {
+                        return perr(114, c.col(), "missing `]`");
+                    }
+                } else {
+                    c.i = save;
+                }
+            }
+            let want = match f {
+                Func::Max | Func::Min => 2..=2,
+                Func::Atan => 1..=2,
+                _ => 1..=1,
+            };
+            if !want.contains(&args.len()) {
+                return perr(114, col, format!("{name} takes {} argument(s), got {}", want.end(), args.len()));
+            }
+            Ok(Expr::Call(f, args))
+        }
+        Some(ch) => perr(114, col, format!("unexpected `{ch}` in expression")),
+        None => perr(114, col, "expression ends too early"),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn nc(s: &str) -> Vec<Word> {
+        match parse_line(s).unwrap().stmt {
+            Stmt::Nc(w) => w,
+            other => panic!("{other:?}"),
+        }
+    }
+
+    #[test]
+    fn words_comments_and_columns() {
+        let b = parse_line("N10 G01 X20.5 (cut) Z-3 F.2; tail (x)").unwrap();
+        assert_eq!(b.n, Some(10));
+        let Stmt::Nc(w) = b.stmt else { panic!() };
+        let l: Vec<char> = w.iter().map(|w| w.letter).collect();
+        assert_eq!(l, vec!['G', 'X', 'Z', 'F']);
+        assert_eq!(w[1].col, 9);
+        assert_eq!(w[1].value, Expr::Num { v: 20.5, decimal: true });
+        assert_eq!(w[2].value, Expr::Neg(Box::new(Expr::Num { v: 3.0, decimal: false })));
+        assert_eq!(w[3].value, Expr::Num { v: 0.2, decimal: true });
+    }
+
+    #[test]
+    fn macro_statements() {
+        assert!(matches!(parse_line("#1=#2+3*SIN[30]").unwrap().stmt, Stmt::Assign { .. }));
+        assert!(matches!(parse_line("IF [#1 EQ 2] GOTO 10").unwrap().stmt, Stmt::IfGoto { .. }));
+        assert!(matches!(parse_line("IF[#1<>#2]THEN#3=1").unwrap().stmt, Stmt::IfThen { .. }));
+        assert_eq!(parse_line("WHILE [#1 LE 3] DO 2").unwrap().stmt, match parse_line("WHILE[#1LE3]DO2").unwrap().stmt {
+            s @ Stmt::Do { n: 2, .. } => s,
+            o => panic!("{o:?}"),
+        });
+        assert_eq!(parse_line("END 1").unwrap().stmt, Stmt::End(1));
+        assert_eq!(parse_line("DO4").unwrap_err().number, 126);
+        assert_eq!(parse_line("GOTO 0").unwrap_err().number, 128);
+        let w = nc("G01 X#[#1+2] Z-#3 ,C1.");
+        assert!(w[3].comma && w[3].letter == 'C');
+        assert_eq!(parse_line("#1=ATAN[1]/[2]").unwrap().stmt, Stmt::Assign {
+            var: Expr::Num { v: 1.0, decimal: false },
+            value: Expr::Call(Func::Atan, vec![Expr::Num { v: 1.0, decimal: false }, Expr::Num { v: 2.0, decimal: false }]),
+        });
+    }
+
+    #[test]
+    fn errors_have_numbers_and_columns() {
+        let e = parse_line("G01 X10 Z").unwrap_err();
+        assert_eq!((e.number, e.col), (5, 9));
+        assert_eq!(parse_line("G01 123").unwrap_err().number, 4);
+        assert_eq!(parse_line("G01 X123456789").unwrap_err().number, 3);
+        assert_eq!(parse_line("G01 @").unwrap_err().number, 9);
+        assert_eq!(parse_line("G01 X1 GOTO 5").unwrap_err().number, 127);
+        assert_eq!(parse_line("#1=[[[[[[1]]]]]]").unwrap_err().number, 118);
+        assert_eq!(parse_line("M-3").unwrap_err().number, 6);
+    }
+}

@@ -1,0 +1,322 @@
+use super::*;
+use crate::canon::MoveKind as K;
+
+fn cfg() -> MachineConfig {
+    MachineConfig::embedded()
+}
+
+fn run(src: &str) -> Vec<Move> {
+    let it = Interpreter::from_source("t.nc", src, &cfg()).unwrap_or_else(|e| panic!("{e:?}"));
+    it.map(|m| m.unwrap_or_else(|a| panic!("{a}"))).collect()
+}
+
+fn run_err(src: &str) -> Alarm {
+    let it = Interpreter::from_source("t.nc", src, &cfg()).unwrap_or_else(|e| panic!("{e:?}"));
+    for m in it {
+        if let Err(a) = m {
+            return a;
+        }
+    }
+    panic!("no alarm")
+}
+
+fn static_errs(src: &str) -> Vec<Alarm> {
+    match Interpreter::from_source("t.nc", src, &cfg()) {
+        Err(e) => e,
+        Ok(_) => panic!("expected static errors"),
+    }
+}
+
+fn close(a: Pos, b: Pos) -> bool {
+    (a.x - b.x).abs() < 1e-9 && (a.z - b.z).abs() < 1e-9 && (a.y - b.y).abs() < 1e-9 && (a.c - b.c).abs() < 1e-9
+}
+
+#[test]
+fn small_program_exact_moves() {
+    let m = run("%\nO0001\nN1 G21 (metric)\nN2 G99 G00 X40 Z5;\nN3 M03 S800\nG01 Z-20. F0.2\nU10 W-5\nG98 F300 X60\nM30\n%\n");
+    let kinds: Vec<&str> = m.iter().map(|m| m.kind.name()).collect();
+    assert_eq!(kinds, ["rapid", "spindle", "feed", "feed", "feed", "end"]);
+    assert_eq!(m[0].kind, K::Rapid { end: Pos::xz(20.0, 5.0) });
+    assert!(m[0].exact_stop);
+    assert_eq!(m[0].src.line, 4);
+    assert_eq!(m[1].kind, K::Spindle(SpindleCmd { dir: SpindleDir::Cw, rpm: 800.0, css: None, max_rpm: None }));
+    assert_eq!(m[2].kind, K::Feed { end: Pos::xz(20.0, -20.0), feed: Feed::PerRev(0.2) });
+    assert!(!m[2].exact_stop);
+    // U is a diameter increment: +10 → radius +5.
+    assert_eq!(m[3].kind, K::Feed { end: Pos::xz(25.0, -25.0), feed: Feed::PerRev(0.2) });
+    assert_eq!(m[4].kind, K::Feed { end: Pos::xz(30.0, -25.0), feed: Feed::PerMin(300.0) });
+    assert_eq!(m[5].kind, K::End { code: 30 });
+    assert_eq!(m[4].work_offset, Pos::ZERO);
+}
+
+#[test]
+fn manual_arc_example_fig_2_6() {
+    // Manual §2.3, figure 2.6.
+    let m = run("N001 G0 X40 Z5\nN002 M03 S200\nN003 G01 X0 Z0 F900\nN005 G03 U24 W-24 R15\nN006 G02 X26 Z-31 R5\nN007 G01 Z-40;\nN008 X40 Z5;\nN009 M30;\n");
+    let arcs: Vec<_> = m.iter().filter(|m| m.kind.name() == "arc").collect();
+    assert_eq!(arcs.len(), 2);
+    let K::Arc { end, center, cw, plane, .. } = &arcs[0].kind else { panic!() };
+    assert!(close(*end, Pos::xz(12.0, -24.0)));
+    assert!(close(*center, Pos::xz(0.0, -15.0)), "{center:?}");
+    assert!(!cw);
+    assert_eq!(*plane, Plane::Zx);
+    let K::Arc { end, center, cw, .. } = &arcs[1].kind else { panic!() };
+    assert!(close(*end, Pos::xz(13.0, -31.0)));
+    assert!(*cw);
+    // Centre 5 mm from both ends.
+    let r1 = (center.x - 12.0).hypot(center.z + 24.0);
+    let r2 = (center.x - 13.0).hypot(center.z + 31.0);
+    assert!((r1 - 5.0).abs() < 1e-9 && (r2 - 5.0).abs() < 1e-9);
+}
+
+#[test]
+fn arc_with_i_k_and_negative_r() {
+    // Manual §2.3: G02 X50 Z30 I25 from X30 Z50 (I is a radius value).
+    let m = run("G99 G00 X30 Z50\nG02 X50 Z30 I25 F0.1\nG00 X0 Z0\nG02 X0 Z-20 R-10\nM30");
+    let K::Arc { center, .. } = &m[1].kind else { panic!("{:?}", m[1]) };
+    assert!(close(*center, Pos::xz(40.0, 50.0)));
+    // R<0: >180° arc. From (0,0) to (0,-20) with |R|=10 the centre is the midpoint either way.
+    let K::Arc { center, .. } = &m[3].kind else { panic!() };
+    assert!(close(*center, Pos::xz(0.0, -10.0)));
+    // R<0 with a shorter chord puts the centre on the other side than R>0.
+    let a = run("G99 G00 X0 Z0\nG02 X0 Z-10 R10 F0.1\nM30");
+    let b = run("G99 G00 X0 Z0\nG02 X0 Z-10 R-10 F0.1\nM30");
+    let (K::Arc { center: ca, .. }, K::Arc { center: cb, .. }) = (&a[1].kind, &b[1].kind) else { panic!() };
+    assert!((ca.x + cb.x).abs() < 1e-9 && ca.x.abs() > 1.0, "{ca:?} {cb:?}");
+}
+
+#[test]
+fn arc_radius_mismatch_and_missing_centre() {
+    let a = run_err("G99 G00 X30 Z50\nG02 X50 Z30 I20 F0.1\nM30");
+    assert_eq!(a.number, 20);
+    assert_eq!(a.pos.as_ref().unwrap().line, 2);
+    let a = run_err("G99 G00 X30 Z50\nG02 X50 Z30 F0.1\nM30");
+    assert_eq!(a.number, 22);
+    let a = run_err("G99 G00 X0 Z0\nG02 X0 Z-30 R10 F0.1\nM30");
+    assert_eq!(a.number, 20);
+}
+
+#[test]
+fn no_feed_rate_is_alarm_11() {
+    let a = run_err("G00 X10 Z0\nG01 Z-10\nM30");
+    assert_eq!(a.number, 11);
+    assert_eq!(a.pos.unwrap().line, 2);
+    // G98/G99 keep separate F values (§2.20 note 4): F under G99 does not carry to G98.
+    let a = run_err("G99 G01 X10 F0.2\nG98 Z-5\nM30");
+    assert_eq!(a.number, 11);
+}
+
+#[test]
+fn dwell_p_ms_x_seconds() {
+    let m = run("G04 P500\nG04 X1.5\nG04 U2\nG04\nM30");
+    let d: Vec<f64> = m.iter().filter_map(|m| if let K::Dwell { seconds } = m.kind { Some(seconds) } else { None }).collect();
+    assert_eq!(d, [0.5, 1.5, 2.0, 0.0]);
+    let e = static_errs("G04 P1.5\nM30");
+    assert_eq!(e[0].number, 7);
+}
+
+#[test]
+fn inch_input_converts_to_mm() {
+    let m = run("G20\nG98 G01 X2. Z-1. F10\nM30");
+    assert_eq!(m[0].kind, K::Feed { end: Pos::xz(25.4, -25.4), feed: Feed::PerMin(254.0) });
+    // G20 must be alone.
+    assert_eq!(static_errs("G20 X1\nM30")[0].number, 10);
+}
+
+#[test]
+fn power_on_modes_from_parameters() {
+    // lathe.toml: No.5153 = 1 (G01), No.5154 = 1 (G99).
+    let m = run("X10 Z-1 F0.1\nM30");
+    assert_eq!(m[0].kind, K::Feed { end: Pos::xz(5.0, -1.0), feed: Feed::PerRev(0.1) });
+    let mut c = cfg();
+    c.parameters.insert("5153".into(), toml::Value::Integer(0));
+    c.parameters.insert("5154".into(), toml::Value::Integer(0));
+    let m: Vec<Move> = Interpreter::from_source("t", "X10 Z-1\nM30", &c).unwrap().map(|m| m.unwrap()).collect();
+    assert_eq!(m[0].kind, K::Rapid { end: Pos::xz(5.0, -1.0) });
+}
+
+#[test]
+fn no_decimal_point_rule_no_3401() {
+    assert_eq!(run("G00 X10 Z-5\nM30")[0].kind, K::Rapid { end: Pos::xz(5.0, -5.0) });
+    let mut c = cfg();
+    c.parameters.insert("3401".into(), toml::Value::Integer(0));
+    let m: Vec<Move> = Interpreter::from_source("t", "G00 X10 Z-5.\nM30", &c).unwrap().map(|m| m.unwrap()).collect();
+    assert_eq!(m[0].kind, K::Rapid { end: Pos::xz(0.005, -5.0) });
+}
+
+#[test]
+fn spindle_css_and_max_speed() {
+    let m = run("G00 X100 Z0\nG50 S2000\nG96 S300 M03\nS200\nG97 S500\nM05\nM30");
+    let sp: Vec<SpindleCmd> = m.iter().filter_map(|m| if let K::Spindle(s) = m.kind { Some(s) } else { None }).collect();
+    assert_eq!(sp.len(), 4, "{sp:?}");
+    assert_eq!(sp[0].css, Some(300.0));
+    assert_eq!(sp[0].max_rpm, Some(2000.0));
+    assert!((sp[0].rpm - 300_000.0 / (std::f64::consts::PI * 100.0)).abs() < 1e-6);
+    assert_eq!(sp[1].css, Some(200.0));
+    assert_eq!((sp[2].css, sp[2].rpm, sp[2].dir), (None, 500.0, SpindleDir::Cw));
+    assert_eq!(sp[3].dir, SpindleDir::Stop);
+    // S with the spindle stopped changes no motion.
+    assert_eq!(run("S500\nM30").len(), 1);
+}
+
+#[test]
+fn aux_stop_and_order_in_block() {
+    let m = run("G00 X50 Z5 M08 T0101\nG01 Z-1 F.1 M05\nM01\nM00\nM30");
+    let k: Vec<String> = m.iter().map(plan::move_to_text).map(|s| s.split_once(' ').unwrap().1.to_string()).collect();
+    assert_eq!(k[0], "aux M08");
+    assert_eq!(k[1], "aux T0101");
+    assert!(k[2].starts_with("rapid"));
+    assert!(k[3].starts_with("feed"));
+    assert!(k[4].starts_with("spindle M05"));
+    assert_eq!(m[5].kind, K::Stop { optional: true });
+    assert_eq!(m[6].kind, K::Stop { optional: false });
+}
+
+#[test]
+fn end_stops_the_stream() {
+    let mut it = Interpreter::from_source("t", "G00 X1\nM30\nG00 X2\n", &cfg()).unwrap();
+    assert!(it.next_move().unwrap().is_some());
+    assert_eq!(it.next_move().unwrap().unwrap().kind, K::End { code: 30 });
+    assert!(it.next_move().unwrap().is_none());
+    assert!(it.next_move().unwrap().is_none());
+    // End of text without M30.
+    assert_eq!(run("G00 X1\n").len(), 1);
+}
+
+#[test]
+fn syntax_error_position_and_block() {
+    let src = "O0001\nG21\nG99\nG00 X50 Z5\nM03 S500\nG01 Z0 F0.1\nG01 @10\nX40\nG00 X100\nM30\n";
+    let e = static_errs(src);
+    assert_eq!(e.len(), 1);
+    let s = e[0].to_string();
+    assert!(s.starts_with("t.nc:7:5: alarm 0009: "), "{s}");
+    assert!(s.ends_with("\n    G01 @10"), "{s}");
+}
+
+#[test]
+fn all_static_errors_reported_before_running() {
+    let src = "G00 X10\nG01 Z\nG01 X1 Z1 F.1\nG200 X1\nG04 P2.5\nG00 G01 X1\nM30\n";
+    let e = static_errs(src);
+    let got: Vec<(u32, u32)> = e.iter().map(|a| (a.pos.as_ref().unwrap().line, a.number)).collect();
+    assert_eq!(got, [(2, 5), (4, 10), (5, 7), (6, 10)]);
+}
+
+#[test]
+fn unsupported_codes_are_rejected() {
+    for g in ["G71 U1 R1", "G90 X10 Z-5 F.1", "G32 Z-10 F1.5", "G41", "G76 P010060"] {
+        let e = static_errs(&format!("{g}\nM30"));
+        assert_eq!(e[0].number, 10, "{g}");
+        assert!(e[0].message.contains("not supported yet"), "{}", e[0].message);
+    }
+}
+
+#[test]
+fn work_offsets_g50_g52_g54() {
+    let m = run("G00 X100 Z50\nG50 X200 Z100\nG00 X150 Z80\nG52 Z-10\nG00 Z0\nG52 Z0\nM30");
+    // G50: current machine (50, 50) reads X200 Z100 → offset x = 50 − 100 = −50, z = −50.
+    assert_eq!(m[1].kind, K::Rapid { end: Pos::xz(25.0, 30.0) });
+    assert_eq!(m[1].work_offset, Pos::xz(-50.0, -50.0));
+    assert_eq!(m[2].kind, K::Rapid { end: Pos::xz(25.0, -60.0) });
+    let mut it = Interpreter::from_source("t", "G55 G00 X10 Z0\nG54 X10\nM30", &cfg()).unwrap();
+    let mut t = [Pos::ZERO; 6];
+    t[1] = Pos::xz(1.0, -100.0);
+    it.set_work_offsets(t);
+    let m: Vec<Move> = it.map(|m| m.unwrap()).collect();
+    assert_eq!(m[0].kind, K::Rapid { end: Pos::xz(6.0, -100.0) });
+    assert_eq!(m[0].work_offset, Pos::xz(1.0, -100.0));
+    assert_eq!(m[1].kind, K::Rapid { end: Pos::xz(5.0, -100.0) });
+}
+
+#[test]
+fn start_position_and_incremental() {
+    let mut it = Interpreter::from_source("t", "G00 U-10 W-5\nM30", &cfg()).unwrap();
+    it.set_start_position(Pos::xz(100.0, 5.0));
+    let m = it.next_move().unwrap().unwrap();
+    assert_eq!(m.kind, K::Rapid { end: Pos::xz(95.0, 0.0) });
+}
+
+#[test]
+fn g09_and_g61_exact_stop() {
+    let m = run("G99 F.1\nG01 X10\nG09 G01 X12\nG61\nG01 X14\nG64\nG01 X16\nM30");
+    let e: Vec<bool> = m.iter().filter(|m| m.kind.name() == "feed").map(|m| m.exact_stop).collect();
+    assert_eq!(e, [false, true, true, false]);
+}
+
+#[test]
+fn plan_json_fields() {
+    let m = run("G99 G00 X40 Z5\nM03 S800\nG01 Z-20 F0.2\nG02 X60 Z-30 R10\nG04 P500\nM08\nM30");
+    let j: Vec<serde_json::Value> = m.iter().map(|m| serde_json::from_str(&plan::move_to_json(m)).unwrap()).collect();
+    assert_eq!(j[0]["kind"], "rapid");
+    assert_eq!(j[0]["x"], 40.0);
+    assert_eq!(j[0]["z"], 5.0);
+    assert_eq!(j[0]["line"], 1);
+    assert_eq!(j[0]["file"], "t.nc");
+    assert!(j[0].get("c").is_none());
+    assert_eq!(j[1]["kind"], "spindle");
+    assert_eq!(j[1]["rpm"], 800.0);
+    assert_eq!(j[2]["feed_per_rev"], 0.2);
+    assert_eq!(j[3]["kind"], "arc");
+    assert_eq!(j[3]["cw"], true);
+    assert_eq!(j[3]["x"], 60.0);
+    // CW from (X40 Z-20) to (X60 Z-30) in the ZX plane: centre at X60 Z-20.
+    assert_eq!(j[3]["center"]["x"], 60.0);
+    assert_eq!(j[3]["center"]["z"], -20.0);
+    assert_eq!(j[4]["dwell_s"], 0.5);
+    assert_eq!(j[5]["code"], "M08");
+    assert_eq!(j[6]["kind"], "end");
+    assert_eq!(j[6]["code"], "M30");
+    // Workpiece coordinates with an offset.
+    let m = run("G00 X100 Z50\nG50 X200 Z100\nG00 X150\nM30");
+    let j: serde_json::Value = serde_json::from_str(&plan::move_to_json(&m[1])).unwrap();
+    assert_eq!((j["x"].as_f64(), j["z"].as_f64()), (Some(150.0), Some(100.0)));
+}
+
+#[test]
+fn example_first_part_runs() {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/first_part.nc");
+    let it = Interpreter::from_file(&path, &cfg()).unwrap_or_else(|e| panic!("{}", e[0]));
+    let m: Vec<Move> = it.map(|m| m.unwrap_or_else(|a| panic!("{a}"))).collect();
+    assert_eq!(m.last().unwrap().kind, K::End { code: 30 });
+    let c = cfg();
+    let (xa, za) = (&c.axes["x"], &c.axes["z"]);
+    let mut t = 0.0;
+    let mut p = Pos::ZERO;
+    let mut rpm: f64 = 0.0;
+    let mut css = None;
+    for mv in &m {
+        if let Some(e) = mv.kind.end() {
+            assert!(e.x >= xa.min.unwrap() && e.x <= xa.max.unwrap(), "{}", plan::move_to_text(mv));
+            assert!(e.z >= za.min.unwrap() && e.z <= za.max.unwrap(), "{}", plan::move_to_text(mv));
+        }
+        match &mv.kind {
+            K::Spindle(s) => {
+                rpm = s.rpm;
+                css = s.css.map(|v| (v, s.max_rpm.unwrap_or(f64::INFINITY)));
+            }
+            K::Feed { end, feed } | K::Arc { end, feed, .. } => {
+                // An arc is at most π/2 times its chord (half circle).
+                let k = if matches!(mv.kind, K::Arc { .. }) { 1.6 } else { 1.0 };
+                let len = (end.x - p.x).hypot(end.z - p.z) * k;
+                let r = match css {
+                    Some((v, mx)) => (v * 1000.0 / (std::f64::consts::PI * 2.0 * end.x.max(p.x).max(1.0))).min(mx),
+                    None => rpm,
+                };
+                let fm = match feed {
+                    Feed::PerMin(f) => *f,
+                    Feed::PerRev(f) => f * r,
+                };
+                assert!(fm > 0.0);
+                t += len / fm * 60.0;
+            }
+            K::Dwell { seconds } => t += seconds,
+            K::Rapid { end } => t += (end.x - p.x).abs().max((end.z - p.z).abs()) / 8000.0 * 60.0,
+            _ => {}
+        }
+        if let Some(e) = mv.kind.end() {
+            p = e;
+        }
+    }
+    assert!(t < 60.0, "machining time estimate {t:.1} s");
+    // The documented end point.
+    assert_eq!(p, Pos::xz(50.0, 5.0));
+}
