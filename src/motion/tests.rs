@@ -1,0 +1,487 @@
+use super::*;
+use crate::canon::{CycleTag, SrcPos};
+use proptest::prelude::*;
+use std::sync::Arc;
+
+fn lim() -> Limits {
+    Limits::from_config(&MachineConfig::embedded())
+}
+
+fn mv(line: u32, kind: MoveKind) -> Move {
+    Move {
+        src: SrcPos::new(Arc::from("t.nc"), line, 1),
+        kind,
+        exact_stop: true,
+        work_offset: Pos::ZERO,
+        tag: None::<CycleTag>,
+    }
+}
+
+fn rapid(x: f64, z: f64) -> MoveKind {
+    MoveKind::Rapid { end: Pos::xz(x, z) }
+}
+fn feed(x: f64, z: f64, f: f64) -> MoveKind {
+    MoveKind::Feed { end: Pos::xz(x, z), feed: Feed::PerMin(f) }
+}
+fn spindle(dir: SpindleDir, rpm: f64) -> MoveKind {
+    MoveKind::Spindle(SpindleCmd { dir, rpm, css: None, max_rpm: None })
+}
+
+const START: [f64; N_AXES] = [50.0, 0.0, 0.0, 0.0];
+
+/// Step until idle (and `extra` cycles more), with an ideal spindle drive: the measured speed is
+/// last cycle's command.
+fn run(m: &mut Motion, max: usize) -> Vec<Setpoint> {
+    let mut out = Vec::new();
+    let mut fb = Feedback { pos: START, spindle_rpm: 0.0 };
+    while !m.is_idle() {
+        assert!(out.len() < max, "not idle after {max} cycles");
+        let sp = m.step(&fb);
+        fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm };
+        out.push(sp);
+    }
+    out
+}
+
+/// No axis exceeds its speed or acceleration, judged on the setpoints as the drives see them
+/// (first and second differences), starting at rest at `start`.
+fn check_limits(l: &Limits, start: [f64; N_AXES], sps: &[Setpoint]) -> Result<(), String> {
+    let dt = l.cycle_s;
+    let mut p = start;
+    let mut v = [0.0; N_AXES];
+    for (k, sp) in sps.iter().enumerate() {
+        for i in 0..N_AXES {
+            let nv = (sp.pos[i] - p[i]) / dt;
+            let acc = (nv - v[i]) / dt;
+            if nv.abs() > l.vmax[i] * (1.0 + 1e-9) + 1e-9 {
+                return Err(format!("cycle {k}: axis {i} speed {nv} > {}", l.vmax[i]));
+            }
+            // The spindle angle integrates the speed, so its second difference is the
+            // speed step: also bounded by amax.
+            if acc.abs() > l.amax[i] * (1.0 + 1e-6) + 1e-6 {
+                return Err(format!("cycle {k}: axis {i} accel {acc} > {} (v {} → {nv})", l.amax[i], v[i]));
+            }
+            if (sp.vel[i] - nv).abs() > 1e-6 * (1.0 + nv.abs()) {
+                return Err(format!("cycle {k}: axis {i} vel {} disagrees with setpoints {nv}", sp.vel[i]));
+            }
+            p[i] = sp.pos[i];
+            v[i] = nv;
+        }
+    }
+    Ok(())
+}
+
+#[test]
+fn straight_feed_takes_expected_time_and_ends_exactly() {
+    let l = lim();
+    let mut m = Motion::new(l.clone(), START);
+    m.push(&mv(10, feed(50.0, -100.0, 1200.0))).unwrap();
+    let sps = run(&mut m, 10_000);
+    // 20 mm/s, 2000 mm/s²: 100/20 + 20/2000 = 5.01 s; +1 cycle of exact stop at rest.
+    let expect = 5.01 / l.cycle_s + 1.0;
+    assert!((sps.len() as f64 - expect).abs() <= 2.0, "{} cycles, expected {expect}", sps.len());
+    let last = sps.last().unwrap();
+    assert_eq!(last.pos[AX_Z], -100.0);
+    assert_eq!(last.pos[AX_X], 50.0);
+    assert_eq!(last.line, 10);
+    let top = sps.iter().map(|s| s.path_feed).fold(0.0, f64::max);
+    assert!((top - 1200.0).abs() < 1e-9, "top speed {top}");
+    check_limits(&l, START, &sps).unwrap();
+}
+
+#[test]
+fn diagonal_feed_ends_bit_exact_on_both_axes() {
+    let l = lim();
+    let mut m = Motion::new(l.clone(), START);
+    let (x, z) = (12.345678912345, -77.77777777777);
+    m.push(&mv(1, feed(x, z, 3000.0))).unwrap();
+    let sps = run(&mut m, 20_000);
+    let last = sps.last().unwrap();
+    assert_eq!((last.pos[AX_X], last.pos[AX_Z]), (x, z));
+    // The landing cycle is the one before the rest cycle; both sit on the end point.
+    assert_eq!(sps[sps.len() - 2].pos, last.pos);
+    check_limits(&l, START, &sps).unwrap();
+}
+
+#[test]
+fn rapid_runs_at_the_slowest_axis_rate_in_a_straight_line() {
+    let l = lim();
+    let mut m = Motion::new(l.clone(), START);
+    // X 40 mm at 10000 mm/min and Z 40 mm at 12000: X limits, path = √2·X speed.
+    m.push(&mv(1, rapid(10.0, -40.0))).unwrap();
+    let sps = run(&mut m, 10_000);
+    let vx = sps.iter().map(|s| s.vel[AX_X].abs()).fold(0.0, f64::max);
+    let vz = sps.iter().map(|s| s.vel[AX_Z].abs()).fold(0.0, f64::max);
+    assert!((vx - 10000.0 / 60.0).abs() < 1e-6, "x at {vx}");
+    assert!((vz - vx).abs() < 1e-6, "z at {vz}, must follow the straight line");
+    for s in &sps {
+        // On the line x − 50 = (z − 0)·(−40/−40)… i.e. x = 50 + z.
+        assert!((s.pos[AX_X] - (50.0 + s.pos[AX_Z])).abs() < 1e-9);
+    }
+    assert_eq!(sps.last().unwrap().pos[..3], [10.0, 0.0, -40.0]);
+    check_limits(&l, START, &sps).unwrap();
+}
+
+#[test]
+fn feed_is_clamped_by_parameter_6023() {
+    let l = lim();
+    assert!((l.feed_clamp - 5000.0 / 60.0).abs() < 1e-12);
+    let mut m = Motion::new(l, START);
+    m.push(&mv(1, feed(50.0, -200.0, 9000.0))).unwrap();
+    let top = run(&mut m, 100_000).iter().map(|s| s.path_feed).fold(0.0, f64::max);
+    assert!((top - 5000.0).abs() < 1e-9, "top {top}");
+}
+
+fn arc_zx(x: f64, z: f64, cx: f64, cz: f64, cw: bool, f: f64) -> MoveKind {
+    MoveKind::Arc {
+        end: Pos::xz(x, z),
+        center: Pos::xz(cx, cz),
+        cw,
+        plane: Plane::Zx,
+        feed: Feed::PerMin(f),
+    }
+}
+
+#[test]
+fn arc_stays_on_the_circle_and_ends_exactly() {
+    let l = lim();
+    let mut m = Motion::new(l.clone(), START);
+    // Quarter circle r = 20 about (x 50, z −20), from (50, 0) to (70, −20) counter-clockwise,
+    // then a full circle back the other way round.
+    m.push(&mv(1, arc_zx(70.0, -20.0, 50.0, -20.0, false, 2000.0))).unwrap();
+    m.push(&mv(2, arc_zx(70.0, -20.0, 50.0, -20.0, true, 2000.0))).unwrap();
+    let sps = run(&mut m, 100_000);
+    let mut n_on = 0;
+    for s in &sps {
+        let r = (s.pos[AX_X] - 50.0).hypot(s.pos[AX_Z] + 20.0);
+        assert!((r - 20.0).abs() <= 1e-6, "off circle by {}", r - 20.0);
+        n_on += 1;
+    }
+    assert!(n_on > 1000);
+    let last = sps.last().unwrap();
+    assert_eq!((last.pos[AX_X], last.pos[AX_Z]), (70.0, -20.0));
+    // Quarter: 31.4 mm, full: 125.7 mm at 33.3 mm/s ≈ 4.7 s.
+    let t = sps.len() as f64 * l.cycle_s;
+    assert!((t - (157.08 / (2000.0 / 60.0))).abs() < 0.1, "took {t} s");
+    check_limits(&l, START, &sps).unwrap();
+    // Sense: in the (Z, X) plane seen from +Y (Z right, X up), counter-clockwise from the
+    // +Z side of the centre goes up, towards +X.
+    let first = sps.iter().find(|s| s.pos[AX_X] != 50.0).unwrap();
+    assert!(first.pos[AX_X] > 50.0);
+    // The full circle passes below the centre (x < 40 at some point), clockwise.
+    assert!(sps.iter().any(|s| s.pos[AX_X] < 31.0));
+}
+
+#[test]
+fn small_arc_speed_respects_chord_tolerance_and_accel() {
+    // Stiff axes, so that the chord tolerance rather than the centripetal acceleration limits
+    // the speed on a small arc.
+    let mut l = lim();
+    l.amax = [50_000.0, 50_000.0, 50_000.0, l.amax[AX_S]];
+    let mut m = Motion::new(l.clone(), START);
+    // r = 1 mm at F5000: centripetal and chord limits must slow it down.
+    m.push(&mv(1, arc_zx(51.0, -1.0, 50.0, -1.0, true, 5000.0))).unwrap();
+    let sps = run(&mut m, 100_000);
+    let mut prev = [START[0], START[2]];
+    for s in &sps {
+        let cur = [s.pos[AX_X], s.pos[AX_Z]];
+        // Sagitta of the chord prev→cur: distance of its midpoint from the circle.
+        let mid = [(prev[0] + cur[0]) / 2.0, (prev[1] + cur[1]) / 2.0];
+        let sag = 1.0 - (mid[0] - 50.0).hypot(mid[1] + 1.0);
+        assert!(sag <= l.chord_tol + 1e-9, "sagitta {sag}");
+        prev = cur;
+    }
+    // ... and the chord limit is what binds: √(8·r·tol)/dt = 44.7 mm/s.
+    let top = sps.iter().map(|s| s.path_feed).fold(0.0, f64::max) / 60.0;
+    assert!((top - (8.0f64 * 1.0 * l.chord_tol).sqrt() / l.cycle_s).abs() < 1e-6, "top {top} mm/s");
+    check_limits(&l, START, &sps).unwrap();
+}
+
+#[test]
+fn dwell_of_half_a_second_lasts_250_cycles() {
+    let mut m = Motion::new(lim(), START);
+    m.push(&mv(5, MoveKind::Dwell { seconds: 0.5 })).unwrap();
+    m.push(&mv(6, MoveKind::Aux { letter: 'M', value: 8.0 })).unwrap();
+    let fb = Feedback::default();
+    let mut n = 0;
+    loop {
+        let sp = m.step(&fb);
+        n += 1;
+        assert_eq!(sp.pos, START);
+        if sp.event != Event::None {
+            assert_eq!(sp.event, Event::Aux { letter: 'M', value: 8.0 });
+            break;
+        }
+        assert_eq!(sp.line, 5);
+        assert!(n < 1000);
+    }
+    assert_eq!(n, 251, "dwell lasted {} cycles", n - 1);
+}
+
+#[test]
+fn spindle_ramps_at_its_acceleration_and_angle_integrates_speed() {
+    let l = lim();
+    let dt = l.cycle_s;
+    let mut m = Motion::new(l.clone(), START);
+    m.push(&mv(1, spindle(SpindleDir::Cw, 1000.0))).unwrap();
+    m.push(&mv(2, MoveKind::Dwell { seconds: 0.3 })).unwrap();
+    m.push(&mv(3, spindle(SpindleDir::Ccw, 500.0))).unwrap();
+    m.push(&mv(4, MoveKind::Dwell { seconds: 0.5 })).unwrap();
+    m.push(&mv(5, spindle(SpindleDir::Stop, 0.0))).unwrap();
+    m.push(&mv(6, MoveKind::Dwell { seconds: 0.2 })).unwrap();
+    let sps = run(&mut m, 10_000);
+    let step = 6000.0 * dt; // rpm per cycle
+    let mut rpm = 0.0;
+    let mut ang = START[AX_S];
+    let mut reached_1000 = None;
+    for (k, s) in sps.iter().enumerate() {
+        assert!((s.spindle_rpm - rpm).abs() <= step + 1e-9, "cycle {k}: {rpm} → {}", s.spindle_rpm);
+        assert!((s.pos[AX_S] - ang - s.spindle_rpm * 6.0 * dt).abs() < 1e-9, "angle is not the integral");
+        if reached_1000.is_none() && s.spindle_rpm == 1000.0 {
+            reached_1000 = Some(k);
+        }
+        rpm = s.spindle_rpm;
+        ang = s.pos[AX_S];
+    }
+    // 1000 rpm at 6000 rpm/s: 1/6 s = 83.3 cycles.
+    assert_eq!(reached_1000, Some(84));
+    assert!(sps.iter().any(|s| s.spindle_rpm == -500.0), "reached M04 speed");
+    assert_eq!(sps.last().unwrap().spindle_rpm, 0.0);
+    check_limits(&l, START, &sps).unwrap();
+}
+
+#[test]
+fn css_speed_follows_commanded_x_and_is_clamped() {
+    let mut m = Motion::new(lim(), START);
+    let css = SpindleCmd { dir: SpindleDir::Cw, rpm: 0.0, css: Some(100.0), max_rpm: Some(3000.0) };
+    m.push(&mv(1, MoveKind::Spindle(css))).unwrap();
+    m.push(&mv(2, MoveKind::Dwell { seconds: 0.2 })).unwrap();
+    let sps = run(&mut m, 1000);
+    let want = 100_000.0 / (std::f64::consts::TAU * 50.0);
+    assert!((sps.last().unwrap().spindle_rpm - want).abs() < 1e-9);
+    m.push(&mv(3, feed(2.0, 0.0, 4000.0))).unwrap();
+    m.push(&mv(4, MoveKind::Dwell { seconds: 0.5 })).unwrap();
+    let sps = run(&mut m, 10_000);
+    // Mid-way through the facing cut the speed tracks x; at x = 2 the clamp holds.
+    let mid = sps.iter().find(|s| s.pos[AX_X] < 20.0).unwrap();
+    assert!(mid.spindle_rpm > want * 2.0);
+    assert_eq!(sps.last().unwrap().spindle_rpm, 3000.0);
+}
+
+#[test]
+fn events_arrive_in_order_after_the_preceding_motion() {
+    let mut m = Motion::new(lim(), START);
+    m.push(&mv(1, rapid(30.0, -5.0))).unwrap();
+    m.push(&mv(2, MoveKind::Aux { letter: 'M', value: 8.0 })).unwrap();
+    m.push(&mv(3, MoveKind::Aux { letter: 'T', value: 101.0 })).unwrap();
+    m.push(&mv(4, MoveKind::Stop { optional: true })).unwrap(); // switch off: no wait
+    m.push(&mv(5, feed(30.0, -10.0, 500.0))).unwrap();
+    m.push(&mv(6, MoveKind::End { code: 30 })).unwrap();
+    let sps = run(&mut m, 10_000);
+    let evs: Vec<(Event, u32, f64)> =
+        sps.iter().filter(|s| s.event != Event::None).map(|s| (s.event, s.line, s.pos[AX_Z])).collect();
+    assert_eq!(
+        evs,
+        vec![
+            (Event::Aux { letter: 'M', value: 8.0 }, 2, -5.0),
+            (Event::Aux { letter: 'T', value: 101.0 }, 3, -5.0),
+            (Event::Stop { optional: true }, 4, -5.0),
+            (Event::End, 6, -10.0),
+        ]
+    );
+    // After the end: the final position, no events, idle.
+    let fb = Feedback::default();
+    for _ in 0..100 {
+        let sp = m.step(&fb);
+        assert_eq!(sp.pos[..3], [30.0, 0.0, -10.0]);
+        assert_eq!(sp.event, Event::None);
+        assert_eq!(sp.vel[..3], [0.0; 3]);
+        assert!(m.is_idle());
+    }
+}
+
+#[test]
+fn m00_waits_for_cycle_start() {
+    let mut m = Motion::new(lim(), START);
+    m.push(&mv(1, MoveKind::Stop { optional: false })).unwrap();
+    m.push(&mv(2, rapid(40.0, 0.0))).unwrap();
+    let fb = Feedback::default();
+    assert_eq!(m.step(&fb).event, Event::Stop { optional: false });
+    for _ in 0..50 {
+        assert_eq!(m.step(&fb).pos, START);
+    }
+    assert!(m.is_held() && !m.is_idle());
+    m.cycle_start();
+    let sps = run(&mut m, 10_000);
+    assert_eq!(sps.last().unwrap().pos[AX_X], 40.0);
+}
+
+#[test]
+fn move_beyond_travel_is_refused_and_nothing_moves() {
+    let mut m = Motion::new(lim(), START);
+    let e = m.push(&mv(7, rapid(160.0, 0.0))).unwrap_err();
+    assert_eq!(e.number, alarms::TRAVEL);
+    assert_eq!(e.pos.as_ref().map(|p| p.line), Some(7));
+    assert!(e.message.contains("X end point"), "{}", e.message);
+    let e = m.push(&mv(8, feed(50.0, 6.0, 100.0))).unwrap_err();
+    assert_eq!(e.number, alarms::TRAVEL);
+    let e = m.push(&mv(9, MoveKind::Rapid { end: Pos { y: 3.0, ..Pos::xz(50.0, 0.0) } })).unwrap_err();
+    assert!(e.message.contains("not configured"), "{}", e.message);
+    assert!(m.is_idle());
+    assert_eq!(m.step(&Feedback::default()).pos, START);
+}
+
+#[test]
+fn bad_feeds_and_arcs_are_refused() {
+    let mut m = Motion::new(lim(), START);
+    let per_rev = MoveKind::Feed { end: Pos::xz(50.0, -10.0), feed: Feed::PerRev(0.1) };
+    assert_eq!(m.push(&mv(1, per_rev.clone())).unwrap_err().number, alarms::PER_REV_SPINDLE_STOPPED);
+    assert_eq!(m.push(&mv(1, feed(50.0, -10.0, 0.0))).unwrap_err().number, alarms::FEED_ZERO);
+    assert_eq!(m.push(&mv(1, feed(50.0, -10.0, f64::NAN))).unwrap_err().number, alarms::FEED_ZERO);
+    // End 21 mm from the centre, start 20 mm.
+    assert_eq!(m.push(&mv(1, arc_zx(71.0, -20.0, 50.0, -20.0, true, 100.0))).unwrap_err().number, alarms::ARC_RADIUS);
+    assert_eq!(m.push(&mv(1, MoveKind::Dwell { seconds: -1.0 })).unwrap_err().number, alarms::BAD_VALUE);
+    m.push(&mv(2, spindle(SpindleDir::Cw, 1000.0))).unwrap();
+    m.push(&mv(3, per_rev)).unwrap();
+    m.push(&mv(4, spindle(SpindleDir::Stop, 0.0))).unwrap();
+    let again = MoveKind::Feed { end: Pos::xz(50.0, -20.0), feed: Feed::PerRev(0.1) };
+    assert_eq!(m.push(&mv(5, again)).unwrap_err().number, alarms::PER_REV_SPINDLE_STOPPED);
+}
+
+#[test]
+fn per_rev_feed_follows_measured_spindle_speed() {
+    let l = lim();
+    let mut m = Motion::new(l.clone(), START);
+    m.push(&mv(1, spindle(SpindleDir::Cw, 1000.0))).unwrap();
+    m.push(&mv(2, MoveKind::Feed { end: Pos::xz(50.0, -10.0), feed: Feed::PerRev(0.2) })).unwrap();
+    let sps = run(&mut m, 100_000);
+    // 0.2 mm/rev × 1000 rpm = 200 mm/min once the spindle is up to speed.
+    let top = sps.iter().map(|s| s.path_feed).fold(0.0, f64::max);
+    assert!((top - 200.0).abs() < 1e-6, "top {top}");
+    // While the spindle ramps, the feed stays at or below F × measured rpm (+ one accel step).
+    let dv = l.amax[AX_Z] * l.cycle_s * 60.0;
+    for w in sps.windows(2) {
+        assert!(w[1].path_feed <= 0.2 * w[0].spindle_rpm + dv + 1e-9);
+    }
+    assert_eq!(sps.last().unwrap().pos[AX_Z], -10.0);
+    check_limits(&l, START, &sps).unwrap();
+}
+
+#[test]
+fn stop_decelerates_on_the_path_and_drops_the_rest() {
+    let l = lim();
+    let mut m = Motion::new(l.clone(), START);
+    m.push(&mv(1, spindle(SpindleDir::Cw, 2000.0))).unwrap();
+    m.push(&mv(2, rapid(10.0, -300.0))).unwrap();
+    m.push(&mv(3, rapid(100.0, 0.0))).unwrap();
+    let fb = Feedback::default();
+    let mut sps: Vec<Setpoint> = (0..300).map(|_| m.step(&fb)).collect();
+    assert!(sps.last().unwrap().path_feed > 1000.0);
+    m.stop();
+    assert!(!m.is_idle());
+    assert_eq!(m.push(&mv(4, rapid(0.0, 0.0))).unwrap_err().number, alarms::STOPPING);
+    sps.extend(run(&mut m, 10_000));
+    for _ in 0..200 {
+        sps.push(m.step(&fb));
+    }
+    check_limits(&l, START, &sps).unwrap();
+    let last = *sps.last().unwrap();
+    // Stopped on the first rapid's line (x − 50 = 40/300 · z), short of its end.
+    assert!((last.pos[AX_X] - (50.0 + 40.0 / 300.0 * last.pos[AX_Z])).abs() < 1e-9);
+    assert!(last.pos[AX_Z] > -300.0);
+    assert_eq!(last.spindle_rpm, 0.0);
+    // Planning restarts from the stop point.
+    m.push(&mv(5, rapid(last.pos[AX_X], 0.0))).unwrap();
+    let sps = run(&mut m, 10_000);
+    assert!(sps.iter().all(|s| s.pos[AX_X] == last.pos[AX_X]));
+    assert_eq!(sps.last().unwrap().pos[AX_Z], 0.0);
+}
+
+#[test]
+fn feed_hold_decelerates_and_resumes() {
+    let l = lim();
+    let mut m = Motion::new(l.clone(), START);
+    m.push(&mv(1, feed(50.0, -50.0, 3000.0))).unwrap();
+    let fb = Feedback::default();
+    let mut sps: Vec<Setpoint> = (0..200).map(|_| m.step(&fb)).collect();
+    m.feed_hold();
+    sps.extend((0..200).map(|_| m.step(&fb)));
+    let held_at = sps.last().unwrap().pos;
+    assert_eq!(sps.last().unwrap().path_feed, 0.0);
+    assert_eq!(m.step(&fb).pos, held_at);
+    m.cycle_start();
+    sps.extend(run(&mut m, 10_000));
+    assert_eq!(sps.last().unwrap().pos[AX_Z], -50.0);
+    check_limits(&l, START, &sps[..]).unwrap();
+}
+
+#[test]
+fn feed_override_scales_cutting_feed() {
+    let mut m = Motion::new(lim(), START);
+    m.set_feed_override(0.5);
+    m.push(&mv(1, feed(50.0, -20.0, 1000.0))).unwrap();
+    let top = run(&mut m, 100_000).iter().map(|s| s.path_feed).fold(0.0, f64::max);
+    assert!((top - 500.0).abs() < 1e-9);
+}
+
+#[test]
+fn queue_full_is_refused() {
+    let mut l = lim();
+    l.queue_len = 2;
+    let mut m = Motion::new(l, START);
+    m.push(&mv(1, rapid(40.0, 0.0))).unwrap();
+    m.push(&mv(2, rapid(30.0, 0.0))).unwrap();
+    assert!(!m.has_room());
+    assert_eq!(m.push(&mv(3, rapid(20.0, 0.0))).unwrap_err().number, alarms::QUEUE_FULL);
+    let sps = run(&mut m, 10_000);
+    assert_eq!(sps.last().unwrap().pos[AX_X], 30.0);
+}
+
+/// A random program segment inside the travel limits.
+#[derive(Clone, Debug)]
+enum Seg3 {
+    Rapid(f64, f64),
+    Feed(f64, f64, f64),
+    Arc { cx: f64, cz: f64, ang: f64, sweep: f64, r: f64, cw: bool, f: f64 },
+}
+
+fn seg_strategy() -> impl Strategy<Value = Seg3> {
+    prop_oneof![
+        (0.0..150.0f64, -400.0..5.0f64).prop_map(|(x, z)| Seg3::Rapid(x, z)),
+        (0.0..150.0f64, -400.0..5.0f64, 1.0..8000.0f64).prop_map(|(x, z, f)| Seg3::Feed(x, z, f)),
+        (0.5..40.0f64, 0.0..6.3f64, 0.01..6.3f64, any::<bool>(), 10.0..6000.0f64, 40.0..100.0f64, -300.0..-50.0f64)
+            .prop_map(|(r, ang, sweep, cw, f, cx, cz)| Seg3::Arc { cx, cz, ang, sweep, r, cw, f }),
+    ]
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 48, ..ProptestConfig::default() })]
+    #[test]
+    fn random_programs_respect_limits_and_end_exactly(segs in prop::collection::vec(seg_strategy(), 1..6)) {
+        let l = lim();
+        let mut m = Motion::new(l.clone(), START);
+        let mut end = (START[AX_X], START[AX_Z]);
+        for (i, s) in segs.iter().enumerate() {
+            let line = i as u32 + 1;
+            match *s {
+                Seg3::Rapid(x, z) => { m.push(&mv(line, rapid(x, z))).unwrap(); end = (x, z); }
+                Seg3::Feed(x, z, f) => { m.push(&mv(line, feed(x, z, f))).unwrap(); end = (x, z); }
+                Seg3::Arc { cx, cz, ang, sweep, r, cw, f } => {
+                    // Move to the start point on the circle, then the arc.
+                    let (sx, sz) = (cx + r * ang.sin(), cz + r * ang.cos());
+                    m.push(&mv(line, rapid(sx, sz))).unwrap();
+                    let a1 = if cw { ang - sweep } else { ang + sweep };
+                    let (ex, ez) = (cx + r * a1.sin(), cz + r * a1.cos());
+                    m.push(&mv(line, arc_zx(ex, ez, cx, cz, cw, f))).unwrap();
+                    end = (ex, ez);
+                }
+            }
+        }
+        let sps = run(&mut m, 2_000_000);
+        let last = sps.last().unwrap();
+        prop_assert_eq!((last.pos[AX_X], last.pos[AX_Z]), end);
+        if let Err(e) = check_limits(&l, START, &sps) {
+            prop_assert!(false, "{}", e);
+        }
+    }
+}
