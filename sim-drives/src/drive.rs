@@ -1021,7 +1021,12 @@ impl SimDrive {
     }
 
     fn start_stop(&mut self, why: StopWhy, brake: Brake, now: u64) {
-        let (pos, v) = if self.state == State::OperationEnabled && self.mode_display() != mode::CYCLIC_SYNC_VELOCITY {
+        // Halt and quick stop ramp the demand down from where it is; a fault reaction
+        // (the demand may be what went wrong) from where the motor is.
+        let (pos, v) = if why != StopWhy::FaultReaction
+            && self.state == State::OperationEnabled
+            && self.mode_display() != mode::CYCLIC_SYNC_VELOCITY
+        {
             (self.demand, self.vff)
         } else {
             (self.servo.position_counts() as f64, self.servo.velocity_counts())
@@ -1215,7 +1220,11 @@ impl SimDrive {
             Command::Velocity { v: self.target_vel }
         } else {
             let el = now.saturating_sub(self.seg_t0);
-            if el >= self.seg_len {
+            if el == self.seg_len {
+                // The end of a segment is also the instant of the next SYNC: keep the
+                // segment's speed so that an on-time SYNC sees no dip in the feed-forward.
+                self.demand = self.seg_end;
+            } else if el > self.seg_len {
                 self.demand = self.seg_end;
                 self.vff = 0.0;
             } else {

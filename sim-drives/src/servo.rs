@@ -79,9 +79,9 @@ impl Servo {
         self.pos = counts;
     }
 
-    /// True when the motor is at rest (below ~0.01 rpm).
+    /// True at standstill as a drive's speed window sees it (below ~1 rpm).
     pub fn at_rest(&self) -> bool {
-        self.omega.abs() < 1e-3
+        self.omega.abs() < 0.1
     }
 
     /// One control tick: compute the torque held until the next tick.
