@@ -1,1 +1,87 @@
-fn main(){}
+//! `sim-drives`: emulated CiA 402 amplifiers on a real (or virtual) CAN bus, in real time.
+//!
+//!     sim-drives --bus vcan0                 # the drives of config/lathe.toml
+//!     sim-drives --bus can0 --config my.toml # drives from a sim-drives or machine config
+//!     sim-drives --print-default-config      # commented TOML to start from
+
+use clap::Parser;
+use sim_drives::SimConfig;
+use std::process::ExitCode;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+
+#[derive(Parser)]
+#[command(name = "sim-drives", version, about = "Emulated CiA 402 servo and spindle amplifiers on CANopen (SocketCAN, real time)")]
+struct Args {
+    /// CAN interface to serve, e.g. vcan0 or can0.
+    #[arg(long, default_value = "vcan0")]
+    bus: String,
+    /// A sim-drives config (as --print-default-config prints) or a cncgw machine config
+    /// (its [axes.*] tables). Default: the drives of config/lathe.toml.
+    #[arg(long)]
+    config: Option<std::path::PathBuf>,
+    /// Print the default configuration as commented TOML and exit.
+    #[arg(long)]
+    print_default_config: bool,
+    /// More logging (-v: debug, -vv: trace). RUST_LOG overrides.
+    #[arg(short, long, action = clap::ArgAction::Count)]
+    verbose: u8,
+}
+
+fn load(path: &std::path::Path) -> Result<SimConfig, String> {
+    let text = std::fs::read_to_string(path).map_err(|e| format!("{}: cannot read: {e}", path.display()))?;
+    // A machine config has [axes.*]; a sim-drives config has [[drive]].
+    let is_machine = text.lines().any(|l| l.trim_start().starts_with("[axes."));
+    let r = if is_machine { SimConfig::from_machine_toml(&text) } else { SimConfig::from_toml(&text) };
+    r.map_err(|e| format!("{}: {e}", path.display()))
+}
+
+fn main() -> ExitCode {
+    let args = Args::parse();
+    if args.print_default_config {
+        print!("{}", SimConfig::default_lathe().to_commented_toml());
+        return ExitCode::SUCCESS;
+    }
+    let level = match args.verbose {
+        0 => "info",
+        1 => "debug",
+        _ => "trace",
+    };
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(level));
+    tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).init();
+
+    let cfg = match &args.config {
+        Some(p) => match load(p) {
+            Ok(c) => c,
+            Err(e) => {
+                eprintln!("sim-drives: {e}");
+                return ExitCode::from(2);
+            }
+        },
+        None => SimConfig::default_lathe(),
+    };
+    let stop = Arc::new(AtomicBool::new(false));
+    for sig in [2, 15] {
+        // SIGINT, SIGTERM. The action only stores to an atomic: async-signal-safe.
+        let s = stop.clone();
+        // SAFETY: the handler does nothing but an atomic store.
+        if let Err(e) = unsafe { signal_hook_registry::register(sig, move || s.store(true, Ordering::Relaxed)) } {
+            eprintln!("sim-drives: cannot install signal handler {sig}: {e}");
+            return ExitCode::FAILURE;
+        }
+    }
+    let bus = match cncgw_bus::transport::socketcan::SocketCan::open(&args.bus) {
+        Ok(b) => b,
+        Err(e) => {
+            eprintln!("sim-drives: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    match sim_drives::run_realtime(Box::new(bus), cfg, stop) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("sim-drives: {e}");
+            ExitCode::FAILURE
+        }
+    }
+}

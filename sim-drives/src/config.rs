@@ -1,0 +1,452 @@
+//! Configuration of the emulated drives: identity, scaling and physics per node.
+//!
+//! Two sources: a cncgw machine config (only `[axes.*]` kind, node and counts_per_unit are
+//! read; physics get realistic defaults per kind) or a sim-drives TOML file (what
+//! `--print-default-config` prints), where every physical parameter can be overridden.
+
+use serde::Deserialize;
+use std::collections::BTreeMap;
+
+/// The default machine, compiled in.
+pub const LATHE_TOML: &str = include_str!("../../config/lathe.toml");
+
+/// Ball-screw lead assumed for linear axes (mm per motor revolution, direct drive).
+pub const DEFAULT_SCREW_LEAD_MM: f64 = 10.0;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum DriveKind {
+    /// A feed-axis servo on a ball screw; position units are counts of the motor encoder.
+    Linear,
+    /// A spindle amplifier (Cs-capable): heavier, softer position loop.
+    Spindle,
+}
+
+impl DriveKind {
+    pub fn name(self) -> &'static str {
+        match self {
+            DriveKind::Linear => "linear",
+            DriveKind::Spindle => "spindle",
+        }
+    }
+}
+
+/// Mechanics and control loop of one drive. Motor-side units: kg·m², N·m, rad/s.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Physics {
+    /// Motor rotor inertia, kg·m².
+    pub motor_inertia: f64,
+    /// Load inertia reflected to the motor shaft, kg·m².
+    pub load_inertia: f64,
+    /// Peak torque of the amplifier/motor pair, N·m.
+    pub torque_limit: f64,
+    /// Coulomb (dry) friction torque, N·m.
+    pub coulomb_friction: f64,
+    /// Viscous friction, N·m per rad/s.
+    pub viscous_friction: f64,
+    /// Position loop gain Kv, 1/s.
+    pub kv: f64,
+    /// Velocity feed-forward gain (1.0 = 100 %). Real drives run slightly below 100 %.
+    pub velocity_ff: f64,
+    /// Velocity loop proportional gain, N·m per rad/s.
+    pub vel_kp: f64,
+    /// Velocity loop integral time, ms.
+    pub vel_ti_ms: f64,
+    /// Maximum motor speed, rpm (velocity command clamp).
+    pub max_speed_rpm: f64,
+}
+
+impl Physics {
+    pub fn inertia(&self) -> f64 {
+        self.motor_inertia + self.load_inertia
+    }
+
+    /// Defaults per kind: a 1 kW-class feed servo on a 10 mm screw; a 7.5 kW spindle motor
+    /// with chuck and part — ~100× the inertia and a softer position loop, as on real lathes.
+    pub fn default_for(kind: DriveKind) -> Physics {
+        match kind {
+            DriveKind::Linear => {
+                let j = 1.6e-4 + 2.4e-4;
+                Physics {
+                    motor_inertia: 1.6e-4,
+                    load_inertia: 2.4e-4,
+                    torque_limit: 9.5,
+                    coulomb_friction: 0.15,
+                    viscous_friction: 2.0e-4,
+                    kv: 50.0,
+                    velocity_ff: 0.995,
+                    // Velocity loop bandwidth ≈ 150 Hz.
+                    vel_kp: j * 2.0 * std::f64::consts::PI * 150.0,
+                    vel_ti_ms: 5.0,
+                    max_speed_rpm: 3000.0,
+                }
+            }
+            DriveKind::Spindle => {
+                let j = 0.02 + 0.03;
+                Physics {
+                    motor_inertia: 0.02,
+                    load_inertia: 0.03,
+                    torque_limit: 70.0,
+                    coulomb_friction: 1.0,
+                    viscous_friction: 5.0e-3,
+                    kv: 20.0,
+                    velocity_ff: 0.998,
+                    // Velocity loop bandwidth ≈ 40 Hz.
+                    vel_kp: j * 2.0 * std::f64::consts::PI * 40.0,
+                    vel_ti_ms: 20.0,
+                    max_speed_rpm: 8000.0,
+                }
+            }
+        }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq)]
+pub struct DriveConfig {
+    pub node: u8,
+    pub kind: DriveKind,
+    /// Axis name (from the machine config), for logs.
+    pub axis: String,
+    /// 0x1008 manufacturer device name.
+    pub device_name: String,
+    /// 0x1018 identity.
+    pub vendor_id: u32,
+    pub product_code: u32,
+    pub revision: u32,
+    pub serial: u32,
+    /// Encoder counts per motor revolution (the position unit of every 402 object).
+    pub counts_per_rev: u32,
+    /// Counts per machine unit (mm or degree), for defaults in machine units.
+    pub counts_per_unit: f64,
+    /// Time from power-on (or reset) to the boot-up message, ms.
+    pub boot_delay_ms: f64,
+    /// 0x6065 default, counts.
+    pub following_error_window: u32,
+    /// 0x6066 default, ms.
+    pub following_error_timeout_ms: u16,
+    /// 0x6085 quick-stop deceleration default, counts/s².
+    pub quick_stop_decel: u32,
+    /// 0x6084 profile deceleration default (halt, slow-down ramp), counts/s².
+    pub profile_decel: u32,
+    pub physics: Physics,
+}
+
+impl DriveConfig {
+    /// Defaults for one node of `kind` with `counts_per_unit` counts per mm (linear) or per
+    /// degree (spindle).
+    pub fn new(node: u8, kind: DriveKind, axis: &str, counts_per_unit: f64) -> DriveConfig {
+        let (counts_per_rev, window_units, qs_units_s2, prof_units_s2, product, name) = match kind {
+            // Window 1 mm; quick stop 5 m/s², profile 2 m/s².
+            DriveKind::Linear => (counts_per_unit * DEFAULT_SCREW_LEAD_MM, 1.0, 5000.0, 2000.0, 0x0402_0001, "SIM-SERVO"),
+            // Window 10°; quick stop 50 rev/s², profile 20 rev/s².
+            DriveKind::Spindle => (counts_per_unit * 360.0, 10.0, 50.0 * 360.0, 20.0 * 360.0, 0x0402_0002, "SIM-SPINDLE"),
+        };
+        let clamp_u32 = |x: f64| x.round().clamp(1.0, u32::MAX as f64) as u32;
+        DriveConfig {
+            node,
+            kind,
+            axis: axis.to_string(),
+            device_name: format!("{name} {}", axis.to_uppercase()),
+            vendor_id: 0x0000_0CA7,
+            product_code: product,
+            revision: 0x0001_0003,
+            serial: 0x5100_0000 + node as u32,
+            counts_per_rev: clamp_u32(counts_per_rev),
+            counts_per_unit,
+            // Nodes come up a little apart, as real ones do.
+            boot_delay_ms: 1.0 + node as f64 * 0.5,
+            following_error_window: clamp_u32(window_units * counts_per_unit),
+            following_error_timeout_ms: 10,
+            quick_stop_decel: clamp_u32(qs_units_s2 * counts_per_unit),
+            profile_decel: clamp_u32(prof_units_s2 * counts_per_unit),
+            physics: Physics::default_for(kind),
+        }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq)]
+pub struct SimConfig {
+    pub drives: Vec<DriveConfig>,
+    /// Control/physics step, µs (≤ 100). Control loops run at this rate.
+    pub step_us: u32,
+}
+
+impl SimConfig {
+    /// The drives of a cncgw machine config: its `[axes.*]` tables (kind, node,
+    /// counts_per_unit; other keys ignored), with default physics per kind.
+    pub fn from_machine_toml(text: &str) -> Result<SimConfig, String> {
+        #[derive(Deserialize)]
+        struct Axis {
+            kind: DriveKind,
+            node: u8,
+            counts_per_unit: f64,
+        }
+        #[derive(Deserialize)]
+        struct Machine {
+            #[serde(default)]
+            axes: BTreeMap<String, Axis>,
+        }
+        // Parse only what we need: other tables and keys are the master's business.
+        let m: Machine = toml::from_str(text).map_err(|e| format!("machine config: {e}"))?;
+        let mut drives = Vec::new();
+        for (name, a) in &m.axes {
+            drives.push(DriveConfig::new(a.node, a.kind, name, a.counts_per_unit));
+        }
+        let cfg = SimConfig { drives, step_us: 50 };
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    /// The drives of the default machine (config/lathe.toml).
+    pub fn default_lathe() -> SimConfig {
+        // The embedded file is checked by a test; fall back to an empty bus rather than panic.
+        SimConfig::from_machine_toml(LATHE_TOML).unwrap_or(SimConfig { drives: Vec::new(), step_us: 50 })
+    }
+
+    /// Parse a sim-drives TOML file (the format `--print-default-config` prints).
+    pub fn from_toml(text: &str) -> Result<SimConfig, String> {
+        let raw: RawSim = toml::from_str(text).map_err(|e| format!("sim-drives config: {e}"))?;
+        let mut drives = Vec::new();
+        for (i, d) in raw.drive.iter().enumerate() {
+            let cpu = d.counts_per_unit.unwrap_or(match d.kind {
+                DriveKind::Linear => 10000.0,
+                DriveKind::Spindle => 1000.0,
+            });
+            let axis = d.axis.clone().unwrap_or_else(|| format!("n{}", d.node));
+            let mut c = DriveConfig::new(d.node, d.kind, &axis, cpu);
+            macro_rules! set {
+                ($field:ident) => {
+                    if let Some(v) = d.$field.clone() {
+                        c.$field = v;
+                    }
+                };
+            }
+            set!(device_name);
+            set!(vendor_id);
+            set!(product_code);
+            set!(revision);
+            set!(serial);
+            set!(counts_per_rev);
+            set!(boot_delay_ms);
+            set!(following_error_window);
+            set!(following_error_timeout_ms);
+            set!(quick_stop_decel);
+            set!(profile_decel);
+            if let Some(p) = &d.physics {
+                let q = &mut c.physics;
+                macro_rules! setp {
+                    ($field:ident) => {
+                        if let Some(v) = p.$field {
+                            q.$field = v;
+                        }
+                    };
+                }
+                setp!(motor_inertia);
+                setp!(load_inertia);
+                setp!(torque_limit);
+                setp!(coulomb_friction);
+                setp!(viscous_friction);
+                setp!(kv);
+                setp!(velocity_ff);
+                setp!(vel_kp);
+                setp!(vel_ti_ms);
+                setp!(max_speed_rpm);
+            }
+            let _ = i;
+            drives.push(c);
+        }
+        let cfg = SimConfig { drives, step_us: raw.step_us.unwrap_or(50) };
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    /// Every problem, each naming the key and what is allowed.
+    pub fn validate(&self) -> Result<(), String> {
+        let mut errs = Vec::new();
+        if self.step_us == 0 || self.step_us > 100 {
+            errs.push(format!("step_us: must be 1…100, got {}", self.step_us));
+        }
+        let mut seen = std::collections::BTreeSet::new();
+        for d in &self.drives {
+            let k = format!("drive node {}", d.node);
+            if d.node == 0 || d.node > 127 {
+                errs.push(format!("{k}: node must be 1…127"));
+            }
+            if !seen.insert(d.node) {
+                errs.push(format!("{k}: node id used twice"));
+            }
+            if !(d.counts_per_unit.is_finite() && d.counts_per_unit > 0.0) {
+                errs.push(format!("{k}: counts_per_unit must be > 0, got {}", d.counts_per_unit));
+            }
+            if d.counts_per_rev == 0 {
+                errs.push(format!("{k}: counts_per_rev must be > 0"));
+            }
+            if !(d.boot_delay_ms.is_finite() && (0.0..=10_000.0).contains(&d.boot_delay_ms)) {
+                errs.push(format!("{k}: boot_delay_ms must be 0…10000, got {}", d.boot_delay_ms));
+            }
+            if d.device_name.len() > 64 {
+                errs.push(format!("{k}: device_name longer than 64 bytes"));
+            }
+            let p = &d.physics;
+            let positive = [
+                ("motor_inertia", p.motor_inertia),
+                ("torque_limit", p.torque_limit),
+                ("kv", p.kv),
+                ("vel_kp", p.vel_kp),
+                ("vel_ti_ms", p.vel_ti_ms),
+                ("max_speed_rpm", p.max_speed_rpm),
+            ];
+            for (n, v) in positive {
+                if !(v.is_finite() && v > 0.0) {
+                    errs.push(format!("{k}: physics.{n} must be > 0, got {v}"));
+                }
+            }
+            let non_negative = [
+                ("load_inertia", p.load_inertia),
+                ("coulomb_friction", p.coulomb_friction),
+                ("viscous_friction", p.viscous_friction),
+            ];
+            for (n, v) in non_negative {
+                if !(v.is_finite() && v >= 0.0) {
+                    errs.push(format!("{k}: physics.{n} must be ≥ 0, got {v}"));
+                }
+            }
+            if !(p.velocity_ff.is_finite() && (0.0..=1.5).contains(&p.velocity_ff)) {
+                errs.push(format!("{k}: physics.velocity_ff must be 0…1.5, got {}", p.velocity_ff));
+            }
+            if p.coulomb_friction >= p.torque_limit {
+                errs.push(format!("{k}: physics.coulomb_friction must be below torque_limit (the motor could never move)"));
+            }
+        }
+        if errs.is_empty() {
+            Ok(())
+        } else {
+            Err(errs.join("\n"))
+        }
+    }
+
+    /// A commented TOML that `from_toml` reads back to this configuration.
+    pub fn to_commented_toml(&self) -> String {
+        let mut s = String::new();
+        s.push_str("# sim-drives configuration: emulated CiA 402 amplifiers on CANopen.\n");
+        s.push_str("# Position units are encoder counts of the motor; times in ms unless named.\n");
+        s.push_str("# Any key of a [[drive]] or [drive.physics] may be left out: it then takes the\n");
+        s.push_str("# default for the drive's kind (linear: feed servo on a 10 mm ball screw;\n");
+        s.push_str("# spindle: heavy spindle motor with a softer position loop).\n\n");
+        s.push_str(&format!("step_us = {}                 # control loop / physics step, µs (≤ 100)\n", self.step_us));
+        for d in &self.drives {
+            let p = &d.physics;
+            s.push_str("\n[[drive]]\n");
+            s.push_str(&format!("node = {}\n", d.node));
+            s.push_str(&format!("kind = \"{}\"            # linear | spindle\n", d.kind.name()));
+            s.push_str(&format!("axis = \"{}\"\n", d.axis));
+            s.push_str(&format!("counts_per_unit = {:?}  # counts per mm (linear) or per degree (spindle)\n", d.counts_per_unit));
+            s.push_str(&format!("counts_per_rev = {}      # encoder counts per motor revolution\n", d.counts_per_rev));
+            s.push_str(&format!("device_name = \"{}\"     # 0x1008\n", d.device_name));
+            s.push_str(&format!("vendor_id = 0x{:08X}        # 0x1018 sub 1\n", d.vendor_id));
+            s.push_str(&format!("product_code = 0x{:08X}     # 0x1018 sub 2\n", d.product_code));
+            s.push_str(&format!("revision = 0x{:08X}         # 0x1018 sub 3\n", d.revision));
+            s.push_str(&format!("serial = 0x{:08X}           # 0x1018 sub 4\n", d.serial));
+            s.push_str(&format!("boot_delay_ms = {:?}         # power-on/reset to boot-up message\n", d.boot_delay_ms));
+            s.push_str(&format!("following_error_window = {}   # 0x6065, counts\n", d.following_error_window));
+            s.push_str(&format!("following_error_timeout_ms = {}  # 0x6066\n", d.following_error_timeout_ms));
+            s.push_str(&format!("quick_stop_decel = {}   # 0x6085, counts/s²\n", d.quick_stop_decel));
+            s.push_str(&format!("profile_decel = {}      # 0x6084, counts/s² (halt, slow-down ramp)\n", d.profile_decel));
+            s.push_str("[drive.physics]\n");
+            s.push_str(&format!("motor_inertia = {:?}     # kg·m²\n", p.motor_inertia));
+            s.push_str(&format!("load_inertia = {:?}      # kg·m², reflected to the motor\n", p.load_inertia));
+            s.push_str(&format!("torque_limit = {:?}      # N·m, peak\n", p.torque_limit));
+            s.push_str(&format!("coulomb_friction = {:?}  # N·m\n", p.coulomb_friction));
+            s.push_str(&format!("viscous_friction = {:?}  # N·m per rad/s\n", p.viscous_friction));
+            s.push_str(&format!("kv = {:?}                # position loop gain, 1/s\n", p.kv));
+            s.push_str(&format!("velocity_ff = {:?}       # velocity feed-forward, 1.0 = 100 %\n", p.velocity_ff));
+            s.push_str(&format!("vel_kp = {:?}            # velocity loop P, N·m per rad/s\n", p.vel_kp));
+            s.push_str(&format!("vel_ti_ms = {:?}         # velocity loop integral time\n", p.vel_ti_ms));
+            s.push_str(&format!("max_speed_rpm = {:?}\n", p.max_speed_rpm));
+        }
+        s
+    }
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawSim {
+    step_us: Option<u32>,
+    #[serde(default)]
+    drive: Vec<RawDrive>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawDrive {
+    node: u8,
+    kind: DriveKind,
+    axis: Option<String>,
+    counts_per_unit: Option<f64>,
+    counts_per_rev: Option<u32>,
+    device_name: Option<String>,
+    vendor_id: Option<u32>,
+    product_code: Option<u32>,
+    revision: Option<u32>,
+    serial: Option<u32>,
+    boot_delay_ms: Option<f64>,
+    following_error_window: Option<u32>,
+    following_error_timeout_ms: Option<u16>,
+    quick_stop_decel: Option<u32>,
+    profile_decel: Option<u32>,
+    physics: Option<RawPhysics>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawPhysics {
+    motor_inertia: Option<f64>,
+    load_inertia: Option<f64>,
+    torque_limit: Option<f64>,
+    coulomb_friction: Option<f64>,
+    viscous_friction: Option<f64>,
+    kv: Option<f64>,
+    velocity_ff: Option<f64>,
+    vel_kp: Option<f64>,
+    vel_ti_ms: Option<f64>,
+    max_speed_rpm: Option<f64>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn default_lathe_has_x_z_and_spindle() {
+        let c = SimConfig::from_machine_toml(LATHE_TOML).unwrap();
+        assert_eq!(c, SimConfig::default_lathe());
+        let nodes: Vec<(u8, DriveKind)> = c.drives.iter().map(|d| (d.node, d.kind)).collect();
+        assert_eq!(nodes, vec![(3, DriveKind::Spindle), (1, DriveKind::Linear), (2, DriveKind::Linear)]);
+        let x = c.drives.iter().find(|d| d.node == 1).unwrap();
+        assert_eq!(x.counts_per_rev, 100_000);
+        let s = c.drives.iter().find(|d| d.node == 3).unwrap();
+        assert_eq!(s.counts_per_rev, 360_000);
+        // Mismatched like a real machine: the spindle is much heavier and softer.
+        assert!(s.physics.inertia() > 5.0 * x.physics.inertia());
+        assert!(s.physics.kv < x.physics.kv);
+    }
+
+    #[test]
+    fn printed_default_reads_back_identically() {
+        let c = SimConfig::default_lathe();
+        let text = c.to_commented_toml();
+        assert_eq!(SimConfig::from_toml(&text).unwrap(), c);
+    }
+
+    #[test]
+    fn bad_configs_are_refused_with_the_key() {
+        let e = SimConfig::from_toml("[[drive]]\nnode = 0\nkind = \"linear\"\n").unwrap_err();
+        assert!(e.contains("node must be 1…127"), "{e}");
+        let e = SimConfig::from_toml("[[drive]]\nnode = 1\nkind = \"linear\"\n[drive.physics]\nkv = -1.0\n").unwrap_err();
+        assert!(e.contains("physics.kv"), "{e}");
+        let e = SimConfig::from_toml("[[drive]]\nnode = 1\nkind = \"rotary\"\n").unwrap_err();
+        assert!(e.contains("sim-drives config"), "{e}");
+        let e = SimConfig::from_machine_toml("[axes.x]\nkind = \"linear\"\nnode = 1\n").unwrap_err();
+        assert!(e.contains("counts_per_unit"), "{e}");
+    }
+}

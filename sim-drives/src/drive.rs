@@ -1,0 +1,1272 @@
+//! One emulated CiA 402 amplifier on CANopen: NMT slave, SDO server, PDOs, SYNC consumer,
+//! heartbeat producer and consumer, EMCY producer, the 402 device state machine and the
+//! servo (see `servo`). Time is passed in (ns); the world decides when things happen.
+
+use crate::config::{DriveConfig, DriveKind};
+use crate::od::{Access, DType, Od, Value};
+use crate::servo::{Command, Servo};
+use cncgw_bus::canopen::emcy::Emcy;
+use cncgw_bus::canopen::nmt::{decode_heartbeat, heartbeat_frame, NmtCommand, NmtState};
+use cncgw_bus::canopen::pdo::MapEntry;
+use cncgw_bus::canopen::sdo::{abort, SdoRequest, SdoResponse};
+use cncgw_bus::canopen::{cob, od as ix};
+use cncgw_bus::cia402::{cw, device_transition, mode, sw, QuickStopOption, State};
+use cncgw_bus::CanFrame;
+use std::collections::BTreeMap;
+
+const MS: u64 = 1_000_000;
+const N_RPDO: u16 = 2;
+const N_TPDO: u16 = 2;
+/// Manufacturer-specific write-only object (an access code, as many drives have).
+pub const ACCESS_CODE: u16 = 0x2000;
+const POSITION_DEMAND: u16 = 0x6062;
+const POSITION_WINDOW: u16 = 0x6067;
+const TORQUE_ACTUAL: u16 = 0x6077;
+const PROFILE_DECEL: u16 = 0x6084;
+const QUICK_STOP_DECEL: u16 = 0x6085;
+const FAULT_REACTION: u16 = 0x605E;
+/// A stop that has not finished after this long is finished by switching the power off
+/// (a jammed axis must not keep a quick stop alive forever).
+const STOP_TIMEOUT: u64 = 5_000 * MS;
+
+#[derive(Clone, Debug)]
+enum SdoState {
+    Idle,
+    Upload { index: u16, sub: u8, data: Vec<u8>, pos: usize, toggle: bool },
+    Download { index: u16, sub: u8, size: Option<u32>, buf: Vec<u8>, toggle: bool },
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum StopWhy {
+    Halt,
+    QuickStop,
+    FaultReaction,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Brake {
+    /// Ramp the demand down at this deceleration (counts/s²).
+    Ramp(f64),
+    /// Command zero speed; the torque limit decides the deceleration.
+    TorqueLimit,
+}
+
+#[derive(Clone, Copy, Debug)]
+struct Stop {
+    why: StopWhy,
+    brake: Brake,
+    /// Demand speed (counts/s) and position (counts) of the ramp.
+    v: f64,
+    pos: f64,
+    started: u64,
+}
+
+/// An emulated drive. Read its state with the accessors; inject faults with the `inject_*`
+/// and `set_*` methods.
+pub struct SimDrive {
+    cfg: DriveConfig,
+    od: Od,
+    nmt: NmtState,
+    /// Boot-up message due (power-on or NMT reset).
+    boot_at: Option<u64>,
+    state: State,
+    prev_cw: u16,
+    servo: Servo,
+    step_s: f64,
+    // Motion.
+    demand: f64,
+    vff: f64,
+    seg_start: f64,
+    seg_end: f64,
+    seg_t0: u64,
+    seg_len: u64,
+    /// Last latched target (raw) and its unwrapped value; `None` = next target is taken
+    /// relative to the actual position.
+    target_ref: Option<(i32, f64)>,
+    target_vel: f64,
+    stop: Option<Stop>,
+    limit_active: bool,
+    // SYNC and PDOs.
+    last_sync: Option<u64>,
+    sync_period: u64,
+    tpdo_count: [u32; N_TPDO as usize],
+    tpdo_last: [Option<Vec<u8>>; N_TPDO as usize],
+    tpdo_last_t: [u64; N_TPDO as usize],
+    rpdo_buf: [Option<Vec<u8>>; N_RPDO as usize],
+    rpdo_len_error: bool,
+    // Heartbeat.
+    hb_next: Option<u64>,
+    /// Last heartbeat seen per producer node (monitoring is armed once one is seen).
+    hb_seen: BTreeMap<u8, u64>,
+    // Following error.
+    ferr_since: Option<u64>,
+    ferr_flag: bool,
+    sdo: SdoState,
+    silent: bool,
+    out: Vec<CanFrame>,
+}
+
+fn error_register_bits(code: u16) -> u8 {
+    let class = match code >> 12 {
+        0x2 => 0x02,
+        0x3 => 0x04,
+        0x4 => 0x08,
+        0x8 if code >> 8 == 0x81 || code >> 8 == 0x82 => 0x10,
+        0x8 => 0x20,
+        0xF => 0x80,
+        _ => 0x00,
+    };
+    0x01 | class
+}
+
+fn restricted_cob(id: u32) -> bool {
+    matches!(id, 0x000..=0x07F | 0x101..=0x180 | 0x581..=0x5FF | 0x601..=0x67F | 0x6E0..=0x6FF | 0x701..=0x7FF)
+}
+
+fn build_od(c: &DriveConfig) -> Od {
+    use Access::*;
+    use DType::*;
+    let n = c.node as i64;
+    let mut od = Od::new();
+    od.add(ix::DEVICE_TYPE, 0, U32, Const, false, 0x0002_0192);
+    od.add(ix::ERROR_REGISTER, 0, U8, Ro, true, 0);
+    od.add(ix::COB_ID_SYNC, 0, U32, Rw, false, 0x80);
+    od.add(ix::COMM_CYCLE_PERIOD, 0, U32, Rw, false, 0);
+    od.add_str(ix::DEVICE_NAME, 0, Const, &c.device_name);
+    od.add_str(ix::HW_VERSION, 0, Const, "1.0");
+    od.add_str(ix::SW_VERSION, 0, Const, concat!("sim-drives ", env!("CARGO_PKG_VERSION")));
+    od.add(ix::COB_ID_EMCY, 0, U32, Rw, false, 0x80 + n);
+    od.add(ix::CONSUMER_HEARTBEAT, 0, U8, Const, false, 2);
+    od.add(ix::CONSUMER_HEARTBEAT, 1, U32, Rw, false, 0);
+    od.add(ix::CONSUMER_HEARTBEAT, 2, U32, Rw, false, 0);
+    od.add(ix::PRODUCER_HEARTBEAT, 0, U16, Rw, false, 0);
+    od.add(ix::IDENTITY, 0, U8, Const, false, 4);
+    od.add(ix::IDENTITY, 1, U32, Const, false, c.vendor_id as i64);
+    od.add(ix::IDENTITY, 2, U32, Const, false, c.product_code as i64);
+    od.add(ix::IDENTITY, 3, U32, Const, false, c.revision as i64);
+    od.add(ix::IDENTITY, 4, U32, Const, false, c.serial as i64);
+    // RPDO1: controlword + target position, valid; RPDO2: controlword + target velocity,
+    // invalid until the master enables it (CSV spindles).
+    let rpdo = [
+        (0x200 + n, vec![MapEntry::new(ix::CONTROLWORD, 0, 16), MapEntry::new(ix::TARGET_POSITION, 0, 32)]),
+        (0x8000_0000 | (0x300 + n), vec![MapEntry::new(ix::CONTROLWORD, 0, 16), MapEntry::new(ix::TARGET_VELOCITY, 0, 32)]),
+    ];
+    for (i, (cobid, map)) in rpdo.iter().enumerate() {
+        let i = i as u16;
+        od.add(ix::RPDO_COMM + i, 0, U8, Const, false, 2);
+        od.add(ix::RPDO_COMM + i, 1, U32, Rw, false, *cobid);
+        od.add(ix::RPDO_COMM + i, 2, U8, Rw, false, 1);
+        od.add_range(ix::RPDO_MAP + i, 0, U8, Rw, false, map.len() as i64, 0, 8);
+        for s in 1..=8u8 {
+            let v = map.get(s as usize - 1).map(|e| e.encode() as i64).unwrap_or(0);
+            od.add(ix::RPDO_MAP + i, s, U32, Rw, false, v);
+        }
+    }
+    let tpdo = [
+        (0x180 + n, vec![MapEntry::new(ix::STATUSWORD, 0, 16), MapEntry::new(ix::POSITION_ACTUAL, 0, 32)]),
+        (0x8000_0000 | (0x280 + n), vec![MapEntry::new(ix::STATUSWORD, 0, 16), MapEntry::new(ix::VELOCITY_ACTUAL, 0, 32)]),
+    ];
+    for (i, (cobid, map)) in tpdo.iter().enumerate() {
+        let i = i as u16;
+        // Sub 4 is reserved in CiA 301 and absent here, as on real devices.
+        od.add(ix::TPDO_COMM + i, 0, U8, Const, false, 5);
+        od.add(ix::TPDO_COMM + i, 1, U32, Rw, false, *cobid);
+        od.add(ix::TPDO_COMM + i, 2, U8, Rw, false, 1);
+        od.add(ix::TPDO_COMM + i, 3, U16, Rw, false, 0);
+        od.add(ix::TPDO_COMM + i, 5, U16, Rw, false, 0);
+        od.add_range(ix::TPDO_MAP + i, 0, U8, Rw, false, map.len() as i64, 0, 8);
+        for s in 1..=8u8 {
+            let v = map.get(s as usize - 1).map(|e| e.encode() as i64).unwrap_or(0);
+            od.add(ix::TPDO_MAP + i, s, U32, Rw, false, v);
+        }
+    }
+    od.add(ACCESS_CODE, 0, U32, Wo, false, 0);
+    od.add_range(ix::ABORT_CONNECTION, 0, I16, Rw, false, 1, 0, 3);
+    od.add(ix::ERROR_CODE, 0, U16, Ro, true, 0);
+    od.add(ix::CONTROLWORD, 0, U16, Rw, true, 0);
+    od.add(ix::STATUSWORD, 0, U16, Ro, true, 0);
+    od.add_range(ix::QUICK_STOP_OPTION, 0, I16, Rw, false, 2, 0, 8);
+    od.add_range(FAULT_REACTION, 0, I16, Rw, false, 2, 0, 4);
+    od.add(ix::MODES_OF_OPERATION, 0, I8, Rw, true, 0);
+    od.add(ix::MODES_DISPLAY, 0, I8, Ro, true, 0);
+    od.add(POSITION_DEMAND, 0, I32, Ro, true, 0);
+    od.add(ix::POSITION_ACTUAL, 0, I32, Ro, true, 0);
+    od.add(ix::FOLLOWING_ERROR_WINDOW, 0, U32, Rw, false, c.following_error_window as i64);
+    od.add(ix::FOLLOWING_ERROR_TIMEOUT, 0, U16, Rw, false, c.following_error_timeout_ms as i64);
+    od.add(POSITION_WINDOW, 0, U32, Rw, false, 10);
+    od.add(ix::VELOCITY_ACTUAL, 0, I32, Ro, true, 0);
+    od.add(TORQUE_ACTUAL, 0, I16, Ro, true, 0);
+    od.add(ix::TARGET_POSITION, 0, I32, Rw, true, 0);
+    od.add(ix::SOFTWARE_LIMIT, 0, U8, Const, false, 2);
+    od.add(ix::SOFTWARE_LIMIT, 1, I32, Rw, false, i32::MIN as i64);
+    od.add(ix::SOFTWARE_LIMIT, 2, I32, Rw, false, i32::MAX as i64);
+    od.add_range(PROFILE_DECEL, 0, U32, Rw, false, c.profile_decel as i64, 1, u32::MAX as i64);
+    od.add_range(QUICK_STOP_DECEL, 0, U32, Rw, false, c.quick_stop_decel as i64, 1, u32::MAX as i64);
+    od.add(ix::INTERPOLATION_PERIOD, 0, U8, Const, false, 2);
+    od.add(ix::INTERPOLATION_PERIOD, 1, U8, Rw, false, 0);
+    od.add_range(ix::INTERPOLATION_PERIOD, 2, I8, Rw, false, -3, -6, 0);
+    od.add(ix::FOLLOWING_ERROR_ACTUAL, 0, I32, Ro, true, 0);
+    od.add(ix::TARGET_VELOCITY, 0, I32, Rw, true, 0);
+    // Supported modes: bit 7 = CSP (8), bit 8 = CSV (9).
+    od.add(ix::SUPPORTED_MODES, 0, U32, Const, false, (1 << 7) | (1 << 8));
+    od
+}
+
+impl SimDrive {
+    pub fn new(cfg: DriveConfig, step_us: u32) -> SimDrive {
+        let od = build_od(&cfg);
+        let servo = Servo::new(cfg.physics.clone(), cfg.counts_per_rev);
+        let boot = (cfg.boot_delay_ms * MS as f64).round() as u64;
+        SimDrive {
+            od,
+            nmt: NmtState::BootUp,
+            boot_at: Some(boot),
+            state: State::NotReadyToSwitchOn,
+            prev_cw: 0,
+            servo,
+            step_s: step_us as f64 * 1e-6,
+            demand: 0.0,
+            vff: 0.0,
+            seg_start: 0.0,
+            seg_end: 0.0,
+            seg_t0: 0,
+            seg_len: 0,
+            target_ref: None,
+            target_vel: 0.0,
+            stop: None,
+            limit_active: false,
+            last_sync: None,
+            sync_period: 0,
+            tpdo_count: [0; N_TPDO as usize],
+            tpdo_last: [None, None],
+            tpdo_last_t: [0; N_TPDO as usize],
+            rpdo_buf: [None, None],
+            rpdo_len_error: false,
+            hb_next: None,
+            hb_seen: BTreeMap::new(),
+            ferr_since: None,
+            ferr_flag: false,
+            sdo: SdoState::Idle,
+            silent: false,
+            out: Vec::new(),
+            cfg,
+        }
+    }
+
+    // ---- accessors -------------------------------------------------------------------
+
+    pub fn node(&self) -> u8 {
+        self.cfg.node
+    }
+    pub fn config(&self) -> &DriveConfig {
+        &self.cfg
+    }
+    pub fn kind(&self) -> DriveKind {
+        self.cfg.kind
+    }
+    /// NMT state; `BootUp` while initialising (before the boot-up message).
+    pub fn nmt_state(&self) -> NmtState {
+        self.nmt
+    }
+    pub fn state(&self) -> State {
+        self.state
+    }
+    /// 0x6064: encoder position, whole counts, wrapping like the INTEGER32 object.
+    pub fn position_actual(&self) -> i32 {
+        self.servo.position_counts() as i32
+    }
+    /// Unwrapped encoder position (counts), for tests.
+    pub fn position_unwrapped(&self) -> i64 {
+        self.servo.position_counts()
+    }
+    /// 0x60F4: position demand − actual, counts.
+    pub fn following_error(&self) -> i32 {
+        self.ferr()
+    }
+    /// 0x606C, counts/s.
+    pub fn velocity_actual(&self) -> i32 {
+        self.servo.velocity_counts().round().clamp(i32::MIN as f64, i32::MAX as f64) as i32
+    }
+    pub fn mode_display(&self) -> i8 {
+        self.od.int(ix::MODES_DISPLAY, 0) as i8
+    }
+    pub fn statusword(&self) -> u16 {
+        self.compute_statusword()
+    }
+    /// 0x603F.
+    pub fn error_code(&self) -> u16 {
+        self.od.int(ix::ERROR_CODE, 0) as u16
+    }
+    /// Position demand (counts, unwrapped) the loop follows.
+    pub fn position_demand(&self) -> f64 {
+        self.demand
+    }
+    /// Motor torque, N·m.
+    pub fn torque(&self) -> f64 {
+        self.servo.torque()
+    }
+    /// Read any object as the SDO server would (integers only; `None` if absent).
+    pub fn object(&self, index: u16, sub: u8) -> Option<i64> {
+        match self.od.get(index, sub).map(|e| &e.value) {
+            Some(Value::Int(v)) => Some(*v),
+            _ => None,
+        }
+    }
+
+    // ---- fault injection -------------------------------------------------------------
+
+    /// Raise a drive fault with this error code (e.g. 0x2310 overcurrent, 0x3210 DC-link
+    /// overvoltage): EMCY, 0x603F, fault reaction, Fault.
+    pub fn inject_fault(&mut self, code: u16, now: u64) {
+        self.fault(code, now);
+    }
+    /// An external torque on the motor shaft (N·m): a crash, a jammed slide, a cutting load.
+    pub fn set_load_torque(&mut self, nm: f64) {
+        self.servo.load_torque = if nm.is_finite() { nm } else { 0.0 };
+    }
+    /// Disconnect the node from the bus (it neither receives nor sends) or reconnect it.
+    pub fn set_silent(&mut self, silent: bool) {
+        self.silent = silent;
+    }
+    /// Power-on encoder position (an absolute encoder's offset), counts.
+    pub fn set_position(&mut self, counts: f64) {
+        if counts.is_finite() {
+            self.servo.set_position(counts);
+            self.demand = counts;
+        }
+    }
+
+    // ---- world interface -------------------------------------------------------------
+
+    pub(crate) fn take_output(&mut self, into: &mut Vec<CanFrame>) {
+        if self.silent {
+            self.out.clear();
+        } else {
+            into.append(&mut self.out);
+        }
+    }
+
+    /// The next time a timer of this drive fires (boot-up, heartbeat, heartbeat timeout).
+    pub(crate) fn next_event(&self) -> Option<u64> {
+        let mut t = self.boot_at;
+        let mut take = |x: Option<u64>| {
+            if let Some(x) = x {
+                t = Some(t.map_or(x, |t: u64| t.min(x)));
+            }
+        };
+        take(self.hb_next);
+        if self.nmt != NmtState::BootUp {
+            for s in 1..=2u8 {
+                let v = self.od.int(ix::CONSUMER_HEARTBEAT, s) as u32;
+                let (node, ms) = (((v >> 16) & 0xFF) as u8, (v & 0xFFFF) as u64);
+                if node != 0 && ms != 0 {
+                    take(self.hb_seen.get(&node).map(|&last| last + ms * MS));
+                }
+            }
+        }
+        t
+    }
+
+    /// Fire every timer due at `now`.
+    pub(crate) fn on_time(&mut self, now: u64) {
+        if let Some(b) = self.boot_at {
+            if now >= b {
+                self.boot(now);
+            }
+        }
+        if let Some(h) = self.hb_next {
+            if now >= h {
+                let period = self.od.int(ix::PRODUCER_HEARTBEAT, 0) as u64 * MS;
+                if self.nmt != NmtState::BootUp {
+                    self.out.push(heartbeat_frame(self.cfg.node, self.nmt));
+                }
+                self.hb_next = if period > 0 { Some(h + period * ((now - h) / period + 1)) } else { None };
+            }
+        }
+        if self.nmt != NmtState::BootUp {
+            for s in 1..=2u8 {
+                let v = self.od.int(ix::CONSUMER_HEARTBEAT, s) as u32;
+                let (node, ms) = (((v >> 16) & 0xFF) as u8, (v & 0xFFFF) as u64);
+                if node == 0 || ms == 0 {
+                    continue;
+                }
+                if let Some(&last) = self.hb_seen.get(&node) {
+                    if now >= last + ms * MS {
+                        // Monitoring stops until the producer is heard again (CiA 301).
+                        self.hb_seen.remove(&node);
+                        tracing::warn!(node = self.cfg.node, producer = node, "heartbeat consumer timeout");
+                        self.abort_connection(0x8130, now);
+                    }
+                }
+            }
+        }
+    }
+
+    fn boot(&mut self, now: u64) {
+        self.boot_at = None;
+        self.set_nmt(NmtState::PreOperational);
+        self.out.push(heartbeat_frame(self.cfg.node, NmtState::BootUp));
+        if self.state == State::NotReadyToSwitchOn {
+            // Self-test passed: transition 1.
+            self.set_state(State::SwitchOnDisabled, now);
+        }
+        let period = self.od.int(ix::PRODUCER_HEARTBEAT, 0) as u64 * MS;
+        self.hb_next = if period > 0 { Some(now + period) } else { None };
+    }
+
+    fn set_nmt(&mut self, s: NmtState) {
+        if s != self.nmt {
+            tracing::info!(node = self.cfg.node, "NMT {} → {}", self.nmt.name(), s.name());
+            self.nmt = s;
+            if s != NmtState::Operational {
+                self.rpdo_buf = [None, None];
+            }
+        }
+    }
+
+    /// Integrate the mechanics over `dt` seconds.
+    pub(crate) fn integrate(&mut self, dt: f64) {
+        self.servo.integrate(dt);
+    }
+
+    // ---- frames ----------------------------------------------------------------------
+
+    pub(crate) fn handle_frame(&mut self, f: &CanFrame, now: u64) {
+        if self.silent || f.extended || f.rtr {
+            return;
+        }
+        let id = f.cob_id();
+        if let Some((c, node)) = NmtCommand::decode(f) {
+            if node == 0 || node == self.cfg.node {
+                self.nmt_command(c, now);
+            }
+            return;
+        }
+        if self.nmt == NmtState::BootUp {
+            return; // initialising: deaf
+        }
+        if let Some((node, _)) = decode_heartbeat(f) {
+            self.hb_seen.insert(node, now);
+            return;
+        }
+        if id as i64 == self.od.int(ix::COB_ID_SYNC, 0) & 0x7FF {
+            self.on_sync(now);
+            return;
+        }
+        if id == cob::SDO_RX + self.cfg.node as u16 {
+            if matches!(self.nmt, NmtState::PreOperational | NmtState::Operational) {
+                self.sdo_request(f, now);
+            }
+            return;
+        }
+        if self.nmt == NmtState::Operational {
+            for i in 0..N_RPDO {
+                let c = self.od.int(ix::RPDO_COMM + i, 1) as u32;
+                if c & 0x8000_0000 == 0 && c & 0x7FF == id as u32 {
+                    self.rpdo_received(i, f, now);
+                }
+            }
+        }
+    }
+
+    fn nmt_command(&mut self, c: NmtCommand, now: u64) {
+        if self.nmt == NmtState::BootUp && !matches!(c, NmtCommand::ResetNode | NmtCommand::ResetCommunication) {
+            return;
+        }
+        match c {
+            NmtCommand::Start => self.set_nmt(NmtState::Operational),
+            NmtCommand::Stop => {
+                if self.nmt == NmtState::Operational {
+                    self.abort_connection(0x8100, now);
+                }
+                self.set_nmt(NmtState::Stopped);
+            }
+            NmtCommand::EnterPreOperational => self.set_nmt(NmtState::PreOperational),
+            NmtCommand::ResetNode => {
+                // Reset application: every object to its default, power stage off.
+                self.od.reset_range(0x0000, 0xFFFF);
+                self.prev_cw = 0;
+                self.stop = None;
+                self.ferr_flag = false;
+                self.ferr_since = None;
+                self.set_state(State::NotReadyToSwitchOn, now);
+                self.reset_comm(now);
+            }
+            NmtCommand::ResetCommunication => {
+                if self.nmt == NmtState::Operational {
+                    self.abort_connection(0x8100, now);
+                }
+                self.od.reset_range(0x1000, 0x1FFF);
+                self.reset_comm(now);
+            }
+        }
+    }
+
+    fn reset_comm(&mut self, now: u64) {
+        self.set_nmt(NmtState::BootUp);
+        self.sdo = SdoState::Idle;
+        self.hb_next = None;
+        self.hb_seen.clear();
+        self.tpdo_count = [0; N_TPDO as usize];
+        self.tpdo_last = [None, None];
+        self.rpdo_buf = [None, None];
+        self.last_sync = None;
+        self.boot_at = Some(now + (self.cfg.boot_delay_ms * MS as f64).round() as u64);
+    }
+
+    fn emcy(&mut self, code: u16, register: u8) {
+        let c = self.od.int(ix::COB_ID_EMCY, 0) as u32;
+        if c & 0x8000_0000 != 0 || !matches!(self.nmt, NmtState::PreOperational | NmtState::Operational) {
+            return;
+        }
+        let f = Emcy { code, register, vendor: [0; 5] }.frame(self.cfg.node);
+        self.out.push(CanFrame::new((c & 0x7FF) as u16, f.data()));
+    }
+
+    // ---- SYNC and PDOs ---------------------------------------------------------------
+
+    fn on_sync(&mut self, now: u64) {
+        if let Some(last) = self.last_sync {
+            if now > last {
+                self.sync_period = now - last;
+            }
+        }
+        self.last_sync = Some(now);
+        if self.nmt != NmtState::Operational {
+            return;
+        }
+        // Inputs are sampled at the SYNC instant, before this SYNC's outputs act.
+        self.refresh_od();
+        for i in 0..N_TPDO {
+            let c = self.od.int(ix::TPDO_COMM + i, 1) as u32;
+            let ty = self.od.int(ix::TPDO_COMM + i, 2);
+            if c & 0x8000_0000 != 0 || ty > 240 {
+                continue;
+            }
+            let data = self.tpdo_data(i);
+            let k = i as usize;
+            let send = if ty == 0 {
+                self.tpdo_last[k].as_ref() != Some(&data)
+            } else {
+                self.tpdo_count[k] += 1;
+                if self.tpdo_count[k] >= ty as u32 {
+                    self.tpdo_count[k] = 0;
+                    true
+                } else {
+                    false
+                }
+            };
+            if send {
+                self.out.push(CanFrame::new((c & 0x7FF) as u16, &data));
+                self.tpdo_last[k] = Some(data);
+                self.tpdo_last_t[k] = now;
+            }
+        }
+        for i in 0..N_RPDO as usize {
+            if let Some(d) = self.rpdo_buf[i].take() {
+                self.apply_rpdo(i as u16, &d, now);
+            }
+        }
+        self.latch_setpoints(now);
+    }
+
+    fn mapping(&self, map_index: u16) -> Vec<MapEntry> {
+        let n = self.od.int(map_index, 0).clamp(0, 8) as u8;
+        (1..=n).map(|s| MapEntry::decode(self.od.int(map_index, s) as u32)).collect()
+    }
+
+    fn tpdo_data(&self, i: u16) -> Vec<u8> {
+        let mut d = Vec::with_capacity(8);
+        for e in self.mapping(ix::TPDO_MAP + i) {
+            let v = self.od.int(e.index, e.sub);
+            let n = (e.bits / 8) as usize;
+            d.extend_from_slice(&v.to_le_bytes()[..n.min(8)]);
+        }
+        d.truncate(8);
+        d
+    }
+
+    fn rpdo_received(&mut self, i: u16, f: &CanFrame, now: u64) {
+        let need: usize = self.mapping(ix::RPDO_MAP + i).iter().map(|e| (e.bits / 8) as usize).sum();
+        let got = f.len as usize;
+        if got < need {
+            // Not processed (CiA 301): tell the master once per episode.
+            if !self.rpdo_len_error {
+                self.rpdo_len_error = true;
+                self.emcy(0x8210, self.od.int(ix::ERROR_REGISTER, 0) as u8 | 0x11);
+            }
+            return;
+        }
+        self.rpdo_len_error = false;
+        let ty = self.od.int(ix::RPDO_COMM + i, 2);
+        if ty <= 240 {
+            self.rpdo_buf[i as usize] = Some(f.data().to_vec());
+        } else {
+            self.apply_rpdo(i, f.data(), now);
+        }
+    }
+
+    fn apply_rpdo(&mut self, i: u16, data: &[u8], now: u64) {
+        let mut pos = 0usize;
+        for e in self.mapping(ix::RPDO_MAP + i) {
+            let n = (e.bits / 8) as usize;
+            if pos + n > data.len() {
+                return;
+            }
+            if let Some(ent) = self.od.get(e.index, e.sub) {
+                let v = ent.dtype.decode(&data[pos..pos + n]);
+                // A PDO value a real drive would refuse by SDO is ignored.
+                if self.object_rules(e.index, e.sub, v).is_ok() && v >= ent.min && v <= ent.max {
+                    self.od.set(e.index, e.sub, v);
+                    self.after_write(e.index, e.sub, v, now);
+                }
+            }
+            pos += n;
+        }
+    }
+
+    /// Event-driven TPDOs (254/255): on change (respecting the inhibit time) and on the
+    /// event timer. Checked every control tick.
+    fn event_tpdos(&mut self, now: u64) {
+        if self.nmt != NmtState::Operational {
+            return;
+        }
+        let mut refreshed = false;
+        for i in 0..N_TPDO {
+            let c = self.od.int(ix::TPDO_COMM + i, 1) as u32;
+            let ty = self.od.int(ix::TPDO_COMM + i, 2);
+            if c & 0x8000_0000 != 0 || ty < 254 {
+                continue;
+            }
+            if !refreshed {
+                self.refresh_od();
+                refreshed = true;
+            }
+            let k = i as usize;
+            let inhibit = self.od.int(ix::TPDO_COMM + i, 3) as u64 * 100_000;
+            let event = self.od.int(ix::TPDO_COMM + i, 5) as u64 * MS;
+            let data = self.tpdo_data(i);
+            let since = now.saturating_sub(self.tpdo_last_t[k]);
+            let first = self.tpdo_last[k].is_none();
+            let changed = self.tpdo_last[k].as_ref() != Some(&data);
+            if first || (changed && since >= inhibit) || (event > 0 && since >= event) {
+                self.out.push(CanFrame::new((c & 0x7FF) as u16, &data));
+                self.tpdo_last[k] = Some(data);
+                self.tpdo_last_t[k] = now;
+            }
+        }
+    }
+
+    // ---- SDO server ------------------------------------------------------------------
+
+    fn sdo_send(&mut self, r: SdoResponse) {
+        self.out.push(r.encode(self.cfg.node));
+    }
+
+    fn sdo_abort(&mut self, index: u16, sub: u8, code: u32) {
+        self.sdo = SdoState::Idle;
+        self.sdo_send(SdoResponse::Abort { index, sub, code });
+    }
+
+    fn sdo_request(&mut self, f: &CanFrame, now: u64) {
+        let Some(req) = SdoRequest::decode(f) else {
+            if f.len == 8 {
+                // Block transfer or garbage: not supported.
+                let index = u16::from_le_bytes([f.data[1], f.data[2]]);
+                self.sdo_abort(index, f.data[3], abort::BAD_COMMAND);
+            }
+            return;
+        };
+        match req {
+            SdoRequest::InitiateUpload { index, sub } => {
+                self.sdo = SdoState::Idle;
+                self.refresh_od();
+                match self.od.read_bytes(index, sub) {
+                    Err(code) => self.sdo_abort(index, sub, code),
+                    Ok(data) if !data.is_empty() && data.len() <= 4 => {
+                        let mut d = [0u8; 4];
+                        d[..data.len()].copy_from_slice(&data);
+                        self.sdo_send(SdoResponse::InitiateUpload { index, sub, expedited: true, size: Some(data.len() as u32), data: d });
+                    }
+                    Ok(data) => {
+                        let n = data.len() as u32;
+                        self.sdo_send(SdoResponse::InitiateUpload { index, sub, expedited: false, size: Some(n), data: n.to_le_bytes() });
+                        self.sdo = SdoState::Upload { index, sub, data, pos: 0, toggle: false };
+                    }
+                }
+            }
+            SdoRequest::UploadSegment { toggle } => {
+                let SdoState::Upload { index, sub, data, pos, toggle: expect } = &mut self.sdo else {
+                    self.sdo_abort(0, 0, abort::BAD_COMMAND);
+                    return;
+                };
+                let (index, sub) = (*index, *sub);
+                if toggle != *expect {
+                    self.sdo_abort(index, sub, abort::TOGGLE);
+                    return;
+                }
+                let n = (data.len() - *pos).min(7);
+                let mut seg = [0u8; 7];
+                seg[..n].copy_from_slice(&data[*pos..*pos + n]);
+                *pos += n;
+                let last = *pos >= data.len();
+                *expect = !*expect;
+                let r = SdoResponse::UploadSegment { toggle, len: n as u8, data: seg, last };
+                if last {
+                    self.sdo = SdoState::Idle;
+                }
+                self.sdo_send(r);
+            }
+            SdoRequest::InitiateDownload { index, sub, expedited, size, data } => {
+                self.sdo = SdoState::Idle;
+                if expedited {
+                    let obj_size = self.od.get(index, sub).and_then(|e| e.dtype.size()).unwrap_or(4);
+                    let n = size.map(|s| s as usize).unwrap_or(obj_size).clamp(1, 4);
+                    match self.write_object(index, sub, &data[..n], now) {
+                        Ok(()) => self.sdo_send(SdoResponse::InitiateDownload { index, sub }),
+                        Err(code) => self.sdo_abort(index, sub, code),
+                    }
+                } else {
+                    let e = match self.od.lookup(index, sub) {
+                        Ok(e) => e,
+                        Err(code) => return self.sdo_abort(index, sub, code),
+                    };
+                    if !e.access.writable() {
+                        return self.sdo_abort(index, sub, abort::READ_ONLY);
+                    }
+                    if let (Some(n), Some(s)) = (e.dtype.size(), size) {
+                        if s as usize > n {
+                            return self.sdo_abort(index, sub, abort::TOO_LONG);
+                        }
+                        if (s as usize) < n {
+                            return self.sdo_abort(index, sub, abort::TOO_SHORT);
+                        }
+                    }
+                    self.sdo_send(SdoResponse::InitiateDownload { index, sub });
+                    self.sdo = SdoState::Download { index, sub, size, buf: Vec::new(), toggle: false };
+                }
+            }
+            SdoRequest::DownloadSegment { toggle, len, data, last } => {
+                let SdoState::Download { index, sub, size, buf, toggle: expect } = &mut self.sdo else {
+                    self.sdo_abort(0, 0, abort::BAD_COMMAND);
+                    return;
+                };
+                let (index, sub, size) = (*index, *sub, *size);
+                if toggle != *expect {
+                    return self.sdo_abort(index, sub, abort::TOGGLE);
+                }
+                *expect = !*expect;
+                buf.extend_from_slice(&data[..len.min(7) as usize]);
+                if buf.len() > 1024 {
+                    return self.sdo_abort(index, sub, abort::OUT_OF_MEMORY);
+                }
+                if !last {
+                    self.sdo_send(SdoResponse::DownloadSegment { toggle });
+                    return;
+                }
+                let buf = std::mem::take(buf);
+                self.sdo = SdoState::Idle;
+                if size.is_some_and(|s| s as usize != buf.len()) {
+                    // The initiate announced another length than the segments carried.
+                    return self.sdo_abort(index, sub, abort::TYPE_MISMATCH);
+                }
+                match self.write_object(index, sub, &buf, now) {
+                    Ok(()) => self.sdo_send(SdoResponse::DownloadSegment { toggle }),
+                    Err(code) => self.sdo_abort(index, sub, code),
+                }
+            }
+            SdoRequest::Abort { .. } => self.sdo = SdoState::Idle,
+        }
+    }
+
+    /// An SDO download: generic checks, object rules, store, side effects.
+    fn write_object(&mut self, index: u16, sub: u8, data: &[u8], now: u64) -> Result<(), u32> {
+        let v = self.od.check_write(index, sub, data)?;
+        if let Value::Int(x) = v {
+            self.object_rules(index, sub, x)?;
+            self.od.store(index, sub, v);
+            self.after_write(index, sub, x, now);
+        } else {
+            self.od.store(index, sub, v);
+        }
+        Ok(())
+    }
+
+    fn pdo_valid(&self, comm: u16) -> bool {
+        self.od.int(comm, 1) as u32 & 0x8000_0000 == 0
+    }
+
+    fn check_map_entry(&self, e: MapEntry, rpdo: bool) -> Result<u32, u32> {
+        let obj = self.od.lookup(e.index, e.sub)?;
+        let dir_ok = if rpdo { obj.access.writable() } else { obj.access.readable() };
+        if !obj.pdo || !dir_ok {
+            return Err(abort::NOT_MAPPABLE);
+        }
+        if obj.dtype.size().map(|n| n * 8) != Some(e.bits as usize) {
+            return Err(abort::PARAM_INCOMPATIBLE);
+        }
+        Ok(e.bits as u32)
+    }
+
+    /// Object-specific rules, after the generic checks (CiA 301 PDO rules, CiA 402 ranges).
+    fn object_rules(&self, index: u16, sub: u8, x: i64) -> Result<(), u32> {
+        let rpdo_comm = ix::RPDO_COMM..ix::RPDO_COMM + N_RPDO;
+        let tpdo_comm = ix::TPDO_COMM..ix::TPDO_COMM + N_TPDO;
+        let rpdo_map = ix::RPDO_MAP..ix::RPDO_MAP + N_RPDO;
+        let tpdo_map = ix::TPDO_MAP..ix::TPDO_MAP + N_TPDO;
+        let is_rpdo = rpdo_comm.contains(&index) || rpdo_map.contains(&index);
+        if rpdo_comm.contains(&index) || tpdo_comm.contains(&index) {
+            match sub {
+                1 => {
+                    let x = x as u32;
+                    if x & 0x2000_0000 != 0 || x & 0x1FFF_F800 != 0 {
+                        return Err(abort::INVALID_VALUE); // 29-bit ids not supported
+                    }
+                    let cur = self.od.int(index, 1) as u32;
+                    let new_valid = x & 0x8000_0000 == 0;
+                    if new_valid && cur & 0x8000_0000 == 0 && cur & 0x7FF != x & 0x7FF {
+                        return Err(abort::INVALID_VALUE); // change the id only while invalid
+                    }
+                    if new_valid && restricted_cob(x & 0x7FF) {
+                        return Err(abort::INVALID_VALUE);
+                    }
+                }
+                2 => {
+                    if !(0..=240).contains(&x) && x != 254 && x != 255 {
+                        return Err(abort::INVALID_VALUE);
+                    }
+                }
+                3 => {
+                    if self.pdo_valid(index) {
+                        return Err(abort::INVALID_VALUE); // inhibit time only while invalid
+                    }
+                }
+                _ => {}
+            }
+        } else if rpdo_map.contains(&index) || tpdo_map.contains(&index) {
+            let comm = index - 0x200;
+            if self.pdo_valid(comm) {
+                return Err(abort::PARAM_INCOMPATIBLE);
+            }
+            if sub == 0 {
+                let mut bits = 0u32;
+                for s in 1..=(x.clamp(0, 8) as u8) {
+                    let v = self.od.int(index, s) as u32;
+                    if v == 0 {
+                        return Err(abort::PARAM_INCOMPATIBLE);
+                    }
+                    bits += self.check_map_entry(MapEntry::decode(v), is_rpdo)?;
+                }
+                if bits > 64 {
+                    return Err(abort::PDO_TOO_LONG);
+                }
+            } else {
+                if self.od.int(index, 0) != 0 {
+                    return Err(abort::PARAM_INCOMPATIBLE);
+                }
+                if x != 0 {
+                    self.check_map_entry(MapEntry::decode(x as u32), is_rpdo)?;
+                }
+            }
+        } else {
+            match index {
+                ix::CONSUMER_HEARTBEAT if sub > 0 => {
+                    let node = (x >> 16) & 0xFF;
+                    let ms = x & 0xFFFF;
+                    if x as u32 & 0xFF00_0000 != 0 || node > 127 {
+                        return Err(abort::INVALID_VALUE);
+                    }
+                    for s in 1..=2u8 {
+                        let o = self.od.int(index, s);
+                        if s != sub && node != 0 && ms != 0 && (o >> 16) & 0xFF == node && o & 0xFFFF != 0 {
+                            return Err(abort::PARAM_INCOMPATIBLE); // one entry per producer
+                        }
+                    }
+                }
+                ix::COB_ID_SYNC => {
+                    if x & 0x4000_0000 != 0 || x & 0x2000_0000 != 0 {
+                        return Err(abort::INVALID_VALUE); // not a SYNC producer; 11-bit only
+                    }
+                }
+                ix::COB_ID_EMCY => {
+                    if x & 0x2000_0000 != 0 {
+                        return Err(abort::INVALID_VALUE);
+                    }
+                }
+                ix::MODES_OF_OPERATION => {
+                    if ![0, mode::CYCLIC_SYNC_POSITION as i64, mode::CYCLIC_SYNC_VELOCITY as i64].contains(&x) {
+                        return Err(abort::INVALID_VALUE);
+                    }
+                }
+                ix::SOFTWARE_LIMIT => {
+                    let (lo, hi) = if sub == 1 { (x, self.od.int(index, 2)) } else { (self.od.int(index, 1), x) };
+                    if lo > hi {
+                        return Err(abort::MAX_LESS_THAN_MIN);
+                    }
+                }
+                _ => {}
+            }
+        }
+        Ok(())
+    }
+
+    fn after_write(&mut self, index: u16, sub: u8, x: i64, now: u64) {
+        match index {
+            ix::PRODUCER_HEARTBEAT => {
+                self.hb_next = if x > 0 { Some(now + x as u64 * MS) } else { None };
+            }
+            ix::CONSUMER_HEARTBEAT if sub > 0 => {
+                // Monitoring (re)starts with the next heartbeat of that producer.
+                self.hb_seen.remove(&(((x >> 16) & 0xFF) as u8));
+            }
+            ix::CONTROLWORD => self.controlword(x as u16, now),
+            ix::MODES_OF_OPERATION => self.set_mode(x as i8),
+            _ => {}
+        }
+    }
+
+    /// Live values into the object dictionary (before an SDO upload or a TPDO).
+    fn refresh_od(&mut self) {
+        let sw = self.compute_statusword();
+        self.od.set(ix::STATUSWORD, 0, sw as i64);
+        self.od.set(ix::POSITION_ACTUAL, 0, self.position_actual() as i64);
+        self.od.set(ix::VELOCITY_ACTUAL, 0, self.velocity_actual() as i64);
+        self.od.set(ix::FOLLOWING_ERROR_ACTUAL, 0, self.ferr() as i64);
+        self.od.set(POSITION_DEMAND, 0, self.demand.round() as i64 as i32 as i64);
+        let rated = self.servo.physics().torque_limit / 3.0;
+        let t = (self.servo.torque() / rated * 1000.0).round().clamp(-32768.0, 32767.0);
+        self.od.set(TORQUE_ACTUAL, 0, t as i64);
+    }
+
+    // ---- CiA 402 -----------------------------------------------------------------------
+
+    fn ferr(&self) -> i32 {
+        let d = self.demand.round() as i64 - self.servo.position_counts();
+        d.clamp(i32::MIN as i64, i32::MAX as i64) as i32
+    }
+
+    fn compute_statusword(&self) -> u16 {
+        let mut s = self.state.statusword_bits();
+        if self.state != State::NotReadyToSwitchOn {
+            s |= sw::VOLTAGE_ENABLED; // mains are on
+        }
+        s |= sw::REMOTE;
+        if self.ferr_flag {
+            s |= sw::OMS13;
+        }
+        if self.limit_active {
+            s |= sw::INTERNAL_LIMIT;
+        }
+        let m = self.mode_display();
+        match self.state {
+            State::OperationEnabled => {
+                let halt = self.prev_cw & cw::HALT != 0;
+                if !halt && self.stop.is_none() && (m == mode::CYCLIC_SYNC_POSITION || m == mode::CYCLIC_SYNC_VELOCITY) {
+                    s |= sw::OMS12; // following the command value
+                }
+                let reached = if let Some(st) = self.stop {
+                    st.v == 0.0 && self.servo.at_rest()
+                } else if m == mode::CYCLIC_SYNC_VELOCITY {
+                    (self.servo.velocity_counts() - self.target_vel).abs() <= self.cfg.counts_per_rev as f64 / 600.0
+                } else {
+                    let window = self.od.int(POSITION_WINDOW, 0) as f64;
+                    self.demand == self.seg_end && (self.demand - self.servo.position_counts() as f64).abs() <= window
+                };
+                if reached {
+                    s |= sw::TARGET_REACHED;
+                }
+            }
+            State::QuickStopActive => {
+                if self.stop.is_none_or(|st| st.v == 0.0 && self.servo.at_rest()) {
+                    s |= sw::TARGET_REACHED;
+                }
+            }
+            _ => {}
+        }
+        s
+    }
+
+    fn set_mode(&mut self, m: i8) {
+        let old = self.mode_display();
+        if old != m {
+            tracing::info!(node = self.cfg.node, "mode {} → {}", mode::name(old), mode::name(m));
+            self.od.set(ix::MODES_DISPLAY, 0, m as i64);
+            self.rebase();
+        }
+    }
+
+    /// Hold the present position: the next target is taken relative to it.
+    fn rebase(&mut self) {
+        let p = self.servo.position_counts() as f64;
+        self.demand = p;
+        self.seg_start = p;
+        self.seg_end = p;
+        self.vff = 0.0;
+        self.target_ref = None;
+        self.ferr_since = None;
+    }
+
+    fn controlword(&mut self, c: u16, now: u64) {
+        let prev = self.prev_cw;
+        self.prev_cw = c;
+        let next = device_transition(self.state, c, prev);
+        if self.state == State::QuickStopActive && next == State::OperationEnabled && !self.qs_option().stays_in_quick_stop() {
+            return; // transition 16 only exists for the "stay in quick stop" options
+        }
+        self.set_state(next, now);
+    }
+
+    fn qs_option(&self) -> QuickStopOption {
+        QuickStopOption::from_code(self.od.int(ix::QUICK_STOP_OPTION, 0) as i16).unwrap_or(QuickStopOption::QuickStopRamp { stay: false })
+    }
+
+    fn start_stop(&mut self, why: StopWhy, brake: Brake, now: u64) {
+        // Halt and quick stop ramp the demand down from where it is; a fault reaction
+        // (the demand may be what went wrong) from where the motor is.
+        let (pos, v) = if why != StopWhy::FaultReaction
+            && self.state == State::OperationEnabled
+            && self.mode_display() != mode::CYCLIC_SYNC_VELOCITY
+        {
+            (self.demand, self.vff)
+        } else {
+            (self.servo.position_counts() as f64, self.servo.velocity_counts())
+        };
+        self.stop = Some(Stop { why, brake, v, pos, started: now });
+    }
+
+    fn brake_for(&self, code: i64) -> Option<Brake> {
+        let qs = self.od.int(QUICK_STOP_DECEL, 0) as f64;
+        let prof = self.od.int(PROFILE_DECEL, 0) as f64;
+        match code {
+            0 => None,
+            1 => Some(Brake::Ramp(prof)),
+            2 => Some(Brake::Ramp(qs)),
+            _ => Some(Brake::TorqueLimit),
+        }
+    }
+
+    fn set_state(&mut self, new: State, now: u64) {
+        let old = self.state;
+        if new == old {
+            return;
+        }
+        let mut new = new;
+        match new {
+            State::OperationEnabled => {
+                if old != State::QuickStopActive {
+                    self.rebase();
+                } else {
+                    self.stop = None;
+                    self.rebase();
+                }
+            }
+            State::QuickStopActive => {
+                let code = self.od.int(ix::QUICK_STOP_OPTION, 0);
+                // 0x605A: 1/5 slow-down ramp, 2/6 quick-stop ramp, 3/7 and 4/8 at the limit.
+                match self.brake_for(if code == 0 { 0 } else { ((code - 1) % 4) + 1 }) {
+                    None => new = State::SwitchOnDisabled, // coast
+                    Some(b) => self.start_stop(StopWhy::QuickStop, b, now),
+                }
+            }
+            State::FaultReactionActive => match self.brake_for(self.od.int(FAULT_REACTION, 0)) {
+                None => new = State::Fault,
+                Some(b) if matches!(old, State::OperationEnabled | State::QuickStopActive) => {
+                    self.start_stop(StopWhy::FaultReaction, b, now)
+                }
+                Some(_) => new = State::Fault, // power stage was off: nothing to stop
+            },
+            State::SwitchOnDisabled if old == State::Fault => {
+                // Fault reset.
+                self.od.set(ix::ERROR_CODE, 0, 0);
+                self.od.set(ix::ERROR_REGISTER, 0, 0);
+                self.ferr_flag = false;
+                self.emcy(0x0000, 0);
+            }
+            _ => {}
+        }
+        if !matches!(new, State::OperationEnabled | State::QuickStopActive | State::FaultReactionActive) {
+            self.stop = None;
+        }
+        if new != old {
+            tracing::info!(node = self.cfg.node, "402 {} → {}", old.name(), new.name());
+            self.state = new;
+        }
+    }
+
+    fn fault(&mut self, code: u16, now: u64) {
+        if matches!(self.state, State::Fault | State::FaultReactionActive) {
+            return;
+        }
+        tracing::warn!(node = self.cfg.node, "fault 0x{code:04X}: {}", cncgw_bus::canopen::emcy::error_text(code));
+        let reg = error_register_bits(code);
+        self.od.set(ix::ERROR_CODE, 0, code as i64);
+        self.od.set(ix::ERROR_REGISTER, 0, reg as i64);
+        self.emcy(code, reg);
+        self.set_state(State::FaultReactionActive, now);
+    }
+
+    /// Loss of the connection to the master (heartbeat timeout, NMT stop or reset while
+    /// operational): act per 0x6007.
+    fn abort_connection(&mut self, code: u16, now: u64) {
+        match self.od.int(ix::ABORT_CONNECTION, 0) {
+            1 => self.fault(code, now),
+            opt => {
+                // The communication error is still signalled (CiA 301), without a fault.
+                self.emcy(code, self.od.int(ix::ERROR_REGISTER, 0) as u8 | 0x11);
+                let powered = matches!(self.state, State::OperationEnabled | State::QuickStopActive);
+                if opt == 2 && powered {
+                    self.set_state(State::SwitchOnDisabled, now);
+                } else if opt == 3 && self.state == State::OperationEnabled {
+                    self.set_state(State::QuickStopActive, now);
+                }
+            }
+        }
+    }
+
+    /// At a SYNC: take the new targets (CSP: start the next interpolation segment).
+    fn latch_setpoints(&mut self, now: u64) {
+        if self.state != State::OperationEnabled || self.stop.is_some() {
+            return;
+        }
+        match self.mode_display() {
+            mode::CYCLIC_SYNC_VELOCITY => {
+                self.target_vel = self.od.int(ix::TARGET_VELOCITY, 0) as f64;
+            }
+            mode::CYCLIC_SYNC_POSITION => {
+                let raw = self.od.int(ix::TARGET_POSITION, 0) as i32;
+                let mut t = match self.target_ref {
+                    Some((r, u)) => u + raw.wrapping_sub(r) as f64,
+                    None => {
+                        let a = self.servo.position_counts();
+                        a as f64 + raw.wrapping_sub(a as i32) as f64
+                    }
+                };
+                self.target_ref = Some((raw, t));
+                let lo = self.od.int(ix::SOFTWARE_LIMIT, 1);
+                let hi = self.od.int(ix::SOFTWARE_LIMIT, 2);
+                self.limit_active = false;
+                if lo < hi && !(lo == i32::MIN as i64 && hi == i32::MAX as i64) {
+                    let c = t.clamp(lo as f64, hi as f64);
+                    self.limit_active = c != t;
+                    t = c;
+                }
+                // Interpolate from where the demand is now to the new target over the
+                // interpolation period (0x60C2, else the measured SYNC period).
+                let ip = self.od.int(ix::INTERPOLATION_PERIOD, 1) as f64 * 10f64.powi(self.od.int(ix::INTERPOLATION_PERIOD, 2) as i32);
+                let len = if ip > 0.0 {
+                    (ip * 1e9).round() as u64
+                } else if self.sync_period > 0 {
+                    self.sync_period
+                } else {
+                    let c = self.od.int(ix::COMM_CYCLE_PERIOD, 0) as u64 * 1000;
+                    if c > 0 {
+                        c
+                    } else {
+                        MS
+                    }
+                };
+                self.seg_start = self.demand;
+                self.seg_end = t;
+                self.seg_t0 = now;
+                self.seg_len = len.max(1);
+            }
+            _ => {}
+        }
+    }
+
+    /// One control tick at `now` (every `step_us`).
+    pub(crate) fn tick(&mut self, now: u64) {
+        let dt = self.step_s;
+        let powered = matches!(self.state, State::OperationEnabled | State::QuickStopActive | State::FaultReactionActive);
+        if !powered {
+            self.servo.control(Command::Off, dt);
+            self.rebase();
+            self.limit_active = false;
+            self.event_tpdos(now);
+            return;
+        }
+        if self.state == State::OperationEnabled {
+            let halt = self.prev_cw & cw::HALT != 0;
+            match self.stop {
+                None if halt => self.start_stop(StopWhy::Halt, Brake::Ramp(self.od.int(PROFILE_DECEL, 0) as f64), now),
+                Some(st) if st.why == StopWhy::Halt && !halt => {
+                    self.stop = None;
+                    self.rebase();
+                }
+                _ => {}
+            }
+        }
+        let cmd = if let Some(st) = self.stop.as_mut() {
+            match st.brake {
+                Brake::Ramp(a) => {
+                    let dv = a * dt;
+                    let v0 = st.v;
+                    st.v = if st.v.abs() <= dv { 0.0 } else { st.v - dv * st.v.signum() };
+                    st.pos += 0.5 * (v0 + st.v) * dt;
+                    self.demand = st.pos;
+                    self.vff = st.v;
+                    Command::Position { demand: st.pos, vff: st.v }
+                }
+                Brake::TorqueLimit => {
+                    st.v = 0.0;
+                    self.demand = self.servo.position_counts() as f64;
+                    self.vff = 0.0;
+                    Command::Velocity { v: 0.0 }
+                }
+            }
+        } else if self.mode_display() == mode::CYCLIC_SYNC_VELOCITY {
+            self.demand = self.servo.position_counts() as f64;
+            self.vff = self.target_vel;
+            Command::Velocity { v: self.target_vel }
+        } else {
+            let el = now.saturating_sub(self.seg_t0);
+            if el == self.seg_len {
+                // The end of a segment is also the instant of the next SYNC: keep the
+                // segment's speed so that an on-time SYNC sees no dip in the feed-forward.
+                self.demand = self.seg_end;
+            } else if el > self.seg_len {
+                self.demand = self.seg_end;
+                self.vff = 0.0;
+            } else {
+                let f = el as f64 / self.seg_len as f64;
+                self.demand = self.seg_start + (self.seg_end - self.seg_start) * f;
+                self.vff = (self.seg_end - self.seg_start) / (self.seg_len as f64 * 1e-9);
+            }
+            Command::Position { demand: self.demand, vff: self.vff }
+        };
+        self.servo.control(cmd, dt);
+
+        // Following error monitoring (position control while enabled).
+        if self.state == State::OperationEnabled && matches!(cmd, Command::Position { .. }) {
+            let window = self.od.int(ix::FOLLOWING_ERROR_WINDOW, 0);
+            if window != u32::MAX as i64 && (self.ferr() as i64).abs() > window {
+                let since = *self.ferr_since.get_or_insert(now);
+                let timeout = self.od.int(ix::FOLLOWING_ERROR_TIMEOUT, 0) as u64 * MS;
+                if now - since >= timeout {
+                    self.ferr_flag = true;
+                    self.ferr_since = None;
+                    self.fault(0x8611, now);
+                }
+            } else {
+                self.ferr_since = None;
+            }
+        }
+
+        // End of a stop ramp.
+        if let Some(st) = self.stop {
+            let done = st.v == 0.0 && self.servo.at_rest();
+            if done || now.saturating_sub(st.started) >= STOP_TIMEOUT {
+                match st.why {
+                    StopWhy::Halt => {}
+                    StopWhy::QuickStop => {
+                        if !self.qs_option().stays_in_quick_stop() || !done {
+                            self.set_state(State::SwitchOnDisabled, now);
+                        }
+                    }
+                    StopWhy::FaultReaction => self.set_state(State::Fault, now),
+                }
+            }
+        }
+        self.event_tpdos(now);
+    }
+}

@@ -1,0 +1,241 @@
+//! One motor, its load and the drive's control cascade: position loop (P, gain Kv, with
+//! velocity feed-forward) → velocity loop (PI) → torque (limited) → rigid inertia with
+//! Coulomb and viscous friction. The encoder reports whole counts; the position loop closes
+//! on those. The velocity loop uses the motor's true speed, standing in for the fine
+//! (interpolated sin/cos or 20+ bit) encoder real drives close their speed loop on.
+
+use crate::config::Physics;
+use std::f64::consts::PI;
+
+/// What the control cascade is asked to do this tick.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Command {
+    /// Power stage off: no torque, the load coasts.
+    Off,
+    /// Follow a position demand (counts, unwrapped) with a velocity feed-forward (counts/s).
+    Position { demand: f64, vff: f64 },
+    /// Follow a velocity (counts/s) with the velocity loop only.
+    Velocity { v: f64 },
+}
+
+#[derive(Clone, Debug)]
+pub struct Servo {
+    p: Physics,
+    /// rad per count.
+    rad_per_count: f64,
+    /// Motor position in counts, continuous and unwrapped.
+    pos: f64,
+    /// Motor speed, rad/s.
+    omega: f64,
+    /// Torque applied since the last control tick, N·m.
+    torque: f64,
+    /// Velocity-loop integrator, N·m.
+    integ: f64,
+    /// Velocity reference of the last tick, rad/s (for logs and tests).
+    vref: f64,
+    /// External load torque (fault injection: a crash, a jammed slide), N·m.
+    pub load_torque: f64,
+}
+
+impl Servo {
+    pub fn new(p: Physics, counts_per_rev: u32) -> Servo {
+        Servo {
+            p,
+            rad_per_count: 2.0 * PI / counts_per_rev.max(1) as f64,
+            pos: 0.0,
+            omega: 0.0,
+            torque: 0.0,
+            integ: 0.0,
+            vref: 0.0,
+            load_torque: 0.0,
+        }
+    }
+
+    pub fn physics(&self) -> &Physics {
+        &self.p
+    }
+
+    /// Encoder reading: whole counts, unwrapped.
+    pub fn position_counts(&self) -> i64 {
+        self.pos.floor() as i64
+    }
+
+    /// Exact position (counts), for tests and plots.
+    pub fn position_exact(&self) -> f64 {
+        self.pos
+    }
+
+    /// Speed in counts/s.
+    pub fn velocity_counts(&self) -> f64 {
+        self.omega / self.rad_per_count
+    }
+
+    pub fn torque(&self) -> f64 {
+        self.torque
+    }
+
+    /// Put the motor at a position (power-on offset of an absolute encoder).
+    pub fn set_position(&mut self, counts: f64) {
+        self.pos = counts;
+    }
+
+    /// True at standstill as a drive's speed window sees it (below ~1 rpm).
+    pub fn at_rest(&self) -> bool {
+        self.omega.abs() < 0.1
+    }
+
+    /// One control tick: compute the torque held until the next tick.
+    pub fn control(&mut self, cmd: Command, dt: f64) {
+        let vmax = self.p.max_speed_rpm * 2.0 * PI / 60.0;
+        let vref_counts = match cmd {
+            Command::Off => {
+                self.torque = 0.0;
+                self.integ = 0.0;
+                self.vref = 0.0;
+                return;
+            }
+            Command::Position { demand, vff } => {
+                // The loop closes on whole encoder counts, as the drive sees them.
+                let e = demand - self.pos.floor();
+                self.p.velocity_ff * vff + self.p.kv * e
+            }
+            Command::Velocity { v } => v,
+        };
+        let vref = (vref_counts * self.rad_per_count).clamp(-vmax, vmax);
+        self.vref = vref;
+        let err = vref - self.omega;
+        let ki = self.p.vel_kp / (self.p.vel_ti_ms * 1e-3);
+        let lim = self.p.torque_limit;
+        let unsat = self.p.vel_kp * err + self.integ;
+        // Conditional integration (anti-windup): stop integrating into the limit.
+        let saturating = (unsat >= lim && err > 0.0) || (unsat <= -lim && err < 0.0);
+        if !saturating {
+            self.integ = (self.integ + ki * err * dt).clamp(-lim, lim);
+        }
+        self.torque = (self.p.vel_kp * err + self.integ).clamp(-lim, lim);
+    }
+
+    /// Integrate the mechanics over `dt` seconds with the held torque.
+    pub fn integrate(&mut self, dt: f64) {
+        if dt <= 0.0 {
+            return;
+        }
+        let j = self.p.inertia();
+        let tc = self.p.coulomb_friction;
+        let drive = self.torque - self.load_torque;
+        let w0 = self.omega;
+        let w1 = if w0 == 0.0 {
+            if drive.abs() <= tc {
+                0.0 // sticking: dry friction takes up the whole torque
+            } else {
+                let net = drive - tc * drive.signum();
+                net / j * dt
+            }
+        } else {
+            // Viscous part implicit (stable for any dt), Coulomb explicit.
+            let b = self.p.viscous_friction;
+            let w = (j * w0 + dt * (drive - tc * w0.signum())) / (j + dt * b);
+            if w.signum() != w0.signum() && drive.abs() <= tc {
+                0.0 // crossed zero and friction holds it there
+            } else {
+                w
+            }
+        };
+        self.pos += 0.5 * (w0 + w1) * dt / self.rad_per_count;
+        self.omega = w1;
+    }
+}
+
+/// Step response of a servo model: position step of `step` counts with no feed-forward,
+/// sampled every `dt`. Returns (rise time 10→90 % in s, overshoot in % of the step,
+/// settling time into ±1 count in s, final error in counts).
+pub fn step_response(p: &Physics, counts_per_rev: u32, step: f64, dt: f64, t_end: f64) -> (f64, f64, f64, f64) {
+    let mut s = Servo::new(p.clone(), counts_per_rev);
+    let n = (t_end / dt).ceil() as usize;
+    let (mut t10, mut t90) = (None, None);
+    let mut peak = 0.0f64;
+    let mut settle = 0.0;
+    for i in 0..n {
+        let t = i as f64 * dt;
+        s.control(Command::Position { demand: step, vff: 0.0 }, dt);
+        s.integrate(dt);
+        let x = s.position_exact();
+        if t10.is_none() && x >= 0.1 * step {
+            t10 = Some(t);
+        }
+        if t90.is_none() && x >= 0.9 * step {
+            t90 = Some(t);
+        }
+        peak = peak.max(x);
+        if (s.position_counts() as f64 - step).abs() > 1.0 {
+            settle = t + dt;
+        }
+    }
+    let rise = match (t10, t90) {
+        (Some(a), Some(b)) => b - a,
+        _ => f64::INFINITY,
+    };
+    let overshoot = ((peak - step) / step * 100.0).max(0.0);
+    (rise, overshoot, settle, s.position_counts() as f64 - step)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::DriveKind;
+
+    fn run_to(s: &mut Servo, demand: f64, secs: f64) {
+        let dt = 50e-6;
+        for _ in 0..(secs / dt) as usize {
+            s.control(Command::Position { demand, vff: 0.0 }, dt);
+            s.integrate(dt);
+        }
+    }
+
+    #[test]
+    fn settles_within_one_count_with_friction() {
+        for kind in [DriveKind::Linear, DriveKind::Spindle] {
+            let p = Physics::default_for(kind);
+            assert!(p.coulomb_friction > 0.0);
+            let mut s = Servo::new(p, 100_000);
+            for target in [1000.0, 1003.0, -257.0, 0.0, 1.0] {
+                run_to(&mut s, target, 1.5);
+                let e = s.position_counts() as f64 - target;
+                assert!(e.abs() <= 1.0, "{kind:?} target {target}: error {e} counts");
+                // And it stays there (no limit cycle walking away).
+                run_to(&mut s, target, 0.5);
+                let e = s.position_counts() as f64 - target;
+                assert!(e.abs() <= 1.0, "{kind:?} target {target} later: error {e} counts");
+            }
+        }
+    }
+
+    #[test]
+    fn dry_friction_holds_a_small_torque() {
+        let p = Physics::default_for(DriveKind::Linear);
+        let mut s = Servo::new(p.clone(), 100_000);
+        s.load_torque = 0.5 * p.coulomb_friction;
+        s.control(Command::Off, 1e-3);
+        for _ in 0..1000 {
+            s.integrate(1e-4);
+        }
+        assert_eq!(s.position_exact(), 0.0);
+        s.load_torque = 2.0 * p.coulomb_friction;
+        for _ in 0..1000 {
+            s.integrate(1e-4);
+        }
+        assert!(s.position_exact() < -1.0, "a load above the friction moves it");
+    }
+
+    #[test]
+    fn step_responses_are_servo_like() {
+        let lin = step_response(&Physics::default_for(DriveKind::Linear), 100_000, 1000.0, 50e-6, 1.0);
+        let sp = step_response(&Physics::default_for(DriveKind::Spindle), 360_000, 1000.0, 50e-6, 2.0);
+        // Kv = 50 → first-order-like rise ≈ 2.2/Kv = 44 ms; the spindle's Kv = 20 → ≈ 110 ms.
+        assert!(lin.0 > 0.02 && lin.0 < 0.08, "linear rise {lin:?}");
+        assert!(sp.0 > 0.06 && sp.0 < 0.25, "spindle rise {sp:?}");
+        assert!(lin.1 < 10.0 && sp.1 < 15.0, "overshoot {lin:?} {sp:?}");
+        assert!(lin.3.abs() <= 1.0 && sp.3.abs() <= 1.0);
+        assert!(sp.0 > lin.0, "the spindle is the slower axis");
+    }
+}
