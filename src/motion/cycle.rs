@@ -287,9 +287,9 @@ impl<'a> CycleLoop<'a> {
             a.final_actual_counts = f.counts;
             a.final_target_counts = self.drives.target_counts(d);
             a.program_end_counts = match (ax, end_pos) {
-                (Some(&AX_X), Some(e)) => Some((e.x * a.counts_per_unit).round() as i64),
-                (Some(&AX_Z), Some(e)) => Some((e.z * a.counts_per_unit).round() as i64),
-                (Some(&AX_Y), Some(e)) if e.y != start[AX_Y] => Some((e.y * a.counts_per_unit).round() as i64),
+                (Some(AX_X), Some(e)) => Some((e.x * a.counts_per_unit).round() as i64),
+                (Some(AX_Z), Some(e)) => Some((e.z * a.counts_per_unit).round() as i64),
+                (Some(AX_Y), Some(e)) if e.y != start[AX_Y] => Some((e.y * a.counts_per_unit).round() as i64),
                 _ => None,
             };
         }

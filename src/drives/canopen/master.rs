@@ -401,6 +401,10 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
             self.configure_node(clock, i)?;
         }
         self.send(&NmtCommand::Start.frame(0))?;
+        // States heard before the start are stale; the next heartbeat tells.
+        for n in &mut self.nodes {
+            n.nmt = None;
+        }
         self.next_hb_ns = clock.now_ns();
         self.settle(clock, 1);
         Ok(())
