@@ -47,7 +47,7 @@ fn run_source(name: &str, text: &str) -> Result<(RunSummary, sim_drives::SimWorl
 
 #[test]
 fn a_short_program_ends_within_one_count_of_its_end_point() {
-    let prog = "G21 G98\nG00 X40 Z2\nG01 Z-10 F600\nG01 X60 Z-20\nG00 X100 Z5\nM30\n";
+    let prog = "G21\nG98\nG00 X40 Z2\nG01 Z-10 F600\nG01 X60 Z-20\nG00 X100 Z5\nM30\n";
     let (s, world) = run_source("short.nc", prog).map_err(|(a, _)| a).unwrap();
     assert!(s.simulated);
     assert!(s.at_program_end(), "{s:#?}");
@@ -69,7 +69,7 @@ fn a_short_program_ends_within_one_count_of_its_end_point() {
 
 #[test]
 fn runs_are_deterministic_in_simulated_time() {
-    let prog = "G21 G98\nM03 S800\nG00 X30 Z1\nG01 Z-5 F300\nG02 X40 Z-10 R5\nG00 X80 Z5\nM05\nM30\n";
+    let prog = "G21\nG98\nM03 S800\nG00 X30 Z1\nG01 Z-5 F300\nG02 X40 Z-10 R5\nG00 X80 Z5\nM05\nM30\n";
     let (a, _) = run_source("det.nc", prog).map_err(|(a, _)| a).unwrap();
     let (b, _) = run_source("det.nc", prog).map_err(|(a, _)| a).unwrap();
     assert_eq!(a, b);
