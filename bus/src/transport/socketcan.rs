@@ -1,16 +1,17 @@
-//! SocketCAN (can0, vcan0) through `socketcan::tokio::CanSocket`, in a thin task on a
-//! current-thread runtime of its own, so that the synchronous cycle loop only touches
-//! bounded, pre-allocated channels.
+//! SocketCAN (can0, vcan0): a raw CAN socket in non-blocking mode, used directly from the
+//! cycle thread. One system call per frame and no thread hop: under a loaded kernel (or the
+//! User-Mode Linux guest of the vcan tier, where a syscall costs ~20 µs) an async runtime's
+//! wake-ups between the socket and the cycle loop cost more than the frames themselves.
 
 use super::{BusError, CanBus};
 use crate::frame::CanFrame;
-use std::sync::mpsc;
+use socketcan::Socket;
+use std::io::ErrorKind;
 use std::time::Duration;
 
 pub struct SocketCan {
     name: String,
-    rx: mpsc::Receiver<Result<CanFrame, BusError>>,
-    tx: tokio::sync::mpsc::Sender<CanFrame>,
+    sock: socketcan::CanSocket,
 }
 
 fn to_sc(f: &CanFrame) -> Option<socketcan::CanFrame> {
@@ -56,96 +57,57 @@ impl SocketCan {
     /// Open `iface` (e.g. `vcan0`). Fails with a message that says how to bring it up.
     pub fn open(iface: &str) -> Result<Self, BusError> {
         let name = iface.to_string();
-        let (rx_tx, rx) = mpsc::sync_channel::<Result<CanFrame, BusError>>(4096);
-        let (tx, mut tx_rx) = tokio::sync::mpsc::channel::<CanFrame>(4096);
-        let (ready_tx, ready_rx) = mpsc::sync_channel::<Result<(), BusError>>(1);
-        let n2 = name.clone();
-        std::thread::Builder::new()
-            .name(format!("can-{iface}"))
-            .spawn(move || {
-                let rt = match tokio::runtime::Builder::new_current_thread().enable_all().build() {
-                    Ok(rt) => rt,
-                    Err(e) => {
-                        let _ = ready_tx.send(Err(BusError::Open { bus: n2, reason: e.to_string() }));
-                        return;
-                    }
-                };
-                rt.block_on(async move {
-                    use futures_util::{SinkExt, StreamExt};
-                    let sock = match socketcan::tokio::CanSocket::open(&n2) {
-                        Ok(s) => s,
-                        Err(e) => {
-                            let reason = if e.raw_os_error() == Some(97) {
-                                "this kernel has no SocketCAN (socket(AF_CAN) fails with EAFNOSUPPORT); use --bus inproc or a machine with CAN support".to_string()
-                            } else {
-                                format!("{e}; bring it up first, e.g. `ip link set {n2} up type can bitrate 1000000` (or `modprobe vcan; ip link add {n2} type vcan; ip link set {n2} up`)")
-                            };
-                            let _ = ready_tx.send(Err(BusError::Open { bus: n2, reason }));
-                            return;
-                        }
-                    };
-                    let _ = ready_tx.send(Ok(()));
-                    let (mut sink, mut stream) = sock.split();
-                    let bus = n2.clone();
-                    let reader = async {
-                        while let Some(r) = stream.next().await {
-                            let item = match r {
-                                Ok(f) => match from_sc(&f) {
-                                    Some(f) => Ok(f),
-                                    None => continue,
-                                },
-                                Err(e) => Err(BusError::Io { bus: bus.clone(), reason: e.to_string() }),
-                            };
-                            let fatal = item.is_err();
-                            if rx_tx.send(item).is_err() || fatal {
-                                break;
-                            }
-                        }
-                    };
-                    let writer = async {
-                        while let Some(f) = tx_rx.recv().await {
-                            if let Some(sf) = to_sc(&f) {
-                                if sink.send(sf).await.is_err() {
-                                    break;
-                                }
-                            }
-                        }
-                    };
-                    tokio::select! { _ = reader => {}, _ = writer => {} }
-                });
-            })
-            .map_err(|e| BusError::Open { bus: name.clone(), reason: e.to_string() })?;
-        match ready_rx.recv() {
-            Ok(Ok(())) => Ok(SocketCan { name, rx, tx }),
-            Ok(Err(e)) => Err(e),
-            Err(_) => Err(BusError::Open { bus: name, reason: "transport thread ended".into() }),
-        }
+        let sock = socketcan::CanSocket::open(iface).map_err(|e| {
+            let reason = if e.raw_os_error() == Some(97) {
+                "this kernel has no SocketCAN (socket(AF_CAN) fails with EAFNOSUPPORT); use --bus inproc, socketcand://…, or a machine with CAN support".to_string()
+            } else {
+                format!("{e}; bring it up first, e.g. `ip link set {iface} up type can bitrate 1000000` (or `modprobe vcan; ip link add {iface} type vcan; ip link set {iface} up`)")
+            };
+            BusError::Open { bus: name.clone(), reason }
+        })?;
+        sock.set_nonblocking(true).map_err(|e| BusError::Open { bus: name.clone(), reason: e.to_string() })?;
+        Ok(SocketCan { name, sock })
+    }
+
+    fn io(&self, e: std::io::Error) -> BusError {
+        BusError::Io { bus: self.name.clone(), reason: e.to_string() }
     }
 }
 
 impl CanBus for SocketCan {
     fn send(&mut self, frame: &CanFrame) -> Result<(), BusError> {
-        self.tx.try_send(*frame).map_err(|e| match e {
-            tokio::sync::mpsc::error::TrySendError::Full(_) => {
-                BusError::Io { bus: self.name.clone(), reason: "transmit queue full".into() }
+        let Some(f) = to_sc(frame) else {
+            return Err(BusError::Io { bus: self.name.clone(), reason: format!("invalid frame {frame:?}") });
+        };
+        match self.sock.write_frame(&f) {
+            Ok(()) => Ok(()),
+            // ENOBUFS / EAGAIN: the interface's transmit queue is full (bus-off or unplugged
+            // cable on a real controller).
+            Err(e) if e.kind() == ErrorKind::WouldBlock || e.raw_os_error() == Some(105) => {
+                Err(BusError::Io { bus: self.name.clone(), reason: "transmit queue full (bus-off, no other node acknowledging, or cable unplugged?)".into() })
             }
-            tokio::sync::mpsc::error::TrySendError::Closed(_) => BusError::Closed { bus: self.name.clone() },
-        })
+            Err(e) => Err(self.io(e)),
+        }
     }
 
     fn try_recv(&mut self) -> Result<Option<CanFrame>, BusError> {
-        match self.rx.try_recv() {
-            Ok(r) => r.map(Some),
-            Err(mpsc::TryRecvError::Empty) => Ok(None),
-            Err(mpsc::TryRecvError::Disconnected) => Err(BusError::Closed { bus: self.name.clone() }),
+        loop {
+            match self.sock.read_frame() {
+                Ok(f) => match from_sc(&f) {
+                    Some(f) => return Ok(Some(f)),
+                    None => continue, // error frames are not data
+                },
+                Err(e) if e.kind() == ErrorKind::WouldBlock => return Ok(None),
+                Err(e) => return Err(self.io(e)),
+            }
         }
     }
 
     fn recv_timeout(&mut self, timeout: Duration) -> Result<Option<CanFrame>, BusError> {
-        match self.rx.recv_timeout(timeout) {
-            Ok(r) => r.map(Some),
-            Err(mpsc::RecvTimeoutError::Timeout) => Ok(None),
-            Err(mpsc::RecvTimeoutError::Disconnected) => Err(BusError::Closed { bus: self.name.clone() }),
+        match self.sock.read_frame_timeout(timeout) {
+            Ok(f) => Ok(from_sc(&f)),
+            Err(e) if e.kind() == ErrorKind::TimedOut || e.kind() == ErrorKind::WouldBlock => Ok(None),
+            Err(e) => Err(self.io(e)),
         }
     }
 

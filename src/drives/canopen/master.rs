@@ -98,6 +98,8 @@ pub struct CanOpenMaster<B: CanBus> {
     cycles: u64,
     enable_cycles: u64,
     running: bool,
+    /// The master heartbeat runs from the first configured consumer on.
+    hb_started: bool,
 }
 
 enum Sdo<'a> {
@@ -140,6 +142,7 @@ impl<B: CanBus> CanOpenMaster<B> {
             cycles: 0,
             enable_cycles: 0,
             running: false,
+            hb_started: false,
         }
     }
 
@@ -162,6 +165,17 @@ impl<B: CanBus> CanOpenMaster<B> {
 
     fn send(&mut self, f: &CanFrame) -> Result<(), Alarm> {
         self.bus.send(f).map_err(|e| Alarm::new(2020, e.to_string()))
+    }
+
+    /// Send the master heartbeat when it is due. Called from every wait, not only from the
+    /// cyclic phase: a drive configured early in start-up consumes it while the others are
+    /// still being configured.
+    fn tick_heartbeat(&mut self, now_ns: u64) -> Result<(), Alarm> {
+        if self.hb_ms > 0 && self.hb_started && now_ns >= self.next_hb_ns {
+            self.send(&heartbeat_frame(MASTER_NODE_ID, NmtState::Operational))?;
+            self.next_hb_ns = now_ns + self.hb_ms as u64 * 1_000_000;
+        }
+        Ok(())
     }
 
     fn index_of(&self, node: u8) -> Option<usize> {
@@ -236,6 +250,7 @@ impl<B: CanBus> CanOpenMaster<B> {
                 if let Some(out) = self.nodes[i].sdo.poll(now) {
                     let _ = self.bus.send(&out);
                 }
+                let _ = self.tick_heartbeat(now);
                 if let Some(r) = self.nodes[i].sdo.take_result() {
                     break r;
                 }
@@ -271,6 +286,7 @@ impl<B: CanBus> CanOpenMaster<B> {
             while let Ok(Some(f)) = self.bus.try_recv() {
                 self.on_background(&f, now);
             }
+            let _ = self.tick_heartbeat(now);
         }
     }
 
@@ -330,9 +346,15 @@ impl<B: CanBus> CanOpenMaster<B> {
         self.map_pdo(clock, i, od::TPDO_COMM, od::TPDO_MAP, cob::TPDO1 + node as u16, &tpdo)?;
         if self.hb_ms > 0 {
             self.write(clock, i, od::PRODUCER_HEARTBEAT, 0, &self.hb_ms.to_le_bytes())?;
+            // Monitoring of this producer starts now: its first heartbeat is one period away.
+            self.nodes[i].last_hb_ns = clock.now_ns().max(1);
             // The drive stops by itself when our heartbeat is missing for 3 periods
             // (0x1016 consumer + 0x6007 abort-connection option 1 = fault).
             let consumer = ((MASTER_NODE_ID as u32) << 16) | (self.hb_ms as u32 * 3).min(0xFFFF);
+            if !self.hb_started {
+                self.hb_started = true;
+                self.next_hb_ns = clock.now_ns();
+            }
             self.write(clock, i, od::CONSUMER_HEARTBEAT, 1, &consumer.to_le_bytes())?;
             self.write(clock, i, od::ABORT_CONNECTION, 0, &1i16.to_le_bytes())?;
         }
@@ -405,7 +427,6 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
         for n in &mut self.nodes {
             n.nmt = None;
         }
-        self.next_hb_ns = clock.now_ns();
         self.settle(clock, 1);
         Ok(())
     }
@@ -482,11 +503,7 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
             self.send(&f)?;
         }
         self.send(&sync_frame(None))?;
-        if self.hb_ms > 0 && now_ns >= self.next_hb_ns {
-            self.send(&heartbeat_frame(MASTER_NODE_ID, NmtState::Operational))?;
-            self.next_hb_ns = now_ns + self.hb_ms as u64 * 1_000_000;
-        }
-        Ok(())
+        self.tick_heartbeat(now_ns)
     }
 
     fn enable_step(&mut self) -> Result<bool, Alarm> {
