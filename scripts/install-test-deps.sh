@@ -18,7 +18,7 @@ for a in "$@"; do
     case $a in
         --python) WANT_PYTHON=1 ;;
         --qemu) WANT_QEMU=1 ;;
-        -h|--help) sed -n '2,10p' "$0"; exit 0 ;;
+        -h|--help) awk 'NR > 1 && !/^#/ { exit } NR > 1 && !/shellcheck/ { sub(/^# ?/, ""); print }' "$0"; exit 0 ;;
         *) echo "install-test-deps: unknown argument: $a" >&2; exit 2 ;;
     esac
 done

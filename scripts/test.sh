@@ -32,6 +32,7 @@ cargo test --workspace --doc --quiet
 
 step "vcan tier (SocketCAN, separate processes)"
 exe=$(cargo test --test vcan_tier --no-run --message-format=json 2>/dev/null \
+      | grep '"name":"vcan_tier"' | grep '"test":true' \
       | sed -n 's/.*"executable":"\([^"]*\)".*/\1/p' | tail -n 1)
 [ -x "$exe" ] || { echo "vcan tier: could not build tests/vcan_tier.rs" >&2; exit 1; }
 ./scripts/run-vcan-tier.sh "$exe" --ignored --nocapture --test-threads=1

@@ -70,15 +70,16 @@ mkdir -p "$T/modroot/lib/modules" "$T/initramfs"
 case $BACKEND in
 uml)
     [ -x $UML_BIN ] || die "$UML_BIN missing: run scripts/install-test-deps.sh"
-    KREL=$(ls /usr/lib/uml/modules | sort -V | tail -n1)
+    KREL=$(find /usr/lib/uml/modules -mindepth 1 -maxdepth 1 -printf '%f\n' | sort -V | tail -n1)
     [ -n "$KREL" ] || die "no /usr/lib/uml/modules/<release>"
     # The package ships modules.dep, so no depmod is needed.
     ln -s "/usr/lib/uml/modules/$KREL" "$T/modroot/lib/modules/$KREL"
     MODS=$UML_MODS
     ;;
 qemu)
-    command -v qemu-system-x86_64 >/dev/null && command -v xz >/dev/null \
-        || die "qemu missing: run VMRUN_BACKEND=qemu scripts/install-test-deps.sh"
+    if ! command -v qemu-system-x86_64 >/dev/null || ! command -v xz >/dev/null; then
+        die "qemu missing: run VMRUN_BACKEND=qemu scripts/install-test-deps.sh"
+    fi
     KPKG=${KPKG:-$(apt-cache depends linux-image-amd64 2>/dev/null |
         sed -n 's/^ *Depends: \(linux-image-[0-9].*-amd64\)$/\1/p' | awk 'NR == 1')}
     [ -n "$KPKG" ] || die "cannot resolve linux-image-amd64 (apt-get update needed?)"
