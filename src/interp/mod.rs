@@ -21,6 +21,7 @@
 //! not in the configuration, calculator-type input applies (this project's convention).
 //! F, S, P, T and M values are never scaled.
 
+pub mod curves;
 pub mod gcode;
 pub mod macros;
 pub mod parse;
@@ -37,7 +38,9 @@ use std::sync::Arc;
 
 /// Our own alarm: this many blocks in a row without any move is taken as an endless loop.
 pub const ENDLESS_LOOP_ALARM: u32 = 2500;
-const ENDLESS_LOOP_BLOCKS: u64 = 10_000_000;
+const ENDLESS_LOOP_BLOCKS: u64 = 2_000_000;
+/// Chord tolerance (mm) of ellipses and parabolas emitted as chains of feed moves.
+pub const CHORD_TOL: f64 = 0.002;
 /// Fanuc/manual §3.1.6: 12 levels of subprogram/macro nesting.
 pub const MAX_NESTING: usize = 12;
 
@@ -927,7 +930,44 @@ impl Interpreter {
                 self.push(src, MoveKind::Feed { end, feed }, exact);
             }
             20 | 30 => self.arc(d, src, end, self.st.motion == 20, exact)?,
+            21 | 31 | 22 | 32 => self.conic(d, src, end, exact)?,
             g => return Err((10, None, format!("{} is not supported yet", gcode::gname(g)))),
+        }
+        Ok(())
+    }
+
+    /// G02.1/G03.1 ellipse (A, B, Q) and G02.2/G03.2 parabola (P, Q), emitted as a chain of
+    /// Feed moves within [`CHORD_TOL`]. Q is the angle from +Z to the major axis / axis of
+    /// symmetry, clockwise seen from +Y, in 0.001° without a decimal point (§2.4), degrees
+    /// with one. ZX plane only (§2.5).
+    fn conic(&mut self, d: &Decoded, src: &SrcPos, end: Pos, exact: bool) -> Result<(), (u32, Option<u32>, String)> {
+        let g = self.st.motion;
+        let gc = d.g.first().map(|x| x.1);
+        if self.st.plane != Plane::Zx {
+            return Err((10, gc, format!("{} works in the ZX plane only (G18)", gcode::gname(g))));
+        }
+        if let Some(l) = ['Y', 'V', 'C', 'H'].into_iter().find(|l| d.has(*l)) {
+            return Err((21, d.get(l).map(|v| v.col), format!("address {l} is outside the ZX plane")));
+        }
+        let feed = self.feed(d.get('F').map(|f| f.col))?;
+        let q = d.get('Q').map(|q| if q.decimal { q.v } else { q.v / 1000.0 }).unwrap_or(0.0);
+        let phi = (-q).to_radians();
+        let (s, e) = ((self.pos.z, self.pos.x), (end.z, end.x));
+        let cw = g == 21 || g == 22;
+        let need = |l: char| {
+            d.get(l).map(|v| self.len(v)).ok_or((9, gc, format!("{} needs {l}", gcode::gname(g))))
+        };
+        let pts = if g == 21 || g == 31 {
+            curves::ellipse(s, e, need('A')?, need('B')?, phi, cw, CHORD_TOL)
+        } else {
+            curves::parabola(s, e, need('P')?, phi, cw, CHORD_TOL)
+        }
+        .map_err(|m| (20, gc, m))?;
+        let n = pts.len();
+        for (i, (z, x)) in pts.into_iter().enumerate() {
+            let p = Pos { x, z, ..end };
+            self.pos = p;
+            self.push(src, MoveKind::Feed { end: p, feed }, exact && i + 1 == n);
         }
         Ok(())
     }

@@ -320,3 +320,110 @@ fn example_first_part_runs() {
     // The documented end point.
     assert_eq!(p, Pos::xz(50.0, 5.0));
 }
+
+fn xs(m: &[Move]) -> Vec<f64> {
+    m.iter().filter_map(|m| m.kind.end()).map(|p| (p.x * 2.0 * 1e6).round() / 1e6).collect()
+}
+
+#[test]
+fn macro_variables_and_while_loop() {
+    // Three passes at dia 40, 36, 32 via WHILE; null word ignored; computed address values.
+    let src = "#1=40\n#2=3\nG99 F0.2\nWHILE [#2 GT 0] DO 1\nG00 X#1 Z2 Y#30\nG01 Z-[10*#2]\n#1=#1-4\n#2=#2-1\nEND 1\nM30\n";
+    let m = run(src);
+    assert_eq!(xs(&m), [40.0, 40.0, 36.0, 36.0, 32.0, 32.0]);
+    let z: Vec<f64> = m.iter().filter_map(|m| m.kind.end()).map(|p| p.z).collect();
+    assert_eq!(z, [2.0, -30.0, 2.0, -20.0, 2.0, -10.0]);
+}
+
+#[test]
+fn if_goto_and_if_then() {
+    let src = "#1=0\nN10 #1=#1+1\nIF [#1 LT 3] GOTO 10\nIF [#1 EQ 3] THEN #2=50\nG00 X#2\nGOTO 99\nG00 X1\nN99 M30\n";
+    let m = run(src);
+    assert_eq!(xs(&m), [50.0]);
+    assert_eq!(m.last().unwrap().kind, K::End { code: 30 });
+}
+
+#[test]
+fn macro_runtime_error_stops_at_its_block() {
+    let mut it = Interpreter::from_source("t.nc", "G00 X10\n#1=0\n#2=5/#1\nG00 X20\nM30\n", &cfg()).unwrap();
+    assert!(it.next_move().unwrap().is_some());
+    let a = it.next_move().unwrap_err();
+    assert_eq!(a.number, 112);
+    assert_eq!(a.pos.as_ref().unwrap().line, 3);
+    assert_eq!(a.block.as_deref(), Some("#2=5/#1"));
+}
+
+#[test]
+fn static_loop_and_label_errors() {
+    let e = static_errs("WHILE [1 EQ 1] DO 1\nG00 X1\nM30\n");
+    assert_eq!(e[0].number, 124);
+    let e = static_errs("DO 1\nDO 2\nEND 1\nEND 2\nM30\n");
+    assert_eq!(e[0].number, 126);
+    let e = static_errs("GOTO 50\nM30\n");
+    assert_eq!(e[0].number, 78);
+    let e = static_errs("G00 X1 #1=2\nM30\n");
+    assert_eq!(e[0].number, 127);
+}
+
+#[test]
+fn subprograms_m98_m99() {
+    let src = "O0001\nG00 X100 Z5\nM98 P0010\nM98 P30010\nM98 P10 L2\nM30\nO0010\nG00 U-2\nM99\n";
+    let m = run(src);
+    assert_eq!(xs(&m), [100.0, 98.0, 96.0, 94.0, 92.0, 90.0, 88.0]);
+    // M99 P returns to a label in the caller.
+    let m = run("O1\nM98 P2\nG00 X1\nN50 G00 X2\nM30\nO2\nM99 P50\n");
+    assert_eq!(xs(&m), [2.0]);
+    // Missing program, self call, nesting.
+    assert_eq!(run_err("O1\nM98 P7\nM30\n").number, 76);
+    assert_eq!(run_err("O1\nM98 P2\nM30\nO2\nM98 P2\nM99\n").number, 76);
+    assert_eq!(run_err("O1\nM98 P2\nM30\nO2\nM98 P3\nM99\nO3\nM98 P2\nM99\n").number, 77);
+}
+
+#[test]
+fn g65_macro_call_with_arguments_and_locals() {
+    let src = "O1\n#1=7\nG65 P9000 X40 Z-10 F0.1\nG00 X#1\nM30\nO9000\n#1=99\nG99 G01 X#24 Z#26 F#9\nM99\n";
+    let m = run(src);
+    assert_eq!(m[0].kind, K::Feed { end: Pos::xz(20.0, -10.0), feed: Feed::PerRev(0.1) });
+    // The caller's #1 is untouched by the macro's local #1.
+    assert_eq!(m[1].kind, K::Rapid { end: Pos::xz(3.5, -10.0) });
+}
+
+#[test]
+fn block_skip() {
+    let src = "G00 X10\n/G00 X20\nM30\n";
+    assert_eq!(xs(&run(src)), [10.0, 20.0]);
+    let mut it = Interpreter::from_source("t", src, &cfg()).unwrap();
+    it.set_block_skip(true);
+    let m: Vec<Move> = it.map(|m| m.unwrap()).collect();
+    assert_eq!(xs(&m), [10.0]);
+}
+
+#[test]
+fn endless_loop_without_motion_is_an_alarm() {
+    let mut it = Interpreter::from_source("t", "N1 #1=#1+1\nGOTO 1\n", &cfg()).unwrap();
+    assert_eq!(it.next_move().unwrap_err().number, ENDLESS_LOOP_ALARM);
+}
+
+#[test]
+fn g28_returns_through_intermediate_point() {
+    let m = run("G00 X100 Z-50\nG28 U0 W10\nM30");
+    assert_eq!(m[1].kind, K::Rapid { end: Pos::xz(50.0, -40.0) });
+    assert_eq!(m[2].kind, K::Rapid { end: Pos::xz(0.0, 0.0) });
+    let m = run("G00 X100 Z-50\nG28 X80\nM30");
+    assert_eq!(m[2].kind, K::Rapid { end: Pos::xz(0.0, -50.0) });
+}
+
+#[test]
+fn ellipse_and_parabola_emit_feed_chains() {
+    let m = run("G99 G00 X43.14 Z0\nG02.1 U20.68 W-50.0 A48 B25 Q60000 F0.1\nM30");
+    let feeds: Vec<&Move> = m.iter().filter(|m| m.kind.name() == "feed").collect();
+    assert!(feeds.len() > 20);
+    assert_eq!(feeds.last().unwrap().kind.end().map(|p| ((p.x * 2.0 * 1e6).round() / 1e6, p.z)), Some((63.82, -50.0)));
+    assert!(feeds.iter().all(|m| m.src.line == 2));
+    // Manual §2.5 example.
+    let m = run("G98 G00 X0 Z0\nG01 X30 F200\nG3.2 X60 Z-40 P10\nG01 X90 Z-60\nM30");
+    let n = m.iter().filter(|m| m.src.line == 3).count();
+    assert!(n > 10);
+    assert_eq!(m.iter().rev().nth(1).unwrap().kind, K::Feed { end: Pos::xz(45.0, -60.0), feed: Feed::PerMin(200.0) });
+    assert_eq!(run_err("G98 G00 X0 Z0\nG02.1 X10 Z-5 B2 F100\nM30").number, 9);
+}
