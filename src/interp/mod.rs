@@ -21,6 +21,7 @@
 //! not in the configuration, calculator-type input applies (this project's convention).
 //! F, S, P, T and M values are never scaled.
 
+pub mod corner;
 pub mod curves;
 pub mod gcode;
 pub mod macros;
@@ -84,6 +85,22 @@ struct Modal {
     max_rpm: Option<f64>,
 }
 
+/// A G01/G02/G03 move with `,C`/`,R`, held until the next move is known (§2.23).
+#[derive(Clone, Debug)]
+struct Corner {
+    serial: u64,
+    src: SrcPos,
+    start: Pos,
+    kind: MoveKind,
+    exact: bool,
+    offset: Pos,
+    plane: Plane,
+    chamfer: bool,
+    value: f64,
+    /// One G04 block may stand between the two moves.
+    g04: bool,
+}
+
 pub struct Interpreter {
     file: Arc<str>,
     text: String,
@@ -115,6 +132,10 @@ pub struct Interpreter {
     ended: bool,
     block_skip: bool,
     idle_blocks: u64,
+    corner: Option<Corner>,
+    corner_serial: u64,
+    /// Moves made while a corner is pending; they follow the inserted chamfer/corner.
+    held: Vec<Move>,
 }
 
 fn perr_alarm(file: &Arc<str>, line_no: usize, text: &str, e: PErr) -> Alarm {
@@ -172,6 +193,9 @@ impl Interpreter {
             ended: false,
             block_skip: false,
             idle_blocks: 0,
+            corner: None,
+            corner_serial: 0,
+            held: Vec::new(),
         };
         let errors = it.index();
         if errors.is_empty() {
@@ -376,6 +400,10 @@ impl Interpreter {
                 return Ok(Some(m));
             }
             if self.ended {
+                if self.corner.take().is_some() {
+                    self.held.clear();
+                    return Err(self.alarm_here(51, 1, "the program ends after a block with ,C/,R: a G01/G02/G03 move must follow it"));
+                }
                 return Ok(None);
             }
             self.idle_blocks += 1;
@@ -551,7 +579,87 @@ impl Interpreter {
     }
 
     fn push(&mut self, src: &SrcPos, kind: MoveKind, exact_stop: bool) {
-        self.queue.push_back(Move { src: src.clone(), kind, exact_stop, work_offset: self.offset(), tag: None });
+        let m = Move { src: src.clone(), kind, exact_stop, work_offset: self.offset(), tag: None };
+        if self.corner.is_some() {
+            self.held.push(m);
+        } else {
+            self.queue.push_back(m);
+        }
+    }
+
+    /// Emit a G01/G02/G03 move starting at `start`: completes a pending chamfer/corner R,
+    /// and holds this move back if it carries `,C`/`,R` itself.
+    fn emit_path(
+        &mut self,
+        src: &SrcPos,
+        start: Pos,
+        kind: MoveKind,
+        exact: bool,
+        req: Option<(bool, f64)>,
+    ) -> Result<(), (u32, Option<u32>, String)> {
+        let mut start = start;
+        if let Some(c) = self.corner.take() {
+            let plane = c.plane;
+            let seg1 = seg_of(plane, c.start, &c.kind);
+            let seg2 = seg_of(plane, start, &kind);
+            let cut = if c.chamfer { corner::chamfer(&seg1, &seg2, c.value) } else { corner::round(&seg1, &seg2, c.value) };
+            let cut = cut.map_err(|m| (55, None, format!("{} {}: {m}", if c.chamfer { ",C" } else { ",R" }, c.value)))?;
+            let mut k1 = c.kind.clone();
+            let mut ins = None;
+            if let Some(cut) = cut {
+                let p1 = from_uv(plane, start, cut.p1);
+                let p2 = from_uv(plane, start, cut.p2);
+                let feed = match &c.kind {
+                    MoveKind::Feed { feed, .. } | MoveKind::Arc { feed, .. } => *feed,
+                    _ => Feed::PerMin(0.0),
+                };
+                match &mut k1 {
+                    MoveKind::Feed { end, .. } | MoveKind::Arc { end, .. } => *end = p1,
+                    _ => {}
+                }
+                ins = Some(match cut.arc {
+                    None => MoveKind::Feed { end: p2, feed },
+                    Some((o, cw)) => MoveKind::Arc { end: p2, center: from_uv(plane, start, o), cw, plane, feed },
+                });
+                start = p2;
+            }
+            let _ = start;
+            let mk = |kind| Move { src: c.src.clone(), kind, exact_stop: c.exact, work_offset: c.offset, tag: None };
+            self.queue.push_back(mk(k1));
+            if let Some(k) = ins {
+                self.queue.push_back(mk(k));
+            }
+            self.queue.extend(self.held.drain(..));
+        }
+        match req {
+            Some((chamfer, value)) => {
+                self.corner_serial += 1;
+                self.corner = Some(Corner {
+                    serial: self.corner_serial,
+                    src: src.clone(),
+                    start,
+                    kind,
+                    exact,
+                    offset: self.offset(),
+                    plane: self.st.plane,
+                    chamfer,
+                    value,
+                    g04: false,
+                });
+            }
+            None => self.push(src, kind, exact),
+        }
+        Ok(())
+    }
+
+    /// `,C` / `,R` of the block (the last one written wins, §2.23 note 9).
+    fn corner_req(&self, d: &Decoded) -> Option<(bool, f64)> {
+        match (d.comma_c, d.comma_r) {
+            (Some(c), Some(r)) => Some(if c.col > r.col { (true, self.len(c)) } else { (false, self.len(r)) }),
+            (Some(c), None) => Some((true, self.len(c))),
+            (None, Some(r)) => Some((false, self.len(r))),
+            (None, None) => None,
+        }
     }
 
     /// Length scale of a word: inch → mm, and the least input increment without a decimal
@@ -637,6 +745,36 @@ impl Interpreter {
     /// block to the machine (PMC); we start things (spindle, coolant, tool) before the motion
     /// and stop them after it, as a Fanuc ladder usually does.
     fn exec(&mut self, d: &Decoded, src: &SrcPos) -> Result<(), (u32, Option<u32>, String)> {
+        let before = self.corner.as_ref().map(|c| (c.serial, c.g04));
+        if before.is_some() {
+            if let Some(g) = d.group(16) {
+                let col = d.g.iter().find(|x| x.0 == g).map(|x| x.1);
+                return Err((51, col, "plane selection (G17/G18/G19) right after a block with ,C/,R".into()));
+            }
+            if let Some(g) = d.group(0).filter(|g| *g != 40) {
+                let col = d.g.iter().find(|x| x.0 == g).map(|x| x.1);
+                return Err((51, col, format!("{} cannot follow a block with ,C/,R (only G01/G02/G03, or one G04)", gcode::gname(g))));
+            }
+        }
+        self.exec_block(d, src)?;
+        if let Some((serial, g04)) = before {
+            if let Some(c) = self.corner.as_mut().filter(|c| c.serial == serial) {
+                if d.group(0) == Some(40) && !g04 {
+                    c.g04 = true;
+                } else {
+                    return Err((
+                        51,
+                        None,
+                        "no move after a block with ,C/,R: the next block must be a G01/G02/G03 move (one G04 may come between)"
+                            .into(),
+                    ));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn exec_block(&mut self, d: &Decoded, src: &SrcPos) -> Result<(), (u32, Option<u32>, String)> {
         let gcol = |g: GCode| d.g.iter().find(|x| x.0 == g).map(|x| x.1);
         // Modal groups.
         if let Some(g) = d.group(6) {
@@ -919,6 +1057,13 @@ impl Interpreter {
         let Some(end) = self.target(d) else {
             return Ok(());
         };
+        if self.corner.is_some() && !matches!(self.st.motion, 10 | 20 | 30) {
+            return Err((
+                52,
+                d.g.first().map(|g| g.1),
+                format!("{} after a block with ,C/,R: the next move must be G01/G02/G03", gcode::gname(self.st.motion)),
+            ));
+        }
         match self.st.motion {
             0 => {
                 self.pos = end;
@@ -926,8 +1071,9 @@ impl Interpreter {
             }
             10 => {
                 let feed = self.feed(d.get('F').map(|f| f.col))?;
+                let start = self.pos;
                 self.pos = end;
-                self.push(src, MoveKind::Feed { end, feed }, exact);
+                self.emit_path(src, start, MoveKind::Feed { end, feed }, exact, self.corner_req(d))?;
             }
             20 | 30 => self.arc(d, src, end, self.st.motion == 20, exact)?,
             21 | 31 | 22 | 32 => self.conic(d, src, end, exact)?,
@@ -1043,9 +1189,9 @@ impl Interpreter {
             let oj = d.get(cj).map(|v| self.len(v)).unwrap_or(0.0);
             if oi == 0.0 && oj == 0.0 {
                 // §2.3 note 3: I = K = 0 is a straight line.
+                let start = self.pos;
                 self.pos = end;
-                self.push(src, MoveKind::Feed { end, feed }, exact);
-                return Ok(());
+                return self.emit_path(src, start, MoveKind::Feed { end, feed }, exact, self.corner_req(d));
             }
             let (cu, cv) = (su + oi, sv + oj);
             let rs = (su - cu).hypot(sv - cv);
@@ -1064,14 +1210,14 @@ impl Interpreter {
         } else if self.arc_missing_alarm {
             return Err((22, None, "circular interpolation needs R or I/K (the centre)".into()));
         } else {
+            let start = self.pos;
             self.pos = end;
-            self.push(src, MoveKind::Feed { end, feed }, exact);
-            return Ok(());
+            return self.emit_path(src, start, MoveKind::Feed { end, feed }, exact, self.corner_req(d));
         };
         // The centre carries the start's coordinates on the axes outside the plane.
+        let start = self.pos;
         self.pos = end;
-        self.push(src, MoveKind::Arc { end, center, cw, plane, feed }, exact);
-        Ok(())
+        self.emit_path(src, start, MoveKind::Arc { end, center, cw, plane, feed }, exact, self.corner_req(d))
     }
 }
 
@@ -1092,6 +1238,45 @@ fn col_alarm(number: u32, col: u32, message: String) -> Alarm {
 
 fn a_col(a: &Alarm) -> u32 {
     a.pos.as_ref().map(|p| p.col).unwrap_or(1)
+}
+
+/// Plane coordinates (u, v) in which G03 is counter-clockwise: G18 (Z, X), G17 (X, Y),
+/// G19 (Y, Z).
+fn to_uv(plane: Plane, p: Pos) -> (f64, f64) {
+    match plane {
+        Plane::Zx => (p.z, p.x),
+        Plane::Xy => (p.x, p.y),
+        Plane::Yz => (p.y, p.z),
+    }
+}
+
+fn from_uv(plane: Plane, base: Pos, (u, v): (f64, f64)) -> Pos {
+    let mut p = base;
+    match plane {
+        Plane::Zx => {
+            p.z = u;
+            p.x = v
+        }
+        Plane::Xy => {
+            p.x = u;
+            p.y = v
+        }
+        Plane::Yz => {
+            p.y = u;
+            p.z = v
+        }
+    }
+    p
+}
+
+fn seg_of(plane: Plane, start: Pos, k: &MoveKind) -> corner::Seg {
+    let a = to_uv(plane, start);
+    match k {
+        MoveKind::Arc { end, center, cw, .. } => {
+            corner::Seg::Arc { a, b: to_uv(plane, *end), c: to_uv(plane, *center), cw: *cw }
+        }
+        other => corner::Seg::Line { a, b: to_uv(plane, other.end().unwrap_or(start)) },
+    }
 }
 
 fn has_decimal(e: &Expr) -> bool {

@@ -427,3 +427,31 @@ fn ellipse_and_parabola_emit_feed_chains() {
     assert_eq!(m.iter().rev().nth(1).unwrap().kind, K::Feed { end: Pos::xz(45.0, -60.0), feed: Feed::PerMin(200.0) });
     assert_eq!(run_err("G98 G00 X0 Z0\nG02.1 X10 Z-5 B2 F100\nM30").number, 9);
 }
+
+#[test]
+fn chamfer_and_corner_r_are_inserted() {
+    // Along Z at dia 40 to Z-10, chamfer 2 to the face going up to dia 60.
+    let m = run("G99 G00 X40 Z0\nG01 Z-10 ,C2 F0.1\nX60\nM30");
+    let e: Vec<Pos> = m.iter().filter_map(|m| m.kind.end()).collect();
+    assert_eq!(e, [Pos::xz(20.0, 0.0), Pos::xz(20.0, -8.0), Pos::xz(22.0, -10.0), Pos::xz(30.0, -10.0)]);
+    assert_eq!(m[2].src.line, 2, "the inserted chamfer belongs to the ,C block");
+    // Corner R: an arc tangent to both moves, clockwise for this right turn.
+    let m = run("G99 G00 X40 Z0\nG01 Z-10 ,R2 F0.1\nX60\nM30");
+    let K::Arc { end, center, cw, .. } = m[2].kind else { panic!("{:?}", m[2]) };
+    assert!(close(end, Pos::xz(22.0, -10.0)) && close(center, Pos::xz(22.0, -8.0)) && cw);
+    // One G04 may stand between; its dwell follows the inserted block.
+    let m = run("G99 G00 X40 Z0\nG01 Z-10 ,C2 F0.1\nG04 P100\nX60\nM30");
+    let k: Vec<&str> = m.iter().map(|m| m.kind.name()).collect();
+    assert_eq!(k, ["rapid", "feed", "feed", "dwell", "feed", "end"]);
+}
+
+#[test]
+fn chamfer_alarms() {
+    assert_eq!(run_err("G99 G00 X40 Z0\nG01 Z-10 ,C2 F0.1\nM08\nX60\nM30").number, 51);
+    assert_eq!(run_err("G99 G00 X40 Z0\nG01 Z-10 ,C2 F0.1\nG00 X60\nM30").number, 52);
+    assert_eq!(run_err("G99 G00 X40 Z0\nG01 Z-10 ,C2 F0.1\nG18\nX60\nM30").number, 51);
+    assert_eq!(run_err("G99 G00 X40 Z0\nG01 Z-10 ,C2 F0.1\nG04 P1\nG04 P1\nX60\nM30").number, 51);
+    assert_eq!(run_err("G99 G00 X40 Z0\nG01 Z-10 ,C2 F0.1\nX42\nM30").number, 55);
+    assert_eq!(run_err("G99 G00 X40 Z0\nG01 Z-10 ,C2 F0.1\nM30").number, 51);
+    assert_eq!(run_err("G99 G00 X40 Z0\nG01 Z-10 ,C2 F0.1\n").number, 51);
+}
