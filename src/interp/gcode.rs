@@ -97,6 +97,20 @@ pub struct Val {
     /// Written with a decimal point (values from variables count as having one).
     pub decimal: bool,
     pub col: u32,
+    /// Written as a literal (not from a variable or expression).
+    pub literal: bool,
+}
+
+impl Val {
+    /// Breaks the rule "no decimal point" for integer addresses: a literal written with a
+    /// point, or a computed value with a fraction.
+    pub fn bad_integer(&self) -> bool {
+        if self.literal {
+            self.decimal
+        } else {
+            self.v.fract() != 0.0
+        }
+    }
 }
 
 /// A decoded NC block.
@@ -152,7 +166,7 @@ impl Decoded {
                     d.g.push((g, val.col));
                 }
                 'M' => {
-                    if val.decimal && val.v.fract() != 0.0 {
+                    if val.bad_integer() {
                         return Err((7, val.col, "an M code takes no decimal point".into()));
                     }
                     if d.m.len() >= 3 {
@@ -167,7 +181,7 @@ impl Decoded {
                     if matches!(l, 'C' | 'H') && !has_c {
                         return Err((9, val.col, format!("address {l}: this machine has no C (Cs) axis")));
                     }
-                    if matches!(l, 'T' | 'L' | 'D') && val.decimal && val.v.fract() != 0.0 {
+                    if matches!(l, 'T' | 'L' | 'D') && val.bad_integer() {
                         return Err((7, val.col, format!("address {l} takes no decimal point")));
                     }
                     let i = (l as u8 - b'A') as usize;
@@ -210,7 +224,7 @@ impl Decoded {
         }
         // P is an integer in G04 (ms, manual §2.6), M98/M99 and G65.
         if let Some(p) = d.get('P') {
-            if p.decimal && (d.has_g(40) || d.has_g(650) || d.m.iter().any(|m| m.0 == 98 || m.0 == 99)) {
+            if p.bad_integer() && (d.has_g(40) || d.has_g(650) || d.m.iter().any(|m| m.0 == 98 || m.0 == 99)) {
                 return Err((7, p.col, "P takes no decimal point here (G04 P is in ms: G04 P500)".into()));
             }
         }

@@ -45,9 +45,40 @@ pub const CHORD_TOL: f64 = 0.002;
 /// Fanuc/manual §3.1.6: 12 levels of subprogram/macro nesting.
 pub const MAX_NESTING: usize = 12;
 
+/// One program file: its text and where its lines start (the only per-line memory kept).
+#[derive(Clone, Debug)]
+struct Source {
+    file: Arc<str>,
+    text: String,
+    /// Byte offset of the start of every line; one extra entry = text length.
+    line_starts: Vec<usize>,
+}
+
+impl Source {
+    fn new(file: &str, text: String) -> Source {
+        let mut starts = vec![0usize];
+        starts.extend(text.bytes().enumerate().filter(|(_, b)| *b == b'\n').map(|(i, _)| i + 1));
+        if *starts.last().unwrap_or(&0) != text.len() {
+            starts.push(text.len());
+        }
+        Source { file: Arc::from(file), text, line_starts: starts }
+    }
+    fn nlines(&self) -> usize {
+        self.line_starts.len() - 1
+    }
+    fn line(&self, i: usize) -> &str {
+        match (self.line_starts.get(i), self.line_starts.get(i + 1)) {
+            (Some(&a), Some(&b)) => self.text[a..b].trim_end_matches(['\n', '\r']),
+            _ => "",
+        }
+    }
+}
+
 #[derive(Clone, Debug)]
 struct ProgInfo {
     number: Option<u32>,
+    /// Index into `sources`.
+    src: usize,
     /// First line index after the `O` line.
     start: usize,
     /// One past the last line index.
@@ -102,14 +133,14 @@ struct Corner {
 }
 
 pub struct Interpreter {
-    file: Arc<str>,
-    text: String,
-    /// Byte offset of the start of every line; one extra entry = text length.
-    line_starts: Vec<usize>,
+    /// The main file and the subprogram files loaded from `program_dir`.
+    sources: Vec<Source>,
+    program_dir: Option<std::path::PathBuf>,
     progs: Vec<ProgInfo>,
     labels: HashMap<(usize, u32), usize>,
-    do_end: HashMap<usize, usize>,
-    end_do: HashMap<usize, usize>,
+    /// DO line ↔ END line, keyed by (source, line).
+    do_end: HashMap<(usize, usize), usize>,
+    end_do: HashMap<(usize, usize), usize>,
     // Machine facts.
     calculator: bool,
     arc_tol: f64,
@@ -148,12 +179,14 @@ impl Interpreter {
     /// Parse and statically check the whole program (syntax errors for the WHOLE file are
     /// collected before anything runs), then return an interpreter positioned at its start.
     pub fn from_source(file_name: &str, text: &str, cfg: &MachineConfig) -> Result<Interpreter, Vec<Alarm>> {
-        let file: Arc<str> = Arc::from(file_name);
+        Self::with_program_dir(file_name, text, cfg, None)
+    }
+
+    fn build(file_name: &str, text: &str, cfg: &MachineConfig) -> Interpreter {
         let calculator = cfg.param(3401).map(|v| (v as i64) & 1 == 1).unwrap_or(true);
-        let mut it = Interpreter {
-            file: file.clone(),
-            text: text.to_string(),
-            line_starts: Vec::new(),
+        Interpreter {
+            sources: vec![Source::new(file_name, text.to_string())],
+            program_dir: None,
             progs: Vec::new(),
             labels: HashMap::new(),
             do_end: HashMap::new(),
@@ -196,10 +229,21 @@ impl Interpreter {
             corner: None,
             corner_serial: 0,
             held: Vec::new(),
-        };
-        let errors = it.index();
+        }
+    }
+
+    fn check(mut self) -> Result<Interpreter, Vec<Alarm>> {
+        self.progs.clear();
+        self.sources.truncate(1);
+        self.labels.clear();
+        self.do_end.clear();
+        self.end_do.clear();
+        let mut errors = Vec::new();
+        self.index_source(0, &mut errors);
+        self.prog = 0;
+        self.line = self.progs[0].start;
         if errors.is_empty() {
-            Ok(it)
+            Ok(self)
         } else {
             Err(errors)
         }
@@ -208,7 +252,21 @@ impl Interpreter {
     pub fn from_file(path: &std::path::Path, cfg: &MachineConfig) -> Result<Interpreter, Vec<Alarm>> {
         let text = std::fs::read_to_string(path)
             .map_err(|e| vec![Alarm::new(76, format!("{}: cannot read the program: {e}", path.display()))])?;
-        Self::from_source(&path.display().to_string(), &text, cfg)
+        let dir = path.parent().map(|p| if p.as_os_str().is_empty() { std::path::Path::new(".") } else { p });
+        Self::with_program_dir(&path.display().to_string(), &text, cfg, dir)
+    }
+
+    /// Like [`Interpreter::from_source`], with a program directory where M98/G65 look for
+    /// programs not in this text (files `O0012`, `O0012.nc`, `O12.nc` or `0012.nc`).
+    pub fn with_program_dir(
+        file_name: &str,
+        text: &str,
+        cfg: &MachineConfig,
+        dir: Option<&std::path::Path>,
+    ) -> Result<Interpreter, Vec<Alarm>> {
+        let mut it = Self::build(file_name, text, cfg);
+        it.program_dir = dir.map(|d| d.to_path_buf());
+        it.check()
     }
 
     /// Machine position of the axes when the program starts (default all zero).
@@ -226,36 +284,33 @@ impl Interpreter {
         self.wcs_table = table;
     }
 
+    /// Line `i` of the current program's source.
     fn line_text(&self, i: usize) -> &str {
-        let (a, b) = (self.line_starts[i], self.line_starts[i + 1]);
-        self.text[a..b].trim_end_matches(['\n', '\r'])
+        self.sources[self.progs[self.prog].src].line(i)
     }
 
-    /// Pass 1: parse every line, collect all errors, build the index.
-    fn index(&mut self) -> Vec<Alarm> {
-        let mut starts = vec![0usize];
-        for (i, b) in self.text.bytes().enumerate() {
-            if b == b'\n' {
-                starts.push(i + 1);
-            }
-        }
-        if *starts.last().unwrap_or(&0) != self.text.len() {
-            starts.push(self.text.len());
-        }
-        self.line_starts = starts;
-        let nlines = self.line_starts.len() - 1;
-        let mut errors = Vec::new();
-        self.progs = vec![ProgInfo { number: None, start: 0, end: nlines }];
+    fn cur_file(&self) -> Arc<str> {
+        self.sources[self.progs[self.prog].src].file.clone()
+    }
+
+    /// Pass 1 over source `si`: parse every line, collect all errors, index its programs,
+    /// labels and loops; then load (and check) the subprograms it calls from the program
+    /// directory.
+    fn index_source(&mut self, si: usize, errors: &mut Vec<Alarm>) {
+        let nlines = self.sources[si].nlines();
+        let file = self.sources[si].file.clone();
+        let first_prog = self.progs.len();
+        self.progs.push(ProgInfo { number: None, src: si, start: 0, end: nlines });
         let mut content = false;
         let mut loop_stack: Vec<(u8, usize)> = Vec::new();
         let mut gotos: Vec<(usize, usize, u32, u32)> = Vec::new(); // prog, line, target, col
-        let mut seen_content_any = false;
+        let mut calls: Vec<(usize, u32, u32)> = Vec::new(); // line, program, col
         for i in 0..nlines {
-            let text = self.line_text(i).to_string();
+            let text = self.sources[si].line(i).to_string();
             let b = match parse::parse_line(&text) {
                 Ok(b) => b,
                 Err(e) => {
-                    errors.push(perr_alarm(&self.file, i, &text, e));
+                    errors.push(perr_alarm(&file, i, &text, e));
                     content = true;
                     continue;
                 }
@@ -263,7 +318,7 @@ impl Interpreter {
             let p = self.progs.len() - 1;
             match &b.stmt {
                 Stmt::Percent => {
-                    if seen_content_any {
+                    if content {
                         // End of tape: the rest of the file is not part of the program.
                         if let Some(last) = self.progs.last_mut() {
                             last.end = i;
@@ -273,42 +328,51 @@ impl Interpreter {
                     continue;
                 }
                 Stmt::Program(n) => {
-                    self.close_loops(&mut loop_stack, &mut errors, i);
-                    if !content && self.progs.len() == 1 {
-                        self.progs[0] = ProgInfo { number: Some(*n), start: i + 1, end: nlines };
+                    self.close_loops(si, &mut loop_stack, errors);
+                    if self.progs.iter().any(|q| q.number == Some(*n)) {
+                        errors.push(
+                            Alarm::new(73, format!("program O{n:04} is defined twice"))
+                                .at(SrcPos::new(file.clone(), i as u32 + 1, b.col))
+                                .with_block(text.trim_end()),
+                        );
+                    }
+                    if !content && self.progs.len() == first_prog + 1 {
+                        self.progs[first_prog] = ProgInfo { number: Some(*n), src: si, start: i + 1, end: nlines };
                     } else {
-                        if let Some(q) = self.progs.iter().position(|q| q.number == Some(*n)) {
-                            let _ = q;
-                            errors.push(
-                                Alarm::new(73, format!("program O{n:04} is defined twice in this file"))
-                                    .at(SrcPos::new(self.file.clone(), i as u32 + 1, b.col))
-                                    .with_block(text.trim_end()),
-                            );
-                        }
                         if let Some(last) = self.progs.last_mut() {
                             last.end = i;
                         }
-                        self.progs.push(ProgInfo { number: Some(*n), start: i + 1, end: nlines });
+                        self.progs.push(ProgInfo { number: Some(*n), src: si, start: i + 1, end: nlines });
                     }
                     content = true;
-                    seen_content_any = true;
                     continue;
                 }
                 Stmt::Empty if b.n.is_none() => continue,
                 _ => {}
             }
             content = true;
-            seen_content_any = true;
             if let Some(n) = b.n {
                 self.labels.entry((p, n)).or_insert(i);
             }
-            let at = |col: u32| SrcPos::new(self.file.clone(), i as u32 + 1, col);
+            let at = |col: u32| SrcPos::new(file.clone(), i as u32 + 1, col);
             match &b.stmt {
                 Stmt::Nc(words) => {
                     if words.iter().all(|w| w.value.is_literal()) {
-                        if let Err(a) = self.decode_words(words, &Vars::new()) {
-                            let col = a_col(&a);
-                            errors.push(a.at(at(col)).with_block(text.trim_end()));
+                        match self.decode_words(words, &Vars::new()) {
+                            Err(a) => {
+                                let col = a_col(&a);
+                                errors.push(a.at(at(col)).with_block(text.trim_end()));
+                            }
+                            Ok(d) => {
+                                if let Some(pv) = d.get('P') {
+                                    if d.m.iter().any(|m| m.0 == 98) {
+                                        let v = pv.v.round() as u64;
+                                        calls.push((i, if v > 9999 { (v % 10000) as u32 } else { v as u32 }, pv.col));
+                                    } else if d.has_g(650) {
+                                        calls.push((i, pv.v.round() as u32, pv.col));
+                                    }
+                                }
+                            }
                         }
                     }
                 }
@@ -322,8 +386,8 @@ impl Interpreter {
                 }
                 Stmt::End(n) => match loop_stack.pop() {
                     Some((m, d)) if m == *n => {
-                        self.do_end.insert(d, i);
-                        self.end_do.insert(i, d);
+                        self.do_end.insert((si, d), i);
+                        self.end_do.insert((si, i), d);
                     }
                     Some((m, d)) => {
                         errors.push(
@@ -345,29 +409,63 @@ impl Interpreter {
                 _ => {}
             }
         }
-        self.close_loops(&mut loop_stack, &mut errors, nlines);
+        self.close_loops(si, &mut loop_stack, errors);
         for (p, i, n, col) in gotos {
             if !self.labels.contains_key(&(p, n)) {
-                let text = self.line_text(i).to_string();
+                let text = self.sources[si].line(i).to_string();
                 errors.push(
                     Alarm::new(78, format!("GOTO {n}: there is no block N{n} in this program"))
-                        .at(SrcPos::new(self.file.clone(), i as u32 + 1, col))
+                        .at(SrcPos::new(file.clone(), i as u32 + 1, col))
                         .with_block(text.trim_end()),
                 );
             }
         }
-        errors.sort_by_key(|a| a.pos.as_ref().map(|p| (p.line, p.col)));
-        self.prog = 0;
-        self.line = self.progs[0].start;
-        errors
+        for (i, n, col) in calls {
+            if let Err(m) = self.find_program(n, errors) {
+                let text = self.sources[si].line(i).to_string();
+                errors.push(Alarm::new(76, m).at(SrcPos::new(file.clone(), i as u32 + 1, col)).with_block(text.trim_end()));
+            }
+        }
     }
 
-    fn close_loops(&self, stack: &mut Vec<(u8, usize)>, errors: &mut Vec<Alarm>, _at: usize) {
+    /// Index of program O`n`: in the sources read so far, else from a file of the program
+    /// directory named `O0012`, `O0012.nc`, `O12.nc`, `0012.nc` (tried in this order), which
+    /// is then checked like the main file (its errors go to `errors`).
+    fn find_program(&mut self, n: u32, errors: &mut Vec<Alarm>) -> Result<usize, String> {
+        if let Some(p) = self.progs.iter().position(|q| q.number == Some(n)) {
+            return Ok(p);
+        }
+        let Some(dir) = self.program_dir.clone() else {
+            return Err(format!("program O{n:04} not found (no program directory)"));
+        };
+        let names = [format!("O{n:04}"), format!("O{n:04}.nc"), format!("O{n}.nc"), format!("{n:04}.nc")];
+        for name in names {
+            let path = dir.join(&name);
+            if let Ok(text) = std::fs::read_to_string(&path) {
+                let si = self.sources.len();
+                self.sources.push(Source::new(&path.display().to_string(), text));
+                let before = self.progs.len();
+                self.index_source(si, errors);
+                // A file without an O line holds the program its name gives.
+                if self.progs[before].number.is_none() {
+                    self.progs[before].number = Some(n);
+                }
+                return self
+                    .progs
+                    .iter()
+                    .position(|q| q.number == Some(n))
+                    .ok_or_else(|| format!("{} does not hold program O{n:04}", path.display()));
+            }
+        }
+        Err(format!("program O{n:04} not found in this file or in {}", dir.display()))
+    }
+
+    fn close_loops(&self, si: usize, stack: &mut Vec<(u8, usize)>, errors: &mut Vec<Alarm>) {
         for (n, d) in stack.drain(..) {
-            let text = self.line_text(d).to_string();
+            let text = self.sources[si].line(d).to_string();
             errors.push(
                 Alarm::new(124, format!("DO{n} has no END{n}"))
-                    .at(SrcPos::new(self.file.clone(), d as u32 + 1, 1))
+                    .at(SrcPos::new(self.sources[si].file.clone(), d as u32 + 1, 1))
                     .with_block(text.trim_end()),
             );
         }
@@ -386,7 +484,7 @@ impl Interpreter {
                 // §2.24.1: variable values are rounded to the least setting unit (0.001 mm).
                 v = (v * 1000.0).round() / 1000.0;
             }
-            ev.push((w.letter, w.comma, Val { v, decimal, col: w.col }));
+            ev.push((w.letter, w.comma, Val { v, decimal, col: w.col, literal }));
         }
         Decoded::build(&ev, self.has_y, self.has_c).map_err(|(n, col, m)| col_alarm(n, col, m))
     }
@@ -423,9 +521,9 @@ impl Interpreter {
     }
 
     fn alarm_here(&self, number: u32, col: u32, msg: impl Into<String>) -> Alarm {
-        let i = self.line.saturating_sub(1).min(self.line_starts.len().saturating_sub(2));
+        let i = self.line.saturating_sub(1);
         Alarm::new(number, msg)
-            .at(SrcPos::new(self.file.clone(), i as u32 + 1, col))
+            .at(SrcPos::new(self.cur_file(), i as u32 + 1, col))
             .with_block(self.line_text(i).trim_end())
     }
 
@@ -443,14 +541,16 @@ impl Interpreter {
         let i = self.line;
         self.line += 1;
         let text = self.line_text(i).to_string();
-        let b: Block = parse::parse_line(&text).map_err(|e| perr_alarm(&self.file, i, &text, e))?;
+        let file = self.cur_file();
+        let si = self.progs[self.prog].src;
+        let b: Block = parse::parse_line(&text).map_err(|e| perr_alarm(&file, i, &text, e))?;
         if b.skip && self.block_skip {
             return Ok(());
         }
-        let src = SrcPos::new(self.file.clone(), i as u32 + 1, b.col);
+        let src = SrcPos::new(file.clone(), i as u32 + 1, b.col);
         let wrap = |e: MErr, col: u32| {
             Alarm::new(e.number, e.message)
-                .at(SrcPos::new(self.file.clone(), i as u32 + 1, col))
+                .at(SrcPos::new(file.clone(), i as u32 + 1, col))
                 .with_block(text.trim_end())
         };
         match b.stmt {
@@ -488,24 +588,24 @@ impl Interpreter {
                     None => true,
                 };
                 if !go {
-                    match self.do_end.get(&i) {
+                    match self.do_end.get(&(si, i)) {
                         Some(&e) => self.line = e + 1,
                         None => return Err(wrap(MErr { number: 124, message: "DO without END".into() }, b.col)),
                     }
                 }
             }
-            Stmt::End(_) => match self.end_do.get(&i) {
+            Stmt::End(_) => match self.end_do.get(&(si, i)) {
                 Some(&d) => self.line = d,
                 None => return Err(wrap(MErr { number: 126, message: "END without DO".into() }, b.col)),
             },
             Stmt::Nc(words) => {
                 let d = self.decode_words(&words, &self.vars).map_err(|a| {
                     let col = a_col(&a);
-                    a.at(SrcPos::new(self.file.clone(), i as u32 + 1, col)).with_block(text.trim_end())
+                    a.at(SrcPos::new(file.clone(), i as u32 + 1, col)).with_block(text.trim_end())
                 })?;
                 self.exec(&d, &src).map_err(|(n, col, m)| {
                     Alarm::new(n, m)
-                        .at(SrcPos::new(self.file.clone(), i as u32 + 1, col.unwrap_or(b.col)))
+                        .at(SrcPos::new(file.clone(), i as u32 + 1, col.unwrap_or(b.col)))
                         .with_block(text.trim_end())
                 })?;
             }
@@ -556,9 +656,11 @@ impl Interpreter {
     }
 
     fn call(&mut self, number: u32, repeats: u32, macro_call: bool, col: u32) -> Result<(), (u32, Option<u32>, String)> {
-        let Some(p) = self.progs.iter().position(|q| q.number == Some(number)) else {
-            return Err((76, Some(col), format!("program O{number:04} not found in this file")));
-        };
+        let mut errors = Vec::new();
+        let p = self.find_program(number, &mut errors).map_err(|m| (76, Some(col), m))?;
+        if let Some(e) = errors.first() {
+            return Err((76, Some(col), format!("program O{number:04} has errors: {e}")));
+        }
         if p == self.prog {
             return Err((76, Some(col), format!("O{number:04} cannot call itself (manual §3.1.6 note 3)")));
         }

@@ -374,7 +374,8 @@ fn subprograms_m98_m99() {
     let m = run("O1\nM98 P2\nG00 X1\nN50 G00 X2\nM30\nO2\nM99 P50\n");
     assert_eq!(xs(&m), [2.0]);
     // Missing program, self call, nesting.
-    assert_eq!(run_err("O1\nM98 P7\nM30\n").number, 76);
+    assert_eq!(static_errs("O1\nM98 P7\nM30\n")[0].number, 76);
+    assert_eq!(run_err("O1\n#1=7\nM98 P#1\nM30\n").number, 76);
     assert_eq!(run_err("O1\nM98 P2\nM30\nO2\nM98 P2\nM99\n").number, 76);
     assert_eq!(run_err("O1\nM98 P2\nM30\nO2\nM98 P3\nM99\nO3\nM98 P2\nM99\n").number, 77);
 }
@@ -454,4 +455,28 @@ fn chamfer_alarms() {
     assert_eq!(run_err("G99 G00 X40 Z0\nG01 Z-10 ,C2 F0.1\nX42\nM30").number, 55);
     assert_eq!(run_err("G99 G00 X40 Z0\nG01 Z-10 ,C2 F0.1\nM30").number, 51);
     assert_eq!(run_err("G99 G00 X40 Z0\nG01 Z-10 ,C2 F0.1\n").number, 51);
+}
+
+#[test]
+fn subprograms_from_the_program_directory() {
+    let dir = std::env::temp_dir().join(format!("cncgw-interp-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(dir.join("O0100.nc"), "O0100\nG00 U-2\nM98 P200\nM99\n").unwrap();
+    std::fs::write(dir.join("0200.nc"), "G00 W-1\nM99\n").unwrap();
+    std::fs::write(dir.join("O0300.nc"), "O0300\nG01 X\nM99\n").unwrap();
+    let main = dir.join("main.nc");
+    std::fs::write(&main, "G00 X100 Z0\nM98 P100 L2\nM30\n").unwrap();
+    let m: Vec<Move> = Interpreter::from_file(&main, &cfg()).unwrap().map(|m| m.unwrap()).collect();
+    let e: Vec<Pos> = m.iter().filter_map(|m| m.kind.end()).collect();
+    assert_eq!(e, [Pos::xz(50.0, 0.0), Pos::xz(49.0, 0.0), Pos::xz(49.0, -1.0), Pos::xz(48.0, -1.0), Pos::xz(48.0, -2.0)]);
+    assert!(m[2].src.file.ends_with("0200.nc"), "{}", m[2].src.file);
+    // A syntax error in a called file is found before running; a missing program too.
+    std::fs::write(&main, "M98 P300\nM98 P400\nM30\n").unwrap();
+    let errs = Interpreter::from_file(&main, &cfg()).err().expect("static errors");
+    let mut got: Vec<(String, u32)> =
+        errs.iter().map(|a| (a.pos.as_ref().unwrap().file.to_string(), a.number)).collect();
+    got.sort();
+    assert!(got.iter().any(|(f, n)| f.ends_with("O0300.nc") && *n == 5), "{got:?}");
+    assert!(got.iter().any(|(f, n)| f.ends_with("main.nc") && *n == 76), "{got:?}");
+    std::fs::remove_dir_all(&dir).ok();
 }
