@@ -166,6 +166,12 @@ impl Decoded {
                     d.g.push((g, val.col));
                 }
                 'M' => {
+                    if val.v < 0.0 {
+                        return Err((6, val.col, "an M code cannot be negative".into()));
+                    }
+                    if val.v > 99_999_999.0 {
+                        return Err((3, val.col, "M code with too many digits".into()));
+                    }
                     if val.bad_integer() {
                         return Err((7, val.col, "an M code takes no decimal point".into()));
                     }
@@ -180,6 +186,9 @@ impl Decoded {
                     }
                     if matches!(l, 'C' | 'H') && !has_c {
                         return Err((9, val.col, format!("address {l}: this machine has no C (Cs) axis")));
+                    }
+                    if matches!(l, 'T' | 'L' | 'D' | 'P') && val.v < 0.0 && !val.literal {
+                        return Err((6, val.col, format!("address {l} cannot be negative")));
                     }
                     if matches!(l, 'T' | 'L' | 'D') && val.bad_integer() {
                         return Err((7, val.col, format!("address {l} takes no decimal point")));
