@@ -279,7 +279,8 @@ impl Interpreter {
         self.block_skip = on;
     }
 
-    /// Workpiece zero offsets of G54…G59 in machine coordinates (X as a radius, mm).
+    /// Workpiece zero offsets of G54…G59 in machine coordinates (X as a radius, mm), e.g.
+    /// from [`parse_work_offsets`].
     pub fn set_work_offsets(&mut self, table: [Pos; 6]) {
         self.wcs_table = table;
     }
@@ -1321,6 +1322,62 @@ impl Interpreter {
         self.pos = end;
         self.emit_path(src, start, MoveKind::Arc { end, center, cw, plane, feed }, exact, self.corner_req(d))
     }
+}
+
+/// Read a work offset table (the operator's offset page) from TOML text:
+///
+/// ```toml
+/// [G54]
+/// x = 0.0      # diameter, mm (as entered on the offset page)
+/// z = -312.5
+/// [G55]
+/// z = -200.0
+/// ```
+/// Keys `x` (diameter), `z`, `y` (mm) and `c` (degrees); missing systems and keys are zero.
+/// Returns the table in machine units (X as a radius) for [`Interpreter::set_work_offsets`].
+/// Errors are configuration alarms (1000) naming the key.
+pub fn parse_work_offsets(file: &str, text: &str) -> Result<[Pos; 6], Alarm> {
+    let bad = |m: String| Alarm::new(crate::config::ConfigError::ALARM, format!("{file}: {m}"));
+    let v: toml::Table = toml::from_str(text).map_err(|e| bad(e.to_string()))?;
+    let mut out = [Pos::ZERO; 6];
+    for (k, val) in &v {
+        let i = match k.as_str() {
+            "G54" => 0,
+            "G55" => 1,
+            "G56" => 2,
+            "G57" => 3,
+            "G58" => 4,
+            "G59" => 5,
+            _ => return Err(bad(format!("{k}: work offset tables have the sections G54 … G59"))),
+        };
+        let t = val.as_table().ok_or_else(|| bad(format!("{k}: must be a table like [{k}] x = 0.0 z = -300.0")))?;
+        for (ax, n) in t {
+            let x = match n {
+                toml::Value::Float(f) => *f,
+                toml::Value::Integer(i) => *i as f64,
+                other => return Err(bad(format!("{k}.{ax}: must be a number, got {other}"))),
+            };
+            if !x.is_finite() {
+                return Err(bad(format!("{k}.{ax}: must be finite")));
+            }
+            match ax.as_str() {
+                "x" => out[i].x = x / 2.0,
+                "z" => out[i].z = x,
+                "y" => out[i].y = x,
+                "c" => out[i].c = x,
+                _ => return Err(bad(format!("{k}.{ax}: the axes are x (diameter), z, y, c"))),
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// [`parse_work_offsets`] from a file.
+pub fn load_work_offsets(path: &std::path::Path) -> Result<[Pos; 6], Alarm> {
+    let text = std::fs::read_to_string(path).map_err(|e| {
+        Alarm::new(crate::config::ConfigError::ALARM, format!("{}: cannot read: {e}", path.display()))
+    })?;
+    parse_work_offsets(&path.display().to_string(), &text)
 }
 
 impl Iterator for Interpreter {

@@ -480,3 +480,21 @@ fn subprograms_from_the_program_directory() {
     assert!(got.iter().any(|(f, n)| f.ends_with("main.nc") && *n == 76), "{got:?}");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn work_offset_table_from_toml() {
+    let t = parse_work_offsets("wo.toml", "[G54]\nx = 2.0\nz = -300\n[G56]\nz = -100.5\n").unwrap();
+    assert_eq!(t[0], Pos::xz(1.0, -300.0));
+    assert_eq!(t[2], Pos::xz(0.0, -100.5));
+    assert_eq!(t[1], Pos::ZERO);
+    let e = parse_work_offsets("wo.toml", "[G60]\nx = 1\n").unwrap_err();
+    assert_eq!(e.number, 1000);
+    assert!(e.message.contains("G60"), "{}", e.message);
+    assert!(parse_work_offsets("wo.toml", "[G54]\nq = 1\n").is_err());
+    let mut it = Interpreter::from_source("t", "G54 G00 X20 Z0\nM30", &cfg()).unwrap();
+    it.set_work_offsets(t);
+    let m = it.next_move().unwrap().unwrap();
+    assert_eq!(m.kind, K::Rapid { end: Pos::xz(11.0, -300.0) });
+    let j: serde_json::Value = serde_json::from_str(&plan::move_to_json(&m)).unwrap();
+    assert_eq!((j["x"].as_f64(), j["z"].as_f64()), (Some(20.0), Some(0.0)));
+}
