@@ -11,9 +11,17 @@
 //! Fanuc 0i-TF PS numbers (3 too many digits, 4 address not found, 5 no data after address,
 //! 6 illegal minus sign, 7 illegal decimal point, 9 improper address, 10 improper G code
 //! (also: two codes of one group, "not supported yet"), 11 no feed rate, 20 arc radius
-//! out of tolerance, 21 axis outside the arc plane, 22 R or I/K missing, 76 program not
-//! found, 77 subprogram nesting too deep, 78 sequence number not found, 111–128 macro
-//! errors), plus 2500 (ours) for an endless loop that produces no motion.
+//! out of tolerance, 21 axis outside the arc plane, 22 R or I/K missing, 51 no G01/G02/G03
+//! move after `,C`/`,R`, 52 the next move is not G01/G02/G03, 55 chamfer/corner does not
+//! fit, 73 program number defined twice, 76 program not found, 77 subprogram nesting too
+//! deep, 78 sequence number not found, 111–128 macro errors), plus 2500 (ours) for an
+//! endless loop that produces no motion and 1000 for a bad work offset table.
+//!
+//! Subprograms (M98 P, packed `P00021000`, L repeats; G65 with local variables) are looked
+//! up in the same file, then in the program directory (the main file's directory for
+//! [`Interpreter::from_file`]); literal calls are resolved and the called files checked
+//! before anything runs. M99 in the main program restarts it (manual §3.1.7), so such a
+//! program streams moves forever.
 //!
 //! Numbers without a decimal point: the manual gives no increment-system rule for them, so we
 //! follow Fanuc parameter No.3401#0 (DPI): 1 = calculator-type input, `X10` = 10 mm; 0 =
@@ -357,21 +365,19 @@ impl Interpreter {
             }
             let at = |col: u32| SrcPos::new(file.clone(), i as u32 + 1, col);
             match &b.stmt {
-                Stmt::Nc(words) => {
-                    if words.iter().all(|w| w.value.is_literal()) {
-                        match self.decode_words(words, &Vars::new()) {
-                            Err(a) => {
-                                let col = a_col(&a);
-                                errors.push(a.at(at(col)).with_block(text.trim_end()));
-                            }
-                            Ok(d) => {
-                                if let Some(pv) = d.get('P') {
-                                    if d.m.iter().any(|m| m.0 == 98) {
-                                        let v = pv.v.round() as u64;
-                                        calls.push((i, if v > 9999 { (v % 10000) as u32 } else { v as u32 }, pv.col));
-                                    } else if d.has_g(650) {
-                                        calls.push((i, pv.v.round() as u32, pv.col));
-                                    }
+                Stmt::Nc(words) if words.iter().all(|w| w.value.is_literal()) => {
+                    match self.decode_words(words, &Vars::new()) {
+                        Err(a) => {
+                            let col = a_col(&a);
+                            errors.push(a.at(at(col)).with_block(text.trim_end()));
+                        }
+                        Ok(d) => {
+                            if let Some(pv) = d.get('P') {
+                                if d.m.iter().any(|m| m.0 == 98) {
+                                    let v = pv.v.round() as u64;
+                                    calls.push((i, if v > 9999 { (v % 10000) as u32 } else { v as u32 }, pv.col));
+                                } else if d.has_g(650) {
+                                    calls.push((i, pv.v.round() as u32, pv.col));
                                 }
                             }
                         }
@@ -656,7 +662,8 @@ impl Interpreter {
         Ok(())
     }
 
-    fn call(&mut self, number: u32, repeats: u32, macro_call: bool, col: u32) -> Result<(), (u32, Option<u32>, String)> {
+    /// Call program O`number` `repeats` times; `Ok(true)` when a frame was pushed.
+    fn call(&mut self, number: u32, repeats: u32, macro_call: bool, col: u32) -> Result<bool, (u32, Option<u32>, String)> {
         let mut errors = Vec::new();
         let p = self.find_program(number, &mut errors).map_err(|m| (76, Some(col), m))?;
         if let Some(e) = errors.first() {
@@ -669,12 +676,12 @@ impl Interpreter {
             return Err((77, Some(col), format!("subprogram/macro calls nest deeper than {MAX_NESTING} levels")));
         }
         if repeats == 0 {
-            return Ok(());
+            return Ok(false);
         }
         self.stack.push(Frame { prog: self.prog, line: self.line, repeats, macro_call });
         self.prog = p;
         self.line = self.progs[p].start;
-        Ok(())
+        Ok(true)
     }
 
     fn offset(&self) -> Pos {
@@ -1092,8 +1099,7 @@ impl Interpreter {
                 if let Some(&(m, _)) = d.m.first() {
                     locals.insert(13, m as f64);
                 }
-                self.call(p.v as u32, l, true, p.col)?;
-                if self.stack.last().is_some_and(|f| f.macro_call) {
+                if self.call(p.v.round() as u32, l, true, p.col)? {
                     self.vars.locals.push(locals);
                 }
                 return Ok(());

@@ -498,3 +498,18 @@ fn work_offset_table_from_toml() {
     let j: serde_json::Value = serde_json::from_str(&plan::move_to_json(&m)).unwrap();
     assert_eq!((j["x"].as_f64(), j["z"].as_f64()), (Some(20.0), Some(0.0)));
 }
+
+#[test]
+fn macro_grooves_example() {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/macro_grooves.nc");
+    let it = Interpreter::from_file(&path, &cfg()).unwrap_or_else(|e| panic!("{}", e[0]));
+    let m: Vec<Move> = it.map(|m| m.unwrap_or_else(|a| panic!("{a}"))).collect();
+    let bottoms: Vec<(f64, f64)> = m
+        .iter()
+        .filter_map(|m| if let K::Feed { end, .. } = m.kind { Some((end.x * 2.0, end.z)) } else { None })
+        .collect();
+    assert_eq!(bottoms, [(32.0, -10.0), (32.0, -20.0), (32.0, -30.0)]);
+    assert_eq!(m.iter().filter(|m| m.kind.name() == "dwell").count(), 3);
+    assert_eq!(m.iter().rev().find_map(|m| m.kind.end()), Some(Pos::xz(50.0, 5.0)));
+    assert_eq!(m.last().unwrap().kind, K::End { code: 30 });
+}
