@@ -483,7 +483,7 @@ impl Interpreter {
     fn decode_words(&self, words: &[Word], vars: &Vars) -> Result<Decoded, Alarm> {
         let mut ev = Vec::with_capacity(words.len());
         for w in words {
-            let v = vars.eval(&w.value).map_err(|e| col_alarm(e.number, w.col, e.message))?;
+            let v = vars.eval_nc(&w.value).map_err(|e| col_alarm(e.number, w.col, e.message))?;
             let Some(mut v) = v else { continue }; // null variable: the word is ignored
             let literal = w.value.is_literal();
             let decimal = if literal { has_decimal(&w.value) } else { true };
@@ -903,6 +903,8 @@ impl Interpreter {
         if let Some(g) = d.group(14) {
             self.st.wcs = ((g - 540) / 10) as usize;
         }
+        // §2.14 item 5: G61/G64 take effect from the next block.
+        let exact_mode = self.st.exact;
         if let Some(g) = d.group(15) {
             self.st.exact = g == 610;
         }
@@ -980,7 +982,7 @@ impl Interpreter {
         if let Some(t) = d.get('T') {
             self.push(src, MoveKind::Aux { letter: 'T', value: t.v }, false);
         }
-        let exact = self.st.exact || d.has_g(90);
+        let exact = exact_mode || d.has_g(90);
         // One-shot (group 00) codes and motion.
         match one_shot {
             Some(40) => {

@@ -237,9 +237,10 @@ fn start_position_and_incremental() {
 
 #[test]
 fn g09_and_g61_exact_stop() {
-    let m = run("G99 F.1\nG01 X10\nG09 G01 X12\nG61\nG01 X14\nG64\nG01 X16\nM30");
+    let m = run("G99 F.1\nG01 X10\nG09 G01 X12\nG61\nG01 X14\nG64\nG01 X16\nG61 X18\nX20\nM30");
     let e: Vec<bool> = m.iter().filter(|m| m.kind.name() == "feed").map(|m| m.exact_stop).collect();
-    assert_eq!(e, [false, true, true, false]);
+    // §2.14 item 5: G61 in a moving block takes effect from the next block.
+    assert_eq!(e, [false, true, true, false, false, true]);
 }
 
 #[test]
@@ -373,6 +374,16 @@ fn subprograms_m98_m99() {
     // M99 P returns to a label in the caller.
     let m = run("O1\nM98 P2\nG00 X1\nN50 G00 X2\nM30\nO2\nM99 P50\n");
     assert_eq!(xs(&m), [2.0]);
+    // 12 levels of nesting are allowed, 13 are not.
+    let chain = |levels: u32| {
+        let mut s = String::from("O1\nM98 P2\nM30\n");
+        for p in 2..=levels + 1 {
+            s.push_str(&format!("O{p}\n{}M99\n", if p <= levels { format!("M98 P{}\n", p + 1) } else { "G00 X1\n".into() }));
+        }
+        s
+    };
+    assert_eq!(xs(&run(&chain(12))), [1.0]);
+    assert_eq!(run_err(&chain(13)).number, 77);
     // Missing program, self call, nesting.
     assert_eq!(static_errs("O1\nM98 P7\nM30\n")[0].number, 76);
     assert_eq!(run_err("O1\n#1=7\nM98 P#1\nM30\n").number, 76);
