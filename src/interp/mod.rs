@@ -282,6 +282,16 @@ impl Interpreter {
         self.pos = p;
     }
 
+    /// Common variables #401–#600, which the control keeps through power-off (§2.24.1):
+    /// read them after a run to store them, give them back before the next.
+    pub fn common_vars(&self) -> &HashMap<u32, f64> {
+        &self.vars.common
+    }
+
+    pub fn set_common_vars(&mut self, vars: HashMap<u32, f64>) {
+        self.vars.common = vars.into_iter().filter(|(n, v)| macros::is_common(*n) && v.is_finite()).collect();
+    }
+
     /// Block skip switch (`/` blocks are skipped when on). Default off.
     pub fn set_block_skip(&mut self, on: bool) {
         self.block_skip = on;

@@ -524,3 +524,35 @@ fn macro_grooves_example() {
     assert_eq!(m.iter().rev().find_map(|m| m.kind.end()), Some(Pos::xz(50.0, 5.0)));
     assert_eq!(m.last().unwrap().kind, K::End { code: 30 });
 }
+
+#[test]
+fn full_circle_with_i_k_and_corner_r_into_an_arc() {
+    // Same start and end with I/K: a full circle (end == start, centre given).
+    let m = run("G99 G00 X20 Z0\nG02 X20 Z0 I-5 F0.1\nM30");
+    let K::Arc { end, center, .. } = m[1].kind else { panic!() };
+    assert_eq!(end, Pos::xz(10.0, 0.0));
+    assert!(close(center, Pos::xz(5.0, 0.0)));
+    // Same start and end with R: a 0° arc, nothing moves (§2.3 note 5).
+    assert_eq!(run("G99 G00 X20 Z0\nG02 X20 Z0 R5 F0.1\nM30").len(), 2);
+    // Corner R between a line along −Z and a CCW arc: the rounding arc is tangent to both.
+    let m = run("G99 G00 X20 Z0\nG01 Z-10 ,R1 F0.1\nG03 X40 Z-20 R10\nM30");
+    let K::Arc { end: t2, center: o, cw, .. } = m[2].kind else { panic!("{:?}", m[2]) };
+    let K::Arc { center: c2, .. } = m[3].kind else { panic!() };
+    let p1 = m[1].kind.end().unwrap();
+    // Heading −Z then leaving the CCW arc towards +X is a right turn: the rounding is CW.
+    assert!(cw);
+    assert!(((p1.x - o.x).hypot(p1.z - o.z) - 1.0).abs() < 1e-9);
+    assert!(((t2.x - o.x).hypot(t2.z - o.z) - 1.0).abs() < 1e-9);
+    // Outside the arc of radius 10 and tangent to it: the rounding centre is 10 + 1 from its centre.
+    assert!(((o.x - c2.x).hypot(o.z - c2.z) - 11.0).abs() < 1e-9);
+    assert!((p1.x - 10.0).abs() < 1e-9 && p1.z > -10.0);
+}
+
+#[test]
+fn common_variables_survive_between_runs() {
+    let mut it = Interpreter::from_source("t", "#500=#500+1\n#1=5\nM30\n", &cfg()).unwrap();
+    it.set_common_vars([(500, 41.0), (1, 3.0)].into_iter().collect());
+    while it.next_move().unwrap().is_some() {}
+    assert_eq!(it.common_vars().get(&500), Some(&42.0));
+    assert_eq!(it.common_vars().get(&1), None, "locals are not common variables");
+}
