@@ -225,10 +225,19 @@ impl Decoded {
                 return Err((10, col, format!("{} must be alone in its block", gname(g))));
             }
         }
-        // Manual §3.1.7 note 1: M99 alone (P allowed); M98 with P/L only.
+        // Manual §3.1.7 note 1: M99 alone in its block (P allowed). M98 runs after the
+        // block's other codes (§3.1.6), but its P cannot be shared with a G code using P.
         for &(m, col) in &d.m {
-            if (m == 98 || m == 99) && (d.m.len() > 1 || d.letters().any(|l| !matches!(l, 'P' | 'L'))) {
-                return Err((9, col, format!("M{m} must be alone in its block (with P/L only)")));
+            if m == 99 && (d.m.len() > 1 || !d.g.is_empty() || d.letters().any(|l| l != 'P')) {
+                return Err((9, col, "M99 must be alone in its block (M99 or M99 Pn)".into()));
+            }
+            if m == 98 {
+                if let Some(&(g, _)) = d.g.iter().find(|g| matches!(g.0, 40 | 300 | 650)) {
+                    return Err((9, col, format!("M98 P cannot share its block with {} (which uses P too)", gname(g))));
+                }
+                if d.m.iter().any(|x| matches!(x.0, 2 | 30 | 99)) {
+                    return Err((9, col, "M98 cannot share its block with M02/M30/M99".into()));
+                }
             }
         }
         // P is an integer in G04 (ms, manual §2.6), M98/M99 and G65.

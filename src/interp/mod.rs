@@ -248,6 +248,13 @@ impl Interpreter {
         self.end_do.clear();
         let mut errors = Vec::new();
         self.index_source(0, &mut errors);
+        // In file order (main file first), then by line and column.
+        let order = |a: &Alarm| {
+            a.pos.as_ref().map(|p| {
+                (self.sources.iter().position(|s| s.file == p.file).unwrap_or(usize::MAX), p.line, p.col)
+            })
+        };
+        errors.sort_by_key(order);
         self.prog = 0;
         self.line = self.progs[0].start;
         if errors.is_empty() {
@@ -1086,13 +1093,7 @@ impl Interpreter {
                     self.push(src, MoveKind::Rapid { end: r }, true);
                 }
             }
-            Some(90) | None => {
-                if d.m.iter().any(|m| m.0 == 98 || m.0 == 99) {
-                    // handled below
-                } else {
-                    self.motion(d, src, exact)?;
-                }
-            }
+            Some(90) | None => self.motion(d, src, exact)?,
             Some(650) => {
                 let p = d.get('P').ok_or((9, gcol(650), "G65 needs P (the macro program number)".to_string()))?;
                 let l = d.get('L').map(|l| l.v as u32).unwrap_or(1);

@@ -556,3 +556,18 @@ fn common_variables_survive_between_runs() {
     assert_eq!(it.common_vars().get(&500), Some(&42.0));
     assert_eq!(it.common_vars().get(&1), None, "locals are not common variables");
 }
+
+#[test]
+fn static_errors_are_in_line_order() {
+    let e = static_errs("GOTO 7\nG01 X\nM98 P9\nG01 Q\nM30\n");
+    let lines: Vec<u32> = e.iter().map(|a| a.pos.as_ref().unwrap().line).collect();
+    assert_eq!(lines, [1, 2, 3, 4]);
+}
+
+#[test]
+fn m98_runs_after_the_blocks_motion() {
+    let m = run("O1\nG00 X10 M98 P2\nM30\nO2\nG00 X20\nM99\n");
+    assert_eq!(xs(&m), [10.0, 20.0]);
+    assert_eq!(static_errs("G04 P100 M98 P2\nM30\nO2\nM99\n")[0].number, 9);
+    assert_eq!(static_errs("O1\nM98 P2\nM30\nO2\nG00 X1 M99\n")[0].number, 9);
+}
