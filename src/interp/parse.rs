@@ -689,6 +689,24 @@ mod tests {
     }
 
     #[test]
+    fn compact_and_lower_case_forms() {
+        let w = nc("g0x20.z-25.");
+        assert_eq!(w.len(), 3);
+        assert_eq!(w[1].letter, 'X');
+        let b = parse_line("N10G01X-#1").unwrap();
+        assert_eq!(b.n, Some(10));
+        assert_eq!(parse_line("O0001(NAME)").unwrap().stmt, Stmt::Program(1));
+        assert!(matches!(parse_line("GOTO10").unwrap().stmt, Stmt::Goto(_)));
+        assert!(matches!(parse_line("#[#2]=3").unwrap().stmt, Stmt::Assign { .. }));
+        assert!(matches!(parse_line("WHILE[#1LT10]DO1").unwrap().stmt, Stmt::Do { n: 1, .. }));
+        assert!(matches!(parse_line("IF [#1 GT 0] GOTO #2").unwrap().stmt, Stmt::IfGoto { .. }));
+        let b = parse_line("/ G00 X1").unwrap();
+        assert!(b.skip);
+        assert_eq!(parse_line("N5").unwrap().stmt, Stmt::Empty);
+        assert_eq!(parse_line("%").unwrap().stmt, Stmt::Percent);
+    }
+
+    #[test]
     fn macro_statements() {
         assert!(matches!(parse_line("#1=#2+3*SIN[30]").unwrap().stmt, Stmt::Assign { .. }));
         assert!(matches!(parse_line("IF [#1 EQ 2] GOTO 10").unwrap().stmt, Stmt::IfGoto { .. }));
