@@ -868,7 +868,7 @@ impl Interpreter {
     }
 
     /// Execute a decoded NC block: modal changes, then S/T/M before the motion, the motion,
-    /// then M05/M00/M01/M02/M30. The manual leaves the order of M codes and motion in one
+    /// then M05/M09/M00/M01/M02/M30. The manual leaves the order of M codes and motion in one
     /// block to the machine (PMC); we start things (spindle, coolant, tool) before the motion
     /// and stop them after it, as a Fanuc ladder usually does.
     fn exec(&mut self, d: &Decoded, src: &SrcPos) -> Result<(), (u32, Option<u32>, String)> {
@@ -989,6 +989,8 @@ impl Interpreter {
                     return Err((10, Some(col), format!("M{m} (jump on input signal) is not supported yet")));
                 }
                 98 | 99 => {}
+                // Coolant off after the motion, like M05.
+                9 => after.push(MoveKind::Aux { letter: 'M', value: 9.0 }),
                 _ => self.push(src, MoveKind::Aux { letter: 'M', value: m as f64 }, false),
             }
         }

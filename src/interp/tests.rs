@@ -161,15 +161,16 @@ fn spindle_css_and_max_speed() {
 
 #[test]
 fn aux_stop_and_order_in_block() {
-    let m = run("G00 X50 Z5 M08 T0101\nG01 Z-1 F.1 M05\nM01\nM00\nM30");
+    let m = run("G00 X50 Z5 M08 T0101\nG01 Z-1 F.1 M05 M09\nM01\nM00\nM30");
     let k: Vec<String> = m.iter().map(plan::move_to_text).map(|s| s.split_once(' ').unwrap().1.to_string()).collect();
     assert_eq!(k[0], "aux M08");
     assert_eq!(k[1], "aux T0101");
     assert!(k[2].starts_with("rapid"));
     assert!(k[3].starts_with("feed"));
     assert!(k[4].starts_with("spindle M05"));
-    assert_eq!(m[5].kind, K::Stop { optional: true });
-    assert_eq!(m[6].kind, K::Stop { optional: false });
+    assert_eq!(k[5], "aux M09");
+    assert_eq!(m[6].kind, K::Stop { optional: true });
+    assert_eq!(m[7].kind, K::Stop { optional: false });
 }
 
 #[test]
@@ -286,7 +287,8 @@ fn example_first_part_runs() {
     let mut css = None;
     for mv in &m {
         if let Some(e) = mv.kind.end() {
-            assert!(e.x >= xa.min.unwrap() && e.x <= xa.max.unwrap(), "{}", plan::move_to_text(mv));
+            // The brief: X is a diameter 0…290 (radius 0…145 within the axis limit).
+            assert!(e.x >= 0.0 && e.x >= xa.min.unwrap() && e.x <= xa.max.unwrap(), "{}", plan::move_to_text(mv));
             assert!(e.z >= za.min.unwrap() && e.z <= za.max.unwrap(), "{}", plan::move_to_text(mv));
         }
         match &mv.kind {
