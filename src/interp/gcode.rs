@@ -161,7 +161,8 @@ impl Decoded {
                     let code = (val.v * 10.0).round();
                     let g = code as GCode;
                     if (code - val.v * 10.0).abs() > 1e-6 || !(0.0..=9999.0).contains(&code) || ginfo(g).is_none() {
-                        return Err((10, val.col, format!("G{}: not a G code of this control (Type A lathe, table 1.1)", val.v)));
+                        let shown = if val.v.fract() == 0.0 && val.v >= 0.0 { format!("G{:02}", val.v) } else { format!("G{}", val.v) };
+                        return Err((10, val.col, format!("{shown}: not a G code of this control (Type A lathe, table 1.1)")));
                     }
                     d.g.push((g, val.col));
                 }
