@@ -97,6 +97,20 @@ pub struct Val {
     /// Written with a decimal point (values from variables count as having one).
     pub decimal: bool,
     pub col: u32,
+    /// Written as a literal (not from a variable or expression).
+    pub literal: bool,
+}
+
+impl Val {
+    /// Breaks the rule "no decimal point" for integer addresses: a literal written with a
+    /// point, or a computed value with a fraction.
+    pub fn bad_integer(&self) -> bool {
+        if self.literal {
+            self.decimal
+        } else {
+            self.v.fract() != 0.0
+        }
+    }
 }
 
 /// A decoded NC block.
@@ -147,12 +161,19 @@ impl Decoded {
                     let code = (val.v * 10.0).round();
                     let g = code as GCode;
                     if (code - val.v * 10.0).abs() > 1e-6 || !(0.0..=9999.0).contains(&code) || ginfo(g).is_none() {
-                        return Err((10, val.col, format!("G{}: not a G code of this control (Type A lathe, table 1.1)", val.v)));
+                        let shown = if val.v.fract() == 0.0 && val.v >= 0.0 { format!("G{:02}", val.v) } else { format!("G{}", val.v) };
+                        return Err((10, val.col, format!("{shown}: not a G code of this control (Type A lathe, table 1.1)")));
                     }
                     d.g.push((g, val.col));
                 }
                 'M' => {
-                    if val.decimal && val.v.fract() != 0.0 {
+                    if val.v < 0.0 {
+                        return Err((6, val.col, "an M code cannot be negative".into()));
+                    }
+                    if val.v > 99_999_999.0 {
+                        return Err((3, val.col, "M code with too many digits".into()));
+                    }
+                    if val.bad_integer() {
                         return Err((7, val.col, "an M code takes no decimal point".into()));
                     }
                     if d.m.len() >= 3 {
@@ -167,7 +188,10 @@ impl Decoded {
                     if matches!(l, 'C' | 'H') && !has_c {
                         return Err((9, val.col, format!("address {l}: this machine has no C (Cs) axis")));
                     }
-                    if matches!(l, 'T' | 'L' | 'D') && val.decimal && val.v.fract() != 0.0 {
+                    if matches!(l, 'T' | 'L' | 'D' | 'P') && val.v < 0.0 && !val.literal {
+                        return Err((6, val.col, format!("address {l} cannot be negative")));
+                    }
+                    if matches!(l, 'T' | 'L' | 'D') && val.bad_integer() {
                         return Err((7, val.col, format!("address {l} takes no decimal point")));
                     }
                     let i = (l as u8 - b'A') as usize;
@@ -202,15 +226,24 @@ impl Decoded {
                 return Err((10, col, format!("{} must be alone in its block", gname(g))));
             }
         }
-        // Manual §3.1.7 note 1: M99 alone (P allowed); M98 with P/L only.
+        // Manual §3.1.7 note 1: M99 alone in its block (P allowed). M98 runs after the
+        // block's other codes (§3.1.6), but its P cannot be shared with a G code using P.
         for &(m, col) in &d.m {
-            if (m == 98 || m == 99) && (d.m.len() > 1 || d.letters().any(|l| !matches!(l, 'P' | 'L'))) {
-                return Err((9, col, format!("M{m} must be alone in its block (with P/L only)")));
+            if m == 99 && (d.m.len() > 1 || !d.g.is_empty() || d.letters().any(|l| l != 'P')) {
+                return Err((9, col, "M99 must be alone in its block (M99 or M99 Pn)".into()));
+            }
+            if m == 98 {
+                if let Some(&(g, _)) = d.g.iter().find(|g| matches!(g.0, 40 | 300 | 650)) {
+                    return Err((9, col, format!("M98 P cannot share its block with {} (which uses P too)", gname(g))));
+                }
+                if d.m.iter().any(|x| matches!(x.0, 2 | 30 | 99)) {
+                    return Err((9, col, "M98 cannot share its block with M02/M30/M99".into()));
+                }
             }
         }
         // P is an integer in G04 (ms, manual §2.6), M98/M99 and G65.
         if let Some(p) = d.get('P') {
-            if p.decimal && (d.has_g(40) || d.has_g(650) || d.m.iter().any(|m| m.0 == 98 || m.0 == 99)) {
+            if p.bad_integer() && (d.has_g(40) || d.has_g(650) || d.m.iter().any(|m| m.0 == 98 || m.0 == 99)) {
                 return Err((7, p.col, "P takes no decimal point here (G04 P is in ms: G04 P500)".into()));
             }
         }

@@ -101,25 +101,36 @@ impl Vars {
         Self::number(v)
     }
 
+    /// Evaluate in a macro statement.
     pub fn eval(&self, e: &Expr) -> Result<Value, MErr> {
+        self.eval_in(e, false)
+    }
+
+    /// Evaluate an NC word's value: there ROUND rounds at the least input increment (0.001)
+    /// instead of to an integer (§2.24.2 (7)).
+    pub fn eval_nc(&self, e: &Expr) -> Result<Value, MErr> {
+        self.eval_in(e, true)
+    }
+
+    fn eval_in(&self, e: &Expr, nc: bool) -> Result<Value, MErr> {
         Ok(match e {
             Expr::Num { v, .. } => Some(*v),
             Expr::Var(inner) => {
-                let n = Self::number(self.eval(inner)?.unwrap_or(0.0))?;
+                let n = Self::number(self.eval_in(inner, nc)?.unwrap_or(0.0))?;
                 self.get(n)?
             }
-            Expr::Paren(inner) => self.eval(inner)?,
-            Expr::Neg(inner) => self.eval(inner)?.map(|v| -v),
+            Expr::Paren(inner) => self.eval_in(inner, nc)?,
+            Expr::Neg(inner) => self.eval_in(inner, nc)?.map(|v| -v),
             Expr::Bin(op, a, b) => {
-                let (a, b) = (self.eval(a)?, self.eval(b)?);
+                let (a, b) = (self.eval_in(a, nc)?, self.eval_in(b, nc)?);
                 Some(binop(*op, a, b)?)
             }
             Expr::Call(f, args) => {
                 let mut v = Vec::with_capacity(args.len());
                 for a in args {
-                    v.push(self.eval(a)?.unwrap_or(0.0));
+                    v.push(self.eval_in(a, nc)?.unwrap_or(0.0));
                 }
-                Some(call(*f, &v)?)
+                Some(call(*f, &v, nc)?)
             }
         })
     }
@@ -185,7 +196,7 @@ fn binop(op: BinOp, a: Value, b: Value) -> Result<f64, MErr> {
     Ok(r)
 }
 
-fn call(f: Func, a: &[f64]) -> Result<f64, MErr> {
+fn call(f: Func, a: &[f64], nc: bool) -> Result<f64, MErr> {
     let x = a.first().copied().unwrap_or(0.0);
     let r = match f {
         Func::Sin => x.to_radians().sin(),
@@ -233,6 +244,7 @@ fn call(f: Func, a: &[f64]) -> Result<f64, MErr> {
         Func::Abs => x.abs(),
         // In a macro statement ROUND rounds at the first decimal (to an integer), half away
         // from zero like Fanuc.
+        Func::Round if nc => (x * 1000.0).round() / 1000.0,
         Func::Round => x.round(),
         Func::Fix => x.trunc(),
         Func::Fup => {
@@ -317,6 +329,8 @@ mod tests {
         assert_eq!(ev(&v, "ATAN[-1]/[-1]").unwrap(), Some(45.0));
         assert_eq!(ev(&v, "7MOD3").unwrap(), Some(1.0));
         assert_eq!(ev(&v, "ROUND[1.5]").unwrap(), Some(2.0));
+        let Stmt::Assign { value, .. } = parse_line("#1=ROUND[1.23456]").unwrap().stmt else { panic!() };
+        assert_eq!(v.eval_nc(&value).unwrap(), Some(1.235));
         assert_eq!(ev(&v, "FIX[-1.5]").unwrap(), Some(-1.0));
         assert_eq!(ev(&v, "FUP[1.2]").unwrap(), Some(2.0));
         assert_eq!(ev(&v, "MAX[2,5]").unwrap(), Some(5.0));

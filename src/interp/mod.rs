@@ -11,9 +11,17 @@
 //! Fanuc 0i-TF PS numbers (3 too many digits, 4 address not found, 5 no data after address,
 //! 6 illegal minus sign, 7 illegal decimal point, 9 improper address, 10 improper G code
 //! (also: two codes of one group, "not supported yet"), 11 no feed rate, 20 arc radius
-//! out of tolerance, 21 axis outside the arc plane, 22 R or I/K missing, 76 program not
-//! found, 77 subprogram nesting too deep, 78 sequence number not found, 111–128 macro
-//! errors), plus 2500 (ours) for an endless loop that produces no motion.
+//! out of tolerance, 21 axis outside the arc plane, 22 R or I/K missing, 51 no G01/G02/G03
+//! move after `,C`/`,R`, 52 the next move is not G01/G02/G03, 55 chamfer/corner does not
+//! fit, 73 program number defined twice, 76 program not found, 77 subprogram nesting too
+//! deep, 78 sequence number not found, 111–128 macro errors), plus 2500 (ours) for an
+//! endless loop that produces no motion and 1000 for a bad work offset table.
+//!
+//! Subprograms (M98 P, packed `P00021000`, L repeats; G65 with local variables) are looked
+//! up in the same file, then in the program directory (the main file's directory for
+//! [`Interpreter::from_file`]); literal calls are resolved and the called files checked
+//! before anything runs. M99 in the main program restarts it (manual §3.1.7), so such a
+//! program streams moves forever.
 //!
 //! Numbers without a decimal point: the manual gives no increment-system rule for them, so we
 //! follow Fanuc parameter No.3401#0 (DPI): 1 = calculator-type input, `X10` = 10 mm; 0 =
@@ -21,6 +29,8 @@
 //! not in the configuration, calculator-type input applies (this project's convention).
 //! F, S, P, T and M values are never scaled.
 
+pub mod corner;
+pub mod curves;
 pub mod gcode;
 pub mod macros;
 pub mod parse;
@@ -37,13 +47,46 @@ use std::sync::Arc;
 
 /// Our own alarm: this many blocks in a row without any move is taken as an endless loop.
 pub const ENDLESS_LOOP_ALARM: u32 = 2500;
-const ENDLESS_LOOP_BLOCKS: u64 = 10_000_000;
+const ENDLESS_LOOP_BLOCKS: u64 = 2_000_000;
+/// Chord tolerance (mm) of ellipses and parabolas emitted as chains of feed moves.
+pub const CHORD_TOL: f64 = 0.002;
 /// Fanuc/manual §3.1.6: 12 levels of subprogram/macro nesting.
 pub const MAX_NESTING: usize = 12;
+
+/// One program file: its text and where its lines start (the only per-line memory kept).
+#[derive(Clone, Debug)]
+struct Source {
+    file: Arc<str>,
+    text: String,
+    /// Byte offset of the start of every line; one extra entry = text length.
+    line_starts: Vec<usize>,
+}
+
+impl Source {
+    fn new(file: &str, text: String) -> Source {
+        let mut starts = vec![0usize];
+        starts.extend(text.bytes().enumerate().filter(|(_, b)| *b == b'\n').map(|(i, _)| i + 1));
+        if *starts.last().unwrap_or(&0) != text.len() {
+            starts.push(text.len());
+        }
+        Source { file: Arc::from(file), text, line_starts: starts }
+    }
+    fn nlines(&self) -> usize {
+        self.line_starts.len() - 1
+    }
+    fn line(&self, i: usize) -> &str {
+        match (self.line_starts.get(i), self.line_starts.get(i + 1)) {
+            (Some(&a), Some(&b)) => self.text[a..b].trim_end_matches(['\n', '\r']),
+            _ => "",
+        }
+    }
+}
 
 #[derive(Clone, Debug)]
 struct ProgInfo {
     number: Option<u32>,
+    /// Index into `sources`.
+    src: usize,
     /// First line index after the `O` line.
     start: usize,
     /// One past the last line index.
@@ -81,15 +124,31 @@ struct Modal {
     max_rpm: Option<f64>,
 }
 
+/// A G01/G02/G03 move with `,C`/`,R`, held until the next move is known (§2.23).
+#[derive(Clone, Debug)]
+struct Corner {
+    serial: u64,
+    src: SrcPos,
+    start: Pos,
+    kind: MoveKind,
+    exact: bool,
+    offset: Pos,
+    plane: Plane,
+    chamfer: bool,
+    value: f64,
+    /// One G04 block may stand between the two moves.
+    g04: bool,
+}
+
 pub struct Interpreter {
-    file: Arc<str>,
-    text: String,
-    /// Byte offset of the start of every line; one extra entry = text length.
-    line_starts: Vec<usize>,
+    /// The main file and the subprogram files loaded from `program_dir`.
+    sources: Vec<Source>,
+    program_dir: Option<std::path::PathBuf>,
     progs: Vec<ProgInfo>,
     labels: HashMap<(usize, u32), usize>,
-    do_end: HashMap<usize, usize>,
-    end_do: HashMap<usize, usize>,
+    /// DO line ↔ END line, keyed by (source, line).
+    do_end: HashMap<(usize, usize), usize>,
+    end_do: HashMap<(usize, usize), usize>,
     // Machine facts.
     calculator: bool,
     arc_tol: f64,
@@ -112,6 +171,10 @@ pub struct Interpreter {
     ended: bool,
     block_skip: bool,
     idle_blocks: u64,
+    corner: Option<Corner>,
+    corner_serial: u64,
+    /// Moves made while a corner is pending; they follow the inserted chamfer/corner.
+    held: Vec<Move>,
 }
 
 fn perr_alarm(file: &Arc<str>, line_no: usize, text: &str, e: PErr) -> Alarm {
@@ -124,12 +187,14 @@ impl Interpreter {
     /// Parse and statically check the whole program (syntax errors for the WHOLE file are
     /// collected before anything runs), then return an interpreter positioned at its start.
     pub fn from_source(file_name: &str, text: &str, cfg: &MachineConfig) -> Result<Interpreter, Vec<Alarm>> {
-        let file: Arc<str> = Arc::from(file_name);
+        Self::with_program_dir(file_name, text, cfg, None)
+    }
+
+    fn build(file_name: &str, text: &str, cfg: &MachineConfig) -> Interpreter {
         let calculator = cfg.param(3401).map(|v| (v as i64) & 1 == 1).unwrap_or(true);
-        let mut it = Interpreter {
-            file: file.clone(),
-            text: text.to_string(),
-            line_starts: Vec::new(),
+        Interpreter {
+            sources: vec![Source::new(file_name, text.to_string())],
+            program_dir: None,
             progs: Vec::new(),
             labels: HashMap::new(),
             do_end: HashMap::new(),
@@ -169,10 +234,31 @@ impl Interpreter {
             ended: false,
             block_skip: false,
             idle_blocks: 0,
+            corner: None,
+            corner_serial: 0,
+            held: Vec::new(),
+        }
+    }
+
+    fn check(mut self) -> Result<Interpreter, Vec<Alarm>> {
+        self.progs.clear();
+        self.sources.truncate(1);
+        self.labels.clear();
+        self.do_end.clear();
+        self.end_do.clear();
+        let mut errors = Vec::new();
+        self.index_source(0, &mut errors);
+        // In file order (main file first), then by line and column.
+        let order = |a: &Alarm| {
+            a.pos.as_ref().map(|p| {
+                (self.sources.iter().position(|s| s.file == p.file).unwrap_or(usize::MAX), p.line, p.col)
+            })
         };
-        let errors = it.index();
+        errors.sort_by_key(order);
+        self.prog = 0;
+        self.line = self.progs[0].start;
         if errors.is_empty() {
-            Ok(it)
+            Ok(self)
         } else {
             Err(errors)
         }
@@ -181,7 +267,21 @@ impl Interpreter {
     pub fn from_file(path: &std::path::Path, cfg: &MachineConfig) -> Result<Interpreter, Vec<Alarm>> {
         let text = std::fs::read_to_string(path)
             .map_err(|e| vec![Alarm::new(76, format!("{}: cannot read the program: {e}", path.display()))])?;
-        Self::from_source(&path.display().to_string(), &text, cfg)
+        let dir = path.parent().map(|p| if p.as_os_str().is_empty() { std::path::Path::new(".") } else { p });
+        Self::with_program_dir(&path.display().to_string(), &text, cfg, dir)
+    }
+
+    /// Like [`Interpreter::from_source`], with a program directory where M98/G65 look for
+    /// programs not in this text (files `O0012`, `O0012.nc`, `O12.nc` or `0012.nc`).
+    pub fn with_program_dir(
+        file_name: &str,
+        text: &str,
+        cfg: &MachineConfig,
+        dir: Option<&std::path::Path>,
+    ) -> Result<Interpreter, Vec<Alarm>> {
+        let mut it = Self::build(file_name, text, cfg);
+        it.program_dir = dir.map(|d| d.to_path_buf());
+        it.check()
     }
 
     /// Machine position of the axes when the program starts (default all zero).
@@ -189,46 +289,54 @@ impl Interpreter {
         self.pos = p;
     }
 
+    /// Common variables #401–#600, which the control keeps through power-off (§2.24.1):
+    /// read them after a run to store them, give them back before the next.
+    pub fn common_vars(&self) -> &HashMap<u32, f64> {
+        &self.vars.common
+    }
+
+    pub fn set_common_vars(&mut self, vars: HashMap<u32, f64>) {
+        self.vars.common = vars.into_iter().filter(|(n, v)| macros::is_common(*n) && v.is_finite()).collect();
+    }
+
     /// Block skip switch (`/` blocks are skipped when on). Default off.
     pub fn set_block_skip(&mut self, on: bool) {
         self.block_skip = on;
     }
 
-    /// Workpiece zero offsets of G54…G59 in machine coordinates (X as a radius, mm).
+    /// Workpiece zero offsets of G54…G59 in machine coordinates (X as a radius, mm), e.g.
+    /// from [`parse_work_offsets`].
     pub fn set_work_offsets(&mut self, table: [Pos; 6]) {
         self.wcs_table = table;
     }
 
+    /// Line `i` of the current program's source.
     fn line_text(&self, i: usize) -> &str {
-        let (a, b) = (self.line_starts[i], self.line_starts[i + 1]);
-        self.text[a..b].trim_end_matches(['\n', '\r'])
+        self.sources[self.progs[self.prog].src].line(i)
     }
 
-    /// Pass 1: parse every line, collect all errors, build the index.
-    fn index(&mut self) -> Vec<Alarm> {
-        let mut starts = vec![0usize];
-        for (i, b) in self.text.bytes().enumerate() {
-            if b == b'\n' {
-                starts.push(i + 1);
-            }
-        }
-        if *starts.last().unwrap_or(&0) != self.text.len() {
-            starts.push(self.text.len());
-        }
-        self.line_starts = starts;
-        let nlines = self.line_starts.len() - 1;
-        let mut errors = Vec::new();
-        self.progs = vec![ProgInfo { number: None, start: 0, end: nlines }];
+    fn cur_file(&self) -> Arc<str> {
+        self.sources[self.progs[self.prog].src].file.clone()
+    }
+
+    /// Pass 1 over source `si`: parse every line, collect all errors, index its programs,
+    /// labels and loops; then load (and check) the subprograms it calls from the program
+    /// directory.
+    fn index_source(&mut self, si: usize, errors: &mut Vec<Alarm>) {
+        let nlines = self.sources[si].nlines();
+        let file = self.sources[si].file.clone();
+        let first_prog = self.progs.len();
+        self.progs.push(ProgInfo { number: None, src: si, start: 0, end: nlines });
         let mut content = false;
         let mut loop_stack: Vec<(u8, usize)> = Vec::new();
         let mut gotos: Vec<(usize, usize, u32, u32)> = Vec::new(); // prog, line, target, col
-        let mut seen_content_any = false;
+        let mut calls: Vec<(usize, u32, u32)> = Vec::new(); // line, program, col
         for i in 0..nlines {
-            let text = self.line_text(i).to_string();
+            let text = self.sources[si].line(i).to_string();
             let b = match parse::parse_line(&text) {
                 Ok(b) => b,
                 Err(e) => {
-                    errors.push(perr_alarm(&self.file, i, &text, e));
+                    errors.push(perr_alarm(&file, i, &text, e));
                     content = true;
                     continue;
                 }
@@ -236,7 +344,7 @@ impl Interpreter {
             let p = self.progs.len() - 1;
             match &b.stmt {
                 Stmt::Percent => {
-                    if seen_content_any {
+                    if content {
                         // End of tape: the rest of the file is not part of the program.
                         if let Some(last) = self.progs.last_mut() {
                             last.end = i;
@@ -246,42 +354,49 @@ impl Interpreter {
                     continue;
                 }
                 Stmt::Program(n) => {
-                    self.close_loops(&mut loop_stack, &mut errors, i);
-                    if !content && self.progs.len() == 1 {
-                        self.progs[0] = ProgInfo { number: Some(*n), start: i + 1, end: nlines };
+                    self.close_loops(si, &mut loop_stack, errors);
+                    if self.progs.iter().any(|q| q.number == Some(*n)) {
+                        errors.push(
+                            Alarm::new(73, format!("program O{n:04} is defined twice"))
+                                .at(SrcPos::new(file.clone(), i as u32 + 1, b.col))
+                                .with_block(text.trim_end()),
+                        );
+                    }
+                    if !content && self.progs.len() == first_prog + 1 {
+                        self.progs[first_prog] = ProgInfo { number: Some(*n), src: si, start: i + 1, end: nlines };
                     } else {
-                        if let Some(q) = self.progs.iter().position(|q| q.number == Some(*n)) {
-                            let _ = q;
-                            errors.push(
-                                Alarm::new(73, format!("program O{n:04} is defined twice in this file"))
-                                    .at(SrcPos::new(self.file.clone(), i as u32 + 1, b.col))
-                                    .with_block(text.trim_end()),
-                            );
-                        }
                         if let Some(last) = self.progs.last_mut() {
                             last.end = i;
                         }
-                        self.progs.push(ProgInfo { number: Some(*n), start: i + 1, end: nlines });
+                        self.progs.push(ProgInfo { number: Some(*n), src: si, start: i + 1, end: nlines });
                     }
                     content = true;
-                    seen_content_any = true;
                     continue;
                 }
                 Stmt::Empty if b.n.is_none() => continue,
                 _ => {}
             }
             content = true;
-            seen_content_any = true;
             if let Some(n) = b.n {
                 self.labels.entry((p, n)).or_insert(i);
             }
-            let at = |col: u32| SrcPos::new(self.file.clone(), i as u32 + 1, col);
+            let at = |col: u32| SrcPos::new(file.clone(), i as u32 + 1, col);
             match &b.stmt {
-                Stmt::Nc(words) => {
-                    if words.iter().all(|w| w.value.is_literal()) {
-                        if let Err(a) = self.decode_words(words, &Vars::new()) {
+                Stmt::Nc(words) if words.iter().all(|w| w.value.is_literal()) => {
+                    match self.decode_words(words, &Vars::new()) {
+                        Err(a) => {
                             let col = a_col(&a);
                             errors.push(a.at(at(col)).with_block(text.trim_end()));
+                        }
+                        Ok(d) => {
+                            if let Some(pv) = d.get('P') {
+                                if d.m.iter().any(|m| m.0 == 98) {
+                                    let v = pv.v.round() as u64;
+                                    calls.push((i, if v > 9999 { (v % 10000) as u32 } else { v as u32 }, pv.col));
+                                } else if d.has_g(650) {
+                                    calls.push((i, pv.v.round() as u32, pv.col));
+                                }
+                            }
                         }
                     }
                 }
@@ -295,8 +410,8 @@ impl Interpreter {
                 }
                 Stmt::End(n) => match loop_stack.pop() {
                     Some((m, d)) if m == *n => {
-                        self.do_end.insert(d, i);
-                        self.end_do.insert(i, d);
+                        self.do_end.insert((si, d), i);
+                        self.end_do.insert((si, i), d);
                     }
                     Some((m, d)) => {
                         errors.push(
@@ -318,29 +433,63 @@ impl Interpreter {
                 _ => {}
             }
         }
-        self.close_loops(&mut loop_stack, &mut errors, nlines);
+        self.close_loops(si, &mut loop_stack, errors);
         for (p, i, n, col) in gotos {
             if !self.labels.contains_key(&(p, n)) {
-                let text = self.line_text(i).to_string();
+                let text = self.sources[si].line(i).to_string();
                 errors.push(
                     Alarm::new(78, format!("GOTO {n}: there is no block N{n} in this program"))
-                        .at(SrcPos::new(self.file.clone(), i as u32 + 1, col))
+                        .at(SrcPos::new(file.clone(), i as u32 + 1, col))
                         .with_block(text.trim_end()),
                 );
             }
         }
-        errors.sort_by_key(|a| a.pos.as_ref().map(|p| (p.line, p.col)));
-        self.prog = 0;
-        self.line = self.progs[0].start;
-        errors
+        for (i, n, col) in calls {
+            if let Err(m) = self.find_program(n, errors) {
+                let text = self.sources[si].line(i).to_string();
+                errors.push(Alarm::new(76, m).at(SrcPos::new(file.clone(), i as u32 + 1, col)).with_block(text.trim_end()));
+            }
+        }
     }
 
-    fn close_loops(&self, stack: &mut Vec<(u8, usize)>, errors: &mut Vec<Alarm>, _at: usize) {
+    /// Index of program O`n`: in the sources read so far, else from a file of the program
+    /// directory named `O0012`, `O0012.nc`, `O12.nc`, `0012.nc` (tried in this order), which
+    /// is then checked like the main file (its errors go to `errors`).
+    fn find_program(&mut self, n: u32, errors: &mut Vec<Alarm>) -> Result<usize, String> {
+        if let Some(p) = self.progs.iter().position(|q| q.number == Some(n)) {
+            return Ok(p);
+        }
+        let Some(dir) = self.program_dir.clone() else {
+            return Err(format!("program O{n:04} not found (no program directory)"));
+        };
+        let names = [format!("O{n:04}"), format!("O{n:04}.nc"), format!("O{n}.nc"), format!("{n:04}.nc")];
+        for name in names {
+            let path = dir.join(&name);
+            if let Ok(text) = std::fs::read_to_string(&path) {
+                let si = self.sources.len();
+                self.sources.push(Source::new(&path.display().to_string(), text));
+                let before = self.progs.len();
+                self.index_source(si, errors);
+                // A file without an O line holds the program its name gives.
+                if self.progs[before].number.is_none() {
+                    self.progs[before].number = Some(n);
+                }
+                return self
+                    .progs
+                    .iter()
+                    .position(|q| q.number == Some(n))
+                    .ok_or_else(|| format!("{} does not hold program O{n:04}", path.display()));
+            }
+        }
+        Err(format!("program O{n:04} not found in this file or in {}", dir.display()))
+    }
+
+    fn close_loops(&self, si: usize, stack: &mut Vec<(u8, usize)>, errors: &mut Vec<Alarm>) {
         for (n, d) in stack.drain(..) {
-            let text = self.line_text(d).to_string();
+            let text = self.sources[si].line(d).to_string();
             errors.push(
                 Alarm::new(124, format!("DO{n} has no END{n}"))
-                    .at(SrcPos::new(self.file.clone(), d as u32 + 1, 1))
+                    .at(SrcPos::new(self.sources[si].file.clone(), d as u32 + 1, 1))
                     .with_block(text.trim_end()),
             );
         }
@@ -351,7 +500,7 @@ impl Interpreter {
     fn decode_words(&self, words: &[Word], vars: &Vars) -> Result<Decoded, Alarm> {
         let mut ev = Vec::with_capacity(words.len());
         for w in words {
-            let v = vars.eval(&w.value).map_err(|e| col_alarm(e.number, w.col, e.message))?;
+            let v = vars.eval_nc(&w.value).map_err(|e| col_alarm(e.number, w.col, e.message))?;
             let Some(mut v) = v else { continue }; // null variable: the word is ignored
             let literal = w.value.is_literal();
             let decimal = if literal { has_decimal(&w.value) } else { true };
@@ -359,7 +508,7 @@ impl Interpreter {
                 // §2.24.1: variable values are rounded to the least setting unit (0.001 mm).
                 v = (v * 1000.0).round() / 1000.0;
             }
-            ev.push((w.letter, w.comma, Val { v, decimal, col: w.col }));
+            ev.push((w.letter, w.comma, Val { v, decimal, col: w.col, literal }));
         }
         Decoded::build(&ev, self.has_y, self.has_c).map_err(|(n, col, m)| col_alarm(n, col, m))
     }
@@ -373,6 +522,10 @@ impl Interpreter {
                 return Ok(Some(m));
             }
             if self.ended {
+                if self.corner.take().is_some() {
+                    self.held.clear();
+                    return Err(self.alarm_here(51, 1, "the program ends after a block with ,C/,R: a G01/G02/G03 move must follow it"));
+                }
                 return Ok(None);
             }
             self.idle_blocks += 1;
@@ -392,9 +545,9 @@ impl Interpreter {
     }
 
     fn alarm_here(&self, number: u32, col: u32, msg: impl Into<String>) -> Alarm {
-        let i = self.line.saturating_sub(1).min(self.line_starts.len().saturating_sub(2));
+        let i = self.line.saturating_sub(1);
         Alarm::new(number, msg)
-            .at(SrcPos::new(self.file.clone(), i as u32 + 1, col))
+            .at(SrcPos::new(self.cur_file(), i as u32 + 1, col))
             .with_block(self.line_text(i).trim_end())
     }
 
@@ -412,14 +565,16 @@ impl Interpreter {
         let i = self.line;
         self.line += 1;
         let text = self.line_text(i).to_string();
-        let b: Block = parse::parse_line(&text).map_err(|e| perr_alarm(&self.file, i, &text, e))?;
+        let file = self.cur_file();
+        let si = self.progs[self.prog].src;
+        let b: Block = parse::parse_line(&text).map_err(|e| perr_alarm(&file, i, &text, e))?;
         if b.skip && self.block_skip {
             return Ok(());
         }
-        let src = SrcPos::new(self.file.clone(), i as u32 + 1, b.col);
+        let src = SrcPos::new(file.clone(), i as u32 + 1, b.col);
         let wrap = |e: MErr, col: u32| {
             Alarm::new(e.number, e.message)
-                .at(SrcPos::new(self.file.clone(), i as u32 + 1, col))
+                .at(SrcPos::new(file.clone(), i as u32 + 1, col))
                 .with_block(text.trim_end())
         };
         match b.stmt {
@@ -457,24 +612,24 @@ impl Interpreter {
                     None => true,
                 };
                 if !go {
-                    match self.do_end.get(&i) {
+                    match self.do_end.get(&(si, i)) {
                         Some(&e) => self.line = e + 1,
                         None => return Err(wrap(MErr { number: 124, message: "DO without END".into() }, b.col)),
                     }
                 }
             }
-            Stmt::End(_) => match self.end_do.get(&i) {
+            Stmt::End(_) => match self.end_do.get(&(si, i)) {
                 Some(&d) => self.line = d,
                 None => return Err(wrap(MErr { number: 126, message: "END without DO".into() }, b.col)),
             },
             Stmt::Nc(words) => {
                 let d = self.decode_words(&words, &self.vars).map_err(|a| {
                     let col = a_col(&a);
-                    a.at(SrcPos::new(self.file.clone(), i as u32 + 1, col)).with_block(text.trim_end())
+                    a.at(SrcPos::new(file.clone(), i as u32 + 1, col)).with_block(text.trim_end())
                 })?;
                 self.exec(&d, &src).map_err(|(n, col, m)| {
                     Alarm::new(n, m)
-                        .at(SrcPos::new(self.file.clone(), i as u32 + 1, col.unwrap_or(b.col)))
+                        .at(SrcPos::new(file.clone(), i as u32 + 1, col.unwrap_or(b.col)))
                         .with_block(text.trim_end())
                 })?;
             }
@@ -524,10 +679,13 @@ impl Interpreter {
         Ok(())
     }
 
-    fn call(&mut self, number: u32, repeats: u32, macro_call: bool, col: u32) -> Result<(), (u32, Option<u32>, String)> {
-        let Some(p) = self.progs.iter().position(|q| q.number == Some(number)) else {
-            return Err((76, Some(col), format!("program O{number:04} not found in this file")));
-        };
+    /// Call program O`number` `repeats` times; `Ok(true)` when a frame was pushed.
+    fn call(&mut self, number: u32, repeats: u32, macro_call: bool, col: u32) -> Result<bool, (u32, Option<u32>, String)> {
+        let mut errors = Vec::new();
+        let p = self.find_program(number, &mut errors).map_err(|m| (76, Some(col), m))?;
+        if let Some(e) = errors.first() {
+            return Err((76, Some(col), format!("program O{number:04} has errors: {e}")));
+        }
         if p == self.prog {
             return Err((76, Some(col), format!("O{number:04} cannot call itself (manual §3.1.6 note 3)")));
         }
@@ -535,12 +693,12 @@ impl Interpreter {
             return Err((77, Some(col), format!("subprogram/macro calls nest deeper than {MAX_NESTING} levels")));
         }
         if repeats == 0 {
-            return Ok(());
+            return Ok(false);
         }
         self.stack.push(Frame { prog: self.prog, line: self.line, repeats, macro_call });
         self.prog = p;
         self.line = self.progs[p].start;
-        Ok(())
+        Ok(true)
     }
 
     fn offset(&self) -> Pos {
@@ -548,7 +706,87 @@ impl Interpreter {
     }
 
     fn push(&mut self, src: &SrcPos, kind: MoveKind, exact_stop: bool) {
-        self.queue.push_back(Move { src: src.clone(), kind, exact_stop, work_offset: self.offset(), tag: None });
+        let m = Move { src: src.clone(), kind, exact_stop, work_offset: self.offset(), tag: None };
+        if self.corner.is_some() {
+            self.held.push(m);
+        } else {
+            self.queue.push_back(m);
+        }
+    }
+
+    /// Emit a G01/G02/G03 move starting at `start`: completes a pending chamfer/corner R,
+    /// and holds this move back if it carries `,C`/`,R` itself.
+    fn emit_path(
+        &mut self,
+        src: &SrcPos,
+        start: Pos,
+        kind: MoveKind,
+        exact: bool,
+        req: Option<(bool, f64)>,
+    ) -> Result<(), (u32, Option<u32>, String)> {
+        let mut start = start;
+        if let Some(c) = self.corner.take() {
+            let plane = c.plane;
+            let seg1 = seg_of(plane, c.start, &c.kind);
+            let seg2 = seg_of(plane, start, &kind);
+            let cut = if c.chamfer { corner::chamfer(&seg1, &seg2, c.value) } else { corner::round(&seg1, &seg2, c.value) };
+            let cut = cut.map_err(|m| (55, None, format!("{} {}: {m}", if c.chamfer { ",C" } else { ",R" }, c.value)))?;
+            let mut k1 = c.kind.clone();
+            let mut ins = None;
+            if let Some(cut) = cut {
+                let p1 = from_uv(plane, start, cut.p1);
+                let p2 = from_uv(plane, start, cut.p2);
+                let feed = match &c.kind {
+                    MoveKind::Feed { feed, .. } | MoveKind::Arc { feed, .. } => *feed,
+                    _ => Feed::PerMin(0.0),
+                };
+                match &mut k1 {
+                    MoveKind::Feed { end, .. } | MoveKind::Arc { end, .. } => *end = p1,
+                    _ => {}
+                }
+                ins = Some(match cut.arc {
+                    None => MoveKind::Feed { end: p2, feed },
+                    Some((o, cw)) => MoveKind::Arc { end: p2, center: from_uv(plane, start, o), cw, plane, feed },
+                });
+                start = p2;
+            }
+            let _ = start;
+            let mk = |kind| Move { src: c.src.clone(), kind, exact_stop: c.exact, work_offset: c.offset, tag: None };
+            self.queue.push_back(mk(k1));
+            if let Some(k) = ins {
+                self.queue.push_back(mk(k));
+            }
+            self.queue.extend(self.held.drain(..));
+        }
+        match req {
+            Some((chamfer, value)) => {
+                self.corner_serial += 1;
+                self.corner = Some(Corner {
+                    serial: self.corner_serial,
+                    src: src.clone(),
+                    start,
+                    kind,
+                    exact,
+                    offset: self.offset(),
+                    plane: self.st.plane,
+                    chamfer,
+                    value,
+                    g04: false,
+                });
+            }
+            None => self.push(src, kind, exact),
+        }
+        Ok(())
+    }
+
+    /// `,C` / `,R` of the block (the last one written wins, §2.23 note 9).
+    fn corner_req(&self, d: &Decoded) -> Option<(bool, f64)> {
+        match (d.comma_c, d.comma_r) {
+            (Some(c), Some(r)) => Some(if c.col > r.col { (true, self.len(c)) } else { (false, self.len(r)) }),
+            (Some(c), None) => Some((true, self.len(c))),
+            (None, Some(r)) => Some((false, self.len(r))),
+            (None, None) => None,
+        }
     }
 
     /// Length scale of a word: inch → mm, and the least input increment without a decimal
@@ -630,10 +868,40 @@ impl Interpreter {
     }
 
     /// Execute a decoded NC block: modal changes, then S/T/M before the motion, the motion,
-    /// then M05/M00/M01/M02/M30. The manual leaves the order of M codes and motion in one
+    /// then M05/M09/M00/M01/M02/M30. The manual leaves the order of M codes and motion in one
     /// block to the machine (PMC); we start things (spindle, coolant, tool) before the motion
     /// and stop them after it, as a Fanuc ladder usually does.
     fn exec(&mut self, d: &Decoded, src: &SrcPos) -> Result<(), (u32, Option<u32>, String)> {
+        let before = self.corner.as_ref().map(|c| (c.serial, c.g04));
+        if before.is_some() {
+            if let Some(g) = d.group(16) {
+                let col = d.g.iter().find(|x| x.0 == g).map(|x| x.1);
+                return Err((51, col, "plane selection (G17/G18/G19) right after a block with ,C/,R".into()));
+            }
+            if let Some(g) = d.group(0).filter(|g| *g != 40) {
+                let col = d.g.iter().find(|x| x.0 == g).map(|x| x.1);
+                return Err((51, col, format!("{} cannot follow a block with ,C/,R (only G01/G02/G03, or one G04)", gcode::gname(g))));
+            }
+        }
+        self.exec_block(d, src)?;
+        if let Some((serial, g04)) = before {
+            if let Some(c) = self.corner.as_mut().filter(|c| c.serial == serial) {
+                if d.group(0) == Some(40) && !g04 {
+                    c.g04 = true;
+                } else {
+                    return Err((
+                        51,
+                        None,
+                        "no move after a block with ,C/,R: the next block must be a G01/G02/G03 move (one G04 may come between)"
+                            .into(),
+                    ));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn exec_block(&mut self, d: &Decoded, src: &SrcPos) -> Result<(), (u32, Option<u32>, String)> {
         let gcol = |g: GCode| d.g.iter().find(|x| x.0 == g).map(|x| x.1);
         // Modal groups.
         if let Some(g) = d.group(6) {
@@ -652,6 +920,8 @@ impl Interpreter {
         if let Some(g) = d.group(14) {
             self.st.wcs = ((g - 540) / 10) as usize;
         }
+        // §2.14 item 5: G61/G64 take effect from the next block.
+        let exact_mode = self.st.exact;
         if let Some(g) = d.group(15) {
             self.st.exact = g == 610;
         }
@@ -719,6 +989,8 @@ impl Interpreter {
                     return Err((10, Some(col), format!("M{m} (jump on input signal) is not supported yet")));
                 }
                 98 | 99 => {}
+                // Coolant off after the motion, like M05.
+                9 => after.push(MoveKind::Aux { letter: 'M', value: 9.0 }),
                 _ => self.push(src, MoveKind::Aux { letter: 'M', value: m as f64 }, false),
             }
         }
@@ -729,7 +1001,7 @@ impl Interpreter {
         if let Some(t) = d.get('T') {
             self.push(src, MoveKind::Aux { letter: 'T', value: t.v }, false);
         }
-        let exact = self.st.exact || d.has_g(90);
+        let exact = exact_mode || d.has_g(90);
         // One-shot (group 00) codes and motion.
         match one_shot {
             Some(40) => {
@@ -823,13 +1095,7 @@ impl Interpreter {
                     self.push(src, MoveKind::Rapid { end: r }, true);
                 }
             }
-            Some(90) | None => {
-                if d.m.iter().any(|m| m.0 == 98 || m.0 == 99) {
-                    // handled below
-                } else {
-                    self.motion(d, src, exact)?;
-                }
-            }
+            Some(90) | None => self.motion(d, src, exact)?,
             Some(650) => {
                 let p = d.get('P').ok_or((9, gcol(650), "G65 needs P (the macro program number)".to_string()))?;
                 let l = d.get('L').map(|l| l.v as u32).unwrap_or(1);
@@ -848,8 +1114,7 @@ impl Interpreter {
                 if let Some(&(m, _)) = d.m.first() {
                     locals.insert(13, m as f64);
                 }
-                self.call(p.v as u32, l, true, p.col)?;
-                if self.stack.last().is_some_and(|f| f.macro_call) {
+                if self.call(p.v.round() as u32, l, true, p.col)? {
                     self.vars.locals.push(locals);
                 }
                 return Ok(());
@@ -916,6 +1181,13 @@ impl Interpreter {
         let Some(end) = self.target(d) else {
             return Ok(());
         };
+        if self.corner.is_some() && !matches!(self.st.motion, 10 | 20 | 30) {
+            return Err((
+                52,
+                d.g.first().map(|g| g.1),
+                format!("{} after a block with ,C/,R: the next move must be G01/G02/G03", gcode::gname(self.st.motion)),
+            ));
+        }
         match self.st.motion {
             0 => {
                 self.pos = end;
@@ -923,11 +1195,49 @@ impl Interpreter {
             }
             10 => {
                 let feed = self.feed(d.get('F').map(|f| f.col))?;
+                let start = self.pos;
                 self.pos = end;
-                self.push(src, MoveKind::Feed { end, feed }, exact);
+                self.emit_path(src, start, MoveKind::Feed { end, feed }, exact, self.corner_req(d))?;
             }
             20 | 30 => self.arc(d, src, end, self.st.motion == 20, exact)?,
+            21 | 31 | 22 | 32 => self.conic(d, src, end, exact)?,
             g => return Err((10, None, format!("{} is not supported yet", gcode::gname(g)))),
+        }
+        Ok(())
+    }
+
+    /// G02.1/G03.1 ellipse (A, B, Q) and G02.2/G03.2 parabola (P, Q), emitted as a chain of
+    /// Feed moves within [`CHORD_TOL`]. Q is the angle from +Z to the major axis / axis of
+    /// symmetry, clockwise seen from +Y, in 0.001° without a decimal point (§2.4), degrees
+    /// with one. ZX plane only (§2.5).
+    fn conic(&mut self, d: &Decoded, src: &SrcPos, end: Pos, exact: bool) -> Result<(), (u32, Option<u32>, String)> {
+        let g = self.st.motion;
+        let gc = d.g.first().map(|x| x.1);
+        if self.st.plane != Plane::Zx {
+            return Err((10, gc, format!("{} works in the ZX plane only (G18)", gcode::gname(g))));
+        }
+        if let Some(l) = ['Y', 'V', 'C', 'H'].into_iter().find(|l| d.has(*l)) {
+            return Err((21, d.get(l).map(|v| v.col), format!("address {l} is outside the ZX plane")));
+        }
+        let feed = self.feed(d.get('F').map(|f| f.col))?;
+        let q = d.get('Q').map(|q| if q.decimal { q.v } else { q.v / 1000.0 }).unwrap_or(0.0);
+        let phi = (-q).to_radians();
+        let (s, e) = ((self.pos.z, self.pos.x), (end.z, end.x));
+        let cw = g == 21 || g == 22;
+        let need = |l: char| {
+            d.get(l).map(|v| self.len(v)).ok_or((9, gc, format!("{} needs {l}", gcode::gname(g))))
+        };
+        let pts = if g == 21 || g == 31 {
+            curves::ellipse(s, e, need('A')?, need('B')?, phi, cw, CHORD_TOL)
+        } else {
+            curves::parabola(s, e, need('P')?, phi, cw, CHORD_TOL)
+        }
+        .map_err(|m| (20, gc, m))?;
+        let n = pts.len();
+        for (i, (z, x)) in pts.into_iter().enumerate() {
+            let p = Pos { x, z, ..end };
+            self.pos = p;
+            self.push(src, MoveKind::Feed { end: p, feed }, exact && i + 1 == n);
         }
         Ok(())
     }
@@ -1003,9 +1313,9 @@ impl Interpreter {
             let oj = d.get(cj).map(|v| self.len(v)).unwrap_or(0.0);
             if oi == 0.0 && oj == 0.0 {
                 // §2.3 note 3: I = K = 0 is a straight line.
+                let start = self.pos;
                 self.pos = end;
-                self.push(src, MoveKind::Feed { end, feed }, exact);
-                return Ok(());
+                return self.emit_path(src, start, MoveKind::Feed { end, feed }, exact, self.corner_req(d));
             }
             let (cu, cv) = (su + oi, sv + oj);
             let rs = (su - cu).hypot(sv - cv);
@@ -1024,15 +1334,71 @@ impl Interpreter {
         } else if self.arc_missing_alarm {
             return Err((22, None, "circular interpolation needs R or I/K (the centre)".into()));
         } else {
+            let start = self.pos;
             self.pos = end;
-            self.push(src, MoveKind::Feed { end, feed }, exact);
-            return Ok(());
+            return self.emit_path(src, start, MoveKind::Feed { end, feed }, exact, self.corner_req(d));
         };
         // The centre carries the start's coordinates on the axes outside the plane.
+        let start = self.pos;
         self.pos = end;
-        self.push(src, MoveKind::Arc { end, center, cw, plane, feed }, exact);
-        Ok(())
+        self.emit_path(src, start, MoveKind::Arc { end, center, cw, plane, feed }, exact, self.corner_req(d))
     }
+}
+
+/// Read a work offset table (the operator's offset page) from TOML text:
+///
+/// ```toml
+/// [G54]
+/// x = 0.0      # diameter, mm (as entered on the offset page)
+/// z = -312.5
+/// [G55]
+/// z = -200.0
+/// ```
+/// Keys `x` (diameter), `z`, `y` (mm) and `c` (degrees); missing systems and keys are zero.
+/// Returns the table in machine units (X as a radius) for [`Interpreter::set_work_offsets`].
+/// Errors are configuration alarms (1000) naming the key.
+pub fn parse_work_offsets(file: &str, text: &str) -> Result<[Pos; 6], Alarm> {
+    let bad = |m: String| Alarm::new(crate::config::ConfigError::ALARM, format!("{file}: {m}"));
+    let v: toml::Table = toml::from_str(text).map_err(|e| bad(e.to_string()))?;
+    let mut out = [Pos::ZERO; 6];
+    for (k, val) in &v {
+        let i = match k.as_str() {
+            "G54" => 0,
+            "G55" => 1,
+            "G56" => 2,
+            "G57" => 3,
+            "G58" => 4,
+            "G59" => 5,
+            _ => return Err(bad(format!("{k}: work offset tables have the sections G54 … G59"))),
+        };
+        let t = val.as_table().ok_or_else(|| bad(format!("{k}: must be a table like [{k}] x = 0.0 z = -300.0")))?;
+        for (ax, n) in t {
+            let x = match n {
+                toml::Value::Float(f) => *f,
+                toml::Value::Integer(i) => *i as f64,
+                other => return Err(bad(format!("{k}.{ax}: must be a number, got {other}"))),
+            };
+            if !x.is_finite() {
+                return Err(bad(format!("{k}.{ax}: must be finite")));
+            }
+            match ax.as_str() {
+                "x" => out[i].x = x / 2.0,
+                "z" => out[i].z = x,
+                "y" => out[i].y = x,
+                "c" => out[i].c = x,
+                _ => return Err(bad(format!("{k}.{ax}: the axes are x (diameter), z, y, c"))),
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// [`parse_work_offsets`] from a file.
+pub fn load_work_offsets(path: &std::path::Path) -> Result<[Pos; 6], Alarm> {
+    let text = std::fs::read_to_string(path).map_err(|e| {
+        Alarm::new(crate::config::ConfigError::ALARM, format!("{}: cannot read: {e}", path.display()))
+    })?;
+    parse_work_offsets(&path.display().to_string(), &text)
 }
 
 impl Iterator for Interpreter {
@@ -1052,6 +1418,45 @@ fn col_alarm(number: u32, col: u32, message: String) -> Alarm {
 
 fn a_col(a: &Alarm) -> u32 {
     a.pos.as_ref().map(|p| p.col).unwrap_or(1)
+}
+
+/// Plane coordinates (u, v) in which G03 is counter-clockwise: G18 (Z, X), G17 (X, Y),
+/// G19 (Y, Z).
+fn to_uv(plane: Plane, p: Pos) -> (f64, f64) {
+    match plane {
+        Plane::Zx => (p.z, p.x),
+        Plane::Xy => (p.x, p.y),
+        Plane::Yz => (p.y, p.z),
+    }
+}
+
+fn from_uv(plane: Plane, base: Pos, (u, v): (f64, f64)) -> Pos {
+    let mut p = base;
+    match plane {
+        Plane::Zx => {
+            p.z = u;
+            p.x = v
+        }
+        Plane::Xy => {
+            p.x = u;
+            p.y = v
+        }
+        Plane::Yz => {
+            p.y = u;
+            p.z = v
+        }
+    }
+    p
+}
+
+fn seg_of(plane: Plane, start: Pos, k: &MoveKind) -> corner::Seg {
+    let a = to_uv(plane, start);
+    match k {
+        MoveKind::Arc { end, center, cw, .. } => {
+            corner::Seg::Arc { a, b: to_uv(plane, *end), c: to_uv(plane, *center), cw: *cw }
+        }
+        other => corner::Seg::Line { a, b: to_uv(plane, other.end().unwrap_or(start)) },
+    }
 }
 
 fn has_decimal(e: &Expr) -> bool {

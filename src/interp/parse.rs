@@ -162,6 +162,20 @@ pub struct Block {
 struct Cur<'a> {
     c: &'a [char],
     i: usize,
+    /// Recursion guard for `-`/`#` chains (a hostile line must not overflow the stack).
+    nest: u32,
+}
+
+const MAX_NEST: u32 = 32;
+
+impl Cur<'_> {
+    fn deeper(&mut self) -> Result<(), PErr> {
+        self.nest += 1;
+        if self.nest > MAX_NEST {
+            return perr(114, self.col(), "expression nested too deeply");
+        }
+        Ok(())
+    }
 }
 
 impl<'a> Cur<'a> {
@@ -229,7 +243,7 @@ fn strip(line: &str) -> Vec<char> {
 /// Parse one source line.
 pub fn parse_line(line: &str) -> Result<Block, PErr> {
     let chars = strip(line);
-    let mut c = Cur { c: &chars, i: 0 };
+    let mut c = Cur { c: &chars, i: 0, nest: 0 };
     let first = c.peek();
     let col = c.col();
     let mut b = Block { skip: false, n: None, stmt: Stmt::Empty, col };
@@ -396,7 +410,10 @@ fn word_value(c: &mut Cur, letter: char, col: u32) -> Result<Expr, PErr> {
     let e = match c.peek() {
         Some('#') => {
             c.i += 1;
-            Expr::Var(Box::new(primary(c, 1)?))
+            c.deeper()?;
+            let e = primary(c, 1)?;
+            c.nest -= 1;
+            Expr::Var(Box::new(e))
         }
         Some('[') => {
             c.i += 1;
@@ -558,13 +575,16 @@ fn term(c: &mut Cur, depth: u32) -> Result<Expr, PErr> {
 }
 
 fn unary(c: &mut Cur, depth: u32) -> Result<Expr, PErr> {
-    if c.eat('-') {
-        return Ok(Expr::Neg(Box::new(unary(c, depth)?)));
-    }
-    if c.eat('+') {
-        return unary(c, depth);
-    }
-    primary(c, depth)
+    c.deeper()?;
+    let r = if c.eat('-') {
+        unary(c, depth).map(|e| Expr::Neg(Box::new(e)))
+    } else if c.eat('+') {
+        unary(c, depth)
+    } else {
+        primary(c, depth)
+    };
+    c.nest -= 1;
+    r
 }
 
 /// Fanuc allows brackets nested five deep (PS0118 beyond).
@@ -586,7 +606,10 @@ fn primary(c: &mut Cur, depth: u32) -> Result<Expr, PErr> {
         }
         Some('#') => {
             c.i += 1;
-            Ok(Expr::Var(Box::new(primary(c, depth)?)))
+            c.deeper()?;
+            let e = primary(c, depth)?;
+            c.nest -= 1;
+            Ok(Expr::Var(Box::new(e)))
         }
         Some(ch) if ch.is_ascii_digit() || ch == '.' => {
             let (v, decimal) = number(c, '#', col)?;
@@ -666,6 +689,24 @@ mod tests {
     }
 
     #[test]
+    fn compact_and_lower_case_forms() {
+        let w = nc("g0x20.z-25.");
+        assert_eq!(w.len(), 3);
+        assert_eq!(w[1].letter, 'X');
+        let b = parse_line("N10G01X-#1").unwrap();
+        assert_eq!(b.n, Some(10));
+        assert_eq!(parse_line("O0001(NAME)").unwrap().stmt, Stmt::Program(1));
+        assert!(matches!(parse_line("GOTO10").unwrap().stmt, Stmt::Goto(_)));
+        assert!(matches!(parse_line("#[#2]=3").unwrap().stmt, Stmt::Assign { .. }));
+        assert!(matches!(parse_line("WHILE[#1LT10]DO1").unwrap().stmt, Stmt::Do { n: 1, .. }));
+        assert!(matches!(parse_line("IF [#1 GT 0] GOTO #2").unwrap().stmt, Stmt::IfGoto { .. }));
+        let b = parse_line("/ G00 X1").unwrap();
+        assert!(b.skip);
+        assert_eq!(parse_line("N5").unwrap().stmt, Stmt::Empty);
+        assert_eq!(parse_line("%").unwrap().stmt, Stmt::Percent);
+    }
+
+    #[test]
     fn macro_statements() {
         assert!(matches!(parse_line("#1=#2+3*SIN[30]").unwrap().stmt, Stmt::Assign { .. }));
         assert!(matches!(parse_line("IF [#1 EQ 2] GOTO 10").unwrap().stmt, Stmt::IfGoto { .. }));
@@ -695,5 +736,7 @@ mod tests {
         assert_eq!(parse_line("G01 X1 GOTO 5").unwrap_err().number, 127);
         assert_eq!(parse_line("#1=[[[[[[1]]]]]]").unwrap_err().number, 118);
         assert_eq!(parse_line("M-3").unwrap_err().number, 6);
+        assert_eq!(parse_line(&format!("#1={}1", "-".repeat(100_000))).unwrap_err().number, 114);
+        assert_eq!(parse_line(&format!("#1={}1", "#".repeat(100_000))).unwrap_err().number, 114);
     }
 }

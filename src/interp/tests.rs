@@ -161,15 +161,16 @@ fn spindle_css_and_max_speed() {
 
 #[test]
 fn aux_stop_and_order_in_block() {
-    let m = run("G00 X50 Z5 M08 T0101\nG01 Z-1 F.1 M05\nM01\nM00\nM30");
+    let m = run("G00 X50 Z5 M08 T0101\nG01 Z-1 F.1 M05 M09\nM01\nM00\nM30");
     let k: Vec<String> = m.iter().map(plan::move_to_text).map(|s| s.split_once(' ').unwrap().1.to_string()).collect();
     assert_eq!(k[0], "aux M08");
     assert_eq!(k[1], "aux T0101");
     assert!(k[2].starts_with("rapid"));
     assert!(k[3].starts_with("feed"));
     assert!(k[4].starts_with("spindle M05"));
-    assert_eq!(m[5].kind, K::Stop { optional: true });
-    assert_eq!(m[6].kind, K::Stop { optional: false });
+    assert_eq!(k[5], "aux M09");
+    assert_eq!(m[6].kind, K::Stop { optional: true });
+    assert_eq!(m[7].kind, K::Stop { optional: false });
 }
 
 #[test]
@@ -237,9 +238,10 @@ fn start_position_and_incremental() {
 
 #[test]
 fn g09_and_g61_exact_stop() {
-    let m = run("G99 F.1\nG01 X10\nG09 G01 X12\nG61\nG01 X14\nG64\nG01 X16\nM30");
+    let m = run("G99 F.1\nG01 X10\nG09 G01 X12\nG61\nG01 X14\nG64\nG01 X16\nG61 X18\nX20\nM30");
     let e: Vec<bool> = m.iter().filter(|m| m.kind.name() == "feed").map(|m| m.exact_stop).collect();
-    assert_eq!(e, [false, true, true, false]);
+    // §2.14 item 5: G61 in a moving block takes effect from the next block.
+    assert_eq!(e, [false, true, true, false, false, true]);
 }
 
 #[test]
@@ -285,7 +287,8 @@ fn example_first_part_runs() {
     let mut css = None;
     for mv in &m {
         if let Some(e) = mv.kind.end() {
-            assert!(e.x >= xa.min.unwrap() && e.x <= xa.max.unwrap(), "{}", plan::move_to_text(mv));
+            // The brief: X is a diameter 0…290 (radius 0…145 within the axis limit).
+            assert!(e.x >= 0.0 && e.x >= xa.min.unwrap() && e.x <= xa.max.unwrap(), "{}", plan::move_to_text(mv));
             assert!(e.z >= za.min.unwrap() && e.z <= za.max.unwrap(), "{}", plan::move_to_text(mv));
         }
         match &mv.kind {
@@ -319,4 +322,254 @@ fn example_first_part_runs() {
     assert!(t < 60.0, "machining time estimate {t:.1} s");
     // The documented end point.
     assert_eq!(p, Pos::xz(50.0, 5.0));
+}
+
+fn xs(m: &[Move]) -> Vec<f64> {
+    m.iter().filter_map(|m| m.kind.end()).map(|p| (p.x * 2.0 * 1e6).round() / 1e6).collect()
+}
+
+#[test]
+fn macro_variables_and_while_loop() {
+    // Three passes at dia 40, 36, 32 via WHILE; null word ignored; computed address values.
+    let src = "#1=40\n#2=3\nG99 F0.2\nWHILE [#2 GT 0] DO 1\nG00 X#1 Z2 Y#30\nG01 Z-[10*#2]\n#1=#1-4\n#2=#2-1\nEND 1\nM30\n";
+    let m = run(src);
+    assert_eq!(xs(&m), [40.0, 40.0, 36.0, 36.0, 32.0, 32.0]);
+    let z: Vec<f64> = m.iter().filter_map(|m| m.kind.end()).map(|p| p.z).collect();
+    assert_eq!(z, [2.0, -30.0, 2.0, -20.0, 2.0, -10.0]);
+}
+
+#[test]
+fn if_goto_and_if_then() {
+    let src = "#1=0\nN10 #1=#1+1\nIF [#1 LT 3] GOTO 10\nIF [#1 EQ 3] THEN #2=50\nG00 X#2\nGOTO 99\nG00 X1\nN99 M30\n";
+    let m = run(src);
+    assert_eq!(xs(&m), [50.0]);
+    assert_eq!(m.last().unwrap().kind, K::End { code: 30 });
+}
+
+#[test]
+fn macro_runtime_error_stops_at_its_block() {
+    let mut it = Interpreter::from_source("t.nc", "G00 X10\n#1=0\n#2=5/#1\nG00 X20\nM30\n", &cfg()).unwrap();
+    assert!(it.next_move().unwrap().is_some());
+    let a = it.next_move().unwrap_err();
+    assert_eq!(a.number, 112);
+    assert_eq!(a.pos.as_ref().unwrap().line, 3);
+    assert_eq!(a.block.as_deref(), Some("#2=5/#1"));
+}
+
+#[test]
+fn static_loop_and_label_errors() {
+    let e = static_errs("WHILE [1 EQ 1] DO 1\nG00 X1\nM30\n");
+    assert_eq!(e[0].number, 124);
+    let e = static_errs("DO 1\nDO 2\nEND 1\nEND 2\nM30\n");
+    assert_eq!(e[0].number, 126);
+    let e = static_errs("GOTO 50\nM30\n");
+    assert_eq!(e[0].number, 78);
+    let e = static_errs("G00 X1 #1=2\nM30\n");
+    assert_eq!(e[0].number, 127);
+}
+
+#[test]
+fn subprograms_m98_m99() {
+    let src = "O0001\nG00 X100 Z5\nM98 P0010\nM98 P30010\nM98 P10 L2\nM30\nO0010\nG00 U-2\nM99\n";
+    let m = run(src);
+    assert_eq!(xs(&m), [100.0, 98.0, 96.0, 94.0, 92.0, 90.0, 88.0]);
+    // M99 P returns to a label in the caller.
+    let m = run("O1\nM98 P2\nG00 X1\nN50 G00 X2\nM30\nO2\nM99 P50\n");
+    assert_eq!(xs(&m), [2.0]);
+    // 12 levels of nesting are allowed, 13 are not.
+    let chain = |levels: u32| {
+        let mut s = String::from("O1\nM98 P2\nM30\n");
+        for p in 2..=levels + 1 {
+            s.push_str(&format!("O{p}\n{}M99\n", if p <= levels { format!("M98 P{}\n", p + 1) } else { "G00 X1\n".into() }));
+        }
+        s
+    };
+    assert_eq!(xs(&run(&chain(12))), [1.0]);
+    assert_eq!(run_err(&chain(13)).number, 77);
+    // Missing program, self call, nesting.
+    assert_eq!(static_errs("O1\nM98 P7\nM30\n")[0].number, 76);
+    assert_eq!(run_err("O1\n#1=7\nM98 P#1\nM30\n").number, 76);
+    assert_eq!(run_err("O1\nM98 P2\nM30\nO2\nM98 P2\nM99\n").number, 76);
+    assert_eq!(run_err("O1\nM98 P2\nM30\nO2\nM98 P3\nM99\nO3\nM98 P2\nM99\n").number, 77);
+}
+
+#[test]
+fn g65_macro_call_with_arguments_and_locals() {
+    let src = "O1\n#1=7\nG65 P9000 X40 Z-10 F0.1\nG00 X#1\nM30\nO9000\n#1=99\nG99 G01 X#24 Z#26 F#9\nM99\n";
+    let m = run(src);
+    assert_eq!(m[0].kind, K::Feed { end: Pos::xz(20.0, -10.0), feed: Feed::PerRev(0.1) });
+    // The caller's #1 is untouched by the macro's local #1.
+    assert_eq!(m[1].kind, K::Rapid { end: Pos::xz(3.5, -10.0) });
+}
+
+#[test]
+fn block_skip() {
+    let src = "G00 X10\n/G00 X20\nM30\n";
+    assert_eq!(xs(&run(src)), [10.0, 20.0]);
+    let mut it = Interpreter::from_source("t", src, &cfg()).unwrap();
+    it.set_block_skip(true);
+    let m: Vec<Move> = it.map(|m| m.unwrap()).collect();
+    assert_eq!(xs(&m), [10.0]);
+}
+
+#[test]
+fn endless_loop_without_motion_is_an_alarm() {
+    let mut it = Interpreter::from_source("t", "N1 #1=#1+1\nGOTO 1\n", &cfg()).unwrap();
+    assert_eq!(it.next_move().unwrap_err().number, ENDLESS_LOOP_ALARM);
+}
+
+#[test]
+fn g28_returns_through_intermediate_point() {
+    let m = run("G00 X100 Z-50\nG28 U0 W10\nM30");
+    assert_eq!(m[1].kind, K::Rapid { end: Pos::xz(50.0, -40.0) });
+    assert_eq!(m[2].kind, K::Rapid { end: Pos::xz(0.0, 0.0) });
+    let m = run("G00 X100 Z-50\nG28 X80\nM30");
+    assert_eq!(m[2].kind, K::Rapid { end: Pos::xz(0.0, -50.0) });
+}
+
+#[test]
+fn ellipse_and_parabola_emit_feed_chains() {
+    let m = run("G99 G00 X43.14 Z0\nG02.1 U20.68 W-50.0 A48 B25 Q60000 F0.1\nM30");
+    let feeds: Vec<&Move> = m.iter().filter(|m| m.kind.name() == "feed").collect();
+    assert!(feeds.len() > 20);
+    assert_eq!(feeds.last().unwrap().kind.end().map(|p| ((p.x * 2.0 * 1e6).round() / 1e6, p.z)), Some((63.82, -50.0)));
+    assert!(feeds.iter().all(|m| m.src.line == 2));
+    // Manual §2.5 example.
+    let m = run("G98 G00 X0 Z0\nG01 X30 F200\nG3.2 X60 Z-40 P10\nG01 X90 Z-60\nM30");
+    let n = m.iter().filter(|m| m.src.line == 3).count();
+    assert!(n > 10);
+    assert_eq!(m.iter().rev().nth(1).unwrap().kind, K::Feed { end: Pos::xz(45.0, -60.0), feed: Feed::PerMin(200.0) });
+    assert_eq!(run_err("G98 G00 X0 Z0\nG02.1 X10 Z-5 B2 F100\nM30").number, 9);
+}
+
+#[test]
+fn chamfer_and_corner_r_are_inserted() {
+    // Along Z at dia 40 to Z-10, chamfer 2 to the face going up to dia 60.
+    let m = run("G99 G00 X40 Z0\nG01 Z-10 ,C2 F0.1\nX60\nM30");
+    let e: Vec<Pos> = m.iter().filter_map(|m| m.kind.end()).collect();
+    assert_eq!(e, [Pos::xz(20.0, 0.0), Pos::xz(20.0, -8.0), Pos::xz(22.0, -10.0), Pos::xz(30.0, -10.0)]);
+    assert_eq!(m[2].src.line, 2, "the inserted chamfer belongs to the ,C block");
+    // Corner R: an arc tangent to both moves, clockwise for this right turn.
+    let m = run("G99 G00 X40 Z0\nG01 Z-10 ,R2 F0.1\nX60\nM30");
+    let K::Arc { end, center, cw, .. } = m[2].kind else { panic!("{:?}", m[2]) };
+    assert!(close(end, Pos::xz(22.0, -10.0)) && close(center, Pos::xz(22.0, -8.0)) && cw);
+    // One G04 may stand between; its dwell follows the inserted block.
+    let m = run("G99 G00 X40 Z0\nG01 Z-10 ,C2 F0.1\nG04 P100\nX60\nM30");
+    let k: Vec<&str> = m.iter().map(|m| m.kind.name()).collect();
+    assert_eq!(k, ["rapid", "feed", "feed", "dwell", "feed", "end"]);
+}
+
+#[test]
+fn chamfer_alarms() {
+    assert_eq!(run_err("G99 G00 X40 Z0\nG01 Z-10 ,C2 F0.1\nM08\nX60\nM30").number, 51);
+    assert_eq!(run_err("G99 G00 X40 Z0\nG01 Z-10 ,C2 F0.1\nG00 X60\nM30").number, 52);
+    assert_eq!(run_err("G99 G00 X40 Z0\nG01 Z-10 ,C2 F0.1\nG18\nX60\nM30").number, 51);
+    assert_eq!(run_err("G99 G00 X40 Z0\nG01 Z-10 ,C2 F0.1\nG04 P1\nG04 P1\nX60\nM30").number, 51);
+    assert_eq!(run_err("G99 G00 X40 Z0\nG01 Z-10 ,C2 F0.1\nX42\nM30").number, 55);
+    assert_eq!(run_err("G99 G00 X40 Z0\nG01 Z-10 ,C2 F0.1\nM30").number, 51);
+    assert_eq!(run_err("G99 G00 X40 Z0\nG01 Z-10 ,C2 F0.1\n").number, 51);
+}
+
+#[test]
+fn subprograms_from_the_program_directory() {
+    let dir = std::env::temp_dir().join(format!("cncgw-interp-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(dir.join("O0100.nc"), "O0100\nG00 U-2\nM98 P200\nM99\n").unwrap();
+    std::fs::write(dir.join("0200.nc"), "G00 W-1\nM99\n").unwrap();
+    std::fs::write(dir.join("O0300.nc"), "O0300\nG01 X\nM99\n").unwrap();
+    let main = dir.join("main.nc");
+    std::fs::write(&main, "G00 X100 Z0\nM98 P100 L2\nM30\n").unwrap();
+    let m: Vec<Move> = Interpreter::from_file(&main, &cfg()).unwrap().map(|m| m.unwrap()).collect();
+    let e: Vec<Pos> = m.iter().filter_map(|m| m.kind.end()).collect();
+    assert_eq!(e, [Pos::xz(50.0, 0.0), Pos::xz(49.0, 0.0), Pos::xz(49.0, -1.0), Pos::xz(48.0, -1.0), Pos::xz(48.0, -2.0)]);
+    assert!(m[2].src.file.ends_with("0200.nc"), "{}", m[2].src.file);
+    // A syntax error in a called file is found before running; a missing program too.
+    std::fs::write(&main, "M98 P300\nM98 P400\nM30\n").unwrap();
+    let errs = Interpreter::from_file(&main, &cfg()).err().expect("static errors");
+    let mut got: Vec<(String, u32)> =
+        errs.iter().map(|a| (a.pos.as_ref().unwrap().file.to_string(), a.number)).collect();
+    got.sort();
+    assert!(got.iter().any(|(f, n)| f.ends_with("O0300.nc") && *n == 5), "{got:?}");
+    assert!(got.iter().any(|(f, n)| f.ends_with("main.nc") && *n == 76), "{got:?}");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn work_offset_table_from_toml() {
+    let t = parse_work_offsets("wo.toml", "[G54]\nx = 2.0\nz = -300\n[G56]\nz = -100.5\n").unwrap();
+    assert_eq!(t[0], Pos::xz(1.0, -300.0));
+    assert_eq!(t[2], Pos::xz(0.0, -100.5));
+    assert_eq!(t[1], Pos::ZERO);
+    let e = parse_work_offsets("wo.toml", "[G60]\nx = 1\n").unwrap_err();
+    assert_eq!(e.number, 1000);
+    assert!(e.message.contains("G60"), "{}", e.message);
+    assert!(parse_work_offsets("wo.toml", "[G54]\nq = 1\n").is_err());
+    let mut it = Interpreter::from_source("t", "G54 G00 X20 Z0\nM30", &cfg()).unwrap();
+    it.set_work_offsets(t);
+    let m = it.next_move().unwrap().unwrap();
+    assert_eq!(m.kind, K::Rapid { end: Pos::xz(11.0, -300.0) });
+    let j: serde_json::Value = serde_json::from_str(&plan::move_to_json(&m)).unwrap();
+    assert_eq!((j["x"].as_f64(), j["z"].as_f64()), (Some(20.0), Some(0.0)));
+}
+
+#[test]
+fn macro_grooves_example() {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/macro_grooves.nc");
+    let it = Interpreter::from_file(&path, &cfg()).unwrap_or_else(|e| panic!("{}", e[0]));
+    let m: Vec<Move> = it.map(|m| m.unwrap_or_else(|a| panic!("{a}"))).collect();
+    let bottoms: Vec<(f64, f64)> = m
+        .iter()
+        .filter_map(|m| if let K::Feed { end, .. } = m.kind { Some((end.x * 2.0, end.z)) } else { None })
+        .collect();
+    assert_eq!(bottoms, [(32.0, -10.0), (32.0, -20.0), (32.0, -30.0)]);
+    assert_eq!(m.iter().filter(|m| m.kind.name() == "dwell").count(), 3);
+    assert_eq!(m.iter().rev().find_map(|m| m.kind.end()), Some(Pos::xz(50.0, 5.0)));
+    assert_eq!(m.last().unwrap().kind, K::End { code: 30 });
+}
+
+#[test]
+fn full_circle_with_i_k_and_corner_r_into_an_arc() {
+    // Same start and end with I/K: a full circle (end == start, centre given).
+    let m = run("G99 G00 X20 Z0\nG02 X20 Z0 I-5 F0.1\nM30");
+    let K::Arc { end, center, .. } = m[1].kind else { panic!() };
+    assert_eq!(end, Pos::xz(10.0, 0.0));
+    assert!(close(center, Pos::xz(5.0, 0.0)));
+    // Same start and end with R: a 0° arc, nothing moves (§2.3 note 5).
+    assert_eq!(run("G99 G00 X20 Z0\nG02 X20 Z0 R5 F0.1\nM30").len(), 2);
+    // Corner R between a line along −Z and a CCW arc: the rounding arc is tangent to both.
+    let m = run("G99 G00 X20 Z0\nG01 Z-10 ,R1 F0.1\nG03 X40 Z-20 R10\nM30");
+    let K::Arc { end: t2, center: o, cw, .. } = m[2].kind else { panic!("{:?}", m[2]) };
+    let K::Arc { center: c2, .. } = m[3].kind else { panic!() };
+    let p1 = m[1].kind.end().unwrap();
+    // Heading −Z then leaving the CCW arc towards +X is a right turn: the rounding is CW.
+    assert!(cw);
+    assert!(((p1.x - o.x).hypot(p1.z - o.z) - 1.0).abs() < 1e-9);
+    assert!(((t2.x - o.x).hypot(t2.z - o.z) - 1.0).abs() < 1e-9);
+    // Outside the arc of radius 10 and tangent to it: the rounding centre is 10 + 1 from its centre.
+    assert!(((o.x - c2.x).hypot(o.z - c2.z) - 11.0).abs() < 1e-9);
+    assert!((p1.x - 10.0).abs() < 1e-9 && p1.z > -10.0);
+}
+
+#[test]
+fn common_variables_survive_between_runs() {
+    let mut it = Interpreter::from_source("t", "#500=#500+1\n#1=5\nM30\n", &cfg()).unwrap();
+    it.set_common_vars([(500, 41.0), (1, 3.0)].into_iter().collect());
+    while it.next_move().unwrap().is_some() {}
+    assert_eq!(it.common_vars().get(&500), Some(&42.0));
+    assert_eq!(it.common_vars().get(&1), None, "locals are not common variables");
+}
+
+#[test]
+fn static_errors_are_in_line_order() {
+    let e = static_errs("GOTO 7\nG01 X\nM98 P9\nG01 Q\nM30\n");
+    let lines: Vec<u32> = e.iter().map(|a| a.pos.as_ref().unwrap().line).collect();
+    assert_eq!(lines, [1, 2, 3, 4]);
+}
+
+#[test]
+fn m98_runs_after_the_blocks_motion() {
+    let m = run("O1\nG00 X10 M98 P2\nM30\nO2\nG00 X20\nM99\n");
+    assert_eq!(xs(&m), [10.0, 20.0]);
+    assert_eq!(static_errs("G04 P100 M98 P2\nM30\nO2\nM99\n")[0].number, 9);
+    assert_eq!(static_errs("O1\nM98 P2\nM30\nO2\nG00 X1 M99\n")[0].number, 9);
 }

@@ -1,0 +1,71 @@
+//! The interpreter never panics on any input, and streams long programs.
+
+use cncgw::config::MachineConfig;
+use cncgw::interp::Interpreter;
+use proptest::prelude::*;
+
+fn drain(src: &str, limit: usize) -> usize {
+    let cfg = MachineConfig::embedded();
+    match Interpreter::from_source("fuzz.nc", src, &cfg) {
+        Err(e) => {
+            assert!(!e.is_empty());
+            for a in &e {
+                assert!(a.pos.is_some(), "static errors carry a position: {a}");
+            }
+            0
+        }
+        Ok(it) => it.take(limit).take_while(|m| m.is_ok()).count(),
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 400, .. ProptestConfig::default() })]
+
+    #[test]
+    fn arbitrary_text_never_panics(s in "\\PC{0,200}") {
+        drain(&s, 200);
+    }
+
+    #[test]
+    fn gcode_like_text_never_panics(
+        lines in proptest::collection::vec(
+            "(N[0-9]{1,3} )?([GMXZUWIKRFSPQTABLC,#\\[\\]=+*/.0-9 -]|IF|GOTO|WHILE|DO|END|EQ|SIN){0,14}",
+            0..12,
+        )
+    ) {
+        drain(&lines.join("\n"), 500);
+    }
+}
+
+/// A long program runs block by block: the interpreter keeps only the text and a line index.
+/// (Measured: `cargo test -j2 --test interp_robust -- --ignored --nocapture`.)
+#[test]
+#[ignore = "slow in debug builds; run explicitly to measure"]
+fn million_blocks_stream() {
+    let n = 1_000_000;
+    let mut src = String::with_capacity(n * 24);
+    src.push_str("G99 G00 X100 Z5\nM03 S1000\n");
+    for i in 0..n {
+        let z = -((i % 300) as f64) * 0.1;
+        src.push_str(&format!("N{} G01 X{:.1} Z{:.1} F0.2\n", i % 99999 + 1, 60.0 + (i % 7) as f64, z));
+    }
+    src.push_str("M30\n");
+    let t = std::time::Instant::now();
+    let it = Interpreter::from_source("big.nc", &src, &MachineConfig::embedded()).expect("valid");
+    let checked = t.elapsed();
+    let moves = it.map(|m| m.expect("runs")).count();
+    println!("{n} blocks: static check {:?}, total with execution {:?}, {moves} moves", checked, t.elapsed());
+    assert_eq!(moves, n + 3);
+}
+
+#[test]
+fn hundred_thousand_blocks_stream() {
+    let n = 100_000;
+    let mut src = String::from("G98 G01 F1000\n");
+    for i in 0..n {
+        src.push_str(&format!("X{} Z-{}\n", 10 + i % 50, i % 100));
+    }
+    src.push_str("M30\n");
+    let it = Interpreter::from_source("big.nc", &src, &MachineConfig::embedded()).expect("valid");
+    assert_eq!(it.map(|m| m.expect("runs")).count(), n + 1);
+}
