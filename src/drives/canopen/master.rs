@@ -95,6 +95,7 @@ pub struct CanOpenMaster<B: CanBus> {
     hb_ms: u16,
     next_hb_ns: u64,
     boot_timeout_ms: u32,
+    bitrate: u32,
     cycles: u64,
     enable_cycles: u64,
     running: bool,
@@ -139,11 +140,53 @@ impl<B: CanBus> CanOpenMaster<B> {
             hb_ms: cfg.bus.heartbeat_ms,
             next_hb_ns: 0,
             boot_timeout_ms: timeout.max(100) * 4,
+            bitrate: cfg.bus.bitrate,
             cycles: 0,
             enable_cycles: 0,
             running: false,
             hb_started: false,
         }
+    }
+
+    /// Worst-case bus load of the cyclic traffic (one 6-byte RPDO and TPDO per drive and the
+    /// SYNC every cycle), 0…1.
+    pub fn bus_load(&self, bitrate: u32) -> f64 {
+        let frames = cncgw_bus::busload::csp_frames(self.nodes.len(), 6);
+        cncgw_bus::busload::load(&frames, self.cycle_ns as f64 * 1e-9, bitrate)
+    }
+
+    /// Refuse a cycle the bus cannot carry (over 80 % worst-case load), naming one that fits.
+    pub fn check_bus_load(&self, bitrate: u32) -> Result<f64, Alarm> {
+        let load = self.bus_load(bitrate);
+        if load > 0.8 {
+            let frames = cncgw_bus::busload::csp_frames(self.nodes.len(), 6);
+            let fits = cncgw_bus::busload::shortest_cycle_s(&frames, bitrate, 0.8);
+            return Err(Alarm::new(
+                2021,
+                format!(
+                    "bus load {:.0} % at {} ms cycle and {} bit/s for {} drives is over 80 %; use machine.cycle_ms = {} or more (or a higher bitrate)",
+                    load * 100.0,
+                    self.cycle_ms,
+                    bitrate,
+                    self.nodes.len(),
+                    fits * 1000.0
+                ),
+            ));
+        }
+        Ok(load)
+    }
+
+    /// Read `index:sub` of `node` over SDO (service tools, diagnostics).
+    pub fn sdo_read(&mut self, clock: &mut dyn Clock, node: u8, index: u16, sub: u8) -> Result<Vec<u8>, Alarm> {
+        let i = self.index_of(node).ok_or_else(|| Alarm::new(2003, format!("node {node} is not in the machine configuration")))?;
+        self.sdo(clock, i, Sdo::Up(index, sub))
+            .map_err(|e| self.node_alarm(i, 2003, format!("reading 0x{index:04X}:{sub:02X} failed: {e}")))
+    }
+
+    /// Write `data` to `index:sub` of `node` over SDO.
+    pub fn sdo_write(&mut self, clock: &mut dyn Clock, node: u8, index: u16, sub: u8, data: &[u8]) -> Result<(), Alarm> {
+        let i = self.index_of(node).ok_or_else(|| Alarm::new(2003, format!("node {node} is not in the machine configuration")))?;
+        self.write(clock, i, index, sub, data)
     }
 
     pub fn infos(&self) -> Vec<NodeInfo> {
@@ -401,6 +444,15 @@ fn interpolation_period(cycle_ms: f64) -> (u8, i8) {
 
 impl<B: CanBus> DriveBus for CanOpenMaster<B> {
     fn startup(&mut self, clock: &mut dyn Clock) -> Result<(), Alarm> {
+        let load = self.check_bus_load(self.bitrate)?;
+        tracing::info!(
+            "bus {}: worst-case load {:.1} % ({} drives, {} ms cycle, {} bit/s)",
+            self.bus.name(),
+            load * 100.0,
+            self.nodes.len(),
+            self.cycle_ms,
+            self.bitrate
+        );
         // Reset communication so every node reports a boot-up and starts from its default
         // communication parameters; then wait for all of them.
         self.send(&NmtCommand::ResetCommunication.frame(0))?;
@@ -609,6 +661,19 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn bus_load_is_checked_against_80_percent() {
+        let bus = cncgw_bus::transport::inproc::InprocBus::new();
+        let mut cfg = MachineConfig::embedded();
+        let m = CanOpenMaster::new(bus.endpoint(), &cfg);
+        assert!((m.bus_load(1_000_000) - 0.3725).abs() < 1e-3);
+        cfg.machine.cycle_ms = 0.5;
+        let m = CanOpenMaster::new(bus.endpoint(), &cfg);
+        let e = m.check_bus_load(1_000_000).unwrap_err();
+        assert_eq!(e.number, 2021);
+        assert!(e.message.contains("machine.cycle_ms = 1 or more"), "{}", e.message);
+    }
 
     #[test]
     fn interpolation_period_encoding() {
