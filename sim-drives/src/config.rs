@@ -54,6 +54,8 @@ pub struct Physics {
     pub vel_ti_ms: f64,
     /// Maximum motor speed, rpm (velocity command clamp).
     pub max_speed_rpm: f64,
+    /// Current (torque) loop time constant, ms: the torque lags its command by this.
+    pub current_loop_tc_ms: f64,
 }
 
 impl Physics {
@@ -79,6 +81,8 @@ impl Physics {
                     vel_kp: j * 2.0 * std::f64::consts::PI * 150.0,
                     vel_ti_ms: 5.0,
                     max_speed_rpm: 3000.0,
+                    // Current loop ≈ 1 kHz.
+                    current_loop_tc_ms: 0.15,
                 }
             }
             DriveKind::Spindle => {
@@ -95,6 +99,8 @@ impl Physics {
                     vel_kp: j * 2.0 * std::f64::consts::PI * 40.0,
                     vel_ti_ms: 20.0,
                     max_speed_rpm: 8000.0,
+                    // A bigger motor, a slower current loop (≈ 400 Hz).
+                    current_loop_tc_ms: 0.4,
                 }
             }
         }
@@ -251,6 +257,7 @@ impl SimConfig {
                 setp!(vel_kp);
                 setp!(vel_ti_ms);
                 setp!(max_speed_rpm);
+                setp!(current_loop_tc_ms);
             }
             let _ = i;
             drives.push(c);
@@ -305,6 +312,7 @@ impl SimConfig {
                 ("load_inertia", p.load_inertia),
                 ("coulomb_friction", p.coulomb_friction),
                 ("viscous_friction", p.viscous_friction),
+                ("current_loop_tc_ms", p.current_loop_tc_ms),
             ];
             for (n, v) in non_negative {
                 if !(v.is_finite() && v >= 0.0) {
@@ -363,6 +371,7 @@ impl SimConfig {
             s.push_str(&format!("vel_kp = {:?}            # velocity loop P, N·m per rad/s\n", p.vel_kp));
             s.push_str(&format!("vel_ti_ms = {:?}         # velocity loop integral time\n", p.vel_ti_ms));
             s.push_str(&format!("max_speed_rpm = {:?}\n", p.max_speed_rpm));
+            s.push_str(&format!("current_loop_tc_ms = {:?}  # torque lag behind its command\n", p.current_loop_tc_ms));
         }
         s
     }
@@ -410,6 +419,7 @@ struct RawPhysics {
     vel_kp: Option<f64>,
     vel_ti_ms: Option<f64>,
     max_speed_rpm: Option<f64>,
+    current_loop_tc_ms: Option<f64>,
 }
 
 #[cfg(test)]

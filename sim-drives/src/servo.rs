@@ -27,7 +27,9 @@ pub struct Servo {
     pos: f64,
     /// Motor speed, rad/s.
     omega: f64,
-    /// Torque applied since the last control tick, N·m.
+    /// Torque the velocity loop asks for (held between ticks), N·m.
+    torque_cmd: f64,
+    /// Torque the current loop delivers (first-order lag behind the command), N·m.
     torque: f64,
     /// Velocity-loop integrator, N·m.
     integ: f64,
@@ -44,6 +46,7 @@ impl Servo {
             rad_per_count: 2.0 * PI / counts_per_rev.max(1) as f64,
             pos: 0.0,
             omega: 0.0,
+            torque_cmd: 0.0,
             torque: 0.0,
             integ: 0.0,
             vref: 0.0,
@@ -89,6 +92,8 @@ impl Servo {
         let vmax = self.p.max_speed_rpm * 2.0 * PI / 60.0;
         let vref_counts = match cmd {
             Command::Off => {
+                // Power stage off: the current decays at once (the bridge is open).
+                self.torque_cmd = 0.0;
                 self.torque = 0.0;
                 self.integ = 0.0;
                 self.vref = 0.0;
@@ -112,7 +117,7 @@ impl Servo {
         if !saturating {
             self.integ = (self.integ + ki * err * dt).clamp(-lim, lim);
         }
-        self.torque = (self.p.vel_kp * err + self.integ).clamp(-lim, lim);
+        self.torque_cmd = (self.p.vel_kp * err + self.integ).clamp(-lim, lim);
     }
 
     /// Integrate the mechanics over `dt` seconds with the held torque.
@@ -120,6 +125,10 @@ impl Servo {
         if dt <= 0.0 {
             return;
         }
+        // Current loop: first-order lag of the torque behind its command.
+        let tau = self.p.current_loop_tc_ms * 1e-3;
+        let a = if tau > 0.0 { 1.0 - (-dt / tau).exp() } else { 1.0 };
+        self.torque += (self.torque_cmd - self.torque) * a;
         let j = self.p.inertia();
         let tc = self.p.coulomb_friction;
         let drive = self.torque - self.load_torque;
@@ -177,6 +186,47 @@ pub fn step_response(p: &Physics, counts_per_rev: u32, step: f64, dt: f64, t_end
     };
     let overshoot = ((peak - step) / step * 100.0).max(0.0);
     (rise, overshoot, settle, s.position_counts() as f64 - step)
+}
+
+/// The position step response sampled every `every` seconds: (t, position counts).
+pub fn step_trace(p: &Physics, counts_per_rev: u32, step: f64, dt: f64, t_end: f64, every: f64) -> Vec<(f64, f64)> {
+    let mut s = Servo::new(p.clone(), counts_per_rev);
+    let n = (t_end / dt).ceil() as usize;
+    let k = ((every / dt).round() as usize).max(1);
+    let mut out = vec![(0.0, 0.0)];
+    for i in 1..=n {
+        s.control(Command::Position { demand: step, vff: 0.0 }, dt);
+        s.integrate(dt);
+        if i % k == 0 {
+            out.push((i as f64 * dt, s.position_exact()));
+        }
+    }
+    out
+}
+
+/// Velocity-loop step response: speed step of `v` counts/s from standstill. Returns
+/// (rise time 10→90 % in s, overshoot in %).
+pub fn velocity_step_response(p: &Physics, counts_per_rev: u32, v: f64, dt: f64, t_end: f64) -> (f64, f64) {
+    let mut s = Servo::new(p.clone(), counts_per_rev);
+    let (mut t10, mut t90, mut peak) = (None, None, 0.0f64);
+    for i in 0..(t_end / dt).ceil() as usize {
+        let t = i as f64 * dt;
+        s.control(Command::Velocity { v }, dt);
+        s.integrate(dt);
+        let x = s.velocity_counts();
+        if t10.is_none() && x >= 0.1 * v {
+            t10 = Some(t);
+        }
+        if t90.is_none() && x >= 0.9 * v {
+            t90 = Some(t);
+        }
+        peak = peak.max(x);
+    }
+    let rise = match (t10, t90) {
+        (Some(a), Some(b)) => b - a,
+        _ => f64::INFINITY,
+    };
+    (rise, ((peak - v) / v * 100.0).max(0.0))
 }
 
 #[cfg(test)]
