@@ -28,6 +28,10 @@ const FAULT_REACTION: u16 = 0x605E;
 /// A stop that has not finished after this long is finished by switching the power off
 /// (a jammed axis must not keep a quick stop alive forever).
 const STOP_TIMEOUT: u64 = 5_000 * MS;
+/// Rated torque as a fraction of the peak torque (servo motors: peak ≈ 3 × rated).
+const RATED_OF_PEAK: f64 = 1.0 / 3.0;
+/// I²t budget: 3 s at peak torque ((3² − 1) × 3 s) before the overload trips.
+const I2T_LIMIT: f64 = 24.0;
 
 #[derive(Clone, Debug)]
 enum SdoState {
@@ -101,6 +105,8 @@ pub struct SimDrive {
     // Following error.
     ferr_since: Option<u64>,
     ferr_flag: bool,
+    /// Motor thermal (I²t) load: ∫((τ/τ_rated)² − 1) dt, ≥ 0; trips at `I2T_LIMIT`.
+    i2t: f64,
     sdo: SdoState,
     silent: bool,
     out: Vec<CanFrame>,
@@ -246,6 +252,7 @@ impl SimDrive {
             hb_seen: BTreeMap::new(),
             ferr_since: None,
             ferr_flag: false,
+            i2t: 0.0,
             sdo: SdoState::Idle,
             silent: false,
             out: Vec::new(),
@@ -323,6 +330,10 @@ impl SimDrive {
     /// An external torque on the motor shaft (N·m): a crash, a jammed slide, a cutting load.
     pub fn set_load_torque(&mut self, nm: f64) {
         self.servo.load_torque = if nm.is_finite() { nm } else { 0.0 };
+    }
+    /// Extra dry friction on the motor shaft (N·m): a jammed slide or a crashed tool. 0 frees it.
+    pub fn set_jam(&mut self, nm: f64) {
+        self.servo.jam_friction = if nm.is_finite() { nm.max(0.0) } else { 0.0 };
     }
     /// Disconnect the node from the bus (it neither receives nor sends) or reconnect it.
     pub fn set_silent(&mut self, silent: bool) {
@@ -933,7 +944,7 @@ impl SimDrive {
         self.od.set(ix::VELOCITY_ACTUAL, 0, self.velocity_actual() as i64);
         self.od.set(ix::FOLLOWING_ERROR_ACTUAL, 0, self.ferr() as i64);
         self.od.set(POSITION_DEMAND, 0, self.demand.round() as i64 as i32 as i64);
-        let rated = self.servo.physics().torque_limit / 3.0;
+        let rated = self.servo.physics().torque_limit * RATED_OF_PEAK;
         let t = (self.servo.torque() / rated * 1000.0).round().clamp(-32768.0, 32767.0);
         self.od.set(TORQUE_ACTUAL, 0, t as i64);
     }
@@ -1235,6 +1246,16 @@ impl SimDrive {
             Command::Position { demand: self.demand, vff: self.vff }
         };
         self.servo.control(cmd, dt);
+
+        // Motor overload (I²t): a jammed or overloaded axis trips like a real amplifier.
+        let rated = self.servo.physics().torque_limit * RATED_OF_PEAK;
+        let q = self.servo.torque() / rated;
+        self.i2t = (self.i2t + (q * q - 1.0) * dt).max(0.0);
+        if self.i2t >= I2T_LIMIT {
+            self.i2t = 0.0;
+            self.fault(0x2310, now);
+            return;
+        }
 
         // Following error monitoring (position control while enabled).
         if self.state == State::OperationEnabled && matches!(cmd, Command::Position { .. }) {

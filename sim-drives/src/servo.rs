@@ -35,8 +35,10 @@ pub struct Servo {
     integ: f64,
     /// Velocity reference of the last tick, rad/s (for logs and tests).
     vref: f64,
-    /// External load torque (fault injection: a crash, a jammed slide), N·m.
+    /// External load torque (fault injection: gravity, a cutting force), N·m.
     pub load_torque: f64,
+    /// Extra dry friction (fault injection: a jammed slide, a crashed tool), N·m.
+    pub jam_friction: f64,
 }
 
 impl Servo {
@@ -51,6 +53,7 @@ impl Servo {
             integ: 0.0,
             vref: 0.0,
             load_torque: 0.0,
+            jam_friction: 0.0,
         }
     }
 
@@ -130,7 +133,7 @@ impl Servo {
         let a = if tau > 0.0 { 1.0 - (-dt / tau).exp() } else { 1.0 };
         self.torque += (self.torque_cmd - self.torque) * a;
         let j = self.p.inertia();
-        let tc = self.p.coulomb_friction;
+        let tc = self.p.coulomb_friction + self.jam_friction;
         let drive = self.torque - self.load_torque;
         let w0 = self.omega;
         let w1 = if w0 == 0.0 {

@@ -613,3 +613,103 @@ fn realtime_loop_serves_a_bus_and_stops() {
     // Median SYNC→TPDO latency: well inside a 1 ms cycle even on a loaded CI machine.
     assert!(latencies[25] < Duration::from_millis(1), "median latency {:?}", latencies[25]);
 }
+
+#[test]
+fn jammed_axis_trips_on_following_error_or_overload() {
+    let mut r = Rig::new(one_axis());
+    // Following error off: only the motor's thermal model can stop it.
+    r.w32(1, 0x6065, 0, 0xFFFF_FFFF).unwrap();
+    r.enable();
+    // A jammed slide: dry friction far above the motor's peak torque; command 0.5 mm.
+    r.w.drive_mut(1).unwrap().set_jam(50.0);
+    let mut t_fault = None;
+    for k in 0..3000 {
+        r.cycle(0x0F, 5000, 2 * MS);
+        if r.w.drive(1).unwrap().state() != State::OperationEnabled {
+            t_fault = Some(k as f64 * 2e-3);
+            break;
+        }
+    }
+    // Peak torque for 3 s of I²t budget.
+    let t = t_fault.expect("overload trips");
+    assert!((2.9..3.2).contains(&t), "tripped after {t} s");
+    assert!(r.log.iter().any(|(_, f)| hex(f) == "081#1023030000000000"), "EMCY 0x2310, register current");
+    for _ in 0..10 {
+        r.cycle(0x0F, 0, 2 * MS);
+    }
+    assert_eq!(r.w.drive(1).unwrap().state(), State::Fault);
+}
+
+#[test]
+fn spindle_in_cyclic_synchronous_velocity() {
+    let cfg = SimConfig { drives: vec![DriveConfig::new(1, DriveKind::Spindle, "s1", 1000.0)], step_us: 50 };
+    let mut r = Rig::new(cfg);
+    // RPDO2 (controlword + target velocity) on, RPDO1 off.
+    r.w32(1, 0x1400, 1, 0x8000_0201).unwrap();
+    r.w32(1, 0x1401, 1, 0x301).unwrap();
+    r.w32(1, 0x1801, 1, 0x281).unwrap(); // TPDO2: statusword + velocity actual
+    r.download(1, 0x6060, 0, &[9]).unwrap();
+    r.send(NmtCommand::Start.frame(1));
+    r.run(MS);
+    let mut cwd = 0u16;
+    let mut status = 0u16;
+    let mut vel = 0i32;
+    let send = |r: &mut Rig, cwd: u16, v: i32| {
+        let mut d = [0u8; 6];
+        d[..2].copy_from_slice(&cwd.to_le_bytes());
+        d[2..].copy_from_slice(&v.to_le_bytes());
+        r.send(CanFrame::new(0x301, &d));
+        r.send(sync_frame(None));
+        let got = r.run(2 * MS);
+        let f = got.iter().find(|f| f.cob_id() == 0x281).copied().expect("TPDO2");
+        let d = f.data();
+        (u16::from_le_bytes([d[0], d[1]]), i32::from_le_bytes([d[2], d[3], d[4], d[5]]))
+    };
+    for _ in 0..10 {
+        (status, _) = send(&mut r, cwd, 0);
+        if State::from_statusword(status) == State::OperationEnabled {
+            break;
+        }
+        cwd = State::from_statusword(status).controlword_towards(State::OperationEnabled);
+    }
+    assert_eq!(State::from_statusword(status), State::OperationEnabled);
+    assert_eq!(r.w.drive(1).unwrap().mode_display(), 9);
+    // Ramp to 1000 rpm (6e6 counts/s) at 3000 rpm/s, as the master would.
+    let target = 6_000_000.0;
+    let mut v = 0.0;
+    for _ in 0..400 {
+        v = f64::min(v + 3000.0 / 60.0 * 360_000.0 * 0.002, target);
+        (status, vel) = send(&mut r, 0x0F, v as i32);
+    }
+    assert!((vel as f64 - target).abs() < 0.005 * target, "{vel}");
+    assert!(status & sw::OMS12 != 0 && status & sw::TARGET_REACHED != 0, "{status:#06x}");
+}
+
+#[test]
+fn halt_stops_on_the_profile_ramp_and_holds() {
+    let mut r = Rig::new(one_axis());
+    r.enable();
+    let path = trapezoid(0.0, 1_000_000.0, 1.0e6, 2.0e7, 0.002);
+    for p in &path[..100] {
+        r.cycle(0x0F, p.round() as i32, 2 * MS);
+    }
+    // Halt: 1e6 counts/s at the 2 m/s² profile deceleration (2e7 counts/s²) → 50 ms.
+    let mut stopped_at = None;
+    let mut last = (0u16, 0i32);
+    for (k, p) in path[100..200].iter().enumerate() {
+        last = r.cycle(0x10F, p.round() as i32, 2 * MS).unwrap();
+        assert_eq!(State::from_statusword(last.0), State::OperationEnabled);
+        // The TPDO of the SYNC that carries the halt still shows the state before it.
+        assert!(k == 0 || last.0 & sw::OMS12 == 0, "not following the command while halted");
+        if stopped_at.is_none() && last.0 & sw::TARGET_REACHED != 0 {
+            stopped_at = Some(k);
+        }
+    }
+    let k = stopped_at.expect("stopped");
+    assert!((24..=32).contains(&k), "stopped after {k} cycles");
+    let held = r.w.drive(1).unwrap().position_actual();
+    for _ in 0..20 {
+        r.cycle(0x10F, 999_999, 2 * MS);
+    }
+    assert!((r.w.drive(1).unwrap().position_actual() - held).abs() <= 1, "holds position");
+}
