@@ -33,10 +33,8 @@ fn main() {
     }
     println!("\nposition step of 1000 counts, no feed-forward (fraction of the step):");
     let traces: Vec<Vec<(f64, f64)>> = axes.iter().map(|c| step_trace(&c.physics, c.counts_per_rev, 1000.0, dt, 0.3, 0.01)).collect();
-    println!("{:>7}  {:>7}  {:>7}   {}", "t ms", "linear", "spindle", "(L = linear, S = spindle; 0 … 1.2)");
-    for i in 0..traces[0].len() {
-        let (t, a) = traces[0][i];
-        let b = traces[1][i].1;
+    println!("{:>7}  {:>7}  {:>7}   (L = linear, S = spindle; 0 … 1.2)", "t ms", "linear", "spindle");
+    for (&(t, a), &(_, b)) in traces[0].iter().zip(&traces[1]) {
         let mut line = [b' '; 49];
         let col = |x: f64| ((x / 1000.0 / 1.2 * 48.0).round().clamp(0.0, 48.0)) as usize;
         line[col(1000.0)] = b'|';

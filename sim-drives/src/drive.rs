@@ -842,16 +842,14 @@ impl SimDrive {
                         return Err(abort::INVALID_VALUE);
                     }
                 }
-                2 => {
-                    if !(0..=240).contains(&x) && x != 254 && x != 255 {
+                2
+                    if !(0..=240).contains(&x) && x != 254 && x != 255 => {
                         return Err(abort::INVALID_VALUE);
                     }
-                }
-                3 => {
-                    if self.pdo_valid(index) {
+                3
+                    if self.pdo_valid(index) => {
                         return Err(abort::INVALID_VALUE); // inhibit time only while invalid
                     }
-                }
                 _ => {}
             }
         } else if rpdo_map.contains(&index) || tpdo_map.contains(&index) {
@@ -894,21 +892,18 @@ impl SimDrive {
                         }
                     }
                 }
-                ix::COB_ID_SYNC => {
-                    if x & 0x4000_0000 != 0 || x & 0x2000_0000 != 0 {
+                ix::COB_ID_SYNC
+                    if (x & 0x4000_0000 != 0 || x & 0x2000_0000 != 0) => {
                         return Err(abort::INVALID_VALUE); // not a SYNC producer; 11-bit only
                     }
-                }
-                ix::COB_ID_EMCY => {
-                    if x & 0x2000_0000 != 0 {
+                ix::COB_ID_EMCY
+                    if x & 0x2000_0000 != 0 => {
                         return Err(abort::INVALID_VALUE);
                     }
-                }
-                ix::MODES_OF_OPERATION => {
-                    if ![0, mode::CYCLIC_SYNC_POSITION as i64, mode::CYCLIC_SYNC_VELOCITY as i64].contains(&x) {
+                ix::MODES_OF_OPERATION
+                    if ![0, mode::CYCLIC_SYNC_POSITION as i64, mode::CYCLIC_SYNC_VELOCITY as i64].contains(&x) => {
                         return Err(abort::INVALID_VALUE);
                     }
-                }
                 ix::SOFTWARE_LIMIT => {
                     let (lo, hi) = if sub == 1 { (x, self.od.int(index, 2)) } else { (self.od.int(index, 1), x) };
                     if lo > hi {
@@ -987,11 +982,10 @@ impl SimDrive {
                     s |= sw::TARGET_REACHED;
                 }
             }
-            State::QuickStopActive => {
-                if self.stop.is_none_or(|st| st.v == 0.0 && self.servo.at_rest()) {
+            State::QuickStopActive
+                if self.stop.is_none_or(|st| st.v == 0.0 && self.servo.at_rest()) => {
                     s |= sw::TARGET_REACHED;
                 }
-            }
             _ => {}
         }
         s

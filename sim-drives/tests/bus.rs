@@ -266,7 +266,7 @@ fn pdo_remap_in_cia301_order_and_refused_otherwise() {
     assert_eq!(r.w32(1, 0x1A00, 1, 0x6065_0020), Err(abort::NOT_MAPPABLE));
     assert_eq!(r.w32(1, 0x1A00, 1, 0x6041_0020), Err(abort::PARAM_INCOMPATIBLE));
     assert_eq!(r.w32(1, 0x1A00, 1, 0x2345_0020), Err(abort::NO_OBJECT));
-    assert_eq!(r.w32(1, 0x1600 + 0, 1, 0x6041_0010), Err(abort::PARAM_INCOMPATIBLE), "RPDO1 is still valid");
+    assert_eq!(r.w32(1, 0x1600, 1, 0x6041_0010), Err(abort::PARAM_INCOMPATIBLE), "RPDO1 is still valid");
     assert_eq!(r.w32(1, 0x1A00, 1, 0x6041_0010), Ok(()));
     assert_eq!(r.w32(1, 0x1A00, 2, 0x60F4_0020), Ok(()));
     assert_eq!(r.w32(1, 0x1A00, 3, 0x6064_0020), Ok(()));
@@ -695,9 +695,8 @@ fn halt_stops_on_the_profile_ramp_and_holds() {
     }
     // Halt: 1e6 counts/s at the 2 m/s² profile deceleration (2e7 counts/s²) → 50 ms.
     let mut stopped_at = None;
-    let mut last = (0u16, 0i32);
     for (k, p) in path[100..200].iter().enumerate() {
-        last = r.cycle(0x10F, p.round() as i32, 2 * MS).unwrap();
+        let last = r.cycle(0x10F, p.round() as i32, 2 * MS).unwrap();
         assert_eq!(State::from_statusword(last.0), State::OperationEnabled);
         // The TPDO of the SYNC that carries the halt still shows the state before it.
         assert!(k == 0 || last.0 & sw::OMS12 == 0, "not following the command while halted");
