@@ -65,6 +65,19 @@ struct Stop {
     started: u64,
 }
 
+/// Copies of objects the control tick reads (the dictionary is a map; the tick runs at
+/// 20 kHz). Refreshed by `recache` after every write from the bus and every reset.
+#[derive(Clone, Copy, Debug, Default)]
+struct Hot {
+    /// 0x1016: (producer node, timeout ns) per entry; node 0 = unused.
+    consumers: [(u8, u64); 2],
+    /// Some TPDO is event-driven (254/255) and valid.
+    event_tpdo: bool,
+    mode: i8,
+    ferr_window: i64,
+    ferr_timeout: u64,
+}
+
 /// An emulated drive. Read its state with the accessors; inject faults with the `inject_*`
 /// and `set_*` methods.
 pub struct SimDrive {
@@ -109,6 +122,8 @@ pub struct SimDrive {
     i2t: f64,
     sdo: SdoState,
     silent: bool,
+    /// Objects read every control tick, copied out of the dictionary after each write.
+    hot: Hot,
     out: Vec<CanFrame>,
 }
 
@@ -223,7 +238,7 @@ impl SimDrive {
         let od = build_od(&cfg);
         let servo = Servo::new(cfg.physics.clone(), cfg.counts_per_rev);
         let boot = (cfg.boot_delay_ms * MS as f64).round() as u64;
-        SimDrive {
+        let mut d = SimDrive {
             od,
             nmt: NmtState::BootUp,
             boot_at: Some(boot),
@@ -255,9 +270,28 @@ impl SimDrive {
             i2t: 0.0,
             sdo: SdoState::Idle,
             silent: false,
+            hot: Hot::default(),
             out: Vec::new(),
             cfg,
+        };
+        d.recache();
+        d
+    }
+
+    fn recache(&mut self) {
+        let mut h = Hot::default();
+        for s in 1..=2u8 {
+            let v = self.od.int(ix::CONSUMER_HEARTBEAT, s) as u32;
+            let (node, ms) = (((v >> 16) & 0xFF) as u8, (v & 0xFFFF) as u64);
+            if node != 0 && ms != 0 {
+                h.consumers[s as usize - 1] = (node, ms * MS);
+            }
         }
+        h.event_tpdo = (0..N_TPDO).any(|i| self.pdo_valid(ix::TPDO_COMM + i) && self.od.int(ix::TPDO_COMM + i, 2) >= 254);
+        h.mode = self.od.int(ix::MODES_DISPLAY, 0) as i8;
+        h.ferr_window = self.od.int(ix::FOLLOWING_ERROR_WINDOW, 0);
+        h.ferr_timeout = self.od.int(ix::FOLLOWING_ERROR_TIMEOUT, 0) as u64 * MS;
+        self.hot = h;
     }
 
     // ---- accessors -------------------------------------------------------------------
@@ -295,7 +329,7 @@ impl SimDrive {
         self.servo.velocity_counts().round().clamp(i32::MIN as f64, i32::MAX as f64) as i32
     }
     pub fn mode_display(&self) -> i8 {
-        self.od.int(ix::MODES_DISPLAY, 0) as i8
+        self.hot.mode
     }
     pub fn statusword(&self) -> u16 {
         self.compute_statusword()
@@ -367,11 +401,9 @@ impl SimDrive {
         };
         take(self.hb_next);
         if self.nmt != NmtState::BootUp {
-            for s in 1..=2u8 {
-                let v = self.od.int(ix::CONSUMER_HEARTBEAT, s) as u32;
-                let (node, ms) = (((v >> 16) & 0xFF) as u8, (v & 0xFFFF) as u64);
-                if node != 0 && ms != 0 {
-                    take(self.hb_seen.get(&node).map(|&last| last + ms * MS));
+            for (node, timeout) in self.hot.consumers {
+                if node != 0 {
+                    take(self.hb_seen.get(&node).map(|&last| last + timeout));
                 }
             }
         }
@@ -395,14 +427,12 @@ impl SimDrive {
             }
         }
         if self.nmt != NmtState::BootUp {
-            for s in 1..=2u8 {
-                let v = self.od.int(ix::CONSUMER_HEARTBEAT, s) as u32;
-                let (node, ms) = (((v >> 16) & 0xFF) as u8, (v & 0xFFFF) as u64);
-                if node == 0 || ms == 0 {
+            for (node, timeout) in self.hot.consumers {
+                if node == 0 {
                     continue;
                 }
                 if let Some(&last) = self.hb_seen.get(&node) {
-                    if now >= last + ms * MS {
+                    if now >= last + timeout {
                         // Monitoring stops until the producer is heard again (CiA 301).
                         self.hb_seen.remove(&node);
                         tracing::warn!(node = self.cfg.node, producer = node, "heartbeat consumer timeout");
@@ -496,6 +526,7 @@ impl SimDrive {
             NmtCommand::ResetNode => {
                 // Reset application: every object to its default, power stage off.
                 self.od.reset_range(0x0000, 0xFFFF);
+                self.recache();
                 self.prev_cw = 0;
                 self.stop = None;
                 self.ferr_flag = false;
@@ -508,6 +539,7 @@ impl SimDrive {
                     self.abort_connection(0x8100, now);
                 }
                 self.od.reset_range(0x1000, 0x1FFF);
+                self.recache();
                 self.reset_comm(now);
             }
         }
@@ -629,6 +661,7 @@ impl SimDrive {
                 // A PDO value a real drive would refuse by SDO is ignored.
                 if self.object_rules(e.index, e.sub, v).is_ok() && v >= ent.min && v <= ent.max {
                     self.od.set(e.index, e.sub, v);
+                    self.recache();
                     self.after_write(e.index, e.sub, v, now);
                 }
             }
@@ -639,7 +672,7 @@ impl SimDrive {
     /// Event-driven TPDOs (254/255): on change (respecting the inhibit time) and on the
     /// event timer. Checked every control tick.
     fn event_tpdos(&mut self, now: u64) {
-        if self.nmt != NmtState::Operational {
+        if !self.hot.event_tpdo || self.nmt != NmtState::Operational {
             return;
         }
         let mut refreshed = false;
@@ -796,6 +829,7 @@ impl SimDrive {
         if let Value::Int(x) = v {
             self.object_rules(index, sub, x)?;
             self.od.store(index, sub, v);
+            self.recache();
             self.after_write(index, sub, x, now);
         } else {
             self.od.store(index, sub, v);
@@ -996,6 +1030,7 @@ impl SimDrive {
         if old != m {
             tracing::info!(node = self.cfg.node, "mode {} → {}", mode::name(old), mode::name(m));
             self.od.set(ix::MODES_DISPLAY, 0, m as i64);
+            self.hot.mode = m;
             self.rebase();
         }
     }
@@ -1253,10 +1288,10 @@ impl SimDrive {
 
         // Following error monitoring (position control while enabled).
         if self.state == State::OperationEnabled && matches!(cmd, Command::Position { .. }) {
-            let window = self.od.int(ix::FOLLOWING_ERROR_WINDOW, 0);
+            let window = self.hot.ferr_window;
             if window != u32::MAX as i64 && (self.ferr() as i64).abs() > window {
                 let since = *self.ferr_since.get_or_insert(now);
-                let timeout = self.od.int(ix::FOLLOWING_ERROR_TIMEOUT, 0) as u64 * MS;
+                let timeout = self.hot.ferr_timeout;
                 if now - since >= timeout {
                     self.ferr_flag = true;
                     self.ferr_since = None;
