@@ -712,3 +712,69 @@ fn halt_stops_on_the_profile_ramp_and_holds() {
     }
     assert!((r.w.drive(1).unwrap().position_actual() - held).abs() <= 1, "holds position");
 }
+
+#[test]
+fn reset_communication_restores_pdos_but_keeps_the_application() {
+    let mut r = Rig::new(one_axis());
+    r.download(1, 0x6060, 0, &[8]).unwrap();
+    r.w32(1, 0x1800, 1, 0x8000_0181).unwrap();
+    r.download(1, 0x605A, 0, &[6, 0]).unwrap();
+    r.send(NmtCommand::ResetCommunication.frame(1));
+    let got: Vec<String> = r.run(20 * MS).iter().map(hex).collect();
+    assert_eq!(got, vec!["701#00"]);
+    assert_eq!(r.upload(1, 0x1800, 1), Ok(0x181u32.to_le_bytes().to_vec()), "communication objects back to default");
+    assert_eq!(r.upload(1, 0x605A, 0), Ok(vec![6, 0]), "application objects kept");
+    assert_eq!(r.upload(1, 0x6060, 0), Ok(vec![8]));
+    r.send(NmtCommand::ResetNode.frame(0));
+    r.run(20 * MS);
+    assert_eq!(r.upload(1, 0x605A, 0), Ok(vec![2, 0]), "reset node restores everything");
+    assert_eq!(r.w.drive(1).unwrap().state(), State::SwitchOnDisabled);
+}
+
+#[test]
+fn quick_stop_option_0_coasts_and_6_stays() {
+    for (option, expect) in [(0u8, State::SwitchOnDisabled), (6, State::QuickStopActive)] {
+        let mut r = Rig::new(one_axis());
+        r.download(1, 0x605A, 0, &[option, 0]).unwrap();
+        r.enable();
+        let path = trapezoid(0.0, 1_000_000.0, 1.0e6, 2.0e7, 0.002);
+        for p in &path[..60] {
+            r.cycle(0x0F, p.round() as i32, 2 * MS);
+        }
+        r.cycle(0x0B, 0, 2 * MS);
+        let first = r.w.drive(1).unwrap().state();
+        for _ in 0..100 {
+            r.cycle(0x0B, 0, 2 * MS);
+        }
+        let d = r.w.drive(1).unwrap();
+        assert_eq!(d.state(), expect, "option {option}");
+        assert_eq!(d.velocity_actual(), 0);
+        if option == 0 {
+            assert_eq!(first, State::SwitchOnDisabled, "coasting: power off at once");
+        } else {
+            // Stays in Quick Stop Active; Enable Operation (transition 16) resumes.
+            let pos = d.position_actual();
+            r.cycle(0x0F, pos, 2 * MS);
+            r.cycle(0x0F, pos, 2 * MS);
+            assert_eq!(r.w.drive(1).unwrap().state(), State::OperationEnabled);
+        }
+    }
+}
+
+#[test]
+fn nmt_stop_while_enabled_acts_per_abort_connection_option() {
+    let mut r = Rig::new(one_axis());
+    r.enable();
+    r.send(NmtCommand::Stop.frame(1));
+    let got = r.run(MS);
+    assert_eq!(got.iter().map(hex).collect::<Vec<_>>(), vec!["081#0081110000000000"]);
+    r.run(100 * MS);
+    assert_eq!(r.w.drive(1).unwrap().state(), State::Fault);
+    // With 0x6007 = 0 nothing happens to the power stage.
+    let mut r = Rig::new(one_axis());
+    r.download(1, 0x6007, 0, &[0, 0]).unwrap();
+    r.enable();
+    r.send(NmtCommand::Stop.frame(1));
+    r.run(100 * MS);
+    assert_eq!(r.w.drive(1).unwrap().state(), State::OperationEnabled);
+}
