@@ -324,9 +324,9 @@ impl SimDrive {
     pub fn following_error(&self) -> i32 {
         self.ferr()
     }
-    /// 0x606C, counts/s.
+    /// 0x606C, counts/s: the drive's filtered speed estimate.
     pub fn velocity_actual(&self) -> i32 {
-        self.servo.velocity_counts().round().clamp(i32::MIN as f64, i32::MAX as f64) as i32
+        self.servo.velocity_estimate_counts().round().clamp(i32::MIN as f64, i32::MAX as f64) as i32
     }
     pub fn mode_display(&self) -> i8 {
         self.hot.mode

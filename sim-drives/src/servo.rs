@@ -1,8 +1,9 @@
 //! One motor, its load and the drive's control cascade: position loop (P, gain Kv, with
 //! velocity feed-forward) → velocity loop (PI) → torque (limited) → rigid inertia with
-//! Coulomb and viscous friction. The encoder reports whole counts; the position loop closes
-//! on those. The velocity loop uses the motor's true speed, standing in for the fine
-//! (interpolated sin/cos or 20+ bit) encoder real drives close their speed loop on.
+//! Coulomb and viscous friction. The encoder reports whole counts of the position unit; the
+//! position loop closes on those. The velocity loop closes on a speed estimated as real
+//! drives do it: the difference of a finer internal encoder reading (2^speed_encoder_bits
+//! per rev) per control tick, low-pass filtered.
 
 use crate::config::Physics;
 use std::f64::consts::PI;
@@ -35,6 +36,10 @@ pub struct Servo {
     integ: f64,
     /// Velocity reference of the last tick, rad/s (for logs and tests).
     vref: f64,
+    /// Internal encoder reading at the last tick (whole increments) and the filtered speed
+    /// estimate the velocity loop uses, rad/s.
+    enc_prev: f64,
+    omega_est: f64,
     /// External load torque (fault injection: gravity, a cutting force), N·m.
     pub load_torque: f64,
     /// Extra dry friction (fault injection: a jammed slide, a crashed tool), N·m.
@@ -52,6 +57,8 @@ impl Servo {
             torque: 0.0,
             integ: 0.0,
             vref: 0.0,
+            enc_prev: 0.0,
+            omega_est: 0.0,
             load_torque: 0.0,
             jam_friction: 0.0,
         }
@@ -83,6 +90,7 @@ impl Servo {
     /// Put the motor at a position (power-on offset of an absolute encoder).
     pub fn set_position(&mut self, counts: f64) {
         self.pos = counts;
+        self.enc_prev = self.encoder();
     }
 
     /// True at standstill as a drive's speed window sees it (below ~1 rpm).
@@ -90,8 +98,29 @@ impl Servo {
         self.omega.abs() < 0.1
     }
 
+    /// The fine internal encoder: whole increments of 2π / 2^speed_encoder_bits.
+    fn encoder(&self) -> f64 {
+        let per_rad = (self.p.speed_encoder_bits.min(40) as f64).exp2() / (2.0 * PI);
+        (self.pos * self.rad_per_count * per_rad).floor()
+    }
+
+    /// Speed estimate (counts/s) as the velocity loop sees it and 0x606C reports it.
+    pub fn velocity_estimate_counts(&self) -> f64 {
+        self.omega_est / self.rad_per_count
+    }
+
     /// One control tick: compute the torque held until the next tick.
     pub fn control(&mut self, cmd: Command, dt: f64) {
+        // Speed from encoder increments per tick, filtered (first order).
+        let enc = self.encoder();
+        if dt > 0.0 {
+            let per_rad = (self.p.speed_encoder_bits.min(40) as f64).exp2() / (2.0 * PI);
+            let raw = (enc - self.enc_prev) / per_rad / dt;
+            let tf = self.p.speed_filter_ms * 1e-3;
+            let a = if tf > 0.0 { 1.0 - (-dt / tf).exp() } else { 1.0 };
+            self.omega_est += (raw - self.omega_est) * a;
+        }
+        self.enc_prev = enc;
         let vmax = self.p.max_speed_rpm * 2.0 * PI / 60.0;
         let vref_counts = match cmd {
             Command::Off => {
@@ -111,7 +140,7 @@ impl Servo {
         };
         let vref = (vref_counts * self.rad_per_count).clamp(-vmax, vmax);
         self.vref = vref;
-        let err = vref - self.omega;
+        let err = vref - self.omega_est;
         let ki = self.p.vel_kp / (self.p.vel_ti_ms * 1e-3);
         let lim = self.p.torque_limit;
         let unsat = self.p.vel_kp * err + self.integ;
