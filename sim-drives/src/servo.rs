@@ -293,6 +293,27 @@ mod tests {
     }
 
     #[test]
+    fn settles_within_one_count_with_heavy_friction() {
+        // Five times the default dry friction (a tight gib, cold grease): the integrator
+        // must still push it onto the count without hunting.
+        for kind in [DriveKind::Linear, DriveKind::Spindle] {
+            let mut p = Physics::default_for(kind);
+            p.coulomb_friction *= 5.0;
+            p.viscous_friction *= 3.0;
+            let mut s = Servo::new(p, 100_000);
+            for target in [50_000.0, 50_017.0, 49_999.0, -3.0] {
+                run_to(&mut s, target, 2.0);
+                let mut worst = 0.0f64;
+                for _ in 0..4 {
+                    run_to(&mut s, target, 0.25);
+                    worst = worst.max((s.position_counts() as f64 - target).abs());
+                }
+                assert!(worst <= 1.0, "{kind:?} target {target}: error up to {worst} counts");
+            }
+        }
+    }
+
+    #[test]
     fn dry_friction_holds_a_small_torque() {
         let p = Physics::default_for(DriveKind::Linear);
         let mut s = Servo::new(p.clone(), 100_000);
