@@ -1007,7 +1007,9 @@ impl SimDrive {
                 let reached = if let Some(st) = self.stop {
                     st.v == 0.0 && self.servo.at_rest()
                 } else if m == mode::CYCLIC_SYNC_VELOCITY {
-                    (self.servo.velocity_counts() - self.target_vel).abs() <= self.cfg.counts_per_rev as f64 / 600.0
+                    // Velocity window: 1 rpm or 0.5 % of the target, whichever is larger.
+                    let window = (self.cfg.counts_per_rev as f64 / 60.0).max(0.005 * self.target_vel.abs());
+                    (self.servo.velocity_estimate_counts() - self.target_vel).abs() <= window
                 } else {
                     let window = self.od.int(POSITION_WINDOW, 0) as f64;
                     self.demand == self.seg_end && (self.demand - self.servo.position_counts() as f64).abs() <= window
@@ -1016,10 +1018,9 @@ impl SimDrive {
                     s |= sw::TARGET_REACHED;
                 }
             }
-            State::QuickStopActive
-                if self.stop.is_none_or(|st| st.v == 0.0 && self.servo.at_rest()) => {
-                    s |= sw::TARGET_REACHED;
-                }
+            State::QuickStopActive if self.stop.is_none_or(|st| st.v == 0.0 && self.servo.at_rest()) => {
+                s |= sw::TARGET_REACHED;
+            }
             _ => {}
         }
         s
@@ -1093,12 +1094,9 @@ impl SimDrive {
         let mut new = new;
         match new {
             State::OperationEnabled => {
-                if old != State::QuickStopActive {
-                    self.rebase();
-                } else {
-                    self.stop = None;
-                    self.rebase();
-                }
+                // From below or (transition 16) from a finished quick stop: hold here.
+                self.stop = None;
+                self.rebase();
             }
             State::QuickStopActive => {
                 let code = self.od.int(ix::QUICK_STOP_OPTION, 0);
