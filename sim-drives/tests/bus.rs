@@ -779,3 +779,66 @@ fn nmt_stop_while_enabled_acts_per_abort_connection_option() {
     r.run(100 * MS);
     assert_eq!(r.w.drive(1).unwrap().state(), State::OperationEnabled);
 }
+
+#[test]
+fn event_driven_tpdo_on_change_and_timer() {
+    let mut r = Rig::new(one_axis());
+    // TPDO2 (statusword + velocity): event-driven, inhibit 5 ms, event timer 20 ms.
+    r.download(1, 0x1801, 2, &[255]).unwrap();
+    r.download(1, 0x1801, 3, &[50, 0]).unwrap();
+    r.download(1, 0x1801, 5, &[20, 0]).unwrap();
+    r.w32(1, 0x1801, 1, 0x281).unwrap();
+    assert_eq!(r.download(1, 0x1801, 3, &[10, 0]), Err(abort::INVALID_VALUE), "inhibit only while invalid");
+    r.send(NmtCommand::Start.frame(1));
+    // No SYNC at all: first at once, then only the event timer (nothing changes).
+    let mut times = Vec::new();
+    for _ in 0..70 {
+        if r.run(MS).iter().any(|f| f.cob_id() == 0x281) {
+            times.push(r.now());
+        }
+    }
+    let t0 = times[0];
+    assert_eq!(times.iter().map(|t| (t - t0) / MS).collect::<Vec<_>>(), vec![0, 20, 40, 60]);
+    // A change (Shutdown → Ready to Switch On) is sent at once, via RPDO1 at the next SYNC.
+    r.send(CanFrame::new(0x201, &[6, 0, 0, 0, 0, 0]));
+    r.send(sync_frame(None));
+    let got = r.run(MS);
+    let f = got.iter().find(|f| f.cob_id() == 0x281).expect("TPDO2 on change");
+    assert_eq!(&f.data()[..2], &[0x31, 0x02]);
+}
+
+#[test]
+fn rpdo_too_short_is_refused_with_emcy_8210_and_type_255_acts_at_once() {
+    let mut r = Rig::new(one_axis());
+    r.send(NmtCommand::Start.frame(1));
+    r.run(MS);
+    r.send(CanFrame::new(0x201, &[6, 0, 0]));
+    let got: Vec<String> = r.run(MS).iter().map(hex).collect();
+    assert_eq!(got, vec!["081#1082110000000000"]);
+    // Asynchronous RPDO: the controlword acts without a SYNC.
+    r.download(1, 0x1400, 2, &[255]).unwrap();
+    r.send(CanFrame::new(0x201, &[6, 0, 0, 0, 0, 0]));
+    r.run(MS);
+    assert_eq!(r.w.drive(1).unwrap().state(), State::ReadyToSwitchOn);
+}
+
+#[test]
+fn software_limits_clamp_the_target_and_set_bit_11() {
+    let mut r = Rig::new(one_axis());
+    r.w32(1, 0x607D, 1, (-1000i32) as u32).unwrap();
+    r.w32(1, 0x607D, 2, 5000).unwrap();
+    // Interpolation period set explicitly: 2 ms (value 2, index -3).
+    r.download(1, 0x60C2, 1, &[2]).unwrap();
+    r.download(1, 0x60C2, 2, &[(-3i8) as u8]).unwrap();
+    r.enable();
+    let mut s = 0;
+    for k in 0..200 {
+        s = r.cycle(0x0F, (k * 100).min(8000), 2 * MS).unwrap().0;
+    }
+    let d = r.w.drive(1).unwrap();
+    assert!((d.position_actual() - 5000).abs() <= 1, "{}", d.position_actual());
+    assert!(s & sw::INTERNAL_LIMIT != 0, "{s:#06x}");
+    let s = r.cycle(0x0F, 4000, 2 * MS).unwrap().0;
+    let s2 = r.cycle(0x0F, 4000, 2 * MS).unwrap().0;
+    assert!(s2 & sw::INTERNAL_LIMIT == 0, "{s:#06x} {s2:#06x}");
+}
