@@ -14,6 +14,8 @@ use cncgw_bus::cia402::{cw, device_transition, mode, sw, QuickStopOption, State}
 use cncgw_bus::CanFrame;
 use std::collections::BTreeMap;
 
+/// How many interpolation periods a late SYNC is bridged by extrapolating the set-point.
+const SYNC_EXTRAPOLATE_PERIODS: u64 = 3;
 const MS: u64 = 1_000_000;
 const N_RPDO: u16 = 2;
 const N_TPDO: u16 = 2;
@@ -1262,8 +1264,17 @@ impl SimDrive {
                 // The end of a segment is also the instant of the next SYNC: keep the
                 // segment's speed so that an on-time SYNC sees no dip in the feed-forward.
                 self.demand = self.seg_end;
+            } else if el > self.seg_len && el <= self.seg_len * (1 + SYNC_EXTRAPOLATE_PERIODS) {
+                // A late SYNC: keep going at the segment's speed, as real drives
+                // extrapolate the set-point over a missing or late SYNC instead of stopping
+                // the motor dead (which opens a following error on every jittery cycle).
+                let v = (self.seg_end - self.seg_start) / (self.seg_len as f64 * 1e-9);
+                self.demand = self.seg_end + v * ((el - self.seg_len) as f64 * 1e-9);
+                self.vff = v;
             } else if el > self.seg_len {
-                self.demand = self.seg_end;
+                // No SYNC for several periods: the master is gone or stalled; hold.
+                let v = (self.seg_end - self.seg_start) / (self.seg_len as f64 * 1e-9);
+                self.demand = self.seg_end + v * ((self.seg_len * SYNC_EXTRAPOLATE_PERIODS) as f64 * 1e-9);
                 self.vff = 0.0;
             } else {
                 let f = el as f64 / self.seg_len as f64;

@@ -47,6 +47,8 @@ pub struct RunSummary {
     /// Time from start to every drive in Operation Enabled, seconds of clock time.
     pub enable_time_s: f64,
     pub cycles: u64,
+    /// Cycles in which the loop woke a whole period late (real time only).
+    pub overruns: u64,
     pub axes: Vec<AxisSummary>,
     pub simulated: bool,
 }
@@ -112,6 +114,9 @@ impl<'a> CycleLoop<'a> {
             next += self.cycle_ns;
             self.clock.wait_until(next);
             let now = self.clock.now_ns();
+            if now >= next + self.cycle_ns {
+                next = now - (now - next) % self.cycle_ns;
+            }
             self.drives.receive(now)?;
             let done = self.drives.enable_step()?;
             self.drives.transmit(now)?;
@@ -210,6 +215,12 @@ impl<'a> CycleLoop<'a> {
             self.clock.wait_until(next);
             let now = self.clock.now_ns();
             summary.cycles += 1;
+            if now >= next + self.cycle_ns {
+                // Overrun: a whole period was missed. Realign instead of running the missed
+                // cycles back to back (the drives could not have answered in between).
+                summary.overruns += 1;
+                next = now - (now - next) % self.cycle_ns;
+            }
             if let Err(a) = self.drives.receive(now) {
                 self.drives.quick_stop();
                 let _ = self.drives.transmit(now);

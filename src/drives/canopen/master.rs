@@ -78,7 +78,8 @@ struct Node {
     raw_pos: i32,
     unwrapped: i64,
     have_fb: bool,
-    fb_cycle: u64,
+    /// Clock time of the last TPDO1.
+    fb_ns: u64,
     target: i64,
     controlword: u16,
     enabled: bool,
@@ -97,6 +98,8 @@ pub struct CanOpenMaster<B: CanBus> {
     boot_timeout_ms: u32,
     bitrate: u32,
     cycles: u64,
+    /// Clock time of the last `receive`.
+    now_ns: u64,
     enable_cycles: u64,
     running: bool,
     /// The master heartbeat runs from the first configured consumer on.
@@ -123,7 +126,7 @@ impl<B: CanBus> CanOpenMaster<B> {
                 raw_pos: 0,
                 unwrapped: 0,
                 have_fb: false,
-                fb_cycle: 0,
+                fb_ns: 0,
                 target: 0,
                 controlword: 0,
                 enabled: false,
@@ -141,6 +144,7 @@ impl<B: CanBus> CanOpenMaster<B> {
             next_hb_ns: 0,
             boot_timeout_ms: timeout.max(100) * 4,
             bitrate: cfg.bus.bitrate,
+            now_ns: 0,
             cycles: 0,
             enable_cycles: 0,
             running: false,
@@ -259,7 +263,7 @@ impl<B: CanBus> CanOpenMaster<B> {
             }
             n.raw_pos = raw;
             n.have_fb = true;
-            n.fb_cycle = self.cycles;
+            n.fb_ns = now_ns;
         }
     }
 
@@ -485,6 +489,7 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
 
     fn receive(&mut self, now_ns: u64) -> Result<(), Alarm> {
         self.cycles += 1;
+        self.now_ns = now_ns;
         loop {
             match self.bus.try_recv() {
                 Ok(Some(f)) => self.on_background(&f, now_ns),
@@ -517,8 +522,15 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
                     format!("heartbeat lost (none for {} ms); check the cable and the drive's power", now_ns.saturating_sub(n.last_hb_ns) / 1_000_000),
                 ));
             }
-            if self.running && self.cycles.saturating_sub(n.fb_cycle) > MAX_FEEDBACK_AGE as u64 {
-                return Err(self.node_alarm(i, 2015, format!("no position feedback (TPDO1) for {} cycles", self.cycles - n.fb_cycle)));
+            // Age by time, not by cycles: after the cycle thread was late, a cycle follows
+            // at once and a drive cannot have answered yet.
+            let age = now_ns.saturating_sub(n.fb_ns);
+            if self.running && age > MAX_FEEDBACK_AGE as u64 * self.cycle_ns {
+                return Err(self.node_alarm(
+                    i,
+                    2015,
+                    format!("no position feedback (TPDO1) for {:.1} ms ({} cycles); check the drive's PDO configuration and the bus", age as f64 * 1e-6, age / self.cycle_ns),
+                ));
             }
         }
         Ok(())
@@ -530,7 +542,7 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
             pos: n.unwrapped as f64 / n.spec.counts_per_unit,
             counts: n.unwrapped,
             statusword: n.status,
-            age_cycles: self.cycles.saturating_sub(n.fb_cycle) as u32,
+            age_cycles: (self.now_ns.saturating_sub(n.fb_ns) / self.cycle_ns.max(1)) as u32,
         }
     }
 
