@@ -10,8 +10,15 @@
 //!   rest of the segment can still be braked to rest with the same step (a discrete
 //!   trapezoid). Being online, a per-revolution feed follows the measured spindle speed, and
 //!   overrides, feed hold and stop take effect in the next cycle.
-//! - Each segment ends with an exact stop (milestone 1): the last moving cycle lands on the end
-//!   point bit for bit, and the following cycle holds it at rest before the next item starts.
+//! - A segment with `exact_stop` (G61/G09/rapids), or followed by anything but a motion, ends
+//!   at rest: the last moving cycle lands on the end point bit for bit, and the following cycle
+//!   holds it before the next item starts.
+//! - Look-ahead (G64): a segment pushed without `exact_stop` is linked to the next one when it
+//!   arrives. The junction is crossed within one cycle at a speed limited by the corner angle
+//!   (each axis' velocity jump `v·|Δu_i| ≤ ½·amax_i·dt`), by both segments' speed limits, and
+//!   by the next segment's length (one junction per cycle, so `step` stays O(1)); a backward
+//!   pass in `push` makes sure every later stop can still be braked for. Segments next to a
+//!   blended junction ramp with half the acceleration, the other half is the corner's.
 //! - Events (aux codes, M00/M01, M30) and spindle commands are taken in program order, one item
 //!   per cycle, so `step` is O(1).
 //!
@@ -181,6 +188,18 @@ struct Seg {
     vlim: f64,
     /// Path acceleration, mm/s².
     alim: f64,
+    /// Unit tangents at start and end.
+    t0: [f64; 3],
+    t1: [f64; 3],
+    /// The previous segment may blend into this one (it was pushed without exact stop).
+    blend_in: bool,
+    /// Speed limit at the junction with the next segment (corner, axis limits, lengths);
+    /// 0 while no next segment is linked: the segment ends with an exact stop.
+    vj: f64,
+    /// Look-ahead: distance beyond the end at which braking to rest may be assumed
+    /// (see `relax`). 0 = exact stop at the end. Only ever grows while the segment is queued
+    /// or running, which keeps the braking invariant of `profile` valid.
+    ext: f64,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -221,6 +240,8 @@ pub struct Motion {
     plan_end: [f64; 3],
     plan_c: Option<f64>,
     plan_spindle_on: bool,
+    /// The last pushed item is a motion without exact stop: the next one may blend into it.
+    last_blendable: bool,
     // Spindle execution state (rpm).
     sp_dir: f64,
     sp_rpm: f64,
@@ -254,6 +275,7 @@ impl Motion {
             plan_end: [start[AX_X], start[AX_Y], start[AX_Z]],
             plan_c: None,
             plan_spindle_on: false,
+            last_blendable: false,
             sp_dir: 0.0,
             sp_rpm: 0.0,
             sp_css: None,
@@ -295,22 +317,24 @@ impl Motion {
                 "motion queue full: the caller must wait for has_room() before pushing",
             )));
         }
+        let blend_in = self.last_blendable;
+        let blended = blend_in || !m.exact_stop;
         let item = match &m.kind {
             MoveKind::Rapid { end } => {
                 let end = self.check_end(end).map_err(at)?;
                 let g = geom::line(self.plan_end, end);
-                Item::Move(self.line_seg(g, Speed::Rapid))
+                Item::Move(self.line_seg(g, Speed::Rapid, blended))
             }
             MoveKind::Feed { end, feed } => {
                 let speed = self.check_feed(feed).map_err(at)?;
                 let end = self.check_end(end).map_err(at)?;
                 let g = geom::line(self.plan_end, end);
-                Item::Move(self.line_seg(g, speed))
+                Item::Move(self.line_seg(g, speed, blended))
             }
             MoveKind::Arc { end, center, cw, plane, feed } => {
                 let speed = self.check_feed(feed).map_err(at)?;
                 let end = self.check_end(end).map_err(at)?;
-                Item::Move(self.arc_seg(end, xyz(center), *cw, *plane, speed).map_err(at)?)
+                Item::Move(self.arc_seg(end, xyz(center), *cw, *plane, speed, blended).map_err(at)?)
             }
             MoveKind::Thread { .. } | MoveKind::Tap { .. } => {
                 return Err(at(Alarm::new(
@@ -335,24 +359,114 @@ impl Motion {
             MoveKind::Stop { optional } => Item::Event(Event::Stop { optional: *optional }),
             MoveKind::End { .. } => Item::Event(Event::End),
         };
+        let mut item = item;
         // Accepted: commit the planning state.
-        match (&item, &m.kind) {
-            (Item::Move(s), _) => {
+        match &mut item {
+            Item::Move(s) => {
+                s.blend_in = blend_in;
                 self.plan_end = s.geom.end();
                 if let Some(e) = m.kind.end() {
                     self.plan_c = Some(e.c);
                 }
             }
-            (Item::Spindle(c), _) => {
+            Item::Spindle(c) => {
                 self.plan_spindle_on =
                     c.dir != SpindleDir::Stop && (c.rpm > 0.0 || c.css.is_some_and(|v| v > 0.0));
             }
             _ => {}
         }
+        let is_move = matches!(item, Item::Move(_));
         let i = (self.head + self.len) % self.queue.len();
         self.queue[i] = Entry { item, line: m.src.line };
         self.len += 1;
+        if is_move && blend_in {
+            self.link_last();
+        }
+        self.last_blendable = is_move && !m.exact_stop;
         Ok(())
+    }
+
+    /// The segment before the newest queued one, if it has not finished yet: the previous
+    /// queue entry, or the running segment when the new one is the only one queued.
+    fn prev_seg_mut(&mut self, back: usize) -> Option<&mut Seg> {
+        let cap = self.queue.len();
+        if back < self.len {
+            match &mut self.queue[(self.head + self.len - 1 - back) % cap].item {
+                Item::Move(s) => Some(s),
+                _ => None,
+            }
+        } else if back == self.len {
+            match &mut self.run {
+                Run::Move { seg, landed: false, .. } => Some(seg),
+                _ => None,
+            }
+        } else {
+            None
+        }
+    }
+
+    /// Link the newest segment to its predecessor (G64): the junction speed limit from the
+    /// corner angle and the axis limits, then the backward pass.
+    fn link_last(&mut self) {
+        let dt = self.lim.cycle_s;
+        let Some(Item::Move(new)) = self.len.checked_sub(1).map(|k| self.queue[(self.head + k) % self.queue.len()].item)
+        else {
+            return;
+        };
+        let amax = self.lim.amax;
+        let Some(prev) = self.prev_seg_mut(1) else { return };
+        // The junction is crossed within one cycle: the velocity vector turns from t1 to t0
+        // there, so each axis' speed jumps by v·|Δu_i|; allow half its acceleration for that
+        // (the other half is the tangential ramp, see line_seg/arc_seg). One crossing per
+        // cycle at most: v ≤ len/dt of the next segment.
+        let mut v = prev.vlim.min(new.vlim).min(new.geom.len() / dt);
+        for i in 0..3 {
+            let du = (new.t0[i] - prev.t1[i]).abs();
+            if du > 1e-12 {
+                v = v.min(0.5 * amax[i] * dt / du);
+            }
+        }
+        prev.vj = finite_or_zero(v);
+        self.relax();
+    }
+
+    /// Backward pass over the linked chain from the newest segment: the speed at which each
+    /// junction may be crossed (≤ its corner limit, and low enough that the rest of the chain
+    /// can still be braked within the acceleration), expressed as the segment's `ext`. Stops
+    /// as soon as a segment's `ext` does not grow. O(queue length), in `push` only.
+    fn relax(&mut self) {
+        let dt = self.lim.cycle_s;
+        let cap = self.queue.len();
+        let Some(Item::Move(newest)) = self.len.checked_sub(1).map(|k| self.queue[(self.head + k) % cap].item) else {
+            return;
+        };
+        let (mut nlen, mut next_ext, mut ndv) = (newest.geom.len(), newest.ext, newest.alim * dt);
+        let mut next_cap = speed_cap(&newest);
+        let mut back = 1;
+        while let Some(prev) = self.prev_seg_mut(back) {
+            if !(prev.vj > 0.0) {
+                break;
+            }
+            // Hard limit of the crossing speed: the corner, and the next segment must be
+            // brakeable from it (its own staircase).
+            let ve = prev.vj.min(profile::v_allowed(nlen + next_ext, ndv, dt));
+            let pdv = prev.alim * dt;
+            // A virtual stop `dt·G(w)` beyond the end: the cycle that crosses the junction then
+            // runs slower than `w + dv` (see profile::v_allowed). `w = ve − dv` keeps the hard
+            // limit; the next segment's feed (soft: `v_cmd` caps the speed anyway) lowers `w`
+            // so that a drop in F is braked before the junction, to within one step.
+            // Below one step: exact stop.
+            let ext = if ve > pdv { dt * profile::g((ve - pdv).min(next_cap), pdv) } else { 0.0 };
+            if !(ext > prev.ext) {
+                break;
+            }
+            prev.ext = ext;
+            nlen = prev.geom.len();
+            next_ext = ext;
+            ndv = pdv;
+            next_cap = speed_cap(prev);
+            back += 1;
+        }
     }
 
     fn check_end(&self, end: &Pos) -> Result<[f64; 3], Alarm> {
@@ -436,7 +550,9 @@ impl Motion {
         Ok(*c)
     }
 
-    fn line_seg(&self, g: Geom, speed: Speed) -> Seg {
+    /// A line segment. `blended`: a junction at either end may be passed without stopping, so
+    /// half of each axis' acceleration is kept for the velocity change at the corner.
+    fn line_seg(&self, g: Geom, speed: Speed, blended: bool) -> Seg {
         let (mut v, mut a) = (f64::INFINITY, f64::INFINITY);
         if let Geom::Line { delta, len, .. } = g {
             if len > 0.0 {
@@ -449,10 +565,21 @@ impl Motion {
                 }
             }
         }
-        Seg { geom: g, speed, vlim: finite_or_zero(v), alim: finite_or_zero(a) }
+        let share = if blended { 0.5 } else { 1.0 };
+        seg(g, speed, v, a * share)
     }
 
-    fn arc_seg(&self, end: [f64; 3], center: [f64; 3], cw: bool, plane: Plane, speed: Speed) -> Result<Seg, Alarm> {
+    /// An arc segment: tangential and centripetal acceleration share each plane axis' limit
+    /// (0.5 + 0.45 with exact stops; 0.25 + 0.25 when blended, leaving 0.5 for the corner).
+    fn arc_seg(
+        &self,
+        end: [f64; 3],
+        center: [f64; 3],
+        cw: bool,
+        plane: Plane,
+        speed: Speed,
+        blended: bool,
+    ) -> Result<Seg, Alarm> {
         let axes = match plane {
             Plane::Xy => (AX_X, AX_Y, AX_Z),
             Plane::Zx => (AX_Z, AX_X, AX_Y),
@@ -482,15 +609,20 @@ impl Motion {
         let rmin = r0.min(r1);
         let len = g.len();
         let uc = if let Geom::Arc { dc, .. } = g { dc.abs() / len.max(1e-300) } else { 0.0 };
+        let (tangential, centripetal) = if blended { (0.25, 0.25) } else { (0.5, 0.45) };
         let mut v = l.vmax[ia].min(l.vmax[ib]);
-        v = v.min((0.45 * a_plane * rmin).sqrt());
+        v = v.min((centripetal * a_plane * rmin).sqrt());
         v = v.min((8.0 * rmin * l.chord_tol).sqrt() / l.cycle_s);
-        let mut a = 0.5 * a_plane;
+        let mut a = tangential * a_plane;
         if uc > 0.0 {
             v = v.min(l.vmax[ic] / uc);
-            a = a.min(l.amax[ic] / uc);
+            a = a.min(tangential * l.amax[ic] / uc);
         }
-        Ok(Seg { geom: g, speed, vlim: finite_or_zero(v), alim: finite_or_zero(a) })
+        Ok(seg(g, speed, v, a))
+    }
+
+    fn peek(&self) -> Option<Entry> {
+        (self.len > 0).then(|| self.queue[self.head])
     }
 
     fn pop(&mut self) -> Option<Entry> {
@@ -585,17 +717,33 @@ impl Motion {
             Run::Move { seg, s, v, landed: false } => {
                 let len = seg.geom.len();
                 let d = len - s;
-                let nv = profile::next_speed(v, self.v_cmd(&seg, fb), d, seg.alim * dt, dt);
-                let (s2, landed) = if d - nv * dt <= 1e-9 { (len, true) } else { (s + nv * dt, false) };
-                let p = seg.geom.at(s2);
-                self.pos[..3].copy_from_slice(&p);
-                path_v = if landed { d / dt } else { nv };
-                // Stopping and at rest (this cycle did not move): done.
-                self.run = if self.stopping && nv == 0.0 && !landed {
-                    Run::None
-                } else {
-                    Run::Move { seg, s: s2, v: nv, landed }
+                let nv = profile::next_speed(v, self.v_cmd(&seg, fb), d + seg.ext, seg.alim * dt, dt);
+                let reach = d - nv * dt <= 1e-9;
+                let next = match (reach && seg.ext > 0.0, self.peek()) {
+                    (true, Some(Entry { item: Item::Move(next), line })) => Some((next, line)),
+                    _ => None,
                 };
+                if let Some((next, line)) = next {
+                    // Blend: cross the junction within this cycle, onto the next segment.
+                    self.pop();
+                    self.line = line;
+                    let s2 = (nv * dt - d).clamp(0.0, next.geom.len());
+                    let p = next.geom.at(s2);
+                    self.pos[..3].copy_from_slice(&p);
+                    path_v = nv;
+                    self.run = Run::Move { seg: next, s: s2, v: nv, landed: false };
+                } else {
+                    let (s2, landed) = if reach { (len, true) } else { (s + nv * dt, false) };
+                    let p = seg.geom.at(s2);
+                    self.pos[..3].copy_from_slice(&p);
+                    path_v = if landed { d / dt } else { nv };
+                    // Stopping and at rest (this cycle did not move): done.
+                    self.run = if self.stopping && nv == 0.0 && !landed {
+                        Run::None
+                    } else {
+                        Run::Move { seg, s: s2, v: nv, landed }
+                    };
+                }
             }
             Run::Dwell { left } => {
                 if self.stopping {
@@ -615,6 +763,7 @@ impl Motion {
             self.paused = false;
             self.plan_end = [self.pos[AX_X], self.pos[AX_Y], self.pos[AX_Z]];
             self.plan_spindle_on = false;
+            self.last_blendable = false;
             self.sp_dir = 0.0;
             self.sp_css = None;
         }
@@ -678,6 +827,30 @@ impl Motion {
     /// Rapid override, 0–1 (F0 … 100 %).
     pub fn set_rapid_override(&mut self, f: f64) {
         self.rapid_ovr = if f.is_finite() { f.clamp(0.0, 1.0) } else { 0.0 };
+    }
+}
+
+/// The nominal commanded speed of a segment (mm/s), for junction limits: a feed per minute
+/// (clamped by No.6023 later in `v_cmd`), unknown for a feed per revolution.
+fn speed_cap(s: &Seg) -> f64 {
+    match s.speed {
+        Speed::PerMin(f) => f,
+        Speed::Rapid | Speed::PerRev(_) => f64::INFINITY,
+    }
+}
+
+fn seg(geom: Geom, speed: Speed, v: f64, a: f64) -> Seg {
+    let (t0, t1) = geom.tangents();
+    Seg {
+        geom,
+        speed,
+        vlim: finite_or_zero(v),
+        alim: finite_or_zero(a),
+        t0,
+        t1,
+        blend_in: false,
+        vj: 0.0,
+        ext: 0.0,
     }
 }
 

@@ -485,3 +485,166 @@ proptest! {
         }
     }
 }
+
+// ---- Look-ahead (G64) ----
+
+fn mv_g64(line: u32, kind: MoveKind) -> Move {
+    Move { exact_stop: false, ..mv(line, kind) }
+}
+
+#[test]
+fn collinear_g64_segments_keep_the_feed_through_the_junctions() {
+    let l = lim();
+    let mut m = Motion::new(l.clone(), START);
+    for (i, z) in [-10.0, -20.0, -30.0, -40.0].iter().enumerate() {
+        m.push(&mv_g64(i as u32 + 1, feed(50.0, *z, 1200.0))).unwrap();
+    }
+    m.push(&mv(5, feed(50.0, -50.0, 1200.0))).unwrap();
+    let sps = run(&mut m, 100_000);
+    for s in &sps {
+        if s.pos[AX_Z] < -2.0 && s.pos[AX_Z] > -48.0 {
+            assert_eq!(s.path_feed, 1200.0, "slowed down at z {}", s.pos[AX_Z]);
+        }
+    }
+    // 50 mm at 20 mm/s plus the ramps at the blended (half) acceleration, 1000 mm/s².
+    let t = sps.len() as f64 * l.cycle_s;
+    assert!((t - (2.5 + 0.02)).abs() < 0.01, "took {t} s");
+    assert_eq!(sps.last().unwrap().pos[AX_Z], -50.0);
+    check_limits(&l, START, &sps).unwrap();
+}
+
+/// Distance of `p` from the segment `a`–`b` (plane points).
+fn dist_seg(p: (f64, f64), a: (f64, f64), b: (f64, f64)) -> f64 {
+    let (dx, dy) = (b.0 - a.0, b.1 - a.1);
+    let t = (((p.0 - a.0) * dx + (p.1 - a.1) * dy) / (dx * dx + dy * dy)).clamp(0.0, 1.0);
+    (p.0 - a.0 - t * dx).hypot(p.1 - a.1 - t * dy)
+}
+
+#[test]
+fn g64_corner_is_crossed_at_the_corner_speed_and_g61_stops_there() {
+    let l = lim();
+    for exact in [false, true] {
+        let mut m = Motion::new(l.clone(), START);
+        // Along −Z, then turning 30° towards +X.
+        let (x2, z2) = (50.0 + 10.0 * 0.5, -20.0 - 10.0 * 0.75f64.sqrt());
+        m.push(&Move { exact_stop: exact, ..mv(1, feed(50.0, -20.0, 2000.0)) }).unwrap();
+        m.push(&mv(2, feed(x2, z2, 2000.0))).unwrap();
+        let sps = run(&mut m, 100_000);
+        check_limits(&l, START, &sps).unwrap();
+        let k = sps.iter().position(|s| s.line == 2).unwrap();
+        // Speed in the cycle that reaches (G61) or crosses (G64) the corner.
+        let corner = sps[k - 1..=k].iter().map(|s| s.path_feed).fold(f64::INFINITY, f64::min);
+        let at_rest = sps.iter().any(|s| s.pos[..3] == [50.0, 0.0, -20.0] && s.vel[..3] == [0.0; 3]);
+        if exact {
+            assert!(at_rest, "G61 must stop on the corner");
+        } else {
+            // 30°: X's speed jumps by v·sin 30° across the corner; v·0.5 ≤ ½·a·dt ⇒ v ≤ 4 mm/s.
+            assert!(!at_rest, "G64 must not stop on the corner");
+            assert!(corner > 0.0 && corner <= 240.0 + 1e-9, "corner speed {corner} mm/min");
+            // The corner is cut by less than one cycle's travel.
+            let dev = sps
+                .iter()
+                .map(|s| {
+                    let p = (s.pos[AX_X], s.pos[AX_Z]);
+                    dist_seg(p, (50.0, 0.0), (50.0, -20.0)).min(dist_seg(p, (50.0, -20.0), (x2, z2)))
+                })
+                .fold(f64::MIN, f64::max);
+            assert!(dev <= 240.0 / 60.0 * l.cycle_s, "cut the corner by {dev} mm");
+        }
+    }
+}
+
+#[test]
+fn g64_late_push_still_blends_or_stops_safely() {
+    let l = lim();
+    let mut m = Motion::new(l.clone(), START);
+    m.push(&mv_g64(1, feed(50.0, -30.0, 3000.0))).unwrap();
+    let fb = Feedback::default();
+    let mut sps: Vec<Setpoint> = (0..300).map(|_| m.step(&fb)).collect();
+    // Pushed while the first is already braking for its (provisional) exact stop.
+    m.push(&mv_g64(2, feed(50.0, -60.0, 3000.0))).unwrap();
+    sps.extend((0..400).map(|_| m.step(&fb)));
+    m.push(&mv(3, feed(60.0, -60.0, 3000.0))).unwrap();
+    sps.extend(run(&mut m, 100_000));
+    check_limits(&l, START, &sps).unwrap();
+    assert_eq!(sps.last().unwrap().pos[..3], [60.0, 0.0, -60.0]);
+}
+
+#[test]
+fn g64_tiny_segments_run_without_stopping() {
+    let l = lim();
+    let mut m = Motion::new(l.clone(), START);
+    // A 0.05 mm polyline approximating a shallow curve: more segments than cycles per mm.
+    let n = 200;
+    let mut longest: f64 = 0.0;
+    let mut prev = (50.0, 0.0);
+    for i in 1..=n {
+        let z = -0.05 * i as f64;
+        let x = 50.0 + 0.2 * (z / 3.0).sin();
+        longest = longest.max((x - prev.0).hypot(z - prev.1));
+        prev = (x, z);
+        let k = if i == n { mv(i, feed(x, z, 3000.0)) } else { mv_g64(i, feed(x, z, 3000.0)) };
+        m.push(&k).unwrap();
+    }
+    let sps = run(&mut m, 100_000);
+    check_limits(&l, START, &sps).unwrap();
+    let moving = &sps[5..sps.len() - 5];
+    assert!(moving.iter().all(|s| s.path_feed > 0.0), "stopped on the way");
+    // At most one junction per cycle: speed ≤ one segment (≈ 0.05 mm) per cycle ≈ 25 mm/s.
+    let vmax = longest / l.cycle_s * 60.0;
+    assert!(sps.iter().all(|s| s.path_feed <= vmax + 1e-9), "faster than one segment per cycle");
+    assert!(sps.iter().any(|s| s.path_feed > 0.9 * 1500.0), "tiny segments ran slower than needed");
+}
+
+/// A random chain of lines and arcs, with random exact-stop flags, from the current point.
+#[derive(Clone, Debug)]
+enum Step {
+    Line { x: f64, z: f64, f: f64, exact: bool },
+    Arc { dx: f64, dz: f64, ang: f64, cw: bool, f: f64, exact: bool },
+}
+
+fn chain_strategy() -> impl Strategy<Value = Step> {
+    prop_oneof![
+        (10.0..140.0f64, -390.0..-10.0f64, 10.0..6000.0f64, any::<bool>())
+            .prop_map(|(x, z, f, exact)| Step::Line { x, z, f, exact }),
+        (-8.0..8.0f64, -8.0..8.0f64, 0.0..6.3f64, any::<bool>(), 10.0..6000.0f64, any::<bool>())
+            .prop_map(|(dx, dz, ang, cw, f, exact)| Step::Arc { dx, dz, ang, cw, f, exact }),
+    ]
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 64, ..ProptestConfig::default() })]
+    #[test]
+    fn random_g64_chains_respect_limits_and_end_exactly(steps in prop::collection::vec(chain_strategy(), 1..10)) {
+        let l = lim();
+        let start = [60.0, 0.0, -100.0, 0.0];
+        let mut m = Motion::new(l.clone(), start);
+        let mut cur = (start[AX_X], start[AX_Z]);
+        for (i, s) in steps.iter().enumerate() {
+            let line = i as u32 + 1;
+            let last = i + 1 == steps.len();
+            match *s {
+                Step::Line { x, z, f, exact } => {
+                    m.push(&Move { exact_stop: exact || last, ..mv(line, feed(x, z, f)) }).unwrap();
+                    cur = (x, z);
+                }
+                Step::Arc { dx, dz, ang, cw, f, exact } => {
+                    let (cx, cz) = (cur.0 + dx, cur.1 + dz);
+                    let r = dx.hypot(dz);
+                    if r < 0.1 { continue; }
+                    let (ex, ez) = (cx + r * ang.sin(), cz + r * ang.cos());
+                    if !(-2.0..=150.0).contains(&ex) || !(-400.0..=5.0).contains(&ez) { continue; }
+                    m.push(&Move { exact_stop: exact || last, ..mv(line, arc_zx(ex, ez, cx, cz, cw, f)) }).unwrap();
+                    cur = (ex, ez);
+                }
+            }
+        }
+        let sps = run(&mut m, 5_000_000);
+        if let Some(last) = sps.last() {
+            prop_assert_eq!((last.pos[AX_X], last.pos[AX_Z]), cur);
+        }
+        if let Err(e) = check_limits(&l, start, &sps) {
+            prop_assert!(false, "{}", e);
+        }
+    }
+}
