@@ -37,6 +37,7 @@ mod tests;
 
 use crate::canon::{Feed, Move, MoveKind, Plane, Pos, SpindleCmd, SpindleDir};
 use crate::config::{AxisKind, MachineConfig};
+use crate::sync::ThreadSync;
 use crate::Alarm;
 use geom::Geom;
 
@@ -68,6 +69,8 @@ pub mod alarms {
     pub const UNSUPPORTED: u32 = 2304;
     /// A move pushed while a controlled stop is in progress.
     pub const STOPPING: u32 = 2305;
+    /// Thread lead × spindle speed is faster than the feed axes can go.
+    pub const THREAD_TOO_FAST: u32 = 2306;
 }
 
 /// Actual values from the drives (X radius).
@@ -122,6 +125,9 @@ pub struct Limits {
     pub arc_radius_tol: f64,
     /// Look-ahead queue capacity (moves).
     pub queue_len: usize,
+    /// Spindle acceleration in rigid tapping, deg/s² (No.5261: ms to reach 1000 rpm);
+    /// infinity when not set (the spindle's max_accel then applies).
+    pub tap_accel: f64,
 }
 
 impl Limits {
@@ -138,6 +144,7 @@ impl Limits {
             chord_tol: 0.001,
             arc_radius_tol: 0.01,
             queue_len: 256,
+            tap_accel: f64::INFINITY,
         };
         for (name, a) in &cfg.axes {
             let i = match (a.kind, name.to_ascii_lowercase().as_str()) {
@@ -159,6 +166,9 @@ impl Limits {
         }
         if let Some(f) = cfg.param(6023).filter(|f| f.is_finite() && *f > 0.0) {
             l.feed_clamp = f / 60.0;
+        }
+        if let Some(ms) = cfg.param(5261).filter(|t| t.is_finite() && *t > 0.0) {
+            l.tap_accel = 1000.0 / (ms / 1000.0) * 6.0;
         }
         // No.3410: arc radius error limit (here in mm).
         if let Some(t) = cfg.param(3410).filter(|t| t.is_finite() && *t > 0.0) {
@@ -202,9 +212,34 @@ struct Seg {
     ext: f64,
 }
 
+/// A spindle-synchronised thread pass (a straight line, taper allowed).
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct ThreadSeg {
+    geom: Geom,
+    /// Path length per spindle revolution (lead along the long axis / its direction share).
+    lead_path: f64,
+    start_angle: f64,
+    vlim: f64,
+    alim: f64,
+}
+
+/// A rigid-tap stroke along Z: the spindle angle is `360·(z − z0)/lead`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct TapSeg {
+    z0: f64,
+    z1: f64,
+    lead: f64,
+    /// Commanded Z speed (rpm × |lead|), mm/s.
+    v: f64,
+    vlim: f64,
+    alim: f64,
+}
+
 #[derive(Clone, Copy, Debug, PartialEq)]
 enum Item {
     Move(Seg),
+    Thread(ThreadSeg),
+    Tap(TapSeg),
     Dwell(u64),
     Spindle(SpindleCmd),
     Event(Event),
@@ -224,6 +259,18 @@ enum Run {
     /// (the next cycle holds it at rest, then the segment is done).
     Move { seg: Seg, s: f64, v: f64, landed: bool },
     Dwell { left: u64 },
+    /// Waiting for the spindle (`sync` None) or cutting, locked to the measured angle.
+    Thread { seg: ThreadSeg, sync: Option<ThreadSync>, s: f64, v: f64, landed: bool },
+    /// Waiting for the spindle to stop (`theta0` None), then the stroke; `theta0` is the tap
+    /// reference (z_ref, θ_ref): spindle angle = θ_ref + 360·(z − z_ref)/lead.
+    Tap { seg: TapSeg, theta0: Option<(f64, f64)>, s: f64, v: f64, landed: bool },
+}
+
+/// A fault found while executing (reported by [`Motion::take_alarm`]; `step` cannot return
+/// an error and must not allocate).
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Fault {
+    ThreadTooFast { v: f64, vlim: f64, line: u32 },
 }
 
 /// Planner + interpolator.
@@ -240,6 +287,8 @@ pub struct Motion {
     plan_end: [f64; 3],
     plan_c: Option<f64>,
     plan_spindle_on: bool,
+    /// Planned spindle speed (rpm, G97), for checks at push; None under css or stopped.
+    plan_rpm: Option<f64>,
     /// The last pushed item is a motion without exact stop: the next one may blend into it.
     last_blendable: bool,
     // Spindle execution state (rpm).
@@ -248,6 +297,8 @@ pub struct Motion {
     sp_css: Option<f64>,
     sp_max: f64,
     sp_cur: f64,
+    /// The speed the ramp is heading for this cycle (rpm, signed).
+    sp_target: f64,
     // Operator controls.
     feed_ovr: f64,
     rapid_ovr: f64,
@@ -255,6 +306,12 @@ pub struct Motion {
     paused: bool,
     optional_stop: bool,
     stopping: bool,
+    fault: Option<Fault>,
+    /// Thread: target minus commanded path position, mm (see `sync_error`).
+    sync_err: f64,
+    /// Rigid tapping reference (z, spindle angle, lead) of the last stroke, so that the strokes
+    /// of one hole share one Z–angle relation and the return ends on the start angle exactly.
+    tap_ref: Option<(f64, f64, f64)>,
 }
 
 fn xyz(p: &Pos) -> [f64; 3] {
@@ -275,12 +332,17 @@ impl Motion {
             plan_end: [start[AX_X], start[AX_Y], start[AX_Z]],
             plan_c: None,
             plan_spindle_on: false,
+            plan_rpm: None,
             last_blendable: false,
+            fault: None,
+            sync_err: 0.0,
+            tap_ref: None,
             sp_dir: 0.0,
             sp_rpm: 0.0,
             sp_css: None,
             sp_max: f64::INFINITY,
             sp_cur: 0.0,
+            sp_target: 0.0,
             feed_ovr: 1.0,
             rapid_ovr: 1.0,
             held: false,
@@ -336,15 +398,10 @@ impl Motion {
                 let end = self.check_end(end).map_err(at)?;
                 Item::Move(self.arc_seg(end, xyz(center), *cw, *plane, speed, blended).map_err(at)?)
             }
-            MoveKind::Thread { .. } | MoveKind::Tap { .. } => {
-                return Err(at(Alarm::new(
-                    alarms::UNSUPPORTED,
-                    format!(
-                        "{} moves are not executed by this motion layer yet; remove the block or use a build with spindle sync",
-                        m.kind.name()
-                    ),
-                )))
+            MoveKind::Thread { end, lead, start_angle } => {
+                Item::Thread(self.thread_seg(end, *lead, *start_angle).map_err(at)?)
             }
+            MoveKind::Tap { end, lead, rpm } => Item::Tap(self.tap_seg(end, *lead, *rpm).map_err(at)?),
             MoveKind::Dwell { seconds } => {
                 if !(seconds.is_finite() && *seconds >= 0.0) {
                     return Err(at(Alarm::new(
@@ -372,6 +429,19 @@ impl Motion {
             Item::Spindle(c) => {
                 self.plan_spindle_on =
                     c.dir != SpindleDir::Stop && (c.rpm > 0.0 || c.css.is_some_and(|v| v > 0.0));
+                self.plan_rpm = (self.plan_spindle_on && c.css.is_none()).then_some(c.rpm);
+            }
+            Item::Thread(t) => {
+                self.plan_end = t.geom.end();
+                if let Some(e) = m.kind.end() {
+                    self.plan_c = Some(e.c);
+                }
+            }
+            Item::Tap(t) => {
+                self.plan_end[AX_Z] = t.z1;
+                // Rigid tapping leaves the spindle stopped, in position control.
+                self.plan_spindle_on = false;
+                self.plan_rpm = None;
             }
             _ => {}
         }
@@ -528,6 +598,67 @@ impl Motion {
         }
     }
 
+    fn thread_seg(&self, end: &Pos, lead: f64, start_angle: f64) -> Result<ThreadSeg, Alarm> {
+        if !(lead.is_finite() && lead > 0.0) {
+            return Err(Alarm::new(alarms::FEED_ZERO, format!("thread lead must be > 0, got F{lead}; correct the F/I word")));
+        }
+        if !start_angle.is_finite() {
+            return Err(Alarm::new(alarms::BAD_VALUE, format!("thread start angle is not a finite number ({start_angle})")));
+        }
+        if !self.plan_spindle_on {
+            return Err(Alarm::new(
+                alarms::PER_REV_SPINDLE_STOPPED,
+                "thread cutting with the spindle stopped: start the spindle (M03/M04 S…) before the thread",
+            ));
+        }
+        let end = self.check_end(end)?;
+        let g = geom::line(self.plan_end, end);
+        let delta = [end[0] - self.plan_end[0], end[1] - self.plan_end[1], end[2] - self.plan_end[2]];
+        let len = g.len();
+        if !(len > 0.0) {
+            return Err(Alarm::new(alarms::BAD_VALUE, "thread of zero length: correct the end point"));
+        }
+        // The lead is along the long axis (Fanuc: Z unless the taper is steeper than 45°).
+        let u_long = delta.iter().fold(0.0f64, |m, d| m.max(d.abs())) / len;
+        let lead_path = lead / u_long;
+        let s = self.line_seg(g, Speed::Rapid, false);
+        if let Some(rpm) = self.plan_rpm {
+            let v = lead_path * rpm / 60.0;
+            if v > s.vlim {
+                return Err(Alarm::new(
+                    alarms::THREAD_TOO_FAST,
+                    format!(
+                        "thread lead {lead} mm × S{rpm} needs {:.0} mm/min, more than the axes' {:.0} mm/min; lower the spindle speed",
+                        v * 60.0,
+                        s.vlim * 60.0
+                    ),
+                ));
+            }
+        }
+        Ok(ThreadSeg { geom: g, lead_path, start_angle, vlim: s.vlim, alim: s.alim })
+    }
+
+    fn tap_seg(&self, end: &Pos, lead: f64, rpm: f64) -> Result<TapSeg, Alarm> {
+        if !(lead.is_finite() && lead != 0.0) {
+            return Err(Alarm::new(alarms::FEED_ZERO, format!("tap lead must be non-zero, got F{lead}; correct the F word")));
+        }
+        if !(rpm.is_finite() && rpm > 0.0) {
+            return Err(Alarm::new(alarms::BAD_VALUE, format!("tapping spindle speed must be > 0, got S{rpm}")));
+        }
+        if !self.lim.present[AX_S] {
+            return Err(Alarm::new(alarms::UNSUPPORTED, "rigid tapping needs a spindle axis in the config"));
+        }
+        let e = self.check_end(end)?;
+        if e[AX_X] != self.plan_end[AX_X] || e[AX_Y] != self.plan_end[AX_Y] {
+            return Err(Alarm::new(alarms::BAD_VALUE, "a rigid tap stroke moves Z only: position X/Y before the tap"));
+        }
+        let l = &self.lim;
+        let per_deg = lead.abs() / 360.0; // mm of Z per spindle degree
+        let vlim = l.vmax[AX_Z].min(l.vmax[AX_S] * per_deg);
+        let alim = l.amax[AX_Z].min(l.amax[AX_S].min(l.tap_accel) * per_deg);
+        Ok(TapSeg { z0: self.plan_end[AX_Z], z1: e[AX_Z], lead, v: (rpm * lead.abs() / 60.0).min(vlim), vlim, alim })
+    }
+
     fn check_spindle(&self, c: &SpindleCmd) -> Result<SpindleCmd, Alarm> {
         let bad = |what: &str, v: f64| {
             Alarm::new(alarms::BAD_VALUE, format!("spindle {what} must be a finite number ≥ 0, got {v}"))
@@ -659,6 +790,7 @@ impl Motion {
             None => self.sp_rpm,
         };
         let target = if self.stopping { 0.0 } else { self.sp_dir * mag.min(machine_max) };
+        self.sp_target = target;
         let step = self.lim.amax[AX_S] / 6.0 * dt;
         let d = target - self.sp_cur;
         self.sp_cur = if d.abs() <= step { target } else { self.sp_cur + step.copysign(d) };
@@ -687,7 +819,10 @@ impl Motion {
         let prev = self.pos;
         let mut event = Event::None;
         let mut path_v = 0.0;
-        self.step_spindle(dt);
+        // In a rigid-tap stroke the spindle is a position axis driven by the tap profile.
+        if !matches!(self.run, Run::Tap { theta0: Some(_), .. }) {
+            self.step_spindle(dt);
+        }
 
         if self.run == Run::None && !self.stopping && !self.held && !self.paused {
             if let Some(e) = self.pop() {
@@ -695,6 +830,8 @@ impl Motion {
                 match e.item {
                     Item::Move(seg) => self.run = Run::Move { seg, s: 0.0, v: 0.0, landed: false },
                     Item::Dwell(n) => self.run = Run::Dwell { left: n },
+                    Item::Thread(seg) => self.run = Run::Thread { seg, sync: None, s: 0.0, v: 0.0, landed: false },
+                    Item::Tap(seg) => self.run = Run::Tap { seg, theta0: None, s: 0.0, v: 0.0, landed: false },
                     Item::Spindle(c) => self.apply_spindle(c),
                     Item::Event(ev) => {
                         event = ev;
@@ -753,6 +890,55 @@ impl Motion {
                     self.run = if left == 0 { Run::None } else { Run::Dwell { left } };
                 }
             }
+            Run::Thread { landed: true, .. } => self.run = Run::None,
+            Run::Thread { seg, sync, s, v, landed: false } => path_v = self.step_thread(fb, seg, sync, s, v),
+            Run::Tap { landed: true, .. } => {
+                // At rest on the stroke's end, spindle stopped in position.
+                self.sp_cur = 0.0;
+                self.run = Run::None;
+            }
+            Run::Tap { seg, theta0: None, .. } => {
+                // Rigid tapping starts from a stopped spindle: brake it (step_spindle), then
+                // take its angle as the stroke's origin.
+                self.sp_dir = 0.0;
+                self.sp_css = None;
+                if self.stopping {
+                    self.run = Run::None;
+                } else if self.sp_cur == 0.0 {
+                    // Keep the previous stroke's reference if the spindle is still exactly where
+                    // that relation puts it (same hole, nothing turned it since).
+                    let r = match self.tap_ref {
+                        Some((zr, thr, lead))
+                            if lead == seg.lead && thr + 360.0 * (seg.z0 - zr) / lead == self.pos[AX_S] =>
+                        {
+                            (zr, thr)
+                        }
+                        _ => (seg.z0, self.pos[AX_S]),
+                    };
+                    self.tap_ref = Some((r.0, r.1, seg.lead));
+                    self.run = Run::Tap { seg, theta0: Some(r), s: 0.0, v: 0.0, landed: false };
+                }
+            }
+            Run::Tap { seg, theta0: Some((zr, thr)), s, v, landed: false } => {
+                // Feed hold is not effective during a tap stroke (it would break the tap);
+                // a controlled stop brakes Z and the spindle together on the same profile.
+                let len = (seg.z1 - seg.z0).abs();
+                let d = len - s;
+                let v_cmd = if self.stopping { 0.0 } else { seg.v };
+                let nv = profile::next_speed(v, v_cmd, d, seg.alim * dt, dt);
+                let (s2, landed) = if d - nv * dt <= 1e-9 { (len, true) } else { (s + nv * dt, false) };
+                let z = if landed { seg.z1 } else { seg.z0 + s2.copysign(seg.z1 - seg.z0) };
+                self.pos[AX_Z] = z;
+                self.pos[AX_S] = thr + 360.0 * (z - zr) / seg.lead;
+                self.sp_cur = (self.pos[AX_S] - prev[AX_S]) / dt / 6.0;
+                path_v = (z - prev[AX_Z]).abs() / dt;
+                self.run = if self.stopping && nv == 0.0 && !landed {
+                    self.sp_cur = 0.0;
+                    Run::None
+                } else {
+                    Run::Tap { seg, theta0: Some((zr, thr)), s: s2, v: nv, landed }
+                };
+            }
         }
 
         if self.stopping && self.run == Run::None {
@@ -781,6 +967,83 @@ impl Motion {
             line: self.line,
             event,
         }
+    }
+
+    /// One cycle of a thread pass: wait for the spindle, arm at the measured angle, then track
+    /// the synchronous position within the axis limits, braking for the end. Returns the path
+    /// speed (mm/s).
+    fn step_thread(&mut self, fb: &Feedback, seg: ThreadSeg, sync: Option<ThreadSync>, s: f64, v: f64) -> f64 {
+        let dt = self.lim.cycle_s;
+        let theta = fb.pos[AX_S];
+        // The lead-in ramp uses 80 % of the path acceleration, leaving the tracker headroom.
+        let sync = match sync {
+            Some(t) => Some(t),
+            None if self.stopping => None,
+            // Arm only once the spindle is at its commanded speed (speed arrival).
+            None if self.sp_cur != self.sp_target || self.sp_target == 0.0 => None,
+            None => ThreadSync::arm(theta, fb.spindle_rpm, seg.start_angle, seg.lead_path, 0.8 * seg.alim),
+        };
+        let Some(t) = sync else {
+            // Spindle not turning yet (or stopping before the cut began): wait at the start.
+            if self.stopping {
+                self.run = Run::None;
+            }
+            return 0.0;
+        };
+        if s == 0.0 && v == 0.0 && t.sync_speed() > seg.vlim {
+            // The measured spindle speed is too fast for the lead: refuse before cutting.
+            self.fault = Some(Fault::ThreadTooFast { v: t.sync_speed(), vlim: seg.vlim, line: self.line });
+            self.stop();
+            self.run = Run::None;
+            return 0.0;
+        }
+        let len = seg.geom.len();
+        let dv = seg.alim * dt;
+        let target = t.target(theta).min(len);
+        // Feed hold and override do not apply while threading (Fanuc); a controlled stop does.
+        let want = if self.stopping { 0.0 } else { (target - s) / dt };
+        let nv = want
+            .clamp((v - dv).max(0.0), v + dv)
+            .min(seg.vlim)
+            .min(profile::v_allowed(len - s, dv, dt))
+            .max(0.0);
+        let d = len - s;
+        let (s2, landed) = if d - nv * dt <= 1e-9 { (len, true) } else { (s + nv * dt, false) };
+        self.pos[..3].copy_from_slice(&seg.geom.at(s2));
+        self.sync_err = target - s2;
+        self.run = if self.stopping && nv == 0.0 && !landed {
+            Run::None
+        } else {
+            Run::Thread { seg, sync: Some(t), s: s2, v: nv, landed }
+        };
+        if landed {
+            d / dt
+        } else {
+            nv
+        }
+    }
+
+    /// Thread sync error: where the spindle angle says the tool belongs minus where it is
+    /// commanded, mm along the path (last thread cycle). Within the cut it is at most a few
+    /// µm; it grows in the lead-out, where the axes brake for the end point.
+    pub fn sync_error(&self) -> f64 {
+        self.sync_err
+    }
+
+    /// A fault found by `step` (which cannot return errors), as an alarm; the motion is already
+    /// being brought to a controlled stop. Call outside the real-time path.
+    pub fn take_alarm(&mut self) -> Option<Alarm> {
+        let f = self.fault.take()?;
+        Some(match f {
+            Fault::ThreadTooFast { v, vlim, line } => Alarm::new(
+                alarms::THREAD_TOO_FAST,
+                format!(
+                    "line {line}: the measured spindle speed needs {:.0} mm/min for the thread lead, more than the axes' {:.0} mm/min; lower S",
+                    v * 60.0,
+                    vlim * 60.0
+                ),
+            ),
+        })
     }
 
     /// True when every pushed move has been executed and the feed axes are at rest. (The

@@ -648,3 +648,94 @@ proptest! {
         }
     }
 }
+
+// ---- Threading and rigid tapping ----
+
+fn thread(x: f64, z: f64, lead: f64, start_angle: f64) -> MoveKind {
+    MoveKind::Thread { end: Pos::xz(x, z), lead, start_angle }
+}
+
+/// Run a thread pass after `wait` seconds of dwell; return the setpoints and, for the cycles
+/// locked to the spindle, the phase θ_fb − 360·(z0 − z)/lead (constant when locked).
+fn thread_pass(wait: f64, start_angle: f64) -> (Vec<Setpoint>, Vec<f64>) {
+    let l = lim();
+    let mut m = Motion::new(l.clone(), START);
+    m.push(&mv(1, spindle(SpindleDir::Cw, 600.0))).unwrap();
+    m.push(&mv(2, rapid(20.0, 2.0))).unwrap();
+    m.push(&mv(3, MoveKind::Dwell { seconds: wait })).unwrap();
+    m.push(&mv(4, thread(20.0, -30.0, 2.0, start_angle))).unwrap();
+    let sps = run(&mut m, 100_000);
+    check_limits(&l, START, &sps).unwrap();
+    assert_eq!(sps.last().unwrap().pos[..3], [20.0, 0.0, -30.0]);
+    // Locked cycles: thread running at full synchronous speed, 20 mm/s at 600 rpm × 2 mm.
+    let mut phases = Vec::new();
+    for k in 1..sps.len() {
+        if sps[k].line == 4 && (sps[k].path_feed - 1200.0).abs() < 1e-6 {
+            let theta_fb = sps[k - 1].pos[AX_S];
+            phases.push(theta_fb - 360.0 * (2.0 - sps[k].pos[AX_Z]) / 2.0);
+        }
+    }
+    assert!(phases.len() > 500, "only {} locked cycles", phases.len());
+    (sps, phases)
+}
+
+#[test]
+fn thread_is_locked_to_the_spindle_angle_with_the_programmed_phase() {
+    let (_, ph) = thread_pass(0.1, 0.0);
+    for p in &ph {
+        assert!((p - ph[0]).abs() < 1e-6, "phase drifts: {p} vs {}", ph[0]);
+    }
+    // θ0 ≡ start angle (0°) modulo one revolution.
+    let r = ph[0].rem_euclid(360.0);
+    assert!(r.min(360.0 - r) < 1e-6, "phase {} ≢ 0", ph[0]);
+}
+
+#[test]
+fn repeated_thread_passes_cut_the_same_groove_and_start_angle_shifts_it() {
+    let (_, a) = thread_pass(0.1, 0.0);
+    let (_, b) = thread_pass(0.337, 0.0); // spindle at a different angle when the pass starts
+    let (_, c) = thread_pass(0.1, 180.0); // second start of a two-start thread
+    let d_ab = (a[0] - b[0]).rem_euclid(360.0);
+    assert!(d_ab.min(360.0 - d_ab) < 1e-6, "passes differ by {d_ab}°");
+    let d_ac = (c[0] - a[0]).rem_euclid(360.0);
+    assert!((d_ac - 180.0).abs() < 1e-6, "second start offset {d_ac}°");
+}
+
+#[test]
+fn thread_is_refused_without_spindle_or_when_too_fast() {
+    let mut m = Motion::new(lim(), START);
+    assert_eq!(m.push(&mv(1, thread(50.0, -10.0, 2.0, 0.0))).unwrap_err().number, alarms::PER_REV_SPINDLE_STOPPED);
+    m.push(&mv(2, spindle(SpindleDir::Cw, 3000.0))).unwrap();
+    // 10 mm × 3000 rpm = 30 m/min, more than Z's 12 m/min.
+    assert_eq!(m.push(&mv(3, thread(50.0, -10.0, 10.0, 0.0))).unwrap_err().number, alarms::THREAD_TOO_FAST);
+}
+
+#[test]
+fn rigid_tap_keeps_spindle_angle_and_z_locked_and_returns() {
+    let l = lim();
+    let mut m = Motion::new(l.clone(), [0.0, 0.0, 0.0, 0.0]);
+    m.push(&mv(1, spindle(SpindleDir::Cw, 800.0))).unwrap(); // running: the tap brakes it first
+    m.push(&mv(2, rapid(0.0, 2.0))).unwrap();
+    m.push(&mv(3, MoveKind::Tap { end: Pos::xz(0.0, -20.0), lead: 1.5, rpm: 1000.0 })).unwrap();
+    m.push(&mv(4, MoveKind::Tap { end: Pos::xz(0.0, 2.0), lead: 1.5, rpm: 1000.0 })).unwrap();
+    let sps = run(&mut m, 100_000);
+    check_limits(&l, [0.0; N_AXES], &sps).unwrap();
+    let first = sps.iter().position(|s| s.line == 3).unwrap();
+    let stroke: Vec<&Setpoint> = sps[first..].iter().filter(|s| s.line >= 3).collect();
+    // The spindle is at rest when the stroke starts; take its angle there.
+    let k0 = stroke.iter().position(|s| s.pos[AX_Z] != 2.0).unwrap();
+    assert_eq!(stroke[k0 - 1].spindle_rpm, 0.0);
+    let th0 = stroke[k0 - 1].pos[AX_S];
+    for s in &stroke[k0 - 1..] {
+        let want = th0 + 360.0 * (s.pos[AX_Z] - 2.0) / 1.5;
+        assert!((s.pos[AX_S] - want).abs() < 1e-9, "spindle {} vs {want} at z {}", s.pos[AX_S], s.pos[AX_Z]);
+    }
+    // Bottom reached exactly, and the reverse stroke brings the spindle back to its angle.
+    assert!(sps.iter().any(|s| s.pos[AX_Z] == -20.0));
+    let last = sps.last().unwrap();
+    assert_eq!(last.pos[AX_Z], 2.0);
+    assert_eq!(last.pos[AX_S], th0);
+    // 1000 rpm × 1.5 mm = 25 mm/s at full speed, turning backwards (−Z with a + lead).
+    let top = sps.iter().map(|s| s.spindle_rpm).fold(0.0, f64::min);
+    assert!((top + 1000.0).abs() < 1e-6, "tap speed {top} rpm");
+}
