@@ -38,6 +38,7 @@ mod tests;
 use crate::canon::{Feed, Move, MoveKind, Plane, Pos, SpindleCmd, SpindleDir};
 use crate::config::{AxisKind, MachineConfig};
 use crate::sync::ThreadSync;
+use std::f64::consts::TAU;
 use crate::Alarm;
 use geom::Geom;
 
@@ -539,32 +540,39 @@ impl Motion {
         }
     }
 
+    /// Axis `i` (X/Y/Z) may be commanded to `v`: finite, configured, inside its travel.
+    /// `what` names the point in the message ("end point", "arc").
+    fn check_axis(&self, i: usize, v: f64, what: &str) -> Result<(), Alarm> {
+        let name = AXIS_NAMES[i];
+        if !v.is_finite() {
+            return Err(Alarm::new(alarms::BAD_VALUE, format!("{name} {what} is not a finite number ({v})")));
+        }
+        if !self.lim.present[i] {
+            if (v - self.plan_end[i]).abs() > 1e-9 {
+                return Err(Alarm::new(
+                    alarms::TRAVEL,
+                    format!("axis {name} is not configured on this machine; remove {name} from the program"),
+                ));
+            }
+            return Ok(());
+        }
+        let (lo, hi) = self.lim.travel[i];
+        if v < lo || v > hi {
+            let radius = if i == AX_X { " (radius)" } else { "" };
+            return Err(Alarm::new(
+                alarms::TRAVEL,
+                format!(
+                    "{name} {what} {v:.4} mm{radius} is beyond the travel limits [{lo}, {hi}]; correct the program or the work offset"
+                ),
+            ));
+        }
+        Ok(())
+    }
+
     fn check_end(&self, end: &Pos) -> Result<[f64; 3], Alarm> {
         let e = xyz(end);
         for (i, v) in e.iter().enumerate() {
-            let name = AXIS_NAMES[i];
-            if !v.is_finite() {
-                return Err(Alarm::new(alarms::BAD_VALUE, format!("{name} end point is not a finite number ({v})")));
-            }
-            if !self.lim.present[i] {
-                if *v != self.plan_end[i] {
-                    return Err(Alarm::new(
-                        alarms::TRAVEL,
-                        format!("axis {name} is not configured on this machine; remove {name} from the program"),
-                    ));
-                }
-                continue;
-            }
-            let (lo, hi) = self.lim.travel[i];
-            if *v < lo || *v > hi {
-                let what = if i == AX_X { " (radius)" } else { "" };
-                return Err(Alarm::new(
-                    alarms::TRAVEL,
-                    format!(
-                        "{name} end point {v:.4} mm{what} is beyond the travel limits [{lo}, {hi}]; correct the program or the work offset"
-                    ),
-                ));
-            }
+            self.check_axis(i, *v, "end point")?;
         }
         if !end.c.is_finite() {
             return Err(Alarm::new(alarms::BAD_VALUE, format!("C end point is not a finite number ({})", end.c)));
@@ -735,6 +743,23 @@ impl Motion {
             ));
         }
         let (ia, ib, ic) = axes;
+        // Not only the end point: the arc's outermost points (where it crosses the plane axes'
+        // directions from the centre) must stay inside the travel too.
+        if let Geom::Arc { ca, cb, r0, dr, th0, sweep, .. } = g {
+            let r = r0.max(r0 + dr);
+            for k in 0..4 {
+                let ang = k as f64 * std::f64::consts::FRAC_PI_2;
+                let rel = if sweep >= 0.0 { (ang - th0).rem_euclid(TAU) } else { (th0 - ang).rem_euclid(TAU) };
+                if rel <= sweep.abs() {
+                    match k {
+                        0 => self.check_axis(ia, ca + r, "arc")?,
+                        1 => self.check_axis(ib, cb + r, "arc")?,
+                        2 => self.check_axis(ia, ca - r, "arc")?,
+                        _ => self.check_axis(ib, cb - r, "arc")?,
+                    }
+                }
+            }
+        }
         let l = &self.lim;
         let a_plane = l.amax[ia].min(l.amax[ib]);
         let rmin = r0.min(r1);
@@ -784,7 +809,7 @@ impl Motion {
         let mag = match self.sp_css {
             Some(css) => {
                 let r = self.pos[AX_X].abs();
-                let n = if r > 1e-9 { 1000.0 * css / (std::f64::consts::TAU * r) } else { f64::INFINITY };
+                let n = if r > 1e-9 { 1000.0 * css / (TAU * r) } else { f64::INFINITY };
                 n.min(self.sp_max)
             }
             None => self.sp_rpm,
@@ -864,7 +889,7 @@ impl Motion {
                     // Blend: cross the junction within this cycle, onto the next segment.
                     self.pop();
                     self.line = line;
-                    let s2 = (nv * dt - d).clamp(0.0, next.geom.len());
+                    let s2 = (nv * dt - d).max(0.0).min(next.geom.len());
                     let p = next.geom.at(s2);
                     self.pos[..3].copy_from_slice(&p);
                     path_v = nv;
@@ -1003,7 +1028,8 @@ impl Motion {
         // Feed hold and override do not apply while threading (Fanuc); a controlled stop does.
         let want = if self.stopping { 0.0 } else { (target - s) / dt };
         let nv = want
-            .clamp((v - dv).max(0.0), v + dv)
+            .max((v - dv).max(0.0))
+            .min(v + dv)
             .min(seg.vlim)
             .min(profile::v_allowed(len - s, dv, dt))
             .max(0.0);

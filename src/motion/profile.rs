@@ -44,7 +44,8 @@ pub fn g(v: f64, dv: f64) -> f64 {
 pub fn next_speed(v: f64, v_cmd: f64, d: f64, dv: f64, dt: f64) -> f64 {
     let lo = (v - dv).max(0.0);
     let hi = v + dv;
-    let want = if v_cmd.is_finite() { v_cmd.clamp(lo, hi) } else { lo };
+    // max/min rather than clamp: no panic even if a caller passes lo > hi or NaN.
+    let want = if v_cmd.is_finite() { v_cmd.max(lo).min(hi) } else { lo };
     want.min(v_allowed(d, dv, dt)).max(0.0)
 }
 

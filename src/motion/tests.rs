@@ -633,9 +633,12 @@ proptest! {
                     let r = dx.hypot(dz);
                     if r < 0.1 { continue; }
                     let (ex, ez) = (cx + r * ang.sin(), cz + r * ang.cos());
-                    if !(-2.0..=150.0).contains(&ex) || !(-400.0..=5.0).contains(&ez) { continue; }
-                    m.push(&Move { exact_stop: exact || last, ..mv(line, arc_zx(ex, ez, cx, cz, cw, f)) }).unwrap();
-                    cur = (ex, ez);
+                    match m.push(&Move { exact_stop: exact || last, ..mv(line, arc_zx(ex, ez, cx, cz, cw, f)) }) {
+                        Ok(()) => cur = (ex, ez),
+                        // End point or bulge beyond the travel: refused, the chain goes on.
+                        Err(e) if e.number == alarms::TRAVEL => continue,
+                        Err(e) => prop_assert!(false, "{}", e),
+                    }
                 }
             }
         }
@@ -738,4 +741,233 @@ fn rigid_tap_keeps_spindle_angle_and_z_locked_and_returns() {
     // 1000 rpm × 1.5 mm = 25 mm/s at full speed, turning backwards (−Z with a + lead).
     let top = sps.iter().map(|s| s.spindle_rpm).fold(0.0, f64::min);
     assert!((top + 1000.0).abs() < 1e-6, "tap speed {top} rpm");
+}
+
+#[test]
+fn arc_bulging_beyond_travel_is_refused() {
+    let start = [145.0, 0.0, -10.0, 0.0];
+    let mut m = Motion::new(lim(), start);
+    // Half circle r = 10 about (x 145, z −20): counter-clockwise it passes x = 155 > 150.
+    let e = m.push(&mv(1, arc_zx(145.0, -30.0, 145.0, -20.0, false, 1000.0))).unwrap_err();
+    assert_eq!(e.number, alarms::TRAVEL);
+    assert!(e.message.contains("X arc 155"), "{}", e.message);
+    // Clockwise it passes x = 135: fine.
+    m.push(&mv(2, arc_zx(145.0, -30.0, 145.0, -20.0, true, 1000.0))).unwrap();
+    let sps = run(&mut m, 100_000);
+    assert!(sps.iter().all(|s| s.pos[AX_X] <= 145.0 + 1e-9));
+    assert_eq!(sps.last().unwrap().pos[AX_Z], -30.0);
+}
+
+#[test]
+fn rapid_override_scales_rapids_only() {
+    let mut m = Motion::new(lim(), START);
+    m.set_rapid_override(0.25);
+    m.set_feed_override(2.0);
+    m.push(&mv(1, rapid(50.0, -100.0))).unwrap();
+    m.push(&mv(2, feed(50.0, -110.0, 600.0))).unwrap();
+    let sps = run(&mut m, 100_000);
+    let top = |line| sps.iter().filter(|s| s.line == line).map(|s| s.path_feed).fold(0.0, f64::max);
+    assert!((top(1) - 3000.0).abs() < 1e-6, "rapid at {}", top(1));
+    assert!((top(2) - 1200.0).abs() < 1e-6, "feed at {}", top(2));
+}
+
+#[test]
+fn feed_hold_waits_for_the_end_of_a_thread() {
+    let l = lim();
+    let mut m = Motion::new(l.clone(), START);
+    m.push(&mv(1, spindle(SpindleDir::Cw, 600.0))).unwrap();
+    m.push(&mv(2, rapid(20.0, 2.0))).unwrap();
+    m.push(&mv(3, thread(20.0, -30.0, 2.0, 0.0))).unwrap();
+    m.push(&mv(4, rapid(25.0, -30.0))).unwrap();
+    let mut fb = Feedback { pos: START, spindle_rpm: 0.0 };
+    let mut sps = Vec::new();
+    for k in 0..20_000 {
+        let sp = m.step(&fb);
+        fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm };
+        sps.push(sp);
+        if sp.line == 3 && sp.pos[AX_Z] < -10.0 && !m.is_held() {
+            m.feed_hold(); // mid-thread: must not stop the cut
+        }
+        if k > 10_000 {
+            break;
+        }
+    }
+    // The thread ran to its end at full speed; the hold then stopped before the next rapid.
+    assert!(sps.iter().any(|s| s.pos[AX_Z] == -30.0 && s.line == 3));
+    assert!(sps.iter().all(|s| s.line != 4 || s.pos[AX_X] == 20.0));
+    assert!(m.is_held());
+    check_limits(&l, START, &sps).unwrap();
+}
+
+/// Arbitrary, including non-finite, numbers.
+fn any_f64() -> impl Strategy<Value = f64> + Clone {
+    prop_oneof![
+        -500.0..500.0f64,
+        Just(f64::NAN),
+        Just(f64::INFINITY),
+        Just(f64::NEG_INFINITY),
+        Just(0.0),
+        Just(-0.0),
+        Just(1e300),
+        Just(-1e-300),
+    ]
+}
+
+fn any_move() -> impl Strategy<Value = MoveKind> {
+    fn pos() -> impl Strategy<Value = Pos> {
+        // Mostly valid coordinates, so that motion actually runs, sometimes anything.
+        (
+            prop_oneof![3 => 0.0..150.0f64, 1 => any_f64()],
+            prop_oneof![3 => Just(0.0), 1 => any_f64()],
+            prop_oneof![3 => -400.0..5.0f64, 1 => any_f64()],
+            prop_oneof![3 => Just(0.0), 1 => any_f64()],
+        )
+            .prop_map(|(x, y, z, c)| Pos { x, y, z, c })
+    }
+    prop_oneof![
+        pos().prop_map(|end| MoveKind::Rapid { end }),
+        (pos(), any_f64(), any::<bool>()).prop_map(|(end, f, r)| MoveKind::Feed {
+            end,
+            feed: if r { Feed::PerRev(f) } else { Feed::PerMin(f) }
+        }),
+        (pos(), pos(), any::<bool>(), 0..3u8, any_f64()).prop_map(|(end, center, cw, pl, f)| MoveKind::Arc {
+            end,
+            center,
+            cw,
+            plane: [Plane::Xy, Plane::Zx, Plane::Yz][pl as usize],
+            feed: Feed::PerMin(f)
+        }),
+        (pos(), any_f64(), any_f64()).prop_map(|(end, lead, start_angle)| MoveKind::Thread { end, lead, start_angle }),
+        (pos(), any_f64(), any_f64()).prop_map(|(end, lead, rpm)| MoveKind::Tap { end, lead, rpm }),
+        any_f64().prop_map(|seconds| MoveKind::Dwell { seconds: seconds.abs().min(0.05) }),
+        (0..3u8, any_f64(), prop::option::of(any_f64()), prop::option::of(any_f64())).prop_map(|(d, rpm, css, max_rpm)| {
+            MoveKind::Spindle(SpindleCmd {
+                dir: [SpindleDir::Cw, SpindleDir::Ccw, SpindleDir::Stop][d as usize],
+                rpm,
+                css,
+                max_rpm,
+            })
+        }),
+        any::<bool>().prop_map(|optional| MoveKind::Stop { optional }),
+    ]
+}
+
+/// Operator actions between cycles.
+#[derive(Clone, Debug)]
+enum Op {
+    Steps(u16),
+    Hold,
+    Start,
+    Stop,
+    FeedOvr(f64),
+    RapidOvr(f64),
+    Fb(f64, f64),
+}
+
+fn any_op() -> impl Strategy<Value = Op> {
+    prop_oneof![
+        4 => (1..400u16).prop_map(Op::Steps),
+        1 => Just(Op::Hold),
+        2 => Just(Op::Start),
+        1 => Just(Op::Stop),
+        1 => any_f64().prop_map(Op::FeedOvr),
+        1 => any_f64().prop_map(Op::RapidOvr),
+        1 => (any_f64(), any_f64()).prop_map(|(a, r)| Op::Fb(a, r)),
+    ]
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 128, ..ProptestConfig::default() })]
+
+    /// No input makes push or step panic; the setpoint stays finite and inside the travel.
+    #[test]
+    fn arbitrary_moves_and_operator_actions_never_panic(
+        moves in prop::collection::vec((any_move(), any::<bool>()), 0..12),
+        ops in prop::collection::vec(any_op(), 0..12),
+    ) {
+        let l = lim();
+        let mut m = Motion::new(l.clone(), START);
+        for (i, (k, exact)) in moves.iter().enumerate() {
+            let _ = m.push(&Move { exact_stop: *exact, ..mv(i as u32, k.clone()) });
+        }
+        let mut fb = Feedback { pos: START, spindle_rpm: 0.0 };
+        for op in &ops {
+            match *op {
+                Op::Steps(n) => {
+                    for _ in 0..n {
+                        let sp = m.step(&fb);
+                        for i in 0..3 {
+                            prop_assert!(sp.pos[i].is_finite());
+                            if l.present[i] {
+                                prop_assert!(sp.pos[i] >= l.travel[i].0.min(START[i]) - 1e-9);
+                                prop_assert!(sp.pos[i] <= l.travel[i].1.max(START[i]) + 1e-9);
+                            }
+                        }
+                        prop_assert!(sp.pos[AX_S].is_finite() && sp.spindle_rpm.is_finite());
+                        prop_assert!(sp.spindle_rpm.abs() <= 6000.0);
+                        fb.pos = sp.pos;
+                    }
+                }
+                Op::Hold => m.feed_hold(),
+                Op::Start => m.cycle_start(),
+                Op::Stop => m.stop(),
+                Op::FeedOvr(f) => m.set_feed_override(f),
+                Op::RapidOvr(f) => m.set_rapid_override(f),
+                Op::Fb(a, r) => { fb.pos[AX_S] = a; fb.spindle_rpm = r; }
+            }
+        }
+        let _ = m.take_alarm();
+    }
+
+    /// Feed hold, cycle start, override changes and a stop at random moments of a G64 chain
+    /// never push an axis past its limits.
+    #[test]
+    fn operator_actions_during_g64_chains_respect_limits(
+        steps in prop::collection::vec(chain_strategy(), 1..8),
+        ops in prop::collection::vec(any_op(), 1..16),
+    ) {
+        let l = lim();
+        let start = [60.0, 0.0, -100.0, 0.0];
+        let mut m = Motion::new(l.clone(), start);
+        let mut cur = (start[AX_X], start[AX_Z]);
+        for (i, s) in steps.iter().enumerate() {
+            let k = match *s {
+                Step::Line { x, z, f, exact } => (feed(x, z, f), exact, (x, z)),
+                Step::Arc { dx, dz, ang, cw, f, exact } => {
+                    let (cx, cz) = (cur.0 + dx, cur.1 + dz);
+                    let r = dx.hypot(dz);
+                    if r < 0.1 { continue; }
+                    let e = (cx + r * ang.sin(), cz + r * ang.cos());
+                    (arc_zx(e.0, e.1, cx, cz, cw, f), exact, e)
+                }
+            };
+            if m.push(&Move { exact_stop: k.1, ..mv(i as u32 + 1, k.0) }).is_ok() {
+                cur = k.2;
+            }
+        }
+        let mut sps = Vec::new();
+        let fb = Feedback::default();
+        for op in &ops {
+            match *op {
+                Op::Steps(n) => sps.extend((0..n).map(|_| m.step(&fb))),
+                Op::Hold => m.feed_hold(),
+                Op::Start => m.cycle_start(),
+                Op::Stop => m.stop(),
+                Op::FeedOvr(f) => m.set_feed_override(f),
+                Op::RapidOvr(f) => m.set_rapid_override(f),
+                Op::Fb(..) => {}
+            }
+        }
+        m.cycle_start();
+        let mut n = 0;
+        while !m.is_idle() && n < 5_000_000 {
+            sps.push(m.step(&fb));
+            n += 1;
+            if n % 1000 == 0 { m.set_feed_override(1.0); }
+        }
+        prop_assert!(m.is_idle(), "never finished");
+        if let Err(e) = check_limits(&l, start, &sps) {
+            prop_assert!(false, "{}", e);
+        }
+    }
 }
