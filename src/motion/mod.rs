@@ -306,6 +306,7 @@ pub struct Motion {
     held: bool,
     paused: bool,
     optional_stop: bool,
+    single_block: bool,
     stopping: bool,
     fault: Option<Fault>,
     /// Thread: target minus commanded path position, mm (see `sync_error`).
@@ -349,6 +350,7 @@ impl Motion {
             held: false,
             paused: false,
             optional_stop: false,
+            single_block: false,
             stopping: false,
             lim: limits,
         }
@@ -875,11 +877,19 @@ impl Motion {
             Run::Move { landed: true, .. } => {
                 // Exact stop: one cycle at rest on the end point.
                 self.run = Run::None;
+                self.paused |= self.single_block;
             }
-            Run::Move { seg, s, v, landed: false } => {
+            Run::Move { mut seg, s, v, landed: false } => {
                 let len = seg.geom.len();
                 let d = len - s;
-                let nv = profile::next_speed(v, self.v_cmd(&seg, fb), d + seg.ext, seg.alim * dt, dt);
+                let dv = seg.alim * dt;
+                // Single block: end this block at rest if it can still brake for its end point
+                // from here (dropping the look-ahead extension is safe only then); otherwise
+                // blend on and stop at the end of a later block.
+                if self.single_block && seg.ext > 0.0 && profile::v_allowed(d, dv, dt) >= v - dv {
+                    seg.ext = 0.0;
+                }
+                let nv = profile::next_speed(v, self.v_cmd(&seg, fb), d + seg.ext, dv, dt);
                 let reach = d - nv * dt <= 1e-9;
                 let next = match (reach && seg.ext > 0.0, self.peek()) {
                     (true, Some(Entry { item: Item::Move(next), line })) => Some((next, line)),
@@ -913,14 +923,19 @@ impl Motion {
                 } else if !self.held {
                     let left = left.saturating_sub(1);
                     self.run = if left == 0 { Run::None } else { Run::Dwell { left } };
+                    self.paused |= self.single_block && left == 0;
                 }
             }
-            Run::Thread { landed: true, .. } => self.run = Run::None,
+            Run::Thread { landed: true, .. } => {
+                self.run = Run::None;
+                self.paused |= self.single_block;
+            }
             Run::Thread { seg, sync, s, v, landed: false } => path_v = self.step_thread(fb, seg, sync, s, v),
             Run::Tap { landed: true, .. } => {
                 // At rest on the stroke's end, spindle stopped in position.
                 self.sp_cur = 0.0;
                 self.run = Run::None;
+                self.paused |= self.single_block;
             }
             Run::Tap { seg, theta0: None, .. } => {
                 // Rigid tapping starts from a stopped spindle: brake it (step_spindle), then
@@ -1101,6 +1116,18 @@ impl Motion {
     /// True while feed hold or a program stop (M00/M01) is waiting for cycle start.
     pub fn is_held(&self) -> bool {
         self.held || self.paused
+    }
+
+    /// Single block: after each motion block or dwell the program waits for cycle start. With
+    /// look-ahead, a block that can no longer brake for its end when the switch goes on runs
+    /// on into the next block and stops at the end of that one.
+    pub fn set_single_block(&mut self, on: bool) {
+        self.single_block = on;
+    }
+
+    /// The current position setpoint (what the last `step` returned, or the start).
+    pub fn position(&self) -> [f64; N_AXES] {
+        self.pos
     }
 
     /// Optional stop switch: when on, M01 waits for cycle start like M00.

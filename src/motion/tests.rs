@@ -862,6 +862,7 @@ enum Op {
     FeedOvr(f64),
     RapidOvr(f64),
     Fb(f64, f64),
+    Single(bool),
 }
 
 fn any_op() -> impl Strategy<Value = Op> {
@@ -873,6 +874,7 @@ fn any_op() -> impl Strategy<Value = Op> {
         1 => any_f64().prop_map(Op::FeedOvr),
         1 => any_f64().prop_map(Op::RapidOvr),
         1 => (any_f64(), any_f64()).prop_map(|(a, r)| Op::Fb(a, r)),
+        1 => any::<bool>().prop_map(Op::Single),
     ]
 }
 
@@ -914,6 +916,7 @@ proptest! {
                 Op::FeedOvr(f) => m.set_feed_override(f),
                 Op::RapidOvr(f) => m.set_rapid_override(f),
                 Op::Fb(a, r) => { fb.pos[AX_S] = a; fb.spindle_rpm = r; }
+                Op::Single(on) => m.set_single_block(on),
             }
         }
         let _ = m.take_alarm();
@@ -956,6 +959,7 @@ proptest! {
                 Op::FeedOvr(f) => m.set_feed_override(f),
                 Op::RapidOvr(f) => m.set_rapid_override(f),
                 Op::Fb(..) => {}
+                Op::Single(on) => m.set_single_block(on),
             }
         }
         m.cycle_start();
@@ -963,11 +967,70 @@ proptest! {
         while !m.is_idle() && n < 5_000_000 {
             sps.push(m.step(&fb));
             n += 1;
-            if n % 1000 == 0 { m.set_feed_override(1.0); }
+            if n % 1000 == 0 {
+                m.set_feed_override(1.0);
+                m.cycle_start();
+            }
         }
         prop_assert!(m.is_idle(), "never finished");
         if let Err(e) = check_limits(&l, start, &sps) {
             prop_assert!(false, "{}", e);
         }
     }
+}
+
+#[test]
+fn single_block_stops_after_every_block_even_in_g64() {
+    let l = lim();
+    let mut m = Motion::new(l.clone(), START);
+    m.set_single_block(true);
+    let ends = [(50.0, -10.0), (55.0, -20.0), (55.0, -30.0)];
+    for (i, (x, z)) in ends.iter().enumerate() {
+        m.push(&mv_g64(i as u32 + 1, feed(*x, *z, 2000.0))).unwrap();
+    }
+    m.push(&mv(4, MoveKind::Dwell { seconds: 0.01 })).unwrap();
+    let fb = Feedback::default();
+    let mut sps = Vec::new();
+    let mut stops = Vec::new();
+    for _ in 0..20_000 {
+        let sp = m.step(&fb);
+        sps.push(sp);
+        if m.is_held() {
+            stops.push((sp.pos[AX_X], sp.pos[AX_Z], sp.vel[AX_X], sp.vel[AX_Z]));
+            m.cycle_start();
+        }
+        if m.is_idle() {
+            break;
+        }
+    }
+    assert_eq!(
+        stops,
+        vec![(50.0, -10.0, 0.0, 0.0), (55.0, -20.0, 0.0, 0.0), (55.0, -30.0, 0.0, 0.0), (55.0, -30.0, 0.0, 0.0)]
+    );
+    check_limits(&l, START, &sps).unwrap();
+}
+
+#[test]
+fn single_block_switched_on_mid_chain_stops_safely() {
+    let l = lim();
+    // Collinear G64 blocks at full speed: switched on right before a junction, the block can
+    // no longer stop at its end; it stops at the end of a later block instead.
+    let mut m = Motion::new(l.clone(), START);
+    for i in 1..=5 {
+        m.push(&mv_g64(i, feed(50.0, -10.0 * i as f64, 4000.0))).unwrap();
+    }
+    m.push(&mv(6, feed(50.0, -60.0, 4000.0))).unwrap();
+    let fb = Feedback::default();
+    let mut sps = Vec::new();
+    while sps.last().is_none_or(|s: &Setpoint| s.pos[AX_Z] > -19.9) {
+        sps.push(m.step(&fb));
+    }
+    m.set_single_block(true);
+    while !m.is_held() {
+        sps.push(m.step(&fb));
+        assert!(sps.len() < 100_000);
+    }
+    let at = sps.last().unwrap().pos[AX_Z];
+    assert!(at == -30.0 || at == -40.0, "stopped at z {at}, not on a block end");
+    check_limits(&l, START, &sps).unwrap();
 }
