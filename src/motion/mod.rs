@@ -30,6 +30,11 @@
 //! so that the chord between two setpoints deviates from the circle by at most
 //! `chord_tol`: sagitta `(v·dt)²/(8r) ≤ chord_tol` ⇒ `v ≤ √(8·r·chord_tol)/dt`.
 
+// `!(x > 0.0)` is deliberate throughout: it is also true for NaN, which must be refused.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+// Axis loops index several per-axis arrays at once.
+#![allow(clippy::needless_range_loop)]
+
 pub mod geom;
 pub mod profile;
 #[cfg(test)]

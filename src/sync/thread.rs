@@ -13,6 +13,11 @@
 //! from rest meets the synchronous line `lead_path·(θ − θ0)/360` exactly when it reaches `v`. The
 //! lead is short only within the ramp (the programmer's δ1 zone), and the phase is exact.
 
+// `!(x > 0.0)` is deliberate throughout: it is also true for NaN, which must be refused.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+// Axis loops index several per-axis arrays at once.
+#![allow(clippy::needless_range_loop)]
+
 /// One armed thread pass.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ThreadSync {
