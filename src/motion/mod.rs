@@ -30,6 +30,25 @@
 //! so that the chord between two setpoints deviates from the circle by at most
 //! `chord_tol`: sagitta `(v·dt)²/(8r) ≤ chord_tol` ⇒ `v ≤ √(8·r·chord_tol)/dt`.
 
+//! # Contract with the cycle loop
+//!
+//! - Every cycle: read the drives' feedback, call `step` once, send the setpoint. `step` never
+//!   allocates, never panics, does a constant amount of work, and is deterministic (same
+//!   pushes, feedback and operator calls give bit-identical setpoints).
+//! - `Feedback::pos[AX_S]` is the measured spindle angle in continuous degrees whose multiples
+//!   of 360 are the one-revolution reference; `Feedback::spindle_rpm` the measured speed.
+//!   Per-revolution feed and threading use them; nothing else reads feedback.
+//! - Push moves whenever `has_room()`; `push` refuses a move with an alarm and queues
+//!   nothing. After M00 (and M01 with the optional stop switch on), feed hold and single
+//!   block, `is_held()` is true until `cycle_start()`.
+//! - After `stop()` wait for `is_idle()`; the rest of the program is dropped and the next
+//!   push plans from where the axes stopped. Check `take_alarm()` after each cycle (outside
+//!   the time-critical part): a fault found by `step` (thread too fast) already triggered a
+//!   controlled stop.
+//! - G02/G03 sense: `cw` is clockwise seen from the positive third axis (G18: from +Y, Z to
+//!   the right, X up). The interpreter maps the lathe's tool-post convention onto this.
+//! - Under G96 the spindle speed follows the *commanded* X of the previous cycle.
+
 // `!(x > 0.0)` is deliberate throughout: it is also true for NaN, which must be refused.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 // Axis loops index several per-axis arrays at once.
@@ -308,6 +327,7 @@ pub struct Motion {
     // Operator controls.
     feed_ovr: f64,
     rapid_ovr: f64,
+    spindle_ovr: f64,
     held: bool,
     paused: bool,
     optional_stop: bool,
@@ -352,6 +372,7 @@ impl Motion {
             sp_target: 0.0,
             feed_ovr: 1.0,
             rapid_ovr: 1.0,
+            spindle_ovr: 1.0,
             held: false,
             paused: false,
             optional_stop: false,
@@ -817,9 +838,10 @@ impl Motion {
             Some(css) => {
                 let r = self.pos[AX_X].abs();
                 let n = if r > 1e-9 { 1000.0 * css / (TAU * r) } else { f64::INFINITY };
-                n.min(self.sp_max)
+                // The G50 clamp holds after the override.
+                (n * self.spindle_ovr).min(self.sp_max)
             }
-            None => self.sp_rpm,
+            None => self.sp_rpm * self.spindle_ovr,
         };
         let target = if self.stopping { 0.0 } else { self.sp_dir * mag.min(machine_max) };
         self.sp_target = target;
@@ -1143,6 +1165,12 @@ impl Motion {
     /// Feed override, 0–2 (0–200 %), applied to cutting feeds from the next cycle.
     pub fn set_feed_override(&mut self, f: f64) {
         self.feed_ovr = if f.is_finite() { f.clamp(0.0, 2.0) } else { 0.0 };
+    }
+
+    /// Spindle speed override, 0.5–1.2 (50–120 %, Fanuc's range), from the next cycle. Under
+    /// G96 the G50 clamp still holds; the machine maximum always does.
+    pub fn set_spindle_override(&mut self, f: f64) {
+        self.spindle_ovr = if f.is_finite() { f.clamp(0.5, 1.2) } else { 1.0 };
     }
 
     /// Rapid override, 0–1 (F0 … 100 %).

@@ -1034,3 +1034,24 @@ fn single_block_switched_on_mid_chain_stops_safely() {
     assert!(at == -30.0 || at == -40.0, "stopped at z {at}, not on a block end");
     check_limits(&l, START, &sps).unwrap();
 }
+
+#[test]
+fn spindle_override_scales_the_commanded_speed_within_the_machine_maximum() {
+    let mut m = Motion::new(lim(), START);
+    m.set_spindle_override(1.2);
+    m.push(&mv(1, spindle(SpindleDir::Ccw, 1000.0))).unwrap();
+    m.push(&mv(2, MoveKind::Dwell { seconds: 0.5 })).unwrap();
+    assert_eq!(run(&mut m, 10_000).last().unwrap().spindle_rpm, -1200.0);
+    m.push(&mv(3, spindle(SpindleDir::Cw, 5900.0))).unwrap();
+    m.push(&mv(4, MoveKind::Dwell { seconds: 3.0 })).unwrap();
+    assert_eq!(run(&mut m, 10_000).last().unwrap().spindle_rpm, 6000.0);
+    // Under css the G50 clamp holds after the override: 100 m/min at r 50 is 318 rpm.
+    let css = SpindleCmd { dir: SpindleDir::Cw, rpm: 0.0, css: Some(100.0), max_rpm: Some(350.0) };
+    m.push(&mv(5, MoveKind::Spindle(css))).unwrap();
+    m.push(&mv(6, MoveKind::Dwell { seconds: 1.0 })).unwrap();
+    assert_eq!(run(&mut m, 10_000).last().unwrap().spindle_rpm, 350.0);
+    m.push(&mv(7, spindle(SpindleDir::Cw, 5900.0))).unwrap();
+    m.set_spindle_override(f64::NAN);
+    m.push(&mv(8, MoveKind::Dwell { seconds: 1.2 })).unwrap();
+    assert_eq!(run(&mut m, 10_000).last().unwrap().spindle_rpm, 5900.0);
+}
