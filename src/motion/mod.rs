@@ -153,6 +153,9 @@ pub struct Limits {
     /// Spindle acceleration in rigid tapping, deg/s² (No.5261: ms to reach 1000 rpm);
     /// infinity when not set (the spindle's max_accel then applies).
     pub tap_accel: f64,
+    /// No.5200#6: feed hold and single block act within a rigid tap (1), or only once the
+    /// tool is back at the R point (0).
+    pub tap_hold_in_hole: bool,
 }
 
 impl Limits {
@@ -170,6 +173,7 @@ impl Limits {
             arc_radius_tol: 0.01,
             queue_len: 256,
             tap_accel: f64::INFINITY,
+            tap_hold_in_hole: cfg.param_bit(5200, 6),
         };
         for (name, a) in &cfg.axes {
             let i = match (a.kind, name.to_ascii_lowercase().as_str()) {
@@ -339,6 +343,8 @@ pub struct Motion {
     /// Rigid tapping reference (z, spindle angle, lead) of the last stroke, so that the strokes
     /// of one hole share one Z–angle relation and the return ends on the start angle exactly.
     tap_ref: Option<(f64, f64, f64)>,
+    /// The tool is inside a tapped hole (a tap stroke ended away from the hole's R point).
+    in_hole: bool,
 }
 
 fn xyz(p: &Pos) -> [f64; 3] {
@@ -364,6 +370,7 @@ impl Motion {
             fault: None,
             sync_err: 0.0,
             tap_ref: None,
+            in_hole: false,
             sp_dir: 0.0,
             sp_rpm: 0.0,
             sp_css: None,
@@ -851,6 +858,12 @@ impl Motion {
         self.pos[AX_S] += self.sp_cur * 6.0 * dt;
     }
 
+    /// Feed hold in force now. With No.5200#6 = 0 it waits while the tool is in a tapped hole
+    /// (the tap would break): the strokes and the dwell at the bottom run on to the R point.
+    fn hold_now(&self) -> bool {
+        self.held && !(self.in_hole && !self.lim.tap_hold_in_hole)
+    }
+
     /// The commanded path speed (mm/s) of a segment this cycle.
     fn v_cmd(&self, seg: &Seg, fb: &Feedback) -> f64 {
         if self.held || self.stopping {
@@ -878,13 +891,19 @@ impl Motion {
             self.step_spindle(dt);
         }
 
-        if self.run == Run::None && !self.stopping && !self.held && !self.paused {
+        if self.run == Run::None && !self.stopping && !self.hold_now() && !self.paused {
             if let Some(e) = self.pop() {
                 self.line = e.line;
                 match e.item {
-                    Item::Move(seg) => self.run = Run::Move { seg, s: 0.0, v: 0.0, landed: false },
+                    Item::Move(seg) => {
+                        self.in_hole = false;
+                        self.run = Run::Move { seg, s: 0.0, v: 0.0, landed: false };
+                    }
                     Item::Dwell(n) => self.run = Run::Dwell { left: n },
-                    Item::Thread(seg) => self.run = Run::Thread { seg, sync: None, s: 0.0, v: 0.0, landed: false },
+                    Item::Thread(seg) => {
+                        self.in_hole = false;
+                        self.run = Run::Thread { seg, sync: None, s: 0.0, v: 0.0, landed: false };
+                    }
                     Item::Tap(seg) => self.run = Run::Tap { seg, theta0: None, s: 0.0, v: 0.0, landed: false },
                     Item::Spindle(c) => self.apply_spindle(c),
                     Item::Event(ev) => {
@@ -947,10 +966,10 @@ impl Motion {
             Run::Dwell { left } => {
                 if self.stopping {
                     self.run = Run::None;
-                } else if !self.held {
+                } else if !self.hold_now() {
                     let left = left.saturating_sub(1);
                     self.run = if left == 0 { Run::None } else { Run::Dwell { left } };
-                    self.paused |= self.single_block && left == 0;
+                    self.paused |= self.single_block && left == 0 && !self.in_hole;
                 }
             }
             Run::Thread { landed: true, .. } => {
@@ -958,11 +977,13 @@ impl Motion {
                 self.paused |= self.single_block;
             }
             Run::Thread { seg, sync, s, v, landed: false } => path_v = self.step_thread(fb, seg, sync, s, v),
-            Run::Tap { landed: true, .. } => {
+            Run::Tap { seg, theta0, landed: true, .. } => {
                 // At rest on the stroke's end, spindle stopped in position.
                 self.sp_cur = 0.0;
                 self.run = Run::None;
-                self.paused |= self.single_block;
+                self.in_hole = theta0.is_some_and(|(zr, _)| seg.z1 != zr);
+                // Single block never stops inside a tap; after the hole only with No.5200#6.
+                self.paused |= self.single_block && !self.in_hole && self.lim.tap_hold_in_hole;
             }
             Run::Tap { seg, theta0: None, .. } => {
                 // Rigid tapping starts from a stopped spindle: brake it (step_spindle), then
@@ -987,11 +1008,11 @@ impl Motion {
                 }
             }
             Run::Tap { seg, theta0: Some((zr, thr)), s, v, landed: false } => {
-                // Feed hold is not effective during a tap stroke (it would break the tap);
-                // a controlled stop brakes Z and the spindle together on the same profile.
+                // Feed hold acts within the stroke only with No.5200#6 (see hold_now); a hold
+                // or a controlled stop brakes Z and the spindle together on the same profile.
                 let len = (seg.z1 - seg.z0).abs();
                 let d = len - s;
-                let v_cmd = if self.stopping { 0.0 } else { seg.v };
+                let v_cmd = if self.stopping || (self.held && self.lim.tap_hold_in_hole) { 0.0 } else { seg.v };
                 let nv = profile::next_speed(v, v_cmd, d, seg.alim * dt, dt);
                 let (s2, landed) = if d - nv * dt <= 1e-9 { (len, true) } else { (s + nv * dt, false) };
                 let z = if landed { seg.z1 } else { seg.z0 + s2.copysign(seg.z1 - seg.z0) };
@@ -1017,6 +1038,7 @@ impl Motion {
             self.plan_end = [self.pos[AX_X], self.pos[AX_Y], self.pos[AX_Z]];
             self.plan_spindle_on = false;
             self.last_blendable = false;
+            self.in_hole = false;
             self.sp_dir = 0.0;
             self.sp_css = None;
         }

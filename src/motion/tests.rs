@@ -1055,3 +1055,93 @@ fn spindle_override_scales_the_commanded_speed_within_the_machine_maximum() {
     m.push(&mv(8, MoveKind::Dwell { seconds: 1.2 })).unwrap();
     assert_eq!(run(&mut m, 10_000).last().unwrap().spindle_rpm, 5900.0);
 }
+
+/// Rigid tap at (x 0): R point z 2, bottom z −20, dwell at the bottom, return, then away.
+fn tap_program(m: &mut Motion) {
+    m.push(&mv(1, rapid(0.0, 2.0))).unwrap();
+    m.push(&mv(2, MoveKind::Tap { end: Pos::xz(0.0, -20.0), lead: 1.0, rpm: 600.0 })).unwrap();
+    m.push(&mv(3, MoveKind::Dwell { seconds: 0.1 })).unwrap();
+    m.push(&mv(4, MoveKind::Tap { end: Pos::xz(0.0, 2.0), lead: 1.0, rpm: 600.0 })).unwrap();
+    m.push(&mv(5, rapid(10.0, 2.0))).unwrap();
+}
+
+#[test]
+fn feed_hold_in_a_rigid_tap_waits_for_the_r_point_by_default() {
+    let l = lim();
+    assert!(!l.tap_hold_in_hole, "lathe.toml has No.5200#6 = 0");
+    let mut m = Motion::new(l.clone(), [0.0; N_AXES]);
+    tap_program(&mut m);
+    let fb = Feedback::default();
+    let mut sps = Vec::new();
+    for _ in 0..20_000 {
+        let sp = m.step(&fb);
+        sps.push(sp);
+        if sp.line == 2 && sp.pos[AX_Z] < -5.0 && !m.is_held() {
+            m.feed_hold();
+        }
+        if m.is_held() && sps.len() > 10_000 {
+            break;
+        }
+    }
+    // Held at the R point after the return stroke, not in the hole.
+    let last = sps.last().unwrap();
+    assert_eq!((last.pos[AX_X], last.pos[AX_Z]), (0.0, 2.0));
+    assert!(sps.iter().any(|s| s.pos[AX_Z] == -20.0), "the tap reached the bottom");
+    assert!(sps.iter().all(|s| s.line <= 4));
+    m.cycle_start();
+    let rest = run(&mut m, 100_000);
+    assert_eq!(rest.last().unwrap().pos[AX_X], 10.0);
+    sps.extend(rest);
+    check_limits(&l, [0.0; N_AXES], &sps).unwrap();
+}
+
+#[test]
+fn feed_hold_in_a_rigid_tap_brakes_z_and_spindle_together_with_5200_bit6() {
+    let mut l = lim();
+    l.tap_hold_in_hole = true;
+    let mut m = Motion::new(l.clone(), [0.0; N_AXES]);
+    tap_program(&mut m);
+    let fb = Feedback::default();
+    let mut sps = Vec::new();
+    let mut theta_r = None;
+    for _ in 0..3000 {
+        let sp = m.step(&fb);
+        if sp.line == 2 && sp.pos[AX_Z] == 2.0 && sp.spindle_rpm == 0.0 {
+            theta_r = Some(sp.pos[AX_S]);
+        }
+        sps.push(sp);
+        if sp.line == 2 && sp.pos[AX_Z] < -5.0 {
+            m.feed_hold();
+        }
+    }
+    let last = *sps.last().unwrap();
+    assert!(last.pos[AX_Z] < -5.0 && last.pos[AX_Z] > -20.0, "stopped in the hole at {}", last.pos[AX_Z]);
+    assert_eq!((last.vel[AX_Z], last.spindle_rpm), (0.0, 0.0));
+    let th = theta_r.unwrap();
+    assert!((last.pos[AX_S] - (th + 360.0 * (last.pos[AX_Z] - 2.0))).abs() < 1e-9, "spindle left the thread");
+    m.cycle_start();
+    sps.extend(run(&mut m, 100_000));
+    assert_eq!(sps.last().unwrap().pos[AX_X], 10.0);
+    check_limits(&l, [0.0; N_AXES], &sps).unwrap();
+}
+
+#[test]
+fn single_block_does_not_stop_inside_a_rigid_tap() {
+    let mut m = Motion::new(lim(), [0.0; N_AXES]);
+    m.set_single_block(true);
+    tap_program(&mut m);
+    let fb = Feedback::default();
+    let mut stops = Vec::new();
+    for _ in 0..100_000 {
+        let sp = m.step(&fb);
+        if m.is_held() {
+            stops.push(sp.pos[AX_Z]);
+            m.cycle_start();
+        }
+        if m.is_idle() {
+            break;
+        }
+    }
+    // After the rapid to R and after the final rapid; never at the bottom.
+    assert_eq!(stops, vec![2.0, 2.0]);
+}
