@@ -260,11 +260,18 @@ impl<'a> CycleLoop<'a> {
                 self.drives.quick_stop();
                 return Err(a);
             }
+            if let Some(a) = motion.take_alarm() {
+                // The motion layer already started a controlled stop.
+                self.halt(&mut motion);
+                return Err(a);
+            }
             match sp.event {
                 Event::End => ended = true,
                 Event::Stop { optional } => {
-                    // No operator panel in a batch run: M00 is logged and the program goes on.
-                    tracing::info!(line = sp.line, "M0{} program stop (batch run continues)", optional as u8);
+                    // No operator panel in a batch run: M00 is logged and the program goes on
+                    // as if cycle start had been pressed.
+                    tracing::info!(line = sp.line, "M0{} program stop (batch run: cycle start)", optional as u8);
+                    motion.cycle_start();
                 }
                 Event::Aux { .. } | Event::None => {}
             }
