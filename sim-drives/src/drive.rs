@@ -14,8 +14,10 @@ use cncgw_bus::cia402::{cw, device_transition, mode, sw, QuickStopOption, State}
 use cncgw_bus::CanFrame;
 use std::collections::BTreeMap;
 
-/// How many interpolation periods a late SYNC is bridged by extrapolating the set-point.
-const SYNC_EXTRAPOLATE_PERIODS: u64 = 3;
+/// How many interpolation periods a late SYNC is bridged by extrapolating the set-point
+/// (20 ms at 2 ms): enough for a master on a non-real-time kernel (the vcan tier runs in a
+/// User-Mode Linux guest whose timers were measured 10–18 ms late at p99 under load).
+const SYNC_EXTRAPOLATE_PERIODS: u64 = 10;
 const MS: u64 = 1_000_000;
 const N_RPDO: u16 = 2;
 const N_TPDO: u16 = 2;
