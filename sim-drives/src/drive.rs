@@ -1207,7 +1207,13 @@ impl SimDrive {
                         MS
                     }
                 };
-                self.seg_start = self.demand;
+                // Interpolate from the previous target to the new one, not from wherever the
+                // demand is now: after a late SYNC the demand has been extrapolated past the
+                // previous target, and starting from there would shorten this segment's
+                // velocity by the lateness (50 % for 1 ms at 2 ms) and slam the velocity loop
+                // every jittery cycle. The small position step back is what the loop absorbs.
+                let fresh = self.seg_len == 0 || now.saturating_sub(self.seg_t0) > self.seg_len * (1 + SYNC_EXTRAPOLATE_PERIODS);
+                self.seg_start = if fresh { self.demand } else { self.seg_end };
                 self.seg_end = t;
                 self.seg_t0 = now;
                 self.seg_len = len.max(1);
@@ -1304,6 +1310,17 @@ impl SimDrive {
                 let since = *self.ferr_since.get_or_insert(now);
                 let timeout = self.hot.ferr_timeout;
                 if now - since >= timeout {
+                    tracing::warn!(
+                        node = self.cfg.node,
+                        ferr = self.ferr(),
+                        demand = self.demand,
+                        actual = self.servo.position_counts(),
+                        seg_start = self.seg_start,
+                        seg_end = self.seg_end,
+                        since_seg_ms = now.saturating_sub(self.seg_t0) as f64 * 1e-6,
+                        window,
+                        "following error over the window 0x6065 for 0x6066"
+                    );
                     self.ferr_flag = true;
                     self.ferr_since = None;
                     self.fault(0x8611, now);

@@ -22,8 +22,6 @@ use cncgw_bus::{CanBus, CanFrame, Clock};
 pub const MASTER_NODE_ID: u8 = 0x7F;
 /// How often SDO waits look at the bus.
 const POLL_NS: u64 = 200_000;
-/// Feedback older than this many cycles is stale.
-const MAX_FEEDBACK_AGE: u32 = 5;
 
 /// One drive as the configuration describes it.
 #[derive(Clone, Debug)]
@@ -97,6 +95,7 @@ pub struct CanOpenMaster<B: CanBus> {
     next_hb_ns: u64,
     boot_timeout_ms: u32,
     bitrate: u32,
+    feedback_timeout_ns: u64,
     cycles: u64,
     /// Clock time of the last `receive`.
     now_ns: u64,
@@ -144,6 +143,7 @@ impl<B: CanBus> CanOpenMaster<B> {
             next_hb_ns: 0,
             boot_timeout_ms: timeout.max(100) * 4,
             bitrate: cfg.bus.bitrate,
+            feedback_timeout_ns: (cfg.bus.feedback_timeout_ms * 1e6) as u64,
             now_ns: 0,
             cycles: 0,
             enable_cycles: 0,
@@ -525,7 +525,7 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
             // Age by time, not by cycles: after the cycle thread was late, a cycle follows
             // at once and a drive cannot have answered yet.
             let age = now_ns.saturating_sub(n.fb_ns);
-            if self.running && age > MAX_FEEDBACK_AGE as u64 * self.cycle_ns {
+            if self.running && age > self.feedback_timeout_ns {
                 return Err(self.node_alarm(
                     i,
                     2015,
