@@ -16,8 +16,8 @@ use std::sync::Arc;
 #[test]
 fn a_program_runs_in_real_time_against_drives_on_another_thread() {
     let cfg = MachineConfig::embedded();
-    let prog = "G21\nG98\nM03 S1500\nG00 X40 Z2\nG01 Z-10 F1200\nG01 X60 Z-20\nG00 X100 Z5\nM05\nM30\n";
-    let mut interp = Interpreter::from_source("rt.nc", prog, &cfg).unwrap();
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/first_part.nc");
+    let mut interp = Interpreter::from_file(&path, &cfg).unwrap();
     let wire = InprocBus::new();
     let stop = Arc::new(AtomicBool::new(false));
     let sim_bus: Box<dyn cncgw_bus::CanBus> = Box::new(wire.endpoint());

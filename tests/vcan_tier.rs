@@ -68,6 +68,41 @@ fn start_sim() -> Killer {
     Killer(child)
 }
 
+/// The default machine with timing tolerances for a kernel that is not real-time.
+///
+/// Where this tier runs in a User-Mode Linux (or QEMU) guest, the guest's timers were
+/// measured 1–18 ms late at p99 under load (scripts/vmrun, notes/vcan-vm.md): a 2 ms cycle
+/// with a 30° spindle window and a 20 ms feedback timeout then faults on the scheduler, not on
+/// the bus. This tier proves the SocketCAN path between two processes; the timing figures
+/// come from the cycle-timing benchmarks. Only three values change: the cycle (4 ms), the
+/// spindle's following-error window (90°) and the feedback timeout (100 ms).
+fn relaxed_config() -> PathBuf {
+    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    let text = std::fs::read_to_string(root.join("config/lathe.toml")).unwrap();
+    let mut out = String::new();
+    let mut changed = 0;
+    for line in text.lines() {
+        let l = if line.starts_with("cycle_ms = ") {
+            changed += 1;
+            "cycle_ms = 4.0".to_string()
+        } else if line.starts_with("feedback_timeout_ms = ") {
+            changed += 1;
+            "feedback_timeout_ms = 100".to_string()
+        } else if line.starts_with("following_error = ") && line.contains("degrees") {
+            changed += 1;
+            "following_error = 90.0".to_string()
+        } else {
+            line.to_string()
+        };
+        out.push_str(&l);
+        out.push('\n');
+    }
+    assert_eq!(changed, 3, "config/lathe.toml changed shape; update relaxed_config()");
+    let p = std::env::temp_dir().join(format!("cncgw-vcan-{}.toml", std::process::id()));
+    std::fs::write(&p, out).unwrap();
+    p
+}
+
 #[test]
 #[ignore = "needs vcan0: run through scripts/run-vcan-tier.sh (scripts/test.sh does)"]
 fn first_part_runs_over_vcan_against_sim_drives_process() {
@@ -75,10 +110,12 @@ fn first_part_runs_over_vcan_against_sim_drives_process() {
         return;
     }
     let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    let cfg = relaxed_config();
     let _sim = start_sim();
     let t = Instant::now();
     let out = Command::new(bin("cncgw"))
-        .args(["run", "--bus", "vcan0", "--json"])
+        .args(["run", "--bus", "vcan0", "--json", "--config"])
+        .arg(&cfg)
         .arg(root.join("examples/first_part.nc"))
         .output()
         .expect("run cncgw");

@@ -101,6 +101,8 @@ pub struct SimDrive {
     seg_end: f64,
     seg_t0: u64,
     seg_len: u64,
+    /// Set-point velocity of the current segment, counts/s.
+    seg_v: f64,
     /// Last latched target (raw) and its unwrapped value; `None` = next target is taken
     /// relative to the actual position.
     target_ref: Option<(i32, f64)>,
@@ -256,6 +258,7 @@ impl SimDrive {
             seg_end: 0.0,
             seg_t0: 0,
             seg_len: 0,
+            seg_v: 0.0,
             target_ref: None,
             target_vel: 0.0,
             stop: None,
@@ -1046,6 +1049,7 @@ impl SimDrive {
         self.demand = p;
         self.seg_start = p;
         self.seg_end = p;
+        self.seg_v = 0.0;
         self.vff = 0.0;
         self.target_ref = None;
         self.ferr_since = None;
@@ -1207,16 +1211,30 @@ impl SimDrive {
                         MS
                     }
                 };
-                // Interpolate from the previous target to the new one, not from wherever the
-                // demand is now: after a late SYNC the demand has been extrapolated past the
-                // previous target, and starting from there would shorten this segment's
-                // velocity by the lateness (50 % for 1 ms at 2 ms) and slam the velocity loop
-                // every jittery cycle. The small position step back is what the loop absorbs.
-                let fresh = self.seg_len == 0 || now.saturating_sub(self.seg_t0) > self.seg_len * (1 + SYNC_EXTRAPOLATE_PERIODS);
-                self.seg_start = if fresh { self.demand } else { self.seg_end };
+                // The set-point runs on a line through the new target, reaching it one
+                // interpolation period from now (a fixed one-period delay, as real drives
+                // interpolate). A late SYNC or a master that caught up several cycles at once
+                // then changes neither the velocity feed-forward nor the set-point by more
+                // than the lateness.
+                let len = len.max(1);
+                let since = now.saturating_sub(self.seg_t0);
+                let fresh = self.seg_len == 0 || since > self.seg_len * (1 + SYNC_EXTRAPOLATE_PERIODS);
+                // The velocity is the target difference over whole interpolation periods:
+                // one normally (sub-period jitter of the SYNC does not modulate it — the
+                // spindle's inertia turns every percent of feed-forward noise into torque),
+                // n when the SYNC came n periods after the last one (a master that caught up
+                // after missing cycles sends n periods' worth of travel at once).
+                let v = if fresh {
+                    (t - self.demand) / (len as f64 * 1e-9)
+                } else {
+                    let n = ((since as f64 / len as f64).round() as u64).clamp(1, 1 + SYNC_EXTRAPOLATE_PERIODS);
+                    (t - self.seg_end) / ((n * len) as f64 * 1e-9)
+                };
+                self.seg_v = v;
+                self.seg_start = t - v * (len as f64 * 1e-9);
                 self.seg_end = t;
                 self.seg_t0 = now;
-                self.seg_len = len.max(1);
+                self.seg_len = len;
             }
             _ => {}
         }
@@ -1268,26 +1286,16 @@ impl SimDrive {
             Command::Velocity { v: self.target_vel }
         } else {
             let el = now.saturating_sub(self.seg_t0);
-            if el == self.seg_len {
-                // The end of a segment is also the instant of the next SYNC: keep the
-                // segment's speed so that an on-time SYNC sees no dip in the feed-forward.
-                self.demand = self.seg_end;
-            } else if el > self.seg_len && el <= self.seg_len * (1 + SYNC_EXTRAPOLATE_PERIODS) {
-                // A late SYNC: keep going at the segment's speed, as real drives
-                // extrapolate the set-point over a missing or late SYNC instead of stopping
-                // the motor dead (which opens a following error on every jittery cycle).
-                let v = (self.seg_end - self.seg_start) / (self.seg_len as f64 * 1e-9);
-                self.demand = self.seg_end + v * ((el - self.seg_len) as f64 * 1e-9);
-                self.vff = v;
-            } else if el > self.seg_len {
-                // No SYNC for several periods: the master is gone or stalled; hold.
-                let v = (self.seg_end - self.seg_start) / (self.seg_len as f64 * 1e-9);
-                self.demand = self.seg_end + v * ((self.seg_len * SYNC_EXTRAPOLATE_PERIODS) as f64 * 1e-9);
-                self.vff = 0.0;
+            if el <= self.seg_len * (1 + SYNC_EXTRAPOLATE_PERIODS) {
+                // Within the period this reaches the target; past it (a late SYNC) it goes
+                // on at the same speed, as real drives extrapolate over a late or missing
+                // SYNC instead of stopping the motor dead.
+                self.demand = self.seg_end + self.seg_v * ((el as f64 - self.seg_len as f64) * 1e-9);
+                self.vff = self.seg_v;
             } else {
-                let f = el as f64 / self.seg_len as f64;
-                self.demand = self.seg_start + (self.seg_end - self.seg_start) * f;
-                self.vff = (self.seg_end - self.seg_start) / (self.seg_len as f64 * 1e-9);
+                // No SYNC for several periods: the master is gone or stalled; hold.
+                self.demand = self.seg_end + self.seg_v * ((self.seg_len * SYNC_EXTRAPOLATE_PERIODS) as f64 * 1e-9);
+                self.vff = 0.0;
             }
             Command::Position { demand: self.demand, vff: self.vff }
         };

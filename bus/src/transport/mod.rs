@@ -34,6 +34,12 @@ pub trait CanBus: Send {
     fn recv_timeout(&mut self, timeout: Duration) -> Result<Option<CanFrame>, BusError>;
     /// Interface name for messages (`inproc`, `vcan0`, …).
     fn name(&self) -> &str;
+    /// How long ago the frame last returned by `try_recv`/`recv_timeout` arrived, where the
+    /// transport knows it (SocketCAN: the kernel's receive timestamp). Emulated drives use it
+    /// to act at the frame's arrival time even when their process was busy or descheduled.
+    fn last_rx_age(&self) -> Option<Duration> {
+        None
+    }
 }
 
 impl<T: CanBus + ?Sized> CanBus for Box<T> {
@@ -48,5 +54,8 @@ impl<T: CanBus + ?Sized> CanBus for Box<T> {
     }
     fn name(&self) -> &str {
         (**self).name()
+    }
+    fn last_rx_age(&self) -> Option<Duration> {
+        (**self).last_rx_age()
     }
 }

@@ -13,6 +13,9 @@ use std::time::Duration;
 pub struct SocketCan {
     name: String,
     sock: socketcan::CanSocket,
+    /// SO_TIMESTAMPNS is on: frames carry their kernel arrival time.
+    timestamps: bool,
+    last_age: Option<Duration>,
 }
 
 fn to_sc(f: &CanFrame) -> Option<socketcan::CanFrame> {
@@ -67,7 +70,8 @@ impl SocketCan {
             BusError::Open { bus: name.clone(), reason }
         })?;
         sock.set_nonblocking(true).map_err(|e| BusError::Open { bus: name.clone(), reason: e.to_string() })?;
-        Ok(SocketCan { name, sock })
+        let timestamps = socketcan::SocketOptions::set_recv_timestamp(&sock, true).is_ok();
+        Ok(SocketCan { name, sock, timestamps, last_age: None })
     }
 
     fn io(&self, e: std::io::Error) -> BusError {
@@ -93,9 +97,17 @@ impl CanBus for SocketCan {
 
     fn try_recv(&mut self) -> Result<Option<CanFrame>, BusError> {
         loop {
-            match self.sock.read_frame() {
-                Ok(f) => match from_sc(&f) {
-                    Some(f) => return Ok(Some(f)),
+            let r = if self.timestamps {
+                self.sock.read_frame_with_timestamp().map(|(f, ts)| (f, std::time::SystemTime::now().duration_since(ts).ok()))
+            } else {
+                self.sock.read_frame().map(|f| (f, None))
+            };
+            match r {
+                Ok((f, age)) => match from_sc(&f) {
+                    Some(f) => {
+                        self.last_age = age;
+                        return Ok(Some(f));
+                    }
                     None => continue, // error frames are not data
                 },
                 Err(e) if e.kind() == ErrorKind::WouldBlock => return Ok(None),
@@ -129,5 +141,9 @@ impl CanBus for SocketCan {
 
     fn name(&self) -> &str {
         &self.name
+    }
+
+    fn last_rx_age(&self) -> Option<Duration> {
+        self.last_age
     }
 }
