@@ -58,6 +58,36 @@ fn million_blocks_stream() {
     assert_eq!(moves, n + 3);
 }
 
+/// Inputs that once made `cargo fuzz` (scripts/fuzz.sh) crash; each must now run without a
+/// panic. The directory may be empty.
+#[test]
+fn fuzz_regression_cases() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/interp_fuzz_cases");
+    let Ok(entries) = std::fs::read_dir(&dir) else { return };
+    for e in entries.flatten() {
+        let bytes = std::fs::read(e.path()).expect("readable case");
+        drain(&String::from_utf8_lossy(&bytes), 2_000);
+    }
+}
+
+/// The fuzz seed corpus (fuzz/corpus/interp/*.nc) are valid programs that run to M30.
+#[test]
+fn fuzz_seeds_run_to_the_end() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("fuzz/corpus/interp");
+    let mut n = 0;
+    for e in std::fs::read_dir(&dir).expect("fuzz/corpus/interp exists").flatten() {
+        if e.path().extension().is_some_and(|x| x == "nc") {
+            let text = std::fs::read_to_string(e.path()).expect("text");
+            let it = Interpreter::with_program_dir("seed.nc", &text, &MachineConfig::embedded(), Some(&dir))
+                .unwrap_or_else(|a| panic!("{}: {a:?}", e.path().display()));
+            let last = it.map(|m| m.unwrap_or_else(|a| panic!("{}: {a}", e.path().display()))).last();
+            assert!(matches!(last.map(|m| m.kind), Some(cncgw::canon::MoveKind::End { .. })), "{}", e.path().display());
+            n += 1;
+        }
+    }
+    assert!(n >= 3, "seed corpus has {n} programs");
+}
+
 #[test]
 fn hundred_thousand_blocks_stream() {
     let n = 100_000;
