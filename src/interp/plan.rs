@@ -2,7 +2,6 @@
 //! coordinates as an operator reads them (machine − work offset, X as a diameter).
 
 use crate::canon::{Feed, Move, MoveKind, Pos, SpindleDir};
-use serde_json::{json, Map, Value};
 
 /// Round to 0.1 µm so that float noise (12.000000000001) does not show.
 fn r(v: f64) -> f64 {
@@ -27,32 +26,95 @@ fn code(letter: char, value: f64) -> String {
     }
 }
 
-fn put_end(o: &mut Map<String, Value>, m: &Move, end: Pos) {
-    let w = work(m, end);
-    o.insert("x".into(), json!(r(w.x * 2.0)));
-    o.insert("z".into(), json!(r(w.z)));
-    // Y and C are printed when they are in use (non-zero end point or offset).
-    if end.y != 0.0 || m.work_offset.y != 0.0 {
-        o.insert("y".into(), json!(r(w.y)));
-    }
-    if end.c != 0.0 || m.work_offset.c != 0.0 {
-        o.insert("c".into(), json!(r(w.c)));
+/// A JSON value of a `plan` line, written without building a `serde_json::Value` (the
+/// listing of a million-block program spends most of its time here).
+#[derive(Clone, Copy)]
+enum J<'a> {
+    Num(f64),
+    Int(u32),
+    Bool(bool),
+    Str(&'a str),
+    Code(char, f64),
+    /// `{"x": …, "z": …}`
+    Xz(f64, f64),
+}
+
+struct Obj<'a> {
+    f: [(&'static str, J<'a>); 16],
+    n: usize,
+}
+
+impl<'a> Obj<'a> {
+    fn put(&mut self, k: &'static str, v: J<'a>) {
+        if self.n < self.f.len() {
+            self.f[self.n] = (k, v);
+            self.n += 1;
+        }
     }
 }
 
-fn put_feed(o: &mut Map<String, Value>, f: &Feed) {
+fn num(out: &mut String, v: f64) {
+    use std::fmt::Write;
+    if v.is_finite() {
+        // Debug of f64 is the shortest round-trip form with a `.0` on integers, like serde_json.
+        let _ = write!(out, "{v:?}");
+    } else {
+        out.push_str("null");
+    }
+}
+
+fn json_str(out: &mut String, s: &str) {
+    use std::fmt::Write;
+    out.push('"');
+    for ch in s.chars() {
+        match ch {
+            '"' => out.push_str("\\\""),
+            '\\' => out.push_str("\\\\"),
+            '\n' => out.push_str("\\n"),
+            '\r' => out.push_str("\\r"),
+            '\t' => out.push_str("\\t"),
+            c if (c as u32) < 0x20 => {
+                let _ = write!(out, "\\u{:04x}", c as u32);
+            }
+            c => out.push(c),
+        }
+    }
+    out.push('"');
+}
+
+fn put_end<'a>(o: &mut Obj<'a>, m: &Move, end: Pos) {
+    let w = work(m, end);
+    o.put("x", J::Num(r(w.x * 2.0)));
+    o.put("z", J::Num(r(w.z)));
+    // Y and C are printed when they are in use (non-zero end point or offset).
+    if end.y != 0.0 || m.work_offset.y != 0.0 {
+        o.put("y", J::Num(r(w.y)));
+    }
+    if end.c != 0.0 || m.work_offset.c != 0.0 {
+        o.put("c", J::Num(r(w.c)));
+    }
+}
+
+fn put_feed(o: &mut Obj<'_>, f: &Feed) {
     match f {
-        Feed::PerMin(v) => o.insert("feed".into(), json!(r(*v))),
-        Feed::PerRev(v) => o.insert("feed_per_rev".into(), json!(r(*v))),
+        Feed::PerMin(v) => o.put("feed", J::Num(r(*v))),
+        Feed::PerRev(v) => o.put("feed_per_rev", J::Num(r(*v))),
     };
 }
 
-/// The move as a JSON object (no trailing newline).
+/// The move as a JSON object (no trailing newline), keys in alphabetical order.
 pub fn move_to_json(m: &Move) -> String {
-    let mut o = Map::new();
-    o.insert("file".into(), json!(&*m.src.file));
-    o.insert("line".into(), json!(m.src.line));
-    o.insert("kind".into(), json!(m.kind.name()));
+    let mut s = String::with_capacity(128);
+    write_json(&mut s, m);
+    s
+}
+
+/// [`move_to_json`] appended to `out`.
+pub fn write_json(out: &mut String, m: &Move) {
+    let mut o = Obj { f: [("", J::Int(0)); 16], n: 0 };
+    o.put("file", J::Str(&m.src.file));
+    o.put("line", J::Int(m.src.line));
+    o.put("kind", J::Str(m.kind.name()));
     match &m.kind {
         MoveKind::Rapid { end } => put_end(&mut o, m, *end),
         MoveKind::Feed { end, feed } => {
@@ -62,53 +124,73 @@ pub fn move_to_json(m: &Move) -> String {
         MoveKind::Arc { end, center, cw, feed, .. } => {
             put_end(&mut o, m, *end);
             put_feed(&mut o, feed);
-            o.insert("cw".into(), json!(cw));
+            o.put("cw", J::Bool(*cw));
             let c = work(m, *center);
-            o.insert("center".into(), json!({"x": r(c.x * 2.0), "z": r(c.z)}));
+            o.put("center", J::Xz(r(c.x * 2.0), r(c.z)));
         }
         MoveKind::Thread { end, lead, start_angle } => {
             put_end(&mut o, m, *end);
-            o.insert("lead".into(), json!(r(*lead)));
-            o.insert("start_angle".into(), json!(r(*start_angle)));
+            o.put("lead", J::Num(r(*lead)));
+            o.put("start_angle", J::Num(r(*start_angle)));
         }
         MoveKind::Tap { end, lead, rpm } => {
             put_end(&mut o, m, *end);
-            o.insert("lead".into(), json!(r(*lead)));
-            o.insert("rpm".into(), json!(r(*rpm)));
+            o.put("lead", J::Num(r(*lead)));
+            o.put("rpm", J::Num(r(*rpm)));
         }
-        MoveKind::Dwell { seconds } => {
-            o.insert("dwell_s".into(), json!(r(*seconds)));
-        }
+        MoveKind::Dwell { seconds } => o.put("dwell_s", J::Num(r(*seconds))),
         MoveKind::Spindle(s) => {
             let dir = match s.dir {
                 SpindleDir::Cw => "cw",
                 SpindleDir::Ccw => "ccw",
                 SpindleDir::Stop => "stop",
             };
-            o.insert("dir".into(), json!(dir));
-            o.insert("rpm".into(), json!(r(s.rpm)));
+            o.put("dir", J::Str(dir));
+            o.put("rpm", J::Num(r(s.rpm)));
             if let Some(c) = s.css {
-                o.insert("css".into(), json!(r(c)));
+                o.put("css", J::Num(r(c)));
             }
             if let Some(x) = s.max_rpm {
-                o.insert("max_rpm".into(), json!(r(x)));
+                o.put("max_rpm", J::Num(r(x)));
             }
         }
-        MoveKind::Aux { letter, value } => {
-            o.insert("code".into(), json!(code(*letter, *value)));
-        }
-        MoveKind::Stop { optional } => {
-            o.insert("code".into(), json!(if *optional { "M01" } else { "M00" }));
-        }
-        MoveKind::End { code: c } => {
-            o.insert("code".into(), json!(format!("M{c:02}")));
-        }
+        MoveKind::Aux { letter, value } => o.put("code", J::Code(*letter, *value)),
+        MoveKind::Stop { optional } => o.put("code", J::Str(if *optional { "M01" } else { "M00" })),
+        MoveKind::End { code: c } => o.put("code", J::Code('M', *c as f64)),
     }
     if let Some(t) = &m.tag {
-        o.insert("cycle".into(), json!(&*t.cycle));
-        o.insert("step".into(), json!(t.step));
+        o.put("cycle", J::Str(&t.cycle));
+        o.put("step", J::Int(t.step as u32));
     }
-    Value::Object(o).to_string()
+    let fields = &mut o.f[..o.n];
+    fields.sort_unstable_by_key(|f| f.0);
+    out.push('{');
+    for (i, (k, v)) in fields.iter().enumerate() {
+        if i > 0 {
+            out.push(',');
+        }
+        out.push('"');
+        out.push_str(k);
+        out.push_str("\":");
+        match *v {
+            J::Num(x) => num(out, x),
+            J::Int(x) => {
+                use std::fmt::Write;
+                let _ = write!(out, "{x}");
+            }
+            J::Bool(b) => out.push_str(if b { "true" } else { "false" }),
+            J::Str(t) => json_str(out, t),
+            J::Code(l, x) => json_str(out, &code(l, x)),
+            J::Xz(x, z) => {
+                out.push_str("{\"x\":");
+                num(out, x);
+                out.push_str(",\"z\":");
+                num(out, z);
+                out.push('}');
+            }
+        }
+    }
+    out.push('}');
 }
 
 fn f4(v: f64) -> String {
