@@ -63,7 +63,8 @@ pub const MAX_NESTING: usize = 12;
 #[derive(Clone, Debug)]
 struct Source {
     file: Arc<str>,
-    text: String,
+    /// Shared so that executing a block can hold its line without copying it.
+    text: Arc<str>,
     /// Byte offset of the start of every line; one extra entry = text length.
     line_starts: Vec<usize>,
 }
@@ -75,10 +76,17 @@ impl Source {
         if *starts.last().unwrap_or(&0) != text.len() {
             starts.push(text.len());
         }
-        Source { file: Arc::from(file), text, line_starts: starts }
+        Source { file: Arc::from(file), text: Arc::from(text), line_starts: starts }
     }
     fn nlines(&self) -> usize {
         self.line_starts.len() - 1
+    }
+    /// Byte range of line `i` without its line end.
+    fn line_range(&self, i: usize) -> std::ops::Range<usize> {
+        match (self.line_starts.get(i), self.line_starts.get(i + 1)) {
+            (Some(&a), Some(&b)) => a..a + self.text[a..b].trim_end_matches(['\n', '\r']).len(),
+            _ => 0..0,
+        }
     }
     fn line(&self, i: usize) -> &str {
         match (self.line_starts.get(i), self.line_starts.get(i + 1)) {
@@ -611,7 +619,9 @@ impl Interpreter {
         }
         let i = self.line;
         self.line += 1;
-        let text = self.line_text(i).to_string();
+        let source = &self.sources[self.progs[self.prog].src];
+        let (whole, range) = (source.text.clone(), source.line_range(i));
+        let text = &whole[range];
         let file = self.cur_file();
         let si = self.progs[self.prog].src;
         let b: Block = parse::parse_line(&text).map_err(|e| perr_alarm(&file, i, &text, e))?;

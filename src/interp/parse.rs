@@ -203,18 +203,57 @@ impl<'a> Cur<'a> {
         }
     }
     /// The run of letters at the cursor (upper-cased), without consuming it.
-    fn letters(&mut self) -> String {
+    fn letters(&mut self) -> Letters {
         self.skip_ws();
-        let mut s = String::new();
+        let mut s = Letters { buf: [0; LETTERS_MAX], len: 0 };
         let mut j = self.i;
         while j < self.c.len() && self.c[j].is_ascii_alphabetic() {
-            s.push(self.c[j].to_ascii_uppercase());
+            if s.len < LETTERS_MAX {
+                s.buf[s.len] = self.c[j].to_ascii_uppercase() as u8;
+                s.len += 1;
+            }
             j += 1;
         }
         s
     }
     fn at_end(&mut self) -> bool {
         self.peek().is_none()
+    }
+}
+
+const LETTERS_MAX: usize = 16;
+
+/// A run of address letters / a keyword, upper-cased, kept on the stack (one per word, so a
+/// heap string here cost an allocation per address). Longer runs keep their first 16
+/// letters, which no keyword or function name reaches.
+#[derive(Clone, Copy)]
+struct Letters {
+    buf: [u8; LETTERS_MAX],
+    len: usize,
+}
+
+impl Letters {
+    fn as_str(&self) -> &str {
+        std::str::from_utf8(&self.buf[..self.len]).unwrap_or("")
+    }
+}
+
+impl std::ops::Deref for Letters {
+    type Target = str;
+    fn deref(&self) -> &str {
+        self.as_str()
+    }
+}
+
+impl std::fmt::Display for Letters {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+impl PartialEq<&str> for Letters {
+    fn eq(&self, o: &&str) -> bool {
+        self.as_str() == *o
     }
 }
 
@@ -447,16 +486,43 @@ fn number(c: &mut Cur, letter: char, col: u32) -> Result<(f64, bool), PErr> {
             break;
         }
     }
-    let s: String = c.c[start..c.i].iter().collect();
-    if s.is_empty() || s == "." {
+    let digits = &c.c[start..c.i];
+    if digits.is_empty() || digits == ['.'] {
         return perr(5, col, format!("no value after address {letter}"));
     }
-    let sig = s.trim_start_matches(['0', '.']).replace('.', "");
-    let sig = if decimal { sig.trim_end_matches('0').to_string() } else { sig };
-    if sig.len() > MAX_DIGITS {
+    // Significant digits: without leading zeros, and without trailing zeros after a point.
+    let lead = digits.iter().take_while(|ch| matches!(ch, '0' | '.')).count();
+    let rest = digits[lead..].iter().filter(|ch| **ch != '.');
+    let mut sig = rest.clone().count();
+    if decimal {
+        sig -= rest.rev().take_while(|ch| **ch == '0').count();
+    }
+    if sig > MAX_DIGITS {
+        let s: String = digits.iter().collect();
         return perr(3, col, format!("{letter}{s}: more than {MAX_DIGITS} digits"));
     }
-    let v: f64 = s.parse().or_else(|_| format!("{s}0").parse()).unwrap_or(0.0);
+    if digits.len() > 62 {
+        // Many leading zeros: rare, parse through a heap string.
+        let mut s: String = digits.iter().collect();
+        if s.ends_with('.') {
+            s.push('0');
+        }
+        return Ok((s.parse().unwrap_or(0.0), decimal));
+    }
+    // Parse from a stack buffer (digits and '.' are ASCII); `5.` gets a 0 appended.
+    let mut buf = [0u8; 64];
+    let mut n = 0;
+    for ch in digits {
+        if n < buf.len() - 1 {
+            buf[n] = *ch as u8;
+            n += 1;
+        }
+    }
+    if buf[n - 1] == b'.' {
+        buf[n] = b'0';
+        n += 1;
+    }
+    let v: f64 = std::str::from_utf8(&buf[..n]).ok().and_then(|t| t.parse().ok()).unwrap_or(0.0);
     Ok((v, decimal))
 }
 
@@ -673,6 +739,31 @@ mod tests {
             Stmt::Nc(w) => w,
             other => panic!("{other:?}"),
         }
+    }
+
+    #[test]
+    fn numbers_parse_without_allocating_the_same_values() {
+        let v = |t: &str| match parse_line(t).expect(t).stmt {
+            Stmt::Nc(w) => match &w[0].value {
+                Expr::Num { v, decimal } => (*v, *decimal),
+                Expr::Neg(e) => match **e {
+                    Expr::Num { v, decimal } => (-v, decimal),
+                    _ => panic!("{t}"),
+                },
+                _ => panic!("{t}"),
+            },
+            _ => panic!("{t}"),
+        };
+        assert_eq!(v("X5."), (5.0, true));
+        assert_eq!(v("X.5"), (0.5, true));
+        assert_eq!(v("X-12.250"), (-12.25, true));
+        assert_eq!(v("X12345678"), (12345678.0, false));
+        assert_eq!(v("X1234567.8000"), (1234567.8, true));
+        assert_eq!(v(&format!("X{}15", "0".repeat(100))), (15.0, false));
+        assert_eq!(v(&format!("X{}1.", "0".repeat(100))), (1.0, true));
+        assert_eq!(parse_line("X123456789").unwrap_err().number, 3);
+        assert_eq!(parse_line("X1.23456789").unwrap_err().number, 3);
+        assert_eq!(parse_line("X.").unwrap_err().number, 5);
     }
 
     #[test]
