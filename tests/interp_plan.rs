@@ -80,3 +80,15 @@ fn exact_values_and_escaping() {
     let bad = plan::move_to_json(&mk(MoveKind::Dwell { seconds: f64::NAN }));
     assert!(serde_json::from_str::<Value>(&bad).expect("json")["dwell_s"].is_null(), "{bad}");
 }
+
+#[test]
+fn numbers_print_like_the_shortest_round_trip_form() {
+    let src = SrcPos::new("t.nc".into(), 1, 1);
+    for v in [0.0, 20.05, -0.025, 54.0, 0.0001, -123456.7891, 1e9 + 0.5, 0.1 + 0.2, 1e14, 3.0e16, -7.25] {
+        let m = Move { src: src.clone(), kind: MoveKind::Dwell { seconds: v }, exact_stop: false, work_offset: Pos::ZERO, tag: None };
+        let j = plan::move_to_json(&m);
+        let rounded = (v * 1e4).round() / 1e4;
+        let want = format!("{:?}", if rounded == 0.0 { 0.0 } else { rounded });
+        assert!(j.contains(&format!("\"dwell_s\":{want},")), "{v}: {j} (want {want})");
+    }
+}

@@ -236,6 +236,12 @@ impl Letters {
     fn as_str(&self) -> &str {
         std::str::from_utf8(&self.buf[..self.len]).unwrap_or("")
     }
+    fn len(&self) -> usize {
+        self.len
+    }
+    fn first(&self) -> Option<char> {
+        (self.len > 0).then(|| self.buf[0] as char)
+    }
 }
 
 impl std::ops::Deref for Letters {
@@ -253,7 +259,7 @@ impl std::fmt::Display for Letters {
 
 impl PartialEq<&str> for Letters {
     fn eq(&self, o: &&str) -> bool {
-        self.as_str() == *o
+        &self.buf[..self.len] == o.as_bytes()
     }
 }
 
@@ -419,7 +425,7 @@ fn words(c: &mut Cur) -> Result<Vec<Word>, PErr> {
             }
             return perr(9, col, format!("improper address `{run}`: an address is one letter followed by a value"));
         }
-        let letter = run.chars().next().unwrap_or('?');
+        let letter = run.first().unwrap_or('?');
         c.i += 1;
         let value = word_value(c, letter, col)?;
         if matches!(letter, 'G' | 'M' | 'N' | 'O' | 'T' | 'L') {
@@ -501,6 +507,9 @@ fn number(c: &mut Cur, letter: char, col: u32) -> Result<(f64, bool), PErr> {
         let s: String = digits.iter().collect();
         return perr(3, col, format!("{letter}{s}: more than {MAX_DIGITS} digits"));
     }
+    if let Some(v) = fast_decimal(digits) {
+        return Ok((v, decimal));
+    }
     if digits.len() > 62 {
         // Many leading zeros: rare, parse through a heap string.
         let mut s: String = digits.iter().collect();
@@ -524,6 +533,38 @@ fn number(c: &mut Cur, letter: char, col: u32) -> Result<(f64, bool), PErr> {
     }
     let v: f64 = std::str::from_utf8(&buf[..n]).ok().and_then(|t| t.parse().ok()).unwrap_or(0.0);
     Ok((v, decimal))
+}
+
+/// `digits` (ASCII digits and at most one '.') as an f64 without going through a string:
+/// an integer mantissa of at most 15 digits divided by an exact power of ten is correctly
+/// rounded, so the result equals `str::parse`. `None` when that does not hold.
+fn fast_decimal(digits: &[char]) -> Option<f64> {
+    const POW10: [f64; 23] = [
+        1e0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6, 1e7, 1e8, 1e9, 1e10, 1e11, 1e12, 1e13, 1e14, 1e15, 1e16, 1e17, 1e18,
+        1e19, 1e20, 1e21, 1e22,
+    ];
+    let mut mant: u64 = 0;
+    let mut nd = 0; // digits in the mantissa, leading zeros excluded
+    let mut frac = 0usize;
+    let mut point = false;
+    for &ch in digits {
+        if ch == '.' {
+            point = true;
+            continue;
+        }
+        let d = ch.to_digit(10)? as u64;
+        if mant != 0 || d != 0 {
+            nd += 1;
+        }
+        if nd > 15 {
+            return None;
+        }
+        mant = mant * 10 + d;
+        if point {
+            frac += 1;
+        }
+    }
+    Some(mant as f64 / *POW10.get(frac)?)
 }
 
 fn assignment(c: &mut Cur) -> Result<(Expr, Expr), PErr> {
@@ -764,6 +805,12 @@ mod tests {
         assert_eq!(parse_line("X123456789").unwrap_err().number, 3);
         assert_eq!(parse_line("X1.23456789").unwrap_err().number, 3);
         assert_eq!(parse_line("X.").unwrap_err().number, 5);
+        // The fast path agrees with str::parse, bit for bit.
+        for t in ["0.1", "20.05", "1234567.8", "0.0000001", "99999999", "3.14159265", "0.30000000", "7.", ".007"] {
+            let chars: Vec<char> = t.chars().collect();
+            let want: f64 = if t.ends_with('.') { format!("{t}0") } else { t.to_string() }.parse().expect(t);
+            assert_eq!(fast_decimal(&chars).map(f64::to_bits), Some(want.to_bits()), "{t}");
+        }
     }
 
     #[test]
