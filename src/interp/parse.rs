@@ -287,6 +287,9 @@ fn strip(line: &str) -> Vec<char> {
 
 /// Parse one source line.
 pub fn parse_line(line: &str) -> Result<Block, PErr> {
+    if let Some(b) = fast_line(line) {
+        return Ok(b);
+    }
     let chars = strip(line);
     let mut c = Cur { c: &chars, i: 0, nest: 0 };
     let first = c.peek();
@@ -535,6 +538,98 @@ fn number(c: &mut Cur, letter: char, col: u32) -> Result<(f64, bool), PErr> {
     Ok((v, decimal))
 }
 
+/// The common case of CAM output, parsed straight from the bytes: an ASCII line of
+/// `[N…] LETTER number …` words (plain numbers, optional sign), optionally ending in a `;`
+/// comment. Anything else (comments in parentheses, macros, `/`, `O`, `%`, `,C`, any error)
+/// returns `None` and goes through the full parser, so both give the same `Block` except
+/// that a negative number is `Num { v: -x }` here instead of `Neg(Num { v: x })`, which
+/// evaluates the same.
+fn fast_line(line: &str) -> Option<Block> {
+    let b = line.as_bytes();
+    let end = b.iter().position(|&c| c == b';').unwrap_or(b.len());
+    let b = &b[..end];
+    let mut i = 0;
+    let ws = |i: &mut usize| {
+        while *i < b.len() && matches!(b[*i], b' ' | b'\t' | b'\r' | b'\n') {
+            *i += 1;
+        }
+    };
+    ws(&mut i);
+    if i == b.len() {
+        return None;
+    }
+    let col = i as u32 + 1;
+    let mut n = None;
+    let mut words = Vec::new();
+    while {
+        ws(&mut i);
+        i < b.len()
+    } {
+        let wcol = i as u32 + 1;
+        let letter = b[i].to_ascii_uppercase();
+        if !letter.is_ascii_uppercase() || letter == b'O' {
+            return None;
+        }
+        i += 1;
+        let neg = match b.get(i) {
+            Some(b'-') => {
+                i += 1;
+                true
+            }
+            Some(b'+') => {
+                i += 1;
+                false
+            }
+            _ => false,
+        };
+        let start = i;
+        let mut decimal = false;
+        while i < b.len() && (b[i].is_ascii_digit() || (b[i] == b'.' && !decimal)) {
+            decimal |= b[i] == b'.';
+            i += 1;
+        }
+        let digits = &b[start..i];
+        // Letters must be followed by a number and then a separator or the next letter.
+        if digits.is_empty() || digits == b"." || (i < b.len() && !(b[i].is_ascii_alphabetic() || matches!(b[i], b' ' | b'\t' | b'\r' | b'\n'))) {
+            return None;
+        }
+        if neg && matches!(letter, b'G' | b'M' | b'N' | b'T' | b'L') {
+            return None;
+        }
+        let lead = digits.iter().take_while(|c| matches!(c, b'0' | b'.')).count();
+        let mut sig = digits[lead..].iter().filter(|c| **c != b'.').count();
+        if decimal {
+            sig -= digits[lead..].iter().rev().filter(|c| **c != b'.').take_while(|c| **c == b'0').count();
+        }
+        if sig > MAX_DIGITS {
+            return None;
+        }
+        let v = fast_decimal_bytes(digits)?;
+        if letter == b'N' {
+            if !words.is_empty() || n.is_some() || decimal || v > 99999.0 {
+                return None;
+            }
+            n = Some(v as u32);
+            continue;
+        }
+        let v = if neg { -v } else { v };
+        words.push(Word { letter: letter as char, comma: false, value: Expr::Num { v, decimal }, col: wcol });
+    }
+    let stmt = if words.is_empty() { Stmt::Empty } else { Stmt::Nc(words) };
+    Some(Block { skip: false, n, stmt, col })
+}
+
+fn fast_decimal_bytes(digits: &[u8]) -> Option<f64> {
+    let mut buf = ['0'; 24];
+    if digits.len() > buf.len() {
+        return None;
+    }
+    for (d, s) in buf.iter_mut().zip(digits) {
+        *d = *s as char;
+    }
+    fast_decimal(&buf[..digits.len()])
+}
+
 /// `digits` (ASCII digits and at most one '.') as an f64 without going through a string:
 /// an integer mantissa of at most 15 digits divided by an exact power of ten is correctly
 /// rounded, so the result equals `str::parse`. `None` when that does not hold.
@@ -779,6 +874,50 @@ mod tests {
         match parse_line(s).unwrap().stmt {
             Stmt::Nc(w) => w,
             other => panic!("{other:?}"),
+        }
+    }
+
+    /// The byte fast path and the full parser agree on every line the fast path takes.
+    #[test]
+    fn fast_path_agrees_with_the_full_parser() {
+        let norm = |b: Block| match b.stmt {
+            Stmt::Nc(w) => (
+                b.n,
+                b.col,
+                w.into_iter()
+                    .map(|w| {
+                        let v = match w.value {
+                            Expr::Neg(e) => match *e {
+                                Expr::Num { v, decimal } => Expr::Num { v: -v, decimal },
+                                e => Expr::Neg(Box::new(e)),
+                            },
+                            e => e,
+                        };
+                        (w.letter, w.col, v)
+                    })
+                    .collect::<Vec<_>>(),
+            ),
+            other => (b.n, b.col, vec![('?', 0, Expr::Num { v: if other == Stmt::Empty { 0.0 } else { 1.0 }, decimal: false })]),
+        };
+        for t in [
+            "G1 X20.000 Z-0.000 F100",
+            "  n10 g01 x-.5 z+3 f.2 ; comment",
+            "N10",
+            "G00X40Z5",
+            "X10. U-2.5 W0 ",
+            "M03 S1200\r",
+            "T0101 G0 X100 Z50",
+            "G1 X1.0000000",
+            "N99999 G4 P500",
+        ] {
+            let fast = fast_line(t).unwrap_or_else(|| panic!("fast path should take {t:?}"));
+            // The full parser, with the fast path bypassed: `(x)` comment forces it.
+            let slow = parse_line(&format!("{t}(x)")).expect(t);
+            let slow = if t.contains(';') { parse_line(&format!("{}(x);", &t[..t.find(';').unwrap_or(0)])).expect(t) } else { slow };
+            assert_eq!(norm(fast), norm(slow), "{t}");
+        }
+        for t in ["", "   ", "G-1", "X", "X.", "X1-2", "XX1", "O10", "N1.5", "G1 N10", "X123456789", "/X1", "X1 (c)", "#1=2", "G1 ,C1", "X[1]", "X 10", "IF", "X1é"] {
+            assert!(fast_line(t).is_none(), "{t:?} must take the full parser");
         }
     }
 
