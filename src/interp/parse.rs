@@ -582,10 +582,29 @@ fn fast_line(line: &str) -> Option<Block> {
             }
             _ => false,
         };
+        // One pass: mantissa, significant digits (no leading zeros; no trailing zeros after
+        // a point) and digits after the point.
         let start = i;
         let mut decimal = false;
-        while i < b.len() && (b[i].is_ascii_digit() || (b[i] == b'.' && !decimal)) {
-            decimal |= b[i] == b'.';
+        let (mut mant, mut nd, mut frac, mut tz) = (0u64, 0usize, 0usize, 0usize);
+        while i < b.len() {
+            let c = b[i];
+            if c.is_ascii_digit() {
+                let d = (c - b'0') as u64;
+                if mant != 0 || d != 0 {
+                    nd += 1;
+                    tz = if d == 0 { tz + 1 } else { 0 };
+                }
+                if nd > 15 {
+                    return None;
+                }
+                mant = mant * 10 + d;
+                frac += decimal as usize;
+            } else if c == b'.' && !decimal {
+                decimal = true;
+            } else {
+                break;
+            }
             i += 1;
         }
         let digits = &b[start..i];
@@ -596,15 +615,12 @@ fn fast_line(line: &str) -> Option<Block> {
         if neg && matches!(letter, b'G' | b'M' | b'N' | b'T' | b'L') {
             return None;
         }
-        let lead = digits.iter().take_while(|c| matches!(c, b'0' | b'.')).count();
-        let mut sig = digits[lead..].iter().filter(|c| **c != b'.').count();
-        if decimal {
-            sig -= digits[lead..].iter().rev().filter(|c| **c != b'.').take_while(|c| **c == b'0').count();
-        }
+        // As in `number`: with a point, trailing zeros are not significant.
+        let sig = if decimal { nd - tz } else { nd };
         if sig > MAX_DIGITS {
             return None;
         }
-        let v = fast_decimal_bytes(digits)?;
+        let v = mant as f64 / *POW10.get(frac)?;
         if letter == b'N' {
             if !words.is_empty() || n.is_some() || decimal || v > 99999.0 {
                 return None;
@@ -619,25 +635,16 @@ fn fast_line(line: &str) -> Option<Block> {
     Some(Block { skip: false, n, stmt, col })
 }
 
-fn fast_decimal_bytes(digits: &[u8]) -> Option<f64> {
-    let mut buf = ['0'; 24];
-    if digits.len() > buf.len() {
-        return None;
-    }
-    for (d, s) in buf.iter_mut().zip(digits) {
-        *d = *s as char;
-    }
-    fast_decimal(&buf[..digits.len()])
-}
+/// Exact powers of ten (10^22 is the largest exactly representable one).
+const POW10: [f64; 23] = [
+    1e0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6, 1e7, 1e8, 1e9, 1e10, 1e11, 1e12, 1e13, 1e14, 1e15, 1e16, 1e17, 1e18, 1e19,
+    1e20, 1e21, 1e22,
+];
 
 /// `digits` (ASCII digits and at most one '.') as an f64 without going through a string:
 /// an integer mantissa of at most 15 digits divided by an exact power of ten is correctly
 /// rounded, so the result equals `str::parse`. `None` when that does not hold.
 fn fast_decimal(digits: &[char]) -> Option<f64> {
-    const POW10: [f64; 23] = [
-        1e0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6, 1e7, 1e8, 1e9, 1e10, 1e11, 1e12, 1e13, 1e14, 1e15, 1e16, 1e17, 1e18,
-        1e19, 1e20, 1e21, 1e22,
-    ];
     let mut mant: u64 = 0;
     let mut nd = 0; // digits in the mantissa, leading zeros excluded
     let mut frac = 0usize;
@@ -909,6 +916,7 @@ mod tests {
             "T0101 G0 X100 Z50",
             "G1 X1.0000000",
             "N99999 G4 P500",
+            "X100.000000 Z12345678. W-0012345.6780",
         ] {
             let fast = fast_line(t).unwrap_or_else(|| panic!("fast path should take {t:?}"));
             // The full parser, with the fast path bypassed: `(x)` comment forces it.
@@ -916,7 +924,7 @@ mod tests {
             let slow = if t.contains(';') { parse_line(&format!("{}(x);", &t[..t.find(';').unwrap_or(0)])).expect(t) } else { slow };
             assert_eq!(norm(fast), norm(slow), "{t}");
         }
-        for t in ["", "   ", "G-1", "X", "X.", "X1-2", "XX1", "O10", "N1.5", "G1 N10", "X123456789", "/X1", "X1 (c)", "#1=2", "G1 ,C1", "X[1]", "X 10", "IF", "X1é"] {
+        for t in ["", "   ", "G-1", "X", "X.", "X1-2", "XX1", "O10", "N1.5", "G1 N10", "X123456789", "X1234567891.", "X1.2345678912345678", "/X1", "X1 (c)", "#1=2", "G1 ,C1", "X[1]", "X 10", "IF", "X1é"] {
             assert!(fast_line(t).is_none(), "{t:?} must take the full parser");
         }
     }
