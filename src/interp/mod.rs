@@ -383,9 +383,10 @@ impl Interpreter {
         let mut loop_stack: Vec<(u8, usize)> = Vec::new();
         let mut gotos: Vec<(usize, usize, u32, u32)> = Vec::new(); // prog, line, target, col
         let mut calls: Vec<(usize, u32, u32)> = Vec::new(); // line, program, col
+        let whole = self.sources[si].text.clone();
         for i in 0..nlines {
-            let text = self.sources[si].line(i).to_string();
-            let b = match parse::parse_line(&text) {
+            let text = &whole[self.sources[si].line_range(i)];
+            let b = match parse::parse_line(text) {
                 Ok(b) => b,
                 Err(e) => {
                     errors.push(perr_alarm(&file, i, &text, e));
@@ -553,7 +554,10 @@ impl Interpreter {
     /// Evaluate the words of an NC block and decode it. Errors carry the column in `pos`
     /// (filled by the caller) via [`a_col`].
     fn decode_words(&self, words: &[Word], vars: &Vars) -> Result<Decoded, Alarm> {
-        let mut ev = Vec::with_capacity(words.len());
+        // Evaluated words, on the stack for ordinary blocks.
+        let mut stack = [('\0', false, Val::default()); 24];
+        let mut heap = Vec::new();
+        let mut n = 0;
         for w in words {
             let v = vars.eval_nc(&w.value).map_err(|e| col_alarm(e.number, w.col, e.message))?;
             let Some(mut v) = v else { continue }; // null variable: the word is ignored
@@ -563,9 +567,19 @@ impl Interpreter {
                 // §2.24.1: variable values are rounded to the least setting unit (0.001 mm).
                 v = (v * 1000.0).round() / 1000.0;
             }
-            ev.push((w.letter, w.comma, Val { v, decimal, col: w.col, literal }));
+            let e = (w.letter, w.comma, Val { v, decimal, col: w.col, literal });
+            if n < stack.len() {
+                stack[n] = e;
+                n += 1;
+            } else {
+                if heap.is_empty() {
+                    heap.extend_from_slice(&stack);
+                }
+                heap.push(e);
+            }
         }
-        Decoded::build(&ev, self.has_y, self.has_c).map_err(|(n, col, m)| col_alarm(n, col, m))
+        let ev = if heap.is_empty() { &stack[..n] } else { &heap[..] };
+        Decoded::build(ev, self.has_y, self.has_c).map_err(|(n, col, m)| col_alarm(n, col, m))
     }
 
     /// Execute until the next canonical move. Ok(None) after M02/M30 has been returned or at

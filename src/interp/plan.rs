@@ -64,7 +64,8 @@ fn num(out: &mut String, v: f64) {
         if n < 0 {
             out.push('-');
         }
-        let _ = write!(out, "{int}.");
+        uint(out, int);
+        out.push('.');
         if frac == 0 {
             out.push('0');
         } else {
@@ -87,9 +88,29 @@ fn num(out: &mut String, v: f64) {
     }
 }
 
+/// Decimal digits of `n` (no allocation, no formatter).
+fn uint(out: &mut String, mut n: u64) {
+    let mut buf = [0u8; 20];
+    let mut i = buf.len();
+    loop {
+        i -= 1;
+        buf[i] = b'0' + (n % 10) as u8;
+        n /= 10;
+        if n == 0 {
+            break;
+        }
+    }
+    out.push_str(std::str::from_utf8(&buf[i..]).unwrap_or("0"));
+}
+
 fn json_str(out: &mut String, s: &str) {
     use std::fmt::Write;
     out.push('"');
+    if !s.bytes().any(|b| b == b'"' || b == b'\\' || b < 0x20) {
+        out.push_str(s);
+        out.push('"');
+        return;
+    }
     for ch in s.chars() {
         match ch {
             '"' => out.push_str("\\\""),
@@ -198,10 +219,7 @@ pub fn write_json(out: &mut String, m: &Move) {
         out.push_str("\":");
         match *v {
             J::Num(x) => num(out, x),
-            J::Int(x) => {
-                use std::fmt::Write;
-                let _ = write!(out, "{x}");
-            }
+            J::Int(x) => uint(out, x as u64),
             J::Bool(b) => out.push_str(if b { "true" } else { "false" }),
             J::Str(t) => json_str(out, t),
             J::Code(l, x) => json_str(out, &code(l, x)),
