@@ -559,10 +559,16 @@ impl Interpreter {
         let mut heap = Vec::new();
         let mut n = 0;
         for w in words {
-            let v = vars.eval_nc(&w.value).map_err(|e| col_alarm(e.number, w.col, e.message))?;
-            let Some(mut v) = v else { continue }; // null variable: the word is ignored
-            let literal = w.value.is_literal();
-            let decimal = if literal { has_decimal(&w.value) } else { true };
+            // A plain number (nearly every word) needs no evaluation.
+            let (mut v, literal, decimal) = match w.value {
+                Expr::Num { v, decimal } => (v, true, decimal),
+                _ => {
+                    let v = vars.eval_nc(&w.value).map_err(|e| col_alarm(e.number, w.col, e.message))?;
+                    let Some(v) = v else { continue }; // null variable: the word is ignored
+                    let literal = w.value.is_literal();
+                    (v, literal, if literal { has_decimal(&w.value) } else { true })
+                }
+            };
             if !literal && is_length(w.letter, w.comma) {
                 // §2.24.1: variable values are rounded to the least setting unit (0.001 mm).
                 v = (v * 1000.0).round() / 1000.0;

@@ -76,7 +76,9 @@ fn num(out: &mut String, v: f64) {
                 f /= 10;
             }
             let len = 4 - digits.iter().rev().take_while(|d| **d == b'0').count();
-            out.push_str(std::str::from_utf8(&digits[..len]).unwrap_or("0"));
+            for &d in &digits[..len] {
+                out.push(d as char);
+            }
         }
         return;
     }
@@ -100,7 +102,9 @@ fn uint(out: &mut String, mut n: u64) {
             break;
         }
     }
-    out.push_str(std::str::from_utf8(&buf[i..]).unwrap_or("0"));
+    for &d in &buf[i..] {
+        out.push(d as char);
+    }
 }
 
 fn json_str(out: &mut String, s: &str) {
@@ -125,6 +129,33 @@ fn json_str(out: &mut String, s: &str) {
         }
     }
     out.push('"');
+}
+
+fn key_rank(k: &str) -> u8 {
+    match k {
+        "c" => 0,
+        "center" => 1,
+        "code" => 2,
+        "css" => 3,
+        "cw" => 4,
+        "cycle" => 5,
+        "dir" => 6,
+        "dwell_s" => 7,
+        "feed" => 8,
+        "feed_per_rev" => 9,
+        "file" => 10,
+        "kind" => 11,
+        "lead" => 12,
+        "line" => 13,
+        "max_rpm" => 14,
+        "rpm" => 15,
+        "start_angle" => 16,
+        "step" => 17,
+        "x" => 18,
+        "y" => 19,
+        "z" => 20,
+        _ => u8::MAX,
+    }
 }
 
 fn put_end<'a>(o: &mut Obj<'a>, m: &Move, end: Pos) {
@@ -207,10 +238,18 @@ pub fn write_json(out: &mut String, m: &Move) {
         o.put("cycle", J::Str(&t.cycle));
         o.put("step", J::Int(t.step as u32));
     }
-    let fields = &mut o.f[..o.n];
-    fields.sort_unstable_by_key(|f| f.0);
+    let fields = &o.f[..o.n];
+    // Alphabetical key order by a precomputed rank (string comparisons cost more than the
+    // rest of the line).
+    let mut ranked = [(0u8, 0usize); 16];
+    for (i, f) in fields.iter().enumerate() {
+        ranked[i] = (key_rank(f.0), i);
+    }
+    let ranked = &mut ranked[..fields.len()];
+    ranked.sort_unstable();
     out.push('{');
-    for (i, (k, v)) in fields.iter().enumerate() {
+    for (i, &(_, fi)) in ranked.iter().enumerate() {
+        let (k, v) = &fields[fi];
         if i > 0 {
             out.push(',');
         }
