@@ -63,8 +63,9 @@ pub const MAX_NESTING: usize = 12;
 #[derive(Clone, Debug)]
 struct Source {
     file: Arc<str>,
-    /// Shared so that executing a block can hold its line without copying it.
-    text: Arc<str>,
+    /// Shared so that executing a block can hold its line without copying it; an
+    /// `Arc<String>` so that a file read into a `String` is kept without another copy.
+    text: Arc<String>,
     /// Byte offset of the start of every line; one extra entry = text length.
     line_starts: Vec<usize>,
 }
@@ -76,7 +77,7 @@ impl Source {
         if *starts.last().unwrap_or(&0) != text.len() {
             starts.push(text.len());
         }
-        Source { file: Arc::from(file), text: Arc::from(text), line_starts: starts }
+        Source { file: Arc::from(file), text: Arc::new(text), line_starts: starts }
     }
     fn nlines(&self) -> usize {
         self.line_starts.len() - 1
@@ -218,10 +219,10 @@ impl Interpreter {
         Self::with_program_dir(file_name, text, cfg, None)
     }
 
-    fn build(file_name: &str, text: &str, cfg: &MachineConfig) -> Interpreter {
+    fn build(file_name: &str, text: String, cfg: &MachineConfig) -> Interpreter {
         let calculator = cfg.param(3401).map(|v| (v as i64) & 1 == 1).unwrap_or(true);
         Interpreter {
-            sources: vec![Source::new(file_name, text.to_string())],
+            sources: vec![Source::new(file_name, text)],
             program_dir: None,
             progs: Vec::new(),
             labels: HashMap::new(),
@@ -304,7 +305,10 @@ impl Interpreter {
         let text = std::fs::read_to_string(path)
             .map_err(|e| vec![Alarm::new(76, format!("{}: cannot read the program: {e}", path.display()))])?;
         let dir = path.parent().map(|p| if p.as_os_str().is_empty() { std::path::Path::new(".") } else { p });
-        Self::with_program_dir(&path.display().to_string(), &text, cfg, dir)
+        // The text read is kept as it is (no copy: a long program is held once).
+        let mut it = Self::build(&path.display().to_string(), text, cfg);
+        it.program_dir = dir.map(|d| d.to_path_buf());
+        it.check()
     }
 
     /// Like [`Interpreter::from_source`], with a program directory where M98/G65 look for
@@ -315,7 +319,7 @@ impl Interpreter {
         cfg: &MachineConfig,
         dir: Option<&std::path::Path>,
     ) -> Result<Interpreter, Vec<Alarm>> {
-        let mut it = Self::build(file_name, text, cfg);
+        let mut it = Self::build(file_name, text.to_string(), cfg);
         it.program_dir = dir.map(|d| d.to_path_buf());
         it.check()
     }
