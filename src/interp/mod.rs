@@ -10,7 +10,8 @@
 //! Alarm numbers: the manual gives none for the program errors handled here, so they are
 //! Fanuc 0i-TF PS numbers (3 too many digits, 4 address not found, 5 no data after address,
 //! 6 illegal minus sign, 7 illegal decimal point, 9 improper address, 10 improper G code
-//! (also: two codes of one group, "not supported yet"), 11 no feed rate, 20 arc radius
+//! (also: two codes of one group, "not supported yet"), 11 no feed rate, 30 offset number
+//! not in the tool table, 46 G30 P other than 1–4 or reference point not configured, 20 arc radius
 //! out of tolerance, 21 axis outside the arc plane, 22 R or I/K missing, 51 no G01/G02/G03
 //! move after `,C`/`,R`, 52 the next move is not G01/G02/G03, 55 chamfer/corner does not
 //! fit, 73 program number defined twice, 76 program not found, 77 subprogram nesting too
@@ -22,6 +23,15 @@
 //! [`Interpreter::from_file`]); literal calls are resolved and the called files checked
 //! before anything runs. M99 in the main program restarts it (manual §3.1.7), so such a
 //! program streams moves forever.
+//!
+//! T codes select a tool and its offset from the tool table ([`tools`],
+//! [`Interpreter::set_tool_table`]); G28/G30 go to the reference points of parameters
+//! No.1240–1243; M91/M92 read the input given by [`Interpreter::set_input_source`].
+//!
+//! Speed: plain NC lines (letters and numbers, as CAM output is) take a byte-level fast path
+//! in [`parse::parse_line`], and decoding a block allocates nothing; a 1,000,000-block G1
+//! program is planned by `cncgw plan` about 4–5× faster than LinuxCNC's `rs274 -g` on this
+//! machine (`scripts/bench-rs274.sh`).
 //!
 //! Numbers without a decimal point: the manual gives no increment-system rule for them, so we
 //! follow Fanuc parameter No.3401#0 (DPI): 1 = calculator-type input, `X10` = 10 mm; 0 =
