@@ -163,6 +163,8 @@ pub struct Decoded {
     pub g: Inline<(GCode, u32), MAX_G_PER_BLOCK>,
     /// At most three M codes per block (checked in [`Decoded::build`]).
     pub m: Inline<(u32, u32), 3>,
+    /// Modal group of each code of `g` (looked up once: blocks ask for groups often).
+    groups: Inline<u8, MAX_G_PER_BLOCK>,
     addr: [Option<Val>; 26],
     pub comma_c: Option<Val>,
     pub comma_r: Option<Val>,
@@ -184,7 +186,7 @@ impl Decoded {
     }
     /// The code of `group` in this block, if any.
     pub fn group(&self, group: u8) -> Option<GCode> {
-        self.g.iter().map(|x| x.0).find(|&g| ginfo(g).is_some_and(|i| i.group == group))
+        self.groups.iter().position(|&x| x == group).map(|i| self.g[i].0)
     }
     pub fn letters(&self) -> impl Iterator<Item = char> + '_ {
         (0..26u8).filter(move |i| self.addr[*i as usize].is_some()).map(|i| (b'A' + i) as char)
@@ -205,13 +207,15 @@ impl Decoded {
                 'G' => {
                     let code = (val.v * 10.0).round();
                     let g = code as GCode;
-                    if (code - val.v * 10.0).abs() > 1e-6 || !(0.0..=9999.0).contains(&code) || ginfo(g).is_none() {
+                    let info = if (code - val.v * 10.0).abs() > 1e-6 || !(0.0..=9999.0).contains(&code) { None } else { ginfo(g) };
+                    let Some(info) = info else {
                         let shown = if val.v.fract() == 0.0 && val.v >= 0.0 { format!("G{:02}", val.v) } else { format!("G{}", val.v) };
                         return Err((10, val.col, format!("{shown}: not a G code of this control (Type A lathe, table 1.1)")));
-                    }
+                    };
                     if !d.g.push((g, val.col)) {
                         return Err((10, val.col, format!("more than {MAX_G_PER_BLOCK} G codes in one block")));
                     }
+                    d.groups.push(info.group);
                 }
                 'M' => {
                     if val.v < 0.0 {
@@ -252,9 +256,9 @@ impl Decoded {
         }
         // Modal groups: at most one code per group.
         for (i, &(g, col)) in d.g.iter().enumerate() {
-            let gi = ginfo(g).map(|x| x.group).unwrap_or(0);
-            for &(h, _) in &d.g[..i] {
-                if ginfo(h).map(|x| x.group) == Some(gi) {
+            let gi = d.groups[i];
+            for (j, &(h, _)) in d.g[..i].iter().enumerate() {
+                if d.groups[j] == gi {
                     return Err((
                         10,
                         col,
