@@ -39,8 +39,8 @@ for target in $(cargo fuzz list); do
             echo "crash input saved as tests/interp_fuzz_cases/$target-$(basename "$f").nc" >&2
         done
     fi
-    execs=$(awk -F: '/stat::number_of_executed_units/ { gsub(/ /, "", $2); print $2 }' "$log" | tail -1)
-    rate=$(awk -F: '/stat::average_exec_per_sec/ { gsub(/ /, "", $2); print $2 }' "$log" | tail -1)
+    execs=$(awk '/stat::number_of_executed_units/ { print $2 }' "$log" | tail -1)
+    rate=$(awk '/stat::average_exec_per_sec/ { print $2 }' "$log" | tail -1)
     echo "$target: ${execs:-?} executions in ${SECS}s, ${rate:-?} exec/s" >&2
 done
 exit $status

@@ -99,3 +99,12 @@ fn hundred_thousand_blocks_stream() {
     let it = Interpreter::from_source("big.nc", &src, &MachineConfig::embedded()).expect("valid");
     assert_eq!(it.map(|m| m.expect("runs")).count(), n + 1);
 }
+
+#[test]
+fn endless_loop_limit_is_adjustable() {
+    let mut it = Interpreter::from_source("loop.nc", "N1 #1=#1+1\nGOTO 1\n", &MachineConfig::embedded()).expect("valid");
+    it.set_endless_loop_limit(1000);
+    let a = it.next_move().expect_err("endless loop alarm");
+    assert_eq!(a.number, cncgw::interp::ENDLESS_LOOP_ALARM);
+    assert!(a.message.contains("1000 blocks"), "{a}");
+}

@@ -24,6 +24,8 @@ fn cfg() -> &'static MachineConfig {
 fuzz_target!(|data: &[u8]| {
     let text = String::from_utf8_lossy(data);
     let Ok(mut it) = Interpreter::from_source("fuzz.nc", &text, cfg()) else { return };
+    // A GOTO loop without motion would otherwise run 2,000,000 blocks before its alarm.
+    it.set_endless_loop_limit(20_000);
     if let Ok(t) = parse_tool_table("tools.toml", "[1]\nx = -10.0\nz = 5.0\nr = 0.4\ntip = 3\n[2]\nx = 2.0\nz = -1.0") {
         it.set_tool_table(t);
     }

@@ -196,6 +196,7 @@ pub struct Interpreter {
     ended: bool,
     block_skip: bool,
     idle_blocks: u64,
+    idle_limit: u64,
     corner: Option<Corner>,
     corner_serial: u64,
     /// Moves made while a corner is pending; they follow the inserted chamfer/corner.
@@ -273,6 +274,7 @@ impl Interpreter {
             ended: false,
             block_skip: false,
             idle_blocks: 0,
+            idle_limit: ENDLESS_LOOP_BLOCKS,
             corner: None,
             corner_serial: 0,
             held: Vec::new(),
@@ -347,6 +349,12 @@ impl Interpreter {
 
     pub fn set_common_vars(&mut self, vars: HashMap<u32, f64>) {
         self.vars.common = vars.into_iter().filter(|(n, v)| macros::is_common(*n) && v.is_finite()).collect();
+    }
+
+    /// How many blocks in a row may run without producing a move before alarm
+    /// [`ENDLESS_LOOP_ALARM`] (default 2,000,000; the fuzz target lowers it).
+    pub fn set_endless_loop_limit(&mut self, blocks: u64) {
+        self.idle_limit = blocks.max(1);
     }
 
     /// Block skip switch (`/` blocks are skipped when on). Default off.
@@ -618,12 +626,12 @@ impl Interpreter {
                 return Ok(None);
             }
             self.idle_blocks += 1;
-            if self.idle_blocks > ENDLESS_LOOP_BLOCKS {
+            if self.idle_blocks > self.idle_limit {
                 self.ended = true;
                 return Err(self.alarm_here(
                     ENDLESS_LOOP_ALARM,
                     1,
-                    format!("{ENDLESS_LOOP_BLOCKS} blocks without any move: endless loop? Check the GOTO/WHILE logic"),
+                    format!("{} blocks without any move: endless loop? Check the GOTO/WHILE logic", self.idle_limit),
                 ));
             }
             if let Err(a) = self.step() {
