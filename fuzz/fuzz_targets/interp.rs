@@ -1,13 +1,13 @@
-//! Arbitrary bytes as a part program: parsing, the static check and up to 2,000 moves of
+//! Arbitrary bytes as a part program: parsing, the static check and up to 1,000 moves of
 //! execution must never panic (alarms are fine).
 #![no_main]
 
 use cncgw::config::MachineConfig;
-use cncgw::interp::{parse_tool_table, Interpreter};
+use cncgw::interp::{parse_tool_table, Interpreter, ToolTable};
 use libfuzzer_sys::fuzz_target;
 use std::sync::OnceLock;
 
-const MAX_MOVES: usize = 2_000;
+const MAX_MOVES: usize = 1_000;
 
 fn cfg() -> &'static MachineConfig {
     static CFG: OnceLock<MachineConfig> = OnceLock::new();
@@ -21,14 +21,20 @@ fn cfg() -> &'static MachineConfig {
     })
 }
 
+fn tools() -> &'static ToolTable {
+    static T: OnceLock<ToolTable> = OnceLock::new();
+    T.get_or_init(|| {
+        parse_tool_table("tools.toml", "[1]\nx = -10.0\nz = 5.0\nr = 0.4\ntip = 3\n[2]\nx = 2.0\nz = -1.0")
+            .expect("fuzz tool table is valid")
+    })
+}
+
 fuzz_target!(|data: &[u8]| {
     let text = String::from_utf8_lossy(data);
     let Ok(mut it) = Interpreter::from_source("fuzz.nc", &text, cfg()) else { return };
     // A GOTO loop without motion would otherwise run 2,000,000 blocks before its alarm.
     it.set_endless_loop_limit(20_000);
-    if let Ok(t) = parse_tool_table("tools.toml", "[1]\nx = -10.0\nz = 5.0\nr = 0.4\ntip = 3\n[2]\nx = 2.0\nz = -1.0") {
-        it.set_tool_table(t);
-    }
+    it.set_tool_table(tools().clone());
     // Alternate the M91/M92 input so both branches are explored.
     let mut flip = false;
     it.set_input_source(move |_| {
