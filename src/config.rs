@@ -206,8 +206,10 @@ impl MachineConfig {
             if k.parse::<u32>().is_err() {
                 e.push(format!("parameters.{k}: parameter keys are the manuals' numbers (e.g. 5200), got {k:?}"));
             }
-            if !(v.is_integer() || v.is_float() || v.is_bool()) {
-                e.push(format!("parameters.{k}: must be a number, got {v}"));
+            // Per-axis parameters (No.1240 reference point …) are tables `{ x = 0.0, z = 0.0 }`.
+            let per_axis = v.as_table().is_some_and(|t| t.values().all(|a| a.is_integer() || a.is_float()));
+            if !(v.is_integer() || v.is_float() || v.is_bool() || per_axis) {
+                e.push(format!("parameters.{k}: must be a number (or {{ x = …, z = … }} per axis), got {v}"));
             }
         }
         e
@@ -223,6 +225,16 @@ impl MachineConfig {
             toml::Value::Integer(i) => Some(*i as f64),
             toml::Value::Float(f) => Some(*f),
             toml::Value::Boolean(b) => Some(*b as u8 as f64),
+            _ => None,
+        }
+    }
+
+    /// Axis `axis` (`x`, `z`, `y`, `c`) of a per-axis parameter written as a table, e.g.
+    /// `1240 = { x = 0.0, z = 0.0 }` → `param_axis(1240, "z")`.
+    pub fn param_axis(&self, no: u32, axis: &str) -> Option<f64> {
+        match self.parameters.get(&no.to_string())?.as_table()?.get(axis)? {
+            toml::Value::Integer(i) => Some(*i as f64),
+            toml::Value::Float(f) => Some(*f),
             _ => None,
         }
     }

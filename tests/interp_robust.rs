@@ -58,6 +58,36 @@ fn million_blocks_stream() {
     assert_eq!(moves, n + 3);
 }
 
+/// Inputs that once made `cargo fuzz` (scripts/fuzz.sh) crash; each must now run without a
+/// panic. The directory may be empty.
+#[test]
+fn fuzz_regression_cases() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/interp_fuzz_cases");
+    let Ok(entries) = std::fs::read_dir(&dir) else { return };
+    for e in entries.flatten() {
+        let bytes = std::fs::read(e.path()).expect("readable case");
+        drain(&String::from_utf8_lossy(&bytes), 2_000);
+    }
+}
+
+/// The fuzz seed corpus (fuzz/corpus/interp/*.nc) are valid programs that run to M30.
+#[test]
+fn fuzz_seeds_run_to_the_end() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("fuzz/corpus/interp");
+    let mut n = 0;
+    for e in std::fs::read_dir(&dir).expect("fuzz/corpus/interp exists").flatten() {
+        if e.path().extension().is_some_and(|x| x == "nc") {
+            let text = std::fs::read_to_string(e.path()).expect("text");
+            let it = Interpreter::with_program_dir("seed.nc", &text, &MachineConfig::embedded(), Some(&dir))
+                .unwrap_or_else(|a| panic!("{}: {a:?}", e.path().display()));
+            let last = it.map(|m| m.unwrap_or_else(|a| panic!("{}: {a}", e.path().display()))).last();
+            assert!(matches!(last.map(|m| m.kind), Some(cncgw::canon::MoveKind::End { .. })), "{}", e.path().display());
+            n += 1;
+        }
+    }
+    assert!(n >= 3, "seed corpus has {n} programs");
+}
+
 #[test]
 fn hundred_thousand_blocks_stream() {
     let n = 100_000;
@@ -68,4 +98,13 @@ fn hundred_thousand_blocks_stream() {
     src.push_str("M30\n");
     let it = Interpreter::from_source("big.nc", &src, &MachineConfig::embedded()).expect("valid");
     assert_eq!(it.map(|m| m.expect("runs")).count(), n + 1);
+}
+
+#[test]
+fn endless_loop_limit_is_adjustable() {
+    let mut it = Interpreter::from_source("loop.nc", "N1 #1=#1+1\nGOTO 1\n", &MachineConfig::embedded()).expect("valid");
+    it.set_endless_loop_limit(1000);
+    let a = it.next_move().expect_err("endless loop alarm");
+    assert_eq!(a.number, cncgw::interp::ENDLESS_LOOP_ALARM);
+    assert!(a.message.contains("1000 blocks"), "{a}");
 }

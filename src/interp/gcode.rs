@@ -91,7 +91,7 @@ pub fn gname(g: GCode) -> String {
 }
 
 /// One evaluated word.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, Default)]
 pub struct Val {
     pub v: f64,
     /// Written with a decimal point (values from variables count as having one).
@@ -113,11 +113,58 @@ impl Val {
     }
 }
 
+/// A short list kept inline (a block's G or M codes): decoding a block allocates nothing.
+/// Reads like a slice (`iter`, `len`, `first`, indexing).
+#[derive(Clone, Copy, Debug)]
+pub struct Inline<T: Copy + Default, const N: usize> {
+    items: [T; N],
+    len: usize,
+}
+
+impl<T: Copy + Default, const N: usize> Default for Inline<T, N> {
+    fn default() -> Self {
+        Inline { items: [T::default(); N], len: 0 }
+    }
+}
+
+impl<T: Copy + Default, const N: usize> Inline<T, N> {
+    /// False when full.
+    pub fn push(&mut self, v: T) -> bool {
+        if self.len == N {
+            return false;
+        }
+        self.items[self.len] = v;
+        self.len += 1;
+        true
+    }
+}
+
+impl<T: Copy + Default, const N: usize> std::ops::Deref for Inline<T, N> {
+    type Target = [T];
+    fn deref(&self) -> &[T] {
+        &self.items[..self.len]
+    }
+}
+
+impl<'a, T: Copy + Default, const N: usize> IntoIterator for &'a Inline<T, N> {
+    type Item = &'a T;
+    type IntoIter = std::slice::Iter<'a, T>;
+    fn into_iter(self) -> Self::IntoIter {
+        self.items[..self.len].iter()
+    }
+}
+
+/// At most this many G codes in one block (one per modal group is the real limit).
+pub const MAX_G_PER_BLOCK: usize = 16;
+
 /// A decoded NC block.
 #[derive(Clone, Debug, Default)]
 pub struct Decoded {
-    pub g: Vec<(GCode, u32)>,
-    pub m: Vec<(u32, u32)>,
+    pub g: Inline<(GCode, u32), MAX_G_PER_BLOCK>,
+    /// At most three M codes per block (checked in [`Decoded::build`]).
+    pub m: Inline<(u32, u32), 3>,
+    /// Modal group of each code of `g` (looked up once: blocks ask for groups often).
+    groups: Inline<u8, MAX_G_PER_BLOCK>,
     addr: [Option<Val>; 26],
     pub comma_c: Option<Val>,
     pub comma_r: Option<Val>,
@@ -139,7 +186,7 @@ impl Decoded {
     }
     /// The code of `group` in this block, if any.
     pub fn group(&self, group: u8) -> Option<GCode> {
-        self.g.iter().map(|x| x.0).find(|&g| ginfo(g).is_some_and(|i| i.group == group))
+        self.groups.iter().position(|&x| x == group).map(|i| self.g[i].0)
     }
     pub fn letters(&self) -> impl Iterator<Item = char> + '_ {
         (0..26u8).filter(move |i| self.addr[*i as usize].is_some()).map(|i| (b'A' + i) as char)
@@ -160,11 +207,15 @@ impl Decoded {
                 'G' => {
                     let code = (val.v * 10.0).round();
                     let g = code as GCode;
-                    if (code - val.v * 10.0).abs() > 1e-6 || !(0.0..=9999.0).contains(&code) || ginfo(g).is_none() {
+                    let info = if (code - val.v * 10.0).abs() > 1e-6 || !(0.0..=9999.0).contains(&code) { None } else { ginfo(g) };
+                    let Some(info) = info else {
                         let shown = if val.v.fract() == 0.0 && val.v >= 0.0 { format!("G{:02}", val.v) } else { format!("G{}", val.v) };
                         return Err((10, val.col, format!("{shown}: not a G code of this control (Type A lathe, table 1.1)")));
+                    };
+                    if !d.g.push((g, val.col)) {
+                        return Err((10, val.col, format!("more than {MAX_G_PER_BLOCK} G codes in one block")));
                     }
-                    d.g.push((g, val.col));
+                    d.groups.push(info.group);
                 }
                 'M' => {
                     if val.v < 0.0 {
@@ -180,6 +231,7 @@ impl Decoded {
                         return Err((9, val.col, "at most three M codes per block".into()));
                     }
                     d.m.push((val.v.round() as u32, val.col));
+                    // (capacity 3 = the limit checked just above)
                 }
                 _ => {
                     if matches!(l, 'Y' | 'V' | 'J') && !has_y {
@@ -204,9 +256,9 @@ impl Decoded {
         }
         // Modal groups: at most one code per group.
         for (i, &(g, col)) in d.g.iter().enumerate() {
-            let gi = ginfo(g).map(|x| x.group).unwrap_or(0);
-            for &(h, _) in &d.g[..i] {
-                if ginfo(h).map(|x| x.group) == Some(gi) {
+            let gi = d.groups[i];
+            for (j, &(h, _)) in d.g[..i].iter().enumerate() {
+                if d.groups[j] == gi {
                     return Err((
                         10,
                         col,

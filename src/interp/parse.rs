@@ -203,18 +203,63 @@ impl<'a> Cur<'a> {
         }
     }
     /// The run of letters at the cursor (upper-cased), without consuming it.
-    fn letters(&mut self) -> String {
+    fn letters(&mut self) -> Letters {
         self.skip_ws();
-        let mut s = String::new();
+        let mut s = Letters { buf: [0; LETTERS_MAX], len: 0 };
         let mut j = self.i;
         while j < self.c.len() && self.c[j].is_ascii_alphabetic() {
-            s.push(self.c[j].to_ascii_uppercase());
+            if s.len < LETTERS_MAX {
+                s.buf[s.len] = self.c[j].to_ascii_uppercase() as u8;
+                s.len += 1;
+            }
             j += 1;
         }
         s
     }
     fn at_end(&mut self) -> bool {
         self.peek().is_none()
+    }
+}
+
+const LETTERS_MAX: usize = 16;
+
+/// A run of address letters / a keyword, upper-cased, kept on the stack (one per word, so a
+/// heap string here cost an allocation per address). Longer runs keep their first 16
+/// letters, which no keyword or function name reaches.
+#[derive(Clone, Copy)]
+struct Letters {
+    buf: [u8; LETTERS_MAX],
+    len: usize,
+}
+
+impl Letters {
+    fn as_str(&self) -> &str {
+        std::str::from_utf8(&self.buf[..self.len]).unwrap_or("")
+    }
+    fn len(&self) -> usize {
+        self.len
+    }
+    fn first(&self) -> Option<char> {
+        (self.len > 0).then(|| self.buf[0] as char)
+    }
+}
+
+impl std::ops::Deref for Letters {
+    type Target = str;
+    fn deref(&self) -> &str {
+        self.as_str()
+    }
+}
+
+impl std::fmt::Display for Letters {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+impl PartialEq<&str> for Letters {
+    fn eq(&self, o: &&str) -> bool {
+        &self.buf[..self.len] == o.as_bytes()
     }
 }
 
@@ -242,6 +287,9 @@ fn strip(line: &str) -> Vec<char> {
 
 /// Parse one source line.
 pub fn parse_line(line: &str) -> Result<Block, PErr> {
+    if let Some(b) = fast_line(line) {
+        return Ok(b);
+    }
     let chars = strip(line);
     let mut c = Cur { c: &chars, i: 0, nest: 0 };
     let first = c.peek();
@@ -380,7 +428,7 @@ fn words(c: &mut Cur) -> Result<Vec<Word>, PErr> {
             }
             return perr(9, col, format!("improper address `{run}`: an address is one letter followed by a value"));
         }
-        let letter = run.chars().next().unwrap_or('?');
+        let letter = run.first().unwrap_or('?');
         c.i += 1;
         let value = word_value(c, letter, col)?;
         if matches!(letter, 'G' | 'M' | 'N' | 'O' | 'T' | 'L') {
@@ -447,17 +495,178 @@ fn number(c: &mut Cur, letter: char, col: u32) -> Result<(f64, bool), PErr> {
             break;
         }
     }
-    let s: String = c.c[start..c.i].iter().collect();
-    if s.is_empty() || s == "." {
+    let digits = &c.c[start..c.i];
+    if digits.is_empty() || digits == ['.'] {
         return perr(5, col, format!("no value after address {letter}"));
     }
-    let sig = s.trim_start_matches(['0', '.']).replace('.', "");
-    let sig = if decimal { sig.trim_end_matches('0').to_string() } else { sig };
-    if sig.len() > MAX_DIGITS {
+    // Significant digits: without leading zeros, and without trailing zeros after a point.
+    let lead = digits.iter().take_while(|ch| matches!(ch, '0' | '.')).count();
+    let rest = digits[lead..].iter().filter(|ch| **ch != '.');
+    let mut sig = rest.clone().count();
+    if decimal {
+        sig -= rest.rev().take_while(|ch| **ch == '0').count();
+    }
+    if sig > MAX_DIGITS {
+        let s: String = digits.iter().collect();
         return perr(3, col, format!("{letter}{s}: more than {MAX_DIGITS} digits"));
     }
-    let v: f64 = s.parse().or_else(|_| format!("{s}0").parse()).unwrap_or(0.0);
+    if let Some(v) = fast_decimal(digits) {
+        return Ok((v, decimal));
+    }
+    if digits.len() > 62 {
+        // Many leading zeros: rare, parse through a heap string.
+        let mut s: String = digits.iter().collect();
+        if s.ends_with('.') {
+            s.push('0');
+        }
+        return Ok((s.parse().unwrap_or(0.0), decimal));
+    }
+    // Parse from a stack buffer (digits and '.' are ASCII); `5.` gets a 0 appended.
+    let mut buf = [0u8; 64];
+    let mut n = 0;
+    for ch in digits {
+        if n < buf.len() - 1 {
+            buf[n] = *ch as u8;
+            n += 1;
+        }
+    }
+    if buf[n - 1] == b'.' {
+        buf[n] = b'0';
+        n += 1;
+    }
+    let v: f64 = std::str::from_utf8(&buf[..n]).ok().and_then(|t| t.parse().ok()).unwrap_or(0.0);
     Ok((v, decimal))
+}
+
+/// The common case of CAM output, parsed straight from the bytes: an ASCII line of
+/// `[N…] LETTER number …` words (plain numbers, optional sign), optionally ending in a `;`
+/// comment. Anything else (comments in parentheses, macros, `/`, `O`, `%`, `,C`, any error)
+/// returns `None` and goes through the full parser, so both give the same `Block` except
+/// that a negative number is `Num { v: -x }` here instead of `Neg(Num { v: x })`, which
+/// evaluates the same.
+fn fast_line(line: &str) -> Option<Block> {
+    let b = line.as_bytes();
+    let end = b.iter().position(|&c| c == b';').unwrap_or(b.len());
+    let b = &b[..end];
+    let mut i = 0;
+    let ws = |i: &mut usize| {
+        while *i < b.len() && matches!(b[*i], b' ' | b'\t' | b'\r' | b'\n') {
+            *i += 1;
+        }
+    };
+    ws(&mut i);
+    if i == b.len() {
+        return None;
+    }
+    let col = i as u32 + 1;
+    let mut n = None;
+    let mut words = Vec::new();
+    while {
+        ws(&mut i);
+        i < b.len()
+    } {
+        let wcol = i as u32 + 1;
+        let letter = b[i].to_ascii_uppercase();
+        if !letter.is_ascii_uppercase() || letter == b'O' {
+            return None;
+        }
+        i += 1;
+        let neg = match b.get(i) {
+            Some(b'-') => {
+                i += 1;
+                true
+            }
+            Some(b'+') => {
+                i += 1;
+                false
+            }
+            _ => false,
+        };
+        // One pass: mantissa, significant digits (no leading zeros; no trailing zeros after
+        // a point) and digits after the point.
+        let start = i;
+        let mut decimal = false;
+        let (mut mant, mut nd, mut frac, mut tz) = (0u64, 0usize, 0usize, 0usize);
+        while i < b.len() {
+            let c = b[i];
+            if c.is_ascii_digit() {
+                let d = (c - b'0') as u64;
+                if mant != 0 || d != 0 {
+                    nd += 1;
+                    tz = if d == 0 { tz + 1 } else { 0 };
+                }
+                if nd > 15 {
+                    return None;
+                }
+                mant = mant * 10 + d;
+                frac += decimal as usize;
+            } else if c == b'.' && !decimal {
+                decimal = true;
+            } else {
+                break;
+            }
+            i += 1;
+        }
+        let digits = &b[start..i];
+        // Letters must be followed by a number and then a separator or the next letter.
+        if digits.is_empty() || digits == b"." || (i < b.len() && !(b[i].is_ascii_alphabetic() || matches!(b[i], b' ' | b'\t' | b'\r' | b'\n'))) {
+            return None;
+        }
+        if neg && matches!(letter, b'G' | b'M' | b'N' | b'T' | b'L') {
+            return None;
+        }
+        // As in `number`: with a point, trailing zeros are not significant.
+        let sig = if decimal { nd - tz } else { nd };
+        if sig > MAX_DIGITS {
+            return None;
+        }
+        let v = mant as f64 / *POW10.get(frac)?;
+        if letter == b'N' {
+            if !words.is_empty() || n.is_some() || decimal || v > 99999.0 {
+                return None;
+            }
+            n = Some(v as u32);
+            continue;
+        }
+        let v = if neg { -v } else { v };
+        words.push(Word { letter: letter as char, comma: false, value: Expr::Num { v, decimal }, col: wcol });
+    }
+    let stmt = if words.is_empty() { Stmt::Empty } else { Stmt::Nc(words) };
+    Some(Block { skip: false, n, stmt, col })
+}
+
+/// Exact powers of ten (10^22 is the largest exactly representable one).
+const POW10: [f64; 23] = [
+    1e0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6, 1e7, 1e8, 1e9, 1e10, 1e11, 1e12, 1e13, 1e14, 1e15, 1e16, 1e17, 1e18, 1e19,
+    1e20, 1e21, 1e22,
+];
+
+/// `digits` (ASCII digits and at most one '.') as an f64 without going through a string:
+/// an integer mantissa of at most 15 digits divided by an exact power of ten is correctly
+/// rounded, so the result equals `str::parse`. `None` when that does not hold.
+fn fast_decimal(digits: &[char]) -> Option<f64> {
+    let mut mant: u64 = 0;
+    let mut nd = 0; // digits in the mantissa, leading zeros excluded
+    let mut frac = 0usize;
+    let mut point = false;
+    for &ch in digits {
+        if ch == '.' {
+            point = true;
+            continue;
+        }
+        let d = ch.to_digit(10)? as u64;
+        if mant != 0 || d != 0 {
+            nd += 1;
+        }
+        if nd > 15 {
+            return None;
+        }
+        mant = mant * 10 + d;
+        if point {
+            frac += 1;
+        }
+    }
+    Some(mant as f64 / *POW10.get(frac)?)
 }
 
 fn assignment(c: &mut Cur) -> Result<(Expr, Expr), PErr> {
@@ -672,6 +881,82 @@ mod tests {
         match parse_line(s).unwrap().stmt {
             Stmt::Nc(w) => w,
             other => panic!("{other:?}"),
+        }
+    }
+
+    /// The byte fast path and the full parser agree on every line the fast path takes.
+    #[test]
+    fn fast_path_agrees_with_the_full_parser() {
+        let norm = |b: Block| match b.stmt {
+            Stmt::Nc(w) => (
+                b.n,
+                b.col,
+                w.into_iter()
+                    .map(|w| {
+                        let v = match w.value {
+                            Expr::Neg(e) => match *e {
+                                Expr::Num { v, decimal } => Expr::Num { v: -v, decimal },
+                                e => Expr::Neg(Box::new(e)),
+                            },
+                            e => e,
+                        };
+                        (w.letter, w.col, v)
+                    })
+                    .collect::<Vec<_>>(),
+            ),
+            other => (b.n, b.col, vec![('?', 0, Expr::Num { v: if other == Stmt::Empty { 0.0 } else { 1.0 }, decimal: false })]),
+        };
+        for t in [
+            "G1 X20.000 Z-0.000 F100",
+            "  n10 g01 x-.5 z+3 f.2 ; comment",
+            "N10",
+            "G00X40Z5",
+            "X10. U-2.5 W0 ",
+            "M03 S1200\r",
+            "T0101 G0 X100 Z50",
+            "G1 X1.0000000",
+            "N99999 G4 P500",
+            "X100.000000 Z12345678. W-0012345.6780",
+        ] {
+            let fast = fast_line(t).unwrap_or_else(|| panic!("fast path should take {t:?}"));
+            // The full parser, with the fast path bypassed: `(x)` comment forces it.
+            let slow = parse_line(&format!("{t}(x)")).expect(t);
+            let slow = if t.contains(';') { parse_line(&format!("{}(x);", &t[..t.find(';').unwrap_or(0)])).expect(t) } else { slow };
+            assert_eq!(norm(fast), norm(slow), "{t}");
+        }
+        for t in ["", "   ", "G-1", "X", "X.", "X1-2", "XX1", "O10", "N1.5", "G1 N10", "X123456789", "X1234567891.", "X1.2345678912345678", "/X1", "X1 (c)", "#1=2", "G1 ,C1", "X[1]", "X 10", "IF", "X1é"] {
+            assert!(fast_line(t).is_none(), "{t:?} must take the full parser");
+        }
+    }
+
+    #[test]
+    fn numbers_parse_without_allocating_the_same_values() {
+        let v = |t: &str| match parse_line(t).expect(t).stmt {
+            Stmt::Nc(w) => match &w[0].value {
+                Expr::Num { v, decimal } => (*v, *decimal),
+                Expr::Neg(e) => match **e {
+                    Expr::Num { v, decimal } => (-v, decimal),
+                    _ => panic!("{t}"),
+                },
+                _ => panic!("{t}"),
+            },
+            _ => panic!("{t}"),
+        };
+        assert_eq!(v("X5."), (5.0, true));
+        assert_eq!(v("X.5"), (0.5, true));
+        assert_eq!(v("X-12.250"), (-12.25, true));
+        assert_eq!(v("X12345678"), (12345678.0, false));
+        assert_eq!(v("X1234567.8000"), (1234567.8, true));
+        assert_eq!(v(&format!("X{}15", "0".repeat(100))), (15.0, false));
+        assert_eq!(v(&format!("X{}1.", "0".repeat(100))), (1.0, true));
+        assert_eq!(parse_line("X123456789").unwrap_err().number, 3);
+        assert_eq!(parse_line("X1.23456789").unwrap_err().number, 3);
+        assert_eq!(parse_line("X.").unwrap_err().number, 5);
+        // The fast path agrees with str::parse, bit for bit.
+        for t in ["0.1", "20.05", "1234567.8", "0.0000001", "99999999", "3.14159265", "0.30000000", "7.", ".007"] {
+            let chars: Vec<char> = t.chars().collect();
+            let want: f64 = if t.ends_with('.') { format!("{t}0") } else { t.to_string() }.parse().expect(t);
+            assert_eq!(fast_decimal(&chars).map(f64::to_bits), Some(want.to_bits()), "{t}");
         }
     }
 

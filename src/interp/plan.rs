@@ -2,7 +2,6 @@
 //! coordinates as an operator reads them (machine − work offset, X as a diameter).
 
 use crate::canon::{Feed, Move, MoveKind, Pos, SpindleDir};
-use serde_json::{json, Map, Value};
 
 /// Round to 0.1 µm so that float noise (12.000000000001) does not show.
 fn r(v: f64) -> f64 {
@@ -27,32 +26,171 @@ fn code(letter: char, value: f64) -> String {
     }
 }
 
-fn put_end(o: &mut Map<String, Value>, m: &Move, end: Pos) {
-    let w = work(m, end);
-    o.insert("x".into(), json!(r(w.x * 2.0)));
-    o.insert("z".into(), json!(r(w.z)));
-    // Y and C are printed when they are in use (non-zero end point or offset).
-    if end.y != 0.0 || m.work_offset.y != 0.0 {
-        o.insert("y".into(), json!(r(w.y)));
-    }
-    if end.c != 0.0 || m.work_offset.c != 0.0 {
-        o.insert("c".into(), json!(r(w.c)));
+/// A JSON value of a `plan` line, written without building a `serde_json::Value` (the
+/// listing of a million-block program spends most of its time here).
+#[derive(Clone, Copy)]
+enum J<'a> {
+    Num(f64),
+    Int(u32),
+    Bool(bool),
+    Str(&'a str),
+    Code(char, f64),
+    /// `{"x": …, "z": …}`
+    Xz(f64, f64),
+}
+
+struct Obj<'a> {
+    f: [(&'static str, J<'a>); 16],
+    n: usize,
+}
+
+impl<'a> Obj<'a> {
+    fn put(&mut self, k: &'static str, v: J<'a>) {
+        if self.n < self.f.len() {
+            self.f[self.n] = (k, v);
+            self.n += 1;
+        }
     }
 }
 
-fn put_feed(o: &mut Map<String, Value>, f: &Feed) {
+fn num(out: &mut String, v: f64) {
+    use std::fmt::Write;
+    // Values are rounded to 0.0001 by `r`: print them as a scaled integer, which gives the
+    // same text as the shortest round-trip form (`20.05`, `54.0`, `-0.025`) much faster.
+    let scaled = v * 1e4;
+    if v.is_finite() && scaled.abs() < 1e15 && scaled == scaled.round() {
+        let n = scaled as i64;
+        let (int, frac) = ((n / 10_000).unsigned_abs(), (n % 10_000).unsigned_abs());
+        if n < 0 {
+            out.push('-');
+        }
+        uint(out, int);
+        out.push('.');
+        if frac == 0 {
+            out.push('0');
+        } else {
+            let mut digits = [b'0'; 4];
+            let mut f = frac;
+            for d in digits.iter_mut().rev() {
+                *d = b'0' + (f % 10) as u8;
+                f /= 10;
+            }
+            let len = 4 - digits.iter().rev().take_while(|d| **d == b'0').count();
+            for &d in &digits[..len] {
+                out.push(d as char);
+            }
+        }
+        return;
+    }
+    if v.is_finite() {
+        // Debug of f64 is the shortest round-trip form with a `.0` on integers, like serde_json.
+        let _ = write!(out, "{v:?}");
+    } else {
+        out.push_str("null");
+    }
+}
+
+/// Decimal digits of `n` (no allocation, no formatter).
+fn uint(out: &mut String, mut n: u64) {
+    let mut buf = [0u8; 20];
+    let mut i = buf.len();
+    loop {
+        i -= 1;
+        buf[i] = b'0' + (n % 10) as u8;
+        n /= 10;
+        if n == 0 {
+            break;
+        }
+    }
+    for &d in &buf[i..] {
+        out.push(d as char);
+    }
+}
+
+fn json_str(out: &mut String, s: &str) {
+    use std::fmt::Write;
+    out.push('"');
+    if !s.bytes().any(|b| b == b'"' || b == b'\\' || b < 0x20) {
+        out.push_str(s);
+        out.push('"');
+        return;
+    }
+    for ch in s.chars() {
+        match ch {
+            '"' => out.push_str("\\\""),
+            '\\' => out.push_str("\\\\"),
+            '\n' => out.push_str("\\n"),
+            '\r' => out.push_str("\\r"),
+            '\t' => out.push_str("\\t"),
+            c if (c as u32) < 0x20 => {
+                let _ = write!(out, "\\u{:04x}", c as u32);
+            }
+            c => out.push(c),
+        }
+    }
+    out.push('"');
+}
+
+fn key_rank(k: &str) -> u8 {
+    match k {
+        "c" => 0,
+        "center" => 1,
+        "code" => 2,
+        "css" => 3,
+        "cw" => 4,
+        "cycle" => 5,
+        "dir" => 6,
+        "dwell_s" => 7,
+        "feed" => 8,
+        "feed_per_rev" => 9,
+        "file" => 10,
+        "kind" => 11,
+        "lead" => 12,
+        "line" => 13,
+        "max_rpm" => 14,
+        "rpm" => 15,
+        "start_angle" => 16,
+        "step" => 17,
+        "x" => 18,
+        "y" => 19,
+        "z" => 20,
+        _ => u8::MAX,
+    }
+}
+
+fn put_end<'a>(o: &mut Obj<'a>, m: &Move, end: Pos) {
+    let w = work(m, end);
+    o.put("x", J::Num(r(w.x * 2.0)));
+    o.put("z", J::Num(r(w.z)));
+    // Y and C are printed when they are in use (non-zero end point or offset).
+    if end.y != 0.0 || m.work_offset.y != 0.0 {
+        o.put("y", J::Num(r(w.y)));
+    }
+    if end.c != 0.0 || m.work_offset.c != 0.0 {
+        o.put("c", J::Num(r(w.c)));
+    }
+}
+
+fn put_feed(o: &mut Obj<'_>, f: &Feed) {
     match f {
-        Feed::PerMin(v) => o.insert("feed".into(), json!(r(*v))),
-        Feed::PerRev(v) => o.insert("feed_per_rev".into(), json!(r(*v))),
+        Feed::PerMin(v) => o.put("feed", J::Num(r(*v))),
+        Feed::PerRev(v) => o.put("feed_per_rev", J::Num(r(*v))),
     };
 }
 
-/// The move as a JSON object (no trailing newline).
+/// The move as a JSON object (no trailing newline), keys in alphabetical order.
 pub fn move_to_json(m: &Move) -> String {
-    let mut o = Map::new();
-    o.insert("file".into(), json!(&*m.src.file));
-    o.insert("line".into(), json!(m.src.line));
-    o.insert("kind".into(), json!(m.kind.name()));
+    let mut s = String::with_capacity(128);
+    write_json(&mut s, m);
+    s
+}
+
+/// [`move_to_json`] appended to `out`.
+pub fn write_json(out: &mut String, m: &Move) {
+    let mut o = Obj { f: [("", J::Int(0)); 16], n: 0 };
+    o.put("file", J::Str(&m.src.file));
+    o.put("line", J::Int(m.src.line));
+    o.put("kind", J::Str(m.kind.name()));
     match &m.kind {
         MoveKind::Rapid { end } => put_end(&mut o, m, *end),
         MoveKind::Feed { end, feed } => {
@@ -62,53 +200,78 @@ pub fn move_to_json(m: &Move) -> String {
         MoveKind::Arc { end, center, cw, feed, .. } => {
             put_end(&mut o, m, *end);
             put_feed(&mut o, feed);
-            o.insert("cw".into(), json!(cw));
+            o.put("cw", J::Bool(*cw));
             let c = work(m, *center);
-            o.insert("center".into(), json!({"x": r(c.x * 2.0), "z": r(c.z)}));
+            o.put("center", J::Xz(r(c.x * 2.0), r(c.z)));
         }
         MoveKind::Thread { end, lead, start_angle } => {
             put_end(&mut o, m, *end);
-            o.insert("lead".into(), json!(r(*lead)));
-            o.insert("start_angle".into(), json!(r(*start_angle)));
+            o.put("lead", J::Num(r(*lead)));
+            o.put("start_angle", J::Num(r(*start_angle)));
         }
         MoveKind::Tap { end, lead, rpm } => {
             put_end(&mut o, m, *end);
-            o.insert("lead".into(), json!(r(*lead)));
-            o.insert("rpm".into(), json!(r(*rpm)));
+            o.put("lead", J::Num(r(*lead)));
+            o.put("rpm", J::Num(r(*rpm)));
         }
-        MoveKind::Dwell { seconds } => {
-            o.insert("dwell_s".into(), json!(r(*seconds)));
-        }
+        MoveKind::Dwell { seconds } => o.put("dwell_s", J::Num(r(*seconds))),
         MoveKind::Spindle(s) => {
             let dir = match s.dir {
                 SpindleDir::Cw => "cw",
                 SpindleDir::Ccw => "ccw",
                 SpindleDir::Stop => "stop",
             };
-            o.insert("dir".into(), json!(dir));
-            o.insert("rpm".into(), json!(r(s.rpm)));
+            o.put("dir", J::Str(dir));
+            o.put("rpm", J::Num(r(s.rpm)));
             if let Some(c) = s.css {
-                o.insert("css".into(), json!(r(c)));
+                o.put("css", J::Num(r(c)));
             }
             if let Some(x) = s.max_rpm {
-                o.insert("max_rpm".into(), json!(r(x)));
+                o.put("max_rpm", J::Num(r(x)));
             }
         }
-        MoveKind::Aux { letter, value } => {
-            o.insert("code".into(), json!(code(*letter, *value)));
-        }
-        MoveKind::Stop { optional } => {
-            o.insert("code".into(), json!(if *optional { "M01" } else { "M00" }));
-        }
-        MoveKind::End { code: c } => {
-            o.insert("code".into(), json!(format!("M{c:02}")));
-        }
+        MoveKind::Aux { letter, value } => o.put("code", J::Code(*letter, *value)),
+        MoveKind::Stop { optional } => o.put("code", J::Str(if *optional { "M01" } else { "M00" })),
+        MoveKind::End { code: c } => o.put("code", J::Code('M', *c as f64)),
     }
     if let Some(t) = &m.tag {
-        o.insert("cycle".into(), json!(&*t.cycle));
-        o.insert("step".into(), json!(t.step));
+        o.put("cycle", J::Str(&t.cycle));
+        o.put("step", J::Int(t.step as u32));
     }
-    Value::Object(o).to_string()
+    let fields = &o.f[..o.n];
+    // Alphabetical key order by a precomputed rank (string comparisons cost more than the
+    // rest of the line).
+    let mut ranked = [(0u8, 0usize); 16];
+    for (i, f) in fields.iter().enumerate() {
+        ranked[i] = (key_rank(f.0), i);
+    }
+    let ranked = &mut ranked[..fields.len()];
+    ranked.sort_unstable();
+    out.push('{');
+    for (i, &(_, fi)) in ranked.iter().enumerate() {
+        let (k, v) = &fields[fi];
+        if i > 0 {
+            out.push(',');
+        }
+        out.push('"');
+        out.push_str(k);
+        out.push_str("\":");
+        match *v {
+            J::Num(x) => num(out, x),
+            J::Int(x) => uint(out, x as u64),
+            J::Bool(b) => out.push_str(if b { "true" } else { "false" }),
+            J::Str(t) => json_str(out, t),
+            J::Code(l, x) => json_str(out, &code(l, x)),
+            J::Xz(x, z) => {
+                out.push_str("{\"x\":");
+                num(out, x);
+                out.push_str(",\"z\":");
+                num(out, z);
+                out.push('}');
+            }
+        }
+    }
+    out.push('}');
 }
 
 fn f4(v: f64) -> String {
