@@ -108,7 +108,10 @@ pub enum MoveKind {
     /// Spindle-synchronized thread cut (G32/G92/G76/G78): the feed axes are slaved to the
     /// spindle. `lead` is mm per revolution along the long axis; `start_angle` the spindle
     /// angle (degrees) after the one-revolution signal at which the cut starts.
-    Thread { end: Pos, lead: f64, start_angle: f64 },
+    /// `continuous`: this thread directly follows another thread move (consecutive G32
+    /// blocks, or a cycle's run-out), so it starts without waiting for the one-revolution
+    /// signal (manual 004 §2.17.1 note 2) and `start_angle` does not apply.
+    Thread { end: Pos, lead: f64, start_angle: f64, continuous: bool },
     /// Rigid tap along Z: spindle angle and feed axis interpolated together, `lead` in mm
     /// per revolution (sign gives direction), `rpm` the spindle speed of this stroke.
     Tap { end: Pos, lead: f64, rpm: f64 },

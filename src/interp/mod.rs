@@ -31,6 +31,7 @@
 
 pub mod corner;
 pub mod curves;
+pub mod cycles;
 pub mod gcode;
 pub mod macros;
 pub mod parse;
@@ -175,6 +176,8 @@ pub struct Interpreter {
     corner_serial: u64,
     /// Moves made while a corner is pending; they follow the inserted chamfer/corner.
     held: Vec<Move>,
+    /// Canned-cycle state (thread lead, retained cycle values, G76 parameters).
+    cyc: cycles::CycleState,
 }
 
 fn perr_alarm(file: &Arc<str>, line_no: usize, text: &str, e: PErr) -> Alarm {
@@ -237,6 +240,7 @@ impl Interpreter {
             corner: None,
             corner_serial: 0,
             held: Vec::new(),
+            cyc: cycles::CycleState::new(cfg),
         }
     }
 
@@ -903,6 +907,7 @@ impl Interpreter {
 
     fn exec_block(&mut self, d: &Decoded, src: &SrcPos) -> Result<(), (u32, Option<u32>, String)> {
         let gcol = |g: GCode| d.g.iter().find(|x| x.0 == g).map(|x| x.1);
+        self.cycle_block_start(d);
         // Modal groups.
         if let Some(g) = d.group(6) {
             self.st.inch = g == 200;
@@ -1119,6 +1124,7 @@ impl Interpreter {
                 }
                 return Ok(());
             }
+            Some(g @ (700 | 710 | 720 | 730 | 740 | 750 | 760)) => self.cycle_oneshot(g, d, src)?,
             Some(g) => {
                 return Err((10, gcol(g), format!("{} is not supported yet", gcode::gname(g))));
             }
@@ -1201,6 +1207,7 @@ impl Interpreter {
             }
             20 | 30 => self.arc(d, src, end, self.st.motion == 20, exact)?,
             21 | 31 | 22 | 32 => self.conic(d, src, end, exact)?,
+            320 | 340 | 900 | 920 | 940 => self.cycle_modal(d, src, end, exact)?,
             g => return Err((10, None, format!("{} is not supported yet", gcode::gname(g)))),
         }
         Ok(())

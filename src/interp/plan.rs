@@ -66,7 +66,7 @@ pub fn move_to_json(m: &Move) -> String {
             let c = work(m, *center);
             o.insert("center".into(), json!({"x": r(c.x * 2.0), "z": r(c.z)}));
         }
-        MoveKind::Thread { end, lead, start_angle } => {
+        MoveKind::Thread { end, lead, start_angle, .. } => {
             put_end(&mut o, m, *end);
             o.insert("lead".into(), json!(r(*lead)));
             o.insert("start_angle".into(), json!(r(*start_angle)));
@@ -144,7 +144,7 @@ pub fn move_to_text(m: &Move) -> String {
             s.push_str(&format!(" {} centre X{} Z{}", if *cw { "CW" } else { "CCW" }, f4(c.x * 2.0), f4(c.z)));
             feed(&mut s, f);
         }
-        MoveKind::Thread { end: e, lead, start_angle } => {
+        MoveKind::Thread { end: e, lead, start_angle, .. } => {
             end(&mut s, *e);
             s.push_str(&format!(" lead {} start {}°", r(*lead), r(*start_angle)));
         }
