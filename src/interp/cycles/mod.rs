@@ -28,6 +28,7 @@ use std::sync::Arc;
 
 pub mod g76;
 pub mod single;
+pub mod stock;
 
 /// Our alarm for values outside the ranges the manual states (Fanuc has no number for them).
 pub const RANGE_ALARM: u32 = 2510;
@@ -62,6 +63,9 @@ pub struct CycleState {
     /// No.5142 m finishing passes, No.5143 a tool angle (degrees).
     pub p5142: u32,
     pub p5143: u32,
+    /// No.5147 Δd and No.5148 e of G71 (mm, radius), written back by `G71 U R`.
+    pub p5147: f64,
+    pub p5148: f64,
 }
 
 #[derive(Clone, Debug)]
@@ -89,6 +93,8 @@ impl CycleState {
             p5141: p(5141).unwrap_or(0.0).abs(),
             p5142: p(5142).map(|v| v.clamp(1.0, 99.0) as u32).unwrap_or(1),
             p5143: p(5143).map(|v| v.clamp(0.0, 99.0) as u32).unwrap_or(0),
+            p5147: p(5147).unwrap_or(0.0).abs(),
+            p5148: p(5148).unwrap_or(0.0).abs(),
         }
     }
 }
@@ -167,6 +173,8 @@ impl Interpreter {
     /// A group-00 cycle code (G76).
     pub(super) fn cycle_oneshot(&mut self, g: GCode, d: &Decoded, src: &SrcPos) -> Result<(), CErr> {
         match g {
+            700 => self.g70(d, src),
+            710 => self.g71(d, src),
             760 => self.g76(d, src),
             g => Err((10, None, format!("{} is not supported yet", super::gcode::gname(g)))),
         }

@@ -1,0 +1,111 @@
+//! G71 and G70 (manual 004 §2.16.1, §2.16.4).
+
+mod cycles_common;
+use cycles_common::*;
+
+/// §2.16.1 example as printed, with G98 first (the machine powers on in G99; F200 is mm/min).
+const G71_EXAMPLE: &str = "G98\nG00 X200 Z10 M03 S800;\nG71 U2 R1 F200;\nG71 P80 Q120 U0.5 W2.0;\nN80 G00 X40 S1200;\n\
+G01 Z-30 F100;\nX60 W-30;\nW-20;\nN120 X100 W-10;\nG70 P80 Q120;\nM30;\n";
+
+/// Z of the rough contour (finishing contour + (Δu/2, Δw) = (0.25, 2)) at radius `x`.
+fn rough_z(x: f64) -> f64 {
+    let pts: [(f64, f64); 4] = [(20.25, -28.0), (30.25, -58.0), (30.25, -78.0), (50.25, -88.0)];
+    for w in pts.windows(2) {
+        let ((x0, z0), (x1, z1)) = (w[0], w[1]);
+        if x >= x0.min(x1) && x <= x0.max(x1) {
+            return if x1 == x0 { z0 } else { z0 + (x - x0) / (x1 - x0) * (z1 - z0) };
+        }
+    }
+    -88.0 // above C': the pass runs to C''s Z
+}
+
+#[test]
+fn g71_g70_manual_example() {
+    let m = run(G71_EXAMPLE);
+    let w = motions(&m);
+    check(&w[0], "rapid", 200.0, 10.0, 0.0, 0);
+    // Δd = 2 (radius): passes at depth 2k while 2k < 100 − 20.25 → k = 1..39.
+    let mut i = 1;
+    for k in 1..=39 {
+        let xr = 100.0 - 2.0 * k as f64;
+        let z = rough_z(xr);
+        check(&w[i], "rapid", 2.0 * xr, 10.0, 0.0, 1); // ns is G00: rapid infeed
+        check(&w[i + 1], "feed", 2.0 * xr, z, 200.0, 2);
+        check(&w[i + 2], "feed", 2.0 * (xr + 1.0), z + 1.0, 200.0, 3); // 45° by e = 1
+        check(&w[i + 3], "rapid", 2.0 * (xr + 1.0), 10.0, 0.0, 4);
+        i += 4;
+    }
+    // Last pass along the rough contour B'→C', then back to A.
+    check(&w[i], "rapid", 40.5, 12.0, 0.0, 5);
+    check(&w[i + 1], "feed", 40.5, -28.0, 200.0, 6);
+    check(&w[i + 2], "feed", 60.5, -58.0, 200.0, 6);
+    check(&w[i + 3], "feed", 60.5, -78.0, 200.0, 6);
+    check(&w[i + 4], "feed", 100.5, -88.0, 200.0, 6);
+    check(&w[i + 5], "rapid", 200.0, 10.0, 0.0, 7);
+    i += 6;
+    // The contour blocks are not run after G71; G70 runs them with their own F (and S1200).
+    check(&w[i], "rapid", 40.0, 10.0, 0.0, 1);
+    check(&w[i + 1], "feed", 40.0, -30.0, 100.0, 1);
+    check(&w[i + 2], "feed", 60.0, -60.0, 100.0, 1);
+    check(&w[i + 3], "feed", 60.0, -80.0, 100.0, 1);
+    check(&w[i + 4], "feed", 100.0, -90.0, 100.0, 1);
+    check(&w[i + 5], "rapid", 200.0, 10.0, 0.0, 2);
+    assert_eq!(w[i].cycle.as_deref(), Some("G70"));
+    assert_eq!(w.len(), i + 6);
+    // S1200 only takes effect in G70: exactly one spindle change to 1200 rpm, after G71.
+    let s: Vec<f64> = m
+        .iter()
+        .filter_map(|m| match &m.kind {
+            cncgw::canon::MoveKind::Spindle(c) => Some(c.rpm),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(s, [800.0, 1200.0]);
+    // The contour's lines are reported as the G70 moves' source.
+    let g70_first = m.iter().find(|m| m.tag.as_ref().is_some_and(|t| &*t.cycle == "G70")).unwrap();
+    assert_eq!(g70_first.src.line, 5);
+}
+
+#[test]
+fn g71_depth_and_retract_are_kept() {
+    // No.5147/5148 written by the first block serve a later G71 without it.
+    let src = "G98 G00 X60 Z2\nG71 U1.5 R0.5 F100\nG71 P1 Q2\nN1 G01 X50\nN2 Z-10\nG00 X60 Z2\nG71 P1 Q2\n";
+    let w = motions(&run(src));
+    // depth 5 (radius): passes at 1.5, 3.0, 4.5, then the contour.
+    let n = w.iter().filter(|w| w.step == 2).count();
+    assert_eq!(n, 6);
+    check(&w[3], "feed", 58.0, -9.5, 100.0, 3); // level above C': to C's Z, 45° back by 0.5
+}
+
+#[test]
+fn g71_alarms() {
+    let num = |s: &str| run_err(&format!("G98 G00 X60 Z2\nG71 U1 R0.5 F100\n{s}")).number;
+    assert_eq!(num("G71 P1\nN1 G01 X50\nN2 Z-10\n"), 61);
+    assert_eq!(num("G71 P1 Q3\nN1 G01 X50\nN2 Z-10\n"), 63);
+    assert_eq!(num("G71 P1 Q2\nN1 X50\nN2 Z-10\n"), 65); // ns without G00/G01
+    assert_eq!(num("G71 P1 Q2\nN1 G01 X50\nN2 G32 Z-10\n"), 66);
+    assert_eq!(num("G71 P1 Q3\nN1 G01 X50\nN2 G04 P10\nG28 U0\nN3 Z-10\n"), 66);
+    // Not monotonic in X (a pocket): type I refuses it.
+    assert_eq!(num("G71 P1 Q3\nN1 G01 X40\nZ-10\nX30 Z-15\nN3 X60 Z-20\n"), 64);
+    assert_eq!(num("G71 P1 Q2\nN1 G01 X40 Z0\nN2 Z-10\n"), 10); // type II
+    assert_eq!(run_err("G98 G00 X60 Z2\nG71 P1 Q2 F100\nN1 G01 X50\nN2 Z-10\n").number, 62); // no Δd
+}
+
+#[test]
+fn g71_contour_with_arc_cuts_to_the_arc() {
+    // Contour: X20 → Z-10 → G02 to X40 Z-20 (R10, centre (X20, Z-20) radius 10 … as radius
+    // values: centre x = 10, z = -20).
+    let src = "G98 G00 X44 Z2\nG71 U2 R0.5 F100\nG71 P1 Q3\nN1 G00 X20\nG01 Z-10\nN3 G02 X40 Z-20 R10\n";
+    let w = motions(&run(src));
+    // Levels radius 20, 18, 16, 14, 12 (depth 2..10 < 12). At radius x the arc's Z is
+    // -10 - sqrt(100 - (x-10)^2)... the centre is (10, -20)? A G02 from (10,-10) to (20,-20)
+    // with R10 has its centre at (20, -10): z = -10 - sqrt(100 - (x - 20)^2).
+    for (j, xr) in [20.0, 18.0, 16.0, 14.0, 12.0].iter().enumerate() {
+        let expect = -10.0 - (100.0 - (xr - 20.0f64).powi(2)).sqrt();
+        let cut = &w[1 + 4 * j + 1];
+        assert!((cut.x - 2.0 * xr).abs() < 1e-9);
+        assert!((cut.z - expect).abs() < 0.02, "level {xr}: {} vs {expect}", cut.z);
+    }
+    let arc = w.iter().find(|w| w.kind == "arc").expect("the contour pass keeps the arc");
+    assert_eq!(arc.step, 6);
+}
