@@ -109,3 +109,80 @@ fn g71_contour_with_arc_cuts_to_the_arc() {
     let arc = w.iter().find(|w| w.kind == "arc").expect("the contour pass keeps the arc");
     assert_eq!(arc.step, 6);
 }
+
+/// §2.16.2 example as printed, with G98 first (F300 is mm/min) and M30 added.
+#[test]
+fn g72_manual_example() {
+    let src = "G98\nG00 X176 Z10 M3 S500 T0202;\nG72 W2.0 R0.5 F300;\nG72 P10 Q20 U0.2 W0.1;\nN10 G00 Z-55 S800;\n\
+G01 X160 F120;\nX80 W20;\nW15;\nN20 X40 W20;\nG70 P10 Q20;\nM30;\n";
+    let w = motions(&run(src));
+    // Rough contour (radius X, Z) = finishing contour + (0.1, 0.1).
+    let pts: [(f64, f64); 5] = [(-54.9, 88.1), (-54.9, 80.1), (-34.9, 40.1), (-19.9, 40.1), (0.1, 20.1)];
+    let rough_x = |z: f64| {
+        for s in pts.windows(2) {
+            let ((z0, x0), (z1, x1)) = (s[0], s[1]);
+            if z >= z0.min(z1) && z <= z0.max(z1) && z1 != z0 {
+                return x0 + (z - z0) / (z1 - z0) * (x1 - x0);
+            }
+        }
+        20.1
+    };
+    check(&w[0], "rapid", 176.0, 10.0, 0.0, 0);
+    let mut i = 1;
+    // Δd = 2 in Z: passes at Z8 … Z-54 (depth 64 < 64.9).
+    for k in 1..=32 {
+        let z = 10.0 - 2.0 * k as f64;
+        let x = rough_x(z);
+        check(&w[i], "rapid", 176.0, z, 0.0, 1);
+        check(&w[i + 1], "feed", 2.0 * x, z, 300.0, 2);
+        check(&w[i + 2], "feed", 2.0 * (x + 0.5), z + 0.5, 300.0, 3);
+        check(&w[i + 3], "rapid", 176.0, z + 0.5, 0.0, 4);
+        assert_eq!(w[i].cycle.as_deref(), Some("G72"));
+        i += 4;
+    }
+    check(&w[i], "rapid", 176.2, -54.9, 0.0, 5);
+    for (j, (z, x)) in pts[1..].iter().enumerate() {
+        check(&w[i + 1 + j], "feed", 2.0 * x, *z, 300.0, 6);
+    }
+    check(&w[i + 5], "rapid", 176.0, 10.0, 0.0, 7);
+    i += 6;
+    // G70.
+    for (j, (x, z, f)) in [(176.0, -55.0, 0.0), (160.0, -55.0, 120.0), (80.0, -35.0, 120.0), (80.0, -20.0, 120.0), (40.0, 0.0, 120.0)]
+        .iter()
+        .enumerate()
+    {
+        check(&w[i + j], if j == 0 { "rapid" } else { "feed" }, *x, *z, *f, 1);
+    }
+    check(&w[i + 5], "rapid", 176.0, 10.0, 0.0, 2);
+    assert_eq!(w.len(), i + 6);
+}
+
+/// §2.16.3 example as printed: three passes offset (Δi + Δu/2, Δk + Δw) = (16, 16),
+/// (8.5, 8.5), (1, 1) (radius), each a copy of the contour.
+#[test]
+fn g73_manual_example() {
+    let src = "G99 G00 X200 Z10 M3 S500;\nG73 U15 W15 R3;\nG73 P1 Q2 U2 W1 F0.3;\nN1 G0 X80 Z0;\nG01 W-20 F0.15 S600;\n\
+X120 W-10;\nW-20;\nG02 X160 W-20 R20;\nN2 G01 X180 W-10;\nG70 P1 Q2;\nM30;\n";
+    let w = motions(&run(src));
+    check(&w[0], "rapid", 200.0, 10.0, 0.0, 0);
+    let contour = [(80.0, 0.0), (80.0, -20.0), (120.0, -30.0), (120.0, -50.0), (160.0, -70.0), (180.0, -80.0)];
+    let mut i = 1;
+    for o in [16.0, 8.5, 1.0] {
+        check(&w[i], "rapid", 200.0 + 2.0 * o, 10.0 + o, 0.0, 1);
+        check(&w[i + 1], "rapid", 80.0 + 2.0 * o, o, 0.0, 2);
+        for (j, (x, z)) in contour[1..].iter().enumerate() {
+            let kind = if j == 3 { "arc" } else { "feed" };
+            let f = if kind == "arc" { 0.0 } else { 0.3 };
+            check(&w[i + 2 + j], kind, x + 2.0 * o, z + o, f, 3);
+        }
+        check(&w[i + 7], "rapid", 200.0, 10.0, 0.0, 4);
+        assert_eq!(w[i].cycle.as_deref(), Some("G73"));
+        i += 8;
+    }
+    // G70: the contour with its own F0.15.
+    check(&w[i], "rapid", 80.0, 0.0, 0.0, 1);
+    check(&w[i + 1], "feed", 80.0, -20.0, 0.15, 1);
+    check(&w[i + 5], "feed", 180.0, -80.0, 0.15, 1);
+    check(&w[i + 6], "rapid", 200.0, 10.0, 0.0, 2);
+    assert_eq!(w.len(), i + 7);
+}

@@ -66,6 +66,10 @@ pub struct CycleState {
     /// No.5147 Δd and No.5148 e of G71 (mm, radius), written back by `G71 U R`.
     pub p5147: f64,
     pub p5148: f64,
+    /// No.5144 Δi, No.5145 Δk (mm, radius, signed), No.5146 d passes of G73.
+    pub p5144: f64,
+    pub p5145: f64,
+    pub p5146: u32,
 }
 
 #[derive(Clone, Debug)]
@@ -95,6 +99,9 @@ impl CycleState {
             p5143: p(5143).map(|v| v.clamp(0.0, 99.0) as u32).unwrap_or(0),
             p5147: p(5147).unwrap_or(0.0).abs(),
             p5148: p(5148).unwrap_or(0.0).abs(),
+            p5144: p(5144).unwrap_or(0.0),
+            p5145: p(5145).unwrap_or(0.0),
+            p5146: p(5146).map(|v| v.clamp(0.0, 99999.0) as u32).unwrap_or(0),
         }
     }
 }
@@ -174,7 +181,9 @@ impl Interpreter {
     pub(super) fn cycle_oneshot(&mut self, g: GCode, d: &Decoded, src: &SrcPos) -> Result<(), CErr> {
         match g {
             700 => self.g70(d, src),
-            710 => self.g71(d, src),
+            710 => self.rough(d, src, false),
+            720 => self.rough(d, src, true),
+            730 => self.g73(d, src),
             760 => self.g76(d, src),
             g => Err((10, None, format!("{} is not supported yet", super::gcode::gname(g)))),
         }

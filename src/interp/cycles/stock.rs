@@ -24,7 +24,7 @@
 //! not G00/G01, 66 a code note 3 forbids in the contour.
 
 use super::{CErr, G76_VALUE_ALARM};
-use crate::canon::{Move, MoveKind, Pos, SrcPos};
+use crate::canon::{Feed, Move, MoveKind, Pos, SrcPos};
 use crate::interp::gcode::{self, Decoded};
 use crate::interp::{parse, Interpreter};
 use std::sync::Arc;
@@ -155,52 +155,40 @@ impl Interpreter {
         Ok(())
     }
 
-    /// G71, both blocks.
-    pub(super) fn g71(&mut self, d: &Decoded, src: &SrcPos) -> Result<(), CErr> {
-        self.cycle_plane_check(d, "G71")?;
-        let gc = Self::gcol(d);
-        if !(d.has('P') || d.has('Q')) {
-            // First block: U(Δd) R(e) → No.5147 / No.5148.
-            if let Some(u) = d.get('U') {
-                let v = self.len(u);
-                if v <= 0.0 {
-                    return Err((G76_VALUE_ALARM, Some(u.col), "G71 U(Δd), the depth of cut, must be positive".into()));
-                }
-                self.cyc.p5147 = v;
+    /// First block of G71/G72: U(Δd) (G71) or W(Δd) (G72), R(e) → No.5147 / No.5148.
+    fn rough_first(&mut self, d: &Decoded, name: &str, letter: char) -> Result<(), CErr> {
+        if let Some(u) = d.get(letter) {
+            let v = self.len(u);
+            if v <= 0.0 {
+                return Err((G76_VALUE_ALARM, Some(u.col), format!("{name} {letter}(Δd), the depth of cut, must be positive")));
             }
-            if let Some(r) = d.get('R') {
-                let v = self.len(r);
-                if v < 0.0 {
-                    return Err((G76_VALUE_ALARM, Some(r.col), "G71 R(e), the retract amount, cannot be negative".into()));
-                }
-                self.cyc.p5148 = v;
+            self.cyc.p5147 = v;
+        }
+        if let Some(r) = d.get('R') {
+            let v = self.len(r);
+            if v < 0.0 {
+                return Err((G76_VALUE_ALARM, Some(r.col), format!("{name} R(e), the retract amount, cannot be negative")));
             }
-            return Ok(());
+            self.cyc.p5148 = v;
         }
-        let (dd, e) = (self.cyc.p5147, self.cyc.p5148);
-        if dd <= 0.0 {
-            return Err((G76_VALUE_ALARM, gc, "G71: the depth of cut Δd is not set: program G71 U(Δd) R(e) first (or No.5147)".into()));
-        }
-        let du = d.get('U').map(|v| self.len(v) * 0.5).unwrap_or(0.0);
-        let dw = d.get('W').map(|v| self.len(v)).unwrap_or(0.0);
-        let feed = self.feed(d.get('F').map(|f| f.col))?;
-        let (l1, l2, ns, nf) = self.contour_span(d, "G71")?;
-        // Is the ns block X-only (type I)?
-        let ns_text = self.line_text(l1).to_string();
-        if let Ok(parse::Block { stmt: parse::Stmt::Nc(w), .. }) = parse::parse_line(&ns_text) {
-            if w.iter().any(|w| !w.comma && matches!(w.letter, 'Z' | 'W')) {
-                return Err((10, gc, "G71 type II (the N(ns) block moves Z too) is not supported yet".into()));
-            }
-        }
-        let a = self.pos;
-        let (moves, ns_rapid) = self.run_contour(l1, l2, ns, "G71", true)?;
+        Ok(())
+    }
+
+    /// The contour of a G71/G72/G73 second block shifted by `off`: (B', elements after the
+    /// ns move, whether the ns move is G00, the ns move itself shifted).
+    fn shifted_contour(&mut self, l1: usize, l2: usize, ns: u32, nf: u32, name: &str, gc: Option<u32>) -> Result<(Vec<Move>, bool), CErr> {
+        let (moves, ns_rapid) = self.run_contour(l1, l2, ns, name, true)?;
         if moves.is_empty() {
-            return Err((65, gc, format!("G71: N{ns}–N{nf} make no move")));
+            return Err((65, gc, format!("{name}: N{ns}–N{nf} make no move")));
         }
-        let off = Pos { x: du, z: dw, ..Pos::ZERO };
+        Ok((moves, ns_rapid))
+    }
+
+    /// The contour moves moved by `off`, as elements with their start points (from `a`).
+    fn offset_elems(moves: &[Move], a: Pos, off: Pos, feed: Feed) -> Vec<Elem> {
         let mut elems = Vec::new();
         let mut start = a;
-        for m in &moves {
+        for m in moves {
             let end = m.kind.end().unwrap_or(start);
             let kind = match &m.kind {
                 MoveKind::Arc { end, center, cw, plane, .. } => {
@@ -211,28 +199,65 @@ impl Interpreter {
             elems.push(Elem { kind, a: start.add(off) });
             start = end;
         }
-        // B' = end of the ns move; the rough contour is elems[1..].
-        let bp = elems[0].kind.end().unwrap_or(a);
-        let dir = (bp.x - a.x).signum();
-        if bp.x == a.x {
-            return Err((G76_VALUE_ALARM, gc, format!("G71: N{ns} does not move X, so the infeed direction is unknown")));
+        elems
+    }
+
+    /// G71 (`facing` = false: passes parallel to Z, infeed in X) and G72 (`facing`: passes
+    /// parallel to X, infeed in Z), both blocks. The algorithm is written on (p, q) = the
+    /// infeed axis and the cutting axis.
+    pub(super) fn rough(&mut self, d: &Decoded, src: &SrcPos, facing: bool) -> Result<(), CErr> {
+        let name = if facing { "G72" } else { "G71" };
+        self.cycle_plane_check(d, name)?;
+        let gc = Self::gcol(d);
+        if !(d.has('P') || d.has('Q')) {
+            return self.rough_first(d, name, if facing { 'W' } else { 'U' });
         }
+        let (dd, e) = (self.cyc.p5147, self.cyc.p5148);
+        if dd <= 0.0 {
+            return Err((G76_VALUE_ALARM, gc, format!("{name}: the depth of cut Δd is not set: program the first {name} block (or No.5147)")));
+        }
+        let du = d.get('U').map(|v| self.len(v) * 0.5).unwrap_or(0.0);
+        let dw = d.get('W').map(|v| self.len(v)).unwrap_or(0.0);
+        let feed = self.feed(d.get('F').map(|f| f.col))?;
+        let (l1, l2, ns, nf) = self.contour_span(d, name)?;
+        // Type I: the ns block moves the infeed axis only.
+        let ns_text = self.line_text(l1).to_string();
+        let other: [char; 2] = if facing { ['X', 'U'] } else { ['Z', 'W'] };
+        if let Ok(parse::Block { stmt: parse::Stmt::Nc(w), .. }) = parse::parse_line(&ns_text) {
+            if w.iter().any(|w| !w.comma && other.contains(&w.letter)) {
+                return Err((10, gc, format!("{name} type II (the N{ns} block moves {} too) is not supported yet", other[0])));
+            }
+        }
+        let a = self.pos;
+        let (moves, ns_rapid) = self.shifted_contour(l1, l2, ns, nf, name, gc)?;
+        let elems = Self::offset_elems(&moves, a, Pos { x: du, z: dw, ..Pos::ZERO }, feed);
+        let pq = |p: Pos| if facing { (p.z, p.x) } else { (p.x, p.z) };
+        let at = |p: f64, q: f64| if facing { Pos { z: p, x: q, ..a } } else { Pos { x: p, z: q, ..a } };
+        let bp = elems[0].kind.end().unwrap_or(a);
+        let (ap, aq) = pq(a);
+        let (bpp, _) = pq(bp);
+        if bpp == ap {
+            return Err((G76_VALUE_ALARM, gc, format!("{name}: N{ns} does not move {}, so the infeed direction is unknown", if facing { 'Z' } else { 'X' })));
+        }
+        let dir = (bpp - ap).signum();
         let contour = &elems[1..];
-        let pts = polyline(bp, contour);
-        let cp = *pts.last().unwrap_or(&bp);
-        let zdir = (cp.z - bp.z).signum();
+        let pts: Vec<(f64, f64)> = polyline(bp, contour).into_iter().map(pq).collect();
+        let (cpp, cpq) = *pts.last().unwrap_or(&pq(bp));
+        let _ = cpp;
+        let qdir = (cpq - pts[0].1).signum();
         for w in pts.windows(2) {
-            let (dx, dz) = (w[1].x - w[0].x, w[1].z - w[0].z);
-            if dx * dir > 1e-6 || dz * zdir < -1e-6 {
+            let (dp, dq) = (w[1].0 - w[0].0, w[1].1 - w[0].1);
+            if dp * dir > 1e-6 || dq * qdir < -1e-6 {
+                let p = at(w[1].0, w[1].1);
                 return Err((
                     64,
                     gc,
-                    format!("G71 type I: the contour N{ns}–N{nf} must be monotonic in X and Z (it turns back near X{:.3} Z{:.3})", w[1].x * 2.0, w[1].z),
+                    format!("{name} type I: the contour N{ns}–N{nf} must be monotonic in X and Z (it turns back near X{:.3} Z{:.3})", p.x * 2.0, p.z),
                 ));
             }
         }
-        let tag: Arc<str> = Arc::from("G71");
-        let depth_total = (bp.x - a.x) * dir;
+        let tag: Arc<str> = Arc::from(name);
+        let depth_total = (bpp - ap) * dir;
         let mut k = 1usize;
         loop {
             let depth = k as f64 * dd;
@@ -240,17 +265,17 @@ impl Interpreter {
                 break;
             }
             if k > super::MAX_PASSES {
-                return Err((G76_VALUE_ALARM, gc, format!("G71 would cut more than {} passes: increase U(Δd)", super::MAX_PASSES)));
+                return Err((G76_VALUE_ALARM, gc, format!("{name} would cut more than {} passes: increase Δd", super::MAX_PASSES)));
             }
-            let x = a.x + dir * depth;
-            let lvl = Pos { x, ..a };
+            let p = ap + dir * depth;
+            let lvl = at(p, aq);
             let infeed = if ns_rapid { MoveKind::Rapid { end: lvl } } else { MoveKind::Feed { end: lvl, feed } };
             self.cpush(src, &tag, 1, infeed, false);
-            let z = level_z(&pts, x).unwrap_or(cp.z);
-            self.cpush(src, &tag, 2, MoveKind::Feed { end: Pos { z, ..lvl }, feed }, false);
-            let back = Pos { x: x - dir * e, z: z - zdir * e, ..lvl };
+            let q = level_q(&pts, p).unwrap_or(cpq);
+            self.cpush(src, &tag, 2, MoveKind::Feed { end: at(p, q), feed }, false);
+            let back = at(p - dir * e, q - qdir * e);
             self.cpush(src, &tag, 3, MoveKind::Feed { end: back, feed }, false);
-            self.cpush(src, &tag, 4, MoveKind::Rapid { end: Pos { z: a.z, ..back } }, true);
+            self.cpush(src, &tag, 4, MoveKind::Rapid { end: at(p - dir * e, aq) }, true);
             k += 1;
         }
         let infeed = if ns_rapid { MoveKind::Rapid { end: bp } } else { MoveKind::Feed { end: bp, feed } };
@@ -259,10 +284,71 @@ impl Interpreter {
             self.cpush(src, &tag, 6, el.kind.clone(), false);
         }
         self.cpush(src, &tag, 7, MoveKind::Rapid { end: a }, true);
-        // The contour is run only by G70: continue after N(nf) when it follows directly.
+        self.skip_contour(l1, l2);
+        Ok(())
+    }
+
+    /// The contour is run only by G70: continue after N(nf) when it follows directly.
+    fn skip_contour(&mut self, l1: usize, l2: usize) {
         if l1 == self.line {
             self.line = l2 + 1;
         }
+    }
+
+    /// G73 pattern repeating, both blocks: `U(Δi) W(Δk) R(d)` (No.5144–5146), then
+    /// `P Q U(Δu) W(Δw) F`. Pass n of d follows the contour moved by
+    /// (Δu/2 + Δi·(d−n)/(d−1), Δw + Δk·(d−n)/(d−1)) (radius), so the first pass is offset by
+    /// (Δi + Δu/2, Δk + Δw) and the last by (Δu/2, Δw) (§2.16.3). Each pass: ① rapid from A to
+    /// the shifted start A_n, ② the ns move (G00 or G01 as programmed), ③ the rest of the
+    /// contour at the cycle's feed, ④ rapid back to A (figure 2.42's numbers are not in the
+    /// text; these are ours). d = 1 cuts the last pass only.
+    pub(super) fn g73(&mut self, d: &Decoded, src: &SrcPos) -> Result<(), CErr> {
+        self.cycle_plane_check(d, "G73")?;
+        let gc = Self::gcol(d);
+        if !(d.has('P') || d.has('Q')) {
+            if let Some(u) = d.get('U') {
+                self.cyc.p5144 = self.len(u);
+            }
+            if let Some(w) = d.get('W') {
+                self.cyc.p5145 = self.len(w);
+            }
+            if let Some(r) = d.get('R') {
+                if r.bad_integer() || !(1.0..=99999.0).contains(&r.v) {
+                    return Err((G76_VALUE_ALARM, Some(r.col), format!("G73 R(d): the number of passes must be a whole number ≥ 1, not {}", r.v)));
+                }
+                self.cyc.p5146 = r.v as u32;
+            }
+            return Ok(());
+        }
+        let (di, dk, n) = (self.cyc.p5144, self.cyc.p5145, self.cyc.p5146);
+        if n == 0 {
+            return Err((G76_VALUE_ALARM, gc, "G73: the number of passes R(d) is not set: program G73 U W R first (or No.5146)".into()));
+        }
+        if n as usize > super::MAX_PASSES {
+            return Err((G76_VALUE_ALARM, gc, format!("G73: more than {} passes", super::MAX_PASSES)));
+        }
+        let du = d.get('U').map(|v| self.len(v) * 0.5).unwrap_or(0.0);
+        let dw = d.get('W').map(|v| self.len(v)).unwrap_or(0.0);
+        let feed = self.feed(d.get('F').map(|f| f.col))?;
+        let (l1, l2, ns, nf) = self.contour_span(d, "G73")?;
+        let a = self.pos;
+        let (moves, ns_rapid) = self.shifted_contour(l1, l2, ns, nf, "G73", gc)?;
+        let tag: Arc<str> = Arc::from("G73");
+        for j in 1..=n {
+            let f = if n == 1 { 0.0 } else { (n - j) as f64 / (n - 1) as f64 };
+            let off = Pos { x: du + di * f, z: dw + dk * f, ..Pos::ZERO };
+            let elems = Self::offset_elems(&moves, a, off, feed);
+            self.cpush(src, &tag, 1, MoveKind::Rapid { end: a.add(off) }, true);
+            for (i, el) in elems.iter().enumerate() {
+                let kind = match (&el.kind, i == 0 && ns_rapid) {
+                    (k, true) => MoveKind::Rapid { end: k.end().unwrap_or(a) },
+                    (k, false) => k.clone(),
+                };
+                self.cpush(src, &tag, if i == 0 { 2 } else { 3 }, kind, false);
+            }
+            self.cpush(src, &tag, 4, MoveKind::Rapid { end: a }, true);
+        }
+        self.skip_contour(l1, l2);
         Ok(())
     }
 }
@@ -302,16 +388,15 @@ fn polyline(start: Pos, elems: &[Elem]) -> Vec<Pos> {
     pts
 }
 
-/// Z where the polyline first reaches X = `x` (from its start), if it does.
-fn level_z(pts: &[Pos], x: f64) -> Option<f64> {
+/// The cutting-axis coordinate where the (p, q) polyline first reaches p = `lvl`.
+fn level_q(pts: &[(f64, f64)], lvl: f64) -> Option<f64> {
     for w in pts.windows(2) {
-        let (p, q) = (w[0], w[1]);
-        let (lo, hi) = if p.x <= q.x { (p.x, q.x) } else { (q.x, p.x) };
-        if x >= lo - 1e-9 && x <= hi + 1e-9 {
-            if (q.x - p.x).abs() < 1e-12 {
-                return Some(p.z);
+        let ((p0, q0), (p1, q1)) = (w[0], w[1]);
+        if lvl >= p0.min(p1) - 1e-9 && lvl <= p0.max(p1) + 1e-9 {
+            if (p1 - p0).abs() < 1e-12 {
+                return Some(q0);
             }
-            return Some(p.z + (x - p.x) / (q.x - p.x) * (q.z - p.z));
+            return Some(q0 + (lvl - p0) / (p1 - p0) * (q1 - q0));
         }
     }
     None
