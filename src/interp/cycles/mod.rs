@@ -27,6 +27,7 @@ use crate::config::MachineConfig;
 use std::sync::Arc;
 
 pub mod g76;
+pub mod groove;
 pub mod single;
 pub mod stock;
 
@@ -70,6 +71,8 @@ pub struct CycleState {
     pub p5144: f64,
     pub p5145: f64,
     pub p5146: u32,
+    /// No.5139 e of G74/G75 (mm), the retract after each peck.
+    pub p5139: f64,
 }
 
 #[derive(Clone, Debug)]
@@ -100,6 +103,7 @@ impl CycleState {
             p5147: p(5147).unwrap_or(0.0).abs(),
             p5148: p(5148).unwrap_or(0.0).abs(),
             p5144: p(5144).unwrap_or(0.0),
+            p5139: p(5139).unwrap_or(0.0).abs(),
             p5145: p(5145).unwrap_or(0.0),
             p5146: p(5146).map(|v| v.clamp(0.0, 99999.0) as u32).unwrap_or(0),
         }
@@ -184,6 +188,8 @@ impl Interpreter {
             710 => self.rough(d, src, false),
             720 => self.rough(d, src, true),
             730 => self.g73(d, src),
+            740 => self.groove(d, src, false),
+            750 => self.groove(d, src, true),
             760 => self.g76(d, src),
             g => Err((10, None, format!("{} is not supported yet", super::gcode::gname(g)))),
         }
