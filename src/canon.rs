@@ -111,7 +111,9 @@ pub enum MoveKind {
     /// `continuous`: this thread directly follows another thread move (consecutive G32
     /// blocks, or a cycle's run-out), so it starts without waiting for the one-revolution
     /// signal (manual 004 §2.17.1 note 2) and `start_angle` does not apply.
-    Thread { end: Pos, lead: f64, start_angle: f64, continuous: bool },
+    /// `lead_inc`: G34 variable lead, the lead grows by this much (mm, signed) per spindle
+    /// revolution from `lead` at the start; 0 for a constant lead.
+    Thread { end: Pos, lead: f64, start_angle: f64, continuous: bool, lead_inc: f64 },
     /// Rigid tap along Z: spindle angle and feed axis interpolated together, `lead` in mm
     /// per revolution (sign gives direction), `rpm` the spindle speed of this stroke.
     Tap { end: Pos, lead: f64, rpm: f64 },

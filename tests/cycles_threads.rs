@@ -221,3 +221,41 @@ fn g76_alarms() {
     assert_eq!(num("G76 P019960\nG76 X70 Z-5 P2 Q1 F2"), 2510); // note 8: run-out 19.8 > 15
     assert_eq!(num("G76 X70 Z-20 P2 Q0.0001 F2"), 62); // too many passes
 }
+
+/// §2.17.2 example as printed: first lead 4 mm, +0.2 mm per revolution.
+#[test]
+fn g34_manual_example() {
+    let src = "G00 X60 Z4 M03 S500;\nG00 U-10;\nG00 U-0.7;\nG34 W-78 F4 K0.2;\nG00 U10;\nZ4;\nG00 X50;\nG00 U-1.0;\nG34 W-78 F4 K0.2;\nG00 U10;\nZ4;\nM30;\n";
+    let m = run(src);
+    let w = motions(&m);
+    check(&w[2], "rapid", 49.3, 4.0, 0.0, 0);
+    check(&w[3], "thread", 49.3, -74.0, 4.0, 0);
+    check(&w[4], "rapid", 59.3, -74.0, 0.0, 0);
+    check(&w[5], "rapid", 59.3, 4.0, 0.0, 0);
+    check(&w[7], "rapid", 49.0, 4.0, 0.0, 0);
+    check(&w[8], "thread", 49.0, -74.0, 4.0, 0);
+    let incs: Vec<f64> = m
+        .iter()
+        .filter_map(|m| match m.kind {
+            cncgw::canon::MoveKind::Thread { lead_inc, .. } => Some(lead_inc),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(incs, [0.2, 0.2]);
+}
+
+#[test]
+fn g34_lead_range() {
+    let num = |s: &str| run_err(&format!("G00 X60 Z4\n{s}\n")).number;
+    assert_eq!(num("G34 W-78 F4"), 14); // K missing
+    assert_eq!(num("G34 W-78 F4 K0.001"), 14);
+    assert_eq!(num("G34 W-78 F4 K500"), 14);
+    // 4² − 2·0.2·78 < 0: the lead would reach zero.
+    assert_eq!(num("G34 W-78 F4 K-0.2"), 14);
+    // √(400² + 2·400·78) ≈ 474 ok; F480 K400 → 537 > 500.
+    assert_eq!(num("G34 W-78 F480 K400"), 14);
+    // Consecutive G32 → G34 is one continuous thread.
+    let m = run("G00 X60 Z4\nG32 W-10 F4\nG34 W-20 F4 K0.1\n");
+    let w = motions(&m);
+    assert!(!w[1].continuous && w[2].continuous);
+}

@@ -43,7 +43,7 @@ pub fn ginfo(g: GCode) -> Option<GInfo> {
         280 => (0, "reference point return", None),
         300 => (0, "2nd/3rd/4th reference point return", None),
         320 => (1, "thread cutting", None),
-        340 => (1, "variable-lead thread cutting", LATER),
+        340 => (1, "variable-lead thread cutting", None),
         400 => (7, "tool nose radius compensation cancel", None),
         410 => (7, "tool nose radius compensation left", LATER),
         420 => (7, "tool nose radius compensation right", LATER),

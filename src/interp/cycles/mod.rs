@@ -15,7 +15,7 @@
 //! from the configuration's `[parameters]`; writes last until the interpreter is dropped.
 //!
 //! Alarm numbers: the manual says "alarm" without a number; we use Fanuc 0i-TF PS numbers
-//! (11 no lead, 21 axis outside the ZX plane, 10 wrong plane, 62 bad G76 value, 7 decimal
+//! (11 no lead, 14 illegal G34 lead, 21 axis outside the ZX plane, 10 wrong plane, 62 bad G76 value, 7 decimal
 //! point in packed P) and our own [`RANGE_ALARM`] (2510) for the out-of-range values the
 //! manual names and Fanuc has no number for (Q start angle, run-out longer than the thread,
 //! R taper crossing the start point).
@@ -35,6 +35,8 @@ pub mod stock;
 pub const RANGE_ALARM: u32 = 2510;
 /// Fanuc PS0062: illegal value in a multiple repetitive cycle (G76 depth, Δdmin, d, m, W=0).
 pub const G76_VALUE_ALARM: u32 = 62;
+/// Largest thread lead (mm/rev): Fanuc's F range for threads, 0.0001–500 mm.
+pub const MAX_LEAD: f64 = 500.0;
 /// Upper bound on the passes of one G76, so that a tiny Δd cannot flood the move queue.
 pub const MAX_PASSES: usize = 2000;
 
@@ -174,7 +176,7 @@ impl Interpreter {
     /// A group-01 cycle code (G32, G90, G92, G94) in a block with axis words.
     pub(super) fn cycle_modal(&mut self, d: &Decoded, src: &SrcPos, end: Pos, exact: bool) -> Result<(), CErr> {
         match self.st.motion {
-            320 => self.g32(d, src, end, exact),
+            320 | 340 => self.g32(d, src, end, exact),
             900 | 940 => self.g90_g94(d, src),
             920 => self.g92(d, src),
             g => Err((10, None, format!("{} is not supported yet", super::gcode::gname(g)))),
@@ -268,23 +270,49 @@ impl Interpreter {
             if s.end == self.pos {
                 continue;
             }
-            let kind = MoveKind::Thread { end: s.end, lead: s.lead, start_angle: angle, continuous: !first };
+            let kind = MoveKind::Thread { end: s.end, lead: s.lead, start_angle: angle, continuous: !first, lead_inc: 0.0 };
             first = false;
             self.cpush(src, cycle, step, kind, i + 1 == n);
         }
     }
 
-    /// G32: constant-lead thread from the current position to `end`. The block right after
-    /// another thread block continues without waiting for the one-revolution signal and its
-    /// Q is ignored (§2.17.1 note 2, Q rule 2).
+    /// G32: constant-lead thread from the current position to `end`; G34 (§2.17.2): the
+    /// same with the lead changing by K per revolution. The block right after another thread
+    /// block continues without waiting for the one-revolution signal and its Q is ignored
+    /// (§2.17.1 note 2, Q rule 2).
+    ///
+    /// G34 checks: |K| within 0.01–499.99 mm (0.01–9.98 inch under G20) per revolution, and
+    /// the lead must stay positive and at most [`MAX_LEAD`] over the whole thread (lead at
+    /// the end = √(F² + 2·K·L), L the long-axis length); Fanuc PS0014 otherwise.
     fn g32(&mut self, d: &Decoded, src: &SrcPos, end: Pos, exact: bool) -> Result<(), CErr> {
+        let g34 = self.st.motion == 340;
         let lead = self.thread_lead(d)?;
         let q = self.start_angle(d)?;
+        let mut lead_inc = 0.0;
+        if g34 {
+            let k = d.get('K').ok_or((14, Self::gcol(d), "G34 needs K, the lead change per revolution".to_string()))?;
+            let (lo, hi) = if self.st.inch { (0.01, 9.98) } else { (0.01, 499.99) };
+            if !(lo..=hi).contains(&k.v.abs()) {
+                return Err((14, Some(k.col), format!("G34 K{}: |K| must be {lo}–{hi} per revolution", k.v)));
+            }
+            lead_inc = self.len(k);
+            let long = (end.x - self.pos.x).abs().max((end.z - self.pos.z).abs());
+            let sq = lead * lead + 2.0 * lead_inc * long;
+            if sq <= 0.0 {
+                return Err((14, Some(k.col), format!("G34: with F{} and K{} the lead reaches zero before the end of the thread", lead, k.v)));
+            }
+            if sq.sqrt() > MAX_LEAD {
+                return Err((14, Some(k.col), format!("G34: the lead grows to {:.3} mm, more than {MAX_LEAD} mm", sq.sqrt())));
+            }
+        }
+        if lead > MAX_LEAD {
+            return Err((14, d.get('F').or(d.get('E')).map(|v| v.col), format!("thread lead {lead:.3} mm is more than {MAX_LEAD} mm")));
+        }
         let continuous = self.cyc.prev_thread;
         if !continuous {
             self.cyc.chain_angle = q;
         }
-        let kind = MoveKind::Thread { end, lead, start_angle: self.cyc.chain_angle, continuous };
+        let kind = MoveKind::Thread { end, lead, start_angle: self.cyc.chain_angle, continuous, lead_inc };
         if end != self.pos {
             self.pos = end;
             self.push(src, kind, exact);
