@@ -259,3 +259,50 @@ fn g34_lead_range() {
     let w = motions(&m);
     assert!(!w[1].continuous && w[2].continuous);
 }
+
+/// Manual 002's G78 example. As printed, P020545 has r = 05, outside the infeed-mode range
+/// 0–4 the same page gives, so it is refused (alarm 62) rather than guessed.
+#[test]
+fn g78_manual_example_as_printed_is_refused() {
+    let a = run_err("G00 X80 Z10\nG78 P020545 Q0.15 R0.5\nG78 X60 Z-60 P3 Q1.8 F300 J1.5 K2\nG00 X80 Z10\n");
+    assert_eq!(a.number, 62, "{a}");
+    assert!(a.message.contains("infeed mode"), "{a}");
+}
+
+/// The same example with r = 00 (centre infeed): decreasing depths 1.8, then k − d = 2.5
+/// (√2·1.8 ≥ 2.5), two finishing passes at k = 3; run-out K2 on Z, J1.5 on X.
+#[test]
+fn g78_example_with_centre_infeed() {
+    let w = motions(&run("G00 X80 Z10\nG78 P020045 Q0.15 R0.5\nG78 X60 Z-60 P3 Q1.8 F300 J1.5 K2\nG00 X80 Z10\n"));
+    let mut i = 1;
+    for (dn, st) in [(1.8, [3, 4, 5, 5]), (2.5, [3, 4, 5, 5]), (3.0, [7, 7, 8, 8]), (3.0, [7, 7, 8, 8])] {
+        let xr = 33.0 - dn;
+        check(&w[i], "rapid", 2.0 * xr, 10.0, 0.0, st[0]);
+        check(&w[i + 1], "thread", 2.0 * xr, -58.0, 300.0, st[1]);
+        check(&w[i + 2], "thread", 2.0 * (xr + 1.5), -60.0, 300.0, st[1]);
+        check(&w[i + 3], "rapid", 80.0, -60.0, 0.0, st[2]);
+        check(&w[i + 4], "rapid", 80.0, 10.0, 0.0, st[3]);
+        assert_eq!(w[i].cycle.as_deref(), Some("G78"));
+        i += 5;
+    }
+    assert_eq!(w.len(), i + 1);
+}
+
+#[test]
+fn g78_infeed_modes_and_constant_depth() {
+    let t = 22.5f64.to_radians().tan();
+    // Left/right alternating (4), constant depth (D0): depths 1, 2, then 2.5, finishing at the
+    // last rough pass's Z.
+    let src = "G00 X80 Z10\nG78 P010445 Q0 R0.5 D0\nG78 X60 Z-60 P3 Q1 F2\n";
+    let w = motions(&run(src));
+    let exp = [(1.0, -1.0), (2.0, 1.0), (2.5, -1.0), (3.0, -1.0)];
+    for (j, (dn, s)) in exp.iter().enumerate() {
+        let shift = if j == 3 { -2.5 * t } else { s * dn * t };
+        check(&w[1 + 4 * j], "rapid", 2.0 * (33.0 - dn), 10.0 + shift, 0.0, w[1 + 4 * j].step);
+    }
+    // Right flank (2) keeps shifting +Z.
+    let w = motions(&run("G00 X80 Z10\nG78 P010245 Q0 R0\nG78 X60 Z-60 P3 Q1 F2\n"));
+    check(&w[1], "rapid", 64.0, 10.0 + t, 0.0, 3);
+    // E and L are not described by the manual.
+    assert_eq!(run_err("G00 X80 Z10\nG78 P010245 E1\n").number, 10);
+}

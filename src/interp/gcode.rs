@@ -63,6 +63,7 @@ pub fn ginfo(g: GCode) -> Option<GInfo> {
         740 => (0, "face grooving cycle", None),
         750 => (0, "OD/ID grooving cycle", None),
         760 => (0, "multiple thread cutting cycle", None),
+        780 => (0, "enhanced multiple thread cutting cycle (manual 002)", None),
         800 => (10, "canned drilling cycle cancel", None),
         830 => (10, "face drilling cycle", LATER),
         840 => (10, "face tapping cycle", LATER),
@@ -149,6 +150,8 @@ impl Decoded {
     /// `has_y` / `has_c`: whether the machine has a Y axis / a C (Cs) axis.
     pub fn build(words: &[(char, bool, Val)], has_y: bool, has_c: bool) -> Result<Decoded, DErr> {
         let mut d = Decoded::default();
+        // G78 (manual 002) uses J as its run-out amount, not as the Y axis.
+        let g78 = words.iter().any(|w| w.0 == 'G' && (w.2.v * 10.0).round() == 780.0);
         for &(l, comma, val) in words {
             if comma {
                 let slot = if l == 'C' { &mut d.comma_c } else { &mut d.comma_r };
@@ -182,7 +185,7 @@ impl Decoded {
                     d.m.push((val.v.round() as u32, val.col));
                 }
                 _ => {
-                    if matches!(l, 'Y' | 'V' | 'J') && !has_y {
+                    if matches!(l, 'Y' | 'V' | 'J') && !has_y && !(l == 'J' && g78) {
                         return Err((9, val.col, format!("address {l}: this machine has no Y axis")));
                     }
                     if matches!(l, 'C' | 'H') && !has_c {

@@ -1124,7 +1124,7 @@ impl Interpreter {
                 }
                 return Ok(());
             }
-            Some(g @ (700 | 710 | 720 | 730 | 740 | 750 | 760)) => self.cycle_oneshot(g, d, src)?,
+            Some(g @ (700 | 710 | 720 | 730 | 740 | 750 | 760 | 780)) => self.cycle_oneshot(g, d, src)?,
             Some(g) => {
                 return Err((10, gcol(g), format!("{} is not supported yet", gcode::gname(g))));
             }

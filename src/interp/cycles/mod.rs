@@ -73,6 +73,13 @@ pub struct CycleState {
     pub p5144: f64,
     pub p5145: f64,
     pub p5146: u32,
+    /// G78 (manual 002): infeed mode P(r) 0–4 (No.5144 there), depth mode D 0/1 (No.5145
+    /// there), run-out J/K (modal; None = No.5130/5131). Manual 004 gives No.5144/5145 to
+    /// G73's Δi/Δk, so G78's values are kept apart and start from 0 (centre infeed) and 1
+    /// (decreasing depth, as G76) unless `[parameters]` has G78-valid values (0–4, 0–1).
+    pub g78_mode: u32,
+    pub g78_decreasing: bool,
+    pub g78_jk: (Option<f64>, Option<f64>),
     /// No.5139 e of G74/G75 (mm), the retract after each peck.
     pub p5139: f64,
 }
@@ -106,6 +113,9 @@ impl CycleState {
             p5148: p(5148).unwrap_or(0.0).abs(),
             p5144: p(5144).unwrap_or(0.0),
             p5139: p(5139).unwrap_or(0.0).abs(),
+            g78_mode: p(5144).filter(|v| v.fract() == 0.0 && (0.0..=4.0).contains(v)).map(|v| v as u32).unwrap_or(0),
+            g78_decreasing: p(5145).filter(|v| *v == 0.0 || *v == 1.0).map(|v| v == 1.0).unwrap_or(true),
+            g78_jk: (None, None),
             p5145: p(5145).unwrap_or(0.0),
             p5146: p(5146).map(|v| v.clamp(0.0, 99999.0) as u32).unwrap_or(0),
         }
@@ -127,6 +137,13 @@ pub struct ThreadSeg {
 /// clamped to the distance to `away` (G92 note 6). Errors when the run-out is longer than the
 /// thread (G92 note 5, G76 note 8).
 pub fn thread_path(from: Pos, to: Pos, lead: f64, runout: f64, angle_deg: f64, away: Pos) -> Result<Vec<ThreadSeg>, String> {
+    let angle = if (1.0..=89.0).contains(&angle_deg) { angle_deg } else { 45.0 };
+    thread_path_js(from, to, lead, runout, runout * angle.to_radians().tan(), away)
+}
+
+/// [`thread_path`] with the run-out given as its long-axis length and short-axis amount
+/// (G78 K and J).
+pub fn thread_path_js(from: Pos, to: Pos, lead: f64, runout: f64, short: f64, away: Pos) -> Result<Vec<ThreadSeg>, String> {
     if runout <= 0.0 {
         return Ok(vec![ThreadSeg { end: to, lead }]);
     }
@@ -135,13 +152,12 @@ pub fn thread_path(from: Pos, to: Pos, lead: f64, runout: f64, angle_deg: f64, a
     let long = if z_long { dz.abs() } else { dx.abs() };
     if runout > long + 1e-9 {
         return Err(format!(
-            "the thread run-out ({runout:.3} mm on the long axis) is longer than the thread ({long:.3} mm): reduce the run-out (No.5130 / G76 P(r)) or lengthen the thread"
+            "the thread run-out ({runout:.3} mm on the long axis) is longer than the thread ({long:.3} mm): reduce the run-out (No.5130 / P(r) / K) or lengthen the thread"
         ));
     }
     let f = 1.0 - runout / long;
     let p1 = Pos { x: from.x + dx * f, z: from.z + dz * f, ..to };
-    let angle = if angle_deg >= 1.0 && angle_deg <= 89.0 { angle_deg } else { 45.0 };
-    let mut short = runout * angle.to_radians().tan();
+    let mut short = short;
     let mut end = to;
     if z_long {
         short = short.min((away.x - to.x).abs());
@@ -193,6 +209,7 @@ impl Interpreter {
             740 => self.groove(d, src, false),
             750 => self.groove(d, src, true),
             760 => self.g76(d, src),
+            780 => self.g78(d, src),
             g => Err((10, None, format!("{} is not supported yet", super::gcode::gname(g)))),
         }
     }
