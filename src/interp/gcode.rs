@@ -73,6 +73,7 @@ pub fn ginfo(g: GCode) -> Option<GInfo> {
         890 => (10, "side boring cycle", LATER),
         900 => (1, "OD/ID turning cycle", None),
         920 => (1, "thread cutting cycle", None),
+        921 => (1, "rigid thread cutting cycle (manual 001)", None),
         940 => (1, "facing cycle", None),
         960 => (2, "constant surface speed", None),
         970 => (2, "constant spindle speed", None),

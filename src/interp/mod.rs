@@ -944,10 +944,11 @@ impl Interpreter {
         let one_shot = d.group(0);
         // F.
         if let Some(f) = d.get('F') {
-            if f.v < 0.0 {
+            // G92.1: a negative F is a left-hand lead (manual 001), not a feed rate.
+            if f.v < 0.0 && self.st.motion != 921 {
                 return Err((6, Some(f.col), "F cannot be negative".into()));
             }
-            let v = if self.st.inch { f.v * 25.4 } else { f.v };
+            let v = if self.st.inch { f.v * 25.4 } else { f.v }.abs();
             if self.st.per_rev {
                 self.st.f_rev = Some(v);
             } else {
@@ -1207,7 +1208,7 @@ impl Interpreter {
             }
             20 | 30 => self.arc(d, src, end, self.st.motion == 20, exact)?,
             21 | 31 | 22 | 32 => self.conic(d, src, end, exact)?,
-            320 | 340 | 900 | 920 | 940 => self.cycle_modal(d, src, end, exact)?,
+            320 | 340 | 900 | 920 | 921 | 940 => self.cycle_modal(d, src, end, exact)?,
             g => return Err((10, None, format!("{} is not supported yet", gcode::gname(g)))),
         }
         Ok(())

@@ -71,7 +71,7 @@ pub fn move_to_json(m: &Move) -> String {
             o.insert("lead".into(), json!(r(*lead)));
             o.insert("start_angle".into(), json!(r(*start_angle)));
         }
-        MoveKind::Tap { end, lead, rpm } => {
+        MoveKind::Tap { end, lead, rpm } | MoveKind::RigidThread { end, lead, rpm } => {
             put_end(&mut o, m, *end);
             o.insert("lead".into(), json!(r(*lead)));
             o.insert("rpm".into(), json!(r(*rpm)));
@@ -148,7 +148,7 @@ pub fn move_to_text(m: &Move) -> String {
             end(&mut s, *e);
             s.push_str(&format!(" lead {} start {}°", r(*lead), r(*start_angle)));
         }
-        MoveKind::Tap { end: e, lead, rpm } => {
+        MoveKind::Tap { end: e, lead, rpm } | MoveKind::RigidThread { end: e, lead, rpm } => {
             end(&mut s, *e);
             s.push_str(&format!(" lead {} S{}", r(*lead), r(*rpm)));
         }

@@ -313,7 +313,7 @@ impl Motion {
                 let end = self.check_end(end).map_err(at)?;
                 Item::Move(self.arc_seg(end, xyz(center), *cw, *plane, speed).map_err(at)?)
             }
-            MoveKind::Thread { .. } | MoveKind::Tap { .. } => {
+            MoveKind::Thread { .. } | MoveKind::Tap { .. } | MoveKind::RigidThread { .. } => {
                 return Err(at(Alarm::new(
                     alarms::UNSUPPORTED,
                     format!(

@@ -28,6 +28,7 @@ use std::sync::Arc;
 
 pub mod g76;
 pub mod groove;
+pub mod rigid;
 pub mod single;
 pub mod stock;
 
@@ -80,6 +81,9 @@ pub struct CycleState {
     pub g78_mode: u32,
     pub g78_decreasing: bool,
     pub g78_jk: (Option<f64>, Option<f64>),
+    /// G92.1 modal lead (mm/rev, signed: negative = left hand) and number of starts L.
+    pub rigid_lead: Option<f64>,
+    pub rigid_starts: u32,
     /// No.5139 e of G74/G75 (mm), the retract after each peck.
     pub p5139: f64,
 }
@@ -116,6 +120,8 @@ impl CycleState {
             g78_mode: p(5144).filter(|v| v.fract() == 0.0 && (0.0..=4.0).contains(v)).map(|v| v as u32).unwrap_or(0),
             g78_decreasing: p(5145).filter(|v| *v == 0.0 || *v == 1.0).map(|v| v == 1.0).unwrap_or(true),
             g78_jk: (None, None),
+            rigid_lead: None,
+            rigid_starts: 1,
             p5145: p(5145).unwrap_or(0.0),
             p5146: p(5146).map(|v| v.clamp(0.0, 99999.0) as u32).unwrap_or(0),
         }
@@ -195,6 +201,7 @@ impl Interpreter {
             320 | 340 => self.g32(d, src, end, exact),
             900 | 940 => self.g90_g94(d, src),
             920 => self.g92(d, src),
+            921 => self.g92_1(d, src),
             g => Err((10, None, format!("{} is not supported yet", super::gcode::gname(g)))),
         }
     }
