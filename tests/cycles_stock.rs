@@ -41,8 +41,9 @@ fn g71_g70_manual_example() {
     check(&w[i + 2], "feed", 60.5, -58.0, 200.0, 6);
     check(&w[i + 3], "feed", 60.5, -78.0, 200.0, 6);
     check(&w[i + 4], "feed", 100.5, -88.0, 200.0, 6);
-    check(&w[i + 5], "rapid", 200.0, 10.0, 0.0, 7);
-    i += 6;
+    check(&w[i + 5], "rapid", 200.0, -88.0, 0.0, 7); // X out first, then Z
+    check(&w[i + 6], "rapid", 200.0, 10.0, 0.0, 7);
+    i += 7;
     // The contour blocks are not run after G71; G70 runs them with their own F (and S1200).
     check(&w[i], "rapid", 40.0, 10.0, 0.0, 1);
     check(&w[i + 1], "feed", 40.0, -30.0, 100.0, 1);
@@ -144,8 +145,9 @@ G01 X160 F120;\nX80 W20;\nW15;\nN20 X40 W20;\nG70 P10 Q20;\nM30;\n";
     for (j, (z, x)) in pts[1..].iter().enumerate() {
         check(&w[i + 1 + j], "feed", 2.0 * x, *z, 300.0, 6);
     }
-    check(&w[i + 5], "rapid", 176.0, 10.0, 0.0, 7);
-    i += 6;
+    check(&w[i + 5], "rapid", 40.2, 10.0, 0.0, 7); // Z out of the face first, then X
+    check(&w[i + 6], "rapid", 176.0, 10.0, 0.0, 7);
+    i += 7;
     // G70.
     for (j, (x, z, f)) in [(176.0, -55.0, 0.0), (160.0, -55.0, 120.0), (80.0, -35.0, 120.0), (80.0, -20.0, 120.0), (40.0, 0.0, 120.0)]
         .iter()
@@ -185,4 +187,21 @@ X120 W-10;\nW-20;\nG02 X160 W-20 R20;\nN2 G01 X180 W-10;\nG70 P1 Q2;\nM30;\n";
     check(&w[i + 5], "feed", 180.0, -80.0, 0.15, 1);
     check(&w[i + 6], "rapid", 200.0, 10.0, 0.0, 2);
     assert_eq!(w.len(), i + 7);
+}
+
+/// An ID contour (infeed +X, Δu < 0): passes grow outwards, the allowance moves the rough
+/// contour inwards, and ⑦ leaves the bore along X before Z.
+#[test]
+fn g71_inside_diameter() {
+    let w = motions(&run("G98 G00 X20 Z2\nG71 U2 R0.5 F100\nG71 P1 Q3 U-0.5 W0.1\nN1 G00 X60\nG01 Z-20\nN3 X40 Z-30\n"));
+    check(&w[1], "rapid", 24.0, 2.0, 0.0, 1);
+    check(&w[2], "feed", 24.0, -29.9, 100.0, 2);
+    check(&w[3], "feed", 23.0, -29.4, 100.0, 3);
+    // Level X44 (radius 22) meets the rough taper from (29.75, -19.9) to (19.75, -29.9).
+    check(&w[22], "feed", 44.0, -27.65, 100.0, 2);
+    let n = w.len();
+    check(&w[n - 5], "rapid", 59.5, 2.1, 0.0, 5);
+    check(&w[n - 3], "feed", 39.5, -29.9, 100.0, 6);
+    check(&w[n - 2], "rapid", 20.0, -29.9, 0.0, 7);
+    check(&w[n - 1], "rapid", 20.0, 2.0, 0.0, 7);
 }

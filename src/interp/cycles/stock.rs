@@ -12,7 +12,7 @@
 //! rapid; the last pass follows the rough contour B'→C' at feed, then the tool returns to A
 //! at rapid. The manual's figure 2.30 carries the step numbers but not its text, so the
 //! steps are ours: ① infeed, ② cut, ③ 45° retreat, ④ Z return, ⑤ infeed to B', ⑥ the
-//! contour B'→C', ⑦ return to A. A program whose contour follows the G71 block directly
+//! contour B'→C', ⑦ return to A (X first, then Z; G72 the other way round). A program whose contour follows the G71 block directly
 //! continues after N(nf) (the contour is only run by G70), as on a Fanuc 0i-TF.
 //!
 //! U(Δd) and R(e) of the first block are written back to No.5147/No.5148: the values are
@@ -283,6 +283,10 @@ impl Interpreter {
         for el in contour {
             self.cpush(src, &tag, 6, el.kind.clone(), false);
         }
+        // ⑦ Back to A: the infeed axis first (straight out of the part, as G90's ③④), then
+        // the cutting axis, rather than a diagonal through the rough contour.
+        let (_, cq) = pq(self.pos);
+        self.cpush(src, &tag, 7, MoveKind::Rapid { end: at(ap, cq) }, true);
         self.cpush(src, &tag, 7, MoveKind::Rapid { end: a }, true);
         self.skip_contour(l1, l2);
         Ok(())
