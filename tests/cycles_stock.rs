@@ -205,3 +205,13 @@ fn g71_inside_diameter() {
     check(&w[n - 2], "rapid", 20.0, -29.9, 0.0, 7);
     check(&w[n - 1], "rapid", 20.0, 2.0, 0.0, 7);
 }
+
+#[test]
+fn g71_too_many_passes_alarms_before_any_move() {
+    let src = "G98 G00 X200 Z2\nG71 U0.001 R0.5 F100\nG71 P1 Q2\nN1 G00 X20\nN2 G01 Z-10\n";
+    let it = cncgw::interp::Interpreter::from_source("t.nc", src, &cncgw::config::MachineConfig::embedded()).unwrap();
+    let out: Vec<_> = it.collect();
+    let tagged = out.iter().filter(|m| matches!(m, Ok(m) if m.tag.is_some())).count();
+    assert_eq!(tagged, 0);
+    assert!(out.iter().any(|m| matches!(m, Err(a) if a.number == 62)));
+}

@@ -258,14 +258,15 @@ impl Interpreter {
         }
         let tag: Arc<str> = Arc::from(name);
         let depth_total = (bpp - ap) * dir;
+        // Checked before any move is queued, so that an alarm leaves no half cycle behind.
+        if depth_total / dd > super::MAX_PASSES as f64 {
+            return Err((G76_VALUE_ALARM, gc, format!("{name} would cut more than {} passes: increase Δd", super::MAX_PASSES)));
+        }
         let mut k = 1usize;
         loop {
             let depth = k as f64 * dd;
             if depth >= depth_total - 1e-9 {
                 break;
-            }
-            if k > super::MAX_PASSES {
-                return Err((G76_VALUE_ALARM, gc, format!("{name} would cut more than {} passes: increase Δd", super::MAX_PASSES)));
             }
             let p = ap + dir * depth;
             let lvl = at(p, aq);
