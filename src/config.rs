@@ -59,6 +59,14 @@ pub struct Bus {
     /// Master heartbeat producer period (ms) that the drives consume via 0x1016; 0 = off.
     #[serde(default = "default_heartbeat")]
     pub heartbeat_ms: u16,
+    /// A drive whose position feedback (TPDO) is older than this while running raises
+    /// alarm 2015 and stops the machine, ms.
+    #[serde(default = "default_feedback_timeout")]
+    pub feedback_timeout_ms: f64,
+}
+
+fn default_feedback_timeout() -> f64 {
+    20.0
 }
 
 fn default_bitrate() -> u32 {
@@ -147,6 +155,10 @@ impl MachineConfig {
         }
         if !(10_000..=1_000_000).contains(&self.bus.bitrate) {
             e.push(format!("bus.bitrate: must be between 10000 and 1000000, got {}", self.bus.bitrate));
+        }
+        let ft = self.bus.feedback_timeout_ms;
+        if !(ft.is_finite() && ft >= 2.0 * c && ft <= 1000.0) {
+            e.push(format!("bus.feedback_timeout_ms: must be between two cycles ({}) and 1000, got {ft}", 2.0 * c));
         }
         if self.bus.sdo_timeout_ms == 0 {
             e.push("bus.sdo_timeout_ms: must be > 0, got 0".into());

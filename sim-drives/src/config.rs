@@ -54,6 +54,12 @@ pub struct Physics {
     pub vel_ti_ms: f64,
     /// Maximum motor speed, rpm (velocity command clamp).
     pub max_speed_rpm: f64,
+    /// Current (torque) loop time constant, ms: the torque lags its command by this.
+    pub current_loop_tc_ms: f64,
+    /// Resolution of the motor encoder the speed is estimated from, bits per revolution.
+    pub speed_encoder_bits: u32,
+    /// Speed estimate low-pass filter time constant, ms.
+    pub speed_filter_ms: f64,
 }
 
 impl Physics {
@@ -79,6 +85,11 @@ impl Physics {
                     vel_kp: j * 2.0 * std::f64::consts::PI * 150.0,
                     vel_ti_ms: 5.0,
                     max_speed_rpm: 3000.0,
+                    // Current loop ≈ 1 kHz.
+                    current_loop_tc_ms: 0.15,
+                    // A 20-bit motor encoder, speed filtered at ≈ 800 Hz.
+                    speed_encoder_bits: 20,
+                    speed_filter_ms: 0.2,
                 }
             }
             DriveKind::Spindle => {
@@ -95,6 +106,10 @@ impl Physics {
                     vel_kp: j * 2.0 * std::f64::consts::PI * 40.0,
                     vel_ti_ms: 20.0,
                     max_speed_rpm: 8000.0,
+                    // A bigger motor, a slower current loop (≈ 400 Hz).
+                    current_loop_tc_ms: 0.4,
+                    speed_encoder_bits: 20,
+                    speed_filter_ms: 0.5,
                 }
             }
         }
@@ -251,6 +266,9 @@ impl SimConfig {
                 setp!(vel_kp);
                 setp!(vel_ti_ms);
                 setp!(max_speed_rpm);
+                setp!(current_loop_tc_ms);
+                setp!(speed_encoder_bits);
+                setp!(speed_filter_ms);
             }
             let _ = i;
             drives.push(c);
@@ -305,6 +323,8 @@ impl SimConfig {
                 ("load_inertia", p.load_inertia),
                 ("coulomb_friction", p.coulomb_friction),
                 ("viscous_friction", p.viscous_friction),
+                ("current_loop_tc_ms", p.current_loop_tc_ms),
+                ("speed_filter_ms", p.speed_filter_ms),
             ];
             for (n, v) in non_negative {
                 if !(v.is_finite() && v >= 0.0) {
@@ -313,6 +333,9 @@ impl SimConfig {
             }
             if !(p.velocity_ff.is_finite() && (0.0..=1.5).contains(&p.velocity_ff)) {
                 errs.push(format!("{k}: physics.velocity_ff must be 0…1.5, got {}", p.velocity_ff));
+            }
+            if !(8..=32).contains(&p.speed_encoder_bits) {
+                errs.push(format!("{k}: physics.speed_encoder_bits must be 8…32, got {}", p.speed_encoder_bits));
             }
             if p.coulomb_friction >= p.torque_limit {
                 errs.push(format!("{k}: physics.coulomb_friction must be below torque_limit (the motor could never move)"));
@@ -363,6 +386,9 @@ impl SimConfig {
             s.push_str(&format!("vel_kp = {:?}            # velocity loop P, N·m per rad/s\n", p.vel_kp));
             s.push_str(&format!("vel_ti_ms = {:?}         # velocity loop integral time\n", p.vel_ti_ms));
             s.push_str(&format!("max_speed_rpm = {:?}\n", p.max_speed_rpm));
+            s.push_str(&format!("current_loop_tc_ms = {:?}  # torque lag behind its command\n", p.current_loop_tc_ms));
+            s.push_str(&format!("speed_encoder_bits = {}     # motor encoder the speed is estimated from\n", p.speed_encoder_bits));
+            s.push_str(&format!("speed_filter_ms = {:?}     # speed estimate low-pass\n", p.speed_filter_ms));
         }
         s
     }
@@ -410,6 +436,9 @@ struct RawPhysics {
     vel_kp: Option<f64>,
     vel_ti_ms: Option<f64>,
     max_speed_rpm: Option<f64>,
+    current_loop_tc_ms: Option<f64>,
+    speed_encoder_bits: Option<u32>,
+    speed_filter_ms: Option<f64>,
 }
 
 #[cfg(test)]

@@ -14,6 +14,10 @@ use cncgw_bus::cia402::{cw, device_transition, mode, sw, QuickStopOption, State}
 use cncgw_bus::CanFrame;
 use std::collections::BTreeMap;
 
+/// How many interpolation periods a late SYNC is bridged by extrapolating the set-point
+/// (20 ms at 2 ms): enough for a master on a non-real-time kernel (the vcan tier runs in a
+/// User-Mode Linux guest whose timers were measured 10–18 ms late at p99 under load).
+const SYNC_EXTRAPOLATE_PERIODS: u64 = 10;
 const MS: u64 = 1_000_000;
 const N_RPDO: u16 = 2;
 const N_TPDO: u16 = 2;
@@ -28,6 +32,10 @@ const FAULT_REACTION: u16 = 0x605E;
 /// A stop that has not finished after this long is finished by switching the power off
 /// (a jammed axis must not keep a quick stop alive forever).
 const STOP_TIMEOUT: u64 = 5_000 * MS;
+/// Rated torque as a fraction of the peak torque (servo motors: peak ≈ 3 × rated).
+const RATED_OF_PEAK: f64 = 1.0 / 3.0;
+/// I²t budget: 3 s at peak torque ((3² − 1) × 3 s) before the overload trips.
+const I2T_LIMIT: f64 = 24.0;
 
 #[derive(Clone, Debug)]
 enum SdoState {
@@ -59,6 +67,19 @@ struct Stop {
     v: f64,
     pos: f64,
     started: u64,
+}
+
+/// Copies of objects the control tick reads (the dictionary is a map; the tick runs at
+/// 20 kHz). Refreshed by `recache` after every write from the bus and every reset.
+#[derive(Clone, Copy, Debug, Default)]
+struct Hot {
+    /// 0x1016: (producer node, timeout ns) per entry; node 0 = unused.
+    consumers: [(u8, u64); 2],
+    /// Some TPDO is event-driven (254/255) and valid.
+    event_tpdo: bool,
+    mode: i8,
+    ferr_window: i64,
+    ferr_timeout: u64,
 }
 
 /// An emulated drive. Read its state with the accessors; inject faults with the `inject_*`
@@ -101,8 +122,12 @@ pub struct SimDrive {
     // Following error.
     ferr_since: Option<u64>,
     ferr_flag: bool,
+    /// Motor thermal (I²t) load: ∫((τ/τ_rated)² − 1) dt, ≥ 0; trips at `I2T_LIMIT`.
+    i2t: f64,
     sdo: SdoState,
     silent: bool,
+    /// Objects read every control tick, copied out of the dictionary after each write.
+    hot: Hot,
     out: Vec<CanFrame>,
 }
 
@@ -217,7 +242,7 @@ impl SimDrive {
         let od = build_od(&cfg);
         let servo = Servo::new(cfg.physics.clone(), cfg.counts_per_rev);
         let boot = (cfg.boot_delay_ms * MS as f64).round() as u64;
-        SimDrive {
+        let mut d = SimDrive {
             od,
             nmt: NmtState::BootUp,
             boot_at: Some(boot),
@@ -246,11 +271,31 @@ impl SimDrive {
             hb_seen: BTreeMap::new(),
             ferr_since: None,
             ferr_flag: false,
+            i2t: 0.0,
             sdo: SdoState::Idle,
             silent: false,
+            hot: Hot::default(),
             out: Vec::new(),
             cfg,
+        };
+        d.recache();
+        d
+    }
+
+    fn recache(&mut self) {
+        let mut h = Hot::default();
+        for s in 1..=2u8 {
+            let v = self.od.int(ix::CONSUMER_HEARTBEAT, s) as u32;
+            let (node, ms) = (((v >> 16) & 0xFF) as u8, (v & 0xFFFF) as u64);
+            if node != 0 && ms != 0 {
+                h.consumers[s as usize - 1] = (node, ms * MS);
+            }
         }
+        h.event_tpdo = (0..N_TPDO).any(|i| self.pdo_valid(ix::TPDO_COMM + i) && self.od.int(ix::TPDO_COMM + i, 2) >= 254);
+        h.mode = self.od.int(ix::MODES_DISPLAY, 0) as i8;
+        h.ferr_window = self.od.int(ix::FOLLOWING_ERROR_WINDOW, 0);
+        h.ferr_timeout = self.od.int(ix::FOLLOWING_ERROR_TIMEOUT, 0) as u64 * MS;
+        self.hot = h;
     }
 
     // ---- accessors -------------------------------------------------------------------
@@ -283,12 +328,12 @@ impl SimDrive {
     pub fn following_error(&self) -> i32 {
         self.ferr()
     }
-    /// 0x606C, counts/s.
+    /// 0x606C, counts/s: the drive's filtered speed estimate.
     pub fn velocity_actual(&self) -> i32 {
-        self.servo.velocity_counts().round().clamp(i32::MIN as f64, i32::MAX as f64) as i32
+        self.servo.velocity_estimate_counts().round().clamp(i32::MIN as f64, i32::MAX as f64) as i32
     }
     pub fn mode_display(&self) -> i8 {
-        self.od.int(ix::MODES_DISPLAY, 0) as i8
+        self.hot.mode
     }
     pub fn statusword(&self) -> u16 {
         self.compute_statusword()
@@ -324,6 +369,10 @@ impl SimDrive {
     pub fn set_load_torque(&mut self, nm: f64) {
         self.servo.load_torque = if nm.is_finite() { nm } else { 0.0 };
     }
+    /// Extra dry friction on the motor shaft (N·m): a jammed slide or a crashed tool. 0 frees it.
+    pub fn set_jam(&mut self, nm: f64) {
+        self.servo.jam_friction = if nm.is_finite() { nm.max(0.0) } else { 0.0 };
+    }
     /// Disconnect the node from the bus (it neither receives nor sends) or reconnect it.
     pub fn set_silent(&mut self, silent: bool) {
         self.silent = silent;
@@ -356,11 +405,9 @@ impl SimDrive {
         };
         take(self.hb_next);
         if self.nmt != NmtState::BootUp {
-            for s in 1..=2u8 {
-                let v = self.od.int(ix::CONSUMER_HEARTBEAT, s) as u32;
-                let (node, ms) = (((v >> 16) & 0xFF) as u8, (v & 0xFFFF) as u64);
-                if node != 0 && ms != 0 {
-                    take(self.hb_seen.get(&node).map(|&last| last + ms * MS));
+            for (node, timeout) in self.hot.consumers {
+                if node != 0 {
+                    take(self.hb_seen.get(&node).map(|&last| last + timeout));
                 }
             }
         }
@@ -384,14 +431,12 @@ impl SimDrive {
             }
         }
         if self.nmt != NmtState::BootUp {
-            for s in 1..=2u8 {
-                let v = self.od.int(ix::CONSUMER_HEARTBEAT, s) as u32;
-                let (node, ms) = (((v >> 16) & 0xFF) as u8, (v & 0xFFFF) as u64);
-                if node == 0 || ms == 0 {
+            for (node, timeout) in self.hot.consumers {
+                if node == 0 {
                     continue;
                 }
                 if let Some(&last) = self.hb_seen.get(&node) {
-                    if now >= last + ms * MS {
+                    if now >= last + timeout {
                         // Monitoring stops until the producer is heard again (CiA 301).
                         self.hb_seen.remove(&node);
                         tracing::warn!(node = self.cfg.node, producer = node, "heartbeat consumer timeout");
@@ -485,6 +530,7 @@ impl SimDrive {
             NmtCommand::ResetNode => {
                 // Reset application: every object to its default, power stage off.
                 self.od.reset_range(0x0000, 0xFFFF);
+                self.recache();
                 self.prev_cw = 0;
                 self.stop = None;
                 self.ferr_flag = false;
@@ -497,6 +543,7 @@ impl SimDrive {
                     self.abort_connection(0x8100, now);
                 }
                 self.od.reset_range(0x1000, 0x1FFF);
+                self.recache();
                 self.reset_comm(now);
             }
         }
@@ -618,6 +665,7 @@ impl SimDrive {
                 // A PDO value a real drive would refuse by SDO is ignored.
                 if self.object_rules(e.index, e.sub, v).is_ok() && v >= ent.min && v <= ent.max {
                     self.od.set(e.index, e.sub, v);
+                    self.recache();
                     self.after_write(e.index, e.sub, v, now);
                 }
             }
@@ -628,7 +676,7 @@ impl SimDrive {
     /// Event-driven TPDOs (254/255): on change (respecting the inhibit time) and on the
     /// event timer. Checked every control tick.
     fn event_tpdos(&mut self, now: u64) {
-        if self.nmt != NmtState::Operational {
+        if !self.hot.event_tpdo || self.nmt != NmtState::Operational {
             return;
         }
         let mut refreshed = false;
@@ -785,6 +833,7 @@ impl SimDrive {
         if let Value::Int(x) = v {
             self.object_rules(index, sub, x)?;
             self.od.store(index, sub, v);
+            self.recache();
             self.after_write(index, sub, x, now);
         } else {
             self.od.store(index, sub, v);
@@ -831,16 +880,14 @@ impl SimDrive {
                         return Err(abort::INVALID_VALUE);
                     }
                 }
-                2 => {
-                    if !(0..=240).contains(&x) && x != 254 && x != 255 {
+                2
+                    if !(0..=240).contains(&x) && x != 254 && x != 255 => {
                         return Err(abort::INVALID_VALUE);
                     }
-                }
-                3 => {
-                    if self.pdo_valid(index) {
+                3
+                    if self.pdo_valid(index) => {
                         return Err(abort::INVALID_VALUE); // inhibit time only while invalid
                     }
-                }
                 _ => {}
             }
         } else if rpdo_map.contains(&index) || tpdo_map.contains(&index) {
@@ -883,21 +930,18 @@ impl SimDrive {
                         }
                     }
                 }
-                ix::COB_ID_SYNC => {
-                    if x & 0x4000_0000 != 0 || x & 0x2000_0000 != 0 {
+                ix::COB_ID_SYNC
+                    if (x & 0x4000_0000 != 0 || x & 0x2000_0000 != 0) => {
                         return Err(abort::INVALID_VALUE); // not a SYNC producer; 11-bit only
                     }
-                }
-                ix::COB_ID_EMCY => {
-                    if x & 0x2000_0000 != 0 {
+                ix::COB_ID_EMCY
+                    if x & 0x2000_0000 != 0 => {
                         return Err(abort::INVALID_VALUE);
                     }
-                }
-                ix::MODES_OF_OPERATION => {
-                    if ![0, mode::CYCLIC_SYNC_POSITION as i64, mode::CYCLIC_SYNC_VELOCITY as i64].contains(&x) {
+                ix::MODES_OF_OPERATION
+                    if ![0, mode::CYCLIC_SYNC_POSITION as i64, mode::CYCLIC_SYNC_VELOCITY as i64].contains(&x) => {
                         return Err(abort::INVALID_VALUE);
                     }
-                }
                 ix::SOFTWARE_LIMIT => {
                     let (lo, hi) = if sub == 1 { (x, self.od.int(index, 2)) } else { (self.od.int(index, 1), x) };
                     if lo > hi {
@@ -933,7 +977,7 @@ impl SimDrive {
         self.od.set(ix::VELOCITY_ACTUAL, 0, self.velocity_actual() as i64);
         self.od.set(ix::FOLLOWING_ERROR_ACTUAL, 0, self.ferr() as i64);
         self.od.set(POSITION_DEMAND, 0, self.demand.round() as i64 as i32 as i64);
-        let rated = self.servo.physics().torque_limit / 3.0;
+        let rated = self.servo.physics().torque_limit * RATED_OF_PEAK;
         let t = (self.servo.torque() / rated * 1000.0).round().clamp(-32768.0, 32767.0);
         self.od.set(TORQUE_ACTUAL, 0, t as i64);
     }
@@ -967,7 +1011,9 @@ impl SimDrive {
                 let reached = if let Some(st) = self.stop {
                     st.v == 0.0 && self.servo.at_rest()
                 } else if m == mode::CYCLIC_SYNC_VELOCITY {
-                    (self.servo.velocity_counts() - self.target_vel).abs() <= self.cfg.counts_per_rev as f64 / 600.0
+                    // Velocity window: 1 rpm or 0.5 % of the target, whichever is larger.
+                    let window = (self.cfg.counts_per_rev as f64 / 60.0).max(0.005 * self.target_vel.abs());
+                    (self.servo.velocity_estimate_counts() - self.target_vel).abs() <= window
                 } else {
                     let window = self.od.int(POSITION_WINDOW, 0) as f64;
                     self.demand == self.seg_end && (self.demand - self.servo.position_counts() as f64).abs() <= window
@@ -976,10 +1022,8 @@ impl SimDrive {
                     s |= sw::TARGET_REACHED;
                 }
             }
-            State::QuickStopActive => {
-                if self.stop.is_none_or(|st| st.v == 0.0 && self.servo.at_rest()) {
-                    s |= sw::TARGET_REACHED;
-                }
+            State::QuickStopActive if self.stop.is_none_or(|st| st.v == 0.0 && self.servo.at_rest()) => {
+                s |= sw::TARGET_REACHED;
             }
             _ => {}
         }
@@ -991,6 +1035,7 @@ impl SimDrive {
         if old != m {
             tracing::info!(node = self.cfg.node, "mode {} → {}", mode::name(old), mode::name(m));
             self.od.set(ix::MODES_DISPLAY, 0, m as i64);
+            self.hot.mode = m;
             self.rebase();
         }
     }
@@ -1053,12 +1098,9 @@ impl SimDrive {
         let mut new = new;
         match new {
             State::OperationEnabled => {
-                if old != State::QuickStopActive {
-                    self.rebase();
-                } else {
-                    self.stop = None;
-                    self.rebase();
-                }
+                // From below or (transition 16) from a finished quick stop: hold here.
+                self.stop = None;
+                self.rebase();
             }
             State::QuickStopActive => {
                 let code = self.od.int(ix::QUICK_STOP_OPTION, 0);
@@ -1165,7 +1207,13 @@ impl SimDrive {
                         MS
                     }
                 };
-                self.seg_start = self.demand;
+                // Interpolate from the previous target to the new one, not from wherever the
+                // demand is now: after a late SYNC the demand has been extrapolated past the
+                // previous target, and starting from there would shorten this segment's
+                // velocity by the lateness (50 % for 1 ms at 2 ms) and slam the velocity loop
+                // every jittery cycle. The small position step back is what the loop absorbs.
+                let fresh = self.seg_len == 0 || now.saturating_sub(self.seg_t0) > self.seg_len * (1 + SYNC_EXTRAPOLATE_PERIODS);
+                self.seg_start = if fresh { self.demand } else { self.seg_end };
                 self.seg_end = t;
                 self.seg_t0 = now;
                 self.seg_len = len.max(1);
@@ -1224,8 +1272,17 @@ impl SimDrive {
                 // The end of a segment is also the instant of the next SYNC: keep the
                 // segment's speed so that an on-time SYNC sees no dip in the feed-forward.
                 self.demand = self.seg_end;
+            } else if el > self.seg_len && el <= self.seg_len * (1 + SYNC_EXTRAPOLATE_PERIODS) {
+                // A late SYNC: keep going at the segment's speed, as real drives
+                // extrapolate the set-point over a missing or late SYNC instead of stopping
+                // the motor dead (which opens a following error on every jittery cycle).
+                let v = (self.seg_end - self.seg_start) / (self.seg_len as f64 * 1e-9);
+                self.demand = self.seg_end + v * ((el - self.seg_len) as f64 * 1e-9);
+                self.vff = v;
             } else if el > self.seg_len {
-                self.demand = self.seg_end;
+                // No SYNC for several periods: the master is gone or stalled; hold.
+                let v = (self.seg_end - self.seg_start) / (self.seg_len as f64 * 1e-9);
+                self.demand = self.seg_end + v * ((self.seg_len * SYNC_EXTRAPOLATE_PERIODS) as f64 * 1e-9);
                 self.vff = 0.0;
             } else {
                 let f = el as f64 / self.seg_len as f64;
@@ -1236,13 +1293,34 @@ impl SimDrive {
         };
         self.servo.control(cmd, dt);
 
+        // Motor overload (I²t): a jammed or overloaded axis trips like a real amplifier.
+        let rated = self.servo.physics().torque_limit * RATED_OF_PEAK;
+        let q = self.servo.torque() / rated;
+        self.i2t = (self.i2t + (q * q - 1.0) * dt).max(0.0);
+        if self.i2t >= I2T_LIMIT {
+            self.i2t = 0.0;
+            self.fault(0x2310, now);
+            return;
+        }
+
         // Following error monitoring (position control while enabled).
         if self.state == State::OperationEnabled && matches!(cmd, Command::Position { .. }) {
-            let window = self.od.int(ix::FOLLOWING_ERROR_WINDOW, 0);
+            let window = self.hot.ferr_window;
             if window != u32::MAX as i64 && (self.ferr() as i64).abs() > window {
                 let since = *self.ferr_since.get_or_insert(now);
-                let timeout = self.od.int(ix::FOLLOWING_ERROR_TIMEOUT, 0) as u64 * MS;
+                let timeout = self.hot.ferr_timeout;
                 if now - since >= timeout {
+                    tracing::warn!(
+                        node = self.cfg.node,
+                        ferr = self.ferr(),
+                        demand = self.demand,
+                        actual = self.servo.position_counts(),
+                        seg_start = self.seg_start,
+                        seg_end = self.seg_end,
+                        since_seg_ms = now.saturating_sub(self.seg_t0) as f64 * 1e-6,
+                        window,
+                        "following error over the window 0x6065 for 0x6066"
+                    );
                     self.ferr_flag = true;
                     self.ferr_since = None;
                     self.fault(0x8611, now);

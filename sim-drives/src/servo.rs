@@ -1,8 +1,9 @@
 //! One motor, its load and the drive's control cascade: position loop (P, gain Kv, with
 //! velocity feed-forward) → velocity loop (PI) → torque (limited) → rigid inertia with
-//! Coulomb and viscous friction. The encoder reports whole counts; the position loop closes
-//! on those. The velocity loop uses the motor's true speed, standing in for the fine
-//! (interpolated sin/cos or 20+ bit) encoder real drives close their speed loop on.
+//! Coulomb and viscous friction. The encoder reports whole counts of the position unit; the
+//! position loop closes on those. The velocity loop closes on a speed estimated as real
+//! drives do it: the difference of a finer internal encoder reading (2^speed_encoder_bits
+//! per rev) per control tick, low-pass filtered.
 
 use crate::config::Physics;
 use std::f64::consts::PI;
@@ -27,14 +28,22 @@ pub struct Servo {
     pos: f64,
     /// Motor speed, rad/s.
     omega: f64,
-    /// Torque applied since the last control tick, N·m.
+    /// Torque the velocity loop asks for (held between ticks), N·m.
+    torque_cmd: f64,
+    /// Torque the current loop delivers (first-order lag behind the command), N·m.
     torque: f64,
     /// Velocity-loop integrator, N·m.
     integ: f64,
     /// Velocity reference of the last tick, rad/s (for logs and tests).
     vref: f64,
-    /// External load torque (fault injection: a crash, a jammed slide), N·m.
+    /// Internal encoder reading at the last tick (whole increments) and the filtered speed
+    /// estimate the velocity loop uses, rad/s.
+    enc_prev: f64,
+    omega_est: f64,
+    /// External load torque (fault injection: gravity, a cutting force), N·m.
     pub load_torque: f64,
+    /// Extra dry friction (fault injection: a jammed slide, a crashed tool), N·m.
+    pub jam_friction: f64,
 }
 
 impl Servo {
@@ -44,10 +53,14 @@ impl Servo {
             rad_per_count: 2.0 * PI / counts_per_rev.max(1) as f64,
             pos: 0.0,
             omega: 0.0,
+            torque_cmd: 0.0,
             torque: 0.0,
             integ: 0.0,
             vref: 0.0,
+            enc_prev: 0.0,
+            omega_est: 0.0,
             load_torque: 0.0,
+            jam_friction: 0.0,
         }
     }
 
@@ -77,6 +90,7 @@ impl Servo {
     /// Put the motor at a position (power-on offset of an absolute encoder).
     pub fn set_position(&mut self, counts: f64) {
         self.pos = counts;
+        self.enc_prev = self.encoder();
     }
 
     /// True at standstill as a drive's speed window sees it (below ~1 rpm).
@@ -84,11 +98,34 @@ impl Servo {
         self.omega.abs() < 0.1
     }
 
+    /// The fine internal encoder: whole increments of 2π / 2^speed_encoder_bits.
+    fn encoder(&self) -> f64 {
+        let per_rad = (self.p.speed_encoder_bits.min(40) as f64).exp2() / (2.0 * PI);
+        (self.pos * self.rad_per_count * per_rad).floor()
+    }
+
+    /// Speed estimate (counts/s) as the velocity loop sees it and 0x606C reports it.
+    pub fn velocity_estimate_counts(&self) -> f64 {
+        self.omega_est / self.rad_per_count
+    }
+
     /// One control tick: compute the torque held until the next tick.
     pub fn control(&mut self, cmd: Command, dt: f64) {
+        // Speed from encoder increments per tick, filtered (first order).
+        let enc = self.encoder();
+        if dt > 0.0 {
+            let per_rad = (self.p.speed_encoder_bits.min(40) as f64).exp2() / (2.0 * PI);
+            let raw = (enc - self.enc_prev) / per_rad / dt;
+            let tf = self.p.speed_filter_ms * 1e-3;
+            let a = if tf > 0.0 { 1.0 - (-dt / tf).exp() } else { 1.0 };
+            self.omega_est += (raw - self.omega_est) * a;
+        }
+        self.enc_prev = enc;
         let vmax = self.p.max_speed_rpm * 2.0 * PI / 60.0;
         let vref_counts = match cmd {
             Command::Off => {
+                // Power stage off: the current decays at once (the bridge is open).
+                self.torque_cmd = 0.0;
                 self.torque = 0.0;
                 self.integ = 0.0;
                 self.vref = 0.0;
@@ -103,7 +140,7 @@ impl Servo {
         };
         let vref = (vref_counts * self.rad_per_count).clamp(-vmax, vmax);
         self.vref = vref;
-        let err = vref - self.omega;
+        let err = vref - self.omega_est;
         let ki = self.p.vel_kp / (self.p.vel_ti_ms * 1e-3);
         let lim = self.p.torque_limit;
         let unsat = self.p.vel_kp * err + self.integ;
@@ -112,7 +149,7 @@ impl Servo {
         if !saturating {
             self.integ = (self.integ + ki * err * dt).clamp(-lim, lim);
         }
-        self.torque = (self.p.vel_kp * err + self.integ).clamp(-lim, lim);
+        self.torque_cmd = (self.p.vel_kp * err + self.integ).clamp(-lim, lim);
     }
 
     /// Integrate the mechanics over `dt` seconds with the held torque.
@@ -120,8 +157,12 @@ impl Servo {
         if dt <= 0.0 {
             return;
         }
+        // Current loop: first-order lag of the torque behind its command.
+        let tau = self.p.current_loop_tc_ms * 1e-3;
+        let a = if tau > 0.0 { 1.0 - (-dt / tau).exp() } else { 1.0 };
+        self.torque += (self.torque_cmd - self.torque) * a;
         let j = self.p.inertia();
-        let tc = self.p.coulomb_friction;
+        let tc = self.p.coulomb_friction + self.jam_friction;
         let drive = self.torque - self.load_torque;
         let w0 = self.omega;
         let w1 = if w0 == 0.0 {
@@ -179,6 +220,47 @@ pub fn step_response(p: &Physics, counts_per_rev: u32, step: f64, dt: f64, t_end
     (rise, overshoot, settle, s.position_counts() as f64 - step)
 }
 
+/// The position step response sampled every `every` seconds: (t, position counts).
+pub fn step_trace(p: &Physics, counts_per_rev: u32, step: f64, dt: f64, t_end: f64, every: f64) -> Vec<(f64, f64)> {
+    let mut s = Servo::new(p.clone(), counts_per_rev);
+    let n = (t_end / dt).ceil() as usize;
+    let k = ((every / dt).round() as usize).max(1);
+    let mut out = vec![(0.0, 0.0)];
+    for i in 1..=n {
+        s.control(Command::Position { demand: step, vff: 0.0 }, dt);
+        s.integrate(dt);
+        if i % k == 0 {
+            out.push((i as f64 * dt, s.position_exact()));
+        }
+    }
+    out
+}
+
+/// Velocity-loop step response: speed step of `v` counts/s from standstill. Returns
+/// (rise time 10→90 % in s, overshoot in %).
+pub fn velocity_step_response(p: &Physics, counts_per_rev: u32, v: f64, dt: f64, t_end: f64) -> (f64, f64) {
+    let mut s = Servo::new(p.clone(), counts_per_rev);
+    let (mut t10, mut t90, mut peak) = (None, None, 0.0f64);
+    for i in 0..(t_end / dt).ceil() as usize {
+        let t = i as f64 * dt;
+        s.control(Command::Velocity { v }, dt);
+        s.integrate(dt);
+        let x = s.velocity_counts();
+        if t10.is_none() && x >= 0.1 * v {
+            t10 = Some(t);
+        }
+        if t90.is_none() && x >= 0.9 * v {
+            t90 = Some(t);
+        }
+        peak = peak.max(x);
+    }
+    let rise = match (t10, t90) {
+        (Some(a), Some(b)) => b - a,
+        _ => f64::INFINITY,
+    };
+    (rise, ((peak - v) / v * 100.0).max(0.0))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -206,6 +288,27 @@ mod tests {
                 run_to(&mut s, target, 0.5);
                 let e = s.position_counts() as f64 - target;
                 assert!(e.abs() <= 1.0, "{kind:?} target {target} later: error {e} counts");
+            }
+        }
+    }
+
+    #[test]
+    fn settles_within_one_count_with_heavy_friction() {
+        // Five times the default dry friction (a tight gib, cold grease): the integrator
+        // must still push it onto the count without hunting.
+        for kind in [DriveKind::Linear, DriveKind::Spindle] {
+            let mut p = Physics::default_for(kind);
+            p.coulomb_friction *= 5.0;
+            p.viscous_friction *= 3.0;
+            let mut s = Servo::new(p, 100_000);
+            for target in [50_000.0, 50_017.0, 49_999.0, -3.0] {
+                run_to(&mut s, target, 2.0);
+                let mut worst = 0.0f64;
+                for _ in 0..4 {
+                    run_to(&mut s, target, 0.25);
+                    worst = worst.max((s.position_counts() as f64 - target).abs());
+                }
+                assert!(worst <= 1.0, "{kind:?} target {target}: error up to {worst} counts");
             }
         }
     }

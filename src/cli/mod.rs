@@ -145,6 +145,14 @@ fn config_check(file: Option<&std::path::Path>) -> i32 {
         Ok((cfg, _)) => {
             println!("{}: ok — {}", file.map(|p| p.display().to_string()).unwrap_or_else(|| "embedded config/lathe.toml".into()), cfg.machine.name);
             println!("  cycle {} ms, bus {} at {} bit/s", cfg.machine.cycle_ms, cfg.bus.interface, cfg.bus.bitrate);
+            let frames = crate::bus::busload::csp_frames(cfg.axes.len(), 6);
+            let load = crate::bus::busload::load(&frames, cfg.cycle_s(), cfg.bus.bitrate);
+            println!(
+                "  worst-case CANopen bus load {:.1} % ({} drives, one 6-byte RPDO and TPDO each + SYNC per cycle){}",
+                load * 100.0,
+                cfg.axes.len(),
+                if load > 0.8 { " — OVER 80 %: lengthen the cycle" } else { "" }
+            );
             for (name, a) in &cfg.axes {
                 println!(
                     "  axis {name}: {:?} node {} {} counts/unit, max speed {}, max accel {}",

@@ -171,6 +171,7 @@ fn print_summary(s: &RunSummary, json: bool) {
             "machining_time_s": s.machining_time_s,
             "enable_time_s": s.enable_time_s,
             "cycles": s.cycles,
+            "overruns": s.overruns,
             "simulated": s.simulated,
             "at_program_end": s.at_program_end(),
             "axes": axes,
@@ -179,12 +180,13 @@ fn print_summary(s: &RunSummary, json: bool) {
         return;
     }
     println!(
-        "blocks {}  moves {}  machining time {:.3} s{}  cycles {}  drives enabled after {:.3} s",
+        "blocks {}  moves {}  machining time {:.3} s{}  cycles {} (overruns {})  drives enabled after {:.3} s",
         s.blocks,
         s.moves,
         s.machining_time_s,
         if s.simulated { " (simulated)" } else { "" },
         s.cycles,
+        s.overruns,
         s.enable_time_s
     );
     println!("{:<5} {:>18} {:>14} {:>14} {:>14}  result", "axis", "max follow. error", "final actual", "final target", "program end");

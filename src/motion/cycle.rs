@@ -13,6 +13,9 @@ use crate::Alarm;
 use cncgw_bus::Clock;
 use std::sync::mpsc::{Receiver, TryRecvError};
 
+/// At most this many missed cycles are caught up after an overrun (100 ms at 2 ms).
+const MAX_CATCH_UP: u64 = 50;
+
 /// Progress, reported to the caller every few cycles.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct Progress {
@@ -47,6 +50,8 @@ pub struct RunSummary {
     /// Time from start to every drive in Operation Enabled, seconds of clock time.
     pub enable_time_s: f64,
     pub cycles: u64,
+    /// Cycles in which the loop woke a whole period late (real time only).
+    pub overruns: u64,
     pub axes: Vec<AxisSummary>,
     pub simulated: bool,
 }
@@ -112,6 +117,9 @@ impl<'a> CycleLoop<'a> {
             next += self.cycle_ns;
             self.clock.wait_until(next);
             let now = self.clock.now_ns();
+            if now >= next + self.cycle_ns {
+                next = now - (now - next) % self.cycle_ns;
+            }
             self.drives.receive(now)?;
             let done = self.drives.enable_step()?;
             self.drives.transmit(now)?;
@@ -166,6 +174,7 @@ impl<'a> CycleLoop<'a> {
         let mut input_open = true;
         let mut ended = false;
         let mut settle_cycles = 0u32;
+        let mut late_prev = false;
         let mut spindle_rpm = 0.0f64;
         let mut prev_spindle = self.spindle_drive.map(|d| self.drives.feedback(d).pos).unwrap_or(0.0);
         let progress_every = ((0.05 / dt).round() as u64).max(1);
@@ -210,6 +219,19 @@ impl<'a> CycleLoop<'a> {
             self.clock.wait_until(next);
             let now = self.clock.now_ns();
             summary.cycles += 1;
+            // Overrun: whole periods were missed (real time only). The trajectory keeps its
+            // time base: the interpolator steps through the missed cycles at once and the
+            // drives get the set-point of *now*, which is where their extrapolation over the
+            // late SYNC has carried them. Running the missed cycles back to back on the bus
+            // instead would make the drives see a set-point that went backwards.
+            let late_before = late_prev;
+            let mut missed = 0u64;
+            late_prev = now >= next + self.cycle_ns / 2;
+            if now >= next + self.cycle_ns {
+                summary.overruns += 1;
+                missed = ((now - next) / self.cycle_ns).min(MAX_CATCH_UP);
+                next = now - (now - next) % self.cycle_ns;
+            }
             if let Err(a) = self.drives.receive(now) {
                 self.drives.quick_stop();
                 let _ = self.drives.transmit(now);
@@ -221,10 +243,14 @@ impl<'a> CycleLoop<'a> {
                 if let Some(a) = ax {
                     fb.pos[*a] = f.pos;
                 }
-                let demand = hist[d][0];
-                let err = (demand - f.counts).abs() as f64 / summary.axes[d].counts_per_unit;
-                if err > summary.axes[d].max_following_error {
-                    summary.axes[d].max_following_error = err;
+                // Only fresh feedback in a cycle that followed its predecessor on time pairs
+                // with the demand of two cycles ago; anything else would measure the jitter.
+                if f.age_cycles == 0 && missed == 0 && !late_before {
+                    let demand = hist[d][0];
+                    let err = (demand - f.counts).abs() as f64 / summary.axes[d].counts_per_unit;
+                    if err > summary.axes[d].max_following_error {
+                        summary.axes[d].max_following_error = err;
+                    }
                 }
             }
             if let Some(sd) = self.spindle_drive {
@@ -237,7 +263,11 @@ impl<'a> CycleLoop<'a> {
                 spindle_rpm += k * (inst - spindle_rpm);
                 fb.spindle_rpm = spindle_rpm;
             }
-            let sp = motion.step(&fb);
+            let mut sp = motion.step(&fb);
+            for _ in 0..missed {
+                ended |= self.on_event(&mut motion, &sp);
+                sp = motion.step(&fb);
+            }
             for (d, ax) in map.iter().enumerate() {
                 if let Some(a) = ax {
                     self.drives.set_target(d, sp.pos[*a]);
@@ -249,14 +279,12 @@ impl<'a> CycleLoop<'a> {
                 self.drives.quick_stop();
                 return Err(a);
             }
-            match sp.event {
-                Event::End => ended = true,
-                Event::Stop { optional } => {
-                    // No operator panel in a batch run: M00 is logged and the program goes on.
-                    tracing::info!(line = sp.line, "M0{} program stop (batch run continues)", optional as u8);
-                }
-                Event::Aux { .. } | Event::None => {}
+            if let Some(a) = motion.take_alarm() {
+                // The motion layer already started a controlled stop.
+                self.halt(&mut motion);
+                return Err(a);
             }
+            ended |= self.on_event(&mut motion, &sp);
             if summary.cycles % progress_every == 0 {
                 progress(&Progress {
                     t_s: (now - t_start) as f64 * 1e-9,
@@ -294,6 +322,21 @@ impl<'a> CycleLoop<'a> {
             };
         }
         Ok(())
+    }
+
+    /// Act on the event of a set-point; true at the program end.
+    fn on_event(&mut self, motion: &mut Motion, sp: &crate::motion::Setpoint) -> bool {
+        match sp.event {
+            Event::End => true,
+            Event::Stop { optional } => {
+                // No operator panel in a batch run: M00 is logged and the program goes on as
+                // if cycle start had been pressed.
+                tracing::info!(line = sp.line, "M0{} program stop (batch run: cycle start)", optional as u8);
+                motion.cycle_start();
+                false
+            }
+            Event::Aux { .. } | Event::None => false,
+        }
     }
 
     /// Controlled stop on a program alarm: decelerate along the path, then hold.

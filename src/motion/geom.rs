@@ -70,6 +70,39 @@ impl Geom {
     }
 }
 
+impl Geom {
+    /// Unit tangents (direction of travel) at the start and at the end.
+    pub fn tangents(&self) -> ([f64; 3], [f64; 3]) {
+        match *self {
+            Geom::Line { delta, len, .. } => {
+                if len > 0.0 {
+                    let u = [delta[0] / len, delta[1] / len, delta[2] / len];
+                    (u, u)
+                } else {
+                    ([0.0; 3], [0.0; 3])
+                }
+            }
+            Geom::Arc { ia, ib, ic, r0, dr, th0, sweep, dc, .. } => {
+                // d/df of (r cos θ, r sin θ, c) with θ = th0 + sweep·f, r = r0 + dr·f.
+                let tan = |f: f64| {
+                    let (th, r) = (th0 + sweep * f, r0 + dr * f);
+                    let mut t = [0.0; 3];
+                    t[ia] = dr * th.cos() - r * sweep * th.sin();
+                    t[ib] = dr * th.sin() + r * sweep * th.cos();
+                    t[ic] = dc;
+                    let n = (t[0] * t[0] + t[1] * t[1] + t[2] * t[2]).sqrt();
+                    if n > 0.0 {
+                        [t[0] / n, t[1] / n, t[2] / n]
+                    } else {
+                        [0.0; 3]
+                    }
+                };
+                (tan(0.0), tan(1.0))
+            }
+        }
+    }
+}
+
 /// Build an arc from its start, end and centre (all X, Y, Z), the plane axes (`ia`, `ib`,
 /// third `ic`) and the sense. `cw` is clockwise seen from the positive third axis looking
 /// down on the (`ia`, `ib`) plane, i.e. a negative angle. Returns `None` for a degenerate arc

@@ -10,8 +10,15 @@
 //!   rest of the segment can still be braked to rest with the same step (a discrete
 //!   trapezoid). Being online, a per-revolution feed follows the measured spindle speed, and
 //!   overrides, feed hold and stop take effect in the next cycle.
-//! - Each segment ends with an exact stop (milestone 1): the last moving cycle lands on the end
-//!   point bit for bit, and the following cycle holds it at rest before the next item starts.
+//! - A segment with `exact_stop` (G61/G09/rapids), or followed by anything but a motion, ends
+//!   at rest: the last moving cycle lands on the end point bit for bit, and the following cycle
+//!   holds it before the next item starts.
+//! - Look-ahead (G64): a segment pushed without `exact_stop` is linked to the next one when it
+//!   arrives. The junction is crossed within one cycle at a speed limited by the corner angle
+//!   (each axis' velocity jump `v·|Δu_i| ≤ ½·amax_i·dt`), by both segments' speed limits, and
+//!   by the next segment's length (one junction per cycle, so `step` stays O(1)); a backward
+//!   pass in `push` makes sure every later stop can still be braked for. Segments next to a
+//!   blended junction ramp with half the acceleration, the other half is the corner's.
 //! - Events (aux codes, M00/M01, M30) and spindle commands are taken in program order, one item
 //!   per cycle, so `step` is O(1).
 //!
@@ -23,6 +30,30 @@
 //! so that the chord between two setpoints deviates from the circle by at most
 //! `chord_tol`: sagitta `(v·dt)²/(8r) ≤ chord_tol` ⇒ `v ≤ √(8·r·chord_tol)/dt`.
 
+//! # Contract with the cycle loop
+//!
+//! - Every cycle: read the drives' feedback, call `step` once, send the setpoint. `step` never
+//!   allocates, never panics, does a constant amount of work, and is deterministic (same
+//!   pushes, feedback and operator calls give bit-identical setpoints).
+//! - `Feedback::pos[AX_S]` is the measured spindle angle in continuous degrees whose multiples
+//!   of 360 are the one-revolution reference; `Feedback::spindle_rpm` the measured speed.
+//!   Per-revolution feed and threading use them; nothing else reads feedback.
+//! - Push moves whenever `has_room()`; `push` refuses a move with an alarm and queues
+//!   nothing. After M00 (and M01 with the optional stop switch on), feed hold and single
+//!   block, `is_held()` is true until `cycle_start()`.
+//! - After `stop()` wait for `is_idle()`; the rest of the program is dropped and the next
+//!   push plans from where the axes stopped. Check `take_alarm()` after each cycle (outside
+//!   the time-critical part): a fault found by `step` (thread too fast) already triggered a
+//!   controlled stop.
+//! - G02/G03 sense: `cw` is clockwise seen from the positive third axis (G18: from +Y, Z to
+//!   the right, X up). The interpreter maps the lathe's tool-post convention onto this.
+//! - Under G96 the spindle speed follows the *commanded* X of the previous cycle.
+
+// `!(x > 0.0)` is deliberate throughout: it is also true for NaN, which must be refused.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+// Axis loops index several per-axis arrays at once.
+#![allow(clippy::needless_range_loop)]
+
 pub mod cycle;
 pub mod geom;
 pub mod profile;
@@ -31,6 +62,8 @@ mod tests;
 
 use crate::canon::{Feed, Move, MoveKind, Plane, Pos, SpindleCmd, SpindleDir};
 use crate::config::{AxisKind, MachineConfig};
+use crate::sync::ThreadSync;
+use std::f64::consts::TAU;
 use crate::Alarm;
 use geom::Geom;
 
@@ -62,6 +95,8 @@ pub mod alarms {
     pub const UNSUPPORTED: u32 = 2304;
     /// A move pushed while a controlled stop is in progress.
     pub const STOPPING: u32 = 2305;
+    /// Thread lead × spindle speed is faster than the feed axes can go.
+    pub const THREAD_TOO_FAST: u32 = 2306;
 }
 
 /// Actual values from the drives (X radius).
@@ -116,6 +151,12 @@ pub struct Limits {
     pub arc_radius_tol: f64,
     /// Look-ahead queue capacity (moves).
     pub queue_len: usize,
+    /// Spindle acceleration in rigid tapping, deg/s² (No.5261: ms to reach 1000 rpm);
+    /// infinity when not set (the spindle's max_accel then applies).
+    pub tap_accel: f64,
+    /// No.5200#6: feed hold and single block act within a rigid tap (1), or only once the
+    /// tool is back at the R point (0).
+    pub tap_hold_in_hole: bool,
 }
 
 impl Limits {
@@ -132,6 +173,8 @@ impl Limits {
             chord_tol: 0.001,
             arc_radius_tol: 0.01,
             queue_len: 256,
+            tap_accel: f64::INFINITY,
+            tap_hold_in_hole: cfg.param_bit(5200, 6),
         };
         for (name, a) in &cfg.axes {
             let i = match (a.kind, name.to_ascii_lowercase().as_str()) {
@@ -153,6 +196,9 @@ impl Limits {
         }
         if let Some(f) = cfg.param(6023).filter(|f| f.is_finite() && *f > 0.0) {
             l.feed_clamp = f / 60.0;
+        }
+        if let Some(ms) = cfg.param(5261).filter(|t| t.is_finite() && *t > 0.0) {
+            l.tap_accel = 1000.0 / (ms / 1000.0) * 6.0;
         }
         // No.3410: arc radius error limit (here in mm).
         if let Some(t) = cfg.param(3410).filter(|t| t.is_finite() && *t > 0.0) {
@@ -182,11 +228,48 @@ struct Seg {
     vlim: f64,
     /// Path acceleration, mm/s².
     alim: f64,
+    /// Unit tangents at start and end.
+    t0: [f64; 3],
+    t1: [f64; 3],
+    /// The previous segment may blend into this one (it was pushed without exact stop).
+    blend_in: bool,
+    /// Speed limit at the junction with the next segment (corner, axis limits, lengths);
+    /// 0 while no next segment is linked: the segment ends with an exact stop.
+    vj: f64,
+    /// Look-ahead: distance beyond the end at which braking to rest may be assumed
+    /// (see `relax`). 0 = exact stop at the end. Only ever grows while the segment is queued
+    /// or running, which keeps the braking invariant of `profile` valid.
+    ext: f64,
+}
+
+/// A spindle-synchronised thread pass (a straight line, taper allowed).
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct ThreadSeg {
+    geom: Geom,
+    /// Path length per spindle revolution (lead along the long axis / its direction share).
+    lead_path: f64,
+    start_angle: f64,
+    vlim: f64,
+    alim: f64,
+}
+
+/// A rigid-tap stroke along Z: the spindle angle is `360·(z − z0)/lead`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct TapSeg {
+    z0: f64,
+    z1: f64,
+    lead: f64,
+    /// Commanded Z speed (rpm × |lead|), mm/s.
+    v: f64,
+    vlim: f64,
+    alim: f64,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq)]
 enum Item {
     Move(Seg),
+    Thread(ThreadSeg),
+    Tap(TapSeg),
     Dwell(u64),
     Spindle(SpindleCmd),
     Event(Event),
@@ -206,6 +289,18 @@ enum Run {
     /// (the next cycle holds it at rest, then the segment is done).
     Move { seg: Seg, s: f64, v: f64, landed: bool },
     Dwell { left: u64 },
+    /// Waiting for the spindle (`sync` None) or cutting, locked to the measured angle.
+    Thread { seg: ThreadSeg, sync: Option<ThreadSync>, s: f64, v: f64, landed: bool },
+    /// Waiting for the spindle to stop (`theta0` None), then the stroke; `theta0` is the tap
+    /// reference (z_ref, θ_ref): spindle angle = θ_ref + 360·(z − z_ref)/lead.
+    Tap { seg: TapSeg, theta0: Option<(f64, f64)>, s: f64, v: f64, landed: bool },
+}
+
+/// A fault found while executing (reported by [`Motion::take_alarm`]; `step` cannot return
+/// an error and must not allocate).
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Fault {
+    ThreadTooFast { v: f64, vlim: f64, line: u32 },
 }
 
 /// Planner + interpolator.
@@ -222,19 +317,35 @@ pub struct Motion {
     plan_end: [f64; 3],
     plan_c: Option<f64>,
     plan_spindle_on: bool,
+    /// Planned spindle speed (rpm, G97), for checks at push; None under css or stopped.
+    plan_rpm: Option<f64>,
+    /// The last pushed item is a motion without exact stop: the next one may blend into it.
+    last_blendable: bool,
     // Spindle execution state (rpm).
     sp_dir: f64,
     sp_rpm: f64,
     sp_css: Option<f64>,
     sp_max: f64,
     sp_cur: f64,
+    /// The speed the ramp is heading for this cycle (rpm, signed).
+    sp_target: f64,
     // Operator controls.
     feed_ovr: f64,
     rapid_ovr: f64,
+    spindle_ovr: f64,
     held: bool,
     paused: bool,
     optional_stop: bool,
+    single_block: bool,
     stopping: bool,
+    fault: Option<Fault>,
+    /// Thread: target minus commanded path position, mm (see `sync_error`).
+    sync_err: f64,
+    /// Rigid tapping reference (z, spindle angle, lead) of the last stroke, so that the strokes
+    /// of one hole share one Z–angle relation and the return ends on the start angle exactly.
+    tap_ref: Option<(f64, f64, f64)>,
+    /// The tool is inside a tapped hole (a tap stroke ended away from the hole's R point).
+    in_hole: bool,
 }
 
 fn xyz(p: &Pos) -> [f64; 3] {
@@ -255,16 +366,25 @@ impl Motion {
             plan_end: [start[AX_X], start[AX_Y], start[AX_Z]],
             plan_c: None,
             plan_spindle_on: false,
+            plan_rpm: None,
+            last_blendable: false,
+            fault: None,
+            sync_err: 0.0,
+            tap_ref: None,
+            in_hole: false,
             sp_dir: 0.0,
             sp_rpm: 0.0,
             sp_css: None,
             sp_max: f64::INFINITY,
             sp_cur: 0.0,
+            sp_target: 0.0,
             feed_ovr: 1.0,
             rapid_ovr: 1.0,
+            spindle_ovr: 1.0,
             held: false,
             paused: false,
             optional_stop: false,
+            single_block: false,
             stopping: false,
             lim: limits,
         }
@@ -296,32 +416,42 @@ impl Motion {
                 "motion queue full: the caller must wait for has_room() before pushing",
             )));
         }
+        let blend_in = self.last_blendable;
+        let blended = blend_in || !m.exact_stop;
         let item = match &m.kind {
             MoveKind::Rapid { end } => {
                 let end = self.check_end(end).map_err(at)?;
                 let g = geom::line(self.plan_end, end);
-                Item::Move(self.line_seg(g, Speed::Rapid))
+                Item::Move(self.line_seg(g, Speed::Rapid, blended))
             }
             MoveKind::Feed { end, feed } => {
                 let speed = self.check_feed(feed).map_err(at)?;
                 let end = self.check_end(end).map_err(at)?;
                 let g = geom::line(self.plan_end, end);
-                Item::Move(self.line_seg(g, speed))
+                Item::Move(self.line_seg(g, speed, blended))
             }
             MoveKind::Arc { end, center, cw, plane, feed } => {
                 let speed = self.check_feed(feed).map_err(at)?;
                 let end = self.check_end(end).map_err(at)?;
-                Item::Move(self.arc_seg(end, xyz(center), *cw, *plane, speed).map_err(at)?)
+                Item::Move(self.arc_seg(end, xyz(center), *cw, *plane, speed, blended).map_err(at)?)
             }
-            MoveKind::Thread { .. } | MoveKind::Tap { .. } | MoveKind::RigidThread { .. } => {
+            MoveKind::Thread { end, lead, start_angle, lead_inc, .. } => {
+                // `continuous` (no wait for the one-revolution signal) is not honoured yet.
+                if *lead_inc != 0.0 {
+                    return Err(at(Alarm::new(
+                        alarms::UNSUPPORTED,
+                        "G34 variable-lead threads are not executed by this motion layer yet; remove the block",
+                    )));
+                }
+                Item::Thread(self.thread_seg(end, *lead, *start_angle).map_err(at)?)
+            }
+            MoveKind::RigidThread { .. } => {
                 return Err(at(Alarm::new(
                     alarms::UNSUPPORTED,
-                    format!(
-                        "{} moves are not executed by this motion layer yet; remove the block or use a build with spindle sync",
-                        m.kind.name()
-                    ),
+                    "G92.1 rigid threads are not executed by this motion layer yet; remove the block",
                 )))
             }
+            MoveKind::Tap { end, lead, rpm } => Item::Tap(self.tap_seg(end, *lead, *rpm).map_err(at)?),
             MoveKind::Dwell { seconds } => {
                 if !(seconds.is_finite() && *seconds >= 0.0) {
                     return Err(at(Alarm::new(
@@ -336,52 +466,162 @@ impl Motion {
             MoveKind::Stop { optional } => Item::Event(Event::Stop { optional: *optional }),
             MoveKind::End { .. } => Item::Event(Event::End),
         };
+        let mut item = item;
         // Accepted: commit the planning state.
-        match (&item, &m.kind) {
-            (Item::Move(s), _) => {
+        match &mut item {
+            Item::Move(s) => {
+                s.blend_in = blend_in;
                 self.plan_end = s.geom.end();
                 if let Some(e) = m.kind.end() {
                     self.plan_c = Some(e.c);
                 }
             }
-            (Item::Spindle(c), _) => {
+            Item::Spindle(c) => {
                 self.plan_spindle_on =
                     c.dir != SpindleDir::Stop && (c.rpm > 0.0 || c.css.is_some_and(|v| v > 0.0));
+                self.plan_rpm = (self.plan_spindle_on && c.css.is_none()).then_some(c.rpm);
+            }
+            Item::Thread(t) => {
+                self.plan_end = t.geom.end();
+                if let Some(e) = m.kind.end() {
+                    self.plan_c = Some(e.c);
+                }
+            }
+            Item::Tap(t) => {
+                self.plan_end[AX_Z] = t.z1;
+                // Rigid tapping leaves the spindle stopped, in position control.
+                self.plan_spindle_on = false;
+                self.plan_rpm = None;
             }
             _ => {}
         }
+        let is_move = matches!(item, Item::Move(_));
         let i = (self.head + self.len) % self.queue.len();
         self.queue[i] = Entry { item, line: m.src.line };
         self.len += 1;
+        if is_move && blend_in {
+            self.link_last();
+        }
+        self.last_blendable = is_move && !m.exact_stop;
+        Ok(())
+    }
+
+    /// The segment before the newest queued one, if it has not finished yet: the previous
+    /// queue entry, or the running segment when the new one is the only one queued.
+    fn prev_seg_mut(&mut self, back: usize) -> Option<&mut Seg> {
+        let cap = self.queue.len();
+        if back < self.len {
+            match &mut self.queue[(self.head + self.len - 1 - back) % cap].item {
+                Item::Move(s) => Some(s),
+                _ => None,
+            }
+        } else if back == self.len {
+            match &mut self.run {
+                Run::Move { seg, landed: false, .. } => Some(seg),
+                _ => None,
+            }
+        } else {
+            None
+        }
+    }
+
+    /// Link the newest segment to its predecessor (G64): the junction speed limit from the
+    /// corner angle and the axis limits, then the backward pass.
+    fn link_last(&mut self) {
+        let dt = self.lim.cycle_s;
+        let Some(Item::Move(new)) = self.len.checked_sub(1).map(|k| self.queue[(self.head + k) % self.queue.len()].item)
+        else {
+            return;
+        };
+        let amax = self.lim.amax;
+        let Some(prev) = self.prev_seg_mut(1) else { return };
+        // The junction is crossed within one cycle: the velocity vector turns from t1 to t0
+        // there, so each axis' speed jumps by v·|Δu_i|; allow half its acceleration for that
+        // (the other half is the tangential ramp, see line_seg/arc_seg). One crossing per
+        // cycle at most: v ≤ len/dt of the next segment.
+        let mut v = prev.vlim.min(new.vlim).min(new.geom.len() / dt);
+        for i in 0..3 {
+            let du = (new.t0[i] - prev.t1[i]).abs();
+            if du > 1e-12 {
+                v = v.min(0.5 * amax[i] * dt / du);
+            }
+        }
+        prev.vj = finite_or_zero(v);
+        self.relax();
+    }
+
+    /// Backward pass over the linked chain from the newest segment: the speed at which each
+    /// junction may be crossed (≤ its corner limit, and low enough that the rest of the chain
+    /// can still be braked within the acceleration), expressed as the segment's `ext`. Stops
+    /// as soon as a segment's `ext` does not grow. O(queue length), in `push` only.
+    fn relax(&mut self) {
+        let dt = self.lim.cycle_s;
+        let cap = self.queue.len();
+        let Some(Item::Move(newest)) = self.len.checked_sub(1).map(|k| self.queue[(self.head + k) % cap].item) else {
+            return;
+        };
+        let (mut nlen, mut next_ext, mut ndv) = (newest.geom.len(), newest.ext, newest.alim * dt);
+        let mut next_cap = speed_cap(&newest);
+        let mut back = 1;
+        while let Some(prev) = self.prev_seg_mut(back) {
+            if !(prev.vj > 0.0) {
+                break;
+            }
+            // Hard limit of the crossing speed: the corner, and the next segment must be
+            // brakeable from it (its own staircase).
+            let ve = prev.vj.min(profile::v_allowed(nlen + next_ext, ndv, dt));
+            let pdv = prev.alim * dt;
+            // A virtual stop `dt·G(w)` beyond the end: the cycle that crosses the junction then
+            // runs slower than `w + dv` (see profile::v_allowed). `w = ve − dv` keeps the hard
+            // limit; the next segment's feed (soft: `v_cmd` caps the speed anyway) lowers `w`
+            // so that a drop in F is braked before the junction, to within one step.
+            // Below one step: exact stop.
+            let ext = if ve > pdv { dt * profile::g((ve - pdv).min(next_cap), pdv) } else { 0.0 };
+            if !(ext > prev.ext) {
+                break;
+            }
+            prev.ext = ext;
+            nlen = prev.geom.len();
+            next_ext = ext;
+            ndv = pdv;
+            next_cap = speed_cap(prev);
+            back += 1;
+        }
+    }
+
+    /// Axis `i` (X/Y/Z) may be commanded to `v`: finite, configured, inside its travel.
+    /// `what` names the point in the message ("end point", "arc").
+    fn check_axis(&self, i: usize, v: f64, what: &str) -> Result<(), Alarm> {
+        let name = AXIS_NAMES[i];
+        if !v.is_finite() {
+            return Err(Alarm::new(alarms::BAD_VALUE, format!("{name} {what} is not a finite number ({v})")));
+        }
+        if !self.lim.present[i] {
+            if (v - self.plan_end[i]).abs() > 1e-9 {
+                return Err(Alarm::new(
+                    alarms::TRAVEL,
+                    format!("axis {name} is not configured on this machine; remove {name} from the program"),
+                ));
+            }
+            return Ok(());
+        }
+        let (lo, hi) = self.lim.travel[i];
+        if v < lo || v > hi {
+            let radius = if i == AX_X { " (radius)" } else { "" };
+            return Err(Alarm::new(
+                alarms::TRAVEL,
+                format!(
+                    "{name} {what} {v:.4} mm{radius} is beyond the travel limits [{lo}, {hi}]; correct the program or the work offset"
+                ),
+            ));
+        }
         Ok(())
     }
 
     fn check_end(&self, end: &Pos) -> Result<[f64; 3], Alarm> {
         let e = xyz(end);
         for (i, v) in e.iter().enumerate() {
-            let name = AXIS_NAMES[i];
-            if !v.is_finite() {
-                return Err(Alarm::new(alarms::BAD_VALUE, format!("{name} end point is not a finite number ({v})")));
-            }
-            if !self.lim.present[i] {
-                if *v != self.plan_end[i] {
-                    return Err(Alarm::new(
-                        alarms::TRAVEL,
-                        format!("axis {name} is not configured on this machine; remove {name} from the program"),
-                    ));
-                }
-                continue;
-            }
-            let (lo, hi) = self.lim.travel[i];
-            if *v < lo || *v > hi {
-                let what = if i == AX_X { " (radius)" } else { "" };
-                return Err(Alarm::new(
-                    alarms::TRAVEL,
-                    format!(
-                        "{name} end point {v:.4} mm{what} is beyond the travel limits [{lo}, {hi}]; correct the program or the work offset"
-                    ),
-                ));
-            }
+            self.check_axis(i, *v, "end point")?;
         }
         if !end.c.is_finite() {
             return Err(Alarm::new(alarms::BAD_VALUE, format!("C end point is not a finite number ({})", end.c)));
@@ -415,6 +655,67 @@ impl Motion {
         }
     }
 
+    fn thread_seg(&self, end: &Pos, lead: f64, start_angle: f64) -> Result<ThreadSeg, Alarm> {
+        if !(lead.is_finite() && lead > 0.0) {
+            return Err(Alarm::new(alarms::FEED_ZERO, format!("thread lead must be > 0, got F{lead}; correct the F/I word")));
+        }
+        if !start_angle.is_finite() {
+            return Err(Alarm::new(alarms::BAD_VALUE, format!("thread start angle is not a finite number ({start_angle})")));
+        }
+        if !self.plan_spindle_on {
+            return Err(Alarm::new(
+                alarms::PER_REV_SPINDLE_STOPPED,
+                "thread cutting with the spindle stopped: start the spindle (M03/M04 S…) before the thread",
+            ));
+        }
+        let end = self.check_end(end)?;
+        let g = geom::line(self.plan_end, end);
+        let delta = [end[0] - self.plan_end[0], end[1] - self.plan_end[1], end[2] - self.plan_end[2]];
+        let len = g.len();
+        if !(len > 0.0) {
+            return Err(Alarm::new(alarms::BAD_VALUE, "thread of zero length: correct the end point"));
+        }
+        // The lead is along the long axis (Fanuc: Z unless the taper is steeper than 45°).
+        let u_long = delta.iter().fold(0.0f64, |m, d| m.max(d.abs())) / len;
+        let lead_path = lead / u_long;
+        let s = self.line_seg(g, Speed::Rapid, false);
+        if let Some(rpm) = self.plan_rpm {
+            let v = lead_path * rpm / 60.0;
+            if v > s.vlim {
+                return Err(Alarm::new(
+                    alarms::THREAD_TOO_FAST,
+                    format!(
+                        "thread lead {lead} mm × S{rpm} needs {:.0} mm/min, more than the axes' {:.0} mm/min; lower the spindle speed",
+                        v * 60.0,
+                        s.vlim * 60.0
+                    ),
+                ));
+            }
+        }
+        Ok(ThreadSeg { geom: g, lead_path, start_angle, vlim: s.vlim, alim: s.alim })
+    }
+
+    fn tap_seg(&self, end: &Pos, lead: f64, rpm: f64) -> Result<TapSeg, Alarm> {
+        if !(lead.is_finite() && lead != 0.0) {
+            return Err(Alarm::new(alarms::FEED_ZERO, format!("tap lead must be non-zero, got F{lead}; correct the F word")));
+        }
+        if !(rpm.is_finite() && rpm > 0.0) {
+            return Err(Alarm::new(alarms::BAD_VALUE, format!("tapping spindle speed must be > 0, got S{rpm}")));
+        }
+        if !self.lim.present[AX_S] {
+            return Err(Alarm::new(alarms::UNSUPPORTED, "rigid tapping needs a spindle axis in the config"));
+        }
+        let e = self.check_end(end)?;
+        if e[AX_X] != self.plan_end[AX_X] || e[AX_Y] != self.plan_end[AX_Y] {
+            return Err(Alarm::new(alarms::BAD_VALUE, "a rigid tap stroke moves Z only: position X/Y before the tap"));
+        }
+        let l = &self.lim;
+        let per_deg = lead.abs() / 360.0; // mm of Z per spindle degree
+        let vlim = l.vmax[AX_Z].min(l.vmax[AX_S] * per_deg);
+        let alim = l.amax[AX_Z].min(l.amax[AX_S].min(l.tap_accel) * per_deg);
+        Ok(TapSeg { z0: self.plan_end[AX_Z], z1: e[AX_Z], lead, v: (rpm * lead.abs() / 60.0).min(vlim), vlim, alim })
+    }
+
     fn check_spindle(&self, c: &SpindleCmd) -> Result<SpindleCmd, Alarm> {
         let bad = |what: &str, v: f64| {
             Alarm::new(alarms::BAD_VALUE, format!("spindle {what} must be a finite number ≥ 0, got {v}"))
@@ -437,7 +738,9 @@ impl Motion {
         Ok(*c)
     }
 
-    fn line_seg(&self, g: Geom, speed: Speed) -> Seg {
+    /// A line segment. `blended`: a junction at either end may be passed without stopping, so
+    /// half of each axis' acceleration is kept for the velocity change at the corner.
+    fn line_seg(&self, g: Geom, speed: Speed, blended: bool) -> Seg {
         let (mut v, mut a) = (f64::INFINITY, f64::INFINITY);
         if let Geom::Line { delta, len, .. } = g {
             if len > 0.0 {
@@ -450,10 +753,21 @@ impl Motion {
                 }
             }
         }
-        Seg { geom: g, speed, vlim: finite_or_zero(v), alim: finite_or_zero(a) }
+        let share = if blended { 0.5 } else { 1.0 };
+        seg(g, speed, v, a * share)
     }
 
-    fn arc_seg(&self, end: [f64; 3], center: [f64; 3], cw: bool, plane: Plane, speed: Speed) -> Result<Seg, Alarm> {
+    /// An arc segment: tangential and centripetal acceleration share each plane axis' limit
+    /// (0.5 + 0.45 with exact stops; 0.25 + 0.25 when blended, leaving 0.5 for the corner).
+    fn arc_seg(
+        &self,
+        end: [f64; 3],
+        center: [f64; 3],
+        cw: bool,
+        plane: Plane,
+        speed: Speed,
+        blended: bool,
+    ) -> Result<Seg, Alarm> {
         let axes = match plane {
             Plane::Xy => (AX_X, AX_Y, AX_Z),
             Plane::Zx => (AX_Z, AX_X, AX_Y),
@@ -478,20 +792,42 @@ impl Motion {
             ));
         }
         let (ia, ib, ic) = axes;
+        // Not only the end point: the arc's outermost points (where it crosses the plane axes'
+        // directions from the centre) must stay inside the travel too.
+        if let Geom::Arc { ca, cb, r0, dr, th0, sweep, .. } = g {
+            let r = r0.max(r0 + dr);
+            for k in 0..4 {
+                let ang = k as f64 * std::f64::consts::FRAC_PI_2;
+                let rel = if sweep >= 0.0 { (ang - th0).rem_euclid(TAU) } else { (th0 - ang).rem_euclid(TAU) };
+                if rel <= sweep.abs() {
+                    match k {
+                        0 => self.check_axis(ia, ca + r, "arc")?,
+                        1 => self.check_axis(ib, cb + r, "arc")?,
+                        2 => self.check_axis(ia, ca - r, "arc")?,
+                        _ => self.check_axis(ib, cb - r, "arc")?,
+                    }
+                }
+            }
+        }
         let l = &self.lim;
         let a_plane = l.amax[ia].min(l.amax[ib]);
         let rmin = r0.min(r1);
         let len = g.len();
         let uc = if let Geom::Arc { dc, .. } = g { dc.abs() / len.max(1e-300) } else { 0.0 };
+        let (tangential, centripetal) = if blended { (0.25, 0.25) } else { (0.5, 0.45) };
         let mut v = l.vmax[ia].min(l.vmax[ib]);
-        v = v.min((0.45 * a_plane * rmin).sqrt());
+        v = v.min((centripetal * a_plane * rmin).sqrt());
         v = v.min((8.0 * rmin * l.chord_tol).sqrt() / l.cycle_s);
-        let mut a = 0.5 * a_plane;
+        let mut a = tangential * a_plane;
         if uc > 0.0 {
             v = v.min(l.vmax[ic] / uc);
-            a = a.min(l.amax[ic] / uc);
+            a = a.min(tangential * l.amax[ic] / uc);
         }
-        Ok(Seg { geom: g, speed, vlim: finite_or_zero(v), alim: finite_or_zero(a) })
+        Ok(seg(g, speed, v, a))
+    }
+
+    fn peek(&self) -> Option<Entry> {
+        (self.len > 0).then(|| self.queue[self.head])
     }
 
     fn pop(&mut self) -> Option<Entry> {
@@ -522,16 +858,24 @@ impl Motion {
         let mag = match self.sp_css {
             Some(css) => {
                 let r = self.pos[AX_X].abs();
-                let n = if r > 1e-9 { 1000.0 * css / (std::f64::consts::TAU * r) } else { f64::INFINITY };
-                n.min(self.sp_max)
+                let n = if r > 1e-9 { 1000.0 * css / (TAU * r) } else { f64::INFINITY };
+                // The G50 clamp holds after the override.
+                (n * self.spindle_ovr).min(self.sp_max)
             }
-            None => self.sp_rpm,
+            None => self.sp_rpm * self.spindle_ovr,
         };
         let target = if self.stopping { 0.0 } else { self.sp_dir * mag.min(machine_max) };
+        self.sp_target = target;
         let step = self.lim.amax[AX_S] / 6.0 * dt;
         let d = target - self.sp_cur;
         self.sp_cur = if d.abs() <= step { target } else { self.sp_cur + step.copysign(d) };
         self.pos[AX_S] += self.sp_cur * 6.0 * dt;
+    }
+
+    /// Feed hold in force now. With No.5200#6 = 0 it waits while the tool is in a tapped hole
+    /// (the tap would break): the strokes and the dwell at the bottom run on to the R point.
+    fn hold_now(&self) -> bool {
+        self.held && !(self.in_hole && !self.lim.tap_hold_in_hole)
     }
 
     /// The commanded path speed (mm/s) of a segment this cycle.
@@ -556,14 +900,25 @@ impl Motion {
         let prev = self.pos;
         let mut event = Event::None;
         let mut path_v = 0.0;
-        self.step_spindle(dt);
+        // In a rigid-tap stroke the spindle is a position axis driven by the tap profile.
+        if !matches!(self.run, Run::Tap { theta0: Some(_), .. }) {
+            self.step_spindle(dt);
+        }
 
-        if self.run == Run::None && !self.stopping && !self.held && !self.paused {
+        if self.run == Run::None && !self.stopping && !self.hold_now() && !self.paused {
             if let Some(e) = self.pop() {
                 self.line = e.line;
                 match e.item {
-                    Item::Move(seg) => self.run = Run::Move { seg, s: 0.0, v: 0.0, landed: false },
+                    Item::Move(seg) => {
+                        self.in_hole = false;
+                        self.run = Run::Move { seg, s: 0.0, v: 0.0, landed: false };
+                    }
                     Item::Dwell(n) => self.run = Run::Dwell { left: n },
+                    Item::Thread(seg) => {
+                        self.in_hole = false;
+                        self.run = Run::Thread { seg, sync: None, s: 0.0, v: 0.0, landed: false };
+                    }
+                    Item::Tap(seg) => self.run = Run::Tap { seg, theta0: None, s: 0.0, v: 0.0, landed: false },
                     Item::Spindle(c) => self.apply_spindle(c),
                     Item::Event(ev) => {
                         event = ev;
@@ -582,29 +937,109 @@ impl Motion {
             Run::Move { landed: true, .. } => {
                 // Exact stop: one cycle at rest on the end point.
                 self.run = Run::None;
+                self.paused |= self.single_block;
             }
-            Run::Move { seg, s, v, landed: false } => {
+            Run::Move { mut seg, s, v, landed: false } => {
                 let len = seg.geom.len();
                 let d = len - s;
-                let nv = profile::next_speed(v, self.v_cmd(&seg, fb), d, seg.alim * dt, dt);
-                let (s2, landed) = if d - nv * dt <= 1e-9 { (len, true) } else { (s + nv * dt, false) };
-                let p = seg.geom.at(s2);
-                self.pos[..3].copy_from_slice(&p);
-                path_v = if landed { d / dt } else { nv };
-                // Stopping and at rest (this cycle did not move): done.
-                self.run = if self.stopping && nv == 0.0 && !landed {
-                    Run::None
-                } else {
-                    Run::Move { seg, s: s2, v: nv, landed }
+                let dv = seg.alim * dt;
+                // Single block: end this block at rest if it can still brake for its end point
+                // from here (dropping the look-ahead extension is safe only then); otherwise
+                // blend on and stop at the end of a later block.
+                if self.single_block && seg.ext > 0.0 && profile::v_allowed(d, dv, dt) >= v - dv {
+                    seg.ext = 0.0;
+                }
+                let nv = profile::next_speed(v, self.v_cmd(&seg, fb), d + seg.ext, dv, dt);
+                let reach = d - nv * dt <= 1e-9;
+                let next = match (reach && seg.ext > 0.0, self.peek()) {
+                    (true, Some(Entry { item: Item::Move(next), line })) => Some((next, line)),
+                    _ => None,
                 };
+                if let Some((next, line)) = next {
+                    // Blend: cross the junction within this cycle, onto the next segment.
+                    self.pop();
+                    self.line = line;
+                    let s2 = (nv * dt - d).max(0.0).min(next.geom.len());
+                    let p = next.geom.at(s2);
+                    self.pos[..3].copy_from_slice(&p);
+                    path_v = nv;
+                    self.run = Run::Move { seg: next, s: s2, v: nv, landed: false };
+                } else {
+                    let (s2, landed) = if reach { (len, true) } else { (s + nv * dt, false) };
+                    let p = seg.geom.at(s2);
+                    self.pos[..3].copy_from_slice(&p);
+                    path_v = if landed { d / dt } else { nv };
+                    // Stopping and at rest (this cycle did not move): done.
+                    self.run = if self.stopping && nv == 0.0 && !landed {
+                        Run::None
+                    } else {
+                        Run::Move { seg, s: s2, v: nv, landed }
+                    };
+                }
             }
             Run::Dwell { left } => {
                 if self.stopping {
                     self.run = Run::None;
-                } else if !self.held {
+                } else if !self.hold_now() {
                     let left = left.saturating_sub(1);
                     self.run = if left == 0 { Run::None } else { Run::Dwell { left } };
+                    self.paused |= self.single_block && left == 0 && !self.in_hole;
                 }
+            }
+            Run::Thread { landed: true, .. } => {
+                self.run = Run::None;
+                self.paused |= self.single_block;
+            }
+            Run::Thread { seg, sync, s, v, landed: false } => path_v = self.step_thread(fb, seg, sync, s, v),
+            Run::Tap { seg, theta0, landed: true, .. } => {
+                // At rest on the stroke's end, spindle stopped in position.
+                self.sp_cur = 0.0;
+                self.run = Run::None;
+                self.in_hole = theta0.is_some_and(|(zr, _)| seg.z1 != zr);
+                // Single block never stops inside a tap; after the hole only with No.5200#6.
+                self.paused |= self.single_block && !self.in_hole && self.lim.tap_hold_in_hole;
+            }
+            Run::Tap { seg, theta0: None, .. } => {
+                // Rigid tapping starts from a stopped spindle: brake it (step_spindle), then
+                // take its angle as the stroke's origin.
+                self.sp_dir = 0.0;
+                self.sp_css = None;
+                if self.stopping {
+                    self.run = Run::None;
+                } else if self.sp_cur == 0.0 {
+                    // Keep the previous stroke's reference if the spindle is still exactly where
+                    // that relation puts it (same hole, nothing turned it since).
+                    let r = match self.tap_ref {
+                        Some((zr, thr, lead))
+                            if lead == seg.lead && thr + 360.0 * (seg.z0 - zr) / lead == self.pos[AX_S] =>
+                        {
+                            (zr, thr)
+                        }
+                        _ => (seg.z0, self.pos[AX_S]),
+                    };
+                    self.tap_ref = Some((r.0, r.1, seg.lead));
+                    self.run = Run::Tap { seg, theta0: Some(r), s: 0.0, v: 0.0, landed: false };
+                }
+            }
+            Run::Tap { seg, theta0: Some((zr, thr)), s, v, landed: false } => {
+                // Feed hold acts within the stroke only with No.5200#6 (see hold_now); a hold
+                // or a controlled stop brakes Z and the spindle together on the same profile.
+                let len = (seg.z1 - seg.z0).abs();
+                let d = len - s;
+                let v_cmd = if self.stopping || (self.held && self.lim.tap_hold_in_hole) { 0.0 } else { seg.v };
+                let nv = profile::next_speed(v, v_cmd, d, seg.alim * dt, dt);
+                let (s2, landed) = if d - nv * dt <= 1e-9 { (len, true) } else { (s + nv * dt, false) };
+                let z = if landed { seg.z1 } else { seg.z0 + s2.copysign(seg.z1 - seg.z0) };
+                self.pos[AX_Z] = z;
+                self.pos[AX_S] = thr + 360.0 * (z - zr) / seg.lead;
+                self.sp_cur = (self.pos[AX_S] - prev[AX_S]) / dt / 6.0;
+                path_v = (z - prev[AX_Z]).abs() / dt;
+                self.run = if self.stopping && nv == 0.0 && !landed {
+                    self.sp_cur = 0.0;
+                    Run::None
+                } else {
+                    Run::Tap { seg, theta0: Some((zr, thr)), s: s2, v: nv, landed }
+                };
             }
         }
 
@@ -616,6 +1051,8 @@ impl Motion {
             self.paused = false;
             self.plan_end = [self.pos[AX_X], self.pos[AX_Y], self.pos[AX_Z]];
             self.plan_spindle_on = false;
+            self.last_blendable = false;
+            self.in_hole = false;
             self.sp_dir = 0.0;
             self.sp_css = None;
         }
@@ -633,6 +1070,84 @@ impl Motion {
             line: self.line,
             event,
         }
+    }
+
+    /// One cycle of a thread pass: wait for the spindle, arm at the measured angle, then track
+    /// the synchronous position within the axis limits, braking for the end. Returns the path
+    /// speed (mm/s).
+    fn step_thread(&mut self, fb: &Feedback, seg: ThreadSeg, sync: Option<ThreadSync>, s: f64, v: f64) -> f64 {
+        let dt = self.lim.cycle_s;
+        let theta = fb.pos[AX_S];
+        // The lead-in ramp uses 80 % of the path acceleration, leaving the tracker headroom.
+        let sync = match sync {
+            Some(t) => Some(t),
+            None if self.stopping => None,
+            // Arm only once the spindle is at its commanded speed (speed arrival).
+            None if self.sp_cur != self.sp_target || self.sp_target == 0.0 => None,
+            None => ThreadSync::arm(theta, fb.spindle_rpm, seg.start_angle, seg.lead_path, 0.8 * seg.alim),
+        };
+        let Some(t) = sync else {
+            // Spindle not turning yet (or stopping before the cut began): wait at the start.
+            if self.stopping {
+                self.run = Run::None;
+            }
+            return 0.0;
+        };
+        if s == 0.0 && v == 0.0 && t.sync_speed() > seg.vlim {
+            // The measured spindle speed is too fast for the lead: refuse before cutting.
+            self.fault = Some(Fault::ThreadTooFast { v: t.sync_speed(), vlim: seg.vlim, line: self.line });
+            self.stop();
+            self.run = Run::None;
+            return 0.0;
+        }
+        let len = seg.geom.len();
+        let dv = seg.alim * dt;
+        let target = t.target(theta).min(len);
+        // Feed hold and override do not apply while threading (Fanuc); a controlled stop does.
+        let want = if self.stopping { 0.0 } else { (target - s) / dt };
+        let nv = want
+            .max((v - dv).max(0.0))
+            .min(v + dv)
+            .min(seg.vlim)
+            .min(profile::v_allowed(len - s, dv, dt))
+            .max(0.0);
+        let d = len - s;
+        let (s2, landed) = if d - nv * dt <= 1e-9 { (len, true) } else { (s + nv * dt, false) };
+        self.pos[..3].copy_from_slice(&seg.geom.at(s2));
+        self.sync_err = target - s2;
+        self.run = if self.stopping && nv == 0.0 && !landed {
+            Run::None
+        } else {
+            Run::Thread { seg, sync: Some(t), s: s2, v: nv, landed }
+        };
+        if landed {
+            d / dt
+        } else {
+            nv
+        }
+    }
+
+    /// Thread sync error: where the spindle angle says the tool belongs minus where it is
+    /// commanded, mm along the path (last thread cycle). Within the cut it is at most a few
+    /// µm; it grows in the lead-out, where the axes brake for the end point.
+    pub fn sync_error(&self) -> f64 {
+        self.sync_err
+    }
+
+    /// A fault found by `step` (which cannot return errors), as an alarm; the motion is already
+    /// being brought to a controlled stop. Call outside the real-time path.
+    pub fn take_alarm(&mut self) -> Option<Alarm> {
+        let f = self.fault.take()?;
+        Some(match f {
+            Fault::ThreadTooFast { v, vlim, line } => Alarm::new(
+                alarms::THREAD_TOO_FAST,
+                format!(
+                    "line {line}: the measured spindle speed needs {:.0} mm/min for the thread lead, more than the axes' {:.0} mm/min; lower S",
+                    v * 60.0,
+                    vlim * 60.0
+                ),
+            ),
+        })
     }
 
     /// True when every pushed move has been executed and the feed axes are at rest. (The
@@ -666,6 +1181,18 @@ impl Motion {
         self.held || self.paused
     }
 
+    /// Single block: after each motion block or dwell the program waits for cycle start. With
+    /// look-ahead, a block that can no longer brake for its end when the switch goes on runs
+    /// on into the next block and stops at the end of that one.
+    pub fn set_single_block(&mut self, on: bool) {
+        self.single_block = on;
+    }
+
+    /// The current position setpoint (what the last `step` returned, or the start).
+    pub fn position(&self) -> [f64; N_AXES] {
+        self.pos
+    }
+
     /// Optional stop switch: when on, M01 waits for cycle start like M00.
     pub fn set_optional_stop(&mut self, on: bool) {
         self.optional_stop = on;
@@ -676,9 +1203,39 @@ impl Motion {
         self.feed_ovr = if f.is_finite() { f.clamp(0.0, 2.0) } else { 0.0 };
     }
 
+    /// Spindle speed override, 0.5–1.2 (50–120 %, Fanuc's range), from the next cycle. Under
+    /// G96 the G50 clamp still holds; the machine maximum always does.
+    pub fn set_spindle_override(&mut self, f: f64) {
+        self.spindle_ovr = if f.is_finite() { f.clamp(0.5, 1.2) } else { 1.0 };
+    }
+
     /// Rapid override, 0–1 (F0 … 100 %).
     pub fn set_rapid_override(&mut self, f: f64) {
         self.rapid_ovr = if f.is_finite() { f.clamp(0.0, 1.0) } else { 0.0 };
+    }
+}
+
+/// The nominal commanded speed of a segment (mm/s), for junction limits: a feed per minute
+/// (clamped by No.6023 later in `v_cmd`), unknown for a feed per revolution.
+fn speed_cap(s: &Seg) -> f64 {
+    match s.speed {
+        Speed::PerMin(f) => f,
+        Speed::Rapid | Speed::PerRev(_) => f64::INFINITY,
+    }
+}
+
+fn seg(geom: Geom, speed: Speed, v: f64, a: f64) -> Seg {
+    let (t0, t1) = geom.tangents();
+    Seg {
+        geom,
+        speed,
+        vlim: finite_or_zero(v),
+        alim: finite_or_zero(a),
+        t0,
+        t1,
+        blend_in: false,
+        vj: 0.0,
+        ext: 0.0,
     }
 }
 

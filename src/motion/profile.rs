@@ -26,12 +26,26 @@ pub fn v_allowed(d: f64, dv: f64, dt: f64) -> f64 {
     ((y + dv * m * (m + 1.0) / 2.0) / (m + 1.0)).max(0.0)
 }
 
+/// `G(v)` itself (see [`v_allowed`]): the distance, in units of `dt`, that a cycle at speed `v`
+/// and the braking staircase after it cover before rest.
+pub fn g(v: f64, dv: f64) -> f64 {
+    if !(v > 0.0) {
+        return 0.0;
+    }
+    if !(dv > 0.0) {
+        return f64::INFINITY;
+    }
+    let m = (v / dv).floor();
+    (m + 1.0) * v - dv * m * (m + 1.0) / 2.0
+}
+
 /// The path speed for the next cycle: towards `v_cmd` by at most `dv`, never more than what
 /// still allows stopping exactly within the remaining distance `d` (see [`v_allowed`]).
 pub fn next_speed(v: f64, v_cmd: f64, d: f64, dv: f64, dt: f64) -> f64 {
     let lo = (v - dv).max(0.0);
     let hi = v + dv;
-    let want = if v_cmd.is_finite() { v_cmd.clamp(lo, hi) } else { lo };
+    // max/min rather than clamp: no panic even if a caller passes lo > hi or NaN.
+    let want = if v_cmd.is_finite() { v_cmd.max(lo).min(hi) } else { lo };
     want.min(v_allowed(d, dv, dt)).max(0.0)
 }
 
@@ -40,7 +54,7 @@ mod tests {
     use super::*;
 
     /// G(v) by brute force, for v_end = 0.
-    fn g(v: f64, dv: f64) -> f64 {
+    fn brute_g(v: f64, dv: f64) -> f64 {
         let mut s = 0.0;
         let mut k = 0.0;
         while v - k * dv > 0.0 {
@@ -51,12 +65,22 @@ mod tests {
     }
 
     #[test]
+    fn g_matches_brute_force_and_inverts() {
+        let dv = 0.37;
+        for i in 0..500 {
+            let v = i as f64 * 0.0213;
+            assert!((g(v, dv) - brute_g(v, dv)).abs() < 1e-9);
+            assert!((v_allowed(g(v, dv) * 0.002, dv, 0.002) - v).abs() < 1e-9);
+        }
+    }
+
+    #[test]
     fn inverse_matches_brute_force() {
         let (dv, dt) = (0.004, 0.002);
         for i in 1..2000 {
             let d = i as f64 * 1e-4;
             let v = v_allowed(d, dv, dt);
-            let back = g(v, dv) * dt;
+            let back = brute_g(v, dv) * dt;
             assert!((back - d).abs() < 1e-12, "d={d} v={v} G={back}");
         }
     }

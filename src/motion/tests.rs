@@ -485,3 +485,663 @@ proptest! {
         }
     }
 }
+
+// ---- Look-ahead (G64) ----
+
+fn mv_g64(line: u32, kind: MoveKind) -> Move {
+    Move { exact_stop: false, ..mv(line, kind) }
+}
+
+#[test]
+fn collinear_g64_segments_keep_the_feed_through_the_junctions() {
+    let l = lim();
+    let mut m = Motion::new(l.clone(), START);
+    for (i, z) in [-10.0, -20.0, -30.0, -40.0].iter().enumerate() {
+        m.push(&mv_g64(i as u32 + 1, feed(50.0, *z, 1200.0))).unwrap();
+    }
+    m.push(&mv(5, feed(50.0, -50.0, 1200.0))).unwrap();
+    let sps = run(&mut m, 100_000);
+    for s in &sps {
+        if s.pos[AX_Z] < -2.0 && s.pos[AX_Z] > -48.0 {
+            assert_eq!(s.path_feed, 1200.0, "slowed down at z {}", s.pos[AX_Z]);
+        }
+    }
+    // 50 mm at 20 mm/s plus the ramps at the blended (half) acceleration, 1000 mm/s².
+    let t = sps.len() as f64 * l.cycle_s;
+    assert!((t - (2.5 + 0.02)).abs() < 0.01, "took {t} s");
+    assert_eq!(sps.last().unwrap().pos[AX_Z], -50.0);
+    check_limits(&l, START, &sps).unwrap();
+}
+
+/// Distance of `p` from the segment `a`–`b` (plane points).
+fn dist_seg(p: (f64, f64), a: (f64, f64), b: (f64, f64)) -> f64 {
+    let (dx, dy) = (b.0 - a.0, b.1 - a.1);
+    let t = (((p.0 - a.0) * dx + (p.1 - a.1) * dy) / (dx * dx + dy * dy)).clamp(0.0, 1.0);
+    (p.0 - a.0 - t * dx).hypot(p.1 - a.1 - t * dy)
+}
+
+#[test]
+fn g64_corner_is_crossed_at_the_corner_speed_and_g61_stops_there() {
+    let l = lim();
+    for exact in [false, true] {
+        let mut m = Motion::new(l.clone(), START);
+        // Along −Z, then turning 30° towards +X.
+        let (x2, z2) = (50.0 + 10.0 * 0.5, -20.0 - 10.0 * 0.75f64.sqrt());
+        m.push(&Move { exact_stop: exact, ..mv(1, feed(50.0, -20.0, 2000.0)) }).unwrap();
+        m.push(&mv(2, feed(x2, z2, 2000.0))).unwrap();
+        let sps = run(&mut m, 100_000);
+        check_limits(&l, START, &sps).unwrap();
+        let k = sps.iter().position(|s| s.line == 2).unwrap();
+        // Speed in the cycle that reaches (G61) or crosses (G64) the corner.
+        let corner = sps[k - 1..=k].iter().map(|s| s.path_feed).fold(f64::INFINITY, f64::min);
+        let at_rest = sps.iter().any(|s| s.pos[..3] == [50.0, 0.0, -20.0] && s.vel[..3] == [0.0; 3]);
+        if exact {
+            assert!(at_rest, "G61 must stop on the corner");
+        } else {
+            // 30°: X's speed jumps by v·sin 30° across the corner; v·0.5 ≤ ½·a·dt ⇒ v ≤ 4 mm/s.
+            assert!(!at_rest, "G64 must not stop on the corner");
+            assert!(corner > 0.0 && corner <= 240.0 + 1e-9, "corner speed {corner} mm/min");
+            // The corner is cut by less than one cycle's travel.
+            let dev = sps
+                .iter()
+                .map(|s| {
+                    let p = (s.pos[AX_X], s.pos[AX_Z]);
+                    dist_seg(p, (50.0, 0.0), (50.0, -20.0)).min(dist_seg(p, (50.0, -20.0), (x2, z2)))
+                })
+                .fold(f64::MIN, f64::max);
+            assert!(dev <= 240.0 / 60.0 * l.cycle_s, "cut the corner by {dev} mm");
+        }
+    }
+}
+
+#[test]
+fn g64_late_push_still_blends_or_stops_safely() {
+    let l = lim();
+    let mut m = Motion::new(l.clone(), START);
+    m.push(&mv_g64(1, feed(50.0, -30.0, 3000.0))).unwrap();
+    let fb = Feedback::default();
+    let mut sps: Vec<Setpoint> = (0..300).map(|_| m.step(&fb)).collect();
+    // Pushed while the first is already braking for its (provisional) exact stop.
+    m.push(&mv_g64(2, feed(50.0, -60.0, 3000.0))).unwrap();
+    sps.extend((0..400).map(|_| m.step(&fb)));
+    m.push(&mv(3, feed(60.0, -60.0, 3000.0))).unwrap();
+    sps.extend(run(&mut m, 100_000));
+    check_limits(&l, START, &sps).unwrap();
+    assert_eq!(sps.last().unwrap().pos[..3], [60.0, 0.0, -60.0]);
+}
+
+#[test]
+fn g64_tiny_segments_run_without_stopping() {
+    let l = lim();
+    let mut m = Motion::new(l.clone(), START);
+    // A 0.05 mm polyline approximating a shallow curve: more segments than cycles per mm.
+    let n = 200;
+    let mut longest: f64 = 0.0;
+    let mut prev = (50.0, 0.0);
+    for i in 1..=n {
+        let z = -0.05 * i as f64;
+        let x = 50.0 + 0.2 * (z / 3.0).sin();
+        longest = longest.max((x - prev.0).hypot(z - prev.1));
+        prev = (x, z);
+        let k = if i == n { mv(i, feed(x, z, 3000.0)) } else { mv_g64(i, feed(x, z, 3000.0)) };
+        m.push(&k).unwrap();
+    }
+    let sps = run(&mut m, 100_000);
+    check_limits(&l, START, &sps).unwrap();
+    let moving = &sps[5..sps.len() - 5];
+    assert!(moving.iter().all(|s| s.path_feed > 0.0), "stopped on the way");
+    // At most one junction per cycle: speed ≤ one segment (≈ 0.05 mm) per cycle ≈ 25 mm/s.
+    let vmax = longest / l.cycle_s * 60.0;
+    assert!(sps.iter().all(|s| s.path_feed <= vmax + 1e-9), "faster than one segment per cycle");
+    assert!(sps.iter().any(|s| s.path_feed > 0.9 * 1500.0), "tiny segments ran slower than needed");
+}
+
+/// A random chain of lines and arcs, with random exact-stop flags, from the current point.
+#[derive(Clone, Debug)]
+enum Step {
+    Line { x: f64, z: f64, f: f64, exact: bool },
+    Arc { dx: f64, dz: f64, ang: f64, cw: bool, f: f64, exact: bool },
+}
+
+fn chain_strategy() -> impl Strategy<Value = Step> {
+    prop_oneof![
+        (10.0..140.0f64, -390.0..-10.0f64, 10.0..6000.0f64, any::<bool>())
+            .prop_map(|(x, z, f, exact)| Step::Line { x, z, f, exact }),
+        (-8.0..8.0f64, -8.0..8.0f64, 0.0..6.3f64, any::<bool>(), 10.0..6000.0f64, any::<bool>())
+            .prop_map(|(dx, dz, ang, cw, f, exact)| Step::Arc { dx, dz, ang, cw, f, exact }),
+    ]
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 64, ..ProptestConfig::default() })]
+    #[test]
+    fn random_g64_chains_respect_limits_and_end_exactly(steps in prop::collection::vec(chain_strategy(), 1..10)) {
+        let l = lim();
+        let start = [60.0, 0.0, -100.0, 0.0];
+        let mut m = Motion::new(l.clone(), start);
+        let mut cur = (start[AX_X], start[AX_Z]);
+        for (i, s) in steps.iter().enumerate() {
+            let line = i as u32 + 1;
+            let last = i + 1 == steps.len();
+            match *s {
+                Step::Line { x, z, f, exact } => {
+                    m.push(&Move { exact_stop: exact || last, ..mv(line, feed(x, z, f)) }).unwrap();
+                    cur = (x, z);
+                }
+                Step::Arc { dx, dz, ang, cw, f, exact } => {
+                    let (cx, cz) = (cur.0 + dx, cur.1 + dz);
+                    let r = dx.hypot(dz);
+                    if r < 0.1 { continue; }
+                    let (ex, ez) = (cx + r * ang.sin(), cz + r * ang.cos());
+                    match m.push(&Move { exact_stop: exact || last, ..mv(line, arc_zx(ex, ez, cx, cz, cw, f)) }) {
+                        Ok(()) => cur = (ex, ez),
+                        // End point or bulge beyond the travel: refused, the chain goes on.
+                        Err(e) if e.number == alarms::TRAVEL => continue,
+                        Err(e) => prop_assert!(false, "{}", e),
+                    }
+                }
+            }
+        }
+        let sps = run(&mut m, 5_000_000);
+        if let Some(last) = sps.last() {
+            prop_assert_eq!((last.pos[AX_X], last.pos[AX_Z]), cur);
+        }
+        if let Err(e) = check_limits(&l, start, &sps) {
+            prop_assert!(false, "{}", e);
+        }
+    }
+}
+
+// ---- Threading and rigid tapping ----
+
+fn thread(x: f64, z: f64, lead: f64, start_angle: f64) -> MoveKind {
+    MoveKind::Thread { end: Pos::xz(x, z), lead, start_angle, continuous: false, lead_inc: 0.0 }
+}
+
+/// Run a thread pass after `wait` seconds of dwell; return the setpoints and, for the cycles
+/// locked to the spindle, the phase θ_fb − 360·(z0 − z)/lead (constant when locked).
+fn thread_pass(wait: f64, start_angle: f64) -> (Vec<Setpoint>, Vec<f64>) {
+    let l = lim();
+    let mut m = Motion::new(l.clone(), START);
+    m.push(&mv(1, spindle(SpindleDir::Cw, 600.0))).unwrap();
+    m.push(&mv(2, rapid(20.0, 2.0))).unwrap();
+    m.push(&mv(3, MoveKind::Dwell { seconds: wait })).unwrap();
+    m.push(&mv(4, thread(20.0, -30.0, 2.0, start_angle))).unwrap();
+    let sps = run(&mut m, 100_000);
+    check_limits(&l, START, &sps).unwrap();
+    assert_eq!(sps.last().unwrap().pos[..3], [20.0, 0.0, -30.0]);
+    // Locked cycles: thread running at full synchronous speed, 20 mm/s at 600 rpm × 2 mm.
+    let mut phases = Vec::new();
+    for k in 1..sps.len() {
+        if sps[k].line == 4 && (sps[k].path_feed - 1200.0).abs() < 1e-6 {
+            let theta_fb = sps[k - 1].pos[AX_S];
+            phases.push(theta_fb - 360.0 * (2.0 - sps[k].pos[AX_Z]) / 2.0);
+        }
+    }
+    assert!(phases.len() > 500, "only {} locked cycles", phases.len());
+    (sps, phases)
+}
+
+#[test]
+fn thread_is_locked_to_the_spindle_angle_with_the_programmed_phase() {
+    let (_, ph) = thread_pass(0.1, 0.0);
+    for p in &ph {
+        assert!((p - ph[0]).abs() < 1e-6, "phase drifts: {p} vs {}", ph[0]);
+    }
+    // θ0 ≡ start angle (0°) modulo one revolution.
+    let r = ph[0].rem_euclid(360.0);
+    assert!(r.min(360.0 - r) < 1e-6, "phase {} ≢ 0", ph[0]);
+}
+
+#[test]
+fn repeated_thread_passes_cut_the_same_groove_and_start_angle_shifts_it() {
+    let (_, a) = thread_pass(0.1, 0.0);
+    let (_, b) = thread_pass(0.337, 0.0); // spindle at a different angle when the pass starts
+    let (_, c) = thread_pass(0.1, 180.0); // second start of a two-start thread
+    let d_ab = (a[0] - b[0]).rem_euclid(360.0);
+    assert!(d_ab.min(360.0 - d_ab) < 1e-6, "passes differ by {d_ab}°");
+    let d_ac = (c[0] - a[0]).rem_euclid(360.0);
+    assert!((d_ac - 180.0).abs() < 1e-6, "second start offset {d_ac}°");
+}
+
+#[test]
+fn thread_is_refused_without_spindle_or_when_too_fast() {
+    let mut m = Motion::new(lim(), START);
+    assert_eq!(m.push(&mv(1, thread(50.0, -10.0, 2.0, 0.0))).unwrap_err().number, alarms::PER_REV_SPINDLE_STOPPED);
+    m.push(&mv(2, spindle(SpindleDir::Cw, 3000.0))).unwrap();
+    // 10 mm × 3000 rpm = 30 m/min, more than Z's 12 m/min.
+    assert_eq!(m.push(&mv(3, thread(50.0, -10.0, 10.0, 0.0))).unwrap_err().number, alarms::THREAD_TOO_FAST);
+}
+
+#[test]
+fn rigid_tap_keeps_spindle_angle_and_z_locked_and_returns() {
+    let l = lim();
+    let mut m = Motion::new(l.clone(), [0.0, 0.0, 0.0, 0.0]);
+    m.push(&mv(1, spindle(SpindleDir::Cw, 800.0))).unwrap(); // running: the tap brakes it first
+    m.push(&mv(2, rapid(0.0, 2.0))).unwrap();
+    m.push(&mv(3, MoveKind::Tap { end: Pos::xz(0.0, -20.0), lead: 1.5, rpm: 1000.0 })).unwrap();
+    m.push(&mv(4, MoveKind::Tap { end: Pos::xz(0.0, 2.0), lead: 1.5, rpm: 1000.0 })).unwrap();
+    let sps = run(&mut m, 100_000);
+    check_limits(&l, [0.0; N_AXES], &sps).unwrap();
+    let first = sps.iter().position(|s| s.line == 3).unwrap();
+    let stroke: Vec<&Setpoint> = sps[first..].iter().filter(|s| s.line >= 3).collect();
+    // The spindle is at rest when the stroke starts; take its angle there.
+    let k0 = stroke.iter().position(|s| s.pos[AX_Z] != 2.0).unwrap();
+    assert_eq!(stroke[k0 - 1].spindle_rpm, 0.0);
+    let th0 = stroke[k0 - 1].pos[AX_S];
+    for s in &stroke[k0 - 1..] {
+        let want = th0 + 360.0 * (s.pos[AX_Z] - 2.0) / 1.5;
+        assert!((s.pos[AX_S] - want).abs() < 1e-9, "spindle {} vs {want} at z {}", s.pos[AX_S], s.pos[AX_Z]);
+    }
+    // Bottom reached exactly, and the reverse stroke brings the spindle back to its angle.
+    assert!(sps.iter().any(|s| s.pos[AX_Z] == -20.0));
+    let last = sps.last().unwrap();
+    assert_eq!(last.pos[AX_Z], 2.0);
+    assert_eq!(last.pos[AX_S], th0);
+    // 1000 rpm × 1.5 mm = 25 mm/s at full speed, turning backwards (−Z with a + lead).
+    let top = sps.iter().map(|s| s.spindle_rpm).fold(0.0, f64::min);
+    assert!((top + 1000.0).abs() < 1e-6, "tap speed {top} rpm");
+}
+
+#[test]
+fn arc_bulging_beyond_travel_is_refused() {
+    let start = [145.0, 0.0, -10.0, 0.0];
+    let mut m = Motion::new(lim(), start);
+    // Half circle r = 10 about (x 145, z −20): counter-clockwise it passes x = 155 > 150.
+    let e = m.push(&mv(1, arc_zx(145.0, -30.0, 145.0, -20.0, false, 1000.0))).unwrap_err();
+    assert_eq!(e.number, alarms::TRAVEL);
+    assert!(e.message.contains("X arc 155"), "{}", e.message);
+    // Clockwise it passes x = 135: fine.
+    m.push(&mv(2, arc_zx(145.0, -30.0, 145.0, -20.0, true, 1000.0))).unwrap();
+    let sps = run(&mut m, 100_000);
+    assert!(sps.iter().all(|s| s.pos[AX_X] <= 145.0 + 1e-9));
+    assert_eq!(sps.last().unwrap().pos[AX_Z], -30.0);
+}
+
+#[test]
+fn rapid_override_scales_rapids_only() {
+    let mut m = Motion::new(lim(), START);
+    m.set_rapid_override(0.25);
+    m.set_feed_override(2.0);
+    m.push(&mv(1, rapid(50.0, -100.0))).unwrap();
+    m.push(&mv(2, feed(50.0, -110.0, 600.0))).unwrap();
+    let sps = run(&mut m, 100_000);
+    let top = |line| sps.iter().filter(|s| s.line == line).map(|s| s.path_feed).fold(0.0, f64::max);
+    assert!((top(1) - 3000.0).abs() < 1e-6, "rapid at {}", top(1));
+    assert!((top(2) - 1200.0).abs() < 1e-6, "feed at {}", top(2));
+}
+
+#[test]
+fn feed_hold_waits_for_the_end_of_a_thread() {
+    let l = lim();
+    let mut m = Motion::new(l.clone(), START);
+    m.push(&mv(1, spindle(SpindleDir::Cw, 600.0))).unwrap();
+    m.push(&mv(2, rapid(20.0, 2.0))).unwrap();
+    m.push(&mv(3, thread(20.0, -30.0, 2.0, 0.0))).unwrap();
+    m.push(&mv(4, rapid(25.0, -30.0))).unwrap();
+    let mut fb = Feedback { pos: START, spindle_rpm: 0.0 };
+    let mut sps = Vec::new();
+    for k in 0..20_000 {
+        let sp = m.step(&fb);
+        fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm };
+        sps.push(sp);
+        if sp.line == 3 && sp.pos[AX_Z] < -10.0 && !m.is_held() {
+            m.feed_hold(); // mid-thread: must not stop the cut
+        }
+        if k > 10_000 {
+            break;
+        }
+    }
+    // The thread ran to its end at full speed; the hold then stopped before the next rapid.
+    assert!(sps.iter().any(|s| s.pos[AX_Z] == -30.0 && s.line == 3));
+    assert!(sps.iter().all(|s| s.line != 4 || s.pos[AX_X] == 20.0));
+    assert!(m.is_held());
+    check_limits(&l, START, &sps).unwrap();
+}
+
+/// Arbitrary, including non-finite, numbers.
+fn any_f64() -> impl Strategy<Value = f64> + Clone {
+    prop_oneof![
+        -500.0..500.0f64,
+        Just(f64::NAN),
+        Just(f64::INFINITY),
+        Just(f64::NEG_INFINITY),
+        Just(0.0),
+        Just(-0.0),
+        Just(1e300),
+        Just(-1e-300),
+    ]
+}
+
+fn any_move() -> impl Strategy<Value = MoveKind> {
+    fn pos() -> impl Strategy<Value = Pos> {
+        // Mostly valid coordinates, so that motion actually runs, sometimes anything.
+        (
+            prop_oneof![3 => 0.0..150.0f64, 1 => any_f64()],
+            prop_oneof![3 => Just(0.0), 1 => any_f64()],
+            prop_oneof![3 => -400.0..5.0f64, 1 => any_f64()],
+            prop_oneof![3 => Just(0.0), 1 => any_f64()],
+        )
+            .prop_map(|(x, y, z, c)| Pos { x, y, z, c })
+    }
+    prop_oneof![
+        pos().prop_map(|end| MoveKind::Rapid { end }),
+        (pos(), any_f64(), any::<bool>()).prop_map(|(end, f, r)| MoveKind::Feed {
+            end,
+            feed: if r { Feed::PerRev(f) } else { Feed::PerMin(f) }
+        }),
+        (pos(), pos(), any::<bool>(), 0..3u8, any_f64()).prop_map(|(end, center, cw, pl, f)| MoveKind::Arc {
+            end,
+            center,
+            cw,
+            plane: [Plane::Xy, Plane::Zx, Plane::Yz][pl as usize],
+            feed: Feed::PerMin(f)
+        }),
+        (pos(), any_f64(), any_f64()).prop_map(|(end, lead, start_angle)| MoveKind::Thread { end, lead, start_angle, continuous: false, lead_inc: 0.0 }),
+        (pos(), any_f64(), any_f64()).prop_map(|(end, lead, rpm)| MoveKind::Tap { end, lead, rpm }),
+        any_f64().prop_map(|seconds| MoveKind::Dwell { seconds: seconds.abs().min(0.05) }),
+        (0..3u8, any_f64(), prop::option::of(any_f64()), prop::option::of(any_f64())).prop_map(|(d, rpm, css, max_rpm)| {
+            MoveKind::Spindle(SpindleCmd {
+                dir: [SpindleDir::Cw, SpindleDir::Ccw, SpindleDir::Stop][d as usize],
+                rpm,
+                css,
+                max_rpm,
+            })
+        }),
+        any::<bool>().prop_map(|optional| MoveKind::Stop { optional }),
+    ]
+}
+
+/// Operator actions between cycles.
+#[derive(Clone, Debug)]
+enum Op {
+    Steps(u16),
+    Hold,
+    Start,
+    Stop,
+    FeedOvr(f64),
+    RapidOvr(f64),
+    Fb(f64, f64),
+    Single(bool),
+}
+
+fn any_op() -> impl Strategy<Value = Op> {
+    prop_oneof![
+        4 => (1..400u16).prop_map(Op::Steps),
+        1 => Just(Op::Hold),
+        2 => Just(Op::Start),
+        1 => Just(Op::Stop),
+        1 => any_f64().prop_map(Op::FeedOvr),
+        1 => any_f64().prop_map(Op::RapidOvr),
+        1 => (any_f64(), any_f64()).prop_map(|(a, r)| Op::Fb(a, r)),
+        1 => any::<bool>().prop_map(Op::Single),
+    ]
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 128, ..ProptestConfig::default() })]
+
+    /// No input makes push or step panic; the setpoint stays finite and inside the travel.
+    #[test]
+    fn arbitrary_moves_and_operator_actions_never_panic(
+        moves in prop::collection::vec((any_move(), any::<bool>()), 0..12),
+        ops in prop::collection::vec(any_op(), 0..12),
+    ) {
+        let l = lim();
+        let mut m = Motion::new(l.clone(), START);
+        for (i, (k, exact)) in moves.iter().enumerate() {
+            let _ = m.push(&Move { exact_stop: *exact, ..mv(i as u32, k.clone()) });
+        }
+        let mut fb = Feedback { pos: START, spindle_rpm: 0.0 };
+        for op in &ops {
+            match *op {
+                Op::Steps(n) => {
+                    for _ in 0..n {
+                        let sp = m.step(&fb);
+                        for i in 0..3 {
+                            prop_assert!(sp.pos[i].is_finite());
+                            if l.present[i] {
+                                prop_assert!(sp.pos[i] >= l.travel[i].0.min(START[i]) - 1e-9);
+                                prop_assert!(sp.pos[i] <= l.travel[i].1.max(START[i]) + 1e-9);
+                            }
+                        }
+                        prop_assert!(sp.pos[AX_S].is_finite() && sp.spindle_rpm.is_finite());
+                        prop_assert!(sp.spindle_rpm.abs() <= 6000.0);
+                        fb.pos = sp.pos;
+                    }
+                }
+                Op::Hold => m.feed_hold(),
+                Op::Start => m.cycle_start(),
+                Op::Stop => m.stop(),
+                Op::FeedOvr(f) => m.set_feed_override(f),
+                Op::RapidOvr(f) => m.set_rapid_override(f),
+                Op::Fb(a, r) => { fb.pos[AX_S] = a; fb.spindle_rpm = r; }
+                Op::Single(on) => m.set_single_block(on),
+            }
+        }
+        let _ = m.take_alarm();
+    }
+
+    /// Feed hold, cycle start, override changes and a stop at random moments of a G64 chain
+    /// never push an axis past its limits.
+    #[test]
+    fn operator_actions_during_g64_chains_respect_limits(
+        steps in prop::collection::vec(chain_strategy(), 1..8),
+        ops in prop::collection::vec(any_op(), 1..16),
+    ) {
+        let l = lim();
+        let start = [60.0, 0.0, -100.0, 0.0];
+        let mut m = Motion::new(l.clone(), start);
+        let mut cur = (start[AX_X], start[AX_Z]);
+        for (i, s) in steps.iter().enumerate() {
+            let k = match *s {
+                Step::Line { x, z, f, exact } => (feed(x, z, f), exact, (x, z)),
+                Step::Arc { dx, dz, ang, cw, f, exact } => {
+                    let (cx, cz) = (cur.0 + dx, cur.1 + dz);
+                    let r = dx.hypot(dz);
+                    if r < 0.1 { continue; }
+                    let e = (cx + r * ang.sin(), cz + r * ang.cos());
+                    (arc_zx(e.0, e.1, cx, cz, cw, f), exact, e)
+                }
+            };
+            if m.push(&Move { exact_stop: k.1, ..mv(i as u32 + 1, k.0) }).is_ok() {
+                cur = k.2;
+            }
+        }
+        let mut sps = Vec::new();
+        let fb = Feedback::default();
+        for op in &ops {
+            match *op {
+                Op::Steps(n) => sps.extend((0..n).map(|_| m.step(&fb))),
+                Op::Hold => m.feed_hold(),
+                Op::Start => m.cycle_start(),
+                Op::Stop => m.stop(),
+                Op::FeedOvr(f) => m.set_feed_override(f),
+                Op::RapidOvr(f) => m.set_rapid_override(f),
+                Op::Fb(..) => {}
+                Op::Single(on) => m.set_single_block(on),
+            }
+        }
+        m.cycle_start();
+        let mut n = 0;
+        while !m.is_idle() && n < 5_000_000 {
+            sps.push(m.step(&fb));
+            n += 1;
+            if n % 1000 == 0 {
+                m.set_feed_override(1.0);
+                m.cycle_start();
+            }
+        }
+        prop_assert!(m.is_idle(), "never finished");
+        if let Err(e) = check_limits(&l, start, &sps) {
+            prop_assert!(false, "{}", e);
+        }
+    }
+}
+
+#[test]
+fn single_block_stops_after_every_block_even_in_g64() {
+    let l = lim();
+    let mut m = Motion::new(l.clone(), START);
+    m.set_single_block(true);
+    let ends = [(50.0, -10.0), (55.0, -20.0), (55.0, -30.0)];
+    for (i, (x, z)) in ends.iter().enumerate() {
+        m.push(&mv_g64(i as u32 + 1, feed(*x, *z, 2000.0))).unwrap();
+    }
+    m.push(&mv(4, MoveKind::Dwell { seconds: 0.01 })).unwrap();
+    let fb = Feedback::default();
+    let mut sps = Vec::new();
+    let mut stops = Vec::new();
+    for _ in 0..20_000 {
+        let sp = m.step(&fb);
+        sps.push(sp);
+        if m.is_held() {
+            stops.push((sp.pos[AX_X], sp.pos[AX_Z], sp.vel[AX_X], sp.vel[AX_Z]));
+            m.cycle_start();
+        }
+        if m.is_idle() {
+            break;
+        }
+    }
+    assert_eq!(
+        stops,
+        vec![(50.0, -10.0, 0.0, 0.0), (55.0, -20.0, 0.0, 0.0), (55.0, -30.0, 0.0, 0.0), (55.0, -30.0, 0.0, 0.0)]
+    );
+    check_limits(&l, START, &sps).unwrap();
+}
+
+#[test]
+fn single_block_switched_on_mid_chain_stops_safely() {
+    let l = lim();
+    // Collinear G64 blocks at full speed: switched on right before a junction, the block can
+    // no longer stop at its end; it stops at the end of a later block instead.
+    let mut m = Motion::new(l.clone(), START);
+    for i in 1..=5 {
+        m.push(&mv_g64(i, feed(50.0, -10.0 * i as f64, 4000.0))).unwrap();
+    }
+    m.push(&mv(6, feed(50.0, -60.0, 4000.0))).unwrap();
+    let fb = Feedback::default();
+    let mut sps = Vec::new();
+    while sps.last().is_none_or(|s: &Setpoint| s.pos[AX_Z] > -19.9) {
+        sps.push(m.step(&fb));
+    }
+    m.set_single_block(true);
+    while !m.is_held() {
+        sps.push(m.step(&fb));
+        assert!(sps.len() < 100_000);
+    }
+    let at = sps.last().unwrap().pos[AX_Z];
+    assert!(at == -30.0 || at == -40.0, "stopped at z {at}, not on a block end");
+    check_limits(&l, START, &sps).unwrap();
+}
+
+#[test]
+fn spindle_override_scales_the_commanded_speed_within_the_machine_maximum() {
+    let mut m = Motion::new(lim(), START);
+    m.set_spindle_override(1.2);
+    m.push(&mv(1, spindle(SpindleDir::Ccw, 1000.0))).unwrap();
+    m.push(&mv(2, MoveKind::Dwell { seconds: 0.5 })).unwrap();
+    assert_eq!(run(&mut m, 10_000).last().unwrap().spindle_rpm, -1200.0);
+    m.push(&mv(3, spindle(SpindleDir::Cw, 5900.0))).unwrap();
+    m.push(&mv(4, MoveKind::Dwell { seconds: 3.0 })).unwrap();
+    assert_eq!(run(&mut m, 10_000).last().unwrap().spindle_rpm, 6000.0);
+    // Under css the G50 clamp holds after the override: 100 m/min at r 50 is 318 rpm.
+    let css = SpindleCmd { dir: SpindleDir::Cw, rpm: 0.0, css: Some(100.0), max_rpm: Some(350.0) };
+    m.push(&mv(5, MoveKind::Spindle(css))).unwrap();
+    m.push(&mv(6, MoveKind::Dwell { seconds: 1.0 })).unwrap();
+    assert_eq!(run(&mut m, 10_000).last().unwrap().spindle_rpm, 350.0);
+    m.push(&mv(7, spindle(SpindleDir::Cw, 5900.0))).unwrap();
+    m.set_spindle_override(f64::NAN);
+    m.push(&mv(8, MoveKind::Dwell { seconds: 1.2 })).unwrap();
+    assert_eq!(run(&mut m, 10_000).last().unwrap().spindle_rpm, 5900.0);
+}
+
+/// Rigid tap at (x 0): R point z 2, bottom z −20, dwell at the bottom, return, then away.
+fn tap_program(m: &mut Motion) {
+    m.push(&mv(1, rapid(0.0, 2.0))).unwrap();
+    m.push(&mv(2, MoveKind::Tap { end: Pos::xz(0.0, -20.0), lead: 1.0, rpm: 600.0 })).unwrap();
+    m.push(&mv(3, MoveKind::Dwell { seconds: 0.1 })).unwrap();
+    m.push(&mv(4, MoveKind::Tap { end: Pos::xz(0.0, 2.0), lead: 1.0, rpm: 600.0 })).unwrap();
+    m.push(&mv(5, rapid(10.0, 2.0))).unwrap();
+}
+
+#[test]
+fn feed_hold_in_a_rigid_tap_waits_for_the_r_point_by_default() {
+    let l = lim();
+    assert!(!l.tap_hold_in_hole, "lathe.toml has No.5200#6 = 0");
+    let mut m = Motion::new(l.clone(), [0.0; N_AXES]);
+    tap_program(&mut m);
+    let fb = Feedback::default();
+    let mut sps = Vec::new();
+    for _ in 0..20_000 {
+        let sp = m.step(&fb);
+        sps.push(sp);
+        if sp.line == 2 && sp.pos[AX_Z] < -5.0 && !m.is_held() {
+            m.feed_hold();
+        }
+        if m.is_held() && sps.len() > 10_000 {
+            break;
+        }
+    }
+    // Held at the R point after the return stroke, not in the hole.
+    let last = sps.last().unwrap();
+    assert_eq!((last.pos[AX_X], last.pos[AX_Z]), (0.0, 2.0));
+    assert!(sps.iter().any(|s| s.pos[AX_Z] == -20.0), "the tap reached the bottom");
+    assert!(sps.iter().all(|s| s.line <= 4));
+    m.cycle_start();
+    let rest = run(&mut m, 100_000);
+    assert_eq!(rest.last().unwrap().pos[AX_X], 10.0);
+    sps.extend(rest);
+    check_limits(&l, [0.0; N_AXES], &sps).unwrap();
+}
+
+#[test]
+fn feed_hold_in_a_rigid_tap_brakes_z_and_spindle_together_with_5200_bit6() {
+    let mut l = lim();
+    l.tap_hold_in_hole = true;
+    let mut m = Motion::new(l.clone(), [0.0; N_AXES]);
+    tap_program(&mut m);
+    let fb = Feedback::default();
+    let mut sps = Vec::new();
+    let mut theta_r = None;
+    for _ in 0..3000 {
+        let sp = m.step(&fb);
+        if sp.line == 2 && sp.pos[AX_Z] == 2.0 && sp.spindle_rpm == 0.0 {
+            theta_r = Some(sp.pos[AX_S]);
+        }
+        sps.push(sp);
+        if sp.line == 2 && sp.pos[AX_Z] < -5.0 {
+            m.feed_hold();
+        }
+    }
+    let last = *sps.last().unwrap();
+    assert!(last.pos[AX_Z] < -5.0 && last.pos[AX_Z] > -20.0, "stopped in the hole at {}", last.pos[AX_Z]);
+    assert_eq!((last.vel[AX_Z], last.spindle_rpm), (0.0, 0.0));
+    let th = theta_r.unwrap();
+    assert!((last.pos[AX_S] - (th + 360.0 * (last.pos[AX_Z] - 2.0))).abs() < 1e-9, "spindle left the thread");
+    m.cycle_start();
+    sps.extend(run(&mut m, 100_000));
+    assert_eq!(sps.last().unwrap().pos[AX_X], 10.0);
+    check_limits(&l, [0.0; N_AXES], &sps).unwrap();
+}
+
+#[test]
+fn single_block_does_not_stop_inside_a_rigid_tap() {
+    let mut m = Motion::new(lim(), [0.0; N_AXES]);
+    m.set_single_block(true);
+    tap_program(&mut m);
+    let fb = Feedback::default();
+    let mut stops = Vec::new();
+    for _ in 0..100_000 {
+        let sp = m.step(&fb);
+        if m.is_held() {
+            stops.push(sp.pos[AX_Z]);
+            m.cycle_start();
+        }
+        if m.is_idle() {
+            break;
+        }
+    }
+    // After the rapid to R and after the final rapid; never at the bottom.
+    assert_eq!(stops, vec![2.0, 2.0]);
+}

@@ -7,6 +7,7 @@ use super::{BusError, CanBus};
 use crate::frame::CanFrame;
 use socketcan::Socket;
 use std::io::ErrorKind;
+use std::os::fd::AsRawFd;
 use std::time::Duration;
 
 pub struct SocketCan {
@@ -104,11 +105,26 @@ impl CanBus for SocketCan {
     }
 
     fn recv_timeout(&mut self, timeout: Duration) -> Result<Option<CanFrame>, BusError> {
-        match self.sock.read_frame_timeout(timeout) {
-            Ok(f) => Ok(from_sc(&f)),
-            Err(e) if e.kind() == ErrorKind::TimedOut || e.kind() == ErrorKind::WouldBlock => Ok(None),
-            Err(e) => Err(self.io(e)),
+        if let Some(f) = self.try_recv()? {
+            return Ok(Some(f));
         }
+        // ppoll, not socketcan's read_frame_timeout: that one converts the timeout to whole
+        // milliseconds, so every sub-millisecond wait became a zero-timeout busy loop.
+        let mut pfd = libc::pollfd { fd: self.sock.as_raw_fd(), events: libc::POLLIN, revents: 0 };
+        let ts = libc::timespec { tv_sec: timeout.as_secs() as libc::time_t, tv_nsec: timeout.subsec_nanos() as libc::c_long };
+        // SAFETY: one valid pollfd for the socket we own, a valid timespec, no signal mask.
+        let r = unsafe { libc::ppoll(&mut pfd, 1, &ts, std::ptr::null()) };
+        if r < 0 {
+            let e = std::io::Error::last_os_error();
+            if e.kind() == ErrorKind::Interrupted {
+                return Ok(None);
+            }
+            return Err(self.io(e));
+        }
+        if r == 0 {
+            return Ok(None);
+        }
+        self.try_recv()
     }
 
     fn name(&self) -> &str {

@@ -22,8 +22,6 @@ use cncgw_bus::{CanBus, CanFrame, Clock};
 pub const MASTER_NODE_ID: u8 = 0x7F;
 /// How often SDO waits look at the bus.
 const POLL_NS: u64 = 200_000;
-/// Feedback older than this many cycles is stale.
-const MAX_FEEDBACK_AGE: u32 = 5;
 
 /// One drive as the configuration describes it.
 #[derive(Clone, Debug)]
@@ -78,7 +76,8 @@ struct Node {
     raw_pos: i32,
     unwrapped: i64,
     have_fb: bool,
-    fb_cycle: u64,
+    /// Clock time of the last TPDO1.
+    fb_ns: u64,
     target: i64,
     controlword: u16,
     enabled: bool,
@@ -95,7 +94,11 @@ pub struct CanOpenMaster<B: CanBus> {
     hb_ms: u16,
     next_hb_ns: u64,
     boot_timeout_ms: u32,
+    bitrate: u32,
+    feedback_timeout_ns: u64,
     cycles: u64,
+    /// Clock time of the last `receive`.
+    now_ns: u64,
     enable_cycles: u64,
     running: bool,
     /// The master heartbeat runs from the first configured consumer on.
@@ -122,7 +125,7 @@ impl<B: CanBus> CanOpenMaster<B> {
                 raw_pos: 0,
                 unwrapped: 0,
                 have_fb: false,
-                fb_cycle: 0,
+                fb_ns: 0,
                 target: 0,
                 controlword: 0,
                 enabled: false,
@@ -139,11 +142,55 @@ impl<B: CanBus> CanOpenMaster<B> {
             hb_ms: cfg.bus.heartbeat_ms,
             next_hb_ns: 0,
             boot_timeout_ms: timeout.max(100) * 4,
+            bitrate: cfg.bus.bitrate,
+            feedback_timeout_ns: (cfg.bus.feedback_timeout_ms * 1e6) as u64,
+            now_ns: 0,
             cycles: 0,
             enable_cycles: 0,
             running: false,
             hb_started: false,
         }
+    }
+
+    /// Worst-case bus load of the cyclic traffic (one 6-byte RPDO and TPDO per drive and the
+    /// SYNC every cycle), 0…1.
+    pub fn bus_load(&self, bitrate: u32) -> f64 {
+        let frames = cncgw_bus::busload::csp_frames(self.nodes.len(), 6);
+        cncgw_bus::busload::load(&frames, self.cycle_ns as f64 * 1e-9, bitrate)
+    }
+
+    /// Refuse a cycle the bus cannot carry (over 80 % worst-case load), naming one that fits.
+    pub fn check_bus_load(&self, bitrate: u32) -> Result<f64, Alarm> {
+        let load = self.bus_load(bitrate);
+        if load > 0.8 {
+            let frames = cncgw_bus::busload::csp_frames(self.nodes.len(), 6);
+            let fits = cncgw_bus::busload::shortest_cycle_s(&frames, bitrate, 0.8);
+            return Err(Alarm::new(
+                2021,
+                format!(
+                    "bus load {:.0} % at {} ms cycle and {} bit/s for {} drives is over 80 %; use machine.cycle_ms = {} or more (or a higher bitrate)",
+                    load * 100.0,
+                    self.cycle_ms,
+                    bitrate,
+                    self.nodes.len(),
+                    fits * 1000.0
+                ),
+            ));
+        }
+        Ok(load)
+    }
+
+    /// Read `index:sub` of `node` over SDO (service tools, diagnostics).
+    pub fn sdo_read(&mut self, clock: &mut dyn Clock, node: u8, index: u16, sub: u8) -> Result<Vec<u8>, Alarm> {
+        let i = self.index_of(node).ok_or_else(|| Alarm::new(2003, format!("node {node} is not in the machine configuration")))?;
+        self.sdo(clock, i, Sdo::Up(index, sub))
+            .map_err(|e| self.node_alarm(i, 2003, format!("reading 0x{index:04X}:{sub:02X} failed: {e}")))
+    }
+
+    /// Write `data` to `index:sub` of `node` over SDO.
+    pub fn sdo_write(&mut self, clock: &mut dyn Clock, node: u8, index: u16, sub: u8, data: &[u8]) -> Result<(), Alarm> {
+        let i = self.index_of(node).ok_or_else(|| Alarm::new(2003, format!("node {node} is not in the machine configuration")))?;
+        self.write(clock, i, index, sub, data)
     }
 
     pub fn infos(&self) -> Vec<NodeInfo> {
@@ -216,7 +263,7 @@ impl<B: CanBus> CanOpenMaster<B> {
             }
             n.raw_pos = raw;
             n.have_fb = true;
-            n.fb_cycle = self.cycles;
+            n.fb_ns = now_ns;
         }
     }
 
@@ -401,6 +448,15 @@ fn interpolation_period(cycle_ms: f64) -> (u8, i8) {
 
 impl<B: CanBus> DriveBus for CanOpenMaster<B> {
     fn startup(&mut self, clock: &mut dyn Clock) -> Result<(), Alarm> {
+        let load = self.check_bus_load(self.bitrate)?;
+        tracing::info!(
+            "bus {}: worst-case load {:.1} % ({} drives, {} ms cycle, {} bit/s)",
+            self.bus.name(),
+            load * 100.0,
+            self.nodes.len(),
+            self.cycle_ms,
+            self.bitrate
+        );
         // Reset communication so every node reports a boot-up and starts from its default
         // communication parameters; then wait for all of them.
         self.send(&NmtCommand::ResetCommunication.frame(0))?;
@@ -433,6 +489,7 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
 
     fn receive(&mut self, now_ns: u64) -> Result<(), Alarm> {
         self.cycles += 1;
+        self.now_ns = now_ns;
         loop {
             match self.bus.try_recv() {
                 Ok(Some(f)) => self.on_background(&f, now_ns),
@@ -465,8 +522,15 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
                     format!("heartbeat lost (none for {} ms); check the cable and the drive's power", now_ns.saturating_sub(n.last_hb_ns) / 1_000_000),
                 ));
             }
-            if self.running && self.cycles.saturating_sub(n.fb_cycle) > MAX_FEEDBACK_AGE as u64 {
-                return Err(self.node_alarm(i, 2015, format!("no position feedback (TPDO1) for {} cycles", self.cycles - n.fb_cycle)));
+            // Age by time, not by cycles: after the cycle thread was late, a cycle follows
+            // at once and a drive cannot have answered yet.
+            let age = now_ns.saturating_sub(n.fb_ns);
+            if self.running && age > self.feedback_timeout_ns {
+                return Err(self.node_alarm(
+                    i,
+                    2015,
+                    format!("no position feedback (TPDO1) for {:.1} ms ({} cycles); check the drive's PDO configuration and the bus", age as f64 * 1e-6, age / self.cycle_ns),
+                ));
             }
         }
         Ok(())
@@ -478,7 +542,7 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
             pos: n.unwrapped as f64 / n.spec.counts_per_unit,
             counts: n.unwrapped,
             statusword: n.status,
-            age_cycles: self.cycles.saturating_sub(n.fb_cycle) as u32,
+            age_cycles: (self.now_ns.saturating_sub(n.fb_ns) / self.cycle_ns.max(1)) as u32,
         }
     }
 
@@ -609,6 +673,19 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn bus_load_is_checked_against_80_percent() {
+        let bus = cncgw_bus::transport::inproc::InprocBus::new();
+        let mut cfg = MachineConfig::embedded();
+        let m = CanOpenMaster::new(bus.endpoint(), &cfg);
+        assert!((m.bus_load(1_000_000) - 0.3725).abs() < 1e-3);
+        cfg.machine.cycle_ms = 0.5;
+        let m = CanOpenMaster::new(bus.endpoint(), &cfg);
+        let e = m.check_bus_load(1_000_000).unwrap_err();
+        assert_eq!(e.number, 2021);
+        assert!(e.message.contains("machine.cycle_ms = 1 or more"), "{}", e.message);
+    }
 
     #[test]
     fn interpolation_period_encoding() {
