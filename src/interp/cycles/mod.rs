@@ -1,24 +1,31 @@
-//! Turning and threading canned cycles (manual 004 §2.15–§2.17): G32 thread cutting, the
-//! single cycles G90/G92/G94 (group 01, modal) and the multiple thread cycle G76 (group 00).
-//! Each cycle expands into canonical moves tagged with `CycleTag { cycle, step }`, `step`
-//! being the manual's ①②③… numbering of the cycle's figure.
+//! Turning and threading canned cycles: manual 004 §2.15–§2.17 (G32, G34, G90, G92, G94,
+//! G70–G76), manual 002 (G78) and manual 001 (G92.1). Each cycle expands into canonical moves
+//! tagged with `CycleTag { cycle, step }`, `step` being the manual's ①②③… numbering of the
+//! cycle (where the numbers live only in a figure missing from the text, the module of the
+//! cycle says which numbering it uses).
+//!
+//! Files: `single.rs` G90/G92/G94, `g76.rs` G76/G78, `stock.rs` G70–G73, `groove.rs`
+//! G74/G75, `rigid.rs` G92.1; G32/G34 and the shared helpers are here.
 //!
 //! The cycles are `impl Interpreter` blocks (a child module sees the interpreter's private
 //! state); the interpreter calls [`Interpreter::cycle_block_start`] at the start of every NC
 //! block, [`Interpreter::cycle_modal`] for a group-01 cycle code with axis words, and
-//! [`Interpreter::cycle_oneshot`] for G76.
+//! [`Interpreter::cycle_oneshot`] for G70–G78.
 //!
 //! State kept here (the interpreter's state, not the machine's parameter file): the modal
-//! thread lead, the G90/G92/G94 retained X/Z/R (§2.15 note 2), whether the previous block
-//! was a thread (continuous threads, §2.17.1 note 2), and the thread parameters that G76
-//! writes back (No.5130 run-out, No.5140 Δdmin, No.5141 d, No.5142 m, No.5143 a). They start
-//! from the configuration's `[parameters]`; writes last until the interpreter is dropped.
+//! thread lead, the G90/G92/G94/G92.1 retained X/Z/R (§2.15 note 2), whether the previous
+//! block was a thread (continuous threads, §2.17.1 note 2), and the parameters the cycles
+//! write back (No.5130 run-out, No.5139 e, No.5140 Δdmin, No.5141 d, No.5142 m, No.5143 a,
+//! No.5144–5146 G73, No.5147/5148 G71/G72 Δd/e, G78's infeed and depth modes). They start
+//! from the configuration's `[parameters]`; writes last for the interpreter's life.
 //!
-//! Alarm numbers: the manual says "alarm" without a number; we use Fanuc 0i-TF PS numbers
-//! (11 no lead, 14 illegal G34 lead, 21 axis outside the ZX plane, 10 wrong plane, 62 bad G76 value, 7 decimal
-//! point in packed P) and our own [`RANGE_ALARM`] (2510) for the out-of-range values the
-//! manual names and Fanuc has no number for (Q start angle, run-out longer than the thread,
-//! R taper crossing the start point).
+//! Alarm numbers: the manuals say "alarm" without a number; we use Fanuc 0i-TF PS numbers
+//! (7 decimal point in packed P, 10 wrong plane / not supported, 11 no lead or feed, 14
+//! illegal G34 lead, 21 axis outside the ZX plane, 51 contour ends with ,C/,R, 61 P/Q
+//! missing, 62 bad cycle value, 63 N(ns)/N(nf) not found, 64 contour not monotonic, 65 ns
+//! block not G00/G01, 66 code not allowed in the contour) and our own [`RANGE_ALARM`] (2510)
+//! for the out-of-range values the manual names and Fanuc has no number for (Q start angle,
+//! run-out longer than the thread, R taper crossing the start point, H/L starts, no S).
 
 use super::gcode::{Decoded, GCode, Val};
 use super::Interpreter;
