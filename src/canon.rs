@@ -108,10 +108,21 @@ pub enum MoveKind {
     /// Spindle-synchronized thread cut (G32/G92/G76/G78): the feed axes are slaved to the
     /// spindle. `lead` is mm per revolution along the long axis; `start_angle` the spindle
     /// angle (degrees) after the one-revolution signal at which the cut starts.
-    Thread { end: Pos, lead: f64, start_angle: f64 },
+    /// `continuous`: this thread directly follows another thread move (consecutive G32
+    /// blocks, or a cycle's run-out), so it starts without waiting for the one-revolution
+    /// signal (manual 004 §2.17.1 note 2) and `start_angle` does not apply.
+    /// `lead_inc`: G34 variable lead, the lead grows by this much (mm, signed) per spindle
+    /// revolution from `lead` at the start; 0 for a constant lead.
+    Thread { end: Pos, lead: f64, start_angle: f64, continuous: bool, lead_inc: f64 },
     /// Rigid tap along Z: spindle angle and feed axis interpolated together, `lead` in mm
     /// per revolution (sign gives direction), `rpm` the spindle speed of this stroke.
     Tap { end: Pos, lead: f64, rpm: f64 },
+    /// G92.1 rigid thread (manual 001 §3.24.10): the spindle works as a position axis (Cs)
+    /// and is interpolated with the feed axes, from the start's `c` to `end.c` (degrees,
+    /// cumulative; increasing for a right-hand thread, decreasing for a left-hand one) while
+    /// X/Z go to `end`. `lead` mm per revolution along the long axis (negative = left hand),
+    /// `rpm` the spindle speed. Both stop at the end (no run-out).
+    RigidThread { end: Pos, lead: f64, rpm: f64 },
     /// G04: wait `seconds`.
     Dwell { seconds: f64 },
     /// Spindle start/stop/speed change.
@@ -146,7 +157,8 @@ impl MoveKind {
             | MoveKind::Feed { end, .. }
             | MoveKind::Arc { end, .. }
             | MoveKind::Thread { end, .. }
-            | MoveKind::Tap { end, .. } => Some(*end),
+            | MoveKind::Tap { end, .. }
+            | MoveKind::RigidThread { end, .. } => Some(*end),
             _ => None,
         }
     }
@@ -159,6 +171,7 @@ impl MoveKind {
             MoveKind::Arc { .. } => "arc",
             MoveKind::Thread { .. } => "thread",
             MoveKind::Tap { .. } => "tap",
+            MoveKind::RigidThread { .. } => "rigid_thread",
             MoveKind::Dwell { .. } => "dwell",
             MoveKind::Spindle(_) => "spindle",
             MoveKind::Aux { .. } => "aux",

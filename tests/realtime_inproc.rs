@@ -15,9 +15,14 @@ use std::sync::Arc;
 
 #[test]
 fn a_program_runs_in_real_time_against_drives_on_another_thread() {
-    let cfg = MachineConfig::embedded();
-    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/first_part.nc");
-    let mut interp = Interpreter::from_file(&path, &cfg).unwrap();
+    // The test host is shared with the rest of the suite (tests run in parallel), so it is not
+    // a real-time machine: the same timing tolerances as the vcan tier (tests/vcan_tier.rs).
+    let mut cfg = MachineConfig::embedded();
+    cfg.machine.cycle_ms = 4.0;
+    cfg.bus.feedback_timeout_ms = 100.0;
+    cfg.axes.get_mut("s1").unwrap().following_error = 90.0;
+    let prog = "G21\nG98\nM03 S1500\nG00 X40 Z2\nG01 Z-10 F1200\nG01 X60 Z-20\nG02 X80 Z-30 R10\nG00 X100 Z5\nM05\nM30\n";
+    let mut interp = Interpreter::from_source("rt.nc", prog, &cfg).unwrap();
     let wire = InprocBus::new();
     let stop = Arc::new(AtomicBool::new(false));
     let sim_bus: Box<dyn cncgw_bus::CanBus> = Box::new(wire.endpoint());
@@ -30,7 +35,7 @@ fn a_program_runs_in_real_time_against_drives_on_another_thread() {
     let spindle = cfg.axes.values().position(|a| a.kind == AxisKind::Spindle);
     let mut summary = RunSummary::default();
     let r = {
-        let mut lp = CycleLoop::new(&mut master, &mut clock, Limits::from_config(&cfg), spindle, 2_000_000);
+        let mut lp = CycleLoop::new(&mut master, &mut clock, Limits::from_config(&cfg), spindle, 4_000_000);
         let r = lp.start(&mut summary).and_then(|start| {
             interp.set_start_position(Pos { x: start[AX_X], y: start[AX_Y], z: start[AX_Z], c: start[AX_S] });
             let (tx, rx) = std::sync::mpsc::sync_channel(64);

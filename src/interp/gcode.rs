@@ -42,8 +42,8 @@ pub fn ginfo(g: GCode) -> Option<GInfo> {
         230 => (4, "stored stroke check 2 off", None),
         280 => (0, "reference point return", None),
         300 => (0, "2nd/3rd/4th reference point return", None),
-        320 => (1, "thread cutting", LATER),
-        340 => (1, "variable-lead thread cutting", LATER),
+        320 => (1, "thread cutting", None),
+        340 => (1, "variable-lead thread cutting", None),
         400 => (7, "tool nose radius compensation cancel", None),
         410 => (7, "tool nose radius compensation left", LATER),
         420 => (7, "tool nose radius compensation right", LATER),
@@ -56,13 +56,14 @@ pub fn ginfo(g: GCode) -> Option<GInfo> {
         610 => (15, "exact stop mode", None),
         640 => (15, "continuous path mode", None),
         650 => (0, "macro call", None),
-        700 => (0, "finishing cycle", LATER),
-        710 => (0, "stock removal in turning", LATER),
-        720 => (0, "stock removal in facing", LATER),
-        730 => (0, "pattern repeating", LATER),
-        740 => (0, "face grooving cycle", LATER),
-        750 => (0, "OD/ID grooving cycle", LATER),
-        760 => (0, "multiple thread cutting cycle", LATER),
+        700 => (0, "finishing cycle", None),
+        710 => (0, "stock removal in turning", None),
+        720 => (0, "stock removal in facing", None),
+        730 => (0, "pattern repeating", None),
+        740 => (0, "face grooving cycle", None),
+        750 => (0, "OD/ID grooving cycle", None),
+        760 => (0, "multiple thread cutting cycle", None),
+        780 => (0, "enhanced multiple thread cutting cycle (manual 002)", None),
         800 => (10, "canned drilling cycle cancel", None),
         830 => (10, "face drilling cycle", LATER),
         840 => (10, "face tapping cycle", LATER),
@@ -70,9 +71,10 @@ pub fn ginfo(g: GCode) -> Option<GInfo> {
         870 => (10, "side drilling cycle", LATER),
         880 => (10, "side tapping cycle", LATER),
         890 => (10, "side boring cycle", LATER),
-        900 => (1, "OD/ID turning cycle", LATER),
-        920 => (1, "thread cutting cycle", LATER),
-        940 => (1, "facing cycle", LATER),
+        900 => (1, "OD/ID turning cycle", None),
+        920 => (1, "thread cutting cycle", None),
+        921 => (1, "rigid thread cutting cycle (manual 001)", None),
+        940 => (1, "facing cycle", None),
         960 => (2, "constant surface speed", None),
         970 => (2, "constant spindle speed", None),
         980 => (5, "feed per minute", None),
@@ -196,6 +198,8 @@ impl Decoded {
     /// `has_y` / `has_c`: whether the machine has a Y axis / a C (Cs) axis.
     pub fn build(words: &[(char, bool, Val)], has_y: bool, has_c: bool) -> Result<Decoded, DErr> {
         let mut d = Decoded::default();
+        // G78 (manual 002) uses J as its run-out amount, not as the Y axis.
+        let g78 = words.iter().any(|w| w.0 == 'G' && (w.2.v * 10.0).round() == 780.0);
         for &(l, comma, val) in words {
             if comma {
                 let slot = if l == 'C' { &mut d.comma_c } else { &mut d.comma_r };
@@ -234,7 +238,7 @@ impl Decoded {
                     // (capacity 3 = the limit checked just above)
                 }
                 _ => {
-                    if matches!(l, 'Y' | 'V' | 'J') && !has_y {
+                    if matches!(l, 'Y' | 'V' | 'J') && !has_y && !(l == 'J' && g78) {
                         return Err((9, val.col, format!("address {l}: this machine has no Y axis")));
                     }
                     if matches!(l, 'C' | 'H') && !has_c {

@@ -41,6 +41,7 @@
 
 pub mod corner;
 pub mod curves;
+pub mod cycles;
 pub mod gcode;
 pub mod macros;
 pub mod parse;
@@ -215,6 +216,8 @@ pub struct Interpreter {
     /// Reference points 1–4 (machine coordinates, X as a radius) from No.1240–1243.
     ref_points: [Option<Pos>; 4],
     input: Option<InputSource>,
+    /// Canned-cycle state (thread lead, retained cycle values, G76 parameters).
+    cyc: cycles::CycleState,
 }
 
 fn perr_alarm(file: &Arc<str>, line_no: usize, text: &str, e: PErr) -> Alarm {
@@ -286,6 +289,7 @@ impl Interpreter {
             tool_delta: Pos::ZERO,
             ref_points: std::array::from_fn(|k| ref_point(cfg, k)),
             input: None,
+            cyc: cycles::CycleState::new(cfg),
         }
     }
 
@@ -1039,6 +1043,7 @@ impl Interpreter {
     fn exec_block(&mut self, d: &Decoded, src: &SrcPos) -> Result<(), (u32, Option<u32>, String)> {
         let gcol = |g: GCode| d.g.iter().find(|x| x.0 == g).map(|x| x.1);
         self.tool_delta = Pos::ZERO;
+        self.cycle_block_start(d);
         // Modal groups.
         if let Some(g) = d.group(6) {
             self.st.inch = g == 200;
@@ -1075,10 +1080,11 @@ impl Interpreter {
         let one_shot = d.group(0);
         // F.
         if let Some(f) = d.get('F') {
-            if f.v < 0.0 {
+            // G92.1: a negative F is a left-hand lead (manual 001), not a feed rate.
+            if f.v < 0.0 && self.st.motion != 921 {
                 return Err((6, Some(f.col), "F cannot be negative".into()));
             }
-            let v = if self.st.inch { f.v * 25.4 } else { f.v };
+            let v = if self.st.inch { f.v * 25.4 } else { f.v }.abs();
             if self.st.per_rev {
                 self.st.f_rev = Some(v);
             } else {
@@ -1233,6 +1239,7 @@ impl Interpreter {
                 }
                 return Ok(());
             }
+            Some(g @ (700 | 710 | 720 | 730 | 740 | 750 | 760 | 780)) => self.cycle_oneshot(g, d, src)?,
             Some(g) => {
                 return Err((10, gcol(g), format!("{} is not supported yet", gcode::gname(g))));
             }
@@ -1383,6 +1390,7 @@ impl Interpreter {
             }
             20 | 30 => self.arc(d, src, end, self.st.motion == 20, exact)?,
             21 | 31 | 22 | 32 => self.conic(d, src, end, exact)?,
+            320 | 340 | 900 | 920 | 921 | 940 => self.cycle_modal(d, src, end, exact)?,
             g => return Err((10, None, format!("{} is not supported yet", gcode::gname(g)))),
         }
         Ok(())

@@ -204,12 +204,12 @@ pub fn write_json(out: &mut String, m: &Move) {
             let c = work(m, *center);
             o.put("center", J::Xz(r(c.x * 2.0), r(c.z)));
         }
-        MoveKind::Thread { end, lead, start_angle } => {
+        MoveKind::Thread { end, lead, start_angle, .. } => {
             put_end(&mut o, m, *end);
             o.put("lead", J::Num(r(*lead)));
             o.put("start_angle", J::Num(r(*start_angle)));
         }
-        MoveKind::Tap { end, lead, rpm } => {
+        MoveKind::Tap { end, lead, rpm } | MoveKind::RigidThread { end, lead, rpm } => {
             put_end(&mut o, m, *end);
             o.put("lead", J::Num(r(*lead)));
             o.put("rpm", J::Num(r(*rpm)));
@@ -307,11 +307,11 @@ pub fn move_to_text(m: &Move) -> String {
             s.push_str(&format!(" {} centre X{} Z{}", if *cw { "CW" } else { "CCW" }, f4(c.x * 2.0), f4(c.z)));
             feed(&mut s, f);
         }
-        MoveKind::Thread { end: e, lead, start_angle } => {
+        MoveKind::Thread { end: e, lead, start_angle, .. } => {
             end(&mut s, *e);
             s.push_str(&format!(" lead {} start {}°", r(*lead), r(*start_angle)));
         }
-        MoveKind::Tap { end: e, lead, rpm } => {
+        MoveKind::Tap { end: e, lead, rpm } | MoveKind::RigidThread { end: e, lead, rpm } => {
             end(&mut s, *e);
             s.push_str(&format!(" lead {} S{}", r(*lead), r(*rpm)));
         }

@@ -435,8 +435,21 @@ impl Motion {
                 let end = self.check_end(end).map_err(at)?;
                 Item::Move(self.arc_seg(end, xyz(center), *cw, *plane, speed, blended).map_err(at)?)
             }
-            MoveKind::Thread { end, lead, start_angle } => {
+            MoveKind::Thread { end, lead, start_angle, lead_inc, .. } => {
+                // `continuous` (no wait for the one-revolution signal) is not honoured yet.
+                if *lead_inc != 0.0 {
+                    return Err(at(Alarm::new(
+                        alarms::UNSUPPORTED,
+                        "G34 variable-lead threads are not executed by this motion layer yet; remove the block",
+                    )));
+                }
                 Item::Thread(self.thread_seg(end, *lead, *start_angle).map_err(at)?)
+            }
+            MoveKind::RigidThread { .. } => {
+                return Err(at(Alarm::new(
+                    alarms::UNSUPPORTED,
+                    "G92.1 rigid threads are not executed by this motion layer yet; remove the block",
+                )))
             }
             MoveKind::Tap { end, lead, rpm } => Item::Tap(self.tap_seg(end, *lead, *rpm).map_err(at)?),
             MoveKind::Dwell { seconds } => {

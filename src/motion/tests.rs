@@ -655,7 +655,7 @@ proptest! {
 // ---- Threading and rigid tapping ----
 
 fn thread(x: f64, z: f64, lead: f64, start_angle: f64) -> MoveKind {
-    MoveKind::Thread { end: Pos::xz(x, z), lead, start_angle }
+    MoveKind::Thread { end: Pos::xz(x, z), lead, start_angle, continuous: false, lead_inc: 0.0 }
 }
 
 /// Run a thread pass after `wait` seconds of dwell; return the setpoints and, for the cycles
@@ -837,7 +837,7 @@ fn any_move() -> impl Strategy<Value = MoveKind> {
             plane: [Plane::Xy, Plane::Zx, Plane::Yz][pl as usize],
             feed: Feed::PerMin(f)
         }),
-        (pos(), any_f64(), any_f64()).prop_map(|(end, lead, start_angle)| MoveKind::Thread { end, lead, start_angle }),
+        (pos(), any_f64(), any_f64()).prop_map(|(end, lead, start_angle)| MoveKind::Thread { end, lead, start_angle, continuous: false, lead_inc: 0.0 }),
         (pos(), any_f64(), any_f64()).prop_map(|(end, lead, rpm)| MoveKind::Tap { end, lead, rpm }),
         any_f64().prop_map(|seconds| MoveKind::Dwell { seconds: seconds.abs().min(0.05) }),
         (0..3u8, any_f64(), prop::option::of(any_f64()), prop::option::of(any_f64())).prop_map(|(d, rpm, css, max_rpm)| {
