@@ -64,7 +64,7 @@ fn exact_values_and_escaping() {
         json!({"file": "dir\\a \"b\".nc", "line": 7, "kind": "arc", "x": 40.0, "z": -20.0, "c": 45.5,
                "feed": 250.0, "cw": false, "center": {"x": 20.0, "z": -10.0}})
     );
-    let mut t = mk(MoveKind::Thread { end: Pos::xz(10.0, -130.0), lead: 1.5, start_angle: 0.0 });
+    let mut t = mk(MoveKind::Thread { end: Pos::xz(10.0, -130.0), lead: 1.5, start_angle: 0.0, continuous: false, lead_inc: 0.0 });
     t.tag = Some(CycleTag { cycle: "G76".into(), step: 3 });
     let v: Value = serde_json::from_str(&plan::move_to_json(&t)).expect("json");
     assert_eq!(v["lead"], 1.5);
