@@ -8,10 +8,12 @@
 //! default machine: waiting on it advances the drives deterministically), and
 //! `run_realtime` on any `CanBus` (the `sim-drives` binary on vcan0/can0).
 
+pub mod buslog;
 pub mod config;
 pub mod drive;
 pub mod od;
 pub mod servo;
+pub mod socketcand;
 
 pub use config::{DriveConfig, DriveKind, Physics, SimConfig};
 pub use drive::SimDrive;
