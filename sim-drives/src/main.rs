@@ -26,6 +26,12 @@ struct Args {
     /// Name of the bus the socketcand server hosts (what clients `< open >`).
     #[arg(long, default_value = "can0", value_name = "NAME")]
     socketcand_bus: String,
+    /// Inject a fault: NODE:NAME[=VALUE][@MS], repeatable. NAME: raise=CODE,
+    /// encoder-lost, undervoltage, overcurrent, jam-mnm=N, heartbeat-stop,
+    /// silent-ms[=N] (none: for good), pdo-drop-permille=N, tpdo-delay-us=N; @MS: that
+    /// long after the start (default at once). Same effect as the SDO write to 0x2100.
+    #[arg(long = "fault", value_name = "SPEC")]
+    faults: Vec<String>,
     /// Write every frame on the bus to FILE in candump's log-file format.
     #[arg(long, value_name = "FILE")]
     log: Option<std::path::PathBuf>,
@@ -73,6 +79,20 @@ fn main() -> ExitCode {
         },
         None => SimConfig::default_lathe(),
     };
+    let mut faults = Vec::new();
+    for spec in &args.faults {
+        match sim_drives::parse_fault(spec) {
+            Ok(f) if cfg.drives.iter().any(|d| d.node == f.node) => faults.push(f),
+            Ok(f) => {
+                eprintln!("sim-drives: --fault {spec}: no drive with node {} in the configuration", f.node);
+                return ExitCode::from(2);
+            }
+            Err(e) => {
+                eprintln!("sim-drives: {e}");
+                return ExitCode::from(2);
+            }
+        }
+    }
     let stop = Arc::new(AtomicBool::new(false));
     for sig in [2, 15] {
         // SIGINT, SIGTERM. The action only stores to an atomic: async-signal-safe.
@@ -104,7 +124,7 @@ fn main() -> ExitCode {
             }
         }
     }
-    match sim_drives::run_realtime(bus, cfg, stop) {
+    match sim_drives::run_realtime_with_faults(bus, cfg, stop, faults) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("sim-drives: {e}");
