@@ -104,6 +104,10 @@ struct Hot {
     mode: i8,
     ferr_window: i64,
     ferr_timeout: u64,
+    /// 0x1005 COB-ID and the RPDO COB-IDs (0x1400+i:1, raw): every frame is matched
+    /// against them, by every drive.
+    sync_cob: u16,
+    rpdo_cob: [u32; N_RPDO as usize],
     // Injected conditions (0x2100).
     encoder_lost: bool,
     undervoltage: bool,
@@ -353,6 +357,10 @@ impl SimDrive {
         h.mode = self.od.int(ix::MODES_DISPLAY, 0) as i8;
         h.ferr_window = self.od.int(ix::FOLLOWING_ERROR_WINDOW, 0);
         h.ferr_timeout = self.od.int(ix::FOLLOWING_ERROR_TIMEOUT, 0) as u64 * MS;
+        h.sync_cob = (self.od.int(ix::COB_ID_SYNC, 0) & 0x7FF) as u16;
+        for i in 0..N_RPDO {
+            h.rpdo_cob[i as usize] = self.od.int(ix::RPDO_COMM + i, 1) as u32;
+        }
         h.encoder_lost = self.od.int(SIM_FAULTS, fault_sub::ENCODER_LOST) != 0;
         h.undervoltage = self.od.int(SIM_FAULTS, fault_sub::UNDERVOLTAGE) != 0;
         h.hb_muted = self.od.int(SIM_FAULTS, fault_sub::HEARTBEAT_MUTED) != 0;
@@ -507,6 +515,14 @@ impl SimDrive {
         }
     }
 
+    /// When the next SYNC is expected (last SYNC + the period estimate), once known.
+    pub(crate) fn expected_sync(&self) -> Option<u64> {
+        match (self.last_sync, self.sync_period) {
+            (Some(l), p) if p > 0 && self.nmt == NmtState::Operational => Some(l + p),
+            _ => None,
+        }
+    }
+
     /// The next time a timer of this drive fires (boot-up, heartbeat, heartbeat timeout).
     pub(crate) fn next_event(&self) -> Option<u64> {
         let mut t = self.boot_at;
@@ -620,7 +636,7 @@ impl SimDrive {
             self.hb_seen.insert(node, now);
             return;
         }
-        if id as i64 == self.od.int(ix::COB_ID_SYNC, 0) & 0x7FF {
+        if id == self.hot.sync_cob {
             self.on_sync(now);
             return;
         }
@@ -632,7 +648,7 @@ impl SimDrive {
         }
         if self.nmt == NmtState::Operational {
             for i in 0..N_RPDO {
-                let c = self.od.int(ix::RPDO_COMM + i, 1) as u32;
+                let c = self.hot.rpdo_cob[i as usize];
                 if c & 0x8000_0000 == 0 && c & 0x7FF == id as u32 && !self.draw_drop() {
                     self.rpdo_received(i, f, now);
                 }
@@ -704,7 +720,18 @@ impl SimDrive {
     fn on_sync(&mut self, now: u64) {
         if let Some(last) = self.last_sync {
             if now > last {
-                self.sync_period = now - last;
+                // A real drive locks onto the SYNC period with a slow loop: one short or
+                // long interval (a master that caught up after a stall sends SYNCs back to
+                // back) moves the estimate by at most 1/8 of a factor 2 — else the next
+                // segment would be interpolated over microseconds at a huge speed.
+                let dt = now - last;
+                self.sync_period = if self.sync_period == 0 {
+                    dt
+                } else {
+                    let p = self.sync_period;
+                    let x = dt.clamp(p / 2, p.saturating_mul(2));
+                    (p as i64 + (x as i64 - p as i64) / 8) as u64
+                };
             }
         }
         self.last_sync = Some(now);

@@ -282,6 +282,9 @@ impl Clock for SimWorld {
     }
 }
 
+/// How long before an expected SYNC the real-time loop integrates up to it.
+const SYNC_LEAD_NS: u64 = 60_000;
+
 /// Real time: serve the drives on `bus` until `stop` is set. Frames are handled as they
 /// arrive (a SYNC gets its TPDOs at once); between frames the physics is integrated up to
 /// the wall clock in control steps and timers fire.
@@ -301,10 +304,18 @@ pub fn run_realtime_with_faults(mut bus: Box<dyn CanBus>, cfg: SimConfig, stop: 
     while !stop.load(Ordering::Relaxed) {
         let t = now(&start);
         core.advance_to(t, |out| send_all(&mut bus, out));
-        // Wake for the next timer or control work at least every 0.5 ms.
+        // Wake for the next timer or control work at least every 0.5 ms, and just before
+        // the next SYNC is due: the physics is then integrated up to (almost) the SYNC
+        // instant beforehand, and the TPDOs leave without a catch-up on the critical path.
         let mut wait = Duration::from_micros(500);
         if let Some(e) = core.drives.iter().filter_map(|d| d.next_event()).min() {
             wait = wait.min(Duration::from_nanos(e.saturating_sub(t)));
+        }
+        if let Some(s) = core.drives.iter().filter_map(|d| d.expected_sync()).min() {
+            let pre = s.saturating_sub(SYNC_LEAD_NS);
+            if pre > t {
+                wait = wait.min(Duration::from_nanos(pre - t));
+            }
         }
         match bus.recv_timeout(wait) {
             Ok(Some(f)) => {
