@@ -8,9 +8,11 @@
 //!
 //! Per connection: `< hi >`; `< open NAME >` → `< ok >` (or `< error … >` for another bus
 //! name); `< rawmode >` → `< ok >`; only then frames. Every message is written on its own
-//! (TCP_NODELAY), and frames start `JOIN_SETTLE` after the rawmode `< ok >`: python-can
-//! reads the `< ok >` with one `recv` and compares it whole, so a frame in the same segment
-//! would fail its handshake. A client joining a bus misses what was sent before it joined.
+//! (TCP_NODELAY), and frames start `JOIN_SETTLE` after the rawmode `< ok >` or with the
+//! client's first frame, whichever comes first: python-can reads the `< ok >` with one
+//! `recv` and compares it whole, so a frame in the same segment would fail its handshake;
+//! a client that sends has read it (cncgw's master resets the nodes at once and must see
+//! their boot-up messages 1–3 ms later). A client joining a bus misses what was sent before.
 
 use cncgw_bus::socketcand::{format, Msg, Splitter};
 use cncgw_bus::{BusError, CanBus, CanFrame};
@@ -76,6 +78,17 @@ impl Shared {
         let mut clients = self.clients.lock().unwrap_or_else(|e| e.into_inner());
         if let Some(c) = clients.iter_mut().find(|c| c.id == id) {
             c.raw_from = Some(Instant::now() + JOIN_SETTLE);
+        }
+    }
+
+    /// The client has spoken: it has read the handshake, frames may flow to it at once.
+    fn join_now(&self, id: u64) {
+        let now = Instant::now();
+        let mut clients = self.clients.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(c) = clients.iter_mut().find(|c| c.id == id) {
+            if c.raw_from.is_some_and(|t| t > now) {
+                c.raw_from = Some(now);
+            }
         }
     }
 
@@ -212,6 +225,7 @@ fn client_loop(id: u64, mut reader: TcpStream, sh: Arc<Shared>, tx: mpsc::SyncSe
                 }
                 Msg::Send(f) if raw => {
                     let t = unix_us();
+                    sh.join_now(id);
                     match tx.try_send(f) {
                         Ok(()) => {}
                         Err(mpsc::TrySendError::Full(_)) => {

@@ -156,7 +156,7 @@ def run(net):
     actual = node.tpdo_values[0x6064]
     check(actual - start > step * cycles * 0.99, f"the axis moved {actual - start} counts of {step * cycles}")
     check(abs(actual - final_target) <= 20, f"settled at {actual}, target {final_target}")
-    check(worst <= 4 * step, f"lag while moving ≤ 3 cycles of travel (worst {worst} counts)")
+    check(worst <= 4 * step, f"lag while moving ≤ 4 cycles of travel (worst {worst} counts)")
     check(node.statusword & 0x1000 != 0, "statusword bit 12 (following the command) set")
     check(node.sdo[0x6041].raw & 0x0400 != 0, "statusword bit 10 (target reached) set at rest")
 
