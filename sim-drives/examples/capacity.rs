@@ -5,7 +5,13 @@
 //! For each N: `run_realtime` serves N linear drives (CSP, all enabled, all moving) on an
 //! in-process bus; a master thread sends N RPDO1 + SYNC every 1 ms and waits for the N
 //! TPDO1. A cycle passes when every TPDO arrived and the last within 1 ms of the SYNC. The
-//! figure is the largest N with every cycle passing (default 5 s per N).
+//! figure is the largest N with every cycle passing (default 5 s per N) and every drive
+//! still enabled (a drive that tripped fails its N).
+//!
+//! On a shared machine one stall of the process (another job's burst) fails an N, so run
+//! it at real-time priority for the figure of the emulator itself (as root):
+//!
+//!     chrt -f 20 target/release/examples/capacity
 
 use cncgw_bus::canopen::{nmt::NmtCommand, sync_frame};
 use cncgw_bus::cia402::State;
@@ -167,6 +173,7 @@ fn main() {
     println!("{:>4} {:>8} {:>7} {:>9} {:>9} {:>9} {:>8} {:>8}", "N", "cycles", "missed", "p50 µs", "p99 µs", "max µs", "enabled", "sim CPU");
     let mut best = 0;
     let mut failed = false;
+    let mut best_p99 = 0;
     let mut per_drive = Vec::new();
     for n in ns {
         let r = run(n, seconds);
@@ -185,7 +192,10 @@ fn main() {
         if r.cpu.is_finite() && r.cpu > 0.0 {
             per_drive.push(r.cpu / n as f64);
         }
-        if pass && !failed {
+        if r.p99_us < 1000.0 && r.enabled == n as usize && r.missed * 100 <= r.cycles * 2 {
+            best_p99 = n;
+        }
+        if pass {
             best = n;
         } else {
             failed = true;
@@ -194,7 +204,8 @@ fn main() {
             break;
         }
     }
-    println!("largest N with every cycle's TPDOs within 1 ms: {best} drives");
+    println!("largest N with every cycle's TPDOs within 1 ms: {best} drives{}", if failed { " (a smaller N failed too: stalls from other load; see the table)" } else { "" });
+    println!("largest N with p99 < 1 ms, ≤ 2 % of cycles missed and every drive enabled: {best_p99} drives");
     if !per_drive.is_empty() {
         // The figure a quiet core would give: one core's worth of drives at the measured
         // CPU cost per drive (the measured N is also limited by what else runs).
