@@ -79,6 +79,11 @@ def main():
 
 def run(net):
     node = canopen.BaseNode402(NODE, EDS)
+    # BaseNode402's timeouts (0.2–0.8 s) assume a quiet machine; CI shares its cores.
+    node.TIMEOUT_SWITCH_STATE_FINAL = 5.0
+    node.TIMEOUT_SWITCH_STATE_SINGLE = 2.0
+    node.TIMEOUT_SWITCH_OP_MODE = 2.0
+    node.TIMEOUT_CHECK_TPDO = 1.0
     net.add_node(node)
     node.sdo.RESPONSE_TIMEOUT = 1.0
 
@@ -152,11 +157,13 @@ def run(net):
             # this SYNC belongs to a target set 2–3 cycles before.
             worst = max(worst, abs(sent[-3] - actual))
     final_target = start + step * cycles
-    time.sleep(0.1)
+    time.sleep(0.3)
     actual = node.tpdo_values[0x6064]
     check(actual - start > step * cycles * 0.99, f"the axis moved {actual - start} counts of {step * cycles}")
     check(abs(actual - final_target) <= 20, f"settled at {actual}, target {final_target}")
-    check(worst <= 4 * step, f"lag while moving ≤ 4 cycles of travel (worst {worst} counts)")
+    # Loose on purpose (python's own timer sends the RPDO; a stall of this process delays
+    # targets): an axis that does not follow lags by up to the whole ramp.
+    check(worst <= 10 * step, f"lag while moving ≤ 10 cycles of travel (worst {worst} counts)")
     check(node.statusword & 0x1000 != 0, "statusword bit 12 (following the command) set")
     check(node.sdo[0x6041].raw & 0x0400 != 0, "statusword bit 10 (target reached) set at rest")
 
