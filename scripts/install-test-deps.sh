@@ -86,7 +86,8 @@ extra_test_deps() {
 
 # Python peers for the protocol tests (a CANopen/Modbus implementation written elsewhere).
 # Uses Debian's /usr/bin/python3, not a pyenv shim (slow under the guest, see notes).
-PY_REQS=(python-can canopen pymodbus)
+# Floors: the versions the socketcand peer test (tests/python/) was written against.
+PY_REQS=("python-can>=4.6" "canopen>=2.4" pymodbus)
 python_venv() {
     local venv=$ROOT/build/venv
     if [ -x "$venv/bin/python" ] && [ "$(cat "$venv/.installed" 2>/dev/null)" = "${PY_REQS[*]}" ]; then

@@ -16,7 +16,7 @@ cd "$ROOT"
 step() { printf '\n==> %s\n' "$*"; }
 
 step "installing test prerequisites"
-./scripts/install-test-deps.sh
+./scripts/install-test-deps.sh --python   # --python: build/venv for the python canopen peer test
 
 step "building"
 cargo build --workspace --bins --quiet

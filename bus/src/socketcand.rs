@@ -75,7 +75,11 @@ pub fn parse(body: &str) -> Msg {
                 let (id, extended) = parse_id(w.next()?)?;
                 let ts = w.next()?;
                 let (sec, usec) = ts.split_once('.').unwrap_or((ts, "0"));
-                let t = sec.parse::<u64>().ok()? * 1_000_000 + usec.parse::<u64>().ok()?;
+                // A fraction of other than 6 digits is still a fraction of a second.
+                let frac = &usec[..usec.len().min(6)];
+                let scale = 10u64.pow(6 - frac.len() as u32);
+                let us = if frac.is_empty() { 0 } else { frac.parse::<u64>().ok()? * scale };
+                let t = sec.parse::<u64>().ok()?.checked_mul(1_000_000)?.checked_add(us)?;
                 let hex = w.next().unwrap_or("");
                 if hex.len() % 2 != 0 || hex.len() > 16 || w.next().is_some() {
                     return None;
@@ -181,6 +185,10 @@ mod tests {
             m => panic!("{m:?}"),
         }
         assert!(matches!(parse("send 601 9 00"), Msg::Other(_)));
+        // Timestamps with a fraction of other than 6 digits (python-can prints floats).
+        assert_eq!(parse("frame 080 12.5 "), Msg::Frame(CanFrame::new(0x80, &[]), 12_500_000));
+        assert_eq!(parse("frame 080 12.1234567 "), Msg::Frame(CanFrame::new(0x80, &[]), 12_123_456));
+        assert_eq!(parse("frame 080 12 "), Msg::Frame(CanFrame::new(0x80, &[]), 12_000_000));
         assert!(matches!(parse("send 601 2 00"), Msg::Other(_)));
     }
 

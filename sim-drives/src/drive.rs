@@ -12,7 +12,7 @@ use cncgw_bus::canopen::sdo::{abort, SdoRequest, SdoResponse};
 use cncgw_bus::canopen::{cob, od as ix};
 use cncgw_bus::cia402::{cw, device_transition, mode, sw, QuickStopOption, State};
 use cncgw_bus::CanFrame;
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, VecDeque};
 
 /// How many interpolation periods a late SYNC is bridged by extrapolating the set-point
 /// (20 ms at 2 ms): enough for a master on a non-real-time kernel (the vcan tier runs in a
@@ -23,6 +23,30 @@ const N_RPDO: u16 = 2;
 const N_TPDO: u16 = 2;
 /// Manufacturer-specific write-only object (an access code, as many drives have).
 pub const ACCESS_CODE: u16 = 0x2000;
+/// Manufacturer-specific record: faults injected at run time (README, "Fault injection").
+pub const SIM_FAULTS: u16 = 0x2100;
+/// Sub-indices of `SIM_FAULTS`.
+pub mod fault_sub {
+    /// U16: write an error code to raise that fault now (reads back the last one).
+    pub const RAISE: u8 = 1;
+    /// U8 0/1: encoder lost: fault 0x7305, 0x6064 frozen; reset refused while 1.
+    pub const ENCODER_LOST: u8 = 2;
+    /// U8 0/1: DC-link undervoltage: fault 0x3220, statusword bit 4 off; reset refused while 1.
+    pub const UNDERVOLTAGE: u8 = 3;
+    /// U8: write 1 to trip on overcurrent (0x2310) now; reads 0.
+    pub const OVERCURRENT: u8 = 4;
+    /// U32: extra dry friction on the motor shaft, mN·m (a jammed slide → following error).
+    pub const JAM_MNM: u8 = 5;
+    /// U8 0/1: the heartbeat producer stops (the node otherwise alive).
+    pub const HEARTBEAT_MUTED: u8 = 6;
+    /// U32: the node falls silent (deaf and mute) for this many ms after the SDO answer;
+    /// 0xFFFFFFFF = until the process restarts. Reads 0.
+    pub const SILENT_MS: u8 = 7;
+    /// U16 0–1000: each RPDO received and each TPDO sent is lost with this probability (‰).
+    pub const PDO_DROP_PERMILLE: u8 = 8;
+    /// U32 0–1000000: TPDOs leave this many µs after their SYNC or event.
+    pub const TPDO_DELAY_US: u8 = 9;
+}
 const POSITION_DEMAND: u16 = 0x6062;
 const POSITION_WINDOW: u16 = 0x6067;
 const TORQUE_ACTUAL: u16 = 0x6077;
@@ -80,6 +104,16 @@ struct Hot {
     mode: i8,
     ferr_window: i64,
     ferr_timeout: u64,
+    /// 0x1005 COB-ID and the RPDO COB-IDs (0x1400+i:1, raw): every frame is matched
+    /// against them, by every drive.
+    sync_cob: u16,
+    rpdo_cob: [u32; N_RPDO as usize],
+    // Injected conditions (0x2100).
+    encoder_lost: bool,
+    undervoltage: bool,
+    hb_muted: bool,
+    pdo_drop_permille: u32,
+    tpdo_delay: u64,
 }
 
 /// An emulated drive. Read its state with the accessors; inject faults with the `inject_*`
@@ -128,6 +162,16 @@ pub struct SimDrive {
     i2t: f64,
     sdo: SdoState,
     silent: bool,
+    /// End of a timed silence (`u64::MAX`: none planned).
+    silent_until: u64,
+    /// A silence to start once the present output (the SDO answer that asked) is out.
+    silence_pending: Option<u64>,
+    /// 0x6064 held at the instant the encoder was lost.
+    encoder_frozen: Option<i64>,
+    /// TPDOs waiting for their injected delay: (due, frame).
+    delayed: VecDeque<(u64, CanFrame)>,
+    /// PDO-loss draws (xorshift64; seeded by the node id, so runs are reproducible).
+    rng: u64,
     /// Objects read every control tick, copied out of the dictionary after each write.
     hot: Hot,
     out: Vec<CanFrame>,
@@ -208,6 +252,19 @@ fn build_od(c: &DriveConfig) -> Od {
         }
     }
     od.add(ACCESS_CODE, 0, U32, Wo, false, 0);
+    {
+        use fault_sub::*;
+        od.add(SIM_FAULTS, 0, U8, Const, false, 9);
+        od.add(SIM_FAULTS, RAISE, U16, Rw, false, 0);
+        od.add_range(SIM_FAULTS, ENCODER_LOST, U8, Rw, false, 0, 0, 1);
+        od.add_range(SIM_FAULTS, UNDERVOLTAGE, U8, Rw, false, 0, 0, 1);
+        od.add_range(SIM_FAULTS, OVERCURRENT, U8, Rw, false, 0, 0, 1);
+        od.add(SIM_FAULTS, JAM_MNM, U32, Rw, false, 0);
+        od.add_range(SIM_FAULTS, HEARTBEAT_MUTED, U8, Rw, false, 0, 0, 1);
+        od.add(SIM_FAULTS, SILENT_MS, U32, Rw, false, 0);
+        od.add_range(SIM_FAULTS, PDO_DROP_PERMILLE, U16, Rw, false, 0, 0, 1000);
+        od.add_range(SIM_FAULTS, TPDO_DELAY_US, U32, Rw, false, 0, 0, 1_000_000);
+    }
     od.add_range(ix::ABORT_CONNECTION, 0, I16, Rw, false, 1, 0, 3);
     od.add(ix::ERROR_CODE, 0, U16, Ro, true, 0);
     od.add(ix::CONTROLWORD, 0, U16, Rw, true, 0);
@@ -277,6 +334,11 @@ impl SimDrive {
             i2t: 0.0,
             sdo: SdoState::Idle,
             silent: false,
+            silent_until: u64::MAX,
+            silence_pending: None,
+            encoder_frozen: None,
+            delayed: VecDeque::new(),
+            rng: 0x9E37_79B9_7F4A_7C15 ^ cfg.node as u64,
             hot: Hot::default(),
             out: Vec::new(),
             cfg,
@@ -298,6 +360,15 @@ impl SimDrive {
         h.mode = self.od.int(ix::MODES_DISPLAY, 0) as i8;
         h.ferr_window = self.od.int(ix::FOLLOWING_ERROR_WINDOW, 0);
         h.ferr_timeout = self.od.int(ix::FOLLOWING_ERROR_TIMEOUT, 0) as u64 * MS;
+        h.sync_cob = (self.od.int(ix::COB_ID_SYNC, 0) & 0x7FF) as u16;
+        for i in 0..N_RPDO {
+            h.rpdo_cob[i as usize] = self.od.int(ix::RPDO_COMM + i, 1) as u32;
+        }
+        h.encoder_lost = self.od.int(SIM_FAULTS, fault_sub::ENCODER_LOST) != 0;
+        h.undervoltage = self.od.int(SIM_FAULTS, fault_sub::UNDERVOLTAGE) != 0;
+        h.hb_muted = self.od.int(SIM_FAULTS, fault_sub::HEARTBEAT_MUTED) != 0;
+        h.pdo_drop_permille = self.od.int(SIM_FAULTS, fault_sub::PDO_DROP_PERMILLE) as u32;
+        h.tpdo_delay = self.od.int(SIM_FAULTS, fault_sub::TPDO_DELAY_US) as u64 * 1000;
         self.hot = h;
     }
 
@@ -321,7 +392,7 @@ impl SimDrive {
     }
     /// 0x6064: encoder position, whole counts, wrapping like the INTEGER32 object.
     pub fn position_actual(&self) -> i32 {
-        self.servo.position_counts() as i32
+        self.encoder_frozen.unwrap_or_else(|| self.servo.position_counts()) as i32
     }
     /// Unwrapped encoder position (counts), for tests.
     pub fn position_unwrapped(&self) -> i64 {
@@ -379,6 +450,50 @@ impl SimDrive {
     /// Disconnect the node from the bus (it neither receives nor sends) or reconnect it.
     pub fn set_silent(&mut self, silent: bool) {
         self.silent = silent;
+        self.silent_until = u64::MAX;
+    }
+    /// Whether the node is off the bus.
+    pub fn is_silent(&self) -> bool {
+        self.silent
+    }
+    /// Set an injected fault as an SDO write of `value` to 0x2100:`sub` would (see
+    /// `fault_sub`), without a bus. Err: the SDO abort code.
+    pub fn set_sim_fault(&mut self, sub: u8, value: u32, now: u64) -> Result<(), u32> {
+        let size = self.od.get(SIM_FAULTS, sub).and_then(|e| e.dtype.size()).unwrap_or(4);
+        self.write_object(SIM_FAULTS, sub, &value.to_le_bytes()[..size.min(4)], now)
+    }
+    /// A condition that makes a fault persist (fault reset refused): its error code.
+    fn lasting_fault(&self) -> Option<u16> {
+        if self.hot.encoder_lost {
+            Some(0x7305)
+        } else if self.hot.undervoltage {
+            Some(0x3220)
+        } else {
+            None
+        }
+    }
+    fn draw_drop(&mut self) -> bool {
+        let p = self.hot.pdo_drop_permille;
+        if p == 0 {
+            return false;
+        }
+        let mut x = self.rng;
+        x ^= x << 13;
+        x ^= x >> 7;
+        x ^= x << 17;
+        self.rng = x;
+        (x % 1000) < p as u64
+    }
+    /// A TPDO leaves now, later (injected delay) or never (injected loss).
+    fn emit_tpdo(&mut self, f: CanFrame, now: u64) {
+        if self.draw_drop() {
+            return;
+        }
+        if self.hot.tpdo_delay > 0 {
+            self.delayed.push_back((now + self.hot.tpdo_delay, f));
+        } else {
+            self.out.push(f);
+        }
     }
     /// Power-on encoder position (an absolute encoder's offset), counts.
     pub fn set_position(&mut self, counts: f64) {
@@ -396,6 +511,19 @@ impl SimDrive {
         } else {
             into.append(&mut self.out);
         }
+        if let Some(until) = self.silence_pending.take() {
+            self.silent = true;
+            self.silent_until = until;
+            self.delayed.clear();
+        }
+    }
+
+    /// When the next SYNC is expected (last SYNC + the period estimate), once known.
+    pub(crate) fn expected_sync(&self) -> Option<u64> {
+        match (self.last_sync, self.sync_period) {
+            (Some(l), p) if p > 0 && self.nmt == NmtState::Operational => Some(l + p),
+            _ => None,
+        }
     }
 
     /// The next time a timer of this drive fires (boot-up, heartbeat, heartbeat timeout).
@@ -407,6 +535,10 @@ impl SimDrive {
             }
         };
         take(self.hb_next);
+        take(self.delayed.front().map(|d| d.0));
+        if self.silent_until != u64::MAX {
+            take(Some(self.silent_until));
+        }
         if self.nmt != NmtState::BootUp {
             for (node, timeout) in self.hot.consumers {
                 if node != 0 {
@@ -419,6 +551,16 @@ impl SimDrive {
 
     /// Fire every timer due at `now`.
     pub(crate) fn on_time(&mut self, now: u64) {
+        if self.silent && now >= self.silent_until {
+            tracing::info!(node = self.cfg.node, "back on the bus after an injected silence");
+            self.silent = false;
+            self.silent_until = u64::MAX;
+        }
+        while self.delayed.front().is_some_and(|d| d.0 <= now) {
+            if let Some((_, f)) = self.delayed.pop_front() {
+                self.out.push(f);
+            }
+        }
         if let Some(b) = self.boot_at {
             if now >= b {
                 self.boot(now);
@@ -427,7 +569,7 @@ impl SimDrive {
         if let Some(h) = self.hb_next {
             if now >= h {
                 let period = self.od.int(ix::PRODUCER_HEARTBEAT, 0) as u64 * MS;
-                if self.nmt != NmtState::BootUp {
+                if self.nmt != NmtState::BootUp && !self.hot.hb_muted {
                     self.out.push(heartbeat_frame(self.cfg.node, self.nmt));
                 }
                 self.hb_next = if period > 0 { Some(h + period * ((now - h) / period + 1)) } else { None };
@@ -497,7 +639,7 @@ impl SimDrive {
             self.hb_seen.insert(node, now);
             return;
         }
-        if id as i64 == self.od.int(ix::COB_ID_SYNC, 0) & 0x7FF {
+        if id == self.hot.sync_cob {
             self.on_sync(now);
             return;
         }
@@ -509,8 +651,8 @@ impl SimDrive {
         }
         if self.nmt == NmtState::Operational {
             for i in 0..N_RPDO {
-                let c = self.od.int(ix::RPDO_COMM + i, 1) as u32;
-                if c & 0x8000_0000 == 0 && c & 0x7FF == id as u32 {
+                let c = self.hot.rpdo_cob[i as usize];
+                if c & 0x8000_0000 == 0 && c & 0x7FF == id as u32 && !self.draw_drop() {
                     self.rpdo_received(i, f, now);
                 }
             }
@@ -531,8 +673,10 @@ impl SimDrive {
             }
             NmtCommand::EnterPreOperational => self.set_nmt(NmtState::PreOperational),
             NmtCommand::ResetNode => {
-                // Reset application: every object to its default, power stage off.
-                self.od.reset_range(0x0000, 0xFFFF);
+                // Reset application: every object to its default, power stage off. The
+                // injected faults (0x2100) are hardware: they survive a reset.
+                self.od.reset_range(0x0000, SIM_FAULTS - 1);
+                self.od.reset_range(SIM_FAULTS + 1, 0xFFFF);
                 self.recache();
                 self.prev_cw = 0;
                 self.stop = None;
@@ -560,6 +704,7 @@ impl SimDrive {
         self.tpdo_count = [0; N_TPDO as usize];
         self.tpdo_last = [None, None];
         self.rpdo_buf = [None, None];
+        self.delayed.clear();
         self.last_sync = None;
         self.boot_at = Some(now + (self.cfg.boot_delay_ms * MS as f64).round() as u64);
     }
@@ -578,7 +723,18 @@ impl SimDrive {
     fn on_sync(&mut self, now: u64) {
         if let Some(last) = self.last_sync {
             if now > last {
-                self.sync_period = now - last;
+                // A real drive locks onto the SYNC period with a slow loop: one short or
+                // long interval (a master that caught up after a stall sends SYNCs back to
+                // back) moves the estimate by at most 1/8 of a factor 2 — else the next
+                // segment would be interpolated over microseconds at a huge speed.
+                let dt = now - last;
+                self.sync_period = if self.sync_period == 0 {
+                    dt
+                } else {
+                    let p = self.sync_period;
+                    let x = dt.clamp(p / 2, p.saturating_mul(2));
+                    (p as i64 + (x as i64 - p as i64) / 8) as u64
+                };
             }
         }
         self.last_sync = Some(now);
@@ -607,7 +763,7 @@ impl SimDrive {
                 }
             };
             if send {
-                self.out.push(CanFrame::new((c & 0x7FF) as u16, &data));
+                self.emit_tpdo(CanFrame::new((c & 0x7FF) as u16, &data), now);
                 self.tpdo_last[k] = Some(data);
                 self.tpdo_last_t[k] = now;
             }
@@ -701,7 +857,7 @@ impl SimDrive {
             let first = self.tpdo_last[k].is_none();
             let changed = self.tpdo_last[k].as_ref() != Some(&data);
             if first || (changed && since >= inhibit) || (event > 0 && since >= event) {
-                self.out.push(CanFrame::new((c & 0x7FF) as u16, &data));
+                self.emit_tpdo(CanFrame::new((c & 0x7FF) as u16, &data), now);
                 self.tpdo_last[k] = Some(data);
                 self.tpdo_last_t[k] = now;
             }
@@ -968,6 +1124,36 @@ impl SimDrive {
             }
             ix::CONTROLWORD => self.controlword(x as u16, now),
             ix::MODES_OF_OPERATION => self.set_mode(x as i8),
+            SIM_FAULTS => self.sim_fault_written(sub, x, now),
+            _ => {}
+        }
+    }
+
+    fn sim_fault_written(&mut self, sub: u8, x: i64, now: u64) {
+        use fault_sub::*;
+        match sub {
+            RAISE if x != 0 => self.fault(x as u16, now),
+            ENCODER_LOST => {
+                if x != 0 {
+                    self.encoder_frozen.get_or_insert(self.servo.position_counts());
+                    self.fault(0x7305, now);
+                } else if self.encoder_frozen.take().is_some() {
+                    // The encoder reads the real position again; hold there.
+                    self.rebase();
+                }
+            }
+            UNDERVOLTAGE if x != 0 => self.fault(0x3220, now),
+            OVERCURRENT if x != 0 => {
+                self.od.set(SIM_FAULTS, OVERCURRENT, 0);
+                self.fault(0x2310, now);
+            }
+            JAM_MNM => self.set_jam(x as f64 / 1000.0),
+            SILENT_MS if x != 0 => {
+                self.od.set(SIM_FAULTS, SILENT_MS, 0);
+                let until = if x as u32 == u32::MAX { u64::MAX } else { now + x as u64 * MS };
+                tracing::warn!(node = self.cfg.node, "falls silent for {} ms (injected)", if until == u64::MAX { "∞".into() } else { x.to_string() });
+                self.silence_pending = Some(until);
+            }
             _ => {}
         }
     }
@@ -994,7 +1180,7 @@ impl SimDrive {
 
     fn compute_statusword(&self) -> u16 {
         let mut s = self.state.statusword_bits();
-        if self.state != State::NotReadyToSwitchOn {
+        if self.state != State::NotReadyToSwitchOn && !self.hot.undervoltage {
             s |= sw::VOLTAGE_ENABLED; // mains are on
         }
         s |= sw::REMOTE;
@@ -1121,6 +1307,12 @@ impl SimDrive {
                 }
                 Some(_) => new = State::Fault, // power stage was off: nothing to stop
             },
+            State::SwitchOnDisabled if old == State::Fault && self.lasting_fault().is_some() => {
+                // The cause is still there (encoder, DC link): the fault stays, and says so.
+                let code = self.lasting_fault().unwrap_or(0);
+                self.emcy(code, error_register_bits(code));
+                return;
+            }
             State::SwitchOnDisabled if old == State::Fault => {
                 // Fault reset.
                 self.od.set(ix::ERROR_CODE, 0, 0);

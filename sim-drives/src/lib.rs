@@ -8,10 +8,12 @@
 //! default machine: waiting on it advances the drives deterministically), and
 //! `run_realtime` on any `CanBus` (the `sim-drives` binary on vcan0/can0).
 
+pub mod buslog;
 pub mod config;
 pub mod drive;
 pub mod od;
 pub mod servo;
+pub mod socketcand;
 
 pub use config::{DriveConfig, DriveKind, Physics, SimConfig};
 pub use drive::SimDrive;
@@ -22,6 +24,60 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+/// A fault for `sim-drives --fault`: the write `value` → 0x2100:`sub` of `node`, `at_ns`
+/// after the start (see `drive::fault_sub` and the README).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FaultAt {
+    pub node: u8,
+    pub sub: u8,
+    pub value: u32,
+    pub at_ns: u64,
+}
+
+/// Fault names accepted by `--fault`, their 0x2100 sub-index and the value when none is given.
+pub const FAULT_NAMES: &[(&str, u8, Option<u32>)] = &[
+    ("raise", drive::fault_sub::RAISE, None),
+    ("encoder-lost", drive::fault_sub::ENCODER_LOST, Some(1)),
+    ("undervoltage", drive::fault_sub::UNDERVOLTAGE, Some(1)),
+    ("overcurrent", drive::fault_sub::OVERCURRENT, Some(1)),
+    ("jam-mnm", drive::fault_sub::JAM_MNM, None),
+    ("heartbeat-stop", drive::fault_sub::HEARTBEAT_MUTED, Some(1)),
+    ("silent-ms", drive::fault_sub::SILENT_MS, Some(u32::MAX)),
+    ("pdo-drop-permille", drive::fault_sub::PDO_DROP_PERMILLE, None),
+    ("tpdo-delay-us", drive::fault_sub::TPDO_DELAY_US, None),
+];
+
+/// Parse `NODE:NAME[=VALUE][@MS]`, e.g. `1:encoder-lost@2000`, `2:pdo-drop-permille=50`,
+/// `1:raise=0x4310@500`, `3:silent-ms=300@1000` (no value: silent for good).
+pub fn parse_fault(spec: &str) -> Result<FaultAt, String> {
+    let bad = |why: &str| {
+        let names: Vec<&str> = FAULT_NAMES.iter().map(|n| n.0).collect();
+        format!("--fault {spec}: {why}; expected NODE:NAME[=VALUE][@MS] with NAME one of {}", names.join(", "))
+    };
+    let (spec_main, at) = match spec.split_once('@') {
+        Some((a, b)) => (a, b.trim().parse::<u64>().map_err(|_| bad("@MS is not a whole number of milliseconds"))?),
+        None => (spec, 0),
+    };
+    let (node, rest) = spec_main.split_once(':').ok_or_else(|| bad("no NODE:"))?;
+    let node: u8 = node.trim().parse().ok().filter(|n| (1..=127).contains(n)).ok_or_else(|| bad("NODE must be 1–127"))?;
+    let (name, value) = match rest.split_once('=') {
+        Some((n, v)) => (n.trim(), Some(v.trim())),
+        None => (rest.trim(), None),
+    };
+    let &(_, sub, default) = FAULT_NAMES.iter().find(|n| n.0 == name).ok_or_else(|| bad(&format!("unknown fault {name:?}")))?;
+    let value = match value {
+        Some(v) => {
+            let parsed = match v.strip_prefix("0x").or_else(|| v.strip_prefix("0X")) {
+                Some(h) => u32::from_str_radix(h, 16).ok(),
+                None => v.parse::<u32>().ok(),
+            };
+            parsed.ok_or_else(|| bad(&format!("value {v:?} is not a number")))?
+        }
+        None => default.ok_or_else(|| bad(&format!("{name} needs =VALUE")))?,
+    };
+    Ok(FaultAt { node, sub, value, at_ns: at * 1_000_000 })
+}
+
 /// The drives and their common time, independent of the transport.
 struct Core {
     drives: Vec<SimDrive>,
@@ -29,6 +85,8 @@ struct Core {
     step_ns: u64,
     last_tick: Option<u64>,
     out: Vec<CanFrame>,
+    /// Faults still to inject, latest first.
+    faults: Vec<FaultAt>,
 }
 
 impl Core {
@@ -36,7 +94,7 @@ impl Core {
         let step_us = cfg.step_us.clamp(1, 100);
         let mut drives: Vec<SimDrive> = cfg.drives.into_iter().map(|d| SimDrive::new(d, step_us)).collect();
         drives.sort_by_key(|d| d.node());
-        Core { drives, now: 0, step_ns: step_us as u64 * 1000, last_tick: None, out: Vec::new() }
+        Core { drives, now: 0, step_ns: step_us as u64 * 1000, last_tick: None, out: Vec::new(), faults: Vec::new() }
     }
 
     fn collect(&mut self) {
@@ -55,6 +113,15 @@ impl Core {
     /// Timers and (on the grid) the control tick at the present instant.
     fn fire(&mut self) {
         let now = self.now;
+        while self.faults.last().is_some_and(|f| f.at_ns <= now) {
+            if let Some(f) = self.faults.pop() {
+                match self.drive_mut(f.node).map(|d| d.set_sim_fault(f.sub, f.value, now)) {
+                    Some(Ok(())) => tracing::warn!(node = f.node, "injected fault: 0x2100:{} = {}", f.sub, f.value),
+                    Some(Err(code)) => tracing::error!(node = f.node, "fault 0x2100:{} = {} refused (abort 0x{code:08X})", f.sub, f.value),
+                    None => tracing::error!("fault for node {}: no such node", f.node),
+                }
+            }
+        }
         for d in &mut self.drives {
             d.on_time(now);
         }
@@ -78,6 +145,11 @@ impl Core {
             }
             let mut next = ((self.now / self.step_ns) + 1) * self.step_ns;
             next = next.min(t);
+            if let Some(f) = self.faults.last() {
+                if f.at_ns > self.now && f.at_ns < next {
+                    next = f.at_ns;
+                }
+            }
             for d in &self.drives {
                 if let Some(e) = d.next_event() {
                     if e > self.now && e < next {
@@ -91,6 +163,11 @@ impl Core {
             }
             self.now = next;
         }
+    }
+
+    fn schedule(&mut self, mut faults: Vec<FaultAt>) {
+        faults.sort_by_key(|f| std::cmp::Reverse(f.at_ns));
+        self.faults = faults;
     }
 
     fn drive(&self, node: u8) -> Option<&SimDrive> {
@@ -155,6 +232,22 @@ impl SimWorld {
         }
     }
 
+    /// Inject a fault now as the SDO write `value` → 0x2100:`sub` would (see
+    /// `drive::fault_sub`). Err: the SDO abort code, or 0 if there is no such node.
+    pub fn set_sim_fault(&mut self, node: u8, sub: u8, value: u32) -> Result<(), u32> {
+        let now = self.core.now;
+        let r = self.core.drive_mut(node).map(|d| d.set_sim_fault(sub, value, now)).unwrap_or(Err(0));
+        self.core.collect();
+        let SimWorld { core, ep } = self;
+        send_all(ep, &mut core.out);
+        r
+    }
+
+    /// Faults to inject at their times (simulated time from 0), as `sim-drives --fault`.
+    pub fn schedule_faults(&mut self, faults: Vec<FaultAt>) {
+        self.core.schedule(faults);
+    }
+
     fn pump(&mut self) {
         loop {
             match self.ep.try_recv() {
@@ -189,12 +282,21 @@ impl Clock for SimWorld {
     }
 }
 
+/// How long before an expected SYNC the real-time loop integrates up to it.
+const SYNC_LEAD_NS: u64 = 60_000;
+
 /// Real time: serve the drives on `bus` until `stop` is set. Frames are handled as they
 /// arrive (a SYNC gets its TPDOs at once); between frames the physics is integrated up to
 /// the wall clock in control steps and timers fire.
-pub fn run_realtime(mut bus: Box<dyn CanBus>, cfg: SimConfig, stop: Arc<AtomicBool>) -> Result<(), String> {
+pub fn run_realtime(bus: Box<dyn CanBus>, cfg: SimConfig, stop: Arc<AtomicBool>) -> Result<(), String> {
+    run_realtime_with_faults(bus, cfg, stop, Vec::new())
+}
+
+/// `run_realtime`, injecting `faults` at their times after the start (`--fault`).
+pub fn run_realtime_with_faults(mut bus: Box<dyn CanBus>, cfg: SimConfig, stop: Arc<AtomicBool>, faults: Vec<FaultAt>) -> Result<(), String> {
     cfg.validate()?;
     let mut core = Core::new(cfg);
+    core.schedule(faults);
     let start = Instant::now();
     let now = |s: &Instant| s.elapsed().as_nanos() as u64;
     let name = bus.name().to_string();
@@ -202,13 +304,20 @@ pub fn run_realtime(mut bus: Box<dyn CanBus>, cfg: SimConfig, stop: Arc<AtomicBo
     while !stop.load(Ordering::Relaxed) {
         let t = now(&start);
         core.advance_to(t, |out| send_all(&mut bus, out));
-        // Frames wake us; otherwise wake for the next timer, and at least every 2 ms so
-        // that faults found by the physics (following error, I²t) are reported when the
-        // master is silent. Physics is integrated lazily up to `now`, so it needs no tick of
-        // its own; waking more often only costs system calls (20 µs each in a UML guest).
+        // Frames wake us; otherwise wake for the next timer, just before the next SYNC is
+        // due (the physics is then integrated up to almost the SYNC instant beforehand, and
+        // the TPDOs leave without a catch-up on the critical path), and at least every 2 ms
+        // so that faults found by the physics are reported when the master is silent. Waking
+        // more often only costs system calls (20 µs each in a UML guest).
         let mut wait = Duration::from_millis(2);
         if let Some(e) = core.drives.iter().filter_map(|d| d.next_event()).min() {
             wait = wait.min(Duration::from_nanos(e.saturating_sub(t)));
+        }
+        if let Some(s) = core.drives.iter().filter_map(|d| d.expected_sync()).min() {
+            let pre = s.saturating_sub(SYNC_LEAD_NS);
+            if pre > t {
+                wait = wait.min(Duration::from_nanos(pre - t));
+            }
         }
         match bus.recv_timeout(wait) {
             Ok(Some(f)) => {
