@@ -97,6 +97,8 @@ pub mod alarms {
     pub const STOPPING: u32 = 2305;
     /// Thread lead × spindle speed is faster than the feed axes can go.
     pub const THREAD_TOO_FAST: u32 = 2306;
+    /// PS0014: G34 lead change makes the lead ≤ 0 before the end of the thread.
+    pub const ILLEGAL_LEAD: u32 = 14;
 }
 
 /// Actual values from the drives (X radius).
@@ -248,6 +250,13 @@ struct ThreadSeg {
     geom: Geom,
     /// Path length per spindle revolution (lead along the long axis / its direction share).
     lead_path: f64,
+    /// G34: change of `lead_path` per revolution (lead_inc / the long axis' share).
+    k_path: f64,
+    /// Largest path lead over the segment (the start's or, under G34, the end's).
+    lead_path_max: f64,
+    /// Starts without waiting for the one-revolution signal, continuing the lock of the
+    /// thread segment before it (see `ThreadSync::continue_with`).
+    continuous: bool,
     start_angle: f64,
     vlim: f64,
     alim: f64,
@@ -341,6 +350,9 @@ pub struct Motion {
     fault: Option<Fault>,
     /// Thread: target minus commanded path position, mm (see `sync_error`).
     sync_err: f64,
+    /// The lock of the thread segment that ended last and its length, for a continuous
+    /// segment that follows it (cleared by any other item).
+    thread_chain: Option<(ThreadSync, f64)>,
     /// Rigid tapping reference (z, spindle angle, lead) of the last stroke, so that the strokes
     /// of one hole share one Z–angle relation and the return ends on the start angle exactly.
     tap_ref: Option<(f64, f64, f64)>,
@@ -370,6 +382,7 @@ impl Motion {
             last_blendable: false,
             fault: None,
             sync_err: 0.0,
+            thread_chain: None,
             tap_ref: None,
             in_hole: false,
             sp_dir: 0.0,
@@ -435,15 +448,8 @@ impl Motion {
                 let end = self.check_end(end).map_err(at)?;
                 Item::Move(self.arc_seg(end, xyz(center), *cw, *plane, speed, blended).map_err(at)?)
             }
-            MoveKind::Thread { end, lead, start_angle, lead_inc, .. } => {
-                // `continuous` (no wait for the one-revolution signal) is not honoured yet.
-                if *lead_inc != 0.0 {
-                    return Err(at(Alarm::new(
-                        alarms::UNSUPPORTED,
-                        "G34 variable-lead threads are not executed by this motion layer yet; remove the block",
-                    )));
-                }
-                Item::Thread(self.thread_seg(end, *lead, *start_angle).map_err(at)?)
+            MoveKind::Thread { end, lead, start_angle, continuous, lead_inc } => {
+                Item::Thread(self.thread_seg(end, *lead, *start_angle, *lead_inc, *continuous).map_err(at)?)
             }
             MoveKind::RigidThread { .. } => {
                 return Err(at(Alarm::new(
@@ -655,12 +661,15 @@ impl Motion {
         }
     }
 
-    fn thread_seg(&self, end: &Pos, lead: f64, start_angle: f64) -> Result<ThreadSeg, Alarm> {
+    fn thread_seg(&self, end: &Pos, lead: f64, start_angle: f64, lead_inc: f64, continuous: bool) -> Result<ThreadSeg, Alarm> {
         if !(lead.is_finite() && lead > 0.0) {
             return Err(Alarm::new(alarms::FEED_ZERO, format!("thread lead must be > 0, got F{lead}; correct the F/I word")));
         }
         if !start_angle.is_finite() {
             return Err(Alarm::new(alarms::BAD_VALUE, format!("thread start angle is not a finite number ({start_angle})")));
+        }
+        if !lead_inc.is_finite() {
+            return Err(Alarm::new(alarms::BAD_VALUE, format!("G34 lead change is not a finite number ({lead_inc})")));
         }
         if !self.plan_spindle_on {
             return Err(Alarm::new(
@@ -678,21 +687,44 @@ impl Motion {
         // The lead is along the long axis (Fanuc: Z unless the taper is steeper than 45°).
         let u_long = delta.iter().fold(0.0f64, |m, d| m.max(d.abs())) / len;
         let lead_path = lead / u_long;
+        // G34: after n revolutions the long axis has gone L·n + K·n²/2 and the lead is L + K·n,
+        // so at the end (long distance D) the lead is √(L² + 2·K·D).
+        let disc = lead * lead + 2.0 * lead_inc * len * u_long;
+        let lead_end = disc.max(0.0).sqrt();
+        if lead_inc != 0.0 && !(disc > 0.0 && lead_end > 1e-6) {
+            return Err(Alarm::new(
+                alarms::ILLEGAL_LEAD,
+                format!(
+                    "G34 lead F{lead} changing by K{lead_inc} per revolution reaches 0 before the end of the thread; shorten the thread or reduce the decrement K"
+                ),
+            ));
+        }
+        let lead_path_max = lead.max(lead_end) / u_long;
         let s = self.line_seg(g, Speed::Rapid, false);
         if let Some(rpm) = self.plan_rpm {
-            let v = lead_path * rpm / 60.0;
+            let v = lead_path_max * rpm / 60.0;
             if v > s.vlim {
                 return Err(Alarm::new(
                     alarms::THREAD_TOO_FAST,
                     format!(
-                        "thread lead {lead} mm × S{rpm} needs {:.0} mm/min, more than the axes' {:.0} mm/min; lower the spindle speed",
+                        "thread lead {:.4} mm × S{rpm} needs {:.0} mm/min, more than the axes' {:.0} mm/min; lower the spindle speed",
+                        lead_path_max * u_long,
                         v * 60.0,
                         s.vlim * 60.0
                     ),
                 ));
             }
         }
-        Ok(ThreadSeg { geom: g, lead_path, start_angle, vlim: s.vlim, alim: s.alim })
+        Ok(ThreadSeg {
+            geom: g,
+            lead_path,
+            k_path: lead_inc / u_long,
+            lead_path_max,
+            continuous,
+            start_angle,
+            vlim: s.vlim,
+            alim: s.alim,
+        })
     }
 
     fn tap_seg(&self, end: &Pos, lead: f64, rpm: f64) -> Result<TapSeg, Alarm> {
@@ -908,6 +940,8 @@ impl Motion {
         if self.run == Run::None && !self.stopping && !self.hold_now() && !self.paused {
             if let Some(e) = self.pop() {
                 self.line = e.line;
+                let chain = self.thread_chain.take();
+                self.thread_chain = chain.filter(|_| matches!(e.item, Item::Thread(_)));
                 match e.item {
                     Item::Move(seg) => {
                         self.in_hole = false;
@@ -916,7 +950,13 @@ impl Motion {
                     Item::Dwell(n) => self.run = Run::Dwell { left: n },
                     Item::Thread(seg) => {
                         self.in_hole = false;
-                        self.run = Run::Thread { seg, sync: None, s: 0.0, v: 0.0, landed: false };
+                        // A continuous segment pushed too late to be crossed into on the fly
+                        // still keeps the lock of the thread that just ended.
+                        let sync = match self.thread_chain {
+                            Some((t, len)) if seg.continuous => t.continue_with(len, seg.lead_path, seg.k_path),
+                            _ => None,
+                        };
+                        self.run = Run::Thread { seg, sync, s: 0.0, v: 0.0, landed: false };
                     }
                     Item::Tap(seg) => self.run = Run::Tap { seg, theta0: None, s: 0.0, v: 0.0, landed: false },
                     Item::Spindle(c) => self.apply_spindle(c),
@@ -1073,18 +1113,25 @@ impl Motion {
     }
 
     /// One cycle of a thread pass: wait for the spindle, arm at the measured angle, then track
-    /// the synchronous position within the axis limits, braking for the end. Returns the path
-    /// speed (mm/s).
+    /// the synchronous position within the axis limits, braking for the end — or, when a
+    /// continuous thread segment is queued next, crossing into it within the cycle with the
+    /// same lock. Returns the path speed (mm/s).
+    ///
+    /// The target is computed from the spindle angle predicted one cycle ahead (measured angle
+    /// + measured speed × cycle): the axes reach this cycle's setpoint when the spindle has
+    /// turned on by one cycle, so the lock does not lag by `ω·dt` (which would shift the phase
+    /// with the rpm).
     fn step_thread(&mut self, fb: &Feedback, seg: ThreadSeg, sync: Option<ThreadSync>, s: f64, v: f64) -> f64 {
         let dt = self.lim.cycle_s;
-        let theta = fb.pos[AX_S];
+        let rpm = if fb.spindle_rpm.is_finite() { fb.spindle_rpm } else { 0.0 };
+        let theta = fb.pos[AX_S] + rpm * 6.0 * dt;
         // The lead-in ramp uses 80 % of the path acceleration, leaving the tracker headroom.
         let sync = match sync {
             Some(t) => Some(t),
             None if self.stopping => None,
             // Arm only once the spindle is at its commanded speed (speed arrival).
             None if self.sp_cur != self.sp_target || self.sp_target == 0.0 => None,
-            None => ThreadSync::arm(theta, fb.spindle_rpm, seg.start_angle, seg.lead_path, 0.8 * seg.alim),
+            None => ThreadSync::arm(theta, rpm, seg.start_angle, seg.lead_path, seg.k_path, 0.8 * seg.alim),
         };
         let Some(t) = sync else {
             // Spindle not turning yet (or stopping before the cut began): wait at the start.
@@ -1093,34 +1140,65 @@ impl Motion {
             }
             return 0.0;
         };
-        if s == 0.0 && v == 0.0 && t.sync_speed() > seg.vlim {
+        if s == 0.0 && v == 0.0 && !seg.continuous && t.sync_speed() * seg.lead_path_max / seg.lead_path > seg.vlim {
             // The measured spindle speed is too fast for the lead: refuse before cutting.
-            self.fault = Some(Fault::ThreadTooFast { v: t.sync_speed(), vlim: seg.vlim, line: self.line });
+            self.fault = Some(Fault::ThreadTooFast {
+                v: t.sync_speed() * seg.lead_path_max / seg.lead_path,
+                vlim: seg.vlim,
+                line: self.line,
+            });
             self.stop();
             self.run = Run::None;
             return 0.0;
         }
         let len = seg.geom.len();
+        // The continuation, if it is already queued (O(1): the queue head).
+        let next = match self.peek() {
+            Some(Entry { item: Item::Thread(n), line }) if n.continuous => Some((n, line)),
+            _ => None,
+        };
         let dv = seg.alim * dt;
-        let target = t.target(theta).min(len);
-        // Feed hold and override do not apply while threading (Fanuc); a controlled stop does.
-        let want = if self.stopping { 0.0 } else { (target - s) / dt };
+        let target = t.target(theta);
+        // Feed hold and override do not apply while threading (Fanuc). A controlled stop keeps
+        // the axes on the thread while the spindle brakes (they stop together), so the tool
+        // does not leave the groove.
+        let want = (target - s) / dt;
+        let brake_len = len - s + next.map_or(0.0, |(n, _)| n.geom.len());
         let nv = want
             .max((v - dv).max(0.0))
             .min(v + dv)
             .min(seg.vlim)
-            .min(profile::v_allowed(len - s, dv, dt))
+            .min(profile::v_allowed(brake_len, dv, dt))
             .max(0.0);
         let d = len - s;
+        if let Some((n, line)) = next.filter(|_| d - nv * dt <= 1e-9) {
+            if let Some(t2) = t.continue_with(len, n.lead_path, n.k_path) {
+                // Cross into the continuation within this cycle: what is left of this cycle's
+                // step, at the same angular rate (the path lead may differ).
+                self.pop();
+                self.line = line;
+                let r = n.lead_path / seg.lead_path;
+                let len2 = n.geom.len();
+                let s2 = ((nv * dt - d) * r).clamp(0.0, len2);
+                let landed = len2 - s2 <= 1e-9;
+                let s2 = if landed { len2 } else { s2 };
+                self.pos[..3].copy_from_slice(&n.geom.at(s2));
+                self.sync_err = t2.target(theta) - s2;
+                self.run = Run::Thread { seg: n, sync: Some(t2), s: s2, v: nv * r, landed };
+                return nv;
+            }
+        }
         let (s2, landed) = if d - nv * dt <= 1e-9 { (len, true) } else { (s + nv * dt, false) };
         self.pos[..3].copy_from_slice(&seg.geom.at(s2));
-        self.sync_err = target - s2;
-        self.run = if self.stopping && nv == 0.0 && !landed {
+        self.sync_err = target.min(len) - s2;
+        let spindle_stopped = self.sp_cur == 0.0;
+        self.run = if self.stopping && nv == 0.0 && !landed && spindle_stopped {
             Run::None
         } else {
             Run::Thread { seg, sync: Some(t), s: s2, v: nv, landed }
         };
         if landed {
+            self.thread_chain = Some((t, len));
             d / dt
         } else {
             nv

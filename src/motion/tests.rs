@@ -659,7 +659,8 @@ fn thread(x: f64, z: f64, lead: f64, start_angle: f64) -> MoveKind {
 }
 
 /// Run a thread pass after `wait` seconds of dwell; return the setpoints and, for the cycles
-/// locked to the spindle, the phase θ_fb − 360·(z0 − z)/lead (constant when locked).
+/// locked to the spindle, the phase θ − 360·(z0 − z)/lead of the same cycle's setpoints
+/// (constant when locked: the lock predicts the spindle one cycle ahead).
 fn thread_pass(wait: f64, start_angle: f64) -> (Vec<Setpoint>, Vec<f64>) {
     let l = lim();
     let mut m = Motion::new(l.clone(), START);
@@ -674,8 +675,8 @@ fn thread_pass(wait: f64, start_angle: f64) -> (Vec<Setpoint>, Vec<f64>) {
     let mut phases = Vec::new();
     for k in 1..sps.len() {
         if sps[k].line == 4 && (sps[k].path_feed - 1200.0).abs() < 1e-6 {
-            let theta_fb = sps[k - 1].pos[AX_S];
-            phases.push(theta_fb - 360.0 * (2.0 - sps[k].pos[AX_Z]) / 2.0);
+            let theta = sps[k].pos[AX_S];
+            phases.push(theta - 360.0 * (2.0 - sps[k].pos[AX_Z]) / 2.0);
         }
     }
     assert!(phases.len() > 500, "only {} locked cycles", phases.len());
@@ -1144,4 +1145,126 @@ fn single_block_does_not_stop_inside_a_rigid_tap() {
     }
     // After the rapid to R and after the final rapid; never at the bottom.
     assert_eq!(stops, vec![2.0, 2.0]);
+}
+
+// ---- Continuous thread segments, G34 ----
+
+fn thread_k(x: f64, z: f64, lead: f64, continuous: bool, lead_inc: f64) -> MoveKind {
+    MoveKind::Thread { end: Pos::xz(x, z), lead, start_angle: 0.0, continuous, lead_inc }
+}
+
+#[test]
+fn g92_run_out_continues_the_lock_without_rearming() {
+    let l = lim();
+    let mut m = Motion::new(l.clone(), START);
+    m.push(&mv(1, spindle(SpindleDir::Cw, 600.0))).unwrap();
+    m.push(&mv(2, rapid(20.0, 2.0))).unwrap();
+    // G92 pass: the thread, then the 45° run-out chamfer (continuous), then the retract.
+    m.push(&mv(3, thread_k(20.0, -20.0, 2.0, false, 0.0))).unwrap();
+    m.push(&mv(4, thread_k(22.0, -22.0, 2.0, true, 0.0))).unwrap();
+    m.push(&mv(5, rapid(25.0, -22.0))).unwrap();
+    let sps = run(&mut m, 100_000);
+    // The synchronous line from a locked cycle in the middle of the thread.
+    let k_mid = sps.iter().position(|s| s.line == 3 && s.pos[AX_Z] < -10.0).unwrap();
+    let (z_m, th_m) = (sps[k_mid].pos[AX_Z], sps[k_mid].pos[AX_S]);
+    let mut crossed = 0;
+    for s in &sps[k_mid..] {
+        if !(s.line == 3 || s.line == 4) || s.pos[AX_Z] < -21.7 {
+            continue; // before the lock, the braking at the chamfer's end, the retract
+        }
+        // z = z0 − lead·(θ − θ0)/360 on both sides of the junction.
+        let want = z_m - 2.0 * (s.pos[AX_S] - th_m) / 360.0;
+        assert!((s.pos[AX_Z] - want).abs() < 1e-6, "line {} z {} vs {want}", s.line, s.pos[AX_Z]);
+        assert!(s.path_feed > 1000.0, "stopped at z {} (re-armed?)", s.pos[AX_Z]);
+        if s.line == 4 {
+            crossed += 1;
+            // On the chamfer: x = 20 + (−20 − z).
+            assert!((s.pos[AX_X] - (20.0 - 20.0 - s.pos[AX_Z])).abs() < 1e-9);
+        }
+    }
+    assert!(crossed > 10, "only {crossed} chamfer cycles checked");
+    let last = sps.last().unwrap();
+    assert_eq!(last.pos[..3], [25.0, 0.0, -22.0]);
+}
+
+#[test]
+fn consecutive_g32_blocks_pushed_late_still_keep_the_lock() {
+    let l = lim();
+    let mut m = Motion::new(l.clone(), START);
+    m.push(&mv(1, spindle(SpindleDir::Cw, 600.0))).unwrap();
+    m.push(&mv(2, rapid(20.0, 2.0))).unwrap();
+    m.push(&mv(3, thread_k(20.0, -10.0, 2.0, false, 0.0))).unwrap();
+    let mut fb = Feedback { pos: START, spindle_rpm: 0.0 };
+    let mut sps = Vec::new();
+    // Run until the first block has ended (at rest), then push its continuation.
+    while !m.is_idle() {
+        let sp = m.step(&fb);
+        fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm };
+        sps.push(sp);
+    }
+    m.push(&mv(4, thread_k(20.0, -20.0, 2.0, true, 0.0))).unwrap();
+    let k_mid = sps.iter().position(|s| s.line == 3 && s.pos[AX_Z] < -5.0).unwrap();
+    let (z_m, th_m) = (sps[k_mid].pos[AX_Z], sps[k_mid].pos[AX_S]);
+    sps.extend(run_from(&mut m, fb, 100_000));
+    // It catches up with the same line (no wait for a new one-revolution signal): once caught
+    // up, z is on the first block's synchronous line again.
+    let on_line: Vec<_> = sps
+        .iter()
+        .filter(|s| s.line == 4 && s.pos[AX_Z] > -19.0 && s.pos[AX_Z] < -14.0)
+        .map(|s| s.pos[AX_Z] - (z_m - 2.0 * (s.pos[AX_S] - th_m) / 360.0))
+        .collect();
+    assert!(!on_line.is_empty());
+    assert!(on_line.iter().all(|e| e.abs() < 1e-6), "off the line: {:?}", &on_line[..3.min(on_line.len())]);
+}
+
+fn run_from(m: &mut Motion, mut fb: Feedback, max: usize) -> Vec<Setpoint> {
+    let mut out = Vec::new();
+    while !m.is_idle() {
+        assert!(out.len() < max, "not idle after {max} cycles");
+        let sp = m.step(&fb);
+        fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm };
+        out.push(sp);
+    }
+    out
+}
+
+#[test]
+fn g34_lead_grows_by_k_per_revolution() {
+    let l = lim();
+    let mut m = Motion::new(l.clone(), START);
+    m.push(&mv(1, spindle(SpindleDir::Cw, 300.0))).unwrap();
+    m.push(&mv(2, rapid(20.0, 2.0))).unwrap();
+    m.push(&mv(3, thread_k(20.0, -40.0, 2.0, false, 0.1))).unwrap();
+    let sps = run(&mut m, 100_000);
+    check_limits(&l, START, &sps).unwrap();
+    assert_eq!(sps.last().unwrap().pos[..3], [20.0, 0.0, -40.0]);
+    // Revolutions n after θ0 for a distance D: L0·n + K·n²/2 = D.
+    let revs = |d: f64| (-2.0 + (4.0 + 0.2 * d).sqrt()) / 0.1;
+    let k_mid = sps.iter().position(|s| s.line == 3 && s.pos[AX_Z] < -20.0).unwrap();
+    let th0 = sps[k_mid].pos[AX_S] - 360.0 * revs(2.0 - sps[k_mid].pos[AX_Z]);
+    // θ0 is on the one-revolution reference (start angle 0).
+    let r = th0.rem_euclid(360.0);
+    assert!(r.min(360.0 - r) < 1e-6, "θ0 {th0}");
+    let mut n_checked = 0;
+    for s in sps.iter().filter(|s| s.line == 3 && s.pos[AX_Z] < -2.0 && s.pos[AX_Z] > -39.0) {
+        let n = (s.pos[AX_S] - th0) / 360.0;
+        let want = 2.0 - (2.0 * n + 0.1 * n * n / 2.0);
+        assert!((s.pos[AX_Z] - want).abs() < 1e-6, "n {n}: z {} vs {want}", s.pos[AX_Z]);
+        n_checked += 1;
+    }
+    assert!(n_checked > 1000);
+}
+
+#[test]
+fn g34_is_refused_when_the_lead_vanishes_or_gets_too_fast() {
+    let mut m = Motion::new(lim(), START);
+    m.push(&mv(1, spindle(SpindleDir::Cw, 3000.0))).unwrap();
+    m.push(&mv(2, rapid(20.0, 2.0))).unwrap();
+    // 2 mm − 0.2 mm/rev: 0 after 10 revolutions (20 mm), the thread is 42 mm.
+    let e = m.push(&mv(3, thread_k(20.0, -40.0, 2.0, false, -0.2))).unwrap_err();
+    assert_eq!(e.number, alarms::ILLEGAL_LEAD);
+    // 3.5 mm × 3000 rpm = 10.5 m/min is fine; growing to 7.2 mm at the end is not (Z 12 m/min).
+    let e = m.push(&mv(3, thread_k(20.0, -40.0, 3.5, false, 0.5))).unwrap_err();
+    assert_eq!(e.number, alarms::THREAD_TOO_FAST);
+    m.push(&mv(3, thread_k(20.0, -40.0, 3.5, false, 0.0))).unwrap();
 }
