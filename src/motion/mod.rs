@@ -274,11 +274,27 @@ struct TapSeg {
     alim: f64,
 }
 
+/// A G92.1 rigid thread stroke: a line of the feed axes and a spindle turn of `dc` degrees
+/// on one profile, the spindle in position mode: angle = θ_ref + dc·s/len.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct RigidSeg {
+    geom: Geom,
+    /// Spindle travel, degrees (signed).
+    dc: f64,
+    /// Commanded path speed (from the rpm), mm/s.
+    v: f64,
+    vlim: f64,
+    alim: f64,
+    /// The long axis' share of the path (long-axis mm per path mm).
+    u_long: f64,
+}
+
 #[derive(Clone, Copy, Debug, PartialEq)]
 enum Item {
     Move(Seg),
     Thread(ThreadSeg),
     Tap(TapSeg),
+    Rigid(RigidSeg),
     Dwell(u64),
     Spindle(SpindleCmd),
     Event(Event),
@@ -303,6 +319,9 @@ enum Run {
     /// Waiting for the spindle to stop (`theta0` None), then the stroke; `theta0` is the tap
     /// reference (z_ref, θ_ref): spindle angle = θ_ref + 360·(z − z_ref)/lead.
     Tap { seg: TapSeg, theta0: Option<(f64, f64)>, s: f64, v: f64, landed: bool },
+    /// G92.1: waiting for the spindle to stop (`theta0` None), then the stroke from the
+    /// spindle angle `theta0`.
+    Rigid { seg: RigidSeg, theta0: Option<f64>, s: f64, v: f64, landed: bool },
 }
 
 /// A fault found while executing (reported by [`Motion::take_alarm`]; `step` cannot return
@@ -451,12 +470,7 @@ impl Motion {
             MoveKind::Thread { end, lead, start_angle, continuous, lead_inc } => {
                 Item::Thread(self.thread_seg(end, *lead, *start_angle, *lead_inc, *continuous).map_err(at)?)
             }
-            MoveKind::RigidThread { .. } => {
-                return Err(at(Alarm::new(
-                    alarms::UNSUPPORTED,
-                    "G92.1 rigid threads are not executed by this motion layer yet; remove the block",
-                )))
-            }
+            MoveKind::RigidThread { end, lead, rpm } => Item::Rigid(self.rigid_seg(end, *lead, *rpm).map_err(at)?),
             MoveKind::Tap { end, lead, rpm } => Item::Tap(self.tap_seg(end, *lead, *rpm).map_err(at)?),
             MoveKind::Dwell { seconds } => {
                 if !(seconds.is_finite() && *seconds >= 0.0) {
@@ -492,6 +506,15 @@ impl Motion {
                 if let Some(e) = m.kind.end() {
                     self.plan_c = Some(e.c);
                 }
+            }
+            Item::Rigid(r) => {
+                self.plan_end = r.geom.end();
+                if let Some(e) = m.kind.end() {
+                    self.plan_c = Some(e.c);
+                }
+                // Like rigid tapping, G92.1 leaves the spindle stopped, in position control.
+                self.plan_spindle_on = false;
+                self.plan_rpm = None;
             }
             Item::Tap(t) => {
                 self.plan_end[AX_Z] = t.z1;
@@ -748,6 +771,67 @@ impl Motion {
         Ok(TapSeg { z0: self.plan_end[AX_Z], z1: e[AX_Z], lead, v: (rpm * lead.abs() / 60.0).min(vlim), vlim, alim })
     }
 
+    /// G92.1: the feed axes to `end` and the spindle through `end.c − c_start` on one profile.
+    /// Feasibility before motion: the commanded rpm × lead must be within the feed axes' and
+    /// the spindle's speed limits, and the spindle travel must match the lead.
+    fn rigid_seg(&self, end: &Pos, lead: f64, rpm: f64) -> Result<RigidSeg, Alarm> {
+        if !(lead.is_finite() && lead != 0.0) {
+            return Err(Alarm::new(alarms::FEED_ZERO, format!("G92.1 lead must be non-zero, got F{lead}; correct the F word")));
+        }
+        if !(rpm.is_finite() && rpm > 0.0) {
+            return Err(Alarm::new(alarms::BAD_VALUE, format!("G92.1 spindle speed must be > 0, got S{rpm}")));
+        }
+        if !self.lim.present[AX_S] {
+            return Err(Alarm::new(alarms::UNSUPPORTED, "G92.1 needs a spindle axis (Cs) in the config"));
+        }
+        let e = xyz(end);
+        for (i, v) in e.iter().enumerate() {
+            self.check_axis(i, *v, "end point")?;
+        }
+        if !end.c.is_finite() {
+            return Err(Alarm::new(alarms::BAD_VALUE, format!("G92.1 spindle end angle is not a finite number ({})", end.c)));
+        }
+        let g = geom::line(self.plan_end, e);
+        let len = g.len();
+        if !(len > 0.0) {
+            return Err(Alarm::new(alarms::BAD_VALUE, "G92.1 stroke of zero length: correct the end point"));
+        }
+        let delta = [e[0] - self.plan_end[0], e[1] - self.plan_end[1], e[2] - self.plan_end[2]];
+        let long = delta.iter().fold(0.0f64, |m, d| m.max(d.abs()));
+        // The turn the lead asks for; when the start angle is known it must agree with end.c.
+        let turn = lead.signum() * 360.0 * long / lead.abs();
+        let dc = match self.plan_c {
+            Some(c0) => {
+                let dc = end.c - c0;
+                if (dc - turn).abs() > 1e-6 * turn.abs().max(1.0) {
+                    return Err(Alarm::new(
+                        alarms::BAD_VALUE,
+                        format!("G92.1 spindle travel {dc:.3}° does not match the lead ({turn:.3}° for {long:.4} mm at F{lead})"),
+                    ));
+                }
+                dc
+            }
+            None => turn,
+        };
+        let l = &self.lim;
+        let line = self.line_seg(g, Speed::Rapid, false);
+        let per_deg = len / dc.abs(); // path mm per spindle degree
+        let vlim = line.vlim.min(l.vmax[AX_S] * per_deg);
+        let alim = line.alim.min(l.amax[AX_S].min(l.tap_accel) * per_deg);
+        let v = rpm * 6.0 * per_deg;
+        if !(v <= vlim * (1.0 + 1e-9)) {
+            return Err(Alarm::new(
+                alarms::THREAD_TOO_FAST,
+                format!(
+                    "G92.1 lead {lead} mm × S{rpm} needs {:.0} mm/min of path, more than the axes and spindle allow ({:.0} mm/min); lower S",
+                    v * 60.0,
+                    vlim * 60.0
+                ),
+            ));
+        }
+        Ok(RigidSeg { geom: g, dc, v, vlim, alim, u_long: long / len })
+    }
+
     fn check_spindle(&self, c: &SpindleCmd) -> Result<SpindleCmd, Alarm> {
         let bad = |what: &str, v: f64| {
             Alarm::new(alarms::BAD_VALUE, format!("spindle {what} must be a finite number ≥ 0, got {v}"))
@@ -933,7 +1017,7 @@ impl Motion {
         let mut event = Event::None;
         let mut path_v = 0.0;
         // In a rigid-tap stroke the spindle is a position axis driven by the tap profile.
-        if !matches!(self.run, Run::Tap { theta0: Some(_), .. }) {
+        if !matches!(self.run, Run::Tap { theta0: Some(_), .. } | Run::Rigid { theta0: Some(_), .. }) {
             self.step_spindle(dt);
         }
 
@@ -959,6 +1043,10 @@ impl Motion {
                         self.run = Run::Thread { seg, sync, s: 0.0, v: 0.0, landed: false };
                     }
                     Item::Tap(seg) => self.run = Run::Tap { seg, theta0: None, s: 0.0, v: 0.0, landed: false },
+                    Item::Rigid(seg) => {
+                        self.in_hole = false;
+                        self.run = Run::Rigid { seg, theta0: None, s: 0.0, v: 0.0, landed: false };
+                    }
                     Item::Spindle(c) => self.apply_spindle(c),
                     Item::Event(ev) => {
                         event = ev;
@@ -1031,6 +1119,41 @@ impl Motion {
                 self.paused |= self.single_block;
             }
             Run::Thread { seg, sync, s, v, landed: false } => path_v = self.step_thread(fb, seg, sync, s, v),
+            Run::Rigid { landed: true, .. } => {
+                // At rest on the end, spindle stopped in position (no run-out).
+                self.sp_cur = 0.0;
+                self.run = Run::None;
+                self.paused |= self.single_block;
+            }
+            Run::Rigid { seg, theta0: None, .. } => {
+                // Like rigid tapping: brake the spindle, then take its angle as the origin.
+                self.sp_dir = 0.0;
+                self.sp_css = None;
+                if self.stopping {
+                    self.run = Run::None;
+                } else if self.sp_cur == 0.0 {
+                    self.run = Run::Rigid { seg, theta0: Some(self.pos[AX_S]), s: 0.0, v: 0.0, landed: false };
+                }
+            }
+            Run::Rigid { seg, theta0: Some(th0), s, v, landed: false } => {
+                // One profile for path and spindle; feed hold and override do not apply (a
+                // thread), a controlled stop brakes both together on the same profile.
+                let len = seg.geom.len();
+                let d = len - s;
+                let v_cmd = if self.stopping { 0.0 } else { seg.v };
+                let nv = profile::next_speed(v, v_cmd, d, seg.alim * dt, dt);
+                let (s2, landed) = if d - nv * dt <= 1e-9 { (len, true) } else { (s + nv * dt, false) };
+                self.pos[..3].copy_from_slice(&seg.geom.at(s2));
+                self.pos[AX_S] = if landed { th0 + seg.dc } else { th0 + seg.dc * s2 / len };
+                self.sp_cur = (self.pos[AX_S] - prev[AX_S]) / dt / 6.0;
+                path_v = if landed { d / dt } else { nv };
+                self.run = if self.stopping && nv == 0.0 && !landed {
+                    self.sp_cur = 0.0;
+                    Run::None
+                } else {
+                    Run::Rigid { seg, theta0: Some(th0), s: s2, v: nv, landed }
+                };
+            }
             Run::Tap { seg, theta0, landed: true, .. } => {
                 // At rest on the stroke's end, spindle stopped in position.
                 self.sp_cur = 0.0;

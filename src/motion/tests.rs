@@ -1268,3 +1268,50 @@ fn g34_is_refused_when_the_lead_vanishes_or_gets_too_fast() {
     assert_eq!(e.number, alarms::THREAD_TOO_FAST);
     m.push(&mv(3, thread_k(20.0, -40.0, 3.5, false, 0.0))).unwrap();
 }
+
+// ---- G92.1 rigid thread ----
+
+#[test]
+fn g92_1_interpolates_spindle_angle_and_axes_on_one_profile() {
+    let l = lim();
+    let mut m = Motion::new(l.clone(), START);
+    m.push(&mv(1, spindle(SpindleDir::Cw, 800.0))).unwrap(); // running: braked first
+    m.push(&mv(2, rapid(20.0, 2.0))).unwrap();
+    // Taper thread 22 mm long in Z at 1.5 mm: 5280° of spindle.
+    let end = Pos { c: 360.0 * 22.0 / 1.5, ..Pos::xz(19.0, -20.0) };
+    m.push(&mv(3, MoveKind::RigidThread { end, lead: 1.5, rpm: 1000.0 })).unwrap();
+    // The retract keeps the spindle where the stroke left it (C unchanged).
+    m.push(&mv(4, MoveKind::Rapid { end: Pos { c: end.c, ..Pos::xz(25.0, -20.0) } })).unwrap();
+    let sps = run(&mut m, 100_000);
+    check_limits(&l, START, &sps).unwrap();
+    let k0 = sps.iter().position(|s| s.line == 3 && s.pos[AX_Z] != 2.0).unwrap();
+    assert_eq!(sps[k0 - 1].spindle_rpm, 0.0, "the spindle is at rest when the stroke starts");
+    let th0 = sps[k0 - 1].pos[AX_S];
+    for s in sps[k0 - 1..].iter().filter(|s| s.line == 3) {
+        let want = th0 + 360.0 * (2.0 - s.pos[AX_Z]) / 1.5;
+        assert!((s.pos[AX_S] - want).abs() < 1e-9, "spindle {} vs {want} at z {}", s.pos[AX_S], s.pos[AX_Z]);
+        let x = 20.0 - (2.0 - s.pos[AX_Z]) / 22.0;
+        assert!((s.pos[AX_X] - x).abs() < 1e-9);
+    }
+    let end_k = sps.iter().rposition(|s| s.line == 3).unwrap();
+    assert_eq!(sps[end_k].pos[..3], [19.0, 0.0, -20.0]);
+    assert_eq!(sps[end_k].pos[AX_S], th0 + 5280.0);
+    let top = sps.iter().filter(|s| s.line == 3).map(|s| s.spindle_rpm).fold(0.0, f64::max);
+    assert!((top - 1000.0).abs() < 1e-6, "G92.1 at {top} rpm");
+}
+
+#[test]
+fn g92_1_is_refused_before_motion_when_infeasible() {
+    let mut m = Motion::new(lim(), START);
+    m.push(&mv(1, rapid(20.0, 2.0))).unwrap();
+    let c = 360.0 * 22.0 / 3.0;
+    // 3 mm × 6000 rpm = 18 m/min: more than Z's 12 m/min.
+    let e = m.push(&mv(2, MoveKind::RigidThread { end: Pos { c, ..Pos::xz(20.0, -20.0) }, lead: 3.0, rpm: 6000.0 }));
+    assert_eq!(e.unwrap_err().number, alarms::THREAD_TOO_FAST);
+    // A spindle travel that does not match the lead.
+    let e = m.push(&mv(2, MoveKind::RigidThread { end: Pos { c: c + 90.0, ..Pos::xz(20.0, -20.0) }, lead: 3.0, rpm: 500.0 }));
+    assert_eq!(e.unwrap_err().number, alarms::BAD_VALUE);
+    m.push(&mv(2, MoveKind::RigidThread { end: Pos { c, ..Pos::xz(20.0, -20.0) }, lead: 3.0, rpm: 500.0 })).unwrap();
+    let sps = run(&mut m, 100_000);
+    assert_eq!(sps.last().unwrap().pos[AX_Z], -20.0);
+}
