@@ -97,6 +97,8 @@ pub mod alarms {
     pub const STOPPING: u32 = 2305;
     /// Thread lead × spindle speed is faster than the feed axes can go.
     pub const THREAD_TOO_FAST: u32 = 2306;
+    /// The measured spindle–axis sync error exceeded `machine.sync_error_limit_um`.
+    pub const SYNC_ERROR: u32 = 2307;
     /// PS0014: G34 lead change makes the lead ≤ 0 before the end of the thread.
     pub const ILLEGAL_LEAD: u32 = 14;
 }
@@ -159,6 +161,8 @@ pub struct Limits {
     /// No.5200#6: feed hold and single block act within a rigid tap (1), or only once the
     /// tool is back at the R point (0).
     pub tap_hold_in_hole: bool,
+    /// Alarm limit of the measured sync error, µm (`machine.sync_error_limit_um`).
+    pub sync_err_limit_um: f64,
 }
 
 impl Limits {
@@ -177,6 +181,7 @@ impl Limits {
             queue_len: 256,
             tap_accel: f64::INFINITY,
             tap_hold_in_hole: cfg.param_bit(5200, 6),
+            sync_err_limit_um: cfg.machine.sync_error_limit_um,
         };
         for (name, a) in &cfg.axes {
             let i = match (a.kind, name.to_ascii_lowercase().as_str()) {
@@ -252,6 +257,8 @@ struct ThreadSeg {
     lead_path: f64,
     /// G34: change of `lead_path` per revolution (lead_inc / the long axis' share).
     k_path: f64,
+    /// The long axis' share of the path (long-axis mm per path mm).
+    u_long: f64,
     /// Largest path lead over the segment (the start's or, under G34, the end's).
     lead_path_max: f64,
     /// Starts without waiting for the one-revolution signal, continuing the lock of the
@@ -329,6 +336,7 @@ enum Run {
 #[derive(Clone, Copy, Debug, PartialEq)]
 enum Fault {
     ThreadTooFast { v: f64, vlim: f64, line: u32 },
+    SyncError { err_um: f64, limit_um: f64, line: u32 },
 }
 
 /// Planner + interpolator.
@@ -367,8 +375,11 @@ pub struct Motion {
     single_block: bool,
     stopping: bool,
     fault: Option<Fault>,
-    /// Thread: target minus commanded path position, mm (see `sync_error`).
+    /// Measured sync error of this cycle, µm (see `sync_error`).
     sync_err: f64,
+    /// The last cycle commanded a setpoint locked to the spindle, so this cycle's actual
+    /// positions can be compared with the spindle's.
+    sync_watch: bool,
     /// The lock of the thread segment that ended last and its length, for a continuous
     /// segment that follows it (cleared by any other item).
     thread_chain: Option<(ThreadSync, f64)>,
@@ -401,6 +412,7 @@ impl Motion {
             last_blendable: false,
             fault: None,
             sync_err: 0.0,
+            sync_watch: false,
             thread_chain: None,
             tap_ref: None,
             in_hole: false,
@@ -742,6 +754,7 @@ impl Motion {
             geom: g,
             lead_path,
             k_path: lead_inc / u_long,
+            u_long,
             lead_path_max,
             continuous,
             start_angle,
@@ -1016,6 +1029,7 @@ impl Motion {
         let prev = self.pos;
         let mut event = Event::None;
         let mut path_v = 0.0;
+        self.monitor_sync(fb);
         // In a rigid-tap stroke the spindle is a position axis driven by the tap profile.
         if !matches!(self.run, Run::Tap { theta0: Some(_), .. } | Run::Rigid { theta0: Some(_), .. }) {
             self.step_spindle(dt);
@@ -1145,6 +1159,7 @@ impl Motion {
                 let (s2, landed) = if d - nv * dt <= 1e-9 { (len, true) } else { (s + nv * dt, false) };
                 self.pos[..3].copy_from_slice(&seg.geom.at(s2));
                 self.pos[AX_S] = if landed { th0 + seg.dc } else { th0 + seg.dc * s2 / len };
+                self.sync_watch = true;
                 self.sp_cur = (self.pos[AX_S] - prev[AX_S]) / dt / 6.0;
                 path_v = if landed { d / dt } else { nv };
                 self.run = if self.stopping && nv == 0.0 && !landed {
@@ -1195,6 +1210,7 @@ impl Motion {
                 let z = if landed { seg.z1 } else { seg.z0 + s2.copysign(seg.z1 - seg.z0) };
                 self.pos[AX_Z] = z;
                 self.pos[AX_S] = thr + 360.0 * (z - zr) / seg.lead;
+                self.sync_watch = true;
                 self.sp_cur = (self.pos[AX_S] - prev[AX_S]) / dt / 6.0;
                 path_v = (z - prev[AX_Z]).abs() / dt;
                 self.run = if self.stopping && nv == 0.0 && !landed {
@@ -1306,14 +1322,15 @@ impl Motion {
                 let landed = len2 - s2 <= 1e-9;
                 let s2 = if landed { len2 } else { s2 };
                 self.pos[..3].copy_from_slice(&n.geom.at(s2));
-                self.sync_err = t2.target(theta) - s2;
                 self.run = Run::Thread { seg: n, sync: Some(t2), s: s2, v: nv * r, landed };
                 return nv;
             }
         }
         let (s2, landed) = if d - nv * dt <= 1e-9 { (len, true) } else { (s + nv * dt, false) };
         self.pos[..3].copy_from_slice(&seg.geom.at(s2));
-        self.sync_err = target.min(len) - s2;
+        // Watched next cycle while the command is on the lock (lead-in ramp and synchronous
+        // line), not while braking for the end.
+        self.sync_watch = nv == want && !landed;
         let spindle_stopped = self.sp_cur == 0.0;
         self.run = if self.stopping && nv == 0.0 && !landed && spindle_stopped {
             Run::None
@@ -1328,11 +1345,50 @@ impl Motion {
         }
     }
 
-    /// Thread sync error: where the spindle angle says the tool belongs minus where it is
-    /// commanded, mm along the path (last thread cycle). Within the cut it is at most a few
-    /// µm; it grows in the lead-out, where the axes brake for the end point.
+    /// Measured spindle–axis sync error of the last cycle, µm along the thread's long axis:
+    /// from the *actual* positions in `Feedback`, (L_act − L_start) − lead·(θ_act − θ_start)/360
+    /// with L the distance along the thread (Z for a straight thread or a tap), lead the
+    /// current lead (G34: the sum of the leads), θ the measured spindle angle. Positive = the
+    /// axis is ahead of the spindle. Measured in every cycle that follows one whose setpoint
+    /// was locked to the spindle (thread lead-in ramp and synchronous line, rigid tap and
+    /// G92.1 strokes); 0 otherwise (waiting for the spindle, braking for a thread's end,
+    /// other moves). Beyond `Limits::sync_err_limit_um` it raises alarm
+    /// [`alarms::SYNC_ERROR`] and a controlled stop in which spindle and axes stop together.
     pub fn sync_error(&self) -> f64 {
         self.sync_err
+    }
+
+    /// The sync-error monitor (see `sync_error`), at the start of a cycle, for the setpoint
+    /// the last cycle sent. O(1).
+    fn monitor_sync(&mut self, fb: &Feedback) {
+        let watch = std::mem::take(&mut self.sync_watch);
+        self.sync_err = 0.0;
+        if !watch {
+            return;
+        }
+        let th = fb.pos[AX_S];
+        let err_mm = match self.run {
+            Run::Thread { seg, sync: Some(t), .. } => (line_progress(&seg.geom, &fb.pos) - t.target(th)) * seg.u_long,
+            Run::Tap { seg, theta0: Some((zr, thr)), .. } => {
+                // Along the stroke's direction: + = Z ahead of the spindle.
+                ((fb.pos[AX_Z] - zr) - seg.lead * (th - thr) / 360.0) * (seg.z1 - seg.z0).signum()
+            }
+            Run::Rigid { seg, theta0: Some(th0), .. } => {
+                let len = seg.geom.len();
+                (line_progress(&seg.geom, &fb.pos) - (th - th0) * len / seg.dc) * seg.u_long
+            }
+            _ => return,
+        };
+        let err_um = err_mm * 1000.0;
+        // Non-finite feedback is a fault too.
+        self.sync_err = if err_um.is_finite() { err_um } else { f64::INFINITY };
+        if !(self.sync_err.abs() <= self.lim.sync_err_limit_um) && !self.stopping {
+            if self.fault.is_none() {
+                self.fault =
+                    Some(Fault::SyncError { err_um: self.sync_err, limit_um: self.lim.sync_err_limit_um, line: self.line });
+            }
+            self.stop();
+        }
     }
 
     /// A fault found by `step` (which cannot return errors), as an alarm; the motion is already
@@ -1340,6 +1396,12 @@ impl Motion {
     pub fn take_alarm(&mut self) -> Option<Alarm> {
         let f = self.fault.take()?;
         Some(match f {
+            Fault::SyncError { err_um, limit_um, line } => Alarm::new(
+                alarms::SYNC_ERROR,
+                format!(
+                    "line {line}: spindle–axis sync error {err_um:.1} µm exceeds the limit {limit_um:.0} µm (machine.sync_error_limit_um); spindle and axes were stopped together: check the drives' tuning and load, or lower S"
+                ),
+            ),
             Fault::ThreadTooFast { v, vlim, line } => Alarm::new(
                 alarms::THREAD_TOO_FAST,
                 format!(
@@ -1437,6 +1499,16 @@ fn seg(geom: Geom, speed: Speed, v: f64, a: f64) -> Seg {
         blend_in: false,
         vj: 0.0,
         ext: 0.0,
+    }
+}
+
+/// Distance along a line segment of the projection of `p` (X/Y/Z of an axis vector).
+fn line_progress(g: &Geom, p: &[f64; N_AXES]) -> f64 {
+    match *g {
+        Geom::Line { start, delta, len, .. } if len > 0.0 => {
+            ((p[0] - start[0]) * delta[0] + (p[1] - start[1]) * delta[1] + (p[2] - start[2]) * delta[2]) / len
+        }
+        _ => 0.0,
     }
 }
 

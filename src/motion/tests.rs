@@ -33,7 +33,8 @@ const START: [f64; N_AXES] = [50.0, 0.0, 0.0, 0.0];
 /// last cycle's command.
 fn run(m: &mut Motion, max: usize) -> Vec<Setpoint> {
     let mut out = Vec::new();
-    let mut fb = Feedback { pos: START, spindle_rpm: 0.0 };
+    // The drives are where the last setpoint put them (the sync monitor reads this).
+    let mut fb = Feedback { pos: m.position(), spindle_rpm: 0.0 };
     while !m.is_idle() {
         assert!(out.len() < max, "not idle after {max} cycles");
         let sp = m.step(&fb);
@@ -1072,10 +1073,11 @@ fn feed_hold_in_a_rigid_tap_waits_for_the_r_point_by_default() {
     assert!(!l.tap_hold_in_hole, "lathe.toml has No.5200#6 = 0");
     let mut m = Motion::new(l.clone(), [0.0; N_AXES]);
     tap_program(&mut m);
-    let fb = Feedback::default();
+    let mut fb = Feedback::default();
     let mut sps = Vec::new();
     for _ in 0..20_000 {
         let sp = m.step(&fb);
+        fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm }; // ideal drives: the sync monitor reads them
         sps.push(sp);
         if sp.line == 2 && sp.pos[AX_Z] < -5.0 && !m.is_held() {
             m.feed_hold();
@@ -1102,11 +1104,12 @@ fn feed_hold_in_a_rigid_tap_brakes_z_and_spindle_together_with_5200_bit6() {
     l.tap_hold_in_hole = true;
     let mut m = Motion::new(l.clone(), [0.0; N_AXES]);
     tap_program(&mut m);
-    let fb = Feedback::default();
+    let mut fb = Feedback::default();
     let mut sps = Vec::new();
     let mut theta_r = None;
     for _ in 0..3000 {
         let sp = m.step(&fb);
+        fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm }; // ideal drives: the sync monitor reads them
         if sp.line == 2 && sp.pos[AX_Z] == 2.0 && sp.spindle_rpm == 0.0 {
             theta_r = Some(sp.pos[AX_S]);
         }
@@ -1131,10 +1134,11 @@ fn single_block_does_not_stop_inside_a_rigid_tap() {
     let mut m = Motion::new(lim(), [0.0; N_AXES]);
     m.set_single_block(true);
     tap_program(&mut m);
-    let fb = Feedback::default();
+    let mut fb = Feedback::default();
     let mut stops = Vec::new();
     for _ in 0..100_000 {
         let sp = m.step(&fb);
+        fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm }; // ideal drives: the sync monitor reads them
         if m.is_held() {
             stops.push(sp.pos[AX_Z]);
             m.cycle_start();
@@ -1314,4 +1318,107 @@ fn g92_1_is_refused_before_motion_when_infeasible() {
     m.push(&mv(2, MoveKind::RigidThread { end: Pos { c, ..Pos::xz(20.0, -20.0) }, lead: 3.0, rpm: 500.0 })).unwrap();
     let sps = run(&mut m, 100_000);
     assert_eq!(sps.last().unwrap().pos[AX_Z], -20.0);
+}
+
+// ---- Sync-error monitor ----
+
+/// A thread pass (600 rpm × 2 mm = 20 mm/s) whose Z feedback lags the setpoint by `lag`
+/// extra cycles; returns the setpoints, the sync errors and the first alarm.
+fn lagging_thread(lag: usize, limit_um: f64) -> (Vec<Setpoint>, Vec<f64>, Option<Alarm>) {
+    let mut l = lim();
+    l.sync_err_limit_um = limit_um;
+    let mut m = Motion::new(l, START);
+    m.push(&mv(1, spindle(SpindleDir::Cw, 600.0))).unwrap();
+    m.push(&mv(2, rapid(20.0, 2.0))).unwrap();
+    m.push(&mv(3, thread(20.0, -30.0, 2.0, 0.0))).unwrap();
+    let mut fb = Feedback { pos: START, spindle_rpm: 0.0 };
+    let (mut sps, mut errs, mut alarm) = (Vec::<Setpoint>::new(), Vec::new(), None);
+    for _ in 0..20_000 {
+        if m.is_idle() && sps.last().is_some_and(|s| s.spindle_rpm == 0.0) {
+            break;
+        }
+        let sp = m.step(&fb);
+        errs.push(m.sync_error());
+        if alarm.is_none() {
+            alarm = m.take_alarm();
+        }
+        sps.push(sp);
+        let zk = sps.len().saturating_sub(1 + lag);
+        fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm };
+        fb.pos[AX_Z] = sps[zk].pos[AX_Z];
+    }
+    (sps, errs, alarm)
+}
+
+#[test]
+fn sync_error_is_measured_from_actual_positions() {
+    // Drives that reach every setpoint by the next cycle: no sync error.
+    let (_, errs, alarm) = lagging_thread(0, 100.0);
+    assert!(alarm.is_none());
+    let measured = errs.iter().filter(|e| **e != 0.0).count();
+    let worst = errs.iter().fold(0.0f64, |m, e| m.max(e.abs()));
+    assert!(worst < 0.01, "ideal drives show {worst} µm");
+    // Z one cycle late: 20 mm/s × 2 ms = 40 µm behind the spindle.
+    let (_, errs, alarm) = lagging_thread(1, 100.0);
+    assert!(alarm.is_none());
+    let locked: Vec<f64> = errs.iter().copied().filter(|e| (e + 40.0).abs() < 0.01).collect();
+    assert!(locked.len() > 500 && measured < errs.len(), "{} cycles at −40 µm", locked.len());
+    assert!(errs.iter().all(|e| *e <= 0.01 && *e >= -40.01), "behind by at most one cycle");
+}
+
+#[test]
+fn sync_error_beyond_the_limit_alarms_and_stops_spindle_and_axis_together() {
+    let l = lim();
+    let (sps, errs, alarm) = lagging_thread(1, 30.0);
+    let a = alarm.expect("sync error alarm");
+    assert_eq!(a.number, alarms::SYNC_ERROR);
+    assert!(a.message.contains("µm"), "{}", a.message);
+    let k = errs.iter().position(|e| e.abs() > 30.0).unwrap();
+    // Stopped while cutting, well before the end of the thread.
+    assert!(sps[k].pos[AX_Z] > -30.0 + 1.0);
+    // From then on the axis stays on the spindle's line while both decelerate to rest.
+    let (z0, th0) = (sps[k].pos[AX_Z], sps[k].pos[AX_S]);
+    for s in &sps[k..] {
+        let want = z0 - 2.0 * (s.pos[AX_S] - th0) / 360.0;
+        assert!((s.pos[AX_Z] - want).abs() < 1e-6, "z {} off the thread ({want})", s.pos[AX_Z]);
+    }
+    let last = sps.last().unwrap();
+    assert_eq!(last.spindle_rpm, 0.0);
+    assert!(last.pos[AX_Z] > -30.0);
+    // The spindle braked at its ramp, not at once.
+    let ramp = l.amax[AX_S] / 6.0 * l.cycle_s;
+    for w in sps[k..].windows(2) {
+        assert!((w[0].spindle_rpm - w[1].spindle_rpm).abs() <= ramp + 1e-9);
+    }
+    check_limits(&l, START, &sps).unwrap();
+}
+
+#[test]
+fn rigid_tap_sync_error_uses_actual_spindle_angle() {
+    let mut l = lim();
+    l.sync_err_limit_um = 20.0;
+    let mut m = Motion::new(l, [0.0; N_AXES]);
+    m.push(&mv(1, rapid(0.0, 2.0))).unwrap();
+    m.push(&mv(2, MoveKind::Tap { end: Pos::xz(0.0, -20.0), lead: 1.5, rpm: 1000.0 })).unwrap();
+    let mut fb = Feedback::default();
+    let mut prev: Option<Setpoint> = None;
+    let mut worst: f64 = 0.0;
+    let mut alarm = None;
+    for _ in 0..20_000 {
+        let sp = m.step(&fb);
+        worst = worst.max(m.sync_error().abs());
+        alarm = alarm.or(m.take_alarm());
+        // The spindle lags one extra cycle (a slower drive).
+        fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm };
+        if let Some(p) = prev {
+            fb.pos[AX_S] = p.pos[AX_S];
+        }
+        prev = Some(sp);
+        if m.is_idle() {
+            break;
+        }
+    }
+    // 25 mm/s for one cycle: 50 µm, beyond 20.
+    assert_eq!(alarm.map(|a| a.number), Some(alarms::SYNC_ERROR));
+    assert!(worst > 20.0);
 }
