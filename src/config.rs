@@ -300,6 +300,17 @@ mod tests {
     }
 
     #[test]
+    fn sync_error_limit_defaults_and_is_validated() {
+        let c = MachineConfig::from_toml("lathe.toml", EMBEDDED_LATHE).unwrap();
+        assert_eq!(c.machine.sync_error_limit_um, 100.0);
+        let t = EMBEDDED_LATHE.replace("[machine]", "[machine]\nsync_error_limit_um = 25");
+        assert_eq!(MachineConfig::from_toml("t.toml", &t).unwrap().machine.sync_error_limit_um, 25.0);
+        let t = EMBEDDED_LATHE.replace("[machine]", "[machine]\nsync_error_limit_um = 0.0");
+        let err = MachineConfig::from_toml("t.toml", &t).unwrap_err().to_string();
+        assert!(err.contains("machine.sync_error_limit_um: must be between 1 and 10000, got 0"), "{err}");
+    }
+
+    #[test]
     fn duplicate_node_is_reported() {
         let t = EMBEDDED_LATHE.replace("node = 2", "node = 1");
         let err = MachineConfig::from_toml("t.toml", &t).unwrap_err().to_string();

@@ -37,7 +37,8 @@
 //!   pushes, feedback and operator calls give bit-identical setpoints).
 //! - `Feedback::pos[AX_S]` is the measured spindle angle in continuous degrees whose multiples
 //!   of 360 are the one-revolution reference; `Feedback::spindle_rpm` the measured speed.
-//!   Per-revolution feed and threading use them; nothing else reads feedback.
+//!   Per-revolution feed and threading use them; the sync-error monitor also reads the
+//!   actual X/Y/Z in synchronised moves.
 //! - Push moves whenever `has_room()`; `push` refuses a move with an alarm and queues
 //!   nothing. After M00 (and M01 with the optional stop switch on), feed hold and single
 //!   block, `is_held()` is true until `cycle_start()`.
@@ -48,6 +49,26 @@
 //! - G02/G03 sense: `cw` is clockwise seen from the positive third axis (G18: from +Y, Z to
 //!   the right, X up). The interpreter maps the lathe's tool-post convention onto this.
 //! - Under G96 the spindle speed follows the *commanded* X of the previous cycle.
+//!
+//! # Spindle synchronisation
+//!
+//! - Threads (`MoveKind::Thread`) lock the path position to the spindle angle predicted one
+//!   cycle ahead (measured angle + measured speed × cycle), see [`crate::sync::thread`]. A
+//!   segment with `continuous` that is queued when the one before it reaches its end is
+//!   crossed into within that cycle with the same lock (no wait for the one-revolution
+//!   signal, no stop, no phase jump; the path speed changes in the ratio of the path leads, so
+//!   e.g. X of a run-out chamfer starts at its synchronous speed at once, as on Fanuc). One
+//!   pushed only after the previous ended still continues that lock and catches up. Push a
+//!   pass's segments back to back.
+//! - G34 (`lead_inc`): z = z0 + L0·n + K·n²/2 after n revolutions; refused (PS0014) when the
+//!   lead would reach 0 before the end, and (2306) when the largest lead × S is too fast.
+//! - G92.1 (`RigidThread`) and rigid taps: the spindle is braked, then driven in position
+//!   with the feed axes on one profile; rpm × lead is checked against the feed axes and the
+//!   spindle at `push`.
+//! - A controlled stop during a thread keeps the axes on the thread while the spindle brakes.
+//! - The sync error ([`Motion::sync_error`]) is measured every cycle from the feedback;
+//!   beyond `Limits::sync_err_limit_um` it is alarm 2307 and a controlled stop of spindle and
+//!   axes together. So `Feedback` must carry the drives' *actual* X/Y/Z too.
 
 // `!(x > 0.0)` is deliberate throughout: it is also true for NaN, which must be refused.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
