@@ -302,13 +302,17 @@ struct TapSeg {
     alim: f64,
 }
 
-/// A G92.1 rigid thread stroke: a line of the feed axes and a spindle turn of `dc` degrees
-/// on one profile, the spindle in position mode: angle = θ_ref + dc·s/len.
+/// A G92.1 rigid thread stroke, or a rapid that positions the spindle (Cs): a line of the
+/// feed axes and a spindle turn of `dc` degrees on one profile, the spindle in position mode:
+/// angle = θ_ref + dc·s/plen.
 #[derive(Clone, Copy, Debug, PartialEq)]
 struct RigidSeg {
     geom: Geom,
     /// Spindle travel, degrees (signed).
     dc: f64,
+    /// Length of the profile: the path length in mm, or |dc| in degrees when only the
+    /// spindle moves.
+    plen: f64,
     /// Commanded path speed (from the rpm), mm/s.
     v: f64,
     vlim: f64,
@@ -484,6 +488,9 @@ impl Motion {
         let blend_in = self.last_blendable;
         let blended = blend_in || !m.exact_stop;
         let item = match &m.kind {
+            MoveKind::Rapid { end: e } if end_c_moves(self.plan_c, e) => {
+                Item::Rigid(self.c_rapid_seg(e, self.plan_c.unwrap_or(e.c)).map_err(at)?)
+            }
             MoveKind::Rapid { end } => {
                 let end = self.check_end(end).map_err(at)?;
                 let g = geom::line(self.plan_end, end);
@@ -863,7 +870,33 @@ impl Motion {
                 ),
             ));
         }
-        Ok(RigidSeg { geom: g, dc, v, vlim, alim, u_long: long / len })
+        Ok(RigidSeg { geom: g, dc, plen: len, v, vlim, alim, u_long: long / len })
+    }
+
+    /// A rapid that also turns the spindle to `end.c` (Cs positioning, e.g. G92.1's start
+    /// angle): the spindle is braked, then moved in position with the feed axes on one linear
+    /// profile, every axis within its limits.
+    fn c_rapid_seg(&self, end: &Pos, c0: f64) -> Result<RigidSeg, Alarm> {
+        if !self.lim.present[AX_S] {
+            return Err(Alarm::new(alarms::UNSUPPORTED, "C positioning needs a spindle axis (Cs) in the config; remove the C word"));
+        }
+        let e = xyz(end);
+        for (i, v) in e.iter().enumerate() {
+            self.check_axis(i, *v, "end point")?;
+        }
+        let dc = end.c - c0;
+        let g = geom::line(self.plan_end, e);
+        let line = self.line_seg(g, Speed::Rapid, false);
+        let l = &self.lim;
+        let len = g.len();
+        let (plen, vlim, alim) = if len > 0.0 {
+            let per_deg = len / dc.abs();
+            (len, line.vlim.min(l.vmax[AX_S] * per_deg), line.alim.min(l.amax[AX_S] * per_deg))
+        } else {
+            (dc.abs(), l.vmax[AX_S], l.amax[AX_S])
+        };
+        let vlim = finite_or_zero(vlim);
+        Ok(RigidSeg { geom: g, dc, plen, v: vlim, vlim, alim: finite_or_zero(alim), u_long: 0.0 })
     }
 
     fn check_spindle(&self, c: &SpindleCmd) -> Result<SpindleCmd, Alarm> {
@@ -1173,14 +1206,17 @@ impl Motion {
             Run::Rigid { seg, theta0: Some(th0), s, v, landed: false } => {
                 // One profile for path and spindle; feed hold and override do not apply (a
                 // thread), a controlled stop brakes both together on the same profile.
-                let len = seg.geom.len();
+                let len = seg.plen;
                 let d = len - s;
                 let v_cmd = if self.stopping { 0.0 } else { seg.v };
                 let nv = profile::next_speed(v, v_cmd, d, seg.alim * dt, dt);
                 let (s2, landed) = if d - nv * dt <= 1e-9 { (len, true) } else { (s + nv * dt, false) };
-                self.pos[..3].copy_from_slice(&seg.geom.at(s2));
+                if seg.geom.len() > 0.0 {
+                    self.pos[..3].copy_from_slice(&seg.geom.at(s2));
+                }
                 self.pos[AX_S] = if landed { th0 + seg.dc } else { th0 + seg.dc * s2 / len };
-                self.sync_watch = true;
+                // Only a thread is watched (a positioning rapid has no lead).
+                self.sync_watch = seg.u_long > 0.0;
                 self.sp_cur = (self.pos[AX_S] - prev[AX_S]) / dt / 6.0;
                 path_v = if landed { d / dt } else { nv };
                 self.run = if self.stopping && nv == 0.0 && !landed {
@@ -1521,6 +1557,11 @@ fn seg(geom: Geom, speed: Speed, v: f64, a: f64) -> Seg {
         vj: 0.0,
         ext: 0.0,
     }
+}
+
+/// A rapid whose C differs from where the spindle was last programmed: Cs positioning.
+fn end_c_moves(plan_c: Option<f64>, end: &Pos) -> bool {
+    plan_c.is_some_and(|c| c != end.c && end.c.is_finite())
 }
 
 /// Distance along a line segment of the projection of `p` (X/Y/Z of an axis vector).

@@ -1422,3 +1422,27 @@ fn rigid_tap_sync_error_uses_actual_spindle_angle() {
     assert_eq!(alarm.map(|a| a.number), Some(alarms::SYNC_ERROR));
     assert!(worst > 20.0);
 }
+
+#[test]
+fn rapid_with_c_positions_the_spindle_with_the_axes() {
+    let l = lim();
+    let mut m = Motion::new(l.clone(), START);
+    m.push(&mv(1, spindle(SpindleDir::Cw, 500.0))).unwrap();
+    m.push(&mv(2, rapid(20.0, 2.0))).unwrap();
+    // G92.1's approach: X and the spindle's start angle together, then C alone.
+    m.push(&mv(3, MoveKind::Rapid { end: Pos { c: 90.0, ..Pos::xz(21.0, 2.0) } })).unwrap();
+    m.push(&mv(4, MoveKind::Rapid { end: Pos { c: -270.0, ..Pos::xz(21.0, 2.0) } })).unwrap();
+    let sps = run(&mut m, 100_000);
+    check_limits(&l, START, &sps).unwrap();
+    let k0 = sps.iter().position(|s| s.line == 3 && s.pos[AX_X] != 20.0).unwrap();
+    assert_eq!(sps[k0 - 1].spindle_rpm, 0.0, "braked before positioning");
+    let th0 = sps[k0 - 1].pos[AX_S];
+    for s in sps[k0 - 1..].iter().filter(|s| s.line == 3) {
+        let want = th0 + 90.0 * (s.pos[AX_X] - 20.0);
+        assert!((s.pos[AX_S] - want).abs() < 1e-9, "C {} vs {want}", s.pos[AX_S]);
+    }
+    let last = sps.last().unwrap();
+    assert_eq!(last.pos[..3], [21.0, 0.0, 2.0]);
+    assert_eq!(last.pos[AX_S], th0 + 90.0 - 360.0);
+    assert_eq!(last.spindle_rpm, 0.0);
+}
