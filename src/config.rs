@@ -43,6 +43,10 @@ pub struct Machine {
     pub name: String,
     /// Bus cycle in milliseconds (0.25 … 100).
     pub cycle_ms: f64,
+    /// Spindle–axis sync error (threading, rigid tapping, G92.1) at which motion alarms and
+    /// stops spindle and axes together, µm along the thread (1 … 10000).
+    #[serde(default = "default_sync_error_limit")]
+    pub sync_error_limit_um: f64,
 }
 
 #[derive(Clone, Debug, Deserialize)]
@@ -67,6 +71,12 @@ pub struct Bus {
 
 fn default_feedback_timeout() -> f64 {
     20.0
+}
+
+fn default_sync_error_limit() -> f64 {
+    // A tenth of a millimetre: well beyond what locked drives show, well within what spoils
+    // a thread flank.
+    100.0
 }
 
 fn default_bitrate() -> u32 {
@@ -149,6 +159,10 @@ impl MachineConfig {
         let c = self.machine.cycle_ms;
         if !(c.is_finite() && (0.25..=100.0).contains(&c)) {
             e.push(format!("machine.cycle_ms: must be between 0.25 and 100, got {c}"));
+        }
+        let sl = self.machine.sync_error_limit_um;
+        if !(sl.is_finite() && (1.0..=10_000.0).contains(&sl)) {
+            e.push(format!("machine.sync_error_limit_um: must be between 1 and 10000, got {sl}"));
         }
         if self.bus.interface.trim().is_empty() {
             e.push("bus.interface: must name an interface (inproc, vcan0, can0, …), got \"\"".into());
@@ -283,6 +297,17 @@ mod tests {
         let t = EMBEDDED_LATHE.replace("[machine]", "[machine]\nbogus = 1");
         let err = MachineConfig::from_toml("t.toml", &t).unwrap_err().to_string();
         assert!(err.contains("bogus"), "{err}");
+    }
+
+    #[test]
+    fn sync_error_limit_defaults_and_is_validated() {
+        let c = MachineConfig::from_toml("lathe.toml", EMBEDDED_LATHE).unwrap();
+        assert_eq!(c.machine.sync_error_limit_um, 100.0);
+        let t = EMBEDDED_LATHE.replace("[machine]", "[machine]\nsync_error_limit_um = 25");
+        assert_eq!(MachineConfig::from_toml("t.toml", &t).unwrap().machine.sync_error_limit_um, 25.0);
+        let t = EMBEDDED_LATHE.replace("[machine]", "[machine]\nsync_error_limit_um = 0.0");
+        let err = MachineConfig::from_toml("t.toml", &t).unwrap_err().to_string();
+        assert!(err.contains("machine.sync_error_limit_um: must be between 1 and 10000, got 0"), "{err}");
     }
 
     #[test]

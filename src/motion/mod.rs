@@ -37,7 +37,8 @@
 //!   pushes, feedback and operator calls give bit-identical setpoints).
 //! - `Feedback::pos[AX_S]` is the measured spindle angle in continuous degrees whose multiples
 //!   of 360 are the one-revolution reference; `Feedback::spindle_rpm` the measured speed.
-//!   Per-revolution feed and threading use them; nothing else reads feedback.
+//!   Per-revolution feed and threading use them; the sync-error monitor also reads the
+//!   actual X/Y/Z in synchronised moves.
 //! - Push moves whenever `has_room()`; `push` refuses a move with an alarm and queues
 //!   nothing. After M00 (and M01 with the optional stop switch on), feed hold and single
 //!   block, `is_held()` is true until `cycle_start()`.
@@ -48,6 +49,26 @@
 //! - G02/G03 sense: `cw` is clockwise seen from the positive third axis (G18: from +Y, Z to
 //!   the right, X up). The interpreter maps the lathe's tool-post convention onto this.
 //! - Under G96 the spindle speed follows the *commanded* X of the previous cycle.
+//!
+//! # Spindle synchronisation
+//!
+//! - Threads (`MoveKind::Thread`) lock the path position to the spindle angle predicted one
+//!   cycle ahead (measured angle + measured speed × cycle), see [`crate::sync::thread`]. A
+//!   segment with `continuous` that is queued when the one before it reaches its end is
+//!   crossed into within that cycle with the same lock (no wait for the one-revolution
+//!   signal, no stop, no phase jump; the path speed changes in the ratio of the path leads, so
+//!   e.g. X of a run-out chamfer starts at its synchronous speed at once, as on Fanuc). One
+//!   pushed only after the previous ended still continues that lock and catches up. Push a
+//!   pass's segments back to back.
+//! - G34 (`lead_inc`): z = z0 + L0·n + K·n²/2 after n revolutions; refused (PS0014) when the
+//!   lead would reach 0 before the end, and (2306) when the largest lead × S is too fast.
+//! - G92.1 (`RigidThread`) and rigid taps: the spindle is braked, then driven in position
+//!   with the feed axes on one profile; rpm × lead is checked against the feed axes and the
+//!   spindle at `push`.
+//! - A controlled stop during a thread keeps the axes on the thread while the spindle brakes.
+//! - The sync error ([`Motion::sync_error`]) is measured every cycle from the feedback;
+//!   beyond `Limits::sync_err_limit_um` it is alarm 2307 and a controlled stop of spindle and
+//!   axes together. So `Feedback` must carry the drives' *actual* X/Y/Z too.
 
 // `!(x > 0.0)` is deliberate throughout: it is also true for NaN, which must be refused.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
@@ -97,6 +118,10 @@ pub mod alarms {
     pub const STOPPING: u32 = 2305;
     /// Thread lead × spindle speed is faster than the feed axes can go.
     pub const THREAD_TOO_FAST: u32 = 2306;
+    /// The measured spindle–axis sync error exceeded `machine.sync_error_limit_um`.
+    pub const SYNC_ERROR: u32 = 2307;
+    /// PS0014: G34 lead change makes the lead ≤ 0 before the end of the thread.
+    pub const ILLEGAL_LEAD: u32 = 14;
 }
 
 /// Actual values from the drives (X radius).
@@ -157,6 +182,8 @@ pub struct Limits {
     /// No.5200#6: feed hold and single block act within a rigid tap (1), or only once the
     /// tool is back at the R point (0).
     pub tap_hold_in_hole: bool,
+    /// Alarm limit of the measured sync error, µm (`machine.sync_error_limit_um`).
+    pub sync_err_limit_um: f64,
 }
 
 impl Limits {
@@ -175,6 +202,7 @@ impl Limits {
             queue_len: 256,
             tap_accel: f64::INFINITY,
             tap_hold_in_hole: cfg.param_bit(5200, 6),
+            sync_err_limit_um: cfg.machine.sync_error_limit_um,
         };
         for (name, a) in &cfg.axes {
             let i = match (a.kind, name.to_ascii_lowercase().as_str()) {
@@ -248,6 +276,15 @@ struct ThreadSeg {
     geom: Geom,
     /// Path length per spindle revolution (lead along the long axis / its direction share).
     lead_path: f64,
+    /// G34: change of `lead_path` per revolution (lead_inc / the long axis' share).
+    k_path: f64,
+    /// The long axis' share of the path (long-axis mm per path mm).
+    u_long: f64,
+    /// Largest path lead over the segment (the start's or, under G34, the end's).
+    lead_path_max: f64,
+    /// Starts without waiting for the one-revolution signal, continuing the lock of the
+    /// thread segment before it (see `ThreadSync::continue_with`).
+    continuous: bool,
     start_angle: f64,
     vlim: f64,
     alim: f64,
@@ -265,11 +302,31 @@ struct TapSeg {
     alim: f64,
 }
 
+/// A G92.1 rigid thread stroke, or a rapid that positions the spindle (Cs): a line of the
+/// feed axes and a spindle turn of `dc` degrees on one profile, the spindle in position mode:
+/// angle = θ_ref + dc·s/plen.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct RigidSeg {
+    geom: Geom,
+    /// Spindle travel, degrees (signed).
+    dc: f64,
+    /// Length of the profile: the path length in mm, or |dc| in degrees when only the
+    /// spindle moves.
+    plen: f64,
+    /// Commanded path speed (from the rpm), mm/s.
+    v: f64,
+    vlim: f64,
+    alim: f64,
+    /// The long axis' share of the path (long-axis mm per path mm).
+    u_long: f64,
+}
+
 #[derive(Clone, Copy, Debug, PartialEq)]
 enum Item {
     Move(Seg),
     Thread(ThreadSeg),
     Tap(TapSeg),
+    Rigid(RigidSeg),
     Dwell(u64),
     Spindle(SpindleCmd),
     Event(Event),
@@ -294,6 +351,9 @@ enum Run {
     /// Waiting for the spindle to stop (`theta0` None), then the stroke; `theta0` is the tap
     /// reference (z_ref, θ_ref): spindle angle = θ_ref + 360·(z − z_ref)/lead.
     Tap { seg: TapSeg, theta0: Option<(f64, f64)>, s: f64, v: f64, landed: bool },
+    /// G92.1: waiting for the spindle to stop (`theta0` None), then the stroke from the
+    /// spindle angle `theta0`.
+    Rigid { seg: RigidSeg, theta0: Option<f64>, s: f64, v: f64, landed: bool },
 }
 
 /// A fault found while executing (reported by [`Motion::take_alarm`]; `step` cannot return
@@ -301,6 +361,7 @@ enum Run {
 #[derive(Clone, Copy, Debug, PartialEq)]
 enum Fault {
     ThreadTooFast { v: f64, vlim: f64, line: u32 },
+    SyncError { err_um: f64, limit_um: f64, line: u32 },
 }
 
 /// Planner + interpolator.
@@ -339,8 +400,14 @@ pub struct Motion {
     single_block: bool,
     stopping: bool,
     fault: Option<Fault>,
-    /// Thread: target minus commanded path position, mm (see `sync_error`).
+    /// Measured sync error of this cycle, µm (see `sync_error`).
     sync_err: f64,
+    /// The last cycle commanded a setpoint locked to the spindle, so this cycle's actual
+    /// positions can be compared with the spindle's.
+    sync_watch: bool,
+    /// The lock of the thread segment that ended last and its length, for a continuous
+    /// segment that follows it (cleared by any other item).
+    thread_chain: Option<(ThreadSync, f64)>,
     /// Rigid tapping reference (z, spindle angle, lead) of the last stroke, so that the strokes
     /// of one hole share one Z–angle relation and the return ends on the start angle exactly.
     tap_ref: Option<(f64, f64, f64)>,
@@ -370,6 +437,8 @@ impl Motion {
             last_blendable: false,
             fault: None,
             sync_err: 0.0,
+            sync_watch: false,
+            thread_chain: None,
             tap_ref: None,
             in_hole: false,
             sp_dir: 0.0,
@@ -419,6 +488,9 @@ impl Motion {
         let blend_in = self.last_blendable;
         let blended = blend_in || !m.exact_stop;
         let item = match &m.kind {
+            MoveKind::Rapid { end: e } if end_c_moves(self.plan_c, e) => {
+                Item::Rigid(self.c_rapid_seg(e, self.plan_c.unwrap_or(e.c)).map_err(at)?)
+            }
             MoveKind::Rapid { end } => {
                 let end = self.check_end(end).map_err(at)?;
                 let g = geom::line(self.plan_end, end);
@@ -435,22 +507,10 @@ impl Motion {
                 let end = self.check_end(end).map_err(at)?;
                 Item::Move(self.arc_seg(end, xyz(center), *cw, *plane, speed, blended).map_err(at)?)
             }
-            MoveKind::Thread { end, lead, start_angle, lead_inc, .. } => {
-                // `continuous` (no wait for the one-revolution signal) is not honoured yet.
-                if *lead_inc != 0.0 {
-                    return Err(at(Alarm::new(
-                        alarms::UNSUPPORTED,
-                        "G34 variable-lead threads are not executed by this motion layer yet; remove the block",
-                    )));
-                }
-                Item::Thread(self.thread_seg(end, *lead, *start_angle).map_err(at)?)
+            MoveKind::Thread { end, lead, start_angle, continuous, lead_inc } => {
+                Item::Thread(self.thread_seg(end, *lead, *start_angle, *lead_inc, *continuous).map_err(at)?)
             }
-            MoveKind::RigidThread { .. } => {
-                return Err(at(Alarm::new(
-                    alarms::UNSUPPORTED,
-                    "G92.1 rigid threads are not executed by this motion layer yet; remove the block",
-                )))
-            }
+            MoveKind::RigidThread { end, lead, rpm } => Item::Rigid(self.rigid_seg(end, *lead, *rpm).map_err(at)?),
             MoveKind::Tap { end, lead, rpm } => Item::Tap(self.tap_seg(end, *lead, *rpm).map_err(at)?),
             MoveKind::Dwell { seconds } => {
                 if !(seconds.is_finite() && *seconds >= 0.0) {
@@ -486,6 +546,15 @@ impl Motion {
                 if let Some(e) = m.kind.end() {
                     self.plan_c = Some(e.c);
                 }
+            }
+            Item::Rigid(r) => {
+                self.plan_end = r.geom.end();
+                if let Some(e) = m.kind.end() {
+                    self.plan_c = Some(e.c);
+                }
+                // Like rigid tapping, G92.1 leaves the spindle stopped, in position control.
+                self.plan_spindle_on = false;
+                self.plan_rpm = None;
             }
             Item::Tap(t) => {
                 self.plan_end[AX_Z] = t.z1;
@@ -655,12 +724,15 @@ impl Motion {
         }
     }
 
-    fn thread_seg(&self, end: &Pos, lead: f64, start_angle: f64) -> Result<ThreadSeg, Alarm> {
+    fn thread_seg(&self, end: &Pos, lead: f64, start_angle: f64, lead_inc: f64, continuous: bool) -> Result<ThreadSeg, Alarm> {
         if !(lead.is_finite() && lead > 0.0) {
             return Err(Alarm::new(alarms::FEED_ZERO, format!("thread lead must be > 0, got F{lead}; correct the F/I word")));
         }
         if !start_angle.is_finite() {
             return Err(Alarm::new(alarms::BAD_VALUE, format!("thread start angle is not a finite number ({start_angle})")));
+        }
+        if !lead_inc.is_finite() {
+            return Err(Alarm::new(alarms::BAD_VALUE, format!("G34 lead change is not a finite number ({lead_inc})")));
         }
         if !self.plan_spindle_on {
             return Err(Alarm::new(
@@ -678,21 +750,45 @@ impl Motion {
         // The lead is along the long axis (Fanuc: Z unless the taper is steeper than 45°).
         let u_long = delta.iter().fold(0.0f64, |m, d| m.max(d.abs())) / len;
         let lead_path = lead / u_long;
+        // G34: after n revolutions the long axis has gone L·n + K·n²/2 and the lead is L + K·n,
+        // so at the end (long distance D) the lead is √(L² + 2·K·D).
+        let disc = lead * lead + 2.0 * lead_inc * len * u_long;
+        let lead_end = disc.max(0.0).sqrt();
+        if lead_inc != 0.0 && !(disc > 0.0 && lead_end > 1e-6) {
+            return Err(Alarm::new(
+                alarms::ILLEGAL_LEAD,
+                format!(
+                    "G34 lead F{lead} changing by K{lead_inc} per revolution reaches 0 before the end of the thread; shorten the thread or reduce the decrement K"
+                ),
+            ));
+        }
+        let lead_path_max = lead.max(lead_end) / u_long;
         let s = self.line_seg(g, Speed::Rapid, false);
         if let Some(rpm) = self.plan_rpm {
-            let v = lead_path * rpm / 60.0;
+            let v = lead_path_max * rpm / 60.0;
             if v > s.vlim {
                 return Err(Alarm::new(
                     alarms::THREAD_TOO_FAST,
                     format!(
-                        "thread lead {lead} mm × S{rpm} needs {:.0} mm/min, more than the axes' {:.0} mm/min; lower the spindle speed",
+                        "thread lead {:.4} mm × S{rpm} needs {:.0} mm/min, more than the axes' {:.0} mm/min; lower the spindle speed",
+                        lead_path_max * u_long,
                         v * 60.0,
                         s.vlim * 60.0
                     ),
                 ));
             }
         }
-        Ok(ThreadSeg { geom: g, lead_path, start_angle, vlim: s.vlim, alim: s.alim })
+        Ok(ThreadSeg {
+            geom: g,
+            lead_path,
+            k_path: lead_inc / u_long,
+            u_long,
+            lead_path_max,
+            continuous,
+            start_angle,
+            vlim: s.vlim,
+            alim: s.alim,
+        })
     }
 
     fn tap_seg(&self, end: &Pos, lead: f64, rpm: f64) -> Result<TapSeg, Alarm> {
@@ -714,6 +810,93 @@ impl Motion {
         let vlim = l.vmax[AX_Z].min(l.vmax[AX_S] * per_deg);
         let alim = l.amax[AX_Z].min(l.amax[AX_S].min(l.tap_accel) * per_deg);
         Ok(TapSeg { z0: self.plan_end[AX_Z], z1: e[AX_Z], lead, v: (rpm * lead.abs() / 60.0).min(vlim), vlim, alim })
+    }
+
+    /// G92.1: the feed axes to `end` and the spindle through `end.c − c_start` on one profile.
+    /// Feasibility before motion: the commanded rpm × lead must be within the feed axes' and
+    /// the spindle's speed limits, and the spindle travel must match the lead.
+    fn rigid_seg(&self, end: &Pos, lead: f64, rpm: f64) -> Result<RigidSeg, Alarm> {
+        if !(lead.is_finite() && lead != 0.0) {
+            return Err(Alarm::new(alarms::FEED_ZERO, format!("G92.1 lead must be non-zero, got F{lead}; correct the F word")));
+        }
+        if !(rpm.is_finite() && rpm > 0.0) {
+            return Err(Alarm::new(alarms::BAD_VALUE, format!("G92.1 spindle speed must be > 0, got S{rpm}")));
+        }
+        if !self.lim.present[AX_S] {
+            return Err(Alarm::new(alarms::UNSUPPORTED, "G92.1 needs a spindle axis (Cs) in the config"));
+        }
+        let e = xyz(end);
+        for (i, v) in e.iter().enumerate() {
+            self.check_axis(i, *v, "end point")?;
+        }
+        if !end.c.is_finite() {
+            return Err(Alarm::new(alarms::BAD_VALUE, format!("G92.1 spindle end angle is not a finite number ({})", end.c)));
+        }
+        let g = geom::line(self.plan_end, e);
+        let len = g.len();
+        if !(len > 0.0) {
+            return Err(Alarm::new(alarms::BAD_VALUE, "G92.1 stroke of zero length: correct the end point"));
+        }
+        let delta = [e[0] - self.plan_end[0], e[1] - self.plan_end[1], e[2] - self.plan_end[2]];
+        let long = delta.iter().fold(0.0f64, |m, d| m.max(d.abs()));
+        // The turn the lead asks for; when the start angle is known it must agree with end.c.
+        let turn = lead.signum() * 360.0 * long / lead.abs();
+        let dc = match self.plan_c {
+            Some(c0) => {
+                let dc = end.c - c0;
+                if (dc - turn).abs() > 1e-6 * turn.abs().max(1.0) {
+                    return Err(Alarm::new(
+                        alarms::BAD_VALUE,
+                        format!("G92.1 spindle travel {dc:.3}° does not match the lead ({turn:.3}° for {long:.4} mm at F{lead})"),
+                    ));
+                }
+                dc
+            }
+            None => turn,
+        };
+        let l = &self.lim;
+        let line = self.line_seg(g, Speed::Rapid, false);
+        let per_deg = len / dc.abs(); // path mm per spindle degree
+        let vlim = line.vlim.min(l.vmax[AX_S] * per_deg);
+        let alim = line.alim.min(l.amax[AX_S].min(l.tap_accel) * per_deg);
+        let v = rpm * 6.0 * per_deg;
+        if !(v <= vlim * (1.0 + 1e-9)) {
+            return Err(Alarm::new(
+                alarms::THREAD_TOO_FAST,
+                format!(
+                    "G92.1 lead {lead} mm × S{rpm} needs {:.0} mm/min of path, more than the axes and spindle allow ({:.0} mm/min); lower S",
+                    v * 60.0,
+                    vlim * 60.0
+                ),
+            ));
+        }
+        Ok(RigidSeg { geom: g, dc, plen: len, v, vlim, alim, u_long: long / len })
+    }
+
+    /// A rapid that also turns the spindle to `end.c` (Cs positioning, e.g. G92.1's start
+    /// angle): the spindle is braked, then moved in position with the feed axes on one linear
+    /// profile, every axis within its limits.
+    fn c_rapid_seg(&self, end: &Pos, c0: f64) -> Result<RigidSeg, Alarm> {
+        if !self.lim.present[AX_S] {
+            return Err(Alarm::new(alarms::UNSUPPORTED, "C positioning needs a spindle axis (Cs) in the config; remove the C word"));
+        }
+        let e = xyz(end);
+        for (i, v) in e.iter().enumerate() {
+            self.check_axis(i, *v, "end point")?;
+        }
+        let dc = end.c - c0;
+        let g = geom::line(self.plan_end, e);
+        let line = self.line_seg(g, Speed::Rapid, false);
+        let l = &self.lim;
+        let len = g.len();
+        let (plen, vlim, alim) = if len > 0.0 {
+            let per_deg = len / dc.abs();
+            (len, line.vlim.min(l.vmax[AX_S] * per_deg), line.alim.min(l.amax[AX_S] * per_deg))
+        } else {
+            (dc.abs(), l.vmax[AX_S], l.amax[AX_S])
+        };
+        let vlim = finite_or_zero(vlim);
+        Ok(RigidSeg { geom: g, dc, plen, v: vlim, vlim, alim: finite_or_zero(alim), u_long: 0.0 })
     }
 
     fn check_spindle(&self, c: &SpindleCmd) -> Result<SpindleCmd, Alarm> {
@@ -900,14 +1083,17 @@ impl Motion {
         let prev = self.pos;
         let mut event = Event::None;
         let mut path_v = 0.0;
+        self.monitor_sync(fb);
         // In a rigid-tap stroke the spindle is a position axis driven by the tap profile.
-        if !matches!(self.run, Run::Tap { theta0: Some(_), .. }) {
+        if !matches!(self.run, Run::Tap { theta0: Some(_), .. } | Run::Rigid { theta0: Some(_), .. }) {
             self.step_spindle(dt);
         }
 
         if self.run == Run::None && !self.stopping && !self.hold_now() && !self.paused {
             if let Some(e) = self.pop() {
                 self.line = e.line;
+                let chain = self.thread_chain.take();
+                self.thread_chain = chain.filter(|_| matches!(e.item, Item::Thread(_)));
                 match e.item {
                     Item::Move(seg) => {
                         self.in_hole = false;
@@ -916,9 +1102,19 @@ impl Motion {
                     Item::Dwell(n) => self.run = Run::Dwell { left: n },
                     Item::Thread(seg) => {
                         self.in_hole = false;
-                        self.run = Run::Thread { seg, sync: None, s: 0.0, v: 0.0, landed: false };
+                        // A continuous segment pushed too late to be crossed into on the fly
+                        // still keeps the lock of the thread that just ended.
+                        let sync = match self.thread_chain {
+                            Some((t, len)) if seg.continuous => t.continue_with(len, seg.lead_path, seg.k_path),
+                            _ => None,
+                        };
+                        self.run = Run::Thread { seg, sync, s: 0.0, v: 0.0, landed: false };
                     }
                     Item::Tap(seg) => self.run = Run::Tap { seg, theta0: None, s: 0.0, v: 0.0, landed: false },
+                    Item::Rigid(seg) => {
+                        self.in_hole = false;
+                        self.run = Run::Rigid { seg, theta0: None, s: 0.0, v: 0.0, landed: false };
+                    }
                     Item::Spindle(c) => self.apply_spindle(c),
                     Item::Event(ev) => {
                         event = ev;
@@ -991,6 +1187,45 @@ impl Motion {
                 self.paused |= self.single_block;
             }
             Run::Thread { seg, sync, s, v, landed: false } => path_v = self.step_thread(fb, seg, sync, s, v),
+            Run::Rigid { landed: true, .. } => {
+                // At rest on the end, spindle stopped in position (no run-out).
+                self.sp_cur = 0.0;
+                self.run = Run::None;
+                self.paused |= self.single_block;
+            }
+            Run::Rigid { seg, theta0: None, .. } => {
+                // Like rigid tapping: brake the spindle, then take its angle as the origin.
+                self.sp_dir = 0.0;
+                self.sp_css = None;
+                if self.stopping {
+                    self.run = Run::None;
+                } else if self.sp_cur == 0.0 {
+                    self.run = Run::Rigid { seg, theta0: Some(self.pos[AX_S]), s: 0.0, v: 0.0, landed: false };
+                }
+            }
+            Run::Rigid { seg, theta0: Some(th0), s, v, landed: false } => {
+                // One profile for path and spindle; feed hold and override do not apply (a
+                // thread), a controlled stop brakes both together on the same profile.
+                let len = seg.plen;
+                let d = len - s;
+                let v_cmd = if self.stopping { 0.0 } else { seg.v };
+                let nv = profile::next_speed(v, v_cmd, d, seg.alim * dt, dt);
+                let (s2, landed) = if d - nv * dt <= 1e-9 { (len, true) } else { (s + nv * dt, false) };
+                if seg.geom.len() > 0.0 {
+                    self.pos[..3].copy_from_slice(&seg.geom.at(s2));
+                }
+                self.pos[AX_S] = if landed { th0 + seg.dc } else { th0 + seg.dc * s2 / len };
+                // Only a thread is watched (a positioning rapid has no lead).
+                self.sync_watch = seg.u_long > 0.0;
+                self.sp_cur = (self.pos[AX_S] - prev[AX_S]) / dt / 6.0;
+                path_v = if landed { d / dt } else { nv };
+                self.run = if self.stopping && nv == 0.0 && !landed {
+                    self.sp_cur = 0.0;
+                    Run::None
+                } else {
+                    Run::Rigid { seg, theta0: Some(th0), s: s2, v: nv, landed }
+                };
+            }
             Run::Tap { seg, theta0, landed: true, .. } => {
                 // At rest on the stroke's end, spindle stopped in position.
                 self.sp_cur = 0.0;
@@ -1032,6 +1267,7 @@ impl Motion {
                 let z = if landed { seg.z1 } else { seg.z0 + s2.copysign(seg.z1 - seg.z0) };
                 self.pos[AX_Z] = z;
                 self.pos[AX_S] = thr + 360.0 * (z - zr) / seg.lead;
+                self.sync_watch = true;
                 self.sp_cur = (self.pos[AX_S] - prev[AX_S]) / dt / 6.0;
                 path_v = (z - prev[AX_Z]).abs() / dt;
                 self.run = if self.stopping && nv == 0.0 && !landed {
@@ -1073,18 +1309,25 @@ impl Motion {
     }
 
     /// One cycle of a thread pass: wait for the spindle, arm at the measured angle, then track
-    /// the synchronous position within the axis limits, braking for the end. Returns the path
-    /// speed (mm/s).
+    /// the synchronous position within the axis limits, braking for the end — or, when a
+    /// continuous thread segment is queued next, crossing into it within the cycle with the
+    /// same lock. Returns the path speed (mm/s).
+    ///
+    /// The target is computed from the spindle angle predicted one cycle ahead (measured angle
+    /// + measured speed × cycle): the axes reach this cycle's setpoint when the spindle has
+    /// turned on by one cycle, so the lock does not lag by `ω·dt` (which would shift the phase
+    /// with the rpm).
     fn step_thread(&mut self, fb: &Feedback, seg: ThreadSeg, sync: Option<ThreadSync>, s: f64, v: f64) -> f64 {
         let dt = self.lim.cycle_s;
-        let theta = fb.pos[AX_S];
+        let rpm = if fb.spindle_rpm.is_finite() { fb.spindle_rpm } else { 0.0 };
+        let theta = fb.pos[AX_S] + rpm * 6.0 * dt;
         // The lead-in ramp uses 80 % of the path acceleration, leaving the tracker headroom.
         let sync = match sync {
             Some(t) => Some(t),
             None if self.stopping => None,
             // Arm only once the spindle is at its commanded speed (speed arrival).
             None if self.sp_cur != self.sp_target || self.sp_target == 0.0 => None,
-            None => ThreadSync::arm(theta, fb.spindle_rpm, seg.start_angle, seg.lead_path, 0.8 * seg.alim),
+            None => ThreadSync::arm(theta, rpm, seg.start_angle, seg.lead_path, seg.k_path, 0.8 * seg.alim),
         };
         let Some(t) = sync else {
             // Spindle not turning yet (or stopping before the cut began): wait at the start.
@@ -1093,45 +1336,116 @@ impl Motion {
             }
             return 0.0;
         };
-        if s == 0.0 && v == 0.0 && t.sync_speed() > seg.vlim {
+        if s == 0.0 && v == 0.0 && !seg.continuous && t.sync_speed() * seg.lead_path_max / seg.lead_path > seg.vlim {
             // The measured spindle speed is too fast for the lead: refuse before cutting.
-            self.fault = Some(Fault::ThreadTooFast { v: t.sync_speed(), vlim: seg.vlim, line: self.line });
+            self.fault = Some(Fault::ThreadTooFast {
+                v: t.sync_speed() * seg.lead_path_max / seg.lead_path,
+                vlim: seg.vlim,
+                line: self.line,
+            });
             self.stop();
             self.run = Run::None;
             return 0.0;
         }
         let len = seg.geom.len();
+        // The continuation, if it is already queued (O(1): the queue head).
+        let next = match self.peek() {
+            Some(Entry { item: Item::Thread(n), line }) if n.continuous => Some((n, line)),
+            _ => None,
+        };
         let dv = seg.alim * dt;
-        let target = t.target(theta).min(len);
-        // Feed hold and override do not apply while threading (Fanuc); a controlled stop does.
-        let want = if self.stopping { 0.0 } else { (target - s) / dt };
+        let target = t.target(theta);
+        // Feed hold and override do not apply while threading (Fanuc). A controlled stop keeps
+        // the axes on the thread while the spindle brakes (they stop together), so the tool
+        // does not leave the groove.
+        let want = (target - s) / dt;
+        let brake_len = len - s + next.map_or(0.0, |(n, _)| n.geom.len());
         let nv = want
             .max((v - dv).max(0.0))
             .min(v + dv)
             .min(seg.vlim)
-            .min(profile::v_allowed(len - s, dv, dt))
+            .min(profile::v_allowed(brake_len, dv, dt))
             .max(0.0);
         let d = len - s;
+        if let Some((n, line)) = next.filter(|_| d - nv * dt <= 1e-9) {
+            if let Some(t2) = t.continue_with(len, n.lead_path, n.k_path) {
+                // Cross into the continuation within this cycle: what is left of this cycle's
+                // step, at the same angular rate (the path lead may differ).
+                self.pop();
+                self.line = line;
+                let r = n.lead_path / seg.lead_path;
+                let len2 = n.geom.len();
+                let s2 = ((nv * dt - d) * r).clamp(0.0, len2);
+                let landed = len2 - s2 <= 1e-9;
+                let s2 = if landed { len2 } else { s2 };
+                self.pos[..3].copy_from_slice(&n.geom.at(s2));
+                self.run = Run::Thread { seg: n, sync: Some(t2), s: s2, v: nv * r, landed };
+                return nv;
+            }
+        }
         let (s2, landed) = if d - nv * dt <= 1e-9 { (len, true) } else { (s + nv * dt, false) };
         self.pos[..3].copy_from_slice(&seg.geom.at(s2));
-        self.sync_err = target - s2;
-        self.run = if self.stopping && nv == 0.0 && !landed {
+        // Watched next cycle while the command is on the lock (lead-in ramp and synchronous
+        // line), not while braking for the end.
+        self.sync_watch = nv == want && !landed;
+        let spindle_stopped = self.sp_cur == 0.0;
+        self.run = if self.stopping && nv == 0.0 && !landed && spindle_stopped {
             Run::None
         } else {
             Run::Thread { seg, sync: Some(t), s: s2, v: nv, landed }
         };
         if landed {
+            self.thread_chain = Some((t, len));
             d / dt
         } else {
             nv
         }
     }
 
-    /// Thread sync error: where the spindle angle says the tool belongs minus where it is
-    /// commanded, mm along the path (last thread cycle). Within the cut it is at most a few
-    /// µm; it grows in the lead-out, where the axes brake for the end point.
+    /// Measured spindle–axis sync error of the last cycle, µm along the thread's long axis:
+    /// from the *actual* positions in `Feedback`, (L_act − L_start) − lead·(θ_act − θ_start)/360
+    /// with L the distance along the thread (Z for a straight thread or a tap), lead the
+    /// current lead (G34: the sum of the leads), θ the measured spindle angle. Positive = the
+    /// axis is ahead of the spindle. Measured in every cycle that follows one whose setpoint
+    /// was locked to the spindle (thread lead-in ramp and synchronous line, rigid tap and
+    /// G92.1 strokes); 0 otherwise (waiting for the spindle, braking for a thread's end,
+    /// other moves). Beyond `Limits::sync_err_limit_um` it raises alarm
+    /// [`alarms::SYNC_ERROR`] and a controlled stop in which spindle and axes stop together.
     pub fn sync_error(&self) -> f64 {
         self.sync_err
+    }
+
+    /// The sync-error monitor (see `sync_error`), at the start of a cycle, for the setpoint
+    /// the last cycle sent. O(1).
+    fn monitor_sync(&mut self, fb: &Feedback) {
+        let watch = std::mem::take(&mut self.sync_watch);
+        self.sync_err = 0.0;
+        if !watch {
+            return;
+        }
+        let th = fb.pos[AX_S];
+        let err_mm = match self.run {
+            Run::Thread { seg, sync: Some(t), .. } => (line_progress(&seg.geom, &fb.pos) - t.target(th)) * seg.u_long,
+            Run::Tap { seg, theta0: Some((zr, thr)), .. } => {
+                // Along the stroke's direction: + = Z ahead of the spindle.
+                ((fb.pos[AX_Z] - zr) - seg.lead * (th - thr) / 360.0) * (seg.z1 - seg.z0).signum()
+            }
+            Run::Rigid { seg, theta0: Some(th0), .. } => {
+                let len = seg.geom.len();
+                (line_progress(&seg.geom, &fb.pos) - (th - th0) * len / seg.dc) * seg.u_long
+            }
+            _ => return,
+        };
+        let err_um = err_mm * 1000.0;
+        // Non-finite feedback is a fault too.
+        self.sync_err = if err_um.is_finite() { err_um } else { f64::INFINITY };
+        if !(self.sync_err.abs() <= self.lim.sync_err_limit_um) && !self.stopping {
+            if self.fault.is_none() {
+                self.fault =
+                    Some(Fault::SyncError { err_um: self.sync_err, limit_um: self.lim.sync_err_limit_um, line: self.line });
+            }
+            self.stop();
+        }
     }
 
     /// A fault found by `step` (which cannot return errors), as an alarm; the motion is already
@@ -1139,6 +1453,12 @@ impl Motion {
     pub fn take_alarm(&mut self) -> Option<Alarm> {
         let f = self.fault.take()?;
         Some(match f {
+            Fault::SyncError { err_um, limit_um, line } => Alarm::new(
+                alarms::SYNC_ERROR,
+                format!(
+                    "line {line}: spindle–axis sync error {err_um:.1} µm exceeds the limit {limit_um:.0} µm (machine.sync_error_limit_um); spindle and axes were stopped together: check the drives' tuning and load, or lower S"
+                ),
+            ),
             Fault::ThreadTooFast { v, vlim, line } => Alarm::new(
                 alarms::THREAD_TOO_FAST,
                 format!(
@@ -1236,6 +1556,21 @@ fn seg(geom: Geom, speed: Speed, v: f64, a: f64) -> Seg {
         blend_in: false,
         vj: 0.0,
         ext: 0.0,
+    }
+}
+
+/// A rapid whose C differs from where the spindle was last programmed: Cs positioning.
+fn end_c_moves(plan_c: Option<f64>, end: &Pos) -> bool {
+    plan_c.is_some_and(|c| c != end.c && end.c.is_finite())
+}
+
+/// Distance along a line segment of the projection of `p` (X/Y/Z of an axis vector).
+fn line_progress(g: &Geom, p: &[f64; N_AXES]) -> f64 {
+    match *g {
+        Geom::Line { start, delta, len, .. } if len > 0.0 => {
+            ((p[0] - start[0]) * delta[0] + (p[1] - start[1]) * delta[1] + (p[2] - start[2]) * delta[2]) / len
+        }
+        _ => 0.0,
     }
 }
 

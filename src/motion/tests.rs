@@ -33,7 +33,8 @@ const START: [f64; N_AXES] = [50.0, 0.0, 0.0, 0.0];
 /// last cycle's command.
 fn run(m: &mut Motion, max: usize) -> Vec<Setpoint> {
     let mut out = Vec::new();
-    let mut fb = Feedback { pos: START, spindle_rpm: 0.0 };
+    // The drives are where the last setpoint put them (the sync monitor reads this).
+    let mut fb = Feedback { pos: m.position(), spindle_rpm: 0.0 };
     while !m.is_idle() {
         assert!(out.len() < max, "not idle after {max} cycles");
         let sp = m.step(&fb);
@@ -659,7 +660,8 @@ fn thread(x: f64, z: f64, lead: f64, start_angle: f64) -> MoveKind {
 }
 
 /// Run a thread pass after `wait` seconds of dwell; return the setpoints and, for the cycles
-/// locked to the spindle, the phase θ_fb − 360·(z0 − z)/lead (constant when locked).
+/// locked to the spindle, the phase θ − 360·(z0 − z)/lead of the same cycle's setpoints
+/// (constant when locked: the lock predicts the spindle one cycle ahead).
 fn thread_pass(wait: f64, start_angle: f64) -> (Vec<Setpoint>, Vec<f64>) {
     let l = lim();
     let mut m = Motion::new(l.clone(), START);
@@ -674,8 +676,8 @@ fn thread_pass(wait: f64, start_angle: f64) -> (Vec<Setpoint>, Vec<f64>) {
     let mut phases = Vec::new();
     for k in 1..sps.len() {
         if sps[k].line == 4 && (sps[k].path_feed - 1200.0).abs() < 1e-6 {
-            let theta_fb = sps[k - 1].pos[AX_S];
-            phases.push(theta_fb - 360.0 * (2.0 - sps[k].pos[AX_Z]) / 2.0);
+            let theta = sps[k].pos[AX_S];
+            phases.push(theta - 360.0 * (2.0 - sps[k].pos[AX_Z]) / 2.0);
         }
     }
     assert!(phases.len() > 500, "only {} locked cycles", phases.len());
@@ -1071,10 +1073,11 @@ fn feed_hold_in_a_rigid_tap_waits_for_the_r_point_by_default() {
     assert!(!l.tap_hold_in_hole, "lathe.toml has No.5200#6 = 0");
     let mut m = Motion::new(l.clone(), [0.0; N_AXES]);
     tap_program(&mut m);
-    let fb = Feedback::default();
+    let mut fb = Feedback::default();
     let mut sps = Vec::new();
     for _ in 0..20_000 {
         let sp = m.step(&fb);
+        fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm }; // ideal drives: the sync monitor reads them
         sps.push(sp);
         if sp.line == 2 && sp.pos[AX_Z] < -5.0 && !m.is_held() {
             m.feed_hold();
@@ -1101,11 +1104,12 @@ fn feed_hold_in_a_rigid_tap_brakes_z_and_spindle_together_with_5200_bit6() {
     l.tap_hold_in_hole = true;
     let mut m = Motion::new(l.clone(), [0.0; N_AXES]);
     tap_program(&mut m);
-    let fb = Feedback::default();
+    let mut fb = Feedback::default();
     let mut sps = Vec::new();
     let mut theta_r = None;
     for _ in 0..3000 {
         let sp = m.step(&fb);
+        fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm }; // ideal drives: the sync monitor reads them
         if sp.line == 2 && sp.pos[AX_Z] == 2.0 && sp.spindle_rpm == 0.0 {
             theta_r = Some(sp.pos[AX_S]);
         }
@@ -1130,10 +1134,11 @@ fn single_block_does_not_stop_inside_a_rigid_tap() {
     let mut m = Motion::new(lim(), [0.0; N_AXES]);
     m.set_single_block(true);
     tap_program(&mut m);
-    let fb = Feedback::default();
+    let mut fb = Feedback::default();
     let mut stops = Vec::new();
     for _ in 0..100_000 {
         let sp = m.step(&fb);
+        fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm }; // ideal drives: the sync monitor reads them
         if m.is_held() {
             stops.push(sp.pos[AX_Z]);
             m.cycle_start();
@@ -1144,4 +1149,300 @@ fn single_block_does_not_stop_inside_a_rigid_tap() {
     }
     // After the rapid to R and after the final rapid; never at the bottom.
     assert_eq!(stops, vec![2.0, 2.0]);
+}
+
+// ---- Continuous thread segments, G34 ----
+
+fn thread_k(x: f64, z: f64, lead: f64, continuous: bool, lead_inc: f64) -> MoveKind {
+    MoveKind::Thread { end: Pos::xz(x, z), lead, start_angle: 0.0, continuous, lead_inc }
+}
+
+#[test]
+fn g92_run_out_continues_the_lock_without_rearming() {
+    let l = lim();
+    let mut m = Motion::new(l.clone(), START);
+    m.push(&mv(1, spindle(SpindleDir::Cw, 600.0))).unwrap();
+    m.push(&mv(2, rapid(20.0, 2.0))).unwrap();
+    // G92 pass: the thread, then the 45° run-out chamfer (continuous), then the retract.
+    m.push(&mv(3, thread_k(20.0, -20.0, 2.0, false, 0.0))).unwrap();
+    m.push(&mv(4, thread_k(22.0, -22.0, 2.0, true, 0.0))).unwrap();
+    m.push(&mv(5, rapid(25.0, -22.0))).unwrap();
+    let sps = run(&mut m, 100_000);
+    // The synchronous line from a locked cycle in the middle of the thread.
+    let k_mid = sps.iter().position(|s| s.line == 3 && s.pos[AX_Z] < -10.0).unwrap();
+    let (z_m, th_m) = (sps[k_mid].pos[AX_Z], sps[k_mid].pos[AX_S]);
+    let mut crossed = 0;
+    for s in &sps[k_mid..] {
+        if !(s.line == 3 || s.line == 4) || s.pos[AX_Z] < -21.7 {
+            continue; // before the lock, the braking at the chamfer's end, the retract
+        }
+        // z = z0 − lead·(θ − θ0)/360 on both sides of the junction.
+        let want = z_m - 2.0 * (s.pos[AX_S] - th_m) / 360.0;
+        assert!((s.pos[AX_Z] - want).abs() < 1e-6, "line {} z {} vs {want}", s.line, s.pos[AX_Z]);
+        assert!(s.path_feed > 1000.0, "stopped at z {} (re-armed?)", s.pos[AX_Z]);
+        if s.line == 4 {
+            crossed += 1;
+            // On the chamfer: x = 20 + (−20 − z).
+            assert!((s.pos[AX_X] - (20.0 - 20.0 - s.pos[AX_Z])).abs() < 1e-9);
+        }
+    }
+    assert!(crossed > 10, "only {crossed} chamfer cycles checked");
+    let last = sps.last().unwrap();
+    assert_eq!(last.pos[..3], [25.0, 0.0, -22.0]);
+}
+
+#[test]
+fn consecutive_g32_blocks_pushed_late_still_keep_the_lock() {
+    let l = lim();
+    let mut m = Motion::new(l.clone(), START);
+    m.push(&mv(1, spindle(SpindleDir::Cw, 600.0))).unwrap();
+    m.push(&mv(2, rapid(20.0, 2.0))).unwrap();
+    m.push(&mv(3, thread_k(20.0, -10.0, 2.0, false, 0.0))).unwrap();
+    let mut fb = Feedback { pos: START, spindle_rpm: 0.0 };
+    let mut sps = Vec::new();
+    // Run until the first block has ended (at rest), then push its continuation.
+    while !m.is_idle() {
+        let sp = m.step(&fb);
+        fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm };
+        sps.push(sp);
+    }
+    m.push(&mv(4, thread_k(20.0, -20.0, 2.0, true, 0.0))).unwrap();
+    let k_mid = sps.iter().position(|s| s.line == 3 && s.pos[AX_Z] < -5.0).unwrap();
+    let (z_m, th_m) = (sps[k_mid].pos[AX_Z], sps[k_mid].pos[AX_S]);
+    sps.extend(run_from(&mut m, fb, 100_000));
+    // It catches up with the same line (no wait for a new one-revolution signal): once caught
+    // up, z is on the first block's synchronous line again.
+    let on_line: Vec<_> = sps
+        .iter()
+        .filter(|s| s.line == 4 && s.pos[AX_Z] > -19.0 && s.pos[AX_Z] < -14.0)
+        .map(|s| s.pos[AX_Z] - (z_m - 2.0 * (s.pos[AX_S] - th_m) / 360.0))
+        .collect();
+    assert!(!on_line.is_empty());
+    assert!(on_line.iter().all(|e| e.abs() < 1e-6), "off the line: {:?}", &on_line[..3.min(on_line.len())]);
+}
+
+fn run_from(m: &mut Motion, mut fb: Feedback, max: usize) -> Vec<Setpoint> {
+    let mut out = Vec::new();
+    while !m.is_idle() {
+        assert!(out.len() < max, "not idle after {max} cycles");
+        let sp = m.step(&fb);
+        fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm };
+        out.push(sp);
+    }
+    out
+}
+
+#[test]
+fn g34_lead_grows_by_k_per_revolution() {
+    let l = lim();
+    let mut m = Motion::new(l.clone(), START);
+    m.push(&mv(1, spindle(SpindleDir::Cw, 300.0))).unwrap();
+    m.push(&mv(2, rapid(20.0, 2.0))).unwrap();
+    m.push(&mv(3, thread_k(20.0, -40.0, 2.0, false, 0.1))).unwrap();
+    let sps = run(&mut m, 100_000);
+    check_limits(&l, START, &sps).unwrap();
+    assert_eq!(sps.last().unwrap().pos[..3], [20.0, 0.0, -40.0]);
+    // Revolutions n after θ0 for a distance D: L0·n + K·n²/2 = D.
+    let revs = |d: f64| (-2.0 + (4.0 + 0.2 * d).sqrt()) / 0.1;
+    let k_mid = sps.iter().position(|s| s.line == 3 && s.pos[AX_Z] < -20.0).unwrap();
+    let th0 = sps[k_mid].pos[AX_S] - 360.0 * revs(2.0 - sps[k_mid].pos[AX_Z]);
+    // θ0 is on the one-revolution reference (start angle 0).
+    let r = th0.rem_euclid(360.0);
+    assert!(r.min(360.0 - r) < 1e-6, "θ0 {th0}");
+    let mut n_checked = 0;
+    for s in sps.iter().filter(|s| s.line == 3 && s.pos[AX_Z] < -2.0 && s.pos[AX_Z] > -39.0) {
+        let n = (s.pos[AX_S] - th0) / 360.0;
+        let want = 2.0 - (2.0 * n + 0.1 * n * n / 2.0);
+        assert!((s.pos[AX_Z] - want).abs() < 1e-6, "n {n}: z {} vs {want}", s.pos[AX_Z]);
+        n_checked += 1;
+    }
+    assert!(n_checked > 1000);
+}
+
+#[test]
+fn g34_is_refused_when_the_lead_vanishes_or_gets_too_fast() {
+    let mut m = Motion::new(lim(), START);
+    m.push(&mv(1, spindle(SpindleDir::Cw, 3000.0))).unwrap();
+    m.push(&mv(2, rapid(20.0, 2.0))).unwrap();
+    // 2 mm − 0.2 mm/rev: 0 after 10 revolutions (20 mm), the thread is 42 mm.
+    let e = m.push(&mv(3, thread_k(20.0, -40.0, 2.0, false, -0.2))).unwrap_err();
+    assert_eq!(e.number, alarms::ILLEGAL_LEAD);
+    // 3.5 mm × 3000 rpm = 10.5 m/min is fine; growing to 7.2 mm at the end is not (Z 12 m/min).
+    let e = m.push(&mv(3, thread_k(20.0, -40.0, 3.5, false, 0.5))).unwrap_err();
+    assert_eq!(e.number, alarms::THREAD_TOO_FAST);
+    m.push(&mv(3, thread_k(20.0, -40.0, 3.5, false, 0.0))).unwrap();
+}
+
+// ---- G92.1 rigid thread ----
+
+#[test]
+fn g92_1_interpolates_spindle_angle_and_axes_on_one_profile() {
+    let l = lim();
+    let mut m = Motion::new(l.clone(), START);
+    m.push(&mv(1, spindle(SpindleDir::Cw, 800.0))).unwrap(); // running: braked first
+    m.push(&mv(2, rapid(20.0, 2.0))).unwrap();
+    // Taper thread 22 mm long in Z at 1.5 mm: 5280° of spindle.
+    let end = Pos { c: 360.0 * 22.0 / 1.5, ..Pos::xz(19.0, -20.0) };
+    m.push(&mv(3, MoveKind::RigidThread { end, lead: 1.5, rpm: 1000.0 })).unwrap();
+    // The retract keeps the spindle where the stroke left it (C unchanged).
+    m.push(&mv(4, MoveKind::Rapid { end: Pos { c: end.c, ..Pos::xz(25.0, -20.0) } })).unwrap();
+    let sps = run(&mut m, 100_000);
+    check_limits(&l, START, &sps).unwrap();
+    let k0 = sps.iter().position(|s| s.line == 3 && s.pos[AX_Z] != 2.0).unwrap();
+    assert_eq!(sps[k0 - 1].spindle_rpm, 0.0, "the spindle is at rest when the stroke starts");
+    let th0 = sps[k0 - 1].pos[AX_S];
+    for s in sps[k0 - 1..].iter().filter(|s| s.line == 3) {
+        let want = th0 + 360.0 * (2.0 - s.pos[AX_Z]) / 1.5;
+        assert!((s.pos[AX_S] - want).abs() < 1e-9, "spindle {} vs {want} at z {}", s.pos[AX_S], s.pos[AX_Z]);
+        let x = 20.0 - (2.0 - s.pos[AX_Z]) / 22.0;
+        assert!((s.pos[AX_X] - x).abs() < 1e-9);
+    }
+    let end_k = sps.iter().rposition(|s| s.line == 3).unwrap();
+    assert_eq!(sps[end_k].pos[..3], [19.0, 0.0, -20.0]);
+    assert_eq!(sps[end_k].pos[AX_S], th0 + 5280.0);
+    let top = sps.iter().filter(|s| s.line == 3).map(|s| s.spindle_rpm).fold(0.0, f64::max);
+    assert!((top - 1000.0).abs() < 1e-6, "G92.1 at {top} rpm");
+}
+
+#[test]
+fn g92_1_is_refused_before_motion_when_infeasible() {
+    let mut m = Motion::new(lim(), START);
+    m.push(&mv(1, rapid(20.0, 2.0))).unwrap();
+    let c = 360.0 * 22.0 / 3.0;
+    // 3 mm × 6000 rpm = 18 m/min: more than Z's 12 m/min.
+    let e = m.push(&mv(2, MoveKind::RigidThread { end: Pos { c, ..Pos::xz(20.0, -20.0) }, lead: 3.0, rpm: 6000.0 }));
+    assert_eq!(e.unwrap_err().number, alarms::THREAD_TOO_FAST);
+    // A spindle travel that does not match the lead.
+    let e = m.push(&mv(2, MoveKind::RigidThread { end: Pos { c: c + 90.0, ..Pos::xz(20.0, -20.0) }, lead: 3.0, rpm: 500.0 }));
+    assert_eq!(e.unwrap_err().number, alarms::BAD_VALUE);
+    m.push(&mv(2, MoveKind::RigidThread { end: Pos { c, ..Pos::xz(20.0, -20.0) }, lead: 3.0, rpm: 500.0 })).unwrap();
+    let sps = run(&mut m, 100_000);
+    assert_eq!(sps.last().unwrap().pos[AX_Z], -20.0);
+}
+
+// ---- Sync-error monitor ----
+
+/// A thread pass (600 rpm × 2 mm = 20 mm/s) whose Z feedback lags the setpoint by `lag`
+/// extra cycles; returns the setpoints, the sync errors and the first alarm.
+fn lagging_thread(lag: usize, limit_um: f64) -> (Vec<Setpoint>, Vec<f64>, Option<Alarm>) {
+    let mut l = lim();
+    l.sync_err_limit_um = limit_um;
+    let mut m = Motion::new(l, START);
+    m.push(&mv(1, spindle(SpindleDir::Cw, 600.0))).unwrap();
+    m.push(&mv(2, rapid(20.0, 2.0))).unwrap();
+    m.push(&mv(3, thread(20.0, -30.0, 2.0, 0.0))).unwrap();
+    let mut fb = Feedback { pos: START, spindle_rpm: 0.0 };
+    let (mut sps, mut errs, mut alarm) = (Vec::<Setpoint>::new(), Vec::new(), None);
+    for _ in 0..20_000 {
+        if m.is_idle() && sps.last().is_some_and(|s| s.spindle_rpm == 0.0) {
+            break;
+        }
+        let sp = m.step(&fb);
+        errs.push(m.sync_error());
+        if alarm.is_none() {
+            alarm = m.take_alarm();
+        }
+        sps.push(sp);
+        let zk = sps.len().saturating_sub(1 + lag);
+        fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm };
+        fb.pos[AX_Z] = sps[zk].pos[AX_Z];
+    }
+    (sps, errs, alarm)
+}
+
+#[test]
+fn sync_error_is_measured_from_actual_positions() {
+    // Drives that reach every setpoint by the next cycle: no sync error.
+    let (_, errs, alarm) = lagging_thread(0, 100.0);
+    assert!(alarm.is_none());
+    let measured = errs.iter().filter(|e| **e != 0.0).count();
+    let worst = errs.iter().fold(0.0f64, |m, e| m.max(e.abs()));
+    assert!(worst < 0.01, "ideal drives show {worst} µm");
+    // Z one cycle late: 20 mm/s × 2 ms = 40 µm behind the spindle.
+    let (_, errs, alarm) = lagging_thread(1, 100.0);
+    assert!(alarm.is_none());
+    let locked: Vec<f64> = errs.iter().copied().filter(|e| (e + 40.0).abs() < 0.01).collect();
+    assert!(locked.len() > 500 && measured < errs.len(), "{} cycles at −40 µm", locked.len());
+    assert!(errs.iter().all(|e| *e <= 0.01 && *e >= -40.01), "behind by at most one cycle");
+}
+
+#[test]
+fn sync_error_beyond_the_limit_alarms_and_stops_spindle_and_axis_together() {
+    let l = lim();
+    let (sps, errs, alarm) = lagging_thread(1, 30.0);
+    let a = alarm.expect("sync error alarm");
+    assert_eq!(a.number, alarms::SYNC_ERROR);
+    assert!(a.message.contains("µm"), "{}", a.message);
+    let k = errs.iter().position(|e| e.abs() > 30.0).unwrap();
+    // Stopped while cutting, well before the end of the thread.
+    assert!(sps[k].pos[AX_Z] > -30.0 + 1.0);
+    // From then on the axis stays on the spindle's line while both decelerate to rest.
+    let (z0, th0) = (sps[k].pos[AX_Z], sps[k].pos[AX_S]);
+    for s in &sps[k..] {
+        let want = z0 - 2.0 * (s.pos[AX_S] - th0) / 360.0;
+        assert!((s.pos[AX_Z] - want).abs() < 1e-6, "z {} off the thread ({want})", s.pos[AX_Z]);
+    }
+    let last = sps.last().unwrap();
+    assert_eq!(last.spindle_rpm, 0.0);
+    assert!(last.pos[AX_Z] > -30.0);
+    // The spindle braked at its ramp, not at once.
+    let ramp = l.amax[AX_S] / 6.0 * l.cycle_s;
+    for w in sps[k..].windows(2) {
+        assert!((w[0].spindle_rpm - w[1].spindle_rpm).abs() <= ramp + 1e-9);
+    }
+    check_limits(&l, START, &sps).unwrap();
+}
+
+#[test]
+fn rigid_tap_sync_error_uses_actual_spindle_angle() {
+    let mut l = lim();
+    l.sync_err_limit_um = 20.0;
+    let mut m = Motion::new(l, [0.0; N_AXES]);
+    m.push(&mv(1, rapid(0.0, 2.0))).unwrap();
+    m.push(&mv(2, MoveKind::Tap { end: Pos::xz(0.0, -20.0), lead: 1.5, rpm: 1000.0 })).unwrap();
+    let mut fb = Feedback::default();
+    let mut prev: Option<Setpoint> = None;
+    let mut worst: f64 = 0.0;
+    let mut alarm = None;
+    for _ in 0..20_000 {
+        let sp = m.step(&fb);
+        worst = worst.max(m.sync_error().abs());
+        alarm = alarm.or(m.take_alarm());
+        // The spindle lags one extra cycle (a slower drive).
+        fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm };
+        if let Some(p) = prev {
+            fb.pos[AX_S] = p.pos[AX_S];
+        }
+        prev = Some(sp);
+        if m.is_idle() {
+            break;
+        }
+    }
+    // 25 mm/s for one cycle: 50 µm, beyond 20.
+    assert_eq!(alarm.map(|a| a.number), Some(alarms::SYNC_ERROR));
+    assert!(worst > 20.0);
+}
+
+#[test]
+fn rapid_with_c_positions_the_spindle_with_the_axes() {
+    let l = lim();
+    let mut m = Motion::new(l.clone(), START);
+    m.push(&mv(1, spindle(SpindleDir::Cw, 500.0))).unwrap();
+    m.push(&mv(2, rapid(20.0, 2.0))).unwrap();
+    // G92.1's approach: X and the spindle's start angle together, then C alone.
+    m.push(&mv(3, MoveKind::Rapid { end: Pos { c: 90.0, ..Pos::xz(21.0, 2.0) } })).unwrap();
+    m.push(&mv(4, MoveKind::Rapid { end: Pos { c: -270.0, ..Pos::xz(21.0, 2.0) } })).unwrap();
+    let sps = run(&mut m, 100_000);
+    check_limits(&l, START, &sps).unwrap();
+    let k0 = sps.iter().position(|s| s.line == 3 && s.pos[AX_X] != 20.0).unwrap();
+    assert_eq!(sps[k0 - 1].spindle_rpm, 0.0, "braked before positioning");
+    let th0 = sps[k0 - 1].pos[AX_S];
+    for s in sps[k0 - 1..].iter().filter(|s| s.line == 3) {
+        let want = th0 + 90.0 * (s.pos[AX_X] - 20.0);
+        assert!((s.pos[AX_S] - want).abs() < 1e-9, "C {} vs {want}", s.pos[AX_S]);
+    }
+    let last = sps.last().unwrap();
+    assert_eq!(last.pos[..3], [21.0, 0.0, 2.0]);
+    assert_eq!(last.pos[AX_S], th0 + 90.0 - 360.0);
+    assert_eq!(last.spindle_rpm, 0.0);
 }

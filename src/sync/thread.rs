@@ -12,6 +12,17 @@
 //! early, at `θ0 − Δθ` with `Δθ = ω·v/(2a)`, and ramps at `a`: a constant-acceleration ramp
 //! from rest meets the synchronous line `lead_path·(θ − θ0)/360` exactly when it reaches `v`. The
 //! lead is short only within the ramp (the programmer's δ1 zone), and the phase is exact.
+//!
+//! G34 variable lead: the lead grows by `k` per revolution, so after `n` revolutions from θ0
+//! the path position is `L0·n + k·n²/2` (the sum of the leads, in closed form). The quadratic
+//! term is added to the ramp as well, from θ0 on: it is zero with zero slope there, so the
+//! target stays continuous in position and speed.
+//!
+//! Continuous segments (consecutive G32 blocks, the run-out of G92/G76/G78): a segment that
+//! follows a thread segment directly keeps its spindle lock. [`ThreadSync::continue_with`]
+//! counts the revolutions the previous segment takes on the synchronous line and starts the
+//! next one's line there, so the axes go on without waiting, without a stop, and without a
+//! phase jump.
 
 // `!(x > 0.0)` is deliberate throughout: it is also true for NaN, which must be refused.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
@@ -33,17 +44,24 @@ pub struct ThreadSync {
     a: f64,
     /// Synchronous path speed at `omega`, mm/s.
     v: f64,
-    /// Path length per spindle revolution, mm.
+    /// Path length per spindle revolution at the segment's start, mm.
     lead_path: f64,
+    /// G34: change of `lead_path` per revolution, mm/rev (0 = constant lead).
+    k: f64,
+    /// Revolutions from θ0 (along the synchronous line) at which this segment starts.
+    n_start: f64,
+    /// This segment was armed (has the lead-in ramp); false for a continuation.
+    ramp: bool,
 }
 
 impl ThreadSync {
     /// Arm a pass at measured angle `theta` (deg) and speed `rpm` (signed). `start_angle`
     /// (deg) is measured from the one-revolution reference in the direction of rotation;
-    /// `lead_path` is mm of path per revolution, `a` the lead-in acceleration (mm/s²).
+    /// `lead_path` is mm of path per revolution, `k` its change per revolution (G34, else 0),
+    /// `a` the lead-in acceleration (mm/s²).
     /// `None` when the spindle is (nearly) stopped or an argument is not usable.
-    pub fn arm(theta: f64, rpm: f64, start_angle: f64, lead_path: f64, a: f64) -> Option<ThreadSync> {
-        if !(theta.is_finite() && rpm.is_finite() && start_angle.is_finite()) {
+    pub fn arm(theta: f64, rpm: f64, start_angle: f64, lead_path: f64, k: f64, a: f64) -> Option<ThreadSync> {
+        if !(theta.is_finite() && rpm.is_finite() && start_angle.is_finite() && k.is_finite()) {
             return None;
         }
         if !(rpm.abs() >= 1.0 && lead_path > 0.0 && lead_path.is_finite() && a > 0.0 && a.is_finite()) {
@@ -58,7 +76,50 @@ impl ThreadSync {
         let q = dir * theta + dtheta;
         let q0 = start_angle + 360.0 * ((q - start_angle) / 360.0).ceil();
         let theta0 = dir * q0;
-        Some(ThreadSync { dir, theta_start: theta0 - dir * dtheta, theta0, omega, a, v, lead_path })
+        Some(ThreadSync {
+            dir,
+            theta_start: theta0 - dir * dtheta,
+            theta0,
+            omega,
+            a,
+            v,
+            lead_path,
+            k,
+            n_start: 0.0,
+            ramp: true,
+        })
+    }
+
+    /// The lock for the segment that directly follows this one (which is `len` mm long):
+    /// its synchronous line starts where this one's reaches `len`. `lead_path`/`k` are the new
+    /// segment's. `None` when this segment never reaches `len` (the lead shrinks to zero first)
+    /// or an argument is not usable.
+    pub fn continue_with(&self, len: f64, lead_path: f64, k: f64) -> Option<ThreadSync> {
+        let n = self.revs_to(len)?;
+        if !(lead_path > 0.0 && lead_path.is_finite() && k.is_finite()) {
+            return None;
+        }
+        Some(ThreadSync {
+            n_start: self.n_start + n,
+            lead_path,
+            k,
+            ramp: false,
+            v: lead_path * self.omega / 360.0,
+            ..*self
+        })
+    }
+
+    /// Revolutions along this segment's synchronous line from its start to path position `len`:
+    /// the root of `L·n + k·n²/2 = len` (written so that it does not cancel for small k).
+    pub fn revs_to(&self, len: f64) -> Option<f64> {
+        let disc = self.lead_path * self.lead_path + 2.0 * self.k * len;
+        let n = 2.0 * len / (self.lead_path + disc.max(0.0).sqrt());
+        (disc >= 0.0 && n.is_finite() && n >= 0.0).then_some(n)
+    }
+
+    /// Revolutions along the synchronous line since this segment's start at angle `theta`.
+    fn revs(&self, theta: f64) -> f64 {
+        self.dir * (theta - self.theta0) / 360.0 - self.n_start
     }
 
     /// Synchronous path speed (mm/s) at the speed the pass was armed with.
@@ -71,20 +132,24 @@ impl ThreadSync {
         self.theta0
     }
 
-    /// Path position (mm from the thread's start) where the axes belong at measured angle
-    /// `theta`: 0 before the start angle, the ramp, then the synchronous line.
+    /// Path position (mm from the segment's start) where the axes belong at spindle angle
+    /// `theta`: 0 before the start angle, the ramp, then the synchronous line (for a
+    /// continuation: the synchronous line from its start on).
     pub fn target(&self, theta: f64) -> f64 {
+        let n = self.revs(theta);
+        let n_pos = n.max(0.0);
+        let g34 = 0.5 * self.k * n_pos * n_pos;
+        if !self.ramp {
+            return self.lead_path * n_pos + g34;
+        }
         let p = self.dir * (theta - self.theta_start);
         if !(p > 0.0) {
             return 0.0;
         }
         let tau = p / self.omega;
         let t_ramp = self.v / self.a;
-        if tau <= t_ramp {
-            0.5 * self.a * tau * tau
-        } else {
-            self.lead_path * self.dir * (theta - self.theta0) / 360.0
-        }
+        let base = if tau <= t_ramp { 0.5 * self.a * tau * tau } else { self.lead_path * n };
+        base + g34
     }
 }
 
@@ -95,7 +160,7 @@ mod tests {
     #[test]
     fn start_angle_is_congruent_and_ahead() {
         for (theta, rpm, sa) in [(0.0, 500.0, 0.0), (1234.5, 800.0, 90.0), (-77.0, -600.0, 180.0), (359.0, 300.0, 0.0)] {
-            let t = ThreadSync::arm(theta, rpm, sa, 2.0, 1000.0).unwrap();
+            let t = ThreadSync::arm(theta, rpm, sa, 2.0, 0.0, 1000.0).unwrap();
             let dir: f64 = if rpm > 0.0 { 1.0 } else { -1.0 };
             let q0 = dir * t.theta0();
             assert!(((q0 - sa).rem_euclid(360.0)).min(360.0 - (q0 - sa).rem_euclid(360.0)) < 1e-9, "θ0 {q0} ≢ {sa}");
@@ -106,7 +171,7 @@ mod tests {
 
     #[test]
     fn ramp_meets_the_synchronous_line_continuously() {
-        let t = ThreadSync::arm(10.0, 1000.0, 45.0, 1.5, 800.0).unwrap();
+        let t = ThreadSync::arm(10.0, 1000.0, 45.0, 1.5, 0.0, 800.0).unwrap();
         let v = t.sync_speed();
         assert!((v - 25.0).abs() < 1e-12);
         // Across the whole pass the target is continuous and its slope never exceeds v.
@@ -127,14 +192,53 @@ mod tests {
 
     #[test]
     fn reverse_rotation_runs_the_same_way_along_the_path() {
-        let t = ThreadSync::arm(0.0, -1000.0, 30.0, 2.0, 1000.0).unwrap();
+        let t = ThreadSync::arm(0.0, -1000.0, 30.0, 2.0, 0.0, 1000.0).unwrap();
         assert!(t.theta0() < 0.0);
         assert!((t.target(t.theta0() - 720.0) - 4.0).abs() < 1e-9);
     }
 
     #[test]
     fn stopped_spindle_does_not_arm() {
-        assert!(ThreadSync::arm(0.0, 0.2, 0.0, 2.0, 1000.0).is_none());
-        assert!(ThreadSync::arm(f64::NAN, 500.0, 0.0, 2.0, 1000.0).is_none());
+        assert!(ThreadSync::arm(0.0, 0.2, 0.0, 2.0, 0.0, 1000.0).is_none());
+        assert!(ThreadSync::arm(f64::NAN, 500.0, 0.0, 2.0, 0.0, 1000.0).is_none());
+    }
+
+    #[test]
+    fn continuation_keeps_the_synchronous_line() {
+        let t = ThreadSync::arm(0.0, 600.0, 0.0, 2.0, 0.0, 1000.0).unwrap();
+        // First segment 10 mm = 5 revolutions; the next (path lead 2.5) starts there.
+        let c = t.continue_with(10.0, 2.5, 0.0).unwrap();
+        let th_j = t.theta0() + 5.0 * 360.0;
+        assert!((t.target(th_j) - 10.0).abs() < 1e-9);
+        assert_eq!(c.target(th_j), 0.0);
+        assert!((c.target(th_j + 36.0) - 0.25).abs() < 1e-9);
+        // Continuations of continuations add up.
+        let d = c.continue_with(2.5, 2.0, 0.0).unwrap();
+        assert!((d.target(th_j + 360.0 + 180.0) - 1.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn g34_lead_grows_per_revolution_in_closed_form() {
+        let t = ThreadSync::arm(0.0, 300.0, 0.0, 2.0, 0.1, 1000.0).unwrap();
+        for n in [2.0f64, 5.0, 10.0, 12.5] {
+            let want = 2.0 * n + 0.1 * n * n / 2.0;
+            assert!((t.target(t.theta0() + 360.0 * n) - want).abs() < 1e-9, "n {n}");
+        }
+        // The target is continuous through the end of the ramp (no jump from the k term).
+        let mut prev = 0.0;
+        let mut th = t.theta0() - 720.0;
+        while th < t.theta0() + 720.0 {
+            let s = t.target(th);
+            assert!((s - prev).abs() < 0.01, "jump {prev} → {s} at {th}");
+            prev = s;
+            th += 0.5;
+        }
+        // Revolutions to a length invert the sum of the leads.
+        let n = t.revs_to(2.0 * 10.0 + 0.05 * 100.0).unwrap();
+        assert!((n - 10.0).abs() < 1e-9);
+        // A shrinking lead that reaches 0 before the length is never done.
+        let s = ThreadSync::arm(0.0, 300.0, 0.0, 2.0, -0.5, 1000.0).unwrap();
+        assert!(s.revs_to(4.0).is_some());
+        assert!(s.revs_to(4.1).is_none());
     }
 }
