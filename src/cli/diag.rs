@@ -374,17 +374,27 @@ pub fn sdo_write(machine: &MachineArgs, node: u8, index: u16, sub: u8, ty: SdoTy
             return EXIT_USAGE;
         }
     };
+    // Refuse before touching the bus: the effective bus is --bus, else the config's.
+    let bus = match &machine.bus {
+        Some(b) => b.clone(),
+        None => match super::load_config(machine.config.as_deref()) {
+            Ok((c, _)) => c.bus.interface,
+            Err(e) => {
+                eprintln!("error: {e}");
+                return EXIT_SETUP;
+            }
+        },
+    };
+    if moves_iron(index) && bus != "inproc" && !yes {
+        eprintln!(
+            "error: writing 0x{index:04X} can set a motor in motion on {bus}; make sure the axis is free to move, then repeat with --yes"
+        );
+        return EXIT_USAGE;
+    }
     let mut s = match open(machine) {
         Ok(s) => s,
         Err(c) => return c,
     };
-    if moves_iron(index) && !s.simulated && !yes {
-        eprintln!(
-            "error: writing 0x{index:04X} can set a motor in motion on {}; make sure the axis is free to move, then repeat with --yes",
-            s.bus
-        );
-        return EXIT_USAGE;
-    }
     s.master.ensure_node(node);
     match s.master.sdo_download(&mut *s.clock, node, index, sub, &data) {
         Ok(()) => {
@@ -451,7 +461,8 @@ pub fn nmt(machine: &MachineArgs, cmd: NmtArg, target: u8, json_out: bool) -> i3
     if target != 0 {
         s.master.ensure_node(target);
     }
-    let nodes: Vec<u8> = if target == 0 { s.master.node_ids() } else { vec![target] };
+    let mut nodes: Vec<u8> = if target == 0 { s.master.node_ids() } else { vec![target] };
+    nodes.sort_unstable();
     if let Err(a) = s.master.nmt_command(target, cmd.command()) {
         eprintln!("{a}");
         return EXIT_SETUP;

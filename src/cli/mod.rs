@@ -214,9 +214,8 @@ pub fn open_bus(
         let what = format!("{bus} (socketcand over TCP, real time)");
         Ok((CanOpenMaster::new(ep, cfg), Box::new(cncgw_bus::RealClock::new()), bus, what))
     } else {
-        let sock = cncgw_bus::transport::socketcan::SocketCan::open(&bus).map_err(|e| {
-            format!("{e}; bring the interface up first (`ip link set {bus} up type can bitrate {}`), or use --bus inproc", cfg.bus.bitrate)
-        })?;
+        let sock = cncgw_bus::transport::socketcan::SocketCan::open(&bus)
+            .map_err(|e| format!("{e}; or use --bus inproc for the embedded emulated drives"))?;
         let ep: Box<dyn cncgw_bus::CanBus> = Box::new(sock);
         let what = format!("{bus} (SocketCAN, real time)");
         Ok((CanOpenMaster::new(ep, cfg), Box::new(cncgw_bus::RealClock::new()), bus, what))
