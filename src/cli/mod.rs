@@ -1,5 +1,6 @@
 //! The `cncgw` command line.
 
+pub mod diag;
 pub mod run;
 
 use clap::{Parser, Subcommand};
@@ -57,6 +58,180 @@ pub enum Command {
     /// Configuration commands.
     #[command(subcommand)]
     Config(ConfigCmd),
+    /// List every node of the configuration: node id, vendor, product, revision, serial
+    /// (0x1018), device type (0x1000), name (0x1008), NMT state, heartbeat period (0x1017).
+    /// Read-only.
+    ///
+    /// Example: `cncgw scan` (embedded emulated drives), `cncgw scan --bus can0 --json`
+    Scan {
+        #[command(flatten)]
+        machine: MachineArgs,
+        /// Print JSON instead of a table.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Read or write one object of a node's object dictionary over SDO.
+    #[command(subcommand)]
+    Sdo(SdoCmd),
+    /// Send an NMT command to one node or to all, and report the state the nodes answer with.
+    ///
+    /// Example: `cncgw nmt preop all`, `cncgw nmt reset-comm 2 --bus vcan0`
+    Nmt {
+        /// start | stop | preop | reset | reset-comm
+        #[arg(value_enum)]
+        command: diag::NmtArg,
+        /// Node id 1…127 (decimal or 0x…) or `all`.
+        #[arg(value_parser = diag::parse_target, value_name = "NODE|all")]
+        target: u8,
+        #[command(flatten)]
+        machine: MachineArgs,
+        /// Print JSON.
+        #[arg(long)]
+        json: bool,
+    },
+    /// CiA 402 drive commands.
+    #[command(subcommand)]
+    Drive(DriveCmd),
+    /// Print a shell completion script.
+    ///
+    /// Example: `cncgw completions bash > /etc/bash_completion.d/cncgw`
+    Completions {
+        /// bash | zsh | fish | elvish | powershell
+        #[arg(value_enum)]
+        shell: clap_complete::Shell,
+    },
+    /// Print the manual page (roff).
+    ///
+    /// Example: `cncgw man > cncgw.1 && man ./cncgw.1`
+    Man,
+}
+
+#[derive(Subcommand, Debug)]
+pub enum SdoCmd {
+    /// Read INDEX:SUB of NODE. Without --type the value is shown by its length (1, 2, 4 bytes
+    /// as unsigned numbers, printable bytes as text, else hex bytes). Exit code 1 on an abort.
+    ///
+    /// Example: `cncgw sdo read 1 0x6041 0 --type u16`, `cncgw sdo read 1 0x1008 0 --type str`,
+    /// `cncgw sdo read 2 0x2000 1 --type domain -o blob.bin`
+    Read {
+        /// Node id 1…127 (decimal or 0x…).
+        #[arg(value_parser = diag::parse_node)]
+        node: u8,
+        /// Object index, e.g. 0x6041.
+        #[arg(value_parser = diag::parse_index)]
+        index: u16,
+        /// Sub-index, e.g. 0 or 0x01.
+        #[arg(value_parser = diag::parse_sub)]
+        sub: u8,
+        /// How to show the value.
+        #[arg(long, short = 't', value_enum)]
+        r#type: Option<diag::SdoType>,
+        /// Also save the raw bytes to FILE (for domains).
+        #[arg(long, short = 'o', value_name = "FILE")]
+        out: Option<PathBuf>,
+        #[command(flatten)]
+        machine: MachineArgs,
+        /// Print JSON.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Write VALUE as TYPE to INDEX:SUB of NODE. Numbers in decimal or 0x… hex; a domain
+    /// VALUE is a file whose bytes are written. Objects that can set a motor in motion
+    /// (0x6040, 0x6060, 0x607A, 0x60FF, …) need --yes on a real bus. Exit code 1 on an abort.
+    ///
+    /// Example: `cncgw sdo write 1 0x1017 0 u16 100`, `cncgw sdo write 3 0x6065 0 u32 0x2000`
+    Write {
+        #[arg(value_parser = diag::parse_node)]
+        node: u8,
+        #[arg(value_parser = diag::parse_index)]
+        index: u16,
+        #[arg(value_parser = diag::parse_sub)]
+        sub: u8,
+        /// u8 | u16 | u32 | i8 | i16 | i32 | f32 | str | domain
+        #[arg(value_enum)]
+        r#type: diag::SdoType,
+        #[arg(allow_hyphen_values = true)]
+        value: String,
+        /// Confirm a write that can move a motor on a real bus.
+        #[arg(long)]
+        yes: bool,
+        #[command(flatten)]
+        machine: MachineArgs,
+    },
+}
+
+#[derive(Subcommand, Debug)]
+pub enum DriveCmd {
+    /// Show a drive's state: statusword bit by bit, CiA 402 state, mode (0x6061), position
+    /// (0x6064), velocity (0x606C), following error (0x60F4), error code (0x603F) and the last
+    /// EMCY heard, all in words. Read-only. Exit code 1 when the drive is in fault.
+    ///
+    /// Example: `cncgw drive status 1`, `cncgw drive status 3 --bus can0 --json`
+    Status {
+        #[arg(value_parser = diag::parse_node)]
+        node: u8,
+        #[command(flatten)]
+        machine: MachineArgs,
+        /// Print JSON.
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+/// An open bus with its clock and a CANopen master that has not configured anything.
+pub struct Session {
+    pub cfg: crate::config::MachineConfig,
+    pub master: crate::drives::canopen::CanOpenMaster<Box<dyn cncgw_bus::CanBus>>,
+    /// The emulated drives (`inproc`) or the wall clock.
+    pub clock: Box<dyn cncgw_bus::Clock>,
+    /// The bus as given (`inproc`, `vcan0`, …).
+    pub bus: String,
+    /// The bus in words, for messages.
+    pub what: String,
+    pub simulated: bool,
+}
+
+/// Open the bus named by `bus` (default: the config's bus.interface) with its clock, and a
+/// master for `cfg` on it. `inproc` builds the emulated drives from `cfg_text`.
+pub fn open_bus(
+    cfg: &crate::config::MachineConfig,
+    cfg_text: &str,
+    bus: Option<&str>,
+) -> Result<(crate::drives::canopen::CanOpenMaster<Box<dyn cncgw_bus::CanBus>>, Box<dyn cncgw_bus::Clock>, String, String), String> {
+    use crate::drives::canopen::CanOpenMaster;
+    use cncgw_bus::transport::socketcand;
+    let bus = bus.map(str::to_string).unwrap_or_else(|| cfg.bus.interface.clone());
+    if bus == "inproc" {
+        let sim_cfg = sim_drives::SimConfig::from_machine_toml(cfg_text).map_err(|e| format!("emulated drives: {e}"))?;
+        let wire = cncgw_bus::transport::inproc::InprocBus::new();
+        let world = sim_drives::SimWorld::new(&wire, sim_cfg);
+        let ep: Box<dyn cncgw_bus::CanBus> = Box::new(wire.endpoint());
+        Ok((CanOpenMaster::new(ep, cfg), Box::new(world), bus, "inproc (embedded emulated drives, simulated time)".into()))
+    } else if let Some((addr, iface)) = socketcand::parse_url(&bus) {
+        let sock = socketcand::Socketcand::connect(&addr, &iface)
+            .map_err(|e| format!("{e}; is socketcand running at {addr}?"))?;
+        let ep: Box<dyn cncgw_bus::CanBus> = Box::new(sock);
+        let what = format!("{bus} (socketcand over TCP, real time)");
+        Ok((CanOpenMaster::new(ep, cfg), Box::new(cncgw_bus::RealClock::new()), bus, what))
+    } else {
+        let sock = cncgw_bus::transport::socketcan::SocketCan::open(&bus)
+            .map_err(|e| format!("{e}; or use --bus inproc for the embedded emulated drives"))?;
+        let ep: Box<dyn cncgw_bus::CanBus> = Box::new(sock);
+        let what = format!("{bus} (SocketCAN, real time)");
+        Ok((CanOpenMaster::new(ep, cfg), Box::new(cncgw_bus::RealClock::new()), bus, what))
+    }
+}
+
+/// `--config` + `--bus` → an open session. On the emulated bus the drives boot first (a real
+/// bus's nodes booted long ago).
+pub fn open_session(m: &MachineArgs) -> Result<Session, String> {
+    let (cfg, text) = load_config(m.config.as_deref())?;
+    let (mut master, mut clock, bus, what) = open_bus(&cfg, &text, m.bus.as_deref())?;
+    let simulated = clock.is_simulated();
+    if simulated && !master.wait_boot(&mut *clock, 5000) {
+        return Err("the emulated drives did not boot within 5 s; check the [axes] of the config".into());
+    }
+    Ok(Session { cfg, master, clock, bus, what, simulated })
 }
 
 #[derive(Subcommand, Debug)]
@@ -99,6 +274,30 @@ pub fn main() -> i32 {
         Command::Run { program, machine, json } => run::run(&program, &machine, json),
         Command::Plan { program, config, format } => plan(&program, config.as_deref(), &format),
         Command::Config(ConfigCmd::Check { file }) => config_check(file.as_deref()),
+        Command::Scan { machine, json } => diag::scan(&machine, json),
+        Command::Sdo(SdoCmd::Read { node, index, sub, r#type, out, machine, json }) => {
+            diag::sdo_read(&machine, node, index, sub, r#type, out.as_deref(), json)
+        }
+        Command::Sdo(SdoCmd::Write { node, index, sub, r#type, value, yes, machine }) => {
+            diag::sdo_write(&machine, node, index, sub, r#type, &value, yes)
+        }
+        Command::Nmt { command, target, machine, json } => diag::nmt(&machine, command, target, json),
+        Command::Drive(DriveCmd::Status { node, machine, json }) => diag::drive_status(&machine, node, json),
+        Command::Completions { shell } => {
+            use clap::CommandFactory;
+            clap_complete::generate(shell, &mut Cli::command(), "cncgw", &mut std::io::stdout());
+            0
+        }
+        Command::Man => {
+            use clap::CommandFactory;
+            match clap_mangen::Man::new(Cli::command()).render(&mut std::io::stdout()) {
+                Ok(()) => 0,
+                Err(e) => {
+                    eprintln!("error: cannot write the manual page: {e}");
+                    1
+                }
+            }
+        }
     }
 }
 

@@ -3,14 +3,11 @@
 use super::{load_config, MachineArgs};
 use crate::canon::Pos;
 use crate::config::{AxisKind, MachineConfig};
-use crate::drives::canopen::CanOpenMaster;
 use crate::drives::DriveBus;
 use crate::interp::Interpreter;
 use crate::motion::cycle::{CycleLoop, RunSummary};
 use crate::motion::{Limits, AX_S, AX_X, AX_Y, AX_Z};
-use cncgw_bus::transport::inproc::InprocBus;
-use cncgw_bus::transport::socketcan::SocketCan;
-use cncgw_bus::{Clock, RealClock};
+use cncgw_bus::Clock;
 use std::path::Path;
 
 /// Exit codes.
@@ -39,46 +36,16 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool) -> i32 {
             return EXIT_PROGRAM_ERROR;
         }
     };
-    let bus = machine.bus.clone().unwrap_or_else(|| cfg.bus.interface.clone());
     let lines = std::fs::read_to_string(program).map(|t| t.lines().count() as u64).unwrap_or(0);
-    if bus == "inproc" {
-        let sim_cfg = match sim_drives::SimConfig::from_machine_toml(&cfg_text) {
-            Ok(c) => c,
-            Err(e) => {
-                eprintln!("error: emulated drives: {e}");
-                return EXIT_SETUP;
-            }
-        };
-        let wire = InprocBus::new();
-        let mut world = sim_drives::SimWorld::new(&wire, sim_cfg);
-        let mut master = CanOpenMaster::new(wire.endpoint(), &cfg);
-        eprintln!("cncgw: {} on the embedded emulated drives (in-process bus, simulated time)", program.display());
-        execute(&mut master, &mut world, &cfg, interp, lines, json)
-    } else if let Some((addr, iface)) = cncgw_bus::transport::socketcand::parse_url(&bus) {
-        let sock = match cncgw_bus::transport::socketcand::Socketcand::connect(&addr, &iface) {
-            Ok(s) => s,
-            Err(e) => {
-                eprintln!("error: {e}");
-                return EXIT_SETUP;
-            }
-        };
-        let mut clock = RealClock::new();
-        let mut master = CanOpenMaster::new(sock, &cfg);
-        eprintln!("cncgw: {} on {bus} (socketcand over TCP, real time)", program.display());
-        execute(&mut master, &mut clock, &cfg, interp, lines, json)
-    } else {
-        let sock = match SocketCan::open(&bus) {
-            Ok(s) => s,
-            Err(e) => {
-                eprintln!("error: {e}");
-                return EXIT_SETUP;
-            }
-        };
-        let mut clock = RealClock::new();
-        let mut master = CanOpenMaster::new(sock, &cfg);
-        eprintln!("cncgw: {} on {bus} (SocketCAN, real time)", program.display());
-        execute(&mut master, &mut clock, &cfg, interp, lines, json)
-    }
+    let (mut master, mut clock, _, what) = match super::open_bus(&cfg, &cfg_text, machine.bus.as_deref()) {
+        Ok(b) => b,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return EXIT_SETUP;
+        }
+    };
+    eprintln!("cncgw: {} on {what}", program.display());
+    execute(&mut master, &mut *clock, &cfg, interp, lines, json)
 }
 
 fn execute(

@@ -201,6 +201,129 @@ impl<B: CanBus> CanOpenMaster<B> {
         self.bus.name()
     }
 
+    // ---- Diagnostics (service tools): no configuration is written, nothing is enabled. ----
+
+    /// Add `node` for diagnostics if the configuration does not name it (SDO and NMT to
+    /// any node id). Its axis name is "-" and it has no scaling.
+    pub fn ensure_node(&mut self, node: u8) {
+        if self.index_of(node).is_some() {
+            return;
+        }
+        let spec = NodeSpec {
+            axis: "-".into(),
+            node,
+            spindle: false,
+            counts_per_unit: 1.0,
+            following_error: 0.0,
+            min: None,
+            max: None,
+        };
+        let timeout = self.boot_timeout_ms / 4;
+        self.nodes.push(Node {
+            sdo: SdoClient::new(node, timeout.max(1)),
+            spec,
+            booted: false,
+            nmt: None,
+            last_hb_ns: 0,
+            status: 0,
+            raw_pos: 0,
+            unwrapped: 0,
+            have_fb: false,
+            fb_ns: 0,
+            target: 0,
+            controlword: 0,
+            enabled: false,
+            reset_attempts: 0,
+            last_emcy: None,
+            info: NodeInfo::default(),
+        });
+    }
+
+    /// Node ids, in configuration order (then those added by `ensure_node`).
+    pub fn node_ids(&self) -> Vec<u8> {
+        self.nodes.iter().map(|n| n.spec.node).collect()
+    }
+
+    /// The configuration's description of `node`, if it is a configured drive.
+    pub fn node_spec(&self, node: u8) -> Option<&NodeSpec> {
+        self.nodes.iter().find(|n| n.spec.node == node && n.spec.axis != "-").map(|n| &n.spec)
+    }
+
+    /// Listen to the bus for `ms` of clock time, noting boot-ups, heartbeats and EMCYs.
+    pub fn listen(&mut self, clock: &mut dyn Clock, ms: u64) {
+        self.settle(clock, ms);
+    }
+
+    /// Listen until every node has sent its boot-up message or `ms` pass. True if all did.
+    pub fn wait_boot(&mut self, clock: &mut dyn Clock, ms: u64) -> bool {
+        let end = clock.now_ns() + ms * 1_000_000;
+        while !self.nodes.iter().all(|n| n.booted) {
+            if clock.now_ns() >= end {
+                return false;
+            }
+            self.settle(clock, 1);
+        }
+        true
+    }
+
+    /// The NMT state `node` last reported (heartbeat; `BootUp` = its boot-up message, after
+    /// which it is pre-operational). None if nothing was heard since the last NMT command.
+    pub fn nmt_state(&self, node: u8) -> Option<NmtState> {
+        self.index_of(node).and_then(|i| self.nodes[i].nmt)
+    }
+
+    /// Whether a boot-up message from `node` was heard.
+    pub fn booted(&self, node: u8) -> bool {
+        self.index_of(node).is_some_and(|i| self.nodes[i].booted)
+    }
+
+    /// The last EMCY heard from `node` (None also after an "error reset" EMCY).
+    pub fn last_emcy(&self, node: u8) -> Option<Emcy> {
+        self.index_of(node).and_then(|i| self.nodes[i].last_emcy)
+    }
+
+    /// Send an NMT command to `node` (0 = every node). The states heard before it are
+    /// forgotten; after a reset, the boot-up is awaited afresh (`wait_boot`).
+    pub fn nmt_command(&mut self, node: u8, cmd: NmtCommand) -> Result<(), Alarm> {
+        self.send(&cmd.frame(node))?;
+        let reset = matches!(cmd, NmtCommand::ResetNode | NmtCommand::ResetCommunication);
+        for n in self.nodes.iter_mut().filter(|n| node == 0 || n.spec.node == node) {
+            n.nmt = None;
+            if reset {
+                n.booted = false;
+            }
+        }
+        Ok(())
+    }
+
+    /// One SDO upload with the protocol error kept (abort code, timeout) for service tools.
+    pub fn sdo_upload(&mut self, clock: &mut dyn Clock, node: u8, index: u16, sub: u8) -> Result<Vec<u8>, SdoError> {
+        let i = self.index_of(node).ok_or(SdoError::Protocol("node not known to the master (call ensure_node)"))?;
+        self.sdo(clock, i, Sdo::Up(index, sub))
+    }
+
+    /// One SDO download with the protocol error kept.
+    pub fn sdo_download(&mut self, clock: &mut dyn Clock, node: u8, index: u16, sub: u8, data: &[u8]) -> Result<(), SdoError> {
+        let i = self.index_of(node).ok_or(SdoError::Protocol("node not known to the master (call ensure_node)"))?;
+        self.sdo(clock, i, Sdo::Down(index, sub, data)).map(|_| ())
+    }
+
+    /// Read the identity (0x1000, 0x1018:1…4, 0x1008) of `node` without checking or
+    /// configuring anything. Absent optional entries stay 0 / empty.
+    pub fn read_identity(&mut self, clock: &mut dyn Clock, node: u8) -> Result<NodeInfo, SdoError> {
+        let i = self.index_of(node).ok_or(SdoError::Protocol("node not known to the master (call ensure_node)"))?;
+        let device_type = self.read_u32(clock, i, od::DEVICE_TYPE, 0)?;
+        let mut info = NodeInfo { node, device_type, ..NodeInfo::default() };
+        info.vendor = self.read_u32(clock, i, od::IDENTITY, 1).unwrap_or(0);
+        info.product = self.read_u32(clock, i, od::IDENTITY, 2).unwrap_or(0);
+        info.revision = self.read_u32(clock, i, od::IDENTITY, 3).unwrap_or(0);
+        info.serial = self.read_u32(clock, i, od::IDENTITY, 4).unwrap_or(0);
+        if let Ok(name) = self.sdo(clock, i, Sdo::Up(od::DEVICE_NAME, 0)) {
+            info.name = String::from_utf8_lossy(&name).trim_end_matches('\0').trim().to_string();
+        }
+        Ok(info)
+    }
+
     fn node_alarm(&self, i: usize, number: u32, msg: impl std::fmt::Display) -> Alarm {
         let n = &self.nodes[i];
         Alarm::new(number, format!("node {} (axis {}): {msg}", n.spec.node, n.spec.axis))

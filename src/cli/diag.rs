@@ -1,0 +1,670 @@
+//! Service commands: `scan`, `sdo read|write`, `nmt`, `drive status`. Read-only unless the
+//! command itself is a write; nothing here enables a drive.
+
+use super::{open_session, MachineArgs, Session};
+use crate::drives::canopen::sdo_client::SdoError;
+use cncgw_bus::canopen::emcy::error_text;
+use cncgw_bus::canopen::nmt::{NmtCommand, NmtState};
+use cncgw_bus::canopen::od;
+use cncgw_bus::cia402::{mode, State};
+use serde_json::json;
+
+/// Exit codes of the service commands.
+pub const EXIT_OK: i32 = 0;
+/// A node aborted the transfer, did not answer, or is in a state that needs attention.
+pub const EXIT_NODE: i32 = 1;
+/// The command line cannot be carried out as written (value out of range, wrong type…).
+pub const EXIT_USAGE: i32 = 2;
+/// Configuration or bus could not be opened.
+pub const EXIT_SETUP: i32 = 4;
+
+/// Parse a number written in decimal or as 0x… hex (an optional leading '-' for decimal).
+pub fn parse_int(s: &str) -> Result<i64, String> {
+    let t = s.trim().replace('_', "");
+    let (neg, body) = match t.strip_prefix('-') {
+        Some(b) => (true, b.to_string()),
+        None => (false, t.clone()),
+    };
+    let v = if let Some(h) = body.strip_prefix("0x").or_else(|| body.strip_prefix("0X")) {
+        i64::from_str_radix(h, 16)
+    } else {
+        body.parse::<i64>()
+    }
+    .map_err(|_| format!("`{s}` is not a number (write decimal, or hex as 0x…)"))?;
+    Ok(if neg { -v } else { v })
+}
+
+fn parse_ranged(s: &str, what: &str, lo: i64, hi: i64) -> Result<i64, String> {
+    let v = parse_int(s)?;
+    if v < lo || v > hi {
+        return Err(format!("{what} {s} is out of range {lo}…{hi} (0x{hi:X})"));
+    }
+    Ok(v)
+}
+
+pub fn parse_node(s: &str) -> Result<u8, String> {
+    parse_ranged(s, "node id", 1, 127).map(|v| v as u8)
+}
+pub fn parse_index(s: &str) -> Result<u16, String> {
+    parse_ranged(s, "index", 0, 0xFFFF).map(|v| v as u16)
+}
+pub fn parse_sub(s: &str) -> Result<u8, String> {
+    parse_ranged(s, "sub-index", 0, 0xFF).map(|v| v as u8)
+}
+
+/// The CANopen data types the `sdo` commands understand.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum SdoType {
+    U8,
+    U16,
+    U32,
+    I8,
+    I16,
+    I32,
+    F32,
+    /// VISIBLE_STRING
+    Str,
+    /// DOMAIN: raw bytes, to or from a file
+    Domain,
+}
+
+impl SdoType {
+    fn size(self) -> Option<usize> {
+        Some(match self {
+            SdoType::U8 | SdoType::I8 => 1,
+            SdoType::U16 | SdoType::I16 => 2,
+            SdoType::U32 | SdoType::I32 | SdoType::F32 => 4,
+            SdoType::Str | SdoType::Domain => return None,
+        })
+    }
+    fn name(self) -> &'static str {
+        match self {
+            SdoType::U8 => "u8",
+            SdoType::U16 => "u16",
+            SdoType::U32 => "u32",
+            SdoType::I8 => "i8",
+            SdoType::I16 => "i16",
+            SdoType::I32 => "i32",
+            SdoType::F32 => "f32",
+            SdoType::Str => "str",
+            SdoType::Domain => "domain",
+        }
+    }
+}
+
+/// Encode `value` as `ty` (little-endian). Domain values are file names.
+pub fn encode_value(ty: SdoType, value: &str) -> Result<Vec<u8>, String> {
+    let int = |lo: i64, hi: i64| -> Result<i64, String> {
+        let v = parse_int(value)?;
+        if v < lo || v > hi {
+            Err(format!("{value} does not fit in {}: range {lo}…{hi}", ty.name()))
+        } else {
+            Ok(v)
+        }
+    };
+    Ok(match ty {
+        SdoType::U8 => vec![int(0, u8::MAX as i64)? as u8],
+        SdoType::U16 => (int(0, u16::MAX as i64)? as u16).to_le_bytes().to_vec(),
+        SdoType::U32 => (int(0, u32::MAX as i64)? as u32).to_le_bytes().to_vec(),
+        SdoType::I8 => vec![int(i8::MIN as i64, i8::MAX as i64)? as i8 as u8],
+        SdoType::I16 => (int(i16::MIN as i64, i16::MAX as i64)? as i16).to_le_bytes().to_vec(),
+        SdoType::I32 => (int(i32::MIN as i64, i32::MAX as i64)? as i32).to_le_bytes().to_vec(),
+        SdoType::F32 => {
+            let f: f32 = value.trim().parse().map_err(|_| format!("`{value}` is not a number (f32)"))?;
+            if !f.is_finite() {
+                return Err(format!("`{value}` is not a finite number"));
+            }
+            f.to_le_bytes().to_vec()
+        }
+        SdoType::Str => value.as_bytes().to_vec(),
+        SdoType::Domain => std::fs::read(value).map_err(|e| format!("{value}: cannot read the domain file: {e}"))?,
+    })
+}
+
+/// Decode `data` as `ty`: (text, JSON value). Err when the length does not match the type.
+pub fn decode_value(ty: SdoType, data: &[u8]) -> Result<(String, serde_json::Value), String> {
+    if let Some(n) = ty.size() {
+        if data.len() != n {
+            return Err(format!(
+                "the node answered {} byte(s) ({}), but {} is {n} byte(s); try another --type, or none to see the raw bytes",
+                data.len(),
+                hex(data),
+                ty.name()
+            ));
+        }
+    }
+    let le = |n: usize| -> u64 {
+        let mut b = [0u8; 8];
+        b[..n].copy_from_slice(&data[..n]);
+        u64::from_le_bytes(b)
+    };
+    Ok(match ty {
+        SdoType::U8 | SdoType::U16 | SdoType::U32 => {
+            let n = data.len();
+            let v = le(n);
+            (format!("{v} (0x{v:0w$X})", w = n * 2), json!(v))
+        }
+        SdoType::I8 | SdoType::I16 | SdoType::I32 => {
+            let n = data.len();
+            let u = le(n);
+            let shift = 64 - 8 * n as u32;
+            let v = ((u << shift) as i64) >> shift;
+            (format!("{v} (0x{u:0w$X})", w = n * 2), json!(v))
+        }
+        SdoType::F32 => {
+            let v = f32::from_le_bytes([data[0], data[1], data[2], data[3]]);
+            (format!("{v}"), json!(v))
+        }
+        SdoType::Str => {
+            let s = String::from_utf8_lossy(data).trim_end_matches('\0').to_string();
+            (format!("{s:?}"), json!(s))
+        }
+        SdoType::Domain => (format!("{} byte(s): {}", data.len(), hex(data)), json!(hex(data))),
+    })
+}
+
+fn hex(data: &[u8]) -> String {
+    data.iter().map(|b| format!("{b:02X}")).collect::<Vec<_>>().join(" ")
+}
+
+/// Without `--type`: numbers for 1, 2 and 4 bytes, text when it is printable, else bytes.
+fn guess(data: &[u8]) -> (String, serde_json::Value, &'static str) {
+    let ty = match data.len() {
+        1 => Some(SdoType::U8),
+        2 => Some(SdoType::U16),
+        4 => Some(SdoType::U32),
+        _ => None,
+    };
+    if let Some(ty) = ty {
+        if let Ok((t, j)) = decode_value(ty, data) {
+            return (t, j, ty.name());
+        }
+    }
+    if !data.is_empty() && data.iter().all(|&b| (0x20..0x7F).contains(&b) || b == 0) {
+        if let Ok((t, j)) = decode_value(SdoType::Str, data) {
+            return (t, j, "str");
+        }
+    }
+    let (t, j) = decode_value(SdoType::Domain, data).unwrap_or_else(|_| (hex(data), json!(hex(data))));
+    (t, j, "domain")
+}
+
+/// An SDO failure in words, with what to do next.
+pub fn sdo_error_text(e: &SdoError) -> String {
+    match e {
+        SdoError::Abort { code } => format!(
+            "SDO abort 0x{code:08X} {}",
+            cncgw_bus::canopen::sdo::abort_text(*code)
+        ),
+        SdoError::Timeout { .. } => format!("{e}; `cncgw scan` lists the nodes that answer"),
+        SdoError::Protocol(_) => e.to_string(),
+    }
+}
+
+fn open(machine: &MachineArgs) -> Result<Session, i32> {
+    open_session(machine).map_err(|e| {
+        eprintln!("error: {e}");
+        EXIT_SETUP
+    })
+}
+
+fn nmt_name(st: Option<NmtState>) -> &'static str {
+    match st {
+        // A boot-up message means the node is now pre-operational (CiA 301).
+        Some(NmtState::BootUp) => "pre-operational",
+        Some(s) => s.name(),
+        None => "unknown",
+    }
+}
+
+// ---------------------------------------------------------------- scan
+
+pub fn scan(machine: &MachineArgs, json_out: bool) -> i32 {
+    let mut s = match open(machine) {
+        Ok(s) => s,
+        Err(c) => return c,
+    };
+    let mut nodes = s.master.node_ids();
+    nodes.sort_unstable();
+    let mut rows = Vec::new();
+    let mut failed = 0;
+    for &node in &nodes {
+        let axis = s.master.node_spec(node).map(|n| n.axis.clone()).unwrap_or_else(|| "-".into());
+        match s.master.read_identity(&mut *s.clock, node) {
+            Ok(info) => {
+                let hb = s.master.sdo_upload(&mut *s.clock, node, od::PRODUCER_HEARTBEAT, 0).ok().and_then(|d| {
+                    (d.len() >= 2).then(|| u16::from_le_bytes([d[0], d[1]]))
+                });
+                rows.push((node, axis, Some(info), hb, None::<String>));
+            }
+            Err(e) => {
+                failed += 1;
+                rows.push((node, axis, None, None, Some(sdo_error_text(&e))));
+            }
+        }
+    }
+    // A node whose state is still unknown but that produces a heartbeat: wait for one.
+    let longest = rows
+        .iter()
+        .filter(|r| s.master.nmt_state(r.0).is_none())
+        .filter_map(|r| r.3)
+        .max()
+        .unwrap_or(0);
+    if longest > 0 {
+        s.master.listen(&mut *s.clock, (longest as u64 * 3 / 2).min(5000));
+    }
+    if json_out {
+        let arr: Vec<_> = rows
+            .iter()
+            .map(|(node, axis, info, hb, err)| {
+                let st = s.master.nmt_state(*node);
+                json!({
+                    "node": node,
+                    "axis": axis,
+                    "vendor": info.as_ref().map(|i| i.vendor),
+                    "product": info.as_ref().map(|i| i.product),
+                    "revision": info.as_ref().map(|i| i.revision),
+                    "serial": info.as_ref().map(|i| i.serial),
+                    "device_type": info.as_ref().map(|i| i.device_type),
+                    "name": info.as_ref().map(|i| i.name.clone()),
+                    "nmt_state": st.map(|_| nmt_name(st)),
+                    "nmt_heard": st.map(|s| if s == NmtState::BootUp { "boot-up" } else { "heartbeat" }),
+                    "heartbeat_ms": hb,
+                    "error": err,
+                })
+            })
+            .collect();
+        println!("{}", json!({ "bus": s.bus, "simulated": s.simulated, "nodes": arr }));
+    } else {
+        println!("bus {} — {} node(s) in the configuration", s.what, nodes.len());
+        println!(
+            "{:>4} {:<5} {:<10} {:<10} {:<10} {:<10} {:<11} {:<20} {:<16} {}",
+            "node", "axis", "vendor", "product", "revision", "serial", "device type", "name", "NMT state", "heartbeat"
+        );
+        for (node, axis, info, hb, err) in &rows {
+            match info {
+                Some(i) => {
+                    let st = s.master.nmt_state(*node);
+                    let hb = match hb {
+                        Some(0) => "off".to_string(),
+                        Some(ms) => format!("{ms} ms"),
+                        None => "-".to_string(),
+                    };
+                    println!(
+                        "{node:>4} {axis:<5} 0x{:08X} 0x{:08X} 0x{:08X} 0x{:08X} 0x{:08X}  {:<20} {:<16} {hb}",
+                        i.vendor, i.product, i.revision, i.serial, i.device_type, i.name, nmt_name(st)
+                    );
+                }
+                None => println!("{node:>4} {axis:<5} no answer: {}", err.as_deref().unwrap_or("")),
+            }
+        }
+        if failed > 0 {
+            eprintln!("{failed} node(s) did not answer: check power, wiring, bitrate and node ids (`--bus`, `--config`)");
+        }
+    }
+    if failed > 0 {
+        EXIT_NODE
+    } else {
+        EXIT_OK
+    }
+}
+
+// ---------------------------------------------------------------- sdo
+
+pub fn sdo_read(
+    machine: &MachineArgs,
+    node: u8,
+    index: u16,
+    sub: u8,
+    ty: Option<SdoType>,
+    out: Option<&std::path::Path>,
+    json_out: bool,
+) -> i32 {
+    let mut s = match open(machine) {
+        Ok(s) => s,
+        Err(c) => return c,
+    };
+    s.master.ensure_node(node);
+    let data = match s.master.sdo_upload(&mut *s.clock, node, index, sub) {
+        Ok(d) => d,
+        Err(e) => {
+            eprintln!("error: node {node} 0x{index:04X}:{sub:02X}: {}", sdo_error_text(&e));
+            return EXIT_NODE;
+        }
+    };
+    if let Some(path) = out {
+        if let Err(e) = std::fs::write(path, &data) {
+            eprintln!("error: {}: cannot write: {e}", path.display());
+            return EXIT_SETUP;
+        }
+    }
+    let (text, val, tname) = match ty {
+        Some(t) => match decode_value(t, &data) {
+            Ok((a, b)) => (a, b, t.name()),
+            Err(e) => {
+                eprintln!("error: node {node} 0x{index:04X}:{sub:02X}: {e}");
+                return EXIT_USAGE;
+            }
+        },
+        None => guess(&data),
+    };
+    if json_out {
+        println!(
+            "{}",
+            json!({"node": node, "index": format!("0x{index:04X}"), "sub": sub, "type": tname, "value": val, "raw": hex(&data)})
+        );
+    } else {
+        let saved = out.map(|p| format!(" → {}", p.display())).unwrap_or_default();
+        println!("node {node} 0x{index:04X}:{sub:02X} = {text} [{tname}]{saved}");
+    }
+    EXIT_OK
+}
+
+/// Objects whose write can set a motor in motion: they need `--yes` on a real bus.
+fn moves_iron(index: u16) -> bool {
+    matches!(index, 0x6040 | 0x6060 | 0x607A | 0x60FF | 0x6071 | 0x60B0..=0x60B2 | 0x6081 | 0x6098..=0x609A)
+}
+
+#[allow(clippy::too_many_arguments)]
+pub fn sdo_write(machine: &MachineArgs, node: u8, index: u16, sub: u8, ty: SdoType, value: &str, yes: bool) -> i32 {
+    let data = match encode_value(ty, value) {
+        Ok(d) => d,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return EXIT_USAGE;
+        }
+    };
+    // Refuse before touching the bus: the effective bus is --bus, else the config's.
+    let bus = match &machine.bus {
+        Some(b) => b.clone(),
+        None => match super::load_config(machine.config.as_deref()) {
+            Ok((c, _)) => c.bus.interface,
+            Err(e) => {
+                eprintln!("error: {e}");
+                return EXIT_SETUP;
+            }
+        },
+    };
+    if moves_iron(index) && bus != "inproc" && !yes {
+        eprintln!(
+            "error: writing 0x{index:04X} can set a motor in motion on {bus}; make sure the axis is free to move, then repeat with --yes"
+        );
+        return EXIT_USAGE;
+    }
+    let mut s = match open(machine) {
+        Ok(s) => s,
+        Err(c) => return c,
+    };
+    s.master.ensure_node(node);
+    match s.master.sdo_download(&mut *s.clock, node, index, sub, &data) {
+        Ok(()) => {
+            let shown = if ty == SdoType::Domain { format!("{} byte(s) from {value}", data.len()) } else { value.to_string() };
+            println!("node {node} 0x{index:04X}:{sub:02X} ← {shown} [{}]: ok", ty.name());
+            EXIT_OK
+        }
+        Err(e) => {
+            eprintln!("error: node {node} 0x{index:04X}:{sub:02X}: {}", sdo_error_text(&e));
+            EXIT_NODE
+        }
+    }
+}
+
+// ---------------------------------------------------------------- nmt
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum NmtArg {
+    /// Start remote node: to operational (PDOs run).
+    Start,
+    /// Stop remote node: to stopped (only NMT and heartbeat).
+    Stop,
+    /// Enter pre-operational (SDO, no PDOs).
+    Preop,
+    /// Reset node (application and communication parameters).
+    Reset,
+    /// Reset communication parameters only.
+    ResetComm,
+}
+
+impl NmtArg {
+    fn command(self) -> NmtCommand {
+        match self {
+            NmtArg::Start => NmtCommand::Start,
+            NmtArg::Stop => NmtCommand::Stop,
+            NmtArg::Preop => NmtCommand::EnterPreOperational,
+            NmtArg::Reset => NmtCommand::ResetNode,
+            NmtArg::ResetComm => NmtCommand::ResetCommunication,
+        }
+    }
+    fn expected(self) -> NmtState {
+        match self {
+            NmtArg::Start => NmtState::Operational,
+            NmtArg::Stop => NmtState::Stopped,
+            _ => NmtState::PreOperational,
+        }
+    }
+}
+
+/// `NODE` or `all` (0 on the wire).
+pub fn parse_target(s: &str) -> Result<u8, String> {
+    if s.eq_ignore_ascii_case("all") {
+        Ok(0)
+    } else {
+        parse_node(s).map_err(|e| format!("{e}, or `all`"))
+    }
+}
+
+pub fn nmt(machine: &MachineArgs, cmd: NmtArg, target: u8, json_out: bool) -> i32 {
+    let mut s = match open(machine) {
+        Ok(s) => s,
+        Err(c) => return c,
+    };
+    if target != 0 {
+        s.master.ensure_node(target);
+    }
+    let mut nodes: Vec<u8> = if target == 0 { s.master.node_ids() } else { vec![target] };
+    nodes.sort_unstable();
+    if let Err(a) = s.master.nmt_command(target, cmd.command()) {
+        eprintln!("{a}");
+        return EXIT_SETUP;
+    }
+    let reset = matches!(cmd, NmtArg::Reset | NmtArg::ResetComm);
+    // A reset is confirmed by the boot-up message; other commands by the next heartbeat.
+    let window_ms: u64 = if reset { 3000 } else { 1000 };
+    let end = s.clock.now_ns() + window_ms * 1_000_000;
+    while s.clock.now_ns() < end {
+        s.master.listen(&mut *s.clock, 5);
+        let done = nodes.iter().all(|&n| if reset { s.master.booted(n) } else { s.master.nmt_state(n).is_some() });
+        if done {
+            break;
+        }
+    }
+    let mut bad = 0;
+    let mut out = Vec::new();
+    for &n in &nodes {
+        let st = s.master.nmt_state(n);
+        let confirmed = match st {
+            Some(NmtState::BootUp) => cmd.expected() == NmtState::PreOperational,
+            Some(x) => x == cmd.expected(),
+            None => false,
+        };
+        let note = if confirmed {
+            format!("now {}", nmt_name(st))
+        } else if st.is_some() {
+            bad += 1;
+            format!("reports {}, expected {}: check the node's NMT handling", nmt_name(st), cmd.expected().name())
+        } else if reset {
+            bad += 1;
+            format!("no boot-up within {window_ms} ms: check power and the node id")
+        } else {
+            "sent; not confirmed: no heartbeat heard (0x1017 = 0?); `cncgw scan` shows the state".to_string()
+        };
+        out.push((n, st, confirmed, note));
+    }
+    if json_out {
+        let arr: Vec<_> = out
+            .iter()
+            .map(|(n, st, c, note)| json!({"node": n, "nmt_state": st.map(|_| nmt_name(*st)), "confirmed": c, "note": note}))
+            .collect();
+        println!("{}", json!({"command": format!("{cmd:?}").to_lowercase(), "target": target, "nodes": arr}));
+    } else {
+        let who = if target == 0 { "all nodes".to_string() } else { format!("node {target}") };
+        println!("NMT {} → {who} on {}", cmd_name(cmd), s.what);
+        for (n, _, _, note) in &out {
+            println!("  node {n}: {note}");
+        }
+        if s.simulated {
+            println!("  (embedded emulated drives: they start fresh with every command)");
+        }
+    }
+    if bad > 0 {
+        EXIT_NODE
+    } else {
+        EXIT_OK
+    }
+}
+
+fn cmd_name(c: NmtArg) -> &'static str {
+    match c {
+        NmtArg::Start => "start",
+        NmtArg::Stop => "stop",
+        NmtArg::Preop => "enter pre-operational",
+        NmtArg::Reset => "reset node",
+        NmtArg::ResetComm => "reset communication",
+    }
+}
+
+// ---------------------------------------------------------------- drive status
+
+/// Statusword bit names (CiA 402-2 Table 29); bits 12/13 by mode of operation.
+pub fn statusword_bits(sw: u16, mode_code: i8) -> Vec<(u8, String, bool)> {
+    let oms12 = match mode_code {
+        mode::CYCLIC_SYNC_POSITION | mode::CYCLIC_SYNC_VELOCITY | mode::CYCLIC_SYNC_TORQUE => "drive follows the command value",
+        mode::PROFILE_POSITION => "set-point acknowledge",
+        mode::PROFILE_VELOCITY => "speed is zero",
+        mode::HOMING => "homing attained",
+        _ => "operation mode specific",
+    };
+    let oms13 = match mode_code {
+        mode::CYCLIC_SYNC_POSITION | mode::PROFILE_POSITION => "following error",
+        mode::PROFILE_VELOCITY => "max slippage error",
+        mode::HOMING => "homing error",
+        _ => "operation mode specific",
+    };
+    let names: [&str; 16] = [
+        "ready to switch on",
+        "switched on",
+        "operation enabled",
+        "fault",
+        "voltage enabled",
+        "quick stop (0 = quick stop active)",
+        "switch on disabled",
+        "warning",
+        "manufacturer specific",
+        "remote",
+        "target reached",
+        "internal limit active",
+        oms12,
+        oms13,
+        "manufacturer specific",
+        "manufacturer specific",
+    ];
+    names.iter().enumerate().map(|(b, n)| (b as u8, n.to_string(), sw & (1 << b) != 0)).collect()
+}
+
+pub fn drive_status(machine: &MachineArgs, node: u8, json_out: bool) -> i32 {
+    let mut s = match open(machine) {
+        Ok(s) => s,
+        Err(c) => return c,
+    };
+    s.master.ensure_node(node);
+    let spec = s.master.node_spec(node).cloned();
+    let mut read = |ix: u16, n: usize| -> Result<i64, SdoError> {
+        let d = s.master.sdo_upload(&mut *s.clock, node, ix, 0)?;
+        if d.len() < n {
+            return Err(SdoError::Protocol("answer shorter than the object's type"));
+        }
+        let mut b = [0u8; 8];
+        b[..n].copy_from_slice(&d[..n]);
+        let shift = 64 - 8 * n as u32;
+        Ok(((u64::from_le_bytes(b) << shift) as i64) >> shift) // sign-extended
+    };
+    let sw = match read(od::STATUSWORD, 2) {
+        Ok(v) => v as u16,
+        Err(e) => {
+            eprintln!("error: node {node}: reading the statusword 0x6041 failed: {}", sdo_error_text(&e));
+            eprintln!("is it a CiA 402 drive? `cncgw scan` shows what answers");
+            return EXIT_NODE;
+        }
+    };
+    // The rest is optional on some drives: absent objects show as "-".
+    let mode_code = read(od::MODES_DISPLAY, 1).ok().map(|v| v as i8);
+    let pos = read(od::POSITION_ACTUAL, 4).ok();
+    let vel = read(od::VELOCITY_ACTUAL, 4).ok();
+    let ferr = read(od::FOLLOWING_ERROR_ACTUAL, 4).ok();
+    let err = read(od::ERROR_CODE, 2).ok().map(|v| v as u16);
+    let emcy = s.master.last_emcy(node);
+    let state = State::from_statusword(sw);
+    let bits = statusword_bits(sw, mode_code.unwrap_or(0));
+    let (cpu, unit) = match &spec {
+        Some(sp) => (Some(sp.counts_per_unit), if sp.spindle { "deg" } else { "mm" }),
+        None => (None, ""),
+    };
+    let units = |c: Option<i64>| c.and_then(|c| cpu.map(|k| c as f64 / k));
+    if json_out {
+        let v = json!({
+            "node": node,
+            "axis": spec.as_ref().map(|s| s.axis.clone()),
+            "statusword": format!("0x{sw:04X}"),
+            "state": state.name(),
+            "bits": bits.iter().map(|(b, n, set)| json!({"bit": b, "name": n, "set": set})).collect::<Vec<_>>(),
+            "mode": mode_code,
+            "mode_name": mode_code.map(mode::name),
+            "position_counts": pos,
+            "position": units(pos),
+            "velocity_counts_per_s": vel,
+            "velocity_per_s": units(vel),
+            "following_error_counts": ferr,
+            "following_error": units(ferr),
+            "unit": if unit.is_empty() { None } else { Some(unit) },
+            "error_code": err.map(|e| format!("0x{e:04X}")),
+            "error_text": err.map(error_text),
+            "last_emcy": emcy.map(|e| json!({"code": format!("0x{:04X}", e.code), "text": error_text(e.code), "register": e.register})),
+        });
+        println!("{v}");
+    } else {
+        let axis = spec.as_ref().map(|s| format!(" (axis {})", s.axis)).unwrap_or_default();
+        println!("node {node}{axis}: {}", state.name());
+        println!("statusword 0x6041 = 0x{sw:04X}");
+        for (b, n, set) in &bits {
+            println!("  bit {b:>2} {} {n}", if *set { "1" } else { "0" });
+        }
+        let show = |c: Option<i64>, what: &str| match (c, units(c)) {
+            (Some(c), Some(u)) => format!("{c} {what} = {u:.4} {unit}"),
+            (Some(c), None) => format!("{c} {what}"),
+            (None, _) => "- (not readable)".to_string(),
+        };
+        match mode_code {
+            Some(m) => println!("mode 0x6061 = {m} ({})", mode::name(m)),
+            None => println!("mode 0x6061 = - (not readable)"),
+        }
+        println!("position 0x6064 = {}", show(pos, "counts"));
+        println!("velocity 0x606C = {}", show(vel, "counts/s").replace(&format!(" {unit}"), &format!(" {unit}/s")));
+        println!("following error 0x60F4 = {}", show(ferr, "counts"));
+        match err {
+            Some(e) => println!("error code 0x603F = 0x{e:04X} {}", error_text(e)),
+            None => println!("error code 0x603F = - (not readable)"),
+        }
+        match emcy {
+            Some(e) => println!("last EMCY: 0x{:04X} {} (error register 0x{:02X})", e.code, error_text(e.code), e.register),
+            None => println!("last EMCY: none heard"),
+        }
+        if matches!(state, State::Fault | State::FaultReactionActive) {
+            println!("the drive is in fault: clear the cause shown above, then reset the fault");
+        }
+    }
+    if matches!(state, State::Fault | State::FaultReactionActive) {
+        EXIT_NODE
+    } else {
+        EXIT_OK
+    }
+}
