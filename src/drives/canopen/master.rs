@@ -86,6 +86,29 @@ struct Node {
     info: NodeInfo,
 }
 
+impl Node {
+    fn new(spec: NodeSpec, sdo_timeout_ms: u32) -> Self {
+        Node {
+            sdo: SdoClient::new(spec.node, sdo_timeout_ms),
+            spec,
+            booted: false,
+            nmt: None,
+            last_hb_ns: 0,
+            status: 0,
+            raw_pos: 0,
+            unwrapped: 0,
+            have_fb: false,
+            fb_ns: 0,
+            target: 0,
+            controlword: 0,
+            enabled: false,
+            reset_attempts: 0,
+            last_emcy: None,
+            info: NodeInfo::default(),
+        }
+    }
+}
+
 pub struct CanOpenMaster<B: CanBus> {
     bus: B,
     nodes: Vec<Node>,
@@ -115,24 +138,7 @@ impl<B: CanBus> CanOpenMaster<B> {
         let timeout = cfg.bus.sdo_timeout_ms;
         let nodes = NodeSpec::from_config(cfg)
             .into_iter()
-            .map(|spec| Node {
-                sdo: SdoClient::new(spec.node, timeout),
-                spec,
-                booted: false,
-                nmt: None,
-                last_hb_ns: 0,
-                status: 0,
-                raw_pos: 0,
-                unwrapped: 0,
-                have_fb: false,
-                fb_ns: 0,
-                target: 0,
-                controlword: 0,
-                enabled: false,
-                reset_attempts: 0,
-                last_emcy: None,
-                info: NodeInfo::default(),
-            })
+            .map(|spec| Node::new(spec, timeout))
             .collect();
         CanOpenMaster {
             bus,
@@ -219,24 +225,7 @@ impl<B: CanBus> CanOpenMaster<B> {
             max: None,
         };
         let timeout = self.boot_timeout_ms / 4;
-        self.nodes.push(Node {
-            sdo: SdoClient::new(node, timeout.max(1)),
-            spec,
-            booted: false,
-            nmt: None,
-            last_hb_ns: 0,
-            status: 0,
-            raw_pos: 0,
-            unwrapped: 0,
-            have_fb: false,
-            fb_ns: 0,
-            target: 0,
-            controlword: 0,
-            enabled: false,
-            reset_attempts: 0,
-            last_emcy: None,
-            info: NodeInfo::default(),
-        });
+        self.nodes.push(Node::new(spec, timeout.max(1)));
     }
 
     /// Node ids, in configuration order (then those added by `ensure_node`).
