@@ -1454,24 +1454,6 @@ impl Interpreter {
             Plane::Xy => (p.x, p.y),
             Plane::Yz => (p.y, p.z),
         };
-        let from_uv = |base: Pos, u: f64, v: f64| {
-            let mut p = base;
-            match plane {
-                Plane::Zx => {
-                    p.z = u;
-                    p.x = v
-                }
-                Plane::Xy => {
-                    p.x = u;
-                    p.y = v
-                }
-                Plane::Yz => {
-                    p.y = u;
-                    p.z = v
-                }
-            }
-            p
-        };
         let (su, sv) = uv(self.pos);
         let (eu, ev) = uv(end);
         let tol = self.arc_tol;
@@ -1497,7 +1479,7 @@ impl Interpreter {
             let (nu, nv) = (-dv / chord, du / chord);
             let side = if cw { -1.0 } else { 1.0 } * if r < 0.0 { -1.0 } else { 1.0 };
             let (cu, cv) = ((su + eu) / 2.0 + side * h * nu, (sv + ev) / 2.0 + side * h * nv);
-            from_uv(self.pos, cu, cv)
+            from_uv(plane, self.pos, (cu, cv))
         } else if d.has(ci) || d.has(cj) {
             let oi = d.get(ci).map(|v| self.len(v)).unwrap_or(0.0);
             let oj = d.get(cj).map(|v| self.len(v)).unwrap_or(0.0);
@@ -1520,7 +1502,7 @@ impl Interpreter {
                     ),
                 ));
             }
-            from_uv(self.pos, cu, cv)
+            from_uv(plane, self.pos, (cu, cv))
         } else if self.arc_missing_alarm {
             return Err((22, None, "circular interpolation needs R or I/K (the centre)".into()));
         } else {
