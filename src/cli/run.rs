@@ -37,21 +37,61 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool) -> i32 {
         }
     };
     let lines = std::fs::read_to_string(program).map(|t| t.lines().count() as u64).unwrap_or(0);
-    let (mut master, mut clock, _, what) = match super::open_bus(&cfg, &cfg_text, machine.bus.as_deref()) {
-        Ok(b) => b,
-        Err(e) => {
-            eprintln!("error: {e}");
+    let mut modbus = crate::drives::modbus::ModbusDrives::new(&cfg);
+    let bus_name = machine.bus.clone().unwrap_or_else(|| cfg.bus.interface.clone());
+    // The CANopen bus is opened only if an axis is on it.
+    let mut can = None;
+    let mut clock: Box<dyn Clock> = Box::new(cncgw_bus::RealClock::new());
+    let mut what = Vec::new();
+    if cfg.has_canopen() {
+        if !modbus.is_empty() && bus_name == "inproc" {
+            eprintln!(
+                "error: the embedded emulated bus (inproc) is CANopen only and runs in simulated time; a machine with Modbus axes runs in real time: give the CANopen axes a real bus (--bus vcan0, --bus socketcand://HOST:PORT/can0) and start the Modbus drives (e.g. sim-drives --modbus-tcp ADDR)"
+            );
+            return EXIT_SETUP;
+        }
+        match super::open_bus(&cfg, &cfg_text, machine.bus.as_deref()) {
+            Ok((m, c, _, w)) => {
+                can = Some(m);
+                clock = c;
+                what.push(w);
+            }
+            Err(e) => {
+                eprintln!("error: {e}");
+                return EXIT_SETUP;
+            }
+        }
+    }
+    for (name, l) in &cfg.modbus {
+        what.push(format!("Modbus link {name} ({})", match l.transport {
+            crate::config::LinkTransport::Tcp => format!("TCP {}", l.address.as_deref().unwrap_or("")),
+            crate::config::LinkTransport::Rtu => format!("RTU {} {} baud", l.device.as_deref().unwrap_or(""), l.baud),
+        }));
+    }
+    let mut parts: Vec<&mut dyn DriveBus> = Vec::new();
+    if let Some(m) = can.as_mut() {
+        parts.push(m);
+    }
+    if !modbus.is_empty() {
+        parts.push(&mut modbus);
+    }
+    let order: Vec<String> = cfg.axes.keys().cloned().collect();
+    let mut drives = match crate::drives::multi::MultiBus::new(parts, &order) {
+        Ok(d) => d,
+        Err(a) => {
+            eprintln!("{a}");
             return EXIT_SETUP;
         }
     };
-    eprintln!("cncgw: {} on {what}", program.display());
-    execute(&mut master, &mut *clock, &cfg, interp, lines, json)
+    eprintln!("cncgw: {} on {}", program.display(), what.join(" + "));
+    execute(&mut drives, &mut *clock, &cfg, program, interp, lines, json)
 }
 
 fn execute(
     drives: &mut dyn DriveBus,
     clock: &mut dyn Clock,
     cfg: &MachineConfig,
+    program: &Path,
     mut interp: Interpreter,
     lines: u64,
     json: bool,
@@ -67,7 +107,26 @@ fn execute(
             return EXIT_ALARM;
         }
     };
-    interp.set_start_position(Pos { x: start[AX_X], y: start[AX_Y], z: start[AX_Z], c: start[AX_S] });
+    let start_pos = Pos { x: start[AX_X], y: start[AX_Y], z: start[AX_Z], c: start[AX_S] };
+    interp.set_start_position(start_pos);
+    // Axes on links with their own cycle (Modbus): every spindle-synchronised move of the
+    // program is checked against their cycle before anything moves.
+    let mut slow = Vec::new();
+    for d in 0..lp.drives.axis_count() {
+        if let Some((link, link_what, cycle_s)) = lp.drives.link_cycle(d) {
+            let name = lp.drives.axis_name(d).to_string();
+            eprintln!("cncgw: axis {name}: Modbus link {link} ({link_what}), link cycle {:.0} ms", cycle_s * 1e3);
+            let axis = if Some(d) == spindle_drive { "s".to_string() } else { name };
+            slow.push(crate::sync::link_check::SlowAxis { axis, link, cycle_s });
+        }
+    }
+    if !slow.is_empty() {
+        if let Err(a) = check_links(program, cfg, &slow, start_pos) {
+            lp.finish();
+            eprintln!("{a}");
+            return EXIT_ALARM;
+        }
+    }
     let (tx, rx) = std::sync::mpsc::sync_channel(256);
     let producer = std::thread::Builder::new().name("interp".into()).spawn(move || {
         for m in interp {
@@ -115,6 +174,22 @@ fn execute(
             }
         }
     }
+}
+
+/// Run the interpreter over the whole program once and check each synchronised move
+/// against the slow links (bounded: a program that never ends is checked as it runs up to
+/// two million moves).
+fn check_links(program: &Path, cfg: &MachineConfig, slow: &[crate::sync::link_check::SlowAxis], start: Pos) -> Result<(), crate::Alarm> {
+    let Ok(mut pre) = Interpreter::from_file(program, cfg) else { return Ok(()) };
+    pre.set_start_position(start);
+    let mut check = crate::sync::link_check::LinkCheck::new(slow, cfg.machine.sync_error_limit_um, start);
+    for m in pre.take(2_000_000) {
+        match m {
+            Ok(m) => check.check(&m)?,
+            Err(_) => break, // the run itself reports program alarms at their block
+        }
+    }
+    Ok(())
 }
 
 fn print_summary(s: &RunSummary, json: bool) {
