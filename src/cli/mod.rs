@@ -43,6 +43,10 @@ pub enum Command {
         /// Print the summary as JSON.
         #[arg(long)]
         json: bool,
+        /// Where the machine's power-off state lives (common variables #401–#600). Default:
+        /// $CNCGW_STATE_DIR, else $XDG_STATE_HOME/cncgw, else ~/.local/state/cncgw.
+        #[arg(long, value_name = "DIR")]
+        state_dir: Option<PathBuf>,
     },
     /// Print the canonical moves of a program without running anything.
     ///
@@ -271,7 +275,7 @@ pub fn main() -> i32 {
     let cli = Cli::parse();
     init_tracing(cli.verbose);
     match cli.cmd {
-        Command::Run { program, machine, json } => run::run(&program, &machine, json),
+        Command::Run { program, machine, json, state_dir } => run::run(&program, &machine, json, state_dir.as_deref()),
         Command::Plan { program, config, format } => plan(&program, config.as_deref(), &format),
         Command::Config(ConfigCmd::Check { file }) => config_check(file.as_deref()),
         Command::Scan { machine, json } => diag::scan(&machine, json),

@@ -17,7 +17,7 @@ pub const EXIT_PROGRAM_ERROR: i32 = 2;
 pub const EXIT_ALARM: i32 = 3;
 pub const EXIT_SETUP: i32 = 4;
 
-pub fn run(program: &Path, machine: &MachineArgs, json: bool) -> i32 {
+pub fn run(program: &Path, machine: &MachineArgs, json: bool, state_dir: Option<&Path>) -> i32 {
     let (cfg, cfg_text) = match load_config(machine.config.as_deref()) {
         Ok(c) => c,
         Err(e) => {
@@ -37,6 +37,18 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool) -> i32 {
         }
     };
     let lines = std::fs::read_to_string(program).map(|t| t.lines().count() as u64).unwrap_or(0);
+    // Common variables #401–#600 survive power-off: load them, store them after the run.
+    let vars_file = state_dir.map(Path::to_path_buf).or_else(crate::persist::default_state_dir).map(|d| crate::persist::CommonVarsFile::new(&d, &cfg.machine.name));
+    let mut interp = interp;
+    if let Some(f) = &vars_file {
+        match f.load() {
+            Ok(v) => interp.set_common_vars(v),
+            Err(a) => {
+                eprintln!("{a}");
+                return EXIT_SETUP;
+            }
+        }
+    }
     let mut modbus = crate::drives::modbus::ModbusDrives::new(&cfg);
     let bus_name = machine.bus.clone().unwrap_or_else(|| cfg.bus.interface.clone());
     // The CANopen bus is opened only if an axis is on it.
@@ -84,7 +96,14 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool) -> i32 {
         }
     };
     eprintln!("cncgw: {} on {}", program.display(), what.join(" + "));
-    execute(&mut drives, &mut *clock, &cfg, program, interp, lines, json)
+    let (code, vars) = execute(&mut drives, &mut *clock, &cfg, program, interp, lines, json);
+    if let (Some(f), Some(v)) = (&vars_file, vars) {
+        if let Err(a) = f.save(&v) {
+            eprintln!("{a}");
+            return if code == EXIT_OK { EXIT_SETUP } else { code };
+        }
+    }
+    code
 }
 
 fn execute(
@@ -95,7 +114,7 @@ fn execute(
     mut interp: Interpreter,
     lines: u64,
     json: bool,
-) -> i32 {
+) -> (i32, Option<std::collections::HashMap<u32, f64>>) {
     let spindle_drive = cfg.axes.values().position(|a| a.kind == AxisKind::Spindle);
     let cycle_ns = (cfg.machine.cycle_ms * 1e6).round() as u64;
     let mut lp = CycleLoop::new(drives, clock, Limits::from_config(cfg), spindle_drive, cycle_ns);
@@ -104,7 +123,7 @@ fn execute(
         Ok(s) => s,
         Err(a) => {
             eprintln!("{a}");
-            return EXIT_ALARM;
+            return (EXIT_ALARM, None);
         }
     };
     let start_pos = Pos { x: start[AX_X], y: start[AX_Y], z: start[AX_Z], c: start[AX_S] };
@@ -124,22 +143,31 @@ fn execute(
         if let Err(a) = check_links(program, cfg, &slow, start_pos) {
             lp.finish();
             eprintln!("{a}");
-            return EXIT_ALARM;
+            return (EXIT_ALARM, None);
         }
     }
     let (tx, rx) = std::sync::mpsc::sync_channel(256);
+    // The interpreter runs ahead of motion, macro statements included (as on a Fanuc, where
+    // macro statements are executed while the blocks before them are buffered); it hands
+    // back the common variables when it ends, to be stored.
     let producer = std::thread::Builder::new().name("interp".into()).spawn(move || {
-        for m in interp {
+        let mut it = interp;
+        for m in it.by_ref() {
             let stop = m.is_err();
             if tx.send(m).is_err() || stop {
                 break;
             }
         }
+        it.common_vars().clone()
     });
-    if let Err(e) = producer {
-        eprintln!("error: cannot start the interpreter thread: {e}");
-        return EXIT_SETUP;
-    }
+    let producer = match producer {
+        Ok(h) => h,
+        Err(e) => {
+            eprintln!("error: cannot start the interpreter thread: {e}");
+            lp.finish();
+            return (EXIT_SETUP, None);
+        }
+    };
     let bar = indicatif::ProgressBar::new(lines.max(1));
     bar.set_style(
         indicatif::ProgressStyle::with_template("{spinner} {elapsed_precise} line {pos}/{len} {wide_bar} {msg}")
@@ -157,7 +185,8 @@ fn execute(
     });
     bar.finish_and_clear();
     lp.finish();
-    match r {
+    let vars = producer.join().ok();
+    let code = match r {
         Err(a) => {
             print_summary(&summary, json);
             eprintln!("{a}");
@@ -173,7 +202,8 @@ fn execute(
                 EXIT_NOT_AT_END
             }
         }
-    }
+    };
+    (code, vars)
 }
 
 /// Run the interpreter over the whole program once and check each synchronised move
