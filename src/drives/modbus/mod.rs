@@ -155,6 +155,19 @@ impl ModbusDrives {
         self.axes.is_empty()
     }
 
+    /// Before start-up, per link: name, what it is, transactions per link cycle, and for RTU
+    /// the cycle the line can carry (s) — TCP's is measured at start-up.
+    pub fn planned_links(&self) -> Vec<(String, String, usize, Option<f64>)> {
+        self.links
+            .iter()
+            .filter_map(|l| {
+                let s = l.spec.as_ref()?;
+                let rtu = (s.cfg.transport == crate::config::LinkTransport::Rtu).then(|| s.rtu_cycle_s());
+                Some((l.name.clone(), l.what.clone(), s.transactions_per_cycle(), rtu))
+            })
+            .collect()
+    }
+
     /// Transactions done and failed, link cycles overrun, per link.
     pub fn link_stats(&self) -> Vec<(String, u64, u64, u64)> {
         self.links
