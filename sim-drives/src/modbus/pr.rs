@@ -50,8 +50,11 @@ impl Gen {
             self.finish(now);
             return;
         }
-        // The fastest speed from which `dec` still stops on the target, capped at vmax.
-        let v_des = e.signum() * self.vmax.min((2.0 * self.dec * e.abs()).sqrt());
+        // The fastest speed from which braking at `dec` in steps of dt still stops on the
+        // target (k steps of dec·dt cover dec·dt²·k(k+1)/2), capped at vmax.
+        let ddt = self.dec * dt;
+        let k = if ddt > 0.0 { ((1.0 + 8.0 * e.abs() / (ddt * dt)).sqrt() - 1.0) / 2.0 } else { 0.0 };
+        let v_des = e.signum() * self.vmax.min(ddt * k);
         let braking = self.v != 0.0 && (v_des.signum() != self.v.signum() || v_des.abs() < self.v.abs());
         let lim = if braking { self.dec } else { self.acc } * dt;
         self.v += (v_des - self.v).clamp(-lim, lim);
@@ -113,11 +116,17 @@ mod tests {
     fn short_move_is_a_triangle_and_dwell_keeps_it_running() {
         let mut g = Gen::hold(500.0);
         g.start(400.0, 1e6, 1e6, 1e6, 50 * MS);
-        let (t, vpeak) = run(&mut g, 0, 5000);
+        let (mut t, mut vpeak) = (0, 0.0f64);
+        while g.p != 400.0 && t < 5000 * MS {
+            t += MS;
+            g.step(1e-3, t);
+            vpeak = vpeak.max(g.v.abs());
+        }
         assert_eq!(g.p, 400.0);
-        // 100 counts as a triangle: peak √(a·d) = 10 000 counts/s, well below vmax.
+        // 100 counts as a triangle: peak √(d·100) = 10 000 counts/s, well below vmax.
         assert!(vpeak < 12_000.0, "{vpeak}");
-        assert!(g.running(t) && !g.running(t + 50 * MS));
+        // Arrived; the dwell runs 50 ms more.
+        assert!(g.running(t) && g.running(t + 49 * MS) && !g.running(t + 50 * MS));
     }
 
     #[test]

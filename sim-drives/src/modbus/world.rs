@@ -247,6 +247,7 @@ impl World {
                 if let Some(d) = self.core.drive_mut(u.node) {
                     d.inject_fault(COMM_TIMEOUT_CODE, now);
                 }
+                self.pr_sync(i, now);
             }
             if now % PR_PERIOD == 0 {
                 self.pr_step(i, now);
@@ -403,7 +404,11 @@ impl World {
             Reg::CommTimeout => vec![u.comm_timeout_ms],
             Reg::Block => u.pr.as_ref().map(|p| p.block.to_vec()).unwrap_or_default(),
             Reg::Trigger => vec![u.pr.as_ref().map_or(0, |p| p.trigger)],
-            Reg::ServoOn => vec![u.pr.as_ref().map_or(0, |p| p.servo_on as u16)],
+            // An alarm drops servo-on (the generator notices on its next period).
+            Reg::ServoOn => {
+                let alarm = matches!(d.state(), State::Fault | State::FaultReactionActive);
+                vec![u.pr.as_ref().map_or(0, |p| (p.servo_on && !alarm) as u16)]
+            }
             Reg::AlarmReset => vec![0],
             Reg::Status => {
                 let st = d.state();
