@@ -4,7 +4,7 @@
 //! read; physics get realistic defaults per kind) or a sim-drives TOML file (what
 //! `--print-default-config` prints), where every physical parameter can be overridden.
 
-use cncgw_bus::modbus::{Cia402Map, PrMap, Profile, PR_BLOCK_LEN};
+use cncgw_bus::modbus::{Cia402Map, PrMap, Profile, WordOrder, PR_BLOCK_LEN};
 use serde::Deserialize;
 use std::collections::BTreeMap;
 
@@ -468,6 +468,50 @@ impl SimConfig {
             s.push_str(&format!("current_loop_tc_ms = {:?}  # torque lag behind its command\n", p.current_loop_tc_ms));
             s.push_str(&format!("speed_encoder_bits = {}     # motor encoder the speed is estimated from\n", p.speed_encoder_bits));
             s.push_str(&format!("speed_filter_ms = {:?}     # speed estimate low-pass\n", p.speed_filter_ms));
+            // Register maps only where they differ from the built-in ones.
+            let order = |o: WordOrder| match o {
+                WordOrder::HighFirst => "high_first",
+                WordOrder::LowFirst => "low_first",
+            };
+            if d.cia402_map != Cia402Map::default() {
+                let m = &d.cia402_map;
+                s.push_str("[drive.cia402_map]\n");
+                for (k, v) in [
+                    ("controlword", m.controlword),
+                    ("target_position", m.target_position),
+                    ("target_velocity", m.target_velocity),
+                    ("mode", m.mode),
+                    ("statusword", m.statusword),
+                    ("mode_display", m.mode_display),
+                    ("position_actual", m.position_actual),
+                    ("velocity_actual", m.velocity_actual),
+                    ("error_code", m.error_code),
+                    ("interpolation_ms", m.interpolation_ms),
+                    ("following_error_window", m.following_error_window),
+                    ("comm_timeout_ms", m.comm_timeout_ms),
+                ] {
+                    s.push_str(&format!("{k} = {v}\n"));
+                }
+                s.push_str(&format!("word_order = \"{}\"\n", order(m.word_order)));
+            }
+            if d.pr_map != PrMap::default() {
+                let m = &d.pr_map;
+                s.push_str("[drive.pr_map]\n");
+                for (k, v) in [
+                    ("block", m.block),
+                    ("trigger", m.trigger),
+                    ("trigger_value", m.trigger_value),
+                    ("servo_on", m.servo_on),
+                    ("status", m.status),
+                    ("position_actual", m.position_actual),
+                    ("alarm_code", m.alarm_code),
+                    ("alarm_reset", m.alarm_reset),
+                    ("comm_timeout_ms", m.comm_timeout_ms),
+                ] {
+                    s.push_str(&format!("{k} = 0x{v:04X}\n"));
+                }
+                s.push_str(&format!("word_order = \"{}\"\n", order(m.word_order)));
+            }
         }
         s
     }
@@ -580,7 +624,10 @@ mod tests {
         assert_eq!(c.drives[0].pr_map.word_order, cncgw_bus::modbus::WordOrder::LowFirst);
         assert_eq!(c.drives[1].modbus_profile, Profile::Cia402);
         assert_eq!(c.drives[1].cia402_map, Cia402Map::default());
-        // The printed form keeps the profile.
-        assert_eq!(SimConfig::from_toml(&c.to_commented_toml()).unwrap().drives[0].modbus_profile, Profile::Pr);
+        // The printed form reads back to the same profiles and maps.
+        let mut c = c;
+        c.drives[1].cia402_map.statusword = 300;
+        c.drives[1].cia402_map.word_order = cncgw_bus::modbus::WordOrder::LowFirst;
+        assert_eq!(SimConfig::from_toml(&c.to_commented_toml()).unwrap(), c);
     }
 }

@@ -161,11 +161,11 @@ impl World {
                 .filter_map(|(name, addr, len)| Reg::of(p, name).map(|reg| Field { reg, addr, len }))
                 .collect();
             fields.sort_by_key(|f| f.addr);
-            let (order, comm_timeout_ms) = match p {
-                Profile::Cia402 => (d.cia402_map.word_order, 0),
-                Profile::Pr => (d.pr_map.word_order, 0),
+            let order = match p {
+                Profile::Cia402 => d.cia402_map.word_order,
+                Profile::Pr => d.pr_map.word_order,
             };
-            let pr = (p == Profile::Pr).then(|| Pr {
+            let pr = (p == Profile::Pr).then_some(Pr {
                 trigger_value: d.pr_map.trigger_value,
                 block: [PR_MODE_ABSOLUTE, 0, 0, 60, 100, 100, 0],
                 trigger: 0,
@@ -175,7 +175,8 @@ impl World {
                 counts_per_rev: d.counts_per_rev as f64,
                 last_step: None,
             });
-            units.push(Unit { node: d.node, fields, order, comm_timeout_ms, last_write: 0, pr });
+            // The watchdog is off until the master sets its timeout.
+            units.push(Unit { node: d.node, fields, order, comm_timeout_ms: 0, last_write: 0, pr });
         }
         let mut core = Core::new(cfg);
         core.schedule(faults);
