@@ -444,3 +444,46 @@ async fn exceptions_pr() {
     write(&mut c, P.block, &b).await;
     assert_eq!(read(&mut c, P.block, 7).await, b.to_vec());
 }
+
+#[tokio::test(flavor = "current_thread")]
+async fn scheduled_faults_show_in_the_error_code() {
+    let stop = Arc::new(AtomicBool::new(false));
+    let fault = sim_drives::parse_fault("2:raise=0x4310@50").unwrap();
+    let srv = sim_drives::modbus::serve_tcp_with_faults("127.0.0.1:0".parse().unwrap(), SimConfig::default_lathe(), vec![fault], stop.clone()).unwrap();
+    let s = Srv { addr: srv.local_addr().unwrap(), srv: Some(srv), stop };
+    let mut c = s.client(2).await;
+    tokio::time::sleep(Duration::from_millis(10)).await;
+    assert_eq!(read(&mut c, M.error_code, 1).await[0], 0);
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    let r = read(&mut c, M.statusword, 7).await;
+    assert_eq!(state(r[0]), State::Fault, "{:#06x}", r[0]);
+    assert_eq!(r[6], 0x4310);
+}
+
+/// Transactions per second a client achieves against the server over TCP (loopback):
+/// `cargo test --release -p sim-drives --test modbus_server -- --ignored --nocapture`.
+#[tokio::test(flavor = "current_thread")]
+#[ignore = "measurement; prints figures"]
+async fn tcp_transaction_rate() {
+    let s = Srv::start(SimConfig::default_lathe());
+    for units in [1u8, 3] {
+        let mut cs = Vec::new();
+        for u in 1..=units {
+            cs.push(s.client(u).await);
+        }
+        let n = 2000;
+        let t0 = Instant::now();
+        for _ in 0..n {
+            for c in cs.iter_mut() {
+                // The cyclic exchange of a CSP master: controlword + target, statusword … error code.
+                c.read_write_multiple_registers(M.statusword, 7, M.controlword, &[0, 0, 0]).await.unwrap().unwrap();
+            }
+        }
+        let dt = t0.elapsed().as_secs_f64();
+        println!(
+            "Modbus TCP, {units} drive(s): {:.0} FC23 transactions/s, one cycle for all drives {:.3} ms",
+            (n * units as u32) as f64 / dt,
+            dt / n as f64 * 1e3
+        );
+    }
+}

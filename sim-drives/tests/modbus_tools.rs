@@ -309,3 +309,37 @@ fn tokio_modbus_rtu_client_through_a_socat_pty_pair() {
     stop.store(true, Ordering::Relaxed);
     srv.join().expect("RTU server");
 }
+
+/// Transactions per second through a socat pty pair (a pty does not pace bytes at the baud
+/// rate: this is the server's and the pty's turnaround, not a 115200-baud line):
+/// `cargo test -p sim-drives --test modbus_tools -- --ignored --nocapture`.
+#[test]
+#[ignore = "measurement; prints figures"]
+fn rtu_pty_transaction_rate() {
+    if !have("socat") {
+        return;
+    }
+    use tokio_modbus::prelude::*;
+    let (_socat, a, b) = pty_pair();
+    let stop = Arc::new(AtomicBool::new(false));
+    let srv = sim_drives::modbus::serve_rtu(&a, sim_drives::modbus::RtuLine::default(), sim_drives::SimConfig::default_lathe(), stop.clone()).expect("serve_rtu");
+    let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
+    rt.block_on(async {
+        let port = tokio_serial::SerialStream::open(&tokio_serial::new(&b, 115_200)).expect("open pty");
+        let mut c = tokio_modbus::client::rtu::attach_slave(port, Slave(1));
+        for units in [1u8, 3] {
+            let n = 500;
+            let t0 = Instant::now();
+            for _ in 0..n {
+                for u in 1..=units {
+                    c.set_slave(Slave(u));
+                    c.read_write_multiple_registers(M.statusword, 7, M.controlword, &[0, 0, 0]).await.unwrap().unwrap();
+                }
+            }
+            let dt = t0.elapsed().as_secs_f64();
+            println!("Modbus RTU over a pty, {units} drive(s): {:.0} FC23 transactions/s, one cycle {:.3} ms", (n * units as u32) as f64 / dt, dt / n as f64 * 1e3);
+        }
+    });
+    stop.store(true, Ordering::Relaxed);
+    srv.join().expect("RTU server");
+}
