@@ -257,11 +257,27 @@ impl SimConfig {
     /// The drives of a cncgw machine config: its `[axes.*]` tables (kind, node,
     /// counts_per_unit; other keys ignored), with default physics per kind.
     pub fn from_machine_toml(text: &str) -> Result<SimConfig, String> {
+        Self::from_machine_toml_bus(text, None)
+    }
+
+    /// The drives of a cncgw machine config on one bus: `Some(false)` its CANopen axes,
+    /// `Some(true)` its Modbus axes (those with `modbus = "LINK"`; unit id = `node`, with
+    /// their `modbus_profile` and map overrides), `None` the CANopen axes, or the Modbus
+    /// ones if it has no CANopen axis.
+    pub fn from_machine_toml_bus(text: &str, modbus: Option<bool>) -> Result<SimConfig, String> {
         #[derive(Deserialize)]
         struct Axis {
             kind: DriveKind,
             node: u8,
             counts_per_unit: f64,
+            #[serde(default)]
+            modbus: Option<String>,
+            #[serde(default)]
+            modbus_profile: Option<Profile>,
+            #[serde(default)]
+            cia402_map: Option<Cia402Map>,
+            #[serde(default)]
+            pr_map: Option<PrMap>,
         }
         #[derive(Deserialize)]
         struct Machine {
@@ -270,9 +286,24 @@ impl SimConfig {
         }
         // Parse only what we need: other tables and keys are the master's business.
         let m: Machine = toml::from_str(text).map_err(|e| format!("machine config: {e}"))?;
+        let has_can = m.axes.values().any(|a| a.modbus.is_none());
+        let want_modbus = modbus.unwrap_or(!has_can);
         let mut drives = Vec::new();
         for (name, a) in &m.axes {
-            drives.push(DriveConfig::new(a.node, a.kind, name, a.counts_per_unit));
+            if a.modbus.is_some() != want_modbus {
+                continue;
+            }
+            let mut d = DriveConfig::new(a.node, a.kind, name, a.counts_per_unit);
+            if let Some(p) = a.modbus_profile {
+                d.modbus_profile = p;
+            }
+            if let Some(c) = a.cia402_map {
+                d.cia402_map = c;
+            }
+            if let Some(p) = a.pr_map {
+                d.pr_map = p;
+            }
+            drives.push(d);
         }
         let cfg = SimConfig { drives, step_us: 50 };
         cfg.validate()?;

@@ -66,11 +66,12 @@ struct Args {
     verbose: u8,
 }
 
-fn load(path: &std::path::Path) -> Result<SimConfig, String> {
+fn load(path: &std::path::Path, modbus: bool) -> Result<SimConfig, String> {
     let text = std::fs::read_to_string(path).map_err(|e| format!("{}: cannot read: {e}", path.display()))?;
-    // A machine config has [axes.*]; a sim-drives config has [[drive]].
+    // A machine config has [axes.*]; a sim-drives config has [[drive]]. Of a machine
+    // config, serve the drives of the bus asked for (a mixed machine has both).
     let is_machine = text.lines().any(|l| l.trim_start().starts_with("[axes."));
-    let r = if is_machine { SimConfig::from_machine_toml(&text) } else { SimConfig::from_toml(&text) };
+    let r = if is_machine { SimConfig::from_machine_toml_bus(&text, Some(modbus)) } else { SimConfig::from_toml(&text) };
     r.map_err(|e| format!("{}: {e}", path.display()))
 }
 
@@ -89,7 +90,7 @@ fn main() -> ExitCode {
     tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).init();
 
     let cfg = match &args.config {
-        Some(p) => match load(p) {
+        Some(p) => match load(p, args.modbus_tcp.is_some() || args.modbus_rtu.is_some()) {
             Ok(c) => c,
             Err(e) => {
                 eprintln!("sim-drives: {e}");

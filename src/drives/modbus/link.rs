@@ -26,8 +26,14 @@ pub struct Command {
     pub servo_on: bool,
     /// Clear a latched alarm (the `pr` profile): written once per request.
     pub alarm_reset_seq: u32,
-    /// Target position, counts (wrapping INTEGER32 on the wire).
+    /// Target position, counts (wrapping INTEGER32 on the wire), computed at `at`.
     pub target: i32,
+    /// Set-point velocity at `at`, counts/s: the link extrapolates the target to the
+    /// instant it writes it, so the drive sees a set-point that moves with its own clock
+    /// rather than the machine cycle's samples re-sampled by the link's (which would hold
+    /// still one period and jump the next).
+    pub velocity: f64,
+    pub at: Option<Instant>,
     /// Stream targets (false while enabling: the target register is left alone).
     pub stream: bool,
 }
@@ -309,19 +315,27 @@ impl LinkIo {
         let needed = match self.spec.cfg.transport {
             LinkTransport::Rtu => Duration::from_secs_f64(self.spec.rtu_cycle_s()),
             LinkTransport::Tcp => {
-                let mut rtts = Vec::with_capacity(40);
-                for _ in 0..20 {
+                let mut rtts = Vec::with_capacity(50);
+                for _ in 0..50 {
                     let t0 = Instant::now();
                     for d in 0..self.spec.drives.len() {
                         let x = self.spec.drives[d].feedback_read();
-                        self.exchange(d, &x, &[]).map_err(|e| Alarm::new(2202, format!("measuring the round trip failed: {}", e.text())))?;
+                        self.exchange(d, &x, &[]).map_err(|e| {
+                            Alarm::new(
+                                if matches!(e, TxError::Exception(_)) { 2201 } else { 2202 },
+                                format!("reading the drive's feedback failed: {}; check the unit id, the profile and the register map", e.text()),
+                            )
+                        })?;
                     }
                     rtts.push(t0.elapsed() / self.spec.drives.len().max(1) as u32);
                 }
                 rtts.sort();
-                let p95 = rtts[rtts.len() * 95 / 100];
-                // Margin ×2 for the round trip's tail on a shared machine.
-                p95 * self.spec.transactions_per_cycle() as u32 * 2
+                // p90 of 50: one descheduled transaction must not decide the cycle, a slow
+                // network must.
+                let p90 = rtts[rtts.len() * 90 / 100];
+                tracing::info!(link = %self.spec.name, "round trip per drive: median {:?}, p90 {:?}, max {:?}", rtts[rtts.len() / 2], p90, rtts[rtts.len() - 1]);
+                // Margin ×2 for the round trip's tail.
+                p90 * self.spec.transactions_per_cycle() as u32 * 2
             }
         };
         // Whole milliseconds: the drives' interpolation period register is in ms.
@@ -349,7 +363,7 @@ impl LinkIo {
             }
         }
         // First readings, so that the cycle thread starts from real positions.
-        self.cycle_once(s);
+        self.cycle_once(s, Instant::now());
         tracing::info!(link = %self.spec.name, "{}: link cycle {cycle_ms} ms ({} transactions per cycle)", self.spec.what(), self.spec.transactions_per_cycle());
         Ok(cycle)
     }
@@ -383,7 +397,7 @@ impl LinkIo {
                 }
                 tracing::warn!(link = %self.spec.name, "Modbus link reconnected");
             }
-            if let Some(a) = self.cycle_once(s) {
+            if let Some(a) = self.cycle_once(s, next) {
                 set_state(s, LinkState::Failed(a));
                 return;
             }
@@ -391,13 +405,27 @@ impl LinkIo {
     }
 
     /// One exchange with every drive. Returns a fatal alarm (an exception).
-    fn cycle_once(&mut self, s: &SharedLink) -> Option<Alarm> {
+    /// `sched`: the instant this cycle was scheduled for (the set-points are for it).
+    fn cycle_once(&mut self, s: &SharedLink, sched: Instant) -> Option<Alarm> {
         for d in 0..self.spec.drives.len() {
             let cmd = match s.0.lock() {
                 Ok(g) => g.slots[d].command,
                 Err(_) => return None,
             };
             let prev_target = self.spec.drives[d].last_target;
+            let mut cmd = cmd;
+            if let (true, Some(at)) = (cmd.stream, cmd.at) {
+                // At most three machine cycles ahead: beyond that the cycle thread has
+                // stopped and the set-point must stand.
+                // Both instants are on ideal grids (this link's schedule, the machine cycle's),
+                // so successive writes differ by exactly one link cycle of travel however
+                // late the threads wake: the drive interpolates each over one period.
+                let ahead = sched.saturating_duration_since(at).min(self.spec.machine_cycle * 3);
+                let dx = (cmd.velocity * ahead.as_secs_f64()).round();
+                if dx.is_finite() {
+                    cmd.target = cmd.target.wrapping_add(dx.clamp(i32::MIN as f64, i32::MAX as f64) as i32);
+                }
+            }
             let mut reading = None;
             let mut err = None;
             let plan = self.spec.drives[d].cyclic_writes(&cmd);

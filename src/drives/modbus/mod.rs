@@ -41,6 +41,7 @@ struct Axis {
     name: String,
     link: usize,
     slot: usize,
+    unit: u8,
     profile: Profile,
     counts_per_unit: f64,
     // The cycle thread's view.
@@ -119,6 +120,7 @@ impl ModbusDrives {
                 name: name.clone(),
                 link: li,
                 slot,
+                unit: a.node,
                 profile: a.modbus_profile,
                 counts_per_unit: a.counts_per_unit,
                 cmd: Command::default(),
@@ -190,8 +192,7 @@ impl ModbusDrives {
     }
 
     fn unit(&self, i: usize) -> u8 {
-        let a = &self.axes[i];
-        self.links[a.link].spec.as_ref().map(|s| s.drives[a.slot].unit).unwrap_or(0)
+        self.axes[i].unit
     }
 
     fn stop_links(&mut self) {
@@ -254,6 +255,7 @@ impl DriveBus for ModbusDrives {
         for a in &mut self.axes {
             a.target = a.unwrapped;
             a.cmd.target = a.raw;
+            a.cmd.velocity = 0.0;
         }
         Ok(())
     }
@@ -325,6 +327,14 @@ impl DriveBus for ModbusDrives {
         }
         let c = (pos * a.counts_per_unit).round();
         if c.is_finite() && c.abs() < 9.0e15 {
+            // The set-point belongs to this machine cycle's slot on the ideal grid (the
+            // thread's wake-up jitter is not part of the path).
+            let t = Duration::from_nanos(self.cycle_ns.max(1));
+            let k = (self.t0.elapsed().as_nanos() as f64 / t.as_nanos() as f64).round();
+            let at = self.t0 + t.mul_f64(k);
+            // Velocity of the set-point over the machine cycle (the planner's own step).
+            a.cmd.velocity = (c as i64 - a.target) as f64 / (self.cycle_ns as f64 * 1e-9);
+            a.cmd.at = Some(at);
             a.target = c as i64;
             // Wrap as the INTEGER32 object does.
             a.cmd.target = a.target as i32;
@@ -359,6 +369,8 @@ impl DriveBus for ModbusDrives {
                 // Hold the actual position while enabling so that nothing jumps.
                 a.target = a.unwrapped;
                 a.cmd.target = a.raw;
+                a.cmd.velocity = 0.0;
+            a.cmd.velocity = 0.0;
             }
             match a.profile {
                 Profile::Cia402 => {
@@ -437,6 +449,7 @@ impl DriveBus for ModbusDrives {
 
     fn quick_stop(&mut self) {
         for a in &mut self.axes {
+            a.cmd.velocity = 0.0;
             match a.profile {
                 Profile::Cia402 => a.cmd.controlword = cw::QUICK_STOP_CMD,
                 // A PR drive has no quick stop: retarget it to where it is.
