@@ -78,8 +78,9 @@ pub struct Shared {
     pub stop: bool,
     /// Link cycles that took longer than the cycle.
     pub overruns: u64,
-    /// Transactions done, and failed.
+    /// Transactions done (answered or failed), failed, and link cycles run.
     pub transactions: u64,
+    pub cycles: u64,
     pub failures: u64,
 }
 
@@ -135,6 +136,7 @@ pub fn spawn(spec: LinkSpec) -> std::io::Result<(SharedLink, std::thread::JoinHa
             stop: false,
             overruns: 0,
             transactions: 0,
+            cycles: 0,
             failures: 0,
         }),
         Condvar::new(),
@@ -429,9 +431,11 @@ impl LinkIo {
             let mut reading = None;
             let mut err = None;
             let plan = self.spec.drives[d].cyclic_writes(&cmd);
+            let mut done = 0u64;
             for (x, data) in plan {
                 match self.exchange(d, &x, &data) {
                     Ok(v) => {
+                        done += 1;
                         if x.reads() {
                             reading = self.spec.drives[d].decode(&x, &v, reading);
                         }
@@ -442,8 +446,15 @@ impl LinkIo {
                     }
                 }
             }
+            if err.is_some() {
+                // What was not acknowledged is written again next cycle.
+                self.spec.drives[d].forget_writes();
+            }
             let Ok(mut g) = s.0.lock() else { return None };
-            g.transactions += 1;
+            g.transactions += done + err.is_some() as u64;
+            if d == 0 {
+                g.cycles += 1;
+            }
             match err {
                 Some(TxError::Exception(m)) => {
                     g.failures += 1;

@@ -37,6 +37,20 @@ pub mod alarm {
     pub const CYCLE: u32 = 2204;
 }
 
+/// What a link has done.
+#[derive(Clone, Debug, Default)]
+pub struct LinkStats {
+    pub name: String,
+    /// The cycle it runs at.
+    pub cycle: Duration,
+    /// Modbus transactions (answered or failed), failed ones, link cycles run, and link
+    /// cycles that started more than a cycle late.
+    pub transactions: u64,
+    pub failures: u64,
+    pub cycles: u64,
+    pub overruns: u64,
+}
+
 struct Axis {
     name: String,
     link: usize,
@@ -170,17 +184,19 @@ impl ModbusDrives {
             .collect()
     }
 
-    /// Transactions done and failed, link cycles overrun, per link.
-    pub fn link_stats(&self) -> Vec<(String, u64, u64, u64)> {
+    /// Per link: its statistics so far.
+    pub fn link_stats(&self) -> Vec<LinkStats> {
         self.links
             .iter()
             .map(|l| {
-                let (t, f, o) = l
-                    .shared
-                    .as_ref()
-                    .and_then(|s| s.0.lock().ok().map(|g| (g.transactions, g.failures, g.overruns)))
-                    .unwrap_or((0, 0, 0));
-                (l.name.clone(), t, f, o)
+                let mut st = LinkStats { name: l.name.clone(), cycle: l.cycle, ..LinkStats::default() };
+                if let Some(g) = l.shared.as_ref().and_then(|s| s.0.lock().ok()) {
+                    st.transactions = g.transactions;
+                    st.failures = g.failures;
+                    st.overruns = g.overruns;
+                    st.cycles = g.cycles;
+                }
+                st
             })
             .collect()
     }

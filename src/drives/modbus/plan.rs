@@ -124,6 +124,12 @@ impl DrivePlan {
         }
     }
 
+    /// A cycle failed part-way: write servo-on and the alarm reset again next cycle.
+    pub fn forget_writes(&mut self) {
+        self.written_servo_on = None;
+        self.written_reset_seq = self.written_reset_seq.wrapping_sub(1);
+    }
+
     /// The read that returns the feedback (round-trip measurement).
     pub fn feedback_read(&self) -> Exchange {
         match self.profile {
