@@ -218,6 +218,8 @@ pub struct Interpreter {
     input: Option<InputSource>,
     /// Canned-cycle state (thread lead, retained cycle values, G76 parameters).
     cyc: cycles::CycleState,
+    /// G80–G89 drilling / tapping mode and rigid tapping state.
+    drill: cycles::drill::DrillState,
 }
 
 fn perr_alarm(file: &Arc<str>, line_no: usize, text: &str, e: PErr) -> Alarm {
@@ -290,6 +292,7 @@ impl Interpreter {
             ref_points: std::array::from_fn(|k| ref_point(cfg, k)),
             input: None,
             cyc: cycles::CycleState::new(cfg),
+            drill: cycles::drill::DrillState::new(cfg),
         }
     }
 
@@ -1091,9 +1094,10 @@ impl Interpreter {
                 self.st.f_min = Some(v);
             }
         }
-        // S (G50 S = maximum spindle speed).
+        // S (G50 S = maximum spindle speed); rigid tapping takes its own S (M29 S, G84 S).
+        let s_taken = self.tap_block_start(d, src)?;
         let mut spindle_changed = d.group(2).is_some() && self.st.css != was_css;
-        if let Some(s) = d.get('S') {
+        if let Some(s) = d.get('S').filter(|_| !s_taken) {
             if s.v < 0.0 {
                 return Err((6, Some(s.col), "S cannot be negative".into()));
             }
@@ -1112,7 +1116,9 @@ impl Interpreter {
         // Spindle M codes and T, aux M before motion.
         let mut after: Vec<MoveKind> = Vec::new();
         let mut started = false;
-        for &(m, _) in &d.m {
+        // In a G83–G89 block the M code is the cycle's C-axis clamp code.
+        let clamp_block = self.drill_clamp_block(d);
+        for &(m, _) in d.m.iter().filter(|_| !clamp_block) {
             match m {
                 3 | 4 => {
                     self.st.dir = if m == 3 { SpindleDir::Cw } else { SpindleDir::Ccw };
@@ -1143,6 +1149,7 @@ impl Interpreter {
             self.push(src, MoveKind::Aux { letter: 'T', value: t.v }, false);
         }
         let exact = exact_mode || d.has_g(90);
+        self.drill_modal(d, src)?;
         // One-shot (group 00) codes and motion.
         match one_shot {
             Some(40) => {
@@ -1211,10 +1218,15 @@ impl Interpreter {
                     self.push(src, MoveKind::Rapid { end: t }, true);
                 }
             }
+            Some(300) if d.get('P').is_some_and(|p| p.v == 99.0) => self.g30_p99(d, src, gcol(300))?,
             Some(280) | Some(300) => self.reference_return(d, src, one_shot == Some(300), gcol(300))?,
             Some(90) | None => {
                 self.take_up_tool_offset(d);
-                self.motion(d, src, exact)?
+                if self.drill_active(d) {
+                    self.drill_block(d, src)?
+                } else {
+                    self.motion(d, src, exact)?
+                }
             }
             Some(650) => {
                 let p = d.get('P').ok_or((9, gcol(650), "G65 needs P (the macro program number)".to_string()))?;

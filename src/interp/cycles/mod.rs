@@ -33,6 +33,7 @@ use crate::canon::{CycleTag, Move, MoveKind, Plane, Pos, SrcPos};
 use crate::config::MachineConfig;
 use std::sync::Arc;
 
+pub mod drill;
 pub mod g76;
 pub mod groove;
 pub mod rigid;
