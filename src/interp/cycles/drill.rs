@@ -170,6 +170,9 @@ pub struct DrillState {
     pub tap_return: Option<TapReturn>,
     /// The tap cycle last expanded (R plane, lead, speeds).
     pub last_tap: Option<TapReturn>,
+    /// Flexible tapping: the tapping direction of the first hole, turned on again at every
+    /// following hole (004 §2.22.3 note 2); cleared by G80.
+    flex_dir: Option<SpindleDir>,
 }
 
 impl DrillState {
@@ -185,6 +188,7 @@ impl DrillState {
             reverse_signal: false,
             tap_return: None,
             last_tap: None,
+            flex_dir: None,
         }
     }
 }
@@ -420,6 +424,7 @@ impl Interpreter {
         self.drill.m29_pending = false;
         self.drill.tap_s = None;
         self.drill.tap_j = None;
+        self.drill.flex_dir = None;
         if was_rigid {
             if let Some((dir, rpm)) = self.drill.spindle_before.take() {
                 if dir != SpindleDir::Stop {
@@ -706,7 +711,7 @@ impl Interpreter {
             }
             Feed::PerRev(f) => f,
         };
-        let fwd = if self.st.dir == SpindleDir::Ccw { SpindleDir::Ccw } else { SpindleDir::Cw };
+        let fwd = self.drill.flex_dir.unwrap_or(if self.st.dir == SpindleDir::Ccw { SpindleDir::Ccw } else { SpindleDir::Cw });
         let rev = if fwd == SpindleDir::Cw { SpindleDir::Ccw } else { SpindleDir::Cw };
         let max_rpm = self.st.max_rpm;
         let cmd = |dir| SpindleCmd { dir, rpm, css: None, max_rpm };
@@ -719,8 +724,9 @@ impl Interpreter {
         self.cpush(src, tag, 5, MoveKind::Spindle(cmd(rev)), false);
         self.cpush(src, tag, 5, MoveKind::Feed { end: at(rp), feed: Feed::PerRev(lead) }, true);
         self.cpush(src, tag, 5, MoveKind::Spindle(cmd(SpindleDir::Stop)), false);
-        // The modal direction is kept: the next hole turns the spindle on that way again
-        // (note 2), even though it stands still between holes.
+        // The spindle stands still now; the next hole turns it on the same way (note 2).
+        self.st.dir = SpindleDir::Stop;
+        self.drill.flex_dir = Some(fwd);
         Ok(())
     }
 
