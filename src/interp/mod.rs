@@ -728,6 +728,18 @@ impl Interpreter {
                 Some(&d) => self.line = d,
                 None => return Err(wrap(MErr { number: 126, message: "END without DO".into() }, b.col)),
             },
+            Stmt::Call { mcall, name, args } => {
+                let mut vals = Vec::with_capacity(args.len());
+                for a in &args {
+                    vals.push(match a {
+                        Some(e) => self.vars.eval(e).map_err(|e| wrap(e, b.col))?,
+                        None => None,
+                    });
+                }
+                self.siemens_stmt(mcall, name.as_deref(), &vals, &src).map_err(|(n, col, m)| {
+                    Alarm::new(n, m).at(SrcPos::new(file.clone(), i as u32 + 1, col.unwrap_or(b.col))).with_block(text.trim_end())
+                })?;
+            }
             Stmt::Nc(words) => {
                 let d = self.decode_words(&words, &self.vars).map_err(|a| {
                     let col = a_col(&a);
@@ -1225,7 +1237,9 @@ impl Interpreter {
                 if self.drill_active(d) {
                     self.drill_block(d, src)?
                 } else {
-                    self.motion(d, src, exact)?
+                    self.motion(d, src, exact)?;
+                    // MCALL: the SINUMERIK modal cycle after a positioning block.
+                    self.mcall_after(self.target(d).is_some(), src)?
                 }
             }
             Some(650) => {

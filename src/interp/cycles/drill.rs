@@ -173,6 +173,8 @@ pub struct DrillState {
     /// Flexible tapping: the tapping direction of the first hole, turned on again at every
     /// following hole (004 §2.22.3 note 2); cleared by G80.
     flex_dir: Option<SpindleDir>,
+    /// MCALL: the SINUMERIK cycle run after every positioning block.
+    pub mcall: Option<super::siemens::SiemensCall>,
 }
 
 impl DrillState {
@@ -189,6 +191,7 @@ impl DrillState {
             tap_return: None,
             last_tap: None,
             flex_dir: None,
+            mcall: None,
         }
     }
 }
