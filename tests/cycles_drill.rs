@@ -255,3 +255,155 @@ fn reset_keeps_the_mode_only_with_5155() {
     }
     let _ = MachineConfig::embedded();
 }
+
+// ---------------------------------------------------------------------------------------
+// SINUMERIK CYCLE81/82/83/85/86 and MCALL (manual 003).
+
+/// The tutorial's CYCLE81: RTP 100, RFP 0, SDIS 1, Z1 25 inc (DPR), DT 0.6 s. As a single
+/// call it drills where the tool stands: ② rapid to the safety plane Z1, ③ feed to Z-25,
+/// ④ dwell 0.6 s, ⑥ rapid to RTP Z100. With MCALL it drills nothing in its own block and
+/// drills after every following positioning block until a bare MCALL.
+#[test]
+fn cycle81_tutorial_single_and_mcall() {
+    let src = "G98 F100 S800 M3\nG0 X0 Z120\nCYCLE81(100,0,1,,25,0.6,0,1,11)\nMCALL CYCLE81(100,0,1,,25,0.6,0,1,11)\nX20\nX40 C90\nMCALL\nX60\nM30\n";
+    let m = run(src);
+    let r = rows(&m);
+    let hole = |x: f64, c: f64| -> Vec<(&str, f64, f64, f64, f64, u8)> {
+        vec![("rapid", x, 1.0, c, 0.0, 2), ("feed", x, -25.0, c, 100.0, 3), ("dwell", x, -25.0, c, 0.6, 4), ("rapid", x, 100.0, c, 0.0, 6)]
+    };
+    let mut i = expect(&r, 0, &[("spindle", 0.0, 0.0, 0.0, 800.0, 0), ("rapid", 0.0, 120.0, 0.0, 0.0, 0)]);
+    i = expect(&r, i, &hole(0.0, 0.0));
+    // Line 4 (MCALL …) made nothing: the next move is line 5's positioning.
+    assert_eq!(m[i].src.line, 5);
+    i = expect(&r, i, &[("rapid", 20.0, 100.0, 0.0, 0.0, 0)]);
+    i = expect(&r, i, &hole(20.0, 0.0));
+    i = expect(&r, i, &[("rapid", 40.0, 100.0, 90.0, 0.0, 0)]);
+    i = expect(&r, i, &hole(40.0, 90.0));
+    i = expect(&r, i, &[("rapid", 60.0, 100.0, 90.0, 0.0, 0), ("end", 60.0, 100.0, 90.0, 0.0, 0)]);
+    assert_eq!(r.len(), i);
+    assert!(m.iter().filter(|m| m.tag.is_some()).all(|m| &*m.tag.as_ref().unwrap().cycle == "CYCLE81"));
+}
+
+/// Depth by diameter (_GMODE 1: Ø11 with the 90° centre drill = 5.5 deep), DP absolute vs
+/// DPR (DPR wins), _AMODE 2 = DP, and the shank depth of CYCLE82 (118°, r = 5 from the tool
+/// table: the tip is 5 / tan 59° deeper).
+#[test]
+fn cycle81_82_depth_modes() {
+    let z3 = |src: &str| -> f64 {
+        let r = rows(&run(&format!("G98 F100\nG0 X0 Z50\n{src}\n")));
+        r.iter().find(|r| r.kind == "feed").unwrap().z
+    };
+    assert!((z3("CYCLE81(10,0,1,,11,0,1)") + 5.5).abs() < 1e-9);
+    assert_eq!(z3("CYCLE82(10,0,1,-8,3)"), -3.0);
+    assert_eq!(z3("CYCLE82(10,0,1,-8)"), -8.0);
+    assert_eq!(z3("CYCLE82(10,0,1,-8,3,0,0,1,2)"), -8.0);
+    assert_eq!(z3("CYCLE82(10,0,1,-8,3,0,0,1,1)"), -3.0);
+    let cfg = MachineConfig::embedded();
+    let mut it = Interpreter::from_source("t.nc", "G98 F100\nT0303\nG0 X0 Z50\nCYCLE82(10,0,1,,20,0,0,1,21)\n", &cfg).unwrap();
+    it.set_tool_table(cncgw::interp::parse_tool_table("tools.toml", "[3]\nr = 5.0\n").unwrap());
+    let r = rows(&it.map(|m| m.unwrap()).collect::<Vec<_>>());
+    let z = r.iter().find(|r| r.kind == "feed").unwrap().z;
+    assert!((z - (-20.0 - 5.0 / 59f64.to_radians().tan())).abs() < 1e-9, "{z}");
+}
+
+/// CYCLE83 chip removal (VARI 1): first depth FDPR 5 at F × FRF 0.5, then DAM 2 less each
+/// time (not below 2): 5, 3, 2, 2, … After each stage DTB, rapid out to the safety plane,
+/// DTS, rapid back to 1 mm (automatic V3) short of the last depth. _DTD at the bottom.
+#[test]
+fn cycle83_chip_removal() {
+    let r = rows(&run("G98 F200\nG0 X0 Z20\nCYCLE83(10,0,2,-12,,,5,2,0.3,0.7,0.5,1,,,,1.5)\n"));
+    let mut i = expect(&r, 1, &[("rapid", 0.0, 2.0, 0.0, 0.0, 2), ("feed", 0.0, -5.0, 0.0, 100.0, 3)]);
+    for (last, next) in [(5.0, 8.0), (8.0, 10.0), (10.0, 12.0)] {
+        i = expect(&r, i, &[
+            ("dwell", 0.0, -last, 0.0, 0.3, 3),
+            ("rapid", 0.0, 2.0, 0.0, 0.0, 3),
+            ("dwell", 0.0, 2.0, 0.0, 0.7, 3),
+            ("rapid", 0.0, -(last - 1.0), 0.0, 0.0, 3),
+            ("feed", 0.0, -next, 0.0, 200.0, 3),
+        ]);
+    }
+    i = expect(&r, i, &[("dwell", 0.0, -12.0, 0.0, 1.5, 4), ("rapid", 0.0, 10.0, 0.0, 0.0, 6)]);
+    assert_eq!(r.len(), i);
+}
+
+/// CYCLE83 chip breaking (VARI 0): FDEP absolute -4, DAM 0 (every stage 4 mm), back by
+/// _VRT 0.5 after each; _DTD empty = DTB at the bottom.
+#[test]
+fn cycle83_chip_breaking() {
+    let r = rows(&run("G98 F150\nG0 X0 Z20\nCYCLE83(10,0,1,-10,,-4,,0,0.2,,,0,,,0.5)\n"));
+    expect(&r, 1, &[
+        ("rapid", 0.0, 1.0, 0.0, 0.0, 2),
+        ("feed", 0.0, -4.0, 0.0, 150.0, 3),
+        ("dwell", 0.0, -4.0, 0.0, 0.2, 3),
+        ("rapid", 0.0, -3.5, 0.0, 0.0, 3),
+        ("feed", 0.0, -8.0, 0.0, 150.0, 3),
+        ("dwell", 0.0, -8.0, 0.0, 0.2, 3),
+        ("rapid", 0.0, -7.5, 0.0, 0.0, 3),
+        ("feed", 0.0, -10.0, 0.0, 150.0, 3),
+        ("dwell", 0.0, -10.0, 0.0, 0.2, 4),
+        ("rapid", 0.0, 10.0, 0.0, 0.0, 6),
+    ]);
+    assert_eq!(r.len(), 11);
+}
+
+/// CYCLE85: in at FFR, dwell, out at RFF to the safety plane, rapid to RTP.
+#[test]
+fn cycle85_reaming() {
+    let r = rows(&run("G98 F10\nG0 X30 Z20\nCYCLE85(10,0,2,-15,,1,120,300)\n"));
+    expect(&r, 1, &[
+        ("rapid", 30.0, 2.0, 0.0, 0.0, 2),
+        ("feed", 30.0, -15.0, 0.0, 120.0, 3),
+        ("dwell", 30.0, -15.0, 0.0, 1.0, 4),
+        ("feed", 30.0, 2.0, 0.0, 300.0, 5),
+        ("rapid", 30.0, 10.0, 0.0, 0.0, 6),
+    ]);
+}
+
+/// CYCLE86: spindle SDIR on, bore, dwell, oriented stop at POSS (Cs), retract by RPA/RPAP,
+/// up to RTP, back in the plane, spindle on again; without retract values it goes straight
+/// up (the tutorial's "不退刀返回").
+#[test]
+fn cycle86_boring_with_and_without_retract() {
+    let r = rows(&run("G98 F60 S500\nG0 X40 Z20 C0\nCYCLE86(10,0,2,-20,,0.5,3,-0.5,,0.2,45)\n"));
+    expect(&r, 1, &[
+        ("rapid", 40.0, 2.0, 0.0, 0.0, 2),
+        ("spindle", 40.0, 2.0, 0.0, 500.0, 3),
+        ("feed", 40.0, -20.0, 0.0, 60.0, 3),
+        ("dwell", 40.0, -20.0, 0.0, 0.5, 4),
+        ("spindle", 40.0, -20.0, 0.0, 500.0, 4),
+        ("rapid", 40.0, -20.0, 45.0, 0.0, 4),
+        ("rapid", 39.0, -19.8, 45.0, 0.0, 5),
+        ("rapid", 39.0, 10.0, 45.0, 0.0, 6),
+        ("rapid", 40.0, 10.0, 45.0, 0.0, 6),
+        ("spindle", 40.0, 10.0, 45.0, 500.0, 6),
+    ]);
+    assert_eq!((r[2].w, r[5].w, r[10].w), (3.0, 5.0, 3.0));
+    let r = rows(&run("G98 F60 S500\nG0 X40 Z20 C0\nCYCLE86(10,0,2,-20,,0,4,,,,90)\n"));
+    let kinds: Vec<(&str, f64, f64)> = r.iter().skip(1).map(|r| (r.kind, r.z, r.c)).collect();
+    assert_eq!(kinds, [("rapid", 2.0, 0.0), ("spindle", 2.0, 0.0), ("feed", -20.0, 0.0), ("spindle", -20.0, 0.0), ("rapid", -20.0, 90.0), ("rapid", 10.0, 90.0), ("spindle", 10.0, 90.0)]);
+}
+
+/// Bad parameters: SINUMERIK cycle alarm numbers, at the call's line.
+#[test]
+fn siemens_cycle_alarms() {
+    let at = |src: &str| {
+        let a = run_err(&format!("G98 F100 S500\nG0 X0 Z20\n{src}\n"));
+        (a.number, a.pos.as_ref().unwrap().line)
+    };
+    assert_eq!(at("CYCLE81(10,0,1,5)"), (61101, 3)); // depth above RFP
+    assert_eq!(at("CYCLE81(10,0,1)"), (61101, 3)); // no depth
+    assert_eq!(at("CYCLE86(10,0,1,-5,,0,5)"), (61102, 3));
+    assert_eq!(at("CYCLE83(10,0,1,-10,,5)"), (61107, 3));
+    assert_eq!(at("CYCLE83(10,0,1,-10,,,3,,,,,2)"), (61002, 3));
+    assert_eq!(at("CYCLE83(10,0,1,-10,,,3,,,,2)"), (2510, 3));
+    assert_eq!(at("CYCLE85(10,0,1,-10,,0,100)"), (61003, 3));
+    assert_eq!(at("CYCLE81(10,0,1,-10,,0,0,0,0,0)"), (12340, 3));
+    assert_eq!(at("CYCLE87(10,0,1,-10)"), (10, 3));
+    assert_eq!(at("MCALL CYCLE81(10,0,1)"), (61101, 3));
+    // Syntax: missing `)` is found before anything runs, with its column.
+    let e = Interpreter::from_source("t.nc", "G0 X0\nCYCLE81(10,0,1,-5\n", &MachineConfig::embedded()).err().unwrap();
+    assert_eq!((e[0].number, e[0].pos.as_ref().unwrap().line, e[0].pos.as_ref().unwrap().col), (9, 2, 18));
+    // Parameters may be macro expressions and variables.
+    let r = rows(&run("G98 F100\n#1=-6\nG0 X0 Z20\nCYCLE81(10,0,[1+1],#1)\n"));
+    assert_eq!((r[1].z, r[2].z), (2.0, -6.0));
+}
