@@ -411,3 +411,103 @@ fn rigid_tap_runs_in_simulated_time() {
     assert!((s.final_actual_counts - s.program_end_counts.unwrap_or(0)).abs() <= 1, "{s:?}");
     assert!(s.max_following_error < 30.0, "{s:?}");
 }
+
+// ---------------------------------------------------------------------------------------
+// SINUMERIK CYCLE84 (rigid) and CYCLE840 (compensating chuck), manual 003 §1.6.
+
+/// The issue's call `CYCLE84(5,0,2,-15,,0.5,3,,1.5,,500,500)`: RTP 5, RFP 0, SDIS 2,
+/// DP -15, DTB 0.5, SDAC 3, PIT 1.5, SST 500, SST1 500: ② rapid to Z2, ③ tap to Z-15 (lead
+/// −1.5: right hand, the spindle forward going in), ④ dwell 0.5 s, ⑤ tap out to Z2 at SST1,
+/// ⑥ rapid to Z5 and M3 at the modal S.
+#[test]
+fn cycle84_issue_example() {
+    let m = run("G98 S800\nG0 X0 Z20\nCYCLE84(5,0,2,-15,,0.5,3,,1.5,,500,500)\nM30\n");
+    same(&taps(&m), &[
+        ("rapid", 20.0, 0.0, 0.0, 0),
+        ("rapid", 2.0, 0.0, 0.0, 2),
+        ("tap", -15.0, -1.5, 500.0, 3),
+        ("dwell", 0.5, 0.0, 0.0, 4),
+        ("tap", 2.0, -1.5, 500.0, 5),
+        ("rapid", 5.0, 0.0, 0.0, 6),
+        ("spindle", 800.0, 0.0, 0.0, 3),
+        ("end", 0.0, 0.0, 0.0, 0),
+    ]);
+}
+
+/// MPIT: the metric coarse table (M10 = 1.5, M6 = 1.0), negative = left hand; SST1 the
+/// retract speed; POSS orients the spindle (Cs) at the safety plane before the cut.
+#[test]
+fn cycle84_mpit_left_hand_and_poss() {
+    let lead = |args: &str| -> Vec<(f64, f64)> {
+        let m = run(&format!("G98 S800\nG0 X0 Z20\nCYCLE84({args})\n"));
+        m.iter().filter_map(|m| if let MoveKind::Tap { lead, rpm, .. } = m.kind { Some((lead, rpm)) } else { None }).collect()
+    };
+    assert_eq!(lead("5,0,2,-15,,0,3,10,,,500,900"), [(-1.5, 500.0), (-1.5, 900.0)]);
+    assert_eq!(lead("5,0,2,-15,,0,3,-6,,,500"), [(1.0, 500.0), (1.0, 500.0)]);
+    assert_eq!(lead("5,0,2,-15,,0,3,10,1.5,,500"), [(-1.5, 500.0), (-1.5, 500.0)]);
+    let m = run("G98 S800\nG0 X0 Z20 C10\nCYCLE84(5,0,2,-15,,0,5,,1,30,500)\n");
+    match m[2].kind {
+        MoveKind::Rapid { end } => assert_eq!((end.z, end.c), (2.0, 30.0)),
+        ref k => panic!("{k:?}"),
+    }
+    // SDAC 5: the spindle stays stopped after the cycle.
+    assert!(matches!(m.last().unwrap().kind, MoveKind::Spindle(s) if s.dir == SpindleDir::Stop));
+}
+
+/// Chip breaking (_VARI 1): cuts of _DAM 4, back _VRT 0.5 at SST1; chip removal (2): out to
+/// the safety plane at SST1 and back in at SST.
+#[test]
+fn cycle84_chip_breaking_and_removal() {
+    let strokes = |args: &str| -> Vec<(f64, f64)> {
+        let m = run(&format!("G98 S800\nG0 X0 Z20\nCYCLE84({args})\n"));
+        m.iter().filter_map(|m| if let MoveKind::Tap { end, rpm, .. } = m.kind { Some((end.z, rpm)) } else { None }).collect()
+    };
+    assert_eq!(
+        strokes("5,0,2,-10,,0,3,,1,,400,800,,,,1,4,0.5"),
+        [(-4.0, 400.0), (-3.5, 800.0), (-8.0, 400.0), (-7.5, 800.0), (-10.0, 400.0), (2.0, 800.0)]
+    );
+    assert_eq!(
+        strokes("5,0,2,-10,,0,3,,1,,400,800,,,,2,4"),
+        [(-4.0, 400.0), (2.0, 800.0), (-4.0, 400.0), (-8.0, 400.0), (2.0, 800.0), (-8.0, 400.0), (-10.0, 400.0), (2.0, 800.0)]
+    );
+}
+
+/// CYCLE840 with encoder: a per-revolution feed of one pitch following the encoder, the
+/// spindle reversed automatically (SDR 0) for the way out and SDAC again after it; without
+/// encoder (ENC 1) and no pitch: the feed in force before the cycle.
+#[test]
+fn cycle840_with_and_without_encoder() {
+    let m = run("G98 F300 S600\nG0 X0 Z20\nCYCLE840(5,0,2,-12,,0.4,0,3,0,,1.25)\n");
+    same(&taps(&m), &[
+        ("rapid", 20.0, 0.0, 0.0, 0),
+        ("rapid", 2.0, 0.0, 0.0, 2),
+        ("spindle", 600.0, 0.0, 0.0, 3),
+        ("feed", 0.0, 0.0, 0.0, 3),
+        ("dwell", 0.4, 0.0, 0.0, 4),
+        ("spindle", 600.0, 0.0, 0.0, 4),
+        ("feed", 0.0, 0.0, 0.0, 5),
+        ("spindle", 600.0, 0.0, 0.0, 3),
+        ("rapid", 5.0, 0.0, 0.0, 6),
+    ]);
+    let feeds: Vec<(f64, cncgw::canon::Feed)> =
+        m.iter().filter_map(|m| if let MoveKind::Feed { end, feed } = m.kind { Some((end.z, feed)) } else { None }).collect();
+    assert_eq!(feeds, [(-12.0, cncgw::canon::Feed::PerRev(1.25)), (2.0, cncgw::canon::Feed::PerRev(1.25))]);
+    let m = run("G98 F300 S600\nG0 X0 Z20\nCYCLE840(5,0,2,-12,,0,4,3,1)\n");
+    let feeds: Vec<cncgw::canon::Feed> = m.iter().filter_map(|m| if let MoveKind::Feed { feed, .. } = m.kind { Some(feed) } else { None }).collect();
+    assert_eq!(feeds, [cncgw::canon::Feed::PerMin(300.0), cncgw::canon::Feed::PerMin(300.0)]);
+}
+
+/// CYCLE84/840 parameter alarms (SINUMERIK numbers).
+#[test]
+fn cycle84_840_alarms() {
+    let num = |src: &str| run_err(&format!("G98 F100 S500\nG0 X0 Z20\n{src}\n")).number;
+    assert_eq!(num("CYCLE84(5,0,2,-15,,0,3,,,,500)"), 61001); // no pitch
+    assert_eq!(num("CYCLE84(5,0,2,-15,,0,3,11,,,500)"), 61001); // M11 is not a coarse size
+    assert_eq!(num("CYCLE84(5,0,2,-15,,0,3,10,2,,500)"), 61001); // M10 is 1.5, not 2
+    assert_eq!(num("CYCLE84(5,0,2,-15,,0,7,,1,,500)"), 61102);
+    assert_eq!(num("CYCLE84(5,0,2,-15,,0,3,,1)"), 61003); // no SST
+    assert_eq!(num("CYCLE84(5,0,2,-15,,0,3,,1,,500,,,,,3)"), 61002);
+    assert_eq!(num("CYCLE840(5,0,2,-15,,0,0,5,0,,1)"), 61102);
+    assert_eq!(num("CYCLE840(5,0,2,-15,,0,0,3,0)"), 61001);
+    assert_eq!(num("CYCLE840(5,0,2,-15,,0,0,3,7,,1)"), 61002);
+}
