@@ -39,6 +39,11 @@
 //! the manual's ranges (K, Q, E, J) and [`TAP_RETURN_ALARM`] for G30 P99 without a tap to
 //! return from.
 //!
+//! # Which manual wins
+//! Manual 004 §2.22.2 names No.5102 for the tapping Q mode and No.5114 for the peck return d;
+//! manual 000 (the rigid tapping specification) names No.5200#5 and No.5213 (D overriding
+//! it). We follow 000. 004 gives the drilling cycles No.5101 and No.5113.
+//!
 //! # Parameters (from `[parameters]`)
 //! No.5101 (0 high-speed peck / 1 peck; bit 2 as Fanuc RTR also counts), No.5113 d of G83/G87,
 //! No.5110 clamp M code (used when the block has none, 0 = none), No.5111 dwell after unclamp
@@ -65,8 +70,9 @@ pub const RIGID_F_ALARM: u32 = 201;
 pub const RIGID_PROGRAM_ALARM: u32 = 203;
 /// Fanuc PS0204: illegal axis operation (a move between M29 and G84).
 pub const RIGID_AXIS_ALARM: u32 = 204;
-/// Upper bound on the pecks of one hole, so that a tiny Q cannot flood the move queue.
-pub const MAX_PECKS: f64 = 10_000.0;
+/// Upper bound on the pecks of one block (all its K holes), so that a tiny Q cannot flood
+/// the move queue (a block's moves are queued at once).
+pub const MAX_PECKS: f64 = 20_000.0;
 
 /// The hole bottom as programmed.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -413,7 +419,9 @@ impl Interpreter {
             }
             self.drill.tap_j = Some(j.v);
         }
-        if let Some(&(mc, _)) = d.m.first() {
+        let rm = self.rigid_m();
+        let sel = self.drill.par.b5200[7];
+        if let Some(&(mc, _)) = d.m.iter().find(|m| m.0 != rm && !(sel && (24..=27).contains(&m.0))) {
             m.clamp = Some(mc);
         }
         self.drill.modal = Some(m);
@@ -469,6 +477,12 @@ impl Interpreter {
         };
         let stay = k == 198 && m.rigid;
         let holes = if stay { 1 } else { k };
+        if m.q > 0.0 && holes > 0 {
+            let per_hole = (self.drill_span(&m, d)? / m.q).ceil();
+            if per_hole * holes as f64 > MAX_PECKS {
+                return Err((RANGE_ALARM, d.get('Q').map(|q| q.col).or(gc), format!("Q{}: {} pecks in this block; increase Q", m.q, per_hole * holes as f64)));
+            }
+        }
         let depth = m.depth.ok_or((
             RANGE_ALARM,
             gc,
@@ -536,6 +550,16 @@ impl Interpreter {
         Ok(())
     }
 
+    /// |bottom − R point| of the block's hole.
+    fn drill_span(&self, m: &DrillModal, _d: &Decoded) -> Result<f64, CErr> {
+        let rp = m.initial + m.r;
+        Ok(match m.depth {
+            Some(Depth::Abs(b)) => (b - rp).abs(),
+            Some(Depth::Inc(w)) => w.abs(),
+            None => 0.0,
+        })
+    }
+
     fn dwell(&mut self, src: &SrcPos, tag: &Arc<str>, step: u8, s: f64) {
         if s > 0.0 {
             self.cpush(src, tag, step, MoveKind::Dwell { seconds: s }, true);
@@ -553,9 +577,6 @@ impl Interpreter {
         let dir = (bottom - rp).signum();
         let q = m.q;
         let dd = self.drill.par.d_5113;
-        if q > 0.0 && total / q > MAX_PECKS {
-            return Err((RANGE_ALARM, None, format!("Q{q}: {:.0} pecks for one hole; increase Q", total / q)));
-        }
         if q <= 0.0 || q >= total {
             self.cpush(src, tag, 3, MoveKind::Feed { end: at(bottom), feed }, true);
         } else {
@@ -655,9 +676,6 @@ impl Interpreter {
         let info = TapReturn { axis: m.axis, r_plane: rp, lead, rpm, override_pct: ovr };
         self.drill.last_tap = Some(info);
         let q = m.q;
-        if q > 0.0 && total / q > MAX_PECKS {
-            return Err((RANGE_ALARM, None, format!("Q{q}: {:.0} pecks for one hole; increase Q", total / q)));
-        }
         if q <= 0.0 || q >= total {
             self.cpush(src, tag, 3, tap(at(bottom), rpm), true);
         } else {
