@@ -410,3 +410,46 @@ fn siemens_cycle_alarms() {
     let r = rows(&run("G98 F100\n#1=-6\nG0 X0 Z20\nCYCLE81(10,0,[1+1],#1)\n"));
     assert_eq!((r[1].z, r[2].z), (2.0, -6.0));
 }
+
+/// Random drilling / tapping / SINUMERIK text never panics, under several parameter sets.
+mod robust {
+    use super::*;
+    use proptest::prelude::*;
+
+    /// The embedded configuration with `params` replacing the parameters of those numbers.
+    fn cfg_with(params: &str) -> MachineConfig {
+        let text = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/config/lathe.toml")).expect("config");
+        let keys: Vec<&str> = params.lines().filter_map(|l| l.split('=').next()).map(|k| k.trim()).collect();
+        let kept: Vec<&str> = text.lines().filter(|l| !keys.iter().any(|k| l.split('=').next().map(|x| x.trim()) == Some(*k))).collect();
+        let text = kept.join("\n").replace("[parameters]", &format!("[parameters]\n{params}"));
+        MachineConfig::from_toml("lathe.toml", &text).expect("config parses")
+    }
+
+    fn drain(src: &str, cfg: &MachineConfig) {
+        if let Ok(mut it) = Interpreter::from_source("f.nc", src, cfg) {
+            it.set_endless_loop_limit(1000);
+            for _ in 0..3000 {
+                match it.next_move() {
+                    Ok(Some(_)) => {}
+                    _ => break,
+                }
+            }
+        }
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig { cases: 300, .. ProptestConfig::default() })]
+        #[test]
+        fn drilling_text_never_panics(
+            lines in proptest::collection::vec(
+                "(G8[0-9] |G30 P99 |M29 |M2[4-7] |MCALL |CYCLE8[1-6]\\(|CYCLE840\\(|G9[89] |[XZUWCHRQPKFSJDE][-]?[0-9]{1,3}(\\.[0-9])? |[,)])",
+                0..40,
+            ),
+            params in 0usize..4,
+        ) {
+            let cfg = cfg_with(["", "5200 = 255", "5101 = 1\n5113 = 2", "5209 = 1\n5155 = 1\n5282 = 1"][params]);
+            let text: String = lines.concat().replace("G30", "\nG30").replace("CYCLE", "\nCYCLE").replace("MCALL", "\nMCALL").replace("M29", "\nM29");
+            drain(&text, &cfg);
+        }
+    }
+}
