@@ -403,6 +403,16 @@ fn siemens_cycle_alarms() {
     assert_eq!(at("CYCLE81(10,0,1,-10,,0,0,0,0,0)"), (12340, 3));
     assert_eq!(at("CYCLE87(10,0,1,-10)"), (10, 3));
     assert_eq!(at("MCALL CYCLE81(10,0,1)"), (61101, 3));
+    // The column is the offending parameter's.
+    let col = |src: &str| run_err(&format!("G98 F100 S500\nG0 X0 Z20\n{src}\n")).pos.unwrap().col;
+    assert_eq!(col("CYCLE81(10,0,1,5)"), 16);
+    assert_eq!(col("CYCLE86(10,0,1,-5,,0,5)"), 22);
+    assert_eq!(col("CYCLE83(10,0,1,-10,,,3,,,,2)"), 27);
+    assert_eq!(col("CYCLE81(10,0,1,-10,,0,0,0,0, 7)"), 30);
+    assert_eq!(col("MCALL CYCLE86(10,0,1,-5,,0,5)"), 28);
+    // An MCALL run in a later block points at that block.
+    let a = run_err("G98 F100 S500\nG0 X0 Z20\nMCALL CYCLE81(10,0,1,-5)\nG99\nX10\n");
+    assert_eq!((a.number, a.pos.as_ref().map(|p| (p.line, p.col))), (61003, Some((5, 1))));
     // Syntax: missing `)` is found before anything runs, with its column.
     let e = Interpreter::from_source("t.nc", "G0 X0\nCYCLE81(10,0,1,-5\n", &MachineConfig::embedded()).err().unwrap();
     assert_eq!((e[0].number, e[0].pos.as_ref().unwrap().line, e[0].pos.as_ref().unwrap().col), (9, 2, 18));

@@ -728,7 +728,7 @@ impl Interpreter {
                 Some(&d) => self.line = d,
                 None => return Err(wrap(MErr { number: 126, message: "END without DO".into() }, b.col)),
             },
-            Stmt::Call { mcall, name, args } => {
+            Stmt::Call { mcall, name, args, cols } => {
                 let mut vals = Vec::with_capacity(args.len());
                 for a in &args {
                     vals.push(match a {
@@ -736,7 +736,7 @@ impl Interpreter {
                         None => None,
                     });
                 }
-                self.siemens_stmt(mcall, name.as_deref(), &vals, &src).map_err(|(n, col, m)| {
+                self.siemens_stmt(mcall, name.as_deref(), &vals, &cols, &src).map_err(|(n, col, m)| {
                     Alarm::new(n, m).at(SrcPos::new(file.clone(), i as u32 + 1, col.unwrap_or(b.col))).with_block(text.trim_end())
                 })?;
             }

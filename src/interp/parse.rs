@@ -150,7 +150,8 @@ pub enum Stmt {
     /// A SINUMERIK cycle call (manual 003): `CYCLE81(100,0,1,,25)`, `MCALL CYCLE81(…)`
     /// (`mcall`), or a bare `MCALL` (`name` None) cancelling the modal call. Empty slots
     /// and missing trailing arguments are None.
-    Call { mcall: bool, name: Option<String>, args: Vec<Option<Expr>> },
+    /// `cols`: 1-based column of each parameter slot.
+    Call { mcall: bool, name: Option<String>, args: Vec<Option<Expr>>, cols: Vec<u32> },
 }
 
 #[derive(Clone, Debug, PartialEq)]
@@ -443,7 +444,7 @@ fn cycle_call(line: &str) -> Option<Result<Block, PErr>> {
         w = word(i);
         let rest_empty = |j: usize| chars[j..].iter().all(|c| c.is_whitespace()) || chars.get(j) == Some(&';');
         if w.is_empty() && rest_empty(i) {
-            return Some(Ok(Block { skip: false, n, stmt: Stmt::Call { mcall, name: None, args: Vec::new() }, col }));
+            return Some(Ok(Block { skip: false, n, stmt: Stmt::Call { mcall, name: None, args: Vec::new(), cols: Vec::new() }, col }));
         }
     }
     if !(w.starts_with("CYCLE") && w.len() > 5) {
@@ -483,7 +484,10 @@ fn cycle_call(line: &str) -> Option<Result<Block, PErr>> {
         return Some(perr(9, name_col, format!("{w}: more than {MAX_CALL_ARGS} parameters")));
     }
     let mut out = Vec::new();
+    let mut cols = Vec::new();
     for (a, b) in args {
+        let lead = chars[a..b].iter().take_while(|c| c.is_whitespace()).count();
+        cols.push((a + lead) as u32 + 1);
         let text = &chars[a..b];
         if text.iter().all(|c| c.is_whitespace()) {
             out.push(None);
@@ -506,6 +510,7 @@ fn cycle_call(line: &str) -> Option<Result<Block, PErr>> {
     while out.last().is_some_and(|a| a.is_none()) {
         out.pop();
     }
+    cols.truncate(out.len());
     let mut j = close + 1;
     ws(&mut j);
     match chars.get(j) {
@@ -514,7 +519,7 @@ fn cycle_call(line: &str) -> Option<Result<Block, PErr>> {
         Some('(') => {}
         Some(c) => return Some(perr(9, j as u32 + 1, format!("`{c}` after the cycle call: a cycle call stands alone in its block"))),
     }
-    Some(Ok(Block { skip: false, n, stmt: Stmt::Call { mcall, name: Some(w), args: out }, col }))
+    Some(Ok(Block { skip: false, n, stmt: Stmt::Call { mcall, name: Some(w), args: out, cols }, col }))
 }
 
 fn is_keyword(s: &str) -> bool {

@@ -181,6 +181,8 @@ pub struct DrillState {
     flex_dir: Option<SpindleDir>,
     /// MCALL: the SINUMERIK cycle run after every positioning block.
     pub mcall: Option<super::siemens::SiemensCall>,
+    /// Columns of the parameters of the cycle call being executed (for its alarms).
+    pub call_cols: Vec<u32>,
 }
 
 impl DrillState {
@@ -198,6 +200,7 @@ impl DrillState {
             last_tap: None,
             flex_dir: None,
             mcall: None,
+            call_cols: Vec::new(),
         }
     }
 }

@@ -108,14 +108,16 @@ struct Geo {
 
 impl Interpreter {
     /// A cycle call statement: `CYCLE8x(…)`, `MCALL CYCLE8x(…)` or a bare `MCALL`.
-    pub(in crate::interp) fn siemens_stmt(&mut self, mcall: bool, name: Option<&str>, args: &[Option<f64>], src: &SrcPos) -> Result<(), CErr> {
+    /// `cols`: the column of each parameter, for the alarms of this block.
+    pub(in crate::interp) fn siemens_stmt(&mut self, mcall: bool, name: Option<&str>, args: &[Option<f64>], cols: &[u32], src: &SrcPos) -> Result<(), CErr> {
         let Some(name) = name else {
             self.drill.mcall = None;
             return Ok(());
         };
         let max = max_args(name).ok_or((10, None, format!("{name} is not a cycle of this control (CYCLE81–86, CYCLE840)")))?;
+        self.drill.call_cols = cols.to_vec();
         if args.len() > max {
-            return Err((TOO_MANY_ALARM, None, format!("{name} takes at most {max} parameters, {} given", args.len())));
+            return Err((TOO_MANY_ALARM, self.pc(max), format!("{name} takes at most {max} parameters, {} given", args.len())));
         }
         if let Some(bad) = args.iter().flatten().find(|v| !v.is_finite()) {
             return Err((RANGE_ALARM, None, format!("{name}: parameter value {bad} is not a number")));
@@ -131,9 +133,18 @@ impl Interpreter {
             self.st.dir = saved.1;
             self.st.rpm = saved.2;
             self.drill.mcall = Some(call);
+            self.drill.call_cols.clear();
             return Ok(());
         }
-        self.run_siemens(&call, src)
+        let r = self.run_siemens(&call, src);
+        self.drill.call_cols.clear();
+        r
+    }
+
+    /// Column of parameter `i` of the call being executed (None for an MCALL run in a later
+    /// block: the alarm then points at that block).
+    fn pc(&self, i: usize) -> Option<u32> {
+        self.drill.call_cols.get(i).copied()
     }
 
     /// After a block that moved an axis: the modal call, if any.
@@ -171,12 +182,13 @@ impl Interpreter {
             (Some(d), _, _) => rfp + dir * d.abs() * u,
             (None, Some(dpr), _) => rfp + dir * dpr.abs() * u,
             (None, None, Some(dp)) => dp * u + oz,
-            _ => return Err((PLANE_ALARM, None, "no final drilling depth: give DP (absolute) or DPR (relative to RFP)".into())),
+            _ => return Err((PLANE_ALARM, self.pc(3), "no final drilling depth: give DP (absolute) or DPR (relative to RFP)".into())),
         };
         if (depth - rfp) * dir <= 0.0 {
+            let col = if Self::sarg(a, 4).is_some() { self.pc(4) } else { self.pc(3) };
             return Err((
                 PLANE_ALARM,
-                None,
+                col,
                 format!("the final depth Z{:.3} is not beyond the reference plane Z{:.3} seen from the retract plane Z{:.3}", depth - oz, rfp - oz, rtp - oz),
             ));
         }
@@ -201,7 +213,7 @@ impl Interpreter {
     }
 
     /// The pitch from MPIT (metric coarse size) and/or PIT; negative = left hand.
-    fn pitch(a: &[Option<f64>], mpit_i: usize, pit_i: usize, unit: f64) -> Result<Option<f64>, CErr> {
+    fn pitch(&self, a: &[Option<f64>], mpit_i: usize, pit_i: usize, unit: f64) -> Result<Option<f64>, CErr> {
         let table = match Self::sarg(a, mpit_i).filter(|v| *v != 0.0) {
             None => None,
             Some(m) => {
@@ -209,26 +221,26 @@ impl Interpreter {
                     .iter()
                     .find(|(size, _)| *size as f64 == m.abs())
                     .map(|(_, p)| *p)
-                    .ok_or((PITCH_ALARM, None, format!("MPIT {m}: not a metric coarse thread size (3–48: M3, M4, M5, M6, M8, M10 … M48)")))?;
+                    .ok_or((PITCH_ALARM, self.pc(mpit_i), format!("MPIT {m}: not a metric coarse thread size (3–48: M3, M4, M5, M6, M8, M10 … M48)")))?;
                 Some(p.copysign(m))
             }
         };
         let pit = Self::sarg(a, pit_i).filter(|v| *v != 0.0).map(|p| p * unit);
         match (table, pit) {
             (Some(t), Some(p)) if (t - p).abs() > 1e-9 => {
-                Err((PITCH_ALARM, None, format!("MPIT gives pitch {t} mm but PIT is {p} mm: give one of them")))
+                Err((PITCH_ALARM, self.pc(pit_i), format!("MPIT gives pitch {t} mm but PIT is {p} mm: give one of them")))
             }
             (Some(t), _) => Ok(Some(t)),
             (None, p) => Ok(p),
         }
     }
 
-    fn spindle_dir(code: f64, what: &str, allow_stop: bool) -> Result<SpindleDir, CErr> {
+    fn spindle_dir(code: f64, what: &str, allow_stop: bool, col: Option<u32>) -> Result<SpindleDir, CErr> {
         match code {
             c if c == 3.0 => Ok(SpindleDir::Cw),
             c if c == 4.0 => Ok(SpindleDir::Ccw),
             c if c == 5.0 && allow_stop => Ok(SpindleDir::Stop),
-            c => Err((SPINDLE_DIR_ALARM, None, format!("{what} {c}: the spindle direction is 3 (M3) or 4 (M4){}", if allow_stop { " or 5 (M5)" } else { "" }))),
+            c => Err((SPINDLE_DIR_ALARM, col, format!("{what} {c}: the spindle direction is 3 (M3) or 4 (M4){}", if allow_stop { " or 5 (M5)" } else { "" }))),
         }
     }
 
@@ -250,7 +262,7 @@ impl Interpreter {
                 let amode = arg(8).unwrap_or(0.0).abs() as u32;
                 let mut depth = None;
                 if arg(6) == Some(1.0) {
-                    let dia = arg(4).or(arg(3)).ok_or((PLANE_ALARM, None, format!("{}: diameter mode needs the diameter (DPR)", call.name)))?;
+                    let dia = arg(4).or(arg(3)).ok_or((PLANE_ALARM, self.pc(6), format!("{}: diameter mode needs the diameter (DPR)", call.name)))?;
                     depth = Some(dia.abs() / 2.0 / half);
                 }
                 let mut a2 = a.to_vec();
@@ -278,8 +290,8 @@ impl Interpreter {
             }
             "CYCLE85" => {
                 let g = self.geo(a, None)?;
-                let ffr = arg(6).filter(|v| *v != 0.0).ok_or((FEED_ALARM, None, "CYCLE85: no feed in (FFR)".to_string()))?;
-                let rff = arg(7).filter(|v| *v != 0.0).ok_or((FEED_ALARM, None, "CYCLE85: no feed out (RFF)".to_string()))?;
+                let ffr = arg(6).filter(|v| *v != 0.0).ok_or((FEED_ALARM, self.pc(6), "CYCLE85: no feed in (FFR)".to_string()))?;
+                let rff = arg(7).filter(|v| *v != 0.0).ok_or((FEED_ALARM, self.pc(7), "CYCLE85: no feed out (RFF)".to_string()))?;
                 let (fin, fout) = (self.feed_value(ffr), self.feed_value(rff));
                 self.cpush(src, &tag, 2, MoveKind::Rapid { end: self.zpos(g.safe) }, true);
                 self.cpush(src, &tag, 3, MoveKind::Feed { end: self.zpos(g.depth), feed: fin }, true);
@@ -289,11 +301,11 @@ impl Interpreter {
             }
             "CYCLE86" => {
                 let g = self.geo(a, None)?;
-                let sdir = Self::spindle_dir(arg(6).unwrap_or(0.0), "SDIR", false)?;
+                let sdir = Self::spindle_dir(arg(6).unwrap_or(0.0), "SDIR", false, self.pc(6))?;
                 let u = self.unit();
                 let (rpa, rpo, rpap) = (arg(7).unwrap_or(0.0) * u, arg(8).unwrap_or(0.0) * u, arg(9).unwrap_or(0.0) * u);
                 if rpo != 0.0 && !self.has_y {
-                    return Err((21, None, "CYCLE86 RPO retracts along Y, which this machine lacks".into()));
+                    return Err((21, self.pc(8), "CYCLE86 RPO retracts along Y, which this machine lacks".into()));
                 }
                 let poss = arg(10).unwrap_or(0.0);
                 let feed = self.sfeed()?;
@@ -371,14 +383,14 @@ impl Interpreter {
         let first = match (arg(6).filter(|v| *v != 0.0), arg(5)) {
             (Some(r), _) => {
                 if r < 0.0 {
-                    return Err((FIRST_DEPTH_ALARM, None, format!("FDPR {r}: the first depth relative to RFP is unsigned")));
+                    return Err((FIRST_DEPTH_ALARM, self.pc(6), format!("FDPR {r}: the first depth relative to RFP is unsigned")));
                 }
                 r * u
             }
             (None, Some(f)) => {
                 let d = (f * u + oz - g.rfp) * g.dir;
                 if d <= 0.0 {
-                    return Err((FIRST_DEPTH_ALARM, None, format!("FDEP {f}: the first drilling depth is not beyond the reference plane")));
+                    return Err((FIRST_DEPTH_ALARM, self.pc(5), format!("FDEP {f}: the first drilling depth is not beyond the reference plane")));
                 }
                 d
             }
@@ -387,13 +399,13 @@ impl Interpreter {
         let first = first.min(total);
         let vari = arg(11).unwrap_or(0.0);
         if vari != 0.0 && vari != 1.0 {
-            return Err((MACHINING_ALARM, None, format!("VARI {vari}: 0 = chip breaking, 1 = chip removal")));
+            return Err((MACHINING_ALARM, self.pc(11), format!("VARI {vari}: 0 = chip breaking, 1 = chip removal")));
         }
         let frf = match arg(10) {
             None => 1.0,
             Some(v) if v == 0.0 => 1.0,
             Some(v) if (0.001..=1.0).contains(&v) => v,
-            Some(v) => return Err((RANGE_ALARM, None, format!("FRF {v}: the first-depth feed factor is 0.001–1"))),
+            Some(v) => return Err((RANGE_ALARM, self.pc(10), format!("FRF {v}: the first-depth feed factor is 0.001–1"))),
         };
         let dam = arg(7).unwrap_or(0.0) * if arg(7).unwrap_or(0.0) > 0.0 { u } else { 1.0 };
         let mdep = arg(13).unwrap_or(0.0).abs() * u;
@@ -443,20 +455,20 @@ impl Interpreter {
         let g = self.geo(a, None)?;
         let arg = |i| Self::sarg(a, i);
         let u = self.unit();
-        let pitch = Self::pitch(a, 7, 8, u)?.ok_or((PITCH_ALARM, None, "CYCLE84: no thread pitch: give PIT or MPIT".to_string()))?;
-        let sdac = arg(6).map(|v| Self::spindle_dir(v, "SDAC", true)).transpose()?;
-        let sst = arg(10).filter(|v| *v > 0.0).ok_or((FEED_ALARM, None, "CYCLE84: no tapping speed SST".to_string()))?;
+        let pitch = self.pitch(a, 7, 8, u)?.ok_or((PITCH_ALARM, self.pc(8).or(self.pc(7)), "CYCLE84: no thread pitch: give PIT or MPIT".to_string()))?;
+        let sdac = arg(6).map(|v| Self::spindle_dir(v, "SDAC", true, self.pc(6))).transpose()?;
+        let sst = arg(10).filter(|v| *v > 0.0).ok_or((FEED_ALARM, self.pc(10), "CYCLE84: no tapping speed SST".to_string()))?;
         let sst1 = arg(11).filter(|v| *v > 0.0).unwrap_or(sst);
         let vari = arg(15).unwrap_or(0.0);
         if ![0.0, 1.0, 2.0].contains(&vari) {
-            return Err((MACHINING_ALARM, None, format!("_VARI {vari}: 0 one cut, 1 chip breaking, 2 chip removal")));
+            return Err((MACHINING_ALARM, self.pc(15), format!("_VARI {vari}: 0 one cut, 1 chip breaking, 2 chip removal")));
         }
         let lead = g.dir * pitch.abs() * pitch.signum();
         let total = (g.depth - g.rfp).abs();
         let stages = if vari == 0.0 {
             vec![total]
         } else {
-            let dam = arg(16).filter(|v| *v > 0.0).ok_or((RANGE_ALARM, None, "CYCLE84 chip breaking / removal needs the depth per cut _DAM (D)".to_string()))?;
+            let dam = arg(16).filter(|v| *v > 0.0).ok_or((RANGE_ALARM, self.pc(16).or(self.pc(15)), "CYCLE84 chip breaking / removal needs the depth per cut _DAM (D)".to_string()))?;
             Self::stages(dam * u, total, 0.0, 0.0)?
         };
         let vrt = arg(17).filter(|v| *v > 0.0).map(|v| v * u).unwrap_or(1.0);
@@ -499,18 +511,18 @@ impl Interpreter {
         let g = self.geo(a, None)?;
         let arg = |i| Self::sarg(a, i);
         let u = self.unit();
-        let sdac = Self::spindle_dir(arg(7).unwrap_or(0.0), "SDAC", false)?;
+        let sdac = Self::spindle_dir(arg(7).unwrap_or(0.0), "SDAC", false, self.pc(7))?;
         let sdr = match arg(6).unwrap_or(0.0) {
             v if v == 0.0 => if sdac == SpindleDir::Cw { SpindleDir::Ccw } else { SpindleDir::Cw },
-            v => Self::spindle_dir(v, "SDR", false)?,
+            v => Self::spindle_dir(v, "SDR", false, self.pc(6))?,
         };
         let enc = arg(8).unwrap_or(0.0);
         if ![0.0, 1.0, 10.0, 11.0].contains(&enc) {
-            return Err((MACHINING_ALARM, None, format!("ENC {enc}: 0 with encoder, 1 without (10/11 the same without dwell check)")));
+            return Err((MACHINING_ALARM, self.pc(8), format!("ENC {enc}: 0 with encoder, 1 without (10/11 the same without dwell check)")));
         }
-        let pitch = Self::pitch(a, 9, 10, u)?;
+        let pitch = self.pitch(a, 9, 10, u)?;
         let feed = match (enc as u32 % 10, pitch) {
-            (0, None) => return Err((PITCH_ALARM, None, "CYCLE840 with encoder needs the pitch: give PIT or MPIT".into())),
+            (0, None) => return Err((PITCH_ALARM, self.pc(10).or(self.pc(9)), "CYCLE840 with encoder needs the pitch: give PIT or MPIT".into())),
             (_, Some(p)) => Feed::PerRev(p.abs()),
             (_, None) => self.sfeed()?,
         };
