@@ -511,3 +511,23 @@ fn cycle84_840_alarms() {
     assert_eq!(num("CYCLE840(5,0,2,-15,,0,0,3,0)"), 61001);
     assert_eq!(num("CYCLE840(5,0,2,-15,,0,0,3,7,,1)"), 61002);
 }
+
+/// Another drilling cycle after rigid tapping without G80 ends rigid tapping like G80: the
+/// spindle state from before M29 comes back (M03 S1500) and the G83 holes drill normally.
+#[test]
+fn another_cycle_after_rigid_tapping_ends_it() {
+    let m = run("G98\nM3 S1500\nG0 X0 Z5\nM29 S500\nG84 Z-10 F1000\nG83 X10 Z-5 F100\nG80\n");
+    let t = taps(&m);
+    same(&t[4..], &[
+        ("tap", -10.0, -2.0, 500.0, 3),
+        ("tap", 5.0, -2.0, 500.0, 5),
+        ("spindle", 1500.0, 0.0, 0.0, 3),
+        ("rapid", 5.0, 0.0, 0.0, 1),
+        ("feed", 0.0, 0.0, 0.0, 3),
+        ("rapid", 5.0, 0.0, 0.0, 5),
+    ]);
+    assert_eq!(m[6].src.line, 6);
+    let a = run_err("G98\nG0 X0 Z5\nM29 S500\nG84 Z-10 F1000\nG83 X10 Z-5 F100\nM29 S400\nS300\nG84 Z-10\n");
+    // After leaving rigid tapping M29 is allowed again (line 6); S before G84 is not.
+    assert_eq!((a.number, a.pos.unwrap().line), (203, 7));
+}

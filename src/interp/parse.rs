@@ -1147,4 +1147,30 @@ mod tests {
         assert_eq!(parse_line(&format!("#1={}1", "-".repeat(100_000))).unwrap_err().number, 114);
         assert_eq!(parse_line(&format!("#1={}1", "#".repeat(100_000))).unwrap_err().number, 114);
     }
+
+    #[test]
+    fn sinumerik_cycle_calls() {
+        let b = parse_line("N20 mcall cycle81(100, 0,1,,25,0.6,,,) ; centre").unwrap();
+        assert_eq!(b.n, Some(20));
+        let Stmt::Call { mcall, name, args, cols } = b.stmt else { panic!() };
+        assert!(mcall);
+        assert_eq!(name.as_deref(), Some("CYCLE81"));
+        let num = |v: f64| Some(Expr::Num { v, decimal: v.fract() != 0.0 });
+        assert_eq!(args, [num(100.0), num(0.0), num(1.0), None, num(25.0), num(0.6)]);
+        assert_eq!(cols, [19, 24, 26, 28, 29, 32]);
+        assert_eq!(parse_line("MCALL").unwrap().stmt, Stmt::Call { mcall: true, name: None, args: vec![], cols: vec![] });
+        let b = parse_line("CYCLE84(5,0,2,-[3*5],,#1) (tap)").unwrap();
+        let Stmt::Call { args, .. } = b.stmt else { panic!() };
+        assert_eq!(args.len(), 6);
+        assert!(matches!(args[3], Some(Expr::Neg(_))));
+        assert!(matches!(args[5], Some(Expr::Var(_))));
+        // Errors with their columns.
+        assert_eq!(parse_line("CYCLE81(1,2").map_err(|e| (e.number, e.col)).unwrap_err(), (9, 12));
+        assert_eq!(parse_line("CYCLE81 X1").map_err(|e| (e.number, e.col)).unwrap_err(), (9, 9));
+        assert_eq!(parse_line("CYCLE81(1,2) X5").map_err(|e| (e.number, e.col)).unwrap_err(), (9, 14));
+        assert_eq!(parse_line("CYCLE81(1,2 3)").map_err(|e| (e.number, e.col)).unwrap_err(), (9, 13));
+        assert_eq!(parse_line("MCALL X1").map_err(|e| e.number).unwrap_err(), 9);
+        // Ordinary blocks are not calls.
+        assert!(matches!(parse_line("C10 Z5").unwrap().stmt, Stmt::Nc(_)));
+    }
 }

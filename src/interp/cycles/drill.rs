@@ -372,6 +372,11 @@ impl Interpreter {
                 self.push(src, MoveKind::Spindle(c), false);
             }
         }
+        if was_rigid && !rigid {
+            // Another cycle without G80 ends rigid tapping as G80 would.
+            self.drill.modal = prev.clone();
+            self.drill_cancel(src);
+        }
         self.drill.m29_pending = false;
         let mut m = DrillModal {
             code: g,
