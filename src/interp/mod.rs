@@ -512,6 +512,11 @@ impl Interpreter {
                         Alarm::new(126, format!("END{n} without a DO{n}")).at(at(b.col)).with_block(text.trim_end()),
                     ),
                 },
+                Stmt::Call { name: Some(name), args, cols, .. } => {
+                    if let Some((n, col, m)) = cycles::siemens::static_check(name, args.len(), cols) {
+                        errors.push(Alarm::new(n, m).at(at(col.unwrap_or(b.col))).with_block(text.trim_end()));
+                    }
+                }
                 Stmt::Goto(Expr::Num { v, .. }) | Stmt::IfGoto { target: Expr::Num { v, .. }, .. } => {
                     gotos.push((p, i, *v as u32, b.col));
                 }

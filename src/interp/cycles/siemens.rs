@@ -96,6 +96,15 @@ fn max_args(name: &str) -> Option<usize> {
     })
 }
 
+/// The checks of a call that need no values (pass 1, before the program runs): a known
+/// cycle and not too many parameters. Returns (alarm, column, message).
+pub fn static_check(name: &str, nargs: usize, cols: &[u32]) -> Option<(u32, Option<u32>, String)> {
+    let Some(max) = max_args(name) else {
+        return Some((10, None, format!("{name} is not a cycle of this control (CYCLE81–86, CYCLE840)")));
+    };
+    (nargs > max).then(|| (TOO_MANY_ALARM, cols.get(max).copied(), format!("{name} takes at most {max} parameters, {nargs} given")))
+}
+
 /// Z levels of one cycle in machine coordinates, and the direction into the hole.
 #[derive(Clone, Copy, Debug)]
 struct Geo {
@@ -114,11 +123,10 @@ impl Interpreter {
             self.drill.mcall = None;
             return Ok(());
         };
-        let max = max_args(name).ok_or((10, None, format!("{name} is not a cycle of this control (CYCLE81–86, CYCLE840)")))?;
-        self.drill.call_cols = cols.to_vec();
-        if args.len() > max {
-            return Err((TOO_MANY_ALARM, self.pc(max), format!("{name} takes at most {max} parameters, {} given", args.len())));
+        if let Some(e) = static_check(name, args.len(), cols) {
+            return Err(e);
         }
+        self.drill.call_cols = cols.to_vec();
         if let Some(bad) = args.iter().flatten().find(|v| !v.is_finite()) {
             return Err((RANGE_ALARM, None, format!("{name}: parameter value {bad} is not a number")));
         }
