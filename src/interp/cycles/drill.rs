@@ -476,7 +476,7 @@ impl Interpreter {
         let k = match d.get('K') {
             None => 1,
             Some(k) => {
-                let ok = k.v.fract() == 0.0 && ((0.0..=99.0).contains(&k.v) || (k.v == 198.0 && m.code == 840 || k.v == 198.0 && m.code == 880));
+                let ok = k.v.fract() == 0.0 && ((0.0..=99.0).contains(&k.v) || (k.v == 198.0 && matches!(m.code, 840 | 880)));
                 if !ok {
                     return Err((RANGE_ALARM, Some(k.col), format!("K{}: the repeat count is 0–99 (K198 stays at the bottom, rigid tapping only)", k.v)));
                 }

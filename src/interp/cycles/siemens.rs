@@ -244,11 +244,14 @@ impl Interpreter {
     }
 
     fn spindle_dir(code: f64, what: &str, allow_stop: bool, col: Option<u32>) -> Result<SpindleDir, CErr> {
-        match code {
-            c if c == 3.0 => Ok(SpindleDir::Cw),
-            c if c == 4.0 => Ok(SpindleDir::Ccw),
-            c if c == 5.0 && allow_stop => Ok(SpindleDir::Stop),
-            c => Err((SPINDLE_DIR_ALARM, col, format!("{what} {c}: the spindle direction is 3 (M3) or 4 (M4){}", if allow_stop { " or 5 (M5)" } else { "" }))),
+        if code == 3.0 {
+            Ok(SpindleDir::Cw)
+        } else if code == 4.0 {
+            Ok(SpindleDir::Ccw)
+        } else if code == 5.0 && allow_stop {
+            Ok(SpindleDir::Stop)
+        } else {
+            Err((SPINDLE_DIR_ALARM, col, format!("{what} {code}: the spindle direction is 3 (M3) or 4 (M4){}", if allow_stop { " or 5 (M5)" } else { "" })))
         }
     }
 
@@ -409,12 +412,11 @@ impl Interpreter {
         if vari != 0.0 && vari != 1.0 {
             return Err((MACHINING_ALARM, self.pc(11), format!("VARI {vari}: 0 = chip breaking, 1 = chip removal")));
         }
-        let frf = match arg(10) {
-            None => 1.0,
-            Some(v) if v == 0.0 => 1.0,
-            Some(v) if (0.001..=1.0).contains(&v) => v,
-            Some(v) => return Err((RANGE_ALARM, self.pc(10), format!("FRF {v}: the first-depth feed factor is 0.001–1"))),
-        };
+        // FRF empty or 0 = 1 (full feed).
+        let frf = arg(10).filter(|v| *v != 0.0).unwrap_or(1.0);
+        if !(0.001..=1.0).contains(&frf) {
+            return Err((RANGE_ALARM, self.pc(10), format!("FRF {frf}: the first-depth feed factor is 0.001–1")));
+        }
         let dam = arg(7).unwrap_or(0.0) * if arg(7).unwrap_or(0.0) > 0.0 { u } else { 1.0 };
         let mdep = arg(13).unwrap_or(0.0).abs() * u;
         let dtb = arg(8).unwrap_or(0.0).max(0.0);
@@ -520,9 +522,15 @@ impl Interpreter {
         let arg = |i| Self::sarg(a, i);
         let u = self.unit();
         let sdac = Self::spindle_dir(arg(7).unwrap_or(0.0), "SDAC", false, self.pc(7))?;
-        let sdr = match arg(6).unwrap_or(0.0) {
-            v if v == 0.0 => if sdac == SpindleDir::Cw { SpindleDir::Ccw } else { SpindleDir::Cw },
-            v => Self::spindle_dir(v, "SDR", false, self.pc(6))?,
+        let sdr_code = arg(6).unwrap_or(0.0);
+        let sdr = if sdr_code == 0.0 {
+            if sdac == SpindleDir::Cw {
+                SpindleDir::Ccw
+            } else {
+                SpindleDir::Cw
+            }
+        } else {
+            Self::spindle_dir(sdr_code, "SDR", false, self.pc(6))?
         };
         let enc = arg(8).unwrap_or(0.0);
         if ![0.0, 1.0, 10.0, 11.0].contains(&enc) {
