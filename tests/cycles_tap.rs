@@ -134,7 +134,8 @@ fn pull_out_override_table() {
 }
 
 /// No.5200#0 = 1: G84 with S is rigid tapping (no M29); G99: lead = F; No.7013 dwell at R and
-/// No.5282 extra return; the spindle running before is stopped and given back at G80.
+/// No.5282 extra return; the spindle running before is stopped and given back after the
+/// hole (004 step ⑦), before the rapid to the initial plane.
 #[test]
 fn g_code_mode_g99_extra_return_and_spindle_restore() {
     let cfg = cfg_with("5200 = 1\n5282 = 2.0\n7013 = 500");
@@ -148,8 +149,8 @@ fn g_code_mode_g99_extra_return_and_spindle_restore() {
         ("tap", 2.0, -1.5, 600.0, 5),
         ("tap", 4.0, -1.5, 600.0, 5),
         ("dwell", 0.5, 0.0, 0.0, 5),
-        ("rapid", 5.0, 0.0, 0.0, 6),
         ("spindle", 1500.0, 0.0, 0.0, 3),
+        ("rapid", 5.0, 0.0, 0.0, 6),
         ("end", 0.0, 0.0, 0.0, 0),
     ]);
     // Without S in that mode: PS0200.
@@ -512,8 +513,9 @@ fn cycle84_840_alarms() {
     assert_eq!(num("CYCLE840(5,0,2,-15,,0,0,3,7,,1)"), 61002);
 }
 
-/// Another drilling cycle after rigid tapping without G80 ends rigid tapping like G80: the
-/// spindle state from before M29 comes back (M03 S1500) and the G83 holes drill normally.
+/// Another drilling cycle after rigid tapping without G80 ends rigid tapping like G80 and
+/// the G83 holes drill normally; the spindle state from before M29 (M03 S1500) came back at
+/// the end of the tapped hole (004 step ⑦) and is not output again.
 #[test]
 fn another_cycle_after_rigid_tapping_ends_it() {
     let m = run("G98\nM3 S1500\nG0 X0 Z5\nM29 S500\nG84 Z-10 F1000\nG83 X10 Z-5 F100\nG80\n");
@@ -526,7 +528,8 @@ fn another_cycle_after_rigid_tapping_ends_it() {
         ("feed", 0.0, 0.0, 0.0, 3),
         ("rapid", 5.0, 0.0, 0.0, 5),
     ]);
-    assert_eq!(m[6].src.line, 6);
+    assert_eq!(m[6].src.line, 5);
+    assert_eq!(t.iter().filter(|r| r.0 == "spindle" && r.1 == 1500.0).count(), 2);
     let a = run_err("G98\nG0 X0 Z5\nM29 S500\nG84 Z-10 F1000\nG83 X10 Z-5 F100\nM29 S400\nS300\nG84 Z-10\n");
     // After leaving rigid tapping M29 is allowed again (line 6); S before G84 is not.
     assert_eq!((a.number, a.pos.unwrap().line), (203, 7));

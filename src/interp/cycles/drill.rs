@@ -166,7 +166,8 @@ pub struct DrillState {
     tap_s: Option<f64>,
     /// J pull-out speed, kept until G80.
     tap_j: Option<f64>,
-    /// Spindle state before rigid tapping, restored at G80 (004 step ⑦).
+    /// Spindle state before rigid tapping, restored after each hole (004 step ⑦); kept
+    /// until G80.
     spindle_before: Option<(SpindleDir, f64)>,
     /// E / M24–M27 tapping spindle (1–4).
     pub spindle_no: u8,
@@ -437,7 +438,8 @@ impl Interpreter {
     }
 
     /// G80 (or a group-01 code): drilling data cleared, rigid tapping left, its S cleared
-    /// (000 note 5) and the spindle state from before rigid tapping restored (004 step ⑦).
+    /// (000 note 5); the spindle state from before rigid tapping is restored if no hole did
+    /// it already (004 step ⑦).
     fn drill_cancel(&mut self, src: &SrcPos) {
         let was_rigid = self.drill.modal.take().is_some_and(|m| m.rigid) || self.drill.m29_pending;
         self.drill.m29_pending = false;
@@ -446,7 +448,7 @@ impl Interpreter {
         self.drill.flex_dir = None;
         if was_rigid {
             if let Some((dir, rpm)) = self.drill.spindle_before.take() {
-                if dir != SpindleDir::Stop {
+                if dir != SpindleDir::Stop && self.st.dir != dir {
                     self.st.dir = dir;
                     self.st.rpm = rpm;
                     let c = self.spindle_cmd(dir);
@@ -645,7 +647,8 @@ impl Interpreter {
     /// peck (No.5200#5 = 0): (4) q, (5) back d (D or No.5213), (6) q + d, … (8) dwell, (9)
     /// back to R. Peck (No.5200#5 = 1): (4) q, (5) back to R, (6) in to d short of the last
     /// depth, (7) q + d, … (9) dwell, (10) back to R. Then No.5282 further and No.7013
-    /// dwell at R. Tags: in-strokes and peck returns 3, dwell 4, return 5.
+    /// dwell at R, and the spindle state from before rigid tapping back (004 ⑦, when it
+    /// was turning). Tags: in-strokes and peck returns 3, dwell 4, return 5.
     ///
     /// K198: stops after the dwell at the bottom; the tap state is kept for `G30 P99` and
     /// the next block starts there. Returns false then.
@@ -719,6 +722,14 @@ impl Interpreter {
         }
         let d7013 = self.drill.par.dwell_7013;
         self.dwell(src, tag, 5, d7013);
+        // 004 step ⑦: the spindle turns again as it did before rigid tapping (the next hole's
+        // first stroke stops it again).
+        if let Some((dir, rpm)) = self.drill.spindle_before.filter(|b| b.0 != SpindleDir::Stop) {
+            self.st.dir = dir;
+            self.st.rpm = rpm;
+            let c = self.spindle_cmd(dir);
+            self.cpush(src, tag, 5, MoveKind::Spindle(c), false);
+        }
         Ok(true)
     }
 
