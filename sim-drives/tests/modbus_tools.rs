@@ -134,7 +134,8 @@ fn poll(link: &[&str], unit: u8, rest: &[&str]) -> Poll {
     let unit = unit.to_string();
     let (target, link_opts) = link.split_last().expect("link");
     let split = rest.iter().position(|x| *x == "--").unwrap_or(rest.len());
-    let mut a: Vec<&str> = vec!["-1", "-0", "-o", "0.5", "-a", &unit];
+    // A generous timeout: a loaded machine stalls processes for 100s of ms.
+    let mut a: Vec<&str> = vec!["-1", "-0", "-o", "3", "-a", &unit];
     a.extend_from_slice(link_opts);
     a.extend_from_slice(&rest[..split]);
     a.push(target);
@@ -252,7 +253,7 @@ fn mbpoll_over_rtu_through_a_socat_pty_pair() {
         let link = ["-m", "rtu", "-b", "115200", "-P", mb_parity, "-s", "1", b.as_str()];
         common_checks(&link);
         // A unit no drive has: silence on the line (a timeout), as on a real RS-485 bus.
-        let p = poll(&link, 9, &["-r", "10"]);
+        let p = poll(&link, 9, &["-o", "0.3", "-r", "10"]);
         assert!(!p.ok && p.err.contains("timed out"), "{} {}", p.out, p.err);
         // The line still works after that.
         let p = poll(&link, 2, &["-r", "10"]);
@@ -266,6 +267,8 @@ fn tokio_modbus_rtu_client_through_a_socat_pty_pair() {
         return;
     }
     use tokio_modbus::prelude::*;
+    // The drives' warnings (a fault says why) in the test's output.
+    let _ = tracing_subscriber::fmt().with_env_filter(std::env::var("RUST_LOG").unwrap_or_else(|_| "warn".into())).with_test_writer().try_init();
     let (_socat, a, b) = pty_pair();
     let stop = Arc::new(AtomicBool::new(false));
     let line = sim_drives::modbus::RtuLine::default();

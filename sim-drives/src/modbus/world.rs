@@ -124,6 +124,9 @@ struct Unit {
     order: WordOrder,
     comm_timeout_ms: u16,
     last_write: u64,
+    /// When to latch the present target again (after a CSP segment that started from a
+    /// hold, see `SimDrive::modbus_latch`).
+    relatch_at: Option<u64>,
     pr: Option<Pr>,
 }
 
@@ -176,7 +179,7 @@ impl World {
                 last_step: None,
             });
             // The watchdog is off until the master sets its timeout.
-            units.push(Unit { node: d.node, fields, order, comm_timeout_ms: 0, last_write: 0, pr });
+            units.push(Unit { node: d.node, fields, order, comm_timeout_ms: 0, last_write: 0, relatch_at: None, pr });
         }
         let mut core = Core::new(cfg);
         core.schedule(faults);
@@ -223,7 +226,7 @@ impl World {
                 next = next.min((now / PR_PERIOD + 1) * PR_PERIOD);
             }
             for u in &self.units {
-                if let Some(dl) = self.watchdog_deadline(u) {
+                for dl in [self.watchdog_deadline(u), u.relatch_at].into_iter().flatten() {
                     if dl > now {
                         next = next.min(dl);
                     }
@@ -249,6 +252,10 @@ impl World {
                     d.inject_fault(COMM_TIMEOUT_CODE, now);
                 }
                 self.pr_sync(i, now);
+            }
+            if self.units[i].relatch_at.is_some_and(|t| t <= now) {
+                let node = self.units[i].node;
+                self.units[i].relatch_at = self.core.drive_mut(node).and_then(|d| d.modbus_latch(now));
             }
             if now % PR_PERIOD == 0 {
                 self.pr_step(i, now);
@@ -313,8 +320,9 @@ impl World {
         g.step(PR_PERIOD as f64 * 1e-9, now + PR_PERIOD);
         let target = g.p.round().clamp(i32::MIN as f64, i32::MAX as f64) as i64;
         if let Some(d) = self.core.drives.iter_mut().find(|d| d.node() == u.node) {
+            // Latched every period: never late, nothing to re-latch.
             if d.modbus_write(ix::TARGET_POSITION, 0, target, now).is_ok() {
-                d.modbus_latch(now);
+                let _ = d.modbus_latch(now);
             }
         }
     }
@@ -327,6 +335,7 @@ impl World {
             return if rtu { Ok(None) } else { Err(ExceptionCode::GatewayTargetDevice) };
         };
         let now = self.core.now;
+        tracing::trace!(unit, t_ms = now as f64 * 1e-6, "{req:?}");
         let r = match req {
             Request::ReadHoldingRegisters(a, n) => self.read(ui, *a, *n, MAX_READ).map(Response::ReadHoldingRegisters),
             Request::ReadInputRegisters(a, n) => self.read(ui, *a, *n, MAX_READ).map(Response::ReadInputRegisters),
@@ -478,7 +487,7 @@ impl World {
         if latch {
             let node = self.units[ui].node;
             if let Some(d) = self.core.drive_mut(node) {
-                d.modbus_latch(now);
+                self.units[ui].relatch_at = d.modbus_latch(now);
             }
         }
         Ok(())
