@@ -262,6 +262,10 @@ impl SimConfig {
             kind: DriveKind,
             node: u8,
             counts_per_unit: f64,
+            // A drive on Modbus: the same keys as in a sim-drives [[drive]].
+            modbus_profile: Option<Profile>,
+            cia402_map: Option<Cia402Map>,
+            pr_map: Option<PrMap>,
         }
         #[derive(Deserialize)]
         struct Machine {
@@ -272,7 +276,11 @@ impl SimConfig {
         let m: Machine = toml::from_str(text).map_err(|e| format!("machine config: {e}"))?;
         let mut drives = Vec::new();
         for (name, a) in &m.axes {
-            drives.push(DriveConfig::new(a.node, a.kind, name, a.counts_per_unit));
+            let mut d = DriveConfig::new(a.node, a.kind, name, a.counts_per_unit);
+            d.modbus_profile = a.modbus_profile.unwrap_or_default();
+            d.cia402_map = a.cia402_map.unwrap_or_default();
+            d.pr_map = a.pr_map.unwrap_or_default();
+            drives.push(d);
         }
         let cfg = SimConfig { drives, step_us: 50 };
         cfg.validate()?;
@@ -624,6 +632,12 @@ mod tests {
         assert_eq!(c.drives[0].pr_map.word_order, cncgw_bus::modbus::WordOrder::LowFirst);
         assert_eq!(c.drives[1].modbus_profile, Profile::Cia402);
         assert_eq!(c.drives[1].cia402_map, Cia402Map::default());
+        // A machine config's axes take the same keys.
+        let m = SimConfig::from_machine_toml(
+            "[axes.w]\nkind = \"linear\"\nnode = 7\ncounts_per_unit = 1000.0\nmodbus_profile = \"pr\"\n[axes.w.pr_map]\nservo_on = 0x100\n",
+        )
+        .unwrap();
+        assert_eq!((m.drives[0].modbus_profile, m.drives[0].pr_map.servo_on), (Profile::Pr, 0x100));
         // The printed form reads back to the same profiles and maps.
         let mut c = c;
         c.drives[1].cia402_map.statusword = 300;
