@@ -126,6 +126,9 @@ pub struct PrMap {
     /// Communication timeout, ms (0 = off).
     pub comm_timeout_ms: u16,
     pub word_order: WordOrder,
+    /// Encoder counts per motor revolution: the block's speed is in motor rpm, so the master
+    /// needs it to turn the streamed counts per cycle into rpm. Set it to the drive's.
+    pub counts_per_rev: u32,
 }
 
 impl Default for PrMap {
@@ -141,6 +144,8 @@ impl Default for PrMap {
             alarm_reset: 0x0033,
             comm_timeout_ms: 0x0050,
             word_order: WordOrder::HighFirst,
+            // sim-drives' linear axis: 10 000 counts/mm on a 10 mm lead.
+            counts_per_rev: 100_000,
         }
     }
 }

@@ -41,6 +41,7 @@ impl NodeSpec {
     pub fn from_config(cfg: &MachineConfig) -> Vec<NodeSpec> {
         cfg.axes
             .iter()
+            .filter(|(_, a)| a.modbus.is_none())
             .map(|(name, a)| NodeSpec {
                 axis: name.clone(),
                 node: a.node,
@@ -655,6 +656,7 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
             counts: n.unwrapped,
             statusword: n.status,
             age_cycles: (self.now_ns.saturating_sub(n.fb_ns) / self.cycle_ns.max(1)) as u32,
+            demand_counts: None,
         }
     }
 
