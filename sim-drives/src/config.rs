@@ -518,6 +518,7 @@ impl SimConfig {
                 ] {
                     s.push_str(&format!("{k} = 0x{v:04X}\n"));
                 }
+                s.push_str(&format!("counts_per_rev = {}\n", m.counts_per_rev));
                 s.push_str(&format!("word_order = \"{}\"\n", order(m.word_order)));
             }
         }
@@ -642,6 +643,7 @@ mod tests {
         let mut c = c;
         c.drives[1].cia402_map.statusword = 300;
         c.drives[1].cia402_map.word_order = cncgw_bus::modbus::WordOrder::LowFirst;
+        c.drives[0].pr_map.counts_per_rev = c.drives[0].counts_per_rev;
         assert_eq!(SimConfig::from_toml(&c.to_commented_toml()).unwrap(), c);
     }
 }

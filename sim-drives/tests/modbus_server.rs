@@ -334,6 +334,8 @@ const P: PrMap = PrMap {
     alarm_reset: 0x0033,
     comm_timeout_ms: 0x0050,
     word_order: WordOrder::HighFirst,
+    // Master side only (rpm ↔ counts); the drive uses its own counts per revolution.
+    counts_per_rev: 100_000,
 };
 
 async fn pr_move(c: &mut Context, pos: i32, rpm: u16) {

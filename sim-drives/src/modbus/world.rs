@@ -168,6 +168,17 @@ impl World {
                 Profile::Cia402 => d.cia402_map.word_order,
                 Profile::Pr => d.pr_map.word_order,
             };
+            if p == Profile::Pr && d.pr_map.counts_per_rev != d.counts_per_rev {
+                // The master turns counts into the block's rpm with the map's figure; the
+                // drive turns rpm back into counts with its own.
+                tracing::warn!(
+                    node = d.node,
+                    "pr_map.counts_per_rev = {} but the drive has {} counts/rev: PR speeds will be off by {:.3}×",
+                    d.pr_map.counts_per_rev,
+                    d.counts_per_rev,
+                    d.counts_per_rev as f64 / d.pr_map.counts_per_rev.max(1) as f64
+                );
+            }
             let pr = (p == Profile::Pr).then_some(Pr {
                 trigger_value: d.pr_map.trigger_value,
                 block: [PR_MODE_ABSOLUTE, 0, 0, 60, 100, 100, 0],
