@@ -346,3 +346,38 @@ fn rtu_pty_transaction_rate() {
     stop.store(true, Ordering::Relaxed);
     srv.join().expect("RTU server");
 }
+
+/// A mixed machine config: `sim-drives --modbus-tcp` serves the axes of one Modbus link
+/// (`--modbus-link`), not the CANopen ones, even where their ids are the same.
+#[test]
+fn machine_config_link_selects_the_drives() {
+    use tokio_modbus::prelude::*;
+    let cfg = tmp(&format!("modbus_tools_mixed_{}.toml", std::process::id()));
+    std::fs::write(
+        &cfg,
+        "[axes.x]\nkind = \"linear\"\nnode = 1\ncounts_per_unit = 10000.0\n\n\
+         [axes.w]\nkind = \"linear\"\nnode = 1\nmodbus = \"tcp\"\nmodbus_profile = \"pr\"\ncounts_per_unit = 10000.0\n\n\
+         [axes.t]\nkind = \"linear\"\nnode = 5\nmodbus = \"rs485\"\ncounts_per_unit = 10000.0\n",
+    )
+    .unwrap();
+    let port = TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let addr = format!("127.0.0.1:{port}");
+    let (_sim, _log) = sim_drives(&["--modbus-tcp", &addr, "--config", cfg.to_str().unwrap(), "--modbus-link", "tcp"], "mixed");
+    let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
+    rt.block_on(async {
+        let mut c = tokio_modbus::client::tcp::connect_slave(addr.parse().unwrap(), Slave(1)).await.unwrap();
+        // Unit 1 is the PR axis w, not the CANopen axis x with the same id.
+        assert!(c.read_holding_registers(0x6003, 1).await.unwrap().is_ok());
+        assert_eq!(c.read_holding_registers(10, 1).await.unwrap(), Err(ExceptionCode::IllegalDataAddress));
+        // Unit 5 is on the other link.
+        c.set_slave(Slave(5));
+        assert_eq!(c.read_holding_registers(10, 1).await.unwrap(), Err(ExceptionCode::GatewayTargetDevice));
+    });
+    let out = Command::new(env!("CARGO_BIN_EXE_sim-drives"))
+        .args(["--modbus-tcp", "127.0.0.1:0", "--config", cfg.to_str().unwrap(), "--modbus-link", "line9"])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("no drive is on Modbus link \"line9\" (links in the config: rs485, tcp)"), "{err}");
+}
