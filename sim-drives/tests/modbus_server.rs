@@ -396,23 +396,35 @@ async fn pr_profile_moves_retargets_and_times_out() {
     let pb = read_i32(&mut c, P.position_actual, P.word_order).await;
     assert!((pb - (pe - 1000)).abs() <= 10, "at {pb}");
 
-    // Comm timeout: no write for 50 ms while on → alarm 0x8130, servo off.
+    // Comm timeout: no write for 50 ms while on → alarm 0x8130, power stage off.
     write1(&mut c, P.comm_timeout_ms, 50).await;
     let st = pr_wait(&mut c, 500, "comm timeout alarm", |s| s & pr_status::FAULT != 0).await;
     assert_eq!(st & pr_status::ENABLED, 0);
     assert_eq!(read(&mut c, P.alarm_code, 1).await[0], COMM_TIMEOUT_CODE);
-    assert_eq!(read(&mut c, P.servo_on, 1).await[0], 0);
     // A trigger while in alarm does nothing.
     pr_move(&mut c, pb + 10_000, 3000).await;
     assert_eq!(read(&mut c, P.status, 1).await[0] & pr_status::RUNNING, 0);
+    // Servo-on is a level, as the servo-on input: still 1, it enables again after the reset.
+    assert_eq!(read(&mut c, P.servo_on, 1).await[0], 1);
     write1(&mut c, P.comm_timeout_ms, 0).await;
+    tokio::time::sleep(Duration::from_millis(100)).await; // the fault reaction's stop
     write1(&mut c, P.alarm_reset, 1).await;
-    pr_wait(&mut c, 500, "alarm reset", |s| s & pr_status::FAULT == 0).await;
+    let st = pr_wait(&mut c, 500, "alarm reset", |s| s & pr_status::FAULT == 0).await;
     assert_eq!(read(&mut c, P.alarm_code, 1).await[0], 0);
-    write1(&mut c, P.servo_on, 1).await;
-    pr_wait(&mut c, 100, "servo on again", |s| s & pr_status::ENABLED != 0).await;
+    pr_wait(&mut c, 100, "enabled again", |s| s & pr_status::ENABLED != 0).await;
+    let _ = st;
     write1(&mut c, P.servo_on, 0).await;
     pr_wait(&mut c, 100, "servo off", |s| s & pr_status::ENABLED == 0).await;
+    // Servo off while in alarm: the reset leaves it off.
+    write1(&mut c, P.comm_timeout_ms, 30).await;
+    write1(&mut c, P.servo_on, 1).await;
+    pr_wait(&mut c, 500, "alarm again", |s| s & pr_status::FAULT != 0).await;
+    write1(&mut c, P.servo_on, 0).await;
+    write1(&mut c, P.comm_timeout_ms, 0).await;
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    write1(&mut c, P.alarm_reset, 1).await;
+    tokio::time::sleep(Duration::from_millis(20)).await;
+    assert_eq!(read(&mut c, P.status, 1).await[0], 0);
 }
 
 #[tokio::test(flavor = "current_thread")]

@@ -276,8 +276,8 @@ impl World {
         self.core.out.clear();
     }
 
-    /// The PR drive's servo-on level walks the 402 machine; an alarm drops servo-on and the
-    /// profile.
+    /// The PR drive's servo-on level walks the 402 machine, as a servo-on input does: an
+    /// alarm stops the profile; after the alarm reset a servo-on still 1 enables again.
     fn pr_sync(&mut self, i: usize, now: u64) {
         let u = &mut self.units[i];
         let (Some(pr), Some(d)) = (u.pr.as_mut(), self.core.drives.iter_mut().find(|d| d.node() == u.node)) else {
@@ -285,7 +285,6 @@ impl World {
         };
         let st = d.state();
         if matches!(st, State::Fault | State::FaultReactionActive) {
-            pr.servo_on = false;
             pr.gen = None;
             return;
         }
@@ -425,11 +424,7 @@ impl World {
             Reg::CommTimeout => vec![u.comm_timeout_ms],
             Reg::Block => u.pr.as_ref().map(|p| p.block.to_vec()).unwrap_or_default(),
             Reg::Trigger => vec![u.pr.as_ref().map_or(0, |p| p.trigger)],
-            // An alarm drops servo-on (the generator notices on its next period).
-            Reg::ServoOn => {
-                let alarm = matches!(d.state(), State::Fault | State::FaultReactionActive);
-                vec![u.pr.as_ref().map_or(0, |p| (p.servo_on && !alarm) as u16)]
-            }
+            Reg::ServoOn => vec![u.pr.as_ref().map_or(0, |p| p.servo_on as u16)],
             Reg::AlarmReset => vec![0],
             Reg::Status => {
                 let st = d.state();
