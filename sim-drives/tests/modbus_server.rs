@@ -530,3 +530,46 @@ async fn csp_targets_far_apart_are_reached_without_runaway() {
     let demand = s.server().with_drive(2, |d| d.position_demand()).unwrap();
     assert!((demand - (p0 + 60) as f64).abs() < 1.0, "demand {demand}, last target {}", p0 + 60);
 }
+
+/// PR streaming as cncgw's master does it: every link cycle one block to the cycle's target,
+/// at the speed that covers the step in one cycle (+1 rpm) with ramps of one cycle, then the
+/// trigger. The drive follows a 1 s move without an alarm and ends on the last target.
+#[tokio::test(flavor = "current_thread")]
+async fn pr_streamed_every_cycle_is_followed() {
+    let s = Srv::start(one_drive(4, |d| d.modbus_profile = Profile::Pr));
+    let mut c = s.client(4).await;
+    tokio::time::sleep(Duration::from_millis(10)).await;
+    write1(&mut c, P.servo_on, 1).await;
+    pr_wait(&mut c, 100, "servo on", |s| s & pr_status::ENABLED != 0).await;
+    let p0 = read_i32(&mut c, P.position_actual, P.word_order).await;
+    let cycle_ms = 4.0;
+    let mut tick = tokio::time::interval(Duration::from_millis(4));
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    let start = Instant::now();
+    let target_at = |t: f64| p0 + (20_000.0 * (1.0 - (2.0 * std::f64::consts::PI * t.min(1.0)).cos())).round() as i32;
+    let mut last = p0;
+    let mut worst = 0i64;
+    loop {
+        tick.tick().await;
+        let t = start.elapsed().as_secs_f64();
+        let target = target_at(t);
+        let delta = (target as i64 - last as i64).unsigned_abs() as f64;
+        let rpm = (delta / 100_000.0 / (cycle_ms * 1e-3) * 60.0).ceil() + 1.0;
+        write(&mut c, P.block, &pr_block(target, rpm.min(3000.0) as u16, 4, 4, 0, P.word_order)).await;
+        write1(&mut c, P.trigger, P.trigger_value).await;
+        last = target;
+        let st = read(&mut c, P.status, 1).await[0];
+        assert_eq!(st & pr_status::FAULT, 0, "alarm {:#06x} at {t:.3} s", read(&mut c, P.alarm_code, 1).await[0]);
+        let a = read_i32(&mut c, P.position_actual, P.word_order).await;
+        worst = worst.max((target as i64 - a as i64).abs());
+        if t > 1.1 {
+            break;
+        }
+    }
+    pr_wait(&mut c, 1000, "in position", |s| s & pr_status::IN_POSITION != 0).await;
+    let a = read_i32(&mut c, P.position_actual, P.word_order).await;
+    assert!((a - last).abs() <= 10, "at {a}, last target {last}");
+    // Peak 126 000 counts/s: ~1–2 cycles of travel behind the streamed target.
+    assert!(worst < 3_000, "worst lag {worst} counts");
+    println!("PR streamed at 4 ms: worst lag {worst} counts");
+}
