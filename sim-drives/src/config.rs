@@ -152,6 +152,9 @@ pub struct DriveConfig {
     pub cia402_map: Cia402Map,
     /// Addresses of the PR profile (`[drive.pr_map]`).
     pub pr_map: PrMap,
+    /// The machine config's `modbus = "LINK"` of this axis: the drive is on that Modbus link,
+    /// not on CANopen (`None`: CANopen, or a sim-drives config that does not say).
+    pub modbus_link: Option<String>,
 }
 
 impl DriveConfig {
@@ -186,6 +189,7 @@ impl DriveConfig {
             modbus_profile: Profile::Cia402,
             cia402_map: Cia402Map::default(),
             pr_map: PrMap::default(),
+            modbus_link: None,
         }
     }
 }
@@ -257,26 +261,33 @@ impl SimConfig {
     /// The drives of a cncgw machine config: its `[axes.*]` tables (kind, node,
     /// counts_per_unit; other keys ignored), with default physics per kind.
     pub fn from_machine_toml(text: &str) -> Result<SimConfig, String> {
-        Self::from_machine_toml_bus(text, None)
+        Self::from_machine_toml_all(text)
     }
 
     /// The drives of a cncgw machine config on one bus: `Some(false)` its CANopen axes,
-    /// `Some(true)` its Modbus axes (those with `modbus = "LINK"`; unit id = `node`, with
-    /// their `modbus_profile` and map overrides), `None` the CANopen axes, or the Modbus
+    /// `Some(true)` its Modbus axes (every link), `None` the CANopen axes, or the Modbus
     /// ones if it has no CANopen axis.
     pub fn from_machine_toml_bus(text: &str, modbus: Option<bool>) -> Result<SimConfig, String> {
+        let all = Self::from_machine_toml_all(text)?;
+        let has_can = all.drives.iter().any(|d| d.modbus_link.is_none());
+        if modbus.unwrap_or(!has_can) {
+            all.modbus_drives(None)
+        } else {
+            Ok(all.canopen_drives())
+        }
+    }
+
+    /// Every drive of a cncgw machine config, each with its Modbus link if it has one.
+    fn from_machine_toml_all(text: &str) -> Result<SimConfig, String> {
         #[derive(Deserialize)]
         struct Axis {
             kind: DriveKind,
             node: u8,
             counts_per_unit: f64,
-            #[serde(default)]
+            // A drive on Modbus: the link, and the same keys as in a sim-drives [[drive]].
             modbus: Option<String>,
-            #[serde(default)]
             modbus_profile: Option<Profile>,
-            #[serde(default)]
             cia402_map: Option<Cia402Map>,
-            #[serde(default)]
             pr_map: Option<PrMap>,
         }
         #[derive(Deserialize)]
@@ -286,28 +297,48 @@ impl SimConfig {
         }
         // Parse only what we need: other tables and keys are the master's business.
         let m: Machine = toml::from_str(text).map_err(|e| format!("machine config: {e}"))?;
-        let has_can = m.axes.values().any(|a| a.modbus.is_none());
-        let want_modbus = modbus.unwrap_or(!has_can);
         let mut drives = Vec::new();
         for (name, a) in &m.axes {
-            if a.modbus.is_some() != want_modbus {
-                continue;
-            }
             let mut d = DriveConfig::new(a.node, a.kind, name, a.counts_per_unit);
-            if let Some(p) = a.modbus_profile {
-                d.modbus_profile = p;
-            }
-            if let Some(c) = a.cia402_map {
-                d.cia402_map = c;
-            }
-            if let Some(p) = a.pr_map {
-                d.pr_map = p;
-            }
+            d.modbus_profile = a.modbus_profile.unwrap_or_default();
+            d.cia402_map = a.cia402_map.unwrap_or_default();
+            d.pr_map = a.pr_map.unwrap_or_default();
+            d.modbus_link = a.modbus.clone();
             drives.push(d);
         }
         let cfg = SimConfig { drives, step_us: 50 };
         cfg.validate()?;
         Ok(cfg)
+    }
+
+    /// The drives on the CANopen bus: those without a Modbus link.
+    pub fn canopen_drives(&self) -> SimConfig {
+        SimConfig { drives: self.drives.iter().filter(|d| d.modbus_link.is_none()).cloned().collect(), step_us: self.step_us }
+    }
+
+    /// The drives a Modbus server serves: those on `link`; without a link name, every drive
+    /// on some Modbus link — or all drives when none names a link (a sim-drives config, or a
+    /// CANopen machine served over Modbus as it is). Err: no drive on that link.
+    pub fn modbus_drives(&self, link: Option<&str>) -> Result<SimConfig, String> {
+        let any_link = self.drives.iter().any(|d| d.modbus_link.is_some());
+        let drives: Vec<DriveConfig> = self
+            .drives
+            .iter()
+            .filter(|d| match link {
+                Some(l) => d.modbus_link.as_deref() == Some(l),
+                None => !any_link || d.modbus_link.is_some(),
+            })
+            .cloned()
+            .collect();
+        if let Some(l) = link {
+            if drives.is_empty() {
+                let mut links: Vec<&str> = self.drives.iter().filter_map(|d| d.modbus_link.as_deref()).collect();
+                links.sort();
+                links.dedup();
+                return Err(format!("no drive is on Modbus link {l:?} (links in the config: {})", if links.is_empty() { "none".into() } else { links.join(", ") }));
+            }
+        }
+        Ok(SimConfig { drives, step_us: self.step_us })
     }
 
     /// The drives of the default machine (config/lathe.toml).
@@ -348,6 +379,9 @@ impl SimConfig {
             set!(modbus_profile);
             set!(cia402_map);
             set!(pr_map);
+            if d.modbus_link.is_some() {
+                c.modbus_link = d.modbus_link.clone();
+            }
             if let Some(p) = &d.physics {
                 let q = &mut c.physics;
                 macro_rules! setp {
@@ -385,14 +419,20 @@ impl SimConfig {
         if self.step_us == 0 || self.step_us > 100 {
             errs.push(format!("step_us: must be 1…100, got {}", self.step_us));
         }
+        // Ids are unique per bus: the CANopen bus, and each Modbus link.
         let mut seen = std::collections::BTreeSet::new();
         for d in &self.drives {
             let k = format!("drive node {}", d.node);
-            if d.node == 0 || d.node > 127 {
-                errs.push(format!("{k}: node must be 1…127"));
+            match &d.modbus_link {
+                None if d.node == 0 || d.node > 127 => errs.push(format!("{k}: node must be 1…127")),
+                Some(l) if d.node == 0 || d.node > 247 => errs.push(format!("{k}: unit id on Modbus link {l:?} must be 1…247")),
+                _ => {}
             }
-            if !seen.insert(d.node) {
-                errs.push(format!("{k}: node id used twice"));
+            if !seen.insert((d.modbus_link.clone(), d.node)) {
+                errs.push(match &d.modbus_link {
+                    None => format!("{k}: node id used twice"),
+                    Some(l) => format!("{k}: unit id used twice on Modbus link {l:?}"),
+                });
             }
             if !(d.counts_per_unit.is_finite() && d.counts_per_unit > 0.0) {
                 errs.push(format!("{k}: counts_per_unit must be > 0, got {}", d.counts_per_unit));
@@ -484,6 +524,9 @@ impl SimConfig {
                 Profile::Pr => "pr",
             };
             s.push_str(&format!("modbus_profile = \"{profile}\"  # cia402 | pr (register map over Modbus; unit id = node)\n"));
+            if let Some(l) = &d.modbus_link {
+                s.push_str(&format!("modbus_link = \"{l}\"     # the machine's Modbus link this drive is on\n"));
+            }
             s.push_str("# Register addresses: [drive.cia402_map] / [drive.pr_map] (keys as in cncgw-bus' Cia402Map / PrMap)\n");
             s.push_str("[drive.physics]\n");
             s.push_str(&format!("motor_inertia = {:?}     # kg·m²\n", p.motor_inertia));
@@ -541,6 +584,7 @@ impl SimConfig {
                 ] {
                     s.push_str(&format!("{k} = 0x{v:04X}\n"));
                 }
+                s.push_str(&format!("counts_per_rev = {}\n", m.counts_per_rev));
                 s.push_str(&format!("word_order = \"{}\"\n", order(m.word_order)));
             }
         }
@@ -578,6 +622,7 @@ struct RawDrive {
     modbus_profile: Option<Profile>,
     cia402_map: Option<Cia402Map>,
     pr_map: Option<PrMap>,
+    modbus_link: Option<String>,
 }
 
 #[derive(Deserialize)]
@@ -655,10 +700,37 @@ mod tests {
         assert_eq!(c.drives[0].pr_map.word_order, cncgw_bus::modbus::WordOrder::LowFirst);
         assert_eq!(c.drives[1].modbus_profile, Profile::Cia402);
         assert_eq!(c.drives[1].cia402_map, Cia402Map::default());
+        // A machine config's axes take the same keys.
+        let m = SimConfig::from_machine_toml(
+            "[axes.w]\nkind = \"linear\"\nnode = 7\ncounts_per_unit = 1000.0\nmodbus_profile = \"pr\"\n[axes.w.pr_map]\nservo_on = 0x100\n",
+        )
+        .unwrap();
+        assert_eq!((m.drives[0].modbus_profile, m.drives[0].pr_map.servo_on), (Profile::Pr, 0x100));
+        // A mixed machine: ids are per bus; each server takes its own drives.
+        let mixed = SimConfig::from_machine_toml(
+            "[axes.x]\nkind = \"linear\"\nnode = 1\ncounts_per_unit = 1000.0\n\
+             [axes.w]\nkind = \"linear\"\nnode = 1\ncounts_per_unit = 1000.0\nmodbus = \"line\"\n\
+             [axes.t]\nkind = \"linear\"\nnode = 200\ncounts_per_unit = 1000.0\nmodbus = \"tcp\"\n",
+        )
+        .unwrap();
+        let axes = |c: &SimConfig| c.drives.iter().map(|d| d.axis.clone()).collect::<Vec<_>>();
+        assert_eq!(axes(&mixed.canopen_drives()), ["x"]);
+        assert_eq!(axes(&mixed.modbus_drives(Some("line")).unwrap()), ["w"]);
+        assert_eq!(axes(&mixed.modbus_drives(None).unwrap()), ["t", "w"]);
+        let e = mixed.modbus_drives(Some("rs485")).unwrap_err();
+        assert!(e.contains("links in the config: line, tcp"), "{e}");
+        assert_eq!(axes(&SimConfig::default_lathe().modbus_drives(None).unwrap()).len(), 3);
+        assert_eq!(SimConfig::from_toml(&mixed.to_commented_toml()).unwrap(), mixed);
+        let e = SimConfig::from_machine_toml(
+            "[axes.a]\nkind = \"linear\"\nnode = 3\ncounts_per_unit = 1.0\nmodbus = \"l\"\n[axes.b]\nkind = \"linear\"\nnode = 3\ncounts_per_unit = 1.0\nmodbus = \"l\"\n",
+        )
+        .unwrap_err();
+        assert!(e.contains("unit id used twice on Modbus link \"l\""), "{e}");
         // The printed form reads back to the same profiles and maps.
         let mut c = c;
         c.drives[1].cia402_map.statusword = 300;
         c.drives[1].cia402_map.word_order = cncgw_bus::modbus::WordOrder::LowFirst;
+        c.drives[0].pr_map.counts_per_rev = c.drives[0].counts_per_rev;
         assert_eq!(SimConfig::from_toml(&c.to_commented_toml()).unwrap(), c);
     }
 }

@@ -1560,8 +1560,15 @@ impl SimDrive {
     }
 
     /// Latch the present targets now (CSP: start the next interpolation segment over the
-    /// interpolation period 0x60C2; CSV: take the target velocity).
-    pub(crate) fn modbus_latch(&mut self, now: u64) {
+    /// interpolation period 0x60C2; CSV: take the target velocity). Returns when to latch
+    /// the same target again if this CSP segment started from a hold (no target for more
+    /// than the extrapolation span): its velocity is a catch-up step, not the path's, and
+    /// must not be extrapolated if the next target is late too (else each late target
+    /// multiplies the error by the extrapolation span).
+    pub(crate) fn modbus_latch(&mut self, now: u64) -> Option<u64> {
+        let fresh = self.seg_len == 0 || now.saturating_sub(self.seg_t0) > self.seg_len * (1 + SYNC_EXTRAPOLATE_PERIODS);
+        let before = self.seg_t0;
         self.latch_setpoints(now);
+        (fresh && self.seg_t0 == now && before != now).then(|| now + self.seg_len)
     }
 }

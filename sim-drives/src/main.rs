@@ -7,6 +7,7 @@
 //!     sim-drives --bus vcan0 --log bus.log   # also write a candump log
 //!     sim-drives --modbus-tcp 127.0.0.1:5020  # the drives as Modbus TCP units (id = node)
 //!     sim-drives --modbus-rtu /dev/pts/5 --baud 115200 --parity none --stop-bits 1
+//!     sim-drives --config config/lathe-modbus.toml --modbus-tcp 127.0.0.1:5020 [--modbus-link tcp]
 
 use clap::Parser;
 use sim_drives::SimConfig;
@@ -42,6 +43,10 @@ struct Args {
     /// /dev/ttyUSB0 or one end of `socat -d -d pty,raw,echo=0 pty,raw,echo=0`.
     #[arg(long, value_name = "DEVICE", conflicts_with_all = ["socketcand", "log"])]
     modbus_rtu: Option<String>,
+    /// With a cncgw machine config: serve only the axes on this Modbus link (their
+    /// `modbus = "LINK"`). Default: every axis on some Modbus link.
+    #[arg(long, value_name = "LINK")]
+    modbus_link: Option<String>,
     /// RTU baud rate.
     #[arg(long, default_value_t = 115_200, value_name = "BAUD", requires = "modbus_rtu")]
     baud: u32,
@@ -66,12 +71,12 @@ struct Args {
     verbose: u8,
 }
 
-fn load(path: &std::path::Path, modbus: bool) -> Result<SimConfig, String> {
+fn load(path: &std::path::Path) -> Result<SimConfig, String> {
     let text = std::fs::read_to_string(path).map_err(|e| format!("{}: cannot read: {e}", path.display()))?;
-    // A machine config has [axes.*]; a sim-drives config has [[drive]]. Of a machine
-    // config, serve the drives of the bus asked for (a mixed machine has both).
+    // A machine config has [axes.*]; a sim-drives config has [[drive]]. Each server below
+    // takes the drives of its bus (a mixed machine has both).
     let is_machine = text.lines().any(|l| l.trim_start().starts_with("[axes."));
-    let r = if is_machine { SimConfig::from_machine_toml_bus(&text, Some(modbus)) } else { SimConfig::from_toml(&text) };
+    let r = if is_machine { SimConfig::from_machine_toml(&text) } else { SimConfig::from_toml(&text) };
     r.map_err(|e| format!("{}: {e}", path.display()))
 }
 
@@ -90,7 +95,7 @@ fn main() -> ExitCode {
     tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).init();
 
     let cfg = match &args.config {
-        Some(p) => match load(p, args.modbus_tcp.is_some() || args.modbus_rtu.is_some()) {
+        Some(p) => match load(p) {
             Ok(c) => c,
             Err(e) => {
                 eprintln!("sim-drives: {e}");
@@ -98,6 +103,22 @@ fn main() -> ExitCode {
             }
         },
         None => SimConfig::default_lathe(),
+    };
+    // The drives of this bus: a mixed machine's Modbus axes are not on the CAN bus, and each
+    // Modbus link is its own server.
+    let cfg = if args.modbus_tcp.is_some() || args.modbus_rtu.is_some() {
+        match cfg.modbus_drives(args.modbus_link.as_deref()) {
+            Ok(c) => c,
+            Err(e) => {
+                eprintln!("sim-drives: --modbus-link: {e}");
+                return ExitCode::from(2);
+            }
+        }
+    } else if args.modbus_link.is_some() {
+        eprintln!("sim-drives: --modbus-link needs --modbus-tcp or --modbus-rtu");
+        return ExitCode::from(2);
+    } else {
+        cfg.canopen_drives()
     };
     let mut faults = Vec::new();
     for spec in &args.faults {

@@ -134,7 +134,8 @@ fn poll(link: &[&str], unit: u8, rest: &[&str]) -> Poll {
     let unit = unit.to_string();
     let (target, link_opts) = link.split_last().expect("link");
     let split = rest.iter().position(|x| *x == "--").unwrap_or(rest.len());
-    let mut a: Vec<&str> = vec!["-1", "-0", "-o", "0.5", "-a", &unit];
+    // A generous timeout: a loaded machine stalls processes for 100s of ms.
+    let mut a: Vec<&str> = vec!["-1", "-0", "-o", "3", "-a", &unit];
     a.extend_from_slice(link_opts);
     a.extend_from_slice(&rest[..split]);
     a.push(target);
@@ -252,7 +253,7 @@ fn mbpoll_over_rtu_through_a_socat_pty_pair() {
         let link = ["-m", "rtu", "-b", "115200", "-P", mb_parity, "-s", "1", b.as_str()];
         common_checks(&link);
         // A unit no drive has: silence on the line (a timeout), as on a real RS-485 bus.
-        let p = poll(&link, 9, &["-r", "10"]);
+        let p = poll(&link, 9, &["-o", "0.3", "-r", "10"]);
         assert!(!p.ok && p.err.contains("timed out"), "{} {}", p.out, p.err);
         // The line still works after that.
         let p = poll(&link, 2, &["-r", "10"]);
@@ -266,6 +267,8 @@ fn tokio_modbus_rtu_client_through_a_socat_pty_pair() {
         return;
     }
     use tokio_modbus::prelude::*;
+    // The drives' warnings (a fault says why) in the test's output.
+    let _ = tracing_subscriber::fmt().with_env_filter(std::env::var("RUST_LOG").unwrap_or_else(|_| "warn".into())).with_test_writer().try_init();
     let (_socat, a, b) = pty_pair();
     let stop = Arc::new(AtomicBool::new(false));
     let line = sim_drives::modbus::RtuLine::default();
@@ -342,4 +345,39 @@ fn rtu_pty_transaction_rate() {
     });
     stop.store(true, Ordering::Relaxed);
     srv.join().expect("RTU server");
+}
+
+/// A mixed machine config: `sim-drives --modbus-tcp` serves the axes of one Modbus link
+/// (`--modbus-link`), not the CANopen ones, even where their ids are the same.
+#[test]
+fn machine_config_link_selects_the_drives() {
+    use tokio_modbus::prelude::*;
+    let cfg = tmp(&format!("modbus_tools_mixed_{}.toml", std::process::id()));
+    std::fs::write(
+        &cfg,
+        "[axes.x]\nkind = \"linear\"\nnode = 1\ncounts_per_unit = 10000.0\n\n\
+         [axes.w]\nkind = \"linear\"\nnode = 1\nmodbus = \"tcp\"\nmodbus_profile = \"pr\"\ncounts_per_unit = 10000.0\n\n\
+         [axes.t]\nkind = \"linear\"\nnode = 5\nmodbus = \"rs485\"\ncounts_per_unit = 10000.0\n",
+    )
+    .unwrap();
+    let port = TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let addr = format!("127.0.0.1:{port}");
+    let (_sim, _log) = sim_drives(&["--modbus-tcp", &addr, "--config", cfg.to_str().unwrap(), "--modbus-link", "tcp"], "mixed");
+    let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
+    rt.block_on(async {
+        let mut c = tokio_modbus::client::tcp::connect_slave(addr.parse().unwrap(), Slave(1)).await.unwrap();
+        // Unit 1 is the PR axis w, not the CANopen axis x with the same id.
+        assert!(c.read_holding_registers(0x6003, 1).await.unwrap().is_ok());
+        assert_eq!(c.read_holding_registers(10, 1).await.unwrap(), Err(ExceptionCode::IllegalDataAddress));
+        // Unit 5 is on the other link.
+        c.set_slave(Slave(5));
+        assert_eq!(c.read_holding_registers(10, 1).await.unwrap(), Err(ExceptionCode::GatewayTargetDevice));
+    });
+    let out = Command::new(env!("CARGO_BIN_EXE_sim-drives"))
+        .args(["--modbus-tcp", "127.0.0.1:0", "--config", cfg.to_str().unwrap(), "--modbus-link", "line9"])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("no drive is on Modbus link \"line9\" (links in the config: rs485, tcp)"), "{err}");
 }

@@ -206,7 +206,7 @@ pub fn open_bus(
     use cncgw_bus::transport::socketcand;
     let bus = bus.map(str::to_string).unwrap_or_else(|| cfg.bus.interface.clone());
     if bus == "inproc" {
-        let sim_cfg = sim_drives::SimConfig::from_machine_toml(cfg_text).map_err(|e| format!("emulated drives: {e}"))?;
+        let sim_cfg = sim_drives::SimConfig::from_machine_toml_bus(cfg_text, Some(false)).map_err(|e| format!("emulated drives: {e}"))?;
         let wire = cncgw_bus::transport::inproc::InprocBus::new();
         let world = sim_drives::SimWorld::new(&wire, sim_cfg);
         let ep: Box<dyn cncgw_bus::CanBus> = Box::new(wire.endpoint());

@@ -124,6 +124,9 @@ struct Unit {
     order: WordOrder,
     comm_timeout_ms: u16,
     last_write: u64,
+    /// When to latch the present target again (after a CSP segment that started from a
+    /// hold, see `SimDrive::modbus_latch`).
+    relatch_at: Option<u64>,
     pr: Option<Pr>,
 }
 
@@ -165,6 +168,17 @@ impl World {
                 Profile::Cia402 => d.cia402_map.word_order,
                 Profile::Pr => d.pr_map.word_order,
             };
+            if p == Profile::Pr && d.pr_map.counts_per_rev != d.counts_per_rev {
+                // The master turns counts into the block's rpm with the map's figure; the
+                // drive turns rpm back into counts with its own.
+                tracing::warn!(
+                    node = d.node,
+                    "pr_map.counts_per_rev = {} but the drive has {} counts/rev: PR speeds will be off by {:.3}×",
+                    d.pr_map.counts_per_rev,
+                    d.counts_per_rev,
+                    d.counts_per_rev as f64 / d.pr_map.counts_per_rev.max(1) as f64
+                );
+            }
             let pr = (p == Profile::Pr).then_some(Pr {
                 trigger_value: d.pr_map.trigger_value,
                 block: [PR_MODE_ABSOLUTE, 0, 0, 60, 100, 100, 0],
@@ -176,7 +190,7 @@ impl World {
                 last_step: None,
             });
             // The watchdog is off until the master sets its timeout.
-            units.push(Unit { node: d.node, fields, order, comm_timeout_ms: 0, last_write: 0, pr });
+            units.push(Unit { node: d.node, fields, order, comm_timeout_ms: 0, last_write: 0, relatch_at: None, pr });
         }
         let mut core = Core::new(cfg);
         core.schedule(faults);
@@ -223,7 +237,7 @@ impl World {
                 next = next.min((now / PR_PERIOD + 1) * PR_PERIOD);
             }
             for u in &self.units {
-                if let Some(dl) = self.watchdog_deadline(u) {
+                for dl in [self.watchdog_deadline(u), u.relatch_at].into_iter().flatten() {
                     if dl > now {
                         next = next.min(dl);
                     }
@@ -250,6 +264,10 @@ impl World {
                 }
                 self.pr_sync(i, now);
             }
+            if self.units[i].relatch_at.is_some_and(|t| t <= now) {
+                let node = self.units[i].node;
+                self.units[i].relatch_at = self.core.drive_mut(node).and_then(|d| d.modbus_latch(now));
+            }
             if now % PR_PERIOD == 0 {
                 self.pr_step(i, now);
             }
@@ -258,8 +276,8 @@ impl World {
         self.core.out.clear();
     }
 
-    /// The PR drive's servo-on level walks the 402 machine; an alarm drops servo-on and the
-    /// profile.
+    /// The PR drive's servo-on level walks the 402 machine, as a servo-on input does: an
+    /// alarm stops the profile; after the alarm reset a servo-on still 1 enables again.
     fn pr_sync(&mut self, i: usize, now: u64) {
         let u = &mut self.units[i];
         let (Some(pr), Some(d)) = (u.pr.as_mut(), self.core.drives.iter_mut().find(|d| d.node() == u.node)) else {
@@ -267,7 +285,6 @@ impl World {
         };
         let st = d.state();
         if matches!(st, State::Fault | State::FaultReactionActive) {
-            pr.servo_on = false;
             pr.gen = None;
             return;
         }
@@ -313,8 +330,9 @@ impl World {
         g.step(PR_PERIOD as f64 * 1e-9, now + PR_PERIOD);
         let target = g.p.round().clamp(i32::MIN as f64, i32::MAX as f64) as i64;
         if let Some(d) = self.core.drives.iter_mut().find(|d| d.node() == u.node) {
+            // Latched every period: never late, nothing to re-latch.
             if d.modbus_write(ix::TARGET_POSITION, 0, target, now).is_ok() {
-                d.modbus_latch(now);
+                let _ = d.modbus_latch(now);
             }
         }
     }
@@ -327,6 +345,7 @@ impl World {
             return if rtu { Ok(None) } else { Err(ExceptionCode::GatewayTargetDevice) };
         };
         let now = self.core.now;
+        tracing::trace!(unit, t_ms = now as f64 * 1e-6, "{req:?}");
         let r = match req {
             Request::ReadHoldingRegisters(a, n) => self.read(ui, *a, *n, MAX_READ).map(Response::ReadHoldingRegisters),
             Request::ReadInputRegisters(a, n) => self.read(ui, *a, *n, MAX_READ).map(Response::ReadInputRegisters),
@@ -405,11 +424,7 @@ impl World {
             Reg::CommTimeout => vec![u.comm_timeout_ms],
             Reg::Block => u.pr.as_ref().map(|p| p.block.to_vec()).unwrap_or_default(),
             Reg::Trigger => vec![u.pr.as_ref().map_or(0, |p| p.trigger)],
-            // An alarm drops servo-on (the generator notices on its next period).
-            Reg::ServoOn => {
-                let alarm = matches!(d.state(), State::Fault | State::FaultReactionActive);
-                vec![u.pr.as_ref().map_or(0, |p| (p.servo_on && !alarm) as u16)]
-            }
+            Reg::ServoOn => vec![u.pr.as_ref().map_or(0, |p| p.servo_on as u16)],
             Reg::AlarmReset => vec![0],
             Reg::Status => {
                 let st = d.state();
@@ -478,7 +493,7 @@ impl World {
         if latch {
             let node = self.units[ui].node;
             if let Some(d) = self.core.drive_mut(node) {
-                d.modbus_latch(now);
+                self.units[ui].relatch_at = d.modbus_latch(now);
             }
         }
         Ok(())
