@@ -430,6 +430,7 @@ impl LinkIo {
             }
             let mut reading = None;
             let mut err = None;
+            tracing::trace!(unit = self.spec.drives[d].unit, target = cmd.target, late_us = Instant::now().saturating_duration_since(sched).as_micros() as u64, "write");
             let plan = self.spec.drives[d].cyclic_writes(&cmd);
             let mut done = 0u64;
             for (x, data) in plan {
