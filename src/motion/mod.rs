@@ -78,6 +78,7 @@
 pub mod cycle;
 pub mod geom;
 pub mod profile;
+pub mod trace;
 #[cfg(test)]
 mod tests;
 
@@ -94,6 +95,19 @@ pub const AX_Z: usize = 2;
 /// Spindle angle, degrees, continuous (not wrapped).
 pub const AX_S: usize = 3;
 pub const N_AXES: usize = 4;
+
+/// The actual positions in `Feedback` answer the setpoint returned this many cycles before
+/// (CANopen: the target sent after SYNC k−1 is the demand from SYNC k, whose actual arrives
+/// with the TPDOs of SYNC k+1; see `cycle.rs`).
+pub const FEEDBACK_DELAY: usize = 2;
+/// Setpoint history kept for the sync correction (≥ the largest feedback delay + 2).
+const HIST: usize = 5;
+/// Memory of the feed axes' lag estimate (see `sync_corr`), s.
+const LAG_MEMORY_S: f64 = 0.5;
+/// Largest sync correction, mm (a spindle lagging more is a fault for the sync monitor).
+const CORR_MAX: f64 = 0.5;
+/// After a tapped hole or G92.1 stroke the correction fades out by at most this per cycle, mm.
+const CORR_FADE: f64 = 0.0005;
 
 const AXIS_NAMES: [char; N_AXES] = ['X', 'Y', 'Z', 'S'];
 
@@ -184,6 +198,19 @@ pub struct Limits {
     pub tap_hold_in_hole: bool,
     /// Alarm limit of the measured sync error, µm (`machine.sync_error_limit_um`).
     pub sync_err_limit_um: f64,
+    /// Spindle acceleration of a rigid-tap retract stroke (out of the hole), deg/s² (No.5271:
+    /// ms to 1000 rpm); infinity when not set (then `tap_accel` applies).
+    pub tap_retract_accel: f64,
+    /// In rigid taps and G92.1, add the spindle's measured lag (times the lead) to the feed
+    /// axes' setpoint, so that they follow the spindle's *actual* angle (see `sync_corr`).
+    /// Needs `Feedback` as `CycleLoop` delivers it: the answer to the setpoint of
+    /// [`FEEDBACK_DELAY`] cycles before.
+    pub sync_correction: bool,
+    /// The actual positions in `Feedback` answer the setpoint returned this many cycles
+    /// before ([`FEEDBACK_DELAY`] under `CycleLoop`; 1 for an ideal drive that is where the
+    /// last setpoint put it). Threads predict the spindle angle this far ahead, the sync
+    /// correction pairs feedback with setpoints by it. 1 ..= 3.
+    pub feedback_delay: usize,
 }
 
 impl Limits {
@@ -203,6 +230,9 @@ impl Limits {
             tap_accel: f64::INFINITY,
             tap_hold_in_hole: cfg.param_bit(5200, 6),
             sync_err_limit_um: cfg.machine.sync_error_limit_um,
+            tap_retract_accel: f64::INFINITY,
+            sync_correction: true,
+            feedback_delay: FEEDBACK_DELAY,
         };
         for (name, a) in &cfg.axes {
             let i = match (a.kind, name.to_ascii_lowercase().as_str()) {
@@ -227,6 +257,9 @@ impl Limits {
         }
         if let Some(ms) = cfg.param(5261).filter(|t| t.is_finite() && *t > 0.0) {
             l.tap_accel = 1000.0 / (ms / 1000.0) * 6.0;
+        }
+        if let Some(ms) = cfg.param(5271).filter(|t| t.is_finite() && *t > 0.0) {
+            l.tap_retract_accel = 1000.0 / (ms / 1000.0) * 6.0;
         }
         // No.3410: arc radius error limit (here in mm).
         if let Some(t) = cfg.param(3410).filter(|t| t.is_finite() && *t > 0.0) {
@@ -300,6 +333,8 @@ struct TapSeg {
     v: f64,
     vlim: f64,
     alim: f64,
+    /// Out of the hole (No.5271's time constant).
+    retract: bool,
 }
 
 /// A G92.1 rigid thread stroke, or a rapid that positions the spindle (Cs): a line of the
@@ -413,6 +448,22 @@ pub struct Motion {
     tap_ref: Option<(f64, f64, f64)>,
     /// The tool is inside a tapped hole (a tap stroke ended away from the hole's R point).
     in_hole: bool,
+    /// Planning: the hole the last pushed tap strokes are in (R point z, direction into it).
+    plan_tap: Option<(f64, f64)>,
+    /// Setpoints sent in the last HIST cycles (ring, index `hist_k` = the newest).
+    hist: [[f64; N_AXES]; HIST],
+    hist_k: usize,
+    /// Sync correction (see `sync_corr`): feed-axis mm per spindle degree of the locked
+    /// stroke (0 = not locked), the offset added to X/Y/Z this cycle and the last one, and the
+    /// relative lag of the last cycle (None: no previous sample).
+    corr_gain: [f64; 3],
+    corr: [f64; 3],
+    corr_prev: [f64; 3],
+    lag_prev: Option<f64>,
+    /// Least-squares estimate of each feed axis' velocity lag τ (actual = sent − τ·v):
+    /// exponentially weighted Σ(−e·v) and Σ v².
+    tau_num: [f64; 3],
+    tau_den: [f64; 3],
 }
 
 fn xyz(p: &Pos) -> [f64; 3] {
@@ -441,6 +492,15 @@ impl Motion {
             thread_chain: None,
             tap_ref: None,
             in_hole: false,
+            plan_tap: None,
+            hist: [start; HIST],
+            hist_k: 0,
+            corr_gain: [0.0; 3],
+            corr: [0.0; 3],
+            corr_prev: [0.0; 3],
+            lag_prev: None,
+            tau_num: [0.0; 3],
+            tau_den: [0.0; 3],
             sp_dir: 0.0,
             sp_rpm: 0.0,
             sp_css: None,
@@ -531,6 +591,7 @@ impl Motion {
         match &mut item {
             Item::Move(s) => {
                 s.blend_in = blend_in;
+                self.plan_tap = None;
                 self.plan_end = s.geom.end();
                 if let Some(e) = m.kind.end() {
                     self.plan_c = Some(e.c);
@@ -542,12 +603,14 @@ impl Motion {
                 self.plan_rpm = (self.plan_spindle_on && c.css.is_none()).then_some(c.rpm);
             }
             Item::Thread(t) => {
+                self.plan_tap = None;
                 self.plan_end = t.geom.end();
                 if let Some(e) = m.kind.end() {
                     self.plan_c = Some(e.c);
                 }
             }
             Item::Rigid(r) => {
+                self.plan_tap = None;
                 self.plan_end = r.geom.end();
                 if let Some(e) = m.kind.end() {
                     self.plan_c = Some(e.c);
@@ -557,6 +620,12 @@ impl Motion {
                 self.plan_rpm = None;
             }
             Item::Tap(t) => {
+                self.plan_tap = match self.plan_tap {
+                    None => Some((t.z0, (t.z1 - t.z0).signum())),
+                    // Back at the R point: the hole is done.
+                    Some((r, _)) if t.z1 == r => None,
+                    h => h,
+                };
                 self.plan_end[AX_Z] = t.z1;
                 // Rigid tapping leaves the spindle stopped, in position control.
                 self.plan_spindle_on = false;
@@ -806,10 +875,41 @@ impl Motion {
             return Err(Alarm::new(alarms::BAD_VALUE, "a rigid tap stroke moves Z only: position X/Y before the tap"));
         }
         let l = &self.lim;
+        let z0 = self.plan_end[AX_Z];
+        // Out of the hole: the stroke runs against the direction of the hole's first stroke.
+        let retract = self.plan_tap.is_some_and(|(_, din)| (e[AX_Z] - z0) * din < 0.0);
         let per_deg = lead.abs() / 360.0; // mm of Z per spindle degree
+        // Feasibility before anything moves: Z must be able to follow the spindle at S.
+        let v = rpm * lead.abs() / 60.0;
+        if !(v <= l.vmax[AX_Z] * (1.0 + 1e-9)) {
+            return Err(Alarm::new(
+                alarms::THREAD_TOO_FAST,
+                format!(
+                    "rigid tap lead {:.4} mm × S{rpm} needs {:.0} mm/min of Z, more than Z's {:.0} mm/min; lower S",
+                    lead.abs(),
+                    v * 60.0,
+                    l.vmax[AX_Z] * 60.0
+                ),
+            ));
+        }
+        if !(rpm * 6.0 <= l.vmax[AX_S] * (1.0 + 1e-9)) {
+            return Err(Alarm::new(
+                alarms::THREAD_TOO_FAST,
+                format!("rigid tap S{rpm} is above the spindle's {:.0} rpm; lower S", l.vmax[AX_S] / 6.0),
+            ));
+        }
+        // Matched acceleration: spindle (its limit, No.5261 or on the way out No.5271) and Z
+        // on one profile, the lower of the two.
+        let sp_acc = if retract && l.tap_retract_accel.is_finite() { l.tap_retract_accel } else { l.tap_accel };
+        let alim = l.amax[AX_Z].min(l.amax[AX_S].min(sp_acc) * per_deg);
+        if !(alim > 0.0 && alim.is_finite()) {
+            return Err(Alarm::new(
+                alarms::BAD_VALUE,
+                "rigid tap: no usable acceleration for Z and the spindle; set max_accel of both (and No.5261)",
+            ));
+        }
         let vlim = l.vmax[AX_Z].min(l.vmax[AX_S] * per_deg);
-        let alim = l.amax[AX_Z].min(l.amax[AX_S].min(l.tap_accel) * per_deg);
-        Ok(TapSeg { z0: self.plan_end[AX_Z], z1: e[AX_Z], lead, v: (rpm * lead.abs() / 60.0).min(vlim), vlim, alim })
+        Ok(TapSeg { z0, z1: e[AX_Z], lead, v: v.min(vlim), vlim, alim, retract })
     }
 
     /// G92.1: the feed axes to `end` and the spindle through `end.c − c_start` on one profile.
@@ -1293,13 +1393,18 @@ impl Motion {
             self.sp_css = None;
         }
 
+        self.sync_corr(fb);
+        let mut out = self.pos;
         let mut vel = [0.0; N_AXES];
         for i in 0..3 {
-            vel[i] = (self.pos[i] - prev[i]) / dt;
+            out[i] += self.corr[i];
+            vel[i] = (self.pos[i] - prev[i] + self.corr[i] - self.corr_prev[i]) / dt;
         }
+        self.hist_k = (self.hist_k + 1) % HIST;
+        self.hist[self.hist_k] = out;
         vel[AX_S] = self.sp_cur * 6.0;
         Setpoint {
-            pos: self.pos,
+            pos: out,
             vel,
             spindle_rpm: self.sp_cur,
             path_feed: path_v * 60.0,
@@ -1320,7 +1425,9 @@ impl Motion {
     fn step_thread(&mut self, fb: &Feedback, seg: ThreadSeg, sync: Option<ThreadSync>, s: f64, v: f64) -> f64 {
         let dt = self.lim.cycle_s;
         let rpm = if fb.spindle_rpm.is_finite() { fb.spindle_rpm } else { 0.0 };
-        let theta = fb.pos[AX_S] + rpm * 6.0 * dt;
+        // Predicted to when this setpoint is where the axes actually are: the measured angle
+        // is `feedback_delay` cycles old by then.
+        let theta = fb.pos[AX_S] + rpm * 6.0 * dt * self.lim.feedback_delay as f64;
         // The lead-in ramp uses 80 % of the path acceleration, leaving the tracker headroom.
         let sync = match sync {
             Some(t) => Some(t),
@@ -1399,6 +1506,75 @@ impl Motion {
             d / dt
         } else {
             nv
+        }
+    }
+
+    /// The sync correction of rigid taps and G92.1 (with `Limits::sync_correction`).
+    ///
+    /// One profile drives the spindle angle θ and the feed axes; the spindle (heavy, soft
+    /// position loop) lags its command differently from a feed axis, above all in
+    /// acceleration and under load, so commanding both from the same θ opens a sync error
+    /// exactly where the tap enters, reverses and leaves. Instead the feed axes follow the
+    /// spindle's *actual* angle: every cycle the spindle's lag e_S = θ_actual − θ_sent (sent
+    /// `feedback_delay` cycles ago) is measured and extrapolated to when this cycle's
+    /// setpoint takes effect; the feed axes are sent `mm per degree × e_S` ahead of the
+    /// nominal, plus their own velocity lag τ·v so that they really are there. τ is learnt
+    /// online (least squares of the measured lag against the sent speed, over all motion,
+    /// `LAG_MEMORY_S`), not fed back cycle by cycle: a feed axis' lag reacts to the correction
+    /// itself, and feeding that back would ring. The nominal setpoint (`position`, the
+    /// planning, exact landing) is unchanged. The correction stays on through the strokes
+    /// and dwells of one hole and fades out by at most `CORR_FADE` per cycle afterwards.
+    fn sync_corr(&mut self, fb: &Feedback) {
+        self.corr_prev = self.corr;
+        let gain = match self.run {
+            Run::Tap { seg, theta0: Some(_), .. } => Some([0.0, 0.0, seg.lead / 360.0]),
+            Run::Rigid { seg, theta0: Some(_), .. } if seg.u_long > 0.0 && seg.dc != 0.0 => {
+                let e = seg.geom.end();
+                let p0 = geom_start(&seg.geom);
+                Some([(e[0] - p0[0]) / seg.dc, (e[1] - p0[1]) / seg.dc, (e[2] - p0[2]) / seg.dc])
+            }
+            // Between the strokes of a hole (reversal, dwell at the bottom): keep the lock.
+            _ if self.in_hole => Some(self.corr_gain),
+            _ => None,
+        };
+        let dt = self.lim.cycle_s;
+        let fd = self.lim.feedback_delay.clamp(1, HIST - 2);
+        let sent = self.hist[(self.hist_k + HIST - (fd - 1)) % HIST];
+        let before = self.hist[(self.hist_k + HIST - fd) % HIST];
+        // Learn the feed axes' velocity lag from every cycle that moved.
+        let forget = (-dt / LAG_MEMORY_S).exp();
+        for i in 0..3 {
+            let v = (sent[i] - before[i]) / dt;
+            let e = fb.pos[i] - sent[i];
+            if v.is_finite() && e.is_finite() && v.abs() > 1e-3 {
+                self.tau_num[i] = forget * self.tau_num[i] - e * v;
+                self.tau_den[i] = forget * self.tau_den[i] + v * v;
+            }
+        }
+        let lag_s = fb.pos[AX_S] - sent[AX_S];
+        match gain.filter(|_| self.lim.sync_correction && lag_s.is_finite()) {
+            Some(g) => {
+                self.corr_gain = g;
+                let p = self.lag_prev.unwrap_or(lag_s);
+                self.lag_prev = Some(lag_s);
+                // Extrapolated to when this setpoint is where the axes actually are.
+                let e_s = lag_s + fd as f64 * (lag_s - p);
+                for i in 0..3 {
+                    if g[i] == 0.0 {
+                        continue;
+                    }
+                    let tau = if self.tau_den[i] > 0.0 { (self.tau_num[i] / self.tau_den[i]).clamp(0.0, 0.05) } else { 0.0 };
+                    let v_nom = (self.pos[i] - self.hist[self.hist_k][i] + self.corr_prev[i]) / dt;
+                    self.corr[i] = (g[i] * e_s + tau * v_nom).clamp(-CORR_MAX, CORR_MAX);
+                }
+            }
+            None => {
+                self.corr_gain = [0.0; 3];
+                self.lag_prev = None;
+                for c in &mut self.corr {
+                    *c = c.clamp(-CORR_FADE, CORR_FADE).mul_add(-1.0, *c);
+                }
+            }
         }
     }
 
@@ -1562,6 +1738,11 @@ fn seg(geom: Geom, speed: Speed, v: f64, a: f64) -> Seg {
 /// A rapid whose C differs from where the spindle was last programmed: Cs positioning.
 fn end_c_moves(plan_c: Option<f64>, end: &Pos) -> bool {
     plan_c.is_some_and(|c| c != end.c && end.c.is_finite())
+}
+
+/// Start point of a segment's geometry.
+fn geom_start(g: &Geom) -> [f64; 3] {
+    g.at(0.0)
 }
 
 /// Distance along a line segment of the projection of `p` (X/Y/Z of an axis vector).
