@@ -56,6 +56,17 @@ fn main() {
     }
     let rpms = [500.0, 1000.0, 1500.0];
     let run = run_moves(&cfg, Limits::from_config(&cfg), thread_pass_moves(15.0, 5.0, -20.0, 1.5, &rpms), None);
+    if let (Ok(r), Ok(dir)) = (&run, std::env::var("SYNC_DUMP")) {
+        let (z, sp) = (r.drive("z").unwrap_or(0), r.drive("s1").unwrap_or(0));
+        let mut out = String::from("t_s,line,z_cmd,z_act,z_ferr,s_cmd,s_act,s_ferr,rpm,sync_um\n");
+        for r in &r.rows {
+            out += &format!(
+                "{:.4},{},{:.6},{:.6},{:.6},{:.4},{:.4},{:.4},{:.1},{:.2}\n",
+                r.t_s, r.line, r.cmd[z], r.act[z], r.ferr[z], r.cmd[sp], r.act[sp], r.ferr[sp], r.spindle_rpm, r.sync_err_um
+            );
+        }
+        let _ = std::fs::write(format!("{dir}/thread.csv"), out);
+    }
     match run.ok().and_then(|r| thread_phases(&r, -5.0, rpms.len())) {
         Some(ph) => {
             println!("thread phase (lead 1.5, start angle 0): actual spindle angle where actual Z crosses -5");

@@ -100,10 +100,13 @@ pub const N_AXES: usize = 4;
 /// (CANopen: the target sent after SYNC k−1 is the demand from SYNC k, whose actual arrives
 /// with the TPDOs of SYNC k+1; see `cycle.rs`).
 pub const FEEDBACK_DELAY: usize = 2;
-/// Setpoint history kept for the sync correction (≥ the largest feedback delay + 2).
-const HIST: usize = 5;
+/// Setpoint history kept for the sync correction (≥ the largest feedback delay + 3).
+const HIST: usize = 6;
 /// Memory of the feed axes' lag estimate (see `sync_corr`), s.
-const LAG_MEMORY_S: f64 = 0.5;
+const LAG_MEMORY_S: f64 = 2.0;
+/// The lag is learnt only after the sent speed has been steady this long (the drive's
+/// transient after an acceleration has died out), s.
+const LAG_SETTLE_S: f64 = 0.06;
 /// Largest sync correction, mm (a spindle lagging more is a fault for the sync monitor).
 const CORR_MAX: f64 = 0.5;
 /// After a tapped hole or G92.1 stroke the correction fades out by at most this per cycle, mm.
@@ -313,6 +316,8 @@ struct ThreadSeg {
     k_path: f64,
     /// The long axis' share of the path (long-axis mm per path mm).
     u_long: f64,
+    /// The long axis (X, Y or Z).
+    long_axis: usize,
     /// Largest path lead over the segment (the start's or, under G34, the end's).
     lead_path_max: f64,
     /// Starts without waiting for the one-revolution signal, continuing the lock of the
@@ -464,6 +469,8 @@ pub struct Motion {
     /// exponentially weighted Σ(−e·v) and Σ v².
     tau_num: [f64; 3],
     tau_den: [f64; 3],
+    /// Cycles each feed axis has been sent a steady speed.
+    steady: [u32; 3],
 }
 
 fn xyz(p: &Pos) -> [f64; 3] {
@@ -501,6 +508,7 @@ impl Motion {
             lag_prev: None,
             tau_num: [0.0; 3],
             tau_den: [0.0; 3],
+            steady: [0; 3],
             sp_dir: 0.0,
             sp_rpm: 0.0,
             sp_css: None,
@@ -852,6 +860,7 @@ impl Motion {
             lead_path,
             k_path: lead_inc / u_long,
             u_long,
+            long_axis: (0..3).fold(AX_Z, |b, i| if delta[i].abs() > delta[b].abs() { i } else { b }),
             lead_path_max,
             continuous,
             start_angle,
@@ -1427,7 +1436,10 @@ impl Motion {
         let rpm = if fb.spindle_rpm.is_finite() { fb.spindle_rpm } else { 0.0 };
         // Predicted to when this setpoint is where the axes actually are: the measured angle
         // is `feedback_delay` cycles old by then.
-        let theta = fb.pos[AX_S] + rpm * 6.0 * dt * self.lim.feedback_delay as f64;
+        // Plus the long axis' own velocity lag (learnt, see `sync_corr`): otherwise the thread
+        // phase would move with the rpm by ω·τ.
+        let tau = if self.lim.sync_correction { self.axis_lag(seg.long_axis) } else { 0.0 };
+        let theta = fb.pos[AX_S] + rpm * 6.0 * (dt * self.lim.feedback_delay as f64 + tau);
         // The lead-in ramp uses 80 % of the path acceleration, leaving the tracker headroom.
         let sync = match sync {
             Some(t) => Some(t),
@@ -1538,15 +1550,20 @@ impl Motion {
             _ => None,
         };
         let dt = self.lim.cycle_s;
-        let fd = self.lim.feedback_delay.clamp(1, HIST - 2);
+        let fd = self.lim.feedback_delay.clamp(1, HIST - 3);
         let sent = self.hist[(self.hist_k + HIST - (fd - 1)) % HIST];
         let before = self.hist[(self.hist_k + HIST - fd) % HIST];
-        // Learn the feed axes' velocity lag from every cycle that moved.
+        let before2 = self.hist[(self.hist_k + HIST - fd - 1) % HIST];
+        // Learn the feed axes' velocity lag from the cycles that moved at a steady speed (in
+        // acceleration the lag has other terms).
         let forget = (-dt / LAG_MEMORY_S).exp();
         for i in 0..3 {
             let v = (sent[i] - before[i]) / dt;
+            let v0 = (before[i] - before2[i]) / dt;
             let e = fb.pos[i] - sent[i];
-            if v.is_finite() && e.is_finite() && v.abs() > 1e-3 {
+            let steady = v.abs() > 1e-3 && (v - v0).abs() <= 0.01 * v.abs();
+            self.steady[i] = if steady { self.steady[i].saturating_add(1) } else { 0 };
+            if v.is_finite() && e.is_finite() && self.steady[i] as f64 * dt >= LAG_SETTLE_S {
                 self.tau_num[i] = forget * self.tau_num[i] - e * v;
                 self.tau_den[i] = forget * self.tau_den[i] + v * v;
             }
@@ -1563,7 +1580,7 @@ impl Motion {
                     if g[i] == 0.0 {
                         continue;
                     }
-                    let tau = if self.tau_den[i] > 0.0 { (self.tau_num[i] / self.tau_den[i]).clamp(0.0, 0.05) } else { 0.0 };
+                    let tau = self.axis_lag(i);
                     let v_nom = (self.pos[i] - self.hist[self.hist_k][i] + self.corr_prev[i]) / dt;
                     self.corr[i] = (g[i] * e_s + tau * v_nom).clamp(-CORR_MAX, CORR_MAX);
                 }
@@ -1575,6 +1592,16 @@ impl Motion {
                     *c = c.clamp(-CORR_FADE, CORR_FADE).mul_add(-1.0, *c);
                 }
             }
+        }
+    }
+
+    /// The learnt velocity lag τ of feed axis `i` (actual ≈ sent − τ·v), s, in 0 ..= 50 ms.
+    fn axis_lag(&self, i: usize) -> f64 {
+        let (n, d) = (self.tau_num[i.min(2)], self.tau_den[i.min(2)]);
+        if d > 0.0 && (n / d).is_finite() {
+            (n / d).clamp(0.0, 0.05)
+        } else {
+            0.0
         }
     }
 
