@@ -102,6 +102,10 @@ pub const N_AXES: usize = 4;
 pub const FEEDBACK_DELAY: usize = 2;
 /// Setpoint history kept for the sync correction (≥ the largest feedback delay + 3).
 const HIST: usize = 6;
+/// In-position width before a rigid tap (Z, and the spindle times the lead), mm.
+const INPOS_MM: f64 = 0.001;
+/// Longest wait for the in-position check, cycles (then the tap starts anyway).
+const INPOS_MAX_CYCLES: u32 = 150;
 /// Memory of the feed axes' lag estimate (see `sync_corr`), s.
 const LAG_MEMORY_S: f64 = 2.0;
 /// The lag is learnt only after the sent speed has been steady this long (the drive's
@@ -471,6 +475,8 @@ pub struct Motion {
     tau_den: [f64; 3],
     /// Cycles each feed axis has been sent a steady speed.
     steady: [u32; 3],
+    /// Cycles waited for the in-position check before a rigid tap.
+    inpos_wait: u32,
 }
 
 fn xyz(p: &Pos) -> [f64; 3] {
@@ -509,6 +515,7 @@ impl Motion {
             tau_num: [0.0; 3],
             tau_den: [0.0; 3],
             steady: [0; 3],
+            inpos_wait: 0,
             sp_dir: 0.0,
             sp_rpm: 0.0,
             sp_css: None,
@@ -1348,9 +1355,19 @@ impl Motion {
                 // take its angle as the stroke's origin.
                 self.sp_dir = 0.0;
                 self.sp_css = None;
+                // In-position check before a hole's first stroke: Z and the spindle at rest on
+                // their setpoints (a tap that starts while Z still settles from the rapid to R
+                // begins with a sync error). Bounded, so bad feedback cannot hang the program.
+                let sent = self.hist[self.hist_k];
+                let in_pos = self.in_hole
+                    || self.inpos_wait >= INPOS_MAX_CYCLES
+                    || ((fb.pos[AX_Z] - sent[AX_Z]).abs() <= INPOS_MM
+                        && ((fb.pos[AX_S] - sent[AX_S]) * seg.lead / 360.0).abs() <= INPOS_MM);
+                self.inpos_wait = if self.sp_cur == 0.0 { self.inpos_wait.saturating_add(1) } else { 0 };
                 if self.stopping {
                     self.run = Run::None;
-                } else if self.sp_cur == 0.0 {
+                } else if self.sp_cur == 0.0 && in_pos {
+                    self.inpos_wait = 0;
                     // Keep the previous stroke's reference if the spindle is still exactly where
                     // that relation puts it (same hole, nothing turned it since).
                     let r = match self.tap_ref {
@@ -1574,8 +1591,10 @@ impl Motion {
                 self.corr_gain = g;
                 let p = self.lag_prev.unwrap_or(lag_s);
                 self.lag_prev = Some(lag_s);
-                // Extrapolated to when this setpoint is where the axes actually are.
-                let e_s = lag_s + fd as f64 * (lag_s - p);
+                // Extrapolated by (delay − 1) cycles: measured on the emulated drives, one cycle
+                // less than the feedback delay tracks best (max error at the reversal
+                // 5.28 µm with none, 4.98 with 1, 5.78 with 3 cycles at the default delay 2).
+                let e_s = lag_s + (fd as f64 - 1.0) * (lag_s - p);
                 for i in 0..3 {
                     if g[i] == 0.0 {
                         continue;

@@ -143,7 +143,8 @@ pub fn rigid_tap_moves(r_z: f64, bottom: f64, lead: f64, rpm: f64) -> Vec<Move> 
 }
 
 /// Sync error of a rigid tap from the trace's *actual* positions, µm, for every cycle of
-/// the tap's strokes (lines `tap_lines.0 ..= tap_lines.1`): (Z − Z_R) − lead·(θ − θ_R)/360,
+/// the tap's strokes (lines `tap_lines.0 ..= tap_lines.1`) from the first spindle motion
+/// on: (Z − Z_R) − lead·(θ − θ_R)/360,
 /// with Z_R, θ_R the commanded R point and spindle angle the tap starts from (the relation
 /// the tap cuts, as the sync monitor uses it). (max |e|, RMS e, cycles).
 pub fn tap_sync_error(run: &SimRun, lead: f64, tap_lines: (u32, u32)) -> Option<(f64, f64, usize)> {
@@ -152,6 +153,8 @@ pub fn tap_sync_error(run: &SimRun, lead: f64, tap_lines: (u32, u32)) -> Option<
     let last = run.rows.iter().rposition(|r| r.line == tap_lines.1)?;
     let r0 = run.rows.get(first.checked_sub(1)?)?;
     let (z0, th0) = (r0.cmd[z], r0.cmd[s]);
+    // From the first cycle the spindle is commanded to turn (not the in-position wait).
+    let first = first + run.rows[first..=last].iter().position(|r| r.cmd[s] != th0)?;
     let (mut max, mut sq, mut n) = (0.0f64, 0.0, 0usize);
     for r in &run.rows[first..=last] {
         let e = ((r.act[z] - z0) - lead * (r.act[s] - th0) / 360.0) * 1000.0;
