@@ -43,7 +43,14 @@ pub enum Command {
         /// Print the summary as JSON.
         #[arg(long)]
         json: bool,
+        /// Record every cycle to this CSV file: t_s, line, NAME_cmd/NAME_act/NAME_ferr per
+        /// drive (mm, X as a radius; the spindle in degrees), spindle_rpm, sync_err_um.
+        #[arg(long, value_name = "FILE.csv")]
+        trace: Option<PathBuf>,
     },
+    /// Trace files written by `cncgw run --trace`.
+    #[command(subcommand)]
+    Trace(TraceCmd),
     /// Print the canonical moves of a program without running anything.
     ///
     /// Example: `cncgw plan examples/first_part.nc --format text`
@@ -104,6 +111,20 @@ pub enum Command {
     ///
     /// Example: `cncgw man > cncgw.1 && man ./cncgw.1`
     Man,
+}
+
+#[derive(Subcommand, Debug)]
+pub enum TraceCmd {
+    /// Draw positions, following errors, spindle speed and sync error over time as SVG.
+    ///
+    /// Example: `cncgw trace plot run.csv -o run.svg`
+    Plot {
+        /// A trace CSV from `cncgw run --trace`.
+        file: PathBuf,
+        /// The SVG to write.
+        #[arg(short = 'o', long, value_name = "FILE.svg")]
+        out: PathBuf,
+    },
 }
 
 #[derive(Subcommand, Debug)]
@@ -271,7 +292,8 @@ pub fn main() -> i32 {
     let cli = Cli::parse();
     init_tracing(cli.verbose);
     match cli.cmd {
-        Command::Run { program, machine, json } => run::run(&program, &machine, json),
+        Command::Run { program, machine, json, trace } => run::run(&program, &machine, json, trace.as_deref()),
+        Command::Trace(TraceCmd::Plot { file, out }) => run::trace_plot(&file, &out),
         Command::Plan { program, config, format } => plan(&program, config.as_deref(), &format),
         Command::Config(ConfigCmd::Check { file }) => config_check(file.as_deref()),
         Command::Scan { machine, json } => diag::scan(&machine, json),

@@ -6,6 +6,7 @@ use crate::config::{AxisKind, MachineConfig};
 use crate::drives::DriveBus;
 use crate::interp::Interpreter;
 use crate::motion::cycle::{CycleLoop, RunSummary};
+use crate::motion::trace::{Trace, TraceData};
 use crate::motion::{Limits, AX_S, AX_X, AX_Y, AX_Z};
 use cncgw_bus::Clock;
 use std::path::Path;
@@ -17,7 +18,7 @@ pub const EXIT_PROGRAM_ERROR: i32 = 2;
 pub const EXIT_ALARM: i32 = 3;
 pub const EXIT_SETUP: i32 = 4;
 
-pub fn run(program: &Path, machine: &MachineArgs, json: bool) -> i32 {
+pub fn run(program: &Path, machine: &MachineArgs, json: bool, trace: Option<&Path>) -> i32 {
     let (cfg, cfg_text) = match load_config(machine.config.as_deref()) {
         Ok(c) => c,
         Err(e) => {
@@ -45,7 +46,35 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool) -> i32 {
         }
     };
     eprintln!("cncgw: {} on {what}", program.display());
-    execute(&mut master, &mut *clock, &cfg, interp, lines, json)
+    execute(&mut master, &mut *clock, &cfg, interp, lines, json, trace)
+}
+
+/// `cncgw trace plot FILE.csv -o FILE.svg`.
+pub fn trace_plot(file: &Path, out: &Path) -> i32 {
+    let text = match std::fs::read_to_string(file) {
+        Ok(t) => t,
+        Err(e) => {
+            eprintln!("error: cannot read {}: {e}", file.display());
+            return EXIT_SETUP;
+        }
+    };
+    let data = match TraceData::parse(&text) {
+        Ok(d) => d,
+        Err(e) => {
+            eprintln!("error: {}: {e}", file.display());
+            return EXIT_PROGRAM_ERROR;
+        }
+    };
+    match crate::motion::trace::plot_svg(&data, out) {
+        Ok(()) => {
+            eprintln!("wrote {}", out.display());
+            EXIT_OK
+        }
+        Err(e) => {
+            eprintln!("error: cannot draw {}: {e}", out.display());
+            EXIT_SETUP
+        }
+    }
 }
 
 fn execute(
@@ -55,10 +84,20 @@ fn execute(
     mut interp: Interpreter,
     lines: u64,
     json: bool,
+    trace: Option<&Path>,
 ) -> i32 {
     let spindle_drive = cfg.axes.values().position(|a| a.kind == AxisKind::Spindle);
     let cycle_ns = (cfg.machine.cycle_ms * 1e6).round() as u64;
     let mut lp = CycleLoop::new(drives, clock, Limits::from_config(cfg), spindle_drive, cycle_ns);
+    if let Some(path) = trace {
+        match Trace::csv(path, lp.drive_names()) {
+            Ok(t) => lp.set_trace(t),
+            Err(e) => {
+                eprintln!("error: cannot write the trace {}: {e}", path.display());
+                return EXIT_SETUP;
+            }
+        }
+    }
     let mut summary = RunSummary::default();
     let start = match lp.start(&mut summary) {
         Ok(s) => s,
@@ -98,6 +137,15 @@ fn execute(
     });
     bar.finish_and_clear();
     lp.finish();
+    if let Some(t) = lp.take_trace() {
+        match t.finish() {
+            Ok(st) if st.dropped > 0 => {
+                eprintln!("trace: {} cycles written, {} lost (the disk was too slow)", st.rows, st.dropped)
+            }
+            Ok(st) => eprintln!("trace: {} cycles written", st.rows),
+            Err(e) => eprintln!("error: writing the trace: {e}"),
+        }
+    }
     match r {
         Err(a) => {
             print_summary(&summary, json);
