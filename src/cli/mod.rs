@@ -47,6 +47,8 @@ pub enum Command {
         /// drive (mm, X as a radius; the spindle in degrees), spindle_rpm, sync_err_um.
         #[arg(long, value_name = "FILE.csv")]
         trace: Option<PathBuf>,
+        #[command(flatten)]
+        rt: run::RtArgs,
     },
     /// Trace files written by `cncgw run --trace`.
     #[command(subcommand)]
@@ -292,7 +294,7 @@ pub fn main() -> i32 {
     let cli = Cli::parse();
     init_tracing(cli.verbose);
     match cli.cmd {
-        Command::Run { program, machine, json, trace } => run::run(&program, &machine, json, trace.as_deref()),
+        Command::Run { program, machine, json, trace, rt } => run::run(&program, &machine, json, trace.as_deref(), &rt),
         Command::Trace(TraceCmd::Plot { file, out }) => run::trace_plot(&file, &out),
         Command::Plan { program, config, format } => plan(&program, config.as_deref(), &format),
         Command::Config(ConfigCmd::Check { file }) => config_check(file.as_deref()),

@@ -6,6 +6,7 @@ use crate::config::{AxisKind, MachineConfig};
 use crate::drives::DriveBus;
 use crate::interp::Interpreter;
 use crate::motion::cycle::{CycleLoop, RunSummary};
+use crate::motion::rt::{RtOptions, RtStep};
 use crate::motion::trace::{Trace, TraceData};
 use crate::motion::{Limits, AX_S, AX_X, AX_Y, AX_Z};
 use cncgw_bus::Clock;
@@ -18,7 +19,23 @@ pub const EXIT_PROGRAM_ERROR: i32 = 2;
 pub const EXIT_ALARM: i32 = 3;
 pub const EXIT_SETUP: i32 = 4;
 
-pub fn run(program: &Path, machine: &MachineArgs, json: bool, trace: Option<&Path>) -> i32 {
+/// Real-time setup of the cycle thread (real drives on a real PC). Each is optional; one the
+/// system refuses is a warning, not an error.
+#[derive(clap::Args, Debug, Clone, Default)]
+pub struct RtArgs {
+    /// Run the cycle thread at this SCHED_FIFO priority (1–99; needs root, CAP_SYS_NICE or an
+    /// rtprio limit).
+    #[arg(long, value_name = "1-99")]
+    pub rt_priority: Option<i32>,
+    /// Lock all memory (mlockall) so that no page fault delays a cycle.
+    #[arg(long)]
+    pub mlock: bool,
+    /// Pin the cycle thread to this CPU (e.g. one isolated with isolcpus=).
+    #[arg(long, value_name = "N")]
+    pub cpu: Option<usize>,
+}
+
+pub fn run(program: &Path, machine: &MachineArgs, json: bool, trace: Option<&Path>, rt: &RtArgs) -> i32 {
     let (cfg, cfg_text) = match load_config(machine.config.as_deref()) {
         Ok(c) => c,
         Err(e) => {
@@ -46,7 +63,8 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, trace: Option<&Pat
         }
     };
     eprintln!("cncgw: {} on {what}", program.display());
-    execute(&mut master, &mut *clock, &cfg, interp, lines, json, trace)
+    let rt = RtOptions { priority: rt.rt_priority, mlock: rt.mlock, cpu: rt.cpu };
+    execute(&mut master, &mut *clock, &cfg, interp, lines, json, trace, &rt)
 }
 
 /// `cncgw trace plot FILE.csv -o FILE.svg`.
@@ -77,6 +95,7 @@ pub fn trace_plot(file: &Path, out: &Path) -> i32 {
     }
 }
 
+#[allow(clippy::too_many_arguments)] // one call site; the options are the CLI's
 fn execute(
     drives: &mut dyn DriveBus,
     clock: &mut dyn Clock,
@@ -85,6 +104,7 @@ fn execute(
     lines: u64,
     json: bool,
     trace: Option<&Path>,
+    rt: &RtOptions,
 ) -> i32 {
     let spindle_drive = cfg.axes.values().position(|a| a.kind == AxisKind::Spindle);
     let cycle_ns = (cfg.machine.cycle_ms * 1e6).round() as u64;
@@ -125,6 +145,14 @@ fn execute(
         indicatif::ProgressStyle::with_template("{spinner} {elapsed_precise} line {pos}/{len} {wide_bar} {msg}")
             .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
     );
+    // The cycle loop runs on this thread; set it up only now, so that the interpreter and
+    // trace threads (already started) do not inherit the real-time policy or the pinning.
+    for step in crate::motion::rt::apply(rt) {
+        match step {
+            RtStep::Done(m) => eprintln!("cncgw: {m}"),
+            RtStep::Refused(m) => eprintln!("warning: {m}"),
+        }
+    }
     let r = lp.run(start, rx, &mut summary, &mut |p| {
         bar.set_position(p.line as u64);
         bar.set_message(format!(

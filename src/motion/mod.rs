@@ -78,6 +78,7 @@
 pub mod cycle;
 pub mod geom;
 pub mod profile;
+pub mod rt;
 pub mod trace;
 #[cfg(test)]
 mod tests;
