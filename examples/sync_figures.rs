@@ -1,6 +1,7 @@
 //! Spindle–axis synchronisation figures on the emulated drives, in simulated time.
 //!
-//! Run: `cargo run --release --example sync_figures`
+//! Run: `cargo run --example sync_figures` (simulated time: the figures do not depend on the
+//! build profile or the machine).
 //!
 //! 1. Rigid tap M10×1.5, 30 mm deep (R point Z2, bottom Z−30), cutting load on, with the
 //!    sync correction on and off: max and RMS sync error (µm) from the actual positions,
@@ -11,15 +12,20 @@
 use cncgw::config::MachineConfig;
 use cncgw::motion::Limits;
 use cncgw::sync::measure::{
-    phase_spread, rigid_tap_moves, run_moves, tap_sync_error, thread_pass_moves, thread_phases, CuttingLoad,
+    g92_1_moves, monitor_stats, phase_spread, rigid_tap_moves, run_moves, tap_sync_error, thread_pass_moves,
+    thread_phases, CuttingLoad,
 };
 
 fn main() {
     let cfg = MachineConfig::embedded();
     println!("rigid tap M10x1.5, 30 mm deep, cutting load on (emulated drives, simulated time, 2 ms cycle)");
-    println!("{:>6} {:>12} {:>12} {:>12} {:>12}", "S", "max on µm", "rms on µm", "max off µm", "rms off µm");
+    println!(
+        "{:>6} {:>9} {:>12} {:>12} {:>12} {:>12}",
+        "S", "peak rpm", "max on µm", "rms on µm", "max off µm", "rms off µm"
+    );
     for rpm in [1000.0, 2000.0, 3000.0, 6000.0] {
         let mut row = Vec::new();
+        let mut peak = 0.0f64;
         for corr in [true, false] {
             let mut l = Limits::from_config(&cfg);
             l.sync_correction = corr;
@@ -47,10 +53,27 @@ fn main() {
                 }
                 let _ = std::fs::write(format!("{dir}/tap_{rpm}_{corr}.csv"), out);
             }
+            peak = peak.max(run.rows.iter().map(|r| r.spindle_rpm.abs()).fold(0.0, f64::max));
             match tap_sync_error(&run, 1.5, (2, 3)) {
                 Some((max, rms, _)) => row.push((max, rms)),
                 None => row.push((f64::NAN, f64::NAN)),
             }
+        }
+        println!(
+            "{:>6.0} {:>9.0} {:>12.2} {:>12.2} {:>12.2} {:>12.2}",
+            rpm, peak, row[0].0, row[0].1, row[1].0, row[1].1
+        );
+    }
+    println!("G92.1 rigid thread, lead 2, Z5 → Z−40 at X30 (sync monitor, µm)");
+    println!("{:>6} {:>12} {:>12} {:>12} {:>12}", "S", "max on", "rms on", "max off", "rms off");
+    for rpm in [500.0, 1000.0, 2000.0] {
+        let mut row = Vec::new();
+        for corr in [true, false] {
+            let mut l = Limits::from_config(&cfg);
+            l.sync_correction = corr;
+            l.sync_err_limit_um = f64::INFINITY;
+            let r = run_moves(&cfg, l, g92_1_moves(15.0, 5.0, -40.0, 2.0, rpm), None).ok();
+            row.push(r.as_ref().and_then(monitor_stats).map_or((f64::NAN, f64::NAN), |(m, r, _)| (m, r)));
         }
         println!("{:>6.0} {:>12.2} {:>12.2} {:>12.2} {:>12.2}", rpm, row[0].0, row[0].1, row[1].0, row[1].1);
     }

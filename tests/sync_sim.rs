@@ -5,7 +5,8 @@
 use cncgw::config::MachineConfig;
 use cncgw::motion::{alarms, Limits};
 use cncgw::sync::measure::{
-    phase_spread, rigid_tap_moves, run_moves, tap_sync_error, thread_pass_moves, thread_phases, CuttingLoad,
+    g92_1_moves, monitor_stats, phase_spread, rigid_tap_moves, run_moves, tap_sync_error, thread_pass_moves,
+    thread_phases, CuttingLoad,
 };
 
 fn tap(rpm: f64, correction: bool) -> (f64, f64, f64) {
@@ -90,4 +91,23 @@ fn thread_phase_does_not_move_with_the_rpm() {
         let d = (p - 240.0).rem_euclid(360.0);
         assert!(d.min(360.0 - d) < 0.1, "phase {p}° ≠ 240°");
     }
+}
+
+#[test]
+fn g92_1_rigid_thread_is_corrected_too() {
+    let cfg = MachineConfig::embedded();
+    let stats = |corr: bool| {
+        let mut l = Limits::from_config(&cfg);
+        l.sync_correction = corr;
+        l.sync_err_limit_um = f64::INFINITY;
+        let run = run_moves(&cfg, l, g92_1_moves(15.0, 5.0, -40.0, 2.0, 1000.0), None).unwrap();
+        run.result.as_ref().unwrap();
+        assert!(run.summary.at_program_end());
+        monitor_stats(&run).unwrap()
+    };
+    let (on, off) = (stats(true), stats(false));
+    eprintln!("G92.1 S1000: on {on:?}, off {off:?}");
+    assert!(on.2 > 500, "monitored {} cycles", on.2);
+    assert!(on.0 <= 5.0 && on.0 < 0.5 * off.0, "max on {} off {}", on.0, off.0);
+    assert!(on.1 < 0.5 * off.1, "RMS on {} off {}", on.1, off.1);
 }

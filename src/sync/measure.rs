@@ -218,3 +218,23 @@ pub fn phase_spread(phases: &[f64]) -> f64 {
     }
     worst
 }
+
+/// One G92.1 rigid thread stroke along Z at radius `x` (the spindle in position mode from
+/// C0), then out in X.
+pub fn g92_1_moves(x: f64, z_start: f64, z_end: f64, lead: f64, rpm: f64) -> Vec<Move> {
+    let turn = 360.0 * (z_start - z_end).abs() / lead;
+    vec![
+        mv(1, MoveKind::Rapid { end: Pos::xz(x, z_start) }),
+        mv(2, MoveKind::RigidThread { end: Pos { c: turn, ..Pos::xz(x, z_end) }, lead, rpm }),
+        mv(3, MoveKind::Rapid { end: Pos { c: turn, ..Pos::xz(x + 2.0, z_end) } }),
+        mv(4, MoveKind::End { code: 30 }),
+    ]
+}
+
+/// The sync monitor's own figure (`Motion::sync_error`, traced as `sync_err_um`) over the
+/// cycles it measured: (max |e|, RMS e, cycles).
+pub fn monitor_stats(run: &SimRun) -> Option<(f64, f64, usize)> {
+    let v: Vec<f64> = run.rows.iter().map(|r| r.sync_err_um).filter(|e| *e != 0.0).collect();
+    let n = v.len();
+    (n > 0).then(|| (v.iter().fold(0.0f64, |m, e| m.max(e.abs())), (v.iter().map(|e| e * e).sum::<f64>() / n as f64).sqrt(), n))
+}
