@@ -114,6 +114,9 @@ const LAG_MEMORY_S: f64 = 2.0;
 const LAG_SETTLE_S: f64 = 0.06;
 /// Largest sync correction, mm (a spindle lagging more is a fault for the sync monitor).
 const CORR_MAX: f64 = 0.5;
+/// Largest change of the sync correction from one cycle to the next, mm (1 mm/s at 2 ms;
+/// a real lag changes by µm per cycle).
+const CORR_SLEW: f64 = 0.002;
 /// After a tapped hole or G92.1 stroke the correction fades out by at most this per cycle, mm.
 const CORR_FADE: f64 = 0.0005;
 
@@ -1602,7 +1605,9 @@ impl Motion {
                     }
                     let tau = self.axis_lag(i);
                     let v_nom = (self.pos[i] - self.hist[self.hist_k][i] + self.corr_prev[i]) / dt;
-                    self.corr[i] = (g[i] * e_s + tau * v_nom).clamp(-CORR_MAX, CORR_MAX);
+                    let c = (g[i] * e_s + tau * v_nom).clamp(-CORR_MAX, CORR_MAX);
+                    // Slew-limited: implausible feedback must not kick the axis.
+                    self.corr[i] = c.clamp(self.corr_prev[i] - CORR_SLEW, self.corr_prev[i] + CORR_SLEW);
                 }
             }
             None => {
