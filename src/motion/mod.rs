@@ -52,8 +52,9 @@
 //!
 //! # Spindle synchronisation
 //!
-//! - Threads (`MoveKind::Thread`) lock the path position to the spindle angle predicted one
-//!   cycle ahead (measured angle + measured speed × cycle), see [`crate::sync::thread`]. A
+//! - Threads (`MoveKind::Thread`) lock the path position to the spindle angle predicted to
+//!   when the axes get there (measured angle + measured speed × (feedback delay + the long
+//!   axis' learnt lag)), see [`crate::sync::thread`] and `step_thread`. A
 //!   segment with `continuous` that is queued when the one before it reaches its end is
 //!   crossed into within that cycle with the same lock (no wait for the one-revolution
 //!   signal, no stop, no phase jump; the path speed changes in the ratio of the path leads, so
@@ -63,8 +64,10 @@
 //! - G34 (`lead_inc`): z = z0 + L0·n + K·n²/2 after n revolutions; refused (PS0014) when the
 //!   lead would reach 0 before the end, and (2306) when the largest lead × S is too fast.
 //! - G92.1 (`RigidThread`) and rigid taps: the spindle is braked, then driven in position
-//!   with the feed axes on one profile; rpm × lead is checked against the feed axes and the
-//!   spindle at `push`.
+//!   with the feed axes on one profile (matched acceleration: No.5261, No.5271 on the way
+//!   out); rpm × lead is checked against the feed axes and the spindle at `push`. With
+//!   `Limits::sync_correction` the feed axes are sent after the spindle's *actual* angle
+//!   (`sync_corr`). `Feedback` must then be paired as `Limits::feedback_delay` says.
 //! - A controlled stop during a thread keeps the axes on the thread while the spindle brakes.
 //! - The sync error ([`Motion::sync_error`]) is measured every cycle from the feedback;
 //!   beyond `Limits::sync_err_limit_um` it is alarm 2307 and a controlled stop of spindle and
@@ -1448,10 +1451,10 @@ impl Motion {
     /// continuous thread segment is queued next, crossing into it within the cycle with the
     /// same lock. Returns the path speed (mm/s).
     ///
-    /// The target is computed from the spindle angle predicted one cycle ahead (measured angle
-    /// + measured speed × cycle): the axes reach this cycle's setpoint when the spindle has
-    /// turned on by one cycle, so the lock does not lag by `ω·dt` (which would shift the phase
-    /// with the rpm).
+    /// The target is computed from the spindle angle predicted to when the axes actually get
+    /// there: measured angle plus measured speed × (`feedback_delay` cycles plus the long
+    /// axis' learnt velocity lag τ). Otherwise the lock would lag by `ω·(delay + τ)`, which
+    /// shifts the phase with the rpm (LinuxCNC issue #3455).
     fn step_thread(&mut self, fb: &Feedback, seg: ThreadSeg, sync: Option<ThreadSync>, s: f64, v: f64) -> f64 {
         let dt = self.lim.cycle_s;
         let rpm = if fb.spindle_rpm.is_finite() { fb.spindle_rpm } else { 0.0 };

@@ -249,6 +249,86 @@ impl TraceData {
     }
 }
 
+/// Draw a trace as SVG (`cncgw trace plot`): feed-axis positions (command and actual),
+/// following errors, spindle speed and sync error over time, one panel each.
+pub fn plot_svg(data: &TraceData, out: &std::path::Path) -> Result<(), String> {
+    use plotters::prelude::*;
+    let t = data.column("t_s").ok_or("the trace has no t_s column")?;
+    if t.len() < 2 {
+        return Err("the trace has fewer than two cycles".into());
+    }
+    let axes = data.axes();
+    let feed: Vec<&String> = axes.iter().filter(|a| !a.starts_with('s')).collect();
+    // At most ~4000 points per line: an SVG with every 2 ms cycle of a long run is unusable.
+    let stride = (t.len() / 4000).max(1);
+    let colors = [RGBColor(31, 119, 180), RGBColor(214, 39, 40), RGBColor(44, 160, 44), RGBColor(148, 103, 189)];
+    type Line = (String, Vec<f64>, RGBColor, bool);
+    let mut panels: Vec<(&str, Vec<Line>)> = Vec::new();
+    let col = |n: &str| data.column(n).map(|c| c.to_vec());
+    let mut pos = Vec::new();
+    let mut ferr = Vec::new();
+    for (k, a) in feed.iter().enumerate() {
+        let c = colors[k % colors.len()];
+        if let (Some(cmd), Some(act)) = (col(&format!("{a}_cmd")), col(&format!("{a}_act"))) {
+            pos.push((format!("{a} cmd"), cmd, c, true));
+            pos.push((format!("{a} act"), act, c, false));
+        }
+        if let Some(f) = col(&format!("{a}_ferr")) {
+            ferr.push((format!("{a} ferr"), f.iter().map(|v| v * 1000.0).collect(), c, false));
+        }
+    }
+    panels.push(("feed axes: position (mm, X radius)", pos));
+    panels.push(("feed axes: following error (µm)", ferr));
+    if let Some(r) = col("spindle_rpm") {
+        panels.push(("spindle speed (rpm)", vec![("rpm".into(), r, colors[0], false)]));
+    }
+    if let Some(e) = col("sync_err_um") {
+        panels.push(("spindle–axis sync error (µm)", vec![("sync".into(), e, colors[1], false)]));
+    }
+    let root = SVGBackend::new(out, (1100, 280 * panels.len() as u32)).into_drawing_area();
+    let err = |e: &dyn std::fmt::Debug| format!("{e:?}");
+    root.fill(&WHITE).map_err(|e| err(&e))?;
+    let areas = root.split_evenly((panels.len(), 1));
+    let (t0, t1) = (t[0], t[t.len() - 1].max(t[0] + 1e-6));
+    for ((title, lines), area) in panels.iter().zip(areas.iter()) {
+        let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+        for (_, v, _, _) in lines {
+            for x in v.iter().filter(|x| x.is_finite()) {
+                lo = lo.min(*x);
+                hi = hi.max(*x);
+            }
+        }
+        if !(lo.is_finite() && hi.is_finite()) {
+            (lo, hi) = (-1.0, 1.0);
+        }
+        let pad = ((hi - lo) * 0.05).max(1e-3);
+        let mut chart = ChartBuilder::on(area)
+            .caption(*title, ("sans-serif", 16))
+            .margin(8)
+            .x_label_area_size(28)
+            .y_label_area_size(70)
+            .build_cartesian_2d(t0..t1, (lo - pad)..(hi + pad))
+            .map_err(|e| err(&e))?;
+        chart.configure_mesh().x_desc("t (s)").light_line_style(WHITE.mix(0.0)).draw().map_err(|e| err(&e))?;
+        for (name, v, c, dashed) in lines {
+            let pts = t.iter().zip(v.iter()).step_by(stride).map(|(a, b)| (*a, *b));
+            let style = if *dashed { c.mix(0.45).stroke_width(1) } else { c.stroke_width(1) };
+            chart
+                .draw_series(LineSeries::new(pts, style))
+                .map_err(|e| err(&e))?
+                .label(name.as_str())
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], style));
+        }
+        chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.8))
+            .border_style(BLACK)
+            .draw()
+            .map_err(|e| err(&e))?;
+    }
+    root.present().map_err(|e| err(&e))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -329,84 +409,4 @@ mod tests {
         assert!(TraceData::parse("t_s,line\n0.1,x\n").is_err());
         assert!(TraceData::parse("t_s,line\n0.1\n").is_err());
     }
-}
-
-/// Draw a trace as SVG (`cncgw trace plot`): feed-axis positions (command and actual),
-/// following errors, spindle speed and sync error over time, one panel each.
-pub fn plot_svg(data: &TraceData, out: &std::path::Path) -> Result<(), String> {
-    use plotters::prelude::*;
-    let t = data.column("t_s").ok_or("the trace has no t_s column")?;
-    if t.len() < 2 {
-        return Err("the trace has fewer than two cycles".into());
-    }
-    let axes = data.axes();
-    let feed: Vec<&String> = axes.iter().filter(|a| !a.starts_with('s')).collect();
-    // At most ~4000 points per line: an SVG with every 2 ms cycle of a long run is unusable.
-    let stride = (t.len() / 4000).max(1);
-    let colors = [RGBColor(31, 119, 180), RGBColor(214, 39, 40), RGBColor(44, 160, 44), RGBColor(148, 103, 189)];
-    type Line = (String, Vec<f64>, RGBColor, bool);
-    let mut panels: Vec<(&str, Vec<Line>)> = Vec::new();
-    let col = |n: &str| data.column(n).map(|c| c.to_vec());
-    let mut pos = Vec::new();
-    let mut ferr = Vec::new();
-    for (k, a) in feed.iter().enumerate() {
-        let c = colors[k % colors.len()];
-        if let (Some(cmd), Some(act)) = (col(&format!("{a}_cmd")), col(&format!("{a}_act"))) {
-            pos.push((format!("{a} cmd"), cmd, c, true));
-            pos.push((format!("{a} act"), act, c, false));
-        }
-        if let Some(f) = col(&format!("{a}_ferr")) {
-            ferr.push((format!("{a} ferr"), f.iter().map(|v| v * 1000.0).collect(), c, false));
-        }
-    }
-    panels.push(("feed axes: position (mm, X radius)", pos));
-    panels.push(("feed axes: following error (µm)", ferr));
-    if let Some(r) = col("spindle_rpm") {
-        panels.push(("spindle speed (rpm)", vec![("rpm".into(), r, colors[0], false)]));
-    }
-    if let Some(e) = col("sync_err_um") {
-        panels.push(("spindle–axis sync error (µm)", vec![("sync".into(), e, colors[1], false)]));
-    }
-    let root = SVGBackend::new(out, (1100, 280 * panels.len() as u32)).into_drawing_area();
-    let err = |e: &dyn std::fmt::Debug| format!("{e:?}");
-    root.fill(&WHITE).map_err(|e| err(&e))?;
-    let areas = root.split_evenly((panels.len(), 1));
-    let (t0, t1) = (t[0], t[t.len() - 1].max(t[0] + 1e-6));
-    for ((title, lines), area) in panels.iter().zip(areas.iter()) {
-        let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
-        for (_, v, _, _) in lines {
-            for x in v.iter().filter(|x| x.is_finite()) {
-                lo = lo.min(*x);
-                hi = hi.max(*x);
-            }
-        }
-        if !(lo.is_finite() && hi.is_finite()) {
-            (lo, hi) = (-1.0, 1.0);
-        }
-        let pad = ((hi - lo) * 0.05).max(1e-3);
-        let mut chart = ChartBuilder::on(area)
-            .caption(*title, ("sans-serif", 16))
-            .margin(8)
-            .x_label_area_size(28)
-            .y_label_area_size(70)
-            .build_cartesian_2d(t0..t1, (lo - pad)..(hi + pad))
-            .map_err(|e| err(&e))?;
-        chart.configure_mesh().x_desc("t (s)").light_line_style(WHITE.mix(0.0)).draw().map_err(|e| err(&e))?;
-        for (name, v, c, dashed) in lines {
-            let pts = t.iter().zip(v.iter()).step_by(stride).map(|(a, b)| (*a, *b));
-            let style = if *dashed { c.mix(0.45).stroke_width(1) } else { c.stroke_width(1) };
-            chart
-                .draw_series(LineSeries::new(pts, style))
-                .map_err(|e| err(&e))?
-                .label(name.as_str())
-                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], style));
-        }
-        chart
-            .configure_series_labels()
-            .background_style(WHITE.mix(0.8))
-            .border_style(BLACK)
-            .draw()
-            .map_err(|e| err(&e))?;
-    }
-    root.present().map_err(|e| err(&e))
 }
