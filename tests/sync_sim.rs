@@ -111,3 +111,25 @@ fn g92_1_rigid_thread_is_corrected_too() {
     assert!(on.0 <= 5.0 && on.0 < 0.5 * off.0, "max on {} off {}", on.0, off.0);
     assert!(on.1 < 0.5 * off.1, "RMS on {} off {}", on.1, off.1);
 }
+
+#[test]
+fn a_dwell_at_the_bottom_keeps_the_lock_and_the_tap_ends_on_r() {
+    use cncgw::canon::{Move, MoveKind};
+    let cfg = MachineConfig::embedded();
+    let mut l = Limits::from_config(&cfg);
+    l.sync_err_limit_um = f64::INFINITY;
+    let mut moves: Vec<Move> = rigid_tap_moves(2.0, -20.0, 1.5, 1500.0);
+    // Dwell 0.2 s at the bottom, between the strokes (same line as the way back).
+    let mut dwell = moves[2].clone();
+    dwell.kind = MoveKind::Dwell { seconds: 0.2 };
+    moves.insert(2, dwell);
+    let run = run_moves(&cfg, l, moves, Some(CuttingLoad::m10_tap(0.0))).unwrap();
+    run.result.as_ref().unwrap();
+    assert!(run.summary.at_program_end(), "{:#?}", run.summary);
+    let (max, rms, _) = tap_sync_error(&run, 1.5, (2, 3)).unwrap();
+    eprintln!("tap with dwell: max {max:.2} µm, RMS {rms:.2} µm");
+    assert!(max <= 5.5 && rms <= 1.5, "max {max:.2} RMS {rms:.2}");
+    // The correction has faded out: Z ends exactly on R (2 mm = 20000 counts).
+    let z = run.summary.axes.iter().find(|a| a.name == "z").unwrap();
+    assert_eq!(z.final_target_counts, 20_000);
+}
