@@ -43,6 +43,10 @@ pub enum Command {
         /// Print the summary as JSON.
         #[arg(long)]
         json: bool,
+        /// Where the machine's power-off state lives (common variables #401–#600). Default:
+        /// $CNCGW_STATE_DIR, else $XDG_STATE_HOME/cncgw, else ~/.local/state/cncgw.
+        #[arg(long, value_name = "DIR")]
+        state_dir: Option<PathBuf>,
         /// Record every cycle to this CSV file: t_s, line, NAME_cmd/NAME_act/NAME_ferr per
         /// drive (mm, X as a radius; the spindle in degrees), spindle_rpm, sync_err_um.
         #[arg(long, value_name = "FILE.csv")]
@@ -294,7 +298,9 @@ pub fn main() -> i32 {
     let cli = Cli::parse();
     init_tracing(cli.verbose);
     match cli.cmd {
-        Command::Run { program, machine, json, trace, rt } => run::run(&program, &machine, json, trace.as_deref(), &rt),
+        Command::Run { program, machine, json, state_dir, trace, rt } => {
+            run::run(&program, &machine, json, state_dir.as_deref(), trace.as_deref(), &rt)
+        }
         Command::Trace(TraceCmd::Plot { file, out }) => run::trace_plot(&file, &out),
         Command::Plan { program, config, format } => plan(&program, config.as_deref(), &format),
         Command::Config(ConfigCmd::Check { file }) => config_check(file.as_deref()),
@@ -368,18 +374,38 @@ fn config_check(file: Option<&std::path::Path>) -> i32 {
         Ok((cfg, _)) => {
             println!("{}: ok — {}", file.map(|p| p.display().to_string()).unwrap_or_else(|| "embedded config/lathe.toml".into()), cfg.machine.name);
             println!("  cycle {} ms, bus {} at {} bit/s", cfg.machine.cycle_ms, cfg.bus.interface, cfg.bus.bitrate);
-            let frames = crate::bus::busload::csp_frames(cfg.axes.len(), 6);
-            let load = crate::bus::busload::load(&frames, cfg.cycle_s(), cfg.bus.bitrate);
-            println!(
-                "  worst-case CANopen bus load {:.1} % ({} drives, one 6-byte RPDO and TPDO each + SYNC per cycle){}",
-                load * 100.0,
-                cfg.axes.len(),
-                if load > 0.8 { " — OVER 80 %: lengthen the cycle" } else { "" }
-            );
+            let n_can = cfg.axes.values().filter(|a| a.modbus.is_none()).count();
+            if n_can > 0 {
+                let frames = crate::bus::busload::csp_frames(n_can, 6);
+                let load = crate::bus::busload::load(&frames, cfg.cycle_s(), cfg.bus.bitrate);
+                println!(
+                    "  worst-case CANopen bus load {:.1} % ({} drives, one 6-byte RPDO and TPDO each + SYNC per cycle){}",
+                    load * 100.0,
+                    n_can,
+                    if load > 0.8 { " — OVER 80 %: lengthen the cycle" } else { "" }
+                );
+            }
+            for (name, what, tx, rtu) in crate::drives::modbus::ModbusDrives::new(&cfg).planned_links() {
+                match rtu {
+                    Some(s) => println!(
+                        "  Modbus link {name}: {what}, {tx} transactions per cycle take {:.2} ms on the line → link cycle {} ms",
+                        s * 1e3,
+                        (s * 1e3).ceil().max(cfg.machine.cycle_ms.ceil())
+                    ),
+                    None => println!("  Modbus link {name}: {what}, {tx} transactions per cycle; the cycle is measured from the round trip at start-up"),
+                }
+            }
             for (name, a) in &cfg.axes {
                 println!(
-                    "  axis {name}: {:?} node {} {} counts/unit, max speed {}, max accel {}",
-                    a.kind, a.node, a.counts_per_unit, a.max_speed, a.max_accel
+                    "  axis {name}: {:?} {} {} counts/unit, max speed {}, max accel {}",
+                    a.kind,
+                    match &a.modbus {
+                        Some(l) => format!("Modbus link {l} unit {} ({:?} profile)", a.node, a.modbus_profile),
+                        None => format!("CANopen node {}", a.node),
+                    },
+                    a.counts_per_unit,
+                    a.max_speed,
+                    a.max_accel
                 );
             }
             0

@@ -168,7 +168,11 @@ impl<'a> CycleLoop<'a> {
         let n = map.len();
         let simulated = self.clock.is_simulated();
         let dt = self.cycle_ns as f64 * 1e-9;
-        let mut motion = Motion::new(self.limits.clone(), start);
+        let mut limits = self.limits.clone();
+        // The sync correction pairs feedback with setpoints over the CANopen delay; an axis on
+        // a link with its own cycle (Modbus) does not answer that way.
+        limits.sync_correction &= (0..n).all(|d| self.drives.link_cycle(d).is_none());
+        let mut motion = Motion::new(limits, start);
         // Statistics, all allocated here, before the first cycle.
         summary.axes = (0..n)
             .map(|d| AxisSummary {
@@ -267,7 +271,17 @@ impl<'a> CycleLoop<'a> {
                 }
                 // Only fresh feedback in a cycle that followed its predecessor on time pairs
                 // with the demand of two cycles ago; anything else would measure the jitter.
-                if f.age_cycles == 0 && missed == 0 && !late_before {
+                // A bus that knows the drive's demand at the feedback's instant (Modbus, on
+                // its own link cycle) gives it; CANopen pairs with the target of k−2.
+                if let Some(demand) = f.demand_counts {
+                    if f.age_cycles == 0 {
+                        let err = (demand - f.counts).abs() as f64 / summary.axes[d].counts_per_unit;
+                        if d < MAX_TRACE_AXES {
+                            row.ferr[d] = (demand - f.counts) as f64 / summary.axes[d].counts_per_unit;
+                        }
+                        summary.axes[d].max_following_error = summary.axes[d].max_following_error.max(err);
+                    }
+                } else if f.age_cycles == 0 && missed == 0 && !late_before {
                     let demand = hist[d][0];
                     let err = (demand - f.counts).abs() as f64 / summary.axes[d].counts_per_unit;
                     if d < MAX_TRACE_AXES {

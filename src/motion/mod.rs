@@ -1704,7 +1704,8 @@ impl Motion {
     /// True when every pushed move has been executed and the feed axes are at rest. (The
     /// spindle may still turn: see `Setpoint::spindle_rpm`.)
     pub fn is_idle(&self) -> bool {
-        self.len == 0 && self.run == Run::None && !self.stopping
+        // Not while a sync correction is still fading out: what is sent is not the end yet.
+        self.len == 0 && self.run == Run::None && !self.stopping && self.corr == [0.0; 3]
     }
 
     /// Controlled stop: decelerate along the path within the acceleration limits, ramp the

@@ -5,7 +5,8 @@
 //! cycle says which numbering it uses).
 //!
 //! Files: `single.rs` G90/G92/G94, `g76.rs` G76/G78, `stock.rs` G70–G73, `groove.rs`
-//! G74/G75, `rigid.rs` G92.1; G32/G34 and the shared helpers are here.
+//! G74/G75, `rigid.rs` G92.1, `drill.rs` G80–G89 and G30 P99, `siemens.rs` CYCLE81–86/840
+//! and MCALL; G32/G34 and the shared helpers are here.
 //!
 //! The cycles are `impl Interpreter` blocks (a child module sees the interpreter's private
 //! state); the interpreter calls [`Interpreter::cycle_block_start`] at the start of every NC
@@ -33,9 +34,11 @@ use crate::canon::{CycleTag, Move, MoveKind, Plane, Pos, SrcPos};
 use crate::config::MachineConfig;
 use std::sync::Arc;
 
+pub mod drill;
 pub mod g76;
 pub mod groove;
 pub mod rigid;
+pub mod siemens;
 pub mod single;
 pub mod stock;
 
