@@ -47,7 +47,16 @@ pub enum Command {
         /// $CNCGW_STATE_DIR, else $XDG_STATE_HOME/cncgw, else ~/.local/state/cncgw.
         #[arg(long, value_name = "DIR")]
         state_dir: Option<PathBuf>,
+        /// Record every cycle to this CSV file: t_s, line, NAME_cmd/NAME_act/NAME_ferr per
+        /// drive (mm, X as a radius; the spindle in degrees), spindle_rpm, sync_err_um.
+        #[arg(long, value_name = "FILE.csv")]
+        trace: Option<PathBuf>,
+        #[command(flatten)]
+        rt: run::RtArgs,
     },
+    /// Trace files written by `cncgw run --trace`.
+    #[command(subcommand)]
+    Trace(TraceCmd),
     /// Print the canonical moves of a program without running anything.
     ///
     /// Example: `cncgw plan examples/first_part.nc --format text`
@@ -108,6 +117,20 @@ pub enum Command {
     ///
     /// Example: `cncgw man > cncgw.1 && man ./cncgw.1`
     Man,
+}
+
+#[derive(Subcommand, Debug)]
+pub enum TraceCmd {
+    /// Draw positions, following errors, spindle speed and sync error over time as SVG.
+    ///
+    /// Example: `cncgw trace plot run.csv -o run.svg`
+    Plot {
+        /// A trace CSV from `cncgw run --trace`.
+        file: PathBuf,
+        /// The SVG to write.
+        #[arg(short = 'o', long, value_name = "FILE.svg")]
+        out: PathBuf,
+    },
 }
 
 #[derive(Subcommand, Debug)]
@@ -275,7 +298,10 @@ pub fn main() -> i32 {
     let cli = Cli::parse();
     init_tracing(cli.verbose);
     match cli.cmd {
-        Command::Run { program, machine, json, state_dir } => run::run(&program, &machine, json, state_dir.as_deref()),
+        Command::Run { program, machine, json, state_dir, trace, rt } => {
+            run::run(&program, &machine, json, state_dir.as_deref(), trace.as_deref(), &rt)
+        }
+        Command::Trace(TraceCmd::Plot { file, out }) => run::trace_plot(&file, &out),
         Command::Plan { program, config, format } => plan(&program, config.as_deref(), &format),
         Command::Config(ConfigCmd::Check { file }) => config_check(file.as_deref()),
         Command::Scan { machine, json } => diag::scan(&machine, json),

@@ -6,6 +6,8 @@ use crate::config::{AxisKind, MachineConfig};
 use crate::drives::DriveBus;
 use crate::interp::Interpreter;
 use crate::motion::cycle::{CycleLoop, RunSummary};
+use crate::motion::rt::{RtOptions, RtStep};
+use crate::motion::trace::{Trace, TraceData};
 use crate::motion::{Limits, AX_S, AX_X, AX_Y, AX_Z};
 use cncgw_bus::Clock;
 use std::path::Path;
@@ -17,7 +19,30 @@ pub const EXIT_PROGRAM_ERROR: i32 = 2;
 pub const EXIT_ALARM: i32 = 3;
 pub const EXIT_SETUP: i32 = 4;
 
-pub fn run(program: &Path, machine: &MachineArgs, json: bool, state_dir: Option<&Path>) -> i32 {
+/// Real-time setup of the cycle thread (real drives on a real PC). Each is optional; one the
+/// system refuses is a warning, not an error.
+#[derive(clap::Args, Debug, Clone, Default)]
+pub struct RtArgs {
+    /// Run the cycle thread at this SCHED_FIFO priority (1–99; needs root, CAP_SYS_NICE or an
+    /// rtprio limit).
+    #[arg(long, value_name = "1-99")]
+    pub rt_priority: Option<i32>,
+    /// Lock all memory (mlockall) so that no page fault delays a cycle.
+    #[arg(long)]
+    pub mlock: bool,
+    /// Pin the cycle thread to this CPU (e.g. one isolated with isolcpus=).
+    #[arg(long, value_name = "N")]
+    pub cpu: Option<usize>,
+}
+
+/// What `cncgw run` does besides running: the per-cycle trace and the real-time setup.
+#[derive(Clone, Debug, Default)]
+pub struct RunExtras<'a> {
+    pub trace: Option<&'a Path>,
+    pub rt: RtOptions,
+}
+
+pub fn run(program: &Path, machine: &MachineArgs, json: bool, state_dir: Option<&Path>, trace: Option<&Path>, rt: &RtArgs) -> i32 {
     let (cfg, cfg_text) = match load_config(machine.config.as_deref()) {
         Ok(c) => c,
         Err(e) => {
@@ -96,7 +121,8 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, state_dir: Option<
         }
     };
     eprintln!("cncgw: {} on {}", program.display(), what.join(" + "));
-    let (code, vars) = execute(&mut drives, &mut *clock, &cfg, program, interp, lines, json);
+    let extras = RunExtras { trace, rt: RtOptions { priority: rt.rt_priority, mlock: rt.mlock, cpu: rt.cpu } };
+    let (code, vars) = execute(&mut drives, &mut *clock, &cfg, program, interp, lines, json, &extras);
     if let (Some(f), Some(v)) = (&vars_file, vars) {
         if let Err(a) = f.save(&v) {
             eprintln!("{a}");
@@ -106,6 +132,35 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, state_dir: Option<
     code
 }
 
+/// `cncgw trace plot FILE.csv -o FILE.svg`.
+pub fn trace_plot(file: &Path, out: &Path) -> i32 {
+    let text = match std::fs::read_to_string(file) {
+        Ok(t) => t,
+        Err(e) => {
+            eprintln!("error: cannot read {}: {e}", file.display());
+            return EXIT_SETUP;
+        }
+    };
+    let data = match TraceData::parse(&text) {
+        Ok(d) => d,
+        Err(e) => {
+            eprintln!("error: {}: {e}", file.display());
+            return EXIT_PROGRAM_ERROR;
+        }
+    };
+    match crate::motion::trace::plot_svg(&data, out) {
+        Ok(()) => {
+            eprintln!("wrote {}", out.display());
+            EXIT_OK
+        }
+        Err(e) => {
+            eprintln!("error: cannot draw {}: {e}", out.display());
+            EXIT_SETUP
+        }
+    }
+}
+
+#[allow(clippy::too_many_arguments)] // one call site, from `run`
 fn execute(
     drives: &mut dyn DriveBus,
     clock: &mut dyn Clock,
@@ -114,10 +169,20 @@ fn execute(
     mut interp: Interpreter,
     lines: u64,
     json: bool,
+    extras: &RunExtras,
 ) -> (i32, Option<std::collections::HashMap<u32, f64>>) {
     let spindle_drive = cfg.axes.values().position(|a| a.kind == AxisKind::Spindle);
     let cycle_ns = (cfg.machine.cycle_ms * 1e6).round() as u64;
     let mut lp = CycleLoop::new(drives, clock, Limits::from_config(cfg), spindle_drive, cycle_ns);
+    if let Some(path) = extras.trace {
+        match Trace::csv(path, lp.drive_names()) {
+            Ok(t) => lp.set_trace(t),
+            Err(e) => {
+                eprintln!("error: cannot write the trace {}: {e}", path.display());
+                return (EXIT_SETUP, None);
+            }
+        }
+    }
     let mut summary = RunSummary::default();
     let start = match lp.start(&mut summary) {
         Ok(s) => s,
@@ -173,6 +238,14 @@ fn execute(
         indicatif::ProgressStyle::with_template("{spinner} {elapsed_precise} line {pos}/{len} {wide_bar} {msg}")
             .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
     );
+    // The cycle loop runs on this thread; set it up only now, so that the interpreter and
+    // trace threads (already started) do not inherit the real-time policy or the pinning.
+    for step in crate::motion::rt::apply(&extras.rt) {
+        match step {
+            RtStep::Done(m) => eprintln!("cncgw: {m}"),
+            RtStep::Refused(m) => eprintln!("warning: {m}"),
+        }
+    }
     let r = lp.run(start, rx, &mut summary, &mut |p| {
         bar.set_position(p.line as u64);
         bar.set_message(format!(
@@ -185,6 +258,15 @@ fn execute(
     });
     bar.finish_and_clear();
     lp.finish();
+    if let Some(t) = lp.take_trace() {
+        match t.finish() {
+            Ok(st) if st.dropped > 0 => {
+                eprintln!("trace: {} cycles written, {} lost (the disk was too slow)", st.rows, st.dropped)
+            }
+            Ok(st) => eprintln!("trace: {} cycles written", st.rows),
+            Err(e) => eprintln!("error: writing the trace: {e}"),
+        }
+    }
     let vars = producer.join().ok();
     let code = match r {
         Err(a) => {

@@ -8,6 +8,7 @@
 
 use crate::canon::{Move, Pos};
 use crate::drives::DriveBus;
+use crate::motion::trace::{Trace, TraceRow, MAX_TRACE_AXES};
 use crate::motion::{Event, Feedback, Limits, Motion, AX_S, AX_X, AX_Y, AX_Z, N_AXES};
 use crate::Alarm;
 use cncgw_bus::Clock;
@@ -93,11 +94,28 @@ pub struct CycleLoop<'a> {
     /// Drive index → motion axis.
     pub spindle_drive: Option<usize>,
     pub cycle_ns: u64,
+    /// Per-cycle trace (`--trace`), recorded without allocating.
+    trace: Option<Trace>,
 }
 
 impl<'a> CycleLoop<'a> {
     pub fn new(drives: &'a mut dyn DriveBus, clock: &'a mut dyn Clock, limits: Limits, spindle_drive: Option<usize>, cycle_ns: u64) -> Self {
-        CycleLoop { drives, clock, limits, spindle_drive, cycle_ns }
+        CycleLoop { drives, clock, limits, spindle_drive, cycle_ns, trace: None }
+    }
+
+    /// Record every cycle of `run` into `trace` (its drives in this loop's drive order).
+    pub fn set_trace(&mut self, trace: Trace) {
+        self.trace = Some(trace);
+    }
+
+    /// The trace, after `run`, to `finish` it.
+    pub fn take_trace(&mut self) -> Option<Trace> {
+        self.trace.take()
+    }
+
+    /// Drive names in drive order (for a trace header).
+    pub fn drive_names(&self) -> Vec<String> {
+        (0..self.drives.axis_count()).map(|d| self.drives.axis_name(d).to_string()).collect()
     }
 
     fn map(&self) -> Vec<Option<usize>> {
@@ -150,7 +168,11 @@ impl<'a> CycleLoop<'a> {
         let n = map.len();
         let simulated = self.clock.is_simulated();
         let dt = self.cycle_ns as f64 * 1e-9;
-        let mut motion = Motion::new(self.limits.clone(), start);
+        let mut limits = self.limits.clone();
+        // The sync correction pairs feedback with setpoints over the CANopen delay; an axis on
+        // a link with its own cycle (Modbus) does not answer that way.
+        limits.sync_correction &= (0..n).all(|d| self.drives.link_cycle(d).is_none());
+        let mut motion = Motion::new(limits, start);
         // Statistics, all allocated here, before the first cycle.
         summary.axes = (0..n)
             .map(|d| AxisSummary {
@@ -238,10 +260,14 @@ impl<'a> CycleLoop<'a> {
                 return Err(a);
             }
             let mut fb = Feedback::default();
+            let mut row = TraceRow { t_s: (now - t_start) as f64 * 1e-9, ..TraceRow::default() };
             for (d, ax) in map.iter().enumerate() {
                 let f = self.drives.feedback(d);
                 if let Some(a) = ax {
                     fb.pos[*a] = f.pos;
+                }
+                if d < MAX_TRACE_AXES {
+                    row.act[d] = f.pos;
                 }
                 // Only fresh feedback in a cycle that followed its predecessor on time pairs
                 // with the demand of two cycles ago; anything else would measure the jitter.
@@ -250,11 +276,17 @@ impl<'a> CycleLoop<'a> {
                 if let Some(demand) = f.demand_counts {
                     if f.age_cycles == 0 {
                         let err = (demand - f.counts).abs() as f64 / summary.axes[d].counts_per_unit;
+                        if d < MAX_TRACE_AXES {
+                            row.ferr[d] = (demand - f.counts) as f64 / summary.axes[d].counts_per_unit;
+                        }
                         summary.axes[d].max_following_error = summary.axes[d].max_following_error.max(err);
                     }
                 } else if f.age_cycles == 0 && missed == 0 && !late_before {
                     let demand = hist[d][0];
                     let err = (demand - f.counts).abs() as f64 / summary.axes[d].counts_per_unit;
+                    if d < MAX_TRACE_AXES {
+                        row.ferr[d] = (demand - f.counts) as f64 / summary.axes[d].counts_per_unit;
+                    }
                     if err > summary.axes[d].max_following_error {
                         summary.axes[d].max_following_error = err;
                     }
@@ -285,6 +317,18 @@ impl<'a> CycleLoop<'a> {
             if let Err(a) = self.drives.transmit(now) {
                 self.drives.quick_stop();
                 return Err(a);
+            }
+            if let Some(t) = self.trace.as_mut() {
+                for (d, ax) in map.iter().enumerate().take(MAX_TRACE_AXES) {
+                    row.cmd[d] = match ax {
+                        Some(a) => sp.pos[*a],
+                        None => row.act[d],
+                    };
+                }
+                row.line = sp.line;
+                row.spindle_rpm = spindle_rpm;
+                row.sync_err_um = motion.sync_error();
+                t.record(&row);
             }
             if let Some(a) = motion.take_alarm() {
                 // The motion layer already started a controlled stop.

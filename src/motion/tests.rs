@@ -3,8 +3,11 @@ use crate::canon::{CycleTag, SrcPos};
 use proptest::prelude::*;
 use std::sync::Arc;
 
+/// The embedded machine's limits for ideal drives: the actual is the last setpoint.
 fn lim() -> Limits {
-    Limits::from_config(&MachineConfig::embedded())
+    let mut l = Limits::from_config(&MachineConfig::embedded());
+    l.feedback_delay = 1;
+    l
 }
 
 fn mv(line: u32, kind: MoveKind) -> Move {
@@ -1327,6 +1330,8 @@ fn g92_1_is_refused_before_motion_when_infeasible() {
 fn lagging_thread(lag: usize, limit_um: f64) -> (Vec<Setpoint>, Vec<f64>, Option<Alarm>) {
     let mut l = lim();
     l.sync_err_limit_um = limit_um;
+    // The monitor itself: without the correction, which would learn the lag and hide it.
+    l.sync_correction = false;
     let mut m = Motion::new(l, START);
     m.push(&mv(1, spindle(SpindleDir::Cw, 600.0))).unwrap();
     m.push(&mv(2, rapid(20.0, 2.0))).unwrap();
@@ -1397,6 +1402,8 @@ fn sync_error_beyond_the_limit_alarms_and_stops_spindle_and_axis_together() {
 fn rigid_tap_sync_error_uses_actual_spindle_angle() {
     let mut l = lim();
     l.sync_err_limit_um = 20.0;
+    // The monitor itself, without the correction that would follow the lagging spindle.
+    l.sync_correction = false;
     let mut m = Motion::new(l, [0.0; N_AXES]);
     m.push(&mv(1, rapid(0.0, 2.0))).unwrap();
     m.push(&mv(2, MoveKind::Tap { end: Pos::xz(0.0, -20.0), lead: 1.5, rpm: 1000.0 })).unwrap();
@@ -1445,4 +1452,90 @@ fn rapid_with_c_positions_the_spindle_with_the_axes() {
     assert_eq!(last.pos[..3], [21.0, 0.0, 2.0]);
     assert_eq!(last.pos[AX_S], th0 + 90.0 - 360.0);
     assert_eq!(last.spindle_rpm, 0.0);
+}
+
+// ---- Rigid tap: feasibility, matched acceleration, sync correction ----
+
+#[test]
+fn a_rigid_tap_too_fast_for_z_or_the_spindle_is_refused_at_push() {
+    let mut m = Motion::new(lim(), [0.0; N_AXES]);
+    m.push(&mv(1, rapid(0.0, 2.0))).unwrap();
+    // Lead 3 × S5000 = 15000 mm/min > Z's 12000.
+    let e = m.push(&mv(2, MoveKind::Tap { end: Pos::xz(0.0, -20.0), lead: 3.0, rpm: 5000.0 })).unwrap_err();
+    assert_eq!(e.number, alarms::THREAD_TOO_FAST);
+    assert!(e.message.contains("lower S"), "{}", e.message);
+    // Above the spindle's 6000 rpm (Z would manage: 0.5 × 7000 = 3500 mm/min).
+    let e = m.push(&mv(2, MoveKind::Tap { end: Pos::xz(0.0, -20.0), lead: 0.5, rpm: 7000.0 })).unwrap_err();
+    assert_eq!(e.number, alarms::THREAD_TOO_FAST);
+    // Nothing was queued: only the rapid runs.
+    let sps = run(&mut m, 10_000);
+    assert!(sps.iter().all(|s| s.pos[AX_S] == 0.0 && s.pos[AX_Z] >= 0.0));
+}
+
+/// Largest |second difference| of axis `i` over setpoints of line `line`, units/s².
+fn peak_accel(sps: &[Setpoint], i: usize, line: u32, dt: f64) -> f64 {
+    sps.windows(3)
+        .filter(|w| w[1].line == line)
+        .map(|w| ((w[2].pos[i] - 2.0 * w[1].pos[i] + w[0].pos[i]) / (dt * dt)).abs())
+        .fold(0.0, f64::max)
+}
+
+#[test]
+fn rigid_tap_matches_acceleration_with_5261_in_and_5271_out() {
+    let mut l = lim();
+    // No.5261 200 ms to 1000 rpm in, No.5271 400 ms out.
+    l.tap_accel = 1000.0 / 0.2 * 6.0;
+    l.tap_retract_accel = 1000.0 / 0.4 * 6.0;
+    let dt = l.cycle_s;
+    let mut m = Motion::new(l.clone(), [0.0; N_AXES]);
+    m.push(&mv(1, rapid(0.0, 2.0))).unwrap();
+    m.push(&mv(2, MoveKind::Tap { end: Pos::xz(0.0, -20.0), lead: 1.5, rpm: 2000.0 })).unwrap();
+    m.push(&mv(3, MoveKind::Tap { end: Pos::xz(0.0, 2.0), lead: 1.5, rpm: 2000.0 })).unwrap();
+    let sps = run(&mut m, 100_000);
+    // Spindle and Z on one profile: the spindle's limit sets Z's (the lower of the two).
+    let (s_in, s_out) = (peak_accel(&sps, AX_S, 2, dt), peak_accel(&sps, AX_S, 3, dt));
+    assert!((s_in - l.tap_accel).abs() < 0.01 * l.tap_accel, "in: {s_in} deg/s²");
+    assert!((s_out - l.tap_retract_accel).abs() < 0.01 * l.tap_retract_accel, "out: {s_out} deg/s²");
+    let z_in = peak_accel(&sps, AX_Z, 2, dt);
+    assert!((z_in - l.tap_accel * 1.5 / 360.0).abs() < 0.01 * z_in, "Z in: {z_in} mm/s²");
+    assert_eq!(sps.last().unwrap().pos[AX_Z], 2.0);
+}
+
+#[test]
+fn sync_correction_sends_z_after_the_spindle_actual_angle_and_fades_out_at_r() {
+    let mut l = lim();
+    l.feedback_delay = 2;
+    let mut m = Motion::new(l, [0.0; N_AXES]);
+    m.push(&mv(1, rapid(0.0, 2.0))).unwrap();
+    m.push(&mv(2, MoveKind::Tap { end: Pos::xz(0.0, -10.0), lead: 1.5, rpm: 1000.0 })).unwrap();
+    m.push(&mv(3, MoveKind::Tap { end: Pos::xz(0.0, 2.0), lead: 1.5, rpm: 1000.0 })).unwrap();
+    m.push(&mv(4, rapid(10.0, 2.0))).unwrap();
+    // Drives two cycles behind (as on CANopen); the spindle 1° further behind than that.
+    let mut sps: Vec<Setpoint> = Vec::new();
+    let mut fb = Feedback::default();
+    let mut spindle_moved = false;
+    for _ in 0..20_000 {
+        let sp = m.step(&fb);
+        sps.push(sp);
+        let k = sps.len().saturating_sub(2);
+        fb = Feedback { pos: sps[k].pos, spindle_rpm: sps[k].spindle_rpm };
+        spindle_moved |= sp.pos[AX_S] != 0.0;
+        if spindle_moved {
+            fb.pos[AX_S] += if sp.line >= 2 && sp.line <= 3 { -1.0f64.copysign(sps[k].vel[AX_S]) } else { 0.0 };
+        }
+        if m.is_idle() && sps.len() > 3 && sps[sps.len() - 3..].windows(2).all(|w| w[0].pos == w[1].pos) {
+            break;
+        }
+    }
+    // Mid-stroke (steady 1000 rpm, constant 1° lag): Z is sent 1° × 1.5/360 mm after the
+    // nominal relation, i.e. where the spindle actually is.
+    let mid: Vec<&Setpoint> = sps.iter().filter(|s| s.line == 2 && s.vel[AX_S] < -5999.0).collect();
+    assert!(mid.len() > 50, "{} steady cycles", mid.len());
+    for s in &mid[10..] {
+        let nominal = 2.0 + 1.5 * s.pos[AX_S] / 360.0;
+        assert!((s.pos[AX_Z] - nominal - 1.5 / 360.0).abs() < 1e-6, "z {} vs nominal {nominal}", s.pos[AX_Z]);
+    }
+    // After the hole the correction fades out: the program ends exactly on its end point.
+    let last = sps.last().unwrap();
+    assert_eq!(last.pos[..3], [10.0, 0.0, 2.0]);
 }

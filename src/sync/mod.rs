@@ -1,6 +1,7 @@
 //! Spindle–axis synchronization (threading, rigid tapping) and its error monitor.
 
 pub mod link_check;
+pub mod measure;
 pub mod thread;
 
 pub use thread::ThreadSync;

@@ -1,0 +1,412 @@
+//! Per-cycle trace of a run (`cncgw run --trace FILE.csv`): setpoint, actual position and
+//! following error of every drive, spindle speed, sync error and block line.
+//!
+//! The cycle thread must not allocate after start, so rows go into preallocated chunks: a
+//! full chunk is handed to a writer thread over a bounded channel and comes back empty over
+//! another one. If the writer falls behind and no empty chunk is available, rows are dropped
+//! and counted (never a stall or an allocation in the cycle).
+
+use std::io::{self, Write};
+use std::sync::mpsc::{sync_channel, Receiver, SyncSender};
+use std::thread::JoinHandle;
+
+/// Drives a trace row has room for.
+pub const MAX_TRACE_AXES: usize = 8;
+/// Rows per chunk (about 2 s at 2 ms).
+const CHUNK_ROWS: usize = 1024;
+/// Chunks in the pool: how far the writer may fall behind (≈ 16 s at 2 ms).
+const CHUNKS: usize = 8;
+
+/// One cycle. Positions in machine units (mm, X as a radius; the spindle in degrees,
+/// continuous).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct TraceRow {
+    /// Time since the start of the program, s.
+    pub t_s: f64,
+    /// Source line of the block being executed.
+    pub line: u32,
+    /// Setpoint sent this cycle, per drive.
+    pub cmd: [f64; MAX_TRACE_AXES],
+    /// Actual position read this cycle, per drive.
+    pub act: [f64; MAX_TRACE_AXES],
+    /// Following error: the demand this actual belongs to minus the actual (0 when the
+    /// feedback was stale or the cycle late, see `CycleLoop`).
+    pub ferr: [f64; MAX_TRACE_AXES],
+    /// Measured spindle speed, rpm.
+    pub spindle_rpm: f64,
+    /// Spindle–axis sync error, µm (0 outside synchronised moves).
+    pub sync_err_um: f64,
+}
+
+/// Where the writer thread puts the rows.
+pub trait TraceSink: Send + 'static {
+    fn header(&mut self, names: &[String]) -> io::Result<()>;
+    fn rows(&mut self, names: &[String], rows: &[TraceRow]) -> io::Result<()>;
+    fn finish(&mut self) -> io::Result<()>;
+}
+
+/// CSV: `t_s,line,NAME_cmd,NAME_act,NAME_ferr,…,spindle_rpm,sync_err_um`.
+pub struct CsvSink<W: Write + Send + 'static>(pub W);
+
+impl<W: Write + Send + 'static> TraceSink for CsvSink<W> {
+    fn header(&mut self, names: &[String]) -> io::Result<()> {
+        write!(self.0, "t_s,line")?;
+        for n in names {
+            write!(self.0, ",{n}_cmd,{n}_act,{n}_ferr")?;
+        }
+        writeln!(self.0, ",spindle_rpm,sync_err_um")
+    }
+
+    fn rows(&mut self, names: &[String], rows: &[TraceRow]) -> io::Result<()> {
+        for r in rows {
+            write!(self.0, "{:.6},{}", r.t_s, r.line)?;
+            for d in 0..names.len() {
+                write!(self.0, ",{:.6},{:.6},{:.6}", r.cmd[d], r.act[d], r.ferr[d])?;
+            }
+            writeln!(self.0, ",{:.3},{:.3}", r.spindle_rpm, r.sync_err_um)?;
+        }
+        Ok(())
+    }
+
+    fn finish(&mut self) -> io::Result<()> {
+        self.0.flush()
+    }
+}
+
+/// Collects the rows in memory (tests, benches).
+pub struct VecSink(pub std::sync::Arc<std::sync::Mutex<Vec<TraceRow>>>);
+
+impl TraceSink for VecSink {
+    fn header(&mut self, _: &[String]) -> io::Result<()> {
+        Ok(())
+    }
+    fn rows(&mut self, _: &[String], rows: &[TraceRow]) -> io::Result<()> {
+        self.0.lock().map_err(|_| io::Error::other("trace buffer poisoned"))?.extend_from_slice(rows);
+        Ok(())
+    }
+    fn finish(&mut self) -> io::Result<()> {
+        Ok(())
+    }
+}
+
+/// What a finished trace wrote.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct TraceStats {
+    pub rows: u64,
+    /// Rows lost because the writer fell behind.
+    pub dropped: u64,
+}
+
+/// The cycle-side end of a trace. Everything is allocated in [`Trace::spawn`].
+pub struct Trace {
+    n: usize,
+    cur: Vec<TraceRow>,
+    full_tx: Option<SyncSender<Vec<TraceRow>>>,
+    free_rx: Receiver<Vec<TraceRow>>,
+    rows: u64,
+    dropped: u64,
+    writer: Option<JoinHandle<io::Result<()>>>,
+}
+
+impl Trace {
+    /// Start the writer thread for drives named `names` (at most [`MAX_TRACE_AXES`]; more
+    /// are left out of the trace).
+    pub fn spawn(names: Vec<String>, mut sink: impl TraceSink) -> io::Result<Trace> {
+        let mut names = names;
+        names.truncate(MAX_TRACE_AXES);
+        let n = names.len();
+        let (full_tx, full_rx) = sync_channel::<Vec<TraceRow>>(CHUNKS);
+        let (free_tx, free_rx) = sync_channel::<Vec<TraceRow>>(CHUNKS);
+        for _ in 0..CHUNKS - 1 {
+            // Capacity CHUNKS: these sends cannot block.
+            let _ = free_tx.send(Vec::with_capacity(CHUNK_ROWS));
+        }
+        let writer = std::thread::Builder::new().name("trace".into()).spawn(move || {
+            sink.header(&names)?;
+            let mut res = Ok(());
+            while let Ok(mut chunk) = full_rx.recv() {
+                // After a write error keep recycling chunks (the cycle must not notice), report
+                // the error at the end.
+                if res.is_ok() {
+                    res = sink.rows(&names, &chunk);
+                }
+                chunk.clear();
+                let _ = free_tx.try_send(chunk);
+            }
+            res?;
+            sink.finish()
+        })?;
+        Ok(Trace {
+            n,
+            cur: Vec::with_capacity(CHUNK_ROWS),
+            full_tx: Some(full_tx),
+            free_rx,
+            rows: 0,
+            dropped: 0,
+            writer: Some(writer),
+        })
+    }
+
+    /// A CSV file at `path`.
+    pub fn csv(path: &std::path::Path, names: Vec<String>) -> io::Result<Trace> {
+        let f = std::fs::File::create(path)?;
+        Trace::spawn(names, CsvSink(io::BufWriter::with_capacity(1 << 16, f)))
+    }
+
+    /// Number of drives traced.
+    pub fn axes(&self) -> usize {
+        self.n
+    }
+
+    /// Append one row. Never allocates, never blocks.
+    pub fn record(&mut self, row: &TraceRow) {
+        if self.cur.len() == self.cur.capacity() {
+            if !self.cur.is_empty() {
+                let full = std::mem::take(&mut self.cur);
+                if let Some(tx) = &self.full_tx {
+                    // At most CHUNKS chunks exist, so the channel has room; a dead writer
+                    // just loses the chunk.
+                    let _ = tx.try_send(full);
+                }
+            }
+            match self.free_rx.try_recv() {
+                Ok(v) => self.cur = v,
+                Err(_) => {
+                    self.dropped += 1;
+                    return;
+                }
+            }
+            if self.cur.capacity() == 0 {
+                self.dropped += 1;
+                return;
+            }
+        }
+        self.cur.push(*row);
+        self.rows += 1;
+    }
+
+    /// Hand the last rows to the writer and wait for it to finish.
+    pub fn finish(mut self) -> io::Result<TraceStats> {
+        let tail = std::mem::take(&mut self.cur);
+        if let Some(tx) = self.full_tx.take() {
+            if !tail.is_empty() {
+                // Blocking is fine here: the run is over.
+                let _ = tx.send(tail);
+            }
+        }
+        let stats = TraceStats { rows: self.rows, dropped: self.dropped };
+        match self.writer.take().map(|w| w.join()) {
+            Some(Ok(r)) => r.map(|_| stats),
+            Some(Err(_)) => Err(io::Error::other("the trace writer thread panicked")),
+            None => Ok(stats),
+        }
+    }
+}
+
+/// A trace read back from CSV (for `cncgw trace plot`).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct TraceData {
+    pub columns: Vec<String>,
+    /// Column-major values.
+    pub values: Vec<Vec<f64>>,
+}
+
+impl TraceData {
+    pub fn parse(text: &str) -> Result<TraceData, String> {
+        let mut lines = text.lines();
+        let header = lines.next().ok_or("empty trace file")?;
+        let columns: Vec<String> = header.split(',').map(|s| s.trim().to_string()).collect();
+        if columns.first().map(String::as_str) != Some("t_s") {
+            return Err(format!("not a cncgw trace: the header must start with t_s, got {header:?}"));
+        }
+        let mut values = vec![Vec::new(); columns.len()];
+        for (i, l) in lines.enumerate() {
+            if l.trim().is_empty() {
+                continue;
+            }
+            let mut n = 0;
+            for (c, f) in l.split(',').enumerate() {
+                let v: f64 = f.trim().parse().map_err(|_| format!("line {}: {f:?} is not a number", i + 2))?;
+                if let Some(col) = values.get_mut(c) {
+                    col.push(v);
+                }
+                n += 1;
+            }
+            if n != columns.len() {
+                return Err(format!("line {}: {n} fields, the header has {}", i + 2, columns.len()));
+            }
+        }
+        Ok(TraceData { columns, values })
+    }
+
+    pub fn column(&self, name: &str) -> Option<&[f64]> {
+        self.columns.iter().position(|c| c == name).map(|i| self.values[i].as_slice())
+    }
+
+    /// Drive names (from the `NAME_cmd` columns), in file order.
+    pub fn axes(&self) -> Vec<String> {
+        self.columns.iter().filter_map(|c| c.strip_suffix("_cmd").map(str::to_string)).collect()
+    }
+}
+
+/// Draw a trace as SVG (`cncgw trace plot`): feed-axis positions (command and actual),
+/// following errors, spindle speed and sync error over time, one panel each.
+pub fn plot_svg(data: &TraceData, out: &std::path::Path) -> Result<(), String> {
+    use plotters::prelude::*;
+    let t = data.column("t_s").ok_or("the trace has no t_s column")?;
+    if t.len() < 2 {
+        return Err("the trace has fewer than two cycles".into());
+    }
+    let axes = data.axes();
+    let feed: Vec<&String> = axes.iter().filter(|a| !a.starts_with('s')).collect();
+    // At most ~4000 points per line: an SVG with every 2 ms cycle of a long run is unusable.
+    let stride = (t.len() / 4000).max(1);
+    let colors = [RGBColor(31, 119, 180), RGBColor(214, 39, 40), RGBColor(44, 160, 44), RGBColor(148, 103, 189)];
+    type Line = (String, Vec<f64>, RGBColor, bool);
+    let mut panels: Vec<(&str, Vec<Line>)> = Vec::new();
+    let col = |n: &str| data.column(n).map(|c| c.to_vec());
+    let mut pos = Vec::new();
+    let mut ferr = Vec::new();
+    for (k, a) in feed.iter().enumerate() {
+        let c = colors[k % colors.len()];
+        if let (Some(cmd), Some(act)) = (col(&format!("{a}_cmd")), col(&format!("{a}_act"))) {
+            pos.push((format!("{a} cmd"), cmd, c, true));
+            pos.push((format!("{a} act"), act, c, false));
+        }
+        if let Some(f) = col(&format!("{a}_ferr")) {
+            ferr.push((format!("{a} ferr"), f.iter().map(|v| v * 1000.0).collect(), c, false));
+        }
+    }
+    panels.push(("feed axes: position (mm, X radius)", pos));
+    panels.push(("feed axes: following error (µm)", ferr));
+    if let Some(r) = col("spindle_rpm") {
+        panels.push(("spindle speed (rpm)", vec![("rpm".into(), r, colors[0], false)]));
+    }
+    if let Some(e) = col("sync_err_um") {
+        panels.push(("spindle–axis sync error (µm)", vec![("sync".into(), e, colors[1], false)]));
+    }
+    let root = SVGBackend::new(out, (1100, 280 * panels.len() as u32)).into_drawing_area();
+    let err = |e: &dyn std::fmt::Debug| format!("{e:?}");
+    root.fill(&WHITE).map_err(|e| err(&e))?;
+    let areas = root.split_evenly((panels.len(), 1));
+    let (t0, t1) = (t[0], t[t.len() - 1].max(t[0] + 1e-6));
+    for ((title, lines), area) in panels.iter().zip(areas.iter()) {
+        let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+        for (_, v, _, _) in lines {
+            for x in v.iter().filter(|x| x.is_finite()) {
+                lo = lo.min(*x);
+                hi = hi.max(*x);
+            }
+        }
+        if !(lo.is_finite() && hi.is_finite()) {
+            (lo, hi) = (-1.0, 1.0);
+        }
+        let pad = ((hi - lo) * 0.05).max(1e-3);
+        let mut chart = ChartBuilder::on(area)
+            .caption(*title, ("sans-serif", 16))
+            .margin(8)
+            .x_label_area_size(28)
+            .y_label_area_size(70)
+            .build_cartesian_2d(t0..t1, (lo - pad)..(hi + pad))
+            .map_err(|e| err(&e))?;
+        chart.configure_mesh().x_desc("t (s)").light_line_style(WHITE.mix(0.0)).draw().map_err(|e| err(&e))?;
+        for (name, v, c, dashed) in lines {
+            let pts = t.iter().zip(v.iter()).step_by(stride).map(|(a, b)| (*a, *b));
+            let style = if *dashed { c.mix(0.45).stroke_width(1) } else { c.stroke_width(1) };
+            chart
+                .draw_series(LineSeries::new(pts, style))
+                .map_err(|e| err(&e))?
+                .label(name.as_str())
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], style));
+        }
+        chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.8))
+            .border_style(BLACK)
+            .draw()
+            .map_err(|e| err(&e))?;
+    }
+    root.present().map_err(|e| err(&e))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::{Arc, Mutex};
+
+    #[derive(Clone)]
+    struct Shared(Arc<Mutex<Vec<u8>>>);
+    impl Write for Shared {
+        fn write(&mut self, b: &[u8]) -> io::Result<usize> {
+            self.0.lock().unwrap().extend_from_slice(b);
+            Ok(b.len())
+        }
+        fn flush(&mut self) -> io::Result<()> {
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn rows_round_trip_through_csv_across_chunks() {
+        let buf = Shared(Arc::new(Mutex::new(Vec::new())));
+        let mut t = Trace::spawn(vec!["x".into(), "s1".into()], CsvSink(buf.clone())).unwrap();
+        let n = 3 * CHUNK_ROWS + 17;
+        for k in 0..n {
+            let mut r = TraceRow { t_s: k as f64 * 0.002, line: k as u32 / 100, ..Default::default() };
+            r.cmd[0] = k as f64;
+            r.act[1] = -(k as f64);
+            r.sync_err_um = 0.5;
+            t.record(&r);
+            // Give the writer time now and then, as the cycle period does.
+            if k % CHUNK_ROWS == 0 {
+                std::thread::sleep(std::time::Duration::from_millis(5));
+            }
+        }
+        let st = t.finish().unwrap();
+        assert_eq!(st, TraceStats { rows: n as u64, dropped: 0 });
+        let text = String::from_utf8(buf.0.lock().unwrap().clone()).unwrap();
+        let d = TraceData::parse(&text).unwrap();
+        assert_eq!(d.columns[..5], ["t_s", "line", "x_cmd", "x_act", "x_ferr"]);
+        assert_eq!(d.axes(), ["x", "s1"]);
+        assert_eq!(d.column("x_cmd").unwrap().len(), n);
+        assert_eq!(d.column("x_cmd").unwrap()[n - 1], (n - 1) as f64);
+        assert_eq!(d.column("s1_act").unwrap()[5], -5.0);
+        assert_eq!(d.column("sync_err_um").unwrap()[7], 0.5);
+    }
+
+    #[test]
+    fn a_stalled_writer_drops_rows_instead_of_blocking() {
+        struct Stall(Arc<Mutex<()>>);
+        impl TraceSink for Stall {
+            fn header(&mut self, _: &[String]) -> io::Result<()> {
+                Ok(())
+            }
+            fn rows(&mut self, _: &[String], _: &[TraceRow]) -> io::Result<()> {
+                drop(self.0.lock());
+                Ok(())
+            }
+            fn finish(&mut self) -> io::Result<()> {
+                Ok(())
+            }
+        }
+        let gate = Arc::new(Mutex::new(()));
+        let held = gate.lock().unwrap();
+        let mut t = Trace::spawn(vec!["z".into()], Stall(gate.clone())).unwrap();
+        let n = (CHUNKS + 2) * CHUNK_ROWS;
+        for _ in 0..n {
+            t.record(&TraceRow::default());
+        }
+        drop(held);
+        let st = t.finish().unwrap();
+        assert!(st.dropped > 0, "{st:?}");
+        assert_eq!(st.rows + st.dropped, n as u64);
+    }
+
+    #[test]
+    fn malformed_trace_files_are_errors() {
+        assert!(TraceData::parse("").is_err());
+        assert!(TraceData::parse("a,b\n1,2\n").is_err());
+        assert!(TraceData::parse("t_s,line\n0.1,x\n").is_err());
+        assert!(TraceData::parse("t_s,line\n0.1\n").is_err());
+    }
+}
