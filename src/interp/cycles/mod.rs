@@ -4,7 +4,7 @@
 //! cycle (where the numbers live only in a figure missing from the text, the module of the
 //! cycle says which numbering it uses).
 //!
-//! Files: `single.rs` G90/G92/G94, `g76.rs` G76/G78, `stock.rs` G70–G73, `groove.rs`
+//! Files: `single.rs` G90/G92/G94, `g76.rs` G76/G78, `stock.rs` G70–G73, `typeii.rs` G71/G72 type II, `groove.rs`
 //! G74/G75, `rigid.rs` G92.1; G32/G34 and the shared helpers are here.
 //!
 //! The cycles are `impl Interpreter` blocks (a child module sees the interpreter's private
@@ -38,6 +38,7 @@ pub mod groove;
 pub mod rigid;
 pub mod single;
 pub mod stock;
+pub mod typeii;
 
 /// Our alarm for values outside the ranges the manual states (Fanuc has no number for them).
 pub const RANGE_ALARM: u32 = 2510;
