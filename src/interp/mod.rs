@@ -222,6 +222,8 @@ pub struct Interpreter {
     /// G40/G41/G42 tool nose radius compensation of the moves leaving `queue`.
     nrc: nosecomp::NoseComp,
     nrc_out: VecDeque<Move>,
+    /// G12.1 polar coordinate interpolation in force.
+    polar: Option<cycles::polar::PolarState>,
 }
 
 fn perr_alarm(file: &Arc<str>, line_no: usize, text: &str, e: PErr) -> Alarm {
@@ -296,6 +298,7 @@ impl Interpreter {
             cyc: cycles::CycleState::new(cfg),
             nrc: nosecomp::NoseComp::default(),
             nrc_out: VecDeque::new(),
+            polar: None,
         }
     }
 
@@ -1110,8 +1113,11 @@ impl Interpreter {
                 _ => None,
             };
             let (r, tip) = (self.tool.nose_radius, self.tool.tip);
+            // Tips 1–8 are for G18; in the polar plane the nose centre is offset (tip 0).
+            let tip = if self.polar_active() { 0 } else { tip };
             self.nrc.set_mode(side, r, tip, self.st.plane).map_err(|(n, m)| (n, gcol(g), m))?;
         }
+        self.special_modes(d, src)?;
         let one_shot = d.group(0);
         // F.
         if let Some(f) = d.get('F') {
@@ -1409,6 +1415,9 @@ impl Interpreter {
 
     /// Modal motion (group 01) with the block's axis words.
     fn motion(&mut self, d: &Decoded, src: &SrcPos, exact: bool) -> Result<(), (u32, Option<u32>, String)> {
+        if self.polar_active() {
+            return self.polar_motion(d, src, exact);
+        }
         let Some(end) = self.target(d) else {
             return Ok(());
         };

@@ -113,6 +113,8 @@ struct Seg {
     b: P2,
     /// Arc centre and clockwise flag.
     arc: Option<(P2, bool)>,
+    /// `c_zero` of a G12.1 move (its coordinates are virtual X–C).
+    polar: Option<f64>,
     mv: Move,
 }
 
@@ -199,6 +201,7 @@ impl NoseComp {
             && match &m.kind {
                 MoveKind::Rapid { .. } | MoveKind::Feed { .. } => true,
                 MoveKind::Arc { plane, .. } => *plane == Plane::Zx,
+                MoveKind::Polar { .. } => true,
                 _ => false,
             }
     }
@@ -220,7 +223,15 @@ impl NoseComp {
         };
         let start = self.prog;
         self.prog = end;
-        let (a, b) = (uv(start), uv(end));
+        // G12.1 moves are compensated in their virtual X–C plane.
+        let (a, b, polar) = match &m.kind {
+            MoveKind::Polar { from, to, c_zero, .. } => ((from[0], from[1]), (to[0], to[1]), Some(*c_zero)),
+            _ => (uv(start), uv(end), None),
+        };
+        if self.pending.as_ref().is_some_and(|p| p.0.polar.is_some() != polar.is_some()) {
+            // Into or out of the polar plane: the offset ends here and starts up again.
+            self.flush_perpendicular(out)?;
+        }
         if !Self::compensable(&m) {
             self.flush_perpendicular(out)?;
             self.mach = b;
@@ -245,9 +256,10 @@ impl NoseComp {
         }
         let arc = match &m.kind {
             MoveKind::Arc { center, cw, .. } => Some((uv(*center), *cw)),
+            MoveKind::Polar { center: Some(c), cw, .. } => Some(((c[0], c[1]), *cw)),
             _ => None,
         };
-        let seg = Seg { a, b, arc, mv: m };
+        let seg = Seg { a, b, arc, polar, mv: m };
         match self.pending.take() {
             None => {
                 // Start-up (mode is on: the G40 case without a pending motion returned above).
@@ -255,6 +267,7 @@ impl NoseComp {
                 if seg.arc.is_some() {
                     return Err(at(&seg.mv, ARC_STARTUP_ALARM, "tool nose radius compensation cannot start on an arc (§2.18.3): start it with a G00/G01 move"));
                 }
+                self.mach = seg.a;
                 self.pending = Some((seg, side, true));
             }
             Some((prev, side, startup)) if self.mode.is_some() => {
@@ -270,8 +283,12 @@ impl NoseComp {
                 }
                 let (prev_end, extra, _) = self.corner(&prev, &seg, side, true)?;
                 self.emit(&prev, side, startup, prev_end, &extra, out)?;
+                let mut mv = seg.mv;
+                if let MoveKind::Polar { from, .. } = &mut mv.kind {
+                    *from = [self.mach.0, self.mach.1];
+                }
                 self.mach = seg.b;
-                out.push(seg.mv);
+                out.push(mv);
             }
         }
         Ok(())
@@ -301,7 +318,7 @@ impl NoseComp {
         let mut mv = prev.mv.clone();
         let last_exact = mv.exact_stop;
         match (&mut mv.kind, prev.arc) {
-            (MoveKind::Arc { center, .. }, Some((c, cw))) => {
+            (MoveKind::Arc { .. } | MoveKind::Polar { .. }, Some((c, cw))) => {
                 let r = norm(sub(prev.a, c));
                 let sgn = if cw { 1.0 } else { -1.0 } * if side == Side::Left { 1.0 } else { -1.0 };
                 // Left of a CCW arc is the centre side: the radius shrinks.
@@ -325,7 +342,9 @@ impl NoseComp {
                 if (ps - cs).abs() > std::f64::consts::PI && ps > 1e-9 {
                     return Err(at(&prev.mv, INTERFERENCE_ALARM, "interference: the compensated arc turns the other way round (the groove or step is narrower than the nose, §2.18.4)"));
                 }
-                *center = set_p(*center, self.machine(c));
+                if let MoveKind::Arc { center, .. } = &mut mv.kind {
+                    *center = set_p(*center, self.machine(c));
+                }
             }
             _ => {
                 if !startup {
@@ -337,7 +356,7 @@ impl NoseComp {
                 }
             }
         }
-        set_uv(&mut mv.kind, to);
+        place(&mut mv, from, to);
         mv.exact_stop = last_exact && extra.is_empty();
         out.push(mv);
         let mut cur = to;
@@ -351,19 +370,23 @@ impl NoseComp {
                 _ => None,
             };
             let endp = set_p(prev.mv.kind.end().unwrap_or(Pos::ZERO), q);
-            let kind = match feed {
-                Some(feed) => MoveKind::Feed { end: endp, feed },
-                None => MoveKind::Rapid { end: endp },
+            let kind = match (feed, &prev.mv.kind) {
+                (Some(feed), MoveKind::Polar { end, c_zero, .. }) => {
+                    MoveKind::Polar { end: *end, from: [0.0; 2], to: [0.0; 2], center: None, cw: false, c_zero: *c_zero, feed }
+                }
+                (Some(feed), _) => MoveKind::Feed { end: endp, feed },
+                (None, _) => MoveKind::Rapid { end: endp },
             };
             let mut m = prev.mv.clone();
             m.kind = kind;
+            place(&mut m, cur, q);
             m.exact_stop = last_exact && i + 1 == extra.len();
             out.push(m);
             cur = q;
         }
         self.mach = cur;
         for mut h in self.held.drain(..) {
-            if h.kind.end().is_some() {
+            if h.kind.end().is_some() && prev.polar.is_none() {
                 set_uv(&mut h.kind, cur);
             }
             out.push(h);
@@ -467,6 +490,22 @@ fn set_uv(k: &mut MoveKind, q: P2) {
         | MoveKind::Tap { end, .. }
         | MoveKind::RigidThread { end, .. } => *end = set_p(*end, q),
         _ => {}
+    }
+}
+
+/// Put a compensated move from `from` to `to` (plane coordinates): the end point, and for
+/// a G12.1 move its virtual points and the machine end converted from them.
+fn place(m: &mut Move, from: P2, to: P2) {
+    let wx = m.work_offset.x;
+    match &mut m.kind {
+        MoveKind::Polar { end, from: f, to: t, c_zero, .. } => {
+            *f = [from.0, from.1];
+            *t = [to.0, to.1];
+            let (x, c) = crate::canon::polar_to_machine(*t, *c_zero, wx, end.c);
+            end.x = x;
+            end.c = c;
+        }
+        k => set_uv(k, to),
     }
 }
 
