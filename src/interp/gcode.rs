@@ -38,7 +38,7 @@ pub fn ginfo(g: GCode) -> Option<GInfo> {
         190 => (16, "YZ plane", None),
         200 => (6, "inch input", None),
         210 => (6, "metric input", None),
-        220 => (4, "stored stroke check 2 on", LATER),
+        220 => (4, "stored stroke check 2 on", None),
         230 => (4, "stored stroke check 2 off", None),
         280 => (0, "reference point return", None),
         300 => (0, "2nd/3rd/4th reference point return", None),

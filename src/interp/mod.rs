@@ -353,6 +353,7 @@ impl Interpreter {
     pub fn set_start_position(&mut self, p: Pos) {
         self.pos = p;
         self.nrc.set_start(p);
+        self.cyc.stroke.set_start(p);
     }
 
     /// Common variables #401–#600, which the control keeps through power-off (§2.24.1):
@@ -633,9 +634,10 @@ impl Interpreter {
                 return Ok(Some(m));
             }
             if let Some(m) = self.queue.pop_front() {
-                // Through the nose radius compensation, which may hold it for one motion.
+                // G22 stroke check on the programmed path, then the nose radius
+                // compensation, which may hold the move for one motion.
                 let mut out = Vec::new();
-                let r = self.nrc.feed(m, &mut out);
+                let r = self.cyc.stroke.check(&m).and_then(|_| self.nrc.feed(m, &mut out));
                 self.nrc_out.extend(out);
                 if let Err(a) = r {
                     self.ended = true;
@@ -1118,6 +1120,9 @@ impl Interpreter {
             self.nrc.set_mode(side, r, tip, self.st.plane).map_err(|(n, m)| (n, gcol(g), m))?;
         }
         self.special_modes(d, src)?;
+        if self.stroke_block(d)? {
+            return Ok(());
+        }
         let one_shot = d.group(0);
         // F.
         if let Some(f) = d.get('F') {

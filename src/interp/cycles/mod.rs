@@ -5,7 +5,7 @@
 //! cycle says which numbering it uses).
 //!
 //! Files: `single.rs` G90/G92/G94, `g76.rs` G76/G78, `stock.rs` G70–G73, `typeii.rs` G71/G72 type II, `groove.rs`
-//! G74/G75, `polar.rs` G12.1/G13.1 and G51.2/G50.2, `rigid.rs` G92.1; G32/G34 and the shared helpers are here.
+//! G74/G75, `polar.rs` G12.1/G13.1 and G51.2/G50.2, `stroke.rs` G22/G23, `rigid.rs` G92.1; G32/G34 and the shared helpers are here.
 //!
 //! The cycles are `impl Interpreter` blocks (a child module sees the interpreter's private
 //! state); the interpreter calls [`Interpreter::cycle_block_start`] at the start of every NC
@@ -39,6 +39,7 @@ pub mod polar;
 pub mod rigid;
 pub mod single;
 pub mod stock;
+pub mod stroke;
 pub mod typeii;
 
 /// Our alarm for values outside the ranges the manual states (Fanuc has no number for them).
@@ -102,6 +103,8 @@ pub struct CycleState {
     /// The C axis' speed limit (degrees/min) for §2.7 note 9: axis `c`'s max_speed, else the
     /// spindle's max_speed (rpm) × 360.
     pub c_max_deg_min: Option<f64>,
+    /// G22/G23 stored stroke check 2.
+    pub stroke: stroke::Stroke2,
 }
 
 #[derive(Clone, Debug)]
@@ -148,6 +151,7 @@ impl CycleState {
                 .map(|a| a.max_speed)
                 .or_else(|| cfg.spindle().map(|(_, a)| a.max_speed * 360.0))
                 .filter(|v| v.is_finite() && *v > 0.0),
+            stroke: stroke::Stroke2::new(cfg),
         }
     }
 }
