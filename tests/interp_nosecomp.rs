@@ -157,3 +157,20 @@ fn without_a_tool_radius_the_path_is_unchanged() {
         .collect();
     assert_pts(&pts(&m), &[("rapid", 16.0, 2.0), ("feed", 16.0, 0.0), ("feed", 20.0, -2.0), ("feed", 20.0, -20.0), ("rapid", 30.0, -20.0)]);
 }
+
+#[test]
+fn g70_runs_the_contour_compensated() {
+    // G42 at N10 and G40 at N20 inside the contour: G71 roughs the programmed contour, G70
+    // finishes it with the nose radius compensated (tip 3, R0.4).
+    let src = "T0101\nG0 X60 Z2\nG71 U1 R0.5 F0.2\nG71 P10 Q20\nN10 G42 G0 X20\nG1 Z-10 F0.1\nN20 G40 X60\nG70 P10 Q20\nM30\n";
+    let m = run(src);
+    let g70: Vec<_> = m.iter().filter(|m| m.tag.as_ref().is_some_and(|t| &*t.cycle == "G70")).collect();
+    let p = pts(&g70.iter().map(|m| (*m).clone()).collect::<Vec<_>>());
+    // Start-up on the ns rapid: shortening (α = 270°), the tip-3 point lands R before Z2 on
+    // the offset of the face line; the cylinder then ends on the cancel move's offset line.
+    assert_pts(&p, &[("rapid", 20.0, 1.2), ("feed", 20.0, -10.0), ("feed", 60.0, -10.0), ("rapid", 60.0, 2.0)]);
+    // The G71 passes themselves are not compensated: the last pass ends on the programmed
+    // contour (X20 Z-10 → X60).
+    let g71: Vec<Move> = m.iter().filter(|m| m.tag.as_ref().is_some_and(|t| &*t.cycle == "G71")).cloned().collect();
+    assert!(pts(&g71).iter().any(|w| w.0 == "feed" && (w.1 - 20.0).abs() < 1e-9 && (w.2 + 10.0).abs() < 1e-9));
+}

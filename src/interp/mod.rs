@@ -1117,7 +1117,8 @@ impl Interpreter {
             let (r, tip) = (self.tool.nose_radius, self.tool.tip);
             // Tips 1–8 are for G18; in the polar plane the nose centre is offset (tip 0).
             let tip = if self.polar_active() { 0 } else { tip };
-            self.nrc.set_mode(side, r, tip, self.st.plane).map_err(|(n, m)| (n, gcol(g), m))?;
+            let at = self.nrc.fed() + self.queue.len() as u64;
+            self.nrc.set_mode(side, r, tip, self.st.plane, at).map_err(|(n, m)| (n, gcol(g), m))?;
         }
         self.special_modes(d, src)?;
         if self.stroke_block(d)? {

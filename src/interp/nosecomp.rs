@@ -140,8 +140,16 @@ impl Seg {
 /// appends the compensated ones to `out`; [`NoseComp::finish`] flushes at the end.
 #[derive(Clone, Debug)]
 pub struct NoseComp {
-    /// Requested mode (G40 = None), set by the interpreter when it executes the block.
+    /// Mode in force for the moves being fed (G40 = None).
     mode: Option<Side>,
+    /// The last mode the program asked for (checked against the next request and T).
+    requested: Option<Side>,
+    /// Mode changes not yet reached by the stream: (index of the first move they apply to,
+    /// mode, radius, tip vector). G70 runs many blocks in one step, so a change must apply at
+    /// its place in the queue, not when it is executed.
+    changes: std::collections::VecDeque<(u64, Option<Side>, f64, P2)>,
+    /// Moves fed so far.
+    fed: u64,
     radius: f64,
     tip: P2,
     /// The programmed position (end of the last move seen).
@@ -156,7 +164,18 @@ pub struct NoseComp {
 
 impl Default for NoseComp {
     fn default() -> Self {
-        NoseComp { mode: None, radius: 0.0, tip: (0.0, 0.0), prog: Pos::ZERO, mach: (0.0, 0.0), pending: None, held: Vec::new() }
+        NoseComp {
+            mode: None,
+            requested: None,
+            changes: Default::default(),
+            fed: 0,
+            radius: 0.0,
+            tip: (0.0, 0.0),
+            prog: Pos::ZERO,
+            mach: (0.0, 0.0),
+            pending: None,
+            held: Vec::new(),
+        }
     }
 }
 
@@ -167,13 +186,19 @@ impl NoseComp {
     }
 
     pub fn active(&self) -> bool {
-        self.mode.is_some()
+        self.requested.is_some()
+    }
+
+    /// Moves fed so far: a mode change requested now applies from move number
+    /// `fed() + (moves queued but not yet fed)`.
+    pub fn fed(&self) -> u64 {
+        self.fed
     }
 
     /// G40 (None) / G41 / G42 with the nose radius and tip of the selected offset. Errors are
     /// (alarm number, message) for the interpreter to place.
-    pub fn set_mode(&mut self, side: Option<Side>, radius: f64, tip: u8, plane: Plane) -> Result<(), (u32, String)> {
-        if let (Some(old), Some(new)) = (self.mode, side) {
+    pub fn set_mode(&mut self, side: Option<Side>, radius: f64, tip: u8, plane: Plane, at: u64) -> Result<(), (u32, String)> {
+        if let (Some(old), Some(new)) = (self.requested, side) {
             if old != new {
                 return Err((
                     SWITCH_ALARM,
@@ -184,12 +209,24 @@ impl NoseComp {
         if side.is_some() && plane != Plane::Zx {
             return Err((10, "tool nose radius compensation works in the ZX plane (G18) only".into()));
         }
-        self.mode = side;
-        if side.is_some() {
-            self.radius = radius.max(0.0);
-            self.tip = tip_vector(tip);
-        }
+        self.requested = side;
+        self.changes.push_back((at, side, radius.max(0.0), tip_vector(tip)));
         Ok(())
+    }
+
+    /// Apply the mode changes that take effect at move number `k`.
+    fn apply_changes(&mut self, k: u64) {
+        while let Some(&(at, side, r, t)) = self.changes.front() {
+            if at > k {
+                break;
+            }
+            self.changes.pop_front();
+            self.mode = side;
+            if side.is_some() {
+                self.radius = r;
+                self.tip = t;
+            }
+        }
     }
 
     fn compensable(m: &Move) -> bool {
@@ -213,6 +250,8 @@ impl NoseComp {
 
     /// Take one move from the interpreter.
     pub fn feed(&mut self, m: Move, out: &mut Vec<Move>) -> Result<(), Alarm> {
+        self.apply_changes(self.fed);
+        self.fed += 1;
         let Some(end) = m.kind.end() else {
             if self.pending.is_some() {
                 self.held.push(m);
@@ -296,6 +335,7 @@ impl NoseComp {
 
     /// End of the program (or the stream): a pending motion ends perpendicular to its end.
     pub fn finish(&mut self, out: &mut Vec<Move>) -> Result<(), Alarm> {
+        self.apply_changes(u64::MAX);
         self.flush_perpendicular(out)
     }
 

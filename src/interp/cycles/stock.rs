@@ -62,6 +62,8 @@ impl Interpreter {
     /// note 3's codes are refused.
     fn run_contour(&mut self, l1: usize, l2: usize, ns: u32, name: &str, dry: bool) -> Result<(Vec<Move>, bool), CErr> {
         let saved = (self.pos, self.st.clone(), self.cyc.clone(), self.ended, self.queue.len());
+        // G41/G42 in the contour take effect when G70 runs it, not in a dry run.
+        let saved_nrc = self.nrc.clone();
         let file = self.cur_file();
         let mut first = true;
         let mut first_rapid = false;
@@ -131,6 +133,7 @@ impl Interpreter {
             self.corner = None;
             self.held.clear();
             (self.pos, self.st, self.cyc, self.ended) = (saved.0, saved.1, saved.2, saved.3);
+            self.nrc = saved_nrc;
             result?;
             return Ok((moves.into_iter().filter(|m| m.kind.end().is_some()).collect(), first_rapid));
         }
