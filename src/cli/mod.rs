@@ -71,6 +71,10 @@ pub enum Command {
         /// Picture width in pixels.
         #[arg(long, default_value_t = 1000)]
         width: u32,
+        /// Tool offset table (TOML, see `interp::tools`): offsets and nose radii for T codes
+        /// and G41/G42. Without it every offset and radius is zero.
+        #[arg(long, value_name = "FILE")]
+        tools: Option<PathBuf>,
     },
     /// Configuration commands.
     #[command(subcommand)]
@@ -290,7 +294,9 @@ pub fn main() -> i32 {
     match cli.cmd {
         Command::Run { program, machine, json } => run::run(&program, &machine, json),
         Command::Plan { program, config, format } => plan(&program, config.as_deref(), &format),
-        Command::Preview { program, out, config, width } => preview::preview(&program, config.as_deref(), &out, width),
+        Command::Preview { program, out, config, width, tools } => {
+            preview::preview(&program, config.as_deref(), tools.as_deref(), &out, width)
+        }
         Command::Config(ConfigCmd::Check { file }) => config_check(file.as_deref()),
         Command::Scan { machine, json } => diag::scan(&machine, json),
         Command::Sdo(SdoCmd::Read { node, index, sub, r#type, out, machine, json }) => {

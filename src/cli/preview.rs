@@ -180,7 +180,13 @@ pub fn render_svg(moves: &[Move], start: Pos, title: &str, width: u32) -> Result
 }
 
 /// The `preview` command: exit code 0, or 2 on a program alarm / unwritable output.
-pub fn preview(program: &std::path::Path, config: Option<&std::path::Path>, out: &std::path::Path, width: u32) -> i32 {
+pub fn preview(
+    program: &std::path::Path,
+    config: Option<&std::path::Path>,
+    tools: Option<&std::path::Path>,
+    out: &std::path::Path,
+    width: u32,
+) -> i32 {
     let (cfg, _) = match super::load_config(config) {
         Ok(c) => c,
         Err(e) => {
@@ -188,7 +194,7 @@ pub fn preview(program: &std::path::Path, config: Option<&std::path::Path>, out:
             return 2;
         }
     };
-    let interp = match crate::interp::Interpreter::from_file(program, &cfg) {
+    let mut interp = match crate::interp::Interpreter::from_file(program, &cfg) {
         Ok(i) => i,
         Err(alarms) => {
             for a in &alarms {
@@ -197,6 +203,15 @@ pub fn preview(program: &std::path::Path, config: Option<&std::path::Path>, out:
             return 2;
         }
     };
+    if let Some(t) = tools {
+        match crate::interp::load_tool_table(t) {
+            Ok(t) => interp.set_tool_table(t),
+            Err(a) => {
+                eprintln!("{a}");
+                return 2;
+            }
+        }
+    }
     let mut moves = Vec::new();
     let mut code = 0;
     for m in interp {
