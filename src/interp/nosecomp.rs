@@ -288,7 +288,9 @@ impl NoseComp {
                 self.held.push(m);
             } else {
                 let mut m = m;
-                set_uv(&mut m.kind, self.mach);
+                if polar.is_none() {
+                    set_uv(&mut m.kind, self.mach);
+                }
                 out.push(m);
             }
             return Ok(());
