@@ -174,3 +174,11 @@ fn g70_runs_the_contour_compensated() {
     let g71: Vec<Move> = m.iter().filter(|m| m.tag.as_ref().is_some_and(|t| &*t.cycle == "G71")).cloned().collect();
     assert!(pts(&g71).iter().any(|w| w.0 == "feed" && (w.1 - 20.0).abs() < 1e-9 && (w.2 + 10.0).abs() < 1e-9));
 }
+
+#[test]
+fn g52_ends_the_offset_for_a_moment() {
+    // §2.12.3 note 2. Tip 0, R0.4: the cylinder's offset ends perpendicular at Z-10 before
+    // G52, and the next move starts up again from there.
+    let m = run("T0202\nG0 X16 Z2\nG42 G1 Z-10 F0.1\nG52 W0\nG1 Z-20\nG40 G0 X30\nM30\n");
+    assert_pts(&pts(&m), &[("rapid", 16.0, 2.0), ("feed", 16.8, -10.0), ("feed", 16.8, -19.6), ("rapid", 30.0, -20.0)]);
+}

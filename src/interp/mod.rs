@@ -1241,6 +1241,9 @@ impl Interpreter {
                     }
                 }
                 self.local = l;
+                // §2.12.3 note 2: G52 cancels the nose radius offset for a moment.
+                let at = self.nrc.fed() + self.queue.len() as u64;
+                self.nrc.suspend(at);
             }
             Some(530) => {
                 // G53: rapid to machine coordinates, absolute words only.

@@ -32,7 +32,11 @@
 //! cycles G71–G76 (§2.16 note 5) and of G90/G92/G94/G92.1 (the manual says nothing about
 //! those; we keep their programmed points so that a cycle cuts where it is written). G70's
 //! finishing contour is compensated like the blocks it repeats. Non-motion moves (M, S, T,
-//! dwell) wait behind the pending motion, in order.
+//! dwell) wait behind the pending motion, in order. G52 ends the offset for a moment
+//! (§2.12.3 note 2). G41/G42 in G12.1 mode compensate in the virtual X–C plane (tip 0).
+//!
+//! A G40/G41/G42 takes effect at its place in the move stream (the interpreter passes the
+//! index of the next move to be queued), since G70 runs many contour blocks in one step.
 
 use crate::canon::{Move, MoveKind, Plane, Pos};
 use crate::Alarm;
@@ -99,6 +103,13 @@ pub fn tip_vector(tip: u8) -> P2 {
     }
 }
 
+/// A change of the compensation at a place in the move stream.
+#[derive(Clone, Copy, Debug)]
+enum Change {
+    Mode(Option<Side>, f64, P2),
+    Suspend,
+}
+
 /// Which side the nose centre goes.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Side {
@@ -147,7 +158,7 @@ pub struct NoseComp {
     /// Mode changes not yet reached by the stream: (index of the first move they apply to,
     /// mode, radius, tip vector). G70 runs many blocks in one step, so a change must apply at
     /// its place in the queue, not when it is executed.
-    changes: std::collections::VecDeque<(u64, Option<Side>, f64, P2)>,
+    changes: std::collections::VecDeque<(u64, Change)>,
     /// Moves fed so far.
     fed: u64,
     radius: f64,
@@ -210,23 +221,37 @@ impl NoseComp {
             return Err((10, "tool nose radius compensation works in the ZX plane (G18) only".into()));
         }
         self.requested = side;
-        self.changes.push_back((at, side, radius.max(0.0), tip_vector(tip)));
+        self.changes.push_back((at, Change::Mode(side, radius.max(0.0), tip_vector(tip))));
         Ok(())
     }
 
-    /// Apply the mode changes that take effect at move number `k`.
-    fn apply_changes(&mut self, k: u64) {
-        while let Some(&(at, side, r, t)) = self.changes.front() {
+    /// G52 (§2.12.3 note 2): the offset is cancelled for a moment: the motion before ends
+    /// perpendicular to its end, the next one starts up again.
+    pub fn suspend(&mut self, at: u64) {
+        if self.requested.is_some() {
+            self.changes.push_back((at, Change::Suspend));
+        }
+    }
+
+    /// Apply the changes that take effect at move number `k`.
+    fn apply_changes(&mut self, k: u64, out: &mut Vec<Move>) -> Result<(), Alarm> {
+        while let Some(&(at, ch)) = self.changes.front() {
             if at > k {
                 break;
             }
             self.changes.pop_front();
-            self.mode = side;
-            if side.is_some() {
-                self.radius = r;
-                self.tip = t;
+            match ch {
+                Change::Mode(side, r, t) => {
+                    self.mode = side;
+                    if side.is_some() {
+                        self.radius = r;
+                        self.tip = t;
+                    }
+                }
+                Change::Suspend => self.flush_perpendicular(out)?,
             }
         }
+        Ok(())
     }
 
     fn compensable(m: &Move) -> bool {
@@ -250,7 +275,7 @@ impl NoseComp {
 
     /// Take one move from the interpreter.
     pub fn feed(&mut self, m: Move, out: &mut Vec<Move>) -> Result<(), Alarm> {
-        self.apply_changes(self.fed);
+        self.apply_changes(self.fed, out)?;
         self.fed += 1;
         let Some(end) = m.kind.end() else {
             if self.pending.is_some() {
@@ -308,7 +333,12 @@ impl NoseComp {
                 if seg.arc.is_some() {
                     return Err(at(&seg.mv, ARC_STARTUP_ALARM, "tool nose radius compensation cannot start on an arc (§2.18.3): start it with a G00/G01 move"));
                 }
-                self.mach = seg.a;
+                // The tool is where the last move left it: at `seg.a`, or near it when an
+                // offset was just ended (G52, a cycle); after a change of plane (G12.1/G13.1)
+                // `mach` is in the other plane's coordinates and `seg.a` is the start.
+                if norm(sub(self.mach, seg.a)) > 3.0 * self.radius + 1e-6 {
+                    self.mach = seg.a;
+                }
                 self.pending = Some((seg, side, true));
             }
             Some((prev, side, startup)) if self.mode.is_some() => {
@@ -337,7 +367,7 @@ impl NoseComp {
 
     /// End of the program (or the stream): a pending motion ends perpendicular to its end.
     pub fn finish(&mut self, out: &mut Vec<Move>) -> Result<(), Alarm> {
-        self.apply_changes(u64::MAX);
+        self.apply_changes(u64::MAX, out)?;
         self.flush_perpendicular(out)
     }
 
