@@ -4,6 +4,7 @@
 #   scripts/install-test-deps.sh [--python] [--qemu]
 #
 #   --python  (or TEST_DEPS_PYTHON=1): also make build/venv with python-can, canopen, pymodbus
+#             (the python peers of the CANopen and Modbus tests)
 #   --qemu    (or VMRUN_BACKEND=qemu): also install the QEMU fallback backend of scripts/vmrun
 #
 # Idempotent: every step checks first, and `apt-get update` runs only when something
@@ -76,9 +77,12 @@ vcan_tier_deps() {
 }
 
 # --- other test prerequisites: add new ones here -------------------------------------
-# Planned: mbpoll, socat, tmux (Modbus / serial / terminal tests).
-# Add them with need_pkg + install_missing, as vcan_tier_deps does.
+# Planned: tmux (terminal tests). Add with need_pkg + install_missing.
 extra_test_deps() {
+    # Modbus peers we did not write (sim-drives/tests/modbus_tools.rs): socat makes the
+    # pseudo-terminal pair an RTU line runs over; mbpoll is a Modbus RTU/TCP master.
+    need_pkg socat mbpoll
+    install_missing
     if [ "$WANT_PYTHON" = 1 ]; then
         python_venv
     fi

@@ -15,6 +15,10 @@ cd "$ROOT"
 
 step() { printf '\n==> %s\n' "$*"; }
 
+# Runs of `cncgw run` keep the machine's power-off state (common variables); tests keep
+# theirs here, not in the user's ~/.local/state.
+export CNCGW_STATE_DIR="${CNCGW_STATE_DIR:-$ROOT/build/test-state}"
+
 step "installing test prerequisites"
 ./scripts/install-test-deps.sh --python   # --python: build/venv for the python canopen peer test
 

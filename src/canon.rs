@@ -138,8 +138,12 @@ pub enum MoveKind {
     /// `lead_inc`: G34 variable lead, the lead grows by this much (mm, signed) per spindle
     /// revolution from `lead` at the start; 0 for a constant lead.
     Thread { end: Pos, lead: f64, start_angle: f64, continuous: bool, lead_inc: f64 },
-    /// Rigid tap along Z: spindle angle and feed axis interpolated together, `lead` in mm
-    /// per revolution (sign gives direction), `rpm` the spindle speed of this stroke.
+    /// Rigid tap stroke along the tapping axis (Z for G84 in G18; X for G88 — motion runs Z
+    /// strokes only so far): spindle angle and feed axis interpolated together, angle =
+    /// θ_ref + 360·(axis − axis_ref)/`lead`. `lead` mm per revolution, signed so that the
+    /// spindle turns forward (M03 sense) while the tool moves towards the sign of `lead`;
+    /// consecutive strokes of one hole share it (in and out, pecks). `rpm` is this stroke's
+    /// spindle speed: S going in, S × the pull-out override coming out.
     Tap { end: Pos, lead: f64, rpm: f64 },
     /// G92.1 rigid thread (manual 001 §3.24.10): the spindle works as a position axis (Cs)
     /// and is interpolated with the feed axes, from the start's `c` to `end.c` (degrees,
@@ -219,4 +223,23 @@ impl MoveKind {
             MoveKind::End { .. } => "end",
         }
     }
+}
+
+/// What `G30 P99` needs to pull a rigid tap out of an interrupted hole (manual 000,
+/// "刚性攻丝返回"): kept on disk by whoever watches the tap while its [`MoveKind::Tap`]
+/// strokes run, and given back to the interpreter after a restart. The tool's position is the
+/// interpreter's start position; the spindle angle is motion's (the return takes the angle
+/// it finds as the thread's reference).
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct TapReturn {
+    /// Tapping axis: `'X'`, `'Y'` or `'Z'`.
+    pub axis: char,
+    /// The R plane along that axis (machine mm, X as a radius): where the return ends.
+    pub r_plane: f64,
+    /// Lead as in [`MoveKind::Tap`] (signed: the spindle turns forward going into the hole).
+    pub lead: f64,
+    /// Tapping spindle speed (rpm), used when `G30 P99` has no S.
+    pub rpm: f64,
+    /// Pull-out override in force (%), applied to the return.
+    pub override_pct: f64,
 }

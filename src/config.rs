@@ -35,6 +35,73 @@ pub struct MachineConfig {
     /// The manuals' parameter table, keyed by parameter number (`5200 = 0`).
     #[serde(default)]
     pub parameters: BTreeMap<String, toml::Value>,
+    /// Modbus links by name (`[modbus.line1]`); an axis with `modbus = "line1"` is on it.
+    #[serde(default)]
+    pub modbus: BTreeMap<String, ModbusLink>,
+}
+
+#[derive(Clone, Copy, Debug, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "lowercase")]
+pub enum LinkTransport {
+    /// Modbus TCP: one connection per link, kept open and re-opened when it drops.
+    Tcp,
+    /// Modbus RTU on a serial line (RS-485).
+    Rtu,
+}
+
+#[derive(Clone, Copy, Debug, Default, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "lowercase")]
+pub enum Parity {
+    #[default]
+    None,
+    Even,
+    Odd,
+}
+
+/// One Modbus link: a TCP connection or an RS-485 line, carrying one or more drives (each
+/// axis's `node` is its unit id on the link).
+#[derive(Clone, Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ModbusLink {
+    pub transport: LinkTransport,
+    /// TCP: `host:port`.
+    #[serde(default)]
+    pub address: Option<String>,
+    /// RTU: the serial device (`/dev/ttyUSB0`, `/dev/pts/3`).
+    #[serde(default)]
+    pub device: Option<String>,
+    #[serde(default = "default_baud")]
+    pub baud: u32,
+    #[serde(default)]
+    pub parity: Parity,
+    #[serde(default = "default_stop_bits")]
+    pub stop_bits: u8,
+    /// How long a drive takes to answer after a request, ms (RTU cycle computation).
+    #[serde(default = "default_turnaround")]
+    pub turnaround_ms: f64,
+    /// A transaction without an answer after this long is a timeout, ms.
+    #[serde(default = "default_modbus_timeout")]
+    pub timeout_ms: u32,
+    /// Use function 23 (read/write multiple registers) for the cyclic exchange of a CiA 402
+    /// drive: one transaction per drive per cycle instead of two. Not every drive has it.
+    #[serde(default)]
+    pub fc23: bool,
+    /// A longer link cycle than the computed one, ms (never shorter: it is checked).
+    #[serde(default)]
+    pub cycle_ms: Option<f64>,
+}
+
+fn default_baud() -> u32 {
+    115_200
+}
+fn default_stop_bits() -> u8 {
+    1
+}
+fn default_turnaround() -> f64 {
+    1.0
+}
+fn default_modbus_timeout() -> u32 {
+    100
 }
 
 #[derive(Clone, Debug, Deserialize)]
@@ -102,8 +169,21 @@ pub enum AxisKind {
 #[serde(deny_unknown_fields)]
 pub struct AxisConfig {
     pub kind: AxisKind,
-    /// CANopen node id (1…127).
+    /// CANopen node id (1…127), or the Modbus unit id (1…247) when `modbus` names a link.
     pub node: u8,
+    /// The `[modbus.NAME]` link this drive is on; absent: the CANopen bus.
+    #[serde(default)]
+    pub modbus: Option<String>,
+    /// Register map of a Modbus drive: `cia402` (CiA 402 objects in holding registers) or
+    /// `pr` (position-register block).
+    #[serde(default)]
+    pub modbus_profile: cncgw_bus::modbus::Profile,
+    /// Register addresses of a `cia402` Modbus drive, where they differ from the defaults.
+    #[serde(default)]
+    pub cia402_map: Option<cncgw_bus::modbus::Cia402Map>,
+    /// Register addresses of a `pr` Modbus drive, where they differ from the defaults.
+    #[serde(default)]
+    pub pr_map: Option<cncgw_bus::modbus::PrMap>,
     /// Position counts per mm (linear) or per degree (spindle).
     pub counts_per_unit: f64,
     /// Software travel limits in machine coordinates (mm; X as radius). Not used for spindles.
@@ -180,16 +260,33 @@ impl MachineConfig {
         if self.axes.is_empty() {
             e.push("axes: at least one axis is required".into());
         }
-        let mut nodes: BTreeMap<u8, &str> = BTreeMap::new();
+        // Node ids are unique per bus: the CANopen bus, and each Modbus link.
+        let mut nodes: BTreeMap<(Option<&str>, u8), &str> = BTreeMap::new();
         for (name, a) in &self.axes {
             let p = format!("axes.{name}");
             if !name.chars().all(|ch| ch.is_ascii_alphanumeric()) || name.is_empty() {
                 e.push(format!("{p}: axis names are letters and digits (x, z, c, s1), got {name:?}"));
             }
-            if !(1..=127).contains(&a.node) {
-                e.push(format!("{p}.node: must be a CANopen node id 1..=127, got {}", a.node));
-            } else if let Some(other) = nodes.insert(a.node, name) {
-                e.push(format!("{p}.node: node {} is already used by axes.{other}", a.node));
+            match &a.modbus {
+                None if !(1..=127).contains(&a.node) => {
+                    e.push(format!("{p}.node: must be a CANopen node id 1..=127, got {}", a.node))
+                }
+                Some(l) if !(1..=247).contains(&a.node) => {
+                    e.push(format!("{p}.node: must be a Modbus unit id 1..=247 on link {l:?}, got {}", a.node))
+                }
+                Some(l) if !self.modbus.contains_key(l) => {
+                    let known: Vec<&str> = self.modbus.keys().map(String::as_str).collect();
+                    e.push(format!("{p}.modbus: no [modbus.{l}] link is configured (links: {})", if known.is_empty() { "none".into() } else { known.join(", ") }))
+                }
+                bus => {
+                    if let Some(other) = nodes.insert((bus.as_deref(), a.node), name) {
+                        let on = bus.as_deref().map(|l| format!(" on Modbus link {l:?}")).unwrap_or_default();
+                        e.push(format!("{p}.node: node {}{on} is already used by axes.{other}", a.node));
+                    }
+                }
+            }
+            if a.modbus.is_none() && (a.cia402_map.is_some() || a.pr_map.is_some()) {
+                e.push(format!("{p}: cia402_map / pr_map apply to Modbus drives; set {p}.modbus to the link"));
             }
             positive(&mut e, &format!("{p}.counts_per_unit"), a.counts_per_unit);
             positive(&mut e, &format!("{p}.max_speed"), a.max_speed);
@@ -214,6 +311,41 @@ impl MachineConfig {
                         a.counts_per_unit
                     ));
                 }
+            }
+        }
+        for (name, l) in &self.modbus {
+            let p = format!("modbus.{name}");
+            match l.transport {
+                LinkTransport::Tcp => match &l.address {
+                    Some(a) if a.parse::<std::net::SocketAddr>().is_ok() || a.rsplit_once(':').is_some_and(|(h, port)| !h.is_empty() && port.parse::<u16>().is_ok()) => {}
+                    Some(a) => e.push(format!("{p}.address: must be host:port, got {a:?}")),
+                    None => e.push(format!("{p}.address: a tcp link needs host:port (e.g. \"192.168.1.20:502\")")),
+                },
+                LinkTransport::Rtu => {
+                    if l.device.as_deref().is_none_or(|d| d.trim().is_empty()) {
+                        e.push(format!("{p}.device: an rtu link needs the serial device (e.g. \"/dev/ttyUSB0\")"));
+                    }
+                    if !(1200..=4_000_000).contains(&l.baud) {
+                        e.push(format!("{p}.baud: must be between 1200 and 4000000, got {}", l.baud));
+                    }
+                    if !(1..=2).contains(&l.stop_bits) {
+                        e.push(format!("{p}.stop_bits: must be 1 or 2, got {}", l.stop_bits));
+                    }
+                }
+            }
+            if !(l.turnaround_ms.is_finite() && (0.0..=1000.0).contains(&l.turnaround_ms)) {
+                e.push(format!("{p}.turnaround_ms: must be between 0 and 1000, got {}", l.turnaround_ms));
+            }
+            if !(1..=10_000).contains(&l.timeout_ms) {
+                e.push(format!("{p}.timeout_ms: must be between 1 and 10000, got {}", l.timeout_ms));
+            }
+            if let Some(c) = l.cycle_ms {
+                if !(c.is_finite() && (0.25..=1000.0).contains(&c)) {
+                    e.push(format!("{p}.cycle_ms: must be between 0.25 and 1000, got {c}"));
+                }
+            }
+            if !self.axes.values().any(|a| a.modbus.as_deref() == Some(name.as_str())) {
+                e.push(format!("{p}: no axis uses this link (set modbus = {name:?} on an axis, or remove it)"));
             }
         }
         for (k, v) in &self.parameters {
@@ -256,6 +388,11 @@ impl MachineConfig {
     /// Bit `bit` of an integer parameter (No.5200#6 → `param_bit(5200, 6)`).
     pub fn param_bit(&self, no: u32, bit: u8) -> bool {
         self.param(no).map(|v| (v as i64 >> bit) & 1 == 1).unwrap_or(false)
+    }
+
+    /// Whether any axis is on the CANopen bus.
+    pub fn has_canopen(&self) -> bool {
+        self.axes.values().any(|a| a.modbus.is_none())
     }
 
     /// The spindle axis, if any.
@@ -315,5 +452,47 @@ mod tests {
         let t = EMBEDDED_LATHE.replace("node = 2", "node = 1");
         let err = MachineConfig::from_toml("t.toml", &t).unwrap_err().to_string();
         assert!(err.contains("axes.z.node: node 1 is already used by axes.x"), "{err}");
+    }
+
+    const MODBUS_LATHE: &str = include_str!("../config/lathe-modbus.toml");
+
+    #[test]
+    fn modbus_lathe_is_valid_and_has_no_canopen_axis() {
+        let c = MachineConfig::from_toml("lathe-modbus.toml", MODBUS_LATHE).unwrap();
+        assert!(!c.has_canopen());
+        assert_eq!(c.axes["z"].modbus.as_deref(), Some("tcp"));
+        assert_eq!(c.modbus["tcp"].transport, LinkTransport::Tcp);
+        assert!(MachineConfig::embedded().has_canopen());
+    }
+
+    #[test]
+    fn modbus_errors_name_the_key() {
+        let t = MODBUS_LATHE.replace("node = 2\nmodbus = \"tcp\"", "node = 2\nmodbus = \"rs485\"");
+        let err = MachineConfig::from_toml("t.toml", &t).unwrap_err().to_string();
+        assert!(err.contains("axes.z.modbus: no [modbus.rs485] link is configured (links: tcp)"), "{err}");
+        let t = MODBUS_LATHE.replace("node = 2\n", "node = 1\n");
+        let err = MachineConfig::from_toml("t.toml", &t).unwrap_err().to_string();
+        assert!(err.contains("axes.z.node: node 1 on Modbus link \"tcp\" is already used by axes.x"), "{err}");
+        let t = MODBUS_LATHE.replace("node = 3\n", "node = 250\n");
+        let err = MachineConfig::from_toml("t.toml", &t).unwrap_err().to_string();
+        assert!(err.contains("axes.s1.node: must be a Modbus unit id 1..=247"), "{err}");
+        let t = MODBUS_LATHE.replace("address = \"127.0.0.1:5020\"", "address = \"drive-cabinet\"");
+        let err = MachineConfig::from_toml("t.toml", &t).unwrap_err().to_string();
+        assert!(err.contains("modbus.tcp.address: must be host:port"), "{err}");
+        let t = MODBUS_LATHE.replace("transport = \"tcp\"", "transport = \"rtu\"\nbaud = 300");
+        let err = MachineConfig::from_toml("t.toml", &t).unwrap_err().to_string();
+        assert!(err.contains("modbus.tcp.device: an rtu link needs the serial device"), "{err}");
+        assert!(err.contains("modbus.tcp.baud: must be between 1200 and 4000000, got 300"), "{err}");
+    }
+
+    #[test]
+    fn mixed_machine_allows_the_same_node_on_two_buses() {
+        // Z on CANopen node 2 and a tailstock W on Modbus unit 2.
+        let t = format!(
+            "{EMBEDDED_LATHE}\n[modbus.line]\ntransport = \"rtu\"\ndevice = \"/dev/ttyUSB0\"\n\n[axes.w]\nkind = \"linear\"\nnode = 2\nmodbus = \"line\"\nmodbus_profile = \"pr\"\ncounts_per_unit = 1000.0\nmin = -500.0\nmax = 0.0\nmax_speed = 3000.0\nmax_accel = 500.0\n"
+        );
+        let c = MachineConfig::from_toml("mixed.toml", &t).unwrap();
+        assert!(c.has_canopen());
+        assert_eq!(c.axes["w"].modbus_profile, cncgw_bus::modbus::Profile::Pr);
     }
 }

@@ -11,6 +11,7 @@ pub mod config;
 pub mod drives;
 pub mod interp;
 pub mod motion;
+pub mod persist;
 pub mod sync;
 
 pub use alarm::Alarm;

@@ -250,6 +250,59 @@ pub fn device_transition(state: State, cw: u16, prev: u16) -> State {
     }
 }
 
+/// Master side: walks one drive to Operation Enabled, one controlword per cycle. A drive in
+/// Fault gets a fault reset on a rising edge of bit 7, and the walk waits for the
+/// statusword to leave Fault before going on (python canopen's BaseNode402 has a FIXME
+/// there). Shared by the CANopen and the Modbus CiA 402 layers.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Enabler {
+    /// The controlword to send this cycle.
+    pub controlword: u16,
+    /// Fault resets tried since the last enable.
+    pub reset_attempts: u32,
+}
+
+/// What `Enabler::step` found.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum EnableProgress {
+    Enabled,
+    Walking,
+    /// In Fault after this many resets: the cause persists.
+    ResetFailed,
+}
+
+impl Enabler {
+    /// Fault resets before giving up.
+    pub const MAX_RESETS: u32 = 5;
+
+    /// Next controlword for the drive's `statusword`.
+    pub fn step(&mut self, statusword: u16) -> EnableProgress {
+        let st = State::from_statusword(statusword);
+        match st {
+            State::OperationEnabled => {
+                self.controlword = cw::ENABLE_OPERATION_CMD;
+                EnableProgress::Enabled
+            }
+            State::Fault | State::FaultReactionActive => {
+                if self.controlword & cw::FAULT_RESET != 0 {
+                    self.controlword = 0; // prepare the next rising edge
+                } else {
+                    self.reset_attempts += 1;
+                    if self.reset_attempts > Self::MAX_RESETS {
+                        return EnableProgress::ResetFailed;
+                    }
+                    self.controlword = cw::FAULT_RESET_CMD;
+                }
+                EnableProgress::Walking
+            }
+            _ => {
+                self.controlword = st.controlword_towards(State::OperationEnabled);
+                EnableProgress::Walking
+            }
+        }
+    }
+}
+
 /// Modes of operation (0x6060 / 0x6061).
 pub mod mode {
     pub const PROFILE_POSITION: i8 = 1;
@@ -310,6 +363,32 @@ mod tests {
             prev = c;
         }
         assert_eq!(s, State::OperationEnabled);
+    }
+
+    #[test]
+    fn enabler_resets_a_fault_on_an_edge_and_walks_on() {
+        let mut s = State::Fault;
+        let mut e = Enabler::default();
+        let mut prev = 0;
+        for _ in 0..8 {
+            if e.step(s.statusword_bits()) == EnableProgress::Enabled {
+                break;
+            }
+            s = device_transition(s, e.controlword, prev);
+            prev = e.controlword;
+        }
+        assert_eq!(s, State::OperationEnabled);
+        assert_eq!(e.reset_attempts, 1);
+        // A fault that never clears gives up after MAX_RESETS edges.
+        let mut e = Enabler::default();
+        let mut p = EnableProgress::Walking;
+        for _ in 0..20 {
+            p = e.step(State::Fault.statusword_bits());
+            if p == EnableProgress::ResetFailed {
+                break;
+            }
+        }
+        assert_eq!(p, EnableProgress::ResetFailed);
     }
 
     #[test]

@@ -12,6 +12,7 @@ pub mod canopen;
 pub mod cia402;
 pub mod clock;
 pub mod frame;
+pub mod modbus;
 pub mod socketcand;
 pub mod transport;
 

@@ -4,6 +4,7 @@
 //! read; physics get realistic defaults per kind) or a sim-drives TOML file (what
 //! `--print-default-config` prints), where every physical parameter can be overridden.
 
+use cncgw_bus::modbus::{Cia402Map, PrMap, Profile, WordOrder, PR_BLOCK_LEN};
 use serde::Deserialize;
 use std::collections::BTreeMap;
 
@@ -144,6 +145,16 @@ pub struct DriveConfig {
     /// 0x6084 profile deceleration default (halt, slow-down ramp), counts/s².
     pub profile_decel: u32,
     pub physics: Physics,
+    /// Register map served over Modbus (`sim-drives --modbus-tcp/--modbus-rtu`); the unit
+    /// id is `node`.
+    pub modbus_profile: Profile,
+    /// Addresses of the CiA 402 profile (`[drive.cia402_map]`, any subset of keys).
+    pub cia402_map: Cia402Map,
+    /// Addresses of the PR profile (`[drive.pr_map]`).
+    pub pr_map: PrMap,
+    /// The machine config's `modbus = "LINK"` of this axis: the drive is on that Modbus link,
+    /// not on CANopen (`None`: CANopen, or a sim-drives config that does not say).
+    pub modbus_link: Option<String>,
 }
 
 impl DriveConfig {
@@ -175,7 +186,67 @@ impl DriveConfig {
             quick_stop_decel: clamp_u32(qs_units_s2 * counts_per_unit),
             profile_decel: clamp_u32(prof_units_s2 * counts_per_unit),
             physics: Physics::default_for(kind),
+            modbus_profile: Profile::Cia402,
+            cia402_map: Cia402Map::default(),
+            pr_map: PrMap::default(),
+            modbus_link: None,
         }
+    }
+}
+
+impl DriveConfig {
+    /// The Modbus registers of this drive's profile: (name, first address, registers).
+    pub fn modbus_registers(&self) -> Vec<(&'static str, u16, u16)> {
+        match self.modbus_profile {
+            Profile::Cia402 => {
+                let m = &self.cia402_map;
+                vec![
+                    ("controlword", m.controlword, 1),
+                    ("target_position", m.target_position, 2),
+                    ("target_velocity", m.target_velocity, 2),
+                    ("mode", m.mode, 1),
+                    ("statusword", m.statusword, 1),
+                    ("mode_display", m.mode_display, 1),
+                    ("position_actual", m.position_actual, 2),
+                    ("velocity_actual", m.velocity_actual, 2),
+                    ("error_code", m.error_code, 1),
+                    ("interpolation_ms", m.interpolation_ms, 1),
+                    ("following_error_window", m.following_error_window, 2),
+                    ("comm_timeout_ms", m.comm_timeout_ms, 1),
+                ]
+            }
+            Profile::Pr => {
+                let m = &self.pr_map;
+                vec![
+                    ("block", m.block, PR_BLOCK_LEN),
+                    ("trigger", m.trigger, 1),
+                    ("servo_on", m.servo_on, 1),
+                    ("status", m.status, 1),
+                    ("position_actual", m.position_actual, 2),
+                    ("alarm_code", m.alarm_code, 1),
+                    ("alarm_reset", m.alarm_reset, 1),
+                    ("comm_timeout_ms", m.comm_timeout_ms, 1),
+                ]
+            }
+        }
+    }
+
+    /// The served map must not overlap itself nor run past register 65535.
+    fn check_modbus_map(&self) -> Result<(), String> {
+        let map = if self.modbus_profile == Profile::Cia402 { "cia402_map" } else { "pr_map" };
+        let mut regs = self.modbus_registers();
+        regs.sort_by_key(|r| r.1);
+        for r in &regs {
+            if r.1 as u32 + r.2 as u32 > 0x1_0000 {
+                return Err(format!("{map}.{} = {}: its {} registers run past address 65535", r.0, r.1, r.2));
+            }
+        }
+        for w in regs.windows(2) {
+            if w[0].1 as u32 + w[0].2 as u32 > w[1].1 as u32 {
+                return Err(format!("{map}.{} = {} overlaps {map}.{} = {} ({} registers): give each its own addresses", w[1].0, w[1].1, w[0].0, w[0].1, w[0].2));
+            }
+        }
+        Ok(())
     }
 }
 
@@ -190,11 +261,34 @@ impl SimConfig {
     /// The drives of a cncgw machine config: its `[axes.*]` tables (kind, node,
     /// counts_per_unit; other keys ignored), with default physics per kind.
     pub fn from_machine_toml(text: &str) -> Result<SimConfig, String> {
+        Self::from_machine_toml_all(text)
+    }
+
+    /// The drives of a cncgw machine config on one bus: `Some(false)` its CANopen axes,
+    /// `Some(true)` its Modbus axes (every link), `None` the CANopen axes, or the Modbus
+    /// ones if it has no CANopen axis.
+    pub fn from_machine_toml_bus(text: &str, modbus: Option<bool>) -> Result<SimConfig, String> {
+        let all = Self::from_machine_toml_all(text)?;
+        let has_can = all.drives.iter().any(|d| d.modbus_link.is_none());
+        if modbus.unwrap_or(!has_can) {
+            all.modbus_drives(None)
+        } else {
+            Ok(all.canopen_drives())
+        }
+    }
+
+    /// Every drive of a cncgw machine config, each with its Modbus link if it has one.
+    fn from_machine_toml_all(text: &str) -> Result<SimConfig, String> {
         #[derive(Deserialize)]
         struct Axis {
             kind: DriveKind,
             node: u8,
             counts_per_unit: f64,
+            // A drive on Modbus: the link, and the same keys as in a sim-drives [[drive]].
+            modbus: Option<String>,
+            modbus_profile: Option<Profile>,
+            cia402_map: Option<Cia402Map>,
+            pr_map: Option<PrMap>,
         }
         #[derive(Deserialize)]
         struct Machine {
@@ -205,11 +299,46 @@ impl SimConfig {
         let m: Machine = toml::from_str(text).map_err(|e| format!("machine config: {e}"))?;
         let mut drives = Vec::new();
         for (name, a) in &m.axes {
-            drives.push(DriveConfig::new(a.node, a.kind, name, a.counts_per_unit));
+            let mut d = DriveConfig::new(a.node, a.kind, name, a.counts_per_unit);
+            d.modbus_profile = a.modbus_profile.unwrap_or_default();
+            d.cia402_map = a.cia402_map.unwrap_or_default();
+            d.pr_map = a.pr_map.unwrap_or_default();
+            d.modbus_link = a.modbus.clone();
+            drives.push(d);
         }
         let cfg = SimConfig { drives, step_us: 50 };
         cfg.validate()?;
         Ok(cfg)
+    }
+
+    /// The drives on the CANopen bus: those without a Modbus link.
+    pub fn canopen_drives(&self) -> SimConfig {
+        SimConfig { drives: self.drives.iter().filter(|d| d.modbus_link.is_none()).cloned().collect(), step_us: self.step_us }
+    }
+
+    /// The drives a Modbus server serves: those on `link`; without a link name, every drive
+    /// on some Modbus link — or all drives when none names a link (a sim-drives config, or a
+    /// CANopen machine served over Modbus as it is). Err: no drive on that link.
+    pub fn modbus_drives(&self, link: Option<&str>) -> Result<SimConfig, String> {
+        let any_link = self.drives.iter().any(|d| d.modbus_link.is_some());
+        let drives: Vec<DriveConfig> = self
+            .drives
+            .iter()
+            .filter(|d| match link {
+                Some(l) => d.modbus_link.as_deref() == Some(l),
+                None => !any_link || d.modbus_link.is_some(),
+            })
+            .cloned()
+            .collect();
+        if let Some(l) = link {
+            if drives.is_empty() {
+                let mut links: Vec<&str> = self.drives.iter().filter_map(|d| d.modbus_link.as_deref()).collect();
+                links.sort();
+                links.dedup();
+                return Err(format!("no drive is on Modbus link {l:?} (links in the config: {})", if links.is_empty() { "none".into() } else { links.join(", ") }));
+            }
+        }
+        Ok(SimConfig { drives, step_us: self.step_us })
     }
 
     /// The drives of the default machine (config/lathe.toml).
@@ -247,6 +376,12 @@ impl SimConfig {
             set!(following_error_timeout_ms);
             set!(quick_stop_decel);
             set!(profile_decel);
+            set!(modbus_profile);
+            set!(cia402_map);
+            set!(pr_map);
+            if d.modbus_link.is_some() {
+                c.modbus_link = d.modbus_link.clone();
+            }
             if let Some(p) = &d.physics {
                 let q = &mut c.physics;
                 macro_rules! setp {
@@ -284,14 +419,20 @@ impl SimConfig {
         if self.step_us == 0 || self.step_us > 100 {
             errs.push(format!("step_us: must be 1…100, got {}", self.step_us));
         }
+        // Ids are unique per bus: the CANopen bus, and each Modbus link.
         let mut seen = std::collections::BTreeSet::new();
         for d in &self.drives {
             let k = format!("drive node {}", d.node);
-            if d.node == 0 || d.node > 127 {
-                errs.push(format!("{k}: node must be 1…127"));
+            match &d.modbus_link {
+                None if d.node == 0 || d.node > 127 => errs.push(format!("{k}: node must be 1…127")),
+                Some(l) if d.node == 0 || d.node > 247 => errs.push(format!("{k}: unit id on Modbus link {l:?} must be 1…247")),
+                _ => {}
             }
-            if !seen.insert(d.node) {
-                errs.push(format!("{k}: node id used twice"));
+            if !seen.insert((d.modbus_link.clone(), d.node)) {
+                errs.push(match &d.modbus_link {
+                    None => format!("{k}: node id used twice"),
+                    Some(l) => format!("{k}: unit id used twice on Modbus link {l:?}"),
+                });
             }
             if !(d.counts_per_unit.is_finite() && d.counts_per_unit > 0.0) {
                 errs.push(format!("{k}: counts_per_unit must be > 0, got {}", d.counts_per_unit));
@@ -340,6 +481,9 @@ impl SimConfig {
             if p.coulomb_friction >= p.torque_limit {
                 errs.push(format!("{k}: physics.coulomb_friction must be below torque_limit (the motor could never move)"));
             }
+            if let Err(e) = d.check_modbus_map() {
+                errs.push(format!("{k}: {e}"));
+            }
         }
         if errs.is_empty() {
             Ok(())
@@ -375,6 +519,15 @@ impl SimConfig {
             s.push_str(&format!("following_error_timeout_ms = {}  # 0x6066\n", d.following_error_timeout_ms));
             s.push_str(&format!("quick_stop_decel = {}   # 0x6085, counts/s²\n", d.quick_stop_decel));
             s.push_str(&format!("profile_decel = {}      # 0x6084, counts/s² (halt, slow-down ramp)\n", d.profile_decel));
+            let profile = match d.modbus_profile {
+                Profile::Cia402 => "cia402",
+                Profile::Pr => "pr",
+            };
+            s.push_str(&format!("modbus_profile = \"{profile}\"  # cia402 | pr (register map over Modbus; unit id = node)\n"));
+            if let Some(l) = &d.modbus_link {
+                s.push_str(&format!("modbus_link = \"{l}\"     # the machine's Modbus link this drive is on\n"));
+            }
+            s.push_str("# Register addresses: [drive.cia402_map] / [drive.pr_map] (keys as in cncgw-bus' Cia402Map / PrMap)\n");
             s.push_str("[drive.physics]\n");
             s.push_str(&format!("motor_inertia = {:?}     # kg·m²\n", p.motor_inertia));
             s.push_str(&format!("load_inertia = {:?}      # kg·m², reflected to the motor\n", p.load_inertia));
@@ -389,6 +542,51 @@ impl SimConfig {
             s.push_str(&format!("current_loop_tc_ms = {:?}  # torque lag behind its command\n", p.current_loop_tc_ms));
             s.push_str(&format!("speed_encoder_bits = {}     # motor encoder the speed is estimated from\n", p.speed_encoder_bits));
             s.push_str(&format!("speed_filter_ms = {:?}     # speed estimate low-pass\n", p.speed_filter_ms));
+            // Register maps only where they differ from the built-in ones.
+            let order = |o: WordOrder| match o {
+                WordOrder::HighFirst => "high_first",
+                WordOrder::LowFirst => "low_first",
+            };
+            if d.cia402_map != Cia402Map::default() {
+                let m = &d.cia402_map;
+                s.push_str("[drive.cia402_map]\n");
+                for (k, v) in [
+                    ("controlword", m.controlword),
+                    ("target_position", m.target_position),
+                    ("target_velocity", m.target_velocity),
+                    ("mode", m.mode),
+                    ("statusword", m.statusword),
+                    ("mode_display", m.mode_display),
+                    ("position_actual", m.position_actual),
+                    ("velocity_actual", m.velocity_actual),
+                    ("error_code", m.error_code),
+                    ("interpolation_ms", m.interpolation_ms),
+                    ("following_error_window", m.following_error_window),
+                    ("comm_timeout_ms", m.comm_timeout_ms),
+                ] {
+                    s.push_str(&format!("{k} = {v}\n"));
+                }
+                s.push_str(&format!("word_order = \"{}\"\n", order(m.word_order)));
+            }
+            if d.pr_map != PrMap::default() {
+                let m = &d.pr_map;
+                s.push_str("[drive.pr_map]\n");
+                for (k, v) in [
+                    ("block", m.block),
+                    ("trigger", m.trigger),
+                    ("trigger_value", m.trigger_value),
+                    ("servo_on", m.servo_on),
+                    ("status", m.status),
+                    ("position_actual", m.position_actual),
+                    ("alarm_code", m.alarm_code),
+                    ("alarm_reset", m.alarm_reset),
+                    ("comm_timeout_ms", m.comm_timeout_ms),
+                ] {
+                    s.push_str(&format!("{k} = 0x{v:04X}\n"));
+                }
+                s.push_str(&format!("counts_per_rev = {}\n", m.counts_per_rev));
+                s.push_str(&format!("word_order = \"{}\"\n", order(m.word_order)));
+            }
         }
         s
     }
@@ -421,6 +619,10 @@ struct RawDrive {
     quick_stop_decel: Option<u32>,
     profile_decel: Option<u32>,
     physics: Option<RawPhysics>,
+    modbus_profile: Option<Profile>,
+    cia402_map: Option<Cia402Map>,
+    pr_map: Option<PrMap>,
+    modbus_link: Option<String>,
 }
 
 #[derive(Deserialize)]
@@ -477,5 +679,58 @@ mod tests {
         assert!(e.contains("sim-drives config"), "{e}");
         let e = SimConfig::from_machine_toml("[axes.x]\nkind = \"linear\"\nnode = 1\n").unwrap_err();
         assert!(e.contains("counts_per_unit"), "{e}");
+        let e = SimConfig::from_toml("[[drive]]\nnode = 1\nkind = \"linear\"\n[drive.cia402_map]\nmode = 2\n").unwrap_err();
+        assert!(e.contains("cia402_map.mode = 2 overlaps cia402_map.target_position"), "{e}");
+        let e = SimConfig::from_toml("[[drive]]\nnode = 1\nkind = \"linear\"\nmodbus_profile = \"pr\"\n[drive.pr_map]\nblock = 65530\n").unwrap_err();
+        assert!(e.contains("pr_map.block = 65530"), "{e}");
+        let e = SimConfig::from_toml("[[drive]]\nnode = 1\nkind = \"linear\"\nmodbus_profile = \"rtu\"\n").unwrap_err();
+        assert!(e.contains("modbus_profile"), "{e}");
+    }
+
+    #[test]
+    fn modbus_profile_and_map_overrides() {
+        let c = SimConfig::from_toml(
+            "[[drive]]\nnode = 4\nkind = \"linear\"\nmodbus_profile = \"pr\"\n[drive.pr_map]\ntrigger = 0x100\nword_order = \"low_first\"\n\
+             [[drive]]\nnode = 5\nkind = \"spindle\"\n",
+        )
+        .unwrap();
+        assert_eq!(c.drives[0].modbus_profile, Profile::Pr);
+        assert_eq!(c.drives[0].pr_map.trigger, 0x100);
+        assert_eq!(c.drives[0].pr_map.block, PrMap::default().block);
+        assert_eq!(c.drives[0].pr_map.word_order, cncgw_bus::modbus::WordOrder::LowFirst);
+        assert_eq!(c.drives[1].modbus_profile, Profile::Cia402);
+        assert_eq!(c.drives[1].cia402_map, Cia402Map::default());
+        // A machine config's axes take the same keys.
+        let m = SimConfig::from_machine_toml(
+            "[axes.w]\nkind = \"linear\"\nnode = 7\ncounts_per_unit = 1000.0\nmodbus_profile = \"pr\"\n[axes.w.pr_map]\nservo_on = 0x100\n",
+        )
+        .unwrap();
+        assert_eq!((m.drives[0].modbus_profile, m.drives[0].pr_map.servo_on), (Profile::Pr, 0x100));
+        // A mixed machine: ids are per bus; each server takes its own drives.
+        let mixed = SimConfig::from_machine_toml(
+            "[axes.x]\nkind = \"linear\"\nnode = 1\ncounts_per_unit = 1000.0\n\
+             [axes.w]\nkind = \"linear\"\nnode = 1\ncounts_per_unit = 1000.0\nmodbus = \"line\"\n\
+             [axes.t]\nkind = \"linear\"\nnode = 200\ncounts_per_unit = 1000.0\nmodbus = \"tcp\"\n",
+        )
+        .unwrap();
+        let axes = |c: &SimConfig| c.drives.iter().map(|d| d.axis.clone()).collect::<Vec<_>>();
+        assert_eq!(axes(&mixed.canopen_drives()), ["x"]);
+        assert_eq!(axes(&mixed.modbus_drives(Some("line")).unwrap()), ["w"]);
+        assert_eq!(axes(&mixed.modbus_drives(None).unwrap()), ["t", "w"]);
+        let e = mixed.modbus_drives(Some("rs485")).unwrap_err();
+        assert!(e.contains("links in the config: line, tcp"), "{e}");
+        assert_eq!(axes(&SimConfig::default_lathe().modbus_drives(None).unwrap()).len(), 3);
+        assert_eq!(SimConfig::from_toml(&mixed.to_commented_toml()).unwrap(), mixed);
+        let e = SimConfig::from_machine_toml(
+            "[axes.a]\nkind = \"linear\"\nnode = 3\ncounts_per_unit = 1.0\nmodbus = \"l\"\n[axes.b]\nkind = \"linear\"\nnode = 3\ncounts_per_unit = 1.0\nmodbus = \"l\"\n",
+        )
+        .unwrap_err();
+        assert!(e.contains("unit id used twice on Modbus link \"l\""), "{e}");
+        // The printed form reads back to the same profiles and maps.
+        let mut c = c;
+        c.drives[1].cia402_map.statusword = 300;
+        c.drives[1].cia402_map.word_order = cncgw_bus::modbus::WordOrder::LowFirst;
+        c.drives[0].pr_map.counts_per_rev = c.drives[0].counts_per_rev;
+        assert_eq!(SimConfig::from_toml(&c.to_commented_toml()).unwrap(), c);
     }
 }

@@ -1548,3 +1548,27 @@ impl SimDrive {
         self.event_tpdos(now);
     }
 }
+
+/// Hooks for the Modbus server (`crate::modbus`): its register writes go through the same
+/// object checks, rules and side effects as SDO downloads, and a target write is latched at
+/// once, as a SYNC would latch it (Modbus has no SYNC).
+impl SimDrive {
+    /// Write an integer object as an SDO download would. Err: the SDO abort code.
+    pub(crate) fn modbus_write(&mut self, index: u16, sub: u8, value: i64, now: u64) -> Result<(), u32> {
+        let size = self.od.get(index, sub).and_then(|e| e.dtype.size()).unwrap_or(4).min(8);
+        self.write_object(index, sub, &value.to_le_bytes()[..size], now)
+    }
+
+    /// Latch the present targets now (CSP: start the next interpolation segment over the
+    /// interpolation period 0x60C2; CSV: take the target velocity). Returns when to latch
+    /// the same target again if this CSP segment started from a hold (no target for more
+    /// than the extrapolation span): its velocity is a catch-up step, not the path's, and
+    /// must not be extrapolated if the next target is late too (else each late target
+    /// multiplies the error by the extrapolation span).
+    pub(crate) fn modbus_latch(&mut self, now: u64) -> Option<u64> {
+        let fresh = self.seg_len == 0 || now.saturating_sub(self.seg_t0) > self.seg_len * (1 + SYNC_EXTRAPOLATE_PERIODS);
+        let before = self.seg_t0;
+        self.latch_setpoints(now);
+        (fresh && self.seg_t0 == now && before != now).then(|| now + self.seg_len)
+    }
+}

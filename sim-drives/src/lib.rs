@@ -11,6 +11,7 @@
 pub mod buslog;
 pub mod config;
 pub mod drive;
+pub mod modbus;
 pub mod od;
 pub mod servo;
 pub mod socketcand;

@@ -5,6 +5,9 @@
 //!     sim-drives --print-default-config      # commented TOML to start from
 //!     sim-drives --socketcand 127.0.0.1:29536 # a virtual bus `can0` for socketcand clients
 //!     sim-drives --bus vcan0 --log bus.log   # also write a candump log
+//!     sim-drives --modbus-tcp 127.0.0.1:5020  # the drives as Modbus TCP units (id = node)
+//!     sim-drives --modbus-rtu /dev/pts/5 --baud 115200 --parity none --stop-bits 1
+//!     sim-drives --config config/lathe-modbus.toml --modbus-tcp 127.0.0.1:5020 [--modbus-link tcp]
 
 use clap::Parser;
 use sim_drives::SimConfig;
@@ -32,6 +35,27 @@ struct Args {
     /// long after the start (default at once). Same effect as the SDO write to 0x2100.
     #[arg(long = "fault", value_name = "SPEC")]
     faults: Vec<String>,
+    /// Serve the drives over Modbus TCP on this address instead of CAN (unit id = node id;
+    /// register map per drive: `modbus_profile` of the config, default cia402).
+    #[arg(long, value_name = "ADDR:PORT", conflicts_with_all = ["socketcand", "modbus_rtu", "log"])]
+    modbus_tcp: Option<String>,
+    /// Serve the drives over Modbus RTU on this serial device instead of CAN, e.g.
+    /// /dev/ttyUSB0 or one end of `socat -d -d pty,raw,echo=0 pty,raw,echo=0`.
+    #[arg(long, value_name = "DEVICE", conflicts_with_all = ["socketcand", "log"])]
+    modbus_rtu: Option<String>,
+    /// With a cncgw machine config: serve only the axes on this Modbus link (their
+    /// `modbus = "LINK"`). Default: every axis on some Modbus link.
+    #[arg(long, value_name = "LINK")]
+    modbus_link: Option<String>,
+    /// RTU baud rate.
+    #[arg(long, default_value_t = 115_200, value_name = "BAUD", requires = "modbus_rtu")]
+    baud: u32,
+    /// RTU parity: none, even or odd.
+    #[arg(long, default_value = "none", value_name = "none|even|odd", requires = "modbus_rtu")]
+    parity: sim_drives::modbus::Parity,
+    /// RTU stop bits: 1 or 2.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=2), requires = "modbus_rtu")]
+    stop_bits: u8,
     /// Write every frame on the bus to FILE in candump's log-file format.
     #[arg(long, value_name = "FILE")]
     log: Option<std::path::PathBuf>,
@@ -49,7 +73,8 @@ struct Args {
 
 fn load(path: &std::path::Path) -> Result<SimConfig, String> {
     let text = std::fs::read_to_string(path).map_err(|e| format!("{}: cannot read: {e}", path.display()))?;
-    // A machine config has [axes.*]; a sim-drives config has [[drive]].
+    // A machine config has [axes.*]; a sim-drives config has [[drive]]. Each server below
+    // takes the drives of its bus (a mixed machine has both).
     let is_machine = text.lines().any(|l| l.trim_start().starts_with("[axes."));
     let r = if is_machine { SimConfig::from_machine_toml(&text) } else { SimConfig::from_toml(&text) };
     r.map_err(|e| format!("{}: {e}", path.display()))
@@ -79,6 +104,22 @@ fn main() -> ExitCode {
         },
         None => SimConfig::default_lathe(),
     };
+    // The drives of this bus: a mixed machine's Modbus axes are not on the CAN bus, and each
+    // Modbus link is its own server.
+    let cfg = if args.modbus_tcp.is_some() || args.modbus_rtu.is_some() {
+        match cfg.modbus_drives(args.modbus_link.as_deref()) {
+            Ok(c) => c,
+            Err(e) => {
+                eprintln!("sim-drives: --modbus-link: {e}");
+                return ExitCode::from(2);
+            }
+        }
+    } else if args.modbus_link.is_some() {
+        eprintln!("sim-drives: --modbus-link needs --modbus-tcp or --modbus-rtu");
+        return ExitCode::from(2);
+    } else {
+        cfg.canopen_drives()
+    };
     let mut faults = Vec::new();
     for spec in &args.faults {
         match sim_drives::parse_fault(spec) {
@@ -103,6 +144,9 @@ fn main() -> ExitCode {
             return ExitCode::FAILURE;
         }
     }
+    if args.modbus_tcp.is_some() || args.modbus_rtu.is_some() {
+        return serve_modbus(&args, cfg, faults, stop);
+    }
     let opened: Result<(Box<dyn cncgw_bus::CanBus>, String), cncgw_bus::BusError> = match &args.socketcand {
         Some(addr) => sim_drives::socketcand::SocketcandServer::bind(addr, &args.socketcand_bus)
             .map(|s| (Box::new(s) as Box<dyn cncgw_bus::CanBus>, args.socketcand_bus.clone())),
@@ -126,6 +170,41 @@ fn main() -> ExitCode {
     }
     match sim_drives::run_realtime_with_faults(bus, cfg, stop, faults) {
         Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("sim-drives: {e}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+/// `--modbus-tcp` / `--modbus-rtu`: serve until SIGINT/SIGTERM.
+fn serve_modbus(args: &Args, cfg: SimConfig, faults: Vec<sim_drives::FaultAt>, stop: Arc<AtomicBool>) -> ExitCode {
+    let started = if let Some(addr) = &args.modbus_tcp {
+        match std::net::ToSocketAddrs::to_socket_addrs(addr.as_str()).map(|mut a| a.next()) {
+            Ok(Some(a)) => sim_drives::modbus::serve_tcp_with_faults(a, cfg, faults, stop),
+            Ok(None) | Err(_) => {
+                eprintln!("sim-drives: --modbus-tcp {addr}: not an address (expected e.g. 127.0.0.1:5020)");
+                return ExitCode::from(2);
+            }
+        }
+    } else if let Some(dev) = &args.modbus_rtu {
+        let line = sim_drives::modbus::RtuLine { baud: args.baud, parity: args.parity, stop_bits: args.stop_bits };
+        sim_drives::modbus::serve_rtu_with_faults(dev, line, cfg, faults, stop)
+    } else {
+        return ExitCode::from(2);
+    };
+    let server = match started {
+        Ok(s) => s,
+        Err(e) => {
+            eprintln!("sim-drives: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    match server.join() {
+        Ok(()) => {
+            tracing::info!("sim-drives: Modbus server stopped");
+            ExitCode::SUCCESS
+        }
         Err(e) => {
             eprintln!("sim-drives: {e}");
             ExitCode::FAILURE

@@ -44,6 +44,10 @@ pub enum Command {
         /// Print the summary as JSON.
         #[arg(long)]
         json: bool,
+        /// Where the machine's power-off state lives (common variables #401–#600). Default:
+        /// $CNCGW_STATE_DIR, else $XDG_STATE_HOME/cncgw, else ~/.local/state/cncgw.
+        #[arg(long, value_name = "DIR")]
+        state_dir: Option<PathBuf>,
     },
     /// Print the canonical moves of a program without running anything.
     ///
@@ -223,7 +227,7 @@ pub fn open_bus(
     use cncgw_bus::transport::socketcand;
     let bus = bus.map(str::to_string).unwrap_or_else(|| cfg.bus.interface.clone());
     if bus == "inproc" {
-        let sim_cfg = sim_drives::SimConfig::from_machine_toml(cfg_text).map_err(|e| format!("emulated drives: {e}"))?;
+        let sim_cfg = sim_drives::SimConfig::from_machine_toml_bus(cfg_text, Some(false)).map_err(|e| format!("emulated drives: {e}"))?;
         let wire = cncgw_bus::transport::inproc::InprocBus::new();
         let world = sim_drives::SimWorld::new(&wire, sim_cfg);
         let ep: Box<dyn cncgw_bus::CanBus> = Box::new(wire.endpoint());
@@ -292,7 +296,7 @@ pub fn main() -> i32 {
     let cli = Cli::parse();
     init_tracing(cli.verbose);
     match cli.cmd {
-        Command::Run { program, machine, json } => run::run(&program, &machine, json),
+        Command::Run { program, machine, json, state_dir } => run::run(&program, &machine, json, state_dir.as_deref()),
         Command::Plan { program, config, format } => plan(&program, config.as_deref(), &format),
         Command::Preview { program, out, config, width, tools } => {
             preview::preview(&program, config.as_deref(), tools.as_deref(), &out, width)
@@ -368,18 +372,38 @@ fn config_check(file: Option<&std::path::Path>) -> i32 {
         Ok((cfg, _)) => {
             println!("{}: ok — {}", file.map(|p| p.display().to_string()).unwrap_or_else(|| "embedded config/lathe.toml".into()), cfg.machine.name);
             println!("  cycle {} ms, bus {} at {} bit/s", cfg.machine.cycle_ms, cfg.bus.interface, cfg.bus.bitrate);
-            let frames = crate::bus::busload::csp_frames(cfg.axes.len(), 6);
-            let load = crate::bus::busload::load(&frames, cfg.cycle_s(), cfg.bus.bitrate);
-            println!(
-                "  worst-case CANopen bus load {:.1} % ({} drives, one 6-byte RPDO and TPDO each + SYNC per cycle){}",
-                load * 100.0,
-                cfg.axes.len(),
-                if load > 0.8 { " — OVER 80 %: lengthen the cycle" } else { "" }
-            );
+            let n_can = cfg.axes.values().filter(|a| a.modbus.is_none()).count();
+            if n_can > 0 {
+                let frames = crate::bus::busload::csp_frames(n_can, 6);
+                let load = crate::bus::busload::load(&frames, cfg.cycle_s(), cfg.bus.bitrate);
+                println!(
+                    "  worst-case CANopen bus load {:.1} % ({} drives, one 6-byte RPDO and TPDO each + SYNC per cycle){}",
+                    load * 100.0,
+                    n_can,
+                    if load > 0.8 { " — OVER 80 %: lengthen the cycle" } else { "" }
+                );
+            }
+            for (name, what, tx, rtu) in crate::drives::modbus::ModbusDrives::new(&cfg).planned_links() {
+                match rtu {
+                    Some(s) => println!(
+                        "  Modbus link {name}: {what}, {tx} transactions per cycle take {:.2} ms on the line → link cycle {} ms",
+                        s * 1e3,
+                        (s * 1e3).ceil().max(cfg.machine.cycle_ms.ceil())
+                    ),
+                    None => println!("  Modbus link {name}: {what}, {tx} transactions per cycle; the cycle is measured from the round trip at start-up"),
+                }
+            }
             for (name, a) in &cfg.axes {
                 println!(
-                    "  axis {name}: {:?} node {} {} counts/unit, max speed {}, max accel {}",
-                    a.kind, a.node, a.counts_per_unit, a.max_speed, a.max_accel
+                    "  axis {name}: {:?} {} {} counts/unit, max speed {}, max accel {}",
+                    a.kind,
+                    match &a.modbus {
+                        Some(l) => format!("Modbus link {l} unit {} ({:?} profile)", a.node, a.modbus_profile),
+                        None => format!("CANopen node {}", a.node),
+                    },
+                    a.counts_per_unit,
+                    a.max_speed,
+                    a.max_accel
                 );
             }
             0

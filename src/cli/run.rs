@@ -17,7 +17,7 @@ pub const EXIT_PROGRAM_ERROR: i32 = 2;
 pub const EXIT_ALARM: i32 = 3;
 pub const EXIT_SETUP: i32 = 4;
 
-pub fn run(program: &Path, machine: &MachineArgs, json: bool) -> i32 {
+pub fn run(program: &Path, machine: &MachineArgs, json: bool, state_dir: Option<&Path>) -> i32 {
     let (cfg, cfg_text) = match load_config(machine.config.as_deref()) {
         Ok(c) => c,
         Err(e) => {
@@ -37,25 +37,84 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool) -> i32 {
         }
     };
     let lines = std::fs::read_to_string(program).map(|t| t.lines().count() as u64).unwrap_or(0);
-    let (mut master, mut clock, _, what) = match super::open_bus(&cfg, &cfg_text, machine.bus.as_deref()) {
-        Ok(b) => b,
-        Err(e) => {
-            eprintln!("error: {e}");
+    // Common variables #401–#600 survive power-off: load them, store them after the run.
+    let vars_file = state_dir.map(Path::to_path_buf).or_else(crate::persist::default_state_dir).map(|d| crate::persist::CommonVarsFile::new(&d, &cfg.machine.name));
+    let mut interp = interp;
+    if let Some(f) = &vars_file {
+        match f.load() {
+            Ok(v) => interp.set_common_vars(v),
+            Err(a) => {
+                eprintln!("{a}");
+                return EXIT_SETUP;
+            }
+        }
+    }
+    let mut modbus = crate::drives::modbus::ModbusDrives::new(&cfg);
+    let bus_name = machine.bus.clone().unwrap_or_else(|| cfg.bus.interface.clone());
+    // The CANopen bus is opened only if an axis is on it.
+    let mut can = None;
+    let mut clock: Box<dyn Clock> = Box::new(cncgw_bus::RealClock::new());
+    let mut what = Vec::new();
+    if cfg.has_canopen() {
+        if !modbus.is_empty() && bus_name == "inproc" {
+            eprintln!(
+                "error: the embedded emulated bus (inproc) is CANopen only and runs in simulated time; a machine with Modbus axes runs in real time: give the CANopen axes a real bus (--bus vcan0, --bus socketcand://HOST:PORT/can0) and start the Modbus drives (e.g. sim-drives --modbus-tcp ADDR)"
+            );
+            return EXIT_SETUP;
+        }
+        match super::open_bus(&cfg, &cfg_text, machine.bus.as_deref()) {
+            Ok((m, c, _, w)) => {
+                can = Some(m);
+                clock = c;
+                what.push(w);
+            }
+            Err(e) => {
+                eprintln!("error: {e}");
+                return EXIT_SETUP;
+            }
+        }
+    }
+    for (name, l) in &cfg.modbus {
+        what.push(format!("Modbus link {name} ({})", match l.transport {
+            crate::config::LinkTransport::Tcp => format!("TCP {}", l.address.as_deref().unwrap_or("")),
+            crate::config::LinkTransport::Rtu => format!("RTU {} {} baud", l.device.as_deref().unwrap_or(""), l.baud),
+        }));
+    }
+    let mut parts: Vec<&mut dyn DriveBus> = Vec::new();
+    if let Some(m) = can.as_mut() {
+        parts.push(m);
+    }
+    if !modbus.is_empty() {
+        parts.push(&mut modbus);
+    }
+    let order: Vec<String> = cfg.axes.keys().cloned().collect();
+    let mut drives = match crate::drives::multi::MultiBus::new(parts, &order) {
+        Ok(d) => d,
+        Err(a) => {
+            eprintln!("{a}");
             return EXIT_SETUP;
         }
     };
-    eprintln!("cncgw: {} on {what}", program.display());
-    execute(&mut master, &mut *clock, &cfg, interp, lines, json)
+    eprintln!("cncgw: {} on {}", program.display(), what.join(" + "));
+    let (code, vars) = execute(&mut drives, &mut *clock, &cfg, program, interp, lines, json);
+    if let (Some(f), Some(v)) = (&vars_file, vars) {
+        if let Err(a) = f.save(&v) {
+            eprintln!("{a}");
+            return if code == EXIT_OK { EXIT_SETUP } else { code };
+        }
+    }
+    code
 }
 
 fn execute(
     drives: &mut dyn DriveBus,
     clock: &mut dyn Clock,
     cfg: &MachineConfig,
+    program: &Path,
     mut interp: Interpreter,
     lines: u64,
     json: bool,
-) -> i32 {
+) -> (i32, Option<std::collections::HashMap<u32, f64>>) {
     let spindle_drive = cfg.axes.values().position(|a| a.kind == AxisKind::Spindle);
     let cycle_ns = (cfg.machine.cycle_ms * 1e6).round() as u64;
     let mut lp = CycleLoop::new(drives, clock, Limits::from_config(cfg), spindle_drive, cycle_ns);
@@ -64,23 +123,51 @@ fn execute(
         Ok(s) => s,
         Err(a) => {
             eprintln!("{a}");
-            return EXIT_ALARM;
+            return (EXIT_ALARM, None);
         }
     };
-    interp.set_start_position(Pos { x: start[AX_X], y: start[AX_Y], z: start[AX_Z], c: start[AX_S] });
+    let start_pos = Pos { x: start[AX_X], y: start[AX_Y], z: start[AX_Z], c: start[AX_S] };
+    interp.set_start_position(start_pos);
+    // Axes on links with their own cycle (Modbus): every spindle-synchronised move of the
+    // program is checked against their cycle before anything moves.
+    let mut slow = Vec::new();
+    for d in 0..lp.drives.axis_count() {
+        if let Some((link, link_what, cycle_s)) = lp.drives.link_cycle(d) {
+            let name = lp.drives.axis_name(d).to_string();
+            eprintln!("cncgw: axis {name}: Modbus link {link} ({link_what}), link cycle {:.0} ms", cycle_s * 1e3);
+            let axis = if Some(d) == spindle_drive { "s".to_string() } else { name };
+            slow.push(crate::sync::link_check::SlowAxis { axis, link, cycle_s });
+        }
+    }
+    if !slow.is_empty() {
+        if let Err(a) = check_links(program, cfg, &slow, start_pos) {
+            lp.finish();
+            eprintln!("{a}");
+            return (EXIT_ALARM, None);
+        }
+    }
     let (tx, rx) = std::sync::mpsc::sync_channel(256);
+    // The interpreter runs ahead of motion, macro statements included (as on a Fanuc, where
+    // macro statements are executed while the blocks before them are buffered); it hands
+    // back the common variables when it ends, to be stored.
     let producer = std::thread::Builder::new().name("interp".into()).spawn(move || {
-        for m in interp {
+        let mut it = interp;
+        for m in it.by_ref() {
             let stop = m.is_err();
             if tx.send(m).is_err() || stop {
                 break;
             }
         }
+        it.common_vars().clone()
     });
-    if let Err(e) = producer {
-        eprintln!("error: cannot start the interpreter thread: {e}");
-        return EXIT_SETUP;
-    }
+    let producer = match producer {
+        Ok(h) => h,
+        Err(e) => {
+            eprintln!("error: cannot start the interpreter thread: {e}");
+            lp.finish();
+            return (EXIT_SETUP, None);
+        }
+    };
     let bar = indicatif::ProgressBar::new(lines.max(1));
     bar.set_style(
         indicatif::ProgressStyle::with_template("{spinner} {elapsed_precise} line {pos}/{len} {wide_bar} {msg}")
@@ -98,7 +185,8 @@ fn execute(
     });
     bar.finish_and_clear();
     lp.finish();
-    match r {
+    let vars = producer.join().ok();
+    let code = match r {
         Err(a) => {
             print_summary(&summary, json);
             eprintln!("{a}");
@@ -114,7 +202,24 @@ fn execute(
                 EXIT_NOT_AT_END
             }
         }
+    };
+    (code, vars)
+}
+
+/// Run the interpreter over the whole program once and check each synchronised move
+/// against the slow links (bounded: a program that never ends is checked as it runs up to
+/// two million moves).
+fn check_links(program: &Path, cfg: &MachineConfig, slow: &[crate::sync::link_check::SlowAxis], start: Pos) -> Result<(), crate::Alarm> {
+    let Ok(mut pre) = Interpreter::from_file(program, cfg) else { return Ok(()) };
+    pre.set_start_position(start);
+    let mut check = crate::sync::link_check::LinkCheck::new(slow, cfg.machine.sync_error_limit_um, start);
+    for m in pre.take(2_000_000) {
+        match m {
+            Ok(m) => check.check(&m)?,
+            Err(_) => break, // the run itself reports program alarms at their block
+        }
     }
+    Ok(())
 }
 
 fn print_summary(s: &RunSummary, json: bool) {

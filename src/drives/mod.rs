@@ -3,6 +3,8 @@
 //! degrees for a spindle); counts exist only below it.
 
 pub mod canopen;
+pub mod modbus;
+pub mod multi;
 
 use crate::Alarm;
 use cncgw_bus::cia402::State;
@@ -18,6 +20,10 @@ pub struct AxisFeedback {
     pub statusword: u16,
     /// Cycles since the last feedback frame from this drive (0 = fresh this cycle).
     pub age_cycles: u32,
+    /// The drive's position demand at the instant of `counts`, when the bus knows it (Modbus:
+    /// the link's own cycle); `None`: the cycle loop pairs the feedback with the target it
+    /// sent two cycles before (CANopen CSP timing).
+    pub demand_counts: Option<i64>,
 }
 
 impl AxisFeedback {
@@ -53,4 +59,10 @@ pub trait DriveBus {
     fn axis_name(&self, axis: usize) -> &str;
     /// Counts per machine unit of `axis` (for reporting in counts).
     fn counts_per_unit(&self, axis: usize) -> f64;
+    /// For an axis on a link with its own, slower cycle (Modbus): the link's name, what it
+    /// is, and its cycle in seconds, once started. `None`: the axis gets its set-point every
+    /// machine cycle at SYNC.
+    fn link_cycle(&self, _axis: usize) -> Option<(String, String, f64)> {
+        None
+    }
 }

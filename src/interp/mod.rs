@@ -224,6 +224,8 @@ pub struct Interpreter {
     nrc_out: VecDeque<Move>,
     /// G12.1 polar coordinate interpolation in force.
     polar: Option<cycles::polar::PolarState>,
+    /// G80–G89 drilling / tapping mode and rigid tapping state.
+    drill: cycles::drill::DrillState,
 }
 
 fn perr_alarm(file: &Arc<str>, line_no: usize, text: &str, e: PErr) -> Alarm {
@@ -299,6 +301,7 @@ impl Interpreter {
             nrc: nosecomp::NoseComp::default(),
             nrc_out: VecDeque::new(),
             polar: None,
+            drill: cycles::drill::DrillState::new(cfg),
         }
     }
 
@@ -520,6 +523,11 @@ impl Interpreter {
                         Alarm::new(126, format!("END{n} without a DO{n}")).at(at(b.col)).with_block(text.trim_end()),
                     ),
                 },
+                Stmt::Call { name: Some(name), args, cols, .. } => {
+                    if let Some((n, col, m)) = cycles::siemens::static_check(name, args.len(), cols) {
+                        errors.push(Alarm::new(n, m).at(at(col.unwrap_or(b.col))).with_block(text.trim_end()));
+                    }
+                }
                 Stmt::Goto(Expr::Num { v, .. }) | Stmt::IfGoto { target: Expr::Num { v, .. }, .. } => {
                     gotos.push((p, i, *v as u32, b.col));
                 }
@@ -756,6 +764,18 @@ impl Interpreter {
                 Some(&d) => self.line = d,
                 None => return Err(wrap(MErr { number: 126, message: "END without DO".into() }, b.col)),
             },
+            Stmt::Call { mcall, name, args, cols } => {
+                let mut vals = Vec::with_capacity(args.len());
+                for a in &args {
+                    vals.push(match a {
+                        Some(e) => self.vars.eval(e).map_err(|e| wrap(e, b.col))?,
+                        None => None,
+                    });
+                }
+                self.siemens_stmt(mcall, name.as_deref(), &vals, &cols, &src).map_err(|(n, col, m)| {
+                    Alarm::new(n, m).at(SrcPos::new(file.clone(), i as u32 + 1, col.unwrap_or(b.col))).with_block(text.trim_end())
+                })?;
+            }
             Stmt::Nc(words) => {
                 let d = self.decode_words(&words, &self.vars).map_err(|a| {
                     let col = a_col(&a);
@@ -1138,9 +1158,10 @@ impl Interpreter {
                 self.st.f_min = Some(v);
             }
         }
-        // S (G50 S = maximum spindle speed).
+        // S (G50 S = maximum spindle speed); rigid tapping takes its own S (M29 S, G84 S).
+        let s_taken = self.tap_block_start(d, src)?;
         let mut spindle_changed = d.group(2).is_some() && self.st.css != was_css;
-        if let Some(s) = d.get('S') {
+        if let Some(s) = d.get('S').filter(|_| !s_taken) {
             if s.v < 0.0 {
                 return Err((6, Some(s.col), "S cannot be negative".into()));
             }
@@ -1159,7 +1180,9 @@ impl Interpreter {
         // Spindle M codes and T, aux M before motion.
         let mut after: Vec<MoveKind> = Vec::new();
         let mut started = false;
-        for &(m, _) in &d.m {
+        // In a G83–G89 block the M code is the cycle's C-axis clamp code.
+        let clamp_block = self.drill_clamp_block(d);
+        for &(m, _) in d.m.iter().filter(|_| !clamp_block) {
             match m {
                 3 | 4 => {
                     self.st.dir = if m == 3 { SpindleDir::Cw } else { SpindleDir::Ccw };
@@ -1197,6 +1220,7 @@ impl Interpreter {
             self.push(src, MoveKind::Aux { letter: 'T', value: t.v }, false);
         }
         let exact = exact_mode || d.has_g(90);
+        self.drill_modal(d, src)?;
         // One-shot (group 00) codes and motion.
         match one_shot {
             Some(40) => {
@@ -1268,10 +1292,17 @@ impl Interpreter {
                     self.push(src, MoveKind::Rapid { end: t }, true);
                 }
             }
+            Some(300) if d.get('P').is_some_and(|p| p.v == 99.0) => self.g30_p99(d, src, gcol(300))?,
             Some(280) | Some(300) => self.reference_return(d, src, one_shot == Some(300), gcol(300))?,
             Some(90) | None => {
                 self.take_up_tool_offset(d);
-                self.motion(d, src, exact)?
+                if self.drill_active(d) {
+                    self.drill_block(d, src)?
+                } else {
+                    self.motion(d, src, exact)?;
+                    // MCALL: the SINUMERIK modal cycle after a positioning block.
+                    self.mcall_after(self.target(d).is_some(), src)?
+                }
             }
             Some(650) => {
                 let p = d.get('P').ok_or((9, gcol(650), "G65 needs P (the macro program number)".to_string()))?;

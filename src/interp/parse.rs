@@ -147,6 +147,11 @@ pub enum Stmt {
     /// `WHILE [cond] DO n` (cond = Some) or bare `DO n` (infinite loop).
     Do { cond: Option<Expr>, n: u8 },
     End(u8),
+    /// A SINUMERIK cycle call (manual 003): `CYCLE81(100,0,1,,25)`, `MCALL CYCLE81(…)`
+    /// (`mcall`), or a bare `MCALL` (`name` None) cancelling the modal call. Empty slots
+    /// and missing trailing arguments are None.
+    /// `cols`: 1-based column of each parameter slot.
+    Call { mcall: bool, name: Option<String>, args: Vec<Option<Expr>>, cols: Vec<u32> },
 }
 
 #[derive(Clone, Debug, PartialEq)]
@@ -290,6 +295,9 @@ pub fn parse_line(line: &str) -> Result<Block, PErr> {
     if let Some(b) = fast_line(line) {
         return Ok(b);
     }
+    if let Some(b) = cycle_call(line) {
+        return b;
+    }
     let chars = strip(line);
     let mut c = Cur { c: &chars, i: 0, nest: 0 };
     let first = c.peek();
@@ -397,6 +405,121 @@ pub fn parse_line(line: &str) -> Result<Block, PErr> {
         return perr(127, c.col(), "a macro statement must be alone in its block (no NC words after it)");
     }
     Ok(b)
+}
+
+/// Most arguments of one cycle call (SINUMERIK's longest, CYCLE84, has about 30).
+pub const MAX_CALL_ARGS: usize = 40;
+
+/// `[N…] [MCALL] CYCLEnn(args)` or `[N…] MCALL`: parsed before comment stripping, since the
+/// argument list is in parentheses. None when the line is not a cycle call.
+fn cycle_call(line: &str) -> Option<Result<Block, PErr>> {
+    let chars: Vec<char> = line.chars().collect();
+    let mut i = 0;
+    let ws = |i: &mut usize| {
+        while *i < chars.len() && chars[*i].is_whitespace() {
+            *i += 1;
+        }
+    };
+    ws(&mut i);
+    let col = i as u32 + 1;
+    let mut n = None;
+    if matches!(chars.get(i), Some('N' | 'n')) && chars.get(i + 1).is_some_and(|c| c.is_ascii_digit()) {
+        let start = i + 1;
+        i += 1;
+        while i < chars.len() && chars[i].is_ascii_digit() {
+            i += 1;
+        }
+        let v: String = chars[start..i].iter().collect();
+        n = v.parse::<u32>().ok().filter(|v| *v <= 99999);
+        n?;
+        ws(&mut i);
+    }
+    let word = |i: usize| -> String { chars[i..].iter().take_while(|c| c.is_ascii_alphanumeric()).collect::<String>().to_ascii_uppercase() };
+    let mut w = word(i);
+    let mut mcall = false;
+    if w == "MCALL" {
+        mcall = true;
+        i += 5;
+        ws(&mut i);
+        w = word(i);
+        let rest_empty = |j: usize| chars[j..].iter().all(|c| c.is_whitespace()) || chars.get(j) == Some(&';');
+        if w.is_empty() && rest_empty(i) {
+            return Some(Ok(Block { skip: false, n, stmt: Stmt::Call { mcall, name: None, args: Vec::new(), cols: Vec::new() }, col }));
+        }
+    }
+    if !(w.starts_with("CYCLE") && w.len() > 5) {
+        return if mcall { Some(perr(9, i as u32 + 1, "MCALL is followed by a cycle call CYCLEnn(…) or nothing")) } else { None };
+    }
+    let name_col = i as u32 + 1;
+    i += w.len();
+    ws(&mut i);
+    if chars.get(i) != Some(&'(') {
+        return Some(perr(9, i as u32 + 1, format!("{w}: the parameters follow in parentheses: {w}(…)")));
+    }
+    i += 1;
+    // Split at top-level commas up to the matching ')'.
+    let mut args = Vec::new();
+    let mut depth = 0i32;
+    let mut start = i;
+    let close;
+    loop {
+        match chars.get(i) {
+            None => return Some(perr(9, i as u32 + 1, format!("{w}(: missing `)`"))),
+            Some('[') => depth += 1,
+            Some(']') => depth -= 1,
+            Some(',') if depth == 0 => {
+                args.push((start, i));
+                start = i + 1;
+            }
+            Some(')') if depth == 0 => {
+                args.push((start, i));
+                close = i;
+                break;
+            }
+            _ => {}
+        }
+        i += 1;
+    }
+    if args.len() > MAX_CALL_ARGS {
+        return Some(perr(9, name_col, format!("{w}: more than {MAX_CALL_ARGS} parameters")));
+    }
+    let mut out = Vec::new();
+    let mut cols = Vec::new();
+    for (a, b) in args {
+        let lead = chars[a..b].iter().take_while(|c| c.is_whitespace()).count();
+        cols.push((a + lead) as u32 + 1);
+        let text = &chars[a..b];
+        if text.iter().all(|c| c.is_whitespace()) {
+            out.push(None);
+            continue;
+        }
+        // Parse the argument with the expression parser, columns kept.
+        let mut padded: Vec<char> = vec![' '; a];
+        padded.extend_from_slice(text);
+        let mut c = Cur { c: &padded, i: a, nest: 0 };
+        let e = match expr(&mut c, 1) {
+            Ok(e) => e,
+            Err(e) => return Some(Err(e)),
+        };
+        if !c.at_end() {
+            return Some(perr(9, c.col(), format!("{w}: parameter {}: unexpected `{}`", out.len() + 1, padded[c.i])));
+        }
+        out.push(Some(e));
+    }
+    // Trailing empty slots carry nothing.
+    while out.last().is_some_and(|a| a.is_none()) {
+        out.pop();
+    }
+    cols.truncate(out.len());
+    let mut j = close + 1;
+    ws(&mut j);
+    match chars.get(j) {
+        None | Some(';') => {}
+        // A comment may follow.
+        Some('(') => {}
+        Some(c) => return Some(perr(9, j as u32 + 1, format!("`{c}` after the cycle call: a cycle call stands alone in its block"))),
+    }
+    Some(Ok(Block { skip: false, n, stmt: Stmt::Call { mcall, name: Some(w), args: out, cols }, col }))
 }
 
 fn is_keyword(s: &str) -> bool {
@@ -1023,5 +1146,31 @@ mod tests {
         assert_eq!(parse_line("M-3").unwrap_err().number, 6);
         assert_eq!(parse_line(&format!("#1={}1", "-".repeat(100_000))).unwrap_err().number, 114);
         assert_eq!(parse_line(&format!("#1={}1", "#".repeat(100_000))).unwrap_err().number, 114);
+    }
+
+    #[test]
+    fn sinumerik_cycle_calls() {
+        let b = parse_line("N20 mcall cycle81(100, 0,1,,25,0.6,,,) ; centre").unwrap();
+        assert_eq!(b.n, Some(20));
+        let Stmt::Call { mcall, name, args, cols } = b.stmt else { panic!() };
+        assert!(mcall);
+        assert_eq!(name.as_deref(), Some("CYCLE81"));
+        let num = |v: f64| Some(Expr::Num { v, decimal: v.fract() != 0.0 });
+        assert_eq!(args, [num(100.0), num(0.0), num(1.0), None, num(25.0), num(0.6)]);
+        assert_eq!(cols, [19, 24, 26, 28, 29, 32]);
+        assert_eq!(parse_line("MCALL").unwrap().stmt, Stmt::Call { mcall: true, name: None, args: vec![], cols: vec![] });
+        let b = parse_line("CYCLE84(5,0,2,-[3*5],,#1) (tap)").unwrap();
+        let Stmt::Call { args, .. } = b.stmt else { panic!() };
+        assert_eq!(args.len(), 6);
+        assert!(matches!(args[3], Some(Expr::Neg(_))));
+        assert!(matches!(args[5], Some(Expr::Var(_))));
+        // Errors with their columns.
+        assert_eq!(parse_line("CYCLE81(1,2").map_err(|e| (e.number, e.col)).unwrap_err(), (9, 12));
+        assert_eq!(parse_line("CYCLE81 X1").map_err(|e| (e.number, e.col)).unwrap_err(), (9, 9));
+        assert_eq!(parse_line("CYCLE81(1,2) X5").map_err(|e| (e.number, e.col)).unwrap_err(), (9, 14));
+        assert_eq!(parse_line("CYCLE81(1,2 3)").map_err(|e| (e.number, e.col)).unwrap_err(), (9, 13));
+        assert_eq!(parse_line("MCALL X1").map_err(|e| e.number).unwrap_err(), 9);
+        // Ordinary blocks are not calls.
+        assert!(matches!(parse_line("C10 Z5").unwrap().stmt, Stmt::Nc(_)));
     }
 }

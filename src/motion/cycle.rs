@@ -245,7 +245,14 @@ impl<'a> CycleLoop<'a> {
                 }
                 // Only fresh feedback in a cycle that followed its predecessor on time pairs
                 // with the demand of two cycles ago; anything else would measure the jitter.
-                if f.age_cycles == 0 && missed == 0 && !late_before {
+                // A bus that knows the drive's demand at the feedback's instant (Modbus, on
+                // its own link cycle) gives it; CANopen pairs with the target of k−2.
+                if let Some(demand) = f.demand_counts {
+                    if f.age_cycles == 0 {
+                        let err = (demand - f.counts).abs() as f64 / summary.axes[d].counts_per_unit;
+                        summary.axes[d].max_following_error = summary.axes[d].max_following_error.max(err);
+                    }
+                } else if f.age_cycles == 0 && missed == 0 && !late_before {
                     let demand = hist[d][0];
                     let err = (demand - f.counts).abs() as f64 / summary.axes[d].counts_per_unit;
                     if err > summary.axes[d].max_following_error {

@@ -15,7 +15,7 @@ use cncgw_bus::canopen::emcy::{error_text, Emcy};
 use cncgw_bus::canopen::nmt::{decode_heartbeat, heartbeat_frame, NmtCommand, NmtState};
 use cncgw_bus::canopen::pdo::{get_i32, get_u16, MapEntry};
 use cncgw_bus::canopen::{cob, od, sync_frame};
-use cncgw_bus::cia402::{cw, mode, State};
+use cncgw_bus::cia402::{cw, mode, EnableProgress, Enabler, State};
 use cncgw_bus::{CanBus, CanFrame, Clock};
 
 /// The master's own node id for its heartbeat (consumed by the drives through 0x1016).
@@ -41,6 +41,7 @@ impl NodeSpec {
     pub fn from_config(cfg: &MachineConfig) -> Vec<NodeSpec> {
         cfg.axes
             .iter()
+            .filter(|(_, a)| a.modbus.is_none())
             .map(|(name, a)| NodeSpec {
                 axis: name.clone(),
                 node: a.node,
@@ -655,6 +656,7 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
             counts: n.unwrapped,
             statusword: n.status,
             age_cycles: (self.now_ns.saturating_sub(n.fb_ns) / self.cycle_ns.max(1)) as u32,
+            demand_counts: None,
         }
     }
 
@@ -696,36 +698,28 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
             if !n.enabled {
                 n.target = n.unwrapped;
             }
-            let st = State::from_statusword(n.status);
-            match st {
-                State::OperationEnabled => {
-                    n.enabled = true;
-                    n.controlword = cw::ENABLE_OPERATION_CMD;
+            let mut en = Enabler { controlword: n.controlword, reset_attempts: n.reset_attempts };
+            let progress = en.step(n.status);
+            let was_reset = en.reset_attempts > n.reset_attempts;
+            n.controlword = en.controlword;
+            n.reset_attempts = en.reset_attempts;
+            match progress {
+                EnableProgress::Enabled => n.enabled = true,
+                EnableProgress::ResetFailed => {
+                    let code = n.last_emcy.map(|e| e.code).unwrap_or(0);
+                    return Err(self.node_alarm(
+                        i,
+                        2012,
+                        format!("fault reset did not clear the fault (last EMCY 0x{code:04X} {}); fix the cause on the drive", error_text(code)),
+                    ));
                 }
-                State::Fault | State::FaultReactionActive => {
+                EnableProgress::Walking => {
                     all = false;
                     n.enabled = false;
-                    if n.controlword & cw::FAULT_RESET != 0 {
-                        n.controlword = 0; // prepare the next rising edge
-                    } else {
-                        n.reset_attempts += 1;
-                        if n.reset_attempts > 5 {
-                            let code = n.last_emcy.map(|e| e.code).unwrap_or(0);
-                            return Err(self.node_alarm(
-                                i,
-                                2012,
-                                format!("fault reset did not clear the fault (last EMCY 0x{code:04X} {}); fix the cause on the drive", error_text(code)),
-                            ));
-                        }
+                    if was_reset {
                         tracing::warn!(node = n.spec.node, "drive in Fault: fault reset");
                         n.last_emcy = None;
-                        n.controlword = cw::FAULT_RESET_CMD;
                     }
-                }
-                _ => {
-                    all = false;
-                    n.enabled = false;
-                    n.controlword = st.controlword_towards(State::OperationEnabled);
                 }
             }
         }

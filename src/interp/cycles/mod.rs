@@ -4,8 +4,10 @@
 //! cycle (where the numbers live only in a figure missing from the text, the module of the
 //! cycle says which numbering it uses).
 //!
-//! Files: `single.rs` G90/G92/G94, `g76.rs` G76/G78, `stock.rs` G70–G73, `typeii.rs` G71/G72 type II, `groove.rs`
-//! G74/G75, `polar.rs` G12.1/G13.1 and G51.2/G50.2, `stroke.rs` G22/G23, `rigid.rs` G92.1; G32/G34 and the shared helpers are here.
+//! Files: `single.rs` G90/G92/G94, `g76.rs` G76/G78, `stock.rs` G70–G73, `typeii.rs` G71/G72
+//! type II, `groove.rs` G74/G75, `polar.rs` G12.1/G13.1 and G51.2/G50.2, `stroke.rs`
+//! G22/G23, `rigid.rs` G92.1, `drill.rs` G80–G89 and G30 P99, `siemens.rs` CYCLE81–86/840
+//! and MCALL; G32/G34 and the shared helpers are here.
 //!
 //! The cycles are `impl Interpreter` blocks (a child module sees the interpreter's private
 //! state); the interpreter calls [`Interpreter::cycle_block_start`] at the start of every NC
@@ -33,10 +35,12 @@ use crate::canon::{CycleTag, Move, MoveKind, Plane, Pos, SrcPos};
 use crate::config::MachineConfig;
 use std::sync::Arc;
 
+pub mod drill;
 pub mod g76;
 pub mod groove;
 pub mod polar;
 pub mod rigid;
+pub mod siemens;
 pub mod single;
 pub mod stock;
 pub mod stroke;

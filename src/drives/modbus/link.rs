@@ -1,0 +1,487 @@
+//! One Modbus link (a TCP connection or an RS-485 line) on its own I/O thread.
+//!
+//! Modbus has no SYNC and an RTU line carries a few transactions per millisecond at best, so
+//! the link runs its own cycle, decoupled from the machine's: every link cycle it writes each
+//! drive's latest set-point and reads its feedback, and exchanges both with the cycle thread
+//! through a mutex-protected slot (no allocation on the cycle thread). The link thread owns
+//! a current-thread tokio runtime for tokio-modbus; it may allocate (tokio-modbus boxes its
+//! futures), which is why it is not the cycle thread.
+
+use super::plan::{DrivePlan, Exchange};
+use crate::config::{LinkTransport, ModbusLink, Parity};
+use crate::Alarm;
+use cncgw_bus::modbus::{exception_text, SerialTiming};
+use std::sync::{Arc, Condvar, Mutex};
+use std::time::{Duration, Instant};
+use tokio_modbus::client::{Context, Reader, Writer};
+use tokio_modbus::prelude::SlaveContext;
+use tokio_modbus::Slave;
+
+/// What the cycle thread wants of one drive.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Command {
+    /// CiA 402 controlword (the `cia402` profile).
+    pub controlword: u16,
+    /// Servo on (the `pr` profile).
+    pub servo_on: bool,
+    /// Clear a latched alarm (the `pr` profile): written once per request.
+    pub alarm_reset_seq: u32,
+    /// Target position, counts (wrapping INTEGER32 on the wire), computed at `at`.
+    pub target: i32,
+    /// Set-point velocity at `at`, counts/s: the link extrapolates the target to the
+    /// instant it writes it, so the drive sees a set-point that moves with its own clock
+    /// rather than the machine cycle's samples re-sampled by the link's (which would hold
+    /// still one period and jump the next).
+    pub velocity: f64,
+    pub at: Option<Instant>,
+    /// Stream targets (false while enabling: the target register is left alone).
+    pub stream: bool,
+}
+
+/// What the link read from one drive.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Reading {
+    pub statusword: u16,
+    pub position: i32,
+    pub error_code: u16,
+    /// The target the drive was interpolating towards before this cycle's write (its demand
+    /// at the read, to within a link cycle): the reference for the following error.
+    pub demand: i32,
+    /// The controlword / servo-on state written just before this reading.
+    pub command: Command,
+    /// Increments with every reading.
+    pub seq: u64,
+    pub at: Option<Instant>,
+}
+
+#[derive(Debug, Default)]
+pub struct Slot {
+    pub command: Command,
+    pub reading: Reading,
+    /// The last failed transaction of this drive, in words (timeouts are not fatal at once:
+    /// the feedback age is).
+    pub last_error: Option<String>,
+}
+
+#[derive(Debug)]
+pub enum LinkState {
+    Starting,
+    /// Exchanging every `cycle`.
+    Running { cycle: Duration },
+    Failed(Alarm),
+}
+
+#[derive(Debug)]
+pub struct Shared {
+    pub slots: Vec<Slot>,
+    pub state: LinkState,
+    pub stop: bool,
+    /// Link cycles that took longer than the cycle.
+    pub overruns: u64,
+    /// Transactions done (answered or failed), failed, and link cycles run.
+    pub transactions: u64,
+    pub cycles: u64,
+    pub failures: u64,
+}
+
+pub type SharedLink = Arc<(Mutex<Shared>, Condvar)>;
+
+/// A link's static description.
+pub struct LinkSpec {
+    pub name: String,
+    pub cfg: ModbusLink,
+    pub drives: Vec<DrivePlan>,
+    /// The machine cycle: the link cycle is never shorter.
+    pub machine_cycle: Duration,
+}
+
+impl LinkSpec {
+    pub fn serial_timing(&self) -> SerialTiming {
+        SerialTiming { baud: self.cfg.baud, parity: self.cfg.parity != Parity::None, stop_bits: self.cfg.stop_bits }
+    }
+
+    /// RTU: the time one link cycle of every drive's exchange takes on the wire.
+    pub fn rtu_cycle_s(&self) -> f64 {
+        let t = self.serial_timing();
+        let turn = self.cfg.turnaround_ms * 1e-3;
+        self.drives
+            .iter()
+            .flat_map(|d| d.cyclic.iter())
+            .map(|x| {
+                let (rq, rs) = x.rtu_bytes();
+                t.transaction_s(rq, rs, turn)
+            })
+            .sum()
+    }
+
+    pub fn transactions_per_cycle(&self) -> usize {
+        self.drives.iter().map(|d| d.cyclic.len()).sum()
+    }
+
+    pub fn what(&self) -> String {
+        match self.cfg.transport {
+            LinkTransport::Tcp => format!("Modbus TCP {}", self.cfg.address.as_deref().unwrap_or("?")),
+            LinkTransport::Rtu => format!("Modbus RTU {} {} baud", self.cfg.device.as_deref().unwrap_or("?"), self.cfg.baud),
+        }
+    }
+}
+
+/// Start the link thread. It connects, configures every drive, measures or computes the
+/// cycle, then exchanges every cycle until `stop`.
+pub fn spawn(spec: LinkSpec) -> std::io::Result<(SharedLink, std::thread::JoinHandle<()>)> {
+    let shared: SharedLink = Arc::new((
+        Mutex::new(Shared {
+            slots: spec.drives.iter().map(|_| Slot::default()).collect(),
+            state: LinkState::Starting,
+            stop: false,
+            overruns: 0,
+            transactions: 0,
+            cycles: 0,
+            failures: 0,
+        }),
+        Condvar::new(),
+    ));
+    let s2 = shared.clone();
+    let h = std::thread::Builder::new().name(format!("modbus-{}", spec.name)).spawn(move || {
+        let rt = match tokio::runtime::Builder::new_current_thread().enable_all().build() {
+            Ok(rt) => rt,
+            Err(e) => {
+                set_state(&s2, LinkState::Failed(Alarm::new(2200, format!("Modbus link {}: cannot start its runtime: {e}", spec.name))));
+                return;
+            }
+        };
+        let mut io = LinkIo { spec, ctx: None, rt, last_end: None };
+        match io.start(&s2) {
+            Ok(cycle) => {
+                set_state(&s2, LinkState::Running { cycle });
+                io.run(&s2, cycle);
+            }
+            Err(a) => set_state(&s2, LinkState::Failed(a)),
+        }
+        if let Some(mut ctx) = io.ctx.take() {
+            let _ = io.rt.block_on(tokio_modbus::client::Client::disconnect(&mut ctx));
+        }
+    })?;
+    Ok((shared, h))
+}
+
+fn set_state(s: &SharedLink, st: LinkState) {
+    if let Ok(mut g) = s.0.lock() {
+        g.state = st;
+    }
+    s.1.notify_all();
+}
+
+struct LinkIo {
+    spec: LinkSpec,
+    ctx: Option<Context>,
+    rt: tokio::runtime::Runtime,
+    /// End of the last RTU frame, for the inter-frame silence.
+    last_end: Option<Instant>,
+}
+
+/// A failed transaction.
+enum TxError {
+    /// The drive answered with an exception: fatal (the configuration or the drive is wrong).
+    Exception(String),
+    /// No answer in time or the connection failed: retried, then the feedback goes stale.
+    Transport(String),
+}
+
+impl TxError {
+    fn text(&self) -> &str {
+        match self {
+            TxError::Exception(s) | TxError::Transport(s) => s,
+        }
+    }
+}
+
+impl LinkIo {
+    fn connect(&mut self) -> Result<(), String> {
+        let cfg = &self.spec.cfg;
+        let timeout = Duration::from_millis(cfg.timeout_ms as u64);
+        let ctx = match cfg.transport {
+            LinkTransport::Tcp => {
+                let addr = cfg.address.clone().unwrap_or_default();
+                self.rt.block_on(async {
+                    let sa = tokio::net::lookup_host(&addr)
+                        .await
+                        .map_err(|e| format!("{addr}: {e}"))?
+                        .next()
+                        .ok_or_else(|| format!("{addr}: no address"))?;
+                    let stream = tokio::time::timeout(timeout.max(Duration::from_millis(500)), tokio::net::TcpStream::connect(sa))
+                        .await
+                        .map_err(|_| format!("{addr}: connection timed out"))?
+                        .map_err(|e| format!("{addr}: {e}"))?;
+                    let _ = stream.set_nodelay(true);
+                    Ok::<_, String>(tokio_modbus::client::tcp::attach(stream))
+                })?
+            }
+            LinkTransport::Rtu => {
+                let dev = cfg.device.clone().unwrap_or_default();
+                let parity = match cfg.parity {
+                    Parity::None => tokio_serial::Parity::None,
+                    Parity::Even => tokio_serial::Parity::Even,
+                    Parity::Odd => tokio_serial::Parity::Odd,
+                };
+                let stop = if cfg.stop_bits == 2 { tokio_serial::StopBits::Two } else { tokio_serial::StopBits::One };
+                let builder = tokio_serial::new(&dev, cfg.baud).parity(parity).stop_bits(stop).data_bits(tokio_serial::DataBits::Eight);
+                let port = self.rt.block_on(async { tokio_serial::SerialStream::open(&builder) }).map_err(|e| format!("{dev}: {e}"))?;
+                tokio_modbus::client::rtu::attach(port)
+            }
+        };
+        self.ctx = Some(ctx);
+        Ok(())
+    }
+
+    /// RTU: keep the 3.5-character silence between the end of one frame and the next.
+    fn silence(&mut self) {
+        if self.spec.cfg.transport != LinkTransport::Rtu {
+            return;
+        }
+        if let Some(end) = self.last_end {
+            let gap = Duration::from_secs_f64(self.spec.serial_timing().t35_s());
+            let due = end + gap;
+            let now = Instant::now();
+            if due > now {
+                std::thread::sleep(due - now);
+            }
+        }
+    }
+
+    /// One transaction with drive `d`.
+    fn exchange(&mut self, d: usize, x: &Exchange, write: &[u16]) -> Result<Vec<u16>, TxError> {
+        self.silence();
+        let unit = self.spec.drives[d].unit;
+        let timeout = Duration::from_millis(self.spec.cfg.timeout_ms as u64);
+        let Some(ctx) = self.ctx.as_mut() else {
+            return Err(TxError::Transport("not connected".into()));
+        };
+        ctx.set_slave(Slave(unit));
+        let r = self.rt.block_on(async {
+            tokio::time::timeout(timeout, async {
+                match *x {
+                    Exchange::Read { addr, len } => ctx.read_holding_registers(addr, len).await,
+                    Exchange::Write { addr, .. } => ctx.write_multiple_registers(addr, write).await.map(|r| r.map(|_| Vec::new())),
+                    Exchange::WriteSingle { addr } => {
+                        ctx.write_single_register(addr, write.first().copied().unwrap_or(0)).await.map(|r| r.map(|_| Vec::new()))
+                    }
+                    Exchange::ReadWrite { read_addr, read_len, write_addr, .. } => {
+                        ctx.read_write_multiple_registers(read_addr, read_len, write_addr, write).await
+                    }
+                }
+            })
+            .await
+        });
+        self.last_end = Some(Instant::now());
+        let name = &self.spec.drives[d].axis;
+        let what = || format!("axis {name} (unit {unit}) on link {}: {}", self.spec.name, x.describe());
+        match r {
+            Err(_) => Err(TxError::Transport(format!("{}: no answer within {} ms", what(), self.spec.cfg.timeout_ms))),
+            Ok(Err(e)) => {
+                if matches!(e, tokio_modbus::Error::Transport(_)) {
+                    self.ctx = None; // a broken connection: reconnect
+                }
+                Err(TxError::Transport(format!("{}: {e}", what())))
+            }
+            Ok(Ok(Err(code))) => {
+                let c: u8 = code.into();
+                Err(TxError::Exception(format!("{}: exception 0x{c:02X} {}", what(), exception_text(c))))
+            }
+            Ok(Ok(Ok(v))) => {
+                if let Exchange::Read { len, .. } | Exchange::ReadWrite { read_len: len, .. } = *x {
+                    if v.len() != len as usize {
+                        return Err(TxError::Transport(format!("{}: {} registers in the answer, {len} asked", what(), v.len())));
+                    }
+                }
+                Ok(v)
+            }
+        }
+    }
+
+    /// Connect, configure every drive, and find the cycle the link can carry.
+    fn start(&mut self, s: &SharedLink) -> Result<Duration, Alarm> {
+        self.connect().map_err(|e| Alarm::new(2200, format!("Modbus link {}: cannot open {}: {e}", self.spec.name, self.spec.what())))?;
+        for d in 0..self.spec.drives.len() {
+            let writes = self.spec.drives[d].setup.clone();
+            for (x, data) in writes {
+                self.exchange(d, &x, &data).map_err(|e| {
+                    Alarm::new(
+                        if matches!(e, TxError::Exception(_)) { 2201 } else { 2202 },
+                        format!("configuring the drive failed: {}; check the unit id, the profile and the register map", e.text()),
+                    )
+                })?;
+            }
+        }
+        // The cycle: RTU from the line's timing; TCP from the measured round trip.
+        let needed = match self.spec.cfg.transport {
+            LinkTransport::Rtu => Duration::from_secs_f64(self.spec.rtu_cycle_s()),
+            LinkTransport::Tcp => {
+                let mut rtts = Vec::with_capacity(50);
+                for _ in 0..50 {
+                    let t0 = Instant::now();
+                    for d in 0..self.spec.drives.len() {
+                        let x = self.spec.drives[d].feedback_read();
+                        self.exchange(d, &x, &[]).map_err(|e| {
+                            Alarm::new(
+                                if matches!(e, TxError::Exception(_)) { 2201 } else { 2202 },
+                                format!("reading the drive's feedback failed: {}; check the unit id, the profile and the register map", e.text()),
+                            )
+                        })?;
+                    }
+                    rtts.push(t0.elapsed() / self.spec.drives.len().max(1) as u32);
+                }
+                rtts.sort();
+                // p90 of 50: one descheduled transaction must not decide the cycle, a slow
+                // network must.
+                let p90 = rtts[rtts.len() * 90 / 100];
+                tracing::info!(link = %self.spec.name, "round trip per drive: median {:?}, p90 {:?}, max {:?}", rtts[rtts.len() / 2], p90, rtts[rtts.len() - 1]);
+                // Margin ×2 for the round trip's tail.
+                p90 * self.spec.transactions_per_cycle() as u32 * 2
+            }
+        };
+        // Whole milliseconds: the drives' interpolation period register is in ms.
+        let mut cycle_ms = (needed.as_secs_f64() * 1e3).ceil().max(self.spec.machine_cycle.as_secs_f64() * 1e3).ceil();
+        if let Some(c) = self.spec.cfg.cycle_ms {
+            if c < cycle_ms {
+                return Err(Alarm::new(
+                    2204,
+                    format!(
+                        "Modbus link {}: cycle_ms = {c} is shorter than the {cycle_ms} ms its {} transactions per cycle need on {}; raise it or remove it",
+                        self.spec.name,
+                        self.spec.transactions_per_cycle(),
+                        self.spec.what()
+                    ),
+                ));
+            }
+            cycle_ms = c.ceil();
+        }
+        let cycle = Duration::from_secs_f64(cycle_ms * 1e-3);
+        // Tell every drive its interpolation period (the link cycle) and the watchdog.
+        for d in 0..self.spec.drives.len() {
+            let writes = self.spec.drives[d].timing_writes(cycle_ms as u16);
+            for (x, data) in writes {
+                self.exchange(d, &x, &data).map_err(|e| Alarm::new(2201, format!("configuring the drive failed: {}", e.text())))?;
+            }
+        }
+        // First readings, so that the cycle thread starts from real positions.
+        self.cycle_once(s, Instant::now());
+        tracing::info!(link = %self.spec.name, "{}: link cycle {cycle_ms} ms ({} transactions per cycle)", self.spec.what(), self.spec.transactions_per_cycle());
+        Ok(cycle)
+    }
+
+    fn run(&mut self, s: &SharedLink, cycle: Duration) {
+        let mut next = Instant::now();
+        loop {
+            next += cycle;
+            let now = Instant::now();
+            if next > now {
+                std::thread::sleep(next - now);
+            } else if now > next + cycle {
+                if let Ok(mut g) = s.0.lock() {
+                    g.overruns += 1;
+                }
+                next = now;
+            }
+            if s.0.lock().map(|g| g.stop).unwrap_or(true) {
+                return;
+            }
+            if self.ctx.is_none() {
+                // Reconnect (TCP); a failure leaves the feedback ageing, which the cycle
+                // thread turns into alarm 2015 past the feedback timeout.
+                if let Err(e) = self.connect() {
+                    if let Ok(mut g) = s.0.lock() {
+                        for sl in g.slots.iter_mut() {
+                            sl.last_error = Some(format!("link {} reconnecting: {e}", self.spec.name));
+                        }
+                    }
+                    continue;
+                }
+                tracing::warn!(link = %self.spec.name, "Modbus link reconnected");
+            }
+            if let Some(a) = self.cycle_once(s, next) {
+                set_state(s, LinkState::Failed(a));
+                return;
+            }
+        }
+    }
+
+    /// One exchange with every drive. Returns a fatal alarm (an exception).
+    /// `sched`: the instant this cycle was scheduled for (the set-points are for it).
+    fn cycle_once(&mut self, s: &SharedLink, sched: Instant) -> Option<Alarm> {
+        for d in 0..self.spec.drives.len() {
+            let cmd = match s.0.lock() {
+                Ok(g) => g.slots[d].command,
+                Err(_) => return None,
+            };
+            let prev_target = self.spec.drives[d].last_target;
+            let mut cmd = cmd;
+            if let (true, Some(at)) = (cmd.stream, cmd.at) {
+                // At most three machine cycles ahead: beyond that the cycle thread has
+                // stopped and the set-point must stand.
+                // Both instants are on ideal grids (this link's schedule, the machine cycle's),
+                // so successive writes differ by exactly one link cycle of travel however
+                // late the threads wake: the drive interpolates each over one period.
+                let ahead = sched.saturating_duration_since(at).min(self.spec.machine_cycle * 3);
+                let dx = (cmd.velocity * ahead.as_secs_f64()).round();
+                if dx.is_finite() {
+                    cmd.target = cmd.target.wrapping_add(dx.clamp(i32::MIN as f64, i32::MAX as f64) as i32);
+                }
+            }
+            let mut reading = None;
+            let mut err = None;
+            tracing::trace!(unit = self.spec.drives[d].unit, target = cmd.target, late_us = Instant::now().saturating_duration_since(sched).as_micros() as u64, "write");
+            let plan = self.spec.drives[d].cyclic_writes(&cmd);
+            let mut done = 0u64;
+            for (x, data) in plan {
+                match self.exchange(d, &x, &data) {
+                    Ok(v) => {
+                        done += 1;
+                        if x.reads() {
+                            reading = self.spec.drives[d].decode(&x, &v, reading);
+                        }
+                    }
+                    Err(e) => {
+                        err = Some(e);
+                        break;
+                    }
+                }
+            }
+            if err.is_some() {
+                // What was not acknowledged is written again next cycle.
+                self.spec.drives[d].forget_writes();
+            }
+            let Ok(mut g) = s.0.lock() else { return None };
+            g.transactions += done + err.is_some() as u64;
+            if d == 0 {
+                g.cycles += 1;
+            }
+            match err {
+                Some(TxError::Exception(m)) => {
+                    g.failures += 1;
+                    return Some(Alarm::new(2201, format!("{m}; the drive refused the cyclic exchange: check its register map")));
+                }
+                Some(TxError::Transport(m)) => {
+                    g.failures += 1;
+                    tracing::debug!("{m}");
+                    g.slots[d].last_error = Some(m);
+                }
+                None => {
+                    if let Some(mut r) = reading {
+                        let seq = g.slots[d].reading.seq + 1;
+                        r.seq = seq;
+                        r.at = Some(Instant::now());
+                        r.command = cmd;
+                        r.demand = if cmd.stream { prev_target } else { r.position };
+                        g.slots[d].reading = r;
+                        g.slots[d].last_error = None;
+                    }
+                    if cmd.stream {
+                        self.spec.drives[d].last_target = cmd.target;
+                    }
+                }
+            }
+        }
+        None
+    }
+}

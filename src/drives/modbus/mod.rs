@@ -1,0 +1,508 @@
+//! Modbus RTU / TCP drives behind the same `DriveBus` as CANopen.
+//!
+//! Each `[modbus.NAME]` link runs on its own I/O thread (`link`) at the cycle the link can
+//! really carry: computed from baud, framing, request/response sizes and the 3.5-character
+//! silence on RTU, measured from the round trip on TCP; never shorter than the machine
+//! cycle, in whole milliseconds (the drives' interpolation-period register is in ms). The
+//! cycle thread hands each drive its latest set-point every machine cycle; the link sends
+//! the latest one every link cycle and the drive interpolates over the link cycle — so the
+//! planner's path is sampled at the link's cycle for those axes. The CiA 402 state machine
+//! is the CANopen layer's (`cncgw_bus::cia402::Enabler`).
+
+pub mod link;
+pub mod plan;
+
+use crate::config::MachineConfig;
+use crate::drives::{AxisFeedback, DriveBus};
+use crate::Alarm;
+use cncgw_bus::canopen::emcy::error_text;
+use cncgw_bus::cia402::{cw, EnableProgress, Enabler, State};
+use cncgw_bus::modbus::Profile;
+use cncgw_bus::Clock;
+use link::{Command, LinkSpec, LinkState, SharedLink};
+use plan::DrivePlan;
+use std::time::{Duration, Instant};
+
+/// Alarm numbers of the Modbus layer.
+pub mod alarm {
+    /// The link cannot be opened (connection refused, no serial device).
+    pub const LINK: u32 = 2200;
+    /// A drive answered with an exception.
+    pub const EXCEPTION: u32 = 2201;
+    /// A drive did not answer.
+    pub const TIMEOUT: u32 = 2202;
+    /// A spindle-synchronised move needs a faster link than this one.
+    pub const SYNC_TOO_SLOW: u32 = 2203;
+    /// A configured link cycle is shorter than the link can carry.
+    pub const CYCLE: u32 = 2204;
+}
+
+/// What a link has done.
+#[derive(Clone, Debug, Default)]
+pub struct LinkStats {
+    pub name: String,
+    /// The cycle it runs at.
+    pub cycle: Duration,
+    /// Modbus transactions (answered or failed), failed ones, link cycles run, and link
+    /// cycles that started more than a cycle late.
+    pub transactions: u64,
+    pub failures: u64,
+    pub cycles: u64,
+    pub overruns: u64,
+}
+
+struct Axis {
+    name: String,
+    link: usize,
+    slot: usize,
+    unit: u8,
+    profile: Profile,
+    counts_per_unit: f64,
+    // The cycle thread's view.
+    cmd: Command,
+    enabler: Enabler,
+    enabled: bool,
+    last_seq: u64,
+    raw: i32,
+    unwrapped: i64,
+    demand: i64,
+    statusword: u16,
+    error_code: u16,
+    fb_at: Option<Instant>,
+    have_fb: bool,
+    target: i64,
+    last_error: Option<String>,
+}
+
+struct Link {
+    name: String,
+    what: String,
+    shared: Option<SharedLink>,
+    thread: Option<std::thread::JoinHandle<()>>,
+    spec: Option<LinkSpec>,
+    cycle: Duration,
+}
+
+/// Every Modbus drive of a machine (the axes with `modbus = "LINK"`), in config order.
+pub struct ModbusDrives {
+    axes: Vec<Axis>,
+    links: Vec<Link>,
+    cycle_ns: u64,
+    feedback_timeout: Duration,
+    running: bool,
+    enable_cycles: u64,
+    t0: Instant,
+}
+
+impl ModbusDrives {
+    /// The Modbus axes of `cfg`. Nothing is opened until `startup`.
+    pub fn new(cfg: &MachineConfig) -> ModbusDrives {
+        let mut links: Vec<Link> = Vec::new();
+        let mut axes = Vec::new();
+        let cycle = Duration::from_secs_f64(cfg.machine.cycle_ms * 1e-3);
+        for (name, a) in &cfg.axes {
+            let Some(lname) = &a.modbus else { continue };
+            let Some(lcfg) = cfg.modbus.get(lname) else { continue };
+            let li = match links.iter().position(|l| &l.name == lname) {
+                Some(i) => i,
+                None => {
+                    links.push(Link {
+                        name: lname.clone(),
+                        what: String::new(),
+                        shared: None,
+                        thread: None,
+                        spec: Some(LinkSpec { name: lname.clone(), cfg: lcfg.clone(), drives: Vec::new(), machine_cycle: cycle }),
+                        cycle: Duration::ZERO,
+                    });
+                    links.len() - 1
+                }
+            };
+            let ferr = (a.following_error * a.counts_per_unit).round().clamp(1.0, i32::MAX as f64) as u32;
+            let plan = DrivePlan::new(
+                name,
+                a.node,
+                a.modbus_profile,
+                a.cia402_map.unwrap_or_default(),
+                a.pr_map.unwrap_or_default(),
+                lcfg.fc23,
+                ferr,
+            );
+            let spec = links[li].spec.as_mut().expect("spec is present until startup");
+            let slot = spec.drives.len();
+            spec.drives.push(plan);
+            axes.push(Axis {
+                name: name.clone(),
+                link: li,
+                slot,
+                unit: a.node,
+                profile: a.modbus_profile,
+                counts_per_unit: a.counts_per_unit,
+                cmd: Command::default(),
+                enabler: Enabler::default(),
+                enabled: false,
+                last_seq: 0,
+                raw: 0,
+                unwrapped: 0,
+                demand: 0,
+                statusword: 0,
+                error_code: 0,
+                fb_at: None,
+                have_fb: false,
+                target: 0,
+                last_error: None,
+            });
+        }
+        for l in &mut links {
+            l.what = l.spec.as_ref().map(|s| s.what()).unwrap_or_default();
+        }
+        let cycle_ns = (cfg.machine.cycle_ms * 1e6).round() as u64;
+        ModbusDrives {
+            axes,
+            links,
+            cycle_ns,
+            feedback_timeout: Duration::from_secs_f64(cfg.bus.feedback_timeout_ms * 1e-3),
+            running: false,
+            enable_cycles: 0,
+            t0: Instant::now(),
+        }
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.axes.is_empty()
+    }
+
+    /// Before start-up, per link: name, what it is, transactions per link cycle, and for RTU
+    /// the cycle the line can carry (s) — TCP's is measured at start-up.
+    pub fn planned_links(&self) -> Vec<(String, String, usize, Option<f64>)> {
+        self.links
+            .iter()
+            .filter_map(|l| {
+                let s = l.spec.as_ref()?;
+                let rtu = (s.cfg.transport == crate::config::LinkTransport::Rtu).then(|| s.rtu_cycle_s());
+                Some((l.name.clone(), l.what.clone(), s.transactions_per_cycle(), rtu))
+            })
+            .collect()
+    }
+
+    /// Per link: its statistics so far.
+    pub fn link_stats(&self) -> Vec<LinkStats> {
+        self.links
+            .iter()
+            .map(|l| {
+                let mut st = LinkStats { name: l.name.clone(), cycle: l.cycle, ..LinkStats::default() };
+                if let Some(g) = l.shared.as_ref().and_then(|s| s.0.lock().ok()) {
+                    st.transactions = g.transactions;
+                    st.failures = g.failures;
+                    st.overruns = g.overruns;
+                    st.cycles = g.cycles;
+                }
+                st
+            })
+            .collect()
+    }
+
+    fn axis_alarm(&self, i: usize, number: u32, msg: impl std::fmt::Display) -> Alarm {
+        let a = &self.axes[i];
+        let l = &self.links[a.link];
+        Alarm::new(number, format!("axis {} (Modbus link {}, unit {}): {msg}", a.name, l.name, self.unit(i)))
+    }
+
+    fn unit(&self, i: usize) -> u8 {
+        self.axes[i].unit
+    }
+
+    fn stop_links(&mut self) {
+        for l in &mut self.links {
+            if let Some(s) = &l.shared {
+                if let Ok(mut g) = s.0.lock() {
+                    g.stop = true;
+                }
+            }
+            if let Some(h) = l.thread.take() {
+                let _ = h.join();
+            }
+        }
+    }
+}
+
+impl Drop for ModbusDrives {
+    fn drop(&mut self) {
+        self.stop_links();
+    }
+}
+
+impl DriveBus for ModbusDrives {
+    fn startup(&mut self, _clock: &mut dyn Clock) -> Result<(), Alarm> {
+        // Modbus runs in real time only (the emulated in-process bus is CANopen): waits
+        // here are on the wall clock.
+        self.t0 = Instant::now();
+        for l in &mut self.links {
+            let Some(spec) = l.spec.take() else { continue };
+            let (shared, h) = link::spawn(spec).map_err(|e| Alarm::new(alarm::LINK, format!("Modbus link {}: cannot start its thread: {e}", l.name)))?;
+            l.shared = Some(shared);
+            l.thread = Some(h);
+        }
+        for li in 0..self.links.len() {
+            let Some(s) = self.links[li].shared.clone() else { continue };
+            let (m, cv) = &*s;
+            let Ok(mut g) = m.lock() else { continue };
+            let deadline = Instant::now() + Duration::from_secs(10);
+            while matches!(g.state, LinkState::Starting) {
+                let left = deadline.saturating_duration_since(Instant::now());
+                if left.is_zero() {
+                    return Err(Alarm::new(alarm::TIMEOUT, format!("Modbus link {}: start-up did not finish within 10 s", self.links[li].name)));
+                }
+                g = match cv.wait_timeout(g, left) {
+                    Ok((g, _)) => g,
+                    Err(_) => return Err(Alarm::new(alarm::LINK, "Modbus link thread failed")),
+                };
+            }
+            match &g.state {
+                LinkState::Failed(a) => return Err(a.clone()),
+                LinkState::Running { cycle } => {
+                    self.links[li].cycle = *cycle;
+                    tracing::info!(link = %self.links[li].name, "{}: cycle {:.0} ms", self.links[li].what, cycle.as_secs_f64() * 1e3);
+                }
+                LinkState::Starting => {}
+            }
+        }
+        // Start from the drives' actual positions.
+        self.receive(0)?;
+        for a in &mut self.axes {
+            a.target = a.unwrapped;
+            a.cmd.target = a.raw;
+            a.cmd.velocity = 0.0;
+        }
+        Ok(())
+    }
+
+    fn receive(&mut self, _now_ns: u64) -> Result<(), Alarm> {
+        let now = Instant::now();
+        for i in 0..self.axes.len() {
+            let li = self.axes[i].link;
+            let Some(s) = self.links[li].shared.clone() else { continue };
+            let (r, last_error) = {
+                let Ok(g) = s.0.lock() else { continue };
+                if let LinkState::Failed(a) = &g.state {
+                    return Err(a.clone());
+                }
+                let sl = &g.slots[self.axes[i].slot];
+                (sl.reading, sl.last_error.clone())
+            };
+            let a = &mut self.axes[i];
+            a.last_error = last_error;
+            if r.seq != a.last_seq && r.at.is_some() {
+                a.last_seq = r.seq;
+                let delta = r.position.wrapping_sub(a.raw) as i64;
+                a.unwrapped = if a.have_fb { a.unwrapped + delta } else { r.position as i64 };
+                a.demand = a.unwrapped + r.demand.wrapping_sub(r.position) as i64;
+                a.raw = r.position;
+                a.statusword = r.statusword;
+                a.error_code = r.error_code;
+                a.fb_at = r.at;
+                a.have_fb = true;
+            }
+            let age = a.fb_at.map(|t| now.saturating_duration_since(t)).unwrap_or(Duration::MAX);
+            let limit = self.feedback_timeout.max(self.links[li].cycle * 3);
+            if self.running && age > limit {
+                let why = self.axes[i].last_error.clone().unwrap_or_else(|| "no answer".into());
+                return Err(self.axis_alarm(
+                    i,
+                    2015,
+                    format!("no position feedback for {:.1} ms (link cycle {:.0} ms): {why}", age.as_secs_f64() * 1e3, self.links[li].cycle.as_secs_f64() * 1e3),
+                ));
+            }
+            let a = &self.axes[i];
+            if self.running && State::from_statusword(a.statusword) == State::Fault {
+                let code = a.error_code;
+                return Err(self.axis_alarm(i, 2010, format!("drive fault, error code 0x{code:04X} {}", error_text(code))));
+            }
+        }
+        Ok(())
+    }
+
+    fn feedback(&self, axis: usize) -> AxisFeedback {
+        let a = &self.axes[axis];
+        let age = a
+            .fb_at
+            .map(|t| (Instant::now().saturating_duration_since(t).as_nanos() as u64 / self.cycle_ns.max(1)) as u32)
+            .unwrap_or(u32::MAX);
+        AxisFeedback {
+            pos: a.unwrapped as f64 / a.counts_per_unit,
+            counts: a.unwrapped,
+            statusword: a.statusword,
+            age_cycles: age,
+            demand_counts: Some(a.demand),
+        }
+    }
+
+    fn set_target(&mut self, axis: usize, pos: f64) {
+        let a = &mut self.axes[axis];
+        if !a.enabled {
+            return;
+        }
+        let c = (pos * a.counts_per_unit).round();
+        if c.is_finite() && c.abs() < 9.0e15 {
+            // The set-point belongs to this machine cycle's slot on the ideal grid (the
+            // thread's wake-up jitter is not part of the path).
+            let t = Duration::from_nanos(self.cycle_ns.max(1));
+            let k = (self.t0.elapsed().as_nanos() as f64 / t.as_nanos() as f64).round();
+            let at = self.t0 + t.mul_f64(k);
+            // Velocity of the set-point over the machine cycle (the planner's own step).
+            a.cmd.velocity = (c as i64 - a.target) as f64 / (self.cycle_ns as f64 * 1e-9);
+            a.cmd.at = Some(at);
+            a.target = c as i64;
+            // Wrap as the INTEGER32 object does.
+            a.cmd.target = a.target as i32;
+        }
+    }
+
+    fn target_counts(&self, axis: usize) -> i64 {
+        self.axes[axis].target
+    }
+
+    fn transmit(&mut self, _now_ns: u64) -> Result<(), Alarm> {
+        for a in &self.axes {
+            if let Some(s) = &self.links[a.link].shared {
+                if let Ok(mut g) = s.0.lock() {
+                    g.slots[a.slot].command = a.cmd;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn enable_step(&mut self) -> Result<bool, Alarm> {
+        self.enable_cycles += 1;
+        let mut all = true;
+        for i in 0..self.axes.len() {
+            let a = &mut self.axes[i];
+            if !a.have_fb {
+                all = false;
+                continue;
+            }
+            if !a.enabled {
+                // Hold the actual position while enabling so that nothing jumps.
+                a.target = a.unwrapped;
+                a.cmd.target = a.raw;
+                a.cmd.velocity = 0.0;
+            a.cmd.velocity = 0.0;
+            }
+            match a.profile {
+                Profile::Cia402 => {
+                    // Step only on a reading taken after our last controlword was written,
+                    // so that a fault reset edge is never lost between two link cycles.
+                    let fresh = self.links[a.link]
+                        .shared
+                        .as_ref()
+                        .and_then(|s| s.0.lock().ok().map(|g| g.slots[a.slot].reading.command.controlword == a.enabler.controlword))
+                        .unwrap_or(false);
+                    if !fresh {
+                        all &= a.enabled;
+                        continue;
+                    }
+                    match a.enabler.step(a.statusword) {
+                        EnableProgress::Enabled => {
+                            a.enabled = true;
+                            a.cmd.stream = true;
+                        }
+                        EnableProgress::Walking => {
+                            all = false;
+                            a.enabled = false;
+                            a.cmd.stream = false;
+                        }
+                        EnableProgress::ResetFailed => {
+                            let code = a.error_code;
+                            return Err(self.axis_alarm(
+                                i,
+                                2012,
+                                format!("fault reset did not clear the fault (error code 0x{code:04X} {}); fix the cause on the drive", error_text(code)),
+                            ));
+                        }
+                    }
+                    a.cmd.controlword = a.enabler.controlword;
+                }
+                Profile::Pr => {
+                    let st = State::from_statusword(a.statusword);
+                    match st {
+                        State::OperationEnabled => {
+                            a.enabled = true;
+                            a.cmd.stream = true;
+                        }
+                        State::Fault => {
+                            all = false;
+                            let fresh = self.links[a.link]
+                                .shared
+                                .as_ref()
+                                .and_then(|s| s.0.lock().ok().map(|g| g.slots[a.slot].reading.command.alarm_reset_seq == a.cmd.alarm_reset_seq))
+                                .unwrap_or(false);
+                            if fresh {
+                                a.enabler.reset_attempts += 1;
+                                if a.enabler.reset_attempts > Enabler::MAX_RESETS {
+                                    let code = a.error_code;
+                                    return Err(self.axis_alarm(i, 2012, format!("alarm reset did not clear alarm 0x{code:04X}; fix the cause on the drive")));
+                                }
+                                a.cmd.alarm_reset_seq = a.cmd.alarm_reset_seq.wrapping_add(1);
+                            }
+                        }
+                        _ => {
+                            all = false;
+                            a.cmd.servo_on = true;
+                        }
+                    }
+                }
+            }
+        }
+        if all {
+            self.running = true;
+        } else if self.t0.elapsed() > Duration::from_secs(10) && self.enable_cycles > 10 {
+            let i = self.axes.iter().position(|a| !a.enabled).unwrap_or(0);
+            let st = State::from_statusword(self.axes[i].statusword);
+            return Err(self.axis_alarm(i, 2013, format!("did not reach Operation Enabled within 10 s (state {})", st.name())));
+        }
+        Ok(all)
+    }
+
+    fn quick_stop(&mut self) {
+        for a in &mut self.axes {
+            a.cmd.velocity = 0.0;
+            match a.profile {
+                Profile::Cia402 => a.cmd.controlword = cw::QUICK_STOP_CMD,
+                // A PR drive has no quick stop: retarget it to where it is.
+                Profile::Pr => a.cmd.target = a.raw,
+            }
+        }
+        let _ = self.transmit(0);
+    }
+
+    fn shutdown(&mut self, _clock: &mut dyn Clock) {
+        for a in &mut self.axes {
+            a.cmd.stream = false;
+            a.cmd.controlword = cw::SHUTDOWN;
+            a.cmd.servo_on = false;
+        }
+        let _ = self.transmit(0);
+        // Let every link write it at least twice.
+        let longest = self.links.iter().map(|l| l.cycle).max().unwrap_or_default();
+        std::thread::sleep((longest * 3).min(Duration::from_secs(2)));
+        self.running = false;
+        self.stop_links();
+    }
+
+    fn axis_count(&self) -> usize {
+        self.axes.len()
+    }
+
+    fn axis_name(&self, axis: usize) -> &str {
+        &self.axes[axis].name
+    }
+
+    fn counts_per_unit(&self, axis: usize) -> f64 {
+        self.axes[axis].counts_per_unit
+    }
+
+    fn link_cycle(&self, axis: usize) -> Option<(String, String, f64)> {
+        let l = &self.links[self.axes.get(axis)?.link];
+        Some((l.name.clone(), l.what.clone(), l.cycle.as_secs_f64()))
+    }
+}

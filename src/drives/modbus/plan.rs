@@ -1,0 +1,349 @@
+//! Which Modbus transactions each drive needs, at start-up and every link cycle, from its
+//! profile and register map. Pure: no I/O, so the cycle computation and the tests use it.
+
+use super::link::{Command, Reading};
+use cncgw_bus::modbus::{pr_block, pr_status, rtu_size, span, Cia402Map, PrMap, Profile, PR_BLOCK_LEN};
+
+/// One Modbus transaction.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Exchange {
+    /// Function 3.
+    Read { addr: u16, len: u16 },
+    /// Function 16.
+    Write { addr: u16, len: u16 },
+    /// Function 6.
+    WriteSingle { addr: u16 },
+    /// Function 23.
+    ReadWrite { read_addr: u16, read_len: u16, write_addr: u16, write_len: u16 },
+}
+
+impl Exchange {
+    /// RTU request and response sizes in bytes.
+    pub fn rtu_bytes(&self) -> (usize, usize) {
+        match *self {
+            Exchange::Read { len, .. } => rtu_size::read(len as usize),
+            Exchange::Write { len, .. } => rtu_size::write(len as usize),
+            Exchange::WriteSingle { .. } => rtu_size::write_single(),
+            Exchange::ReadWrite { read_len, write_len, .. } => rtu_size::read_write(read_len as usize, write_len as usize),
+        }
+    }
+
+    pub fn reads(&self) -> bool {
+        matches!(self, Exchange::Read { .. } | Exchange::ReadWrite { .. })
+    }
+
+    /// In words, for errors: function, register, count.
+    pub fn describe(&self) -> String {
+        match *self {
+            Exchange::Read { addr, len } => format!("function 03 (read holding registers) at register {addr} (0x{addr:04X}), {len} registers"),
+            Exchange::Write { addr, len } => format!("function 16 (write multiple registers) at register {addr} (0x{addr:04X}), {len} registers"),
+            Exchange::WriteSingle { addr } => format!("function 06 (write single register) at register {addr} (0x{addr:04X})"),
+            Exchange::ReadWrite { read_addr, read_len, write_addr, write_len } => format!(
+                "function 23 (read/write multiple registers) reading {read_len} at {read_addr} (0x{read_addr:04X}), writing {write_len} at {write_addr} (0x{write_addr:04X})"
+            ),
+        }
+    }
+}
+
+/// One drive on a link.
+#[derive(Clone, Debug)]
+pub struct DrivePlan {
+    pub axis: String,
+    pub unit: u8,
+    pub profile: Profile,
+    pub cia: Cia402Map,
+    pub pr: PrMap,
+    pub fc23: bool,
+    /// Following-error window, counts.
+    pub ferr_window: u32,
+    /// Configuration written at start-up (before the cycle is known).
+    pub setup: Vec<(Exchange, Vec<u16>)>,
+    /// The exchanges of one link cycle while streaming (for the cycle computation).
+    pub cyclic: Vec<Exchange>,
+    /// Target last written (counts, wire value).
+    pub last_target: i32,
+    /// PR: what was last written to servo-on and the alarm reset.
+    written_servo_on: Option<bool>,
+    written_reset_seq: u32,
+    /// The link cycle, ms (PR speed computation).
+    cycle_ms: f64,
+}
+
+impl DrivePlan {
+    pub fn new(axis: &str, unit: u8, profile: Profile, cia: Cia402Map, pr: PrMap, fc23: bool, ferr_window: u32) -> DrivePlan {
+        let mut d = DrivePlan {
+            axis: axis.to_string(),
+            unit,
+            profile,
+            cia,
+            pr,
+            fc23,
+            ferr_window,
+            setup: Vec::new(),
+            cyclic: Vec::new(),
+            last_target: 0,
+            written_servo_on: None,
+            written_reset_seq: 0,
+            cycle_ms: 1.0,
+        };
+        d.setup = match profile {
+            Profile::Cia402 => vec![
+                (Exchange::WriteSingle { addr: cia.mode }, vec![cncgw_bus::cia402::mode::CYCLIC_SYNC_POSITION as u16]),
+                (Exchange::Write { addr: cia.following_error_window, len: 2 }, cia.word_order.split_i32(ferr_window as i32).to_vec()),
+            ],
+            // The PR drive is told nothing up front: it starts with servo off, and the
+            // cycle thread turns it on.
+            Profile::Pr => Vec::new(),
+        };
+        let probe = Command { stream: true, ..Command::default() };
+        let mut tmp = d.clone();
+        d.cyclic = tmp.cyclic_writes(&probe).into_iter().map(|x| x.0).collect();
+        d
+    }
+
+    fn cia_write_contiguous(&self) -> bool {
+        self.cia.target_position == self.cia.controlword.wrapping_add(1)
+    }
+
+    fn cia_read_span(&self) -> (u16, u16) {
+        let m = &self.cia;
+        span(&[(m.statusword, 1), (m.position_actual, 2), (m.error_code, 1)])
+    }
+
+    fn pr_read_span(&self) -> Vec<Exchange> {
+        let m = &self.pr;
+        let (a, l) = span(&[(m.status, 1), (m.position_actual, 2), (m.alarm_code, 1)]);
+        if l <= 16 {
+            vec![Exchange::Read { addr: a, len: l }]
+        } else {
+            vec![
+                Exchange::Read { addr: m.status, len: 1 },
+                Exchange::Read { addr: m.position_actual, len: 2 },
+                Exchange::Read { addr: m.alarm_code, len: 1 },
+            ]
+        }
+    }
+
+    /// A cycle failed part-way: write servo-on and the alarm reset again next cycle.
+    pub fn forget_writes(&mut self) {
+        self.written_servo_on = None;
+        self.written_reset_seq = self.written_reset_seq.wrapping_sub(1);
+    }
+
+    /// The read that returns the feedback (round-trip measurement).
+    pub fn feedback_read(&self) -> Exchange {
+        match self.profile {
+            Profile::Cia402 => {
+                let (a, l) = self.cia_read_span();
+                Exchange::Read { addr: a, len: l }
+            }
+            Profile::Pr => Exchange::Read { addr: self.pr.status, len: 1 },
+        }
+    }
+
+    /// Writes that depend on the link cycle: the interpolation period and the watchdog.
+    pub fn timing_writes(&mut self, cycle_ms: u16) -> Vec<(Exchange, Vec<u16>)> {
+        self.cycle_ms = cycle_ms as f64;
+        // Ten link cycles, at least 200 ms: a scheduling hiccup must not trip it, a dead
+        // controller must (the CANopen side uses 3 × the 100 ms heartbeat).
+        let watchdog = (cycle_ms as u32 * 10).clamp(200, u16::MAX as u32) as u16;
+        match self.profile {
+            Profile::Cia402 => vec![
+                (Exchange::WriteSingle { addr: self.cia.interpolation_ms }, vec![cycle_ms]),
+                (Exchange::WriteSingle { addr: self.cia.comm_timeout_ms }, vec![watchdog]),
+            ],
+            Profile::Pr => vec![(Exchange::WriteSingle { addr: self.pr.comm_timeout_ms }, vec![watchdog])],
+        }
+    }
+
+    /// The transactions of one link cycle for `cmd`, with the data they write.
+    pub fn cyclic_writes(&mut self, cmd: &Command) -> Vec<(Exchange, Vec<u16>)> {
+        let mut v = Vec::with_capacity(4);
+        match self.profile {
+            Profile::Cia402 => {
+                let m = self.cia;
+                let (ra, rl) = self.cia_read_span();
+                let mut data = vec![cmd.controlword];
+                let write = if cmd.stream && self.cia_write_contiguous() {
+                    data.extend_from_slice(&m.word_order.split_i32(cmd.target));
+                    Exchange::Write { addr: m.controlword, len: 3 }
+                } else {
+                    if cmd.stream {
+                        v.push((Exchange::Write { addr: m.target_position, len: 2 }, m.word_order.split_i32(cmd.target).to_vec()));
+                    }
+                    Exchange::Write { addr: m.controlword, len: 1 }
+                };
+                if self.fc23 {
+                    let Exchange::Write { addr, len } = write else { unreachable!("built as Write above") };
+                    v.push((Exchange::ReadWrite { read_addr: ra, read_len: rl, write_addr: addr, write_len: len }, data));
+                } else {
+                    let x = if let Exchange::Write { addr, len: 1 } = write { Exchange::WriteSingle { addr } } else { write };
+                    v.push((x, data));
+                    v.push((Exchange::Read { addr: ra, len: rl }, Vec::new()));
+                }
+            }
+            Profile::Pr => {
+                let m = self.pr;
+                if self.written_servo_on != Some(cmd.servo_on) {
+                    v.push((Exchange::WriteSingle { addr: m.servo_on }, vec![cmd.servo_on as u16]));
+                    self.written_servo_on = Some(cmd.servo_on);
+                }
+                if cmd.alarm_reset_seq != self.written_reset_seq {
+                    v.push((Exchange::WriteSingle { addr: m.alarm_reset }, vec![1]));
+                    self.written_reset_seq = cmd.alarm_reset_seq;
+                }
+                if cmd.stream && cmd.servo_on {
+                    // Speed so that the move to the new target takes one link cycle: the
+                    // drive is retargeted every cycle and keeps moving.
+                    let delta = (cmd.target as i64 - self.last_target as i64).unsigned_abs() as f64;
+                    let rpm = delta / m.counts_per_rev.max(1) as f64 / (self.cycle_ms * 1e-3) * 60.0;
+                    let rpm = (rpm.ceil() + 1.0).min(u16::MAX as f64) as u16;
+                    let ramp = self.cycle_ms.round().clamp(1.0, u16::MAX as f64) as u16;
+                    let block = pr_block(cmd.target, rpm, ramp, ramp, 0, m.word_order);
+                    v.push((Exchange::Write { addr: m.block, len: PR_BLOCK_LEN }, block.to_vec()));
+                    v.push((Exchange::WriteSingle { addr: m.trigger }, vec![m.trigger_value]));
+                }
+                for x in self.pr_read_span() {
+                    v.push((x, Vec::new()));
+                }
+            }
+        }
+        v
+    }
+
+    /// Fold the registers `regs` read by `x` into `prev`.
+    pub fn decode(&self, x: &Exchange, regs: &[u16], prev: Option<Reading>) -> Option<Reading> {
+        let (addr, len) = match *x {
+            Exchange::Read { addr, len } => (addr, len),
+            Exchange::ReadWrite { read_addr, read_len, .. } => (read_addr, read_len),
+            _ => return prev,
+        };
+        let get = |a: u16| -> Option<u16> {
+            let i = a.checked_sub(addr)?;
+            if i < len {
+                regs.get(i as usize).copied()
+            } else {
+                None
+            }
+        };
+        let mut r = prev.unwrap_or_default();
+        match self.profile {
+            Profile::Cia402 => {
+                let m = &self.cia;
+                if let Some(sw) = get(m.statusword) {
+                    r.statusword = sw;
+                }
+                if let (Some(a), Some(b)) = (get(m.position_actual), get(m.position_actual.wrapping_add(1))) {
+                    r.position = m.word_order.join_i32([a, b]);
+                }
+                if let Some(e) = get(m.error_code) {
+                    r.error_code = e;
+                }
+            }
+            Profile::Pr => {
+                let m = &self.pr;
+                if let Some(st) = get(m.status) {
+                    r.statusword = pr_statusword(st);
+                }
+                if let (Some(a), Some(b)) = (get(m.position_actual), get(m.position_actual.wrapping_add(1))) {
+                    r.position = m.word_order.join_i32([a, b]);
+                }
+                if let Some(e) = get(m.alarm_code) {
+                    r.error_code = e;
+                }
+            }
+        }
+        Some(r)
+    }
+}
+
+/// A PR drive's status register as the CiA 402 statusword of the equivalent state, so that
+/// the layers above see one kind of drive.
+pub fn pr_statusword(st: u16) -> u16 {
+    use cncgw_bus::cia402::State;
+    let s = if st & pr_status::FAULT != 0 {
+        State::Fault
+    } else if st & pr_status::ENABLED != 0 {
+        State::OperationEnabled
+    } else {
+        State::SwitchOnDisabled
+    };
+    let mut w = s.statusword_bits();
+    if st & pr_status::IN_POSITION != 0 {
+        w |= cncgw_bus::cia402::sw::TARGET_REACHED;
+    }
+    w
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use cncgw_bus::modbus::WordOrder;
+
+    #[test]
+    fn cia402_default_map_needs_two_transactions_or_one_fc23() {
+        let d = DrivePlan::new("x", 1, Profile::Cia402, Cia402Map::default(), PrMap::default(), false, 10_000);
+        assert_eq!(d.cyclic, vec![Exchange::Write { addr: 0, len: 3 }, Exchange::Read { addr: 10, len: 7 }]);
+        let d = DrivePlan::new("x", 1, Profile::Cia402, Cia402Map::default(), PrMap::default(), true, 10_000);
+        assert_eq!(d.cyclic, vec![Exchange::ReadWrite { read_addr: 10, read_len: 7, write_addr: 0, write_len: 3 }]);
+    }
+
+    #[test]
+    fn cia402_scattered_map_writes_target_then_controlword() {
+        let m = Cia402Map { target_position: 0x20, ..Cia402Map::default() };
+        let mut d = DrivePlan::new("z", 2, Profile::Cia402, m, PrMap::default(), false, 10_000);
+        let w = d.cyclic_writes(&Command { controlword: 0x0F, target: -5, stream: true, ..Command::default() });
+        assert_eq!(w[0], (Exchange::Write { addr: 0x20, len: 2 }, vec![0xFFFF, 0xFFFB]));
+        assert_eq!(w[1], (Exchange::WriteSingle { addr: 0 }, vec![0x0F]));
+        // Not streaming (enabling): only the controlword.
+        let w = d.cyclic_writes(&Command { controlword: 0x06, ..Command::default() });
+        assert_eq!(w[0], (Exchange::WriteSingle { addr: 0 }, vec![0x06]));
+        assert!(matches!(w[1].0, Exchange::Read { .. }));
+    }
+
+    #[test]
+    fn decode_in_both_word_orders() {
+        for order in [WordOrder::HighFirst, WordOrder::LowFirst] {
+            let m = Cia402Map { word_order: order, ..Cia402Map::default() };
+            let d = DrivePlan::new("x", 1, Profile::Cia402, m, PrMap::default(), false, 1);
+            let mut regs = vec![0u16; 7];
+            regs[0] = 0x0237;
+            regs[2..4].copy_from_slice(&order.split_i32(-123_456));
+            regs[6] = 0x8611;
+            let r = d.decode(&Exchange::Read { addr: 10, len: 7 }, &regs, None).unwrap();
+            assert_eq!((r.statusword, r.position, r.error_code), (0x0237, -123_456, 0x8611));
+        }
+    }
+
+    #[test]
+    fn pr_streams_block_and_trigger_with_speed_for_one_cycle() {
+        let mut d = DrivePlan::new("w", 4, Profile::Pr, Cia402Map::default(), PrMap::default(), false, 1);
+        d.timing_writes(10);
+        d.last_target = 0;
+        // 1000 counts in 10 ms at 100 000 counts/rev = 60 rpm.
+        let w = d.cyclic_writes(&Command { servo_on: true, target: 1000, stream: true, ..Command::default() });
+        assert_eq!(w[0], (Exchange::WriteSingle { addr: 0x0405 }, vec![1]));
+        let (x, block) = &w[1];
+        assert_eq!(*x, Exchange::Write { addr: 0x6200, len: 7 });
+        assert_eq!(block[3], 61);
+        assert_eq!(w[2], (Exchange::WriteSingle { addr: 0x6002 }, vec![0x0010]));
+        // Servo-on is written once.
+        let w = d.cyclic_writes(&Command { servo_on: true, target: 1000, stream: true, ..Command::default() });
+        assert!(w.iter().all(|(x, _)| *x != Exchange::WriteSingle { addr: 0x0405 }));
+    }
+
+    #[test]
+    fn pr_status_maps_to_cia402_states() {
+        use cncgw_bus::cia402::State;
+        assert_eq!(State::from_statusword(pr_statusword(pr_status::FAULT)), State::Fault);
+        assert_eq!(State::from_statusword(pr_statusword(pr_status::ENABLED)), State::OperationEnabled);
+        assert_eq!(State::from_statusword(pr_statusword(0)), State::SwitchOnDisabled);
+    }
+
+    #[test]
+    fn rtu_sizes_of_the_cycle() {
+        let d = DrivePlan::new("x", 1, Profile::Cia402, Cia402Map::default(), PrMap::default(), false, 1);
+        let bytes: Vec<_> = d.cyclic.iter().map(|x| x.rtu_bytes()).collect();
+        assert_eq!(bytes, vec![(15, 8), (8, 19)]);
+    }
+}

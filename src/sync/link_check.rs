@@ -1,0 +1,138 @@
+//! Refuse, before any motion, a spindle-synchronised move (thread, rigid tap, G92.1) that an
+//! axis's link cannot hold within the sync tolerance.
+//!
+//! A Modbus drive has no SYNC: it takes a new set-point whenever the link's transaction
+//! reaches it, and its feedback is up to one link cycle old. So along a synchronised move an
+//! axis on a link of cycle T can be off its spindle-locked position by up to v × T (v its
+//! speed in the move). That must stay within `machine.sync_error_limit_um`; otherwise the
+//! move is refused with the cycle (or the spindle speed) that would do. CANopen axes get
+//! their set-points at SYNC, in step with the spindle, and are not limited here.
+
+use crate::canon::{Move, MoveKind, Pos};
+use crate::Alarm;
+
+/// One axis on a slow link: the motion axis letter (`x`, `z`, `y`, or `s` for the spindle),
+/// its link and the link's cycle.
+#[derive(Clone, Debug)]
+pub struct SlowAxis {
+    pub axis: String,
+    pub link: String,
+    pub cycle_s: f64,
+}
+
+/// Checks every synchronised move of a program.
+pub struct LinkCheck<'a> {
+    axes: &'a [SlowAxis],
+    limit_mm: f64,
+    pos: Pos,
+    rpm: f64,
+}
+
+impl<'a> LinkCheck<'a> {
+    pub fn new(axes: &'a [SlowAxis], limit_um: f64, start: Pos) -> Self {
+        LinkCheck { axes, limit_mm: limit_um * 1e-3, pos: start, rpm: 0.0 }
+    }
+
+    /// Look at the next move of the program (in order).
+    pub fn check(&mut self, m: &Move) -> Result<(), Alarm> {
+        let from = self.pos;
+        if let MoveKind::Spindle(s) = &m.kind {
+            // Threads usually run in G97; under G96 the clamp bounds the speed.
+            self.rpm = if s.rpm > 0.0 { s.rpm } else { s.max_rpm.unwrap_or(0.0) };
+        }
+        if let Some(e) = m.kind.end() {
+            self.pos = e;
+        }
+        let (end, lead, rpm, name) = match m.kind {
+            MoveKind::Thread { end, lead, .. } => (end, lead, self.rpm, "thread"),
+            MoveKind::Tap { end, lead, rpm } => (end, lead, rpm, "rigid tap"),
+            MoveKind::RigidThread { end, lead, rpm } => (end, lead, rpm, "G92.1 rigid thread"),
+            _ => return Ok(()),
+        };
+        if self.axes.is_empty() || rpm <= 0.0 {
+            return Ok(());
+        }
+        // Speed along the long axis is lead × rpm; each axis moves in proportion.
+        let (dx, dz, dy) = ((end.x - from.x).abs(), (end.z - from.z).abs(), (end.y - from.y).abs());
+        let long = dx.max(dz).max(dy);
+        let v_long = lead.abs() * rpm / 60.0; // mm/s
+        for a in self.axes {
+            let share = match a.axis.as_str() {
+                "x" => dx,
+                "z" => dz,
+                "y" => dy,
+                // The spindle carries the whole thread: its angle error × lead / 360.
+                "s" => long,
+                _ => 0.0,
+            };
+            if share <= 0.0 || long <= 0.0 {
+                continue;
+            }
+            let v = v_long * share / long;
+            let err = v * a.cycle_s;
+            if err > self.limit_mm {
+                let need_cycle_ms = self.limit_mm / v * 1e3;
+                let max_rpm = rpm * self.limit_mm / err;
+                return Err(Alarm::new(
+                    super::super::drives::modbus::alarm::SYNC_TOO_SLOW,
+                    format!(
+                        "{name} at lead {:.4} mm × {rpm:.0} rpm moves axis {} at {:.1} mm/min; its link {} (cycle {:.1} ms) cannot hold it within the sync tolerance of {:.0} µm (up to {:.0} µm per cycle): a link cycle of {:.2} ms or less is needed, or at most {:.0} rpm; nothing was moved",
+                        lead.abs(),
+                        a.axis.to_uppercase(),
+                        v * 60.0,
+                        a.link,
+                        a.cycle_s * 1e3,
+                        self.limit_mm * 1e3,
+                        err * 1e3,
+                        need_cycle_ms,
+                        max_rpm.floor()
+                    ),
+                )
+                .at(m.src.clone()));
+            }
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::canon::{SpindleCmd, SpindleDir, SrcPos};
+
+    fn mv(kind: MoveKind) -> Move {
+        Move { src: SrcPos::new("t.nc".into(), 1, 1), kind, exact_stop: false, work_offset: Pos::default(), tag: None }
+    }
+
+    #[test]
+    fn tap_on_a_slow_link_is_refused_with_the_cycle_needed() {
+        let axes = [SlowAxis { axis: "z".into(), link: "tcp".into(), cycle_s: 0.010 }];
+        let mut c = LinkCheck::new(&axes, 100.0, Pos { z: 5.0, ..Pos::default() });
+        // M10×1.5 at 1000 rpm: 25 mm/s; 10 ms → 250 µm > 100 µm.
+        let err = c.check(&mv(MoveKind::Tap { end: Pos { z: -20.0, ..Pos::default() }, lead: 1.5, rpm: 1000.0 })).unwrap_err();
+        assert_eq!(err.number, 2203);
+        assert!(err.message.contains("4.00 ms or less"), "{}", err.message);
+        assert!(err.message.contains("at most 400 rpm"), "{}", err.message);
+        // At 300 rpm it fits: 7.5 mm/s × 10 ms = 75 µm.
+        let mut c = LinkCheck::new(&axes, 100.0, Pos { z: 5.0, ..Pos::default() });
+        assert!(c.check(&mv(MoveKind::Tap { end: Pos { z: -20.0, ..Pos::default() }, lead: 1.5, rpm: 300.0 })).is_ok());
+    }
+
+    #[test]
+    fn thread_uses_the_programmed_spindle_speed_and_the_axis_share() {
+        let axes = [SlowAxis { axis: "x".into(), link: "rtu".into(), cycle_s: 0.020 }];
+        let mut c = LinkCheck::new(&axes, 100.0, Pos { x: 20.0, z: 2.0, ..Pos::default() });
+        c.check(&mv(MoveKind::Spindle(SpindleCmd { dir: SpindleDir::Cw, rpm: 600.0, css: None, max_rpm: None }))).unwrap();
+        // A straight thread along Z does not move X: accepted whatever the speed.
+        let straight = MoveKind::Thread { end: Pos { x: 20.0, z: -30.0, ..Pos::default() }, lead: 2.0, start_angle: 0.0, continuous: false, lead_inc: 0.0 };
+        assert!(c.check(&mv(straight)).is_ok());
+        // A taper moving X by 1 mm over 32 mm of Z: v_x = 20 mm/s / 32 → 12.5 µm per 20 ms: fine.
+        let mut c = LinkCheck::new(&axes, 100.0, Pos { x: 20.0, z: 2.0, ..Pos::default() });
+        c.check(&mv(MoveKind::Spindle(SpindleCmd { dir: SpindleDir::Cw, rpm: 600.0, css: None, max_rpm: None }))).unwrap();
+        let taper = MoveKind::Thread { end: Pos { x: 21.0, z: -30.0, ..Pos::default() }, lead: 2.0, start_angle: 0.0, continuous: false, lead_inc: 0.0 };
+        assert!(c.check(&mv(taper.clone())).is_ok());
+        // A face thread (X only) at the same speed: 20 mm/s × 20 ms = 400 µm: refused.
+        let face = MoveKind::Thread { end: Pos { x: 5.0, z: -30.0, ..Pos::default() }, lead: 2.0, start_angle: 0.0, continuous: false, lead_inc: 0.0 };
+        assert_eq!(c.check(&mv(face)).unwrap_err().number, 2203);
+    }
+}
