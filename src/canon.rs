@@ -89,6 +89,30 @@ pub struct SpindleCmd {
     pub max_rpm: Option<f64>,
 }
 
+/// G51.2 P Q R S (manual 004 §2.8): work spindle speed `rpm` (S), the tool spindle at
+/// `tool_rpm` = S × Q / P clamped to No.721 (note 3), phase `phase` degrees (R, 0–359.999).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PolygonCmd {
+    pub p: u32,
+    pub q: u32,
+    pub phase: f64,
+    pub rpm: f64,
+    pub tool_rpm: f64,
+}
+
+/// The machine X (radius) and C (degrees) of the virtual polar-interpolation point `v`
+/// ([x, c], mm): C is `c_zero` + the angle of `v`, taken as the one nearest `near_c` so that
+/// C stays continuous along a path. At the centre the angle is undefined; `near_c` is kept.
+pub fn polar_to_machine(v: [f64; 2], c_zero: f64, work_x: f64, near_c: f64) -> (f64, f64) {
+    let r = v[0].hypot(v[1]);
+    if r < 1e-12 {
+        return (work_x, near_c);
+    }
+    let a = c_zero + v[1].atan2(v[0]).to_degrees();
+    let c = a + ((near_c - a) / 360.0).round() * 360.0;
+    (work_x + r, c)
+}
+
 /// Which canned cycle made a move, and which step of it (the manuals' numbering), so that
 /// feed hold and single block can be applied per step downstream.
 #[derive(Clone, Debug, PartialEq)]
@@ -127,6 +151,19 @@ pub enum MoveKind {
     /// X/Z go to `end`. `lead` mm per revolution along the long axis (negative = left hand),
     /// `rpm` the spindle speed. Both stop at the end (no run-out).
     RigidThread { end: Pos, lead: f64, rpm: f64 },
+    /// G12.1 polar coordinate interpolation (manual 004 §2.7): a G01 line or G02/G03 arc
+    /// programmed in the virtual plane of the linear axis X and the hypothetical axis C (both
+    /// mm, X as a radius, the origin on the rotation centre; G03 counter-clockwise from +X
+    /// towards +C), from `from` to `to` ([x, c]); `center` is the arc centre (None = a line).
+    /// `feed` is the tangential speed in that plane (§2.7 note 5). The motion layer
+    /// interpolates the virtual point and converts it every cycle with [`polar_to_machine`]:
+    /// machine X = work_offset.x + √(x² + c²), C = `c_zero` + the angle of (x, c) in degrees,
+    /// continuous along the path; `end` is the machine end point so converted. Z (and Y) move
+    /// linearly with the path.
+    Polar { end: Pos, from: [f64; 2], to: [f64; 2], center: Option<[f64; 2]>, cw: bool, c_zero: f64, feed: Feed },
+    /// G51.2 polygon turning (manual 004 §2.8), `Some`: the tool spindle runs synchronised
+    /// with the work spindle at Q/P of its speed with phase `phase`; `None` = G50.2 cancel.
+    Polygon(Option<PolygonCmd>),
     /// G04: wait `seconds`.
     Dwell { seconds: f64 },
     /// Spindle start/stop/speed change.
@@ -162,7 +199,8 @@ impl MoveKind {
             | MoveKind::Arc { end, .. }
             | MoveKind::Thread { end, .. }
             | MoveKind::Tap { end, .. }
-            | MoveKind::RigidThread { end, .. } => Some(*end),
+            | MoveKind::RigidThread { end, .. }
+            | MoveKind::Polar { end, .. } => Some(*end),
             _ => None,
         }
     }
@@ -176,6 +214,8 @@ impl MoveKind {
             MoveKind::Thread { .. } => "thread",
             MoveKind::Tap { .. } => "tap",
             MoveKind::RigidThread { .. } => "rigid_thread",
+            MoveKind::Polar { .. } => "polar",
+            MoveKind::Polygon(_) => "polygon",
             MoveKind::Dwell { .. } => "dwell",
             MoveKind::Spindle(_) => "spindle",
             MoveKind::Aux { .. } => "aux",

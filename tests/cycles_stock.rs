@@ -88,7 +88,7 @@ fn g71_alarms() {
     assert_eq!(num("G71 P1 Q3\nN1 G01 X50\nN2 G04 P10\nG28 U0\nN3 Z-10\n"), 66);
     // Not monotonic in X (a pocket): type I refuses it.
     assert_eq!(num("G71 P1 Q3\nN1 G01 X40\nZ-10\nX30 Z-15\nN3 X60 Z-20\n"), 64);
-    assert_eq!(num("G71 P1 Q2\nN1 G01 X40 Z0\nN2 Z-10\n"), 10); // type II
+    assert_eq!(num("G71 P1 Q3\nN1 G01 X40 Z0\nZ-10\nN3 X50 Z-5\n"), 64); // type II, Z turns back (note 4)
     assert_eq!(run_err("G98 G00 X60 Z2\nG71 P1 Q2 F100\nN1 G01 X50\nN2 Z-10\n").number, 62); // no Δd
 }
 

@@ -1,6 +1,7 @@
 //! The `cncgw` command line.
 
 pub mod diag;
+pub mod preview;
 pub mod run;
 
 use clap::{Parser, Subcommand};
@@ -67,6 +68,26 @@ pub enum Command {
         /// Output format: one JSON object per line, or text.
         #[arg(long, default_value = "jsonl", value_parser = ["jsonl", "text"])]
         format: String,
+    },
+    /// Draw the toolpath of a program in the Z–X plane as an SVG (rapids dashed, feeds solid,
+    /// threads and each cycle in their own colour), without running anything. Exit code 2
+    /// after an alarm (the path up to it is drawn).
+    ///
+    /// Example: `cncgw preview examples/first_part.nc -o part.svg`
+    Preview {
+        program: PathBuf,
+        /// The SVG file to write.
+        #[arg(long, short = 'o', value_name = "FILE")]
+        out: PathBuf,
+        #[arg(long, short = 'c', value_name = "FILE")]
+        config: Option<PathBuf>,
+        /// Picture width in pixels.
+        #[arg(long, default_value_t = 1000)]
+        width: u32,
+        /// Tool offset table (TOML, see `interp::tools`): offsets and nose radii for T codes
+        /// and G41/G42. Without it every offset and radius is zero.
+        #[arg(long, value_name = "FILE")]
+        tools: Option<PathBuf>,
     },
     /// Configuration commands.
     #[command(subcommand)]
@@ -303,6 +324,9 @@ pub fn main() -> i32 {
         }
         Command::Trace(TraceCmd::Plot { file, out }) => run::trace_plot(&file, &out),
         Command::Plan { program, config, format } => plan(&program, config.as_deref(), &format),
+        Command::Preview { program, out, config, width, tools } => {
+            preview::preview(&program, config.as_deref(), tools.as_deref(), &out, width)
+        }
         Command::Config(ConfigCmd::Check { file }) => config_check(file.as_deref()),
         Command::Scan { machine, json } => diag::scan(&machine, json),
         Command::Sdo(SdoCmd::Read { node, index, sub, r#type, out, machine, json }) => {

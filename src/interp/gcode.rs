@@ -17,7 +17,8 @@ pub struct GInfo {
     pub unsupported: Option<&'static str>,
 }
 
-const LATER: Option<&str> = Some("not supported yet");
+// (`unsupported: Some("not supported yet")` marks a code recognised but not implemented;
+// every code of table 1.1 is implemented now.)
 
 pub fn ginfo(g: GCode) -> Option<GInfo> {
     let (group, name, unsupported) = match g {
@@ -31,25 +32,25 @@ pub fn ginfo(g: GCode) -> Option<GInfo> {
         32 => (1, "parabolic interpolation CCW", None),
         40 => (0, "dwell", None),
         90 => (0, "exact stop check", None),
-        121 => (21, "polar coordinate interpolation", LATER),
-        131 => (21, "polar coordinate interpolation cancel", LATER),
+        121 => (21, "polar coordinate interpolation", None),
+        131 => (21, "polar coordinate interpolation cancel", None),
         170 => (16, "XY plane", None),
         180 => (16, "ZX plane", None),
         190 => (16, "YZ plane", None),
         200 => (6, "inch input", None),
         210 => (6, "metric input", None),
-        220 => (4, "stored stroke check 2 on", LATER),
+        220 => (4, "stored stroke check 2 on", None),
         230 => (4, "stored stroke check 2 off", None),
         280 => (0, "reference point return", None),
         300 => (0, "2nd/3rd/4th reference point return", None),
         320 => (1, "thread cutting", None),
         340 => (1, "variable-lead thread cutting", None),
         400 => (7, "tool nose radius compensation cancel", None),
-        410 => (7, "tool nose radius compensation left", LATER),
-        420 => (7, "tool nose radius compensation right", LATER),
+        410 => (7, "tool nose radius compensation left", None),
+        420 => (7, "tool nose radius compensation right", None),
         500 => (0, "coordinate system setting / max spindle speed", None),
-        502 => (20, "polygon turning cancel", LATER),
-        512 => (20, "polygon turning", LATER),
+        502 => (20, "polygon turning cancel", None),
+        512 => (20, "polygon turning", None),
         520 => (0, "local coordinate system", None),
         530 => (0, "machine coordinate positioning", None),
         540 | 550 | 560 | 570 | 580 | 590 => (14, "workpiece coordinate system", None),

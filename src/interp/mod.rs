@@ -44,6 +44,7 @@ pub mod curves;
 pub mod cycles;
 pub mod gcode;
 pub mod macros;
+pub mod nosecomp;
 pub mod parse;
 pub mod plan;
 pub mod tools;
@@ -218,6 +219,11 @@ pub struct Interpreter {
     input: Option<InputSource>,
     /// Canned-cycle state (thread lead, retained cycle values, G76 parameters).
     cyc: cycles::CycleState,
+    /// G40/G41/G42 tool nose radius compensation of the moves leaving `queue`.
+    nrc: nosecomp::NoseComp,
+    nrc_out: VecDeque<Move>,
+    /// G12.1 polar coordinate interpolation in force.
+    polar: Option<cycles::polar::PolarState>,
     /// G80–G89 drilling / tapping mode and rigid tapping state.
     drill: cycles::drill::DrillState,
 }
@@ -292,6 +298,9 @@ impl Interpreter {
             ref_points: std::array::from_fn(|k| ref_point(cfg, k)),
             input: None,
             cyc: cycles::CycleState::new(cfg),
+            nrc: nosecomp::NoseComp::default(),
+            nrc_out: VecDeque::new(),
+            polar: None,
             drill: cycles::drill::DrillState::new(cfg),
         }
     }
@@ -346,6 +355,8 @@ impl Interpreter {
     /// Machine position of the axes when the program starts (default all zero).
     pub fn set_start_position(&mut self, p: Pos) {
         self.pos = p;
+        self.nrc.set_start(p);
+        self.cyc.stroke.set_start(p);
     }
 
     /// Common variables #401–#600, which the control keeps through power-off (§2.24.1):
@@ -626,14 +637,34 @@ impl Interpreter {
     /// the end of the text.
     pub fn next_move(&mut self) -> Result<Option<Move>, Alarm> {
         loop {
-            if let Some(m) = self.queue.pop_front() {
+            if let Some(m) = self.nrc_out.pop_front() {
                 self.idle_blocks = 0;
                 return Ok(Some(m));
+            }
+            if let Some(m) = self.queue.pop_front() {
+                // G22 stroke check on the programmed path, then the nose radius
+                // compensation, which may hold the move for one motion.
+                let mut out = Vec::new();
+                let r = self.cyc.stroke.check(&m).and_then(|_| self.nrc.feed(m, &mut out));
+                self.nrc_out.extend(out);
+                if let Err(a) = r {
+                    self.ended = true;
+                    self.queue.clear();
+                    self.nrc_out.clear();
+                    return Err(a);
+                }
+                continue;
             }
             if self.ended {
                 if self.corner.take().is_some() {
                     self.held.clear();
                     return Err(self.alarm_here(51, 1, "the program ends after a block with ,C/,R: a G01/G02/G03 move must follow it"));
+                }
+                let mut out = Vec::new();
+                self.nrc.finish(&mut out)?;
+                if !out.is_empty() {
+                    self.nrc_out.extend(out);
+                    continue;
                 }
                 return Ok(None);
             }
@@ -1097,6 +1128,22 @@ impl Interpreter {
         if let Some(g) = d.group(1) {
             self.st.motion = g;
         }
+        if let Some(g) = d.group(7) {
+            let side = match g {
+                410 => Some(nosecomp::Side::Left),
+                420 => Some(nosecomp::Side::Right),
+                _ => None,
+            };
+            let (r, tip) = (self.tool.nose_radius, self.tool.tip);
+            // Tips 1–8 are for G18; in the polar plane the nose centre is offset (tip 0).
+            let tip = if self.polar_active() { 0 } else { tip };
+            let at = self.nrc.fed() + self.queue.len() as u64;
+            self.nrc.set_mode(side, r, tip, self.st.plane, at).map_err(|(n, m)| (n, gcol(g), m))?;
+        }
+        self.special_modes(d, src)?;
+        if self.stroke_block(d)? {
+            return Ok(());
+        }
         let one_shot = d.group(0);
         // F.
         if let Some(f) = d.get('F') {
@@ -1161,6 +1208,13 @@ impl Interpreter {
             self.push(src, MoveKind::Spindle(c), false);
         }
         if let Some(t) = d.get('T') {
+            if self.nrc.active() {
+                return Err((
+                    nosecomp::T_ALARM,
+                    Some(t.col),
+                    "T code during tool nose radius compensation: cancel it with G40 before changing the tool (§2.18.4 note 3)".into(),
+                ));
+            }
             self.select_tool(t)?;
             // The turret still sees the T code.
             self.push(src, MoveKind::Aux { letter: 'T', value: t.v }, false);
@@ -1211,6 +1265,9 @@ impl Interpreter {
                     }
                 }
                 self.local = l;
+                // §2.12.3 note 2: G52 cancels the nose radius offset for a moment.
+                let at = self.nrc.fed() + self.queue.len() as u64;
+                self.nrc.suspend(at);
             }
             Some(530) => {
                 // G53: rapid to machine coordinates, absolute words only.
@@ -1398,6 +1455,9 @@ impl Interpreter {
 
     /// Modal motion (group 01) with the block's axis words.
     fn motion(&mut self, d: &Decoded, src: &SrcPos, exact: bool) -> Result<(), (u32, Option<u32>, String)> {
+        if self.polar_active() {
+            return self.polar_motion(d, src, exact);
+        }
         let Some(end) = self.target(d) else {
             return Ok(());
         };

@@ -148,12 +148,14 @@ fn key_rank(k: &str) -> u8 {
         "lead" => 12,
         "line" => 13,
         "max_rpm" => 14,
-        "rpm" => 15,
-        "start_angle" => 16,
-        "step" => 17,
-        "x" => 18,
-        "y" => 19,
-        "z" => 20,
+        "phase" => 15,
+        "rpm" => 16,
+        "start_angle" => 17,
+        "step" => 18,
+        "tool_rpm" => 19,
+        "x" => 20,
+        "y" => 21,
+        "z" => 22,
         _ => u8::MAX,
     }
 }
@@ -233,6 +235,21 @@ pub fn write_json(out: &mut String, m: &Move) {
         MoveKind::Aux { letter, value } => o.put("code", J::Code(*letter, *value)),
         MoveKind::Stop { optional } => o.put("code", J::Str(if *optional { "M01" } else { "M00" })),
         MoveKind::End { code: c } => o.put("code", J::Code('M', *c as f64)),
+        MoveKind::Polar { end, center, cw, feed, .. } => {
+            put_end(&mut o, m, *end);
+            put_feed(&mut o, feed);
+            if center.is_some() {
+                o.put("cw", J::Bool(*cw));
+            }
+        }
+        MoveKind::Polygon(p) => match p {
+            Some(p) => {
+                o.put("rpm", J::Num(r(p.rpm)));
+                o.put("tool_rpm", J::Num(r(p.tool_rpm)));
+                o.put("phase", J::Num(r(p.phase)));
+            }
+            None => o.put("code", J::Str("G50.2")),
+        },
     }
     if let Some(t) = &m.tag {
         o.put("cycle", J::Str(&t.cycle));
@@ -333,6 +350,18 @@ pub fn move_to_text(m: &Move) -> String {
         MoveKind::Aux { letter, value } => s.push_str(&format!(" {}", code(*letter, *value))),
         MoveKind::Stop { optional } => s.push_str(if *optional { " M01" } else { " M00" }),
         MoveKind::End { code: c } => s.push_str(&format!(" M{c:02}")),
+        MoveKind::Polar { end: e, from, to, center, cw, feed: f, .. } => {
+            end(&mut s, *e);
+            s.push_str(&format!(" virtual X{} C{} → X{} C{}", f4(from[0] * 2.0), f4(from[1]), f4(to[0] * 2.0), f4(to[1])));
+            if center.is_some() {
+                s.push_str(if *cw { " CW" } else { " CCW" });
+            }
+            feed(&mut s, f);
+        }
+        MoveKind::Polygon(Some(p)) => {
+            s.push_str(&format!(" P{} Q{} R{} S{} tool {} rpm", p.p, p.q, r(p.phase), r(p.rpm), r(p.tool_rpm)))
+        }
+        MoveKind::Polygon(None) => s.push_str(" G50.2"),
     }
     if let Some(t) = &m.tag {
         s.push_str(&format!(" [{} step {}]", t.cycle, t.step));

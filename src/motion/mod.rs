@@ -607,6 +607,18 @@ impl Motion {
             MoveKind::Aux { letter, value } => Item::Event(Event::Aux { letter: *letter, value: *value }),
             MoveKind::Stop { optional } => Item::Event(Event::Stop { optional: *optional }),
             MoveKind::End { .. } => Item::Event(Event::End),
+            MoveKind::Polar { .. } => {
+                return Err(at(Alarm::new(
+                    alarms::UNSUPPORTED,
+                    "G12.1 polar coordinate interpolation needs X–C contouring (the spindle as a Cs axis interpolated with X, cartesian→polar every cycle), which this motion layer does not execute yet; run the program in `cncgw plan`/`preview` only",
+                )))
+            }
+            MoveKind::Polygon(_) => {
+                return Err(at(Alarm::new(
+                    alarms::UNSUPPORTED,
+                    "G51.2/G50.2 polygon turning needs a second (tool) spindle synchronised to the work spindle; the configuration and this motion layer have none: add the tool spindle axis and its synchronisation, or remove G51.2",
+                )))
+            }
         };
         let mut item = item;
         // Accepted: commit the planning state.

@@ -4,8 +4,9 @@
 //! cycle (where the numbers live only in a figure missing from the text, the module of the
 //! cycle says which numbering it uses).
 //!
-//! Files: `single.rs` G90/G92/G94, `g76.rs` G76/G78, `stock.rs` G70–G73, `groove.rs`
-//! G74/G75, `rigid.rs` G92.1, `drill.rs` G80–G89 and G30 P99, `siemens.rs` CYCLE81–86/840
+//! Files: `single.rs` G90/G92/G94, `g76.rs` G76/G78, `stock.rs` G70–G73, `typeii.rs` G71/G72
+//! type II, `groove.rs` G74/G75, `polar.rs` G12.1/G13.1 and G51.2/G50.2, `stroke.rs`
+//! G22/G23, `rigid.rs` G92.1, `drill.rs` G80–G89 and G30 P99, `siemens.rs` CYCLE81–86/840
 //! and MCALL; G32/G34 and the shared helpers are here.
 //!
 //! The cycles are `impl Interpreter` blocks (a child module sees the interpreter's private
@@ -37,10 +38,13 @@ use std::sync::Arc;
 pub mod drill;
 pub mod g76;
 pub mod groove;
+pub mod polar;
 pub mod rigid;
 pub mod siemens;
 pub mod single;
 pub mod stock;
+pub mod stroke;
+pub mod typeii;
 
 /// Our alarm for values outside the ranges the manual states (Fanuc has no number for them).
 pub const RANGE_ALARM: u32 = 2510;
@@ -96,6 +100,15 @@ pub struct CycleState {
     pub rigid_starts: u32,
     /// No.5139 e of G74/G75 (mm), the retract after each peck.
     pub p5139: f64,
+    /// G51.2 polygon turning in force.
+    pub polygon: bool,
+    /// No.721: the tool spindle's clamp speed in polygon turning (rpm).
+    pub p721: Option<f64>,
+    /// The C axis' speed limit (degrees/min) for §2.7 note 9: axis `c`'s max_speed, else the
+    /// spindle's max_speed (rpm) × 360.
+    pub c_max_deg_min: Option<f64>,
+    /// G22/G23 stored stroke check 2.
+    pub stroke: stroke::Stroke2,
 }
 
 #[derive(Clone, Debug)]
@@ -134,6 +147,15 @@ impl CycleState {
             rigid_starts: 1,
             p5145: p(5145).unwrap_or(0.0),
             p5146: p(5146).map(|v| v.clamp(0.0, 99999.0) as u32).unwrap_or(0),
+            polygon: false,
+            p721: p(721),
+            c_max_deg_min: cfg
+                .axes
+                .get("c")
+                .map(|a| a.max_speed)
+                .or_else(|| cfg.spindle().map(|(_, a)| a.max_speed * 360.0))
+                .filter(|v| v.is_finite() && *v > 0.0),
+            stroke: stroke::Stroke2::new(cfg),
         }
     }
 }

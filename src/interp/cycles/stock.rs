@@ -31,15 +31,15 @@ use std::sync::Arc;
 
 /// One contour element in machine coordinates.
 #[derive(Clone, Debug)]
-struct Elem {
-    kind: MoveKind,
-    /// The element's start and end.
-    a: Pos,
+pub(super) struct Elem {
+    pub(super) kind: MoveKind,
+    /// The element's start.
+    pub(super) a: Pos,
 }
 
 impl Interpreter {
     /// Lines (indices) of N`ns` and N`nf` in the current program.
-    fn contour_span(&self, d: &Decoded, name: &str) -> Result<(usize, usize, u32, u32), CErr> {
+    pub(super) fn contour_span(&self, d: &Decoded, name: &str) -> Result<(usize, usize, u32, u32), CErr> {
         let gc = Self::gcol(d);
         let p = d.get('P').ok_or((61, gc, format!("{name}: P(ns), the first block of the finishing contour, is missing")))?;
         let q = d.get('Q').ok_or((61, gc, format!("{name}: Q(nf), the last block of the finishing contour, is missing")))?;
@@ -62,6 +62,8 @@ impl Interpreter {
     /// note 3's codes are refused.
     fn run_contour(&mut self, l1: usize, l2: usize, ns: u32, name: &str, dry: bool) -> Result<(Vec<Move>, bool), CErr> {
         let saved = (self.pos, self.st.clone(), self.cyc.clone(), self.ended, self.queue.len());
+        // G41/G42 in the contour take effect when G70 runs it, not in a dry run.
+        let saved_nrc = self.nrc.clone();
         let file = self.cur_file();
         let mut first = true;
         let mut first_rapid = false;
@@ -131,6 +133,7 @@ impl Interpreter {
             self.corner = None;
             self.held.clear();
             (self.pos, self.st, self.cyc, self.ended) = (saved.0, saved.1, saved.2, saved.3);
+            self.nrc = saved_nrc;
             result?;
             return Ok((moves.into_iter().filter(|m| m.kind.end().is_some()).collect(), first_rapid));
         }
@@ -176,7 +179,7 @@ impl Interpreter {
 
     /// The contour of a G71/G72/G73 second block shifted by `off`: (B', elements after the
     /// ns move, whether the ns move is G00, the ns move itself shifted).
-    fn shifted_contour(&mut self, l1: usize, l2: usize, ns: u32, nf: u32, name: &str, gc: Option<u32>) -> Result<(Vec<Move>, bool), CErr> {
+    pub(super) fn shifted_contour(&mut self, l1: usize, l2: usize, ns: u32, nf: u32, name: &str, gc: Option<u32>) -> Result<(Vec<Move>, bool), CErr> {
         let (moves, ns_rapid) = self.run_contour(l1, l2, ns, name, true)?;
         if moves.is_empty() {
             return Err((65, gc, format!("{name}: N{ns}–N{nf} make no move")));
@@ -185,7 +188,7 @@ impl Interpreter {
     }
 
     /// The contour moves moved by `off`, as elements with their start points (from `a`).
-    fn offset_elems(moves: &[Move], a: Pos, off: Pos, feed: Feed) -> Vec<Elem> {
+    pub(super) fn offset_elems(moves: &[Move], a: Pos, off: Pos, feed: Feed) -> Vec<Elem> {
         let mut elems = Vec::new();
         let mut start = a;
         for m in moves {
@@ -225,7 +228,8 @@ impl Interpreter {
         let other: [char; 2] = if facing { ['X', 'U'] } else { ['Z', 'W'] };
         if let Ok(parse::Block { stmt: parse::Stmt::Nc(w), .. }) = parse::parse_line(&ns_text) {
             if w.iter().any(|w| !w.comma && other.contains(&w.letter)) {
-                return Err((10, gc, format!("{name} type II (the N{ns} block moves {} too) is not supported yet", other[0])));
+                // Type II: the ns block names both axes (note 1).
+                return self.rough_type2(d, src, facing, (dd, e), (du, dw), feed, (l1, l2, ns, nf));
             }
         }
         let a = self.pos;
@@ -294,7 +298,7 @@ impl Interpreter {
     }
 
     /// The contour is run only by G70: continue after N(nf) when it follows directly.
-    fn skip_contour(&mut self, l1: usize, l2: usize) {
+    pub(super) fn skip_contour(&mut self, l1: usize, l2: usize) {
         if l1 == self.line {
             self.line = l2 + 1;
         }
@@ -360,7 +364,7 @@ impl Interpreter {
 
 /// The rough contour as points from `start`, arcs cut into chords of at most 2° (used for
 /// the monotonic check and the pass ends; the contour pass itself keeps the true arcs).
-fn polyline(start: Pos, elems: &[Elem]) -> Vec<Pos> {
+pub(super) fn polyline(start: Pos, elems: &[Elem]) -> Vec<Pos> {
     let mut pts = vec![start];
     for el in elems {
         match &el.kind {
