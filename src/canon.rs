@@ -243,3 +243,30 @@ pub struct TapReturn {
     /// Pull-out override in force (%), applied to the return.
     pub override_pct: f64,
 }
+
+/// The points strictly between `start` and `end` of a ZX-plane arc about `center` (G02 when
+/// `cw`), at most 2° apart: for drawing and checking a lathe arc as chords. In (z, x) a G03
+/// is counter-clockwise (G18: u = Z, v = X). A full circle (start = end) sweeps 360°.
+pub fn zx_arc_chord_points(start: Pos, end: Pos, center: Pos, cw: bool) -> Vec<Pos> {
+    let a0 = (start.x - center.x).atan2(start.z - center.z);
+    let a1 = (end.x - center.x).atan2(end.z - center.z);
+    let r = (start.x - center.x).hypot(start.z - center.z);
+    let tau = std::f64::consts::TAU;
+    let mut sweep = a1 - a0;
+    if cw {
+        while sweep > 1e-12 {
+            sweep -= tau;
+        }
+    } else {
+        while sweep < -1e-12 {
+            sweep += tau;
+        }
+    }
+    let n = ((sweep.abs() / 2f64.to_radians()).ceil() as usize).clamp(1, 720);
+    (1..n)
+        .map(|j| {
+            let t = a0 + sweep * j as f64 / n as f64;
+            Pos { x: center.x + r * t.sin(), z: center.z + r * t.cos(), ..end }
+        })
+        .collect()
+}

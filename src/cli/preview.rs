@@ -96,25 +96,7 @@ fn path(start: Pos, m: &Move) -> Option<Vec<(f64, f64)>> {
     };
     let mut v = vec![w(start)];
     if let MoveKind::Arc { center, cw, plane: crate::canon::Plane::Zx, .. } = &m.kind {
-        let a0 = (start.x - center.x).atan2(start.z - center.z);
-        let a1 = (end.x - center.x).atan2(end.z - center.z);
-        let r = (start.x - center.x).hypot(start.z - center.z);
-        let tau = std::f64::consts::TAU;
-        let mut sweep = a1 - a0;
-        if *cw {
-            while sweep > 1e-12 {
-                sweep -= tau;
-            }
-        } else {
-            while sweep < -1e-12 {
-                sweep += tau;
-            }
-        }
-        let n = ((sweep.abs() / 2f64.to_radians()).ceil() as usize).clamp(1, 720);
-        for j in 1..n {
-            let t = a0 + sweep * j as f64 / n as f64;
-            v.push(w(Pos { x: center.x + r * t.sin(), z: center.z + r * t.cos(), ..end }));
-        }
+        v.extend(crate::canon::zx_arc_chord_points(start, end, *center, *cw).into_iter().map(w));
     }
     v.push(w(end));
     Some(v)

@@ -359,7 +359,7 @@ impl LinkIo {
         let cycle = Duration::from_secs_f64(cycle_ms * 1e-3);
         // Tell every drive its interpolation period (the link cycle) and the watchdog.
         for d in 0..self.spec.drives.len() {
-            let writes = self.spec.drives[d].timing_writes(cycle_ms as u16);
+            let writes = self.spec.drives[d].timing_writes(cycle_ms as u16, self.spec.cfg.timeout_ms);
             for (x, data) in writes {
                 self.exchange(d, &x, &data).map_err(|e| Alarm::new(2201, format!("configuring the drive failed: {}", e.text())))?;
             }

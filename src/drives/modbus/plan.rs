@@ -142,11 +142,14 @@ impl DrivePlan {
     }
 
     /// Writes that depend on the link cycle: the interpolation period and the watchdog.
-    pub fn timing_writes(&mut self, cycle_ms: u16) -> Vec<(Exchange, Vec<u16>)> {
+    /// `timeout_ms`: the link's transaction timeout (a drive ahead of this one on the line
+    /// may take that long to time out before this one's write goes).
+    pub fn timing_writes(&mut self, cycle_ms: u16, timeout_ms: u32) -> Vec<(Exchange, Vec<u16>)> {
         self.cycle_ms = cycle_ms as f64;
-        // Ten link cycles, at least 200 ms: a scheduling hiccup must not trip it, a dead
-        // controller must (the CANopen side uses 3 × the 100 ms heartbeat).
-        let watchdog = (cycle_ms as u32 * 10).clamp(200, u16::MAX as u32) as u16;
+        // Ten link cycles and two transaction timeouts, at least 200 ms: one drive's missed
+        // answer or a scheduling hiccup must not trip it, a dead controller must (the
+        // CANopen side uses 3 × the 100 ms heartbeat).
+        let watchdog = (cycle_ms as u32 * 10).max(2 * timeout_ms + cycle_ms as u32).clamp(200, u16::MAX as u32) as u16;
         match self.profile {
             Profile::Cia402 => vec![
                 (Exchange::WriteSingle { addr: self.cia.interpolation_ms }, vec![cycle_ms]),
@@ -318,7 +321,7 @@ mod tests {
     #[test]
     fn pr_streams_block_and_trigger_with_speed_for_one_cycle() {
         let mut d = DrivePlan::new("w", 4, Profile::Pr, Cia402Map::default(), PrMap::default(), false, 1);
-        d.timing_writes(10);
+        d.timing_writes(10, 100);
         d.last_target = 0;
         // 1000 counts in 10 ms at 100 000 counts/rev = 60 rpm.
         let w = d.cyclic_writes(&Command { servo_on: true, target: 1000, stream: true, ..Command::default() });

@@ -369,26 +369,7 @@ pub(super) fn polyline(start: Pos, elems: &[Elem]) -> Vec<Pos> {
     for el in elems {
         match &el.kind {
             MoveKind::Arc { end, center, cw, .. } => {
-                let a0 = (el.a.x - center.x).atan2(el.a.z - center.z);
-                let a1 = (end.x - center.x).atan2(end.z - center.z);
-                let r = (el.a.x - center.x).hypot(el.a.z - center.z);
-                // In (z, x) a G03 is counter-clockwise (canon: G18 plane, u = Z, v = X).
-                let mut sweep = a1 - a0;
-                let tau = std::f64::consts::TAU;
-                if *cw {
-                    while sweep > 1e-12 {
-                        sweep -= tau;
-                    }
-                } else {
-                    while sweep < -1e-12 {
-                        sweep += tau;
-                    }
-                }
-                let n = ((sweep.abs() / 2f64.to_radians()).ceil() as usize).max(1);
-                for j in 1..n {
-                    let t = a0 + sweep * j as f64 / n as f64;
-                    pts.push(Pos { x: center.x + r * t.sin(), z: center.z + r * t.cos(), ..*end });
-                }
+                pts.extend(crate::canon::zx_arc_chord_points(el.a, *end, *center, *cw));
                 pts.push(*end);
             }
             k => pts.push(k.end().unwrap_or(start)),

@@ -122,25 +122,7 @@ impl Stroke2 {
         let mut pts = vec![start];
         if let MoveKind::Arc { center, cw, .. } = &m.kind {
             // ZX arcs (the lathe's); other planes are checked on their chord.
-            let a0 = (start.x - center.x).atan2(start.z - center.z);
-            let a1 = (end.x - center.x).atan2(end.z - center.z);
-            let r = (start.x - center.x).hypot(start.z - center.z);
-            let tau = std::f64::consts::TAU;
-            let mut sweep = a1 - a0;
-            if *cw {
-                while sweep > 1e-12 {
-                    sweep -= tau;
-                }
-            } else {
-                while sweep < -1e-12 {
-                    sweep += tau;
-                }
-            }
-            let n = ((sweep.abs() / 2f64.to_radians()).ceil() as usize).clamp(1, 720);
-            for j in 1..n {
-                let t = a0 + sweep * j as f64 / n as f64;
-                pts.push(Pos { x: center.x + r * t.sin(), z: center.z + r * t.cos(), ..end });
-            }
+            pts.extend(crate::canon::zx_arc_chord_points(start, end, *center, *cw));
         }
         pts.push(end);
         for w in pts.windows(2) {
