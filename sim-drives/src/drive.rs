@@ -14,6 +14,8 @@ use cncgw_bus::cia402::{cw, device_transition, mode, sw, QuickStopOption, State}
 use cncgw_bus::CanFrame;
 use std::collections::{BTreeMap, VecDeque};
 
+mod block;
+
 /// How many interpolation periods a late SYNC is bridged by extrapolating the set-point
 /// (20 ms at 2 ms): enough for a master on a non-real-time kernel (the vcan tier runs in a
 /// User-Mode Linux guest whose timers were measured 10–18 ms late at p99 under load).
@@ -23,6 +25,11 @@ const N_RPDO: u16 = 2;
 const N_TPDO: u16 = 2;
 /// Manufacturer-specific write-only object (an access code, as many drives have).
 pub const ACCESS_CODE: u16 = 0x2000;
+/// Manufacturer-specific DOMAIN (read-write, up to `USER_DATA_LEN` bytes, empty after a
+/// reset): where a commissioning tool keeps its notes or a parameter image. The large
+/// object that block transfers are tested and measured with.
+pub const USER_DATA: u16 = 0x2200;
+pub const USER_DATA_LEN: usize = 4096;
 /// Manufacturer-specific record: faults injected at run time (README, "Fault injection").
 pub const SIM_FAULTS: u16 = 0x2100;
 /// Sub-indices of `SIM_FAULTS`.
@@ -66,6 +73,8 @@ enum SdoState {
     Idle,
     Upload { index: u16, sub: u8, data: Vec<u8>, pos: usize, toggle: bool },
     Download { index: u16, sub: u8, size: Option<u32>, buf: Vec<u8>, toggle: bool },
+    BlockDown(block::Down),
+    BlockUp(block::Up),
 }
 
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -252,6 +261,7 @@ fn build_od(c: &DriveConfig) -> Od {
         }
     }
     od.add(ACCESS_CODE, 0, U32, Wo, false, 0);
+    od.add_domain(USER_DATA, 0, Rw, USER_DATA_LEN);
     {
         use fault_sub::*;
         od.add(SIM_FAULTS, 0, U8, Const, false, 9);
@@ -876,14 +886,22 @@ impl SimDrive {
     }
 
     fn sdo_request(&mut self, f: &CanFrame, now: u64) {
+        if f.len == 8 && self.sdo_block(f, now) {
+            return;
+        }
         let Some(req) = SdoRequest::decode(f) else {
             if f.len == 8 {
-                // Block transfer or garbage: not supported.
+                // Unknown command specifier.
                 let index = u16::from_le_bytes([f.data[1], f.data[2]]);
                 self.sdo_abort(index, f.data[3], abort::BAD_COMMAND);
             }
             return;
         };
+        self.sdo_request_plain(req, now);
+    }
+
+    /// Expedited and segmented transfers.
+    fn sdo_request_plain(&mut self, req: SdoRequest, now: u64) {
         match req {
             SdoRequest::InitiateUpload { index, sub } => {
                 self.sdo = SdoState::Idle;
@@ -964,7 +982,7 @@ impl SimDrive {
                 }
                 *expect = !*expect;
                 buf.extend_from_slice(&data[..len.min(7) as usize]);
-                if buf.len() > 1024 {
+                if buf.len() > 1024.max(USER_DATA_LEN) {
                     return self.sdo_abort(index, sub, abort::OUT_OF_MEMORY);
                 }
                 if !last {
