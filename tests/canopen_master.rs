@@ -78,3 +78,71 @@ fn block_upload_needs_fewer_round_trips_than_segmented() {
     assert!(blk * 20 < seg, "block {} µs vs segmented {} µs", blk / 1000, seg / 1000);
     let _ = MS;
 }
+
+/// Start-up and enable: the cycle running, every drive in Operation Enabled.
+fn enabled() -> (MachineConfig, InprocBus, SimWorld, CanOpenMaster<cncgw_bus::transport::inproc::InprocEndpoint>, u64) {
+    let (cfg, bus, mut w, mut m) = rig();
+    m.startup(&mut w).expect("startup");
+    let mut next = w.now_ns();
+    for _ in 0..1000 {
+        next += 2 * MS;
+        w.wait_until(next);
+        m.receive(next).unwrap();
+        let done = m.enable_step().unwrap();
+        m.transmit(next).unwrap();
+        if done {
+            return (cfg, bus, w, m, next);
+        }
+    }
+    panic!("drives not enabled");
+}
+
+/// Hold every axis where it is until an alarm comes (or `cycles` pass).
+fn cycle_until_alarm(w: &mut SimWorld, m: &mut CanOpenMaster<cncgw_bus::transport::inproc::InprocEndpoint>, next: &mut u64, cycles: u32) -> Option<(cncgw::Alarm, u32)> {
+    for k in 0..cycles {
+        *next += 2 * MS;
+        w.wait_until(*next);
+        if let Err(a) = m.receive(*next) {
+            return Some((a, k));
+        }
+        for ax in 0..m.axis_count() {
+            let p = m.feedback(ax).pos;
+            m.set_target(ax, p);
+        }
+        m.transmit(*next).unwrap();
+    }
+    None
+}
+
+#[test]
+fn a_drive_fault_names_error_code_and_register_in_words() {
+    let (_cfg, _bus, mut w, mut m, mut next) = enabled();
+    assert!(cycle_until_alarm(&mut w, &mut m, &mut next, 5).is_none());
+    assert!(w.inject_fault(2, 0x3210));
+    let (a, k) = cycle_until_alarm(&mut w, &mut m, &mut next, 50).expect("alarm 2010");
+    assert_eq!(a.number, 2010, "{}", a.message);
+    // EMCY seen, then 0x603F and 0x1001 read over SDO: within a few cycles.
+    assert!(k <= 4, "alarm after {k} cycles");
+    assert!(a.message.starts_with("node 2 (axis z): drive fault EMCY 0x3210 DC-link overvoltage"), "{}", a.message);
+    assert!(a.message.contains("0x603F error code 0x3210 DC-link overvoltage"), "{}", a.message);
+    assert!(a.message.contains("0x1001 error register 0x05 generic error, voltage"), "{}", a.message);
+    // The other axes were told to quick-stop as soon as the fault was seen (at rest, the
+    // stop ends at once in Switch On Disabled: 0x605A = 2).
+    assert_eq!(m.feedback(0).state(), cncgw_bus::cia402::State::SwitchOnDisabled);
+    assert_eq!(w.drive(1).unwrap().state(), cncgw_bus::cia402::State::SwitchOnDisabled);
+}
+
+#[test]
+fn a_fault_without_emcy_is_diagnosed_too() {
+    let (_cfg, _bus, mut w, mut m, _) = enabled();
+    // The EMCY is lost (its COB-ID invalid), the statusword still shows the fault.
+    m.sdo_write(&mut w, 1, 0x1014, 0, &0x8000_0081u32.to_le_bytes()).unwrap();
+    let mut next = w.now_ns();
+    assert!(w.set_sim_fault(1, sim_drives::drive::fault_sub::RAISE, 0x7305).is_ok());
+    let (a, _) = cycle_until_alarm(&mut w, &mut m, &mut next, 50).expect("alarm 2010");
+    assert_eq!(a.number, 2010, "{}", a.message);
+    assert!(a.message.contains("drive left Operation Enabled"), "{}", a.message);
+    assert!(a.message.contains("0x603F error code 0x7305 incremental encoder 1 broken"), "{}", a.message);
+    assert!(a.message.contains("0x1001 error register 0x01 generic error;"), "{}", a.message);
+    assert!(m.last_emcy(1).is_none(), "no EMCY was sent");
+}

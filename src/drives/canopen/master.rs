@@ -4,14 +4,14 @@
 //!
 //! Alarm numbers (ours; the manuals have none for the bus): 2001 node did not boot,
 //! 2002 not a CiA 402 device, 2003 SDO failure during configuration, 2010 EMCY / drive
-//! fault, 2011 heartbeat lost, 2012 fault reset failed, 2013 enable timed out,
+//! fault (with 0x603F and 0x1001 read and decoded), 2011 heartbeat lost, 2012 fault reset failed, 2013 enable timed out,
 //! 2014 node left operational, 2015 stale feedback, 2020 bus error.
 
 use super::sdo_client::{SdoClient, SdoError};
 use crate::config::{AxisKind, MachineConfig};
 use crate::drives::{AxisFeedback, DriveBus};
 use crate::Alarm;
-use cncgw_bus::canopen::emcy::{error_text, Emcy};
+use cncgw_bus::canopen::emcy::{error_register_text, error_text, Emcy};
 use cncgw_bus::canopen::nmt::{decode_heartbeat, heartbeat_frame, NmtCommand, NmtState};
 use cncgw_bus::canopen::pdo::{get_i32, get_u16, MapEntry};
 use cncgw_bus::canopen::{cob, od, sync_frame};
@@ -64,6 +64,17 @@ pub struct NodeInfo {
     pub revision: u32,
     pub serial: u32,
     pub name: String,
+}
+
+/// A drive fault being diagnosed: 0x603F and 0x1001 are read (SDO, without blocking the
+/// cycle) before alarm 2010 is raised. Every axis is quick-stopped when it starts.
+struct Diag {
+    node: usize,
+    /// What was seen first: the EMCY or the state the drive fell into.
+    seen: String,
+    reading: u16,
+    code: Option<Result<u16, String>>,
+    register: Option<Result<u8, String>>,
 }
 
 struct Node {
@@ -126,6 +137,7 @@ pub struct CanOpenMaster<B: CanBus> {
     running: bool,
     /// The master heartbeat runs from the first configured consumer on.
     hb_started: bool,
+    diag: Option<Diag>,
 }
 
 enum Sdo<'a> {
@@ -157,6 +169,7 @@ impl<B: CanBus> CanOpenMaster<B> {
             enable_cycles: 0,
             running: false,
             hb_started: false,
+            diag: None,
         }
     }
 
@@ -559,6 +572,63 @@ impl<B: CanBus> CanOpenMaster<B> {
         self.write(clock, i, comm, 1, &(cob_id as u32).to_le_bytes())
     }
 
+    /// A drive faulted: quick-stop every axis now (the others must not go on along a path
+    /// one axis has left) and start reading 0x603F from the faulted one.
+    fn start_diag(&mut self, i: usize, seen: String, now_ns: u64) -> Result<(), Alarm> {
+        tracing::warn!(node = self.nodes[i].spec.node, "{seen}: quick stop, reading 0x603F and 0x1001");
+        for n in &mut self.nodes {
+            if n.enabled {
+                n.controlword = cw::QUICK_STOP_CMD;
+            }
+        }
+        let f = self.nodes[i].sdo.start_upload(od::ERROR_CODE, 0, now_ns);
+        self.send(&f)?;
+        self.diag = Some(Diag { node: i, seen, reading: od::ERROR_CODE, code: None, register: None });
+        Ok(())
+    }
+
+    /// Advance the diagnosis; the finished alarm 2010 once both objects are read or failed.
+    fn step_diag(&mut self, now_ns: u64) -> Result<Option<Alarm>, Alarm> {
+        let Some(d) = self.diag.as_mut() else { return Ok(None) };
+        let i = d.node;
+        let sdo = &mut self.nodes[i].sdo;
+        let mut out = sdo.poll(now_ns);
+        let Some(r) = sdo.take_result() else {
+            if let Some(f) = out.take() {
+                self.send(&f)?;
+            }
+            return Ok(None);
+        };
+        let r = r.map_err(|e| e.to_string());
+        if d.reading == od::ERROR_CODE {
+            d.code = Some(r.map(|v| u16::from_le_bytes([v.first().copied().unwrap_or(0), v.get(1).copied().unwrap_or(0)])));
+            d.reading = od::ERROR_REGISTER;
+            let f = sdo.start_upload(od::ERROR_REGISTER, 0, now_ns);
+            if let Some(a) = out {
+                self.send(&a)?;
+            }
+            self.send(&f)?;
+            return Ok(None);
+        }
+        d.register = Some(r.map(|v| v.first().copied().unwrap_or(0)));
+        if let Some(a) = out {
+            self.send(&a)?;
+        }
+        let Some(d) = self.diag.take() else { return Ok(None) };
+        let code = match d.code {
+            Some(Ok(0)) => "0x603F error code 0x0000 (the drive gives no code)".to_string(),
+            Some(Ok(c)) => format!("0x603F error code 0x{c:04X} {}", error_text(c)),
+            Some(Err(e)) => format!("0x603F unreadable ({e})"),
+            None => "0x603F not read".to_string(),
+        };
+        let reg = match d.register {
+            Some(Ok(r)) => format!("0x1001 error register 0x{r:02X} {}", error_register_text(r)),
+            Some(Err(e)) => format!("0x1001 unreadable ({e})"),
+            None => "0x1001 not read".to_string(),
+        };
+        Ok(Some(self.node_alarm(i, 2010, format!("{}; {code}; {reg}; clear the cause, then reset", d.seen))))
+    }
+
     fn target_raw(&self, i: usize) -> i32 {
         self.nodes[i].target as i32 // wrapping to INTEGER32, as the drive does
     }
@@ -621,25 +691,45 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
         self.now_ns = now_ns;
         loop {
             match self.bus.try_recv() {
-                Ok(Some(f)) => self.on_background(&f, now_ns),
+                Ok(Some(f)) => {
+                    let (func, node) = cob::split(f.cob_id());
+                    match self.index_of(node) {
+                        Some(i) if func == cob::SDO_TX && self.nodes[i].sdo.busy() => {
+                            for out in self.nodes[i].sdo.on_frame(&f, now_ns) {
+                                self.send(&out)?;
+                            }
+                        }
+                        _ => self.on_background(&f, now_ns),
+                    }
+                }
                 Ok(None) => break,
                 Err(e) => return Err(self.bus_alarm(e)),
             }
         }
+        if let Some(a) = self.step_diag(now_ns)? {
+            return Err(a);
+        }
         for i in 0..self.nodes.len() {
             let n = &self.nodes[i];
-            if self.running {
-                if let Some(e) = n.last_emcy {
-                    return Err(self.node_alarm(
-                        i,
-                        2010,
-                        format!("drive fault EMCY 0x{:04X} {} (error register 0x{:02X}); clear the cause, then reset", e.code, error_text(e.code), e.register),
-                    ));
-                }
+            if self.running && self.diag.is_none() {
                 let st = State::from_statusword(n.status);
-                if n.have_fb && st != State::OperationEnabled {
-                    return Err(self.node_alarm(i, 2010, format!("drive left Operation Enabled: now {}", st.name())));
+                let seen = if let Some(e) = n.last_emcy {
+                    Some(format!("drive fault EMCY 0x{:04X} {} (error register 0x{:02X})", e.code, error_text(e.code), e.register))
+                } else if n.have_fb && st != State::OperationEnabled {
+                    Some(format!("drive left Operation Enabled: now {}", st.name()))
+                } else {
+                    None
+                };
+                if let Some(seen) = seen {
+                    self.start_diag(i, seen, now_ns)?;
+                    if let Some(a) = self.step_diag(now_ns)? {
+                        return Err(a);
+                    }
+                    continue;
                 }
+            }
+            let n = &self.nodes[i];
+            if self.running {
                 if matches!(n.nmt, Some(s) if s != NmtState::Operational) {
                     return Err(self.node_alarm(i, 2014, "node left NMT operational (reset or stopped by someone else?)"));
                 }
@@ -748,6 +838,7 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
         }
         if all {
             self.running = true;
+            self.diag = None;
             for n in &mut self.nodes {
                 n.last_emcy = None;
             }
