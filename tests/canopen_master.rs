@@ -146,3 +146,100 @@ fn a_fault_without_emcy_is_diagnosed_too() {
     assert!(a.message.contains("0x1001 error register 0x01 generic error;"), "{}", a.message);
     assert!(m.last_emcy(1).is_none(), "no EMCY was sent");
 }
+
+#[test]
+fn profile_move_reaches_its_target_on_a_trapezoid() {
+    let (_cfg, _bus, mut w, mut m) = rig();
+    m.startup(&mut w).expect("startup");
+    assert_eq!(m.sdo_read(&mut w, 1, 0x6502, 0).unwrap(), 0x1A1u32.to_le_bytes(), "0x6502: PP, homing, CSP, CSV");
+    let x0 = w.drive(1).unwrap().position_unwrapped() as f64 / 1e4;
+    let t0 = w.now_ns();
+    // 10 mm at 50 mm/s and 500 mm/s²: 0.1 s up, 0.1 s down, 0.1 s at speed = 0.3 s.
+    m.profile_move(&mut w, 1, x0 + 10.0, 50.0, 500.0).unwrap();
+    let took = (w.now_ns() - t0) as f64 * 1e-9;
+    let d = w.drive(1).unwrap();
+    assert!((d.position_unwrapped() as f64 / 1e4 - (x0 + 10.0)).abs() < 0.002, "at {} mm", d.position_unwrapped() as f64 / 1e4);
+    assert!(took > 0.3 && took < 0.45, "the move took {took} s (0.3 s of profile, start-up enable and handshakes)");
+    assert_eq!(d.mode_display(), 8, "back in CSP");
+    // The cycle goes on in CSP without a jump or an alarm; the other axes held.
+    let mut next = w.now_ns();
+    assert!(cycle_until_alarm(&mut w, &mut m, &mut next, 50).is_none());
+    assert!((w.drive(1).unwrap().position_unwrapped() as f64 / 1e4 - (x0 + 10.0)).abs() < 0.002);
+    // Back, faster: 10 mm at 100 mm/s, 1000 mm/s² → 0.2 s.
+    let t0 = w.now_ns();
+    m.profile_move(&mut w, 1, x0, 100.0, 1000.0).unwrap();
+    assert!((w.drive(1).unwrap().position_unwrapped() as f64 / 1e4 - x0).abs() < 0.002);
+    assert!((w.now_ns() - t0) as f64 * 1e-9 < 0.4);
+}
+
+#[test]
+fn profile_move_outside_the_software_limits_stops_at_the_limit_and_says_so() {
+    let (_cfg, _bus, mut w, mut m) = rig();
+    m.startup(&mut w).expect("startup");
+    // X max is 150 mm: the drive clamps the target (0x607D), so the move ends at 150.
+    m.profile_move(&mut w, 1, 170.0, 400.0, 4000.0).unwrap();
+    assert!((w.drive(1).unwrap().position_unwrapped() as f64 / 1e4 - 150.0).abs() < 0.002);
+    let e = m.profile_move(&mut w, 1, 1.0, 0.0, 100.0).unwrap_err();
+    assert_eq!(e.number, 2016);
+    assert!(e.message.contains("profile velocity 0 is out of range"), "{}", e.message);
+}
+
+#[test]
+fn homing_on_the_present_position() {
+    let (_cfg, _bus, mut w, mut m) = rig();
+    m.startup(&mut w).expect("startup");
+    m.profile_move(&mut w, 2, -3.25, 50.0, 500.0).unwrap();
+    m.home(&mut w, 2, 35, 10.0, 1.0, 100.0, 1000).unwrap();
+    let d = w.drive(2).unwrap();
+    assert!(d.position_unwrapped().abs() <= 5, "0x6064 = {} after homing on the present position", d.position_unwrapped());
+    assert!((m.feedback(1).pos).abs() < 0.001, "the master's feedback follows: {}", m.feedback(1).pos);
+    // Method 37 with a home offset of 2 mm.
+    m.sdo_write(&mut w, 2, 0x607C, 0, &20000i32.to_le_bytes()).unwrap();
+    m.home(&mut w, 2, 37, 10.0, 1.0, 100.0, 1000).unwrap();
+    assert!((w.drive(2).unwrap().position_unwrapped() - 20000).abs() <= 5);
+    let mut next = w.now_ns();
+    assert!(cycle_until_alarm(&mut w, &mut m, &mut next, 50).is_none(), "the cycle goes on after homing");
+}
+
+#[test]
+fn homing_on_the_negative_limit_switch() {
+    let (_cfg, _bus, mut w, mut m) = rig();
+    m.startup(&mut w).expect("startup");
+    let z0 = w.drive(2).unwrap().position_unwrapped();
+    // The switch closes 5 mm below the power-on position.
+    let sw = (z0 - 50_000) as i32;
+    m.sdo_write(&mut w, 2, sim_drives::drive::profile::SIM_SWITCHES, 1, &sw.to_le_bytes()).unwrap();
+    let t0 = w.now_ns();
+    // 20 mm/s towards the switch, 1 mm/s off it, 200 mm/s².
+    m.home(&mut w, 2, 17, 20.0, 1.0, 200.0, 5000).unwrap();
+    let took = (w.now_ns() - t0) as f64 * 1e-9;
+    let d = w.drive(2).unwrap();
+    // Home (0) is where the switch released; the axis stopped just past it (1 mm/s at
+    // 200 mm/s²: 2.5 µm), off the switch.
+    let p = d.position_unwrapped();
+    assert!((0..=200).contains(&p), "0x6064 = {p} counts after homing");
+    assert_eq!(d.object(0x60FD, 0), Some(0), "0x60FD: switch released");
+    assert!(took > 0.25 && took < 1.5, "homing took {took} s");
+    // The switch is at physical z0 − 50000: the axis is at z0 − 50000 + p physically, so a
+    // move to −10 mm in the new coordinate runs onto it (and 0x60FD says so).
+    m.profile_move(&mut w, 2, -1.0, 20.0, 200.0).unwrap();
+    let mut next = w.now_ns();
+    cycle_until_alarm(&mut w, &mut m, &mut next, 2);
+    assert_eq!(w.drive(2).unwrap().object(0x60FD, 0), Some(1), "0x60FD bit 0: negative limit switch");
+}
+
+#[test]
+fn homing_errors_are_alarms() {
+    let (_cfg, _bus, mut w, mut m) = rig();
+    m.startup(&mut w).expect("startup");
+    // No positive limit switch fitted: the drive reports a homing error (bit 13).
+    let e = m.home(&mut w, 1, 18, 10.0, 1.0, 100.0, 2000).unwrap_err();
+    assert_eq!(e.number, 2017);
+    assert!(e.message.contains("homing method 18 failed (0x6041 bit 13 homing error)"), "{}", e.message);
+    // An unsupported method is refused by the drive.
+    let e = m.home(&mut w, 1, 19, 10.0, 1.0, 100.0, 2000).unwrap_err();
+    assert_eq!(e.number, 2017);
+    assert!(e.message.contains("0x06090030") && e.message.contains("not supported"), "{}", e.message);
+    // The drive is usable afterwards.
+    m.profile_move(&mut w, 1, 1.0, 10.0, 100.0).unwrap();
+}

@@ -5,7 +5,8 @@
 //! Alarm numbers (ours; the manuals have none for the bus): 2001 node did not boot,
 //! 2002 not a CiA 402 device, 2003 SDO failure during configuration, 2010 EMCY / drive
 //! fault (with 0x603F and 0x1001 read and decoded), 2011 heartbeat lost, 2012 fault reset failed, 2013 enable timed out,
-//! 2014 node left operational, 2015 stale feedback, 2020 bus error.
+//! 2014 node left operational, 2015 stale feedback, 2016 profile move failed, 2017 homing
+//! failed, 2020 bus error.
 
 use super::sdo_client::{SdoClient, SdoError};
 use crate::config::{AxisKind, MachineConfig};
@@ -15,11 +16,13 @@ use cncgw_bus::canopen::emcy::{error_register_text, error_text, Emcy};
 use cncgw_bus::canopen::nmt::{decode_heartbeat, heartbeat_frame, NmtCommand, NmtState};
 use cncgw_bus::canopen::pdo::{get_i32, get_u16, MapEntry};
 use cncgw_bus::canopen::{cob, od, sync_frame};
-use cncgw_bus::cia402::{cw, mode, State};
+use cncgw_bus::cia402::{cw, mode, sw, State};
 use cncgw_bus::{CanBus, CanFrame, Clock};
 
 /// The master's own node id for its heartbeat (consumed by the drives through 0x1016).
 pub const MASTER_NODE_ID: u8 = 0x7F;
+/// Cycles until a statusword reflects a controlword sent in the first of them.
+const FRESH_STATUS_CYCLES: u32 = 3;
 /// How often SDO waits look at the bus.
 const POLL_NS: u64 = 200_000;
 
@@ -627,6 +630,166 @@ impl<B: CanBus> CanOpenMaster<B> {
             None => "0x1001 not read".to_string(),
         };
         Ok(Some(self.node_alarm(i, 2010, format!("{}; {code}; {reg}; clear the cause, then reset", d.seen))))
+    }
+
+    // ---- Profile position and homing: synchronous, clock-driven (like `startup`). ----
+
+    /// Run the cycle (receive → `step` → transmit every `cycle_ms`) until `step` says done
+    /// or `max_ns` of clock time pass. Ok(false) on the time limit.
+    fn run_cycles(
+        &mut self,
+        clock: &mut dyn Clock,
+        max_ns: u64,
+        mut step: impl FnMut(&mut Self) -> Result<bool, Alarm>,
+    ) -> Result<bool, Alarm> {
+        let mut next = clock.now_ns();
+        let end = next + max_ns;
+        while next < end {
+            next += self.cycle_ns;
+            clock.wait_until(next);
+            let now = clock.now_ns();
+            self.receive(now)?;
+            let done = step(self)?;
+            self.transmit(now)?;
+            if done {
+                return Ok(true);
+            }
+        }
+        Ok(false)
+    }
+
+    /// Enable every drive (holding position) if the cycle is not running yet.
+    fn ensure_enabled(&mut self, clock: &mut dyn Clock) -> Result<(), Alarm> {
+        if !self.running {
+            self.enable_cycles = 0;
+            self.run_cycles(clock, 6_000_000_000, |m| m.enable_step())?;
+        }
+        Ok(())
+    }
+
+    fn counts(&self, i: usize, units: f64, what: &str, number: u32) -> Result<u32, Alarm> {
+        let c = (units * self.nodes[i].spec.counts_per_unit).abs().round();
+        if !c.is_finite() || c < 1.0 || c > u32::MAX as f64 {
+            return Err(self.node_alarm(i, number, format!("{what} {units} is out of range (must give 1 to 2^32-1 counts)")));
+        }
+        Ok(c as u32)
+    }
+
+    /// Back to cyclic synchronous position, holding where the drive is.
+    fn back_to_csp(&mut self, clock: &mut dyn Clock, i: usize) -> Result<(), Alarm> {
+        let n = &mut self.nodes[i];
+        n.controlword = cw::ENABLE_OPERATION_CMD;
+        n.target = n.unwrapped;
+        self.write(clock, i, od::MODES_OF_OPERATION, 0, &[mode::CYCLIC_SYNC_POSITION as u8])?;
+        // One cycle so the target the drive latches is the held one.
+        self.run_cycles(clock, self.cycle_ns, |_| Ok(true)).map(|_| ())
+    }
+
+    /// Move `node` to `target` (machine units, absolute) in the drive's profile position
+    /// mode (1): trapezoid of `velocity` (units/s) and `accel` (units/s², also the
+    /// deceleration), computed by the drive. Enables the drives first if needed, returns
+    /// when the drive reports the target reached (0x6041 bit 10), and leaves the drive in
+    /// cyclic synchronous position holding there. The other drives hold their positions.
+    pub fn profile_move(&mut self, clock: &mut dyn Clock, node: u8, target: f64, velocity: f64, accel: f64) -> Result<(), Alarm> {
+        let i = self.index_of(node).ok_or_else(|| Alarm::new(2016, format!("node {node} is not in the machine configuration")))?;
+        let v = self.counts(i, velocity, "profile velocity", 2016)?;
+        let a = self.counts(i, accel, "profile acceleration", 2016)?;
+        let t = (target * self.nodes[i].spec.counts_per_unit).round();
+        if !t.is_finite() || t.abs() > i32::MAX as f64 {
+            return Err(self.node_alarm(i, 2016, format!("target {target} is out of the drive's INTEGER32 range")));
+        }
+        self.write(clock, i, 0x6081, 0, &v.to_le_bytes())?;
+        self.write(clock, i, 0x6083, 0, &a.to_le_bytes())?;
+        self.write(clock, i, 0x6084, 0, &a.to_le_bytes())?;
+        self.ensure_enabled(clock)?;
+        self.write(clock, i, od::MODES_OF_OPERATION, 0, &[mode::PROFILE_POSITION as u8])?;
+        let dist = (t - self.nodes[i].unwrapped as f64).abs();
+        let est_s = dist / v as f64 + 2.0 * v as f64 / a as f64;
+        let max_ns = ((2.0 * est_s + 2.0) * 1e9) as u64;
+        self.nodes[i].target = t as i64;
+        // Set-point handshake: bit 4 up until the drive acknowledges (bit 12), then down;
+        // the move is over when bit 12 is down again and bit 10 (target reached) is up.
+        self.nodes[i].controlword = cw::ENABLE_OPERATION_CMD | cw::OMS4 | cw::OMS5;
+        // A controlword sent in cycle k acts after SYNC k; the statusword sampled at SYNC k+1
+        // is read in cycle k+2: statuswords before that are stale (and in CSP bit 12 is set).
+        let mut k = 0;
+        let acked = self.run_cycles(clock, 500_000_000, |m| {
+            k += 1;
+            Ok(k >= FRESH_STATUS_CYCLES && m.nodes[i].status & sw::OMS12 != 0)
+        })?;
+        if !acked {
+            return Err(self.node_alarm(i, 2016, "profile position set-point not acknowledged (0x6041 bit 12) within 500 ms; does the drive support mode 1?"));
+        }
+        self.nodes[i].controlword = cw::ENABLE_OPERATION_CMD;
+        let mut k = 0;
+        let reached = self.run_cycles(clock, max_ns, |m| {
+            k += 1;
+            let s = m.nodes[i].status;
+            Ok(k >= FRESH_STATUS_CYCLES && s & sw::OMS12 == 0 && s & sw::TARGET_REACHED != 0)
+        })?;
+        if !reached {
+            return Err(self.node_alarm(
+                i,
+                2016,
+                format!("profile move to {target} not finished within {:.1} s (position {:.4}); check the axis for a jam", max_ns as f64 * 1e-9, self.nodes[i].unwrapped as f64 / self.nodes[i].spec.counts_per_unit),
+            ));
+        }
+        self.back_to_csp(clock, i)
+    }
+
+    /// Home `node` in the drive's homing mode (6) with `method` (0x6098; e.g. 35/37 = the
+    /// present position, 17/18 = the negative/positive limit switch), `switch_speed` and
+    /// `zero_speed` (0x6099:1/2, units/s) and `accel` (0x609A, units/s²). Enables the
+    /// drives first if needed, waits up to `timeout_ms` for "homing attained" (0x6041 bits
+    /// 12 and 10), and leaves the drive in cyclic synchronous position holding there.
+    pub fn home(
+        &mut self,
+        clock: &mut dyn Clock,
+        node: u8,
+        method: i8,
+        switch_speed: f64,
+        zero_speed: f64,
+        accel: f64,
+        timeout_ms: u64,
+    ) -> Result<(), Alarm> {
+        let i = self.index_of(node).ok_or_else(|| Alarm::new(2017, format!("node {node} is not in the machine configuration")))?;
+        let fast = self.counts(i, switch_speed, "homing switch-search speed", 2017)?;
+        let slow = self.counts(i, zero_speed, "homing zero-search speed", 2017)?;
+        let a = self.counts(i, accel, "homing acceleration", 2017)?;
+        self.write(clock, i, od::HOMING_METHOD, 0, &[method as u8]).map_err(|e| {
+            Alarm::new(2017, format!("{}; homing method {method} is probably not supported by this drive (see 0x6098 in its manual)", e.message))
+        })?;
+        self.write(clock, i, od::HOMING_SPEEDS, 1, &fast.to_le_bytes())?;
+        self.write(clock, i, od::HOMING_SPEEDS, 2, &slow.to_le_bytes())?;
+        self.write(clock, i, od::HOMING_ACCEL, 0, &a.to_le_bytes())?;
+        self.ensure_enabled(clock)?;
+        self.write(clock, i, od::MODES_OF_OPERATION, 0, &[mode::HOMING as u8])?;
+        self.nodes[i].controlword = cw::ENABLE_OPERATION_CMD | cw::OMS4;
+        // Bits 13/12/10 of a fresh statusword (see profile_move).
+        let mut k = 0;
+        let mut started = false;
+        let mut error = false;
+        let done = self.run_cycles(clock, timeout_ms * 1_000_000, |m| {
+            k += 1;
+            if k < FRESH_STATUS_CYCLES {
+                return Ok(false);
+            }
+            let s = m.nodes[i].status;
+            let (err, attained, reached) = (s & sw::OMS13 != 0, s & sw::OMS12 != 0, s & sw::TARGET_REACHED != 0);
+            started |= !reached || attained || err;
+            error = err;
+            Ok(started && (err || (attained && reached)))
+        })?;
+        self.nodes[i].controlword = cw::ENABLE_OPERATION_CMD;
+        if error {
+            let _ = self.back_to_csp(clock, i);
+            return Err(self.node_alarm(i, 2017, format!("homing method {method} failed (0x6041 bit 13 homing error); check the switch and its wiring")));
+        }
+        if !done {
+            let _ = self.back_to_csp(clock, i);
+            return Err(self.node_alarm(i, 2017, format!("homing method {method} not finished within {timeout_ms} ms")));
+        }
+        self.back_to_csp(clock, i)
     }
 
     fn target_raw(&self, i: usize) -> i32 {
