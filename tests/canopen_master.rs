@@ -243,3 +243,103 @@ fn homing_errors_are_alarms() {
     // The drive is usable afterwards.
     m.profile_move(&mut w, 1, 1.0, 10.0, 100.0).unwrap();
 }
+
+// ---- Wire faults (in-process bus, seeded: every run the same) -------------------------
+
+use cncgw_bus::transport::inproc::WireFaults;
+
+fn only(lo: u16, hi: u16, seed: u64) -> WireFaults {
+    WireFaults { seed, ids: Some((lo, hi)), ..WireFaults::default() }
+}
+
+#[test]
+fn lost_or_late_feedback_is_alarm_2015() {
+    // Node 2's TPDO1 lost from now on.
+    let (_cfg, bus, mut w, mut m, mut next) = enabled();
+    bus.set_faults(Some(WireFaults { drop: 1.0, ..only(0x182, 0x182, 1) }));
+    let (a, k) = cycle_until_alarm(&mut w, &mut m, &mut next, 100).expect("alarm");
+    assert_eq!(a.number, 2015, "{}", a.message);
+    assert!(a.message.starts_with("node 2 (axis z): no position feedback"), "{}", a.message);
+    assert!((9..=12).contains(&k), "after {k} cycles (feedback timeout 20 ms)");
+
+    // Delayed by 30 ms: too late as well.
+    let (_cfg, bus, mut w, mut m, mut next) = enabled();
+    bus.set_faults(Some(WireFaults { delay: 1.0, delay_ns: 30 * MS, ..only(0x181, 0x181, 1) }));
+    let (a, _) = cycle_until_alarm(&mut w, &mut m, &mut next, 100).expect("alarm");
+    assert_eq!(a.number, 2015, "{}", a.message);
+    assert!(a.message.starts_with("node 1 (axis x)"), "{}", a.message);
+
+    // Delayed by 5 ms: the master runs on. A constant latency cannot be seen by the age
+    // check (a TPDO still arrives every cycle, only an older one).
+    let (_cfg, bus, mut w, mut m, mut next) = enabled();
+    bus.set_faults(Some(WireFaults { delay: 1.0, delay_ns: 5 * MS, ..only(0x181, 0x181, 1) }));
+    assert!(cycle_until_alarm(&mut w, &mut m, &mut next, 200).is_none());
+    assert!(bus.fault_counts().delayed >= 200);
+    // One in five lost: still within the 20 ms feedback timeout.
+    bus.set_faults(Some(WireFaults { drop: 0.2, ..only(0x181, 0x183, 3) }));
+    assert!(cycle_until_alarm(&mut w, &mut m, &mut next, 500).is_none());
+    assert!(bus.fault_counts().dropped > 200);
+}
+
+#[test]
+fn lost_sdo_frames_are_retried_then_a_timeout() {
+    let (_cfg, bus, mut w, mut m) = rig();
+    m.startup(&mut w).expect("startup");
+    // Every answer of node 1 lost: two attempts of 500 ms (bus.sdo_timeout_ms), then the error.
+    bus.set_faults(Some(WireFaults { drop: 1.0, ..only(0x581, 0x581, 1) }));
+    let t0 = w.now_ns();
+    let e = m.sdo_upload(&mut w, 1, 0x1000, 0).unwrap_err();
+    let took = (w.now_ns() - t0) / MS;
+    assert_eq!(e.to_string(), "no SDO answer within 500 ms (is the node powered, on the bus, with this node id?)");
+    assert!((1000..=1002).contains(&took), "took {took} ms: one retry");
+
+    // A third of the requests and answers lost: some reads need the retry, some fail, none
+    // returns a wrong value; the same seed gives the same outcomes.
+    let outcomes = |seed: u64| {
+        let (_cfg, bus, mut w, mut m) = rig();
+        m.startup(&mut w).expect("startup");
+        bus.set_faults(Some(WireFaults { drop: 0.33, ..only(0x581, 0x601, seed) }));
+        (0..20)
+            .map(|_| {
+                let t0 = w.now_ns();
+                let r = m.sdo_upload(&mut w, 1, 0x1000, 0);
+                if let Ok(v) = &r {
+                    assert_eq!(v, &0x0002_0192u32.to_le_bytes());
+                }
+                (r.is_ok(), (w.now_ns() - t0) / (400 * MS))
+            })
+            .collect::<Vec<_>>()
+    };
+    let a = outcomes(5);
+    assert_eq!(a, outcomes(5));
+    assert!(a.iter().any(|&(ok, t)| ok && t == 0), "{a:?}");
+    assert!(a.iter().any(|&(ok, t)| ok && t >= 1), "some succeed on the retry: {a:?}");
+    assert!(a.iter().any(|&(ok, _)| !ok), "some fail twice: {a:?}");
+}
+
+#[test]
+fn corrupted_block_uploads_are_caught_by_the_crc() {
+    let data = pattern(USER_DATA_LEN);
+    let mut caught = 0;
+    for seed in 1..=10 {
+        let (_cfg, bus, mut w, mut m) = rig();
+        m.startup(&mut w).expect("startup");
+        m.sdo_block_download(&mut w, 1, USER_DATA, 0, &data).unwrap();
+        // One answer frame in 200 with a bit flipped (≈ 3 per 4096-byte upload).
+        bus.set_faults(Some(WireFaults { corrupt: 0.005, ..only(0x581, 0x581, seed) }));
+        let r = m.sdo_block_upload(&mut w, 1, USER_DATA, 0);
+        let corrupted = bus.fault_counts().corrupted;
+        match r {
+            Ok(v) => assert_eq!(v, data, "seed {seed}: an upload with {corrupted} corrupted frames passed as good"),
+            Err(e) => {
+                // The CRC, or for a flipped sequence number or command byte a protocol error.
+                assert!(corrupted > 0, "seed {seed}: {e} without any corruption");
+                if e == (SdoError::Abort { code: abort::CRC }) {
+                    caught += 1;
+                }
+                eprintln!("seed {seed}: {corrupted} corrupted frames: {e}");
+            }
+        }
+    }
+    assert!(caught >= 3, "only {caught} of 10 corrupted uploads were caught by the CRC");
+}
