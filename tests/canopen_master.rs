@@ -343,3 +343,37 @@ fn corrupted_block_uploads_are_caught_by_the_crc() {
     }
     assert!(caught >= 3, "only {caught} of 10 corrupted uploads were caught by the CRC");
 }
+
+// ---- Late boot ---------------------------------------------------------------------------
+
+fn rig_with_boot_delay(node: u8, ms: f64) -> (SimWorld, CanOpenMaster<cncgw_bus::transport::inproc::InprocEndpoint>) {
+    let cfg = MachineConfig::embedded();
+    let bus = InprocBus::new();
+    let mut sim = SimConfig::from_machine_toml(EMBEDDED_LATHE).unwrap();
+    for d in sim.drives.iter_mut().filter(|d| d.node == node) {
+        d.boot_delay_ms = ms;
+    }
+    let w = SimWorld::new(&bus, sim);
+    (w, CanOpenMaster::new(bus.endpoint(), &cfg))
+}
+
+#[test]
+fn a_drive_booting_after_the_boot_wait_is_alarm_2001_naming_it() {
+    // The master waits 4 × sdo_timeout_ms = 2000 ms for every boot-up after its NMT reset.
+    let (mut w, mut m) = rig_with_boot_delay(3, 2500.0);
+    let e = m.startup(&mut w).unwrap_err();
+    assert_eq!(e.number, 2001, "{}", e.message);
+    assert!(e.message.starts_with("node 3 (axis s1): no boot-up message within 2000 ms"), "{}", e.message);
+    assert!(m.booted(1) && m.booted(2) && !m.booted(3));
+    assert!((2000..2010).contains(&(w.now_ns() / MS)), "gave up at {} ms", w.now_ns() / MS);
+}
+
+#[test]
+fn a_drive_booting_late_but_within_the_wait_is_started() {
+    let (mut w, mut m) = rig_with_boot_delay(2, 1500.0);
+    m.startup(&mut w).expect("startup waits for the late drive");
+    assert!(w.now_ns() > 1500 * MS);
+    let info = m.infos().into_iter().find(|i| i.node == 2).expect("node 2 identified");
+    assert_eq!(info.device_type, 0x0002_0192);
+    assert_eq!(w.drive(2).unwrap().nmt_state(), cncgw_bus::canopen::nmt::NmtState::Operational);
+}
