@@ -455,6 +455,10 @@ impl SimDrive {
     pub fn torque(&self) -> f64 {
         self.servo.torque()
     }
+    /// The object dictionary (types, access, mappability; values as last refreshed).
+    pub fn od(&self) -> &Od {
+        &self.od
+    }
     /// Read any object as the SDO server would (integers only; `None` if absent).
     pub fn object(&self, index: u16, sub: u8) -> Option<i64> {
         match self.od.get(index, sub).map(|e| &e.value) {

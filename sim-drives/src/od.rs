@@ -138,6 +138,11 @@ impl Od {
         self.entries.insert(key(index, sub), e);
     }
 
+    /// Every entry, by index and sub-index.
+    pub fn iter(&self) -> impl Iterator<Item = ((u16, u8), &Entry)> {
+        self.entries.iter().map(|(k, e)| (((k >> 8) as u16, *k as u8), e))
+    }
+
     pub fn get(&self, index: u16, sub: u8) -> Option<&Entry> {
         self.entries.get(&key(index, sub))
     }
