@@ -377,3 +377,57 @@ fn a_drive_booting_late_but_within_the_wait_is_started() {
     assert_eq!(info.device_type, 0x0002_0192);
     assert_eq!(w.drive(2).unwrap().nmt_state(), cncgw_bus::canopen::nmt::NmtState::Operational);
 }
+
+// ---- EDS ---------------------------------------------------------------------------------
+
+use cncgw_bus::canopen::eds::Eds;
+
+fn sim_eds_text() -> String {
+    std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/python/sim_drive.eds")).unwrap()
+}
+
+fn line_of(text: &str, header: &str) -> usize {
+    text.lines().position(|l| l.trim() == header).unwrap() + 1
+}
+
+#[test]
+fn startup_objects_are_checked_against_the_eds() {
+    let (_cfg, _bus, _w, m) = rig();
+    let text = sim_eds_text();
+    let eds = Eds::parse("sim_drive.eds", &text).unwrap();
+    for node in [1, 2, 3] {
+        assert_eq!(m.check_eds(node, &eds), Vec::<String>::new(), "node {node}");
+    }
+    // A vendor file that says the controlword cannot be mapped and has no 0x6065.
+    let bad = text.replacen("AccessType=rw\nDefaultValue=0\nPDOMapping=1\n\n[6041]", "AccessType=rw\nDefaultValue=0\nPDOMapping=0\n\n[6041]", 1);
+    assert_ne!(bad, text, "the test edits the file");
+    let bad = bad.replacen("[6065]", "[6965]", 1);
+    let eds = Eds::parse("vendor.eds", &bad).unwrap();
+    let msgs = m.check_eds(1, &eds);
+    assert_eq!(msgs.len(), 2, "{msgs:#?}");
+    assert_eq!(msgs[0], "vendor.eds: object 0x6065:00 is not in the EDS");
+    assert_eq!(msgs[1], format!("vendor.eds:{} [6040] \"Controlword\": PDOMapping=0 but the master maps 0x6040:00", line_of(&bad, "[6040]")));
+}
+
+#[test]
+fn od_check_of_a_live_drive_against_its_eds() {
+    let (_cfg, _bus, mut w, mut m) = rig();
+    assert!(m.wait_boot(&mut w, 100));
+    let text = sim_eds_text();
+    let eds = Eds::parse("sim_drive.eds", &text).unwrap();
+    assert_eq!(m.check_od(&mut w, 1, &eds), Vec::<String>::new());
+    // A file with an object the drive lacks, a wrong type and a wrong access.
+    let bad = format!("{text}\n[2345]\nParameterName=Vendor thing\nObjectType=0x7\nDataType=0x0007\nAccessType=rw\n")
+        .replacen("[1017]\nParameterName=Producer heartbeat time\nObjectType=0x7\nDataType=0x0006", "[1017]\nParameterName=Producer heartbeat time\nObjectType=0x7\nDataType=0x0007", 1)
+        .replacen("[6041]\nParameterName=Statusword\nObjectType=0x7\nDataType=0x0006\nAccessType=ro", "[6041]\nParameterName=Statusword\nObjectType=0x7\nDataType=0x0006\nAccessType=rw", 1);
+    let eds = Eds::parse("vendor.eds", &bad).unwrap();
+    let msgs = m.check_od(&mut w, 1, &eds);
+    assert_eq!(
+        msgs,
+        vec![
+            format!("vendor.eds:{} [1017] \"Producer heartbeat time\": DataType UNSIGNED32 is 4 bytes but node 1 answers 2 bytes", line_of(&bad, "[1017]")),
+            format!("vendor.eds:{} [2345] \"Vendor thing\": node 1 does not have 0x2345:00 (object does not exist in the object dictionary)", line_of(&bad, "[2345]")),
+        ],
+        "(the statusword's access is not tried: writing a rw object could move something)"
+    );
+}

@@ -792,6 +792,102 @@ impl<B: CanBus> CanOpenMaster<B> {
         self.back_to_csp(clock, i)
     }
 
+    // ---- EDS checks ----
+
+    /// The objects start-up writes to `node` (index, sub, bytes) and maps (index, sub,
+    /// bits, into an RPDO?). Kept next to `configure_node`, which must write the same.
+    fn startup_objects(&self, i: usize) -> (Vec<(u16, u8, usize)>, Vec<(u16, u8, u8, bool)>) {
+        let spec = &self.nodes[i].spec;
+        let mut w = vec![
+            (od::COMM_CYCLE_PERIOD, 0, 4),
+            (od::INTERPOLATION_PERIOD, 1, 1),
+            (od::INTERPOLATION_PERIOD, 2, 1),
+            (od::MODES_OF_OPERATION, 0, 1),
+            (od::FOLLOWING_ERROR_WINDOW, 0, 4),
+            (od::QUICK_STOP_OPTION, 0, 2),
+        ];
+        if spec.min.is_some() && spec.max.is_some() && !spec.spindle {
+            w.extend([(od::SOFTWARE_LIMIT, 1, 4), (od::SOFTWARE_LIMIT, 2, 4)]);
+        }
+        for (comm, map) in [(od::RPDO_COMM, od::RPDO_MAP), (od::TPDO_COMM, od::TPDO_MAP)] {
+            w.extend([(comm, 1, 4), (comm, 2, 1), (map, 0, 1), (map, 1, 4), (map, 2, 4)]);
+        }
+        if self.hb_ms > 0 {
+            w.extend([(od::PRODUCER_HEARTBEAT, 0, 2), (od::CONSUMER_HEARTBEAT, 1, 4), (od::ABORT_CONNECTION, 0, 2)]);
+        }
+        let maps = vec![
+            (od::CONTROLWORD, 0, 16, true),
+            (od::TARGET_POSITION, 0, 32, true),
+            (od::STATUSWORD, 0, 16, false),
+            (od::POSITION_ACTUAL, 0, 32, false),
+        ];
+        (w, maps)
+    }
+
+    /// Check what start-up writes to and maps on `node` against its EDS: every object
+    /// exists, is writable with that size, and is PDO-mappable where mapped. One line per
+    /// disagreement, naming the file and line. Empty = all good.
+    pub fn check_eds(&self, node: u8, eds: &cncgw_bus::canopen::eds::Eds) -> Vec<String> {
+        let Some(i) = self.index_of(node) else {
+            return vec![format!("node {node} is not in the machine configuration")];
+        };
+        let (writes, maps) = self.startup_objects(i);
+        let mut out: Vec<String> = writes.iter().filter_map(|&(ix, sub, len)| eds.check_write(ix, sub, len).err()).collect();
+        out.extend(maps.iter().filter_map(|&(ix, sub, bits, rpdo)| eds.check_map(ix, sub, bits, rpdo).err()));
+        for (ix, sub) in [(od::DEVICE_TYPE, 0u8), (od::IDENTITY, 1)] {
+            if eds.get(ix, sub).is_none() {
+                out.push(format!("{}: 0x{ix:04X}:{sub:02X}, read at start-up, is not in the EDS", eds.file));
+            }
+        }
+        out
+    }
+
+    /// Check a live drive's object dictionary against an EDS over SDO (`cncgw od check`):
+    /// every object the file lists must exist, readable ones must read with the size of
+    /// their type, write-only ones must refuse a read, and read-only ones must refuse a
+    /// write (of the value just read, so nothing changes if the drive accepts it). PDO
+    /// mappability cannot be seen without mapping and is not checked here (`check_eds`
+    /// checks it for the objects start-up maps). One line per disagreement.
+    pub fn check_od(&mut self, clock: &mut dyn Clock, node: u8, eds: &cncgw_bus::canopen::eds::Eds) -> Vec<String> {
+        use cncgw_bus::canopen::eds::EdsAccess;
+        use cncgw_bus::canopen::sdo::abort;
+        self.ensure_node(node);
+        let mut out = Vec::new();
+        let entries: Vec<_> = eds.entries.values().cloned().collect();
+        for e in entries {
+            let at = eds.describe(e.index, e.sub).unwrap_or_default();
+            let r = self.sdo_upload(clock, node, e.index, e.sub);
+            match (r, e.access) {
+                (Err(SdoError::Abort { code: abort::WRITE_ONLY }), EdsAccess::Wo) => {}
+                (Ok(_), EdsAccess::Wo) => out.push(format!("{at}: AccessType=wo but node {node} lets it be read")),
+                (Err(SdoError::Abort { code }), _) if code == abort::NO_OBJECT || code == abort::NO_SUBINDEX => {
+                    out.push(format!("{at}: node {node} does not have 0x{:04X}:{:02X} ({})", e.index, e.sub, cncgw_bus::canopen::sdo::abort_text(code)))
+                }
+                (Err(err), _) => out.push(format!("{at}: reading it from node {node} failed: {err}")),
+                (Ok(v), access) => {
+                    if let Some(n) = e.size() {
+                        if v.len() != n {
+                            out.push(format!(
+                                "{at}: DataType {} is {n} bytes but node {node} answers {} bytes",
+                                cncgw_bus::canopen::eds::data_type_name(e.data_type),
+                                v.len()
+                            ));
+                            continue;
+                        }
+                        if matches!(access, EdsAccess::Ro | EdsAccess::Const) {
+                            match self.sdo_download(clock, node, e.index, e.sub, &v) {
+                                Err(SdoError::Abort { code: abort::READ_ONLY }) => {}
+                                Ok(()) => out.push(format!("{at}: AccessType={} but node {node} accepts writes", access.name())),
+                                Err(err) => out.push(format!("{at}: AccessType={}: a write should abort 0x06010002 (read only), node {node} says: {err}", access.name())),
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        out
+    }
+
     fn target_raw(&self, i: usize) -> i32 {
         self.nodes[i].target as i32 // wrapping to INTEGER32, as the drive does
     }
