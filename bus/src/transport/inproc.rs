@@ -171,9 +171,10 @@ impl CanBus for InprocEndpoint {
             return Err(BusError::BusOff { bus: "inproc".into() });
         }
         s.sent += 1;
-        let now = s.now();
         let mut frame = *frame;
-        let mut due = now;
+        // Due at once (0) unless delayed: then by the bus time, which only delays need.
+        let mut due = 0;
+        let s_now = s.now();
         if let Some(fl) = s.faults.as_mut() {
             let id = frame.cob_id();
             if fl.cfg.ids.is_none_or(|(lo, hi)| (lo..=hi).contains(&id)) {
@@ -183,7 +184,7 @@ impl CanBus for InprocEndpoint {
                 }
                 if fl.draw() < fl.cfg.delay {
                     fl.counts.delayed += 1;
-                    due = now + fl.cfg.delay_ns;
+                    due = s_now + fl.cfg.delay_ns;
                 }
                 if frame.len > 0 && fl.draw() < fl.cfg.corrupt {
                     fl.counts.corrupted += 1;
