@@ -128,7 +128,8 @@ fn a_drive_fault_names_error_code_and_register_in_words() {
     assert!(a.message.contains("0x1001 error register 0x05 generic error, voltage"), "{}", a.message);
     // The other axes were told to quick-stop as soon as the fault was seen (at rest, the
     // stop ends at once in Switch On Disabled: 0x605A = 2).
-    assert_eq!(m.feedback(0).state(), cncgw_bus::cia402::State::SwitchOnDisabled);
+    let x = m.node_ids().iter().position(|&n| n == 1).unwrap();
+    assert_eq!(m.feedback(x).state(), cncgw_bus::cia402::State::SwitchOnDisabled);
     assert_eq!(w.drive(1).unwrap().state(), cncgw_bus::cia402::State::SwitchOnDisabled);
 }
 
@@ -192,12 +193,17 @@ fn homing_on_the_present_position() {
     m.home(&mut w, 2, 35, 10.0, 1.0, 100.0, 1000).unwrap();
     let d = w.drive(2).unwrap();
     assert!(d.position_unwrapped().abs() <= 5, "0x6064 = {} after homing on the present position", d.position_unwrapped());
-    assert!((m.feedback(1).pos).abs() < 0.001, "the master's feedback follows: {}", m.feedback(1).pos);
+    let z = m.node_ids().iter().position(|&n| n == 2).unwrap();
+    let mut next = w.now_ns();
+    assert!(cycle_until_alarm(&mut w, &mut m, &mut next, 3).is_none());
+    assert!(m.feedback(z).pos.abs() < 0.001, "the master's feedback follows: {}", m.feedback(z).pos);
     // Method 37 with a home offset of 2 mm.
     m.sdo_write(&mut w, 2, 0x607C, 0, &20000i32.to_le_bytes()).unwrap();
     m.home(&mut w, 2, 37, 10.0, 1.0, 100.0, 1000).unwrap();
     assert!((w.drive(2).unwrap().position_unwrapped() - 20000).abs() <= 5);
     let mut next = w.now_ns();
+    assert!(cycle_until_alarm(&mut w, &mut m, &mut next, 3).is_none());
+    assert!((m.feedback(z).pos - 2.0).abs() < 0.001, "the master's feedback follows: {}", m.feedback(z).pos);
     assert!(cycle_until_alarm(&mut w, &mut m, &mut next, 50).is_none(), "the cycle goes on after homing");
 }
 
@@ -430,4 +436,37 @@ fn od_check_of_a_live_drive_against_its_eds() {
         ],
         "(the statusword's access is not tried: writing a rw object could move something)"
     );
+}
+
+#[test]
+fn spindle_in_cyclic_synchronous_velocity_and_back() {
+    let (_cfg, _bus, mut w, mut m, mut next) = enabled();
+    m.velocity_mode(&mut w, 3).unwrap();
+    assert_eq!(w.drive(3).unwrap().mode_display(), 9);
+    // 600 rpm = 3600 °/s = 3.6e6 counts/s.
+    m.set_velocity(3, 3600.0);
+    let mut run = |w: &mut SimWorld, m: &mut CanOpenMaster<_>, cycles: u32| {
+        for _ in 0..cycles {
+            next += 2 * MS;
+            w.wait_until(next);
+            m.receive(next).unwrap();
+            m.transmit(next).unwrap();
+        }
+    };
+    run(&mut w, &mut m, 1000);
+    let v = w.drive(3).unwrap().velocity_actual() as f64;
+    assert!((v - 3.6e6).abs() < 0.01 * 3.6e6, "spindle at {v} counts/s");
+    // The position feedback goes on (unwrapped through the INTEGER32 wrap).
+    let ax = m.node_ids().iter().position(|&n| n == 3).unwrap();
+    let p0 = m.feedback(ax).pos;
+    run(&mut w, &mut m, 100);
+    let turned = m.feedback(ax).pos - p0;
+    assert!((turned - 720.0).abs() < 10.0, "turned {turned}° in 0.2 s");
+    m.position_mode(&mut w, 3, 5000).unwrap();
+    assert_eq!(w.drive(3).unwrap().mode_display(), 8);
+    let at = w.drive(3).unwrap().position_unwrapped();
+    let mut next = w.now_ns();
+    assert!(cycle_until_alarm(&mut w, &mut m, &mut next, 100).is_none());
+    let moved = w.drive(3).unwrap().position_unwrapped() - at;
+    assert!(moved.abs() < 200, "holds where it stopped (moved {moved} counts)");
 }

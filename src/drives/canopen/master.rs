@@ -98,6 +98,10 @@ struct Node {
     reset_attempts: u32,
     last_emcy: Option<Emcy>,
     info: NodeInfo,
+    /// Cyclic synchronous velocity (a spindle in speed mode): RPDO1 carries 0x60FF.
+    csv: bool,
+    /// 0x60FF, counts/s.
+    target_vel: i32,
 }
 
 impl Node {
@@ -119,6 +123,8 @@ impl Node {
             reset_attempts: 0,
             last_emcy: None,
             info: NodeInfo::default(),
+            csv: false,
+            target_vel: 0,
         }
     }
 }
@@ -792,6 +798,68 @@ impl<B: CanBus> CanOpenMaster<B> {
         self.back_to_csp(clock, i)
     }
 
+    // ---- Cyclic synchronous velocity (a spindle in speed mode) ----
+
+    /// Put `node` in cyclic synchronous velocity (9): RPDO1 remapped to controlword +
+    /// target velocity 0x60FF (the CiA 301 way), mode 9, target velocity 0. From then on
+    /// `set_velocity` sets what each cycle sends; the position feedback goes on as before.
+    pub fn velocity_mode(&mut self, clock: &mut dyn Clock, node: u8) -> Result<(), Alarm> {
+        let i = self.index_of(node).ok_or_else(|| Alarm::new(2003, format!("node {node} is not in the machine configuration")))?;
+        if self.nodes[i].csv {
+            return Ok(());
+        }
+        self.nodes[i].target_vel = 0;
+        let rpdo = [MapEntry::new(od::CONTROLWORD, 0, 16), MapEntry::new(od::TARGET_VELOCITY, 0, 32)];
+        self.map_pdo(clock, i, od::RPDO_COMM, od::RPDO_MAP, cob::RPDO1 + node as u16, &rpdo)?;
+        self.nodes[i].csv = true;
+        self.write(clock, i, od::MODES_OF_OPERATION, 0, &[mode::CYCLIC_SYNC_VELOCITY as u8])
+    }
+
+    /// Target velocity of a node in `velocity_mode`, machine units/s (degrees/s for a
+    /// spindle), sent from the next `transmit` on. Ignored in position mode.
+    pub fn set_velocity(&mut self, node: u8, units_per_s: f64) {
+        if let Some(i) = self.index_of(node) {
+            let n = &mut self.nodes[i];
+            let c = (units_per_s * n.spec.counts_per_unit).round();
+            if c.is_finite() {
+                n.target_vel = c.clamp(i32::MIN as f64, i32::MAX as f64) as i32;
+            }
+        }
+    }
+
+    /// Back from `velocity_mode` to cyclic synchronous position: the target velocity goes to
+    /// 0 and the master waits (up to `timeout_ms`) for the drive to report it reached
+    /// (statusword bit 10), then mode 8, RPDO1 back to 0x607A, holding where the spindle stopped.
+    pub fn position_mode(&mut self, clock: &mut dyn Clock, node: u8, timeout_ms: u64) -> Result<(), Alarm> {
+        let i = self.index_of(node).ok_or_else(|| Alarm::new(2003, format!("node {node} is not in the machine configuration")))?;
+        if !self.nodes[i].csv {
+            return Ok(());
+        }
+        self.nodes[i].target_vel = 0;
+        if self.running {
+            // At rest (bit 10 at target velocity 0) for 50 ms: a spindle's velocity loop
+            // overshoots through zero, and position control would have to catch that up.
+            let (mut k, mut still) = (0, 0u64);
+            let need = (50_000_000 / self.cycle_ns.max(1)).max(1);
+            let stopped = self.run_cycles(clock, timeout_ms * 1_000_000, |m| {
+                k += 1;
+                let at_rest = k >= FRESH_STATUS_CYCLES && m.nodes[i].status & sw::TARGET_REACHED != 0;
+                still = if at_rest { still + 1 } else { 0 };
+                Ok(still >= need)
+            })?;
+            if !stopped {
+                return Err(self.node_alarm(i, 2010, format!("did not stop within {timeout_ms} ms for the change to position mode")));
+            }
+        }
+        self.nodes[i].target = self.nodes[i].unwrapped;
+        self.write(clock, i, od::MODES_OF_OPERATION, 0, &[mode::CYCLIC_SYNC_POSITION as u8])?;
+        let rpdo = [MapEntry::new(od::CONTROLWORD, 0, 16), MapEntry::new(od::TARGET_POSITION, 0, 32)];
+        self.map_pdo(clock, i, od::RPDO_COMM, od::RPDO_MAP, cob::RPDO1 + node as u16, &rpdo)?;
+        self.nodes[i].csv = false;
+        self.nodes[i].target = self.nodes[i].unwrapped;
+        Ok(())
+    }
+
     // ---- EDS checks ----
 
     /// The objects start-up writes to `node` (index, sub, bytes) and maps (index, sub,
@@ -1039,7 +1107,7 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
     fn transmit(&mut self, now_ns: u64) -> Result<(), Alarm> {
         for i in 0..self.nodes.len() {
             let n = &self.nodes[i];
-            let t = self.target_raw(i).to_le_bytes();
+            let t = if n.csv { n.target_vel.to_le_bytes() } else { self.target_raw(i).to_le_bytes() };
             let c = n.controlword.to_le_bytes();
             let f = CanFrame::new(cob::RPDO1 + n.spec.node as u16, &[c[0], c[1], t[0], t[1], t[2], t[3]]);
             self.send(&f)?;
