@@ -470,3 +470,30 @@ fn spindle_in_cyclic_synchronous_velocity_and_back() {
     let moved = w.drive(3).unwrap().position_unwrapped() - at;
     assert!(moved.abs() < 200, "holds where it stopped (moved {moved} counts)");
 }
+
+#[test]
+fn startup_checks_the_eds_named_in_the_config() {
+    let good = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/python/sim_drive.eds");
+    let mut cfg = MachineConfig::embedded();
+    cfg.axes.get_mut("z").unwrap().eds = Some(good.into());
+    let bus = InprocBus::new();
+    let mut w = SimWorld::new(&bus, SimConfig::from_machine_toml(EMBEDDED_LATHE).unwrap());
+    let mut m = CanOpenMaster::new(bus.endpoint(), &cfg);
+    m.startup(&mut w).expect("the EDS fits");
+
+    // A data sheet whose 0x6065 is read-only.
+    let text = sim_eds_text();
+    let bad_text = text.replacen("[6065]\nParameterName=Following error window\nObjectType=0x7\nDataType=0x0007\nAccessType=rw", "[6065]\nParameterName=Following error window\nObjectType=0x7\nDataType=0x0007\nAccessType=ro", 1);
+    assert_ne!(bad_text, text);
+    let bad = std::env::temp_dir().join(format!("cncgw_startup_eds_{}.eds", std::process::id()));
+    std::fs::write(&bad, &bad_text).unwrap();
+    cfg.axes.get_mut("z").unwrap().eds = Some(bad.to_string_lossy().into_owned());
+    let bus = InprocBus::new();
+    let mut w = SimWorld::new(&bus, SimConfig::from_machine_toml(EMBEDDED_LATHE).unwrap());
+    let mut m = CanOpenMaster::new(bus.endpoint(), &cfg);
+    let e = m.startup(&mut w).unwrap_err();
+    let _ = std::fs::remove_file(&bad);
+    assert_eq!(e.number, 2004, "{}", e.message);
+    assert!(e.message.starts_with("node 2 (axis z): the configuration does not fit the drive's EDS (1 problem(s))"), "{}", e.message);
+    assert!(e.message.contains(&format!(".eds:{} [6065] \"Following error window\": AccessType=ro but the master writes 0x6065:00", line_of(&bad_text, "[6065]"))), "{}", e.message);
+}

@@ -5,7 +5,7 @@
 //! Alarm numbers (ours; the manuals have none for the bus): 2001 node did not boot,
 //! 2002 not a CiA 402 device, 2003 SDO failure during configuration, 2010 EMCY / drive
 //! fault (with 0x603F and 0x1001 read and decoded), 2011 heartbeat lost, 2012 fault reset failed, 2013 enable timed out,
-//! 2014 node left operational, 2015 stale feedback, 2016 profile move failed, 2017 homing
+//! 2004 EDS unreadable or disagreeing, 2014 node left operational, 2015 stale feedback, 2016 profile move failed, 2017 homing
 //! failed, 2020 bus error.
 
 use super::sdo_client::{SdoClient, SdoError};
@@ -37,6 +37,8 @@ pub struct NodeSpec {
     pub following_error: f64,
     pub min: Option<f64>,
     pub max: Option<f64>,
+    /// EDS file of the drive (`axes.NAME.eds`), checked at start-up.
+    pub eds: Option<String>,
 }
 
 impl NodeSpec {
@@ -52,6 +54,7 @@ impl NodeSpec {
                 following_error: a.following_error,
                 min: a.min,
                 max: a.max,
+                eds: a.eds.clone(),
             })
             .collect()
     }
@@ -247,6 +250,7 @@ impl<B: CanBus> CanOpenMaster<B> {
             following_error: 0.0,
             min: None,
             max: None,
+            eds: None,
         };
         let timeout = self.boot_timeout_ms / 4;
         self.nodes.push(Node::new(spec, timeout.max(1)));
@@ -490,6 +494,19 @@ impl<B: CanBus> CanOpenMaster<B> {
 
     fn configure_node(&mut self, clock: &mut dyn Clock, i: usize) -> Result<(), Alarm> {
         let node = self.nodes[i].spec.node;
+        if let Some(path) = self.nodes[i].spec.eds.clone() {
+            // Before anything is written: the drive's own data sheet must allow it.
+            let eds = cncgw_bus::canopen::eds::Eds::load(std::path::Path::new(&path))
+                .map_err(|e| self.node_alarm(i, 2004, format!("EDS: {e} (axes.{}.eds; a relative path is from the working directory)", self.nodes[i].spec.axis)))?;
+            let bad = self.check_eds(node, &eds);
+            if !bad.is_empty() {
+                return Err(self.node_alarm(
+                    i,
+                    2004,
+                    format!("the configuration does not fit the drive's EDS ({} problem(s)): {}", bad.len(), bad.join("; ")),
+                ));
+            }
+        }
         let dt = self
             .read_u32(clock, i, od::DEVICE_TYPE, 0)
             .map_err(|e| self.node_alarm(i, 2003, format!("reading the device type 0x1000 failed: {e}")))?;
