@@ -21,6 +21,11 @@ use cncgw_bus::{CanBus, CanFrame, Clock};
 
 /// The master's own node id for its heartbeat (consumed by the drives through 0x1016).
 pub const MASTER_NODE_ID: u8 = 0x7F;
+/// An object start-up writes: index, sub, bytes.
+type ObjWrite = (u16, u8, usize);
+/// An object start-up maps: index, sub, bits, into an RPDO (else a TPDO).
+type ObjMap = (u16, u8, u8, bool);
+
 /// Cycles until a statusword reflects a controlword sent in the first of them.
 const FRESH_STATUS_CYCLES: u32 = 3;
 /// How often SDO waits look at the bus.
@@ -765,6 +770,7 @@ impl<B: CanBus> CanOpenMaster<B> {
     /// `zero_speed` (0x6099:1/2, units/s) and `accel` (0x609A, units/s²). Enables the
     /// drives first if needed, waits up to `timeout_ms` for "homing attained" (0x6041 bits
     /// 12 and 10), and leaves the drive in cyclic synchronous position holding there.
+    #[allow(clippy::too_many_arguments)]
     pub fn home(
         &mut self,
         clock: &mut dyn Clock,
@@ -881,7 +887,7 @@ impl<B: CanBus> CanOpenMaster<B> {
 
     /// The objects start-up writes to `node` (index, sub, bytes) and maps (index, sub,
     /// bits, into an RPDO?). Kept next to `configure_node`, which must write the same.
-    fn startup_objects(&self, i: usize) -> (Vec<(u16, u8, usize)>, Vec<(u16, u8, u8, bool)>) {
+    fn startup_objects(&self, i: usize) -> (Vec<ObjWrite>, Vec<ObjMap>) {
         let spec = &self.nodes[i].spec;
         let mut w = vec![
             (od::COMM_CYCLE_PERIOD, 0, 4),
@@ -1073,10 +1079,8 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
                 }
             }
             let n = &self.nodes[i];
-            if self.running {
-                if matches!(n.nmt, Some(s) if s != NmtState::Operational) {
-                    return Err(self.node_alarm(i, 2014, "node left NMT operational (reset or stopped by someone else?)"));
-                }
+            if self.running && matches!(n.nmt, Some(s) if s != NmtState::Operational) {
+                return Err(self.node_alarm(i, 2014, "node left NMT operational (reset or stopped by someone else?)"));
             }
             if self.hb_ms > 0 && n.last_hb_ns > 0 && now_ns.saturating_sub(n.last_hb_ns) > 3 * self.hb_ms as u64 * 1_000_000 {
                 return Err(self.node_alarm(
