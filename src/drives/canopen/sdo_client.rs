@@ -139,10 +139,13 @@ impl SdoClient {
     /// Feed a received frame. Returns the frames to send (a whole sub-block in a block
     /// download; else at most one).
     pub fn on_frame(&mut self, f: &CanFrame, now_ns: u64) -> Vec<CanFrame> {
-        if f.cob_id() != cob::SDO_TX + self.node as u16 || !self.busy() || f.len != 8 {
+        if f.cob_id() != cob::SDO_TX + self.node as u16 || !self.busy() {
             return Vec::new();
         }
         if self.in_block() {
+            if f.len != 8 {
+                return self.protocol("malformed SDO response", abort::BAD_COMMAND);
+            }
             self.deadline_ns = now_ns + self.timeout_ns;
             return self.on_block_frame(f);
         }
