@@ -223,3 +223,21 @@ fn every_service_command_has_an_example_in_its_help() {
         }
     }
 }
+
+#[test]
+fn od_check_against_an_eds() {
+    let eds = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/python/sim_drive.eds");
+    let o = cncgw(&["od", "check", "2", "--eds", eds]);
+    assert_eq!(o.code, 0, "{}{}", o.stdout, o.stderr);
+    assert!(o.stdout.contains("node 2 agrees with") && o.stdout.contains("sim_drive.eds"), "{}", o.stdout);
+    // A vendor file with an object the drive lacks.
+    let bad = std::env::temp_dir().join(format!("cncgw_od_check_{}.eds", std::process::id()));
+    let text = std::fs::read_to_string(eds).unwrap() + "\n[2345]\nParameterName=Vendor thing\nObjectType=0x7\nDataType=0x0007\nAccessType=rw\n";
+    let line = text.lines().count() - 4;
+    std::fs::write(&bad, &text).unwrap();
+    let o = cncgw(&["od", "check", "2", "--eds", bad.to_str().unwrap()]);
+    let _ = std::fs::remove_file(&bad);
+    assert_eq!(o.code, 1, "{}{}", o.stdout, o.stderr);
+    assert!(o.stdout.contains(&format!(".eds:{line} [2345] \"Vendor thing\": node 2 does not have 0x2345:00")), "{}", o.stdout);
+    assert!(o.stdout.contains("1 disagreement(s)"), "{}", o.stdout);
+}

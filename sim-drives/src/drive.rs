@@ -14,6 +14,9 @@ use cncgw_bus::cia402::{cw, device_transition, mode, sw, QuickStopOption, State}
 use cncgw_bus::CanFrame;
 use std::collections::{BTreeMap, VecDeque};
 
+mod block;
+pub mod profile;
+
 /// How many interpolation periods a late SYNC is bridged by extrapolating the set-point
 /// (20 ms at 2 ms): enough for a master on a non-real-time kernel (the vcan tier runs in a
 /// User-Mode Linux guest whose timers were measured 10–18 ms late at p99 under load).
@@ -23,6 +26,11 @@ const N_RPDO: u16 = 2;
 const N_TPDO: u16 = 2;
 /// Manufacturer-specific write-only object (an access code, as many drives have).
 pub const ACCESS_CODE: u16 = 0x2000;
+/// Manufacturer-specific DOMAIN (read-write, up to `USER_DATA_LEN` bytes, empty after a
+/// reset): where a commissioning tool keeps its notes or a parameter image. The large
+/// object that block transfers are tested and measured with.
+pub const USER_DATA: u16 = 0x2200;
+pub const USER_DATA_LEN: usize = 4096;
 /// Manufacturer-specific record: faults injected at run time (README, "Fault injection").
 pub const SIM_FAULTS: u16 = 0x2100;
 /// Sub-indices of `SIM_FAULTS`.
@@ -66,6 +74,8 @@ enum SdoState {
     Idle,
     Upload { index: u16, sub: u8, data: Vec<u8>, pos: usize, toggle: bool },
     Download { index: u16, sub: u8, size: Option<u32>, buf: Vec<u8>, toggle: bool },
+    BlockDown(block::Down),
+    BlockUp(block::Up),
 }
 
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -174,6 +184,8 @@ pub struct SimDrive {
     rng: u64,
     /// Objects read every control tick, copied out of the dictionary after each write.
     hot: Hot,
+    /// Profile position and homing (modes 1 and 6).
+    prof: profile::Prof,
     out: Vec<CanFrame>,
 }
 
@@ -252,6 +264,7 @@ fn build_od(c: &DriveConfig) -> Od {
         }
     }
     od.add(ACCESS_CODE, 0, U32, Wo, false, 0);
+    od.add_domain(USER_DATA, 0, Rw, USER_DATA_LEN);
     {
         use fault_sub::*;
         od.add(SIM_FAULTS, 0, U8, Const, false, 9);
@@ -291,8 +304,25 @@ fn build_od(c: &DriveConfig) -> Od {
     od.add_range(ix::INTERPOLATION_PERIOD, 2, I8, Rw, false, -3, -6, 0);
     od.add(ix::FOLLOWING_ERROR_ACTUAL, 0, I32, Ro, true, 0);
     od.add(ix::TARGET_VELOCITY, 0, I32, Rw, true, 0);
-    // Supported modes: bit 7 = CSP (8), bit 8 = CSV (9).
-    od.add(ix::SUPPORTED_MODES, 0, U32, Const, false, (1 << 7) | (1 << 8));
+    // Profile position and homing (drive/profile.rs).
+    {
+        use profile::*;
+        let rev = c.counts_per_rev as i64;
+        od.add(HOME_OFFSET, 0, I32, Rw, false, 0);
+        od.add(PROFILE_VELOCITY, 0, U32, Rw, true, 5 * rev);
+        od.add_range(PROFILE_ACCEL, 0, U32, Rw, false, c.profile_decel as i64, 1, u32::MAX as i64);
+        od.add_range(ix::HOMING_METHOD, 0, I8, Rw, false, 0, -128, 127);
+        od.add(ix::HOMING_SPEEDS, 0, U8, Const, false, 2);
+        od.add_range(ix::HOMING_SPEEDS, 1, U32, Rw, false, rev, 1, u32::MAX as i64);
+        od.add_range(ix::HOMING_SPEEDS, 2, U32, Rw, false, (rev / 10).max(1), 1, u32::MAX as i64);
+        od.add_range(ix::HOMING_ACCEL, 0, U32, Rw, false, c.profile_decel as i64, 1, u32::MAX as i64);
+        od.add(DIGITAL_INPUTS, 0, U32, Ro, true, 0);
+        od.add(SIM_SWITCHES, 0, U8, Const, false, 2);
+        od.add(SIM_SWITCHES, 1, I32, Rw, false, i32::MIN as i64);
+        od.add(SIM_SWITCHES, 2, I32, Rw, false, i32::MAX as i64);
+    }
+    // Supported modes: bit 0 = PP (1), bit 5 = homing (6), bit 7 = CSP (8), bit 8 = CSV (9).
+    od.add(ix::SUPPORTED_MODES, 0, U32, Const, false, 1 | (1 << 5) | (1 << 7) | (1 << 8));
     od
 }
 
@@ -340,6 +370,7 @@ impl SimDrive {
             delayed: VecDeque::new(),
             rng: 0x9E37_79B9_7F4A_7C15 ^ cfg.node as u64,
             hot: Hot::default(),
+            prof: profile::Prof::default(),
             out: Vec::new(),
             cfg,
         };
@@ -423,6 +454,10 @@ impl SimDrive {
     /// Motor torque, N·m.
     pub fn torque(&self) -> f64 {
         self.servo.torque()
+    }
+    /// The object dictionary (types, access, mappability; values as last refreshed).
+    pub fn od(&self) -> &Od {
+        &self.od
     }
     /// Read any object as the SDO server would (integers only; `None` if absent).
     pub fn object(&self, index: u16, sub: u8) -> Option<i64> {
@@ -676,7 +711,7 @@ impl SimDrive {
                 // Reset application: every object to its default, power stage off. The
                 // injected faults (0x2100) are hardware: they survive a reset.
                 self.od.reset_range(0x0000, SIM_FAULTS - 1);
-                self.od.reset_range(SIM_FAULTS + 1, 0xFFFF);
+                self.od.reset_range(profile::SIM_SWITCHES + 1, 0xFFFF);
                 self.recache();
                 self.prev_cw = 0;
                 self.stop = None;
@@ -814,21 +849,29 @@ impl SimDrive {
 
     fn apply_rpdo(&mut self, i: u16, data: &[u8], now: u64) {
         let mut pos = 0usize;
+        // A PDO is one set of values: all are stored before any acts (a controlword with
+        // "new set-point" takes the target position of the same PDO).
+        let mut written = Vec::with_capacity(4);
         for e in self.mapping(ix::RPDO_MAP + i) {
             let n = (e.bits / 8) as usize;
             if pos + n > data.len() {
-                return;
+                break;
             }
             if let Some(ent) = self.od.get(e.index, e.sub) {
                 let v = ent.dtype.decode(&data[pos..pos + n]);
                 // A PDO value a real drive would refuse by SDO is ignored.
                 if self.object_rules(e.index, e.sub, v).is_ok() && v >= ent.min && v <= ent.max {
                     self.od.set(e.index, e.sub, v);
-                    self.recache();
-                    self.after_write(e.index, e.sub, v, now);
+                    written.push((e.index, e.sub, v));
                 }
             }
             pos += n;
+        }
+        if !written.is_empty() {
+            self.recache();
+        }
+        for (index, sub, v) in written {
+            self.after_write(index, sub, v, now);
         }
     }
 
@@ -876,14 +919,22 @@ impl SimDrive {
     }
 
     fn sdo_request(&mut self, f: &CanFrame, now: u64) {
+        if f.len == 8 && self.sdo_block(f, now) {
+            return;
+        }
         let Some(req) = SdoRequest::decode(f) else {
             if f.len == 8 {
-                // Block transfer or garbage: not supported.
+                // Unknown command specifier.
                 let index = u16::from_le_bytes([f.data[1], f.data[2]]);
                 self.sdo_abort(index, f.data[3], abort::BAD_COMMAND);
             }
             return;
         };
+        self.sdo_request_plain(req, now);
+    }
+
+    /// Expedited and segmented transfers.
+    fn sdo_request_plain(&mut self, req: SdoRequest, now: u64) {
         match req {
             SdoRequest::InitiateUpload { index, sub } => {
                 self.sdo = SdoState::Idle;
@@ -964,7 +1015,7 @@ impl SimDrive {
                 }
                 *expect = !*expect;
                 buf.extend_from_slice(&data[..len.min(7) as usize]);
-                if buf.len() > 1024 {
+                if buf.len() > 1024.max(USER_DATA_LEN) {
                     return self.sdo_abort(index, sub, abort::OUT_OF_MEMORY);
                 }
                 if !last {
@@ -1098,9 +1149,11 @@ impl SimDrive {
                         return Err(abort::INVALID_VALUE);
                     }
                 ix::MODES_OF_OPERATION
-                    if ![0, mode::CYCLIC_SYNC_POSITION as i64, mode::CYCLIC_SYNC_VELOCITY as i64].contains(&x) => {
+                    if ![0, mode::PROFILE_POSITION as i64, mode::HOMING as i64, mode::CYCLIC_SYNC_POSITION as i64, mode::CYCLIC_SYNC_VELOCITY as i64]
+                        .contains(&x) => {
                         return Err(abort::INVALID_VALUE);
                     }
+                ix::HOMING_METHOD if !profile::HOMING_METHODS.contains(&x) => return Err(abort::INVALID_VALUE),
                 ix::SOFTWARE_LIMIT => {
                     let (lo, hi) = if sub == 1 { (x, self.od.int(index, 2)) } else { (self.od.int(index, 1), x) };
                     if lo > hi {
@@ -1165,6 +1218,7 @@ impl SimDrive {
         self.od.set(ix::POSITION_ACTUAL, 0, self.position_actual() as i64);
         self.od.set(ix::VELOCITY_ACTUAL, 0, self.velocity_actual() as i64);
         self.od.set(ix::FOLLOWING_ERROR_ACTUAL, 0, self.ferr() as i64);
+        self.od.set(profile::DIGITAL_INPUTS, 0, self.digital_inputs());
         self.od.set(POSITION_DEMAND, 0, self.demand.round() as i64 as i32 as i64);
         let rated = self.servo.physics().torque_limit * RATED_OF_PEAK;
         let t = (self.servo.torque() / rated * 1000.0).round().clamp(-32768.0, 32767.0);
@@ -1199,6 +1253,9 @@ impl SimDrive {
                 }
                 let reached = if let Some(st) = self.stop {
                     st.v == 0.0 && self.servo.at_rest()
+                } else if m == mode::PROFILE_POSITION || m == mode::HOMING {
+                    s |= self.profile_status();
+                    false
                 } else if m == mode::CYCLIC_SYNC_VELOCITY {
                     // Velocity window: 1 rpm or 0.5 % of the target, whichever is larger.
                     let window = (self.cfg.counts_per_rev as f64 / 60.0).max(0.005 * self.target_vel.abs());
@@ -1225,6 +1282,7 @@ impl SimDrive {
             tracing::info!(node = self.cfg.node, "mode {} → {}", mode::name(old), mode::name(m));
             self.od.set(ix::MODES_DISPLAY, 0, m as i64);
             self.hot.mode = m;
+            self.prof.mode_changed();
             self.rebase();
         }
     }
@@ -1239,6 +1297,7 @@ impl SimDrive {
         self.vff = 0.0;
         self.target_ref = None;
         self.ferr_since = None;
+        self.prof.cancel();
     }
 
     fn controlword(&mut self, c: u16, now: u64) {
@@ -1249,6 +1308,7 @@ impl SimDrive {
             return; // transition 16 only exists for the "stay in quick stop" options
         }
         self.set_state(next, now);
+        self.profile_controlword(prev, c);
     }
 
     fn qs_option(&self) -> QuickStopOption {
@@ -1472,6 +1532,8 @@ impl SimDrive {
                     Command::Velocity { v: 0.0 }
                 }
             }
+        } else if matches!(self.mode_display(), mode::PROFILE_POSITION | mode::HOMING) {
+            self.profile_tick(dt)
         } else if self.mode_display() == mode::CYCLIC_SYNC_VELOCITY {
             self.demand = self.servo.position_counts() as f64;
             self.vff = self.target_vel;

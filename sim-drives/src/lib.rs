@@ -137,10 +137,10 @@ impl Core {
 
     /// Integrate to `t` in steps no longer than the control period, stopping at every
     /// control tick and timer.
-    fn advance_to(&mut self, t: u64, mut flush: impl FnMut(&mut Vec<CanFrame>)) {
+    fn advance_to(&mut self, t: u64, mut flush: impl FnMut(&mut Vec<CanFrame>, u64)) {
         loop {
             self.fire();
-            flush(&mut self.out);
+            flush(&mut self.out, self.now);
             if self.now >= t {
                 return;
             }
@@ -199,11 +199,13 @@ fn send_all(bus: &mut dyn CanBus, out: &mut Vec<CanFrame>) {
 pub struct SimWorld {
     core: Core,
     ep: InprocEndpoint,
+    /// The wire, whose time this world sets (delayed frames fall due by it).
+    bus: InprocBus,
 }
 
 impl SimWorld {
     pub fn new(bus: &InprocBus, cfg: SimConfig) -> SimWorld {
-        SimWorld { core: Core::new(cfg), ep: bus.endpoint() }
+        SimWorld { core: Core::new(cfg), ep: bus.endpoint(), bus: bus.clone() }
     }
 
     pub fn drive(&self, node: u8) -> Option<&SimDrive> {
@@ -225,7 +227,7 @@ impl SimWorld {
             Some(d) => {
                 d.inject_fault(code, now);
                 self.core.collect();
-                let SimWorld { core, ep } = self;
+                let SimWorld { core, ep, .. } = self;
                 send_all(ep, &mut core.out);
                 true
             }
@@ -239,7 +241,7 @@ impl SimWorld {
         let now = self.core.now;
         let r = self.core.drive_mut(node).map(|d| d.set_sim_fault(sub, value, now)).unwrap_or(Err(0));
         self.core.collect();
-        let SimWorld { core, ep } = self;
+        let SimWorld { core, ep, .. } = self;
         send_all(ep, &mut core.out);
         r
     }
@@ -254,7 +256,7 @@ impl SimWorld {
             match self.ep.try_recv() {
                 Ok(Some(f)) => {
                     self.core.handle(&f);
-                    let SimWorld { core, ep } = self;
+                    let SimWorld { core, ep, .. } = self;
                     send_all(ep, &mut core.out);
                 }
                 Ok(None) => return,
@@ -273,9 +275,14 @@ impl Clock for SimWorld {
     }
 
     fn wait_until(&mut self, t_ns: u64) {
+        self.bus.set_time_ns(self.core.now);
         self.pump();
-        let SimWorld { core, ep } = self;
-        core.advance_to(t_ns, |out| send_all(ep, out));
+        let SimWorld { core, ep, bus } = self;
+        core.advance_to(t_ns, |out, now| {
+            bus.set_time_ns(now);
+            send_all(ep, out)
+        });
+        bus.set_time_ns(core.now);
     }
 
     fn is_simulated(&self) -> bool {
@@ -304,7 +311,7 @@ pub fn run_realtime_with_faults(mut bus: Box<dyn CanBus>, cfg: SimConfig, stop: 
     tracing::info!("sim-drives on {name}: nodes {:?}", core.drives.iter().map(|d| d.node()).collect::<Vec<_>>());
     while !stop.load(Ordering::Relaxed) {
         let t = now(&start);
-        core.advance_to(t, |out| send_all(&mut bus, out));
+        core.advance_to(t, |out, _| send_all(&mut bus, out));
         // Frames wake us; otherwise wake for the next timer, just before the next SYNC is
         // due (the physics is then integrated up to almost the SYNC instant beforehand, and
         // the TPDOs leave without a catch-up on the critical path), and at least every 2 ms
@@ -332,7 +339,7 @@ pub fn run_realtime_with_faults(mut bus: Box<dyn CanBus>, cfg: SimConfig, stop: 
                         Some(age) => t_now.saturating_sub(age.as_nanos() as u64).max(core.now),
                         None => t_now,
                     };
-                    core.advance_to(t, |out| send_all(&mut bus, out));
+                    core.advance_to(t, |out, _| send_all(&mut bus, out));
                     core.handle(&fr);
                     send_all(&mut bus, &mut core.out);
                     f = match bus.try_recv() {

@@ -14,6 +14,8 @@ pub enum DType {
     I32,
     /// VISIBLE_STRING, read as a whole (length = current content).
     Str,
+    /// DOMAIN: any bytes up to the entry's `max` length (large objects, block transfer).
+    Domain,
 }
 
 impl DType {
@@ -23,7 +25,7 @@ impl DType {
             DType::U8 | DType::I8 => Some(1),
             DType::U16 | DType::I16 => Some(2),
             DType::U32 | DType::I32 => Some(4),
-            DType::Str => None,
+            DType::Str | DType::Domain => None,
         }
     }
     fn range(self) -> (i64, i64) {
@@ -34,7 +36,7 @@ impl DType {
             DType::I8 => (i8::MIN as i64, i8::MAX as i64),
             DType::I16 => (i16::MIN as i64, i16::MAX as i64),
             DType::I32 => (i32::MIN as i64, i32::MAX as i64),
-            DType::Str => (0, 0),
+            DType::Str | DType::Domain => (0, 0),
         }
     }
     /// Little-endian bytes → value, sign-extended for signed types.
@@ -50,7 +52,7 @@ impl DType {
             DType::I8 => (u as u8) as i8 as i64,
             DType::I16 => (u as u16) as i16 as i64,
             DType::I32 => (u as u32) as i32 as i64,
-            DType::Str => 0,
+            DType::Str | DType::Domain => 0,
         }
     }
     pub fn encode(self, v: i64) -> Vec<u8> {
@@ -82,6 +84,7 @@ impl Access {
 pub enum Value {
     Int(i64),
     Str(String),
+    Bytes(Vec<u8>),
 }
 
 #[derive(Clone, Debug)]
@@ -128,6 +131,18 @@ impl Od {
         self.entries.insert(key(index, sub), e);
     }
 
+    /// A DOMAIN entry holding up to `max_len` bytes, empty at first.
+    pub fn add_domain(&mut self, index: u16, sub: u8, access: Access, max_len: usize) {
+        let v = Value::Bytes(Vec::new());
+        let e = Entry { dtype: DType::Domain, access, pdo: false, min: 0, max: max_len as i64, value: v.clone(), default: v };
+        self.entries.insert(key(index, sub), e);
+    }
+
+    /// Every entry, by index and sub-index.
+    pub fn iter(&self) -> impl Iterator<Item = ((u16, u8), &Entry)> {
+        self.entries.iter().map(|(k, e)| (((k >> 8) as u16, *k as u8), e))
+    }
+
     pub fn get(&self, index: u16, sub: u8) -> Option<&Entry> {
         self.entries.get(&key(index, sub))
     }
@@ -167,6 +182,7 @@ impl Od {
         Ok(match &e.value {
             Value::Int(v) => e.dtype.encode(*v),
             Value::Str(s) => s.as_bytes().to_vec(),
+            Value::Bytes(b) => b.clone(),
         })
     }
 
@@ -187,6 +203,12 @@ impl Od {
             return Err(abort::READ_ONLY);
         }
         match e.dtype.size() {
+            None if e.dtype == DType::Domain => {
+                if data.len() as i64 > e.max {
+                    return Err(abort::TOO_LONG);
+                }
+                Ok(Value::Bytes(data.to_vec()))
+            }
             None => Ok(Value::Str(String::from_utf8_lossy(data).into_owned())),
             Some(n) => {
                 if data.len() > n {
@@ -235,5 +257,18 @@ mod tests {
         assert_eq!(od.check_write(0x605A, 0, &[9, 0]), Err(abort::VALUE_TOO_HIGH));
         assert_eq!(od.check_write(0x605A, 0, &[0xFF, 0xFF]), Err(abort::VALUE_TOO_LOW));
         assert_eq!(od.check_write(0x605A, 0, &[5, 0]), Ok(Value::Int(5)));
+    }
+
+    #[test]
+    fn domain_holds_bytes_up_to_its_length() {
+        let mut od = Od::new();
+        od.add_domain(0x2200, 0, Access::Rw, 16);
+        assert_eq!(od.read_bytes(0x2200, 0), Ok(vec![]));
+        assert_eq!(od.check_write(0x2200, 0, &[0xAA; 17]), Err(abort::TOO_LONG));
+        let v = od.check_write(0x2200, 0, &[0, 0xFF, 7]).unwrap();
+        od.store(0x2200, 0, v);
+        assert_eq!(od.read_bytes(0x2200, 0), Ok(vec![0, 0xFF, 7]));
+        od.reset_range(0x2200, 0x2200);
+        assert_eq!(od.read_bytes(0x2200, 0), Ok(vec![]));
     }
 }

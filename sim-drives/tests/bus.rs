@@ -184,7 +184,8 @@ fn sdo_expedited_reads_are_byte_exact() {
     // The statusword in Switch On Disabled: voltage enabled, remote.
     r.send(SdoRequest::InitiateUpload { index: 0x6041, sub: 0 }.encode(1));
     assert_eq!(hex(&r.run(MS)[0]), "581#4B41600050020000");
-    assert_eq!(r.upload(1, 0x6502, 0), Ok(vec![0x80, 0x01, 0, 0]));
+    // PP (bit 0), homing (bit 5), CSP (bit 7), CSV (bit 8).
+    assert_eq!(r.upload(1, 0x6502, 0), Ok(vec![0xA1, 0x01, 0, 0]));
 }
 
 #[test]
@@ -225,6 +226,7 @@ fn sdo_aborts_are_the_ones_a_drive_sends() {
     assert_eq!(r.download(1, 0x605A, 0, &[0xFF, 0xFF]), Err(abort::VALUE_TOO_LOW));
     assert_eq!(r.download(1, 0x605A, 0, &[5, 0]), Ok(()));
     assert_eq!(r.download(1, 0x6060, 0, &[3]), Err(abort::INVALID_VALUE), "profile velocity is not supported");
+    assert_eq!(r.download(1, 0x6098, 0, &[19]), Err(abort::INVALID_VALUE), "homing method 19 is not supported");
     assert_eq!(r.download(1, 0x6007, 0, &[4, 0]), Err(abort::VALUE_TOO_HIGH));
     assert_eq!(r.download(1, 0x60C2, 2, &[0xF9]), Err(abort::VALUE_TOO_LOW)); // 10^-7 s
     assert_eq!(r.w32(1, 0x607D, 1, 1000), Ok(()));
@@ -242,8 +244,11 @@ fn sdo_aborts_are_the_ones_a_drive_sends() {
     // Segmented download to a read-only string is refused at the initiate.
     let r4 = r.sdo(1, SdoRequest::InitiateDownload { index: 0x1008, sub: 0, expedited: false, size: Some(9), data: [9, 0, 0, 0] });
     assert_eq!(r4, SdoResponse::Abort { index: 0x1008, sub: 0, code: abort::READ_ONLY });
-    // Block transfer is not supported.
+    // A block upload asking for sub-blocks of 0 segments.
     r.send(CanFrame::new(0x601, &[0xA0, 0x08, 0x10, 0, 0, 0, 0, 0]));
+    assert_eq!(SdoResponse::decode(&r.run(MS)[0]), Some(SdoResponse::Abort { index: 0x1008, sub: 0, code: abort::INVALID_BLOCK_SIZE }));
+    // Command specifier 7 does not exist.
+    r.send(CanFrame::new(0x601, &[0xE0, 0x08, 0x10, 0, 0, 0, 0, 0]));
     assert_eq!(SdoResponse::decode(&r.run(MS)[0]), Some(SdoResponse::Abort { index: 0x1008, sub: 0, code: abort::BAD_COMMAND }));
 }
 

@@ -668,3 +668,33 @@ pub fn drive_status(machine: &MachineArgs, node: u8, json_out: bool) -> i32 {
         EXIT_OK
     }
 }
+
+/// `cncgw od check NODE --eds FILE`.
+pub fn od_check(machine: &MachineArgs, node: u8, eds_path: &std::path::Path) -> i32 {
+    let eds = match cncgw_bus::canopen::eds::Eds::load(eds_path) {
+        Ok(e) => e,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return EXIT_SETUP;
+        }
+    };
+    let mut s = match open(machine) {
+        Ok(s) => s,
+        Err(c) => return c,
+    };
+    let mut msgs = Vec::new();
+    if s.master.node_spec(node).is_some() {
+        msgs.extend(s.master.check_eds(node, &eds));
+    }
+    msgs.extend(s.master.check_od(&mut *s.clock, node, &eds));
+    for m in &msgs {
+        println!("{m}");
+    }
+    if msgs.is_empty() {
+        println!("node {node} agrees with {} ({} objects)", eds.file, eds.entries.len());
+        0
+    } else {
+        println!("{} disagreement(s) between node {node} and {}", msgs.len(), eds.file);
+        1
+    }
+}

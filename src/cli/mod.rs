@@ -126,6 +126,9 @@ pub enum Command {
     /// CiA 402 drive commands.
     #[command(subcommand)]
     Drive(DriveCmd),
+    /// Object dictionary commands.
+    #[command(subcommand)]
+    Od(OdCmd),
     /// Print a shell completion script.
     ///
     /// Example: `cncgw completions bash > /etc/bash_completion.d/cncgw`
@@ -203,6 +206,27 @@ pub enum SdoCmd {
         /// Confirm a write that can move a motor on a real bus.
         #[arg(long)]
         yes: bool,
+        #[command(flatten)]
+        machine: MachineArgs,
+    },
+}
+
+#[derive(Subcommand, Debug)]
+pub enum OdCmd {
+    /// Check NODE's object dictionary against an EDS file (CiA 306): every object of the
+    /// file must exist on the node, read with its type's size, and refuse writes if read-only
+    /// (the value just read is written back, so nothing changes), or reads if write-only;
+    /// for a configured drive, also what start-up writes and maps (type, access, PDO
+    /// mapping). Prints one line per disagreement naming the file and line. Exit code 1 if
+    /// there is any.
+    ///
+    /// Example: `cncgw od check 1 --eds tests/python/sim_drive.eds`
+    Check {
+        #[arg(value_parser = diag::parse_node)]
+        node: u8,
+        /// The EDS file.
+        #[arg(long, value_name = "FILE")]
+        eds: PathBuf,
         #[command(flatten)]
         machine: MachineArgs,
     },
@@ -337,6 +361,7 @@ pub fn main() -> i32 {
         }
         Command::Nmt { command, target, machine, json } => diag::nmt(&machine, command, target, json),
         Command::Drive(DriveCmd::Status { node, machine, json }) => diag::drive_status(&machine, node, json),
+        Command::Od(OdCmd::Check { node, eds, machine }) => diag::od_check(&machine, node, &eds),
         Command::Completions { shell } => {
             use clap::CommandFactory;
             clap_complete::generate(shell, &mut Cli::command(), "cncgw", &mut std::io::stdout());

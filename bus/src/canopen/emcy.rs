@@ -94,6 +94,25 @@ pub fn error_text(code: u16) -> String {
     format!("{class} (0x{code:04X})")
 }
 
+/// The error register 0x1001 (CiA 301 §7.5.2.2) in words: the set bits, comma-separated;
+/// "no error" for 0.
+pub fn error_register_text(reg: u8) -> String {
+    const BITS: [&str; 8] = [
+        "generic error",
+        "current",
+        "voltage",
+        "temperature",
+        "communication error (overrun, error state)",
+        "device profile specific",
+        "reserved (bit 6)",
+        "manufacturer specific",
+    ];
+    if reg == 0 {
+        return "no error".into();
+    }
+    BITS.iter().enumerate().filter(|(i, _)| reg & (1 << i) != 0).map(|(_, t)| *t).collect::<Vec<_>>().join(", ")
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -109,5 +128,8 @@ mod tests {
         assert_eq!(error_text(0x7305), "incremental encoder 1 broken");
         assert_eq!(error_text(0x8611), "following error");
         assert_eq!(error_text(0x2399), "current (0x2399)");
+        assert_eq!(error_register_text(0), "no error");
+        assert_eq!(error_register_text(0x03), "generic error, current");
+        assert_eq!(error_register_text(0x21), "generic error, device profile specific");
     }
 }

@@ -1,6 +1,7 @@
 //! CANopen (CiA 301) codecs: NMT, heartbeat, SDO, PDO, SYNC, EMCY. Pure functions and
 //! plain types; no I/O, no clocks.
 
+pub mod eds;
 pub mod emcy;
 pub mod nmt;
 pub mod pdo;

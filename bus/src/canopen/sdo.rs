@@ -1,6 +1,9 @@
-//! SDO frame codec (CiA 301 §7.2.4): expedited and segmented transfers, abort codes.
+//! SDO frame codec (CiA 301 §7.2.4): expedited, segmented and block transfers, abort codes.
 //! Requests travel on 0x600 + node (client → server), responses on 0x580 + node.
-//! Block transfer frames are not encoded here yet.
+//!
+//! Block transfer frames (`BlockRequest`, `BlockResponse`, `BlockSegment`) cannot be told
+//! apart from segmented ones by their first byte alone (a block segment's first byte is its
+//! sequence number): the side that knows the transfer state decides which decoder applies.
 
 use super::cob;
 use crate::CanFrame;
@@ -197,6 +200,206 @@ impl SdoResponse {
     }
 }
 
+/// Largest block size (segments per sub-block) CiA 301 allows.
+pub const BLOCK_MAX: u8 = 127;
+
+/// The CRC of SDO block transfers (CiA 301 §7.2.4.3.16): CRC-16 CCITT, polynomial 0x1021,
+/// initial value 0, no reflection (the "XMODEM" variant).
+pub fn crc16(data: &[u8]) -> u16 {
+    crc16_update(0, data)
+}
+
+/// Continue a `crc16` over more data.
+pub fn crc16_update(mut crc: u16, data: &[u8]) -> u16 {
+    for &b in data {
+        crc ^= (b as u16) << 8;
+        for _ in 0..8 {
+            crc = if crc & 0x8000 != 0 { (crc << 1) ^ 0x1021 } else { crc << 1 };
+        }
+    }
+    crc
+}
+
+/// A client → server block transfer frame (not the data segments: `BlockSegment`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BlockRequest {
+    /// Initiate block download; `crc`: the client can compute the CRC.
+    InitiateDownload { index: u16, sub: u8, crc: bool, size: Option<u32> },
+    /// End block download: `unused` bytes of the last segment carry no data (0…7).
+    EndDownload { unused: u8, crc: u16 },
+    /// Initiate block upload with the block size the client accepts and the protocol
+    /// switch threshold (0 = none; else the server may answer with a normal upload when
+    /// the data is at most `pst` bytes).
+    InitiateUpload { index: u16, sub: u8, crc: bool, blksize: u8, pst: u8 },
+    /// Start the upload (after the server's initiate response).
+    StartUpload,
+    /// Sub-block received up to `ackseq`; next sub-block of `blksize` segments.
+    Ack { ackseq: u8, blksize: u8 },
+    /// The client's answer to the server's end-of-upload.
+    EndUploadResponse,
+}
+
+/// A server → client block transfer frame (not the data segments: `BlockSegment`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BlockResponse {
+    InitiateDownload { index: u16, sub: u8, crc: bool, blksize: u8 },
+    /// Sub-block received up to `ackseq`; next sub-block of `blksize` segments.
+    Ack { ackseq: u8, blksize: u8 },
+    EndDownloadResponse,
+    InitiateUpload { index: u16, sub: u8, crc: bool, size: Option<u32> },
+    /// End block upload: `unused` bytes of the last segment carry no data.
+    EndUpload { unused: u8, crc: u16 },
+}
+
+/// One data segment of a sub-block, either direction: sequence number 1…127, 7 data bytes,
+/// `last` on the final segment of the whole transfer.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct BlockSegment {
+    pub seqno: u8,
+    pub last: bool,
+    pub data: [u8; 7],
+}
+
+impl BlockSegment {
+    fn bytes(&self) -> [u8; 8] {
+        let mut d = [0u8; 8];
+        d[0] = ((self.last as u8) << 7) | (self.seqno & 0x7F);
+        d[1..8].copy_from_slice(&self.data);
+        d
+    }
+    /// As sent by a client (block download).
+    pub fn encode_request(&self, node: u8) -> CanFrame {
+        CanFrame::new(cob::SDO_RX + node as u16, &self.bytes())
+    }
+    /// As sent by a server (block upload).
+    pub fn encode_response(&self, node: u8) -> CanFrame {
+        CanFrame::new(cob::SDO_TX + node as u16, &self.bytes())
+    }
+    /// Sequence number 0 does not exist (0x80 with it is an abort).
+    pub fn decode(f: &CanFrame) -> Option<Self> {
+        if f.len != 8 || f.rtr || f.data[0] & 0x7F == 0 {
+            return None;
+        }
+        let mut data = [0u8; 7];
+        data.copy_from_slice(&f.data[1..8]);
+        Some(BlockSegment { seqno: f.data[0] & 0x7F, last: f.data[0] & 0x80 != 0, data })
+    }
+}
+
+impl BlockRequest {
+    pub fn encode(&self, node: u8) -> CanFrame {
+        let mut d = [0u8; 8];
+        match *self {
+            BlockRequest::InitiateDownload { index, sub, crc, size } => {
+                d[0] = 0xC0 | ((crc as u8) << 2) | ((size.is_some() as u8) << 1);
+                put_mux(&mut d, index, sub);
+                d[4..8].copy_from_slice(&size.unwrap_or(0).to_le_bytes());
+            }
+            BlockRequest::EndDownload { unused, crc } => {
+                d[0] = 0xC1 | ((unused.min(7)) << 2);
+                d[1..3].copy_from_slice(&crc.to_le_bytes());
+            }
+            BlockRequest::InitiateUpload { index, sub, crc, blksize, pst } => {
+                d[0] = 0xA0 | ((crc as u8) << 2);
+                put_mux(&mut d, index, sub);
+                d[4] = blksize;
+                d[5] = pst;
+            }
+            BlockRequest::StartUpload => d[0] = 0xA3,
+            BlockRequest::Ack { ackseq, blksize } => {
+                d[0] = 0xA2;
+                d[1] = ackseq;
+                d[2] = blksize;
+            }
+            BlockRequest::EndUploadResponse => d[0] = 0xA1,
+        }
+        CanFrame::new(cob::SDO_RX + node as u16, &d)
+    }
+
+    /// Decode a client block frame (command specifier 5 or 6); `None` for anything else.
+    pub fn decode(f: &CanFrame) -> Option<Self> {
+        if f.len != 8 || f.rtr {
+            return None;
+        }
+        let d = &f.data;
+        let cmd = d[0];
+        match cmd >> 5 {
+            6 if cmd & 0x01 == 0 => {
+                let (index, sub) = mux(d);
+                let size = (cmd & 0x02 != 0).then(|| u32::from_le_bytes([d[4], d[5], d[6], d[7]]));
+                Some(BlockRequest::InitiateDownload { index, sub, crc: cmd & 0x04 != 0, size })
+            }
+            6 => Some(BlockRequest::EndDownload { unused: (cmd >> 2) & 0x07, crc: u16::from_le_bytes([d[1], d[2]]) }),
+            5 => match cmd & 0x03 {
+                0 => {
+                    let (index, sub) = mux(d);
+                    Some(BlockRequest::InitiateUpload { index, sub, crc: cmd & 0x04 != 0, blksize: d[4], pst: d[5] })
+                }
+                1 => Some(BlockRequest::EndUploadResponse),
+                2 => Some(BlockRequest::Ack { ackseq: d[1], blksize: d[2] }),
+                _ => Some(BlockRequest::StartUpload),
+            },
+            _ => None,
+        }
+    }
+}
+
+impl BlockResponse {
+    pub fn encode(&self, node: u8) -> CanFrame {
+        let mut d = [0u8; 8];
+        match *self {
+            BlockResponse::InitiateDownload { index, sub, crc, blksize } => {
+                d[0] = 0xA0 | ((crc as u8) << 2);
+                put_mux(&mut d, index, sub);
+                d[4] = blksize;
+            }
+            BlockResponse::Ack { ackseq, blksize } => {
+                d[0] = 0xA2;
+                d[1] = ackseq;
+                d[2] = blksize;
+            }
+            BlockResponse::EndDownloadResponse => d[0] = 0xA1,
+            BlockResponse::InitiateUpload { index, sub, crc, size } => {
+                d[0] = 0xC0 | ((crc as u8) << 2) | ((size.is_some() as u8) << 1);
+                put_mux(&mut d, index, sub);
+                d[4..8].copy_from_slice(&size.unwrap_or(0).to_le_bytes());
+            }
+            BlockResponse::EndUpload { unused, crc } => {
+                d[0] = 0xC1 | ((unused.min(7)) << 2);
+                d[1..3].copy_from_slice(&crc.to_le_bytes());
+            }
+        }
+        CanFrame::new(cob::SDO_TX + node as u16, &d)
+    }
+
+    /// Decode a server block frame (command specifier 5 or 6); `None` for anything else.
+    pub fn decode(f: &CanFrame) -> Option<Self> {
+        if f.len != 8 || f.rtr {
+            return None;
+        }
+        let d = &f.data;
+        let cmd = d[0];
+        match cmd >> 5 {
+            5 => match cmd & 0x03 {
+                0 => {
+                    let (index, sub) = mux(d);
+                    Some(BlockResponse::InitiateDownload { index, sub, crc: cmd & 0x04 != 0, blksize: d[4] })
+                }
+                1 => Some(BlockResponse::EndDownloadResponse),
+                2 => Some(BlockResponse::Ack { ackseq: d[1], blksize: d[2] }),
+                _ => None,
+            },
+            6 if cmd & 0x01 == 0 => {
+                let (index, sub) = mux(d);
+                let size = (cmd & 0x02 != 0).then(|| u32::from_le_bytes([d[4], d[5], d[6], d[7]]));
+                Some(BlockResponse::InitiateUpload { index, sub, crc: cmd & 0x04 != 0, size })
+            }
+            6 => Some(BlockResponse::EndUpload { unused: (cmd >> 2) & 0x07, crc: u16::from_le_bytes([d[1], d[2]]) }),
+            _ => None,
+        }
+    }
+}
+
 /// CiA 301 SDO abort codes (Table 22).
 pub mod abort {
     pub const TOGGLE: u32 = 0x0503_0000;
@@ -317,6 +520,58 @@ mod tests {
         assert_eq!(hex(init.encode(4)), "584#410810000A000000");
         let d = SdoRequest::DownloadSegment { toggle: false, len: 7, data: *b"1234567", last: false };
         assert_eq!(SdoRequest::decode(&d.encode(4)), Some(d));
+    }
+
+    #[test]
+    fn crc16_is_ccitt_xmodem() {
+        // The standard check value of CRC-16/XMODEM.
+        assert_eq!(crc16(b"123456789"), 0x31C3);
+        assert_eq!(crc16(b""), 0);
+        assert_eq!(crc16_update(crc16(b"1234"), b"56789"), 0x31C3);
+    }
+
+    #[test]
+    fn block_download_frames_are_byte_exact() {
+        // Initiate with CRC and size 1000 to node 5: C6 mux size.
+        let r = BlockRequest::InitiateDownload { index: 0x2200, sub: 0, crc: true, size: Some(1000) };
+        assert_eq!(hex(r.encode(5)), "605#C6002200E8030000");
+        assert_eq!(BlockRequest::decode(&r.encode(5)), Some(r));
+        let a = BlockResponse::InitiateDownload { index: 0x2200, sub: 0, crc: true, blksize: 127 };
+        assert_eq!(hex(a.encode(5)), "585#A40022007F000000");
+        assert_eq!(BlockResponse::decode(&a.encode(5)), Some(a));
+        let seg = BlockSegment { seqno: 3, last: true, data: *b"abcdefg" };
+        assert_eq!(hex(seg.encode_request(5)), "605#8361626364656667");
+        assert_eq!(BlockSegment::decode(&seg.encode_request(5)), Some(seg));
+        let ack = BlockResponse::Ack { ackseq: 3, blksize: 127 };
+        assert_eq!(hex(ack.encode(5)), "585#A2037F0000000000");
+        assert_eq!(BlockResponse::decode(&ack.encode(5)), Some(ack));
+        // End: 2 unused bytes, CRC 0x31C3: C1 | 2<<2 = C9, CRC little-endian.
+        let end = BlockRequest::EndDownload { unused: 2, crc: 0x31C3 };
+        assert_eq!(hex(end.encode(5)), "605#C9C3310000000000");
+        assert_eq!(BlockRequest::decode(&end.encode(5)), Some(end));
+        assert_eq!(hex(BlockResponse::EndDownloadResponse.encode(5)), "585#A100000000000000");
+    }
+
+    #[test]
+    fn block_upload_frames_are_byte_exact() {
+        let r = BlockRequest::InitiateUpload { index: 0x1008, sub: 0, crc: true, blksize: 127, pst: 0 };
+        assert_eq!(hex(r.encode(1)), "601#A40810007F000000");
+        assert_eq!(BlockRequest::decode(&r.encode(1)), Some(r));
+        let a = BlockResponse::InitiateUpload { index: 0x1008, sub: 0, crc: true, size: Some(9) };
+        assert_eq!(hex(a.encode(1)), "581#C608100009000000");
+        assert_eq!(BlockResponse::decode(&a.encode(1)), Some(a));
+        assert_eq!(hex(BlockRequest::StartUpload.encode(1)), "601#A300000000000000");
+        assert_eq!(BlockRequest::decode(&BlockRequest::StartUpload.encode(1)), Some(BlockRequest::StartUpload));
+        let ack = BlockRequest::Ack { ackseq: 127, blksize: 64 };
+        assert_eq!(hex(ack.encode(1)), "601#A27F400000000000");
+        assert_eq!(BlockRequest::decode(&ack.encode(1)), Some(ack));
+        let end = BlockResponse::EndUpload { unused: 5, crc: 0xBEEF };
+        assert_eq!(hex(end.encode(1)), "581#D5EFBE0000000000");
+        assert_eq!(BlockResponse::decode(&end.encode(1)), Some(end));
+        assert_eq!(BlockRequest::decode(&BlockRequest::EndUploadResponse.encode(1)), Some(BlockRequest::EndUploadResponse));
+        // Segmented and expedited frames are not block frames, and an abort is no segment.
+        assert_eq!(BlockRequest::decode(&SdoRequest::InitiateUpload { index: 0x1000, sub: 0 }.encode(1)), None);
+        assert_eq!(BlockSegment::decode(&CanFrame::new(0x581, &[0x80, 0, 0x10, 0, 0, 0, 2, 6])), None);
     }
 
     #[test]

@@ -244,7 +244,7 @@ impl World {
                 }
             }
             // Nothing listens to CAN frames here (boot-up, EMCY): drop them.
-            self.core.advance_to(next, |out| out.clear());
+            self.core.advance_to(next, |out, _| out.clear());
         }
     }
 

@@ -4,22 +4,30 @@
 //!
 //! Alarm numbers (ours; the manuals have none for the bus): 2001 node did not boot,
 //! 2002 not a CiA 402 device, 2003 SDO failure during configuration, 2010 EMCY / drive
-//! fault, 2011 heartbeat lost, 2012 fault reset failed, 2013 enable timed out,
-//! 2014 node left operational, 2015 stale feedback, 2020 bus error.
+//! fault (with 0x603F and 0x1001 read and decoded), 2011 heartbeat lost, 2012 fault reset failed, 2013 enable timed out,
+//! 2004 EDS unreadable or disagreeing, 2014 node left operational, 2015 stale feedback, 2016 profile move failed, 2017 homing
+//! failed, 2020 bus error.
 
 use super::sdo_client::{SdoClient, SdoError};
 use crate::config::{AxisKind, MachineConfig};
 use crate::drives::{AxisFeedback, DriveBus};
 use crate::Alarm;
-use cncgw_bus::canopen::emcy::{error_text, Emcy};
+use cncgw_bus::canopen::emcy::{error_register_text, error_text, Emcy};
 use cncgw_bus::canopen::nmt::{decode_heartbeat, heartbeat_frame, NmtCommand, NmtState};
 use cncgw_bus::canopen::pdo::{get_i32, get_u16, MapEntry};
 use cncgw_bus::canopen::{cob, od, sync_frame};
-use cncgw_bus::cia402::{cw, mode, EnableProgress, Enabler, State};
+use cncgw_bus::cia402::{cw, mode, sw, EnableProgress, Enabler, State};
 use cncgw_bus::{CanBus, CanFrame, Clock};
 
 /// The master's own node id for its heartbeat (consumed by the drives through 0x1016).
 pub const MASTER_NODE_ID: u8 = 0x7F;
+/// An object start-up writes: index, sub, bytes.
+type ObjWrite = (u16, u8, usize);
+/// An object start-up maps: index, sub, bits, into an RPDO (else a TPDO).
+type ObjMap = (u16, u8, u8, bool);
+
+/// Cycles until a statusword reflects a controlword sent in the first of them.
+const FRESH_STATUS_CYCLES: u32 = 3;
 /// How often SDO waits look at the bus.
 const POLL_NS: u64 = 200_000;
 
@@ -34,6 +42,8 @@ pub struct NodeSpec {
     pub following_error: f64,
     pub min: Option<f64>,
     pub max: Option<f64>,
+    /// EDS file of the drive (`axes.NAME.eds`), checked at start-up.
+    pub eds: Option<String>,
 }
 
 impl NodeSpec {
@@ -50,6 +60,7 @@ impl NodeSpec {
                 following_error: a.following_error,
                 min: a.min,
                 max: a.max,
+                eds: a.eds.clone(),
             })
             .collect()
     }
@@ -65,6 +76,17 @@ pub struct NodeInfo {
     pub revision: u32,
     pub serial: u32,
     pub name: String,
+}
+
+/// A drive fault being diagnosed: 0x603F and 0x1001 are read (SDO, without blocking the
+/// cycle) before alarm 2010 is raised. Every axis is quick-stopped when it starts.
+struct Diag {
+    node: usize,
+    /// What was seen first: the EMCY or the state the drive fell into.
+    seen: String,
+    reading: u16,
+    code: Option<Result<u16, String>>,
+    register: Option<Result<u8, String>>,
 }
 
 struct Node {
@@ -85,6 +107,10 @@ struct Node {
     reset_attempts: u32,
     last_emcy: Option<Emcy>,
     info: NodeInfo,
+    /// Cyclic synchronous velocity (a spindle in speed mode): RPDO1 carries 0x60FF.
+    csv: bool,
+    /// 0x60FF, counts/s.
+    target_vel: i32,
 }
 
 impl Node {
@@ -106,6 +132,8 @@ impl Node {
             reset_attempts: 0,
             last_emcy: None,
             info: NodeInfo::default(),
+            csv: false,
+            target_vel: 0,
         }
     }
 }
@@ -127,11 +155,14 @@ pub struct CanOpenMaster<B: CanBus> {
     running: bool,
     /// The master heartbeat runs from the first configured consumer on.
     hb_started: bool,
+    diag: Option<Diag>,
 }
 
 enum Sdo<'a> {
     Up(u16, u8),
     Down(u16, u8, &'a [u8]),
+    BlockUp(u16, u8),
+    BlockDown(u16, u8, &'a [u8]),
 }
 
 impl<B: CanBus> CanOpenMaster<B> {
@@ -156,6 +187,7 @@ impl<B: CanBus> CanOpenMaster<B> {
             enable_cycles: 0,
             running: false,
             hb_started: false,
+            diag: None,
         }
     }
 
@@ -224,6 +256,7 @@ impl<B: CanBus> CanOpenMaster<B> {
             following_error: 0.0,
             min: None,
             max: None,
+            eds: None,
         };
         let timeout = self.boot_timeout_ms / 4;
         self.nodes.push(Node::new(spec, timeout.max(1)));
@@ -296,6 +329,19 @@ impl<B: CanBus> CanOpenMaster<B> {
     pub fn sdo_download(&mut self, clock: &mut dyn Clock, node: u8, index: u16, sub: u8, data: &[u8]) -> Result<(), SdoError> {
         let i = self.index_of(node).ok_or(SdoError::Protocol("node not known to the master (call ensure_node)"))?;
         self.sdo(clock, i, Sdo::Down(index, sub, data)).map(|_| ())
+    }
+
+    /// Read a large object (DOMAIN, long strings) of `node` with an SDO block upload
+    /// (CRC checked when the drive offers it). Far fewer round trips than `sdo_upload`.
+    pub fn sdo_block_upload(&mut self, clock: &mut dyn Clock, node: u8, index: u16, sub: u8) -> Result<Vec<u8>, SdoError> {
+        let i = self.index_of(node).ok_or(SdoError::Protocol("node not known to the master (call ensure_node)"))?;
+        self.sdo(clock, i, Sdo::BlockUp(index, sub))
+    }
+
+    /// Write a large object of `node` with an SDO block download.
+    pub fn sdo_block_download(&mut self, clock: &mut dyn Clock, node: u8, index: u16, sub: u8, data: &[u8]) -> Result<(), SdoError> {
+        let i = self.index_of(node).ok_or(SdoError::Protocol("node not known to the master (call ensure_node)"))?;
+        self.sdo(clock, i, Sdo::BlockDown(index, sub, data)).map(|_| ())
     }
 
     /// Read the identity (0x1000, 0x1018:1…4, 0x1008) of `node` without checking or
@@ -389,6 +435,8 @@ impl<B: CanBus> CanOpenMaster<B> {
             let f = match req {
                 Sdo::Up(ix, sub) => self.nodes[i].sdo.start_upload(ix, sub, now),
                 Sdo::Down(ix, sub, d) => self.nodes[i].sdo.start_download(ix, sub, d, now),
+                Sdo::BlockUp(ix, sub) => self.nodes[i].sdo.start_block_upload(ix, sub, now),
+                Sdo::BlockDown(ix, sub, d) => self.nodes[i].sdo.start_block_download(ix, sub, d, now),
             };
             if self.bus.send(&f).is_err() {
                 return Err(SdoError::Protocol("cannot send on the bus"));
@@ -400,7 +448,7 @@ impl<B: CanBus> CanOpenMaster<B> {
                 while let Ok(Some(fr)) = self.bus.try_recv() {
                     let (func, node) = cob::split(fr.cob_id());
                     if func == cob::SDO_TX && node == self.nodes[i].spec.node {
-                        if let Some(out) = self.nodes[i].sdo.on_frame(&fr, now) {
+                        for out in self.nodes[i].sdo.on_frame(&fr, now) {
                             let _ = self.bus.send(&out);
                         }
                     } else {
@@ -452,6 +500,19 @@ impl<B: CanBus> CanOpenMaster<B> {
 
     fn configure_node(&mut self, clock: &mut dyn Clock, i: usize) -> Result<(), Alarm> {
         let node = self.nodes[i].spec.node;
+        if let Some(path) = self.nodes[i].spec.eds.clone() {
+            // Before anything is written: the drive's own data sheet must allow it.
+            let eds = cncgw_bus::canopen::eds::Eds::load(std::path::Path::new(&path))
+                .map_err(|e| self.node_alarm(i, 2004, format!("EDS: {e} (axes.{}.eds; a relative path is from the working directory)", self.nodes[i].spec.axis)))?;
+            let bad = self.check_eds(node, &eds);
+            if !bad.is_empty() {
+                return Err(self.node_alarm(
+                    i,
+                    2004,
+                    format!("the configuration does not fit the drive's EDS ({} problem(s)): {}", bad.len(), bad.join("; ")),
+                ));
+            }
+        }
         let dt = self
             .read_u32(clock, i, od::DEVICE_TYPE, 0)
             .map_err(|e| self.node_alarm(i, 2003, format!("reading the device type 0x1000 failed: {e}")))?;
@@ -543,6 +604,382 @@ impl<B: CanBus> CanOpenMaster<B> {
         self.write(clock, i, comm, 1, &(cob_id as u32).to_le_bytes())
     }
 
+    /// A drive faulted: quick-stop every axis now (the others must not go on along a path
+    /// one axis has left) and start reading 0x603F from the faulted one.
+    fn start_diag(&mut self, i: usize, seen: String, now_ns: u64) -> Result<(), Alarm> {
+        tracing::warn!(node = self.nodes[i].spec.node, "{seen}: quick stop, reading 0x603F and 0x1001");
+        for n in &mut self.nodes {
+            if n.enabled {
+                n.controlword = cw::QUICK_STOP_CMD;
+            }
+        }
+        let f = self.nodes[i].sdo.start_upload(od::ERROR_CODE, 0, now_ns);
+        self.send(&f)?;
+        self.diag = Some(Diag { node: i, seen, reading: od::ERROR_CODE, code: None, register: None });
+        Ok(())
+    }
+
+    /// Advance the diagnosis; the finished alarm 2010 once both objects are read or failed.
+    fn step_diag(&mut self, now_ns: u64) -> Result<Option<Alarm>, Alarm> {
+        let Some(d) = self.diag.as_mut() else { return Ok(None) };
+        let i = d.node;
+        let sdo = &mut self.nodes[i].sdo;
+        let mut out = sdo.poll(now_ns);
+        let Some(r) = sdo.take_result() else {
+            if let Some(f) = out.take() {
+                self.send(&f)?;
+            }
+            return Ok(None);
+        };
+        let r = r.map_err(|e| e.to_string());
+        if d.reading == od::ERROR_CODE {
+            d.code = Some(r.map(|v| u16::from_le_bytes([v.first().copied().unwrap_or(0), v.get(1).copied().unwrap_or(0)])));
+            d.reading = od::ERROR_REGISTER;
+            let f = sdo.start_upload(od::ERROR_REGISTER, 0, now_ns);
+            if let Some(a) = out {
+                self.send(&a)?;
+            }
+            self.send(&f)?;
+            return Ok(None);
+        }
+        d.register = Some(r.map(|v| v.first().copied().unwrap_or(0)));
+        if let Some(a) = out {
+            self.send(&a)?;
+        }
+        let Some(d) = self.diag.take() else { return Ok(None) };
+        let code = match d.code {
+            Some(Ok(0)) => "0x603F error code 0x0000 (the drive gives no code)".to_string(),
+            Some(Ok(c)) => format!("0x603F error code 0x{c:04X} {}", error_text(c)),
+            Some(Err(e)) => format!("0x603F unreadable ({e})"),
+            None => "0x603F not read".to_string(),
+        };
+        let reg = match d.register {
+            Some(Ok(r)) => format!("0x1001 error register 0x{r:02X} {}", error_register_text(r)),
+            Some(Err(e)) => format!("0x1001 unreadable ({e})"),
+            None => "0x1001 not read".to_string(),
+        };
+        Ok(Some(self.node_alarm(i, 2010, format!("{}; {code}; {reg}; clear the cause, then reset", d.seen))))
+    }
+
+    // ---- Profile position and homing: synchronous, clock-driven (like `startup`). ----
+
+    /// Run the cycle (receive → `step` → transmit every `cycle_ms`) until `step` says done
+    /// or `max_ns` of clock time pass. Ok(false) on the time limit.
+    fn run_cycles(
+        &mut self,
+        clock: &mut dyn Clock,
+        max_ns: u64,
+        mut step: impl FnMut(&mut Self) -> Result<bool, Alarm>,
+    ) -> Result<bool, Alarm> {
+        let mut next = clock.now_ns();
+        let end = next + max_ns;
+        while next < end {
+            next += self.cycle_ns;
+            clock.wait_until(next);
+            let now = clock.now_ns();
+            self.receive(now)?;
+            let done = step(self)?;
+            self.transmit(now)?;
+            if done {
+                return Ok(true);
+            }
+        }
+        Ok(false)
+    }
+
+    /// Enable every drive (holding position) if the cycle is not running yet.
+    fn ensure_enabled(&mut self, clock: &mut dyn Clock) -> Result<(), Alarm> {
+        if !self.running {
+            self.enable_cycles = 0;
+            self.run_cycles(clock, 6_000_000_000, |m| m.enable_step())?;
+        }
+        Ok(())
+    }
+
+    fn counts(&self, i: usize, units: f64, what: &str, number: u32) -> Result<u32, Alarm> {
+        let c = (units * self.nodes[i].spec.counts_per_unit).abs().round();
+        if !c.is_finite() || c < 1.0 || c > u32::MAX as f64 {
+            return Err(self.node_alarm(i, number, format!("{what} {units} is out of range (must give 1 to 2^32-1 counts)")));
+        }
+        Ok(c as u32)
+    }
+
+    /// Back to cyclic synchronous position, holding where the drive is.
+    fn back_to_csp(&mut self, clock: &mut dyn Clock, i: usize) -> Result<(), Alarm> {
+        let n = &mut self.nodes[i];
+        n.controlword = cw::ENABLE_OPERATION_CMD;
+        n.target = n.unwrapped;
+        self.write(clock, i, od::MODES_OF_OPERATION, 0, &[mode::CYCLIC_SYNC_POSITION as u8])?;
+        // One cycle so the target the drive latches is the held one.
+        self.run_cycles(clock, self.cycle_ns, |_| Ok(true)).map(|_| ())
+    }
+
+    /// Move `node` to `target` (machine units, absolute) in the drive's profile position
+    /// mode (1): trapezoid of `velocity` (units/s) and `accel` (units/s², also the
+    /// deceleration), computed by the drive. Enables the drives first if needed, returns
+    /// when the drive reports the target reached (0x6041 bit 10), and leaves the drive in
+    /// cyclic synchronous position holding there. The other drives hold their positions.
+    pub fn profile_move(&mut self, clock: &mut dyn Clock, node: u8, target: f64, velocity: f64, accel: f64) -> Result<(), Alarm> {
+        let i = self.index_of(node).ok_or_else(|| Alarm::new(2016, format!("node {node} is not in the machine configuration")))?;
+        let v = self.counts(i, velocity, "profile velocity", 2016)?;
+        let a = self.counts(i, accel, "profile acceleration", 2016)?;
+        let t = (target * self.nodes[i].spec.counts_per_unit).round();
+        if !t.is_finite() || t.abs() > i32::MAX as f64 {
+            return Err(self.node_alarm(i, 2016, format!("target {target} is out of the drive's INTEGER32 range")));
+        }
+        self.write(clock, i, 0x6081, 0, &v.to_le_bytes())?;
+        self.write(clock, i, 0x6083, 0, &a.to_le_bytes())?;
+        self.write(clock, i, 0x6084, 0, &a.to_le_bytes())?;
+        self.ensure_enabled(clock)?;
+        self.write(clock, i, od::MODES_OF_OPERATION, 0, &[mode::PROFILE_POSITION as u8])?;
+        let dist = (t - self.nodes[i].unwrapped as f64).abs();
+        let est_s = dist / v as f64 + 2.0 * v as f64 / a as f64;
+        let max_ns = ((2.0 * est_s + 2.0) * 1e9) as u64;
+        self.nodes[i].target = t as i64;
+        // Set-point handshake: bit 4 up until the drive acknowledges (bit 12), then down;
+        // the move is over when bit 12 is down again and bit 10 (target reached) is up.
+        self.nodes[i].controlword = cw::ENABLE_OPERATION_CMD | cw::OMS4 | cw::OMS5;
+        // A controlword sent in cycle k acts after SYNC k; the statusword sampled at SYNC k+1
+        // is read in cycle k+2: statuswords before that are stale (and in CSP bit 12 is set).
+        let mut k = 0;
+        let acked = self.run_cycles(clock, 500_000_000, |m| {
+            k += 1;
+            Ok(k >= FRESH_STATUS_CYCLES && m.nodes[i].status & sw::OMS12 != 0)
+        })?;
+        if !acked {
+            return Err(self.node_alarm(i, 2016, "profile position set-point not acknowledged (0x6041 bit 12) within 500 ms; does the drive support mode 1?"));
+        }
+        self.nodes[i].controlword = cw::ENABLE_OPERATION_CMD;
+        let mut k = 0;
+        let reached = self.run_cycles(clock, max_ns, |m| {
+            k += 1;
+            let s = m.nodes[i].status;
+            Ok(k >= FRESH_STATUS_CYCLES && s & sw::OMS12 == 0 && s & sw::TARGET_REACHED != 0)
+        })?;
+        if !reached {
+            return Err(self.node_alarm(
+                i,
+                2016,
+                format!("profile move to {target} not finished within {:.1} s (position {:.4}); check the axis for a jam", max_ns as f64 * 1e-9, self.nodes[i].unwrapped as f64 / self.nodes[i].spec.counts_per_unit),
+            ));
+        }
+        self.back_to_csp(clock, i)
+    }
+
+    /// Home `node` in the drive's homing mode (6) with `method` (0x6098; e.g. 35/37 = the
+    /// present position, 17/18 = the negative/positive limit switch), `switch_speed` and
+    /// `zero_speed` (0x6099:1/2, units/s) and `accel` (0x609A, units/s²). Enables the
+    /// drives first if needed, waits up to `timeout_ms` for "homing attained" (0x6041 bits
+    /// 12 and 10), and leaves the drive in cyclic synchronous position holding there.
+    #[allow(clippy::too_many_arguments)]
+    pub fn home(
+        &mut self,
+        clock: &mut dyn Clock,
+        node: u8,
+        method: i8,
+        switch_speed: f64,
+        zero_speed: f64,
+        accel: f64,
+        timeout_ms: u64,
+    ) -> Result<(), Alarm> {
+        let i = self.index_of(node).ok_or_else(|| Alarm::new(2017, format!("node {node} is not in the machine configuration")))?;
+        let fast = self.counts(i, switch_speed, "homing switch-search speed", 2017)?;
+        let slow = self.counts(i, zero_speed, "homing zero-search speed", 2017)?;
+        let a = self.counts(i, accel, "homing acceleration", 2017)?;
+        self.write(clock, i, od::HOMING_METHOD, 0, &[method as u8]).map_err(|e| {
+            Alarm::new(2017, format!("{}; homing method {method} is probably not supported by this drive (see 0x6098 in its manual)", e.message))
+        })?;
+        self.write(clock, i, od::HOMING_SPEEDS, 1, &fast.to_le_bytes())?;
+        self.write(clock, i, od::HOMING_SPEEDS, 2, &slow.to_le_bytes())?;
+        self.write(clock, i, od::HOMING_ACCEL, 0, &a.to_le_bytes())?;
+        self.ensure_enabled(clock)?;
+        self.write(clock, i, od::MODES_OF_OPERATION, 0, &[mode::HOMING as u8])?;
+        self.nodes[i].controlword = cw::ENABLE_OPERATION_CMD | cw::OMS4;
+        // Bits 13/12/10 of a fresh statusword (see profile_move).
+        let mut k = 0;
+        let mut started = false;
+        let mut error = false;
+        let done = self.run_cycles(clock, timeout_ms * 1_000_000, |m| {
+            k += 1;
+            if k < FRESH_STATUS_CYCLES {
+                return Ok(false);
+            }
+            let s = m.nodes[i].status;
+            let (err, attained, reached) = (s & sw::OMS13 != 0, s & sw::OMS12 != 0, s & sw::TARGET_REACHED != 0);
+            started |= !reached || attained || err;
+            error = err;
+            Ok(started && (err || (attained && reached)))
+        })?;
+        self.nodes[i].controlword = cw::ENABLE_OPERATION_CMD;
+        if error {
+            let _ = self.back_to_csp(clock, i);
+            return Err(self.node_alarm(i, 2017, format!("homing method {method} failed (0x6041 bit 13 homing error); check the switch and its wiring")));
+        }
+        if !done {
+            let _ = self.back_to_csp(clock, i);
+            return Err(self.node_alarm(i, 2017, format!("homing method {method} not finished within {timeout_ms} ms")));
+        }
+        self.back_to_csp(clock, i)
+    }
+
+    // ---- Cyclic synchronous velocity (a spindle in speed mode) ----
+
+    /// Put `node` in cyclic synchronous velocity (9): RPDO1 remapped to controlword +
+    /// target velocity 0x60FF (the CiA 301 way), mode 9, target velocity 0. From then on
+    /// `set_velocity` sets what each cycle sends; the position feedback goes on as before.
+    pub fn velocity_mode(&mut self, clock: &mut dyn Clock, node: u8) -> Result<(), Alarm> {
+        let i = self.index_of(node).ok_or_else(|| Alarm::new(2003, format!("node {node} is not in the machine configuration")))?;
+        if self.nodes[i].csv {
+            return Ok(());
+        }
+        self.nodes[i].target_vel = 0;
+        let rpdo = [MapEntry::new(od::CONTROLWORD, 0, 16), MapEntry::new(od::TARGET_VELOCITY, 0, 32)];
+        self.map_pdo(clock, i, od::RPDO_COMM, od::RPDO_MAP, cob::RPDO1 + node as u16, &rpdo)?;
+        self.nodes[i].csv = true;
+        self.write(clock, i, od::MODES_OF_OPERATION, 0, &[mode::CYCLIC_SYNC_VELOCITY as u8])
+    }
+
+    /// Target velocity of a node in `velocity_mode`, machine units/s (degrees/s for a
+    /// spindle), sent from the next `transmit` on. Ignored in position mode.
+    pub fn set_velocity(&mut self, node: u8, units_per_s: f64) {
+        if let Some(i) = self.index_of(node) {
+            let n = &mut self.nodes[i];
+            let c = (units_per_s * n.spec.counts_per_unit).round();
+            if c.is_finite() {
+                n.target_vel = c.clamp(i32::MIN as f64, i32::MAX as f64) as i32;
+            }
+        }
+    }
+
+    /// Back from `velocity_mode` to cyclic synchronous position: the target velocity goes to
+    /// 0 and the master waits (up to `timeout_ms`) for the drive to report it reached
+    /// (statusword bit 10), then mode 8, RPDO1 back to 0x607A, holding where the spindle stopped.
+    pub fn position_mode(&mut self, clock: &mut dyn Clock, node: u8, timeout_ms: u64) -> Result<(), Alarm> {
+        let i = self.index_of(node).ok_or_else(|| Alarm::new(2003, format!("node {node} is not in the machine configuration")))?;
+        if !self.nodes[i].csv {
+            return Ok(());
+        }
+        self.nodes[i].target_vel = 0;
+        if self.running {
+            // At rest (bit 10 at target velocity 0) for 50 ms: a spindle's velocity loop
+            // overshoots through zero, and position control would have to catch that up.
+            let (mut k, mut still) = (0, 0u64);
+            let need = (50_000_000 / self.cycle_ns.max(1)).max(1);
+            let stopped = self.run_cycles(clock, timeout_ms * 1_000_000, |m| {
+                k += 1;
+                let at_rest = k >= FRESH_STATUS_CYCLES && m.nodes[i].status & sw::TARGET_REACHED != 0;
+                still = if at_rest { still + 1 } else { 0 };
+                Ok(still >= need)
+            })?;
+            if !stopped {
+                return Err(self.node_alarm(i, 2010, format!("did not stop within {timeout_ms} ms for the change to position mode")));
+            }
+        }
+        self.nodes[i].target = self.nodes[i].unwrapped;
+        self.write(clock, i, od::MODES_OF_OPERATION, 0, &[mode::CYCLIC_SYNC_POSITION as u8])?;
+        let rpdo = [MapEntry::new(od::CONTROLWORD, 0, 16), MapEntry::new(od::TARGET_POSITION, 0, 32)];
+        self.map_pdo(clock, i, od::RPDO_COMM, od::RPDO_MAP, cob::RPDO1 + node as u16, &rpdo)?;
+        self.nodes[i].csv = false;
+        self.nodes[i].target = self.nodes[i].unwrapped;
+        Ok(())
+    }
+
+    // ---- EDS checks ----
+
+    /// The objects start-up writes to `node` (index, sub, bytes) and maps (index, sub,
+    /// bits, into an RPDO?). Kept next to `configure_node`, which must write the same.
+    fn startup_objects(&self, i: usize) -> (Vec<ObjWrite>, Vec<ObjMap>) {
+        let spec = &self.nodes[i].spec;
+        let mut w = vec![
+            (od::COMM_CYCLE_PERIOD, 0, 4),
+            (od::INTERPOLATION_PERIOD, 1, 1),
+            (od::INTERPOLATION_PERIOD, 2, 1),
+            (od::MODES_OF_OPERATION, 0, 1),
+            (od::FOLLOWING_ERROR_WINDOW, 0, 4),
+            (od::QUICK_STOP_OPTION, 0, 2),
+        ];
+        if spec.min.is_some() && spec.max.is_some() && !spec.spindle {
+            w.extend([(od::SOFTWARE_LIMIT, 1, 4), (od::SOFTWARE_LIMIT, 2, 4)]);
+        }
+        for (comm, map) in [(od::RPDO_COMM, od::RPDO_MAP), (od::TPDO_COMM, od::TPDO_MAP)] {
+            w.extend([(comm, 1, 4), (comm, 2, 1), (map, 0, 1), (map, 1, 4), (map, 2, 4)]);
+        }
+        if self.hb_ms > 0 {
+            w.extend([(od::PRODUCER_HEARTBEAT, 0, 2), (od::CONSUMER_HEARTBEAT, 1, 4), (od::ABORT_CONNECTION, 0, 2)]);
+        }
+        let maps = vec![
+            (od::CONTROLWORD, 0, 16, true),
+            (od::TARGET_POSITION, 0, 32, true),
+            (od::STATUSWORD, 0, 16, false),
+            (od::POSITION_ACTUAL, 0, 32, false),
+        ];
+        (w, maps)
+    }
+
+    /// Check what start-up writes to and maps on `node` against its EDS: every object
+    /// exists, is writable with that size, and is PDO-mappable where mapped. One line per
+    /// disagreement, naming the file and line. Empty = all good.
+    pub fn check_eds(&self, node: u8, eds: &cncgw_bus::canopen::eds::Eds) -> Vec<String> {
+        let Some(i) = self.index_of(node) else {
+            return vec![format!("node {node} is not in the machine configuration")];
+        };
+        let (writes, maps) = self.startup_objects(i);
+        let mut out: Vec<String> = writes.iter().filter_map(|&(ix, sub, len)| eds.check_write(ix, sub, len).err()).collect();
+        out.extend(maps.iter().filter_map(|&(ix, sub, bits, rpdo)| eds.check_map(ix, sub, bits, rpdo).err()));
+        for (ix, sub) in [(od::DEVICE_TYPE, 0u8), (od::IDENTITY, 1)] {
+            if eds.get(ix, sub).is_none() {
+                out.push(format!("{}: 0x{ix:04X}:{sub:02X}, read at start-up, is not in the EDS", eds.file));
+            }
+        }
+        out
+    }
+
+    /// Check a live drive's object dictionary against an EDS over SDO (`cncgw od check`):
+    /// every object the file lists must exist, readable ones must read with the size of
+    /// their type, write-only ones must refuse a read, and read-only ones must refuse a
+    /// write (of the value just read, so nothing changes if the drive accepts it). PDO
+    /// mappability cannot be seen without mapping and is not checked here (`check_eds`
+    /// checks it for the objects start-up maps). One line per disagreement.
+    pub fn check_od(&mut self, clock: &mut dyn Clock, node: u8, eds: &cncgw_bus::canopen::eds::Eds) -> Vec<String> {
+        use cncgw_bus::canopen::eds::EdsAccess;
+        use cncgw_bus::canopen::sdo::abort;
+        self.ensure_node(node);
+        let mut out = Vec::new();
+        let entries: Vec<_> = eds.entries.values().cloned().collect();
+        for e in entries {
+            let at = eds.describe(e.index, e.sub).unwrap_or_default();
+            let r = self.sdo_upload(clock, node, e.index, e.sub);
+            match (r, e.access) {
+                (Err(SdoError::Abort { code: abort::WRITE_ONLY }), EdsAccess::Wo) => {}
+                (Ok(_), EdsAccess::Wo) => out.push(format!("{at}: AccessType=wo but node {node} lets it be read")),
+                (Err(SdoError::Abort { code }), _) if code == abort::NO_OBJECT || code == abort::NO_SUBINDEX => {
+                    out.push(format!("{at}: node {node} does not have 0x{:04X}:{:02X} ({})", e.index, e.sub, cncgw_bus::canopen::sdo::abort_text(code)))
+                }
+                (Err(err), _) => out.push(format!("{at}: reading it from node {node} failed: {err}")),
+                (Ok(v), access) => {
+                    if let Some(n) = e.size() {
+                        if v.len() != n {
+                            out.push(format!(
+                                "{at}: DataType {} is {n} bytes but node {node} answers {} bytes",
+                                cncgw_bus::canopen::eds::data_type_name(e.data_type),
+                                v.len()
+                            ));
+                            continue;
+                        }
+                        if matches!(access, EdsAccess::Ro | EdsAccess::Const) {
+                            match self.sdo_download(clock, node, e.index, e.sub, &v) {
+                                Err(SdoError::Abort { code: abort::READ_ONLY }) => {}
+                                Ok(()) => out.push(format!("{at}: AccessType={} but node {node} accepts writes", access.name())),
+                                Err(err) => out.push(format!("{at}: AccessType={}: a write should abort 0x06010002 (read only), node {node} says: {err}", access.name())),
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        out
+    }
+
     fn target_raw(&self, i: usize) -> i32 {
         self.nodes[i].target as i32 // wrapping to INTEGER32, as the drive does
     }
@@ -605,28 +1042,46 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
         self.now_ns = now_ns;
         loop {
             match self.bus.try_recv() {
-                Ok(Some(f)) => self.on_background(&f, now_ns),
+                Ok(Some(f)) => {
+                    let (func, node) = cob::split(f.cob_id());
+                    match self.index_of(node) {
+                        Some(i) if func == cob::SDO_TX && self.nodes[i].sdo.busy() => {
+                            for out in self.nodes[i].sdo.on_frame(&f, now_ns) {
+                                self.send(&out)?;
+                            }
+                        }
+                        _ => self.on_background(&f, now_ns),
+                    }
+                }
                 Ok(None) => break,
                 Err(e) => return Err(self.bus_alarm(e)),
             }
         }
+        if let Some(a) = self.step_diag(now_ns)? {
+            return Err(a);
+        }
         for i in 0..self.nodes.len() {
             let n = &self.nodes[i];
-            if self.running {
-                if let Some(e) = n.last_emcy {
-                    return Err(self.node_alarm(
-                        i,
-                        2010,
-                        format!("drive fault EMCY 0x{:04X} {} (error register 0x{:02X}); clear the cause, then reset", e.code, error_text(e.code), e.register),
-                    ));
-                }
+            if self.running && self.diag.is_none() {
                 let st = State::from_statusword(n.status);
-                if n.have_fb && st != State::OperationEnabled {
-                    return Err(self.node_alarm(i, 2010, format!("drive left Operation Enabled: now {}", st.name())));
+                let seen = if let Some(e) = n.last_emcy {
+                    Some(format!("drive fault EMCY 0x{:04X} {} (error register 0x{:02X})", e.code, error_text(e.code), e.register))
+                } else if n.have_fb && st != State::OperationEnabled {
+                    Some(format!("drive left Operation Enabled: now {}", st.name()))
+                } else {
+                    None
+                };
+                if let Some(seen) = seen {
+                    self.start_diag(i, seen, now_ns)?;
+                    if let Some(a) = self.step_diag(now_ns)? {
+                        return Err(a);
+                    }
+                    continue;
                 }
-                if matches!(n.nmt, Some(s) if s != NmtState::Operational) {
-                    return Err(self.node_alarm(i, 2014, "node left NMT operational (reset or stopped by someone else?)"));
-                }
+            }
+            let n = &self.nodes[i];
+            if self.running && matches!(n.nmt, Some(s) if s != NmtState::Operational) {
+                return Err(self.node_alarm(i, 2014, "node left NMT operational (reset or stopped by someone else?)"));
             }
             if self.hb_ms > 0 && n.last_hb_ns > 0 && now_ns.saturating_sub(n.last_hb_ns) > 3 * self.hb_ms as u64 * 1_000_000 {
                 return Err(self.node_alarm(
@@ -675,7 +1130,7 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
     fn transmit(&mut self, now_ns: u64) -> Result<(), Alarm> {
         for i in 0..self.nodes.len() {
             let n = &self.nodes[i];
-            let t = self.target_raw(i).to_le_bytes();
+            let t = if n.csv { n.target_vel.to_le_bytes() } else { self.target_raw(i).to_le_bytes() };
             let c = n.controlword.to_le_bytes();
             let f = CanFrame::new(cob::RPDO1 + n.spec.node as u16, &[c[0], c[1], t[0], t[1], t[2], t[3]]);
             self.send(&f)?;
@@ -725,6 +1180,7 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
         }
         if all {
             self.running = true;
+            self.diag = None;
             for n in &mut self.nodes {
                 n.last_emcy = None;
             }
