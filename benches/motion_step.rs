@@ -68,7 +68,7 @@ fn program() -> Vec<Move> {
     p.push(mv(50, MoveKind::Rapid { end: Pos::xz(x + 2.0, z) }, true));
     p.push(mv(51, MoveKind::Rapid { end: Pos::xz(x + 2.0, 2.0) }, true));
     p.push(mv(52, MoveKind::Rapid { end: Pos::xz(9.0, 2.0) }, true));
-    p.push(mv(53, MoveKind::Thread { end: Pos::xz(9.0, -40.0), lead: 1.5, start_angle: 0.0 }, true));
+    p.push(mv(53, MoveKind::Thread { end: Pos::xz(9.0, -40.0), lead: 1.5, start_angle: 0.0, continuous: false, lead_inc: 0.0 }, true));
     p.push(mv(54, MoveKind::Rapid { end: Pos::xz(START[0], START[2]) }, true));
     p
 }

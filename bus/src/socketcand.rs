@@ -138,23 +138,21 @@ impl Splitter {
     /// The next complete message, if any. Garbage before a `<` is skipped; a message longer
     /// than 1 KiB without its `>` is dropped (no valid message is that long).
     pub fn next_msg(&mut self) -> Option<Msg> {
-        loop {
-            let start = self.buf.iter().position(|&b| b == b'<')?;
-            if start > 0 {
-                self.buf.drain(..start);
+        let start = self.buf.iter().position(|&b| b == b'<')?;
+        if start > 0 {
+            self.buf.drain(..start);
+        }
+        match self.buf.iter().position(|&b| b == b'>') {
+            Some(end) => {
+                let body = String::from_utf8_lossy(&self.buf[1..end]).into_owned();
+                self.buf.drain(..=end);
+                Some(parse(&body))
             }
-            match self.buf.iter().position(|&b| b == b'>') {
-                Some(end) => {
-                    let body = String::from_utf8_lossy(&self.buf[1..end]).into_owned();
-                    self.buf.drain(..=end);
-                    return Some(parse(&body));
+            None => {
+                if self.buf.len() > 1024 {
+                    self.buf.clear();
                 }
-                None => {
-                    if self.buf.len() > 1024 {
-                        self.buf.clear();
-                    }
-                    return None;
-                }
+                None
             }
         }
     }
