@@ -201,6 +201,36 @@ pub struct AxisConfig {
     /// Optional EDS file describing the drive.
     #[serde(default)]
     pub eds: Option<String>,
+    /// CANopen RPDO1 COB-ID (controlword + target); default 0x200 + node.
+    #[serde(default)]
+    pub rpdo_cob_id: Option<u16>,
+    /// CANopen TPDO1 COB-ID (statusword + position actual); default 0x180 + node.
+    #[serde(default)]
+    pub tpdo_cob_id: Option<u16>,
+    /// RPDO1 transmission type (0x1400:2): 0–240 synchronous (acts at the next SYNC), 254/255
+    /// event-driven (acts on arrival). Default 1.
+    #[serde(default = "default_tx_type")]
+    pub rpdo_transmission: u8,
+    /// TPDO1 transmission type (0x1800:2): n = 1–240 sends after every n-th SYNC. Default 1.
+    #[serde(default = "default_tx_type")]
+    pub tpdo_transmission: u8,
+}
+
+fn default_tx_type() -> u8 {
+    1
+}
+
+/// COB-IDs that CiA 301 reserves (NMT, SYNC/EMCY/TIME, SDO, NMT error control, LSS): no PDO
+/// may use them.
+pub fn restricted_cob_id(id: u16) -> bool {
+    matches!(id, 0x000..=0x07F | 0x101..=0x180 | 0x581..=0x5FF | 0x601..=0x67F | 0x6E0..=0x6FF | 0x701..=0x7FF) || id > 0x7FF
+}
+
+impl AxisConfig {
+    /// (RPDO1, TPDO1) COB-IDs of a CANopen drive.
+    pub fn pdo_cob_ids(&self) -> (u16, u16) {
+        (self.rpdo_cob_id.unwrap_or(0x200 + self.node as u16), self.tpdo_cob_id.unwrap_or(0x180 + self.node as u16))
+    }
 }
 
 fn default_ferr() -> f64 {
@@ -262,6 +292,7 @@ impl MachineConfig {
         }
         // Node ids are unique per bus: the CANopen bus, and each Modbus link.
         let mut nodes: BTreeMap<(Option<&str>, u8), &str> = BTreeMap::new();
+        let mut cobs: BTreeMap<u16, String> = BTreeMap::new();
         for (name, a) in &self.axes {
             let p = format!("axes.{name}");
             if !name.chars().all(|ch| ch.is_ascii_alphanumeric()) || name.is_empty() {
@@ -283,6 +314,22 @@ impl MachineConfig {
                         let on = bus.as_deref().map(|l| format!(" on Modbus link {l:?}")).unwrap_or_default();
                         e.push(format!("{p}.node: node {}{on} is already used by axes.{other}", a.node));
                     }
+                }
+            }
+            if a.modbus.is_none() {
+                let (r, t) = a.pdo_cob_ids();
+                for (key, id) in [("rpdo_cob_id", r), ("tpdo_cob_id", t)] {
+                    if restricted_cob_id(id) {
+                        e.push(format!("{p}.{key}: 0x{id:03X} is reserved by CiA 301 (NMT, SYNC, EMCY, SDO, heartbeat); use 0x181–0x57F"));
+                    } else if let Some(other) = cobs.insert(id, format!("{p}.{key}")) {
+                        e.push(format!("{p}.{key}: 0x{id:03X} is already used by {other}"));
+                    }
+                }
+                if !(a.rpdo_transmission <= 240 || a.rpdo_transmission >= 254) {
+                    e.push(format!("{p}.rpdo_transmission: must be 0–240 (synchronous) or 254/255 (event), got {}", a.rpdo_transmission));
+                }
+                if !(1..=240).contains(&a.tpdo_transmission) {
+                    e.push(format!("{p}.tpdo_transmission: must be 1–240 (every n-th SYNC), got {}", a.tpdo_transmission));
                 }
             }
             if a.modbus.is_none() && (a.cia402_map.is_some() || a.pr_map.is_some()) {
@@ -494,5 +541,20 @@ mod tests {
         let c = MachineConfig::from_toml("mixed.toml", &t).unwrap();
         assert!(c.has_canopen());
         assert_eq!(c.axes["w"].modbus_profile, cncgw_bus::modbus::Profile::Pr);
+    }
+
+    #[test]
+    fn pdo_cob_ids_are_checked() {
+        let t = EMBEDDED_LATHE.replace("node = 2\n", "node = 2\ntpdo_cob_id = 0x181\n");
+        let err = MachineConfig::from_toml("t.toml", &t).unwrap_err().to_string();
+        assert!(err.contains("axes.z.tpdo_cob_id: 0x181 is already used by axes.x.tpdo_cob_id"), "{err}");
+        let t = EMBEDDED_LATHE.replace("node = 2\n", "node = 2\nrpdo_cob_id = 0x601\ntpdo_transmission = 0\n");
+        let err = MachineConfig::from_toml("t.toml", &t).unwrap_err().to_string();
+        assert!(err.contains("axes.z.rpdo_cob_id: 0x601 is reserved by CiA 301"), "{err}");
+        assert!(err.contains("axes.z.tpdo_transmission: must be 1–240"), "{err}");
+        let t = EMBEDDED_LATHE.replace("node = 2\n", "node = 2\nrpdo_cob_id = 0x222\ntpdo_cob_id = 0x1A2\n");
+        let c = MachineConfig::from_toml("t.toml", &t).unwrap();
+        assert_eq!(c.axes["z"].pdo_cob_ids(), (0x222, 0x1A2));
+        assert_eq!(c.axes["x"].pdo_cob_ids(), (0x201, 0x181));
     }
 }

@@ -12,10 +12,15 @@ use std::path::PathBuf;
 use std::process::Command;
 
 fn run_source(name: &str, text: &str) -> Result<(RunSummary, sim_drives::SimWorld), (cncgw::Alarm, RunSummary)> {
-    let cfg = MachineConfig::embedded();
+    run_on(EMBEDDED_LATHE, name, text)
+}
+
+/// `text` on the machine of `machine` (config TOML text).
+fn run_on(machine: &str, name: &str, text: &str) -> Result<(RunSummary, sim_drives::SimWorld), (cncgw::Alarm, RunSummary)> {
+    let cfg = MachineConfig::from_toml("machine.toml", machine).expect("machine config");
     let mut interp = Interpreter::from_source(name, text, &cfg).expect("program parses");
     let wire = InprocBus::new();
-    let mut world = sim_drives::SimWorld::new(&wire, sim_drives::SimConfig::from_machine_toml(EMBEDDED_LATHE).unwrap());
+    let mut world = sim_drives::SimWorld::new(&wire, sim_drives::SimConfig::from_machine_toml(machine).unwrap());
     let mut master = CanOpenMaster::new(wire.endpoint(), &cfg);
     let spindle = cfg.axes.values().position(|a| a.kind == cncgw::config::AxisKind::Spindle);
     let mut summary = RunSummary::default();
@@ -106,3 +111,17 @@ fn a_syntax_error_is_reported_with_position_and_nothing_moves() {
     assert!(stderr.contains("nothing was moved"), "{stderr}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn pdo_cob_ids_and_transmission_types_come_from_the_config() {
+    // Z's PDOs on non-default COB-IDs, its feedback every second SYNC: the drive is
+    // configured that way over SDO and the program still ends on its end point.
+    let machine = EMBEDDED_LATHE.replace("node = 2\n", "node = 2\nrpdo_cob_id = 0x222\ntpdo_cob_id = 0x1A2\ntpdo_transmission = 2\n");
+    let (s, world) = run_on(&machine, "cob.nc", "G98\nG00 X20 Z-5\nG01 Z-30 F600\nG00 X100 Z5\nM30\n").unwrap_or_else(|(a, _)| panic!("{a}"));
+    assert!(s.at_program_end(), "{s:?}");
+    let z = world.drive(2).unwrap();
+    assert_eq!(z.object(0x1400, 1), Some(0x222));
+    assert_eq!(z.object(0x1800, 1), Some(0x1A2));
+    assert_eq!(z.object(0x1800, 2), Some(2));
+}
+

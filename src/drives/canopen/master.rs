@@ -44,6 +44,11 @@ pub struct NodeSpec {
     pub max: Option<f64>,
     /// EDS file of the drive (`axes.NAME.eds`), checked at start-up.
     pub eds: Option<String>,
+    /// RPDO1 / TPDO1 COB-IDs and transmission types (config; default 0x200/0x180 + node, 1).
+    pub rpdo_cob: u16,
+    pub tpdo_cob: u16,
+    pub rpdo_tx: u8,
+    pub tpdo_tx: u8,
 }
 
 impl NodeSpec {
@@ -61,6 +66,10 @@ impl NodeSpec {
                 min: a.min,
                 max: a.max,
                 eds: a.eds.clone(),
+                rpdo_cob: a.pdo_cob_ids().0,
+                tpdo_cob: a.pdo_cob_ids().1,
+                rpdo_tx: a.rpdo_transmission,
+                tpdo_tx: a.tpdo_transmission,
             })
             .collect()
     }
@@ -257,6 +266,10 @@ impl<B: CanBus> CanOpenMaster<B> {
             min: None,
             max: None,
             eds: None,
+            rpdo_cob: cob::RPDO1 + node as u16,
+            tpdo_cob: cob::TPDO1 + node as u16,
+            rpdo_tx: 1,
+            tpdo_tx: 1,
         };
         let timeout = self.boot_timeout_ms / 4;
         self.nodes.push(Node::new(spec, timeout.max(1)));
@@ -392,8 +405,13 @@ impl<B: CanBus> CanOpenMaster<B> {
     /// EMCY and TPDOs.
     fn on_background(&mut self, f: &CanFrame, now_ns: u64) {
         let (func, node) = cob::split(f.cob_id());
-        let Some(i) = self.index_of(node) else { return };
-        if let Some((_, st)) = decode_heartbeat(f) {
+        // TPDO1 by its configured COB-ID first (it need not be 0x180 + node).
+        let by_tpdo = self.nodes.iter().position(|n| n.spec.tpdo_cob == f.cob_id());
+        let Some(i) = by_tpdo.or_else(|| self.index_of(node)) else { return };
+        if by_tpdo.is_none() && func == cob::TPDO1 {
+            return; // another node's default TPDO COB-ID, not configured here
+        }
+        if let Some((_, st)) = decode_heartbeat(f).filter(|_| by_tpdo.is_none()) {
             let n = &mut self.nodes[i];
             if st == NmtState::BootUp {
                 n.booted = true;
@@ -403,14 +421,14 @@ impl<B: CanBus> CanOpenMaster<B> {
             n.last_hb_ns = now_ns;
             return;
         }
-        if let Some((_, e)) = Emcy::decode(f) {
+        if let Some((_, e)) = Emcy::decode(f).filter(|_| by_tpdo.is_none()) {
             self.nodes[i].last_emcy = if e.code == 0 { None } else { Some(e) };
             if e.code != 0 {
                 tracing::warn!(node, code = format!("0x{:04X}", e.code), "EMCY: {}", error_text(e.code));
             }
             return;
         }
-        if func == cob::TPDO1 && f.len >= 6 {
+        if by_tpdo.is_some() && f.len >= 6 {
             let n = &mut self.nodes[i];
             n.status = get_u16(&f.data, 0);
             let raw = get_i32(&f.data, 2);
@@ -563,8 +581,9 @@ impl<B: CanBus> CanOpenMaster<B> {
         // count, transmission type, validate.
         let rpdo = [MapEntry::new(od::CONTROLWORD, 0, 16), MapEntry::new(od::TARGET_POSITION, 0, 32)];
         let tpdo = [MapEntry::new(od::STATUSWORD, 0, 16), MapEntry::new(od::POSITION_ACTUAL, 0, 32)];
-        self.map_pdo(clock, i, od::RPDO_COMM, od::RPDO_MAP, cob::RPDO1 + node as u16, &rpdo)?;
-        self.map_pdo(clock, i, od::TPDO_COMM, od::TPDO_MAP, cob::TPDO1 + node as u16, &tpdo)?;
+        let (rc, tc, rt, tt) = (spec.rpdo_cob, spec.tpdo_cob, spec.rpdo_tx, spec.tpdo_tx);
+        self.map_pdo(clock, i, od::RPDO_COMM, od::RPDO_MAP, rc, rt, &rpdo)?;
+        self.map_pdo(clock, i, od::TPDO_COMM, od::TPDO_MAP, tc, tt, &tpdo)?;
         if self.hb_ms > 0 {
             self.write(clock, i, od::PRODUCER_HEARTBEAT, 0, &self.hb_ms.to_le_bytes())?;
             // Monitoring of this producer starts now: its first heartbeat is one period away.
@@ -589,6 +608,7 @@ impl<B: CanBus> CanOpenMaster<B> {
         comm: u16,
         map: u16,
         cob_id: u16,
+        tx_type: u8,
         entries: &[MapEntry],
     ) -> Result<(), Alarm> {
         if cncgw_bus::canopen::pdo::mapped_len(entries).is_none() {
@@ -600,7 +620,7 @@ impl<B: CanBus> CanOpenMaster<B> {
             self.write(clock, i, map, k as u8 + 1, &e.encode().to_le_bytes())?;
         }
         self.write(clock, i, map, 0, &[entries.len() as u8])?;
-        self.write(clock, i, comm, 2, &[1])?; // synchronous, every SYNC
+        self.write(clock, i, comm, 2, &[tx_type])?; // 1: synchronous, every SYNC
         self.write(clock, i, comm, 1, &(cob_id as u32).to_le_bytes())
     }
 
@@ -834,7 +854,8 @@ impl<B: CanBus> CanOpenMaster<B> {
         }
         self.nodes[i].target_vel = 0;
         let rpdo = [MapEntry::new(od::CONTROLWORD, 0, 16), MapEntry::new(od::TARGET_VELOCITY, 0, 32)];
-        self.map_pdo(clock, i, od::RPDO_COMM, od::RPDO_MAP, cob::RPDO1 + node as u16, &rpdo)?;
+        let (rc, rt) = (self.nodes[i].spec.rpdo_cob, self.nodes[i].spec.rpdo_tx);
+        self.map_pdo(clock, i, od::RPDO_COMM, od::RPDO_MAP, rc, rt, &rpdo)?;
         self.nodes[i].csv = true;
         self.write(clock, i, od::MODES_OF_OPERATION, 0, &[mode::CYCLIC_SYNC_VELOCITY as u8])
     }
@@ -878,7 +899,8 @@ impl<B: CanBus> CanOpenMaster<B> {
         self.nodes[i].target = self.nodes[i].unwrapped;
         self.write(clock, i, od::MODES_OF_OPERATION, 0, &[mode::CYCLIC_SYNC_POSITION as u8])?;
         let rpdo = [MapEntry::new(od::CONTROLWORD, 0, 16), MapEntry::new(od::TARGET_POSITION, 0, 32)];
-        self.map_pdo(clock, i, od::RPDO_COMM, od::RPDO_MAP, cob::RPDO1 + node as u16, &rpdo)?;
+        let (rc, rt) = (self.nodes[i].spec.rpdo_cob, self.nodes[i].spec.rpdo_tx);
+        self.map_pdo(clock, i, od::RPDO_COMM, od::RPDO_MAP, rc, rt, &rpdo)?;
         self.nodes[i].csv = false;
         self.nodes[i].target = self.nodes[i].unwrapped;
         Ok(())
@@ -1132,7 +1154,7 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
             let n = &self.nodes[i];
             let t = if n.csv { n.target_vel.to_le_bytes() } else { self.target_raw(i).to_le_bytes() };
             let c = n.controlword.to_le_bytes();
-            let f = CanFrame::new(cob::RPDO1 + n.spec.node as u16, &[c[0], c[1], t[0], t[1], t[2], t[3]]);
+            let f = CanFrame::new(n.spec.rpdo_cob, &[c[0], c[1], t[0], t[1], t[2], t[3]]);
             self.send(&f)?;
         }
         self.send(&sync_frame(None))?;
