@@ -80,8 +80,18 @@ fn motion_on_a_real_bus_needs_yes() {
 #[test]
 fn disable_and_fault_reset_walk_the_state_machine() {
     let mut s = session();
+    // A stale target left by someone (5 mm away) in cyclic synchronous position.
+    s.master.sdo_download(&mut *s.clock, 1, 0x607A, 0, &50_000i32.to_le_bytes()).unwrap();
+    s.master.sdo_download(&mut *s.clock, 1, 0x6060, 0, &[8]).unwrap();
     let (from, to) = power_walk(&mut s, 1, PowerGoal::Enable, 2000).unwrap();
     assert_eq!((from, to), (State::SwitchOnDisabled, State::OperationEnabled));
+    // The target 0x607A was set to the present position first: nothing to jump to.
+    let d = s.master.sdo_upload(&mut *s.clock, 1, 0x607A, 0).unwrap();
+    let p = s.master.sdo_upload(&mut *s.clock, 1, 0x6064, 0).unwrap();
+    assert_eq!(d, p);
+    s.master.listen(&mut *s.clock, 100);
+    let p = s.master.sdo_upload(&mut *s.clock, 1, 0x6064, 0).unwrap();
+    assert!(i32::from_le_bytes([p[0], p[1], p[2], p[3]]).abs() < 10, "moved to {p:?}");
     let (from, to) = power_walk(&mut s, 1, PowerGoal::Disable, 2000).unwrap();
     assert_eq!((from, to), (State::OperationEnabled, State::SwitchOnDisabled));
     assert_eq!(State::from_statusword(statusword(&mut s, 1)), State::SwitchOnDisabled);

@@ -94,6 +94,13 @@ pub enum PowerGoal {
 pub fn power_walk(s: &mut Session, node: u8, goal: PowerGoal, timeout_ms: u64) -> Result<(State, State), String> {
     s.master.ensure_node(node);
     let first = State::from_statusword(read_statusword(s, node)?);
+    if goal == PowerGoal::Enable && first != State::OperationEnabled {
+        // A stale target position (0x607A) would be jumped to in a position mode the moment
+        // the drive enables: make it the present position. Drives without 0x607A skip this.
+        if let Ok(p) = read_int(s, node, od::POSITION_ACTUAL, 4) {
+            let _ = s.master.sdo_download(&mut *s.clock, node, od::TARGET_POSITION, 0, &(p as i32).to_le_bytes());
+        }
+    }
     let end = s.clock.now_ns() + timeout_ms * MS;
     let mut enabler = Enabler::default();
     let mut sent_reset = false;
@@ -448,7 +455,16 @@ pub fn buslog(machine: &MachineArgs, out: &std::path::Path, seconds: Option<f64>
         };
         let f = match got {
             Ok(Some(f)) => f,
-            Ok(None) => continue,
+            Ok(None) => {
+                // Idle bus: what is buffered goes to the file (Ctrl-C loses nothing old).
+                if !simulated {
+                    if let Err(e) = w.flush() {
+                        eprintln!("error: {}: cannot write: {e}", out.display());
+                        return EXIT_SETUP;
+                    }
+                }
+                continue;
+            }
             Err(e) => {
                 let _ = w.flush();
                 eprintln!("error: reading {name}: {e}");
