@@ -234,3 +234,18 @@ fn monitor_once_prints_one_table() {
     assert_eq!(o.stdout.matches("node axis").count(), 3, "{}", o.stdout);
     assert!(!o.stdout.contains('\x1b'));
 }
+
+#[test]
+fn monitor_on_a_terminal_redraws_in_place() {
+    // util-linux `script` gives the command a pseudo-terminal (bsdutils is essential in Debian).
+    let cmd = format!("{} monitor --seconds 1.2 --interval-ms 500", env!("CARGO_BIN_EXE_cncgw"));
+    let o = Command::new("script").args(["-qec", &cmd, "/dev/null"]).output().expect("util-linux `script`");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let out = String::from_utf8_lossy(&o.stdout);
+    // Three tables of five lines: the second and third go back up five lines first, and every
+    // line is cleared before it is written.
+    assert_eq!(out.matches("node axis").count(), 3, "{out}");
+    assert_eq!(out.matches("\x1b[5A").count(), 2, "{out}");
+    assert_eq!(out.matches("\x1b[2K").count(), 15, "{out}");
+    assert!(out.starts_with("\x1b[2Knode axis"), "{out}");
+}

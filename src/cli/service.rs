@@ -216,7 +216,11 @@ fn with_started(
     f: impl FnOnce(&mut Session) -> Result<(), crate::Alarm>,
 ) -> Result<f64, String> {
     let cpu = s.master.node_spec(node).map(|n| n.counts_per_unit).unwrap_or(1.0);
-    DriveBus::startup(&mut s.master, &mut *s.clock).map_err(|a| a.to_string())?;
+    if let Err(a) = DriveBus::startup(&mut s.master, &mut *s.clock) {
+        // Drives configured before the failure must not go on expecting our heartbeat.
+        DriveBus::shutdown(&mut s.master, &mut *s.clock);
+        return Err(a.to_string());
+    }
     let r = f(s);
     let pos = read_int(s, node, od::POSITION_ACTUAL, 4);
     DriveBus::shutdown(&mut s.master, &mut *s.clock);
