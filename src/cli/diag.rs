@@ -278,8 +278,8 @@ pub fn scan(machine: &MachineArgs, json_out: bool) -> i32 {
     } else {
         println!("bus {} — {} node(s) in the configuration", s.what, nodes.len());
         println!(
-            "{:>4} {:<5} {:<10} {:<10} {:<10} {:<10} {:<11} {:<20} {:<16} {}",
-            "node", "axis", "vendor", "product", "revision", "serial", "device type", "name", "NMT state", "heartbeat"
+            "{:>4} {:<5} {:<10} {:<10} {:<10} {:<10} {:<11} {:<20} {:<16} heartbeat",
+            "node", "axis", "vendor", "product", "revision", "serial", "device type", "name", "NMT state"
         );
         for (node, axis, info, hb, err) in &rows {
             match info {

@@ -3,6 +3,7 @@
 pub mod diag;
 pub mod preview;
 pub mod run;
+pub mod service;
 
 use clap::{Parser, Subcommand};
 use std::path::PathBuf;
@@ -126,6 +127,66 @@ pub enum Command {
     /// CiA 402 drive commands.
     #[command(subcommand)]
     Drive(DriveCmd),
+    /// Move one axis in the drive's profile position mode (1), to an absolute position or
+    /// by a distance, in machine units (mm, X as a radius; degrees for a spindle). All the
+    /// configured drives are started and enabled (holding) for the move, and disabled after
+    /// it; prints the position read back from the drive. Refused outside axes.NAME.min/max.
+    /// Needs --yes on a real bus.
+    ///
+    /// Example: `cncgw jog z --to -20`, `cncgw jog x --by 2.5 --speed 500`,
+    /// `cncgw jog z --by -1 --bus can0 --yes`
+    Jog {
+        /// The axis name of the configuration (x, z, s1, …).
+        axis: String,
+        /// Absolute target position.
+        #[arg(long, allow_hyphen_values = true, conflicts_with = "by", required_unless_present = "by", value_name = "POS")]
+        to: Option<f64>,
+        /// Distance from the present position.
+        #[arg(long, allow_hyphen_values = true, value_name = "DIST")]
+        by: Option<f64>,
+        /// Speed in mm/min (rpm for a spindle). Default: 1/10 of the axis's max_speed.
+        #[arg(long)]
+        speed: Option<f64>,
+        /// Confirm the move on a real bus.
+        #[arg(long)]
+        yes: bool,
+        #[command(flatten)]
+        machine: MachineArgs,
+    },
+    /// Record every frame on the bus to FILE in candump's log format
+    /// (`(1700000000.123456) can0 181#2700E8030000`), replayable with `canplayer`. Passive:
+    /// sends nothing. On `inproc` the emulated drives boot while it logs.
+    ///
+    /// Example: `cncgw buslog --bus can0 -o run.log --seconds 60`
+    Buslog {
+        /// The log file to write.
+        #[arg(long, short = 'o', value_name = "FILE")]
+        out: PathBuf,
+        /// Stop after N seconds. Default: until interrupted (5 s of simulated time on inproc).
+        #[arg(long, value_name = "N")]
+        seconds: Option<f64>,
+        #[command(flatten)]
+        machine: MachineArgs,
+    },
+    /// A table of every configured drive, read over SDO: statusword and CiA 402 state, mode
+    /// (0x6061), position, velocity and following error in machine units, and the bus load
+    /// this tool sees. Refreshed in place on a terminal, one table after another otherwise.
+    /// Read-only.
+    ///
+    /// Example: `cncgw monitor --bus can0`, `cncgw monitor --once`
+    Monitor {
+        /// Stop after N seconds. Default: until interrupted (5 s of simulated time on inproc).
+        #[arg(long, value_name = "N")]
+        seconds: Option<f64>,
+        /// Print one table and exit.
+        #[arg(long)]
+        once: bool,
+        /// Refresh period in milliseconds.
+        #[arg(long, default_value_t = 500, value_name = "MS")]
+        interval_ms: u64,
+        #[command(flatten)]
+        machine: MachineArgs,
+    },
     /// Object dictionary commands.
     #[command(subcommand)]
     Od(OdCmd),
@@ -248,6 +309,57 @@ pub enum DriveCmd {
         #[arg(long)]
         json: bool,
     },
+    /// Walk a drive through the CiA 402 state machine to Operation Enabled (over SDO: 0x6041
+    /// read, 0x6040 written; a fault is reset on the way) and report the state reached. The
+    /// drive holds its position. Needs --yes on a real bus.
+    ///
+    /// Example: `cncgw drive enable 1`, `cncgw drive enable 2 --bus can0 --yes`
+    Enable {
+        #[arg(value_parser = diag::parse_node)]
+        node: u8,
+        /// Confirm on a real bus.
+        #[arg(long)]
+        yes: bool,
+        #[command(flatten)]
+        machine: MachineArgs,
+    },
+    /// Take the torque off a drive: to Switch On Disabled (disable voltage) and report the
+    /// state reached. Exit code 1 if the drive is in fault.
+    ///
+    /// Example: `cncgw drive disable 1 --bus can0`
+    Disable {
+        #[arg(value_parser = diag::parse_node)]
+        node: u8,
+        #[command(flatten)]
+        machine: MachineArgs,
+    },
+    /// Reset a drive's fault (rising edge of controlword bit 7) and report the state
+    /// reached; exit code 1 with the error code 0x603F in words if the fault persists.
+    ///
+    /// Example: `cncgw drive fault-reset 3 --bus can0`
+    FaultReset {
+        #[arg(value_parser = diag::parse_node)]
+        node: u8,
+        #[command(flatten)]
+        machine: MachineArgs,
+    },
+    /// Home a drive in its homing mode (6); the configured drives are started and enabled
+    /// for it and disabled after it. Prints the position read back. Needs --yes on a real
+    /// bus.
+    ///
+    /// Example: `cncgw drive home 1 --method 37 --offset 150`,
+    /// `cncgw drive home 2 --method 18 --switch-speed 600 --bus can0 --yes`
+    Home {
+        #[arg(value_parser = diag::parse_node)]
+        node: u8,
+        #[command(flatten)]
+        home: service::HomeArgs,
+        /// Confirm on a real bus.
+        #[arg(long)]
+        yes: bool,
+        #[command(flatten)]
+        machine: MachineArgs,
+    },
 }
 
 /// An open bus with its clock and a CANopen master that has not configured anything.
@@ -263,14 +375,15 @@ pub struct Session {
     pub simulated: bool,
 }
 
-/// Open the bus named by `bus` (default: the config's bus.interface) with its clock, and a
-/// master for `cfg` on it. `inproc` builds the emulated drives from `cfg_text`.
-pub fn open_bus(
+/// The bus named by `bus` (default: the config's bus.interface) with its clock: the bus
+/// endpoint, the clock, the bus as given, and the bus in words. `inproc` builds the
+/// emulated drives from `cfg_text`.
+#[allow(clippy::type_complexity)]
+pub fn open_raw(
     cfg: &crate::config::MachineConfig,
     cfg_text: &str,
     bus: Option<&str>,
-) -> Result<(crate::drives::canopen::CanOpenMaster<Box<dyn cncgw_bus::CanBus>>, Box<dyn cncgw_bus::Clock>, String, String), String> {
-    use crate::drives::canopen::CanOpenMaster;
+) -> Result<(Box<dyn cncgw_bus::CanBus>, Box<dyn cncgw_bus::Clock>, String, String), String> {
     use cncgw_bus::transport::socketcand;
     let bus = bus.map(str::to_string).unwrap_or_else(|| cfg.bus.interface.clone());
     if bus == "inproc" {
@@ -278,27 +391,46 @@ pub fn open_bus(
         let wire = cncgw_bus::transport::inproc::InprocBus::new();
         let world = sim_drives::SimWorld::new(&wire, sim_cfg);
         let ep: Box<dyn cncgw_bus::CanBus> = Box::new(wire.endpoint());
-        Ok((CanOpenMaster::new(ep, cfg), Box::new(world), bus, "inproc (embedded emulated drives, simulated time)".into()))
+        Ok((ep, Box::new(world), bus, "inproc (embedded emulated drives, simulated time)".into()))
     } else if let Some((addr, iface)) = socketcand::parse_url(&bus) {
         let sock = socketcand::Socketcand::connect(&addr, &iface)
             .map_err(|e| format!("{e}; is socketcand running at {addr}?"))?;
-        let ep: Box<dyn cncgw_bus::CanBus> = Box::new(sock);
         let what = format!("{bus} (socketcand over TCP, real time)");
-        Ok((CanOpenMaster::new(ep, cfg), Box::new(cncgw_bus::RealClock::new()), bus, what))
+        Ok((Box::new(sock), Box::new(cncgw_bus::RealClock::new()), bus, what))
     } else {
         let sock = cncgw_bus::transport::socketcan::SocketCan::open(&bus)
             .map_err(|e| format!("{e}; or use --bus inproc for the embedded emulated drives"))?;
-        let ep: Box<dyn cncgw_bus::CanBus> = Box::new(sock);
         let what = format!("{bus} (SocketCAN, real time)");
-        Ok((CanOpenMaster::new(ep, cfg), Box::new(cncgw_bus::RealClock::new()), bus, what))
+        Ok((Box::new(sock), Box::new(cncgw_bus::RealClock::new()), bus, what))
     }
+}
+
+/// Open the bus named by `bus` (default: the config's bus.interface) with its clock, and a
+/// master for `cfg` on it. `inproc` builds the emulated drives from `cfg_text`.
+#[allow(clippy::type_complexity)]
+pub fn open_bus(
+    cfg: &crate::config::MachineConfig,
+    cfg_text: &str,
+    bus: Option<&str>,
+) -> Result<(crate::drives::canopen::CanOpenMaster<Box<dyn cncgw_bus::CanBus>>, Box<dyn cncgw_bus::Clock>, String, String), String> {
+    let (ep, clock, bus, what) = open_raw(cfg, cfg_text, bus)?;
+    Ok((crate::drives::canopen::CanOpenMaster::new(ep, cfg), clock, bus, what))
 }
 
 /// `--config` + `--bus` → an open session. On the emulated bus the drives boot first (a real
 /// bus's nodes booted long ago).
 pub fn open_session(m: &MachineArgs) -> Result<Session, String> {
+    open_session_with(m, |b| b)
+}
+
+/// `open_session` with the bus endpoint passed through `wrap` first (frame counting…).
+pub fn open_session_with(
+    m: &MachineArgs,
+    wrap: impl FnOnce(Box<dyn cncgw_bus::CanBus>) -> Box<dyn cncgw_bus::CanBus>,
+) -> Result<Session, String> {
     let (cfg, text) = load_config(m.config.as_deref())?;
-    let (mut master, mut clock, bus, what) = open_bus(&cfg, &text, m.bus.as_deref())?;
+    let (ep, mut clock, bus, what) = open_raw(&cfg, &text, m.bus.as_deref())?;
+    let mut master = crate::drives::canopen::CanOpenMaster::new(wrap(ep), &cfg);
     let simulated = clock.is_simulated();
     if simulated && !master.wait_boot(&mut *clock, 5000) {
         return Err("the emulated drives did not boot within 5 s; check the [axes] of the config".into());
@@ -361,6 +493,17 @@ pub fn main() -> i32 {
         }
         Command::Nmt { command, target, machine, json } => diag::nmt(&machine, command, target, json),
         Command::Drive(DriveCmd::Status { node, machine, json }) => diag::drive_status(&machine, node, json),
+        Command::Drive(DriveCmd::Enable { node, yes, machine }) => {
+            service::drive_power(&machine, node, service::PowerGoal::Enable, yes)
+        }
+        Command::Drive(DriveCmd::Disable { node, machine }) => service::drive_power(&machine, node, service::PowerGoal::Disable, false),
+        Command::Drive(DriveCmd::FaultReset { node, machine }) => {
+            service::drive_power(&machine, node, service::PowerGoal::FaultReset, false)
+        }
+        Command::Drive(DriveCmd::Home { node, home, yes, machine }) => service::drive_home(&machine, node, &home, yes),
+        Command::Jog { axis, to, by, speed, yes, machine } => service::jog(&machine, &axis, to, by, speed, yes),
+        Command::Buslog { out, seconds, machine } => service::buslog(&machine, &out, seconds),
+        Command::Monitor { seconds, once, interval_ms, machine } => service::monitor(&machine, seconds, once, interval_ms),
         Command::Od(OdCmd::Check { node, eds, machine }) => diag::od_check(&machine, node, &eds),
         Command::Completions { shell } => {
             use clap::CommandFactory;

@@ -1,0 +1,645 @@
+//! Service commands that change a drive's state or move an axis: `drive enable|disable|
+//! fault-reset|home`, `jog`; and the bus tools `buslog` and `monitor`.
+//!
+//! Anything that can set a motor in motion (enable, home, jog) on a real bus — anything but
+//! `inproc` — needs `--yes`, refused before the bus is opened (as `sdo write` does).
+
+use super::diag::{sdo_error_text, EXIT_NODE, EXIT_OK, EXIT_SETUP, EXIT_USAGE};
+use super::{load_config, open_session, open_session_with, MachineArgs, Session};
+use crate::drives::DriveBus;
+use cncgw_bus::canopen::emcy::error_text;
+use cncgw_bus::canopen::od;
+use cncgw_bus::cia402::{cw, mode, EnableProgress, Enabler, State};
+use cncgw_bus::{BusError, CanBus, CanFrame};
+use std::io::Write;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+const MS: u64 = 1_000_000;
+
+/// The bus the command will use: `--bus`, else the config's.
+fn effective_bus(machine: &MachineArgs) -> Result<String, String> {
+    match &machine.bus {
+        Some(b) => Ok(b.clone()),
+        None => load_config(machine.config.as_deref()).map(|(c, _)| c.bus.interface),
+    }
+}
+
+/// Refuse `what` on a real bus without `--yes`. Err = the exit code (message printed).
+fn confirm_motion(machine: &MachineArgs, yes: bool, what: &str) -> Result<(), i32> {
+    let bus = effective_bus(machine).map_err(|e| {
+        eprintln!("error: {e}");
+        EXIT_SETUP
+    })?;
+    if bus != "inproc" && !yes {
+        eprintln!("error: {what} can set a motor in motion on {bus}; make sure the axis is free to move and nobody is near it, then repeat with --yes");
+        return Err(EXIT_USAGE);
+    }
+    Ok(())
+}
+
+fn open(machine: &MachineArgs) -> Result<Session, i32> {
+    open_session(machine).map_err(|e| {
+        eprintln!("error: {e}");
+        EXIT_SETUP
+    })
+}
+
+/// Read a signed integer object of `n` bytes (sign-extended).
+fn read_int(s: &mut Session, node: u8, index: u16, n: usize) -> Result<i64, String> {
+    let d = s.master.sdo_upload(&mut *s.clock, node, index, 0).map_err(|e| sdo_error_text(&e))?;
+    if d.len() < n || n == 0 || n > 8 {
+        return Err(format!("0x{index:04X} answered {} byte(s), expected {n}", d.len()));
+    }
+    let mut b = [0u8; 8];
+    b[..n].copy_from_slice(&d[..n]);
+    let shift = 64 - 8 * n as u32;
+    Ok(((u64::from_le_bytes(b) << shift) as i64) >> shift)
+}
+
+fn read_statusword(s: &mut Session, node: u8) -> Result<u16, String> {
+    read_int(s, node, od::STATUSWORD, 2)
+        .map(|v| v as u16)
+        .map_err(|e| format!("node {node}: reading the statusword 0x6041 failed: {e}; is it a CiA 402 drive? `cncgw scan` shows what answers"))
+}
+
+fn write_controlword(s: &mut Session, node: u8, c: u16) -> Result<(), String> {
+    s.master
+        .sdo_download(&mut *s.clock, node, od::CONTROLWORD, 0, &c.to_le_bytes())
+        .map_err(|e| format!("node {node}: writing the controlword 0x6040 = 0x{c:04X} failed: {}", sdo_error_text(&e)))
+}
+
+/// The drive's error code 0x603F in words, for messages.
+fn error_code_text(s: &mut Session, node: u8) -> String {
+    match read_int(s, node, od::ERROR_CODE, 2) {
+        Ok(c) => format!("0x603F error code 0x{:04X} {}", c as u16, error_text(c as u16)),
+        Err(e) => format!("0x603F unreadable ({e})"),
+    }
+}
+
+/// What `drive enable|disable|fault-reset` walks towards.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PowerGoal {
+    /// Operation Enabled (fault resets included, as the master's own walk does).
+    Enable,
+    /// Switch On Disabled: no torque (disable voltage, CiA 402 transitions 7, 9, 10, 12).
+    Disable,
+    /// Out of Fault (rising edge of controlword bit 7), to Switch On Disabled.
+    FaultReset,
+}
+
+/// Walk `node` towards `goal` over SDO (0x6041 read, 0x6040 written), one step per 10 ms,
+/// giving up after `timeout_ms`. Returns (state before, state reached).
+pub fn power_walk(s: &mut Session, node: u8, goal: PowerGoal, timeout_ms: u64) -> Result<(State, State), String> {
+    s.master.ensure_node(node);
+    let first = State::from_statusword(read_statusword(s, node)?);
+    if goal == PowerGoal::Enable && first != State::OperationEnabled {
+        // A stale target position (0x607A) would be jumped to in a position mode the moment
+        // the drive enables: make it the present position. Drives without 0x607A skip this.
+        if let Ok(p) = read_int(s, node, od::POSITION_ACTUAL, 4) {
+            let _ = s.master.sdo_download(&mut *s.clock, node, od::TARGET_POSITION, 0, &(p as i32).to_le_bytes());
+        }
+    }
+    let end = s.clock.now_ns() + timeout_ms * MS;
+    let mut enabler = Enabler::default();
+    let mut sent_reset = false;
+    loop {
+        let st = State::from_statusword(read_statusword(s, node)?);
+        let c = match goal {
+            PowerGoal::Enable => match enabler.step(st.statusword_bits()) {
+                EnableProgress::Enabled => return Ok((first, st)),
+                EnableProgress::ResetFailed => {
+                    return Err(format!(
+                        "node {node} stays in Fault after {} fault resets: {}; clear the cause first",
+                        Enabler::MAX_RESETS,
+                        error_code_text(s, node)
+                    ))
+                }
+                EnableProgress::Walking => enabler.controlword,
+            },
+            PowerGoal::Disable => match st {
+                State::SwitchOnDisabled | State::NotReadyToSwitchOn => return Ok((first, st)),
+                State::Fault | State::FaultReactionActive => {
+                    return Err(format!("node {node} is in {} (no torque): {}; `cncgw drive fault-reset {node}` clears it once the cause is gone", st.name(), error_code_text(s, node)))
+                }
+                _ => cw::DISABLE_VOLTAGE,
+            },
+            PowerGoal::FaultReset => match st {
+                State::Fault | State::FaultReactionActive => {
+                    // A rising edge of bit 7: low first, then high.
+                    if sent_reset {
+                        cw::DISABLE_VOLTAGE
+                    } else {
+                        write_controlword(s, node, cw::DISABLE_VOLTAGE)?;
+                        sent_reset = true;
+                        cw::FAULT_RESET_CMD
+                    }
+                }
+                _ => {
+                    if sent_reset {
+                        // Bit 7 back down so the next reset is an edge again.
+                        write_controlword(s, node, cw::DISABLE_VOLTAGE)?;
+                    }
+                    return Ok((first, st));
+                }
+            },
+        };
+        if s.clock.now_ns() >= end {
+            return Err(match goal {
+                PowerGoal::FaultReset => format!("node {node} still in {} after a fault reset: the cause persists: {}", st.name(), error_code_text(s, node)),
+                _ => format!("node {node} stuck in {} for {timeout_ms} ms; `cncgw drive status {node}` shows why", st.name()),
+            });
+        }
+        write_controlword(s, node, c)?;
+        let t = s.clock.now_ns() + 10 * MS;
+        s.clock.wait_until(t);
+    }
+}
+
+/// `cncgw drive enable|disable|fault-reset NODE`.
+pub fn drive_power(machine: &MachineArgs, node: u8, goal: PowerGoal, yes: bool) -> i32 {
+    if goal == PowerGoal::Enable {
+        if let Err(c) = confirm_motion(machine, yes, &format!("enabling node {node}")) {
+            return c;
+        }
+    }
+    let mut s = match open(machine) {
+        Ok(s) => s,
+        Err(c) => return c,
+    };
+    let axis = s.master.node_spec(node).map(|n| format!(" (axis {})", n.axis)).unwrap_or_default();
+    match power_walk(&mut s, node, goal, 2000) {
+        Ok((from, to)) => {
+            let sw = read_statusword(&mut s, node).map(|w| format!(" (statusword 0x{w:04X})")).unwrap_or_default();
+            if from == to {
+                let why = if goal == PowerGoal::FaultReset { "not in fault, nothing to reset" } else { "already there" };
+                println!("node {node}{axis}: {}{sw}; {why}", to.name());
+            } else {
+                println!("node {node}{axis}: {} → {}{sw}", from.name(), to.name());
+            }
+            if goal == PowerGoal::Enable {
+                let m = read_int(&mut s, node, od::MODES_DISPLAY, 1).map(|m| m as i8);
+                if let Ok(m) = m {
+                    println!("  mode {m} ({}): the drive holds its position until it gets a set-point", mode::name(m));
+                }
+            }
+            if s.simulated {
+                println!("  (embedded emulated drives: they start fresh with every command)");
+            }
+            EXIT_OK
+        }
+        Err(e) => {
+            eprintln!("error: {e}");
+            EXIT_NODE
+        }
+    }
+}
+
+// ---------------------------------------------------------------- home and jog
+
+/// Speeds on the command line are per minute for linear axes (mm/min, like F) and rpm for a
+/// spindle; the master takes units/s (mm/s, degrees/s).
+fn per_s(spindle: bool, v: f64) -> f64 {
+    if spindle {
+        v * 6.0
+    } else {
+        v / 60.0
+    }
+}
+
+/// Start the configured drives (configuration, NMT start), run `f`, read back the node's
+/// position (machine units) and shut down in order (drives disabled, heartbeat released).
+fn with_started(
+    s: &mut Session,
+    node: u8,
+    f: impl FnOnce(&mut Session) -> Result<(), crate::Alarm>,
+) -> Result<f64, String> {
+    let cpu = s.master.node_spec(node).map(|n| n.counts_per_unit).unwrap_or(1.0);
+    if let Err(a) = DriveBus::startup(&mut s.master, &mut *s.clock) {
+        // Drives configured before the failure must not go on expecting our heartbeat.
+        DriveBus::shutdown(&mut s.master, &mut *s.clock);
+        return Err(a.to_string());
+    }
+    let r = f(s);
+    let pos = read_int(s, node, od::POSITION_ACTUAL, 4);
+    DriveBus::shutdown(&mut s.master, &mut *s.clock);
+    r.map_err(|a| a.to_string())?;
+    pos.map(|c| c as f64 / cpu).map_err(|e| format!("node {node}: reading the position 0x6064 failed: {e}"))
+}
+
+/// The homing methods the command offers (those the master's homing walk handles).
+pub fn parse_method(s: &str) -> Result<i8, String> {
+    match s.trim() {
+        "35" => Ok(35),
+        "37" => Ok(37),
+        "17" => Ok(17),
+        "18" => Ok(18),
+        _ => Err(format!("homing method {s} is not offered: use 35 or 37 (here), 17 (negative limit switch) or 18 (positive)")),
+    }
+}
+
+/// Homing parameters of `cncgw drive home`.
+#[derive(clap::Args, Debug, Clone)]
+pub struct HomeArgs {
+    /// Homing method (0x6098): 35 or 37 = the present position becomes home, 17 / 18 =
+    /// search the negative / positive limit switch.
+    #[arg(long, default_value_t = 35, value_parser = parse_method)]
+    pub method: i8,
+    /// Speed searching the switch (0x6099:1): mm/min (rpm for a spindle). Default: 1/20 of
+    /// the axis's max_speed.
+    #[arg(long, value_name = "SPEED")]
+    pub switch_speed: Option<f64>,
+    /// Speed leaving the switch (0x6099:2). Default: 1/100 of max_speed.
+    #[arg(long, value_name = "SPEED")]
+    pub zero_speed: Option<f64>,
+    /// Home offset (0x607C) in machine units: the position the home point gets.
+    #[arg(long, allow_hyphen_values = true, default_value_t = 0.0)]
+    pub offset: f64,
+    /// Give up after this many seconds.
+    #[arg(long, default_value_t = 30.0)]
+    pub timeout: f64,
+}
+
+/// `cncgw drive home NODE`.
+pub fn drive_home(machine: &MachineArgs, node: u8, h: &HomeArgs, yes: bool) -> i32 {
+    if let Err(c) = confirm_motion(machine, yes, &format!("homing node {node}")) {
+        return c;
+    }
+    let mut s = match open(machine) {
+        Ok(s) => s,
+        Err(c) => return c,
+    };
+    let Some(spec) = s.master.node_spec(node).cloned() else {
+        eprintln!("error: node {node} is not a drive of the configuration; homing needs its scaling (`cncgw config check` lists the axes)");
+        return EXIT_USAGE;
+    };
+    let Some(ax) = s.cfg.axes.get(&spec.axis).cloned() else {
+        eprintln!("error: axis {} is not in the configuration", spec.axis);
+        return EXIT_SETUP;
+    };
+    let fast = per_s(spec.spindle, h.switch_speed.unwrap_or(ax.max_speed / 20.0));
+    let slow = per_s(spec.spindle, h.zero_speed.unwrap_or(ax.max_speed / 100.0));
+    let accel = if spec.spindle { ax.max_accel * 6.0 } else { ax.max_accel };
+    let offset = (h.offset * spec.counts_per_unit).round();
+    if !offset.is_finite() || offset.abs() > i32::MAX as f64 {
+        eprintln!("error: home offset {} is out of the drive's range", h.offset);
+        return EXIT_USAGE;
+    }
+    if !(h.timeout.is_finite() && h.timeout > 0.0) {
+        eprintln!("error: --timeout must be a positive number of seconds");
+        return EXIT_USAGE;
+    }
+    let timeout_ms = (h.timeout * 1000.0) as u64;
+    let method = h.method;
+    let r = with_started(&mut s, node, |s| {
+        s.master.sdo_write(&mut *s.clock, node, 0x607C, 0, &(offset as i32).to_le_bytes())?;
+        s.master.home(&mut *s.clock, node, method, fast, slow, accel, timeout_ms)
+    });
+    match r {
+        Ok(pos) => {
+            println!("node {node} (axis {}): homed with method {method}; position now {pos:.4} {}", spec.axis, if spec.spindle { "deg" } else { "mm" });
+            EXIT_OK
+        }
+        Err(e) => {
+            eprintln!("error: {e}");
+            EXIT_NODE
+        }
+    }
+}
+
+/// `cncgw jog AXIS --to POS | --by DIST`.
+pub fn jog(machine: &MachineArgs, axis: &str, to: Option<f64>, by: Option<f64>, speed: Option<f64>, yes: bool) -> i32 {
+    if let Err(c) = confirm_motion(machine, yes, &format!("jogging axis {axis}")) {
+        return c;
+    }
+    let mut s = match open(machine) {
+        Ok(s) => s,
+        Err(c) => return c,
+    };
+    let Some(ax) = s.cfg.axes.get(axis).cloned() else {
+        let names: Vec<&str> = s.cfg.axes.keys().map(String::as_str).collect();
+        eprintln!("error: no axis `{axis}` in the configuration (axes: {})", names.join(", "));
+        return EXIT_USAGE;
+    };
+    if ax.modbus.is_some() {
+        eprintln!("error: axis {axis} is on a Modbus link; jog drives CANopen axes only");
+        return EXIT_USAGE;
+    }
+    let node = ax.node;
+    let Some(spec) = s.master.node_spec(node).cloned() else {
+        eprintln!("error: axis {axis} (node {node}) is not a CANopen drive of the configuration");
+        return EXIT_SETUP;
+    };
+    let unit = if spec.spindle { "deg" } else { "mm" };
+    let speed = speed.unwrap_or(ax.max_speed / 10.0);
+    if !(speed.is_finite() && speed > 0.0 && speed <= ax.max_speed) {
+        eprintln!("error: --speed {speed} must be above 0 and at most the axis's max_speed {}", ax.max_speed);
+        return EXIT_USAGE;
+    }
+    let start = match read_int(&mut s, node, od::POSITION_ACTUAL, 4) {
+        Ok(c) => c as f64 / spec.counts_per_unit,
+        Err(e) => {
+            eprintln!("error: node {node}: reading the position 0x6064 failed: {e}");
+            return EXIT_NODE;
+        }
+    };
+    let target = match (to, by) {
+        (Some(t), None) => t,
+        (None, Some(d)) => start + d,
+        _ => {
+            eprintln!("error: give exactly one of --to POS and --by DIST");
+            return EXIT_USAGE;
+        }
+    };
+    if !target.is_finite() {
+        eprintln!("error: the target is not a number");
+        return EXIT_USAGE;
+    }
+    if !spec.spindle {
+        if let (Some(lo), Some(hi)) = (spec.min, spec.max) {
+            if target < lo || target > hi {
+                eprintln!("error: {target} {unit} is outside axis {axis}'s travel {lo} … {hi} {unit} (axes.{axis}.min/max)");
+                return EXIT_USAGE;
+            }
+        }
+    }
+    let v = per_s(spec.spindle, speed);
+    let a = if spec.spindle { ax.max_accel * 6.0 } else { ax.max_accel };
+    match with_started(&mut s, node, |s| s.master.profile_move(&mut *s.clock, node, target, v, a)) {
+        Ok(pos) => {
+            println!("axis {axis} (node {node}): {start:.4} → {pos:.4} {unit} (target {target:.4})");
+            EXIT_OK
+        }
+        Err(e) => {
+            eprintln!("error: {e}");
+            EXIT_NODE
+        }
+    }
+}
+
+// ---------------------------------------------------------------- buslog
+
+/// Seconds an `inproc` log or monitor lasts without `--seconds` (simulated time has no
+/// operator to press Ctrl-C at the right moment).
+const INPROC_DEFAULT_S: f64 = 5.0;
+
+fn unix_us() -> u64 {
+    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_micros() as u64).unwrap_or(0)
+}
+
+/// `cncgw buslog -o FILE [--seconds N]`: every frame on the bus, candump log format.
+pub fn buslog(machine: &MachineArgs, out: &std::path::Path, seconds: Option<f64>) -> i32 {
+    if let Some(n) = seconds {
+        if !(n.is_finite() && n > 0.0) {
+            eprintln!("error: --seconds must be a positive number");
+            return EXIT_USAGE;
+        }
+    }
+    let (cfg, text) = match load_config(machine.config.as_deref()) {
+        Ok(c) => c,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return EXIT_SETUP;
+        }
+    };
+    let (mut bus, mut clock, name, what) = match super::open_raw(&cfg, &text, machine.bus.as_deref()) {
+        Ok(b) => b,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return EXIT_SETUP;
+        }
+    };
+    let file = match std::fs::File::create(out) {
+        Ok(f) => f,
+        Err(e) => {
+            eprintln!("error: {}: cannot create: {e}", out.display());
+            return EXIT_SETUP;
+        }
+    };
+    let mut w = std::io::BufWriter::new(file);
+    let simulated = clock.is_simulated();
+    // candump's interface column: the SocketCAN name, or the socketcand interface.
+    let iface = if simulated {
+        "inproc".to_string()
+    } else {
+        cncgw_bus::transport::socketcand::parse_url(&name).map(|(_, i)| i).unwrap_or_else(|| name.clone())
+    };
+    let seconds = seconds.or(simulated.then_some(INPROC_DEFAULT_S));
+    let t0 = clock.now_ns();
+    let unix0 = unix_us();
+    let end = seconds.map(|s| t0 + (s * 1e9) as u64);
+    eprintln!(
+        "logging {what} to {}{}",
+        out.display(),
+        match seconds {
+            Some(s) => format!(" for {s} s"),
+            None => " until interrupted (Ctrl-C)".into(),
+        }
+    );
+    let mut frames = 0u64;
+    let mut last_flush = clock.now_ns();
+    loop {
+        let now = clock.now_ns();
+        if end.is_some_and(|e| now >= e) {
+            break;
+        }
+        let got = if simulated {
+            match bus.try_recv() {
+                Ok(None) => {
+                    // Nothing pending: let the emulated drives run 1 ms.
+                    clock.wait_until(now + MS);
+                    continue;
+                }
+                r => r,
+            }
+        } else {
+            let left = end.map(|e| e.saturating_sub(now)).unwrap_or(u64::MAX).min(100 * MS);
+            bus.recv_timeout(Duration::from_nanos(left))
+        };
+        let f = match got {
+            Ok(Some(f)) => f,
+            Ok(None) => {
+                // Idle bus: what is buffered goes to the file (Ctrl-C loses nothing old).
+                if !simulated {
+                    if let Err(e) = w.flush() {
+                        eprintln!("error: {}: cannot write: {e}", out.display());
+                        return EXIT_SETUP;
+                    }
+                }
+                continue;
+            }
+            Err(e) => {
+                let _ = w.flush();
+                eprintln!("error: reading {name}: {e}");
+                return EXIT_SETUP;
+            }
+        };
+        let t_us = unix0 + (clock.now_ns() - t0) / 1000;
+        let line = sim_drives::buslog::candump_line(t_us, &iface, &f);
+        let mut r = writeln!(w, "{line}");
+        // Flush now and then so a log cut short by Ctrl-C keeps (almost) everything.
+        if r.is_ok() && !simulated && clock.now_ns() - last_flush > 100 * MS {
+            last_flush = clock.now_ns();
+            r = w.flush();
+        }
+        if let Err(e) = r {
+            eprintln!("error: {}: cannot write: {e}", out.display());
+            return EXIT_SETUP;
+        }
+        frames += 1;
+    }
+    if let Err(e) = w.flush() {
+        eprintln!("error: {}: cannot write: {e}", out.display());
+        return EXIT_SETUP;
+    }
+    println!("{frames} frame(s) logged to {}", out.display());
+    EXIT_OK
+}
+
+// ---------------------------------------------------------------- monitor
+
+/// A bus endpoint that counts the bits of every frame it sends or receives (bus load).
+struct CountingBus {
+    inner: Box<dyn CanBus>,
+    bits: Arc<AtomicU64>,
+}
+
+impl CountingBus {
+    fn count(&self, f: &CanFrame) {
+        self.bits.fetch_add(cncgw_bus::busload::frame_bits(f.data().len()) as u64, Ordering::Relaxed);
+    }
+}
+
+impl CanBus for CountingBus {
+    fn send(&mut self, frame: &CanFrame) -> Result<(), BusError> {
+        let r = self.inner.send(frame);
+        if r.is_ok() {
+            self.count(frame);
+        }
+        r
+    }
+    fn try_recv(&mut self) -> Result<Option<CanFrame>, BusError> {
+        let r = self.inner.try_recv();
+        if let Ok(Some(f)) = &r {
+            self.count(f);
+        }
+        r
+    }
+    fn recv_timeout(&mut self, timeout: Duration) -> Result<Option<CanFrame>, BusError> {
+        let r = self.inner.recv_timeout(timeout);
+        if let Ok(Some(f)) = &r {
+            self.count(f);
+        }
+        r
+    }
+    fn name(&self) -> &str {
+        self.inner.name()
+    }
+}
+
+/// One drive's line of the monitor table.
+fn monitor_row(s: &mut Session, node: u8) -> String {
+    let spec = s.master.node_spec(node).cloned();
+    let axis = spec.as_ref().map(|n| n.axis.clone()).unwrap_or_else(|| "-".into());
+    let cpu = spec.as_ref().map(|n| n.counts_per_unit).unwrap_or(1.0);
+    let sw = match read_int(s, node, od::STATUSWORD, 2) {
+        Ok(v) => v as u16,
+        Err(e) => return format!("{node:>4} {axis:<5} no answer: {e}"),
+    };
+    let st = State::from_statusword(sw);
+    let m = read_int(s, node, od::MODES_DISPLAY, 1).ok().map(|m| m as i8);
+    let mut units = |ix: u16| read_int(s, node, ix, 4).ok().map(|c| format!("{:.4}", c as f64 / cpu)).unwrap_or_else(|| "-".into());
+    let pos = units(od::POSITION_ACTUAL);
+    let vel = units(od::VELOCITY_ACTUAL);
+    let ferr = units(od::FOLLOWING_ERROR_ACTUAL);
+    let mode = m.map(|m| format!("{m} {}", mode::name(m))).unwrap_or_else(|| "-".into());
+    format!("{node:>4} {axis:<5} 0x{sw:04X} {:<22} {mode:<26} {pos:>12} {vel:>12} {ferr:>10}", st.name())
+}
+
+/// `cncgw monitor`.
+pub fn monitor(machine: &MachineArgs, seconds: Option<f64>, once: bool, interval_ms: u64) -> i32 {
+    use std::io::IsTerminal;
+    if let Some(n) = seconds {
+        if !(n.is_finite() && n > 0.0) {
+            eprintln!("error: --seconds must be a positive number");
+            return EXIT_USAGE;
+        }
+    }
+    let bits = Arc::new(AtomicU64::new(0));
+    let counter = bits.clone();
+    let mut s = match open_session_with(machine, move |inner| Box::new(CountingBus { inner, bits: counter })) {
+        Ok(s) => s,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return EXIT_SETUP;
+        }
+    };
+    let tty = std::io::stdout().is_terminal();
+    let mut nodes = s.master.node_ids();
+    nodes.sort_unstable();
+    let bitrate = s.cfg.bus.bitrate.max(1);
+    let seconds = seconds.or(s.simulated.then_some(INPROC_DEFAULT_S));
+    let t0 = s.clock.now_ns();
+    let end = seconds.map(|x| t0 + (x * 1e9) as u64);
+    let interval = interval_ms.max(50) * MS;
+    let mut shown = 0usize;
+    let mut out = std::io::stdout();
+    // Load over the previous period: the first table measures a short listen.
+    bits.store(0, Ordering::Relaxed);
+    let mut since = s.clock.now_ns();
+    s.master.listen(&mut *s.clock, 100);
+    loop {
+        let mut lines = vec![format!(
+            "{:>4} {:<5} {:<6} {:<22} {:<26} {:>12} {:>12} {:>10}",
+            "node", "axis", "sw", "state", "mode", "position", "velocity/s", "ferr"
+        )];
+        for &n in &nodes {
+            lines.push(monitor_row(&mut s, n));
+        }
+        let now = s.clock.now_ns();
+        let dt = (now - since).max(1) as f64 * 1e-9;
+        let load = bits.swap(0, Ordering::Relaxed) as f64 / (bitrate as f64 * dt);
+        since = now;
+        lines.push(format!(
+            "bus {} load {:.2} % ({} bit/s; frames sent and heard by this tool over the last {:.2} s)",
+            s.bus,
+            load * 100.0,
+            bitrate,
+            dt
+        ));
+        let mut text = String::new();
+        if tty && shown > 0 {
+            // Back to the top of the previous table and overwrite it.
+            text.push_str(&format!("\x1b[{shown}A"));
+        }
+        for l in &lines {
+            if tty {
+                text.push_str("\x1b[2K");
+            }
+            text.push_str(l);
+            text.push('\n');
+        }
+        if !tty && !once {
+            text.push('\n');
+        }
+        if out.write_all(text.as_bytes()).and_then(|_| out.flush()).is_err() {
+            return EXIT_OK; // stdout closed
+        }
+        shown = lines.len();
+        if once {
+            return EXIT_OK;
+        }
+        let next = s.clock.now_ns() + interval;
+        if end.is_some_and(|e| next > e) {
+            return EXIT_OK;
+        }
+        if s.simulated {
+            // Simulated time runs as fast as the CPU: pace the display for a human.
+            if tty {
+                std::thread::sleep(Duration::from_nanos(interval));
+            }
+        }
+        s.master.listen(&mut *s.clock, interval / MS);
+    }
+}
