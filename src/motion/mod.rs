@@ -339,13 +339,15 @@ struct ThreadSeg {
     alim: f64,
 }
 
-/// A rigid-tap stroke along Z: the spindle angle is `360·(z − z0)/lead`.
+/// A rigid-tap stroke along one feed axis (`axis`: Z for G84, X for G88 — a radius, Y):
+/// the spindle angle is `360·(p − p0)/lead`, p the position on that axis.
 #[derive(Clone, Copy, Debug, PartialEq)]
 struct TapSeg {
-    z0: f64,
-    z1: f64,
+    axis: usize,
+    p0: f64,
+    p1: f64,
     lead: f64,
-    /// Commanded Z speed (rpm × |lead|), mm/s.
+    /// Commanded speed along the tapping axis (rpm × |lead|), mm/s.
     v: f64,
     vlim: f64,
     alim: f64,
@@ -400,7 +402,7 @@ enum Run {
     /// Waiting for the spindle (`sync` None) or cutting, locked to the measured angle.
     Thread { seg: ThreadSeg, sync: Option<ThreadSync>, s: f64, v: f64, landed: bool },
     /// Waiting for the spindle to stop (`theta0` None), then the stroke; `theta0` is the tap
-    /// reference (z_ref, θ_ref): spindle angle = θ_ref + 360·(z − z_ref)/lead.
+    /// reference (p_ref, θ_ref) on the tapping axis: spindle angle = θ_ref + 360·(p − p_ref)/lead.
     Tap { seg: TapSeg, theta0: Option<(f64, f64)>, s: f64, v: f64, landed: bool },
     /// G92.1: waiting for the spindle to stop (`theta0` None), then the stroke from the
     /// spindle angle `theta0`.
@@ -459,13 +461,15 @@ pub struct Motion {
     /// The lock of the thread segment that ended last and its length, for a continuous
     /// segment that follows it (cleared by any other item).
     thread_chain: Option<(ThreadSync, f64)>,
-    /// Rigid tapping reference (z, spindle angle, lead) of the last stroke, so that the strokes
-    /// of one hole share one Z–angle relation and the return ends on the start angle exactly.
-    tap_ref: Option<(f64, f64, f64)>,
+    /// Rigid tapping reference (axis, position on it, spindle angle, lead) of the last stroke,
+    /// so that the strokes of one hole share one axis–angle relation and the return ends on
+    /// the start angle exactly.
+    tap_ref: Option<(usize, f64, f64, f64)>,
     /// The tool is inside a tapped hole (a tap stroke ended away from the hole's R point).
     in_hole: bool,
-    /// Planning: the hole the last pushed tap strokes are in (R point z, direction into it).
-    plan_tap: Option<(f64, f64)>,
+    /// Planning: the hole the last pushed tap strokes are in (tapping axis, R point on it,
+    /// direction into it).
+    plan_tap: Option<(usize, f64, f64)>,
     /// Setpoints sent in the last HIST cycles (ring, index `hist_k` = the newest).
     hist: [[f64; N_AXES]; HIST],
     hist_k: usize,
@@ -655,12 +659,13 @@ impl Motion {
             }
             Item::Tap(t) => {
                 self.plan_tap = match self.plan_tap {
-                    None => Some((t.z0, (t.z1 - t.z0).signum())),
-                    // Back at the R point: the hole is done.
-                    Some((r, _)) if t.z1 == r => None,
-                    h => h,
+                    Some((a, r, d)) if a == t.axis => {
+                        // Back at the R point: the hole is done.
+                        (t.p1 != r).then_some((a, r, d))
+                    }
+                    _ => Some((t.axis, t.p0, (t.p1 - t.p0).signum())),
                 };
-                self.plan_end[AX_Z] = t.z1;
+                self.plan_end[t.axis] = t.p1;
                 // Rigid tapping leaves the spindle stopped, in position control.
                 self.plan_spindle_on = false;
                 self.plan_rpm = None;
@@ -906,24 +911,35 @@ impl Motion {
             return Err(Alarm::new(alarms::UNSUPPORTED, "rigid tapping needs a spindle axis in the config"));
         }
         let e = self.check_end(end)?;
-        if e[AX_X] != self.plan_end[AX_X] || e[AX_Y] != self.plan_end[AX_Y] {
-            return Err(Alarm::new(alarms::BAD_VALUE, "a rigid tap stroke moves Z only: position X/Y before the tap"));
-        }
+        // The tapping axis is the one axis that moves (G84: Z, G88: X; X is a radius and the
+        // lead is along it). A zero-length stroke stays on the hole's axis.
+        let mut moved = (0..3).filter(|&i| e[i] != self.plan_end[i]);
+        let axis = match (moved.next(), moved.next()) {
+            (Some(a), None) => a,
+            (None, _) => self.plan_tap.map_or(AX_Z, |(a, _, _)| a),
+            _ => {
+                return Err(Alarm::new(
+                    alarms::BAD_VALUE,
+                    "a rigid tap stroke moves the tapping axis only (Z for G84, X for G88): position the other axes before the tap",
+                ))
+            }
+        };
+        let name = AXIS_NAMES[axis];
         let l = &self.lim;
-        let z0 = self.plan_end[AX_Z];
+        let p0 = self.plan_end[axis];
         // Out of the hole: the stroke runs against the direction of the hole's first stroke.
-        let retract = self.plan_tap.is_some_and(|(_, din)| (e[AX_Z] - z0) * din < 0.0);
-        let per_deg = lead.abs() / 360.0; // mm of Z per spindle degree
-        // Feasibility before anything moves: Z must be able to follow the spindle at S.
+        let retract = self.plan_tap.is_some_and(|(a, _, din)| a == axis && (e[axis] - p0) * din < 0.0);
+        let per_deg = lead.abs() / 360.0; // mm of the tapping axis per spindle degree
+        // Feasibility before anything moves: the axis must be able to follow the spindle at S.
         let v = rpm * lead.abs() / 60.0;
-        if !(v <= l.vmax[AX_Z] * (1.0 + 1e-9)) {
+        if !(v <= l.vmax[axis] * (1.0 + 1e-9)) {
             return Err(Alarm::new(
                 alarms::THREAD_TOO_FAST,
                 format!(
-                    "rigid tap lead {:.4} mm × S{rpm} needs {:.0} mm/min of Z, more than Z's {:.0} mm/min; lower S",
+                    "rigid tap lead {:.4} mm × S{rpm} needs {:.0} mm/min of {name}, more than {name}'s {:.0} mm/min; lower S",
                     lead.abs(),
                     v * 60.0,
-                    l.vmax[AX_Z] * 60.0
+                    l.vmax[axis] * 60.0
                 ),
             ));
         }
@@ -933,18 +949,18 @@ impl Motion {
                 format!("rigid tap S{rpm} is above the spindle's {:.0} rpm; lower S", l.vmax[AX_S] / 6.0),
             ));
         }
-        // Matched acceleration: spindle (its limit, No.5261 or on the way out No.5271) and Z
-        // on one profile, the lower of the two.
+        // Matched acceleration: spindle (its limit, No.5261 or on the way out No.5271) and the
+        // tapping axis on one profile, the lower of the two.
         let sp_acc = if retract && l.tap_retract_accel.is_finite() { l.tap_retract_accel } else { l.tap_accel };
-        let alim = l.amax[AX_Z].min(l.amax[AX_S].min(sp_acc) * per_deg);
+        let alim = l.amax[axis].min(l.amax[AX_S].min(sp_acc) * per_deg);
         if !(alim > 0.0 && alim.is_finite()) {
             return Err(Alarm::new(
                 alarms::BAD_VALUE,
-                "rigid tap: no usable acceleration for Z and the spindle; set max_accel of both (and No.5261)",
+                format!("rigid tap: no usable acceleration for {name} and the spindle; set max_accel of both (and No.5261)"),
             ));
         }
-        let vlim = l.vmax[AX_Z].min(l.vmax[AX_S] * per_deg);
-        Ok(TapSeg { z0, z1: e[AX_Z], lead, v: v.min(vlim), vlim, alim, retract })
+        let vlim = l.vmax[axis].min(l.vmax[AX_S] * per_deg);
+        Ok(TapSeg { axis, p0, p1: e[axis], lead, v: v.min(vlim), vlim, alim, retract })
     }
 
     /// G92.1: the feed axes to `end` and the spindle through `end.c − c_start` on one profile.
@@ -1365,7 +1381,7 @@ impl Motion {
                 // At rest on the stroke's end, spindle stopped in position.
                 self.sp_cur = 0.0;
                 self.run = Run::None;
-                self.in_hole = theta0.is_some_and(|(zr, _)| seg.z1 != zr);
+                self.in_hole = theta0.is_some_and(|(pr, _)| seg.p1 != pr);
                 // Single block never stops inside a tap; after the hole only with No.5200#6.
                 self.paused |= self.single_block && !self.in_hole && self.lim.tap_hold_in_hole;
             }
@@ -1374,13 +1390,15 @@ impl Motion {
                 // take its angle as the stroke's origin.
                 self.sp_dir = 0.0;
                 self.sp_css = None;
-                // In-position check before a hole's first stroke: Z and the spindle at rest on
-                // their setpoints (a tap that starts while Z still settles from the rapid to R
-                // begins with a sync error). Bounded, so bad feedback cannot hang the program.
+                // In-position check before a hole's first stroke: the tapping axis and the
+                // spindle at rest on their setpoints (a tap that starts while the axis still
+                // settles from the rapid to R begins with a sync error). Bounded, so bad
+                // feedback cannot hang the program.
                 let sent = self.hist[self.hist_k];
+                let a = seg.axis;
                 let in_pos = self.in_hole
                     || self.inpos_wait >= INPOS_MAX_CYCLES
-                    || ((fb.pos[AX_Z] - sent[AX_Z]).abs() <= INPOS_MM
+                    || ((fb.pos[a] - sent[a]).abs() <= INPOS_MM
                         && ((fb.pos[AX_S] - sent[AX_S]) * seg.lead / 360.0).abs() <= INPOS_MM);
                 self.inpos_wait = if self.sp_cur == 0.0 { self.inpos_wait.saturating_add(1) } else { 0 };
                 if self.stopping {
@@ -1390,36 +1408,36 @@ impl Motion {
                     // Keep the previous stroke's reference if the spindle is still exactly where
                     // that relation puts it (same hole, nothing turned it since).
                     let r = match self.tap_ref {
-                        Some((zr, thr, lead))
-                            if lead == seg.lead && thr + 360.0 * (seg.z0 - zr) / lead == self.pos[AX_S] =>
+                        Some((ax, pr, thr, lead))
+                            if ax == a && lead == seg.lead && thr + 360.0 * (seg.p0 - pr) / lead == self.pos[AX_S] =>
                         {
-                            (zr, thr)
+                            (pr, thr)
                         }
-                        _ => (seg.z0, self.pos[AX_S]),
+                        _ => (seg.p0, self.pos[AX_S]),
                     };
-                    self.tap_ref = Some((r.0, r.1, seg.lead));
+                    self.tap_ref = Some((a, r.0, r.1, seg.lead));
                     self.run = Run::Tap { seg, theta0: Some(r), s: 0.0, v: 0.0, landed: false };
                 }
             }
-            Run::Tap { seg, theta0: Some((zr, thr)), s, v, landed: false } => {
+            Run::Tap { seg, theta0: Some((pr, thr)), s, v, landed: false } => {
                 // Feed hold acts within the stroke only with No.5200#6 (see hold_now); a hold
-                // or a controlled stop brakes Z and the spindle together on the same profile.
-                let len = (seg.z1 - seg.z0).abs();
+                // or a controlled stop brakes the axis and the spindle together on one profile.
+                let len = (seg.p1 - seg.p0).abs();
                 let d = len - s;
                 let v_cmd = if self.stopping || (self.held && self.lim.tap_hold_in_hole) { 0.0 } else { seg.v };
                 let nv = profile::next_speed(v, v_cmd, d, seg.alim * dt, dt);
                 let (s2, landed) = if d - nv * dt <= 1e-9 { (len, true) } else { (s + nv * dt, false) };
-                let z = if landed { seg.z1 } else { seg.z0 + s2.copysign(seg.z1 - seg.z0) };
-                self.pos[AX_Z] = z;
-                self.pos[AX_S] = thr + 360.0 * (z - zr) / seg.lead;
+                let p = if landed { seg.p1 } else { seg.p0 + s2.copysign(seg.p1 - seg.p0) };
+                self.pos[seg.axis] = p;
+                self.pos[AX_S] = thr + 360.0 * (p - pr) / seg.lead;
                 self.sync_watch = true;
                 self.sp_cur = (self.pos[AX_S] - prev[AX_S]) / dt / 6.0;
-                path_v = (z - prev[AX_Z]).abs() / dt;
+                path_v = (p - prev[seg.axis]).abs() / dt;
                 self.run = if self.stopping && nv == 0.0 && !landed {
                     self.sp_cur = 0.0;
                     Run::None
                 } else {
-                    Run::Tap { seg, theta0: Some((zr, thr)), s: s2, v: nv, landed }
+                    Run::Tap { seg, theta0: Some((pr, thr)), s: s2, v: nv, landed }
                 };
             }
         }
@@ -1575,7 +1593,11 @@ impl Motion {
     fn sync_corr(&mut self, fb: &Feedback) {
         self.corr_prev = self.corr;
         let gain = match self.run {
-            Run::Tap { seg, theta0: Some(_), .. } => Some([0.0, 0.0, seg.lead / 360.0]),
+            Run::Tap { seg, theta0: Some(_), .. } => {
+                let mut g = [0.0; 3];
+                g[seg.axis.min(2)] = seg.lead / 360.0;
+                Some(g)
+            }
             Run::Rigid { seg, theta0: Some(_), .. } if seg.u_long > 0.0 && seg.dc != 0.0 => {
                 let e = seg.geom.end();
                 let p0 = geom_start(&seg.geom);
@@ -1669,9 +1691,9 @@ impl Motion {
         let th = fb.pos[AX_S];
         let err_mm = match self.run {
             Run::Thread { seg, sync: Some(t), .. } => (line_progress(&seg.geom, &fb.pos) - t.target(th)) * seg.u_long,
-            Run::Tap { seg, theta0: Some((zr, thr)), .. } => {
-                // Along the stroke's direction: + = Z ahead of the spindle.
-                ((fb.pos[AX_Z] - zr) - seg.lead * (th - thr) / 360.0) * (seg.z1 - seg.z0).signum()
+            Run::Tap { seg, theta0: Some((pr, thr)), .. } => {
+                // Along the stroke's direction: + = the tapping axis ahead of the spindle.
+                ((fb.pos[seg.axis] - pr) - seg.lead * (th - thr) / 360.0) * (seg.p1 - seg.p0).signum()
             }
             Run::Rigid { seg, theta0: Some(th0), .. } => {
                 let len = seg.geom.len();
