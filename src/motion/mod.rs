@@ -389,6 +389,60 @@ enum Item {
 struct Entry {
     item: Item,
     line: u32,
+    /// The drilling/tapping cycle action this item belongs to.
+    cyc: CycStep,
+}
+
+/// Where an item stands in a drilling or tapping canned cycle (from [`crate::canon::CycleTag`]),
+/// for single block and feed hold by the manuals' actions: 1 positioning, 2 to R, 3 cutting
+/// or tapping in (pecks), 4 dwell at the bottom, 5 back to R, 6 back to the initial plane.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+struct CycStep {
+    /// Which cycle (index in [`DRILL_CYCLES`] + 1); 0 = not a drilling/tapping cycle.
+    code: u8,
+    step: u8,
+    /// A hole tapped rigidly (manual 000's rules apply instead of 004 §2.21's).
+    rigid: bool,
+}
+
+/// The drilling and tapping cycles whose actions are numbered 1–6 (004 §2.21–2.22, 000, and
+/// the SINUMERIK drilling cycles, which the interpreter tags the same way).
+const DRILL_CYCLES: [&str; 13] = [
+    "G83", "G84", "G85", "G87", "G88", "G89", "CYCLE81", "CYCLE82", "CYCLE83", "CYCLE84", "CYCLE840", "CYCLE85", "CYCLE86",
+];
+/// Of those, the tapping cycles (a flexible tap must not stop in the hole either).
+const TAP_CYCLES: [&str; 4] = ["G84", "G88", "CYCLE84", "CYCLE840"];
+
+impl CycStep {
+    fn of(m: &Move) -> CycStep {
+        match &m.tag {
+            Some(t) => match DRILL_CYCLES.iter().position(|c| **c == *t.cycle) {
+                Some(i) => CycStep { code: i as u8 + 1, step: t.step, rigid: false },
+                None => CycStep::default(),
+            },
+            None => CycStep::default(),
+        }
+    }
+
+    /// Actions 3–5 of a flexible (not rigid) tapping cycle: the tap is in the hole, cut by
+    /// the turning spindle.
+    fn flex_tap_in_hole(self) -> bool {
+        self.code > 0
+            && !self.rigid
+            && (3..=5).contains(&self.step)
+            && DRILL_CYCLES.get((self.code - 1) as usize).is_some_and(|c| TAP_CYCLES.contains(c))
+    }
+
+    /// Actions 1, 2 and 3–6 (cutting in to back on the initial plane) are the three single
+    /// blocks of a hole (004 §2.21 note 2, §2.22 note 4).
+    fn group(self) -> u8 {
+        self.step.min(3)
+    }
+
+    /// `next` continues this item's action of the same hole.
+    fn same_action(self, next: CycStep) -> bool {
+        next.code == self.code && next.group() == self.group() && next.step >= self.step
+    }
 }
 
 /// What is executing now.
@@ -488,6 +542,13 @@ pub struct Motion {
     steady: [u32; 3],
     /// Cycles waited for the in-position check before a rigid tap.
     inpos_wait: u32,
+    /// The cycle action of the item running or last taken from the queue.
+    cur_cyc: CycStep,
+    /// The cycle action of the last pushed item (planning).
+    plan_cyc: CycStep,
+    /// Single block: a drilling-cycle item ended; whether to stop is decided against the next
+    /// item (see `single_block_stop`).
+    sb_pending: bool,
 }
 
 fn xyz(p: &Pos) -> [f64; 3] {
@@ -497,7 +558,7 @@ fn xyz(p: &Pos) -> [f64; 3] {
 impl Motion {
     pub fn new(limits: Limits, start: [f64; N_AXES]) -> Motion {
         let cap = limits.queue_len.max(1);
-        let dummy = Entry { item: Item::Event(Event::None), line: 0 };
+        let dummy = Entry { item: Item::Event(Event::None), line: 0, cyc: CycStep { code: 0, step: 0, rigid: false } };
         Motion {
             queue: vec![dummy; cap],
             head: 0,
@@ -527,6 +588,9 @@ impl Motion {
             tau_den: [0.0; 3],
             steady: [0; 3],
             inpos_wait: 0,
+            cur_cyc: CycStep::default(),
+            plan_cyc: CycStep::default(),
+            sb_pending: false,
             sp_dir: 0.0,
             sp_rpm: 0.0,
             sp_css: None,
@@ -673,14 +737,86 @@ impl Motion {
             _ => {}
         }
         let is_move = matches!(item, Item::Move(_));
+        let cyc = self.plan_cycle_step(m, &item);
         let i = (self.head + self.len) % self.queue.len();
-        self.queue[i] = Entry { item, line: m.src.line };
+        self.queue[i] = Entry { item, line: m.src.line, cyc };
         self.len += 1;
         if is_move && blend_in {
             self.link_last();
         }
         self.last_blendable = is_move && !m.exact_stop;
         Ok(())
+    }
+
+    /// The cycle action of a move being pushed. A rigid tap stroke marks its hole rigid: the
+    /// items of actions 1–2 before it (still queued or running) and every later item of the
+    /// hole's actions 3–6.
+    fn plan_cycle_step(&mut self, m: &Move, item: &Item) -> CycStep {
+        let mut c = CycStep::of(m);
+        if c.code == 0 {
+            self.plan_cyc = c;
+            return c;
+        }
+        let p = self.plan_cyc;
+        if matches!(item, Item::Tap(_)) {
+            c.rigid = true;
+            if !(p.rigid && p.code == c.code) {
+                let cap = self.queue.len();
+                let mut k = self.len;
+                let mut all = true;
+                while k > 0 {
+                    let e = &mut self.queue[(self.head + k - 1) % cap].cyc;
+                    if e.code != c.code || e.step >= 3 {
+                        all = false;
+                        break;
+                    }
+                    e.rigid = true;
+                    k -= 1;
+                }
+                if all && self.cur_cyc.code == c.code && self.cur_cyc.step < 3 {
+                    self.cur_cyc.rigid = true;
+                }
+            }
+        } else if p.rigid && p.code == c.code && p.step >= 3 && c.step >= p.step {
+            c.rigid = true;
+        }
+        self.plan_cyc = c;
+        c
+    }
+
+    /// Single block between the item that ended (`cur_cyc`) and the next one, in a drilling or
+    /// tapping cycle. 004 §2.21 note 2 / §2.22 note 4: stop at the ends of actions 1, 2 and 6
+    /// (3–6 are one block). Rigid tapping, 000 "暂停与单段": never within actions 1–6 of a
+    /// hole; after a hole only with No.5200#6, and after the cycle's last hole always (its
+    /// table: `G84 …; C180;` do not stop with #6 = 0, `C270;` before `G80` does).
+    /// False while the next item is not queued yet (decided when it arrives).
+    fn single_block_stop(&self, next: Option<Entry>) -> bool {
+        let a = self.cur_cyc;
+        let Some(n) = next.map(|e| e.cyc) else { return false };
+        if n.code != a.code {
+            return true;
+        }
+        if a.same_action(n) {
+            return false;
+        }
+        if a.rigid {
+            // A new hole of the same cycle (anything else is inside the hole).
+            a.step >= 3 && self.lim.tap_hold_in_hole
+        } else {
+            true
+        }
+    }
+
+    /// An item that single block stops after ended.
+    fn block_end(&mut self) {
+        if !self.single_block {
+            return;
+        }
+        if self.cur_cyc.code == 0 {
+            self.paused = true;
+        } else {
+            self.sb_pending = true;
+        }
     }
 
     /// The segment before the newest queued one, if it has not finished yet: the previous
@@ -1209,12 +1345,21 @@ impl Motion {
     /// Feed hold in force now. With No.5200#6 = 0 it waits while the tool is in a tapped hole
     /// (the tap would break): the strokes and the dwell at the bottom run on to the R point.
     fn hold_now(&self) -> bool {
-        self.held && !(self.in_hole && !self.lim.tap_hold_in_hole)
+        self.held && !(self.in_hole && !self.lim.tap_hold_in_hole) && !self.flex_tap_defers_hold()
+    }
+
+    /// 004 §2.22 note 4: feed hold in actions 3–5 of a (flexible) G84/G88 does not stop the
+    /// tap; it takes effect when the tool is back at R (the end of action 5).
+    fn flex_tap_defers_hold(&self) -> bool {
+        let c = self.cur_cyc;
+        c.flex_tap_in_hole()
+            && (self.run != Run::None
+                || self.peek().is_some_and(|e| e.cyc.flex_tap_in_hole() && e.cyc.code == c.code && e.cyc.step >= c.step))
     }
 
     /// The commanded path speed (mm/s) of a segment this cycle.
     fn v_cmd(&self, seg: &Seg, fb: &Feedback) -> f64 {
-        if self.held || self.stopping {
+        if (self.held && !self.flex_tap_defers_hold()) || self.stopping {
             return 0.0;
         }
         let v = match seg.speed {
@@ -1240,9 +1385,17 @@ impl Motion {
             self.step_spindle(dt);
         }
 
+        if self.run == Run::None && self.sb_pending && !self.stopping && self.single_block_stop(self.peek()) {
+            self.sb_pending = false;
+            self.paused |= self.single_block;
+        }
         if self.run == Run::None && !self.stopping && !self.hold_now() && !self.paused {
             if let Some(e) = self.pop() {
                 self.line = e.line;
+                self.cur_cyc = e.cyc;
+                // A spindle command or code inside an action (a clamp M code, M05 at the
+                // bottom) is part of it: the single-block decision waits for the next block.
+                self.sb_pending &= matches!(e.item, Item::Spindle(_) | Item::Event(Event::Aux { .. } | Event::None));
                 let chain = self.thread_chain.take();
                 self.thread_chain = chain.filter(|_| matches!(e.item, Item::Thread(_)));
                 match e.item {
@@ -1284,7 +1437,7 @@ impl Motion {
             Run::Move { landed: true, .. } => {
                 // Exact stop: one cycle at rest on the end point.
                 self.run = Run::None;
-                self.paused |= self.single_block;
+                self.block_end();
             }
             Run::Move { mut seg, s, v, landed: false } => {
                 let len = seg.geom.len();
@@ -1299,13 +1452,14 @@ impl Motion {
                 let nv = profile::next_speed(v, self.v_cmd(&seg, fb), d + seg.ext, dv, dt);
                 let reach = d - nv * dt <= 1e-9;
                 let next = match (reach && seg.ext > 0.0, self.peek()) {
-                    (true, Some(Entry { item: Item::Move(next), line })) => Some((next, line)),
+                    (true, Some(Entry { item: Item::Move(next), line, cyc })) => Some((next, line, cyc)),
                     _ => None,
                 };
-                if let Some((next, line)) = next {
+                if let Some((next, line, cyc)) = next {
                     // Blend: cross the junction within this cycle, onto the next segment.
                     self.pop();
                     self.line = line;
+                    self.cur_cyc = cyc;
                     let s2 = (nv * dt - d).max(0.0).min(next.geom.len());
                     let p = next.geom.at(s2);
                     self.pos[..3].copy_from_slice(&p);
@@ -1330,19 +1484,23 @@ impl Motion {
                 } else if !self.hold_now() {
                     let left = left.saturating_sub(1);
                     self.run = if left == 0 { Run::None } else { Run::Dwell { left } };
-                    self.paused |= self.single_block && left == 0 && !self.in_hole;
+                    if left == 0 && self.cur_cyc.code > 0 {
+                        self.block_end();
+                    } else {
+                        self.paused |= self.single_block && left == 0 && !self.in_hole;
+                    }
                 }
             }
             Run::Thread { landed: true, .. } => {
                 self.run = Run::None;
-                self.paused |= self.single_block;
+                self.block_end();
             }
             Run::Thread { seg, sync, s, v, landed: false } => path_v = self.step_thread(fb, seg, sync, s, v),
             Run::Rigid { landed: true, .. } => {
                 // At rest on the end, spindle stopped in position (no run-out).
                 self.sp_cur = 0.0;
                 self.run = Run::None;
-                self.paused |= self.single_block;
+                self.block_end();
             }
             Run::Rigid { seg, theta0: None, .. } => {
                 // Like rigid tapping: brake the spindle, then take its angle as the origin.
@@ -1382,8 +1540,13 @@ impl Motion {
                 self.sp_cur = 0.0;
                 self.run = Run::None;
                 self.in_hole = theta0.is_some_and(|(pr, _)| seg.p1 != pr);
-                // Single block never stops inside a tap; after the hole only with No.5200#6.
-                self.paused |= self.single_block && !self.in_hole && self.lim.tap_hold_in_hole;
+                // Single block never stops inside a tap; after the hole only with No.5200#6
+                // (in a canned cycle by its actions, see `single_block_stop`).
+                if self.cur_cyc.code > 0 {
+                    self.block_end();
+                } else {
+                    self.paused |= self.single_block && !self.in_hole && self.lim.tap_hold_in_hole;
+                }
             }
             Run::Tap { seg, theta0: None, .. } => {
                 // Rigid tapping starts from a stopped spindle: brake it (step_spindle), then
@@ -1452,6 +1615,7 @@ impl Motion {
             self.plan_spindle_on = false;
             self.last_blendable = false;
             self.in_hole = false;
+            self.sb_pending = false;
             self.sp_dir = 0.0;
             self.sp_css = None;
         }
@@ -1523,7 +1687,7 @@ impl Motion {
         let len = seg.geom.len();
         // The continuation, if it is already queued (O(1): the queue head).
         let next = match self.peek() {
-            Some(Entry { item: Item::Thread(n), line }) if n.continuous => Some((n, line)),
+            Some(Entry { item: Item::Thread(n), line, .. }) if n.continuous => Some((n, line)),
             _ => None,
         };
         let dv = seg.alim * dt;
