@@ -1345,7 +1345,7 @@ impl Motion {
     /// Feed hold in force now. With No.5200#6 = 0 it waits while the tool is in a tapped hole
     /// (the tap would break): the strokes and the dwell at the bottom run on to the R point.
     fn hold_now(&self) -> bool {
-        self.held && !(self.in_hole && !self.lim.tap_hold_in_hole) && !self.flex_tap_defers_hold()
+        self.held && (!self.in_hole || self.lim.tap_hold_in_hole) && !self.flex_tap_defers_hold()
     }
 
     /// 004 §2.22 note 4: feed hold in actions 3–5 of a (flexible) G84/G88 does not stop the
