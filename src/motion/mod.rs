@@ -41,7 +41,10 @@
 //!   actual X/Y/Z in synchronised moves.
 //! - Push moves whenever `has_room()`; `push` refuses a move with an alarm and queues
 //!   nothing. After M00 (and M01 with the optional stop switch on), feed hold and single
-//!   block, `is_held()` is true until `cycle_start()`.
+//!   block, `is_held()` is true until `cycle_start()`. In drilling and tapping cycles
+//!   (moves tagged with their action) single block and feed hold follow the manuals'
+//!   action rules (`single_block_stop`, `hold_now`); a single-block stop there is decided
+//!   when the next item is queued.
 //! - After `stop()` wait for `is_idle()`; the rest of the program is dropped and the next
 //!   push plans from where the axes stopped. Check `take_alarm()` after each cycle (outside
 //!   the time-critical part): a fault found by `step` (thread too fast) already triggered a
