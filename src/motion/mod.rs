@@ -1619,6 +1619,8 @@ impl Motion {
             self.last_blendable = false;
             self.in_hole = false;
             self.sb_pending = false;
+            self.cur_cyc = CycStep::default();
+            self.plan_cyc = CycStep::default();
             self.sp_dir = 0.0;
             self.sp_css = None;
         }

@@ -1724,3 +1724,30 @@ fn feed_hold_in_a_rigid_tapping_cycle_holds_at_r() {
     assert_eq!((last.pos[AX_X], last.pos[AX_Z]), (10.0, 2.0), "held at R");
     assert!(sps.iter().any(|s| s.pos[AX_Z] == -10.0));
 }
+
+/// G88: a tap stroke along X (a radius) locks the spindle to X exactly as G84 to Z; the
+/// lead's sign says which way the spindle turns going in. A stroke moving two axes is refused.
+#[test]
+fn a_rigid_tap_stroke_runs_along_x() {
+    let l = lim();
+    let mut m = Motion::new(l.clone(), [30.0, 0.0, -12.0, 90.0]);
+    let tap = |x: f64| MoveKind::Tap { end: Pos { x, z: -12.0, ..Pos::ZERO }, lead: -1.5, rpm: 800.0 };
+    m.push(&mv(1, tap(15.0))).unwrap();
+    m.push(&mv(2, MoveKind::Dwell { seconds: 0.05 })).unwrap();
+    m.push(&mv(3, tap(30.0))).unwrap();
+    let sps = run(&mut m, 100_000);
+    for s in &sps {
+        let want = 90.0 + 360.0 * (s.pos[AX_X] - 30.0) / -1.5;
+        assert!((s.pos[AX_S] - want).abs() < 1e-9, "spindle {} vs {want} at x {}", s.pos[AX_S], s.pos[AX_X]);
+        assert_eq!(s.pos[AX_Z], -12.0);
+    }
+    assert!(sps.iter().any(|s| s.pos[AX_X] == 15.0));
+    let last = sps.last().unwrap();
+    assert_eq!((last.pos[AX_X], last.pos[AX_S]), (30.0, 90.0), "back on R and on the start angle");
+    // Forward (M03 sense) going −X, reversed coming out.
+    assert!(sps.iter().any(|s| s.spindle_rpm > 790.0) && sps.iter().any(|s| s.spindle_rpm < -790.0));
+    check_limits(&l, [30.0, 0.0, -12.0, 90.0], &sps).unwrap();
+    let mut m = Motion::new(l, [30.0, 0.0, -12.0, 0.0]);
+    let e = m.push(&mv(1, MoveKind::Tap { end: Pos::xz(20.0, -20.0), lead: 1.0, rpm: 500.0 })).unwrap_err();
+    assert_eq!(e.number, alarms::BAD_VALUE, "{e}");
+}
