@@ -138,8 +138,8 @@ pub enum MoveKind {
     /// `lead_inc`: G34 variable lead, the lead grows by this much (mm, signed) per spindle
     /// revolution from `lead` at the start; 0 for a constant lead.
     Thread { end: Pos, lead: f64, start_angle: f64, continuous: bool, lead_inc: f64 },
-    /// Rigid tap stroke along the tapping axis (Z for G84 in G18; X for G88 — motion runs Z
-    /// strokes only so far): spindle angle and feed axis interpolated together, angle =
+    /// Rigid tap stroke along the tapping axis (Z for G84 in G18; X for G88, a radius, the
+    /// lead along it): spindle angle and feed axis interpolated together, angle =
     /// θ_ref + 360·(axis − axis_ref)/`lead`. `lead` mm per revolution, signed so that the
     /// spindle turns forward (M03 sense) while the tool moves towards the sign of `lead`;
     /// consecutive strokes of one hole share it (in and out, pecks). `rpm` is this stroke's

@@ -41,7 +41,10 @@
 //!   actual X/Y/Z in synchronised moves.
 //! - Push moves whenever `has_room()`; `push` refuses a move with an alarm and queues
 //!   nothing. After M00 (and M01 with the optional stop switch on), feed hold and single
-//!   block, `is_held()` is true until `cycle_start()`.
+//!   block, `is_held()` is true until `cycle_start()`. In drilling and tapping cycles
+//!   (moves tagged with their action) single block and feed hold follow the manuals'
+//!   action rules (`single_block_stop`, `hold_now`); a single-block stop there is decided
+//!   when the next item is queued.
 //! - After `stop()` wait for `is_idle()`; the rest of the program is dropped and the next
 //!   push plans from where the axes stopped. Check `take_alarm()` after each cycle (outside
 //!   the time-critical part): a fault found by `step` (thread too fast) already triggered a
@@ -339,13 +342,15 @@ struct ThreadSeg {
     alim: f64,
 }
 
-/// A rigid-tap stroke along Z: the spindle angle is `360·(z − z0)/lead`.
+/// A rigid-tap stroke along one feed axis (`axis`: Z for G84, X for G88 — a radius, Y):
+/// the spindle angle is `360·(p − p0)/lead`, p the position on that axis.
 #[derive(Clone, Copy, Debug, PartialEq)]
 struct TapSeg {
-    z0: f64,
-    z1: f64,
+    axis: usize,
+    p0: f64,
+    p1: f64,
     lead: f64,
-    /// Commanded Z speed (rpm × |lead|), mm/s.
+    /// Commanded speed along the tapping axis (rpm × |lead|), mm/s.
     v: f64,
     vlim: f64,
     alim: f64,
@@ -387,6 +392,60 @@ enum Item {
 struct Entry {
     item: Item,
     line: u32,
+    /// The drilling/tapping cycle action this item belongs to.
+    cyc: CycStep,
+}
+
+/// Where an item stands in a drilling or tapping canned cycle (from [`crate::canon::CycleTag`]),
+/// for single block and feed hold by the manuals' actions: 1 positioning, 2 to R, 3 cutting
+/// or tapping in (pecks), 4 dwell at the bottom, 5 back to R, 6 back to the initial plane.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+struct CycStep {
+    /// Which cycle (index in [`DRILL_CYCLES`] + 1); 0 = not a drilling/tapping cycle.
+    code: u8,
+    step: u8,
+    /// A hole tapped rigidly (manual 000's rules apply instead of 004 §2.21's).
+    rigid: bool,
+}
+
+/// The drilling and tapping cycles whose actions are numbered 1–6 (004 §2.21–2.22, 000, and
+/// the SINUMERIK drilling cycles, which the interpreter tags the same way).
+const DRILL_CYCLES: [&str; 13] = [
+    "G83", "G84", "G85", "G87", "G88", "G89", "CYCLE81", "CYCLE82", "CYCLE83", "CYCLE84", "CYCLE840", "CYCLE85", "CYCLE86",
+];
+/// Of those, the tapping cycles (a flexible tap must not stop in the hole either).
+const TAP_CYCLES: [&str; 4] = ["G84", "G88", "CYCLE84", "CYCLE840"];
+
+impl CycStep {
+    fn of(m: &Move) -> CycStep {
+        match &m.tag {
+            Some(t) => match DRILL_CYCLES.iter().position(|c| **c == *t.cycle) {
+                Some(i) => CycStep { code: i as u8 + 1, step: t.step, rigid: false },
+                None => CycStep::default(),
+            },
+            None => CycStep::default(),
+        }
+    }
+
+    /// Actions 3–5 of a flexible (not rigid) tapping cycle: the tap is in the hole, cut by
+    /// the turning spindle.
+    fn flex_tap_in_hole(self) -> bool {
+        self.code > 0
+            && !self.rigid
+            && (3..=5).contains(&self.step)
+            && DRILL_CYCLES.get((self.code - 1) as usize).is_some_and(|c| TAP_CYCLES.contains(c))
+    }
+
+    /// Actions 1, 2 and 3–6 (cutting in to back on the initial plane) are the three single
+    /// blocks of a hole (004 §2.21 note 2, §2.22 note 4).
+    fn group(self) -> u8 {
+        self.step.min(3)
+    }
+
+    /// `next` continues this item's action of the same hole.
+    fn same_action(self, next: CycStep) -> bool {
+        next.code == self.code && next.group() == self.group() && next.step >= self.step
+    }
 }
 
 /// What is executing now.
@@ -400,7 +459,7 @@ enum Run {
     /// Waiting for the spindle (`sync` None) or cutting, locked to the measured angle.
     Thread { seg: ThreadSeg, sync: Option<ThreadSync>, s: f64, v: f64, landed: bool },
     /// Waiting for the spindle to stop (`theta0` None), then the stroke; `theta0` is the tap
-    /// reference (z_ref, θ_ref): spindle angle = θ_ref + 360·(z − z_ref)/lead.
+    /// reference (p_ref, θ_ref) on the tapping axis: spindle angle = θ_ref + 360·(p − p_ref)/lead.
     Tap { seg: TapSeg, theta0: Option<(f64, f64)>, s: f64, v: f64, landed: bool },
     /// G92.1: waiting for the spindle to stop (`theta0` None), then the stroke from the
     /// spindle angle `theta0`.
@@ -459,13 +518,15 @@ pub struct Motion {
     /// The lock of the thread segment that ended last and its length, for a continuous
     /// segment that follows it (cleared by any other item).
     thread_chain: Option<(ThreadSync, f64)>,
-    /// Rigid tapping reference (z, spindle angle, lead) of the last stroke, so that the strokes
-    /// of one hole share one Z–angle relation and the return ends on the start angle exactly.
-    tap_ref: Option<(f64, f64, f64)>,
+    /// Rigid tapping reference (axis, position on it, spindle angle, lead) of the last stroke,
+    /// so that the strokes of one hole share one axis–angle relation and the return ends on
+    /// the start angle exactly.
+    tap_ref: Option<(usize, f64, f64, f64)>,
     /// The tool is inside a tapped hole (a tap stroke ended away from the hole's R point).
     in_hole: bool,
-    /// Planning: the hole the last pushed tap strokes are in (R point z, direction into it).
-    plan_tap: Option<(f64, f64)>,
+    /// Planning: the hole the last pushed tap strokes are in (tapping axis, R point on it,
+    /// direction into it).
+    plan_tap: Option<(usize, f64, f64)>,
     /// Setpoints sent in the last HIST cycles (ring, index `hist_k` = the newest).
     hist: [[f64; N_AXES]; HIST],
     hist_k: usize,
@@ -484,6 +545,13 @@ pub struct Motion {
     steady: [u32; 3],
     /// Cycles waited for the in-position check before a rigid tap.
     inpos_wait: u32,
+    /// The cycle action of the item running or last taken from the queue.
+    cur_cyc: CycStep,
+    /// The cycle action of the last pushed item (planning).
+    plan_cyc: CycStep,
+    /// Single block: a drilling-cycle item ended; whether to stop is decided against the next
+    /// item (see `single_block_stop`).
+    sb_pending: bool,
 }
 
 fn xyz(p: &Pos) -> [f64; 3] {
@@ -493,7 +561,7 @@ fn xyz(p: &Pos) -> [f64; 3] {
 impl Motion {
     pub fn new(limits: Limits, start: [f64; N_AXES]) -> Motion {
         let cap = limits.queue_len.max(1);
-        let dummy = Entry { item: Item::Event(Event::None), line: 0 };
+        let dummy = Entry { item: Item::Event(Event::None), line: 0, cyc: CycStep { code: 0, step: 0, rigid: false } };
         Motion {
             queue: vec![dummy; cap],
             head: 0,
@@ -523,6 +591,9 @@ impl Motion {
             tau_den: [0.0; 3],
             steady: [0; 3],
             inpos_wait: 0,
+            cur_cyc: CycStep::default(),
+            plan_cyc: CycStep::default(),
+            sb_pending: false,
             sp_dir: 0.0,
             sp_rpm: 0.0,
             sp_css: None,
@@ -655,12 +726,13 @@ impl Motion {
             }
             Item::Tap(t) => {
                 self.plan_tap = match self.plan_tap {
-                    None => Some((t.z0, (t.z1 - t.z0).signum())),
-                    // Back at the R point: the hole is done.
-                    Some((r, _)) if t.z1 == r => None,
-                    h => h,
+                    Some((a, r, d)) if a == t.axis => {
+                        // Back at the R point: the hole is done.
+                        (t.p1 != r).then_some((a, r, d))
+                    }
+                    _ => Some((t.axis, t.p0, (t.p1 - t.p0).signum())),
                 };
-                self.plan_end[AX_Z] = t.z1;
+                self.plan_end[t.axis] = t.p1;
                 // Rigid tapping leaves the spindle stopped, in position control.
                 self.plan_spindle_on = false;
                 self.plan_rpm = None;
@@ -668,14 +740,86 @@ impl Motion {
             _ => {}
         }
         let is_move = matches!(item, Item::Move(_));
+        let cyc = self.plan_cycle_step(m, &item);
         let i = (self.head + self.len) % self.queue.len();
-        self.queue[i] = Entry { item, line: m.src.line };
+        self.queue[i] = Entry { item, line: m.src.line, cyc };
         self.len += 1;
         if is_move && blend_in {
             self.link_last();
         }
         self.last_blendable = is_move && !m.exact_stop;
         Ok(())
+    }
+
+    /// The cycle action of a move being pushed. A rigid tap stroke marks its hole rigid: the
+    /// items of actions 1–2 before it (still queued or running) and every later item of the
+    /// hole's actions 3–6.
+    fn plan_cycle_step(&mut self, m: &Move, item: &Item) -> CycStep {
+        let mut c = CycStep::of(m);
+        if c.code == 0 {
+            self.plan_cyc = c;
+            return c;
+        }
+        let p = self.plan_cyc;
+        if matches!(item, Item::Tap(_)) {
+            c.rigid = true;
+            if !(p.rigid && p.code == c.code) {
+                let cap = self.queue.len();
+                let mut k = self.len;
+                let mut all = true;
+                while k > 0 {
+                    let e = &mut self.queue[(self.head + k - 1) % cap].cyc;
+                    if e.code != c.code || e.step >= 3 {
+                        all = false;
+                        break;
+                    }
+                    e.rigid = true;
+                    k -= 1;
+                }
+                if all && self.cur_cyc.code == c.code && self.cur_cyc.step < 3 {
+                    self.cur_cyc.rigid = true;
+                }
+            }
+        } else if p.rigid && p.code == c.code && p.step >= 3 && c.step >= p.step {
+            c.rigid = true;
+        }
+        self.plan_cyc = c;
+        c
+    }
+
+    /// Single block between the item that ended (`cur_cyc`) and the next one, in a drilling or
+    /// tapping cycle. 004 §2.21 note 2 / §2.22 note 4: stop at the ends of actions 1, 2 and 6
+    /// (3–6 are one block). Rigid tapping, 000 "暂停与单段": never within actions 1–6 of a
+    /// hole; after a hole only with No.5200#6, and after the cycle's last hole always (its
+    /// table: `G84 …; C180;` do not stop with #6 = 0, `C270;` before `G80` does).
+    /// False while the next item is not queued yet (decided when it arrives).
+    fn single_block_stop(&self, next: Option<Entry>) -> bool {
+        let a = self.cur_cyc;
+        let Some(n) = next.map(|e| e.cyc) else { return false };
+        if n.code != a.code {
+            return true;
+        }
+        if a.same_action(n) {
+            return false;
+        }
+        if a.rigid {
+            // A new hole of the same cycle (anything else is inside the hole).
+            a.step >= 3 && self.lim.tap_hold_in_hole
+        } else {
+            true
+        }
+    }
+
+    /// An item that single block stops after ended.
+    fn block_end(&mut self) {
+        if !self.single_block {
+            return;
+        }
+        if self.cur_cyc.code == 0 {
+            self.paused = true;
+        } else {
+            self.sb_pending = true;
+        }
     }
 
     /// The segment before the newest queued one, if it has not finished yet: the previous
@@ -906,24 +1050,35 @@ impl Motion {
             return Err(Alarm::new(alarms::UNSUPPORTED, "rigid tapping needs a spindle axis in the config"));
         }
         let e = self.check_end(end)?;
-        if e[AX_X] != self.plan_end[AX_X] || e[AX_Y] != self.plan_end[AX_Y] {
-            return Err(Alarm::new(alarms::BAD_VALUE, "a rigid tap stroke moves Z only: position X/Y before the tap"));
-        }
+        // The tapping axis is the one axis that moves (G84: Z, G88: X; X is a radius and the
+        // lead is along it). A zero-length stroke stays on the hole's axis.
+        let mut moved = (0..3).filter(|&i| e[i] != self.plan_end[i]);
+        let axis = match (moved.next(), moved.next()) {
+            (Some(a), None) => a,
+            (None, _) => self.plan_tap.map_or(AX_Z, |(a, _, _)| a),
+            _ => {
+                return Err(Alarm::new(
+                    alarms::BAD_VALUE,
+                    "a rigid tap stroke moves the tapping axis only (Z for G84, X for G88): position the other axes before the tap",
+                ))
+            }
+        };
+        let name = AXIS_NAMES[axis];
         let l = &self.lim;
-        let z0 = self.plan_end[AX_Z];
+        let p0 = self.plan_end[axis];
         // Out of the hole: the stroke runs against the direction of the hole's first stroke.
-        let retract = self.plan_tap.is_some_and(|(_, din)| (e[AX_Z] - z0) * din < 0.0);
-        let per_deg = lead.abs() / 360.0; // mm of Z per spindle degree
-        // Feasibility before anything moves: Z must be able to follow the spindle at S.
+        let retract = self.plan_tap.is_some_and(|(a, _, din)| a == axis && (e[axis] - p0) * din < 0.0);
+        let per_deg = lead.abs() / 360.0; // mm of the tapping axis per spindle degree
+        // Feasibility before anything moves: the axis must be able to follow the spindle at S.
         let v = rpm * lead.abs() / 60.0;
-        if !(v <= l.vmax[AX_Z] * (1.0 + 1e-9)) {
+        if !(v <= l.vmax[axis] * (1.0 + 1e-9)) {
             return Err(Alarm::new(
                 alarms::THREAD_TOO_FAST,
                 format!(
-                    "rigid tap lead {:.4} mm × S{rpm} needs {:.0} mm/min of Z, more than Z's {:.0} mm/min; lower S",
+                    "rigid tap lead {:.4} mm × S{rpm} needs {:.0} mm/min of {name}, more than {name}'s {:.0} mm/min; lower S",
                     lead.abs(),
                     v * 60.0,
-                    l.vmax[AX_Z] * 60.0
+                    l.vmax[axis] * 60.0
                 ),
             ));
         }
@@ -933,18 +1088,18 @@ impl Motion {
                 format!("rigid tap S{rpm} is above the spindle's {:.0} rpm; lower S", l.vmax[AX_S] / 6.0),
             ));
         }
-        // Matched acceleration: spindle (its limit, No.5261 or on the way out No.5271) and Z
-        // on one profile, the lower of the two.
+        // Matched acceleration: spindle (its limit, No.5261 or on the way out No.5271) and the
+        // tapping axis on one profile, the lower of the two.
         let sp_acc = if retract && l.tap_retract_accel.is_finite() { l.tap_retract_accel } else { l.tap_accel };
-        let alim = l.amax[AX_Z].min(l.amax[AX_S].min(sp_acc) * per_deg);
+        let alim = l.amax[axis].min(l.amax[AX_S].min(sp_acc) * per_deg);
         if !(alim > 0.0 && alim.is_finite()) {
             return Err(Alarm::new(
                 alarms::BAD_VALUE,
-                "rigid tap: no usable acceleration for Z and the spindle; set max_accel of both (and No.5261)",
+                format!("rigid tap: no usable acceleration for {name} and the spindle; set max_accel of both (and No.5261)"),
             ));
         }
-        let vlim = l.vmax[AX_Z].min(l.vmax[AX_S] * per_deg);
-        Ok(TapSeg { z0, z1: e[AX_Z], lead, v: v.min(vlim), vlim, alim, retract })
+        let vlim = l.vmax[axis].min(l.vmax[AX_S] * per_deg);
+        Ok(TapSeg { axis, p0, p1: e[axis], lead, v: v.min(vlim), vlim, alim, retract })
     }
 
     /// G92.1: the feed axes to `end` and the spindle through `end.c − c_start` on one profile.
@@ -1193,12 +1348,21 @@ impl Motion {
     /// Feed hold in force now. With No.5200#6 = 0 it waits while the tool is in a tapped hole
     /// (the tap would break): the strokes and the dwell at the bottom run on to the R point.
     fn hold_now(&self) -> bool {
-        self.held && !(self.in_hole && !self.lim.tap_hold_in_hole)
+        self.held && (!self.in_hole || self.lim.tap_hold_in_hole) && !self.flex_tap_defers_hold()
+    }
+
+    /// 004 §2.22 note 4: feed hold in actions 3–5 of a (flexible) G84/G88 does not stop the
+    /// tap; it takes effect when the tool is back at R (the end of action 5).
+    fn flex_tap_defers_hold(&self) -> bool {
+        let c = self.cur_cyc;
+        c.flex_tap_in_hole()
+            && (self.run != Run::None
+                || self.peek().is_some_and(|e| e.cyc.flex_tap_in_hole() && e.cyc.code == c.code && e.cyc.step >= c.step))
     }
 
     /// The commanded path speed (mm/s) of a segment this cycle.
     fn v_cmd(&self, seg: &Seg, fb: &Feedback) -> f64 {
-        if self.held || self.stopping {
+        if (self.held && !self.flex_tap_defers_hold()) || self.stopping {
             return 0.0;
         }
         let v = match seg.speed {
@@ -1224,9 +1388,17 @@ impl Motion {
             self.step_spindle(dt);
         }
 
+        if self.run == Run::None && self.sb_pending && !self.stopping && self.single_block_stop(self.peek()) {
+            self.sb_pending = false;
+            self.paused |= self.single_block;
+        }
         if self.run == Run::None && !self.stopping && !self.hold_now() && !self.paused {
             if let Some(e) = self.pop() {
                 self.line = e.line;
+                self.cur_cyc = e.cyc;
+                // A spindle command or code inside an action (a clamp M code, M05 at the
+                // bottom) is part of it: the single-block decision waits for the next block.
+                self.sb_pending &= matches!(e.item, Item::Spindle(_) | Item::Event(Event::Aux { .. } | Event::None));
                 let chain = self.thread_chain.take();
                 self.thread_chain = chain.filter(|_| matches!(e.item, Item::Thread(_)));
                 match e.item {
@@ -1268,7 +1440,7 @@ impl Motion {
             Run::Move { landed: true, .. } => {
                 // Exact stop: one cycle at rest on the end point.
                 self.run = Run::None;
-                self.paused |= self.single_block;
+                self.block_end();
             }
             Run::Move { mut seg, s, v, landed: false } => {
                 let len = seg.geom.len();
@@ -1283,13 +1455,14 @@ impl Motion {
                 let nv = profile::next_speed(v, self.v_cmd(&seg, fb), d + seg.ext, dv, dt);
                 let reach = d - nv * dt <= 1e-9;
                 let next = match (reach && seg.ext > 0.0, self.peek()) {
-                    (true, Some(Entry { item: Item::Move(next), line })) => Some((next, line)),
+                    (true, Some(Entry { item: Item::Move(next), line, cyc })) => Some((next, line, cyc)),
                     _ => None,
                 };
-                if let Some((next, line)) = next {
+                if let Some((next, line, cyc)) = next {
                     // Blend: cross the junction within this cycle, onto the next segment.
                     self.pop();
                     self.line = line;
+                    self.cur_cyc = cyc;
                     let s2 = (nv * dt - d).max(0.0).min(next.geom.len());
                     let p = next.geom.at(s2);
                     self.pos[..3].copy_from_slice(&p);
@@ -1314,19 +1487,23 @@ impl Motion {
                 } else if !self.hold_now() {
                     let left = left.saturating_sub(1);
                     self.run = if left == 0 { Run::None } else { Run::Dwell { left } };
-                    self.paused |= self.single_block && left == 0 && !self.in_hole;
+                    if left == 0 && self.cur_cyc.code > 0 {
+                        self.block_end();
+                    } else {
+                        self.paused |= self.single_block && left == 0 && !self.in_hole;
+                    }
                 }
             }
             Run::Thread { landed: true, .. } => {
                 self.run = Run::None;
-                self.paused |= self.single_block;
+                self.block_end();
             }
             Run::Thread { seg, sync, s, v, landed: false } => path_v = self.step_thread(fb, seg, sync, s, v),
             Run::Rigid { landed: true, .. } => {
                 // At rest on the end, spindle stopped in position (no run-out).
                 self.sp_cur = 0.0;
                 self.run = Run::None;
-                self.paused |= self.single_block;
+                self.block_end();
             }
             Run::Rigid { seg, theta0: None, .. } => {
                 // Like rigid tapping: brake the spindle, then take its angle as the origin.
@@ -1365,22 +1542,29 @@ impl Motion {
                 // At rest on the stroke's end, spindle stopped in position.
                 self.sp_cur = 0.0;
                 self.run = Run::None;
-                self.in_hole = theta0.is_some_and(|(zr, _)| seg.z1 != zr);
-                // Single block never stops inside a tap; after the hole only with No.5200#6.
-                self.paused |= self.single_block && !self.in_hole && self.lim.tap_hold_in_hole;
+                self.in_hole = theta0.is_some_and(|(pr, _)| seg.p1 != pr);
+                // Single block never stops inside a tap; after the hole only with No.5200#6
+                // (in a canned cycle by its actions, see `single_block_stop`).
+                if self.cur_cyc.code > 0 {
+                    self.block_end();
+                } else {
+                    self.paused |= self.single_block && !self.in_hole && self.lim.tap_hold_in_hole;
+                }
             }
             Run::Tap { seg, theta0: None, .. } => {
                 // Rigid tapping starts from a stopped spindle: brake it (step_spindle), then
                 // take its angle as the stroke's origin.
                 self.sp_dir = 0.0;
                 self.sp_css = None;
-                // In-position check before a hole's first stroke: Z and the spindle at rest on
-                // their setpoints (a tap that starts while Z still settles from the rapid to R
-                // begins with a sync error). Bounded, so bad feedback cannot hang the program.
+                // In-position check before a hole's first stroke: the tapping axis and the
+                // spindle at rest on their setpoints (a tap that starts while the axis still
+                // settles from the rapid to R begins with a sync error). Bounded, so bad
+                // feedback cannot hang the program.
                 let sent = self.hist[self.hist_k];
+                let a = seg.axis;
                 let in_pos = self.in_hole
                     || self.inpos_wait >= INPOS_MAX_CYCLES
-                    || ((fb.pos[AX_Z] - sent[AX_Z]).abs() <= INPOS_MM
+                    || ((fb.pos[a] - sent[a]).abs() <= INPOS_MM
                         && ((fb.pos[AX_S] - sent[AX_S]) * seg.lead / 360.0).abs() <= INPOS_MM);
                 self.inpos_wait = if self.sp_cur == 0.0 { self.inpos_wait.saturating_add(1) } else { 0 };
                 if self.stopping {
@@ -1390,36 +1574,36 @@ impl Motion {
                     // Keep the previous stroke's reference if the spindle is still exactly where
                     // that relation puts it (same hole, nothing turned it since).
                     let r = match self.tap_ref {
-                        Some((zr, thr, lead))
-                            if lead == seg.lead && thr + 360.0 * (seg.z0 - zr) / lead == self.pos[AX_S] =>
+                        Some((ax, pr, thr, lead))
+                            if ax == a && lead == seg.lead && thr + 360.0 * (seg.p0 - pr) / lead == self.pos[AX_S] =>
                         {
-                            (zr, thr)
+                            (pr, thr)
                         }
-                        _ => (seg.z0, self.pos[AX_S]),
+                        _ => (seg.p0, self.pos[AX_S]),
                     };
-                    self.tap_ref = Some((r.0, r.1, seg.lead));
+                    self.tap_ref = Some((a, r.0, r.1, seg.lead));
                     self.run = Run::Tap { seg, theta0: Some(r), s: 0.0, v: 0.0, landed: false };
                 }
             }
-            Run::Tap { seg, theta0: Some((zr, thr)), s, v, landed: false } => {
+            Run::Tap { seg, theta0: Some((pr, thr)), s, v, landed: false } => {
                 // Feed hold acts within the stroke only with No.5200#6 (see hold_now); a hold
-                // or a controlled stop brakes Z and the spindle together on the same profile.
-                let len = (seg.z1 - seg.z0).abs();
+                // or a controlled stop brakes the axis and the spindle together on one profile.
+                let len = (seg.p1 - seg.p0).abs();
                 let d = len - s;
                 let v_cmd = if self.stopping || (self.held && self.lim.tap_hold_in_hole) { 0.0 } else { seg.v };
                 let nv = profile::next_speed(v, v_cmd, d, seg.alim * dt, dt);
                 let (s2, landed) = if d - nv * dt <= 1e-9 { (len, true) } else { (s + nv * dt, false) };
-                let z = if landed { seg.z1 } else { seg.z0 + s2.copysign(seg.z1 - seg.z0) };
-                self.pos[AX_Z] = z;
-                self.pos[AX_S] = thr + 360.0 * (z - zr) / seg.lead;
+                let p = if landed { seg.p1 } else { seg.p0 + s2.copysign(seg.p1 - seg.p0) };
+                self.pos[seg.axis] = p;
+                self.pos[AX_S] = thr + 360.0 * (p - pr) / seg.lead;
                 self.sync_watch = true;
                 self.sp_cur = (self.pos[AX_S] - prev[AX_S]) / dt / 6.0;
-                path_v = (z - prev[AX_Z]).abs() / dt;
+                path_v = (p - prev[seg.axis]).abs() / dt;
                 self.run = if self.stopping && nv == 0.0 && !landed {
                     self.sp_cur = 0.0;
                     Run::None
                 } else {
-                    Run::Tap { seg, theta0: Some((zr, thr)), s: s2, v: nv, landed }
+                    Run::Tap { seg, theta0: Some((pr, thr)), s: s2, v: nv, landed }
                 };
             }
         }
@@ -1434,6 +1618,9 @@ impl Motion {
             self.plan_spindle_on = false;
             self.last_blendable = false;
             self.in_hole = false;
+            self.sb_pending = false;
+            self.cur_cyc = CycStep::default();
+            self.plan_cyc = CycStep::default();
             self.sp_dir = 0.0;
             self.sp_css = None;
         }
@@ -1505,7 +1692,7 @@ impl Motion {
         let len = seg.geom.len();
         // The continuation, if it is already queued (O(1): the queue head).
         let next = match self.peek() {
-            Some(Entry { item: Item::Thread(n), line }) if n.continuous => Some((n, line)),
+            Some(Entry { item: Item::Thread(n), line, .. }) if n.continuous => Some((n, line)),
             _ => None,
         };
         let dv = seg.alim * dt;
@@ -1575,7 +1762,11 @@ impl Motion {
     fn sync_corr(&mut self, fb: &Feedback) {
         self.corr_prev = self.corr;
         let gain = match self.run {
-            Run::Tap { seg, theta0: Some(_), .. } => Some([0.0, 0.0, seg.lead / 360.0]),
+            Run::Tap { seg, theta0: Some(_), .. } => {
+                let mut g = [0.0; 3];
+                g[seg.axis.min(2)] = seg.lead / 360.0;
+                Some(g)
+            }
             Run::Rigid { seg, theta0: Some(_), .. } if seg.u_long > 0.0 && seg.dc != 0.0 => {
                 let e = seg.geom.end();
                 let p0 = geom_start(&seg.geom);
@@ -1669,9 +1860,9 @@ impl Motion {
         let th = fb.pos[AX_S];
         let err_mm = match self.run {
             Run::Thread { seg, sync: Some(t), .. } => (line_progress(&seg.geom, &fb.pos) - t.target(th)) * seg.u_long,
-            Run::Tap { seg, theta0: Some((zr, thr)), .. } => {
-                // Along the stroke's direction: + = Z ahead of the spindle.
-                ((fb.pos[AX_Z] - zr) - seg.lead * (th - thr) / 360.0) * (seg.z1 - seg.z0).signum()
+            Run::Tap { seg, theta0: Some((pr, thr)), .. } => {
+                // Along the stroke's direction: + = the tapping axis ahead of the spindle.
+                ((fb.pos[seg.axis] - pr) - seg.lead * (th - thr) / 360.0) * (seg.p1 - seg.p0).signum()
             }
             Run::Rigid { seg, theta0: Some(th0), .. } => {
                 let len = seg.geom.len();

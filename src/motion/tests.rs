@@ -1539,3 +1539,215 @@ fn sync_correction_sends_z_after_the_spindle_actual_angle_and_fades_out_at_r() {
     let last = sps.last().unwrap();
     assert_eq!(last.pos[..3], [10.0, 0.0, 2.0]);
 }
+
+// ---- Single block and feed hold by the actions of drilling/tapping cycles ----
+
+/// A move tagged with a canned cycle's action.
+fn cmv(line: u32, kind: MoveKind, cycle: &str, step: u8) -> Move {
+    Move { tag: Some(CycleTag { cycle: Arc::from(cycle), step }), ..mv(line, kind) }
+}
+
+/// One hole at radius `x` on `line`: initial plane z 4, R z 2, bottom z −10. `cut` gives
+/// the items of actions 3–5 (between the rapid to R and the rapid back to the initial plane).
+fn hole(line: u32, x: f64, cycle: &str, cut: &dyn Fn(f64) -> Vec<(MoveKind, u8)>) -> Vec<Move> {
+    let mut v = vec![cmv(line, rapid(x, 4.0), cycle, 1), cmv(line, rapid(x, 2.0), cycle, 2)];
+    v.extend(cut(x).into_iter().map(|(k, s)| cmv(line, k, cycle, s)));
+    v.push(cmv(line, rapid(x, 4.0), cycle, 6));
+    v
+}
+
+fn boring(x: f64) -> Vec<(MoveKind, u8)> {
+    vec![(feed(x, -10.0, 1200.0), 3), (MoveKind::Dwell { seconds: 0.05 }, 4), (feed(x, 2.0, 1200.0), 5)]
+}
+
+fn rigid_tap(x: f64) -> Vec<(MoveKind, u8)> {
+    let tap = |z: f64| MoveKind::Tap { end: Pos::xz(x, z), lead: -1.0, rpm: 600.0 };
+    vec![(tap(-10.0), 3), (MoveKind::Dwell { seconds: 0.05 }, 4), (tap(2.0), 5)]
+}
+
+/// Flexible tapping as the interpreter expands it (004 §2.22.3): M03, feed per revolution
+/// to the bottom, M05, dwell, M04, feed back to R, M05.
+fn flexible_tap(x: f64) -> Vec<(MoveKind, u8)> {
+    let f = |z: f64| MoveKind::Feed { end: Pos::xz(x, z), feed: Feed::PerRev(1.0) };
+    vec![
+        (spindle(SpindleDir::Cw, 600.0), 3),
+        (f(-10.0), 3),
+        (spindle(SpindleDir::Stop, 600.0), 3),
+        (MoveKind::Dwell { seconds: 0.05 }, 4),
+        (spindle(SpindleDir::Ccw, 600.0), 5),
+        (f(2.0), 5),
+        (spindle(SpindleDir::Stop, 600.0), 5),
+    ]
+}
+
+/// Run with single block on and ideal drives, pressing cycle start at every stop; the
+/// (x, z) of each stop. `push_late`: moves pushed only once the cycle `k` is reached.
+fn single_block_stops(l: Limits, moves: &[Move], push_late: Option<(usize, usize)>) -> Vec<(f64, f64)> {
+    let mut m = Motion::new(l, START);
+    m.set_single_block(true);
+    let split = push_late.map_or(moves.len(), |(n, _)| n);
+    for x in &moves[..split] {
+        m.push(x).unwrap();
+    }
+    let mut fb = Feedback { pos: m.position(), spindle_rpm: 0.0 };
+    let mut stops = Vec::new();
+    for k in 0..200_000 {
+        if push_late.is_some_and(|(_, at)| at == k) {
+            for x in &moves[split..] {
+                m.push(x).unwrap();
+            }
+        }
+        let sp = m.step(&fb);
+        fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm };
+        if m.is_held() {
+            stops.push((sp.pos[AX_X], sp.pos[AX_Z]));
+            m.cycle_start();
+        }
+        if m.is_idle() && k > 10 && push_late.is_none_or(|(_, at)| k > at) {
+            break;
+        }
+    }
+    stops
+}
+
+/// 004 §2.21 note 2: in a drilling cycle single block stops at the ends of actions 1 (hole
+/// position), 2 (R point) and 6 (initial plane) only, not at the bottom nor back at R.
+#[test]
+fn single_block_stops_at_the_ends_of_actions_1_2_and_6_in_a_drilling_cycle() {
+    let mut p = hole(2, 10.0, "G85", &boring);
+    p.extend(hole(3, 20.0, "G85", &boring));
+    p.push(mv(4, rapid(30.0, 4.0)));
+    let stops = single_block_stops(lim(), &p, None);
+    assert_eq!(stops, [(10.0, 4.0), (10.0, 2.0), (10.0, 4.0), (20.0, 4.0), (20.0, 2.0), (20.0, 4.0), (30.0, 4.0)]);
+    // The same moves untagged stop after every block, the bottom included.
+    let plain: Vec<Move> = p.iter().map(|x| Move { tag: None, ..x.clone() }).collect();
+    assert!(single_block_stops(lim(), &plain, None).contains(&(10.0, -10.0)));
+}
+
+/// Manual 000 "暂停与单段": in rigid tapping single block never stops within actions 1–6;
+/// with No.5200#6 = 0 not between the holes either, only after the cycle's last hole; with
+/// No.5200#6 = 1 after every hole.
+#[test]
+fn single_block_in_rigid_tapping_follows_no_5200_bit_6() {
+    let mut p = hole(2, 10.0, "G84", &rigid_tap);
+    p.extend(hole(3, 20.0, "G84", &rigid_tap));
+    p.push(mv(4, rapid(30.0, 4.0)));
+    let l = lim();
+    assert!(!l.tap_hold_in_hole);
+    assert_eq!(single_block_stops(l.clone(), &p, None), [(20.0, 4.0), (30.0, 4.0)]);
+    // The hole is known to be rigid only when its first tap stroke arrives: here while the
+    // rapid of action 1 is already running.
+    assert_eq!(single_block_stops(l.clone(), &p, Some((2, 5))), [(20.0, 4.0), (30.0, 4.0)]);
+    let mut l6 = l;
+    l6.tap_hold_in_hole = true;
+    assert_eq!(single_block_stops(l6, &p, None), [(10.0, 4.0), (20.0, 4.0), (30.0, 4.0)]);
+}
+
+/// 004 §2.22 note 4: single block in a (flexible) G84 stops at the ends of actions 1, 2
+/// and 6; the spindle codes inside action 3–5 do not split the block.
+#[test]
+fn single_block_in_flexible_tapping_treats_actions_3_to_6_as_one_block() {
+    let mut p = hole(2, 10.0, "G84", &flexible_tap);
+    p.push(mv(3, rapid(30.0, 4.0)));
+    assert_eq!(single_block_stops(lim(), &p, None), [(10.0, 4.0), (10.0, 2.0), (10.0, 4.0), (30.0, 4.0)]);
+}
+
+/// Step with ideal drives, pressing feed hold once the tool is below z −3 in the hole;
+/// returns the setpoints until the axes have stood still for 0.2 s while held (longer than
+/// the 0.05 s dwell at the bottom), or `max` cycles, and whether that happened.
+fn hold_in_the_hole(m: &mut Motion, max: usize) -> (Vec<Setpoint>, bool) {
+    let mut fb = Feedback { pos: m.position(), spindle_rpm: 0.0 };
+    let mut sps: Vec<Setpoint> = Vec::new();
+    let mut pressed = false;
+    let mut still = 0;
+    for _ in 0..max {
+        let sp = m.step(&fb);
+        fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm };
+        let moved = sps.last().is_none_or(|p| p.pos[..3] != sp.pos[..3]);
+        sps.push(sp);
+        if !pressed && sp.pos[AX_Z] < -3.0 {
+            m.feed_hold();
+            pressed = true;
+        }
+        still = if pressed && !moved && m.is_held() { still + 1 } else { 0 };
+        if still >= 100 {
+            return (sps, true);
+        }
+    }
+    (sps, false)
+}
+
+/// 004 §2.22 note 4: feed hold during a flexible tap (actions 3–5) does not stop the tap in
+/// the hole; the tool goes to the bottom and back, and the hold takes effect at R. In a
+/// drilling cycle (G85) the same hold stops at once.
+#[test]
+fn feed_hold_in_a_flexible_tap_takes_effect_back_at_r() {
+    let l = lim();
+    let mut m = Motion::new(l.clone(), START);
+    let mut p = hole(2, 10.0, "G84", &flexible_tap);
+    p.push(mv(3, rapid(30.0, 4.0)));
+    for x in &p {
+        m.push(x).unwrap();
+    }
+    let (sps, held) = hold_in_the_hole(&mut m, 100_000);
+    assert!(held);
+    let last = *sps.last().unwrap();
+    assert_eq!((last.pos[AX_X], last.pos[AX_Z]), (10.0, 2.0), "held at R");
+    assert!(sps.iter().any(|s| s.pos[AX_Z] == -10.0), "the tap reached the bottom");
+    assert_eq!(last.spindle_rpm, 0.0, "M05 of action 5 done");
+    m.cycle_start();
+    let rest = run(&mut m, 100_000);
+    assert_eq!(rest.last().unwrap().pos[AX_X], 30.0);
+
+    let mut m = Motion::new(l, START);
+    for x in hole(2, 10.0, "G85", &boring) {
+        m.push(&x).unwrap();
+    }
+    let (sps, held) = hold_in_the_hole(&mut m, 100_000);
+    let z = sps.last().unwrap().pos[AX_Z];
+    assert!(held && z < -3.0 && z > -10.0, "a drilling cycle holds in the hole (z {z})");
+}
+
+/// Manual 000 with No.5200#6 = 0: feed hold in a tagged rigid tap runs on to R, then holds
+/// before action 6.
+#[test]
+fn feed_hold_in_a_rigid_tapping_cycle_holds_at_r() {
+    let mut m = Motion::new(lim(), START);
+    let mut p = hole(2, 10.0, "G84", &rigid_tap);
+    p.push(mv(3, rapid(30.0, 4.0)));
+    for x in &p {
+        m.push(x).unwrap();
+    }
+    let (sps, held) = hold_in_the_hole(&mut m, 100_000);
+    assert!(held);
+    let last = sps.last().unwrap();
+    assert_eq!((last.pos[AX_X], last.pos[AX_Z]), (10.0, 2.0), "held at R");
+    assert!(sps.iter().any(|s| s.pos[AX_Z] == -10.0));
+}
+
+/// G88: a tap stroke along X (a radius) locks the spindle to X exactly as G84 to Z; the
+/// lead's sign says which way the spindle turns going in. A stroke moving two axes is refused.
+#[test]
+fn a_rigid_tap_stroke_runs_along_x() {
+    let l = lim();
+    let mut m = Motion::new(l.clone(), [30.0, 0.0, -12.0, 90.0]);
+    let tap = |x: f64| MoveKind::Tap { end: Pos { x, z: -12.0, ..Pos::ZERO }, lead: -1.5, rpm: 800.0 };
+    m.push(&mv(1, tap(15.0))).unwrap();
+    m.push(&mv(2, MoveKind::Dwell { seconds: 0.05 })).unwrap();
+    m.push(&mv(3, tap(30.0))).unwrap();
+    let sps = run(&mut m, 100_000);
+    for s in &sps {
+        let want = 90.0 + 360.0 * (s.pos[AX_X] - 30.0) / -1.5;
+        assert!((s.pos[AX_S] - want).abs() < 1e-9, "spindle {} vs {want} at x {}", s.pos[AX_S], s.pos[AX_X]);
+        assert_eq!(s.pos[AX_Z], -12.0);
+    }
+    assert!(sps.iter().any(|s| s.pos[AX_X] == 15.0));
+    let last = sps.last().unwrap();
+    assert_eq!((last.pos[AX_X], last.pos[AX_S]), (30.0, 90.0), "back on R and on the start angle");
+    // Forward (M03 sense) going −X, reversed coming out.
+    assert!(sps.iter().any(|s| s.spindle_rpm > 790.0) && sps.iter().any(|s| s.spindle_rpm < -790.0));
+    check_limits(&l, [30.0, 0.0, -12.0, 90.0], &sps).unwrap();
+    let mut m = Motion::new(l, [30.0, 0.0, -12.0, 0.0]);
+    let e = m.push(&mv(1, MoveKind::Tap { end: Pos::xz(20.0, -20.0), lead: 1.0, rpm: 500.0 })).unwrap_err();
+    assert_eq!(e.number, alarms::BAD_VALUE, "{e}");
+}
