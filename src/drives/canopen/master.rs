@@ -725,13 +725,21 @@ impl<B: CanBus> CanOpenMaster<B> {
     }
 
     /// Back to cyclic synchronous position, holding where the drive is.
-    fn back_to_csp(&mut self, clock: &mut dyn Clock, i: usize) -> Result<(), Alarm> {
+    /// Back to CSP holding `hold` (counts) — the profile move's target, so that the position
+    /// loop settles onto it rather than wherever inside the position window the drive said
+    /// "reached" — or, without one (homing: a new reference), the actual position.
+    fn back_to_csp(&mut self, clock: &mut dyn Clock, i: usize, hold: Option<i64>) -> Result<(), Alarm> {
         let n = &mut self.nodes[i];
         n.controlword = cw::ENABLE_OPERATION_CMD;
-        n.target = n.unwrapped;
+        n.target = hold.unwrap_or(n.unwrapped);
         self.write(clock, i, od::MODES_OF_OPERATION, 0, &[mode::CYCLIC_SYNC_POSITION as u8])?;
         // One cycle so the target the drive latches is the held one.
-        self.run_cycles(clock, self.cycle_ns, |_| Ok(true)).map(|_| ())
+        self.run_cycles(clock, self.cycle_ns, |_| Ok(true))?;
+        if let Some(t) = hold {
+            // Then let the position loop settle onto it (within a count, 0.5 s at most).
+            self.run_cycles(clock, 500_000_000, |m| Ok((m.nodes[i].unwrapped - t).abs() <= 1))?;
+        }
+        Ok(())
     }
 
     /// Move `node` to `target` (machine units, absolute) in the drive's profile position
@@ -783,7 +791,10 @@ impl<B: CanBus> CanOpenMaster<B> {
                 format!("profile move to {target} not finished within {:.1} s (position {:.4}); check the axis for a jam", max_ns as f64 * 1e-9, self.nodes[i].unwrapped as f64 / self.nodes[i].spec.counts_per_unit),
             ));
         }
-        self.back_to_csp(clock, i)
+        // Only a target the drive is already near: never a jump.
+        let window = (self.nodes[i].spec.following_error * self.nodes[i].spec.counts_per_unit).abs();
+        let near = (t - self.nodes[i].unwrapped as f64).abs() <= window.max(1.0);
+        self.back_to_csp(clock, i, near.then_some(t as i64))
     }
 
     /// Home `node` in the drive's homing mode (6) with `method` (0x6098; e.g. 35/37 = the
@@ -832,14 +843,14 @@ impl<B: CanBus> CanOpenMaster<B> {
         })?;
         self.nodes[i].controlword = cw::ENABLE_OPERATION_CMD;
         if error {
-            let _ = self.back_to_csp(clock, i);
+            let _ = self.back_to_csp(clock, i, None);
             return Err(self.node_alarm(i, 2017, format!("homing method {method} failed (0x6041 bit 13 homing error); check the switch and its wiring")));
         }
         if !done {
-            let _ = self.back_to_csp(clock, i);
+            let _ = self.back_to_csp(clock, i, None);
             return Err(self.node_alarm(i, 2017, format!("homing method {method} not finished within {timeout_ms} ms")));
         }
-        self.back_to_csp(clock, i)
+        self.back_to_csp(clock, i, None)
     }
 
     // ---- Cyclic synchronous velocity (a spindle in speed mode) ----
