@@ -736,8 +736,9 @@ impl<B: CanBus> CanOpenMaster<B> {
         // One cycle so the target the drive latches is the held one.
         self.run_cycles(clock, self.cycle_ns, |_| Ok(true))?;
         if let Some(t) = hold {
-            // Then let the position loop settle onto it (within a count, 0.5 s at most).
-            self.run_cycles(clock, 500_000_000, |m| Ok((m.nodes[i].unwrapped - t).abs() <= 1))?;
+            // Then let the position loop settle into the position window (0x6067, 10 counts
+            // on the emulated drive; 0.2 s at most).
+            self.run_cycles(clock, 200_000_000, |m| Ok((m.nodes[i].unwrapped - t).abs() <= 10))?;
         }
         Ok(())
     }
