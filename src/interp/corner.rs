@@ -7,7 +7,8 @@
 //! tangent to both paths, on the inside of the turn. Within ±1° of a straight continuation
 //! nothing is inserted (§2.23 note 5).
 
-pub type P = (f64, f64);
+pub use super::vec2::P;
+use super::vec2::{add, cross, dot, left, mul, norm, sub, unit};
 
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Seg {
@@ -24,35 +25,6 @@ pub struct Cut {
     pub arc: Option<(P, bool)>,
 }
 
-fn sub(a: P, b: P) -> P {
-    (a.0 - b.0, a.1 - b.1)
-}
-fn add(a: P, b: P) -> P {
-    (a.0 + b.0, a.1 + b.1)
-}
-fn mul(a: P, k: f64) -> P {
-    (a.0 * k, a.1 * k)
-}
-fn dot(a: P, b: P) -> f64 {
-    a.0 * b.0 + a.1 * b.1
-}
-fn cross(a: P, b: P) -> f64 {
-    a.0 * b.1 - a.1 * b.0
-}
-fn norm(a: P) -> f64 {
-    a.0.hypot(a.1)
-}
-fn unit(a: P) -> P {
-    let n = norm(a);
-    if n < 1e-12 {
-        (0.0, 0.0)
-    } else {
-        mul(a, 1.0 / n)
-    }
-}
-fn left(a: P) -> P {
-    (-a.1, a.0)
-}
 
 impl Seg {
     fn start(&self) -> P {

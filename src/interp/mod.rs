@@ -48,6 +48,7 @@ pub mod nosecomp;
 pub mod parse;
 pub mod plan;
 pub mod tools;
+pub mod vec2;
 
 use crate::canon::{Feed, Move, MoveKind, Plane, Pos, SpindleCmd, SpindleDir, SrcPos};
 use crate::config::MachineConfig;

@@ -52,38 +52,8 @@ pub const T_ALARM: u32 = 3577;
 /// Fanuc PS0034: start-up or cancel on an arc (the manual: "不允许").
 pub const ARC_STARTUP_ALARM: u32 = 34;
 
-type P2 = (f64, f64);
+use super::vec2::{add, cross, dot, left, mul, norm, sub, unit, P as P2};
 
-fn sub(a: P2, b: P2) -> P2 {
-    (a.0 - b.0, a.1 - b.1)
-}
-fn add(a: P2, b: P2) -> P2 {
-    (a.0 + b.0, a.1 + b.1)
-}
-fn mul(a: P2, k: f64) -> P2 {
-    (a.0 * k, a.1 * k)
-}
-fn dot(a: P2, b: P2) -> f64 {
-    a.0 * b.0 + a.1 * b.1
-}
-fn cross(a: P2, b: P2) -> f64 {
-    a.0 * b.1 - a.1 * b.0
-}
-fn norm(a: P2) -> f64 {
-    a.0.hypot(a.1)
-}
-fn unit(a: P2) -> P2 {
-    let n = norm(a);
-    if n < 1e-12 {
-        (0.0, 0.0)
-    } else {
-        (a.0 / n, a.1 / n)
-    }
-}
-/// Left normal (90° counter-clockwise).
-fn left(a: P2) -> P2 {
-    (-a.1, a.0)
-}
 fn uv(p: Pos) -> P2 {
     (p.z, p.x)
 }
