@@ -13,6 +13,7 @@ pub mod config;
 pub mod drive;
 pub mod modbus;
 pub mod od;
+pub mod report;
 pub mod servo;
 pub mod socketcand;
 

@@ -9,10 +9,21 @@
 use crate::canon::{Move, Pos};
 use crate::drives::DriveBus;
 use crate::motion::trace::{Trace, TraceRow, MAX_TRACE_AXES};
+use crate::motion::panel::{Panel, PanelReader};
 use crate::motion::{Event, Feedback, Limits, Motion, AX_S, AX_X, AX_Y, AX_Z, N_AXES};
 use crate::Alarm;
 use cncgw_bus::Clock;
 use std::sync::mpsc::{Receiver, TryRecvError};
+
+/// Alarms of the controller itself (2400–2499).
+pub mod alarms {
+    /// E-stop pressed: every drive was sent quick stop.
+    pub const ESTOP: u32 = 2400;
+    /// Reset by the operator: controlled stop, the program ended.
+    pub const RESET: u32 = 2401;
+    /// Too many cycle overruns (watchdog).
+    pub const WATCHDOG: u32 = 2402;
+}
 
 /// At most this many missed cycles are caught up after an overrun (100 ms at 2 ms).
 const MAX_CATCH_UP: u64 = 50;
@@ -96,11 +107,20 @@ pub struct CycleLoop<'a> {
     pub cycle_ns: u64,
     /// Per-cycle trace (`--trace`), recorded without allocating.
     trace: Option<Trace>,
+    /// The operator panel; without one (a batch run) M00/M01 go on as if cycle start had
+    /// been pressed.
+    panel: Option<PanelReader>,
 }
 
 impl<'a> CycleLoop<'a> {
     pub fn new(drives: &'a mut dyn DriveBus, clock: &'a mut dyn Clock, limits: Limits, spindle_drive: Option<usize>, cycle_ns: u64) -> Self {
-        CycleLoop { drives, clock, limits, spindle_drive, cycle_ns, trace: None }
+        CycleLoop { drives, clock, limits, spindle_drive, cycle_ns, trace: None, panel: None }
+    }
+
+    /// Take feed hold, cycle start, single block, reset, E-stop and the overrides from `panel`
+    /// every cycle of `run`.
+    pub fn set_panel(&mut self, panel: &Panel) {
+        self.panel = Some(panel.reader());
     }
 
     /// Record every cycle of `run` into `trace` (its drives in this loop's drive order).
@@ -193,6 +213,8 @@ impl<'a> CycleLoop<'a> {
             *h = [c, c];
         }
         let mut last_line = 0u32;
+        // The line of the block in execution (the last set-point's).
+        let mut cur_line = 0u32;
         let mut input_open = true;
         let mut ended = false;
         let mut settle_cycles = 0u32;
@@ -302,6 +324,30 @@ impl<'a> CycleLoop<'a> {
                 spindle_rpm += k * (inst - spindle_rpm);
                 fb.spindle_rpm = spindle_rpm;
             }
+            if let Some(r) = self.panel.as_mut() {
+                let i = r.poll();
+                if i.estop {
+                    return Err(self.estop(cur_line));
+                }
+                if i.reset {
+                    self.halt(&mut motion);
+                    return Err(Alarm::new(
+                        alarms::RESET,
+                        format!("reset by the operator at line {cur_line}: the axes were stopped under control and the program ended; start it again from the beginning or a safe block"),
+                    ));
+                }
+                if i.feed_hold {
+                    motion.feed_hold();
+                }
+                if i.cycle_start {
+                    motion.cycle_start();
+                }
+                motion.set_single_block(i.single_block);
+                motion.set_optional_stop(i.optional_stop);
+                motion.set_feed_override(i.feed_ovr);
+                motion.set_rapid_override(i.rapid_ovr);
+                motion.set_spindle_override(i.spindle_ovr);
+            }
             let mut sp = motion.step(&fb);
             for _ in 0..missed {
                 ended |= self.on_event(&mut motion, &sp);
@@ -336,6 +382,10 @@ impl<'a> CycleLoop<'a> {
                 return Err(a);
             }
             ended |= self.on_event(&mut motion, &sp);
+            cur_line = sp.line;
+            if let Some(r) = self.panel.as_ref() {
+                r.report(motion.is_held(), sp.line);
+            }
             if summary.cycles % progress_every == 0 {
                 progress(&Progress {
                     t_s: (now - t_start) as f64 * 1e-9,
@@ -380,14 +430,29 @@ impl<'a> CycleLoop<'a> {
         match sp.event {
             Event::End => true,
             Event::Stop { optional } => {
-                // No operator panel in a batch run: M00 is logged and the program goes on as
-                // if cycle start had been pressed.
-                tracing::info!(line = sp.line, "M0{} program stop (batch run: cycle start)", optional as u8);
-                motion.cycle_start();
+                if self.panel.is_some() {
+                    // The motion layer waits for the panel's cycle start.
+                    tracing::info!(line = sp.line, "M0{} program stop: press cycle start", optional as u8);
+                } else {
+                    // No operator panel in a batch run: M00 is logged and the program goes on
+                    // as if cycle start had been pressed.
+                    tracing::info!(line = sp.line, "M0{} program stop (batch run: cycle start)", optional as u8);
+                    motion.cycle_start();
+                }
                 false
             }
             Event::Aux { .. } | Event::None => false,
         }
+    }
+
+    /// E-stop: quick stop on every drive at once (each on its own quick-stop ramp).
+    fn estop(&mut self, line: u32) -> Alarm {
+        self.drives.quick_stop();
+        let _ = self.drives.transmit(self.clock.now_ns());
+        Alarm::new(
+            alarms::ESTOP,
+            format!("emergency stop at line {line}: every drive was sent quick stop; release the E-stop, find the cause, reset the drives (`cncgw drive fault-reset`) and restart the program"),
+        )
     }
 
     /// Controlled stop on a program alarm: decelerate along the path, then hold.
@@ -409,6 +474,12 @@ impl<'a> CycleLoop<'a> {
                 if let Some(a) = motion_axis(self.drives.axis_name(d), Some(d) == self.spindle_drive) {
                     fb.pos[a] = self.drives.feedback(d).pos;
                 }
+            }
+            // E-stop overrides a controlled stop in progress.
+            if self.panel.as_mut().is_some_and(|r| r.poll().estop) {
+                self.drives.quick_stop();
+                let _ = self.drives.transmit(now);
+                return;
             }
             let sp = motion.step(&fb);
             for d in 0..self.drives.axis_count() {
