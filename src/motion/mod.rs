@@ -82,6 +82,7 @@
 #![allow(clippy::needless_range_loop)]
 
 pub mod cycle;
+mod fault;
 pub mod geom;
 pub mod panel;
 pub mod profile;
@@ -553,6 +554,8 @@ pub struct Motion {
     /// Single block: a drilling-cycle item ended; whether to stop is decided against the next
     /// item (see `single_block_stop`).
     sb_pending: bool,
+    /// A drive of the running synchronised pair faulted: the survivor follows it (`fault.rs`).
+    follow: Option<fault::Follow>,
 }
 
 fn xyz(p: &Pos) -> [f64; 3] {
@@ -595,6 +598,7 @@ impl Motion {
             cur_cyc: CycStep::default(),
             plan_cyc: CycStep::default(),
             sb_pending: false,
+            follow: None,
             sp_dir: 0.0,
             sp_rpm: 0.0,
             sp_css: None,
@@ -1437,6 +1441,7 @@ impl Motion {
         }
 
         match self.run {
+            _ if self.follow.is_some() => path_v = self.step_follow(fb, &prev),
             Run::None => {}
             Run::Move { landed: true, .. } => {
                 // Exact stop: one cycle at rest on the end point.
@@ -1626,7 +1631,9 @@ impl Motion {
             self.sp_css = None;
         }
 
-        self.sync_corr(fb);
+        if !self.follow_corr() {
+            self.sync_corr(fb);
+        }
         let mut out = self.pos;
         let mut vel = [0.0; N_AXES];
         for i in 0..3 {
