@@ -516,7 +516,7 @@ fn one_percent_pdo_loss_is_ridden_through() {
 fn ten_percent_pdo_loss_on_z_is_ridden_through() {
     // One PDO in ten lost: a lost TPDO leaves feedback a cycle or two old (the timeout is
     // 20 ms); a lost RPDO is bridged by the drive going on with the last increment
-    // (sim-drives 0x2101, 3 SYNCs).
+    // (sim-drives 0x2102, 3 SYNCs).
     let o = run(PROGRAM, Setup { faults: &["2:pdo-drop-permille=100@0"], ..Setup::default() });
     let s = o.result.as_ref().unwrap_or_else(|a| panic!("10 % PDO loss must be ridden through: {a}"));
     assert!(s.at_program_end(), "{s:?}");

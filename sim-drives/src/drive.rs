@@ -36,7 +36,7 @@ pub const SIM_FAULTS: u16 = 0x2100;
 /// Manufacturer-specific U8: in CSP, how many SYNCs in a row without a new target (a lost
 /// RPDO) the set-point goes on with the last increment before it holds (real CSP drives with
 /// interpolation bridge a lost set-point so; 0 = hold at once).
-pub const CSP_EXTRAPOLATE: u16 = 0x2101;
+pub const CSP_EXTRAPOLATE: u16 = 0x2102;
 /// Default of `CSP_EXTRAPOLATE`: bridges up to 3 lost set-points (6 ms at 2 ms).
 pub const CSP_EXTRAPOLATE_DEFAULT: i64 = 3;
 /// Sub-indices of `SIM_FAULTS`.
@@ -821,7 +821,7 @@ impl SimDrive {
                 self.apply_rpdo(i as u16, &d, now);
             }
         }
-        self.latch_setpoints(now);
+        self.latch_setpoints(now, true);
     }
 
     fn mapping(&self, map_index: u16) -> Vec<MapEntry> {
@@ -1436,8 +1436,9 @@ impl SimDrive {
     }
 
     /// At a SYNC: take the new targets (CSP: start the next interpolation segment).
-    fn latch_setpoints(&mut self, now: u64) {
-        let fresh = std::mem::take(&mut self.target_fresh);
+    /// `sync`: at a SYNC (where a missing target means a lost RPDO); else a Modbus write.
+    fn latch_setpoints(&mut self, now: u64, sync: bool) {
+        let fresh = std::mem::take(&mut self.target_fresh) || !sync;
         if self.state != State::OperationEnabled || self.stop.is_some() {
             return;
         }
@@ -1660,7 +1661,7 @@ impl SimDrive {
     pub(crate) fn modbus_latch(&mut self, now: u64) -> Option<u64> {
         let fresh = self.seg_len == 0 || now.saturating_sub(self.seg_t0) > self.seg_len * (1 + SYNC_EXTRAPOLATE_PERIODS);
         let before = self.seg_t0;
-        self.latch_setpoints(now);
+        self.latch_setpoints(now, false);
         (fresh && self.seg_t0 == now && before != now).then(|| now + self.seg_len)
     }
 }

@@ -242,3 +242,82 @@ impl Motion {
         path_v
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::canon::{Move, MoveKind, Pos, SrcPos};
+    use crate::config::MachineConfig;
+    use crate::motion::Limits;
+    use std::sync::Arc;
+
+    fn mv(kind: MoveKind) -> Move {
+        Move { src: SrcPos::new(Arc::from("t.nc"), 1, 1), kind, exact_stop: true, work_offset: Pos::ZERO, tag: None }
+    }
+
+    /// Ideal healthy drives (actual = last set-point); the faulted axis `f` runs its own
+    /// fault reaction from the fault on: braking at `decel` per s² from its speed then.
+    /// Returns the (faulted actual, survivor set-point) pairs through the stop and the cycles.
+    fn fault_in(kind: MoveKind, at: usize, f: usize, survivor: usize, decel: f64) -> (Vec<(f64, f64)>, usize) {
+        let mut l = Limits::from_config(&MachineConfig::embedded());
+        l.feedback_delay = 1;
+        l.sync_correction = false;
+        let dt = l.cycle_s;
+        let mut m = Motion::new(l, [0.0, 0.0, 2.0, 0.0]);
+        m.push(&mv(kind)).unwrap();
+        let mut fb = Feedback { pos: m.position(), spindle_rpm: 0.0 };
+        let mut prev = fb.pos;
+        for _ in 0..at {
+            let sp = m.step(&fb);
+            prev = fb.pos;
+            fb.pos = sp.pos;
+        }
+        let mut v = (fb.pos[f] - prev[f]) / dt;
+        assert!(v.abs() > 1.0, "the faulted axis moves at the fault ({v})");
+        m.fault_stop(Some(f));
+        let mut out = Vec::new();
+        let mut act = fb.pos[f];
+        for k in 0..20_000 {
+            if m.is_idle() {
+                return (out, k);
+            }
+            let sp = m.step(&fb);
+            // The faulted drive brakes on its own ramp, whatever it is sent.
+            let nv = if v > 0.0 { (v - decel * dt).max(0.0) } else { (v + decel * dt).min(0.0) };
+            act += 0.5 * (v + nv) * dt;
+            v = nv;
+            fb.pos = sp.pos;
+            fb.pos[f] = act;
+            out.push((act, sp.pos[survivor]));
+        }
+        panic!("not idle");
+    }
+
+    #[test]
+    fn z_follows_a_faulted_spindle_in_a_tap() {
+        // Motion's tap relation: Z − Z₀ = lead·(θ − θ₀)/360 (the lead's sign says which way
+        // the spindle turns into the hole).
+        let (trace, cycles) = fault_in(MoveKind::Tap { end: Pos::xz(0.0, -30.0), lead: 1.5, rpm: 1000.0 }, 400, AX_S, 2, 18_000.0);
+        let (th0, z0) = trace[0];
+        let mut worst = 0.0f64;
+        for w in trace.windows(2) {
+            let (th, z) = w[1];
+            worst = worst.max(((z - z0) - 1.5 * (th - th0) / 360.0).abs());
+            assert!(w[1].1 <= w[0].1 + 1e-12, "Z never backs out of the hole");
+        }
+        assert!(worst < 0.002, "Z kept to the spindle within {:.1} µm", worst * 1000.0);
+        assert!(cycles < 400, "{cycles} cycles");
+    }
+
+    #[test]
+    fn the_spindle_follows_a_faulted_z_in_g92_1() {
+        // G92.1 from Z2 to Z-28 at S600, lead 3: the spindle turns 3600° along; Z faults and
+        // stops on its own 50 mm/s² ramp; the spindle keeps to it.
+        let kind = MoveKind::RigidThread { end: Pos { x: 0.0, y: 0.0, z: -28.0, c: 3600.0 }, lead: 3.0, rpm: 600.0 };
+        let (trace, cycles) = fault_in(kind, 300, 2, AX_S, 50.0);
+        let (z0, th0) = trace[0];
+        let worst = trace.iter().map(|&(z, th)| ((z0 - z) - 3.0 * (th - th0) / 360.0).abs()).fold(0.0, f64::max);
+        assert!(worst < 0.003, "spindle kept to Z within {:.1} µm", worst * 1000.0);
+        assert!(cycles < 800, "{cycles}");
+    }
+}
