@@ -82,6 +82,7 @@
 #![allow(clippy::needless_range_loop)]
 
 pub mod cycle;
+mod fault;
 pub mod geom;
 pub mod panel;
 pub mod profile;
@@ -562,6 +563,8 @@ pub struct Motion {
     sb_pending: bool,
     /// The measured spindle speed of the last cycle (flexible tapping's lag compensation).
     fb_rpm_prev: f64,
+    /// A drive of the running synchronised pair faulted: the survivor follows it (`fault.rs`).
+    follow: Option<fault::Follow>,
 }
 
 fn xyz(p: &Pos) -> [f64; 3] {
@@ -605,6 +608,7 @@ impl Motion {
             plan_cyc: CycStep::default(),
             sb_pending: false,
             fb_rpm_prev: 0.0,
+            follow: None,
             sp_dir: 0.0,
             sp_rpm: 0.0,
             sp_css: None,
@@ -1471,6 +1475,7 @@ impl Motion {
         }
 
         match self.run {
+            _ if self.follow.is_some() => path_v = self.step_follow(fb, &prev),
             Run::None => {}
             Run::Move { landed: true, .. } => {
                 // Exact stop: one cycle at rest on the end point.
@@ -1660,7 +1665,9 @@ impl Motion {
             self.sp_css = None;
         }
 
-        self.sync_corr(fb);
+        if !self.follow_corr() {
+            self.sync_corr(fb);
+        }
         let mut out = self.pos;
         let mut vel = [0.0; N_AXES];
         for i in 0..3 {
