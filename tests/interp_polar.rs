@@ -176,10 +176,10 @@ fn polygon_clamp_and_alarms() {
     let m: Vec<Move> = interp("G51.2 P1 Q3 S1000\nM30\n", &cfg, None).map(|m| m.unwrap()).collect();
     // Note 3: S × Q / P = 3000 rpm clamped to No.721.
     assert_eq!(polygons(&m)[0].map(|p| p.tool_rpm), Some(2500.0));
-    assert_eq!(alarm("G51.2 P0 Q2 S1000\nM30\n").number, 2510);
-    assert_eq!(alarm("G51.2 P1 Q2 R360 S1000\nM30\n").number, 2510);
-    assert_eq!(alarm("G51.2 P1 Q2 S1000 X20\nM30\n").number, 10);
-    assert_eq!(alarm("G51.2 P1 Q2 S1000\nG0 C90\nM30\n").number, 9);
+    assert_eq!(alarm_cfg("G51.2 P0 Q2 S1000\nM30\n", &cfg).number, 2510);
+    assert_eq!(alarm_cfg("G51.2 P1 Q2 R360 S1000\nM30\n", &cfg).number, 2510);
+    assert_eq!(alarm_cfg("G51.2 P1 Q2 S1000 X20\nM30\n", &cfg).number, 10);
+    assert_eq!(alarm_cfg("G51.2 P1 Q2 S1000\nG0 C90\nM30\n", &cfg).number, 9);
 }
 
 /// A machine without a tool spindle refuses G51.2 (and G50.2) while interpreting, before

@@ -1362,7 +1362,8 @@ impl Motion {
         };
         let target = if self.stopping { 0.0 } else { self.sp_dir * mag.min(machine_max) };
         self.sp_target = target;
-        let step = self.lim.amax[AX_S] / 6.0 * dt;
+        // In polygon turning the tool spindle must keep up with the ratio (polygon.rs).
+        let step = self.lim.amax[AX_S].min(self.tool.work_accel_cap()) / 6.0 * dt;
         let d = target - self.sp_cur;
         self.sp_cur = if d.abs() <= step { target } else { self.sp_cur + step.copysign(d) };
         self.pos[AX_S] += self.sp_cur * 6.0 * dt;

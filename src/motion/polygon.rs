@@ -19,7 +19,9 @@
 //!
 //! Where the manual is silent, Fanuc 0i-TF: when S × Q/P would exceed the tool spindle's
 //! clamp (No.721), the *work* spindle is slowed so that the ratio still holds (a polygon with
-//! a slipping ratio is scrap); G51.2 starts the work spindle at S (M03 sense if it was
+//! a slipping ratio is scrap), to 98 % of that so that the tool spindle keeps a margin for
+//! holding the phase; likewise the work spindle's acceleration is limited to 75 % of what
+//! the tool spindle can follow at the ratio (it sees the ramp a few cycles late). G51.2 starts the work spindle at S (M03 sense if it was
 //! stopped). A machine without a tool spindle refuses G51.2 before any motion (alarm
 //! [`NO_TOOL_SPINDLE`]).
 
@@ -40,6 +42,12 @@ const H_MIN_SPEED: f64 = 60.0;
 const H_STEADY: f64 = 30.0;
 /// Bounds of the horizon, s.
 const H_MAX: f64 = 0.05;
+/// Share of the tool spindle's speed and acceleration kept for holding the phase: the work
+/// spindle's speed and acceleration are limited so that the ratio needs at most the rest.
+const HEADROOM: f64 = 0.02;
+/// The same for the acceleration: the tool spindle sees the work spindle's ramp only through
+/// the feedback, a few cycles late, and needs room to catch up.
+const ACCEL_HEADROOM: f64 = 0.25;
 
 /// The tool spindle of a machine config: its drive index (configuration order, as the bus
 /// orders drives) and limits.
@@ -102,6 +110,15 @@ impl ToolSync {
         self.pos
     }
 
+    /// The work spindle's largest acceleration (°/s²) while locked: what the tool spindle can
+    /// follow at the ratio, with [`HEADROOM`] left for holding the phase.
+    pub(super) fn work_accel_cap(&self) -> f64 {
+        match self.lock {
+            Some((ratio, _)) if ratio > 0.0 => (1.0 - ACCEL_HEADROOM) * self.amax / ratio,
+            _ => f64::INFINITY,
+        }
+    }
+
     /// One cycle: `th` the work spindle's measured angle, `w` its measured speed (°/s),
     /// `delay` the feedback's pairing delay (s).
     fn step(&mut self, th: f64, w: f64, dt: f64) {
@@ -114,18 +131,19 @@ impl ToolSync {
         self.err = 0.0;
         let v_target = match self.lock {
             Some((ratio, phase)) => {
-                // Learn H from the sync error of the actuals, at steady speed and phase-locked.
-                if let Some(act) = self.act {
-                    let e = wrap(act - ratio * th - phase);
-                    self.err = e;
-                    let wt = ratio * w;
-                    if steady && w.abs() > H_MIN_SPEED && e.abs() < 5.0 {
-                        self.horizon = (self.horizon - H_GAIN * e / wt).clamp(0.0, H_MAX);
-                    }
-                }
                 let target = ratio * (th + w * self.horizon) + phase;
                 // Phase error left after this cycle's feed-forward step.
                 let e = wrap(target - (self.pos + ratio * w * dt));
+                // Learn H from the sync error of the actuals, at steady speed, while the
+                // setpoint sits on its target (not while running up or closing the phase).
+                if let Some(act) = self.act {
+                    let es = wrap(act - ratio * th - phase);
+                    self.err = es;
+                    let wt = ratio * w;
+                    if steady && w.abs() > H_MIN_SPEED && e.abs() < 1.0 && (self.vel - wt).abs() < H_STEADY * ratio {
+                        self.horizon = (self.horizon - H_GAIN * es / wt).clamp(0.0, H_MAX);
+                    }
+                }
                 // Feed-forward of the work spindle's speed, plus the phase error closed as
                 // fast as half the acceleration allows (within one cycle once it is small).
                 let corr = (self.amax * e.abs()).sqrt().min(e.abs() / dt);
@@ -161,7 +179,7 @@ impl Motion {
             pos: start,
             vel: 0.0,
             lock: None,
-            horizon: 2.0 * self.lim.feedback_delay as f64 * self.lim.cycle_s,
+            horizon: self.lim.feedback_delay as f64 * self.lim.cycle_s,
             act: None,
             w_prev: 0.0,
             err: 0.0,
@@ -217,7 +235,7 @@ impl Motion {
                 let ratio = c.q as f64 / c.p as f64;
                 // The ratio must hold: a tool spindle clamped (No.721, or its max) slows the
                 // work spindle with it.
-                let tool_max = (c.tool_rpm.min(self.tool.vmax / 6.0)).max(0.0);
+                let tool_max = (c.tool_rpm.min(self.tool.vmax / 6.0)).max(0.0) * (1.0 - HEADROOM);
                 self.sp_rpm = c.rpm.min(tool_max / ratio);
                 self.sp_css = None;
                 if self.sp_dir == 0.0 {
