@@ -45,6 +45,8 @@ fn poly_dist(p: [f64; 2], pts: &[[f64; 2]]) -> f64 {
 struct Stats {
     cmd_err: f64,
     act_err: f64,
+    /// 95th percentile of the actual error, mm.
+    act_p95: f64,
     n: usize,
     c_speed: f64,
     c_accel: f64,
@@ -52,7 +54,8 @@ struct Stats {
 
 fn stats(r: &SimRun, lines: std::ops::RangeInclusive<u32>, dist: impl Fn([f64; 2]) -> f64, dt: f64) -> Stats {
     let (x, s) = (r.drive("x").unwrap(), r.drive("s1").unwrap());
-    let mut st = Stats { cmd_err: 0.0, act_err: 0.0, n: 0, c_speed: 0.0, c_accel: 0.0 };
+    let mut st = Stats { cmd_err: 0.0, act_err: 0.0, act_p95: 0.0, n: 0, c_speed: 0.0, c_accel: 0.0 };
+    let mut all = Vec::new();
     let rows = &r.rows;
     let first = rows.iter().position(|w| lines.contains(&w.line)).expect("the lines ran");
     let last = rows.iter().rposition(|w| lines.contains(&w.line)).unwrap();
@@ -61,7 +64,9 @@ fn stats(r: &SimRun, lines: std::ops::RangeInclusive<u32>, dist: impl Fn([f64; 2
     for k in first..=last {
         st.cmd_err = st.cmd_err.max(dist(virt(rows[k].cmd[x], rows[k].cmd[s])));
         if k + 2 < rows.len() {
-            st.act_err = st.act_err.max(dist(virt(rows[k + 2].act[x], rows[k + 2].act[s])));
+            let e = dist(virt(rows[k + 2].act[x], rows[k + 2].act[s]));
+            st.act_err = st.act_err.max(e);
+            all.push(e);
         }
         let v = (rows[k].cmd[s] - rows[k - 1].cmd[s]) / dt;
         let v0 = (rows[k - 1].cmd[s] - rows[k - 2].cmd[s]) / dt;
@@ -69,6 +74,8 @@ fn stats(r: &SimRun, lines: std::ops::RangeInclusive<u32>, dist: impl Fn([f64; 2
         st.c_accel = st.c_accel.max(((v - v0) / dt).abs());
         st.n += 1;
     }
+    all.sort_by(f64::total_cmp);
+    st.act_p95 = all.get(all.len() * 95 / 100).copied().unwrap_or(0.0);
     st
 }
 
@@ -91,13 +98,17 @@ fn square_in_polar_interpolation() {
     let sq = [[20.0, 0.0], [20.0, 20.0], [-20.0, 20.0], [-20.0, -20.0], [20.0, -20.0], [20.0, 0.0]];
     let st = stats(&r, 7..=11, |p| poly_dist(p, &sq), dt);
     eprintln!(
-        "square F600: {} cycles, contour error commanded {:.2e} mm, actual {:.4} mm; C ≤ {:.0} °/s, ≤ {:.0} °/s²",
-        st.n, st.cmd_err, st.act_err, st.c_speed, st.c_accel
+        "square F600: {} cycles, contour error commanded {:.2e} mm, actual max {:.4} mm, p95 {:.4} mm; C ≤ {:.0} °/s, ≤ {:.0} °/s²",
+        st.n, st.cmd_err, st.act_err, st.act_p95, st.c_speed, st.c_accel
     );
     // 160 mm at 10 mm/s.
     assert!(st.n > 8000, "{} cycles", st.n);
     assert!(st.cmd_err < 1e-9, "setpoints off the square by {} mm", st.cmd_err);
+    // The emulated spindle has Coulomb friction: where C reverses (and X starts) the drives
+    // show a quadrant glitch of some 10–50 µm for a few cycles; elsewhere the actual contour
+    // is within a few µm.
     assert!(st.act_err < 0.020, "actual X/C off the square by {} mm", st.act_err);
+    assert!(st.act_p95 < 0.003, "actual X/C off the square by {} mm (p95)", st.act_p95);
     assert!(st.c_speed <= l.vmax[AX_S] && st.c_accel <= l.amax[AX_S] * 1.001, "C {} °/s {} °/s²", st.c_speed, st.c_accel);
     // The feed is the programmed tangential one mid-side (away from the corners' stops).
     let (x, s) = (r.drive("x").unwrap(), r.drive("s1").unwrap());
@@ -137,11 +148,14 @@ fn circle_in_polar_interpolation() {
     let circle = |p: [f64; 2]| ((p[0] - 30.0).hypot(p[1]) - 10.0).abs();
     let st = stats(&r, 4..=5, circle, dt);
     eprintln!(
-        "circle R10 F900: {} cycles, radius error commanded {:.2e} mm, actual {:.4} mm; C ≤ {:.0} °/s, ≤ {:.0} °/s²",
-        st.n, st.cmd_err, st.act_err, st.c_speed, st.c_accel
+        "circle R10 F900: {} cycles, radius error commanded {:.2e} mm, actual max {:.4} mm, p95 {:.4} mm; C ≤ {:.0} °/s, ≤ {:.0} °/s²",
+        st.n, st.cmd_err, st.act_err, st.act_p95, st.c_speed, st.c_accel
     );
     assert!(st.cmd_err < 1e-9, "setpoints off the circle by {} mm", st.cmd_err);
+    // Largest where C reverses, twice per circle (the emulated spindle's Coulomb friction
+    // holds it for some 50 cycles: 48 µm max, p95 15 µm measured); a few µm elsewhere.
     assert!(st.act_err < 0.060, "actual X/C off the circle by {} mm", st.act_err);
+    assert!(st.act_p95 < 0.020, "actual X/C off the circle by {} mm (p95)", st.act_p95);
     // 62.8 mm at 15 mm/s: 4.19 s plus the ramps at the two ends only.
     assert!(st.n < 2200, "{} cycles: the tangent junction was not crossed at speed", st.n);
     let (x, s) = (r.drive("x").unwrap(), r.drive("s1").unwrap());
@@ -168,10 +182,10 @@ fn c_speed_is_limited_near_the_centre() {
     let line = |p: [f64; 2]| seg_dist(p, [40.0, 2.0], [-40.0, 2.0]);
     let st = stats(&r, 5..=5, line, dt);
     eprintln!(
-        "line 2 mm from the centre F1200, C ≤ 180 °/s: {} cycles, error commanded {:.2e} mm, actual {:.4} mm; C ≤ {:.1} °/s, ≤ {:.0} °/s²",
-        st.n, st.cmd_err, st.act_err, st.c_speed, st.c_accel
+        "line 2 mm from the centre F1200, C ≤ 180 °/s: {} cycles, error commanded {:.2e} mm, actual max {:.4} mm, p95 {:.4} mm; C ≤ {:.1} °/s, ≤ {:.0} °/s²",
+        st.n, st.cmd_err, st.act_err, st.act_p95, st.c_speed, st.c_accel
     );
-    assert!(st.cmd_err < 1e-9 && st.act_err < 0.050, "{} {}", st.cmd_err, st.act_err);
+    assert!(st.cmd_err < 1e-9 && st.act_err < 0.050 && st.act_p95 < 0.020, "{} {} {}", st.cmd_err, st.act_err, st.act_p95);
     assert!(st.c_speed <= 180.0, "C at {} °/s", st.c_speed);
     assert!(st.c_accel <= 3600.0 * 1.001, "C at {} °/s²", st.c_accel);
     let (x, s) = (r.drive("x").unwrap(), r.drive("s1").unwrap());
