@@ -11,7 +11,67 @@ use cncgw::motion::polygon::ToolSpindle;
 use cncgw::motion::trace::{Trace, TraceRow, VecSink};
 use cncgw::motion::Limits;
 use cncgw_bus::transport::inproc::InprocBus;
+use cncgw_bus::Clock;
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::cell::Cell;
 use std::sync::{Arc, Mutex};
+
+/// Counting allocator (as in tests/no_alloc.rs): allocations on the cycle thread while armed,
+/// counted per thread (the tests of this binary run in parallel).
+struct Counting;
+
+thread_local! {
+    static ARMED: Cell<bool> = const { Cell::new(false) };
+    static ALLOCS: Cell<usize> = const { Cell::new(0) };
+}
+
+fn count() {
+    let _ = ALLOCS.try_with(|c| c.set(c.get() + 1));
+}
+
+fn armed() -> bool {
+    ARMED.try_with(|a| a.get()).unwrap_or(false)
+}
+
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, l: Layout) -> *mut u8 {
+        if armed() {
+            count();
+        }
+        unsafe { System.alloc(l) }
+    }
+    unsafe fn dealloc(&self, p: *mut u8, l: Layout) {
+        unsafe { System.dealloc(p, l) }
+    }
+    unsafe fn realloc(&self, p: *mut u8, l: Layout, n: usize) -> *mut u8 {
+        if armed() {
+            count();
+        }
+        unsafe { System.realloc(p, l, n) }
+    }
+}
+
+#[global_allocator]
+static GLOBAL: Counting = Counting;
+
+/// The emulated drives as the clock, not counted while they run (other hardware on a real
+/// machine).
+struct Uncounted<'w>(&'w mut sim_drives::SimWorld);
+
+impl Clock for Uncounted<'_> {
+    fn now_ns(&self) -> u64 {
+        self.0.now_ns()
+    }
+    fn wait_until(&mut self, t: u64) {
+        let was = armed();
+        ARMED.with(|a| a.set(false));
+        self.0.wait_until(t);
+        ARMED.with(|a| a.set(was));
+    }
+    fn is_simulated(&self) -> bool {
+        true
+    }
+}
 
 const POLYGON_LATHE: &str = include_str!("../config/lathe-polygon.toml");
 
@@ -29,6 +89,12 @@ impl Run {
 
 /// The program on the polygon lathe's emulated drives, every cycle traced.
 fn run(src: &str) -> Run {
+    run_counting(src).0
+}
+
+/// `run`, and the allocations made on the cycle thread from the first progress report on,
+/// with the number of reports.
+fn run_counting(src: &str) -> (Run, usize, u32) {
     let cfg = MachineConfig::from_toml("lathe-polygon.toml", POLYGON_LATHE).unwrap();
     let moves: Vec<_> = Interpreter::from_source("poly.nc", src, &cfg)
         .unwrap_or_else(|e| panic!("{e:?}"))
@@ -40,7 +106,8 @@ fn run(src: &str) -> Run {
     let mut world = sim_drives::SimWorld::new(&wire, sim_cfg);
     let mut master = CanOpenMaster::new(wire.endpoint(), &cfg);
     let cycle_ns = (cfg.machine.cycle_ms * 1e6).round() as u64;
-    let mut lp = CycleLoop::new(&mut master, &mut world, Limits::from_config(&cfg), cfg.spindle_index(), cycle_ns);
+    let mut clock = Uncounted(&mut world);
+    let mut lp = CycleLoop::new(&mut master, &mut clock, Limits::from_config(&cfg), cfg.spindle_index(), cycle_ns);
     lp.set_tool_spindle(ToolSpindle::from_config(&cfg).expect("the config has a tool spindle"));
     let names = lp.drive_names();
     let rows = Arc::new(Mutex::new(Vec::new()));
@@ -52,11 +119,19 @@ fn run(src: &str) -> Run {
         tx.send(Ok(m)).unwrap();
     }
     drop(tx);
-    lp.run(start, rx, &mut summary, &mut |_| {}).unwrap_or_else(|a| panic!("{a}"));
+    ALLOCS.with(|c| c.set(0));
+    let mut reports = 0u32;
+    let r = lp.run(start, rx, &mut summary, &mut |_| {
+        ARMED.with(|a| a.set(true));
+        reports += 1;
+    });
+    ARMED.with(|a| a.set(false));
+    let allocs = ALLOCS.with(|c| c.get());
+    r.unwrap_or_else(|a| panic!("{a}"));
     lp.take_trace().unwrap().finish().unwrap();
     lp.finish();
     let rows = std::mem::take(&mut *rows.lock().unwrap());
-    Run { names, rows, summary }
+    (Run { names, rows, summary }, allocs, reports)
 }
 
 /// Into (−180°, 180°].
@@ -128,4 +203,23 @@ fn no_721_clamp_keeps_the_ratio() {
     let (e, n) = track(&r, &[3], 1.5, 3.0, 0.0);
     eprintln!("  phase max {e:.4}° over {n} cycles");
     assert!(e < 0.05, "off by {e}°");
+}
+
+/// Polar interpolation and polygon turning on the cycle thread allocate nothing after start
+/// (the counting allocator of this test binary; the emulated drives not counted).
+#[test]
+fn polar_and_polygon_cycles_allocate_nothing() {
+    // The counter itself works: one allocation while armed is one count.
+    ALLOCS.with(|c| c.set(0));
+    ARMED.with(|a| a.set(true));
+    let b = std::hint::black_box(Box::new(7u64));
+    ARMED.with(|a| a.set(false));
+    drop(b);
+    assert_eq!(ALLOCS.with(|c| c.get()), 1);
+    let src = "G98\nG00 X80 Z0 C0\nG12.1\nG03 X40 C0 R10 F900\nX80 C0 R10\nG01 C5\nX60\nG13.1\nG51.2 P1 Q2 R60 S600\nG04 X1\nG51.2 P2 Q3 R10 S900\nG04 X1\nG50.2\nG04 X0.5\nM30\n";
+    let (r, allocs, reports) = run_counting(src);
+    assert!(r.summary.at_program_end(), "{:#?}", r.summary);
+    assert!(reports > 100, "armed for {reports} reports");
+    assert!(r.rows.iter().any(|w| w.line == 4) && r.rows.iter().any(|w| w.line == 12), "the polar and polygon blocks ran");
+    assert_eq!(allocs, 0, "{allocs} allocations on the cycle thread after start");
 }
