@@ -1,5 +1,5 @@
 //! G51.2/G50.2 polygon turning through the whole chain — interpreter → motion → cycle loop →
-//! CANopen → four emulated drives (X, Z, work spindle S1, tool spindle T1 of
+//! CANopen → four emulated drives (X, Z, work spindle S1, tool spindle S2 of
 //! config/lathe-polygon.toml) — in simulated time: the tool spindle's *actual* angle tracks
 //! (Q/P)·θ_work,actual + R.
 
@@ -142,7 +142,7 @@ fn wrap(a: f64) -> f64 {
 /// Largest |θ_tool − (ratio·θ_work + phase)| (mod 360, degrees of the tool spindle) from the
 /// actuals over the rows of `lines` from `skip_s` seconds after the first of them.
 fn track(r: &Run, lines: &[u32], skip_s: f64, ratio: f64, phase: f64) -> (f64, usize) {
-    let (s, t) = (r.drive("s1"), r.drive("t1"));
+    let (s, t) = (r.drive("s1"), r.drive("s2"));
     let t0 = r.rows.iter().find(|w| lines.contains(&w.line)).expect("lines ran").t_s;
     let mut worst = 0.0f64;
     let mut n = 0;
@@ -161,7 +161,7 @@ fn tool_spindle_tracks_ratio_and_phase() {
     let src = "G98\nM03 S600\nG04 X0.5\nG51.2 P1 Q2 R60 S600\nG04 X1.5\nG00 X50 Z2\nG01 Z-10 F300\nG51.2 P1 Q2 R60 S900\nG04 X1.5\nG50.2\nG04 X1.5\nM30\n";
     let r = run(src);
     assert!(r.summary.at_program_end(), "{:#?}", r.summary);
-    let (s, t) = (r.drive("s1"), r.drive("t1"));
+    let (s, t) = (r.drive("s1"), r.drive("s2"));
     // Locked at S600 (after 0.5 s for the run-up and the phase to close), through the cut.
     let (e600, n600) = track(&r, &[5, 6, 7], 0.5, 2.0, 60.0);
     // Through the change to S900 (the work spindle's ramp included) and at S900.
@@ -193,7 +193,7 @@ fn tool_spindle_tracks_ratio_and_phase() {
 fn no_721_clamp_keeps_the_ratio() {
     let src = "G98\nG51.2 P1 Q3 R0 S2000\nG04 X2.5\nG50.2\nG04 X1.5\nM30\n";
     let r = run(src);
-    let (s, t) = (r.drive("s1"), r.drive("t1"));
+    let (s, t) = (r.drive("s1"), r.drive("s2"));
     let l3: Vec<&TraceRow> = r.rows.iter().filter(|w| w.line == 3).collect();
     let (a, b) = (l3[l3.len() - 101], l3[l3.len() - 1]);
     let rpm = |i: usize| (b.act[i] - a.act[i]) / (b.t_s - a.t_s) / 6.0;
