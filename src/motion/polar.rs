@@ -593,10 +593,67 @@ mod tests {
         assert!(m.is_idle());
         assert!(worst < 1e-9, "off the line by {worst}");
         assert!(wmax <= 360.0 * 1.001, "C at {wmax} °/s");
-        // Far from the centre the clamp still allows most of the feed (C at 20 mm: ~8.6 rad/s·... ).
-        assert!(vmax_far > 100.0, "far from the centre only {vmax_far} mm/min");
+        // Far from the centre (15–18 mm) the programmed feed: C turns at v·d/r² ≤ 0.22 rad/s
+        // there, well inside its 6.3 rad/s.
+        assert!((vmax_far - 3000.0).abs() < 1e-6, "far from the centre {vmax_far} mm/min");
         assert!((prev[AX_X] - 20.0249).abs() < 1e-3, "ends at radius {}", prev[AX_X]);
         let _ = N_AXES;
+    }
+
+    /// Feed hold brakes on the path and resumes on cycle start; a controlled stop ends on the
+    /// path with the spindle held; every setpoint on the line, C within its limits.
+    #[test]
+    fn feed_hold_and_stop_stay_on_the_path() {
+        let l = lim();
+        let dt = l.cycle_s;
+        for stop in [false, true] {
+            let mut m = Motion::new(l.clone(), [30.0, 0.0, 0.0, 0.0]);
+            m.push(&polar([30.0, 0.0], [30.0, 5.0], None, false, 3000.0, 1)).unwrap();
+            m.push(&polar([30.0, 5.0], [-30.0, 5.0], None, false, 3000.0, 2)).unwrap();
+            let mut fb = Feedback { pos: m.position(), spindle_rpm: 0.0 };
+            let (mut prev, mut v_prev) = (m.position(), 0.0);
+            let (mut worst, mut held_at, mut amax) = (0.0f64, None, 0.0f64);
+            for k in 0..20000 {
+                if k == 600 {
+                    if stop {
+                        m.stop();
+                    } else {
+                        m.feed_hold();
+                    }
+                }
+                if k == 1200 && !stop {
+                    assert!(m.is_held());
+                    held_at = Some(m.position());
+                    m.cycle_start();
+                }
+                let sp = m.step(&fb);
+                fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm };
+                let p = [sp.pos[AX_X] * sp.pos[AX_S].to_radians().cos(), sp.pos[AX_X] * sp.pos[AX_S].to_radians().sin()];
+                if sp.line == 2 {
+                    worst = worst.max((p[1] - 5.0).abs());
+                }
+                let v = (sp.pos[AX_S] - prev[AX_S]) / dt;
+                amax = amax.max(((v - v_prev) / dt).abs());
+                (prev, v_prev) = (sp.pos, v);
+                if m.is_idle() && k > 1300 {
+                    break;
+                }
+            }
+            assert!(m.is_idle());
+            assert!(worst < 1e-9, "off the line by {worst}");
+            assert!(amax <= l.amax[AX_S] * 1.001, "C accelerated at {amax} °/s²");
+            let a = m.position()[AX_S].to_radians();
+            let end = [m.position()[AX_X] * a.cos(), m.position()[AX_X] * a.sin()];
+            if stop {
+                // Stopped part-way along line 2 (10 mm/s² … 50 mm/s: well before its end).
+                assert!(end[0] > -29.0 && (end[1] - 5.0).abs() < 1e-9, "stopped at {end:?}");
+            } else {
+                let h = held_at.expect("held");
+                let ha = h[AX_S].to_radians();
+                assert!((h[AX_X] * ha.sin() - 5.0).abs() < 1e-9, "held off the path");
+                assert!((end[0] + 30.0).abs() < 1e-9 && (end[1] - 5.0).abs() < 1e-9, "ended at {end:?}");
+            }
+        }
     }
 
     #[test]
