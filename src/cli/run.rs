@@ -2,7 +2,7 @@
 
 use super::{load_config, MachineArgs};
 use crate::canon::Pos;
-use crate::config::{AxisKind, MachineConfig};
+use crate::config::MachineConfig;
 use crate::drives::DriveBus;
 use crate::interp::Interpreter;
 use crate::motion::cycle::{CycleLoop, RunSummary};
@@ -171,9 +171,12 @@ fn execute(
     json: bool,
     extras: &RunExtras,
 ) -> (i32, Option<std::collections::HashMap<u32, f64>>) {
-    let spindle_drive = cfg.axes.values().position(|a| a.kind == AxisKind::Spindle);
+    let spindle_drive = cfg.spindle_index();
     let cycle_ns = (cfg.machine.cycle_ms * 1e6).round() as u64;
     let mut lp = CycleLoop::new(drives, clock, Limits::from_config(cfg), spindle_drive, cycle_ns);
+    if let Some(t) = crate::motion::polygon::ToolSpindle::from_config(cfg) {
+        lp.set_tool_spindle(t);
+    }
     if let Some(path) = extras.trace {
         match Trace::csv(path, lp.drive_names()) {
             Ok(t) => lp.set_trace(t),

@@ -10,6 +10,7 @@ use crate::canon::{Move, Pos};
 use crate::drives::DriveBus;
 use crate::motion::trace::{Trace, TraceRow, MAX_TRACE_AXES};
 use crate::motion::panel::{Panel, PanelReader};
+use crate::motion::polygon::ToolSpindle;
 use crate::motion::{Event, Feedback, Limits, Motion, AX_S, AX_X, AX_Y, AX_Z, N_AXES};
 use crate::Alarm;
 use cncgw_bus::Clock;
@@ -131,11 +132,20 @@ pub struct CycleLoop<'a> {
     /// The operator panel; without one (a batch run) M00/M01 go on as if cycle start had
     /// been pressed.
     panel: Option<PanelReader>,
+    /// The tool spindle of polygon turning (G51.2), driven from `Setpoint::tool_spindle`.
+    tool: Option<ToolSpindle>,
 }
 
 impl<'a> CycleLoop<'a> {
     pub fn new(drives: &'a mut dyn DriveBus, clock: &'a mut dyn Clock, limits: Limits, spindle_drive: Option<usize>, cycle_ns: u64) -> Self {
-        CycleLoop { drives, clock, limits, spindle_drive, cycle_ns, trace: None, panel: None }
+        CycleLoop { drives, clock, limits, spindle_drive, cycle_ns, trace: None, panel: None, tool: None }
+    }
+
+    /// Drive the tool spindle of polygon turning (`ToolSpindle::from_config`): its drive
+    /// follows `Setpoint::tool_spindle`, and its actual angle goes back to motion every cycle.
+    /// Without it G51.2 is refused.
+    pub fn set_tool_spindle(&mut self, tool: ToolSpindle) {
+        self.tool = Some(tool).filter(|t| t.drive < self.drives.axis_count() && Some(t.drive) != self.spindle_drive);
     }
 
     /// Take feed hold, cycle start, single block, reset, E-stop and the overrides from `panel`
@@ -217,6 +227,9 @@ impl<'a> CycleLoop<'a> {
         // One drive's fault stops the others under control (a tap's pair together) where the
         // bus can isolate it; otherwise every drive is quick-stopped.
         let isolate = self.drives.isolate_faults(true);
+        if let Some(t) = self.tool {
+            motion.set_tool_spindle(&t, self.drives.feedback(t.drive).pos);
+        }
         // Statistics, all allocated here, before the first cycle.
         summary.axes = (0..n)
             .map(|d| AxisSummary {
@@ -377,6 +390,9 @@ impl<'a> CycleLoop<'a> {
                 motion.set_rapid_override(i.rapid_ovr);
                 motion.set_spindle_override(i.spindle_ovr);
             }
+            if let Some(t) = self.tool {
+                motion.set_tool_feedback(self.drives.feedback(t.drive).pos);
+            }
             let mut sp = motion.step(&fb);
             for _ in 0..missed {
                 ended |= self.on_event(&mut motion, &sp);
@@ -385,6 +401,9 @@ impl<'a> CycleLoop<'a> {
             for (d, ax) in map.iter().enumerate() {
                 if let Some(a) = ax {
                     self.drives.set_target(d, sp.pos[*a]);
+                }
+                if self.tool.is_some_and(|t| t.drive == d) {
+                    self.drives.set_target(d, sp.tool_spindle);
                 }
                 hist[d][0] = hist[d][1];
                 hist[d][1] = self.drives.target_counts(d);
@@ -397,6 +416,7 @@ impl<'a> CycleLoop<'a> {
                 for (d, ax) in map.iter().enumerate().take(MAX_TRACE_AXES) {
                     row.cmd[d] = match ax {
                         Some(a) => sp.pos[*a],
+                        None if self.tool.is_some_and(|t| t.drive == d) => sp.tool_spindle,
                         None => row.act[d],
                     };
                 }
@@ -615,6 +635,8 @@ impl<'a> CycleLoop<'a> {
             for d in 0..self.drives.axis_count() {
                 if let Some(a) = motion_axis(self.drives.axis_name(d), Some(d) == self.spindle_drive) {
                     self.drives.set_target(d, sp.pos[a]);
+                } else if self.tool.is_some_and(|t| t.drive == d) {
+                    self.drives.set_target(d, sp.tool_spindle);
                 }
             }
             let _ = self.drives.transmit(now);

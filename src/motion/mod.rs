@@ -85,6 +85,8 @@ pub mod cycle;
 mod fault;
 pub mod geom;
 pub mod panel;
+mod polar;
+pub mod polygon;
 pub mod profile;
 pub mod rt;
 pub mod trace;
@@ -186,6 +188,8 @@ pub struct Setpoint {
     pub line: u32,
     /// Reached this cycle (M00/M01 stops, M30 end, aux codes).
     pub event: Event,
+    /// Tool spindle angle setpoint, degrees (G51.2 polygon turning; see `polygon.rs`).
+    pub tool_spindle: f64,
 }
 
 /// Machine limits as the interpolator uses them (SI-ish: units/s, units/s²).
@@ -261,6 +265,9 @@ impl Limits {
             flex_retract_rpm: cfg.param(5276).filter(|n| n.is_finite() && *n > 0.0).map_or(0.0, |n| n * 0.1),
         };
         for (name, a) in &cfg.axes {
+            if a.role == Some(crate::config::AxisRole::ToolSpindle) {
+                continue; // polygon turning's tool spindle: see polygon::ToolSpindle
+            }
             let i = match (a.kind, name.to_ascii_lowercase().as_str()) {
                 (AxisKind::Linear, "x") => AX_X,
                 (AxisKind::Linear, "y") => AX_Y,
@@ -392,6 +399,10 @@ enum Item {
     Thread(ThreadSeg),
     Tap(TapSeg),
     Rigid(RigidSeg),
+    /// G12.1 polar coordinate interpolation (see `polar.rs`).
+    Polar(polar::PolarSeg),
+    /// G51.2 (Some) / G50.2 (None): the tool spindle's synchronisation (see `polygon.rs`).
+    Polygon(Option<crate::canon::PolygonCmd>),
     Dwell(u64),
     Spindle(SpindleCmd),
     Event(Event),
@@ -473,6 +484,8 @@ enum Run {
     /// G92.1: waiting for the spindle to stop (`theta0` None), then the stroke from the
     /// spindle angle `theta0`.
     Rigid { seg: RigidSeg, theta0: Option<f64>, s: f64, v: f64, landed: bool },
+    /// G12.1: braking the spindle, aligning C, then on the virtual path (see `polar.rs`).
+    Polar(polar::PolarRun),
 }
 
 /// A fault found while executing (reported by [`Motion::take_alarm`]; `step` cannot return
@@ -565,6 +578,8 @@ pub struct Motion {
     fb_rpm_prev: f64,
     /// A drive of the running synchronised pair faulted: the survivor follows it (`fault.rs`).
     follow: Option<fault::Follow>,
+    /// The tool spindle of polygon turning (absent unless `set_tool_spindle`).
+    tool: polygon::ToolSync,
 }
 
 fn xyz(p: &Pos) -> [f64; 3] {
@@ -609,6 +624,7 @@ impl Motion {
             sb_pending: false,
             fb_rpm_prev: 0.0,
             follow: None,
+            tool: polygon::ToolSync::none(),
             sp_dir: 0.0,
             sp_rpm: 0.0,
             sp_css: None,
@@ -701,18 +717,10 @@ impl Motion {
             MoveKind::Aux { letter, value } => Item::Event(Event::Aux { letter: *letter, value: *value }),
             MoveKind::Stop { optional } => Item::Event(Event::Stop { optional: *optional }),
             MoveKind::End { .. } => Item::Event(Event::End),
-            MoveKind::Polar { .. } => {
-                return Err(at(Alarm::new(
-                    alarms::UNSUPPORTED,
-                    "G12.1 polar coordinate interpolation needs X–C contouring (the spindle as a Cs axis interpolated with X, cartesian→polar every cycle), which this motion layer does not execute yet; run the program in `cncgw plan`/`preview` only",
-                )))
-            }
-            MoveKind::Polygon(_) => {
-                return Err(at(Alarm::new(
-                    alarms::UNSUPPORTED,
-                    "G51.2/G50.2 polygon turning needs a second (tool) spindle synchronised to the work spindle; the configuration and this motion layer have none: add the tool spindle axis and its synchronisation, or remove G51.2",
-                )))
-            }
+            MoveKind::Polar { end, from, to, center, cw, c_zero, feed } => Item::Polar(
+                self.polar_seg(end, *from, *to, *center, *cw, *c_zero, feed, m.work_offset.x, m.exact_stop).map_err(at)?,
+            ),
+            MoveKind::Polygon(cmd) => Item::Polygon(self.check_polygon(cmd).map_err(at)?),
         };
         let mut item = item;
         // Accepted: commit the planning state.
@@ -746,6 +754,20 @@ impl Motion {
                 // Like rigid tapping, G92.1 leaves the spindle stopped, in position control.
                 self.plan_spindle_on = false;
                 self.plan_rpm = None;
+            }
+            Item::Polar(_) => {
+                self.plan_tap = None;
+                if let Some(e) = m.kind.end() {
+                    self.plan_end = xyz(&e);
+                    self.plan_c = Some(e.c);
+                }
+                // The spindle is the C axis: stopped, in position control, until M03/M04.
+                self.plan_spindle_on = false;
+                self.plan_rpm = None;
+            }
+            Item::Polygon(Some(c)) => {
+                self.plan_spindle_on = true;
+                self.plan_rpm = Some(c.rpm);
             }
             Item::Tap(t) => {
                 self.plan_tap = match self.plan_tap {
@@ -1362,7 +1384,8 @@ impl Motion {
         };
         let target = if self.stopping { 0.0 } else { self.sp_dir * mag.min(machine_max) };
         self.sp_target = target;
-        let step = self.lim.amax[AX_S] / 6.0 * dt;
+        // In polygon turning the tool spindle must keep up with the ratio (polygon.rs).
+        let step = self.lim.amax[AX_S].min(self.tool.work_accel_cap()) / 6.0 * dt;
         let d = target - self.sp_cur;
         self.sp_cur = if d.abs() <= step { target } else { self.sp_cur + step.copysign(d) };
         self.pos[AX_S] += self.sp_cur * 6.0 * dt;
@@ -1423,7 +1446,9 @@ impl Motion {
         let mut path_v = 0.0;
         self.monitor_sync(fb);
         // In a rigid-tap stroke the spindle is a position axis driven by the tap profile.
-        if !matches!(self.run, Run::Tap { theta0: Some(_), .. } | Run::Rigid { theta0: Some(_), .. }) {
+        if !matches!(self.run, Run::Tap { theta0: Some(_), .. } | Run::Rigid { theta0: Some(_), .. })
+            && !matches!(self.run, Run::Polar(r) if r.holds_spindle())
+        {
             self.step_spindle(dt);
         }
 
@@ -1462,11 +1487,18 @@ impl Motion {
                         self.run = Run::Rigid { seg, theta0: None, s: 0.0, v: 0.0, landed: false };
                     }
                     Item::Spindle(c) => self.apply_spindle(c),
+                    Item::Polar(seg) => {
+                        self.in_hole = false;
+                        self.run = Run::Polar(polar::PolarRun::new(seg));
+                    }
+                    Item::Polygon(c) => self.apply_polygon(c),
                     Item::Event(ev) => {
                         event = ev;
                         match ev {
                             Event::Stop { optional: false } => self.paused = true,
                             Event::Stop { optional: true } => self.paused = self.optional_stop,
+                            // M30/M02 reset polygon turning (G50.2 is the reset state).
+                            Event::End => self.tool.unlock(),
                             _ => {}
                         }
                     }
@@ -1578,6 +1610,7 @@ impl Motion {
                     Run::Rigid { seg, theta0: Some(th0), s: s2, v: nv, landed }
                 };
             }
+            Run::Polar(r) => path_v = self.step_polar(r),
             Run::Tap { seg, theta0, landed: true, .. } => {
                 // At rest on the stroke's end, spindle stopped in position.
                 self.sp_cur = 0.0;
@@ -1668,6 +1701,7 @@ impl Motion {
         if !self.follow_corr() {
             self.sync_corr(fb);
         }
+        self.step_tool(fb.pos[AX_S], fb.spindle_rpm * 6.0);
         let mut out = self.pos;
         let mut vel = [0.0; N_AXES];
         for i in 0..3 {
@@ -1685,6 +1719,7 @@ impl Motion {
             path_feed: path_v * 60.0,
             line: self.line,
             event,
+            tool_spindle: self.tool.pos(),
         }
     }
 
@@ -1951,7 +1986,7 @@ impl Motion {
     /// spindle may still turn: see `Setpoint::spindle_rpm`.)
     pub fn is_idle(&self) -> bool {
         // Not while a sync correction is still fading out: what is sent is not the end yet.
-        self.len == 0 && self.run == Run::None && !self.stopping && self.corr == [0.0; 3]
+        self.len == 0 && self.run == Run::None && !self.stopping && self.corr == [0.0; 3] && self.tool.at_rest()
     }
 
     /// Controlled stop: decelerate along the path within the acceleration limits, ramp the
