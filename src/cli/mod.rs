@@ -4,6 +4,7 @@ pub mod diag;
 pub mod preview;
 pub mod run;
 pub mod service;
+pub mod term;
 
 use clap::{Parser, Subcommand};
 use std::path::PathBuf;
@@ -55,6 +56,8 @@ pub enum Command {
         trace: Option<PathBuf>,
         #[command(flatten)]
         rt: run::RtArgs,
+        #[command(flatten)]
+        op: run::OperatorArgs,
     },
     /// Trace files written by `cncgw run --trace`.
     #[command(subcommand)]
@@ -475,8 +478,8 @@ pub fn main() -> i32 {
     let cli = Cli::parse();
     init_tracing(cli.verbose);
     match cli.cmd {
-        Command::Run { program, machine, json, state_dir, trace, rt } => {
-            run::run(&program, &machine, json, state_dir.as_deref(), trace.as_deref(), &rt)
+        Command::Run { program, machine, json, state_dir, trace, rt, op } => {
+            run::run(&program, &machine, json, state_dir.as_deref(), trace.as_deref(), &rt, &op)
         }
         Command::Trace(TraceCmd::Plot { file, out }) => run::trace_plot(&file, &out),
         Command::Plan { program, config, format } => plan(&program, config.as_deref(), &format),
