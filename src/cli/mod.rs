@@ -4,6 +4,7 @@ pub mod diag;
 pub mod preview;
 pub mod run;
 pub mod service;
+pub mod taptest;
 pub mod term;
 
 use clap::{Parser, Subcommand};
@@ -56,6 +57,26 @@ pub enum Command {
         trace: Option<PathBuf>,
         #[command(flatten)]
         rt: run::RtArgs,
+        #[command(flatten)]
+        op: run::OperatorArgs,
+    },
+    /// Run a rigid tap in the air on the configured machine (what a service engineer does at
+    /// commissioning) and report the spindle–Z sync error from the drives' actual positions —
+    /// max and RMS over the whole tap and through entry, reversal and exit — with the
+    /// following errors of spindle and Z, and draw it (SVG; the trace is kept as CSV next to
+    /// it). The tap starts `--clearance` above the present Z (X stays) and goes `--depth`
+    /// down: leave that much free air below the tool. `--dry`: plan and check only, nothing
+    /// moves. Needs --yes (or a typed yes on a terminal) on a real bus. Exit code 0 = within
+    /// machine.sync_error_limit_um, 1 = over it, 2 = cannot be done as asked, 3 = alarm.
+    ///
+    /// Example: `cncgw tap-test --lead 1.5 --depth 30 --rpm 3000`,
+    /// `cncgw tap-test --lead 1.5 --depth 30 --rpm 3000 --dry --bus can0`,
+    /// `cncgw tap-test --lead 1 --depth 20 --rpm 2000 --bus can0 --yes --json -o tap.svg`
+    TapTest {
+        #[command(flatten)]
+        tap: taptest::TapArgs,
+        #[command(flatten)]
+        machine: MachineArgs,
         #[command(flatten)]
         op: run::OperatorArgs,
     },
@@ -481,6 +502,7 @@ pub fn main() -> i32 {
         Command::Run { program, machine, json, state_dir, trace, rt, op } => {
             run::run(&program, &machine, json, state_dir.as_deref(), trace.as_deref(), &rt, &op)
         }
+        Command::TapTest { tap, machine, op } => taptest::tap_test(&machine, &tap, &op),
         Command::Trace(TraceCmd::Plot { file, out }) => run::trace_plot(&file, &out),
         Command::Plan { program, config, format } => plan(&program, config.as_deref(), &format),
         Command::Preview { program, out, config, width, tools } => {

@@ -1,8 +1,9 @@
 //! Service commands that change a drive's state or move an axis: `drive enable|disable|
 //! fault-reset|home`, `jog`; and the bus tools `buslog` and `monitor`.
 //!
-//! Anything that can set a motor in motion (enable, home, jog) on a real bus — anything but
-//! `inproc` — needs `--yes`, refused before the bus is opened (as `sdo write` does).
+//! Anything that can set a motor in motion (enable, home, jog, tap-test) on a real bus —
+//! anything but `inproc` — needs `--yes`, or the operator's typed `yes` on a terminal; it is
+//! refused before the bus is opened (as `sdo write` does).
 
 use super::diag::{sdo_error_text, EXIT_NODE, EXIT_OK, EXIT_SETUP, EXIT_USAGE};
 use super::{load_config, open_session, open_session_with, MachineArgs, Session};
@@ -26,17 +27,30 @@ fn effective_bus(machine: &MachineArgs) -> Result<String, String> {
     }
 }
 
-/// Refuse `what` on a real bus without `--yes`. Err = the exit code (message printed).
-fn confirm_motion(machine: &MachineArgs, yes: bool, what: &str) -> Result<(), i32> {
+/// On a real bus, `what` goes ahead only with `--yes` or, on a terminal, after the operator
+/// types `yes`; without a terminal it is refused. Err = the exit code (message printed).
+pub(crate) fn confirm_motion(machine: &MachineArgs, yes: bool, what: &str) -> Result<(), i32> {
+    use std::io::{BufRead, IsTerminal};
     let bus = effective_bus(machine).map_err(|e| {
         eprintln!("error: {e}");
         EXIT_SETUP
     })?;
-    if bus != "inproc" && !yes {
-        eprintln!("error: {what} can set a motor in motion on {bus}; make sure the axis is free to move and nobody is near it, then repeat with --yes");
+    if bus == "inproc" || yes {
+        return Ok(());
+    }
+    if std::io::stdin().is_terminal() && std::io::stderr().is_terminal() {
+        eprint!("{what} can set a motor in motion on {bus}. Is the axis free to move and nobody near it? Type yes to go on: ");
+        let _ = std::io::stderr().flush();
+        let mut answer = String::new();
+        let _ = std::io::stdin().lock().read_line(&mut answer);
+        if answer.trim().eq_ignore_ascii_case("yes") {
+            return Ok(());
+        }
+        eprintln!("not confirmed: nothing was moved");
         return Err(EXIT_USAGE);
     }
-    Ok(())
+    eprintln!("error: {what} can set a motor in motion on {bus}; make sure the axis is free to move and nobody is near it, then repeat with --yes");
+    Err(EXIT_USAGE)
 }
 
 fn open(machine: &MachineArgs) -> Result<Session, i32> {
