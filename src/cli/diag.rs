@@ -670,7 +670,7 @@ pub fn drive_status(machine: &MachineArgs, node: u8, json_out: bool) -> i32 {
 }
 
 /// `cncgw od check NODE --eds FILE`.
-pub fn od_check(machine: &MachineArgs, node: u8, eds_path: &std::path::Path) -> i32 {
+pub fn od_check(machine: &MachineArgs, node: u8, eds_path: &std::path::Path, json_out: bool) -> i32 {
     let eds = match cncgw_bus::canopen::eds::Eds::load(eds_path) {
         Ok(e) => e,
         Err(e) => {
@@ -687,6 +687,13 @@ pub fn od_check(machine: &MachineArgs, node: u8, eds_path: &std::path::Path) -> 
         msgs.extend(s.master.check_eds(node, &eds));
     }
     msgs.extend(s.master.check_od(&mut *s.clock, node, &eds));
+    if json_out {
+        println!(
+            "{}",
+            json!({"node": node, "eds": eds.file, "objects": eds.entries.len(), "agrees": msgs.is_empty(), "disagreements": msgs.iter().map(|m| m.to_string()).collect::<Vec<_>>()})
+        );
+        return if msgs.is_empty() { 0 } else { 1 };
+    }
     for m in &msgs {
         println!("{m}");
     }

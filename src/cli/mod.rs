@@ -197,7 +197,7 @@ pub enum Command {
     /// this tool sees. Refreshed in place on a terminal, one table after another otherwise.
     /// Read-only.
     ///
-    /// Example: `cncgw monitor --bus can0`, `cncgw monitor --once`
+    /// Example: `cncgw monitor --bus can0`, `cncgw monitor --once`, `cncgw monitor --once --json`
     Monitor {
         /// Stop after N seconds. Default: until interrupted (5 s of simulated time on inproc).
         #[arg(long, value_name = "N")]
@@ -208,6 +208,9 @@ pub enum Command {
         /// Refresh period in milliseconds.
         #[arg(long, default_value_t = 500, value_name = "MS")]
         interval_ms: u64,
+        /// Print one JSON object per refresh (JSON lines) instead of the table.
+        #[arg(long)]
+        json: bool,
         #[command(flatten)]
         machine: MachineArgs,
     },
@@ -314,6 +317,9 @@ pub enum OdCmd {
         eds: PathBuf,
         #[command(flatten)]
         machine: MachineArgs,
+        /// Print JSON.
+        #[arg(long)]
+        json: bool,
     },
 }
 
@@ -465,9 +471,14 @@ pub fn open_session_with(
 #[derive(Subcommand, Debug)]
 pub enum ConfigCmd {
     /// Validate a machine configuration and print what it describes.
+    ///
+    /// Example: `cncgw config check config/lathe.toml`, `cncgw config check --json`
     Check {
         /// The file (default: the embedded config/lathe.toml).
         file: Option<PathBuf>,
+        /// Print JSON.
+        #[arg(long)]
+        json: bool,
     },
 }
 
@@ -508,7 +519,7 @@ pub fn main() -> i32 {
         Command::Preview { program, out, config, width, tools } => {
             preview::preview(&program, config.as_deref(), tools.as_deref(), &out, width)
         }
-        Command::Config(ConfigCmd::Check { file }) => config_check(file.as_deref()),
+        Command::Config(ConfigCmd::Check { file, json }) => config_check(file.as_deref(), json),
         Command::Scan { machine, json } => diag::scan(&machine, json),
         Command::Sdo(SdoCmd::Read { node, index, sub, r#type, out, machine, json }) => {
             diag::sdo_read(&machine, node, index, sub, r#type, out.as_deref(), json)
@@ -528,8 +539,8 @@ pub fn main() -> i32 {
         Command::Drive(DriveCmd::Home { node, home, yes, machine }) => service::drive_home(&machine, node, &home, yes),
         Command::Jog { axis, to, by, speed, yes, machine } => service::jog(&machine, &axis, to, by, speed, yes),
         Command::Buslog { out, seconds, machine } => service::buslog(&machine, &out, seconds),
-        Command::Monitor { seconds, once, interval_ms, machine } => service::monitor(&machine, seconds, once, interval_ms),
-        Command::Od(OdCmd::Check { node, eds, machine }) => diag::od_check(&machine, node, &eds),
+        Command::Monitor { seconds, once, interval_ms, json, machine } => service::monitor(&machine, seconds, once, interval_ms, json),
+        Command::Od(OdCmd::Check { node, eds, machine, json }) => diag::od_check(&machine, node, &eds, json),
         Command::Completions { shell } => {
             use clap::CommandFactory;
             clap_complete::generate(shell, &mut Cli::command(), "cncgw", &mut std::io::stdout());
@@ -586,50 +597,83 @@ fn plan(program: &std::path::Path, config: Option<&std::path::Path>, format: &st
     0
 }
 
-fn config_check(file: Option<&std::path::Path>) -> i32 {
-    match load_config(file) {
-        Ok((cfg, _)) => {
-            println!("{}: ok — {}", file.map(|p| p.display().to_string()).unwrap_or_else(|| "embedded config/lathe.toml".into()), cfg.machine.name);
-            println!("  cycle {} ms, bus {} at {} bit/s", cfg.machine.cycle_ms, cfg.bus.interface, cfg.bus.bitrate);
-            let n_can = cfg.axes.values().filter(|a| a.modbus.is_none()).count();
-            if n_can > 0 {
-                let frames = crate::bus::busload::csp_frames(n_can, 6);
-                let load = crate::bus::busload::load(&frames, cfg.cycle_s(), cfg.bus.bitrate);
-                println!(
-                    "  worst-case CANopen bus load {:.1} % ({} drives, one 6-byte RPDO and TPDO each + SYNC per cycle){}",
-                    load * 100.0,
-                    n_can,
-                    if load > 0.8 { " — OVER 80 %: lengthen the cycle" } else { "" }
-                );
-            }
-            for (name, what, tx, rtu) in crate::drives::modbus::ModbusDrives::new(&cfg).planned_links() {
-                match rtu {
-                    Some(s) => println!(
-                        "  Modbus link {name}: {what}, {tx} transactions per cycle take {:.2} ms on the line → link cycle {} ms",
-                        s * 1e3,
-                        (s * 1e3).ceil().max(cfg.machine.cycle_ms.ceil())
-                    ),
-                    None => println!("  Modbus link {name}: {what}, {tx} transactions per cycle; the cycle is measured from the round trip at start-up"),
-                }
-            }
-            for (name, a) in &cfg.axes {
-                println!(
-                    "  axis {name}: {:?} {} {} counts/unit, max speed {}, max accel {}",
-                    a.kind,
-                    match &a.modbus {
-                        Some(l) => format!("Modbus link {l} unit {} ({:?} profile)", a.node, a.modbus_profile),
-                        None => format!("CANopen node {}", a.node),
-                    },
-                    a.counts_per_unit,
-                    a.max_speed,
-                    a.max_accel
-                );
-            }
-            0
-        }
+fn config_check(file: Option<&std::path::Path>, json: bool) -> i32 {
+    let name = file.map(|p| p.display().to_string()).unwrap_or_else(|| "embedded config/lathe.toml".into());
+    let cfg = match load_config(file) {
+        Ok((cfg, _)) => cfg,
         Err(e) => {
-            eprintln!("error: {e}");
-            2
+            if json {
+                println!("{}", serde_json::json!({"file": name, "ok": false, "error": e}));
+            } else {
+                eprintln!("error: {e}");
+            }
+            return 2;
+        }
+    };
+    let mut text = Vec::new();
+    text.push(format!("{name}: ok — {}", cfg.machine.name));
+    text.push(format!("  cycle {} ms, bus {} at {} bit/s", cfg.machine.cycle_ms, cfg.bus.interface, cfg.bus.bitrate));
+    let n_can = cfg.axes.values().filter(|a| a.modbus.is_none()).count();
+    let mut can_load = None;
+    if n_can > 0 {
+        let frames = crate::bus::busload::csp_frames(n_can, 6);
+        let load = crate::bus::busload::load(&frames, cfg.cycle_s(), cfg.bus.bitrate);
+        can_load = Some(load);
+        text.push(format!(
+            "  worst-case CANopen bus load {:.1} % ({} drives, one 6-byte RPDO and TPDO each + SYNC per cycle){}",
+            load * 100.0,
+            n_can,
+            if load > 0.8 { " — OVER 80 %: lengthen the cycle" } else { "" }
+        ));
+    }
+    let mut links = Vec::new();
+    for (lname, what, tx, rtu) in crate::drives::modbus::ModbusDrives::new(&cfg).planned_links() {
+        let link_cycle_ms = rtu.map(|s| (s * 1e3).ceil().max(cfg.machine.cycle_ms.ceil()));
+        match rtu {
+            Some(s) => text.push(format!(
+                "  Modbus link {lname}: {what}, {tx} transactions per cycle take {:.2} ms on the line → link cycle {} ms",
+                s * 1e3,
+                link_cycle_ms.unwrap_or(0.0)
+            )),
+            None => text.push(format!("  Modbus link {lname}: {what}, {tx} transactions per cycle; the cycle is measured from the round trip at start-up")),
+        }
+        links.push(serde_json::json!({
+            "link": lname, "what": what, "transactions_per_cycle": tx,
+            "line_time_ms": rtu.map(|s| s * 1e3), "link_cycle_ms": link_cycle_ms,
+        }));
+    }
+    let mut axes = Vec::new();
+    for (aname, a) in &cfg.axes {
+        text.push(format!(
+            "  axis {aname}: {:?} {} {} counts/unit, max speed {}, max accel {}",
+            a.kind,
+            match &a.modbus {
+                Some(l) => format!("Modbus link {l} unit {} ({:?} profile)", a.node, a.modbus_profile),
+                None => format!("CANopen node {}", a.node),
+            },
+            a.counts_per_unit,
+            a.max_speed,
+            a.max_accel
+        ));
+        axes.push(serde_json::json!({
+            "axis": aname, "kind": format!("{:?}", a.kind).to_lowercase(), "node": a.node,
+            "modbus_link": a.modbus, "counts_per_unit": a.counts_per_unit,
+            "min": a.min, "max": a.max, "max_speed": a.max_speed, "max_accel": a.max_accel,
+        }));
+    }
+    if json {
+        println!(
+            "{}",
+            serde_json::json!({
+                "file": name, "ok": true, "machine": cfg.machine.name, "cycle_ms": cfg.machine.cycle_ms,
+                "bus": cfg.bus.interface, "bitrate": cfg.bus.bitrate, "canopen_bus_load": can_load,
+                "canopen_drives": n_can, "modbus_links": links, "axes": axes,
+            })
+        );
+    } else {
+        for l in text {
+            println!("{l}");
         }
     }
+    0
 }

@@ -552,27 +552,64 @@ impl CanBus for CountingBus {
     }
 }
 
-/// One drive's line of the monitor table.
-fn monitor_row(s: &mut Session, node: u8) -> String {
+/// One drive's values as the monitor reads them.
+struct MonitorRow {
+    node: u8,
+    axis: String,
+    /// Statusword, or why the node did not answer.
+    sw: Result<u16, String>,
+    mode: Option<i8>,
+    pos: Option<f64>,
+    vel: Option<f64>,
+    ferr: Option<f64>,
+}
+
+fn monitor_read(s: &mut Session, node: u8) -> MonitorRow {
     let spec = s.master.node_spec(node).cloned();
     let axis = spec.as_ref().map(|n| n.axis.clone()).unwrap_or_else(|| "-".into());
     let cpu = spec.as_ref().map(|n| n.counts_per_unit).unwrap_or(1.0);
-    let sw = match read_int(s, node, od::STATUSWORD, 2) {
-        Ok(v) => v as u16,
+    let mut row = MonitorRow { node, axis, sw: Ok(0), mode: None, pos: None, vel: None, ferr: None };
+    match read_int(s, node, od::STATUSWORD, 2) {
+        Ok(v) => row.sw = Ok(v as u16),
+        Err(e) => {
+            row.sw = Err(e);
+            return row;
+        }
+    }
+    row.mode = read_int(s, node, od::MODES_DISPLAY, 1).ok().map(|m| m as i8);
+    let mut units = |ix: u16| read_int(s, node, ix, 4).ok().map(|c| c as f64 / cpu);
+    row.pos = units(od::POSITION_ACTUAL);
+    row.vel = units(od::VELOCITY_ACTUAL);
+    row.ferr = units(od::FOLLOWING_ERROR_ACTUAL);
+    row
+}
+
+/// One drive's line of the monitor table.
+fn monitor_line(r: &MonitorRow) -> String {
+    let (node, axis) = (r.node, &r.axis);
+    let sw = match &r.sw {
+        Ok(v) => *v,
         Err(e) => return format!("{node:>4} {axis:<5} no answer: {e}"),
     };
     let st = State::from_statusword(sw);
-    let m = read_int(s, node, od::MODES_DISPLAY, 1).ok().map(|m| m as i8);
-    let mut units = |ix: u16| read_int(s, node, ix, 4).ok().map(|c| format!("{:.4}", c as f64 / cpu)).unwrap_or_else(|| "-".into());
-    let pos = units(od::POSITION_ACTUAL);
-    let vel = units(od::VELOCITY_ACTUAL);
-    let ferr = units(od::FOLLOWING_ERROR_ACTUAL);
-    let mode = m.map(|m| format!("{m} {}", mode::name(m))).unwrap_or_else(|| "-".into());
-    format!("{node:>4} {axis:<5} 0x{sw:04X} {:<22} {mode:<26} {pos:>12} {vel:>12} {ferr:>10}", st.name())
+    let f = |v: Option<f64>| v.map(|v| format!("{v:.4}")).unwrap_or_else(|| "-".into());
+    let mode = r.mode.map(|m| format!("{m} {}", mode::name(m))).unwrap_or_else(|| "-".into());
+    format!("{node:>4} {axis:<5} 0x{sw:04X} {:<22} {mode:<26} {:>12} {:>12} {:>10}", st.name(), f(r.pos), f(r.vel), f(r.ferr))
+}
+
+fn monitor_json(r: &MonitorRow) -> serde_json::Value {
+    match &r.sw {
+        Ok(sw) => serde_json::json!({
+            "node": r.node, "axis": r.axis, "statusword": format!("0x{sw:04X}"),
+            "state": State::from_statusword(*sw).name(), "mode": r.mode, "mode_name": r.mode.map(mode::name),
+            "position": r.pos, "velocity_per_s": r.vel, "following_error": r.ferr, "error": null,
+        }),
+        Err(e) => serde_json::json!({"node": r.node, "axis": r.axis, "error": e}),
+    }
 }
 
 /// `cncgw monitor`.
-pub fn monitor(machine: &MachineArgs, seconds: Option<f64>, once: bool, interval_ms: u64) -> i32 {
+pub fn monitor(machine: &MachineArgs, seconds: Option<f64>, once: bool, interval_ms: u64, json: bool) -> i32 {
     use std::io::IsTerminal;
     if let Some(n) = seconds {
         if !(n.is_finite() && n > 0.0) {
@@ -608,13 +645,36 @@ pub fn monitor(machine: &MachineArgs, seconds: Option<f64>, once: bool, interval
             "{:>4} {:<5} {:<6} {:<22} {:<26} {:>12} {:>12} {:>10}",
             "node", "axis", "sw", "state", "mode", "position", "velocity/s", "ferr"
         )];
-        for &n in &nodes {
-            lines.push(monitor_row(&mut s, n));
-        }
+        let rows: Vec<MonitorRow> = nodes.iter().map(|&n| monitor_read(&mut s, n)).collect();
+        lines.extend(rows.iter().map(monitor_line));
         let now = s.clock.now_ns();
         let dt = (now - since).max(1) as f64 * 1e-9;
         let load = bits.swap(0, Ordering::Relaxed) as f64 / (bitrate as f64 * dt);
         since = now;
+        if json {
+            // One JSON object per refresh (JSON lines), never redrawn in place.
+            let v = serde_json::json!({
+                "t_s": (now - t0) as f64 * 1e-9,
+                "bus": s.bus,
+                "simulated": s.simulated,
+                "bus_load": load,
+                "bitrate": bitrate,
+                "load_window_s": dt,
+                "drives": rows.iter().map(monitor_json).collect::<Vec<_>>(),
+            });
+            if writeln!(out, "{v}").and_then(|_| out.flush()).is_err() {
+                return EXIT_OK;
+            }
+            if once {
+                return EXIT_OK;
+            }
+            let next = s.clock.now_ns() + interval;
+            if end.is_some_and(|e| next > e) {
+                return EXIT_OK;
+            }
+            s.master.listen(&mut *s.clock, interval / MS);
+            continue;
+        }
         lines.push(format!(
             "bus {} load {:.2} % ({} bit/s; frames sent and heard by this tool over the last {:.2} s)",
             s.bus,
