@@ -220,6 +220,14 @@ fn nmt_name(st: Option<NmtState>) -> &'static str {
 // ---------------------------------------------------------------- scan
 
 pub fn scan(machine: &MachineArgs, json_out: bool) -> i32 {
+    match super::mbus::modbus_machine(machine) {
+        Ok(Some(cfg)) => return super::mbus::scan(&cfg, json_out),
+        Ok(None) => {}
+        Err(e) => {
+            eprintln!("error: {e}");
+            return EXIT_SETUP;
+        }
+    }
     let mut s = match open(machine) {
         Ok(s) => s,
         Err(c) => return c,
@@ -572,6 +580,14 @@ pub fn statusword_bits(sw: u16, mode_code: i8) -> Vec<(u8, String, bool)> {
 }
 
 pub fn drive_status(machine: &MachineArgs, node: u8, json_out: bool) -> i32 {
+    match super::mbus::modbus_machine(machine) {
+        Ok(Some(cfg)) => return super::mbus::drive_status(&cfg, node, json_out),
+        Ok(None) => {}
+        Err(e) => {
+            eprintln!("error: {e}");
+            return EXIT_SETUP;
+        }
+    }
     let mut s = match open(machine) {
         Ok(s) => s,
         Err(c) => return c,

@@ -1,6 +1,7 @@
 //! The `cncgw` command line.
 
 pub mod diag;
+pub mod mbus;
 pub mod preview;
 pub mod run;
 pub mod service;
@@ -27,8 +28,9 @@ pub struct MachineArgs {
     #[arg(long, short = 'c', value_name = "FILE")]
     pub config: Option<PathBuf>,
     /// Bus: `inproc` (embedded emulated drives, simulated time), a SocketCAN interface such
-    /// as `vcan0` or `can0`, or `socketcand://HOST:PORT/IFACE`. Default: the config's
-    /// bus.interface.
+    /// as `vcan0` or `can0`, `socketcand://HOST:PORT/IFACE`, or a Modbus link for every axis:
+    /// `modbus-tcp://HOST:PORT`, `modbus-rtu:///dev/ttyUSB0?baud=115200&parity=none`.
+    /// Default: the config's bus.interface (and its Modbus links).
     #[arg(long, value_name = "BUS")]
     pub bus: Option<String>,
 }
@@ -416,6 +418,12 @@ pub fn open_raw(
 ) -> Result<(Box<dyn cncgw_bus::CanBus>, Box<dyn cncgw_bus::Clock>, String, String), String> {
     use cncgw_bus::transport::socketcand;
     let bus = bus.map(str::to_string).unwrap_or_else(|| cfg.bus.interface.clone());
+    if bus.starts_with("modbus-") {
+        return Err(format!("{bus} is a Modbus bus: this is a CANopen command (Modbus drives: scan, drive status, monitor, jog, run, tap-test)"));
+    }
+    if bus == "none" {
+        return Err("the configuration has no CANopen bus (bus.interface = \"none\"): give one with --bus, or use a Modbus command".into());
+    }
     if bus == "inproc" {
         let sim_cfg = sim_drives::SimConfig::from_machine_toml_bus(cfg_text, Some(false)).map_err(|e| format!("emulated drives: {e}"))?;
         let wire = cncgw_bus::transport::inproc::InprocBus::new();
@@ -480,6 +488,14 @@ pub enum ConfigCmd {
         #[arg(long)]
         json: bool,
     },
+}
+
+/// `--config` with `--bus` applied: a `modbus-tcp://…` / `modbus-rtu://…` bus puts every
+/// axis on that link (see `mbus`). Other buses are opened by `open_raw`.
+pub fn machine_config(m: &MachineArgs) -> Result<(crate::config::MachineConfig, String), String> {
+    let (mut cfg, text) = load_config(m.config.as_deref())?;
+    mbus::apply_bus(&mut cfg, m.bus.as_deref())?;
+    Ok((cfg, text))
 }
 
 /// Load the machine config and its text (the emulator builds its drives from the same text).

@@ -1,6 +1,6 @@
 //! `cncgw run`: run a part program on the embedded emulated machine or on a real bus.
 
-use super::{load_config, MachineArgs};
+use super::MachineArgs;
 use crate::canon::Pos;
 use crate::config::{AxisKind, MachineConfig};
 use crate::drives::DriveBus;
@@ -64,7 +64,7 @@ pub fn run(
     rt: &RtArgs,
     op: &OperatorArgs,
 ) -> i32 {
-    let (cfg, cfg_text) = match load_config(machine.config.as_deref()) {
+    let (cfg, cfg_text) = match super::machine_config(machine) {
         Ok(c) => c,
         Err(e) => {
             eprintln!("error: {e}");

@@ -327,6 +327,14 @@ pub fn jog(machine: &MachineArgs, axis: &str, to: Option<f64>, by: Option<f64>, 
     if let Err(c) = confirm_motion(machine, yes, &format!("jogging axis {axis}")) {
         return c;
     }
+    match super::mbus::modbus_machine(machine) {
+        Ok(Some(cfg)) => return jog_program(machine, &cfg, axis, to, by, speed),
+        Ok(None) => {}
+        Err(e) => {
+            eprintln!("error: {e}");
+            return EXIT_SETUP;
+        }
+    }
     let mut s = match open(machine) {
         Ok(s) => s,
         Err(c) => return c,
@@ -337,8 +345,13 @@ pub fn jog(machine: &MachineArgs, axis: &str, to: Option<f64>, by: Option<f64>, 
         return EXIT_USAGE;
     };
     if ax.modbus.is_some() {
-        eprintln!("error: axis {axis} is on a Modbus link; jog drives CANopen axes only");
-        return EXIT_USAGE;
+        match super::machine_config(machine) {
+            Ok((cfg, _)) => return jog_program(machine, &cfg, axis, to, by, speed),
+            Err(e) => {
+                eprintln!("error: {e}");
+                return EXIT_SETUP;
+            }
+        }
     }
     let node = ax.node;
     let Some(spec) = s.master.node_spec(node).cloned() else {
@@ -389,6 +402,64 @@ pub fn jog(machine: &MachineArgs, axis: &str, to: Option<f64>, by: Option<f64>, 
             eprintln!("error: {e}");
             EXIT_NODE
         }
+    }
+}
+
+/// Jog through the controller itself: a one-block program (`G98 G1 X|Z… F…`) run by the
+/// cycle loop on the machine's drives — how an axis on a Modbus link moves (Modbus has no
+/// profile position mode the master could hand the move to). Linear axes only.
+fn jog_program(machine: &MachineArgs, cfg: &crate::config::MachineConfig, axis: &str, to: Option<f64>, by: Option<f64>, speed: Option<f64>) -> i32 {
+    use crate::canon::Pos;
+    let Some(ax) = cfg.axes.get(axis).cloned() else {
+        let names: Vec<&str> = cfg.axes.keys().map(String::as_str).collect();
+        eprintln!("error: no axis `{axis}` in the configuration (axes: {})", names.join(", "));
+        return EXIT_USAGE;
+    };
+    if !matches!(axis, "x" | "z") || ax.kind != crate::config::AxisKind::Linear {
+        eprintln!("error: axis {axis}: a jog through the controller moves X or Z; turn a spindle with a program (M03 S…)");
+        return EXIT_USAGE;
+    }
+    let speed = speed.unwrap_or(ax.max_speed / 10.0);
+    if !(speed.is_finite() && speed > 0.0 && speed <= ax.max_speed) {
+        eprintln!("error: --speed {speed} must be above 0 and at most the axis's max_speed {}", ax.max_speed);
+        return EXIT_USAGE;
+    }
+    let from = std::cell::Cell::new(None::<f64>);
+    let target = std::cell::Cell::new(None::<f64>);
+    let job = super::run::Job {
+        name: format!("jog {axis}"),
+        source: String::new(),
+        first: None,
+        make: Box::new(|start: Pos| {
+            let here = if axis == "x" { start.x } else { start.z };
+            from.set(Some(here));
+            let t = match (to, by) {
+                (Some(t), None) => t,
+                (None, Some(d)) => here + d,
+                _ => f64::NAN,
+            };
+            let bad = |m: String| Err(vec![crate::Alarm::new(super::taptest::ALARM_TAP_PLAN, m)]);
+            if !t.is_finite() {
+                return bad("give exactly one of --to POS and --by DIST".into());
+            }
+            if ax.min.is_some_and(|lo| t < lo) || ax.max.is_some_and(|hi| t > hi) {
+                return bad(format!("{t} mm is outside axis {axis}'s travel {:?} … {:?} mm (axes.{axis}.min/max)", ax.min, ax.max));
+            }
+            target.set(Some(t));
+            let word = if axis == "x" { format!("X{:.4}", t * 2.0) } else { format!("Z{t:.4}") };
+            crate::interp::Interpreter::from_source("jog.nc", &format!("G21\nG98\nG1 {word} F{speed}\nM30\n"), cfg)
+        }),
+    };
+    let opts = super::run::ExecOpts { print_summary: false, ..Default::default() };
+    let (code, _, summary) = super::run::run_job(cfg, "", machine, job, &opts);
+    let end = summary.axes.iter().find(|a| a.name == axis).map(|a| a.final_actual_counts as f64 / a.counts_per_unit);
+    match (code, from.get(), target.get(), end) {
+        (0, Some(f), Some(t), Some(e)) => {
+            println!("axis {axis} (unit {}): {f:.4} → {e:.4} mm (target {t:.4})", ax.node);
+            EXIT_OK
+        }
+        (0, ..) => EXIT_NODE,
+        (c, ..) => c,
     }
 }
 
@@ -615,6 +686,14 @@ pub fn monitor(machine: &MachineArgs, seconds: Option<f64>, once: bool, interval
         if !(n.is_finite() && n > 0.0) {
             eprintln!("error: --seconds must be a positive number");
             return EXIT_USAGE;
+        }
+    }
+    match super::mbus::modbus_machine(machine) {
+        Ok(Some(cfg)) => return super::mbus::monitor(&cfg, seconds, once, interval_ms, json),
+        Ok(None) => {}
+        Err(e) => {
+            eprintln!("error: {e}");
+            return EXIT_SETUP;
         }
     }
     let bits = Arc::new(AtomicU64::new(0));

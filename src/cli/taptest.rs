@@ -21,7 +21,7 @@
 //! the speeds and the feed are checked.
 
 use super::run::{ExecOpts, Job, OperatorArgs, RunExtras};
-use super::{load_config, MachineArgs};
+use super::MachineArgs;
 use crate::canon::{MoveKind, Pos};
 use crate::config::{AxisKind, MachineConfig};
 use crate::interp::Interpreter;
@@ -252,15 +252,27 @@ fn plan_json(p: &TapPlan) -> serde_json::Value {
     })
 }
 
-/// The present machine position of x and z, read over SDO without enabling anything.
+/// The present machine position of x and z, read without enabling anything: over SDO
+/// (CANopen) or from the position registers (Modbus).
 fn present_position(machine: &MachineArgs, cfg: &MachineConfig) -> Result<Pos, String> {
-    let mut s = super::open_session(machine)?;
     let mut p = Pos::ZERO;
+    let mut session = None;
+    let mut links = std::collections::BTreeMap::new();
     for (name, slot) in [("x", &mut p.x), ("z", &mut p.z)] {
         let Some(ax) = cfg.axes.get(name) else { continue };
-        if ax.modbus.is_some() {
-            return Err(format!("axis {name} is on a Modbus link; --dry reads the present position over CANopen only"));
+        if let Some(l) = &ax.modbus {
+            if !links.contains_key(l) {
+                let link = cfg.modbus.get(l).ok_or_else(|| format!("no Modbus link {l}"))?;
+                links.insert(l.clone(), super::mbus::Client::connect(link).map_err(|e| format!("Modbus link {l}: {e}"))?);
+            }
+            let c = links.get_mut(l).ok_or("Modbus link")?;
+            *slot = super::mbus::read_drive(c, name, ax).map_err(|e| format!("axis {name}: {e}"))?.position;
+            continue;
         }
+        if session.is_none() {
+            session = Some(super::open_session(machine)?);
+        }
+        let s = session.as_mut().ok_or("no session")?;
         let d = s
             .master
             .sdo_upload(&mut *s.clock, ax.node, cncgw_bus::canopen::od::POSITION_ACTUAL, 0)
@@ -283,7 +295,7 @@ fn print_plan(p: &TapPlan, a: &TapArgs) {
 /// `cncgw tap-test`.
 pub fn tap_test(machine: &MachineArgs, a: &TapArgs, op: &OperatorArgs) -> i32 {
     use super::run::{EXIT_OK, EXIT_PROGRAM_ERROR, EXIT_SETUP};
-    let (cfg, cfg_text) = match load_config(machine.config.as_deref()) {
+    let (cfg, cfg_text) = match super::machine_config(machine) {
         Ok(c) => c,
         Err(e) => {
             eprintln!("error: {e}");
@@ -355,7 +367,9 @@ pub fn tap_test(machine: &MachineArgs, a: &TapArgs, op: &OperatorArgs) -> i32 {
     let Some(Ok(p)) = planned.into_inner() else {
         return if code == EXIT_OK { EXIT_PROGRAM_ERROR } else { code };
     };
-    if code != EXIT_OK && code != super::run::EXIT_NOT_AT_END {
+    // After an alarm in the tap (the sync monitor's 2307, typically) the figures up to the
+    // stop are what the engineer needs most: report them too.
+    if !matches!(code, EXIT_OK | super::run::EXIT_NOT_AT_END | super::run::EXIT_ALARM) {
         if a.json {
             println!("{}", json!({"dry": false, "plan": plan_json(&p), "exit_code": code, "trace": csv}));
         }
@@ -378,6 +392,9 @@ fn report(cfg: &MachineConfig, a: &TapArgs, p: &TapPlan, csv: &Path, run_code: i
     let f = match figures(&data, &spindle, p.signed_lead, &p.tap_lines) {
         Ok(f) => f,
         Err(e) => {
+            if run_code != EXIT_OK {
+                return run_code; // stopped before the tap: the alarm said why
+            }
             eprintln!("error: {}: {e}", csv.display());
             return EXIT_ALARM;
         }
@@ -412,6 +429,7 @@ fn report(cfg: &MachineConfig, a: &TapArgs, p: &TapPlan, csv: &Path, run_code: i
                 "monitor_max_um": f.monitor_max_um,
                 "sync_error_limit_um": limit,
                 "within_limit": ok,
+                "stopped_by_alarm": run_code == EXIT_ALARM,
                 "trace": csv,
                 "plot": a.out,
                 "exit_code": code,
@@ -436,7 +454,13 @@ fn report(cfg: &MachineConfig, a: &TapArgs, p: &TapPlan, csv: &Path, run_code: i
         }
         println!(
             "{} (limit {limit} µm, machine.sync_error_limit_um); trace {}, plot {}",
-            if ok { "PASS" } else { "FAIL: the sync error reached the limit — check the drives' tuning, or lower S" },
+            if run_code == EXIT_ALARM {
+                "STOPPED BY AN ALARM (above): figures up to the stop"
+            } else if ok {
+                "PASS"
+            } else {
+                "FAIL: the sync error reached the limit — check the drives' tuning, or lower S"
+            },
             csv.display(),
             a.out.display()
         );
