@@ -108,3 +108,27 @@ fn interactive_run_feed_hold_resume_reset_in_tmux() {
     t.keys("echo-check");
     t.wait_for("the echo of typed keys", |s| s.contains("echo-check"));
 }
+
+/// Ctrl-C on an interactive run is reset (a controlled stop, not a kill): alarm 2401, exit
+/// code 3, and the terminal is back in its normal mode.
+#[test]
+fn ctrl_c_is_reset_and_restores_the_terminal() {
+    let dir = std::env::temp_dir().join(format!("cncgw_cli_tmux_c_{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(dir.join("long.nc"), "G21\nG98\nG0 X20 Z2\nG1 Z-100 F600\nM30\n").unwrap();
+    let sh = format!(
+        "cd {d} && {bin} run long.nc --state-dir {d}/state; echo EXIT=$?; stty -a | tr ' ;' '\\n\\n' | grep -x -e icanon -e echo -e -icanon -e -echo; sleep 60",
+        d = dir.display(),
+        bin = env!("CARGO_BIN_EXE_cncgw")
+    );
+    let t = Tmux { socket: format!("cncgw-test-c-{}", std::process::id()) };
+    t.cmd(&["new-session", "-d", "-s", "run", "-x", "160", "-y", "30", &sh]);
+    t.wait_for("the feed block", |s| s.contains("G1 Z-100 F600") && z_of(s).is_some_and(|z| z < -2.0));
+    t.keys("C-c");
+    let s = t.wait_for("the end of the run", |s| s.contains("EXIT="));
+    assert!(s.contains("alarm 2401: reset by the operator at line 4"), "{s}");
+    assert!(s.contains("EXIT=3"), "{s}");
+    // stty reports the restored modes: canonical input and echo on (no "-icanon"/"-echo").
+    let after = &s[s.find("EXIT=3").unwrap()..];
+    assert!(after.lines().any(|l| l.trim() == "icanon") && after.lines().any(|l| l.trim() == "echo"), "{after}");
+}
