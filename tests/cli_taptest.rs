@@ -175,3 +175,31 @@ fn status_commands_speak_json() {
         json(&o);
     }
 }
+
+#[test]
+fn od_dump_shows_the_dictionary_and_checks_it_against_the_eds() {
+    let dir = tmpdir("od");
+    let o = cncgw_in(&dir, &["od", "dump", "1", "--json"]);
+    assert_eq!(o.code, 0, "{}", o.stderr);
+    let v = json(&o);
+    let objs = v["objects"].as_array().unwrap();
+    let find = |i: &str, sub: u64| objs.iter().find(|x| x["index"] == i && x["sub"] == sub).unwrap_or_else(|| panic!("{i}:{sub}"));
+    assert_eq!(find("0x6041", 0)["value"], 0x0250);
+    assert_eq!(find("0x1008", 0)["value"], "SIM-SERVO X");
+    assert_eq!(find("0x1018", 1)["raw"], "A7 0C 00 00");
+    assert_eq!(v["disagreements"], 0);
+    // Against the EDS: every object, by its DataType.
+    let eds = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/python/sim_drive.eds");
+    let o = cncgw_in(&dir, &["od", "dump", "1", "--eds", eds]);
+    assert_eq!(o.code, 0, "{}", o.stdout);
+    assert!(o.stdout.contains("0x6041:00 Statusword") && o.stdout.contains("agrees with the EDS"), "{}", o.stdout);
+    // An EDS that says the statusword is UNSIGNED32: the disagreement is named.
+    let text = std::fs::read_to_string(eds).unwrap().replace("[6041]\nParameterName=Statusword\nObjectType=0x7\nDataType=0x0006", "[6041]\nParameterName=Statusword\nObjectType=0x7\nDataType=0x0007");
+    std::fs::write(dir.join("wrong.eds"), text).unwrap();
+    let o = cncgw_in(&dir, &["od", "dump", "1", "--eds", "wrong.eds", "--json"]);
+    assert_eq!(o.code, 1, "{}", o.stdout);
+    let v = json(&o);
+    assert_eq!(v["disagreements"], 1);
+    let sw = v["objects"].as_array().unwrap().iter().find(|x| x["index"] == "0x6041").unwrap().clone();
+    assert!(sw["problem"].as_str().unwrap().contains("answered 2 byte(s)"), "{sw}");
+}

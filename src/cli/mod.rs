@@ -303,6 +303,25 @@ pub enum SdoCmd {
 
 #[derive(Subcommand, Debug)]
 pub enum OdCmd {
+    /// Print NODE's object dictionary as the drive reports it (read-only): with --eds every
+    /// object of the file, read over SDO, shown by its DataType and checked against the file
+    /// (present, the type's size, write-only not readable); without, the CiA 301 identity
+    /// and communication objects and the CiA 402 objects. Exit code 1 on a disagreement or
+    /// a failed read.
+    ///
+    /// Example: `cncgw od dump 1`, `cncgw od dump 1 --eds tests/python/sim_drive.eds --json`
+    Dump {
+        #[arg(value_parser = diag::parse_node)]
+        node: u8,
+        /// The EDS file.
+        #[arg(long, value_name = "FILE")]
+        eds: Option<PathBuf>,
+        #[command(flatten)]
+        machine: MachineArgs,
+        /// Print JSON.
+        #[arg(long)]
+        json: bool,
+    },
     /// Check NODE's object dictionary against an EDS file (CiA 306): every object of the
     /// file must exist on the node, read with its type's size, and refuse writes if read-only
     /// (the value just read is written back, so nothing changes), or reads if write-only;
@@ -556,6 +575,7 @@ pub fn main() -> i32 {
         Command::Jog { axis, to, by, speed, yes, machine } => service::jog(&machine, &axis, to, by, speed, yes),
         Command::Buslog { out, seconds, machine } => service::buslog(&machine, &out, seconds),
         Command::Monitor { seconds, once, interval_ms, json, machine } => service::monitor(&machine, seconds, once, interval_ms, json),
+        Command::Od(OdCmd::Dump { node, eds, machine, json }) => diag::od_dump(&machine, node, eds.as_deref(), json),
         Command::Od(OdCmd::Check { node, eds, machine, json }) => diag::od_check(&machine, node, &eds, json),
         Command::Completions { shell } => {
             use clap::CommandFactory;
