@@ -37,6 +37,8 @@ pub struct Progress {
     pub pos: [f64; N_AXES],
     pub feed: f64,
     pub spindle_rpm: f64,
+    /// Measured spindle–axis sync error, µm (0 outside synchronised moves).
+    pub sync_err_um: f64,
 }
 
 /// Per-axis result of a run.
@@ -442,6 +444,7 @@ impl<'a> CycleLoop<'a> {
                     pos: sp.pos,
                     feed: sp.path_feed,
                     spindle_rpm: sp.spindle_rpm,
+                    sync_err_um: motion.sync_error(),
                 });
             }
             if (ended || !input_open) && motion.is_idle() {

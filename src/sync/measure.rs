@@ -94,7 +94,7 @@ pub fn run_moves(cfg: &MachineConfig, limits: Limits, moves: Vec<Move>, load: Op
     let wire = InprocBus::new();
     let mut world = sim_drives::SimWorld::new(&wire, sim_cfg);
     let mut master = CanOpenMaster::new(wire.endpoint(), cfg);
-    let spindle = cfg.axes.values().position(|a| a.kind == AxisKind::Spindle);
+    let spindle = cfg.spindle_index();
     let node_of = |k: AxisKind, name: Option<&str>| {
         cfg.axes.iter().find(|(n, a)| a.kind == k && name.is_none_or(|w| n.as_str() == w)).map(|(_, a)| (a.node, a.counts_per_unit))
     };
