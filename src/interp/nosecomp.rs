@@ -1,5 +1,6 @@
 //! Tool nose radius compensation G40/G41/G42 (manual 004 §2.18), applied to the canonical
-//! move stream after the interpreter made it, with one motion of look-ahead.
+//! move stream after the interpreter made it, with one motion of look-ahead for the corners
+//! and a window of three compensated blocks for the interference check.
 //!
 //! Geometry, in the ZX plane with u = Z, v = X (radius), the axes in which G03 is
 //! counter-clockwise (X up, Z right, seen from +Y; the rear-tool-post picture, fig. 2.63):
@@ -29,9 +30,16 @@
 //!
 //! Moves the compensation does not apply to pass through unchanged and end the offset the way
 //! a cancel would, the next motion starting up again: threads, taps, and the moves of the
-//! cycles G71–G76 (§2.16 note 5) and of G90/G92/G94/G92.1 (the manual says nothing about
-//! those; we keep their programmed points so that a cycle cuts where it is written). G70's
-//! finishing contour is compensated like the blocks it repeats. Non-motion moves (M, S, T,
+//! cycles G71–G76 (§2.16 note 5), G92/G92.1 and the drilling cycles. G90/G94 arrive already
+//! offset: the interpreter offsets their cuts by the tip (Fanuc 0i-TF; the manual says
+//! nothing), see [`single_cycle_offset`]. G70's finishing contour is compensated like the
+//! blocks it repeats.
+//!
+//! Look-ahead: besides the pending motion, up to [`LOOK_AHEAD`] compensated blocks wait in a
+//! window before they leave, so that each block's nose path is checked (3605) against the
+//! programmed contour of the blocks up to three before it, not only its neighbour (Fanuc
+//! 0i-TF checks over its buffer the same way); the window empties whenever the offset ends
+//! (G40, a cycle, G52, the end). Non-motion moves (M, S, T,
 //! dwell) wait behind the pending motion, in order. G52 ends the offset for a moment
 //! (§2.12.3 note 2). G41/G42 in G12.1 mode compensate in the virtual X–C plane (tip 0).
 //!
