@@ -238,8 +238,12 @@ fn g90_taper_is_offset_by_the_tip() {
 /// D move to Z-19.6.
 #[test]
 fn g90_straight_tip_8_stops_r_before_the_shoulder() {
+    let want = [("rapid", 40.0, 2.0), ("feed", 40.0, -19.6), ("feed", 50.0, -19.6), ("rapid", 50.0, 2.0)];
     let m = run("T0303\nG0 X50 Z2\nG42\nG90 X40 Z-20 F0.2\nG40\nG0 X60\nM30\n");
-    assert_pts(&cycle_pts(&m, "G90"), &[("rapid", 40.0, 2.0), ("feed", 40.0, -19.6), ("feed", 50.0, -19.6), ("rapid", 50.0, 2.0)]);
+    assert_pts(&cycle_pts(&m, "G90"), &want);
+    // The side comes from the cycle and the tip, not from G41/G42 (Fanuc).
+    let m = run("T0303\nG0 X50 Z2\nG41\nG90 X40 Z-20 F0.2\nG40\nG0 X60\nM30\n");
+    assert_pts(&cycle_pts(&m, "G90"), &want);
 }
 
 /// G94 under G42, the manual's taper face (§2.15.2 example, `G00 X120 Z0; G94 X108 Z-30
