@@ -238,8 +238,12 @@ fn g90_taper_is_offset_by_the_tip() {
 /// D move to Z-19.6.
 #[test]
 fn g90_straight_tip_8_stops_r_before_the_shoulder() {
+    let want = [("rapid", 40.0, 2.0), ("feed", 40.0, -19.6), ("feed", 50.0, -19.6), ("rapid", 50.0, 2.0)];
     let m = run("T0303\nG0 X50 Z2\nG42\nG90 X40 Z-20 F0.2\nG40\nG0 X60\nM30\n");
-    assert_pts(&cycle_pts(&m, "G90"), &[("rapid", 40.0, 2.0), ("feed", 40.0, -19.6), ("feed", 50.0, -19.6), ("rapid", 50.0, 2.0)]);
+    assert_pts(&cycle_pts(&m, "G90"), &want);
+    // The side comes from the cycle and the tip, not from G41/G42 (Fanuc).
+    let m = run("T0303\nG0 X50 Z2\nG41\nG90 X40 Z-20 F0.2\nG40\nG0 X60\nM30\n");
+    assert_pts(&cycle_pts(&m, "G90"), &want);
 }
 
 /// G94 under G42, the manual's taper face (§2.15.2 example, `G00 X120 Z0; G94 X108 Z-30
@@ -259,4 +263,32 @@ fn g94_taper_is_offset_by_the_tip() {
 fn g90_too_short_for_the_nose_is_3605() {
     let a = alarm("T0303\nG0 X50 Z0\nG42\nG90 X49.8 Z-0.1 F0.2\nG40\nM30\n");
     assert_eq!((a.number, a.pos.as_ref().map(|p| p.line)), (3605, Some(4)), "{a}");
+}
+
+/// Interference beyond one pair of blocks (3605): a hook — the contour runs back under
+/// itself (Z-5 → X38.8 Z-4.2 → X39.4 Z-3.3), a short step down (X37.4) and on along Z-8.3
+/// 0.3 mm (radius) under the hook's point. Every pair of neighbouring blocks compensates
+/// cleanly, but on the last cut the nose (tip 0, R0.4: its centre at X38.2, 0.6 mm in
+/// radius from the point X38.8 Z-4.2) would cut 0.1 mm into the hook three blocks back. The
+/// check over the look-ahead finds it before anything of it is emitted.
+#[test]
+fn interference_three_blocks_ahead_is_3605() {
+    let src = "T0202\nG0 X44 Z2\nG42 G1 X40 Z0 F0.1\nZ-5\nX38.8 Z-4.2\nX39.4 Z-3.3\nX37.4\nZ-8.3\nG40 G0 X50\nM30\n";
+    let mut it = interp(src);
+    let mut got = Vec::new();
+    let a = loop {
+        match it.next() {
+            Some(Ok(m)) => got.push(m),
+            Some(Err(a)) => break a,
+            None => panic!("no alarm; moves {:?}", pts(&got)),
+        }
+    };
+    assert_eq!((a.number, a.pos.as_ref().map(|p| p.line)), (3605, Some(8)), "{a}");
+    assert!(a.message.contains("line 5") && a.message.contains("3 blocks before"), "{a}");
+    // Nothing of the hook was let out: the moves before the alarm end before line 5's.
+    assert!(got.iter().all(|m| m.src.line < 5), "{:?}", got.iter().map(|m| m.src.line).collect::<Vec<_>>());
+    // The same contour with the last cut 0.5 mm lower (X36.4: the nose clears the point by
+    // 0.1 mm) runs.
+    let ok = run(&src.replace("X37.4", "X36.4"));
+    assert!(pts(&ok).iter().any(|p| (p.1 - 37.2).abs() < 1e-6 && (p.2 + 8.3).abs() < 0.5), "{:?}", pts(&ok));
 }

@@ -1,5 +1,6 @@
 //! Tool nose radius compensation G40/G41/G42 (manual 004 §2.18), applied to the canonical
-//! move stream after the interpreter made it, with one motion of look-ahead.
+//! move stream after the interpreter made it, with one motion of look-ahead for the corners
+//! and a window of three compensated blocks for the interference check.
 //!
 //! Geometry, in the ZX plane with u = Z, v = X (radius), the axes in which G03 is
 //! counter-clockwise (X up, Z right, seen from +Y; the rear-tool-post picture, fig. 2.63):
@@ -29,9 +30,16 @@
 //!
 //! Moves the compensation does not apply to pass through unchanged and end the offset the way
 //! a cancel would, the next motion starting up again: threads, taps, and the moves of the
-//! cycles G71–G76 (§2.16 note 5) and of G90/G92/G94/G92.1 (the manual says nothing about
-//! those; we keep their programmed points so that a cycle cuts where it is written). G70's
-//! finishing contour is compensated like the blocks it repeats. Non-motion moves (M, S, T,
+//! cycles G71–G76 (§2.16 note 5), G92/G92.1 and the drilling cycles. G90/G94 arrive already
+//! offset: the interpreter offsets their cuts by the tip (Fanuc 0i-TF; the manual says
+//! nothing), see [`single_cycle_offset`]. G70's finishing contour is compensated like the
+//! blocks it repeats.
+//!
+//! Look-ahead: besides the pending motion, up to [`LOOK_AHEAD`] compensated blocks wait in a
+//! window before they leave, so that each block's nose path is checked (3605) against the
+//! programmed contour of the blocks up to three before it, not only its neighbour (Fanuc
+//! 0i-TF checks over its buffer the same way); the window empties whenever the offset ends
+//! (G40, a cycle, G52, the end). Non-motion moves (M, S, T,
 //! dwell) wait behind the pending motion, in order. G52 ends the offset for a moment
 //! (§2.12.3 note 2). G41/G42 in G12.1 mode compensate in the virtual X–C plane (tip 0).
 //!
@@ -141,6 +149,23 @@ pub struct NoseComp {
     pending: Option<(Seg, Side, bool)>,
     /// Non-motion moves behind `pending`.
     held: Vec<Move>,
+    /// Compensated blocks not yet released, the newest last: each is checked against the
+    /// ones up to [`LOOK_AHEAD`] blocks before it (see [`NoseComp::push_group`]).
+    window: std::collections::VecDeque<Group>,
+}
+
+/// How many blocks ahead the interference check looks (Fanuc 0i-TF: 3 in its buffer).
+pub const LOOK_AHEAD: usize = 3;
+
+/// One compensated block on its way out: its moves, its programmed curve and its nose-centre
+/// path, both as polylines in (Z, X).
+#[derive(Clone, Debug)]
+struct Group {
+    moves: Vec<Move>,
+    prog: Vec<P2>,
+    path: Vec<P2>,
+    /// Checked against its neighbours (not a start-up, not in the G12.1 plane).
+    check: bool,
 }
 
 impl Default for NoseComp {
@@ -156,6 +181,7 @@ impl Default for NoseComp {
             mach: (0.0, 0.0),
             pending: None,
             held: Vec::new(),
+            window: Default::default(),
         }
     }
 }
@@ -251,6 +277,7 @@ impl NoseComp {
             if self.pending.is_some() {
                 self.held.push(m);
             } else {
+                self.release(0, out);
                 out.push(m);
             }
             return Ok(());
@@ -268,11 +295,13 @@ impl NoseComp {
         }
         if !Self::compensable(&m) {
             self.flush_perpendicular(out)?;
+            self.release(0, out);
             self.mach = b;
             out.push(m);
             return Ok(());
         }
         if self.mode.is_none() && self.pending.is_none() {
+            self.release(0, out);
             self.mach = b;
             out.push(m);
             return Ok(());
@@ -286,6 +315,7 @@ impl NoseComp {
                 if polar.is_none() {
                     set_uv(&mut m.kind, self.mach);
                 }
+                self.release(0, out);
                 out.push(m);
             }
             return Ok(());
@@ -329,6 +359,7 @@ impl NoseComp {
                     *from = [self.mach.0, self.mach.1];
                 }
                 self.mach = seg.b;
+                self.release(0, out);
                 out.push(mv);
             }
         }
@@ -338,7 +369,9 @@ impl NoseComp {
     /// End of the program (or the stream): a pending motion ends perpendicular to its end.
     pub fn finish(&mut self, out: &mut Vec<Move>) -> Result<(), Alarm> {
         self.apply_changes(u64::MAX, out)?;
-        self.flush_perpendicular(out)
+        self.flush_perpendicular(out)?;
+        self.release(0, out);
+        Ok(())
     }
 
     /// The pending motion ends at its end point offset perpendicularly; the offset is then
@@ -355,6 +388,7 @@ impl NoseComp {
     /// Emit `prev` compensated: its own curve to the centre point `end`, then the transition
     /// lines through `extra`, then the held non-motion moves.
     fn emit(&mut self, prev: &Seg, side: Side, startup: bool, end: P2, extra: &[P2], out: &mut Vec<Move>) -> Result<(), Alarm> {
+        let mut g = Vec::with_capacity(2 + extra.len() + self.held.len());
         let from = self.mach;
         let to = self.machine(end);
         let mut mv = prev.mv.clone();
@@ -400,7 +434,7 @@ impl NoseComp {
         }
         place(&mut mv, from, to);
         mv.exact_stop = last_exact && extra.is_empty();
-        out.push(mv);
+        g.push(mv);
         let mut cur = to;
         for (i, p) in extra.iter().enumerate() {
             let q = self.machine(*p);
@@ -423,7 +457,7 @@ impl NoseComp {
             m.kind = kind;
             place(&mut m, cur, q);
             m.exact_stop = last_exact && i + 1 == extra.len();
-            out.push(m);
+            g.push(m);
             cur = q;
         }
         self.mach = cur;
@@ -431,9 +465,67 @@ impl NoseComp {
             if h.kind.end().is_some() && prev.polar.is_none() {
                 set_uv(&mut h.kind, cur);
             }
-            out.push(h);
+            g.push(h);
         }
+        // The nose-centre path of what was emitted, and the programmed curve, for the check
+        // against the blocks around it.
+        let tv = mul(self.tip, self.radius);
+        let mut path = vec![sub(from, tv)];
+        match prev.arc {
+            Some((c, cw)) if prev.polar.is_none() => path.extend(arc_points(sub(from, tv), end, c, cw)),
+            _ => path.push(end),
+        }
+        path.extend(extra.iter().copied());
+        let prog = match prev.arc {
+            Some((c, cw)) => {
+                let mut p = vec![prev.a];
+                p.extend(arc_points(prev.a, prev.b, c, cw));
+                p
+            }
+            None => vec![prev.a, prev.b],
+        };
+        let check = !startup && prev.polar.is_none();
+        self.push_group(Group { moves: g, prog, path, check }, &prev.mv, out)
+    }
+
+    /// Queue a compensated block: the interference check (3605) of its nose-centre path
+    /// against the programmed blocks up to [`LOOK_AHEAD`] before it, and of theirs against
+    /// its programmed curve — the blocks next to each other are checked by the corner rules
+    /// (§2.18.4 criterion 1); this catches the nose of one block reaching into a block two or
+    /// three further on, e.g. past a short block between them, where each pair alone looks
+    /// right (Fanuc 0i-TF checks the blocks in its look-ahead buffer the same way). Then the
+    /// oldest blocks leave for `out` once they have been checked against every later one
+    /// in reach.
+    fn push_group(&mut self, g: Group, mv: &Move, out: &mut Vec<Move>) -> Result<(), Alarm> {
+        let r = self.radius - 1e-4;
+        if g.check && r > 0.0 {
+            let n = self.window.len();
+            for (k, old) in self.window.iter().enumerate() {
+                // Only non-neighbours: `old` is n − k blocks before `g`.
+                if n - k < 2 || !old.check {
+                    continue;
+                }
+                let gap = polyline_gap(&g.path, &old.prog).min(polyline_gap(&old.path, &g.prog));
+                if gap < r {
+                    let line = old.moves.first().map(|m| m.src.line).unwrap_or(0);
+                    return Err(at(mv, INTERFERENCE_ALARM, format!(
+                        "interference: the nose ({:.3} mm) would cut into the contour of line {line}, {} blocks before this one, by {:.3} mm (a block between them is shorter than the nose radius, §2.18.4)",
+                        self.radius, n - k, self.radius - gap)));
+                }
+            }
+        }
+        self.window.push_back(g);
+        self.release(LOOK_AHEAD, out);
         Ok(())
+    }
+
+    /// Let the oldest compensated blocks out until `keep` remain.
+    fn release(&mut self, keep: usize, out: &mut Vec<Move>) {
+        while self.window.len() > keep {
+            if let Some(g) = self.window.pop_front() {
+                out.extend(g.moves);
+            }
+        }
     }
 
     /// The corner between `prev` and `next` (both offset to `side`): the centre point where
@@ -685,4 +777,66 @@ pub fn single_cycle_offset(
         return Err(backwards());
     }
     Ok(Some((set_p(b, b2), set_p(c, c2), set_p(d, d2))))
+}
+
+/// The points after `a` up to `b` on the arc about `c` (clockwise when `cw`, in (Z, X)), at
+/// most 5° apart.
+fn arc_points(a: P2, b: P2, c: P2, cw: bool) -> Vec<P2> {
+    let (ra, rb) = (norm(sub(a, c)), norm(sub(b, c)));
+    let a0 = (a.1 - c.1).atan2(a.0 - c.0);
+    let mut sweep = (b.1 - c.1).atan2(b.0 - c.0) - a0;
+    let tau = std::f64::consts::TAU;
+    if cw {
+        while sweep > 1e-12 {
+            sweep -= tau;
+        }
+    } else {
+        while sweep < -1e-12 {
+            sweep += tau;
+        }
+    }
+    let n = ((sweep.abs() / 5f64.to_radians()).ceil() as usize).clamp(1, 72);
+    (1..=n)
+        .map(|j| {
+            let f = j as f64 / n as f64;
+            let t = a0 + sweep * f;
+            let r = ra + (rb - ra) * f;
+            (c.0 + r * t.cos(), c.1 + r * t.sin())
+        })
+        .collect()
+}
+
+/// The least distance between two polylines.
+fn polyline_gap(p: &[P2], q: &[P2]) -> f64 {
+    let mut best = f64::INFINITY;
+    for a in p.windows(2) {
+        for b in q.windows(2) {
+            best = best.min(seg_gap(a[0], a[1], b[0], b[1]));
+        }
+    }
+    if p.len() == 1 || q.len() == 1 {
+        for a in p {
+            for b in q.windows(2) {
+                best = best.min(point_seg(*a, b[0], b[1]));
+            }
+        }
+    }
+    best
+}
+
+fn point_seg(p: P2, a: P2, b: P2) -> f64 {
+    let d = sub(b, a);
+    let l2 = dot(d, d);
+    let t = if l2 < 1e-24 { 0.0 } else { (dot(sub(p, a), d) / l2).clamp(0.0, 1.0) };
+    norm(sub(p, add(a, mul(d, t))))
+}
+
+/// Distance between the segments a–b and c–d (0 when they cross).
+fn seg_gap(a: P2, b: P2, c: P2, d: P2) -> f64 {
+    let (d1, d2) = (cross(sub(b, a), sub(c, a)), cross(sub(b, a), sub(d, a)));
+    let (d3, d4) = (cross(sub(d, c), sub(a, c)), cross(sub(d, c), sub(b, c)));
+    if d1 * d2 < 0.0 && d3 * d4 < 0.0 {
+        return 0.0;
+    }
+    point_seg(a, c, d).min(point_seg(b, c, d)).min(point_seg(c, a, b)).min(point_seg(d, a, b))
 }

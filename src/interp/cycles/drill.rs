@@ -51,7 +51,17 @@
 //! [`Interpreter::drill_modal_after_reset`]), No.5170 reverse tapping, No.5200 bits #0 #4 #5
 //! #7, No.5201 #3 #4, No.5202 #6, No.5209 #0, No.5210 M code (0 = M29), No.5211 override,
 //! No.5213 d of G84/G88, No.5241 max tapping rpm, No.5282 extra return, No.5382 extra return
-//! of G30 P99, No.7013 dwell at R (ms). No.5200#6, No.5261 and No.5271 act in motion.
+//! of G30 P99, No.7013 dwell at R (ms). No.5200#2 (000: the cancel of rigid tapping waits for
+//! RGTAP = 0): an exact-stop wait point (a zero dwell, untagged) at the block that cancels
+//! rigid tapping. No.5200#6, No.5261, No.5271 and the flexible-tapping parameters No.5275
+//! (cycles the tapping axis lags the spindle encoder, compensated) and No.5276 (the spindle
+//! speed, 0.1 rpm, detected before the retract) act in motion (`Motion::flex_tap_v`).
+//!
+//! # Spindle
+//! The rigid tapping spindle (000 note 2) rides in every [`MoveKind::Tap`] and in
+//! [`TapReturn`]: E1–E4 of the tapping mode (until G80); without E, No.5200#7 = 1 takes the
+//! M24–M27 selection (held until the next), No.5200#7 = 0 the spindle selection signals, of
+//! which this machine has none (spindle 1). Motion refuses a tap on a spindle it lacks.
 
 use super::{CErr, RANGE_ALARM};
 use crate::canon::{Feed, MoveKind, Plane, Pos, SpindleCmd, SpindleDir, SrcPos, TapReturn};
@@ -750,7 +760,9 @@ impl Interpreter {
     /// turning), ④ feed to the bottom following the spindle encoder (a per-revolution feed of
     /// one lead; lead = F/S under G98, F under G99, S the modal speed) and M05, ⑤ dwell P,
     /// ⑥ the spindle reversed, ⑦ feed back to R, ⑧ M05. Tags: ③④ → 3, ⑤ → 4, ⑥⑦⑧ → 5.
-    /// The encoder lag No.5275 and the retract speed check No.5276 belong to motion.
+    /// Motion runs the strokes following the spindle encoder (one lead per revolution, no
+    /// feed override: note 3), with the encoder lag No.5275 compensated and the retract
+    /// waiting for the reversed spindle at No.5276 (see `Motion::flex_tap_v`).
     #[allow(clippy::too_many_arguments)]
     fn flexible_tap(&mut self, src: &SrcPos, tag: &Arc<str>, m: &DrillModal, rp: f64, bottom: f64, feed: Feed, at: &dyn Fn(f64) -> Pos) -> Result<(), CErr> {
         let rpm = self.st.rpm;
