@@ -78,8 +78,19 @@ fn interactive_run_feed_hold_resume_reset_in_tmux() {
 
     // Feed hold: HELD on screen and Z stands still.
     t.keys("h");
-    let s = t.wait_for("HELD", |s| s.contains("HELD"));
-    let z_held = z_of(&s).unwrap();
+    t.wait_for("HELD", |s| s.contains("HELD"));
+    // HELD shows from the start of the deceleration: wait (up to 3 s) for Z to stand.
+    let mut z_held = z_of(&t.screen()).unwrap();
+    let t0 = Instant::now();
+    loop {
+        std::thread::sleep(Duration::from_millis(200));
+        let z = z_of(&t.screen()).unwrap();
+        if z == z_held {
+            break;
+        }
+        assert!(t0.elapsed() < Duration::from_secs(3), "Z still moving 3 s after feed hold: {z}");
+        z_held = z;
+    }
     std::thread::sleep(Duration::from_millis(800));
     let s = t.screen();
     assert!(s.contains("HELD"), "{s}");
@@ -104,6 +115,10 @@ fn interactive_run_feed_hold_resume_reset_in_tmux() {
     assert!(s.contains("EXIT=3"), "{s}");
     let z_end = z_of(&s).unwrap();
     assert!(z_end > -100.0 && z_end < z_held - 1.0, "{z_end}");
+    // The summary shows where Z stopped (counts, 10000 per mm), near the last status.
+    let row: Vec<&str> = s.lines().find(|l| l.starts_with("z ")).expect("summary row of z").split_whitespace().collect();
+    let z_stop = row[3].parse::<f64>().unwrap() / 10000.0;
+    assert!((z_stop - z_end).abs() < 0.5, "Z stopped at {z_stop}, last shown {z_end}");
     // The shell echoes typed keys again (the terminal left raw mode).
     t.keys("echo-check");
     t.wait_for("the echo of typed keys", |s| s.contains("echo-check"));
@@ -125,7 +140,10 @@ fn ctrl_c_is_reset_and_restores_the_terminal() {
     t.cmd(&["new-session", "-d", "-s", "run", "-x", "160", "-y", "30", &sh]);
     t.wait_for("the feed block", |s| s.contains("G1 Z-100 F600") && z_of(s).is_some_and(|z| z < -2.0));
     t.keys("C-c");
-    let s = t.wait_for("the end of the run", |s| s.contains("EXIT="));
+    // The end of the run and stty's report after it (two lines: icanon or -icanon, echo or -echo).
+    let s = t.wait_for("the end of the run and stty", |s| {
+        s.find("EXIT=").is_some_and(|i| s[i..].lines().filter(|l| matches!(l.trim(), "icanon" | "-icanon" | "echo" | "-echo")).count() == 2)
+    });
     assert!(s.contains("alarm 2401: reset by the operator at line 4"), "{s}");
     assert!(s.contains("EXIT=3"), "{s}");
     // stty reports the restored modes: canonical input and echo on (no "-icanon"/"-echo").

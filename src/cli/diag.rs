@@ -790,7 +790,8 @@ pub fn od_dump(machine: &MachineArgs, node: u8, eds_path: Option<&std::path::Pat
     };
     s.master.ensure_node(node);
     // (index, sub, name, type, access, where in the EDS)
-    let list: Vec<(u16, u8, String, Option<SdoType>, Option<cncgw_bus::canopen::eds::EdsAccess>, Option<String>)> = match &eds {
+    type Obj = (u16, u8, String, Option<SdoType>, Option<cncgw_bus::canopen::eds::EdsAccess>, Option<String>);
+    let list: Vec<Obj> = match &eds {
         Some(e) => e
             .entries
             .values()

@@ -11,7 +11,7 @@
 use super::MachineArgs;
 use crate::config::{AxisConfig, LinkTransport, MachineConfig, ModbusLink, Parity};
 use cncgw_bus::cia402::State;
-use cncgw_bus::modbus::{exception_text, pr_status, Cia402Map, PrMap, Profile};
+use cncgw_bus::modbus::{exception_text, pr_status, Profile};
 use std::time::{Duration, Instant};
 use tokio_modbus::client::{Context, Reader};
 use tokio_modbus::prelude::SlaveContext;
@@ -179,7 +179,7 @@ pub fn read_drive(c: &mut Client, axis: &str, a: &AxisConfig) -> Result<DriveRea
     let mut d = DriveRead { axis: axis.into(), unit: a.node, ..DriveRead::default() };
     match a.modbus_profile {
         Profile::Cia402 => {
-            let m = a.cia402_map.unwrap_or_else(Cia402Map::default);
+            let m = a.cia402_map.unwrap_or_default();
             d.profile = "cia402";
             d.statusword = c.read(a.node, m.statusword, 1)?[0];
             d.mode = Some(c.read(a.node, m.mode_display, 1)?[0] as i16 as i8);
@@ -190,7 +190,7 @@ pub fn read_drive(c: &mut Client, axis: &str, a: &AxisConfig) -> Result<DriveRea
             d.error_code = c.read(a.node, m.error_code, 1)?[0];
         }
         Profile::Pr => {
-            let m = a.pr_map.unwrap_or_else(PrMap::default);
+            let m = a.pr_map.unwrap_or_default();
             d.profile = "pr";
             let st = c.read(a.node, m.status, 1)?[0];
             d.pr_status = Some(st);

@@ -37,7 +37,14 @@ pub struct MachineArgs {
 
 #[derive(Subcommand, Debug)]
 pub enum Command {
-    /// Run a part program on the machine.
+    /// Run a part program on the machine. On a terminal the run is interactive: single keys
+    /// press the operator panel — h feed hold, s cycle start, b single block on/off, o
+    /// optional stop, +/- feed override, r reset (alarm 2401), e E-stop (alarm 2400),
+    /// Ctrl-C = reset — and the status line shows the block, position, F, S, sync error and
+    /// HELD / SINGLE BLOCK; on the embedded emulated machine its simulated time is then paced
+    /// to the wall clock. Without a terminal (or with --batch) it runs straight through and
+    /// M00/M01 go on. Exit code 0 ok, 1 not at the end point, 2 program error, 3 alarm, 4
+    /// setup.
     ///
     /// Example: `cncgw run examples/first_part.nc` (embedded emulated drives), or
     /// `cncgw run --bus vcan0 examples/first_part.nc` against `sim-drives --bus vcan0`.

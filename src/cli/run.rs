@@ -431,6 +431,14 @@ fn execute(
         Display::Bar(bar) => bar.finish_and_clear(),
         Display::Panel(mut d) => d.close(),
     }
+    if r.is_err() {
+        // The loop fills the final positions only at the program's end: after an alarm (or a
+        // reset) show where the axes stopped, not zeros.
+        for (d, a) in summary.axes.iter_mut().enumerate() {
+            a.final_actual_counts = lp.drives.feedback(d).counts;
+            a.final_target_counts = lp.drives.target_counts(d);
+        }
+    }
     lp.finish();
     if let Some(t) = lp.take_trace() {
         match t.finish() {

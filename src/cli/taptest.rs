@@ -92,7 +92,7 @@ fn spindle_name(cfg: &MachineConfig) -> Option<String> {
 /// Write the program for a tap from `start` (machine position, X a radius) and check it.
 pub fn plan(cfg: &MachineConfig, a: &TapArgs, start: Pos) -> Result<TapPlan, String> {
     let pos = |v: f64| v.is_finite() && v > 0.0;
-    if !pos(a.lead) || !pos(a.depth) || !pos(a.rpm) || !(a.clearance.is_finite() && a.clearance >= 0.0) {
+    if !(pos(a.lead) && pos(a.depth) && pos(a.rpm) && a.clearance.is_finite() && a.clearance >= 0.0) {
         return Err("--lead, --depth and --rpm must be positive numbers, --clearance zero or more".into());
     }
     let Some(sname) = spindle_name(cfg) else {
