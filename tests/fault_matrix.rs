@@ -225,7 +225,7 @@ const DS: usize = 2;
 
 impl Outcome {
     fn alarm(&self) -> &Alarm {
-        self.result.as_ref().err().expect("the run must stop on an alarm")
+        self.result.as_ref().expect_err("the run must stop on an alarm")
     }
 
     /// Let the world run on for `ms` with nobody commanding, then: which motors still move?
@@ -244,7 +244,7 @@ impl Outcome {
     fn stop_cycles(&mut self, t0: u64, settle_ms: u64) -> u64 {
         self.probe.idle(settle_ms);
         let last_moving = self.probe.samples.iter().rev().find(|s| s.vel.iter().any(|v| v.abs() > REST)).map_or(t0, |s| s.t);
-        (last_moving.saturating_sub(t0) + CYCLE - 1) / CYCLE
+        last_moving.saturating_sub(t0).div_ceil(CYCLE)
     }
 
     /// The thread/tap relation through the stop: with c = Z − lead·θ/360 (Z in mm, θ in
@@ -303,6 +303,7 @@ fn record(name: &str, faults: u64, stop: Option<(u64, u64)>) {
 /// A fault during a tap or thread: the alarm names the node and the error, the program stops
 /// at its block, every axis is at rest within `bound` cycles, the relation held within
 /// `um` µm. Returns (stop cycles, relation µm), and prints the same without isolation.
+#[allow(clippy::too_many_arguments)]
 fn sync_fault(name: &str, program: &str, line: u32, lead: f64, fault: &str, node_text: &str, bound: u64, um: f64) {
     let (node, rest) = fault.split_once(':').unwrap();
     let at_ms: u64 = rest.split_once('@').unwrap().1.parse().unwrap();
