@@ -600,18 +600,18 @@ fn corrupt_frames_with_a_wrong_length_are_ignored() {
 
 #[test]
 fn bit_flips_on_z_feedback_do_not_move_the_machine() {
-    // One TPDO of Z in a hundred arrives with a flipped bit (WireFaults, seeded). The
-    // master's feedback jumps for one cycle; the drives follow their set-points, which do
-    // not depend on Z's feedback outside a synchronised move, so the run ends at its end.
+    // One TPDO of Z in a hundred arrives with a flipped bit (WireFaults, seeded). A flipped
+    // position bit makes the master's feedback jump for one cycle; the drives follow their
+    // set-points, which do not depend on Z's feedback outside a synchronised move. A flipped
+    // statusword bit looked like "left Operation Enabled" and stopped the run (seed 7: at
+    // 3.65 s); the master now wants two TPDOs in a row out of Operation Enabled when no EMCY
+    // came, so the run ends at its end point.
     let wf = WireFaults { seed: 7, ids: Some((0x182, 0x182)), corrupt: 0.01, ..WireFaults::default() };
     let o = run(PROGRAM, Setup { wire: Some(wf), ..Setup::default() });
     let n = o.wire.fault_counts().corrupted;
     assert!(n > 5, "{n} frames corrupted");
-    match &o.result {
-        Ok(s) => assert!(s.at_program_end(), "{s:?}"),
-        // A flipped statusword bit reads as "left Operation Enabled": a controlled stop.
-        Err(a) => assert!([2010].contains(&a.number), "{a}"),
-    }
+    let s = o.result.as_ref().unwrap_or_else(|a| panic!("single flipped bits must not stop the machine: {a}"));
+    assert!(s.at_program_end(), "{s:?}");
     record("bit_flips_z_tpdo", n, None);
 }
 
