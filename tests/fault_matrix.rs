@@ -225,7 +225,7 @@ const DS: usize = 2;
 
 impl Outcome {
     fn alarm(&self) -> &Alarm {
-        self.result.as_ref().err().expect("the run must stop on an alarm")
+        self.result.as_ref().expect_err("the run must stop on an alarm")
     }
 
     /// Let the world run on for `ms` with nobody commanding, then: which motors still move?
@@ -244,7 +244,7 @@ impl Outcome {
     fn stop_cycles(&mut self, t0: u64, settle_ms: u64) -> u64 {
         self.probe.idle(settle_ms);
         let last_moving = self.probe.samples.iter().rev().find(|s| s.vel.iter().any(|v| v.abs() > REST)).map_or(t0, |s| s.t);
-        (last_moving.saturating_sub(t0) + CYCLE - 1) / CYCLE
+        last_moving.saturating_sub(t0).div_ceil(CYCLE)
     }
 
     /// The thread/tap relation through the stop: with c = Z − lead·θ/360 (Z in mm, θ in
@@ -303,6 +303,7 @@ fn record(name: &str, faults: u64, stop: Option<(u64, u64)>) {
 /// A fault during a tap or thread: the alarm names the node and the error, the program stops
 /// at its block, every axis is at rest within `bound` cycles, the relation held within
 /// `um` µm. Returns (stop cycles, relation µm), and prints the same without isolation.
+#[allow(clippy::too_many_arguments)]
 fn sync_fault(name: &str, program: &str, line: u32, lead: f64, fault: &str, node_text: &str, bound: u64, um: f64) {
     let (node, rest) = fault.split_once(':').unwrap();
     let at_ms: u64 = rest.split_once('@').unwrap().1.parse().unwrap();
@@ -599,18 +600,18 @@ fn corrupt_frames_with_a_wrong_length_are_ignored() {
 
 #[test]
 fn bit_flips_on_z_feedback_do_not_move_the_machine() {
-    // One TPDO of Z in a hundred arrives with a flipped bit (WireFaults, seeded). The
-    // master's feedback jumps for one cycle; the drives follow their set-points, which do
-    // not depend on Z's feedback outside a synchronised move, so the run ends at its end.
+    // One TPDO of Z in a hundred arrives with a flipped bit (WireFaults, seeded). A flipped
+    // position bit makes the master's feedback jump for one cycle; the drives follow their
+    // set-points, which do not depend on Z's feedback outside a synchronised move. A flipped
+    // statusword bit looked like "left Operation Enabled" and stopped the run (seed 7: at
+    // 3.65 s); the master now wants two TPDOs in a row out of Operation Enabled when no EMCY
+    // came, so the run ends at its end point.
     let wf = WireFaults { seed: 7, ids: Some((0x182, 0x182)), corrupt: 0.01, ..WireFaults::default() };
     let o = run(PROGRAM, Setup { wire: Some(wf), ..Setup::default() });
     let n = o.wire.fault_counts().corrupted;
     assert!(n > 5, "{n} frames corrupted");
-    match &o.result {
-        Ok(s) => assert!(s.at_program_end(), "{s:?}"),
-        // A flipped statusword bit reads as "left Operation Enabled": a controlled stop.
-        Err(a) => assert!([2010].contains(&a.number), "{a}"),
-    }
+    let s = o.result.as_ref().unwrap_or_else(|a| panic!("single flipped bits must not stop the machine: {a}"));
+    assert!(s.at_program_end(), "{s:?}");
     record("bit_flips_z_tpdo", n, None);
 }
 

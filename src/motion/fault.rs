@@ -156,6 +156,9 @@ impl Motion {
         let h = dt * (self.lim.feedback_delay as f64 - 1.0).max(0.0);
         let pred = act + fv * h;
         let mut path_v = 0.0;
+        // Nothing to follow along (cannot happen for what `fault_stop` sets up): back to the
+        // run's own controlled stop.
+        let mut abandon = false;
         match self.run {
             Run::Tap { seg, theta0: Some((pr, thr)), .. } => {
                 if a == AX_S {
@@ -194,6 +197,8 @@ impl Motion {
                     self.pos[a] = act;
                     self.pos[AX_S] = f.x;
                     path_v = ((s1 - s) / dt).abs();
+                } else {
+                    abandon = true;
                 }
                 self.sync_watch = true;
             }
@@ -222,10 +227,16 @@ impl Motion {
                     self.pos[a] = act;
                     self.pos[AX_S] = f.x;
                     path_v = ((s1 - s) / dt).abs();
+                } else {
+                    abandon = true;
                 }
                 self.sync_watch = true;
             }
-            _ => f.cycles = MAX_FOLLOW_CYCLES,
+            _ => abandon = true,
+        }
+        if abandon {
+            self.follow = None;
+            return path_v;
         }
         self.sp_cur = (self.pos[AX_S] - prev[AX_S]) / dt / 6.0;
         let rest = |ax: usize, v: f64| v.abs() < if ax == AX_S { REST_DEG_S } else { REST_MM_S };

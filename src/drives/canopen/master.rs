@@ -118,6 +118,9 @@ struct Node {
     info: NodeInfo,
     /// Cyclic synchronous velocity (a spindle in speed mode): RPDO1 carries 0x60FF.
     csv: bool,
+    /// Consecutive TPDO1s whose statusword is not Operation Enabled (a fault without an EMCY
+    /// counts from the second: one frame with a flipped bit is not a fault).
+    not_enabled: u32,
     /// 0x60FF, counts/s.
     target_vel: i32,
 }
@@ -143,6 +146,7 @@ impl Node {
             info: NodeInfo::default(),
             csv: false,
             target_vel: 0,
+            not_enabled: 0,
         }
     }
 }
@@ -436,8 +440,16 @@ impl<B: CanBus> CanOpenMaster<B> {
         }
         if by_tpdo.is_some() && f.len >= 6 {
             let n = &mut self.nodes[i];
-            n.status = get_u16(&f.data, 0);
             let raw = get_i32(&f.data, 2);
+            if n.have_fb && raw.wrapping_sub(n.raw_pos).unsigned_abs() >= 1 << 30 {
+                // No axis moves 2^30 counts between two TPDOs: a corrupt frame (a flipped top
+                // bit would otherwise shift the unwrapped position by 2^32 for good). Dropped;
+                // the feedback ages by a cycle.
+                tracing::warn!(node = n.spec.node, "implausible position in TPDO1 ignored");
+                return;
+            }
+            n.status = get_u16(&f.data, 0);
+            n.not_enabled = if State::from_statusword(n.status) == State::OperationEnabled { 0 } else { n.not_enabled.saturating_add(1) };
             if n.have_fb {
                 // INTEGER32 positions wrap; a spindle passes 2^31 counts within minutes.
                 n.unwrapped += raw.wrapping_sub(n.raw_pos) as i64;
@@ -1141,7 +1153,7 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
                 // drive goes on); a drive that faults on it says so in its statusword.
                 let seen = if let Some(e) = n.last_emcy.filter(|e| !emcy_is_warning(e.code)) {
                     Some(format!("drive fault EMCY 0x{:04X} {} (error register 0x{:02X})", e.code, error_text(e.code), e.register))
-                } else if n.have_fb && st != State::OperationEnabled {
+                } else if n.have_fb && st != State::OperationEnabled && n.not_enabled >= 2 {
                     Some(format!("drive left Operation Enabled: now {}", st.name()))
                 } else {
                     None
