@@ -20,7 +20,7 @@ pub const EXIT_ALARM: i32 = 3;
 pub const EXIT_SETUP: i32 = 4;
 
 /// Real-time setup of the cycle thread (real drives on a real PC). Each is optional; one the
-/// system refuses is a warning, not an error.
+/// system refuses is a warning, not an error. Each flag overrides the config's `[rt]` option.
 #[derive(clap::Args, Debug, Clone, Default)]
 pub struct RtArgs {
     /// Run the cycle thread at this SCHED_FIFO priority (1–99; needs root, CAP_SYS_NICE or an
@@ -121,7 +121,9 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, state_dir: Option<
         }
     };
     eprintln!("cncgw: {} on {}", program.display(), what.join(" + "));
-    let extras = RunExtras { trace, rt: RtOptions { priority: rt.rt_priority, mlock: rt.mlock, cpu: rt.cpu } };
+    // The config's [rt], each option overridden by its command-line flag.
+    let cli_rt = RtOptions { priority: rt.rt_priority, mlock: rt.mlock, cpu: rt.cpu };
+    let extras = RunExtras { trace, rt: RtOptions::resolve(&cfg.rt, &cli_rt) };
     let (code, vars) = execute(&mut drives, &mut *clock, &cfg, program, interp, lines, json, &extras);
     if let (Some(f), Some(v)) = (&vars_file, vars) {
         if let Err(a) = f.save(&v) {
