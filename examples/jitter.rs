@@ -3,7 +3,12 @@
 //! wake-up of the cycle thread is timed against its deadline.
 //!
 //! Run: `cargo run --release --example jitter -- [--seconds 60] [--cycle-ms 2] [--mode inproc|socketcand|both]
-//!       [--rt-priority N] [--cpu N] [--mlock]`
+//!       [--rt-priority N] [--cpu N] [--mlock] [--strict]`
+//!
+//! By default the following-error windows are 720° (spindle) and 5 mm (axes) and the feedback
+//! timeout 100 ms (as tests/realtime_inproc.rs does for the spindle), so that a stall on a
+//! loaded host is measured instead of ending the run with a drive fault; `--strict` keeps
+//! the config's.
 //!
 //! - `inproc`: the drives (`sim_drives::run_realtime`) on another thread of this process,
 //!   on the in-process bus.
@@ -28,6 +33,10 @@ use cncgw_bus::{CanBus, Clock, RealClock};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
+
+/// `--strict`: the configured following-error windows and feedback timeout (default: the
+/// shared-host tolerances of tests/realtime_inproc.rs).
+static TOLERANT: AtomicBool = AtomicBool::new(true);
 
 /// The wall clock, timing every wake-up once `armed` (into buffers allocated up front, so
 /// that measuring does not allocate in the cycle).
@@ -72,10 +81,10 @@ fn pct(v: &mut [u64], p: f64) -> f64 {
 }
 
 /// A program that keeps the axes and the spindle busy for about `seconds`: Z strokes of
-/// 50 mm at F3000 (≈1 s each) under S1500.
+/// 50 mm at F3000 (≈1 s each) under S500.
 fn program(seconds: f64) -> String {
-    let mut p = String::from("G21 G98\nM03 S1500\nG00 X40 Z2\n");
-    let n = (seconds / 2.15).ceil().max(1.0) as usize;
+    let mut p = String::from("G21\nG98\nM03 S500\nG00 X40 Z2\n");
+    let n = (seconds / 1.9).ceil().max(1.0) as usize;
     for _ in 0..n {
         p += "G01 Z-48 F3000\nG01 X42 Z2\nG01 X40\n";
     }
@@ -93,6 +102,15 @@ struct Figures {
 fn run(bus: Box<dyn CanBus>, cycle_ms: f64, seconds: f64, rt: &RtOptions) -> Figures {
     let mut cfg = MachineConfig::embedded();
     cfg.machine.cycle_ms = cycle_ms;
+    if TOLERANT.load(Ordering::Relaxed) {
+        // A shared host is not a real-time one: a stall of tens of ms would fault the spindle
+        // drive (following error) or the feedback watchdog and end the run. The same
+        // tolerances as tests/realtime_inproc.rs, so that the run goes on and is measured.
+        cfg.bus.feedback_timeout_ms = 100.0;
+        for a in cfg.axes.values_mut() {
+            a.following_error = if a.kind == AxisKind::Spindle { 720.0 } else { 5.0 };
+        }
+    }
     let period = (cycle_ms * 1e6) as u64;
     let cycles = (seconds * 1000.0 / cycle_ms) as usize + 20_000;
     let armed = Arc::new(AtomicBool::new(false));
@@ -113,12 +131,6 @@ fn run(bus: Box<dyn CanBus>, cycle_ms: f64, seconds: f64, rt: &RtOptions) -> Fig
     let mut master = CanOpenMaster::new(bus, &cfg);
     let spindle = cfg.axes.values().position(|a| a.kind == AxisKind::Spindle);
     let mut summary = RunSummary::default();
-    for s in cncgw::motion::rt::apply(rt) {
-        match s {
-            RtStep::Done(m) => eprintln!("  {m}"),
-            RtStep::Refused(m) => eprintln!("  warning: {m}"),
-        }
-    }
     let r = {
         let mut lp = CycleLoop::new(&mut master, &mut clock, Limits::from_config(&cfg), spindle, period);
         let r = lp.start(&mut summary).and_then(|start| {
@@ -131,6 +143,13 @@ fn run(bus: Box<dyn CanBus>, cycle_ms: f64, seconds: f64, rt: &RtOptions) -> Fig
                     }
                 }
             });
+            // As `cncgw run`: the cycle thread only, after the interpreter thread started.
+            for s in cncgw::motion::rt::apply(rt) {
+                match s {
+                    RtStep::Done(m) => eprintln!("  {m}"),
+                    RtStep::Refused(m) => eprintln!("  warning: {m}"),
+                }
+            }
             armed.store(true, Ordering::Relaxed);
             lp.run(start, rx, &mut summary, &mut |_| {})
         });
@@ -177,6 +196,7 @@ fn main() {
             "--rt-priority" => rt.priority = val().parse().ok(),
             "--cpu" => rt.cpu = val().parse().ok(),
             "--mlock" => rt.mlock = true,
+            "--strict" => TOLERANT.store(false, Ordering::Relaxed),
             other => {
                 eprintln!("unknown argument {other}; see the doc comment of examples/jitter.rs");
                 std::process::exit(2);
@@ -185,7 +205,11 @@ fn main() {
     }
     let ncpu = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
     let load = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
-    println!("cycle timing in real time, {seconds} s per run; {ncpu} CPUs, load average {}", load.trim());
+    println!(
+        "cycle timing in real time, {seconds} s per run; {ncpu} CPUs, load average {}{}",
+        load.trim(),
+        if TOLERANT.load(Ordering::Relaxed) { "; shared-host tolerances (following-error windows 720° / 5 mm, feedback timeout 100 ms)" } else { "" }
+    );
     for &ms in &cycles {
         if mode == "inproc" || mode == "both" {
             let wire = InprocBus::new();
@@ -212,7 +236,7 @@ fn main() {
             };
             let port = 29_600 + (std::process::id() % 300) as u16;
             let addr = format!("127.0.0.1:{port}");
-            let mut child = match std::process::Command::new(&sim).args(["--socketcand", &addr]).spawn() {
+            let mut child = match std::process::Command::new(&sim).args(["--socketcand", &addr]).env("RUST_LOG", "warn").spawn() {
                 Ok(c) => c,
                 Err(e) => {
                     eprintln!("cannot start {}: {e}", sim.display());

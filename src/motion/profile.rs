@@ -209,4 +209,63 @@ mod tests {
         assert!(d > -1e-9, "overshoot {d}");
         assert!(v <= dv + 1e-12, "lands at {v}, more than one step above rest");
     }
+
+    #[test]
+    fn s_curve_stop_distance_matches_the_closed_form() {
+        let (amax, j) = (2000.0, 50_000.0);
+        // From cruise: v·√(v/j) below A²/j (no constant-deceleration phase), else
+        // v²/2A + v·A/2j.
+        for v in [1.0f64, 10.0, 79.0, 81.0, 200.0, 1000.0] {
+            let want = if v <= amax * amax / j { v * (v / j).sqrt() } else { v * v / (2.0 * amax) + v * amax / (2.0 * j) };
+            let got = stop_dist(v, 0.0, amax, j);
+            assert!((got - want).abs() < 1e-9 * (1.0 + want), "v {v}: {got} vs {want}");
+        }
+        // Already at full deceleration: v²/2A + A³/24j².
+        let v = 300.0f64;
+        let want = v * v / (2.0 * amax) + amax.powi(3) / (24.0 * j * j);
+        assert!((stop_dist(v, -amax, amax, j) - want).abs() < 1e-9 * want);
+    }
+
+    #[test]
+    fn s_curve_plans_reach_their_target_exactly_within_the_limits() {
+        let (amax, j) = (1500.0, 20_000.0);
+        for &(v, a, vt) in &[(0.0, 0.0, 100.0), (100.0, 0.0, 0.0), (50.0, 800.0, 20.0), (50.0, -800.0, 90.0), (10.0, 1500.0, 400.0), (400.0, -1500.0, 0.0), (30.0, 1900.0, 200.0)] {
+            let ph = plan(v, a, vt, amax, j);
+            let total: f64 = ph.iter().map(|p| p.1).sum();
+            // Walk the plan finely: jerk and acceleration within the limits (an acceleration
+            // beyond amax only falls), and it ends on (vt, 0).
+            let n = 10_000;
+            let mut prev_a = a;
+            for k in 1..=n {
+                let (_, _, ak) = advance(v, a, &ph, total * k as f64 / n as f64, vt);
+                assert!(ak.abs() <= amax.max(a.abs()) + 1e-9, "a {ak}");
+                assert!((ak - prev_a).abs() <= j * total / n as f64 + 1e-6, "jerk");
+                prev_a = ak;
+            }
+            assert!(ph.iter().all(|p| p.1 >= 0.0 && p.0.abs() <= j));
+            let (_, ve, ae) = advance(v, a, &ph, total, vt);
+            assert_eq!((ve, ae), (vt, 0.0));
+        }
+    }
+
+    #[test]
+    fn s_curve_cycles_land_exactly_on_the_end_at_rest() {
+        let (amax, j, dt) = (2000.0, 40_000.0, 0.002);
+        for &(x, vc) in &[(0.0005, 100.0), (0.3, 100.0), (37.0, 150.0), (2.5, 1000.0)] {
+            let (mut v, mut a, mut s) = (0.0, 0.0, 0.0);
+            let mut n = 0;
+            while x - s > 1e-9 {
+                let (nv, na, ds) = next_state(v, a, vc, x - s, amax, j, dt);
+                assert!(nv >= 0.0 && nv <= vc + 1e-9 && na.abs() <= amax + 1e-9);
+                assert!((na - a).abs() <= j * dt + 1e-6, "jerk");
+                v = nv;
+                a = na;
+                s += ds;
+                n += 1;
+                assert!(n < 100_000);
+            }
+            assert!((x - s).abs() <= 1e-9, "x {x}: {s}");
+            assert!(v < 1e-6 && a.abs() < 1e-3, "at rest: v {v} a {a}");
+        }
+    }
 }
