@@ -1568,6 +1568,8 @@ impl Motion {
                     (nv, nv * dt)
                 };
                 let reach = d - adv <= 1e-9;
+                // The path speed of this cycle (the trapezoid's exactly `nv`).
+                let pv = if jerk { adv / dt } else { nv };
                 let next = match (reach && seg.ext > 0.0, self.peek()) {
                     (true, Some(Entry { item: Item::Move(next), line, cyc })) => Some((next, line, cyc)),
                     _ => None,
@@ -1580,13 +1582,13 @@ impl Motion {
                     let s2 = (adv - d).max(0.0).min(next.geom.len());
                     let p = next.geom.at(s2);
                     self.pos[..3].copy_from_slice(&p);
-                    path_v = adv / dt;
+                    path_v = pv;
                     self.run = Run::Move { seg: next, s: s2, v: nv, landed: false };
                 } else {
                     let (s2, landed) = if reach { (len, true) } else { (s + adv, false) };
                     let p = seg.geom.at(s2);
                     self.pos[..3].copy_from_slice(&p);
-                    path_v = if landed { d / dt } else { adv / dt };
+                    path_v = if landed { d / dt } else { pv };
                     // Stopping and at rest (this cycle did not move): done.
                     self.run = if self.stopping && nv == 0.0 && !landed {
                         Run::None
