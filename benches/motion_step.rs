@@ -83,36 +83,58 @@ fn feed(m: &mut Motion, prog: &[Move], next: &mut usize) {
     }
 }
 
-fn fresh() -> Motion {
-    Motion::new(Limits::from_config(&MachineConfig::embedded()), START)
+/// The embedded machine; `scurve`: with jerk limits (No.1772 = 32 ms: jerk = max_accel / 0.032 s).
+fn fresh(scurve: bool) -> Motion {
+    let cfg = if scurve {
+        let t = cncgw::config::EMBEDDED_LATHE.replace("[parameters]", "[parameters]\n1772 = 32");
+        MachineConfig::from_toml("lathe.toml", &t).expect("embedded config with No.1772")
+    } else {
+        MachineConfig::embedded()
+    };
+    Motion::new(Limits::from_config(&cfg), START)
 }
 
-/// Steps of the whole program, asserting that no step allocates.
-fn check_no_alloc() -> usize {
+/// Steps of the whole program, asserting that no step allocates; also the slowest step.
+fn check_no_alloc(scurve: bool) -> (usize, Duration) {
     let prog = program();
-    let mut m = fresh();
+    let mut m = fresh(scurve);
+    let mut worst = Duration::ZERO;
     let mut next = 0;
     feed(&mut m, &prog, &mut next);
     let mut fb = Feedback { pos: START, spindle_rpm: 0.0 };
     let mut n = 0;
     while !m.is_idle() {
         let before = ALLOCS.load(Ordering::Relaxed);
+        let t = Instant::now();
         let sp = m.step(&fb);
+        worst = worst.max(t.elapsed());
         let after = ALLOCS.load(Ordering::Relaxed);
         assert_eq!(before, after, "step() allocated at cycle {n}");
         fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm };
         n += 1;
         assert!(n < 10_000_000, "program does not finish");
     }
-    n
+    (n, worst)
 }
 
 fn bench(c: &mut Criterion) {
-    let cycles = check_no_alloc();
-    eprintln!("motion_step: program of {} moves = {cycles} cycles, no allocation in step()", program().len());
+    for scurve in [false, true] {
+        bench_one(c, scurve);
+    }
+}
+
+fn bench_one(c: &mut Criterion, scurve: bool) {
+    let (cycles, worst) = check_no_alloc(scurve);
+    eprintln!(
+        "motion_step{}: program of {} moves = {cycles} cycles, no allocation in step(), slowest step {:.1} µs (one run, includes preemption)",
+        if scurve { " (S-curve)" } else { "" },
+        program().len(),
+        worst.as_secs_f64() * 1e6
+    );
     let prog = program();
-    c.bench_function("motion_step_turning_program", |b| {
-        let mut m = fresh();
+    let name = if scurve { "motion_step_turning_program_scurve" } else { "motion_step_turning_program" };
+    c.bench_function(name, |b| {
+        let mut m = fresh(scurve);
         let mut next = 0;
         let mut fb = Feedback { pos: START, spindle_rpm: 0.0 };
         b.iter_custom(|iters| {
@@ -121,7 +143,7 @@ fn bench(c: &mut Criterion) {
             while done < iters {
                 if m.is_idle() {
                     // Restart the program (outside the timed part).
-                    m = fresh();
+                    m = fresh(scurve);
                     next = 0;
                     fb = Feedback { pos: START, spindle_rpm: 0.0 };
                     feed(&mut m, &prog, &mut next);

@@ -38,6 +38,27 @@ pub struct MachineConfig {
     /// Modbus links by name (`[modbus.line1]`); an axis with `modbus = "line1"` is on it.
     #[serde(default)]
     pub modbus: BTreeMap<String, ModbusLink>,
+    /// Real-time setup of the cycle thread (`[rt]`); `cncgw run --rt-priority/--mlock/--cpu`
+    /// override it.
+    #[serde(default)]
+    pub rt: RtConfig,
+}
+
+/// `[rt]`: real-time setup of the cycle thread on a real PC. All optional; absent = normal
+/// scheduling, no memory locking, no pinning. A request the system refuses is a warning when
+/// `cncgw run` starts (see `motion::rt`), not an error: the controller runs, with more jitter.
+#[derive(Clone, Debug, Default, Deserialize, PartialEq, Eq)]
+#[serde(deny_unknown_fields)]
+pub struct RtConfig {
+    /// SCHED_FIFO priority of the cycle thread, 1–99.
+    #[serde(default)]
+    pub priority: Option<i32>,
+    /// Lock all memory (mlockall) so that no page fault delays a cycle.
+    #[serde(default)]
+    pub mlock: bool,
+    /// Pin the cycle thread to this CPU (e.g. one isolated with `isolcpus=`).
+    #[serde(default)]
+    pub cpu: Option<usize>,
 }
 
 #[derive(Clone, Copy, Debug, Deserialize, PartialEq, Eq)]
@@ -207,6 +228,19 @@ pub struct AxisConfig {
     pub max_speed: f64,
     /// Maximum acceleration: mm/s² for linear axes, rpm/s for spindles.
     pub max_accel: f64,
+    /// Jerk limit of the path-speed profile (S-curve), mm/s³; linear axes only (the spindle
+    /// ramp and the spindle-synchronised moves keep their own laws). Absent or 0: no jerk
+    /// limit, the trapezoid of before.
+    ///
+    /// Default: off, as on a Fanuc 0i-TF, whose bell-shaped acceleration is off until set
+    /// (No.1772 = 0). Its bell-shaped acc/dec *before* interpolation ramps the acceleration
+    /// over the time No.1772 (ms), i.e. jerk = max_accel / T; that is what this limits, and
+    /// when `jerk` is absent `[parameters] 1772 = T` sets it for every axis that way. (Its
+    /// filter *after* interpolation, No.1769, is not mapped: a filter on the setpoints
+    /// delays them and rounds corners off the programmed path.) A sensible start on a lathe
+    /// slide: T = 32 ms, e.g. 2000 mm/s² / 0.032 s = 62 500 mm/s³; smaller is gentler.
+    #[serde(default)]
+    pub jerk: Option<f64>,
     /// Following-error window written to 0x6065 (mm or degrees).
     #[serde(default = "default_ferr")]
     pub following_error: f64,
@@ -239,6 +273,17 @@ pub fn restricted_cob_id(id: u16) -> bool {
 }
 
 impl AxisConfig {
+    /// The jerk limit in mm/s³ (0 = none): `jerk`, else `max_accel` over No.1772 (`p1772`,
+    /// ms) when that is set, else 0.
+    pub fn jerk_limit(&self, p1772: Option<f64>) -> f64 {
+        match (self.jerk, p1772) {
+            (Some(j), _) if j.is_finite() && j > 0.0 => j,
+            (Some(_), _) => 0.0,
+            (None, Some(t)) if t.is_finite() && t > 0.0 => self.max_accel / (t / 1000.0),
+            _ => 0.0,
+        }
+    }
+
     /// (RPDO1, TPDO1) COB-IDs of a CANopen drive.
     pub fn pdo_cob_ids(&self) -> (u16, u16) {
         (self.rpdo_cob_id.unwrap_or(0x200 + self.node as u16), self.tpdo_cob_id.unwrap_or(0x180 + self.node as u16))
@@ -302,6 +347,12 @@ impl MachineConfig {
         if self.axes.is_empty() {
             e.push("axes: at least one axis is required".into());
         }
+        if let Some(p) = self.rt.priority.filter(|p| !(1..=99).contains(p)) {
+            e.push(format!("rt.priority: SCHED_FIFO priorities are 1–99, got {p}"));
+        }
+        if let Some(t) = self.param(1772).filter(|t| !(t.is_finite() && *t >= 0.0)) {
+            e.push(format!("parameters.1772: the acceleration change time must be ≥ 0 ms, got {t}"));
+        }
         // Node ids are unique per bus: the CANopen bus, and each Modbus link.
         let mut nodes: BTreeMap<(Option<&str>, u8), &str> = BTreeMap::new();
         let mut cobs: BTreeMap<u16, String> = BTreeMap::new();
@@ -353,6 +404,9 @@ impl MachineConfig {
             positive(&mut e, &format!("{p}.counts_per_unit"), a.counts_per_unit);
             positive(&mut e, &format!("{p}.max_speed"), a.max_speed);
             positive(&mut e, &format!("{p}.max_accel"), a.max_accel);
+            if let Some(j) = a.jerk.filter(|j| !(j.is_finite() && *j >= 0.0)) {
+                e.push(format!("{p}.jerk: must be ≥ 0 mm/s³ (0 = no jerk limit), got {j}"));
+            }
             positive(&mut e, &format!("{p}.following_error"), a.following_error);
             if a.kind == AxisKind::Linear {
                 match (a.min, a.max) {

@@ -20,7 +20,7 @@ pub const EXIT_ALARM: i32 = 3;
 pub const EXIT_SETUP: i32 = 4;
 
 /// Real-time setup of the cycle thread (real drives on a real PC). Each is optional; one the
-/// system refuses is a warning, not an error.
+/// system refuses is a warning, not an error. Each flag overrides the config's `[rt]` option.
 #[derive(clap::Args, Debug, Clone, Default)]
 pub struct RtArgs {
     /// Run the cycle thread at this SCHED_FIFO priority (1–99; needs root, CAP_SYS_NICE or an
@@ -104,7 +104,8 @@ pub fn run(
     let mut opts = ExecOpts {
         json,
         print_summary: true,
-        extras: RunExtras { trace, rt: RtOptions { priority: rt.rt_priority, mlock: rt.mlock, cpu: rt.cpu } },
+        // The config's [rt], each option overridden by its command-line flag.
+        extras: RunExtras { trace, rt: RtOptions::resolve(&cfg.rt, &RtOptions { priority: rt.rt_priority, mlock: rt.mlock, cpu: rt.cpu }) },
         operator: None,
         pace: op.realtime,
     };

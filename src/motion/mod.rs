@@ -199,6 +199,9 @@ pub struct Limits {
     pub vmax: [f64; N_AXES],
     /// Per-axis maximum acceleration, units/s² (spindle deg/s²).
     pub amax: [f64; N_AXES],
+    /// Per-axis jerk limit of the path-speed profile, units/s³; 0 = not limited. A segment
+    /// whose axes are all unlimited keeps the discrete trapezoid (see [`profile`]).
+    pub jmax: [f64; N_AXES],
     /// Software travel limits (min, max) of X (radius), Y, Z in mm.
     pub travel: [(f64, f64); 3],
     /// Whether each axis is configured.
@@ -248,6 +251,7 @@ impl Limits {
         let mut l = Limits {
             vmax: [0.0; N_AXES],
             amax: [0.0; N_AXES],
+            jmax: [0.0; N_AXES],
             travel: [(0.0, 0.0); 3],
             present: [false; N_AXES],
             cycle_s: cfg.cycle_s(),
@@ -282,6 +286,7 @@ impl Limits {
             } else {
                 l.vmax[i] = a.max_speed / 60.0;
                 l.amax[i] = a.max_accel;
+                l.jmax[i] = a.jerk_limit(cfg.param(1772));
                 l.travel[i] = (a.min.unwrap_or(0.0), a.max.unwrap_or(0.0));
             }
         }
@@ -322,6 +327,8 @@ struct Seg {
     vlim: f64,
     /// Path acceleration, mm/s².
     alim: f64,
+    /// Path jerk, mm/s³ (`min_i jmax_i/|u_i|`); 0 = the discrete trapezoid, no jerk limit.
+    jlim: f64,
     /// Unit tangents at start and end.
     t0: [f64; 3],
     t1: [f64; 3],
@@ -580,6 +587,9 @@ pub struct Motion {
     follow: Option<fault::Follow>,
     /// The tool spindle of polygon turning (absent unless `set_tool_spindle`).
     tool: polygon::ToolSync,
+    /// S-curve: path acceleration at the end of the last cycle of a `Run::Move`, mm/s² (its
+    /// speed is the `v` there). 0 with the trapezoid.
+    path_a: f64,
 }
 
 fn xyz(p: &Pos) -> [f64; 3] {
@@ -625,6 +635,7 @@ impl Motion {
             fb_rpm_prev: 0.0,
             follow: None,
             tool: polygon::ToolSync::none(),
+            path_a: 0.0,
             sp_dir: 0.0,
             sp_rpm: 0.0,
             sp_css: None,
@@ -895,6 +906,9 @@ impl Motion {
             return;
         };
         let amax = self.lim.amax;
+        if !self.jerk_chain(new) {
+            return;
+        }
         let Some(prev) = self.prev_seg_mut(1) else { return };
         // The junction is crossed within one cycle: the velocity vector turns from t1 to t0
         // there, so each axis' speed jumps by v·|Δu_i|; allow half its acceleration for that
@@ -909,6 +923,52 @@ impl Motion {
         }
         prev.vj = finite_or_zero(v);
         self.relax();
+    }
+
+    /// S-curve look-ahead: all segments of a blended chain brake with one path acceleration
+    /// and jerk, the chain's smallest, so that the speed and acceleration carried across any
+    /// junction can always be braked within the next segment (its braking distance is the
+    /// one the previous segment planned for). Lowers them on the newest segment and back
+    /// along the chain; returns false, leaving everything as it was, when that would change
+    /// the running segment's (its profile was planned with them): then the junction is an
+    /// exact stop. Segments without a jerk limit on either side of the junction: nothing to do.
+    fn jerk_chain(&mut self, new: Seg) -> bool {
+        let Some(prev) = self.prev_seg_mut(1).copied() else { return true };
+        let minpos = |x: f64, y: f64| if x > 0.0 && y > 0.0 { x.min(y) } else { x.max(y) };
+        let (a, j) = (prev.alim.min(new.alim), minpos(prev.jlim, new.jlim));
+        if !(j > 0.0) || (a == new.alim && j == new.jlim && a == prev.alim && j == prev.jlim) {
+            return true;
+        }
+        // Lowering the chain's limits must not reach the running segment (back == len).
+        if a != prev.alim || j != prev.jlim {
+            let mut back = 1;
+            loop {
+                if back == self.len {
+                    return false;
+                }
+                match self.prev_seg_mut(back + 1) {
+                    Some(p) if p.vj > 0.0 => back += 1,
+                    _ => break,
+                }
+            }
+        }
+        let cap = self.queue.len();
+        if let Some(k) = self.len.checked_sub(1) {
+            if let Item::Move(n) = &mut self.queue[(self.head + k) % cap].item {
+                n.alim = a;
+                n.jlim = j;
+            }
+        }
+        let mut back = 1;
+        while let Some(p) = self.prev_seg_mut(back) {
+            if back > 1 && !(p.vj > 0.0) {
+                break;
+            }
+            p.alim = a;
+            p.jlim = j;
+            back += 1;
+        }
+        true
     }
 
     /// Backward pass over the linked chain from the newest segment: the speed at which each
@@ -937,7 +997,19 @@ impl Motion {
             // limit; the next segment's feed (soft: `v_cmd` caps the speed anyway) lowers `w`
             // so that a drop in F is braked before the junction, to within one step.
             // Below one step: exact stop.
-            let ext = if ve > pdv { dt * profile::g((ve - pdv).min(next_cap), pdv) } else { 0.0 };
+            let ext = if prev.jlim > 0.0 && prev.alim > 0.0 {
+                // S-curve (one acceleration `A` along the chain, see `jerk_chain`): a virtual
+                // stop `w²/2A` beyond the end. Any state that can still brake within it moves
+                // at most `w` there (braking at ≤ A needs v²/2A), hence at most `w + A·dt`
+                // within the crossing cycle; and it fits in the next segment's room.
+                let a = prev.alim;
+                let w = (prev.vj - pdv).min(next_cap).min((2.0 * a * (nlen + next_ext)).sqrt());
+                if w > 0.0 { w * w / (2.0 * a) } else { 0.0 }
+            } else if ve > pdv {
+                dt * profile::g((ve - pdv).min(next_cap), pdv)
+            } else {
+                0.0
+            };
             if !(ext > prev.ext) {
                 break;
             }
@@ -1259,7 +1331,7 @@ impl Motion {
     /// A line segment. `blended`: a junction at either end may be passed without stopping, so
     /// half of each axis' acceleration is kept for the velocity change at the corner.
     fn line_seg(&self, g: Geom, speed: Speed, blended: bool) -> Seg {
-        let (mut v, mut a) = (f64::INFINITY, f64::INFINITY);
+        let (mut v, mut a, mut j) = (f64::INFINITY, f64::INFINITY, f64::INFINITY);
         if let Geom::Line { delta, len, .. } = g {
             if len > 0.0 {
                 for i in 0..3 {
@@ -1267,12 +1339,17 @@ impl Motion {
                     if u > 0.0 {
                         v = v.min(self.lim.vmax[i] / u);
                         a = a.min(self.lim.amax[i] / u);
+                        if self.lim.jmax[i] > 0.0 {
+                            j = j.min(self.lim.jmax[i] / u);
+                        }
                     }
                 }
             }
         }
         let share = if blended { 0.5 } else { 1.0 };
-        seg(g, speed, v, a * share)
+        let mut s = seg(g, speed, v, a * share);
+        s.jlim = finite_or_zero(j);
+        s
     }
 
     /// An arc segment: tangential and centripetal acceleration share each plane axis' limit
@@ -1341,7 +1418,25 @@ impl Motion {
             v = v.min(l.vmax[ic] / uc);
             a = a.min(tangential * l.amax[ic] / uc);
         }
-        Ok(seg(g, speed, v, a))
+        // S-curve: the plane axes' jerk is shared like their acceleration: half for the
+        // tangential profile, half for the centripetal acceleration turning with the tool
+        // (v³/r² at constant speed, which limits v).
+        let j_plane = match (l.jmax[ia] > 0.0, l.jmax[ib] > 0.0) {
+            (true, true) => l.jmax[ia].min(l.jmax[ib]),
+            (true, false) => l.jmax[ia],
+            (false, true) => l.jmax[ib],
+            (false, false) => 0.0,
+        };
+        let mut j = if j_plane > 0.0 { 0.5 * j_plane } else { f64::INFINITY };
+        if j_plane > 0.0 {
+            v = v.min((0.5 * j_plane * rmin * rmin).cbrt());
+        }
+        if uc > 0.0 && l.jmax[ic] > 0.0 {
+            j = j.min(0.5 * l.jmax[ic] / uc);
+        }
+        let mut s = seg(g, speed, v, a);
+        s.jlim = finite_or_zero(j);
+        Ok(s)
     }
 
     fn peek(&self) -> Option<Entry> {
@@ -1468,6 +1563,7 @@ impl Motion {
                 match e.item {
                     Item::Move(seg) => {
                         self.in_hole = false;
+                        self.path_a = 0.0;
                         self.run = Run::Move { seg, s: 0.0, v: 0.0, landed: false };
                     }
                     Item::Dwell(n) => self.run = Run::Dwell { left: n },
@@ -1518,14 +1614,33 @@ impl Motion {
                 let len = seg.geom.len();
                 let d = len - s;
                 let dv = seg.alim * dt;
+                let jerk = seg.jlim > 0.0 && seg.alim > 0.0;
                 // Single block: end this block at rest if it can still brake for its end point
                 // from here (dropping the look-ahead extension is safe only then); otherwise
                 // blend on and stop at the end of a later block.
-                if self.single_block && seg.ext > 0.0 && profile::v_allowed(d, dv, dt) >= v - dv {
+                let can_stop = if jerk {
+                    profile::stop_dist(v, self.path_a, seg.alim, seg.jlim) <= d
+                } else {
+                    profile::v_allowed(d, dv, dt) >= v - dv
+                };
+                if self.single_block && seg.ext > 0.0 && can_stop {
                     seg.ext = 0.0;
                 }
-                let nv = profile::next_speed(v, self.v_cmd(&seg, fb), d + seg.ext, dv, dt);
-                let reach = d - nv * dt <= 1e-9;
+                // `adv`: the distance of this cycle (the trapezoid's `nv·dt`; the S-curve's
+                // integral of its speed over the cycle, `nv` being the speed at its end).
+                let (nv, adv) = if jerk {
+                    let (nv, na, adv) =
+                        profile::next_state(v, self.path_a, self.v_cmd(&seg, fb), d + seg.ext, seg.alim, seg.jlim, dt);
+                    self.path_a = na;
+                    (nv, adv)
+                } else {
+                    let nv = profile::next_speed(v, self.v_cmd(&seg, fb), d + seg.ext, dv, dt);
+                    self.path_a = 0.0;
+                    (nv, nv * dt)
+                };
+                let reach = d - adv <= 1e-9;
+                // The path speed of this cycle (the trapezoid's exactly `nv`).
+                let pv = if jerk { adv / dt } else { nv };
                 let next = match (reach && seg.ext > 0.0, self.peek()) {
                     (true, Some(Entry { item: Item::Move(next), line, cyc })) => Some((next, line, cyc)),
                     _ => None,
@@ -1535,16 +1650,16 @@ impl Motion {
                     self.pop();
                     self.line = line;
                     self.cur_cyc = cyc;
-                    let s2 = (nv * dt - d).max(0.0).min(next.geom.len());
+                    let s2 = (adv - d).max(0.0).min(next.geom.len());
                     let p = next.geom.at(s2);
                     self.pos[..3].copy_from_slice(&p);
-                    path_v = nv;
+                    path_v = pv;
                     self.run = Run::Move { seg: next, s: s2, v: nv, landed: false };
                 } else {
-                    let (s2, landed) = if reach { (len, true) } else { (s + nv * dt, false) };
+                    let (s2, landed) = if reach { (len, true) } else { (s + adv, false) };
                     let p = seg.geom.at(s2);
                     self.pos[..3].copy_from_slice(&p);
-                    path_v = if landed { d / dt } else { nv };
+                    path_v = if landed { d / dt } else { pv };
                     // Stopping and at rest (this cycle did not move): done.
                     self.run = if self.stopping && nv == 0.0 && !landed {
                         Run::None
@@ -2064,6 +2179,7 @@ fn seg(geom: Geom, speed: Speed, v: f64, a: f64) -> Seg {
         speed,
         vlim: finite_or_zero(v),
         alim: finite_or_zero(a),
+        jlim: 0.0,
         t0,
         t1,
         blend_in: false,

@@ -2,7 +2,8 @@
 //! CPU affinity. Each is optional, and one the system does not permit is a warning with
 //! what to do, not a failure: the controller still runs, with more jitter.
 
-/// What to ask for (from `cncgw run --rt-priority/--mlock/--cpu`).
+/// What to ask for (the config's `[rt]` and `cncgw run --rt-priority/--mlock/--cpu`, see
+/// [`RtOptions::resolve`]).
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub struct RtOptions {
     /// SCHED_FIFO priority 1–99 for the calling thread.
@@ -16,6 +17,17 @@ pub struct RtOptions {
 impl RtOptions {
     pub fn any(&self) -> bool {
         self.priority.is_some() || self.mlock || self.cpu.is_some()
+    }
+
+    /// What `cncgw run` asks for: the config file's `[rt]`, each option overridden by the
+    /// command line where given (`cli`, from `--rt-priority/--mlock/--cpu`). `--mlock` is a
+    /// switch, so it can only add memory locking to what the file says.
+    pub fn resolve(file: &crate::config::RtConfig, cli: &RtOptions) -> RtOptions {
+        RtOptions {
+            priority: cli.priority.or(file.priority),
+            mlock: cli.mlock || file.mlock,
+            cpu: cli.cpu.or(file.cpu),
+        }
     }
 }
 
@@ -117,6 +129,37 @@ fn fifo(priority: i32) -> RtStep {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn cfg(rt: &str) -> crate::config::MachineConfig {
+        let t = format!("{}\n[rt]\n{rt}\n", crate::config::EMBEDDED_LATHE);
+        crate::config::MachineConfig::from_toml("t.toml", &t).unwrap()
+    }
+
+    #[test]
+    fn rt_table_is_read_and_checked() {
+        assert_eq!(crate::config::MachineConfig::embedded().rt, crate::config::RtConfig::default());
+        let c = cfg("priority = 80\nmlock = true\ncpu = 1");
+        assert_eq!(c.rt, crate::config::RtConfig { priority: Some(80), mlock: true, cpu: Some(1) });
+        let t = format!("{}\n[rt]\npriority = 0\n", crate::config::EMBEDDED_LATHE);
+        let e = crate::config::MachineConfig::from_toml("t.toml", &t).unwrap_err().to_string();
+        assert!(e.contains("rt.priority") && e.contains("1–99"), "{e}");
+        let t = format!("{}\n[rt]\nprio = 5\n", crate::config::EMBEDDED_LATHE);
+        assert!(crate::config::MachineConfig::from_toml("t.toml", &t).is_err(), "unknown key accepted");
+    }
+
+    #[test]
+    fn command_line_overrides_the_file_option_by_option() {
+        let file = cfg("priority = 80\ncpu = 1").rt;
+        // Nothing on the command line: the file.
+        assert_eq!(RtOptions::resolve(&file, &RtOptions::default()), RtOptions { priority: Some(80), mlock: false, cpu: Some(1) });
+        // Each flag replaces only its own option.
+        let cli = RtOptions { priority: Some(20), mlock: true, cpu: None };
+        assert_eq!(RtOptions::resolve(&file, &cli), RtOptions { priority: Some(20), mlock: true, cpu: Some(1) });
+        let cli = RtOptions { priority: None, mlock: false, cpu: Some(0) };
+        assert_eq!(RtOptions::resolve(&file, &cli), RtOptions { priority: Some(80), mlock: false, cpu: Some(0) });
+        // No file table: the command line alone.
+        assert_eq!(RtOptions::resolve(&Default::default(), &cli), cli);
+    }
 
     #[test]
     fn nothing_asked_nothing_done() {

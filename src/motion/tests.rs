@@ -1751,3 +1751,241 @@ fn a_rigid_tap_stroke_runs_along_x() {
     let e = m.push(&mv(1, MoveKind::Tap { end: Pos::xz(20.0, -20.0), lead: 1.0, rpm: 500.0, spindle: 1 })).unwrap_err();
     assert_eq!(e.number, alarms::BAD_VALUE, "{e}");
 }
+
+// ---- S-curve (jerk limit) ----
+
+/// `lim()` with a jerk limit on X and Z (mm/s³) and the given acceleration and cycle.
+fn lim_jerk(amax: f64, jerk: f64, dt: f64) -> Limits {
+    let mut l = lim();
+    l.amax[AX_X] = amax;
+    l.amax[AX_Z] = amax;
+    l.jmax[AX_X] = jerk;
+    l.jmax[AX_Z] = jerk;
+    l.cycle_s = dt;
+    l
+}
+
+/// The acceleration of every axis, as the drives see it (second difference of the
+/// setpoints), changes by at most `jmax·dt` per cycle, from rest at `start` and back to rest
+/// (the setpoints held `hold` cycles more at the end); the largest change relative to the limit
+/// is returned.
+fn check_jerk(l: &Limits, start: [f64; N_AXES], sps: &[Setpoint]) -> Result<f64, String> {
+    let dt = l.cycle_s;
+    let (mut p, mut v, mut a) = (start, [0.0; N_AXES], [0.0; N_AXES]);
+    let mut worst: f64 = 0.0;
+    let last = sps.last().map(|s| s.pos).unwrap_or(start);
+    // Two cycles at rest after the end: the stop itself must be jerk-limited too.
+    let tail = [last, last];
+    for (k, pos) in sps.iter().map(|s| s.pos).chain(tail).enumerate() {
+        for i in [AX_X, AX_Z] {
+            let nv = (pos[i] - p[i]) / dt;
+            let na = (nv - v[i]) / dt;
+            let jump = (na - a[i]).abs();
+            let lim_j = l.jmax[i] * dt;
+            worst = worst.max(jump / lim_j);
+            // Tolerance: rounding, and the landing cycle, which puts the setpoint on the end
+            // point bit for bit and so absorbs up to 1e-9 mm (see `step`).
+            if jump > lim_j * (1.0 + 1e-6) + 4e-9 / (dt * dt) {
+                return Err(format!("cycle {k}: axis {i} acceleration {} → {na}: change {jump} > j·dt {lim_j}", a[i]));
+            }
+            p[i] = pos[i];
+            v[i] = nv;
+            a[i] = na;
+        }
+    }
+    Ok(worst)
+}
+
+#[test]
+fn s_curve_move_ramps_its_acceleration_and_lands_exactly_at_rest() {
+    let l = lim_jerk(2000.0, 20_000.0, 0.002);
+    let mut m = Motion::new(l.clone(), START);
+    m.push(&mv(1, feed(50.0, -80.0, 4000.0))).unwrap();
+    let sps = run(&mut m, 100_000);
+    assert_eq!(sps.last().unwrap().pos[AX_Z], -80.0);
+    check_limits(&l, START, &sps).unwrap();
+    let worst = check_jerk(&l, START, &sps).unwrap();
+    assert!(worst > 0.9, "the jerk limit is used ({worst})");
+    // It reaches the feed and cruises there.
+    assert!(sps.iter().any(|s| (s.path_feed - 4000.0).abs() < 1e-6));
+    // Slower than the trapezoid by at most A/j per ramp (0.1 s each way).
+    let mut t = Motion::new(lim(), START);
+    t.push(&mv(1, feed(50.0, -80.0, 4000.0))).unwrap();
+    let n_trap = run(&mut t, 100_000).len();
+    let extra = sps.len() as f64 - n_trap as f64;
+    assert!(extra > 0.0 && extra * 0.002 < 0.2 + 0.01, "{} vs {n_trap} cycles", sps.len());
+}
+
+#[test]
+fn s_curve_feed_hold_stops_smoothly_and_resumes() {
+    let l = lim_jerk(2000.0, 50_000.0, 0.002);
+    let mut m = Motion::new(l.clone(), START);
+    m.push(&mv(1, feed(50.0, -100.0, 3000.0))).unwrap();
+    let mut fb = Feedback { pos: m.position(), spindle_rpm: 0.0 };
+    let mut sps: Vec<Setpoint> = Vec::new();
+    let mut held_at = None;
+    for k in 0..20_000 {
+        if k == 300 {
+            m.feed_hold();
+        }
+        if k == 600 {
+            m.cycle_start();
+        }
+        let sp = m.step(&fb);
+        fb.pos = sp.pos;
+        if k == 301 {
+            // The hold acts at once: the acceleration turns down from the next cycle.
+            let n = sps.len();
+            let v1 = sp.pos[AX_Z] - sps[n - 1].pos[AX_Z];
+            let v0 = sps[n - 1].pos[AX_Z] - sps[n - 2].pos[AX_Z];
+            assert!(v1.abs() < v0.abs(), "slowing at once: {v0} → {v1}");
+        }
+        if k == 599 {
+            held_at = Some(sp.pos[AX_Z]);
+            assert_eq!(Some(sp.pos[AX_Z]), sps.last().map(|s| s.pos[AX_Z]), "at rest in the hold");
+        }
+        sps.push(sp);
+        if m.is_idle() {
+            break;
+        }
+    }
+    assert!(held_at.is_some_and(|z| z > -100.0 && z < -2.0));
+    assert_eq!(sps.last().unwrap().pos[AX_Z], -100.0);
+    check_limits(&l, START, &sps).unwrap();
+    check_jerk(&l, START, &sps).unwrap();
+}
+
+#[test]
+fn s_curve_collinear_g64_chain_keeps_the_jerk_limit_through_feed_changes() {
+    let l = lim_jerk(1500.0, 30_000.0, 0.001);
+    let mut m = Motion::new(l.clone(), START);
+    let zs = [-10.0, -10.5, -30.0, -31.0, -60.0];
+    let fs = [3000.0, 800.0, 6000.0, 1500.0, 4000.0];
+    for (i, (z, f)) in zs.iter().zip(fs).enumerate() {
+        let k = mv_g64(i as u32 + 1, feed(50.0, *z, f));
+        m.push(&if i == zs.len() - 1 { mv(i as u32 + 1, feed(50.0, *z, f)) } else { k }).unwrap();
+    }
+    let sps = run(&mut m, 100_000);
+    assert_eq!(sps.last().unwrap().pos[AX_Z], -60.0);
+    check_limits(&l, START, &sps).unwrap();
+    check_jerk(&l, START, &sps).unwrap();
+    // Blended: no stop at the junctions (every cycle moves until the end).
+    let moving = sps.windows(2).take_while(|w| w[1].pos[AX_Z] != -60.0).all(|w| w[1].pos[AX_Z] < w[0].pos[AX_Z]);
+    assert!(moving, "stopped at a junction");
+}
+
+#[test]
+fn jerk_from_config_and_no_1772() {
+    let l = lim();
+    assert_eq!(l.jmax, [0.0; N_AXES], "off unless configured");
+    let t = crate::config::EMBEDDED_LATHE.replace("[parameters]", "[parameters]\n1772 = 32");
+    let l = Limits::from_config(&MachineConfig::from_toml("t", &t).unwrap());
+    assert!((l.jmax[AX_Z] - 2000.0 / 0.032).abs() < 1e-6, "{:?}", l.jmax);
+    let t = t.replace("max_accel = 2000.0          # mm/s²", "max_accel = 2000.0\njerk = 9000.0");
+    let l = Limits::from_config(&MachineConfig::from_toml("t", &t).unwrap());
+    assert_eq!(l.jmax[AX_X], 9000.0, "the axis' own jerk wins");
+    let bad = crate::config::EMBEDDED_LATHE.replace("max_accel = 2000.0          # mm/s²", "max_accel = 2000.0\njerk = -1.0");
+    let e = MachineConfig::from_toml("t", &bad).unwrap_err().to_string();
+    assert!(e.contains("axes.x.jerk"), "{e}");
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 96, ..ProptestConfig::default() })]
+    /// Random single moves (exact stop) under random limits: the acceleration never changes
+    /// by more than j·dt per cycle, no axis exceeds its speed or acceleration, and the move
+    /// lands exactly on its end at rest.
+    #[test]
+    fn s_curve_random_moves_respect_jerk_and_land_exactly(
+        x in 0.0..150.0f64, dz in -300.0..-0.001f64, f in 300.0..20000.0f64, rapid_move in any::<bool>(),
+        amax in 50.0..5000.0f64, jr in 0.05..100.0f64, ms in prop::sample::select(vec![1.0, 2.0]),
+    ) {
+        // Jerk as acceleration over a ramp time of 1 ms … 20 s.
+        let jerk = amax * jr;
+        let l = lim_jerk(amax, jerk, ms / 1000.0);
+        let mut m = Motion::new(l.clone(), START);
+        let end = (x, START[AX_Z] + dz);
+        let k = if rapid_move { rapid(end.0, end.1) } else { feed(end.0, end.1, f) };
+        m.push(&mv(1, k)).unwrap();
+        let sps = run(&mut m, 5_000_000);
+        let last = sps.last().unwrap();
+        prop_assert_eq!((last.pos[AX_X], last.pos[AX_Z]), end);
+        if let Err(e) = check_limits(&l, START, &sps) {
+            prop_assert!(false, "{}", e);
+        }
+        if let Err(e) = check_jerk(&l, START, &sps) {
+            prop_assert!(false, "{}", e);
+        }
+        // The feed is reached when the move is long enough, and never exceeded.
+        for s in &sps {
+            prop_assert!(rapid_move || s.path_feed <= f * (1.0 + 1e-9) + 1e-9, "feed {} > F{}", s.path_feed, f);
+        }
+    }
+
+    /// Random collinear G64 chains with random feeds: the same, through the junctions.
+    #[test]
+    fn s_curve_random_collinear_chains_respect_jerk(
+        steps in prop::collection::vec((0.01..40.0f64, 10.0..12000.0f64), 1..6),
+        amax in 100.0..4000.0f64, jr in 0.5..60.0f64,
+    ) {
+        let l = lim_jerk(amax, amax * jr, 0.002);
+        let mut m = Motion::new(l.clone(), START);
+        let mut z = START[AX_Z];
+        for (i, (dz, f)) in steps.iter().enumerate() {
+            z -= dz;
+            let k = feed(START[AX_X], z, *f);
+            let mvk = if i + 1 == steps.len() { mv(i as u32 + 1, k) } else { mv_g64(i as u32 + 1, k) };
+            m.push(&mvk).unwrap();
+        }
+        let sps = run(&mut m, 5_000_000);
+        prop_assert_eq!(sps.last().unwrap().pos[AX_Z], z);
+        if let Err(e) = check_limits(&l, START, &sps) {
+            prop_assert!(false, "{}", e);
+        }
+        if let Err(e) = check_jerk(&l, START, &sps) {
+            prop_assert!(false, "{}", e);
+        }
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 32, ..ProptestConfig::default() })]
+    /// Random programs of lines and arcs, blended (G64) or not, with jerk limits: every axis
+    /// within its speed and acceleration (corners keep the velocity-jump rule of the
+    /// trapezoid, so the jerk is not checked across them), and the end is exact.
+    #[test]
+    fn s_curve_random_programs_respect_limits_and_end_exactly(
+        segs in prop::collection::vec((seg_strategy(), any::<bool>()), 1..6), jr in 2.0..60.0f64,
+    ) {
+        let l = lim_jerk(2000.0, 2000.0 * jr, 0.002);
+        let mut m = Motion::new(l.clone(), START);
+        let mut end = (START[AX_X], START[AX_Z]);
+        let n = segs.len();
+        for (i, (s, blend)) in segs.iter().enumerate() {
+            let line = i as u32 + 1;
+            // Not slower than F60: a bounded number of cycles.
+            let s = &match s {
+                Seg3::Feed(x, z, f) => Seg3::Feed(*x, *z, f.max(60.0)),
+                other => other.clone(),
+            };
+            let put = |k: MoveKind| if *blend && i + 1 < n { mv_g64(line, k) } else { mv(line, k) };
+            match *s {
+                Seg3::Rapid(x, z) => { m.push(&put(rapid(x, z))).unwrap(); end = (x, z); }
+                Seg3::Feed(x, z, f) => { m.push(&put(feed(x, z, f))).unwrap(); end = (x, z); }
+                Seg3::Arc { cx, cz, ang, sweep, r, cw, f } => {
+                    let (sx, sz) = (cx + r * ang.sin(), cz + r * ang.cos());
+                    m.push(&put(feed(sx, sz, f))).unwrap();
+                    let a1 = if cw { ang - sweep } else { ang + sweep };
+                    let (ex, ez) = (cx + r * a1.sin(), cz + r * a1.cos());
+                    m.push(&put(arc_zx(ex, ez, cx, cz, cw, f))).unwrap();
+                    end = (ex, ez);
+                }
+            }
+        }
+        let sps = run(&mut m, 2_000_000);
+        let last = sps.last().unwrap();
+        prop_assert_eq!((last.pos[AX_X], last.pos[AX_Z]), end);
+        if let Err(e) = check_limits(&l, START, &sps) {
+            prop_assert!(false, "{}", e);
+        }
+    }
+}

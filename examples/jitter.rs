@@ -1,0 +1,262 @@
+//! Cycle timing in real time (issue 8, figure 3): the cycle loop (`CycleLoop::run`, the same
+//! code as `cncgw run`) drives a program against emulated drives on the wall clock, and every
+//! wake-up of the cycle thread is timed against its deadline.
+//!
+//! Run: `cargo run --release --example jitter -- [--seconds 60] [--cycle-ms 2] [--mode inproc|socketcand|both]
+//!       [--rt-priority N] [--cpu N] [--mlock] [--strict]`
+//!
+//! By default the following-error windows are 720° (spindle) and 5 mm (axes) and the feedback
+//! timeout 100 ms (as tests/realtime_inproc.rs does for the spindle), so that a stall on a
+//! loaded host is measured instead of ending the run with a drive fault; `--strict` keeps
+//! the config's.
+//!
+//! - `inproc`: the drives (`sim_drives::run_realtime`) on another thread of this process,
+//!   on the in-process bus.
+//! - `socketcand`: the drives as a separate process, `sim-drives --socketcand 127.0.0.1:PORT`
+//!   (the binary next to this example's directory: build it with `cargo build --release
+//!   --bins` first), the master connected over loopback TCP.
+//!
+//! Printed per run: lateness of each wake-up (wake − deadline) and period jitter
+//! (|wake_k − wake_{k−1} − T|), p50/p99/max in µs, and missed cycles (the loop's overruns:
+//! a whole period late). The figures depend on the machine and its load; a shared or
+//! virtualised host is not a real-time one.
+
+use cncgw::canon::Pos;
+use cncgw::config::{AxisKind, MachineConfig, EMBEDDED_LATHE};
+use cncgw::drives::canopen::CanOpenMaster;
+use cncgw::interp::Interpreter;
+use cncgw::motion::cycle::{CycleLoop, RunSummary};
+use cncgw::motion::rt::{RtOptions, RtStep};
+use cncgw::motion::{Limits, AX_S, AX_X, AX_Y, AX_Z};
+use cncgw_bus::transport::inproc::InprocBus;
+use cncgw_bus::{CanBus, Clock, RealClock};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+/// `--strict`: the configured following-error windows and feedback timeout (default: the
+/// shared-host tolerances of tests/realtime_inproc.rs).
+static TOLERANT: AtomicBool = AtomicBool::new(true);
+
+/// The wall clock, timing every wake-up once `armed` (into buffers allocated up front, so
+/// that measuring does not allocate in the cycle).
+struct TimedClock {
+    inner: RealClock,
+    period: u64,
+    armed: Arc<AtomicBool>,
+    last: Option<u64>,
+    late: Vec<u64>,
+    jitter: Vec<u64>,
+}
+
+impl Clock for TimedClock {
+    fn now_ns(&self) -> u64 {
+        self.inner.now_ns()
+    }
+    fn wait_until(&mut self, t_ns: u64) {
+        self.inner.wait_until(t_ns);
+        if !self.armed.load(Ordering::Relaxed) {
+            return;
+        }
+        let now = self.inner.now_ns();
+        if self.late.len() < self.late.capacity() {
+            self.late.push(now.saturating_sub(t_ns));
+        }
+        if let Some(prev) = self.last {
+            if self.jitter.len() < self.jitter.capacity() {
+                self.jitter.push((now - prev).abs_diff(self.period));
+            }
+        }
+        self.last = Some(now);
+    }
+}
+
+fn pct(v: &mut [u64], p: f64) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.sort_unstable();
+    let i = ((v.len() - 1) as f64 * p).round() as usize;
+    v[i] as f64 / 1000.0
+}
+
+/// A program that keeps the axes and the spindle busy for about `seconds`: Z strokes of
+/// 50 mm at F3000 (≈1 s each) under S500.
+fn program(seconds: f64) -> String {
+    let mut p = String::from("G21\nG98\nM03 S500\nG00 X40 Z2\n");
+    let n = (seconds / 1.9).ceil().max(1.0) as usize;
+    for _ in 0..n {
+        p += "G01 Z-48 F3000\nG01 X42 Z2\nG01 X40\n";
+    }
+    p += "G00 X100 Z5\nM05\nM30\n";
+    p
+}
+
+struct Figures {
+    summary: RunSummary,
+    late: Vec<u64>,
+    jitter: Vec<u64>,
+    result: Result<(), String>,
+}
+
+fn run(bus: Box<dyn CanBus>, cycle_ms: f64, seconds: f64, rt: &RtOptions) -> Figures {
+    let mut cfg = MachineConfig::embedded();
+    cfg.machine.cycle_ms = cycle_ms;
+    if TOLERANT.load(Ordering::Relaxed) {
+        // A shared host is not a real-time one: a stall of tens of ms would fault the spindle
+        // drive (following error) or the feedback watchdog and end the run. The same
+        // tolerances as tests/realtime_inproc.rs, so that the run goes on and is measured.
+        cfg.bus.feedback_timeout_ms = 100.0;
+        for a in cfg.axes.values_mut() {
+            a.following_error = if a.kind == AxisKind::Spindle { 720.0 } else { 5.0 };
+        }
+    }
+    let period = (cycle_ms * 1e6) as u64;
+    let cycles = (seconds * 1000.0 / cycle_ms) as usize + 20_000;
+    let armed = Arc::new(AtomicBool::new(false));
+    let mut clock = TimedClock {
+        inner: RealClock::new(),
+        period,
+        armed: armed.clone(),
+        last: None,
+        late: Vec::with_capacity(cycles),
+        jitter: Vec::with_capacity(cycles),
+    };
+    let mut interp = match Interpreter::from_source("jitter.nc", &program(seconds), &cfg) {
+        Ok(i) => i,
+        Err(a) => {
+            return Figures { summary: RunSummary::default(), late: vec![], jitter: vec![], result: Err(format!("{a:?}")) }
+        }
+    };
+    let mut master = CanOpenMaster::new(bus, &cfg);
+    let spindle = cfg.axes.values().position(|a| a.kind == AxisKind::Spindle);
+    let mut summary = RunSummary::default();
+    let r = {
+        let mut lp = CycleLoop::new(&mut master, &mut clock, Limits::from_config(&cfg), spindle, period);
+        let r = lp.start(&mut summary).and_then(|start| {
+            interp.set_start_position(Pos { x: start[AX_X], y: start[AX_Y], z: start[AX_Z], c: start[AX_S] });
+            let (tx, rx) = std::sync::mpsc::sync_channel(64);
+            std::thread::spawn(move || {
+                for m in interp {
+                    if tx.send(m).is_err() {
+                        break;
+                    }
+                }
+            });
+            // As `cncgw run`: the cycle thread only, after the interpreter thread started.
+            for s in cncgw::motion::rt::apply(rt) {
+                match s {
+                    RtStep::Done(m) => eprintln!("  {m}"),
+                    RtStep::Refused(m) => eprintln!("  warning: {m}"),
+                }
+            }
+            armed.store(true, Ordering::Relaxed);
+            lp.run(start, rx, &mut summary, &mut |_| {})
+        });
+        lp.finish();
+        r
+    };
+    Figures { summary, late: clock.late, jitter: clock.jitter, result: r.map_err(|a| a.to_string()) }
+}
+
+fn report(what: &str, cycle_ms: f64, mut f: Figures) {
+    let late_t = f.late.iter().filter(|&&l| l >= (cycle_ms * 1e6) as u64).count();
+    println!(
+        "{what:<11} {cycle_ms:>4} ms {:>7.1} s {:>8} cycles | late p50 {:>7.1} p99 {:>7.1} max {:>8.1} µs | period jitter p50 {:>7.1} p99 {:>7.1} max {:>8.1} µs | missed {} ({} wake-ups ≥ 1 period late){}",
+        f.summary.cycles as f64 * cycle_ms / 1000.0,
+        f.summary.cycles,
+        pct(&mut f.late, 0.5),
+        pct(&mut f.late, 0.99),
+        pct(&mut f.late, 1.0),
+        pct(&mut f.jitter, 0.5),
+        pct(&mut f.jitter, 0.99),
+        pct(&mut f.jitter, 1.0),
+        f.summary.overruns,
+        late_t,
+        match &f.result {
+            Ok(()) if f.summary.at_program_end() => String::new(),
+            Ok(()) => " [not at the program end]".into(),
+            Err(e) => format!(" [stopped: {e}]"),
+        }
+    );
+}
+
+fn main() {
+    let mut seconds = 60.0;
+    let mut cycles: Vec<f64> = vec![2.0, 1.0];
+    let mut mode = String::from("both");
+    let mut rt = RtOptions::default();
+    let mut args = std::env::args().skip(1);
+    while let Some(a) = args.next() {
+        let mut val = || args.next().unwrap_or_default();
+        match a.as_str() {
+            "--seconds" => seconds = val().parse().unwrap_or(60.0),
+            "--cycle-ms" => cycles = vec![val().parse().unwrap_or(2.0)],
+            "--mode" => mode = val(),
+            "--rt-priority" => rt.priority = val().parse().ok(),
+            "--cpu" => rt.cpu = val().parse().ok(),
+            "--mlock" => rt.mlock = true,
+            "--strict" => TOLERANT.store(false, Ordering::Relaxed),
+            other => {
+                eprintln!("unknown argument {other}; see the doc comment of examples/jitter.rs");
+                std::process::exit(2);
+            }
+        }
+    }
+    let ncpu = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
+    let load = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
+    println!(
+        "cycle timing in real time, {seconds} s per run; {ncpu} CPUs, load average {}{}",
+        load.trim(),
+        if TOLERANT.load(Ordering::Relaxed) { "; shared-host tolerances (following-error windows 720° / 5 mm, feedback timeout 100 ms)" } else { "" }
+    );
+    for &ms in &cycles {
+        if mode == "inproc" || mode == "both" {
+            let wire = InprocBus::new();
+            let stop = Arc::new(AtomicBool::new(false));
+            let sim_bus: Box<dyn CanBus> = Box::new(wire.endpoint());
+            let sim_stop = stop.clone();
+            let sim = std::thread::spawn(move || {
+                sim_drives::run_realtime(sim_bus, sim_drives::SimConfig::from_machine_toml(EMBEDDED_LATHE).unwrap(), sim_stop)
+            });
+            let f = run(Box::new(wire.endpoint()), ms, seconds, &rt);
+            stop.store(true, Ordering::Relaxed);
+            let _ = sim.join();
+            report("in-process", ms, f);
+        }
+        if mode == "socketcand" || mode == "both" {
+            let exe = std::env::current_exe().ok();
+            let sim = exe
+                .as_ref()
+                .and_then(|e| e.parent()?.parent().map(|d| d.join("sim-drives")))
+                .filter(|p| p.exists());
+            let Some(sim) = sim else {
+                eprintln!("socketcand: no sim-drives binary next to this example; `cargo build --release --bins` first");
+                continue;
+            };
+            let port = 29_600 + (std::process::id() % 300) as u16;
+            let addr = format!("127.0.0.1:{port}");
+            let mut child = match std::process::Command::new(&sim).args(["--socketcand", &addr]).env("RUST_LOG", "warn").spawn() {
+                Ok(c) => c,
+                Err(e) => {
+                    eprintln!("cannot start {}: {e}", sim.display());
+                    continue;
+                }
+            };
+            let mut bus = None;
+            for _ in 0..100 {
+                std::thread::sleep(Duration::from_millis(50));
+                if let Ok(b) = cncgw_bus::transport::socketcand::Socketcand::connect(&addr, "can0") {
+                    bus = Some(b);
+                    break;
+                }
+            }
+            match bus {
+                Some(b) => report("socketcand", ms, run(Box::new(b), ms, seconds, &rt)),
+                None => eprintln!("socketcand: cannot connect to sim-drives at {addr}"),
+            }
+            let _ = child.kill();
+            let _ = child.wait();
+        }
+    }
+}
