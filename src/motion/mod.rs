@@ -86,6 +86,7 @@ pub mod geom;
 pub mod panel;
 pub mod profile;
 pub mod rt;
+pub mod tapstate;
 pub mod trace;
 #[cfg(test)]
 mod tests;
