@@ -172,12 +172,30 @@ impl TapStateFile {
 
     /// The stored state; None if there is no file (no tap was ever interrupted or finished).
     pub fn load(&self) -> Result<Option<TapState>, Alarm> {
+        self.remove_stale_temporaries();
         let text = match std::fs::read_to_string(&self.path) {
             Ok(t) => t,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
             Err(e) => return Err(Alarm::new(STATE_ALARM, format!("{}: cannot read the rigid-tap state: {e}", self.path.display()))),
         };
         parse_tap_state(&self.path.display().to_string(), &text).map(Some)
+    }
+
+    /// Temporary files of writers killed mid-write (`atomic_write` names them
+    /// `.NAME.PID.SEQ.tmp`); those of live processes are left alone.
+    fn remove_stale_temporaries(&self) {
+        let (Some(dir), Some(name)) = (self.path.parent(), self.path.file_name()) else { return };
+        let prefix = format!(".{}.", name.to_string_lossy());
+        let Ok(entries) = std::fs::read_dir(if dir.as_os_str().is_empty() { Path::new(".") } else { dir }) else { return };
+        for e in entries.flatten() {
+            let n = e.file_name().to_string_lossy().into_owned();
+            let pid = n.strip_prefix(&prefix).and_then(|r| r.strip_suffix(".tmp")).and_then(|r| r.split('.').next()).and_then(|p| p.parse::<u32>().ok());
+            if let Some(pid) = pid {
+                if pid != std::process::id() && !Path::new(&format!("/proc/{pid}")).exists() {
+                    let _ = std::fs::remove_file(e.path());
+                }
+            }
+        }
     }
 
     pub fn save(&self, st: &TapState) -> Result<(), Alarm> {
