@@ -666,7 +666,12 @@ impl Motion {
                 Item::Thread(self.thread_seg(end, *lead, *start_angle, *lead_inc, *continuous).map_err(at)?)
             }
             MoveKind::RigidThread { end, lead, rpm } => Item::Rigid(self.rigid_seg(end, *lead, *rpm).map_err(at)?),
-            MoveKind::Tap { end, lead, rpm } => Item::Tap(self.tap_seg(end, *lead, *rpm).map_err(at)?),
+            MoveKind::Tap { end, lead, rpm } => {
+                let mut t = self.tap_seg(end, *lead, *rpm).map_err(at)?;
+                // G30 P99, the return from an interrupted tap, pulls out from where the tool is.
+                t.retract |= m.tag.as_ref().is_some_and(|g| &*g.cycle == "G30 P99");
+                Item::Tap(t)
+            }
             MoveKind::Dwell { seconds } => {
                 if !(seconds.is_finite() && *seconds >= 0.0) {
                     return Err(at(Alarm::new(
@@ -1544,7 +1549,11 @@ impl Motion {
                 // At rest on the stroke's end, spindle stopped in position.
                 self.sp_cur = 0.0;
                 self.run = Run::None;
-                self.in_hole = theta0.is_some_and(|(pr, _)| seg.p1 != pr);
+                // In the hole: landed past the reference point (the hole's R, or where a G30 P99
+                // return started) in the direction into the hole; a pull-out that ends on or
+                // beyond R (No.5282/No.5382 extra return) is out of it.
+                let into = (seg.p1 - seg.p0).signum() * if seg.retract { -1.0 } else { 1.0 };
+                self.in_hole = theta0.is_some_and(|(pr, _)| (seg.p1 - pr) * into > 0.0);
                 // Single block never stops inside a tap; after the hole only with No.5200#6
                 // (in a canned cycle by its actions, see `single_block_stop`).
                 if self.cur_cyc.code > 0 {
