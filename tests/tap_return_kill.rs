@@ -419,3 +419,67 @@ fn sigkill_mid_tap_state_write_leaves_old_or_new_state() {
     let names: Vec<_> = std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().file_name()).collect();
     assert_eq!(names, ["m.tap-state.toml"], "temporaries of killed writes are cleaned up at load");
 }
+
+/// Counts allocations made on a thread while it is armed (this test binary only).
+struct Counting;
+static ALLOCS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+thread_local! {
+    static ARMED: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+}
+unsafe impl std::alloc::GlobalAlloc for Counting {
+    unsafe fn alloc(&self, l: std::alloc::Layout) -> *mut u8 {
+        if ARMED.try_with(|a| a.get()).unwrap_or(false) {
+            ALLOCS.fetch_add(1, Ordering::Relaxed);
+        }
+        unsafe { std::alloc::System.alloc(l) }
+    }
+    unsafe fn dealloc(&self, p: *mut u8, l: std::alloc::Layout) {
+        unsafe { std::alloc::System.dealloc(p, l) }
+    }
+}
+#[global_allocator]
+static GLOBAL: Counting = Counting;
+
+#[test]
+fn the_cycle_side_publishes_without_allocating_and_the_writer_follows() {
+    use cncgw::canon::{CycleTag, Move, MoveKind, Pos, SrcPos};
+    use cncgw::motion::tapstate::{TapPersister, TapSlot, TapWatch};
+    let dir = tmp("noalloc");
+    let _ = std::fs::remove_dir_all(&dir);
+    let file = TapStateFile::new(&dir, "m");
+    let slot = TapSlot::new(None);
+    let w = TapPersister::spawn(TapStateFile { path: file.path.clone() }, slot.clone(), Duration::from_millis(20), None).unwrap();
+    let mut watch = TapWatch::new(slot, Some(w.thread()), &[0.0, 0.0, 2.0, 0.0], None);
+    let mv = |z: f64, rpm: f64| Move {
+        src: SrcPos::new("t.nc".into(), 5, 1),
+        kind: MoveKind::Tap { end: Pos::xz(0.0, z), lead: -1.5, rpm },
+        exact_stop: true,
+        work_offset: Pos::ZERO,
+        tag: Some(CycleTag { cycle: "G84".into(), step: 3 }),
+    };
+    let (m_in, m_out) = (mv(-20.0, 500.0), mv(2.0, 500.0));
+    // 1000 cycles in (2 ms each, 12.5 mm/s), 1000 out, as the cycle thread would call it.
+    let z = |k: usize| if k < 1000 { 2.0 - 0.022 * k as f64 } else { -20.0 + 0.022 * (k - 1000) as f64 };
+    let mut in_hole_seen = false;
+    ARMED.with(|a| a.set(true));
+    watch.on_push(&m_in);
+    watch.on_push(&m_out);
+    for k in 0..=2000 {
+        let p = [0.0, 0.0, z(k), (2.0 - z(k)) / 1.5 * 360.0];
+        watch.on_cycle(5, &p, &p);
+        if k == 500 {
+            ARMED.with(|a| a.set(false));
+            std::thread::sleep(Duration::from_millis(50));
+            in_hole_seen = file.load().unwrap().is_some_and(|s| s.in_hole && s.position < -5.0);
+            ARMED.with(|a| a.set(true));
+        }
+    }
+    ARMED.with(|a| a.set(false));
+    assert_eq!(ALLOCS.load(Ordering::Relaxed), 0, "the cycle side allocated");
+    let stats = w.finish();
+    assert!(in_hole_seen, "the writer had the tool in the hole on disk mid-tap");
+    let end = file.load().unwrap().unwrap();
+    assert!(!end.in_hole && (end.position - 2.0).abs() < 1e-9, "{end:?}");
+    assert_eq!(stats.failures, 0);
+    eprintln!("{} writes for one 2 × 2 s hole", stats.writes);
+}
