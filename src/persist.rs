@@ -238,7 +238,7 @@ pub fn parse_tap_state(file: &str, text: &str) -> Result<TapState, Alarm> {
     }
     let st: TapState = toml::from_str(body).map_err(|e| bad(&format!("unreadable ({e})")))?;
     let finite = [st.r_plane, st.lead, st.rpm, st.override_pct, st.position, st.spindle_deg].iter().all(|v| v.is_finite());
-    if !finite || !matches!(st.axis, 'X' | 'Y' | 'Z') || st.lead == 0.0 || st.direction_in.abs() != 1.0 || !(st.rpm > 0.0) {
+    if !finite || !matches!(st.axis, 'X' | 'Y' | 'Z') || st.lead == 0.0 || st.direction_in.abs() != 1.0 || st.rpm.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
         return Err(bad("out of range"));
     }
     Ok(st)

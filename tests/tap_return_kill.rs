@@ -85,12 +85,15 @@ fn start_sim(cfg: &Path) -> (Kill, u16, PathBuf) {
     (sim, port, log)
 }
 
+/// An SDO answer: (time, node, index, value).
+type Read = (Instant, u8, u16, i64);
+type Frames = Vec<(Instant, CanFrame)>;
+
 /// A client on the bus: records every frame with its arrival time; once `poll` is set it
 /// reads statusword and position of nodes 1–3 by SDO, one request at a time.
 struct Observer {
-    frames: Arc<Mutex<Vec<(Instant, CanFrame)>>>,
-    /// (time, node, index, value) of each SDO answer.
-    reads: Arc<Mutex<Vec<(Instant, u8, u16, i64)>>>,
+    frames: Arc<Mutex<Frames>>,
+    reads: Arc<Mutex<Vec<Read>>>,
     poll: Arc<AtomicBool>,
     stop: Arc<AtomicBool>,
     handle: Option<std::thread::JoinHandle<()>>,
@@ -141,7 +144,7 @@ impl Observer {
         Observer { frames, reads, poll, stop, handle: Some(handle) }
     }
 
-    fn finish(mut self) -> (Vec<(Instant, CanFrame)>, Vec<(Instant, u8, u16, i64)>) {
+    fn finish(mut self) -> (Frames, Vec<Read>) {
         self.stop.store(true, Ordering::Relaxed);
         if let Some(h) = self.handle.take() {
             let _ = h.join();
@@ -265,7 +268,7 @@ fn realtime_sigkill_mid_tap_drives_stop_and_g30_p99_brings_the_tap_out() {
     };
     assert!(st.in_hole && st.axis == 'Z' && st.r_plane == 2.0 && st.direction_in == -1.0 && st.lead == -1.5 && st.rpm == 500.0, "{st:?}");
     assert!(st.position <= seen.position && st.position > -20.0, "{st:?} (seen {seen:?} before the kill)");
-    let z_end = reads.iter().filter(|r| r.1 == 2 && r.2 == 0x6064).last().unwrap().3 as f64 / 10_000.0;
+    let z_end = reads.iter().rfind(|r| r.1 == 2 && r.2 == 0x6064).unwrap().3 as f64 / 10_000.0;
     // The file is ≤ 20 ms old at the kill; the axis stopped after it.
     assert!(z_end <= st.position + 1e-3 && z_end > st.position - 2.0, "Z stopped at {z_end} mm, the state says {}", st.position);
     eprintln!("state at the kill: Z {:.4} mm, spindle {:.1}°; Z came to rest at {z_end:.4} mm", st.position, st.spindle_deg);
