@@ -19,8 +19,11 @@
 //! "In the hole": the tool's commanded position is past the R plane into the hole (by any
 //! amount), or its actual position is by more than [`IN_HOLE_MM`]. The state is written at
 //! the entry, every `period` while the tool moves in the hole, and "not in a hole" once both
-//! are back at R. The state reaches the disk one write (a few ms) after the entry; the tap
-//! starts from rest on its acceleration ramp, so in that time the tool is a few µm deep.
+//! are back at R. The state reaches the disk one write after the entry: on an SSD about a
+//! millisecond, in which the tap, starting from rest on its ramp, goes a few µm deep; but a
+//! write is two fsyncs, and on this project's loaded build VM they took 22 ms median and
+//! ~1 s at p90. Closing that window fully needs motion to hold a hole's first stroke until
+//! the writer acknowledges the entry state (not done).
 //!
 //! At start-up a state that says "in the hole" refuses any program whose first motion is not
 //! `G30 P99` (alarm [`TAP_IN_HOLE`]): a Fanuc 0i-TF likewise raises an alarm and asks for
