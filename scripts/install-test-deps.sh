@@ -77,11 +77,13 @@ vcan_tier_deps() {
 }
 
 # --- other test prerequisites: add new ones here -------------------------------------
-# Planned: tmux (terminal tests). Add with need_pkg + install_missing.
 extra_test_deps() {
     # Modbus peers we did not write (sim-drives/tests/modbus_tools.rs): socat makes the
     # pseudo-terminal pair an RTU line runs over; mbpoll is a Modbus RTU/TCP master.
     need_pkg socat mbpoll
+    # tmux: the interactive `cncgw run` is typed at and read back in a terminal
+    # (tests/cli_tmux.rs: send-keys, capture-pane).
+    need_pkg tmux
     install_missing
     if [ "$WANT_PYTHON" = 1 ]; then
         python_venv

@@ -165,10 +165,22 @@ pub enum AxisKind {
     Spindle,
 }
 
+/// What a drive is for, where its kind alone does not say.
+#[derive(Clone, Copy, Debug, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "snake_case")]
+pub enum AxisRole {
+    /// The tool spindle of polygon turning (G51.2), synchronised to the work spindle. Not
+    /// the work spindle: M03/M04, threads, taps and C use the other spindle.
+    ToolSpindle,
+}
+
 #[derive(Clone, Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct AxisConfig {
     pub kind: AxisKind,
+    /// A special role (`role = "tool_spindle"`); absent for the usual axes and the work spindle.
+    #[serde(default)]
+    pub role: Option<AxisRole>,
     /// CANopen node id (1…127), or the Modbus unit id (1…247) when `modbus` names a link.
     pub node: u8,
     /// The `[modbus.NAME]` link this drive is on; absent: the CANopen bus.
@@ -335,6 +347,9 @@ impl MachineConfig {
             if a.modbus.is_none() && (a.cia402_map.is_some() || a.pr_map.is_some()) {
                 e.push(format!("{p}: cia402_map / pr_map apply to Modbus drives; set {p}.modbus to the link"));
             }
+            if a.role == Some(AxisRole::ToolSpindle) && a.kind != AxisKind::Spindle {
+                e.push(format!("{p}.role: \"tool_spindle\" needs kind = \"spindle\""));
+            }
             positive(&mut e, &format!("{p}.counts_per_unit"), a.counts_per_unit);
             positive(&mut e, &format!("{p}.max_speed"), a.max_speed);
             positive(&mut e, &format!("{p}.max_accel"), a.max_accel);
@@ -359,6 +374,14 @@ impl MachineConfig {
                     ));
                 }
             }
+        }
+        let tools: Vec<&str> =
+            self.axes.iter().filter(|(_, a)| a.role == Some(AxisRole::ToolSpindle)).map(|(n, _)| n.as_str()).collect();
+        if tools.len() > 1 {
+            e.push(format!("axes: at most one axis may have role = \"tool_spindle\", got {}", tools.join(", ")));
+        }
+        if !tools.is_empty() && self.spindle().is_none() {
+            e.push(format!("axes.{}.role: a tool spindle needs a work spindle (another axis with kind = \"spindle\")", tools[0]));
         }
         for (name, l) in &self.modbus {
             let p = format!("modbus.{name}");
@@ -442,10 +465,25 @@ impl MachineConfig {
         self.axes.values().any(|a| a.modbus.is_none())
     }
 
-    /// The spindle axis, if any.
+    /// The (work) spindle axis, if any: the first spindle that is not the tool spindle.
     pub fn spindle(&self) -> Option<(&str, &AxisConfig)> {
-        self.axes.iter().find(|(_, a)| a.kind == AxisKind::Spindle).map(|(n, a)| (n.as_str(), a))
+        self.axes.iter().find(|(_, a)| is_work_spindle(a)).map(|(n, a)| (n.as_str(), a))
     }
+
+    /// The work spindle's index in configuration order (the bus's drive order).
+    pub fn spindle_index(&self) -> Option<usize> {
+        self.axes.values().position(is_work_spindle)
+    }
+
+    /// The tool spindle of polygon turning (`role = "tool_spindle"`): its index in
+    /// configuration order and its config.
+    pub fn tool_spindle(&self) -> Option<(usize, &AxisConfig)> {
+        self.axes.values().enumerate().find(|(_, a)| a.role == Some(AxisRole::ToolSpindle))
+    }
+}
+
+fn is_work_spindle(a: &AxisConfig) -> bool {
+    a.kind == AxisKind::Spindle && a.role != Some(AxisRole::ToolSpindle)
 }
 
 fn positive(e: &mut Vec<String>, path: &str, v: f64) {
@@ -541,6 +579,21 @@ mod tests {
         let c = MachineConfig::from_toml("mixed.toml", &t).unwrap();
         assert!(c.has_canopen());
         assert_eq!(c.axes["w"].modbus_profile, cncgw_bus::modbus::Profile::Pr);
+    }
+
+    const POLYGON_LATHE: &str = include_str!("../config/lathe-polygon.toml");
+
+    #[test]
+    fn polygon_lathe_has_a_tool_spindle_apart_from_the_work_spindle() {
+        let c = MachineConfig::from_toml("lathe-polygon.toml", POLYGON_LATHE).unwrap();
+        let (i, t) = c.tool_spindle().unwrap();
+        assert_eq!((i, t.node), (1, 4));
+        assert_eq!(c.spindle().map(|s| s.0), Some("s1"));
+        assert_eq!(c.spindle_index(), Some(0));
+        assert!(MachineConfig::embedded().tool_spindle().is_none());
+        let t = POLYGON_LATHE.replace("kind = \"spindle\"\nrole", "kind = \"linear\"\nmin = 0.0\nmax = 1.0\nrole");
+        let err = MachineConfig::from_toml("t.toml", &t).unwrap_err().to_string();
+        assert!(err.contains("role: \"tool_spindle\" needs kind = \"spindle\""), "{err}");
     }
 
     #[test]

@@ -150,7 +150,8 @@ pub struct TapState {
 impl TapState {
     /// What the interpreter's `G30 P99` returns along.
     pub fn tap_return(&self) -> crate::canon::TapReturn {
-        crate::canon::TapReturn { axis: self.axis, r_plane: self.r_plane, lead: self.lead, rpm: self.rpm, override_pct: self.override_pct }
+        // Spindle 1: the only one motion taps with (it refuses a tap on another, alarm 2304).
+        crate::canon::TapReturn { axis: self.axis, r_plane: self.r_plane, lead: self.lead, rpm: self.rpm, override_pct: self.override_pct, spindle: 1 }
     }
 
     /// How far (degrees) the spindle at `spindle_deg` stands from the stored thread when the

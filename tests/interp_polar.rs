@@ -19,10 +19,13 @@ fn interp(src: &str, cfg: &MachineConfig, tools: Option<&str>) -> Interpreter {
     it
 }
 
+/// The lathe with a tool spindle (polygon turning needs one).
+const POLYGON_LATHE: &str = include_str!("../config/lathe-polygon.toml");
+
 /// No.3403#5 = 0: G02/G03 without R is a straight line (§2.3 note 2), which fig. 2.12 relies
 /// on: its N210 C0 is modal G03 without R.
 fn cfg() -> MachineConfig {
-    let text = EMBEDDED_LATHE.replace("[parameters]\n", "[parameters]\n3403 = 0\n");
+    let text = POLYGON_LATHE.replace("[parameters]\n", "[parameters]\n3403 = 0\n");
     MachineConfig::from_toml("t.toml", &text).expect("config")
 }
 
@@ -167,14 +170,25 @@ G01 W-10 F200\nG01 U2\nG0 Z2\nG50.2\nM30\n";
 
 #[test]
 fn polygon_clamp_and_alarms() {
-    let text = format!("{EMBEDDED_LATHE}\n").replace("[parameters]\n", "[parameters]\n721 = 2500\n");
+    let text = POLYGON_LATHE.replace("721 = 5000", "721 = 2500");
     let cfg = MachineConfig::from_toml("p.toml", &text).expect("config");
     assert!(text.contains("721 = 2500"));
     let m: Vec<Move> = interp("G51.2 P1 Q3 S1000\nM30\n", &cfg, None).map(|m| m.unwrap()).collect();
     // Note 3: S × Q / P = 3000 rpm clamped to No.721.
     assert_eq!(polygons(&m)[0].map(|p| p.tool_rpm), Some(2500.0));
-    assert_eq!(alarm("G51.2 P0 Q2 S1000\nM30\n").number, 2510);
-    assert_eq!(alarm("G51.2 P1 Q2 R360 S1000\nM30\n").number, 2510);
-    assert_eq!(alarm("G51.2 P1 Q2 S1000 X20\nM30\n").number, 10);
-    assert_eq!(alarm("G51.2 P1 Q2 S1000\nG0 C90\nM30\n").number, 9);
+    assert_eq!(alarm_cfg("G51.2 P0 Q2 S1000\nM30\n", &cfg).number, 2510);
+    assert_eq!(alarm_cfg("G51.2 P1 Q2 R360 S1000\nM30\n", &cfg).number, 2510);
+    assert_eq!(alarm_cfg("G51.2 P1 Q2 S1000 X20\nM30\n", &cfg).number, 10);
+    assert_eq!(alarm_cfg("G51.2 P1 Q2 S1000\nG0 C90\nM30\n", &cfg).number, 9);
+}
+
+/// A machine without a tool spindle refuses G51.2 (and G50.2) while interpreting, before
+/// any motion, saying what the config lacks.
+#[test]
+fn polygon_without_a_tool_spindle_is_refused() {
+    let cfg = MachineConfig::from_toml("lathe.toml", EMBEDDED_LATHE).expect("config");
+    let a = alarm_cfg("G98\nM03 S500\nG51.2 P1 Q2 S1000\nG0 X50\nM30\n", &cfg);
+    assert_eq!(a.number, 2308, "{a}");
+    assert!(a.message.contains("tool spindle") && a.message.contains("role = \"tool_spindle\""), "{a}");
+    assert_eq!(a.pos.as_ref().map(|p| p.line), Some(3), "{a}");
 }

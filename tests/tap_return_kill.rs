@@ -455,7 +455,7 @@ fn the_cycle_side_publishes_without_allocating_and_the_writer_follows() {
     let mut watch = TapWatch::new(slot, Some(w.thread()), &[0.0, 0.0, 2.0, 0.0], None);
     let mv = |z: f64, rpm: f64| Move {
         src: SrcPos::new("t.nc".into(), 5, 1),
-        kind: MoveKind::Tap { end: Pos::xz(0.0, z), lead: -1.5, rpm },
+        kind: MoveKind::Tap { end: Pos::xz(0.0, z), lead: -1.5, rpm, spindle: 1 },
         exact_stop: true,
         work_offset: Pos::ZERO,
         tag: Some(CycleTag { cycle: "G84".into(), step: 3 }),

@@ -220,6 +220,14 @@ fn nmt_name(st: Option<NmtState>) -> &'static str {
 // ---------------------------------------------------------------- scan
 
 pub fn scan(machine: &MachineArgs, json_out: bool) -> i32 {
+    match super::mbus::modbus_machine(machine) {
+        Ok(Some(cfg)) => return super::mbus::scan(&cfg, json_out),
+        Ok(None) => {}
+        Err(e) => {
+            eprintln!("error: {e}");
+            return EXIT_SETUP;
+        }
+    }
     let mut s = match open(machine) {
         Ok(s) => s,
         Err(c) => return c,
@@ -572,6 +580,14 @@ pub fn statusword_bits(sw: u16, mode_code: i8) -> Vec<(u8, String, bool)> {
 }
 
 pub fn drive_status(machine: &MachineArgs, node: u8, json_out: bool) -> i32 {
+    match super::mbus::modbus_machine(machine) {
+        Ok(Some(cfg)) => return super::mbus::drive_status(&cfg, node, json_out),
+        Ok(None) => {}
+        Err(e) => {
+            eprintln!("error: {e}");
+            return EXIT_SETUP;
+        }
+    }
     let mut s = match open(machine) {
         Ok(s) => s,
         Err(c) => return c,
@@ -670,7 +686,7 @@ pub fn drive_status(machine: &MachineArgs, node: u8, json_out: bool) -> i32 {
 }
 
 /// `cncgw od check NODE --eds FILE`.
-pub fn od_check(machine: &MachineArgs, node: u8, eds_path: &std::path::Path) -> i32 {
+pub fn od_check(machine: &MachineArgs, node: u8, eds_path: &std::path::Path, json_out: bool) -> i32 {
     let eds = match cncgw_bus::canopen::eds::Eds::load(eds_path) {
         Ok(e) => e,
         Err(e) => {
@@ -687,6 +703,13 @@ pub fn od_check(machine: &MachineArgs, node: u8, eds_path: &std::path::Path) -> 
         msgs.extend(s.master.check_eds(node, &eds));
     }
     msgs.extend(s.master.check_od(&mut *s.clock, node, &eds));
+    if json_out {
+        println!(
+            "{}",
+            json!({"node": node, "eds": eds.file, "objects": eds.entries.len(), "agrees": msgs.is_empty(), "disagreements": msgs.iter().map(|m| m.to_string()).collect::<Vec<_>>()})
+        );
+        return if msgs.is_empty() { 0 } else { 1 };
+    }
     for m in &msgs {
         println!("{m}");
     }
@@ -696,5 +719,168 @@ pub fn od_check(machine: &MachineArgs, node: u8, eds_path: &std::path::Path) -> 
     } else {
         println!("{} disagreement(s) between node {node} and {}", msgs.len(), eds.file);
         1
+    }
+}
+
+// ---------------------------------------------------------------- od dump
+
+/// The objects `od dump` reads without an EDS: CiA 301 communication and identity objects
+/// and the CiA 402 objects a drive of this controller uses.
+const STANDARD_OBJECTS: &[(u16, u8, &str, SdoType)] = &[
+    (0x1000, 0, "Device type", SdoType::U32),
+    (0x1001, 0, "Error register", SdoType::U8),
+    (0x1008, 0, "Manufacturer device name", SdoType::Str),
+    (0x1009, 0, "Manufacturer hardware version", SdoType::Str),
+    (0x100A, 0, "Manufacturer software version", SdoType::Str),
+    (0x1016, 1, "Consumer heartbeat time 1", SdoType::U32),
+    (0x1017, 0, "Producer heartbeat time", SdoType::U16),
+    (0x1018, 1, "Identity: vendor id", SdoType::U32),
+    (0x1018, 2, "Identity: product code", SdoType::U32),
+    (0x1018, 3, "Identity: revision number", SdoType::U32),
+    (0x1018, 4, "Identity: serial number", SdoType::U32),
+    (0x603F, 0, "Error code", SdoType::U16),
+    (0x6040, 0, "Controlword", SdoType::U16),
+    (0x6041, 0, "Statusword", SdoType::U16),
+    (0x605A, 0, "Quick stop option code", SdoType::I16),
+    (0x6060, 0, "Modes of operation", SdoType::I8),
+    (0x6061, 0, "Modes of operation display", SdoType::I8),
+    (0x6064, 0, "Position actual value", SdoType::I32),
+    (0x6065, 0, "Following error window", SdoType::U32),
+    (0x606C, 0, "Velocity actual value", SdoType::I32),
+    (0x607A, 0, "Target position", SdoType::I32),
+    (0x607C, 0, "Home offset", SdoType::I32),
+    (0x6081, 0, "Profile velocity", SdoType::U32),
+    (0x6083, 0, "Profile acceleration", SdoType::U32),
+    (0x6098, 0, "Homing method", SdoType::I8),
+    (0x60C2, 1, "Interpolation time period value", SdoType::U8),
+    (0x60F4, 0, "Following error actual value", SdoType::I32),
+    (0x6502, 0, "Supported drive modes", SdoType::U32),
+];
+
+/// The `sdo` type for a CiA 306 DataType code, where there is one.
+fn sdo_type_of(dt: u16) -> Option<SdoType> {
+    Some(match dt {
+        0x0001 | 0x0005 => SdoType::U8,
+        0x0002 => SdoType::I8,
+        0x0003 => SdoType::I16,
+        0x0004 => SdoType::I32,
+        0x0006 => SdoType::U16,
+        0x0007 => SdoType::U32,
+        0x0008 => SdoType::F32,
+        0x0009 => SdoType::Str,
+        0x000F => SdoType::Domain,
+        _ => return None,
+    })
+}
+
+/// `cncgw od dump NODE [--eds FILE]`: every object as the drive reports it — the EDS's
+/// objects, checked against it (present, size of the type, write-only not readable), or
+/// without an EDS the standard objects. Read-only.
+pub fn od_dump(machine: &MachineArgs, node: u8, eds_path: Option<&std::path::Path>, json_out: bool) -> i32 {
+    let eds = match eds_path.map(cncgw_bus::canopen::eds::Eds::load).transpose() {
+        Ok(e) => e,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return EXIT_SETUP;
+        }
+    };
+    let mut s = match open(machine) {
+        Ok(s) => s,
+        Err(c) => return c,
+    };
+    s.master.ensure_node(node);
+    // (index, sub, name, type, access, where in the EDS)
+    let list: Vec<(u16, u8, String, Option<SdoType>, Option<cncgw_bus::canopen::eds::EdsAccess>, Option<String>)> = match &eds {
+        Some(e) => e
+            .entries
+            .values()
+            .map(|x| (x.index, x.sub, x.name.clone(), sdo_type_of(x.data_type), Some(x.access), e.describe(x.index, x.sub)))
+            .collect(),
+        None => STANDARD_OBJECTS.iter().map(|(i, sub, n, t)| (*i, *sub, n.to_string(), Some(*t), None, None)).collect(),
+    };
+    let mut rows = Vec::new();
+    let mut bad = 0usize;
+    for (index, sub, name, ty, access, at) in list {
+        let r = s.master.sdo_upload(&mut *s.clock, node, index, sub);
+        let wo = access == Some(cncgw_bus::canopen::eds::EdsAccess::Wo);
+        let (value, raw, problem) = match r {
+            Ok(d) => {
+                let shown = match ty {
+                    Some(t) => decode_value(t, &d),
+                    None => Ok({
+                        let (a, b, _) = guess(&d);
+                        (a, b)
+                    }),
+                };
+                match shown {
+                    Ok((text, val)) => {
+                        let p = wo.then(|| "AccessType=wo but it can be read".to_string());
+                        (Some((text, val)), Some(hex(&d)), p)
+                    }
+                    Err(e) => (None, Some(hex(&d)), Some(e)),
+                }
+            }
+            Err(SdoError::Abort { code }) if wo && code == cncgw_bus::canopen::sdo::abort::WRITE_ONLY => (None, None, None),
+            Err(e) => {
+                let absent = matches!(e, SdoError::Abort { code } if code == cncgw_bus::canopen::sdo::abort::NO_OBJECT || code == cncgw_bus::canopen::sdo::abort::NO_SUBINDEX);
+                // Without an EDS an absent optional object is not a fault.
+                let p = if absent && eds.is_none() { None } else { Some(sdo_error_text(&e)) };
+                (None, None, p)
+            }
+        };
+        if problem.is_some() {
+            bad += 1;
+        }
+        rows.push((index, sub, name, ty, access, at, value, raw, problem));
+    }
+    if json_out {
+        let arr: Vec<_> = rows
+            .iter()
+            .map(|(i, sub, n, t, a, at, v, raw, p)| {
+                json!({
+                    "index": format!("0x{i:04X}"), "sub": sub, "name": n, "type": t.map(|t| t.name()),
+                    "access": a.map(|a| a.name()), "eds": at, "value": v.as_ref().map(|v| v.1.clone()),
+                    "raw": raw, "problem": p,
+                })
+            })
+            .collect();
+        println!(
+            "{}",
+            json!({"node": node, "eds": eds.as_ref().map(|e| e.file.clone()), "objects": arr, "disagreements": bad})
+        );
+    } else {
+        println!(
+            "node {node}: {} object(s){} on {}",
+            rows.len(),
+            eds.as_ref().map(|e| format!(" of {}", e.file)).unwrap_or_else(|| " (CiA 301/402 standard set; --eds FILE for all of a device's)".into()),
+            s.what
+        );
+        for (i, sub, n, t, a, _at, v, _raw, p) in &rows {
+            let ty = t.map(|t| t.name()).unwrap_or("?");
+            let acc = a.map(|a| format!(" {}", a.name())).unwrap_or_default();
+            let val = match (v, p) {
+                (Some(v), _) => v.0.clone(),
+                (None, Some(_)) => "-".into(),
+                (None, None) if eds.is_none() => "not present".into(),
+                (None, None) => "(write-only)".into(),
+            };
+            let n: String = n.chars().take(36).collect();
+            println!("0x{i:04X}:{sub:02X} {n:<36} {ty:<6}{acc:<5} = {val}");
+            if let Some(p) = p {
+                println!("           ^ {p}");
+            }
+        }
+        if eds.is_some() {
+            if bad == 0 {
+                println!("node {node} agrees with the EDS");
+            } else {
+                println!("{bad} disagreement(s) with the EDS (marked ^)");
+            }
+        }
+    }
+    if bad > 0 {
+        EXIT_NODE
+    } else {
+        EXIT_OK
     }
 }

@@ -1,9 +1,12 @@
 //! The `cncgw` command line.
 
 pub mod diag;
+pub mod mbus;
 pub mod preview;
 pub mod run;
 pub mod service;
+pub mod taptest;
+pub mod term;
 
 use clap::{Parser, Subcommand};
 use std::path::PathBuf;
@@ -25,8 +28,9 @@ pub struct MachineArgs {
     #[arg(long, short = 'c', value_name = "FILE")]
     pub config: Option<PathBuf>,
     /// Bus: `inproc` (embedded emulated drives, simulated time), a SocketCAN interface such
-    /// as `vcan0` or `can0`, or `socketcand://HOST:PORT/IFACE`. Default: the config's
-    /// bus.interface.
+    /// as `vcan0` or `can0`, `socketcand://HOST:PORT/IFACE`, or a Modbus link for every axis:
+    /// `modbus-tcp://HOST:PORT`, `modbus-rtu:///dev/ttyUSB0?baud=115200&parity=none`.
+    /// Default: the config's bus.interface (and its Modbus links).
     #[arg(long, value_name = "BUS")]
     pub bus: Option<String>,
 }
@@ -55,6 +59,28 @@ pub enum Command {
         trace: Option<PathBuf>,
         #[command(flatten)]
         rt: run::RtArgs,
+        #[command(flatten)]
+        op: run::OperatorArgs,
+    },
+    /// Run a rigid tap in the air on the configured machine (what a service engineer does at
+    /// commissioning) and report the spindle–Z sync error from the drives' actual positions —
+    /// max and RMS over the whole tap and through entry, reversal and exit — with the
+    /// following errors of spindle and Z, and draw it (SVG; the trace is kept as CSV next to
+    /// it). The tap starts `--clearance` above the present Z (X stays) and goes `--depth`
+    /// down: leave that much free air below the tool. `--dry`: plan and check only, nothing
+    /// moves. Needs --yes (or a typed yes on a terminal) on a real bus. Exit code 0 = within
+    /// machine.sync_error_limit_um, 1 = over it, 2 = cannot be done as asked, 3 = alarm.
+    ///
+    /// Example: `cncgw tap-test --lead 1.5 --depth 30 --rpm 3000`,
+    /// `cncgw tap-test --lead 1.5 --depth 30 --rpm 3000 --dry --bus can0`,
+    /// `cncgw tap-test --lead 1 --depth 20 --rpm 2000 --bus can0 --yes --json -o tap.svg`
+    TapTest {
+        #[command(flatten)]
+        tap: taptest::TapArgs,
+        #[command(flatten)]
+        machine: MachineArgs,
+        #[command(flatten)]
+        op: run::OperatorArgs,
     },
     /// Trace files written by `cncgw run --trace`.
     #[command(subcommand)]
@@ -173,7 +199,7 @@ pub enum Command {
     /// this tool sees. Refreshed in place on a terminal, one table after another otherwise.
     /// Read-only.
     ///
-    /// Example: `cncgw monitor --bus can0`, `cncgw monitor --once`
+    /// Example: `cncgw monitor --bus can0`, `cncgw monitor --once`, `cncgw monitor --once --json`
     Monitor {
         /// Stop after N seconds. Default: until interrupted (5 s of simulated time on inproc).
         #[arg(long, value_name = "N")]
@@ -184,6 +210,9 @@ pub enum Command {
         /// Refresh period in milliseconds.
         #[arg(long, default_value_t = 500, value_name = "MS")]
         interval_ms: u64,
+        /// Print one JSON object per refresh (JSON lines) instead of the table.
+        #[arg(long)]
+        json: bool,
         #[command(flatten)]
         machine: MachineArgs,
     },
@@ -274,6 +303,25 @@ pub enum SdoCmd {
 
 #[derive(Subcommand, Debug)]
 pub enum OdCmd {
+    /// Print NODE's object dictionary as the drive reports it (read-only): with --eds every
+    /// object of the file, read over SDO, shown by its DataType and checked against the file
+    /// (present, the type's size, write-only not readable); without, the CiA 301 identity
+    /// and communication objects and the CiA 402 objects. Exit code 1 on a disagreement or
+    /// a failed read.
+    ///
+    /// Example: `cncgw od dump 1`, `cncgw od dump 1 --eds tests/python/sim_drive.eds --json`
+    Dump {
+        #[arg(value_parser = diag::parse_node)]
+        node: u8,
+        /// The EDS file.
+        #[arg(long, value_name = "FILE")]
+        eds: Option<PathBuf>,
+        #[command(flatten)]
+        machine: MachineArgs,
+        /// Print JSON.
+        #[arg(long)]
+        json: bool,
+    },
     /// Check NODE's object dictionary against an EDS file (CiA 306): every object of the
     /// file must exist on the node, read with its type's size, and refuse writes if read-only
     /// (the value just read is written back, so nothing changes), or reads if write-only;
@@ -290,6 +338,9 @@ pub enum OdCmd {
         eds: PathBuf,
         #[command(flatten)]
         machine: MachineArgs,
+        /// Print JSON.
+        #[arg(long)]
+        json: bool,
     },
 }
 
@@ -386,6 +437,12 @@ pub fn open_raw(
 ) -> Result<(Box<dyn cncgw_bus::CanBus>, Box<dyn cncgw_bus::Clock>, String, String), String> {
     use cncgw_bus::transport::socketcand;
     let bus = bus.map(str::to_string).unwrap_or_else(|| cfg.bus.interface.clone());
+    if bus.starts_with("modbus-") {
+        return Err(format!("{bus} is a Modbus bus: this is a CANopen command (Modbus drives: scan, drive status, monitor, jog, run, tap-test)"));
+    }
+    if bus == "none" {
+        return Err("the configuration has no CANopen bus (bus.interface = \"none\"): give one with --bus, or use a Modbus command".into());
+    }
     if bus == "inproc" {
         let sim_cfg = sim_drives::SimConfig::from_machine_toml_bus(cfg_text, Some(false)).map_err(|e| format!("emulated drives: {e}"))?;
         let wire = cncgw_bus::transport::inproc::InprocBus::new();
@@ -441,10 +498,23 @@ pub fn open_session_with(
 #[derive(Subcommand, Debug)]
 pub enum ConfigCmd {
     /// Validate a machine configuration and print what it describes.
+    ///
+    /// Example: `cncgw config check config/lathe.toml`, `cncgw config check --json`
     Check {
         /// The file (default: the embedded config/lathe.toml).
         file: Option<PathBuf>,
+        /// Print JSON.
+        #[arg(long)]
+        json: bool,
     },
+}
+
+/// `--config` with `--bus` applied: a `modbus-tcp://…` / `modbus-rtu://…` bus puts every
+/// axis on that link (see `mbus`). Other buses are opened by `open_raw`.
+pub fn machine_config(m: &MachineArgs) -> Result<(crate::config::MachineConfig, String), String> {
+    let (mut cfg, text) = load_config(m.config.as_deref())?;
+    mbus::apply_bus(&mut cfg, m.bus.as_deref())?;
+    Ok((cfg, text))
 }
 
 /// Load the machine config and its text (the emulator builds its drives from the same text).
@@ -475,15 +545,16 @@ pub fn main() -> i32 {
     let cli = Cli::parse();
     init_tracing(cli.verbose);
     match cli.cmd {
-        Command::Run { program, machine, json, state_dir, trace, rt } => {
-            run::run(&program, &machine, json, state_dir.as_deref(), trace.as_deref(), &rt)
+        Command::Run { program, machine, json, state_dir, trace, rt, op } => {
+            run::run(&program, &machine, json, state_dir.as_deref(), trace.as_deref(), &rt, &op)
         }
+        Command::TapTest { tap, machine, op } => taptest::tap_test(&machine, &tap, &op),
         Command::Trace(TraceCmd::Plot { file, out }) => run::trace_plot(&file, &out),
         Command::Plan { program, config, format } => plan(&program, config.as_deref(), &format),
         Command::Preview { program, out, config, width, tools } => {
             preview::preview(&program, config.as_deref(), tools.as_deref(), &out, width)
         }
-        Command::Config(ConfigCmd::Check { file }) => config_check(file.as_deref()),
+        Command::Config(ConfigCmd::Check { file, json }) => config_check(file.as_deref(), json),
         Command::Scan { machine, json } => diag::scan(&machine, json),
         Command::Sdo(SdoCmd::Read { node, index, sub, r#type, out, machine, json }) => {
             diag::sdo_read(&machine, node, index, sub, r#type, out.as_deref(), json)
@@ -503,8 +574,9 @@ pub fn main() -> i32 {
         Command::Drive(DriveCmd::Home { node, home, yes, machine }) => service::drive_home(&machine, node, &home, yes),
         Command::Jog { axis, to, by, speed, yes, machine } => service::jog(&machine, &axis, to, by, speed, yes),
         Command::Buslog { out, seconds, machine } => service::buslog(&machine, &out, seconds),
-        Command::Monitor { seconds, once, interval_ms, machine } => service::monitor(&machine, seconds, once, interval_ms),
-        Command::Od(OdCmd::Check { node, eds, machine }) => diag::od_check(&machine, node, &eds),
+        Command::Monitor { seconds, once, interval_ms, json, machine } => service::monitor(&machine, seconds, once, interval_ms, json),
+        Command::Od(OdCmd::Dump { node, eds, machine, json }) => diag::od_dump(&machine, node, eds.as_deref(), json),
+        Command::Od(OdCmd::Check { node, eds, machine, json }) => diag::od_check(&machine, node, &eds, json),
         Command::Completions { shell } => {
             use clap::CommandFactory;
             clap_complete::generate(shell, &mut Cli::command(), "cncgw", &mut std::io::stdout());
@@ -561,50 +633,83 @@ fn plan(program: &std::path::Path, config: Option<&std::path::Path>, format: &st
     0
 }
 
-fn config_check(file: Option<&std::path::Path>) -> i32 {
-    match load_config(file) {
-        Ok((cfg, _)) => {
-            println!("{}: ok — {}", file.map(|p| p.display().to_string()).unwrap_or_else(|| "embedded config/lathe.toml".into()), cfg.machine.name);
-            println!("  cycle {} ms, bus {} at {} bit/s", cfg.machine.cycle_ms, cfg.bus.interface, cfg.bus.bitrate);
-            let n_can = cfg.axes.values().filter(|a| a.modbus.is_none()).count();
-            if n_can > 0 {
-                let frames = crate::bus::busload::csp_frames(n_can, 6);
-                let load = crate::bus::busload::load(&frames, cfg.cycle_s(), cfg.bus.bitrate);
-                println!(
-                    "  worst-case CANopen bus load {:.1} % ({} drives, one 6-byte RPDO and TPDO each + SYNC per cycle){}",
-                    load * 100.0,
-                    n_can,
-                    if load > 0.8 { " — OVER 80 %: lengthen the cycle" } else { "" }
-                );
-            }
-            for (name, what, tx, rtu) in crate::drives::modbus::ModbusDrives::new(&cfg).planned_links() {
-                match rtu {
-                    Some(s) => println!(
-                        "  Modbus link {name}: {what}, {tx} transactions per cycle take {:.2} ms on the line → link cycle {} ms",
-                        s * 1e3,
-                        (s * 1e3).ceil().max(cfg.machine.cycle_ms.ceil())
-                    ),
-                    None => println!("  Modbus link {name}: {what}, {tx} transactions per cycle; the cycle is measured from the round trip at start-up"),
-                }
-            }
-            for (name, a) in &cfg.axes {
-                println!(
-                    "  axis {name}: {:?} {} {} counts/unit, max speed {}, max accel {}",
-                    a.kind,
-                    match &a.modbus {
-                        Some(l) => format!("Modbus link {l} unit {} ({:?} profile)", a.node, a.modbus_profile),
-                        None => format!("CANopen node {}", a.node),
-                    },
-                    a.counts_per_unit,
-                    a.max_speed,
-                    a.max_accel
-                );
-            }
-            0
-        }
+fn config_check(file: Option<&std::path::Path>, json: bool) -> i32 {
+    let name = file.map(|p| p.display().to_string()).unwrap_or_else(|| "embedded config/lathe.toml".into());
+    let cfg = match load_config(file) {
+        Ok((cfg, _)) => cfg,
         Err(e) => {
-            eprintln!("error: {e}");
-            2
+            if json {
+                println!("{}", serde_json::json!({"file": name, "ok": false, "error": e}));
+            } else {
+                eprintln!("error: {e}");
+            }
+            return 2;
+        }
+    };
+    let mut text = Vec::new();
+    text.push(format!("{name}: ok — {}", cfg.machine.name));
+    text.push(format!("  cycle {} ms, bus {} at {} bit/s", cfg.machine.cycle_ms, cfg.bus.interface, cfg.bus.bitrate));
+    let n_can = cfg.axes.values().filter(|a| a.modbus.is_none()).count();
+    let mut can_load = None;
+    if n_can > 0 {
+        let frames = crate::bus::busload::csp_frames(n_can, 6);
+        let load = crate::bus::busload::load(&frames, cfg.cycle_s(), cfg.bus.bitrate);
+        can_load = Some(load);
+        text.push(format!(
+            "  worst-case CANopen bus load {:.1} % ({} drives, one 6-byte RPDO and TPDO each + SYNC per cycle){}",
+            load * 100.0,
+            n_can,
+            if load > 0.8 { " — OVER 80 %: lengthen the cycle" } else { "" }
+        ));
+    }
+    let mut links = Vec::new();
+    for (lname, what, tx, rtu) in crate::drives::modbus::ModbusDrives::new(&cfg).planned_links() {
+        let link_cycle_ms = rtu.map(|s| (s * 1e3).ceil().max(cfg.machine.cycle_ms.ceil()));
+        match rtu {
+            Some(s) => text.push(format!(
+                "  Modbus link {lname}: {what}, {tx} transactions per cycle take {:.2} ms on the line → link cycle {} ms",
+                s * 1e3,
+                link_cycle_ms.unwrap_or(0.0)
+            )),
+            None => text.push(format!("  Modbus link {lname}: {what}, {tx} transactions per cycle; the cycle is measured from the round trip at start-up")),
+        }
+        links.push(serde_json::json!({
+            "link": lname, "what": what, "transactions_per_cycle": tx,
+            "line_time_ms": rtu.map(|s| s * 1e3), "link_cycle_ms": link_cycle_ms,
+        }));
+    }
+    let mut axes = Vec::new();
+    for (aname, a) in &cfg.axes {
+        text.push(format!(
+            "  axis {aname}: {:?} {} {} counts/unit, max speed {}, max accel {}",
+            a.kind,
+            match &a.modbus {
+                Some(l) => format!("Modbus link {l} unit {} ({:?} profile)", a.node, a.modbus_profile),
+                None => format!("CANopen node {}", a.node),
+            },
+            a.counts_per_unit,
+            a.max_speed,
+            a.max_accel
+        ));
+        axes.push(serde_json::json!({
+            "axis": aname, "kind": format!("{:?}", a.kind).to_lowercase(), "node": a.node,
+            "modbus_link": a.modbus, "counts_per_unit": a.counts_per_unit,
+            "min": a.min, "max": a.max, "max_speed": a.max_speed, "max_accel": a.max_accel,
+        }));
+    }
+    if json {
+        println!(
+            "{}",
+            serde_json::json!({
+                "file": name, "ok": true, "machine": cfg.machine.name, "cycle_ms": cfg.machine.cycle_ms,
+                "bus": cfg.bus.interface, "bitrate": cfg.bus.bitrate, "canopen_bus_load": can_load,
+                "canopen_drives": n_can, "modbus_links": links, "axes": axes,
+            })
+        );
+    } else {
+        for l in text {
+            println!("{l}");
         }
     }
+    0
 }

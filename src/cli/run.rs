@@ -1,8 +1,8 @@
 //! `cncgw run`: run a part program on the embedded emulated machine or on a real bus.
 
-use super::{load_config, MachineArgs};
+use super::MachineArgs;
 use crate::canon::Pos;
-use crate::config::{AxisKind, MachineConfig};
+use crate::config::MachineConfig;
 use crate::drives::DriveBus;
 use crate::interp::Interpreter;
 use crate::motion::cycle::{CycleLoop, RunSummary};
@@ -40,10 +40,40 @@ pub struct RtArgs {
 pub struct RunExtras<'a> {
     pub trace: Option<&'a Path>,
     pub rt: RtOptions,
+    /// The rigid-tap state file and what it held at start (`motion::tapstate`); None = not kept.
+    pub tap: Option<TapSetup>,
 }
 
-pub fn run(program: &Path, machine: &MachineArgs, json: bool, state_dir: Option<&Path>, trace: Option<&Path>, rt: &RtArgs) -> i32 {
-    let (cfg, cfg_text) = match load_config(machine.config.as_deref()) {
+/// Where the rigid-tap state is kept during a run, and the state loaded from it.
+#[derive(Clone, Debug)]
+pub struct TapSetup {
+    pub file: std::path::PathBuf,
+    pub loaded: Option<crate::persist::TapState>,
+}
+
+/// How a run meets its operator.
+#[derive(clap::Args, Debug, Clone, Default)]
+pub struct OperatorArgs {
+    /// No operator panel even on a terminal: no keys, simulated time as fast as the CPU,
+    /// M00/M01 go on as if cycle start had been pressed (what a run without a terminal does).
+    #[arg(long, conflicts_with = "realtime")]
+    pub batch: bool,
+    /// Pace the embedded emulated machine's simulated time to the wall clock even without a
+    /// terminal (on a terminal it is paced anyway, so that keys act mid-program).
+    #[arg(long)]
+    pub realtime: bool,
+}
+
+pub fn run(
+    program: &Path,
+    machine: &MachineArgs,
+    json: bool,
+    state_dir: Option<&Path>,
+    trace: Option<&Path>,
+    rt: &RtArgs,
+    op: &OperatorArgs,
+) -> i32 {
+    let (cfg, cfg_text) = match super::machine_config(machine) {
         Ok(c) => c,
         Err(e) => {
             eprintln!("error: {e}");
@@ -61,7 +91,7 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, state_dir: Option<
             return EXIT_PROGRAM_ERROR;
         }
     };
-    let lines = std::fs::read_to_string(program).map(|t| t.lines().count() as u64).unwrap_or(0);
+    let source = std::fs::read_to_string(program).unwrap_or_default();
     // Common variables #401–#600 survive power-off: load them, store them after the run.
     let vars_file = state_dir.map(Path::to_path_buf).or_else(crate::persist::default_state_dir).map(|d| crate::persist::CommonVarsFile::new(&d, &cfg.machine.name));
     let mut interp = interp;
@@ -96,7 +126,98 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, state_dir: Option<
         );
         interp.set_tap_return(Some(st.tap_return()));
     }
-    let mut modbus = crate::drives::modbus::ModbusDrives::new(&cfg);
+    let job = Job {
+        name: program.display().to_string(),
+        source,
+        first: Some(interp),
+        make: Box::new(|_| Interpreter::from_file(program, &cfg)),
+    };
+    let mut opts = ExecOpts {
+        json,
+        print_summary: true,
+        extras: RunExtras {
+            trace,
+            rt: RtOptions { priority: rt.rt_priority, mlock: rt.mlock, cpu: rt.cpu },
+            tap: tap_file.map(|f| TapSetup { file: f.path, loaded: tap_state }),
+        },
+        operator: None,
+        pace: op.realtime,
+    };
+    let (code, vars, _) = with_operator(op, &mut opts, |opts| run_job(&cfg, &cfg_text, machine, job, opts));
+    if let (Some(f), Some(v)) = (&vars_file, vars) {
+        if let Err(a) = f.save(&v) {
+            eprintln!("{a}");
+            return if code == EXIT_OK { EXIT_SETUP } else { code };
+        }
+    }
+    code
+}
+
+/// Run `f` with the operator panel on the terminal when there is one (stdin and stderr are
+/// terminals and not `--batch`): raw keys read by a thread, the terminal restored after `f`
+/// whatever happens (an alarm, a panic, Ctrl-C — which is read as a key and presses reset).
+pub fn with_operator<R>(op: &OperatorArgs, opts: &mut ExecOpts, f: impl FnOnce(&mut ExecOpts) -> R) -> R {
+    use std::io::IsTerminal;
+    let tty = std::io::stdin().is_terminal() && std::io::stderr().is_terminal();
+    if op.batch || !tty {
+        return f(opts);
+    }
+    let guard = match super::term::RawMode::enter() {
+        Ok(g) => g,
+        Err(e) => {
+            eprintln!("warning: cannot read single keys from the terminal ({e}); running without the operator panel");
+            return f(opts);
+        }
+    };
+    let panel = crate::motion::panel::Panel::new();
+    super::term::spawn_key_reader(panel.clone());
+    super::term::catch_termination();
+    opts.operator = Some(panel);
+    // Simulated time is paced to the wall clock so that a person's keys land mid-program.
+    opts.pace = true;
+    let r = f(opts);
+    drop(guard);
+    r
+}
+
+/// The program of a run: the interpreter to run and how to make a fresh one for the start
+/// position (the slow-link check runs the program once more; `tap-test` writes its program
+/// only once the start position is known).
+pub struct Job<'a> {
+    /// For messages.
+    pub name: String,
+    /// The program text (the display shows the block in execution).
+    pub source: String,
+    /// The interpreter to run, if already made (checked, common variables loaded).
+    pub first: Option<Interpreter>,
+    #[allow(clippy::type_complexity)]
+    pub make: Box<dyn Fn(Pos) -> Result<Interpreter, Vec<crate::Alarm>> + 'a>,
+}
+
+/// Options of `run_job`.
+#[derive(Default)]
+pub struct ExecOpts<'a> {
+    pub json: bool,
+    /// Print the run's summary (table or JSON) on stdout.
+    pub print_summary: bool,
+    pub extras: RunExtras<'a>,
+    /// The operator panel the cycle loop reads (interactive run); None = batch.
+    pub operator: Option<crate::motion::panel::Panel>,
+    /// Pace simulated time to the wall clock.
+    pub pace: bool,
+}
+
+/// Open the machine's drives (`--config`, `--bus`) and run `job` on them. Returns the exit
+/// code, the common variables at the end, and the run's summary.
+#[allow(clippy::type_complexity)]
+pub fn run_job(
+    cfg: &MachineConfig,
+    cfg_text: &str,
+    machine: &MachineArgs,
+    job: Job,
+    opts: &ExecOpts,
+) -> (i32, Option<std::collections::HashMap<u32, f64>>, RunSummary) {
+    let mut modbus = crate::drives::modbus::ModbusDrives::new(cfg);
     let bus_name = machine.bus.clone().unwrap_or_else(|| cfg.bus.interface.clone());
     // The CANopen bus is opened only if an axis is on it.
     let mut can = None;
@@ -107,9 +228,9 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, state_dir: Option<
             eprintln!(
                 "error: the embedded emulated bus (inproc) is CANopen only and runs in simulated time; a machine with Modbus axes runs in real time: give the CANopen axes a real bus (--bus vcan0, --bus socketcand://HOST:PORT/can0) and start the Modbus drives (e.g. sim-drives --modbus-tcp ADDR)"
             );
-            return EXIT_SETUP;
+            return (EXIT_SETUP, None, RunSummary::default());
         }
-        match super::open_bus(&cfg, &cfg_text, machine.bus.as_deref()) {
+        match super::open_bus(cfg, cfg_text, machine.bus.as_deref()) {
             Ok((m, c, _, w)) => {
                 can = Some(m);
                 clock = c;
@@ -117,7 +238,7 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, state_dir: Option<
             }
             Err(e) => {
                 eprintln!("error: {e}");
-                return EXIT_SETUP;
+                return (EXIT_SETUP, None, RunSummary::default());
             }
         }
     }
@@ -139,20 +260,56 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, state_dir: Option<
         Ok(d) => d,
         Err(a) => {
             eprintln!("{a}");
-            return EXIT_SETUP;
+            return (EXIT_SETUP, None, RunSummary::default());
         }
     };
-    eprintln!("cncgw: {} on {}", program.display(), what.join(" + "));
-    let extras = RunExtras { trace, rt: RtOptions { priority: rt.rt_priority, mlock: rt.mlock, cpu: rt.cpu } };
-    let tap = tap_file.map(|f| (f, tap_state));
-    let (code, vars) = execute(&mut drives, &mut *clock, &cfg, program, interp, lines, json, &extras, tap);
-    if let (Some(f), Some(v)) = (&vars_file, vars) {
-        if let Err(a) = f.save(&v) {
-            eprintln!("{a}");
-            return if code == EXIT_OK { EXIT_SETUP } else { code };
-        }
+    let paced = opts.pace && clock.is_simulated();
+    eprintln!(
+        "cncgw: {} on {}{}",
+        job.name,
+        what.join(" + "),
+        if paced { ", simulated time paced to the wall clock" } else { "" }
+    );
+    if paced {
+        let mut p = Paced::new(&mut *clock);
+        execute(&mut drives, &mut p, cfg, job, opts)
+    } else {
+        execute(&mut drives, &mut *clock, cfg, job, opts)
     }
-    code
+}
+
+/// A simulated clock that never runs ahead of the wall clock: an interactive run on the
+/// embedded emulated machine happens at the speed a person sees, so feed hold lands
+/// mid-program. (Simulated time still decides everything the drives do; only its pace
+/// changes.)
+pub struct Paced<'c> {
+    inner: &'c mut dyn Clock,
+    wall0: std::time::Instant,
+    sim0: u64,
+}
+
+impl<'c> Paced<'c> {
+    pub fn new(inner: &'c mut dyn Clock) -> Self {
+        let sim0 = inner.now_ns();
+        Paced { inner, wall0: std::time::Instant::now(), sim0 }
+    }
+}
+
+impl Clock for Paced<'_> {
+    fn now_ns(&self) -> u64 {
+        self.inner.now_ns()
+    }
+    fn wait_until(&mut self, t_ns: u64) {
+        let due = self.wall0 + std::time::Duration::from_nanos(t_ns.saturating_sub(self.sim0));
+        let now = std::time::Instant::now();
+        if due > now {
+            std::thread::sleep(due - now);
+        }
+        self.inner.wait_until(t_ns)
+    }
+    fn is_simulated(&self) -> bool {
+        self.inner.is_simulated()
+    }
 }
 
 /// `cncgw trace plot FILE.csv -o FILE.svg`.
@@ -183,44 +340,58 @@ pub fn trace_plot(file: &Path, out: &Path) -> i32 {
     }
 }
 
-#[allow(clippy::too_many_arguments)] // one call site, from `run`
 fn execute(
     drives: &mut dyn DriveBus,
     clock: &mut dyn Clock,
     cfg: &MachineConfig,
-    program: &Path,
-    mut interp: Interpreter,
-    lines: u64,
-    json: bool,
-    extras: &RunExtras,
-    tap: Option<(crate::persist::TapStateFile, Option<crate::persist::TapState>)>,
-) -> (i32, Option<std::collections::HashMap<u32, f64>>) {
-    let spindle_drive = cfg.axes.values().position(|a| a.kind == AxisKind::Spindle);
+    mut job: Job,
+    opts: &ExecOpts,
+) -> (i32, Option<std::collections::HashMap<u32, f64>>, RunSummary) {
+    let extras = &opts.extras;
+    let json = opts.json;
+    let spindle_drive = cfg.spindle_index();
     let cycle_ns = (cfg.machine.cycle_ms * 1e6).round() as u64;
     let mut lp = CycleLoop::new(drives, clock, Limits::from_config(cfg), spindle_drive, cycle_ns);
+    if let Some(t) = crate::motion::polygon::ToolSpindle::from_config(cfg) {
+        lp.set_tool_spindle(t);
+    }
     if let Some(path) = extras.trace {
         match Trace::csv(path, lp.drive_names()) {
             Ok(t) => lp.set_trace(t),
             Err(e) => {
                 eprintln!("error: cannot write the trace {}: {e}", path.display());
-                return (EXIT_SETUP, None);
+                return (EXIT_SETUP, None, RunSummary::default());
             }
         }
+    }
+    if let Some(p) = &opts.operator {
+        lp.set_panel(p);
     }
     let mut summary = RunSummary::default();
     let start = match lp.start(&mut summary) {
         Ok(s) => s,
         Err(a) => {
             eprintln!("{a}");
-            return (EXIT_ALARM, None);
+            return (EXIT_ALARM, None, summary);
         }
     };
     let start_pos = Pos { x: start[AX_X], y: start[AX_Y], z: start[AX_Z], c: start[AX_S] };
+    let mut interp = match job.first.take().map(Ok).unwrap_or_else(|| (job.make)(start_pos)) {
+        Ok(i) => i,
+        Err(alarms) => {
+            lp.finish();
+            for a in &alarms {
+                eprintln!("{a}");
+            }
+            eprintln!("{} error(s); nothing was moved", alarms.len());
+            return (EXIT_PROGRAM_ERROR, None, summary);
+        }
+    };
     interp.set_start_position(start_pos);
     // The rigid-tap state: published by the cycle, written by its own thread (started
     // before the real-time setup below, so that it does not inherit it).
     let mut tap_writer = None;
-    if let Some((file, loaded)) = tap {
+    if let Some(TapSetup { file, loaded }) = extras.tap.clone() {
         if let Some(st) = loaded.filter(|s| s.in_hole) {
             let ax = match st.axis {
                 'X' => AX_X,
@@ -238,6 +409,7 @@ fn execute(
             );
         }
         let slot = crate::motion::tapstate::TapSlot::new(loaded);
+        let file = crate::persist::TapStateFile { path: file };
         match crate::motion::tapstate::TapPersister::spawn(file, slot.clone(), std::time::Duration::from_millis(TAP_STATE_PERIOD_MS), loaded) {
             Ok(w) => {
                 lp.set_tap_watch(crate::motion::tapstate::TapWatch::new(slot, Some(w.thread()), &start, loaded));
@@ -246,7 +418,7 @@ fn execute(
             Err(e) => {
                 eprintln!("error: cannot start the rigid-tap state writer: {e}");
                 lp.finish();
-                return (EXIT_SETUP, None);
+                return (EXIT_SETUP, None, summary);
             }
         }
     }
@@ -262,10 +434,10 @@ fn execute(
         }
     }
     if !slow.is_empty() {
-        if let Err(a) = check_links(program, cfg, &slow, start_pos) {
+        if let Err(a) = check_links(&job, cfg, &slow, start_pos) {
             lp.finish();
             eprintln!("{a}");
-            return (EXIT_ALARM, None);
+            return (EXIT_ALARM, None, summary);
         }
     }
     let (tx, rx) = std::sync::mpsc::sync_channel(256);
@@ -287,14 +459,21 @@ fn execute(
         Err(e) => {
             eprintln!("error: cannot start the interpreter thread: {e}");
             lp.finish();
-            return (EXIT_SETUP, None);
+            return (EXIT_SETUP, None, summary);
         }
     };
-    let bar = indicatif::ProgressBar::new(lines.max(1));
-    bar.set_style(
-        indicatif::ProgressStyle::with_template("{spinner} {elapsed_precise} line {pos}/{len} {wide_bar} {msg}")
-            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
-    );
+    let lines: Vec<&str> = job.source.lines().collect();
+    let mut display = match &opts.operator {
+        Some(p) => Display::Panel(super::term::PanelDisplay::new(p.clone(), &lines)),
+        None => {
+            let bar = indicatif::ProgressBar::new((lines.len() as u64).max(1));
+            bar.set_style(
+                indicatif::ProgressStyle::with_template("{spinner} {elapsed_precise} line {pos}/{len} {wide_bar} {msg}")
+                    .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+            );
+            Display::Bar(bar)
+        }
+    };
     // The cycle loop runs on this thread; set it up only now, so that the interpreter and
     // trace threads (already started) do not inherit the real-time policy or the pinning.
     for step in crate::motion::rt::apply(&extras.rt) {
@@ -303,17 +482,24 @@ fn execute(
             RtStep::Refused(m) => eprintln!("warning: {m}"),
         }
     }
-    let r = lp.run(start, rx, &mut summary, &mut |p| {
-        bar.set_position(p.line as u64);
-        bar.set_message(format!(
-            "X{:.3} Z{:.3} F{:.0} S{:.0}",
-            p.pos[AX_X] * 2.0,
-            p.pos[AX_Z],
-            p.feed,
-            p.spindle_rpm
-        ));
+    let r = lp.run(start, rx, &mut summary, &mut |p| match &mut display {
+        Display::Bar(bar) => {
+            bar.set_position(p.line as u64);
+            bar.set_message(format!(
+                "X{:.3} Z{:.3} F{:.0} S{:.0} sync {:.1} µm",
+                p.pos[AX_X] * 2.0,
+                p.pos[AX_Z],
+                p.feed,
+                p.spindle_rpm,
+                p.sync_err_um
+            ));
+        }
+        Display::Panel(d) => d.show(p),
     });
-    bar.finish_and_clear();
+    match display {
+        Display::Bar(bar) => bar.finish_and_clear(),
+        Display::Panel(mut d) => d.close(),
+    }
     lp.finish();
     let tap_failed = match tap_writer.map(|w| w.finish()) {
         Some(st) if st.failures > 0 => {
@@ -334,13 +520,17 @@ fn execute(
     let vars = producer.join().ok();
     let mut code = match r {
         Err(a) => {
-            print_summary(&summary, json);
+            if opts.print_summary {
+                print_summary(&summary, json);
+            }
             eprintln!("{a}");
             eprintln!("the program stopped at this alarm; the axes were brought to a controlled stop");
             EXIT_ALARM
         }
         Ok(()) => {
-            print_summary(&summary, json);
+            if opts.print_summary {
+                print_summary(&summary, json);
+            }
             if summary.at_program_end() {
                 EXIT_OK
             } else {
@@ -352,7 +542,7 @@ fn execute(
     if tap_failed && code == EXIT_OK {
         code = EXIT_SETUP;
     }
-    (code, vars)
+    (code, vars, summary)
 }
 
 /// How often the rigid-tap state is written while the tool moves in a hole (ms).
@@ -374,11 +564,16 @@ fn check_tap_return_program(program: &Path, cfg: &MachineConfig, st: &crate::per
     crate::motion::tapstate::check_return_first(st, pre)
 }
 
+enum Display {
+    Bar(indicatif::ProgressBar),
+    Panel(super::term::PanelDisplay),
+}
+
 /// Run the interpreter over the whole program once and check each synchronised move
 /// against the slow links (bounded: a program that never ends is checked as it runs up to
 /// two million moves).
-fn check_links(program: &Path, cfg: &MachineConfig, slow: &[crate::sync::link_check::SlowAxis], start: Pos) -> Result<(), crate::Alarm> {
-    let Ok(mut pre) = Interpreter::from_file(program, cfg) else { return Ok(()) };
+fn check_links(job: &Job, cfg: &MachineConfig, slow: &[crate::sync::link_check::SlowAxis], start: Pos) -> Result<(), crate::Alarm> {
+    let Ok(mut pre) = (job.make)(start) else { return Ok(()) };
     pre.set_start_position(start);
     let mut check = crate::sync::link_check::LinkCheck::new(slow, cfg.machine.sync_error_limit_um, start);
     for m in pre.take(2_000_000) {

@@ -1,8 +1,9 @@
 //! Service commands that change a drive's state or move an axis: `drive enable|disable|
 //! fault-reset|home`, `jog`; and the bus tools `buslog` and `monitor`.
 //!
-//! Anything that can set a motor in motion (enable, home, jog) on a real bus — anything but
-//! `inproc` — needs `--yes`, refused before the bus is opened (as `sdo write` does).
+//! Anything that can set a motor in motion (enable, home, jog, tap-test) on a real bus —
+//! anything but `inproc` — needs `--yes`, or the operator's typed `yes` on a terminal; it is
+//! refused before the bus is opened (as `sdo write` does).
 
 use super::diag::{sdo_error_text, EXIT_NODE, EXIT_OK, EXIT_SETUP, EXIT_USAGE};
 use super::{load_config, open_session, open_session_with, MachineArgs, Session};
@@ -26,17 +27,30 @@ fn effective_bus(machine: &MachineArgs) -> Result<String, String> {
     }
 }
 
-/// Refuse `what` on a real bus without `--yes`. Err = the exit code (message printed).
-fn confirm_motion(machine: &MachineArgs, yes: bool, what: &str) -> Result<(), i32> {
+/// On a real bus, `what` goes ahead only with `--yes` or, on a terminal, after the operator
+/// types `yes`; without a terminal it is refused. Err = the exit code (message printed).
+pub(crate) fn confirm_motion(machine: &MachineArgs, yes: bool, what: &str) -> Result<(), i32> {
+    use std::io::{BufRead, IsTerminal};
     let bus = effective_bus(machine).map_err(|e| {
         eprintln!("error: {e}");
         EXIT_SETUP
     })?;
-    if bus != "inproc" && !yes {
-        eprintln!("error: {what} can set a motor in motion on {bus}; make sure the axis is free to move and nobody is near it, then repeat with --yes");
+    if bus == "inproc" || yes {
+        return Ok(());
+    }
+    if std::io::stdin().is_terminal() && std::io::stderr().is_terminal() {
+        eprint!("{what} can set a motor in motion on {bus}. Is the axis free to move and nobody near it? Type yes to go on: ");
+        let _ = std::io::stderr().flush();
+        let mut answer = String::new();
+        let _ = std::io::stdin().lock().read_line(&mut answer);
+        if answer.trim().eq_ignore_ascii_case("yes") {
+            return Ok(());
+        }
+        eprintln!("not confirmed: nothing was moved");
         return Err(EXIT_USAGE);
     }
-    Ok(())
+    eprintln!("error: {what} can set a motor in motion on {bus}; make sure the axis is free to move and nobody is near it, then repeat with --yes");
+    Err(EXIT_USAGE)
 }
 
 fn open(machine: &MachineArgs) -> Result<Session, i32> {
@@ -313,6 +327,14 @@ pub fn jog(machine: &MachineArgs, axis: &str, to: Option<f64>, by: Option<f64>, 
     if let Err(c) = confirm_motion(machine, yes, &format!("jogging axis {axis}")) {
         return c;
     }
+    match super::mbus::modbus_machine(machine) {
+        Ok(Some(cfg)) => return jog_program(machine, &cfg, axis, to, by, speed),
+        Ok(None) => {}
+        Err(e) => {
+            eprintln!("error: {e}");
+            return EXIT_SETUP;
+        }
+    }
     let mut s = match open(machine) {
         Ok(s) => s,
         Err(c) => return c,
@@ -323,8 +345,13 @@ pub fn jog(machine: &MachineArgs, axis: &str, to: Option<f64>, by: Option<f64>, 
         return EXIT_USAGE;
     };
     if ax.modbus.is_some() {
-        eprintln!("error: axis {axis} is on a Modbus link; jog drives CANopen axes only");
-        return EXIT_USAGE;
+        match super::machine_config(machine) {
+            Ok((cfg, _)) => return jog_program(machine, &cfg, axis, to, by, speed),
+            Err(e) => {
+                eprintln!("error: {e}");
+                return EXIT_SETUP;
+            }
+        }
     }
     let node = ax.node;
     let Some(spec) = s.master.node_spec(node).cloned() else {
@@ -375,6 +402,64 @@ pub fn jog(machine: &MachineArgs, axis: &str, to: Option<f64>, by: Option<f64>, 
             eprintln!("error: {e}");
             EXIT_NODE
         }
+    }
+}
+
+/// Jog through the controller itself: a one-block program (`G98 G1 X|Z… F…`) run by the
+/// cycle loop on the machine's drives — how an axis on a Modbus link moves (Modbus has no
+/// profile position mode the master could hand the move to). Linear axes only.
+fn jog_program(machine: &MachineArgs, cfg: &crate::config::MachineConfig, axis: &str, to: Option<f64>, by: Option<f64>, speed: Option<f64>) -> i32 {
+    use crate::canon::Pos;
+    let Some(ax) = cfg.axes.get(axis).cloned() else {
+        let names: Vec<&str> = cfg.axes.keys().map(String::as_str).collect();
+        eprintln!("error: no axis `{axis}` in the configuration (axes: {})", names.join(", "));
+        return EXIT_USAGE;
+    };
+    if !matches!(axis, "x" | "z") || ax.kind != crate::config::AxisKind::Linear {
+        eprintln!("error: axis {axis}: a jog through the controller moves X or Z; turn a spindle with a program (M03 S…)");
+        return EXIT_USAGE;
+    }
+    let speed = speed.unwrap_or(ax.max_speed / 10.0);
+    if !(speed.is_finite() && speed > 0.0 && speed <= ax.max_speed) {
+        eprintln!("error: --speed {speed} must be above 0 and at most the axis's max_speed {}", ax.max_speed);
+        return EXIT_USAGE;
+    }
+    let from = std::cell::Cell::new(None::<f64>);
+    let target = std::cell::Cell::new(None::<f64>);
+    let job = super::run::Job {
+        name: format!("jog {axis}"),
+        source: String::new(),
+        first: None,
+        make: Box::new(|start: Pos| {
+            let here = if axis == "x" { start.x } else { start.z };
+            from.set(Some(here));
+            let t = match (to, by) {
+                (Some(t), None) => t,
+                (None, Some(d)) => here + d,
+                _ => f64::NAN,
+            };
+            let bad = |m: String| Err(vec![crate::Alarm::new(super::taptest::ALARM_TAP_PLAN, m)]);
+            if !t.is_finite() {
+                return bad("give exactly one of --to POS and --by DIST".into());
+            }
+            if ax.min.is_some_and(|lo| t < lo) || ax.max.is_some_and(|hi| t > hi) {
+                return bad(format!("{t} mm is outside axis {axis}'s travel {:?} … {:?} mm (axes.{axis}.min/max)", ax.min, ax.max));
+            }
+            target.set(Some(t));
+            let word = if axis == "x" { format!("X{:.4}", t * 2.0) } else { format!("Z{t:.4}") };
+            crate::interp::Interpreter::from_source("jog.nc", &format!("G21\nG98\nG1 {word} F{speed}\nM30\n"), cfg)
+        }),
+    };
+    let opts = super::run::ExecOpts { print_summary: false, ..Default::default() };
+    let (code, _, summary) = super::run::run_job(cfg, "", machine, job, &opts);
+    let end = summary.axes.iter().find(|a| a.name == axis).map(|a| a.final_actual_counts as f64 / a.counts_per_unit);
+    match (code, from.get(), target.get(), end) {
+        (0, Some(f), Some(t), Some(e)) => {
+            println!("axis {axis} (unit {}): {f:.4} → {e:.4} mm (target {t:.4})", ax.node);
+            EXIT_OK
+        }
+        (0, ..) => EXIT_NODE,
+        (c, ..) => c,
     }
 }
 
@@ -538,32 +623,77 @@ impl CanBus for CountingBus {
     }
 }
 
-/// One drive's line of the monitor table.
-fn monitor_row(s: &mut Session, node: u8) -> String {
+/// One drive's values as the monitor reads them.
+struct MonitorRow {
+    node: u8,
+    axis: String,
+    /// Statusword, or why the node did not answer.
+    sw: Result<u16, String>,
+    mode: Option<i8>,
+    pos: Option<f64>,
+    vel: Option<f64>,
+    ferr: Option<f64>,
+}
+
+fn monitor_read(s: &mut Session, node: u8) -> MonitorRow {
     let spec = s.master.node_spec(node).cloned();
     let axis = spec.as_ref().map(|n| n.axis.clone()).unwrap_or_else(|| "-".into());
     let cpu = spec.as_ref().map(|n| n.counts_per_unit).unwrap_or(1.0);
-    let sw = match read_int(s, node, od::STATUSWORD, 2) {
-        Ok(v) => v as u16,
+    let mut row = MonitorRow { node, axis, sw: Ok(0), mode: None, pos: None, vel: None, ferr: None };
+    match read_int(s, node, od::STATUSWORD, 2) {
+        Ok(v) => row.sw = Ok(v as u16),
+        Err(e) => {
+            row.sw = Err(e);
+            return row;
+        }
+    }
+    row.mode = read_int(s, node, od::MODES_DISPLAY, 1).ok().map(|m| m as i8);
+    let mut units = |ix: u16| read_int(s, node, ix, 4).ok().map(|c| c as f64 / cpu);
+    row.pos = units(od::POSITION_ACTUAL);
+    row.vel = units(od::VELOCITY_ACTUAL);
+    row.ferr = units(od::FOLLOWING_ERROR_ACTUAL);
+    row
+}
+
+/// One drive's line of the monitor table.
+fn monitor_line(r: &MonitorRow) -> String {
+    let (node, axis) = (r.node, &r.axis);
+    let sw = match &r.sw {
+        Ok(v) => *v,
         Err(e) => return format!("{node:>4} {axis:<5} no answer: {e}"),
     };
     let st = State::from_statusword(sw);
-    let m = read_int(s, node, od::MODES_DISPLAY, 1).ok().map(|m| m as i8);
-    let mut units = |ix: u16| read_int(s, node, ix, 4).ok().map(|c| format!("{:.4}", c as f64 / cpu)).unwrap_or_else(|| "-".into());
-    let pos = units(od::POSITION_ACTUAL);
-    let vel = units(od::VELOCITY_ACTUAL);
-    let ferr = units(od::FOLLOWING_ERROR_ACTUAL);
-    let mode = m.map(|m| format!("{m} {}", mode::name(m))).unwrap_or_else(|| "-".into());
-    format!("{node:>4} {axis:<5} 0x{sw:04X} {:<22} {mode:<26} {pos:>12} {vel:>12} {ferr:>10}", st.name())
+    let f = |v: Option<f64>| v.map(|v| format!("{v:.4}")).unwrap_or_else(|| "-".into());
+    let mode = r.mode.map(|m| format!("{m} {}", mode::name(m))).unwrap_or_else(|| "-".into());
+    format!("{node:>4} {axis:<5} 0x{sw:04X} {:<22} {mode:<26} {:>12} {:>12} {:>10}", st.name(), f(r.pos), f(r.vel), f(r.ferr))
+}
+
+fn monitor_json(r: &MonitorRow) -> serde_json::Value {
+    match &r.sw {
+        Ok(sw) => serde_json::json!({
+            "node": r.node, "axis": r.axis, "statusword": format!("0x{sw:04X}"),
+            "state": State::from_statusword(*sw).name(), "mode": r.mode, "mode_name": r.mode.map(mode::name),
+            "position": r.pos, "velocity_per_s": r.vel, "following_error": r.ferr, "error": null,
+        }),
+        Err(e) => serde_json::json!({"node": r.node, "axis": r.axis, "error": e}),
+    }
 }
 
 /// `cncgw monitor`.
-pub fn monitor(machine: &MachineArgs, seconds: Option<f64>, once: bool, interval_ms: u64) -> i32 {
+pub fn monitor(machine: &MachineArgs, seconds: Option<f64>, once: bool, interval_ms: u64, json: bool) -> i32 {
     use std::io::IsTerminal;
     if let Some(n) = seconds {
         if !(n.is_finite() && n > 0.0) {
             eprintln!("error: --seconds must be a positive number");
             return EXIT_USAGE;
+        }
+    }
+    match super::mbus::modbus_machine(machine) {
+        Ok(Some(cfg)) => return super::mbus::monitor(&cfg, seconds, once, interval_ms, json),
+        Ok(None) => {}
+        Err(e) => {
+            eprintln!("error: {e}");
+            return EXIT_SETUP;
         }
     }
     let bits = Arc::new(AtomicU64::new(0));
@@ -594,13 +724,36 @@ pub fn monitor(machine: &MachineArgs, seconds: Option<f64>, once: bool, interval
             "{:>4} {:<5} {:<6} {:<22} {:<26} {:>12} {:>12} {:>10}",
             "node", "axis", "sw", "state", "mode", "position", "velocity/s", "ferr"
         )];
-        for &n in &nodes {
-            lines.push(monitor_row(&mut s, n));
-        }
+        let rows: Vec<MonitorRow> = nodes.iter().map(|&n| monitor_read(&mut s, n)).collect();
+        lines.extend(rows.iter().map(monitor_line));
         let now = s.clock.now_ns();
         let dt = (now - since).max(1) as f64 * 1e-9;
         let load = bits.swap(0, Ordering::Relaxed) as f64 / (bitrate as f64 * dt);
         since = now;
+        if json {
+            // One JSON object per refresh (JSON lines), never redrawn in place.
+            let v = serde_json::json!({
+                "t_s": (now - t0) as f64 * 1e-9,
+                "bus": s.bus,
+                "simulated": s.simulated,
+                "bus_load": load,
+                "bitrate": bitrate,
+                "load_window_s": dt,
+                "drives": rows.iter().map(monitor_json).collect::<Vec<_>>(),
+            });
+            if writeln!(out, "{v}").and_then(|_| out.flush()).is_err() {
+                return EXIT_OK;
+            }
+            if once {
+                return EXIT_OK;
+            }
+            let next = s.clock.now_ns() + interval;
+            if end.is_some_and(|e| next > e) {
+                return EXIT_OK;
+            }
+            s.master.listen(&mut *s.clock, interval / MS);
+            continue;
+        }
         lines.push(format!(
             "bus {} load {:.2} % ({} bit/s; frames sent and heard by this tool over the last {:.2} s)",
             s.bus,

@@ -82,8 +82,11 @@
 #![allow(clippy::needless_range_loop)]
 
 pub mod cycle;
+mod fault;
 pub mod geom;
 pub mod panel;
+mod polar;
+pub mod polygon;
 pub mod profile;
 pub mod rt;
 pub mod tapstate;
@@ -186,6 +189,8 @@ pub struct Setpoint {
     pub line: u32,
     /// Reached this cycle (M00/M01 stops, M30 end, aux codes).
     pub event: Event,
+    /// Tool spindle angle setpoint, degrees (G51.2 polygon turning; see `polygon.rs`).
+    pub tool_spindle: f64,
 }
 
 /// Machine limits as the interpolator uses them (SI-ish: units/s, units/s²).
@@ -230,6 +235,11 @@ pub struct Limits {
     /// last setpoint put it). Threads predict the spindle angle this far ahead, the sync
     /// correction pairs feedback with setpoints by it. 1 ..= 3.
     pub feedback_delay: usize,
+    /// No.5275: cycles by which a flexible tap's axis lags the spindle encoder (compensated).
+    pub flex_lag_cycles: f64,
+    /// No.5276 (0.1 rpm units, here rpm): a flexible tap's retract starts once the encoder
+    /// shows the reversed spindle at this speed; 0 = at once.
+    pub flex_retract_rpm: f64,
 }
 
 impl Limits {
@@ -252,8 +262,13 @@ impl Limits {
             tap_retract_accel: f64::INFINITY,
             sync_correction: true,
             feedback_delay: FEEDBACK_DELAY,
+            flex_lag_cycles: cfg.param(5275).filter(|n| n.is_finite() && *n > 0.0).unwrap_or(0.0),
+            flex_retract_rpm: cfg.param(5276).filter(|n| n.is_finite() && *n > 0.0).map_or(0.0, |n| n * 0.1),
         };
         for (name, a) in &cfg.axes {
+            if a.role == Some(crate::config::AxisRole::ToolSpindle) {
+                continue; // polygon turning's tool spindle: see polygon::ToolSpindle
+            }
             let i = match (a.kind, name.to_ascii_lowercase().as_str()) {
                 (AxisKind::Linear, "x") => AX_X,
                 (AxisKind::Linear, "y") => AX_Y,
@@ -385,6 +400,10 @@ enum Item {
     Thread(ThreadSeg),
     Tap(TapSeg),
     Rigid(RigidSeg),
+    /// G12.1 polar coordinate interpolation (see `polar.rs`).
+    Polar(polar::PolarSeg),
+    /// G51.2 (Some) / G50.2 (None): the tool spindle's synchronisation (see `polygon.rs`).
+    Polygon(Option<crate::canon::PolygonCmd>),
     Dwell(u64),
     Spindle(SpindleCmd),
     Event(Event),
@@ -466,6 +485,8 @@ enum Run {
     /// G92.1: waiting for the spindle to stop (`theta0` None), then the stroke from the
     /// spindle angle `theta0`.
     Rigid { seg: RigidSeg, theta0: Option<f64>, s: f64, v: f64, landed: bool },
+    /// G12.1: braking the spindle, aligning C, then on the virtual path (see `polar.rs`).
+    Polar(polar::PolarRun),
 }
 
 /// A fault found while executing (reported by [`Motion::take_alarm`]; `step` cannot return
@@ -554,6 +575,12 @@ pub struct Motion {
     /// Single block: a drilling-cycle item ended; whether to stop is decided against the next
     /// item (see `single_block_stop`).
     sb_pending: bool,
+    /// The measured spindle speed of the last cycle (flexible tapping's lag compensation).
+    fb_rpm_prev: f64,
+    /// A drive of the running synchronised pair faulted: the survivor follows it (`fault.rs`).
+    follow: Option<fault::Follow>,
+    /// The tool spindle of polygon turning (absent unless `set_tool_spindle`).
+    tool: polygon::ToolSync,
 }
 
 fn xyz(p: &Pos) -> [f64; 3] {
@@ -596,6 +623,9 @@ impl Motion {
             cur_cyc: CycStep::default(),
             plan_cyc: CycStep::default(),
             sb_pending: false,
+            fb_rpm_prev: 0.0,
+            follow: None,
+            tool: polygon::ToolSync::none(),
             sp_dir: 0.0,
             sp_rpm: 0.0,
             sp_css: None,
@@ -666,7 +696,15 @@ impl Motion {
                 Item::Thread(self.thread_seg(end, *lead, *start_angle, *lead_inc, *continuous).map_err(at)?)
             }
             MoveKind::RigidThread { end, lead, rpm } => Item::Rigid(self.rigid_seg(end, *lead, *rpm).map_err(at)?),
-            MoveKind::Tap { end, lead, rpm } => {
+            // One spindle is driven (the first configured): a tap on another (E2–E4, M25–M27)
+            // is refused before anything moves.
+            MoveKind::Tap { spindle, .. } if *spindle != 1 => {
+                return Err(at(Alarm::new(
+                    alarms::UNSUPPORTED,
+                    format!("rigid tap on spindle {spindle}: this machine drives one spindle (spindle 1); select it with E1 (or M24), or remove E / M25–M27"),
+                )))
+            }
+            MoveKind::Tap { end, lead, rpm, .. } => {
                 let mut t = self.tap_seg(end, *lead, *rpm).map_err(at)?;
                 // G30 P99, the return from an interrupted tap, pulls out from where the tool is.
                 t.retract |= m.tag.as_ref().is_some_and(|g| &*g.cycle == "G30 P99");
@@ -685,18 +723,10 @@ impl Motion {
             MoveKind::Aux { letter, value } => Item::Event(Event::Aux { letter: *letter, value: *value }),
             MoveKind::Stop { optional } => Item::Event(Event::Stop { optional: *optional }),
             MoveKind::End { .. } => Item::Event(Event::End),
-            MoveKind::Polar { .. } => {
-                return Err(at(Alarm::new(
-                    alarms::UNSUPPORTED,
-                    "G12.1 polar coordinate interpolation needs X–C contouring (the spindle as a Cs axis interpolated with X, cartesian→polar every cycle), which this motion layer does not execute yet; run the program in `cncgw plan`/`preview` only",
-                )))
-            }
-            MoveKind::Polygon(_) => {
-                return Err(at(Alarm::new(
-                    alarms::UNSUPPORTED,
-                    "G51.2/G50.2 polygon turning needs a second (tool) spindle synchronised to the work spindle; the configuration and this motion layer have none: add the tool spindle axis and its synchronisation, or remove G51.2",
-                )))
-            }
+            MoveKind::Polar { end, from, to, center, cw, c_zero, feed } => Item::Polar(
+                self.polar_seg(end, *from, *to, *center, *cw, *c_zero, feed, m.work_offset.x, m.exact_stop).map_err(at)?,
+            ),
+            MoveKind::Polygon(cmd) => Item::Polygon(self.check_polygon(cmd).map_err(at)?),
         };
         let mut item = item;
         // Accepted: commit the planning state.
@@ -730,6 +760,20 @@ impl Motion {
                 // Like rigid tapping, G92.1 leaves the spindle stopped, in position control.
                 self.plan_spindle_on = false;
                 self.plan_rpm = None;
+            }
+            Item::Polar(_) => {
+                self.plan_tap = None;
+                if let Some(e) = m.kind.end() {
+                    self.plan_end = xyz(&e);
+                    self.plan_c = Some(e.c);
+                }
+                // The spindle is the C axis: stopped, in position control, until M03/M04.
+                self.plan_spindle_on = false;
+                self.plan_rpm = None;
+            }
+            Item::Polygon(Some(c)) => {
+                self.plan_spindle_on = true;
+                self.plan_rpm = Some(c.rpm);
             }
             Item::Tap(t) => {
                 self.plan_tap = match self.plan_tap {
@@ -1346,7 +1390,8 @@ impl Motion {
         };
         let target = if self.stopping { 0.0 } else { self.sp_dir * mag.min(machine_max) };
         self.sp_target = target;
-        let step = self.lim.amax[AX_S] / 6.0 * dt;
+        // In polygon turning the tool spindle must keep up with the ratio (polygon.rs).
+        let step = self.lim.amax[AX_S].min(self.tool.work_accel_cap()) / 6.0 * dt;
         let d = target - self.sp_cur;
         self.sp_cur = if d.abs() <= step { target } else { self.sp_cur + step.copysign(d) };
         self.pos[AX_S] += self.sp_cur * 6.0 * dt;
@@ -1375,12 +1420,28 @@ impl Motion {
         let v = match seg.speed {
             Speed::Rapid => seg.vlim * self.rapid_ovr,
             Speed::PerMin(f) => (f * self.feed_ovr).min(self.lim.feed_clamp),
+            Speed::PerRev(r) if self.cur_cyc.flex_tap_in_hole() => self.flex_tap_v(r, fb),
             Speed::PerRev(r) => {
                 let rpm = if fb.spindle_rpm.is_finite() { fb.spindle_rpm.abs() } else { 0.0 };
                 (r * rpm / 60.0 * self.feed_ovr).min(self.lim.feed_clamp)
             }
         };
         v.min(seg.vlim)
+    }
+
+    /// A flexible tap stroke (004 §2.22.3, manual 000 No.5275/5276): the tapping axis follows
+    /// the spindle encoder, one lead per revolution, whatever the feed override (note 3).
+    /// No.5275: the axis lags the encoder by that many cycles; compensated by following the
+    /// speed the encoder will read that many cycles on (extrapolated from the last change).
+    /// No.5276: the stroke out of the hole (action 5) waits until the encoder reads the
+    /// reversed spindle at that speed.
+    fn flex_tap_v(&self, lead: f64, fb: &Feedback) -> f64 {
+        let now = if fb.spindle_rpm.is_finite() { fb.spindle_rpm } else { 0.0 };
+        if self.cur_cyc.step == 5 && self.lim.flex_retract_rpm > 0.0 && now * self.sp_dir < self.lim.flex_retract_rpm {
+            return 0.0;
+        }
+        let ahead = now + self.lim.flex_lag_cycles * (now - self.fb_rpm_prev);
+        (lead * ahead.abs() / 60.0).min(self.lim.feed_clamp)
     }
 
     /// Advance one cycle. Never allocates; never panics; O(1).
@@ -1391,7 +1452,9 @@ impl Motion {
         let mut path_v = 0.0;
         self.monitor_sync(fb);
         // In a rigid-tap stroke the spindle is a position axis driven by the tap profile.
-        if !matches!(self.run, Run::Tap { theta0: Some(_), .. } | Run::Rigid { theta0: Some(_), .. }) {
+        if !matches!(self.run, Run::Tap { theta0: Some(_), .. } | Run::Rigid { theta0: Some(_), .. })
+            && !matches!(self.run, Run::Polar(r) if r.holds_spindle())
+        {
             self.step_spindle(dt);
         }
 
@@ -1430,11 +1493,18 @@ impl Motion {
                         self.run = Run::Rigid { seg, theta0: None, s: 0.0, v: 0.0, landed: false };
                     }
                     Item::Spindle(c) => self.apply_spindle(c),
+                    Item::Polar(seg) => {
+                        self.in_hole = false;
+                        self.run = Run::Polar(polar::PolarRun::new(seg));
+                    }
+                    Item::Polygon(c) => self.apply_polygon(c),
                     Item::Event(ev) => {
                         event = ev;
                         match ev {
                             Event::Stop { optional: false } => self.paused = true,
                             Event::Stop { optional: true } => self.paused = self.optional_stop,
+                            // M30/M02 reset polygon turning (G50.2 is the reset state).
+                            Event::End => self.tool.unlock(),
                             _ => {}
                         }
                     }
@@ -1443,6 +1513,7 @@ impl Motion {
         }
 
         match self.run {
+            _ if self.follow.is_some() => path_v = self.step_follow(fb, &prev),
             Run::None => {}
             Run::Move { landed: true, .. } => {
                 // Exact stop: one cycle at rest on the end point.
@@ -1545,6 +1616,7 @@ impl Motion {
                     Run::Rigid { seg, theta0: Some(th0), s: s2, v: nv, landed }
                 };
             }
+            Run::Polar(r) => path_v = self.step_polar(r),
             Run::Tap { seg, theta0, landed: true, .. } => {
                 // At rest on the stroke's end, spindle stopped in position.
                 self.sp_cur = 0.0;
@@ -1636,7 +1708,10 @@ impl Motion {
             self.sp_css = None;
         }
 
-        self.sync_corr(fb);
+        if !self.follow_corr() {
+            self.sync_corr(fb);
+        }
+        self.step_tool(fb.pos[AX_S], fb.spindle_rpm * 6.0);
         let mut out = self.pos;
         let mut vel = [0.0; N_AXES];
         for i in 0..3 {
@@ -1646,6 +1721,7 @@ impl Motion {
         self.hist_k = (self.hist_k + 1) % HIST;
         self.hist[self.hist_k] = out;
         vel[AX_S] = self.sp_cur * 6.0;
+        self.fb_rpm_prev = if fb.spindle_rpm.is_finite() { fb.spindle_rpm } else { 0.0 };
         Setpoint {
             pos: out,
             vel,
@@ -1653,6 +1729,7 @@ impl Motion {
             path_feed: path_v * 60.0,
             line: self.line,
             event,
+            tool_spindle: self.tool.pos(),
         }
     }
 
@@ -1919,7 +1996,7 @@ impl Motion {
     /// spindle may still turn: see `Setpoint::spindle_rpm`.)
     pub fn is_idle(&self) -> bool {
         // Not while a sync correction is still fading out: what is sent is not the end yet.
-        self.len == 0 && self.run == Run::None && !self.stopping && self.corr == [0.0; 3]
+        self.len == 0 && self.run == Run::None && !self.stopping && self.corr == [0.0; 3] && self.tool.at_rest()
     }
 
     /// Controlled stop: decelerate along the path within the acceleration limits, ramp the

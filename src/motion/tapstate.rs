@@ -384,7 +384,7 @@ mod tests {
     fn tap(line: u32, z: f64, lead: f64, rpm: f64, cycle: &str) -> Move {
         Move {
             src: SrcPos::new("t.nc".into(), line, 1),
-            kind: MoveKind::Tap { end: Pos::xz(0.0, z), lead, rpm },
+            kind: MoveKind::Tap { end: Pos::xz(0.0, z), lead, rpm, spindle: 1 },
             exact_stop: true,
             work_offset: Pos::ZERO,
             tag: Some(CycleTag { cycle: cycle.into(), step: 3 }),

@@ -94,7 +94,7 @@ pub fn run_moves(cfg: &MachineConfig, limits: Limits, moves: Vec<Move>, load: Op
     let wire = InprocBus::new();
     let mut world = sim_drives::SimWorld::new(&wire, sim_cfg);
     let mut master = CanOpenMaster::new(wire.endpoint(), cfg);
-    let spindle = cfg.axes.values().position(|a| a.kind == AxisKind::Spindle);
+    let spindle = cfg.spindle_index();
     let node_of = |k: AxisKind, name: Option<&str>| {
         cfg.axes.iter().find(|(n, a)| a.kind == k && name.is_none_or(|w| n.as_str() == w)).map(|(_, a)| (a.node, a.counts_per_unit))
     };
@@ -136,8 +136,8 @@ fn mv(line: u32, kind: MoveKind) -> Move {
 pub fn rigid_tap_moves(r_z: f64, bottom: f64, lead: f64, rpm: f64) -> Vec<Move> {
     vec![
         mv(1, MoveKind::Rapid { end: Pos::xz(0.0, r_z) }),
-        mv(2, MoveKind::Tap { end: Pos::xz(0.0, bottom), lead, rpm }),
-        mv(3, MoveKind::Tap { end: Pos::xz(0.0, r_z), lead, rpm }),
+        mv(2, MoveKind::Tap { end: Pos::xz(0.0, bottom), lead, rpm, spindle: 1 }),
+        mv(3, MoveKind::Tap { end: Pos::xz(0.0, r_z), lead, rpm, spindle: 1 }),
         mv(4, MoveKind::End { code: 30 }),
     ]
 }

@@ -104,6 +104,8 @@ pub struct CycleState {
     pub polygon: bool,
     /// No.721: the tool spindle's clamp speed in polygon turning (rpm).
     pub p721: Option<f64>,
+    /// The machine has a tool spindle (`role = "tool_spindle"`) for G51.2.
+    pub tool_spindle: bool,
     /// The C axis' speed limit (degrees/min) for §2.7 note 9: axis `c`'s max_speed, else the
     /// spindle's max_speed (rpm) × 360.
     pub c_max_deg_min: Option<f64>,
@@ -149,6 +151,7 @@ impl CycleState {
             p5146: p(5146).map(|v| v.clamp(0.0, 99999.0) as u32).unwrap_or(0),
             polygon: false,
             p721: p(721),
+            tool_spindle: cfg.tool_spindle().is_some(),
             c_max_deg_min: cfg
                 .axes
                 .get("c")

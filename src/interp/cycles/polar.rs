@@ -92,6 +92,13 @@ impl Interpreter {
         if d.g.len() > 1 || !d.m.is_empty() || d.letters().any(|l| !matches!(l, 'P' | 'Q' | 'R' | 'S')) {
             return Err((10, col, format!("{} must be alone in its block, with P Q R S only (§2.8 note 1)", gcode::gname(g))));
         }
+        if !self.cyc.tool_spindle {
+            return Err((
+                crate::motion::polygon::NO_TOOL_SPINDLE,
+                col,
+                format!("{}: polygon turning needs a tool spindle, and this machine's config has none; add an axis with kind = \"spindle\" and role = \"tool_spindle\" (see config/lathe-polygon.toml) or remove the polygon turning blocks", gcode::gname(g)),
+            ));
+        }
         if g == 502 {
             self.cyc.polygon = false;
             self.push(src, MoveKind::Polygon(None), true);

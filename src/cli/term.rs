@@ -1,0 +1,242 @@
+//! The operator panel on a terminal: single keys without Enter (raw mode through termios),
+//! pressed onto a [`Panel`] the cycle loop reads every cycle, and a status display redrawn
+//! in place.
+//!
+//! Keys (as on a Fanuc 0i-TF's machine operator panel, one key per button):
+//! `h` feed hold, `s` cycle start, `b` single block on/off, `o` optional stop (M01) on/off,
+//! `+`/`-` feed override ±10 % (0–200 %), `r` reset, `e` E-stop, Ctrl-C = reset.
+//!
+//! The terminal is restored on every way out: `RawMode` restores it when dropped (normal
+//! end, alarm, panic unwinding); Ctrl-C arrives as a key (ISIG is off) and presses reset, so
+//! the run ends through its controlled stop and the guard; SIGTERM and SIGHUP press reset
+//! too (`catch_termination`).
+
+use crate::motion::cycle::Progress;
+use crate::motion::panel::Panel;
+use crate::motion::{AX_X, AX_Z};
+use std::io::Write;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+/// The terminal in raw-ish mode (no line buffering, no echo, no signals from keys) while
+/// alive; the saved settings come back on drop.
+pub struct RawMode {
+    saved: libc::termios,
+}
+
+impl RawMode {
+    /// Switch stdin to single keys. Err if stdin is not a terminal.
+    pub fn enter() -> std::io::Result<RawMode> {
+        // SAFETY: tcgetattr/tcsetattr on fd 0 with a termios we own; zeroed is a valid
+        // termios bit pattern and is overwritten by tcgetattr.
+        unsafe {
+            let mut t: libc::termios = std::mem::zeroed();
+            if libc::tcgetattr(0, &mut t) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            let saved = t;
+            // Output processing (OPOST) stays on, so '\n' still returns the carriage.
+            t.c_lflag &= !(libc::ICANON | libc::ECHO | libc::ISIG | libc::IEXTEN);
+            t.c_iflag &= !(libc::IXON | libc::ICRNL);
+            t.c_cc[libc::VMIN] = 1;
+            t.c_cc[libc::VTIME] = 0;
+            if libc::tcsetattr(0, libc::TCSANOW, &t) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            Ok(RawMode { saved })
+        }
+    }
+}
+
+impl Drop for RawMode {
+    fn drop(&mut self) {
+        // SAFETY: restores the settings read in `enter` on the same fd.
+        unsafe {
+            libc::tcsetattr(0, libc::TCSANOW, &self.saved);
+        }
+    }
+}
+
+/// What a key does to the panel. Returns false for keys without a meaning.
+pub fn press(panel: &Panel, key: u8) -> bool {
+    match key {
+        b'h' | b'H' => panel.press_feed_hold(),
+        b's' | b'S' => panel.press_cycle_start(),
+        b'b' | b'B' => panel.set_single_block(!panel.single_block()),
+        b'o' | b'O' => {
+            let on = OPTIONAL_STOP.fetch_xor(true, Ordering::Relaxed);
+            panel.set_optional_stop(!on);
+        }
+        b'+' | b'=' => panel.set_feed_override((panel.feed_override() + 10).min(200)),
+        b'-' | b'_' => panel.set_feed_override(panel.feed_override().saturating_sub(10)),
+        b'r' | b'R' | 0x03 => panel.press_reset(),
+        b'e' | b'E' => panel.set_estop(true),
+        _ => return false,
+    }
+    true
+}
+
+/// The panel has no getter for optional stop; the switch's position is kept here.
+static OPTIONAL_STOP: AtomicBool = AtomicBool::new(false);
+/// Set by SIGTERM/SIGHUP; the display presses reset when it sees it.
+static TERMINATE: AtomicBool = AtomicBool::new(false);
+
+/// Read keys from stdin on a thread of their own and press them onto `panel`. The thread
+/// ends at end of input; a thread still waiting for a key when the run is over simply ends
+/// with the process.
+pub fn spawn_key_reader(panel: Panel) {
+    let _ = std::thread::Builder::new().name("keys".into()).spawn(move || {
+        let mut b = [0u8; 16];
+        loop {
+            // SAFETY: read into a buffer we own, of its length.
+            let n = unsafe { libc::read(0, b.as_mut_ptr().cast(), b.len()) };
+            if n == 0 {
+                return;
+            }
+            if n < 0 {
+                if std::io::Error::last_os_error().kind() == std::io::ErrorKind::Interrupted {
+                    continue;
+                }
+                return;
+            }
+            for &k in &b[..n as usize] {
+                press(&panel, k);
+            }
+        }
+    });
+}
+
+extern "C" fn on_terminate(_sig: libc::c_int) {
+    TERMINATE.store(true, Ordering::Relaxed);
+}
+
+/// SIGTERM and SIGHUP (systemd stop, a closed terminal) press reset instead of killing the
+/// process: the axes stop under control and the terminal is restored.
+pub fn catch_termination() {
+    // SAFETY: the handler only stores to an atomic (async-signal-safe).
+    unsafe {
+        libc::signal(libc::SIGTERM, on_terminate as *const () as libc::sighandler_t);
+        libc::signal(libc::SIGHUP, on_terminate as *const () as libc::sighandler_t);
+    }
+}
+
+/// The interactive run's status, redrawn in place on stderr: the block in execution, the
+/// position, F, S, sync error, overrides and the panel's state, with the keys underneath.
+pub struct PanelDisplay {
+    panel: Panel,
+    lines: Vec<String>,
+    shown: bool,
+}
+
+/// The help line under the status.
+pub const HELP: &str = "keys: h feed hold  s cycle start  b single block  o optional stop  +/- feed override  r reset  e E-stop  (Ctrl-C = reset)";
+
+impl PanelDisplay {
+    pub fn new(panel: Panel, lines: &[&str]) -> Self {
+        PanelDisplay { panel, lines: lines.iter().map(|l| l.trim().to_string()).collect(), shown: false }
+    }
+
+    /// The status text of one progress report (two lines, no newline at the end).
+    pub fn status(&self, p: &Progress) -> String {
+        let line = p.line;
+        let block = line.checked_sub(1).and_then(|i| self.lines.get(i as usize)).map(String::as_str).unwrap_or("");
+        let block: String = block.chars().take(60).collect();
+        let mut state = String::new();
+        if self.panel.is_held() {
+            state.push_str("  HELD (s = cycle start)");
+        }
+        if self.panel.single_block() {
+            state.push_str("  SINGLE BLOCK");
+        }
+        if OPTIONAL_STOP.load(Ordering::Relaxed) {
+            state.push_str("  OPT STOP");
+        }
+        format!(
+            "line {line:>4}/{}  {block}\nX{:>10.3} Z{:>10.3}  F{:>6.0}  S{:>5.0}  sync {:>6.1} µm  feed {:>3} %{state}",
+            self.lines.len(),
+            p.pos[AX_X] * 2.0,
+            p.pos[AX_Z],
+            p.feed,
+            p.spindle_rpm,
+            p.sync_err_um,
+            self.panel.feed_override(),
+        )
+    }
+
+    /// Redraw with `p` (called about every 50 ms of machine time).
+    pub fn show(&mut self, p: &Progress) {
+        if TERMINATE.swap(false, Ordering::Relaxed) {
+            self.panel.press_reset();
+        }
+        let mut out = String::new();
+        if self.shown {
+            // Back to the first of the three lines drawn last time.
+            out.push_str("\r\x1b[2A");
+        }
+        for l in self.status(p).lines().chain(std::iter::once(HELP)) {
+            out.push_str("\r\x1b[2K");
+            out.push_str(l);
+            out.push('\n');
+        }
+        let mut e = std::io::stderr().lock();
+        let _ = e.write_all(out.trim_end_matches('\n').as_bytes());
+        let _ = e.flush();
+        self.shown = true;
+    }
+
+    /// Leave the last status on screen and move below it.
+    pub fn close(&mut self) {
+        if self.shown {
+            eprintln!();
+        }
+        self.shown = false;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn keys_press_the_panel() {
+        let p = Panel::new();
+        let mut r = p.reader();
+        assert!(press(&p, b'h'));
+        assert!(r.poll().feed_hold);
+        assert!(press(&p, b's'));
+        assert!(r.poll().cycle_start);
+        press(&p, b'b');
+        assert!(p.single_block());
+        press(&p, b'b');
+        assert!(!p.single_block());
+        press(&p, b'-');
+        press(&p, b'-');
+        assert_eq!(p.feed_override(), 80);
+        for _ in 0..20 {
+            press(&p, b'+');
+        }
+        assert_eq!(p.feed_override(), 200);
+        press(&p, 0x03);
+        assert!(r.poll().reset, "Ctrl-C presses reset");
+        assert!(!press(&p, b'z'));
+        press(&p, b'e');
+        assert!(r.poll().estop);
+    }
+
+    #[test]
+    fn status_shows_block_and_state() {
+        let p = Panel::new();
+        let src = ["G0 X10 Z2", "G1 Z-20 F0.2", "M30"];
+        let d = PanelDisplay::new(p.clone(), &src);
+        let r = p.reader();
+        r.report(true, 2);
+        p.set_single_block(true);
+        let prog = Progress { line: 2, feed: 120.0, spindle_rpm: 800.0, sync_err_um: 1.5, ..Progress::default() };
+        let s = d.status(&prog);
+        assert!(s.contains("line    2/3  G1 Z-20 F0.2"), "{s}");
+        assert!(s.contains("HELD") && s.contains("SINGLE BLOCK") && s.contains("S  800") && s.contains("sync    1.5 µm"), "{s}");
+        r.report(false, 3);
+        p.set_single_block(false);
+        let s = d.status(&prog);
+        assert!(!s.contains("HELD") && !s.contains("SINGLE"), "{s}");
+    }
+}

@@ -1,0 +1,117 @@
+//! The service commands on a Modbus bus (`--bus modbus-tcp://HOST:PORT`) against the
+//! `sim-drives --modbus-tcp` binary on loopback: scan, drive status, monitor (read-only, from
+//! the holding registers) and jog (through the controller's Modbus master), all parsed from
+//! `--json`. Real time: serialized in .config/nextest.toml. Needs the workspace's binaries
+//! (`cargo build --workspace --bins`).
+
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+struct Kill(Child);
+impl Drop for Kill {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+struct Out {
+    code: i32,
+    stdout: String,
+    stderr: String,
+}
+
+fn cncgw(args: &[&str]) -> Out {
+    let o = Command::new(env!("CARGO_BIN_EXE_cncgw")).args(args).output().expect("run cncgw");
+    Out { code: o.status.code().unwrap_or(-1), stdout: String::from_utf8_lossy(&o.stdout).into_owned(), stderr: String::from_utf8_lossy(&o.stderr).into_owned() }
+}
+
+fn json(o: &Out) -> serde_json::Value {
+    serde_json::from_str(o.stdout.trim()).unwrap_or_else(|e| panic!("not JSON ({e}): {}\n{}", o.stdout, o.stderr))
+}
+
+/// `sim-drives --modbus-tcp 127.0.0.1:PORT` (the default lathe's drives, units 1–3).
+fn sim_drives() -> (Kill, String) {
+    let bin = std::path::Path::new(env!("CARGO_BIN_EXE_cncgw")).with_file_name("sim-drives");
+    assert!(bin.exists(), "{} is missing: run `cargo build --workspace --bins` first", bin.display());
+    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let addr = format!("127.0.0.1:{port}");
+    let child = Command::new(bin).args(["--modbus-tcp", &addr]).stdout(Stdio::null()).stderr(Stdio::null()).spawn().unwrap();
+    let k = Kill(child);
+    let t0 = Instant::now();
+    while std::net::TcpStream::connect(&addr).is_err() {
+        assert!(t0.elapsed() < Duration::from_secs(10), "sim-drives did not listen on {addr}");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    (k, format!("modbus-tcp://{addr}"))
+}
+
+#[test]
+fn service_commands_on_modbus_tcp() {
+    let (_sim, bus) = sim_drives();
+    let b = bus.as_str();
+
+    let o = cncgw(&["scan", "--bus", b, "--json"]);
+    assert_eq!(o.code, 0, "{}", o.stderr);
+    let v = json(&o);
+    let nodes = v["nodes"].as_array().unwrap();
+    let units: Vec<u64> = nodes.iter().map(|n| n["unit"].as_u64().unwrap()).collect();
+    assert_eq!(units, [1, 2, 3]);
+    for n in nodes {
+        assert!(n["error"].is_null(), "{n}");
+        assert_eq!(n["state"], "Switch On Disabled", "{n}");
+        assert_eq!(n["profile"], "cia402");
+    }
+    // The table for a person.
+    let o = cncgw(&["scan", "--bus", b]);
+    assert_eq!(o.code, 0);
+    assert!(o.stdout.contains("Modbus TCP 127.0.0.1:") && o.stdout.contains("Switch On Disabled"), "{}", o.stdout);
+
+    let o = cncgw(&["drive", "status", "2", "--bus", b, "--json"]);
+    assert_eq!(o.code, 0, "{}", o.stderr);
+    let v = json(&o);
+    assert_eq!((v["axis"].as_str(), v["statusword"].as_str(), v["position"].as_f64()), (Some("z"), Some("0x0250"), Some(0.0)));
+    assert_eq!(v["bits"].as_array().unwrap().len(), 16);
+    let o = cncgw(&["drive", "status", "9", "--bus", b]);
+    assert_eq!(o.code, 2);
+    assert!(o.stderr.contains("no axis of the configuration has Modbus unit id 9"), "{}", o.stderr);
+
+    let o = cncgw(&["monitor", "--once", "--bus", b, "--json"]);
+    assert_eq!(o.code, 0, "{}", o.stderr);
+    assert_eq!(json(&o)["drives"].as_array().unwrap().len(), 3);
+
+    // Moving iron on a real bus needs --yes.
+    let o = cncgw(&["jog", "z", "--by", "-5", "--bus", b]);
+    assert_eq!(o.code, 2);
+    assert!(o.stderr.contains("--yes"), "{}", o.stderr);
+    let o = cncgw(&["jog", "z", "--by", "-5", "--speed", "600", "--bus", b, "--yes"]);
+    assert_eq!(o.code, 0, "{}\n{}", o.stdout, o.stderr);
+    assert!(o.stdout.starts_with("axis z (unit 2): 0.0000 → -"), "{}", o.stdout);
+    // The drives keep their position between commands: read it back from the registers.
+    let v = json(&cncgw(&["drive", "status", "2", "--bus", b, "--json"]));
+    let z = v["position"].as_f64().unwrap();
+    assert!((z + 5.0).abs() <= 2e-4, "Z at {z} after jogging by -5");
+    let o = cncgw(&["jog", "z", "--to", "10", "--bus", b, "--yes"]);
+    assert_eq!(o.code, 2, "{}", o.stderr);
+    assert!(o.stderr.contains("outside axis z's travel"), "{}", o.stderr);
+
+    // CANopen-only commands say so.
+    let o = cncgw(&["sdo", "read", "1", "0x6041", "0", "--bus", b]);
+    assert_eq!(o.code, 4);
+    assert!(o.stderr.contains("is a Modbus bus: this is a CANopen command"), "{}", o.stderr);
+}
+
+#[test]
+fn modbus_bus_errors_say_what_to_do() {
+    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let bus = format!("modbus-tcp://127.0.0.1:{port}");
+    let o = cncgw(&["scan", "--bus", &bus]);
+    assert_eq!(o.code, 4);
+    assert!(o.stderr.contains("sim-drives --modbus-tcp"), "{}", o.stderr);
+    let o = cncgw(&["scan", "--bus", "modbus-rtu:///dev/null-no-such-tty?baud=9600"]);
+    assert_eq!(o.code, 4);
+    assert!(o.stderr.contains("/dev/null-no-such-tty"), "{}", o.stderr);
+    let o = cncgw(&["scan", "--bus", "modbus-rtu:///dev/ttyUSB0?baud=fast"]);
+    assert_eq!(o.code, 4);
+    assert!(o.stderr.contains("baud=fast is not a number"), "{}", o.stderr);
+}

@@ -1,0 +1,134 @@
+//! The interactive `cncgw run` driven as a person drives it: in a terminal (Debian's tmux,
+//! detached; `send-keys` types, `capture-pane` reads the screen), on the embedded emulated
+//! machine paced to the wall clock. Start, feed hold, cycle start, single block, reset.
+//!
+//! Real time: serialized in .config/nextest.toml. tmux comes from
+//! scripts/install-test-deps.sh.
+
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+struct Tmux {
+    socket: String,
+}
+
+impl Tmux {
+    fn cmd(&self, args: &[&str]) -> String {
+        let o = Command::new("tmux")
+            .args(["-L", &self.socket])
+            .args(args)
+            .output()
+            .expect("tmux is not installed: run scripts/install-test-deps.sh");
+        assert!(o.status.success(), "tmux {args:?}: {}", String::from_utf8_lossy(&o.stderr));
+        String::from_utf8_lossy(&o.stdout).into_owned()
+    }
+    fn screen(&self) -> String {
+        self.cmd(&["capture-pane", "-p", "-t", "run"])
+    }
+    fn keys(&self, k: &str) {
+        self.cmd(&["send-keys", "-t", "run", k]);
+    }
+    /// Wait (up to 20 s) for the screen to satisfy `f`; the screen.
+    fn wait_for(&self, what: &str, f: impl Fn(&str) -> bool) -> String {
+        let t0 = Instant::now();
+        loop {
+            let s = self.screen();
+            if f(&s) {
+                return s;
+            }
+            assert!(t0.elapsed() < Duration::from_secs(20), "waited 20 s for {what}; the screen:\n{s}");
+            std::thread::sleep(Duration::from_millis(100));
+        }
+    }
+}
+
+impl Drop for Tmux {
+    fn drop(&mut self) {
+        let _ = Command::new("tmux").args(["-L", &self.socket, "kill-server"]).output();
+    }
+}
+
+/// Z on the status line `X    20.000 Z   -26.040  F …`.
+fn z_of(screen: &str) -> Option<f64> {
+    let l = screen.lines().find(|l| l.trim_start().starts_with('X') && l.contains(" Z"))?;
+    let mut t = l.split_whitespace();
+    t.find(|w| *w == "Z")?;
+    t.next()?.parse().ok()
+}
+
+#[test]
+fn interactive_run_feed_hold_resume_reset_in_tmux() {
+    let dir = std::env::temp_dir().join(format!("cncgw_cli_tmux_{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    // 100 mm at 600 mm/min: 10 s of feed, paced to the wall clock.
+    std::fs::write(dir.join("long.nc"), "G21\nG98\nG0 X20 Z2\nG1 Z-100 F600\nG1 X40\nG0 Z2\nM30\n").unwrap();
+    let sh = format!(
+        "cd {d} && {bin} run long.nc --state-dir {d}/state; echo EXIT=$?; sleep 60",
+        d = dir.display(),
+        bin = env!("CARGO_BIN_EXE_cncgw")
+    );
+    let t = Tmux { socket: format!("cncgw-test-{}", std::process::id()) };
+    t.cmd(&["new-session", "-d", "-s", "run", "-x", "160", "-y", "30", &sh]);
+
+    // It runs: the help line, the block in execution, Z going down.
+    let s = t.wait_for("the feed block", |s| s.contains("G1 Z-100 F600") && z_of(s).is_some_and(|z| z < -2.0));
+    assert!(s.contains("keys: h feed hold  s cycle start  b single block"), "{s}");
+    assert!(s.contains("line    4/7"), "{s}");
+    assert!(!s.contains("HELD"), "{s}");
+
+    // Feed hold: HELD on screen and Z stands still.
+    t.keys("h");
+    let s = t.wait_for("HELD", |s| s.contains("HELD"));
+    let z_held = z_of(&s).unwrap();
+    std::thread::sleep(Duration::from_millis(800));
+    let s = t.screen();
+    assert!(s.contains("HELD"), "{s}");
+    assert_eq!(z_of(&s), Some(z_held), "Z moved while held:\n{s}");
+    assert!(z_held > -100.0, "held at the end of the block? {z_held}");
+
+    // Cycle start: it moves on, down from where it stood.
+    t.keys("s");
+    let s = t.wait_for("the move to go on", |s| !s.contains("HELD") && z_of(s).is_some_and(|z| z < z_held - 1.0));
+    assert!(s.contains("line    4/7"), "{s}");
+
+    // Single block on and off shows on the status line.
+    t.keys("b");
+    t.wait_for("SINGLE BLOCK", |s| s.contains("SINGLE BLOCK"));
+    t.keys("b");
+    t.wait_for("single block off", |s| !s.contains("SINGLE BLOCK"));
+
+    // Reset: a controlled stop, alarm 2401 in words, exit code 3, terminal restored.
+    t.keys("r");
+    let s = t.wait_for("the end of the run", |s| s.contains("EXIT="));
+    assert!(s.contains("alarm 2401: reset by the operator at line 4"), "{s}");
+    assert!(s.contains("EXIT=3"), "{s}");
+    let z_end = z_of(&s).unwrap();
+    assert!(z_end > -100.0 && z_end < z_held - 1.0, "{z_end}");
+    // The shell echoes typed keys again (the terminal left raw mode).
+    t.keys("echo-check");
+    t.wait_for("the echo of typed keys", |s| s.contains("echo-check"));
+}
+
+/// Ctrl-C on an interactive run is reset (a controlled stop, not a kill): alarm 2401, exit
+/// code 3, and the terminal is back in its normal mode.
+#[test]
+fn ctrl_c_is_reset_and_restores_the_terminal() {
+    let dir = std::env::temp_dir().join(format!("cncgw_cli_tmux_c_{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(dir.join("long.nc"), "G21\nG98\nG0 X20 Z2\nG1 Z-100 F600\nM30\n").unwrap();
+    let sh = format!(
+        "cd {d} && {bin} run long.nc --state-dir {d}/state; echo EXIT=$?; stty -a | tr ' ;' '\\n\\n' | grep -x -e icanon -e echo -e -icanon -e -echo; sleep 60",
+        d = dir.display(),
+        bin = env!("CARGO_BIN_EXE_cncgw")
+    );
+    let t = Tmux { socket: format!("cncgw-test-c-{}", std::process::id()) };
+    t.cmd(&["new-session", "-d", "-s", "run", "-x", "160", "-y", "30", &sh]);
+    t.wait_for("the feed block", |s| s.contains("G1 Z-100 F600") && z_of(s).is_some_and(|z| z < -2.0));
+    t.keys("C-c");
+    let s = t.wait_for("the end of the run", |s| s.contains("EXIT="));
+    assert!(s.contains("alarm 2401: reset by the operator at line 4"), "{s}");
+    assert!(s.contains("EXIT=3"), "{s}");
+    // stty reports the restored modes: canonical input and echo on (no "-icanon"/"-echo").
+    let after = &s[s.find("EXIT=3").unwrap()..];
+    assert!(after.lines().any(|l| l.trim() == "icanon") && after.lines().any(|l| l.trim() == "echo"), "{after}");
+}
