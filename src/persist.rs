@@ -118,6 +118,133 @@ pub fn parse_common_vars(file: &str, text: &str) -> Result<HashMap<u32, f64>, Al
     Ok(out)
 }
 
+/// The rigid-tap state (manual 000, "刚性攻丝返回"): what `G30 P99` needs to bring a tap out of
+/// a hole after an interruption — reset, E-stop, feed hold abort or the controller dying. It is
+/// on disk while the tool is in the hole (written at the entry and every few ms while the tap
+/// runs, see `motion::tapstate`), and says "not in a hole" once the tool is back at R.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct TapState {
+    /// The tool is inside a tapped hole: a program other than `G30 P99` must not start.
+    pub in_hole: bool,
+    /// Tapping axis: `'X'`, `'Y'` or `'Z'`.
+    pub axis: char,
+    /// The R plane on that axis (machine mm, X as a radius).
+    pub r_plane: f64,
+    /// Direction into the hole along the axis (+1 or −1).
+    pub direction_in: f64,
+    /// Lead, signed as in `canon::MoveKind::Tap` (the spindle turns forward going in).
+    pub lead: f64,
+    /// Tapping spindle speed going in (rpm).
+    pub rpm: f64,
+    /// Pull-out override of the hole (%; 100 when the hole's return was not planned yet).
+    pub override_pct: f64,
+    /// Actual position on the tapping axis (mm) and actual spindle angle (degrees, as the
+    /// master unwraps it) at one instant: a point of the thread. With `lead` it is the
+    /// thread's phase, against which a restart can check where the spindle stands.
+    pub position: f64,
+    pub spindle_deg: f64,
+    /// Source line of the tap.
+    pub line: u32,
+}
+
+impl TapState {
+    /// What the interpreter's `G30 P99` returns along.
+    pub fn tap_return(&self) -> crate::canon::TapReturn {
+        // Spindle 1: the only one motion taps with (it refuses a tap on another, alarm 2304).
+        crate::canon::TapReturn { axis: self.axis, r_plane: self.r_plane, lead: self.lead, rpm: self.rpm, override_pct: self.override_pct, spindle: 1 }
+    }
+
+    /// How far (degrees) the spindle at `spindle_deg` stands from the stored thread when the
+    /// tapping axis is at `position`: 0 when nothing turned the spindle against the axis.
+    pub fn phase_error_deg(&self, position: f64, spindle_deg: f64) -> f64 {
+        spindle_deg - (self.spindle_deg + 360.0 * (position - self.position) / self.lead)
+    }
+}
+
+/// The rigid-tap state file of one machine (beside its common variables).
+pub struct TapStateFile {
+    pub path: PathBuf,
+}
+
+impl TapStateFile {
+    pub fn new(dir: &Path, machine_name: &str) -> Self {
+        TapStateFile { path: dir.join(format!("{}.tap-state.toml", slug(machine_name))) }
+    }
+
+    /// The stored state; None if there is no file (no tap was ever interrupted or finished).
+    pub fn load(&self) -> Result<Option<TapState>, Alarm> {
+        self.remove_stale_temporaries();
+        let text = match std::fs::read_to_string(&self.path) {
+            Ok(t) => t,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+            Err(e) => return Err(Alarm::new(STATE_ALARM, format!("{}: cannot read the rigid-tap state: {e}", self.path.display()))),
+        };
+        parse_tap_state(&self.path.display().to_string(), &text).map(Some)
+    }
+
+    /// Temporary files of writers killed mid-write (`atomic_write` names them
+    /// `.NAME.PID.SEQ.tmp`); those of live processes are left alone.
+    fn remove_stale_temporaries(&self) {
+        let (Some(dir), Some(name)) = (self.path.parent(), self.path.file_name()) else { return };
+        let prefix = format!(".{}.", name.to_string_lossy());
+        let Ok(entries) = std::fs::read_dir(if dir.as_os_str().is_empty() { Path::new(".") } else { dir }) else { return };
+        for e in entries.flatten() {
+            let n = e.file_name().to_string_lossy().into_owned();
+            let pid = n.strip_prefix(&prefix).and_then(|r| r.strip_suffix(".tmp")).and_then(|r| r.split('.').next()).and_then(|p| p.parse::<u32>().ok());
+            if let Some(pid) = pid {
+                if pid != std::process::id() && !Path::new(&format!("/proc/{pid}")).exists() {
+                    let _ = std::fs::remove_file(e.path());
+                }
+            }
+        }
+    }
+
+    pub fn save(&self, st: &TapState) -> Result<(), Alarm> {
+        atomic_write(&self.path, format_tap_state(st).as_bytes()).map_err(|e| {
+            Alarm::new(STATE_ALARM, format!("{}: cannot store the rigid-tap state: {e}; check the state directory (--state-dir)", self.path.display()))
+        })
+    }
+}
+
+/// FNV-1a 64 of `b`: the tap-state file's own check, so that a file that is not one whole
+/// generation (which atomic replacement should make impossible) is refused, not half-read.
+fn fnv1a64(b: &[u8]) -> u64 {
+    b.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, x| (h ^ *x as u64).wrapping_mul(0x0100_0000_01b3))
+}
+
+/// TOML, the floats with every bit (`{:?}`), and a last line `check = "…"` over the rest.
+pub fn format_tap_state(st: &TapState) -> String {
+    let body = format!(
+        "# cncgw rigid-tap state (G30 P99 returns along it); written atomically while a tap runs\n\
+         in_hole = {}\naxis = \"{}\"\nr_plane = {:?}\ndirection_in = {:?}\nlead = {:?}\nrpm = {:?}\noverride_pct = {:?}\n\
+         position = {:?}\nspindle_deg = {:?}\nline = {}\n",
+        st.in_hole, st.axis, st.r_plane, st.direction_in, st.lead, st.rpm, st.override_pct, st.position, st.spindle_deg, st.line
+    );
+    let h = fnv1a64(body.as_bytes());
+    format!("{body}check = \"{h:016x}\"\n")
+}
+
+pub fn parse_tap_state(file: &str, text: &str) -> Result<TapState, Alarm> {
+    let bad = |what: &str| {
+        Alarm::new(
+            STATE_ALARM,
+            format!("{file}: the rigid-tap state is {what}; if a tap was interrupted, bring the tool out of the hole by hand, then delete the file"),
+        )
+    };
+    let body_end = text.rfind("check = \"").ok_or_else(|| bad("incomplete (no check line)"))?;
+    let (body, check) = text.split_at(body_end);
+    let want = check.trim_end().strip_prefix("check = \"").and_then(|c| c.strip_suffix('"')).and_then(|c| u64::from_str_radix(c, 16).ok());
+    if want != Some(fnv1a64(body.as_bytes())) {
+        return Err(bad("damaged (check mismatch)"));
+    }
+    let st: TapState = toml::from_str(body).map_err(|e| bad(&format!("unreadable ({e})")))?;
+    let finite = [st.r_plane, st.lead, st.rpm, st.override_pct, st.position, st.spindle_deg].iter().all(|v| v.is_finite());
+    if !finite || !matches!(st.axis, 'X' | 'Y' | 'Z') || st.lead == 0.0 || st.direction_in.abs() != 1.0 || st.rpm.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
+        return Err(bad("out of range"));
+    }
+    Ok(st)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -152,6 +279,48 @@ mod tests {
         assert_eq!((v[&401], v[&402]), (2.5, 7.0));
         let names: Vec<_> = std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().file_name()).collect();
         assert_eq!(names.len(), 1, "{names:?}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    fn tap() -> TapState {
+        TapState {
+            in_hole: true,
+            axis: 'Z',
+            r_plane: 2.0,
+            direction_in: -1.0,
+            lead: -1.5,
+            rpm: 500.0,
+            override_pct: 120.0,
+            position: -7.123456789,
+            spindle_deg: 2214.5 + 1.0 / 3.0,
+            line: 4,
+        }
+    }
+
+    #[test]
+    fn tap_state_round_trip_and_check() {
+        let text = format_tap_state(&tap());
+        assert_eq!(parse_tap_state("t", &text).unwrap(), tap());
+        // Any truncation (a torn file) or changed byte is refused.
+        for cut in [10, text.len() / 2, text.len() - 3] {
+            assert!(parse_tap_state("t", &text[..cut]).is_err(), "cut at {cut}");
+        }
+        let changed = text.replace("position = -7.1", "position = -7.2");
+        assert!(parse_tap_state("t", &changed).unwrap_err().message.contains("damaged"));
+        let t = tap();
+        assert!((t.phase_error_deg(t.position - 1.5, t.spindle_deg + 360.0)).abs() < 1e-9, "one lead further in is one turn forward");
+        assert!((t.phase_error_deg(t.position, t.spindle_deg + 10.0) - 10.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn tap_state_file_save_load() {
+        let dir = std::env::temp_dir().join(format!("cncgw-tapstate-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let f = TapStateFile::new(&dir, "Test lathe #1");
+        assert_eq!(f.path.file_name().unwrap(), "test-lathe-1.tap-state.toml");
+        assert_eq!(f.load().unwrap(), None);
+        f.save(&tap()).unwrap();
+        assert_eq!(f.load().unwrap(), Some(tap()));
         let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -40,6 +40,15 @@ pub struct RtArgs {
 pub struct RunExtras<'a> {
     pub trace: Option<&'a Path>,
     pub rt: RtOptions,
+    /// The rigid-tap state file and what it held at start (`motion::tapstate`); None = not kept.
+    pub tap: Option<TapSetup>,
+}
+
+/// Where the rigid-tap state is kept during a run, and the state loaded from it.
+#[derive(Clone, Debug)]
+pub struct TapSetup {
+    pub file: std::path::PathBuf,
+    pub loaded: Option<crate::persist::TapState>,
 }
 
 /// How a run meets its operator.
@@ -95,6 +104,28 @@ pub fn run(
             }
         }
     }
+    // The rigid-tap state lives beside them: with the tool still in a tapped hole, only a
+    // program that starts with the G30 P99 return may run.
+    let tap_file = state_dir.map(Path::to_path_buf).or_else(crate::persist::default_state_dir).map(|d| crate::persist::TapStateFile::new(&d, &cfg.machine.name));
+    let tap_state = match tap_file.as_ref().map(|f| f.load()).transpose() {
+        Ok(s) => s.flatten(),
+        Err(a) => {
+            eprintln!("{a}");
+            return EXIT_SETUP;
+        }
+    };
+    if let Some(st) = tap_state.filter(|s| s.in_hole) {
+        if let Err(a) = check_tap_return_program(program, &cfg, &st) {
+            eprintln!("{a}");
+            eprintln!("nothing was moved");
+            return EXIT_ALARM;
+        }
+        eprintln!(
+            "cncgw: the tool is in the hole of the rigid tap of line {} ({} {:.4} mm, R plane {:.4}, lead {}): G30 P99 returns along it",
+            st.line, st.axis, st.position, st.r_plane, st.lead
+        );
+        interp.set_tap_return(Some(st.tap_return()));
+    }
     let job = Job {
         name: program.display().to_string(),
         source,
@@ -104,8 +135,12 @@ pub fn run(
     let mut opts = ExecOpts {
         json,
         print_summary: true,
-        // The config's [rt], each option overridden by its command-line flag.
-        extras: RunExtras { trace, rt: RtOptions::resolve(&cfg.rt, &RtOptions { priority: rt.rt_priority, mlock: rt.mlock, cpu: rt.cpu }) },
+        extras: RunExtras {
+            trace,
+            // The config's [rt], each option overridden by its command-line flag.
+            rt: RtOptions::resolve(&cfg.rt, &RtOptions { priority: rt.rt_priority, mlock: rt.mlock, cpu: rt.cpu }),
+            tap: tap_file.map(|f| TapSetup { file: f.path, loaded: tap_state }),
+        },
         operator: None,
         pace: op.realtime,
     };
@@ -354,6 +389,40 @@ fn execute(
         }
     };
     interp.set_start_position(start_pos);
+    // The rigid-tap state: published by the cycle, written by its own thread (started
+    // before the real-time setup below, so that it does not inherit it).
+    let mut tap_writer = None;
+    if let Some(TapSetup { file, loaded }) = extras.tap.clone() {
+        if let Some(st) = loaded.filter(|s| s.in_hole) {
+            let ax = match st.axis {
+                'X' => AX_X,
+                'Y' => AX_Y,
+                _ => AX_Z,
+            };
+            // On a real machine the thread holds tap and spindle together; a spindle turned
+            // against the axis since (by hand, or drives that stopped each on its own ramp)
+            // shows here. The return takes the angle it finds as the thread's reference.
+            eprintln!(
+                "cncgw: tap return from {} {:.4} mm: the spindle stands {:.2}° from the thread stored at the interruption",
+                st.axis,
+                start[ax],
+                st.phase_error_deg(start[ax], start[AX_S])
+            );
+        }
+        let slot = crate::motion::tapstate::TapSlot::new(loaded);
+        let file = crate::persist::TapStateFile { path: file };
+        match crate::motion::tapstate::TapPersister::spawn(file, slot.clone(), std::time::Duration::from_millis(TAP_STATE_PERIOD_MS), loaded) {
+            Ok(w) => {
+                lp.set_tap_watch(crate::motion::tapstate::TapWatch::new(slot, Some(w.thread()), &start, loaded));
+                tap_writer = Some(w);
+            }
+            Err(e) => {
+                eprintln!("error: cannot start the rigid-tap state writer: {e}");
+                lp.finish();
+                return (EXIT_SETUP, None, summary);
+            }
+        }
+    }
     // Axes on links with their own cycle (Modbus): every spindle-synchronised move of the
     // program is checked against their cycle before anything moves.
     let mut slow = Vec::new();
@@ -441,6 +510,13 @@ fn execute(
         }
     }
     lp.finish();
+    let tap_failed = match tap_writer.map(|w| w.finish()) {
+        Some(st) if st.failures > 0 => {
+            eprintln!("error: the rigid-tap state could not be stored {} time(s): {}", st.failures, st.last_error.unwrap_or_default());
+            true
+        }
+        _ => false,
+    };
     if let Some(t) = lp.take_trace() {
         match t.finish() {
             Ok(st) if st.dropped > 0 => {
@@ -451,7 +527,7 @@ fn execute(
         }
     }
     let vars = producer.join().ok();
-    let code = match r {
+    let mut code = match r {
         Err(a) => {
             if opts.print_summary {
                 print_summary(&summary, json);
@@ -472,7 +548,29 @@ fn execute(
             }
         }
     };
+    if tap_failed && code == EXIT_OK {
+        code = EXIT_SETUP;
+    }
     (code, vars, summary)
+}
+
+/// How often the rigid-tap state is written while the tool moves in a hole (ms).
+pub const TAP_STATE_PERIOD_MS: u64 = 20;
+
+/// With the tool in a tapped hole, the program's first motion must be the G30 P99 return
+/// (`motion::tapstate::check_return_first`).
+fn check_tap_return_program(program: &Path, cfg: &MachineConfig, st: &crate::persist::TapState) -> Result<(), crate::Alarm> {
+    let mut pre = Interpreter::from_file(program, cfg)
+        .map_err(|a| a.into_iter().next().unwrap_or_else(|| crate::Alarm::new(crate::motion::tapstate::TAP_IN_HOLE, "the program cannot be read")))?;
+    pre.set_tap_return(Some(st.tap_return()));
+    let mut p = Pos::ZERO;
+    match st.axis {
+        'X' => p.x = st.position,
+        'Y' => p.y = st.position,
+        _ => p.z = st.position,
+    }
+    pre.set_start_position(p);
+    crate::motion::tapstate::check_return_first(st, pre)
 }
 
 enum Display {

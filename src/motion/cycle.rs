@@ -11,6 +11,7 @@ use crate::drives::DriveBus;
 use crate::motion::trace::{Trace, TraceRow, MAX_TRACE_AXES};
 use crate::motion::panel::{Panel, PanelReader};
 use crate::motion::polygon::ToolSpindle;
+use crate::motion::tapstate::TapWatch;
 use crate::motion::{Event, Feedback, Limits, Motion, AX_S, AX_X, AX_Y, AX_Z, N_AXES};
 use crate::Alarm;
 use cncgw_bus::Clock;
@@ -136,11 +137,13 @@ pub struct CycleLoop<'a> {
     panel: Option<PanelReader>,
     /// The tool spindle of polygon turning (G51.2), driven from `Setpoint::tool_spindle`.
     tool: Option<ToolSpindle>,
+    /// Rigid-tap state publisher (`motion::tapstate`), fed every push and every cycle.
+    tap: Option<TapWatch>,
 }
 
 impl<'a> CycleLoop<'a> {
     pub fn new(drives: &'a mut dyn DriveBus, clock: &'a mut dyn Clock, limits: Limits, spindle_drive: Option<usize>, cycle_ns: u64) -> Self {
-        CycleLoop { drives, clock, limits, spindle_drive, cycle_ns, trace: None, panel: None, tool: None }
+        CycleLoop { drives, clock, limits, spindle_drive, cycle_ns, trace: None, panel: None, tool: None, tap: None }
     }
 
     /// Drive the tool spindle of polygon turning (`ToolSpindle::from_config`): its drive
@@ -159,6 +162,11 @@ impl<'a> CycleLoop<'a> {
     /// Record every cycle of `run` into `trace` (its drives in this loop's drive order).
     pub fn set_trace(&mut self, trace: Trace) {
         self.trace = Some(trace);
+    }
+
+    /// Publish the rigid-tap state every cycle of `run` (see `motion::tapstate`).
+    pub fn set_tap_watch(&mut self, w: TapWatch) {
+        self.tap = Some(w);
     }
 
     /// The trace, after `run`, to `finish` it.
@@ -287,6 +295,9 @@ impl<'a> CycleLoop<'a> {
                             self.halt(&mut motion, spindle_rpm);
                             return Err(a);
                         }
+                        if let Some(w) = self.tap.as_mut() {
+                            w.on_push(&m);
+                        }
                     }
                     Ok(Err(a)) => {
                         // A run-time program alarm: stop at this block, in a controlled way.
@@ -413,6 +424,9 @@ impl<'a> CycleLoop<'a> {
             if let Err(a) = self.drives.transmit(now) {
                 self.drives.quick_stop();
                 return Err(a);
+            }
+            if let Some(w) = self.tap.as_mut() {
+                w.on_cycle(sp.line, &sp.pos, &fb.pos);
             }
             if let Some(t) = self.trace.as_mut() {
                 for (d, ax) in map.iter().enumerate().take(MAX_TRACE_AXES) {

@@ -89,6 +89,7 @@ mod polar;
 pub mod polygon;
 pub mod profile;
 pub mod rt;
+pub mod tapstate;
 pub mod trace;
 #[cfg(test)]
 mod tests;
@@ -714,7 +715,12 @@ impl Motion {
                     format!("rigid tap on spindle {spindle}: this machine drives one spindle (spindle 1); select it with E1 (or M24), or remove E / M25–M27"),
                 )))
             }
-            MoveKind::Tap { end, lead, rpm, .. } => Item::Tap(self.tap_seg(end, *lead, *rpm).map_err(at)?),
+            MoveKind::Tap { end, lead, rpm, .. } => {
+                let mut t = self.tap_seg(end, *lead, *rpm).map_err(at)?;
+                // G30 P99, the return from an interrupted tap, pulls out from where the tool is.
+                t.retract |= m.tag.as_ref().is_some_and(|g| &*g.cycle == "G30 P99");
+                Item::Tap(t)
+            }
             MoveKind::Dwell { seconds } => {
                 if !(seconds.is_finite() && *seconds >= 0.0) {
                     return Err(at(Alarm::new(
@@ -1730,7 +1736,11 @@ impl Motion {
                 // At rest on the stroke's end, spindle stopped in position.
                 self.sp_cur = 0.0;
                 self.run = Run::None;
-                self.in_hole = theta0.is_some_and(|(pr, _)| seg.p1 != pr);
+                // In the hole: landed past the reference point (the hole's R, or where a G30 P99
+                // return started) in the direction into the hole; a pull-out that ends on or
+                // beyond R (No.5282/No.5382 extra return) is out of it.
+                let into = (seg.p1 - seg.p0).signum() * if seg.retract { -1.0 } else { 1.0 };
+                self.in_hole = theta0.is_some_and(|(pr, _)| (seg.p1 - pr) * into > 0.0);
                 // Single block never stops inside a tap; after the hole only with No.5200#6
                 // (in a canned cycle by its actions, see `single_block_stop`).
                 if self.cur_cyc.code > 0 {
