@@ -174,6 +174,7 @@ fn execute(
     let spindle_drive = cfg.axes.values().position(|a| a.kind == AxisKind::Spindle);
     let cycle_ns = (cfg.machine.cycle_ms * 1e6).round() as u64;
     let mut lp = CycleLoop::new(drives, clock, Limits::from_config(cfg), spindle_drive, cycle_ns);
+    lp.set_watchdog(crate::motion::cycle::Watchdog::from_config(cfg));
     if let Some(path) = extras.trace {
         match Trace::csv(path, lp.drive_names()) {
             Ok(t) => lp.set_trace(t),
@@ -210,6 +211,14 @@ fn execute(
             eprintln!("{a}");
             return (EXIT_ALARM, None);
         }
+    }
+    // Limits before motion: a program whose path leaves the travel or enters the G22 area
+    // is refused before the first move.
+    if let Err(a) = crate::motion::guard::check_program_file(program, cfg, start_pos, interp.common_vars()) {
+        lp.finish();
+        eprintln!("{a}");
+        eprintln!("nothing was moved");
+        return (EXIT_ALARM, None);
     }
     let (tx, rx) = std::sync::mpsc::sync_channel(256);
     // The interpreter runs ahead of motion, macro statements included (as on a Fanuc, where

@@ -83,6 +83,7 @@
 
 pub mod cycle;
 pub mod geom;
+pub mod guard;
 pub mod panel;
 pub mod profile;
 pub mod rt;

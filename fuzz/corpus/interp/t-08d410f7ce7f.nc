@@ -1,0 +1,3 @@
+WHILE [1 EQ 1] DO 1
+G00 X1
+M30
