@@ -430,8 +430,9 @@ impl<'a> CycleLoop<'a> {
                 ended |= self.on_event(&mut motion, &sp);
                 sp = motion.step(&fb);
             }
-            // Limits before motion: a set-point beyond them is never sent.
-            if let Err(v) = guard.check(&sp.pos) {
+            // Limits before motion: a set-point beyond them is never sent. (The interpolated
+            // position: the sync correction on top of it, ≤ 0.5 mm, makes the actual follow it.)
+            if let Err(v) = guard.check(&motion.position()) {
                 return Err(self.quick_stop_with(v.alarm(sp.line)));
             }
             for (d, ax) in map.iter().enumerate() {

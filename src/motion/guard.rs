@@ -17,7 +17,10 @@
 //!    last line against a planner or correction bug: with a correct planner it never trips.
 //!    A set-point outside the box that moves back towards it is allowed, so a machine
 //!    switched on beyond a limit can be brought back (Fanuc does the same before the
-//!    reference is set).
+//!    reference is set). What is checked is the interpolated position (`Motion::position`);
+//!    the rigid-tap sync correction added on top of it (≤ 0.5 mm, so that the *actual*
+//!    position follows the interpolated one) is a servo-level compensation, exempt as a
+//!    Fanuc's stroke check exempts its compensations.
 //!
 //! The G22 area is switched by the program, and the move stream does not carry that state to
 //! the cycle loop; so G22 is enforced on the exact programmed path (every move as it leaves
