@@ -206,8 +206,8 @@ fn decode_frame(f: &CanFrame) {
 }
 
 /// CANopen frames (12-byte records: id, flags, length, 8 data bytes) through every decoder
-/// and the CiA 402 words; then the rest of the input as a socketcand byte stream and as a
-/// Modbus register map with the registers read back.
+/// and the CiA 402 words, and to sim-drives' emulated drives; then the rest of the input as
+/// a socketcand byte stream and as a Modbus register map with the registers read back.
 pub fn frames(data: &[u8]) {
     let data = &data[..data.len().min(MAX_INPUT)];
     let split = (data.first().copied().unwrap_or(0) as usize * 12).min(data.len().saturating_sub(1));
@@ -238,8 +238,47 @@ pub fn frames(data: &[u8]) {
         let _ = cia402::QuickStopOption::from_code(i16::from_le_bytes([d[4], d[5]]));
         let _ = cia402::mode::name(d[6] as i8);
     }
+    to_emulated_drives(can);
     socketcand_stream(rest);
     modbus_map(rest);
+}
+
+/// The same frames sent to sim-drives' emulated drives (SDO server, NMT, RPDOs, SYNC, the
+/// 0x2100 fault object): a bad request is an SDO abort, never a panic; every SDO answer
+/// must decode.
+fn to_emulated_drives(can: &[u8]) {
+    use cncgw::bus::Clock;
+    static SIM: OnceLock<sim_drives::SimConfig> = OnceLock::new();
+    let sim = SIM.get_or_init(|| sim_drives::SimConfig::from_machine_toml(cncgw::config::EMBEDDED_LATHE).expect("embedded config"));
+    let wire = cncgw::bus::transport::inproc::InprocBus::new();
+    let mut world = sim_drives::SimWorld::new(&wire, sim.clone());
+    let mut ep = wire.endpoint();
+    // Let the drives boot (their boot-up message comes at once).
+    let mut t = world.now_ns() + 1_000_000;
+    world.wait_until(t);
+    for rec in can.chunks(12).take(64) {
+        let mut b = Bytes(rec);
+        let id = b.u32() & 0x7FF;
+        let _flags = b.u8();
+        let len = b.u8() % 9;
+        let mut d = [0u8; 8];
+        for x in d.iter_mut() {
+            *x = b.u8();
+        }
+        let f = CanFrame { id, extended: false, rtr: false, len, data: d };
+        let _ = cncgw::bus::CanBus::send(&mut ep, &f);
+        t += 1_000_000;
+        world.wait_until(t);
+        while let Ok(Some(r)) = cncgw::bus::CanBus::try_recv(&mut ep) {
+            let (func, _) = cncgw::bus::canopen::cob::split(r.cob_id());
+            if func == cncgw::bus::canopen::cob::SDO_TX && r.len == 8 {
+                assert!(
+                    sdo::SdoResponse::decode(&r).is_some() || sdo::BlockResponse::decode(&r).is_some() || sdo::BlockSegment::decode(&r).is_some(),
+                    "the emulated drive answered {f} with {r}, which no SDO decoder reads"
+                );
+            }
+        }
+    }
 }
 
 /// The socketcand protocol as received from a TCP peer (split anywhere).
