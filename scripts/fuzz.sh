@@ -49,7 +49,7 @@ if [ "$MINIMIZE" = 1 ]; then
         mkdir -p "$ROOT/build/fuzz-corpus/$t" "corpus/$t"
         out=$(mktemp -d)
         cargo fuzz run -s "$SAN" "$t" "$out" "corpus/$t" "$ROOT/build/fuzz-corpus/$t" -- \
-            -merge=1 -rss_limit_mb=2048 -max_len=4096 -timeout=10 >"$ROOT/build/fuzz-$t-merge.log" 2>&1
+            -set_cover_merge=1 -rss_limit_mb=2048 -max_len=4096 -timeout=10 >"$ROOT/build/fuzz-$t-merge.log" 2>&1
         # Named seeds (with an extension: the examples, config/*.toml…) stay as they are;
         # libFuzzer names its inputs by the SHA-1 of their content, so drop the seeds' copies.
         for s in corpus/"$t"/*.*; do
