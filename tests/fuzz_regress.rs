@@ -29,6 +29,7 @@ fn inputs(target: &str) -> Vec<PathBuf> {
 fn replay(target: &str) -> usize {
     let (_, entry) = *entries::TARGETS.iter().find(|t| t.0 == target).expect("target exists");
     let files = inputs(target);
+    let crashes = files.iter().filter(|f| f.parent().is_some_and(|d| d.ends_with(Path::new("crashes").join(target)))).count();
     let mut failed = Vec::new();
     for f in &files {
         let data = std::fs::read(f).expect("readable input");
@@ -37,7 +38,8 @@ fn replay(target: &str) -> usize {
         }
     }
     let mut s = sim_drives::report::Scenario::new(format!("fuzz_regress/{target}"));
-    s.faults_injected = files.len() as u64;
+    // The inputs that once crashed are the injected faults; the corpus is ordinary input.
+    s.faults_injected = crashes as u64;
     s.panics = failed.len() as u64;
     s.record();
     assert!(failed.is_empty(), "{target}: {} input(s) panicked:\n{}", failed.len(), failed.join("\n"));
