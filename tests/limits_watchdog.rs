@@ -115,7 +115,7 @@ fn the_defaults_are_documented_values() {
     let cfg = MachineConfig::embedded();
     assert_eq!(Watchdog::from_config(&cfg), Watchdog { max_consecutive: 5, max_missed: 25 });
     assert_eq!(Watchdog::from_config(&cfg), Watchdog::default());
-    let bad = format!("{}", EMBEDDED_LATHE.replace("cycle_ms = 2.0", "cycle_ms = 2.0\nwatchdog_missed_cycles = 51"));
+    let bad = EMBEDDED_LATHE.replace("cycle_ms = 2.0", "cycle_ms = 2.0\nwatchdog_missed_cycles = 51");
     let e = MachineConfig::from_toml("bad.toml", &bad).unwrap_err().to_string();
     assert!(e.contains("machine.watchdog_missed_cycles: must be between 1 and 50"), "{e}");
 }
@@ -147,7 +147,7 @@ fn overruns_one_short_of_the_limit_in_a_row_are_counted_only() {
 fn consecutive_overruns_stop_the_machine_with_2402() {
     // From 1.5 s on, every wait ends 1.5 periods late: every cycle overruns.
     let mut o = run(PROGRAM, 1500 * MS, 3 * CYCLE / 2, 1000, None);
-    let a = o.result.as_ref().err().expect("the watchdog stops the run");
+    let a = o.result.as_ref().expect_err("the watchdog stops the run");
     assert_eq!(a.number, alarms::WATCHDOG, "{a}");
     assert!(a.message.contains("5 cycles in a row") && a.message.contains("machine.watchdog_overruns"), "{a}");
     // (The clock stays late through the controlled stop's own cycles too.)
@@ -160,7 +160,7 @@ fn consecutive_overruns_stop_the_machine_with_2402() {
 #[test]
 fn one_very_late_cycle_stops_the_machine_at_once() {
     let mut o = run(PROGRAM, 1500 * MS, 30 * CYCLE, 1, None);
-    let a = o.result.as_ref().err().expect("the watchdog stops the run");
+    let a = o.result.as_ref().expect_err("the watchdog stops the run");
     assert_eq!(a.number, alarms::WATCHDOG, "{a}");
     assert!(a.message.contains("30 periods late"), "{a}");
     let stop = record("one_late_cycle", &o, 400);
@@ -176,7 +176,7 @@ fn a_setpoint_beyond_the_guard_is_never_sent() {
     let mut g = Guard::from_limits(&Limits::from_config(&cfg));
     g.set_travel(AX_Z, -100.0, 5.0);
     let mut o = run(PROGRAM, u64::MAX, 0, 0, Some(g));
-    let a = o.result.as_ref().err().expect("the guard stops the run");
+    let a = o.result.as_ref().expect_err("the guard stops the run");
     assert_eq!(a.number, cncgw::motion::guard::MINUS_OVERTRAVEL, "{a}");
     assert!(a.message.contains("line 4") && a.message.contains("set-point Z-100."), "{a}");
     // Drive order: s1, x, z (config order by name). The last Z target sent is inside.

@@ -16,8 +16,11 @@ use cncgw::config::MachineConfig;
 use cncgw::interp::{parse_tool_table, Interpreter, ToolTable};
 use std::sync::OnceLock;
 
-/// The targets, by name: (name, entry, corpus directory under fuzz/corpus).
-pub const TARGETS: &[(&str, fn(&[u8]))] = &[("interp", interp), ("config", config), ("eds", eds), ("frames", frames)];
+/// A fuzz entry: arbitrary bytes in, no panic.
+pub type Entry = fn(&[u8]);
+
+/// The targets, by name (also their corpus directories under fuzz/corpus and fuzz/crashes).
+pub const TARGETS: &[(&str, Entry)] = &[("interp", interp), ("config", config), ("eds", eds), ("frames", frames)];
 
 /// Moves taken from one program at most.
 pub const MAX_MOVES: usize = 1_000;
