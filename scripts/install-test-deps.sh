@@ -107,6 +107,23 @@ python_venv() {
     echo "${PY_REQS[*]}" >"$venv/.installed"
 }
 
+# --- fuzzing: cargo-fuzz (scripts/fuzz.sh; scripts/test.sh runs each target briefly) ---
+# The targets build on the stable toolchain (`cargo fuzz build -s none`: coverage
+# instrumentation only), so no nightly toolchain is needed. libfuzzer-sys compiles libFuzzer
+# (C++): g++. Installed for the invoking user (not root), like the rest of the toolchain.
+CARGO_FUZZ_VERSION=0.13.2
+fuzz_deps() {
+    need_pkg g++
+    install_missing
+    if ! cargo fuzz --version >/dev/null 2>&1; then
+        command -v cargo >/dev/null || { log "cargo not found: install Rust (rustup) first"; exit 1; }
+        log "cargo install cargo-fuzz $CARGO_FUZZ_VERSION"
+        cargo install --locked --quiet cargo-fuzz --version "$CARGO_FUZZ_VERSION"
+        cargo fuzz --version >/dev/null || { log "cargo-fuzz did not install"; exit 1; }
+    fi
+}
+
 vcan_tier_deps
 extra_test_deps
+fuzz_deps
 log "ok"

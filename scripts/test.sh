@@ -6,9 +6,15 @@
 # 1. installs what the tests need on a fresh Debian machine (idempotent, fast when present);
 # 2. builds every binary (process-level tests start `cncgw` and `sim-drives`);
 # 3. runs every test of the workspace on the host;
-# 4. runs the vcan tier: `sim-drives --bus vcan0` and `cncgw run --bus vcan0` as separate
+# 4. runs each cargo-fuzz target for FUZZ_SECONDS (default 40 s each, 4 targets: under
+#    3 minutes; scripts/fuzz.sh, a crash fails the run);
+# 5. runs the vcan tier: `sim-drives --bus vcan0` and `cncgw run --bus vcan0` as separate
 #    processes over SocketCAN — on the host kernel where it has vcan, otherwise inside a
-#    throwaway User-Mode Linux guest (scripts/vmrun). It never skips: no vcan, no pass.
+#    throwaway User-Mode Linux guest (scripts/vmrun). It never skips: no vcan, no pass;
+# 6. prints the reliability report (scripts/report.py): scenarios run, faults injected,
+#    stops within bound, data lost, panics, fuzz executions per target, from what the tests
+#    wrote to $CNCGW_REPORT_DIR (default build/report, emptied first). Data lost or a panic
+#    fails the run.
 set -euo pipefail
 ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 cd "$ROOT"
@@ -18,6 +24,15 @@ step() { printf '\n==> %s\n' "$*"; }
 # Runs of `cncgw run` keep the machine's power-off state (common variables); tests keep
 # theirs here, not in the user's ~/.local/state.
 export CNCGW_STATE_DIR="${CNCGW_STATE_DIR:-$ROOT/build/test-state}"
+
+# The reliability report: every test that injects faults appends a line here
+# (sim_drives::report::Scenario::record), scripts/fuzz.sh its executions.
+export CNCGW_REPORT_DIR="${CNCGW_REPORT_DIR:-$ROOT/build/report}"
+rm -rf "$CNCGW_REPORT_DIR"
+mkdir -p "$CNCGW_REPORT_DIR"
+report() { python3 "$ROOT/scripts/report.py" "$CNCGW_REPORT_DIR"; }
+# A run that fails part-way still shows what it had measured.
+trap 'rc=$?; if [ $rc -ne 0 ]; then printf "\n==> reliability report (the run failed)\n"; report || true; fi' EXIT
 
 step "installing test prerequisites"
 ./scripts/install-test-deps.sh --python   # --python: build/venv for the python canopen peer test
@@ -34,11 +49,17 @@ fi
 # Doc tests are not run by nextest.
 cargo test --workspace --doc --quiet
 
+step "fuzzing: each target for ${FUZZ_SECONDS:-40}s"
+./scripts/fuzz.sh "${FUZZ_SECONDS:-40}"
+
 step "vcan tier (SocketCAN, separate processes)"
 exe=$(cargo test --test vcan_tier --no-run --message-format=json 2>/dev/null \
       | grep '"name":"vcan_tier"' | grep '"test":true' \
       | sed -n 's/.*"executable":"\([^"]*\)".*/\1/p' | tail -n 1)
 [ -x "$exe" ] || { echo "vcan tier: could not build tests/vcan_tier.rs" >&2; exit 1; }
 ./scripts/run-vcan-tier.sh "$exe" --ignored --nocapture --test-threads=1
+
+step "reliability report"
+report
 
 step "all tiers passed"

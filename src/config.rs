@@ -135,6 +135,22 @@ pub struct Machine {
     /// stops spindle and axes together, µm along the thread (1 … 10000).
     #[serde(default = "default_sync_error_limit")]
     pub sync_error_limit_um: f64,
+    /// Cycle watchdog (alarm 2402): this many cycles in a row that woke a whole period late
+    /// stop the machine (CODESYS' task watchdog "sensitivity"); 0 = off. Default 5.
+    #[serde(default = "default_watchdog_overruns")]
+    pub watchdog_overruns: u32,
+    /// Cycle watchdog: one wake-up this many periods late stops the machine at once (the
+    /// drives bridge a late SYNC for about 10 periods, the loop catches up at most 50);
+    /// 1 … 50, default 25.
+    #[serde(default = "default_watchdog_missed")]
+    pub watchdog_missed_cycles: u32,
+}
+
+fn default_watchdog_overruns() -> u32 {
+    5
+}
+fn default_watchdog_missed() -> u32 {
+    25
 }
 
 #[derive(Clone, Debug, Deserialize)]
@@ -330,6 +346,12 @@ impl MachineConfig {
         let sl = self.machine.sync_error_limit_um;
         if !(sl.is_finite() && (1.0..=10_000.0).contains(&sl)) {
             e.push(format!("machine.sync_error_limit_um: must be between 1 and 10000, got {sl}"));
+        }
+        if self.machine.watchdog_overruns > 100_000 {
+            e.push(format!("machine.watchdog_overruns: must be between 0 (off) and 100000, got {}", self.machine.watchdog_overruns));
+        }
+        if !(1..=50).contains(&self.machine.watchdog_missed_cycles) {
+            e.push(format!("machine.watchdog_missed_cycles: must be between 1 and 50 (the most cycles the loop catches up), got {}", self.machine.watchdog_missed_cycles));
         }
         if self.bus.interface.trim().is_empty() {
             e.push("bus.interface: must name an interface (inproc, vcan0, can0, …), got \"\"".into());

@@ -64,10 +64,18 @@ fn million_blocks_stream() {
 fn fuzz_regression_cases() {
     let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/interp_fuzz_cases");
     let Ok(entries) = std::fs::read_dir(&dir) else { return };
+    let mut s = sim_drives::report::Scenario::new("interp_robust/fuzz_regression_cases");
+    let mut panicked = Vec::new();
     for e in entries.flatten() {
         let bytes = std::fs::read(e.path()).expect("readable case");
-        drain(&String::from_utf8_lossy(&bytes), 2_000);
+        s.faults_injected += 1;
+        if std::panic::catch_unwind(|| drain(&String::from_utf8_lossy(&bytes), 2_000)).is_err() {
+            panicked.push(e.path().display().to_string());
+        }
     }
+    s.panics = panicked.len() as u64;
+    s.record();
+    assert!(panicked.is_empty(), "panicked: {panicked:?}");
 }
 
 /// The fuzz seed corpus (fuzz/corpus/interp/*.nc) are valid programs that run to M30.

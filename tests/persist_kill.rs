@@ -34,7 +34,10 @@ fn sigkill_mid_write_leaves_old_or_new_state() {
     let exe = std::env::current_exe().unwrap();
     let mut last = 0.0;
     let mut seed = 0x2545_F491_4F6C_DD1Du64;
-    for round in 0..25 {
+    // Rounds that found the state torn, mixed or gone back (each one item of data lost).
+    let mut lost: Vec<String> = Vec::new();
+    let rounds = 25;
+    for round in 0..rounds {
         let mut child = Command::new(&exe)
             .args(["--exact", "writer_child", "--nocapture", "--test-threads=1"])
             .env(CHILD_ENV, &path)
@@ -49,18 +52,37 @@ fn sigkill_mid_write_leaves_old_or_new_state() {
         child.kill().unwrap(); // SIGKILL
         child.wait().unwrap();
         let f = cncgw::persist::CommonVarsFile { path: path.clone() };
-        let v = f.load().unwrap_or_else(|a| panic!("round {round}: {a}"));
+        let v = match f.load() {
+            Ok(v) => v,
+            Err(a) => {
+                lost.push(format!("round {round}: {a}"));
+                continue;
+            }
+        };
         if v.is_empty() {
             // Killed before its first write completed: the file must then not exist at all.
-            assert!(!path.exists() || last == 0.0, "round {round}: empty state after a completed write");
+            if path.exists() && last != 0.0 {
+                lost.push(format!("round {round}: empty state after a completed write"));
+            }
             continue;
         }
-        assert_eq!(v.len(), 200, "round {round}: {} variables", v.len());
+        if v.len() != 200 {
+            lost.push(format!("round {round}: {} variables", v.len()));
+            continue;
+        }
         let g = v[&401];
-        assert!(v.values().all(|x| *x == g), "round {round}: mixed generations");
-        assert!(g >= last, "round {round}: went back from {last} to {g}");
-        last = g;
+        if !v.values().all(|x| *x == g) {
+            lost.push(format!("round {round}: mixed generations"));
+        } else if g < last {
+            lost.push(format!("round {round}: went back from {last} to {g}"));
+        }
+        last = g.max(last);
     }
+    let mut s = sim_drives::report::Scenario::new("persist_kill/sigkill_mid_write");
+    s.faults_injected = rounds;
+    s.data_lost = lost.len() as u64;
+    s.record();
+    assert!(lost.is_empty(), "{}", lost.join("\n"));
     assert!(last > 0.0, "the writer never completed a write");
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -74,6 +74,11 @@ pub fn parse(body: &str) -> Msg {
             let parsed = (|| {
                 let (id, extended) = parse_id(w.next()?)?;
                 let ts = w.next()?;
+                // Byte slicing below: anything but ASCII is no timestamp or hex (and would
+                // split a character: a peer's garbage must not panic us).
+                if !ts.is_ascii() {
+                    return None;
+                }
                 let (sec, usec) = ts.split_once('.').unwrap_or((ts, "0"));
                 // A fraction of other than 6 digits is still a fraction of a second.
                 let frac = &usec[..usec.len().min(6)];
@@ -81,7 +86,7 @@ pub fn parse(body: &str) -> Msg {
                 let us = if frac.is_empty() { 0 } else { frac.parse::<u64>().ok()? * scale };
                 let t = sec.parse::<u64>().ok()?.checked_mul(1_000_000)?.checked_add(us)?;
                 let hex = w.next().unwrap_or("");
-                if hex.len() % 2 != 0 || hex.len() > 16 || w.next().is_some() {
+                if !hex.is_ascii() || hex.len() % 2 != 0 || hex.len() > 16 || w.next().is_some() {
                     return None;
                 }
                 let mut data = [0u8; 8];
@@ -188,6 +193,9 @@ mod tests {
         assert_eq!(parse("frame 080 12.1234567 "), Msg::Frame(CanFrame::new(0x80, &[]), 12_123_456));
         assert_eq!(parse("frame 080 12 "), Msg::Frame(CanFrame::new(0x80, &[]), 12_000_000));
         assert!(matches!(parse("send 601 2 00"), Msg::Other(_)));
+        // Non-ASCII where hex or a timestamp belongs (found by fuzzing: it panicked).
+        assert!(matches!(parse("frame 181 12.5 2700E80300\u{FFFD}"), Msg::Other(_)));
+        assert!(matches!(parse("frame 181 12.\u{FFFD}12345 00"), Msg::Other(_)));
     }
 
     #[test]

@@ -356,6 +356,7 @@ fn execute(
     if let Some(t) = crate::motion::polygon::ToolSpindle::from_config(cfg) {
         lp.set_tool_spindle(t);
     }
+    lp.set_watchdog(crate::motion::cycle::Watchdog::from_config(cfg));
     if let Some(path) = extras.trace {
         match Trace::csv(path, lp.drive_names()) {
             Ok(t) => lp.set_trace(t),
@@ -438,6 +439,18 @@ fn execute(
         if let Err(a) = check_links(&job, cfg, &slow, start_pos) {
             lp.finish();
             eprintln!("{a}");
+            return (EXIT_ALARM, None, summary);
+        }
+    }
+    // Limits before motion: a program whose path leaves the travel or enters the G22 area
+    // is refused before the first move.
+    if let Ok(mut pre) = (job.make)(start_pos) {
+        pre.set_start_position(start_pos);
+        pre.set_common_vars(interp.common_vars().clone());
+        if let Err(a) = crate::motion::guard::check_program(pre.take(2_000_000), &Limits::from_config(cfg), start_pos) {
+            lp.finish();
+            eprintln!("{a}");
+            eprintln!("nothing was moved");
             return (EXIT_ALARM, None, summary);
         }
     }

@@ -9,6 +9,7 @@
 use crate::canon::{Move, Pos};
 use crate::drives::DriveBus;
 use crate::motion::trace::{Trace, TraceRow, MAX_TRACE_AXES};
+use crate::motion::guard::Guard;
 use crate::motion::panel::{Panel, PanelReader};
 use crate::motion::polygon::ToolSpindle;
 use crate::motion::tapstate::TapWatch;
@@ -29,6 +30,61 @@ pub mod alarms {
 
 /// At most this many missed cycles are caught up after an overrun (100 ms at 2 ms).
 const MAX_CATCH_UP: u64 = 50;
+
+/// The cycle watchdog: when the loop cannot keep its period, stop the machine (alarm 2402).
+///
+/// Two limits, as a PLC task watchdog has them (CODESYS: watchdog time and "sensitivity",
+/// the number of consecutive violations tolerated): `max_consecutive` cycles in a row that
+/// woke a whole period late (`machine.watchdog_overruns`, 0 = off), or one wake-up
+/// `max_missed` or more periods late (`machine.watchdog_missed_cycles`: the drives bridge a
+/// late SYNC for about 10 periods and the loop catches up at most 50, beyond which the
+/// trajectory would lose its time base). A single short overrun is only counted
+/// (`RunSummary::overruns`): a desktop kernel is late now and then, and the drives ride
+/// through it. The stop is a controlled one along the path (spindle and feed axes of a tap
+/// or thread decelerate together); E-stop still overrides it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Watchdog {
+    pub max_consecutive: u32,
+    pub max_missed: u64,
+}
+
+impl Default for Watchdog {
+    fn default() -> Self {
+        Watchdog { max_consecutive: 5, max_missed: 25 }
+    }
+}
+
+impl Watchdog {
+    pub fn from_config(cfg: &crate::config::MachineConfig) -> Watchdog {
+        Watchdog { max_consecutive: cfg.machine.watchdog_overruns, max_missed: cfg.machine.watchdog_missed_cycles as u64 }
+    }
+
+    /// One cycle that woke `late` whole periods after its slot (0 = on time), with
+    /// `consecutive` the overruns in a row before it (updated). `Some(alarm)`: stop.
+    fn cycle(&self, late: u64, consecutive: &mut u32, line: u32, cycle_ns: u64) -> Option<Alarm> {
+        if late == 0 {
+            *consecutive = 0;
+            return None;
+        }
+        *consecutive += 1;
+        let too_many = self.max_consecutive > 0 && *consecutive >= self.max_consecutive;
+        let too_late = self.max_missed > 0 && late >= self.max_missed;
+        (too_many || too_late).then(|| {
+            Alarm::new(
+                alarms::WATCHDOG,
+                format!(
+                    "cycle watchdog at line {line}: {} (period {:.3} ms); the axes were stopped under control. The controller cannot keep its cycle: give the cycle thread real-time priority and a core (`--rt-priority`, `--cpu`), reduce the load, then restart",
+                    if too_late {
+                        format!("one cycle woke {late} periods late (limit {}, machine.watchdog_missed_cycles)", self.max_missed)
+                    } else {
+                        format!("{} cycles in a row woke late (limit {}, machine.watchdog_overruns)", *consecutive, self.max_consecutive)
+                    },
+                    cycle_ns as f64 * 1e-6
+                ),
+            )
+        })
+    }
+}
 
 /// Progress, reported to the caller every few cycles.
 #[derive(Clone, Copy, Debug, Default)]
@@ -139,11 +195,25 @@ pub struct CycleLoop<'a> {
     tool: Option<ToolSpindle>,
     /// Rigid-tap state publisher (`motion::tapstate`), fed every push and every cycle.
     tap: Option<TapWatch>,
+    /// Overrun limits (default: `Watchdog::default()`).
+    watchdog: Watchdog,
+    /// The per-set-point limit check; `None`: from `limits` at `run`.
+    guard: Option<Guard>,
 }
 
 impl<'a> CycleLoop<'a> {
     pub fn new(drives: &'a mut dyn DriveBus, clock: &'a mut dyn Clock, limits: Limits, spindle_drive: Option<usize>, cycle_ns: u64) -> Self {
-        CycleLoop { drives, clock, limits, spindle_drive, cycle_ns, trace: None, panel: None, tool: None, tap: None }
+        CycleLoop { drives, clock, limits, spindle_drive, cycle_ns, trace: None, panel: None, tool: None, tap: None, watchdog: Watchdog::default(), guard: None }
+    }
+
+    /// Stop the machine past these overrun limits (`Watchdog::from_config`).
+    pub fn set_watchdog(&mut self, w: Watchdog) {
+        self.watchdog = w;
+    }
+
+    /// Check set-points with this guard instead of one made from `limits`.
+    pub fn set_guard(&mut self, g: Guard) {
+        self.guard = Some(g);
     }
 
     /// Drive the tool spindle of polygon turning (`ToolSpindle::from_config`): its drive
@@ -233,6 +303,9 @@ impl<'a> CycleLoop<'a> {
         // The sync correction pairs feedback with setpoints over the CANopen delay; an axis on
         // a link with its own cycle (Modbus) does not answer that way.
         limits.sync_correction &= (0..n).all(|d| self.drives.link_cycle(d).is_none());
+        let mut guard = self.guard.unwrap_or_else(|| Guard::from_limits(&limits));
+        guard.set_start(&start);
+        let mut overruns_in_a_row = 0u32;
         let mut motion = Motion::new(limits, start);
         // One drive's fault stops the others under control (a tap's pair together) where the
         // bus can isolate it; otherwise every drive is quick-stopped.
@@ -326,6 +399,10 @@ impl<'a> CycleLoop<'a> {
                 missed = ((now - next) / self.cycle_ns).min(MAX_CATCH_UP);
                 next = now - (now - next) % self.cycle_ns;
             }
+            if let Some(a) = self.watchdog.cycle(missed, &mut overruns_in_a_row, cur_line, self.cycle_ns) {
+                self.halt(&mut motion, spindle_rpm);
+                return Err(a);
+            }
             let received = self.drives.receive(now);
             if let Some(d) = if isolate { self.drives.faulted() } else { None } {
                 return Err(self.fault_stop(&mut motion, d, received.err(), spindle_rpm, cur_line));
@@ -410,6 +487,11 @@ impl<'a> CycleLoop<'a> {
             for _ in 0..missed {
                 ended |= self.on_event(&mut motion, &sp);
                 sp = motion.step(&fb);
+            }
+            // Limits before motion: a set-point beyond them is never sent. (The interpolated
+            // position: the sync correction on top of it, ≤ 0.5 mm, makes the actual follow it.)
+            if let Err(v) = guard.check(&motion.position()) {
+                return Err(self.quick_stop_with(v.alarm(sp.line)));
             }
             for (d, ax) in map.iter().enumerate() {
                 if let Some(a) = ax {
@@ -519,6 +601,13 @@ impl<'a> CycleLoop<'a> {
             alarms::ESTOP,
             format!("emergency stop at line {line}: every drive was sent quick stop; release the E-stop, find the cause, reset the drives (`cncgw drive fault-reset`) and restart the program"),
         )
+    }
+
+    /// Quick stop on every drive at once, then `a`.
+    fn quick_stop_with(&mut self, a: Alarm) -> Alarm {
+        self.drives.quick_stop();
+        let _ = self.drives.transmit(self.clock.now_ns());
+        a
     }
 
     /// The feedback of every drive motion commands, with the spindle speed measured as in

@@ -84,6 +84,7 @@
 pub mod cycle;
 mod fault;
 pub mod geom;
+pub mod guard;
 pub mod panel;
 mod polar;
 pub mod polygon;

@@ -149,7 +149,7 @@ impl DrivePlan {
         // Ten link cycles and two transaction timeouts, at least 200 ms: one drive's missed
         // answer or a scheduling hiccup must not trip it, a dead controller must (the
         // CANopen side uses 3 × the 100 ms heartbeat).
-        let watchdog = (cycle_ms as u32 * 10).max(2 * timeout_ms + cycle_ms as u32).clamp(200, u16::MAX as u32) as u16;
+        let watchdog = (cycle_ms as u32 * 10).max(timeout_ms.saturating_mul(2).saturating_add(cycle_ms as u32)).clamp(200, u16::MAX as u32) as u16;
         match self.profile {
             Profile::Cia402 => vec![
                 (Exchange::WriteSingle { addr: self.cia.interpolation_ms }, vec![cycle_ms]),
