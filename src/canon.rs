@@ -143,8 +143,10 @@ pub enum MoveKind {
     /// θ_ref + 360·(axis − axis_ref)/`lead`. `lead` mm per revolution, signed so that the
     /// spindle turns forward (M03 sense) while the tool moves towards the sign of `lead`;
     /// consecutive strokes of one hole share it (in and out, pecks). `rpm` is this stroke's
-    /// spindle speed: S going in, S × the pull-out override coming out.
-    Tap { end: Pos, lead: f64, rpm: f64 },
+    /// spindle speed: S going in, S × the pull-out override coming out. `spindle` is the
+    /// tapping spindle 1–4 (manual 000 note 2: E, or M24–M27 with No.5200#7; 1 when none is
+    /// selected); a machine that lacks it refuses the stroke before moving.
+    Tap { end: Pos, lead: f64, rpm: f64, spindle: u8 },
     /// G92.1 rigid thread (manual 001 §3.24.10): the spindle works as a position axis (Cs)
     /// and is interpolated with the feed axes, from the start's `c` to `end.c` (degrees,
     /// cumulative; increasing for a right-hand thread, decreasing for a left-hand one) while
@@ -242,6 +244,14 @@ pub struct TapReturn {
     pub rpm: f64,
     /// Pull-out override in force (%), applied to the return.
     pub override_pct: f64,
+    /// The tapping spindle (1–4) of the interrupted tap; state files written before it
+    /// existed read as spindle 1.
+    #[serde(default = "spindle_one")]
+    pub spindle: u8,
+}
+
+fn spindle_one() -> u8 {
+    1
 }
 
 /// The points strictly between `start` and `end` of a ZX-plane arc about `center` (G02 when

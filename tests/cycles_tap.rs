@@ -26,7 +26,7 @@ fn taps(m: &[Move]) -> Vec<(&'static str, f64, f64, f64, u8)> {
         .map(|m| {
             let step = m.tag.as_ref().map(|t| t.step).unwrap_or(0);
             match &m.kind {
-                MoveKind::Tap { end, lead, rpm } => ("tap", end.sub(m.work_offset).z, *lead, *rpm, step),
+                MoveKind::Tap { end, lead, rpm, .. } => ("tap", end.sub(m.work_offset).z, *lead, *rpm, step),
                 MoveKind::Dwell { seconds } => ("dwell", *seconds, 0.0, 0.0, step),
                 MoveKind::Rapid { end } => ("rapid", end.sub(m.work_offset).z, 0.0, 0.0, step),
                 MoveKind::Aux { value, .. } => ("aux", *value, 0.0, 0.0, step),
@@ -353,7 +353,7 @@ fn interrupted_tap_returns_with_g30_p99() {
     it2.set_tap_return(Some(state));
     let back: Vec<Move> = it2.map(|m| m.unwrap()).collect();
     match back[0].kind {
-        MoveKind::Tap { end, lead, rpm } => assert_eq!((end.z, lead, rpm), (2.0, -2.0, 500.0)),
+        MoveKind::Tap { end, lead, rpm, spindle } => assert_eq!((end.z, lead, rpm, spindle), (2.0, -2.0, 500.0, 1)),
         ref k => panic!("{k:?}"),
     }
     let mut mo2 = cncgw::motion::Motion::new(lims(), here);
@@ -536,4 +536,163 @@ fn another_cycle_after_rigid_tapping_ends_it() {
     let a = run_err("G98\nG0 X0 Z5\nM29 S500\nG84 Z-10 F1000\nG83 X10 Z-5 F100\nM29 S400\nS300\nG84 Z-10\n");
     // After leaving rigid tapping M29 is allowed again (line 6); S before G84 is not.
     assert_eq!((a.number, a.pos.unwrap().line), (203, 7));
+}
+
+/// The manual's flexible tapping example (004 §2.22.3) 200 mm nearer the chuck (the travel
+/// limits), two holes, through motion with
+/// perfect drives under `params` and feed override `ovr`: (spindle rpm fed back, Z, action)
+/// of every cycle.
+fn flex_run(params: &str, ovr: f64) -> Vec<(f64, f64, u32)> {
+    let cfg = cfg_with(params);
+    let m = run_cfg("G98\nG0 X0 Z0\nM3 S800\nG84 Z-40 P1 F1600\nX10\nG80\nM30\n", &cfg);
+    let mut l = cncgw::motion::Limits::from_config(&cfg);
+    l.feedback_delay = 1;
+    let mut mo = cncgw::motion::Motion::new(l, [0.0; cncgw::motion::N_AXES]);
+    mo.set_feed_override(ovr);
+    let sp = drive(&mut mo, &m, 200_000, None);
+    let mut rpm = 0.0;
+    sp.iter()
+        .map(|s| {
+            // What the cycle saw: the speed of the setpoint before.
+            let r = (rpm, s.pos[2], s.line);
+            rpm = s.spindle_rpm;
+            r
+        })
+        .collect()
+}
+
+/// 004 §2.22.3 note 3: the tapping axis follows the spindle (one lead per revolution), not
+/// the feed override: at S800 and lead 2 it runs 1600 mm/min with the override at 50 %.
+#[test]
+fn flexible_tap_follows_the_spindle_whatever_the_feed_override() {
+    for ovr in [0.5, 1.0, 1.5] {
+        let t = flex_run("5275 = 0\n5276 = 0", ovr);
+        let dt = 0.002;
+        // Every cycle of the in-stroke at full speed moves lead × rpm × dt.
+        let full: Vec<f64> = t.windows(2).filter(|w| w[0].1 > -35.0 && w[1].1 < -5.0 && w[1].1 < w[0].1 && (w[1].0 - 800.0).abs() < 1e-9).map(|w| (w[0].1 - w[1].1) / dt * 60.0).collect();
+        assert!(full.len() > 100, "ovr {ovr}: {} cycles at full speed", full.len());
+        for v in full {
+            assert!((v - 1600.0).abs() < 1e-6, "ovr {ovr}: {v} mm/min");
+        }
+    }
+}
+
+/// No.5276 (manual 000): the retract waits until the encoder reads the reversed spindle at
+/// No.5276 × 0.1 rpm; without it the tool starts out with the spindle barely turning.
+#[test]
+fn flexible_tap_retract_waits_for_no_5276() {
+    let first_out = |t: &[(f64, f64, u32)]| {
+        let bottom = t.iter().position(|s| (s.1 + 40.0).abs() < 1e-9).expect("reaches the bottom");
+        let k = t[bottom..].iter().position(|s| s.1 > -40.0 + 1e-9).expect("retracts") + bottom;
+        t[k].0
+    };
+    let rpm = first_out(&flex_run("5275 = 0\n5276 = 3000", 1.0));
+    assert!(rpm <= -300.0 && rpm > -300.0 - 6000.0 * 0.002 - 1e-9, "retract started at {rpm} rpm");
+    let rpm = first_out(&flex_run("5275 = 0\n5276 = 0", 1.0));
+    assert!(rpm > -300.0 && rpm < 0.0, "retract started at {rpm} rpm");
+}
+
+/// No.5275 (manual 000): the axis lags the encoder by that many cycles and is compensated:
+/// by the end of the spindle's run-up the tool is N × cycle × v further in than without.
+#[test]
+fn flexible_tap_lag_compensation_no_5275() {
+    // The second hole starts the spindle from standstill at R (note 2).
+    let z_at_full = |t: &[(f64, f64, u32)]| {
+        let start = t.iter().rposition(|s| s.1.abs() < 1e-9 && s.0 == 0.0).expect("second hole at R");
+        let k = t[start..].iter().position(|s| (s.0 - 800.0).abs() < 1e-9).expect("full speed") + start;
+        t[k].1
+    };
+    let plain = z_at_full(&flex_run("5275 = 0\n5276 = 0", 1.0));
+    let comp = z_at_full(&flex_run("5275 = 4\n5276 = 0", 1.0));
+    let want = 4.0 * 0.002 * 1600.0 / 60.0;
+    assert!((plain - comp - want).abs() < 0.02 * want, "ahead by {} mm, want {want}", plain - comp);
+}
+
+/// The tapping spindle of each `Tap` stroke.
+fn tap_spindles(m: &[Move]) -> Vec<u8> {
+    m.iter().filter_map(|m| if let MoveKind::Tap { spindle, .. } = m.kind { Some(spindle) } else { None }).collect()
+}
+
+/// Manual 000 note 2: E1–E4 in the G84 block selects the tapping spindle until G80; without
+/// E, No.5200#7 = 1 takes the M24–M27 selection (held until another), No.5200#7 = 0 the
+/// spindle selection signals (this machine: spindle 1), M24–M27 being ordinary M codes then.
+/// The strokes carry it, and so do `cncgw plan`'s JSON lines and the G30 P99 state.
+#[test]
+fn spindle_selection_e_and_m24_m27() {
+    let prog = |sel: &str, e: &str| format!("G98\nG0 X0 Z5\n{sel}\nM29 S500\nG84 Z-10 F1000 {e}\nG80\nM29 S500\nG84 Z-10 F1000\nG80\nM30\n");
+    // E2 for the first mode only.
+    let m = run(&prog("", "E2"));
+    assert_eq!(tap_spindles(&m), [2, 2, 1, 1]);
+    // No.5200#7 = 1: M26 selects spindle 3 for both modes; E overrides it.
+    let cfg = cfg_with("5200 = 128");
+    assert_eq!(tap_spindles(&run_cfg(&prog("M26", ""), &cfg)), [3, 3, 3, 3]);
+    assert_eq!(tap_spindles(&run_cfg(&prog("M26", "E4"), &cfg)), [4, 4, 3, 3]);
+    // No.5200#7 = 0: M26 selects nothing (and is output as an ordinary M code).
+    let m = run(&prog("M26", ""));
+    assert_eq!(tap_spindles(&m), [1, 1, 1, 1]);
+    assert!(m.iter().any(|m| m.kind == MoveKind::Aux { letter: 'M', value: 26.0 }));
+    // The plan line shows it.
+    let m = run(&prog("", "E2"));
+    let tap = m.iter().find(|m| m.kind.name() == "tap").unwrap();
+    let v: serde_json::Value = serde_json::from_str(&cncgw::interp::plan::move_to_json(tap)).unwrap();
+    assert_eq!((v["kind"].as_str(), v["spindle"].as_u64(), v["rpm"].as_f64()), (Some("tap"), Some(2), Some(500.0)));
+    // K198 keeps it for G30 P99.
+    let mut it = Interpreter::from_source("t.nc", "G98\nG0 X0 Z5\nM29 S500\nG84 Z-10 F1000 E3 K198\nG30 P99\nM30\n", &MachineConfig::embedded()).unwrap();
+    let mut all = Vec::new();
+    while let Some(x) = it.next_move().unwrap() {
+        all.push(x);
+    }
+    assert_eq!(tap_spindles(&all), [3, 3]);
+    assert_eq!(it.last_tap().unwrap().spindle, 3);
+    // E out of range.
+    let a = run_err("G98\nG0 X0 Z5\nM29 S500\nG84 Z-10 F1000 E5\n");
+    assert_eq!((a.number, a.pos.unwrap().col), (2510, 16));
+}
+
+/// A state file written before the spindle field existed reads as spindle 1.
+#[test]
+fn tap_return_without_spindle_reads_spindle_1() {
+    let t: TapReturn = serde_json::from_str(r#"{"axis":"Z","r_plane":2.0,"lead":-2.0,"rpm":500.0,"override_pct":100.0}"#).unwrap();
+    assert_eq!(t.spindle, 1);
+}
+
+/// The machine drives one spindle: a tap on spindle 2 is refused by motion at `push`, with
+/// an alarm saying what to do, before anything moves; spindle 1 runs.
+#[test]
+fn motion_refuses_a_tap_on_a_spindle_the_machine_lacks() {
+    let m = run("G98\nG0 X0 Z5\nM29 S500\nG84 Z-10 F1000 E2\nG80\nM30\n");
+    let mut mo = cncgw::motion::Motion::new(lims(), [0.0; cncgw::motion::N_AXES]);
+    let mut refused = None;
+    for x in &m {
+        if let Err(a) = mo.push(x) {
+            refused = Some((a, x.kind.clone()));
+            break;
+        }
+    }
+    let (a, k) = refused.expect("refused");
+    assert!(matches!(k, MoveKind::Tap { spindle: 2, .. }), "{k:?}");
+    assert_eq!(a.number, 2304, "{a}");
+    assert!(a.message.contains("spindle 2") && a.message.contains("E1"), "{a}");
+    assert_eq!(a.pos.as_ref().map(|p| p.line), Some(4));
+    let m = run("G98\nG0 X0 Z5\nM29 S500\nG84 Z-10 F1000 E1\nG80\nM30\n");
+    let mut mo = cncgw::motion::Motion::new(lims(), [0.0; cncgw::motion::N_AXES]);
+    let sp = drive(&mut mo, &m, 200_000, None);
+    assert!(sp.iter().any(|s| (s.pos[2] + 10.0).abs() < 1e-9), "taps to the bottom");
+}
+
+/// No.5200#2 = 1 (manual 000): cancelling rigid tapping waits for RGTAP = 0 — an exact-stop
+/// wait point at the G80 block that nothing after it passes before motion is there. With
+/// #2 = 0, or for flexible tapping, no wait point.
+#[test]
+fn rigid_cancel_waits_with_no_5200_2() {
+    let src = "G98\nG0 X0 Z5\nM29 S500\nG84 Z-10 F1000\nG80\nG0 X20\nM30\n";
+    let waits = |m: &[Move]| m.iter().filter(|m| m.kind == MoveKind::Dwell { seconds: 0.0 }).map(|m| (m.src.line, m.exact_stop, m.tag.is_none())).collect::<Vec<_>>();
+    assert_eq!(waits(&run_cfg(src, &cfg_with("5200 = 4"))), [(5, true, true)]);
+    assert!(waits(&run(src)).is_empty());
+    assert!(waits(&run_cfg("G98\nS500 M3\nG0 X0 Z5\nG84 Z-10 F1000\nG80\nM30\n", &cfg_with("5200 = 4"))).is_empty());
+    // The wait point sits after the hole's last stroke and before the next block's move.
+    let m = run_cfg(src, &cfg_with("5200 = 4"));
+    let i = m.iter().position(|m| m.kind == MoveKind::Dwell { seconds: 0.0 }).unwrap();
+    assert!(m[..i].iter().any(|m| m.kind.name() == "tap") && m[i + 1..].iter().all(|m| m.kind.name() != "tap"));
+    assert!(m[i + 1..].iter().any(|m| m.src.line == 6));
 }

@@ -13,6 +13,9 @@ tip = 3
 [2]
 r = 0.4
 tip = 0
+[3]
+r = 0.4
+tip = 8
 ";
 
 fn interp(src: &str) -> Interpreter {
@@ -139,7 +142,9 @@ fn the_manual_alarms() {
 
 #[test]
 fn cycles_keep_their_programmed_points() {
-    // §2.16 note 5 (G71–G76), and G90 likewise: a cycle's moves are not offset.
+    // §2.16 note 5 (G71–G76): a cycle's moves are not offset. A straight G90 with tip 3 is
+    // offset, but the tip-3 point of a nose touching lines along the axes is the programmed
+    // point itself, so it keeps its path too.
     let plain = run("T0101\nG0 X50 Z2\nG90 X40 Z-20 F0.2\nG0 X60\nM30\n");
     let comp = run("T0101\nG0 X50 Z2\nG42\nG90 X40 Z-20 F0.2\nG40\nG0 X60\nM30\n");
     assert_eq!(pts(&plain), pts(&comp));
@@ -181,4 +186,77 @@ fn g52_ends_the_offset_for_a_moment() {
     // G52, and the next move starts up again from there.
     let m = run("T0202\nG0 X16 Z2\nG42 G1 Z-10 F0.1\nG52 W0\nG1 Z-20\nG40 G0 X30\nM30\n");
     assert_pts(&pts(&m), &[("rapid", 16.0, 2.0), ("feed", 16.8, -10.0), ("feed", 16.8, -19.6), ("rapid", 30.0, -20.0)]);
+}
+
+/// The G90/G94 moves (kind, X diameter, Z) of a program.
+fn cycle_pts(m: &[Move], cycle: &str) -> Vec<(&'static str, f64, f64)> {
+    let c: Vec<Move> = m.iter().filter(|m| m.tag.as_ref().is_some_and(|t| &*t.cycle == cycle)).cloned().collect();
+    pts(&c)
+}
+
+/// G90 under G42 (manual 004 is silent; Fanuc 0i-TF): the manual's taper passes (§2.15.1
+/// example, `G00 X120 Z-30; G90 X120 Z-44 R-7.5 F150; Z-56 R-15`). ③ has no length there (C
+/// is at A's X), so ② runs on its offset line until the tip reaches X120. Tip 3, R0.4: the
+/// nose centre runs R inside the taper, the tip point R·(−1, −1) from it, so the tip runs
+/// 0.4·(0.8815 + 0.4722 − 1) = 0.1415 mm below the programmed taper: B (on Z-30) and C (on
+/// X120) move along it. Tip 8: the tip is R straight below the centre (worked out separately
+/// from the nose circle tangent to the taper).
+#[test]
+fn g90_taper_is_offset_by_the_tip() {
+    let src = |t: &str| format!("{t}\nG0 X130 Z3\nG0 X120 Z-30\nG42\nG90 X120 Z-44 R-7.5 F150\nZ-56 R-15\nG40\nG0 X130\nM30\n");
+    let m = run(&src("T0101"));
+    assert_pts(
+        &cycle_pts(&m, "G90"),
+        &[
+            ("rapid", 104.67899, -30.0),
+            ("feed", 120.0, -44.29961),
+            ("rapid", 120.0, -30.0),
+            ("rapid", 89.66205, -30.0),
+            ("feed", 120.0, -56.29289),
+            ("rapid", 120.0, -30.0),
+        ],
+    );
+    let m = run(&src("T0303"));
+    assert_pts(
+        &cycle_pts(&m, "G90"),
+        &[
+            ("rapid", 105.10756, -30.0),
+            ("feed", 120.0, -43.89961),
+            ("rapid", 120.0, -30.0),
+            ("rapid", 90.12359, -30.0),
+            ("feed", 120.0, -55.89289),
+            ("rapid", 120.0, -30.0),
+        ],
+    );
+    // Without G42 the same passes are the programmed ones.
+    let m = run("T0101\nG0 X130 Z3\nG0 X120 Z-30\nG90 X120 Z-44 R-7.5 F150\nM30\n");
+    assert_pts(&cycle_pts(&m, "G90"), &[("rapid", 105.0, -30.0), ("feed", 120.0, -44.0), ("rapid", 120.0, -30.0)]);
+}
+
+/// A straight G90 with tip 8 (the tip R below the nose centre): the cylinder's line is the
+/// tip's, but the shoulder ③ is touched by the nose's side, the centre R before Z-20: C and
+/// D move to Z-19.6.
+#[test]
+fn g90_straight_tip_8_stops_r_before_the_shoulder() {
+    let m = run("T0303\nG0 X50 Z2\nG42\nG90 X40 Z-20 F0.2\nG40\nG0 X60\nM30\n");
+    assert_pts(&cycle_pts(&m, "G90"), &[("rapid", 40.0, 2.0), ("feed", 40.0, -19.6), ("feed", 50.0, -19.6), ("rapid", 50.0, 2.0)]);
+}
+
+/// G94 under G42, the manual's taper face (§2.15.2 example, `G00 X120 Z0; G94 X108 Z-30
+/// R-10`): ② (B Z-40 → C Z-30 at X108) offset inside, ③ (Z retract at X108) is a line along
+/// Z, where tip 3 and tip 8 both put the tip on the programmed X; ② moves by the tip.
+#[test]
+fn g94_taper_is_offset_by_the_tip() {
+    let m = run("T0101\nG0 X120 Z0\nG42\nG94 X108 Z-30 R-10 F0.2\nG40\nG0 X130\nM30\n");
+    assert_pts(&cycle_pts(&m, "G94"), &[("rapid", 120.0, -40.28921), ("feed", 108.0, -30.28921), ("feed", 108.0, 0.0), ("rapid", 120.0, 0.0)]);
+    let m = run("T0303\nG0 X120 Z0\nG42\nG94 X108 Z-30 R-10 F0.2\nG40\nG0 X130\nM30\n");
+    assert_pts(&cycle_pts(&m, "G94"), &[("rapid", 120.0, -39.88921), ("feed", 108.0, -29.88921), ("feed", 108.0, 0.0), ("rapid", 120.0, 0.0)]);
+}
+
+/// A G90 pass shorter than the nose allows: with tip 8 the shoulder pushes C R back, past
+/// the start of a 0.1 mm long cut — interference 3605 at the cycle block, before any move.
+#[test]
+fn g90_too_short_for_the_nose_is_3605() {
+    let a = alarm("T0303\nG0 X50 Z0\nG42\nG90 X49.8 Z-0.1 F0.2\nG40\nM30\n");
+    assert_eq!((a.number, a.pos.as_ref().map(|p| p.line)), (3605, Some(4)), "{a}");
 }

@@ -109,8 +109,8 @@ fn program() -> Vec<Move> {
     }
     p.push(mv(line, MoveKind::Dwell { seconds: 0.3 }, true));
     p.push(mv(line + 1, MoveKind::Rapid { end: Pos::xz(0.0, 2.0) }, true));
-    p.push(mv(line + 2, MoveKind::Tap { end: Pos::xz(0.0, -20.0), lead: 1.5, rpm: 1500.0 }, true));
-    p.push(mv(line + 3, MoveKind::Tap { end: Pos::xz(0.0, 2.0), lead: 1.5, rpm: 1500.0 }, true));
+    p.push(mv(line + 2, MoveKind::Tap { end: Pos::xz(0.0, -20.0), lead: 1.5, rpm: 1500.0, spindle: 1 }, true));
+    p.push(mv(line + 3, MoveKind::Tap { end: Pos::xz(0.0, 2.0), lead: 1.5, rpm: 1500.0, spindle: 1 }, true));
     p.push(mv(line + 4, MoveKind::Rapid { end: Pos::xz(30.0, 5.0) }, true));
     // 30 mm at lead 2: 15 turns of the spindle in position mode.
     p.push(mv(line + 5, MoveKind::RigidThread { end: Pos { c: 5400.0, ..Pos::xz(30.0, -25.0) }, lead: 2.0, rpm: 500.0 }, true));

@@ -33,6 +33,12 @@ pub const USER_DATA: u16 = 0x2200;
 pub const USER_DATA_LEN: usize = 4096;
 /// Manufacturer-specific record: faults injected at run time (README, "Fault injection").
 pub const SIM_FAULTS: u16 = 0x2100;
+/// Manufacturer-specific U8: in CSP, how many SYNCs in a row without a new target (a lost
+/// RPDO) the set-point goes on with the last increment before it holds (real CSP drives with
+/// interpolation bridge a lost set-point so; 0 = hold at once).
+pub const CSP_EXTRAPOLATE: u16 = 0x2102;
+/// Default of `CSP_EXTRAPOLATE`: bridges up to 3 lost set-points (6 ms at 2 ms).
+pub const CSP_EXTRAPOLATE_DEFAULT: i64 = 3;
 /// Sub-indices of `SIM_FAULTS`.
 pub mod fault_sub {
     /// U16: write an error code to raise that fault now (reads back the last one).
@@ -150,6 +156,10 @@ pub struct SimDrive {
     /// Last latched target (raw) and its unwrapped value; `None` = next target is taken
     /// relative to the actual position.
     target_ref: Option<(i32, f64)>,
+    /// A target position was written (RPDO or SDO) since the last SYNC.
+    target_fresh: bool,
+    /// SYNCs in a row without a new target (see `CSP_EXTRAPOLATE`).
+    csp_missed: u32,
     target_vel: f64,
     stop: Option<Stop>,
     limit_active: bool,
@@ -294,6 +304,7 @@ fn build_od(c: &DriveConfig) -> Od {
     od.add(ix::VELOCITY_ACTUAL, 0, I32, Ro, true, 0);
     od.add(TORQUE_ACTUAL, 0, I16, Ro, true, 0);
     od.add(ix::TARGET_POSITION, 0, I32, Rw, true, 0);
+    od.add(CSP_EXTRAPOLATE, 0, U8, Rw, false, CSP_EXTRAPOLATE_DEFAULT);
     od.add(ix::SOFTWARE_LIMIT, 0, U8, Const, false, 2);
     od.add(ix::SOFTWARE_LIMIT, 1, I32, Rw, false, i32::MIN as i64);
     od.add(ix::SOFTWARE_LIMIT, 2, I32, Rw, false, i32::MAX as i64);
@@ -347,6 +358,8 @@ impl SimDrive {
             seg_len: 0,
             seg_v: 0.0,
             target_ref: None,
+            target_fresh: false,
+            csp_missed: 0,
             target_vel: 0.0,
             stop: None,
             limit_active: false,
@@ -808,7 +821,7 @@ impl SimDrive {
                 self.apply_rpdo(i as u16, &d, now);
             }
         }
-        self.latch_setpoints(now);
+        self.latch_setpoints(now, true);
     }
 
     fn mapping(&self, map_index: u16) -> Vec<MapEntry> {
@@ -1177,6 +1190,7 @@ impl SimDrive {
             }
             ix::CONTROLWORD => self.controlword(x as u16, now),
             ix::MODES_OF_OPERATION => self.set_mode(x as i8),
+            ix::TARGET_POSITION => self.target_fresh = true,
             SIM_FAULTS => self.sim_fault_written(sub, x, now),
             _ => {}
         }
@@ -1422,7 +1436,9 @@ impl SimDrive {
     }
 
     /// At a SYNC: take the new targets (CSP: start the next interpolation segment).
-    fn latch_setpoints(&mut self, now: u64) {
+    /// `sync`: at a SYNC (where a missing target means a lost RPDO); else a Modbus write.
+    fn latch_setpoints(&mut self, now: u64, sync: bool) {
+        let fresh = std::mem::take(&mut self.target_fresh) || !sync;
         if self.state != State::OperationEnabled || self.stop.is_some() {
             return;
         }
@@ -1432,14 +1448,29 @@ impl SimDrive {
             }
             mode::CYCLIC_SYNC_POSITION => {
                 let raw = self.od.int(ix::TARGET_POSITION, 0) as i32;
-                let mut t = match self.target_ref {
-                    Some((r, u)) => u + raw.wrapping_sub(r) as f64,
-                    None => {
-                        let a = self.servo.position_counts();
-                        a as f64 + raw.wrapping_sub(a as i32) as f64
+                // No new target for this SYNC (its RPDO was lost): go on with the last
+                // increment for up to `CSP_EXTRAPOLATE` SYNCs, then hold. A stop of one
+                // period would be a velocity step and, on the next target, twice the
+                // increment: a torque spike (10 % PDO loss tripped following error so).
+                let missed = !fresh && self.seg_len > 0 && self.target_ref.is_some();
+                self.csp_missed = if missed { self.csp_missed.saturating_add(1) } else { 0 };
+                let mut t = if missed {
+                    if self.csp_missed as i64 <= self.od.int(CSP_EXTRAPOLATE, 0) {
+                        self.seg_end + self.seg_v * (self.seg_len as f64 * 1e-9)
+                    } else {
+                        self.seg_end
                     }
+                } else {
+                    let t = match self.target_ref {
+                        Some((r, u)) => u + raw.wrapping_sub(r) as f64,
+                        None => {
+                            let a = self.servo.position_counts();
+                            a as f64 + raw.wrapping_sub(a as i32) as f64
+                        }
+                    };
+                    self.target_ref = Some((raw, t));
+                    t
                 };
-                self.target_ref = Some((raw, t));
                 let lo = self.od.int(ix::SOFTWARE_LIMIT, 1);
                 let hi = self.od.int(ix::SOFTWARE_LIMIT, 2);
                 self.limit_active = false;
@@ -1630,7 +1661,7 @@ impl SimDrive {
     pub(crate) fn modbus_latch(&mut self, now: u64) -> Option<u64> {
         let fresh = self.seg_len == 0 || now.saturating_sub(self.seg_t0) > self.seg_len * (1 + SYNC_EXTRAPOLATE_PERIODS);
         let before = self.seg_t0;
-        self.latch_setpoints(now);
+        self.latch_setpoints(now, false);
         (fresh && self.seg_t0 == now && before != now).then(|| now + self.seg_len)
     }
 }

@@ -308,3 +308,39 @@ fn fault_flags_parse_and_fire_at_their_time() {
     assert_eq!(r.w.set_sim_fault(1, fs::UNDERVOLTAGE, 0), Ok(()));
     assert_eq!(r.w.set_sim_fault(9, fs::UNDERVOLTAGE, 0), Err(0));
 }
+
+/// CSP: SYNCs in a row without a new target (the RPDO was lost) — the drive's set-point goes
+/// on with the last increment for `0x2102` SYNCs (3 by default), then holds.
+#[test]
+fn a_lost_csp_set_point_is_bridged_with_the_last_increment_then_held() {
+    use sim_drives::drive::CSP_EXTRAPOLATE;
+    for (limit, expect_bridged) in [(None, 3), (Some(0u32), 0), (Some(5), 5)] {
+        let mut r = Rig::new();
+        if let Some(l) = limit {
+            assert_eq!(r.write(CSP_EXTRAPOLATE, 0, l, 1), Some(Ok(())));
+        }
+        r.enable();
+        let p0 = r.w.drive(1).unwrap().position_actual();
+        // 100 counts per 2 ms cycle (5 mm/s).
+        let mut last = p0;
+        for k in 1..=50 {
+            last = p0 + 100 * k;
+            r.cycle(0x0F, last, 2 * MS);
+        }
+        let d0 = r.w.drive(1).unwrap().position_demand();
+        assert!((d0 - last as f64).abs() < 1.0, "demand {d0} on the target {last}");
+        // Six SYNCs without an RPDO.
+        let mut demand = Vec::new();
+        for _ in 0..6 {
+            r.m.send(&sync_frame(None)).unwrap();
+            r.run(2 * MS);
+            demand.push(r.w.drive(1).unwrap().position_demand());
+        }
+        for (m, d) in demand.iter().enumerate() {
+            let bridged = (m + 1).min(expect_bridged) as f64;
+            let want = last as f64 + 100.0 * bridged;
+            assert!((d - want).abs() < 1.0, "limit {limit:?}: SYNC {} without a target: demand {d}, expected {want} ({demand:?})", m + 1);
+        }
+        assert_eq!(r.state(), State::OperationEnabled);
+    }
+}

@@ -65,4 +65,17 @@ pub trait DriveBus {
     fn link_cycle(&self, _axis: usize) -> Option<(String, String, f64)> {
         None
     }
+    /// Ask the bus to isolate a drive fault: put only the faulted drive into its own fault
+    /// reaction and keep the others following their targets, so that the layer above can stop
+    /// them under control (a tap's spindle and feed axis together). Returns whether the bus
+    /// does so; one that returns false quick-stops every drive on a fault (the default).
+    fn isolate_faults(&mut self, _on: bool) -> bool {
+        false
+    }
+    /// Under `isolate_faults`: the drive that faulted (EMCY, fault state, heartbeat lost, stale
+    /// feedback, left NMT operational), from the `receive` that saw it on. `None` again when a
+    /// second drive faulted too: the bus then quick-stopped every drive.
+    fn faulted(&self) -> Option<usize> {
+        None
+    }
 }

@@ -104,4 +104,24 @@ impl DriveBus for MultiBus<'_> {
         let (p, i) = self.map[axis];
         self.parts[p].link_cycle(i)
     }
+    fn isolate_faults(&mut self, on: bool) -> bool {
+        // Only when every part can: a part that quick-stops its own drives on a fault would
+        // leave a synchronised partner on another bus alone.
+        let mut all = true;
+        for p in self.parts.iter_mut() {
+            all &= p.isolate_faults(on);
+        }
+        if on && !all {
+            for p in self.parts.iter_mut() {
+                p.isolate_faults(false);
+            }
+        }
+        all
+    }
+    fn faulted(&self) -> Option<usize> {
+        (0..self.map.len()).find(|&a| {
+            let (p, i) = self.map[a];
+            self.parts[p].faulted() == Some(i)
+        })
+    }
 }

@@ -616,3 +616,73 @@ fn circle_circle(c1: P2, r1: f64, c2: P2, r2: f64) -> Vec<P2> {
     let m = add(c1, mul(u, a));
     vec![add(m, mul(left(u), h)), sub(m, mul(left(u), h))]
 }
+
+/// G90/G94 under G41/G42 (manual 004 is silent; done as a Fanuc 0i-TF does, whose offset
+/// direction in these cycles follows from the cycle and the imaginary tip, not from
+/// G41/G42): the two cutting lines, ② `b`→`c` and ③ `c`→`d`, are offset by the nose radius
+/// `r` towards the inside of the cycle's figure A-B-C-D (the stock a pass removes; the
+/// finished surface lies beyond them), and the imaginary tip of tip number `tip` runs on
+/// them: machine point = nose centre + r·tip vector. ① and ④ keep their axis (`approach`,
+/// `ret`: (Z, X) unit vectors) and their end at `a`: ① ends where its axis through `a` meets
+/// ②'s line, ③ where ④'s axis through `a` meets ③'s line. When ③ has no length (C at A's X
+/// for G90, A's Z for G94) ② runs on until its line meets ④'s axis. For tip 3 (and 1, 2, 4
+/// set the way the cut faces) a straight cycle keeps its programmed path, the tip point
+/// being where the nose touches lines along the axes; tapers move, and tips 5–8/0/9 move
+/// ends by r.
+///
+/// Returns the new (B, C, D) — None when ② has no length — or an interference message when
+/// a compensated cut runs against its programmed direction (the taper or step is too short
+/// for the nose, §2.18.4).
+#[allow(clippy::too_many_arguments)]
+pub fn single_cycle_offset(
+    a: Pos,
+    b: Pos,
+    c: Pos,
+    d: Pos,
+    approach: P2,
+    ret: P2,
+    r: f64,
+    tip: u8,
+) -> Result<Option<(Pos, Pos, Pos)>, String> {
+    let (pa, pb, pc, pd) = (uv(a), uv(b), uv(c), uv(d));
+    let inside = mul(add(add(pa, pb), add(pc, pd)), 0.25);
+    let side = |p: P2, q: P2| -> Option<(P2, P2)> {
+        let t = unit(sub(q, p));
+        let n = left(t);
+        let s = dot(n, sub(inside, p));
+        if norm(sub(q, p)) < 1e-9 || s.abs() < 1e-12 {
+            return None;
+        }
+        Some((t, mul(n, s.signum())))
+    };
+    let Some((t1, n1)) = side(pb, pc) else {
+        return Ok(None);
+    };
+    let tv = mul(tip_vector(tip), r);
+    // The machine line of ②: the nose-centre line moved by the tip vector.
+    let m1 = add(add(pb, mul(n1, r)), tv);
+    let backwards = || format!("interference: with the nose radius {r:.3} mm compensated, a cut of this cycle would run backwards (the taper or the step is too short for the nose, §2.18.4)");
+    let Some(b2) = line_line(pa, approach, m1, t1) else {
+        return Ok(None);
+    };
+    let (c2, d2) = match side(pc, pd) {
+        Some((t2, n2)) => {
+            let m2 = add(add(pc, mul(n2, r)), tv);
+            let (Some(c2), Some(d2)) = (line_line(m1, t1, m2, t2), line_line(pa, ret, m2, t2)) else {
+                return Ok(None);
+            };
+            if dot(sub(d2, c2), t2) <= 0.0 {
+                return Err(backwards());
+            }
+            (c2, d2)
+        }
+        None => match line_line(pa, ret, m1, t1) {
+            Some(e) => (e, e),
+            None => return Ok(None),
+        },
+    };
+    if dot(sub(c2, b2), t1) <= 0.0 {
+        return Err(backwards());
+    }
+    Ok(Some((set_p(b, b2), set_p(c, c2), set_p(d, d2))))
+}

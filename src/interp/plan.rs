@@ -211,7 +211,13 @@ pub fn write_json(out: &mut String, m: &Move) {
             o.put("lead", J::Num(r(*lead)));
             o.put("start_angle", J::Num(r(*start_angle)));
         }
-        MoveKind::Tap { end, lead, rpm } | MoveKind::RigidThread { end, lead, rpm } => {
+        MoveKind::Tap { end, lead, rpm, spindle } => {
+            put_end(&mut o, m, *end);
+            o.put("lead", J::Num(r(*lead)));
+            o.put("rpm", J::Num(r(*rpm)));
+            o.put("spindle", J::Int(u32::from(*spindle)));
+        }
+        MoveKind::RigidThread { end, lead, rpm } => {
             put_end(&mut o, m, *end);
             o.put("lead", J::Num(r(*lead)));
             o.put("rpm", J::Num(r(*rpm)));
@@ -328,7 +334,7 @@ pub fn move_to_text(m: &Move) -> String {
             end(&mut s, *e);
             s.push_str(&format!(" lead {} start {}°", r(*lead), r(*start_angle)));
         }
-        MoveKind::Tap { end: e, lead, rpm } | MoveKind::RigidThread { end: e, lead, rpm } => {
+        MoveKind::Tap { end: e, lead, rpm, .. } | MoveKind::RigidThread { end: e, lead, rpm } => {
             end(&mut s, *e);
             s.push_str(&format!(" lead {} S{}", r(*lead), r(*rpm)));
         }

@@ -86,6 +86,27 @@ pub struct RunFailure {
     pub summary: RunSummary,
 }
 
+/// The spindle speed from its position, as the cycle loop measures it.
+struct SpindleMeter {
+    prev: f64,
+    rpm: f64,
+}
+
+impl SpindleMeter {
+    fn new(pos: f64, rpm: f64) -> Self {
+        SpindleMeter { prev: pos, rpm }
+    }
+
+    /// rpm after this cycle's position: 1st-order filter, τ = 8 ms (one cycle's position
+    /// difference is quantised to a count).
+    fn update(&mut self, pos: f64, dt: f64) -> f64 {
+        let inst = (pos - self.prev) / 360.0 / dt * 60.0;
+        self.prev = pos;
+        self.rpm += (dt / 0.008).min(1.0) * (inst - self.rpm);
+        self.rpm
+    }
+}
+
 /// Which motion axis each drive follows (by the config's axis names: x, y, z; the spindle).
 fn motion_axis(name: &str, spindle: bool) -> Option<usize> {
     if spindle {
@@ -206,6 +227,9 @@ impl<'a> CycleLoop<'a> {
         if let Some(t) = self.tool {
             motion.set_tool_spindle(&t, self.drives.feedback(t.drive).pos);
         }
+        // One drive's fault stops the others under control (a tap's pair together) where the
+        // bus can isolate it; otherwise every drive is quick-stopped.
+        let isolate = self.drives.isolate_faults(true);
         // Statistics, all allocated here, before the first cycle.
         summary.axes = (0..n)
             .map(|d| AxisSummary {
@@ -258,13 +282,13 @@ impl<'a> CycleLoop<'a> {
                             end_pos = Some(e);
                         }
                         if let Err(a) = motion.push(&m) {
-                            self.halt(&mut motion);
+                            self.halt(&mut motion, spindle_rpm);
                             return Err(a);
                         }
                     }
                     Ok(Err(a)) => {
                         // A run-time program alarm: stop at this block, in a controlled way.
-                        self.halt(&mut motion);
+                        self.halt(&mut motion, spindle_rpm);
                         return Err(a);
                     }
                     Err(TryRecvError::Empty) => break,
@@ -289,7 +313,11 @@ impl<'a> CycleLoop<'a> {
                 missed = ((now - next) / self.cycle_ns).min(MAX_CATCH_UP);
                 next = now - (now - next) % self.cycle_ns;
             }
-            if let Err(a) = self.drives.receive(now) {
+            let received = self.drives.receive(now);
+            if let Some(d) = if isolate { self.drives.faulted() } else { None } {
+                return Err(self.fault_stop(&mut motion, d, received.err(), spindle_rpm, cur_line));
+            }
+            if let Err(a) = received {
                 self.drives.quick_stop();
                 let _ = self.drives.transmit(now);
                 return Err(a);
@@ -343,7 +371,8 @@ impl<'a> CycleLoop<'a> {
                     return Err(self.estop(cur_line));
                 }
                 if i.reset {
-                    self.halt(&mut motion);
+                    // This cycle's set-points are not sent yet: the stop starts with them.
+                    self.halt_now(&mut motion, spindle_rpm);
                     return Err(Alarm::new(
                         alarms::RESET,
                         format!("reset by the operator at line {cur_line}: the axes were stopped under control and the program ended; start it again from the beginning or a safe block"),
@@ -398,7 +427,7 @@ impl<'a> CycleLoop<'a> {
             }
             if let Some(a) = motion.take_alarm() {
                 // The motion layer already started a controlled stop.
-                self.halt(&mut motion);
+                self.halt(&mut motion, spindle_rpm);
                 return Err(a);
             }
             ended |= self.on_event(&mut motion, &sp);
@@ -475,26 +504,129 @@ impl<'a> CycleLoop<'a> {
         )
     }
 
-    /// Controlled stop on a program alarm: decelerate along the path, then hold.
-    fn halt(&mut self, motion: &mut Motion) {
-        motion.stop();
+    /// The feedback of every drive motion commands, with the spindle speed measured as in
+    /// `run` (a thread's lock predicts the spindle angle with it, also while stopping).
+    fn read_feedback(&self, meter: &mut SpindleMeter) -> Feedback {
+        let mut fb = Feedback::default();
+        for d in 0..self.drives.axis_count() {
+            if let Some(a) = motion_axis(self.drives.axis_name(d), Some(d) == self.spindle_drive) {
+                fb.pos[a] = self.drives.feedback(d).pos;
+            }
+        }
+        if let Some(sd) = self.spindle_drive {
+            fb.spindle_rpm = meter.update(self.drives.feedback(sd).pos, self.cycle_ns as f64 * 1e-9);
+        }
+        fb
+    }
+
+    /// A drive faulted and the bus isolated it (`DriveBus::faulted`): it runs its own fault
+    /// reaction while the others stop under control — in a thread or tap the survivor of the
+    /// pair follows the faulted drive's actual position (`Motion::fault_stop`). Returns the
+    /// drive's alarm (2010 once its 0x603F is read; 2011, 2014, 2015 at once) with the line
+    /// the program stopped at. Anything else going wrong meanwhile (a second drive, the bus,
+    /// E-stop) quick-stops every drive.
+    fn fault_stop(&mut self, motion: &mut Motion, d: usize, first: Option<Alarm>, rpm: f64, line: u32) -> Alarm {
+        motion.fault_stop(motion_axis(self.drives.axis_name(d), Some(d) == self.spindle_drive));
+        tracing::warn!(axis = self.drives.axis_name(d), line, "drive fault: controlled stop of the other drives");
+        let at_line = |mut a: Alarm| {
+            a.message.push_str(&format!("; the program stopped at line {line}, the other axes under control"));
+            a
+        };
+        let mut alarm = first;
+        let mut meter = SpindleMeter::new(self.spindle_drive.map(|s| self.drives.feedback(s).pos).unwrap_or(0.0), rpm);
+        let dt_ns = self.cycle_ns.max(1);
+        let mut next = self.clock.now_ns();
+        let mut now = next;
+        let mut idle = 0u32;
+        for k in 0..(10_000_000_000 / dt_ns) {
+            if k > 0 {
+                next += dt_ns;
+                self.clock.wait_until(next);
+                now = self.clock.now_ns();
+                if let Err(a) = self.drives.receive(now) {
+                    if self.drives.faulted() != Some(d) {
+                        // Not about the isolated drive: stop everything now.
+                        self.drives.quick_stop();
+                        let _ = self.drives.transmit(now);
+                        return at_line(alarm.unwrap_or(a));
+                    }
+                    if alarm.is_none() {
+                        alarm = Some(a);
+                    }
+                }
+            }
+            if self.panel.as_mut().is_some_and(|r| r.poll().estop) {
+                self.drives.quick_stop();
+                let _ = self.drives.transmit(now);
+                return at_line(alarm.unwrap_or_else(|| Alarm::new(alarms::ESTOP, "emergency stop during a drive fault stop")));
+            }
+            let fb = self.read_feedback(&mut meter);
+            let sp = motion.step(&fb);
+            for dd in 0..self.drives.axis_count() {
+                if dd == d {
+                    // Ignored while it is in its fault reaction; after a fault reset it holds.
+                    let p = self.drives.feedback(dd).pos;
+                    self.drives.set_target(dd, p);
+                } else if let Some(a) = motion_axis(self.drives.axis_name(dd), Some(dd) == self.spindle_drive) {
+                    self.drives.set_target(dd, sp.pos[a]);
+                } else if self.tool.is_some_and(|t| t.drive == dd) {
+                    self.drives.set_target(dd, sp.tool_spindle);
+                }
+            }
+            if let Err(a) = self.drives.transmit(now) {
+                self.drives.quick_stop();
+                return at_line(alarm.unwrap_or(a));
+            }
+            if motion.is_idle() {
+                if let Some(a) = alarm.take() {
+                    return at_line(a);
+                }
+                // Wait a little for the faulted drive's diagnosis (0x603F over SDO).
+                idle += 1;
+                if idle > 250 {
+                    break;
+                }
+            }
+        }
+        self.drives.quick_stop();
+        let _ = self.drives.transmit(now);
+        let name = self.drives.axis_name(d).to_string();
+        at_line(alarm.unwrap_or_else(|| Alarm::new(2010, format!("axis {name}: drive fault, not diagnosed; clear the cause, then reset"))))
+    }
+
+    /// Controlled stop on a program alarm: decelerate along the path (a thread or tap's pair
+    /// together), then hold. Called between cycles (this cycle's set-points were sent).
+    /// `rpm`: the spindle speed measured last.
+    fn halt(&mut self, motion: &mut Motion, rpm: f64) {
+        self.halt_from(motion, rpm, false)
+    }
+
+    /// `halt` from within a cycle whose feedback was received but whose set-points are not
+    /// sent yet (reset): the stop's first set-points go out in this cycle. (Skipping it would
+    /// leave the drives one SYNC without a set-point, a glitch in a tap.)
+    fn halt_now(&mut self, motion: &mut Motion, rpm: f64) {
+        self.halt_from(motion, rpm, true)
+    }
+
+    fn halt_from(&mut self, motion: &mut Motion, rpm: f64, this_cycle: bool) {
+        motion.stop_following();
+        let mut meter = SpindleMeter::new(self.spindle_drive.map(|s| self.drives.feedback(s).pos).unwrap_or(0.0), rpm);
         let dt_ns = self.cycle_ns;
         let mut next = self.clock.now_ns();
-        for _ in 0..(5_000_000_000 / dt_ns.max(1)) {
-            next += dt_ns;
-            self.clock.wait_until(next);
-            let now = self.clock.now_ns();
-            if self.drives.receive(now).is_err() {
+        for k in 0..(5_000_000_000 / dt_ns.max(1)) {
+            let now = if k == 0 && this_cycle {
+                next
+            } else {
+                next += dt_ns;
+                self.clock.wait_until(next);
+                self.clock.now_ns()
+            };
+            if !(k == 0 && this_cycle) && self.drives.receive(now).is_err() {
                 self.drives.quick_stop();
                 let _ = self.drives.transmit(now);
                 return;
             }
-            let mut fb = Feedback::default();
-            for d in 0..self.drives.axis_count() {
-                if let Some(a) = motion_axis(self.drives.axis_name(d), Some(d) == self.spindle_drive) {
-                    fb.pos[a] = self.drives.feedback(d).pos;
-                }
-            }
+            let fb = self.read_feedback(&mut meter);
             // E-stop overrides a controlled stop in progress.
             if self.panel.as_mut().is_some_and(|r| r.poll().estop) {
                 self.drives.quick_stop();

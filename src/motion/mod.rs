@@ -82,6 +82,7 @@
 #![allow(clippy::needless_range_loop)]
 
 pub mod cycle;
+mod fault;
 pub mod geom;
 pub mod panel;
 mod polar;
@@ -235,6 +236,11 @@ pub struct Limits {
     /// last setpoint put it). Threads predict the spindle angle this far ahead, the sync
     /// correction pairs feedback with setpoints by it. 1 ..= 3.
     pub feedback_delay: usize,
+    /// No.5275: cycles by which a flexible tap's axis lags the spindle encoder (compensated).
+    pub flex_lag_cycles: f64,
+    /// No.5276 (0.1 rpm units, here rpm): a flexible tap's retract starts once the encoder
+    /// shows the reversed spindle at this speed; 0 = at once.
+    pub flex_retract_rpm: f64,
 }
 
 impl Limits {
@@ -257,6 +263,8 @@ impl Limits {
             tap_retract_accel: f64::INFINITY,
             sync_correction: true,
             feedback_delay: FEEDBACK_DELAY,
+            flex_lag_cycles: cfg.param(5275).filter(|n| n.is_finite() && *n > 0.0).unwrap_or(0.0),
+            flex_retract_rpm: cfg.param(5276).filter(|n| n.is_finite() && *n > 0.0).map_or(0.0, |n| n * 0.1),
         };
         for (name, a) in &cfg.axes {
             if a.role == Some(crate::config::AxisRole::ToolSpindle) {
@@ -570,6 +578,10 @@ pub struct Motion {
     sb_pending: bool,
     /// The tool spindle of polygon turning (absent unless `set_tool_spindle`).
     tool: polygon::ToolSync,
+    /// The measured spindle speed of the last cycle (flexible tapping's lag compensation).
+    fb_rpm_prev: f64,
+    /// A drive of the running synchronised pair faulted: the survivor follows it (`fault.rs`).
+    follow: Option<fault::Follow>,
 }
 
 fn xyz(p: &Pos) -> [f64; 3] {
@@ -613,6 +625,8 @@ impl Motion {
             plan_cyc: CycStep::default(),
             sb_pending: false,
             tool: polygon::ToolSync::none(),
+            fb_rpm_prev: 0.0,
+            follow: None,
             sp_dir: 0.0,
             sp_rpm: 0.0,
             sp_css: None,
@@ -683,7 +697,15 @@ impl Motion {
                 Item::Thread(self.thread_seg(end, *lead, *start_angle, *lead_inc, *continuous).map_err(at)?)
             }
             MoveKind::RigidThread { end, lead, rpm } => Item::Rigid(self.rigid_seg(end, *lead, *rpm).map_err(at)?),
-            MoveKind::Tap { end, lead, rpm } => Item::Tap(self.tap_seg(end, *lead, *rpm).map_err(at)?),
+            // One spindle is driven (the first configured): a tap on another (E2–E4, M25–M27)
+            // is refused before anything moves.
+            MoveKind::Tap { spindle, .. } if *spindle != 1 => {
+                return Err(at(Alarm::new(
+                    alarms::UNSUPPORTED,
+                    format!("rigid tap on spindle {spindle}: this machine drives one spindle (spindle 1); select it with E1 (or M24), or remove E / M25–M27"),
+                )))
+            }
+            MoveKind::Tap { end, lead, rpm, .. } => Item::Tap(self.tap_seg(end, *lead, *rpm).map_err(at)?),
             MoveKind::Dwell { seconds } => {
                 if !(seconds.is_finite() && *seconds >= 0.0) {
                     return Err(at(Alarm::new(
@@ -1394,12 +1416,28 @@ impl Motion {
         let v = match seg.speed {
             Speed::Rapid => seg.vlim * self.rapid_ovr,
             Speed::PerMin(f) => (f * self.feed_ovr).min(self.lim.feed_clamp),
+            Speed::PerRev(r) if self.cur_cyc.flex_tap_in_hole() => self.flex_tap_v(r, fb),
             Speed::PerRev(r) => {
                 let rpm = if fb.spindle_rpm.is_finite() { fb.spindle_rpm.abs() } else { 0.0 };
                 (r * rpm / 60.0 * self.feed_ovr).min(self.lim.feed_clamp)
             }
         };
         v.min(seg.vlim)
+    }
+
+    /// A flexible tap stroke (004 §2.22.3, manual 000 No.5275/5276): the tapping axis follows
+    /// the spindle encoder, one lead per revolution, whatever the feed override (note 3).
+    /// No.5275: the axis lags the encoder by that many cycles; compensated by following the
+    /// speed the encoder will read that many cycles on (extrapolated from the last change).
+    /// No.5276: the stroke out of the hole (action 5) waits until the encoder reads the
+    /// reversed spindle at that speed.
+    fn flex_tap_v(&self, lead: f64, fb: &Feedback) -> f64 {
+        let now = if fb.spindle_rpm.is_finite() { fb.spindle_rpm } else { 0.0 };
+        if self.cur_cyc.step == 5 && self.lim.flex_retract_rpm > 0.0 && now * self.sp_dir < self.lim.flex_retract_rpm {
+            return 0.0;
+        }
+        let ahead = now + self.lim.flex_lag_cycles * (now - self.fb_rpm_prev);
+        (lead * ahead.abs() / 60.0).min(self.lim.feed_clamp)
     }
 
     /// Advance one cycle. Never allocates; never panics; O(1).
@@ -1471,6 +1509,7 @@ impl Motion {
         }
 
         match self.run {
+            _ if self.follow.is_some() => path_v = self.step_follow(fb, &prev),
             Run::None => {}
             Run::Move { landed: true, .. } => {
                 // Exact stop: one cycle at rest on the end point.
@@ -1661,7 +1700,9 @@ impl Motion {
             self.sp_css = None;
         }
 
-        self.sync_corr(fb);
+        if !self.follow_corr() {
+            self.sync_corr(fb);
+        }
         self.step_tool(fb.pos[AX_S], fb.spindle_rpm * 6.0);
         let mut out = self.pos;
         let mut vel = [0.0; N_AXES];
@@ -1672,6 +1713,7 @@ impl Motion {
         self.hist_k = (self.hist_k + 1) % HIST;
         self.hist[self.hist_k] = out;
         vel[AX_S] = self.sp_cur * 6.0;
+        self.fb_rpm_prev = if fb.spindle_rpm.is_finite() { fb.spindle_rpm } else { 0.0 };
         Setpoint {
             pos: out,
             vel,

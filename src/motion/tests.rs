@@ -724,8 +724,8 @@ fn rigid_tap_keeps_spindle_angle_and_z_locked_and_returns() {
     let mut m = Motion::new(l.clone(), [0.0, 0.0, 0.0, 0.0]);
     m.push(&mv(1, spindle(SpindleDir::Cw, 800.0))).unwrap(); // running: the tap brakes it first
     m.push(&mv(2, rapid(0.0, 2.0))).unwrap();
-    m.push(&mv(3, MoveKind::Tap { end: Pos::xz(0.0, -20.0), lead: 1.5, rpm: 1000.0 })).unwrap();
-    m.push(&mv(4, MoveKind::Tap { end: Pos::xz(0.0, 2.0), lead: 1.5, rpm: 1000.0 })).unwrap();
+    m.push(&mv(3, MoveKind::Tap { end: Pos::xz(0.0, -20.0), lead: 1.5, rpm: 1000.0, spindle: 1 })).unwrap();
+    m.push(&mv(4, MoveKind::Tap { end: Pos::xz(0.0, 2.0), lead: 1.5, rpm: 1000.0, spindle: 1 })).unwrap();
     let sps = run(&mut m, 100_000);
     check_limits(&l, [0.0; N_AXES], &sps).unwrap();
     let first = sps.iter().position(|s| s.line == 3).unwrap();
@@ -843,7 +843,7 @@ fn any_move() -> impl Strategy<Value = MoveKind> {
             feed: Feed::PerMin(f)
         }),
         (pos(), any_f64(), any_f64()).prop_map(|(end, lead, start_angle)| MoveKind::Thread { end, lead, start_angle, continuous: false, lead_inc: 0.0 }),
-        (pos(), any_f64(), any_f64()).prop_map(|(end, lead, rpm)| MoveKind::Tap { end, lead, rpm }),
+        (pos(), any_f64(), any_f64()).prop_map(|(end, lead, rpm)| MoveKind::Tap { end, lead, rpm, spindle: 1 }),
         any_f64().prop_map(|seconds| MoveKind::Dwell { seconds: seconds.abs().min(0.05) }),
         (0..3u8, any_f64(), prop::option::of(any_f64()), prop::option::of(any_f64())).prop_map(|(d, rpm, css, max_rpm)| {
             MoveKind::Spindle(SpindleCmd {
@@ -1064,9 +1064,9 @@ fn spindle_override_scales_the_commanded_speed_within_the_machine_maximum() {
 /// Rigid tap at (x 0): R point z 2, bottom z −20, dwell at the bottom, return, then away.
 fn tap_program(m: &mut Motion) {
     m.push(&mv(1, rapid(0.0, 2.0))).unwrap();
-    m.push(&mv(2, MoveKind::Tap { end: Pos::xz(0.0, -20.0), lead: 1.0, rpm: 600.0 })).unwrap();
+    m.push(&mv(2, MoveKind::Tap { end: Pos::xz(0.0, -20.0), lead: 1.0, rpm: 600.0, spindle: 1 })).unwrap();
     m.push(&mv(3, MoveKind::Dwell { seconds: 0.1 })).unwrap();
-    m.push(&mv(4, MoveKind::Tap { end: Pos::xz(0.0, 2.0), lead: 1.0, rpm: 600.0 })).unwrap();
+    m.push(&mv(4, MoveKind::Tap { end: Pos::xz(0.0, 2.0), lead: 1.0, rpm: 600.0, spindle: 1 })).unwrap();
     m.push(&mv(5, rapid(10.0, 2.0))).unwrap();
 }
 
@@ -1406,7 +1406,7 @@ fn rigid_tap_sync_error_uses_actual_spindle_angle() {
     l.sync_correction = false;
     let mut m = Motion::new(l, [0.0; N_AXES]);
     m.push(&mv(1, rapid(0.0, 2.0))).unwrap();
-    m.push(&mv(2, MoveKind::Tap { end: Pos::xz(0.0, -20.0), lead: 1.5, rpm: 1000.0 })).unwrap();
+    m.push(&mv(2, MoveKind::Tap { end: Pos::xz(0.0, -20.0), lead: 1.5, rpm: 1000.0, spindle: 1 })).unwrap();
     let mut fb = Feedback::default();
     let mut prev: Option<Setpoint> = None;
     let mut worst: f64 = 0.0;
@@ -1461,11 +1461,11 @@ fn a_rigid_tap_too_fast_for_z_or_the_spindle_is_refused_at_push() {
     let mut m = Motion::new(lim(), [0.0; N_AXES]);
     m.push(&mv(1, rapid(0.0, 2.0))).unwrap();
     // Lead 3 × S5000 = 15000 mm/min > Z's 12000.
-    let e = m.push(&mv(2, MoveKind::Tap { end: Pos::xz(0.0, -20.0), lead: 3.0, rpm: 5000.0 })).unwrap_err();
+    let e = m.push(&mv(2, MoveKind::Tap { end: Pos::xz(0.0, -20.0), lead: 3.0, rpm: 5000.0, spindle: 1 })).unwrap_err();
     assert_eq!(e.number, alarms::THREAD_TOO_FAST);
     assert!(e.message.contains("lower S"), "{}", e.message);
     // Above the spindle's 6000 rpm (Z would manage: 0.5 × 7000 = 3500 mm/min).
-    let e = m.push(&mv(2, MoveKind::Tap { end: Pos::xz(0.0, -20.0), lead: 0.5, rpm: 7000.0 })).unwrap_err();
+    let e = m.push(&mv(2, MoveKind::Tap { end: Pos::xz(0.0, -20.0), lead: 0.5, rpm: 7000.0, spindle: 1 })).unwrap_err();
     assert_eq!(e.number, alarms::THREAD_TOO_FAST);
     // Nothing was queued: only the rapid runs.
     let sps = run(&mut m, 10_000);
@@ -1489,8 +1489,8 @@ fn rigid_tap_matches_acceleration_with_5261_in_and_5271_out() {
     let dt = l.cycle_s;
     let mut m = Motion::new(l.clone(), [0.0; N_AXES]);
     m.push(&mv(1, rapid(0.0, 2.0))).unwrap();
-    m.push(&mv(2, MoveKind::Tap { end: Pos::xz(0.0, -20.0), lead: 1.5, rpm: 2000.0 })).unwrap();
-    m.push(&mv(3, MoveKind::Tap { end: Pos::xz(0.0, 2.0), lead: 1.5, rpm: 2000.0 })).unwrap();
+    m.push(&mv(2, MoveKind::Tap { end: Pos::xz(0.0, -20.0), lead: 1.5, rpm: 2000.0, spindle: 1 })).unwrap();
+    m.push(&mv(3, MoveKind::Tap { end: Pos::xz(0.0, 2.0), lead: 1.5, rpm: 2000.0, spindle: 1 })).unwrap();
     let sps = run(&mut m, 100_000);
     // Spindle and Z on one profile: the spindle's limit sets Z's (the lower of the two).
     let (s_in, s_out) = (peak_accel(&sps, AX_S, 2, dt), peak_accel(&sps, AX_S, 3, dt));
@@ -1507,8 +1507,8 @@ fn sync_correction_sends_z_after_the_spindle_actual_angle_and_fades_out_at_r() {
     l.feedback_delay = 2;
     let mut m = Motion::new(l, [0.0; N_AXES]);
     m.push(&mv(1, rapid(0.0, 2.0))).unwrap();
-    m.push(&mv(2, MoveKind::Tap { end: Pos::xz(0.0, -10.0), lead: 1.5, rpm: 1000.0 })).unwrap();
-    m.push(&mv(3, MoveKind::Tap { end: Pos::xz(0.0, 2.0), lead: 1.5, rpm: 1000.0 })).unwrap();
+    m.push(&mv(2, MoveKind::Tap { end: Pos::xz(0.0, -10.0), lead: 1.5, rpm: 1000.0, spindle: 1 })).unwrap();
+    m.push(&mv(3, MoveKind::Tap { end: Pos::xz(0.0, 2.0), lead: 1.5, rpm: 1000.0, spindle: 1 })).unwrap();
     m.push(&mv(4, rapid(10.0, 2.0))).unwrap();
     // Drives two cycles behind (as on CANopen); the spindle 1° further behind than that.
     let mut sps: Vec<Setpoint> = Vec::new();
@@ -1561,7 +1561,7 @@ fn boring(x: f64) -> Vec<(MoveKind, u8)> {
 }
 
 fn rigid_tap(x: f64) -> Vec<(MoveKind, u8)> {
-    let tap = |z: f64| MoveKind::Tap { end: Pos::xz(x, z), lead: -1.0, rpm: 600.0 };
+    let tap = |z: f64| MoveKind::Tap { end: Pos::xz(x, z), lead: -1.0, rpm: 600.0, spindle: 1 };
     vec![(tap(-10.0), 3), (MoveKind::Dwell { seconds: 0.05 }, 4), (tap(2.0), 5)]
 }
 
@@ -1731,7 +1731,7 @@ fn feed_hold_in_a_rigid_tapping_cycle_holds_at_r() {
 fn a_rigid_tap_stroke_runs_along_x() {
     let l = lim();
     let mut m = Motion::new(l.clone(), [30.0, 0.0, -12.0, 90.0]);
-    let tap = |x: f64| MoveKind::Tap { end: Pos { x, z: -12.0, ..Pos::ZERO }, lead: -1.5, rpm: 800.0 };
+    let tap = |x: f64| MoveKind::Tap { end: Pos { x, z: -12.0, ..Pos::ZERO }, lead: -1.5, rpm: 800.0, spindle: 1 };
     m.push(&mv(1, tap(15.0))).unwrap();
     m.push(&mv(2, MoveKind::Dwell { seconds: 0.05 })).unwrap();
     m.push(&mv(3, tap(30.0))).unwrap();
@@ -1748,6 +1748,6 @@ fn a_rigid_tap_stroke_runs_along_x() {
     assert!(sps.iter().any(|s| s.spindle_rpm > 790.0) && sps.iter().any(|s| s.spindle_rpm < -790.0));
     check_limits(&l, [30.0, 0.0, -12.0, 90.0], &sps).unwrap();
     let mut m = Motion::new(l, [30.0, 0.0, -12.0, 0.0]);
-    let e = m.push(&mv(1, MoveKind::Tap { end: Pos::xz(20.0, -20.0), lead: 1.0, rpm: 500.0 })).unwrap_err();
+    let e = m.push(&mv(1, MoveKind::Tap { end: Pos::xz(20.0, -20.0), lead: 1.0, rpm: 500.0, spindle: 1 })).unwrap_err();
     assert_eq!(e.number, alarms::BAD_VALUE, "{e}");
 }

@@ -45,7 +45,7 @@ impl<'a> LinkCheck<'a> {
         }
         let (end, lead, rpm, name) = match m.kind {
             MoveKind::Thread { end, lead, .. } => (end, lead, self.rpm, "thread"),
-            MoveKind::Tap { end, lead, rpm } => (end, lead, rpm, "rigid tap"),
+            MoveKind::Tap { end, lead, rpm, .. } => (end, lead, rpm, "rigid tap"),
             MoveKind::RigidThread { end, lead, rpm } => (end, lead, rpm, "G92.1 rigid thread"),
             _ => return Ok(()),
         };
@@ -109,13 +109,13 @@ mod tests {
         let axes = [SlowAxis { axis: "z".into(), link: "tcp".into(), cycle_s: 0.010 }];
         let mut c = LinkCheck::new(&axes, 100.0, Pos { z: 5.0, ..Pos::default() });
         // M10×1.5 at 1000 rpm: 25 mm/s; 10 ms → 250 µm > 100 µm.
-        let err = c.check(&mv(MoveKind::Tap { end: Pos { z: -20.0, ..Pos::default() }, lead: 1.5, rpm: 1000.0 })).unwrap_err();
+        let err = c.check(&mv(MoveKind::Tap { end: Pos { z: -20.0, ..Pos::default() }, lead: 1.5, rpm: 1000.0, spindle: 1 })).unwrap_err();
         assert_eq!(err.number, 2203);
         assert!(err.message.contains("4.00 ms or less"), "{}", err.message);
         assert!(err.message.contains("at most 400 rpm"), "{}", err.message);
         // At 300 rpm it fits: 7.5 mm/s × 10 ms = 75 µm.
         let mut c = LinkCheck::new(&axes, 100.0, Pos { z: 5.0, ..Pos::default() });
-        assert!(c.check(&mv(MoveKind::Tap { end: Pos { z: -20.0, ..Pos::default() }, lead: 1.5, rpm: 300.0 })).is_ok());
+        assert!(c.check(&mv(MoveKind::Tap { end: Pos { z: -20.0, ..Pos::default() }, lead: 1.5, rpm: 300.0, spindle: 1 })).is_ok());
     }
 
     #[test]

@@ -136,8 +136,8 @@ fn mv(line: u32, kind: MoveKind) -> Move {
 pub fn rigid_tap_moves(r_z: f64, bottom: f64, lead: f64, rpm: f64) -> Vec<Move> {
     vec![
         mv(1, MoveKind::Rapid { end: Pos::xz(0.0, r_z) }),
-        mv(2, MoveKind::Tap { end: Pos::xz(0.0, bottom), lead, rpm }),
-        mv(3, MoveKind::Tap { end: Pos::xz(0.0, r_z), lead, rpm }),
+        mv(2, MoveKind::Tap { end: Pos::xz(0.0, bottom), lead, rpm, spindle: 1 }),
+        mv(3, MoveKind::Tap { end: Pos::xz(0.0, r_z), lead, rpm, spindle: 1 }),
         mv(4, MoveKind::End { code: 30 }),
     ]
 }

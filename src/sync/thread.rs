@@ -132,6 +132,14 @@ impl ThreadSync {
         self.theta0
     }
 
+    /// The spindle angle at which the synchronous line reaches path position `s` (mm from the
+    /// segment's start): the inverse of `target` past the lead-in ramp. `None` when the lead
+    /// shrinks to zero before `s` (G34).
+    pub fn angle_at(&self, s: f64) -> Option<f64> {
+        let n = self.revs_to(s.max(0.0))?;
+        Some(self.theta0 + self.dir * 360.0 * (n + self.n_start))
+    }
+
     /// Path position (mm from the segment's start) where the axes belong at spindle angle
     /// `theta`: 0 before the start angle, the ramp, then the synchronous line (for a
     /// continuation: the synchronous line from its start on).

@@ -165,6 +165,10 @@ pub struct CanOpenMaster<B: CanBus> {
     /// The master heartbeat runs from the first configured consumer on.
     hb_started: bool,
     diag: Option<Diag>,
+    /// `isolate_faults`: a fault quick-stops only the faulted drive.
+    isolate: bool,
+    /// The drive isolated in its fault reaction (see `DriveBus::faulted`).
+    faulted: Option<usize>,
 }
 
 enum Sdo<'a> {
@@ -197,6 +201,8 @@ impl<B: CanBus> CanOpenMaster<B> {
             running: false,
             hb_started: false,
             diag: None,
+            isolate: false,
+            faulted: None,
         }
     }
 
@@ -624,15 +630,36 @@ impl<B: CanBus> CanOpenMaster<B> {
         self.write(clock, i, comm, 1, &(cob_id as u32).to_le_bytes())
     }
 
-    /// A drive faulted: quick-stop every axis now (the others must not go on along a path
-    /// one axis has left) and start reading 0x603F from the faulted one.
-    fn start_diag(&mut self, i: usize, seen: String, now_ns: u64) -> Result<(), Alarm> {
-        tracing::warn!(node = self.nodes[i].spec.node, "{seen}: quick stop, reading 0x603F and 0x1001");
+    /// Node `i` faulted. Isolating (`isolate_faults`, the first fault): only it gets quick
+    /// stop, the others keep following their targets for the controlled stop above.
+    /// Otherwise quick-stop every axis now (the others must not go on along a path one axis
+    /// has left).
+    fn fault_reaction(&mut self, i: usize) {
+        if self.isolate && self.faulted.is_none_or(|f| f == i) {
+            self.faulted = Some(i);
+            self.nodes[i].controlword = cw::QUICK_STOP_CMD;
+            return;
+        }
+        self.faulted = None;
         for n in &mut self.nodes {
             if n.enabled {
                 n.controlword = cw::QUICK_STOP_CMD;
             }
         }
+    }
+
+    /// An alarm about node `i` found by `receive` (heartbeat, NMT state, stale feedback): its
+    /// fault reaction, then the alarm.
+    fn node_fault(&mut self, i: usize, number: u32, msg: impl std::fmt::Display) -> Alarm {
+        self.fault_reaction(i);
+        self.node_alarm(i, number, msg)
+    }
+
+    /// A drive faulted: the fault reaction (`fault_reaction`), and start reading 0x603F from
+    /// the faulted one.
+    fn start_diag(&mut self, i: usize, seen: String, now_ns: u64) -> Result<(), Alarm> {
+        tracing::warn!(node = self.nodes[i].spec.node, "{seen}: quick stop, reading 0x603F and 0x1001");
+        self.fault_reaction(i);
         let f = self.nodes[i].sdo.start_upload(od::ERROR_CODE, 0, now_ns);
         self.send(&f)?;
         self.diag = Some(Diag { node: i, seen, reading: od::ERROR_CODE, code: None, register: None });
@@ -1020,6 +1047,14 @@ impl<B: CanBus> CanOpenMaster<B> {
 }
 
 /// 0x60C2 interpolation period as value × 10^index s, value ≤ 255.
+/// EMCY codes that report a problem the drive rides through without faulting: 0x8210 / 0x8220
+/// PDO length (the PDO was not processed; one late or lost set-point is bridged by the
+/// drive's interpolation). Logged, not a fault: a drive that does fault on them shows it in
+/// its statusword a cycle later.
+fn emcy_is_warning(code: u16) -> bool {
+    matches!(code, 0x8210 | 0x8220)
+}
+
 fn interpolation_period(cycle_ms: f64) -> (u8, i8) {
     let mut v = cycle_ms;
     let mut idx: i8 = -3;
@@ -1095,10 +1130,16 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
             return Err(a);
         }
         for i in 0..self.nodes.len() {
+            if self.running && self.faulted == Some(i) {
+                // Isolated in its fault reaction: already reported.
+                continue;
+            }
             let n = &self.nodes[i];
             if self.running && self.diag.is_none() {
                 let st = State::from_statusword(n.status);
-                let seen = if let Some(e) = n.last_emcy {
+                // A PDO-length EMCY is a warning (CiA 301: the PDO was not processed, the
+                // drive goes on); a drive that faults on it says so in its statusword.
+                let seen = if let Some(e) = n.last_emcy.filter(|e| !emcy_is_warning(e.code)) {
                     Some(format!("drive fault EMCY 0x{:04X} {} (error register 0x{:02X})", e.code, error_text(e.code), e.register))
                 } else if n.have_fb && st != State::OperationEnabled {
                     Some(format!("drive left Operation Enabled: now {}", st.name()))
@@ -1115,10 +1156,10 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
             }
             let n = &self.nodes[i];
             if self.running && matches!(n.nmt, Some(s) if s != NmtState::Operational) {
-                return Err(self.node_alarm(i, 2014, "node left NMT operational (reset or stopped by someone else?)"));
+                return Err(self.node_fault(i, 2014, "node left NMT operational (reset or stopped by someone else?)"));
             }
             if self.hb_ms > 0 && n.last_hb_ns > 0 && now_ns.saturating_sub(n.last_hb_ns) > 3 * self.hb_ms as u64 * 1_000_000 {
-                return Err(self.node_alarm(
+                return Err(self.node_fault(
                     i,
                     2011,
                     format!("heartbeat lost (none for {} ms); check the cable and the drive's power", now_ns.saturating_sub(n.last_hb_ns) / 1_000_000),
@@ -1128,7 +1169,7 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
             // at once and a drive cannot have answered yet.
             let age = now_ns.saturating_sub(n.fb_ns);
             if self.running && age > self.feedback_timeout_ns {
-                return Err(self.node_alarm(
+                return Err(self.node_fault(
                     i,
                     2015,
                     format!("no position feedback (TPDO1) for {:.1} ms ({} cycles); check the drive's PDO configuration and the bus", age as f64 * 1e-6, age / self.cycle_ns),
@@ -1215,6 +1256,7 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
         if all {
             self.running = true;
             self.diag = None;
+            self.faulted = None;
             for n in &mut self.nodes {
                 n.last_emcy = None;
             }
@@ -1255,6 +1297,15 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
 
     fn axis_count(&self) -> usize {
         self.nodes.len()
+    }
+
+    fn isolate_faults(&mut self, on: bool) -> bool {
+        self.isolate = on;
+        true
+    }
+
+    fn faulted(&self) -> Option<usize> {
+        self.faulted
     }
 
     fn axis_name(&self, axis: usize) -> &str {

@@ -169,8 +169,10 @@ pub struct DrillState {
     /// Spindle state before rigid tapping, restored after each hole (004 step ⑦); kept
     /// until G80.
     spindle_before: Option<(SpindleDir, f64)>,
-    /// E / M24–M27 tapping spindle (1–4).
-    pub spindle_no: u8,
+    /// E of the tapping mode (1–4), kept until G80.
+    tap_e: Option<u8>,
+    /// M24–M27 (No.5200#7 = 1, the RGTSP signals): the selection holds until another one.
+    rgtsp: u8,
     /// The direction signal G61.2 (reverse-thread tapping with a positive S).
     pub reverse_signal: bool,
     /// What G30 P99 returns along.
@@ -195,7 +197,8 @@ impl DrillState {
             tap_s: None,
             tap_j: None,
             spindle_before: None,
-            spindle_no: 1,
+            tap_e: None,
+            rgtsp: 1,
             reverse_signal: false,
             tap_return: None,
             last_tap: None,
@@ -267,16 +270,16 @@ impl Interpreter {
         let g10 = d.group(10);
         let tapping = matches!(g10, Some(840 | 880));
         let gmode = self.drill.par.b5200[0];
-        // E / M24–M27: the tapping spindle.
+        // E / M24–M27: the tapping spindle (000 note 2).
         if let Some(e) = d.get('E').filter(|_| tapping) {
             if !(1.0..=4.0).contains(&e.v) || e.v.fract() != 0.0 {
                 return Err((RANGE_ALARM, Some(e.col), format!("E{}: the rigid tapping spindle is 1–4", e.v)));
             }
-            self.drill.spindle_no = e.v as u8;
+            self.drill.tap_e = Some(e.v as u8);
         }
         if self.drill.par.b5200[7] {
             if let Some(&(m, _)) = d.m.iter().find(|m| (24..=27).contains(&m.0)) {
-                self.drill.spindle_no = (m - 23) as u8;
+                self.drill.rgtsp = (m - 23) as u8;
             }
         }
         if let Some(col) = m29 {
@@ -445,7 +448,15 @@ impl Interpreter {
         self.drill.m29_pending = false;
         self.drill.tap_s = None;
         self.drill.tap_j = None;
+        self.drill.tap_e = None;
         self.drill.flex_dir = None;
+        if was_rigid && self.drill.par.b5200[2] {
+            // No.5200#2 = 1: the cancel waits for RGTAP = 0, i.e. for the spindle to have left
+            // rigid (position) control. Without a PLC that is the end of the last stroke: an
+            // exact-stop wait point that nothing after the cancel passes before motion is
+            // there (Fanuc 0i-TF: the next block starts after the signal drops).
+            self.push(src, MoveKind::Dwell { seconds: 0.0 }, true);
+        }
         if was_rigid {
             if let Some((dir, rpm)) = self.drill.spindle_before.take() {
                 if dir != SpindleDir::Stop && self.st.dir != dir {
@@ -683,8 +694,9 @@ impl Interpreter {
         let ovr = self.pull_out_override(s);
         let out = rpm * ovr / 100.0;
         let total = (bottom - rp).abs();
-        let tap = |end: Pos, rpm: f64| MoveKind::Tap { end, lead, rpm };
-        let info = TapReturn { axis: m.axis, r_plane: rp, lead, rpm, override_pct: ovr };
+        let spindle = self.tap_spindle();
+        let tap = |end: Pos, rpm: f64| MoveKind::Tap { end, lead, rpm, spindle };
+        let info = TapReturn { axis: m.axis, r_plane: rp, lead, rpm, override_pct: ovr, spindle };
         self.drill.last_tap = Some(info);
         let q = m.q;
         if q <= 0.0 || q >= total {
@@ -799,7 +811,7 @@ impl Interpreter {
         let target = t.r_plane + if out_dir != 0.0 { out_dir * extra } else { -t.lead.signum() * extra };
         set_axis(&mut end, t.axis, target);
         let tag: Arc<str> = Arc::from("G30 P99");
-        self.cpush(src, &tag, 5, MoveKind::Tap { end, lead: t.lead, rpm: out }, true);
+        self.cpush(src, &tag, 5, MoveKind::Tap { end, lead: t.lead, rpm: out, spindle: t.spindle }, true);
         self.drill.tap_return = None;
         self.drill_cancel(src);
         Ok(())
@@ -843,8 +855,11 @@ impl Interpreter {
         self.drill.reverse_signal = on;
     }
 
-    /// The tapping spindle selected by E or M24–M27 (1–4).
+    /// The rigid tapping spindle (1–4, manual 000 note 2): E of the tapping mode (kept until
+    /// G80); without E, by No.5200#7: 1 = the M24–M27 selection (held until another one,
+    /// "状态保持"), 0 = the spindle selection signals SWS1–SWS4, which this machine does not
+    /// have: its one spindle, 1.
     pub fn tap_spindle(&self) -> u8 {
-        self.drill.spindle_no
+        self.drill.tap_e.unwrap_or(if self.drill.par.b5200[7] { self.drill.rgtsp } else { 1 })
     }
 }

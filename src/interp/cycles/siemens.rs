@@ -489,7 +489,7 @@ impl Interpreter {
             let c = super::rigid::forward_angle(self.pos.c, poss + self.offset().c, 1.0);
             self.cpush(src, tag, 2, MoveKind::Rapid { end: Pos { c, ..self.pos } }, true);
         }
-        let tap = |z: f64, rpm: f64, p: Pos| MoveKind::Tap { end: Pos { z, ..p }, lead, rpm };
+        let tap = |z: f64, rpm: f64, p: Pos| MoveKind::Tap { end: Pos { z, ..p }, lead, rpm, spindle: 1 };
         for (k, d) in stages.iter().enumerate() {
             if k > 0 {
                 let last = stages[k - 1];
@@ -502,7 +502,7 @@ impl Interpreter {
             }
             self.cpush(src, tag, 3, tap(at(*d), sst, self.pos), true);
         }
-        self.drill.last_tap = Some(crate::canon::TapReturn { axis: 'Z', r_plane: g.safe, lead, rpm: sst, override_pct: sst1 / sst * 100.0 });
+        self.drill.last_tap = Some(crate::canon::TapReturn { axis: 'Z', r_plane: g.safe, lead, rpm: sst, override_pct: sst1 / sst * 100.0, spindle: 1 });
         self.dwell_s(src, tag, 4, arg(5).unwrap_or(0.0).max(0.0));
         self.cpush(src, tag, 5, tap(g.safe, sst1, self.pos), true);
         self.cpush(src, tag, 6, MoveKind::Rapid { end: self.zpos(g.rtp) }, true);

@@ -4,7 +4,7 @@
 use super::{thread_path, CErr, RANGE_ALARM};
 use crate::canon::{MoveKind, Pos, SrcPos};
 use crate::interp::gcode::Decoded;
-use crate::interp::Interpreter;
+use crate::interp::{nosecomp, Interpreter};
 use std::sync::Arc;
 
 impl Interpreter {
@@ -13,6 +13,8 @@ impl Interpreter {
     /// difference of the cutting start from C. The four sign cases of U/W/R all follow from
     /// these formulas; when R and the cut depth (U/2 for G90, W for G94) have opposite signs,
     /// |R| must not exceed it, or the path would cross the start point (figures 2.24/2.28).
+    /// Under G41/G42 the cuts ② and ③ are offset by the nose radius towards A, the tip point
+    /// running on them (Fanuc 0i-TF; see [`nosecomp::single_cycle_offset`]).
     pub(super) fn g90_g94(&mut self, d: &Decoded, src: &SrcPos) -> Result<(), CErr> {
         let g90 = self.st.motion == 900;
         let name = if g90 { "G90" } else { "G94" };
@@ -30,8 +32,20 @@ impl Interpreter {
             ));
         }
         let tag: Arc<str> = Arc::from(name);
-        let b = if g90 { Pos { x: c.x + r, ..a } } else { Pos { z: c.z + r, ..a } };
-        let dpt = if g90 { Pos { x: a.x, ..c } } else { Pos { z: a.z, ..c } };
+        let mut b = if g90 { Pos { x: c.x + r, ..a } } else { Pos { z: c.z + r, ..a } };
+        let mut dpt = if g90 { Pos { x: a.x, ..c } } else { Pos { z: a.z, ..c } };
+        let mut c = c;
+        if self.nrc.active() && self.tool.nose_radius > 0.0 {
+            // G41/G42 in force: the cuts are offset here, by the tip (see
+            // `nosecomp::single_cycle_offset`); the stage passes the cycle's moves as they are.
+            let (x_ax, z_ax) = ((0.0, 1.0), (1.0, 0.0));
+            let (app, ret) = if g90 { (x_ax, z_ax) } else { (z_ax, x_ax) };
+            let off = nosecomp::single_cycle_offset(a, b, c, dpt, app, ret, self.tool.nose_radius, self.tool.tip)
+                .map_err(|m| (nosecomp::INTERFERENCE_ALARM, Self::gcol(d), format!("{name}: {m}")))?;
+            if let Some((b2, c2, d2)) = off {
+                (b, c, dpt) = (b2, c2, d2);
+            }
+        }
         self.cpush(src, &tag, 1, MoveKind::Rapid { end: b }, true);
         self.cpush(src, &tag, 2, MoveKind::Feed { end: c, feed }, false);
         self.cpush(src, &tag, 3, MoveKind::Feed { end: dpt, feed }, false);
