@@ -297,7 +297,7 @@ mod tests {
     fn z_follows_a_faulted_spindle_in_a_tap() {
         // Motion's tap relation: Z − Z₀ = lead·(θ − θ₀)/360 (the lead's sign says which way
         // the spindle turns into the hole).
-        let (trace, cycles) = fault_in(MoveKind::Tap { end: Pos::xz(0.0, -30.0), lead: 1.5, rpm: 1000.0 }, 400, AX_S, 2, 18_000.0);
+        let (trace, cycles) = fault_in(MoveKind::Tap { end: Pos::xz(0.0, -30.0), lead: 1.5, rpm: 1000.0, spindle: 1 }, 400, AX_S, 2, 18_000.0);
         let (th0, z0) = trace[0];
         let mut worst = 0.0f64;
         for w in trace.windows(2) {
