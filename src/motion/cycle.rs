@@ -675,6 +675,8 @@ impl<'a> CycleLoop<'a> {
                     self.drives.set_target(dd, p);
                 } else if let Some(a) = motion_axis(self.drives.axis_name(dd), Some(dd) == self.spindle_drive) {
                     self.drives.set_target(dd, sp.pos[a]);
+                } else if self.tool.is_some_and(|t| t.drive == dd) {
+                    self.drives.set_target(dd, sp.tool_spindle);
                 }
             }
             if let Err(a) = self.drives.transmit(now) {

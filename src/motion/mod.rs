@@ -159,6 +159,8 @@ pub mod alarms {
     pub const SYNC_ERROR: u32 = 2307;
     /// PS0014: G34 lead change makes the lead ≤ 0 before the end of the thread.
     pub const ILLEGAL_LEAD: u32 = 14;
+    /// G51.2/G50.2 on a machine without a tool spindle (see `polygon.rs`).
+    pub const NO_TOOL_SPINDLE: u32 = super::polygon::NO_TOOL_SPINDLE;
 }
 
 /// Actual values from the drives (X radius).
