@@ -93,6 +93,26 @@ pub fn gname(g: GCode) -> String {
     }
 }
 
+/// `x.round()` (half away from zero) without the libm call that `f64::round` compiles to
+/// on a baseline x86-64 target; the interpreter and `plan` round several times per block.
+#[inline]
+pub fn round(x: f64) -> f64 {
+    if x.abs() < 4.0e15 {
+        let t = x as i64 as f64; // truncation: exact below 2^52
+        let f = x - t;
+        let r = if f >= 0.5 {
+            t + 1.0
+        } else if f <= -0.5 {
+            t - 1.0
+        } else {
+            t
+        };
+        r.copysign(x) // -0.3 rounds to -0.0, as f64::round does
+    } else {
+        x.round()
+    }
+}
+
 /// One evaluated word.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct Val {
@@ -200,9 +220,9 @@ impl Decoded {
     pub fn build(words: &[(char, bool, Val)], has_y: bool, has_c: bool) -> Result<Decoded, DErr> {
         let mut d = Decoded::default();
         // G78 (manual 002) uses J as its run-out amount, not as the Y axis.
-        let g78 = words.iter().any(|w| w.0 == 'G' && (w.2.v * 10.0).round() == 780.0);
+        let g78 = words.iter().any(|w| w.0 == 'G' && round(w.2.v * 10.0) == 780.0);
         // G84/G88 (manual 000): J is the pull-out spindle speed, D the peck return (mm).
-        let tap = words.iter().any(|w| w.0 == 'G' && matches!((w.2.v * 10.0).round() as i64, 840 | 880));
+        let tap = words.iter().any(|w| w.0 == 'G' && matches!(round(w.2.v * 10.0) as i64, 840 | 880));
         for &(l, comma, val) in words {
             if comma {
                 let slot = if l == 'C' { &mut d.comma_c } else { &mut d.comma_r };
@@ -212,7 +232,7 @@ impl Decoded {
             }
             match l {
                 'G' => {
-                    let code = (val.v * 10.0).round();
+                    let code = round(val.v * 10.0);
                     let g = code as GCode;
                     let info = if (code - val.v * 10.0).abs() > 1e-6 || !(0.0..=9999.0).contains(&code) { None } else { ginfo(g) };
                     let Some(info) = info else {
@@ -237,7 +257,7 @@ impl Decoded {
                     if d.m.len() >= 3 {
                         return Err((9, val.col, "at most three M codes per block".into()));
                     }
-                    d.m.push((val.v.round() as u32, val.col));
+                    d.m.push((round(val.v) as u32, val.col));
                     // (capacity 3 = the limit checked just above)
                 }
                 _ => {
