@@ -138,7 +138,7 @@ impl Source {
         let f = match &self.text {
             Text::Mem(t) => {
                 let rest = &t.as_bytes()[off as usize..];
-                let (line, next) = match rest.iter().position(|&c| c == b'\n') {
+                let (line, next) = match parse::find_newline(rest) {
                     Some(i) => (&rest[..i], off + i as u64 + 1),
                     None => (rest, self.len),
                 };
@@ -152,7 +152,7 @@ impl Source {
             let win_end = self.win_off + self.win.len() as u64;
             if off >= self.win_off && off < win_end {
                 let rest = &self.win[(off - self.win_off) as usize..];
-                if let Some(i) = rest.iter().position(|&c| c == b'\n') {
+                if let Some(i) = parse::find_newline(rest) {
                     out.extend_from_slice(trim_eol(&rest[..i]));
                     return Ok(off + i as u64 + 1);
                 }
@@ -316,6 +316,10 @@ pub struct Interpreter {
     line_buf: Vec<u8>,
     /// Reused buffer for the moves nose radius compensation lets through.
     nrc_scratch: Vec<Move>,
+    /// The words and the decoded block of the fast path, kept across blocks (not initialised
+    /// or copied per block).
+    fast_ev: [parse::FastWord; parse::FAST_WORDS],
+    dec: Option<Box<Decoded>>,
     stack: Vec<Frame>,
     vars: Vars,
     st: Modal,
@@ -394,6 +398,8 @@ impl Interpreter {
             cur: (0, Loc::default()),
             line_buf: Vec::new(),
             nrc_scratch: Vec::new(),
+            fast_ev: [parse::NO_WORD; parse::FAST_WORDS],
+            dec: None,
             stack: Vec::new(),
             vars: Vars::new(),
             st: Modal {
@@ -568,6 +574,7 @@ impl Interpreter {
         let mut calls: Vec<(Loc, u32, u32)> = Vec::new(); // line, program, col
         let mut buf = std::mem::take(&mut self.line_buf);
         let mut ev = [parse::NO_WORD; parse::FAST_WORDS];
+        let mut dec = self.dec.take().unwrap_or_default();
         let mut next = Loc::default();
         while next.off < self.sources[si].len {
             let i = next;
@@ -578,18 +585,25 @@ impl Interpreter {
                     break;
                 }
             };
-            let Ok(text) = std::str::from_utf8(&buf) else {
+            // NC words straight from the bytes (most lines), else the full parser.
+            let fast = parse::fast_words_static(&buf, &mut ev);
+            let valid = match fast {
+                // Only the `;` comment can hold anything but ASCII.
+                Some(fb) => buf[fb.comment..].is_ascii() || std::str::from_utf8(&buf[fb.comment..]).is_ok(),
+                None => std::str::from_utf8(&buf).is_ok(),
+            };
+            // The text itself is needed by the full parser and by alarms only.
+            let text = if valid && fast.is_none() { std::str::from_utf8(&buf).unwrap_or("") } else { "" };
+            if !valid {
                 errors.push(
                     Alarm::new(76, format!("{file}: cannot read the program: line {} is not UTF-8 text", i.line + 1))
                         .at(SrcPos::new(file.clone(), i.line + 1, 1)),
                 );
                 content = true;
                 continue;
-            };
+            }
             let p = self.progs.len() - 1;
             let at = |col: u32| SrcPos::new(file.clone(), i.line + 1, col);
-            // NC words straight from the bytes (most lines), else the full parser.
-            let fast = parse::fast_words(text, &mut ev);
             let block;
             let (n, bcol, stmt) = match fast {
                 Some(fb) => (fb.n, fb.col, None),
@@ -644,20 +658,21 @@ impl Interpreter {
                 self.labels.entry((p, n)).or_insert(i);
             }
             let decoded = match (fast, stmt) {
-                (Some(fb), _) if fb.len > 0 => Some(
-                    Decoded::build(&ev[..fb.len], self.has_y, self.has_c).map_err(|(n, col, m)| col_alarm(n, col, m)),
-                ),
+                (Some(fb), _) if fb.len > 0 => {
+                    Some(dec.fill(&ev[..fb.len], self.has_y, self.has_c).map_err(|(n, col, m)| col_alarm(n, col, m)))
+                }
                 (_, Some(Stmt::Nc(words))) if words.iter().all(|w| w.value.is_literal()) => {
-                    Some(self.decode_words(words, &Vars::new()))
+                    Some(self.decode_words(words, &Vars::new()).map(|d| *dec = d))
                 }
                 _ => None,
             };
             match decoded {
                 Some(Err(a)) => {
                     let col = a_col(&a);
-                    errors.push(a.at(at(col)).with_block(text.trim_end()));
+                    errors.push(a.at(at(col)).with_block(String::from_utf8_lossy(&buf).trim_end()));
                 }
-                Some(Ok(d)) => {
+                Some(Ok(())) => {
+                    let d = &dec;
                     if let Some(pv) = d.get('P') {
                         if d.m.iter().any(|m| m.0 == 98) {
                             let v = pv.v.round() as u64;
@@ -717,6 +732,7 @@ impl Interpreter {
             }
         }
         self.line_buf = buf;
+        self.dec = Some(dec);
         self.close_loops(si, &mut loop_stack, errors);
         for (p, i, n, col) in gotos {
             if !self.labels.contains_key(&(p, n)) {
@@ -903,11 +919,7 @@ impl Interpreter {
             Ok(next) => {
                 self.line = Loc { off: next, line: i.line + 1 };
                 self.cur = (si, i);
-                match std::str::from_utf8(&buf) {
-                    Ok(text) => self.exec_line(si, i, text),
-                    Err(_) => Err(Alarm::new(76, "the program file changed while it runs: this line is not UTF-8 text")
-                        .at(SrcPos::new(self.sources[si].file.clone(), i.line + 1, 1))),
-                }
+                self.exec_line(si, i, &buf)
             }
             Err(e) => Err(Alarm::new(76, format!("cannot read the program: {e}"))
                 .at(SrcPos::new(self.sources[si].file.clone(), i.line + 1, 1))),
@@ -916,24 +928,34 @@ impl Interpreter {
         r
     }
 
-    /// Execute the block `text` of line `i` of source `si`.
-    fn exec_line(&mut self, si: usize, i: Loc, text: &str) -> Result<(), Alarm> {
+    /// Execute the block `bytes` of line `i` of source `si`.
+    fn exec_line(&mut self, si: usize, i: Loc, bytes: &[u8]) -> Result<(), Alarm> {
         let file = self.sources[si].file.clone();
         let line_no = i.line + 1;
-        // Plain NC words (CAM output): decoded straight from the bytes, nothing allocated.
-        let mut ev = [parse::NO_WORD; parse::FAST_WORDS];
-        if let Some(fb) = parse::fast_words(text, &mut ev) {
+        // Plain NC words (CAM output): decoded straight from the bytes, nothing allocated
+        // (the text is needed for an alarm only).
+        if let Some(fb) = parse::fast_words(bytes, &mut self.fast_ev) {
+            let text = || String::from_utf8_lossy(bytes);
             if fb.len == 0 {
                 return Ok(());
             }
-            let d = Decoded::build(&ev[..fb.len], self.has_y, self.has_c).map_err(|(n, col, m)| {
-                Alarm::new(n, m).at(SrcPos::new(file.clone(), line_no, col)).with_block(text.trim_end())
-            })?;
-            let src = SrcPos::new(file.clone(), line_no, fb.col);
-            return self.exec(&d, &src).map_err(|(n, col, m)| {
-                Alarm::new(n, m).at(SrcPos::new(file, line_no, col.unwrap_or(fb.col))).with_block(text.trim_end())
-            });
+            let mut d = self.dec.take().unwrap_or_default();
+            let r = match d.fill(&self.fast_ev[..fb.len], self.has_y, self.has_c) {
+                Err((n, col, m)) => Err(Alarm::new(n, m).at(SrcPos::new(file, line_no, col)).with_block(text().trim_end())),
+                Ok(()) => {
+                    let src = SrcPos::new(file, line_no, fb.col);
+                    self.exec(&d, &src).map_err(|(n, col, m)| {
+                        Alarm::new(n, m).at(SrcPos { col: col.unwrap_or(fb.col), ..src.clone() }).with_block(text().trim_end())
+                    })
+                }
+            };
+            self.dec = Some(d);
+            return r;
         }
+        let Ok(text) = std::str::from_utf8(bytes) else {
+            return Err(Alarm::new(76, "the program file changed while it runs: this line is not UTF-8 text")
+                .at(SrcPos::new(file, line_no, 1)));
+        };
         let b: Block = parse::parse_line(text).map_err(|e| perr_alarm(&file, i.line as usize, text, e))?;
         if b.skip && self.block_skip {
             return Ok(());

@@ -270,6 +270,26 @@ impl PartialEq<&str> for Letters {
     }
 }
 
+/// Index of the first `\n` in `b`, eight bytes at a time.
+pub fn find_newline(b: &[u8]) -> Option<usize> {
+    const LO: u64 = 0x0101_0101_0101_0101;
+    const HI: u64 = 0x8080_8080_8080_8080;
+    let pat = LO * b'\n' as u64;
+    let mut i = 0;
+    while i + 8 <= b.len() {
+        let mut w = [0u8; 8];
+        w.copy_from_slice(&b[i..i + 8]);
+        let x = u64::from_le_bytes(w) ^ pat;
+        // A zero byte of x (a '\n' in the word) sets its high bit here.
+        let z = x.wrapping_sub(LO) & !x & HI;
+        if z != 0 {
+            return Some(i + (z.trailing_zeros() / 8) as usize);
+        }
+        i += 8;
+    }
+    b[i..].iter().position(|&c| c == b'\n').map(|k| i + k)
+}
+
 /// Remove comments: `( … )` becomes spaces (columns stay right), `;` ends the line.
 fn strip(line: &str) -> Vec<char> {
     let mut out = Vec::with_capacity(line.len());
@@ -682,6 +702,9 @@ pub struct FastBlock {
     pub col: u32,
     /// Number of words written to the buffer (0: a blank line or `N…` alone).
     pub len: usize,
+    /// Where the `;` comment starts (the line length without one): the bytes before it
+    /// are ASCII, the ones after it are not looked at.
+    pub comment: usize,
 }
 
 /// The common case of CAM output, parsed straight from the bytes into `out` without any
@@ -690,10 +713,19 @@ pub struct FastBlock {
 /// else (comments in parentheses, macros, `/`, `O`, `%`, `,C`, any error) returns `None`
 /// and goes through the full parser, so both give the same block except that a negative
 /// number is `-x` here instead of `Neg(Num { v: x })`, which evaluates the same.
-pub fn fast_words(line: &str, out: &mut [FastWord; FAST_WORDS]) -> Option<FastBlock> {
-    let b = line.as_bytes();
-    let end = b.iter().position(|&c| c == b';').unwrap_or(b.len());
-    let b = &b[..end];
+pub fn fast_words(line: &[u8], out: &mut [FastWord; FAST_WORDS]) -> Option<FastBlock> {
+    words_from_bytes::<true>(line, out)
+}
+
+/// [`fast_words`] for the static check: only the values that the checks of
+/// [`crate::interp::gcode::Decoded::build`] look at (G, M, P, N) are computed; the other
+/// words carry their digits unscaled.
+pub fn fast_words_static(line: &[u8], out: &mut [FastWord; FAST_WORDS]) -> Option<FastBlock> {
+    words_from_bytes::<false>(line, out)
+}
+
+fn words_from_bytes<const VALUES: bool>(line: &[u8], out: &mut [FastWord; FAST_WORDS]) -> Option<FastBlock> {
+    let b = line;
     let mut i = 0;
     let ws = |i: &mut usize| {
         while *i < b.len() && matches!(b[*i], b' ' | b'\t' | b'\r' | b'\n') {
@@ -706,7 +738,7 @@ pub fn fast_words(line: &str, out: &mut [FastWord; FAST_WORDS]) -> Option<FastBl
     let mut len = 0;
     while {
         ws(&mut i);
-        i < b.len()
+        i < b.len() && b[i] != b';'
     } {
         let wcol = i as u32 + 1;
         let letter = b[i].to_ascii_uppercase();
@@ -752,7 +784,7 @@ pub fn fast_words(line: &str, out: &mut [FastWord; FAST_WORDS]) -> Option<FastBl
         }
         let digits = &b[start..i];
         // Letters must be followed by a number and then a separator or the next letter.
-        if digits.is_empty() || digits == b"." || (i < b.len() && !(b[i].is_ascii_alphabetic() || matches!(b[i], b' ' | b'\t' | b'\r' | b'\n'))) {
+        if digits.is_empty() || digits == b"." || (i < b.len() && !(b[i].is_ascii_alphabetic() || matches!(b[i], b' ' | b'\t' | b'\r' | b'\n' | b';'))) {
             return None;
         }
         if neg && matches!(letter, b'G' | b'M' | b'N' | b'T' | b'L') {
@@ -763,7 +795,8 @@ pub fn fast_words(line: &str, out: &mut [FastWord; FAST_WORDS]) -> Option<FastBl
         if sig > MAX_DIGITS {
             return None;
         }
-        let v = mant as f64 / *POW10.get(frac)?;
+        let scale = *POW10.get(frac)?;
+        let v = if VALUES || matches!(letter, b'G' | b'M' | b'P' | b'N') { mant as f64 / scale } else { mant as f64 };
         if letter == b'N' {
             if len > 0 || n.is_some() || decimal || v > 99999.0 {
                 return None;
@@ -775,13 +808,13 @@ pub fn fast_words(line: &str, out: &mut [FastWord; FAST_WORDS]) -> Option<FastBl
         *out.get_mut(len)? = (letter as char, false, Val { v, decimal, col: wcol, literal: true });
         len += 1;
     }
-    Some(FastBlock { n, col, len })
+    Some(FastBlock { n, col, len, comment: i })
 }
 
 /// [`fast_words`] as a [`Block`] (a blank line is left to the full parser).
 fn fast_line(line: &str) -> Option<Block> {
     let mut buf = [NO_WORD; FAST_WORDS];
-    let fb = fast_words(line, &mut buf)?;
+    let fb = fast_words(line.as_bytes(), &mut buf)?;
     if fb.len == 0 && fb.n.is_none() {
         return None;
     }
