@@ -139,6 +139,25 @@ fn uint(out: &mut String, mut n: u64) {
     out.push_str(std::str::from_utf8(&buf[i..]).unwrap_or("0"));
 }
 
+/// [`json_str`] of a move's file name: every move of a program carries the same `Arc`, so
+/// the last one found to need no escaping is kept (holding it keeps its address unique).
+fn json_file(out: &mut String, f: &std::sync::Arc<str>) {
+    thread_local! {
+        static PLAIN: std::cell::RefCell<Option<std::sync::Arc<str>>> = const { std::cell::RefCell::new(None) };
+    }
+    let known = PLAIN.with(|c| c.borrow().as_ref().is_some_and(|p| std::sync::Arc::ptr_eq(p, f)));
+    if known {
+        out.push('"');
+        out.push_str(f);
+        out.push('"');
+        return;
+    }
+    if !f.bytes().any(|b| b == b'"' || b == b'\\' || b < 0x20) {
+        PLAIN.with(|c| *c.borrow_mut() = Some(f.clone()));
+    }
+    json_str(out, f);
+}
+
 fn json_str(out: &mut String, s: &str) {
     use std::fmt::Write;
     out.push('"');
@@ -240,7 +259,7 @@ pub fn write_json(out: &mut String, m: &Move) {
                 _ => {}
             }
             out.push_str("\"file\":");
-            json_str(out, &m.src.file);
+            json_file(out, &m.src.file);
             out.push_str(",\"kind\":\"");
             out.push_str(m.kind.name());
             out.push_str("\",\"line\":");
