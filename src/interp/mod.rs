@@ -1,11 +1,13 @@
 //! G-code interpreter for the Type A lathe dialect (ELESY-E3TA manual
 //! 004_5038892017d8ae23.txt): part program text → [`crate::canon::Move`] stream.
 //!
-//! Two passes, so that a long program never has to be held as parsed blocks:
-//! 1. [`Interpreter::from_source`] parses every line once to collect **all** syntax and static
-//!    errors of the file, and keeps only an index: line start offsets, program numbers (`O`),
-//!    sequence numbers (`N`, for GOTO/M99 P) and DO/END pairs.
-//! 2. [`Interpreter::next_move`] re-parses one block at a time as it executes it.
+//! Two passes, so that a long program is never held in memory (streaming):
+//! 1. [`Interpreter::from_file`] / [`Interpreter::from_source`] read every line once to
+//!    collect **all** syntax and static errors of the program, and keep only an index: the
+//!    programs (`O`), sequence numbers (`N`, for GOTO/M99 P) and DO/END pairs, as byte
+//!    offsets with their line numbers (`Loc`).
+//! 2. [`Interpreter::next_move`] reads and parses one block at a time as it executes it,
+//!    from the file (a read window, seeks for jumps), into one reused buffer.
 //!
 //! Alarm numbers: the manual gives none for the program errors handled here, so they are
 //! Fanuc 0i-TF PS numbers (3 too many digits, 4 address not found, 5 no data after address,
@@ -29,9 +31,9 @@
 //! No.1240–1243; M91/M92 read the input given by [`Interpreter::set_input_source`].
 //!
 //! Speed: plain NC lines (letters and numbers, as CAM output is) take a byte-level fast path
-//! in [`parse::parse_line`], and decoding a block allocates nothing; a 1,000,000-block G1
-//! program is planned by `cncgw plan` about 4–5× faster than LinuxCNC's `rs274 -g` on this
-//! machine (`scripts/bench-rs274.sh`).
+//! ([`parse::fast_words`]) into a fixed word array and a decoder kept across blocks, so a
+//! block allocates nothing. `scripts/bench-rs274.sh` compares `cncgw plan` with LinuxCNC's
+//! `rs274 -g` on a 1,000,000-block G1 program (figures in its header).
 //!
 //! Numbers without a decimal point: the manual gives no increment-system rule for them, so we
 //! follow Fanuc parameter No.3401#0 (DPI): 1 = calculator-type input, `X10` = 10 mm; 0 =
