@@ -31,8 +31,9 @@ fi
 [ -x /usr/bin/time ] || { echo "/usr/bin/time (package 'time') is needed for peak RSS" >&2; exit 1; }
 
 echo "building cncgw (release)…" >&2
-(cd "$ROOT" && cargo build --release -q --bin cncgw)
+(cd "$ROOT" && cargo build --release -q --bin cncgw --example interp_throughput)
 CNCGW="$ROOT/target/release/cncgw"
+INTERP="$ROOT/target/release/examples/interp_throughput"
 
 gen() { # gen BLOCKS FILE
     [ -s "$2" ] && return 0
@@ -70,16 +71,21 @@ cat "$PROG" "$PROG10" > /dev/null
 
 read -r w_rs c_rs rss_rs < <(measure rs274 rs274 -g "$PROG" /dev/null)
 read -r w_us c_us rss_us < <(measure cncgw "$CNCGW" plan "$PROG" --format jsonl)
+read -r w_in c_in rss_in < <(measure interp "$INTERP" "$PROG")
 read -r _ _ rss_rs10 < <(measure rs274_10 rs274 -g "$PROG10" /dev/null)
 read -r _ _ rss_us10 < <(measure cncgw_10 "$CNCGW" plan "$PROG10" --format jsonl)
 
 awk -v b="$BLOCKS" -v wr="$w_rs" -v cr="$c_rs" -v rr="$rss_rs" -v wu="$w_us" -v cu="$c_us" -v ru="$rss_us" \
-    -v rr10="$rss_rs10" -v ru10="$rss_us10" -v n10="$((N10 + 3))" 'BEGIN {
+    -v rr10="$rss_rs10" -v ru10="$rss_us10" -v n10="$((N10 + 3))" -v wi="$w_in" -v ci="$c_in" -v ri="$rss_in" 'BEGIN {
+    if (wi <= 0) wi = 0.01; if (ci <= 0) ci = 0.01;
     if (wr <= 0) wr = 0.01; if (wu <= 0) wu = 0.01; if (cr <= 0) cr = 0.01; if (cu <= 0) cu = 0.01;
     printf "program: %d blocks of G1 X Z F (output to /dev/null; cncgw: plan --format jsonl)\n", b;
     printf "%-12s %14s %14s %8s %8s %14s %14s\n", "", "blocks/s cpu", "blocks/s wall", "cpu s", "wall s", "RSS MB", "RSS MB (1/10)";
     printf "%-12s %14.0f %14.0f %8.2f %8.2f %14.1f %14.1f\n", "rs274 -g", b / cr, b / wr, cr, wr, rr / 1024, rr10 / 1024;
     printf "%-12s %14.0f %14.0f %8.2f %8.2f %14.1f %14.1f\n", "cncgw plan", b / cu, b / wu, cu, wu, ru / 1024, ru10 / 1024;
-    printf "throughput ratio cncgw/rs274: %.1fx by CPU time, %.1fx by wall time (goal >= 10x)\n", cr / cu, wr / wu;
+    printf "%-12s %14.0f %14.0f %8.2f %8.2f %14.1f\n", "interpreter", b / ci, b / wi, ci, wi, ri / 1024;
+    printf "(interpreter = file bytes to canonical moves without output: examples/interp_throughput.rs)\n";
+    printf "throughput ratio cncgw plan/rs274: %.1fx by CPU time, %.1fx by wall time (goal >= 10x)\n", cr / cu, wr / wu;
+    printf "throughput ratio interpreter/rs274: %.1fx by CPU time, %.1fx by wall time\n", cr / ci, wr / wi;
     printf "peak RSS: cncgw %.1f MB for %d blocks, %.1f MB for %d blocks\n", ru / 1024, b, ru10 / 1024, n10;
 }'
