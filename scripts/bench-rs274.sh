@@ -7,6 +7,14 @@
 #
 #   scripts/bench-rs274.sh [BLOCKS]      (default 1000000)
 #
+# Measured 2026-11-22 on this 2-core machine shared with other builds (load 8–16), so rs274
+# ran at ≈ 119 000 blocks/s rather than the ≈ 280 000 measured on a quiet machine:
+#                 blocks/s (CPU)  CPU s   peak RSS 1M / 100k blocks
+#   rs274 -g          119 190      8.39   16.0 / 16.1 MB
+#   cncgw plan        990 102      1.01    6.0 /  5.9 MB   → 8.3× (7.6× by wall time)
+#   interpreter     1 234 572      0.81    3.2 MB          → 10.4× (file bytes → moves, no output)
+# (before streaming: cncgw plan 3.7× by CPU time, 36.5 MB peak RSS growing with the length).
+#
 # Installs Debian's linuxcnc-uspace (which ships /usr/bin/rs274) when rs274 is missing; never
 # part of the test suite. Both programs write their output to /dev/null. `G98` in the header
 # is per-minute feed for cncgw and the canned-cycle return level (a no-op here) for LinuxCNC.
