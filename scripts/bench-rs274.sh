@@ -1,9 +1,19 @@
 #!/usr/bin/env bash
 # Throughput of `cncgw plan` against LinuxCNC's standalone interpreter `rs274 -g` on the same
 # G1 program (the shared subset: G21, then `G1 X.. Z.. F..` lines, absolute, metric), run
-# side by side in one invocation. Prints blocks/s and peak RSS of both and the ratio.
+# side by side in one invocation. Prints blocks/s (by CPU time and by wall time), peak RSS of
+# both and the ratio, and the peak RSS of both on a program a tenth as long (cncgw streams the
+# file: its memory does not grow with the program's length).
 #
 #   scripts/bench-rs274.sh [BLOCKS]      (default 1000000)
+#
+# Measured 2026-11-22 on this 2-core machine shared with other builds (load 8–16), so rs274
+# ran at ≈ 119 000 blocks/s rather than the ≈ 280 000 measured on a quiet machine:
+#                 blocks/s (CPU)  CPU s   peak RSS 1M / 100k blocks
+#   rs274 -g          119 190      8.39   16.0 / 16.1 MB
+#   cncgw plan        990 102      1.01    6.0 /  5.9 MB   → 8.3× (7.6× by wall time)
+#   interpreter     1 234 572      0.81    3.2 MB          → 10.4× (file bytes → moves, no output)
+# (before streaming: cncgw plan 3.7× by CPU time, 36.5 MB peak RSS growing with the length).
 #
 # Installs Debian's linuxcnc-uspace (which ships /usr/bin/rs274) when rs274 is missing; never
 # part of the test suite. Both programs write their output to /dev/null. `G98` in the header
@@ -29,43 +39,61 @@ fi
 [ -x /usr/bin/time ] || { echo "/usr/bin/time (package 'time') is needed for peak RSS" >&2; exit 1; }
 
 echo "building cncgw (release)…" >&2
-(cd "$ROOT" && cargo build --release -q --bin cncgw)
+(cd "$ROOT" && cargo build --release -q --bin cncgw --example interp_throughput)
 CNCGW="$ROOT/target/release/cncgw"
+INTERP="$ROOT/target/release/examples/interp_throughput"
 
-PROG="$WORK/g1_$N.ngc"
-if [ ! -s "$PROG" ]; then
-    awk -v n="$N" 'BEGIN {
+gen() { # gen BLOCKS FILE
+    [ -s "$2" ] && return 0
+    awk -v n="$1" 'BEGIN {
         print "G21"; print "G98";
         for (i = 0; i < n; i++) {
             printf "G1 X%.3f Z%.3f F%d\n", 20 + (i % 400) * 0.05, -((i % 1000) * 0.025), 100 + (i % 7) * 50;
         }
         print "M30";
-    }' > "$PROG"
-fi
+    }' > "$2"
+}
+PROG="$WORK/g1_$N.ngc"
+gen "$N" "$PROG"
 BLOCKS=$((N + 3))
+# A program a tenth as long, to show that peak memory does not grow with the length.
+N10=$((N / 10))
+PROG10="$WORK/g1_$N10.ngc"
+gen "$N10" "$PROG10"
 
-# run NAME CMD… → prints "NAME seconds rss_kb"
+# measure NAME CMD… → prints "wall_s cpu_s rss_kb" (cpu = user + system: on a machine shared
+# with other work the wall time also counts the time spent waiting for a core).
 measure() {
     local name=$1; shift
     local log="$WORK/$name.time"
     /usr/bin/time -v "$@" > /dev/null 2> "$log" || { echo "$name failed:" >&2; tail -5 "$log" >&2; exit 1; }
-    local wall rss
-    wall=$(awk -F': ' '/Elapsed \(wall clock\)/ { n = split($2, t, ":"); s = 0; for (i = 1; i <= n; i++) s = s * 60 + t[i]; print s }' "$log")
-    rss=$(awk -F': ' '/Maximum resident set size/ { print $2 }' "$log")
-    echo "$name $wall $rss"
+    awk -F': ' '
+        /Elapsed \(wall clock\)/ { n = split($2, t, ":"); s = 0; for (i = 1; i <= n; i++) s = s * 60 + t[i]; wall = s }
+        /User time/ { cpu += $2 } /System time/ { cpu += $2 }
+        /Maximum resident set size/ { rss = $2 }
+        END { print wall, cpu, rss }' "$log"
 }
 
 # Warm the page cache so that neither pays for reading the file from disk.
-cat "$PROG" > /dev/null
+cat "$PROG" "$PROG10" > /dev/null
 
-read -r _ t_rs rss_rs < <(measure rs274 rs274 -g "$PROG" /dev/null)
-read -r _ t_us rss_us < <(measure cncgw "$CNCGW" plan "$PROG" --format jsonl)
+read -r w_rs c_rs rss_rs < <(measure rs274 rs274 -g "$PROG" /dev/null)
+read -r w_us c_us rss_us < <(measure cncgw "$CNCGW" plan "$PROG" --format jsonl)
+read -r w_in c_in rss_in < <(measure interp "$INTERP" "$PROG")
+read -r _ _ rss_rs10 < <(measure rs274_10 rs274 -g "$PROG10" /dev/null)
+read -r _ _ rss_us10 < <(measure cncgw_10 "$CNCGW" plan "$PROG10" --format jsonl)
 
-awk -v b="$BLOCKS" -v tr="$t_rs" -v rr="$rss_rs" -v tu="$t_us" -v ru="$rss_us" 'BEGIN {
-    if (tr <= 0) tr = 0.01; if (tu <= 0) tu = 0.01;
-    printf "program: %d blocks of G1 X Z F\n", b;
-    printf "%-14s %12s %10s %12s\n", "", "blocks/s", "wall s", "peak RSS MB";
-    printf "%-14s %12.0f %10.2f %12.1f\n", "rs274 -g", b / tr, tr, rr / 1024;
-    printf "%-14s %12.0f %10.2f %12.1f\n", "cncgw plan", b / tu, tu, ru / 1024;
-    printf "throughput ratio cncgw/rs274: %.1fx (goal >= 10x)\n", tr / tu;
+awk -v b="$BLOCKS" -v wr="$w_rs" -v cr="$c_rs" -v rr="$rss_rs" -v wu="$w_us" -v cu="$c_us" -v ru="$rss_us" \
+    -v rr10="$rss_rs10" -v ru10="$rss_us10" -v n10="$((N10 + 3))" -v wi="$w_in" -v ci="$c_in" -v ri="$rss_in" 'BEGIN {
+    if (wi <= 0) wi = 0.01; if (ci <= 0) ci = 0.01;
+    if (wr <= 0) wr = 0.01; if (wu <= 0) wu = 0.01; if (cr <= 0) cr = 0.01; if (cu <= 0) cu = 0.01;
+    printf "program: %d blocks of G1 X Z F (output to /dev/null; cncgw: plan --format jsonl)\n", b;
+    printf "%-12s %14s %14s %8s %8s %14s %14s\n", "", "blocks/s cpu", "blocks/s wall", "cpu s", "wall s", "RSS MB", "RSS MB (1/10)";
+    printf "%-12s %14.0f %14.0f %8.2f %8.2f %14.1f %14.1f\n", "rs274 -g", b / cr, b / wr, cr, wr, rr / 1024, rr10 / 1024;
+    printf "%-12s %14.0f %14.0f %8.2f %8.2f %14.1f %14.1f\n", "cncgw plan", b / cu, b / wu, cu, wu, ru / 1024, ru10 / 1024;
+    printf "%-12s %14.0f %14.0f %8.2f %8.2f %14.1f\n", "interpreter", b / ci, b / wi, ci, wi, ri / 1024;
+    printf "(interpreter = file bytes to canonical moves without output: examples/interp_throughput.rs)\n";
+    printf "throughput ratio cncgw plan/rs274: %.1fx by CPU time, %.1fx by wall time (goal >= 10x)\n", cr / cu, wr / wu;
+    printf "throughput ratio interpreter/rs274: %.1fx by CPU time, %.1fx by wall time\n", cr / ci, wr / wi;
+    printf "peak RSS: cncgw %.1f MB for %d blocks, %.1f MB for %d blocks\n", ru / 1024, b, ru10 / 1024, n10;
 }'

@@ -621,12 +621,20 @@ fn plan(program: &std::path::Path, config: Option<&std::path::Path>, format: &st
         }
     };
     let out = std::io::stdout();
-    let mut out = std::io::BufWriter::new(out.lock());
+    let mut out = std::io::BufWriter::with_capacity(1 << 16, out.lock());
+    // One line buffer for all moves (a million-block program prints a million lines).
+    let mut line = String::with_capacity(256);
     for m in interp {
         match m {
             Ok(m) => {
-                let line = if format == "text" { crate::interp::plan::move_to_text(&m) } else { crate::interp::plan::move_to_json(&m) };
-                if writeln!(out, "{line}").is_err() {
+                line.clear();
+                if format == "text" {
+                    line.push_str(&crate::interp::plan::move_to_text(&m));
+                } else {
+                    crate::interp::plan::write_json(&mut line, &m);
+                }
+                line.push('\n');
+                if out.write_all(line.as_bytes()).is_err() {
                     return 0; // stdout closed (e.g. piped into head)
                 }
             }

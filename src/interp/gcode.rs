@@ -93,6 +93,26 @@ pub fn gname(g: GCode) -> String {
     }
 }
 
+/// `x.round()` (half away from zero) without the libm call that `f64::round` compiles to
+/// on a baseline x86-64 target; the interpreter and `plan` round several times per block.
+#[inline]
+pub fn round(x: f64) -> f64 {
+    if x.abs() < 4.0e15 {
+        let t = x as i64 as f64; // truncation: exact below 2^52
+        let f = x - t;
+        let r = if f >= 0.5 {
+            t + 1.0
+        } else if f <= -0.5 {
+            t - 1.0
+        } else {
+            t
+        };
+        r.copysign(x) // -0.3 rounds to -0.0, as f64::round does
+    } else {
+        x.round()
+    }
+}
+
 /// One evaluated word.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct Val {
@@ -131,6 +151,9 @@ impl<T: Copy + Default, const N: usize> Default for Inline<T, N> {
 }
 
 impl<T: Copy + Default, const N: usize> Inline<T, N> {
+    pub fn clear(&mut self) {
+        self.len = 0;
+    }
     /// False when full.
     pub fn push(&mut self, v: T) -> bool {
         if self.len == N {
@@ -168,7 +191,9 @@ pub struct Decoded {
     pub m: Inline<(u32, u32), 3>,
     /// Modal group of each code of `g` (looked up once: blocks ask for groups often).
     groups: Inline<u8, MAX_G_PER_BLOCK>,
-    addr: [Option<Val>; 26],
+    /// Bit i set: address `'A' + i` is in the block (its value in `addr[i]`).
+    mask: u32,
+    addr: [Val; 26],
     pub comma_c: Option<Val>,
     pub comma_r: Option<Val>,
 }
@@ -177,12 +202,19 @@ pub struct Decoded {
 pub type DErr = (u32, u32, String);
 
 impl Decoded {
+    #[inline]
     pub fn get(&self, l: char) -> Option<Val> {
-        let i = (l as u8).wrapping_sub(b'A') as usize;
-        self.addr.get(i).copied().flatten()
+        let i = (l as u32).wrapping_sub('A' as u32);
+        if i < 26 && self.mask >> i & 1 == 1 {
+            Some(self.addr[i as usize])
+        } else {
+            None
+        }
     }
+    #[inline]
     pub fn has(&self, l: char) -> bool {
-        self.get(l).is_some()
+        let i = (l as u32).wrapping_sub('A' as u32);
+        i < 26 && self.mask >> i & 1 == 1
     }
     pub fn has_g(&self, g: GCode) -> bool {
         self.g.iter().any(|x| x.0 == g)
@@ -192,17 +224,36 @@ impl Decoded {
         self.groups.iter().position(|&x| x == group).map(|i| self.g[i].0)
     }
     pub fn letters(&self) -> impl Iterator<Item = char> + '_ {
-        (0..26u8).filter(move |i| self.addr[*i as usize].is_some()).map(|i| (b'A' + i) as char)
+        (0..26u8).filter(move |i| self.mask >> i & 1 == 1).map(|i| (b'A' + i) as char)
     }
 
     /// Build from evaluated words `(letter, comma, value)`; checks that need no modal state.
     /// `has_y` / `has_c`: whether the machine has a Y axis / a C (Cs) axis.
     pub fn build(words: &[(char, bool, Val)], has_y: bool, has_c: bool) -> Result<Decoded, DErr> {
         let mut d = Decoded::default();
+        d.fill(words, has_y, has_c)?;
+        Ok(d)
+    }
+
+    /// [`Decoded::build`] into `self` (emptied first), so that a decoder kept across blocks
+    /// is neither initialised nor copied per block.
+    pub fn fill(&mut self, words: &[(char, bool, Val)], has_y: bool, has_c: bool) -> Result<(), DErr> {
+        let d = self;
+        d.g.clear();
+        d.m.clear();
+        d.groups.clear();
+        d.mask = 0;
+        d.comma_c = None;
+        d.comma_r = None;
+        let mut any_unsupported = false;
         // G78 (manual 002) uses J as its run-out amount, not as the Y axis.
-        let g78 = words.iter().any(|w| w.0 == 'G' && (w.2.v * 10.0).round() == 780.0);
+        let (mut g78, mut tap) = (false, false);
+        for w in words.iter().filter(|w| w.0 == 'G') {
+            let code = round(w.2.v * 10.0);
+            g78 |= code == 780.0;
+            tap |= code == 840.0 || code == 880.0;
+        }
         // G84/G88 (manual 000): J is the pull-out spindle speed, D the peck return (mm).
-        let tap = words.iter().any(|w| w.0 == 'G' && matches!((w.2.v * 10.0).round() as i64, 840 | 880));
         for &(l, comma, val) in words {
             if comma {
                 let slot = if l == 'C' { &mut d.comma_c } else { &mut d.comma_r };
@@ -212,13 +263,14 @@ impl Decoded {
             }
             match l {
                 'G' => {
-                    let code = (val.v * 10.0).round();
+                    let code = round(val.v * 10.0);
                     let g = code as GCode;
                     let info = if (code - val.v * 10.0).abs() > 1e-6 || !(0.0..=9999.0).contains(&code) { None } else { ginfo(g) };
                     let Some(info) = info else {
                         let shown = if val.v.fract() == 0.0 && val.v >= 0.0 { format!("G{:02}", val.v) } else { format!("G{}", val.v) };
                         return Err((10, val.col, format!("{shown}: not a G code of this control (Type A lathe, table 1.1)")));
                     };
+                    any_unsupported |= info.unsupported.is_some();
                     if !d.g.push((g, val.col)) {
                         return Err((10, val.col, format!("more than {MAX_G_PER_BLOCK} G codes in one block")));
                     }
@@ -237,7 +289,7 @@ impl Decoded {
                     if d.m.len() >= 3 {
                         return Err((9, val.col, "at most three M codes per block".into()));
                     }
-                    d.m.push((val.v.round() as u32, val.col));
+                    d.m.push((round(val.v) as u32, val.col));
                     // (capacity 3 = the limit checked just above)
                 }
                 _ => {
@@ -253,11 +305,15 @@ impl Decoded {
                     if matches!(l, 'T' | 'L' | 'D') && val.bad_integer() && !(l == 'D' && tap) {
                         return Err((7, val.col, format!("address {l} takes no decimal point")));
                     }
-                    let i = (l as u8 - b'A') as usize;
-                    if d.addr[i].is_some() {
+                    let i = (l as u8).wrapping_sub(b'A') as usize;
+                    if i >= 26 {
+                        return Err((9, val.col, format!("improper address `{l}`")));
+                    }
+                    if d.mask >> i & 1 == 1 {
                         return Err((9, val.col, format!("address {l} appears twice in the block")));
                     }
-                    d.addr[i] = Some(val);
+                    d.mask |= 1 << i;
+                    d.addr[i] = val;
                 }
             }
         }
@@ -274,14 +330,14 @@ impl Decoded {
                 }
             }
         }
-        for &(g, col) in &d.g {
+        for &(g, col) in d.g.iter().filter(|_| any_unsupported) {
             if let Some(GInfo { unsupported: Some(why), name, .. }) = ginfo(g) {
                 return Err((10, col, format!("{} ({name}) is {why}", gname(g))));
             }
         }
         // Manual §2.9 note 2: G20/G21 must be alone in its block.
         if let Some(&(g, col)) = d.g.iter().find(|x| x.0 == 200 || x.0 == 210) {
-            if d.g.len() > 1 || d.letters().next().is_some() || !d.m.is_empty() {
+            if d.g.len() > 1 || d.mask != 0 || !d.m.is_empty() {
                 return Err((10, col, format!("{} must be alone in its block", gname(g))));
             }
         }
@@ -313,6 +369,6 @@ impl Decoded {
                 }
             }
         }
-        Ok(d)
+        Ok(())
     }
 }

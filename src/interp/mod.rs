@@ -1,11 +1,13 @@
 //! G-code interpreter for the Type A lathe dialect (ELESY-E3TA manual
 //! 004_5038892017d8ae23.txt): part program text → [`crate::canon::Move`] stream.
 //!
-//! Two passes, so that a long program never has to be held as parsed blocks:
-//! 1. [`Interpreter::from_source`] parses every line once to collect **all** syntax and static
-//!    errors of the file, and keeps only an index: line start offsets, program numbers (`O`),
-//!    sequence numbers (`N`, for GOTO/M99 P) and DO/END pairs.
-//! 2. [`Interpreter::next_move`] re-parses one block at a time as it executes it.
+//! Two passes, so that a long program is never held in memory (streaming):
+//! 1. [`Interpreter::from_file`] / [`Interpreter::from_source`] read every line once to
+//!    collect **all** syntax and static errors of the program, and keep only an index: the
+//!    programs (`O`), sequence numbers (`N`, for GOTO/M99 P) and DO/END pairs, as byte
+//!    offsets with their line numbers (`Loc`).
+//! 2. [`Interpreter::next_move`] reads and parses one block at a time as it executes it,
+//!    from the file (a read window, seeks for jumps), into one reused buffer.
 //!
 //! Alarm numbers: the manual gives none for the program errors handled here, so they are
 //! Fanuc 0i-TF PS numbers (3 too many digits, 4 address not found, 5 no data after address,
@@ -29,9 +31,9 @@
 //! No.1240–1243; M91/M92 read the input given by [`Interpreter::set_input_source`].
 //!
 //! Speed: plain NC lines (letters and numbers, as CAM output is) take a byte-level fast path
-//! in [`parse::parse_line`], and decoding a block allocates nothing; a 1,000,000-block G1
-//! program is planned by `cncgw plan` about 4–5× faster than LinuxCNC's `rs274 -g` on this
-//! machine (`scripts/bench-rs274.sh`).
+//! ([`parse::fast_words`]) into a fixed word array and a decoder kept across blocks, so a
+//! block allocates nothing. `scripts/bench-rs274.sh` compares `cncgw plan` with LinuxCNC's
+//! `rs274 -g` on a 1,000,000-block G1 program (figures in its header).
 //!
 //! Numbers without a decimal point: the manual gives no increment-system rule for them, so we
 //! follow Fanuc parameter No.3401#0 (DPI): 1 = calculator-type input, `X10` = 10 mm; 0 =
@@ -72,60 +74,181 @@ pub const CHORD_TOL: f64 = 0.002;
 /// Fanuc/manual §3.1.6: 12 levels of subprogram/macro nesting.
 pub const MAX_NESTING: usize = 12;
 
-/// One program file: its text and where its lines start (the only per-line memory kept).
-#[derive(Clone, Debug)]
+/// Where a line starts: byte offset in its source and 0-based line index. Jumps (GOTO, M99 P,
+/// loops, calls) go to a `Loc`, so that no per-line table is needed.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub(crate) struct Loc {
+    pub(crate) off: u64,
+    pub(crate) line: u32,
+}
+
+enum Text {
+    /// A program given as text ([`Interpreter::from_source`]).
+    Mem(Arc<str>),
+    /// A program file, read as it runs (held open; the control does not expect a program to
+    /// be edited while it runs, as a Fanuc locks the running program).
+    File(std::fs::File),
+}
+
+/// Bytes read from a file at a time.
+const WINDOW: usize = 64 * 1024;
+
+/// One program file. Only a read window is kept in memory, never the whole file.
 struct Source {
     file: Arc<str>,
-    /// Shared so that executing a block can hold its line without copying it; an
-    /// `Arc<String>` so that a file read into a `String` is kept without another copy.
-    text: Arc<String>,
-    /// Byte offset of the start of every line; one extra entry = text length.
-    line_starts: Vec<usize>,
+    text: Text,
+    len: u64,
+    /// Read window of a file source: bytes `win_off .. win_off + win.len()`.
+    win: Vec<u8>,
+    win_off: u64,
+    /// The window reaches the end of the file.
+    win_eof: bool,
+}
+
+/// A line without its line end (`\n`, and any `\r` before it).
+fn trim_eol(b: &[u8]) -> &[u8] {
+    let mut n = b.len();
+    while n > 0 && matches!(b[n - 1], b'\r' | b'\n') {
+        n -= 1;
+    }
+    &b[..n]
 }
 
 impl Source {
-    fn new(file: &str, text: String) -> Source {
-        let mut starts = vec![0usize];
-        starts.extend(text.bytes().enumerate().filter(|(_, b)| *b == b'\n').map(|(i, _)| i + 1));
-        if *starts.last().unwrap_or(&0) != text.len() {
-            starts.push(text.len());
-        }
-        Source { file: Arc::from(file), text: Arc::new(text), line_starts: starts }
+    fn mem(file: &str, text: &str) -> Source {
+        Source { file: Arc::from(file), text: Text::Mem(Arc::from(text)), len: text.len() as u64, win: Vec::new(), win_off: 0, win_eof: false }
     }
-    fn nlines(&self) -> usize {
-        self.line_starts.len() - 1
+
+    /// A program file; `None` when `path` is not a readable regular file.
+    fn open(path: &std::path::Path) -> std::io::Result<Source> {
+        let f = std::fs::File::open(path)?;
+        let meta = f.metadata()?;
+        if !meta.is_file() {
+            return Err(std::io::Error::new(std::io::ErrorKind::InvalidInput, "not a regular file"));
+        }
+        Ok(Source { file: Arc::from(path.display().to_string()), text: Text::File(f), len: meta.len(), win: Vec::new(), win_off: 0, win_eof: false })
     }
-    /// Byte range of line `i` without its line end.
-    fn line_range(&self, i: usize) -> std::ops::Range<usize> {
-        match (self.line_starts.get(i), self.line_starts.get(i + 1)) {
-            (Some(&a), Some(&b)) => a..a + self.text[a..b].trim_end_matches(['\n', '\r']).len(),
-            _ => 0..0,
+
+    /// The line starting at `off`, without its line end, into `out` (cleared first); returns
+    /// where the next line starts (`len` after the last one). Sequential reads are served
+    /// from the read window.
+    fn read_line(&mut self, off: u64, out: &mut Vec<u8>) -> std::io::Result<u64> {
+        out.clear();
+        if off >= self.len {
+            return Ok(self.len);
+        }
+        let f = match &self.text {
+            Text::Mem(t) => {
+                let rest = &t.as_bytes()[off as usize..];
+                let (line, next) = match parse::find_newline(rest) {
+                    Some(i) => (&rest[..i], off + i as u64 + 1),
+                    None => (rest, self.len),
+                };
+                out.extend_from_slice(trim_eol(line));
+                return Ok(next);
+            }
+            Text::File(f) => f,
+        };
+        let mut want = WINDOW;
+        loop {
+            let win_end = self.win_off + self.win.len() as u64;
+            if off >= self.win_off && off < win_end {
+                let rest = &self.win[(off - self.win_off) as usize..];
+                if let Some(i) = parse::find_newline(rest) {
+                    out.extend_from_slice(trim_eol(&rest[..i]));
+                    return Ok(off + i as u64 + 1);
+                }
+                if win_end >= self.len || self.win_eof {
+                    // The last line, without a line end (or the file was cut short).
+                    out.extend_from_slice(trim_eol(rest));
+                    return Ok(self.len);
+                }
+                if off == self.win_off {
+                    // A line longer than the window: widen it.
+                    want = self.win.len() * 2;
+                }
+            }
+            use std::os::unix::fs::FileExt;
+            self.win.clear();
+            self.win.resize(want, 0);
+            let mut n = 0;
+            while n < want {
+                match f.read_at(&mut self.win[n..], off + n as u64) {
+                    Ok(0) => break,
+                    Ok(k) => n += k,
+                    Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                    Err(e) => {
+                        self.win.clear();
+                        return Err(e);
+                    }
+                }
+            }
+            self.win.truncate(n);
+            self.win_off = off;
+            self.win_eof = n < want;
+            if n == 0 {
+                return Ok(self.len);
+            }
         }
     }
-    fn line(&self, i: usize) -> &str {
-        match (self.line_starts.get(i), self.line_starts.get(i + 1)) {
-            (Some(&a), Some(&b)) => self.text[a..b].trim_end_matches(['\n', '\r']),
-            _ => "",
+
+    /// The text of the line at `at` and where the next one starts, read without the window
+    /// (alarm texts and canned-cycle contours, off the hot path).
+    fn line_at(&self, at: Loc) -> (String, Loc) {
+        let mut bytes = Vec::new();
+        let mut next = self.len;
+        match &self.text {
+            Text::Mem(t) => {
+                let rest = t.as_bytes().get(at.off as usize..).unwrap_or(&[]);
+                let i = rest.iter().position(|&c| c == b'\n');
+                bytes.extend_from_slice(&rest[..i.unwrap_or(rest.len())]);
+                if let Some(i) = i {
+                    next = at.off + i as u64 + 1;
+                }
+            }
+            Text::File(f) => {
+                use std::os::unix::fs::FileExt;
+                let mut chunk = [0u8; 256];
+                let mut off = at.off;
+                while off < self.len {
+                    let k = match f.read_at(&mut chunk, off) {
+                        Ok(0) | Err(_) => break,
+                        Ok(k) => k,
+                    };
+                    if let Some(i) = chunk[..k].iter().position(|&c| c == b'\n') {
+                        bytes.extend_from_slice(&chunk[..i]);
+                        next = off + i as u64 + 1;
+                        break;
+                    }
+                    bytes.extend_from_slice(&chunk[..k]);
+                    off += k as u64;
+                }
+            }
         }
+        let text = String::from_utf8_lossy(trim_eol(&bytes)).into_owned();
+        (text, Loc { off: next.min(self.len), line: at.line + 1 })
     }
 }
+
+/// The end of a program not closed yet during pass 1.
+const OPEN: Loc = Loc { off: u64::MAX, line: u32::MAX };
 
 #[derive(Clone, Debug)]
 struct ProgInfo {
     number: Option<u32>,
     /// Index into `sources`.
     src: usize,
-    /// First line index after the `O` line.
-    start: usize,
-    /// One past the last line index.
-    end: usize,
+    /// The first line after the `O` line.
+    start: Loc,
+    /// Where the program ends (the next `O` or `%` line, or the end of the file).
+    end: Loc,
 }
 
 #[derive(Clone, Debug)]
 struct Frame {
     /// Program and line to return to.
     prog: usize,
-    line: usize,
+    line: Loc,
     /// Remaining repetitions (M98 L) including the current one.
     repeats: u32,
     /// G65 call: has its own local variables.
@@ -173,10 +296,12 @@ pub struct Interpreter {
     sources: Vec<Source>,
     program_dir: Option<std::path::PathBuf>,
     progs: Vec<ProgInfo>,
-    labels: HashMap<(usize, u32), usize>,
-    /// DO line ↔ END line, keyed by (source, line).
-    do_end: HashMap<(usize, usize), usize>,
-    end_do: HashMap<(usize, usize), usize>,
+    /// The label index: block N`n` of program `p` at (p, n) (the first one in the program).
+    labels: HashMap<(usize, u32), Loc>,
+    /// DO line → the line after its END, and END line → its DO line, keyed by (source,
+    /// offset of the DO/END line).
+    do_end: HashMap<(usize, u64), Loc>,
+    end_do: HashMap<(usize, u64), Loc>,
     // Machine facts.
     calculator: bool,
     arc_tol: f64,
@@ -185,7 +310,18 @@ pub struct Interpreter {
     has_c: bool,
     // Execution state.
     prog: usize,
-    line: usize,
+    /// The next line to execute.
+    line: Loc,
+    /// The block executed last (source, line) and its text in `line_buf`, for alarms raised
+    /// between blocks.
+    cur: (usize, Loc),
+    line_buf: Vec<u8>,
+    /// Reused buffer for the moves nose radius compensation lets through.
+    nrc_scratch: Vec<Move>,
+    /// The words and the decoded block of the fast path, kept across blocks (not initialised
+    /// or copied per block).
+    fast_ev: [parse::FastWord; parse::FAST_WORDS],
+    dec: Option<Box<Decoded>>,
     stack: Vec<Frame>,
     vars: Vars,
     st: Modal,
@@ -242,10 +378,10 @@ impl Interpreter {
         Self::with_program_dir(file_name, text, cfg, None)
     }
 
-    fn build(file_name: &str, text: String, cfg: &MachineConfig) -> Interpreter {
+    fn build(source: Source, cfg: &MachineConfig) -> Interpreter {
         let calculator = cfg.param(3401).map(|v| (v as i64) & 1 == 1).unwrap_or(true);
         Interpreter {
-            sources: vec![Source::new(file_name, text)],
+            sources: vec![source],
             program_dir: None,
             progs: Vec::new(),
             labels: HashMap::new(),
@@ -260,7 +396,12 @@ impl Interpreter {
             has_y: cfg.axes.contains_key("y"),
             has_c: cfg.spindle().is_some() || cfg.axes.contains_key("c"),
             prog: 0,
-            line: 0,
+            line: Loc::default(),
+            cur: (0, Loc::default()),
+            line_buf: Vec::new(),
+            nrc_scratch: Vec::new(),
+            fast_ev: [parse::NO_WORD; parse::FAST_WORDS],
+            dec: None,
             stack: Vec::new(),
             vars: Vars::new(),
             st: Modal {
@@ -330,12 +471,14 @@ impl Interpreter {
         }
     }
 
+    /// Like [`Interpreter::from_source`] for a program file, which is read as the program
+    /// runs (streaming: memory does not grow with its length, apart from the label index);
+    /// the program directory for M98/G65 is the file's directory.
     pub fn from_file(path: &std::path::Path, cfg: &MachineConfig) -> Result<Interpreter, Vec<Alarm>> {
-        let text = std::fs::read_to_string(path)
+        let source = Source::open(path)
             .map_err(|e| vec![Alarm::new(76, format!("{}: cannot read the program: {e}", path.display()))])?;
         let dir = path.parent().map(|p| if p.as_os_str().is_empty() { std::path::Path::new(".") } else { p });
-        // The text read is kept as it is (no copy: a long program is held once).
-        let mut it = Self::build(&path.display().to_string(), text, cfg);
+        let mut it = Self::build(source, cfg);
         it.program_dir = dir.map(|d| d.to_path_buf());
         it.check()
     }
@@ -348,7 +491,7 @@ impl Interpreter {
         cfg: &MachineConfig,
         dir: Option<&std::path::Path>,
     ) -> Result<Interpreter, Vec<Alarm>> {
-        let mut it = Self::build(file_name, text.to_string(), cfg);
+        let mut it = Self::build(Source::mem(file_name, text), cfg);
         it.program_dir = dir.map(|d| d.to_path_buf());
         it.check()
     }
@@ -403,41 +546,84 @@ impl Interpreter {
         self.input = Some(Box::new(f));
     }
 
-    /// Line `i` of the current program's source.
-    fn line_text(&self, i: usize) -> &str {
-        self.sources[self.progs[self.prog].src].line(i)
+    /// The text of line `at` of the current program's source (canned-cycle contours read
+    /// their blocks with it) and where the next line starts.
+    fn line_text(&self, at: Loc) -> String {
+        self.line_after(at).0
+    }
+
+    /// Line `at` of the current program's source and the location of the line after it.
+    fn line_after(&self, at: Loc) -> (String, Loc) {
+        self.sources[self.progs[self.prog].src].line_at(at)
     }
 
     fn cur_file(&self) -> Arc<str> {
         self.sources[self.progs[self.prog].src].file.clone()
     }
 
-    /// Pass 1 over source `si`: parse every line, collect all errors, index its programs,
-    /// labels and loops; then load (and check) the subprograms it calls from the program
-    /// directory.
+    /// Pass 1 over source `si`, read line by line: parse every line, collect all errors,
+    /// index its programs, labels and loops (as locations, no per-line memory); then load
+    /// (and check) the subprograms it calls from the program directory. Jump targets and
+    /// calls not known yet when they are met (forward references) are kept until the end of
+    /// the pass.
     fn index_source(&mut self, si: usize, errors: &mut Vec<Alarm>) {
-        let nlines = self.sources[si].nlines();
         let file = self.sources[si].file.clone();
         let first_prog = self.progs.len();
-        self.progs.push(ProgInfo { number: None, src: si, start: 0, end: nlines });
+        self.progs.push(ProgInfo { number: None, src: si, start: Loc::default(), end: OPEN });
         let mut content = false;
-        let mut loop_stack: Vec<(u8, usize)> = Vec::new();
-        let mut gotos: Vec<(usize, usize, u32, u32)> = Vec::new(); // prog, line, target, col
-        let mut calls: Vec<(usize, u32, u32)> = Vec::new(); // line, program, col
-        let whole = self.sources[si].text.clone();
-        for i in 0..nlines {
-            let text = &whole[self.sources[si].line_range(i)];
-            let b = match parse::parse_line(text) {
-                Ok(b) => b,
+        let mut loop_stack: Vec<(u8, Loc)> = Vec::new();
+        let mut gotos: Vec<(usize, Loc, u32, u32)> = Vec::new(); // prog, line, target, col
+        let mut calls: Vec<(Loc, u32, u32)> = Vec::new(); // line, program, col
+        let mut buf = std::mem::take(&mut self.line_buf);
+        let mut ev = [parse::NO_WORD; parse::FAST_WORDS];
+        let mut dec = self.dec.take().unwrap_or_default();
+        let mut next = Loc::default();
+        while next.off < self.sources[si].len {
+            let i = next;
+            next = match self.sources[si].read_line(i.off, &mut buf) {
+                Ok(off) => Loc { off, line: i.line + 1 },
                 Err(e) => {
-                    errors.push(perr_alarm(&file, i, &text, e));
-                    content = true;
-                    continue;
+                    errors.push(Alarm::new(76, format!("{file}: cannot read the program: {e}")).at(SrcPos::new(file.clone(), i.line + 1, 1)));
+                    break;
                 }
             };
+            // NC words straight from the bytes (most lines), else the full parser.
+            let fast = parse::fast_words_static(&buf, &mut ev);
+            let valid = match fast {
+                // Only the `;` comment can hold anything but ASCII.
+                Some(fb) => buf[fb.comment..].is_ascii() || std::str::from_utf8(&buf[fb.comment..]).is_ok(),
+                None => std::str::from_utf8(&buf).is_ok(),
+            };
+            // The text itself is needed by the full parser and by alarms only.
+            let text = if valid && fast.is_none() { std::str::from_utf8(&buf).unwrap_or("") } else { "" };
+            if !valid {
+                errors.push(
+                    Alarm::new(76, format!("{file}: cannot read the program: line {} is not UTF-8 text", i.line + 1))
+                        .at(SrcPos::new(file.clone(), i.line + 1, 1)),
+                );
+                content = true;
+                continue;
+            }
             let p = self.progs.len() - 1;
-            match &b.stmt {
-                Stmt::Percent => {
+            let at = |col: u32| SrcPos::new(file.clone(), i.line + 1, col);
+            let block;
+            let (n, bcol, stmt) = match fast {
+                Some(fb) => (fb.n, fb.col, None),
+                None => match parse::parse_line(text) {
+                    Ok(b) => {
+                        block = b;
+                        (block.n, block.col, Some(&block.stmt))
+                    }
+                    Err(e) => {
+                        errors.push(perr_alarm(&file, i.line as usize, text, e));
+                        content = true;
+                        continue;
+                    }
+                },
+            };
+            match stmt {
+                None if fast.is_some_and(|f| f.len == 0) && n.is_none() => continue,
+                Some(Stmt::Percent) => {
                     if content {
                         // End of tape: the rest of the file is not part of the program.
                         if let Some(last) = self.progs.last_mut() {
@@ -447,109 +633,123 @@ impl Interpreter {
                     }
                     continue;
                 }
-                Stmt::Program(n) => {
+                Some(Stmt::Program(num)) => {
                     self.close_loops(si, &mut loop_stack, errors);
-                    if self.progs.iter().any(|q| q.number == Some(*n)) {
+                    if self.progs.iter().any(|q| q.number == Some(*num)) {
                         errors.push(
-                            Alarm::new(73, format!("program O{n:04} is defined twice"))
-                                .at(SrcPos::new(file.clone(), i as u32 + 1, b.col))
-                                .with_block(text.trim_end()),
+                            Alarm::new(73, format!("program O{num:04} is defined twice")).at(at(bcol)).with_block(text.trim_end()),
                         );
                     }
                     if !content && self.progs.len() == first_prog + 1 {
-                        self.progs[first_prog] = ProgInfo { number: Some(*n), src: si, start: i + 1, end: nlines };
+                        self.progs[first_prog] = ProgInfo { number: Some(*num), src: si, start: next, end: OPEN };
                     } else {
                         if let Some(last) = self.progs.last_mut() {
                             last.end = i;
                         }
-                        self.progs.push(ProgInfo { number: Some(*n), src: si, start: i + 1, end: nlines });
+                        self.progs.push(ProgInfo { number: Some(*num), src: si, start: next, end: OPEN });
                     }
                     content = true;
                     continue;
                 }
-                Stmt::Empty if b.n.is_none() => continue,
+                Some(Stmt::Empty) if n.is_none() => continue,
                 _ => {}
             }
             content = true;
-            if let Some(n) = b.n {
+            let (ngotos, ncalls) = (gotos.len(), calls.len());
+            if let Some(n) = n {
                 self.labels.entry((p, n)).or_insert(i);
             }
-            let at = |col: u32| SrcPos::new(file.clone(), i as u32 + 1, col);
-            match &b.stmt {
-                Stmt::Nc(words) if words.iter().all(|w| w.value.is_literal()) => {
-                    match self.decode_words(words, &Vars::new()) {
-                        Err(a) => {
-                            let col = a_col(&a);
-                            errors.push(a.at(at(col)).with_block(text.trim_end()));
-                        }
-                        Ok(d) => {
-                            if let Some(pv) = d.get('P') {
-                                if d.m.iter().any(|m| m.0 == 98) {
-                                    let v = pv.v.round() as u64;
-                                    calls.push((i, if v > 9999 { (v % 10000) as u32 } else { v as u32 }, pv.col));
-                                } else if d.has_g(650) {
-                                    calls.push((i, pv.v.round() as u32, pv.col));
-                                } else if d.m.iter().any(|m| m.0 == 91 || m.0 == 92) && pv.v >= 1.0 {
-                                    // M91/M92 jump targets are checked like GOTO's.
-                                    gotos.push((p, i, pv.v.round() as u32, pv.col));
-                                }
-                            }
+            let decoded = match (fast, stmt) {
+                (Some(fb), _) if fb.len > 0 => {
+                    Some(dec.fill(&ev[..fb.len], self.has_y, self.has_c).map_err(|(n, col, m)| col_alarm(n, col, m)))
+                }
+                (_, Some(Stmt::Nc(words))) if words.iter().all(|w| w.value.is_literal()) => {
+                    Some(self.decode_words(words, &Vars::new()).map(|d| *dec = d))
+                }
+                _ => None,
+            };
+            match decoded {
+                Some(Err(a)) => {
+                    let col = a_col(&a);
+                    errors.push(a.at(at(col)).with_block(String::from_utf8_lossy(&buf).trim_end()));
+                }
+                Some(Ok(())) => {
+                    let d = &dec;
+                    if let Some(pv) = d.get('P') {
+                        if d.m.iter().any(|m| m.0 == 98) {
+                            let v = pv.v.round() as u64;
+                            calls.push((i, if v > 9999 { (v % 10000) as u32 } else { v as u32 }, pv.col));
+                        } else if d.has_g(650) {
+                            calls.push((i, pv.v.round() as u32, pv.col));
+                        } else if d.m.iter().any(|m| m.0 == 91 || m.0 == 92) && pv.v >= 1.0 {
+                            // M91/M92 jump targets are checked like GOTO's.
+                            gotos.push((p, i, pv.v.round() as u32, pv.col));
                         }
                     }
                 }
-                Stmt::Do { n, .. } => {
+                None => {}
+            }
+            match stmt {
+                Some(Stmt::Do { n, .. }) => {
                     if loop_stack.len() >= 3 {
-                        errors.push(
-                            Alarm::new(126, "DO loops nest at most 3 deep").at(at(b.col)).with_block(text.trim_end()),
-                        );
+                        errors.push(Alarm::new(126, "DO loops nest at most 3 deep").at(at(bcol)).with_block(text.trim_end()));
                     }
                     loop_stack.push((*n, i));
                 }
-                Stmt::End(n) => match loop_stack.pop() {
+                Some(Stmt::End(n)) => match loop_stack.pop() {
                     Some((m, d)) if m == *n => {
-                        self.do_end.insert((si, d), i);
-                        self.end_do.insert((si, i), d);
+                        self.do_end.insert((si, d.off), next);
+                        self.end_do.insert((si, i.off), d);
                     }
                     Some((m, d)) => {
                         errors.push(
-                            Alarm::new(
-                                126,
-                                format!("END{n} does not match DO{m} of line {} (DO ranges may not cross)", d + 1),
-                            )
-                            .at(at(b.col))
-                            .with_block(text.trim_end()),
+                            Alarm::new(126, format!("END{n} does not match DO{m} of line {} (DO ranges may not cross)", d.line + 1))
+                                .at(at(bcol))
+                                .with_block(text.trim_end()),
                         );
                     }
-                    None => errors.push(
-                        Alarm::new(126, format!("END{n} without a DO{n}")).at(at(b.col)).with_block(text.trim_end()),
-                    ),
+                    None => errors.push(Alarm::new(126, format!("END{n} without a DO{n}")).at(at(bcol)).with_block(text.trim_end())),
                 },
-                Stmt::Call { name: Some(name), args, cols, .. } => {
+                Some(Stmt::Call { name: Some(name), args, cols, .. }) => {
                     if let Some((n, col, m)) = cycles::siemens::static_check(name, args.len(), cols) {
-                        errors.push(Alarm::new(n, m).at(at(col.unwrap_or(b.col))).with_block(text.trim_end()));
+                        errors.push(Alarm::new(n, m).at(at(col.unwrap_or(bcol))).with_block(text.trim_end()));
                     }
                 }
-                Stmt::Goto(Expr::Num { v, .. }) | Stmt::IfGoto { target: Expr::Num { v, .. }, .. } => {
-                    gotos.push((p, i, *v as u32, b.col));
+                Some(Stmt::Goto(Expr::Num { v, .. }) | Stmt::IfGoto { target: Expr::Num { v, .. }, .. }) => {
+                    gotos.push((p, i, *v as u32, bcol));
                 }
                 _ => {}
             }
+            // A backward reference is resolved now; only forward ones wait for the end.
+            if gotos.len() > ngotos && gotos.last().is_some_and(|g| self.labels.contains_key(&(g.0, g.2))) {
+                gotos.pop();
+            }
+            if calls.len() > ncalls && calls.last().is_some_and(|c| self.progs.iter().any(|q| q.number == Some(c.1))) {
+                calls.pop();
+            }
         }
+        for q in &mut self.progs[first_prog..] {
+            if q.end == OPEN {
+                q.end = next;
+            }
+        }
+        self.line_buf = buf;
+        self.dec = Some(dec);
         self.close_loops(si, &mut loop_stack, errors);
         for (p, i, n, col) in gotos {
             if !self.labels.contains_key(&(p, n)) {
-                let text = self.sources[si].line(i).to_string();
+                let text = self.sources[si].line_at(i).0;
                 errors.push(
                     Alarm::new(78, format!("GOTO {n}: there is no block N{n} in this program"))
-                        .at(SrcPos::new(file.clone(), i as u32 + 1, col))
+                        .at(SrcPos::new(file.clone(), i.line + 1, col))
                         .with_block(text.trim_end()),
                 );
             }
         }
         for (i, n, col) in calls {
             if let Err(m) = self.find_program(n, errors) {
-                let text = self.sources[si].line(i).to_string();
-                errors.push(Alarm::new(76, m).at(SrcPos::new(file.clone(), i as u32 + 1, col)).with_block(text.trim_end()));
+                let text = self.sources[si].line_at(i).0;
+                errors.push(Alarm::new(76, m).at(SrcPos::new(file.clone(), i.line + 1, col)).with_block(text.trim_end()));
             }
         }
     }
@@ -567,9 +767,9 @@ impl Interpreter {
         let names = [format!("O{n:04}"), format!("O{n:04}.nc"), format!("O{n}.nc"), format!("{n:04}.nc")];
         for name in names {
             let path = dir.join(&name);
-            if let Ok(text) = std::fs::read_to_string(&path) {
+            if let Ok(source) = Source::open(&path) {
                 let si = self.sources.len();
-                self.sources.push(Source::new(&path.display().to_string(), text));
+                self.sources.push(source);
                 let before = self.progs.len();
                 self.index_source(si, errors);
                 // A file without an O line holds the program its name gives.
@@ -586,12 +786,12 @@ impl Interpreter {
         Err(format!("program O{n:04} not found in this file or in {}", dir.display()))
     }
 
-    fn close_loops(&self, si: usize, stack: &mut Vec<(u8, usize)>, errors: &mut Vec<Alarm>) {
+    fn close_loops(&self, si: usize, stack: &mut Vec<(u8, Loc)>, errors: &mut Vec<Alarm>) {
         for (n, d) in stack.drain(..) {
-            let text = self.sources[si].line(d).to_string();
+            let text = self.sources[si].line_at(d).0;
             errors.push(
                 Alarm::new(124, format!("DO{n} has no END{n}"))
-                    .at(SrcPos::new(self.sources[si].file.clone(), d as u32 + 1, 1))
+                    .at(SrcPos::new(self.sources[si].file.clone(), d.line + 1, 1))
                     .with_block(text.trim_end()),
             );
         }
@@ -645,14 +845,23 @@ impl Interpreter {
             if let Some(m) = self.queue.pop_front() {
                 // G22 stroke check on the programmed path, then the nose radius
                 // compensation, which may hold the move for one motion.
-                let mut out = Vec::new();
+                let mut out = std::mem::take(&mut self.nrc_scratch);
                 let r = self.cyc.stroke.check(&m).and_then(|_| self.nrc.feed(m, &mut out));
-                self.nrc_out.extend(out);
                 if let Err(a) = r {
+                    out.clear();
+                    self.nrc_scratch = out;
                     self.ended = true;
                     self.queue.clear();
                     self.nrc_out.clear();
                     return Err(a);
+                }
+                // One move in, one out (no compensation pending): hand it on directly.
+                let direct = if out.len() == 1 { out.pop() } else { None };
+                self.nrc_out.extend(out.drain(..));
+                self.nrc_scratch = out;
+                if let Some(m) = direct {
+                    self.idle_blocks = 0;
+                    return Ok(Some(m));
                 }
                 continue;
             }
@@ -685,40 +894,77 @@ impl Interpreter {
         }
     }
 
+    /// An alarm at the block executed last.
     fn alarm_here(&self, number: u32, col: u32, msg: impl Into<String>) -> Alarm {
-        let i = self.line.saturating_sub(1);
+        let (si, at) = self.cur;
         Alarm::new(number, msg)
-            .at(SrcPos::new(self.cur_file(), i as u32 + 1, col))
-            .with_block(self.line_text(i).trim_end())
+            .at(SrcPos::new(self.sources[si].file.clone(), at.line + 1, col))
+            .with_block(std::str::from_utf8(&self.line_buf).unwrap_or("").trim_end())
     }
 
-    /// Execute one block (or handle the end of the current program).
+    /// Execute one block (or handle the end of the current program). The line is read into
+    /// `line_buf` (no allocation per block).
     fn step(&mut self) -> Result<(), Alarm> {
-        if self.line >= self.progs[self.prog].end {
+        if self.line.off >= self.progs[self.prog].end.off {
             // End of a program without M30/M99: a subprogram returns, the main program ends.
             if self.stack.is_empty() {
                 self.ended = true;
             } else {
-                self.ret(None, 1)?;
+                self.ret(None).map_err(|e| self.alarm_here(e.number, 1, e.message))?;
             }
             return Ok(());
         }
         let i = self.line;
-        self.line += 1;
-        let source = &self.sources[self.progs[self.prog].src];
-        let (whole, range) = (source.text.clone(), source.line_range(i));
-        let text = &whole[range];
-        let file = self.cur_file();
         let si = self.progs[self.prog].src;
-        let b: Block = parse::parse_line(&text).map_err(|e| perr_alarm(&file, i, &text, e))?;
+        let mut buf = std::mem::take(&mut self.line_buf);
+        let r = match self.sources[si].read_line(i.off, &mut buf) {
+            Ok(next) => {
+                self.line = Loc { off: next, line: i.line + 1 };
+                self.cur = (si, i);
+                self.exec_line(si, i, &buf)
+            }
+            Err(e) => Err(Alarm::new(76, format!("cannot read the program: {e}"))
+                .at(SrcPos::new(self.sources[si].file.clone(), i.line + 1, 1))),
+        };
+        self.line_buf = buf;
+        r
+    }
+
+    /// Execute the block `bytes` of line `i` of source `si`.
+    fn exec_line(&mut self, si: usize, i: Loc, bytes: &[u8]) -> Result<(), Alarm> {
+        let file = self.sources[si].file.clone();
+        let line_no = i.line + 1;
+        // Plain NC words (CAM output): decoded straight from the bytes, nothing allocated
+        // (the text is needed for an alarm only).
+        if let Some(fb) = parse::fast_words(bytes, &mut self.fast_ev) {
+            let text = || String::from_utf8_lossy(bytes);
+            if fb.len == 0 {
+                return Ok(());
+            }
+            let mut d = self.dec.take().unwrap_or_default();
+            let r = match d.fill(&self.fast_ev[..fb.len], self.has_y, self.has_c) {
+                Err((n, col, m)) => Err(Alarm::new(n, m).at(SrcPos::new(file, line_no, col)).with_block(text().trim_end())),
+                Ok(()) => {
+                    let src = SrcPos::new(file, line_no, fb.col);
+                    self.exec(&d, &src).map_err(|(n, col, m)| {
+                        Alarm::new(n, m).at(SrcPos { col: col.unwrap_or(fb.col), ..src.clone() }).with_block(text().trim_end())
+                    })
+                }
+            };
+            self.dec = Some(d);
+            return r;
+        }
+        let Ok(text) = std::str::from_utf8(bytes) else {
+            return Err(Alarm::new(76, "the program file changed while it runs: this line is not UTF-8 text")
+                .at(SrcPos::new(file, line_no, 1)));
+        };
+        let b: Block = parse::parse_line(text).map_err(|e| perr_alarm(&file, i.line as usize, text, e))?;
         if b.skip && self.block_skip {
             return Ok(());
         }
-        let src = SrcPos::new(file.clone(), i as u32 + 1, b.col);
+        let src = SrcPos::new(file.clone(), line_no, b.col);
         let wrap = |e: MErr, col: u32| {
-            Alarm::new(e.number, e.message)
-                .at(SrcPos::new(file.clone(), i as u32 + 1, col))
-                .with_block(text.trim_end())
+            Alarm::new(e.number, e.message).at(SrcPos::new(file.clone(), line_no, col)).with_block(text.trim_end())
         };
         match b.stmt {
             Stmt::Empty | Stmt::Percent => {}
@@ -728,7 +974,7 @@ impl Interpreter {
                 if self.stack.is_empty() {
                     self.ended = true;
                 } else {
-                    self.ret(None, b.col)?;
+                    self.ret(None).map_err(|e| wrap(e, b.col))?;
                 }
             }
             Stmt::Assign { var, value } => {
@@ -745,23 +991,23 @@ impl Interpreter {
             }
             Stmt::IfGoto { cond, target } => {
                 if truth(self.vars.eval(&cond).map_err(|e| wrap(e, b.col))?) {
-                    self.goto(&target, b.col)?;
+                    self.goto(&target).map_err(|e| wrap(e, b.col))?;
                 }
             }
-            Stmt::Goto(target) => self.goto(&target, b.col)?,
+            Stmt::Goto(target) => self.goto(&target).map_err(|e| wrap(e, b.col))?,
             Stmt::Do { cond, .. } => {
                 let go = match cond {
                     Some(c) => truth(self.vars.eval(&c).map_err(|e| wrap(e, b.col))?),
                     None => true,
                 };
                 if !go {
-                    match self.do_end.get(&(si, i)) {
-                        Some(&e) => self.line = e + 1,
+                    match self.do_end.get(&(si, i.off)) {
+                        Some(&e) => self.line = e,
                         None => return Err(wrap(MErr { number: 124, message: "DO without END".into() }, b.col)),
                     }
                 }
             }
-            Stmt::End(_) => match self.end_do.get(&(si, i)) {
+            Stmt::End(_) => match self.end_do.get(&(si, i.off)) {
                 Some(&d) => self.line = d,
                 None => return Err(wrap(MErr { number: 126, message: "END without DO".into() }, b.col)),
             },
@@ -774,41 +1020,39 @@ impl Interpreter {
                     });
                 }
                 self.siemens_stmt(mcall, name.as_deref(), &vals, &cols, &src).map_err(|(n, col, m)| {
-                    Alarm::new(n, m).at(SrcPos::new(file.clone(), i as u32 + 1, col.unwrap_or(b.col))).with_block(text.trim_end())
+                    Alarm::new(n, m).at(SrcPos::new(file.clone(), line_no, col.unwrap_or(b.col))).with_block(text.trim_end())
                 })?;
             }
             Stmt::Nc(words) => {
                 let d = self.decode_words(&words, &self.vars).map_err(|a| {
                     let col = a_col(&a);
-                    a.at(SrcPos::new(file.clone(), i as u32 + 1, col)).with_block(text.trim_end())
+                    a.at(SrcPos::new(file.clone(), line_no, col)).with_block(text.trim_end())
                 })?;
                 self.exec(&d, &src).map_err(|(n, col, m)| {
-                    Alarm::new(n, m)
-                        .at(SrcPos::new(file.clone(), i as u32 + 1, col.unwrap_or(b.col)))
-                        .with_block(text.trim_end())
+                    Alarm::new(n, m).at(SrcPos::new(file.clone(), line_no, col.unwrap_or(b.col))).with_block(text.trim_end())
                 })?;
             }
         }
         Ok(())
     }
 
-    fn goto(&mut self, target: &Expr, col: u32) -> Result<(), Alarm> {
-        let v = self.vars.eval(target).map_err(|e| self.alarm_here(e.number, col, e.message))?.unwrap_or(0.0);
+    fn goto(&mut self, target: &Expr) -> Result<(), MErr> {
+        let v = self.vars.eval(target)?.unwrap_or(0.0);
         let n = v.round();
         if !(1.0..=99999.0).contains(&n) {
-            return Err(self.alarm_here(128, col, format!("GOTO {v}: the sequence number must be 1–99999")));
+            return Err(MErr { number: 128, message: format!("GOTO {v}: the sequence number must be 1–99999") });
         }
         match self.labels.get(&(self.prog, n as u32)) {
             Some(&l) => {
                 self.line = l;
                 Ok(())
             }
-            None => Err(self.alarm_here(78, col, format!("GOTO {n}: there is no block N{n} in this program"))),
+            None => Err(MErr { number: 78, message: format!("GOTO {n}: there is no block N{n} in this program") }),
         }
     }
 
     /// Return from a subprogram (M99 [P]).
-    fn ret(&mut self, p: Option<u32>, col: u32) -> Result<(), Alarm> {
+    fn ret(&mut self, p: Option<u32>) -> Result<(), MErr> {
         let Some(top) = self.stack.last_mut() else {
             // M99 in the main program: repeat it from the start (manual §3.1.7; P ignored).
             self.line = self.progs[self.prog].start;
@@ -828,7 +1072,7 @@ impl Interpreter {
         if let Some(n) = p {
             match self.labels.get(&(self.prog, n)) {
                 Some(&l) => self.line = l,
-                None => return Err(self.alarm_here(78, col, format!("M99 P{n}: no block N{n} in the calling program"))),
+                None => return Err(MErr { number: 78, message: format!("M99 P{n}: no block N{n} in the calling program") }),
             }
         }
         Ok(())
@@ -1353,7 +1597,7 @@ impl Interpreter {
                 self.call(prog, l, false, p.col)?;
             } else if m == 99 {
                 let p = d.get('P').map(|p| p.v.round() as u32);
-                self.ret(p, col).map_err(|a| (a.number, Some(col), a.message))?;
+                self.ret(p).map_err(|e| (e.number, Some(col), e.message))?;
             } else if m == 91 || m == 92 {
                 self.input_jump(m, col, d)?;
             }

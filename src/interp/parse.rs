@@ -16,6 +16,8 @@
 //! over 5, 126 illegal DO/END number, 127 NC and macro statement in one block, 128 illegal
 //! sequence number in GOTO.
 
+use super::gcode::Val;
+
 /// A parse error: Fanuc/manual alarm number, 1-based column, message.
 #[derive(Clone, Debug, PartialEq)]
 pub struct PErr {
@@ -266,6 +268,26 @@ impl PartialEq<&str> for Letters {
     fn eq(&self, o: &&str) -> bool {
         &self.buf[..self.len] == o.as_bytes()
     }
+}
+
+/// Index of the first `\n` in `b`, eight bytes at a time.
+pub fn find_newline(b: &[u8]) -> Option<usize> {
+    const LO: u64 = 0x0101_0101_0101_0101;
+    const HI: u64 = 0x8080_8080_8080_8080;
+    let pat = LO * b'\n' as u64;
+    let mut i = 0;
+    while i + 8 <= b.len() {
+        let mut w = [0u8; 8];
+        w.copy_from_slice(&b[i..i + 8]);
+        let x = u64::from_le_bytes(w) ^ pat;
+        // A zero byte of x (a '\n' in the word) sets its high bit here.
+        let z = x.wrapping_sub(LO) & !x & HI;
+        if z != 0 {
+            return Some(i + (z.trailing_zeros() / 8) as usize);
+        }
+        i += 8;
+    }
+    b[i..].iter().position(|&c| c == b'\n').map(|k| i + k)
 }
 
 /// Remove comments: `( … )` becomes spaces (columns stay right), `;` ends the line.
@@ -661,16 +683,49 @@ fn number(c: &mut Cur, letter: char, col: u32) -> Result<(f64, bool), PErr> {
     Ok((v, decimal))
 }
 
-/// The common case of CAM output, parsed straight from the bytes: an ASCII line of
-/// `[N…] LETTER number …` words (plain numbers, optional sign), optionally ending in a `;`
-/// comment. Anything else (comments in parentheses, macros, `/`, `O`, `%`, `,C`, any error)
-/// returns `None` and goes through the full parser, so both give the same `Block` except
-/// that a negative number is `Num { v: -x }` here instead of `Neg(Num { v: x })`, which
-/// evaluates the same.
-fn fast_line(line: &str) -> Option<Block> {
-    let b = line.as_bytes();
-    let end = b.iter().position(|&c| c == b';').unwrap_or(b.len());
-    let b = &b[..end];
+/// Most words a block may have to take the fast path ([`fast_words`]); longer blocks go
+/// through the full parser.
+pub const FAST_WORDS: usize = 24;
+
+/// One evaluated word as [`crate::interp::gcode::Decoded::build`] takes it: letter, `,`
+/// (always false here), value.
+pub type FastWord = (char, bool, Val);
+
+/// An empty [`FastWord`] to initialise a buffer with.
+pub const NO_WORD: FastWord = ('\0', false, Val { v: 0.0, decimal: false, col: 0, literal: true });
+
+/// What [`fast_words`] found besides the words.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FastBlock {
+    pub n: Option<u32>,
+    /// Column of the first character of the block (1-based).
+    pub col: u32,
+    /// Number of words written to the buffer (0: a blank line or `N…` alone).
+    pub len: usize,
+    /// Where the `;` comment starts (the line length without one): the bytes before it
+    /// are ASCII, the ones after it are not looked at.
+    pub comment: usize,
+}
+
+/// The common case of CAM output, parsed straight from the bytes into `out` without any
+/// allocation: an ASCII line of `[N…] LETTER number …` words (plain numbers, optional sign,
+/// at most [`FAST_WORDS`]), optionally ending in a `;` comment, or a blank line. Anything
+/// else (comments in parentheses, macros, `/`, `O`, `%`, `,C`, any error) returns `None`
+/// and goes through the full parser, so both give the same block except that a negative
+/// number is `-x` here instead of `Neg(Num { v: x })`, which evaluates the same.
+pub fn fast_words(line: &[u8], out: &mut [FastWord; FAST_WORDS]) -> Option<FastBlock> {
+    words_from_bytes::<true>(line, out)
+}
+
+/// [`fast_words`] for the static check: only the values that the checks of
+/// [`crate::interp::gcode::Decoded::build`] look at (G, M, P, N) are computed; the other
+/// words carry their digits unscaled.
+pub fn fast_words_static(line: &[u8], out: &mut [FastWord; FAST_WORDS]) -> Option<FastBlock> {
+    words_from_bytes::<false>(line, out)
+}
+
+fn words_from_bytes<const VALUES: bool>(line: &[u8], out: &mut [FastWord; FAST_WORDS]) -> Option<FastBlock> {
+    let b = line;
     let mut i = 0;
     let ws = |i: &mut usize| {
         while *i < b.len() && matches!(b[*i], b' ' | b'\t' | b'\r' | b'\n') {
@@ -678,15 +733,12 @@ fn fast_line(line: &str) -> Option<Block> {
         }
     };
     ws(&mut i);
-    if i == b.len() {
-        return None;
-    }
     let col = i as u32 + 1;
     let mut n = None;
-    let mut words = Vec::new();
+    let mut len = 0;
     while {
         ws(&mut i);
-        i < b.len()
+        i < b.len() && b[i] != b';'
     } {
         let wcol = i as u32 + 1;
         let letter = b[i].to_ascii_uppercase();
@@ -732,7 +784,7 @@ fn fast_line(line: &str) -> Option<Block> {
         }
         let digits = &b[start..i];
         // Letters must be followed by a number and then a separator or the next letter.
-        if digits.is_empty() || digits == b"." || (i < b.len() && !(b[i].is_ascii_alphabetic() || matches!(b[i], b' ' | b'\t' | b'\r' | b'\n'))) {
+        if digits.is_empty() || digits == b"." || (i < b.len() && !(b[i].is_ascii_alphabetic() || matches!(b[i], b' ' | b'\t' | b'\r' | b'\n' | b';'))) {
             return None;
         }
         if neg && matches!(letter, b'G' | b'M' | b'N' | b'T' | b'L') {
@@ -743,19 +795,35 @@ fn fast_line(line: &str) -> Option<Block> {
         if sig > MAX_DIGITS {
             return None;
         }
-        let v = mant as f64 / *POW10.get(frac)?;
+        let scale = *POW10.get(frac)?;
+        let v = if VALUES || matches!(letter, b'G' | b'M' | b'P' | b'N') { mant as f64 / scale } else { mant as f64 };
         if letter == b'N' {
-            if !words.is_empty() || n.is_some() || decimal || v > 99999.0 {
+            if len > 0 || n.is_some() || decimal || v > 99999.0 {
                 return None;
             }
             n = Some(v as u32);
             continue;
         }
         let v = if neg { -v } else { v };
-        words.push(Word { letter: letter as char, comma: false, value: Expr::Num { v, decimal }, col: wcol });
+        *out.get_mut(len)? = (letter as char, false, Val { v, decimal, col: wcol, literal: true });
+        len += 1;
     }
+    Some(FastBlock { n, col, len, comment: i })
+}
+
+/// [`fast_words`] as a [`Block`] (a blank line is left to the full parser).
+fn fast_line(line: &str) -> Option<Block> {
+    let mut buf = [NO_WORD; FAST_WORDS];
+    let fb = fast_words(line.as_bytes(), &mut buf)?;
+    if fb.len == 0 && fb.n.is_none() {
+        return None;
+    }
+    let words: Vec<Word> = buf[..fb.len]
+        .iter()
+        .map(|&(letter, _, v)| Word { letter, comma: false, value: Expr::Num { v: v.v, decimal: v.decimal }, col: v.col })
+        .collect();
     let stmt = if words.is_empty() { Stmt::Empty } else { Stmt::Nc(words) };
-    Some(Block { skip: false, n, stmt, col })
+    Some(Block { skip: false, n: fb.n, stmt, col: fb.col })
 }
 
 /// Exact powers of ten (10^22 is the largest exactly representable one).

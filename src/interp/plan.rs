@@ -5,7 +5,7 @@ use crate::canon::{Feed, Move, MoveKind, Pos, SpindleDir};
 
 /// Round to 0.1 µm so that float noise (12.000000000001) does not show.
 fn r(v: f64) -> f64 {
-    let x = (v * 1e4).round() / 1e4;
+    let x = crate::interp::gcode::round(v * 1e4) / 1e4;
     if x == 0.0 {
         0.0
     } else {
@@ -53,33 +53,24 @@ impl<'a> Obj<'a> {
     }
 }
 
+/// `num(out, r(v))` in one step: the value rounded to 0.0001 as a scaled integer. The text
+/// is the same: below 1e15 the decimal `int.frac` is the shortest form of `r(v)`.
+fn num_r(out: &mut String, v: f64) {
+    let scaled = crate::interp::gcode::round(v * 1e4);
+    if scaled.is_finite() && scaled.abs() < 1e15 {
+        scaled_num(out, scaled as i64);
+    } else {
+        num(out, r(v));
+    }
+}
+
 fn num(out: &mut String, v: f64) {
     use std::fmt::Write;
     // Values are rounded to 0.0001 by `r`: print them as a scaled integer, which gives the
     // same text as the shortest round-trip form (`20.05`, `54.0`, `-0.025`) much faster.
     let scaled = v * 1e4;
-    if v.is_finite() && scaled.abs() < 1e15 && scaled == scaled.round() {
-        let n = scaled as i64;
-        let (int, frac) = ((n / 10_000).unsigned_abs(), (n % 10_000).unsigned_abs());
-        if n < 0 {
-            out.push('-');
-        }
-        uint(out, int);
-        out.push('.');
-        if frac == 0 {
-            out.push('0');
-        } else {
-            let mut digits = [b'0'; 4];
-            let mut f = frac;
-            for d in digits.iter_mut().rev() {
-                *d = b'0' + (f % 10) as u8;
-                f /= 10;
-            }
-            let len = 4 - digits.iter().rev().take_while(|d| **d == b'0').count();
-            for &d in &digits[..len] {
-                out.push(d as char);
-            }
-        }
+    if v.is_finite() && scaled.abs() < 1e15 && scaled == crate::interp::gcode::round(scaled) {
+        scaled_num(out, scaled as i64);
         return;
     }
     if v.is_finite() {
@@ -87,6 +78,49 @@ fn num(out: &mut String, v: f64) {
         let _ = write!(out, "{v:?}");
     } else {
         out.push_str("null");
+    }
+}
+
+/// `n` / 10⁴ as a decimal with at least one fractional digit (`20.05`, `54.0`, `-0.025`).
+fn scaled_num(out: &mut String, n: i64) {
+    {
+        let (int, frac) = ((n / 10_000).unsigned_abs(), (n % 10_000).unsigned_abs());
+        // Built right to left in a stack buffer, pushed once.
+        let mut buf = [0u8; 32];
+        let mut i = buf.len();
+        if frac == 0 {
+            i -= 1;
+            buf[i] = b'0';
+        } else {
+            let mut f = frac;
+            let mut trailing = true;
+            for _ in 0..4 {
+                let d = (f % 10) as u8;
+                f /= 10;
+                if trailing && d == 0 {
+                    continue;
+                }
+                trailing = false;
+                i -= 1;
+                buf[i] = b'0' + d;
+            }
+        }
+        i -= 1;
+        buf[i] = b'.';
+        let mut k = int;
+        loop {
+            i -= 1;
+            buf[i] = b'0' + (k % 10) as u8;
+            k /= 10;
+            if k == 0 {
+                break;
+            }
+        }
+        if n < 0 {
+            i -= 1;
+            buf[i] = b'-';
+        }
+        out.push_str(std::str::from_utf8(&buf[i..]).unwrap_or("0"));
     }
 }
 
@@ -102,9 +136,26 @@ fn uint(out: &mut String, mut n: u64) {
             break;
         }
     }
-    for &d in &buf[i..] {
-        out.push(d as char);
+    out.push_str(std::str::from_utf8(&buf[i..]).unwrap_or("0"));
+}
+
+/// [`json_str`] of a move's file name: every move of a program carries the same `Arc`, so
+/// the last one found to need no escaping is kept (holding it keeps its address unique).
+fn json_file(out: &mut String, f: &std::sync::Arc<str>) {
+    thread_local! {
+        static PLAIN: std::cell::RefCell<Option<std::sync::Arc<str>>> = const { std::cell::RefCell::new(None) };
     }
+    let known = PLAIN.with(|c| c.borrow().as_ref().is_some_and(|p| std::sync::Arc::ptr_eq(p, f)));
+    if known {
+        out.push('"');
+        out.push_str(f);
+        out.push('"');
+        return;
+    }
+    if !f.bytes().any(|b| b == b'"' || b == b'\\' || b < 0x20) {
+        PLAIN.with(|c| *c.borrow_mut() = Some(f.clone()));
+    }
+    json_str(out, f);
 }
 
 fn json_str(out: &mut String, s: &str) {
@@ -189,6 +240,39 @@ pub fn move_to_json(m: &Move) -> String {
 
 /// [`move_to_json`] appended to `out`.
 pub fn write_json(out: &mut String, m: &Move) {
+    // Straight lines without Y/C or a cycle tag (nearly every line of a CAM program): keys
+    // written in their sorted order directly.
+    if let (MoveKind::Rapid { end } | MoveKind::Feed { end, .. }, None) = (&m.kind, &m.tag) {
+        if end.y == 0.0 && m.work_offset.y == 0.0 && end.c == 0.0 && m.work_offset.c == 0.0 {
+            out.push('{');
+            match &m.kind {
+                MoveKind::Feed { feed: Feed::PerMin(v), .. } => {
+                    out.push_str("\"feed\":");
+                    num_r(out, *v);
+                    out.push(',');
+                }
+                MoveKind::Feed { feed: Feed::PerRev(v), .. } => {
+                    out.push_str("\"feed_per_rev\":");
+                    num_r(out, *v);
+                    out.push(',');
+                }
+                _ => {}
+            }
+            out.push_str("\"file\":");
+            json_file(out, &m.src.file);
+            out.push_str(",\"kind\":\"");
+            out.push_str(m.kind.name());
+            out.push_str("\",\"line\":");
+            uint(out, m.src.line as u64);
+            let w = work(m, *end);
+            out.push_str(",\"x\":");
+            num_r(out, w.x * 2.0);
+            out.push_str(",\"z\":");
+            num_r(out, w.z);
+            out.push('}');
+            return;
+        }
+    }
     let mut o = Obj { f: [("", J::Int(0)); 16], n: 0 };
     o.put("file", J::Str(&m.src.file));
     o.put("line", J::Int(m.src.line));

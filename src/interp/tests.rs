@@ -574,3 +574,46 @@ fn m98_runs_after_the_blocks_motion() {
     assert_eq!(static_errs("G04 P100 M98 P2\nM30\nO2\nM99\n")[0].number, 9);
     assert_eq!(static_errs("O1\nM98 P2\nM30\nO2\nG00 X1 M99\n")[0].number, 9);
 }
+
+/// A file is read through a 64 KiB window with seeks for jumps: the same program from a file
+/// and from memory gives the same moves and the same alarm, with lines longer than the
+/// window, CRLF line ends, a last line without a line end, GOTO backwards, WHILE loops,
+/// M99 P and M98 into another file, and jump targets far behind the window.
+#[test]
+fn a_file_streams_like_the_same_text_in_memory() {
+    let dir = std::env::temp_dir().join(format!("cncgw-stream-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(dir.join("O0007.nc"), "O0007\r\nG01 W-0.5\r\nM99 P40\r\n").unwrap();
+    let long_comment = format!("({})", "x".repeat(150_000));
+    let mut text = String::from("G98 G00 X100 Z0\r\nF500\r\n#1=0\r\n");
+    text.push_str("N10 G01 U-1\r\n");
+    text.push_str(&long_comment);
+    text.push_str("\r\n#1=#1+1\r\nIF [#1 LT 3] GOTO 10\r\n");
+    // Enough plain blocks that the loop below jumps back over several windows.
+    for i in 0..8_000 {
+        text.push_str(&format!("G01 X{}.5 Z-{}\r\n", 60 + i % 9, i % 50));
+    }
+    text.push_str("#2=0\r\nWHILE [#2 LT 2] DO1\r\nG01 W-1\r\nM98 P7\r\nN40 #2=#2+1\r\nEND1\r\n");
+    text.push_str(&long_comment);
+    text.push_str("\nG00 X200 Z100\nM30");
+    let main = dir.join("main.nc");
+    std::fs::write(&main, &text).unwrap();
+    let from_file: Vec<Move> = Interpreter::from_file(&main, &cfg()).unwrap().map(|m| m.unwrap()).collect();
+    let in_mem: Vec<Move> = Interpreter::with_program_dir("main.nc", &text, &cfg(), Some(&dir))
+        .unwrap()
+        .map(|m| m.unwrap())
+        .collect();
+    let key = |m: &Move| (m.src.line, m.src.col, m.src.file.ends_with("O0007.nc"), format!("{:?}", m.kind));
+    assert_eq!(from_file.iter().map(key).collect::<Vec<_>>(), in_mem.iter().map(key).collect::<Vec<_>>());
+    assert_eq!(from_file.len(), 1 + 3 + 8_000 + 2 * 2 + 1 + 1, "G00, 3 U-1 moves, 8000 blocks, 2×(W-1, sub W-0.5), G00, M30");
+    let last_feed = from_file.iter().rev().find(|m| matches!(m.kind, K::Rapid { .. })).unwrap();
+    assert_eq!(last_feed.src.line as usize, text.lines().count() - 1);
+    // A run-time alarm late in the file carries the same line and block text.
+    let bad = text.replace("G00 X200 Z100", "#3=1/0");
+    std::fs::write(&main, &bad).unwrap();
+    let a1 = Interpreter::from_file(&main, &cfg()).unwrap().find_map(|m| m.err()).unwrap();
+    let a2 = Interpreter::with_program_dir("main.nc", &bad, &cfg(), Some(&dir)).unwrap().find_map(|m| m.err()).unwrap();
+    assert_eq!((a1.number, a1.pos.as_ref().map(|p| (p.line, p.col)), a1.block.clone()), (a2.number, a2.pos.as_ref().map(|p| (p.line, p.col)), a2.block.clone()));
+    assert_eq!(a1.block.as_deref(), Some("#3=1/0"));
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -26,7 +26,7 @@
 use super::{CErr, G76_VALUE_ALARM};
 use crate::canon::{Feed, Move, MoveKind, Pos, SrcPos};
 use crate::interp::gcode::{self, Decoded};
-use crate::interp::{parse, Interpreter};
+use crate::interp::{parse, Interpreter, Loc};
 use std::sync::Arc;
 
 /// One contour element in machine coordinates.
@@ -38,8 +38,8 @@ pub(super) struct Elem {
 }
 
 impl Interpreter {
-    /// Lines (indices) of N`ns` and N`nf` in the current program.
-    pub(super) fn contour_span(&self, d: &Decoded, name: &str) -> Result<(usize, usize, u32, u32), CErr> {
+    /// Lines of N`ns` and N`nf` in the current program.
+    pub(super) fn contour_span(&self, d: &Decoded, name: &str) -> Result<(Loc, Loc, u32, u32), CErr> {
         let gc = Self::gcol(d);
         let p = d.get('P').ok_or((61, gc, format!("{name}: P(ns), the first block of the finishing contour, is missing")))?;
         let q = d.get('Q').ok_or((61, gc, format!("{name}: Q(nf), the last block of the finishing contour, is missing")))?;
@@ -60,7 +60,7 @@ impl Interpreter {
     /// Run the contour blocks l1..=l2 (`dry`: on a copy of the state, returning the motion
     /// moves; otherwise for real, G70). The first NC block must be G00/G01 (§2.16.7 note 2);
     /// note 3's codes are refused.
-    fn run_contour(&mut self, l1: usize, l2: usize, ns: u32, name: &str, dry: bool) -> Result<(Vec<Move>, bool), CErr> {
+    fn run_contour(&mut self, l1: Loc, l2: Loc, ns: u32, name: &str, dry: bool) -> Result<(Vec<Move>, bool), CErr> {
         let saved = (self.pos, self.st.clone(), self.cyc.clone(), self.ended, self.queue.len());
         // G41/G42 in the contour take effect when G70 runs it, not in a dry run.
         let saved_nrc = self.nrc.clone();
@@ -68,9 +68,11 @@ impl Interpreter {
         let mut first = true;
         let mut first_rapid = false;
         let mut result: Result<(), CErr> = Ok(());
-        for i in l1..=l2 {
-            let text = self.line_text(i).to_string();
-            let at = |m: String| format!("{name}, contour line {} ({}): {m}", i + 1, text.trim());
+        let mut next = l1;
+        while next <= l2 {
+            let (text, after) = self.line_after(next);
+            let i = std::mem::replace(&mut next, after);
+            let at = |m: String| format!("{name}, contour line {} ({}): {m}", i.line + 1, text.trim());
             let b = match parse::parse_line(&text) {
                 Ok(b) => b,
                 Err(e) => {
@@ -119,7 +121,7 @@ impl Interpreter {
                     }
                 }
             }
-            let src = SrcPos::new(file.clone(), i as u32 + 1, b.col);
+            let src = SrcPos::new(file.clone(), i.line + 1, b.col);
             if let Err((n, _, m)) = self.exec(&d, &src) {
                 result = Err((n, None, at(m)));
                 break;
@@ -179,7 +181,7 @@ impl Interpreter {
 
     /// The contour of a G71/G72/G73 second block shifted by `off`: (B', elements after the
     /// ns move, whether the ns move is G00, the ns move itself shifted).
-    pub(super) fn shifted_contour(&mut self, l1: usize, l2: usize, ns: u32, nf: u32, name: &str, gc: Option<u32>) -> Result<(Vec<Move>, bool), CErr> {
+    pub(super) fn shifted_contour(&mut self, l1: Loc, l2: Loc, ns: u32, nf: u32, name: &str, gc: Option<u32>) -> Result<(Vec<Move>, bool), CErr> {
         let (moves, ns_rapid) = self.run_contour(l1, l2, ns, name, true)?;
         if moves.is_empty() {
             return Err((65, gc, format!("{name}: N{ns}–N{nf} make no move")));
@@ -224,7 +226,7 @@ impl Interpreter {
         let feed = self.feed(d.get('F').map(|f| f.col))?;
         let (l1, l2, ns, nf) = self.contour_span(d, name)?;
         // Type I: the ns block moves the infeed axis only.
-        let ns_text = self.line_text(l1).to_string();
+        let ns_text = self.line_text(l1);
         let other: [char; 2] = if facing { ['X', 'U'] } else { ['Z', 'W'] };
         if let Ok(parse::Block { stmt: parse::Stmt::Nc(w), .. }) = parse::parse_line(&ns_text) {
             if w.iter().any(|w| !w.comma && other.contains(&w.letter)) {
@@ -298,9 +300,9 @@ impl Interpreter {
     }
 
     /// The contour is run only by G70: continue after N(nf) when it follows directly.
-    pub(super) fn skip_contour(&mut self, l1: usize, l2: usize) {
+    pub(super) fn skip_contour(&mut self, l1: Loc, l2: Loc) {
         if l1 == self.line {
-            self.line = l2 + 1;
+            self.line = self.line_after(l2).1;
         }
     }
 

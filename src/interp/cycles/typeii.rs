@@ -108,7 +108,7 @@ impl Interpreter {
         (dd, e): (f64, f64),
         (du, dw): (f64, f64),
         feed: Feed,
-        (l1, l2, ns, nf): (usize, usize, u32, u32),
+        (l1, l2, ns, nf): (crate::interp::Loc, crate::interp::Loc, u32, u32),
     ) -> Result<(), CErr> {
         let name = if facing { "G72" } else { "G71" };
         let gc = Self::gcol(d);
