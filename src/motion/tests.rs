@@ -984,6 +984,33 @@ proptest! {
     }
 }
 
+/// Found by `operator_actions_during_g64_chains_respect_limits`: two ZX arcs then a line in
+/// G64; Z exceeded its acceleration by 0.005 % in the cycle that crossed a junction.
+#[test]
+fn g64_arc_arc_line_chain_respects_axis_acceleration() {
+    let l = lim();
+    let start = [60.0, 0.0, -100.0, 0.0];
+    let mut m = Motion::new(l.clone(), start);
+    let mut cur = (start[AX_X], start[AX_Z]);
+    let arcs: [(f64, f64, f64, f64); 2] = [
+        (7.745089048262591, 5.698848737278121, 5.873325701664951, 1706.2782375199995),
+        (-1.498093624610482, 2.6751980848044883, 5.696948537933448, 2001.550879933548),
+    ];
+    for (i, &(dx, dz, ang, f)) in arcs.iter().enumerate() {
+        let (cx, cz) = (cur.0 + dx, cur.1 + dz);
+        let r = dx.hypot(dz);
+        let e = (cx + r * ang.sin(), cz + r * ang.cos());
+        m.push(&mv_g64(i as u32 + 1, arc_zx(e.0, e.1, cx, cz, false, f))).unwrap();
+        cur = e;
+    }
+    m.push(&mv_g64(3, feed(29.37159612284516, -198.92710961056466, 452.73766351187834))).unwrap();
+    let sps = run(&mut m, 1_000_000);
+    assert!(m.is_idle());
+    let last = sps.last().unwrap();
+    assert_eq!((last.pos[AX_X], last.pos[AX_Z]), (29.37159612284516, -198.92710961056466));
+    check_limits(&l, start, &sps).unwrap();
+}
+
 #[test]
 fn single_block_stops_after_every_block_even_in_g64() {
     let l = lim();
