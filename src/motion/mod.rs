@@ -15,7 +15,8 @@
 //!   holds it before the next item starts.
 //! - Look-ahead (G64): a segment pushed without `exact_stop` is linked to the next one when it
 //!   arrives. The junction is crossed within one cycle at a speed limited by the corner angle
-//!   (each axis' velocity jump `v·|Δu_i| ≤ ½·amax_i·dt`), by both segments' speed limits, and
+//!   (each axis' velocity jump `v·|Δu_i| ≤ ½·amax_i·dt`, plus `v²·dt/2r` for each arc at the
+//!   junction: the chord's turn from its tangent), by both segments' speed limits, and
 //!   by the next segment's length (one junction per cycle, so `step` stays O(1)); a backward
 //!   pass in `push` makes sure every later stop can still be braked for. Segments next to a
 //!   blended junction ramp with half the acceleration, the other half is the corner's.
@@ -923,11 +924,30 @@ impl Motion {
         // there, so each axis' speed jumps by v·|Δu_i|; allow half its acceleration for that
         // (the other half is the tangential ramp, see line_seg/arc_seg). One crossing per
         // cycle at most: v ≤ len/dt of the next segment.
+        // The setpoints move along chords, not tangents: the chord of a cycle that ends on (or
+        // starts from) an arc at the junction is turned from the arc's end tangent by up to
+        // half the angle swept in the cycle, `v·dt/2r`. The cycle on the other side of the
+        // junction ramps with the other segment's share (a line has no centripetal half), so
+        // this turn is not covered there: count `v·(v·dt/2r)` per arc in the corner's half,
+        // on that arc's plane axes: `v·|Δu_i| + v²·k_i ≤ c_i`.
+        let mut k = [0.0; 3];
+        for g in [prev.geom, new.geom] {
+            if let Geom::Arc { ia, ib, r0, dr, .. } = g {
+                let r = r0.min(r0 + dr);
+                if r > 0.0 {
+                    k[ia] += dt / (2.0 * r);
+                    k[ib] += dt / (2.0 * r);
+                }
+            }
+        }
         let mut v = prev.vlim.min(new.vlim).min(new.geom.len() / dt);
         for i in 0..3 {
             let du = (new.t0[i] - prev.t1[i]).abs();
-            if du > 1e-12 {
-                v = v.min(0.5 * amax[i] * dt / du);
+            let du = if du > 1e-12 { du } else { 0.0 };
+            if du > 0.0 || k[i] > 0.0 {
+                // The positive root of k·v² + du·v = c, in the form that is stable for k → 0.
+                let c = 0.5 * amax[i] * dt;
+                v = v.min(2.0 * c / (du + (du * du + 4.0 * k[i] * c).sqrt()));
             }
         }
         prev.vj = finite_or_zero(v);
