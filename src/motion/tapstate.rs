@@ -283,9 +283,9 @@ impl TapWatch {
         Err(Alarm::new(
             TAP_ACK_TIMEOUT,
             format!(
-                "rigid tap of line {}: the tap-state file was not written within {:.1} s, so the tap did not start (the tool is at R, {} {:.3}); the disk of the state directory is too slow or failing: check it (free space, errors in the system log) or move --state-dir to a working disk, then start the program again",
+                "rigid tap of line {}: the tap-state file was not written within {} ms, so the tap did not start (the tool is at R, {} {:.3}); the disk of the state directory is too slow or failing: check it (free space, errors in the system log) or move --state-dir to a working disk, then start the program again",
                 e.line,
-                self.ack_timeout.as_secs_f64(),
+                self.ack_timeout.as_millis(),
                 AXIS_CHARS[e.axis.min(2)],
                 e.r
             ),
@@ -591,6 +591,92 @@ mod tests {
         assert!(s.in_hole && s.r_plane == 2.0 && s.rpm == 500.0 && s.override_pct == 120.0, "{s:?}");
         w.on_cycle(2, &at(2.0, 0.0), &at(2.0, 0.0));
         assert!(!slot.load().unwrap().in_hole);
+    }
+
+    /// Motion and the watch, stepped as the cycle loop does (ideal drives: the actual is the
+    /// last set-point); `ack_at`: the cycle at which a simulated writer acknowledges what is
+    /// published. Returns the set-points and the cycle of the gate's answer `Err`, if any.
+    fn gated_hole(ack_at: Option<usize>, timeout: Duration) -> (Vec<crate::motion::Setpoint>, Vec<Option<TapState>>, Option<(usize, Alarm)>) {
+        use crate::motion::{Feedback, Limits, Motion};
+        let mut l = Limits::from_config(&crate::config::MachineConfig::embedded());
+        l.feedback_delay = 1;
+        let start = at(2.0, 0.0);
+        let mut m = Motion::new(l, start);
+        m.gate_taps();
+        let slot = TapSlot::new(None);
+        let mut w = TapWatch::new(slot.clone(), None, &start, None);
+        w.set_ack_timeout(timeout);
+        for t in [tap(5, -20.0, -1.5, 500.0, "G84"), tap(5, 2.0, -1.5, 500.0, "G84")] {
+            m.push(&t).unwrap();
+            w.on_push(&t);
+        }
+        let mut fb = Feedback { pos: m.position(), spindle_rpm: 0.0 };
+        let (mut sps, mut disk) = (Vec::new(), Vec::new());
+        for k in 0..20_000 {
+            if m.is_idle() {
+                break;
+            }
+            let sp = m.step(&fb);
+            fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm };
+            w.on_cycle(sp.line, &sp.pos, &fb.pos);
+            if ack_at.is_some_and(|c| k >= c) {
+                // The simulated writer: everything published so far is on disk.
+                let (seq, st) = slot.load_seq();
+                slot.acknowledge(seq);
+                disk.push(st);
+            } else {
+                disk.push(disk.last().copied().flatten());
+                // A writer that never answers: let the wall-clock timeout run.
+                std::thread::sleep(Duration::from_micros(100));
+            }
+            sps.push(sp);
+            match w.gate(m.tap_waiting()) {
+                Ok(open) => m.open_tap_gate(open),
+                Err(a) => return (sps, disk, Some((k, a))),
+            }
+        }
+        (sps, disk, None)
+    }
+
+    #[test]
+    fn a_hole_waits_at_r_until_its_entry_is_on_disk() {
+        let (free, _, _) = gated_hole(Some(0), Duration::from_secs(60));
+        let (slow, disk, err) = gated_hole(Some(400), Duration::from_secs(60));
+        assert!(err.is_none());
+        let leaves = |sps: &[crate::motion::Setpoint]| sps.iter().position(|s| s.pos[2] < 2.0).unwrap();
+        let (k_free, k_slow) = (leaves(&free), leaves(&slow));
+        eprintln!("the first stroke leaves R at cycle {k_free} with an immediate acknowledgement, {k_slow} with one at cycle 400");
+        // It waited for the acknowledgement (not before), and no longer than a cycle or two.
+        assert!(k_free < 400 && (401..=403).contains(&k_slow), "{k_free} {k_slow}");
+        // At R meanwhile, spindle at rest and in position.
+        let th = slow[k_slow - 1].pos[3];
+        for s in &slow[k_free..k_slow] {
+            assert!(s.pos[2] == 2.0 && s.pos[3] == th && s.spindle_rpm == 0.0, "{s:?}");
+        }
+        // Whenever the tool is past R the disk says "in the hole", with the hole and the
+        // spindle angle at R (the thread's reference).
+        for (s, d) in slow.iter().zip(&disk) {
+            if s.pos[2] < 2.0 {
+                let d = d.unwrap_or_else(|| panic!("nothing on disk at z {}", s.pos[2]));
+                assert!(d.in_hole && d.r_plane == 2.0 && d.lead == -1.5 && d.axis == 'Z' && d.direction_in == -1.0, "{d:?}");
+            }
+        }
+        let entry = disk[k_slow - 1].unwrap();
+        assert!(entry.position == 2.0 && entry.spindle_deg == th, "{entry:?}");
+        // The tap itself is the same as without the wait.
+        assert_eq!(free.len() + (k_slow - k_free), slow.len());
+        assert!(slow.last().unwrap().pos[2] == 2.0 && !disk.last().unwrap().unwrap().in_hole);
+    }
+
+    #[test]
+    fn no_acknowledgement_alarms_and_the_tool_stays_at_r() {
+        let (sps, disk, err) = gated_hole(None, Duration::from_millis(30));
+        let (k, a) = err.expect("an alarm");
+        assert_eq!(a.number, TAP_ACK_TIMEOUT, "{a}");
+        assert!(a.message.contains("disk") && a.message.contains("--state-dir") && a.message.contains("line 5"), "{a}");
+        assert!(sps.iter().all(|s| s.pos[2] == 2.0), "the tool never left R");
+        assert!(disk.iter().all(|d| d.is_none()));
+        eprintln!("alarm after {k} cycles: {a}");
     }
 
     #[test]
