@@ -486,3 +486,68 @@ fn the_cycle_side_publishes_without_allocating_and_the_writer_follows() {
     assert_eq!(stats.failures, 0);
     eprintln!("{} writes for one 2 × 2 s hole", stats.writes);
 }
+
+/// The entry gate with the real writer and file: at the first set-point past R the file
+/// already says "in the hole" (what a SIGKILL at that instant leaves: the write was fsynced),
+/// and the cycle side, gate included, does not allocate.
+#[test]
+fn the_first_stroke_leaves_r_only_with_the_entry_on_disk() {
+    use cncgw::canon::{CycleTag, Move, MoveKind, Pos, SrcPos};
+    use cncgw::motion::tapstate::{TapPersister, TapSlot, TapWatch};
+    use cncgw::motion::{Feedback, Limits, Motion};
+    let dir = tmp("gate");
+    let _ = std::fs::remove_dir_all(&dir);
+    let file = TapStateFile::new(&dir, "m");
+    let slot = TapSlot::new(None);
+    let w = TapPersister::spawn(TapStateFile { path: file.path.clone() }, slot.clone(), Duration::from_millis(20), None).unwrap();
+    let start = [0.0, 0.0, 2.0, 0.0];
+    let mut watch = TapWatch::new(slot, Some(w.thread()), &start, None);
+    let mut l = Limits::from_config(&cncgw::config::MachineConfig::embedded());
+    l.feedback_delay = 1;
+    let mut m = Motion::new(l, start);
+    m.gate_taps();
+    let mv = |z: f64| Move {
+        src: SrcPos::new("t.nc".into(), 5, 1),
+        kind: MoveKind::Tap { end: Pos::xz(0.0, z), lead: -1.5, rpm: 500.0, spindle: 1 },
+        exact_stop: true,
+        work_offset: Pos::ZERO,
+        tag: Some(CycleTag { cycle: "G84".into(), step: 3 }),
+    };
+    let moves = [mv(-20.0), mv(2.0)];
+    for t in &moves {
+        m.push(t).unwrap();
+        watch.on_push(t);
+    }
+    let mut fb = Feedback { pos: m.position(), spindle_rpm: 0.0 };
+    let mut on_disk_at_entry = None;
+    let mut cycles_at_r = 0;
+    let t0 = Instant::now();
+    ARMED.with(|a| a.set(true));
+    while !m.is_idle() && t0.elapsed() < Duration::from_secs(20) {
+        let sp = m.step(&fb);
+        fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm };
+        watch.on_cycle(sp.line, &sp.pos, &fb.pos);
+        if sp.pos[2] < 2.0 && on_disk_at_entry.is_none() {
+            ARMED.with(|a| a.set(false));
+            on_disk_at_entry = Some(file.load());
+            ARMED.with(|a| a.set(true));
+        }
+        cycles_at_r += m.tap_waiting().is_some() as u32;
+        let open = watch.gate(m.tap_waiting()).expect("the writer answers within the timeout");
+        m.open_tap_gate(open);
+        // A 2 ms cycle.
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    ARMED.with(|a| a.set(false));
+    assert_eq!(ALLOCS.load(Ordering::Relaxed), 0, "the cycle side allocated");
+    let st = on_disk_at_entry.expect("the tool entered the hole").unwrap().expect("a state on disk");
+    assert!(st.in_hole && st.r_plane == 2.0 && st.lead == -1.5 && st.axis == 'Z' && st.direction_in == -1.0 && st.line == 5, "{st:?}");
+    assert!(m.is_idle() && (m.position()[2] - 2.0).abs() < 1e-9);
+    let stats = w.finish();
+    assert_eq!(stats.failures, 0);
+    assert!(!file.load().unwrap().unwrap().in_hole);
+    eprintln!(
+        "the first stroke waited {cycles_at_r} cycles at R ({:.1} ms) for the entry state to be on disk",
+        watch.max_ack_wait().as_secs_f64() * 1e3
+    );
+}

@@ -307,6 +307,10 @@ impl<'a> CycleLoop<'a> {
         guard.set_start(&start);
         let mut overruns_in_a_row = 0u32;
         let mut motion = Motion::new(limits, start);
+        // With a tap-state file a hole's first stroke waits at R until its entry is on disk.
+        if self.tap.is_some() {
+            motion.gate_taps();
+        }
         // One drive's fault stops the others under control (a tap's pair together) where the
         // bus can isolate it; otherwise every drive is quick-stopped.
         let isolate = self.drives.isolate_faults(true);
@@ -509,6 +513,13 @@ impl<'a> CycleLoop<'a> {
             }
             if let Some(w) = self.tap.as_mut() {
                 w.on_cycle(sp.line, &sp.pos, &fb.pos);
+                match w.gate(motion.tap_waiting()) {
+                    Ok(open) => motion.open_tap_gate(open),
+                    Err(a) => {
+                        self.halt(&mut motion, spindle_rpm);
+                        return Err(a);
+                    }
+                }
             }
             if let Some(t) = self.trace.as_mut() {
                 for (d, ax) in map.iter().enumerate().take(MAX_TRACE_AXES) {

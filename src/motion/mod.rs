@@ -595,6 +595,24 @@ pub struct Motion {
     /// S-curve: path acceleration at the end of the last cycle of a `Run::Move`, mm/s² (its
     /// speed is the `v` there). 0 with the trapezoid.
     path_a: f64,
+    /// Rigid-tap entry gate (`tapstate`): None = a hole's first stroke starts at once;
+    /// Some(open) = it starts only once opened (the "in hole" state is on disk).
+    tap_gate: Option<bool>,
+    /// A hole's first stroke is ready at R and waits for the gate.
+    tap_wait: Option<TapEntry>,
+}
+
+/// A rigid tap's first stroke of a hole, ready at its R point (see [`Motion::tap_waiting`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TapEntry {
+    pub line: u32,
+    /// Tapping axis (`AX_X`, `AX_Y`, `AX_Z`).
+    pub axis: usize,
+    /// The R point on it (where the stroke starts) and the direction into the hole (±1).
+    pub r: f64,
+    pub dir: f64,
+    /// The spindle angle at R, degrees (the thread's reference for the hole).
+    pub spindle_deg: f64,
 }
 
 fn xyz(p: &Pos) -> [f64; 3] {
@@ -641,6 +659,8 @@ impl Motion {
             follow: None,
             tool: polygon::ToolSync::none(),
             path_a: 0.0,
+            tap_gate: None,
+            tap_wait: None,
             sp_dir: 0.0,
             sp_rpm: 0.0,
             sp_css: None,
@@ -1788,10 +1808,17 @@ impl Motion {
                     || ((fb.pos[a] - sent[a]).abs() <= INPOS_MM
                         && ((fb.pos[AX_S] - sent[AX_S]) * seg.lead / 360.0).abs() <= INPOS_MM);
                 self.inpos_wait = if self.sp_cur == 0.0 { self.inpos_wait.saturating_add(1) } else { 0 };
+                self.tap_wait = None;
                 if self.stopping {
                     self.run = Run::None;
+                } else if self.sp_cur == 0.0 && in_pos && !self.in_hole && !seg.retract && self.tap_gate == Some(false) {
+                    // Held at R, spindle at rest, until the "in hole" state is durable.
+                    let dir = (seg.p1 - seg.p0).signum();
+                    self.tap_wait = Some(TapEntry { line: self.line, axis: a, r: seg.p0, dir, spindle_deg: self.pos[AX_S] });
                 } else if self.sp_cur == 0.0 && in_pos {
                     self.inpos_wait = 0;
+                    // The gate lets one hole in; the next waits again.
+                    self.tap_gate = self.tap_gate.map(|_| false);
                     // Keep the previous stroke's reference if the spindle is still exactly where
                     // that relation puts it (same hole, nothing turned it since).
                     let r = match self.tap_ref {
@@ -2143,6 +2170,25 @@ impl Motion {
     pub fn stop(&mut self) {
         self.stopping = true;
         self.sp_dir = 0.0;
+    }
+
+    /// Hold every rigid tap's first stroke of a hole at R until [`Motion::open_tap_gate`]
+    /// (the cycle loop opens it once the tap-state writer has the entry on disk).
+    pub fn gate_taps(&mut self) {
+        self.tap_gate = Some(false);
+    }
+
+    /// Open (or keep closed) the gate of [`Motion::gate_taps`]; no effect without it. Opening
+    /// lets the waiting hole's first stroke start at the next step.
+    pub fn open_tap_gate(&mut self, open: bool) {
+        if self.tap_gate.is_some() {
+            self.tap_gate = Some(open);
+        }
+    }
+
+    /// A hole's first stroke waiting at R for the gate (this step).
+    pub fn tap_waiting(&self) -> Option<TapEntry> {
+        self.tap_wait.filter(|_| matches!(self.run, Run::Tap { theta0: None, .. }))
     }
 
     /// Feed hold: decelerate along the path and wait (a dwell stops counting); resume with

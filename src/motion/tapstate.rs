@@ -19,18 +19,24 @@
 //! "In the hole": the tool's commanded position is past the R plane into the hole (by any
 //! amount), or its actual position is by more than [`IN_HOLE_MM`]. The state is written at
 //! the entry, every `period` while the tool moves in the hole, and "not in a hole" once both
-//! are back at R. The state reaches the disk one write after the entry: on an SSD about a
-//! millisecond, in which the tap, starting from rest on its ramp, goes a few µm deep; but a
-//! write is two fsyncs, and on this project's loaded build VM they took 22 ms median and
-//! ~1 s at p90. Closing that window fully needs motion to hold a hole's first stroke until
-//! the writer acknowledges the entry state (not done).
+//! are back at R.
+//!
+//! The entry is on disk before the tool leaves R: motion holds a hole's first stroke at R
+//! (spindle at rest, like a dwell; [`crate::motion::Motion::gate_taps`]) while
+//! [`TapWatch::gate`] publishes the "in hole" state with the hole's R, lead, axis and the
+//! spindle angle at R, and opens it once the writer acknowledges that state durable
+//! ([`TapSlot::acked`]: the slot sequence of the last state the writer has on disk). A write
+//! is two fsyncs: on an SSD about a millisecond; on this project's loaded build VM 22 ms
+//! median and ~1 s at p90. Past [`ACK_TIMEOUT`] without the acknowledgement: alarm
+//! [`TAP_ACK_TIMEOUT`], no stroke starts (a Fanuc has no such state file; a controller that
+//! cannot record where the tool is must not put it into the hole).
 //!
 //! At start-up a state that says "in the hole" refuses any program whose first motion is not
 //! `G30 P99` (alarm [`TAP_IN_HOLE`]): a Fanuc 0i-TF likewise raises an alarm and asks for
 //! the rigid-tap return before anything else moves.
 
 use crate::canon::{Move, MoveKind};
-use crate::motion::{AX_S, N_AXES};
+use crate::motion::{TapEntry, AX_S, N_AXES};
 use crate::persist::{TapState, TapStateFile};
 use crate::Alarm;
 use std::sync::atomic::{fence, AtomicBool, AtomicU64, Ordering};
@@ -40,6 +46,13 @@ use std::time::{Duration, Instant};
 /// Our alarm: the tool is in a tapped hole (stored state) and the program does not start with
 /// `G30 P99`.
 pub const TAP_IN_HOLE: u32 = 2410;
+
+/// Our alarm: the tap-state writer did not acknowledge a hole's entry state within
+/// [`ACK_TIMEOUT`]; the tap did not start.
+pub const TAP_ACK_TIMEOUT: u32 = 2411;
+
+/// How long a hole's first stroke waits at R for the entry state to be on disk.
+pub const ACK_TIMEOUT: Duration = Duration::from_secs(2);
 
 /// The actual position counts as inside the hole past this depth (mm): a drive at rest on R
 /// jitters by a count or two.
@@ -55,13 +68,25 @@ const WORDS: usize = 8;
 pub struct TapSlot {
     seq: AtomicU64,
     w: [AtomicU64; WORDS],
+    /// The sequence (of `store`) of the last state the writer has on disk.
+    ack: AtomicU64,
 }
 
 impl TapSlot {
     pub fn new(init: Option<TapState>) -> Arc<TapSlot> {
-        let s = TapSlot { seq: AtomicU64::new(0), w: Default::default() };
+        let s = TapSlot { seq: AtomicU64::new(0), w: Default::default(), ack: AtomicU64::new(0) };
         s.store(&init);
         Arc::new(s)
+    }
+
+    /// The sequence of the last state the writer acknowledged as on disk (0: none).
+    pub fn acked(&self) -> u64 {
+        self.ack.load(Ordering::Acquire)
+    }
+
+    /// The writer: the state of sequence `seq` (from `load_seq`) is on disk.
+    pub fn acknowledge(&self, seq: u64) {
+        self.ack.fetch_max(seq, Ordering::AcqRel);
     }
 
     fn encode(st: &Option<TapState>) -> [u64; WORDS] {
@@ -99,8 +124,9 @@ impl TapSlot {
         })
     }
 
-    /// Publish `st`. One writer at a time (the cycle thread).
-    pub fn store(&self, st: &Option<TapState>) {
+    /// Publish `st`; returns its sequence (see `acked`). One writer at a time (the cycle
+    /// thread).
+    pub fn store(&self, st: &Option<TapState>) -> u64 {
         let v = Self::encode(st);
         let s = self.seq.load(Ordering::Relaxed);
         self.seq.store(s.wrapping_add(1), Ordering::Relaxed);
@@ -109,10 +135,16 @@ impl TapSlot {
             a.store(x, Ordering::Relaxed);
         }
         self.seq.store(s.wrapping_add(2), Ordering::Release);
+        s.wrapping_add(2)
     }
 
     /// The last published state (retries while a write is in progress).
     pub fn load(&self) -> Option<TapState> {
+        self.load_seq().1
+    }
+
+    /// The last published state and its sequence.
+    pub fn load_seq(&self) -> (u64, Option<TapState>) {
         loop {
             let s1 = self.seq.load(Ordering::Acquire);
             if s1 & 1 == 1 {
@@ -125,7 +157,7 @@ impl TapSlot {
             }
             fence(Ordering::Acquire);
             if self.seq.load(Ordering::Relaxed) == s1 {
-                return Self::decode(&v);
+                return (s1, Self::decode(&v));
             }
         }
     }
@@ -159,6 +191,11 @@ pub struct TapWatch {
     last_end: [f64; 3],
     /// The state loaded at start (an interrupted tap that `G30 P99` returns from).
     seed: Option<TapState>,
+    /// The entry published for the hole waiting at R: its sequence, when, the state before.
+    pending: Option<(u64, Instant, Option<TapState>)>,
+    ack_timeout: Duration,
+    /// The longest wait at R so far for an acknowledgement.
+    max_wait: Duration,
 }
 
 const AXIS_CHARS: [char; 3] = ['X', 'Y', 'Z'];
@@ -176,7 +213,83 @@ impl TapWatch {
             inside: false,
             last_end: [start[0], start[1], start[2]],
             seed,
+            pending: None,
+            ack_timeout: ACK_TIMEOUT,
+            max_wait: Duration::ZERO,
         }
+    }
+
+    /// Replace [`ACK_TIMEOUT`] (tests).
+    pub fn set_ack_timeout(&mut self, t: Duration) {
+        self.ack_timeout = t;
+    }
+
+    /// The longest a hole's first stroke waited at R for the writer so far.
+    pub fn max_ack_wait(&self) -> Duration {
+        self.max_wait
+    }
+
+    /// Every cycle after `on_cycle`, with motion's hole waiting at R (`Motion::tap_waiting`):
+    /// publish its "in hole" entry state once, wake the writer, and say whether the stroke may
+    /// start (`Ok(true)`: the writer has it on disk). `Err`: no acknowledgement within the
+    /// timeout (the published entry is withdrawn; the caller stops). No allocation, no
+    /// blocking (but for the alarm).
+    pub fn gate(&mut self, waiting: Option<TapEntry>) -> Result<bool, Alarm> {
+        let Some(e) = waiting else {
+            self.pending = None;
+            return Ok(false);
+        };
+        let (seq, t0, _) = match self.pending {
+            Some(p) => p,
+            None => {
+                let before = self.slot.load();
+                let h = (self.cursor < self.pushed).then(|| self.holes[(self.cursor % HOLES as u64) as usize]);
+                let st = TapState {
+                    in_hole: true,
+                    axis: AXIS_CHARS[e.axis.min(2)],
+                    r_plane: e.r,
+                    direction_in: e.dir,
+                    lead: h.map_or(0.0, |h| h.lead),
+                    rpm: h.map_or(0.0, |h| h.rpm),
+                    override_pct: h.map_or(100.0, |h| h.ovr),
+                    position: e.r,
+                    spindle_deg: e.spindle_deg,
+                    line: e.line,
+                };
+                let seq = self.slot.store(&Some(st));
+                if let Some(w) = &self.wake {
+                    w.unpark();
+                }
+                let p = (seq, Instant::now(), before);
+                self.pending = Some(p);
+                p
+            }
+        };
+        let waited = t0.elapsed();
+        if self.slot.acked() >= seq {
+            self.max_wait = self.max_wait.max(waited);
+            return Ok(true);
+        }
+        if waited < self.ack_timeout {
+            return Ok(false);
+        }
+        // The tool stays at R: withdraw the entry (a late write then says "not in a hole").
+        if let Some((_, _, before)) = self.pending.take() {
+            self.slot.store(&before);
+            if let Some(w) = &self.wake {
+                w.unpark();
+            }
+        }
+        Err(Alarm::new(
+            TAP_ACK_TIMEOUT,
+            format!(
+                "rigid tap of line {}: the tap-state file was not written within {} ms, so the tap did not start (the tool is at R, {} {:.3}); the disk of the state directory is too slow or failing: check it (free space, errors in the system log) or move --state-dir to a working disk, then start the program again",
+                e.line,
+                self.ack_timeout.as_millis(),
+                AXIS_CHARS[e.axis.min(2)],
+                e.r
+            ),
+        ))
     }
 
     fn push_hole(&mut self, h: Hole) {
@@ -299,13 +412,17 @@ impl TapPersister {
             let mut last_t = Instant::now();
             loop {
                 let stopping = s2.load(Ordering::Acquire);
-                let now = slot.load();
+                let (seq, now) = slot.load_seq();
                 // Entry and exit at once; progress in the hole at most every period.
                 let due = match (now, last) {
                     (Some(n), Some(l)) => n != l && (n.in_hole != l.in_hole || last_t.elapsed() >= period || stopping),
                     (Some(_), None) => true,
                     (None, _) => false,
                 };
+                if !due && (now.is_none() || now == last) {
+                    // Already on disk (or nothing to keep).
+                    slot.acknowledge(seq);
+                }
                 if due {
                     if let Some(n) = now {
                         match file.save(&n) {
@@ -313,6 +430,7 @@ impl TapPersister {
                                 stats.writes += 1;
                                 last = Some(n);
                                 last_t = Instant::now();
+                                slot.acknowledge(seq);
                             }
                             Err(a) => {
                                 if stats.failures == 0 {
@@ -473,6 +591,92 @@ mod tests {
         assert!(s.in_hole && s.r_plane == 2.0 && s.rpm == 500.0 && s.override_pct == 120.0, "{s:?}");
         w.on_cycle(2, &at(2.0, 0.0), &at(2.0, 0.0));
         assert!(!slot.load().unwrap().in_hole);
+    }
+
+    /// Motion and the watch, stepped as the cycle loop does (ideal drives: the actual is the
+    /// last set-point); `ack_at`: the cycle at which a simulated writer acknowledges what is
+    /// published. Returns the set-points and the cycle of the gate's answer `Err`, if any.
+    fn gated_hole(ack_at: Option<usize>, timeout: Duration) -> (Vec<crate::motion::Setpoint>, Vec<Option<TapState>>, Option<(usize, Alarm)>) {
+        use crate::motion::{Feedback, Limits, Motion};
+        let mut l = Limits::from_config(&crate::config::MachineConfig::embedded());
+        l.feedback_delay = 1;
+        let start = at(2.0, 0.0);
+        let mut m = Motion::new(l, start);
+        m.gate_taps();
+        let slot = TapSlot::new(None);
+        let mut w = TapWatch::new(slot.clone(), None, &start, None);
+        w.set_ack_timeout(timeout);
+        for t in [tap(5, -20.0, -1.5, 500.0, "G84"), tap(5, 2.0, -1.5, 500.0, "G84")] {
+            m.push(&t).unwrap();
+            w.on_push(&t);
+        }
+        let mut fb = Feedback { pos: m.position(), spindle_rpm: 0.0 };
+        let (mut sps, mut disk) = (Vec::new(), Vec::new());
+        for k in 0..20_000 {
+            if m.is_idle() {
+                break;
+            }
+            let sp = m.step(&fb);
+            fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm };
+            w.on_cycle(sp.line, &sp.pos, &fb.pos);
+            if ack_at.is_some_and(|c| k >= c) {
+                // The simulated writer: everything published so far is on disk.
+                let (seq, st) = slot.load_seq();
+                slot.acknowledge(seq);
+                disk.push(st);
+            } else {
+                disk.push(disk.last().copied().flatten());
+                // A writer that never answers: let the wall-clock timeout run.
+                std::thread::sleep(Duration::from_micros(100));
+            }
+            sps.push(sp);
+            match w.gate(m.tap_waiting()) {
+                Ok(open) => m.open_tap_gate(open),
+                Err(a) => return (sps, disk, Some((k, a))),
+            }
+        }
+        (sps, disk, None)
+    }
+
+    #[test]
+    fn a_hole_waits_at_r_until_its_entry_is_on_disk() {
+        let (free, _, _) = gated_hole(Some(0), Duration::from_secs(60));
+        let (slow, disk, err) = gated_hole(Some(400), Duration::from_secs(60));
+        assert!(err.is_none());
+        let leaves = |sps: &[crate::motion::Setpoint]| sps.iter().position(|s| s.pos[2] < 2.0).unwrap();
+        let (k_free, k_slow) = (leaves(&free), leaves(&slow));
+        eprintln!("the first stroke leaves R at cycle {k_free} with an immediate acknowledgement, {k_slow} with one at cycle 400");
+        // It waited for the acknowledgement (not before), and no longer than a cycle or two.
+        assert!(k_free < 400 && (401..=403).contains(&k_slow), "{k_free} {k_slow}");
+        // At R meanwhile, spindle at rest and in position.
+        let th = slow[k_slow - 1].pos[3];
+        for s in &slow[k_free..k_slow] {
+            assert!(s.pos[2] == 2.0 && s.pos[3] == th && s.spindle_rpm == 0.0, "{s:?}");
+        }
+        // Whenever the tool is past R the disk says "in the hole", with the hole and the
+        // spindle angle at R (the thread's reference).
+        for (s, d) in slow.iter().zip(&disk) {
+            if s.pos[2] < 2.0 {
+                let d = d.unwrap_or_else(|| panic!("nothing on disk at z {}", s.pos[2]));
+                assert!(d.in_hole && d.r_plane == 2.0 && d.lead == -1.5 && d.axis == 'Z' && d.direction_in == -1.0, "{d:?}");
+            }
+        }
+        let entry = disk[k_slow - 1].unwrap();
+        assert!(entry.position == 2.0 && entry.spindle_deg == th, "{entry:?}");
+        // The tap itself is the same as without the wait.
+        assert_eq!(free.len() + (k_slow - k_free), slow.len());
+        assert!(slow.last().unwrap().pos[2] == 2.0 && !disk.last().unwrap().unwrap().in_hole);
+    }
+
+    #[test]
+    fn no_acknowledgement_alarms_and_the_tool_stays_at_r() {
+        let (sps, disk, err) = gated_hole(None, Duration::from_millis(30));
+        let (k, a) = err.expect("an alarm");
+        assert_eq!(a.number, TAP_ACK_TIMEOUT, "{a}");
+        assert!(a.message.contains("disk") && a.message.contains("--state-dir") && a.message.contains("line 5"), "{a}");
+        assert!(sps.iter().all(|s| s.pos[2] == 2.0), "the tool never left R");
+        assert!(disk.iter().all(|d| d.is_none()));
+        eprintln!("alarm after {k} cycles: {a}");
     }
 
     #[test]
