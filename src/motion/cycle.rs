@@ -513,7 +513,15 @@ impl<'a> CycleLoop<'a> {
             }
             if let Some(w) = self.tap.as_mut() {
                 w.on_cycle(sp.line, &sp.pos, &fb.pos);
-                match w.gate(motion.tap_waiting()) {
+                let mut gate = w.gate(motion.tap_waiting());
+                // Under simulated time the wait for the disk is taken in wall time, outside
+                // the simulated clock (as the interpreter's channel is), so that every run is
+                // identical cycle for cycle.
+                while simulated && matches!(gate, Ok(false)) && motion.tap_waiting().is_some() {
+                    std::thread::sleep(std::time::Duration::from_micros(200));
+                    gate = w.gate(motion.tap_waiting());
+                }
+                match gate {
                     Ok(open) => motion.open_tap_gate(open),
                     Err(a) => {
                         self.halt(&mut motion, spindle_rpm);
