@@ -176,6 +176,20 @@ pub enum MoveKind {
     Stop { optional: bool },
     /// M02 or M30.
     End { code: u16 },
+    /// G22 (`Some`: stored stroke check 2 on with this area) or G23 (`None`: off), in program
+    /// order, so that whoever checks set-points switches it when execution reaches the block.
+    /// A G22 whose corners are in the wrong order disables the check (§2.10 note 8): `None`.
+    StrokeCheck { area: Option<StrokeArea> },
+}
+
+/// The G22 area: a box in machine coordinates (X a radius; Y ±∞ when not programmed or on a
+/// machine without Y), `lo` the negative corner (I J K), `hi` the positive one (X Y Z).
+/// `outside`: No.1002#0 = 1, the outside of the box is forbidden; else the inside.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct StrokeArea {
+    pub lo: Pos,
+    pub hi: Pos,
+    pub outside: bool,
 }
 
 /// One canonical move, with where it came from.
@@ -223,6 +237,7 @@ impl MoveKind {
             MoveKind::Aux { .. } => "aux",
             MoveKind::Stop { .. } => "stop",
             MoveKind::End { .. } => "end",
+            MoveKind::StrokeCheck { .. } => "stroke_check",
         }
     }
 }

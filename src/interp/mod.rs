@@ -1386,7 +1386,7 @@ impl Interpreter {
             self.nrc.set_mode(side, r, tip, self.st.plane, at).map_err(|(n, m)| (n, gcol(g), m))?;
         }
         self.special_modes(d, src)?;
-        if self.stroke_block(d)? {
+        if self.stroke_block(d, src)? {
             return Ok(());
         }
         let one_shot = d.group(0);

@@ -195,18 +195,21 @@ fn key_rank(k: &str) -> u8 {
         "feed" => 8,
         "feed_per_rev" => 9,
         "file" => 10,
-        "kind" => 11,
-        "lead" => 12,
-        "line" => 13,
-        "max_rpm" => 14,
-        "phase" => 15,
-        "rpm" => 16,
-        "start_angle" => 17,
-        "step" => 18,
-        "tool_rpm" => 19,
-        "x" => 20,
-        "y" => 21,
-        "z" => 22,
+        "forbid" => 11,
+        "hi" => 12,
+        "kind" => 13,
+        "lead" => 14,
+        "line" => 15,
+        "lo" => 16,
+        "max_rpm" => 17,
+        "phase" => 18,
+        "rpm" => 19,
+        "start_angle" => 20,
+        "step" => 21,
+        "tool_rpm" => 22,
+        "x" => 23,
+        "y" => 24,
+        "z" => 25,
         _ => u8::MAX,
     }
 }
@@ -340,6 +343,15 @@ pub fn write_json(out: &mut String, m: &Move) {
             }
             None => o.put("code", J::Str("G50.2")),
         },
+        // The G22 area in machine coordinates (X diameter), not work coordinates.
+        MoveKind::StrokeCheck { area } => match area {
+            Some(a) => {
+                o.put("forbid", J::Str(if a.outside { "outside" } else { "inside" }));
+                o.put("lo", J::Xz(r(a.lo.x * 2.0), r(a.lo.z)));
+                o.put("hi", J::Xz(r(a.hi.x * 2.0), r(a.hi.z)));
+            }
+            None => o.put("forbid", J::Str("none")),
+        },
     }
     if let Some(t) = &m.tag {
         o.put("cycle", J::Str(&t.cycle));
@@ -452,6 +464,15 @@ pub fn move_to_text(m: &Move) -> String {
             s.push_str(&format!(" P{} Q{} R{} S{} tool {} rpm", p.p, p.q, r(p.phase), r(p.rpm), r(p.tool_rpm)))
         }
         MoveKind::Polygon(None) => s.push_str(" G50.2"),
+        MoveKind::StrokeCheck { area: Some(a) } => s.push_str(&format!(
+            " forbid {} X{}…{} Z{}…{} (machine, X diameter)",
+            if a.outside { "outside" } else { "inside" },
+            f4(a.lo.x * 2.0),
+            f4(a.hi.x * 2.0),
+            f4(a.lo.z),
+            f4(a.hi.z)
+        )),
+        MoveKind::StrokeCheck { area: None } => s.push_str(" off"),
     }
     if let Some(t) = &m.tag {
         s.push_str(&format!(" [{} step {}]", t.cycle, t.step));

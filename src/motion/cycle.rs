@@ -489,8 +489,15 @@ impl<'a> CycleLoop<'a> {
             }
             let mut sp = motion.step(&fb);
             for _ in 0..missed {
+                if let Event::Stroke2(a) = sp.event {
+                    guard.set_stroke2(a);
+                }
                 ended |= self.on_event(&mut motion, &sp);
                 sp = motion.step(&fb);
+            }
+            // G22/G23 reached in program order: the guard switches before this set-point.
+            if let Event::Stroke2(a) = sp.event {
+                guard.set_stroke2(a);
             }
             // Limits before motion: a set-point beyond them is never sent. (The interpolated
             // position: the sync correction on top of it, ≤ 0.5 mm, makes the actual follow it.)
@@ -608,7 +615,7 @@ impl<'a> CycleLoop<'a> {
                 }
                 false
             }
-            Event::Aux { .. } | Event::None => false,
+            Event::Aux { .. } | Event::Stroke2(_) | Event::None => false,
         }
     }
 

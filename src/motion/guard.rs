@@ -22,11 +22,12 @@
 //!    position follows the interpolated one) is a servo-level compensation, exempt as a
 //!    Fanuc's stroke check exempts its compensations.
 //!
-//! The G22 area is switched by the program, and the move stream does not carry that state to
-//! the cycle loop; so G22 is enforced on the exact programmed path (every move as it leaves
-//! the interpreter, arcs on chords of ≤ 2°, and before the first move via
-//! [`check_program`]), which is the path the interpolator follows. [`Guard::set_stroke2`]
-//! adds a fixed area to the per-set-point check for a caller that knows one.
+//! The G22 area is switched by the program: G22/G23 reach the cycle loop in the move stream
+//! ([`MoveKind::StrokeCheck`], passed through motion as `Event::Stroke2` in program order),
+//! and the loop calls [`Guard::set_stroke2`] in the cycle execution reaches the block, before
+//! checking that cycle's set-point. The interpreter checks the exact programmed path as well
+//! (arcs on chords of ≤ 2°, and before the first move via [`check_program`]); the per-set-point
+//! check also catches a move that never went through the interpreter.
 
 use crate::canon::{Move, MoveKind, Plane, Pos};
 use crate::motion::geom::{self, Geom};

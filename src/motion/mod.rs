@@ -177,6 +177,9 @@ pub enum Event {
     Stop { optional: bool },
     End,
     Aux { letter: char, value: f64 },
+    /// G22 (`Some`, the area, X a radius) or G23 (`None`) reached: the cycle loop switches its
+    /// per-set-point guard ([`guard::Guard::set_stroke2`]) before it checks this set-point.
+    Stroke2(Option<guard::Area>),
 }
 
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -758,6 +761,11 @@ impl Motion {
             MoveKind::Aux { letter, value } => Item::Event(Event::Aux { letter: *letter, value: *value }),
             MoveKind::Stop { optional } => Item::Event(Event::Stop { optional: *optional }),
             MoveKind::End { .. } => Item::Event(Event::End),
+            MoveKind::StrokeCheck { area } => Item::Event(Event::Stroke2(area.map(|a| guard::Area {
+                lo: [a.lo.x, a.lo.y, a.lo.z],
+                hi: [a.hi.x, a.hi.y, a.hi.z],
+                outside: a.outside,
+            }))),
             MoveKind::Polar { end, from, to, center, cw, c_zero, feed } => Item::Polar(
                 self.polar_seg(end, *from, *to, *center, *cw, *c_zero, feed, m.work_offset.x, m.exact_stop).map_err(at)?,
             ),

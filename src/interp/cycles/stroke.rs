@@ -23,7 +23,7 @@
 //! boundary.
 
 use super::CErr;
-use crate::canon::{Move, MoveKind, Pos};
+use crate::canon::{Move, MoveKind, Pos, SrcPos, StrokeArea};
 use crate::config::MachineConfig;
 use crate::interp::gcode::Decoded;
 use crate::interp::Interpreter;
@@ -154,8 +154,10 @@ impl Stroke2 {
 
 impl Interpreter {
     /// G22/G23 of the block. Returns true when the block was a G22/G23 block (nothing else
-    /// in it runs: note 6).
-    pub(in crate::interp) fn stroke_block(&mut self, d: &Decoded) -> Result<bool, CErr> {
+    /// in it runs: note 6). The switch is also put in the move stream
+    /// ([`MoveKind::StrokeCheck`]) so that the motion layer's per-set-point guard switches
+    /// with it when execution reaches this block.
+    pub(in crate::interp) fn stroke_block(&mut self, d: &Decoded, src: &SrcPos) -> Result<bool, CErr> {
         let Some(g) = d.group(4) else { return Ok(false) };
         let col = d.g.iter().find(|x| x.0 == g).map(|x| x.1);
         if d.g.len() > 1 {
@@ -163,6 +165,7 @@ impl Interpreter {
         }
         if g == 230 {
             self.cyc.stroke.on = false;
+            self.push(src, MoveKind::StrokeCheck { area: None }, false);
             return Ok(true);
         }
         let words = ['X', 'Z', 'I', 'K'];
@@ -192,6 +195,9 @@ impl Interpreter {
                 return Err((PLUS_ALARM, col, "G22: reference point 1 lies in the forbidden area (§2.10 note 4): correct the boundary".into()));
             }
         }
+        let (outside, area) = (st.outside, st.area);
+        let area = area.map(|(lo, hi)| StrokeArea { lo, hi, outside });
+        self.push(src, MoveKind::StrokeCheck { area }, false);
         Ok(true)
     }
 }
