@@ -32,11 +32,16 @@ fn json(o: &Out) -> serde_json::Value {
 
 /// `sim-drives --modbus-tcp 127.0.0.1:PORT` (the default lathe's drives, units 1–3).
 fn sim_drives() -> (Kill, String) {
+    sim_drives_with(&[])
+}
+
+/// The same with more arguments (`--fault …`, `--config …`).
+fn sim_drives_with(extra: &[&str]) -> (Kill, String) {
     let bin = std::path::Path::new(env!("CARGO_BIN_EXE_cncgw")).with_file_name("sim-drives");
     assert!(bin.exists(), "{} is missing: run `cargo build --workspace --bins` first", bin.display());
     let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
     let addr = format!("127.0.0.1:{port}");
-    let child = Command::new(bin).args(["--modbus-tcp", &addr]).stdout(Stdio::null()).stderr(Stdio::null()).spawn().unwrap();
+    let child = Command::new(bin).args(["--modbus-tcp", &addr]).args(extra).stdout(Stdio::null()).stderr(Stdio::null()).spawn().unwrap();
     let k = Kill(child);
     let t0 = Instant::now();
     while std::net::TcpStream::connect(&addr).is_err() {
@@ -91,6 +96,18 @@ fn service_commands_on_modbus_tcp() {
     let v = json(&cncgw(&["drive", "status", "2", "--bus", b, "--json"]));
     let z = v["position"].as_f64().unwrap();
     assert!((z + 5.0).abs() <= 2e-4, "Z at {z} after jogging by -5");
+    // Homing in mode 6 with the drive's own method (35: here is home): Z reads 0 again.
+    let o = cncgw(&["drive", "home", "2", "--bus", b]);
+    assert_eq!(o.code, 2);
+    assert!(o.stderr.contains("--yes"), "{}", o.stderr);
+    let o = cncgw(&["drive", "home", "2", "--offset", "3", "--bus", b, "--yes"]);
+    assert_eq!(o.code, 2);
+    assert!(o.stderr.contains("no register for the home offset 0x607C (--offset)"), "{}", o.stderr);
+    let o = cncgw(&["drive", "home", "2", "--bus", b, "--yes"]);
+    assert_eq!(o.code, 0, "{}\n{}", o.stdout, o.stderr);
+    assert!(o.stdout.contains("homed in mode 6") && o.stdout.contains("position now 0.0000 mm"), "{}", o.stdout);
+    let v = json(&cncgw(&["drive", "status", "2", "--bus", b, "--json"]));
+    assert_eq!((v["position"].as_f64(), v["state"].as_str(), v["mode"].as_i64()), (Some(0.0), Some("Switch On Disabled"), Some(8)), "{v}");
     let o = cncgw(&["jog", "z", "--to", "10", "--bus", b, "--yes"]);
     assert_eq!(o.code, 2, "{}", o.stderr);
     assert!(o.stderr.contains("outside axis z's travel"), "{}", o.stderr);
@@ -114,4 +131,92 @@ fn modbus_bus_errors_say_what_to_do() {
     let o = cncgw(&["scan", "--bus", "modbus-rtu:///dev/ttyUSB0?baud=fast"]);
     assert_eq!(o.code, 4);
     assert!(o.stderr.contains("baud=fast is not a number"), "{}", o.stderr);
+}
+
+/// Disable → enable → status on every unit; the enabled drive stays enabled (no watchdog
+/// left from a previous controller run).
+#[test]
+fn drive_enable_disable_on_modbus_tcp() {
+    let (_sim, bus) = sim_drives();
+    let b = bus.as_str();
+    let o = cncgw(&["drive", "enable", "1", "--bus", b]);
+    assert_eq!(o.code, 2);
+    assert!(o.stderr.contains("--yes"), "{}", o.stderr);
+    // A controller run leaves the drives' watchdog set (whether or not the jog itself
+    // keeps its 2 ms link cycle on a loaded machine).
+    let _ = cncgw(&["jog", "x", "--by", "1", "--speed", "600", "--bus", b, "--yes"]);
+
+    let o = cncgw(&["drive", "disable", "1", "--bus", b]);
+    assert_eq!(o.code, 0, "{}", o.stderr);
+    assert!(o.stdout.starts_with("unit 1 (axis x) on Modbus TCP 127.0.0.1:"), "{}", o.stdout);
+    assert!(o.stdout.contains("Switch On Disabled"), "{}", o.stdout);
+    let x0 = json(&cncgw(&["drive", "status", "1", "--bus", b, "--json"]))["position"].as_f64().unwrap();
+    let o = cncgw(&["drive", "enable", "1", "--bus", b, "--yes"]);
+    assert_eq!(o.code, 0, "{}", o.stderr);
+    assert!(o.stdout.contains(" → Operation Enabled (statusword 0x"), "{}", o.stdout);
+    assert!(o.stdout.contains("mode 8 (cyclic synchronous position)"), "{}", o.stdout);
+    // Still enabled well after the 200 ms watchdog the jog set, and where it was.
+    std::thread::sleep(Duration::from_millis(600));
+    let v = json(&cncgw(&["drive", "status", "1", "--bus", b, "--json"]));
+    assert_eq!(v["state"], "Operation Enabled", "{v}");
+    assert!((v["position"].as_f64().unwrap() - x0).abs() <= 2e-4, "{v} (was at {x0})");
+    let o = cncgw(&["drive", "enable", "1", "--bus", b, "--yes"]);
+    assert_eq!(o.code, 0, "{}", o.stderr);
+    assert!(o.stdout.contains("Operation Enabled (statusword 0x") && o.stdout.contains("already there"), "{}", o.stdout);
+    let o = cncgw(&["drive", "fault-reset", "1", "--bus", b]);
+    assert_eq!(o.code, 0, "{}", o.stderr);
+    assert!(o.stdout.contains("not in fault, nothing to reset"), "{}", o.stdout);
+    let o = cncgw(&["drive", "disable", "1", "--bus", b]);
+    assert_eq!(o.code, 0, "{}", o.stderr);
+    assert!(o.stdout.contains("Operation Enabled → Switch On Disabled"), "{}", o.stdout);
+    assert_eq!(json(&cncgw(&["drive", "status", "1", "--bus", b, "--json"]))["state"], "Switch On Disabled");
+    let o = cncgw(&["drive", "enable", "9", "--bus", b, "--yes"]);
+    assert_eq!(o.code, 2);
+    assert!(o.stderr.contains("no axis of the configuration has Modbus unit id 9"), "{}", o.stderr);
+}
+
+/// A fault injected in the emulated drive: disable says so, fault-reset clears it, enable
+/// then reaches Operation Enabled.
+#[test]
+fn drive_fault_reset_on_modbus_tcp() {
+    let (_sim, bus) = sim_drives_with(&["--fault", "3:raise=0x2310"]);
+    let b = bus.as_str();
+    let v = json(&cncgw(&["drive", "status", "3", "--bus", b, "--json"]));
+    assert_eq!((v["state"].as_str(), v["error_code"].as_str()), (Some("Fault"), Some("0x2310")), "{v}");
+    let o = cncgw(&["drive", "disable", "3", "--bus", b]);
+    assert_eq!(o.code, 1);
+    assert!(o.stderr.contains("unit 3 is in Fault (no torque): error code 0x2310") && o.stderr.contains("cncgw drive fault-reset 3"), "{}", o.stderr);
+    let o = cncgw(&["drive", "fault-reset", "3", "--bus", b]);
+    assert_eq!(o.code, 0, "{}", o.stderr);
+    assert!(o.stdout.contains("Fault → Switch On Disabled"), "{}", o.stdout);
+    let o = cncgw(&["drive", "enable", "3", "--bus", b, "--yes"]);
+    assert_eq!(o.code, 0, "{}", o.stderr);
+    assert!(o.stdout.contains("Switch On Disabled → Operation Enabled"), "{}", o.stdout);
+    let v = json(&cncgw(&["drive", "status", "3", "--bus", b, "--json"]));
+    assert_eq!((v["state"].as_str(), v["error_code"].as_str()), (Some("Operation Enabled"), Some("0x0000")), "{v}");
+}
+
+/// The PR register map: servo on / off through its register, homing refused.
+#[test]
+fn pr_drive_power_on_modbus_tcp() {
+    let lathe = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/config/lathe.toml")).unwrap();
+    assert!(lathe.contains("[axes.z]\n"));
+    let cfg = lathe.replace("[axes.z]\n", "[axes.z]\nmodbus_profile = \"pr\"\n");
+    let path = std::env::temp_dir().join(format!("cncgw-mbsvc-pr-{}.toml", std::process::id()));
+    std::fs::write(&path, cfg).unwrap();
+    let p = path.to_str().unwrap();
+    let (_sim, bus) = sim_drives_with(&["--config", p]);
+    let b = bus.as_str();
+    let o = cncgw(&["drive", "enable", "2", "--config", p, "--bus", b, "--yes"]);
+    assert_eq!(o.code, 0, "{}", o.stderr);
+    assert!(o.stdout.contains("Switch On Disabled → Operation Enabled (status register 0x") && o.stdout.contains("servo on"), "{}", o.stdout);
+    let v = json(&cncgw(&["drive", "status", "2", "--config", p, "--bus", b, "--json"]));
+    assert_eq!((v["profile"].as_str(), v["state"].as_str()), (Some("pr"), Some("Operation Enabled")), "{v}");
+    let o = cncgw(&["drive", "disable", "2", "--config", p, "--bus", b]);
+    assert_eq!(o.code, 0, "{}", o.stderr);
+    assert!(o.stdout.contains("Operation Enabled → Switch On Disabled"), "{}", o.stdout);
+    let o = cncgw(&["drive", "home", "2", "--config", p, "--bus", b, "--yes"]);
+    assert_eq!(o.code, 2);
+    assert!(o.stderr.contains("not supported by this register map"), "{}", o.stderr);
+    let _ = std::fs::remove_file(&path);
 }

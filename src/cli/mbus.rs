@@ -13,7 +13,7 @@ use crate::config::{AxisConfig, LinkTransport, MachineConfig, ModbusLink, Parity
 use cncgw_bus::cia402::State;
 use cncgw_bus::modbus::{exception_text, pr_status, Profile};
 use std::time::{Duration, Instant};
-use tokio_modbus::client::{Context, Reader};
+use tokio_modbus::client::{Context, Reader, Writer};
 use tokio_modbus::prelude::SlaveContext;
 use tokio_modbus::Slave;
 
@@ -122,6 +122,47 @@ impl Client {
             }
         };
         Ok(Client { rt, ctx, link: link.clone(), what, last_end: None })
+    }
+
+    /// The 3.5-character silence between RTU frames (generous: 4 ms covers 9600 baud).
+    fn rtu_gap(&self) {
+        if self.link.transport == LinkTransport::Rtu {
+            if let Some(end) = self.last_end {
+                let due = end + Duration::from_millis(4);
+                let now = Instant::now();
+                if due > now {
+                    std::thread::sleep(due - now);
+                }
+            }
+        }
+    }
+
+    /// Write `words` to the holding registers of `unit` from `addr` (FC06 for one register,
+    /// FC16 for more).
+    pub fn write(&mut self, unit: u8, addr: u16, words: &[u16]) -> Result<(), String> {
+        self.rtu_gap();
+        let timeout = Duration::from_millis(self.link.timeout_ms.max(100) as u64);
+        self.ctx.set_slave(Slave(unit));
+        let ctx = &mut self.ctx;
+        let r = self.rt.block_on(async {
+            tokio::time::timeout(timeout, async {
+                match words {
+                    [w] => ctx.write_single_register(addr, *w).await,
+                    _ => ctx.write_multiple_registers(addr, words).await,
+                }
+            })
+            .await
+        });
+        self.last_end = Some(Instant::now());
+        match r {
+            Err(_) => Err(format!("unit {unit}: no answer within {} ms", timeout.as_millis())),
+            Ok(Err(e)) => Err(format!("unit {unit}: {e}")),
+            Ok(Ok(Err(code))) => {
+                let c: u8 = code.into();
+                Err(format!("unit {unit}: exception 0x{c:02X} {} writing register {addr} = {words:?}", exception_text(c)))
+            }
+            Ok(Ok(Ok(()))) => Ok(()),
+        }
     }
 
     /// Read `len` holding registers of `unit` from `addr`.
@@ -443,6 +484,328 @@ pub fn monitor(cfg: &MachineConfig, seconds: Option<f64>, once: bool, interval_m
         let now = Instant::now();
         if next > now {
             std::thread::sleep(next - now);
+        }
+    }
+}
+
+// ---------------------------------------------------------------- drive enable/disable/home
+
+/// The axis with Modbus unit id `unit` and a client on its link. Err = the exit code
+/// (message printed).
+fn open_unit(cfg: &MachineConfig, unit: u8) -> Result<(String, AxisConfig, Client), i32> {
+    use super::diag::{EXIT_SETUP, EXIT_USAGE};
+    let Some((name, a, link)) = axes(cfg).into_iter().find(|(_, a, _)| a.node == unit) else {
+        eprintln!("error: no axis of the configuration has Modbus unit id {unit} (`cncgw config check` lists them); Modbus registers are addressed through an axis's map");
+        return Err(EXIT_USAGE);
+    };
+    match cfg.modbus.get(&link).ok_or_else(|| format!("no link {link}")).and_then(Client::connect) {
+        Ok(c) => Ok((name, a, c)),
+        Err(e) => {
+            eprintln!("error: Modbus link {link}: {e}");
+            Err(EXIT_SETUP)
+        }
+    }
+}
+
+/// The drive's state as a CiA 402 statusword (a PR drive's status register mapped as the
+/// master maps it), with the PR status register as read.
+fn read_state(c: &mut Client, a: &AxisConfig) -> Result<(u16, Option<u16>), String> {
+    match a.modbus_profile {
+        Profile::Cia402 => {
+            let m = a.cia402_map.unwrap_or_default();
+            Ok((c.read(a.node, m.statusword, 1)?[0], None))
+        }
+        Profile::Pr => {
+            let st = c.read(a.node, a.pr_map.unwrap_or_default().status, 1)?[0];
+            Ok((crate::drives::modbus::plan::pr_statusword(st), Some(st)))
+        }
+    }
+}
+
+/// The drive's error code (0x603F) or alarm code (PR) in words, for messages.
+fn error_text(c: &mut Client, a: &AxisConfig) -> String {
+    match a.modbus_profile {
+        Profile::Cia402 => match c.read(a.node, a.cia402_map.unwrap_or_default().error_code, 1) {
+            Ok(v) => format!("error code 0x{:04X} {}", v[0], cncgw_bus::canopen::emcy::error_text(v[0])),
+            Err(e) => format!("error code unreadable ({e})"),
+        },
+        Profile::Pr => match c.read(a.node, a.pr_map.unwrap_or_default().alarm_code, 1) {
+            Ok(v) => format!("alarm code 0x{:04X} (see the drive's manual)", v[0]),
+            Err(e) => format!("alarm code unreadable ({e})"),
+        },
+    }
+}
+
+/// The drive's communication watchdog off. The controller's Modbus master sets it when it
+/// starts and leaves it set; a drive a service command leaves enabled gets no cyclic
+/// writes, so the watchdog would fault it (the CANopen side releases the heartbeat the
+/// same way).
+fn watchdog_off(c: &mut Client, a: &AxisConfig) -> Result<(), String> {
+    let addr = match a.modbus_profile {
+        Profile::Cia402 => a.cia402_map.unwrap_or_default().comm_timeout_ms,
+        Profile::Pr => a.pr_map.unwrap_or_default().comm_timeout_ms,
+    };
+    c.write(a.node, addr, &[0]).map_err(|e| format!("turning the communication watchdog (register {addr}) off failed: {e}"))
+}
+
+/// Step period and default time limit of the walks.
+const STEP: Duration = Duration::from_millis(10);
+const WALK_TIMEOUT: Duration = Duration::from_millis(2000);
+
+/// Walk a CiA 402 drive to Operation Enabled over its controlword register (the Enabler
+/// reading the statusword register, fault resets included). Returns the state reached.
+fn cia402_enable(c: &mut Client, a: &AxisConfig, timeout: Duration) -> Result<State, String> {
+    let (unit, m) = (a.node, a.cia402_map.unwrap_or_default());
+    let end = Instant::now() + timeout;
+    let mut enabler = cncgw_bus::cia402::Enabler::default();
+    loop {
+        let sw = c.read(unit, m.statusword, 1)?[0];
+        let st = State::from_statusword(sw);
+        match enabler.step(sw) {
+            cncgw_bus::cia402::EnableProgress::Enabled => return Ok(st),
+            cncgw_bus::cia402::EnableProgress::ResetFailed => {
+                return Err(format!("unit {unit} stays in Fault after {} fault resets: {}; clear the cause first", cncgw_bus::cia402::Enabler::MAX_RESETS, error_text(c, a)))
+            }
+            cncgw_bus::cia402::EnableProgress::Walking => {}
+        }
+        if Instant::now() >= end {
+            return Err(format!("unit {unit} stuck in {} for {} ms; `cncgw drive status {unit}` shows why", st.name(), timeout.as_millis()));
+        }
+        c.write(unit, m.controlword, &[enabler.controlword])?;
+        std::thread::sleep(STEP);
+    }
+}
+
+/// Walk unit `a` towards `goal`. Returns (state before, state reached).
+fn power_walk(c: &mut Client, a: &AxisConfig, goal: super::service::PowerGoal) -> Result<(State, State), String> {
+    use super::service::PowerGoal;
+    use cncgw_bus::cia402::cw;
+    let unit = a.node;
+    let first = State::from_statusword(read_state(c, a)?.0);
+    let end = Instant::now() + WALK_TIMEOUT;
+    let stuck = |st: State| format!("unit {unit} stuck in {} for {} ms; `cncgw drive status {unit}` shows why", st.name(), WALK_TIMEOUT.as_millis());
+    match a.modbus_profile {
+        Profile::Cia402 => {
+            let m = a.cia402_map.unwrap_or_default();
+            match goal {
+                PowerGoal::Enable => {
+                    if first != State::OperationEnabled {
+                        watchdog_off(c, a)?;
+                        // A stale target would be jumped to in a position mode the moment the
+                        // drive enables: make it the present position.
+                        let p = c.read(unit, m.position_actual, 2)?;
+                        c.write(unit, m.target_position, &p)?;
+                    }
+                    Ok((first, cia402_enable(c, a, WALK_TIMEOUT)?))
+                }
+                PowerGoal::Disable => loop {
+                    let st = State::from_statusword(c.read(unit, m.statusword, 1)?[0]);
+                    match st {
+                        State::SwitchOnDisabled | State::NotReadyToSwitchOn => return Ok((first, st)),
+                        State::Fault | State::FaultReactionActive => {
+                            return Err(format!("unit {unit} is in {} (no torque): {}; `cncgw drive fault-reset {unit}` clears it once the cause is gone", st.name(), error_text(c, a)))
+                        }
+                        _ if Instant::now() >= end => return Err(stuck(st)),
+                        _ => c.write(unit, m.controlword, &[cw::DISABLE_VOLTAGE])?,
+                    }
+                    std::thread::sleep(STEP);
+                },
+                PowerGoal::FaultReset => {
+                    let mut sent = false;
+                    loop {
+                        let st = State::from_statusword(c.read(unit, m.statusword, 1)?[0]);
+                        if !matches!(st, State::Fault | State::FaultReactionActive) {
+                            if sent {
+                                // Bit 7 back down so the next reset is an edge again.
+                                c.write(unit, m.controlword, &[cw::DISABLE_VOLTAGE])?;
+                            }
+                            return Ok((first, st));
+                        }
+                        if Instant::now() >= end {
+                            return Err(format!("unit {unit} still in {} after a fault reset: the cause persists: {}", st.name(), error_text(c, a)));
+                        }
+                        // A rising edge of bit 7: low first, then high.
+                        c.write(unit, m.controlword, &[cw::DISABLE_VOLTAGE])?;
+                        c.write(unit, m.controlword, &[cw::FAULT_RESET_CMD])?;
+                        sent = true;
+                        std::thread::sleep(STEP);
+                    }
+                }
+            }
+        }
+        Profile::Pr => {
+            let m = a.pr_map.unwrap_or_default();
+            let mut resets = 0;
+            if goal == PowerGoal::Enable && first != State::OperationEnabled {
+                watchdog_off(c, a)?;
+            }
+            loop {
+                let (sw, _) = read_state(c, a)?;
+                let st = State::from_statusword(sw);
+                let fault = st == State::Fault;
+                let done = match goal {
+                    PowerGoal::Enable => st == State::OperationEnabled,
+                    PowerGoal::Disable => st == State::SwitchOnDisabled,
+                    PowerGoal::FaultReset => !fault,
+                };
+                if done {
+                    return Ok((first, st));
+                }
+                if fault && goal == PowerGoal::Disable {
+                    return Err(format!("unit {unit} is in alarm (no torque): {}; `cncgw drive fault-reset {unit}` clears it once the cause is gone", error_text(c, a)));
+                }
+                if Instant::now() >= end {
+                    return Err(match goal {
+                        PowerGoal::FaultReset => format!("unit {unit} still in alarm after an alarm reset: the cause persists: {}", error_text(c, a)),
+                        _ => stuck(st),
+                    });
+                }
+                if fault {
+                    resets += 1;
+                    if goal == PowerGoal::Enable && resets > cncgw_bus::cia402::Enabler::MAX_RESETS {
+                        return Err(format!("unit {unit} stays in alarm after {} alarm resets: {}; clear the cause first", resets - 1, error_text(c, a)));
+                    }
+                    c.write(unit, m.alarm_reset, &[1])?;
+                } else {
+                    c.write(unit, m.servo_on, &[(goal == PowerGoal::Enable) as u16])?;
+                }
+                std::thread::sleep(STEP);
+            }
+        }
+    }
+}
+
+/// `cncgw drive enable|disable|fault-reset UNIT` on Modbus (confirmation already given).
+pub fn drive_power(cfg: &MachineConfig, unit: u8, goal: super::service::PowerGoal) -> i32 {
+    use super::diag::{EXIT_NODE, EXIT_OK};
+    use super::service::PowerGoal;
+    let (name, a, mut c) = match open_unit(cfg, unit) {
+        Ok(x) => x,
+        Err(code) => return code,
+    };
+    match power_walk(&mut c, &a, goal) {
+        Ok((from, to)) => {
+            let sw = match read_state(&mut c, &a) {
+                Ok((_, Some(st))) => format!(" (status register 0x{st:04X})"),
+                Ok((w, None)) => format!(" (statusword 0x{w:04X})"),
+                Err(_) => String::new(),
+            };
+            if from == to {
+                let why = if goal == PowerGoal::FaultReset { "not in fault, nothing to reset" } else { "already there" };
+                println!("unit {unit} (axis {name}) on {}: {}{sw}; {why}", c.what, to.name());
+            } else {
+                println!("unit {unit} (axis {name}) on {}: {} → {}{sw}", c.what, from.name(), to.name());
+            }
+            if goal == PowerGoal::Enable {
+                match a.modbus_profile {
+                    Profile::Cia402 => {
+                        if let Ok(v) = c.read(unit, a.cia402_map.unwrap_or_default().mode_display, 1) {
+                            let m = v[0] as i16 as i8;
+                            println!("  mode {m} ({}): the drive holds its position until it gets a set-point", cncgw_bus::cia402::mode::name(m));
+                        }
+                    }
+                    Profile::Pr => println!("  servo on: the drive holds its position until a PR block is triggered"),
+                }
+                println!("  communication watchdog off: the controller sets it again when it starts");
+            }
+            EXIT_OK
+        }
+        Err(e) => {
+            eprintln!("error: {e}");
+            EXIT_NODE
+        }
+    }
+}
+
+/// `cncgw drive home UNIT` on Modbus (confirmation already given). CiA 402 map: homing
+/// mode 6 through the mode register and a rising edge of controlword bit 4, with the
+/// method, offset and speeds the drive has in its own parameters (the map has no 0x6098,
+/// 0x607C, 0x6099 registers); attained (statusword bit 12) with target reached (bit 10)
+/// ends it, bit 13 is a homing error. The drive is disabled after it, as on CANopen, and
+/// its previous mode restored. The PR map has no homing.
+pub fn drive_home(cfg: &MachineConfig, unit: u8, h: &super::service::HomeArgs) -> i32 {
+    use super::diag::{EXIT_NODE, EXIT_OK, EXIT_USAGE};
+    use cncgw_bus::cia402::{cw, mode, sw};
+    let (name, a, mut c) = match open_unit(cfg, unit) {
+        Ok(x) => x,
+        Err(code) => return code,
+    };
+    if a.modbus_profile == Profile::Pr {
+        eprintln!("error: unit {unit} (axis {name}) speaks the PR register map: homing is not supported by this register map (it has no mode or homing registers); home the axis with the drive's own software or panel, or set the position with a G92/G50 in the program");
+        return EXIT_USAGE;
+    }
+    let mut missing = Vec::new();
+    if h.method != 35 {
+        missing.push("homing method 0x6098 (--method)");
+    }
+    if h.offset != 0.0 {
+        missing.push("home offset 0x607C (--offset)");
+    }
+    if h.switch_speed.is_some() || h.zero_speed.is_some() {
+        missing.push("homing speeds 0x6099 (--switch-speed, --zero-speed)");
+    }
+    if !missing.is_empty() {
+        eprintln!(
+            "error: unit {unit}: the Modbus CiA 402 register map has no register for the {}: set them in the drive's own parameters and home without those options (the drive homes with its configured method)",
+            missing.join(", ")
+        );
+        return EXIT_USAGE;
+    }
+    if !(h.timeout.is_finite() && h.timeout > 0.0) {
+        eprintln!("error: --timeout must be a positive number of seconds");
+        return EXIT_USAGE;
+    }
+    let m = a.cia402_map.unwrap_or_default();
+    let timeout = Duration::from_secs_f64(h.timeout.min(3600.0));
+    let run = |c: &mut Client| -> Result<f64, String> {
+        let before = c.read(unit, m.mode_display, 1)?[0];
+        watchdog_off(c, &a)?;
+        c.write(unit, m.mode, &[mode::HOMING as u16]).map_err(|e| format!("{e}: the drive refused homing mode 6 in its mode register {}", m.mode))?;
+        let homed = (|| {
+            cia402_enable(c, &a, WALK_TIMEOUT)?;
+            let shown = c.read(unit, m.mode_display, 1)?[0] as i16 as i8;
+            if shown != mode::HOMING {
+                return Err(format!("unit {unit} shows mode {shown} ({}) after mode 6 was written: it has no homing mode over Modbus", mode::name(shown)));
+            }
+            c.write(unit, m.controlword, &[cw::ENABLE_OPERATION_CMD])?;
+            c.write(unit, m.controlword, &[cw::ENABLE_OPERATION_CMD | cw::OMS4])?;
+            let end = Instant::now() + timeout;
+            loop {
+                let s = c.read(unit, m.statusword, 1)?[0];
+                if s & sw::OMS13 != 0 {
+                    return Err(format!("unit {unit} reports a homing error (statusword 0x{s:04X} bit 13): {}; check the drive's homing method and switches", error_text(c, &a)));
+                }
+                if State::from_statusword(s) != State::OperationEnabled {
+                    return Err(format!("unit {unit} left Operation Enabled while homing ({}): {}", State::from_statusword(s).name(), error_text(c, &a)));
+                }
+                if s & sw::OMS12 != 0 && s & sw::TARGET_REACHED != 0 {
+                    return Ok(());
+                }
+                if Instant::now() >= end {
+                    return Err(format!("unit {unit} not homed within {:.1} s (statusword 0x{s:04X}); give more --timeout or check the drive's homing method", timeout.as_secs_f64()));
+                }
+                std::thread::sleep(STEP);
+            }
+        })();
+        // Bit 4 down, torque off, the mode it had: whatever happened.
+        let _ = c.write(unit, m.controlword, &[cw::ENABLE_OPERATION_CMD]);
+        let _ = c.write(unit, m.controlword, &[cw::DISABLE_VOLTAGE]);
+        if before as i16 as i8 != mode::HOMING && before != 0 {
+            let _ = c.write(unit, m.mode, &[before]);
+        }
+        homed?;
+        let p = c.read(unit, m.position_actual, 2)?;
+        Ok(m.word_order.join_i32([p[0], p[1]]) as f64 / a.counts_per_unit)
+    };
+    let unit_s = if a.kind == crate::config::AxisKind::Spindle { "deg" } else { "mm" };
+    match run(&mut c) {
+        Ok(pos) => {
+            println!("unit {unit} (axis {name}) on {}: homed in mode 6 with the drive's own homing method; position now {pos:.4} {unit_s}", c.what);
+            EXIT_OK
+        }
+        Err(e) => {
+            eprintln!("error: {e}");
+            EXIT_NODE
         }
     }
 }

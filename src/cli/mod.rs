@@ -445,7 +445,7 @@ pub fn open_raw(
     use cncgw_bus::transport::socketcand;
     let bus = bus.map(str::to_string).unwrap_or_else(|| cfg.bus.interface.clone());
     if bus.starts_with("modbus-") {
-        return Err(format!("{bus} is a Modbus bus: this is a CANopen command (Modbus drives: scan, drive status, monitor, jog, run, tap-test)"));
+        return Err(format!("{bus} is a Modbus bus: this is a CANopen command (Modbus drives: scan, drive status|enable|disable|fault-reset|home, monitor, jog, run, tap-test)"));
     }
     if bus == "none" {
         return Err("the configuration has no CANopen bus (bus.interface = \"none\"): give one with --bus, or use a Modbus command".into());

@@ -178,6 +178,14 @@ pub fn drive_power(machine: &MachineArgs, node: u8, goal: PowerGoal, yes: bool) 
             return c;
         }
     }
+    match super::mbus::modbus_machine(machine) {
+        Ok(Some(cfg)) => return super::mbus::drive_power(&cfg, node, goal),
+        Ok(None) => {}
+        Err(e) => {
+            eprintln!("error: {e}");
+            return EXIT_SETUP;
+        }
+    }
     let mut s = match open(machine) {
         Ok(s) => s,
         Err(c) => return c,
@@ -279,6 +287,14 @@ pub struct HomeArgs {
 pub fn drive_home(machine: &MachineArgs, node: u8, h: &HomeArgs, yes: bool) -> i32 {
     if let Err(c) = confirm_motion(machine, yes, &format!("homing node {node}")) {
         return c;
+    }
+    match super::mbus::modbus_machine(machine) {
+        Ok(Some(cfg)) => return super::mbus::drive_home(&cfg, node, h),
+        Ok(None) => {}
+        Err(e) => {
+            eprintln!("error: {e}");
+            return EXIT_SETUP;
+        }
     }
     let mut s = match open(machine) {
         Ok(s) => s,

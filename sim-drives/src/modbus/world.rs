@@ -207,6 +207,10 @@ impl World {
                     r = r
                         .and_then(|_| d.modbus_write(ix::INTERPOLATION_PERIOD, 1, (PR_PERIOD / MS) as i64, 0))
                         .and_then(|_| d.modbus_write(ix::MODES_OF_OPERATION, 0, mode::CYCLIC_SYNC_POSITION as i64, 0));
+                } else {
+                    // The map has no 0x6098: homing (mode 6) uses the method set in the
+                    // drive's parameters, here 35 (the present position becomes home).
+                    r = r.and_then(|_| d.modbus_write(ix::HOMING_METHOD, 0, 35, 0));
                 }
                 r.map_err(|c| format!("drive node {node}: setting up its Modbus profile failed (SDO abort 0x{c:08X})"))?;
             }
@@ -502,7 +506,7 @@ impl World {
     fn check_value(&self, u: &Unit, reg: Reg, v: &[u16]) -> Result<(), ExceptionCode> {
         let first = v.first().copied().unwrap_or(0);
         let ok = match reg {
-            Reg::Mode => [mode::PROFILE_POSITION, mode::CYCLIC_SYNC_POSITION, mode::CYCLIC_SYNC_VELOCITY].iter().any(|&m| m as u16 == first),
+            Reg::Mode => [mode::PROFILE_POSITION, mode::HOMING, mode::CYCLIC_SYNC_POSITION, mode::CYCLIC_SYNC_VELOCITY].iter().any(|&m| m as u16 == first),
             // 0x60C2:1 is one byte of ms.
             Reg::InterpolationMs => first <= u8::MAX as u16,
             Reg::ServoOn | Reg::AlarmReset => first <= 1,
