@@ -113,6 +113,26 @@ pub fn polar_to_machine(v: [f64; 2], c_zero: f64, work_x: f64, near_c: f64) -> (
     (work_x + r, c)
 }
 
+/// Start angle and signed sweep (radians) of an arc in a plane from `from` to `to` about
+/// `c` (`cw`: clockwise, sweep ≤ 0); start = end is a full circle. Used by the interpreter's
+/// polar chords and the motion layer's polar interpolation alike.
+pub fn arc_sweep(from: [f64; 2], to: [f64; 2], c: [f64; 2], cw: bool) -> (f64, f64) {
+    let a0 = (from[1] - c[1]).atan2(from[0] - c[0]);
+    let a1 = (to[1] - c[1]).atan2(to[0] - c[0]);
+    let tau = std::f64::consts::TAU;
+    let mut sweep = a1 - a0;
+    if cw {
+        while sweep > 1e-12 {
+            sweep -= tau;
+        }
+    } else {
+        while sweep < -1e-12 {
+            sweep += tau;
+        }
+    }
+    (a0, sweep)
+}
+
 /// Which canned cycle made a move, and which step of it (the manuals' numbering), so that
 /// feed hold and single block can be applied per step downstream.
 #[derive(Clone, Debug, PartialEq)]

@@ -4,16 +4,11 @@
 //! `--json`. Real time: serialized in .config/nextest.toml. Needs the workspace's binaries
 //! (`cargo build --workspace --bins`).
 
-use std::process::{Child, Command, Stdio};
+mod procs;
+use procs::{Kill};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-struct Kill(Child);
-impl Drop for Kill {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
 
 struct Out {
     code: i32,

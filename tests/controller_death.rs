@@ -8,8 +8,10 @@
 //! (The CANopen case, heartbeat consumer, is in tests/tap_return_kill.rs.) Real time: runs
 //! alone (.config/nextest.toml).
 
+mod procs;
+use procs::{Kill, bin};
 use std::path::PathBuf;
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -20,24 +22,10 @@ const CYCLE_MS: f64 = 2.0;
 const STATUSWORD: u16 = 10;
 const COMM_TIMEOUT: u16 = 23;
 
-struct Kill(Child);
-impl Drop for Kill {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
 
-fn bin(name: &str) -> PathBuf {
-    let b = PathBuf::from(env!("CARGO_BIN_EXE_cncgw")).parent().unwrap().join(name);
-    assert!(b.exists(), "{} missing: cargo build --workspace --bins", b.display());
-    b
-}
 
 fn tmp(name: &str) -> PathBuf {
-    let d = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(format!("controller_death_{}", std::process::id()));
-    std::fs::create_dir_all(&d).unwrap();
-    d.join(name)
+    procs::tmp("controller_death", name)
 }
 
 /// One reading of a unit: (time, unit, statusword, position counts, error code).

@@ -3,27 +3,20 @@
 //! over RTU through a socat pseudo-terminal pair, and mixed with CANopen drives. Real time:
 //! these run alone (.config/nextest.toml).
 
+mod procs;
+use procs::{Kill};
 use std::io::{BufRead, BufReader};
 use std::net::SocketAddr;
 use std::path::PathBuf;
-use std::process::{Child, Command, Output, Stdio};
+use std::process::{Command, Output, Stdio};
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
 const MODBUS_LATHE: &str = include_str!("../config/lathe-modbus.toml");
 
-struct Kill(Child);
-impl Drop for Kill {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
 
 fn tmp(name: &str) -> PathBuf {
-    let d = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(format!("modbus_run_{}", std::process::id()));
-    std::fs::create_dir_all(&d).unwrap();
-    d.join(name)
+    procs::tmp("modbus_run", name)
 }
 
 /// A server for the Modbus drives of `machine` on 127.0.0.1 (any port).

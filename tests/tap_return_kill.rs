@@ -17,13 +17,15 @@
 //! Plus: SIGKILL in the middle of tap-state writes leaves the old or the new state, never a
 //! torn one. Real time: these run alone (.config/nextest.toml).
 
+mod procs;
+use procs::{Kill, bin};
 use cncgw::persist::{TapState, TapStateFile};
 use cncgw_bus::canopen::emcy::Emcy;
 use cncgw_bus::canopen::sdo::{SdoRequest, SdoResponse};
 use cncgw_bus::transport::socketcand::Socketcand;
 use cncgw_bus::{CanBus, CanFrame};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -31,25 +33,10 @@ use std::time::{Duration, Instant};
 const HEARTBEAT_MS: u64 = 100;
 const CYCLE_MS: f64 = 2.0;
 
-struct Kill(Child);
-impl Drop for Kill {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
 
-fn bin(name: &str) -> PathBuf {
-    // sim-drives is another package of the workspace; its binary lands beside ours.
-    let b = PathBuf::from(env!("CARGO_BIN_EXE_cncgw")).parent().unwrap().join(name);
-    assert!(b.exists(), "{} missing: cargo build --workspace --bins", b.display());
-    b
-}
 
 fn tmp(name: &str) -> PathBuf {
-    let d = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(format!("tap_return_kill_{}", std::process::id()));
-    std::fs::create_dir_all(&d).unwrap();
-    d.join(name)
+    procs::tmp("tap_return_kill", name)
 }
 
 /// The default lathe with the tolerances of a shared 2-core machine (as tests/modbus_run.rs):

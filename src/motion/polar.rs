@@ -278,19 +278,7 @@ impl Motion {
                         format!("polar arc radius differs between start ({r0:.4}) and end ({r1:.4}) by more than {} mm; correct R or the end point", l.arc_radius_tol),
                     ));
                 }
-                let a0 = (from[1] - c[1]).atan2(from[0] - c[0]);
-                let a1 = (to[1] - c[1]).atan2(to[0] - c[0]);
-                let tau = std::f64::consts::TAU;
-                let mut sweep = a1 - a0;
-                if cw {
-                    while sweep > 1e-12 {
-                        sweep -= tau;
-                    }
-                } else {
-                    while sweep < -1e-12 {
-                        sweep += tau;
-                    }
-                }
+                let (a0, sweep) = crate::canon::arc_sweep(from, to, c, cw);
                 Some((c, r0, r1 - r0, a0, sweep))
             }
         };

@@ -238,20 +238,8 @@ pub(crate) fn sample(from: [f64; 2], to: [f64; 2], center: Option<[f64; 2]>, cw:
             }).collect()
         }
         Some(c) => {
-            let a0 = (from[1] - c[1]).atan2(from[0] - c[0]);
-            let a1 = (to[1] - c[1]).atan2(to[0] - c[0]);
+            let (a0, sweep) = crate::canon::arc_sweep(from, to, c, cw);
             let r = (from[0] - c[0]).hypot(from[1] - c[1]);
-            let tau = std::f64::consts::TAU;
-            let mut sweep = a1 - a0;
-            if cw {
-                while sweep > 1e-12 {
-                    sweep -= tau;
-                }
-            } else {
-                while sweep < -1e-12 {
-                    sweep += tau;
-                }
-            }
             let n = ((sweep.abs() / 2f64.to_radians()).ceil() as usize).max(2);
             let mut v: Vec<[f64; 2]> = (0..n).map(|i| {
                 let t = a0 + sweep * i as f64 / n as f64;
