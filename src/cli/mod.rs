@@ -623,18 +623,18 @@ fn plan(program: &std::path::Path, config: Option<&std::path::Path>, format: &st
     let out = std::io::stdout();
     let mut out = std::io::BufWriter::with_capacity(1 << 16, out.lock());
     // One line buffer for all moves (a million-block program prints a million lines).
-    let mut line = String::with_capacity(256);
+    let mut line = Vec::with_capacity(256);
     for m in interp {
         match m {
             Ok(m) => {
                 line.clear();
                 if format == "text" {
-                    line.push_str(&crate::interp::plan::move_to_text(&m));
+                    line.extend_from_slice(crate::interp::plan::move_to_text(&m).as_bytes());
                 } else {
                     crate::interp::plan::write_json(&mut line, &m);
                 }
-                line.push('\n');
-                if out.write_all(line.as_bytes()).is_err() {
+                line.push(b'\n');
+                if out.write_all(&line).is_err() {
                     return 0; // stdout closed (e.g. piped into head)
                 }
             }

@@ -235,6 +235,25 @@ impl Decoded {
         Ok(d)
     }
 
+    /// Whether [`Decoded::fill`] of `words` is bound to succeed because it succeeded for
+    /// `prev`, with `self` then holding everything the static check reads afterwards (the
+    /// M codes, G codes and P): the checks of `fill` look only at the letters (in order), the
+    /// values and decimal points of G, M, T, L, D and P, and the machine's axes (the same
+    /// for both). A block with P is never taken: P's column is read afterwards (the first
+    /// pass of a CAM program checks most blocks this way, at a fraction of the cost).
+    pub fn same_checks(words: &[(char, bool, Val)], prev: &[(char, bool, Val)]) -> bool {
+        words.len() == prev.len()
+            && words.iter().zip(prev).all(|(a, b)| {
+                a.0 == b.0
+                    && a.0 != 'P'
+                    && !a.1
+                    && !b.1
+                    && a.2.literal
+                    && b.2.literal
+                    && (!matches!(a.0, 'G' | 'M' | 'T' | 'L' | 'D') || (a.2.v.to_bits() == b.2.v.to_bits() && a.2.decimal == b.2.decimal))
+            })
+    }
+
     /// [`Decoded::build`] into `self` (emptied first), so that a decoder kept across blocks
     /// is neither initialised nor copied per block.
     pub fn fill(&mut self, words: &[(char, bool, Val)], has_y: bool, has_c: bool) -> Result<(), DErr> {

@@ -576,6 +576,9 @@ impl Interpreter {
         let mut calls: Vec<(Loc, u32, u32)> = Vec::new(); // line, program, col
         let mut buf = std::mem::take(&mut self.line_buf);
         let mut ev = [parse::NO_WORD; parse::FAST_WORDS];
+        // The words of the last block whose static check passed (`dec` holds its decode).
+        let mut checked = [parse::NO_WORD; parse::FAST_WORDS];
+        let mut checked_len: Option<usize> = None;
         let mut dec = self.dec.take().unwrap_or_default();
         let mut next = Loc::default();
         while next.off < self.sources[si].len {
@@ -661,9 +664,18 @@ impl Interpreter {
             }
             let decoded = match (fast, stmt) {
                 (Some(fb), _) if fb.len > 0 => {
-                    Some(dec.fill(&ev[..fb.len], self.has_y, self.has_c).map_err(|(n, col, m)| col_alarm(n, col, m)))
+                    let words = &ev[..fb.len];
+                    if checked_len.is_some_and(|k| gcode::Decoded::same_checks(words, &checked[..k])) {
+                        Some(Ok(()))
+                    } else {
+                        let r = dec.fill(words, self.has_y, self.has_c).map_err(|(n, col, m)| col_alarm(n, col, m));
+                        checked_len = r.is_ok().then_some(fb.len);
+                        checked[..fb.len].copy_from_slice(words);
+                        Some(r)
+                    }
                 }
                 (_, Some(Stmt::Nc(words))) if words.iter().all(|w| w.value.is_literal()) => {
+                    checked_len = None;
                     Some(self.decode_words(words, &Vars::new()).map(|d| *dec = d))
                 }
                 _ => None,

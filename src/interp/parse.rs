@@ -726,77 +726,67 @@ pub fn fast_words_static(line: &[u8], out: &mut [FastWord; FAST_WORDS]) -> Optio
 
 fn words_from_bytes<const VALUES: bool>(line: &[u8], out: &mut [FastWord; FAST_WORDS]) -> Option<FastBlock> {
     let b = line;
+    let end = b.len();
+    let ws = |c: u8| matches!(c, b' ' | b'\t' | b'\r' | b'\n');
     let mut i = 0;
-    let ws = |i: &mut usize| {
-        while *i < b.len() && matches!(b[*i], b' ' | b'\t' | b'\r' | b'\n') {
-            *i += 1;
-        }
-    };
-    ws(&mut i);
+    while i < end && ws(b[i]) {
+        i += 1;
+    }
     let col = i as u32 + 1;
     let mut n = None;
     let mut len = 0;
-    while {
-        ws(&mut i);
-        i < b.len() && b[i] != b';'
-    } {
+    loop {
+        while i < end && ws(b[i]) {
+            i += 1;
+        }
+        if i >= end || b[i] == b';' {
+            break;
+        }
         let wcol = i as u32 + 1;
-        let letter = b[i].to_ascii_uppercase();
+        // ASCII letters only (clearing bit 5 maps a–z onto A–Z and nothing else onto them).
+        let letter = b[i] & !0x20;
         if !letter.is_ascii_uppercase() || letter == b'O' {
             return None;
         }
         i += 1;
-        let neg = match b.get(i) {
-            Some(b'-') => {
-                i += 1;
-                true
-            }
-            Some(b'+') => {
-                i += 1;
-                false
-            }
-            _ => false,
-        };
-        // One pass: mantissa, significant digits (no leading zeros; no trailing zeros after
-        // a point) and digits after the point.
-        let start = i;
-        let mut decimal = false;
-        let (mut mant, mut nd, mut frac, mut tz) = (0u64, 0usize, 0usize, 0usize);
-        while i < b.len() {
-            let c = b[i];
-            if c.is_ascii_digit() {
-                let d = (c - b'0') as u64;
-                if mant != 0 || d != 0 {
-                    nd += 1;
-                    tz = if d == 0 { tz + 1 } else { 0 };
-                }
-                if nd > 15 {
-                    return None;
-                }
-                mant = mant * 10 + d;
-                frac += decimal as usize;
-            } else if c == b'.' && !decimal {
-                decimal = true;
-            } else {
-                break;
-            }
+        let mut neg = false;
+        if i < end && (b[i] == b'-' || b[i] == b'+') {
+            neg = b[i] == b'-';
             i += 1;
         }
-        let digits = &b[start..i];
+        // Integer digits, then after a point the fraction's: one mantissa. Wrapping
+        // arithmetic: more than 15 digits leave for the full parser below.
+        let start = i;
+        let mut mant = 0u64;
+        while i < end && b[i].wrapping_sub(b'0') < 10 {
+            mant = mant.wrapping_mul(10).wrapping_add(u64::from(b[i] - b'0'));
+            i += 1;
+        }
+        let mut frac = 0;
+        let decimal = i < end && b[i] == b'.';
+        if decimal {
+            i += 1;
+            let f0 = i;
+            while i < end && b[i].wrapping_sub(b'0') < 10 {
+                mant = mant.wrapping_mul(10).wrapping_add(u64::from(b[i] - b'0'));
+                i += 1;
+            }
+            frac = i - f0;
+        }
+        let nd = i - start - decimal as usize;
         // Letters must be followed by a number and then a separator or the next letter.
-        if digits.is_empty() || digits == b"." || (i < b.len() && !(b[i].is_ascii_alphabetic() || matches!(b[i], b' ' | b'\t' | b'\r' | b'\n' | b';'))) {
+        if nd == 0 || nd > 15 || (i < end && !(b[i].is_ascii_alphabetic() || ws(b[i]) || b[i] == b';')) {
             return None;
         }
         if neg && matches!(letter, b'G' | b'M' | b'N' | b'T' | b'L') {
             return None;
         }
-        // As in `number`: with a point, trailing zeros are not significant.
-        let sig = if decimal { nd - tz } else { nd };
-        if sig > MAX_DIGITS {
+        // As in `number`: significant digits exclude leading zeros and, with a point,
+        // trailing zeros; only counted when there are more digits than the limit.
+        if nd > MAX_DIGITS && significant(&b[start..i], decimal) > MAX_DIGITS {
             return None;
         }
-        let scale = *POW10.get(frac)?;
-        let v = if VALUES || matches!(letter, b'G' | b'M' | b'P' | b'N') { mant as f64 / scale } else { mant as f64 };
+        let v = if VALUES || matches!(letter, b'G' | b'M' | b'P' | b'N') { mant as f64 / *POW10.get(frac)? } else { mant as f64 };
         if letter == b'N' {
             if len > 0 || n.is_some() || decimal || v > 99999.0 {
                 return None;
@@ -809,6 +799,19 @@ fn words_from_bytes<const VALUES: bool>(line: &[u8], out: &mut [FastWord; FAST_W
         len += 1;
     }
     Some(FastBlock { n, col, len, comment: i })
+}
+
+/// Significant digits of an ASCII number (digits and at most one '.'), counted as
+/// [`number`] counts them.
+fn significant(digits: &[u8], decimal: bool) -> usize {
+    let lead = digits.iter().take_while(|c| matches!(c, b'0' | b'.')).count();
+    let rest = digits[lead..].iter().filter(|c| **c != b'.');
+    let sig = rest.clone().count();
+    if decimal {
+        sig - rest.rev().take_while(|c| **c == b'0').count()
+    } else {
+        sig
+    }
 }
 
 /// [`fast_words`] as a [`Block`] (a blank line is left to the full parser).
@@ -1075,28 +1078,43 @@ mod tests {
         }
     }
 
+    type Norm = (Option<u32>, u32, Vec<(char, u32, Expr)>);
+
+    /// A block as comparable data: a negative number as `-x` (the fast path's form).
+    fn norm(b: Block) -> Norm {
+        match b.stmt {
+        Stmt::Nc(w) => (
+            b.n,
+            b.col,
+            w.into_iter()
+                .map(|w| {
+                    let v = match w.value {
+                        Expr::Neg(e) => match *e {
+                            Expr::Num { v, decimal } => Expr::Num { v: -v, decimal },
+                            e => Expr::Neg(Box::new(e)),
+                        },
+                        e => e,
+                    };
+                    (w.letter, w.col, v)
+                })
+                .collect::<Vec<_>>(),
+        ),
+        other => (b.n, b.col, vec![('?', 0, Expr::Num { v: if other == Stmt::Empty { 0.0 } else { 1.0 }, decimal: false })]),
+    }
+    }
+
+    /// The block of `t` through the full parser (the fast path bypassed: a `(x)` comment
+    /// before any `;` forces it).
+    fn slow_line(t: &str) -> Result<Block, PErr> {
+        match t.find(';') {
+            Some(k) => parse_line(&format!("{}(x){}", &t[..k], &t[k..])),
+            None => parse_line(&format!("{t}(x)")),
+        }
+    }
+
     /// The byte fast path and the full parser agree on every line the fast path takes.
     #[test]
     fn fast_path_agrees_with_the_full_parser() {
-        let norm = |b: Block| match b.stmt {
-            Stmt::Nc(w) => (
-                b.n,
-                b.col,
-                w.into_iter()
-                    .map(|w| {
-                        let v = match w.value {
-                            Expr::Neg(e) => match *e {
-                                Expr::Num { v, decimal } => Expr::Num { v: -v, decimal },
-                                e => Expr::Neg(Box::new(e)),
-                            },
-                            e => e,
-                        };
-                        (w.letter, w.col, v)
-                    })
-                    .collect::<Vec<_>>(),
-            ),
-            other => (b.n, b.col, vec![('?', 0, Expr::Num { v: if other == Stmt::Empty { 0.0 } else { 1.0 }, decimal: false })]),
-        };
         for t in [
             "G1 X20.000 Z-0.000 F100",
             "  n10 g01 x-.5 z+3 f.2 ; comment",
@@ -1111,12 +1129,43 @@ mod tests {
         ] {
             let fast = fast_line(t).unwrap_or_else(|| panic!("fast path should take {t:?}"));
             // The full parser, with the fast path bypassed: `(x)` comment forces it.
-            let slow = parse_line(&format!("{t}(x)")).expect(t);
-            let slow = if t.contains(';') { parse_line(&format!("{}(x);", &t[..t.find(';').unwrap_or(0)])).expect(t) } else { slow };
+            let slow = slow_line(t).expect(t);
             assert_eq!(norm(fast), norm(slow), "{t}");
         }
         for t in ["", "   ", "G-1", "X", "X.", "X1-2", "XX1", "O10", "N1.5", "G1 N10", "X123456789", "X1234567891.", "X1.2345678912345678", "/X1", "X1 (c)", "#1=2", "G1 ,C1", "X[1]", "X 10", "IF", "X1é"] {
             assert!(fast_line(t).is_none(), "{t:?} must take the full parser");
+        }
+    }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(2000))]
+        /// Lines of random NC-like pieces: whatever the fast path takes, the full parser
+        /// reads the same (numbers bit for bit), and the fast path takes no line the full
+        /// parser rejects.
+        #[test]
+        fn fast_path_agrees_with_the_full_parser_on_random_lines(
+            parts in proptest::collection::vec(
+                proptest::prop_oneof![
+                    proptest::sample::select(vec!["G", "g", "X", "Z", "U", "w", "F", "M", "N", "T", "P", "O", "L"]),
+                    proptest::sample::select(vec!["-", "+", ".", " ", "\t", ";", "0", "00", "1", "5", "9", "12", "250", "000000", "123456789", "99999", "é", "(", "#"]),
+                    proptest::sample::select(vec!["20.05", ".007", "3.14159", "1.", "0.30000000", "12.250", "1234567.8", "0.0000001", "7.5"]),
+                ],
+                0..14,
+            )
+        ) {
+            let t: String = parts.concat();
+            let mut ev = [NO_WORD; FAST_WORDS];
+            let fast = fast_words(t.as_bytes(), &mut ev);
+            let slow = slow_line(&t);
+            if let Some(fb) = fast {
+                let slow = slow.map_err(|e| format!("{t:?}: fast path took it, full parser: {}", e.message));
+                proptest::prop_assert!(slow.is_ok(), "{}", slow.err().unwrap_or_default());
+                if fb.len > 0 || fb.n.is_some() {
+                    let fast = fast_line(&t).map(norm);
+                    let slow = slow_line(&t).ok().map(norm);
+                    proptest::prop_assert_eq!(format!("{fast:?}"), format!("{slow:?}"), "{:?}", t);
+                }
+            }
         }
     }
 

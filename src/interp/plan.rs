@@ -55,7 +55,7 @@ impl<'a> Obj<'a> {
 
 /// `num(out, r(v))` in one step: the value rounded to 0.0001 as a scaled integer. The text
 /// is the same: below 1e15 the decimal `int.frac` is the shortest form of `r(v)`.
-fn num_r(out: &mut String, v: f64) {
+fn num_r(out: &mut Vec<u8>, v: f64) {
     let scaled = crate::interp::gcode::round(v * 1e4);
     if scaled.is_finite() && scaled.abs() < 1e15 {
         scaled_num(out, scaled as i64);
@@ -64,8 +64,8 @@ fn num_r(out: &mut String, v: f64) {
     }
 }
 
-fn num(out: &mut String, v: f64) {
-    use std::fmt::Write;
+fn num(out: &mut Vec<u8>, v: f64) {
+    use std::io::Write;
     // Values are rounded to 0.0001 by `r`: print them as a scaled integer, which gives the
     // same text as the shortest round-trip form (`20.05`, `54.0`, `-0.025`) much faster.
     let scaled = v * 1e4;
@@ -77,79 +77,82 @@ fn num(out: &mut String, v: f64) {
         // Debug of f64 is the shortest round-trip form with a `.0` on integers, like serde_json.
         let _ = write!(out, "{v:?}");
     } else {
-        out.push_str("null");
+        out.extend_from_slice(b"null");
     }
+}
+
+/// "00" "01" … "99": numbers are written two digits per division.
+const PAIRS: &[u8; 200] = b"0001020304050607080910111213141516171819\
+2021222324252627282930313233343536373839\
+4041424344454647484950515253545556575859\
+6061626364656667686970717273747576777879\
+8081828384858687888990919293949596979899";
+
+/// The digits of `k` written right to left ending at `buf[i]` (exclusive); the new start.
+fn digits_back(buf: &mut [u8; 32], mut i: usize, mut k: u64) -> usize {
+    while k >= 100 {
+        let r = (k % 100) as usize * 2;
+        k /= 100;
+        i -= 2;
+        buf[i..i + 2].copy_from_slice(&PAIRS[r..r + 2]);
+    }
+    if k >= 10 {
+        let r = k as usize * 2;
+        i -= 2;
+        buf[i..i + 2].copy_from_slice(&PAIRS[r..r + 2]);
+    } else {
+        i -= 1;
+        buf[i] = b'0' + k as u8;
+    }
+    i
 }
 
 /// `n` / 10⁴ as a decimal with at least one fractional digit (`20.05`, `54.0`, `-0.025`).
-fn scaled_num(out: &mut String, n: i64) {
-    {
-        let (int, frac) = ((n / 10_000).unsigned_abs(), (n % 10_000).unsigned_abs());
-        // Built right to left in a stack buffer, pushed once.
-        let mut buf = [0u8; 32];
-        let mut i = buf.len();
-        if frac == 0 {
-            i -= 1;
-            buf[i] = b'0';
-        } else {
-            let mut f = frac;
-            let mut trailing = true;
-            for _ in 0..4 {
-                let d = (f % 10) as u8;
-                f /= 10;
-                if trailing && d == 0 {
-                    continue;
-                }
-                trailing = false;
-                i -= 1;
-                buf[i] = b'0' + d;
-            }
-        }
+fn scaled_num(out: &mut Vec<u8>, n: i64) {
+    let a = n.unsigned_abs();
+    let (int, frac) = (a / 10_000, (a % 10_000) as usize);
+    // Built right to left in a stack buffer, appended once.
+    let mut buf = [0u8; 32];
+    let mut i = buf.len();
+    if frac == 0 {
         i -= 1;
-        buf[i] = b'.';
-        let mut k = int;
-        loop {
-            i -= 1;
-            buf[i] = b'0' + (k % 10) as u8;
-            k /= 10;
-            if k == 0 {
-                break;
-            }
-        }
-        if n < 0 {
-            i -= 1;
-            buf[i] = b'-';
-        }
-        out.push_str(std::str::from_utf8(&buf[i..]).unwrap_or("0"));
+        buf[i] = b'0';
+    } else {
+        let (hi, lo) = (frac / 100 * 2, frac % 100 * 2);
+        let d = [PAIRS[hi], PAIRS[hi + 1], PAIRS[lo], PAIRS[lo + 1]];
+        // Trailing zeros dropped (frac ≠ 0: at least one digit stays).
+        let k = 4 - d.iter().rev().take_while(|&&c| c == b'0').count();
+        i -= k;
+        buf[i..i + k].copy_from_slice(&d[..k]);
     }
+    i -= 1;
+    buf[i] = b'.';
+    i = digits_back(&mut buf, i, int);
+    if n < 0 {
+        i -= 1;
+        buf[i] = b'-';
+    }
+    out.extend_from_slice(&buf[i..]);
 }
 
 /// Decimal digits of `n` (no allocation, no formatter).
-fn uint(out: &mut String, mut n: u64) {
-    let mut buf = [0u8; 20];
-    let mut i = buf.len();
-    loop {
-        i -= 1;
-        buf[i] = b'0' + (n % 10) as u8;
-        n /= 10;
-        if n == 0 {
-            break;
-        }
-    }
-    out.push_str(std::str::from_utf8(&buf[i..]).unwrap_or("0"));
+fn uint(out: &mut Vec<u8>, n: u64) {
+    let mut buf = [0u8; 32];
+    let i = digits_back(&mut buf, 32, n);
+    out.extend_from_slice(&buf[i..]);
 }
 
 /// [`json_str`] of a move's file name: every move of a program carries the same `Arc`, so
 /// the last one found to need no escaping is kept (holding it keeps its address unique).
-fn json_file(out: &mut String, f: &std::sync::Arc<str>) {
+fn json_file(out: &mut Vec<u8>, f: &std::sync::Arc<str>) {
     thread_local! {
         static PLAIN: std::cell::RefCell<Option<std::sync::Arc<str>>> = const { std::cell::RefCell::new(None) };
     }
     let known = PLAIN.with(|c| c.borrow().as_ref().is_some_and(|p| std::sync::Arc::ptr_eq(p, f)));
     if known {
-        out.push('"');
-        out.push_str(f);
-        out.push('"');
+        out.push(b'"');
+        out.extend_from_slice(f.as_bytes());
+        out.push(b'"');
         return;
     }
     if !f.bytes().any(|b| b == b'"' || b == b'\\' || b < 0x20) {
@@ -158,28 +161,28 @@ fn json_file(out: &mut String, f: &std::sync::Arc<str>) {
     json_str(out, f);
 }
 
-fn json_str(out: &mut String, s: &str) {
-    use std::fmt::Write;
-    out.push('"');
+fn json_str(out: &mut Vec<u8>, s: &str) {
+    use std::io::Write;
+    out.push(b'"');
     if !s.bytes().any(|b| b == b'"' || b == b'\\' || b < 0x20) {
-        out.push_str(s);
-        out.push('"');
+        out.extend_from_slice(s.as_bytes());
+        out.push(b'"');
         return;
     }
     for ch in s.chars() {
         match ch {
-            '"' => out.push_str("\\\""),
-            '\\' => out.push_str("\\\\"),
-            '\n' => out.push_str("\\n"),
-            '\r' => out.push_str("\\r"),
-            '\t' => out.push_str("\\t"),
+            '"' => out.extend_from_slice("\\\"".as_bytes()),
+            '\\' => out.extend_from_slice("\\\\".as_bytes()),
+            '\n' => out.extend_from_slice("\\n".as_bytes()),
+            '\r' => out.extend_from_slice("\\r".as_bytes()),
+            '\t' => out.extend_from_slice("\\t".as_bytes()),
             c if (c as u32) < 0x20 => {
                 let _ = write!(out, "\\u{:04x}", c as u32);
             }
-            c => out.push(c),
+            c => out.extend_from_slice(c.encode_utf8(&mut [0; 4]).as_bytes()),
         }
     }
-    out.push('"');
+    out.push(b'"');
 }
 
 fn key_rank(k: &str) -> u8 {
@@ -236,43 +239,44 @@ fn put_feed(o: &mut Obj<'_>, f: &Feed) {
 
 /// The move as a JSON object (no trailing newline), keys in alphabetical order.
 pub fn move_to_json(m: &Move) -> String {
-    let mut s = String::with_capacity(128);
+    let mut s = Vec::with_capacity(128);
     write_json(&mut s, m);
-    s
+    // Only ASCII and whole `&str`s were written: always UTF-8.
+    String::from_utf8(s).unwrap_or_else(|e| String::from_utf8_lossy(e.as_bytes()).into_owned())
 }
 
-/// [`move_to_json`] appended to `out`.
-pub fn write_json(out: &mut String, m: &Move) {
+/// [`move_to_json`] appended to `out` (bytes: numbers are written without UTF-8 checks).
+pub fn write_json(out: &mut Vec<u8>, m: &Move) {
     // Straight lines without Y/C or a cycle tag (nearly every line of a CAM program): keys
     // written in their sorted order directly.
     if let (MoveKind::Rapid { end } | MoveKind::Feed { end, .. }, None) = (&m.kind, &m.tag) {
         if end.y == 0.0 && m.work_offset.y == 0.0 && end.c == 0.0 && m.work_offset.c == 0.0 {
-            out.push('{');
+            out.push(b'{');
             match &m.kind {
                 MoveKind::Feed { feed: Feed::PerMin(v), .. } => {
-                    out.push_str("\"feed\":");
+                    out.extend_from_slice("\"feed\":".as_bytes());
                     num_r(out, *v);
-                    out.push(',');
+                    out.push(b',');
                 }
                 MoveKind::Feed { feed: Feed::PerRev(v), .. } => {
-                    out.push_str("\"feed_per_rev\":");
+                    out.extend_from_slice("\"feed_per_rev\":".as_bytes());
                     num_r(out, *v);
-                    out.push(',');
+                    out.push(b',');
                 }
                 _ => {}
             }
-            out.push_str("\"file\":");
+            out.extend_from_slice("\"file\":".as_bytes());
             json_file(out, &m.src.file);
-            out.push_str(",\"kind\":\"");
-            out.push_str(m.kind.name());
-            out.push_str("\",\"line\":");
+            out.extend_from_slice(",\"kind\":\"".as_bytes());
+            out.extend_from_slice(m.kind.name().as_bytes());
+            out.extend_from_slice("\",\"line\":".as_bytes());
             uint(out, m.src.line as u64);
             let w = work(m, *end);
-            out.push_str(",\"x\":");
+            out.extend_from_slice(",\"x\":".as_bytes());
             num_r(out, w.x * 2.0);
-            out.push_str(",\"z\":");
+            out.extend_from_slice(",\"z\":".as_bytes());
             num_r(out, w.z);
-            out.push('}');
+            out.push(b'}');
             return;
         }
     }
@@ -366,31 +370,31 @@ pub fn write_json(out: &mut String, m: &Move) {
     }
     let ranked = &mut ranked[..fields.len()];
     ranked.sort_unstable();
-    out.push('{');
+    out.push(b'{');
     for (i, &(_, fi)) in ranked.iter().enumerate() {
         let (k, v) = &fields[fi];
         if i > 0 {
-            out.push(',');
+            out.push(b',');
         }
-        out.push('"');
-        out.push_str(k);
-        out.push_str("\":");
+        out.push(b'"');
+        out.extend_from_slice(k.as_bytes());
+        out.extend_from_slice("\":".as_bytes());
         match *v {
             J::Num(x) => num(out, x),
             J::Int(x) => uint(out, x as u64),
-            J::Bool(b) => out.push_str(if b { "true" } else { "false" }),
+            J::Bool(b) => out.extend_from_slice(if b { b"true" } else { b"false" }),
             J::Str(t) => json_str(out, t),
             J::Code(l, x) => json_str(out, &code(l, x)),
             J::Xz(x, z) => {
-                out.push_str("{\"x\":");
+                out.extend_from_slice("{\"x\":".as_bytes());
                 num(out, x);
-                out.push_str(",\"z\":");
+                out.extend_from_slice(",\"z\":".as_bytes());
                 num(out, z);
-                out.push('}');
+                out.push(b'}');
             }
         }
     }
-    out.push('}');
+    out.push(b'}');
 }
 
 fn f4(v: f64) -> String {

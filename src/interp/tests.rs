@@ -202,6 +202,19 @@ fn all_static_errors_reported_before_running() {
     assert_eq!(got, [(2, 5), (4, 10), (5, 7), (6, 10)]);
 }
 
+/// The first pass skips the static check of a block shaped like the last checked one (same
+/// letters, same G/M/T/L/D values): a block that differs only in a value the checks read is
+/// still checked, every error found with its line.
+#[test]
+fn repeated_block_shapes_are_still_checked() {
+    let src = "G01 X1 Z1 F100\nG01 X2 Z2 F100\nG01 X3 Z3 F200\nG00 G01 X1\nG00 G01 X2\n\
+               T0101 X1\nT0101 X2\nT1.5 X3\nM03 S100\nM03 S200\nM03.5 S200\nG07 X1 Z1 F100\n\
+               G01 X1 Y1\nG01 X1 U1\nG04 P2\nG04 P2.5\nG01 X1 Z1 F100\nG20\nM30\n";
+    let e = static_errs(src);
+    let got: Vec<(u32, u32)> = e.iter().map(|a| (a.pos.as_ref().unwrap().line, a.number)).collect();
+    assert_eq!(got, [(4, 10), (5, 10), (8, 7), (11, 7), (12, 10), (13, 9), (14, 9), (16, 7)]);
+}
+
 #[test]
 fn unsupported_codes_are_rejected() {
     // Every code of table 1.1 is implemented now; codes outside it are refused statically.
