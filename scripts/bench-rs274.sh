@@ -77,9 +77,26 @@ measure() {
 # Warm the page cache so that neither pays for reading the file from disk.
 cat "$PROG" "$PROG10" > /dev/null
 
-read -r w_rs c_rs rss_rs < <(measure rs274 rs274 -g "$PROG" /dev/null)
-read -r w_us c_us rss_us < <(measure cncgw "$CNCGW" plan "$PROG" --format jsonl)
-read -r w_in c_in rss_in < <(measure interp "$INTERP" "$PROG")
+# ROUNDS rounds, the three programs one after the other in each (so that a change of load
+# hits all of them alike); each one's median round is reported.
+ROUNDS=${ROUNDS:-3}
+: > "$WORK/rounds"
+for r in $(seq "$ROUNDS"); do
+    echo "rs274 $(measure rs274 rs274 -g "$PROG" /dev/null)" >> "$WORK/rounds"
+    echo "cncgw $(measure cncgw "$CNCGW" plan "$PROG" --format jsonl)" >> "$WORK/rounds"
+    echo "interp $(measure interp "$INTERP" "$PROG")" >> "$WORK/rounds"
+done
+# median NAME → "wall_s cpu_s rss_kb" of the round with the median CPU time
+median() {
+    grep "^$1 " "$WORK/rounds" | sort -k3 -g | awk -v n="$ROUNDS" 'NR == int((n + 1) / 2) { print $2, $3, $4 }'
+}
+echo "CPU seconds per round:" >&2
+for t in rs274 cncgw interp; do
+    echo "  $t: $(grep "^$t " "$WORK/rounds" | awk '{ printf "%s ", $3 }')" >&2
+done
+read -r w_rs c_rs rss_rs < <(median rs274)
+read -r w_us c_us rss_us < <(median cncgw)
+read -r w_in c_in rss_in < <(median interp)
 read -r _ _ rss_rs10 < <(measure rs274_10 rs274 -g "$PROG10" /dev/null)
 read -r _ _ rss_us10 < <(measure cncgw_10 "$CNCGW" plan "$PROG10" --format jsonl)
 
@@ -87,7 +104,7 @@ awk -v b="$BLOCKS" -v wr="$w_rs" -v cr="$c_rs" -v rr="$rss_rs" -v wu="$w_us" -v 
     -v rr10="$rss_rs10" -v ru10="$rss_us10" -v n10="$((N10 + 3))" -v wi="$w_in" -v ci="$c_in" -v ri="$rss_in" 'BEGIN {
     if (wi <= 0) wi = 0.01; if (ci <= 0) ci = 0.01;
     if (wr <= 0) wr = 0.01; if (wu <= 0) wu = 0.01; if (cr <= 0) cr = 0.01; if (cu <= 0) cu = 0.01;
-    printf "program: %d blocks of G1 X Z F (output to /dev/null; cncgw: plan --format jsonl)\n", b;
+    printf "program: %d blocks of G1 X Z F (output to /dev/null; cncgw: plan --format jsonl); median of the rounds\n", b;
     printf "%-12s %14s %14s %8s %8s %14s %14s\n", "", "blocks/s cpu", "blocks/s wall", "cpu s", "wall s", "RSS MB", "RSS MB (1/10)";
     printf "%-12s %14.0f %14.0f %8.2f %8.2f %14.1f %14.1f\n", "rs274 -g", b / cr, b / wr, cr, wr, rr / 1024, rr10 / 1024;
     printf "%-12s %14.0f %14.0f %8.2f %8.2f %14.1f %14.1f\n", "cncgw plan", b / cu, b / wu, cu, wu, ru / 1024, ru10 / 1024;

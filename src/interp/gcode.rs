@@ -254,6 +254,34 @@ impl Decoded {
             })
     }
 
+    /// [`Decoded::fill`] of `words` when [`Decoded::same_checks`] says they are shaped like
+    /// the words `self` was last filled from: the codes, groups and letters stay, only the
+    /// values and columns change, so the result is the one `fill` would give.
+    fn refill(&mut self, words: &[(char, bool, Val)]) {
+        let (mut gi, mut mi) = (0, 0);
+        for &(l, _, val) in words {
+            match l {
+                'G' => {
+                    if let Some(e) = self.g.items.get_mut(gi) {
+                        e.1 = val.col;
+                    }
+                    gi += 1;
+                }
+                'M' => {
+                    if let Some(e) = self.m.items.get_mut(mi) {
+                        e.1 = val.col;
+                    }
+                    mi += 1;
+                }
+                _ => {
+                    if let Some(a) = self.addr.get_mut((l as usize).wrapping_sub('A' as usize)) {
+                        *a = val;
+                    }
+                }
+            }
+        }
+    }
+
     /// [`Decoded::build`] into `self` (emptied first), so that a decoder kept across blocks
     /// is neither initialised nor copied per block.
     pub fn fill(&mut self, words: &[(char, bool, Val)], has_y: bool, has_c: bool) -> Result<(), DErr> {
@@ -389,5 +417,105 @@ impl Decoded {
             }
         }
         Ok(())
+    }
+}
+
+/// A [`Decoded`] kept across blocks with the words it was last filled from successfully: a
+/// block shaped like those ([`Decoded::same_checks`]; nearly every block of a CAM program
+/// is shaped like the one before) is decoded by updating its values only.
+pub struct BlockDecoder {
+    pub d: Decoded,
+    words: [(char, bool, Val); crate::interp::parse::FAST_WORDS],
+    ok_len: Option<usize>,
+}
+
+impl Default for BlockDecoder {
+    fn default() -> Self {
+        BlockDecoder { d: Decoded::default(), words: [crate::interp::parse::NO_WORD; crate::interp::parse::FAST_WORDS], ok_len: None }
+    }
+}
+
+impl BlockDecoder {
+    /// [`Decoded::fill`] of `words` into `self.d`.
+    pub fn decode(&mut self, words: &[(char, bool, Val)], has_y: bool, has_c: bool) -> Result<(), DErr> {
+        if self.ok_len.is_some_and(|k| Decoded::same_checks(words, &self.words[..k])) {
+            self.d.refill(words);
+            return Ok(());
+        }
+        let r = self.d.fill(words, has_y, has_c);
+        self.ok_len = None;
+        if r.is_ok() {
+            if let Some(w) = self.words.get_mut(..words.len()) {
+                w.copy_from_slice(words);
+                self.ok_len = Some(words.len());
+            }
+        }
+        r
+    }
+
+    /// `d` decoded some other way: the next block is filled in full.
+    pub fn set(&mut self, d: Decoded) {
+        self.d = d;
+        self.ok_len = None;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    /// What a decoded block says (the values of absent letters are not part of it).
+    fn view(d: &Decoded) -> String {
+        let letters: Vec<(char, Option<Val>)> = d.letters().map(|l| (l, d.get(l))).collect();
+        format!("{:?} {:?} {:?} {:?} {:?}", &d.g[..], &d.m[..], letters, d.comma_c, d.comma_r)
+    }
+
+    fn word() -> impl Strategy<Value = (char, bool, Val)> {
+        (
+            prop::sample::select(vec!['G', 'G', 'M', 'T', 'X', 'Z', 'U', 'W', 'F', 'P', 'D', 'L', 'J', 'C']),
+            prop::sample::select(vec![0.0, 1.0, 4.0, 84.0, 98.0, 99.0, 2.5, 101.0, -3.0]),
+            any::<bool>(),
+            1u32..40,
+        )
+            .prop_map(|(l, v, decimal, col)| (l, false, Val { v, decimal, col, literal: true }))
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(2000))]
+        /// Decoding a stream of blocks through one `BlockDecoder` (which only updates the
+        /// values of a block shaped like the last) gives, block for block, what a fresh
+        /// `Decoded::build` gives: the same decode or the same error.
+        #[test]
+        fn block_decoder_equals_a_fresh_decode(blocks in prop::collection::vec(
+            prop::collection::vec(word(), 1..5), 1..12).prop_flat_map(|b| {
+                // Repeat blocks with new values so that same-shape blocks follow each other.
+                let n = b.len();
+                (Just(b), prop::collection::vec((0..n, 0.0f64..500.0, 1u32..40), 0..12))
+            })
+        ) {
+            let (mut stream, edits) = blocks;
+            for (k, v, col) in edits {
+                let mut b = stream[k].clone();
+                for w in b.iter_mut().filter(|w| matches!(w.0, 'X' | 'Z' | 'U' | 'W' | 'F' | 'C')) {
+                    w.2.v = v;
+                    w.2.col = col;
+                }
+                if let Some(w) = b.first_mut() {
+                    w.2.col = col;
+                }
+                stream.insert(k + 1, b);
+            }
+            let mut bd = BlockDecoder::default();
+            for words in &stream {
+                let fresh = Decoded::build(words, false, true);
+                let got = bd.decode(words, false, true);
+                match (&fresh, &got) {
+                    (Ok(f), Ok(())) => prop_assert_eq!(view(f), view(&bd.d), "{:?}", words),
+                    (Err(a), Err(b)) => prop_assert_eq!(a, b),
+                    _ => prop_assert!(false, "{:?}: fresh {:?}, kept {:?}", words, fresh.as_ref().map(view), got),
+                }
+            }
+        }
     }
 }

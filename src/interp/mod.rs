@@ -321,7 +321,7 @@ pub struct Interpreter {
     /// The words and the decoded block of the fast path, kept across blocks (not initialised
     /// or copied per block).
     fast_ev: [parse::FastWord; parse::FAST_WORDS],
-    dec: Option<Box<Decoded>>,
+    dec: Option<Box<gcode::BlockDecoder>>,
     stack: Vec<Frame>,
     vars: Vars,
     st: Modal,
@@ -576,9 +576,6 @@ impl Interpreter {
         let mut calls: Vec<(Loc, u32, u32)> = Vec::new(); // line, program, col
         let mut buf = std::mem::take(&mut self.line_buf);
         let mut ev = [parse::NO_WORD; parse::FAST_WORDS];
-        // The words of the last block whose static check passed (`dec` holds its decode).
-        let mut checked = [parse::NO_WORD; parse::FAST_WORDS];
-        let mut checked_len: Option<usize> = None;
         let mut dec = self.dec.take().unwrap_or_default();
         let mut next = Loc::default();
         while next.off < self.sources[si].len {
@@ -664,19 +661,10 @@ impl Interpreter {
             }
             let decoded = match (fast, stmt) {
                 (Some(fb), _) if fb.len > 0 => {
-                    let words = &ev[..fb.len];
-                    if checked_len.is_some_and(|k| gcode::Decoded::same_checks(words, &checked[..k])) {
-                        Some(Ok(()))
-                    } else {
-                        let r = dec.fill(words, self.has_y, self.has_c).map_err(|(n, col, m)| col_alarm(n, col, m));
-                        checked_len = r.is_ok().then_some(fb.len);
-                        checked[..fb.len].copy_from_slice(words);
-                        Some(r)
-                    }
+                    Some(dec.decode(&ev[..fb.len], self.has_y, self.has_c).map_err(|(n, col, m)| col_alarm(n, col, m)))
                 }
                 (_, Some(Stmt::Nc(words))) if words.iter().all(|w| w.value.is_literal()) => {
-                    checked_len = None;
-                    Some(self.decode_words(words, &Vars::new()).map(|d| *dec = d))
+                    Some(self.decode_words(words, &Vars::new()).map(|d| dec.set(d)))
                 }
                 _ => None,
             };
@@ -686,7 +674,7 @@ impl Interpreter {
                     errors.push(a.at(at(col)).with_block(String::from_utf8_lossy(&buf).trim_end()));
                 }
                 Some(Ok(())) => {
-                    let d = &dec;
+                    let d = &dec.d;
                     if let Some(pv) = d.get('P') {
                         if d.m.iter().any(|m| m.0 == 98) {
                             let v = pv.v.round() as u64;
@@ -954,11 +942,11 @@ impl Interpreter {
                 return Ok(());
             }
             let mut d = self.dec.take().unwrap_or_default();
-            let r = match d.fill(&self.fast_ev[..fb.len], self.has_y, self.has_c) {
+            let r = match d.decode(&self.fast_ev[..fb.len], self.has_y, self.has_c) {
                 Err((n, col, m)) => Err(Alarm::new(n, m).at(SrcPos::new(file, line_no, col)).with_block(text().trim_end())),
                 Ok(()) => {
                     let src = SrcPos::new(file, line_no, fb.col);
-                    self.exec(&d, &src).map_err(|(n, col, m)| {
+                    self.exec(&d.d, &src).map_err(|(n, col, m)| {
                         Alarm::new(n, m).at(SrcPos { col: col.unwrap_or(fb.col), ..src.clone() }).with_block(text().trim_end())
                     })
                 }
