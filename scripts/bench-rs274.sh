@@ -38,9 +38,10 @@ if ! command -v rs274 >/dev/null 2>&1; then
 fi
 [ -x /usr/bin/time ] || { echo "/usr/bin/time (package 'time') is needed for peak RSS" >&2; exit 1; }
 
-echo "building cncgw (release)…" >&2
-(cd "$ROOT" && cargo build --release -q --bin cncgw --example interp_throughput)
+echo "building cncgw (release, and production = release + fat LTO)…" >&2
+(cd "$ROOT" && cargo build --release -q --bin cncgw --example interp_throughput && cargo build --profile production -q --bin cncgw)
 CNCGW="$ROOT/target/release/cncgw"
+CNCGW_LTO="$ROOT/target/production/cncgw"
 INTERP="$ROOT/target/release/examples/interp_throughput"
 
 gen() { # gen BLOCKS FILE
@@ -84,6 +85,7 @@ ROUNDS=${ROUNDS:-3}
 for r in $(seq "$ROUNDS"); do
     echo "rs274 $(measure rs274 rs274 -g "$PROG" /dev/null)" >> "$WORK/rounds"
     echo "cncgw $(measure cncgw "$CNCGW" plan "$PROG" --format jsonl)" >> "$WORK/rounds"
+    echo "cncgwp $(measure cncgwp "$CNCGW_LTO" plan "$PROG" --format jsonl)" >> "$WORK/rounds"
     echo "interp $(measure interp "$INTERP" "$PROG")" >> "$WORK/rounds"
 done
 # median NAME → "wall_s cpu_s rss_kb" of the round with the median CPU time
@@ -91,26 +93,30 @@ median() {
     grep "^$1 " "$WORK/rounds" | sort -k3 -g | awk -v n="$ROUNDS" 'NR == int((n + 1) / 2) { print $2, $3, $4 }'
 }
 echo "CPU seconds per round:" >&2
-for t in rs274 cncgw interp; do
+for t in rs274 cncgw cncgwp interp; do
     echo "  $t: $(grep "^$t " "$WORK/rounds" | awk '{ printf "%s ", $3 }')" >&2
 done
 read -r w_rs c_rs rss_rs < <(median rs274)
 read -r w_us c_us rss_us < <(median cncgw)
+read -r w_up c_up rss_up < <(median cncgwp)
 read -r w_in c_in rss_in < <(median interp)
 read -r _ _ rss_rs10 < <(measure rs274_10 rs274 -g "$PROG10" /dev/null)
 read -r _ _ rss_us10 < <(measure cncgw_10 "$CNCGW" plan "$PROG10" --format jsonl)
 
 awk -v b="$BLOCKS" -v wr="$w_rs" -v cr="$c_rs" -v rr="$rss_rs" -v wu="$w_us" -v cu="$c_us" -v ru="$rss_us" \
-    -v rr10="$rss_rs10" -v ru10="$rss_us10" -v n10="$((N10 + 3))" -v wi="$w_in" -v ci="$c_in" -v ri="$rss_in" 'BEGIN {
+    -v rr10="$rss_rs10" -v ru10="$rss_us10" -v wp="$w_up" -v cp="$c_up" -v rp="$rss_up" -v n10="$((N10 + 3))" -v wi="$w_in" -v ci="$c_in" -v ri="$rss_in" 'BEGIN {
     if (wi <= 0) wi = 0.01; if (ci <= 0) ci = 0.01;
     if (wr <= 0) wr = 0.01; if (wu <= 0) wu = 0.01; if (cr <= 0) cr = 0.01; if (cu <= 0) cu = 0.01;
     printf "program: %d blocks of G1 X Z F (output to /dev/null; cncgw: plan --format jsonl); median of the rounds\n", b;
     printf "%-12s %14s %14s %8s %8s %14s %14s\n", "", "blocks/s cpu", "blocks/s wall", "cpu s", "wall s", "RSS MB", "RSS MB (1/10)";
     printf "%-12s %14.0f %14.0f %8.2f %8.2f %14.1f %14.1f\n", "rs274 -g", b / cr, b / wr, cr, wr, rr / 1024, rr10 / 1024;
+    if (wp <= 0) wp = 0.01; if (cp <= 0) cp = 0.01;
     printf "%-12s %14.0f %14.0f %8.2f %8.2f %14.1f %14.1f\n", "cncgw plan", b / cu, b / wu, cu, wu, ru / 1024, ru10 / 1024;
+    printf "%-12s %14.0f %14.0f %8.2f %8.2f %14.1f\n", "  production", b / cp, b / wp, cp, wp, rp / 1024;
     printf "%-12s %14.0f %14.0f %8.2f %8.2f %14.1f\n", "interpreter", b / ci, b / wi, ci, wi, ri / 1024;
     printf "(interpreter = file bytes to canonical moves without output: examples/interp_throughput.rs)\n";
-    printf "throughput ratio cncgw plan/rs274: %.1fx by CPU time, %.1fx by wall time (goal >= 10x)\n", cr / cu, wr / wu;
+    printf "throughput ratio cncgw plan/rs274: %.1fx by CPU time, %.1fx by wall time (goal >= 10x; release build)\n", cr / cu, wr / wu;
+    printf "throughput ratio cncgw plan/rs274: %.1fx by CPU time, %.1fx by wall time (production build: release + fat LTO)\n", cr / cp, wr / wp;
     printf "throughput ratio interpreter/rs274: %.1fx by CPU time, %.1fx by wall time\n", cr / ci, wr / wi;
     printf "peak RSS: cncgw %.1f MB for %d blocks, %.1f MB for %d blocks\n", ru / 1024, b, ru10 / 1024, n10;
 }'
