@@ -7,13 +7,15 @@
 #
 #   scripts/bench-rs274.sh [BLOCKS]      (default 1000000)
 #
-# Measured 2026-11-22 on this 2-core machine shared with other builds (load 8–16), so rs274
-# ran at ≈ 119 000 blocks/s rather than the ≈ 280 000 measured on a quiet machine:
+# Measured 2026-11-22 on this 2-core machine (load ≈ 1.1; rs274 runs at 93 000–104 000
+# blocks/s here, not the ≈ 280 000 the issue quotes), median of 3 interleaved rounds:
 #                 blocks/s (CPU)  CPU s   peak RSS 1M / 100k blocks
-#   rs274 -g          119 190      8.39   16.0 / 16.1 MB
-#   cncgw plan        990 102      1.01    6.0 /  5.9 MB   → 8.3× (7.6× by wall time)
-#   interpreter     1 234 572      0.81    3.2 MB          → 10.4× (file bytes → moves, no output)
-# (before streaming: cncgw plan 3.7× by CPU time, 36.5 MB peak RSS growing with the length).
+#   rs274 -g           93 458     10.70   16.0 / 15.8 MB
+#   cncgw plan      1 000 003      1.00    6.0 /  6.0 MB   → 10.7× (10.6× by wall time)
+#     production    1 265 827      0.79    5.2 MB          → 13.5× (release + fat LTO)
+#   interpreter     1 428 576      0.70    3.3 MB          → 15.3× (file bytes → moves, no output)
+# (before streaming: cncgw plan 3.7× by CPU time, 36.5 MB peak RSS growing with the length;
+# before the block decoder's memo and the byte parser's rewrite: 8.3×.)
 #
 # Installs Debian's linuxcnc-uspace (which ships /usr/bin/rs274) when rs274 is missing; never
 # part of the test suite. Both programs write their output to /dev/null. `G98` in the header
