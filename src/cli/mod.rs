@@ -201,7 +201,8 @@ pub enum Command {
         #[command(flatten)]
         machine: MachineArgs,
     },
-    /// A table of every configured drive, read over SDO: statusword and CiA 402 state, mode
+    /// A table of every configured drive, read over SDO (or the Modbus registers of its
+    /// map): statusword and CiA 402 state, mode
     /// (0x6061), position, velocity and following error in machine units, and the bus load
     /// this tool sees. Refreshed in place on a terminal, one table after another otherwise.
     /// Read-only.
@@ -367,11 +368,13 @@ pub enum DriveCmd {
         #[arg(long)]
         json: bool,
     },
-    /// Walk a drive through the CiA 402 state machine to Operation Enabled (over SDO: 0x6041
-    /// read, 0x6040 written; a fault is reset on the way) and report the state reached. The
+    /// Walk a drive through the CiA 402 state machine to Operation Enabled (CANopen: over
+    /// SDO, 0x6041 read and 0x6040 written; Modbus: the statusword and controlword registers
+    /// of the drive's map; a fault is reset on the way) and report the state reached. The
     /// drive holds its position. Needs --yes on a real bus.
     ///
-    /// Example: `cncgw drive enable 1`, `cncgw drive enable 2 --bus can0 --yes`
+    /// Example: `cncgw drive enable 1`, `cncgw drive enable 2 --bus can0 --yes`,
+    /// `cncgw drive enable 2 --bus modbus-tcp://192.168.1.20:502 --config M.toml --yes`
     Enable {
         #[arg(value_parser = diag::parse_node)]
         node: u8,
