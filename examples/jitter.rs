@@ -3,7 +3,14 @@
 //! wake-up of the cycle thread is timed against its deadline.
 //!
 //! Run: `cargo run --release --example jitter -- [--seconds 60] [--cycle-ms 2] [--mode inproc|socketcand|both]
-//!       [--rt-priority N] [--cpu N] [--mlock] [--strict]`
+//!       [--rt-priority N] [--cpu N] [--mlock] [--strict]
+//!       [--max-sleep-us US] [--spin-us US] [--cpu-dma-latency] [--timer-slack-ns NS] [--compare]`
+//!
+//! `--max-sleep-us`, `--spin-us`, `--cpu-dma-latency`, `--timer-slack-ns` are the `[rt]`
+//! keys of the same names (`cncgw_bus::WakeStrategy`, `motion::rt`). `--compare` runs each
+//! case twice back to back, first without those four (priority, CPU and mlock kept), then
+//! with them, so that both see the same load. Each run is on a fresh thread, so that one
+//! run's thread settings do not carry over to the next.
 //!
 //! By default the following-error windows are 720° (spindle) and 5 mm (axes) and the feedback
 //! timeout 100 ms (as tests/realtime_inproc.rs does for the spindle), so that a stall on a
@@ -100,6 +107,13 @@ struct Figures {
 }
 
 fn run(bus: Box<dyn CanBus>, cycle_ms: f64, seconds: f64, rt: &RtOptions) -> Figures {
+    let rt = rt.clone();
+    let r = std::thread::spawn(move || run_on_this_thread(bus, cycle_ms, seconds, &rt)).join();
+    cncgw::motion::rt::release_cpu_dma_latency();
+    r.unwrap_or_else(|_| Figures { summary: RunSummary::default(), late: vec![], jitter: vec![], result: Err("the run's thread panicked".into()) })
+}
+
+fn run_on_this_thread(bus: Box<dyn CanBus>, cycle_ms: f64, seconds: f64, rt: &RtOptions) -> Figures {
     let mut cfg = MachineConfig::embedded();
     cfg.machine.cycle_ms = cycle_ms;
     if TOLERANT.load(Ordering::Relaxed) {
@@ -115,7 +129,7 @@ fn run(bus: Box<dyn CanBus>, cycle_ms: f64, seconds: f64, rt: &RtOptions) -> Fig
     let cycles = (seconds * 1000.0 / cycle_ms) as usize + 20_000;
     let armed = Arc::new(AtomicBool::new(false));
     let mut clock = TimedClock {
-        inner: RealClock::new(),
+        inner: RealClock::with_wake(rt.wake()),
         period,
         armed: armed.clone(),
         last: None,
@@ -147,7 +161,7 @@ fn run(bus: Box<dyn CanBus>, cycle_ms: f64, seconds: f64, rt: &RtOptions) -> Fig
             for s in cncgw::motion::rt::apply(rt) {
                 match s {
                     RtStep::Done(m) => eprintln!("  {m}"),
-                    RtStep::Refused(m) => eprintln!("  warning: {m}"),
+                    RtStep::Refused(m) | RtStep::Warn(m) => eprintln!("  warning: {m}"),
                 }
             }
             armed.store(true, Ordering::Relaxed);
@@ -162,7 +176,7 @@ fn run(bus: Box<dyn CanBus>, cycle_ms: f64, seconds: f64, rt: &RtOptions) -> Fig
 fn report(what: &str, cycle_ms: f64, mut f: Figures) {
     let late_t = f.late.iter().filter(|&&l| l >= (cycle_ms * 1e6) as u64).count();
     println!(
-        "{what:<11} {cycle_ms:>4} ms {:>7.1} s {:>8} cycles | late p50 {:>7.1} p99 {:>7.1} max {:>8.1} µs | period jitter p50 {:>7.1} p99 {:>7.1} max {:>8.1} µs | missed {} ({} wake-ups ≥ 1 period late){}",
+        "{what:<36} {cycle_ms:>4} ms {:>7.1} s {:>8} cycles | late p50 {:>7.1} p99 {:>7.1} max {:>8.1} µs | period jitter p50 {:>7.1} p99 {:>7.1} max {:>8.1} µs | missed {} ({} wake-ups ≥ 1 period late){}",
         f.summary.cycles as f64 * cycle_ms / 1000.0,
         f.summary.cycles,
         pct(&mut f.late, 0.5),
@@ -186,6 +200,7 @@ fn main() {
     let mut cycles: Vec<f64> = vec![2.0, 1.0];
     let mut mode = String::from("both");
     let mut rt = RtOptions::default();
+    let mut compare = false;
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         let mut val = || args.next().unwrap_or_default();
@@ -197,6 +212,11 @@ fn main() {
             "--cpu" => rt.cpu = val().parse().ok(),
             "--mlock" => rt.mlock = true,
             "--strict" => TOLERANT.store(false, Ordering::Relaxed),
+            "--max-sleep-us" => rt.max_sleep_us = val().parse().ok(),
+            "--spin-us" => rt.spin_us = val().parse().ok(),
+            "--cpu-dma-latency" => rt.cpu_dma_latency = true,
+            "--timer-slack-ns" => rt.timer_slack_ns = val().parse().ok(),
+            "--compare" => compare = true,
             other => {
                 eprintln!("unknown argument {other}; see the doc comment of examples/jitter.rs");
                 std::process::exit(2);
@@ -210,7 +230,43 @@ fn main() {
         load.trim(),
         if TOLERANT.load(Ordering::Relaxed) { "; shared-host tolerances (following-error windows 720° / 5 mm, feedback timeout 100 ms)" } else { "" }
     );
+    let plain = RtOptions { max_sleep_us: None, spin_us: None, cpu_dma_latency: false, timer_slack_ns: None, ..rt.clone() };
+    let variants: Vec<(String, RtOptions)> = if compare {
+        vec![(String::new(), plain), (format!(" {}", wake_label(&rt)), rt.clone())]
+    } else {
+        vec![(if rt == plain { String::new() } else { format!(" {}", wake_label(&rt)) }, rt.clone())]
+    };
     for &ms in &cycles {
+        for (label, rt) in &variants {
+            run_case(&mode, ms, seconds, label, rt);
+        }
+    }
+}
+
+/// The wait options of `rt` in a few words, for the report line.
+fn wake_label(rt: &RtOptions) -> String {
+    let mut l = Vec::new();
+    if let Some(m) = rt.max_sleep_us {
+        l.push(format!("sleep≤{m}µs"));
+    }
+    if let Some(s) = rt.spin_us {
+        l.push(format!("spin{s}µs"));
+    }
+    if rt.cpu_dma_latency {
+        l.push("qos0".into());
+    }
+    if let Some(n) = rt.timer_slack_ns {
+        l.push(format!("slack{n}ns"));
+    }
+    if l.is_empty() {
+        "plain".into()
+    } else {
+        format!("[{}]", l.join(","))
+    }
+}
+
+fn run_case(mode: &str, ms: f64, seconds: f64, label: &str, rt: &RtOptions) {
+    {
         if mode == "inproc" || mode == "both" {
             let wire = InprocBus::new();
             let stop = Arc::new(AtomicBool::new(false));
@@ -219,10 +275,10 @@ fn main() {
             let sim = std::thread::spawn(move || {
                 sim_drives::run_realtime(sim_bus, sim_drives::SimConfig::from_machine_toml(EMBEDDED_LATHE).unwrap(), sim_stop)
             });
-            let f = run(Box::new(wire.endpoint()), ms, seconds, &rt);
+            let f = run(Box::new(wire.endpoint()), ms, seconds, rt);
             stop.store(true, Ordering::Relaxed);
             let _ = sim.join();
-            report("in-process", ms, f);
+            report(&format!("in-process{label}"), ms, f);
         }
         if mode == "socketcand" || mode == "both" {
             let exe = std::env::current_exe().ok();
@@ -232,7 +288,7 @@ fn main() {
                 .filter(|p| p.exists());
             let Some(sim) = sim else {
                 eprintln!("socketcand: no sim-drives binary next to this example; `cargo build --release --bins` first");
-                continue;
+                return;
             };
             let port = 29_600 + (std::process::id() % 300) as u16;
             let addr = format!("127.0.0.1:{port}");
@@ -240,7 +296,7 @@ fn main() {
                 Ok(c) => c,
                 Err(e) => {
                     eprintln!("cannot start {}: {e}", sim.display());
-                    continue;
+                    return;
                 }
             };
             let mut bus = None;
@@ -252,7 +308,7 @@ fn main() {
                 }
             }
             match bus {
-                Some(b) => report("socketcand", ms, run(Box::new(b), ms, seconds, &rt)),
+                Some(b) => report(&format!("socketcand{label}"), ms, run(Box::new(b), ms, seconds, rt)),
                 None => eprintln!("socketcand: cannot connect to sim-drives at {addr}"),
             }
             let _ = child.kill();
