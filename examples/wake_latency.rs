@@ -141,6 +141,14 @@ fn pct(v: &mut [u64], p: f64) -> f64 {
     v[((v.len() - 1) as f64 * p).round() as usize] as f64 / 1000.0
 }
 
+/// (steal, total) jiffies of all CPUs from /proc/stat: time the host ran something else
+/// while this VM's vCPUs wanted to run.
+fn steal_jiffies() -> (u64, u64) {
+    let stat = std::fs::read_to_string("/proc/stat").unwrap_or_default();
+    let v: Vec<u64> = stat.lines().next().unwrap_or("").split_whitespace().skip(1).filter_map(|x| x.parse().ok()).collect();
+    (v.get(7).copied().unwrap_or(0), v.iter().take(8).sum())
+}
+
 fn set_fifo(prio: i32) -> bool {
     let param = libc::sched_param { sched_priority: prio };
     let policy = if prio > 0 { libc::SCHED_FIFO } else { libc::SCHED_OTHER };
@@ -201,6 +209,7 @@ fn main() {
     let tfd = unsafe { libc::timerfd_create(libc::CLOCK_MONOTONIC, 0) };
     let w = Waiter { tfd };
     let mut stats: Vec<Stats> = variants.iter().map(|_| Stats { late: Vec::with_capacity(rounds * per_block), ..Default::default() }).collect();
+    let steal0 = steal_jiffies();
     let mut qos_note = None;
     let mut fifo_note = None;
     for _ in 0..rounds {
@@ -262,6 +271,13 @@ fn main() {
             drop(qos);
         }
     }
+    let steal1 = steal_jiffies();
+    let load = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
+    println!(
+        "after: load average {}; steal {:.1} % of all CPU time during the run",
+        load.trim(),
+        100.0 * (steal1.0 - steal0.0) as f64 / (steal1.1 - steal0.1).max(1) as f64
+    );
     for n in [qos_note, fifo_note].into_iter().flatten() {
         println!("note: {n}");
     }
