@@ -104,13 +104,31 @@ struct Figures {
     late: Vec<u64>,
     jitter: Vec<u64>,
     result: Result<(), String>,
+    /// Host steal time during the run, ms (both vCPUs).
+    steal_ms: u64,
+}
+
+/// Steal time of all CPUs so far, ms (/proc/stat, USER_HZ = 100): time the host ran
+/// something else while this VM's vCPUs wanted to run. 0 on bare metal.
+fn steal_ms() -> u64 {
+    let stat = std::fs::read_to_string("/proc/stat").unwrap_or_default();
+    stat.lines().next().and_then(|l| l.split_whitespace().nth(8)).and_then(|v| v.parse::<u64>().ok()).unwrap_or(0) * 10
 }
 
 fn run(bus: Box<dyn CanBus>, cycle_ms: f64, seconds: f64, rt: &RtOptions) -> Figures {
     let rt = rt.clone();
+    let steal0 = steal_ms();
     let r = std::thread::spawn(move || run_on_this_thread(bus, cycle_ms, seconds, &rt)).join();
     cncgw::motion::rt::release_cpu_dma_latency();
-    r.unwrap_or_else(|_| Figures { summary: RunSummary::default(), late: vec![], jitter: vec![], result: Err("the run's thread panicked".into()) })
+    let mut f = r.unwrap_or_else(|_| Figures {
+        summary: RunSummary::default(),
+        late: vec![],
+        jitter: vec![],
+        result: Err("the run's thread panicked".into()),
+        steal_ms: 0,
+    });
+    f.steal_ms = steal_ms().saturating_sub(steal0);
+    f
 }
 
 fn run_on_this_thread(bus: Box<dyn CanBus>, cycle_ms: f64, seconds: f64, rt: &RtOptions) -> Figures {
@@ -139,7 +157,7 @@ fn run_on_this_thread(bus: Box<dyn CanBus>, cycle_ms: f64, seconds: f64, rt: &Rt
     let mut interp = match Interpreter::from_source("jitter.nc", &program(seconds), &cfg) {
         Ok(i) => i,
         Err(a) => {
-            return Figures { summary: RunSummary::default(), late: vec![], jitter: vec![], result: Err(format!("{a:?}")) }
+            return Figures { summary: RunSummary::default(), late: vec![], jitter: vec![], result: Err(format!("{a:?}")), steal_ms: 0 }
         }
     };
     let mut master = CanOpenMaster::new(bus, &cfg);
@@ -170,13 +188,13 @@ fn run_on_this_thread(bus: Box<dyn CanBus>, cycle_ms: f64, seconds: f64, rt: &Rt
         lp.finish();
         r
     };
-    Figures { summary, late: clock.late, jitter: clock.jitter, result: r.map_err(|a| a.to_string()) }
+    Figures { summary, late: clock.late, jitter: clock.jitter, result: r.map_err(|a| a.to_string()), steal_ms: 0 }
 }
 
 fn report(what: &str, cycle_ms: f64, mut f: Figures) {
     let late_t = f.late.iter().filter(|&&l| l >= (cycle_ms * 1e6) as u64).count();
     println!(
-        "{what:<36} {cycle_ms:>4} ms {:>7.1} s {:>8} cycles | late p50 {:>7.1} p99 {:>7.1} max {:>8.1} µs | period jitter p50 {:>7.1} p99 {:>7.1} max {:>8.1} µs | missed {} ({} wake-ups ≥ 1 period late){}",
+        "{what:<36} {cycle_ms:>4} ms {:>7.1} s {:>8} cycles | late p50 {:>7.1} p99 {:>7.1} max {:>8.1} µs | period jitter p50 {:>7.1} p99 {:>7.1} max {:>8.1} µs | missed {} ({} wake-ups ≥ 1 period late) | steal {} ms{}",
         f.summary.cycles as f64 * cycle_ms / 1000.0,
         f.summary.cycles,
         pct(&mut f.late, 0.5),
@@ -187,6 +205,7 @@ fn report(what: &str, cycle_ms: f64, mut f: Figures) {
         pct(&mut f.jitter, 1.0),
         f.summary.overruns,
         late_t,
+        f.steal_ms,
         match &f.result {
             Ok(()) if f.summary.at_program_end() => String::new(),
             Ok(()) => " [not at the program end]".into(),
