@@ -169,6 +169,8 @@ fn run_on_this_thread(bus: Box<dyn CanBus>, cycle_ms: f64, seconds: f64, rt: &Rt
     let mut summary = RunSummary::default();
     let r = {
         let mut lp = CycleLoop::new(&mut master, &mut clock, Limits::from_config(&cfg), spindle, period);
+        // As `cncgw run`: the watchdog limits from the config (relaxed above unless --strict).
+        lp.set_watchdog(cncgw::motion::cycle::Watchdog::from_config(&cfg));
         let r = lp.start(&mut summary).and_then(|start| {
             interp.set_start_position(Pos { x: start[AX_X], y: start[AX_Y], z: start[AX_Z], c: start[AX_S] });
             let (tx, rx) = std::sync::mpsc::sync_channel(64);
