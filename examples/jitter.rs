@@ -49,7 +49,7 @@
 //! yet apply its relaxed watchdog then).
 //!
 //! Sleeping in 100 µs steps cuts the typical lateness from 30–60 µs to 5–8 µs and the p99
-//! period jitter 2–7× in 11 of 12 pairs: p99 ≤ 100 µs in 5 of 6 runs at 1 ms and 2 of 6 at 2 ms;
+//! period jitter 1.5–7× in 11 of 12 pairs: p99 ≤ 100 µs in 5 of 6 runs at 1 ms and 2 of 6 at 2 ms;
 //! plain sleeping reached it in none. No configuration avoided missed cycles: every run had
 //! 17–140, each a stall of 5–38 ms while the host ran something else (steal), which the guest
 //! cannot prevent. At 2 ms the same disturbances per second are twice the share of the cycles,
