@@ -46,12 +46,14 @@
 //!
 //! A: load 0.10 → 0.98 (quiet guest); B: 2.02 → 0.15; C: 2.04 → 1.45 (another engineer
 //! compiling). ¹ stopped after 41 s by the cycle watchdog (a 38 ms stall; the example did not
-//! yet apply its relaxed watchdog then).
+//! yet apply its relaxed watchdog then). A fourth round at 1 ms only (`--cycle-ms 1`, load
+//! 1.80 → 0.20, steal 210–260 ms per run): in-process 165 / 64 / 28 → 59 / 12 / 4.7,
+//! socketcand 154 / 60 / 23 → 72 / 39 / 4.8.
 //!
-//! Sleeping in 100 µs steps cuts the typical lateness from 30–60 µs to 5–8 µs and the p99
-//! period jitter 1.5–7× in 11 of 12 pairs: p99 ≤ 100 µs in 5 of 6 runs at 1 ms and 2 of 6 at 2 ms;
-//! plain sleeping reached it in none. No configuration avoided missed cycles: every run had
-//! 17–140, each a stall of 5–38 ms while the host ran something else (steal), which the guest
+//! Sleeping in 100 µs steps cuts the typical lateness from 25–60 µs to 5–8 µs and the p99
+//! period jitter 1.5–7× in 13 of 14 pairs: p99 ≤ 100 µs in 7 of 8 runs at 1 ms and 2 of 6 at
+//! 2 ms; plain sleeping reached it in none. No configuration avoided missed cycles: every run had
+//! 12–140, each a stall of 5–38 ms while the host ran something else (steal), which the guest
 //! cannot prevent. At 2 ms the same disturbances per second are twice the share of the cycles,
 //! hence the weaker p99. The cost is ≈ 8 % of a core instead of 2 % for the waiting
 //! (`examples/wake_latency.rs`, which also shows that /dev/cpu_dma_latency changes nothing here).
