@@ -59,6 +59,23 @@ pub struct RtConfig {
     /// Pin the cycle thread to this CPU (e.g. one isolated with `isolcpus=`).
     #[serde(default)]
     pub cpu: Option<usize>,
+    /// Longest single sleep of the cycle thread's wait, µs (absent = one sleep to the
+    /// deadline). Short steps keep a virtual CPU from being descheduled by its host while idle
+    /// (`cncgw_bus::WakeStrategy`); each step is a wake-up.
+    #[serde(default)]
+    pub max_sleep_us: Option<u64>,
+    /// Busy-wait the last this many µs of each wait (absent = never spin). Only where the
+    /// cycle thread has a core to itself: spinning on a shared core starves the others.
+    #[serde(default)]
+    pub spin_us: Option<u64>,
+    /// Hold /dev/cpu_dma_latency at 0 while running (the PM QoS request that keeps a PC's
+    /// CPUs out of deep C-states, whose exit latency delays wake-ups).
+    #[serde(default)]
+    pub cpu_dma_latency: bool,
+    /// Timer slack of the cycle thread in ns (prctl PR_SET_TIMERSLACK; Linux's default is
+    /// 50 µs for normal threads, none for SCHED_FIFO ones). Absent = leave it.
+    #[serde(default)]
+    pub timer_slack_ns: Option<u64>,
 }
 
 #[derive(Clone, Copy, Debug, Deserialize, PartialEq, Eq)]
@@ -371,6 +388,15 @@ impl MachineConfig {
         }
         if let Some(p) = self.rt.priority.filter(|p| !(1..=99).contains(p)) {
             e.push(format!("rt.priority: SCHED_FIFO priorities are 1–99, got {p}"));
+        }
+        if let Some(m) = self.rt.max_sleep_us.filter(|m| !(10..=1_000_000).contains(m)) {
+            e.push(format!("rt.max_sleep_us: the longest sleep step must be 10–1000000 µs (leave it out for one sleep to the deadline), got {m}"));
+        }
+        if let Some(s) = self.rt.spin_us.filter(|&s| s as f64 >= c * 1000.0) {
+            e.push(format!("rt.spin_us: the spin margin must be shorter than the cycle ({} µs), got {s}", c * 1000.0));
+        }
+        if let Some(t) = self.rt.timer_slack_ns.filter(|&t| t == 0 || t > 1_000_000) {
+            e.push(format!("rt.timer_slack_ns: must be 1–1000000 ns, got {t}"));
         }
         if let Some(t) = self.param(1772).filter(|t| !(t.is_finite() && *t >= 0.0)) {
             e.push(format!("parameters.1772: the acceleration change time must be ≥ 0 ms, got {t}"));

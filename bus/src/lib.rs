@@ -16,6 +16,6 @@ pub mod modbus;
 pub mod socketcand;
 pub mod transport;
 
-pub use clock::{Clock, RealClock};
+pub use clock::{Clock, RealClock, WakeStep, WakeStrategy};
 pub use frame::CanFrame;
 pub use transport::{BusError, CanBus};

@@ -33,6 +33,19 @@ pub struct RtArgs {
     /// Pin the cycle thread to this CPU (e.g. one isolated with isolcpus=).
     #[arg(long, value_name = "N")]
     pub cpu: Option<usize>,
+    /// Sleep in steps of at most this many µs while waiting for a cycle (helps on virtual
+    /// machines whose idle vCPUs are descheduled by the host).
+    #[arg(long, value_name = "US")]
+    pub max_sleep_us: Option<u64>,
+    /// Busy-wait the last this many µs of each cycle wait (only with a core of its own).
+    #[arg(long, value_name = "US")]
+    pub spin_us: Option<u64>,
+    /// Hold /dev/cpu_dma_latency at 0 (no deep C-states) while running.
+    #[arg(long)]
+    pub cpu_dma_latency: bool,
+    /// Timer slack of the cycle thread in ns (Linux default 50 µs for normal threads).
+    #[arg(long, value_name = "NS")]
+    pub timer_slack_ns: Option<u64>,
 }
 
 /// What `cncgw run` does besides running: the per-cycle trace and the real-time setup.
@@ -138,7 +151,18 @@ pub fn run(
         extras: RunExtras {
             trace,
             // The config's [rt], each option overridden by its command-line flag.
-            rt: RtOptions::resolve(&cfg.rt, &RtOptions { priority: rt.rt_priority, mlock: rt.mlock, cpu: rt.cpu }),
+            rt: RtOptions::resolve(
+                &cfg.rt,
+                &RtOptions {
+                    priority: rt.rt_priority,
+                    mlock: rt.mlock,
+                    cpu: rt.cpu,
+                    max_sleep_us: rt.max_sleep_us,
+                    spin_us: rt.spin_us,
+                    cpu_dma_latency: rt.cpu_dma_latency,
+                    timer_slack_ns: rt.timer_slack_ns,
+                },
+            ),
             tap: tap_file.map(|f| TapSetup { file: f.path, loaded: tap_state }),
         },
         operator: None,
@@ -222,7 +246,9 @@ pub fn run_job(
     let bus_name = machine.bus.clone().unwrap_or_else(|| cfg.bus.interface.clone());
     // The CANopen bus is opened only if an axis is on it.
     let mut can = None;
-    let mut clock: Box<dyn Clock> = Box::new(cncgw_bus::RealClock::new());
+    // A real bus waits as [rt] says (max_sleep_us, spin_us).
+    let real_clock = || -> Box<dyn Clock> { Box::new(cncgw_bus::RealClock::with_wake(opts.extras.rt.wake())) };
+    let mut clock: Box<dyn Clock> = real_clock();
     let mut what = Vec::new();
     if cfg.has_canopen() {
         if !modbus.is_empty() && bus_name == "inproc" {
@@ -234,7 +260,8 @@ pub fn run_job(
         match super::open_bus(cfg, cfg_text, machine.bus.as_deref()) {
             Ok((m, c, _, w)) => {
                 can = Some(m);
-                clock = c;
+                // Not used yet: a real one is replaced by one that waits as configured.
+                clock = if c.is_simulated() { c } else { real_clock() };
                 what.push(w);
             }
             Err(e) => {
@@ -493,7 +520,7 @@ fn execute(
     for step in crate::motion::rt::apply(&extras.rt) {
         match step {
             RtStep::Done(m) => eprintln!("cncgw: {m}"),
-            RtStep::Refused(m) => eprintln!("warning: {m}"),
+            RtStep::Refused(m) | RtStep::Warn(m) => eprintln!("warning: {m}"),
         }
     }
     let r = lp.run(start, rx, &mut summary, &mut |p| match &mut display {
