@@ -113,14 +113,10 @@ pub fn polar_to_machine(v: [f64; 2], c_zero: f64, work_x: f64, near_c: f64) -> (
     (work_x + r, c)
 }
 
-/// Start angle and signed sweep (radians) of an arc in a plane from `from` to `to` about
-/// `c` (`cw`: clockwise, sweep ≤ 0); start = end is a full circle. Used by the interpreter's
-/// polar chords and the motion layer's polar interpolation alike.
-pub fn arc_sweep(from: [f64; 2], to: [f64; 2], c: [f64; 2], cw: bool) -> (f64, f64) {
-    let a0 = (from[1] - c[1]).atan2(from[0] - c[0]);
-    let a1 = (to[1] - c[1]).atan2(to[0] - c[0]);
+/// A difference of angles (radians) as the sweep of an arc turning `cw` (≤ 0) or
+/// counter-clockwise (≥ 0), within 1e-12 of zero kept as it is.
+pub fn wrap_sweep(mut sweep: f64, cw: bool) -> f64 {
     let tau = std::f64::consts::TAU;
-    let mut sweep = a1 - a0;
     if cw {
         while sweep > 1e-12 {
             sweep -= tau;
@@ -130,7 +126,16 @@ pub fn arc_sweep(from: [f64; 2], to: [f64; 2], c: [f64; 2], cw: bool) -> (f64, f
             sweep += tau;
         }
     }
-    (a0, sweep)
+    sweep
+}
+
+/// Start angle and signed sweep (radians) of an arc in a plane from `from` to `to` about
+/// `c` (`cw`: clockwise, sweep ≤ 0); start = end is a full circle. Used by the interpreter's
+/// polar chords and the motion layer's polar interpolation alike.
+pub fn arc_sweep(from: [f64; 2], to: [f64; 2], c: [f64; 2], cw: bool) -> (f64, f64) {
+    let a0 = (from[1] - c[1]).atan2(from[0] - c[0]);
+    let a1 = (to[1] - c[1]).atan2(to[0] - c[0]);
+    (a0, wrap_sweep(a1 - a0, cw))
 }
 
 /// Which canned cycle made a move, and which step of it (the manuals' numbering), so that
@@ -296,17 +301,7 @@ pub fn zx_arc_chord_points(start: Pos, end: Pos, center: Pos, cw: bool) -> Vec<P
     let a0 = (start.x - center.x).atan2(start.z - center.z);
     let a1 = (end.x - center.x).atan2(end.z - center.z);
     let r = (start.x - center.x).hypot(start.z - center.z);
-    let tau = std::f64::consts::TAU;
-    let mut sweep = a1 - a0;
-    if cw {
-        while sweep > 1e-12 {
-            sweep -= tau;
-        }
-    } else {
-        while sweep < -1e-12 {
-            sweep += tau;
-        }
-    }
+    let sweep = wrap_sweep(a1 - a0, cw);
     let n = ((sweep.abs() / 2f64.to_radians()).ceil() as usize).clamp(1, 720);
     (1..n)
         .map(|j| {

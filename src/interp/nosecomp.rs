@@ -784,17 +784,7 @@ pub fn single_cycle_offset(
 fn arc_points(a: P2, b: P2, c: P2, cw: bool) -> Vec<P2> {
     let (ra, rb) = (norm(sub(a, c)), norm(sub(b, c)));
     let a0 = (a.1 - c.1).atan2(a.0 - c.0);
-    let mut sweep = (b.1 - c.1).atan2(b.0 - c.0) - a0;
-    let tau = std::f64::consts::TAU;
-    if cw {
-        while sweep > 1e-12 {
-            sweep -= tau;
-        }
-    } else {
-        while sweep < -1e-12 {
-            sweep += tau;
-        }
-    }
+    let sweep = crate::canon::wrap_sweep((b.1 - c.1).atan2(b.0 - c.0) - a0, cw);
     let n = ((sweep.abs() / 5f64.to_radians()).ceil() as usize).clamp(1, 72);
     (1..=n)
         .map(|j| {
