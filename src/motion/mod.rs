@@ -122,14 +122,10 @@ const INPOS_MM: f64 = 0.001;
 const INPOS_MAX_CYCLES: u32 = 150;
 /// Memory of the feed axes' lag estimate (see `sync_corr`), s.
 const LAG_MEMORY_S: f64 = 2.0;
-/// The lag is learnt only after the sent speed has been steady this long (the drive's
-/// transient after an acceleration has died out), s.
-const LAG_SETTLE_S: f64 = 0.06;
 /// Largest sync correction, mm (a spindle lagging more is a fault for the sync monitor).
-const CORR_MAX: f64 = 0.5;
-/// Largest change of the sync correction from one cycle to the next, mm (1 mm/s at 2 ms;
-/// a real lag changes by µm per cycle).
-const CORR_SLEW: f64 = 0.002;
+const CORR_MAX: f64 = 5.0;
+/// Integral gain of the sync correction's trim on the measured sync error, per cycle.
+const SYNC_TRIM_GAIN: f64 = 0.15;
 /// After a tapped hole or G92.1 stroke the correction fades out by at most this per cycle, mm.
 const CORR_FADE: f64 = 0.0005;
 
@@ -549,6 +545,10 @@ pub struct Motion {
     fault: Option<Fault>,
     /// Measured sync error of this cycle, µm (see `sync_error`).
     sync_err: f64,
+    /// The same error as a vector of the feed axes (mm; + = the axis ahead of the spindle's
+    /// relation), and its integral for the sync correction's trim.
+    sync_err_vec: [f64; 3],
+    sync_trim: [f64; 3],
     /// The last cycle commanded a setpoint locked to the spindle, so this cycle's actual
     /// positions can be compared with the spindle's.
     sync_watch: bool,
@@ -573,13 +573,14 @@ pub struct Motion {
     corr_gain: [f64; 3],
     corr: [f64; 3],
     corr_prev: [f64; 3],
+    corr_prev2: [f64; 3],
     lag_prev: Option<f64>,
-    /// Least-squares estimate of each feed axis' velocity lag τ (actual = sent − τ·v):
-    /// exponentially weighted Σ(−e·v) and Σ v².
-    tau_num: [f64; 3],
-    tau_den: [f64; 3],
-    /// Cycles each feed axis has been sent a steady speed.
-    steady: [u32; 3],
+    /// Each feed axis' lag model (lag ≈ τ₁·v + τ₂·a), learnt online from all its motion.
+    lag: [crate::sync::lag::LagModel; 3],
+
+    /// The desired actual trajectory of the locked feed axes (nominal + spindle lag) of the
+    /// last two cycles, for its speed and acceleration.
+    want_prev: [[f64; 3]; 2],
     /// Cycles waited for the in-position check before a rigid tap.
     inpos_wait: u32,
     /// The cycle action of the item running or last taken from the queue.
@@ -640,6 +641,8 @@ impl Motion {
             last_blendable: false,
             fault: None,
             sync_err: 0.0,
+            sync_err_vec: [0.0; 3],
+            sync_trim: [0.0; 3],
             sync_watch: false,
             thread_chain: None,
             tap_ref: None,
@@ -650,10 +653,11 @@ impl Motion {
             corr_gain: [0.0; 3],
             corr: [0.0; 3],
             corr_prev: [0.0; 3],
+            corr_prev2: [0.0; 3],
             lag_prev: None,
-            tau_num: [0.0; 3],
-            tau_den: [0.0; 3],
-            steady: [0; 3],
+            lag: [crate::sync::lag::LagModel::new(LAG_MEMORY_S / limits.cycle_s.max(1e-4)); 3],
+            want_prev: [[start[AX_X], start[AX_Y], start[AX_Z]]; 2],
+
             inpos_wait: 0,
             cur_cyc: CycStep::default(),
             plan_cyc: CycStep::default(),
@@ -2021,6 +2025,7 @@ impl Motion {
     /// planning, exact landing) is unchanged. The correction stays on through the strokes
     /// and dwells of one hole and fades out by at most `CORR_FADE` per cycle afterwards.
     fn sync_corr(&mut self, fb: &Feedback) {
+        self.corr_prev2 = self.corr_prev;
         self.corr_prev = self.corr;
         let gain = match self.run {
             Run::Tap { seg, theta0: Some(_), .. } => {
@@ -2042,18 +2047,13 @@ impl Motion {
         let sent = self.hist[(self.hist_k + HIST - (fd - 1)) % HIST];
         let before = self.hist[(self.hist_k + HIST - fd) % HIST];
         let before2 = self.hist[(self.hist_k + HIST - fd - 1) % HIST];
-        // Learn the feed axes' velocity lag from the cycles that moved at a steady speed (in
-        // acceleration the lag has other terms).
-        let forget = (-dt / LAG_MEMORY_S).exp();
+        // Learn every feed axis' lag model from its motion (any motion: the rapid to R
+        // teaches it before the tap begins).
         for i in 0..3 {
-            let v = (sent[i] - before[i]) / dt;
-            let v0 = (before[i] - before2[i]) / dt;
-            let e = fb.pos[i] - sent[i];
-            let steady = v.abs() > 1e-3 && (v - v0).abs() <= 0.01 * v.abs();
-            self.steady[i] = if steady { self.steady[i].saturating_add(1) } else { 0 };
-            if v.is_finite() && e.is_finite() && self.steady[i] as f64 * dt >= LAG_SETTLE_S {
-                self.tau_num[i] = forget * self.tau_num[i] - e * v;
-                self.tau_den[i] = forget * self.tau_den[i] + v * v;
+            let dv = sent[i] - before[i];
+            let da = dv - (before[i] - before2[i]);
+            if dv != 0.0 || da != 0.0 {
+                self.lag[i].update(dv, da, sent[i] - fb.pos[i]);
             }
         }
         let lag_s = fb.pos[AX_S] - sent[AX_S];
@@ -2062,24 +2062,39 @@ impl Motion {
                 self.corr_gain = g;
                 let p = self.lag_prev.unwrap_or(lag_s);
                 self.lag_prev = Some(lag_s);
-                // Extrapolated by (delay − 1) cycles: measured on the emulated drives, one cycle
-                // less than the feedback delay tracks best (max error at the reversal
-                // 5.28 µm with none, 4.98 with 1, 5.78 with 3 cycles at the default delay 2).
                 let e_s = lag_s + (fd as f64 - 1.0) * (lag_s - p);
                 for i in 0..3 {
                     if g[i] == 0.0 {
                         continue;
                     }
-                    let tau = self.axis_lag(i);
-                    let v_nom = (self.pos[i] - self.hist[self.hist_k][i] + self.corr_prev[i]) / dt;
-                    let c = (g[i] * e_s + tau * v_nom).clamp(-CORR_MAX, CORR_MAX);
-                    // Slew-limited: implausible feedback must not kick the axis.
-                    self.corr[i] = c.clamp(self.corr_prev[i] - CORR_SLEW, self.corr_prev[i] + CORR_SLEW);
+                    // Where the axis must actually be: the nominal plus the spindle's lag.
+                    let want = self.pos[i] + g[i] * e_s;
+                    let dv = want - self.want_prev[0][i];
+                    let da = dv - (self.want_prev[0][i] - self.want_prev[1][i]);
+                    self.want_prev[1][i] = self.want_prev[0][i];
+                    self.want_prev[0][i] = want;
+                    // Trim what the models leave: the measured sync error, integrated.
+                    let e = self.sync_err_vec[i];
+                    if e.is_finite() {
+                        self.sync_trim[i] -= SYNC_TRIM_GAIN * e;
+                    }
+                    let c = (want - self.pos[i] + self.lag[i].lead(dv, da) + self.sync_trim[i]).clamp(-CORR_MAX, CORR_MAX);
+                    // Bounded by what the axis can do (its acceleration), not by a fixed slew:
+                    // implausible feedback must not kick it.
+                    let amax = self.lim.amax[i] * dt * dt;
+                    let step_prev = self.corr_prev[i] - self.corr_prev2[i];
+                    let step = (c - self.corr_prev[i]).clamp(step_prev - amax, step_prev + amax);
+                    self.corr[i] = self.corr_prev[i] + step;
                 }
             }
             None => {
                 self.corr_gain = [0.0; 3];
                 self.lag_prev = None;
+                self.sync_trim = [0.0; 3];
+                for i in 0..3 {
+                    self.want_prev[1][i] = self.pos[i] + self.corr[i];
+                    self.want_prev[0][i] = self.pos[i] + self.corr[i];
+                }
                 for c in &mut self.corr {
                     *c = c.clamp(-CORR_FADE, CORR_FADE).mul_add(-1.0, *c);
                 }
@@ -2087,14 +2102,9 @@ impl Motion {
         }
     }
 
-    /// The learnt velocity lag τ of feed axis `i` (actual ≈ sent − τ·v), s, in 0 ..= 50 ms.
+    /// The learnt velocity lag τ₁ of feed axis `i` (actual ≈ sent − τ₁·v), s.
     fn axis_lag(&self, i: usize) -> f64 {
-        let (n, d) = (self.tau_num[i.min(2)], self.tau_den[i.min(2)]);
-        if d > 0.0 && (n / d).is_finite() {
-            (n / d).clamp(0.0, 0.05)
-        } else {
-            0.0
-        }
+        self.lag[i.min(2)].params().0 * self.lim.cycle_s
     }
 
     /// Measured spindle–axis sync error of the last cycle, µm along the thread's long axis:
@@ -2115,6 +2125,7 @@ impl Motion {
     fn monitor_sync(&mut self, fb: &Feedback) {
         let watch = std::mem::take(&mut self.sync_watch);
         self.sync_err = 0.0;
+        self.sync_err_vec = [0.0; 3];
         if !watch {
             return;
         }
@@ -2123,11 +2134,18 @@ impl Motion {
             Run::Thread { seg, sync: Some(t), .. } => (line_progress(&seg.geom, &fb.pos) - t.target(th)) * seg.u_long,
             Run::Tap { seg, theta0: Some((pr, thr)), .. } => {
                 // Along the stroke's direction: + = the tapping axis ahead of the spindle.
-                ((fb.pos[seg.axis] - pr) - seg.lead * (th - thr) / 360.0) * (seg.p1 - seg.p0).signum()
+                let e = (fb.pos[seg.axis] - pr) - seg.lead * (th - thr) / 360.0;
+                self.sync_err_vec[seg.axis.min(2)] = e;
+                e * (seg.p1 - seg.p0).signum()
             }
             Run::Rigid { seg, theta0: Some(th0), .. } => {
                 let len = seg.geom.len();
-                (line_progress(&seg.geom, &fb.pos) - (th - th0) * len / seg.dc) * seg.u_long
+                let e = line_progress(&seg.geom, &fb.pos) - (th - th0) * len / seg.dc;
+                let (p0, p1) = (geom_start(&seg.geom), seg.geom.end());
+                for i in 0..3 {
+                    self.sync_err_vec[i] = e * (p1[i] - p0[i]) / len.max(1e-12);
+                }
+                e * seg.u_long
             }
             _ => return,
         };
