@@ -1,7 +1,10 @@
 //! Lab: rigid tap on drive-model variants (simulated time). Scratch tool for the sync law.
 use cncgw::config::{MachineConfig, EMBEDDED_LATHE};
 use cncgw::motion::Limits;
-use cncgw::sync::measure::{rigid_tap_moves, run_moves_on, tap_sync_error, CuttingLoad};
+use cncgw::sync::measure::{
+    g92_1_moves, monitor_stats, phase_spread, rigid_tap_moves, run_moves_on, tap_sync_error, thread_pass_moves, thread_phases,
+    CuttingLoad,
+};
 use sim_drives::SimConfig;
 
 fn variant(name: &str) -> SimConfig {
@@ -80,7 +83,7 @@ fn main() {
             let (max, rms, n) = tap_sync_error(&run, 1.5, (2, 3)).unwrap_or((f64::NAN, f64::NAN, 0));
             let peak = run.rows.iter().map(|r| r.spindle_rpm.abs()).fold(0.0, f64::max);
             println!("{name:>14} S{rpm:<5} max {max:7.2} µm  rms {rms:6.2} µm  n {n:5}  peak {peak:5.0} rpm  {res}");
-            if let Ok(dir) = std::env::var("SYNC_DUMP") {
+            if let Ok(dir) = std::env::var("SYNC_DUMP_X") {
                 let (z, sp) = (run.drive("z").unwrap_or(0), run.drive("s1").unwrap_or(0));
                 let mut out = String::from("t_s,line,z_cmd,z_act,s_cmd,s_act,rpm,sync_um\n");
                 for r in &run.rows {
@@ -92,5 +95,22 @@ fn main() {
                 let _ = std::fs::write(format!("{dir}/{name}_{rpm}.csv"), out);
             }
         }
-    }
+            let mut l = Limits::from_config(&cfg);
+        l.sync_err_limit_um = f64::INFINITY;
+        let g = run_moves_on(&cfg, variant(name), l.clone(), g92_1_moves(15.0, 5.0, -40.0, 2.0, 1000.0), None).unwrap();
+        let (gm, gr, _) = monitor_stats(&g).unwrap_or((f64::NAN, f64::NAN, 0));
+        if std::env::var("G921_DUMP").is_ok() {
+            let (z, sp) = (g.drive("z").unwrap_or(0), g.drive("s1").unwrap_or(0));
+            for (k, r) in g.rows.iter().enumerate().filter(|(_, r)| r.sync_err_um != 0.0).step_by(10) {
+                println!("{k} {:.4} line {} z {:.4}/{:.4} s {:.2}/{:.2} rpm {:.0} err {:.2}", r.t_s, r.line, r.cmd[z], r.act[z], r.cmd[sp], r.act[sp], r.spindle_rpm, r.sync_err_um);
+            }
+        }
+        println!("{name:>14} G92.1 S1000 max {gm:7.2} µm  rms {gr:6.2} µm  {:?}", g.result.as_ref().err().map(|a| a.number));
+        let rpms = [500.0, 1000.0, 1500.0];
+        let t = run_moves_on(&cfg, variant(name), l, thread_pass_moves(15.0, 5.0, -20.0, 1.5, &rpms), None).unwrap();
+        match thread_phases(&t, -5.0, rpms.len()) {
+            Some(ph) => println!("{name:>14} thread phases {:?} spread {:.4}°", ph.iter().map(|p| (p * 1000.0).round() / 1000.0).collect::<Vec<_>>(), phase_spread(&ph)),
+            None => println!("{name:>14} thread: failed {:?}", t.result.as_ref().err().map(|a| a.number)),
+        }
+}
 }

@@ -126,6 +126,8 @@ const LAG_MEMORY_S: f64 = 2.0;
 const CORR_MAX: f64 = 5.0;
 /// Integral gain of the sync correction's trim on the measured sync error, per cycle.
 const SYNC_TRIM_GAIN: f64 = 0.15;
+/// Gain with which a thread's measured phase error corrects the long axis' lag, per cycle.
+const THREAD_TRIM_GAIN: f64 = 0.1;
 /// After a tapped hole or G92.1 stroke the correction fades out by at most this per cycle, mm.
 const CORR_FADE: f64 = 0.0005;
 
@@ -549,6 +551,11 @@ pub struct Motion {
     /// relation), and its integral for the sync correction's trim.
     sync_err_vec: [f64; 3],
     sync_trim: [f64; 3],
+    /// A thread's phase error measured this cycle (path mm; + = the axes ahead).
+    thread_err: Option<f64>,
+    /// Each feed axis' effective lag on a thread's synchronous line, s, learnt from the
+    /// threads' own measured phase error (None: not yet threaded; the lag model's τ₁ then).
+    thread_tau: [Option<f64>; 3],
     /// The last cycle commanded a setpoint locked to the spindle, so this cycle's actual
     /// positions can be compared with the spindle's.
     sync_watch: bool,
@@ -643,6 +650,8 @@ impl Motion {
             sync_err: 0.0,
             sync_err_vec: [0.0; 3],
             sync_trim: [0.0; 3],
+            thread_err: None,
+            thread_tau: [None; 3],
             sync_watch: false,
             thread_chain: None,
             tap_ref: None,
@@ -1757,9 +1766,18 @@ impl Motion {
                 // Like rigid tapping: brake the spindle, then take its angle as the origin.
                 self.sp_dir = 0.0;
                 self.sp_css = None;
+                // In position first, as before a rigid tap: a stroke that starts while the axes
+                // still settle from the positioning move begins with that error as sync error.
+                let sent = self.hist[self.hist_k];
+                let in_pos = self.inpos_wait >= INPOS_MAX_CYCLES
+                    || seg.u_long == 0.0
+                    || ((0..3).all(|i| !self.lim.present[i] || (fb.pos[i] - sent[i]).abs() <= INPOS_MM)
+                        && (fb.pos[AX_S] - sent[AX_S]).abs() * seg.plen / seg.dc.abs().max(1e-9) <= INPOS_MM);
+                self.inpos_wait = if self.sp_cur == 0.0 { self.inpos_wait.saturating_add(1) } else { 0 };
                 if self.stopping {
                     self.run = Run::None;
-                } else if self.sp_cur == 0.0 {
+                } else if self.sp_cur == 0.0 && in_pos {
+                    self.inpos_wait = 0;
                     self.run = Run::Rigid { seg, theta0: Some(self.pos[AX_S]), s: 0.0, v: 0.0, landed: false };
                 }
             }
@@ -1926,7 +1944,21 @@ impl Motion {
         // is `feedback_delay` cycles old by then.
         // Plus the long axis' own velocity lag (learnt, see `sync_corr`): otherwise the thread
         // phase would move with the rpm by ω·τ.
-        let tau = if self.lim.sync_correction { self.axis_lag(seg.long_axis) } else { 0.0 };
+        let la = seg.long_axis.min(2);
+        let mut tau = self.thread_tau[la].unwrap_or_else(|| self.axis_lag(la));
+        // Learn the lag from the phase error itself on the synchronous line (steady speed):
+        // an error e at path speed v is a lag misjudged by e/v.
+        if let (Some(e), Some(t)) = (self.thread_err.take(), sync) {
+            let vs = t.sync_speed();
+            if e.is_finite() && vs > 1e-3 && (v - vs).abs() <= 0.01 * vs {
+                tau = (tau - THREAD_TRIM_GAIN * e / vs).clamp(0.0, 0.1);
+            }
+        }
+        if self.lim.sync_correction {
+            self.thread_tau[la] = Some(tau);
+        } else {
+            tau = 0.0;
+        }
         let theta = fb.pos[AX_S] + rpm * 6.0 * (dt * self.lim.feedback_delay as f64 + tau);
         // The lead-in ramp uses 80 % of the path acceleration, leaving the tracker headroom.
         let sync = match sync {
@@ -2126,12 +2158,17 @@ impl Motion {
         let watch = std::mem::take(&mut self.sync_watch);
         self.sync_err = 0.0;
         self.sync_err_vec = [0.0; 3];
+        self.thread_err = None;
         if !watch {
             return;
         }
         let th = fb.pos[AX_S];
         let err_mm = match self.run {
-            Run::Thread { seg, sync: Some(t), .. } => (line_progress(&seg.geom, &fb.pos) - t.target(th)) * seg.u_long,
+            Run::Thread { seg, sync: Some(t), .. } => {
+                let e = line_progress(&seg.geom, &fb.pos) - t.target(th);
+                self.thread_err = Some(e);
+                e * seg.u_long
+            }
             Run::Tap { seg, theta0: Some((pr, thr)), .. } => {
                 // Along the stroke's direction: + = the tapping axis ahead of the spindle.
                 let e = (fb.pos[seg.axis] - pr) - seg.lead * (th - thr) / 360.0;
