@@ -49,6 +49,29 @@ fn variant(name: &str) -> SimConfig {
                 p.coulomb_friction *= 4.0;
                 p.viscous_friction *= 4.0;
             }
+            ("delay1", _) => p.extra.transport_delay_cycles = 1,
+            ("delay2", _) => p.extra.transport_delay_cycles = 2,
+            ("delay2_s", "s1") => p.extra.transport_delay_cycles = 2,
+            ("delay2_z", "z") => p.extra.transport_delay_cycles = 2,
+            ("coarse_s", "s1") => {
+                p.extra.encoder_counts_per_rev = 16384;
+                p.load_inertia *= 2.0;
+            }
+            ("beltc_z", "z") => {
+                p.kv = 25.0;
+                p.velocity_ff = 0.95;
+                p.extra.load_stiffness = 6.0;
+                p.extra.load_damping = 0.005;
+            }
+            ("backlash_z", "z") => {
+                p.extra.load_stiffness = 30.0;
+                p.extra.load_damping = 0.01;
+                p.extra.backlash_deg = 0.5;
+            }
+            ("fric_all", _) => {
+                p.coulomb_friction *= 4.0;
+                p.viscous_friction *= 4.0;
+            }
             ("slowvel_z", "z") => {
                 p.vel_kp *= 0.3;
                 p.vel_ti_ms *= 3.0;

@@ -2108,7 +2108,10 @@ impl Motion {
                     // Trim what the models leave: the measured sync error, integrated.
                     let e = self.sync_err_vec[i];
                     if e.is_finite() {
-                        self.sync_trim[i] -= SYNC_TRIM_GAIN * e;
+                        // An integrator around a loop of `d` cycles' delay stays well damped
+                        // below ≈ 0.6/(d + 1) per cycle: slower for a slower axis.
+                        let d = fd as f64 + self.lag[i].params().0;
+                        self.sync_trim[i] -= SYNC_TRIM_GAIN.min(0.6 / (d + 1.0)) * e;
                     }
                     let c = (want - self.pos[i] + self.lag[i].lead(dv, da) + self.sync_trim[i]).clamp(-CORR_MAX, CORR_MAX);
                     // Bounded by what the axis can do (its acceleration), not by a fixed slew:
