@@ -98,6 +98,7 @@ mod tests;
 
 use crate::canon::{Feed, Move, MoveKind, Plane, Pos, SpindleCmd, SpindleDir};
 use crate::config::{AxisKind, MachineConfig};
+use crate::sync::correction::SyncCorrection;
 use crate::sync::ThreadSync;
 use std::f64::consts::TAU;
 use crate::Alarm;
@@ -120,16 +121,10 @@ const HIST: usize = 6;
 const INPOS_MM: f64 = 0.001;
 /// Longest wait for the in-position check, cycles (then the tap starts anyway).
 const INPOS_MAX_CYCLES: u32 = 150;
-/// Memory of the feed axes' lag estimate (see `sync_corr`), s.
+/// Memory of the feed axes' lag models (see `sync_corr`), s.
 const LAG_MEMORY_S: f64 = 2.0;
-/// Largest sync correction, mm (a spindle lagging more is a fault for the sync monitor).
-const CORR_MAX: f64 = 5.0;
-/// Integral gain of the sync correction's trim on the measured sync error, per cycle.
-const SYNC_TRIM_GAIN: f64 = 0.15;
 /// Gain with which a thread's measured phase error corrects the long axis' lag, per cycle.
 const THREAD_TRIM_GAIN: f64 = 0.1;
-/// After a tapped hole or G92.1 stroke the correction fades out by at most this per cycle, mm.
-const CORR_FADE: f64 = 0.0005;
 
 const AXIS_NAMES: [char; N_AXES] = ['X', 'Y', 'Z', 'S'];
 
@@ -548,9 +543,8 @@ pub struct Motion {
     /// Measured sync error of this cycle, µm (see `sync_error`).
     sync_err: f64,
     /// The same error as a vector of the feed axes (mm; + = the axis ahead of the spindle's
-    /// relation), and its integral for the sync correction's trim.
+    /// relation), for the sync correction's trim.
     sync_err_vec: [f64; 3],
-    sync_trim: [f64; 3],
     /// A thread's phase error measured this cycle (path mm; + = the axes ahead).
     thread_err: Option<f64>,
     /// Each feed axis' effective lag on a thread's synchronous line, s, learnt from the
@@ -574,20 +568,8 @@ pub struct Motion {
     /// Setpoints sent in the last HIST cycles (ring, index `hist_k` = the newest).
     hist: [[f64; N_AXES]; HIST],
     hist_k: usize,
-    /// Sync correction (see `sync_corr`): feed-axis mm per spindle degree of the locked
-    /// stroke (0 = not locked), the offset added to X/Y/Z this cycle and the last one, and the
-    /// relative lag of the last cycle (None: no previous sample).
-    corr_gain: [f64; 3],
-    corr: [f64; 3],
-    corr_prev: [f64; 3],
-    corr_prev2: [f64; 3],
-    lag_prev: Option<f64>,
-    /// Each feed axis' lag model (lag ≈ τ₁·v + τ₂·a), learnt online from all its motion.
-    lag: [crate::sync::lag::LagModel; 3],
-
-    /// The desired actual trajectory of the locked feed axes (nominal + spindle lag) of the
-    /// last two cycles, for its speed and acceleration.
-    want_prev: [[f64; 3]; 2],
+    /// The sync correction of rigid taps and G92.1 (`crate::sync::correction`).
+    corr: SyncCorrection,
     /// Cycles waited for the in-position check before a rigid tap.
     inpos_wait: u32,
     /// The cycle action of the item running or last taken from the queue.
@@ -626,6 +608,10 @@ pub struct TapEntry {
     pub spindle_deg: f64,
 }
 
+fn xyz3(p: &[f64; N_AXES]) -> [f64; 3] {
+    [p[AX_X], p[AX_Y], p[AX_Z]]
+}
+
 fn xyz(p: &Pos) -> [f64; 3] {
     [p.x, p.y, p.z]
 }
@@ -649,7 +635,6 @@ impl Motion {
             fault: None,
             sync_err: 0.0,
             sync_err_vec: [0.0; 3],
-            sync_trim: [0.0; 3],
             thread_err: None,
             thread_tau: [None; 3],
             sync_watch: false,
@@ -659,13 +644,13 @@ impl Motion {
             plan_tap: None,
             hist: [start; HIST],
             hist_k: 0,
-            corr_gain: [0.0; 3],
-            corr: [0.0; 3],
-            corr_prev: [0.0; 3],
-            corr_prev2: [0.0; 3],
-            lag_prev: None,
-            lag: [crate::sync::lag::LagModel::new(LAG_MEMORY_S / limits.cycle_s.max(1e-4)); 3],
-            want_prev: [[start[AX_X], start[AX_Y], start[AX_Z]]; 2],
+            corr: SyncCorrection::new(
+                limits.cycle_s,
+                limits.feedback_delay.clamp(1, HIST - 3),
+                [limits.amax[AX_X], limits.amax[AX_Y], limits.amax[AX_Z]],
+                LAG_MEMORY_S,
+                [start[AX_X], start[AX_Y], start[AX_Z]],
+            ),
 
             inpos_wait: 0,
             cur_cyc: CycStep::default(),
@@ -1909,9 +1894,10 @@ impl Motion {
         self.step_tool(fb.pos[AX_S], fb.spindle_rpm * 6.0);
         let mut out = self.pos;
         let mut vel = [0.0; N_AXES];
+        let (corr, dcorr) = (self.corr.offset(), self.corr.step());
         for i in 0..3 {
-            out[i] += self.corr[i];
-            vel[i] = (self.pos[i] - prev[i] + self.corr[i] - self.corr_prev[i]) / dt;
+            out[i] += corr[i];
+            vel[i] = (self.pos[i] - prev[i] + dcorr[i]) / dt;
         }
         self.hist_k = (self.hist_k + 1) % HIST;
         self.hist[self.hist_k] = out;
@@ -2041,24 +2027,12 @@ impl Motion {
         }
     }
 
-    /// The sync correction of rigid taps and G92.1 (with `Limits::sync_correction`).
-    ///
-    /// One profile drives the spindle angle θ and the feed axes; the spindle (heavy, soft
-    /// position loop) lags its command differently from a feed axis, above all in
-    /// acceleration and under load, so commanding both from the same θ opens a sync error
-    /// exactly where the tap enters, reverses and leaves. Instead the feed axes follow the
-    /// spindle's *actual* angle: every cycle the spindle's lag e_S = θ_actual − θ_sent (sent
-    /// `feedback_delay` cycles ago) is measured and extrapolated to when this cycle's
-    /// setpoint takes effect; the feed axes are sent `mm per degree × e_S` ahead of the
-    /// nominal, plus their own velocity lag τ·v so that they really are there. τ is learnt
-    /// online (least squares of the measured lag against the sent speed, over all motion,
-    /// `LAG_MEMORY_S`), not fed back cycle by cycle: a feed axis' lag reacts to the correction
-    /// itself, and feeding that back would ring. The nominal setpoint (`position`, the
-    /// planning, exact landing) is unchanged. The correction stays on through the strokes
-    /// and dwells of one hole and fades out by at most `CORR_FADE` per cycle afterwards.
+    /// The sync correction of rigid taps and G92.1 (with `Limits::sync_correction`): the
+    /// feed axes follow the spindle's *actual* angle with their own lag pre-compensated and
+    /// the measured sync error trimmed out (`crate::sync::correction`). Only the *sent*
+    /// set-point carries it; planning, landing and `position()` stay nominal. It stays on
+    /// through the strokes and dwells of one hole and fades out afterwards.
     fn sync_corr(&mut self, fb: &Feedback) {
-        self.corr_prev2 = self.corr_prev;
-        self.corr_prev = self.corr;
         let gain = match self.run {
             Run::Tap { seg, theta0: Some(_), .. } => {
                 let mut g = [0.0; 3];
@@ -2071,75 +2045,24 @@ impl Motion {
                 Some([(e[0] - p0[0]) / seg.dc, (e[1] - p0[1]) / seg.dc, (e[2] - p0[2]) / seg.dc])
             }
             // Between the strokes of a hole (reversal, dwell at the bottom): keep the lock.
-            _ if self.in_hole => Some(self.corr_gain),
+            _ if self.in_hole => Some(self.corr.gain()),
             _ => None,
         };
-        let dt = self.lim.cycle_s;
         let fd = self.lim.feedback_delay.clamp(1, HIST - 3);
         let sent = self.hist[(self.hist_k + HIST - (fd - 1)) % HIST];
         let before = self.hist[(self.hist_k + HIST - fd) % HIST];
         let before2 = self.hist[(self.hist_k + HIST - fd - 1) % HIST];
-        // Learn every feed axis' lag model from its motion (any motion: the rapid to R
-        // teaches it before the tap begins).
-        for i in 0..3 {
-            let dv = sent[i] - before[i];
-            let da = dv - (before[i] - before2[i]);
-            if dv != 0.0 || da != 0.0 {
-                self.lag[i].update(dv, da, sent[i] - fb.pos[i]);
-            }
-        }
-        let lag_s = fb.pos[AX_S] - sent[AX_S];
-        match gain.filter(|_| self.lim.sync_correction && lag_s.is_finite()) {
-            Some(g) => {
-                self.corr_gain = g;
-                let p = self.lag_prev.unwrap_or(lag_s);
-                self.lag_prev = Some(lag_s);
-                let e_s = lag_s + (fd as f64 - 1.0) * (lag_s - p);
-                for i in 0..3 {
-                    if g[i] == 0.0 {
-                        continue;
-                    }
-                    // Where the axis must actually be: the nominal plus the spindle's lag.
-                    let want = self.pos[i] + g[i] * e_s;
-                    let dv = want - self.want_prev[0][i];
-                    let da = dv - (self.want_prev[0][i] - self.want_prev[1][i]);
-                    self.want_prev[1][i] = self.want_prev[0][i];
-                    self.want_prev[0][i] = want;
-                    // Trim what the models leave: the measured sync error, integrated.
-                    let e = self.sync_err_vec[i];
-                    if e.is_finite() {
-                        // An integrator around a loop of `d` cycles' delay stays well damped
-                        // below ≈ 0.6/(d + 1) per cycle: slower for a slower axis.
-                        let d = fd as f64 + self.lag[i].params().0;
-                        self.sync_trim[i] -= SYNC_TRIM_GAIN.min(0.6 / (d + 1.0)) * e;
-                    }
-                    let c = (want - self.pos[i] + self.lag[i].lead(dv, da) + self.sync_trim[i]).clamp(-CORR_MAX, CORR_MAX);
-                    // Bounded by what the axis can do (its acceleration), not by a fixed slew:
-                    // implausible feedback must not kick it.
-                    let amax = self.lim.amax[i] * dt * dt;
-                    let step_prev = self.corr_prev[i] - self.corr_prev2[i];
-                    let step = (c - self.corr_prev[i]).clamp(step_prev - amax, step_prev + amax);
-                    self.corr[i] = self.corr_prev[i] + step;
-                }
-            }
-            None => {
-                self.corr_gain = [0.0; 3];
-                self.lag_prev = None;
-                self.sync_trim = [0.0; 3];
-                for i in 0..3 {
-                    self.want_prev[1][i] = self.pos[i] + self.corr[i];
-                    self.want_prev[0][i] = self.pos[i] + self.corr[i];
-                }
-                for c in &mut self.corr {
-                    *c = c.clamp(-CORR_FADE, CORR_FADE).mul_add(-1.0, *c);
-                }
-            }
-        }
+        // Every feed axis' lag model learns from all its motion (the rapid to R teaches it
+        // before the tap begins).
+        self.corr.learn(&xyz3(&sent), &xyz3(&before), &xyz3(&before2), &xyz3(&fb.pos));
+        self.corr.set_error(self.sync_err_vec);
+        let gain = gain.filter(|_| self.lim.sync_correction);
+        self.corr.update(gain, &xyz3(&self.pos), fb.pos[AX_S] - sent[AX_S]);
     }
 
     /// The learnt velocity lag τ₁ of feed axis `i` (actual ≈ sent − τ₁·v), s.
     fn axis_lag(&self, i: usize) -> f64 {
-        self.lag[i.min(2)].params().0 * self.lim.cycle_s
+        self.corr.axis_lag(i)
     }
 
     /// Measured spindle–axis sync error of the last cycle, µm along the thread's long axis:
@@ -2227,7 +2150,7 @@ impl Motion {
     /// spindle may still turn: see `Setpoint::spindle_rpm`.)
     pub fn is_idle(&self) -> bool {
         // Not while a sync correction is still fading out: what is sent is not the end yet.
-        self.len == 0 && self.run == Run::None && !self.stopping && self.corr == [0.0; 3] && self.tool.at_rest()
+        self.len == 0 && self.run == Run::None && !self.stopping && self.corr.is_zero() && self.tool.at_rest()
     }
 
     /// Controlled stop: decelerate along the path within the acceleration limits, ramp the

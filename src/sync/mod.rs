@@ -1,5 +1,6 @@
 //! Spindle–axis synchronization (threading, rigid tapping) and its error monitor.
 
+pub mod correction;
 pub mod lag;
 pub mod link_check;
 pub mod measure;
