@@ -3,6 +3,7 @@
 pub mod correction;
 pub mod lag;
 pub mod link_check;
+pub mod matrix;
 pub mod measure;
 pub mod thread;
 
