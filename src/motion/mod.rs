@@ -2153,6 +2153,11 @@ impl Motion {
         self.len == 0 && self.run == Run::None && !self.stopping && self.corr.is_zero() && self.tool.at_rest()
     }
 
+    /// The spindle (and the tool spindle) is commanded to stand still.
+    pub fn spindle_at_rest(&self) -> bool {
+        self.sp_cur == 0.0 && self.tool.at_rest()
+    }
+
     /// Controlled stop: decelerate along the path within the acceleration limits, ramp the
     /// spindle down, then drop the rest of the queue. New moves are refused until
     /// `is_idle()`; the next move is planned from where the axes came to rest.
