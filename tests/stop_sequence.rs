@@ -101,6 +101,14 @@ impl Outcome {
     }
 
     fn assert_rest_before_torque_off(&self) {
+        let r = &self.summary.rest;
+        eprintln!(
+            "rest: {:.3} s to standstill, spindle {:.2} rpm at torque off, quick stop {}; speeds at torque off (counts/s): {:?}",
+            r.time_s,
+            r.spindle_rpm_at_off,
+            r.quick_stop,
+            self.speed_at_torque_off()
+        );
         for (node, v) in self.speed_at_torque_off() {
             assert!(v.abs() <= rest_limit(node), "node {node} was switched off at {v} counts/s");
         }
