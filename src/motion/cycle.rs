@@ -767,17 +767,10 @@ impl<'a> CycleLoop<'a> {
             }
             let fb = self.read_feedback(&mut meter);
             let sp = motion.step(&fb);
-            for dd in 0..self.drives.axis_count() {
-                if dd == d {
-                    // Ignored while it is in its fault reaction; after a fault reset it holds.
-                    let p = self.drives.feedback(dd).pos;
-                    self.drives.set_target(dd, p);
-                } else if let Some(a) = motion_axis(self.drives.axis_name(dd), Some(dd) == self.spindle_drive) {
-                    self.drives.set_target(dd, sp.pos[a]);
-                } else if self.tool.is_some_and(|t| t.drive == dd) {
-                    self.drives.set_target(dd, sp.tool_spindle);
-                }
-            }
+            self.send(&sp);
+            // The faulted drive ignores it in its fault reaction; after a fault reset it holds.
+            let p = self.drives.feedback(d).pos;
+            self.drives.set_target(d, p);
             if let Err(a) = self.drives.transmit(now) {
                 self.quick_stop_all();
                 return at_line(alarm.unwrap_or(a));
@@ -839,13 +832,7 @@ impl<'a> CycleLoop<'a> {
                 return;
             }
             let sp = motion.step(&fb);
-            for d in 0..self.drives.axis_count() {
-                if let Some(a) = motion_axis(self.drives.axis_name(d), Some(d) == self.spindle_drive) {
-                    self.drives.set_target(d, sp.pos[a]);
-                } else if self.tool.is_some_and(|t| t.drive == d) {
-                    self.drives.set_target(d, sp.tool_spindle);
-                }
-            }
+            self.send(&sp);
             let _ = self.drives.transmit(now);
             if motion.is_idle() {
                 return;
