@@ -15,6 +15,7 @@ use crate::Alarm;
 use cncgw_bus::canopen::emcy::{error_register_text, error_text, Emcy};
 use cncgw_bus::canopen::nmt::{decode_heartbeat, heartbeat_frame, NmtCommand, NmtState};
 use cncgw_bus::canopen::pdo::{get_i32, get_u16, MapEntry};
+use cncgw_bus::canopen::sdo::abort as sdo_abort;
 use cncgw_bus::canopen::{cob, od, sync_frame};
 use cncgw_bus::cia402::{cw, mode, sw, EnableProgress, Enabler, State};
 use cncgw_bus::{CanBus, CanFrame, Clock};
@@ -589,6 +590,7 @@ impl<B: CanBus> CanOpenMaster<B> {
         self.write(clock, i, od::FOLLOWING_ERROR_WINDOW, 0, &win.to_le_bytes())?;
         // Quick stop: decelerate on the quick-stop ramp, then Switch On Disabled.
         self.write(clock, i, od::QUICK_STOP_OPTION, 0, &2i16.to_le_bytes())?;
+        self.configure_stop_reactions(clock, i)?;
         if let (Some(lo), Some(hi), false) = (spec.min, spec.max, spec.spindle) {
             let lo = (lo * spec.counts_per_unit).floor() as i32;
             let hi = (hi * spec.counts_per_unit).ceil() as i32;
@@ -615,6 +617,29 @@ impl<B: CanBus> CanOpenMaster<B> {
             }
             self.write(clock, i, od::CONSUMER_HEARTBEAT, 1, &consumer.to_le_bytes())?;
             self.write(clock, i, od::ABORT_CONNECTION, 0, &1i16.to_le_bytes())?;
+        }
+        Ok(())
+    }
+
+    /// A drive left alone must brake too, whatever stops it: shutdown (0x605B) and disable
+    /// operation (0x605C) slow down on the profile deceleration before the power stage goes
+    /// off (1), a fault reaction (0x605E) brakes on the quick-stop ramp (2). Many drives
+    /// default to switching off at once (the motor coasts). A drive without one of these
+    /// objects is told in the log, not refused: it is optional in CiA 402.
+    fn configure_stop_reactions(&mut self, clock: &mut dyn Clock, i: usize) -> Result<(), Alarm> {
+        for (ix, v, what) in [
+            (od::SHUTDOWN_OPTION, 1i16, "shutdown option 0x605B"),
+            (od::DISABLE_OPERATION_OPTION, 1, "disable operation option 0x605C"),
+            (od::FAULT_REACTION_OPTION, 2, "fault reaction option 0x605E"),
+        ] {
+            match self.sdo(clock, i, Sdo::Down(ix, 0, &v.to_le_bytes())) {
+                Ok(_) => {}
+                Err(SdoError::Abort { code }) if code == sdo_abort::NO_OBJECT || code == sdo_abort::NO_SUBINDEX => tracing::warn!(
+                    node = self.nodes[i].spec.node,
+                    "the drive has no {what}: how it stops when switched off or faulted is its own default"
+                ),
+                Err(e) => return Err(self.node_alarm(i, 2003, format!("writing the {what} failed: {e}"))),
+            }
         }
         Ok(())
     }
