@@ -293,6 +293,14 @@ pub struct AxisConfig {
     /// TPDO1 transmission type (0x1800:2): n = 1–240 sends after every n-th SYNC. Default 1.
     #[serde(default = "default_tx_type")]
     pub tpdo_transmission: u8,
+    /// SYNCs this drive goes on along its last set-point increment when a SYNC comes late
+    /// (interpolating CiA 402 drives extrapolate; many hold their last target instead). Absent
+    /// or 0: it holds — the safe assumption; check the drive's manual before setting more.
+    /// After a late cycle the controller catches the path up by at most the smallest of these
+    /// over the drives and holds the path's time base back by the rest, so that no set-point
+    /// steps by more than one cycle's travel (0 … 50).
+    #[serde(default)]
+    pub late_sync_extrapolation: u32,
 }
 
 fn default_tx_type() -> u8 {
@@ -366,6 +374,11 @@ impl MachineConfig {
         }
         if self.machine.watchdog_overruns > 100_000 {
             e.push(format!("machine.watchdog_overruns: must be between 0 (off) and 100000, got {}", self.machine.watchdog_overruns));
+        }
+        for (n, a) in &self.axes {
+            if a.late_sync_extrapolation > 50 {
+                e.push(format!("axes.{n}.late_sync_extrapolation: must be between 0 (the drive holds) and 50, got {}", a.late_sync_extrapolation));
+            }
         }
         if !(1..=50).contains(&self.machine.watchdog_missed_cycles) {
             e.push(format!("machine.watchdog_missed_cycles: must be between 1 and 50 (the most cycles the loop catches up), got {}", self.machine.watchdog_missed_cycles));
@@ -570,6 +583,12 @@ impl MachineConfig {
     /// The (work) spindle axis, if any: the first spindle that is not the tool spindle.
     pub fn spindle(&self) -> Option<(&str, &AxisConfig)> {
         self.axes.iter().find(|(_, a)| is_work_spindle(a)).map(|(n, a)| (n.as_str(), a))
+    }
+
+    /// How many cycles every drive bridges a late SYNC by extrapolating (the least of the
+    /// axes' `late_sync_extrapolation`; 0: at least one holds its target).
+    pub fn late_sync_extrapolation(&self) -> u32 {
+        self.axes.values().map(|a| a.late_sync_extrapolation).min().unwrap_or(0)
     }
 
     /// The work spindle's index in configuration order (the bus's drive order).

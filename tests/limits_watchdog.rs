@@ -113,8 +113,10 @@ fn record(name: &str, o: &Outcome, bound_cycles: u64) -> u64 {
 #[test]
 fn the_defaults_are_documented_values() {
     let cfg = MachineConfig::embedded();
-    assert_eq!(Watchdog::from_config(&cfg), Watchdog { max_consecutive: 5, max_missed: 25 });
-    assert_eq!(Watchdog::from_config(&cfg), Watchdog::default());
+    assert_eq!(Watchdog::from_config(&cfg), Watchdog { max_consecutive: 5, max_missed: 25, catch_up: 10 });
+    // Without a configuration the drives are assumed to hold their target over a late SYNC
+    // (nothing is caught up); the embedded machine's emulated drives bridge 10 periods.
+    assert_eq!(Watchdog::default(), Watchdog { max_consecutive: 5, max_missed: 25, catch_up: 0 });
     let bad = EMBEDDED_LATHE.replace("cycle_ms = 2.0", "cycle_ms = 2.0\nwatchdog_missed_cycles = 51");
     let e = MachineConfig::from_toml("bad.toml", &bad).unwrap_err().to_string();
     assert!(e.contains("machine.watchdog_missed_cycles: must be between 1 and 50"), "{e}");

@@ -51,6 +51,18 @@ impl Clock for World {
 /// `reset_after_ms` of clock time from now, if given. Returns the run's result, its summary
 /// and the state file after it.
 fn run(w: &mut World, wire: &InprocBus, program: &str, dir: &Path, reset_after_ms: Option<u64>) -> (Result<(), Alarm>, RunSummary, Option<TapState>) {
+    let (r, s, st, _) = run_counting(w, wire, program, dir, reset_after_ms);
+    (r, s, st)
+}
+
+/// `run`, also returning the state writer's wake-ups.
+fn run_counting(
+    w: &mut World,
+    wire: &InprocBus,
+    program: &str,
+    dir: &Path,
+    reset_after_ms: Option<u64>,
+) -> (Result<(), Alarm>, RunSummary, Option<TapState>, u64) {
     let cfg = MachineConfig::embedded();
     let file = TapStateFile::new(dir, &cfg.machine.name);
     let loaded = file.load().unwrap();
@@ -85,7 +97,7 @@ fn run(w: &mut World, wire: &InprocBus, program: &str, dir: &Path, reset_after_m
     };
     let stats = writer.finish();
     assert_eq!(stats.failures, 0, "{stats:?}");
-    (r, summary, file.load().unwrap())
+    (r, summary, file.load().unwrap(), stats.wakeups)
 }
 
 /// A tap program: from Z5 (or an R point), M10×1.5 (or 1.0) rigid tap, pecks or not.
@@ -128,6 +140,23 @@ fn tempdir() -> std::path::PathBuf {
     let _ = std::fs::remove_dir_all(&d);
     std::fs::create_dir_all(&d).unwrap();
     d
+}
+
+#[test]
+fn the_state_writer_sleeps_through_a_program_without_a_tap() {
+    // Issue 28: it woke every 0.5 ms for the whole run (≈ 1 765 times a second in the vcan
+    // guest), in programs with no tap too.
+    let dir = tempdir();
+    let wire = InprocBus::new();
+    let sim = sim_drives::SimConfig::from_machine_toml(cncgw::config::EMBEDDED_LATHE).unwrap();
+    let mut w = World { world: SimWorld::new(&wire, sim), reset_at: None };
+    let t0 = std::time::Instant::now();
+    let prog = "G21\nG98 G97\nM03 S800\nG0 X40 Z2\nG1 Z-100 F2000\nG0 X60\nZ2\nM05\nM30\n";
+    let (r, _, st, wakeups) = run_counting(&mut w, &wire, prog, &dir, None);
+    r.unwrap();
+    assert!(st.is_none(), "nothing written: {st:?}");
+    eprintln!("no tap: the state writer woke {wakeups} times in {:.2} s", t0.elapsed().as_secs_f64());
+    assert!(wakeups <= 2, "{wakeups} wake-ups");
 }
 
 #[test]

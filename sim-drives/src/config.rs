@@ -178,7 +178,14 @@ pub struct DriveConfig {
     /// The machine config's `modbus = "LINK"` of this axis: the drive is on that Modbus link,
     /// not on CANopen (`None`: CANopen, or a sim-drives config that does not say).
     pub modbus_link: Option<String>,
+    /// SYNC periods the drive goes on along its last set-point increment when a SYNC comes
+    /// late, before it holds (0: it holds its target at once, as many real drives do).
+    pub late_sync_extrapolation: u32,
 }
+
+/// sim-drives' own default of `late_sync_extrapolation` (its configuration format): 10
+/// periods, as interpolating drives bridge a late SYNC.
+pub const LATE_SYNC_EXTRAPOLATION: u32 = 10;
 
 impl DriveConfig {
     /// Defaults for one node of `kind` with `counts_per_unit` counts per mm (linear) or per
@@ -213,6 +220,7 @@ impl DriveConfig {
             cia402_map: Cia402Map::default(),
             pr_map: PrMap::default(),
             modbus_link: None,
+            late_sync_extrapolation: LATE_SYNC_EXTRAPOLATION,
         }
     }
 }
@@ -312,6 +320,10 @@ impl SimConfig {
             modbus_profile: Option<Profile>,
             cia402_map: Option<Cia402Map>,
             pr_map: Option<PrMap>,
+            // The drive behaves as the machine says it does (absent: it holds, as cncgw
+            // assumes).
+            #[serde(default)]
+            late_sync_extrapolation: u32,
         }
         #[derive(Deserialize)]
         struct Machine {
@@ -327,6 +339,7 @@ impl SimConfig {
             d.cia402_map = a.cia402_map.unwrap_or_default();
             d.pr_map = a.pr_map.unwrap_or_default();
             d.modbus_link = a.modbus.clone();
+            d.late_sync_extrapolation = a.late_sync_extrapolation;
             drives.push(d);
         }
         let cfg = SimConfig { drives, step_us: 50 };
@@ -404,6 +417,9 @@ impl SimConfig {
             set!(pr_map);
             if d.modbus_link.is_some() {
                 c.modbus_link = d.modbus_link.clone();
+                if let Some(n) = d.late_sync_extrapolation {
+                    c.late_sync_extrapolation = n;
+                }
             }
             if let Some(p) = &d.physics {
                 let q = &mut c.physics;
@@ -584,6 +600,10 @@ impl SimConfig {
             if let Some(l) = &d.modbus_link {
                 s.push_str(&format!("modbus_link = \"{l}\"     # the machine's Modbus link this drive is on\n"));
             }
+            s.push_str(&format!(
+                "late_sync_extrapolation = {}   # SYNC periods it goes on over a late SYNC before it holds (0: holds at once)\n",
+                d.late_sync_extrapolation
+            ));
             s.push_str("# Register addresses: [drive.cia402_map] / [drive.pr_map] (keys as in cncgw-bus' Cia402Map / PrMap)\n");
             s.push_str("[drive.physics]\n");
             s.push_str(&format!("motor_inertia = {:?}     # kg·m²\n", p.motor_inertia));
@@ -686,6 +706,7 @@ struct RawDrive {
     cia402_map: Option<Cia402Map>,
     pr_map: Option<PrMap>,
     modbus_link: Option<String>,
+    late_sync_extrapolation: Option<u32>,
 }
 
 #[derive(Deserialize)]

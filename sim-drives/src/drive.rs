@@ -17,10 +17,6 @@ use std::collections::{BTreeMap, VecDeque};
 mod block;
 pub mod profile;
 
-/// How many interpolation periods a late SYNC is bridged by extrapolating the set-point
-/// (20 ms at 2 ms): enough for a master on a non-real-time kernel (the vcan tier runs in a
-/// User-Mode Linux guest whose timers were measured 10–18 ms late at p99 under load).
-const SYNC_EXTRAPOLATE_PERIODS: u64 = 10;
 const MS: u64 = 1_000_000;
 const N_RPDO: u16 = 2;
 const N_TPDO: u16 = 2;
@@ -1525,7 +1521,7 @@ impl SimDrive {
                 // than the lateness.
                 let len = len.max(1);
                 let since = now.saturating_sub(self.seg_t0);
-                let fresh = self.seg_len == 0 || since > self.seg_len * (1 + SYNC_EXTRAPOLATE_PERIODS);
+                let fresh = self.seg_len == 0 || since > self.seg_len * (1 + self.late_periods());
                 // The velocity is the target difference over whole interpolation periods:
                 // one normally (sub-period jitter of the SYNC does not modulate it — the
                 // spindle's inertia turns every percent of feed-forward noise into torque),
@@ -1534,7 +1530,7 @@ impl SimDrive {
                 let v = if fresh {
                     (t - self.demand) / (len as f64 * 1e-9)
                 } else {
-                    let n = ((since as f64 / len as f64).round() as u64).clamp(1, 1 + SYNC_EXTRAPOLATE_PERIODS);
+                    let n = ((since as f64 / len as f64).round() as u64).clamp(1, 1 + self.late_periods());
                     (t - self.seg_end) / ((n * len) as f64 * 1e-9)
                 };
                 self.seg_v = v;
@@ -1545,6 +1541,14 @@ impl SimDrive {
             }
             _ => {}
         }
+    }
+
+    /// How many interpolation periods a late SYNC is bridged by extrapolating the set-point
+    /// (`DriveConfig::late_sync_extrapolation`; sim-drives' default 10 = 20 ms at 2 ms: enough
+    /// for a master on a non-real-time kernel — the vcan tier runs in a User-Mode Linux guest
+    /// whose timers were measured 10–18 ms late at p99 under load). 0: hold at once.
+    fn late_periods(&self) -> u64 {
+        self.cfg.late_sync_extrapolation as u64
     }
 
     /// The CSP target this SYNC acts on: the one written `transport_delay_cycles` SYNCs ago
@@ -1609,7 +1613,7 @@ impl SimDrive {
             Command::Velocity { v: self.target_vel }
         } else {
             let el = now.saturating_sub(self.seg_t0);
-            if el <= self.seg_len * (1 + SYNC_EXTRAPOLATE_PERIODS) {
+            if el <= self.seg_len * (1 + self.late_periods()) {
                 // Within the period this reaches the target; past it (a late SYNC) it goes
                 // on at the same speed, as real drives extrapolate over a late or missing
                 // SYNC instead of stopping the motor dead.
@@ -1617,7 +1621,7 @@ impl SimDrive {
                 self.vff = self.seg_v;
             } else {
                 // No SYNC for several periods: the master is gone or stalled; hold.
-                self.demand = self.seg_end + self.seg_v * ((self.seg_len * SYNC_EXTRAPOLATE_PERIODS) as f64 * 1e-9);
+                self.demand = self.seg_end + self.seg_v * ((self.seg_len * self.late_periods()) as f64 * 1e-9);
                 self.vff = 0.0;
             }
             Command::Position { demand: self.demand, vff: self.vff }
@@ -1698,7 +1702,7 @@ impl SimDrive {
     /// must not be extrapolated if the next target is late too (else each late target
     /// multiplies the error by the extrapolation span).
     pub(crate) fn modbus_latch(&mut self, now: u64) -> Option<u64> {
-        let fresh = self.seg_len == 0 || now.saturating_sub(self.seg_t0) > self.seg_len * (1 + SYNC_EXTRAPOLATE_PERIODS);
+        let fresh = self.seg_len == 0 || now.saturating_sub(self.seg_t0) > self.seg_len * (1 + self.late_periods());
         let before = self.seg_t0;
         self.latch_setpoints(now, false);
         (fresh && self.seg_t0 == now && before != now).then(|| now + self.seg_len)

@@ -29,6 +29,8 @@ pub mod alarms {
     pub const RESET: u32 = 2401;
     /// Too many cycle overruns (watchdog).
     pub const WATCHDOG: u32 = 2402;
+    /// The controller stalled inside a thread or rigid tap longer than the drives bridge.
+    pub const STALL_IN_SYNC: u32 = 2403;
 }
 
 /// At most this many missed cycles are caught up after an overrun (100 ms at 2 ms).
@@ -49,17 +51,25 @@ const MAX_CATCH_UP: u64 = 50;
 pub struct Watchdog {
     pub max_consecutive: u32,
     pub max_missed: u64,
+    /// Cycles the drives bridge a late SYNC by extrapolating (`late_sync_extrapolation`): the
+    /// most the loop catches the path up after a late wake-up; the rest of the delay shifts the
+    /// path's time base. 0 (the default): the drives hold their target, nothing is caught up.
+    pub catch_up: u64,
 }
 
 impl Default for Watchdog {
     fn default() -> Self {
-        Watchdog { max_consecutive: 5, max_missed: 25 }
+        Watchdog { max_consecutive: 5, max_missed: 25, catch_up: 0 }
     }
 }
 
 impl Watchdog {
     pub fn from_config(cfg: &crate::config::MachineConfig) -> Watchdog {
-        Watchdog { max_consecutive: cfg.machine.watchdog_overruns, max_missed: cfg.machine.watchdog_missed_cycles as u64 }
+        Watchdog {
+            max_consecutive: cfg.machine.watchdog_overruns,
+            max_missed: cfg.machine.watchdog_missed_cycles as u64,
+            catch_up: cfg.late_sync_extrapolation() as u64,
+        }
     }
 
     /// One cycle that woke `late` whole periods after its slot (0 = on time), with
@@ -87,6 +97,18 @@ impl Watchdog {
             )
         })
     }
+}
+
+/// Alarm 2403: the controller stalled inside a thread or rigid tap for longer than the
+/// drives bridge (their time base cannot be shifted: the spindle turns on).
+fn stall_in_sync(line: u32, missed: u64, bridged: u64, cycle_ns: u64) -> Alarm {
+    Alarm::new(
+        alarms::STALL_IN_SYNC,
+        format!(
+            "line {line}: the controller itself woke {missed} cycles ({:.1} ms) late inside a thread or rigid tap — a stall of this computer, not of a drive — and the drives bridge {bridged} (axes.*.late_sync_extrapolation); spindle and axes were stopped together. Give the cycle thread real-time priority and a core of its own (`--rt-priority`, `--cpu`), then restart",
+            missed as f64 * cycle_ns as f64 * 1e-6
+        ),
+    )
 }
 
 /// Progress, reported to the caller every few cycles.
@@ -450,11 +472,12 @@ impl<'a> CycleLoop<'a> {
             self.clock.wait_until(next);
             let now = self.clock.now_ns();
             summary.cycles += 1;
-            // Overrun: whole periods were missed (real time only). The trajectory keeps its
-            // time base: the interpolator steps through the missed cycles at once and the
-            // drives get the set-point of *now*, which is where their extrapolation over the
-            // late SYNC has carried them. Running the missed cycles back to back on the bus
-            // instead would make the drives see a set-point that went backwards.
+            // Overrun: whole periods were missed (real time only). The drives bridged the late
+            // SYNC as they do (`Watchdog::catch_up`): the interpolator catches up as many
+            // cycles as they extrapolated, so the set-point is where they are now, and holds
+            // the trajectory's time base back by the rest — a drive that held its target gets
+            // the next cycle's step, never the whole missed travel at once. In a thread or tap
+            // time cannot be shifted: that is a controlled stop naming the stall.
             let late_before = late_prev;
             let mut missed = 0u64;
             late_prev = now >= next + self.cycle_ns / 2;
@@ -467,6 +490,11 @@ impl<'a> CycleLoop<'a> {
                 self.halt(motion, spindle_rpm);
                 return Err(a);
             }
+            if missed > self.watchdog.catch_up && motion.is_synchronised() {
+                self.halt(motion, spindle_rpm);
+                return Err(stall_in_sync(cur_line, missed, self.watchdog.catch_up, self.cycle_ns));
+            }
+            let missed = missed.min(self.watchdog.catch_up);
             let received = self.drives.receive(now);
             if let Some(d) = if isolate { self.drives.faulted() } else { None } {
                 return Err(self.fault_stop(motion, d, received.err(), spindle_rpm, cur_line));

@@ -2158,6 +2158,15 @@ impl Motion {
         self.len == 0 && self.run == Run::None && !self.stopping && self.corr.is_zero() && self.tool.at_rest()
     }
 
+    /// A spindle-synchronised move is running (a thread pass on its lock, a rigid tap or
+    /// G92.1 stroke): its time base cannot be shifted.
+    pub fn is_synchronised(&self) -> bool {
+        match self.run {
+            Run::Thread { sync: Some(_), .. } | Run::Tap { theta0: Some(_), .. } | Run::Rigid { theta0: Some(_), .. } => true,
+            _ => self.in_hole,
+        }
+    }
+
     /// The spindle (and the tool spindle) is commanded to stand still.
     pub fn spindle_at_rest(&self) -> bool {
         self.sp_cur == 0.0 && self.tool.at_rest()

@@ -403,6 +403,8 @@ pub struct PersistStats {
     pub failures: u64,
     /// The last failure, to report.
     pub last_error: Option<String>,
+    /// Times the writer went to sleep (its wake-ups, but the last).
+    pub wakeups: u64,
 }
 
 impl TapPersister {
@@ -451,8 +453,15 @@ impl TapPersister {
                 if stopping {
                     return stats;
                 }
-                let wait = period.saturating_sub(last_t.elapsed()).max(Duration::from_micros(500));
-                std::thread::park_timeout(wait);
+                stats.wakeups += 1;
+                // Asleep until there is work: progress in a hole at most every period; out
+                // of a hole the cycle wakes it at the entry (and `finish` at the end).
+                let in_hole_unwritten = now.is_some_and(|n| n.in_hole) && now != last;
+                if in_hole_unwritten {
+                    std::thread::park_timeout(period.saturating_sub(last_t.elapsed()).max(Duration::from_micros(500)));
+                } else {
+                    std::thread::park();
+                }
             }
         })?;
         Ok(TapPersister { stop, handle })

@@ -111,6 +111,9 @@ struct Node {
     have_fb: bool,
     /// Clock time of the last TPDO1.
     fb_ns: u64,
+    /// SYNCs sent since the last TPDO1: a drive's silence is SYNCs it did not answer (a
+    /// stall of the controller itself sends none, and is the watchdog's).
+    syncs_unanswered: u32,
     target: i64,
     controlword: u16,
     enabled: bool,
@@ -139,6 +142,7 @@ impl Node {
             unwrapped: 0,
             have_fb: false,
             fb_ns: 0,
+            syncs_unanswered: 0,
             target: 0,
             controlword: 0,
             enabled: false,
@@ -460,6 +464,7 @@ impl<B: CanBus> CanOpenMaster<B> {
             n.raw_pos = raw;
             n.have_fb = true;
             n.fb_ns = now_ns;
+            n.syncs_unanswered = 0;
         }
     }
 
@@ -1202,14 +1207,20 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
                     format!("heartbeat lost (none for {} ms); check the cable and the drive's power", now_ns.saturating_sub(n.last_hb_ns) / 1_000_000),
                 ));
             }
-            // Age by time, not by cycles: after the cycle thread was late, a cycle follows
-            // at once and a drive cannot have answered yet.
+            // Stale by time *and* by SYNCs left unanswered: after the cycle thread was late,
+            // a cycle follows at once and a drive cannot have answered yet, and a stall of the
+            // controller (no SYNC sent) is not the drive's silence.
             let age = now_ns.saturating_sub(n.fb_ns);
-            if self.running && age > self.feedback_timeout_ns {
+            let timeout_syncs = (self.feedback_timeout_ns / self.cycle_ns.max(1)).max(1) as u32;
+            if self.running && age > self.feedback_timeout_ns && n.syncs_unanswered > timeout_syncs {
                 return Err(self.node_fault(
                     i,
                     2015,
-                    format!("no position feedback (TPDO1) for {:.1} ms ({} cycles); check the drive's PDO configuration and the bus", age as f64 * 1e-6, age / self.cycle_ns),
+                    format!(
+                        "no position feedback (TPDO1) for {:.1} ms: the drive answered none of the last {} SYNCs; check the drive's PDO configuration (TPDO1 mapping and transmission type) and the bus",
+                        age as f64 * 1e-6,
+                        n.syncs_unanswered
+                    ),
                 ));
             }
         }
@@ -1248,6 +1259,9 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
             self.send(&f)?;
         }
         self.send(&sync_frame(None))?;
+        for n in &mut self.nodes {
+            n.syncs_unanswered = n.syncs_unanswered.saturating_add(1);
+        }
         self.tick_heartbeat(now_ns)
     }
 
