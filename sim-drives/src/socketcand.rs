@@ -278,6 +278,9 @@ impl CanBus for SocketcandServer {
     fn name(&self) -> &str {
         &self.name
     }
+    fn remote_frames(&self) -> bool {
+        false
+    }
 }
 
 impl Drop for SocketcandServer {
