@@ -670,7 +670,7 @@ fn config_check(file: Option<&std::path::Path>, json: bool) -> i32 {
     let n_can = cfg.axes.values().filter(|a| a.modbus.is_none()).count();
     let mut can_load = None;
     if n_can > 0 {
-        let frames = crate::bus::busload::csp_frames(n_can, 6);
+        let frames = crate::drives::canopen::master::cyclic_frames(n_can);
         let load = crate::bus::busload::load(&frames, cfg.cycle_s(), cfg.bus.bitrate);
         can_load = Some(load);
         text.push(format!(
