@@ -158,6 +158,11 @@ pub struct Shape {
     /// Whether 0x6007 (abort connection option) exists; without it a lost master faults
     /// the drive, as most drives do.
     pub abort_connection_object: bool,
+    /// Whether 0x6061 may be mapped into a PDO (a restricted mapping when false).
+    pub mode_display_pdo: bool,
+    /// Sub-indices of 0x1018 the drive has (4: vendor, product, revision, serial; 0: none,
+    /// a vendor-id read aborts).
+    pub identity_subs: u8,
 }
 
 impl Default for Shape {
@@ -178,6 +183,8 @@ impl Default for Shape {
             heartbeat_consumer: true,
             node_guarding: true,
             abort_connection_object: true,
+            mode_display_pdo: true,
+            identity_subs: 4,
         }
     }
 }
@@ -208,6 +215,9 @@ impl Shape {
         }
         if !(self.feedback_factor.is_finite() && self.feedback_factor != 0.0) {
             errs.push(format!("{k}: shape.feedback_factor must be a non-zero number, got {}", self.feedback_factor));
+        }
+        if self.identity_subs > 4 {
+            errs.push(format!("{k}: shape.identity_subs must be 0…4, got {}", self.identity_subs));
         }
         if self.sync_producer && !(100..=1_000_000).contains(&self.sync_period_us) {
             errs.push(format!("{k}: shape.sync_period_us must be 100…1000000, got {}", self.sync_period_us));
@@ -457,6 +467,16 @@ impl SimConfig {
         Ok(SimConfig { drives, step_us: self.step_us })
     }
 
+    /// A sim-drives config (what `--print-default-config` prints) or a cncgw machine config
+    /// (its `[axes.*]`), from a file.
+    pub fn from_file(path: &std::path::Path) -> Result<SimConfig, String> {
+        let text = std::fs::read_to_string(path).map_err(|e| format!("{}: cannot read: {e}", path.display()))?;
+        // A machine config has [axes.*]; a sim-drives config has [[drive]].
+        let is_machine = text.lines().any(|l| l.trim_start().starts_with("[axes."));
+        let r = if is_machine { SimConfig::from_machine_toml(&text) } else { SimConfig::from_toml(&text) };
+        r.map_err(|e| format!("{}: {e}", path.display()))
+    }
+
     /// The drives of the default machine (config/lathe.toml).
     pub fn default_lathe() -> SimConfig {
         // The embedded file is checked by a test; fall back to an empty bus rather than panic.
@@ -545,6 +565,8 @@ impl SimConfig {
                 sets!(heartbeat_consumer);
                 sets!(node_guarding);
                 sets!(abort_connection_object);
+                sets!(mode_display_pdo);
+                sets!(identity_subs);
             }
             let _ = i;
             drives.push(c);
@@ -657,7 +679,9 @@ impl SimConfig {
         s.push_str("#   sync_period_us = 2000\n");
         s.push_str("#   heartbeat_consumer = false  # no 0x1016\n");
         s.push_str("#   node_guarding = false    # no 0x100C/0x100D (no answers to guarding requests)\n");
-        s.push_str("#   abort_connection_object = false  # no 0x6007 (a lost master faults the drive)\n\n");
+        s.push_str("#   abort_connection_object = false  # no 0x6007 (a lost master faults the drive)\n");
+        s.push_str("#   mode_display_pdo = false # 0x6061 cannot be mapped into a PDO\n");
+        s.push_str("#   identity_subs = 0        # 0x1018 sub-indices present (4 = vendor…serial; 0: a vendor-id read aborts)\n\n");
         s.push_str(&format!("step_us = {}                 # control loop / physics step, µs (≤ 100)\n", self.step_us));
         for d in &self.drives {
             let p = &d.physics;
@@ -695,6 +719,7 @@ impl SimConfig {
                 s.push_str(&format!("gear_ratio = [{}, {}]\npolarity = 0x{:02X}\nfeedback_factor = {:?}\n", h.gear_ratio[0], h.gear_ratio[1], h.polarity, h.feedback_factor));
                 s.push_str(&format!("sync_producer = {}\nsync_period_us = {}\nheartbeat_consumer = {}\n", h.sync_producer, h.sync_period_us, h.heartbeat_consumer));
                 s.push_str(&format!("node_guarding = {}\nabort_connection_object = {}\n", h.node_guarding, h.abort_connection_object));
+                s.push_str(&format!("mode_display_pdo = {}\nidentity_subs = {}\n", h.mode_display_pdo, h.identity_subs));
             }
             s.push_str("[drive.physics]\n");
             s.push_str(&format!("motor_inertia = {:?}     # kg·m²\n", p.motor_inertia));
@@ -812,6 +837,8 @@ struct RawShape {
     heartbeat_consumer: Option<bool>,
     node_guarding: Option<bool>,
     abort_connection_object: Option<bool>,
+    mode_display_pdo: Option<bool>,
+    identity_subs: Option<u8>,
 }
 
 #[derive(Deserialize)]

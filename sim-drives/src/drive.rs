@@ -206,6 +206,10 @@ pub struct SimDrive {
     own_sync_next: Option<u64>,
     /// Node guarding (slave side).
     guarding: shape::Guarding,
+    /// Modes (bit m) the drive has been in Operation Enabled in, and NMT resets received:
+    /// what a test asks afterwards ("never enabled before the mode", "nothing was reset").
+    enabled_modes: u32,
+    nmt_resets: u32,
     out: Vec<CanFrame>,
 }
 
@@ -250,11 +254,11 @@ fn build_od(c: &DriveConfig) -> Od {
         od.add(ix::CONSUMER_HEARTBEAT, 2, U32, Rw, false, 0);
     }
     od.add(ix::PRODUCER_HEARTBEAT, 0, U16, Rw, false, 0);
-    od.add(ix::IDENTITY, 0, U8, Const, false, 4);
-    od.add(ix::IDENTITY, 1, U32, Const, false, c.vendor_id as i64);
-    od.add(ix::IDENTITY, 2, U32, Const, false, c.product_code as i64);
-    od.add(ix::IDENTITY, 3, U32, Const, false, c.revision as i64);
-    od.add(ix::IDENTITY, 4, U32, Const, false, c.serial as i64);
+    let ids = c.shape.identity_subs.min(4);
+    od.add(ix::IDENTITY, 0, U8, Const, false, ids as i64);
+    for (s, v) in [c.vendor_id, c.product_code, c.revision, c.serial].into_iter().enumerate().take(ids as usize) {
+        od.add(ix::IDENTITY, s as u8 + 1, U32, Const, false, v as i64);
+    }
     // RPDO1: controlword + target position, valid; RPDO2: controlword + target velocity,
     // invalid until the master enables it (CSV spindles).
     let rpdo = [
@@ -314,7 +318,7 @@ fn build_od(c: &DriveConfig) -> Od {
     od.add_range(ix::QUICK_STOP_OPTION, 0, I16, Rw, false, 2, 0, 8);
     od.add_range(FAULT_REACTION, 0, I16, Rw, false, 2, 0, 4);
     od.add(ix::MODES_OF_OPERATION, 0, I8, Rw, true, sh.boot_mode as i64);
-    od.add(ix::MODES_DISPLAY, 0, I8, Ro, true, sh.boot_mode as i64);
+    od.add(ix::MODES_DISPLAY, 0, I8, Ro, sh.mode_display_pdo, sh.boot_mode as i64);
     od.add(POSITION_DEMAND, 0, I32, Ro, true, 0);
     od.add(ix::POSITION_ACTUAL, 0, I32, Ro, true, 0);
     // Position objects are in position units (the factor group below).
@@ -423,6 +427,8 @@ impl SimDrive {
             pending_mode: None,
             own_sync_next: None,
             guarding: shape::Guarding::default(),
+            enabled_modes: 0,
+            nmt_resets: 0,
             out: Vec::new(),
             cfg,
         };
@@ -498,6 +504,14 @@ impl SimDrive {
     }
     pub fn mode_display(&self) -> i8 {
         self.hot.mode
+    }
+    /// The modes (bit m for mode m, 0…31) this drive has been in Operation Enabled in.
+    pub fn enabled_modes(&self) -> u32 {
+        self.enabled_modes
+    }
+    /// NMT reset node / reset communication commands received since power-on.
+    pub fn nmt_resets(&self) -> u32 {
+        self.nmt_resets
     }
     pub fn statusword(&self) -> u16 {
         self.compute_statusword()
@@ -766,6 +780,9 @@ impl SimDrive {
     fn nmt_command(&mut self, c: NmtCommand, now: u64) {
         if self.nmt == NmtState::BootUp && !matches!(c, NmtCommand::ResetNode | NmtCommand::ResetCommunication) {
             return;
+        }
+        if matches!(c, NmtCommand::ResetNode | NmtCommand::ResetCommunication) {
+            self.nmt_resets += 1;
         }
         match c {
             NmtCommand::Start => self.set_nmt(NmtState::Operational),
@@ -1596,6 +1613,7 @@ impl SimDrive {
             return;
         }
         if self.state == State::OperationEnabled {
+            self.enabled_modes |= 1u32.checked_shl(self.mode_display() as u32).unwrap_or(0);
             let halt = self.prev_cw & cw::HALT != 0;
             match self.stop {
                 None if halt => self.start_stop(StopWhy::Halt, Brake::Ramp(self.od.int(PROFILE_DECEL, 0) as f64), now),

@@ -27,7 +27,8 @@ pub struct MachineArgs {
     /// Machine configuration (TOML). Default: the embedded config/lathe.toml.
     #[arg(long, short = 'c', value_name = "FILE")]
     pub config: Option<PathBuf>,
-    /// Bus: `inproc` (embedded emulated drives, simulated time), a SocketCAN interface such
+    /// Bus: `inproc` (embedded emulated drives, simulated time; their shapes from a
+    /// sim-drives config in $CNCGW_SIM_DRIVES when set), a SocketCAN interface such
     /// as `vcan0` or `can0`, `socketcand://HOST:PORT/IFACE`, or a Modbus link for every axis:
     /// `modbus-tcp://HOST:PORT`, `modbus-rtu:///dev/ttyUSB0?baud=115200&parity=none`.
     /// Default: the config's bus.interface (and its Modbus links).
@@ -440,6 +441,11 @@ pub struct Session {
 /// endpoint, the clock, the bus as given, and the bus in words. `inproc` builds the
 /// emulated drives from `cfg_text`.
 #[allow(clippy::type_complexity)]
+/// Environment variable: a sim-drives config for the embedded emulated drives (`--bus
+/// inproc`) instead of the machine config's axes — to try a configuration against drives
+/// shaped like commercial ones (boot mode, user units, SYNC producer, no 0x1016, …).
+pub const SIM_DRIVES_ENV: &str = "CNCGW_SIM_DRIVES";
+
 pub fn open_raw(
     cfg: &crate::config::MachineConfig,
     cfg_text: &str,
@@ -454,7 +460,12 @@ pub fn open_raw(
         return Err("the configuration has no CANopen bus (bus.interface = \"none\"): give one with --bus, or use a Modbus command".into());
     }
     if bus == "inproc" {
-        let sim_cfg = sim_drives::SimConfig::from_machine_toml_bus(cfg_text, Some(false)).map_err(|e| format!("emulated drives: {e}"))?;
+        // The drives: the config's CANopen axes, or a sim-drives config that shapes them like
+        // commercial drives ($CNCGW_SIM_DRIVES, see sim-drives' `[drive.shape]`).
+        let sim_cfg = match std::env::var_os(SIM_DRIVES_ENV) {
+            Some(p) => sim_drives::SimConfig::from_file(std::path::Path::new(&p)).map(|c| c.canopen_drives()).map_err(|e| format!("emulated drives (${SIM_DRIVES_ENV}): {e}"))?,
+            None => sim_drives::SimConfig::from_machine_toml_bus(cfg_text, Some(false)).map_err(|e| format!("emulated drives: {e}"))?,
+        };
         let wire = cncgw_bus::transport::inproc::InprocBus::new();
         let world = sim_drives::SimWorld::new(&wire, sim_cfg);
         let ep: Box<dyn cncgw_bus::CanBus> = Box::new(wire.endpoint());

@@ -5,6 +5,7 @@
 pub mod canopen;
 pub mod modbus;
 pub mod multi;
+pub mod scale_watch;
 
 use crate::Alarm;
 use cncgw_bus::cia402::State;

@@ -751,10 +751,15 @@ impl<B: CanBus> CanOpenMaster<B> {
             ));
         }
         let mut info = NodeInfo { node, device_type: dt, ..NodeInfo::default() };
-        info.vendor = Some(
-            self.read_u32(clock, i, od::IDENTITY, 1)
-                .map_err(|e| self.node_alarm(i, 2003, format!("reading the vendor id 0x1018:01 (mandatory in CiA 301) failed: {e}")))?,
-        );
+        // The vendor id is mandatory in CiA 301, but only logged here: a drive that will not
+        // give it is not refused for that.
+        info.vendor = match self.read_u32(clock, i, od::IDENTITY, 1) {
+            Ok(v) => Some(v),
+            Err(e) => {
+                tracing::warn!(node, "the vendor id 0x1018:01 is unreadable ({e})");
+                None
+            }
+        };
         // Product, revision, serial are optional in CiA 301.
         info.product = self.read_u32(clock, i, od::IDENTITY, 2).ok();
         info.revision = self.read_u32(clock, i, od::IDENTITY, 3).ok();
