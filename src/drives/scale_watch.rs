@@ -23,8 +23,13 @@ pub const MAX_RATIO: f64 = 2.0;
 pub struct ScaleWatch {
     /// Commanded travel per comparison, counts (0: not watched).
     span: i64,
-    /// Command and actual at the start of the present window.
+    /// Command and actual at the start of the present window: the median (by following
+    /// error) of three consecutive samples, so that one corrupted frame cannot be the start.
     start: Option<(i64, i64)>,
+    candidates: [(i64, i64); 3],
+    n_candidates: u8,
+    /// Consecutive window ends outside the bounds (one corrupted frame is one).
+    bad: u8,
 }
 
 impl ScaleWatch {
@@ -32,33 +37,49 @@ impl ScaleWatch {
     /// under one count: not watched.
     pub fn new(window_counts: Option<f64>) -> ScaleWatch {
         let span = window_counts.filter(|w| w.is_finite() && *w >= 1.0).map_or(0, |w| (w * SPAN_WINDOWS).ceil().min(i64::MAX as f64 / 4.0) as i64);
-        ScaleWatch { span, start: None }
+        ScaleWatch { span, start: None, candidates: [(0, 0); 3], n_candidates: 0, bad: 0 }
     }
 
-    /// Forget the window (feedback that cannot be paired this cycle does not end it; a
-    /// stop, a mode change or a homing does).
+    /// Forget the window.
     pub fn reset(&mut self) {
         self.start = None;
+        self.n_candidates = 0;
+        self.bad = 0;
     }
 
     /// A commanded position and the actual position that answers it (same instant, counts,
-    /// unwrapped). Some(ratio of actual to commanded travel) when a window ends outside the
-    /// bounds.
+    /// unwrapped), from consecutive cycles. Some(ratio of actual to commanded travel) when
+    /// two window ends in a row are outside the bounds.
     pub fn observe(&mut self, cmd: i64, act: i64) -> Option<f64> {
         if self.span == 0 {
             return None;
         }
         let Some((c0, a0)) = self.start else {
-            self.start = Some((cmd, act));
+            self.candidates[self.n_candidates as usize] = (cmd, act);
+            self.n_candidates += 1;
+            if self.n_candidates == 3 {
+                let mut c = self.candidates;
+                c.sort_unstable_by_key(|&(c, a)| a.saturating_sub(c));
+                self.start = Some(c[1]);
+                self.n_candidates = 0;
+            }
             return None;
         };
         let dc = cmd.saturating_sub(c0);
         if dc.unsigned_abs() < self.span as u64 {
             return None;
         }
-        self.start = Some((cmd, act));
         let r = act.saturating_sub(a0) as f64 / dc as f64;
-        (!(MIN_RATIO..=MAX_RATIO).contains(&r)).then_some(r)
+        if (MIN_RATIO..=MAX_RATIO).contains(&r) {
+            // A new window from here.
+            self.bad = 0;
+            self.start = None;
+            self.candidates[0] = (cmd, act);
+            self.n_candidates = 1;
+            return None;
+        }
+        self.bad = self.bad.saturating_add(1);
+        (self.bad >= 2).then_some(r)
     }
 
     /// The alarm text for `axis` with the ratio found.
@@ -102,7 +123,8 @@ mod tests {
         assert!(ScaleWatch::message("x", 10.0, 10000.0).contains("moves 10.000× the commanded motion"));
     }
 
-    /// The first window that ends tells: after `SPAN_WINDOWS` windows of commanded travel.
+    /// The first window that ends tells (confirmed by the next sample): after
+    /// `SPAN_WINDOWS` windows of commanded travel from the third sample.
     #[test]
     fn found_after_one_span() {
         let mut s = ScaleWatch::new(Some(100.0));
@@ -113,6 +135,19 @@ mod tests {
                 break;
             }
         }
-        assert_eq!(at, Some(1000));
+        assert_eq!(at, Some(1002));
+    }
+
+    /// One corrupted feedback sample — at a window's start, at its end, anywhere — is not a
+    /// scaling error.
+    #[test]
+    fn single_corrupted_samples_are_not_a_factor() {
+        for glitch_at in [0, 1, 2, 3, 500, 1001, 1002, 1003, 1004, 2005] {
+            let mut s = ScaleWatch::new(Some(100.0));
+            for k in 0..5000i64 {
+                let a = if k == glitch_at { k + (1 << 20) } else { k };
+                assert_eq!(s.observe(k, a), None, "glitch at {glitch_at}, sample {k}");
+            }
+        }
     }
 }

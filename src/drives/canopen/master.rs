@@ -540,7 +540,14 @@ impl<B: CanBus> CanOpenMaster<B> {
             }
             n.bad_len = 0;
             if n.mode.in_pdo && f.len >= 7 {
-                n.mode.shown = Some(f.data[6] as i8);
+                // As the statusword: one frame with a flipped bit is not a mode change.
+                let m = f.data[6] as i8;
+                if n.mode.shown != Some(m) && n.mode.confirmed && n.mode.odd_frames == 0 {
+                    n.mode.odd_frames = 1;
+                } else {
+                    n.mode.odd_frames = 0;
+                    n.mode.shown = Some(m);
+                }
             }
             let raw = get_i32(&f.data, 2);
             if n.have_fb && raw.wrapping_sub(n.raw_pos).unsigned_abs() >= 1 << 30 {

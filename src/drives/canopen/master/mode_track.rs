@@ -38,6 +38,8 @@ pub(super) struct ModeTrack {
     /// The drive has shown `want` since it was asked for it: from then on another mode is
     /// a change behind the master's back (alarm 2005 while running).
     pub confirmed: bool,
+    /// A TPDO with another mode than the confirmed one, waiting for the next to agree.
+    pub odd_frames: u8,
 }
 
 impl ModeTrack {
