@@ -446,6 +446,7 @@ pub struct Session {
 /// shaped like commercial ones (boot mode, user units, SYNC producer, no 0x1016, …).
 pub const SIM_DRIVES_ENV: &str = "CNCGW_SIM_DRIVES";
 
+#[allow(clippy::type_complexity)]
 pub fn open_raw(
     cfg: &crate::config::MachineConfig,
     cfg_text: &str,

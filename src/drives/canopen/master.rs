@@ -900,6 +900,7 @@ impl<B: CanBus> CanOpenMaster<B> {
         Ok(())
     }
 
+    #[allow(clippy::too_many_arguments)]
     fn map_pdo(
         &mut self,
         clock: &mut dyn Clock,
@@ -1412,7 +1413,9 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
         // Nothing is sent before the bus was heard free of another master.
         self.found = self.check_bus_free(clock)?;
         // Reset communication so every node reports a boot-up and starts from its default
-        // communication parameters; then wait for all of them.
+        // communication parameters; then wait for all of them. Pre-operational first: a
+        // reset straight from operational is a lost connection to some drives (0x6007).
+        self.send(&NmtCommand::EnterPreOperational.frame(0))?;
         self.nmt_command(0, NmtCommand::ResetCommunication)?;
         self.undo = Some(Vec::new());
         let r = self.wait_all_booted(clock).and_then(|_| {

@@ -41,9 +41,17 @@ impl<B: CanBus> CanOpenMaster<B> {
             self.next_hb_ns = next_on_grid(self.next_hb_ns, self.hb_ms as u64 * 1_000_000, now_ns);
         }
         for i in 0..self.nodes.len() {
-            let Some(g) = self.nodes[i].guarding else { continue };
+            let Some(g) = self.nodes[i].guarding else {
+                continue;
+            };
             if now_ns >= g.next_ns {
-                let f = CanFrame { id: (cob::HEARTBEAT + self.nodes[i].spec.node as u16) as u32, extended: false, rtr: true, len: 1, data: [0; 8] };
+                let f = CanFrame {
+                    id: (cob::HEARTBEAT + self.nodes[i].spec.node as u16) as u32,
+                    extended: false,
+                    rtr: true,
+                    len: 1,
+                    data: [0; 8],
+                };
                 self.send(&f)?;
                 if let Some(g) = self.nodes[i].guarding.as_mut() {
                     g.next_ns = next_on_grid(g.next_ns, g.period_ns, now_ns);
@@ -55,7 +63,10 @@ impl<B: CanBus> CanOpenMaster<B> {
 
     /// Start guarding node `i` every `period_ms` (after 0x100C / 0x100D were written).
     pub(super) fn start_guarding(&mut self, i: usize, period_ms: u16, now_ns: u64) {
-        self.nodes[i].guarding = Some(Guarding { period_ns: period_ms as u64 * 1_000_000, next_ns: now_ns });
+        self.nodes[i].guarding = Some(Guarding {
+            period_ns: period_ms as u64 * 1_000_000,
+            next_ns: now_ns,
+        });
         // Its answers are its heartbeat from now on.
         self.nodes[i].last_hb_ns = now_ns.max(1);
     }
