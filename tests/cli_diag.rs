@@ -41,7 +41,7 @@ fn scan_table_lists_every_configured_node() {
     assert_eq!(x[3], "error control: heartbeat off; consumes heartbeat (0x1016): none set; node guarding (0x100C/0x100D): off");
 }
 
-/// A sim-drives config in a temp file, for `CNCGW_SIM_DRIVES`: three drives (X, Z, S1)
+/// A sim-drives config in a temp file, for `--sim-config`: three drives (X, Z, S1)
 /// with `shape` (TOML lines of `[drive.shape]`) on each.
 fn shaped(name: &str, shape: &str) -> std::path::PathBuf {
     let mut t = String::new();
@@ -53,20 +53,10 @@ fn shaped(name: &str, shape: &str) -> std::path::PathBuf {
     p
 }
 
-fn cncgw_env(args: &[&str], env: &[(&str, &std::path::Path)]) -> Out {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_cncgw"));
-    c.args(args);
-    for (k, v) in env {
-        c.env(k, v);
-    }
-    let o = c.output().expect("run cncgw");
-    Out { code: o.status.code().unwrap_or(-1), stdout: String::from_utf8_lossy(&o.stdout).into_owned(), stderr: String::from_utf8_lossy(&o.stderr).into_owned() }
-}
-
 #[test]
 fn scan_shows_what_start_up_will_check_and_an_unreadable_vendor_as_unreadable() {
     let f = shaped("scan", "boot_mode = 1\nsupported_modes_object = false\nfeed_constant = 10000\nsync_producer = true\nheartbeat_consumer = false\nidentity_subs = 0\npolarity = 0x80");
-    let o = cncgw_env(&["scan"], &[("CNCGW_SIM_DRIVES", &f)]);
+    let o = cncgw(&["scan", "--sim-config", f.to_str().unwrap()]);
     assert_eq!(o.code, 0, "{}{}", o.stdout, o.stderr);
     let all: Vec<&str> = o.stdout.lines().map(|l| l.trim()).collect();
     assert!(all[2].starts_with("1 x     unreadable unreadable unreadable unreadable 0x00020192"), "{}", o.stdout);
@@ -74,7 +64,7 @@ fn scan_shows_what_start_up_will_check_and_an_unreadable_vendor_as_unreadable() 
     assert_eq!(all[4], "SYNC: PRODUCER (0x1005 = 0x40000080): it sends SYNC itself");
     assert_eq!(all[5], "units: 1 unit = 10 increments (0x608F 100000 inc / 1 rev, 0x6091 gear 1:1, 0x6092 feed 10000 / 1 rev, 0x607E 0x80)");
     assert_eq!(all[6], "error control: heartbeat off; consumes heartbeat (0x1016): absent; node guarding (0x100C/0x100D): off");
-    let o = cncgw_env(&["scan", "--json"], &[("CNCGW_SIM_DRIVES", &f)]);
+    let o = cncgw(&["scan", "--json", "--sim-config", f.to_str().unwrap()]);
     let _ = std::fs::remove_file(&f);
     assert_eq!(o.code, 0, "{}", o.stderr);
     let v: serde_json::Value = serde_json::from_str(o.stdout.trim()).expect("one JSON document");

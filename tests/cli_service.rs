@@ -30,7 +30,7 @@ fn tmp(name: &str) -> std::path::PathBuf {
 }
 
 fn session() -> Session {
-    open_session(&MachineArgs { config: None, bus: Some("inproc".into()) }).expect("inproc session")
+    open_session(&MachineArgs { config: None, bus: Some("inproc".into()), sim_config: None }).expect("inproc session")
 }
 
 fn statusword(s: &mut Session, node: u8) -> u16 {

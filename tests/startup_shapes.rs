@@ -701,7 +701,7 @@ fn a_tpdo_of_the_wrong_length_is_alarm_2018_naming_both_lengths() {
     assert!(m.pdo_length_errors(2) >= 3);
 }
 
-// ---- As an operator runs it: `cncgw run` on the embedded drives shaped by $CNCGW_SIM_DRIVES.
+// ---- As an operator runs it: `cncgw run --sim-config FILE` on the embedded drives, shaped.
 
 /// `cncgw run --batch examples/first_part.nc` on three drives shaped by `shape` (TOML lines
 /// of `[drive.shape]`). Exit code, stdout, stderr.
@@ -722,12 +722,9 @@ fn cli_run(name: &str, shape: &str) -> (i32, String, String) {
     let sim = dir.join("drives.toml");
     std::fs::write(&sim, t).unwrap();
     let o = std::process::Command::new(env!("CARGO_BIN_EXE_cncgw"))
-        .args([
-            "run",
-            "--batch",
-            concat!(env!("CARGO_MANIFEST_DIR"), "/examples/first_part.nc"),
-        ])
-        .env("CNCGW_SIM_DRIVES", &sim)
+        .args(["run", "--batch", "--sim-config"])
+        .arg(&sim)
+        .arg(concat!(env!("CARGO_MANIFEST_DIR"), "/examples/first_part.nc"))
         .env("CNCGW_STATE_DIR", &dir)
         .output()
         .expect("run cncgw");

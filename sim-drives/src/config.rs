@@ -61,6 +61,27 @@ pub struct Physics {
     pub speed_encoder_bits: u32,
     /// Speed estimate low-pass filter time constant, ms.
     pub speed_filter_ms: f64,
+    /// What real drives have and the plain model lacks; each 0 = off (the defaults).
+    pub extra: Extra,
+}
+
+/// Properties of real drives beyond the rigid single-inertia model (`[drive.physics]`
+/// keys; 0 = off).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Extra {
+    /// SYNCs between a CSP set-point's arrival and the drive acting on it (buffering in the
+    /// drive, beyond the one interpolation period every drive has).
+    pub transport_delay_cycles: u32,
+    /// Lines × 4 of the position encoder per motor revolution when coarser than the
+    /// position unit: the position loop and the reported actual position see it quantised.
+    pub encoder_counts_per_rev: u32,
+    /// Compliance between motor and load (a belt, a long screw), N·m/rad at the motor; the
+    /// load inertia then sits behind it with the friction and the process load.
+    pub load_stiffness: f64,
+    /// Damping of that compliance, N·m·s/rad.
+    pub load_damping: f64,
+    /// Lost motion between motor and load, degrees of the motor.
+    pub backlash_deg: f64,
 }
 
 impl Physics {
@@ -91,6 +112,7 @@ impl Physics {
                     // A 20-bit motor encoder, speed filtered at ≈ 800 Hz.
                     speed_encoder_bits: 20,
                     speed_filter_ms: 0.2,
+                    extra: Extra::default(),
                 }
             }
             DriveKind::Spindle => {
@@ -111,6 +133,7 @@ impl Physics {
                     current_loop_tc_ms: 0.4,
                     speed_encoder_bits: 20,
                     speed_filter_ms: 0.5,
+                    extra: Extra::default(),
                 }
             }
         }
@@ -540,6 +563,22 @@ impl SimConfig {
                 setp!(current_loop_tc_ms);
                 setp!(speed_encoder_bits);
                 setp!(speed_filter_ms);
+                let e = &mut c.physics.extra;
+                if let Some(v) = p.transport_delay_cycles {
+                    e.transport_delay_cycles = v;
+                }
+                if let Some(v) = p.encoder_counts_per_rev {
+                    e.encoder_counts_per_rev = v;
+                }
+                if let Some(v) = p.load_stiffness {
+                    e.load_stiffness = v;
+                }
+                if let Some(v) = p.load_damping {
+                    e.load_damping = v;
+                }
+                if let Some(v) = p.backlash_deg {
+                    e.backlash_deg = v;
+                }
             }
             if let Some(sh) = &d.shape {
                 let q = &mut c.shape;
@@ -641,6 +680,24 @@ impl SimConfig {
             if !(8..=32).contains(&p.speed_encoder_bits) {
                 errs.push(format!("{k}: physics.speed_encoder_bits must be 8…32, got {}", p.speed_encoder_bits));
             }
+            let x = p.extra;
+            for (n, v) in [("load_stiffness", x.load_stiffness), ("load_damping", x.load_damping), ("backlash_deg", x.backlash_deg)] {
+                if !(v.is_finite() && v >= 0.0) {
+                    errs.push(format!("{k}: physics.{n} must be ≥ 0, got {v}"));
+                }
+            }
+            if x.transport_delay_cycles > 8 {
+                errs.push(format!("{k}: physics.transport_delay_cycles must be 0…8, got {}", x.transport_delay_cycles));
+            }
+            if x.encoder_counts_per_rev > d.counts_per_rev {
+                errs.push(format!(
+                    "{k}: physics.encoder_counts_per_rev ({}) must not be finer than counts_per_rev ({})",
+                    x.encoder_counts_per_rev, d.counts_per_rev
+                ));
+            }
+            if x.load_stiffness > 0.0 && p.load_inertia <= 0.0 {
+                errs.push(format!("{k}: physics.load_stiffness needs a load_inertia > 0 behind it"));
+            }
             if p.coulomb_friction >= p.torque_limit {
                 errs.push(format!("{k}: physics.coulomb_friction must be below torque_limit (the motor could never move)"));
             }
@@ -735,6 +792,12 @@ impl SimConfig {
             s.push_str(&format!("current_loop_tc_ms = {:?}  # torque lag behind its command\n", p.current_loop_tc_ms));
             s.push_str(&format!("speed_encoder_bits = {}     # motor encoder the speed is estimated from\n", p.speed_encoder_bits));
             s.push_str(&format!("speed_filter_ms = {:?}     # speed estimate low-pass\n", p.speed_filter_ms));
+            let x = p.extra;
+            s.push_str(&format!("transport_delay_cycles = {}  # SYNCs a set-point waits in the drive (0 = off)\n", x.transport_delay_cycles));
+            s.push_str(&format!("encoder_counts_per_rev = {}  # coarser position encoder, lines × 4 per rev (0 = off)\n", x.encoder_counts_per_rev));
+            s.push_str(&format!("load_stiffness = {:?}        # motor–load compliance, N·m/rad (0 = rigid)\n", x.load_stiffness));
+            s.push_str(&format!("load_damping = {:?}          # its damping, N·m·s/rad\n", x.load_damping));
+            s.push_str(&format!("backlash_deg = {:?}          # lost motion motor–load, motor degrees (0 = none)\n", x.backlash_deg));
             // Register maps only where they differ from the built-in ones.
             let order = |o: WordOrder| match o {
                 WordOrder::HighFirst => "high_first",
@@ -857,6 +920,11 @@ struct RawPhysics {
     current_loop_tc_ms: Option<f64>,
     speed_encoder_bits: Option<u32>,
     speed_filter_ms: Option<f64>,
+    transport_delay_cycles: Option<u32>,
+    encoder_counts_per_rev: Option<u32>,
+    load_stiffness: Option<f64>,
+    load_damping: Option<f64>,
+    backlash_deg: Option<f64>,
 }
 
 #[cfg(test)]

@@ -194,6 +194,8 @@ pub struct SimDrive {
     encoder_frozen: Option<i64>,
     /// TPDOs waiting for their injected delay: (due, frame).
     delayed: VecDeque<(u64, CanFrame)>,
+    /// CSP set-points waiting in the drive (`Extra::transport_delay_cycles`): (raw, fresh).
+    transport: VecDeque<(i32, bool)>,
     /// PDO-loss draws (xorshift64; seeded by the node id, so runs are reproducible).
     rng: u64,
     /// Objects read every control tick, copied out of the dictionary after each write.
@@ -421,6 +423,7 @@ impl SimDrive {
             silence_pending: None,
             encoder_frozen: None,
             delayed: VecDeque::new(),
+            transport: VecDeque::new(),
             rng: 0x9E37_79B9_7F4A_7C15 ^ cfg.node as u64,
             hot: Hot::default(),
             prof: profile::Prof::default(),
@@ -1387,6 +1390,7 @@ impl SimDrive {
         self.vff = 0.0;
         self.target_ref = None;
         self.ferr_since = None;
+        self.transport.clear();
         self.prof.cancel();
     }
 
@@ -1525,7 +1529,7 @@ impl SimDrive {
                 self.target_vel = self.od.int(ix::TARGET_VELOCITY, 0) as f64;
             }
             mode::CYCLIC_SYNC_POSITION => {
-                let raw = self.od.int(ix::TARGET_POSITION, 0) as i32;
+                let (raw, fresh) = self.delayed_target(self.od.int(ix::TARGET_POSITION, 0) as i32, fresh, sync);
                 // No new target for this SYNC (its RPDO was lost): go on with the last
                 // increment for up to `CSP_EXTRAPOLATE` SYNCs, then hold. A stop of one
                 // period would be a velocity step and, on the next target, twice the
@@ -1599,6 +1603,20 @@ impl SimDrive {
             }
             _ => {}
         }
+    }
+
+    /// The CSP target this SYNC acts on: the one written `transport_delay_cycles` SYNCs ago
+    /// (a drive that buffers its set-points), else the latest.
+    fn delayed_target(&mut self, raw: i32, fresh: bool, sync: bool) -> (i32, bool) {
+        let n = self.cfg.physics.extra.transport_delay_cycles as usize;
+        if n == 0 || !sync {
+            return (raw, fresh);
+        }
+        self.transport.push_back((raw, fresh));
+        while self.transport.len() > n + 1 {
+            self.transport.pop_front();
+        }
+        self.transport.front().copied().unwrap_or((raw, fresh))
     }
 
     /// One control tick at `now` (every `step_us`).

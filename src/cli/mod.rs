@@ -27,13 +27,19 @@ pub struct MachineArgs {
     /// Machine configuration (TOML). Default: the embedded config/lathe.toml.
     #[arg(long, short = 'c', value_name = "FILE")]
     pub config: Option<PathBuf>,
-    /// Bus: `inproc` (embedded emulated drives, simulated time; their shapes from a
-    /// sim-drives config in $CNCGW_SIM_DRIVES when set), a SocketCAN interface such
+    /// Bus: `inproc` (embedded emulated drives, simulated time), a SocketCAN interface such
     /// as `vcan0` or `can0`, `socketcand://HOST:PORT/IFACE`, or a Modbus link for every axis:
     /// `modbus-tcp://HOST:PORT`, `modbus-rtu:///dev/ttyUSB0?baud=115200&parity=none`.
     /// Default: the config's bus.interface (and its Modbus links).
     #[arg(long, value_name = "BUS")]
     pub bus: Option<String>,
+    /// With `--bus inproc`: the emulated drives' own configuration (a sim-drives file, as
+    /// `sim-drives --print-default-config` prints; e.g. one of tests/drive_models/) instead of
+    /// sim-drives' defaults for the machine's axes; its `[drive.shape]` makes them behave like
+    /// commercial drives (boot mode, user units, SYNC producer, no 0x1016, …). Its node ids
+    /// and kinds must be the machine's, and its counts per unit too unless a drive is shaped.
+    #[arg(long, value_name = "FILE")]
+    pub sim_config: Option<PathBuf>,
 }
 
 #[derive(Subcommand, Debug)]
@@ -441,16 +447,11 @@ pub struct Session {
 /// endpoint, the clock, the bus as given, and the bus in words. `inproc` builds the
 /// emulated drives from `cfg_text`.
 #[allow(clippy::type_complexity)]
-/// Environment variable: a sim-drives config for the embedded emulated drives (`--bus
-/// inproc`) instead of the machine config's axes — to try a configuration against drives
-/// shaped like commercial ones (boot mode, user units, SYNC producer, no 0x1016, …).
-pub const SIM_DRIVES_ENV: &str = "CNCGW_SIM_DRIVES";
-
-#[allow(clippy::type_complexity)]
 pub fn open_raw(
     cfg: &crate::config::MachineConfig,
     cfg_text: &str,
     bus: Option<&str>,
+    sim: Option<&std::path::Path>,
 ) -> Result<(Box<dyn cncgw_bus::CanBus>, Box<dyn cncgw_bus::Clock>, String, String), String> {
     use cncgw_bus::transport::socketcand;
     let bus = bus.map(str::to_string).unwrap_or_else(|| cfg.bus.interface.clone());
@@ -461,12 +462,7 @@ pub fn open_raw(
         return Err("the configuration has no CANopen bus (bus.interface = \"none\"): give one with --bus, or use a Modbus command".into());
     }
     if bus == "inproc" {
-        // The drives: the config's CANopen axes, or a sim-drives config that shapes them like
-        // commercial drives ($CNCGW_SIM_DRIVES, see sim-drives' `[drive.shape]`).
-        let sim_cfg = match std::env::var_os(SIM_DRIVES_ENV) {
-            Some(p) => sim_drives::SimConfig::from_file(std::path::Path::new(&p)).map(|c| c.canopen_drives()).map_err(|e| format!("emulated drives (${SIM_DRIVES_ENV}): {e}"))?,
-            None => sim_drives::SimConfig::from_machine_toml_bus(cfg_text, Some(false)).map_err(|e| format!("emulated drives: {e}"))?,
-        };
+        let sim_cfg = emulated_drives(cfg, cfg_text, sim)?;
         let wire = cncgw_bus::transport::inproc::InprocBus::new();
         let world = sim_drives::SimWorld::new(&wire, sim_cfg);
         let ep: Box<dyn cncgw_bus::CanBus> = Box::new(wire.endpoint());
@@ -484,15 +480,60 @@ pub fn open_raw(
     }
 }
 
+/// The emulated drives of the embedded machine: sim-drives' defaults for the machine's
+/// CANopen axes, or the sim-drives configuration `sim` (another drive model), which must
+/// have the machine's CANopen nodes with the same kinds and counts per unit.
+pub fn emulated_drives(
+    cfg: &crate::config::MachineConfig,
+    cfg_text: &str,
+    sim: Option<&std::path::Path>,
+) -> Result<sim_drives::SimConfig, String> {
+    let Some(path) = sim else {
+        return sim_drives::SimConfig::from_machine_toml_bus(cfg_text, Some(false)).map_err(|e| format!("emulated drives: {e}"));
+    };
+    let text = std::fs::read_to_string(path).map_err(|e| format!("--sim-config {}: {e}", path.display()))?;
+    let sim_cfg = sim_drives::SimConfig::from_toml(&text).map_err(|e| format!("--sim-config {}: {e}", path.display()))?;
+    let mut errs = Vec::new();
+    for (name, a) in cfg.axes.iter().filter(|(_, a)| a.modbus.is_none()) {
+        let kind = match a.kind {
+            crate::config::AxisKind::Linear => sim_drives::DriveKind::Linear,
+            crate::config::AxisKind::Spindle => sim_drives::DriveKind::Spindle,
+        };
+        match sim_cfg.drives.iter().find(|d| d.node == a.node) {
+            None => errs.push(format!("axis {name} is node {} in the machine, and no drive of the emulated ones has that node", a.node)),
+            Some(d) if d.kind != kind => errs.push(format!("axis {name} (node {}) is {:?} in the machine, {} in the emulated drives", a.node, a.kind, d.kind.name())),
+            // A drive with a `[drive.shape]` is there to try start-up's own checks (its
+            // scaling against counts_per_unit is alarm 2006, with the value that matches):
+            // its scaling is not refused here.
+            Some(d) if d.shape == sim_drives::config::Shape::default() && (d.counts_per_unit - a.counts_per_unit).abs() > 1e-9 * a.counts_per_unit.abs().max(1.0) => errs.push(format!(
+                "axis {name} (node {}): counts_per_unit {} in the machine, {} in the emulated drives",
+                a.node, a.counts_per_unit, d.counts_per_unit
+            )),
+            Some(_) => {}
+        }
+    }
+    for d in &sim_cfg.drives {
+        if !cfg.axes.values().any(|a| a.modbus.is_none() && a.node == d.node) {
+            errs.push(format!("emulated drive node {} ({}) is not an axis of the machine", d.node, d.axis));
+        }
+    }
+    if errs.is_empty() {
+        Ok(sim_cfg)
+    } else {
+        Err(format!("--sim-config {} does not fit the machine: {}", path.display(), errs.join("; ")))
+    }
+}
+
 /// Open the bus named by `bus` (default: the config's bus.interface) with its clock, and a
-/// master for `cfg` on it. `inproc` builds the emulated drives from `cfg_text`.
+/// master for `cfg` on it. `inproc` builds the emulated drives from `cfg_text` (or `sim`).
 #[allow(clippy::type_complexity)]
 pub fn open_bus(
     cfg: &crate::config::MachineConfig,
     cfg_text: &str,
     bus: Option<&str>,
+    sim: Option<&std::path::Path>,
 ) -> Result<(crate::drives::canopen::CanOpenMaster<Box<dyn cncgw_bus::CanBus>>, Box<dyn cncgw_bus::Clock>, String, String), String> {
-    let (ep, clock, bus, what) = open_raw(cfg, cfg_text, bus)?;
+    let (ep, clock, bus, what) = open_raw(cfg, cfg_text, bus, sim)?;
     Ok((crate::drives::canopen::CanOpenMaster::new(ep, cfg), clock, bus, what))
 }
 
@@ -508,7 +549,7 @@ pub fn open_session_with(
     wrap: impl FnOnce(Box<dyn cncgw_bus::CanBus>) -> Box<dyn cncgw_bus::CanBus>,
 ) -> Result<Session, String> {
     let (cfg, text) = load_config(m.config.as_deref())?;
-    let (ep, mut clock, bus, what) = open_raw(&cfg, &text, m.bus.as_deref())?;
+    let (ep, mut clock, bus, what) = open_raw(&cfg, &text, m.bus.as_deref(), m.sim_config.as_deref())?;
     let mut master = crate::drives::canopen::CanOpenMaster::new(wrap(ep), &cfg);
     let simulated = clock.is_simulated();
     if simulated && !master.wait_boot(&mut *clock, 5000) {

@@ -257,7 +257,7 @@ pub fn run_job(
             );
             return (EXIT_SETUP, None, RunSummary::default());
         }
-        match super::open_bus(cfg, cfg_text, machine.bus.as_deref()) {
+        match super::open_bus(cfg, cfg_text, machine.bus.as_deref(), machine.sim_config.as_deref()) {
             Ok((m, c, _, w)) => {
                 can = Some(m);
                 // Not used yet: a real one is replaced by one that waits as configured.

@@ -504,7 +504,7 @@ pub fn buslog(machine: &MachineArgs, out: &std::path::Path, seconds: Option<f64>
             return EXIT_SETUP;
         }
     };
-    let (mut bus, mut clock, name, what) = match super::open_raw(&cfg, &text, machine.bus.as_deref()) {
+    let (mut bus, mut clock, name, what) = match super::open_raw(&cfg, &text, machine.bus.as_deref(), machine.sim_config.as_deref()) {
         Ok(b) => b,
         Err(e) => {
             eprintln!("error: {e}");

@@ -132,10 +132,7 @@ impl Motion {
         if self.follow.is_none() {
             return false;
         }
-        self.corr_prev = self.corr;
-        self.corr = [0.0; 3];
-        self.corr_gain = [0.0; 3];
-        self.lag_prev = None;
+        self.corr.clear();
         true
     }
 

@@ -98,6 +98,7 @@ mod tests;
 
 use crate::canon::{Feed, Move, MoveKind, Plane, Pos, SpindleCmd, SpindleDir};
 use crate::config::{AxisKind, MachineConfig};
+use crate::sync::correction::SyncCorrection;
 use crate::sync::ThreadSync;
 use std::f64::consts::TAU;
 use crate::Alarm;
@@ -120,18 +121,10 @@ const HIST: usize = 6;
 const INPOS_MM: f64 = 0.001;
 /// Longest wait for the in-position check, cycles (then the tap starts anyway).
 const INPOS_MAX_CYCLES: u32 = 150;
-/// Memory of the feed axes' lag estimate (see `sync_corr`), s.
+/// Memory of the feed axes' lag models (see `sync_corr`), s.
 const LAG_MEMORY_S: f64 = 2.0;
-/// The lag is learnt only after the sent speed has been steady this long (the drive's
-/// transient after an acceleration has died out), s.
-const LAG_SETTLE_S: f64 = 0.06;
-/// Largest sync correction, mm (a spindle lagging more is a fault for the sync monitor).
-const CORR_MAX: f64 = 0.5;
-/// Largest change of the sync correction from one cycle to the next, mm (1 mm/s at 2 ms;
-/// a real lag changes by µm per cycle).
-const CORR_SLEW: f64 = 0.002;
-/// After a tapped hole or G92.1 stroke the correction fades out by at most this per cycle, mm.
-const CORR_FADE: f64 = 0.0005;
+/// Gain with which a thread's measured phase error corrects the long axis' lag, per cycle.
+const THREAD_TRIM_GAIN: f64 = 0.1;
 
 const AXIS_NAMES: [char; N_AXES] = ['X', 'Y', 'Z', 'S'];
 
@@ -549,6 +542,14 @@ pub struct Motion {
     fault: Option<Fault>,
     /// Measured sync error of this cycle, µm (see `sync_error`).
     sync_err: f64,
+    /// The same error as a vector of the feed axes (mm; + = the axis ahead of the spindle's
+    /// relation), for the sync correction's trim.
+    sync_err_vec: [f64; 3],
+    /// A thread's phase error measured this cycle (path mm; + = the axes ahead).
+    thread_err: Option<f64>,
+    /// Each feed axis' effective lag on a thread's synchronous line, s, learnt from the
+    /// threads' own measured phase error (None: not yet threaded; the lag model's τ₁ then).
+    thread_tau: [Option<f64>; 3],
     /// The last cycle commanded a setpoint locked to the spindle, so this cycle's actual
     /// positions can be compared with the spindle's.
     sync_watch: bool,
@@ -567,19 +568,8 @@ pub struct Motion {
     /// Setpoints sent in the last HIST cycles (ring, index `hist_k` = the newest).
     hist: [[f64; N_AXES]; HIST],
     hist_k: usize,
-    /// Sync correction (see `sync_corr`): feed-axis mm per spindle degree of the locked
-    /// stroke (0 = not locked), the offset added to X/Y/Z this cycle and the last one, and the
-    /// relative lag of the last cycle (None: no previous sample).
-    corr_gain: [f64; 3],
-    corr: [f64; 3],
-    corr_prev: [f64; 3],
-    lag_prev: Option<f64>,
-    /// Least-squares estimate of each feed axis' velocity lag τ (actual = sent − τ·v):
-    /// exponentially weighted Σ(−e·v) and Σ v².
-    tau_num: [f64; 3],
-    tau_den: [f64; 3],
-    /// Cycles each feed axis has been sent a steady speed.
-    steady: [u32; 3],
+    /// The sync correction of rigid taps and G92.1 (`crate::sync::correction`).
+    corr: SyncCorrection,
     /// Cycles waited for the in-position check before a rigid tap.
     inpos_wait: u32,
     /// The cycle action of the item running or last taken from the queue.
@@ -618,6 +608,10 @@ pub struct TapEntry {
     pub spindle_deg: f64,
 }
 
+fn xyz3(p: &[f64; N_AXES]) -> [f64; 3] {
+    [p[AX_X], p[AX_Y], p[AX_Z]]
+}
+
 fn xyz(p: &Pos) -> [f64; 3] {
     [p.x, p.y, p.z]
 }
@@ -640,6 +634,9 @@ impl Motion {
             last_blendable: false,
             fault: None,
             sync_err: 0.0,
+            sync_err_vec: [0.0; 3],
+            thread_err: None,
+            thread_tau: [None; 3],
             sync_watch: false,
             thread_chain: None,
             tap_ref: None,
@@ -647,13 +644,14 @@ impl Motion {
             plan_tap: None,
             hist: [start; HIST],
             hist_k: 0,
-            corr_gain: [0.0; 3],
-            corr: [0.0; 3],
-            corr_prev: [0.0; 3],
-            lag_prev: None,
-            tau_num: [0.0; 3],
-            tau_den: [0.0; 3],
-            steady: [0; 3],
+            corr: SyncCorrection::new(
+                limits.cycle_s,
+                limits.feedback_delay.clamp(1, HIST - 3),
+                [limits.amax[AX_X], limits.amax[AX_Y], limits.amax[AX_Z]],
+                LAG_MEMORY_S,
+                [start[AX_X], start[AX_Y], start[AX_Z]],
+            ),
+
             inpos_wait: 0,
             cur_cyc: CycStep::default(),
             plan_cyc: CycStep::default(),
@@ -1753,9 +1751,18 @@ impl Motion {
                 // Like rigid tapping: brake the spindle, then take its angle as the origin.
                 self.sp_dir = 0.0;
                 self.sp_css = None;
+                // In position first, as before a rigid tap: a stroke that starts while the axes
+                // still settle from the positioning move begins with that error as sync error.
+                let sent = self.hist[self.hist_k];
+                let in_pos = self.inpos_wait >= INPOS_MAX_CYCLES
+                    || seg.u_long == 0.0
+                    || ((0..3).all(|i| !self.lim.present[i] || (fb.pos[i] - sent[i]).abs() <= INPOS_MM)
+                        && (fb.pos[AX_S] - sent[AX_S]).abs() * seg.plen / seg.dc.abs().max(1e-9) <= INPOS_MM);
+                self.inpos_wait = if self.sp_cur == 0.0 { self.inpos_wait.saturating_add(1) } else { 0 };
                 if self.stopping {
                     self.run = Run::None;
-                } else if self.sp_cur == 0.0 {
+                } else if self.sp_cur == 0.0 && in_pos {
+                    self.inpos_wait = 0;
                     self.run = Run::Rigid { seg, theta0: Some(self.pos[AX_S]), s: 0.0, v: 0.0, landed: false };
                 }
             }
@@ -1887,9 +1894,10 @@ impl Motion {
         self.step_tool(fb.pos[AX_S], fb.spindle_rpm * 6.0);
         let mut out = self.pos;
         let mut vel = [0.0; N_AXES];
+        let (corr, dcorr) = (self.corr.offset(), self.corr.step());
         for i in 0..3 {
-            out[i] += self.corr[i];
-            vel[i] = (self.pos[i] - prev[i] + self.corr[i] - self.corr_prev[i]) / dt;
+            out[i] += corr[i];
+            vel[i] = (self.pos[i] - prev[i] + dcorr[i]) / dt;
         }
         self.hist_k = (self.hist_k + 1) % HIST;
         self.hist[self.hist_k] = out;
@@ -1922,7 +1930,21 @@ impl Motion {
         // is `feedback_delay` cycles old by then.
         // Plus the long axis' own velocity lag (learnt, see `sync_corr`): otherwise the thread
         // phase would move with the rpm by ω·τ.
-        let tau = if self.lim.sync_correction { self.axis_lag(seg.long_axis) } else { 0.0 };
+        let la = seg.long_axis.min(2);
+        let mut tau = self.thread_tau[la].unwrap_or_else(|| self.axis_lag(la));
+        // Learn the lag from the phase error itself on the synchronous line (steady speed):
+        // an error e at path speed v is a lag misjudged by e/v.
+        if let (Some(e), Some(t)) = (self.thread_err.take(), sync) {
+            let vs = t.sync_speed();
+            if e.is_finite() && vs > 1e-3 && (v - vs).abs() <= 0.01 * vs {
+                tau = (tau - THREAD_TRIM_GAIN * e / vs).clamp(0.0, 0.1);
+            }
+        }
+        if self.lim.sync_correction {
+            self.thread_tau[la] = Some(tau);
+        } else {
+            tau = 0.0;
+        }
         let theta = fb.pos[AX_S] + rpm * 6.0 * (dt * self.lim.feedback_delay as f64 + tau);
         // The lead-in ramp uses 80 % of the path acceleration, leaving the tracker headroom.
         let sync = match sync {
@@ -2005,23 +2027,12 @@ impl Motion {
         }
     }
 
-    /// The sync correction of rigid taps and G92.1 (with `Limits::sync_correction`).
-    ///
-    /// One profile drives the spindle angle θ and the feed axes; the spindle (heavy, soft
-    /// position loop) lags its command differently from a feed axis, above all in
-    /// acceleration and under load, so commanding both from the same θ opens a sync error
-    /// exactly where the tap enters, reverses and leaves. Instead the feed axes follow the
-    /// spindle's *actual* angle: every cycle the spindle's lag e_S = θ_actual − θ_sent (sent
-    /// `feedback_delay` cycles ago) is measured and extrapolated to when this cycle's
-    /// setpoint takes effect; the feed axes are sent `mm per degree × e_S` ahead of the
-    /// nominal, plus their own velocity lag τ·v so that they really are there. τ is learnt
-    /// online (least squares of the measured lag against the sent speed, over all motion,
-    /// `LAG_MEMORY_S`), not fed back cycle by cycle: a feed axis' lag reacts to the correction
-    /// itself, and feeding that back would ring. The nominal setpoint (`position`, the
-    /// planning, exact landing) is unchanged. The correction stays on through the strokes
-    /// and dwells of one hole and fades out by at most `CORR_FADE` per cycle afterwards.
+    /// The sync correction of rigid taps and G92.1 (with `Limits::sync_correction`): the
+    /// feed axes follow the spindle's *actual* angle with their own lag pre-compensated and
+    /// the measured sync error trimmed out (`crate::sync::correction`). Only the *sent*
+    /// set-point carries it; planning, landing and `position()` stay nominal. It stays on
+    /// through the strokes and dwells of one hole and fades out afterwards.
     fn sync_corr(&mut self, fb: &Feedback) {
-        self.corr_prev = self.corr;
         let gain = match self.run {
             Run::Tap { seg, theta0: Some(_), .. } => {
                 let mut g = [0.0; 3];
@@ -2034,67 +2045,24 @@ impl Motion {
                 Some([(e[0] - p0[0]) / seg.dc, (e[1] - p0[1]) / seg.dc, (e[2] - p0[2]) / seg.dc])
             }
             // Between the strokes of a hole (reversal, dwell at the bottom): keep the lock.
-            _ if self.in_hole => Some(self.corr_gain),
+            _ if self.in_hole => Some(self.corr.gain()),
             _ => None,
         };
-        let dt = self.lim.cycle_s;
         let fd = self.lim.feedback_delay.clamp(1, HIST - 3);
         let sent = self.hist[(self.hist_k + HIST - (fd - 1)) % HIST];
         let before = self.hist[(self.hist_k + HIST - fd) % HIST];
         let before2 = self.hist[(self.hist_k + HIST - fd - 1) % HIST];
-        // Learn the feed axes' velocity lag from the cycles that moved at a steady speed (in
-        // acceleration the lag has other terms).
-        let forget = (-dt / LAG_MEMORY_S).exp();
-        for i in 0..3 {
-            let v = (sent[i] - before[i]) / dt;
-            let v0 = (before[i] - before2[i]) / dt;
-            let e = fb.pos[i] - sent[i];
-            let steady = v.abs() > 1e-3 && (v - v0).abs() <= 0.01 * v.abs();
-            self.steady[i] = if steady { self.steady[i].saturating_add(1) } else { 0 };
-            if v.is_finite() && e.is_finite() && self.steady[i] as f64 * dt >= LAG_SETTLE_S {
-                self.tau_num[i] = forget * self.tau_num[i] - e * v;
-                self.tau_den[i] = forget * self.tau_den[i] + v * v;
-            }
-        }
-        let lag_s = fb.pos[AX_S] - sent[AX_S];
-        match gain.filter(|_| self.lim.sync_correction && lag_s.is_finite()) {
-            Some(g) => {
-                self.corr_gain = g;
-                let p = self.lag_prev.unwrap_or(lag_s);
-                self.lag_prev = Some(lag_s);
-                // Extrapolated by (delay − 1) cycles: measured on the emulated drives, one cycle
-                // less than the feedback delay tracks best (max error at the reversal
-                // 5.28 µm with none, 4.98 with 1, 5.78 with 3 cycles at the default delay 2).
-                let e_s = lag_s + (fd as f64 - 1.0) * (lag_s - p);
-                for i in 0..3 {
-                    if g[i] == 0.0 {
-                        continue;
-                    }
-                    let tau = self.axis_lag(i);
-                    let v_nom = (self.pos[i] - self.hist[self.hist_k][i] + self.corr_prev[i]) / dt;
-                    let c = (g[i] * e_s + tau * v_nom).clamp(-CORR_MAX, CORR_MAX);
-                    // Slew-limited: implausible feedback must not kick the axis.
-                    self.corr[i] = c.clamp(self.corr_prev[i] - CORR_SLEW, self.corr_prev[i] + CORR_SLEW);
-                }
-            }
-            None => {
-                self.corr_gain = [0.0; 3];
-                self.lag_prev = None;
-                for c in &mut self.corr {
-                    *c = c.clamp(-CORR_FADE, CORR_FADE).mul_add(-1.0, *c);
-                }
-            }
-        }
+        // Every feed axis' lag model learns from all its motion (the rapid to R teaches it
+        // before the tap begins).
+        self.corr.learn(&xyz3(&sent), &xyz3(&before), &xyz3(&before2), &xyz3(&fb.pos));
+        self.corr.set_error(self.sync_err_vec);
+        let gain = gain.filter(|_| self.lim.sync_correction);
+        self.corr.update(gain, &xyz3(&self.pos), fb.pos[AX_S] - sent[AX_S]);
     }
 
-    /// The learnt velocity lag τ of feed axis `i` (actual ≈ sent − τ·v), s, in 0 ..= 50 ms.
+    /// The learnt velocity lag τ₁ of feed axis `i` (actual ≈ sent − τ₁·v), s.
     fn axis_lag(&self, i: usize) -> f64 {
-        let (n, d) = (self.tau_num[i.min(2)], self.tau_den[i.min(2)]);
-        if d > 0.0 && (n / d).is_finite() {
-            (n / d).clamp(0.0, 0.05)
-        } else {
-            0.0
-        }
+        self.corr.axis_lag(i)
     }
 
     /// Measured spindle–axis sync error of the last cycle, µm along the thread's long axis:
@@ -2115,19 +2083,32 @@ impl Motion {
     fn monitor_sync(&mut self, fb: &Feedback) {
         let watch = std::mem::take(&mut self.sync_watch);
         self.sync_err = 0.0;
+        self.sync_err_vec = [0.0; 3];
+        self.thread_err = None;
         if !watch {
             return;
         }
         let th = fb.pos[AX_S];
         let err_mm = match self.run {
-            Run::Thread { seg, sync: Some(t), .. } => (line_progress(&seg.geom, &fb.pos) - t.target(th)) * seg.u_long,
+            Run::Thread { seg, sync: Some(t), .. } => {
+                let e = line_progress(&seg.geom, &fb.pos) - t.target(th);
+                self.thread_err = Some(e);
+                e * seg.u_long
+            }
             Run::Tap { seg, theta0: Some((pr, thr)), .. } => {
                 // Along the stroke's direction: + = the tapping axis ahead of the spindle.
-                ((fb.pos[seg.axis] - pr) - seg.lead * (th - thr) / 360.0) * (seg.p1 - seg.p0).signum()
+                let e = (fb.pos[seg.axis] - pr) - seg.lead * (th - thr) / 360.0;
+                self.sync_err_vec[seg.axis.min(2)] = e;
+                e * (seg.p1 - seg.p0).signum()
             }
             Run::Rigid { seg, theta0: Some(th0), .. } => {
                 let len = seg.geom.len();
-                (line_progress(&seg.geom, &fb.pos) - (th - th0) * len / seg.dc) * seg.u_long
+                let e = line_progress(&seg.geom, &fb.pos) - (th - th0) * len / seg.dc;
+                let (p0, p1) = (geom_start(&seg.geom), seg.geom.end());
+                for i in 0..3 {
+                    self.sync_err_vec[i] = e * (p1[i] - p0[i]) / len.max(1e-12);
+                }
+                e * seg.u_long
             }
             _ => return,
         };
@@ -2169,7 +2150,7 @@ impl Motion {
     /// spindle may still turn: see `Setpoint::spindle_rpm`.)
     pub fn is_idle(&self) -> bool {
         // Not while a sync correction is still fading out: what is sent is not the end yet.
-        self.len == 0 && self.run == Run::None && !self.stopping && self.corr == [0.0; 3] && self.tool.at_rest()
+        self.len == 0 && self.run == Run::None && !self.stopping && self.corr.is_zero() && self.tool.at_rest()
     }
 
     /// Controlled stop: decelerate along the path within the acceleration limits, ramp the

@@ -91,6 +91,17 @@ impl Clock for Loaded<'_> {
 pub fn run_moves(cfg: &MachineConfig, limits: Limits, moves: Vec<Move>, load: Option<CuttingLoad>) -> Result<SimRun, Alarm> {
     let sim_cfg = sim_drives::SimConfig::from_machine_toml(EMBEDDED_LATHE)
         .map_err(|e| Alarm::new(2399, format!("emulated drives: {e}")))?;
+    run_moves_on(cfg, sim_cfg, limits, moves, load)
+}
+
+/// `run_moves` on emulated drives of the given configuration (another drive model).
+pub fn run_moves_on(
+    cfg: &MachineConfig,
+    sim_cfg: sim_drives::SimConfig,
+    limits: Limits,
+    moves: Vec<Move>,
+    load: Option<CuttingLoad>,
+) -> Result<SimRun, Alarm> {
     let wire = InprocBus::new();
     let mut world = sim_drives::SimWorld::new(&wire, sim_cfg);
     let mut master = CanOpenMaster::new(wire.endpoint(), cfg);

@@ -1,6 +1,9 @@
 //! Spindle–axis synchronization (threading, rigid tapping) and its error monitor.
 
+pub mod correction;
+pub mod lag;
 pub mod link_check;
+pub mod matrix;
 pub mod measure;
 pub mod thread;
 

@@ -1,0 +1,237 @@
+//! The sync correction of rigid taps and G92.1: the feed axes sent after the spindle's
+//! *actual* angle, with their own lag pre-compensated, and what the models leave trimmed
+//! from the measured sync error.
+//!
+//! One profile drives the spindle angle θ and the feed axes. Commanding both from the same θ
+//! holds the relation on the *commands*; on the drives' actual positions it opens wherever
+//! the spindle and a feed axis respond differently — at entry, reversal and exit, and
+//! growing with the speed (a spindle is heavy with a soft position loop; a belt-driven axis
+//! lags its command by milliseconds). So every cycle, for each feed axis locked to the
+//! spindle (g = mm per spindle degree):
+//!
+//! 1. **Where it must actually be:** the nominal plus g × the spindle's measured lag
+//!    (actual − sent, paired over the feedback delay from one SYNC, extrapolated to the
+//!    cycle this set-point takes effect) — the axis follows the spindle's actual angle.
+//! 2. **What to send so that it gets there:** that target plus the axis' own predicted lag,
+//!    τ₁·v + (τ₁² + τ₂)·a of the target's speed and acceleration ([`LagModel`], learnt online
+//!    from all the axis' motion — the rapid to R teaches it before the tap).
+//! 3. **Trim:** the measured sync error (actual axis against actual spindle) integrated,
+//!    with a gain bounded by the loop's delay (feedback delay + the axis' lag), so whatever
+//!    the models miss (friction, load, a model still learning) is removed within a few
+//!    cycles without ringing.
+//!
+//! The correction's change per cycle is bounded by the axis' acceleration (implausible
+//! feedback must not kick it), its size by [`CORR_MAX`]. It stays on through the strokes
+//! and dwells of one hole and fades out afterwards. This is the Yaskawa Σ-V-SD scheme
+//! (host-interpolated tapping: the feed axis follows the spindle's actual position) with
+//! Siemens' idea of matched dynamics (the feed axis commanded ahead by its own lag). O(1),
+//! no allocation.
+
+use super::lag::LagModel;
+
+/// Largest sync correction, mm (beyond it the sync monitor stops the machine anyway).
+pub const CORR_MAX: f64 = 5.0;
+/// Integral gain of the trim on the measured sync error, per cycle (at most; see `trim`).
+const TRIM_GAIN: f64 = 0.15;
+/// After a tapped hole or G92.1 stroke the correction fades out by at most this per cycle, mm.
+const CORR_FADE: f64 = 0.0005;
+
+/// The sync correction's state: per feed axis (X, Y, Z).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SyncCorrection {
+    /// Cycle, s; feedback delay, cycles; each axis' acceleration limit, mm/s².
+    dt: f64,
+    fd: usize,
+    amax: [f64; 3],
+    /// Each feed axis' lag model.
+    lag: [LagModel; 3],
+    /// mm per spindle degree of the locked stroke (0 = not locked).
+    gain: [f64; 3],
+    /// The offset sent this cycle and in the two before.
+    corr: [f64; 3],
+    prev: [f64; 3],
+    prev2: [f64; 3],
+    /// The spindle's measured lag of the last cycle (None: no previous sample).
+    spindle_lag_prev: Option<f64>,
+    /// The axes' target (actual position wanted) of the last two cycles.
+    want_prev: [[f64; 3]; 2],
+    /// The trim's integral, mm.
+    trim: [f64; 3],
+    /// The sync error measured this cycle (mm per axis; + = the axis ahead).
+    err: [f64; 3],
+}
+
+impl SyncCorrection {
+    /// `dt` cycle (s), `fd` feedback delay (cycles), `amax` the axes' acceleration limits
+    /// (mm/s²), `memory_s` the lag models' memory, `start` where the axes are.
+    pub fn new(dt: f64, fd: usize, amax: [f64; 3], memory_s: f64, start: [f64; 3]) -> SyncCorrection {
+        SyncCorrection {
+            dt,
+            fd: fd.max(1),
+            amax,
+            lag: [LagModel::new(memory_s / dt.max(1e-4)); 3],
+            gain: [0.0; 3],
+            corr: [0.0; 3],
+            prev: [0.0; 3],
+            prev2: [0.0; 3],
+            spindle_lag_prev: None,
+            want_prev: [start; 2],
+            trim: [0.0; 3],
+            err: [0.0; 3],
+        }
+    }
+
+    /// This cycle's offset, to add to the nominal set-point of each feed axis.
+    pub fn offset(&self) -> [f64; 3] {
+        self.corr
+    }
+
+    /// The offset's change since the last cycle (for the velocity feed-forward).
+    pub fn step(&self) -> [f64; 3] {
+        [self.corr[0] - self.prev[0], self.corr[1] - self.prev[1], self.corr[2] - self.prev[2]]
+    }
+
+    /// The gain of the stroke locked last (kept between the strokes of one hole).
+    pub fn gain(&self) -> [f64; 3] {
+        self.gain
+    }
+
+    /// Nothing sent beyond the nominal any more.
+    pub fn is_zero(&self) -> bool {
+        self.corr == [0.0; 3]
+    }
+
+    /// The sync error the monitor measured this cycle, as a vector of the feed axes (mm).
+    pub fn set_error(&mut self, e: [f64; 3]) {
+        self.err = e;
+    }
+
+    /// Feed axis `i`'s learnt lag at constant speed, s.
+    pub fn axis_lag(&self, i: usize) -> f64 {
+        self.lag[i.min(2)].params().0 * self.dt
+    }
+
+    /// Learn from the feedback: `sent`, `before`, `before2` the set-points the feedback answers
+    /// and the two before it, `actual` the feed axes' actual positions.
+    pub fn learn(&mut self, sent: &[f64; 3], before: &[f64; 3], before2: &[f64; 3], actual: &[f64; 3]) {
+        for i in 0..3 {
+            let dv = sent[i] - before[i];
+            let da = dv - (before[i] - before2[i]);
+            if dv != 0.0 || da != 0.0 {
+                self.lag[i].update(dv, da, sent[i] - actual[i]);
+            }
+        }
+    }
+
+    /// One cycle. `gain`: mm per spindle degree of the locked stroke, None when nothing is
+    /// locked (the correction fades out); `nominal`: this cycle's nominal set-point;
+    /// `spindle_lag`: the spindle's actual − sent, paired over the feedback delay.
+    pub fn update(&mut self, gain: Option<[f64; 3]>, nominal: &[f64; 3], spindle_lag: f64) {
+        self.prev2 = self.prev;
+        self.prev = self.corr;
+        let Some(g) = gain.filter(|_| spindle_lag.is_finite()) else {
+            self.release(nominal);
+            return;
+        };
+        self.gain = g;
+        let p = self.spindle_lag_prev.unwrap_or(spindle_lag);
+        self.spindle_lag_prev = Some(spindle_lag);
+        // Extrapolated by (delay − 1) cycles: one cycle less than the feedback delay tracks
+        // best on the emulated drives (the actual is sampled at the SYNC the demand acts on).
+        let e_s = spindle_lag + (self.fd as f64 - 1.0) * (spindle_lag - p);
+        for i in 0..3 {
+            if g[i] != 0.0 {
+                self.corr[i] = self.axis(i, nominal[i] + g[i] * e_s, nominal[i]);
+            }
+        }
+    }
+
+    /// The offset of locked axis `i` whose actual position must be `want`.
+    fn axis(&mut self, i: usize, want: f64, nominal: f64) -> f64 {
+        let dv = want - self.want_prev[0][i];
+        let da = dv - (self.want_prev[0][i] - self.want_prev[1][i]);
+        self.want_prev[1][i] = self.want_prev[0][i];
+        self.want_prev[0][i] = want;
+        self.trim(i);
+        let c = (want - nominal + self.lag[i].lead(dv, da) + self.trim[i]).clamp(-CORR_MAX, CORR_MAX);
+        let amax = self.amax[i] * self.dt * self.dt;
+        let step_prev = self.prev[i] - self.prev2[i];
+        let step = (c - self.prev[i]).clamp(step_prev - amax, step_prev + amax);
+        self.prev[i] + step
+    }
+
+    /// Integrate the measured error. An integrator around a loop of `d` cycles' delay stays
+    /// well damped below ≈ 0.6/(d + 1) per cycle: slower for a slower axis.
+    fn trim(&mut self, i: usize) {
+        let e = self.err[i];
+        if e.is_finite() {
+            let d = self.fd as f64 + self.lag[i].params().0;
+            self.trim[i] -= TRIM_GAIN.min(0.6 / (d + 1.0)) * e;
+        }
+    }
+
+    /// Nothing locked: fade the offset out, forget the lock.
+    fn release(&mut self, nominal: &[f64; 3]) {
+        self.gain = [0.0; 3];
+        self.spindle_lag_prev = None;
+        self.trim = [0.0; 3];
+        for i in 0..3 {
+            let at = nominal[i] + self.corr[i];
+            self.want_prev[0][i] = at;
+            self.want_prev[1][i] = at;
+            self.corr[i] -= self.corr[i].clamp(-CORR_FADE, CORR_FADE);
+        }
+    }
+
+    /// Taken over by a fault follow (`motion::fault`): send the nominal only.
+    pub fn clear(&mut self) {
+        self.prev2 = self.prev;
+        self.prev = self.corr;
+        self.corr = [0.0; 3];
+        self.gain = [0.0; 3];
+        self.spindle_lag_prev = None;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_locked_axis_follows_the_spindles_lag_and_fades_out_after() {
+        let mut c = SyncCorrection::new(0.002, 2, [2000.0; 3], 2.0, [0.0; 3]);
+        // The spindle lags 2° (actual − sent = −2) at 1.5 mm/rev: Z must stay 2/360·1.5 back.
+        let g = [0.0, 0.0, 1.5 / 360.0];
+        for _ in 0..2000 {
+            c.update(Some(g), &[0.0; 3], -2.0);
+        }
+        let want = -2.0 * 1.5 / 360.0;
+        assert!((c.offset()[2] - want).abs() < 1e-9, "offset {} want {want}", c.offset()[2]);
+        assert_eq!(c.offset()[0], 0.0);
+        for _ in 0..100 {
+            c.update(None, &[0.0; 3], 0.0);
+        }
+        assert!(c.is_zero(), "faded out: {:?}", c.offset());
+    }
+
+    #[test]
+    fn the_trim_removes_a_steady_error_without_ringing() {
+        let mut c = SyncCorrection::new(0.002, 2, [2000.0; 3], 2.0, [0.0; 3]);
+        let g = [0.0, 0.0, 1.0];
+        // A plant whose actual is the set-point of two cycles before, 10 µm off.
+        let mut hist = [0.0f64; 2];
+        let mut errs = Vec::new();
+        for _ in 0..400 {
+            let e = hist[0] + 0.010;
+            errs.push(e);
+            c.set_error([0.0, 0.0, e]);
+            c.update(Some(g), &[0.0; 3], 0.0);
+            hist = [hist[1], c.offset()[2]];
+        }
+        let last = *errs.last().unwrap();
+        assert!(last.abs() < 1e-9, "error left {last}");
+        // Well damped: it never overshoots by more than a tenth of the step.
+        let worst = errs.iter().fold(0.0f64, |m, e| m.min(*e));
+        assert!(worst > -0.001, "overshoot {worst}");
+    }
+}
