@@ -37,6 +37,11 @@ const THREAD_LINE: u32 = 4;
 const THREAD_LEAD: f64 = 2.0;
 
 const MS: u64 = 1_000_000;
+/// Cycles every stop now takes beyond what it took when the spindle was left to the drive's
+/// own hold: the run brings the turning spindle to rest under control on its ramp before it
+/// ends (≈ 70 cycles from S800 at 6000 rpm/s) and the spindle's soft position loop then creeps
+/// its last lag out (≈ 180 cycles below 1°/s) — issue 19's controlled stop.
+const SPINDLE_STOP: u64 = 250;
 const CYCLE: u64 = 2 * MS;
 /// Velocity below which a drive counts as at rest, counts/s (5 µm/s, 0.05°/s).
 const REST: i32 = 50;
@@ -304,6 +309,9 @@ fn record(name: &str, faults: u64, stop: Option<(u64, u64)>) {
 /// at its block, every axis is at rest within `bound` cycles, the relation held within
 /// `um` µm. Returns (stop cycles, relation µm), and prints the same without isolation.
 #[allow(clippy::too_many_arguments)]
+/// (The tap cases' bounds grew by 100 cycles when the run began to wait for every drive to
+/// stand still on its set-point before it ends: the tap's spindle creeps its lag out in
+/// position mode.)
 fn sync_fault(name: &str, program: &str, line: u32, lead: f64, fault: &str, node_text: &str, bound: u64, um: f64) {
     let (node, rest) = fault.split_once(':').unwrap();
     let at_ms: u64 = rest.split_once('@').unwrap().1.parse().unwrap();
@@ -336,7 +344,7 @@ fn x_faults_during_a_z_tap_and_the_tap_stops_on_one_profile() {
     let t = when_z_passes(TAP, -10.0);
     // Measured: 221 cycles (the stroke brakes on the tap's own ramp, No.5261), 8.9 µm (the
     // tap's usual deceleration error); without isolation 4.1 mm.
-    sync_fault("x_fault_during_tap", TAP, TAP_LINE, TAP_LEAD, &format!("1:overcurrent@{t}"), "node 1 (axis x)", 300, 12.0);
+    sync_fault("x_fault_during_tap", TAP, TAP_LINE, TAP_LEAD, &format!("1:overcurrent@{t}"), "node 1 (axis x)", 300 + 100, 12.0);
 }
 
 #[test]
@@ -354,7 +362,7 @@ fn z_faults_during_a_tap_and_the_spindle_follows_it() {
     // position but cannot brake 1000 rpm faster than its 6000 rpm/s: 167 ms, ≈ 500° ≈ 2 mm
     // of lead. Measured 1998 µm (4.1 mm without isolation). Breaking a tap here is physics:
     // what helps is a slower fault reaction on the feed drive (0x605E), not the controller.
-    sync_fault("z_fault_during_tap", TAP, TAP_LINE, TAP_LEAD, &format!("2:raise=0x3210@{t}"), "node 2 (axis z)", 250, 2200.0);
+    sync_fault("z_fault_during_tap", TAP, TAP_LINE, TAP_LEAD, &format!("2:raise=0x3210@{t}"), "node 2 (axis z)", 250 + 100, 2200.0);
 }
 
 #[test]
@@ -454,7 +462,7 @@ fn overcurrent_on_x_during_a_feed_move_stops_everything() {
     // Z (healthy) decelerated on its path: it stays enabled and has stopped within the bound.
     let cycles = o.stop_cycles(fault_at, 400);
     // Measured 83 (Z brakes from 50 mm/s on its path ramp; X coasts down in its fault reaction).
-    let bound = 120;
+    let bound = 120 + SPINDLE_STOP;
     eprintln!("feed: at rest after {cycles} cycles");
     assert!(cycles <= bound, "at rest after {cycles} cycles");
     let last = o.probe.samples.iter().rev().find(|s| s.t <= o.end_ns).unwrap();
@@ -484,7 +492,7 @@ fn heartbeat_loss_of_z_is_alarm_2011_within_three_periods() {
         .expect("Z was quick-stopped");
     assert!((200 * MS..=312 * MS).contains(&detected), "detected {} ms after the last heartbeat", detected as f64 / 1e6);
     let cycles = o.stop_cycles(fault_at, 400);
-    let bound = 200;
+    let bound = 200 + SPINDLE_STOP;
     assert!(cycles <= bound, "{cycles}");
     assert!(o.moving_after(1000).is_empty());
     record("heartbeat_loss_z", 1, Some((cycles, bound)));
@@ -498,8 +506,9 @@ fn a_node_falling_silent_is_stale_feedback_within_the_feedback_timeout() {
     assert!(a.message.contains("node 1 (axis x)"), "{a}");
     let after = o.end_ns - (1300 * MS);
     // feedback_timeout_ms = 20 in config/lathe.toml, checked every 2 ms cycle; then the
-    // controlled stop of Z (≤ 0.2 s).
-    assert!(after <= 250 * MS, "stopped {} ms after the node went silent", after as f64 / 1e6);
+    // controlled stop of Z (≤ 0.2 s), then the spindle's ramp to rest (≈ 0.15 s) and ten
+    // cycles of standstill.
+    assert!(after <= 500 * MS, "stopped {} ms after the node went silent", after as f64 / 1e6);
     // The silent drive stops by itself: it no longer hears the master (0x1016 / 0x6007).
     let cycles = o.stop_cycles(1300 * MS, 2000);
     let bound = 600;
@@ -558,7 +567,7 @@ fn late_tpdos_of_one_node_are_stale_feedback() {
     eprintln!("late TPDOs: Z isolated {} ms after the delay began", detect / MS);
     assert!(detect <= 26 * MS, "{} ms", detect / MS);
     let cycles = o.stop_cycles(t0, 400);
-    let bound = 100;
+    let bound = 100 + SPINDLE_STOP;
     assert!(cycles <= bound, "{cycles}");
     record("late_tpdo_z", 1, Some((cycles, bound)));
 }
@@ -665,7 +674,7 @@ fn a_jammed_slide_trips_following_error_and_the_machine_stops() {
     assert!(a.message.contains("node 2 (axis z)"), "{a}");
     assert!(a.message.contains("0x8611") || a.message.contains("following error") || a.message.contains("0x2310"), "{a}");
     let cycles = o.stop_cycles(1400 * MS, 1000);
-    let bound = 300;
+    let bound = 300 + SPINDLE_STOP;
     assert!(cycles <= bound, "{cycles}");
     assert!(o.moving_after(1000).is_empty());
     record("jam_z", 1, Some((cycles, bound)));
@@ -681,7 +690,7 @@ fn following_error_over_the_window_is_a_drive_fault_naming_the_axis() {
     assert_eq!(a.number, 2010, "{a}");
     assert!(a.message.contains("node 1 (axis x)") && a.message.contains("0x8611"), "{a}");
     let cycles = o.stop_cycles(1300 * MS, 1000);
-    let bound = 300;
+    let bound = 300 + SPINDLE_STOP;
     eprintln!("following error: at rest after {cycles} cycles");
     assert!(cycles <= bound, "{cycles}");
     record("following_error_x", 1, Some((cycles, bound)));

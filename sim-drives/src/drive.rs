@@ -67,7 +67,13 @@ const POSITION_WINDOW: u16 = 0x6067;
 const TORQUE_ACTUAL: u16 = 0x6077;
 const PROFILE_DECEL: u16 = 0x6084;
 const QUICK_STOP_DECEL: u16 = 0x6085;
-const FAULT_REACTION: u16 = 0x605E;
+const FAULT_REACTION: u16 = ix::FAULT_REACTION_OPTION;
+/// Shutdown option code (transition 8) and disable operation option code (transition 5):
+/// 0 = switch the power stage off at once (the motor coasts), 1 = slow down on the profile
+/// deceleration (0x6084) first. Real drives differ in the default; ours coasts, like the
+/// drives that left a spindle free-wheeling before the master began to configure them.
+const SHUTDOWN_OPTION: u16 = ix::SHUTDOWN_OPTION;
+const DISABLE_OPTION: u16 = ix::DISABLE_OPERATION_OPTION;
 /// A stop that has not finished after this long is finished by switching the power off
 /// (a jammed axis must not keep a quick stop alive forever).
 const STOP_TIMEOUT: u64 = 5_000 * MS;
@@ -90,6 +96,9 @@ enum StopWhy {
     Halt,
     QuickStop,
     FaultReaction,
+    /// Shutdown or disable operation with a slow-down option (0x605B / 0x605C = 1): ramp to
+    /// rest in Operation Enabled, then take the transition to this state.
+    Disable(State),
 }
 
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -319,6 +328,8 @@ fn build_od(c: &DriveConfig) -> Od {
     od.add(ix::STATUSWORD, 0, U16, Ro, true, 0);
     od.add_range(ix::QUICK_STOP_OPTION, 0, I16, Rw, false, 2, 0, 8);
     od.add_range(FAULT_REACTION, 0, I16, Rw, false, 2, 0, 4);
+    od.add_range(SHUTDOWN_OPTION, 0, I16, Rw, false, 0, 0, 1);
+    od.add_range(DISABLE_OPTION, 0, I16, Rw, false, 0, 0, 1);
     od.add(ix::MODES_OF_OPERATION, 0, I8, Rw, true, sh.boot_mode as i64);
     od.add(ix::MODES_DISPLAY, 0, I8, Ro, sh.mode_display_pdo, sh.boot_mode as i64);
     od.add(POSITION_DEMAND, 0, I32, Ro, true, 0);
@@ -1401,6 +1412,15 @@ impl SimDrive {
         if self.state == State::QuickStopActive && next == State::OperationEnabled && !self.qs_option().stays_in_quick_stop() {
             return; // transition 16 only exists for the "stay in quick stop" options
         }
+        if self.state == State::OperationEnabled && matches!(next, State::ReadyToSwitchOn | State::SwitchedOn) {
+            let option = if next == State::ReadyToSwitchOn { SHUTDOWN_OPTION } else { DISABLE_OPTION };
+            if self.od.int(option, 0) == 1 && !self.servo.at_rest() {
+                if !matches!(self.stop, Some(Stop { why: StopWhy::Disable(_), .. })) {
+                    self.start_stop(StopWhy::Disable(next), Brake::Ramp(self.od.int(PROFILE_DECEL, 0) as f64), now);
+                }
+                return;
+            }
+        }
         self.set_state(next, now);
         self.profile_controlword(prev, c);
     }
@@ -1732,6 +1752,7 @@ impl SimDrive {
                         }
                     }
                     StopWhy::FaultReaction => self.set_state(State::Fault, now),
+                    StopWhy::Disable(st) => self.set_state(st, now),
                 }
             }
         }

@@ -185,6 +185,7 @@ pub fn with_operator<R>(op: &OperatorArgs, opts: &mut ExecOpts, f: impl FnOnce(&
     use std::io::IsTerminal;
     let tty = std::io::stdin().is_terminal() && std::io::stderr().is_terminal();
     if op.batch || !tty {
+        super::term::catch_termination(true);
         return f(opts);
     }
     let guard = match super::term::RawMode::enter() {
@@ -196,7 +197,7 @@ pub fn with_operator<R>(op: &OperatorArgs, opts: &mut ExecOpts, f: impl FnOnce(&
     };
     let panel = crate::motion::panel::Panel::new();
     super::term::spawn_key_reader(panel.clone());
-    super::term::catch_termination();
+    super::term::catch_termination(false);
     opts.operator = Some(panel);
     // Simulated time is paced to the wall clock so that a person's keys land mid-program.
     opts.pace = true;
@@ -396,6 +397,7 @@ fn execute(
     if let Some(p) = &opts.operator {
         lp.set_panel(p);
     }
+    lp.set_signal(&super::term::SIGNAL, super::term::signal_name);
     let mut summary = RunSummary::default();
     let start = match lp.start(&mut summary) {
         Ok(s) => s,
@@ -541,14 +543,6 @@ fn execute(
         Display::Bar(bar) => bar.finish_and_clear(),
         Display::Panel(mut d) => d.close(),
     }
-    if r.is_err() {
-        // The loop fills the final positions only at the program's end: after an alarm (or a
-        // reset) show where the axes stopped, not zeros.
-        for (d, a) in summary.axes.iter_mut().enumerate() {
-            a.final_actual_counts = lp.drives.feedback(d).counts;
-            a.final_target_counts = lp.drives.target_counts(d);
-        }
-    }
     lp.finish();
     let tap_failed = match tap_writer.map(|w| w.finish()) {
         Some(st) if st.failures > 0 => {
@@ -573,12 +567,15 @@ fn execute(
                 print_summary(&summary, json);
             }
             eprintln!("{a}");
-            eprintln!("the program stopped at this alarm; the axes were brought to a controlled stop");
+            eprintln!("the program stopped at this alarm; {}", summary.rest.describe());
             EXIT_ALARM
         }
         Ok(()) => {
             if opts.print_summary {
                 print_summary(&summary, json);
+            }
+            if !summary.rest.at_rest || summary.rest.quick_stop {
+                eprintln!("warning: {}", summary.rest.describe());
             }
             if summary.at_program_end() {
                 EXIT_OK
@@ -658,6 +655,13 @@ fn print_summary(s: &RunSummary, json: bool) {
             "overruns": s.overruns,
             "simulated": s.simulated,
             "at_program_end": s.at_program_end(),
+            "rest": {
+                "at_rest": s.rest.at_rest,
+                "quick_stop": s.rest.quick_stop,
+                "timed_out": s.rest.timed_out,
+                "time_s": s.rest.time_s,
+                "spindle_rpm_at_torque_off": s.rest.spindle_rpm_at_off,
+            },
             "axes": axes,
         });
         println!("{v}");

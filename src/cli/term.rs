@@ -8,14 +8,14 @@
 //!
 //! The terminal is restored on every way out: `RawMode` restores it when dropped (normal
 //! end, alarm, panic unwinding); Ctrl-C arrives as a key (ISIG is off) and presses reset, so
-//! the run ends through its controlled stop and the guard; SIGTERM and SIGHUP press reset
-//! too (`catch_termination`).
+//! the run ends through its controlled stop and the guard; SIGTERM and SIGHUP stop it as
+//! reset does too (`catch_termination`).
 
 use crate::motion::cycle::Progress;
 use crate::motion::panel::Panel;
 use crate::motion::{AX_X, AX_Z};
 use std::io::Write;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicI32, Ordering};
 
 /// The terminal in raw-ish mode (no line buffering, no echo, no signals from keys) while
 /// alive; the saved settings come back on drop.
@@ -77,8 +77,9 @@ pub fn press(panel: &Panel, key: u8) -> bool {
 
 /// The panel has no getter for optional stop; the switch's position is kept here.
 static OPTIONAL_STOP: AtomicBool = AtomicBool::new(false);
-/// Set by SIGTERM/SIGHUP; the display presses reset when it sees it.
-static TERMINATE: AtomicBool = AtomicBool::new(false);
+/// The number of the last termination signal (SIGTERM, SIGHUP, SIGINT in a batch run), 0 =
+/// none; the cycle loop reads it every cycle and stops as on reset (`CycleLoop::set_signal`).
+pub static SIGNAL: AtomicI32 = AtomicI32::new(0);
 
 /// Read keys from stdin on a thread of their own and press them onto `panel`. The thread
 /// ends at end of input; a thread still waiting for a key when the run is over simply ends
@@ -105,17 +106,33 @@ pub fn spawn_key_reader(panel: Panel) {
     });
 }
 
-extern "C" fn on_terminate(_sig: libc::c_int) {
-    TERMINATE.store(true, Ordering::Relaxed);
+extern "C" fn on_terminate(sig: libc::c_int) {
+    SIGNAL.store(sig, Ordering::Relaxed);
 }
 
-/// SIGTERM and SIGHUP (systemd stop, a closed terminal) press reset instead of killing the
-/// process: the axes stop under control and the terminal is restored.
-pub fn catch_termination() {
+/// SIGTERM and SIGHUP (systemd stop, a CI timeout, a closed terminal) — and SIGINT where it
+/// is a signal (a batch run; on the panel Ctrl-C is a key) — stop the run as reset does
+/// instead of killing the process: spindle and axes come to rest under control, the summary
+/// is printed, the trace completed, the terminal restored, exit code 3. (SIGKILL remains
+/// the way to end the process at once; the drives then stop on the lost heartbeat.)
+pub fn catch_termination(sigint: bool) {
     // SAFETY: the handler only stores to an atomic (async-signal-safe).
     unsafe {
         libc::signal(libc::SIGTERM, on_terminate as *const () as libc::sighandler_t);
         libc::signal(libc::SIGHUP, on_terminate as *const () as libc::sighandler_t);
+        if sigint {
+            libc::signal(libc::SIGINT, on_terminate as *const () as libc::sighandler_t);
+        }
+    }
+}
+
+/// The signal's name, for messages.
+pub fn signal_name(sig: i32) -> &'static str {
+    match sig {
+        libc::SIGTERM => "SIGTERM",
+        libc::SIGHUP => "SIGHUP",
+        libc::SIGINT => "SIGINT",
+        _ => "a signal",
     }
 }
 
@@ -164,9 +181,6 @@ impl PanelDisplay {
 
     /// Redraw with `p` (called about every 50 ms of machine time).
     pub fn show(&mut self, p: &Progress) {
-        if TERMINATE.swap(false, Ordering::Relaxed) {
-            self.panel.press_reset();
-        }
         let mut out = String::new();
         if self.shown {
             // Back to the first of the three lines drawn last time.

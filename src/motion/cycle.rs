@@ -19,6 +19,9 @@ use crate::Alarm;
 use cncgw_bus::Clock;
 use std::sync::mpsc::{Receiver, TryRecvError};
 
+mod rest;
+pub use rest::Rest;
+
 /// Alarms of the controller itself (2400–2499).
 pub mod alarms {
     /// E-stop pressed: every drive was sent quick stop.
@@ -127,6 +130,8 @@ pub struct RunSummary {
     pub overruns: u64,
     pub axes: Vec<AxisSummary>,
     pub simulated: bool,
+    /// How spindle and axes came to rest at the end (every cause).
+    pub rest: Rest,
 }
 
 impl RunSummary {
@@ -200,11 +205,36 @@ pub struct CycleLoop<'a> {
     watchdog: Watchdog,
     /// The per-set-point limit check; `None`: from `limits` at `run`.
     guard: Option<Guard>,
+    /// The guard of the run in progress, for the stop at its end.
+    active_guard: Option<Guard>,
+    /// Every drive was sent quick stop (E-stop, a bus error, a second fault, a limit).
+    quick: bool,
+    /// The spindle speed measured last, rpm.
+    rpm: f64,
+    /// Set (to the signal's number) by SIGTERM/SIGINT/SIGHUP: stop as on reset. With the
+    /// signal's name for the message.
+    signal: Option<(&'static std::sync::atomic::AtomicI32, fn(i32) -> &'static str)>,
 }
 
 impl<'a> CycleLoop<'a> {
     pub fn new(drives: &'a mut dyn DriveBus, clock: &'a mut dyn Clock, limits: Limits, spindle_drive: Option<usize>, cycle_ns: u64) -> Self {
-        CycleLoop { drives, clock, limits, spindle_drive, cycle_ns, trace: None, panel: None, tool: None, tap: None, watchdog: Watchdog::default(), guard: None }
+        CycleLoop {
+            drives,
+            clock,
+            limits,
+            spindle_drive,
+            cycle_ns,
+            trace: None,
+            panel: None,
+            tool: None,
+            tap: None,
+            watchdog: Watchdog::default(),
+            guard: None,
+            active_guard: None,
+            quick: false,
+            rpm: 0.0,
+            signal: None,
+        }
     }
 
     /// Stop the machine past these overrun limits (`Watchdog::from_config`).
@@ -228,6 +258,12 @@ impl<'a> CycleLoop<'a> {
     /// every cycle of `run`.
     pub fn set_panel(&mut self, panel: &Panel) {
         self.panel = Some(panel.reader());
+    }
+
+    /// Stop the run as on reset when `flag` becomes non-zero (a termination signal's number,
+    /// named by `name` in the alarm).
+    pub fn set_signal(&mut self, flag: &'static std::sync::atomic::AtomicI32, name: fn(i32) -> &'static str) {
+        self.signal = Some((flag, name));
     }
 
     /// Record every cycle of `run` into `trace` (its drives in this loop's drive order).
@@ -291,10 +327,38 @@ impl<'a> CycleLoop<'a> {
         Ok(start)
     }
 
-    /// Run moves from `rx` to the end of the program. `progress` is called about every
-    /// 50 ms of clock time.
+    /// Run moves from `rx` to the end of the program, then bring every drive to rest
+    /// (`to_rest`: whatever ended the run — the program's end, an alarm, reset, E-stop, a
+    /// signal, a drive fault — spindle and axes stand still before `finish` removes torque;
+    /// `RunSummary::rest` says how). `progress` is called about every 50 ms of clock time.
     pub fn run(
         &mut self,
+        start: [f64; N_AXES],
+        rx: Receiver<Result<Move, Alarm>>,
+        summary: &mut RunSummary,
+        progress: &mut dyn FnMut(&Progress),
+    ) -> Result<(), Alarm> {
+        let mut limits = self.limits.clone();
+        // The sync correction pairs feedback with setpoints over the CANopen delay; an axis on
+        // a link with its own cycle (Modbus) does not answer that way.
+        limits.sync_correction &= (0..self.drives.axis_count()).all(|d| self.drives.link_cycle(d).is_none());
+        let mut motion = Motion::new(limits, start);
+        self.quick = false;
+        self.rpm = 0.0;
+        let mut still = rest::Still::new(self.drives.axis_count());
+        let r = self.run_program(&mut motion, start, rx, summary, progress);
+        summary.rest = self.to_rest(&mut motion, &mut still);
+        // Where every drive stands once at rest (after an alarm too, not zeros).
+        for (d, a) in summary.axes.iter_mut().enumerate() {
+            a.final_actual_counts = self.drives.feedback(d).counts;
+            a.final_target_counts = self.drives.target_counts(d);
+        }
+        r
+    }
+
+    fn run_program(
+        &mut self,
+        motion: &mut Motion,
         start: [f64; N_AXES],
         rx: Receiver<Result<Move, Alarm>>,
         summary: &mut RunSummary,
@@ -304,14 +368,10 @@ impl<'a> CycleLoop<'a> {
         let n = map.len();
         let simulated = self.clock.is_simulated();
         let dt = self.cycle_ns as f64 * 1e-9;
-        let mut limits = self.limits.clone();
-        // The sync correction pairs feedback with setpoints over the CANopen delay; an axis on
-        // a link with its own cycle (Modbus) does not answer that way.
-        limits.sync_correction &= (0..n).all(|d| self.drives.link_cycle(d).is_none());
-        let mut guard = self.guard.unwrap_or_else(|| Guard::from_limits(&limits));
+        let mut guard = self.guard.unwrap_or_else(|| Guard::from_limits(motion.limits()));
         guard.set_start(&start);
+        self.active_guard = Some(guard);
         let mut overruns_in_a_row = 0u32;
-        let mut motion = Motion::new(limits, start);
         // With a tap-state file a hole's first stroke waits at R until its entry is on disk.
         if self.tap.is_some() {
             motion.gate_taps();
@@ -376,7 +436,7 @@ impl<'a> CycleLoop<'a> {
                             end_pos = Some(e);
                         }
                         if let Err(a) = motion.push(&m) {
-                            self.halt(&mut motion, spindle_rpm);
+                            self.halt(motion, spindle_rpm);
                             return Err(a);
                         }
                         if let Some(w) = self.tap.as_mut() {
@@ -385,7 +445,7 @@ impl<'a> CycleLoop<'a> {
                     }
                     Ok(Err(a)) => {
                         // A run-time program alarm: stop at this block, in a controlled way.
-                        self.halt(&mut motion, spindle_rpm);
+                        self.halt(motion, spindle_rpm);
                         return Err(a);
                     }
                     Err(TryRecvError::Empty) => break,
@@ -411,15 +471,15 @@ impl<'a> CycleLoop<'a> {
                 next = now - (now - next) % self.cycle_ns;
             }
             if let Some(a) = self.watchdog.cycle(missed, &mut overruns_in_a_row, cur_line, self.cycle_ns) {
-                self.halt(&mut motion, spindle_rpm);
+                self.halt(motion, spindle_rpm);
                 return Err(a);
             }
             let received = self.drives.receive(now);
             if let Some(d) = if isolate { self.drives.faulted() } else { None } {
-                return Err(self.fault_stop(&mut motion, d, received.err(), spindle_rpm, cur_line));
+                return Err(self.fault_stop(motion, d, received.err(), spindle_rpm, cur_line));
             }
             if let Err(a) = received {
-                self.drives.quick_stop();
+                self.quick_stop_all();
                 let _ = self.drives.transmit(now);
                 return Err(a);
             }
@@ -460,8 +520,11 @@ impl<'a> CycleLoop<'a> {
                 }
             }
             if let Some((d, r)) = scaled {
+                // The drive follows its set-points (only its feedback is off): a controlled
+                // stop along the path, starting with this cycle's set-points.
                 let msg = ScaleWatch::message(self.drives.axis_name(d), r, self.drives.counts_per_unit(d));
-                return Err(self.quick_stop_with(Alarm::new(scale_watch::ALARM, format!("{msg} (line {cur_line})"))));
+                self.halt_now(motion, spindle_rpm);
+                return Err(Alarm::new(scale_watch::ALARM, format!("{msg} (line {cur_line})")));
             }
             if let Some(sd) = self.spindle_drive {
                 let p = self.drives.feedback(sd).pos;
@@ -472,6 +535,18 @@ impl<'a> CycleLoop<'a> {
                 let k = (dt / 0.008).min(1.0);
                 spindle_rpm += k * (inst - spindle_rpm);
                 fb.spindle_rpm = spindle_rpm;
+                self.rpm = spindle_rpm;
+            }
+            if let Some((flag, name)) = self.signal {
+                let sig = flag.load(std::sync::atomic::Ordering::Relaxed);
+                if sig != 0 {
+                    // This cycle's set-points are not sent yet: the stop starts with them.
+                    self.halt_now(motion, spindle_rpm);
+                    return Err(Alarm::new(
+                        alarms::RESET,
+                        format!("{} at line {cur_line}: stopped as on reset, the program ended; start it again from the beginning or a safe block", name(sig)),
+                    ));
+                }
             }
             if let Some(r) = self.panel.as_mut() {
                 let i = r.poll();
@@ -480,7 +555,7 @@ impl<'a> CycleLoop<'a> {
                 }
                 if i.reset {
                     // This cycle's set-points are not sent yet: the stop starts with them.
-                    self.halt_now(&mut motion, spindle_rpm);
+                    self.halt_now(motion, spindle_rpm);
                     return Err(Alarm::new(
                         alarms::RESET,
                         format!("reset by the operator at line {cur_line}: the axes were stopped under control and the program ended; start it again from the beginning or a safe block"),
@@ -506,7 +581,7 @@ impl<'a> CycleLoop<'a> {
                 if let Event::Stroke2(a) = sp.event {
                     guard.set_stroke2(a);
                 }
-                ended |= self.on_event(&mut motion, &sp);
+                ended |= self.on_event(motion, &sp);
                 sp = motion.step(&fb);
             }
             // G22/G23 reached in program order: the guard switches before this set-point.
@@ -515,6 +590,7 @@ impl<'a> CycleLoop<'a> {
             }
             // Limits before motion: a set-point beyond them is never sent. (The interpolated
             // position: the sync correction on top of it, ≤ 0.5 mm, makes the actual follow it.)
+            self.active_guard = Some(guard);
             if let Err(v) = guard.check(&motion.position()) {
                 return Err(self.quick_stop_with(v.alarm(sp.line)));
             }
@@ -529,7 +605,7 @@ impl<'a> CycleLoop<'a> {
                 hist[d][1] = self.drives.target_counts(d);
             }
             if let Err(a) = self.drives.transmit(now) {
-                self.drives.quick_stop();
+                self.quick_stop_all();
                 return Err(a);
             }
             if let Some(w) = self.tap.as_mut() {
@@ -545,7 +621,7 @@ impl<'a> CycleLoop<'a> {
                 match gate {
                     Ok(open) => motion.open_tap_gate(open),
                     Err(a) => {
-                        self.halt(&mut motion, spindle_rpm);
+                        self.halt(motion, spindle_rpm);
                         return Err(a);
                     }
                 }
@@ -565,10 +641,10 @@ impl<'a> CycleLoop<'a> {
             }
             if let Some(a) = motion.take_alarm() {
                 // The motion layer already started a controlled stop.
-                self.halt(&mut motion, spindle_rpm);
+                self.halt(motion, spindle_rpm);
                 return Err(a);
             }
-            ended |= self.on_event(&mut motion, &sp);
+            ended |= self.on_event(motion, &sp);
             cur_line = sp.line;
             if let Some(r) = self.panel.as_ref() {
                 r.report(motion.is_held(), sp.line);
@@ -635,7 +711,7 @@ impl<'a> CycleLoop<'a> {
 
     /// E-stop: quick stop on every drive at once (each on its own quick-stop ramp).
     fn estop(&mut self, line: u32) -> Alarm {
-        self.drives.quick_stop();
+        self.quick_stop_all();
         let _ = self.drives.transmit(self.clock.now_ns());
         Alarm::new(
             alarms::ESTOP,
@@ -645,7 +721,7 @@ impl<'a> CycleLoop<'a> {
 
     /// Quick stop on every drive at once, then `a`.
     fn quick_stop_with(&mut self, a: Alarm) -> Alarm {
-        self.drives.quick_stop();
+        self.quick_stop_all();
         let _ = self.drives.transmit(self.clock.now_ns());
         a
     }
@@ -692,7 +768,7 @@ impl<'a> CycleLoop<'a> {
                 if let Err(a) = self.drives.receive(now) {
                     if self.drives.faulted() != Some(d) {
                         // Not about the isolated drive: stop everything now.
-                        self.drives.quick_stop();
+                        self.quick_stop_all();
                         let _ = self.drives.transmit(now);
                         return at_line(alarm.unwrap_or(a));
                     }
@@ -702,25 +778,18 @@ impl<'a> CycleLoop<'a> {
                 }
             }
             if self.panel.as_mut().is_some_and(|r| r.poll().estop) {
-                self.drives.quick_stop();
+                self.quick_stop_all();
                 let _ = self.drives.transmit(now);
                 return at_line(alarm.unwrap_or_else(|| Alarm::new(alarms::ESTOP, "emergency stop during a drive fault stop")));
             }
             let fb = self.read_feedback(&mut meter);
             let sp = motion.step(&fb);
-            for dd in 0..self.drives.axis_count() {
-                if dd == d {
-                    // Ignored while it is in its fault reaction; after a fault reset it holds.
-                    let p = self.drives.feedback(dd).pos;
-                    self.drives.set_target(dd, p);
-                } else if let Some(a) = motion_axis(self.drives.axis_name(dd), Some(dd) == self.spindle_drive) {
-                    self.drives.set_target(dd, sp.pos[a]);
-                } else if self.tool.is_some_and(|t| t.drive == dd) {
-                    self.drives.set_target(dd, sp.tool_spindle);
-                }
-            }
+            self.send(&sp);
+            // The faulted drive ignores it in its fault reaction; after a fault reset it holds.
+            let p = self.drives.feedback(d).pos;
+            self.drives.set_target(d, p);
             if let Err(a) = self.drives.transmit(now) {
-                self.drives.quick_stop();
+                self.quick_stop_all();
                 return at_line(alarm.unwrap_or(a));
             }
             if motion.is_idle() {
@@ -734,7 +803,7 @@ impl<'a> CycleLoop<'a> {
                 }
             }
         }
-        self.drives.quick_stop();
+        self.quick_stop_all();
         let _ = self.drives.transmit(now);
         let name = self.drives.axis_name(d).to_string();
         at_line(alarm.unwrap_or_else(|| Alarm::new(2010, format!("axis {name}: drive fault, not diagnosed; clear the cause, then reset"))))
@@ -768,25 +837,19 @@ impl<'a> CycleLoop<'a> {
                 self.clock.now_ns()
             };
             if !(k == 0 && this_cycle) && self.drives.receive(now).is_err() {
-                self.drives.quick_stop();
+                self.quick_stop_all();
                 let _ = self.drives.transmit(now);
                 return;
             }
             let fb = self.read_feedback(&mut meter);
             // E-stop overrides a controlled stop in progress.
             if self.panel.as_mut().is_some_and(|r| r.poll().estop) {
-                self.drives.quick_stop();
+                self.quick_stop_all();
                 let _ = self.drives.transmit(now);
                 return;
             }
             let sp = motion.step(&fb);
-            for d in 0..self.drives.axis_count() {
-                if let Some(a) = motion_axis(self.drives.axis_name(d), Some(d) == self.spindle_drive) {
-                    self.drives.set_target(d, sp.pos[a]);
-                } else if self.tool.is_some_and(|t| t.drive == d) {
-                    self.drives.set_target(d, sp.tool_spindle);
-                }
-            }
+            self.send(&sp);
             let _ = self.drives.transmit(now);
             if motion.is_idle() {
                 return;

@@ -606,6 +606,9 @@ pub struct TapEntry {
     pub dir: f64,
     /// The spindle angle at R, degrees (the thread's reference for the hole).
     pub spindle_deg: f64,
+    /// The stroke's signed lead (mm per revolution) and spindle speed going in (rpm).
+    pub lead: f64,
+    pub rpm: f64,
 }
 
 fn xyz3(p: &[f64; N_AXES]) -> [f64; 3] {
@@ -1829,7 +1832,9 @@ impl Motion {
                 } else if self.sp_cur == 0.0 && in_pos && !self.in_hole && !seg.retract && self.tap_gate == Some(false) {
                     // Held at R, spindle at rest, until the "in hole" state is durable.
                     let dir = (seg.p1 - seg.p0).signum();
-                    self.tap_wait = Some(TapEntry { line: self.line, axis: a, r: seg.p0, dir, spindle_deg: self.pos[AX_S] });
+                    let rpm = seg.v / seg.lead.abs().max(1e-12) * 60.0;
+                    self.tap_wait =
+                        Some(TapEntry { line: self.line, axis: a, r: seg.p0, dir, spindle_deg: self.pos[AX_S], lead: seg.lead, rpm });
                 } else if self.sp_cur == 0.0 && in_pos {
                     self.inpos_wait = 0;
                     // The gate lets one hole in; the next waits again.
@@ -2151,6 +2156,11 @@ impl Motion {
     pub fn is_idle(&self) -> bool {
         // Not while a sync correction is still fading out: what is sent is not the end yet.
         self.len == 0 && self.run == Run::None && !self.stopping && self.corr.is_zero() && self.tool.at_rest()
+    }
+
+    /// The spindle (and the tool spindle) is commanded to stand still.
+    pub fn spindle_at_rest(&self) -> bool {
+        self.sp_cur == 0.0 && self.tool.at_rest()
     }
 
     /// Controlled stop: decelerate along the path within the acceleration limits, ramp the

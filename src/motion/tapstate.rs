@@ -243,15 +243,18 @@ impl TapWatch {
             Some(p) => p,
             None => {
                 let before = self.slot.load();
+                // The hole's own data from motion; the pull-out override from the hole as
+                // learnt at push (its return stroke's speed), where that is the same hole.
                 let h = (self.cursor < self.pushed).then(|| self.holes[(self.cursor % HOLES as u64) as usize]);
+                let ovr = h.filter(|h| h.line == e.line && h.axis == e.axis && h.lead == e.lead).map_or(100.0, |h| h.ovr);
                 let st = TapState {
                     in_hole: true,
                     axis: AXIS_CHARS[e.axis.min(2)],
                     r_plane: e.r,
                     direction_in: e.dir,
-                    lead: h.map_or(0.0, |h| h.lead),
-                    rpm: h.map_or(0.0, |h| h.rpm),
-                    override_pct: h.map_or(100.0, |h| h.ovr),
+                    lead: e.lead,
+                    rpm: e.rpm,
+                    override_pct: ovr,
                     position: e.r,
                     spindle_deg: e.spindle_deg,
                     line: e.line,
@@ -349,10 +352,13 @@ impl TapWatch {
             return;
         }
         let h = self.holes[(self.cursor % HOLES as u64) as usize];
-        let inside = Self::depth(&h, cmd[h.axis]) > 1e-6 || Self::depth(&h, act[h.axis]) > IN_HOLE_MM;
+        let commanded_in = Self::depth(&h, cmd[h.axis]) > 1e-6;
+        let inside = commanded_in || Self::depth(&h, act[h.axis]) > IN_HOLE_MM;
         let entered = !self.inside;
         if entered {
-            if !(inside && line == h.line) {
+            // Only the command leaving R enters the hole: an actual position still settling
+            // from the rapid to R (past it by a few µm) is not a tap.
+            if !(commanded_in && line == h.line) {
                 return;
             }
             self.inside = true;

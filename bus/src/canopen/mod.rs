@@ -65,6 +65,9 @@ pub mod od {
     pub const CONTROLWORD: u16 = 0x6040;
     pub const STATUSWORD: u16 = 0x6041;
     pub const QUICK_STOP_OPTION: u16 = 0x605A;
+    pub const SHUTDOWN_OPTION: u16 = 0x605B;
+    pub const DISABLE_OPERATION_OPTION: u16 = 0x605C;
+    pub const FAULT_REACTION_OPTION: u16 = 0x605E;
     pub const MODES_OF_OPERATION: u16 = 0x6060;
     pub const MODES_DISPLAY: u16 = 0x6061;
     /// Position actual internal value, in encoder increments (not scaled by the factor group).

@@ -717,6 +717,7 @@ impl<B: CanBus> CanOpenMaster<B> {
         self.write(clock, i, od::FOLLOWING_ERROR_WINDOW, 0, &win.to_le_bytes())?;
         // Quick stop: decelerate on the quick-stop ramp, then Switch On Disabled.
         self.write(clock, i, od::QUICK_STOP_OPTION, 0, &2i16.to_le_bytes())?;
+        self.configure_stop_reactions(clock, i)?;
         if let (Some(lo), Some(hi), false) = (spec.min, spec.max, spec.spindle) {
             let lo = (lo * spec.counts_per_unit).floor() as i32;
             let hi = (hi * spec.counts_per_unit).ceil() as i32;
@@ -897,6 +898,29 @@ impl<B: CanBus> CanOpenMaster<B> {
             self.hb_ms,
             self.hb_ms as u32 * 3
         );
+        Ok(())
+    }
+
+    /// A drive left alone must brake too, whatever stops it: shutdown (0x605B) and disable
+    /// operation (0x605C) slow down on the profile deceleration before the power stage goes
+    /// off (1), a fault reaction (0x605E) brakes on the quick-stop ramp (2). Many drives
+    /// default to switching off at once (the motor coasts). A drive without one of these
+    /// objects is told in the log, not refused: it is optional in CiA 402.
+    fn configure_stop_reactions(&mut self, clock: &mut dyn Clock, i: usize) -> Result<(), Alarm> {
+        for (ix, v, what) in [
+            (od::SHUTDOWN_OPTION, 1i16, "shutdown option 0x605B"),
+            (od::DISABLE_OPERATION_OPTION, 1, "disable operation option 0x605C"),
+            (od::FAULT_REACTION_OPTION, 2, "fault reaction option 0x605E"),
+        ] {
+            match self.try_write(clock, i, ix, 0, &v.to_le_bytes()) {
+                Ok(()) => {}
+                Err(SdoError::Abort { code }) if code == abort::NO_OBJECT || code == abort::NO_SUBINDEX => tracing::warn!(
+                    node = self.nodes[i].spec.node,
+                    "the drive has no {what}: how it stops when switched off or faulted is its own default"
+                ),
+                Err(e) => return Err(self.node_alarm(i, 2003, format!("writing the {what} failed: {e}"))),
+            }
+        }
         Ok(())
     }
 
@@ -1296,7 +1320,7 @@ impl<B: CanBus> CanOpenMaster<B> {
     /// 0x1006, error control (heartbeat, or node guarding), 0x6007. Checked against an
     /// EDS only where the EDS lists them.
     fn optional_startup_objects(&self) -> Vec<ObjWrite> {
-        let mut w = vec![(od::COMM_CYCLE_PERIOD, 0, 4)];
+        let mut w = vec![(od::COMM_CYCLE_PERIOD, 0, 4), (od::SHUTDOWN_OPTION, 0, 2), (od::DISABLE_OPERATION_OPTION, 0, 2), (od::FAULT_REACTION_OPTION, 0, 2)];
         if self.hb_ms > 0 {
             w.extend([
                 (od::PRODUCER_HEARTBEAT, 0, 2),
