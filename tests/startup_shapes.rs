@@ -724,7 +724,10 @@ fn cli_run(name: &str, shape: &str) -> (i32, String, String) {
     let o = std::process::Command::new(env!("CARGO_BIN_EXE_cncgw"))
         .args(["run", "--batch", "--sim-config"])
         .arg(&sim)
-        .arg(concat!(env!("CARGO_MANIFEST_DIR"), "/examples/first_part.nc"))
+        .arg(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/examples/first_part.nc"
+        ))
         .env("CNCGW_STATE_DIR", &dir)
         .output()
         .expect("run cncgw");
@@ -763,5 +766,45 @@ fn cncgw_run_waits_for_a_pp_boot_drive_and_refuses_sync_producers_and_user_units
         err.contains("alarm 2006: node 1 (axis x): the drive scales positions")
             && err.contains("Set axes.x.counts_per_unit = 1000"),
         "{err}"
+    );
+}
+
+#[test]
+fn an_eds_without_a_heartbeat_consumer_is_not_refused_but_a_wrong_optional_object_is() {
+    // The Technosoft iPOS EDS has no 0x1016: start-up guards such a drive instead.
+    let text = std::fs::read_to_string(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/tests/python/sim_drive.eds"
+    ))
+    .unwrap();
+    let mut no_1016 = String::new();
+    let mut skip = false;
+    for l in text.lines() {
+        if l.starts_with('[') {
+            skip = l.starts_with("[1016");
+        }
+        if !skip {
+            no_1016.push_str(l);
+            no_1016.push('\n');
+        }
+    }
+    assert!(!no_1016.contains("[1016]") && no_1016.contains("[1017]"));
+    let cfg = MachineConfig::embedded();
+    let m = CanOpenMaster::new(InprocBus::new().endpoint(), &cfg);
+    let eds = cncgw_bus::canopen::eds::Eds::parse("ipos-like.eds", &no_1016).unwrap();
+    assert_eq!(m.check_eds(1, &eds), Vec::<String>::new());
+    // Present but read-only: still a problem, named with the file and line.
+    let ro = text.replacen(
+        "[100C]\nParameterName=Guard time\nObjectType=0x7\nDataType=0x0006\nAccessType=rw",
+        "[100C]\nParameterName=Guard time\nObjectType=0x7\nDataType=0x0006\nAccessType=ro",
+        1,
+    );
+    assert_ne!(ro, text);
+    let eds = cncgw_bus::canopen::eds::Eds::parse("ro.eds", &ro).unwrap();
+    let bad = m.check_eds(1, &eds);
+    assert_eq!(bad.len(), 1, "{bad:?}");
+    assert!(
+        bad[0].contains("[100C] \"Guard time\": AccessType=ro but the master writes 0x100C:00"),
+        "{bad:?}"
     );
 }
