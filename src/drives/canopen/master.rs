@@ -43,7 +43,7 @@ type ObjMap = (u16, u8, u8, bool);
 /// RPDO1: controlword + target position (or target velocity), bytes.
 pub const RPDO1_LEN: usize = 6;
 /// TPDO1: statusword + position actual + modes of operation display, bytes (6 when the
-/// drive cannot map 0x6061: see `mode`).
+/// drive cannot map 0x6061: see `mode_track`).
 pub const TPDO1_LEN: usize = 7;
 /// Consecutive TPDO1s of the wrong length before alarm 2018 (one is a glitch the feedback
 /// timeout covers; three in a row is a mapping the drive did not take).
@@ -616,11 +616,7 @@ impl<B: CanBus> CanOpenMaster<B> {
     }
 
     fn read_u32(&mut self, clock: &mut dyn Clock, i: usize, ix: u16, sub: u8) -> Result<u32, SdoError> {
-        let v = self.sdo(clock, i, Sdo::Up(ix, sub))?;
-        let mut b = [0u8; 4];
-        let n = v.len().min(4);
-        b[..n].copy_from_slice(&v[..n]);
-        Ok(u32::from_le_bytes(b))
+        self.sdo(clock, i, Sdo::Up(ix, sub)).map(|v| le_u32(&v))
     }
 
     /// Write an object; during start-up its old value is kept first (`restore`). Errors
