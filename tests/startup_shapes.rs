@@ -430,9 +430,21 @@ fn a_hidden_feedback_scaling_stops_the_run_instead_of_ok() {
 fn without_a_heartbeat_consumer_the_drive_is_guarded_and_stops_by_itself_when_the_master_dies() {
     let sim = shaped(|s, _| s.heartbeat_consumer = false);
     let cfg = MachineConfig::embedded();
-    let r = run(&cfg, sim.clone(), &first_part());
+    let mut r = run(&cfg, sim.clone(), &first_part());
     let s = r.result.as_ref().unwrap_or_else(|a| panic!("{a}"));
     assert!(s.at_program_end());
+    // At the end of the run the master switched life guarding off before going silent.
+    let t = r.world.now_ns() + 500 * MS;
+    r.world.wait_until(t);
+    for n in [1u8, 2, 3] {
+        let d = r.world.drive(n).unwrap();
+        assert_ne!(
+            d.state(),
+            State::Fault,
+            "node {n} faulted after a normal end"
+        );
+        assert_eq!(d.object(0x100C, 0), Some(0), "node {n}: life guarding off");
+    }
     // Enabled, then the master dies: life guarding (100 ms × 3) faults the drives.
     let bus = InprocBus::new();
     let mut w = SimWorld::new(&bus, sim);

@@ -1668,6 +1668,7 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
         for i in 0..self.nodes.len() {
             let _ = self.sdo(clock, i, Sdo::Down(od::CONSUMER_HEARTBEAT, 1, &0u32.to_le_bytes()));
         }
+        self.stop_guarding(clock);
         let _ = self.send(&NmtCommand::EnterPreOperational.frame(0));
         self.settle(clock, 1);
     }

@@ -61,6 +61,25 @@ impl<B: CanBus> CanOpenMaster<B> {
         Ok(())
     }
 
+    /// At exit: guarded drives stop expecting guarding requests (0x100C = 0: no life
+    /// guarding) before the master goes silent, as heartbeat consumers get 0x1016 cleared.
+    pub(super) fn stop_guarding(&mut self, clock: &mut dyn cncgw_bus::Clock) {
+        for i in 0..self.nodes.len() {
+            if self.nodes[i].guarding.take().is_some() {
+                if let Err(e) = self.sdo(
+                    clock,
+                    i,
+                    super::Sdo::Down(cncgw_bus::canopen::od::GUARD_TIME, 0, &0u16.to_le_bytes()),
+                ) {
+                    tracing::warn!(
+                        node = self.nodes[i].spec.node,
+                        "switching life guarding off (0x100C = 0) failed: {e}"
+                    );
+                }
+            }
+        }
+    }
+
     /// Start guarding node `i` every `period_ms` (after 0x100C / 0x100D were written).
     pub(super) fn start_guarding(&mut self, i: usize, period_ms: u16, now_ns: u64) {
         self.nodes[i].guarding = Some(Guarding {
