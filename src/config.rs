@@ -219,6 +219,18 @@ pub enum AxisKind {
     Spindle,
 }
 
+/// The drive's position polarity the machine was commissioned with (CiA 402 0x607E bit 7;
+/// for a spindle bit 6, speed, too). Start-up refuses a drive whose 0x607E says otherwise:
+/// the axis would move against the programmed direction. Like a Fanuc's No.2022 (motor
+/// direction 111 / −111) it is a fact of the machine, set once at commissioning.
+#[derive(Clone, Copy, Debug, Default, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "lowercase")]
+pub enum Polarity {
+    #[default]
+    Normal,
+    Inverted,
+}
+
 /// What a drive is for, where its kind alone does not say.
 #[derive(Clone, Copy, Debug, Deserialize, PartialEq, Eq)]
 #[serde(rename_all = "snake_case")]
@@ -274,6 +286,19 @@ pub struct AxisConfig {
     /// slide: T = 32 ms, e.g. 2000 mm/s² / 0.032 s = 62 500 mm/s³; smaller is gentler.
     #[serde(default)]
     pub jerk: Option<f64>,
+    /// Axis travel per motor revolution: mm (linear) or degrees (spindle: 360 / gear ratio).
+    /// With it start-up checks `counts_per_unit` exactly against the drive's factor group
+    /// (0x608F, 0x6091, 0x6092): the drive's position units per motor revolution must be
+    /// `counts_per_unit × travel_per_rev`. Without it the drive's positions must be encoder
+    /// increments (factor group 1:1), the meaning of `counts_per_unit` by default. As
+    /// SINUMERIK's leadscrew pitch and gear (MD31030, MD31050/31060) against the drive's
+    /// encoder resolution.
+    #[serde(default)]
+    pub travel_per_rev: Option<f64>,
+    /// The drive's position polarity (0x607E), checked at start-up: "normal" (default) or
+    /// "inverted".
+    #[serde(default)]
+    pub polarity: Polarity,
     /// Following-error window written to 0x6065 (mm or degrees).
     #[serde(default = "default_ferr")]
     pub following_error: f64,
@@ -469,6 +494,9 @@ impl MachineConfig {
                 e.push(format!("{p}.jerk: must be ≥ 0 mm/s³ (0 = no jerk limit), got {j}"));
             }
             positive(&mut e, &format!("{p}.following_error"), a.following_error);
+            if let Some(t) = a.travel_per_rev {
+                positive(&mut e, &format!("{p}.travel_per_rev"), t);
+            }
             if a.kind == AxisKind::Linear {
                 match (a.min, a.max) {
                     (Some(lo), Some(hi)) if !(lo.is_finite() && hi.is_finite() && lo < hi) => {

@@ -371,7 +371,9 @@ fn a_drive_booting_after_the_boot_wait_is_alarm_2001_naming_it() {
     assert_eq!(e.number, 2001, "{}", e.message);
     assert!(e.message.starts_with("node 3 (axis s1): no boot-up message within 2000 ms"), "{}", e.message);
     assert!(m.booted(1) && m.booted(2) && !m.booted(3));
-    assert!((2000..2010).contains(&(w.now_ns() / MS)), "gave up at {} ms", w.now_ns() / MS);
+    // After listening 120 ms for another master (1.2 × heartbeat_ms), then 2000 ms for the
+    // boot-ups; the two nodes that booted are reset once more (left as found, 2–3 ms).
+    assert!((2120..2130).contains(&(w.now_ns() / MS)), "gave up at {} ms", w.now_ns() / MS);
 }
 
 #[test]

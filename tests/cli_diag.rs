@@ -22,16 +22,61 @@ fn cncgw(args: &[&str]) -> Out {
 fn scan_table_lists_every_configured_node() {
     let o = cncgw(&["scan"]);
     assert_eq!(o.code, 0, "{}{}", o.stdout, o.stderr);
-    let lines: Vec<&str> = o.stdout.lines().collect();
-    assert!(lines[0].contains("inproc") && lines[0].contains("3 node(s)"), "{}", o.stdout);
-    assert!(lines[1].contains("vendor") && lines[1].contains("NMT state") && lines[1].contains("heartbeat"));
+    let all: Vec<&str> = o.stdout.lines().collect();
+    assert!(all[0].contains("inproc") && all[0].contains("3 node(s)"), "{}", o.stdout);
+    assert!(all[1].contains("vendor") && all[1].contains("NMT state") && all[1].contains("heartbeat"));
+    // One line per node, then its modes, SYNC, units and error control indented below it.
+    let lines: Vec<&str> = all.iter().copied().filter(|l| l.trim_start().starts_with(|c: char| c.is_ascii_digit())).collect();
     // Sorted by node id; identity as the emulator's config gives it.
-    assert!(lines[2].trim_start().starts_with("1 x"), "{}", o.stdout);
-    assert!(lines[2].contains("SIM-SERVO X") && lines[2].contains("0x00000CA7") && lines[2].contains("0x51000001"));
-    assert!(lines[2].contains("0x00020192"), "device type 0x1000 shown: {}", lines[2]);
-    assert!(lines[2].contains("pre-operational") && lines[2].trim_end().ends_with("off"), "{}", lines[2]);
-    assert!(lines[3].trim_start().starts_with("2 z") && lines[3].contains("SIM-SERVO Z"));
-    assert!(lines[4].trim_start().starts_with("3 s1") && lines[4].contains("SIM-SPINDLE S1"));
+    assert!(lines[0].trim_start().starts_with("1 x"), "{}", o.stdout);
+    assert!(lines[0].contains("SIM-SERVO X") && lines[0].contains("0x00000CA7") && lines[0].contains("0x51000001"));
+    assert!(lines[0].contains("0x00020192"), "device type 0x1000 shown: {}", lines[0]);
+    assert!(lines[0].contains("pre-operational") && lines[0].trim_end().ends_with("off"), "{}", lines[0]);
+    assert!(lines[1].trim_start().starts_with("2 z") && lines[1].contains("SIM-SERVO Z"));
+    assert!(lines[2].trim_start().starts_with("3 s1") && lines[2].contains("SIM-SPINDLE S1"));
+    let x: Vec<&str> = all[3..7].iter().map(|l| l.trim()).collect();
+    assert_eq!(x[0], "modes: PP, HM, CSP, CSV (0x6502 = 0x000001A1); active: no mode (0)", "{}", o.stdout);
+    assert_eq!(x[1], "SYNC: consumer (0x1005 = 0x00000080)");
+    assert_eq!(x[2], "units: encoder increments (0x608F 100000 inc / 1 rev, 0x6091 gear 1:1, 0x6092 feed 100000 / 1 rev, 0x607E 0x00)");
+    assert_eq!(x[3], "error control: heartbeat off; consumes heartbeat (0x1016): none set; node guarding (0x100C/0x100D): off");
+}
+
+/// A sim-drives config in a temp file, for `--sim-config`: three drives (X, Z, S1)
+/// with `shape` (TOML lines of `[drive.shape]`) on each.
+fn shaped(name: &str, shape: &str) -> std::path::PathBuf {
+    let mut t = String::new();
+    for (node, kind, axis, cpu) in [(1, "linear", "x", 10000.0), (2, "linear", "z", 10000.0), (3, "spindle", "s1", 1000.0)] {
+        t.push_str(&format!("[[drive]]\nnode = {node}\nkind = \"{kind}\"\naxis = \"{axis}\"\ncounts_per_unit = {cpu:?}\n[drive.shape]\n{shape}\n"));
+    }
+    let p = std::env::temp_dir().join(format!("cncgw_cli_diag_{name}_{}.toml", std::process::id()));
+    std::fs::write(&p, t).unwrap();
+    p
+}
+
+#[test]
+fn scan_shows_what_start_up_will_check_and_an_unreadable_vendor_as_unreadable() {
+    let f = shaped("scan", "boot_mode = 1\nsupported_modes_object = false\nfeed_constant = 10000\nsync_producer = true\nheartbeat_consumer = false\nidentity_subs = 0\npolarity = 0x80");
+    let o = cncgw(&["scan", "--sim-config", f.to_str().unwrap()]);
+    assert_eq!(o.code, 0, "{}{}", o.stdout, o.stderr);
+    let all: Vec<&str> = o.stdout.lines().map(|l| l.trim()).collect();
+    assert!(all[2].starts_with("1 x     unreadable unreadable unreadable unreadable 0x00020192"), "{}", o.stdout);
+    assert_eq!(all[3], "modes: absent; active: PP (profile position)");
+    assert_eq!(all[4], "SYNC: PRODUCER (0x1005 = 0x40000080): it sends SYNC itself");
+    assert_eq!(all[5], "units: 1 unit = 10 increments (0x608F 100000 inc / 1 rev, 0x6091 gear 1:1, 0x6092 feed 10000 / 1 rev, 0x607E 0x80)");
+    assert_eq!(all[6], "error control: heartbeat off; consumes heartbeat (0x1016): absent; node guarding (0x100C/0x100D): off");
+    let o = cncgw(&["scan", "--json", "--sim-config", f.to_str().unwrap()]);
+    let _ = std::fs::remove_file(&f);
+    assert_eq!(o.code, 0, "{}", o.stderr);
+    let v: serde_json::Value = serde_json::from_str(o.stdout.trim()).expect("one JSON document");
+    let n1 = &v["nodes"][0];
+    assert!(n1["vendor"].is_null() && n1["serial"].is_null(), "unreadable, not 0: {n1}");
+    assert!(n1["modes"]["supported"].is_null());
+    assert_eq!(n1["modes"]["active"], 1);
+    assert_eq!(n1["sync"]["producer"], true);
+    assert_eq!(n1["units"]["increments_per_unit"], 10.0);
+    assert_eq!(n1["units"]["polarity"], 0x80);
+    assert!(n1["error_control"]["consumer_heartbeat"].is_null());
+    assert_eq!(n1["error_control"]["guard_time_ms"], 0);
 }
 
 #[test]
@@ -53,6 +98,13 @@ fn scan_json() {
     assert_eq!(n1["nmt_heard"], "boot-up");
     assert_eq!(n1["heartbeat_ms"], 0);
     assert!(n1["error"].is_null());
+    assert_eq!(n1["modes"]["supported"], 0x1A1);
+    assert_eq!(n1["modes"]["supported_names"], "PP, HM, CSP, CSV");
+    assert_eq!(n1["modes"]["active"], 0);
+    assert_eq!(n1["sync"]["producer"], false);
+    assert_eq!(n1["units"]["text"], "encoder increments");
+    assert_eq!(n1["units"]["encoder"]["increments"], 100_000);
+    assert_eq!(n1["error_control"]["consumer_heartbeat"], serde_json::json!([]));
 }
 
 #[test]

@@ -17,10 +17,14 @@ pub fn load(frame_lens: &[usize], cycle_s: f64, bitrate: u32) -> f64 {
     bits as f64 / (cycle_s * bitrate as f64)
 }
 
-/// The cyclic frames of `drives` CiA 402 drives in CSP with one RPDO and one TPDO of
-/// `pdo_len` bytes each, plus the SYNC.
-pub fn csp_frames(drives: usize, pdo_len: usize) -> Vec<usize> {
-    let mut v = vec![pdo_len; 2 * drives];
+/// The cyclic frames of `drives` CiA 402 drives in CSP with one RPDO of `rpdo_len` bytes
+/// and one TPDO of `tpdo_len` bytes each, plus the SYNC.
+pub fn csp_frames(drives: usize, rpdo_len: usize, tpdo_len: usize) -> Vec<usize> {
+    let mut v = Vec::with_capacity(2 * drives + 1);
+    for _ in 0..drives {
+        v.push(rpdo_len);
+        v.push(tpdo_len);
+    }
     v.push(0); // SYNC
     v
 }
@@ -45,15 +49,19 @@ mod tests {
 
     #[test]
     fn three_drives_at_1mbit() {
-        let f = csp_frames(3, 6);
+        let f = csp_frames(3, 6, 6);
         let l1 = load(&f, 0.001, 1_000_000);
         let l2 = load(&f, 0.002, 1_000_000);
         assert!((l1 - 0.745).abs() < 0.001, "{l1}");
         assert!((l2 - 0.3725).abs() < 0.001, "{l2}");
         assert!((shortest_cycle_s(&f, 1_000_000, 0.8) - 0.001).abs() < 1e-12);
         // 8 drives do not fit 1 ms at 80 %.
-        let f8 = csp_frames(8, 6);
+        let f8 = csp_frames(8, 6, 6);
         assert!(load(&f8, 0.001, 1_000_000) > 0.8);
         assert!((shortest_cycle_s(&f8, 1_000_000, 0.8) - 0.0025).abs() < 1e-12);
+        // A 7-byte TPDO (statusword, position, mode display): 125 bits each.
+        let f7 = csp_frames(3, 6, 7);
+        assert!((load(&f7, 0.002, 1_000_000) - 0.3875).abs() < 1e-9);
+        assert!((shortest_cycle_s(&f7, 1_000_000, 0.8) - 0.001).abs() < 1e-12);
     }
 }

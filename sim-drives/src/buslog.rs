@@ -83,6 +83,9 @@ impl CanBus for LoggedBus {
     fn name(&self) -> &str {
         self.inner.name()
     }
+    fn remote_frames(&self) -> bool {
+        self.inner.remote_frames()
+    }
 }
 
 impl Drop for LoggedBus {

@@ -140,6 +140,114 @@ impl Physics {
     }
 }
 
+/// How a drive differs from the plain emulated one, imitating commercial drives that
+/// trouble a master at start-up (issue 27): `[drive.shape]` in a sim-drives config. The
+/// default is the plain drive (boots in no mode, switches modes at once, positions in encoder
+/// increments, every object present, SYNC consumer).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Shape {
+    /// 0x6060 / 0x6061 after power-on: 0 = no mode; 1 = profile position, as many drives boot.
+    pub boot_mode: i8,
+    /// A mode written to 0x6060 shows in 0x6061 (and takes effect) only after this many ms…
+    pub mode_switch_ms: f64,
+    /// …and this many SYNCs (both, when both are set).
+    pub mode_switch_syncs: u32,
+    /// Modes of operation the drive has: what 0x6060 accepts and 0x6502 lists.
+    pub modes: Vec<i8>,
+    /// Whether 0x6502 (supported drive modes) exists.
+    pub supported_modes_object: bool,
+    /// Whether the factor group 0x608F / 0x6091 / 0x6092 and the polarity 0x607E exist.
+    pub factor_group: bool,
+    /// 0x6092:1 feed constant: position units per shaft revolution (0 = `counts_per_rev` ×
+    /// gear ratio, i.e. positions in encoder increments). E.g. 10000 on a 10 mm screw: 1 µm.
+    pub feed_constant: u32,
+    /// 0x6091 gear ratio: motor revolutions (sub 1) per shaft revolution (sub 2).
+    pub gear_ratio: [u32; 2],
+    /// 0x607E at power-on: bit 7 inverts positions, bit 6 velocities.
+    pub polarity: u8,
+    /// A drive that scales its feedback differently from its target: 0x6064 reports this
+    /// many times the position in 0x607A's units (1 = consistent). Hidden from the factor
+    /// group; the master's last line of defence must find it while running.
+    pub feedback_factor: f64,
+    /// The drive produces SYNC itself (0x1005 bit 30 at power-on), every `sync_period_us`
+    /// (0x1006 at power-on) while pre-operational or operational.
+    pub sync_producer: bool,
+    pub sync_period_us: u32,
+    /// Whether 0x1016 (heartbeat consumer) exists.
+    pub heartbeat_consumer: bool,
+    /// Whether node guarding exists: 0x100C guard time, 0x100D life time factor, answers to
+    /// remote frames on 0x700 + node, life guarding per 0x6007.
+    pub node_guarding: bool,
+    /// Whether 0x6007 (abort connection option) exists; without it a lost master faults
+    /// the drive, as most drives do.
+    pub abort_connection_object: bool,
+    /// Whether 0x6061 may be mapped into a PDO (a restricted mapping when false).
+    pub mode_display_pdo: bool,
+    /// Sub-indices of 0x1018 the drive has (4: vendor, product, revision, serial; 0: none,
+    /// a vendor-id read aborts).
+    pub identity_subs: u8,
+}
+
+impl Default for Shape {
+    fn default() -> Self {
+        Shape {
+            boot_mode: 0,
+            mode_switch_ms: 0.0,
+            mode_switch_syncs: 0,
+            modes: vec![1, 6, 8, 9],
+            supported_modes_object: true,
+            factor_group: true,
+            feed_constant: 0,
+            gear_ratio: [1, 1],
+            polarity: 0,
+            feedback_factor: 1.0,
+            sync_producer: false,
+            sync_period_us: 2000,
+            heartbeat_consumer: true,
+            node_guarding: true,
+            abort_connection_object: true,
+            mode_display_pdo: true,
+            identity_subs: 4,
+        }
+    }
+}
+
+impl Shape {
+    /// Modes the emulated drive implements (and so may list).
+    pub const IMPLEMENTED_MODES: [i8; 4] = [1, 6, 8, 9];
+
+    /// 0x6502: bit m−1 for each standard mode m (1…10).
+    pub fn supported_modes_bits(&self) -> u32 {
+        self.modes.iter().filter(|&&m| (1..=10).contains(&m)).fold(0, |b, &m| b | 1 << (m - 1))
+    }
+
+    fn check(&self, k: &str, errs: &mut Vec<String>) {
+        for &m in &self.modes {
+            if !Self::IMPLEMENTED_MODES.contains(&m) {
+                errs.push(format!("{k}: shape.modes: mode {m} is not emulated (modes: 1 PP, 6 homing, 8 CSP, 9 CSV)"));
+            }
+        }
+        if !Self::IMPLEMENTED_MODES.contains(&self.boot_mode) && self.boot_mode != 0 {
+            errs.push(format!("{k}: shape.boot_mode must be 0, 1, 6, 8 or 9, got {}", self.boot_mode));
+        }
+        if !(self.mode_switch_ms.is_finite() && (0.0..=60_000.0).contains(&self.mode_switch_ms)) {
+            errs.push(format!("{k}: shape.mode_switch_ms must be 0…60000, got {}", self.mode_switch_ms));
+        }
+        if self.gear_ratio.contains(&0) {
+            errs.push(format!("{k}: shape.gear_ratio: both numbers must be > 0"));
+        }
+        if !(self.feedback_factor.is_finite() && self.feedback_factor != 0.0) {
+            errs.push(format!("{k}: shape.feedback_factor must be a non-zero number, got {}", self.feedback_factor));
+        }
+        if self.identity_subs > 4 {
+            errs.push(format!("{k}: shape.identity_subs must be 0…4, got {}", self.identity_subs));
+        }
+        if self.sync_producer && !(100..=1_000_000).contains(&self.sync_period_us) {
+            errs.push(format!("{k}: shape.sync_period_us must be 100…1000000, got {}", self.sync_period_us));
+        }
+    }
+}
+
 #[derive(Clone, Debug, PartialEq)]
 pub struct DriveConfig {
     pub node: u8,
@@ -181,6 +289,8 @@ pub struct DriveConfig {
     /// SYNC periods the drive goes on along its last set-point increment when a SYNC comes
     /// late, before it holds (0: it holds its target at once, as many real drives do).
     pub late_sync_extrapolation: u32,
+    /// How the drive differs from the plain emulated one (`[drive.shape]`).
+    pub shape: Shape,
 }
 
 /// sim-drives' own default of `late_sync_extrapolation` (its configuration format): 10
@@ -221,7 +331,23 @@ impl DriveConfig {
             pr_map: PrMap::default(),
             modbus_link: None,
             late_sync_extrapolation: LATE_SYNC_EXTRAPOLATION,
+            shape: Shape::default(),
         }
+    }
+
+    /// 0x6092:1 as the drive powers on (see `Shape::feed_constant`).
+    pub fn feed_constant(&self) -> u32 {
+        match self.shape.feed_constant {
+            0 => (self.counts_per_rev as u64 * self.shape.gear_ratio[1] as u64 / self.shape.gear_ratio[0].max(1) as u64).clamp(1, u32::MAX as u64) as u32,
+            f => f,
+        }
+    }
+
+    /// Encoder increments per position unit of the factor group at power-on (1 = positions in
+    /// increments).
+    pub fn increments_per_unit(&self) -> f64 {
+        let [motor, shaft] = self.shape.gear_ratio;
+        self.counts_per_rev as f64 * motor as f64 / shaft.max(1) as f64 / self.feed_constant() as f64
     }
 }
 
@@ -377,6 +503,16 @@ impl SimConfig {
         Ok(SimConfig { drives, step_us: self.step_us })
     }
 
+    /// A sim-drives config (what `--print-default-config` prints) or a cncgw machine config
+    /// (its `[axes.*]`), from a file.
+    pub fn from_file(path: &std::path::Path) -> Result<SimConfig, String> {
+        let text = std::fs::read_to_string(path).map_err(|e| format!("{}: cannot read: {e}", path.display()))?;
+        // A machine config has [axes.*]; a sim-drives config has [[drive]].
+        let is_machine = text.lines().any(|l| l.trim_start().starts_with("[axes."));
+        let r = if is_machine { SimConfig::from_machine_toml(&text) } else { SimConfig::from_toml(&text) };
+        r.map_err(|e| format!("{}: {e}", path.display()))
+    }
+
     /// The drives of the default machine (config/lathe.toml).
     pub fn default_lathe() -> SimConfig {
         // The embedded file is checked by a test; fall back to an empty bus rather than panic.
@@ -459,6 +595,33 @@ impl SimConfig {
                 if let Some(v) = p.backlash_deg {
                     e.backlash_deg = v;
                 }
+            }
+            if let Some(sh) = &d.shape {
+                let q = &mut c.shape;
+                macro_rules! sets {
+                    ($field:ident) => {
+                        if let Some(v) = sh.$field.clone() {
+                            q.$field = v;
+                        }
+                    };
+                }
+                sets!(boot_mode);
+                sets!(mode_switch_ms);
+                sets!(mode_switch_syncs);
+                sets!(modes);
+                sets!(supported_modes_object);
+                sets!(factor_group);
+                sets!(feed_constant);
+                sets!(gear_ratio);
+                sets!(polarity);
+                sets!(feedback_factor);
+                sets!(sync_producer);
+                sets!(sync_period_us);
+                sets!(heartbeat_consumer);
+                sets!(node_guarding);
+                sets!(abort_connection_object);
+                sets!(mode_display_pdo);
+                sets!(identity_subs);
             }
             let _ = i;
             drives.push(c);
@@ -557,6 +720,7 @@ impl SimConfig {
             if let Err(e) = d.check_modbus_map() {
                 errs.push(format!("{k}: {e}"));
             }
+            d.shape.check(&k, &mut errs);
         }
         if errs.is_empty() {
             Ok(())
@@ -572,7 +736,25 @@ impl SimConfig {
         s.push_str("# Position units are encoder counts of the motor; times in ms unless named.\n");
         s.push_str("# Any key of a [[drive]] or [drive.physics] may be left out: it then takes the\n");
         s.push_str("# default for the drive's kind (linear: feed servo on a 10 mm ball screw;\n");
-        s.push_str("# spindle: heavy spindle motor with a softer position loop).\n\n");
+        s.push_str("# spindle: heavy spindle motor with a softer position loop).\n");
+        s.push_str("# [drive.shape] imitates commercial drives (all keys optional; the plain drive when absent):\n");
+        s.push_str("#   boot_mode = 1            # 0x6061 at power-on (1 = profile position)\n");
+        s.push_str("#   mode_switch_ms = 300.0   # a new 0x6060 shows in 0x6061 only after this long…\n");
+        s.push_str("#   mode_switch_syncs = 50   # …and this many SYNCs\n");
+        s.push_str("#   modes = [1, 6, 8, 9]     # modes 0x6060 accepts and 0x6502 lists (1 PP, 6 homing, 8 CSP, 9 CSV)\n");
+        s.push_str("#   supported_modes_object = false  # no 0x6502\n");
+        s.push_str("#   factor_group = false     # no 0x608F/0x6091/0x6092/0x607E\n");
+        s.push_str("#   feed_constant = 10000    # 0x6092:1 position units per shaft rev (0: increments); 10000 on a 10 mm screw = 1 µm\n");
+        s.push_str("#   gear_ratio = [1, 1]      # 0x6091 motor revs : shaft revs\n");
+        s.push_str("#   polarity = 0x80          # 0x607E (bit 7 inverts positions, bit 6 velocities)\n");
+        s.push_str("#   feedback_factor = 10.0   # 0x6064 reports this × the position in 0x607A's units (a hidden scaling)\n");
+        s.push_str("#   sync_producer = true     # produces SYNC itself (0x1005 bit 30) every sync_period_us (0x1006)\n");
+        s.push_str("#   sync_period_us = 2000\n");
+        s.push_str("#   heartbeat_consumer = false  # no 0x1016\n");
+        s.push_str("#   node_guarding = false    # no 0x100C/0x100D (no answers to guarding requests)\n");
+        s.push_str("#   abort_connection_object = false  # no 0x6007 (a lost master faults the drive)\n");
+        s.push_str("#   mode_display_pdo = false # 0x6061 cannot be mapped into a PDO\n");
+        s.push_str("#   identity_subs = 0        # 0x1018 sub-indices present (4 = vendor…serial; 0: a vendor-id read aborts)\n\n");
         s.push_str(&format!("step_us = {}                 # control loop / physics step, µs (≤ 100)\n", self.step_us));
         for d in &self.drives {
             let p = &d.physics;
@@ -605,6 +787,17 @@ impl SimConfig {
                 d.late_sync_extrapolation
             ));
             s.push_str("# Register addresses: [drive.cia402_map] / [drive.pr_map] (keys as in cncgw-bus' Cia402Map / PrMap)\n");
+            if d.shape != Shape::default() {
+                let h = &d.shape;
+                let modes: Vec<String> = h.modes.iter().map(|m| m.to_string()).collect();
+                s.push_str("[drive.shape]\n");
+                s.push_str(&format!("boot_mode = {}\nmode_switch_ms = {:?}\nmode_switch_syncs = {}\nmodes = [{}]\n", h.boot_mode, h.mode_switch_ms, h.mode_switch_syncs, modes.join(", ")));
+                s.push_str(&format!("supported_modes_object = {}\nfactor_group = {}\nfeed_constant = {}\n", h.supported_modes_object, h.factor_group, h.feed_constant));
+                s.push_str(&format!("gear_ratio = [{}, {}]\npolarity = 0x{:02X}\nfeedback_factor = {:?}\n", h.gear_ratio[0], h.gear_ratio[1], h.polarity, h.feedback_factor));
+                s.push_str(&format!("sync_producer = {}\nsync_period_us = {}\nheartbeat_consumer = {}\n", h.sync_producer, h.sync_period_us, h.heartbeat_consumer));
+                s.push_str(&format!("node_guarding = {}\nabort_connection_object = {}\n", h.node_guarding, h.abort_connection_object));
+                s.push_str(&format!("mode_display_pdo = {}\nidentity_subs = {}\n", h.mode_display_pdo, h.identity_subs));
+            }
             s.push_str("[drive.physics]\n");
             s.push_str(&format!("motor_inertia = {:?}     # kg·m²\n", p.motor_inertia));
             s.push_str(&format!("load_inertia = {:?}      # kg·m², reflected to the motor\n", p.load_inertia));
@@ -707,6 +900,29 @@ struct RawDrive {
     pr_map: Option<PrMap>,
     modbus_link: Option<String>,
     late_sync_extrapolation: Option<u32>,
+    shape: Option<RawShape>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawShape {
+    boot_mode: Option<i8>,
+    mode_switch_ms: Option<f64>,
+    mode_switch_syncs: Option<u32>,
+    modes: Option<Vec<i8>>,
+    supported_modes_object: Option<bool>,
+    factor_group: Option<bool>,
+    feed_constant: Option<u32>,
+    gear_ratio: Option<[u32; 2]>,
+    polarity: Option<u8>,
+    feedback_factor: Option<f64>,
+    sync_producer: Option<bool>,
+    sync_period_us: Option<u32>,
+    heartbeat_consumer: Option<bool>,
+    node_guarding: Option<bool>,
+    abort_connection_object: Option<bool>,
+    mode_display_pdo: Option<bool>,
+    identity_subs: Option<u8>,
 }
 
 #[derive(Deserialize)]
@@ -774,6 +990,29 @@ mod tests {
         assert!(e.contains("pr_map.block = 65530"), "{e}");
         let e = SimConfig::from_toml("[[drive]]\nnode = 1\nkind = \"linear\"\nmodbus_profile = \"rtu\"\n").unwrap_err();
         assert!(e.contains("modbus_profile"), "{e}");
+    }
+
+    #[test]
+    fn shapes_read_back_and_bad_ones_are_refused() {
+        let c = SimConfig::from_toml(
+            "[[drive]]\nnode = 1\nkind = \"linear\"\ncounts_per_unit = 10000.0\n[drive.shape]\nboot_mode = 1\nmode_switch_ms = 300.0\nmode_switch_syncs = 20\n\
+             feed_constant = 10000\nsync_producer = true\nheartbeat_consumer = false\nmodes = [1, 6]\npolarity = 0x80\n",
+        )
+        .unwrap();
+        let sh = &c.drives[0].shape;
+        assert_eq!((sh.boot_mode, sh.mode_switch_syncs, sh.feed_constant, sh.polarity), (1, 20, 10000, 0x80));
+        assert!(sh.sync_producer && !sh.heartbeat_consumer && sh.node_guarding);
+        assert_eq!(sh.supported_modes_bits(), 0x21);
+        // 100000 increments per revolution, 10000 units per revolution: 10 increments per µm.
+        assert_eq!(c.drives[0].increments_per_unit(), 10.0);
+        assert_eq!(SimConfig::default_lathe().drives[0].increments_per_unit(), 1.0);
+        assert_eq!(SimConfig::from_toml(&c.to_commented_toml()).unwrap(), c);
+        let e = SimConfig::from_toml("[[drive]]\nnode = 1\nkind = \"linear\"\n[drive.shape]\nmodes = [7]\n").unwrap_err();
+        assert!(e.contains("shape.modes: mode 7 is not emulated"), "{e}");
+        let e = SimConfig::from_toml("[[drive]]\nnode = 1\nkind = \"linear\"\n[drive.shape]\nfeedback_factor = 0.0\n").unwrap_err();
+        assert!(e.contains("shape.feedback_factor"), "{e}");
+        let e = SimConfig::from_toml("[[drive]]\nnode = 1\nkind = \"linear\"\n[drive.shape]\nboot_mod = 1\n").unwrap_err();
+        assert!(e.contains("boot_mod"), "{e}");
     }
 
     #[test]

@@ -16,6 +16,7 @@ use std::collections::{BTreeMap, VecDeque};
 
 mod block;
 pub mod profile;
+mod shape;
 
 const MS: u64 = 1_000_000;
 const N_RPDO: u16 = 2;
@@ -135,6 +136,9 @@ struct Hot {
     hb_muted: bool,
     pdo_drop_permille: u32,
     tpdo_delay: u64,
+    /// Factor group: encoder increments per position unit; 0x607E bit 7 as ±1.
+    inc_per_unit: f64,
+    pos_sign: f64,
 }
 
 /// An emulated drive. Read its state with the accessors; inject faults with the `inject_*`
@@ -203,6 +207,16 @@ pub struct SimDrive {
     hot: Hot,
     /// Profile position and homing (modes 1 and 6).
     prof: profile::Prof,
+    /// A mode written to 0x6060 that does not show yet (`Shape::mode_switch_ms`).
+    pending_mode: Option<shape::PendingMode>,
+    /// Next SYNC this drive produces (0x1005 bit 30).
+    own_sync_next: Option<u64>,
+    /// Node guarding (slave side).
+    guarding: shape::Guarding,
+    /// Modes (bit m) the drive has been in Operation Enabled in, and NMT resets received:
+    /// what a test asks afterwards ("never enabled before the mode", "nothing was reset").
+    enabled_modes: u32,
+    nmt_resets: u32,
     out: Vec<CanFrame>,
 }
 
@@ -230,21 +244,28 @@ fn build_od(c: &DriveConfig) -> Od {
     let mut od = Od::new();
     od.add(ix::DEVICE_TYPE, 0, U32, Const, false, 0x0002_0192);
     od.add(ix::ERROR_REGISTER, 0, U8, Ro, true, 0);
-    od.add(ix::COB_ID_SYNC, 0, U32, Rw, false, 0x80);
-    od.add(ix::COMM_CYCLE_PERIOD, 0, U32, Rw, false, 0);
+    let sh = &c.shape;
+    od.add(ix::COB_ID_SYNC, 0, U32, Rw, false, if sh.sync_producer { 0x4000_0080 } else { 0x80 });
+    od.add(ix::COMM_CYCLE_PERIOD, 0, U32, Rw, false, if sh.sync_producer { sh.sync_period_us as i64 } else { 0 });
     od.add_str(ix::DEVICE_NAME, 0, Const, &c.device_name);
     od.add_str(ix::HW_VERSION, 0, Const, "1.0");
     od.add_str(ix::SW_VERSION, 0, Const, concat!("sim-drives ", env!("CARGO_PKG_VERSION")));
     od.add(ix::COB_ID_EMCY, 0, U32, Rw, false, 0x80 + n);
-    od.add(ix::CONSUMER_HEARTBEAT, 0, U8, Const, false, 2);
-    od.add(ix::CONSUMER_HEARTBEAT, 1, U32, Rw, false, 0);
-    od.add(ix::CONSUMER_HEARTBEAT, 2, U32, Rw, false, 0);
+    if sh.node_guarding {
+        od.add(ix::GUARD_TIME, 0, U16, Rw, false, 0);
+        od.add(ix::LIFE_TIME_FACTOR, 0, U8, Rw, false, 0);
+    }
+    if sh.heartbeat_consumer {
+        od.add(ix::CONSUMER_HEARTBEAT, 0, U8, Const, false, 2);
+        od.add(ix::CONSUMER_HEARTBEAT, 1, U32, Rw, false, 0);
+        od.add(ix::CONSUMER_HEARTBEAT, 2, U32, Rw, false, 0);
+    }
     od.add(ix::PRODUCER_HEARTBEAT, 0, U16, Rw, false, 0);
-    od.add(ix::IDENTITY, 0, U8, Const, false, 4);
-    od.add(ix::IDENTITY, 1, U32, Const, false, c.vendor_id as i64);
-    od.add(ix::IDENTITY, 2, U32, Const, false, c.product_code as i64);
-    od.add(ix::IDENTITY, 3, U32, Const, false, c.revision as i64);
-    od.add(ix::IDENTITY, 4, U32, Const, false, c.serial as i64);
+    let ids = c.shape.identity_subs.min(4);
+    od.add(ix::IDENTITY, 0, U8, Const, false, ids as i64);
+    for (s, v) in [c.vendor_id, c.product_code, c.revision, c.serial].into_iter().enumerate().take(ids as usize) {
+        od.add(ix::IDENTITY, s as u8 + 1, U32, Const, false, v as i64);
+    }
     // RPDO1: controlword + target position, valid; RPDO2: controlword + target velocity,
     // invalid until the master enables it (CSV spindles).
     let rpdo = [
@@ -295,7 +316,9 @@ fn build_od(c: &DriveConfig) -> Od {
         od.add_range(SIM_FAULTS, PDO_DROP_PERMILLE, U16, Rw, false, 0, 0, 1000);
         od.add_range(SIM_FAULTS, TPDO_DELAY_US, U32, Rw, false, 0, 0, 1_000_000);
     }
-    od.add_range(ix::ABORT_CONNECTION, 0, I16, Rw, false, 1, 0, 3);
+    if sh.abort_connection_object {
+        od.add_range(ix::ABORT_CONNECTION, 0, I16, Rw, false, 1, 0, 3);
+    }
     od.add(ix::ERROR_CODE, 0, U16, Ro, true, 0);
     od.add(ix::CONTROLWORD, 0, U16, Rw, true, 0);
     od.add(ix::STATUSWORD, 0, U16, Ro, true, 0);
@@ -303,11 +326,14 @@ fn build_od(c: &DriveConfig) -> Od {
     od.add_range(FAULT_REACTION, 0, I16, Rw, false, 2, 0, 4);
     od.add_range(SHUTDOWN_OPTION, 0, I16, Rw, false, 0, 0, 1);
     od.add_range(DISABLE_OPTION, 0, I16, Rw, false, 0, 0, 1);
-    od.add(ix::MODES_OF_OPERATION, 0, I8, Rw, true, 0);
-    od.add(ix::MODES_DISPLAY, 0, I8, Ro, true, 0);
+    od.add(ix::MODES_OF_OPERATION, 0, I8, Rw, true, sh.boot_mode as i64);
+    od.add(ix::MODES_DISPLAY, 0, I8, Ro, sh.mode_display_pdo, sh.boot_mode as i64);
     od.add(POSITION_DEMAND, 0, I32, Ro, true, 0);
     od.add(ix::POSITION_ACTUAL, 0, I32, Ro, true, 0);
-    od.add(ix::FOLLOWING_ERROR_WINDOW, 0, U32, Rw, false, c.following_error_window as i64);
+    // Position objects are in position units (the factor group below).
+    let per_unit = c.increments_per_unit();
+    let window = (c.following_error_window as f64 / per_unit).round().clamp(1.0, u32::MAX as f64) as i64;
+    od.add(ix::FOLLOWING_ERROR_WINDOW, 0, U32, Rw, false, window);
     od.add(ix::FOLLOWING_ERROR_TIMEOUT, 0, U16, Rw, false, c.following_error_timeout_ms as i64);
     od.add(POSITION_WINDOW, 0, U32, Rw, false, 10);
     od.add(ix::VELOCITY_ACTUAL, 0, I32, Ro, true, 0);
@@ -341,8 +367,22 @@ fn build_od(c: &DriveConfig) -> Od {
         od.add(SIM_SWITCHES, 1, I32, Rw, false, i32::MIN as i64);
         od.add(SIM_SWITCHES, 2, I32, Rw, false, i32::MAX as i64);
     }
-    // Supported modes: bit 0 = PP (1), bit 5 = homing (6), bit 7 = CSP (8), bit 8 = CSV (9).
-    od.add(ix::SUPPORTED_MODES, 0, U32, Const, false, 1 | (1 << 5) | (1 << 7) | (1 << 8));
+    // Supported modes: bit m−1 for mode m (default PP, homing, CSP, CSV = 0x1A1).
+    if sh.supported_modes_object {
+        od.add(ix::SUPPORTED_MODES, 0, U32, Const, false, sh.supported_modes_bits() as i64);
+    }
+    if sh.factor_group {
+        od.add_range(ix::POLARITY, 0, U8, Rw, false, sh.polarity as i64, 0, 0xC0);
+        od.add(ix::ENCODER_RESOLUTION, 0, U8, Const, false, 2);
+        od.add(ix::ENCODER_RESOLUTION, 1, U32, Ro, false, c.counts_per_rev as i64);
+        od.add(ix::ENCODER_RESOLUTION, 2, U32, Ro, false, 1);
+        od.add(ix::GEAR_RATIO, 0, U8, Const, false, 2);
+        od.add_range(ix::GEAR_RATIO, 1, U32, Rw, false, sh.gear_ratio[0] as i64, 1, u32::MAX as i64);
+        od.add_range(ix::GEAR_RATIO, 2, U32, Rw, false, sh.gear_ratio[1] as i64, 1, u32::MAX as i64);
+        od.add(ix::FEED_CONSTANT, 0, U8, Const, false, 2);
+        od.add_range(ix::FEED_CONSTANT, 1, U32, Rw, false, c.feed_constant() as i64, 1, u32::MAX as i64);
+        od.add_range(ix::FEED_CONSTANT, 2, U32, Rw, false, 1, 1, u32::MAX as i64);
+    }
     od
 }
 
@@ -394,6 +434,11 @@ impl SimDrive {
             rng: 0x9E37_79B9_7F4A_7C15 ^ cfg.node as u64,
             hot: Hot::default(),
             prof: profile::Prof::default(),
+            pending_mode: None,
+            own_sync_next: None,
+            guarding: shape::Guarding::default(),
+            enabled_modes: 0,
+            nmt_resets: 0,
             out: Vec::new(),
             cfg,
         };
@@ -423,6 +468,8 @@ impl SimDrive {
         h.hb_muted = self.od.int(SIM_FAULTS, fault_sub::HEARTBEAT_MUTED) != 0;
         h.pdo_drop_permille = self.od.int(SIM_FAULTS, fault_sub::PDO_DROP_PERMILLE) as u32;
         h.tpdo_delay = self.od.int(SIM_FAULTS, fault_sub::TPDO_DELAY_US) as u64 * 1000;
+        h.inc_per_unit = if self.cfg.shape.factor_group { shape::increments_per_unit(&self.od) } else { self.cfg.increments_per_unit() };
+        h.pos_sign = if self.od.int(ix::POLARITY, 0) & 0x80 != 0 { -1.0 } else { 1.0 };
         self.hot = h;
     }
 
@@ -444,9 +491,14 @@ impl SimDrive {
     pub fn state(&self) -> State {
         self.state
     }
-    /// 0x6064: encoder position, whole counts, wrapping like the INTEGER32 object.
+    /// 0x6064: encoder position in position units (whole counts with the default factor
+    /// group), wrapping like the INTEGER32 object.
     pub fn position_actual(&self) -> i32 {
-        self.encoder_frozen.unwrap_or_else(|| self.servo.position_counts()) as i32
+        let inc = self.encoder_frozen.unwrap_or_else(|| self.servo.position_counts());
+        if self.hot.inc_per_unit == 1.0 && self.hot.pos_sign == 1.0 && self.cfg.shape.feedback_factor == 1.0 {
+            return inc as i32;
+        }
+        (self.inc_to_user(inc as f64) * self.cfg.shape.feedback_factor).round() as i64 as i32
     }
     /// Unwrapped encoder position (counts), for tests.
     pub fn position_unwrapped(&self) -> i64 {
@@ -462,6 +514,14 @@ impl SimDrive {
     }
     pub fn mode_display(&self) -> i8 {
         self.hot.mode
+    }
+    /// The modes (bit m for mode m, 0…31) this drive has been in Operation Enabled in.
+    pub fn enabled_modes(&self) -> u32 {
+        self.enabled_modes
+    }
+    /// NMT reset node / reset communication commands received since power-on.
+    pub fn nmt_resets(&self) -> u32 {
+        self.nmt_resets
     }
     pub fn statusword(&self) -> u16 {
         self.compute_statusword()
@@ -593,6 +653,9 @@ impl SimDrive {
             }
         };
         take(self.hb_next);
+        take(self.next_own_sync());
+        take(self.pending_mode_due());
+        take(self.life_guard_due());
         take(self.delayed.front().map(|d| d.0));
         if self.silent_until != u64::MAX {
             take(Some(self.silent_until));
@@ -624,6 +687,9 @@ impl SimDrive {
                 self.boot(now);
             }
         }
+        self.own_sync(now);
+        self.step_pending_mode(now, false);
+        self.check_life_guarding(now);
         if let Some(h) = self.hb_next {
             if now >= h {
                 let period = self.od.int(ix::PRODUCER_HEARTBEAT, 0) as u64 * MS;
@@ -680,7 +746,11 @@ impl SimDrive {
     // ---- frames ----------------------------------------------------------------------
 
     pub(crate) fn handle_frame(&mut self, f: &CanFrame, now: u64) {
-        if self.silent || f.extended || f.rtr {
+        if self.silent || f.extended {
+            return;
+        }
+        if f.rtr {
+            self.remote_frame(f, now);
             return;
         }
         let id = f.cob_id();
@@ -721,6 +791,9 @@ impl SimDrive {
         if self.nmt == NmtState::BootUp && !matches!(c, NmtCommand::ResetNode | NmtCommand::ResetCommunication) {
             return;
         }
+        if matches!(c, NmtCommand::ResetNode | NmtCommand::ResetCommunication) {
+            self.nmt_resets += 1;
+        }
         match c {
             NmtCommand::Start => self.set_nmt(NmtState::Operational),
             NmtCommand::Stop => {
@@ -738,6 +811,7 @@ impl SimDrive {
                 self.recache();
                 self.prev_cw = 0;
                 self.stop = None;
+                self.pending_mode = None;
                 self.ferr_flag = false;
                 self.ferr_since = None;
                 self.set_state(State::NotReadyToSwitchOn, now);
@@ -764,6 +838,8 @@ impl SimDrive {
         self.rpdo_buf = [None, None];
         self.delayed.clear();
         self.last_sync = None;
+        self.own_sync_next = None;
+        self.guarding = shape::Guarding::default();
         self.boot_at = Some(now + (self.cfg.boot_delay_ms * MS as f64).round() as u64);
     }
 
@@ -779,6 +855,7 @@ impl SimDrive {
     // ---- SYNC and PDOs ---------------------------------------------------------------
 
     fn on_sync(&mut self, now: u64) {
+        self.step_pending_mode(now, true);
         if let Some(last) = self.last_sync {
             if now > last {
                 // A real drive locks onto the SYNC period with a slow loop: one short or
@@ -1164,18 +1241,14 @@ impl SimDrive {
                     }
                 }
                 ix::COB_ID_SYNC
-                    if (x & 0x4000_0000 != 0 || x & 0x2000_0000 != 0) => {
+                    if ((x & 0x4000_0000 != 0 && !self.cfg.shape.sync_producer) || x & 0x2000_0000 != 0) => {
                         return Err(abort::INVALID_VALUE); // not a SYNC producer; 11-bit only
                     }
                 ix::COB_ID_EMCY
                     if x & 0x2000_0000 != 0 => {
                         return Err(abort::INVALID_VALUE);
                     }
-                ix::MODES_OF_OPERATION
-                    if ![0, mode::PROFILE_POSITION as i64, mode::HOMING as i64, mode::CYCLIC_SYNC_POSITION as i64, mode::CYCLIC_SYNC_VELOCITY as i64]
-                        .contains(&x) => {
-                        return Err(abort::INVALID_VALUE);
-                    }
+                ix::MODES_OF_OPERATION if !self.mode_allowed(x) => return Err(abort::INVALID_VALUE),
                 ix::HOMING_METHOD if !profile::HOMING_METHODS.contains(&x) => return Err(abort::INVALID_VALUE),
                 ix::SOFTWARE_LIMIT => {
                     let (lo, hi) = if sub == 1 { (x, self.od.int(index, 2)) } else { (self.od.int(index, 1), x) };
@@ -1199,7 +1272,8 @@ impl SimDrive {
                 self.hb_seen.remove(&(((x >> 16) & 0xFF) as u8));
             }
             ix::CONTROLWORD => self.controlword(x as u16, now),
-            ix::MODES_OF_OPERATION => self.set_mode(x as i8),
+            ix::MODES_OF_OPERATION => self.request_mode(x as i8, now),
+            ix::COB_ID_SYNC | ix::COMM_CYCLE_PERIOD => self.own_sync_next = None,
             ix::TARGET_POSITION => self.target_fresh = true,
             SIM_FAULTS => self.sim_fault_written(sub, x, now),
             _ => {}
@@ -1243,7 +1317,7 @@ impl SimDrive {
         self.od.set(ix::VELOCITY_ACTUAL, 0, self.velocity_actual() as i64);
         self.od.set(ix::FOLLOWING_ERROR_ACTUAL, 0, self.ferr() as i64);
         self.od.set(profile::DIGITAL_INPUTS, 0, self.digital_inputs());
-        self.od.set(POSITION_DEMAND, 0, self.demand.round() as i64 as i32 as i64);
+        self.od.set(POSITION_DEMAND, 0, self.inc_to_user(self.demand).round() as i64 as i32 as i64);
         let rated = self.servo.physics().torque_limit * RATED_OF_PEAK;
         let t = (self.servo.torque() / rated * 1000.0).round().clamp(-32768.0, 32767.0);
         self.od.set(TORQUE_ACTUAL, 0, t as i64);
@@ -1251,8 +1325,10 @@ impl SimDrive {
 
     // ---- CiA 402 -----------------------------------------------------------------------
 
+    /// 0x60F4 in position units.
     fn ferr(&self) -> i32 {
         let d = self.demand.round() as i64 - self.servo.position_counts();
+        let d = if self.hot.inc_per_unit == 1.0 && self.hot.pos_sign == 1.0 { d } else { self.inc_to_user(d as f64).round() as i64 };
         d.clamp(i32::MIN as i64, i32::MAX as i64) as i32
     }
 
@@ -1285,7 +1361,7 @@ impl SimDrive {
                     let window = (self.cfg.counts_per_rev as f64 / 60.0).max(0.005 * self.target_vel.abs());
                     (self.servo.velocity_estimate_counts() - self.target_vel).abs() <= window
                 } else {
-                    let window = self.od.int(POSITION_WINDOW, 0) as f64;
+                    let window = self.od.int(POSITION_WINDOW, 0) as f64 * self.hot.inc_per_unit;
                     self.demand == self.seg_end && (self.demand - self.servo.position_counts() as f64).abs() <= window
                 };
                 if reached {
@@ -1440,7 +1516,9 @@ impl SimDrive {
     /// Loss of the connection to the master (heartbeat timeout, NMT stop or reset while
     /// operational): act per 0x6007.
     fn abort_connection(&mut self, code: u16, now: u64) {
-        match self.od.int(ix::ABORT_CONNECTION, 0) {
+        // Without 0x6007 the drive faults, as most drives do.
+        let option = if self.cfg.shape.abort_connection_object { self.od.int(ix::ABORT_CONNECTION, 0) } else { 1 };
+        match option {
             1 => self.fault(code, now),
             opt => {
                 // The communication error is still signalled (CiA 301), without a fault.
@@ -1481,21 +1559,21 @@ impl SimDrive {
                         self.seg_end
                     }
                 } else {
+                    // 0x607A is in position units; the loop runs in increments.
                     let t = match self.target_ref {
-                        Some((r, u)) => u + raw.wrapping_sub(r) as f64,
+                        Some((r, u)) => u + self.user_to_inc(raw.wrapping_sub(r) as f64),
                         None => {
                             let a = self.servo.position_counts();
-                            a as f64 + raw.wrapping_sub(a as i32) as f64
+                            let au = self.inc_to_user(a as f64).round() as i64 as i32;
+                            a as f64 + self.user_to_inc(raw.wrapping_sub(au) as f64)
                         }
                     };
                     self.target_ref = Some((raw, t));
                     t
                 };
-                let lo = self.od.int(ix::SOFTWARE_LIMIT, 1);
-                let hi = self.od.int(ix::SOFTWARE_LIMIT, 2);
                 self.limit_active = false;
-                if lo < hi && !(lo == i32::MIN as i64 && hi == i32::MAX as i64) {
-                    let c = t.clamp(lo as f64, hi as f64);
+                if let Some((lo, hi)) = self.software_limits_inc() {
+                    let c = t.clamp(lo, hi);
                     self.limit_active = c != t;
                     t = c;
                 }
@@ -1577,6 +1655,7 @@ impl SimDrive {
             return;
         }
         if self.state == State::OperationEnabled {
+            self.enabled_modes |= 1u32.checked_shl(self.mode_display() as u32).unwrap_or(0);
             let halt = self.prev_cw & cw::HALT != 0;
             match self.stop {
                 None if halt => self.start_stop(StopWhy::Halt, Brake::Ramp(self.od.int(PROFILE_DECEL, 0) as f64), now),

@@ -100,8 +100,21 @@ impl Core {
     }
 
     fn collect(&mut self) {
-        for d in &mut self.drives {
-            d.take_output(&mut self.out);
+        for k in 0..self.drives.len() {
+            let from = self.out.len();
+            self.drives[k].take_output(&mut self.out);
+            // A SYNC one drive produces (0x1005 bit 30) reaches the others as on a real bus;
+            // the producer acted on it already. Rare: only drives shaped as SYNC producers.
+            let syncs = self.out[from..].iter().filter(|f| f.id == cncgw_bus::canopen::cob::SYNC as u32 && !f.extended && !f.rtr).count();
+            for _ in 0..syncs {
+                let f = cncgw_bus::canopen::sync_frame(None);
+                for (j, d) in self.drives.iter_mut().enumerate() {
+                    if j != k {
+                        d.handle_frame(&f, self.now);
+                        d.take_output(&mut self.out);
+                    }
+                }
+            }
         }
     }
 

@@ -72,12 +72,8 @@ struct Args {
 }
 
 fn load(path: &std::path::Path) -> Result<SimConfig, String> {
-    let text = std::fs::read_to_string(path).map_err(|e| format!("{}: cannot read: {e}", path.display()))?;
-    // A machine config has [axes.*]; a sim-drives config has [[drive]]. Each server below
-    // takes the drives of its bus (a mixed machine has both).
-    let is_machine = text.lines().any(|l| l.trim_start().starts_with("[axes."));
-    let r = if is_machine { SimConfig::from_machine_toml(&text) } else { SimConfig::from_toml(&text) };
-    r.map_err(|e| format!("{}: {e}", path.display()))
+    // Each server below takes the drives of its bus (a mixed machine has both).
+    SimConfig::from_file(path)
 }
 
 fn main() -> ExitCode {

@@ -52,7 +52,7 @@ impl Shared {
         let now = Instant::now();
         let mut clients = self.clients.lock().unwrap_or_else(|e| e.into_inner());
         clients.retain_mut(|c| {
-            if Some(c.id) == from || !c.raw_from.is_some_and(|t| now >= t) {
+            if Some(c.id) == from || c.raw_from.is_none_or(|t| now < t) {
                 return true;
             }
             match c.stream.write_all(text.as_bytes()) {
@@ -277,6 +277,9 @@ impl CanBus for SocketcandServer {
 
     fn name(&self) -> &str {
         &self.name
+    }
+    fn remote_frames(&self) -> bool {
+        false
     }
 }
 

@@ -2,6 +2,7 @@
 //! command itself is a write; nothing here enables a drive.
 
 use super::{open_session, MachineArgs, Session};
+use crate::drives::canopen::master::{mode_short, supported_modes_text, DriveProbe};
 use crate::drives::canopen::sdo_client::SdoError;
 use cncgw_bus::canopen::emcy::error_text;
 use cncgw_bus::canopen::nmt::{NmtCommand, NmtState};
@@ -240,14 +241,12 @@ pub fn scan(machine: &MachineArgs, json_out: bool) -> i32 {
         let axis = s.master.node_spec(node).map(|n| n.axis.clone()).unwrap_or_else(|| "-".into());
         match s.master.read_identity(&mut *s.clock, node) {
             Ok(info) => {
-                let hb = s.master.sdo_upload(&mut *s.clock, node, od::PRODUCER_HEARTBEAT, 0).ok().and_then(|d| {
-                    (d.len() >= 2).then(|| u16::from_le_bytes([d[0], d[1]]))
-                });
-                rows.push((node, axis, Some(info), hb, None::<String>));
+                let probe = s.master.probe(&mut *s.clock, node);
+                rows.push((node, axis, Some((info, probe)), None::<String>));
             }
             Err(e) => {
                 failed += 1;
-                rows.push((node, axis, None, None, Some(sdo_error_text(&e))));
+                rows.push((node, axis, None, Some(sdo_error_text(&e))));
             }
         }
     }
@@ -255,7 +254,7 @@ pub fn scan(machine: &MachineArgs, json_out: bool) -> i32 {
     let longest = rows
         .iter()
         .filter(|r| s.master.nmt_state(r.0).is_none())
-        .filter_map(|r| r.3)
+        .filter_map(|r| r.2.as_ref().and_then(|(_, p)| p.producer_heartbeat_ms.as_ref().and_then(|h| h.as_ref().ok().copied())))
         .max()
         .unwrap_or(0);
     if longest > 0 {
@@ -264,20 +263,26 @@ pub fn scan(machine: &MachineArgs, json_out: bool) -> i32 {
     if json_out {
         let arr: Vec<_> = rows
             .iter()
-            .map(|(node, axis, info, hb, err)| {
+            .map(|(node, axis, got, err)| {
                 let st = s.master.nmt_state(*node);
+                let info = got.as_ref().map(|g| &g.0);
+                let probe = got.as_ref().map(|g| probe_json(&g.1));
                 json!({
                     "node": node,
                     "axis": axis,
-                    "vendor": info.as_ref().map(|i| i.vendor),
-                    "product": info.as_ref().map(|i| i.product),
-                    "revision": info.as_ref().map(|i| i.revision),
-                    "serial": info.as_ref().map(|i| i.serial),
-                    "device_type": info.as_ref().map(|i| i.device_type),
-                    "name": info.as_ref().map(|i| i.name.clone()),
+                    "vendor": info.and_then(|i| i.vendor),
+                    "product": info.and_then(|i| i.product),
+                    "revision": info.and_then(|i| i.revision),
+                    "serial": info.and_then(|i| i.serial),
+                    "device_type": info.map(|i| i.device_type),
+                    "name": info.map(|i| i.name.clone()),
                     "nmt_state": st.map(|_| nmt_name(st)),
                     "nmt_heard": st.map(|s| if s == NmtState::BootUp { "boot-up" } else { "heartbeat" }),
-                    "heartbeat_ms": hb,
+                    "heartbeat_ms": got.as_ref().and_then(|g| g.1.producer_heartbeat_ms.clone().and_then(|r| r.ok())),
+                    "modes": probe.as_ref().map(|p| p["modes"].clone()),
+                    "sync": probe.as_ref().map(|p| p["sync"].clone()),
+                    "units": probe.as_ref().map(|p| p["units"].clone()),
+                    "error_control": probe.as_ref().map(|p| p["error_control"].clone()),
                     "error": err,
                 })
             })
@@ -289,19 +294,30 @@ pub fn scan(machine: &MachineArgs, json_out: bool) -> i32 {
             "{:>4} {:<5} {:<10} {:<10} {:<10} {:<10} {:<11} {:<20} {:<16} heartbeat",
             "node", "axis", "vendor", "product", "revision", "serial", "device type", "name", "NMT state"
         );
-        for (node, axis, info, hb, err) in &rows {
-            match info {
-                Some(i) => {
+        for (node, axis, got, err) in &rows {
+            match got {
+                Some((i, p)) => {
                     let st = s.master.nmt_state(*node);
-                    let hb = match hb {
-                        Some(0) => "off".to_string(),
-                        Some(ms) => format!("{ms} ms"),
-                        None => "-".to_string(),
+                    let hb = match &p.producer_heartbeat_ms {
+                        Some(Ok(0)) => "off".to_string(),
+                        Some(Ok(ms)) => format!("{ms} ms"),
+                        Some(Err(_)) => "unreadable".to_string(),
+                        None => "none".to_string(),
                     };
+                    let id = |v: Option<u32>| v.map_or_else(|| format!("{:<10}", "unreadable"), |v| format!("0x{v:08X}"));
                     println!(
-                        "{node:>4} {axis:<5} 0x{:08X} 0x{:08X} 0x{:08X} 0x{:08X} 0x{:08X}  {:<20} {:<16} {hb}",
-                        i.vendor, i.product, i.revision, i.serial, i.device_type, i.name, nmt_name(st)
+                        "{node:>4} {axis:<5} {} {} {} {} 0x{:08X}  {:<20} {:<16} {hb}",
+                        id(i.vendor),
+                        id(i.product),
+                        id(i.revision),
+                        id(i.serial),
+                        i.device_type,
+                        i.name,
+                        nmt_name(st)
                     );
+                    for line in probe_lines(p) {
+                        println!("           {line}");
+                    }
                 }
                 None => println!("{node:>4} {axis:<5} no answer: {}", err.as_deref().unwrap_or("")),
             }
@@ -315,6 +331,90 @@ pub fn scan(machine: &MachineArgs, json_out: bool) -> i32 {
     } else {
         EXIT_OK
     }
+}
+
+/// A probed value in words: its text, "absent" where the drive lacks the object, or the
+/// failure.
+fn probed<T>(v: &Option<Result<T, String>>, f: impl Fn(&T) -> String) -> String {
+    match v {
+        None => "absent".into(),
+        Some(Ok(x)) => f(x),
+        Some(Err(e)) => format!("unreadable ({e})"),
+    }
+}
+
+/// Modes, SYNC, units and error control of one node, one line each (`scan`).
+fn probe_lines(p: &DriveProbe) -> Vec<String> {
+    let modes = probed(&p.supported_modes, |b| format!("{} (0x6502 = 0x{b:08X})", supported_modes_text(*b)));
+    let active = probed(&p.mode_display, |m| mode_short(*m));
+    let sync = probed(&p.sync_cob, |c| {
+        if c & 0x4000_0000 != 0 {
+            format!("PRODUCER (0x1005 = 0x{c:08X}): it sends SYNC itself")
+        } else {
+            format!("consumer (0x1005 = 0x{c:08X})")
+        }
+    });
+    vec![
+        format!("modes: {modes}; active: {active}"),
+        format!("SYNC: {sync}"),
+        format!("units: {} ({})", p.scaling.unit_text(), p.scaling.describe()),
+        format!("error control: {}", error_control_text(p)),
+    ]
+}
+
+fn error_control_text(p: &DriveProbe) -> String {
+    let hb = probed(&p.producer_heartbeat_ms, |ms| if *ms == 0 { "off".into() } else { format!("{ms} ms") });
+    let consumer = probed(&p.consumer_heartbeat, |v| {
+        if v.is_empty() {
+            "none set".into()
+        } else {
+            v.iter().map(|(n, ms)| format!("node {n} within {ms} ms")).collect::<Vec<_>>().join(", ")
+        }
+    });
+    let guard = match (&p.guard_time_ms, &p.life_time_factor) {
+        (None, _) | (_, None) => "absent".to_string(),
+        (Some(Ok(0)), _) | (_, Some(Ok(0))) => "off".to_string(),
+        (Some(Ok(g)), Some(Ok(f))) => format!("{g} ms × {f}"),
+        _ => "unreadable".to_string(),
+    };
+    format!("heartbeat {hb}; consumes heartbeat (0x1016): {consumer}; node guarding (0x100C/0x100D): {guard}")
+}
+
+fn probe_json(p: &DriveProbe) -> serde_json::Value {
+    let res = |v: &Option<Result<serde_json::Value, String>>| match v {
+        None => json!(null),
+        Some(Ok(x)) => x.clone(),
+        Some(Err(e)) => json!({ "error": e }),
+    };
+    let map = |v: &Option<Result<u32, String>>, f: &dyn Fn(u32) -> serde_json::Value| v.clone().map(|r| r.map(f));
+    let s = &p.scaling;
+    json!({
+        "modes": {
+            "supported": res(&map(&p.supported_modes, &|b| json!(b))),
+            "supported_names": res(&map(&p.supported_modes, &|b| json!(supported_modes_text(b)))),
+            "active": res(&p.mode_display.clone().map(|r| r.map(|m| json!(m)))),
+            "active_name": res(&p.mode_display.clone().map(|r| r.map(|m| json!(mode_short(m))))),
+        },
+        "sync": {
+            "cob_id": res(&map(&p.sync_cob, &|c| json!(c))),
+            "producer": res(&map(&p.sync_cob, &|c| json!(c & 0x4000_0000 != 0))),
+        },
+        "units": {
+            "encoder": s.encoder.map(|(i, r)| json!({ "increments": i, "revolutions": r })),
+            "gear_ratio": s.gear.map(|(m, r)| json!({ "motor_revolutions": m, "shaft_revolutions": r })),
+            "feed_constant": s.feed.map(|(f, r)| json!({ "feed": f, "shaft_revolutions": r })),
+            "polarity": s.polarity,
+            "increments_per_unit": s.increments_per_unit(),
+            "units_per_motor_rev": s.units_per_rev(),
+            "text": s.unit_text(),
+        },
+        "error_control": {
+            "heartbeat_ms": res(&p.producer_heartbeat_ms.clone().map(|r| r.map(|v| json!(v)))),
+            "consumer_heartbeat": res(&p.consumer_heartbeat.clone().map(|r| r.map(|v| json!(v.iter().map(|(n, ms)| json!({ "node": n, "ms": ms })).collect::<Vec<_>>())))),
+            "guard_time_ms": res(&p.guard_time_ms.clone().map(|r| r.map(|v| json!(v)))),
+            "life_time_factor": res(&p.life_time_factor.clone().map(|r| r.map(|v| json!(v)))),
+        },
+    })
 }
 
 // ---------------------------------------------------------------- sdo

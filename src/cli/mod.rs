@@ -35,8 +35,9 @@ pub struct MachineArgs {
     pub bus: Option<String>,
     /// With `--bus inproc`: the emulated drives' own configuration (a sim-drives file, as
     /// `sim-drives --print-default-config` prints; e.g. one of tests/drive_models/) instead of
-    /// sim-drives' defaults for the machine's axes. Its node ids, kinds and counts per unit
-    /// must be the machine's.
+    /// sim-drives' defaults for the machine's axes; its `[drive.shape]` makes them behave like
+    /// commercial drives (boot mode, user units, SYNC producer, no 0x1016, …). Its node ids
+    /// and kinds must be the machine's, and its counts per unit too unless a drive is shaped.
     #[arg(long, value_name = "FILE")]
     pub sim_config: Option<PathBuf>,
 }
@@ -501,7 +502,10 @@ pub fn emulated_drives(
         match sim_cfg.drives.iter().find(|d| d.node == a.node) {
             None => errs.push(format!("axis {name} is node {} in the machine, and no drive of the emulated ones has that node", a.node)),
             Some(d) if d.kind != kind => errs.push(format!("axis {name} (node {}) is {:?} in the machine, {} in the emulated drives", a.node, a.kind, d.kind.name())),
-            Some(d) if (d.counts_per_unit - a.counts_per_unit).abs() > 1e-9 * a.counts_per_unit.abs().max(1.0) => errs.push(format!(
+            // A drive with a `[drive.shape]` is there to try start-up's own checks (its
+            // scaling against counts_per_unit is alarm 2006, with the value that matches):
+            // its scaling is not refused here.
+            Some(d) if d.shape == sim_drives::config::Shape::default() && (d.counts_per_unit - a.counts_per_unit).abs() > 1e-9 * a.counts_per_unit.abs().max(1.0) => errs.push(format!(
                 "axis {name} (node {}): counts_per_unit {} in the machine, {} in the emulated drives",
                 a.node, a.counts_per_unit, d.counts_per_unit
             )),
@@ -719,7 +723,7 @@ fn config_check(file: Option<&std::path::Path>, json: bool) -> i32 {
     let n_can = cfg.axes.values().filter(|a| a.modbus.is_none()).count();
     let mut can_load = None;
     if n_can > 0 {
-        let frames = crate::bus::busload::csp_frames(n_can, 6);
+        let frames = crate::drives::canopen::master::cyclic_frames(n_can);
         let load = crate::bus::busload::load(&frames, cfg.cycle_s(), cfg.bus.bitrate);
         can_load = Some(load);
         text.push(format!(

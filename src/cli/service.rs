@@ -637,6 +637,9 @@ impl CanBus for CountingBus {
     fn name(&self) -> &str {
         self.inner.name()
     }
+    fn remote_frames(&self) -> bool {
+        self.inner.remote_frames()
+    }
 }
 
 /// One drive's values as the monitor reads them.

@@ -5,6 +5,7 @@
 pub mod canopen;
 pub mod modbus;
 pub mod multi;
+pub mod scale_watch;
 
 use crate::Alarm;
 use cncgw_bus::cia402::State;
@@ -76,6 +77,15 @@ pub trait DriveBus {
     /// feedback, left NMT operational), from the `receive` that saw it on. `None` again when a
     /// second drive faulted too: the bus then quick-stopped every drive.
     fn faulted(&self) -> Option<usize> {
+        None
+    }
+    /// Start-up (with the enabling that follows it) failed: leave the drives as `startup`
+    /// found them, where the bus knows how (CANopen: objects written back, communication
+    /// reset, NMT state restored). Default: nothing.
+    fn abandon_startup(&mut self, _clock: &mut dyn Clock) {}
+    /// The following-error window of `axis` (machine units) the drive enforces, when known:
+    /// the bound on an honest drive's lag, used to tell a scaling error from lag.
+    fn following_window(&self, _axis: usize) -> Option<f64> {
         None
     }
 }

@@ -124,4 +124,13 @@ impl DriveBus for MultiBus<'_> {
             self.parts[p].faulted() == Some(i)
         })
     }
+    fn abandon_startup(&mut self, clock: &mut dyn Clock) {
+        for p in self.parts.iter_mut() {
+            p.abandon_startup(clock);
+        }
+    }
+    fn following_window(&self, axis: usize) -> Option<f64> {
+        let (p, i) = self.map[axis];
+        self.parts[p].following_window(i)
+    }
 }

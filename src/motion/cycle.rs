@@ -14,6 +14,7 @@ use crate::motion::panel::{Panel, PanelReader};
 use crate::motion::polygon::ToolSpindle;
 use crate::motion::tapstate::TapWatch;
 use crate::motion::{Event, Feedback, Limits, Motion, AX_S, AX_X, AX_Y, AX_Z, N_AXES};
+use crate::drives::scale_watch::{self, ScaleWatch};
 use crate::Alarm;
 use cncgw_bus::Clock;
 use std::sync::mpsc::{Receiver, TryRecvError};
@@ -327,11 +328,15 @@ impl<'a> CycleLoop<'a> {
             if now >= next + self.cycle_ns {
                 next = now - (now - next) % self.cycle_ns;
             }
-            self.drives.receive(now)?;
-            let done = self.drives.enable_step()?;
-            self.drives.transmit(now)?;
-            if done {
-                break;
+            let step = self.drives.receive(now).and_then(|_| self.drives.enable_step()).and_then(|done| self.drives.transmit(now).map(|_| done));
+            match step {
+                Ok(true) => break,
+                Ok(false) => {}
+                Err(a) => {
+                    // Enabling failed: the drives are left as start-up found them.
+                    self.drives.abandon_startup(self.clock);
+                    return Err(a);
+                }
             }
         }
         summary.enable_time_s = (self.clock.now_ns() - t0) as f64 * 1e-9;
@@ -414,6 +419,8 @@ impl<'a> CycleLoop<'a> {
         // Demand history: the drive's demand at SYNC k is the target sent at k−1, and its
         // actual at SYNC k reaches us at k+1, so compare with the target of two cycles ago.
         let mut hist = vec![[0i64; 2]; n];
+        // The last line of defence against a feedback scaled differently from the set-points.
+        let mut scale: Vec<ScaleWatch> = (0..n).map(|d| ScaleWatch::new(self.drives.following_window(d).map(|w| w * self.drives.counts_per_unit(d)))).collect();
         for (d, h) in hist.iter_mut().enumerate() {
             let c = self.drives.feedback(d).counts;
             *h = [c, c];
@@ -505,6 +512,7 @@ impl<'a> CycleLoop<'a> {
                 return Err(a);
             }
             let mut fb = Feedback::default();
+            let mut scaled: Option<(usize, f64)> = None;
             let mut row = TraceRow { t_s: (now - t_start) as f64 * 1e-9, ..TraceRow::default() };
             for (d, ax) in map.iter().enumerate() {
                 let f = self.drives.feedback(d);
@@ -520,6 +528,7 @@ impl<'a> CycleLoop<'a> {
                 // its own link cycle) gives it; CANopen pairs with the target of k−2.
                 if let Some(demand) = f.demand_counts {
                     if f.age_cycles == 0 {
+                        scaled = scaled.or(scale[d].observe(demand, f.counts).map(|r| (d, r)));
                         let err = (demand - f.counts).abs() as f64 / summary.axes[d].counts_per_unit;
                         if d < MAX_TRACE_AXES {
                             row.ferr[d] = (demand - f.counts) as f64 / summary.axes[d].counts_per_unit;
@@ -528,6 +537,7 @@ impl<'a> CycleLoop<'a> {
                     }
                 } else if f.age_cycles == 0 && missed == 0 && !late_before {
                     let demand = hist[d][0];
+                    scaled = scaled.or(scale[d].observe(demand, f.counts).map(|r| (d, r)));
                     let err = (demand - f.counts).abs() as f64 / summary.axes[d].counts_per_unit;
                     if d < MAX_TRACE_AXES {
                         row.ferr[d] = (demand - f.counts) as f64 / summary.axes[d].counts_per_unit;
@@ -536,6 +546,13 @@ impl<'a> CycleLoop<'a> {
                         summary.axes[d].max_following_error = err;
                     }
                 }
+            }
+            if let Some((d, r)) = scaled {
+                // The drive follows its set-points (only its feedback is off): a controlled
+                // stop along the path, starting with this cycle's set-points.
+                let msg = ScaleWatch::message(self.drives.axis_name(d), r, self.drives.counts_per_unit(d));
+                self.halt_now(motion, spindle_rpm);
+                return Err(Alarm::new(scale_watch::ALARM, format!("{msg} (line {cur_line})")));
             }
             if let Some(sd) = self.spindle_drive {
                 let p = self.drives.feedback(sd).pos;

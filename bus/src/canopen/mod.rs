@@ -47,6 +47,9 @@ pub mod od {
     pub const COB_ID_SYNC: u16 = 0x1005;
     pub const COMM_CYCLE_PERIOD: u16 = 0x1006;
     pub const DEVICE_NAME: u16 = 0x1008;
+    /// Node guarding: guard time (ms) and life time factor (CiA 301 §7.2.8.3.1).
+    pub const GUARD_TIME: u16 = 0x100C;
+    pub const LIFE_TIME_FACTOR: u16 = 0x100D;
     pub const HW_VERSION: u16 = 0x1009;
     pub const SW_VERSION: u16 = 0x100A;
     pub const COB_ID_EMCY: u16 = 0x1014;
@@ -67,12 +70,22 @@ pub mod od {
     pub const FAULT_REACTION_OPTION: u16 = 0x605E;
     pub const MODES_OF_OPERATION: u16 = 0x6060;
     pub const MODES_DISPLAY: u16 = 0x6061;
+    /// Position actual internal value, in encoder increments (not scaled by the factor group).
+    pub const POSITION_ACTUAL_INTERNAL: u16 = 0x6063;
     pub const POSITION_ACTUAL: u16 = 0x6064;
     pub const FOLLOWING_ERROR_WINDOW: u16 = 0x6065;
     pub const FOLLOWING_ERROR_TIMEOUT: u16 = 0x6066;
     pub const VELOCITY_ACTUAL: u16 = 0x606C;
     pub const TARGET_POSITION: u16 = 0x607A;
     pub const SOFTWARE_LIMIT: u16 = 0x607D;
+    /// Polarity: bit 7 inverts positions (demand and actual), bit 6 velocities.
+    pub const POLARITY: u16 = 0x607E;
+    /// Factor group (CiA 402-2 §6.3): position encoder resolution (sub 1 increments per
+    /// sub 2 motor revolutions), gear ratio (sub 1 motor revolutions per sub 2 shaft
+    /// revolutions), feed constant (sub 1 feed in position units per sub 2 shaft revolutions).
+    pub const ENCODER_RESOLUTION: u16 = 0x608F;
+    pub const GEAR_RATIO: u16 = 0x6091;
+    pub const FEED_CONSTANT: u16 = 0x6092;
     pub const HOMING_METHOD: u16 = 0x6098;
     pub const HOMING_SPEEDS: u16 = 0x6099;
     pub const HOMING_ACCEL: u16 = 0x609A;

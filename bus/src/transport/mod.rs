@@ -40,6 +40,11 @@ pub trait CanBus: Send {
     fn last_rx_age(&self) -> Option<Duration> {
         None
     }
+    /// Whether the transport carries remote frames (RTR). CAN does; the socketcand protocol
+    /// has no remote frames, so node guarding (CiA 301 RTR requests) cannot run over it.
+    fn remote_frames(&self) -> bool {
+        true
+    }
 }
 
 impl<T: CanBus + ?Sized> CanBus for Box<T> {
@@ -57,5 +62,8 @@ impl<T: CanBus + ?Sized> CanBus for Box<T> {
     }
     fn last_rx_age(&self) -> Option<Duration> {
         (**self).last_rx_age()
+    }
+    fn remote_frames(&self) -> bool {
+        (**self).remote_frames()
     }
 }

@@ -167,6 +167,10 @@ impl CanBus for Socketcand {
     fn name(&self) -> &str {
         &self.name
     }
+
+    fn remote_frames(&self) -> bool {
+        false
+    }
 }
 
 impl Drop for Socketcand {

@@ -178,15 +178,14 @@ impl SimDrive {
     fn new_setpoint(&mut self, c: u16) {
         let raw = self.od.int(ix::TARGET_POSITION, 0) as i32;
         let mut t = if c & cw::OMS6 != 0 {
-            self.prof.last_target.unwrap_or(self.demand) + raw as f64
+            self.prof.last_target.unwrap_or(self.demand) + self.user_to_inc(raw as f64)
         } else {
             let a = self.servo.position_counts();
-            a as f64 + raw.wrapping_sub(a as i32) as f64
+            let au = self.inc_to_user(a as f64).round() as i64 as i32;
+            a as f64 + self.user_to_inc(raw.wrapping_sub(au) as f64)
         };
-        let lo = self.od.int(ix::SOFTWARE_LIMIT, 1);
-        let hi = self.od.int(ix::SOFTWARE_LIMIT, 2);
-        if lo < hi && !(lo == i32::MIN as i64 && hi == i32::MAX as i64) {
-            t = t.clamp(lo as f64, hi as f64);
+        if let Some((lo, hi)) = self.software_limits_inc() {
+            t = t.clamp(lo, hi);
         }
         let immediate = c & cw::OMS5 != 0;
         match self.prof.traj.as_mut() {
@@ -320,7 +319,7 @@ impl SimDrive {
             if self.prof.ack {
                 s |= sw::OMS12;
             }
-            let window = self.od.int(super::POSITION_WINDOW, 0) as f64;
+            let window = self.od.int(super::POSITION_WINDOW, 0) as f64 * self.hot.inc_per_unit;
             if self.prof.traj.is_none()
                 && self.prof.pending.is_none()
                 && (self.demand - self.servo.position_counts() as f64).abs() <= window

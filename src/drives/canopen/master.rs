@@ -5,17 +5,30 @@
 //! Alarm numbers (ours; the manuals have none for the bus): 2001 node did not boot,
 //! 2002 not a CiA 402 device, 2003 SDO failure during configuration, 2010 EMCY / drive
 //! fault (with 0x603F and 0x1001 read and decoded), 2011 heartbeat lost, 2012 fault reset failed, 2013 enable timed out,
-//! 2004 EDS unreadable or disagreeing, 2014 node left operational, 2015 stale feedback, 2016 profile move failed, 2017 homing
-//! failed, 2020 bus error.
+//! 2004 EDS unreadable or disagreeing, 2005 mode missing / not confirmed / left while
+//! running, 2006 position scaling or polarity disagrees with the config, 2007 another master
+//! or SYNC producer on the bus, 2014 node left operational, 2015 stale feedback, 2016 profile
+//! move failed, 2017 homing failed, 2018 TPDO of the wrong length, 2020 bus error.
+
+mod bus_check;
+mod drive_check;
+mod explain;
+mod life;
+mod mode_track;
+mod restore;
+
+pub use drive_check::{check_scaling, DriveProbe, Scaling, ALARM_FOREIGN, ALARM_MODE, ALARM_SCALING};
+pub use explain::{mode_short, supported_modes_text};
+pub use mode_track::MODE_TIMEOUT_MS;
 
 use super::sdo_client::{SdoClient, SdoError};
-use crate::config::{AxisKind, MachineConfig};
+use crate::config::{AxisKind, MachineConfig, Polarity};
 use crate::drives::{AxisFeedback, DriveBus};
 use crate::Alarm;
 use cncgw_bus::canopen::emcy::{error_register_text, error_text, Emcy};
-use cncgw_bus::canopen::nmt::{decode_heartbeat, heartbeat_frame, NmtCommand, NmtState};
+use cncgw_bus::canopen::nmt::{decode_heartbeat, NmtCommand, NmtState};
 use cncgw_bus::canopen::pdo::{get_i32, get_u16, MapEntry};
-use cncgw_bus::canopen::sdo::abort as sdo_abort;
+use cncgw_bus::canopen::sdo::abort;
 use cncgw_bus::canopen::{cob, od, sync_frame};
 use cncgw_bus::cia402::{cw, mode, sw, EnableProgress, Enabler, State};
 use cncgw_bus::{CanBus, CanFrame, Clock};
@@ -26,6 +39,28 @@ pub const MASTER_NODE_ID: u8 = 0x7F;
 type ObjWrite = (u16, u8, usize);
 /// An object start-up maps: index, sub, bits, into an RPDO (else a TPDO).
 type ObjMap = (u16, u8, u8, bool);
+
+/// RPDO1: controlword + target position (or target velocity), bytes.
+pub const RPDO1_LEN: usize = 6;
+/// TPDO1: statusword + position actual + modes of operation display, bytes (6 when the
+/// drive cannot map 0x6061: see `mode_track`).
+pub const TPDO1_LEN: usize = 7;
+/// Consecutive TPDO1s of the wrong length before alarm 2018 (one is a glitch the feedback
+/// timeout covers; three in a row is a mapping the drive did not take).
+const BAD_LEN_ALARM: u32 = 3;
+
+/// The cyclic frames of `drives` CANopen drives in CSP, for the bus-load figure: one
+/// `RPDO1_LEN` and one `TPDO1_LEN` frame each, and the SYNC.
+pub fn cyclic_frames(drives: usize) -> Vec<usize> {
+    cncgw_bus::busload::csp_frames(drives, RPDO1_LEN, TPDO1_LEN)
+}
+
+fn le_u32(d: &[u8]) -> u32 {
+    let mut b = [0u8; 4];
+    let n = d.len().min(4);
+    b[..n].copy_from_slice(&d[..n]);
+    u32::from_le_bytes(b)
+}
 
 /// Cycles until a statusword reflects a controlword sent in the first of them.
 const FRESH_STATUS_CYCLES: u32 = 3;
@@ -50,6 +85,11 @@ pub struct NodeSpec {
     pub tpdo_cob: u16,
     pub rpdo_tx: u8,
     pub tpdo_tx: u8,
+    /// Axis travel per motor revolution (`axes.NAME.travel_per_rev`), checked against the
+    /// drive's factor group at start-up.
+    pub travel_per_rev: Option<f64>,
+    /// The drive's position polarity (`axes.NAME.polarity`), checked against 0x607E.
+    pub polarity: Polarity,
 }
 
 impl NodeSpec {
@@ -71,21 +111,29 @@ impl NodeSpec {
                 tpdo_cob: a.pdo_cob_ids().1,
                 rpdo_tx: a.rpdo_transmission,
                 tpdo_tx: a.tpdo_transmission,
+                travel_per_rev: a.travel_per_rev,
+                polarity: a.polarity,
             })
             .collect()
     }
 }
 
-/// Identity read at start-up (0x1000, 0x1018, 0x1008).
+/// Identity read at start-up (0x1000, 0x1018, 0x1008). `None`: the drive did not give it
+/// (absent, or the read aborted) — never shown as 0.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct NodeInfo {
     pub node: u8,
     pub device_type: u32,
-    pub vendor: u32,
-    pub product: u32,
-    pub revision: u32,
-    pub serial: u32,
+    pub vendor: Option<u32>,
+    pub product: Option<u32>,
+    pub revision: Option<u32>,
+    pub serial: Option<u32>,
     pub name: String,
+}
+
+/// "0x00000CA7", or "unreadable" for an identity entry the drive did not give.
+pub fn hex_or_unreadable(v: Option<u32>) -> String {
+    v.map_or_else(|| "unreadable".to_string(), |v| format!("0x{v:08X}"))
 }
 
 /// A drive fault being diagnosed: 0x603F and 0x1001 are read (SDO, without blocking the
@@ -127,6 +175,17 @@ struct Node {
     not_enabled: u32,
     /// 0x60FF, counts/s.
     target_vel: i32,
+    /// The mode asked for and the mode the drive shows (0x6061).
+    mode: mode_track::ModeTrack,
+    /// TPDO1's length since start-up mapped it (`None`: not configured by this master; any
+    /// frame of at least 6 bytes is taken).
+    tpdo_len: Option<u8>,
+    /// TPDO1s of another length: in a row, in all, and the last length seen.
+    bad_len: u32,
+    bad_len_total: u64,
+    bad_len_last: u8,
+    /// Node guarding by the master (a drive without a heartbeat consumer).
+    guarding: Option<life::Guarding>,
 }
 
 impl Node {
@@ -152,6 +211,12 @@ impl Node {
             csv: false,
             target_vel: 0,
             not_enabled: 0,
+            mode: mode_track::ModeTrack::default(),
+            tpdo_len: None,
+            bad_len: 0,
+            bad_len_total: 0,
+            bad_len_last: 0,
+            guarding: None,
         }
     }
 }
@@ -178,6 +243,10 @@ pub struct CanOpenMaster<B: CanBus> {
     isolate: bool,
     /// The drive isolated in its fault reaction (see `DriveBus::faulted`).
     faulted: Option<usize>,
+    /// While start-up may still fail: the values its writes replaced (see `restore`).
+    undo: Option<Vec<restore::Undo>>,
+    /// The NMT state of each node before start-up reset it.
+    found: Vec<Option<NmtState>>,
 }
 
 enum Sdo<'a> {
@@ -212,13 +281,15 @@ impl<B: CanBus> CanOpenMaster<B> {
             diag: None,
             isolate: false,
             faulted: None,
+            undo: None,
+            found: Vec::new(),
         }
     }
 
     /// Worst-case bus load of the cyclic traffic (one 6-byte RPDO and TPDO per drive and the
     /// SYNC every cycle), 0…1.
     pub fn bus_load(&self, bitrate: u32) -> f64 {
-        let frames = cncgw_bus::busload::csp_frames(self.nodes.len(), 6);
+        let frames = cyclic_frames(self.nodes.len());
         cncgw_bus::busload::load(&frames, self.cycle_ns as f64 * 1e-9, bitrate)
     }
 
@@ -226,7 +297,7 @@ impl<B: CanBus> CanOpenMaster<B> {
     pub fn check_bus_load(&self, bitrate: u32) -> Result<f64, Alarm> {
         let load = self.bus_load(bitrate);
         if load > 0.8 {
-            let frames = cncgw_bus::busload::csp_frames(self.nodes.len(), 6);
+            let frames = cyclic_frames(self.nodes.len());
             let fits = cncgw_bus::busload::shortest_cycle_s(&frames, bitrate, 0.8);
             return Err(Alarm::new(
                 2021,
@@ -285,6 +356,8 @@ impl<B: CanBus> CanOpenMaster<B> {
             tpdo_cob: cob::TPDO1 + node as u16,
             rpdo_tx: 1,
             tpdo_tx: 1,
+            travel_per_rev: None,
+            polarity: Polarity::Normal,
         };
         let timeout = self.boot_timeout_ms / 4;
         self.nodes.push(Node::new(spec, timeout.max(1)));
@@ -373,15 +446,15 @@ impl<B: CanBus> CanOpenMaster<B> {
     }
 
     /// Read the identity (0x1000, 0x1018:1…4, 0x1008) of `node` without checking or
-    /// configuring anything. Absent optional entries stay 0 / empty.
+    /// configuring anything. Entries the drive does not give stay `None` / empty.
     pub fn read_identity(&mut self, clock: &mut dyn Clock, node: u8) -> Result<NodeInfo, SdoError> {
         let i = self.index_of(node).ok_or(SdoError::Protocol("node not known to the master (call ensure_node)"))?;
         let device_type = self.read_u32(clock, i, od::DEVICE_TYPE, 0)?;
         let mut info = NodeInfo { node, device_type, ..NodeInfo::default() };
-        info.vendor = self.read_u32(clock, i, od::IDENTITY, 1).unwrap_or(0);
-        info.product = self.read_u32(clock, i, od::IDENTITY, 2).unwrap_or(0);
-        info.revision = self.read_u32(clock, i, od::IDENTITY, 3).unwrap_or(0);
-        info.serial = self.read_u32(clock, i, od::IDENTITY, 4).unwrap_or(0);
+        info.vendor = self.read_u32(clock, i, od::IDENTITY, 1).ok();
+        info.product = self.read_u32(clock, i, od::IDENTITY, 2).ok();
+        info.revision = self.read_u32(clock, i, od::IDENTITY, 3).ok();
+        info.serial = self.read_u32(clock, i, od::IDENTITY, 4).ok();
         if let Ok(name) = self.sdo(clock, i, Sdo::Up(od::DEVICE_NAME, 0)) {
             info.name = String::from_utf8_lossy(&name).trim_end_matches('\0').trim().to_string();
         }
@@ -401,19 +474,31 @@ impl<B: CanBus> CanOpenMaster<B> {
         self.bus.send(f).map_err(|e| Alarm::new(2020, e.to_string()))
     }
 
-    /// Send the master heartbeat when it is due. Called from every wait, not only from the
-    /// cyclic phase: a drive configured early in start-up consumes it while the others are
-    /// still being configured.
-    fn tick_heartbeat(&mut self, now_ns: u64) -> Result<(), Alarm> {
-        if self.hb_ms > 0 && self.hb_started && now_ns >= self.next_hb_ns {
-            self.send(&heartbeat_frame(MASTER_NODE_ID, NmtState::Operational))?;
-            self.next_hb_ns = now_ns + self.hb_ms as u64 * 1_000_000;
-        }
-        Ok(())
-    }
-
     fn index_of(&self, node: u8) -> Option<usize> {
         self.nodes.iter().position(|n| n.spec.node == node)
+    }
+
+    /// Node indices in node-id order (the order start-up configures them and names them in
+    /// alarms; the axis order stays the configuration's).
+    fn by_node_id(&self) -> Vec<usize> {
+        let mut v: Vec<usize> = (0..self.nodes.len()).collect();
+        v.sort_by_key(|&i| self.nodes[i].spec.node);
+        v
+    }
+
+    /// TPDO1s of the wrong length `node` sent since start-up (counted, not used).
+    pub fn pdo_length_errors(&self, node: u8) -> u64 {
+        self.index_of(node).map_or(0, |i| self.nodes[i].bad_len_total)
+    }
+
+    /// The mode `node` last showed in 0x6061 (TPDO1 or SDO poll), once start-up asked for one.
+    pub fn mode_display(&self, node: u8) -> Option<i8> {
+        self.index_of(node).and_then(|i| self.nodes[i].mode.shown)
+    }
+
+    /// Whether the master guards `node` (node guarding) instead of consuming its heartbeat.
+    pub fn guarded(&self, node: u8) -> bool {
+        self.index_of(node).is_some_and(|i| self.nodes[i].guarding.is_some())
     }
 
     /// Handle a frame that is not the answer being waited for: boot-ups, heartbeats,
@@ -443,8 +528,31 @@ impl<B: CanBus> CanOpenMaster<B> {
             }
             return;
         }
-        if by_tpdo.is_some() && f.len >= 6 {
+        if by_tpdo.is_some() {
             let n = &mut self.nodes[i];
+            let good = match n.tpdo_len {
+                Some(len) => f.len == len,
+                None => f.len >= 6,
+            };
+            if !good {
+                // Not processed, but counted: a persistent wrong length is alarm 2018 in
+                // `receive`, naming both lengths.
+                n.bad_len = n.bad_len.saturating_add(1);
+                n.bad_len_total += 1;
+                n.bad_len_last = f.len;
+                return;
+            }
+            n.bad_len = 0;
+            if n.mode.in_pdo && f.len >= 7 {
+                // As the statusword: one frame with a flipped bit is not a mode change.
+                let m = f.data[6] as i8;
+                if n.mode.shown != Some(m) && n.mode.confirmed && n.mode.odd_frames == 0 {
+                    n.mode.odd_frames = 1;
+                } else {
+                    n.mode.odd_frames = 0;
+                    n.mode.shown = Some(m);
+                }
+            }
             let raw = get_i32(&f.data, 2);
             if n.have_fb && raw.wrapping_sub(n.raw_pos).unsigned_abs() >= 1 << 30 {
                 // No axis moves 2^30 counts between two TPDOs: a corrupt frame (a flipped top
@@ -500,7 +608,7 @@ impl<B: CanBus> CanOpenMaster<B> {
                 if let Some(out) = self.nodes[i].sdo.poll(now) {
                     let _ = self.bus.send(&out);
                 }
-                let _ = self.tick_heartbeat(now);
+                let _ = self.tick_life(now);
                 if let Some(r) = self.nodes[i].sdo.take_result() {
                     break r;
                 }
@@ -513,17 +621,33 @@ impl<B: CanBus> CanOpenMaster<B> {
     }
 
     fn read_u32(&mut self, clock: &mut dyn Clock, i: usize, ix: u16, sub: u8) -> Result<u32, SdoError> {
-        let v = self.sdo(clock, i, Sdo::Up(ix, sub))?;
-        let mut b = [0u8; 4];
-        let n = v.len().min(4);
-        b[..n].copy_from_slice(&v[..n]);
-        Ok(u32::from_le_bytes(b))
+        self.sdo(clock, i, Sdo::Up(ix, sub)).map(|v| le_u32(&v))
     }
 
+    /// Write an object; during start-up its old value is kept first (`restore`). Errors
+    /// are alarm 2003 with the abort explained for this object (`explain`).
     fn write(&mut self, clock: &mut dyn Clock, i: usize, ix: u16, sub: u8, data: &[u8]) -> Result<(), Alarm> {
-        self.sdo(clock, i, Sdo::Down(ix, sub, data)).map(|_| ()).map_err(|e| {
-            self.node_alarm(i, 2003, format!("writing 0x{ix:04X}:{sub:02X} failed: {e}"))
-        })
+        self.try_write(clock, i, ix, sub, data).map_err(|e| self.write_alarm(i, ix, sub, data, &e))
+    }
+
+    /// `write` keeping the SDO error (for writes whose absence has a fallback).
+    fn try_write(&mut self, clock: &mut dyn Clock, i: usize, ix: u16, sub: u8, data: &[u8]) -> Result<(), SdoError> {
+        if self.undo.is_some() {
+            self.keep_for_undo(clock, i, ix, sub);
+        }
+        self.sdo(clock, i, Sdo::Down(ix, sub, data)).map(|_| ())
+    }
+
+    fn write_alarm(&self, i: usize, ix: u16, sub: u8, data: &[u8], e: &SdoError) -> Alarm {
+        let value = if data.len() <= 4 { format!(" = {}", le_u32(data)) } else { String::new() };
+        let why = match e {
+            SdoError::Abort { code } => explain::explain_write(ix, sub, *code, data),
+            _ => None,
+        };
+        match why {
+            Some(w) => self.node_alarm(i, 2003, format!("{w} (writing 0x{ix:04X}:{sub:02X}{value} was refused: {e})")),
+            None => self.node_alarm(i, 2003, format!("writing 0x{ix:04X}:{sub:02X}{value} failed: {e}")),
+        }
     }
 
     /// Drain the bus for `ms` milliseconds of clock time, handling background frames.
@@ -536,61 +660,60 @@ impl<B: CanBus> CanOpenMaster<B> {
             while let Ok(Some(f)) = self.bus.try_recv() {
                 self.on_background(&f, now);
             }
-            let _ = self.tick_heartbeat(now);
+            let _ = self.tick_life(now);
         }
     }
 
-    fn configure_node(&mut self, clock: &mut dyn Clock, i: usize) -> Result<(), Alarm> {
-        let node = self.nodes[i].spec.node;
-        if let Some(path) = self.nodes[i].spec.eds.clone() {
-            // Before anything is written: the drive's own data sheet must allow it.
-            let eds = cncgw_bus::canopen::eds::Eds::load(std::path::Path::new(&path))
-                .map_err(|e| self.node_alarm(i, 2004, format!("EDS: {e} (axes.{}.eds; a relative path is from the working directory)", self.nodes[i].spec.axis)))?;
-            let bad = self.check_eds(node, &eds);
-            if !bad.is_empty() {
+    /// After the NMT reset: every node's boot-up, or alarm 2001 naming the first (by node
+    /// id) that did not boot.
+    fn wait_all_booted(&mut self, clock: &mut dyn Clock) -> Result<(), Alarm> {
+        let deadline = clock.now_ns() + self.boot_timeout_ms as u64 * 1_000_000;
+        while !self.nodes.iter().all(|n| n.booted) {
+            if clock.now_ns() >= deadline {
+                let i = self.by_node_id().into_iter().find(|&i| !self.nodes[i].booted).unwrap_or(0);
                 return Err(self.node_alarm(
                     i,
-                    2004,
-                    format!("the configuration does not fit the drive's EDS ({} problem(s)): {}", bad.len(), bad.join("; ")),
+                    2001,
+                    format!(
+                        "no boot-up message within {} ms after NMT reset communication; check power, wiring, bitrate and the node id",
+                        self.boot_timeout_ms
+                    ),
                 ));
             }
+            self.settle(clock, 1);
         }
-        let dt = self
-            .read_u32(clock, i, od::DEVICE_TYPE, 0)
-            .map_err(|e| self.node_alarm(i, 2003, format!("reading the device type 0x1000 failed: {e}")))?;
-        if dt & 0xFFFF != 402 {
-            return Err(self.node_alarm(
-                i,
-                2002,
-                format!("device type 0x1000 = 0x{dt:08X} is not a CiA 402 drive (low word must be 402 = 0x0192); check the node id"),
-            ));
-        }
-        let mut info = NodeInfo { node, device_type: dt, ..NodeInfo::default() };
-        info.vendor = self
-            .read_u32(clock, i, od::IDENTITY, 1)
-            .map_err(|e| self.node_alarm(i, 2003, format!("reading the vendor id 0x1018:01 failed: {e}")))?;
-        // Product, revision, serial are optional in CiA 301: absent ones stay 0.
-        info.product = self.read_u32(clock, i, od::IDENTITY, 2).unwrap_or(0);
-        info.revision = self.read_u32(clock, i, od::IDENTITY, 3).unwrap_or(0);
-        info.serial = self.read_u32(clock, i, od::IDENTITY, 4).unwrap_or(0);
-        if let Ok(name) = self.sdo(clock, i, Sdo::Up(od::DEVICE_NAME, 0)) {
-            info.name = String::from_utf8_lossy(&name).trim_end_matches('\0').trim().to_string();
-        }
-        tracing::info!(
-            node,
-            axis = %self.nodes[i].spec.axis,
-            "CiA 402 drive \"{}\" vendor 0x{:08X} product 0x{:08X} rev 0x{:08X} serial {}",
-            info.name, info.vendor, info.product, info.revision, info.serial
-        );
-        self.nodes[i].info = info;
+        Ok(())
+    }
 
+    /// NMT start, then run the cycle (SYNC, nothing enabled) until every drive shows the
+    /// mode asked for in 0x6061.
+    fn start_and_confirm_modes(&mut self, clock: &mut dyn Clock) -> Result<(), Alarm> {
+        self.send(&NmtCommand::Start.frame(0))?;
+        // States heard before the start are stale; the next heartbeat tells.
+        for n in &mut self.nodes {
+            n.nmt = None;
+        }
+        self.settle(clock, 1);
+        let all = self.by_node_id();
+        self.wait_modes(clock, &all)
+    }
+
+    /// Configure node `i` for the cycle: its EDS, identity, the checks that must pass before
+    /// anything moves (SYNC producer, mode, scaling), the cycle, the mode, the limits, the
+    /// PDOs and error control. Each step in its own function (other start-up writes slot in
+    /// as further steps).
+    fn configure_node(&mut self, clock: &mut dyn Clock, i: usize) -> Result<(), Alarm> {
+        self.check_node_eds(i)?;
+        self.identify_node(clock, i)?;
+        self.check_not_sync_producer(clock, i)?;
+        let want = mode::CYCLIC_SYNC_POSITION;
+        self.check_supported_mode(clock, i, want)?;
+        self.check_node_scaling(clock, i)?;
+        self.write_cycle_period(clock, i)?;
+        self.nodes[i].mode.want = want;
+        self.nodes[i].mode.confirmed = false;
+        self.write(clock, i, od::MODES_OF_OPERATION, 0, &[want as u8])?;
         let spec = self.nodes[i].spec.clone();
-        let cycle_us = (self.cycle_ms * 1000.0).round() as u32;
-        self.write(clock, i, od::COMM_CYCLE_PERIOD, 0, &cycle_us.to_le_bytes())?;
-        let (val, idx) = interpolation_period(self.cycle_ms);
-        self.write(clock, i, od::INTERPOLATION_PERIOD, 1, &[val])?;
-        self.write(clock, i, od::INTERPOLATION_PERIOD, 2, &[idx as u8])?;
-        self.write(clock, i, od::MODES_OF_OPERATION, 0, &[mode::CYCLIC_SYNC_POSITION as u8])?;
         let win = (spec.following_error * spec.counts_per_unit).round().clamp(1.0, u32::MAX as f64) as u32;
         self.write(clock, i, od::FOLLOWING_ERROR_WINDOW, 0, &win.to_le_bytes())?;
         // Quick stop: decelerate on the quick-stop ramp, then Switch On Disabled.
@@ -602,27 +725,180 @@ impl<B: CanBus> CanOpenMaster<B> {
             self.write(clock, i, od::SOFTWARE_LIMIT, 1, &lo.to_le_bytes())?;
             self.write(clock, i, od::SOFTWARE_LIMIT, 2, &hi.to_le_bytes())?;
         }
-        // PDO mapping in the order real drives demand: invalidate, zero count, entries,
-        // count, transmission type, validate.
+        self.map_cyclic_pdos(clock, i)?;
+        self.configure_error_control(clock, i)
+    }
+
+    /// The drive's own data sheet must allow what start-up writes (before anything is written).
+    fn check_node_eds(&mut self, i: usize) -> Result<(), Alarm> {
+        let node = self.nodes[i].spec.node;
+        let Some(path) = self.nodes[i].spec.eds.clone() else { return Ok(()) };
+        let eds = cncgw_bus::canopen::eds::Eds::load(std::path::Path::new(&path))
+            .map_err(|e| self.node_alarm(i, 2004, format!("EDS: {e} (axes.{}.eds; a relative path is from the working directory)", self.nodes[i].spec.axis)))?;
+        let bad = self.check_eds(node, &eds);
+        if !bad.is_empty() {
+            return Err(self.node_alarm(
+                i,
+                2004,
+                format!("the configuration does not fit the drive's EDS ({} problem(s)): {}", bad.len(), bad.join("; ")),
+            ));
+        }
+        Ok(())
+    }
+
+    /// Device type (must be CiA 402), identity and name of node `i`.
+    fn identify_node(&mut self, clock: &mut dyn Clock, i: usize) -> Result<(), Alarm> {
+        let node = self.nodes[i].spec.node;
+        let dt = self
+            .read_u32(clock, i, od::DEVICE_TYPE, 0)
+            .map_err(|e| self.node_alarm(i, 2003, format!("reading the device type 0x1000 failed: {e}")))?;
+        if dt & 0xFFFF != 402 {
+            return Err(self.node_alarm(
+                i,
+                2002,
+                format!("device type 0x1000 = 0x{dt:08X} is not a CiA 402 drive (low word must be 402 = 0x0192); check the node id"),
+            ));
+        }
+        let mut info = NodeInfo { node, device_type: dt, ..NodeInfo::default() };
+        // The vendor id is mandatory in CiA 301, but only logged here: a drive that will not
+        // give it is not refused for that.
+        info.vendor = match self.read_u32(clock, i, od::IDENTITY, 1) {
+            Ok(v) => Some(v),
+            Err(e) => {
+                tracing::warn!(node, "the vendor id 0x1018:01 is unreadable ({e})");
+                None
+            }
+        };
+        // Product, revision, serial are optional in CiA 301.
+        info.product = self.read_u32(clock, i, od::IDENTITY, 2).ok();
+        info.revision = self.read_u32(clock, i, od::IDENTITY, 3).ok();
+        info.serial = self.read_u32(clock, i, od::IDENTITY, 4).ok();
+        if let Ok(name) = self.sdo(clock, i, Sdo::Up(od::DEVICE_NAME, 0)) {
+            info.name = String::from_utf8_lossy(&name).trim_end_matches('\0').trim().to_string();
+        }
+        tracing::info!(
+            node,
+            axis = %self.nodes[i].spec.axis,
+            "CiA 402 drive \"{}\" vendor {} product {} rev {} serial {}",
+            info.name,
+            hex_or_unreadable(info.vendor),
+            hex_or_unreadable(info.product),
+            hex_or_unreadable(info.revision),
+            info.serial.map_or("unreadable".into(), |s| s.to_string())
+        );
+        self.nodes[i].info = info;
+        Ok(())
+    }
+
+    /// 0x1006 (optional for a SYNC consumer, CiA 301) and 0x60C2 (required in CSP).
+    fn write_cycle_period(&mut self, clock: &mut dyn Clock, i: usize) -> Result<(), Alarm> {
+        let cycle_us = (self.cycle_ms * 1000.0).round() as u32;
+        match self.try_write(clock, i, od::COMM_CYCLE_PERIOD, 0, &cycle_us.to_le_bytes()) {
+            Ok(()) => {}
+            Err(SdoError::Abort { code }) if explain::is_absent(code) => {
+                tracing::info!(node = self.nodes[i].spec.node, "no 0x1006 (communication cycle period): the drive takes the period from 0x60C2 and the SYNCs");
+            }
+            Err(e) => return Err(self.write_alarm(i, od::COMM_CYCLE_PERIOD, 0, &cycle_us.to_le_bytes(), &e)),
+        }
+        let (val, idx) = interpolation_period(self.cycle_ms);
+        self.write(clock, i, od::INTERPOLATION_PERIOD, 1, &[val])?;
+        self.write(clock, i, od::INTERPOLATION_PERIOD, 2, &[idx as u8])
+    }
+
+    /// RPDO1 = controlword + target position; TPDO1 = statusword + position actual + mode
+    /// display (or, where the drive cannot map 0x6061, without it: the mode is then polled).
+    fn map_cyclic_pdos(&mut self, clock: &mut dyn Clock, i: usize) -> Result<(), Alarm> {
+        let spec = self.nodes[i].spec.clone();
         let rpdo = [MapEntry::new(od::CONTROLWORD, 0, 16), MapEntry::new(od::TARGET_POSITION, 0, 32)];
-        let tpdo = [MapEntry::new(od::STATUSWORD, 0, 16), MapEntry::new(od::POSITION_ACTUAL, 0, 32)];
-        let (rc, tc, rt, tt) = (spec.rpdo_cob, spec.tpdo_cob, spec.rpdo_tx, spec.tpdo_tx);
-        self.map_pdo(clock, i, od::RPDO_COMM, od::RPDO_MAP, rc, rt, &rpdo)?;
-        self.map_pdo(clock, i, od::TPDO_COMM, od::TPDO_MAP, tc, tt, &tpdo)?;
-        if self.hb_ms > 0 {
-            self.write(clock, i, od::PRODUCER_HEARTBEAT, 0, &self.hb_ms.to_le_bytes())?;
+        let tpdo = [MapEntry::new(od::STATUSWORD, 0, 16), MapEntry::new(od::POSITION_ACTUAL, 0, 32), MapEntry::new(od::MODES_DISPLAY, 0, 8)];
+        self.map_pdo(clock, i, od::RPDO_COMM, od::RPDO_MAP, spec.rpdo_cob, spec.rpdo_tx, &rpdo)?;
+        let refused_third = |e: &(u16, u8, [u8; 4], SdoError)| {
+            e.0 == od::TPDO_MAP
+                && matches!(e.1, 0 | 3)
+                && matches!(e.3, SdoError::Abort { code } if matches!(code, abort::NOT_MAPPABLE | abort::PDO_TOO_LONG | abort::PARAM_INCOMPATIBLE | abort::INVALID_VALUE | abort::NO_SUBINDEX))
+        };
+        let in_pdo = match self.try_map_pdo(clock, i, od::TPDO_COMM, od::TPDO_MAP, spec.tpdo_cob, spec.tpdo_tx, &tpdo) {
+            Ok(()) => true,
+            Err(e) if refused_third(&e) => {
+                tracing::warn!(node = spec.node, "the drive cannot map 0x6061 (mode display) into TPDO1 ({}): its mode is read by SDO every {} ms instead", e.3, mode_track::POLL_EVERY_NS / 1_000_000);
+                self.map_pdo(clock, i, od::TPDO_COMM, od::TPDO_MAP, spec.tpdo_cob, spec.tpdo_tx, &tpdo[..2])?;
+                false
+            }
+            Err((ix, sub, data, e)) => return Err(self.write_alarm(i, ix, sub, &data, &e)),
+        };
+        let n = &mut self.nodes[i];
+        n.mode.in_pdo = in_pdo;
+        n.tpdo_len = Some(if in_pdo { TPDO1_LEN } else { TPDO1_LEN - 1 } as u8);
+        n.bad_len = 0;
+        Ok(())
+    }
+
+    /// Error control both ways: the drive's heartbeat (0x1017) and ours consumed by it
+    /// (0x1016, 3 periods) with 0x6007 = 1, so that it faults and stops by itself if the
+    /// controller dies. A drive without 0x1016 is guarded instead (`guard_node`).
+    fn configure_error_control(&mut self, clock: &mut dyn Clock, i: usize) -> Result<(), Alarm> {
+        if self.hb_ms == 0 {
+            return Ok(());
+        }
+        let absent = |r: &Result<(), SdoError>| matches!(r, Err(SdoError::Abort { code }) if explain::is_absent(*code));
+        let hb = self.hb_ms.to_le_bytes();
+        let producer = self.try_write(clock, i, od::PRODUCER_HEARTBEAT, 0, &hb);
+        if let (Err(e), false) = (&producer, absent(&producer)) {
+            return Err(self.write_alarm(i, od::PRODUCER_HEARTBEAT, 0, &hb, e));
+        }
+        if producer.is_ok() {
             // Monitoring of this producer starts now: its first heartbeat is one period away.
             self.nodes[i].last_hb_ns = clock.now_ns().max(1);
-            // The drive stops by itself when our heartbeat is missing for 3 periods
-            // (0x1016 consumer + 0x6007 abort-connection option 1 = fault).
-            let consumer = ((MASTER_NODE_ID as u32) << 16) | (self.hb_ms as u32 * 3).min(0xFFFF);
-            if !self.hb_started {
-                self.hb_started = true;
-                self.next_hb_ns = clock.now_ns();
-            }
-            self.write(clock, i, od::CONSUMER_HEARTBEAT, 1, &consumer.to_le_bytes())?;
-            self.write(clock, i, od::ABORT_CONNECTION, 0, &1i16.to_le_bytes())?;
         }
+        if !self.hb_started {
+            self.hb_started = true;
+            self.next_hb_ns = clock.now_ns();
+        }
+        let consumer = (((MASTER_NODE_ID as u32) << 16) | (self.hb_ms as u32 * 3).min(0xFFFF)).to_le_bytes();
+        let consumed = self.try_write(clock, i, od::CONSUMER_HEARTBEAT, 1, &consumer);
+        if let (Err(e), false) = (&consumed, absent(&consumed)) {
+            return Err(self.write_alarm(i, od::CONSUMER_HEARTBEAT, 1, &consumer, e));
+        }
+        if producer.is_err() || consumed.is_err() {
+            self.guard_node(clock, i, producer.is_ok())?;
+        }
+        let opt = 1i16.to_le_bytes();
+        match self.try_write(clock, i, od::ABORT_CONNECTION, 0, &opt) {
+            Ok(()) => Ok(()),
+            Err(SdoError::Abort { code }) if explain::is_absent(code) => {
+                tracing::warn!(node = self.nodes[i].spec.node, "no 0x6007 (abort connection option): on a lost master the drive does what its manual says");
+                Ok(())
+            }
+            Err(e) => Err(self.write_alarm(i, od::ABORT_CONNECTION, 0, &opt, &e)),
+        }
+    }
+
+    /// Node guarding for a drive without a heartbeat consumer (or producer): guard time
+    /// 0x100C = `heartbeat_ms`, life time factor 0x100D = 3, requests from the master every
+    /// guard time. Without guarding either (or over a transport without remote frames) a
+    /// warning: the drive will not stop by itself if the controller dies.
+    fn guard_node(&mut self, clock: &mut dyn Clock, i: usize, heartbeat_set: bool) -> Result<(), Alarm> {
+        let (node, axis) = (self.nodes[i].spec.node, self.nodes[i].spec.axis.clone());
+        let has_guarding = self.read_u32(clock, i, od::GUARD_TIME, 0).is_ok() && self.read_u32(clock, i, od::LIFE_TIME_FACTOR, 0).is_ok();
+        if !has_guarding || !self.bus.remote_frames() {
+            let why = if has_guarding { format!("{} carries no remote frames for node guarding", self.bus.name()) } else { "nor node guarding (0x100C/0x100D)".to_string() };
+            tracing::warn!(node, axis = %axis, "WARNING: the drive has no heartbeat consumer (0x1016) {why}: it will not stop by itself if this controller dies; use its own watchdog (SYNC or PDO timeout) if it has one");
+            return Ok(());
+        }
+        if heartbeat_set {
+            // Heartbeat and guarding exclude each other (CiA 301): 0x1017 back to 0.
+            self.write(clock, i, od::PRODUCER_HEARTBEAT, 0, &0u16.to_le_bytes())?;
+        }
+        self.write(clock, i, od::GUARD_TIME, 0, &self.hb_ms.to_le_bytes())?;
+        self.write(clock, i, od::LIFE_TIME_FACTOR, 0, &[3])?;
+        self.start_guarding(i, self.hb_ms, clock.now_ns());
+        tracing::warn!(
+            node,
+            axis = %axis,
+            "the drive has no heartbeat consumer (0x1016): node guarding instead (0x100C = {} ms, 0x100D = 3); it stops by itself {} ms after this controller stops guarding it",
+            self.hb_ms,
+            self.hb_ms as u32 * 3
+        );
         Ok(())
     }
 
@@ -637,9 +913,9 @@ impl<B: CanBus> CanOpenMaster<B> {
             (od::DISABLE_OPERATION_OPTION, 1, "disable operation option 0x605C"),
             (od::FAULT_REACTION_OPTION, 2, "fault reaction option 0x605E"),
         ] {
-            match self.sdo(clock, i, Sdo::Down(ix, 0, &v.to_le_bytes())) {
-                Ok(_) => {}
-                Err(SdoError::Abort { code }) if code == sdo_abort::NO_OBJECT || code == sdo_abort::NO_SUBINDEX => tracing::warn!(
+            match self.try_write(clock, i, ix, 0, &v.to_le_bytes()) {
+                Ok(()) => {}
+                Err(SdoError::Abort { code }) if code == abort::NO_OBJECT || code == abort::NO_SUBINDEX => tracing::warn!(
                     node = self.nodes[i].spec.node,
                     "the drive has no {what}: how it stops when switched off or faulted is its own default"
                 ),
@@ -649,6 +925,7 @@ impl<B: CanBus> CanOpenMaster<B> {
         Ok(())
     }
 
+    #[allow(clippy::too_many_arguments)]
     fn map_pdo(
         &mut self,
         clock: &mut dyn Clock,
@@ -659,17 +936,40 @@ impl<B: CanBus> CanOpenMaster<B> {
         tx_type: u8,
         entries: &[MapEntry],
     ) -> Result<(), Alarm> {
+        self.try_map_pdo(clock, i, comm, map, cob_id, tx_type, entries).map_err(|(ix, sub, data, e)| self.write_alarm(i, ix, sub, &data, &e))
+    }
+
+    /// Map a PDO in the order real drives demand: invalidate, zero count, entries, count,
+    /// transmission type, validate. Err: the write that failed (index, sub, value) and why.
+    #[allow(clippy::too_many_arguments)]
+    fn try_map_pdo(
+        &mut self,
+        clock: &mut dyn Clock,
+        i: usize,
+        comm: u16,
+        map: u16,
+        cob_id: u16,
+        tx_type: u8,
+        entries: &[MapEntry],
+    ) -> Result<(), (u16, u8, [u8; 4], SdoError)> {
         if cncgw_bus::canopen::pdo::mapped_len(entries).is_none() {
-            return Err(self.node_alarm(i, 2003, "PDO mapping longer than 8 bytes"));
+            return Err((map, 0, [0; 4], SdoError::Protocol("PDO mapping longer than 8 bytes")));
         }
-        self.write(clock, i, comm, 1, &(0x8000_0000u32 | cob_id as u32).to_le_bytes())?;
-        self.write(clock, i, map, 0, &[0])?;
+        let mut w = |m: &mut Self, ix: u16, sub: u8, data: &[u8]| {
+            m.try_write(clock, i, ix, sub, data).map_err(|e| {
+                let mut d = [0u8; 4];
+                d[..data.len().min(4)].copy_from_slice(&data[..data.len().min(4)]);
+                (ix, sub, d, e)
+            })
+        };
+        w(self, comm, 1, &(0x8000_0000u32 | cob_id as u32).to_le_bytes())?;
+        w(self, map, 0, &[0])?;
         for (k, e) in entries.iter().enumerate() {
-            self.write(clock, i, map, k as u8 + 1, &e.encode().to_le_bytes())?;
+            w(self, map, k as u8 + 1, &e.encode().to_le_bytes())?;
         }
-        self.write(clock, i, map, 0, &[entries.len() as u8])?;
-        self.write(clock, i, comm, 2, &[tx_type])?; // 1: synchronous, every SYNC
-        self.write(clock, i, comm, 1, &(cob_id as u32).to_le_bytes())
+        w(self, map, 0, &[entries.len() as u8])?;
+        w(self, comm, 2, &[tx_type])?; // 1: synchronous, every SYNC
+        w(self, comm, 1, &(cob_id as u32).to_le_bytes())
     }
 
     /// Node `i` faulted. Isolating (`isolate_faults`, the first fault): only it gets quick
@@ -801,7 +1101,7 @@ impl<B: CanBus> CanOpenMaster<B> {
         let n = &mut self.nodes[i];
         n.controlword = cw::ENABLE_OPERATION_CMD;
         n.target = hold.unwrap_or(n.unwrapped);
-        self.write(clock, i, od::MODES_OF_OPERATION, 0, &[mode::CYCLIC_SYNC_POSITION as u8])?;
+        self.change_mode(clock, i, mode::CYCLIC_SYNC_POSITION)?;
         // One cycle so the target the drive latches is the held one.
         self.run_cycles(clock, self.cycle_ns, |_| Ok(true))?;
         if let Some(t) = hold {
@@ -829,7 +1129,7 @@ impl<B: CanBus> CanOpenMaster<B> {
         self.write(clock, i, 0x6083, 0, &a.to_le_bytes())?;
         self.write(clock, i, 0x6084, 0, &a.to_le_bytes())?;
         self.ensure_enabled(clock)?;
-        self.write(clock, i, od::MODES_OF_OPERATION, 0, &[mode::PROFILE_POSITION as u8])?;
+        self.change_mode(clock, i, mode::PROFILE_POSITION)?;
         let dist = (t - self.nodes[i].unwrapped as f64).abs();
         let est_s = dist / v as f64 + 2.0 * v as f64 / a as f64;
         let max_ns = ((2.0 * est_s + 2.0) * 1e9) as u64;
@@ -894,7 +1194,7 @@ impl<B: CanBus> CanOpenMaster<B> {
         self.write(clock, i, od::HOMING_SPEEDS, 2, &slow.to_le_bytes())?;
         self.write(clock, i, od::HOMING_ACCEL, 0, &a.to_le_bytes())?;
         self.ensure_enabled(clock)?;
-        self.write(clock, i, od::MODES_OF_OPERATION, 0, &[mode::HOMING as u8])?;
+        self.change_mode(clock, i, mode::HOMING)?;
         self.nodes[i].controlword = cw::ENABLE_OPERATION_CMD | cw::OMS4;
         // Bits 13/12/10 of a fresh statusword (see profile_move).
         let mut k = 0;
@@ -938,7 +1238,7 @@ impl<B: CanBus> CanOpenMaster<B> {
         let (rc, rt) = (self.nodes[i].spec.rpdo_cob, self.nodes[i].spec.rpdo_tx);
         self.map_pdo(clock, i, od::RPDO_COMM, od::RPDO_MAP, rc, rt, &rpdo)?;
         self.nodes[i].csv = true;
-        self.write(clock, i, od::MODES_OF_OPERATION, 0, &[mode::CYCLIC_SYNC_VELOCITY as u8])
+        self.change_mode(clock, i, mode::CYCLIC_SYNC_VELOCITY)
     }
 
     /// Target velocity of a node in `velocity_mode`, machine units/s (degrees/s for a
@@ -977,12 +1277,14 @@ impl<B: CanBus> CanOpenMaster<B> {
                 return Err(self.node_alarm(i, 2010, format!("did not stop within {timeout_ms} ms for the change to position mode")));
             }
         }
+        // RPDO1 back to 0x607A before the mode: a drive in CSP must never latch a stale
+        // 0x607A (the one from before the speed mode) for lack of a fresh one.
         self.nodes[i].target = self.nodes[i].unwrapped;
-        self.write(clock, i, od::MODES_OF_OPERATION, 0, &[mode::CYCLIC_SYNC_POSITION as u8])?;
         let rpdo = [MapEntry::new(od::CONTROLWORD, 0, 16), MapEntry::new(od::TARGET_POSITION, 0, 32)];
         let (rc, rt) = (self.nodes[i].spec.rpdo_cob, self.nodes[i].spec.rpdo_tx);
         self.map_pdo(clock, i, od::RPDO_COMM, od::RPDO_MAP, rc, rt, &rpdo)?;
         self.nodes[i].csv = false;
+        self.change_mode(clock, i, mode::CYCLIC_SYNC_POSITION)?;
         self.nodes[i].target = self.nodes[i].unwrapped;
         Ok(())
     }
@@ -994,7 +1296,6 @@ impl<B: CanBus> CanOpenMaster<B> {
     fn startup_objects(&self, i: usize) -> (Vec<ObjWrite>, Vec<ObjMap>) {
         let spec = &self.nodes[i].spec;
         let mut w = vec![
-            (od::COMM_CYCLE_PERIOD, 0, 4),
             (od::INTERPOLATION_PERIOD, 1, 1),
             (od::INTERPOLATION_PERIOD, 2, 1),
             (od::MODES_OF_OPERATION, 0, 1),
@@ -1007,9 +1308,6 @@ impl<B: CanBus> CanOpenMaster<B> {
         for (comm, map) in [(od::RPDO_COMM, od::RPDO_MAP), (od::TPDO_COMM, od::TPDO_MAP)] {
             w.extend([(comm, 1, 4), (comm, 2, 1), (map, 0, 1), (map, 1, 4), (map, 2, 4)]);
         }
-        if self.hb_ms > 0 {
-            w.extend([(od::PRODUCER_HEARTBEAT, 0, 2), (od::CONSUMER_HEARTBEAT, 1, 4), (od::ABORT_CONNECTION, 0, 2)]);
-        }
         let maps = vec![
             (od::CONTROLWORD, 0, 16, true),
             (od::TARGET_POSITION, 0, 32, true),
@@ -1017,6 +1315,23 @@ impl<B: CanBus> CanOpenMaster<B> {
             (od::POSITION_ACTUAL, 0, 32, false),
         ];
         (w, maps)
+    }
+
+    /// Objects start-up writes where the drive has them (a fallback where it does not):
+    /// 0x1006, error control (heartbeat, or node guarding), 0x6007. Checked against an
+    /// EDS only where the EDS lists them.
+    fn optional_startup_objects(&self) -> Vec<ObjWrite> {
+        let mut w = vec![(od::COMM_CYCLE_PERIOD, 0, 4), (od::SHUTDOWN_OPTION, 0, 2), (od::DISABLE_OPERATION_OPTION, 0, 2), (od::FAULT_REACTION_OPTION, 0, 2)];
+        if self.hb_ms > 0 {
+            w.extend([
+                (od::PRODUCER_HEARTBEAT, 0, 2),
+                (od::CONSUMER_HEARTBEAT, 1, 4),
+                (od::GUARD_TIME, 0, 2),
+                (od::LIFE_TIME_FACTOR, 0, 1),
+                (od::ABORT_CONNECTION, 0, 2),
+            ]);
+        }
+        w
     }
 
     /// Check what start-up writes to and maps on `node` against its EDS: every object
@@ -1028,6 +1343,8 @@ impl<B: CanBus> CanOpenMaster<B> {
         };
         let (writes, maps) = self.startup_objects(i);
         let mut out: Vec<String> = writes.iter().filter_map(|&(ix, sub, len)| eds.check_write(ix, sub, len).err()).collect();
+        let optional = self.optional_startup_objects();
+        out.extend(optional.iter().filter(|&&(ix, sub, _)| eds.get(ix, sub).is_some()).filter_map(|&(ix, sub, len)| eds.check_write(ix, sub, len).err()));
         out.extend(maps.iter().filter_map(|&(ix, sub, bits, rpdo)| eds.check_map(ix, sub, bits, rpdo).err()));
         for (ix, sub) in [(od::DEVICE_TYPE, 0u8), (od::IDENTITY, 1)] {
             if eds.get(ix, sub).is_none() {
@@ -1118,34 +1435,33 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
             self.cycle_ms,
             self.bitrate
         );
+        // Nothing is sent before the bus was heard free of another master.
+        self.found = self.check_bus_free(clock)?;
         // Reset communication so every node reports a boot-up and starts from its default
-        // communication parameters; then wait for all of them.
-        self.send(&NmtCommand::ResetCommunication.frame(0))?;
-        let deadline = clock.now_ns() + self.boot_timeout_ms as u64 * 1_000_000;
-        while !self.nodes.iter().all(|n| n.booted) {
-            if clock.now_ns() >= deadline {
-                let i = self.nodes.iter().position(|n| !n.booted).unwrap_or(0);
-                return Err(self.node_alarm(
-                    i,
-                    2001,
-                    format!(
-                        "no boot-up message within {} ms after NMT reset communication; check power, wiring, bitrate and the node id",
-                        self.boot_timeout_ms
-                    ),
-                ));
+        // communication parameters; then wait for all of them. Pre-operational first: a
+        // reset straight from operational is a lost connection to some drives (0x6007).
+        self.send(&NmtCommand::EnterPreOperational.frame(0))?;
+        self.nmt_command(0, NmtCommand::ResetCommunication)?;
+        self.undo = Some(Vec::new());
+        let r = self.wait_all_booted(clock).and_then(|_| {
+            for i in self.by_node_id() {
+                self.configure_node(clock, i)?;
             }
-            self.settle(clock, 1);
+            self.start_and_confirm_modes(clock)
+        });
+        if let Err(a) = r {
+            let found = std::mem::take(&mut self.found);
+            self.restore(clock, &found);
+            return Err(a);
         }
-        for i in 0..self.nodes.len() {
-            self.configure_node(clock, i)?;
-        }
-        self.send(&NmtCommand::Start.frame(0))?;
-        // States heard before the start are stale; the next heartbeat tells.
-        for n in &mut self.nodes {
-            n.nmt = None;
-        }
-        self.settle(clock, 1);
         Ok(())
+    }
+
+    fn abandon_startup(&mut self, clock: &mut dyn Clock) {
+        if self.undo.is_some() {
+            let found = std::mem::take(&mut self.found);
+            self.restore(clock, &found);
+        }
     }
 
     fn receive(&mut self, now_ns: u64) -> Result<(), Alarm> {
@@ -1171,6 +1487,7 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
         if let Some(a) = self.step_diag(now_ns)? {
             return Err(a);
         }
+        self.poll_modes(now_ns)?;
         for i in 0..self.nodes.len() {
             if self.running && self.faulted == Some(i) {
                 // Isolated in its fault reaction: already reported.
@@ -1195,6 +1512,9 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
                     }
                     continue;
                 }
+            }
+            if let Some(a) = self.check_tpdo_and_mode(i) {
+                return Err(a);
             }
             let n = &self.nodes[i];
             if self.running && matches!(n.nmt, Some(s) if s != NmtState::Operational) {
@@ -1253,7 +1573,15 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
     fn transmit(&mut self, now_ns: u64) -> Result<(), Alarm> {
         for i in 0..self.nodes.len() {
             let n = &self.nodes[i];
-            let t = if n.csv { n.target_vel.to_le_bytes() } else { self.target_raw(i).to_le_bytes() };
+            // A drive that does not show the mode asked for (changing modes, or not yet
+            // enabled) gets no set-point it could take: the position it is at, speed 0.
+            let hold = !n.mode.ok() || (!n.enabled && n.have_fb);
+            let t = match (n.csv, hold) {
+                (true, true) => 0i32.to_le_bytes(),
+                (true, false) => n.target_vel.to_le_bytes(),
+                (false, true) => (n.unwrapped as i32).to_le_bytes(),
+                (false, false) => self.target_raw(i).to_le_bytes(),
+            };
             let c = n.controlword.to_le_bytes();
             let f = CanFrame::new(n.spec.rpdo_cob, &[c[0], c[1], t[0], t[1], t[2], t[3]]);
             self.send(&f)?;
@@ -1262,7 +1590,7 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
         for n in &mut self.nodes {
             n.syncs_unanswered = n.syncs_unanswered.saturating_add(1);
         }
-        self.tick_heartbeat(now_ns)
+        self.tick_life(now_ns)
     }
 
     fn enable_step(&mut self) -> Result<bool, Alarm> {
@@ -1271,7 +1599,9 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
         let mut all = true;
         for i in 0..self.nodes.len() {
             let n = &mut self.nodes[i];
-            if !n.have_fb {
+            if !n.have_fb || !n.mode.ok() {
+                // Never enabled before it shows the mode asked for (start-up waited for it;
+                // this holds it if the mode went away since).
                 all = false;
                 continue;
             }
@@ -1308,13 +1638,23 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
             self.running = true;
             self.diag = None;
             self.faulted = None;
+            // Start-up is over: nothing to leave as found any more.
+            self.undo = None;
             for n in &mut self.nodes {
                 n.last_emcy = None;
             }
         } else if self.enable_cycles > limit {
-            let i = self.nodes.iter().position(|n| !n.enabled).unwrap_or(0);
-            let st = State::from_statusword(self.nodes[i].status);
-            return Err(self.node_alarm(i, 2013, format!("did not reach Operation Enabled within 5 s (state {})", st.name())));
+            let i = self.by_node_id().into_iter().find(|&i| !self.nodes[i].enabled).unwrap_or(0);
+            let n = &self.nodes[i];
+            let st = State::from_statusword(n.status);
+            let why = if !n.mode.ok() {
+                format!("; it does not show the mode asked for ({} asked, 0x6061 = {})", explain::mode_words(n.mode.want), n.mode.shown.map_or("unknown".into(), explain::mode_words))
+            } else if !n.have_fb {
+                "; no position feedback (TPDO1) was received".to_string()
+            } else {
+                String::new()
+            };
+            return Err(self.node_alarm(i, 2013, format!("did not reach Operation Enabled within 5 s (state {}){why}", st.name())));
         }
         Ok(all)
     }
@@ -1342,6 +1682,7 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
         for i in 0..self.nodes.len() {
             let _ = self.sdo(clock, i, Sdo::Down(od::CONSUMER_HEARTBEAT, 1, &0u32.to_le_bytes()));
         }
+        self.stop_guarding(clock);
         let _ = self.send(&NmtCommand::EnterPreOperational.frame(0));
         self.settle(clock, 1);
     }
@@ -1366,6 +1707,10 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
     fn counts_per_unit(&self, axis: usize) -> f64 {
         self.nodes[axis].spec.counts_per_unit
     }
+
+    fn following_window(&self, axis: usize) -> Option<f64> {
+        Some(self.nodes[axis].spec.following_error).filter(|w| w.is_finite() && *w > 0.0)
+    }
 }
 
 #[cfg(test)]
@@ -1377,7 +1722,8 @@ mod tests {
         let bus = cncgw_bus::transport::inproc::InprocBus::new();
         let mut cfg = MachineConfig::embedded();
         let m = CanOpenMaster::new(bus.endpoint(), &cfg);
-        assert!((m.bus_load(1_000_000) - 0.3725).abs() < 1e-3);
+        // 3 × (6-byte RPDO + 7-byte TPDO) + SYNC = 775 bits every 2 ms.
+        assert!((m.bus_load(1_000_000) - 0.3875).abs() < 1e-3);
         cfg.machine.cycle_ms = 0.5;
         let m = CanOpenMaster::new(bus.endpoint(), &cfg);
         let e = m.check_bus_load(1_000_000).unwrap_err();

@@ -54,6 +54,10 @@ pub struct SdoClient {
     /// Block transfer: both sides compute the CRC; announced upload size.
     crc: bool,
     size: Option<u32>,
+    /// `start_upload_small`: an expedited answer is kept here, not in a `Vec` (the cycle
+    /// polls with it and must not allocate).
+    want_small: bool,
+    small: Option<u32>,
 }
 
 impl SdoClient {
@@ -69,6 +73,8 @@ impl SdoClient {
             result: None,
             crc: false,
             size: None,
+            want_small: false,
+            small: None,
         }
     }
 
@@ -117,7 +123,17 @@ impl SdoClient {
         BlockRequest::InitiateDownload { index, sub, crc: true, size: Some(data.len() as u32) }.encode(self.node)
     }
 
+    /// `start_upload` for an object of at most 4 bytes whose answer is taken with
+    /// `take_expedited`: no allocation for an expedited answer.
+    pub fn start_upload_small(&mut self, index: u16, sub: u8, now_ns: u64) -> CanFrame {
+        let f = self.start_upload(index, sub, now_ns);
+        self.want_small = true;
+        f
+    }
+
     fn begin(&mut self, index: u16, sub: u8, now_ns: u64) {
+        self.want_small = false;
+        self.small = None;
         self.index = index;
         self.sub = sub;
         self.buf.clear();
@@ -175,7 +191,14 @@ impl SdoClient {
                     self.finish(Err(SdoError::Protocol("response for another object")));
                     return Some(self.abort_frame(abort::GENERAL));
                 }
-                if expedited {
+                if expedited && self.want_small {
+                    let n = size.unwrap_or(4).min(4) as usize;
+                    let mut b = [0u8; 4];
+                    b[..n].copy_from_slice(&data[..n]);
+                    self.small = Some(u32::from_le_bytes(b));
+                    self.phase = Phase::Done;
+                    None
+                } else if expedited {
                     let n = size.unwrap_or(4).min(4) as usize;
                     self.finish(Ok(data[..n].to_vec()));
                     None
@@ -386,6 +409,23 @@ impl SdoClient {
         None
     }
 
+    /// The finished result of a `start_upload_small` (little-endian, zero-extended), taken
+    /// once. Allocation-free for an expedited answer.
+    pub fn take_expedited(&mut self) -> Option<Result<u32, SdoError>> {
+        if let Some(v) = self.small.take() {
+            self.phase = Phase::Idle;
+            return Some(Ok(v));
+        }
+        self.take_result().map(|r| {
+            r.map(|d| {
+                let mut b = [0u8; 4];
+                let n = d.len().min(4);
+                b[..n].copy_from_slice(&d[..n]);
+                u32::from_le_bytes(b)
+            })
+        })
+    }
+
     /// The finished transfer's result (taken once).
     pub fn take_result(&mut self) -> Option<Result<Vec<u8>, SdoError>> {
         let r = self.result.take();
@@ -399,6 +439,20 @@ impl SdoClient {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn small_expedited_upload_without_a_vec() {
+        let mut c = SdoClient::new(3, 100);
+        c.start_upload_small(0x6061, 0, 0);
+        let resp = CanFrame::new(0x583, &[0x4F, 0x61, 0x60, 0x00, 0x08, 0, 0, 0]);
+        assert_eq!(c.on_frame(&resp, 10), vec![]);
+        assert_eq!(c.take_expedited(), Some(Ok(8)));
+        assert!(!c.busy());
+        assert_eq!(c.take_expedited(), None);
+        c.start_upload_small(0x6061, 0, 20);
+        assert_eq!(c.poll(200_000_000).map(|f| f.data[0]), Some(0x80));
+        assert!(matches!(c.take_expedited(), Some(Err(SdoError::Timeout { .. }))));
+    }
 
     #[test]
     fn expedited_upload() {
