@@ -553,9 +553,9 @@ impl SimConfig {
             set!(pr_map);
             if d.modbus_link.is_some() {
                 c.modbus_link = d.modbus_link.clone();
-                if let Some(n) = d.late_sync_extrapolation {
-                    c.late_sync_extrapolation = n;
-                }
+            }
+            if let Some(n) = d.late_sync_extrapolation {
+                c.late_sync_extrapolation = n;
             }
             if let Some(p) = &d.physics {
                 let q = &mut c.physics;

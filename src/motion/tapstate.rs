@@ -456,8 +456,8 @@ impl TapPersister {
                 stats.wakeups += 1;
                 // Asleep until there is work: progress in a hole at most every period; out
                 // of a hole the cycle wakes it at the entry (and `finish` at the end).
-                let in_hole_unwritten = now.is_some_and(|n| n.in_hole) && now != last;
-                if in_hole_unwritten {
+                // In a hole the cycle publishes progress without waking it: look every period.
+                if now.is_some_and(|n| n.in_hole) {
                     std::thread::park_timeout(period.saturating_sub(last_t.elapsed()).max(Duration::from_micros(500)));
                 } else {
                     std::thread::park();
