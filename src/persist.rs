@@ -64,6 +64,78 @@ pub fn slug(name: &str) -> String {
     }
 }
 
+/// Where a machine's state files are and what they are called: one set per machine *and*
+/// per place it runs — `inproc` for the embedded emulated machine (simulated time), else the
+/// bus (`can0`, a socketcand URL, a Modbus link). So a simulated run never reads or writes a
+/// real machine's common variables or tap state, and two machines of the same name on two
+/// buses keep theirs apart.
+pub struct StatePlace {
+    pub dir: PathBuf,
+    /// The files' stem: `MACHINE@PLACE`.
+    pub key: String,
+    /// What changed on the way (a state file of an earlier version taken over), to tell.
+    pub notes: Vec<String>,
+}
+
+impl StatePlace {
+    /// The state of machine `name` running on `place` in `dir`. A state file of the earlier
+    /// naming (`MACHINE.*.toml`, one per machine) is taken over for a real bus, and said so;
+    /// the embedded machine never takes it (it may be a real machine's).
+    pub fn new(dir: &Path, name: &str, place: &str) -> StatePlace {
+        let key = format!("{}@{}", slug(name), place_slug(place));
+        let mut notes = Vec::new();
+        for kind in ["common-vars", "tap-state"] {
+            let old = dir.join(format!("{}.{kind}.toml", slug(name)));
+            let new = dir.join(format!("{key}.{kind}.toml"));
+            if old.exists() && !new.exists() {
+                if place == "inproc" {
+                    notes.push(format!(
+                        "{} is left alone: it may be a real machine's; the embedded machine keeps its own in {}",
+                        old.display(),
+                        new.display()
+                    ));
+                } else if std::fs::rename(&old, &new).is_ok() {
+                    notes.push(format!("{} renamed to {} (state is kept per machine and bus now)", old.display(), new.display()));
+                }
+            }
+        }
+        StatePlace { dir: dir.to_path_buf(), key, notes }
+    }
+
+    pub fn common_vars(&self) -> CommonVarsFile {
+        CommonVarsFile { path: self.dir.join(format!("{}.common-vars.toml", self.key)) }
+    }
+
+    pub fn tap_state(&self) -> TapStateFile {
+        TapStateFile { path: self.dir.join(format!("{}.tap-state.toml", self.key)) }
+    }
+
+    /// Everything that can be checked before motion: the directory exists (or can be made)
+    /// and a file can be written into it.
+    pub fn check_writable(&self) -> Result<(), Alarm> {
+        let probe = self.dir.join(format!(".{}.probe-{}", self.key, std::process::id()));
+        std::fs::create_dir_all(&self.dir)
+            .and_then(|_| std::fs::write(&probe, b"probe"))
+            .and_then(|_| std::fs::remove_file(&probe))
+            .map_err(|e| {
+                Alarm::new(
+                    STATE_ALARM,
+                    format!("the state directory {} cannot be written ({e}): give a writable one with --state-dir or $CNCGW_STATE_DIR; nothing was moved", self.dir.display()),
+                )
+            })
+    }
+}
+
+/// A place (bus or `inproc`) as part of a file name.
+fn place_slug(place: &str) -> String {
+    let s: String = place.chars().map(|c| if c.is_ascii_alphanumeric() || c == '.' || c == '-' { c } else { '_' }).collect();
+    if s.is_empty() {
+        "none".into()
+    } else {
+        s
+    }
+}
+
 /// The common-variable file of one machine.
 pub struct CommonVarsFile {
     pub path: PathBuf,

@@ -91,6 +91,7 @@ fn cli_writes_the_file() {
     std::fs::write(&prog, PROG).unwrap();
     let out = dir.join("p.svg");
     let st = std::process::Command::new(env!("CARGO_BIN_EXE_cncgw"))
+        .env("CNCGW_STATE_DIR", std::env::temp_dir().join(format!("cncgw-test-state-{}", std::process::id())))
         .args(["preview", prog.to_str().unwrap(), "-o", out.to_str().unwrap()])
         .status()
         .expect("run cncgw");
@@ -100,6 +101,7 @@ fn cli_writes_the_file() {
     // An alarm: exit code 2, the path up to it still drawn.
     std::fs::write(&prog, "G98 G00 X40 Z2\nG01 Z-20 F100\nG41 Z-30\nG42 Z-40\nM30\n").unwrap();
     let st = std::process::Command::new(env!("CARGO_BIN_EXE_cncgw"))
+        .env("CNCGW_STATE_DIR", std::env::temp_dir().join(format!("cncgw-test-state-{}", std::process::id())))
         .args(["preview", prog.to_str().unwrap(), "-o", out.to_str().unwrap()])
         .output()
         .expect("run cncgw");

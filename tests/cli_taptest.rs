@@ -10,7 +10,8 @@ struct Out {
 }
 
 fn cncgw_in(dir: &std::path::Path, args: &[&str]) -> Out {
-    let o = Command::new(env!("CARGO_BIN_EXE_cncgw")).current_dir(dir).args(args).output().expect("run cncgw");
+    let o = Command::new(env!("CARGO_BIN_EXE_cncgw"))
+        .env("CNCGW_STATE_DIR", std::env::temp_dir().join(format!("cncgw-test-state-{}", std::process::id()))).current_dir(dir).args(args).output().expect("run cncgw");
     Out {
         code: o.status.code().unwrap_or(-1),
         stdout: String::from_utf8_lossy(&o.stdout).into_owned(),

@@ -26,7 +26,8 @@ fn tcp_server(machine: &str, stop: &Arc<AtomicBool>) -> sim_drives::modbus::Modb
 }
 
 fn cncgw(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_cncgw")).args(args).env("CNCGW_STATE_DIR", tmp("state")).output().unwrap()
+    Command::new(env!("CARGO_BIN_EXE_cncgw"))
+        .env("CNCGW_STATE_DIR", std::env::temp_dir().join(format!("cncgw-test-state-{}", std::process::id()))).args(args).env("CNCGW_STATE_DIR", tmp("state")).output().unwrap()
 }
 
 fn text(o: &Output) -> String {

@@ -170,7 +170,7 @@ fn realtime_sigkill_mid_tap_drives_stop_and_g30_p99_brings_the_tap_out() {
     let cfg_s = cfg.display().to_string();
     let sd = state_dir.display().to_string();
     let bus = format!("socketcand://127.0.0.1:{port}/can0");
-    let tap_file = TapStateFile::new(&state_dir, "cncgw default lathe (X/Z + Cs spindle)");
+    let tap_file = cncgw::persist::StatePlace::new(&state_dir, "cncgw default lathe (X/Z + Cs spindle)", &bus).tap_state();
     let mut sc = sim_drives::report::Scenario::new("survive/sigkill_mid_tap_canopen");
     sc.faults_injected = 1;
 

@@ -12,6 +12,7 @@ fn run_writes_a_trace_of_every_cycle_and_plot_draws_it() {
     std::fs::write(&prog, "G21\nG98\nM03 S800\nG00 X30 Z5\nG32 Z-15 F1.5\nG00 X40\nZ5\nM05\nM30\n").unwrap();
     let csv = dir.join("t.csv");
     let out = Command::new(env!("CARGO_BIN_EXE_cncgw"))
+        .env("CNCGW_STATE_DIR", std::env::temp_dir().join(format!("cncgw-test-state-{}", std::process::id())))
         .args(["run", "--json", "--trace"])
         .arg(&csv)
         .arg(&prog)
@@ -39,12 +40,14 @@ fn run_writes_a_trace_of_every_cycle_and_plot_draws_it() {
     assert!(sync.iter().any(|e| *e != 0.0), "the thread's sync error is traced");
     assert!(sync.iter().all(|e| e.abs() < 20.0));
     let svg = dir.join("t.svg");
-    let st = Command::new(env!("CARGO_BIN_EXE_cncgw")).args(["trace", "plot"]).arg(&csv).arg("-o").arg(&svg).status().unwrap();
+    let st = Command::new(env!("CARGO_BIN_EXE_cncgw"))
+        .env("CNCGW_STATE_DIR", std::env::temp_dir().join(format!("cncgw-test-state-{}", std::process::id()))).args(["trace", "plot"]).arg(&csv).arg("-o").arg(&svg).status().unwrap();
     assert!(st.success());
     let text = std::fs::read_to_string(&svg).unwrap();
     assert!(text.starts_with("<svg") && text.contains("<polyline") && text.contains("sync error"));
     // A file that is not a trace is an error, not a panic.
-    let st = Command::new(env!("CARGO_BIN_EXE_cncgw")).args(["trace", "plot"]).arg(&prog).arg("-o").arg(&svg).status().unwrap();
+    let st = Command::new(env!("CARGO_BIN_EXE_cncgw"))
+        .env("CNCGW_STATE_DIR", std::env::temp_dir().join(format!("cncgw-test-state-{}", std::process::id()))).args(["trace", "plot"]).arg(&prog).arg("-o").arg(&svg).status().unwrap();
     assert_eq!(st.code(), Some(2));
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -114,6 +114,7 @@ fn first_part_runs_over_vcan_against_sim_drives_process() {
     let _sim = start_sim();
     let t = Instant::now();
     let out = Command::new(bin("cncgw"))
+        .env("CNCGW_STATE_DIR", std::env::temp_dir().join(format!("cncgw-test-state-{}", std::process::id())))
         .args(["run", "--bus", "vcan0", "--json", "--config"])
         .arg(&cfg)
         .arg(root.join("examples/first_part.nc"))
@@ -145,6 +146,7 @@ fn missing_drive_is_an_alarm_not_a_hang() {
     let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
     let t = Instant::now();
     let out = Command::new(bin("cncgw"))
+        .env("CNCGW_STATE_DIR", std::env::temp_dir().join(format!("cncgw-test-state-{}", std::process::id())))
         .args(["run", "--bus", "vcan0"])
         .arg(root.join("examples/first_part.nc"))
         .output()

@@ -10,14 +10,13 @@ use cncgw_bus::canopen::od;
 use cncgw_bus::cia402::{mode, State};
 use serde_json::json;
 
-/// Exit codes of the service commands.
-pub const EXIT_OK: i32 = 0;
-/// A node aborted the transfer, did not answer, or is in a state that needs attention.
-pub const EXIT_NODE: i32 = 1;
-/// The command line cannot be carried out as written (value out of range, wrong type…).
-pub const EXIT_USAGE: i32 = 2;
-/// Configuration or bus could not be opened.
-pub const EXIT_SETUP: i32 = 4;
+/// Exit codes of the service commands (`cli::exit`): a node aborted the transfer, did not
+/// answer, or is in a state that needs attention = `NOT_MET`; a command line that cannot be
+/// carried out as written = `INPUT`.
+pub const EXIT_OK: i32 = super::exit::OK;
+pub const EXIT_NODE: i32 = super::exit::NOT_MET;
+pub const EXIT_USAGE: i32 = super::exit::INPUT;
+pub const EXIT_SETUP: i32 = super::exit::SETUP;
 
 /// Parse a number written in decimal or as 0x… hex (an optional leading '-' for decimal).
 pub fn parse_int(s: &str) -> Result<i64, String> {
@@ -475,6 +474,10 @@ fn moves_iron(index: u16) -> bool {
 
 #[allow(clippy::too_many_arguments)]
 pub fn sdo_write(machine: &MachineArgs, node: u8, index: u16, sub: u8, ty: SdoType, value: &str, yes: bool) -> i32 {
+    let _bus_lock = match super::lock::for_writing(machine) {
+        Ok(l) => l,
+        Err(code) => return code,
+    };
     let data = match encode_value(ty, value) {
         Ok(d) => d,
         Err(e) => {
@@ -562,6 +565,10 @@ pub fn parse_target(s: &str) -> Result<u8, String> {
 }
 
 pub fn nmt(machine: &MachineArgs, cmd: NmtArg, target: u8, json_out: bool) -> i32 {
+    let _bus_lock = match super::lock::for_writing(machine) {
+        Ok(l) => l,
+        Err(code) => return code,
+    };
     let mut s = match open(machine) {
         Ok(s) => s,
         Err(c) => return c,

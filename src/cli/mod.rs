@@ -1,6 +1,8 @@
 //! The `cncgw` command line.
 
 pub mod diag;
+pub mod exit;
+pub mod lock;
 pub mod mbus;
 pub mod preview;
 pub mod run;
@@ -12,7 +14,13 @@ use clap::{Parser, Subcommand};
 use std::path::PathBuf;
 
 #[derive(Parser, Debug)]
-#[command(name = "cncgw", version, about = "CNC lathe controller core and fieldbus gateway (CANopen CiA 402)", long_about = None)]
+#[command(
+    name = "cncgw",
+    version,
+    about = "CNC lathe controller core and fieldbus gateway (CANopen CiA 402, Modbus RTU/TCP)",
+    long_about = None,
+    after_help = exit::TABLE
+)]
 pub struct Cli {
     /// More log output (-v info, -vv debug); RUST_LOG overrides.
     #[arg(short, long, action = clap::ArgAction::Count, global = true)]
@@ -648,10 +656,10 @@ pub fn main() -> i32 {
         Command::Man => {
             use clap::CommandFactory;
             match clap_mangen::Man::new(Cli::command()).render(&mut std::io::stdout()) {
-                Ok(()) => 0,
+                Ok(()) => exit::OK,
                 Err(e) => {
                     eprintln!("error: cannot write the manual page: {e}");
-                    1
+                    exit::SETUP
                 }
             }
         }
@@ -664,7 +672,7 @@ fn plan(program: &std::path::Path, config: Option<&std::path::Path>, format: &st
         Ok(c) => c,
         Err(e) => {
             eprintln!("error: {e}");
-            return 2;
+            return exit::SETUP;
         }
     };
     let interp = match crate::interp::Interpreter::from_file(program, &cfg) {
@@ -673,7 +681,7 @@ fn plan(program: &std::path::Path, config: Option<&std::path::Path>, format: &st
             for a in &alarms {
                 eprintln!("{a}");
             }
-            return 2;
+            return exit::INPUT;
         }
     };
     let out = std::io::stdout();
@@ -691,21 +699,25 @@ fn plan(program: &std::path::Path, config: Option<&std::path::Path>, format: &st
                 }
                 line.push(b'\n');
                 if out.write_all(&line).is_err() {
-                    return 0; // stdout closed (e.g. piped into head)
+                    return exit::OK; // stdout closed (e.g. piped into head)
                 }
             }
             Err(a) => {
                 let _ = out.flush();
                 eprintln!("{a}");
-                return 2;
+                return exit::INPUT;
             }
         }
     }
-    0
+    exit::OK
 }
 
 fn config_check(file: Option<&std::path::Path>, json: bool) -> i32 {
     let name = file.map(|p| p.display().to_string()).unwrap_or_else(|| "embedded config/lathe.toml".into());
+    if let Some(Err(e)) = file.map(std::fs::metadata) {
+        eprintln!("error: cannot read {name}: {e}");
+        return exit::INPUT;
+    }
     let cfg = match load_config(file) {
         Ok((cfg, _)) => cfg,
         Err(e) => {
@@ -714,7 +726,7 @@ fn config_check(file: Option<&std::path::Path>, json: bool) -> i32 {
             } else {
                 eprintln!("error: {e}");
             }
-            return 2;
+            return exit::NOT_MET;
         }
     };
     let mut text = Vec::new();

@@ -173,7 +173,7 @@ pub fn preview(
         Ok(c) => c,
         Err(e) => {
             eprintln!("error: {e}");
-            return 2;
+            return super::exit::SETUP;
         }
     };
     let mut interp = match crate::interp::Interpreter::from_file(program, &cfg) {
@@ -182,7 +182,7 @@ pub fn preview(
             for a in &alarms {
                 eprintln!("{a}");
             }
-            return 2;
+            return super::exit::INPUT;
         }
     };
     if let Some(t) = tools {
@@ -190,7 +190,7 @@ pub fn preview(
             Ok(t) => interp.set_tool_table(t),
             Err(a) => {
                 eprintln!("{a}");
-                return 2;
+                return super::exit::INPUT;
             }
         }
     }
@@ -202,7 +202,7 @@ pub fn preview(
             Err(a) => {
                 // Draw what came before the alarm: that is where the program stops.
                 eprintln!("{a}");
-                code = 2;
+                code = super::exit::INPUT;
                 break;
             }
         }
@@ -211,12 +211,12 @@ pub fn preview(
         Ok(s) => s,
         Err(e) => {
             eprintln!("error: cannot draw the preview: {e}");
-            return 2;
+            return super::exit::SETUP;
         }
     };
     if let Err(e) = std::fs::write(out, svg) {
         eprintln!("error: cannot write {}: {e}", out.display());
-        return 2;
+        return super::exit::SETUP;
     }
     code
 }

@@ -12,12 +12,12 @@ use crate::motion::{Limits, AX_S, AX_X, AX_Y, AX_Z};
 use cncgw_bus::Clock;
 use std::path::Path;
 
-/// Exit codes.
-pub const EXIT_OK: i32 = 0;
-pub const EXIT_NOT_AT_END: i32 = 1;
-pub const EXIT_PROGRAM_ERROR: i32 = 2;
-pub const EXIT_ALARM: i32 = 3;
-pub const EXIT_SETUP: i32 = 4;
+/// Exit codes (`cli::exit`).
+pub const EXIT_OK: i32 = super::exit::OK;
+pub const EXIT_NOT_AT_END: i32 = super::exit::NOT_MET;
+pub const EXIT_PROGRAM_ERROR: i32 = super::exit::INPUT;
+pub const EXIT_ALARM: i32 = super::exit::ALARM;
+pub const EXIT_SETUP: i32 = super::exit::SETUP;
 
 /// Real-time setup of the cycle thread (real drives on a real PC). Each is optional; one the
 /// system refuses is a warning, not an error. Each flag overrides the config's `[rt]` option.
@@ -105,8 +105,30 @@ pub fn run(
         }
     };
     let source = std::fs::read_to_string(program).unwrap_or_default();
+    // The machine's state (common variables #401–#600, the rigid-tap state), kept per machine
+    // and per place it runs, under a lock so that no other run interleaves with this one.
+    let place = run_place(&cfg, machine);
+    let state = state_dir.map(Path::to_path_buf).or_else(crate::persist::default_state_dir).map(|d| crate::persist::StatePlace::new(&d, &cfg.machine.name, &place));
+    let mut _state_lock = None;
+    if let Some(st) = &state {
+        for n in &st.notes {
+            eprintln!("cncgw: {n}");
+        }
+        // Everything checkable before motion: the state can be written and is ours.
+        if let Err(a) = st.check_writable() {
+            eprintln!("{a}");
+            return EXIT_SETUP;
+        }
+        match super::lock::state(&st.dir, &st.key) {
+            Ok(l) => _state_lock = Some(l),
+            Err(a) => {
+                eprintln!("{a}");
+                return EXIT_SETUP;
+            }
+        }
+    }
     // Common variables #401–#600 survive power-off: load them, store them after the run.
-    let vars_file = state_dir.map(Path::to_path_buf).or_else(crate::persist::default_state_dir).map(|d| crate::persist::CommonVarsFile::new(&d, &cfg.machine.name));
+    let vars_file = state.as_ref().map(|s| s.common_vars());
     let mut interp = interp;
     if let Some(f) = &vars_file {
         match f.load() {
@@ -119,7 +141,7 @@ pub fn run(
     }
     // The rigid-tap state lives beside them: with the tool still in a tapped hole, only a
     // program that starts with the G30 P99 return may run.
-    let tap_file = state_dir.map(Path::to_path_buf).or_else(crate::persist::default_state_dir).map(|d| crate::persist::TapStateFile::new(&d, &cfg.machine.name));
+    let tap_file = state.as_ref().map(|s| s.tap_state());
     let tap_state = match tap_file.as_ref().map(|f| f.load()).transpose() {
         Ok(s) => s.flatten(),
         Err(a) => {
@@ -176,6 +198,20 @@ pub fn run(
         }
     }
     code
+}
+
+/// Where a run runs, for its state files and its bus lock: `inproc` for the embedded
+/// emulated machine, else the bus (`--bus`, or the configuration's; a Modbus-only machine by
+/// its first link).
+pub fn run_place(cfg: &MachineConfig, machine: &MachineArgs) -> String {
+    let bus = machine.bus.clone().unwrap_or_else(|| cfg.bus.interface.clone());
+    if bus != "none" {
+        return bus;
+    }
+    match cfg.modbus.iter().next() {
+        Some((_, l)) => format!("modbus-{}", l.address.as_deref().or(l.device.as_deref()).unwrap_or("link")),
+        None => bus,
+    }
 }
 
 /// Run `f` with the operator panel on the terminal when there is one (stdin and stderr are
@@ -243,6 +279,14 @@ pub fn run_job(
     job: Job,
     opts: &ExecOpts,
 ) -> (i32, Option<std::collections::HashMap<u32, f64>>, RunSummary) {
+    // One controller per bus (the emulated one is private to this run).
+    let _bus_lock = match super::lock::bus(&run_place(cfg, machine)) {
+        Ok(l) => l,
+        Err(a) => {
+            eprintln!("{a}");
+            return (EXIT_SETUP, None, RunSummary::default());
+        }
+    };
     let mut modbus = crate::drives::modbus::ModbusDrives::new(cfg);
     let bus_name = machine.bus.clone().unwrap_or_else(|| cfg.bus.interface.clone());
     // The CANopen bus is opened only if an axis is on it.
@@ -347,7 +391,7 @@ pub fn trace_plot(file: &Path, out: &Path) -> i32 {
         Ok(t) => t,
         Err(e) => {
             eprintln!("error: cannot read {}: {e}", file.display());
-            return EXIT_SETUP;
+            return EXIT_PROGRAM_ERROR;
         }
     };
     let data = match TraceData::parse(&text) {
@@ -403,7 +447,10 @@ fn execute(
         Ok(s) => s,
         Err(a) => {
             eprintln!("{a}");
-            return (EXIT_ALARM, None, summary);
+            // A bus or Modbus link that cannot be opened is setup, as a CAN interface that
+            // cannot be opened is; the drives' own refusals are alarms.
+            let code = if matches!(a.number, 2020 | 2200) { EXIT_SETUP } else { EXIT_ALARM };
+            return (code, None, summary);
         }
     };
     let start_pos = Pos { x: start[AX_X], y: start[AX_Y], z: start[AX_Z], c: start[AX_S] };
@@ -467,7 +514,12 @@ fn execute(
     if !slow.is_empty() {
         if let Err(a) = check_links(&job, cfg, &slow, start_pos) {
             lp.finish();
+            summary.rest.at_rest = true; // nothing was moved
+            if opts.print_summary {
+                print_summary(&summary, json, Some(&a));
+            }
             eprintln!("{a}");
+            eprintln!("nothing was moved");
             return (EXIT_ALARM, None, summary);
         }
     }
@@ -478,6 +530,10 @@ fn execute(
         pre.set_common_vars(interp.common_vars().clone());
         if let Err(a) = crate::motion::guard::check_program(pre.take(2_000_000), &Limits::from_config(cfg), start_pos) {
             lp.finish();
+            summary.rest.at_rest = true; // nothing was moved
+            if opts.print_summary {
+                print_summary(&summary, json, Some(&a));
+            }
             eprintln!("{a}");
             eprintln!("nothing was moved");
             return (EXIT_ALARM, None, summary);
@@ -564,7 +620,7 @@ fn execute(
     let mut code = match r {
         Err(a) => {
             if opts.print_summary {
-                print_summary(&summary, json);
+                print_summary(&summary, json, Some(&a));
             }
             eprintln!("{a}");
             eprintln!("the program stopped at this alarm; {}", summary.rest.describe());
@@ -572,7 +628,7 @@ fn execute(
         }
         Ok(()) => {
             if opts.print_summary {
-                print_summary(&summary, json);
+                print_summary(&summary, json, None);
             }
             if !summary.rest.at_rest || summary.rest.quick_stop {
                 eprintln!("warning: {}", summary.rest.describe());
@@ -631,7 +687,20 @@ fn check_links(job: &Job, cfg: &MachineConfig, slow: &[crate::sync::link_check::
     Ok(())
 }
 
-fn print_summary(s: &RunSummary, json: bool) {
+/// The alarm that ended a run, for the summary: number, text, and the line it names.
+fn alarm_json(a: Option<&crate::Alarm>) -> serde_json::Value {
+    match a {
+        Some(a) => serde_json::json!({
+            "number": a.number,
+            "message": a.message,
+            "file": a.pos.as_ref().map(|p| p.file.to_string()),
+            "line": a.pos.as_ref().map(|p| p.line),
+        }),
+        None => serde_json::Value::Null,
+    }
+}
+
+fn print_summary(s: &RunSummary, json: bool, alarm: Option<&crate::Alarm>) {
     if json {
         let axes: Vec<_> = s
             .axes
@@ -655,6 +724,8 @@ fn print_summary(s: &RunSummary, json: bool) {
             "overruns": s.overruns,
             "simulated": s.simulated,
             "at_program_end": s.at_program_end(),
+            "ended_at_m02_m30": s.ended,
+            "alarm": alarm_json(alarm),
             "rest": {
                 "at_rest": s.rest.at_rest,
                 "quick_stop": s.rest.quick_stop,
@@ -666,6 +737,9 @@ fn print_summary(s: &RunSummary, json: bool) {
         });
         println!("{v}");
         return;
+    }
+    if let Some(a) = alarm {
+        println!("stopped by alarm {:04}{}", a.number, a.pos.as_ref().map_or(String::new(), |p| format!(" at {p}")));
     }
     println!(
         "blocks {}  moves {}  machining time {:.3} s{}  cycles {} (overruns {})  drives enabled after {:.3} s",

@@ -173,6 +173,10 @@ pub fn power_walk(s: &mut Session, node: u8, goal: PowerGoal, timeout_ms: u64) -
 
 /// `cncgw drive enable|disable|fault-reset NODE`.
 pub fn drive_power(machine: &MachineArgs, node: u8, goal: PowerGoal, yes: bool) -> i32 {
+    let _bus_lock = match super::lock::for_writing(machine) {
+        Ok(l) => l,
+        Err(code) => return code,
+    };
     if goal == PowerGoal::Enable {
         if let Err(c) = confirm_motion(machine, yes, &format!("enabling node {node}")) {
             return c;
@@ -285,6 +289,10 @@ pub struct HomeArgs {
 
 /// `cncgw drive home NODE`.
 pub fn drive_home(machine: &MachineArgs, node: u8, h: &HomeArgs, yes: bool) -> i32 {
+    let _bus_lock = match super::lock::for_writing(machine) {
+        Ok(l) => l,
+        Err(code) => return code,
+    };
     if let Err(c) = confirm_motion(machine, yes, &format!("homing node {node}")) {
         return c;
     }
@@ -340,6 +348,10 @@ pub fn drive_home(machine: &MachineArgs, node: u8, h: &HomeArgs, yes: bool) -> i
 
 /// `cncgw jog AXIS --to POS | --by DIST`.
 pub fn jog(machine: &MachineArgs, axis: &str, to: Option<f64>, by: Option<f64>, speed: Option<f64>, yes: bool) -> i32 {
+    let _bus_lock = match super::lock::for_writing(machine) {
+        Ok(l) => l,
+        Err(code) => return code,
+    };
     if let Err(c) = confirm_motion(machine, yes, &format!("jogging axis {axis}")) {
         return c;
     }

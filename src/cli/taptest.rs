@@ -33,7 +33,7 @@ use std::path::{Path, PathBuf};
 /// Exit codes: 0 = the tap ran and the sync error stayed under the machine's limit;
 /// 1 = it ran but the error reached the limit; 2 = the test cannot be done as asked (out of
 /// travel, too fast…); 3 = an alarm stopped it; 4 = configuration or bus.
-pub const EXIT_OVER_LIMIT: i32 = 1;
+pub const EXIT_OVER_LIMIT: i32 = super::exit::NOT_MET;
 
 /// The tap cannot be done from the position the drives report (controller range 2400–2499).
 pub const ALARM_TAP_PLAN: u32 = 2450;

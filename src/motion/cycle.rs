@@ -139,12 +139,16 @@ pub struct AxisSummary {
 
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct RunSummary {
-    /// Blocks that produced moves or codes (consecutive moves of one block count once).
+    /// Blocks executed: that produced moves or codes and were reached (consecutive items of
+    /// one block count once; blocks read ahead but dropped by a stop do not count).
     pub blocks: u64,
+    /// Moves the interpreter handed to motion (read ahead of execution).
     pub moves: u64,
-    /// Time from the first cycle of motion to the end of the program, seconds (simulated
-    /// time under the embedded emulated drives).
+    /// Time from the first cycle of motion to the program's end or the stop, seconds
+    /// (simulated time under the embedded emulated drives).
     pub machining_time_s: f64,
+    /// M02/M30 was reached.
+    pub ended: bool,
     /// Time from start to every drive in Operation Enabled, seconds of clock time.
     pub enable_time_s: f64,
     pub cycles: u64,
@@ -157,9 +161,10 @@ pub struct RunSummary {
 }
 
 impl RunSummary {
-    /// True if every axis the program moved ended within one count of the program's end point.
+    /// True if the program reached M02/M30 and every axis it moved ended within one count of
+    /// the program's end point.
     pub fn at_program_end(&self) -> bool {
-        self.axes.iter().all(|a| match a.program_end_counts {
+        self.ended && self.axes.iter().all(|a| match a.program_end_counts {
             Some(e) => (a.final_actual_counts - e).abs() <= 1,
             None => true,
         })
@@ -368,7 +373,12 @@ impl<'a> CycleLoop<'a> {
         self.quick = false;
         self.rpm = 0.0;
         let mut still = rest::Still::new(self.drives.axis_count());
+        let t0 = self.clock.now_ns();
         let r = self.run_program(&mut motion, start, rx, summary, progress);
+        if summary.machining_time_s == 0.0 {
+            // Stopped before the end: the time until the stop.
+            summary.machining_time_s = self.clock.now_ns().saturating_sub(t0) as f64 * 1e-9;
+        }
         summary.rest = self.to_rest(&mut motion, &mut still);
         // Where every drive stands once at rest (after an alarm too, not zeros).
         for (d, a) in summary.axes.iter_mut().enumerate() {
@@ -425,7 +435,6 @@ impl<'a> CycleLoop<'a> {
             let c = self.drives.feedback(d).counts;
             *h = [c, c];
         }
-        let mut last_line = 0u32;
         // The line of the block in execution (the last set-point's).
         let mut cur_line = 0u32;
         let mut input_open = true;
@@ -450,10 +459,6 @@ impl<'a> CycleLoop<'a> {
                 match item {
                     Ok(Ok(m)) => {
                         summary.moves += 1;
-                        if m.src.line != last_line {
-                            summary.blocks += 1;
-                            last_line = m.src.line;
-                        }
                         if let Some(e) = m.kind.end() {
                             end_pos = Some(e);
                         }
@@ -673,7 +678,11 @@ impl<'a> CycleLoop<'a> {
                 return Err(a);
             }
             ended |= self.on_event(motion, &sp);
+            if sp.line != cur_line && sp.line != 0 {
+                summary.blocks += 1;
+            }
             cur_line = sp.line;
+            summary.ended = ended;
             if let Some(r) = self.panel.as_ref() {
                 r.report(motion.is_held(), sp.line);
             }
