@@ -181,9 +181,15 @@ pub struct Bus {
     /// How long to wait for each node's boot-up / first SDO answer, ms.
     #[serde(default = "default_sdo_timeout")]
     pub sdo_timeout_ms: u32,
-    /// Master heartbeat producer period (ms) that the drives consume via 0x1016; 0 = off.
+    /// Master heartbeat producer period (ms) that the drives consume via 0x1016 (or guard
+    /// by node guarding): a drive that stops hearing it faults and stops by itself when the
+    /// controller dies. 0 = off, refused unless `unsafe_no_heartbeat = true`.
     #[serde(default = "default_heartbeat")]
     pub heartbeat_ms: u16,
+    /// Allow `heartbeat_ms = 0`: the drives then go on with their last set-point if the
+    /// controller dies (only for a bench without mechanics).
+    #[serde(default)]
+    pub unsafe_no_heartbeat: bool,
     /// A drive whose position feedback (TPDO) is older than this while running raises
     /// alarm 2015 and stops the machine, ms.
     #[serde(default = "default_feedback_timeout")]
@@ -389,6 +395,15 @@ impl MachineConfig {
     /// Every problem, each as `key.path: what is allowed, got value`.
     pub fn validate(&self) -> Vec<String> {
         let mut e = Vec::new();
+        for (k, v) in &self.parameters {
+            e.extend(crate::params::check(k, v));
+        }
+        if self.bus.heartbeat_ms == 0 && !self.bus.unsafe_no_heartbeat && self.has_canopen() {
+            e.push(
+                "bus.heartbeat_ms: 0 switches off the drives' watch on the controller — killed, it would leave them enabled on their last set-point; set 50 … 1000, or `unsafe_no_heartbeat = true` for a bench without mechanics"
+                    .into(),
+            );
+        }
         let c = self.machine.cycle_ms;
         if !(c.is_finite() && (0.25..=100.0).contains(&c)) {
             e.push(format!("machine.cycle_ms: must be between 0.25 and 100, got {c}"));

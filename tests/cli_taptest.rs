@@ -140,7 +140,7 @@ fn status_commands_speak_json() {
     assert!(load > 0.1 && load < 0.8, "{load}");
     std::fs::write(dir.join("bad.toml"), "[machine]\ncycle_ms = -1\n").unwrap();
     let o = cncgw_in(&dir, &["config", "check", "bad.toml", "--json"]);
-    assert_eq!(o.code, 2);
+    assert_eq!(o.code, 1, "exit 1: run would refuse it");
     let v = json(&o);
     assert_eq!(v["ok"], false);
     assert!(v["error"].as_str().unwrap().contains("bad.toml"), "{v}");

@@ -110,6 +110,13 @@ fn realtime_sigterm_stops_a_batch_run_as_reset() {
     assert!(err.contains("alarm 2401") && err.contains("SIGTERM"), "{err}");
     let v: serde_json::Value = serde_json::from_str(String::from_utf8_lossy(&o.stdout).trim()).unwrap_or_else(|e| panic!("{e}: no summary"));
     assert_eq!(v["rest"]["at_rest"], true, "{v}");
+    // The report says what happened (issue 19.9): the alarm, the blocks done until the stop
+    // (not the 27 read ahead), the time until it, not at the program's end.
+    assert_eq!(v["alarm"]["number"], 2401, "{v}");
+    let blocks = v["blocks"].as_u64().unwrap();
+    assert!(blocks > 0 && blocks < 27, "{v}");
+    assert!(v["machining_time_s"].as_f64().unwrap() > 1.0, "{v}");
+    assert_eq!(v["at_program_end"], false, "{v}");
     // The trace is complete: every line has the header's number of fields.
     let t = std::fs::read_to_string(&trace).unwrap();
     let n = t.lines().next().unwrap().split(',').count();

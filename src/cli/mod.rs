@@ -729,8 +729,19 @@ fn config_check(file: Option<&std::path::Path>, json: bool) -> i32 {
             return exit::NOT_MET;
         }
     };
+    // Everything `run` would refuse before it touches a drive, checked here too.
+    let problems = if cfg.has_canopen() {
+        crate::drives::canopen::CanOpenMaster::new(cncgw_bus::transport::inproc::InprocBus::new().endpoint(), &cfg).offline_check(cfg.bus.bitrate)
+    } else {
+        Vec::new()
+    };
     let mut text = Vec::new();
-    text.push(format!("{name}: ok — {}", cfg.machine.name));
+    if problems.is_empty() {
+        text.push(format!("{name}: ok — {}", cfg.machine.name));
+    } else {
+        text.push(format!("{name}: run would refuse it ({} problem(s)) — {}", problems.len(), cfg.machine.name));
+        text.extend(problems.iter().map(|p| format!("  {p}")));
+    }
     text.push(format!("  cycle {} ms, bus {} at {} bit/s", cfg.machine.cycle_ms, cfg.bus.interface, cfg.bus.bitrate));
     let n_can = cfg.axes.values().filter(|a| a.modbus.is_none()).count();
     let mut can_load = None;
@@ -784,7 +795,7 @@ fn config_check(file: Option<&std::path::Path>, json: bool) -> i32 {
         println!(
             "{}",
             serde_json::json!({
-                "file": name, "ok": true, "machine": cfg.machine.name, "cycle_ms": cfg.machine.cycle_ms,
+                "file": name, "ok": problems.is_empty(), "problems": problems, "machine": cfg.machine.name, "cycle_ms": cfg.machine.cycle_ms,
                 "bus": cfg.bus.interface, "bitrate": cfg.bus.bitrate, "canopen_bus_load": can_load,
                 "canopen_drives": n_can, "modbus_links": links, "axes": axes,
             })
@@ -794,5 +805,9 @@ fn config_check(file: Option<&std::path::Path>, json: bool) -> i32 {
             println!("{l}");
         }
     }
-    0
+    if problems.is_empty() {
+        exit::OK
+    } else {
+        exit::NOT_MET
+    }
 }

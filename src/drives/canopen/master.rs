@@ -314,6 +314,28 @@ impl<B: CanBus> CanOpenMaster<B> {
         Ok(load)
     }
 
+    /// What start-up would refuse before it touches a drive, checked without a bus
+    /// (`cncgw config check`): the bus load, and each axis' EDS (`axes.NAME.eds`) against what
+    /// start-up writes and maps. One line per problem.
+    pub fn offline_check(&self, bitrate: u32) -> Vec<String> {
+        let mut out = Vec::new();
+        if let Err(a) = self.check_bus_load(bitrate) {
+            out.push(format!("alarm {:04}: {}", a.number, a.message));
+        }
+        for n in &self.nodes {
+            let Some(path) = &n.spec.eds else { continue };
+            match cncgw_bus::canopen::eds::Eds::load(std::path::Path::new(path)) {
+                Ok(eds) => {
+                    for b in self.check_eds(n.spec.node, &eds) {
+                        out.push(format!("axes.{}.eds: {b}", n.spec.axis));
+                    }
+                }
+                Err(e) => out.push(format!("axes.{}.eds: {e} (a relative path is from the working directory)", n.spec.axis)),
+            }
+        }
+        out
+    }
+
     /// Read `index:sub` of `node` over SDO (service tools, diagnostics).
     pub fn sdo_read(&mut self, clock: &mut dyn Clock, node: u8, index: u16, sub: u8) -> Result<Vec<u8>, Alarm> {
         let i = self.index_of(node).ok_or_else(|| Alarm::new(2003, format!("node {node} is not in the machine configuration")))?;
