@@ -141,7 +141,7 @@ fn unreachable_link_is_a_clear_alarm() {
     let prog = write("p3.nc", PROGRAM);
     let o = cncgw(&["run", "--config", &cfg, &prog]);
     let t = text(&o);
-    assert_eq!(o.status.code(), Some(3), "{t}");
+    assert_eq!(o.status.code(), Some(4), "a link that cannot be opened is setup, as a CAN bus that cannot be: {t}");
     assert!(t.contains(&format!("alarm 2200: Modbus link tcp: cannot open Modbus TCP {port}")), "{t}");
 }
 

@@ -32,6 +32,22 @@ pub struct Lock {
     pub path: PathBuf,
 }
 
+/// The locks this process holds: a command that locks the bus and then runs a job (a Modbus
+/// jog) must not be refused by itself.
+static HELD: std::sync::Mutex<Vec<PathBuf>> = std::sync::Mutex::new(Vec::new());
+
+impl Drop for Lock {
+    fn drop(&mut self) {
+        if let Ok(mut h) = HELD.lock() {
+            h.retain(|p| *p != self.path);
+        }
+    }
+}
+
+fn held_here(path: &Path) -> bool {
+    HELD.lock().is_ok_and(|h| h.iter().any(|p| p == path))
+}
+
 /// The file-name form of a bus or place: letters, digits, `.` and `-` kept, the rest `_`.
 pub fn slug(s: &str) -> String {
     s.chars().map(|c| if c.is_ascii_alphanumeric() || c == '.' || c == '-' { c } else { '_' }).collect()
@@ -60,6 +76,9 @@ pub fn bus(bus: &str) -> Result<Option<Lock>, crate::Alarm> {
     }
     let dir = lock_dir();
     let path = dir.join(format!("cncgw-bus-{}.lock", slug(bus)));
+    if held_here(&path) {
+        return Ok(None);
+    }
     acquire(&path).map(Some).map_err(|holder| {
         crate::Alarm::new(
             BUS_IN_USE,
@@ -119,6 +138,9 @@ fn acquire(path: &Path) -> Result<Lock, String> {
     let _ = f.set_len(0);
     let _ = f.rewind();
     let _ = f.write_all(me.as_bytes());
+    if let Ok(mut h) = HELD.lock() {
+        h.push(path.to_path_buf());
+    }
     Ok(Lock { _file: f, path: path.to_path_buf() })
 }
 
