@@ -68,11 +68,17 @@ fn interactive_run_feed_hold_resume_reset_in_tmux() {
         bin = env!("CARGO_BIN_EXE_cncgw")
     );
     let t = Tmux { socket: format!("cncgw-test-{}", std::process::id()) };
-    t.cmd(&["new-session", "-d", "-s", "run", "-x", "160", "-y", "30", &sh]);
+    // An 80 × 24 terminal (issue 19.11: the status used to need 119 columns and repeated down
+    // the screen).
+    t.cmd(&["new-session", "-d", "-s", "run", "-x", "80", "-y", "24", &sh]);
 
     // It runs: the help line, the block in execution, Z going down.
     let s = t.wait_for("the feed block", |s| s.contains("G1 Z-100 F600") && z_of(s).is_some_and(|z| z < -2.0));
-    assert!(s.contains("keys: h feed hold  s cycle start  b single block"), "{s}");
+    assert!(s.contains("keys: h hold  s start  b single block"), "{s}");
+    std::thread::sleep(Duration::from_millis(500));
+    let s = t.screen();
+    assert_eq!(s.matches("keys: h hold").count(), 1, "the panel is redrawn in place, not down the screen:\n{s}");
+    assert!(s.lines().all(|l| l.chars().count() <= 80), "{s}");
     assert!(s.contains("line    4/7"), "{s}");
     assert!(!s.contains("HELD"), "{s}");
 

@@ -451,6 +451,32 @@ pub struct Session {
     pub simulated: bool,
 }
 
+/// What is wrong with a `--bus` value, before anything tries to open it: `inproc`, `none`, a
+/// SocketCAN interface name (1–15 characters, no `/`, `:` or white space),
+/// `socketcand://HOST:PORT/IFACE`, `modbus-tcp://…`, `modbus-rtu://…`.
+pub fn check_bus_value(bus: &str) -> Result<(), String> {
+    let schemes = "inproc, a SocketCAN interface (can0, vcan0), socketcand://HOST:PORT/IFACE, modbus-tcp://HOST:PORT, modbus-rtu://DEVICE?baud=…";
+    if let Some((scheme, _)) = bus.split_once("://") {
+        return match scheme {
+            "socketcand" if cncgw_bus::transport::socketcand::parse_url(bus).is_none() => Err(format!(
+                "--bus {bus}: a socketcand bus is socketcand://HOST:PORT/IFACE, e.g. socketcand://192.168.1.20:29536/can0 (host, port and the interface on that host)"
+            )),
+            "socketcand" | "modbus-tcp" | "modbus-rtu" => Ok(()),
+            _ => Err(format!("--bus {bus}: unknown kind of bus `{scheme}://`; one of: {schemes}")),
+        };
+    }
+    if bus == "inproc" || bus == "none" {
+        return Ok(());
+    }
+    let bad = bus.is_empty() || bus.len() > 15 || bus.chars().any(|c| c == '/' || c == ':' || c.is_whitespace());
+    if bad {
+        return Err(format!(
+            "--bus {bus}: not a SocketCAN interface name (1–15 characters without `/`, `:` or spaces, e.g. can0) nor any other kind of bus; one of: {schemes}"
+        ));
+    }
+    Ok(())
+}
+
 /// The bus named by `bus` (default: the config's bus.interface) with its clock: the bus
 /// endpoint, the clock, the bus as given, and the bus in words. `inproc` builds the
 /// emulated drives from `cfg_text`.
@@ -463,6 +489,7 @@ pub fn open_raw(
 ) -> Result<(Box<dyn cncgw_bus::CanBus>, Box<dyn cncgw_bus::Clock>, String, String), String> {
     use cncgw_bus::transport::socketcand;
     let bus = bus.map(str::to_string).unwrap_or_else(|| cfg.bus.interface.clone());
+    check_bus_value(&bus)?;
     if bus.starts_with("modbus-") {
         return Err(format!("{bus} is a Modbus bus: this is a CANopen command (Modbus drives: scan, drive status|enable|disable|fault-reset|home, monitor, jog, run, tap-test)"));
     }
@@ -482,7 +509,7 @@ pub fn open_raw(
         Ok((Box::new(sock), Box::new(cncgw_bus::RealClock::new()), bus, what))
     } else {
         let sock = cncgw_bus::transport::socketcan::SocketCan::open(&bus)
-            .map_err(|e| format!("{e}; or use --bus inproc for the embedded emulated drives"))?;
+            .map_err(|e| if e.to_string().contains("no SocketCAN") { e.to_string() } else { format!("{e}; or use --bus inproc for the embedded emulated drives") })?;
         let what = format!("{bus} (SocketCAN, real time)");
         Ok((Box::new(sock), Box::new(cncgw_bus::RealClock::new()), bus, what))
     }
@@ -608,7 +635,11 @@ fn init_tracing(verbose: u8) {
     };
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default));
-    let _ = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).try_init();
+    // Colour only for a person at a terminal: not into files, pipes or the journal, and never
+    // with NO_COLOR set (no-color.org).
+    use std::io::IsTerminal;
+    let ansi = std::io::stderr().is_terminal() && std::env::var_os("NO_COLOR").is_none_or(|v| v.is_empty());
+    let _ = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).with_ansi(ansi).try_init();
 }
 
 /// Entry point; returns the process exit code.

@@ -145,7 +145,7 @@ pub struct PanelDisplay {
 }
 
 /// The help line under the status.
-pub const HELP: &str = "keys: h feed hold  s cycle start  b single block  o optional stop  +/- feed override  r reset  e E-stop  (Ctrl-C = reset)";
+pub const HELP: &str = "keys: h hold  s start  b single block  o opt. stop  +/- feed  r reset  e E-stop";
 
 impl PanelDisplay {
     pub fn new(panel: Panel, lines: &[&str]) -> Self {
@@ -159,7 +159,7 @@ impl PanelDisplay {
         let block: String = block.chars().take(60).collect();
         let mut state = String::new();
         if self.panel.is_held() {
-            state.push_str("  HELD (s = cycle start)");
+            state.push_str("  HELD (s: start)");
         }
         if self.panel.single_block() {
             state.push_str("  SINGLE BLOCK");
@@ -168,7 +168,7 @@ impl PanelDisplay {
             state.push_str("  OPT STOP");
         }
         format!(
-            "line {line:>4}/{}  {block}\nX{:>10.3} Z{:>10.3}  F{:>6.0}  S{:>5.0}  sync {:>6.1} µm  feed {:>3} %{state}",
+            "line {line:>4}/{}  {block}\nX{:>9.3} Z{:>9.3} F{:>5.0} S{:>5.0} sync{:>6.1} µm feed {:>3} %{state}",
             self.lines.len(),
             p.pos[AX_X] * 2.0,
             p.pos[AX_Z],
@@ -186,9 +186,12 @@ impl PanelDisplay {
             // Back to the first of the three lines drawn last time.
             out.push_str("\r\x1b[2A");
         }
+        // Every line shorter than the terminal: one that wraps would push the redraw down
+        // the screen (on 80 × 24 the status line repeated down it).
+        let width = console::Term::stderr().size_checked().map_or(80, |(_, w)| w as usize).max(20) - 1;
         for l in self.status(p).lines().chain(std::iter::once(HELP)) {
             out.push_str("\r\x1b[2K");
-            out.push_str(l);
+            out.extend(l.chars().take(width));
             out.push('\n');
         }
         let mut e = std::io::stderr().lock();

@@ -61,6 +61,22 @@ impl SocketCan {
     /// Open `iface` (e.g. `vcan0`). Fails with a message that says how to bring it up.
     pub fn open(iface: &str) -> Result<Self, BusError> {
         let name = iface.to_string();
+        // The kernel's SocketCAN first: without it, the interface lookup below fails with
+        // "no such device", which would send the user looking for an interface.
+        // SAFETY: a socket we close at once.
+        let fd = unsafe { libc::socket(libc::AF_CAN, libc::SOCK_RAW, 1) };
+        if fd < 0 {
+            let e = std::io::Error::last_os_error();
+            if e.raw_os_error() == Some(libc::EAFNOSUPPORT) {
+                return Err(BusError::Open {
+                    bus: name.clone(),
+                    reason: "this kernel has no SocketCAN (socket(AF_CAN) fails with EAFNOSUPPORT); use --bus inproc, socketcand://…, or a machine with CAN support".into(),
+                });
+            }
+        } else {
+            // SAFETY: the descriptor opened just above.
+            unsafe { libc::close(fd) };
+        }
         let sock = socketcan::CanSocket::open(iface).map_err(|e| {
             let reason = if e.raw_os_error() == Some(97) {
                 "this kernel has no SocketCAN (socket(AF_CAN) fails with EAFNOSUPPORT); use --bus inproc, socketcand://…, or a machine with CAN support".to_string()
