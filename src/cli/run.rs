@@ -528,7 +528,8 @@ fn execute(
     if let Ok(mut pre) = (job.make)(start_pos) {
         pre.set_start_position(start_pos);
         pre.set_common_vars(interp.common_vars().clone());
-        if let Err(a) = crate::motion::guard::check_program(pre.take(2_000_000), &Limits::from_config(cfg), start_pos) {
+        let tool = crate::motion::polygon::ToolSpindle::from_config(cfg);
+        if let Err(a) = crate::motion::guard::check_program_with(pre, &Limits::from_config(cfg), start_pos, tool.as_ref(), 2_000_000) {
             lp.finish();
             summary.rest.at_rest = true; // nothing was moved
             if opts.print_summary {

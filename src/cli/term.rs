@@ -250,7 +250,7 @@ mod tests {
         let prog = Progress { line: 2, feed: 120.0, spindle_rpm: 800.0, sync_err_um: 1.5, ..Progress::default() };
         let s = d.status(&prog);
         assert!(s.contains("line    2/3  G1 Z-20 F0.2"), "{s}");
-        assert!(s.contains("HELD") && s.contains("SINGLE BLOCK") && s.contains("S  800") && s.contains("sync    1.5 µm"), "{s}");
+        assert!(s.contains("HELD") && s.contains("SINGLE BLOCK") && s.contains("S  800") && s.contains("sync   1.5 µm"), "{s}");
         r.report(false, 3);
         p.set_single_block(false);
         let s = d.status(&prog);

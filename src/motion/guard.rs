@@ -173,52 +173,99 @@ fn xyz(p: &Pos) -> [f64; 3] {
 /// Other program alarms are left to the run, which stops at their block. The caller bounds
 /// the iterator (a program ending in M99 never ends).
 pub fn check_program(moves: impl Iterator<Item = Result<Move, Alarm>>, limits: &Limits, start: Pos) -> Result<(), Alarm> {
+    check_program_with(moves, limits, start, None, usize::MAX)
+}
+
+/// [`check_program`], also planning every move as motion will (`Motion::push`: feed, spindle,
+/// threads and taps against the axes, C, …) with the tool spindle `tool` if the machine has
+/// one, and refusing a program that ends without M02/M30 (Fanuc's "end of record", PS5010)
+/// unless it is still going after `bound` moves (an M99 loop).
+pub fn check_program_with(
+    moves: impl Iterator<Item = Result<Move, Alarm>>,
+    limits: &Limits,
+    start: Pos,
+    tool: Option<&super::polygon::ToolSpindle>,
+    bound: usize,
+) -> Result<(), Alarm> {
     use crate::interp::cycles::stroke::{MINUS_ALARM, PLUS_ALARM};
     let refuse = |a: Alarm| Alarm { message: format!("{} — refused before any motion", a.message), ..a };
     let mut pos = xyz(&start);
-    for m in moves {
+    let mut plan = super::Motion::new(limits.clone(), [start.x, start.y, start.z, start.c]);
+    if let Some(t) = tool {
+        plan.set_tool_spindle(t, 0.0);
+    }
+    let (mut count, mut ended, mut last_src) = (0usize, false, None);
+    for m in moves.take(bound) {
         let m = match m {
             Ok(m) => m,
             Err(a) if a.number == PLUS_ALARM || a.number == MINUS_ALARM => return Err(refuse(a)),
             Err(_) => return Ok(()),
         };
-        let Some(end) = m.kind.end() else { continue };
-        if matches!(m.kind, MoveKind::Polar { .. }) {
-            // Virtual X–C plane coordinates: motion checks the converted X and C itself.
-            continue;
+        count += 1;
+        ended |= matches!(m.kind, MoveKind::End { .. });
+        last_src = Some(m.src.clone());
+        if let Some(end) = m.kind.end().filter(|_| !matches!(m.kind, MoveKind::Polar { .. })) {
+            // (Polar moves are in the virtual X–C plane: motion checks the converted X and C.)
+            check_path(limits, &pos, &m, xyz(&end)).map_err(refuse)?;
+            pos = xyz(&end);
         }
-        let end = xyz(&end);
-        let at = |a: Alarm| refuse(a.at(m.src.clone()));
-        check_point(limits, &pos, &end, "end point").map_err(at)?;
-        if let MoveKind::Arc { center, cw, plane, .. } = &m.kind {
-            let axes = match plane {
-                Plane::Xy => (AX_X, AX_Y, AX_Z),
-                Plane::Zx => (AX_Z, AX_X, AX_Y),
-                Plane::Yz => (AX_Y, AX_Z, AX_X),
-            };
-            if let Some((Geom::Arc { ia, ib, ca, cb, r0, dr, th0, sweep, .. }, _, _)) = geom::arc(pos, end, xyz(center), axes, *cw) {
-                // The arc's outermost points: where it crosses the plane axes' directions.
-                let r = r0.max(r0 + dr);
-                for k in 0..4 {
-                    let ang = k as f64 * std::f64::consts::FRAC_PI_2;
-                    let rel = if sweep >= 0.0 { (ang - th0).rem_euclid(std::f64::consts::TAU) } else { (th0 - ang).rem_euclid(std::f64::consts::TAU) };
-                    if rel <= sweep.abs() {
-                        let mut q = pos;
-                        match k {
-                            0 => q[ia] = ca + r,
-                            1 => q[ib] = cb + r,
-                            2 => q[ia] = ca - r,
-                            _ => q[ib] = cb - r,
-                        }
-                        check_point(limits, &pos, &q, "arc").map_err(at)?;
-                    }
-                }
-            }
+        if !plan.has_room() {
+            plan.discard_queue();
         }
-        pos = end;
+        plan.push(&m).map_err(refuse)?;
+    }
+    if !ended && count < bound {
+        let a = Alarm::new(
+            END_OF_RECORD,
+            if count == 0 {
+                "the program is empty: nothing to run".to_string()
+            } else {
+                "the program ends without M02 or M30 (end of record): end it with M30 (or M02), so that the controller knows it is over".to_string()
+            },
+        );
+        return Err(refuse(match last_src {
+            Some(s) => a.at(s),
+            None => a,
+        }));
     }
     Ok(())
 }
+
+/// The travel check of one move from `pos` to `end`: its end point and the bulge of an arc.
+fn check_path(limits: &Limits, pos: &[f64; 3], m: &Move, end: [f64; 3]) -> Result<(), Alarm> {
+    let pos = *pos;
+    let at = |a: Alarm| a.at(m.src.clone());
+    check_point(limits, &pos, &end, "end point").map_err(at)?;
+    if let MoveKind::Arc { center, cw, plane, .. } = &m.kind {
+        let axes = match plane {
+            Plane::Xy => (AX_X, AX_Y, AX_Z),
+            Plane::Zx => (AX_Z, AX_X, AX_Y),
+            Plane::Yz => (AX_Y, AX_Z, AX_X),
+        };
+        if let Some((Geom::Arc { ia, ib, ca, cb, r0, dr, th0, sweep, .. }, _, _)) = geom::arc(pos, end, xyz(center), axes, *cw) {
+            // The arc's outermost points: where it crosses the plane axes' directions.
+            let r = r0.max(r0 + dr);
+            for k in 0..4 {
+                let ang = k as f64 * std::f64::consts::FRAC_PI_2;
+                let rel = if sweep >= 0.0 { (ang - th0).rem_euclid(std::f64::consts::TAU) } else { (th0 - ang).rem_euclid(std::f64::consts::TAU) };
+                if rel <= sweep.abs() {
+                    let mut q = pos;
+                    match k {
+                        0 => q[ia] = ca + r,
+                        1 => q[ib] = cb + r,
+                        2 => q[ia] = ca - r,
+                        _ => q[ib] = cb - r,
+                    }
+                    check_point(limits, &pos, &q, "arc").map_err(at)?;
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Fanuc PS5010 "end of record": the program's text ended before M02/M30.
+pub const END_OF_RECORD: u32 = 5010;
 
 /// [`check_program`] over a program file as `cncgw run` will execute it: from `start`, with
 /// the common variables `vars` loaded; at most 2,000,000 moves (a program ending in M99
@@ -322,7 +369,7 @@ mod tests {
 
     #[test]
     fn a_program_entering_the_g22_area_is_refused_before_the_first_move() {
-        let e = program("G00 X100 Z-100\nG22 X80 Z-20 I40 K-60\nG01 X100 Z-100 F100\nG01 X60 Z-40\nM30\n").unwrap_err();
+        let e = program("G98\nG00 X100 Z-100\nG22 X80 Z-20 I40 K-60\nG01 X100 Z-100 F100\nG01 X60 Z-40\nM30\n").unwrap_err();
         assert!(e.number == 502 || e.number == 503, "{e}");
         assert!(e.message.contains("refused before any motion"), "{e}");
         // Any other program alarm is left to the run.

@@ -126,6 +126,11 @@ const LAG_MEMORY_S: f64 = 2.0;
 /// Gain with which a thread's measured phase error corrects the long axis' lag, per cycle.
 const THREAD_TRIM_GAIN: f64 = 0.1;
 
+/// Largest C (spindle angle) a move may ask for, degrees: beyond it an angle no longer
+/// resolves a count of the spindle's encoder in f64 (a C of 1e300 from a macro made the
+/// spindle's command run away).
+const C_MAX_DEG: f64 = 1e9;
+
 const AXIS_NAMES: [char; N_AXES] = ['X', 'Y', 'Z', 'S'];
 
 /// Alarm numbers raised by the motion layer (2300–2399: sync and motion; Fanuc numbers where
@@ -1117,6 +1122,12 @@ impl Motion {
         if !end.c.is_finite() {
             return Err(Alarm::new(alarms::BAD_VALUE, format!("C end point is not a finite number ({})", end.c)));
         }
+        if end.c.abs() > C_MAX_DEG {
+            return Err(Alarm::new(
+                alarms::BAD_VALUE,
+                format!("C end point {:e}° is beyond what the spindle axis resolves (±{C_MAX_DEG:e}°, 2.8 million turns); check the macro variable that gives it", end.c),
+            ));
+        }
         if self.plan_c.is_some_and(|c| c != end.c) {
             return Err(Alarm::new(
                 alarms::UNSUPPORTED,
@@ -1127,7 +1138,14 @@ impl Motion {
     }
 
     fn check_feed(&self, f: &Feed) -> Result<Speed, Alarm> {
-        match *f {
+        // An F below the least input increment (0.001 mm/min, 0.0001 mm/rev, as Fanuc's IS-B)
+        // is zero: it would run for ever (F0.0001 mm/min: 18 minutes a micrometre).
+        let f = match *f {
+            Feed::PerMin(v) if v.abs() < 0.001 => Feed::PerMin(0.0),
+            Feed::PerRev(v) if v.abs() < 0.0001 => Feed::PerRev(0.0),
+            f => f,
+        };
+        match f {
             Feed::PerMin(v) if v.is_finite() && v > 0.0 => Ok(Speed::PerMin(v / 60.0)),
             Feed::PerRev(v) if v.is_finite() && v > 0.0 => {
                 if self.plan_spindle_on {
@@ -1141,7 +1159,7 @@ impl Motion {
             }
             Feed::PerMin(v) | Feed::PerRev(v) => Err(Alarm::new(
                 alarms::FEED_ZERO,
-                format!("feed rate must be > 0, got F{v}; program an F word before the cutting move"),
+                format!("feed rate must be > 0 (at least F0.001 mm/min or F0.0001 mm/rev), got F{v}; program an F word before the cutting move"),
             )),
         }
     }
@@ -2165,6 +2183,14 @@ impl Motion {
             Run::Thread { sync: Some(_), .. } | Run::Tap { theta0: Some(_), .. } | Run::Rigid { theta0: Some(_), .. } => true,
             _ => self.in_hole,
         }
+    }
+
+    /// Forget the queued items, keeping the planning state (where the last push ends, the
+    /// spindle, the modes): the pre-motion check plans a whole program through one `Motion`
+    /// without executing it (`guard::check_program`).
+    pub fn discard_queue(&mut self) {
+        self.len = 0;
+        self.last_blendable = false;
     }
 
     /// The spindle (and the tool spindle) is commanded to stand still.

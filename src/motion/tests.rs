@@ -2016,3 +2016,20 @@ proptest! {
         }
     }
 }
+
+/// A C target from a macro so large that an angle no longer resolves a count (1e300: the
+/// proptest case that made the spindle command run past its maximum speed) is refused.
+#[test]
+fn a_c_target_beyond_the_axis_resolution_is_refused_at_push() {
+    let mut m = Motion::new(Limits::from_config(&crate::config::MachineConfig::embedded()), [0.0; N_AXES]);
+    let mv = |c: f64| Move {
+        src: crate::canon::SrcPos::new("t.nc".into(), 1, 1),
+        kind: MoveKind::Rapid { end: Pos { c, ..Pos::ZERO } },
+        exact_stop: true,
+        work_offset: Pos::ZERO,
+        tag: None,
+    };
+    let e = m.push(&mv(1e300)).unwrap_err();
+    assert_eq!(e.number, alarms::BAD_VALUE, "{e}");
+    assert!(e.message.contains("beyond what the spindle axis resolves"), "{e}");
+}
