@@ -51,3 +51,17 @@ fn no_colour_codes_go_into_a_pipe() {
     assert!(err.contains("INFO"), "the log is there: {err}");
     assert!(!err.contains('\u{1b}'), "escape codes in a pipe: {err:?}");
 }
+
+#[test]
+fn a_missing_file_is_exit_2_for_every_command() {
+    for args in [
+        &["run", "--batch", "/nonexistent/part.nc"][..],
+        &["plan", "/nonexistent/part.nc"],
+        &["trace", "plot", "/nonexistent/t.csv", "-o", "/tmp/never.svg"],
+        &["preview", "/nonexistent/part.nc", "-o", "/tmp/never.svg"],
+        &["config", "check", "/nonexistent/machine.toml"],
+    ] {
+        let (code, err) = cncgw(args);
+        assert_eq!(code, 2, "{args:?}: {err}");
+    }
+}
