@@ -332,6 +332,23 @@ pub struct AxisConfig {
     /// steps by more than one cycle's travel (0 … 50).
     #[serde(default)]
     pub late_sync_extrapolation: u32,
+    /// The drive's response as `cncgw identify` measured it (commissioning); `config check`
+    /// warns when the following-error window is below what it lags at maximum speed.
+    #[serde(default)]
+    pub response: Option<DriveResponse>,
+}
+
+/// `[axes.NAME.response]`: what `cncgw identify NAME` prints.
+#[derive(Clone, Copy, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct DriveResponse {
+    /// Cycles (with a fraction) from a set-point to the first change of the actual position
+    /// read back.
+    pub delay_cycles: f64,
+    /// Share of a speed change that follows at once.
+    pub feed_forward: f64,
+    /// Time constant of the rest, ms.
+    pub time_constant_ms: f64,
 }
 
 fn default_tx_type() -> u8 {

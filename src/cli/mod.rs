@@ -2,6 +2,7 @@
 
 pub mod diag;
 pub mod exit;
+pub mod identify;
 pub mod lock;
 pub mod mbus;
 pub mod preview;
@@ -103,6 +104,17 @@ pub enum Command {
         machine: MachineArgs,
         #[command(flatten)]
         op: run::OperatorArgs,
+    },
+    /// Identify an axis' drive (commissioning): move it a little (in the air; --yes on a
+    /// real bus), fit its response and print it as `[axes.NAME.response]` with the
+    /// following-error window it asks for.
+    ///
+    /// Example: `cncgw identify z`, `cncgw identify s1 --bus can0 --yes --json`
+    Identify {
+        #[command(flatten)]
+        args: identify::IdentifyArgs,
+        #[command(flatten)]
+        machine: MachineArgs,
     },
     /// Trace files written by `cncgw run --trace`.
     #[command(subcommand)]
@@ -651,6 +663,7 @@ pub fn main() -> i32 {
             run::run(&program, &machine, json, state_dir.as_deref(), trace.as_deref(), &rt, &op)
         }
         Command::TapTest { tap, machine, op } => taptest::tap_test(&machine, &tap, &op),
+        Command::Identify { args, machine } => identify::run(&machine, &args),
         Command::Trace(TraceCmd::Plot { file, out }) => run::trace_plot(&file, &out),
         Command::Plan { program, config, format } => plan(&program, config.as_deref(), &format),
         Command::Preview { program, out, config, width, tools } => {
@@ -743,6 +756,34 @@ fn plan(program: &std::path::Path, config: Option<&std::path::Path>, format: &st
     exit::OK
 }
 
+/// Following-error windows below what an axis' identified response (`[axes.NAME.response]`)
+/// lags at its maximum speed: the drive would fault at full speed.
+fn response_warnings(cfg: &crate::config::MachineConfig) -> Vec<String> {
+    let mut out = Vec::new();
+    for (name, a) in &cfg.axes {
+        let Some(r) = a.response else { continue };
+        let resp = crate::sync::identify::Response {
+            delay_cycles: r.delay_cycles.max(0.0).floor() as u32,
+            delay_fraction: r.delay_cycles.max(0.0).fract(),
+            feed_forward: r.feed_forward,
+            time_constant_s: r.time_constant_ms * 1e-3,
+            vaf: 1.0,
+            samples: 0,
+            velocity_lag: 0.0,
+        };
+        let resp = crate::sync::identify::Response { velocity_lag: resp.velocity_lag_model(cfg.cycle_s()), ..resp };
+        // (The configured response carries the model; its lag is the model's.)
+        let need = identify::proposed_window(cfg, name, &resp);
+        if a.following_error < need {
+            out.push(format!(
+                "axes.{name}.following_error = {} is below 3 × the lag its response predicts at max_speed; set at least {need:.4}",
+                a.following_error
+            ));
+        }
+    }
+    out
+}
+
 fn config_check(file: Option<&std::path::Path>, json: bool) -> i32 {
     let name = file.map(|p| p.display().to_string()).unwrap_or_else(|| "embedded config/lathe.toml".into());
     if let Some(Err(e)) = file.map(std::fs::metadata) {
@@ -766,6 +807,7 @@ fn config_check(file: Option<&std::path::Path>, json: bool) -> i32 {
     } else {
         Vec::new()
     };
+    let warnings = response_warnings(&cfg);
     let mut text = Vec::new();
     if problems.is_empty() {
         text.push(format!("{name}: ok — {}", cfg.machine.name));
@@ -773,6 +815,7 @@ fn config_check(file: Option<&std::path::Path>, json: bool) -> i32 {
         text.push(format!("{name}: run would refuse it ({} problem(s)) — {}", problems.len(), cfg.machine.name));
         text.extend(problems.iter().map(|p| format!("  {p}")));
     }
+    text.extend(warnings.iter().map(|w| format!("  warning: {w}")));
     text.push(format!("  cycle {} ms, bus {} at {} bit/s", cfg.machine.cycle_ms, cfg.bus.interface, cfg.bus.bitrate));
     let n_can = cfg.axes.values().filter(|a| a.modbus.is_none()).count();
     let mut can_load = None;
@@ -826,7 +869,7 @@ fn config_check(file: Option<&std::path::Path>, json: bool) -> i32 {
         println!(
             "{}",
             serde_json::json!({
-                "file": name, "ok": problems.is_empty(), "problems": problems, "machine": cfg.machine.name, "cycle_ms": cfg.machine.cycle_ms,
+                "file": name, "ok": problems.is_empty(), "problems": problems, "warnings": warnings, "machine": cfg.machine.name, "cycle_ms": cfg.machine.cycle_ms,
                 "bus": cfg.bus.interface, "bitrate": cfg.bus.bitrate, "canopen_bus_load": can_load,
                 "canopen_drives": n_can, "modbus_links": links, "axes": axes,
             })

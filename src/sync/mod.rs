@@ -1,6 +1,7 @@
 //! Spindle–axis synchronization (threading, rigid tapping) and its error monitor.
 
 pub mod correction;
+pub mod identify;
 pub mod lag;
 pub mod link_check;
 pub mod matrix;

@@ -1,0 +1,193 @@
+//! `cncgw identify AXIS`: commissioning — move one axis (a few millimetres back and forth
+//! from where it stands, at three speeds) or the spindle (speed steps up and down), record the
+//! set-point and the actual position every cycle, and fit the drive's response
+//! (`sync::identify`): delay, velocity feed-forward, time constant, fit quality. Printed as an
+//! `[axes.NAME.response]` table for the machine configuration, with the following-error window
+//! the response asks for at the axis' maximum speed.
+
+use super::run::{ExecOpts, Job, RunExtras};
+use super::MachineArgs;
+use crate::config::{AxisKind, MachineConfig};
+use crate::interp::Interpreter;
+use crate::motion::trace::TraceData;
+use crate::sync::identify::{identify, Response};
+use std::path::PathBuf;
+
+/// The command line of `cncgw identify`.
+#[derive(clap::Args, Debug, Clone)]
+pub struct IdentifyArgs {
+    /// The axis to identify, as the configuration names it (x, z, s1, …).
+    pub axis: String,
+    /// How far a linear axis moves from where it stands (first towards minus), mm.
+    #[arg(long, default_value_t = 10.0)]
+    pub travel: f64,
+    /// Move on a real bus without asking (scripts).
+    #[arg(long)]
+    pub yes: bool,
+    /// Print the result as JSON.
+    #[arg(long)]
+    pub json: bool,
+    /// Keep the recorded trace here (CSV).
+    #[arg(long, value_name = "FILE.csv")]
+    pub trace: Option<PathBuf>,
+}
+
+/// The excitation program of `axis`: speed steps that show the delay, the jump of the
+/// feed-forward and the lag's time constant.
+fn program(cfg: &MachineConfig, axis: &str, travel: f64, start: crate::canon::Pos) -> Result<String, String> {
+    let a = cfg.axes.get(axis).ok_or_else(|| format!("no axis {axis} in the configuration (axes: {})", cfg.axes.keys().cloned().collect::<Vec<_>>().join(", ")))?;
+    match a.kind {
+        AxisKind::Spindle => {
+            let s = |f: f64| (a.max_speed * f).round();
+            Ok(format!("G21\nG97 M03 S{}\nG4 P600\nS{}\nG4 P600\nS{}\nG4 P400\nM05\nG4 P600\nM30\n", s(0.2), s(0.5), s(0.15)))
+        }
+        AxisKind::Linear => {
+            let word = match axis {
+                "x" => "U",
+                "z" => "W",
+                "y" => "V",
+                _ => return Err(format!("axis {axis}: identify moves x, y, z or a spindle")),
+            };
+            // First towards whichever side has the room (within the travel limits).
+            let at = match axis {
+                "x" => start.x,
+                "y" => start.y,
+                _ => start.z,
+            };
+            let room_minus = a.min.is_none_or(|lo| at - travel >= lo);
+            let room_plus = a.max.is_none_or(|hi| at + travel <= hi);
+            let sign = match (room_minus, room_plus) {
+                (true, _) => 1.0,   // minus first (the moves are -d, +d)
+                (false, true) => -1.0,
+                _ => return Err(format!("axis {axis} at {at:.3} has not {travel} mm of room on either side within its travel: jog it or give a smaller --travel")),
+            };
+            // X is programmed as a diameter: U moves twice the radius.
+            let d = sign * if axis == "x" { travel * 2.0 } else { travel };
+            let f = |k: f64| (a.max_speed * k).round();
+            Ok(format!(
+                "G21\nG98\nG1 {word}{} F{}\nG4 P200\nG1 {word}{} F{}\nG4 P200\nG0 {word}{}\nG4 P200\nG0 {word}{}\nG4 P300\nM30\n",
+                -d,
+                f(0.1),
+                d,
+                f(0.3),
+                -d,
+                d
+            ))
+        }
+    }
+}
+
+/// `cncgw identify`.
+pub fn run(machine: &MachineArgs, a: &IdentifyArgs) -> i32 {
+    use super::exit;
+    let (cfg, cfg_text) = match super::machine_config(machine) {
+        Ok(c) => c,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return exit::SETUP;
+        }
+    };
+    // Checked before anything is opened (from the travel's middle: the start is not known).
+    if let Err(e) = program(&cfg, &a.axis, a.travel, crate::canon::Pos::ZERO).or_else(|e| if e.contains("room") { Ok(String::new()) } else { Err(e) }) {
+        eprintln!("error: {e}");
+        return exit::INPUT;
+    }
+    if let Err(c) = super::service::confirm_motion(machine, a.yes, &format!("an identification run of axis {}", a.axis)) {
+        return c;
+    }
+    let csv = a.trace.clone().unwrap_or_else(|| std::env::temp_dir().join(format!("cncgw-identify-{}.csv", std::process::id())));
+    let job = Job {
+        name: format!("identify {}", a.axis),
+        source: String::new(),
+        first: None,
+        make: Box::new(|start| {
+            let prog = program(&cfg, &a.axis, a.travel, start).map_err(|e| vec![crate::Alarm::new(2451, format!("identify: {e}"))])?;
+            Interpreter::from_source("identify.nc", &prog, &cfg)
+        }),
+    };
+    let opts = ExecOpts { extras: RunExtras { trace: Some(&csv), ..RunExtras::default() }, ..ExecOpts::default() };
+    let (code, _, _) = super::run::run_job(&cfg, &cfg_text, machine, job, &opts);
+    if code != exit::OK {
+        return code;
+    }
+    let data = match std::fs::read_to_string(&csv).map_err(|e| e.to_string()).and_then(|t| TraceData::parse(&t)) {
+        Ok(d) => d,
+        Err(e) => {
+            eprintln!("error: the trace {}: {e}", csv.display());
+            return exit::SETUP;
+        }
+    };
+    if a.trace.is_none() {
+        let _ = std::fs::remove_file(&csv);
+    }
+    let (Some(cmd), Some(act)) = (data.column(&format!("{}_cmd", a.axis)), data.column(&format!("{}_act", a.axis))) else {
+        eprintln!("error: the trace has no columns of axis {}", a.axis);
+        return exit::SETUP;
+    };
+    let Some(r) = identify(cmd, act, cfg.cycle_s(), 10) else {
+        eprintln!("error: axis {} did not move enough to identify it", a.axis);
+        return exit::NOT_MET;
+    };
+    report(&cfg, &a.axis, &r, a.json);
+    if r.vaf < 0.9 {
+        eprintln!("warning: the model accounts for only {:.1} % of the motion: the drive is not first-order-like (check its tuning, a resonance, friction)", r.vaf * 100.0);
+    }
+    exit::OK
+}
+
+/// The lag the drive itself sees between its demand and its actual position at constant
+/// speed, s: the velocity lag beyond the pure delay (transport, interpolation and the
+/// feedback's own cycle do not count in the drive's following error).
+pub fn own_lag_s(r: &Response, dt: f64) -> f64 {
+    (r.velocity_lag_s(dt) - (r.delay_cycles as f64 + r.delay_fraction) * dt).max(0.0)
+}
+
+/// The following-error window (0x6065) the response asks for at the axis' maximum speed:
+/// three times the drive's own lag there, in the axis' units (mm, degrees).
+pub fn proposed_window(cfg: &MachineConfig, axis: &str, r: &Response) -> f64 {
+    let a = &cfg.axes[axis];
+    let vmax = match a.kind {
+        AxisKind::Spindle => a.max_speed * 6.0,
+        AxisKind::Linear => a.max_speed / 60.0,
+    };
+    3.0 * own_lag_s(r, cfg.cycle_s()) * vmax
+}
+
+fn report(cfg: &MachineConfig, axis: &str, r: &Response, json: bool) {
+    let dt = cfg.cycle_s();
+    let unit = if cfg.axes[axis].kind == AxisKind::Spindle { "degrees" } else { "mm" };
+    let window = proposed_window(cfg, axis, r);
+    if json {
+        println!(
+            "{}",
+            serde_json::json!({
+                "axis": axis, "delay_cycles": r.delay_cycles as f64 + r.delay_fraction, "feed_forward": r.feed_forward,
+                "time_constant_ms": r.time_constant_s * 1e3, "velocity_lag_ms": r.velocity_lag_s(dt) * 1e3,
+                "own_lag_ms": own_lag_s(r, dt) * 1e3,
+                "vaf_pct": r.vaf * 100.0, "samples": r.samples,
+                "proposed_following_error": window, "following_error": cfg.axes[axis].following_error, "unit": unit,
+            })
+        );
+        return;
+    }
+    println!("# cncgw identify {axis}: {} cycles of {} ms, the model accounts for {:.1} % of the motion", r.samples, dt * 1e3, r.vaf * 100.0);
+    println!("[axes.{axis}.response]");
+    println!("delay_cycles = {:.1}        # set-point to the first change of the actual position the controller reads", r.delay_cycles as f64 + r.delay_fraction);
+    println!("feed_forward = {:.4}      # share of a speed change that follows at once", r.feed_forward);
+    println!("time_constant_ms = {:.2}   # of the rest (≈ 1/Kv)", r.time_constant_s * 1e3);
+    println!(
+        "# velocity lag {:.2} ms as the controller reads it, {:.2} ms of it the drive's own: at maximum speed it lags its demand {:.4} {unit}",
+        r.velocity_lag_s(dt) * 1e3,
+        own_lag_s(r, dt) * 1e3,
+        window / 3.0
+    );
+    let now = cfg.axes[axis].following_error;
+    if window == 0.0 {
+        println!("# no lag of the drive's own beyond the delay: the configured following_error {now} stands");
+    } else {
+        println!(
+            "# following_error (0x6065) of at least {window:.4} {unit} suggested (3 × that lag); configured {now}{}",
+            if now < window { " — TOO SMALL: the drive would fault at full speed" } else { "" }
+        );
+    }
+}
