@@ -314,6 +314,8 @@ pub struct Interpreter {
     arc_missing_alarm: bool,
     has_y: bool,
     has_c: bool,
+    /// The drilling cycles' tool turns in the tool spindle (machine.drilling_spindle = "tool").
+    driven_tool_drilling: bool,
     // Execution state.
     prog: usize,
     /// The next line to execute.
@@ -406,6 +408,7 @@ impl Interpreter {
             arc_missing_alarm: cfg.param(3403).map(|_| cfg.param_bit(3403, 5)).unwrap_or(true),
             has_y: cfg.axes.contains_key("y"),
             has_c: cfg.spindle().is_some() || cfg.axes.contains_key("c"),
+            driven_tool_drilling: cfg.machine.drilling_spindle == crate::config::DrillingSpindle::Tool,
             prog: 0,
             line: Loc::default(),
             cur: (0, Loc::default()),
