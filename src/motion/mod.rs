@@ -125,6 +125,12 @@ const INPOS_MAX_CYCLES: u32 = 150;
 const LAG_MEMORY_S: f64 = 2.0;
 /// Gain with which a thread's measured phase error corrects the long axis' lag, per cycle.
 const THREAD_TRIM_GAIN: f64 = 0.1;
+/// Most junctions of a blended chain crossed within one cycle. Keeps `step` bounded: a
+/// chain of tiny segments (CAM contours) runs at up to `MAX_JUNCTIONS` segment lengths per
+/// cycle (64 × 0.01 mm per 2 ms = 19 m/min), where one crossing per cycle capped the path
+/// speed at one segment per cycle. Fanuc's AI contour control likewise processes several
+/// blocks per interpolation period.
+pub const MAX_JUNCTIONS: usize = 64;
 
 /// Largest C (spindle angle) a move may ask for, degrees: beyond it an angle no longer
 /// resolves a count of the spindle's encoder in f64 (a C of 1e300 from a macro made the
@@ -598,6 +604,8 @@ pub struct Motion {
     tap_gate: Option<bool>,
     /// A hole's first stroke is ready at R and waits for the gate.
     tap_wait: Option<TapEntry>,
+    /// Items pushed since the last look-ahead pass (`relax`, at the start of `step`).
+    relax_pending: usize,
 }
 
 /// A rigid tap's first stroke of a hole, ready at its R point (see [`Motion::tap_waiting`]).
@@ -670,6 +678,7 @@ impl Motion {
             path_a: 0.0,
             tap_gate: None,
             tap_wait: None,
+            relax_pending: 0,
             sp_dir: 0.0,
             sp_rpm: 0.0,
             sp_css: None,
@@ -844,6 +853,7 @@ impl Motion {
         let i = (self.head + self.len) % self.queue.len();
         self.queue[i] = Entry { item, line: m.src.line, cyc };
         self.len += 1;
+        self.relax_pending = self.relax_pending.saturating_add(1);
         if is_move && blend_in {
             self.link_last();
         }
@@ -953,6 +963,7 @@ impl Motion {
         if !self.jerk_chain(new) {
             return;
         }
+        self.accel_chain(new);
         let Some(prev) = self.prev_seg_mut(1) else { return };
         // The junction is crossed within one cycle: the velocity vector turns from t1 to t0
         // there, so each axis' speed jumps by v·|Δu_i|; allow half its acceleration for that
@@ -974,18 +985,19 @@ impl Motion {
                 }
             }
         }
-        let mut v = prev.vlim.min(new.vlim).min(new.geom.len() / dt);
+        // At most MAX_JUNCTIONS crossings per cycle: every junction crossed in a cycle is
+        // crossed at a speed ≤ its `vj` (see `relax`), so with `vj ≤ M·len/dt` of the segment
+        // after it, n crossings in one cycle need `v·dt > (n−1)·min len ≥ (n−1)·v·dt/M`: n ≤ M.
+        let h = prev.geom.len().min(new.geom.len());
+        let mut v = prev.vlim.min(new.vlim).min(MAX_JUNCTIONS as f64 * new.geom.len() / dt);
         for i in 0..3 {
             let du = (new.t0[i] - prev.t1[i]).abs();
             let du = if du > 1e-12 { du } else { 0.0 };
             if du > 0.0 || k[i] > 0.0 {
-                // The positive root of k·v² + du·v = c, in the form that is stable for k → 0.
-                let c = 0.5 * amax[i] * dt;
-                v = v.min(2.0 * c / (du + (du * du + 4.0 * k[i] * c).sqrt()));
+                v = v.min(corner_speed(du, k[i], h, 0.5 * amax[i] * dt, dt));
             }
         }
         prev.vj = finite_or_zero(v);
-        self.relax();
     }
 
     /// S-curve look-ahead: all segments of a blended chain brake with one path acceleration
@@ -1034,54 +1046,91 @@ impl Motion {
         true
     }
 
-    /// Backward pass over the linked chain from the newest segment: the speed at which each
-    /// junction may be crossed (≤ its corner limit, and low enough that the rest of the chain
-    /// can still be braked within the acceleration), expressed as the segment's `ext`. Stops
-    /// as soon as a segment's `ext` does not grow. O(queue length), in `push` only.
-    fn relax(&mut self) {
+    /// Trapezoid look-ahead: in a chain of short blocks, every block brakes at least as hard
+    /// as the one before it, so that `relax` can hand each block the whole room after it
+    /// (see `relaxed_ext`). When the newest block's acceleration is lower, the linked blocks
+    /// before it that are shorter than a cycle's travel at their speed are lowered to it —
+    /// all or none: not if that would reach a long block, or the running block whose state
+    /// could not brake for its room with the lower acceleration; the junction then keeps the
+    /// rule that loses a cycle's travel, which a long block does not notice. Lowering a
+    /// block's acceleration keeps its own `ext` valid (see `relaxed_ext`). Stops at the
+    /// first block already as low.
+    fn accel_chain(&mut self, new: Seg) {
         let dt = self.lim.cycle_s;
-        let cap = self.queue.len();
-        let Some(Item::Move(newest)) = self.len.checked_sub(1).map(|k| self.queue[(self.head + k) % cap].item) else {
+        let a = new.alim;
+        if new.jlim > 0.0 || !(a > 0.0) {
             return;
-        };
-        let (mut nlen, mut next_ext, mut ndv) = (newest.geom.len(), newest.ext, newest.alim * dt);
-        let mut next_cap = speed_cap(&newest);
+        }
+        let lowers = |p: &Seg| p.alim > a && p.jlim == 0.0;
+        let short = |p: &Seg| p.geom.len() <= speed_cap(p).min(p.vlim) * dt;
+        let len = self.len;
         let mut back = 1;
-        while let Some(prev) = self.prev_seg_mut(back) {
-            if !(prev.vj > 0.0) {
+        // Block 1 is being linked to `new`; older ones only along the linked chain.
+        while let Some(p) = self.prev_seg_mut(back) {
+            if !lowers(p) || (back > 1 && !(p.vj > 0.0)) {
                 break;
             }
-            // Hard limit of the crossing speed: the corner, and the next segment must be
-            // brakeable from it (its own staircase).
-            let ve = prev.vj.min(profile::v_allowed(nlen + next_ext, ndv, dt));
-            let pdv = prev.alim * dt;
-            // A virtual stop `dt·G(w)` beyond the end: the cycle that crosses the junction then
-            // runs slower than `w + dv` (see profile::v_allowed). `w = ve − dv` keeps the hard
-            // limit; the next segment's feed (soft: `v_cmd` caps the speed anyway) lowers `w`
-            // so that a drop in F is braked before the junction, to within one step.
-            // Below one step: exact stop.
-            let ext = if prev.jlim > 0.0 && prev.alim > 0.0 {
-                // S-curve (one acceleration `A` along the chain, see `jerk_chain`): a virtual
-                // stop `w²/2A` beyond the end. Any state that can still brake within it moves
-                // at most `w` there (braking at ≤ A needs v²/2A), hence at most `w + A·dt`
-                // within the crossing cycle; and it fits in the next segment's room.
-                let a = prev.alim;
-                let w = (prev.vj - pdv).min(next_cap).min((2.0 * a * (nlen + next_ext)).sqrt());
-                if w > 0.0 { w * w / (2.0 * a) } else { 0.0 }
-            } else if ve > pdv {
-                dt * profile::g((ve - pdv).min(next_cap), pdv)
-            } else {
-                0.0
-            };
-            if !(ext > prev.ext) {
-                break;
+            if !short(p) {
+                return;
             }
-            prev.ext = ext;
-            nlen = prev.geom.len();
-            next_ext = ext;
-            ndv = pdv;
-            next_cap = speed_cap(prev);
+            if back == len {
+                // The running block, lowered only if its state can still brake for its room
+                // with the lower acceleration (`profile::next_speed` then stays within a·dt).
+                let Run::Move { seg, s, v, .. } = self.run else { return };
+                let dv = a * dt;
+                if !(dt * profile::g(v - dv, dv) <= seg.geom.len() - s + seg.ext) {
+                    return;
+                }
+            }
             back += 1;
+        }
+        for b in 1..back {
+            if let Some(p) = self.prev_seg_mut(b) {
+                p.alim = a;
+            }
+        }
+        self.relax_pending = self.relax_pending.max(back);
+    }
+
+    /// Backward pass over the linked chains, from the newest segment: the speed at which each
+    /// junction may be crossed (≤ its corner limit, and low enough that the rest of the chain
+    /// can still be braked within the acceleration), expressed as the segment's `ext`.
+    ///
+    /// Run once per cycle (at the start of `step`) over what was pushed since, not once per
+    /// push: a chain of tiny blocks within braking distance of the end of the queue is
+    /// hundreds of blocks long, and every push grows the `ext` of all of them (at 0.01 mm and
+    /// F6000, 20 pushes a cycle would each walk 500 blocks). It walks every block pushed since
+    /// the last pass, then back while an `ext` grows — far enough in DISTANCE: the room of the
+    /// whole queued chain, ending at rest on the last queued block, whatever their number.
+    /// At most the queue's length, no allocation.
+    fn relax(&mut self) {
+        let pending = std::mem::take(&mut self.relax_pending);
+        if pending == 0 {
+            return;
+        }
+        let dt = self.lim.cycle_s;
+        // (length, ext, dv, feed) of the segment after the one looked at; None: not a move.
+        let mut next: Option<(f64, f64, f64, f64)> = None;
+        for back in 0..=self.len {
+            let Some(prev) = self.prev_seg_mut(back) else {
+                if back >= pending {
+                    break;
+                }
+                next = None;
+                continue;
+            };
+            let mut grew = false;
+            if let (Some((nlen, next_ext, ndv, next_cap)), true) = (next, prev.vj > 0.0) {
+                let ext = relaxed_ext(prev, nlen + next_ext, ndv, next_cap, dt);
+                if ext > prev.ext {
+                    prev.ext = ext;
+                    grew = true;
+                }
+            }
+            if !grew && back >= pending {
+                break;
+            }
+            next = Some((prev.geom.len(), prev.ext, prev.alim * dt, speed_cap(prev)));
         }
     }
 
@@ -1615,6 +1664,7 @@ impl Motion {
         let prev = self.pos;
         let mut event = Event::None;
         let mut path_v = 0.0;
+        self.relax();
         self.monitor_sync(fb);
         // In a rigid-tap stroke the spindle is a position axis driven by the tap profile.
         if !matches!(self.run, Run::Tap { theta0: Some(_), .. } | Run::Rigid { theta0: Some(_), .. })
@@ -1717,16 +1767,7 @@ impl Motion {
                 let reach = d - adv <= 1e-9;
                 // The path speed of this cycle (the trapezoid's exactly `nv`).
                 let pv = if jerk { adv / dt } else { nv };
-                let next = match (reach && seg.ext > 0.0, self.peek()) {
-                    (true, Some(Entry { item: Item::Move(next), line, cyc })) => Some((next, line, cyc)),
-                    _ => None,
-                };
-                if let Some((next, line, cyc)) = next {
-                    // Blend: cross the junction within this cycle, onto the next segment.
-                    self.pop();
-                    self.line = line;
-                    self.cur_cyc = cyc;
-                    let s2 = (adv - d).max(0.0).min(next.geom.len());
+                if let Some((next, s2)) = (reach && seg.ext > 0.0).then(|| self.cross(adv - d)).flatten() {
                     let p = next.geom.at(s2);
                     self.pos[..3].copy_from_slice(&p);
                     path_v = pv;
@@ -1935,6 +1976,35 @@ impl Motion {
             event,
             tool_spindle: self.tool.pos(),
         }
+    }
+
+    /// Blend: cross the junction at the end of the running segment within this cycle, onto
+    /// the next queued segment, `over` (≥ 0) beyond the end, and on across the junctions of
+    /// the segments that this cycle passes entirely, at most [`MAX_JUNCTIONS`]. Returns the
+    /// segment the cycle ends in and the arc length there, or None when no linked segment is
+    /// queued (the running one then lands on its end). Bounded, allocation-free.
+    ///
+    /// Every junction crossed is crossed at a speed its `vj` allows and every segment entered
+    /// can still be braked within its length and `ext` (see `relax`): the same reasoning as for
+    /// one junction, applied to each in turn. `link_last` keeps the count within the bound;
+    /// the bound is only a backstop against rounding.
+    fn cross(&mut self, over: f64) -> Option<(Seg, f64)> {
+        let mut over = over.max(0.0);
+        let mut last = None;
+        for _ in 0..MAX_JUNCTIONS {
+            let Some(Entry { item: Item::Move(next), line, cyc }) = self.peek() else { break };
+            self.pop();
+            self.line = line;
+            self.cur_cyc = cyc;
+            let len = next.geom.len();
+            last = Some((next, over.min(len)));
+            // Passed entirely, and blended on: cross its end too.
+            if !(over - len > 1e-9 && next.ext > 0.0) {
+                break;
+            }
+            over -= len;
+        }
+        last
     }
 
     /// One cycle of a thread pass: wait for the spindle, arm at the measured angle, then track
@@ -2283,6 +2353,66 @@ fn speed_cap(s: &Seg) -> f64 {
         Speed::PerMin(f) => f,
         Speed::Rapid | Speed::PerRev(_) => f64::INFINITY,
     }
+}
+
+/// The `ext` a blended segment may have (see `Motion::relax`), given the room after its end
+/// (`room`: the next segment's length and `ext`), the next segment's speed step `ndv` and feed.
+fn relaxed_ext(prev: &Seg, room: f64, ndv: f64, next_cap: f64, dt: f64) -> f64 {
+    // Hard limit of the crossing speed: the corner, and the next segment must be brakeable
+    // from it (its own staircase).
+    let ve = prev.vj.min(profile::v_allowed(room, ndv, dt));
+    let pdv = prev.alim * dt;
+    // A virtual stop `dt·G(w)` beyond the end: the cycle that crosses the junction then runs
+    // slower than `w + dv` (see profile::v_allowed). `w = ve − dv` keeps the hard limit; the
+    // next segment's feed (soft: `v_cmd` caps the speed anyway) lowers `w` so that a drop in
+    // F is braked before the junction, to within one step. Below one step: exact stop.
+    if prev.jlim > 0.0 && prev.alim > 0.0 {
+        // S-curve (one acceleration `A` along the chain, see `jerk_chain`): a virtual stop
+        // `w²/2A` beyond the end. Any state that can still brake within it moves at most `w`
+        // there (braking at ≤ A needs v²/2A), hence at most `w + A·dt` within the crossing
+        // cycle; and it fits in the next segment's room.
+        let a = prev.alim;
+        let w = (prev.vj - pdv).min(next_cap).min((2.0 * a * room).sqrt());
+        if w > 0.0 {
+            w * w / (2.0 * a)
+        } else {
+            0.0
+        }
+    } else if prev.vj > pdv && ndv >= pdv {
+        // The next segment brakes at least as hard (`accel_chain` makes chains of short blocks
+        // so): the room itself. A cycle that crosses the end `o` beyond it at speed `v` has
+        // `dt·G(v − pdv) ≤ ext − o` (the profile's bound), hence `dt·G'(v − ndv) ≤ room − o`
+        // in the next segment: it can still brake; and `v − pdv < G⁻¹(ext/dt) ≤ vj − pdv`.
+        // The room of a chain of tiny blocks adds up; the rule below loses one cycle's
+        // travel per junction, which stopped such a chain at every block.
+        room.min(dt * profile::g((prev.vj - pdv).min(next_cap), pdv))
+    } else if ve > pdv {
+        dt * profile::g((ve - pdv).min(next_cap), pdv)
+    } else {
+        0.0
+    }
+}
+
+/// Largest speed at which a junction may be crossed, for one axis: `du` the jump of that
+/// axis' share of the direction, `k` the arcs' chord turn (see `link_last`), `h` the shorter
+/// of the two segments, `c` the axis' velocity change allowed per cycle for corners.
+///
+/// The axis velocity of a cycle is the setpoints' difference over `dt`; from one cycle to the
+/// next it changes by `v·Σ du_j·φ_j` over the junctions `j` within `2·v·dt` of path, with tent
+/// weights `φ_j ≤ 1` whose sum is at most 1 while the junctions are `≥ v·dt` apart (the
+/// one-junction case: `v·du ≤ c`), and about `v·dt/h` when a chord chain packs them `h`
+/// apart. Hence `k·v² + du·v·max(1, v·dt/h) ≤ c`. On a circle of radius `R` cut into chords
+/// (`du ≈ h/R`) this is `v²/R ≤ c/dt`: the chain's centripetal acceleration gets the corner's
+/// share of the axis' acceleration, independent of the chord length.
+fn corner_speed(du: f64, k: f64, h: f64, c: f64, dt: f64) -> f64 {
+    // The positive root of k·v² + du·v = c, in the form that is stable for k → 0.
+    let v = 2.0 * c / (du + (du * du + 4.0 * k * c).sqrt());
+    if v * dt <= h || !(du > 0.0) {
+        return v;
+    }
+    // Junctions closer than a cycle's travel: (k + du·dt/h)·v² = c.
+    let kk = k + du * dt / h.max(f64::MIN_POSITIVE);
+    (c / kk).sqrt().min(v)
 }
 
 fn seg(geom: Geom, speed: Speed, v: f64, a: f64) -> Seg {
