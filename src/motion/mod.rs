@@ -16,12 +16,19 @@
 //! - Look-ahead (G64): a segment pushed without `exact_stop` is linked to the next one when it
 //!   arrives. The junction is crossed within one cycle at a speed limited by the corner angle
 //!   (each axis' velocity jump `v·|Δu_i| ≤ ½·amax_i·dt`, plus `v²·dt/2r` for each arc at the
-//!   junction: the chord's turn from its tangent), by both segments' speed limits, and
-//!   by the next segment's length (one junction per cycle, so `step` stays O(1)); a backward
-//!   pass in `push` makes sure every later stop can still be braked for. Segments next to a
-//!   blended junction ramp with half the acceleration, the other half is the corner's.
+//!   junction: the chord's turn from its tangent; where junctions are closer than a cycle's
+//!   travel the jumps of one cycle add up, `× v·dt/h`: the centripetal limit of a chord
+//!   chain, see `corner_speed`), by both segments' speed limits, and by
+//!   [`MAX_JUNCTIONS`] × the next segment's length per cycle: a cycle crosses as many
+//!   junctions as its travel spans, at most [`MAX_JUNCTIONS`], so `step` stays bounded and a
+//!   CAM contour of 0.02 mm blocks runs at its feed. A backward pass (`relax`, once per cycle
+//!   over what was pushed since) makes sure every later stop can still be braked for: each
+//!   block may count on the whole queued room after it, in distance, down to a stop at rest
+//!   on the last queued block — a queue shorter than the braking distance lowers the speed.
+//!   Segments next to a blended junction ramp with half the acceleration, the other half is
+//!   the corner's; a chain of short blocks ramps with one acceleration (`accel_chain`).
 //! - Events (aux codes, M00/M01, M30) and spindle commands are taken in program order, one item
-//!   per cycle, so `step` is O(1).
+//!   per cycle.
 //!
 //! Limits per segment: the path speed is at most `min_i vmax_i/|u_i|` and the path
 //! acceleration `min_i amax_i/|u_i|` (u = unit direction), so no axis exceeds its own limit;
@@ -34,7 +41,8 @@
 //! # Contract with the cycle loop
 //!
 //! - Every cycle: read the drives' feedback, call `step` once, send the setpoint. `step` never
-//!   allocates, never panics, does a constant amount of work, and is deterministic (same
+//!   allocates, never panics, does a bounded amount of work (at most [`MAX_JUNCTIONS`]
+//!   crossings and one look-ahead pass over the queue), and is deterministic (same
 //!   pushes, feedback and operator calls give bit-identical setpoints).
 //! - `Feedback::pos[AX_S]` is the measured spindle angle in continuous degrees whose multiples
 //!   of 360 are the one-revolution reference; `Feedback::spindle_rpm` the measured speed.
@@ -270,7 +278,7 @@ impl Limits {
             feed_clamp: f64::INFINITY,
             chord_tol: 0.001,
             arc_radius_tol: 0.01,
-            queue_len: 256,
+            queue_len: 1024,
             tap_accel: f64::INFINITY,
             tap_hold_in_hole: cfg.param_bit(5200, 6),
             sync_err_limit_um: cfg.machine.sync_error_limit_um,
@@ -1049,12 +1057,15 @@ impl Motion {
     /// Trapezoid look-ahead: in a chain of short blocks, every block brakes at least as hard
     /// as the one before it, so that `relax` can hand each block the whole room after it
     /// (see `relaxed_ext`). When the newest block's acceleration is lower, the linked blocks
-    /// before it that are shorter than a cycle's travel at their speed are lowered to it —
+    /// before it that are shorter than a cycle's travel at their speed are lowered —
     /// all or none: not if that would reach a long block, or the running block whose state
     /// could not brake for its room with the lower acceleration; the junction then keeps the
     /// rule that loses a cycle's travel, which a long block does not notice. Lowering a
     /// block's acceleration keeps its own `ext` valid (see `relaxed_ext`). Stops at the
-    /// first block already as low.
+    /// first block already as low. They are lowered to the least a blended line can have on
+    /// this machine (or the new block's, if less), so that the next blocks of a contour whose
+    /// direction keeps turning do not lower them again: each block is lowered at most twice,
+    /// and `push` stays O(1) amortised.
     fn accel_chain(&mut self, new: Seg) {
         let dt = self.lim.cycle_s;
         let a = new.alim;
@@ -1062,6 +1073,7 @@ impl Motion {
             return;
         }
         let lowers = |p: &Seg| p.alim > a && p.jlim == 0.0;
+        let floor = (0..3).filter(|&i| self.lim.present[i]).map(|i| 0.5 * self.lim.amax[i]).fold(a, f64::min);
         let short = |p: &Seg| p.geom.len() <= speed_cap(p).min(p.vlim) * dt;
         let len = self.len;
         let mut back = 1;
@@ -1077,7 +1089,7 @@ impl Motion {
                 // The running block, lowered only if its state can still brake for its room
                 // with the lower acceleration (`profile::next_speed` then stays within a·dt).
                 let Run::Move { seg, s, v, .. } = self.run else { return };
-                let dv = a * dt;
+                let dv = floor * dt;
                 if !(dt * profile::g(v - dv, dv) <= seg.geom.len() - s + seg.ext) {
                     return;
                 }
@@ -1086,7 +1098,7 @@ impl Motion {
         }
         for b in 1..back {
             if let Some(p) = self.prev_seg_mut(b) {
-                p.alim = a;
+                p.alim = floor;
             }
         }
         self.relax_pending = self.relax_pending.max(back);
@@ -1658,7 +1670,7 @@ impl Motion {
         (lead * ahead.abs() / 60.0).min(self.lim.feed_clamp)
     }
 
-    /// Advance one cycle. Never allocates; never panics; O(1).
+    /// Advance one cycle. Never allocates; never panics; bounded (see the module doc).
     pub fn step(&mut self, fb: &Feedback) -> Setpoint {
         let dt = self.lim.cycle_s;
         let prev = self.pos;
