@@ -78,6 +78,8 @@ struct Fig {
     /// Largest axis acceleration and velocity seen (mm/s², mm/s).
     max_acc: f64,
     max_vel: f64,
+    /// Largest change of an axis acceleration from one cycle to the next, mm/s² (S-curve).
+    max_dacc: f64,
     /// Cost of one cycle's `push`es plus `step`, and of `step` alone: worst and mean, µs.
     worst_cycle_us: f64,
     worst_step_us: f64,
@@ -104,13 +106,14 @@ fn run(lim: &Limits, prog: impl Iterator<Item = Move>, end: Pos) -> Fig {
             spindle_rpm: 0.0,
         };
     }
-    let (mut p, mut v) = (m.position(), [0.0; N_AXES]);
+    let (mut p, mut v, mut a) = (m.position(), [0.0; N_AXES], [0.0; N_AXES]);
     let mut f = Fig {
         path_s: 0.0,
         step_us: Vec::with_capacity(1 << 20),
         cycle_us: Vec::with_capacity(1 << 20),
         max_acc: 0.0,
         max_vel: 0.0,
+        max_dacc: 0.0,
         worst_cycle_us: 0.0,
         worst_step_us: 0.0,
         mean_step_us: 0.0,
@@ -148,8 +151,11 @@ fn run(lim: &Limits, prog: impl Iterator<Item = Move>, end: Pos) -> Fig {
         for i in 0..3 {
             let nv = (sp.pos[i] - p[i]) / dt;
             f.max_vel = f.max_vel.max(nv.abs());
-            f.max_acc = f.max_acc.max(((nv - v[i]) / dt).abs());
+            let na = (nv - v[i]) / dt;
+            f.max_acc = f.max_acc.max(na.abs());
+            f.max_dacc = f.max_dacc.max((na - a[i]).abs());
             v[i] = nv;
+            a[i] = na;
         }
         p = sp.pos;
         if !moving {
@@ -238,6 +244,33 @@ fn main() {
             );
         }
     }
+    // S-curve: No.1772 = 32 ms on every linear axis (jerk = 2000 / 0.032 = 62 500 mm/s³).
+    let t = cncgw::config::EMBEDDED_LATHE.replace("[parameters]", "[parameters]\n1772 = 32");
+    let cfg = MachineConfig::from_toml("lathe.toml", &t).expect("embedded config with No.1772");
+    let mut lim = Limits::from_config(&cfg);
+    lim.feed_clamp = f64::INFINITY;
+    println!("\nthe same with S-curve, No.1772 = 32 ms (j·dt = {:.0} mm/s² per cycle)", 2000.0 / 0.032 * lim.cycle_s);
+    println!("| chords | F | path time | optimum (ramps v/A + A/J) | ratio | max axis acc | max axis Δacc per cycle |");
+    println!("| --- | --- | --- | --- | --- | --- | --- |");
+    for f in [3000.0, 6000.0] {
+        for h in [0.5, 0.05, 0.02, 0.01] {
+            let (prog, len) = program(h, f, 1);
+            let n = ((std::f64::consts::PI * R / h).round() as usize).max(1);
+            let fig = run(&lim, prog, point(n, n));
+            let v = f / 60.0;
+            let opt = len / v + v / A_OPT + 0.032;
+            println!(
+                "| {h} mm | {f} | {:.3} s | {:.3} s | {:.2} | {:.0} mm/s² | {:.0} mm/s² |",
+                fig.path_s,
+                opt,
+                opt / fig.path_s,
+                fig.max_acc,
+                fig.max_dacc
+            );
+        }
+    }
+    let mut lim = Limits::from_config(&MachineConfig::embedded());
+    lim.feed_clamp = f64::INFINITY;
     if std::env::args().any(|a| a == "--million") {
         let halves = 160; // 160 half circles of 6283 chords of 0.01 mm: 1 005 280 blocks
         let (prog, len) = program(0.01, 6000.0, halves);

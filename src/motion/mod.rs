@@ -1018,8 +1018,24 @@ impl Motion {
     fn jerk_chain(&mut self, new: Seg) -> bool {
         let Some(prev) = self.prev_seg_mut(1).copied() else { return true };
         let minpos = |x: f64, y: f64| if x > 0.0 && y > 0.0 { x.min(y) } else { x.max(y) };
-        let (a, j) = (prev.alim.min(new.alim), minpos(prev.jlim, new.jlim));
-        if !(j > 0.0) || (a == new.alim && j == new.jlim && a == prev.alim && j == prev.jlim) {
+        let (mut a, mut j) = (prev.alim.min(new.alim), minpos(prev.jlim, new.jlim));
+        if !(j > 0.0) {
+            return true;
+        }
+        let dt = self.lim.cycle_s;
+        let short = |p: &Seg| p.geom.len() <= speed_cap(p).min(p.vlim) * dt;
+        if short(&prev) || short(&new) {
+            // A chain of short blocks (a CAM contour) brakes with the least a blended line
+            // can have on this machine from its first junction on: the blocks of a contour
+            // whose direction keeps turning then never lower the chain later (that would
+            // reach the running block and stop at the junction).
+            let l = &self.lim;
+            for i in (0..3).filter(|&i| l.present[i]) {
+                a = a.min(0.5 * l.amax[i]);
+                j = minpos(j, l.jmax[i]);
+            }
+        }
+        if a == new.alim && j == new.jlim && a == prev.alim && j == prev.jlim {
             return true;
         }
         // Lowering the chain's limits must not reach the running segment (back == len).
@@ -2379,14 +2395,18 @@ fn relaxed_ext(prev: &Seg, room: f64, ndv: f64, next_cap: f64, dt: f64) -> f64 {
     // next segment's feed (soft: `v_cmd` caps the speed anyway) lowers `w` so that a drop in
     // F is braked before the junction, to within one step. Below one step: exact stop.
     if prev.jlim > 0.0 && prev.alim > 0.0 {
-        // S-curve (one acceleration `A` along the chain, see `jerk_chain`): a virtual stop
-        // `w²/2A` beyond the end. Any state that can still brake within it moves at most `w`
-        // there (braking at ≤ A needs v²/2A), hence at most `w + A·dt` within the crossing
-        // cycle; and it fits in the next segment's room.
+        // S-curve (one acceleration `A` and jerk `J` along the chain, see `jerk_chain`): a
+        // virtual stop beyond the end, at most `w²/2A` with `w = vj − A·dt`: any state that
+        // can still brake within it moves at most `w` there (braking at ≤ A needs v²/2A),
+        // hence at most `vj` within the crossing cycle; at most the next segment's room, so
+        // that it can still brake there. The next segment's feed is soft (`v_cmd` caps the
+        // speed anyway): the distance a cruise at that feed needs to stop, `v²/2A + v·A/2J`;
+        // `v²/2A` alone held a chain of blocks shorter than `v·A/2J` at ≈ 85 % of its feed.
         let a = prev.alim;
-        let w = (prev.vj - pdv).min(next_cap).min((2.0 * a * room).sqrt());
+        let w = prev.vj - pdv;
+        let soft = if next_cap.is_finite() { profile::stop_dist(next_cap, 0.0, a, prev.jlim) } else { f64::INFINITY };
         if w > 0.0 {
-            w * w / (2.0 * a)
+            (w * w / (2.0 * a)).min(room).min(soft)
         } else {
             0.0
         }
