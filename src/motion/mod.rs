@@ -1089,7 +1089,7 @@ impl Motion {
             return;
         }
         let lowers = |p: &Seg| p.alim > a && p.jlim == 0.0;
-        let floor = (0..3).filter(|&i| self.lim.present[i]).map(|i| 0.5 * self.lim.amax[i]).fold(a, f64::min);
+        let floor = self.blend_floor().min(a);
         let short = |p: &Seg| p.geom.len() <= speed_cap(p).min(p.vlim) * dt;
         let len = self.len;
         let mut back = 1;
@@ -1499,10 +1499,22 @@ impl Motion {
                 }
             }
         }
-        let share = if blended { 0.5 } else { 1.0 };
-        let mut s = seg(g, speed, v, a * share);
+        let a = if blended { (0.5 * a).min(self.blend_floor()) } else { a };
+        let mut s = seg(g, speed, v, a);
         s.jlim = finite_or_zero(j);
         s
+    }
+
+    /// Path acceleration of a blended segment, at most: half the least axis acceleration of
+    /// the machine, whatever the segment's direction. A cycle that crosses junctions moves
+    /// along a mix of the segments' directions (its mean direction `ū`, `|ū_i| ≤ 1`), while
+    /// its speed step is the segment's where it started: only a bound that holds for every
+    /// direction keeps each axis' share of that step `Δv·|ū_i|` within the half of its
+    /// acceleration left by the corner rule. (Per direction, `amax_i/|u_i|`, a diagonal line
+    /// ramped 41 % harder and a cycle crossing from it onto an axis-parallel block exceeded
+    /// that axis' limit.)
+    fn blend_floor(&self) -> f64 {
+        (0..3).filter(|&i| self.lim.present[i]).map(|i| 0.5 * self.lim.amax[i]).fold(f64::INFINITY, f64::min)
     }
 
     /// An arc segment: tangential and centripetal acceleration share each plane axis' limit
@@ -1570,6 +1582,9 @@ impl Motion {
         if uc > 0.0 {
             v = v.min(l.vmax[ic] / uc);
             a = a.min(tangential * l.amax[ic] / uc);
+        }
+        if blended {
+            a = a.min(self.blend_floor());
         }
         // S-curve: the plane axes' jerk is shared like their acceleration: half for the
         // tangential profile, half for the centripetal acceleration turning with the tool

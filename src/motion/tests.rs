@@ -839,6 +839,8 @@ fn a_starved_queue_limits_the_speed_to_what_it_can_stop_within() {
 enum Short {
     Seg { len: f64, turn: f64, f: f64 },
     Starve(usize),
+    /// Feed hold for that many cycles, then cycle start.
+    Hold(usize),
 }
 
 fn short_strategy() -> impl Strategy<Value = Short> {
@@ -846,13 +848,14 @@ fn short_strategy() -> impl Strategy<Value = Short> {
         8 => (0.001..0.2f64, -0.3..0.3f64, 100.0..8000.0f64).prop_map(|(len, turn, f)| Short::Seg { len, turn, f }),
         1 => (0.001..0.2f64, -2.5..2.5f64, 100.0..8000.0f64).prop_map(|(len, turn, f)| Short::Seg { len, turn, f }),
         1 => (1..40usize).prop_map(Short::Starve),
+        1 => (1..200usize).prop_map(Short::Hold),
     ]
 }
 
 proptest! {
     #![proptest_config(ProptestConfig { cases: 48, ..ProptestConfig::default() })]
     /// Random chains of short G64 segments (smooth and sharp turns, feed changes, an
-    /// interpreter that pauses, a small queue): no axis beyond its speed or acceleration in
+    /// interpreter that pauses, feed holds, a small queue): no axis beyond its speed or acceleration in
     /// any cycle, the path speed never above the feed, and the end exactly on the last point
     /// at rest.
     #[test]
@@ -892,12 +895,16 @@ proptest! {
                     }
                     m.push(&k).unwrap();
                 }
-                Short::Starve(n) => {
+                Short::Starve(n) | Short::Hold(n) => {
+                    if matches!(b, Short::Hold(_)) {
+                        m.feed_hold();
+                    }
                     for _ in 0..n {
                         let sp = m.step(&fb);
                         fb = Feedback { pos: sp.pos, spindle_rpm: 0.0 };
                         sps.push(sp);
                     }
+                    m.cycle_start();
                 }
             }
         }
