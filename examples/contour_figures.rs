@@ -179,7 +179,9 @@ const REPEAT: usize = 5;
 
 fn robust_worst(runs: &[Vec<f64>]) -> f64 {
     let n = runs.iter().map(|r| r.len()).min().unwrap_or(0);
-    (0..n).map(|k| runs.iter().map(|r| r[k]).fold(f64::INFINITY, f64::min)).fold(0.0, f64::max)
+    (0..n)
+        .map(|k| runs.iter().map(|r| r[k]).fold(f64::INFINITY, f64::min))
+        .fold(0.0, f64::max)
 }
 
 /// Runs a program `REPEAT` times: the first run's figure, with the worst step and push + step
@@ -249,7 +251,10 @@ fn main() {
     let cfg = MachineConfig::from_toml("lathe.toml", &t).expect("embedded config with No.1772");
     let mut lim = Limits::from_config(&cfg);
     lim.feed_clamp = f64::INFINITY;
-    println!("\nthe same with S-curve, No.1772 = 32 ms (j·dt = {:.0} mm/s² per cycle)", 2000.0 / 0.032 * lim.cycle_s);
+    println!(
+        "\nthe same with S-curve, No.1772 = 32 ms (j·dt = {:.0} mm/s² per cycle)",
+        2000.0 / 0.032 * lim.cycle_s
+    );
     println!("| chords | F | path time | optimum (ramps v/A + A/J) | ratio | max axis acc | max axis Δacc per cycle |");
     println!("| --- | --- | --- | --- | --- | --- | --- |");
     for f in [3000.0, 6000.0] {
