@@ -80,6 +80,11 @@ pub enum Command {
         /// drive (mm, X as a radius; the spindle in degrees), spindle_rpm, sync_err_um.
         #[arg(long, value_name = "FILE.csv")]
         trace: Option<PathBuf>,
+        /// Stop with alarm 2501 (a controlled stop) after this many blocks: a program that
+        /// loops without end (DO without WHILE). 0 = no budget, for a main program that
+        /// repeats on purpose with M99 (bar feeder).
+        #[arg(long, value_name = "N", default_value_t = crate::interp::DEFAULT_BLOCK_BUDGET)]
+        max_blocks: u64,
         #[command(flatten)]
         rt: run::RtArgs,
         #[command(flatten)]
@@ -129,6 +134,10 @@ pub enum Command {
         /// Output format: one JSON object per line, or text.
         #[arg(long, default_value = "jsonl", value_parser = ["jsonl", "text"])]
         format: String,
+        /// Stop with alarm 2501 after this many blocks (a program that loops without end:
+        /// M99 in the main program, DO without WHILE). 0 = no budget.
+        #[arg(long, value_name = "N", default_value_t = crate::interp::DEFAULT_BLOCK_BUDGET)]
+        max_blocks: u64,
     },
     /// Draw the toolpath of a program in the Z–X plane as an SVG (rapids dashed, feeds solid,
     /// threads and each cycle in their own colour), without running anything. Exit code 2
@@ -659,13 +668,13 @@ pub fn main() -> i32 {
     let cli = Cli::parse();
     init_tracing(cli.verbose);
     match cli.cmd {
-        Command::Run { program, machine, json, state_dir, trace, rt, op } => {
-            run::run(&program, &machine, json, state_dir.as_deref(), trace.as_deref(), &rt, &op)
+        Command::Run { program, machine, json, state_dir, trace, max_blocks, rt, op } => {
+            run::run(&program, &machine, json, state_dir.as_deref(), trace.as_deref(), max_blocks, &rt, &op)
         }
         Command::TapTest { tap, machine, op } => taptest::tap_test(&machine, &tap, &op),
         Command::Identify { args, machine } => identify::run(&machine, &args),
         Command::Trace(TraceCmd::Plot { file, out }) => run::trace_plot(&file, &out),
-        Command::Plan { program, config, format } => plan(&program, config.as_deref(), &format),
+        Command::Plan { program, config, format, max_blocks } => plan(&program, config.as_deref(), &format, max_blocks),
         Command::Preview { program, out, config, width, tools } => {
             preview::preview(&program, config.as_deref(), tools.as_deref(), &out, width)
         }
@@ -710,7 +719,9 @@ pub fn main() -> i32 {
     }
 }
 
-fn plan(program: &std::path::Path, config: Option<&std::path::Path>, format: &str) -> i32 {
+/// `cncgw plan`: every move as JSON or text; a program that ends without M02/M30 (or is
+/// empty) ends with alarm 5010 as `run` refuses it, an endless one with the block budget's.
+fn plan(program: &std::path::Path, config: Option<&std::path::Path>, format: &str, max_blocks: u64) -> i32 {
     use std::io::Write;
     let (cfg, _) = match load_config(config) {
         Ok(c) => c,
@@ -719,7 +730,7 @@ fn plan(program: &std::path::Path, config: Option<&std::path::Path>, format: &st
             return exit::SETUP;
         }
     };
-    let interp = match crate::interp::Interpreter::from_file(program, &cfg) {
+    let mut interp = match crate::interp::Interpreter::from_file(program, &cfg) {
         Ok(i) => i,
         Err(alarms) => {
             for a in &alarms {
@@ -728,6 +739,8 @@ fn plan(program: &std::path::Path, config: Option<&std::path::Path>, format: &st
             return exit::INPUT;
         }
     };
+    interp.set_block_budget(max_blocks);
+    let (mut count, mut ended) = (0usize, false);
     let out = std::io::stdout();
     let mut out = std::io::BufWriter::with_capacity(1 << 16, out.lock());
     // One line buffer for all moves (a million-block program prints a million lines).
@@ -735,6 +748,8 @@ fn plan(program: &std::path::Path, config: Option<&std::path::Path>, format: &st
     for m in interp {
         match m {
             Ok(m) => {
+                count += 1;
+                ended |= matches!(m.kind, crate::canon::MoveKind::End { .. });
                 line.clear();
                 if format == "text" {
                     line.extend_from_slice(crate::interp::plan::move_to_text(&m).as_bytes());
@@ -752,6 +767,11 @@ fn plan(program: &std::path::Path, config: Option<&std::path::Path>, format: &st
                 return exit::INPUT;
             }
         }
+    }
+    let _ = out.flush();
+    if !ended {
+        eprintln!("{}: {}", program.display(), crate::motion::guard::end_of_record(count == 0));
+        return exit::INPUT;
     }
     exit::OK
 }
