@@ -838,6 +838,9 @@ fn a_starved_queue_limits_the_speed_to_what_it_can_stop_within() {
 #[derive(Clone, Debug)]
 enum Short {
     Seg { len: f64, turn: f64, f: f64 },
+    /// A G2/G3 of radius `r` turning by `phi` (radians, + = counter-clockwise seen from +Y),
+    /// tangent to the direction so far.
+    Arc { r: f64, phi: f64, f: f64 },
     Starve(usize),
     /// Feed hold for that many cycles, then cycle start.
     Hold(usize),
@@ -847,6 +850,7 @@ fn short_strategy() -> impl Strategy<Value = Short> {
     prop_oneof![
         8 => (0.001..0.2f64, -0.3..0.3f64, 100.0..8000.0f64).prop_map(|(len, turn, f)| Short::Seg { len, turn, f }),
         1 => (0.001..0.2f64, -2.5..2.5f64, 100.0..8000.0f64).prop_map(|(len, turn, f)| Short::Seg { len, turn, f }),
+        2 => (0.02..2.0f64, -1.0..1.0f64, 100.0..8000.0f64).prop_map(|(r, phi, f)| Short::Arc { r, phi, f }),
         1 => (1..40usize).prop_map(Short::Starve),
         1 => (1..200usize).prop_map(Short::Hold),
     ]
@@ -855,7 +859,7 @@ fn short_strategy() -> impl Strategy<Value = Short> {
 proptest! {
     #![proptest_config(ProptestConfig { cases: 48, ..ProptestConfig::default() })]
     /// Random chains of short G64 segments (smooth and sharp turns, feed changes, an
-    /// interpreter that pauses, feed holds, a small queue): no axis beyond its speed or acceleration in
+    /// tangent arcs, an interpreter that pauses, feed holds, a small queue): no axis beyond its speed or acceleration in
     /// any cycle, the path speed never above the feed, and the end exactly on the last point
     /// at rest.
     #[test]
@@ -877,17 +881,34 @@ proptest! {
         let mut sps = Vec::new();
         let mut fb = Feedback { pos: start, spindle_rpm: 0.0 };
         let mut fmax: f64 = 0.0;
-        let segs = blocks.iter().filter(|b| matches!(b, Short::Seg { .. })).count();
+        let segs = blocks.iter().filter(|b| matches!(b, Short::Seg { .. } | Short::Arc { .. })).count();
         let mut pushed = 0;
         for b in &blocks {
             match *b {
-                Short::Seg { len, turn, f } => {
-                    dir += turn;
-                    x += len * dir.sin();
-                    z += len * dir.cos();
+                Short::Seg { .. } | Short::Arc { .. } => {
+                    let (kind, f) = match *b {
+                        Short::Seg { len, turn, f } => {
+                            dir += turn;
+                            x += len * dir.sin();
+                            z += len * dir.cos();
+                            (feed(x, z, f), f)
+                        }
+                        Short::Arc { r, phi, f } => {
+                            // Centre on the side the arc turns to; (z, x) is the plane with the
+                            // angle measured from +Z towards +X.
+                            let side = phi.signum();
+                            let (cz, cx) = (z - side * r * dir.sin(), x + side * r * dir.cos());
+                            let th0 = (x - cx).atan2(z - cz);
+                            z = cz + r * (th0 + phi).cos();
+                            x = cx + r * (th0 + phi).sin();
+                            dir += phi;
+                            (arc_zx(x, z, cx, cz, phi < 0.0, f), f)
+                        }
+                        _ => unreachable!(),
+                    };
                     pushed += 1;
                     fmax = fmax.max(f);
-                    let k = Move { exact_stop: pushed == segs, ..mv(pushed as u32, feed(x, z, f)) };
+                    let k = Move { exact_stop: pushed == segs, ..mv(pushed as u32, kind) };
                     while !m.has_room() {
                         let sp = m.step(&fb);
                         fb = Feedback { pos: sp.pos, spindle_rpm: 0.0 };
