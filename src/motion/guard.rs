@@ -378,8 +378,10 @@ mod tests {
         let e = program("G98\nG00 X100 Z-100\nG22 X80 Z-20 I40 K-60\nG01 X100 Z-100 F100\nG01 X60 Z-40\nM30\n").unwrap_err();
         assert!(e.number == 502 || e.number == 503, "{e}");
         assert!(e.message.contains("refused before any motion"), "{e}");
-        // Any other program alarm is left to the run.
-        assert!(program("G00 X10\nG01 Z-10\nM30\n").is_ok());
+        // Any other program alarm is refused before motion too (here: no feed, PS0011).
+        let e = program("G00 X10\nG01 Z-10\nM30\n").unwrap_err();
+        assert_eq!((e.number, e.pos.as_ref().map(|p| p.line)), (11, Some(2)), "{e}");
+        assert!(e.message.contains("refused before any motion"), "{e}");
     }
 
     #[test]
