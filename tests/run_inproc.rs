@@ -132,3 +132,38 @@ fn pdo_cob_ids_and_transmission_types_come_from_the_config() {
     assert_eq!(z.object(0x1800, 2), Some(2));
 }
 
+
+/// `run --tools` applies the same table as `plan --tools` (issue 24.1): the axes end where
+/// the plan's last move says, geometry + wear of the offset taken up.
+#[test]
+fn run_and_plan_take_the_same_tool_table() {
+    let dir = tempfile::tempdir().unwrap();
+    let prog = dir.path().join("t.nc");
+    std::fs::write(&prog, "G0 X100 Z5\nT0101\nG0 X20 Z4\nM30\n").unwrap();
+    let tools = dir.path().join("tools.toml");
+    std::fs::write(&tools, "[1]\nx = -10.0\nz = -5.0\nwear_x = 0.2\nwear_z = 0.1\n").unwrap();
+    let cncgw = |args: &[&str]| {
+        Command::new(env!("CARGO_BIN_EXE_cncgw")).env("CNCGW_STATE_DIR", dir.path().join("state")).args(args).output().unwrap()
+    };
+    let (p, t) = (prog.to_str().unwrap(), tools.to_str().unwrap());
+    let plan = cncgw(&["plan", p, "--tools", t]);
+    assert!(plan.status.success(), "{}", String::from_utf8_lossy(&plan.stderr));
+    let run = cncgw(&["run", "--batch", "--json", p, "--tools", t]);
+    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&run.stdout).unwrap();
+    let end = |axis: &str| v["axes"].as_array().unwrap().iter().find(|a| a["axis"] == axis).unwrap()["final_actual_counts"].as_i64().unwrap();
+    // Machine X (radius) = 10 + (−10 + 0.2)/2 = 5.1 mm, Z = 4 − 5 + 0.1 = −0.9 mm; 10 000 counts/mm.
+    assert_eq!((end("x"), end("z")), (51_000, -9_000), "{v}");
+    // The plan prints work coordinates: the programmed X20 Z5 (the offset is in the machine position).
+    let last_move = String::from_utf8_lossy(&plan.stdout).lines().filter(|l| l.contains("\"rapid\"")).last().unwrap().to_string();
+    assert!(last_move.contains("\"x\":20.0") && last_move.contains("\"z\":4.0"), "{last_move}");
+    // Without the table the same program ends at the programmed X (radius 10 mm).
+    let bare: serde_json::Value = serde_json::from_slice(&cncgw(&["run", "--batch", "--json", p]).stdout).unwrap();
+    let x = bare["axes"].as_array().unwrap().iter().find(|a| a["axis"] == "x").unwrap()["final_actual_counts"].as_i64().unwrap();
+    assert_eq!(x, 100_000);
+    // A bad table is refused before anything moves.
+    std::fs::write(&tools, "[1]\nx = \"far\"\n").unwrap();
+    let bad = cncgw(&["run", "--batch", p, "--tools", t]);
+    assert_eq!(bad.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("nothing was moved"));
+}

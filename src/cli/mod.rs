@@ -88,6 +88,10 @@ pub enum Command {
         /// repeats on purpose with M99 (bar feeder).
         #[arg(long, value_name = "N", default_value_t = crate::interp::DEFAULT_BLOCK_BUDGET)]
         max_blocks: u64,
+        /// Tool offset table (docs/TOOL_TABLE.md, e.g. config/tools.toml): geometry, wear,
+        /// nose radius and tip per offset number for the T codes. Default: none (all zero).
+        #[arg(long, value_name = "FILE")]
+        tools: Option<PathBuf>,
         #[command(flatten)]
         rt: run::RtArgs,
         #[command(flatten)]
@@ -147,6 +151,9 @@ pub enum Command {
         /// M99 in the main program, DO without WHILE). 0 = no budget.
         #[arg(long, value_name = "N", default_value_t = crate::interp::DEFAULT_BLOCK_BUDGET)]
         max_blocks: u64,
+        /// Tool offset table (docs/TOOL_TABLE.md), as `run --tools` and `preview --tools`.
+        #[arg(long, value_name = "FILE")]
+        tools: Option<PathBuf>,
     },
     /// Draw the toolpath of a program as an SVG, without running anything.
     ///
@@ -167,7 +174,7 @@ pub enum Command {
         /// Picture width in pixels.
         #[arg(long, default_value_t = 1000)]
         width: u32,
-        /// Tool offset table (TOML, see `interp::tools`): offsets and nose radii for T codes
+        /// Tool offset table (docs/TOOL_TABLE.md, e.g. config/tools.toml): offsets and nose radii for T codes
         /// and G41/G42. Without it every offset and radius is zero.
         #[arg(long, value_name = "FILE")]
         tools: Option<PathBuf>,
@@ -727,13 +734,14 @@ pub fn main() -> i32 {
     let cli = Cli::parse();
     init_tracing(cli.verbose);
     match cli.cmd {
-        Command::Run { program, machine, json, state_dir, trace, max_blocks, rt, op } => {
-            run::run(&program, &machine, json, state_dir.as_deref(), trace.as_deref(), max_blocks, &rt, &op)
+        Command::Run { program, machine, json, state_dir, trace, max_blocks, tools, rt, op } => {
+            let files = run::RunFiles { state_dir: state_dir.as_deref(), trace: trace.as_deref(), tools: tools.as_deref() };
+            run::run(&program, &machine, json, files, max_blocks, &rt, &op)
         }
         Command::TapTest { tap, machine, op } => taptest::tap_test(&machine, &tap, &op),
         Command::Identify { args, machine } => identify::run(&machine, &args),
         Command::Trace(TraceCmd::Plot { file, out }) => run::trace_plot(&file, &out),
-        Command::Plan { program, config, format, max_blocks } => plan(&program, config.as_deref(), &format, max_blocks),
+        Command::Plan { program, config, format, max_blocks, tools } => plan(&program, config.as_deref(), &format, max_blocks, tools.as_deref()),
         Command::Preview { program, out, config, width, tools } => {
             preview::preview(&program, config.as_deref(), tools.as_deref(), &out, width)
         }
@@ -839,7 +847,7 @@ fn parse_since(s: &str) -> Result<std::time::SystemTime, String> {
 
 /// `cncgw plan`: every move as JSON or text; a program that ends without M02/M30 (or is
 /// empty) ends with alarm 5010 as `run` refuses it, an endless one with the block budget's.
-fn plan(program: &std::path::Path, config: Option<&std::path::Path>, format: &str, max_blocks: u64) -> i32 {
+fn plan(program: &std::path::Path, config: Option<&std::path::Path>, format: &str, max_blocks: u64, tools: Option<&std::path::Path>) -> i32 {
     use std::io::Write;
     let (cfg, _) = match load_config(config) {
         Ok(c) => c,
@@ -858,6 +866,15 @@ fn plan(program: &std::path::Path, config: Option<&std::path::Path>, format: &st
         }
     };
     interp.set_block_budget(max_blocks);
+    if let Some(t) = tools {
+        match crate::interp::load_tool_table(t) {
+            Ok(t) => interp.set_tool_table(t),
+            Err(a) => {
+                eprintln!("{a}");
+                return exit::INPUT;
+            }
+        }
+    }
     let (mut count, mut ended) = (0usize, false);
     let out = std::io::stdout();
     let mut out = std::io::BufWriter::with_capacity(1 << 16, out.lock());

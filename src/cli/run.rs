@@ -89,16 +89,19 @@ pub struct OperatorArgs {
     pub realtime: bool,
 }
 
-pub fn run(
-    program: &Path,
-    machine: &MachineArgs,
-    json: bool,
-    state_dir: Option<&Path>,
-    trace: Option<&Path>,
-    max_blocks: u64,
-    rt: &RtArgs,
-    op: &OperatorArgs,
-) -> i32 {
+/// The files a run reads and writes besides the program and the configuration.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct RunFiles<'a> {
+    /// The machine's state directory (default: `persist::default_state_dir`).
+    pub state_dir: Option<&'a Path>,
+    /// Record every cycle to this CSV file.
+    pub trace: Option<&'a Path>,
+    /// The tool offset table.
+    pub tools: Option<&'a Path>,
+}
+
+pub fn run(program: &Path, machine: &MachineArgs, json: bool, files: RunFiles, max_blocks: u64, rt: &RtArgs, op: &OperatorArgs) -> i32 {
+    let RunFiles { state_dir, trace, tools } = files;
     let (cfg, cfg_text) = match super::machine_config(machine) {
         Ok(c) => c,
         Err(e) => {
@@ -118,6 +121,17 @@ pub fn run(
         }
     };
     interp.set_block_budget(max_blocks);
+    let table = match tools.map(crate::interp::load_tool_table).transpose() {
+        Ok(t) => t,
+        Err(a) => {
+            eprintln!("{a}");
+            eprintln!("nothing was moved");
+            return EXIT_PROGRAM_ERROR;
+        }
+    };
+    if let Some(t) = &table {
+        interp.set_tool_table(t.clone());
+    }
     let source = std::fs::read_to_string(program).unwrap_or_default();
     // The machine's state (common variables #401–#600, the rigid-tap state), kept per machine
     // and per place it runs, under a lock so that no other run interleaves with this one.
@@ -182,6 +196,9 @@ pub fn run(
         make: Box::new(|_| {
             Interpreter::from_file(program, &cfg).map(|mut i| {
                 i.set_block_budget(max_blocks);
+                if let Some(t) = &table {
+                    i.set_tool_table(t.clone());
+                }
                 i
             })
         }),
