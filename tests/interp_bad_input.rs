@@ -96,3 +96,15 @@ fn a_long_block_is_echoed_around_the_error() {
     let echo = err.lines().nth(1).unwrap();
     assert!(echo.contains("X1..5") && echo.contains("characters cut]"), "{err}");
 }
+
+/// A UTF-8 byte-order mark at the start of a file (Windows editors) is not an improper
+/// character: the program runs as without it.
+#[test]
+fn a_byte_order_mark_is_accepted() {
+    let (code, err) = plan("\u{feff}G0 X10 Z5\nM30\n".as_bytes(), &[]);
+    assert_eq!(code, 0, "{err}");
+    // Elsewhere it is still an improper character, shown escaped.
+    let (code, err) = plan("G0 X10\n\u{feff}Z5\nM30\n".as_bytes(), &[]);
+    assert_eq!(code, 2);
+    assert!(err.contains("improper character") && err.contains("\\u{feff}"), "{err}");
+}

@@ -138,9 +138,19 @@ impl Source {
     }
 
     /// The line starting at `off`, without its line end, into `out` (cleared first); returns
-    /// where the next line starts (`len` after the last one). Sequential reads are served
-    /// from the read window.
+    /// where the next line starts (`len` after the last one). A UTF-8 byte-order mark at the
+    /// start of the file (Windows editors write one) is not part of the first line.
     fn read_line(&mut self, off: u64, out: &mut Vec<u8>) -> std::io::Result<u64> {
+        let next = self.read_line_raw(off, out)?;
+        if off == 0 && out.starts_with(b"\xEF\xBB\xBF") {
+            out.drain(..3);
+        }
+        Ok(next)
+    }
+
+    /// [`Self::read_line`] without the byte-order mark rule. Sequential reads are served
+    /// from the read window.
+    fn read_line_raw(&mut self, off: u64, out: &mut Vec<u8>) -> std::io::Result<u64> {
         out.clear();
         if off >= self.len {
             return Ok(self.len);
