@@ -5,6 +5,7 @@ pub mod exit;
 pub mod identify;
 pub mod lock;
 pub mod manpages;
+pub mod plan;
 pub mod mbus;
 pub mod preview;
 pub mod run;
@@ -137,24 +138,14 @@ pub enum Command {
     Trace(TraceCmd),
     /// Print the canonical moves of a program without running anything.
     ///
-    /// Example: `cncgw plan examples/first_part.nc --format text`
-    Plan {
-        /// The part program (Type A G code or SINUMERIK cycles).
-        program: PathBuf,
-        /// Machine configuration (TOML). Default: the embedded config/lathe.toml.
-        #[arg(long, short = 'c', value_name = "FILE")]
-        config: Option<PathBuf>,
-        /// Output format: one JSON object per line, or text.
-        #[arg(long, default_value = "jsonl", value_parser = ["jsonl", "text"])]
-        format: String,
-        /// Stop with alarm 2501 after this many blocks (a program that loops without end:
-        /// M99 in the main program, DO without WHILE). 0 = no budget.
-        #[arg(long, value_name = "N", default_value_t = crate::interp::DEFAULT_BLOCK_BUDGET)]
-        max_blocks: u64,
-        /// Tool offset table (docs/TOOL_TABLE.md), as `run --tools` and `preview --tools`.
-        #[arg(long, value_name = "FILE")]
-        tools: Option<PathBuf>,
-    },
+    /// The moves go to stdout (docs/PLAN_FORMAT.md); then, on stderr, a summary (moves,
+    /// extents) and the checks `run` makes before motion — travel, G22, feeds, threads and
+    /// taps against the axes — from machine zero, unless `--no-machine`. Exit code 2 for a
+    /// program error, 3 when the machine would refuse the program.
+    ///
+    /// Example: `cncgw plan examples/first_part.nc --format text`,
+    /// `cncgw plan part.nc --tools config/tools.toml --no-machine`
+    Plan(plan::PlanArgs),
     /// Draw the toolpath of a program as an SVG, without running anything.
     ///
     /// The Z–X plane (rapids dashed, feeds solid,
@@ -741,7 +732,7 @@ pub fn main() -> i32 {
         Command::TapTest { tap, machine, op } => taptest::tap_test(&machine, &tap, &op),
         Command::Identify { args, machine } => identify::run(&machine, &args),
         Command::Trace(TraceCmd::Plot { file, out }) => run::trace_plot(&file, &out),
-        Command::Plan { program, config, format, max_blocks, tools } => plan(&program, config.as_deref(), &format, max_blocks, tools.as_deref()),
+        Command::Plan(args) => plan::plan(&args),
         Command::Preview { program, out, config, width, tools } => {
             preview::preview(&program, config.as_deref(), tools.as_deref(), &out, width)
         }
@@ -845,71 +836,6 @@ fn parse_since(s: &str) -> Result<std::time::SystemTime, String> {
     std::time::SystemTime::now().checked_sub(d).ok_or_else(|| format!("`{s}` reaches back before 1970"))
 }
 
-/// `cncgw plan`: every move as JSON or text; a program that ends without M02/M30 (or is
-/// empty) ends with alarm 5010 as `run` refuses it, an endless one with the block budget's.
-fn plan(program: &std::path::Path, config: Option<&std::path::Path>, format: &str, max_blocks: u64, tools: Option<&std::path::Path>) -> i32 {
-    use std::io::Write;
-    let (cfg, _) = match load_config(config) {
-        Ok(c) => c,
-        Err(e) => {
-            eprintln!("error: {e}");
-            return exit::SETUP;
-        }
-    };
-    let mut interp = match crate::interp::Interpreter::from_file(program, &cfg) {
-        Ok(i) => i,
-        Err(alarms) => {
-            for a in &alarms {
-                eprintln!("{a}");
-            }
-            return exit::INPUT;
-        }
-    };
-    interp.set_block_budget(max_blocks);
-    if let Some(t) = tools {
-        match crate::interp::load_tool_table(t) {
-            Ok(t) => interp.set_tool_table(t),
-            Err(a) => {
-                eprintln!("{a}");
-                return exit::INPUT;
-            }
-        }
-    }
-    let (mut count, mut ended) = (0usize, false);
-    let out = std::io::stdout();
-    let mut out = std::io::BufWriter::with_capacity(1 << 16, out.lock());
-    // One line buffer for all moves (a million-block program prints a million lines).
-    let mut line = Vec::with_capacity(256);
-    for m in interp {
-        match m {
-            Ok(m) => {
-                count += 1;
-                ended |= matches!(m.kind, crate::canon::MoveKind::End { .. });
-                line.clear();
-                if format == "text" {
-                    line.extend_from_slice(crate::interp::plan::move_to_text(&m).as_bytes());
-                } else {
-                    crate::interp::plan::write_json(&mut line, &m);
-                }
-                line.push(b'\n');
-                if out.write_all(&line).is_err() {
-                    return exit::OK; // stdout closed (e.g. piped into head)
-                }
-            }
-            Err(a) => {
-                let _ = out.flush();
-                eprintln!("{a}");
-                return exit::INPUT;
-            }
-        }
-    }
-    let _ = out.flush();
-    if !ended {
-        eprintln!("{}: {}", program.display(), crate::motion::guard::end_of_record(count == 0));
-        return exit::INPUT;
-    }
-    exit::OK
-}
 
 /// Following-error windows below what an axis' identified response (`[axes.NAME.response]`)
 /// lags at its maximum speed: the drive would fault at full speed.
