@@ -34,7 +34,8 @@ pub struct Command {
     /// still one period and jump the next).
     pub velocity: f64,
     pub at: Option<Instant>,
-    /// Stream targets (false while enabling: the target register is left alone).
+    /// Write the target register (CiA 402: also while enabling, holding the actual position,
+    /// so that the drive has it before the controlword that enables it; off at shutdown).
     pub stream: bool,
 }
 

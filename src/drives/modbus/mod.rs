@@ -382,20 +382,31 @@ impl DriveBus for ModbusDrives {
                 continue;
             }
             if !a.enabled {
-                // Hold the actual position while enabling so that nothing jumps.
+                // Hold the actual position while enabling so that nothing jumps: a CiA 402
+                // drive gets it in its target register before the controlword that enables
+                // it (as `drive enable` does), since many take 0x607A as it stands the moment
+                // they enable, however old it is.
                 a.target = a.unwrapped;
                 a.cmd.target = a.raw;
                 a.cmd.velocity = 0.0;
-            a.cmd.velocity = 0.0;
+                a.cmd.at = None;
+                a.cmd.stream = a.profile == Profile::Cia402;
             }
             match a.profile {
                 Profile::Cia402 => {
                     // Step only on a reading taken after our last controlword was written,
                     // so that a fault reset edge is never lost between two link cycles.
+                    // And only once the held target has been written (the reading's command
+                    // streamed it), so that the enabling controlword never precedes it.
                     let fresh = self.links[a.link]
                         .shared
                         .as_ref()
-                        .and_then(|s| s.0.lock().ok().map(|g| g.slots[a.slot].reading.command.controlword == a.enabler.controlword))
+                        .and_then(|s| {
+                            s.0.lock().ok().map(|g| {
+                                let c = g.slots[a.slot].reading.command;
+                                c.controlword == a.enabler.controlword && c.stream
+                            })
+                        })
                         .unwrap_or(false);
                     if !fresh {
                         all &= a.enabled;
@@ -409,7 +420,6 @@ impl DriveBus for ModbusDrives {
                         EnableProgress::Walking => {
                             all = false;
                             a.enabled = false;
-                            a.cmd.stream = false;
                         }
                         EnableProgress::ResetFailed => {
                             let code = a.error_code;
