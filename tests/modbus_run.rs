@@ -128,7 +128,7 @@ fn wrong_register_map_is_an_alarm_naming_drive_function_and_register() {
     assert_eq!(o.status.code(), Some(3), "{t}");
     assert!(t.contains("alarm 2201"), "{t}");
     assert!(t.contains("axis z (unit 2) on link tcp: function 03 (read holding registers) at register 12"), "{t}");
-    assert!(t.contains("exception 0x02 illegal data address"), "{t}");
+    assert!(t.contains("exception 0x02 (Illegal data address)"), "{t}");
     stop.store(true, std::sync::atomic::Ordering::Relaxed);
     srv.join().unwrap();
 }

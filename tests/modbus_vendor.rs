@@ -107,11 +107,137 @@ fn jog_enables_without_a_jump_on_a_drive_that_latches_targets_any_time() {
     let cfg = write("jog.toml", &tcp_machine(srv.local_addr().unwrap()));
     let o = cncgw(&["jog", "z", "--by", "-0.5", "--speed", "300", "--yes", "--config", &cfg]);
     let t = text(&o);
+    eprintln!("{t}");
     assert!(o.status.success(), "{t}");
     let z = srv.with_drive(2, |d| d.position_unwrapped()).unwrap();
     assert!((z - (-13_000)).abs() <= 1, "z at {z} counts (from -8000, by -0.5 mm): {t}");
     // X was enabled too (every drive of the machine is) and did not move.
     let x = srv.with_drive(1, |d| d.position_unwrapped()).unwrap();
     assert!((x - 16_000).abs() <= 1, "x at {x} counts: {t}");
+    stop(srv, &flag);
+}
+
+/// Issue 22.2: a drive braking in Fault Reaction Active (here the spindle, on its quick-stop
+/// ramp from 3000 rpm: about a second) is a fault the moment it is read, not when it reaches
+/// Fault: X and Z stop under control at once; only that drive is alarmed.
+#[test]
+fn fault_reaction_active_stops_the_others_at_once() {
+    let flag = Arc::new(AtomicBool::new(false));
+    let mut cfg = sim_drives::SimConfig::from_machine_toml_bus(MODBUS_LATHE, Some(true)).unwrap();
+    for d in &mut cfg.drives {
+        d.modbus_quirks = away_from_zero(d.node);
+    }
+    // Overcurrent on the spindle 2 s after the server starts: Z is cutting by then.
+    let fault = sim_drives::parse_fault("3:raise=0x2310@2000").unwrap();
+    let srv = Arc::new(sim_drives::modbus::serve_tcp_with_faults("127.0.0.1:0".parse().unwrap(), cfg, vec![fault], flag.clone()).unwrap());
+    let cfg = write("fra.toml", &tcp_machine(srv.local_addr().unwrap()));
+    let prog = write("fra.nc", "O1\nG21\nG98 G97\nM03 S3000\nG04 X0.6\nG01 Z-60 F1200\nM05\nM30\n");
+    let (watch, done) = (srv.clone(), Arc::new(AtomicBool::new(false)));
+    let d2 = done.clone();
+    // Z where the spindle is first seen in Fault Reaction Active.
+    let sampler = std::thread::spawn(move || {
+        while !d2.load(Ordering::Relaxed) {
+            let (st, z) = (watch.with_drive(3, |d| d.state()).unwrap(), watch.with_drive(2, |d| d.position_unwrapped()).unwrap());
+            if st == cncgw_bus::cia402::State::FaultReactionActive {
+                return Some(z);
+            }
+            std::thread::sleep(std::time::Duration::from_micros(200));
+        }
+        None
+    });
+    let o = cncgw(&["run", "--json", "--config", &cfg, &prog]);
+    done.store(true, Ordering::Relaxed);
+    let z_at_fault = sampler.join().unwrap().expect("the spindle never was in Fault Reaction Active");
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(3), "{t}");
+    assert!(t.contains("alarm 2010") && t.contains("axis s1") && t.contains("Fault Reaction Active"), "{t}");
+    let z = srv.with_drive(2, |d| d.position_unwrapped()).unwrap();
+    // 20 mm/s: the link cycle, two machine cycles and the braking distance are < 0.5 mm; a
+    // fault seen only at Fault is a second of machining later (20 mm).
+    let travel = (z - z_at_fault).abs() as f64 / 10_000.0;
+    eprintln!("Z travelled {travel:.3} mm after the spindle entered Fault Reaction Active");
+    assert!(travel < 0.5, "Z went on {travel:.3} mm after the spindle faulted: {t}");
+    // The others came to rest under control (no quick stop of every drive).
+    assert_eq!(summary(&o)["rest"]["quick_stop"], false, "{t}");
+    let srv = Arc::try_unwrap(srv).ok().unwrap();
+    stop(srv, &flag);
+}
+
+/// Issue 22.3: a drive that answers "busy" (0x06) now and then is asked again; the program
+/// runs to its end.
+#[test]
+fn busy_answers_are_retried() {
+    let flag = Arc::new(AtomicBool::new(false));
+    let srv = tcp_server(MODBUS_LATHE, |n| sim_drives::ModbusQuirks { busy_every: if n == 1 { 7 } else { 0 }, ..away_from_zero(n) }, &flag);
+    let cfg = write("busy.toml", &tcp_machine(srv.local_addr().unwrap()));
+    let prog = write("busy.nc", "O1\nG21\nG98 G97\nM03 S300\nG01 X10 Z-5 F600\nG00 X20 Z2\nM05\nM30\n");
+    let o = cncgw(&["run", "--json", "--config", &cfg, &prog]);
+    let t = text(&o);
+    eprintln!("{t}");
+    assert!(o.status.success(), "{t}");
+    assert_eq!(summary(&o)["at_program_end"], true, "{t}");
+    let x = srv.with_drive(1, |d| d.position_unwrapped()).unwrap();
+    assert!((x - 100_000).abs() <= 1, "x at {x} counts: {t}");
+    stop(srv, &flag);
+}
+
+/// A link slower than the machine cycle (a fresh reading every 5 machine cycles) still sees
+/// the drives come to rest at the end: cycles without a new reading are not "moving".
+#[test]
+fn a_link_slower_than_the_machine_cycle_sees_the_drives_at_rest() {
+    let flag = Arc::new(AtomicBool::new(false));
+    let srv = tcp_server(MODBUS_LATHE, away_from_zero, &flag);
+    let cfg = write("slowlink.toml", &tcp_machine(srv.local_addr().unwrap()).replace("timeout_ms = 50 ", "cycle_ms = 10\ntimeout_ms = 50 "));
+    let prog = write("slowlink.nc", "O1\nG21\nG98\nG01 X10 Z-5 F600\nM30\n");
+    let o = cncgw(&["run", "--json", "--config", &cfg, &prog]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    let s = summary(&o);
+    assert_eq!(s["rest"]["at_rest"], true, "{t}");
+    assert_eq!(s["rest"]["quick_stop"], false, "{t}");
+    assert!(s["rest"]["time_s"].as_f64().unwrap() < 1.0, "{t}");
+    stop(srv, &flag);
+}
+
+/// Issue 22.3: a drive that stops answering anything but exceptions mid-run is an alarm
+/// naming it and the exception; the link goes on serving the other drives, which are
+/// stopped and switched off by the controller — not left to their comm watchdogs.
+#[test]
+fn an_exception_from_one_drive_stops_the_others_under_control() {
+    let flag = Arc::new(AtomicBool::new(false));
+    // Z refuses everything from its 1500th request (about 0.7 s into the program).
+    let srv = tcp_server(MODBUS_LATHE, |n| sim_drives::ModbusQuirks { refuse_after: if n == 2 { 1500 } else { 0 }, ..away_from_zero(n) }, &flag);
+    let cfg = write("refuse.toml", &tcp_machine(srv.local_addr().unwrap()));
+    let prog = write("refuse.nc", "O1\nG21\nG98 G97\nG01 X40 Z-40 F600\nM30\n");
+    let o = cncgw(&["run", "--json", "--config", &cfg, &prog]);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(3), "{t}");
+    assert!(t.contains("alarm 2201") && t.contains("axis z (unit 2)") && t.contains("exception 0x04 (Server device failure)"), "{t}");
+    // X was stopped and switched off by the controller: not faulted by its watchdog.
+    std::thread::sleep(std::time::Duration::from_millis(400));
+    let (st, code) = srv.with_drive(1, |d| (d.state(), d.error_code())).unwrap();
+    assert_ne!(code, sim_drives::modbus::COMM_TIMEOUT_CODE, "X was left to its comm watchdog: {t}");
+    assert!(!matches!(st, cncgw_bus::cia402::State::Fault | cncgw_bus::cia402::State::OperationEnabled), "X is {st:?}: {t}");
+    stop(srv, &flag);
+}
+
+/// Issue 22.4: a PR drive away from 0 — the first block asks for the speed of the first
+/// step (not 65 535 rpm, which a drive that checks speeds refuses with 0x03) and the
+/// summary's following error does not count the start position.
+#[test]
+fn pr_drive_away_from_zero_starts_without_a_huge_speed_or_following_error() {
+    let flag = Arc::new(AtomicBool::new(false));
+    let machine = MODBUS_LATHE.replace("node = 1                    # Modbus unit id", "node = 1\nmodbus_profile = \"pr\"");
+    assert_ne!(machine, MODBUS_LATHE);
+    let srv = tcp_server(&machine, away_from_zero, &flag);
+    let cfg = write("pr.toml", &tcp_machine(srv.local_addr().unwrap()).replace("node = 1                    # Modbus unit id", "node = 1\nmodbus_profile = \"pr\""));
+    let prog = write("pr.nc", "O1\nG21\nG98\nG04 X0.2\nG01 X10 F300\nG04 X0.5\nM30\n");
+    let o = cncgw(&["run", "--json", "--config", &cfg, &prog]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    let s = summary(&o);
+    let x = s["axes"].as_array().unwrap().iter().find(|a| a["axis"] == "x").unwrap().clone();
+    let ferr = x["max_following_error"].as_f64().unwrap();
+    assert!(ferr < 0.5, "X's max following error {ferr} mm: the start position (1.6 mm) counted? {t}");
     stop(srv, &flag);
 }

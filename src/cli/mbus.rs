@@ -11,7 +11,8 @@
 use super::MachineArgs;
 use crate::config::{AxisConfig, LinkTransport, MachineConfig, ModbusLink, Parity};
 use cncgw_bus::cia402::State;
-use cncgw_bus::modbus::{exception_text, pr_status, Profile};
+use crate::drives::modbus::link::exception_words;
+use cncgw_bus::modbus::{pr_status, Profile};
 use std::time::{Duration, Instant};
 use tokio_modbus::client::{Context, Reader, Writer};
 use tokio_modbus::prelude::SlaveContext;
@@ -157,10 +158,7 @@ impl Client {
         match r {
             Err(_) => Err(format!("unit {unit}: no answer within {} ms", timeout.as_millis())),
             Ok(Err(e)) => Err(format!("unit {unit}: {e}")),
-            Ok(Ok(Err(code))) => {
-                let c: u8 = code.into();
-                Err(format!("unit {unit}: exception 0x{c:02X} {} writing register {addr} = {words:?}", exception_text(c)))
-            }
+            Ok(Ok(Err(code))) => Err(format!("unit {unit}: {} writing register {addr} = {words:?}", exception_words(code))),
             Ok(Ok(Ok(()))) => Ok(()),
         }
     }
@@ -185,10 +183,7 @@ impl Client {
         match r {
             Err(_) => Err(format!("unit {unit}: no answer within {} ms", timeout.as_millis())),
             Ok(Err(e)) => Err(format!("unit {unit}: {e}")),
-            Ok(Ok(Err(code))) => {
-                let c: u8 = code.into();
-                Err(format!("unit {unit}: exception 0x{c:02X} {} reading register {addr} ({len})", exception_text(c)))
-            }
+            Ok(Ok(Err(code))) => Err(format!("unit {unit}: {} reading register {addr} ({len})", exception_words(code))),
             Ok(Ok(Ok(v))) if v.len() == len as usize => Ok(v),
             Ok(Ok(Ok(v))) => Err(format!("unit {unit}: {} registers in the answer, {len} asked", v.len())),
         }

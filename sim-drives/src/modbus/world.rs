@@ -324,14 +324,20 @@ impl World {
         }
     }
 
-    /// How late unit `ui`'s answer to the request just counted leaves, and whether it is
-    /// answered "busy" instead (the quirks).
-    fn quirk_of_request(&mut self, ui: usize) -> (std::time::Duration, bool) {
+    /// How late unit `ui`'s answer to the request just counted leaves, and the exception
+    /// it gets instead of being executed, if any (the quirks).
+    fn quirk_of_request(&mut self, ui: usize) -> (std::time::Duration, Option<ExceptionCode>) {
         let u = &mut self.units[ui];
         u.requests += 1;
         let q = &u.quirks;
         let n = u.requests;
-        let busy = q.busy_every > 0 && n % q.busy_every as u64 == 0;
+        let busy = if q.refuse_after > 0 && n > q.refuse_after as u64 {
+            Some(ExceptionCode::ServerDeviceFailure)
+        } else if q.busy_every > 0 && n % q.busy_every as u64 == 0 {
+            Some(ExceptionCode::ServerDeviceBusy)
+        } else {
+            None
+        };
         let mut late_ms = 0;
         if n <= q.slow_first as u64 {
             late_ms = q.slow_first_ms;
@@ -412,10 +418,10 @@ impl World {
             let r = if rtu { Ok(None) } else { Err(ExceptionCode::GatewayTargetDevice) };
             return (r, std::time::Duration::ZERO);
         };
-        let (delay, busy) = self.quirk_of_request(ui);
-        if busy {
-            tracing::debug!(unit, "{req:?} → busy (quirk)");
-            return (Err(ExceptionCode::ServerDeviceBusy), delay);
+        let (delay, refused) = self.quirk_of_request(ui);
+        if let Some(e) = refused {
+            tracing::debug!(unit, "{req:?} → {e} (quirk)");
+            return (Err(e), delay);
         }
         (self.execute(ui, req), delay)
     }

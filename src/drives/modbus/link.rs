@@ -10,12 +10,12 @@
 use super::plan::{DrivePlan, Exchange};
 use crate::config::{LinkTransport, ModbusLink, Parity};
 use crate::Alarm;
-use cncgw_bus::modbus::{exception_text, SerialTiming};
+use cncgw_bus::modbus::SerialTiming;
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 use tokio_modbus::client::{Context, Reader, Writer};
 use tokio_modbus::prelude::SlaveContext;
-use tokio_modbus::Slave;
+use tokio_modbus::{ExceptionCode, Slave};
 
 /// What the cycle thread wants of one drive.
 #[derive(Clone, Copy, Debug, Default)]
@@ -62,6 +62,9 @@ pub struct Slot {
     /// The last failed transaction of this drive, in words (timeouts are not fatal at once:
     /// the feedback age is).
     pub last_error: Option<String>,
+    /// An exception of this drive in the cyclic exchange was handed to the cycle thread
+    /// (once: the link goes on serving the others while they stop).
+    pub exception_reported: bool,
 }
 
 #[derive(Debug)]
@@ -76,6 +79,10 @@ pub enum LinkState {
 pub struct Shared {
     pub slots: Vec<Slot>,
     pub state: LinkState,
+    /// An alarm of the running link for the cycle thread (taken once): a drive refused the
+    /// cyclic exchange. The link keeps exchanging with every drive so that the controlled
+    /// stop reaches them all.
+    pub alarm: Option<(usize, Alarm)>,
     pub stop: bool,
     /// Link cycles that took longer than the cycle.
     pub overruns: u64,
@@ -134,6 +141,7 @@ pub fn spawn(spec: LinkSpec) -> std::io::Result<(SharedLink, std::thread::JoinHa
         Mutex::new(Shared {
             slots: spec.drives.iter().map(|_| Slot::default()).collect(),
             state: LinkState::Starting,
+            alarm: None,
             stop: false,
             overruns: 0,
             transactions: 0,
@@ -173,6 +181,14 @@ fn set_state(s: &SharedLink, st: LinkState) {
     s.1.notify_all();
 }
 
+/// One try of a transaction.
+enum Attempt {
+    /// Busy or acknowledge: try again.
+    Busy(String),
+    Other(TxError),
+}
+use Attempt::{Busy, Other};
+
 struct LinkIo {
     spec: LinkSpec,
     ctx: Option<Context>,
@@ -183,7 +199,8 @@ struct LinkIo {
 
 /// A failed transaction.
 enum TxError {
-    /// The drive answered with an exception: fatal (the configuration or the drive is wrong).
+    /// The drive answered with an exception (after the retries of a busy one): the
+    /// configuration or the drive is wrong.
     Exception(String),
     /// No answer in time or the connection failed: retried, then the feedback goes stale.
     Transport(String),
@@ -195,6 +212,19 @@ impl TxError {
             TxError::Exception(s) | TxError::Transport(s) => s,
         }
     }
+}
+
+/// Times a transaction answered "busy" (0x06) or "acknowledge" (0x05: accepted, still
+/// working) is sent again before it counts as failed. Modbus V1.1b3 §7: the client should
+/// retransmit later; 3 tries a millisecond apart ride through a drive that is busy writing
+/// its EEPROM for a moment without holding the link up for long.
+const BUSY_RETRIES: u32 = 3;
+const BUSY_PAUSE: Duration = Duration::from_millis(1);
+
+/// `exception 0x06 (Server device busy)`: the code and tokio-modbus' name for it.
+pub fn exception_words(code: ExceptionCode) -> String {
+    let c: u8 = code.into();
+    format!("exception 0x{c:02X} ({code})")
 }
 
 impl LinkIo {
@@ -250,13 +280,29 @@ impl LinkIo {
         }
     }
 
-    /// One transaction with drive `d`.
+    /// One transaction with drive `d`, sent again while the drive answers busy (up to
+    /// `BUSY_RETRIES` times).
     fn exchange(&mut self, d: usize, x: &Exchange, write: &[u16]) -> Result<Vec<u16>, TxError> {
+        let mut tries = 0;
+        loop {
+            match self.exchange_once(d, x, write) {
+                Err(Busy(_)) if tries < BUSY_RETRIES => {
+                    tries += 1;
+                    std::thread::sleep(BUSY_PAUSE);
+                }
+                Err(Busy(m)) => return Err(TxError::Exception(format!("{m} ({} tries)", tries + 1))),
+                Err(Other(e)) => return Err(e),
+                Ok(v) => return Ok(v),
+            }
+        }
+    }
+
+    fn exchange_once(&mut self, d: usize, x: &Exchange, write: &[u16]) -> Result<Vec<u16>, Attempt> {
         self.silence();
         let unit = self.spec.drives[d].unit;
         let timeout = Duration::from_millis(self.spec.cfg.timeout_ms as u64);
         let Some(ctx) = self.ctx.as_mut() else {
-            return Err(TxError::Transport("not connected".into()));
+            return Err(Other(TxError::Transport("not connected".into())));
         };
         ctx.set_slave(Slave(unit));
         let r = self.rt.block_on(async {
@@ -278,21 +324,19 @@ impl LinkIo {
         let name = &self.spec.drives[d].axis;
         let what = || format!("axis {name} (unit {unit}) on link {}: {}", self.spec.name, x.describe());
         match r {
-            Err(_) => Err(TxError::Transport(format!("{}: no answer within {} ms", what(), self.spec.cfg.timeout_ms))),
+            Err(_) => Err(Other(TxError::Transport(format!("{}: no answer within {} ms", what(), self.spec.cfg.timeout_ms)))),
             Ok(Err(e)) => {
                 if matches!(e, tokio_modbus::Error::Transport(_)) {
                     self.ctx = None; // a broken connection: reconnect
                 }
-                Err(TxError::Transport(format!("{}: {e}", what())))
+                Err(Other(TxError::Transport(format!("{}: {e}", what()))))
             }
-            Ok(Ok(Err(code))) => {
-                let c: u8 = code.into();
-                Err(TxError::Exception(format!("{}: exception 0x{c:02X} {}", what(), exception_text(c))))
-            }
+            Ok(Ok(Err(code @ (ExceptionCode::ServerDeviceBusy | ExceptionCode::Acknowledge)))) => Err(Busy(format!("{}: {}", what(), exception_words(code)))),
+            Ok(Ok(Err(code))) => Err(Other(TxError::Exception(format!("{}: {}", what(), exception_words(code))))),
             Ok(Ok(Ok(v))) => {
                 if let Exchange::Read { len, .. } | Exchange::ReadWrite { read_len: len, .. } = *x {
                     if v.len() != len as usize {
-                        return Err(TxError::Transport(format!("{}: {} registers in the answer, {len} asked", what(), v.len())));
+                        return Err(Other(TxError::Transport(format!("{}: {} registers in the answer, {len} asked", what(), v.len()))));
                     }
                 }
                 Ok(v)
@@ -400,20 +444,17 @@ impl LinkIo {
                 }
                 tracing::warn!(link = %self.spec.name, "Modbus link reconnected");
             }
-            if let Some(a) = self.cycle_once(s, next) {
-                set_state(s, LinkState::Failed(a));
-                return;
-            }
+            self.cycle_once(s, next);
         }
     }
 
-    /// One exchange with every drive. Returns a fatal alarm (an exception).
+    /// One exchange with every drive; an exception goes to `Shared::alarm`.
     /// `sched`: the instant this cycle was scheduled for (the set-points are for it).
-    fn cycle_once(&mut self, s: &SharedLink, sched: Instant) -> Option<Alarm> {
+    fn cycle_once(&mut self, s: &SharedLink, sched: Instant) {
         for d in 0..self.spec.drives.len() {
             let cmd = match s.0.lock() {
                 Ok(g) => g.slots[d].command,
-                Err(_) => return None,
+                Err(_) => return,
             };
             let prev_target = self.spec.drives[d].last_target;
             let mut cmd = cmd;
@@ -452,15 +493,19 @@ impl LinkIo {
                 // What was not acknowledged is written again next cycle.
                 self.spec.drives[d].forget_writes();
             }
-            let Ok(mut g) = s.0.lock() else { return None };
+            let Ok(mut g) = s.0.lock() else { return };
             g.transactions += done + err.is_some() as u64;
             if d == 0 {
                 g.cycles += 1;
             }
             match err {
                 Some(TxError::Exception(m)) => {
+                    // The others go on being served: the controlled stop must reach them.
                     g.failures += 1;
-                    return Some(Alarm::new(2201, format!("{m}; the drive refused the cyclic exchange: check its register map")));
+                    g.slots[d].last_error = Some(m.clone());
+                    if !std::mem::replace(&mut g.slots[d].exception_reported, true) && g.alarm.is_none() {
+                        g.alarm = Some((d, Alarm::new(2201, format!("{m}; the drive refused the cyclic exchange: check its register map and its state"))));
+                    }
                 }
                 Some(TxError::Transport(m)) => {
                     g.failures += 1;
@@ -468,6 +513,14 @@ impl LinkIo {
                     g.slots[d].last_error = Some(m);
                 }
                 None => {
+                    if !cmd.stream {
+                        // Not streaming: the drive stands where it is read. The first
+                        // streamed target is measured from there (the PR block's speed, the
+                        // following error's demand), never from 0.
+                        if let Some(r) = &reading {
+                            self.spec.drives[d].last_target = r.position;
+                        }
+                    }
                     if let Some(mut r) = reading {
                         let seq = g.slots[d].reading.seq + 1;
                         r.seq = seq;
@@ -483,6 +536,5 @@ impl LinkIo {
                 }
             }
         }
-        None
     }
 }

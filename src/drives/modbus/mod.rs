@@ -72,6 +72,8 @@ struct Axis {
     have_fb: bool,
     target: i64,
     last_error: Option<String>,
+    /// Its leaving Operation Enabled was alarmed (not again: the others stop under control).
+    reported: bool,
 }
 
 struct Link {
@@ -90,6 +92,12 @@ pub struct ModbusDrives {
     cycle_ns: u64,
     feedback_timeout: Duration,
     running: bool,
+    /// `quick_stop` was sent: Quick Stop Active is ours.
+    stopping: bool,
+    /// `isolate_faults`: a drive that faults is stopped alone (`faulted`), the layer above
+    /// stops the others under control.
+    isolate: bool,
+    faulted: Option<usize>,
     enable_cycles: u64,
     t0: Instant,
 }
@@ -150,6 +158,7 @@ impl ModbusDrives {
                 have_fb: false,
                 target: 0,
                 last_error: None,
+                reported: false,
             });
         }
         for l in &mut links {
@@ -162,6 +171,9 @@ impl ModbusDrives {
             cycle_ns,
             feedback_timeout: Duration::from_secs_f64(cfg.bus.feedback_timeout_ms * 1e-3),
             running: false,
+            stopping: false,
+            isolate: false,
+            faulted: None,
             enable_cycles: 0,
             t0: Instant::now(),
         }
@@ -205,6 +217,55 @@ impl ModbusDrives {
         let a = &self.axes[i];
         let l = &self.links[a.link];
         Alarm::new(number, format!("axis {} (Modbus link {}, unit {}): {msg}", a.name, l.name, self.unit(i)))
+    }
+
+    /// Alarm 2010 once for a drive that left Operation Enabled on its own while running: a
+    /// fault (also while it brakes in Fault Reaction Active, which lasts as long as its stop
+    /// ramp — over a second on a spindle), a quick stop of its own (a stop input, a limit),
+    /// or a disable. Reported once, so that the controlled stop of the others goes on
+    /// (CANopen's master isolates a faulted node the same way).
+    fn left_operation_enabled(&mut self, i: usize) -> Option<Alarm> {
+        let a = &self.axes[i];
+        if !self.running || a.reported || !a.have_fb {
+            return None;
+        }
+        let st = State::from_statusword(a.statusword);
+        let code = a.error_code;
+        let what = match st {
+            State::OperationEnabled => return None,
+            // Our own quick stop: not the drive's doing.
+            State::QuickStopActive if self.stopping => return None,
+            State::Fault => format!("drive fault, error code 0x{code:04X} {}", error_text(code)),
+            State::FaultReactionActive => {
+                format!("drive fault (Fault Reaction Active: the drive is braking on its own), error code 0x{code:04X} {}", error_text(code))
+            }
+            State::QuickStopActive => "the drive went to Quick Stop Active on its own (a stop input or one of its limits); the others are stopped under control".into(),
+            _ if self.stopping => return None,
+            st => format!("the drive left Operation Enabled on its own: now {}", st.name()),
+        };
+        Some(self.report(i, 2010, what))
+    }
+
+    /// Alarm `number` for axis `i`, once: isolated (the first, when isolating) or every
+    /// drive quick-stopped (a second one).
+    fn report(&mut self, i: usize, number: u32, what: impl std::fmt::Display) -> Alarm {
+        self.isolate_axis(i);
+        self.axis_alarm(i, number, what)
+    }
+
+    fn isolate_axis(&mut self, i: usize) {
+        self.axes[i].reported = true;
+        if self.isolate && self.faulted.is_none_or(|f| f == i) {
+            self.faulted = Some(i);
+            let a = &mut self.axes[i];
+            a.cmd.velocity = 0.0;
+            match a.profile {
+                Profile::Cia402 => a.cmd.controlword = cw::QUICK_STOP_CMD,
+                Profile::Pr => a.cmd.target = a.raw,
+            }
+        } else {
+            self.faulted = None;
+        }
     }
 
     fn unit(&self, i: usize) -> u8 {
@@ -282,9 +343,15 @@ impl DriveBus for ModbusDrives {
             let li = self.axes[i].link;
             let Some(s) = self.links[li].shared.clone() else { continue };
             let (r, last_error) = {
-                let Ok(g) = s.0.lock() else { continue };
+                let Ok(mut g) = s.0.lock() else { continue };
                 if let LinkState::Failed(a) = &g.state {
                     return Err(a.clone());
+                }
+                if let Some((slot, a)) = g.alarm.take() {
+                    drop(g);
+                    let ax = (0..self.axes.len()).find(|&k| self.axes[k].link == li && self.axes[k].slot == slot).unwrap_or(i);
+                    self.isolate_axis(ax);
+                    return Err(a);
                 }
                 let sl = &g.slots[self.axes[i].slot];
                 (sl.reading, sl.last_error.clone())
@@ -304,18 +371,16 @@ impl DriveBus for ModbusDrives {
             }
             let age = a.fb_at.map(|t| now.saturating_duration_since(t)).unwrap_or(Duration::MAX);
             let limit = self.feedback_timeout.max(self.links[li].cycle * 3);
-            if self.running && age > limit {
+            if self.running && age > limit && !self.axes[i].reported {
                 let why = self.axes[i].last_error.clone().unwrap_or_else(|| "no answer".into());
-                return Err(self.axis_alarm(
+                return Err(self.report(
                     i,
                     2015,
                     format!("no position feedback for {:.1} ms (link cycle {:.0} ms): {why}", age.as_secs_f64() * 1e3, self.links[li].cycle.as_secs_f64() * 1e3),
                 ));
             }
-            let a = &self.axes[i];
-            if self.running && State::from_statusword(a.statusword) == State::Fault {
-                let code = a.error_code;
-                return Err(self.axis_alarm(i, 2010, format!("drive fault, error code 0x{code:04X} {}", error_text(code))));
+            if let Some(a) = self.left_operation_enabled(i) {
+                return Err(a);
             }
         }
         Ok(())
@@ -415,6 +480,7 @@ impl DriveBus for ModbusDrives {
                     match a.enabler.step(a.statusword) {
                         EnableProgress::Enabled => {
                             a.enabled = true;
+                            a.reported = false;
                             a.cmd.stream = true;
                         }
                         EnableProgress::Walking => {
@@ -437,6 +503,7 @@ impl DriveBus for ModbusDrives {
                     match st {
                         State::OperationEnabled => {
                             a.enabled = true;
+                            a.reported = false;
                             a.cmd.stream = true;
                         }
                         State::Fault => {
@@ -465,6 +532,8 @@ impl DriveBus for ModbusDrives {
         }
         if all {
             self.running = true;
+            self.stopping = false;
+            self.faulted = None;
         } else if self.t0.elapsed() > Duration::from_secs(10) && self.enable_cycles > 10 {
             let i = self.axes.iter().position(|a| !a.enabled).unwrap_or(0);
             let st = State::from_statusword(self.axes[i].statusword);
@@ -474,6 +543,7 @@ impl DriveBus for ModbusDrives {
     }
 
     fn quick_stop(&mut self) {
+        self.stopping = true;
         for a in &mut self.axes {
             a.cmd.velocity = 0.0;
             match a.profile {
@@ -509,6 +579,15 @@ impl DriveBus for ModbusDrives {
 
     fn counts_per_unit(&self, axis: usize) -> f64 {
         self.axes[axis].counts_per_unit
+    }
+
+    fn isolate_faults(&mut self, on: bool) -> bool {
+        self.isolate = on;
+        true
+    }
+
+    fn faulted(&self) -> Option<usize> {
+        self.faulted
     }
 
     fn link_cycle(&self, axis: usize) -> Option<(String, String, f64)> {
