@@ -187,7 +187,7 @@ fn busy_answers_are_retried() {
 fn a_link_slower_than_the_machine_cycle_sees_the_drives_at_rest() {
     let flag = Arc::new(AtomicBool::new(false));
     let srv = tcp_server(MODBUS_LATHE, away_from_zero, &flag);
-    let cfg = write("slowlink.toml", &tcp_machine(srv.local_addr().unwrap()).replace("timeout_ms = 50 ", "cycle_ms = 10\ntimeout_ms = 50 "));
+    let cfg = write("slowlink.toml", &tcp_machine(srv.local_addr().unwrap()).replace("\ntimeout_ms = 50 ", "\ncycle_ms = 10\ntimeout_ms = 50 "));
     let prog = write("slowlink.nc", "O1\nG21\nG98\nG01 X10 Z-5 F600\nM30\n");
     let o = cncgw(&["run", "--json", "--config", &cfg, &prog]);
     let t = text(&o);
