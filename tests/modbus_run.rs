@@ -40,7 +40,7 @@ fn tcp_machine(addr: SocketAddr, extra_link: &str) -> String {
     MODBUS_LATHE
         .replace("address = \"127.0.0.1:5020\"", &format!("address = \"{addr}\"\n{extra_link}"))
         .replace("feedback_timeout_ms = 50", "feedback_timeout_ms = 300")
-        .replace("timeout_ms = 50 ", "timeout_ms = 200 ")
+        .replace("timeout_ms = 20 ", "timeout_ms = 200 ")
 }
 
 /// X/Z moves with the spindle turning slowly: every Modbus axis moves.
@@ -193,7 +193,7 @@ fn rtu_machine_runs_over_a_serial_line() {
     let machine = MODBUS_LATHE
         .replace("transport = \"tcp\"\naddress = \"127.0.0.1:5020\"", &format!("transport = \"rtu\"\ndevice = \"{b}\"\nbaud = 115200\nfc23 = true"))
         .replace("feedback_timeout_ms = 50", "feedback_timeout_ms = 300")
-        .replace("timeout_ms = 50 ", "timeout_ms = 200 ");
+        .replace("timeout_ms = 20 ", "timeout_ms = 200 ");
     let cfg = write("rtu.toml", &machine);
     let prog = write("rtu.nc", PROGRAM);
     let o = cncgw(&["run", "--json", "--config", &cfg, &prog]);

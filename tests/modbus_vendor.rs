@@ -187,7 +187,7 @@ fn busy_answers_are_retried() {
 fn a_link_slower_than_the_machine_cycle_sees_the_drives_at_rest() {
     let flag = Arc::new(AtomicBool::new(false));
     let srv = tcp_server(MODBUS_LATHE, away_from_zero, &flag);
-    let cfg = write("slowlink.toml", &tcp_machine(srv.local_addr().unwrap()).replace("\ntimeout_ms = 50 ", "\ncycle_ms = 10\ntimeout_ms = 50 "));
+    let cfg = write("slowlink.toml", &tcp_machine(srv.local_addr().unwrap()).replace("\ntimeout_ms = 20 ", "\ncycle_ms = 10\ntimeout_ms = 20 "));
     let prog = write("slowlink.nc", "O1\nG21\nG98\nG01 X10 Z-5 F600\nM30\n");
     let o = cncgw(&["run", "--json", "--config", &cfg, &prog]);
     let t = text(&o);
@@ -239,5 +239,96 @@ fn pr_drive_away_from_zero_starts_without_a_huge_speed_or_following_error() {
     let x = s["axes"].as_array().unwrap().iter().find(|a| a["axis"] == "x").unwrap().clone();
     let ferr = x["max_following_error"].as_f64().unwrap();
     assert!(ferr < 0.5, "X's max following error {ferr} mm: the start position (1.6 mm) counted? {t}");
+    stop(srv, &flag);
+}
+
+/// Whether socat is installed; panics when it is missing unless skipping was asked for
+/// (never under CI=true), as tests/modbus_run.rs.
+fn have_socat() -> bool {
+    let found = Command::new("sh").args(["-c", "command -v socat"]).stdout(std::process::Stdio::null()).status().is_ok_and(|s| s.success());
+    if found {
+        return true;
+    }
+    let ci = std::env::var("CI").as_deref() == Ok("true");
+    if std::env::var("CNCGW_SKIP_MODBUS_TOOLS").as_deref() == Ok("1") && !ci {
+        eprintln!("socat missing, CNCGW_SKIP_MODBUS_TOOLS=1: test skipped on request");
+        return false;
+    }
+    panic!("`socat` is not installed: run `scripts/install-test-deps.sh`");
+}
+
+fn pty_pair() -> (procs::Kill, String, String) {
+    use std::io::BufRead;
+    let mut c = Command::new("socat")
+        .args(["-d", "-d", "pty,raw,echo=0", "pty,raw,echo=0"])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let err = c.stderr.take().unwrap();
+    let k = procs::Kill(c);
+    let mut lines = std::io::BufReader::new(err).lines();
+    let mut ptys = Vec::new();
+    while ptys.len() < 2 {
+        let l = lines.next().expect("socat named no pty").unwrap();
+        if let Some(p) = l.split("PTY is ").nth(1) {
+            ptys.push(p.trim().to_string());
+        }
+    }
+    std::thread::spawn(move || for _ in lines.by_ref() {});
+    (k, ptys[0].clone(), ptys[1].clone())
+}
+
+/// X answers one request in `every` 25 ms late: past the shipped 20 ms timeout, so that
+/// answer arrives while the master waits for the next one.
+fn late_x(every: u32) -> impl Fn(u8) -> sim_drives::ModbusQuirks {
+    move |n| sim_drives::ModbusQuirks { late_every: if n == 1 { every } else { 0 }, late_ms: 25, ..away_from_zero(n) }
+}
+
+const LATE_PROGRAM: &str = "O1\nG21\nG98\nG01 X20 Z-10 F600\nG01 X6 Z-2 F600\nM30\n";
+
+/// Issues 22.7/22.8 on TCP: with the shipped config (timeout 20 ms, feedback timeout
+/// 50 ms) a late answer is one lost reading, not alarm 2015; its bytes are dropped before
+/// the next request, so the exchange stays in step (no "transaction id" mismatch for good).
+#[test]
+fn late_answers_are_ridden_through_on_tcp_with_the_shipped_config() {
+    let flag = Arc::new(AtomicBool::new(false));
+    let srv = tcp_server(MODBUS_LATHE, late_x(300), &flag);
+    let cfg = write("late-tcp.toml", &tcp_machine(srv.local_addr().unwrap()));
+    let prog = write("late-tcp.nc", LATE_PROGRAM);
+    let o = cncgw(&["-v", "run", "--json", "--config", &cfg, &prog]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    assert_eq!(summary(&o)["at_program_end"], true, "{t}");
+    assert!(!t.contains("(0 failed)"), "no answer was late: the test did not test: {t}");
+    let x = srv.with_drive(1, |d| d.position_unwrapped()).unwrap();
+    assert!((x - 30_000).abs() <= 1, "x at {x} counts: {t}");
+    stop(srv, &flag);
+}
+
+/// Issue 22.8 on RTU: a late answer is drained and the exchange matched again; before, every
+/// later read was out of step ("mismatching function codes") for good.
+#[test]
+fn late_answers_are_ridden_through_on_rtu_with_the_shipped_config() {
+    if !have_socat() {
+        return;
+    }
+    let (_socat, a, b) = pty_pair();
+    let flag = Arc::new(AtomicBool::new(false));
+    let mut cfg = sim_drives::SimConfig::from_machine_toml_bus(MODBUS_LATHE, Some(true)).unwrap();
+    for d in &mut cfg.drives {
+        d.modbus_quirks = late_x(20)(d.node);
+    }
+    let srv = sim_drives::modbus::serve_rtu(&a, sim_drives::modbus::RtuLine::default(), cfg, flag.clone()).unwrap();
+    let machine = MODBUS_LATHE.replace("transport = \"tcp\"\naddress = \"127.0.0.1:5020\"", &format!("transport = \"rtu\"\ndevice = \"{b}\"\nbaud = 115200"));
+    let cfg = write("late-rtu.toml", &machine);
+    let prog = write("late-rtu.nc", LATE_PROGRAM);
+    let o = cncgw(&["-v", "run", "--json", "--config", &cfg, &prog]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    assert_eq!(summary(&o)["at_program_end"], true, "{t}");
+    assert!(!t.contains(" 0 bytes of late answers dropped"), "no late answer was dropped: the test did not test: {t}");
+    let x = srv.with_drive(1, |d| d.position_unwrapped()).unwrap();
+    assert!((x - 30_000).abs() <= 1, "x at {x} counts: {t}");
     stop(srv, &flag);
 }

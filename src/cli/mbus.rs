@@ -61,9 +61,42 @@ pub fn parse_bus_url(bus: &str) -> Option<Result<ModbusLink, String>> {
 }
 
 /// Put every axis of `cfg` on the link of a `modbus-…` bus. Ok(true) if `bus` was one.
+/// The URL says where the drives are; how to talk to them (timeout, function 23, link
+/// cycle, turnaround, and the line settings the URL does not give) stays the
+/// configuration's first Modbus link's. Without one, the timeout is held to what rides
+/// through one lost answer within `bus.feedback_timeout_ms`.
 pub fn apply_bus(cfg: &mut MachineConfig, bus: Option<&str>) -> Result<bool, String> {
     let Some(link) = bus.and_then(parse_bus_url) else { return Ok(false) };
-    let link = link?;
+    let mut link = link?;
+    let given: Vec<&str> = bus.and_then(|b| b.split_once('?')).map(|(_, q)| q.split('&').map(|kv| kv.split('=').next().unwrap_or("")).collect()).unwrap_or_default();
+    let base = cfg.modbus.iter().find(|(n, _)| cfg.axes.values().any(|a| a.modbus.as_deref() == Some(n.as_str()))).map(|(_, l)| l.clone());
+    match base {
+        Some(b) => {
+            link.fc23 = b.fc23;
+            link.cycle_ms = b.cycle_ms;
+            link.turnaround_ms = b.turnaround_ms;
+            if !given.contains(&"timeout_ms") {
+                link.timeout_ms = b.timeout_ms;
+            }
+            if link.transport == LinkTransport::Rtu && b.transport == LinkTransport::Rtu {
+                if !given.contains(&"baud") {
+                    link.baud = b.baud;
+                }
+                if !given.contains(&"parity") {
+                    link.parity = b.parity;
+                }
+                if !given.contains(&"stop_bits") {
+                    link.stop_bits = b.stop_bits;
+                }
+            }
+        }
+        None if !given.contains(&"timeout_ms") => {
+            if let Some(most) = link.most_timeout_ms(cfg.bus.feedback_timeout_ms, cfg.machine.cycle_ms) {
+                link.timeout_ms = link.timeout_ms.min(most as u32);
+            }
+        }
+        None => {}
+    }
     cfg.modbus.clear();
     cfg.modbus.insert(BUS_LINK.into(), link);
     for a in cfg.axes.values_mut() {
@@ -827,5 +860,21 @@ mod tests {
         assert!(apply_bus(&mut cfg, Some("modbus-tcp://127.0.0.1:5020")).unwrap());
         assert!(!cfg.has_canopen());
         assert!(cfg.axes.values().all(|a| a.modbus.as_deref() == Some(BUS_LINK)));
+        // No link in the configuration: the default timeout is held within the feedback
+        // timeout (20 ms at a 2 ms cycle → at most 16 ms).
+        assert_eq!(cfg.modbus[BUS_LINK].timeout_ms, 16);
+    }
+
+    /// Issue 22: `--bus modbus-tcp://` keeps the configuration's link settings.
+    #[test]
+    fn bus_url_keeps_the_configured_link_settings() {
+        let text = include_str!("../../config/lathe-modbus.toml").replace("# fc23 = true", "fc23 = true\ncycle_ms = 8");
+        let mut cfg: MachineConfig = crate::config::MachineConfig::from_toml("lathe-modbus.toml", &text).unwrap();
+        assert!(apply_bus(&mut cfg, Some("modbus-tcp://10.0.0.9:502")).unwrap());
+        let l = &cfg.modbus[BUS_LINK];
+        assert_eq!((l.address.as_deref(), l.timeout_ms, l.fc23, l.cycle_ms), (Some("10.0.0.9:502"), 20, true, Some(8.0)));
+        let mut cfg: MachineConfig = crate::config::MachineConfig::from_toml("lathe-modbus.toml", &text).unwrap();
+        assert!(apply_bus(&mut cfg, Some("modbus-rtu:///dev/ttyS1?timeout_ms=30")).unwrap());
+        assert_eq!(cfg.modbus[BUS_LINK].timeout_ms, 30);
     }
 }

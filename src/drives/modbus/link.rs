@@ -7,6 +7,7 @@
 //! a current-thread tokio runtime for tokio-modbus; it may allocate (tokio-modbus boxes its
 //! futures), which is why it is not the cycle thread.
 
+use super::line::Line;
 use super::plan::{DrivePlan, Exchange};
 use crate::config::{LinkTransport, ModbusLink, Parity};
 use crate::Alarm;
@@ -90,6 +91,8 @@ pub struct Shared {
     pub transactions: u64,
     pub cycles: u64,
     pub failures: u64,
+    /// Bytes of late answers dropped before a request (see `line`).
+    pub stale_bytes: u64,
 }
 
 pub type SharedLink = Arc<(Mutex<Shared>, Condvar)>;
@@ -147,6 +150,7 @@ pub fn spawn(spec: LinkSpec) -> std::io::Result<(SharedLink, std::thread::JoinHa
             transactions: 0,
             cycles: 0,
             failures: 0,
+            stale_bytes: 0,
         }),
         Condvar::new(),
     ));
@@ -159,7 +163,7 @@ pub fn spawn(spec: LinkSpec) -> std::io::Result<(SharedLink, std::thread::JoinHa
                 return;
             }
         };
-        let mut io = LinkIo { spec, ctx: None, rt, last_end: None };
+        let mut io = LinkIo { spec, ctx: None, rt, last_end: None, line: None, stale_bytes: 0 };
         match io.start(&s2) {
             Ok(cycle) => {
                 set_state(&s2, LinkState::Running { cycle });
@@ -195,6 +199,10 @@ struct LinkIo {
     rt: tokio::runtime::Runtime,
     /// End of the last RTU frame, for the inter-frame silence.
     last_end: Option<Instant>,
+    /// The byte stream under `ctx`, to drop late answers from.
+    line: Option<Line>,
+    /// Bytes of late answers dropped so far.
+    stale_bytes: u64,
 }
 
 /// A failed transaction.
@@ -231,7 +239,7 @@ impl LinkIo {
     fn connect(&mut self) -> Result<(), String> {
         let cfg = &self.spec.cfg;
         let timeout = Duration::from_millis(cfg.timeout_ms as u64);
-        let ctx = match cfg.transport {
+        let line = match cfg.transport {
             LinkTransport::Tcp => {
                 let addr = cfg.address.clone().unwrap_or_default();
                 self.rt.block_on(async {
@@ -245,7 +253,7 @@ impl LinkIo {
                         .map_err(|_| format!("{addr}: connection timed out"))?
                         .map_err(|e| format!("{addr}: {e}"))?;
                     let _ = stream.set_nodelay(true);
-                    Ok::<_, String>(tokio_modbus::client::tcp::attach(stream))
+                    Ok::<_, String>(Line::tcp(stream))
                 })?
             }
             LinkTransport::Rtu => {
@@ -258,10 +266,14 @@ impl LinkIo {
                 let stop = if cfg.stop_bits == 2 { tokio_serial::StopBits::Two } else { tokio_serial::StopBits::One };
                 let builder = tokio_serial::new(&dev, cfg.baud).parity(parity).stop_bits(stop).data_bits(tokio_serial::DataBits::Eight);
                 let port = self.rt.block_on(async { tokio_serial::SerialStream::open(&builder) }).map_err(|e| format!("{dev}: {e}"))?;
-                tokio_modbus::client::rtu::attach(port)
+                Line::serial(port)
             }
         };
-        self.ctx = Some(ctx);
+        self.ctx = Some(match cfg.transport {
+            LinkTransport::Tcp => tokio_modbus::client::tcp::attach(line.clone()),
+            LinkTransport::Rtu => tokio_modbus::client::rtu::attach(line.clone()),
+        });
+        self.line = Some(line);
         Ok(())
     }
 
@@ -299,6 +311,11 @@ impl LinkIo {
 
     fn exchange_once(&mut self, d: usize, x: &Exchange, write: &[u16]) -> Result<Vec<u16>, Attempt> {
         self.silence();
+        // A late answer to an earlier request must not be taken for this one's (line.rs).
+        if let Some(n) = self.line.as_ref().map(Line::drain).filter(|&n| n > 0) {
+            tracing::debug!(link = %self.spec.name, "dropped {n} bytes of a late answer before the next request");
+            self.stale_bytes += n as u64;
+        }
         let unit = self.spec.drives[d].unit;
         let timeout = Duration::from_millis(self.spec.cfg.timeout_ms as u64);
         let Some(ctx) = self.ctx.as_mut() else {
@@ -328,6 +345,7 @@ impl LinkIo {
             Ok(Err(e)) => {
                 if matches!(e, tokio_modbus::Error::Transport(_)) {
                     self.ctx = None; // a broken connection: reconnect
+                    self.line = None;
                 }
                 Err(Other(TxError::Transport(format!("{}: {e}", what()))))
             }
@@ -495,6 +513,7 @@ impl LinkIo {
             }
             let Ok(mut g) = s.0.lock() else { return };
             g.transactions += done + err.is_some() as u64;
+            g.stale_bytes = self.stale_bytes;
             if d == 0 {
                 g.cycles += 1;
             }

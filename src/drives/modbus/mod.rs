@@ -9,6 +9,7 @@
 //! planner's path is sampled at the link's cycle for those axes. The CiA 402 state machine
 //! is the CANopen layer's (`cncgw_bus::cia402::Enabler`).
 
+pub mod line;
 pub mod link;
 pub mod plan;
 
@@ -49,6 +50,8 @@ pub struct LinkStats {
     pub failures: u64,
     pub cycles: u64,
     pub overruns: u64,
+    /// Bytes of late answers dropped to keep the exchange in step.
+    pub stale_bytes: u64,
 }
 
 struct Axis {
@@ -207,6 +210,7 @@ impl ModbusDrives {
                     st.failures = g.failures;
                     st.overruns = g.overruns;
                     st.cycles = g.cycles;
+                    st.stale_bytes = g.stale_bytes;
                 }
                 st
             })
@@ -566,6 +570,18 @@ impl DriveBus for ModbusDrives {
         let longest = self.links.iter().map(|l| l.cycle).max().unwrap_or_default();
         std::thread::sleep((longest * 3).min(Duration::from_secs(2)));
         self.running = false;
+        for st in self.link_stats() {
+            tracing::info!(
+                "Modbus link {}: {} transactions ({} failed) in {} link cycles of {:.0} ms, {} late; {} bytes of late answers dropped",
+                st.name,
+                st.transactions,
+                st.failures,
+                st.cycles,
+                st.cycle.as_secs_f64() * 1e3,
+                st.overruns,
+                st.stale_bytes
+            );
+        }
         self.stop_links();
     }
 
