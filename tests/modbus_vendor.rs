@@ -332,3 +332,18 @@ fn late_answers_are_ridden_through_on_rtu_with_the_shipped_config() {
     assert!((x - 30_000).abs() <= 1, "x at {x} counts: {t}");
     stop(srv, &flag);
 }
+
+/// Issue 22.11: one slow answer at start-up (Z answers its first request 30 ms late, past
+/// the 20 ms timeout) is retried, not alarm 2202.
+#[test]
+fn a_slow_answer_at_start_up_is_retried() {
+    let flag = Arc::new(AtomicBool::new(false));
+    let srv = tcp_server(MODBUS_LATHE, |n| sim_drives::ModbusQuirks { slow_first: if n == 2 { 1 } else { 0 }, slow_first_ms: 30, ..away_from_zero(n) }, &flag);
+    let cfg = write("slowstart.toml", &tcp_machine(srv.local_addr().unwrap()));
+    let prog = write("slowstart.nc", "O1\nG21\nG98\nG01 X10 Z-2 F600\nM30\n");
+    let o = cncgw(&["run", "--json", "--config", &cfg, &prog]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    assert_eq!(summary(&o)["at_program_end"], true, "{t}");
+    stop(srv, &flag);
+}

@@ -228,6 +228,8 @@ impl TxError {
 /// its EEPROM for a moment without holding the link up for long.
 const BUSY_RETRIES: u32 = 3;
 const BUSY_PAUSE: Duration = Duration::from_millis(1);
+/// Tries after the first of a start-up transaction that got no (or a garbled) answer.
+const STARTUP_RETRIES: u32 = 3;
 
 /// `exception 0x06 (Server device busy)`: the code and tokio-modbus' name for it.
 pub fn exception_words(code: ExceptionCode) -> String {
@@ -309,6 +311,26 @@ impl LinkIo {
         }
     }
 
+    /// `exchange` at start-up, where nothing moves yet: a transaction without an answer (or
+    /// with a late one's bytes in its place) is sent again, `STARTUP_RETRIES` times, before
+    /// it is alarm 2202 — a drive still booting or one slow answer must not abort the start.
+    fn exchange_at_startup(&mut self, d: usize, x: &Exchange, write: &[u16]) -> Result<Vec<u16>, TxError> {
+        let mut tries = 0;
+        loop {
+            match self.exchange(d, x, write) {
+                Err(TxError::Transport(m)) if tries < STARTUP_RETRIES => {
+                    tries += 1;
+                    tracing::debug!("{m}: try {} of {}", tries + 1, STARTUP_RETRIES + 1);
+                    if self.ctx.is_none() {
+                        self.connect().map_err(TxError::Transport)?;
+                    }
+                }
+                Err(TxError::Transport(m)) => return Err(TxError::Transport(format!("{m} ({} tries)", tries + 1))),
+                r => return r,
+            }
+        }
+    }
+
     fn exchange_once(&mut self, d: usize, x: &Exchange, write: &[u16]) -> Result<Vec<u16>, Attempt> {
         self.silence();
         // A late answer to an earlier request must not be taken for this one's (line.rs).
@@ -368,7 +390,7 @@ impl LinkIo {
         for d in 0..self.spec.drives.len() {
             let writes = self.spec.drives[d].setup.clone();
             for (x, data) in writes {
-                self.exchange(d, &x, &data).map_err(|e| {
+                self.exchange_at_startup(d, &x, &data).map_err(|e| {
                     Alarm::new(
                         if matches!(e, TxError::Exception(_)) { 2201 } else { 2202 },
                         format!("configuring the drive failed: {}; check the unit id, the profile and the register map", e.text()),
@@ -385,7 +407,7 @@ impl LinkIo {
                     let t0 = Instant::now();
                     for d in 0..self.spec.drives.len() {
                         let x = self.spec.drives[d].feedback_read();
-                        self.exchange(d, &x, &[]).map_err(|e| {
+                        self.exchange_at_startup(d, &x, &[]).map_err(|e| {
                             Alarm::new(
                                 if matches!(e, TxError::Exception(_)) { 2201 } else { 2202 },
                                 format!("reading the drive's feedback failed: {}; check the unit id, the profile and the register map", e.text()),
@@ -424,7 +446,12 @@ impl LinkIo {
         for d in 0..self.spec.drives.len() {
             let writes = self.spec.drives[d].timing_writes(cycle_ms as u16, self.spec.cfg.timeout_ms);
             for (x, data) in writes {
-                self.exchange(d, &x, &data).map_err(|e| Alarm::new(2201, format!("configuring the drive failed: {}", e.text())))?;
+                self.exchange_at_startup(d, &x, &data).map_err(|e| {
+                    Alarm::new(
+                        if matches!(e, TxError::Exception(_)) { 2201 } else { 2202 },
+                        format!("configuring the drive failed: {}", e.text()),
+                    )
+                })?;
             }
         }
         // First readings, so that the cycle thread starts from real positions.
