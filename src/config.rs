@@ -130,6 +130,14 @@ pub struct ModbusLink {
 }
 
 impl ModbusLink {
+    /// "Modbus TCP 127.0.0.1:5020", "Modbus RTU /dev/ttyUSB0 115200 baud".
+    pub fn describe(&self) -> String {
+        match self.transport {
+            LinkTransport::Tcp => format!("Modbus TCP {}", self.address.as_deref().unwrap_or("?")),
+            LinkTransport::Rtu => format!("Modbus RTU {} {} baud", self.device.as_deref().unwrap_or("?"), self.baud),
+        }
+    }
+
     /// The longest transaction timeout that rides through one lost answer: the drive's next
     /// reading comes a timeout and up to two cycles (`cycle_ms`, the machine's: a link cycle
     /// is never shorter) after the last one, and must come within `feedback_timeout_ms`.

@@ -347,3 +347,42 @@ fn a_slow_answer_at_start_up_is_retried() {
     assert_eq!(summary(&o)["at_program_end"], true, "{t}");
     stop(srv, &flag);
 }
+
+/// The motion confirmation names the Modbus link the drives are on, not "none" (the
+/// CANopen interface of a machine without CANopen axes).
+#[test]
+fn motion_confirmation_names_the_modbus_link() {
+    let cfg = write("confirm.toml", &tcp_machine("10.0.0.9:502".parse().unwrap()));
+    let o = Command::new(env!("CARGO_BIN_EXE_cncgw"))
+        .env("CNCGW_STATE_DIR", tmp("state"))
+        .args(["jog", "z", "--by", "1", "--config", &cfg])
+        .stdin(std::process::Stdio::null())
+        .output()
+        .unwrap();
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(2), "{t}");
+    assert!(t.contains("can set a motor in motion on Modbus link tcp (Modbus TCP 10.0.0.9:502)"), "{t}");
+    assert!(!t.contains("on none"), "{t}");
+}
+
+/// `cncgw drive status 1 | head` (the reader gone before the output): no panic.
+#[test]
+fn drive_status_into_a_closed_pipe_does_not_panic() {
+    let flag = Arc::new(AtomicBool::new(false));
+    let srv = tcp_server(MODBUS_LATHE, |_| sim_drives::ModbusQuirks::default(), &flag);
+    let cfg = write("pipe.toml", &tcp_machine(srv.local_addr().unwrap()));
+    let mut c = Command::new(env!("CARGO_BIN_EXE_cncgw"))
+        .env("CNCGW_STATE_DIR", tmp("state"))
+        .args(["drive", "status", "1", "--config", &cfg])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    drop(c.stdout.take());
+    let o = c.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!err.contains("panicked"), "{err}");
+    use std::os::unix::process::ExitStatusExt;
+    assert!(o.status.success() || o.status.signal() == Some(13), "{:?}: {err}", o.status);
+    stop(srv, &flag);
+}

@@ -654,10 +654,36 @@ fn init_tracing(verbose: u8) {
     let _ = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).with_ansi(ansi).try_init();
 }
 
+/// A read-only command whose output goes to a pipe closed early (`cncgw drive status 1 |
+/// head`) ends quietly, as Unix tools do, instead of panicking in `println!`: the default
+/// SIGPIPE action. Never for a command that moves or holds drives (run, jog, enable …): it
+/// must stop them under control whatever happens to its output.
+fn quiet_on_closed_pipe() {
+    #[cfg(unix)]
+    // SAFETY: sets a signal's disposition to its default; no handler runs our code.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
+}
+
 /// Entry point; returns the process exit code.
 pub fn main() -> i32 {
     let cli = Cli::parse();
     init_tracing(cli.verbose);
+    if matches!(
+        cli.cmd,
+        Command::Scan { .. }
+            | Command::Drive(DriveCmd::Status { .. })
+            | Command::Monitor { .. }
+            | Command::Config(ConfigCmd::Check { .. })
+            | Command::Plan { .. }
+            | Command::Sdo(SdoCmd::Read { .. })
+            | Command::Od(_)
+            | Command::Completions { .. }
+            | Command::Man
+    ) {
+        quiet_on_closed_pipe();
+    }
     match cli.cmd {
         Command::Run { program, machine, json, state_dir, trace, rt, op } => {
             run::run(&program, &machine, json, state_dir.as_deref(), trace.as_deref(), &rt, &op)

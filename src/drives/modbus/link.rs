@@ -130,10 +130,7 @@ impl LinkSpec {
     }
 
     pub fn what(&self) -> String {
-        match self.cfg.transport {
-            LinkTransport::Tcp => format!("Modbus TCP {}", self.cfg.address.as_deref().unwrap_or("?")),
-            LinkTransport::Rtu => format!("Modbus RTU {} {} baud", self.cfg.device.as_deref().unwrap_or("?"), self.cfg.baud),
-        }
+        self.cfg.describe()
     }
 }
 
