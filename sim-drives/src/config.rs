@@ -266,6 +266,9 @@ pub struct ModbusQuirks {
     /// After this many requests every request is answered with exception 0x04 (server
     /// device failure) and not executed: a drive that breaks while running; 0 = never.
     pub refuse_after: u32,
+    /// After this many requests every request is answered `late_ms` late (a drive whose
+    /// answers slow down while running); 0 = never.
+    pub late_after: u32,
     /// Every Nth request is answered `late_ms` late; 0 = never.
     pub late_every: u32,
     pub late_ms: u32,
@@ -283,8 +286,8 @@ impl ModbusQuirks {
 
     fn to_toml(&self) -> String {
         format!(
-            "[drive.modbus_quirks]\nlatch_any_time = {}\npower_up_counts = {}\nbusy_every = {}\nrefuse_after = {}\nlate_every = {}\nlate_ms = {}\nslow_first = {}\nslow_first_ms = {}\n",
-            self.latch_any_time, self.power_up_counts, self.busy_every, self.refuse_after, self.late_every, self.late_ms, self.slow_first, self.slow_first_ms
+            "[drive.modbus_quirks]\nlatch_any_time = {}\npower_up_counts = {}\nbusy_every = {}\nrefuse_after = {}\nlate_after = {}\nlate_every = {}\nlate_ms = {}\nslow_first = {}\nslow_first_ms = {}\n",
+            self.latch_any_time, self.power_up_counts, self.busy_every, self.refuse_after, self.late_after, self.late_every, self.late_ms, self.slow_first, self.slow_first_ms
         )
     }
 }

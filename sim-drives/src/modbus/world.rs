@@ -342,7 +342,7 @@ impl World {
         if n <= q.slow_first as u64 {
             late_ms = q.slow_first_ms;
         }
-        if q.late_every > 0 && n % q.late_every as u64 == 0 {
+        if (q.late_every > 0 && n % q.late_every as u64 == 0) || (q.late_after > 0 && n > q.late_after as u64) {
             late_ms = late_ms.max(q.late_ms);
         }
         (std::time::Duration::from_millis(late_ms as u64), busy)

@@ -83,7 +83,7 @@ pub struct Shared {
     /// An alarm of the running link for the cycle thread (taken once): a drive refused the
     /// cyclic exchange. The link keeps exchanging with every drive so that the controlled
     /// stop reaches them all.
-    pub alarm: Option<(usize, Alarm)>,
+    pub alarm: Option<(Option<usize>, Alarm)>,
     pub stop: bool,
     /// Link cycles that took longer than the cycle.
     pub overruns: u64,
@@ -180,6 +180,53 @@ fn set_state(s: &SharedLink, st: LinkState) {
         g.state = st;
     }
     s.1.notify_all();
+}
+
+/// The run-time check of the link cycle: the drives interpolate each set-point over the
+/// cycle they were told; a link whose exchanges take longer feeds them late, every cycle.
+/// `BEHIND_CYCLES` cycles in a row longer than the cycle (one slow cycle is a hiccup, ridden
+/// through by the drives' extrapolation) is alarm 2204 naming the figures, once.
+#[derive(Default)]
+struct Behind {
+    in_a_row: u32,
+    sum: Duration,
+    longest: Duration,
+    told: bool,
+}
+
+const BEHIND_CYCLES: u32 = 10;
+
+impl Behind {
+    fn took(&mut self, took: Duration, cycle: Duration, spec: &LinkSpec) -> Option<Alarm> {
+        if took <= cycle {
+            self.in_a_row = 0;
+            self.sum = Duration::ZERO;
+            self.longest = Duration::ZERO;
+            return None;
+        }
+        self.in_a_row += 1;
+        self.sum += took;
+        self.longest = self.longest.max(took);
+        if self.in_a_row < BEHIND_CYCLES || std::mem::replace(&mut self.told, true) {
+            return None;
+        }
+        let ms = |d: Duration| d.as_secs_f64() * 1e3;
+        let avg = ms(self.sum) / self.in_a_row as f64;
+        Some(Alarm::new(
+            2204,
+            format!(
+                "Modbus link {} falls behind its cycle: {} link cycles in a row took {avg:.1} ms on average (longest {:.1} ms) against the {:.0} ms the drives were told to interpolate over ({} transactions per cycle on {}); set cycle_ms = {:.0} in [modbus.{}] or find what slows the drives' answers",
+                spec.name,
+                self.in_a_row,
+                ms(self.longest),
+                ms(cycle),
+                spec.transactions_per_cycle(),
+                spec.what(),
+                (ms(self.longest) * 1.25).ceil(),
+                spec.name
+            ),
+        ))
+    }
 }
 
 /// One try of a transaction.
@@ -459,6 +506,7 @@ impl LinkIo {
 
     fn run(&mut self, s: &SharedLink, cycle: Duration) {
         let mut next = Instant::now();
+        let mut behind = Behind::default();
         loop {
             next += cycle;
             let now = Instant::now();
@@ -486,7 +534,15 @@ impl LinkIo {
                 }
                 tracing::warn!(link = %self.spec.name, "Modbus link reconnected");
             }
+            let t0 = Instant::now();
             self.cycle_once(s, next);
+            if let Some(a) = behind.took(t0.elapsed(), cycle, &self.spec) {
+                if let Ok(mut g) = s.0.lock() {
+                    if g.alarm.is_none() {
+                        g.alarm = Some((None, a));
+                    }
+                }
+            }
         }
     }
 
@@ -547,7 +603,7 @@ impl LinkIo {
                     g.failures += 1;
                     g.slots[d].last_error = Some(m.clone());
                     if !std::mem::replace(&mut g.slots[d].exception_reported, true) && g.alarm.is_none() {
-                        g.alarm = Some((d, Alarm::new(2201, format!("{m}; the drive refused the cyclic exchange: check its register map and its state"))));
+                        g.alarm = Some((Some(d), Alarm::new(2201, format!("{m}; the drive refused the cyclic exchange: check its register map and its state"))));
                     }
                 }
                 Some(TxError::Transport(m)) => {

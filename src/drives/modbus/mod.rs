@@ -353,8 +353,11 @@ impl DriveBus for ModbusDrives {
                 }
                 if let Some((slot, a)) = g.alarm.take() {
                     drop(g);
-                    let ax = (0..self.axes.len()).find(|&k| self.axes[k].link == li && self.axes[k].slot == slot).unwrap_or(i);
-                    self.isolate_axis(ax);
+                    // One drive's exception: that drive is isolated; the link's own
+                    // trouble (falling behind its cycle) concerns every drive on it.
+                    if let Some(ax) = slot.and_then(|sl| (0..self.axes.len()).find(|&k| self.axes[k].link == li && self.axes[k].slot == sl)) {
+                        self.isolate_axis(ax);
+                    }
                     return Err(a);
                 }
                 let sl = &g.slots[self.axes[i].slot];
