@@ -858,18 +858,18 @@ fn config_check(file: Option<&std::path::Path>, json: bool) -> i32 {
     }
     let mut links = Vec::new();
     for (lname, what, tx, rtu) in crate::drives::modbus::ModbusDrives::new(&cfg).planned_links() {
-        let link_cycle_ms = rtu.map(|s| (s * 1e3).ceil().max(cfg.machine.cycle_ms.ceil()));
+        let link_cycle_ms = rtu.map(|r| r.1);
         match rtu {
-            Some(s) => text.push(format!(
-                "  Modbus link {lname}: {what}, {tx} transactions per cycle take {:.2} ms on the line → link cycle {} ms",
+            Some((s, c)) => text.push(format!(
+                "  Modbus link {lname}: {what}, {tx} transactions per cycle take {:.2} ms on the line → link cycle {c} ms (with {:.0} % margin)",
                 s * 1e3,
-                link_cycle_ms.unwrap_or(0.0)
+                (crate::drives::modbus::link::RTU_MARGIN - 1.0) * 100.0
             )),
             None => text.push(format!("  Modbus link {lname}: {what}, {tx} transactions per cycle; the cycle is measured from the round trip at start-up")),
         }
         links.push(serde_json::json!({
             "link": lname, "what": what, "transactions_per_cycle": tx,
-            "line_time_ms": rtu.map(|s| s * 1e3), "link_cycle_ms": link_cycle_ms,
+            "line_time_ms": rtu.map(|r| r.0 * 1e3), "link_cycle_ms": link_cycle_ms,
         }));
     }
     let mut axes = Vec::new();

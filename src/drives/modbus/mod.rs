@@ -187,13 +187,14 @@ impl ModbusDrives {
     }
 
     /// Before start-up, per link: name, what it is, transactions per link cycle, and for RTU
-    /// the cycle the line can carry (s) — TCP's is measured at start-up.
-    pub fn planned_links(&self) -> Vec<(String, String, usize, Option<f64>)> {
+    /// the time one cycle's transactions take on the line (s) with the link cycle run over
+    /// it (ms) — TCP's is measured at start-up.
+    pub fn planned_links(&self) -> Vec<(String, String, usize, Option<(f64, f64)>)> {
         self.links
             .iter()
             .filter_map(|l| {
                 let s = l.spec.as_ref()?;
-                let rtu = (s.cfg.transport == crate::config::LinkTransport::Rtu).then(|| s.rtu_cycle_s());
+                let rtu = (s.cfg.transport == crate::config::LinkTransport::Rtu).then(|| (s.rtu_cycle_s(), s.rtu_link_cycle_ms()));
                 Some((l.name.clone(), l.what.clone(), s.transactions_per_cycle(), rtu))
             })
             .collect()
