@@ -84,6 +84,9 @@ extra_test_deps() {
     # tmux: the interactive `cncgw run` is typed at and read back in a terminal
     # (tests/cli_tmux.rs: send-keys, capture-pane).
     need_pkg tmux
+    # man-db (man -l) and groff: every manual page `cncgw man --dir` writes is rendered
+    # (tests/cli_man.rs).
+    need_pkg man-db groff-base
     install_missing
     if [ "$WANT_PYTHON" = 1 ]; then
         python_venv

@@ -39,10 +39,40 @@ impl fmt::Display for Alarm {
         }
         write!(f, "alarm {:04}: {}", self.number, self.message)?;
         if let Some(b) = &self.block {
-            write!(f, "\n    {}", b.trim_end())?;
+            let col = self.pos.as_ref().map_or(1, |p| p.col as usize);
+            write!(f, "\n    {}", echo(b.trim_end(), col))?;
         }
         Ok(())
     }
+}
+
+/// At most this many characters of a block are echoed in an alarm.
+pub const ECHO_CHARS: usize = 120;
+
+/// The block as an alarm shows it: non-printing characters escaped (`\x00`), and a block
+/// longer than [`ECHO_CHARS`] cut to a window around the alarm's column, the cuts marked
+/// with how much was left out (a 2 MB line must not flood the terminal or the log).
+pub fn echo(block: &str, col: usize) -> String {
+    let n = block.chars().count();
+    let start = if n <= ECHO_CHARS { 0 } else { col.saturating_sub(1 + ECHO_CHARS / 2).min(n - ECHO_CHARS) };
+    let end = (start + ECHO_CHARS).min(n);
+    let mut out = String::new();
+    if start > 0 {
+        out.push_str(&format!("[{start} characters cut] …"));
+    }
+    for ch in block.chars().skip(start).take(end - start) {
+        if ch == '\t' {
+            out.push(' ');
+        } else if ch.is_control() {
+            out.extend(ch.escape_default());
+        } else {
+            out.push(ch);
+        }
+    }
+    if end < n {
+        out.push_str(&format!("… [{} characters cut]", n - end));
+    }
+    out
 }
 
 impl std::error::Error for Alarm {}

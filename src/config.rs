@@ -180,6 +180,21 @@ pub struct Machine {
     /// 1 … 50, default 25.
     #[serde(default = "default_watchdog_missed")]
     pub watchdog_missed_cycles: u32,
+    /// The spindle that turns the tool of the SINUMERIK drilling cycles that orient or tap
+    /// (CYCLE84 POSS and its tap, CYCLE86's oriented stop), as SINUMERIK's master spindle
+    /// (SETMS) says which: `work` (default; the tool stands still, the work spindle turns and
+    /// is oriented as C) or `tool` (a driven tool; needs an axis with role = "tool_spindle").
+    #[serde(default)]
+    pub drilling_spindle: DrillingSpindle,
+}
+
+/// Which spindle turns the tool of a drilling cycle (see [`Machine::drilling_spindle`]).
+#[derive(Clone, Copy, Debug, Default, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "lowercase")]
+pub enum DrillingSpindle {
+    #[default]
+    Work,
+    Tool,
 }
 
 fn default_watchdog_overruns() -> u32 {
@@ -443,6 +458,9 @@ impl MachineConfig {
         let c = self.machine.cycle_ms;
         if !(c.is_finite() && (0.25..=100.0).contains(&c)) {
             e.push(format!("machine.cycle_ms: must be between 0.25 and 100, got {c}"));
+        }
+        if self.machine.drilling_spindle == DrillingSpindle::Tool && self.tool_spindle().is_none() {
+            e.push("machine.drilling_spindle = \"tool\" needs an axis with role = \"tool_spindle\" (the driven tool's spindle)".into());
         }
         let sl = self.machine.sync_error_limit_um;
         if !(sl.is_finite() && (1.0..=10_000.0).contains(&sl)) {

@@ -3,10 +3,17 @@
 mod cycles_common;
 use cycles_common::*;
 
-/// §2.16.5 example as printed, G98 added (F50 is mm/min; the machine powers on in G99).
+/// §2.16.5 example, G98 added (F50 is mm/min; the machine powers on in G99). P and Q take no
+/// decimal point (least input increment, Fanuc's rule, see `groove.rs`): the manual's `P3 Q5`
+/// means 3 mm / 5 mm, written `P3000 Q5000` (or `P3. Q5.`); as printed it pecks 5 µm and is
+/// refused before anything moves.
 #[test]
 fn g74_manual_example() {
-    let w = motions(&run("G98\nG0 X40 Z5 M3 S500;\nG74 R0.5;\nG74 X20 Z-20 P3 Q5 F50;\nM30;\n"));
+    let a = run_err("G98\nG0 X40 Z5 M3 S500;\nG74 R0.5;\nG74 X20 Z-20 P3 Q5 F50;\nM30;\n");
+    assert_eq!(a.number, 62, "{a}");
+    let with_point = motions(&run("G98\nG0 X40 Z5 M3 S500;\nG74 R0.5;\nG74 X20 Z-20 P3. Q5. F50;\nM30;\n"));
+    let w = motions(&run("G98\nG0 X40 Z5 M3 S500;\nG74 R0.5;\nG74 X20 Z-20 P3000 Q5000 F50;\nM30;\n"));
+    assert_eq!(format!("{with_point:?}"), format!("{w:?}"));
     check(&w[0], "rapid", 40.0, 5.0, 0.0, 0);
     let mut i = 1;
     let xs = [40.0, 34.0, 28.0, 22.0, 20.0]; // Δi = 3 mm radius per pass, the last one at X20
@@ -32,11 +39,11 @@ fn g74_manual_example() {
     assert_eq!(w.len(), i);
 }
 
-/// §2.16.6 example. The manual writes `P6000 Q3000` (Fanuc µm form) for 6 mm / 3 mm; under
-/// this project's calculator-type input that is `P6 Q3` (see `groove.rs`). G98 for F150.
+/// §2.16.6 example as printed: `P6000 Q3000` in least input increments is 6 mm / 3 mm
+/// (Fanuc's rule for P/Q, see `groove.rs`). G98 for F150.
 #[test]
 fn g75_manual_example() {
-    let src = "G98\nG00 X150 Z50 M3 S500;\nG0 X125 Z-20;\nG75 R0.5 F150;\nG75 X40 Z-50 P6 Q3;\nG0 X150 Z50;\nM30;\n";
+    let src = "G98\nG00 X150 Z50 M3 S500;\nG0 X125 Z-20;\nG75 R0.5 F150;\nG75 X40 Z-50 P6000 Q3000;\nG0 X150 Z50;\nM30;\n";
     let w = motions(&run(src));
     check(&w[1], "rapid", 125.0, -20.0, 0.0, 0);
     let mut i = 2;
@@ -67,7 +74,7 @@ fn g75_manual_example() {
 fn g75_side_retract_and_partial_last_step() {
     // R(Δd) = 1: ④ retracts Z by 1 towards +Z (B_f's Z is below A's), the last step is
     // shorter (Z-7 after Z-5).
-    let w = motions(&run("G98 G0 X50 Z0\nG75 R0\nG75 X40 Z-7 P10 Q5 R1 F100\n"));
+    let w = motions(&run("G98 G0 X50 Z0\nG75 R0\nG75 X40 Z-7 P10000 Q5000 R1 F100\n"));
     check(&w[1], "feed", 40.0, 0.0, 100.0, 1);
     check(&w[2], "rapid", 40.0, 1.0, 0.0, 4);
     check(&w[3], "rapid", 50.0, 1.0, 0.0, 5);
@@ -80,10 +87,10 @@ fn g75_side_retract_and_partial_last_step() {
 
 #[test]
 fn g74_alarms() {
-    assert_eq!(run_err("G98 G0 X40 Z5\nG74 X20 Z-20 Q5 F50\n").number, 62); // no Δi
-    assert_eq!(run_err("G98 G0 X40 Z5\nG74 X20 Z-20 P3 F50\n").number, 62); // no Δk
+    assert_eq!(run_err("G98 G0 X40 Z5\nG74 X20 Z-20 Q5000 F50\n").number, 62); // no Δi
+    assert_eq!(run_err("G98 G0 X40 Z5\nG74 X20 Z-20 P3000 F50\n").number, 62); // no Δk
     // Drilling on the axis: X omitted, no P needed.
-    let w = motions(&run("G98 G0 X0 Z5\nG74 R1\nG74 Z-10 Q6 F50\n"));
+    let w = motions(&run("G98 G0 X0 Z5\nG74 R1\nG74 Z-10 Q6.0 F50\n"));
     check(&w[1], "feed", 0.0, -1.0, 50.0, 1);
     check(&w[2], "rapid", 0.0, 0.0, 0.0, 2);
     check(&w[3], "feed", 0.0, -7.0, 50.0, 3);

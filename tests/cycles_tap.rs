@@ -696,3 +696,28 @@ fn rigid_cancel_waits_with_no_5200_2() {
     assert!(m[..i].iter().any(|m| m.kind.name() == "tap") && m[i + 1..].iter().all(|m| m.kind.name() != "tap"));
     assert!(m[i + 1..].iter().any(|m| m.src.line == 6));
 }
+
+/// CYCLE84 POSS orients the spindle that turns the tool (issue 20.7): the work spindle (C)
+/// on a machine whose drilling tool stands still — also on a machine that has a tool spindle
+/// for polygon turning; where a driven tool drills (machine.drilling_spindle = "tool"), the
+/// cycles that would turn, tap with or orient the work spindle under it are refused before
+/// anything moves, and the setting needs a tool spindle.
+#[test]
+fn cycle84_poss_orients_the_spindle_that_turns_the_tool() {
+    let text = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/config/lathe-polygon.toml")).unwrap();
+    let polygon = MachineConfig::from_toml("lathe-polygon.toml", &text).unwrap();
+    let prog = "G98 S800\nG0 X0 Z20 C10\nCYCLE84(5,0,2,-15,,0,5,,1,30,500)\nM30\n";
+    let m = run_cfg(prog, &polygon);
+    assert!(matches!(m[2].kind, MoveKind::Rapid { end } if end.c == 30.0), "{:?}", m[2].kind);
+
+    let driven = MachineConfig::from_toml("t.toml", &text.replace("drilling_spindle = \"work\"", "drilling_spindle = \"tool\"")).unwrap();
+    for cycle in ["CYCLE84(5,0,2,-15,,0,5,,1,30,500)", "CYCLE86(5,0,2,-15,,0,3,,,,30)", "CYCLE840(5,0,2,-15,,0,0,3,1,1.0)"] {
+        let a = run_err_cfg(&format!("G98 S800 F100\nG0 X0 Z20 C10\n{cycle}\nM30\n"), &driven);
+        assert_eq!((a.number, a.pos.as_ref().map(|p| p.line)), (10, Some(3)), "{cycle}: {a}");
+        assert!(a.message.contains("drilling_spindle = \"tool\""), "{a}");
+    }
+    // Without a tool spindle the setting is refused with the config.
+    let lathe = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/config/lathe.toml")).unwrap();
+    let e = MachineConfig::from_toml("t.toml", &lathe.replace("[machine]", "[machine]\ndrilling_spindle = \"tool\"")).unwrap_err();
+    assert!(format!("{e}").contains("drilling_spindle"), "{e}");
+}

@@ -186,17 +186,35 @@ fn g76_parameters_are_kept_between_cycles() {
     // the first block uses them.
     let src = "G00 X80 Z10\nG76 P010000 Q0.5 R0\nG76 X70 Z-20 P2 Q1 F2\nG76 X70 Z-20 P2 Q1\n";
     let w = motions(&run(src));
-    // Depths: 1, max(√2, 1.5) = 1.5, max(√3, 2.0) → 2 = k: last. Then 1 finishing.
-    let xs = [72.0, 71.0, 70.0, 70.0]; // B = 35 + 2 (radius)
-    assert_eq!(w.len(), 1 + 2 * 4 * 4);
+    // Depths (step ⑤: max(√n·Δd, √(n−1)·Δd + Δdmin)): 1, max(√2, 1.5) = 1.5,
+    // max(√3, √2 + 0.5) = 1.9142, max(2, √3 + 0.5) → 2 = k: last. Then 1 finishing.
+    let xs = [72.0, 71.0, 2.0 * (37.0 - (2f64.sqrt() + 0.5)), 70.0, 70.0]; // B = 35 + 2 (radius)
+    assert_eq!(w.len(), 1 + 2 * 5 * 4);
     for half in 0..2 {
         for (j, x) in xs.iter().enumerate() {
-            let k = 1 + half * 16 + j * 4;
+            let k = 1 + half * 20 + j * 4;
             check(&w[k], "rapid", *x, 10.0, 0.0, w[k].step);
             check(&w[k + 1], "thread", *x, -20.0, 2.0, w[k + 1].step);
         }
     }
-    assert_eq!(w[13].step, 9);
+    assert_eq!(w[17].step, 9);
+}
+
+/// 004 §2.17.4 step ⑤ to the letter: once the minimum cut applies, the depth is
+/// √(n−1)·Δd + Δdmin (not the previous depth + Δdmin): Δd 0.4, Δdmin 0.25, k 1.2 gives
+/// 0.4, 0.65, 0.8157, 0.9428, 1.05, 1.1444, then 1.2 (k − d), then the finishing pass.
+#[test]
+fn g76_minimum_cut_follows_step_5() {
+    let w = motions(&run("G0 X26 Z4\nG76 P010060 Q0.25 R0\nG76 X20.8 Z-20 P1.2 Q0.4 F2\nM30\n"));
+    let s = |n: f64| n.sqrt() * 0.4;
+    let depths = [0.4, s(1.0) + 0.25, s(2.0) + 0.25, s(3.0) + 0.25, s(4.0) + 0.25, s(5.0) + 0.25, 1.2, 1.2];
+    assert!((depths[2] - 0.8157).abs() < 1e-4 && (depths[5] - 1.1444).abs() < 1e-4);
+    let threads: Vec<_> = w.iter().filter(|m| m.kind == "thread").collect();
+    assert_eq!(threads.len(), depths.len(), "7 rough passes and 1 finishing pass");
+    for (t, d) in threads.iter().zip(depths) {
+        // B = 10.4 + 1.2 = 11.6 (radius); the cut is at B − d.
+        assert!((t.x - 2.0 * (11.6 - d)).abs() < 1e-3, "pass at X{} for depth {d}", t.x);
+    }
 }
 
 #[test]

@@ -92,3 +92,30 @@ fn numbers_print_like_the_shortest_round_trip_form() {
         assert!(j.contains(&format!("\"dwell_s\":{want},")), "{v}: {j} (want {want})");
     }
 }
+
+/// docs/PLAN_FORMAT.md's thread fields (issue 20.6): a G32 chain's later blocks are
+/// `continuous` and repeat the chain's first Q; G34's lead increment is `lead_inc`; every key
+/// stays in alphabetical order.
+#[test]
+fn thread_chain_fields() {
+    let cfg = MachineConfig::embedded();
+    let src = "G0 X30 Z5\nM3 S500\nG32 Z-10 F1.5 Q90\nX34 Z-12\nG34 Z-30 F2 K0.1\nM30\n";
+    let lines: Vec<Value> = Interpreter::from_source("t.nc", src, &cfg)
+        .unwrap()
+        .map(|m| {
+            let line = plan::move_to_json(&m.unwrap());
+            let mut sorted = keys_sorted(&line);
+            let raw = sorted.clone();
+            sorted.sort();
+            assert_eq!(raw, sorted, "{line}");
+            serde_json::from_str(&line).unwrap()
+        })
+        .filter(|v: &Value| v["kind"] == "thread")
+        .collect();
+    assert_eq!(lines.len(), 3);
+    assert!(lines[0].get("continuous").is_none() && lines[0].get("lead_inc").is_none(), "{}", lines[0]);
+    for v in &lines[1..] {
+        assert_eq!((v["continuous"].as_bool(), v["start_angle"].as_f64()), (Some(true), Some(90.0)), "{v}");
+    }
+    assert_eq!((lines[2]["lead"].as_f64(), lines[2]["lead_inc"].as_f64()), (Some(2.0), Some(0.1)));
+}

@@ -18,14 +18,21 @@ pub const ALARM: i32 = 3;
 /// an output file cannot be opened.
 pub const SETUP: i32 = 4;
 
+/// Every exit status and what it means: the one table `--help`, the man pages and the README
+/// show.
+pub const CODES: [(i32, &str); 5] = [
+    (OK, "done, with the result asked for"),
+    (NOT_MET, "done, result not met: run — an axis not within one count of the end point; tap-test — sync error over the limit; scan, sdo, nmt, drive — a node aborted or did not answer; config check — run would refuse this configuration"),
+    (INPUT, "input cannot be used: missing or unreadable file, program or trace errors, bad arguments; nothing was moved"),
+    (ALARM, "an alarm stopped the machine or refused motion at the machine"),
+    (SETUP, "setup: invalid configuration; the bus, a Modbus link, the state directory or an output file cannot be opened"),
+];
+
 /// The table as `--help` shows it.
-pub const TABLE: &str = "Exit status (every command):
-  0  done, with the result asked for
-  1  done, result not met: run — an axis not within one count of the end point; tap-test —
-     sync error over the limit; scan, sdo, nmt, drive — a node aborted or did not answer;
-     config check — run would refuse this configuration
-  2  input cannot be used: missing or unreadable file, program or trace errors, bad
-     arguments; nothing was moved
-  3  an alarm stopped the machine or refused motion at the machine
-  4  setup: invalid configuration; the bus, a Modbus link, the state directory or an output
-     file cannot be opened";
+pub fn table() -> String {
+    let mut t = String::from("Exit status (every command):");
+    for (code, what) in CODES {
+        t.push_str(&format!("\n  {code}  {what}"));
+    }
+    t
+}

@@ -4,6 +4,7 @@ pub mod diag;
 pub mod exit;
 pub mod identify;
 pub mod lock;
+pub mod manpages;
 pub mod mbus;
 pub mod preview;
 pub mod run;
@@ -20,7 +21,7 @@ use std::path::PathBuf;
     version,
     about = "CNC lathe controller core and fieldbus gateway (CANopen CiA 402, Modbus RTU/TCP)",
     long_about = None,
-    after_help = exit::TABLE
+    after_help = exit::table()
 )]
 pub struct Cli {
     /// More log output (-v info, -vv debug); RUST_LOG overrides.
@@ -53,7 +54,9 @@ pub struct MachineArgs {
 
 #[derive(Subcommand, Debug)]
 pub enum Command {
-    /// Run a part program on the machine. On a terminal the run is interactive: single keys
+    /// Run a part program on the machine.
+    ///
+    /// On a terminal the run is interactive: single keys
     /// press the operator panel — h feed hold, s cycle start, b single block on/off, o
     /// optional stop, +/- feed override, r reset (alarm 2401), e E-stop (alarm 2400),
     /// Ctrl-C = reset — and the status line shows the block, position, F, S, sync error and
@@ -80,15 +83,22 @@ pub enum Command {
         /// drive (mm, X as a radius; the spindle in degrees), spindle_rpm, sync_err_um.
         #[arg(long, value_name = "FILE.csv")]
         trace: Option<PathBuf>,
+        /// Stop with alarm 2501 (a controlled stop) after this many blocks: a program that
+        /// loops without end (DO without WHILE). 0 = no budget, for a main program that
+        /// repeats on purpose with M99 (bar feeder).
+        #[arg(long, value_name = "N", default_value_t = crate::interp::DEFAULT_BLOCK_BUDGET)]
+        max_blocks: u64,
         #[command(flatten)]
         rt: run::RtArgs,
         #[command(flatten)]
         op: run::OperatorArgs,
     },
-    /// Run a rigid tap in the air on the configured machine (what a service engineer does at
-    /// commissioning) and report the spindle–Z sync error from the drives' actual positions —
+    /// Run a rigid tap in the air and report its spindle–Z sync error (commissioning).
+    ///
+    /// Runs a rigid tap in the air on the configured machine (what a service engineer does at
+    /// commissioning) and reports the spindle–Z sync error from the drives' actual positions —
     /// max and RMS over the whole tap and through entry, reversal and exit — with the
-    /// following errors of spindle and Z, and draw it (SVG; the trace is kept as CSV next to
+    /// following errors of spindle and Z, and draws it (SVG; the trace is kept as CSV next to
     /// it). The tap starts `--clearance` above the present Z (X stays) and goes `--depth`
     /// down: leave that much free air below the tool. `--dry`: plan and check only, nothing
     /// moves. Needs --yes (or a typed yes on a terminal) on a real bus. Exit code 0 = within
@@ -105,7 +115,9 @@ pub enum Command {
         #[command(flatten)]
         op: run::OperatorArgs,
     },
-    /// Identify an axis' drive (commissioning): move it a little (in the air; --yes on a
+    /// Identify an axis' drive response and propose its following-error window.
+    ///
+    /// Commissioning: moves the axis a little (in the air; --yes on a
     /// real bus), fit its response and print it as `[axes.NAME.response]` with the
     /// following-error window it asks for.
     ///
@@ -123,23 +135,33 @@ pub enum Command {
     ///
     /// Example: `cncgw plan examples/first_part.nc --format text`
     Plan {
+        /// The part program (Type A G code or SINUMERIK cycles).
         program: PathBuf,
+        /// Machine configuration (TOML). Default: the embedded config/lathe.toml.
         #[arg(long, short = 'c', value_name = "FILE")]
         config: Option<PathBuf>,
         /// Output format: one JSON object per line, or text.
         #[arg(long, default_value = "jsonl", value_parser = ["jsonl", "text"])]
         format: String,
+        /// Stop with alarm 2501 after this many blocks (a program that loops without end:
+        /// M99 in the main program, DO without WHILE). 0 = no budget.
+        #[arg(long, value_name = "N", default_value_t = crate::interp::DEFAULT_BLOCK_BUDGET)]
+        max_blocks: u64,
     },
-    /// Draw the toolpath of a program in the Z–X plane as an SVG (rapids dashed, feeds solid,
+    /// Draw the toolpath of a program as an SVG, without running anything.
+    ///
+    /// The Z–X plane (rapids dashed, feeds solid,
     /// threads and each cycle in their own colour), without running anything. Exit code 2
     /// after an alarm (the path up to it is drawn).
     ///
     /// Example: `cncgw preview examples/first_part.nc -o part.svg`
     Preview {
+        /// The part program (Type A G code or SINUMERIK cycles).
         program: PathBuf,
         /// The SVG file to write.
         #[arg(long, short = 'o', value_name = "FILE")]
         out: PathBuf,
+        /// Machine configuration (TOML). Default: the embedded config/lathe.toml.
         #[arg(long, short = 'c', value_name = "FILE")]
         config: Option<PathBuf>,
         /// Picture width in pixels.
@@ -153,7 +175,9 @@ pub enum Command {
     /// Configuration commands.
     #[command(subcommand)]
     Config(ConfigCmd),
-    /// List every node of the configuration: node id, vendor, product, revision, serial
+    /// List every node of the configuration with its identity and state.
+    ///
+    /// Per node: node id, vendor, product, revision, serial
     /// (0x1018), device type (0x1000), name (0x1008), NMT state, heartbeat period (0x1017).
     /// Read-only.
     ///
@@ -187,7 +211,9 @@ pub enum Command {
     /// CiA 402 drive commands.
     #[command(subcommand)]
     Drive(DriveCmd),
-    /// Move one axis in the drive's profile position mode (1), to an absolute position or
+    /// Move one axis to a position or by a distance (service).
+    ///
+    /// In the drive's profile position mode (1), to an absolute position or
     /// by a distance, in machine units (mm, X as a radius; degrees for a spindle). All the
     /// configured drives are started and enabled (holding) for the move, and disabled after
     /// it; prints the position read back from the drive. Refused outside axes.NAME.min/max.
@@ -213,7 +239,9 @@ pub enum Command {
         #[command(flatten)]
         machine: MachineArgs,
     },
-    /// Record every frame on the bus to FILE in candump's log format
+    /// Record every frame on the bus to a candump log file.
+    ///
+    /// Every frame on the bus goes to FILE in candump's log format
     /// (`(1700000000.123456) can0 181#2700E8030000`), replayable with `canplayer`. Passive:
     /// sends nothing. On `inproc` the emulated drives boot while it logs.
     ///
@@ -228,6 +256,8 @@ pub enum Command {
         #[command(flatten)]
         machine: MachineArgs,
     },
+    /// Show every configured drive's state, position and following error, live.
+    ///
     /// A table of every configured drive, read over SDO (or the Modbus registers of its
     /// map): statusword and CiA 402 state, mode
     /// (0x6061), position, velocity and following error in machine units, and the bus load
@@ -262,10 +292,16 @@ pub enum Command {
         #[arg(value_enum)]
         shell: clap_complete::Shell,
     },
-    /// Print the manual page (roff).
+    /// Print the manual page (roff), or write one page per command into a directory.
     ///
-    /// Example: `cncgw man > cncgw.1 && man ./cncgw.1`
-    Man,
+    /// Example: `cncgw man > cncgw.1 && man -l cncgw.1`,
+    /// `cncgw man --dir /usr/local/share/man/man1`
+    Man {
+        /// Write cncgw.1, cncgw-run.1, cncgw-sdo-read.1, … (every command and subcommand)
+        /// into this directory instead of printing the top page.
+        #[arg(long, value_name = "DIR")]
+        dir: Option<PathBuf>,
+    },
 }
 
 #[derive(Subcommand, Debug)]
@@ -317,15 +353,19 @@ pub enum SdoCmd {
     ///
     /// Example: `cncgw sdo write 1 0x1017 0 u16 100`, `cncgw sdo write 3 0x6065 0 u32 0x2000`
     Write {
+        /// Node id: CANopen 1…127 or Modbus unit 1…247 (decimal or 0x…), as in the configuration.
         #[arg(value_parser = diag::parse_node)]
         node: u8,
+        /// Object index, e.g. 0x1017.
         #[arg(value_parser = diag::parse_index)]
         index: u16,
+        /// Sub-index, e.g. 0 or 0x01.
         #[arg(value_parser = diag::parse_sub)]
         sub: u8,
         /// u8 | u16 | u32 | i8 | i16 | i32 | f32 | str | domain
         #[arg(value_enum)]
         r#type: diag::SdoType,
+        /// The value: a number (decimal or 0x…), a string for str, a file for domain.
         #[arg(allow_hyphen_values = true)]
         value: String,
         /// Confirm a write that can move a motor on a real bus.
@@ -346,6 +386,7 @@ pub enum OdCmd {
     ///
     /// Example: `cncgw od dump 1`, `cncgw od dump 1 --eds tests/python/sim_drive.eds --json`
     Dump {
+        /// Node id: CANopen 1…127 or Modbus unit 1…247 (decimal or 0x…), as in the configuration.
         #[arg(value_parser = diag::parse_node)]
         node: u8,
         /// The EDS file.
@@ -366,6 +407,7 @@ pub enum OdCmd {
     ///
     /// Example: `cncgw od check 1 --eds tests/python/sim_drive.eds`
     Check {
+        /// Node id: CANopen 1…127 or Modbus unit 1…247 (decimal or 0x…), as in the configuration.
         #[arg(value_parser = diag::parse_node)]
         node: u8,
         /// The EDS file.
@@ -387,6 +429,7 @@ pub enum DriveCmd {
     ///
     /// Example: `cncgw drive status 1`, `cncgw drive status 3 --bus can0 --json`
     Status {
+        /// Node id: CANopen 1…127 or Modbus unit 1…247 (decimal or 0x…), as in the configuration.
         #[arg(value_parser = diag::parse_node)]
         node: u8,
         #[command(flatten)]
@@ -403,6 +446,7 @@ pub enum DriveCmd {
     /// Example: `cncgw drive enable 1`, `cncgw drive enable 2 --bus can0 --yes`,
     /// `cncgw drive enable 2 --bus modbus-tcp://192.168.1.20:502 --config M.toml --yes`
     Enable {
+        /// Node id: CANopen 1…127 or Modbus unit 1…247 (decimal or 0x…), as in the configuration.
         #[arg(value_parser = diag::parse_node)]
         node: u8,
         /// Confirm on a real bus.
@@ -416,6 +460,7 @@ pub enum DriveCmd {
     ///
     /// Example: `cncgw drive disable 1 --bus can0`
     Disable {
+        /// Node id: CANopen 1…127 or Modbus unit 1…247 (decimal or 0x…), as in the configuration.
         #[arg(value_parser = diag::parse_node)]
         node: u8,
         #[command(flatten)]
@@ -426,6 +471,7 @@ pub enum DriveCmd {
     ///
     /// Example: `cncgw drive fault-reset 3 --bus can0`
     FaultReset {
+        /// Node id: CANopen 1…127 or Modbus unit 1…247 (decimal or 0x…), as in the configuration.
         #[arg(value_parser = diag::parse_node)]
         node: u8,
         #[command(flatten)]
@@ -438,6 +484,7 @@ pub enum DriveCmd {
     /// Example: `cncgw drive home 1 --method 37 --offset 150`,
     /// `cncgw drive home 2 --method 18 --switch-speed 600 --bus can0 --yes`
     Home {
+        /// Node id: CANopen 1…127 or Modbus unit 1…247 (decimal or 0x…), as in the configuration.
         #[arg(value_parser = diag::parse_node)]
         node: u8,
         #[command(flatten)]
@@ -685,13 +732,13 @@ pub fn main() -> i32 {
         quiet_on_closed_pipe();
     }
     match cli.cmd {
-        Command::Run { program, machine, json, state_dir, trace, rt, op } => {
-            run::run(&program, &machine, json, state_dir.as_deref(), trace.as_deref(), &rt, &op)
+        Command::Run { program, machine, json, state_dir, trace, max_blocks, rt, op } => {
+            run::run(&program, &machine, json, state_dir.as_deref(), trace.as_deref(), max_blocks, &rt, &op)
         }
         Command::TapTest { tap, machine, op } => taptest::tap_test(&machine, &tap, &op),
         Command::Identify { args, machine } => identify::run(&machine, &args),
         Command::Trace(TraceCmd::Plot { file, out }) => run::trace_plot(&file, &out),
-        Command::Plan { program, config, format } => plan(&program, config.as_deref(), &format),
+        Command::Plan { program, config, format, max_blocks } => plan(&program, config.as_deref(), &format, max_blocks),
         Command::Preview { program, out, config, width, tools } => {
             preview::preview(&program, config.as_deref(), tools.as_deref(), &out, width)
         }
@@ -723,12 +770,15 @@ pub fn main() -> i32 {
             clap_complete::generate(shell, &mut Cli::command(), "cncgw", &mut std::io::stdout());
             0
         }
-        Command::Man => {
-            use clap::CommandFactory;
-            match clap_mangen::Man::new(Cli::command()).render(&mut std::io::stdout()) {
+        Command::Man { dir } => {
+            let r = match &dir {
+                Some(d) => manpages::write_all(d).map(|files| println!("{} manual pages written to {}", files.len(), d.display())),
+                None => manpages::print_top(&mut std::io::stdout()),
+            };
+            match r {
                 Ok(()) => exit::OK,
                 Err(e) => {
-                    eprintln!("error: cannot write the manual page: {e}");
+                    eprintln!("error: cannot write the manual pages: {e}");
                     exit::SETUP
                 }
             }
@@ -736,7 +786,9 @@ pub fn main() -> i32 {
     }
 }
 
-fn plan(program: &std::path::Path, config: Option<&std::path::Path>, format: &str) -> i32 {
+/// `cncgw plan`: every move as JSON or text; a program that ends without M02/M30 (or is
+/// empty) ends with alarm 5010 as `run` refuses it, an endless one with the block budget's.
+fn plan(program: &std::path::Path, config: Option<&std::path::Path>, format: &str, max_blocks: u64) -> i32 {
     use std::io::Write;
     let (cfg, _) = match load_config(config) {
         Ok(c) => c,
@@ -745,7 +797,7 @@ fn plan(program: &std::path::Path, config: Option<&std::path::Path>, format: &st
             return exit::SETUP;
         }
     };
-    let interp = match crate::interp::Interpreter::from_file(program, &cfg) {
+    let mut interp = match crate::interp::Interpreter::from_file(program, &cfg) {
         Ok(i) => i,
         Err(alarms) => {
             for a in &alarms {
@@ -754,6 +806,8 @@ fn plan(program: &std::path::Path, config: Option<&std::path::Path>, format: &st
             return exit::INPUT;
         }
     };
+    interp.set_block_budget(max_blocks);
+    let (mut count, mut ended) = (0usize, false);
     let out = std::io::stdout();
     let mut out = std::io::BufWriter::with_capacity(1 << 16, out.lock());
     // One line buffer for all moves (a million-block program prints a million lines).
@@ -761,6 +815,8 @@ fn plan(program: &std::path::Path, config: Option<&std::path::Path>, format: &st
     for m in interp {
         match m {
             Ok(m) => {
+                count += 1;
+                ended |= matches!(m.kind, crate::canon::MoveKind::End { .. });
                 line.clear();
                 if format == "text" {
                     line.extend_from_slice(crate::interp::plan::move_to_text(&m).as_bytes());
@@ -778,6 +834,11 @@ fn plan(program: &std::path::Path, config: Option<&std::path::Path>, format: &st
                 return exit::INPUT;
             }
         }
+    }
+    let _ = out.flush();
+    if !ended {
+        eprintln!("{}: {}", program.display(), crate::motion::guard::end_of_record(count == 0));
+        return exit::INPUT;
     }
     exit::OK
 }

@@ -83,6 +83,7 @@ pub fn run(
     json: bool,
     state_dir: Option<&Path>,
     trace: Option<&Path>,
+    max_blocks: u64,
     rt: &RtArgs,
     op: &OperatorArgs,
 ) -> i32 {
@@ -94,7 +95,7 @@ pub fn run(
         }
     };
     // The whole program is checked before anything moves.
-    let interp = match Interpreter::from_file(program, &cfg) {
+    let mut interp = match Interpreter::from_file(program, &cfg) {
         Ok(i) => i,
         Err(alarms) => {
             for a in &alarms {
@@ -104,6 +105,7 @@ pub fn run(
             return EXIT_PROGRAM_ERROR;
         }
     };
+    interp.set_block_budget(max_blocks);
     let source = std::fs::read_to_string(program).unwrap_or_default();
     // The machine's state (common variables #401–#600, the rigid-tap state), kept per machine
     // and per place it runs, under a lock so that no other run interleaves with this one.
@@ -165,7 +167,12 @@ pub fn run(
         name: program.display().to_string(),
         source,
         first: Some(interp),
-        make: Box::new(|_| Interpreter::from_file(program, &cfg)),
+        make: Box::new(|_| {
+            Interpreter::from_file(program, &cfg).map(|mut i| {
+                i.set_block_budget(max_blocks);
+                i
+            })
+        }),
     };
     let mut opts = ExecOpts {
         json,

@@ -382,12 +382,8 @@ impl Decoded {
                 return Err((10, col, format!("{} ({name}) is {why}", gname(g))));
             }
         }
-        // Manual §2.9 note 2: G20/G21 must be alone in its block.
-        if let Some(&(g, col)) = d.g.iter().find(|x| x.0 == 200 || x.0 == 210) {
-            if d.g.len() > 1 || d.mask != 0 || !d.m.is_empty() {
-                return Err((10, col, format!("{} must be alone in its block", gname(g))));
-            }
-        }
+        // Manual §2.9 note 2 (G20/G21 alone, at the start) needs the modal unit: checked when
+        // the block runs (Interpreter::unit_block), a code that switches nothing may share.
         // Manual §3.1.7 note 1: M99 alone in its block (P allowed). M98 runs after the
         // block's other codes (§3.1.6), but its P cannot be shared with a G code using P.
         for &(m, col) in &d.m {

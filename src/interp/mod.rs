@@ -14,7 +14,8 @@
 //! 6 illegal minus sign, 7 illegal decimal point, 9 improper address, 10 improper G code
 //! (also: two codes of one group, "not supported yet"), 11 no feed rate, 30 offset number
 //! not in the tool table, 46 G30 P other than 1–4 or reference point not configured, 20 arc radius
-//! out of tolerance, 21 axis outside the arc plane, 22 R or I/K missing, 51 no G01/G02/G03
+//! out of tolerance, 21 axis outside the arc plane, 22 R or I/K missing, 50 `,C`/`,R` in a
+//! thread cutting block, 51 no G01/G02/G03
 //! move after `,C`/`,R`, 52 the next move is not G01/G02/G03, 55 chamfer/corner does not
 //! fit, 73 program number defined twice, 76 program not found, 77 subprogram nesting too
 //! deep, 78 sequence number not found, 111–128 macro errors), plus 2500 (ours) for an
@@ -68,6 +69,11 @@ pub type InputSource = Box<dyn FnMut(u16) -> bool + Send>;
 
 /// Our own alarm: this many blocks in a row without any move is taken as an endless loop.
 pub const ENDLESS_LOOP_ALARM: u32 = 2500;
+/// Ours: the program ran more blocks than its budget (`--max-blocks`): a loop without end
+/// (M99 in the main program, DO without WHILE) or a budget set too low.
+pub const BLOCK_BUDGET_ALARM: u32 = 2501;
+/// The default block budget of `plan` and `run` (`--max-blocks`; 0 = none).
+pub const DEFAULT_BLOCK_BUDGET: u64 = 10_000_000;
 const ENDLESS_LOOP_BLOCKS: u64 = 2_000_000;
 /// Chord tolerance (mm) of ellipses and parabolas emitted as chains of feed moves.
 pub const CHORD_TOL: f64 = 0.002;
@@ -308,6 +314,8 @@ pub struct Interpreter {
     arc_missing_alarm: bool,
     has_y: bool,
     has_c: bool,
+    /// The drilling cycles' tool turns in the tool spindle (machine.drilling_spindle = "tool").
+    driven_tool_drilling: bool,
     // Execution state.
     prog: usize,
     /// The next line to execute.
@@ -333,9 +341,14 @@ pub struct Interpreter {
     local: Pos,
     queue: VecDeque<Move>,
     ended: bool,
+    /// A block with words other than G20/G21 has run: the unit can no longer be switched.
+    unit_fixed: bool,
     block_skip: bool,
     idle_blocks: u64,
     idle_limit: u64,
+    /// Blocks executed so far, and the budget (0 = none).
+    blocks_run: u64,
+    block_budget: u64,
     corner: Option<Corner>,
     corner_serial: u64,
     /// Moves made while a corner is pending; they follow the inserted chamfer/corner.
@@ -395,6 +408,7 @@ impl Interpreter {
             arc_missing_alarm: cfg.param(3403).map(|_| cfg.param_bit(3403, 5)).unwrap_or(true),
             has_y: cfg.axes.contains_key("y"),
             has_c: cfg.spindle().is_some() || cfg.axes.contains_key("c"),
+            driven_tool_drilling: cfg.machine.drilling_spindle == crate::config::DrillingSpindle::Tool,
             prog: 0,
             line: Loc::default(),
             cur: (0, Loc::default()),
@@ -425,9 +439,12 @@ impl Interpreter {
             local: Pos::ZERO,
             queue: VecDeque::new(),
             ended: false,
+            unit_fixed: false,
             block_skip: false,
             idle_blocks: 0,
             idle_limit: ENDLESS_LOOP_BLOCKS,
+            blocks_run: 0,
+            block_budget: 0,
             corner: None,
             corner_serial: 0,
             held: Vec::new(),
@@ -519,6 +536,17 @@ impl Interpreter {
         self.idle_limit = blocks.max(1);
     }
 
+    /// At most `blocks` blocks run before alarm [`BLOCK_BUDGET_ALARM`] (0 = no budget, the
+    /// default of the library; the CLI's `--max-blocks` defaults to [`DEFAULT_BLOCK_BUDGET`]).
+    pub fn set_block_budget(&mut self, blocks: u64) {
+        self.block_budget = blocks;
+    }
+
+    /// Blocks executed so far.
+    pub fn blocks_run(&self) -> u64 {
+        self.blocks_run
+    }
+
     /// Block skip switch (`/` blocks are skipped when on). Default off.
     pub fn set_block_skip(&mut self, on: bool) {
         self.block_skip = on;
@@ -559,6 +587,26 @@ impl Interpreter {
 
     fn cur_file(&self) -> Arc<str> {
         self.sources[self.progs[self.prog].src].file.clone()
+    }
+
+    /// Fanuc stops reading at the end-of-tape `%`; text after it would be dropped without a
+    /// word, so the first non-blank line after it is PS5010 (end of record) before anything runs.
+    fn after_tape_end(&mut self, si: usize, mut next: Loc, pct: Loc, buf: &mut Vec<u8>, errors: &mut Vec<Alarm>) {
+        let file = self.sources[si].file.clone();
+        while next.off < self.sources[si].len {
+            let i = next;
+            let Ok(off) = self.sources[si].read_line(i.off, buf) else { return };
+            next = Loc { off, line: i.line + 1 };
+            if buf.iter().any(|b| !b.is_ascii_whitespace()) {
+                let text = String::from_utf8_lossy(buf).into_owned();
+                errors.push(
+                    Alarm::new(5010, format!("this line comes after the end-of-tape `%` of line {} and would never run: remove it, or the `%`", pct.line + 1))
+                        .at(SrcPos::new(file, i.line + 1, 1))
+                        .with_block(text.trim_end()),
+                );
+                return;
+            }
+        }
     }
 
     /// Pass 1 over source `si`, read line by line: parse every line, collect all errors,
@@ -629,6 +677,7 @@ impl Interpreter {
                         if let Some(last) = self.progs.last_mut() {
                             last.end = i;
                         }
+                        self.after_tape_end(si, next, i, &mut buf, errors);
                         break;
                     }
                     continue;
@@ -885,6 +934,15 @@ impl Interpreter {
                     ENDLESS_LOOP_ALARM,
                     1,
                     format!("{} blocks without any move: endless loop? Check the GOTO/WHILE logic", self.idle_limit),
+                ));
+            }
+            self.blocks_run += 1;
+            if self.block_budget > 0 && self.blocks_run > self.block_budget {
+                self.ended = true;
+                return Err(self.alarm_here(
+                    BLOCK_BUDGET_ALARM,
+                    1,
+                    format!("the program has run {} blocks, its budget (--max-blocks): it loops without end (M99 in the main program, DO without WHILE)? End it with M30, or raise --max-blocks (0 = no budget)", self.block_budget),
                 ));
             }
             if let Err(a) = self.step() {
@@ -1213,6 +1271,20 @@ impl Interpreter {
         Ok(())
     }
 
+    /// 004 §2.23 note 8: `,C`/`,R` in a thread cutting block (G32, G34, G92, G76, G78) is an
+    /// alarm, not ignored as in other non-G01/G02/G03 blocks (note 1). The manual gives no
+    /// number; Fanuc's is PS0050 (chamfer/corner R commanded in a thread block).
+    fn no_corner_in_thread(d: &Decoded, g: GCode) -> Result<(), (u32, Option<u32>, String)> {
+        match d.comma_c.or(d.comma_r) {
+            Some(v) => Err((
+                50,
+                Some(v.col),
+                format!("{}: a chamfer or corner R (,C/,R) cannot be commanded in a thread cutting block (004 §2.23 note 8); remove it or cut the chamfer with G01", gcode::gname(g)),
+            )),
+            None => Ok(()),
+        }
+    }
+
     /// `,C` / `,R` of the block (the last one written wins, §2.23 note 9).
     fn corner_req(&self, d: &Decoded) -> Option<(bool, f64)> {
         match (d.comma_c, d.comma_r) {
@@ -1226,17 +1298,31 @@ impl Interpreter {
     /// Length scale of a word: inch → mm, and the least input increment without a decimal
     /// point when No.3401#0 = 0.
     fn len(&self, v: Val) -> f64 {
-        let unit = if self.st.inch { 25.4 } else { 1.0 };
-        let inc = if !self.calculator && !v.decimal {
-            if self.st.inch {
-                0.0001
-            } else {
-                0.001
-            }
+        if !self.calculator && !v.decimal {
+            self.increment_len(v)
+        } else {
+            v.v * self.unit_mm()
+        }
+    }
+
+    /// mm per program unit (25.4 under G20).
+    fn unit_mm(&self) -> f64 {
+        if self.st.inch {
+            25.4
         } else {
             1.0
-        };
-        v.v * inc * unit
+        }
+    }
+
+    /// A word written without a decimal point in least input increments (0.001 mm, 0.0001 inch)
+    /// whatever No.3401#0 says: Fanuc's rule for the addresses that take no decimal point, such
+    /// as G74/G75 P(Δi)/Q(Δk). With a decimal point the value is in mm (inch).
+    fn increment_len(&self, v: Val) -> f64 {
+        if v.decimal {
+            return v.v * self.unit_mm();
+        }
+        let inc = if self.st.inch { 0.0001 } else { 0.001 };
+        v.v * inc * self.unit_mm()
     }
 
     /// Target of the axis words in machine coordinates; `None` when no axis word is given.
@@ -1336,14 +1422,38 @@ impl Interpreter {
         Ok(())
     }
 
+    /// G20/G21 (004 §2.9 note 2): a code that *switches* the unit must come at the start of
+    /// the program (before any block with other words) and alone in its block; a code that
+    /// switches nothing is accepted anywhere, alone or not (the `G21 G40 G99` header CAM
+    /// post-processors write). A switch elsewhere is PS0010, as Fanuc refuses it.
+    fn unit_block(&mut self, d: &Decoded) -> Result<(), (u32, Option<u32>, String)> {
+        let only_unit = d.g.len() == 1 && d.group(6).is_some() && d.letters().next().is_none() && d.m.is_empty();
+        if let Some(g) = d.group(6) {
+            let inch = g == 200;
+            if inch != self.st.inch {
+                let col = d.g.iter().find(|x| x.0 == g).map(|x| x.1);
+                let (from, to) = if inch { ("mm", "inch") } else { ("inch", "mm") };
+                if self.unit_fixed {
+                    return Err((10, col, format!("{} switches the unit from {from} to {to} in the middle of the program: a unit switch must be the first block of the program (004 §2.9 note 2)", gcode::gname(g))));
+                }
+                if !only_unit {
+                    return Err((10, col, format!("{} switches the unit from {from} to {to}: it must be alone in its block (004 §2.9 note 2)", gcode::gname(g))));
+                }
+                self.st.inch = inch;
+            }
+        }
+        if !only_unit && (!d.g.is_empty() || d.letters().next().is_some() || !d.m.is_empty()) {
+            self.unit_fixed = true;
+        }
+        Ok(())
+    }
+
     fn exec_block(&mut self, d: &Decoded, src: &SrcPos) -> Result<(), (u32, Option<u32>, String)> {
         let gcol = |g: GCode| d.g.iter().find(|x| x.0 == g).map(|x| x.1);
         self.tool_delta = Pos::ZERO;
         self.cycle_block_start(d);
         // Modal groups.
-        if let Some(g) = d.group(6) {
-            self.st.inch = g == 200;
-        }
+        self.unit_block(d)?;
         if let Some(g) = d.group(16) {
             self.st.plane = match g {
                 170 => Plane::Xy,
@@ -1572,7 +1682,12 @@ impl Interpreter {
                 }
                 return Ok(());
             }
-            Some(g @ (700 | 710 | 720 | 730 | 740 | 750 | 760 | 780)) => self.cycle_oneshot(g, d, src)?,
+            Some(g @ (700 | 710 | 720 | 730 | 740 | 750 | 760 | 780)) => {
+                if matches!(g, 760 | 780) {
+                    Self::no_corner_in_thread(d, g)?;
+                }
+                self.cycle_oneshot(g, d, src)?
+            }
             Some(g) => {
                 return Err((10, gcol(g), format!("{} is not supported yet", gcode::gname(g))));
             }
@@ -1712,6 +1827,9 @@ impl Interpreter {
                 d.g.first().map(|g| g.1),
                 format!("{} after a block with ,C/,R: the next move must be G01/G02/G03", gcode::gname(self.st.motion)),
             ));
+        }
+        if matches!(self.st.motion, 320 | 340 | 920) {
+            Self::no_corner_in_thread(d, self.st.motion)?;
         }
         match self.st.motion {
             0 => {

@@ -1,8 +1,8 @@
 //! Block parser: one source line → one [`Block`] (NC words or a macro statement).
 //!
 //! Lexical rules (manual §1, §2.24; Fanuc 0i-TF where the manual is silent):
-//! - `( … )` is a comment anywhere; an unclosed `(` runs to the end of the line (Fanuc
-//!   treats it as control-out up to the end of block).
+//! - `( … )` is a comment anywhere; an unclosed `(` is refused (PS0009 at its column): a
+//!   comment does not span lines, and a lost `)` would silently hide the words after it.
 //! - `;` is the end-of-block character of the manual's listings; the rest of the line after
 //!   it is ignored (the manual puts comments there).
 //! - Spaces are ignored between tokens (Fanuc ignores them), not inside a number.
@@ -290,18 +290,20 @@ pub fn find_newline(b: &[u8]) -> Option<usize> {
     b[i..].iter().position(|&c| c == b'\n').map(|k| i + k)
 }
 
-/// Remove comments: `( … )` becomes spaces (columns stay right), `;` ends the line.
-fn strip(line: &str) -> Vec<char> {
+/// Remove comments: `( … )` becomes spaces (columns stay right), `;` ends the line. A `(`
+/// left open at the end of the line is refused: a comment never spans lines, and an open one
+/// usually means a `)` was lost, which would hide the words meant to follow it.
+fn strip(line: &str) -> Result<Vec<char>, PErr> {
     let mut out = Vec::with_capacity(line.len());
-    let mut in_comment = false;
+    let mut open = None;
     for ch in line.chars() {
-        if in_comment {
+        if open.is_some() {
             if ch == ')' {
-                in_comment = false;
+                open = None;
             }
             out.push(' ');
         } else if ch == '(' {
-            in_comment = true;
+            open = Some(out.len() as u32 + 1);
             out.push(' ');
         } else if ch == ';' {
             break;
@@ -309,10 +311,12 @@ fn strip(line: &str) -> Vec<char> {
             out.push(ch);
         }
     }
-    out
+    match open {
+        Some(col) => perr(9, col, "this comment is not closed: add `)` at its end (a comment ends on its own line)"),
+        None => Ok(out),
+    }
 }
 
-/// Parse one source line.
 pub fn parse_line(line: &str) -> Result<Block, PErr> {
     if let Some(b) = fast_line(line) {
         return Ok(b);
@@ -320,7 +324,7 @@ pub fn parse_line(line: &str) -> Result<Block, PErr> {
     if let Some(b) = cycle_call(line) {
         return b;
     }
-    let chars = strip(line);
+    let chars = strip(line)?;
     let mut c = Cur { c: &chars, i: 0, nest: 0 };
     let first = c.peek();
     let col = c.col();
@@ -564,7 +568,7 @@ fn words(c: &mut Cur) -> Result<Vec<Word>, PErr> {
         } else if ch.is_ascii_digit() || ch == '-' || ch == '+' || ch == '.' {
             return perr(4, col, format!("`{ch}` without an address letter; write e.g. X{ch}…"));
         } else if !ch.is_ascii_alphabetic() {
-            return perr(9, col, format!("improper character `{ch}`"));
+            return perr(9, col, format!("improper character `{}`", ch.escape_default()));
         }
         let run = c.letters();
         if run.len() > 1 {
@@ -652,7 +656,12 @@ fn number(c: &mut Cur, letter: char, col: u32) -> Result<(f64, bool), PErr> {
         sig -= rest.rev().take_while(|ch| **ch == '0').count();
     }
     if sig > MAX_DIGITS {
-        let s: String = digits.iter().collect();
+        // A runaway token (a 2 MB number) is named by its start and length, not echoed whole.
+        let s: String = if digits.len() > 20 {
+            format!("{}… ({} characters)", digits[..12].iter().collect::<String>(), digits.len())
+        } else {
+            digits.iter().collect()
+        };
         return perr(3, col, format!("{letter}{s}: more than {MAX_DIGITS} digits"));
     }
     if let Some(v) = fast_decimal(digits) {

@@ -190,29 +190,31 @@ fn key_rank(k: &str) -> u8 {
         "c" => 0,
         "center" => 1,
         "code" => 2,
-        "css" => 3,
-        "cw" => 4,
-        "cycle" => 5,
-        "dir" => 6,
-        "dwell_s" => 7,
-        "feed" => 8,
-        "feed_per_rev" => 9,
-        "file" => 10,
-        "forbid" => 11,
-        "hi" => 12,
-        "kind" => 13,
-        "lead" => 14,
-        "line" => 15,
-        "lo" => 16,
-        "max_rpm" => 17,
-        "phase" => 18,
-        "rpm" => 19,
-        "start_angle" => 20,
-        "step" => 21,
-        "tool_rpm" => 22,
-        "x" => 23,
-        "y" => 24,
-        "z" => 25,
+        "continuous" => 3,
+        "css" => 4,
+        "cw" => 5,
+        "cycle" => 6,
+        "dir" => 7,
+        "dwell_s" => 8,
+        "feed" => 9,
+        "feed_per_rev" => 10,
+        "file" => 11,
+        "forbid" => 12,
+        "hi" => 13,
+        "kind" => 14,
+        "lead" => 15,
+        "lead_inc" => 16,
+        "line" => 17,
+        "lo" => 18,
+        "max_rpm" => 19,
+        "phase" => 20,
+        "rpm" => 21,
+        "start_angle" => 22,
+        "step" => 23,
+        "tool_rpm" => 24,
+        "x" => 25,
+        "y" => 26,
+        "z" => 27,
         _ => u8::MAX,
     }
 }
@@ -297,10 +299,16 @@ pub fn write_json(out: &mut Vec<u8>, m: &Move) {
             let c = work(m, *center);
             o.put("center", J::Xz(r(c.x * 2.0), r(c.z)));
         }
-        MoveKind::Thread { end, lead, start_angle, .. } => {
+        MoveKind::Thread { end, lead, start_angle, continuous, lead_inc } => {
             put_end(&mut o, m, *end);
             o.put("lead", J::Num(r(*lead)));
             o.put("start_angle", J::Num(r(*start_angle)));
+            if *continuous {
+                o.put("continuous", J::Bool(true));
+            }
+            if *lead_inc != 0.0 {
+                o.put("lead_inc", J::Num(r(*lead_inc)));
+            }
         }
         MoveKind::Tap { end, lead, rpm, spindle } => {
             put_end(&mut o, m, *end);

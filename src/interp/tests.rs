@@ -119,8 +119,28 @@ fn dwell_p_ms_x_seconds() {
 fn inch_input_converts_to_mm() {
     let m = run("G20\nG98 G01 X2. Z-1. F10\nM30");
     assert_eq!(m[0].kind, K::Feed { end: Pos::xz(25.4, -25.4), feed: Feed::PerMin(254.0) });
-    // G20 must be alone.
-    assert_eq!(static_errs("G20 X1\nM30")[0].number, 10);
+}
+
+/// 004 §2.9 note 2: a unit *switch* only at the start and alone; a unit code that switches
+/// nothing is accepted anywhere (the CAM header `G21 G40 G99` on a metric machine).
+#[test]
+fn unit_switch_rules() {
+    // A switch that is not alone.
+    let a = run_err("G20 X1\nM30");
+    assert_eq!((a.number, a.pos.as_ref().unwrap().line), (10, 1), "{a}");
+    assert!(a.message.contains("alone"), "{a}");
+    // A switch in the middle of the program (it used to feed to X25.4 here).
+    let a = run_err("G98 G01 X1 Z0 F100\nG20\nX1\nM30");
+    assert_eq!((a.number, a.pos.as_ref().unwrap().line), (10, 2), "{a}");
+    assert!(a.message.contains("middle of the program"), "{a}");
+    // A metric header on a metric machine: switches nothing, accepted with other codes, and
+    // again later in the program.
+    let m = run("%\nO0001 (header)\nG21 G40 G99\nG98 G01 X10 Z-1 F100\nG21\nG21 X12\nM30\n%\n");
+    assert_eq!(m[0].kind, K::Feed { end: Pos::xz(5.0, -1.0), feed: Feed::PerMin(100.0) });
+    assert_eq!(m[1].kind, K::Feed { end: Pos::xz(6.0, -1.0), feed: Feed::PerMin(100.0) });
+    // Back to mm right after a switch to inch, both at the start and alone: allowed.
+    let m = run("G20\nG21\nG98 G01 X10 Z-1 F100\nM30");
+    assert_eq!(m[0].kind, K::Feed { end: Pos::xz(5.0, -1.0), feed: Feed::PerMin(100.0) });
 }
 
 #[test]

@@ -215,14 +215,7 @@ pub fn check_program_with(
         plan.push(&m).map_err(refuse)?;
     }
     if !ended && count < bound {
-        let a = Alarm::new(
-            END_OF_RECORD,
-            if count == 0 {
-                "the program is empty: nothing to run".to_string()
-            } else {
-                "the program ends without M02 or M30 (end of record): end it with M30 (or M02), so that the controller knows it is over".to_string()
-            },
-        );
+        let a = end_of_record(count == 0);
         return Err(refuse(match last_src {
             Some(s) => a.at(s),
             None => a,
@@ -266,6 +259,18 @@ fn check_path(limits: &Limits, pos: &[f64; 3], m: &Move, end: [f64; 3]) -> Resul
 
 /// Fanuc PS5010 "end of record": the program's text ended before M02/M30.
 pub const END_OF_RECORD: u32 = 5010;
+
+/// The PS5010 alarm of a program without M02/M30 (`empty`: it produced no move at all).
+pub fn end_of_record(empty: bool) -> Alarm {
+    Alarm::new(
+        END_OF_RECORD,
+        if empty {
+            "the program is empty: nothing to run".to_string()
+        } else {
+            "the program ends without M02 or M30 (end of record): end it with M30 (or M02), so that the controller knows it is over".to_string()
+        },
+    )
+}
 
 /// [`check_program`] over a program file as `cncgw run` will execute it: from `start`, with
 /// the common variables `vars` loaded; at most 2,000,000 moves (a program ending in M99

@@ -204,20 +204,18 @@ impl SdoResponse {
 pub const BLOCK_MAX: u8 = 127;
 
 /// The CRC of SDO block transfers (CiA 301 §7.2.4.3.16): CRC-16 CCITT, polynomial 0x1021,
-/// initial value 0, no reflection (the "XMODEM" variant).
+/// initial value 0, no reflection (the "XMODEM" variant), from the `crc` crate.
+const BLOCK_CRC: crc::Crc<u16> = crc::Crc::<u16>::new(&crc::CRC_16_XMODEM);
+
 pub fn crc16(data: &[u8]) -> u16 {
-    crc16_update(0, data)
+    BLOCK_CRC.checksum(data)
 }
 
 /// Continue a `crc16` over more data.
-pub fn crc16_update(mut crc: u16, data: &[u8]) -> u16 {
-    for &b in data {
-        crc ^= (b as u16) << 8;
-        for _ in 0..8 {
-            crc = if crc & 0x8000 != 0 { (crc << 1) ^ 0x1021 } else { crc << 1 };
-        }
-    }
-    crc
+pub fn crc16_update(crc: u16, data: &[u8]) -> u16 {
+    let mut d = BLOCK_CRC.digest_with_initial(crc);
+    d.update(data);
+    d.finalize()
 }
 
 /// A client → server block transfer frame (not the data segments: `BlockSegment`).

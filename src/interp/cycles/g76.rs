@@ -6,10 +6,11 @@
 //! along Z by d_n·tan(a/2) in the A→D direction (single-flank infeed), cuts parallel to C→D
 //! to D's Z (with the r run-out), retracts X to A's X (E) and returns Z to A.
 //!
-//! Depths: d_1 = Δd; d_n = max(√n·Δd, d_{n−1} + Δdmin). The manual writes the clamp as
-//! √(n−1)·Δd + Δdmin, which is the same while no earlier pass was clamped; we add Δdmin to
-//! the depth actually cut, as Fanuc does, so that no pass cuts less than Δdmin (the stated
-//! purpose of Δdmin). When d_n ≥ k − d the pass is cut at k − d and is the last rough pass;
+//! Depths (004 §2.17.4 step ⑤, to the letter): d_1 = Δd; d_n = max(√n·Δd, √(n−1)·Δd + Δdmin).
+//! The clamp adds Δdmin to the *unclamped* previous depth √(n−1)·Δd, not to the depth actually
+//! cut, so once the minimum applies a pass may cut less than Δdmin (0.4 → 0.65 → 0.8157 for
+//! Δd 0.4, Δdmin 0.25). G78 (manual 002) is different: there the next depth is the previous
+//! one plus Δdmin. When d_n ≥ k − d the pass is cut at k − d and is the last rough pass;
 //! note 6: Δd > k gives one rough pass at k − d. Then m finishing passes at depth k.
 //!
 //! Tags: first rough pass ①②③④; later rough passes ⑤②③④; the last rough pass (from the
@@ -109,7 +110,9 @@ impl Interpreter {
             loop {
                 let mut dn = if style.decreasing { (n as f64).sqrt() * dd } else { n as f64 * dd };
                 if n > 1 {
-                    dn = dn.max(prev + dmin);
+                    // G76: √(n−1)·Δd + Δdmin (004 step ⑤); G78: previous depth + Δdmin (002).
+                    let base = if style.g78_mode.is_none() { ((n - 1) as f64).sqrt() * dd } else { prev };
+                    dn = dn.max(base + dmin);
                 }
                 if dn >= rough_total - 1e-12 {
                     depths.push(rough_total);

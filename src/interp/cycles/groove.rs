@@ -5,15 +5,17 @@
 //! ③ the following feeds (Δk + e, the last one to B_n), ④ rapid side retract Δd, ⑤ rapid
 //! back to the start's peck coordinate, ⑥ rapid step to the next A_n, ⑦ rapid back to A.
 //!
-//! P and Q follow the interpreter's number rule (calculator-type input unless No.3401#0 = 0),
-//! like every other length: the manual's G74 example writes `P3 Q5` for 3 mm / 5 mm, its G75
-//! example `P6000 Q3000` for 6 mm / 3 mm (Fanuc's µm form); with calculator-type input the
-//! latter reads `P6 Q3`. R(e) is kept as No.5139. A zero peck (or step) amount with a
-//! distance to cover in that axis is Fanuc PS0062.
+//! P(Δi) and Q(Δk) follow Fanuc's rule for addresses that take no decimal point: without one
+//! they are in least input increments (0.001 mm, 0.0001 inch) whatever No.3401#0 says, so
+//! the manual's G75 example `P6000 Q3000` runs as printed (6 mm / 3 mm). The manual's own
+//! G74 example `P3 Q5` contradicts it (it means 3 mm / 5 mm); as printed it would peck 5 µm
+//! and is refused (too many passes, PS0062): write `P3. Q5.` or `P3000 Q5000`. A value with
+//! a decimal point is taken in mm (inch). R(e) is kept as No.5139. A zero peck (or step)
+//! amount with a distance to cover in that axis is Fanuc PS0062.
 
 use super::{CErr, G76_VALUE_ALARM, MAX_PASSES};
 use crate::canon::{MoveKind, Pos, SrcPos};
-use crate::interp::gcode::Decoded;
+use crate::interp::gcode::{Decoded, Val};
 use crate::interp::Interpreter;
 use std::sync::Arc;
 
@@ -35,14 +37,15 @@ impl Interpreter {
         }
         let e = self.cyc.p5139;
         let feed = self.feed(d.get('F').map(|f| f.col))?;
-        let unsigned = |l: char| -> Result<f64, CErr> {
+        let unsigned = |l: char, len: &dyn Fn(Val) -> f64| -> Result<f64, CErr> {
             match d.get(l) {
                 None => Ok(0.0),
                 Some(v) if v.v < 0.0 => Err((G76_VALUE_ALARM, Some(v.col), format!("{name} {l} is unsigned"))),
-                Some(v) => Ok(self.len(v)),
+                Some(v) => Ok(len(v)),
             }
         };
-        let (di, dk, dd) = (unsigned('P')?, unsigned('Q')?, unsigned('R')?);
+        let inc = |v| self.increment_len(v);
+        let (di, dk, dd) = (unsigned('P', &inc)?, unsigned('Q', &inc)?, unsigned('R', &|v| self.len(v))?);
         let a = self.pos;
         let off = self.offset();
         let work = a.sub(off);

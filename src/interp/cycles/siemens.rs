@@ -311,6 +311,7 @@ impl Interpreter {
                 self.cpush(src, &tag, 6, MoveKind::Rapid { end: self.zpos(g.rtp) }, true);
             }
             "CYCLE86" => {
+                self.work_spindle_drilling("CYCLE86 stops the boring tool oriented at POSS")?;
                 let g = self.geo(a, None)?;
                 let sdir = Self::spindle_dir(arg(6).unwrap_or(0.0), "SDIR", false, self.pc(6))?;
                 let u = self.unit();
@@ -455,6 +456,23 @@ impl Interpreter {
         Ok(())
     }
 
+    /// The spindle CYCLE84 taps with, that CYCLE84/CYCLE86 orient at POSS and that CYCLE840/
+    /// CYCLE86 start and stop is the one that
+    /// turns the tool (SINUMERIK's master spindle): on a machine whose drilling tool is a
+    /// driven tool (machine.drilling_spindle = "tool") that is the tool spindle, which this
+    /// controller neither taps with nor orients; turning the work spindle (C) instead would
+    /// turn the part under a driven tool, so such a cycle is refused before anything moves.
+    fn work_spindle_drilling(&self, what: &str) -> Result<(), CErr> {
+        if self.driven_tool_drilling {
+            return Err((
+                10,
+                None,
+                format!("{what} with the spindle that turns the tool, here the tool spindle (machine.drilling_spindle = \"tool\"): this controller turns, taps with and orients the work spindle only: here use a cycle that does not command a spindle (CYCLE81–CYCLE83, CYCLE85), or set drilling_spindle = \"work\" if the work spindle turns the tool"),
+            ));
+        }
+        Ok(())
+    }
+
     /// CYCLE84 rigid tapping: ② rapid to the safety plane and, with POSS, the spindle
     /// oriented there (aS); ③ tap to the depth at SST ([`MoveKind::Tap`], lead PIT or MPIT,
     /// negative = left hand) in one cut (_VARI 0), with chip breaking (1: stages of _DAM,
@@ -462,6 +480,7 @@ impl Interpreter {
     /// plane at SST1 and back in at SST); ④ DTB; ⑤ tap out to the safety plane at SST1
     /// (0 = SST); ⑥ rapid to RTP and the spindle as SDAC says (3/4/5, at the modal S).
     fn cycle84(&mut self, a: &[Option<f64>], src: &SrcPos, tag: &Arc<str>) -> Result<(), CErr> {
+        self.work_spindle_drilling("CYCLE84 taps (and orients the spindle at POSS)")?;
         let g = self.geo(a, None)?;
         let arg = |i| Self::sarg(a, i);
         let u = self.unit();
@@ -518,6 +537,7 @@ impl Interpreter {
     /// (ENC 0): the feed is one pitch (MPIT/PIT) per revolution, following the encoder.
     /// Without (ENC 1): the pitch given, or else the feed in force before the cycle.
     fn cycle840(&mut self, a: &[Option<f64>], src: &SrcPos, tag: &Arc<str>) -> Result<(), CErr> {
+        self.work_spindle_drilling("CYCLE840 turns the spindle (SDAC, SDR)")?;
         let g = self.geo(a, None)?;
         let arg = |i| Self::sarg(a, i);
         let u = self.unit();
