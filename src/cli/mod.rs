@@ -727,7 +727,7 @@ pub fn main() -> i32 {
             | Command::Sdo(SdoCmd::Read { .. })
             | Command::Od(_)
             | Command::Completions { .. }
-            | Command::Man
+            | Command::Man { .. }
     ) {
         quiet_on_closed_pipe();
     }
