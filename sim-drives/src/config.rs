@@ -1020,6 +1020,15 @@ mod tests {
     }
 
     #[test]
+    fn modbus_quirks_read_back_and_unknown_ones_are_refused() {
+        let mut c = SimConfig::default_lathe();
+        c.drives[1].modbus_quirks = ModbusQuirks { busy_every: 7, late_every: 300, late_ms: 25, ..ModbusQuirks::realistic(16_000) };
+        assert_eq!(SimConfig::from_toml(&c.to_commented_toml()).unwrap(), c);
+        let e = SimConfig::from_toml("[[drive]]\nnode = 1\nkind = \"linear\"\n[drive.modbus_quirks]\nbusy = 3\n").unwrap_err();
+        assert!(e.contains("busy"), "{e}");
+    }
+
+    #[test]
     fn printed_default_reads_back_identically() {
         let c = SimConfig::default_lathe();
         let text = c.to_commented_toml();

@@ -918,7 +918,8 @@ fn config_check(file: Option<&std::path::Path>, json: bool) -> i32 {
         ));
     }
     let mut links = Vec::new();
-    for (lname, what, tx, rtu) in crate::drives::modbus::ModbusDrives::new(&cfg).planned_links() {
+    for pl in crate::drives::modbus::ModbusDrives::new(&cfg).planned_links() {
+        let (lname, what, tx, rtu) = (pl.name, pl.what, pl.transactions, pl.rtu);
         let link_cycle_ms = rtu.map(|r| r.1);
         match rtu {
             Some((s, c)) => text.push(format!(

@@ -54,6 +54,17 @@ pub struct LinkStats {
     pub stale_bytes: u64,
 }
 
+/// A link before start-up.
+pub struct PlannedLink {
+    pub name: String,
+    pub what: String,
+    /// Transactions per link cycle.
+    pub transactions: usize,
+    /// RTU: the time one cycle's transactions take on the line (s) and the link cycle run
+    /// over it (ms). TCP's cycle is measured at start-up.
+    pub rtu: Option<(f64, f64)>,
+}
+
 struct Axis {
     name: String,
     link: usize,
@@ -186,16 +197,14 @@ impl ModbusDrives {
         self.axes.is_empty()
     }
 
-    /// Before start-up, per link: name, what it is, transactions per link cycle, and for RTU
-    /// the time one cycle's transactions take on the line (s) with the link cycle run over
-    /// it (ms) — TCP's is measured at start-up.
-    pub fn planned_links(&self) -> Vec<(String, String, usize, Option<(f64, f64)>)> {
+    /// Before start-up, per link: what `config check` says of it.
+    pub fn planned_links(&self) -> Vec<PlannedLink> {
         self.links
             .iter()
             .filter_map(|l| {
                 let s = l.spec.as_ref()?;
                 let rtu = (s.cfg.transport == crate::config::LinkTransport::Rtu).then(|| (s.rtu_cycle_s(), s.rtu_link_cycle_ms()));
-                Some((l.name.clone(), l.what.clone(), s.transactions_per_cycle(), rtu))
+                Some(PlannedLink { name: l.name.clone(), what: l.what.clone(), transactions: s.transactions_per_cycle(), rtu })
             })
             .collect()
     }
