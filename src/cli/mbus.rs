@@ -158,11 +158,12 @@ impl Client {
         Ok(Client { rt, ctx, link: link.clone(), what, last_end: None })
     }
 
-    /// The 3.5-character silence between RTU frames (generous: 4 ms covers 9600 baud).
+    /// The 3.5-character silence between RTU frames, for this line's baud rate and framing
+    /// (a fixed 4 ms was below it at 9600 baud with parity).
     fn rtu_gap(&self) {
         if self.link.transport == LinkTransport::Rtu {
             if let Some(end) = self.last_end {
-                let due = end + Duration::from_millis(4);
+                let due = end + rtu_silence(&self.link);
                 let now = Instant::now();
                 if due > now {
                     std::thread::sleep(due - now);
@@ -198,16 +199,7 @@ impl Client {
 
     /// Read `len` holding registers of `unit` from `addr`.
     pub fn read(&mut self, unit: u8, addr: u16, len: u16) -> Result<Vec<u16>, String> {
-        if self.link.transport == LinkTransport::Rtu {
-            // The 3.5-character silence between frames (generous: 4 ms covers 9600 baud).
-            if let Some(end) = self.last_end {
-                let due = end + Duration::from_millis(4);
-                let now = Instant::now();
-                if due > now {
-                    std::thread::sleep(due - now);
-                }
-            }
-        }
+        self.rtu_gap();
         let timeout = Duration::from_millis(self.link.timeout_ms.max(100) as u64);
         self.ctx.set_slave(Slave(unit));
         let ctx = &mut self.ctx;
@@ -221,6 +213,13 @@ impl Client {
             Ok(Ok(Ok(v))) => Err(format!("unit {unit}: {} registers in the answer, {len} asked", v.len())),
         }
     }
+}
+
+/// The silence an RTU frame must be preceded by on `link`'s line (Modbus over serial line
+/// V1.02 §2.5.1.1: 3.5 characters, 1.75 ms above 19 200 baud), as the link thread keeps it.
+pub fn rtu_silence(link: &ModbusLink) -> Duration {
+    let t = cncgw_bus::modbus::SerialTiming { baud: link.baud, parity: link.parity != Parity::None, stop_bits: link.stop_bits };
+    Duration::from_secs_f64(t.t35_s())
 }
 
 /// One drive as read over Modbus.
@@ -863,6 +862,17 @@ mod tests {
         // No link in the configuration: the default timeout is held within the feedback
         // timeout (20 ms at a 2 ms cycle → at most 16 ms).
         assert_eq!(cfg.modbus[BUS_LINK].timeout_ms, 16);
+    }
+
+    /// Issue 22: the service commands' RTU silence follows the line (a fixed 4 ms was short
+    /// of 3.5 characters at 9600 baud with parity: 11 bits × 3.5 / 9600 = 4.01 ms).
+    #[test]
+    fn rtu_silence_is_three_and_a_half_characters_of_the_line() {
+        let l = parse_bus_url("modbus-rtu:///dev/ttyS0?baud=9600&parity=even").unwrap().unwrap();
+        let s = rtu_silence(&l).as_secs_f64() * 1e3;
+        assert!((s - 4.0104).abs() < 0.001, "{s} ms");
+        let l = parse_bus_url("modbus-rtu:///dev/ttyS0?baud=115200").unwrap().unwrap();
+        assert!((rtu_silence(&l).as_secs_f64() * 1e3 - 1.75).abs() < 1e-9);
     }
 
     /// Issue 22: `--bus modbus-tcp://` keeps the configuration's link settings.
