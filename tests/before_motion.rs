@@ -54,3 +54,28 @@ fn a_program_without_an_end_and_an_empty_one() {
     let (code, _, err) = run("ends", "G21\nG0 X40 Z2\nM30\n");
     assert_eq!(code, 0, "{err}");
 }
+
+/// A program that will stop with an alarm at a block — here the Fanuc user alarm
+/// `#3000 = k (MESSAGE)` (alarm 3000 + k) — is refused before any motion: the pre-motion pass
+/// runs it from the same start and variables, so the run would stop there after moving.
+#[test]
+fn a_user_alarm_ahead_is_refused_before_motion() {
+    let dir = tempfile::tempdir().unwrap();
+    let prog = dir.path().join("ua.nc");
+    std::fs::write(&prog, "G0 X10 Z5\n#1=5\nIF[#1GT3]THEN#3000=12(TOOL 5 IS BROKEN)\nG0 X20\nM30\n").unwrap();
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_cncgw"))
+        .env("CNCGW_STATE_DIR", dir.path().join("state"))
+        .args(["run", "--batch", "--json"])
+        .arg(&prog)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(3), "{err}");
+    assert!(err.contains("ua.nc:3:1: alarm 3012: TOOL 5 IS BROKEN") && err.contains("nothing was moved"), "{err}");
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!((v["moves"].as_u64(), v["alarm"]["number"].as_u64()), (Some(0), Some(3012)), "{v}");
+    // In `plan` the listing stops there with the same alarm.
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_cncgw")).arg("plan").arg(&prog).output().unwrap();
+    assert_eq!(o.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("alarm 3012"));
+}

@@ -535,6 +535,7 @@ fn execute(
     if let Ok(mut pre) = (job.make)(start_pos) {
         pre.set_start_position(start_pos);
         pre.set_common_vars(interp.common_vars().clone());
+        pre.set_tap_return(interp.tap_return());
         let tool = crate::motion::polygon::ToolSpindle::from_config(cfg);
         if let Err(a) = crate::motion::guard::check_program_with(pre, &Limits::from_config(cfg), start_pos, tool.as_ref(), 2_000_000) {
             lp.finish();

@@ -6,8 +6,9 @@
 //! EQ/GE/LE hold, with one side null only NE holds.
 //!
 //! Variable ranges (§2.24.1): #0 always null (read-only), #1–#400 and #601–#999 local (one set
-//! per macro call level), #401–#600 common. Other numbers (Fanuc system variables #1000+)
-//! are not available yet: PS0115.
+//! per macro call level), #401–#600 common. Writing #3000 is the Fanuc user alarm
+//! (`Interpreter::assign`); other numbers (Fanuc system variables #1000+) are not available
+//! yet: PS0115.
 //!
 //! Alarm numbers are Fanuc's: 112 division by zero, 111 overflow, 115 variable number out of
 //! range, 116 write-protected variable, 119 argument out of range.

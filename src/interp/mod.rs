@@ -72,6 +72,8 @@ pub const ENDLESS_LOOP_ALARM: u32 = 2500;
 /// Ours: the program ran more blocks than its budget (`--max-blocks`): a loop without end
 /// (M99 in the main program, DO without WHILE) or a budget set too low.
 pub const BLOCK_BUDGET_ALARM: u32 = 2501;
+/// `#3000 = k (MESSAGE)`: user alarm 3000 + k.
+pub const USER_ALARM_VAR: u32 = 3000;
 /// The default block budget of `plan` and `run` (`--max-blocks`; 0 = none).
 pub const DEFAULT_BLOCK_BUDGET: u64 = 10_000_000;
 const ENDLESS_LOOP_BLOCKS: u64 = 2_000_000;
@@ -988,6 +990,22 @@ impl Interpreter {
         r
     }
 
+    /// `#n = v` of the block `text`. `#3000 = k (MESSAGE)` is a user alarm, as on the Fanuc
+    /// family (the manual has no system variables): the program stops with alarm 3000 + k
+    /// (k 0–200) and the comment of the block as its message.
+    fn assign(&mut self, n: u32, v: macros::Value, text: &str) -> Result<(), MErr> {
+        if n != USER_ALARM_VAR {
+            return self.vars.set(n, v);
+        }
+        let k = v.unwrap_or(0.0);
+        if !(k.fract() == 0.0 && (0.0..=200.0).contains(&k)) {
+            return Err(MErr { number: 119, message: format!("#3000 = {k}: a user alarm number is 0–200 (alarm 3000–3200)") });
+        }
+        let msg = text.split_once('(').and_then(|(_, r)| r.split_once(')')).map_or("", |(m, _)| m.trim());
+        let msg = if msg.is_empty() { "user alarm from the program (#3000; no message in parentheses)" } else { msg };
+        Err(MErr { number: USER_ALARM_VAR + k as u32, message: msg.to_string() })
+    }
+
     /// Execute the block `bytes` of line `i` of source `si`.
     fn exec_line(&mut self, si: usize, i: Loc, bytes: &[u8]) -> Result<(), Alarm> {
         let file = self.sources[si].file.clone();
@@ -1038,13 +1056,13 @@ impl Interpreter {
             Stmt::Assign { var, value } => {
                 let n = self.vars.target(&var).map_err(|e| wrap(e, b.col))?;
                 let v = self.vars.eval(&value).map_err(|e| wrap(e, b.col))?;
-                self.vars.set(n, v).map_err(|e| wrap(e, b.col))?;
+                self.assign(n, v, text).map_err(|e| wrap(e, b.col))?;
             }
             Stmt::IfThen { cond, var, value } => {
                 if truth(self.vars.eval(&cond).map_err(|e| wrap(e, b.col))?) {
                     let n = self.vars.target(&var).map_err(|e| wrap(e, b.col))?;
                     let v = self.vars.eval(&value).map_err(|e| wrap(e, b.col))?;
-                    self.vars.set(n, v).map_err(|e| wrap(e, b.col))?;
+                    self.assign(n, v, text).map_err(|e| wrap(e, b.col))?;
                 }
             }
             Stmt::IfGoto { cond, target } => {

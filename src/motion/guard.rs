@@ -187,7 +187,6 @@ pub fn check_program_with(
     tool: Option<&super::polygon::ToolSpindle>,
     bound: usize,
 ) -> Result<(), Alarm> {
-    use crate::interp::cycles::stroke::{MINUS_ALARM, PLUS_ALARM};
     let refuse = |a: Alarm| Alarm { message: format!("{} — refused before any motion", a.message), ..a };
     let mut pos = xyz(&start);
     let mut plan = super::Motion::new(limits.clone(), [start.x, start.y, start.z, start.c]);
@@ -198,8 +197,10 @@ pub fn check_program_with(
     for m in moves.take(bound) {
         let m = match m {
             Ok(m) => m,
-            Err(a) if a.number == PLUS_ALARM || a.number == MINUS_ALARM => return Err(refuse(a)),
-            Err(_) => return Ok(()),
+            // The program runs from the same start, variables and tables: an alarm here (a
+            // macro error, a user alarm #3000, G22) would stop the run at the same block,
+            // after the moves before it — refused before any of them.
+            Err(a) => return Err(refuse(a)),
         };
         count += 1;
         ended |= matches!(m.kind, MoveKind::End { .. });
@@ -377,8 +378,10 @@ mod tests {
         let e = program("G98\nG00 X100 Z-100\nG22 X80 Z-20 I40 K-60\nG01 X100 Z-100 F100\nG01 X60 Z-40\nM30\n").unwrap_err();
         assert!(e.number == 502 || e.number == 503, "{e}");
         assert!(e.message.contains("refused before any motion"), "{e}");
-        // Any other program alarm is left to the run.
-        assert!(program("G00 X10\nG01 Z-10\nM30\n").is_ok());
+        // Any other program alarm is refused before motion too (here: no feed, PS0011).
+        let e = program("G00 X10\nG01 Z-10\nM30\n").unwrap_err();
+        assert_eq!((e.number, e.pos.as_ref().map(|p| p.line)), (11, Some(2)), "{e}");
+        assert!(e.message.contains("refused before any motion"), "{e}");
     }
 
     #[test]

@@ -16,12 +16,19 @@
 //! - Look-ahead (G64): a segment pushed without `exact_stop` is linked to the next one when it
 //!   arrives. The junction is crossed within one cycle at a speed limited by the corner angle
 //!   (each axis' velocity jump `v·|Δu_i| ≤ ½·amax_i·dt`, plus `v²·dt/2r` for each arc at the
-//!   junction: the chord's turn from its tangent), by both segments' speed limits, and
-//!   by the next segment's length (one junction per cycle, so `step` stays O(1)); a backward
-//!   pass in `push` makes sure every later stop can still be braked for. Segments next to a
-//!   blended junction ramp with half the acceleration, the other half is the corner's.
+//!   junction: the chord's turn from its tangent; where junctions are closer than a cycle's
+//!   travel the jumps of one cycle add up, `× v·dt/h`: the centripetal limit of a chord
+//!   chain, see `corner_speed`), by both segments' speed limits, and by
+//!   [`MAX_JUNCTIONS`] × the next segment's length per cycle: a cycle crosses as many
+//!   junctions as its travel spans, at most [`MAX_JUNCTIONS`], so `step` stays bounded and a
+//!   CAM contour of 0.02 mm blocks runs at its feed. A backward pass (`relax`, once per cycle
+//!   over what was pushed since) makes sure every later stop can still be braked for: each
+//!   block may count on the whole queued room after it, in distance, down to a stop at rest
+//!   on the last queued block — a queue shorter than the braking distance lowers the speed.
+//!   Segments next to a blended junction ramp with half the acceleration, the other half is
+//!   the corner's; a chain of short blocks ramps with one acceleration (`accel_chain`).
 //! - Events (aux codes, M00/M01, M30) and spindle commands are taken in program order, one item
-//!   per cycle, so `step` is O(1).
+//!   per cycle.
 //!
 //! Limits per segment: the path speed is at most `min_i vmax_i/|u_i|` and the path
 //! acceleration `min_i amax_i/|u_i|` (u = unit direction), so no axis exceeds its own limit;
@@ -34,7 +41,8 @@
 //! # Contract with the cycle loop
 //!
 //! - Every cycle: read the drives' feedback, call `step` once, send the setpoint. `step` never
-//!   allocates, never panics, does a constant amount of work, and is deterministic (same
+//!   allocates, never panics, does a bounded amount of work (at most [`MAX_JUNCTIONS`]
+//!   crossings and one look-ahead pass over the queue), and is deterministic (same
 //!   pushes, feedback and operator calls give bit-identical setpoints).
 //! - `Feedback::pos[AX_S]` is the measured spindle angle in continuous degrees whose multiples
 //!   of 360 are the one-revolution reference; `Feedback::spindle_rpm` the measured speed.
@@ -125,6 +133,12 @@ const INPOS_MAX_CYCLES: u32 = 150;
 const LAG_MEMORY_S: f64 = 2.0;
 /// Gain with which a thread's measured phase error corrects the long axis' lag, per cycle.
 const THREAD_TRIM_GAIN: f64 = 0.1;
+/// Most junctions of a blended chain crossed within one cycle. Keeps `step` bounded: a
+/// chain of tiny segments (CAM contours) runs at up to `MAX_JUNCTIONS` segment lengths per
+/// cycle (64 × 0.01 mm per 2 ms = 19 m/min), where one crossing per cycle capped the path
+/// speed at one segment per cycle. Fanuc's AI contour control likewise processes several
+/// blocks per interpolation period.
+pub const MAX_JUNCTIONS: usize = 64;
 
 /// Largest C (spindle angle) a move may ask for, degrees: beyond it an angle no longer
 /// resolves a count of the spindle's encoder in f64 (a C of 1e300 from a macro made the
@@ -264,7 +278,7 @@ impl Limits {
             feed_clamp: f64::INFINITY,
             chord_tol: 0.001,
             arc_radius_tol: 0.01,
-            queue_len: 256,
+            queue_len: 1024,
             tap_accel: f64::INFINITY,
             tap_hold_in_hole: cfg.param_bit(5200, 6),
             sync_err_limit_um: cfg.machine.sync_error_limit_um,
@@ -598,6 +612,8 @@ pub struct Motion {
     tap_gate: Option<bool>,
     /// A hole's first stroke is ready at R and waits for the gate.
     tap_wait: Option<TapEntry>,
+    /// Items pushed since the last look-ahead pass (`relax`, at the start of `step`).
+    relax_pending: usize,
 }
 
 /// A rigid tap's first stroke of a hole, ready at its R point (see [`Motion::tap_waiting`]).
@@ -670,6 +686,7 @@ impl Motion {
             path_a: 0.0,
             tap_gate: None,
             tap_wait: None,
+            relax_pending: 0,
             sp_dir: 0.0,
             sp_rpm: 0.0,
             sp_css: None,
@@ -844,6 +861,7 @@ impl Motion {
         let i = (self.head + self.len) % self.queue.len();
         self.queue[i] = Entry { item, line: m.src.line, cyc };
         self.len += 1;
+        self.relax_pending = self.relax_pending.saturating_add(1);
         if is_move && blend_in {
             self.link_last();
         }
@@ -953,6 +971,7 @@ impl Motion {
         if !self.jerk_chain(new) {
             return;
         }
+        self.accel_chain(new);
         let Some(prev) = self.prev_seg_mut(1) else { return };
         // The junction is crossed within one cycle: the velocity vector turns from t1 to t0
         // there, so each axis' speed jumps by v·|Δu_i|; allow half its acceleration for that
@@ -974,18 +993,19 @@ impl Motion {
                 }
             }
         }
-        let mut v = prev.vlim.min(new.vlim).min(new.geom.len() / dt);
+        // At most MAX_JUNCTIONS crossings per cycle: every junction crossed in a cycle is
+        // crossed at a speed ≤ its `vj` (see `relax`), so with `vj ≤ M·len/dt` of the segment
+        // after it, n crossings in one cycle need `v·dt > (n−1)·min len ≥ (n−1)·v·dt/M`: n ≤ M.
+        let h = prev.geom.len().min(new.geom.len());
+        let mut v = prev.vlim.min(new.vlim).min(MAX_JUNCTIONS as f64 * new.geom.len() / dt);
         for i in 0..3 {
             let du = (new.t0[i] - prev.t1[i]).abs();
             let du = if du > 1e-12 { du } else { 0.0 };
             if du > 0.0 || k[i] > 0.0 {
-                // The positive root of k·v² + du·v = c, in the form that is stable for k → 0.
-                let c = 0.5 * amax[i] * dt;
-                v = v.min(2.0 * c / (du + (du * du + 4.0 * k[i] * c).sqrt()));
+                v = v.min(corner_speed(du, k[i], h, 0.5 * amax[i] * dt, dt));
             }
         }
         prev.vj = finite_or_zero(v);
-        self.relax();
     }
 
     /// S-curve look-ahead: all segments of a blended chain brake with one path acceleration
@@ -998,8 +1018,24 @@ impl Motion {
     fn jerk_chain(&mut self, new: Seg) -> bool {
         let Some(prev) = self.prev_seg_mut(1).copied() else { return true };
         let minpos = |x: f64, y: f64| if x > 0.0 && y > 0.0 { x.min(y) } else { x.max(y) };
-        let (a, j) = (prev.alim.min(new.alim), minpos(prev.jlim, new.jlim));
-        if !(j > 0.0) || (a == new.alim && j == new.jlim && a == prev.alim && j == prev.jlim) {
+        let (mut a, mut j) = (prev.alim.min(new.alim), minpos(prev.jlim, new.jlim));
+        if !(j > 0.0) {
+            return true;
+        }
+        let dt = self.lim.cycle_s;
+        let short = |p: &Seg| p.geom.len() <= speed_cap(p).min(p.vlim) * dt;
+        if short(&prev) || short(&new) {
+            // A chain of short blocks (a CAM contour) brakes with the least a blended line
+            // can have on this machine from its first junction on: the blocks of a contour
+            // whose direction keeps turning then never lower the chain later (that would
+            // reach the running block and stop at the junction).
+            let l = &self.lim;
+            for i in (0..3).filter(|&i| l.present[i]) {
+                a = a.min(0.5 * l.amax[i]);
+                j = minpos(j, l.jmax[i]);
+            }
+        }
+        if a == new.alim && j == new.jlim && a == prev.alim && j == prev.jlim {
             return true;
         }
         // Lowering the chain's limits must not reach the running segment (back == len).
@@ -1034,54 +1070,95 @@ impl Motion {
         true
     }
 
-    /// Backward pass over the linked chain from the newest segment: the speed at which each
-    /// junction may be crossed (≤ its corner limit, and low enough that the rest of the chain
-    /// can still be braked within the acceleration), expressed as the segment's `ext`. Stops
-    /// as soon as a segment's `ext` does not grow. O(queue length), in `push` only.
-    fn relax(&mut self) {
+    /// Trapezoid look-ahead: in a chain of short blocks, every block brakes at least as hard
+    /// as the one before it, so that `relax` can hand each block the whole room after it
+    /// (see `relaxed_ext`). When the newest block's acceleration is lower, the linked blocks
+    /// before it that are shorter than a cycle's travel at their speed are lowered —
+    /// all or none: not if that would reach a long block, or the running block whose state
+    /// could not brake for its room with the lower acceleration; the junction then keeps the
+    /// rule that loses a cycle's travel, which a long block does not notice. Lowering a
+    /// block's acceleration keeps its own `ext` valid (see `relaxed_ext`). Stops at the
+    /// first block already as low. They are lowered to the least a blended line can have on
+    /// this machine (or the new block's, if less), so that the next blocks of a contour whose
+    /// direction keeps turning do not lower them again: each block is lowered at most twice,
+    /// and `push` stays O(1) amortised.
+    fn accel_chain(&mut self, new: Seg) {
         let dt = self.lim.cycle_s;
-        let cap = self.queue.len();
-        let Some(Item::Move(newest)) = self.len.checked_sub(1).map(|k| self.queue[(self.head + k) % cap].item) else {
+        let a = new.alim;
+        if new.jlim > 0.0 || !(a > 0.0) {
             return;
-        };
-        let (mut nlen, mut next_ext, mut ndv) = (newest.geom.len(), newest.ext, newest.alim * dt);
-        let mut next_cap = speed_cap(&newest);
+        }
+        let lowers = |p: &Seg| p.alim > a && p.jlim == 0.0;
+        let floor = self.blend_floor().min(a);
+        let short = |p: &Seg| p.geom.len() <= speed_cap(p).min(p.vlim) * dt;
+        let len = self.len;
         let mut back = 1;
-        while let Some(prev) = self.prev_seg_mut(back) {
-            if !(prev.vj > 0.0) {
+        // Block 1 is being linked to `new`; older ones only along the linked chain.
+        while let Some(p) = self.prev_seg_mut(back) {
+            if !lowers(p) || (back > 1 && !(p.vj > 0.0)) {
                 break;
             }
-            // Hard limit of the crossing speed: the corner, and the next segment must be
-            // brakeable from it (its own staircase).
-            let ve = prev.vj.min(profile::v_allowed(nlen + next_ext, ndv, dt));
-            let pdv = prev.alim * dt;
-            // A virtual stop `dt·G(w)` beyond the end: the cycle that crosses the junction then
-            // runs slower than `w + dv` (see profile::v_allowed). `w = ve − dv` keeps the hard
-            // limit; the next segment's feed (soft: `v_cmd` caps the speed anyway) lowers `w`
-            // so that a drop in F is braked before the junction, to within one step.
-            // Below one step: exact stop.
-            let ext = if prev.jlim > 0.0 && prev.alim > 0.0 {
-                // S-curve (one acceleration `A` along the chain, see `jerk_chain`): a virtual
-                // stop `w²/2A` beyond the end. Any state that can still brake within it moves
-                // at most `w` there (braking at ≤ A needs v²/2A), hence at most `w + A·dt`
-                // within the crossing cycle; and it fits in the next segment's room.
-                let a = prev.alim;
-                let w = (prev.vj - pdv).min(next_cap).min((2.0 * a * (nlen + next_ext)).sqrt());
-                if w > 0.0 { w * w / (2.0 * a) } else { 0.0 }
-            } else if ve > pdv {
-                dt * profile::g((ve - pdv).min(next_cap), pdv)
-            } else {
-                0.0
-            };
-            if !(ext > prev.ext) {
-                break;
+            if !short(p) {
+                return;
             }
-            prev.ext = ext;
-            nlen = prev.geom.len();
-            next_ext = ext;
-            ndv = pdv;
-            next_cap = speed_cap(prev);
+            if back == len {
+                // The running block, lowered only if its state can still brake for its room
+                // with the lower acceleration (`profile::next_speed` then stays within a·dt).
+                let Run::Move { seg, s, v, .. } = self.run else { return };
+                let dv = floor * dt;
+                if !(dt * profile::g(v - dv, dv) <= seg.geom.len() - s + seg.ext) {
+                    return;
+                }
+            }
             back += 1;
+        }
+        for b in 1..back {
+            if let Some(p) = self.prev_seg_mut(b) {
+                p.alim = floor;
+            }
+        }
+        self.relax_pending = self.relax_pending.max(back);
+    }
+
+    /// Backward pass over the linked chains, from the newest segment: the speed at which each
+    /// junction may be crossed (≤ its corner limit, and low enough that the rest of the chain
+    /// can still be braked within the acceleration), expressed as the segment's `ext`.
+    ///
+    /// Run once per cycle (at the start of `step`) over what was pushed since, not once per
+    /// push: a chain of tiny blocks within braking distance of the end of the queue is
+    /// hundreds of blocks long, and every push grows the `ext` of all of them (at 0.01 mm and
+    /// F6000, 20 pushes a cycle would each walk 500 blocks). It walks every block pushed since
+    /// the last pass, then back while an `ext` grows — far enough in DISTANCE: the room of the
+    /// whole queued chain, ending at rest on the last queued block, whatever their number.
+    /// At most the queue's length, no allocation.
+    fn relax(&mut self) {
+        let pending = std::mem::take(&mut self.relax_pending);
+        if pending == 0 {
+            return;
+        }
+        let dt = self.lim.cycle_s;
+        // (length, ext, dv, feed) of the segment after the one looked at; None: not a move.
+        let mut next: Option<(f64, f64, f64, f64)> = None;
+        for back in 0..=self.len {
+            let Some(prev) = self.prev_seg_mut(back) else {
+                if back >= pending {
+                    break;
+                }
+                next = None;
+                continue;
+            };
+            let mut grew = false;
+            if let (Some((nlen, next_ext, ndv, next_cap)), true) = (next, prev.vj > 0.0) {
+                let ext = relaxed_ext(prev, nlen + next_ext, ndv, next_cap, dt);
+                if ext > prev.ext {
+                    prev.ext = ext;
+                    grew = true;
+                }
+            }
+            if !grew && back >= pending {
+                break;
+            }
+            next = Some((prev.geom.len(), prev.ext, prev.alim * dt, speed_cap(prev)));
         }
     }
 
@@ -1422,10 +1499,22 @@ impl Motion {
                 }
             }
         }
-        let share = if blended { 0.5 } else { 1.0 };
-        let mut s = seg(g, speed, v, a * share);
+        let a = if blended { (0.5 * a).min(self.blend_floor()) } else { a };
+        let mut s = seg(g, speed, v, a);
         s.jlim = finite_or_zero(j);
         s
+    }
+
+    /// Path acceleration of a blended segment, at most: half the least axis acceleration of
+    /// the machine, whatever the segment's direction. A cycle that crosses junctions moves
+    /// along a mix of the segments' directions (its mean direction `ū`, `|ū_i| ≤ 1`), while
+    /// its speed step is the segment's where it started: only a bound that holds for every
+    /// direction keeps each axis' share of that step `Δv·|ū_i|` within the half of its
+    /// acceleration left by the corner rule. (Per direction, `amax_i/|u_i|`, a diagonal line
+    /// ramped 41 % harder and a cycle crossing from it onto an axis-parallel block exceeded
+    /// that axis' limit.)
+    fn blend_floor(&self) -> f64 {
+        (0..3).filter(|&i| self.lim.present[i]).map(|i| 0.5 * self.lim.amax[i]).fold(f64::INFINITY, f64::min)
     }
 
     /// An arc segment: tangential and centripetal acceleration share each plane axis' limit
@@ -1493,6 +1582,9 @@ impl Motion {
         if uc > 0.0 {
             v = v.min(l.vmax[ic] / uc);
             a = a.min(tangential * l.amax[ic] / uc);
+        }
+        if blended {
+            a = a.min(self.blend_floor());
         }
         // S-curve: the plane axes' jerk is shared like their acceleration: half for the
         // tangential profile, half for the centripetal acceleration turning with the tool
@@ -1609,12 +1701,13 @@ impl Motion {
         (lead * ahead.abs() / 60.0).min(self.lim.feed_clamp)
     }
 
-    /// Advance one cycle. Never allocates; never panics; O(1).
+    /// Advance one cycle. Never allocates; never panics; bounded (see the module doc).
     pub fn step(&mut self, fb: &Feedback) -> Setpoint {
         let dt = self.lim.cycle_s;
         let prev = self.pos;
         let mut event = Event::None;
         let mut path_v = 0.0;
+        self.relax();
         self.monitor_sync(fb);
         // In a rigid-tap stroke the spindle is a position axis driven by the tap profile.
         if !matches!(self.run, Run::Tap { theta0: Some(_), .. } | Run::Rigid { theta0: Some(_), .. })
@@ -1717,16 +1810,7 @@ impl Motion {
                 let reach = d - adv <= 1e-9;
                 // The path speed of this cycle (the trapezoid's exactly `nv`).
                 let pv = if jerk { adv / dt } else { nv };
-                let next = match (reach && seg.ext > 0.0, self.peek()) {
-                    (true, Some(Entry { item: Item::Move(next), line, cyc })) => Some((next, line, cyc)),
-                    _ => None,
-                };
-                if let Some((next, line, cyc)) = next {
-                    // Blend: cross the junction within this cycle, onto the next segment.
-                    self.pop();
-                    self.line = line;
-                    self.cur_cyc = cyc;
-                    let s2 = (adv - d).max(0.0).min(next.geom.len());
+                if let Some((next, s2)) = (reach && seg.ext > 0.0).then(|| self.cross(adv - d)).flatten() {
                     let p = next.geom.at(s2);
                     self.pos[..3].copy_from_slice(&p);
                     path_v = pv;
@@ -1935,6 +2019,35 @@ impl Motion {
             event,
             tool_spindle: self.tool.pos(),
         }
+    }
+
+    /// Blend: cross the junction at the end of the running segment within this cycle, onto
+    /// the next queued segment, `over` (≥ 0) beyond the end, and on across the junctions of
+    /// the segments that this cycle passes entirely, at most [`MAX_JUNCTIONS`]. Returns the
+    /// segment the cycle ends in and the arc length there, or None when no linked segment is
+    /// queued (the running one then lands on its end). Bounded, allocation-free.
+    ///
+    /// Every junction crossed is crossed at a speed its `vj` allows and every segment entered
+    /// can still be braked within its length and `ext` (see `relax`): the same reasoning as for
+    /// one junction, applied to each in turn. `link_last` keeps the count within the bound;
+    /// the bound is only a backstop against rounding.
+    fn cross(&mut self, over: f64) -> Option<(Seg, f64)> {
+        let mut over = over.max(0.0);
+        let mut last = None;
+        for _ in 0..MAX_JUNCTIONS {
+            let Some(Entry { item: Item::Move(next), line, cyc }) = self.peek() else { break };
+            self.pop();
+            self.line = line;
+            self.cur_cyc = cyc;
+            let len = next.geom.len();
+            last = Some((next, over.min(len)));
+            // Passed entirely, and blended on: cross its end too.
+            if !(over - len > 1e-9 && next.ext > 0.0) {
+                break;
+            }
+            over -= len;
+        }
+        last
     }
 
     /// One cycle of a thread pass: wait for the spindle, arm at the measured angle, then track
@@ -2283,6 +2396,70 @@ fn speed_cap(s: &Seg) -> f64 {
         Speed::PerMin(f) => f,
         Speed::Rapid | Speed::PerRev(_) => f64::INFINITY,
     }
+}
+
+/// The `ext` a blended segment may have (see `Motion::relax`), given the room after its end
+/// (`room`: the next segment's length and `ext`), the next segment's speed step `ndv` and feed.
+fn relaxed_ext(prev: &Seg, room: f64, ndv: f64, next_cap: f64, dt: f64) -> f64 {
+    // Hard limit of the crossing speed: the corner, and the next segment must be brakeable
+    // from it (its own staircase).
+    let ve = prev.vj.min(profile::v_allowed(room, ndv, dt));
+    let pdv = prev.alim * dt;
+    // A virtual stop `dt·G(w)` beyond the end: the cycle that crosses the junction then runs
+    // slower than `w + dv` (see profile::v_allowed). `w = ve − dv` keeps the hard limit; the
+    // next segment's feed (soft: `v_cmd` caps the speed anyway) lowers `w` so that a drop in
+    // F is braked before the junction, to within one step. Below one step: exact stop.
+    if prev.jlim > 0.0 && prev.alim > 0.0 {
+        // S-curve (one acceleration `A` and jerk `J` along the chain, see `jerk_chain`): a
+        // virtual stop beyond the end, at most `w²/2A` with `w = vj − A·dt`: any state that
+        // can still brake within it moves at most `w` there (braking at ≤ A needs v²/2A),
+        // hence at most `vj` within the crossing cycle; at most the next segment's room, so
+        // that it can still brake there. The next segment's feed is soft (`v_cmd` caps the
+        // speed anyway): the distance a cruise at that feed needs to stop, `v²/2A + v·A/2J`;
+        // `v²/2A` alone held a chain of blocks shorter than `v·A/2J` at ≈ 85 % of its feed.
+        let a = prev.alim;
+        let w = prev.vj - pdv;
+        let soft = if next_cap.is_finite() { profile::stop_dist(next_cap, 0.0, a, prev.jlim) } else { f64::INFINITY };
+        if w > 0.0 {
+            (w * w / (2.0 * a)).min(room).min(soft)
+        } else {
+            0.0
+        }
+    } else if prev.vj > pdv && ndv >= pdv {
+        // The next segment brakes at least as hard (`accel_chain` makes chains of short blocks
+        // so): the room itself. A cycle that crosses the end `o` beyond it at speed `v` has
+        // `dt·G(v − pdv) ≤ ext − o` (the profile's bound), hence `dt·G'(v − ndv) ≤ room − o`
+        // in the next segment: it can still brake; and `v − pdv < G⁻¹(ext/dt) ≤ vj − pdv`.
+        // The room of a chain of tiny blocks adds up; the rule below loses one cycle's
+        // travel per junction, which stopped such a chain at every block.
+        room.min(dt * profile::g((prev.vj - pdv).min(next_cap), pdv))
+    } else if ve > pdv {
+        dt * profile::g((ve - pdv).min(next_cap), pdv)
+    } else {
+        0.0
+    }
+}
+
+/// Largest speed at which a junction may be crossed, for one axis: `du` the jump of that
+/// axis' share of the direction, `k` the arcs' chord turn (see `link_last`), `h` the shorter
+/// of the two segments, `c` the axis' velocity change allowed per cycle for corners.
+///
+/// The axis velocity of a cycle is the setpoints' difference over `dt`; from one cycle to the
+/// next it changes by `v·Σ du_j·φ_j` over the junctions `j` within `2·v·dt` of path, with tent
+/// weights `φ_j ≤ 1` whose sum is at most 1 while the junctions are `≥ v·dt` apart (the
+/// one-junction case: `v·du ≤ c`), and about `v·dt/h` when a chord chain packs them `h`
+/// apart. Hence `k·v² + du·v·max(1, v·dt/h) ≤ c`. On a circle of radius `R` cut into chords
+/// (`du ≈ h/R`) this is `v²/R ≤ c/dt`: the chain's centripetal acceleration gets the corner's
+/// share of the axis' acceleration, independent of the chord length.
+fn corner_speed(du: f64, k: f64, h: f64, c: f64, dt: f64) -> f64 {
+    // The positive root of k·v² + du·v = c, in the form that is stable for k → 0.
+    let v = 2.0 * c / (du + (du * du + 4.0 * k * c).sqrt());
+    if v * dt <= h || !(du > 0.0) {
+        return v;
+    }
+    // Junctions closer than a cycle's travel: (k + du·dt/h)·v² = c.
+    let kk = k + du * dt / h.max(f64::MIN_POSITIVE);
+    (c / kk).sqrt().min(v)
 }
 
 fn seg(geom: Geom, speed: Speed, v: f64, a: f64) -> Seg {

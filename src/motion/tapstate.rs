@@ -59,8 +59,8 @@ pub const ACK_TIMEOUT: Duration = Duration::from_secs(2);
 pub const IN_HOLE_MM: f64 = 0.002;
 
 /// Holes remembered between being pushed and being tapped (motion's queue holds at most
-/// `Limits::queue_len` items, 256 by default).
-const HOLES: usize = 512;
+/// `Limits::queue_len` items, 1024 by default, and a hole takes two strokes at least).
+const HOLES: usize = 1024;
 
 const WORDS: usize = 8;
 

@@ -852,6 +852,11 @@ impl Interpreter {
 
     /// The state G30 P99 returns along: an interrupted tap, restored after a restart (the
     /// tool's position is the interpreter's start position).
+    /// The interrupted tap G30 P99 returns from, as set with [`Self::set_tap_return`].
+    pub fn tap_return(&self) -> Option<TapReturn> {
+        self.drill.tap_return
+    }
+
     pub fn set_tap_return(&mut self, t: Option<TapReturn>) {
         self.drill.tap_return = t;
     }
