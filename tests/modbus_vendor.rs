@@ -456,10 +456,9 @@ fn late_answers_are_ridden_through_on_rtu_with_the_shipped_config() {
     let t = text(&o);
     assert!(o.status.success(), "{t}");
     assert_eq!(summary(&o)["at_program_end"], true, "{t}");
-    assert!(
-        !t.contains(" 0 bytes of late answers dropped"),
-        "no late answer was dropped: the test did not test: {t}"
-    );
+    // The late answers happened (failed transactions); whether their bytes were still in
+    // the OS buffer at the next request or already read with the next answer varies.
+    assert!(!t.contains("(0 failed)"), "no answer was late: the test did not test: {t}");
     let x = srv.with_drive(1, |d| d.position_unwrapped()).unwrap();
     assert!((x - 30_000).abs() <= 1, "x at {x} counts: {t}");
     stop(srv, &flag);
