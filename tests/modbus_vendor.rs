@@ -552,3 +552,25 @@ fn a_link_that_falls_behind_its_cycle_is_an_alarm_naming_the_figures() {
     assert!(t.contains("against the 2 ms the drives were told to interpolate over"), "{t}");
     stop(srv, &flag);
 }
+
+/// Issue 22, "done means" (TCP, CiA 402 map): examples/first_part.nc with the shipped
+/// config and windows against drives that latch targets at any time and power up away from
+/// 0 ends within one count of its end point (X100 Z5: 500 000 and 50 000 counts).
+#[test]
+fn first_part_ends_within_one_count_on_realistic_drives_over_tcp() {
+    let flag = Arc::new(AtomicBool::new(false));
+    let srv = tcp_server(MODBUS_LATHE, away_from_zero, &flag);
+    let cfg = write("first.toml", &tcp_machine(srv.local_addr().unwrap()));
+    let prog = concat!(env!("CARGO_MANIFEST_DIR"), "/examples/first_part.nc");
+    let o = cncgw(&["-v", "run", "--json", "--config", &cfg, prog]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    let s = summary(&o);
+    assert_eq!(s["at_program_end"], true, "{t}");
+    eprintln!("machining {:.1} s", s["machining_time_s"].as_f64().unwrap_or(0.0));
+    let x = srv.with_drive(1, |d| d.position_unwrapped()).unwrap();
+    let z = srv.with_drive(2, |d| d.position_unwrapped()).unwrap();
+    assert!((x - 500_000).abs() <= 1 && (z - 50_000).abs() <= 1, "x at {x}, z at {z} counts: {t}");
+    stop(srv, &flag);
+}
+
