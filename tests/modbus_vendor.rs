@@ -458,7 +458,10 @@ fn late_answers_are_ridden_through_on_rtu_with_the_shipped_config() {
     assert_eq!(summary(&o)["at_program_end"], true, "{t}");
     // The late answers happened (failed transactions); whether their bytes were still in
     // the OS buffer at the next request or already read with the next answer varies.
-    assert!(!t.contains("(0 failed)"), "no answer was late: the test did not test: {t}");
+    assert!(
+        !t.contains("(0 failed)"),
+        "no answer was late: the test did not test: {t}"
+    );
     let x = srv.with_drive(1, |d| d.position_unwrapped()).unwrap();
     assert!((x - 30_000).abs() <= 1, "x at {x} counts: {t}");
     stop(srv, &flag);
@@ -542,14 +545,30 @@ fn drive_status_into_a_closed_pipe_does_not_panic() {
 #[test]
 fn a_link_that_falls_behind_its_cycle_is_an_alarm_naming_the_figures() {
     let flag = Arc::new(AtomicBool::new(false));
-    let srv = tcp_server(MODBUS_LATHE, |n| sim_drives::ModbusQuirks { late_after: if n == 2 { 1500 } else { 0 }, late_ms: 5, ..away_from_zero(n) }, &flag);
+    let srv = tcp_server(
+        MODBUS_LATHE,
+        |n| sim_drives::ModbusQuirks {
+            late_after: if n == 2 { 1500 } else { 0 },
+            late_ms: 5,
+            ..away_from_zero(n)
+        },
+        &flag,
+    );
     let cfg = write("behind.toml", &tcp_machine(srv.local_addr().unwrap()));
     let prog = write("behind.nc", "O1\nG21\nG98\nG01 X30 Z-20 F600\nM30\n");
     let o = cncgw(&["run", "--config", &cfg, &prog]);
     let t = text(&o);
     assert_eq!(o.status.code(), Some(3), "{t}");
-    assert!(t.contains("alarm 2204: Modbus link tcp falls behind its cycle: 10 link cycles in a row took"), "{t}");
-    assert!(t.contains("against the 2 ms the drives were told to interpolate over"), "{t}");
+    assert!(
+        t.contains(
+            "alarm 2204: Modbus link tcp falls behind its cycle: 10 link cycles in a row took"
+        ),
+        "{t}"
+    );
+    assert!(
+        t.contains("against the 2 ms the drives were told to interpolate over"),
+        "{t}"
+    );
     stop(srv, &flag);
 }
 
@@ -567,10 +586,15 @@ fn first_part_ends_within_one_count_on_realistic_drives_over_tcp() {
     assert!(o.status.success(), "{t}");
     let s = summary(&o);
     assert_eq!(s["at_program_end"], true, "{t}");
-    eprintln!("machining {:.1} s", s["machining_time_s"].as_f64().unwrap_or(0.0));
+    eprintln!(
+        "machining {:.1} s",
+        s["machining_time_s"].as_f64().unwrap_or(0.0)
+    );
     let x = srv.with_drive(1, |d| d.position_unwrapped()).unwrap();
     let z = srv.with_drive(2, |d| d.position_unwrapped()).unwrap();
-    assert!((x - 500_000).abs() <= 1 && (z - 50_000).abs() <= 1, "x at {x}, z at {z} counts: {t}");
+    assert!(
+        (x - 500_000).abs() <= 1 && (z - 50_000).abs() <= 1,
+        "x at {x}, z at {z} counts: {t}"
+    );
     stop(srv, &flag);
 }
-
