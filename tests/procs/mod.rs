@@ -16,22 +16,14 @@ impl Drop for Kill {
 
 /// A binary of the workspace (sim-drives is another package; its binary lands beside ours).
 pub fn bin(name: &str) -> PathBuf {
-    let b = PathBuf::from(env!("CARGO_BIN_EXE_cncgw"))
-        .parent()
-        .unwrap()
-        .join(name);
-    assert!(
-        b.exists(),
-        "{} missing: cargo build --workspace --bins",
-        b.display()
-    );
+    let b = PathBuf::from(env!("CARGO_BIN_EXE_cncgw")).parent().unwrap().join(name);
+    assert!(b.exists(), "{} missing: cargo build --workspace --bins", b.display());
     b
 }
 
 /// `name` in this test binary's scratch directory (`test`: the binary's name).
 pub fn tmp(test: &str, name: &str) -> PathBuf {
-    let d =
-        PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(format!("{test}_{}", std::process::id()));
+    let d = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(format!("{test}_{}", std::process::id()));
     std::fs::create_dir_all(&d).unwrap();
     d.join(name)
 }
