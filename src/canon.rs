@@ -42,9 +42,13 @@ impl Pos {
     pub fn xz(x: f64, z: f64) -> Self {
         Pos { x, z, ..Pos::ZERO }
     }
+    // Named methods rather than `ops::Sub`/`Add`: a Pos is a point, and point − point is
+    // written out where it is meant.
+    #[allow(clippy::should_implement_trait)]
     pub fn sub(self, o: Pos) -> Pos {
         Pos { x: self.x - o.x, y: self.y - o.y, z: self.z - o.z, c: self.c - o.c }
     }
+    #[allow(clippy::should_implement_trait)]
     pub fn add(self, o: Pos) -> Pos {
         Pos { x: self.x + o.x, y: self.y + o.y, z: self.z + o.z, c: self.c + o.c }
     }

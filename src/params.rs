@@ -5,7 +5,10 @@
 
 /// (number, what it sets, allowed range of the value or of every bit field: None = any
 /// finite number).
-pub const KNOWN: &[(u32, &str, Option<(f64, f64)>)] = &[
+pub type Param = (u32, &'static str, Option<(f64, f64)>);
+
+/// Every parameter this controller reads.
+pub const KNOWN: &[Param] = &[
     (10, "0: G21 metric at power-on, 1: G20 inch", Some((0.0, 1.0))),
     (721, "largest tool spindle speed in polygon turning, rpm", Some((0.0, 1e5))),
     (1002, "bit 0: G22 forbids the outside (1) or the inside (0) of the area", None),

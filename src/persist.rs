@@ -110,6 +110,10 @@ impl StatePlace {
         TapStateFile { path: self.dir.join(format!("{}.tap-state.toml", self.key)) }
     }
 
+    pub fn alarm_history(&self) -> AlarmHistory {
+        AlarmHistory { path: self.dir.join(format!("{}.alarms.jsonl", self.key)) }
+    }
+
     /// Everything that can be checked before motion: the directory exists (or can be made)
     /// and a file can be written into it.
     pub fn check_writable(&self) -> Result<(), Alarm> {
@@ -394,5 +398,63 @@ mod tests {
         f.save(&tap()).unwrap();
         assert_eq!(f.load().unwrap(), Some(tap()));
         let _ = std::fs::remove_dir_all(&dir);
+    }
+}
+
+/// The alarms a machine has had, one JSON object per line (`{"time", "number", "message",
+/// "file", "line", "program"}`), appended as they happen so that the operator can read them
+/// later (`cncgw alarms`), as a Fanuc's alarm history page.
+#[derive(Clone, Debug)]
+pub struct AlarmHistory {
+    pub path: PathBuf,
+}
+
+/// One entry of the alarm history.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct AlarmRecord {
+    /// RFC 3339, UTC, seconds.
+    pub time: String,
+    pub number: u32,
+    pub message: String,
+    pub file: Option<String>,
+    pub line: Option<u32>,
+    /// The program that ran.
+    pub program: String,
+}
+
+impl AlarmHistory {
+    /// Append `a` (raised while `program` ran) with the present time. One `write` of one line
+    /// on a file opened for appending: entries of two processes never interleave.
+    pub fn append(&self, a: &Alarm, program: &str) -> std::io::Result<()> {
+        use std::io::Write;
+        let rec = AlarmRecord {
+            time: humantime::format_rfc3339_seconds(std::time::SystemTime::now()).to_string(),
+            number: a.number,
+            message: a.message.clone(),
+            file: a.pos.as_ref().map(|p| p.file.to_string()),
+            line: a.pos.as_ref().map(|p| p.line),
+            program: program.to_string(),
+        };
+        let mut line = serde_json::to_string(&rec).map_err(std::io::Error::other)?;
+        line.push('\n');
+        if let Some(d) = self.path.parent() {
+            std::fs::create_dir_all(d)?;
+        }
+        std::fs::OpenOptions::new().create(true).append(true).open(&self.path)?.write_all(line.as_bytes())
+    }
+
+    /// Every entry at or after `since` (all with None), oldest first; lines that cannot be
+    /// read (a torn last line after a power cut) are skipped.
+    pub fn read(&self, since: Option<std::time::SystemTime>) -> std::io::Result<Vec<AlarmRecord>> {
+        let text = match std::fs::read_to_string(&self.path) {
+            Ok(t) => t,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
+            Err(e) => return Err(e),
+        };
+        Ok(text
+            .lines()
+            .filter_map(|l| serde_json::from_str::<AlarmRecord>(l).ok())
+            .filter(|r| since.is_none_or(|s| humantime::parse_rfc3339(&r.time).is_ok_and(|t| t >= s)))
+            .collect())
     }
 }

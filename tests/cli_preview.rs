@@ -6,8 +6,11 @@ use cncgw::cli::preview::{render_svg, View};
 use cncgw::config::MachineConfig;
 use cncgw::interp::Interpreter;
 
+/// Stroke colour, stroke width, points.
+type Polyline = (String, u32, Vec<(f64, f64)>);
+
 /// (stroke colour, stroke width, points) of every `<polyline>`.
-fn polylines(svg: &str) -> Vec<(String, u32, Vec<(f64, f64)>)> {
+fn polylines(svg: &str) -> Vec<Polyline> {
     let mut out = Vec::new();
     for el in svg.split("<polyline").skip(1) {
         let el = &el[..el.find("/>").expect("closed element")];

@@ -95,7 +95,7 @@ fn figure_2_12_without_nose_radius() {
     });
     assert_eq!(c.map(|c| [(c[0] * 1e6).round() / 1e6, (c[1] * 1e6).round() / 1e6]), Some([25.0, 25.0]));
     // After G13.1, Z moves in the ZX plane again.
-    let last = m.iter().filter_map(|m| m.kind.end()).last().unwrap();
+    let last = m.iter().filter_map(|m| m.kind.end()).next_back().unwrap();
     assert!(close(last.z, 100.0));
 }
 

@@ -53,7 +53,7 @@ fn million_blocks_stream() {
     let t = std::time::Instant::now();
     let it = Interpreter::from_source("big.nc", &src, &MachineConfig::embedded()).expect("valid");
     let checked = t.elapsed();
-    let moves = it.map(|m| m.expect("runs")).count();
+    let moves = it.inspect(|m| assert!(m.is_ok(), "runs: {m:?}")).count();
     println!("{n} blocks: static check {:?}, total with execution {:?}, {moves} moves", checked, t.elapsed());
     assert_eq!(moves, n + 3);
 }
@@ -105,7 +105,7 @@ fn hundred_thousand_blocks_stream() {
     }
     src.push_str("M30\n");
     let it = Interpreter::from_source("big.nc", &src, &MachineConfig::embedded()).expect("valid");
-    assert_eq!(it.map(|m| m.expect("runs")).count(), n + 1);
+    assert_eq!(it.inspect(|m| assert!(m.is_ok(), "runs: {m:?}")).count(), n + 1);
 }
 
 #[test]

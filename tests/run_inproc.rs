@@ -11,12 +11,17 @@ use cncgw_bus::transport::inproc::InprocBus;
 use std::path::PathBuf;
 use std::process::Command;
 
-fn run_source(name: &str, text: &str) -> Result<(RunSummary, sim_drives::SimWorld), (cncgw::Alarm, RunSummary)> {
+/// What a run ended with: the summary and the emulated drives, or the alarm and the summary.
+type RunResult = Result<(RunSummary, Box<sim_drives::SimWorld>), (cncgw::Alarm, RunSummary)>;
+
+#[allow(clippy::result_large_err)] // a test helper: the summary is what the tests look at
+fn run_source(name: &str, text: &str) -> RunResult {
     run_on(EMBEDDED_LATHE, name, text)
 }
 
 /// `text` on the machine of `machine` (config TOML text).
-fn run_on(machine: &str, name: &str, text: &str) -> Result<(RunSummary, sim_drives::SimWorld), (cncgw::Alarm, RunSummary)> {
+#[allow(clippy::result_large_err)]
+fn run_on(machine: &str, name: &str, text: &str) -> RunResult {
     let cfg = MachineConfig::from_toml("machine.toml", machine).expect("machine config");
     let mut interp = Interpreter::from_source(name, text, &cfg).expect("program parses");
     let wire = InprocBus::new();
@@ -45,7 +50,7 @@ fn run_on(machine: &str, name: &str, text: &str) -> Result<(RunSummary, sim_driv
         }
     };
     match r {
-        Ok(()) => Ok((summary, world)),
+        Ok(()) => Ok((summary, Box::new(world))),
         Err(a) => Err((a, summary)),
     }
 }

@@ -6,6 +6,7 @@
 //!   in Ready to Switch On;
 //! - SIGTERM to a batch run: stopped as on reset (alarm 2401 naming SIGTERM), the summary
 //!   printed, the trace complete, exit code 3, the spindle at rest.
+//!
 //! Real time: runs alone (.config/nextest.toml).
 
 mod procs;

@@ -284,6 +284,27 @@ pub enum Command {
     /// Object dictionary commands.
     #[command(subcommand)]
     Od(OdCmd),
+    /// Show the machine's alarm history (every alarm `run` met, newest last).
+    ///
+    /// Alarms are kept per machine and place (as the machine's state: `--config`, `--bus`) in
+    /// the state directory, one line each with time, number, message, program and line.
+    ///
+    /// Example: `cncgw alarms`, `cncgw alarms --since 8h`, `cncgw alarms --bus can0 --json`
+    Alarms {
+        #[command(flatten)]
+        machine: MachineArgs,
+        /// Where the machine's state lives (as for `run`). Default: $CNCGW_STATE_DIR, else
+        /// $XDG_STATE_HOME/cncgw, else ~/.local/state/cncgw.
+        #[arg(long, value_name = "DIR")]
+        state_dir: Option<PathBuf>,
+        /// Only alarms since then: a duration back from now (`30min`, `8h`, `2days`) or a time
+        /// (`2026-11-25T06:00:00Z`).
+        #[arg(long, value_name = "WHEN")]
+        since: Option<String>,
+        /// Print JSON (an array of {time, number, message, file, line, program}).
+        #[arg(long)]
+        json: bool,
+    },
     /// Print a shell completion script.
     ///
     /// Example: `cncgw completions bash > /etc/bash_completion.d/cncgw`
@@ -765,6 +786,7 @@ pub fn main() -> i32 {
         Command::Monitor { seconds, once, interval_ms, json, machine } => service::monitor(&machine, seconds, once, interval_ms, json),
         Command::Od(OdCmd::Dump { node, eds, machine, json }) => diag::od_dump(&machine, node, eds.as_deref(), json),
         Command::Od(OdCmd::Check { node, eds, machine, json }) => diag::od_check(&machine, node, &eds, json),
+        Command::Alarms { machine, state_dir, since, json } => alarms(&machine, state_dir.as_deref(), since.as_deref(), json),
         Command::Completions { shell } => {
             use clap::CommandFactory;
             clap_complete::generate(shell, &mut Cli::command(), "cncgw", &mut std::io::stdout());
@@ -784,6 +806,61 @@ pub fn main() -> i32 {
             }
         }
     }
+}
+
+/// `cncgw alarms`: the alarm history of the machine and place `machine` names.
+fn alarms(machine: &MachineArgs, state_dir: Option<&std::path::Path>, since: Option<&str>, json: bool) -> i32 {
+    let (cfg, _) = match machine_config(machine) {
+        Ok(c) => c,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return exit::SETUP;
+        }
+    };
+    let since = match since.map(parse_since).transpose() {
+        Ok(s) => s,
+        Err(e) => {
+            eprintln!("error: --since: {e}");
+            return exit::INPUT;
+        }
+    };
+    let Some(dir) = state_dir.map(std::path::Path::to_path_buf).or_else(crate::persist::default_state_dir) else {
+        eprintln!("error: no state directory: give --state-dir or set CNCGW_STATE_DIR");
+        return exit::SETUP;
+    };
+    let place = crate::persist::StatePlace::new(&dir, &cfg.machine.name, &run::run_place(&cfg, machine));
+    let history = place.alarm_history();
+    let records = match history.read(since) {
+        Ok(r) => r,
+        Err(e) => {
+            eprintln!("error: {}: {e}", history.path.display());
+            return exit::SETUP;
+        }
+    };
+    if json {
+        println!("{}", serde_json::to_string_pretty(&records).unwrap_or_default());
+    } else if records.is_empty() {
+        let when = if since.is_some() { " in that time" } else { "" };
+        println!("no alarms recorded for {}{when} ({})", cfg.machine.name, history.path.display());
+    } else {
+        for r in &records {
+            let at = match (&r.file, r.line) {
+                (Some(f), Some(l)) => format!("{f}:{l}"),
+                _ => r.program.clone(),
+            };
+            println!("{}  {:04}  {at}  {}", r.time, r.number, r.message);
+        }
+    }
+    exit::OK
+}
+
+/// `--since`: a duration back from now (humantime: `8h`, `30min`) or an RFC 3339 time.
+fn parse_since(s: &str) -> Result<std::time::SystemTime, String> {
+    if let Ok(t) = humantime::parse_rfc3339_weak(s) {
+        return Ok(t);
+    }
+    let d = humantime::parse_duration(s).map_err(|e| format!("`{s}` is neither a duration (8h, 30min) nor a time (2026-11-25T06:00:00Z): {e}"))?;
+    std::time::SystemTime::now().checked_sub(d).ok_or_else(|| format!("`{s}` reaches back before 1970"))
 }
 
 /// `cncgw plan`: every move as JSON or text; a program that ends without M02/M30 (or is

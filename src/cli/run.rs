@@ -55,6 +55,18 @@ pub struct RunExtras<'a> {
     pub rt: RtOptions,
     /// The rigid-tap state file and what it held at start (`motion::tapstate`); None = not kept.
     pub tap: Option<TapSetup>,
+    /// Where every alarm of the run is appended (`cncgw alarms`); None = not kept.
+    pub history: Option<crate::persist::AlarmHistory>,
+}
+
+/// Append `a` to the run's alarm history, if it keeps one (a failure to write it is said,
+/// not fatal: the alarm itself has been shown).
+fn record_alarm(extras: &RunExtras, program: &str, a: &crate::Alarm) {
+    if let Some(h) = &extras.history {
+        if let Err(e) = h.append(a, program) {
+            eprintln!("warning: the alarm could not be added to the history {}: {e}", h.path.display());
+        }
+    }
 }
 
 /// Where the rigid-tap state is kept during a run, and the state loaded from it.
@@ -193,6 +205,7 @@ pub fn run(
                 },
             ),
             tap: tap_file.map(|f| TapSetup { file: f.path, loaded: tap_state }),
+            history: state.as_ref().map(|s| s.alarm_history()),
         },
         operator: None,
         pace: op.realtime,
@@ -525,6 +538,7 @@ fn execute(
             if opts.print_summary {
                 print_summary(&summary, json, Some(&a));
             }
+            record_alarm(extras, &job.name, &a);
             eprintln!("{a}");
             eprintln!("nothing was moved");
             return (EXIT_ALARM, None, summary);
@@ -543,6 +557,7 @@ fn execute(
             if opts.print_summary {
                 print_summary(&summary, json, Some(&a));
             }
+            record_alarm(extras, &job.name, &a);
             eprintln!("{a}");
             eprintln!("nothing was moved");
             return (EXIT_ALARM, None, summary);
@@ -631,6 +646,7 @@ fn execute(
             if opts.print_summary {
                 print_summary(&summary, json, Some(&a));
             }
+            record_alarm(extras, &job.name, &a);
             eprintln!("{a}");
             eprintln!("the program stopped at this alarm; {}", summary.rest.describe());
             EXIT_ALARM

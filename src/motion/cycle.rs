@@ -240,8 +240,11 @@ pub struct CycleLoop<'a> {
     rpm: f64,
     /// Set (to the signal's number) by SIGTERM/SIGINT/SIGHUP: stop as on reset. With the
     /// signal's name for the message.
-    signal: Option<(&'static std::sync::atomic::AtomicI32, fn(i32) -> &'static str)>,
+    signal: Option<SignalSource>,
 }
+
+/// The flag a signal handler sets (to the signal's number) and the signal's name.
+pub type SignalSource = (&'static std::sync::atomic::AtomicI32, fn(i32) -> &'static str);
 
 impl<'a> CycleLoop<'a> {
     pub fn new(drives: &'a mut dyn DriveBus, clock: &'a mut dyn Clock, limits: Limits, spindle_drive: Option<usize>, cycle_ns: u64) -> Self {

@@ -175,7 +175,7 @@ mod tests {
     fn presses_are_edges_and_none_is_lost() {
         let p = Panel::new();
         let mut r = p.reader();
-        assert_eq!(r.poll().feed_hold, false);
+        assert!(!r.poll().feed_hold);
         p.press_feed_hold();
         p.press_feed_hold();
         let i = r.poll();

@@ -611,7 +611,9 @@ mod tests {
     /// Motion and the watch, stepped as the cycle loop does (ideal drives: the actual is the
     /// last set-point); `ack_at`: the cycle at which a simulated writer acknowledges what is
     /// published. Returns the set-points and the cycle of the gate's answer `Err`, if any.
-    fn gated_hole(ack_at: Option<usize>, timeout: Duration) -> (Vec<crate::motion::Setpoint>, Vec<Option<TapState>>, Option<(usize, Alarm)>) {
+    type Gated = (Vec<crate::motion::Setpoint>, Vec<Option<TapState>>, Option<(usize, Alarm)>);
+
+    fn gated_hole(ack_at: Option<usize>, timeout: Duration) -> Gated {
         use crate::motion::{Feedback, Limits, Motion};
         let mut l = Limits::from_config(&crate::config::MachineConfig::embedded());
         l.feedback_delay = 1;

@@ -1,0 +1,41 @@
+//! The alarm history (issue 24.7): every alarm of `cncgw run` is appended to the machine's
+//! history in its state directory; `cncgw alarms` shows it, as text or JSON, since a time.
+
+use std::process::Command;
+
+fn cncgw(state: &std::path::Path, args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_cncgw")).env("CNCGW_STATE_DIR", state).args(args).output().unwrap()
+}
+
+#[test]
+fn run_alarms_are_kept_and_shown() {
+    let dir = tempfile::tempdir().unwrap();
+    let state = dir.path().join("state");
+    let prog = dir.path().join("ua.nc");
+    std::fs::write(&prog, "G0 X10 Z5\n#3000=7(CHUCK NOT CLAMPED)\nM30\n").unwrap();
+    let p = prog.to_str().unwrap();
+    let empty = cncgw(&state, &["alarms"]);
+    assert!(empty.status.success() && String::from_utf8_lossy(&empty.stdout).contains("no alarms recorded"));
+    for _ in 0..2 {
+        assert_eq!(cncgw(&state, &["run", "--batch", p]).status.code(), Some(3));
+    }
+    let o = cncgw(&state, &["alarms", "--json"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let recs = v.as_array().unwrap();
+    assert_eq!(recs.len(), 2, "{v}");
+    assert_eq!((recs[0]["number"].as_u64(), recs[0]["line"].as_u64()), (Some(3007), Some(2)));
+    assert!(recs[0]["message"].as_str().unwrap().contains("CHUCK NOT CLAMPED"));
+    assert!(humantime::parse_rfc3339(recs[0]["time"].as_str().unwrap()).is_ok());
+    let text = String::from_utf8_lossy(&cncgw(&state, &["alarms", "--since", "1h"]).stdout).into_owned();
+    assert_eq!(text.lines().filter(|l| l.contains("3007") && l.contains("ua.nc:2")).count(), 2, "{text}");
+    let later = String::from_utf8_lossy(&cncgw(&state, &["alarms", "--since", "2100-01-01T00:00:00Z"]).stdout).into_owned();
+    assert!(later.contains("no alarms recorded"), "{later}");
+    assert_eq!(cncgw(&state, &["alarms", "--since", "yesterday"]).status.code(), Some(2));
+    // A torn last line (power cut mid-write) is skipped, the rest still read.
+    let file = std::fs::read_dir(&state).unwrap().map(|e| e.unwrap().path()).find(|p| p.to_string_lossy().ends_with(".alarms.jsonl")).unwrap();
+    let mut f = std::fs::OpenOptions::new().append(true).open(&file).unwrap();
+    std::io::Write::write_all(&mut f, b"{\"time\":\"2026-").unwrap();
+    let v: serde_json::Value = serde_json::from_slice(&cncgw(&state, &["alarms", "--json"]).stdout).unwrap();
+    assert_eq!(v.as_array().unwrap().len(), 2);
+}
