@@ -147,7 +147,7 @@ fn main() {
         for fc23 in [false, true] {
             let link = format!("transport = \"rtu\"\ndevice = \"{b}\"\nbaud = 115200\nfc23 = {fc23}");
             let text = machine(n, &link);
-            let computed = MachineConfig::from_toml("b", &text).ok().map(|c| ModbusDrives::new(&c).planned_links()[0].3.unwrap_or(0.0)).unwrap_or(0.0);
+            let computed = MachineConfig::from_toml("b", &text).ok().map(|c| ModbusDrives::new(&c).planned_links()[0].rtu.map_or(0.0, |r| r.0)).unwrap_or(0.0);
             match run(&text, secs) {
                 Ok(s) => println!(
                     "{:<6} {:>6} {:>6} {:>14.0} {:>12} {:>14} {:>10} {:>9}   (115200 8N1 line: {:.2} ms of frames, silences and turnarounds per cycle)",

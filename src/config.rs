@@ -129,6 +129,25 @@ pub struct ModbusLink {
     pub cycle_ms: Option<f64>,
 }
 
+impl ModbusLink {
+    /// "Modbus TCP 127.0.0.1:5020", "Modbus RTU /dev/ttyUSB0 115200 baud".
+    pub fn describe(&self) -> String {
+        match self.transport {
+            LinkTransport::Tcp => format!("Modbus TCP {}", self.address.as_deref().unwrap_or("?")),
+            LinkTransport::Rtu => format!("Modbus RTU {} {} baud", self.device.as_deref().unwrap_or("?"), self.baud),
+        }
+    }
+
+    /// The longest transaction timeout that rides through one lost answer: the drive's next
+    /// reading comes a timeout and up to two cycles (`cycle_ms`, the machine's: a link cycle
+    /// is never shorter) after the last one, and must come within `feedback_timeout_ms`.
+    /// None when even that cannot hold.
+    pub fn most_timeout_ms(&self, feedback_timeout_ms: f64, cycle_ms: f64) -> Option<f64> {
+        let c = self.cycle_ms.unwrap_or(0.0).max(cycle_ms);
+        Some((feedback_timeout_ms - 2.0 * c).floor()).filter(|m| *m >= 1.0)
+    }
+}
+
 fn default_baud() -> u32 {
     115_200
 }
@@ -601,6 +620,11 @@ impl MachineConfig {
             }
             if !(1..=10_000).contains(&l.timeout_ms) {
                 e.push(format!("{p}.timeout_ms: must be between 1 and 10000, got {}", l.timeout_ms));
+            } else if let Some(most) = l.most_timeout_ms(self.bus.feedback_timeout_ms, c).filter(|&m| (l.timeout_ms as f64) > m) {
+                e.push(format!(
+                    "{p}.timeout_ms = {}: one answer that does not come holds the drive's next reading back by the timeout and a cycle, past bus.feedback_timeout_ms = {}: every lost answer would be alarm 2015; make timeout_ms at most {most:.0} (or raise the feedback timeout)",
+                    l.timeout_ms, self.bus.feedback_timeout_ms
+                ));
             }
             if let Some(c) = l.cycle_ms {
                 if !(c.is_finite() && (0.25..=1000.0).contains(&c)) {
@@ -767,13 +791,18 @@ mod tests {
         let err = MachineConfig::from_toml("t.toml", &t).unwrap_err().to_string();
         assert!(err.contains("modbus.tcp.device: an rtu link needs the serial device"), "{err}");
         assert!(err.contains("modbus.tcp.baud: must be between 1200 and 4000000, got 300"), "{err}");
+        // Issue 22.7: a timeout as long as the feedback timeout makes every lost answer 2015.
+        let t = MODBUS_LATHE.replace("timeout_ms = 20 ", "timeout_ms = 50 ");
+        let err = MachineConfig::from_toml("t.toml", &t).unwrap_err().to_string();
+        assert!(err.contains("modbus.tcp.timeout_ms = 50: one answer that does not come"), "{err}");
+        assert!(err.contains("every lost answer would be alarm 2015; make timeout_ms at most 46"), "{err}");
     }
 
     #[test]
     fn mixed_machine_allows_the_same_node_on_two_buses() {
         // Z on CANopen node 2 and a tailstock W on Modbus unit 2.
         let t = format!(
-            "{EMBEDDED_LATHE}\n[modbus.line]\ntransport = \"rtu\"\ndevice = \"/dev/ttyUSB0\"\n\n[axes.w]\nkind = \"linear\"\nnode = 2\nmodbus = \"line\"\nmodbus_profile = \"pr\"\ncounts_per_unit = 1000.0\nmin = -500.0\nmax = 0.0\nmax_speed = 3000.0\nmax_accel = 500.0\n"
+            "{EMBEDDED_LATHE}\n[modbus.line]\ntransport = \"rtu\"\ndevice = \"/dev/ttyUSB0\"\ntimeout_ms = 10\n\n[axes.w]\nkind = \"linear\"\nnode = 2\nmodbus = \"line\"\nmodbus_profile = \"pr\"\ncounts_per_unit = 1000.0\nmin = -500.0\nmax = 0.0\nmax_speed = 3000.0\nmax_accel = 500.0\n"
         );
         let c = MachineConfig::from_toml("mixed.toml", &t).unwrap();
         assert!(c.has_canopen());

@@ -41,7 +41,7 @@ fn realtime_modbus_drives_stop_when_the_controller_is_killed() {
     let machine = lathe
         .replace("address = \"127.0.0.1:5020\"", &format!("address = \"{addr}\""))
         .replace("feedback_timeout_ms = 50", "feedback_timeout_ms = 300")
-        .replace("timeout_ms = 50 ", "timeout_ms = 100 ");
+        .replace("timeout_ms = 20 ", "timeout_ms = 100 ");
     let cfg = tmp("modbus.toml");
     std::fs::write(&cfg, &machine).unwrap();
     let cfg_s = cfg.display().to_string();

@@ -173,22 +173,6 @@ pub fn pr_block(pos: i32, speed_rpm: u16, accel_ms: u16, decel_ms: u16, dwell_ms
     [PR_MODE_ABSOLUTE, p[0], p[1], speed_rpm, accel_ms, decel_ms, dwell_ms]
 }
 
-/// Text of a Modbus exception code.
-pub fn exception_text(code: u8) -> &'static str {
-    match code {
-        0x01 => "illegal function",
-        0x02 => "illegal data address",
-        0x03 => "illegal data value",
-        0x04 => "server device failure",
-        0x05 => "acknowledge",
-        0x06 => "server device busy",
-        0x08 => "memory parity error",
-        0x0A => "gateway path unavailable",
-        0x0B => "gateway target device failed to respond",
-        _ => "unknown exception",
-    }
-}
-
 /// Serial line settings for RTU timing.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SerialTiming {

@@ -340,7 +340,6 @@ fn modbus_map(data: &[u8]) {
     let profile = if sel & 1 == 0 { modbus::Profile::Cia402 } else { modbus::Profile::Pr };
     let mut d = DrivePlan::new("x", 1, profile, cia, pr, sel & 2 != 0, b.u32());
     let _ = d.timing_writes(b.u16(), b.u32());
-    let _ = modbus::exception_text(b.u8());
     let t = modbus::SerialTiming { baud: b.u32(), parity: sel & 4 != 0, stop_bits: b.u8() };
     let _ = t.transaction_s(b.u16() as usize, b.u16() as usize, 0.001);
     let mut prev = None;

@@ -248,6 +248,50 @@ impl Shape {
     }
 }
 
+/// How a Modbus drive differs from the plain emulated one, imitating drives cncgw's authors
+/// did not write (issue 22): `[drive.modbus_quirks]` in a sim-drives config, all off by
+/// default (`ModbusQuirks::realistic()` switches the ones a vendor's drive typically has on).
+#[derive(Clone, Debug, Default, PartialEq, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ModbusQuirks {
+    /// 0x607A written at any time is the drive's target: entering Operation Enabled in CSP it
+    /// goes to whatever the register holds (the plain drive takes only targets written while
+    /// enabled, which hides a master that enables with a stale target).
+    pub latch_any_time: bool,
+    /// The motor's position at power-on, counts (an absolute encoder away from 0).
+    pub power_up_counts: i64,
+    /// Every Nth request to this unit is answered with exception 0x06 (server device busy)
+    /// and not executed; 0 = never.
+    pub busy_every: u32,
+    /// After this many requests every request is answered with exception 0x04 (server
+    /// device failure) and not executed: a drive that breaks while running; 0 = never.
+    pub refuse_after: u32,
+    /// After this many requests every request is answered `late_ms` late (a drive whose
+    /// answers slow down while running); 0 = never.
+    pub late_after: u32,
+    /// Every Nth request is answered `late_ms` late; 0 = never.
+    pub late_every: u32,
+    pub late_ms: u32,
+    /// The first N requests (start-up) are answered `slow_first_ms` late.
+    pub slow_first: u32,
+    pub slow_first_ms: u32,
+}
+
+impl ModbusQuirks {
+    /// What a drive built from cncgw's docs by someone else did (issue 22): latches targets
+    /// at any time, powers up away from 0.
+    pub fn realistic(power_up_counts: i64) -> ModbusQuirks {
+        ModbusQuirks { latch_any_time: true, power_up_counts, ..ModbusQuirks::default() }
+    }
+
+    fn to_toml(&self) -> String {
+        format!(
+            "[drive.modbus_quirks]\nlatch_any_time = {}\npower_up_counts = {}\nbusy_every = {}\nrefuse_after = {}\nlate_after = {}\nlate_every = {}\nlate_ms = {}\nslow_first = {}\nslow_first_ms = {}\n",
+            self.latch_any_time, self.power_up_counts, self.busy_every, self.refuse_after, self.late_after, self.late_every, self.late_ms, self.slow_first, self.slow_first_ms
+        )
+    }
+}
+
 #[derive(Clone, Debug, PartialEq)]
 pub struct DriveConfig {
     pub node: u8,
@@ -291,6 +335,8 @@ pub struct DriveConfig {
     pub late_sync_extrapolation: u32,
     /// How the drive differs from the plain emulated one (`[drive.shape]`).
     pub shape: Shape,
+    /// How its Modbus server differs from the plain one (`[drive.modbus_quirks]`).
+    pub modbus_quirks: ModbusQuirks,
 }
 
 /// sim-drives' own default of `late_sync_extrapolation` (its configuration format): 10
@@ -332,6 +378,7 @@ impl DriveConfig {
             modbus_link: None,
             late_sync_extrapolation: LATE_SYNC_EXTRAPOLATION,
             shape: Shape::default(),
+            modbus_quirks: ModbusQuirks::default(),
         }
     }
 
@@ -551,6 +598,7 @@ impl SimConfig {
             set!(modbus_profile);
             set!(cia402_map);
             set!(pr_map);
+            set!(modbus_quirks);
             if d.modbus_link.is_some() {
                 c.modbus_link = d.modbus_link.clone();
             }
@@ -798,6 +846,9 @@ impl SimConfig {
                 s.push_str(&format!("node_guarding = {}\nabort_connection_object = {}\n", h.node_guarding, h.abort_connection_object));
                 s.push_str(&format!("mode_display_pdo = {}\nidentity_subs = {}\n", h.mode_display_pdo, h.identity_subs));
             }
+            if d.modbus_quirks != ModbusQuirks::default() {
+                s.push_str(&d.modbus_quirks.to_toml());
+            }
             s.push_str("[drive.physics]\n");
             s.push_str(&format!("motor_inertia = {:?}     # kg·m²\n", p.motor_inertia));
             s.push_str(&format!("load_inertia = {:?}      # kg·m², reflected to the motor\n", p.load_inertia));
@@ -901,6 +952,7 @@ struct RawDrive {
     modbus_link: Option<String>,
     late_sync_extrapolation: Option<u32>,
     shape: Option<RawShape>,
+    modbus_quirks: Option<ModbusQuirks>,
 }
 
 #[derive(Deserialize)]
@@ -965,6 +1017,15 @@ mod tests {
         // Mismatched like a real machine: the spindle is much heavier and softer.
         assert!(s.physics.inertia() > 5.0 * x.physics.inertia());
         assert!(s.physics.kv < x.physics.kv);
+    }
+
+    #[test]
+    fn modbus_quirks_read_back_and_unknown_ones_are_refused() {
+        let mut c = SimConfig::default_lathe();
+        c.drives[1].modbus_quirks = ModbusQuirks { busy_every: 7, late_every: 300, late_ms: 25, ..ModbusQuirks::realistic(16_000) };
+        assert_eq!(SimConfig::from_toml(&c.to_commented_toml()).unwrap(), c);
+        let e = SimConfig::from_toml("[[drive]]\nnode = 1\nkind = \"linear\"\n[drive.modbus_quirks]\nbusy = 3\n").unwrap_err();
+        assert!(e.contains("busy"), "{e}");
     }
 
     #[test]

@@ -17,7 +17,7 @@ pub mod report;
 pub mod servo;
 pub mod socketcand;
 
-pub use config::{DriveConfig, DriveKind, Physics, SimConfig};
+pub use config::{DriveConfig, DriveKind, ModbusQuirks, Physics, SimConfig};
 pub use drive::SimDrive;
 
 use cncgw_bus::transport::inproc::{InprocBus, InprocEndpoint};

@@ -11,7 +11,8 @@
 use super::MachineArgs;
 use crate::config::{AxisConfig, LinkTransport, MachineConfig, ModbusLink, Parity};
 use cncgw_bus::cia402::State;
-use cncgw_bus::modbus::{exception_text, pr_status, Profile};
+use crate::drives::modbus::link::exception_words;
+use cncgw_bus::modbus::{pr_status, Profile};
 use std::time::{Duration, Instant};
 use tokio_modbus::client::{Context, Reader, Writer};
 use tokio_modbus::prelude::SlaveContext;
@@ -60,9 +61,42 @@ pub fn parse_bus_url(bus: &str) -> Option<Result<ModbusLink, String>> {
 }
 
 /// Put every axis of `cfg` on the link of a `modbus-…` bus. Ok(true) if `bus` was one.
+/// The URL says where the drives are; how to talk to them (timeout, function 23, link
+/// cycle, turnaround, and the line settings the URL does not give) stays the
+/// configuration's first Modbus link's. Without one, the timeout is held to what rides
+/// through one lost answer within `bus.feedback_timeout_ms`.
 pub fn apply_bus(cfg: &mut MachineConfig, bus: Option<&str>) -> Result<bool, String> {
     let Some(link) = bus.and_then(parse_bus_url) else { return Ok(false) };
-    let link = link?;
+    let mut link = link?;
+    let given: Vec<&str> = bus.and_then(|b| b.split_once('?')).map(|(_, q)| q.split('&').map(|kv| kv.split('=').next().unwrap_or("")).collect()).unwrap_or_default();
+    let base = cfg.modbus.iter().find(|(n, _)| cfg.axes.values().any(|a| a.modbus.as_deref() == Some(n.as_str()))).map(|(_, l)| l.clone());
+    match base {
+        Some(b) => {
+            link.fc23 = b.fc23;
+            link.cycle_ms = b.cycle_ms;
+            link.turnaround_ms = b.turnaround_ms;
+            if !given.contains(&"timeout_ms") {
+                link.timeout_ms = b.timeout_ms;
+            }
+            if link.transport == LinkTransport::Rtu && b.transport == LinkTransport::Rtu {
+                if !given.contains(&"baud") {
+                    link.baud = b.baud;
+                }
+                if !given.contains(&"parity") {
+                    link.parity = b.parity;
+                }
+                if !given.contains(&"stop_bits") {
+                    link.stop_bits = b.stop_bits;
+                }
+            }
+        }
+        None if !given.contains(&"timeout_ms") => {
+            if let Some(most) = link.most_timeout_ms(cfg.bus.feedback_timeout_ms, cfg.machine.cycle_ms) {
+                link.timeout_ms = link.timeout_ms.min(most as u32);
+            }
+        }
+        None => {}
+    }
     cfg.modbus.clear();
     cfg.modbus.insert(BUS_LINK.into(), link);
     for a in cfg.axes.values_mut() {
@@ -124,11 +158,12 @@ impl Client {
         Ok(Client { rt, ctx, link: link.clone(), what, last_end: None })
     }
 
-    /// The 3.5-character silence between RTU frames (generous: 4 ms covers 9600 baud).
+    /// The 3.5-character silence between RTU frames, for this line's baud rate and framing
+    /// (a fixed 4 ms was below it at 9600 baud with parity).
     fn rtu_gap(&self) {
         if self.link.transport == LinkTransport::Rtu {
             if let Some(end) = self.last_end {
-                let due = end + Duration::from_millis(4);
+                let due = end + rtu_silence(&self.link);
                 let now = Instant::now();
                 if due > now {
                     std::thread::sleep(due - now);
@@ -157,26 +192,14 @@ impl Client {
         match r {
             Err(_) => Err(format!("unit {unit}: no answer within {} ms", timeout.as_millis())),
             Ok(Err(e)) => Err(format!("unit {unit}: {e}")),
-            Ok(Ok(Err(code))) => {
-                let c: u8 = code.into();
-                Err(format!("unit {unit}: exception 0x{c:02X} {} writing register {addr} = {words:?}", exception_text(c)))
-            }
+            Ok(Ok(Err(code))) => Err(format!("unit {unit}: {} writing register {addr} = {words:?}", exception_words(code))),
             Ok(Ok(Ok(()))) => Ok(()),
         }
     }
 
     /// Read `len` holding registers of `unit` from `addr`.
     pub fn read(&mut self, unit: u8, addr: u16, len: u16) -> Result<Vec<u16>, String> {
-        if self.link.transport == LinkTransport::Rtu {
-            // The 3.5-character silence between frames (generous: 4 ms covers 9600 baud).
-            if let Some(end) = self.last_end {
-                let due = end + Duration::from_millis(4);
-                let now = Instant::now();
-                if due > now {
-                    std::thread::sleep(due - now);
-                }
-            }
-        }
+        self.rtu_gap();
         let timeout = Duration::from_millis(self.link.timeout_ms.max(100) as u64);
         self.ctx.set_slave(Slave(unit));
         let ctx = &mut self.ctx;
@@ -185,14 +208,18 @@ impl Client {
         match r {
             Err(_) => Err(format!("unit {unit}: no answer within {} ms", timeout.as_millis())),
             Ok(Err(e)) => Err(format!("unit {unit}: {e}")),
-            Ok(Ok(Err(code))) => {
-                let c: u8 = code.into();
-                Err(format!("unit {unit}: exception 0x{c:02X} {} reading register {addr} ({len})", exception_text(c)))
-            }
+            Ok(Ok(Err(code))) => Err(format!("unit {unit}: {} reading register {addr} ({len})", exception_words(code))),
             Ok(Ok(Ok(v))) if v.len() == len as usize => Ok(v),
             Ok(Ok(Ok(v))) => Err(format!("unit {unit}: {} registers in the answer, {len} asked", v.len())),
         }
     }
+}
+
+/// The silence an RTU frame must be preceded by on `link`'s line (Modbus over serial line
+/// V1.02 §2.5.1.1: 3.5 characters, 1.75 ms above 19 200 baud), as the link thread keeps it.
+pub fn rtu_silence(link: &ModbusLink) -> Duration {
+    let t = cncgw_bus::modbus::SerialTiming { baud: link.baud, parity: link.parity != Parity::None, stop_bits: link.stop_bits };
+    Duration::from_secs_f64(t.t35_s())
 }
 
 /// One drive as read over Modbus.
@@ -832,5 +859,32 @@ mod tests {
         assert!(apply_bus(&mut cfg, Some("modbus-tcp://127.0.0.1:5020")).unwrap());
         assert!(!cfg.has_canopen());
         assert!(cfg.axes.values().all(|a| a.modbus.as_deref() == Some(BUS_LINK)));
+        // No link in the configuration: the default timeout is held within the feedback
+        // timeout (20 ms at a 2 ms cycle → at most 16 ms).
+        assert_eq!(cfg.modbus[BUS_LINK].timeout_ms, 16);
+    }
+
+    /// Issue 22: the service commands' RTU silence follows the line (a fixed 4 ms was short
+    /// of 3.5 characters at 9600 baud with parity: 11 bits × 3.5 / 9600 = 4.01 ms).
+    #[test]
+    fn rtu_silence_is_three_and_a_half_characters_of_the_line() {
+        let l = parse_bus_url("modbus-rtu:///dev/ttyS0?baud=9600&parity=even").unwrap().unwrap();
+        let s = rtu_silence(&l).as_secs_f64() * 1e3;
+        assert!((s - 4.0104).abs() < 0.001, "{s} ms");
+        let l = parse_bus_url("modbus-rtu:///dev/ttyS0?baud=115200").unwrap().unwrap();
+        assert!((rtu_silence(&l).as_secs_f64() * 1e3 - 1.75).abs() < 1e-9);
+    }
+
+    /// Issue 22: `--bus modbus-tcp://` keeps the configuration's link settings.
+    #[test]
+    fn bus_url_keeps_the_configured_link_settings() {
+        let text = include_str!("../../config/lathe-modbus.toml").replace("# fc23 = true", "fc23 = true\ncycle_ms = 8");
+        let mut cfg: MachineConfig = crate::config::MachineConfig::from_toml("lathe-modbus.toml", &text).unwrap();
+        assert!(apply_bus(&mut cfg, Some("modbus-tcp://10.0.0.9:502")).unwrap());
+        let l = &cfg.modbus[BUS_LINK];
+        assert_eq!((l.address.as_deref(), l.timeout_ms, l.fc23, l.cycle_ms), (Some("10.0.0.9:502"), 20, true, Some(8.0)));
+        let mut cfg: MachineConfig = crate::config::MachineConfig::from_toml("lathe-modbus.toml", &text).unwrap();
+        assert!(apply_bus(&mut cfg, Some("modbus-rtu:///dev/ttyS1?timeout_ms=30")).unwrap());
+        assert_eq!(cfg.modbus[BUS_LINK].timeout_ms, 30);
     }
 }

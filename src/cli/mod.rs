@@ -720,10 +720,36 @@ fn init_tracing(verbose: u8) {
     let _ = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).with_ansi(ansi).try_init();
 }
 
+/// A read-only command whose output goes to a pipe closed early (`cncgw drive status 1 |
+/// head`) ends quietly, as Unix tools do, instead of panicking in `println!`: the default
+/// SIGPIPE action. Never for a command that moves or holds drives (run, jog, enable …): it
+/// must stop them under control whatever happens to its output.
+fn quiet_on_closed_pipe() {
+    #[cfg(unix)]
+    // SAFETY: sets a signal's disposition to its default; no handler runs our code.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
+}
+
 /// Entry point; returns the process exit code.
 pub fn main() -> i32 {
     let cli = Cli::parse();
     init_tracing(cli.verbose);
+    if matches!(
+        cli.cmd,
+        Command::Scan { .. }
+            | Command::Drive(DriveCmd::Status { .. })
+            | Command::Monitor { .. }
+            | Command::Config(ConfigCmd::Check { .. })
+            | Command::Plan { .. }
+            | Command::Sdo(SdoCmd::Read { .. })
+            | Command::Od(_)
+            | Command::Completions { .. }
+            | Command::Man { .. }
+    ) {
+        quiet_on_closed_pipe();
+    }
     match cli.cmd {
         Command::Run { program, machine, json, state_dir, trace, max_blocks, tools, rt, op } => {
             let files = run::RunFiles { state_dir: state_dir.as_deref(), trace: trace.as_deref(), tools: tools.as_deref() };
@@ -912,19 +938,20 @@ fn config_check(file: Option<&std::path::Path>, json: bool) -> i32 {
         ));
     }
     let mut links = Vec::new();
-    for (lname, what, tx, rtu) in crate::drives::modbus::ModbusDrives::new(&cfg).planned_links() {
-        let link_cycle_ms = rtu.map(|s| (s * 1e3).ceil().max(cfg.machine.cycle_ms.ceil()));
+    for pl in crate::drives::modbus::ModbusDrives::new(&cfg).planned_links() {
+        let (lname, what, tx, rtu) = (pl.name, pl.what, pl.transactions, pl.rtu);
+        let link_cycle_ms = rtu.map(|r| r.1);
         match rtu {
-            Some(s) => text.push(format!(
-                "  Modbus link {lname}: {what}, {tx} transactions per cycle take {:.2} ms on the line → link cycle {} ms",
+            Some((s, c)) => text.push(format!(
+                "  Modbus link {lname}: {what}, {tx} transactions per cycle take {:.2} ms on the line → link cycle {c} ms (with {:.0} % margin)",
                 s * 1e3,
-                link_cycle_ms.unwrap_or(0.0)
+                (crate::drives::modbus::link::RTU_MARGIN - 1.0) * 100.0
             )),
             None => text.push(format!("  Modbus link {lname}: {what}, {tx} transactions per cycle; the cycle is measured from the round trip at start-up")),
         }
         links.push(serde_json::json!({
             "link": lname, "what": what, "transactions_per_cycle": tx,
-            "line_time_ms": rtu.map(|s| s * 1e3), "link_cycle_ms": link_cycle_ms,
+            "line_time_ms": rtu.map(|r| r.0 * 1e3), "link_cycle_ms": link_cycle_ms,
         }));
     }
     let mut axes = Vec::new();

@@ -19,12 +19,23 @@ use std::time::Duration;
 
 const MS: u64 = 1_000_000;
 
-/// The bus the command will use: `--bus`, else the config's.
+/// The bus(es) the command will use, in words: `--bus`, else the config's CANopen interface
+/// (if an axis is on it) and its Modbus links ("Modbus link tcp (Modbus TCP 10.0.0.9:502)").
 fn effective_bus(machine: &MachineArgs) -> Result<String, String> {
-    match &machine.bus {
-        Some(b) => Ok(b.clone()),
-        None => load_config(machine.config.as_deref()).map(|(c, _)| c.bus.interface),
+    if let Some(b) = &machine.bus {
+        return Ok(b.clone());
     }
+    let (c, _) = load_config(machine.config.as_deref())?;
+    let mut on: Vec<String> = Vec::new();
+    if c.has_canopen() {
+        on.push(c.bus.interface.clone());
+    }
+    for (name, l) in &c.modbus {
+        if c.axes.values().any(|a| a.modbus.as_deref() == Some(name.as_str())) {
+            on.push(format!("Modbus link {name} ({})", l.describe()));
+        }
+    }
+    Ok(if on.is_empty() { c.bus.interface } else { on.join(" and ") })
 }
 
 /// On a real bus, `what` goes ahead only with `--yes` or, on a terminal, after the operator

@@ -102,10 +102,17 @@ impl Service for Svc {
     type Request = SlaveRequest<'static>;
     type Response = Option<Response>;
     type Exception = ExceptionCode;
-    type Future = std::future::Ready<Result<Option<Response>, ExceptionCode>>;
+    type Future = std::pin::Pin<Box<dyn std::future::Future<Output = Result<Option<Response>, ExceptionCode>> + Send>>;
 
     fn call(&self, req: SlaveRequest<'static>) -> Self::Future {
-        std::future::ready(self.shared.now().request(req.slave, &req.request, self.rtu))
+        let (r, delay) = self.shared.now().request(req.slave, &req.request, self.rtu);
+        Box::pin(async move {
+            // A late answer (quirk): the line or connection carries nothing else meanwhile.
+            if !delay.is_zero() {
+                tokio::time::sleep(delay).await;
+            }
+            r
+        })
     }
 }
 

@@ -3,7 +3,7 @@
 //! registers per its profile (`cncgw_bus::modbus::Cia402Map` or `PrMap`).
 
 use super::pr::Gen;
-use crate::{Core, FaultAt, SimConfig, SimDrive};
+use crate::{Core, FaultAt, ModbusQuirks, SimConfig, SimDrive};
 use cncgw_bus::canopen::od as ix;
 use cncgw_bus::canopen::sdo::abort;
 use cncgw_bus::cia402::{cw, mode, State};
@@ -128,6 +128,11 @@ struct Unit {
     /// hold, see `SimDrive::modbus_latch`).
     relatch_at: Option<u64>,
     pr: Option<Pr>,
+    quirks: ModbusQuirks,
+    /// Requests addressed to this unit so far (the quirks count them).
+    requests: u64,
+    /// Whether the drive was in Operation Enabled at the last look (`latch_any_time`).
+    was_enabled: bool,
 }
 
 impl Unit {
@@ -190,7 +195,18 @@ impl World {
                 last_step: None,
             });
             // The watchdog is off until the master sets its timeout.
-            units.push(Unit { node: d.node, fields, order, comm_timeout_ms: 0, last_write: 0, relatch_at: None, pr });
+            units.push(Unit {
+                node: d.node,
+                fields,
+                order,
+                comm_timeout_ms: 0,
+                last_write: 0,
+                relatch_at: None,
+                pr,
+                quirks: d.modbus_quirks.clone(),
+                requests: 0,
+                was_enabled: false,
+            });
         }
         let mut core = Core::new(cfg);
         core.schedule(faults);
@@ -198,7 +214,11 @@ impl World {
         for i in 0..w.units.len() {
             let node = w.units[i].node;
             let is_pr = w.units[i].pr.is_some();
+            let power_up = w.units[i].quirks.power_up_counts;
             if let Some(d) = w.core.drive_mut(node) {
+                if power_up != 0 {
+                    d.set_position(power_up as f64);
+                }
                 // 0x60C2 in ms: the interpolation period register is the index (:1) with
                 // the exponent (:2) fixed at 10⁻³ s.
                 let mut r = d.modbus_write(ix::INTERPOLATION_PERIOD, 2, -3, 0);
@@ -272,12 +292,60 @@ impl World {
                 let node = self.units[i].node;
                 self.units[i].relatch_at = self.core.drive_mut(node).and_then(|d| d.modbus_latch(now));
             }
+            if self.enable_edge(i) && self.units[i].quirks.latch_any_time {
+                self.latch_held_target(i, now);
+            }
             if now % PR_PERIOD == 0 {
                 self.pr_step(i, now);
             }
         }
         self.core.collect();
         self.core.out.clear();
+    }
+
+    /// Whether unit `i`'s drive has just entered Operation Enabled (since the last look).
+    fn enable_edge(&mut self, i: usize) -> bool {
+        let node = self.units[i].node;
+        let en = self.core.drive(node).is_some_and(|d| d.state() == State::OperationEnabled);
+        let edge = en && !self.units[i].was_enabled;
+        self.units[i].was_enabled = en;
+        edge
+    }
+
+    /// `latch_any_time`: on enabling, the drive takes 0x607A as it stands, however old.
+    fn latch_held_target(&mut self, i: usize, now: u64) {
+        if self.units[i].pr.is_some() {
+            return;
+        }
+        let node = self.units[i].node;
+        if let Some(d) = self.core.drive_mut(node) {
+            tracing::debug!(node, target = d.object(ix::TARGET_POSITION, 0).unwrap_or(0), "enabled: latching the target register as it stands");
+            self.units[i].relatch_at = d.modbus_latch(now);
+        }
+    }
+
+    /// How late unit `ui`'s answer to the request just counted leaves, and the exception
+    /// it gets instead of being executed, if any (the quirks).
+    fn quirk_of_request(&mut self, ui: usize) -> (std::time::Duration, Option<ExceptionCode>) {
+        let u = &mut self.units[ui];
+        u.requests += 1;
+        let q = &u.quirks;
+        let n = u.requests;
+        let busy = if q.refuse_after > 0 && n > q.refuse_after as u64 {
+            Some(ExceptionCode::ServerDeviceFailure)
+        } else if q.busy_every > 0 && n % q.busy_every as u64 == 0 {
+            Some(ExceptionCode::ServerDeviceBusy)
+        } else {
+            None
+        };
+        let mut late_ms = 0;
+        if n <= q.slow_first as u64 {
+            late_ms = q.slow_first_ms;
+        }
+        if (q.late_every > 0 && n % q.late_every as u64 == 0) || (q.late_after > 0 && n > q.late_after as u64) {
+            late_ms = late_ms.max(q.late_ms);
+        }
+        (std::time::Duration::from_millis(late_ms as u64), busy)
     }
 
     /// The PR drive's servo-on level walks the 402 machine, as a servo-on input does: an
@@ -341,13 +409,25 @@ impl World {
         }
     }
 
-    /// Answer one request addressed to `unit`. `None`: no answer (an unknown unit on RTU —
-    /// nobody on the line has that address).
-    pub fn request(&mut self, unit: u8, req: &Request<'_>, rtu: bool) -> Result<Option<Response>, ExceptionCode> {
+    /// Answer one request addressed to `unit`, and how long after now the answer leaves (the
+    /// quirks). `None`: no answer (an unknown unit on RTU — nobody on the line has that
+    /// address).
+    pub fn request(&mut self, unit: u8, req: &Request<'_>, rtu: bool) -> (Result<Option<Response>, ExceptionCode>, std::time::Duration) {
         let Some(ui) = self.units.iter().position(|u| u.node == unit) else {
             // A TCP server for several units is a gateway: the target did not answer.
-            return if rtu { Ok(None) } else { Err(ExceptionCode::GatewayTargetDevice) };
+            let r = if rtu { Ok(None) } else { Err(ExceptionCode::GatewayTargetDevice) };
+            return (r, std::time::Duration::ZERO);
         };
+        let (delay, refused) = self.quirk_of_request(ui);
+        if let Some(e) = refused {
+            tracing::debug!(unit, "{req:?} → {e} (quirk)");
+            return (Err(e), delay);
+        }
+        (self.execute(ui, req), delay)
+    }
+
+    fn execute(&mut self, ui: usize, req: &Request<'_>) -> Result<Option<Response>, ExceptionCode> {
+        let unit = self.units[ui].node;
         let now = self.core.now;
         tracing::trace!(unit, t_ms = now as f64 * 1e-6, "{req:?}");
         let r = match req {
@@ -494,6 +574,10 @@ impl World {
             latch |= matches!(f.reg, Reg::TargetPosition | Reg::TargetVelocity);
             self.apply(ui, f.reg, v, now)?;
         }
+        // A controlword that enabled the drive: a drive that latches at any time takes the
+        // target register as it stands (after this request's own target, if any).
+        let edge = self.enable_edge(ui);
+        latch |= edge && self.units[ui].quirks.latch_any_time && self.units[ui].pr.is_none();
         if latch {
             let node = self.units[ui].node;
             if let Some(d) = self.core.drive_mut(node) {

@@ -7,15 +7,16 @@
 //! a current-thread tokio runtime for tokio-modbus; it may allocate (tokio-modbus boxes its
 //! futures), which is why it is not the cycle thread.
 
+use super::line::Line;
 use super::plan::{DrivePlan, Exchange};
 use crate::config::{LinkTransport, ModbusLink, Parity};
 use crate::Alarm;
-use cncgw_bus::modbus::{exception_text, SerialTiming};
+use cncgw_bus::modbus::SerialTiming;
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 use tokio_modbus::client::{Context, Reader, Writer};
 use tokio_modbus::prelude::SlaveContext;
-use tokio_modbus::Slave;
+use tokio_modbus::{ExceptionCode, Slave};
 
 /// What the cycle thread wants of one drive.
 #[derive(Clone, Copy, Debug, Default)]
@@ -34,7 +35,8 @@ pub struct Command {
     /// still one period and jump the next).
     pub velocity: f64,
     pub at: Option<Instant>,
-    /// Stream targets (false while enabling: the target register is left alone).
+    /// Write the target register (CiA 402: also while enabling, holding the actual position,
+    /// so that the drive has it before the controlword that enables it; off at shutdown).
     pub stream: bool,
 }
 
@@ -61,6 +63,9 @@ pub struct Slot {
     /// The last failed transaction of this drive, in words (timeouts are not fatal at once:
     /// the feedback age is).
     pub last_error: Option<String>,
+    /// An exception of this drive in the cyclic exchange was handed to the cycle thread
+    /// (once: the link goes on serving the others while they stop).
+    pub exception_reported: bool,
 }
 
 #[derive(Debug)]
@@ -75,6 +80,10 @@ pub enum LinkState {
 pub struct Shared {
     pub slots: Vec<Slot>,
     pub state: LinkState,
+    /// An alarm of the running link for the cycle thread (taken once): a drive refused the
+    /// cyclic exchange. The link keeps exchanging with every drive so that the controlled
+    /// stop reaches them all.
+    pub alarm: Option<(Option<usize>, Alarm)>,
     pub stop: bool,
     /// Link cycles that took longer than the cycle.
     pub overruns: u64,
@@ -82,6 +91,8 @@ pub struct Shared {
     pub transactions: u64,
     pub cycles: u64,
     pub failures: u64,
+    /// Bytes of late answers dropped before a request (see `line`).
+    pub stale_bytes: u64,
 }
 
 pub type SharedLink = Arc<(Mutex<Shared>, Condvar)>;
@@ -114,15 +125,21 @@ impl LinkSpec {
             .sum()
     }
 
+    /// RTU: the link cycle for the line time, in whole ms: `RTU_MARGIN` over it (the
+    /// drives' turnaround is a configured guess, and a USB adapter or the scheduler adds to
+    /// every transaction — a link computed without margin ran at 45.8 ms against the 41 ms
+    /// told to the drives), never shorter than the machine cycle. What the margin does not
+    /// cover the run-time check (`Behind`, alarm 2204) reports.
+    pub fn rtu_link_cycle_ms(&self) -> f64 {
+        (self.rtu_cycle_s() * RTU_MARGIN * 1e3).ceil().max((self.machine_cycle.as_secs_f64() * 1e3).ceil())
+    }
+
     pub fn transactions_per_cycle(&self) -> usize {
         self.drives.iter().map(|d| d.cyclic.len()).sum()
     }
 
     pub fn what(&self) -> String {
-        match self.cfg.transport {
-            LinkTransport::Tcp => format!("Modbus TCP {}", self.cfg.address.as_deref().unwrap_or("?")),
-            LinkTransport::Rtu => format!("Modbus RTU {} {} baud", self.cfg.device.as_deref().unwrap_or("?"), self.cfg.baud),
-        }
+        self.cfg.describe()
     }
 }
 
@@ -133,11 +150,13 @@ pub fn spawn(spec: LinkSpec) -> std::io::Result<(SharedLink, std::thread::JoinHa
         Mutex::new(Shared {
             slots: spec.drives.iter().map(|_| Slot::default()).collect(),
             state: LinkState::Starting,
+            alarm: None,
             stop: false,
             overruns: 0,
             transactions: 0,
             cycles: 0,
             failures: 0,
+            stale_bytes: 0,
         }),
         Condvar::new(),
     ));
@@ -150,7 +169,7 @@ pub fn spawn(spec: LinkSpec) -> std::io::Result<(SharedLink, std::thread::JoinHa
                 return;
             }
         };
-        let mut io = LinkIo { spec, ctx: None, rt, last_end: None };
+        let mut io = LinkIo { spec, ctx: None, rt, last_end: None, line: None, stale_bytes: 0 };
         match io.start(&s2) {
             Ok(cycle) => {
                 set_state(&s2, LinkState::Running { cycle });
@@ -172,17 +191,77 @@ fn set_state(s: &SharedLink, st: LinkState) {
     s.1.notify_all();
 }
 
+/// The run-time check of the link cycle: the drives interpolate each set-point over the
+/// cycle they were told; a link whose exchanges take longer feeds them late, every cycle.
+/// `BEHIND_CYCLES` cycles in a row longer than the cycle (one slow cycle is a hiccup, ridden
+/// through by the drives' extrapolation) is alarm 2204 naming the figures, once.
+#[derive(Default)]
+struct Behind {
+    in_a_row: u32,
+    sum: Duration,
+    longest: Duration,
+    told: bool,
+}
+
+const BEHIND_CYCLES: u32 = 10;
+
+impl Behind {
+    fn took(&mut self, took: Duration, cycle: Duration, spec: &LinkSpec) -> Option<Alarm> {
+        if took <= cycle {
+            self.in_a_row = 0;
+            self.sum = Duration::ZERO;
+            self.longest = Duration::ZERO;
+            return None;
+        }
+        self.in_a_row += 1;
+        self.sum += took;
+        self.longest = self.longest.max(took);
+        if self.in_a_row < BEHIND_CYCLES || std::mem::replace(&mut self.told, true) {
+            return None;
+        }
+        let ms = |d: Duration| d.as_secs_f64() * 1e3;
+        let avg = ms(self.sum) / self.in_a_row as f64;
+        Some(Alarm::new(
+            2204,
+            format!(
+                "Modbus link {} falls behind its cycle: {} link cycles in a row took {avg:.1} ms on average (longest {:.1} ms) against the {:.0} ms the drives were told to interpolate over ({} transactions per cycle on {}); set cycle_ms = {:.0} in [modbus.{}] or find what slows the drives' answers",
+                spec.name,
+                self.in_a_row,
+                ms(self.longest),
+                ms(cycle),
+                spec.transactions_per_cycle(),
+                spec.what(),
+                (ms(self.longest) * 1.25).ceil(),
+                spec.name
+            ),
+        ))
+    }
+}
+
+/// One try of a transaction.
+enum Attempt {
+    /// Busy or acknowledge: try again.
+    Busy(String),
+    Other(TxError),
+}
+use Attempt::{Busy, Other};
+
 struct LinkIo {
     spec: LinkSpec,
     ctx: Option<Context>,
     rt: tokio::runtime::Runtime,
     /// End of the last RTU frame, for the inter-frame silence.
     last_end: Option<Instant>,
+    /// The byte stream under `ctx`, to drop late answers from.
+    line: Option<Line>,
+    /// Bytes of late answers dropped so far.
+    stale_bytes: u64,
 }
 
 /// A failed transaction.
 enum TxError {
-    /// The drive answered with an exception: fatal (the configuration or the drive is wrong).
+    /// The drive answered with an exception (after the retries of a busy one): the
+    /// configuration or the drive is wrong.
     Exception(String),
     /// No answer in time or the connection failed: retried, then the feedback goes stale.
     Transport(String),
@@ -196,11 +275,28 @@ impl TxError {
     }
 }
 
+/// Times a transaction answered "busy" (0x06) or "acknowledge" (0x05: accepted, still
+/// working) is sent again before it counts as failed. Modbus V1.1b3 §7: the client should
+/// retransmit later; 3 tries a millisecond apart ride through a drive that is busy writing
+/// its EEPROM for a moment without holding the link up for long.
+const BUSY_RETRIES: u32 = 3;
+const BUSY_PAUSE: Duration = Duration::from_millis(1);
+/// The RTU link cycle over the computed line time (`LinkSpec::rtu_link_cycle_ms`).
+pub const RTU_MARGIN: f64 = 1.10;
+/// Tries after the first of a start-up transaction that got no (or a garbled) answer.
+const STARTUP_RETRIES: u32 = 3;
+
+/// `exception 0x06 (Server device busy)`: the code and tokio-modbus' name for it.
+pub fn exception_words(code: ExceptionCode) -> String {
+    let c: u8 = code.into();
+    format!("exception 0x{c:02X} ({code})")
+}
+
 impl LinkIo {
     fn connect(&mut self) -> Result<(), String> {
         let cfg = &self.spec.cfg;
         let timeout = Duration::from_millis(cfg.timeout_ms as u64);
-        let ctx = match cfg.transport {
+        let line = match cfg.transport {
             LinkTransport::Tcp => {
                 let addr = cfg.address.clone().unwrap_or_default();
                 self.rt.block_on(async {
@@ -214,7 +310,7 @@ impl LinkIo {
                         .map_err(|_| format!("{addr}: connection timed out"))?
                         .map_err(|e| format!("{addr}: {e}"))?;
                     let _ = stream.set_nodelay(true);
-                    Ok::<_, String>(tokio_modbus::client::tcp::attach(stream))
+                    Ok::<_, String>(Line::tcp(stream))
                 })?
             }
             LinkTransport::Rtu => {
@@ -227,10 +323,14 @@ impl LinkIo {
                 let stop = if cfg.stop_bits == 2 { tokio_serial::StopBits::Two } else { tokio_serial::StopBits::One };
                 let builder = tokio_serial::new(&dev, cfg.baud).parity(parity).stop_bits(stop).data_bits(tokio_serial::DataBits::Eight);
                 let port = self.rt.block_on(async { tokio_serial::SerialStream::open(&builder) }).map_err(|e| format!("{dev}: {e}"))?;
-                tokio_modbus::client::rtu::attach(port)
+                Line::serial(port)
             }
         };
-        self.ctx = Some(ctx);
+        self.ctx = Some(match cfg.transport {
+            LinkTransport::Tcp => tokio_modbus::client::tcp::attach(line.clone()),
+            LinkTransport::Rtu => tokio_modbus::client::rtu::attach(line.clone()),
+        });
+        self.line = Some(line);
         Ok(())
     }
 
@@ -249,13 +349,54 @@ impl LinkIo {
         }
     }
 
-    /// One transaction with drive `d`.
+    /// One transaction with drive `d`, sent again while the drive answers busy (up to
+    /// `BUSY_RETRIES` times).
     fn exchange(&mut self, d: usize, x: &Exchange, write: &[u16]) -> Result<Vec<u16>, TxError> {
+        let mut tries = 0;
+        loop {
+            match self.exchange_once(d, x, write) {
+                Err(Busy(_)) if tries < BUSY_RETRIES => {
+                    tries += 1;
+                    std::thread::sleep(BUSY_PAUSE);
+                }
+                Err(Busy(m)) => return Err(TxError::Exception(format!("{m} ({} tries)", tries + 1))),
+                Err(Other(e)) => return Err(e),
+                Ok(v) => return Ok(v),
+            }
+        }
+    }
+
+    /// `exchange` at start-up, where nothing moves yet: a transaction without an answer (or
+    /// with a late one's bytes in its place) is sent again, `STARTUP_RETRIES` times, before
+    /// it is alarm 2202 — a drive still booting or one slow answer must not abort the start.
+    fn exchange_at_startup(&mut self, d: usize, x: &Exchange, write: &[u16]) -> Result<Vec<u16>, TxError> {
+        let mut tries = 0;
+        loop {
+            match self.exchange(d, x, write) {
+                Err(TxError::Transport(m)) if tries < STARTUP_RETRIES => {
+                    tries += 1;
+                    tracing::debug!("{m}: try {} of {}", tries + 1, STARTUP_RETRIES + 1);
+                    if self.ctx.is_none() {
+                        self.connect().map_err(TxError::Transport)?;
+                    }
+                }
+                Err(TxError::Transport(m)) => return Err(TxError::Transport(format!("{m} ({} tries)", tries + 1))),
+                r => return r,
+            }
+        }
+    }
+
+    fn exchange_once(&mut self, d: usize, x: &Exchange, write: &[u16]) -> Result<Vec<u16>, Attempt> {
         self.silence();
+        // A late answer to an earlier request must not be taken for this one's (line.rs).
+        if let Some(n) = self.line.as_ref().map(Line::drain).filter(|&n| n > 0) {
+            tracing::debug!(link = %self.spec.name, "dropped {n} bytes of a late answer before the next request");
+            self.stale_bytes += n as u64;
+        }
         let unit = self.spec.drives[d].unit;
         let timeout = Duration::from_millis(self.spec.cfg.timeout_ms as u64);
         let Some(ctx) = self.ctx.as_mut() else {
-            return Err(TxError::Transport("not connected".into()));
+            return Err(Other(TxError::Transport("not connected".into())));
         };
         ctx.set_slave(Slave(unit));
         let r = self.rt.block_on(async {
@@ -277,21 +418,20 @@ impl LinkIo {
         let name = &self.spec.drives[d].axis;
         let what = || format!("axis {name} (unit {unit}) on link {}: {}", self.spec.name, x.describe());
         match r {
-            Err(_) => Err(TxError::Transport(format!("{}: no answer within {} ms", what(), self.spec.cfg.timeout_ms))),
+            Err(_) => Err(Other(TxError::Transport(format!("{}: no answer within {} ms", what(), self.spec.cfg.timeout_ms)))),
             Ok(Err(e)) => {
                 if matches!(e, tokio_modbus::Error::Transport(_)) {
                     self.ctx = None; // a broken connection: reconnect
+                    self.line = None;
                 }
-                Err(TxError::Transport(format!("{}: {e}", what())))
+                Err(Other(TxError::Transport(format!("{}: {e}", what()))))
             }
-            Ok(Ok(Err(code))) => {
-                let c: u8 = code.into();
-                Err(TxError::Exception(format!("{}: exception 0x{c:02X} {}", what(), exception_text(c))))
-            }
+            Ok(Ok(Err(code @ (ExceptionCode::ServerDeviceBusy | ExceptionCode::Acknowledge)))) => Err(Busy(format!("{}: {}", what(), exception_words(code)))),
+            Ok(Ok(Err(code))) => Err(Other(TxError::Exception(format!("{}: {}", what(), exception_words(code))))),
             Ok(Ok(Ok(v))) => {
                 if let Exchange::Read { len, .. } | Exchange::ReadWrite { read_len: len, .. } = *x {
                     if v.len() != len as usize {
-                        return Err(TxError::Transport(format!("{}: {} registers in the answer, {len} asked", what(), v.len())));
+                        return Err(Other(TxError::Transport(format!("{}: {} registers in the answer, {len} asked", what(), v.len()))));
                     }
                 }
                 Ok(v)
@@ -305,7 +445,7 @@ impl LinkIo {
         for d in 0..self.spec.drives.len() {
             let writes = self.spec.drives[d].setup.clone();
             for (x, data) in writes {
-                self.exchange(d, &x, &data).map_err(|e| {
+                self.exchange_at_startup(d, &x, &data).map_err(|e| {
                     Alarm::new(
                         if matches!(e, TxError::Exception(_)) { 2201 } else { 2202 },
                         format!("configuring the drive failed: {}; check the unit id, the profile and the register map", e.text()),
@@ -315,14 +455,14 @@ impl LinkIo {
         }
         // The cycle: RTU from the line's timing; TCP from the measured round trip.
         let needed = match self.spec.cfg.transport {
-            LinkTransport::Rtu => Duration::from_secs_f64(self.spec.rtu_cycle_s()),
+            LinkTransport::Rtu => Duration::from_secs_f64(self.spec.rtu_link_cycle_ms() * 1e-3),
             LinkTransport::Tcp => {
                 let mut rtts = Vec::with_capacity(50);
                 for _ in 0..50 {
                     let t0 = Instant::now();
                     for d in 0..self.spec.drives.len() {
                         let x = self.spec.drives[d].feedback_read();
-                        self.exchange(d, &x, &[]).map_err(|e| {
+                        self.exchange_at_startup(d, &x, &[]).map_err(|e| {
                             Alarm::new(
                                 if matches!(e, TxError::Exception(_)) { 2201 } else { 2202 },
                                 format!("reading the drive's feedback failed: {}; check the unit id, the profile and the register map", e.text()),
@@ -361,7 +501,12 @@ impl LinkIo {
         for d in 0..self.spec.drives.len() {
             let writes = self.spec.drives[d].timing_writes(cycle_ms as u16, self.spec.cfg.timeout_ms);
             for (x, data) in writes {
-                self.exchange(d, &x, &data).map_err(|e| Alarm::new(2201, format!("configuring the drive failed: {}", e.text())))?;
+                self.exchange_at_startup(d, &x, &data).map_err(|e| {
+                    Alarm::new(
+                        if matches!(e, TxError::Exception(_)) { 2201 } else { 2202 },
+                        format!("configuring the drive failed: {}", e.text()),
+                    )
+                })?;
             }
         }
         // First readings, so that the cycle thread starts from real positions.
@@ -372,6 +517,7 @@ impl LinkIo {
 
     fn run(&mut self, s: &SharedLink, cycle: Duration) {
         let mut next = Instant::now();
+        let mut behind = Behind::default();
         loop {
             next += cycle;
             let now = Instant::now();
@@ -399,20 +545,25 @@ impl LinkIo {
                 }
                 tracing::warn!(link = %self.spec.name, "Modbus link reconnected");
             }
-            if let Some(a) = self.cycle_once(s, next) {
-                set_state(s, LinkState::Failed(a));
-                return;
+            let t0 = Instant::now();
+            self.cycle_once(s, next);
+            if let Some(a) = behind.took(t0.elapsed(), cycle, &self.spec) {
+                if let Ok(mut g) = s.0.lock() {
+                    if g.alarm.is_none() {
+                        g.alarm = Some((None, a));
+                    }
+                }
             }
         }
     }
 
-    /// One exchange with every drive. Returns a fatal alarm (an exception).
+    /// One exchange with every drive; an exception goes to `Shared::alarm`.
     /// `sched`: the instant this cycle was scheduled for (the set-points are for it).
-    fn cycle_once(&mut self, s: &SharedLink, sched: Instant) -> Option<Alarm> {
+    fn cycle_once(&mut self, s: &SharedLink, sched: Instant) {
         for d in 0..self.spec.drives.len() {
             let cmd = match s.0.lock() {
                 Ok(g) => g.slots[d].command,
-                Err(_) => return None,
+                Err(_) => return,
             };
             let prev_target = self.spec.drives[d].last_target;
             let mut cmd = cmd;
@@ -451,15 +602,20 @@ impl LinkIo {
                 // What was not acknowledged is written again next cycle.
                 self.spec.drives[d].forget_writes();
             }
-            let Ok(mut g) = s.0.lock() else { return None };
+            let Ok(mut g) = s.0.lock() else { return };
             g.transactions += done + err.is_some() as u64;
+            g.stale_bytes = self.stale_bytes;
             if d == 0 {
                 g.cycles += 1;
             }
             match err {
                 Some(TxError::Exception(m)) => {
+                    // The others go on being served: the controlled stop must reach them.
                     g.failures += 1;
-                    return Some(Alarm::new(2201, format!("{m}; the drive refused the cyclic exchange: check its register map")));
+                    g.slots[d].last_error = Some(m.clone());
+                    if !std::mem::replace(&mut g.slots[d].exception_reported, true) && g.alarm.is_none() {
+                        g.alarm = Some((Some(d), Alarm::new(2201, format!("{m}; the drive refused the cyclic exchange: check its register map and its state"))));
+                    }
                 }
                 Some(TxError::Transport(m)) => {
                     g.failures += 1;
@@ -467,6 +623,14 @@ impl LinkIo {
                     g.slots[d].last_error = Some(m);
                 }
                 None => {
+                    if !cmd.stream {
+                        // Not streaming: the drive stands where it is read. The first
+                        // streamed target is measured from there (the PR block's speed, the
+                        // following error's demand), never from 0.
+                        if let Some(r) = &reading {
+                            self.spec.drives[d].last_target = r.position;
+                        }
+                    }
                     if let Some(mut r) = reading {
                         let seq = g.slots[d].reading.seq + 1;
                         r.seq = seq;
@@ -482,6 +646,5 @@ impl LinkIo {
                 }
             }
         }
-        None
     }
 }

@@ -9,6 +9,7 @@
 //! planner's path is sampled at the link's cycle for those axes. The CiA 402 state machine
 //! is the CANopen layer's (`cncgw_bus::cia402::Enabler`).
 
+pub mod line;
 pub mod link;
 pub mod plan;
 
@@ -49,6 +50,19 @@ pub struct LinkStats {
     pub failures: u64,
     pub cycles: u64,
     pub overruns: u64,
+    /// Bytes of late answers dropped to keep the exchange in step.
+    pub stale_bytes: u64,
+}
+
+/// A link before start-up.
+pub struct PlannedLink {
+    pub name: String,
+    pub what: String,
+    /// Transactions per link cycle.
+    pub transactions: usize,
+    /// RTU: the time one cycle's transactions take on the line (s) and the link cycle run
+    /// over it (ms). TCP's cycle is measured at start-up.
+    pub rtu: Option<(f64, f64)>,
 }
 
 struct Axis {
@@ -72,6 +86,8 @@ struct Axis {
     have_fb: bool,
     target: i64,
     last_error: Option<String>,
+    /// Its leaving Operation Enabled was alarmed (not again: the others stop under control).
+    reported: bool,
 }
 
 struct Link {
@@ -90,6 +106,12 @@ pub struct ModbusDrives {
     cycle_ns: u64,
     feedback_timeout: Duration,
     running: bool,
+    /// `quick_stop` was sent: Quick Stop Active is ours.
+    stopping: bool,
+    /// `isolate_faults`: a drive that faults is stopped alone (`faulted`), the layer above
+    /// stops the others under control.
+    isolate: bool,
+    faulted: Option<usize>,
     enable_cycles: u64,
     t0: Instant,
 }
@@ -150,6 +172,7 @@ impl ModbusDrives {
                 have_fb: false,
                 target: 0,
                 last_error: None,
+                reported: false,
             });
         }
         for l in &mut links {
@@ -162,6 +185,9 @@ impl ModbusDrives {
             cycle_ns,
             feedback_timeout: Duration::from_secs_f64(cfg.bus.feedback_timeout_ms * 1e-3),
             running: false,
+            stopping: false,
+            isolate: false,
+            faulted: None,
             enable_cycles: 0,
             t0: Instant::now(),
         }
@@ -171,15 +197,14 @@ impl ModbusDrives {
         self.axes.is_empty()
     }
 
-    /// Before start-up, per link: name, what it is, transactions per link cycle, and for RTU
-    /// the cycle the line can carry (s) — TCP's is measured at start-up.
-    pub fn planned_links(&self) -> Vec<(String, String, usize, Option<f64>)> {
+    /// Before start-up, per link: what `config check` says of it.
+    pub fn planned_links(&self) -> Vec<PlannedLink> {
         self.links
             .iter()
             .filter_map(|l| {
                 let s = l.spec.as_ref()?;
-                let rtu = (s.cfg.transport == crate::config::LinkTransport::Rtu).then(|| s.rtu_cycle_s());
-                Some((l.name.clone(), l.what.clone(), s.transactions_per_cycle(), rtu))
+                let rtu = (s.cfg.transport == crate::config::LinkTransport::Rtu).then(|| (s.rtu_cycle_s(), s.rtu_link_cycle_ms()));
+                Some(PlannedLink { name: l.name.clone(), what: l.what.clone(), transactions: s.transactions_per_cycle(), rtu })
             })
             .collect()
     }
@@ -195,6 +220,7 @@ impl ModbusDrives {
                     st.failures = g.failures;
                     st.overruns = g.overruns;
                     st.cycles = g.cycles;
+                    st.stale_bytes = g.stale_bytes;
                 }
                 st
             })
@@ -205,6 +231,55 @@ impl ModbusDrives {
         let a = &self.axes[i];
         let l = &self.links[a.link];
         Alarm::new(number, format!("axis {} (Modbus link {}, unit {}): {msg}", a.name, l.name, self.unit(i)))
+    }
+
+    /// Alarm 2010 once for a drive that left Operation Enabled on its own while running: a
+    /// fault (also while it brakes in Fault Reaction Active, which lasts as long as its stop
+    /// ramp — over a second on a spindle), a quick stop of its own (a stop input, a limit),
+    /// or a disable. Reported once, so that the controlled stop of the others goes on
+    /// (CANopen's master isolates a faulted node the same way).
+    fn left_operation_enabled(&mut self, i: usize) -> Option<Alarm> {
+        let a = &self.axes[i];
+        if !self.running || a.reported || !a.have_fb {
+            return None;
+        }
+        let st = State::from_statusword(a.statusword);
+        let code = a.error_code;
+        let what = match st {
+            State::OperationEnabled => return None,
+            // Our own quick stop: not the drive's doing.
+            State::QuickStopActive if self.stopping => return None,
+            State::Fault => format!("drive fault, error code 0x{code:04X} {}", error_text(code)),
+            State::FaultReactionActive => {
+                format!("drive fault (Fault Reaction Active: the drive is braking on its own), error code 0x{code:04X} {}", error_text(code))
+            }
+            State::QuickStopActive => "the drive went to Quick Stop Active on its own (a stop input or one of its limits); the others are stopped under control".into(),
+            _ if self.stopping => return None,
+            st => format!("the drive left Operation Enabled on its own: now {}", st.name()),
+        };
+        Some(self.report(i, 2010, what))
+    }
+
+    /// Alarm `number` for axis `i`, once: isolated (the first, when isolating) or every
+    /// drive quick-stopped (a second one).
+    fn report(&mut self, i: usize, number: u32, what: impl std::fmt::Display) -> Alarm {
+        self.isolate_axis(i);
+        self.axis_alarm(i, number, what)
+    }
+
+    fn isolate_axis(&mut self, i: usize) {
+        self.axes[i].reported = true;
+        if self.isolate && self.faulted.is_none_or(|f| f == i) {
+            self.faulted = Some(i);
+            let a = &mut self.axes[i];
+            a.cmd.velocity = 0.0;
+            match a.profile {
+                Profile::Cia402 => a.cmd.controlword = cw::QUICK_STOP_CMD,
+                Profile::Pr => a.cmd.target = a.raw,
+            }
+        } else {
+            self.faulted = None;
+        }
     }
 
     fn unit(&self, i: usize) -> u8 {
@@ -282,9 +357,18 @@ impl DriveBus for ModbusDrives {
             let li = self.axes[i].link;
             let Some(s) = self.links[li].shared.clone() else { continue };
             let (r, last_error) = {
-                let Ok(g) = s.0.lock() else { continue };
+                let Ok(mut g) = s.0.lock() else { continue };
                 if let LinkState::Failed(a) = &g.state {
                     return Err(a.clone());
+                }
+                if let Some((slot, a)) = g.alarm.take() {
+                    drop(g);
+                    // One drive's exception: that drive is isolated; the link's own
+                    // trouble (falling behind its cycle) concerns every drive on it.
+                    if let Some(ax) = slot.and_then(|sl| (0..self.axes.len()).find(|&k| self.axes[k].link == li && self.axes[k].slot == sl)) {
+                        self.isolate_axis(ax);
+                    }
+                    return Err(a);
                 }
                 let sl = &g.slots[self.axes[i].slot];
                 (sl.reading, sl.last_error.clone())
@@ -304,18 +388,16 @@ impl DriveBus for ModbusDrives {
             }
             let age = a.fb_at.map(|t| now.saturating_duration_since(t)).unwrap_or(Duration::MAX);
             let limit = self.feedback_timeout.max(self.links[li].cycle * 3);
-            if self.running && age > limit {
+            if self.running && age > limit && !self.axes[i].reported {
                 let why = self.axes[i].last_error.clone().unwrap_or_else(|| "no answer".into());
-                return Err(self.axis_alarm(
+                return Err(self.report(
                     i,
                     2015,
                     format!("no position feedback for {:.1} ms (link cycle {:.0} ms): {why}", age.as_secs_f64() * 1e3, self.links[li].cycle.as_secs_f64() * 1e3),
                 ));
             }
-            let a = &self.axes[i];
-            if self.running && State::from_statusword(a.statusword) == State::Fault {
-                let code = a.error_code;
-                return Err(self.axis_alarm(i, 2010, format!("drive fault, error code 0x{code:04X} {}", error_text(code))));
+            if let Some(a) = self.left_operation_enabled(i) {
+                return Err(a);
             }
         }
         Ok(())
@@ -382,20 +464,31 @@ impl DriveBus for ModbusDrives {
                 continue;
             }
             if !a.enabled {
-                // Hold the actual position while enabling so that nothing jumps.
+                // Hold the actual position while enabling so that nothing jumps: a CiA 402
+                // drive gets it in its target register before the controlword that enables
+                // it (as `drive enable` does), since many take 0x607A as it stands the moment
+                // they enable, however old it is.
                 a.target = a.unwrapped;
                 a.cmd.target = a.raw;
                 a.cmd.velocity = 0.0;
-            a.cmd.velocity = 0.0;
+                a.cmd.at = None;
+                a.cmd.stream = a.profile == Profile::Cia402;
             }
             match a.profile {
                 Profile::Cia402 => {
                     // Step only on a reading taken after our last controlword was written,
                     // so that a fault reset edge is never lost between two link cycles.
+                    // And only once the held target has been written (the reading's command
+                    // streamed it), so that the enabling controlword never precedes it.
                     let fresh = self.links[a.link]
                         .shared
                         .as_ref()
-                        .and_then(|s| s.0.lock().ok().map(|g| g.slots[a.slot].reading.command.controlword == a.enabler.controlword))
+                        .and_then(|s| {
+                            s.0.lock().ok().map(|g| {
+                                let c = g.slots[a.slot].reading.command;
+                                c.controlword == a.enabler.controlword && c.stream
+                            })
+                        })
                         .unwrap_or(false);
                     if !fresh {
                         all &= a.enabled;
@@ -404,12 +497,12 @@ impl DriveBus for ModbusDrives {
                     match a.enabler.step(a.statusword) {
                         EnableProgress::Enabled => {
                             a.enabled = true;
+                            a.reported = false;
                             a.cmd.stream = true;
                         }
                         EnableProgress::Walking => {
                             all = false;
                             a.enabled = false;
-                            a.cmd.stream = false;
                         }
                         EnableProgress::ResetFailed => {
                             let code = a.error_code;
@@ -427,6 +520,7 @@ impl DriveBus for ModbusDrives {
                     match st {
                         State::OperationEnabled => {
                             a.enabled = true;
+                            a.reported = false;
                             a.cmd.stream = true;
                         }
                         State::Fault => {
@@ -455,6 +549,8 @@ impl DriveBus for ModbusDrives {
         }
         if all {
             self.running = true;
+            self.stopping = false;
+            self.faulted = None;
         } else if self.t0.elapsed() > Duration::from_secs(10) && self.enable_cycles > 10 {
             let i = self.axes.iter().position(|a| !a.enabled).unwrap_or(0);
             let st = State::from_statusword(self.axes[i].statusword);
@@ -464,6 +560,7 @@ impl DriveBus for ModbusDrives {
     }
 
     fn quick_stop(&mut self) {
+        self.stopping = true;
         for a in &mut self.axes {
             a.cmd.velocity = 0.0;
             match a.profile {
@@ -486,6 +583,18 @@ impl DriveBus for ModbusDrives {
         let longest = self.links.iter().map(|l| l.cycle).max().unwrap_or_default();
         std::thread::sleep((longest * 3).min(Duration::from_secs(2)));
         self.running = false;
+        for st in self.link_stats() {
+            tracing::info!(
+                "Modbus link {}: {} transactions ({} failed) in {} link cycles of {:.0} ms, {} late; {} bytes of late answers dropped",
+                st.name,
+                st.transactions,
+                st.failures,
+                st.cycles,
+                st.cycle.as_secs_f64() * 1e3,
+                st.overruns,
+                st.stale_bytes
+            );
+        }
         self.stop_links();
     }
 
@@ -499,6 +608,15 @@ impl DriveBus for ModbusDrives {
 
     fn counts_per_unit(&self, axis: usize) -> f64 {
         self.axes[axis].counts_per_unit
+    }
+
+    fn isolate_faults(&mut self, on: bool) -> bool {
+        self.isolate = on;
+        true
+    }
+
+    fn faulted(&self) -> Option<usize> {
+        self.faulted
     }
 
     fn link_cycle(&self, axis: usize) -> Option<(String, String, f64)> {

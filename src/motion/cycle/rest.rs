@@ -80,7 +80,7 @@ impl Rest {
     }
 }
 
-/// Per drive: cycles in a row its fresh feedback stood still. Allocated once, before the
+/// Per drive: fresh readings in a row that stood still. Allocated once, before the
 /// run's first cycle.
 pub(super) struct Still {
     prev: Vec<Option<i64>>,
@@ -100,7 +100,8 @@ impl Still {
     fn update(&mut self, d: usize, counts: i64, fresh: bool) {
         let Some(c) = self.cycles.get_mut(d) else { return };
         if !fresh {
-            *c = 0;
+            // Nothing new (a Modbus link slower than the machine cycle reads a drive every
+            // few cycles): neither still nor moving. A drive that goes silent is `silent`.
             return;
         }
         let prev = std::mem::replace(&mut self.prev[d], Some(counts));
