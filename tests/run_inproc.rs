@@ -155,7 +155,7 @@ fn run_and_plan_take_the_same_tool_table() {
     // Machine X (radius) = 10 + (−10 + 0.2)/2 = 5.1 mm, Z = 4 − 5 + 0.1 = −0.9 mm; 10 000 counts/mm.
     assert_eq!((end("x"), end("z")), (51_000, -9_000), "{v}");
     // The plan prints work coordinates: the programmed X20 Z5 (the offset is in the machine position).
-    let last_move = String::from_utf8_lossy(&plan.stdout).lines().filter(|l| l.contains("\"rapid\"")).last().unwrap().to_string();
+    let last_move = String::from_utf8_lossy(&plan.stdout).lines().rfind(|l| l.contains("\"rapid\"")).unwrap().to_string();
     assert!(last_move.contains("\"x\":20.0") && last_move.contains("\"z\":4.0"), "{last_move}");
     // Without the table the same program ends at the programmed X (radius 10 mm).
     let bare: serde_json::Value = serde_json::from_slice(&cncgw(&["run", "--batch", "--json", p]).stdout).unwrap();

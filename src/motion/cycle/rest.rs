@@ -104,7 +104,7 @@ impl Still {
             // few cycles): neither still nor moving. A drive that goes silent is `silent`.
             return;
         }
-        let prev = std::mem::replace(&mut self.prev[d], Some(counts));
+        let prev = self.prev[d].replace(counts);
         let still = prev.is_some_and(|p| (counts - p).abs() <= STILL_COUNTS);
         *c = if still { c.saturating_add(1) } else { 0 };
     }
@@ -121,7 +121,9 @@ impl CycleLoop<'_> {
         self.drives.quick_stop();
     }
 
-    /// Bring spindle and axes to rest (see the module doc). Allocates nothing.
+    /// Bring spindle and axes to rest (see the module doc). Allocates nothing. (A verb, not a
+    /// conversion: the `to_*` naming lint does not apply.)
+    #[allow(clippy::wrong_self_convention)]
     pub(super) fn to_rest(&mut self, motion: &mut Motion, still: &mut Still) -> Rest {
         let t0 = self.clock.now_ns();
         let dt = self.cycle_ns.max(1);
