@@ -113,7 +113,8 @@ fn block_vs_segmented() {
     let addr = server.local_addr().to_string();
     let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
     let st = stop.clone();
-    let sim = std::thread::spawn(move || sim_drives::run_realtime(Box::new(server), sim_drives::SimConfig::from_machine_toml(EMBEDDED_LATHE).unwrap(), st));
+    let sim =
+        std::thread::spawn(move || sim_drives::run_realtime(Box::new(server), sim_drives::SimConfig::from_machine_toml(EMBEDDED_LATHE).unwrap(), st));
     let sock = cncgw_bus::transport::socketcand::Socketcand::connect(&addr, "can0").expect("connect to the socketcand server");
     let mut m = CanOpenMaster::new(sock, &cfg);
     let mut clock = cncgw_bus::RealClock::new();

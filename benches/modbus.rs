@@ -86,7 +86,8 @@ fn raw_rate(ctx: &mut tokio_modbus::client::Context, rt: &tokio::runtime::Runtim
 }
 
 fn pty_pair() -> Option<(std::process::Child, String, String)> {
-    let mut c = Command::new("socat").args(["-d", "-d", "pty,raw,echo=0", "pty,raw,echo=0"]).stdout(Stdio::null()).stderr(Stdio::piped()).spawn().ok()?;
+    let mut c =
+        Command::new("socat").args(["-d", "-d", "pty,raw,echo=0", "pty,raw,echo=0"]).stdout(Stdio::null()).stderr(Stdio::piped()).spawn().ok()?;
     let err = c.stderr.take()?;
     let mut lines = BufReader::new(err).lines();
     let mut p = Vec::new();
@@ -103,7 +104,10 @@ fn pty_pair() -> Option<(std::process::Child, String, String)> {
 fn main() {
     let secs = 3.0;
     println!("Modbus: cncgw ModbusDrives ↔ sim-drives' server, {secs} s each (machine cycle 1 ms)");
-    println!("{:<6} {:>6} {:>6} {:>14} {:>12} {:>14} {:>10} {:>9}", "link", "drives", "fc", "link cycle ms", "cycles/s", "transactions/s", "failures", "overruns");
+    println!(
+        "{:<6} {:>6} {:>6} {:>14} {:>12} {:>14} {:>10} {:>9}",
+        "link", "drives", "fc", "link cycle ms", "cycles/s", "transactions/s", "failures", "overruns"
+    );
     let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().expect("runtime");
     for n in [1usize, 3] {
         let stop = Arc::new(AtomicBool::new(false));
@@ -147,7 +151,8 @@ fn main() {
         for fc23 in [false, true] {
             let link = format!("transport = \"rtu\"\ndevice = \"{b}\"\nbaud = 115200\nfc23 = {fc23}");
             let text = machine(n, &link);
-            let computed = MachineConfig::from_toml("b", &text).ok().map(|c| ModbusDrives::new(&c).planned_links()[0].rtu.map_or(0.0, |r| r.0)).unwrap_or(0.0);
+            let computed =
+                MachineConfig::from_toml("b", &text).ok().map(|c| ModbusDrives::new(&c).planned_links()[0].rtu.map_or(0.0, |r| r.0)).unwrap_or(0.0);
             match run(&text, secs) {
                 Ok(s) => println!(
                     "{:<6} {:>6} {:>6} {:>14.0} {:>12} {:>14} {:>10} {:>9}   (115200 8N1 line: {:.2} ms of frames, silences and turnarounds per cycle)",
@@ -166,7 +171,10 @@ fn main() {
         }
         let port = rt.block_on(async { tokio_serial::SerialStream::open(&tokio_serial::new(&b, 115_200)) }).expect("pty");
         let mut ctx = tokio_modbus::client::rtu::attach(port);
-        println!("  raw tokio-modbus FC03 back to back over the pty (no baud limit), {n} drive(s): {:.0} transactions/s", raw_rate(&mut ctx, &rt, n as u8, 2.0));
+        println!(
+            "  raw tokio-modbus FC03 back to back over the pty (no baud limit), {n} drive(s): {:.0} transactions/s",
+            raw_rate(&mut ctx, &rt, n as u8, 2.0)
+        );
         stop.store(true, Ordering::Relaxed);
         let _ = srv.join();
         let _ = socat.kill();

@@ -52,13 +52,11 @@ fn program() -> Vec<Move> {
     for i in 0..20 {
         p.push(mv(10 + i, MoveKind::Feed { end: Pos::xz(x, z - 5.0), feed: f }, false));
         z -= 5.0;
-        p.push(mv(10 + i, MoveKind::Arc {
-            end: Pos::xz(x + 2.0, z - 2.0),
-            center: Pos::xz(x + 2.0, z),
-            cw: false,
-            plane: Plane::Zx,
-            feed: f,
-        }, false));
+        p.push(mv(
+            10 + i,
+            MoveKind::Arc { end: Pos::xz(x + 2.0, z - 2.0), center: Pos::xz(x + 2.0, z), cw: false, plane: Plane::Zx, feed: f },
+            false,
+        ));
         x += 2.0;
         z -= 2.0;
         p.push(mv(10 + i, MoveKind::Feed { end: Pos::xz(x + 0.5, z - 0.5), feed: f }, false));

@@ -25,13 +25,7 @@ const CZ: f64 = -100.0;
 const A_OPT: f64 = 2000.0;
 
 fn mv(src: &Arc<str>, line: u32, kind: MoveKind, exact_stop: bool) -> Move {
-    Move {
-        src: SrcPos::new(src.clone(), line, 1),
-        kind,
-        exact_stop,
-        work_offset: Pos::ZERO,
-        tag: None,
-    }
+    Move { src: SrcPos::new(src.clone(), line, 1), kind, exact_stop, work_offset: Pos::ZERO, tag: None }
 }
 
 /// Point `k` of `n` chords on `turns` half circles (angle from +Z towards +X and on around).
@@ -49,23 +43,8 @@ fn program(h: f64, f: f64, halves: usize) -> (impl Iterator<Item = Move>, f64) {
     let total = n * halves;
     let head = std::iter::once(mv(&src, 1, MoveKind::Rapid { end: point(0, n) }, true));
     let s2 = src.clone();
-    let body = (1..=total).map(move |k| {
-        mv(
-            &s2,
-            2 + k as u32,
-            MoveKind::Feed {
-                end: point(k, n),
-                feed: Feed::PerMin(f),
-            },
-            false,
-        )
-    });
-    let tail = std::iter::once(mv(
-        &src,
-        3 + total as u32,
-        MoveKind::End { code: 30 },
-        false,
-    ));
+    let body = (1..=total).map(move |k| mv(&s2, 2 + k as u32, MoveKind::Feed { end: point(k, n), feed: Feed::PerMin(f) }, false));
+    let tail = std::iter::once(mv(&src, 3 + total as u32, MoveKind::End { code: 30 }, false));
     (head.chain(body).chain(tail), chord * total as f64)
 }
 
@@ -95,16 +74,10 @@ fn run(lim: &Limits, prog: impl Iterator<Item = Move>, end: Pos) -> Fig {
     if let Some(r) = prog.next() {
         m.push(&r).expect("rapid");
     }
-    let mut fb = Feedback {
-        pos: m.position(),
-        spindle_rpm: 0.0,
-    };
+    let mut fb = Feedback { pos: m.position(), spindle_rpm: 0.0 };
     while !m.is_idle() {
         let sp = m.step(&fb);
-        fb = Feedback {
-            pos: sp.pos,
-            spindle_rpm: 0.0,
-        };
+        fb = Feedback { pos: sp.pos, spindle_rpm: 0.0 };
     }
     let (mut p, mut v, mut a) = (m.position(), [0.0; N_AXES], [0.0; N_AXES]);
     let mut f = Fig {
@@ -138,10 +111,7 @@ fn run(lim: &Limits, prog: impl Iterator<Item = Move>, end: Pos) -> Fig {
         step_total += step_us;
         f.step_us.push(step_us);
         f.cycle_us.push(cyc_us);
-        fb = Feedback {
-            pos: sp.pos,
-            spindle_rpm: 0.0,
-        };
+        fb = Feedback { pos: sp.pos, spindle_rpm: 0.0 };
         cycles += 1;
         let moved = sp.pos != p;
         moving |= moved;
@@ -179,9 +149,7 @@ const REPEAT: usize = 5;
 
 fn robust_worst(runs: &[Vec<f64>]) -> f64 {
     let n = runs.iter().map(|r| r.len()).min().unwrap_or(0);
-    (0..n)
-        .map(|k| runs.iter().map(|r| r[k]).fold(f64::INFINITY, f64::min))
-        .fold(0.0, f64::max)
+    (0..n).map(|k| runs.iter().map(|r| r[k]).fold(f64::INFINITY, f64::min)).fold(0.0, f64::max)
 }
 
 /// Runs a program `REPEAT` times: the first run's figure, with the worst step and push + step
@@ -204,11 +172,7 @@ fn measure(lim: &Limits, h: f64, f: f64, halves: usize) -> (Fig, f64, [f64; 2]) 
 fn rss_kib() -> u64 {
     std::fs::read_to_string("/proc/self/status")
         .ok()
-        .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("VmRSS:"))
-                .map(|l| l.to_string())
-        })
+        .and_then(|s| s.lines().find(|l| l.starts_with("VmRSS:")).map(|l| l.to_string()))
         .and_then(|l| l.split_whitespace().nth(1).and_then(|n| n.parse().ok()))
         .unwrap_or(0)
 }
@@ -217,11 +181,7 @@ fn main() {
     let cfg = MachineConfig::embedded();
     let mut lim = Limits::from_config(&cfg);
     lim.feed_clamp = f64::INFINITY;
-    println!(
-        "half circle R{R} as G1 chords, G64, embedded machine ({} ms cycle, queue {} blocks), simulated time",
-        lim.cycle_s * 1e3,
-        lim.queue_len
-    );
+    println!("half circle R{R} as G1 chords, G64, embedded machine ({} ms cycle, queue {} blocks), simulated time", lim.cycle_s * 1e3, lim.queue_len);
     println!("| chords | F | path time | optimum | mean speed | ratio | max axis acc | max axis vel | end error | step worst (raw) / mean | push+step worst (raw) |");
     println!("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |");
     for f in [3000.0, 6000.0] {
@@ -251,10 +211,7 @@ fn main() {
     let cfg = MachineConfig::from_toml("lathe.toml", &t).expect("embedded config with No.1772");
     let mut lim = Limits::from_config(&cfg);
     lim.feed_clamp = f64::INFINITY;
-    println!(
-        "\nthe same with S-curve, No.1772 = 32 ms (j·dt = {:.0} mm/s² per cycle)",
-        2000.0 / 0.032 * lim.cycle_s
-    );
+    println!("\nthe same with S-curve, No.1772 = 32 ms (j·dt = {:.0} mm/s² per cycle)", 2000.0 / 0.032 * lim.cycle_s);
     println!("| chords | F | path time | optimum (ramps v/A + A/J) | ratio | max axis acc | max axis Δacc per cycle |");
     println!("| --- | --- | --- | --- | --- | --- | --- |");
     for f in [3000.0, 6000.0] {

@@ -39,9 +39,5 @@ fn main() {
         }
     }
     let s = t.elapsed().as_secs_f64();
-    eprintln!(
-        "{moves} moves from {last_line} lines in {s:.3} s (static check {:.3} s): {:.0} blocks/s",
-        checked.as_secs_f64(),
-        last_line as f64 / s
-    );
+    eprintln!("{moves} moves from {last_line} lines in {s:.3} s (static check {:.3} s): {:.0} blocks/s", checked.as_secs_f64(), last_line as f64 / s);
 }

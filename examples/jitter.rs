@@ -190,9 +190,7 @@ fn run_on_this_thread(bus: Box<dyn CanBus>, cycle_ms: f64, seconds: f64, rt: &Rt
     };
     let mut interp = match Interpreter::from_source("jitter.nc", &program(seconds), &cfg) {
         Ok(i) => i,
-        Err(a) => {
-            return Figures { summary: RunSummary::default(), late: vec![], jitter: vec![], result: Err(format!("{a:?}")), steal_ms: 0 }
-        }
+        Err(a) => return Figures { summary: RunSummary::default(), late: vec![], jitter: vec![], result: Err(format!("{a:?}")), steal_ms: 0 },
     };
     let mut master = CanOpenMaster::new(bus, &cfg);
     let spindle = cfg.axes.values().position(|a| a.kind == AxisKind::Spindle);
@@ -283,7 +281,11 @@ fn main() {
     println!(
         "cycle timing in real time, {seconds} s per run; {ncpu} CPUs, load average {}{}",
         load.trim(),
-        if TOLERANT.load(Ordering::Relaxed) { "; shared-host tolerances (following-error windows 720° / 5 mm, feedback timeout 100 ms, cycle watchdog relaxed)" } else { "" }
+        if TOLERANT.load(Ordering::Relaxed) {
+            "; shared-host tolerances (following-error windows 720° / 5 mm, feedback timeout 100 ms, cycle watchdog relaxed)"
+        } else {
+            ""
+        }
     );
     let plain = RtOptions { max_sleep_us: None, spin_us: None, cpu_dma_latency: false, timer_slack_ns: None, ..rt.clone() };
     let variants: Vec<(String, RtOptions)> = if compare {
@@ -337,10 +339,7 @@ fn run_case(mode: &str, ms: f64, seconds: f64, label: &str, rt: &RtOptions) {
         }
         if mode == "socketcand" || mode == "both" {
             let exe = std::env::current_exe().ok();
-            let sim = exe
-                .as_ref()
-                .and_then(|e| e.parent()?.parent().map(|d| d.join("sim-drives")))
-                .filter(|p| p.exists());
+            let sim = exe.as_ref().and_then(|e| e.parent()?.parent().map(|d| d.join("sim-drives"))).filter(|p| p.exists());
             let Some(sim) = sim else {
                 eprintln!("socketcand: no sim-drives binary next to this example; `cargo build --release --bins` first");
                 return;

@@ -12,17 +12,13 @@
 use cncgw::config::MachineConfig;
 use cncgw::motion::Limits;
 use cncgw::sync::measure::{
-    g92_1_moves, monitor_stats, phase_spread, rigid_tap_moves, run_moves, tap_sync_error, thread_pass_moves,
-    thread_phases, CuttingLoad,
+    g92_1_moves, monitor_stats, phase_spread, rigid_tap_moves, run_moves, tap_sync_error, thread_pass_moves, thread_phases, CuttingLoad,
 };
 
 fn main() {
     let cfg = MachineConfig::embedded();
     println!("rigid tap M10x1.5, 30 mm deep, cutting load on (emulated drives, simulated time, 2 ms cycle)");
-    println!(
-        "{:>6} {:>9} {:>12} {:>12} {:>12} {:>12}",
-        "S", "peak rpm", "max on µm", "rms on µm", "max off µm", "rms off µm"
-    );
+    println!("{:>6} {:>9} {:>12} {:>12} {:>12} {:>12}", "S", "peak rpm", "max on µm", "rms on µm", "max off µm", "rms off µm");
     for rpm in [1000.0, 2000.0, 3000.0, 6000.0] {
         let mut row = Vec::new();
         let mut peak = 0.0f64;
@@ -59,10 +55,7 @@ fn main() {
                 None => row.push((f64::NAN, f64::NAN)),
             }
         }
-        println!(
-            "{:>6.0} {:>9.0} {:>12.2} {:>12.2} {:>12.2} {:>12.2}",
-            rpm, peak, row[0].0, row[0].1, row[1].0, row[1].1
-        );
+        println!("{:>6.0} {:>9.0} {:>12.2} {:>12.2} {:>12.2} {:>12.2}", rpm, peak, row[0].0, row[0].1, row[1].0, row[1].1);
     }
     // A 30 mm M10×1.5 hole is 21 revolutions: with No.5261 = 200 ms (5000 rpm/s; the
     // emulated spindle manages ≈13 000 rpm/s at most) the stroke peaks near 2500 rpm, so S3000
@@ -89,10 +82,7 @@ fn main() {
                 }
             }
         }
-        println!(
-            "{:>6.0} {:>9.0} {:>12.2} {:>12.2} {:>12.2} {:>12.2}",
-            rpm, peak, row[0].0, row[0].1, row[1].0, row[1].1
-        );
+        println!("{:>6.0} {:>9.0} {:>12.2} {:>12.2} {:>12.2} {:>12.2}", rpm, peak, row[0].0, row[0].1, row[1].0, row[1].1);
     }
     println!("G92.1 rigid thread, lead 2, Z5 → Z−40 at X30 (sync monitor, µm)");
     println!("{:>6} {:>12} {:>12} {:>12} {:>12}", "S", "max on", "rms on", "max off", "rms off");

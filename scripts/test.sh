@@ -4,7 +4,8 @@
 #   ./scripts/test.sh
 #
 # 1. installs what the tests need on a fresh Debian machine (idempotent, fast when present);
-# 2. builds every binary (process-level tests start `cncgw` and `sim-drives`);
+# 2. checks the formatting (rustfmt.toml) and the lints (clippy, warnings are errors), then
+#    builds every binary (process-level tests start `cncgw` and `sim-drives`);
 # 3. runs every test of the workspace on the host;
 # 4. runs each cargo-fuzz target for FUZZ_SECONDS (default 40 s each, 4 targets: under
 #    3 minutes; scripts/fuzz.sh, a crash fails the run);
@@ -36,6 +37,10 @@ trap 'rc=$?; if [ $rc -ne 0 ]; then printf "\n==> reliability report (the run fa
 
 step "installing test prerequisites"
 ./scripts/install-test-deps.sh --python   # --python: build/venv for the python canopen peer test
+
+step "format and lints (cargo fmt --check, clippy -D warnings)"
+cargo fmt --all -- --check
+cargo clippy --workspace --all-targets --quiet -- -D warnings
 
 step "building"
 cargo build --workspace --bins --quiet

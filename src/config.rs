@@ -420,21 +420,18 @@ fn default_ferr() -> f64 {
 impl MachineConfig {
     /// Load and validate a TOML file.
     pub fn load(path: &Path) -> Result<Self, ConfigError> {
-        let text = std::fs::read_to_string(path)
-            .map_err(|source| ConfigError::Io { path: path.display().to_string(), source })?;
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Io { path: path.display().to_string(), source })?;
         Self::from_toml(&path.display().to_string(), &text)
     }
 
     /// The embedded default machine.
     pub fn embedded() -> Self {
-        Self::from_toml("<embedded config/lathe.toml>", EMBEDDED_LATHE)
-            .expect("embedded config/lathe.toml is validated by the test suite")
+        Self::from_toml("<embedded config/lathe.toml>", EMBEDDED_LATHE).expect("embedded config/lathe.toml is validated by the test suite")
     }
 
     /// Parse and validate TOML text; `file` names it in errors.
     pub fn from_toml(file: &str, text: &str) -> Result<Self, ConfigError> {
-        let cfg: MachineConfig = toml::from_str(text)
-            .map_err(|e| ConfigError::Parse { file: file.into(), message: e.to_string() })?;
+        let cfg: MachineConfig = toml::from_str(text).map_err(|e| ConfigError::Parse { file: file.into(), message: e.to_string() })?;
         let errors = cfg.validate();
         if errors.is_empty() {
             Ok(cfg)
@@ -475,7 +472,10 @@ impl MachineConfig {
             }
         }
         if !(1..=50).contains(&self.machine.watchdog_missed_cycles) {
-            e.push(format!("machine.watchdog_missed_cycles: must be between 1 and 50 (the most cycles the loop catches up), got {}", self.machine.watchdog_missed_cycles));
+            e.push(format!(
+                "machine.watchdog_missed_cycles: must be between 1 and 50 (the most cycles the loop catches up), got {}",
+                self.machine.watchdog_missed_cycles
+            ));
         }
         if self.bus.interface.trim().is_empty() {
             e.push("bus.interface: must name an interface (inproc, vcan0, can0, …), got \"\"".into());
@@ -517,15 +517,16 @@ impl MachineConfig {
                 e.push(format!("{p}: axis names are letters and digits (x, z, c, s1), got {name:?}"));
             }
             match &a.modbus {
-                None if !(1..=127).contains(&a.node) => {
-                    e.push(format!("{p}.node: must be a CANopen node id 1..=127, got {}", a.node))
-                }
+                None if !(1..=127).contains(&a.node) => e.push(format!("{p}.node: must be a CANopen node id 1..=127, got {}", a.node)),
                 Some(l) if !(1..=247).contains(&a.node) => {
                     e.push(format!("{p}.node: must be a Modbus unit id 1..=247 on link {l:?}, got {}", a.node))
                 }
                 Some(l) if !self.modbus.contains_key(l) => {
                     let known: Vec<&str> = self.modbus.keys().map(String::as_str).collect();
-                    e.push(format!("{p}.modbus: no [modbus.{l}] link is configured (links: {})", if known.is_empty() { "none".into() } else { known.join(", ") }))
+                    e.push(format!(
+                        "{p}.modbus: no [modbus.{l}] link is configured (links: {})",
+                        if known.is_empty() { "none".into() } else { known.join(", ") }
+                    ))
                 }
                 bus => {
                     if let Some(other) = nodes.insert((bus.as_deref(), a.node), name) {
@@ -587,8 +588,7 @@ impl MachineConfig {
                 }
             }
         }
-        let tools: Vec<&str> =
-            self.axes.iter().filter(|(_, a)| a.role == Some(AxisRole::ToolSpindle)).map(|(n, _)| n.as_str()).collect();
+        let tools: Vec<&str> = self.axes.iter().filter(|(_, a)| a.role == Some(AxisRole::ToolSpindle)).map(|(n, _)| n.as_str()).collect();
         if tools.len() > 1 {
             e.push(format!("axes: at most one axis may have role = \"tool_spindle\", got {}", tools.join(", ")));
         }
@@ -599,7 +599,9 @@ impl MachineConfig {
             let p = format!("modbus.{name}");
             match l.transport {
                 LinkTransport::Tcp => match &l.address {
-                    Some(a) if a.parse::<std::net::SocketAddr>().is_ok() || a.rsplit_once(':').is_some_and(|(h, port)| !h.is_empty() && port.parse::<u16>().is_ok()) => {}
+                    Some(a)
+                        if a.parse::<std::net::SocketAddr>().is_ok()
+                            || a.rsplit_once(':').is_some_and(|(h, port)| !h.is_empty() && port.parse::<u16>().is_ok()) => {}
                     Some(a) => e.push(format!("{p}.address: must be host:port, got {a:?}")),
                     None => e.push(format!("{p}.address: a tcp link needs host:port (e.g. \"192.168.1.20:502\")")),
                 },

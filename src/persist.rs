@@ -52,10 +52,7 @@ pub fn default_state_dir() -> Option<PathBuf> {
 
 /// A file name from a machine's name: letters, digits and `-`.
 pub fn slug(name: &str) -> String {
-    let s: String = name
-        .chars()
-        .map(|c| if c.is_ascii_alphanumeric() { c.to_ascii_lowercase() } else { '-' })
-        .collect();
+    let s: String = name.chars().map(|c| if c.is_ascii_alphanumeric() { c.to_ascii_lowercase() } else { '-' }).collect();
     let s = s.split('-').filter(|p| !p.is_empty()).collect::<Vec<_>>().join("-");
     if s.is_empty() {
         "machine".into()
@@ -118,15 +115,15 @@ impl StatePlace {
     /// and a file can be written into it.
     pub fn check_writable(&self) -> Result<(), Alarm> {
         let probe = self.dir.join(format!(".{}.probe-{}", self.key, std::process::id()));
-        std::fs::create_dir_all(&self.dir)
-            .and_then(|_| std::fs::write(&probe, b"probe"))
-            .and_then(|_| std::fs::remove_file(&probe))
-            .map_err(|e| {
-                Alarm::new(
-                    STATE_ALARM,
-                    format!("the state directory {} cannot be written ({e}): give a writable one with --state-dir or $CNCGW_STATE_DIR; nothing was moved", self.dir.display()),
-                )
-            })
+        std::fs::create_dir_all(&self.dir).and_then(|_| std::fs::write(&probe, b"probe")).and_then(|_| std::fs::remove_file(&probe)).map_err(|e| {
+            Alarm::new(
+                STATE_ALARM,
+                format!(
+                    "the state directory {} cannot be written ({e}): give a writable one with --state-dir or $CNCGW_STATE_DIR; nothing was moved",
+                    self.dir.display()
+                ),
+            )
+        })
     }
 }
 
@@ -161,8 +158,12 @@ impl CommonVarsFile {
     }
 
     pub fn save(&self, vars: &HashMap<u32, f64>) -> Result<(), Alarm> {
-        atomic_write(&self.path, format_common_vars(vars).as_bytes())
-            .map_err(|e| Alarm::new(STATE_ALARM, format!("{}: cannot store the common variables: {e}; check the state directory (--state-dir)", self.path.display())))
+        atomic_write(&self.path, format_common_vars(vars).as_bytes()).map_err(|e| {
+            Alarm::new(
+                STATE_ALARM,
+                format!("{}: cannot store the common variables: {e}; check the state directory (--state-dir)", self.path.display()),
+            )
+        })
     }
 }
 
@@ -227,7 +228,14 @@ impl TapState {
     /// What the interpreter's `G30 P99` returns along.
     pub fn tap_return(&self) -> crate::canon::TapReturn {
         // Spindle 1: the only one motion taps with (it refuses a tap on another, alarm 2304).
-        crate::canon::TapReturn { axis: self.axis, r_plane: self.r_plane, lead: self.lead, rpm: self.rpm, override_pct: self.override_pct, spindle: 1 }
+        crate::canon::TapReturn {
+            axis: self.axis,
+            r_plane: self.r_plane,
+            lead: self.lead,
+            rpm: self.rpm,
+            override_pct: self.override_pct,
+            spindle: 1,
+        }
     }
 
     /// How far (degrees) the spindle at `spindle_deg` stands from the stored thread when the
@@ -266,7 +274,8 @@ impl TapStateFile {
         let Ok(entries) = std::fs::read_dir(if dir.as_os_str().is_empty() { Path::new(".") } else { dir }) else { return };
         for e in entries.flatten() {
             let n = e.file_name().to_string_lossy().into_owned();
-            let pid = n.strip_prefix(&prefix).and_then(|r| r.strip_suffix(".tmp")).and_then(|r| r.split('.').next()).and_then(|p| p.parse::<u32>().ok());
+            let pid =
+                n.strip_prefix(&prefix).and_then(|r| r.strip_suffix(".tmp")).and_then(|r| r.split('.').next()).and_then(|p| p.parse::<u32>().ok());
             if let Some(pid) = pid {
                 if pid != std::process::id() && !Path::new(&format!("/proc/{pid}")).exists() {
                     let _ = std::fs::remove_file(e.path());
@@ -277,7 +286,10 @@ impl TapStateFile {
 
     pub fn save(&self, st: &TapState) -> Result<(), Alarm> {
         atomic_write(&self.path, format_tap_state(st).as_bytes()).map_err(|e| {
-            Alarm::new(STATE_ALARM, format!("{}: cannot store the rigid-tap state: {e}; check the state directory (--state-dir)", self.path.display()))
+            Alarm::new(
+                STATE_ALARM,
+                format!("{}: cannot store the rigid-tap state: {e}; check the state directory (--state-dir)", self.path.display()),
+            )
         })
     }
 }
@@ -315,7 +327,12 @@ pub fn parse_tap_state(file: &str, text: &str) -> Result<TapState, Alarm> {
     }
     let st: TapState = toml::from_str(body).map_err(|e| bad(&format!("unreadable ({e})")))?;
     let finite = [st.r_plane, st.lead, st.rpm, st.override_pct, st.position, st.spindle_deg].iter().all(|v| v.is_finite());
-    if !finite || !matches!(st.axis, 'X' | 'Y' | 'Z') || st.lead == 0.0 || st.direction_in.abs() != 1.0 || st.rpm.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
+    if !finite
+        || !matches!(st.axis, 'X' | 'Y' | 'Z')
+        || st.lead == 0.0
+        || st.direction_in.abs() != 1.0
+        || st.rpm.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater)
+    {
         return Err(bad("out of range"));
     }
     Ok(st)

@@ -98,7 +98,12 @@ fn enabled() -> (MachineConfig, InprocBus, SimWorld, CanOpenMaster<cncgw_bus::tr
 }
 
 /// Hold every axis where it is until an alarm comes (or `cycles` pass).
-fn cycle_until_alarm(w: &mut SimWorld, m: &mut CanOpenMaster<cncgw_bus::transport::inproc::InprocEndpoint>, next: &mut u64, cycles: u32) -> Option<(cncgw::Alarm, u32)> {
+fn cycle_until_alarm(
+    w: &mut SimWorld,
+    m: &mut CanOpenMaster<cncgw_bus::transport::inproc::InprocEndpoint>,
+    next: &mut u64,
+    cycles: u32,
+) -> Option<(cncgw::Alarm, u32)> {
     for k in 0..cycles {
         *next += 2 * MS;
         w.wait_until(*next);
@@ -426,15 +431,29 @@ fn od_check_of_a_live_drive_against_its_eds() {
     assert_eq!(m.check_od(&mut w, 1, &eds), Vec::<String>::new());
     // A file with an object the drive lacks, a wrong type and a wrong access.
     let bad = format!("{text}\n[2345]\nParameterName=Vendor thing\nObjectType=0x7\nDataType=0x0007\nAccessType=rw\n")
-        .replacen("[1017]\nParameterName=Producer heartbeat time\nObjectType=0x7\nDataType=0x0006", "[1017]\nParameterName=Producer heartbeat time\nObjectType=0x7\nDataType=0x0007", 1)
-        .replacen("[6041]\nParameterName=Statusword\nObjectType=0x7\nDataType=0x0006\nAccessType=ro", "[6041]\nParameterName=Statusword\nObjectType=0x7\nDataType=0x0006\nAccessType=rw", 1);
+        .replacen(
+            "[1017]\nParameterName=Producer heartbeat time\nObjectType=0x7\nDataType=0x0006",
+            "[1017]\nParameterName=Producer heartbeat time\nObjectType=0x7\nDataType=0x0007",
+            1,
+        )
+        .replacen(
+            "[6041]\nParameterName=Statusword\nObjectType=0x7\nDataType=0x0006\nAccessType=ro",
+            "[6041]\nParameterName=Statusword\nObjectType=0x7\nDataType=0x0006\nAccessType=rw",
+            1,
+        );
     let eds = Eds::parse("vendor.eds", &bad).unwrap();
     let msgs = m.check_od(&mut w, 1, &eds);
     assert_eq!(
         msgs,
         vec![
-            format!("vendor.eds:{} [1017] \"Producer heartbeat time\": DataType UNSIGNED32 is 4 bytes but node 1 answers 2 bytes", line_of(&bad, "[1017]")),
-            format!("vendor.eds:{} [2345] \"Vendor thing\": node 1 does not have 0x2345:00 (object does not exist in the object dictionary)", line_of(&bad, "[2345]")),
+            format!(
+                "vendor.eds:{} [1017] \"Producer heartbeat time\": DataType UNSIGNED32 is 4 bytes but node 1 answers 2 bytes",
+                line_of(&bad, "[1017]")
+            ),
+            format!(
+                "vendor.eds:{} [2345] \"Vendor thing\": node 1 does not have 0x2345:00 (object does not exist in the object dictionary)",
+                line_of(&bad, "[2345]")
+            ),
         ],
         "(the statusword's access is not tried: writing a rw object could move something)"
     );
@@ -485,7 +504,11 @@ fn startup_checks_the_eds_named_in_the_config() {
 
     // A data sheet whose 0x6065 is read-only.
     let text = sim_eds_text();
-    let bad_text = text.replacen("[6065]\nParameterName=Following error window\nObjectType=0x7\nDataType=0x0007\nAccessType=rw", "[6065]\nParameterName=Following error window\nObjectType=0x7\nDataType=0x0007\nAccessType=ro", 1);
+    let bad_text = text.replacen(
+        "[6065]\nParameterName=Following error window\nObjectType=0x7\nDataType=0x0007\nAccessType=rw",
+        "[6065]\nParameterName=Following error window\nObjectType=0x7\nDataType=0x0007\nAccessType=ro",
+        1,
+    );
     assert_ne!(bad_text, text);
     let bad = std::env::temp_dir().join(format!("cncgw_startup_eds_{}.eds", std::process::id()));
     std::fs::write(&bad, &bad_text).unwrap();
@@ -497,5 +520,12 @@ fn startup_checks_the_eds_named_in_the_config() {
     let _ = std::fs::remove_file(&bad);
     assert_eq!(e.number, 2004, "{}", e.message);
     assert!(e.message.starts_with("node 2 (axis z): the configuration does not fit the drive's EDS (1 problem(s))"), "{}", e.message);
-    assert!(e.message.contains(&format!(".eds:{} [6065] \"Following error window\": AccessType=ro but the master writes 0x6065:00", line_of(&bad_text, "[6065]"))), "{}", e.message);
+    assert!(
+        e.message.contains(&format!(
+            ".eds:{} [6065] \"Following error window\": AccessType=ro but the master writes 0x6065:00",
+            line_of(&bad_text, "[6065]")
+        )),
+        "{}",
+        e.message
+    );
 }

@@ -31,7 +31,13 @@ fn every_command_has_a_page_that_renders() {
         assert!(pages.contains(&sub.to_string()), "{sub}: {pages:?}");
     }
     for p in &pages {
-        let r = Command::new("man").args(["-l", "-P", "cat"]).arg(dir.path().join(p)).env("MANWIDTH", "80").env("LC_ALL", "C.UTF-8").output().expect("man (man-db) is installed by scripts/install-test-deps.sh");
+        let r = Command::new("man")
+            .args(["-l", "-P", "cat"])
+            .arg(dir.path().join(p))
+            .env("MANWIDTH", "80")
+            .env("LC_ALL", "C.UTF-8")
+            .output()
+            .expect("man (man-db) is installed by scripts/install-test-deps.sh");
         let text = String::from_utf8_lossy(&r.stdout);
         let err = String::from_utf8_lossy(&r.stderr);
         assert!(r.status.success() && err.trim().is_empty(), "{p}: {err}");

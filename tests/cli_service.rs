@@ -16,7 +16,10 @@ struct Out {
 
 fn cncgw(args: &[&str]) -> Out {
     let o = Command::new(env!("CARGO_BIN_EXE_cncgw"))
-        .env("CNCGW_STATE_DIR", std::env::temp_dir().join(format!("cncgw-test-state-{}", std::process::id()))).args(args).output().expect("run cncgw");
+        .env("CNCGW_STATE_DIR", std::env::temp_dir().join(format!("cncgw-test-state-{}", std::process::id())))
+        .args(args)
+        .output()
+        .expect("run cncgw");
     Out {
         code: o.status.code().unwrap_or(-1),
         stdout: String::from_utf8_lossy(&o.stdout).into_owned(),

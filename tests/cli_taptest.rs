@@ -11,7 +11,11 @@ struct Out {
 
 fn cncgw_in(dir: &std::path::Path, args: &[&str]) -> Out {
     let o = Command::new(env!("CARGO_BIN_EXE_cncgw"))
-        .env("CNCGW_STATE_DIR", std::env::temp_dir().join(format!("cncgw-test-state-{}", std::process::id()))).current_dir(dir).args(args).output().expect("run cncgw");
+        .env("CNCGW_STATE_DIR", std::env::temp_dir().join(format!("cncgw-test-state-{}", std::process::id())))
+        .current_dir(dir)
+        .args(args)
+        .output()
+        .expect("run cncgw");
     Out {
         code: o.status.code().unwrap_or(-1),
         stdout: String::from_utf8_lossy(&o.stdout).into_owned(),
@@ -195,7 +199,10 @@ fn od_dump_shows_the_dictionary_and_checks_it_against_the_eds() {
     assert_eq!(o.code, 0, "{}", o.stdout);
     assert!(o.stdout.contains("0x6041:00 Statusword") && o.stdout.contains("agrees with the EDS"), "{}", o.stdout);
     // An EDS that says the statusword is UNSIGNED32: the disagreement is named.
-    let text = std::fs::read_to_string(eds).unwrap().replace("[6041]\nParameterName=Statusword\nObjectType=0x7\nDataType=0x0006", "[6041]\nParameterName=Statusword\nObjectType=0x7\nDataType=0x0007");
+    let text = std::fs::read_to_string(eds).unwrap().replace(
+        "[6041]\nParameterName=Statusword\nObjectType=0x7\nDataType=0x0006",
+        "[6041]\nParameterName=Statusword\nObjectType=0x7\nDataType=0x0007",
+    );
     std::fs::write(dir.join("wrong.eds"), text).unwrap();
     let o = cncgw_in(&dir, &["od", "dump", "1", "--eds", "wrong.eds", "--json"]);
     assert_eq!(o.code, 1, "{}", o.stdout);

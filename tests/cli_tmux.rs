@@ -14,11 +14,7 @@ struct Tmux {
 
 impl Tmux {
     fn cmd(&self, args: &[&str]) -> String {
-        let o = Command::new("tmux")
-            .args(["-L", &self.socket])
-            .args(args)
-            .output()
-            .expect("tmux is not installed: run scripts/install-test-deps.sh");
+        let o = Command::new("tmux").args(["-L", &self.socket]).args(args).output().expect("tmux is not installed: run scripts/install-test-deps.sh");
         assert!(o.status.success(), "tmux {args:?}: {}", String::from_utf8_lossy(&o.stderr));
         String::from_utf8_lossy(&o.stdout).into_owned()
     }
@@ -62,11 +58,8 @@ fn interactive_run_feed_hold_resume_reset_in_tmux() {
     std::fs::create_dir_all(&dir).unwrap();
     // 100 mm at 600 mm/min: 10 s of feed, paced to the wall clock.
     std::fs::write(dir.join("long.nc"), "G21\nG98\nG0 X20 Z2\nG1 Z-100 F600\nG1 X40\nG0 Z2\nM30\n").unwrap();
-    let sh = format!(
-        "cd {d} && {bin} run long.nc --state-dir {d}/state; echo EXIT=$?; sleep 60",
-        d = dir.display(),
-        bin = env!("CARGO_BIN_EXE_cncgw")
-    );
+    let sh =
+        format!("cd {d} && {bin} run long.nc --state-dir {d}/state; echo EXIT=$?; sleep 60", d = dir.display(), bin = env!("CARGO_BIN_EXE_cncgw"));
     let t = Tmux { socket: format!("cncgw-test-{}", std::process::id()) };
     // An 80 × 24 terminal (issue 19.11: the status used to need 119 columns and repeated down
     // the screen).

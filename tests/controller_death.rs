@@ -9,7 +9,7 @@
 //! alone (.config/nextest.toml).
 
 mod procs;
-use procs::{Kill, bin};
+use procs::{bin, Kill};
 use std::path::PathBuf;
 use std::process::{Command, Stdio};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -21,8 +21,6 @@ const CYCLE_MS: f64 = 2.0;
 /// sim-drives' Cia402 register map (cncgw_bus::modbus::Cia402Map::default()).
 const STATUSWORD: u16 = 10;
 const COMM_TIMEOUT: u16 = 23;
-
-
 
 fn tmp(name: &str) -> PathBuf {
     procs::tmp("controller_death", name)
@@ -128,7 +126,8 @@ fn realtime_modbus_drives_stop_when_the_controller_is_killed() {
         bound_ms = bound_ms.max(bound);
         let after: Vec<_> = readings.iter().filter(|r| r.1 == unit && r.0 >= t_kill).collect();
         assert!(after.len() >= 10, "unit {unit}: {} readings after the kill", after.len());
-        let fault = after.iter().find(|r| r.4 == 0x8130).map(|r| ms(r.0)).unwrap_or_else(|| panic!("unit {unit}: no comm-timeout fault: {:?}", after.last()));
+        let fault =
+            after.iter().find(|r| r.4 == 0x8130).map(|r| ms(r.0)).unwrap_or_else(|| panic!("unit {unit}: no comm-timeout fault: {:?}", after.last()));
         let left_oe = after.iter().find(|r| r.2 & 0x6F != 0x27).map(|r| ms(r.0)).unwrap_or(f64::INFINITY);
         let last = after.last().unwrap().3;
         // At rest: within 1 µm (X, Z) or 0.1° (the spindle) of where it ends.

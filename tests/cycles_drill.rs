@@ -33,11 +33,14 @@ fn rows(m: &[Move]) -> Vec<R> {
                 MoveKind::Tap { lead, rpm, .. } => (*lead, *rpm),
                 MoveKind::Dwell { seconds } => (*seconds, 0.0),
                 MoveKind::Aux { value, .. } => (*value, 0.0),
-                MoveKind::Spindle(s) => (s.rpm, match s.dir {
-                    SpindleDir::Cw => 3.0,
-                    SpindleDir::Ccw => 4.0,
-                    SpindleDir::Stop => 5.0,
-                }),
+                MoveKind::Spindle(s) => (
+                    s.rpm,
+                    match s.dir {
+                        SpindleDir::Cw => 3.0,
+                        SpindleDir::Ccw => 4.0,
+                        SpindleDir::Stop => 5.0,
+                    },
+                ),
                 _ => (0.0, 0.0),
             };
             R { kind: m.kind.name(), x: at.0, z: at.1, c: at.2, v, w, step: m.tag.as_ref().map(|t| t.step).unwrap_or(0) }
@@ -50,7 +53,12 @@ fn rows(m: &[Move]) -> Vec<R> {
 fn expect(r: &[R], i: usize, want: &[(&str, f64, f64, f64, f64, u8)]) -> usize {
     for (k, w) in want.iter().enumerate() {
         let g = r.get(i + k).unwrap_or_else(|| panic!("row {} missing, want {w:?}", i + k));
-        let ok = g.kind == w.0 && (g.x - w.1).abs() < 1e-6 && (g.z - w.2).abs() < 1e-6 && (g.c - w.3).abs() < 1e-6 && (g.v - w.4).abs() < 1e-9 && g.step == w.5;
+        let ok = g.kind == w.0
+            && (g.x - w.1).abs() < 1e-6
+            && (g.z - w.2).abs() < 1e-6
+            && (g.c - w.3).abs() < 1e-6
+            && (g.v - w.4).abs() < 1e-9
+            && g.step == w.5;
         assert!(ok, "row {}: want {w:?}, got {g:?}", i + k);
     }
     i + want.len()
@@ -70,11 +78,7 @@ fn g83_manual_example_peck() {
         i = expect(&r, i, &[("rapid", 100.0, -4.0, c, 0.0, 1), ("rapid", 100.0, 0.0, c, 0.0, 2), ("feed", 100.0, -5.0, c, 200.0, 3)]);
         for n in 1..10 {
             let last = -5.0 * n as f64;
-            i = expect(&r, i, &[
-                ("rapid", 100.0, 0.0, c, 0.0, 3),
-                ("rapid", 100.0, last + 1.0, c, 0.0, 3),
-                ("feed", 100.0, last - 5.0, c, 200.0, 3),
-            ]);
+            i = expect(&r, i, &[("rapid", 100.0, 0.0, c, 0.0, 3), ("rapid", 100.0, last + 1.0, c, 0.0, 3), ("feed", 100.0, last - 5.0, c, 200.0, 3)]);
         }
         i = expect(&r, i, &[("dwell", 100.0, -50.0, c, 3.0, 4), ("rapid", 100.0, 0.0, c, 0.0, 5), ("rapid", 100.0, -4.0, c, 0.0, 6)]);
     }
@@ -89,19 +93,23 @@ fn g83_manual_example_peck() {
 fn g83_high_speed_peck() {
     let cfg = cfg_with("5101 = 0\n5113 = 0.5");
     let r = rows(&run_cfg("G98\nG0 X0 Z5\nG83 Z-8 R-3 Q3 P1.5 F100\nG80\n", &cfg));
-    expect(&r, 1, &[
-        ("rapid", 0.0, 2.0, 0.0, 0.0, 2),
-        ("feed", 0.0, -1.0, 0.0, 100.0, 3),
-        ("rapid", 0.0, -0.5, 0.0, 0.0, 3),
-        ("feed", 0.0, -4.0, 0.0, 100.0, 3),
-        ("rapid", 0.0, -3.5, 0.0, 0.0, 3),
-        ("feed", 0.0, -7.0, 0.0, 100.0, 3),
-        ("rapid", 0.0, -6.5, 0.0, 0.0, 3),
-        ("feed", 0.0, -8.0, 0.0, 100.0, 3),
-        ("dwell", 0.0, -8.0, 0.0, 1.5, 4),
-        ("rapid", 0.0, 2.0, 0.0, 0.0, 5),
-        ("rapid", 0.0, 5.0, 0.0, 0.0, 6),
-    ]);
+    expect(
+        &r,
+        1,
+        &[
+            ("rapid", 0.0, 2.0, 0.0, 0.0, 2),
+            ("feed", 0.0, -1.0, 0.0, 100.0, 3),
+            ("rapid", 0.0, -0.5, 0.0, 0.0, 3),
+            ("feed", 0.0, -4.0, 0.0, 100.0, 3),
+            ("rapid", 0.0, -3.5, 0.0, 0.0, 3),
+            ("feed", 0.0, -7.0, 0.0, 100.0, 3),
+            ("rapid", 0.0, -6.5, 0.0, 0.0, 3),
+            ("feed", 0.0, -8.0, 0.0, 100.0, 3),
+            ("dwell", 0.0, -8.0, 0.0, 1.5, 4),
+            ("rapid", 0.0, 2.0, 0.0, 0.0, 5),
+            ("rapid", 0.0, 5.0, 0.0, 0.0, 6),
+        ],
+    );
     assert_eq!(r.len(), 12);
 }
 
@@ -109,12 +117,16 @@ fn g83_high_speed_peck() {
 #[test]
 fn g83_without_q_and_incremental_depth() {
     let r = rows(&run("G98\nG0 X20 Z10\nG83 W-12 R-8 F50\nG80\n"));
-    expect(&r, 1, &[
-        ("rapid", 20.0, 2.0, 0.0, 0.0, 2),
-        ("feed", 20.0, -10.0, 0.0, 50.0, 3),
-        ("rapid", 20.0, 2.0, 0.0, 0.0, 5),
-        ("rapid", 20.0, 10.0, 0.0, 0.0, 6),
-    ]);
+    expect(
+        &r,
+        1,
+        &[
+            ("rapid", 20.0, 2.0, 0.0, 0.0, 2),
+            ("feed", 20.0, -10.0, 0.0, 50.0, 3),
+            ("rapid", 20.0, 2.0, 0.0, 0.0, 5),
+            ("rapid", 20.0, 10.0, 0.0, 0.0, 6),
+        ],
+    );
     assert_eq!(r.len(), 5);
 }
 
@@ -126,25 +138,33 @@ fn g85_and_g89_boring() {
     for (k, x) in [30.0, 40.0].iter().enumerate() {
         // The first hole's ① has no length (the tool is there already): not emitted.
         let i = if k == 0 { 0 } else { 6 };
-        expect(&r, i, &[
-            ("rapid", *x, 5.0, 0.0, 0.0, if k == 0 { 0 } else { 1 }),
-            ("rapid", *x, 2.0, 0.0, 0.0, 2),
-            ("feed", *x, -20.0, 0.0, 80.0, 3),
-            ("dwell", *x, -20.0, 0.0, 2.0, 4),
-            ("feed", *x, 2.0, 0.0, 80.0, 5),
-            ("rapid", *x, 5.0, 0.0, 0.0, 6),
-        ]);
+        expect(
+            &r,
+            i,
+            &[
+                ("rapid", *x, 5.0, 0.0, 0.0, if k == 0 { 0 } else { 1 }),
+                ("rapid", *x, 2.0, 0.0, 0.0, 2),
+                ("feed", *x, -20.0, 0.0, 80.0, 3),
+                ("dwell", *x, -20.0, 0.0, 2.0, 4),
+                ("feed", *x, 2.0, 0.0, 80.0, 5),
+                ("rapid", *x, 5.0, 0.0, 0.0, 6),
+            ],
+        );
     }
     assert_eq!(r.len(), 12);
     // G89: drilling axis X (G18); R is a radius distance: X80 (radius 40) − 5 = radius 35.
     let r = rows(&run("G98\nG0 X80 Z-10 C0\nG89 Z-15 C90 X40 R-5 F60\nG80\n"));
-    expect(&r, 1, &[
-        ("rapid", 80.0, -15.0, 90.0, 0.0, 1),
-        ("rapid", 70.0, -15.0, 90.0, 0.0, 2),
-        ("feed", 40.0, -15.0, 90.0, 60.0, 3),
-        ("feed", 70.0, -15.0, 90.0, 60.0, 5),
-        ("rapid", 80.0, -15.0, 90.0, 0.0, 6),
-    ]);
+    expect(
+        &r,
+        1,
+        &[
+            ("rapid", 80.0, -15.0, 90.0, 0.0, 1),
+            ("rapid", 70.0, -15.0, 90.0, 0.0, 2),
+            ("feed", 40.0, -15.0, 90.0, 60.0, 3),
+            ("feed", 70.0, -15.0, 90.0, 60.0, 5),
+            ("rapid", 80.0, -15.0, 90.0, 0.0, 6),
+        ],
+    );
 }
 
 /// G87 side drilling pecks along X (radius values); K repeats with an incremental C.
@@ -156,16 +176,20 @@ fn g87_side_peck_and_k_repeats() {
     for n in 1..=4 {
         let c = 90.0 * n as f64;
         // R point radius 28 (X56); pecks of 4 mm radius: 24, 20 (bottom).
-        i = expect(&r, i, &[
-            ("rapid", 60.0, -10.0, c, 0.0, 1),
-            ("rapid", 56.0, -10.0, c, 0.0, 2),
-            ("feed", 48.0, -10.0, c, 100.0, 3),
-            ("rapid", 56.0, -10.0, c, 0.0, 3),
-            ("rapid", 49.0, -10.0, c, 0.0, 3),
-            ("feed", 40.0, -10.0, c, 100.0, 3),
-            ("rapid", 56.0, -10.0, c, 0.0, 5),
-            ("rapid", 60.0, -10.0, c, 0.0, 6),
-        ]);
+        i = expect(
+            &r,
+            i,
+            &[
+                ("rapid", 60.0, -10.0, c, 0.0, 1),
+                ("rapid", 56.0, -10.0, c, 0.0, 2),
+                ("feed", 48.0, -10.0, c, 100.0, 3),
+                ("rapid", 56.0, -10.0, c, 0.0, 3),
+                ("rapid", 49.0, -10.0, c, 0.0, 3),
+                ("feed", 40.0, -10.0, c, 100.0, 3),
+                ("rapid", 56.0, -10.0, c, 0.0, 5),
+                ("rapid", 60.0, -10.0, c, 0.0, 6),
+            ],
+        );
     }
     assert_eq!(r.len(), i);
     // K0: the data is stored, nothing drills; the next position block drills.
@@ -196,16 +220,20 @@ fn clamp_m_code() {
     let r = rows(&run_cfg("G98\nG0 X30 Z5 C0\nG83 C45 Z-5 R-2 F100 M68\nC90\nG80\n", &cfg));
     let mut i = 1;
     for c in [45.0, 90.0] {
-        i = expect(&r, i, &[
-            ("rapid", 30.0, 5.0, c, 0.0, 1),
-            ("aux", 30.0, 5.0, c, 68.0, 1),
-            ("rapid", 30.0, 3.0, c, 0.0, 2),
-            ("feed", 30.0, -5.0, c, 100.0, 3),
-            ("rapid", 30.0, 3.0, c, 0.0, 5),
-            ("aux", 30.0, 3.0, c, 69.0, 5),
-            ("dwell", 30.0, 3.0, c, 0.25, 5),
-            ("rapid", 30.0, 5.0, c, 0.0, 6),
-        ]);
+        i = expect(
+            &r,
+            i,
+            &[
+                ("rapid", 30.0, 5.0, c, 0.0, 1),
+                ("aux", 30.0, 5.0, c, 68.0, 1),
+                ("rapid", 30.0, 3.0, c, 0.0, 2),
+                ("feed", 30.0, -5.0, c, 100.0, 3),
+                ("rapid", 30.0, 3.0, c, 0.0, 5),
+                ("aux", 30.0, 3.0, c, 69.0, 5),
+                ("dwell", 30.0, 3.0, c, 0.25, 5),
+                ("rapid", 30.0, 5.0, c, 0.0, 6),
+            ],
+        );
     }
     assert_eq!(r.len(), i);
 }
@@ -317,13 +345,17 @@ fn cycle83_chip_removal() {
     let r = rows(&run("G98 F200\nG0 X0 Z20\nCYCLE83(10,0,2,-12,,,5,2,0.3,0.7,0.5,1,,,,1.5)\n"));
     let mut i = expect(&r, 1, &[("rapid", 0.0, 2.0, 0.0, 0.0, 2), ("feed", 0.0, -5.0, 0.0, 100.0, 3)]);
     for (last, next) in [(5.0, 8.0), (8.0, 10.0), (10.0, 12.0)] {
-        i = expect(&r, i, &[
-            ("dwell", 0.0, -last, 0.0, 0.3, 3),
-            ("rapid", 0.0, 2.0, 0.0, 0.0, 3),
-            ("dwell", 0.0, 2.0, 0.0, 0.7, 3),
-            ("rapid", 0.0, -(last - 1.0), 0.0, 0.0, 3),
-            ("feed", 0.0, -next, 0.0, 200.0, 3),
-        ]);
+        i = expect(
+            &r,
+            i,
+            &[
+                ("dwell", 0.0, -last, 0.0, 0.3, 3),
+                ("rapid", 0.0, 2.0, 0.0, 0.0, 3),
+                ("dwell", 0.0, 2.0, 0.0, 0.7, 3),
+                ("rapid", 0.0, -(last - 1.0), 0.0, 0.0, 3),
+                ("feed", 0.0, -next, 0.0, 200.0, 3),
+            ],
+        );
     }
     i = expect(&r, i, &[("dwell", 0.0, -12.0, 0.0, 1.5, 4), ("rapid", 0.0, 10.0, 0.0, 0.0, 6)]);
     assert_eq!(r.len(), i);
@@ -334,18 +366,22 @@ fn cycle83_chip_removal() {
 #[test]
 fn cycle83_chip_breaking() {
     let r = rows(&run("G98 F150\nG0 X0 Z20\nCYCLE83(10,0,1,-10,,-4,,0,0.2,,,0,,,0.5)\n"));
-    expect(&r, 1, &[
-        ("rapid", 0.0, 1.0, 0.0, 0.0, 2),
-        ("feed", 0.0, -4.0, 0.0, 150.0, 3),
-        ("dwell", 0.0, -4.0, 0.0, 0.2, 3),
-        ("rapid", 0.0, -3.5, 0.0, 0.0, 3),
-        ("feed", 0.0, -8.0, 0.0, 150.0, 3),
-        ("dwell", 0.0, -8.0, 0.0, 0.2, 3),
-        ("rapid", 0.0, -7.5, 0.0, 0.0, 3),
-        ("feed", 0.0, -10.0, 0.0, 150.0, 3),
-        ("dwell", 0.0, -10.0, 0.0, 0.2, 4),
-        ("rapid", 0.0, 10.0, 0.0, 0.0, 6),
-    ]);
+    expect(
+        &r,
+        1,
+        &[
+            ("rapid", 0.0, 1.0, 0.0, 0.0, 2),
+            ("feed", 0.0, -4.0, 0.0, 150.0, 3),
+            ("dwell", 0.0, -4.0, 0.0, 0.2, 3),
+            ("rapid", 0.0, -3.5, 0.0, 0.0, 3),
+            ("feed", 0.0, -8.0, 0.0, 150.0, 3),
+            ("dwell", 0.0, -8.0, 0.0, 0.2, 3),
+            ("rapid", 0.0, -7.5, 0.0, 0.0, 3),
+            ("feed", 0.0, -10.0, 0.0, 150.0, 3),
+            ("dwell", 0.0, -10.0, 0.0, 0.2, 4),
+            ("rapid", 0.0, 10.0, 0.0, 0.0, 6),
+        ],
+    );
     assert_eq!(r.len(), 11);
 }
 
@@ -353,13 +389,17 @@ fn cycle83_chip_breaking() {
 #[test]
 fn cycle85_reaming() {
     let r = rows(&run("G98 F10\nG0 X30 Z20\nCYCLE85(10,0,2,-15,,1,120,300)\n"));
-    expect(&r, 1, &[
-        ("rapid", 30.0, 2.0, 0.0, 0.0, 2),
-        ("feed", 30.0, -15.0, 0.0, 120.0, 3),
-        ("dwell", 30.0, -15.0, 0.0, 1.0, 4),
-        ("feed", 30.0, 2.0, 0.0, 300.0, 5),
-        ("rapid", 30.0, 10.0, 0.0, 0.0, 6),
-    ]);
+    expect(
+        &r,
+        1,
+        &[
+            ("rapid", 30.0, 2.0, 0.0, 0.0, 2),
+            ("feed", 30.0, -15.0, 0.0, 120.0, 3),
+            ("dwell", 30.0, -15.0, 0.0, 1.0, 4),
+            ("feed", 30.0, 2.0, 0.0, 300.0, 5),
+            ("rapid", 30.0, 10.0, 0.0, 0.0, 6),
+        ],
+    );
 }
 
 /// CYCLE86: spindle SDIR on, bore, dwell, oriented stop at POSS (Cs), retract by RPA/RPAP,
@@ -368,22 +408,37 @@ fn cycle85_reaming() {
 #[test]
 fn cycle86_boring_with_and_without_retract() {
     let r = rows(&run("G98 F60 S500\nG0 X40 Z20 C0\nCYCLE86(10,0,2,-20,,0.5,3,-0.5,,0.2,45)\n"));
-    expect(&r, 1, &[
-        ("rapid", 40.0, 2.0, 0.0, 0.0, 2),
-        ("spindle", 40.0, 2.0, 0.0, 500.0, 3),
-        ("feed", 40.0, -20.0, 0.0, 60.0, 3),
-        ("dwell", 40.0, -20.0, 0.0, 0.5, 4),
-        ("spindle", 40.0, -20.0, 0.0, 500.0, 4),
-        ("rapid", 40.0, -20.0, 45.0, 0.0, 4),
-        ("rapid", 39.0, -19.8, 45.0, 0.0, 5),
-        ("rapid", 39.0, 10.0, 45.0, 0.0, 6),
-        ("rapid", 40.0, 10.0, 45.0, 0.0, 6),
-        ("spindle", 40.0, 10.0, 45.0, 500.0, 6),
-    ]);
+    expect(
+        &r,
+        1,
+        &[
+            ("rapid", 40.0, 2.0, 0.0, 0.0, 2),
+            ("spindle", 40.0, 2.0, 0.0, 500.0, 3),
+            ("feed", 40.0, -20.0, 0.0, 60.0, 3),
+            ("dwell", 40.0, -20.0, 0.0, 0.5, 4),
+            ("spindle", 40.0, -20.0, 0.0, 500.0, 4),
+            ("rapid", 40.0, -20.0, 45.0, 0.0, 4),
+            ("rapid", 39.0, -19.8, 45.0, 0.0, 5),
+            ("rapid", 39.0, 10.0, 45.0, 0.0, 6),
+            ("rapid", 40.0, 10.0, 45.0, 0.0, 6),
+            ("spindle", 40.0, 10.0, 45.0, 500.0, 6),
+        ],
+    );
     assert_eq!((r[2].w, r[5].w, r[10].w), (3.0, 5.0, 3.0));
     let r = rows(&run("G98 F60 S500\nG0 X40 Z20 C0\nCYCLE86(10,0,2,-20,,0,4,,,,90)\n"));
     let kinds: Vec<(&str, f64, f64)> = r.iter().skip(1).map(|r| (r.kind, r.z, r.c)).collect();
-    assert_eq!(kinds, [("rapid", 2.0, 0.0), ("spindle", 2.0, 0.0), ("feed", -20.0, 0.0), ("spindle", -20.0, 0.0), ("rapid", -20.0, 90.0), ("rapid", 10.0, 90.0), ("spindle", 10.0, 90.0)]);
+    assert_eq!(
+        kinds,
+        [
+            ("rapid", 2.0, 0.0),
+            ("spindle", 2.0, 0.0),
+            ("feed", -20.0, 0.0),
+            ("spindle", -20.0, 0.0),
+            ("rapid", -20.0, 90.0),
+            ("rapid", 10.0, 90.0),
+            ("spindle", 10.0, 90.0)
+        ]
+    );
 }
 
 /// Bad parameters: SINUMERIK cycle alarm numbers, at the call's line.
@@ -401,7 +456,8 @@ fn siemens_cycle_alarms() {
     assert_eq!(at("CYCLE83(10,0,1,-10,,,3,,,,2)"), (2510, 3));
     assert_eq!(at("CYCLE85(10,0,1,-10,,0,100)"), (61003, 3));
     // Unknown cycles and too many parameters are found before anything runs, all of them.
-    let e = Interpreter::from_source("t.nc", "G0 X0\nCYCLE81(10,0,1,-10,,0,0,0,0,0)\nCYCLE87(10,0,1,-10)\n", &MachineConfig::embedded()).err().unwrap();
+    let e =
+        Interpreter::from_source("t.nc", "G0 X0\nCYCLE81(10,0,1,-10,,0,0,0,0,0)\nCYCLE87(10,0,1,-10)\n", &MachineConfig::embedded()).err().unwrap();
     let got: Vec<(u32, u32, u32)> = e.iter().map(|a| (a.number, a.pos.as_ref().unwrap().line, a.pos.as_ref().unwrap().col)).collect();
     assert_eq!(got, [(12340, 2, 29), (10, 3, 1)]);
     assert_eq!(at("MCALL CYCLE81(10,0,1)"), (61101, 3));

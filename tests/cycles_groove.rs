@@ -89,7 +89,7 @@ fn g75_side_retract_and_partial_last_step() {
 fn g74_alarms() {
     assert_eq!(run_err("G98 G0 X40 Z5\nG74 X20 Z-20 Q5000 F50\n").number, 62); // no Δi
     assert_eq!(run_err("G98 G0 X40 Z5\nG74 X20 Z-20 P3000 F50\n").number, 62); // no Δk
-    // Drilling on the axis: X omitted, no P needed.
+                                                                               // Drilling on the axis: X omitted, no P needed.
     let w = motions(&run("G98 G0 X0 Z5\nG74 R1\nG74 Z-10 Q6.0 F50\n"));
     check(&w[1], "feed", 0.0, -1.0, 50.0, 1);
     check(&w[2], "rapid", 0.0, 0.0, 0.0, 2);

@@ -89,7 +89,8 @@ fn g71_alarms() {
     // Not monotonic in X (a pocket): type I refuses it.
     assert_eq!(num("G71 P1 Q3\nN1 G01 X40\nZ-10\nX30 Z-15\nN3 X60 Z-20\n"), 64);
     assert_eq!(num("G71 P1 Q3\nN1 G01 X40 Z0\nZ-10\nN3 X50 Z-5\n"), 64); // type II, Z turns back (note 4)
-    assert_eq!(run_err("G98 G00 X60 Z2\nG71 P1 Q2 F100\nN1 G01 X50\nN2 Z-10\n").number, 62); // no Δd
+    assert_eq!(run_err("G98 G00 X60 Z2\nG71 P1 Q2 F100\nN1 G01 X50\nN2 Z-10\n").number, 62);
+    // no Δd
 }
 
 #[test]
@@ -149,9 +150,8 @@ G01 X160 F120;\nX80 W20;\nW15;\nN20 X40 W20;\nG70 P10 Q20;\nM30;\n";
     check(&w[i + 6], "rapid", 176.0, 10.0, 0.0, 7);
     i += 7;
     // G70.
-    for (j, (x, z, f)) in [(176.0, -55.0, 0.0), (160.0, -55.0, 120.0), (80.0, -35.0, 120.0), (80.0, -20.0, 120.0), (40.0, 0.0, 120.0)]
-        .iter()
-        .enumerate()
+    for (j, (x, z, f)) in
+        [(176.0, -55.0, 0.0), (160.0, -55.0, 120.0), (80.0, -35.0, 120.0), (80.0, -20.0, 120.0), (40.0, 0.0, 120.0)].iter().enumerate()
     {
         check(&w[i + j], if j == 0 { "rapid" } else { "feed" }, *x, *z, *f, 1);
     }

@@ -1,10 +1,10 @@
 //! Rigid tapping G84/G88 (manual 000), flexible tapping (004 §2.22.3) and G30 P99.
 
 mod cycles_common;
-use cycles_common::{run, run_cfg, run_err};
 use cncgw::canon::{Move, MoveKind, Pos, SpindleDir, TapReturn};
 use cncgw::config::{MachineConfig, EMBEDDED_LATHE};
 use cncgw::interp::Interpreter;
+use cycles_common::{run, run_cfg, run_err};
 
 /// The embedded configuration with `params` (TOML lines) replacing the parameters of the
 /// same numbers.
@@ -30,11 +30,17 @@ fn taps(m: &[Move]) -> Vec<(&'static str, f64, f64, f64, u8)> {
                 MoveKind::Dwell { seconds } => ("dwell", *seconds, 0.0, 0.0, step),
                 MoveKind::Rapid { end } => ("rapid", end.sub(m.work_offset).z, 0.0, 0.0, step),
                 MoveKind::Aux { value, .. } => ("aux", *value, 0.0, 0.0, step),
-                MoveKind::Spindle(s) => ("spindle", s.rpm, 0.0, 0.0, match s.dir {
-                    SpindleDir::Cw => 3,
-                    SpindleDir::Ccw => 4,
-                    SpindleDir::Stop => 5,
-                }),
+                MoveKind::Spindle(s) => (
+                    "spindle",
+                    s.rpm,
+                    0.0,
+                    0.0,
+                    match s.dir {
+                        SpindleDir::Cw => 3,
+                        SpindleDir::Ccw => 4,
+                        SpindleDir::Stop => 5,
+                    },
+                ),
                 k => (k.name(), 0.0, 0.0, 0.0, step),
             }
         })
@@ -58,14 +64,17 @@ fn same(got: &[(&'static str, f64, f64, f64, u8)], want: &[(&str, f64, f64, f64,
 fn standard_rigid_tap_manual_example() {
     let src = "G98;\nG0 X50 Z0;\nM29 S1000;\nG84 Z-50 P3000 F2000;\nG80;\nM30;\n";
     let m = run(src);
-    same(&taps(&m), &[
-        ("rapid", 0.0, 0.0, 0.0, 0),
-        ("aux", 29.0, 0.0, 0.0, 0),
-        ("tap", -50.0, -2.0, 1000.0, 3),
-        ("dwell", 3.0, 0.0, 0.0, 4),
-        ("tap", 0.0, -2.0, 1000.0, 5),
-        ("end", 0.0, 0.0, 0.0, 0),
-    ]);
+    same(
+        &taps(&m),
+        &[
+            ("rapid", 0.0, 0.0, 0.0, 0),
+            ("aux", 29.0, 0.0, 0.0, 0),
+            ("tap", -50.0, -2.0, 1000.0, 3),
+            ("dwell", 3.0, 0.0, 0.0, 4),
+            ("tap", 0.0, -2.0, 1000.0, 5),
+            ("end", 0.0, 0.0, 0.0, 0),
+        ],
+    );
     assert!(m.iter().filter(|m| m.tag.is_some()).all(|m| &*m.tag.as_ref().unwrap().cycle == "G84"));
 }
 
@@ -140,19 +149,22 @@ fn pull_out_override_table() {
 fn g_code_mode_g99_extra_return_and_spindle_restore() {
     let cfg = cfg_with("5200 = 1\n5282 = 2.0\n7013 = 500");
     let m = run_cfg("G99\nM3 S1500\nG0 X0 Z5\nG84 Z-10 R-3 F1.5 S600\nG80\nM30\n", &cfg);
-    same(&taps(&m), &[
-        ("spindle", 1500.0, 0.0, 0.0, 3),
-        ("rapid", 5.0, 0.0, 0.0, 0),
-        ("spindle", 0.0, 0.0, 0.0, 5),
-        ("rapid", 2.0, 0.0, 0.0, 2),
-        ("tap", -10.0, -1.5, 600.0, 3),
-        ("tap", 2.0, -1.5, 600.0, 5),
-        ("tap", 4.0, -1.5, 600.0, 5),
-        ("dwell", 0.5, 0.0, 0.0, 5),
-        ("spindle", 1500.0, 0.0, 0.0, 3),
-        ("rapid", 5.0, 0.0, 0.0, 6),
-        ("end", 0.0, 0.0, 0.0, 0),
-    ]);
+    same(
+        &taps(&m),
+        &[
+            ("spindle", 1500.0, 0.0, 0.0, 3),
+            ("rapid", 5.0, 0.0, 0.0, 0),
+            ("spindle", 0.0, 0.0, 0.0, 5),
+            ("rapid", 2.0, 0.0, 0.0, 2),
+            ("tap", -10.0, -1.5, 600.0, 3),
+            ("tap", 2.0, -1.5, 600.0, 5),
+            ("tap", 4.0, -1.5, 600.0, 5),
+            ("dwell", 0.5, 0.0, 0.0, 5),
+            ("spindle", 1500.0, 0.0, 0.0, 3),
+            ("rapid", 5.0, 0.0, 0.0, 6),
+            ("end", 0.0, 0.0, 0.0, 0),
+        ],
+    );
     // Without S in that mode: PS0200.
     let a = run_err_cfg("G99\nG0 X0 Z5\nG84 Z-10 R-3 F1.5\n", &cfg);
     assert_eq!((a.number, a.pos.as_ref().unwrap().line, a.pos.as_ref().unwrap().col), (200, 3, 1));
@@ -276,15 +288,18 @@ fn k198_and_g30_p99_in_the_program() {
     while let Some(x) = it.next_move().unwrap() {
         m.push(x);
     }
-    same(&taps(&m), &[
-        ("rapid", 5.0, 0.0, 0.0, 0),
-        ("aux", 29.0, 0.0, 0.0, 0),
-        ("rapid", 2.0, 0.0, 0.0, 2),
-        ("tap", -10.0, -2.0, 500.0, 3),
-        ("tap", 2.5, -2.0, 800.0, 5),
-        ("rapid", 2.5, 0.0, 0.0, 0),
-        ("end", 0.0, 0.0, 0.0, 0),
-    ]);
+    same(
+        &taps(&m),
+        &[
+            ("rapid", 5.0, 0.0, 0.0, 0),
+            ("aux", 29.0, 0.0, 0.0, 0),
+            ("rapid", 2.0, 0.0, 0.0, 2),
+            ("tap", -10.0, -2.0, 500.0, 3),
+            ("tap", 2.5, -2.0, 800.0, 5),
+            ("rapid", 2.5, 0.0, 0.0, 0),
+            ("end", 0.0, 0.0, 0.0, 0),
+        ],
+    );
     assert_eq!(&*m[4].tag.as_ref().unwrap().cycle, "G30 P99");
     assert!(it.drill_mode().is_none(), "G30 P99 leaves G80");
     let t = it.last_tap().unwrap();
@@ -426,16 +441,19 @@ fn rigid_tap_runs_in_simulated_time() {
 #[test]
 fn cycle84_issue_example() {
     let m = run("G98 S800\nG0 X0 Z20\nCYCLE84(5,0,2,-15,,0.5,3,,1.5,,500,500)\nM30\n");
-    same(&taps(&m), &[
-        ("rapid", 20.0, 0.0, 0.0, 0),
-        ("rapid", 2.0, 0.0, 0.0, 2),
-        ("tap", -15.0, -1.5, 500.0, 3),
-        ("dwell", 0.5, 0.0, 0.0, 4),
-        ("tap", 2.0, -1.5, 500.0, 5),
-        ("rapid", 5.0, 0.0, 0.0, 6),
-        ("spindle", 800.0, 0.0, 0.0, 3),
-        ("end", 0.0, 0.0, 0.0, 0),
-    ]);
+    same(
+        &taps(&m),
+        &[
+            ("rapid", 20.0, 0.0, 0.0, 0),
+            ("rapid", 2.0, 0.0, 0.0, 2),
+            ("tap", -15.0, -1.5, 500.0, 3),
+            ("dwell", 0.5, 0.0, 0.0, 4),
+            ("tap", 2.0, -1.5, 500.0, 5),
+            ("rapid", 5.0, 0.0, 0.0, 6),
+            ("spindle", 800.0, 0.0, 0.0, 3),
+            ("end", 0.0, 0.0, 0.0, 0),
+        ],
+    );
 }
 
 /// MPIT: the metric coarse table (M10 = 1.5, M6 = 1.0), negative = left hand; SST1 the
@@ -482,17 +500,20 @@ fn cycle84_chip_breaking_and_removal() {
 #[test]
 fn cycle840_with_and_without_encoder() {
     let m = run("G98 F300 S600\nG0 X0 Z20\nCYCLE840(5,0,2,-12,,0.4,0,3,0,,1.25)\n");
-    same(&taps(&m), &[
-        ("rapid", 20.0, 0.0, 0.0, 0),
-        ("rapid", 2.0, 0.0, 0.0, 2),
-        ("spindle", 600.0, 0.0, 0.0, 3),
-        ("feed", 0.0, 0.0, 0.0, 3),
-        ("dwell", 0.4, 0.0, 0.0, 4),
-        ("spindle", 600.0, 0.0, 0.0, 4),
-        ("feed", 0.0, 0.0, 0.0, 5),
-        ("spindle", 600.0, 0.0, 0.0, 3),
-        ("rapid", 5.0, 0.0, 0.0, 6),
-    ]);
+    same(
+        &taps(&m),
+        &[
+            ("rapid", 20.0, 0.0, 0.0, 0),
+            ("rapid", 2.0, 0.0, 0.0, 2),
+            ("spindle", 600.0, 0.0, 0.0, 3),
+            ("feed", 0.0, 0.0, 0.0, 3),
+            ("dwell", 0.4, 0.0, 0.0, 4),
+            ("spindle", 600.0, 0.0, 0.0, 4),
+            ("feed", 0.0, 0.0, 0.0, 5),
+            ("spindle", 600.0, 0.0, 0.0, 3),
+            ("rapid", 5.0, 0.0, 0.0, 6),
+        ],
+    );
     let feeds: Vec<(f64, cncgw::canon::Feed)> =
         m.iter().filter_map(|m| if let MoveKind::Feed { end, feed } = m.kind { Some((end.z, feed)) } else { None }).collect();
     assert_eq!(feeds, [(-12.0, cncgw::canon::Feed::PerRev(1.25)), (2.0, cncgw::canon::Feed::PerRev(1.25))]);
@@ -523,14 +544,17 @@ fn cycle84_840_alarms() {
 fn another_cycle_after_rigid_tapping_ends_it() {
     let m = run("G98\nM3 S1500\nG0 X0 Z5\nM29 S500\nG84 Z-10 F1000\nG83 X10 Z-5 F100\nG80\n");
     let t = taps(&m);
-    same(&t[4..], &[
-        ("tap", -10.0, -2.0, 500.0, 3),
-        ("tap", 5.0, -2.0, 500.0, 5),
-        ("spindle", 1500.0, 0.0, 0.0, 3),
-        ("rapid", 5.0, 0.0, 0.0, 1),
-        ("feed", 0.0, 0.0, 0.0, 3),
-        ("rapid", 5.0, 0.0, 0.0, 5),
-    ]);
+    same(
+        &t[4..],
+        &[
+            ("tap", -10.0, -2.0, 500.0, 3),
+            ("tap", 5.0, -2.0, 500.0, 5),
+            ("spindle", 1500.0, 0.0, 0.0, 3),
+            ("rapid", 5.0, 0.0, 0.0, 1),
+            ("feed", 0.0, 0.0, 0.0, 3),
+            ("rapid", 5.0, 0.0, 0.0, 5),
+        ],
+    );
     assert_eq!(m[6].src.line, 5);
     assert_eq!(t.iter().filter(|r| r.0 == "spindle" && r.1 == 1500.0).count(), 2);
     let a = run_err("G98\nG0 X0 Z5\nM29 S500\nG84 Z-10 F1000\nG83 X10 Z-5 F100\nM29 S400\nS300\nG84 Z-10\n");
@@ -569,7 +593,11 @@ fn flexible_tap_follows_the_spindle_whatever_the_feed_override() {
         let t = flex_run("5275 = 0\n5276 = 0", ovr);
         let dt = 0.002;
         // Every cycle of the in-stroke at full speed moves lead × rpm × dt.
-        let full: Vec<f64> = t.windows(2).filter(|w| w[0].1 > -35.0 && w[1].1 < -5.0 && w[1].1 < w[0].1 && (w[1].0 - 800.0).abs() < 1e-9).map(|w| (w[0].1 - w[1].1) / dt * 60.0).collect();
+        let full: Vec<f64> = t
+            .windows(2)
+            .filter(|w| w[0].1 > -35.0 && w[1].1 < -5.0 && w[1].1 < w[0].1 && (w[1].0 - 800.0).abs() < 1e-9)
+            .map(|w| (w[0].1 - w[1].1) / dt * 60.0)
+            .collect();
         assert!(full.len() > 100, "ovr {ovr}: {} cycles at full speed", full.len());
         for v in full {
             assert!((v - 1600.0).abs() < 1e-6, "ovr {ovr}: {v} mm/min");
@@ -637,7 +665,8 @@ fn spindle_selection_e_and_m24_m27() {
     let v: serde_json::Value = serde_json::from_str(&cncgw::interp::plan::move_to_json(tap)).unwrap();
     assert_eq!((v["kind"].as_str(), v["spindle"].as_u64(), v["rpm"].as_f64()), (Some("tap"), Some(2), Some(500.0)));
     // K198 keeps it for G30 P99.
-    let mut it = Interpreter::from_source("t.nc", "G98\nG0 X0 Z5\nM29 S500\nG84 Z-10 F1000 E3 K198\nG30 P99\nM30\n", &MachineConfig::embedded()).unwrap();
+    let mut it =
+        Interpreter::from_source("t.nc", "G98\nG0 X0 Z5\nM29 S500\nG84 Z-10 F1000 E3 K198\nG30 P99\nM30\n", &MachineConfig::embedded()).unwrap();
     let mut all = Vec::new();
     while let Some(x) = it.next_move().unwrap() {
         all.push(x);
@@ -686,7 +715,9 @@ fn motion_refuses_a_tap_on_a_spindle_the_machine_lacks() {
 #[test]
 fn rigid_cancel_waits_with_no_5200_2() {
     let src = "G98\nG0 X0 Z5\nM29 S500\nG84 Z-10 F1000\nG80\nG0 X20\nM30\n";
-    let waits = |m: &[Move]| m.iter().filter(|m| m.kind == MoveKind::Dwell { seconds: 0.0 }).map(|m| (m.src.line, m.exact_stop, m.tag.is_none())).collect::<Vec<_>>();
+    let waits = |m: &[Move]| {
+        m.iter().filter(|m| m.kind == MoveKind::Dwell { seconds: 0.0 }).map(|m| (m.src.line, m.exact_stop, m.tag.is_none())).collect::<Vec<_>>()
+    };
     assert_eq!(waits(&run_cfg(src, &cfg_with("5200 = 4"))), [(5, true, true)]);
     assert!(waits(&run(src)).is_empty());
     assert!(waits(&run_cfg("G98\nS500 M3\nG0 X0 Z5\nG84 Z-10 F1000\nG80\nM30\n", &cfg_with("5200 = 4"))).is_empty());

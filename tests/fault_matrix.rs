@@ -179,11 +179,7 @@ fn run(program: &str, setup: Setup<'_>) -> Outcome {
     let mut world = SimWorld::new(&wire, sim_drives::SimConfig::from_machine_toml(EMBEDDED_LATHE).unwrap());
     let f: Vec<_> = setup.faults.iter().map(|s| sim_drives::parse_fault(s).unwrap()).collect();
     world.schedule_faults(f);
-    let mut probe = Probe {
-        world,
-        samples: Vec::new(),
-        actions: setup.actions.into_iter().map(|(ms, a)| (ms * MS, Some(a))).collect(),
-    };
+    let mut probe = Probe { world, samples: Vec::new(), actions: setup.actions.into_iter().map(|(ms, a)| (ms * MS, Some(a))).collect() };
     let mut master = CanOpenMaster::new(wire.endpoint(), &cfg);
     wire.set_faults(setup.wire.clone());
     let mut plain = NoIsolation(&mut master);

@@ -18,13 +18,8 @@ fn plan(text: &[u8], extra: &[&str]) -> (i32, String) {
     let dir = tempfile::tempdir().unwrap();
     let f = dir.path().join("p.nc");
     std::fs::write(&f, text).unwrap();
-    let o = Command::new(env!("CARGO_BIN_EXE_cncgw"))
-        .env("CNCGW_STATE_DIR", dir.path().join("state"))
-        .arg("plan")
-        .arg(&f)
-        .args(extra)
-        .output()
-        .unwrap();
+    let o =
+        Command::new(env!("CARGO_BIN_EXE_cncgw")).env("CNCGW_STATE_DIR", dir.path().join("state")).arg("plan").arg(&f).args(extra).output().unwrap();
     (o.status.code().unwrap_or(-1), String::from_utf8_lossy(&o.stderr).into_owned())
 }
 

@@ -85,14 +85,7 @@ fn fillet_arc_shrinks_by_the_radius_and_its_centre_moves_with_the_tip() {
     let m = run("T0101\nG0 X20 Z2\nG42 G1 Z0 F0.1\nZ-10\nG2 X30 Z-15 R5\nG1 X40\nG40 G0 X50\nM30\n");
     assert_pts(
         &pts(&m),
-        &[
-            ("rapid", 20.0, 2.0),
-            ("feed", 20.0, -0.4),
-            ("feed", 20.0, -10.4),
-            ("arc", 29.2, -15.0),
-            ("feed", 39.2, -15.0),
-            ("rapid", 50.0, -15.0),
-        ],
+        &[("rapid", 20.0, 2.0), ("feed", 20.0, -0.4), ("feed", 20.0, -10.4), ("arc", 29.2, -15.0), ("feed", 39.2, -15.0), ("rapid", 50.0, -15.0)],
     );
     let arc = m.iter().find_map(|m| match &m.kind {
         MoveKind::Arc { center, cw, .. } => Some((*center, *cw)),
@@ -156,10 +149,7 @@ fn cycles_keep_their_programmed_points() {
 #[test]
 fn without_a_tool_radius_the_path_is_unchanged() {
     let src = "G0 X16 Z2\nG42 G1 Z0 F0.1\nG1 X20 Z-2\nZ-20\nG40 G0 X30\nM30\n";
-    let m: Vec<Move> = Interpreter::from_source("t.nc", src, &MachineConfig::embedded())
-        .unwrap()
-        .map(|m| m.unwrap())
-        .collect();
+    let m: Vec<Move> = Interpreter::from_source("t.nc", src, &MachineConfig::embedded()).unwrap().map(|m| m.unwrap()).collect();
     assert_pts(&pts(&m), &[("rapid", 16.0, 2.0), ("feed", 16.0, 0.0), ("feed", 20.0, -2.0), ("feed", 20.0, -20.0), ("rapid", 30.0, -20.0)]);
 }
 

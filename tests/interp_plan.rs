@@ -17,11 +17,7 @@ fn keys_sorted(line: &str) -> Vec<String> {
         }
         None => line.to_string(),
     };
-    let raw: Vec<String> = flat
-        .split("\":")
-        .filter_map(|p| p.rsplit('"').next().map(str::to_string))
-        .filter(|k| keys.contains(k))
-        .collect();
+    let raw: Vec<String> = flat.split("\":").filter_map(|p| p.rsplit('"').next().map(str::to_string)).filter(|k| keys.contains(k)).collect();
     raw
 }
 

@@ -214,12 +214,7 @@ fn a_program_whose_path_leaves_the_limits_is_refused_before_the_first_move() {
     assert!(e.message.contains("-410.0000") && e.pos.as_ref().map(|p| p.line) == Some(4), "{e}");
     // `cncgw run` refuses it after enabling the drives, before the first move.
     let prog = if r1.is_err() { &bad } else { &ccw };
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_cncgw"))
-        .arg("run")
-        .arg(prog)
-        .env("CNCGW_STATE_DIR", &dir)
-        .output()
-        .expect("cncgw runs");
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_cncgw")).arg("run").arg(prog).env("CNCGW_STATE_DIR", &dir).output().expect("cncgw runs");
     let err = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(3), "{err}");
     assert!(err.contains("alarm 2301") && err.contains("refused before any motion") && err.contains("nothing was moved"), "{err}");

@@ -4,7 +4,7 @@
 //! these run alone (.config/nextest.toml).
 
 mod procs;
-use procs::{Kill};
+use procs::Kill;
 use std::io::{BufRead, BufReader};
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -13,7 +13,6 @@ use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
 const MODBUS_LATHE: &str = include_str!("../config/lathe-modbus.toml");
-
 
 fn tmp(name: &str) -> PathBuf {
     procs::tmp("modbus_run", name)
@@ -27,7 +26,11 @@ fn tcp_server(machine: &str, stop: &Arc<AtomicBool>) -> sim_drives::modbus::Modb
 
 fn cncgw(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_cncgw"))
-        .env("CNCGW_STATE_DIR", std::env::temp_dir().join(format!("cncgw-test-state-{}", std::process::id()))).args(args).env("CNCGW_STATE_DIR", tmp("state")).output().unwrap()
+        .env("CNCGW_STATE_DIR", std::env::temp_dir().join(format!("cncgw-test-state-{}", std::process::id())))
+        .args(args)
+        .env("CNCGW_STATE_DIR", tmp("state"))
+        .output()
+        .unwrap()
 }
 
 fn text(o: &Output) -> String {
@@ -161,12 +164,8 @@ fn have_socat() -> bool {
 }
 
 fn pty_pair() -> (Kill, String, String) {
-    let mut c = Command::new("socat")
-        .args(["-d", "-d", "pty,raw,echo=0", "pty,raw,echo=0"])
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
+    let mut c =
+        Command::new("socat").args(["-d", "-d", "pty,raw,echo=0", "pty,raw,echo=0"]).stdout(Stdio::null()).stderr(Stdio::piped()).spawn().unwrap();
     let err = c.stderr.take().unwrap();
     let k = Kill(c);
     let mut lines = BufReader::new(err).lines();
@@ -236,10 +235,10 @@ fn mixed_machine_canopen_and_modbus_runs_one_program() {
             assert!(b.exists(), "{} missing: cargo build --workspace --bins", b.display());
             b
         })
-            .args(["--config", &cfg, "--socketcand", &format!("127.0.0.1:{port}")])
-            .stderr(std::fs::File::create(&log).unwrap())
-            .spawn()
-            .unwrap(),
+        .args(["--config", &cfg, "--socketcand", &format!("127.0.0.1:{port}")])
+        .stderr(std::fs::File::create(&log).unwrap())
+        .spawn()
+        .unwrap(),
     );
     let t0 = std::time::Instant::now();
     while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {

@@ -23,19 +23,11 @@ fn write(name: &str, s: &str) -> String {
 }
 
 fn cncgw(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_cncgw"))
-        .env("CNCGW_STATE_DIR", tmp("state"))
-        .args(args)
-        .output()
-        .unwrap()
+    Command::new(env!("CARGO_BIN_EXE_cncgw")).env("CNCGW_STATE_DIR", tmp("state")).args(args).output().unwrap()
 }
 
 fn text(o: &Output) -> String {
-    format!(
-        "{}\n{}",
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr)
-    )
+    format!("{}\n{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr))
 }
 
 fn summary(o: &Output) -> serde_json::Value {
@@ -43,11 +35,7 @@ fn summary(o: &Output) -> serde_json::Value {
 }
 
 /// The drives of `machine` with `quirks(node)` on each, served over TCP on 127.0.0.1.
-fn tcp_server(
-    machine: &str,
-    quirks: impl Fn(u8) -> sim_drives::ModbusQuirks,
-    stop: &Arc<AtomicBool>,
-) -> sim_drives::modbus::ModbusServer {
+fn tcp_server(machine: &str, quirks: impl Fn(u8) -> sim_drives::ModbusQuirks, stop: &Arc<AtomicBool>) -> sim_drives::modbus::ModbusServer {
     let mut cfg = sim_drives::SimConfig::from_machine_toml_bus(machine, Some(true)).unwrap();
     for d in &mut cfg.drives {
         d.modbus_quirks = quirks(d.node);
@@ -57,10 +45,7 @@ fn tcp_server(
 
 /// config/lathe-modbus.toml on `addr`: the shipped link settings and windows.
 fn tcp_machine(addr: SocketAddr) -> String {
-    MODBUS_LATHE.replace(
-        "address = \"127.0.0.1:5020\"",
-        &format!("address = \"{addr}\""),
-    )
+    MODBUS_LATHE.replace("address = \"127.0.0.1:5020\"", &format!("address = \"{addr}\""))
 }
 
 /// X powered up 1.6 mm (16 000 counts) from 0, Z 0.8 mm below: both latch at any time.
@@ -85,10 +70,7 @@ fn run_enables_without_a_jump_on_a_drive_that_latches_targets_any_time() {
     let srv = Arc::new(tcp_server(MODBUS_LATHE, away_from_zero, &flag));
     let cfg = write("latch.toml", &tcp_machine(srv.local_addr().unwrap()));
     // Stand still for 0.3 s, then move X and Z further from 0: any step toward 0 is a jump.
-    let prog = write(
-        "latch.nc",
-        "O1\nG21\nG98\nG04 X0.3\nG01 X5 Z-1.5 F300\nM30\n",
-    );
+    let prog = write("latch.nc", "O1\nG21\nG98\nG04 X0.3\nG01 X5 Z-1.5 F300\nM30\n");
     let (watch, done) = (srv.clone(), Arc::new(AtomicBool::new(false)));
     let d2 = done.clone();
     let sampler = std::thread::spawn(move || {
@@ -106,14 +88,8 @@ fn run_enables_without_a_jump_on_a_drive_that_latches_targets_any_time() {
     let t = text(&o);
     assert!(o.status.success(), "{t}");
     assert_eq!(summary(&o)["at_program_end"], true, "{t}");
-    assert!(
-        x_min >= 16_000 - 2,
-        "X stepped toward its stale target 0: down to {x_min} counts from 16000: {t}"
-    );
-    assert!(
-        z_max <= -8_000 + 2,
-        "Z stepped toward its stale target 0: up to {z_max} counts from -8000: {t}"
-    );
+    assert!(x_min >= 16_000 - 2, "X stepped toward its stale target 0: down to {x_min} counts from 16000: {t}");
+    assert!(z_max <= -8_000 + 2, "Z stepped toward its stale target 0: up to {z_max} counts from -8000: {t}");
     // X5 diameter = 2.5 mm radius, Z-1.5 mm.
     let x = srv.with_drive(1, |d| d.position_unwrapped()).unwrap();
     let z = srv.with_drive(2, |d| d.position_unwrapped()).unwrap();
@@ -129,17 +105,12 @@ fn jog_enables_without_a_jump_on_a_drive_that_latches_targets_any_time() {
     let flag = Arc::new(AtomicBool::new(false));
     let srv = tcp_server(MODBUS_LATHE, away_from_zero, &flag);
     let cfg = write("jog.toml", &tcp_machine(srv.local_addr().unwrap()));
-    let o = cncgw(&[
-        "jog", "z", "--by", "-0.5", "--speed", "300", "--yes", "--config", &cfg,
-    ]);
+    let o = cncgw(&["jog", "z", "--by", "-0.5", "--speed", "300", "--yes", "--config", &cfg]);
     let t = text(&o);
     eprintln!("{t}");
     assert!(o.status.success(), "{t}");
     let z = srv.with_drive(2, |d| d.position_unwrapped()).unwrap();
-    assert!(
-        (z - (-13_000)).abs() <= 1,
-        "z at {z} counts (from -8000, by -0.5 mm): {t}"
-    );
+    assert!((z - (-13_000)).abs() <= 1, "z at {z} counts (from -8000, by -0.5 mm): {t}");
     // X was enabled too (every drive of the machine is) and did not move.
     let x = srv.with_drive(1, |d| d.position_unwrapped()).unwrap();
     assert!((x - 16_000).abs() <= 1, "x at {x} counts: {t}");
@@ -158,29 +129,15 @@ fn fault_reaction_active_stops_the_others_at_once() {
     }
     // Overcurrent on the spindle 2 s after the server starts: Z is cutting by then.
     let fault = sim_drives::parse_fault("3:raise=0x2310@2000").unwrap();
-    let srv = Arc::new(
-        sim_drives::modbus::serve_tcp_with_faults(
-            "127.0.0.1:0".parse().unwrap(),
-            cfg,
-            vec![fault],
-            flag.clone(),
-        )
-        .unwrap(),
-    );
+    let srv = Arc::new(sim_drives::modbus::serve_tcp_with_faults("127.0.0.1:0".parse().unwrap(), cfg, vec![fault], flag.clone()).unwrap());
     let cfg = write("fra.toml", &tcp_machine(srv.local_addr().unwrap()));
-    let prog = write(
-        "fra.nc",
-        "O1\nG21\nG98 G97\nM03 S3000\nG04 X0.6\nG01 Z-60 F1200\nM05\nM30\n",
-    );
+    let prog = write("fra.nc", "O1\nG21\nG98 G97\nM03 S3000\nG04 X0.6\nG01 Z-60 F1200\nM05\nM30\n");
     let (watch, done) = (srv.clone(), Arc::new(AtomicBool::new(false)));
     let d2 = done.clone();
     // Z where the spindle is first seen in Fault Reaction Active.
     let sampler = std::thread::spawn(move || {
         while !d2.load(Ordering::Relaxed) {
-            let (st, z) = (
-                watch.with_drive(3, |d| d.state()).unwrap(),
-                watch.with_drive(2, |d| d.position_unwrapped()).unwrap(),
-            );
+            let (st, z) = (watch.with_drive(3, |d| d.state()).unwrap(), watch.with_drive(2, |d| d.position_unwrapped()).unwrap());
             if st == cncgw_bus::cia402::State::FaultReactionActive {
                 return Some(z);
             }
@@ -190,25 +147,16 @@ fn fault_reaction_active_stops_the_others_at_once() {
     });
     let o = cncgw(&["run", "--json", "--config", &cfg, &prog]);
     done.store(true, Ordering::Relaxed);
-    let z_at_fault = sampler
-        .join()
-        .unwrap()
-        .expect("the spindle never was in Fault Reaction Active");
+    let z_at_fault = sampler.join().unwrap().expect("the spindle never was in Fault Reaction Active");
     let t = text(&o);
     assert_eq!(o.status.code(), Some(3), "{t}");
-    assert!(
-        t.contains("alarm 2010") && t.contains("axis s1") && t.contains("Fault Reaction Active"),
-        "{t}"
-    );
+    assert!(t.contains("alarm 2010") && t.contains("axis s1") && t.contains("Fault Reaction Active"), "{t}");
     let z = srv.with_drive(2, |d| d.position_unwrapped()).unwrap();
     // 20 mm/s: the link cycle, two machine cycles and the braking distance are < 0.5 mm; a
     // fault seen only at Fault is a second of machining later (20 mm).
     let travel = (z - z_at_fault).abs() as f64 / 10_000.0;
     eprintln!("Z travelled {travel:.3} mm after the spindle entered Fault Reaction Active");
-    assert!(
-        travel < 0.5,
-        "Z went on {travel:.3} mm after the spindle faulted: {t}"
-    );
+    assert!(travel < 0.5, "Z went on {travel:.3} mm after the spindle faulted: {t}");
     // The others came to rest under control (no quick stop of every drive).
     assert_eq!(summary(&o)["rest"]["quick_stop"], false, "{t}");
     let srv = Arc::try_unwrap(srv).ok().unwrap();
@@ -220,19 +168,9 @@ fn fault_reaction_active_stops_the_others_at_once() {
 #[test]
 fn busy_answers_are_retried() {
     let flag = Arc::new(AtomicBool::new(false));
-    let srv = tcp_server(
-        MODBUS_LATHE,
-        |n| sim_drives::ModbusQuirks {
-            busy_every: if n == 1 { 7 } else { 0 },
-            ..away_from_zero(n)
-        },
-        &flag,
-    );
+    let srv = tcp_server(MODBUS_LATHE, |n| sim_drives::ModbusQuirks { busy_every: if n == 1 { 7 } else { 0 }, ..away_from_zero(n) }, &flag);
     let cfg = write("busy.toml", &tcp_machine(srv.local_addr().unwrap()));
-    let prog = write(
-        "busy.nc",
-        "O1\nG21\nG98 G97\nM03 S300\nG01 X10 Z-5 F600\nG00 X20 Z2\nM05\nM30\n",
-    );
+    let prog = write("busy.nc", "O1\nG21\nG98 G97\nM03 S300\nG01 X10 Z-5 F600\nG00 X20 Z2\nM05\nM30\n");
     let o = cncgw(&["run", "--json", "--config", &cfg, &prog]);
     let t = text(&o);
     eprintln!("{t}");
@@ -249,11 +187,7 @@ fn busy_answers_are_retried() {
 fn a_link_slower_than_the_machine_cycle_sees_the_drives_at_rest() {
     let flag = Arc::new(AtomicBool::new(false));
     let srv = tcp_server(MODBUS_LATHE, away_from_zero, &flag);
-    let cfg = write(
-        "slowlink.toml",
-        &tcp_machine(srv.local_addr().unwrap())
-            .replace("\ntimeout_ms = 20 ", "\ncycle_ms = 10\ntimeout_ms = 20 "),
-    );
+    let cfg = write("slowlink.toml", &tcp_machine(srv.local_addr().unwrap()).replace("\ntimeout_ms = 20 ", "\ncycle_ms = 10\ntimeout_ms = 20 "));
     let prog = write("slowlink.nc", "O1\nG21\nG98\nG01 X10 Z-5 F600\nM30\n");
     let o = cncgw(&["run", "--json", "--config", &cfg, &prog]);
     let t = text(&o);
@@ -272,40 +206,18 @@ fn a_link_slower_than_the_machine_cycle_sees_the_drives_at_rest() {
 fn an_exception_from_one_drive_stops_the_others_under_control() {
     let flag = Arc::new(AtomicBool::new(false));
     // Z refuses everything from its 1500th request (about 0.7 s into the program).
-    let srv = tcp_server(
-        MODBUS_LATHE,
-        |n| sim_drives::ModbusQuirks {
-            refuse_after: if n == 2 { 1500 } else { 0 },
-            ..away_from_zero(n)
-        },
-        &flag,
-    );
+    let srv = tcp_server(MODBUS_LATHE, |n| sim_drives::ModbusQuirks { refuse_after: if n == 2 { 1500 } else { 0 }, ..away_from_zero(n) }, &flag);
     let cfg = write("refuse.toml", &tcp_machine(srv.local_addr().unwrap()));
     let prog = write("refuse.nc", "O1\nG21\nG98 G97\nG01 X40 Z-40 F600\nM30\n");
     let o = cncgw(&["run", "--json", "--config", &cfg, &prog]);
     let t = text(&o);
     assert_eq!(o.status.code(), Some(3), "{t}");
-    assert!(
-        t.contains("alarm 2201")
-            && t.contains("axis z (unit 2)")
-            && t.contains("exception 0x04 (Server device failure)"),
-        "{t}"
-    );
+    assert!(t.contains("alarm 2201") && t.contains("axis z (unit 2)") && t.contains("exception 0x04 (Server device failure)"), "{t}");
     // X was stopped and switched off by the controller: not faulted by its watchdog.
     std::thread::sleep(std::time::Duration::from_millis(400));
     let (st, code) = srv.with_drive(1, |d| (d.state(), d.error_code())).unwrap();
-    assert_ne!(
-        code,
-        sim_drives::modbus::COMM_TIMEOUT_CODE,
-        "X was left to its comm watchdog: {t}"
-    );
-    assert!(
-        !matches!(
-            st,
-            cncgw_bus::cia402::State::Fault | cncgw_bus::cia402::State::OperationEnabled
-        ),
-        "X is {st:?}: {t}"
-    );
+    assert_ne!(code, sim_drives::modbus::COMM_TIMEOUT_CODE, "X was left to its comm watchdog: {t}");
+    assert!(!matches!(st, cncgw_bus::cia402::State::Fault | cncgw_bus::cia402::State::OperationEnabled), "X is {st:?}: {t}");
     stop(srv, &flag);
 }
 
@@ -315,50 +227,28 @@ fn an_exception_from_one_drive_stops_the_others_under_control() {
 #[test]
 fn pr_drive_away_from_zero_starts_without_a_huge_speed_or_following_error() {
     let flag = Arc::new(AtomicBool::new(false));
-    let machine = MODBUS_LATHE.replace(
-        "node = 1                    # Modbus unit id",
-        "node = 1\nmodbus_profile = \"pr\"",
-    );
+    let machine = MODBUS_LATHE.replace("node = 1                    # Modbus unit id", "node = 1\nmodbus_profile = \"pr\"");
     assert_ne!(machine, MODBUS_LATHE);
     let srv = tcp_server(&machine, away_from_zero, &flag);
     let cfg = write(
         "pr.toml",
-        &tcp_machine(srv.local_addr().unwrap()).replace(
-            "node = 1                    # Modbus unit id",
-            "node = 1\nmodbus_profile = \"pr\"",
-        ),
+        &tcp_machine(srv.local_addr().unwrap()).replace("node = 1                    # Modbus unit id", "node = 1\nmodbus_profile = \"pr\""),
     );
-    let prog = write(
-        "pr.nc",
-        "O1\nG21\nG98\nG04 X0.2\nG01 X10 F300\nG04 X0.5\nM30\n",
-    );
+    let prog = write("pr.nc", "O1\nG21\nG98\nG04 X0.2\nG01 X10 F300\nG04 X0.5\nM30\n");
     let o = cncgw(&["run", "--json", "--config", &cfg, &prog]);
     let t = text(&o);
     assert!(o.status.success(), "{t}");
     let s = summary(&o);
-    let x = s["axes"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .find(|a| a["axis"] == "x")
-        .unwrap()
-        .clone();
+    let x = s["axes"].as_array().unwrap().iter().find(|a| a["axis"] == "x").unwrap().clone();
     let ferr = x["max_following_error"].as_f64().unwrap();
-    assert!(
-        ferr < 0.5,
-        "X's max following error {ferr} mm: the start position (1.6 mm) counted? {t}"
-    );
+    assert!(ferr < 0.5, "X's max following error {ferr} mm: the start position (1.6 mm) counted? {t}");
     stop(srv, &flag);
 }
 
 /// Whether socat is installed; panics when it is missing unless skipping was asked for
 /// (never under CI=true), as tests/modbus_run.rs.
 fn have_socat() -> bool {
-    let found = Command::new("sh")
-        .args(["-c", "command -v socat"])
-        .stdout(std::process::Stdio::null())
-        .status()
-        .is_ok_and(|s| s.success());
+    let found = Command::new("sh").args(["-c", "command -v socat"]).stdout(std::process::Stdio::null()).status().is_ok_and(|s| s.success());
     if found {
         return true;
     }
@@ -395,11 +285,7 @@ fn pty_pair() -> (procs::Kill, String, String) {
 /// X answers one request in `every` 25 ms late: past the shipped 20 ms timeout, so that
 /// answer arrives while the master waits for the next one.
 fn late_x(every: u32) -> impl Fn(u8) -> sim_drives::ModbusQuirks {
-    move |n| sim_drives::ModbusQuirks {
-        late_every: if n == 1 { every } else { 0 },
-        late_ms: 25,
-        ..away_from_zero(n)
-    }
+    move |n| sim_drives::ModbusQuirks { late_every: if n == 1 { every } else { 0 }, late_ms: 25, ..away_from_zero(n) }
 }
 
 const LATE_PROGRAM: &str = "O1\nG21\nG98\nG01 X20 Z-10 F600\nG01 X6 Z-2 F600\nM30\n";
@@ -417,10 +303,7 @@ fn late_answers_are_ridden_through_on_tcp_with_the_shipped_config() {
     let t = text(&o);
     assert!(o.status.success(), "{t}");
     assert_eq!(summary(&o)["at_program_end"], true, "{t}");
-    assert!(
-        !t.contains("(0 failed)"),
-        "no answer was late: the test did not test: {t}"
-    );
+    assert!(!t.contains("(0 failed)"), "no answer was late: the test did not test: {t}");
     let x = srv.with_drive(1, |d| d.position_unwrapped()).unwrap();
     assert!((x - 30_000).abs() <= 1, "x at {x} counts: {t}");
     stop(srv, &flag);
@@ -439,17 +322,9 @@ fn late_answers_are_ridden_through_on_rtu_with_the_shipped_config() {
     for d in &mut cfg.drives {
         d.modbus_quirks = late_x(20)(d.node);
     }
-    let srv = sim_drives::modbus::serve_rtu(
-        &a,
-        sim_drives::modbus::RtuLine::default(),
-        cfg,
-        flag.clone(),
-    )
-    .unwrap();
-    let machine = MODBUS_LATHE.replace(
-        "transport = \"tcp\"\naddress = \"127.0.0.1:5020\"",
-        &format!("transport = \"rtu\"\ndevice = \"{b}\"\nbaud = 115200"),
-    );
+    let srv = sim_drives::modbus::serve_rtu(&a, sim_drives::modbus::RtuLine::default(), cfg, flag.clone()).unwrap();
+    let machine =
+        MODBUS_LATHE.replace("transport = \"tcp\"\naddress = \"127.0.0.1:5020\"", &format!("transport = \"rtu\"\ndevice = \"{b}\"\nbaud = 115200"));
     let cfg = write("late-rtu.toml", &machine);
     let prog = write("late-rtu.nc", LATE_PROGRAM);
     let o = cncgw(&["-v", "run", "--json", "--config", &cfg, &prog]);
@@ -458,10 +333,7 @@ fn late_answers_are_ridden_through_on_rtu_with_the_shipped_config() {
     assert_eq!(summary(&o)["at_program_end"], true, "{t}");
     // The late answers happened (failed transactions); whether their bytes were still in
     // the OS buffer at the next request or already read with the next answer varies.
-    assert!(
-        !t.contains("(0 failed)"),
-        "no answer was late: the test did not test: {t}"
-    );
+    assert!(!t.contains("(0 failed)"), "no answer was late: the test did not test: {t}");
     let x = srv.with_drive(1, |d| d.position_unwrapped()).unwrap();
     assert!((x - 30_000).abs() <= 1, "x at {x} counts: {t}");
     stop(srv, &flag);
@@ -474,11 +346,7 @@ fn a_slow_answer_at_start_up_is_retried() {
     let flag = Arc::new(AtomicBool::new(false));
     let srv = tcp_server(
         MODBUS_LATHE,
-        |n| sim_drives::ModbusQuirks {
-            slow_first: if n == 2 { 1 } else { 0 },
-            slow_first_ms: 30,
-            ..away_from_zero(n)
-        },
+        |n| sim_drives::ModbusQuirks { slow_first: if n == 2 { 1 } else { 0 }, slow_first_ms: 30, ..away_from_zero(n) },
         &flag,
     );
     let cfg = write("slowstart.toml", &tcp_machine(srv.local_addr().unwrap()));
@@ -494,10 +362,7 @@ fn a_slow_answer_at_start_up_is_retried() {
 /// CANopen interface of a machine without CANopen axes).
 #[test]
 fn motion_confirmation_names_the_modbus_link() {
-    let cfg = write(
-        "confirm.toml",
-        &tcp_machine("10.0.0.9:502".parse().unwrap()),
-    );
+    let cfg = write("confirm.toml", &tcp_machine("10.0.0.9:502".parse().unwrap()));
     let o = Command::new(env!("CARGO_BIN_EXE_cncgw"))
         .env("CNCGW_STATE_DIR", tmp("state"))
         .args(["jog", "z", "--by", "1", "--config", &cfg])
@@ -506,10 +371,7 @@ fn motion_confirmation_names_the_modbus_link() {
         .unwrap();
     let t = text(&o);
     assert_eq!(o.status.code(), Some(2), "{t}");
-    assert!(
-        t.contains("can set a motor in motion on Modbus link tcp (Modbus TCP 10.0.0.9:502)"),
-        "{t}"
-    );
+    assert!(t.contains("can set a motor in motion on Modbus link tcp (Modbus TCP 10.0.0.9:502)"), "{t}");
     assert!(!t.contains("on none"), "{t}");
 }
 
@@ -531,11 +393,7 @@ fn drive_status_into_a_closed_pipe_does_not_panic() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!err.contains("panicked"), "{err}");
     use std::os::unix::process::ExitStatusExt;
-    assert!(
-        o.status.success() || o.status.signal() == Some(13),
-        "{:?}: {err}",
-        o.status
-    );
+    assert!(o.status.success() || o.status.signal() == Some(13), "{:?}: {err}", o.status);
     stop(srv, &flag);
 }
 
@@ -545,30 +403,15 @@ fn drive_status_into_a_closed_pipe_does_not_panic() {
 #[test]
 fn a_link_that_falls_behind_its_cycle_is_an_alarm_naming_the_figures() {
     let flag = Arc::new(AtomicBool::new(false));
-    let srv = tcp_server(
-        MODBUS_LATHE,
-        |n| sim_drives::ModbusQuirks {
-            late_after: if n == 2 { 1500 } else { 0 },
-            late_ms: 5,
-            ..away_from_zero(n)
-        },
-        &flag,
-    );
+    let srv =
+        tcp_server(MODBUS_LATHE, |n| sim_drives::ModbusQuirks { late_after: if n == 2 { 1500 } else { 0 }, late_ms: 5, ..away_from_zero(n) }, &flag);
     let cfg = write("behind.toml", &tcp_machine(srv.local_addr().unwrap()));
     let prog = write("behind.nc", "O1\nG21\nG98\nG01 X30 Z-20 F600\nM30\n");
     let o = cncgw(&["run", "--config", &cfg, &prog]);
     let t = text(&o);
     assert_eq!(o.status.code(), Some(3), "{t}");
-    assert!(
-        t.contains(
-            "alarm 2204: Modbus link tcp falls behind its cycle: 10 link cycles in a row took"
-        ),
-        "{t}"
-    );
-    assert!(
-        t.contains("against the 2 ms the drives were told to interpolate over"),
-        "{t}"
-    );
+    assert!(t.contains("alarm 2204: Modbus link tcp falls behind its cycle: 10 link cycles in a row took"), "{t}");
+    assert!(t.contains("against the 2 ms the drives were told to interpolate over"), "{t}");
     stop(srv, &flag);
 }
 
@@ -586,15 +429,9 @@ fn first_part_ends_within_one_count_on_realistic_drives_over_tcp() {
     assert!(o.status.success(), "{t}");
     let s = summary(&o);
     assert_eq!(s["at_program_end"], true, "{t}");
-    eprintln!(
-        "machining {:.1} s",
-        s["machining_time_s"].as_f64().unwrap_or(0.0)
-    );
+    eprintln!("machining {:.1} s", s["machining_time_s"].as_f64().unwrap_or(0.0));
     let x = srv.with_drive(1, |d| d.position_unwrapped()).unwrap();
     let z = srv.with_drive(2, |d| d.position_unwrapped()).unwrap();
-    assert!(
-        (x - 500_000).abs() <= 1 && (z - 50_000).abs() <= 1,
-        "x at {x}, z at {z} counts: {t}"
-    );
+    assert!((x - 500_000).abs() <= 1 && (z - 50_000).abs() <= 1, "x at {x}, z at {z} counts: {t}");
     stop(srv, &flag);
 }

@@ -84,13 +84,7 @@ fn program() -> Vec<Move> {
         p.push(mv(line, MoveKind::Feed { end: Pos::xz(10.0, z - 2.0), feed: Feed::PerRev(0.2) }, false));
         p.push(mv(
             line + 1,
-            MoveKind::Arc {
-                end: Pos::xz(12.0, z - 4.0),
-                center: Pos::xz(12.0, z - 2.0),
-                cw: false,
-                plane: Plane::Zx,
-                feed: Feed::PerRev(0.2),
-            },
+            MoveKind::Arc { end: Pos::xz(12.0, z - 4.0), center: Pos::xz(12.0, z - 2.0), cw: false, plane: Plane::Zx, feed: Feed::PerRev(0.2) },
             false,
         ));
         p.push(mv(line + 2, MoveKind::Feed { end: Pos::xz(10.0, z - 4.0), feed: Feed::PerRev(0.2) }, false));
@@ -99,11 +93,7 @@ fn program() -> Vec<Move> {
     for rpm in [600.0, 900.0] {
         p.push(mv(line, sp(rpm), true));
         p.push(mv(line + 1, MoveKind::Rapid { end: Pos::xz(15.0, 5.0) }, true));
-        p.push(mv(
-            line + 2,
-            MoveKind::Thread { end: Pos::xz(15.0, -20.0), lead: 1.5, start_angle: 0.0, continuous: false, lead_inc: 0.0 },
-            true,
-        ));
+        p.push(mv(line + 2, MoveKind::Thread { end: Pos::xz(15.0, -20.0), lead: 1.5, start_angle: 0.0, continuous: false, lead_inc: 0.0 }, true));
         p.push(mv(line + 3, MoveKind::Rapid { end: Pos::xz(17.0, -20.0) }, true));
         line += 4;
     }

@@ -96,10 +96,8 @@ fn run(src: &str) -> Run {
 /// with the number of reports.
 fn run_counting(src: &str) -> (Run, usize, u32) {
     let cfg = MachineConfig::from_toml("lathe-polygon.toml", POLYGON_LATHE).unwrap();
-    let moves: Vec<_> = Interpreter::from_source("poly.nc", src, &cfg)
-        .unwrap_or_else(|e| panic!("{e:?}"))
-        .map(|m| m.unwrap_or_else(|a| panic!("{a}")))
-        .collect();
+    let moves: Vec<_> =
+        Interpreter::from_source("poly.nc", src, &cfg).unwrap_or_else(|e| panic!("{e:?}")).map(|m| m.unwrap_or_else(|a| panic!("{a}"))).collect();
     let sim_cfg = sim_drives::SimConfig::from_machine_toml(POLYGON_LATHE).unwrap();
     assert_eq!(sim_cfg.drives.len(), 4, "sim-drives emulates the tool spindle too");
     let wire = InprocBus::new();
@@ -158,7 +156,8 @@ fn track(r: &Run, lines: &[u32], skip_s: f64, ratio: f64, phase: f64) -> (f64, u
 /// twice the work spindle in phase, follows the speed change, and stops on G50.2.
 #[test]
 fn tool_spindle_tracks_ratio_and_phase() {
-    let src = "G98\nM03 S600\nG04 X0.5\nG51.2 P1 Q2 R60 S600\nG04 X1.5\nG00 X50 Z2\nG01 Z-10 F300\nG51.2 P1 Q2 R60 S900\nG04 X1.5\nG50.2\nG04 X1.5\nM30\n";
+    let src =
+        "G98\nM03 S600\nG04 X0.5\nG51.2 P1 Q2 R60 S600\nG04 X1.5\nG00 X50 Z2\nG01 Z-10 F300\nG51.2 P1 Q2 R60 S900\nG04 X1.5\nG50.2\nG04 X1.5\nM30\n";
     let r = run(src);
     assert!(r.summary.at_program_end(), "{:#?}", r.summary);
     let (s, t) = (r.drive("s1"), r.drive("s2"));
@@ -167,7 +166,9 @@ fn tool_spindle_tracks_ratio_and_phase() {
     // Through the change to S900 (the work spindle's ramp included) and at S900.
     let (eramp, nramp) = track(&r, &[8, 9], 0.0, 2.0, 60.0);
     let (e900, n900) = track(&r, &[9], 0.5, 2.0, 60.0);
-    eprintln!("polygon P1 Q2 R60: S600 max {e600:.4}° over {n600} cycles; S600→S900 ramp max {eramp:.4}° over {nramp}; S900 max {e900:.4}° over {n900}");
+    eprintln!(
+        "polygon P1 Q2 R60: S600 max {e600:.4}° over {n600} cycles; S600→S900 ramp max {eramp:.4}° over {nramp}; S900 max {e900:.4}° over {n900}"
+    );
     assert!(n600 > 800 && n900 > 400, "{n600} {n900}");
     assert!(e600 < 0.05, "S600: tool spindle off Q/P·θ + R by {e600}°");
     assert!(e900 < 0.05, "S900: tool spindle off by {e900}°");

@@ -20,15 +20,11 @@ fn root() -> PathBuf {
 
 /// A socketcand bus with no emulated drive on it (sim-drives' server as the hub).
 fn hub() -> (String, Arc<AtomicBool>, std::thread::JoinHandle<()>) {
-    let server =
-        sim_drives::socketcand::SocketcandServer::bind("127.0.0.1:0", "can0").expect("bind");
+    let server = sim_drives::socketcand::SocketcandServer::bind("127.0.0.1:0", "can0").expect("bind");
     let addr = server.local_addr().to_string();
     let stop = Arc::new(AtomicBool::new(false));
     let s = stop.clone();
-    let cfg = sim_drives::SimConfig {
-        drives: Vec::new(),
-        step_us: 50,
-    };
+    let cfg = sim_drives::SimConfig { drives: Vec::new(), step_us: 50 };
     let t = std::thread::spawn(move || {
         let _ = sim_drives::run_realtime(Box::new(server), cfg, s);
     });
@@ -58,36 +54,23 @@ fn run(python: &PathBuf, shape: &str) -> Outcome {
     let mut line = String::new();
     out.read_line(&mut line).unwrap();
     assert_eq!(line.trim(), "ready", "python drives did not start");
-    let dir = std::env::temp_dir().join(format!(
-        "cncgw_python_drives_{shape}_{}",
-        std::process::id()
-    ));
+    let dir = std::env::temp_dir().join(format!("cncgw_python_drives_{shape}_{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     // Python handles every SYNC and PDO in one interpreter: a 5 ms cycle, and feedback may
     // be 100 ms old before it counts as lost.
-    let cfg = cncgw::config::EMBEDDED_LATHE
-        .replace("cycle_ms = 2.0", "cycle_ms = 5.0")
-        .replace("feedback_timeout_ms = 20", "feedback_timeout_ms = 100");
+    let cfg =
+        cncgw::config::EMBEDDED_LATHE.replace("cycle_ms = 2.0", "cycle_ms = 5.0").replace("feedback_timeout_ms = 20", "feedback_timeout_ms = 100");
     assert_ne!(cfg, cncgw::config::EMBEDDED_LATHE);
     std::fs::write(dir.join("machine.toml"), cfg).unwrap();
     let started = Instant::now();
     let o = Command::new(env!("CARGO_BIN_EXE_cncgw"))
-        .args([
-            "run",
-            "--batch",
-            "--bus",
-            &format!("socketcand://{addr}/can0"),
-            "--config",
-        ])
+        .args(["run", "--batch", "--bus", &format!("socketcand://{addr}/can0"), "--config"])
         .arg(dir.join("machine.toml"))
         .arg(root().join("examples/first_part.nc"))
         .env("CNCGW_STATE_DIR", &dir)
         .output()
         .expect("run cncgw");
-    eprintln!(
-        "{shape}: cncgw ran {:.1} s",
-        started.elapsed().as_secs_f64()
-    );
+    eprintln!("{shape}: cncgw ran {:.1} s", started.elapsed().as_secs_f64());
     // SAFETY: a signal to our own child process.
     unsafe {
         libc::kill(py.id() as i32, libc::SIGTERM);
@@ -117,23 +100,14 @@ fn run(python: &PathBuf, shape: &str) -> Outcome {
 
 impl Outcome {
     fn enabled_modes(&self, node: usize) -> Vec<i64> {
-        self.drives[node - 1]["enabled_modes"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|v| v.as_i64().unwrap())
-            .collect()
+        self.drives[node - 1]["enabled_modes"].as_array().unwrap().iter().map(|v| v.as_i64().unwrap()).collect()
     }
     fn position(&self, node: usize) -> i64 {
         self.drives[node - 1]["position"].as_i64().unwrap()
     }
     fn nothing_moved(&self) {
         for n in 1..=3 {
-            assert!(
-                self.enabled_modes(n).is_empty(),
-                "node {n} was enabled: {:?}",
-                self.drives
-            );
+            assert!(self.enabled_modes(n).is_empty(), "node {n} was enabled: {:?}", self.drives);
             assert_eq!(self.position(n), 0, "node {n} moved");
         }
     }
@@ -147,45 +121,31 @@ fn realtime_python_drives_shaped_like_commercial_ones() {
         return;
     }
     let python = root().join("build/venv/bin/python");
-    assert!(python.exists(), "{} is missing: run `scripts/install-test-deps.sh --python`, or set CNCGW_SKIP_PYTHON=1 to skip this test on purpose", python.display());
+    assert!(
+        python.exists(),
+        "{} is missing: run `scripts/install-test-deps.sh --python`, or set CNCGW_SKIP_PYTHON=1 to skip this test on purpose",
+        python.display()
+    );
 
     // Boots in profile position, switches 300 ms and 50 SYNCs after being asked.
     let o = run(&python, "pp_boot");
     assert_eq!(o.code, 0, "{}{}", o.stdout, o.stderr);
     for n in 1..=3 {
-        assert_eq!(
-            o.enabled_modes(n),
-            vec![8],
-            "node {n} was enabled in another mode than CSP"
-        );
+        assert_eq!(o.enabled_modes(n), vec![8], "node {n} was enabled in another mode than CSP");
     }
-    assert_eq!(
-        (o.position(1), o.position(2)),
-        (500_000, 50_000),
-        "X100 Z5 on the drives' own positions"
-    );
+    assert_eq!((o.position(1), o.position(2)), (500_000, 50_000), "X100 Z5 on the drives' own positions");
 
     // Positions in µm.
     let o = run(&python, "user_units");
     assert_eq!(o.code, 3, "{}{}", o.stdout, o.stderr);
     assert!(o.stderr.contains("alarm 2006: node 1 (axis x): the drive scales positions: 1 position unit = 10 encoder increments"), "{}", o.stderr);
-    assert!(
-        o.stderr.contains("Set axes.x.counts_per_unit = 1000"),
-        "{}",
-        o.stderr
-    );
+    assert!(o.stderr.contains("Set axes.x.counts_per_unit = 1000"), "{}", o.stderr);
     o.nothing_moved();
 
     // Produces SYNC itself: named, and nothing reset.
     let o = run(&python, "sync_producer");
     assert_eq!(o.code, 3, "{}{}", o.stdout, o.stderr);
-    assert!(
-        o.stderr.contains(
-            "alarm 2007: node 1 (axis x): the drive produces SYNC itself (0x1005 = 0x40000080"
-        ),
-        "{}",
-        o.stderr
-    );
+    assert!(o.stderr.contains("alarm 2007: node 1 (axis x): the drive produces SYNC itself (0x1005 = 0x40000080"), "{}", o.stderr);
     o.nothing_moved();
     assert!(o.drives.iter().all(|d| d["resets"] == 0), "{:?}", o.drives);
 
@@ -193,12 +153,7 @@ fn realtime_python_drives_shaped_like_commercial_ones() {
     // and says the drive will not stop by itself if the controller dies.
     let o = run(&python, "no_1016");
     assert_eq!(o.code, 0, "{}{}", o.stdout, o.stderr);
-    assert!(
-        o.stderr.contains("has no heartbeat consumer (0x1016)")
-            && o.stderr.contains("carries no remote frames"),
-        "{}",
-        o.stderr
-    );
+    assert!(o.stderr.contains("has no heartbeat consumer (0x1016)") && o.stderr.contains("carries no remote frames"), "{}", o.stderr);
     assert_eq!((o.position(1), o.position(2)), (500_000, 50_000));
 
     // No 0x6502: the mode is checked in 0x6061.

@@ -27,9 +27,8 @@ fn a_program_runs_in_real_time_against_drives_on_another_thread() {
     let stop = Arc::new(AtomicBool::new(false));
     let sim_bus: Box<dyn cncgw_bus::CanBus> = Box::new(wire.endpoint());
     let sim_stop = stop.clone();
-    let sim = std::thread::spawn(move || {
-        sim_drives::run_realtime(sim_bus, sim_drives::SimConfig::from_machine_toml(EMBEDDED_LATHE).unwrap(), sim_stop)
-    });
+    let sim =
+        std::thread::spawn(move || sim_drives::run_realtime(sim_bus, sim_drives::SimConfig::from_machine_toml(EMBEDDED_LATHE).unwrap(), sim_stop));
     let mut master = CanOpenMaster::new(wire.endpoint(), &cfg);
     let mut clock = RealClock::new();
     let spindle = cfg.axes.values().position(|a| a.kind == AxisKind::Spindle);

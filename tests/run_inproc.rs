@@ -110,7 +110,11 @@ fn a_syntax_error_is_reported_with_position_and_nothing_moves() {
     let p = dir.join("bad.nc");
     std::fs::write(&p, "G21\nG00 X10 Z5\nG01 Z-5 F100\nG01 X20 Z-10 Q?\nM30\n").unwrap();
     let out = Command::new(env!("CARGO_BIN_EXE_cncgw"))
-        .env("CNCGW_STATE_DIR", std::env::temp_dir().join(format!("cncgw-test-state-{}", std::process::id()))).arg("run").arg(&p).output().unwrap();
+        .env("CNCGW_STATE_DIR", std::env::temp_dir().join(format!("cncgw-test-state-{}", std::process::id())))
+        .arg("run")
+        .arg(&p)
+        .output()
+        .unwrap();
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(2), "{stderr}");
     assert!(stderr.contains("bad.nc:4:"), "{stderr}");
@@ -132,7 +136,6 @@ fn pdo_cob_ids_and_transmission_types_come_from_the_config() {
     assert_eq!(z.object(0x1800, 2), Some(2));
 }
 
-
 /// `run --tools` applies the same table as `plan --tools` (issue 24.1): the axes end where
 /// the plan's last move says, geometry + wear of the offset taken up.
 #[test]
@@ -142,9 +145,8 @@ fn run_and_plan_take_the_same_tool_table() {
     std::fs::write(&prog, "G0 X100 Z5\nT0101\nG0 X20 Z4\nM30\n").unwrap();
     let tools = dir.path().join("tools.toml");
     std::fs::write(&tools, "[1]\nx = -10.0\nz = -5.0\nwear_x = 0.2\nwear_z = 0.1\n").unwrap();
-    let cncgw = |args: &[&str]| {
-        Command::new(env!("CARGO_BIN_EXE_cncgw")).env("CNCGW_STATE_DIR", dir.path().join("state")).args(args).output().unwrap()
-    };
+    let cncgw =
+        |args: &[&str]| Command::new(env!("CARGO_BIN_EXE_cncgw")).env("CNCGW_STATE_DIR", dir.path().join("state")).args(args).output().unwrap();
     let (p, t) = (prog.to_str().unwrap(), tools.to_str().unwrap());
     let plan = cncgw(&["plan", p, "--tools", t]);
     assert!(plan.status.success(), "{}", String::from_utf8_lossy(&plan.stderr));

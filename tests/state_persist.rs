@@ -5,12 +5,7 @@
 use std::process::Command;
 
 fn run(program: &std::path::Path, state: &std::path::Path) -> serde_json::Value {
-    let out = Command::new(env!("CARGO_BIN_EXE_cncgw"))
-        .args(["run", "--json", "--state-dir"])
-        .arg(state)
-        .arg(program)
-        .output()
-        .unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_cncgw")).args(["run", "--json", "--state-dir"]).arg(state).arg(program).output().unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     serde_json::from_slice(&out.stdout).unwrap()
 }
@@ -24,7 +19,8 @@ fn common_variables_persist_between_runs() {
     // Each run moves X to the diameter #500 holds, then counts the part.
     std::fs::write(&prog, "O1\nG00 U0 W0\n#500 = #500 + 2\nG00 X#500 Z0\n#1 = 7\nM30\n").unwrap();
     let state = dir.join("state");
-    let end_x = |v: &serde_json::Value| v["axes"].as_array().unwrap().iter().find(|a| a["axis"] == "x").unwrap()["final_actual_counts"].as_i64().unwrap();
+    let end_x =
+        |v: &serde_json::Value| v["axes"].as_array().unwrap().iter().find(|a| a["axis"] == "x").unwrap()["final_actual_counts"].as_i64().unwrap();
     let first = run(&prog, &state);
     // X2.0 diameter = 1 mm radius = 10 000 counts.
     assert!((end_x(&first) - 10_000).abs() <= 1, "{first}");

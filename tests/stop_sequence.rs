@@ -191,9 +191,12 @@ fn a_program_that_ends_without_m05_stops_the_spindle_before_torque_off() {
 #[test]
 fn a_feed_axis_fault_stops_the_turning_spindle_under_control() {
     let mut s = setup();
-    s.actions.push((1400, Box::new(|w: &mut SimWorld| {
-        w.inject_fault(1, 0x2310);
-    })));
+    s.actions.push((
+        1400,
+        Box::new(|w: &mut SimWorld| {
+            w.inject_fault(1, 0x2310);
+        }),
+    ));
     let o = run(TURNING, s);
     let a = o.result.as_ref().expect_err("the fault stops the run");
     assert_eq!(a.number, 2010, "{a}");

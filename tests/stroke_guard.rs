@@ -106,7 +106,11 @@ fn g23_switches_the_setpoint_check_off() {
 fn a_stroke_check_pushed_directly_takes_effect_in_program_order() {
     // Moves pushed directly: the area switched on after the first feed, which ends inside it
     // (allowed: it was not on yet), so the second feed, leaving and re-entering, stops.
-    let area = StrokeArea { lo: Pos { x: 20.0, y: f64::NEG_INFINITY, z: -50.0, c: 0.0 }, hi: Pos { x: 50.0, y: f64::INFINITY, z: 0.0, c: 0.0 }, outside: false };
+    let area = StrokeArea {
+        lo: Pos { x: 20.0, y: f64::NEG_INFINITY, z: -50.0, c: 0.0 },
+        hi: Pos { x: 50.0, y: f64::INFINITY, z: 0.0, c: 0.0 },
+        outside: false,
+    };
     let extra = [
         mv(10, MoveKind::Feed { end: Pos { x: 100.0, y: 0.0, z: -20.0, c: 0.0 }, feed: Feed::PerMin(3000.0) }),
         mv(11, MoveKind::StrokeCheck { area: Some(area) }),
@@ -122,7 +126,11 @@ fn a_stroke_check_pushed_directly_takes_effect_in_program_order() {
 fn motion_reports_the_switch_when_execution_reaches_it() {
     let cfg = MachineConfig::embedded();
     let mut m = Motion::new(Limits::from_config(&cfg), [100.0, 0.0, -20.0, 0.0]);
-    let area = StrokeArea { lo: Pos { x: 20.0, y: f64::NEG_INFINITY, z: -50.0, c: 0.0 }, hi: Pos { x: 50.0, y: f64::INFINITY, z: 0.0, c: 0.0 }, outside: true };
+    let area = StrokeArea {
+        lo: Pos { x: 20.0, y: f64::NEG_INFINITY, z: -50.0, c: 0.0 },
+        hi: Pos { x: 50.0, y: f64::INFINITY, z: 0.0, c: 0.0 },
+        outside: true,
+    };
     m.push(&mv(1, MoveKind::Feed { end: Pos { x: 90.0, y: 0.0, z: -20.0, c: 0.0 }, feed: Feed::PerMin(600.0) })).unwrap();
     m.push(&mv(2, MoveKind::StrokeCheck { area: Some(area) })).unwrap();
     m.push(&mv(3, MoveKind::StrokeCheck { area: None })).unwrap();
@@ -163,10 +171,7 @@ fn the_interpreter_emits_g22_and_g23_in_order_and_plan_shows_them() {
     assert!(j < i && i < k);
 
     let j = move_to_json(sc[0]);
-    assert_eq!(
-        j,
-        r#"{"file":"p.nc","forbid":"inside","hi":{"x":100.0,"z":0.0},"kind":"stroke_check","line":2,"lo":{"x":40.0,"z":-50.0}}"#
-    );
+    assert_eq!(j, r#"{"file":"p.nc","forbid":"inside","hi":{"x":100.0,"z":0.0},"kind":"stroke_check","line":2,"lo":{"x":40.0,"z":-50.0}}"#);
     assert_eq!(move_to_json(sc[1]), r#"{"file":"p.nc","forbid":"none","kind":"stroke_check","line":4}"#);
     let t = move_to_text(sc[0]);
     assert!(t.contains("stroke_check") && t.contains("forbid inside X40.000…100.000 Z-50.000…0.000"), "{t}");

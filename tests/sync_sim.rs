@@ -5,8 +5,7 @@
 use cncgw::config::MachineConfig;
 use cncgw::motion::{alarms, Limits};
 use cncgw::sync::measure::{
-    g92_1_moves, monitor_stats, phase_spread, rigid_tap_moves, run_moves, tap_sync_error, thread_pass_moves,
-    thread_phases, CuttingLoad,
+    g92_1_moves, monitor_stats, phase_spread, rigid_tap_moves, run_moves, tap_sync_error, thread_pass_moves, thread_phases, CuttingLoad,
 };
 
 fn tap(rpm: f64, correction: bool) -> (f64, f64, f64) {

@@ -40,8 +40,7 @@ fn g88_taps_along_x_locked_to_the_spindle_and_ends_on_r() {
     let cfg = MachineConfig::embedded();
     let src = "G98\nG0 X60 Z-10 C0\nM29 S1000\nG88 Z-12 C90 X30 F1500\nG80\nM30\n";
     let m = moves(src, &cfg);
-    let leads: Vec<f64> =
-        m.iter().filter_map(|m| if let cncgw::canon::MoveKind::Tap { lead, .. } = m.kind { Some(lead) } else { None }).collect();
+    let leads: Vec<f64> = m.iter().filter_map(|m| if let cncgw::canon::MoveKind::Tap { lead, .. } = m.kind { Some(lead) } else { None }).collect();
     assert_eq!(leads, [-1.5, -1.5]);
     let run = run_moves(&cfg, Limits::from_config(&cfg), m, None).unwrap();
     run.result.as_ref().unwrap_or_else(|a| panic!("{a}"));

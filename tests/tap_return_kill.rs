@@ -18,12 +18,12 @@
 //! torn one. Real time: these run alone (.config/nextest.toml).
 
 mod procs;
-use procs::{Kill, bin};
 use cncgw::persist::{TapState, TapStateFile};
 use cncgw_bus::canopen::emcy::Emcy;
 use cncgw_bus::canopen::sdo::{SdoRequest, SdoResponse};
 use cncgw_bus::transport::socketcand::Socketcand;
 use cncgw_bus::{CanBus, CanFrame};
+use procs::{bin, Kill};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -32,8 +32,6 @@ use std::time::{Duration, Instant};
 
 const HEARTBEAT_MS: u64 = 100;
 const CYCLE_MS: f64 = 2.0;
-
-
 
 fn tmp(name: &str) -> PathBuf {
     procs::tmp("tap_return_kill", name)
@@ -219,7 +217,9 @@ fn realtime_sigkill_mid_tap_drives_stop_and_g30_p99_brings_the_tap_out() {
             .filter(|(t, _)| *t >= t_kill)
             .find(|(_, f)| Emcy::decode(f).is_some_and(|(n, e)| n == node && e.code == 0x8130))
             .map(|(t, _)| ms(*t))
-            .unwrap_or_else(|| panic!("node {node}: no EMCY 0x8130 after the kill; sim-drives: {}", std::fs::read_to_string(&sim_log).unwrap_or_default()));
+            .unwrap_or_else(|| {
+                panic!("node {node}: no EMCY 0x8130 after the kill; sim-drives: {}", std::fs::read_to_string(&sim_log).unwrap_or_default())
+            });
         let sw: Vec<_> = reads.iter().filter(|r| r.1 == node && r.2 == 0x6041).collect();
         let left_oe = sw
             .iter()

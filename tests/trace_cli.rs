@@ -41,13 +41,25 @@ fn run_writes_a_trace_of_every_cycle_and_plot_draws_it() {
     assert!(sync.iter().all(|e| e.abs() < 20.0));
     let svg = dir.join("t.svg");
     let st = Command::new(env!("CARGO_BIN_EXE_cncgw"))
-        .env("CNCGW_STATE_DIR", std::env::temp_dir().join(format!("cncgw-test-state-{}", std::process::id()))).args(["trace", "plot"]).arg(&csv).arg("-o").arg(&svg).status().unwrap();
+        .env("CNCGW_STATE_DIR", std::env::temp_dir().join(format!("cncgw-test-state-{}", std::process::id())))
+        .args(["trace", "plot"])
+        .arg(&csv)
+        .arg("-o")
+        .arg(&svg)
+        .status()
+        .unwrap();
     assert!(st.success());
     let text = std::fs::read_to_string(&svg).unwrap();
     assert!(text.starts_with("<svg") && text.contains("<polyline") && text.contains("sync error"));
     // A file that is not a trace is an error, not a panic.
     let st = Command::new(env!("CARGO_BIN_EXE_cncgw"))
-        .env("CNCGW_STATE_DIR", std::env::temp_dir().join(format!("cncgw-test-state-{}", std::process::id()))).args(["trace", "plot"]).arg(&prog).arg("-o").arg(&svg).status().unwrap();
+        .env("CNCGW_STATE_DIR", std::env::temp_dir().join(format!("cncgw-test-state-{}", std::process::id())))
+        .args(["trace", "plot"])
+        .arg(&prog)
+        .arg("-o")
+        .arg(&svg)
+        .status()
+        .unwrap();
     assert_eq!(st.code(), Some(2));
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -57,12 +57,7 @@ fn unsafe_kill(pid: u32) {
 fn start_sim() -> Killer {
     let sim = bin("sim-drives");
     assert!(sim.exists(), "{} is missing: run `cargo build --workspace --bins` first", sim.display());
-    let child = Command::new(&sim)
-        .args(["--bus", "vcan0"])
-        .stdout(Stdio::inherit())
-        .stderr(Stdio::inherit())
-        .spawn()
-        .expect("start sim-drives");
+    let child = Command::new(&sim).args(["--bus", "vcan0"]).stdout(Stdio::inherit()).stderr(Stdio::inherit()).spawn().expect("start sim-drives");
     // Give it time to open the socket; the master resets communication anyway.
     std::thread::sleep(Duration::from_millis(300));
     Killer(child)

@@ -114,10 +114,10 @@ impl State {
         use State::*;
         match target {
             OperationEnabled => match self {
-                SwitchOnDisabled | NotReadyToSwitchOn => cw::SHUTDOWN, // 2
-                ReadyToSwitchOn => cw::SWITCH_ON_CMD,                 // 3
+                SwitchOnDisabled | NotReadyToSwitchOn => cw::SHUTDOWN,     // 2
+                ReadyToSwitchOn => cw::SWITCH_ON_CMD,                      // 3
                 SwitchedOn | OperationEnabled => cw::ENABLE_OPERATION_CMD, // 4
-                QuickStopActive => cw::DISABLE_VOLTAGE,               // 12
+                QuickStopActive => cw::DISABLE_VOLTAGE,                    // 12
                 FaultReactionActive | Fault => cw::DISABLE_VOLTAGE,
             },
             SwitchedOn => match self {

@@ -117,10 +117,7 @@ impl RealClock {
     #[cfg(target_os = "linux")]
     fn sleep_until(&self, t_ns: u64) {
         let abs = self.start_mono.saturating_add(t_ns);
-        let ts = libc::timespec {
-            tv_sec: (abs / 1_000_000_000) as libc::time_t,
-            tv_nsec: (abs % 1_000_000_000) as libc::c_long,
-        };
+        let ts = libc::timespec { tv_sec: (abs / 1_000_000_000) as libc::time_t, tv_nsec: (abs % 1_000_000_000) as libc::c_long };
         // SAFETY: ts lives across the call; with TIMER_ABSTIME the remainder pointer is unused.
         // EINTR or any error just returns: the caller's loop re-checks the time.
         unsafe { libc::clock_nanosleep(libc::CLOCK_MONOTONIC, libc::TIMER_ABSTIME, &ts, std::ptr::null_mut()) };

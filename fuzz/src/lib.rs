@@ -46,8 +46,7 @@ fn cfg() -> &'static MachineConfig {
 fn tools() -> &'static ToolTable {
     static T: OnceLock<ToolTable> = OnceLock::new();
     T.get_or_init(|| {
-        parse_tool_table("tools.toml", "[1]\nx = -10.0\nz = 5.0\nr = 0.4\ntip = 3\n[2]\nx = 2.0\nz = -1.0")
-            .expect("fuzz tool table is valid")
+        parse_tool_table("tools.toml", "[1]\nx = -10.0\nz = 5.0\nr = 0.4\ntip = 3\n[2]\nx = 2.0\nz = -1.0").expect("fuzz tool table is valid")
     })
 }
 
@@ -292,9 +291,7 @@ fn socketcand_stream(data: &[u8]) {
         while let Some(m) = s.next_msg() {
             let t = socketcand::format(&m);
             // What we format must parse back to the same message (socketcand peers echo).
-            if let (socketcand::Msg::Send(_) | socketcand::Msg::Frame(..), Some(body)) =
-                (&m, t.strip_prefix('<').and_then(|t| t.strip_suffix('>')))
-            {
+            if let (socketcand::Msg::Send(_) | socketcand::Msg::Frame(..), Some(body)) = (&m, t.strip_prefix('<').and_then(|t| t.strip_suffix('>'))) {
                 assert_eq!(socketcand::parse(body), m, "{t}");
             }
         }

@@ -37,10 +37,7 @@ struct Result {
 
 /// CPU time of the calling thread, ns (Linux: first field of /proc/thread-self/schedstat).
 fn thread_cpu_ns() -> u64 {
-    std::fs::read_to_string("/proc/thread-self/schedstat")
-        .ok()
-        .and_then(|s| s.split_whitespace().next().and_then(|x| x.parse().ok()))
-        .unwrap_or(0)
+    std::fs::read_to_string("/proc/thread-self/schedstat").ok().and_then(|s| s.split_whitespace().next().and_then(|x| x.parse().ok())).unwrap_or(0)
 }
 
 fn run(n: u8, seconds: f64) -> Result {
@@ -204,7 +201,10 @@ fn main() {
             break;
         }
     }
-    println!("largest N with every cycle's TPDOs within 1 ms: {best} drives{}", if failed { " (a smaller N failed too: stalls from other load; see the table)" } else { "" });
+    println!(
+        "largest N with every cycle's TPDOs within 1 ms: {best} drives{}",
+        if failed { " (a smaller N failed too: stalls from other load; see the table)" } else { "" }
+    );
     println!("largest N with p99 < 1 ms, ≤ 2 % of cycles missed and every drive enabled: {best_p99} drives");
     if !per_drive.is_empty() {
         // The figure a quiet core would give: one core's worth of drives at the measured

@@ -10,7 +10,10 @@ fn main() {
     let dt = 50e-6;
     let axes = [DriveConfig::new(1, DriveKind::Linear, "x", 10000.0), DriveConfig::new(3, DriveKind::Spindle, "s1", 1000.0)];
     println!("Default servo models (control step {} µs)\n", dt * 1e6);
-    println!("{:<8} {:>10} {:>6} {:>9} {:>11} {:>9} {:>11} {:>10} {:>9}", "kind", "J kg·m²", "Kv 1/s", "pos rise", "overshoot", "settle", "final err", "vel rise", "vel ovs");
+    println!(
+        "{:<8} {:>10} {:>6} {:>9} {:>11} {:>9} {:>11} {:>10} {:>9}",
+        "kind", "J kg·m²", "Kv 1/s", "pos rise", "overshoot", "settle", "final err", "vel rise", "vel ovs"
+    );
     for c in &axes {
         let p = &c.physics;
         let step = 1000.0;

@@ -114,7 +114,10 @@ mod tests {
 
     #[test]
     fn lines_are_candump_log_format() {
-        assert_eq!(candump_line(1_700_000_000_123_456, "vcan0", &CanFrame::new(0x181, &[0x27, 0, 0xE8, 3, 0, 0])), "(1700000000.123456) vcan0 181#2700E8030000");
+        assert_eq!(
+            candump_line(1_700_000_000_123_456, "vcan0", &CanFrame::new(0x181, &[0x27, 0, 0xE8, 3, 0, 0])),
+            "(1700000000.123456) vcan0 181#2700E8030000"
+        );
         assert_eq!(candump_line(1_700_000_000_000_001, "can0", &CanFrame::new(0x80, &[])), "(1700000000.000001) can0 080#");
         let ext = CanFrame { id: 0x18FF_0001, extended: true, rtr: false, len: 1, data: [0xAB, 0, 0, 0, 0, 0, 0, 0] };
         assert_eq!(candump_line(5, "can0", &ext), "(0.000005) can0 18FF0001#AB");

@@ -385,7 +385,8 @@ impl DriveConfig {
     /// 0x6092:1 as the drive powers on (see `Shape::feed_constant`).
     pub fn feed_constant(&self) -> u32 {
         match self.shape.feed_constant {
-            0 => (self.counts_per_rev as u64 * self.shape.gear_ratio[1] as u64 / self.shape.gear_ratio[0].max(1) as u64).clamp(1, u32::MAX as u64) as u32,
+            0 => (self.counts_per_rev as u64 * self.shape.gear_ratio[1] as u64 / self.shape.gear_ratio[0].max(1) as u64).clamp(1, u32::MAX as u64)
+                as u32,
             f => f,
         }
     }
@@ -447,7 +448,10 @@ impl DriveConfig {
         }
         for w in regs.windows(2) {
             if w[0].1 as u32 + w[0].2 as u32 > w[1].1 as u32 {
-                return Err(format!("{map}.{} = {} overlaps {map}.{} = {} ({} registers): give each its own addresses", w[1].0, w[1].1, w[0].0, w[0].1, w[0].2));
+                return Err(format!(
+                    "{map}.{} = {} overlaps {map}.{} = {} ({} registers): give each its own addresses",
+                    w[1].0, w[1].1, w[0].0, w[0].1, w[0].2
+                ));
             }
         }
         Ok(())
@@ -544,7 +548,10 @@ impl SimConfig {
                 let mut links: Vec<&str> = self.drives.iter().filter_map(|d| d.modbus_link.as_deref()).collect();
                 links.sort();
                 links.dedup();
-                return Err(format!("no drive is on Modbus link {l:?} (links in the config: {})", if links.is_empty() { "none".into() } else { links.join(", ") }));
+                return Err(format!(
+                    "no drive is on Modbus link {l:?} (links in the config: {})",
+                    if links.is_empty() { "none".into() } else { links.join(", ") }
+                ));
             }
         }
         Ok(SimConfig { drives, step_us: self.step_us })
@@ -839,10 +846,25 @@ impl SimConfig {
                 let h = &d.shape;
                 let modes: Vec<String> = h.modes.iter().map(|m| m.to_string()).collect();
                 s.push_str("[drive.shape]\n");
-                s.push_str(&format!("boot_mode = {}\nmode_switch_ms = {:?}\nmode_switch_syncs = {}\nmodes = [{}]\n", h.boot_mode, h.mode_switch_ms, h.mode_switch_syncs, modes.join(", ")));
-                s.push_str(&format!("supported_modes_object = {}\nfactor_group = {}\nfeed_constant = {}\n", h.supported_modes_object, h.factor_group, h.feed_constant));
-                s.push_str(&format!("gear_ratio = [{}, {}]\npolarity = 0x{:02X}\nfeedback_factor = {:?}\n", h.gear_ratio[0], h.gear_ratio[1], h.polarity, h.feedback_factor));
-                s.push_str(&format!("sync_producer = {}\nsync_period_us = {}\nheartbeat_consumer = {}\n", h.sync_producer, h.sync_period_us, h.heartbeat_consumer));
+                s.push_str(&format!(
+                    "boot_mode = {}\nmode_switch_ms = {:?}\nmode_switch_syncs = {}\nmodes = [{}]\n",
+                    h.boot_mode,
+                    h.mode_switch_ms,
+                    h.mode_switch_syncs,
+                    modes.join(", ")
+                ));
+                s.push_str(&format!(
+                    "supported_modes_object = {}\nfactor_group = {}\nfeed_constant = {}\n",
+                    h.supported_modes_object, h.factor_group, h.feed_constant
+                ));
+                s.push_str(&format!(
+                    "gear_ratio = [{}, {}]\npolarity = 0x{:02X}\nfeedback_factor = {:?}\n",
+                    h.gear_ratio[0], h.gear_ratio[1], h.polarity, h.feedback_factor
+                ));
+                s.push_str(&format!(
+                    "sync_producer = {}\nsync_period_us = {}\nheartbeat_consumer = {}\n",
+                    h.sync_producer, h.sync_period_us, h.heartbeat_consumer
+                ));
                 s.push_str(&format!("node_guarding = {}\nabort_connection_object = {}\n", h.node_guarding, h.abort_connection_object));
                 s.push_str(&format!("mode_display_pdo = {}\nidentity_subs = {}\n", h.mode_display_pdo, h.identity_subs));
             }

@@ -1190,14 +1190,12 @@ impl SimDrive {
                         return Err(abort::INVALID_VALUE);
                     }
                 }
-                2
-                    if !(0..=240).contains(&x) && x != 254 && x != 255 => {
-                        return Err(abort::INVALID_VALUE);
-                    }
-                3
-                    if self.pdo_valid(index) => {
-                        return Err(abort::INVALID_VALUE); // inhibit time only while invalid
-                    }
+                2 if !(0..=240).contains(&x) && x != 254 && x != 255 => {
+                    return Err(abort::INVALID_VALUE);
+                }
+                3 if self.pdo_valid(index) => {
+                    return Err(abort::INVALID_VALUE); // inhibit time only while invalid
+                }
                 _ => {}
             }
         } else if rpdo_map.contains(&index) || tpdo_map.contains(&index) {
@@ -1240,14 +1238,12 @@ impl SimDrive {
                         }
                     }
                 }
-                ix::COB_ID_SYNC
-                    if ((x & 0x4000_0000 != 0 && !self.cfg.shape.sync_producer) || x & 0x2000_0000 != 0) => {
-                        return Err(abort::INVALID_VALUE); // not a SYNC producer; 11-bit only
-                    }
-                ix::COB_ID_EMCY
-                    if x & 0x2000_0000 != 0 => {
-                        return Err(abort::INVALID_VALUE);
-                    }
+                ix::COB_ID_SYNC if ((x & 0x4000_0000 != 0 && !self.cfg.shape.sync_producer) || x & 0x2000_0000 != 0) => {
+                    return Err(abort::INVALID_VALUE); // not a SYNC producer; 11-bit only
+                }
+                ix::COB_ID_EMCY if x & 0x2000_0000 != 0 => {
+                    return Err(abort::INVALID_VALUE);
+                }
                 ix::MODES_OF_OPERATION if !self.mode_allowed(x) => return Err(abort::INVALID_VALUE),
                 ix::HOMING_METHOD if !profile::HOMING_METHODS.contains(&x) => return Err(abort::INVALID_VALUE),
                 ix::SOFTWARE_LIMIT => {
@@ -1428,9 +1424,7 @@ impl SimDrive {
     fn start_stop(&mut self, why: StopWhy, brake: Brake, now: u64) {
         // Halt and quick stop ramp the demand down from where it is; a fault reaction
         // (the demand may be what went wrong) from where the motor is.
-        let (pos, v) = if why != StopWhy::FaultReaction
-            && self.state == State::OperationEnabled
-            && self.mode_display() != mode::CYCLIC_SYNC_VELOCITY
+        let (pos, v) = if why != StopWhy::FaultReaction && self.state == State::OperationEnabled && self.mode_display() != mode::CYCLIC_SYNC_VELOCITY
         {
             (self.demand, self.vff)
         } else {
@@ -1472,9 +1466,7 @@ impl SimDrive {
             }
             State::FaultReactionActive => match self.brake_for(self.od.int(FAULT_REACTION, 0)) {
                 None => new = State::Fault,
-                Some(b) if matches!(old, State::OperationEnabled | State::QuickStopActive) => {
-                    self.start_stop(StopWhy::FaultReaction, b, now)
-                }
+                Some(b) if matches!(old, State::OperationEnabled | State::QuickStopActive) => self.start_stop(StopWhy::FaultReaction, b, now),
                 Some(_) => new = State::Fault, // power stage was off: nothing to stop
             },
             State::SwitchOnDisabled if old == State::Fault && self.lasting_fault().is_some() => {

@@ -16,7 +16,11 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 #[derive(Parser)]
-#[command(name = "sim-drives", version, about = "Emulated CiA 402 servo and spindle amplifiers on CANopen, in real time (SocketCAN or a socketcand server)")]
+#[command(
+    name = "sim-drives",
+    version,
+    about = "Emulated CiA 402 servo and spindle amplifiers on CANopen, in real time (SocketCAN or a socketcand server)"
+)]
 struct Args {
     /// CAN interface to serve, e.g. vcan0 or can0 (ignored with --socketcand).
     #[arg(long, default_value = "vcan0")]

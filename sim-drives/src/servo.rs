@@ -222,7 +222,8 @@ impl Servo {
         let half_gap = x.backlash_deg.to_radians() * 0.5;
         let twist = (self.pos - self.load_pos) * self.rad_per_count;
         let engaged = twist.abs() > half_gap;
-        let spring = if engaged { x.load_stiffness * (twist - half_gap * twist.signum()) + x.load_damping * (self.omega - self.load_omega) } else { 0.0 };
+        let spring =
+            if engaged { x.load_stiffness * (twist - half_gap * twist.signum()) + x.load_damping * (self.omega - self.load_omega) } else { 0.0 };
         let jm = self.p.motor_inertia;
         self.omega += (self.torque - spring) / jm * dt;
         self.pos += self.omega * dt / self.rad_per_count;

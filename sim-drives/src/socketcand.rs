@@ -120,12 +120,8 @@ impl SocketcandServer {
             reason: format!("cannot listen on {addr}: {e} (is another sim-drives running there? pick another port)"),
         })?;
         let local = listener.local_addr().map_err(|e| BusError::Open { bus: name.clone(), reason: e.to_string() })?;
-        let shared = Arc::new(Shared {
-            bus: bus_name.to_string(),
-            clients: Mutex::new(Vec::new()),
-            stop: AtomicBool::new(false),
-            dropped: AtomicU64::new(0),
-        });
+        let shared =
+            Arc::new(Shared { bus: bus_name.to_string(), clients: Mutex::new(Vec::new()), stop: AtomicBool::new(false), dropped: AtomicU64::new(0) });
         let (tx, rx) = mpsc::sync_channel(RX_CAP);
         let sh = shared.clone();
         std::thread::Builder::new()
@@ -236,7 +232,9 @@ fn client_loop(id: u64, mut reader: TcpStream, sh: Arc<Shared>, tx: mpsc::SyncSe
                     sh.broadcast(&f, t, Some(id));
                     true
                 }
-                Msg::Send(_) | Msg::RawMode | Msg::Open(_) => sh.reply(id, &Msg::Error("wrong state: send < open BUS > then < rawmode > first".into())),
+                Msg::Send(_) | Msg::RawMode | Msg::Open(_) => {
+                    sh.reply(id, &Msg::Error("wrong state: send < open BUS > then < rawmode > first".into()))
+                }
                 other => {
                     tracing::debug!(client = id, "socketcand: ignored {other:?}");
                     true

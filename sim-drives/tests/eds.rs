@@ -51,7 +51,11 @@ fn the_eds_describes_the_emulated_drive() {
                     wrong.push(format!("{here}: AccessType {}, the drive has {:?}", e.access.name(), o.access));
                 }
                 if o.pdo != e.pdo_mapping {
-                    wrong.push(format!("{here}: PDOMapping {}, the drive {}", e.pdo_mapping as u8, if o.pdo { "maps it" } else { "does not map it" }));
+                    wrong.push(format!(
+                        "{here}: PDOMapping {}, the drive {}",
+                        e.pdo_mapping as u8,
+                        if o.pdo { "maps it" } else { "does not map it" }
+                    ));
                 }
                 assert!(data_type_size(e.data_type).is_some() || matches!(o.dtype, DType::Str | DType::Domain));
             }

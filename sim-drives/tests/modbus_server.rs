@@ -255,10 +255,7 @@ async fn exceptions_cia402() {
     // 0x02: a read-only register, alone or inside a write.
     assert_eq!(exception(c.write_single_register(M.statusword, 0).await).await, ExceptionCode::IllegalDataAddress);
     assert_eq!(exception(c.write_multiple_registers(M.position_actual, &[0, 0]).await).await, ExceptionCode::IllegalDataAddress);
-    assert_eq!(
-        exception(c.read_write_multiple_registers(M.statusword, 1, M.mode_display, &[8]).await).await,
-        ExceptionCode::IllegalDataAddress
-    );
+    assert_eq!(exception(c.read_write_multiple_registers(M.statusword, 1, M.mode_display, &[8]).await).await, ExceptionCode::IllegalDataAddress);
     // 0x03: values out of range; nothing of a refused request takes effect.
     assert_eq!(exception(c.write_single_register(M.mode, 3).await).await, ExceptionCode::IllegalDataValue);
     assert_eq!(exception(c.write_single_register(M.mode, 0).await).await, ExceptionCode::IllegalDataValue);
@@ -464,7 +461,8 @@ async fn scheduled_faults_show_in_the_error_code() {
     let stop = Arc::new(AtomicBool::new(false));
     let fault = sim_drives::parse_fault("2:raise=0x4310@300").unwrap();
     let t0 = Instant::now();
-    let srv = sim_drives::modbus::serve_tcp_with_faults("127.0.0.1:0".parse().unwrap(), SimConfig::default_lathe(), vec![fault], stop.clone()).unwrap();
+    let srv =
+        sim_drives::modbus::serve_tcp_with_faults("127.0.0.1:0".parse().unwrap(), SimConfig::default_lathe(), vec![fault], stop.clone()).unwrap();
     let s = Srv { addr: srv.local_addr().unwrap(), srv: Some(srv), stop };
     let mut c = s.client(2).await;
     let before = read(&mut c, M.error_code, 1).await[0];

@@ -325,7 +325,8 @@ fn rtu_pty_transaction_rate() {
     use tokio_modbus::prelude::*;
     let (_socat, a, b) = pty_pair();
     let stop = Arc::new(AtomicBool::new(false));
-    let srv = sim_drives::modbus::serve_rtu(&a, sim_drives::modbus::RtuLine::default(), sim_drives::SimConfig::default_lathe(), stop.clone()).expect("serve_rtu");
+    let srv = sim_drives::modbus::serve_rtu(&a, sim_drives::modbus::RtuLine::default(), sim_drives::SimConfig::default_lathe(), stop.clone())
+        .expect("serve_rtu");
     let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
     rt.block_on(async {
         let port = tokio_serial::SerialStream::open(&tokio_serial::new(&b, 115_200)).expect("open pty");
@@ -340,7 +341,11 @@ fn rtu_pty_transaction_rate() {
                 }
             }
             let dt = t0.elapsed().as_secs_f64();
-            println!("Modbus RTU over a pty, {units} drive(s): {:.0} FC23 transactions/s, one cycle {:.3} ms", (n * units as u32) as f64 / dt, dt / n as f64 * 1e3);
+            println!(
+                "Modbus RTU over a pty, {units} drive(s): {:.0} FC23 transactions/s, one cycle {:.3} ms",
+                (n * units as u32) as f64 / dt,
+                dt / n as f64 * 1e3
+            );
         }
     });
     stop.store(true, Ordering::Relaxed);

@@ -25,12 +25,8 @@ pub fn parse_int(s: &str) -> Result<i64, String> {
         Some(b) => (true, b.to_string()),
         None => (false, t.clone()),
     };
-    let v = if let Some(h) = body.strip_prefix("0x").or_else(|| body.strip_prefix("0X")) {
-        i64::from_str_radix(h, 16)
-    } else {
-        body.parse::<i64>()
-    }
-    .map_err(|_| format!("`{s}` is not a number (write decimal, or hex as 0x…)"))?;
+    let v = if let Some(h) = body.strip_prefix("0x").or_else(|| body.strip_prefix("0X")) { i64::from_str_radix(h, 16) } else { body.parse::<i64>() }
+        .map_err(|_| format!("`{s}` is not a number (write decimal, or hex as 0x…)"))?;
     Ok(if neg { -v } else { v })
 }
 
@@ -192,10 +188,7 @@ fn guess(data: &[u8]) -> (String, serde_json::Value, &'static str) {
 /// An SDO failure in words, with what to do next.
 pub fn sdo_error_text(e: &SdoError) -> String {
     match e {
-        SdoError::Abort { code } => format!(
-            "SDO abort 0x{code:08X} {}",
-            cncgw_bus::canopen::sdo::abort_text(*code)
-        ),
+        SdoError::Abort { code } => format!("SDO abort 0x{code:08X} {}", cncgw_bus::canopen::sdo::abort_text(*code)),
         SdoError::Timeout { .. } => format!("{e}; `cncgw scan` lists the nodes that answer"),
         SdoError::Protocol(_) => e.to_string(),
     }
@@ -418,15 +411,7 @@ fn probe_json(p: &DriveProbe) -> serde_json::Value {
 
 // ---------------------------------------------------------------- sdo
 
-pub fn sdo_read(
-    machine: &MachineArgs,
-    node: u8,
-    index: u16,
-    sub: u8,
-    ty: Option<SdoType>,
-    out: Option<&std::path::Path>,
-    json_out: bool,
-) -> i32 {
+pub fn sdo_read(machine: &MachineArgs, node: u8, index: u16, sub: u8, ty: Option<SdoType>, out: Option<&std::path::Path>, json_out: bool) -> i32 {
     let mut s = match open(machine) {
         Ok(s) => s,
         Err(c) => return c,
@@ -456,10 +441,7 @@ pub fn sdo_read(
         None => guess(&data),
     };
     if json_out {
-        println!(
-            "{}",
-            json!({"node": node, "index": format!("0x{index:04X}"), "sub": sub, "type": tname, "value": val, "raw": hex(&data)})
-        );
+        println!("{}", json!({"node": node, "index": format!("0x{index:04X}"), "sub": sub, "type": tname, "value": val, "raw": hex(&data)}));
     } else {
         let saved = out.map(|p| format!(" → {}", p.display())).unwrap_or_default();
         println!("node {node} 0x{index:04X}:{sub:02X} = {text} [{tname}]{saved}");
@@ -497,9 +479,7 @@ pub fn sdo_write(machine: &MachineArgs, node: u8, index: u16, sub: u8, ty: SdoTy
         },
     };
     if moves_iron(index) && bus != "inproc" && !yes {
-        eprintln!(
-            "error: writing 0x{index:04X} can set a motor in motion on {bus}; make sure the axis is free to move, then repeat with --yes"
-        );
+        eprintln!("error: writing 0x{index:04X} can set a motor in motion on {bus}; make sure the axis is free to move, then repeat with --yes");
         return EXIT_USAGE;
     }
     let mut s = match open(machine) {
@@ -616,10 +596,8 @@ pub fn nmt(machine: &MachineArgs, cmd: NmtArg, target: u8, json_out: bool) -> i3
         out.push((n, st, confirmed, note));
     }
     if json_out {
-        let arr: Vec<_> = out
-            .iter()
-            .map(|(n, st, c, note)| json!({"node": n, "nmt_state": st.map(|_| nmt_name(*st)), "confirmed": c, "note": note}))
-            .collect();
+        let arr: Vec<_> =
+            out.iter().map(|(n, st, c, note)| json!({"node": n, "nmt_state": st.map(|_| nmt_name(*st)), "confirmed": c, "note": note})).collect();
         println!("{}", json!({"command": format!("{cmd:?}").to_lowercase(), "target": target, "nodes": arr}));
     } else {
         let who = if target == 0 { "all nodes".to_string() } else { format!("node {target}") };
@@ -952,10 +930,7 @@ pub fn od_dump(machine: &MachineArgs, node: u8, eds_path: Option<&std::path::Pat
                 })
             })
             .collect();
-        println!(
-            "{}",
-            json!({"node": node, "eds": eds.as_ref().map(|e| e.file.clone()), "objects": arr, "disagreements": bad})
-        );
+        println!("{}", json!({"node": node, "eds": eds.as_ref().map(|e| e.file.clone()), "objects": arr, "disagreements": bad}));
     } else {
         println!(
             "node {node}: {} object(s){} on {}",

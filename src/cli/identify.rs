@@ -35,7 +35,10 @@ pub struct IdentifyArgs {
 /// The excitation program of `axis`: speed steps that show the delay, the jump of the
 /// feed-forward and the lag's time constant.
 fn program(cfg: &MachineConfig, axis: &str, travel: f64, start: crate::canon::Pos) -> Result<String, String> {
-    let a = cfg.axes.get(axis).ok_or_else(|| format!("no axis {axis} in the configuration (axes: {})", cfg.axes.keys().cloned().collect::<Vec<_>>().join(", ")))?;
+    let a = cfg
+        .axes
+        .get(axis)
+        .ok_or_else(|| format!("no axis {axis} in the configuration (axes: {})", cfg.axes.keys().cloned().collect::<Vec<_>>().join(", ")))?;
     match a.kind {
         AxisKind::Spindle => {
             let s = |f: f64| (a.max_speed * f).round();
@@ -57,9 +60,13 @@ fn program(cfg: &MachineConfig, axis: &str, travel: f64, start: crate::canon::Po
             let room_minus = a.min.is_none_or(|lo| at - travel >= lo);
             let room_plus = a.max.is_none_or(|hi| at + travel <= hi);
             let sign = match (room_minus, room_plus) {
-                (true, _) => 1.0,   // minus first (the moves are -d, +d)
+                (true, _) => 1.0, // minus first (the moves are -d, +d)
                 (false, true) => -1.0,
-                _ => return Err(format!("axis {axis} at {at:.3} has not {travel} mm of room on either side within its travel: jog it or give a smaller --travel")),
+                _ => {
+                    return Err(format!(
+                        "axis {axis} at {at:.3} has not {travel} mm of room on either side within its travel: jog it or give a smaller --travel"
+                    ))
+                }
             };
             // X is programmed as a diameter: U moves twice the radius.
             let d = sign * if axis == "x" { travel * 2.0 } else { travel };
@@ -88,7 +95,8 @@ pub fn run(machine: &MachineArgs, a: &IdentifyArgs) -> i32 {
         }
     };
     // Checked before anything is opened (from the travel's middle: the start is not known).
-    if let Err(e) = program(&cfg, &a.axis, a.travel, crate::canon::Pos::ZERO).or_else(|e| if e.contains("room") { Ok(String::new()) } else { Err(e) }) {
+    if let Err(e) = program(&cfg, &a.axis, a.travel, crate::canon::Pos::ZERO).or_else(|e| if e.contains("room") { Ok(String::new()) } else { Err(e) })
+    {
         eprintln!("error: {e}");
         return exit::INPUT;
     }
@@ -130,7 +138,10 @@ pub fn run(machine: &MachineArgs, a: &IdentifyArgs) -> i32 {
     };
     report(&cfg, &a.axis, &r, a.json);
     if r.vaf < 0.9 {
-        eprintln!("warning: the model accounts for only {:.1} % of the motion: the drive is not first-order-like (check its tuning, a resonance, friction)", r.vaf * 100.0);
+        eprintln!(
+            "warning: the model accounts for only {:.1} % of the motion: the drive is not first-order-like (check its tuning, a resonance, friction)",
+            r.vaf * 100.0
+        );
     }
     exit::OK
 }
@@ -172,7 +183,10 @@ fn report(cfg: &MachineConfig, axis: &str, r: &Response, json: bool) {
     }
     println!("# cncgw identify {axis}: {} cycles of {} ms, the model accounts for {:.1} % of the motion", r.samples, dt * 1e3, r.vaf * 100.0);
     println!("[axes.{axis}.response]");
-    println!("delay_cycles = {:.1}        # set-point to the first change of the actual position the controller reads", r.delay_cycles as f64 + r.delay_fraction);
+    println!(
+        "delay_cycles = {:.1}        # set-point to the first change of the actual position the controller reads",
+        r.delay_cycles as f64 + r.delay_fraction
+    );
     println!("feed_forward = {:.4}      # share of a speed change that follows at once", r.feed_forward);
     println!("time_constant_ms = {:.2}   # of the rest (≈ 1/Kv)", r.time_constant_s * 1e3);
     println!(

@@ -125,7 +125,8 @@ fn acquire(path: &Path) -> Result<Lock, String> {
     if let Some(d) = path.parent() {
         std::fs::create_dir_all(d).map_err(|e| format!("cannot create {}: {e}", d.display()))?;
     }
-    let mut f = File::options().read(true).write(true).create(true).truncate(false).open(path).map_err(|e| format!("cannot open {}: {e}", path.display()))?;
+    let mut f =
+        File::options().read(true).write(true).create(true).truncate(false).open(path).map_err(|e| format!("cannot open {}: {e}", path.display()))?;
     // SAFETY: flock on a descriptor we own; released when it is closed.
     let r = unsafe { libc::flock(f.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) };
     if r != 0 {

@@ -114,9 +114,21 @@ pub const ENVIRONMENT: &[(&str, &str)] = &[
 /// The files cncgw reads or writes.
 pub const FILES: &[(&str, &str)] = &[
     ("config/lathe.toml", "The embedded default machine configuration (--config FILE for another; `cncgw config check` validates one)."),
-    ("$CNCGW_STATE_DIR/MACHINE@PLACE.common-vars.toml", "Common variables #401–#600 kept through power-off, per machine name and place (inproc, or the bus), written atomically."),
-    ("$CNCGW_STATE_DIR/MACHINE@PLACE.tap-state.toml", "Where the tool is while it is in a rigidly tapped hole (G30 P99 brings it out after a stop), written atomically."),
-    ("$CNCGW_STATE_DIR/MACHINE@PLACE.alarms.jsonl", "Every alarm `run` met on that machine and place, one JSON line each (`cncgw alarms` shows them)."),
+    (
+        "$CNCGW_STATE_DIR/MACHINE@PLACE.common-vars.toml",
+        "Common variables #401–#600 kept through power-off, per machine name and place (inproc, or the bus), written atomically.",
+    ),
+    (
+        "$CNCGW_STATE_DIR/MACHINE@PLACE.tap-state.toml",
+        "Where the tool is while it is in a rigidly tapped hole (G30 P99 brings it out after a stop), written atomically.",
+    ),
+    (
+        "$CNCGW_STATE_DIR/MACHINE@PLACE.alarms.jsonl",
+        "Every alarm `run` met on that machine and place, one JSON line each (`cncgw alarms` shows them).",
+    ),
     ("$CNCGW_STATE_DIR/MACHINE@PLACE.lock", "Held while a run uses that state: a second controller on it is refused (alarm 2405)."),
-    ("/run/lock/cncgw-bus-NAME.lock", "Held by every command that moves or writes the drives of bus NAME: a second controller on the bus is refused (alarm 2404)."),
+    (
+        "/run/lock/cncgw-bus-NAME.lock",
+        "Held by every command that moves or writes the drives of bus NAME: a second controller on the bus is refused (alarm 2404).",
+    ),
 ];

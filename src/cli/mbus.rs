@@ -10,8 +10,8 @@
 
 use super::MachineArgs;
 use crate::config::{AxisConfig, LinkTransport, MachineConfig, ModbusLink, Parity};
-use cncgw_bus::cia402::State;
 use crate::drives::modbus::link::exception_words;
+use cncgw_bus::cia402::State;
 use cncgw_bus::modbus::{pr_status, Profile};
 use std::time::{Duration, Instant};
 use tokio_modbus::client::{Context, Reader, Writer};
@@ -68,7 +68,8 @@ pub fn parse_bus_url(bus: &str) -> Option<Result<ModbusLink, String>> {
 pub fn apply_bus(cfg: &mut MachineConfig, bus: Option<&str>) -> Result<bool, String> {
     let Some(link) = bus.and_then(parse_bus_url) else { return Ok(false) };
     let mut link = link?;
-    let given: Vec<&str> = bus.and_then(|b| b.split_once('?')).map(|(_, q)| q.split('&').map(|kv| kv.split('=').next().unwrap_or("")).collect()).unwrap_or_default();
+    let given: Vec<&str> =
+        bus.and_then(|b| b.split_once('?')).map(|(_, q)| q.split('&').map(|kv| kv.split('=').next().unwrap_or("")).collect()).unwrap_or_default();
     let base = cfg.modbus.iter().find(|(n, _)| cfg.axes.values().any(|a| a.modbus.as_deref() == Some(n.as_str()))).map(|(_, l)| l.clone());
     match base {
         Some(b) => {
@@ -132,7 +133,11 @@ impl Client {
             LinkTransport::Tcp => {
                 let addr = link.address.clone().unwrap_or_default();
                 let ctx = rt.block_on(async {
-                    let sa = tokio::net::lookup_host(&addr).await.map_err(|e| format!("{addr}: {e}"))?.next().ok_or_else(|| format!("{addr}: no address"))?;
+                    let sa = tokio::net::lookup_host(&addr)
+                        .await
+                        .map_err(|e| format!("{addr}: {e}"))?
+                        .next()
+                        .ok_or_else(|| format!("{addr}: no address"))?;
                     let s = tokio::time::timeout(timeout.max(Duration::from_millis(500)), tokio::net::TcpStream::connect(sa))
                         .await
                         .map_err(|_| format!("{addr}: connection timed out"))?
@@ -151,7 +156,9 @@ impl Client {
                 };
                 let stop = if link.stop_bits == 2 { tokio_serial::StopBits::Two } else { tokio_serial::StopBits::One };
                 let b = tokio_serial::new(&dev, link.baud).parity(parity).stop_bits(stop).data_bits(tokio_serial::DataBits::Eight);
-                let port = rt.block_on(async { tokio_serial::SerialStream::open(&b) }).map_err(|e| format!("{dev}: {e}; check the device and its permissions (dialout group)"))?;
+                let port = rt
+                    .block_on(async { tokio_serial::SerialStream::open(&b) })
+                    .map_err(|e| format!("{dev}: {e}; check the device and its permissions (dialout group)"))?;
                 (tokio_modbus::client::rtu::attach(port), format!("Modbus RTU {dev} {} baud", link.baud))
             }
         };
@@ -403,7 +410,12 @@ pub fn drive_status(cfg: &MachineConfig, unit: u8, json: bool) -> i32 {
         match d.pr_status {
             Some(st) => {
                 println!("status register = 0x{st:04X} (PR profile), as a CiA 402 statusword 0x{:04X}", d.statusword);
-                for (bit, n) in [(pr_status::FAULT, "alarm latched"), (pr_status::ENABLED, "servo on"), (pr_status::RUNNING, "PR move running"), (pr_status::IN_POSITION, "in position")] {
+                for (bit, n) in [
+                    (pr_status::FAULT, "alarm latched"),
+                    (pr_status::ENABLED, "servo on"),
+                    (pr_status::RUNNING, "PR move running"),
+                    (pr_status::IN_POSITION, "in position"),
+                ] {
                     println!("  {} {n}", if st & bit != 0 { "1" } else { "0" });
                 }
             }
@@ -455,7 +467,10 @@ pub fn monitor(cfg: &MachineConfig, seconds: Option<f64>, once: bool, interval_m
     let mut out = std::io::stdout();
     loop {
         let tick = Instant::now();
-        let mut lines = vec![format!("{:>4} {:<5} {:<6} {:<22} {:<26} {:>12} {:>12} {:>8}", "unit", "axis", "sw", "state", "mode", "position", "velocity/s", "error")];
+        let mut lines = vec![format!(
+            "{:>4} {:<5} {:<6} {:<22} {:<26} {:>12} {:>12} {:>8}",
+            "unit", "axis", "sw", "state", "mode", "position", "velocity/s", "error"
+        )];
         let mut arr = Vec::new();
         for (name, a, link) in axes(cfg) {
             let Some(c) = cl.get_mut(&link) else { continue };
@@ -591,7 +606,11 @@ fn cia402_enable(c: &mut Client, a: &AxisConfig, timeout: Duration) -> Result<St
         match enabler.step(sw) {
             cncgw_bus::cia402::EnableProgress::Enabled => return Ok(st),
             cncgw_bus::cia402::EnableProgress::ResetFailed => {
-                return Err(format!("unit {unit} stays in Fault after {} fault resets: {}; clear the cause first", cncgw_bus::cia402::Enabler::MAX_RESETS, error_text(c, a)))
+                return Err(format!(
+                    "unit {unit} stays in Fault after {} fault resets: {}; clear the cause first",
+                    cncgw_bus::cia402::Enabler::MAX_RESETS,
+                    error_text(c, a)
+                ))
             }
             cncgw_bus::cia402::EnableProgress::Walking => {}
         }
@@ -630,7 +649,11 @@ fn power_walk(c: &mut Client, a: &AxisConfig, goal: super::service::PowerGoal) -
                     match st {
                         State::SwitchOnDisabled | State::NotReadyToSwitchOn => return Ok((first, st)),
                         State::Fault | State::FaultReactionActive => {
-                            return Err(format!("unit {unit} is in {} (no torque): {}; `cncgw drive fault-reset {unit}` clears it once the cause is gone", st.name(), error_text(c, a)))
+                            return Err(format!(
+                                "unit {unit} is in {} (no torque): {}; `cncgw drive fault-reset {unit}` clears it once the cause is gone",
+                                st.name(),
+                                error_text(c, a)
+                            ))
                         }
                         _ if Instant::now() >= end => return Err(stuck(st)),
                         _ => c.write(unit, m.controlword, &[cw::DISABLE_VOLTAGE])?,
@@ -679,7 +702,10 @@ fn power_walk(c: &mut Client, a: &AxisConfig, goal: super::service::PowerGoal) -
                     return Ok((first, st));
                 }
                 if fault && goal == PowerGoal::Disable {
-                    return Err(format!("unit {unit} is in alarm (no torque): {}; `cncgw drive fault-reset {unit}` clears it once the cause is gone", error_text(c, a)));
+                    return Err(format!(
+                        "unit {unit} is in alarm (no torque): {}; `cncgw drive fault-reset {unit}` clears it once the cause is gone",
+                        error_text(c, a)
+                    ));
                 }
                 if Instant::now() >= end {
                     return Err(match goal {
@@ -690,7 +716,11 @@ fn power_walk(c: &mut Client, a: &AxisConfig, goal: super::service::PowerGoal) -
                 if fault {
                     resets += 1;
                     if goal == PowerGoal::Enable && resets > cncgw_bus::cia402::Enabler::MAX_RESETS {
-                        return Err(format!("unit {unit} stays in alarm after {} alarm resets: {}; clear the cause first", resets - 1, error_text(c, a)));
+                        return Err(format!(
+                            "unit {unit} stays in alarm after {} alarm resets: {}; clear the cause first",
+                            resets - 1,
+                            error_text(c, a)
+                        ));
                     }
                     c.write(unit, m.alarm_reset, &[1])?;
                 } else {
@@ -792,7 +822,10 @@ pub fn drive_home(cfg: &MachineConfig, unit: u8, h: &super::service::HomeArgs) -
             cia402_enable(c, &a, WALK_TIMEOUT)?;
             let shown = c.read(unit, m.mode_display, 1)?[0] as i16 as i8;
             if shown != mode::HOMING {
-                return Err(format!("unit {unit} shows mode {shown} ({}) after mode 6 was written: it has no homing mode over Modbus", mode::name(shown)));
+                return Err(format!(
+                    "unit {unit} shows mode {shown} ({}) after mode 6 was written: it has no homing mode over Modbus",
+                    mode::name(shown)
+                ));
             }
             c.write(unit, m.controlword, &[cw::ENABLE_OPERATION_CMD])?;
             c.write(unit, m.controlword, &[cw::ENABLE_OPERATION_CMD | cw::OMS4])?;
@@ -800,16 +833,26 @@ pub fn drive_home(cfg: &MachineConfig, unit: u8, h: &super::service::HomeArgs) -
             loop {
                 let s = c.read(unit, m.statusword, 1)?[0];
                 if s & sw::OMS13 != 0 {
-                    return Err(format!("unit {unit} reports a homing error (statusword 0x{s:04X} bit 13): {}; check the drive's homing method and switches", error_text(c, &a)));
+                    return Err(format!(
+                        "unit {unit} reports a homing error (statusword 0x{s:04X} bit 13): {}; check the drive's homing method and switches",
+                        error_text(c, &a)
+                    ));
                 }
                 if State::from_statusword(s) != State::OperationEnabled {
-                    return Err(format!("unit {unit} left Operation Enabled while homing ({}): {}", State::from_statusword(s).name(), error_text(c, &a)));
+                    return Err(format!(
+                        "unit {unit} left Operation Enabled while homing ({}): {}",
+                        State::from_statusword(s).name(),
+                        error_text(c, &a)
+                    ));
                 }
                 if s & sw::OMS12 != 0 && s & sw::TARGET_REACHED != 0 {
                     return Ok(());
                 }
                 if Instant::now() >= end {
-                    return Err(format!("unit {unit} not homed within {:.1} s (statusword 0x{s:04X}); give more --timeout or check the drive's homing method", timeout.as_secs_f64()));
+                    return Err(format!(
+                        "unit {unit} not homed within {:.1} s (statusword 0x{s:04X}); give more --timeout or check the drive's homing method",
+                        timeout.as_secs_f64()
+                    ));
                 }
                 std::thread::sleep(STEP);
             }
@@ -848,7 +891,10 @@ mod tests {
         let l = parse_bus_url("modbus-tcp://drive.local").unwrap().unwrap();
         assert_eq!(l.address.as_deref(), Some("drive.local:502"));
         let l = parse_bus_url("modbus-rtu:///dev/ttyUSB0?baud=57600&parity=even&stop_bits=2").unwrap().unwrap();
-        assert_eq!((l.transport, l.device.as_deref(), l.baud, l.parity, l.stop_bits), (LinkTransport::Rtu, Some("/dev/ttyUSB0"), 57600, Parity::Even, 2));
+        assert_eq!(
+            (l.transport, l.device.as_deref(), l.baud, l.parity, l.stop_bits),
+            (LinkTransport::Rtu, Some("/dev/ttyUSB0"), 57600, Parity::Even, 2)
+        );
         let l = parse_bus_url("modbus-rtu:///dev/ttyUSB0").unwrap().unwrap();
         assert_eq!((l.baud, l.parity), (115_200, Parity::None));
         assert!(parse_bus_url("modbus-rtu:///dev/ttyUSB0?baud=fast").unwrap().unwrap_err().contains("not a number"));

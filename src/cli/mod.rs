@@ -5,8 +5,8 @@ pub mod exit;
 pub mod identify;
 pub mod lock;
 pub mod manpages;
-pub mod plan;
 pub mod mbus;
+pub mod plan;
 pub mod preview;
 pub mod run;
 pub mod service;
@@ -581,13 +581,17 @@ pub fn open_raw(
         let ep: Box<dyn cncgw_bus::CanBus> = Box::new(wire.endpoint());
         Ok((ep, Box::new(world), bus, "inproc (embedded emulated drives, simulated time)".into()))
     } else if let Some((addr, iface)) = socketcand::parse_url(&bus) {
-        let sock = socketcand::Socketcand::connect(&addr, &iface)
-            .map_err(|e| format!("{e}; is socketcand running at {addr}?"))?;
+        let sock = socketcand::Socketcand::connect(&addr, &iface).map_err(|e| format!("{e}; is socketcand running at {addr}?"))?;
         let what = format!("{bus} (socketcand over TCP, real time)");
         Ok((Box::new(sock), Box::new(cncgw_bus::RealClock::new()), bus, what))
     } else {
-        let sock = cncgw_bus::transport::socketcan::SocketCan::open(&bus)
-            .map_err(|e| if e.to_string().contains("no SocketCAN") { e.to_string() } else { format!("{e}; or use --bus inproc for the embedded emulated drives") })?;
+        let sock = cncgw_bus::transport::socketcan::SocketCan::open(&bus).map_err(|e| {
+            if e.to_string().contains("no SocketCAN") {
+                e.to_string()
+            } else {
+                format!("{e}; or use --bus inproc for the embedded emulated drives")
+            }
+        })?;
         let what = format!("{bus} (SocketCAN, real time)");
         Ok((Box::new(sock), Box::new(cncgw_bus::RealClock::new()), bus, what))
     }
@@ -596,11 +600,7 @@ pub fn open_raw(
 /// The emulated drives of the embedded machine: sim-drives' defaults for the machine's
 /// CANopen axes, or the sim-drives configuration `sim` (another drive model), which must
 /// have the machine's CANopen nodes with the same kinds and counts per unit.
-pub fn emulated_drives(
-    cfg: &crate::config::MachineConfig,
-    cfg_text: &str,
-    sim: Option<&std::path::Path>,
-) -> Result<sim_drives::SimConfig, String> {
+pub fn emulated_drives(cfg: &crate::config::MachineConfig, cfg_text: &str, sim: Option<&std::path::Path>) -> Result<sim_drives::SimConfig, String> {
     let Some(path) = sim else {
         return sim_drives::SimConfig::from_machine_toml_bus(cfg_text, Some(false)).map_err(|e| format!("emulated drives: {e}"));
     };
@@ -614,14 +614,21 @@ pub fn emulated_drives(
         };
         match sim_cfg.drives.iter().find(|d| d.node == a.node) {
             None => errs.push(format!("axis {name} is node {} in the machine, and no drive of the emulated ones has that node", a.node)),
-            Some(d) if d.kind != kind => errs.push(format!("axis {name} (node {}) is {:?} in the machine, {} in the emulated drives", a.node, a.kind, d.kind.name())),
+            Some(d) if d.kind != kind => {
+                errs.push(format!("axis {name} (node {}) is {:?} in the machine, {} in the emulated drives", a.node, a.kind, d.kind.name()))
+            }
             // A drive with a `[drive.shape]` is there to try start-up's own checks (its
             // scaling against counts_per_unit is alarm 2006, with the value that matches):
             // its scaling is not refused here.
-            Some(d) if d.shape == sim_drives::config::Shape::default() && (d.counts_per_unit - a.counts_per_unit).abs() > 1e-9 * a.counts_per_unit.abs().max(1.0) => errs.push(format!(
-                "axis {name} (node {}): counts_per_unit {} in the machine, {} in the emulated drives",
-                a.node, a.counts_per_unit, d.counts_per_unit
-            )),
+            Some(d)
+                if d.shape == sim_drives::config::Shape::default()
+                    && (d.counts_per_unit - a.counts_per_unit).abs() > 1e-9 * a.counts_per_unit.abs().max(1.0) =>
+            {
+                errs.push(format!(
+                    "axis {name} (node {}): counts_per_unit {} in the machine, {} in the emulated drives",
+                    a.node, a.counts_per_unit, d.counts_per_unit
+                ))
+            }
             Some(_) => {}
         }
     }
@@ -657,10 +664,7 @@ pub fn open_session(m: &MachineArgs) -> Result<Session, String> {
 }
 
 /// `open_session` with the bus endpoint passed through `wrap` first (frame counting…).
-pub fn open_session_with(
-    m: &MachineArgs,
-    wrap: impl FnOnce(Box<dyn cncgw_bus::CanBus>) -> Box<dyn cncgw_bus::CanBus>,
-) -> Result<Session, String> {
+pub fn open_session_with(m: &MachineArgs, wrap: impl FnOnce(Box<dyn cncgw_bus::CanBus>) -> Box<dyn cncgw_bus::CanBus>) -> Result<Session, String> {
     let (cfg, text) = load_config(m.config.as_deref())?;
     let (ep, mut clock, bus, what) = open_raw(&cfg, &text, m.bus.as_deref(), m.sim_config.as_deref())?;
     let mut master = crate::drives::canopen::CanOpenMaster::new(wrap(ep), &cfg);
@@ -711,8 +715,7 @@ fn init_tracing(verbose: u8) {
         1 => "info",
         _ => "debug",
     };
-    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default));
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default));
     // Colour only for a person at a terminal: not into files, pipes or the journal, and never
     // with NO_COLOR set (no-color.org).
     use std::io::IsTerminal;
@@ -759,9 +762,7 @@ pub fn main() -> i32 {
         Command::Identify { args, machine } => identify::run(&machine, &args),
         Command::Trace(TraceCmd::Plot { file, out }) => run::trace_plot(&file, &out),
         Command::Plan(args) => plan::plan(&args),
-        Command::Preview { program, out, config, width, tools } => {
-            preview::preview(&program, config.as_deref(), tools.as_deref(), &out, width)
-        }
+        Command::Preview { program, out, config, width, tools } => preview::preview(&program, config.as_deref(), tools.as_deref(), &out, width),
         Command::Config(ConfigCmd::Check { file, json }) => config_check(file.as_deref(), json),
         Command::Scan { machine, json } => diag::scan(&machine, json),
         Command::Sdo(SdoCmd::Read { node, index, sub, r#type, out, machine, json }) => {
@@ -772,13 +773,9 @@ pub fn main() -> i32 {
         }
         Command::Nmt { command, target, machine, json } => diag::nmt(&machine, command, target, json),
         Command::Drive(DriveCmd::Status { node, machine, json }) => diag::drive_status(&machine, node, json),
-        Command::Drive(DriveCmd::Enable { node, yes, machine }) => {
-            service::drive_power(&machine, node, service::PowerGoal::Enable, yes)
-        }
+        Command::Drive(DriveCmd::Enable { node, yes, machine }) => service::drive_power(&machine, node, service::PowerGoal::Enable, yes),
         Command::Drive(DriveCmd::Disable { node, machine }) => service::drive_power(&machine, node, service::PowerGoal::Disable, false),
-        Command::Drive(DriveCmd::FaultReset { node, machine }) => {
-            service::drive_power(&machine, node, service::PowerGoal::FaultReset, false)
-        }
+        Command::Drive(DriveCmd::FaultReset { node, machine }) => service::drive_power(&machine, node, service::PowerGoal::FaultReset, false),
         Command::Drive(DriveCmd::Home { node, home, yes, machine }) => service::drive_home(&machine, node, &home, yes),
         Command::Jog { axis, to, by, speed, yes, machine } => service::jog(&machine, &axis, to, by, speed, yes),
         Command::Buslog { out, seconds, machine } => service::buslog(&machine, &out, seconds),
@@ -861,7 +858,6 @@ fn parse_since(s: &str) -> Result<std::time::SystemTime, String> {
     let d = humantime::parse_duration(s).map_err(|e| format!("`{s}` is neither a duration (8h, 30min) nor a time (2026-11-25T06:00:00Z): {e}"))?;
     std::time::SystemTime::now().checked_sub(d).ok_or_else(|| format!("`{s}` reaches back before 1970"))
 }
-
 
 /// Following-error windows below what an axis' identified response (`[axes.NAME.response]`)
 /// lags at its maximum speed: the drive would fault at full speed.
@@ -947,7 +943,8 @@ fn config_check(file: Option<&std::path::Path>, json: bool) -> i32 {
                 s * 1e3,
                 (crate::drives::modbus::link::RTU_MARGIN - 1.0) * 100.0
             )),
-            None => text.push(format!("  Modbus link {lname}: {what}, {tx} transactions per cycle; the cycle is measured from the round trip at start-up")),
+            None => text
+                .push(format!("  Modbus link {lname}: {what}, {tx} transactions per cycle; the cycle is measured from the round trip at start-up")),
         }
         links.push(serde_json::json!({
             "link": lname, "what": what, "transactions_per_cycle": tx,

@@ -118,10 +118,8 @@ pub fn render_svg(moves: &[Move], start: Pos, title: &str, width: u32) -> Result
     {
         let root = SVGBackend::with_string(&mut svg, (view.width, view.height)).into_drawing_area();
         root.fill(&WHITE).map_err(|e| e.to_string())?;
-        let mut chart = ChartBuilder::on(&root)
-            .margin(view.margin)
-            .build_cartesian_2d(view.z.0..view.z.1, view.x.0..view.x.1)
-            .map_err(|e| e.to_string())?;
+        let mut chart =
+            ChartBuilder::on(&root).margin(view.margin).build_cartesian_2d(view.z.0..view.z.1, view.x.0..view.x.1).map_err(|e| e.to_string())?;
         // The spindle centre line, when in view.
         if view.x.0 < 0.0 && view.x.1 > 0.0 {
             chart
@@ -148,11 +146,23 @@ pub fn render_svg(moves: &[Move], start: Pos, title: &str, width: u32) -> Result
         esc(title),
         view.scale()
     );
-    let legend = [("rapid", (150, 150, 150)), ("feed", (30, 80, 220)), ("thread/tap", (220, 30, 30)), ("G70", (20, 150, 40)), ("G71/G72", (240, 140, 0)), ("G73", (150, 60, 190)), ("G74/G75", (0, 140, 140)), ("G90/G94", (130, 130, 0)), ("polar", (0, 170, 200))];
+    let legend = [
+        ("rapid", (150, 150, 150)),
+        ("feed", (30, 80, 220)),
+        ("thread/tap", (220, 30, 30)),
+        ("G70", (20, 150, 40)),
+        ("G71/G72", (240, 140, 0)),
+        ("G73", (150, 60, 190)),
+        ("G74/G75", (0, 140, 140)),
+        ("G90/G94", (130, 130, 0)),
+        ("polar", (0, 170, 200)),
+    ];
     for (i, (name, (r, g, b))) in legend.iter().enumerate() {
         let x = view.margin as usize + i * 90;
         let y = view.height - 8;
-        extra.push_str(&format!("<text x=\"{x}\" y=\"{y}\" font-family=\"sans-serif\" font-size=\"11\" fill=\"#{r:02X}{g:02X}{b:02X}\">{name}</text>\n"));
+        extra.push_str(&format!(
+            "<text x=\"{x}\" y=\"{y}\" font-family=\"sans-serif\" font-size=\"11\" fill=\"#{r:02X}{g:02X}{b:02X}\">{name}</text>\n"
+        ));
     }
     match svg.rfind("</svg>") {
         Some(i) => svg.insert_str(i, &extra),

@@ -136,7 +136,10 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, files: RunFiles, m
     // The machine's state (common variables #401–#600, the rigid-tap state), kept per machine
     // and per place it runs, under a lock so that no other run interleaves with this one.
     let place = run_place(&cfg, machine);
-    let state = state_dir.map(Path::to_path_buf).or_else(crate::persist::default_state_dir).map(|d| crate::persist::StatePlace::new(&d, &cfg.machine.name, &place));
+    let state = state_dir
+        .map(Path::to_path_buf)
+        .or_else(crate::persist::default_state_dir)
+        .map(|d| crate::persist::StatePlace::new(&d, &cfg.machine.name, &place));
     let mut _state_lock = None;
     if let Some(st) = &state {
         for n in &st.notes {
@@ -353,10 +356,13 @@ pub fn run_job(
         }
     }
     for (name, l) in &cfg.modbus {
-        what.push(format!("Modbus link {name} ({})", match l.transport {
-            crate::config::LinkTransport::Tcp => format!("TCP {}", l.address.as_deref().unwrap_or("")),
-            crate::config::LinkTransport::Rtu => format!("RTU {} {} baud", l.device.as_deref().unwrap_or(""), l.baud),
-        }));
+        what.push(format!(
+            "Modbus link {name} ({})",
+            match l.transport {
+                crate::config::LinkTransport::Tcp => format!("TCP {}", l.address.as_deref().unwrap_or("")),
+                crate::config::LinkTransport::Rtu => format!("RTU {} {} baud", l.device.as_deref().unwrap_or(""), l.baud),
+            }
+        ));
     }
     let mut parts: Vec<&mut dyn DriveBus> = Vec::new();
     if let Some(m) = can.as_mut() {
@@ -374,12 +380,7 @@ pub fn run_job(
         }
     };
     let paced = opts.pace && clock.is_simulated();
-    eprintln!(
-        "cncgw: {} on {}{}",
-        job.name,
-        what.join(" + "),
-        if paced { ", simulated time paced to the wall clock" } else { "" }
-    );
+    eprintln!("cncgw: {} on {}{}", job.name, what.join(" + "), if paced { ", simulated time paced to the wall clock" } else { "" });
     if paced {
         let mut p = Paced::new(&mut *clock);
         execute(&mut drives, &mut p, cfg, job, opts)
@@ -802,13 +803,7 @@ fn print_summary(s: &RunSummary, json: bool, alarm: Option<&crate::Alarm>) {
         };
         println!(
             "{:<5} {:>14.4} {:<3} {:>14} {:>14} {:>14}  {}",
-            a.name,
-            a.max_following_error,
-            unit,
-            a.final_actual_counts,
-            a.final_target_counts,
-            end,
-            ok
+            a.name, a.max_following_error, unit, a.final_actual_counts, a.final_target_counts, end, ok
         );
     }
 }

@@ -146,7 +146,11 @@ pub fn power_walk(s: &mut Session, node: u8, goal: PowerGoal, timeout_ms: u64) -
             PowerGoal::Disable => match st {
                 State::SwitchOnDisabled | State::NotReadyToSwitchOn => return Ok((first, st)),
                 State::Fault | State::FaultReactionActive => {
-                    return Err(format!("node {node} is in {} (no torque): {}; `cncgw drive fault-reset {node}` clears it once the cause is gone", st.name(), error_code_text(s, node)))
+                    return Err(format!(
+                        "node {node} is in {} (no torque): {}; `cncgw drive fault-reset {node}` clears it once the cause is gone",
+                        st.name(),
+                        error_code_text(s, node)
+                    ))
                 }
                 _ => cw::DISABLE_VOLTAGE,
             },
@@ -172,7 +176,9 @@ pub fn power_walk(s: &mut Session, node: u8, goal: PowerGoal, timeout_ms: u64) -
         };
         if s.clock.now_ns() >= end {
             return Err(match goal {
-                PowerGoal::FaultReset => format!("node {node} still in {} after a fault reset: the cause persists: {}", st.name(), error_code_text(s, node)),
+                PowerGoal::FaultReset => {
+                    format!("node {node} still in {} after a fault reset: the cause persists: {}", st.name(), error_code_text(s, node))
+                }
                 _ => format!("node {node} stuck in {} for {timeout_ms} ms; `cncgw drive status {node}` shows why", st.name()),
             });
         }
@@ -247,11 +253,7 @@ fn per_s(spindle: bool, v: f64) -> f64 {
 
 /// Start the configured drives (configuration, NMT start), run `f`, read back the node's
 /// position (machine units) and shut down in order (drives disabled, heartbeat released).
-fn with_started(
-    s: &mut Session,
-    node: u8,
-    f: impl FnOnce(&mut Session) -> Result<(), crate::Alarm>,
-) -> Result<f64, String> {
+fn with_started(s: &mut Session, node: u8, f: impl FnOnce(&mut Session) -> Result<(), crate::Alarm>) -> Result<f64, String> {
     let cpu = s.master.node_spec(node).map(|n| n.counts_per_unit).unwrap_or(1.0);
     if let Err(a) = DriveBus::startup(&mut s.master, &mut *s.clock) {
         // Drives configured before the failure must not go on expecting our heartbeat.
@@ -347,7 +349,11 @@ pub fn drive_home(machine: &MachineArgs, node: u8, h: &HomeArgs, yes: bool) -> i
     });
     match r {
         Ok(pos) => {
-            println!("node {node} (axis {}): homed with method {method}; position now {pos:.4} {}", spec.axis, if spec.spindle { "deg" } else { "mm" });
+            println!(
+                "node {node} (axis {}): homed with method {method}; position now {pos:.4} {}",
+                spec.axis,
+                if spec.spindle { "deg" } else { "mm" }
+            );
             EXIT_OK
         }
         Err(e) => {

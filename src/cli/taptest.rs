@@ -138,8 +138,8 @@ pub fn plan(cfg: &MachineConfig, a: &TapArgs, start: Pos) -> Result<TapPlan, Str
         depth = a.depth,
         rpm = a.rpm,
     );
-    let mut it = Interpreter::from_source("tap-test.nc", &program, cfg)
-        .map_err(|al| al.iter().map(|x| x.to_string()).collect::<Vec<_>>().join("\n"))?;
+    let mut it =
+        Interpreter::from_source("tap-test.nc", &program, cfg).map_err(|al| al.iter().map(|x| x.to_string()).collect::<Vec<_>>().join("\n"))?;
     it.set_start_position(start);
     let mut signed_lead = None;
     let mut tap_lines = Vec::new();
@@ -198,7 +198,8 @@ pub struct TapFigures {
 /// Figures from a trace of the tap (`spindle`: the spindle's drive name).
 pub fn figures(data: &TraceData, spindle: &str, lead: f64, tap_lines: &[u32]) -> Result<TapFigures, String> {
     let col = |n: &str| data.column(n).ok_or_else(|| format!("the trace has no column {n}"));
-    let (line, s_cmd, s_act, s_ferr) = (col("line")?, col(&format!("{spindle}_cmd"))?, col(&format!("{spindle}_act"))?, col(&format!("{spindle}_ferr"))?);
+    let (line, s_cmd, s_act, s_ferr) =
+        (col("line")?, col(&format!("{spindle}_cmd"))?, col(&format!("{spindle}_act"))?, col(&format!("{spindle}_ferr"))?);
     let (z_cmd, z_act, z_ferr) = (col("z_cmd")?, col("z_act")?, col("z_ferr")?);
     let (t, rpm, mon) = (col("t_s")?, col("spindle_rpm")?, col("sync_err_um")?);
     let in_tap = |i: usize| tap_lines.iter().any(|&l| line[i] as u32 == l);
@@ -319,7 +320,10 @@ pub fn tap_test(machine: &MachineArgs, a: &TapArgs, op: &OperatorArgs) -> i32 {
         return match plan(&cfg, a, start) {
             Ok(p) => {
                 if a.json {
-                    println!("{}", json!({"dry": true, "feasible": true, "plan": plan_json(&p), "sync_error_limit_um": cfg.machine.sync_error_limit_um}));
+                    println!(
+                        "{}",
+                        json!({"dry": true, "feasible": true, "plan": plan_json(&p), "sync_error_limit_um": cfg.machine.sync_error_limit_um})
+                    );
                 } else {
                     print_plan(&p, a);
                     println!("feasible: within the travel, the spindle's and Z's speeds; the interpreter accepts the program:");

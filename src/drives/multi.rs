@@ -17,11 +17,8 @@ impl<'a> MultiBus<'a> {
     pub fn new(parts: Vec<&'a mut dyn DriveBus>, order: &[String]) -> Result<MultiBus<'a>, Alarm> {
         let mut map = Vec::with_capacity(order.len());
         for name in order {
-            let found: Vec<(usize, usize)> = parts
-                .iter()
-                .enumerate()
-                .flat_map(|(p, b)| (0..b.axis_count()).filter(|&i| b.axis_name(i) == name).map(move |i| (p, i)))
-                .collect();
+            let found: Vec<(usize, usize)> =
+                parts.iter().enumerate().flat_map(|(p, b)| (0..b.axis_count()).filter(|&i| b.axis_name(i) == name).map(move |i| (p, i))).collect();
             match found.as_slice() {
                 [one] => map.push(*one),
                 [] => return Err(Alarm::new(1000, format!("axis {name} is on no bus"))),

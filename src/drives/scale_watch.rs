@@ -36,18 +36,8 @@ impl ScaleWatch {
     /// A watch for an axis with this following-error window (counts); `None` or a window
     /// under one count: not watched.
     pub fn new(window_counts: Option<f64>) -> ScaleWatch {
-        let span = window_counts
-            .filter(|w| w.is_finite() && *w >= 1.0)
-            .map_or(0, |w| {
-                (w * SPAN_WINDOWS).ceil().min(i64::MAX as f64 / 4.0) as i64
-            });
-        ScaleWatch {
-            span,
-            start: None,
-            candidates: [(0, 0); 3],
-            n_candidates: 0,
-            bad: 0,
-        }
+        let span = window_counts.filter(|w| w.is_finite() && *w >= 1.0).map_or(0, |w| (w * SPAN_WINDOWS).ceil().min(i64::MAX as f64 / 4.0) as i64);
+        ScaleWatch { span, start: None, candidates: [(0, 0); 3], n_candidates: 0, bad: 0 }
     }
 
     /// Forget the window.
@@ -129,11 +119,8 @@ mod tests {
         assert!(alarms.1 > 0 && alarms.2 > 0, "{alarms:?}");
         // Not watched without a window.
         assert_eq!(ScaleWatch::new(None).observe(0, 0), None);
-        assert!(ScaleWatch::message("x", -1.0, 10000.0)
-            .contains("moves against the commanded motion (sign-flipped)"));
-        assert!(
-            ScaleWatch::message("x", 10.0, 10000.0).contains("moves 10.000× the commanded motion")
-        );
+        assert!(ScaleWatch::message("x", -1.0, 10000.0).contains("moves against the commanded motion (sign-flipped)"));
+        assert!(ScaleWatch::message("x", 10.0, 10000.0).contains("moves 10.000× the commanded motion"));
     }
 
     /// The first window that ends tells (confirmed by the next sample): after

@@ -25,7 +25,6 @@ pub struct Cut {
     pub arc: Option<(P, bool)>,
 }
 
-
 impl Seg {
     fn start(&self) -> P {
         match *self {

@@ -369,11 +369,7 @@ impl Decoded {
             let gi = d.groups[i];
             for (j, &(h, _)) in d.g[..i].iter().enumerate() {
                 if d.groups[j] == gi {
-                    return Err((
-                        10,
-                        col,
-                        format!("{} and {} are of the same group ({:02}); command only one", gname(h), gname(g), gi),
-                    ));
+                    return Err((10, col, format!("{} and {} are of the same group ({:02}); command only one", gname(h), gname(g), gi)));
                 }
             }
         }

@@ -391,9 +391,7 @@ pub struct Interpreter {
 }
 
 fn perr_alarm(file: &Arc<str>, line_no: usize, text: &str, e: PErr) -> Alarm {
-    Alarm::new(e.number, e.message)
-        .at(SrcPos::new(file.clone(), line_no as u32 + 1, e.col))
-        .with_block(text.trim_end())
+    Alarm::new(e.number, e.message).at(SrcPos::new(file.clone(), line_no as u32 + 1, e.col)).with_block(text.trim_end())
 }
 
 impl Interpreter {
@@ -485,11 +483,7 @@ impl Interpreter {
         let mut errors = Vec::new();
         self.index_source(0, &mut errors);
         // In file order (main file first), then by line and column.
-        let order = |a: &Alarm| {
-            a.pos.as_ref().map(|p| {
-                (self.sources.iter().position(|s| s.file == p.file).unwrap_or(usize::MAX), p.line, p.col)
-            })
-        };
+        let order = |a: &Alarm| a.pos.as_ref().map(|p| (self.sources.iter().position(|s| s.file == p.file).unwrap_or(usize::MAX), p.line, p.col));
         errors.sort_by_key(order);
         self.prog = 0;
         self.line = self.progs[0].start;
@@ -504,8 +498,7 @@ impl Interpreter {
     /// runs (streaming: memory does not grow with its length, apart from the label index);
     /// the program directory for M98/G65 is the file's directory.
     pub fn from_file(path: &std::path::Path, cfg: &MachineConfig) -> Result<Interpreter, Vec<Alarm>> {
-        let source = Source::open(path)
-            .map_err(|e| vec![Alarm::new(76, format!("{}: cannot read the program: {e}", path.display()))])?;
+        let source = Source::open(path).map_err(|e| vec![Alarm::new(76, format!("{}: cannot read the program: {e}", path.display()))])?;
         let dir = path.parent().map(|p| if p.as_os_str().is_empty() { std::path::Path::new(".") } else { p });
         let mut it = Self::build(source, cfg);
         it.program_dir = dir.map(|d| d.to_path_buf());
@@ -514,12 +507,7 @@ impl Interpreter {
 
     /// Like [`Interpreter::from_source`], with a program directory where M98/G65 look for
     /// programs not in this text (files `O0012`, `O0012.nc`, `O12.nc` or `0012.nc`).
-    pub fn with_program_dir(
-        file_name: &str,
-        text: &str,
-        cfg: &MachineConfig,
-        dir: Option<&std::path::Path>,
-    ) -> Result<Interpreter, Vec<Alarm>> {
+    pub fn with_program_dir(file_name: &str, text: &str, cfg: &MachineConfig, dir: Option<&std::path::Path>) -> Result<Interpreter, Vec<Alarm>> {
         let mut it = Self::build(Source::mem(file_name, text), cfg);
         it.program_dir = dir.map(|d| d.to_path_buf());
         it.check()
@@ -612,9 +600,12 @@ impl Interpreter {
             if buf.iter().any(|b| !b.is_ascii_whitespace()) {
                 let text = String::from_utf8_lossy(buf).into_owned();
                 errors.push(
-                    Alarm::new(5010, format!("this line comes after the end-of-tape `%` of line {} and would never run: remove it, or the `%`", pct.line + 1))
-                        .at(SrcPos::new(file, i.line + 1, 1))
-                        .with_block(text.trim_end()),
+                    Alarm::new(
+                        5010,
+                        format!("this line comes after the end-of-tape `%` of line {} and would never run: remove it, or the `%`", pct.line + 1),
+                    )
+                    .at(SrcPos::new(file, i.line + 1, 1))
+                    .with_block(text.trim_end()),
                 );
                 return;
             }
@@ -657,10 +648,11 @@ impl Interpreter {
             // The text itself is needed by the full parser and by alarms only.
             let text = if valid && fast.is_none() { std::str::from_utf8(&buf).unwrap_or("") } else { "" };
             if !valid {
-                errors.push(
-                    Alarm::new(76, format!("{file}: cannot read the program: line {} is not UTF-8 text", i.line + 1))
-                        .at(SrcPos::new(file.clone(), i.line + 1, 1)),
-                );
+                errors.push(Alarm::new(76, format!("{file}: cannot read the program: line {} is not UTF-8 text", i.line + 1)).at(SrcPos::new(
+                    file.clone(),
+                    i.line + 1,
+                    1,
+                )));
                 content = true;
                 continue;
             }
@@ -697,9 +689,7 @@ impl Interpreter {
                 Some(Stmt::Program(num)) => {
                     self.close_loops(si, &mut loop_stack, errors);
                     if self.progs.iter().any(|q| q.number == Some(*num)) {
-                        errors.push(
-                            Alarm::new(73, format!("program O{num:04} is defined twice")).at(at(bcol)).with_block(text.trim_end()),
-                        );
+                        errors.push(Alarm::new(73, format!("program O{num:04} is defined twice")).at(at(bcol)).with_block(text.trim_end()));
                     }
                     if !content && self.progs.len() == first_prog + 1 {
                         self.progs[first_prog] = ProgInfo { number: Some(*num), src: si, start: next, end: OPEN };
@@ -721,9 +711,7 @@ impl Interpreter {
                 self.labels.entry((p, n)).or_insert(i);
             }
             let decoded = match (fast, stmt) {
-                (Some(fb), _) if fb.len > 0 => {
-                    Some(dec.decode(&ev[..fb.len], self.has_y, self.has_c).map_err(|(n, col, m)| col_alarm(n, col, m)))
-                }
+                (Some(fb), _) if fb.len > 0 => Some(dec.decode(&ev[..fb.len], self.has_y, self.has_c).map_err(|(n, col, m)| col_alarm(n, col, m))),
                 (_, Some(Stmt::Nc(words))) if words.iter().all(|w| w.value.is_literal()) => {
                     Some(self.decode_words(words, &Vars::new()).map(|d| dec.set(d)))
                 }
@@ -993,8 +981,7 @@ impl Interpreter {
                 self.cur = (si, i);
                 self.exec_line(si, i, &buf)
             }
-            Err(e) => Err(Alarm::new(76, format!("cannot read the program: {e}"))
-                .at(SrcPos::new(self.sources[si].file.clone(), i.line + 1, 1))),
+            Err(e) => Err(Alarm::new(76, format!("cannot read the program: {e}")).at(SrcPos::new(self.sources[si].file.clone(), i.line + 1, 1))),
         };
         self.line_buf = buf;
         r
@@ -1041,17 +1028,14 @@ impl Interpreter {
             return r;
         }
         let Ok(text) = std::str::from_utf8(bytes) else {
-            return Err(Alarm::new(76, "the program file changed while it runs: this line is not UTF-8 text")
-                .at(SrcPos::new(file, line_no, 1)));
+            return Err(Alarm::new(76, "the program file changed while it runs: this line is not UTF-8 text").at(SrcPos::new(file, line_no, 1)));
         };
         let b: Block = parse::parse_line(text).map_err(|e| perr_alarm(&file, i.line as usize, text, e))?;
         if b.skip && self.block_skip {
             return Ok(());
         }
         let src = SrcPos::new(file.clone(), line_no, b.col);
-        let wrap = |e: MErr, col: u32| {
-            Alarm::new(e.number, e.message).at(SrcPos::new(file.clone(), line_no, col)).with_block(text.trim_end())
-        };
+        let wrap = |e: MErr, col: u32| Alarm::new(e.number, e.message).at(SrcPos::new(file.clone(), line_no, col)).with_block(text.trim_end());
         match b.stmt {
             Stmt::Empty | Stmt::Percent => {}
             Stmt::Program(_) => {
@@ -1441,8 +1425,7 @@ impl Interpreter {
                     return Err((
                         51,
                         None,
-                        "no move after a block with ,C/,R: the next block must be a G01/G02/G03 move (one G04 may come between)"
-                            .into(),
+                        "no move after a block with ,C/,R: the next block must be a G01/G02/G03 move (one G04 may come between)".into(),
                     ));
                 }
             }
@@ -1465,7 +1448,11 @@ impl Interpreter {
                     return Err((10, col, format!("{} switches the unit from {from} to {to} in the middle of the program: a unit switch must be the first block of the program (004 §2.9 note 2)", gcode::gname(g))));
                 }
                 if !only_unit {
-                    return Err((10, col, format!("{} switches the unit from {from} to {to}: it must be alone in its block (004 §2.9 note 2)", gcode::gname(g))));
+                    return Err((
+                        10,
+                        col,
+                        format!("{} switches the unit from {from} to {to}: it must be alone in its block (004 §2.9 note 2)", gcode::gname(g)),
+                    ));
                 }
                 self.st.inch = inch;
             }
@@ -1639,10 +1626,7 @@ impl Interpreter {
                 // G52: local coordinate system origin in workpiece coordinates; U/W are the same
                 // origin written incrementally from the workpiece zero (G52 U0 W0 cancels).
                 let mut l = self.local;
-                for (a, u, scale, out) in [
-                    ('X', 'U', 0.5, &mut l.x as &mut f64),
-                    ('Z', 'W', 1.0, &mut l.z),
-                ] {
+                for (a, u, scale, out) in [('X', 'U', 0.5, &mut l.x as &mut f64), ('Z', 'W', 1.0, &mut l.z)] {
                     if let Some(v) = d.get(a).or(d.get(u)) {
                         *out = self.len(v) * scale;
                     }
@@ -1694,9 +1678,26 @@ impl Interpreter {
                 // F→#9 H→#11 M→#13 Q→#17 R→#18 S→#19 T→#20 U→#21 V→#22 W→#23 X→#24 Y→#25 Z→#26.
                 let mut locals = HashMap::new();
                 for (l, n) in [
-                    ('A', 1), ('B', 2), ('C', 3), ('I', 4), ('J', 5), ('K', 6), ('D', 7), ('E', 8), ('F', 9),
-                    ('H', 11), ('Q', 17), ('R', 18), ('S', 19), ('T', 20), ('U', 21), ('V', 22), ('W', 23),
-                    ('X', 24), ('Y', 25), ('Z', 26),
+                    ('A', 1),
+                    ('B', 2),
+                    ('C', 3),
+                    ('I', 4),
+                    ('J', 5),
+                    ('K', 6),
+                    ('D', 7),
+                    ('E', 8),
+                    ('F', 9),
+                    ('H', 11),
+                    ('Q', 17),
+                    ('R', 18),
+                    ('S', 19),
+                    ('T', 20),
+                    ('U', 21),
+                    ('V', 22),
+                    ('W', 23),
+                    ('X', 24),
+                    ('Y', 25),
+                    ('Z', 26),
                 ] {
                     if let Some(v) = d.get(l) {
                         locals.insert(n, v.v);
@@ -1798,12 +1799,9 @@ impl Interpreter {
             self.pos = mid;
             self.push(src, MoveKind::Rapid { end: mid }, true);
             let mut r = mid;
-            for (a, u, out, v) in [
-                ('X', 'U', &mut r.x as &mut f64, refp.x),
-                ('Z', 'W', &mut r.z, refp.z),
-                ('Y', 'V', &mut r.y, refp.y),
-                ('C', 'H', &mut r.c, refp.c),
-            ] {
+            for (a, u, out, v) in
+                [('X', 'U', &mut r.x as &mut f64, refp.x), ('Z', 'W', &mut r.z, refp.z), ('Y', 'V', &mut r.y, refp.y), ('C', 'H', &mut r.c, refp.c)]
+            {
                 if d.has(a) || d.has(u) {
                     *out = v;
                 }
@@ -1896,9 +1894,7 @@ impl Interpreter {
         let phi = (-q).to_radians();
         let (s, e) = ((self.pos.z, self.pos.x), (end.z, end.x));
         let cw = g == 21 || g == 22;
-        let need = |l: char| {
-            d.get(l).map(|v| self.len(v)).ok_or((9, gc, format!("{} needs {l}", gcode::gname(g))))
-        };
+        let need = |l: char| d.get(l).map(|v| self.len(v)).ok_or((9, gc, format!("{} needs {l}", gcode::gname(g))));
         let pts = if g == 21 || g == 31 {
             curves::ellipse(s, e, need('A')?, need('B')?, phi, cw, CHORD_TOL)
         } else {
@@ -1979,9 +1975,7 @@ impl Interpreter {
                 return Err((
                     20,
                     col,
-                    format!(
-                        "the end point is not on the arc: start radius {rs:.4} mm, end radius {re:.4} mm (tolerance {tol} mm, No.3410)"
-                    ),
+                    format!("the end point is not on the arc: start radius {rs:.4} mm, end radius {re:.4} mm (tolerance {tol} mm, No.3410)"),
                 ));
             }
             from_uv(plane, self.pos, (cu, cv))
@@ -2049,9 +2043,8 @@ pub fn parse_work_offsets(file: &str, text: &str) -> Result<[Pos; 6], Alarm> {
 
 /// [`parse_work_offsets`] from a file.
 pub fn load_work_offsets(path: &std::path::Path) -> Result<[Pos; 6], Alarm> {
-    let text = std::fs::read_to_string(path).map_err(|e| {
-        Alarm::new(crate::config::ConfigError::ALARM, format!("{}: cannot read: {e}", path.display()))
-    })?;
+    let text =
+        std::fs::read_to_string(path).map_err(|e| Alarm::new(crate::config::ConfigError::ALARM, format!("{}: cannot read: {e}", path.display())))?;
     parse_work_offsets(&path.display().to_string(), &text)
 }
 
@@ -2106,9 +2099,7 @@ fn from_uv(plane: Plane, base: Pos, (u, v): (f64, f64)) -> Pos {
 fn seg_of(plane: Plane, start: Pos, k: &MoveKind) -> corner::Seg {
     let a = to_uv(plane, start);
     match k {
-        MoveKind::Arc { end, center, cw, .. } => {
-            corner::Seg::Arc { a, b: to_uv(plane, *end), c: to_uv(plane, *center), cw: *cw }
-        }
+        MoveKind::Arc { end, center, cw, .. } => corner::Seg::Arc { a, b: to_uv(plane, *end), c: to_uv(plane, *center), cw: *cw },
         other => corner::Seg::Line { a, b: to_uv(plane, other.end().unwrap_or(start)) },
     }
 }

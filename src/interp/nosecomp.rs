@@ -207,10 +207,7 @@ impl NoseComp {
     pub fn set_mode(&mut self, side: Option<Side>, radius: f64, tip: u8, plane: Plane, at: u64) -> Result<(), (u32, String)> {
         if let (Some(old), Some(new)) = (self.requested, side) {
             if old != new {
-                return Err((
-                    SWITCH_ALARM,
-                    format!("{} directly after {}: cancel with G40 first (§2.18.4 note 2)", side_name(new), side_name(old)),
-                ));
+                return Err((SWITCH_ALARM, format!("{} directly after {}: cancel with G40 first (§2.18.4 note 2)", side_name(new), side_name(old))));
             }
         }
         if side.is_some() && plane != Plane::Zx {
@@ -331,7 +328,11 @@ impl NoseComp {
                 // Start-up (mode is on: the G40 case without a pending motion returned above).
                 let side = self.mode.unwrap_or(Side::Left);
                 if seg.arc.is_some() {
-                    return Err(at(&seg.mv, ARC_STARTUP_ALARM, "tool nose radius compensation cannot start on an arc (§2.18.3): start it with a G00/G01 move"));
+                    return Err(at(
+                        &seg.mv,
+                        ARC_STARTUP_ALARM,
+                        "tool nose radius compensation cannot start on an arc (§2.18.3): start it with a G00/G01 move",
+                    ));
                 }
                 // The tool is where the last move left it: at `seg.a`, or near it when an
                 // offset was just ended (G52, a cycle); after a change of plane (G12.1/G13.1)
@@ -350,7 +351,11 @@ impl NoseComp {
             Some((prev, side, startup)) => {
                 // Cancel: this line leaves the offset for the programmed end point.
                 if seg.arc.is_some() {
-                    return Err(at(&seg.mv, ARC_STARTUP_ALARM, "tool nose radius compensation cannot be cancelled on an arc (§2.18.3): cancel it with a G00/G01 move"));
+                    return Err(at(
+                        &seg.mv,
+                        ARC_STARTUP_ALARM,
+                        "tool nose radius compensation cannot be cancelled on an arc (§2.18.3): cancel it with a G00/G01 move",
+                    ));
                 }
                 let (prev_end, extra, _) = self.corner(&prev, &seg, side, true)?;
                 self.emit(&prev, side, startup, prev_end, &extra, out)?;
@@ -400,8 +405,14 @@ impl NoseComp {
                 // Left of a CCW arc is the centre side: the radius shrinks.
                 let r2 = r + sgn * self.radius;
                 if r2 <= 1e-9 {
-                    return Err(at(&prev.mv, INTERFERENCE_ALARM, format!(
-                        "interference: the arc's radius {r:.3} mm is not larger than the nose radius {:.3} mm on the inside (§2.18.4)", self.radius)));
+                    return Err(at(
+                        &prev.mv,
+                        INTERFERENCE_ALARM,
+                        format!(
+                            "interference: the arc's radius {r:.3} mm is not larger than the nose radius {:.3} mm on the inside (§2.18.4)",
+                            self.radius
+                        ),
+                    ));
                 }
                 let sweep = |s: P2, e: P2| {
                     let mut d = (cross(s, e)).atan2(dot(s, e));
@@ -416,7 +427,11 @@ impl NoseComp {
                 let ps = sweep(sub(prev.a, c), sub(prev.b, c));
                 let cs = sweep(sub(sub(from, mul(self.tip, self.radius)), c), sub(end, c));
                 if (ps - cs).abs() > std::f64::consts::PI && ps > 1e-9 {
-                    return Err(at(&prev.mv, INTERFERENCE_ALARM, "interference: the compensated arc turns the other way round (the groove or step is narrower than the nose, §2.18.4)"));
+                    return Err(at(
+                        &prev.mv,
+                        INTERFERENCE_ALARM,
+                        "interference: the compensated arc turns the other way round (the groove or step is narrower than the nose, §2.18.4)",
+                    ));
                 }
                 if let MoveKind::Arc { center, .. } = &mut mv.kind {
                     *center = set_p(*center, self.machine(c));
@@ -726,16 +741,7 @@ fn circle_circle(c1: P2, r1: f64, c2: P2, r2: f64) -> Vec<P2> {
 /// a compensated cut runs against its programmed direction (the taper or step is too short
 /// for the nose, §2.18.4).
 #[allow(clippy::too_many_arguments)]
-pub fn single_cycle_offset(
-    a: Pos,
-    b: Pos,
-    c: Pos,
-    d: Pos,
-    approach: P2,
-    ret: P2,
-    r: f64,
-    tip: u8,
-) -> Result<Option<(Pos, Pos, Pos)>, String> {
+pub fn single_cycle_offset(a: Pos, b: Pos, c: Pos, d: Pos, approach: P2, ret: P2, r: f64, tip: u8) -> Result<Option<(Pos, Pos, Pos)>, String> {
     let (pa, pb, pc, pd) = (uv(a), uv(b), uv(c), uv(d));
     let inside = mul(add(add(pa, pb), add(pc, pd)), 0.25);
     let side = |p: P2, q: P2| -> Option<(P2, P2)> {
@@ -753,7 +759,9 @@ pub fn single_cycle_offset(
     let tv = mul(tip_vector(tip), r);
     // The machine line of ②: the nose-centre line moved by the tip vector.
     let m1 = add(add(pb, mul(n1, r)), tv);
-    let backwards = || format!("interference: with the nose radius {r:.3} mm compensated, a cut of this cycle would run backwards (the taper or the step is too short for the nose, §2.18.4)");
+    let backwards = || {
+        format!("interference: with the nose radius {r:.3} mm compensated, a cut of this cycle would run backwards (the taper or the step is too short for the nose, §2.18.4)")
+    };
     let Some(b2) = line_line(pa, approach, m1, t1) else {
         return Ok(None);
     };

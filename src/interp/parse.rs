@@ -101,7 +101,10 @@ impl Func {
 #[derive(Clone, Debug, PartialEq)]
 pub enum Expr {
     /// A literal; `decimal` tells whether it was written with a decimal point.
-    Num { v: f64, decimal: bool },
+    Num {
+        v: f64,
+        decimal: bool,
+    },
     /// `#n` / `#[expr]`.
     Var(Box<Expr>),
     Neg(Box<Expr>),
@@ -142,18 +145,36 @@ pub enum Stmt {
     /// `O1234`: start of a program.
     Program(u32),
     Nc(Vec<Word>),
-    Assign { var: Expr, value: Expr },
-    IfGoto { cond: Expr, target: Expr },
-    IfThen { cond: Expr, var: Expr, value: Expr },
+    Assign {
+        var: Expr,
+        value: Expr,
+    },
+    IfGoto {
+        cond: Expr,
+        target: Expr,
+    },
+    IfThen {
+        cond: Expr,
+        var: Expr,
+        value: Expr,
+    },
     Goto(Expr),
     /// `WHILE [cond] DO n` (cond = Some) or bare `DO n` (infinite loop).
-    Do { cond: Option<Expr>, n: u8 },
+    Do {
+        cond: Option<Expr>,
+        n: u8,
+    },
     End(u8),
     /// A SINUMERIK cycle call (manual 003): `CYCLE81(100,0,1,,25)`, `MCALL CYCLE81(…)`
     /// (`mcall`), or a bare `MCALL` (`name` None) cancelling the modal call. Empty slots
     /// and missing trailing arguments are None.
     /// `cols`: 1-based column of each parameter slot.
-    Call { mcall: bool, name: Option<String>, args: Vec<Option<Expr>>, cols: Vec<u32> },
+    Call {
+        mcall: bool,
+        name: Option<String>,
+        args: Vec<Option<Expr>>,
+        cols: Vec<u32>,
+    },
 }
 
 #[derive(Clone, Debug, PartialEq)]
@@ -839,10 +860,8 @@ fn fast_line(line: &str) -> Option<Block> {
 }
 
 /// Exact powers of ten (10^22 is the largest exactly representable one).
-const POW10: [f64; 23] = [
-    1e0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6, 1e7, 1e8, 1e9, 1e10, 1e11, 1e12, 1e13, 1e14, 1e15, 1e16, 1e17, 1e18, 1e19,
-    1e20, 1e21, 1e22,
-];
+const POW10: [f64; 23] =
+    [1e0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6, 1e7, 1e8, 1e9, 1e10, 1e11, 1e12, 1e13, 1e14, 1e15, 1e16, 1e17, 1e18, 1e19, 1e20, 1e21, 1e22];
 
 /// `digits` (ASCII digits and at most one '.') as an f64 without going through a string:
 /// an integer mantissa of at most 15 digits divided by an exact power of ten is correctly
@@ -1092,24 +1111,24 @@ mod tests {
     /// A block as comparable data: a negative number as `-x` (the fast path's form).
     fn norm(b: Block) -> Norm {
         match b.stmt {
-        Stmt::Nc(w) => (
-            b.n,
-            b.col,
-            w.into_iter()
-                .map(|w| {
-                    let v = match w.value {
-                        Expr::Neg(e) => match *e {
-                            Expr::Num { v, decimal } => Expr::Num { v: -v, decimal },
-                            e => Expr::Neg(Box::new(e)),
-                        },
-                        e => e,
-                    };
-                    (w.letter, w.col, v)
-                })
-                .collect::<Vec<_>>(),
-        ),
-        other => (b.n, b.col, vec![('?', 0, Expr::Num { v: if other == Stmt::Empty { 0.0 } else { 1.0 }, decimal: false })]),
-    }
+            Stmt::Nc(w) => (
+                b.n,
+                b.col,
+                w.into_iter()
+                    .map(|w| {
+                        let v = match w.value {
+                            Expr::Neg(e) => match *e {
+                                Expr::Num { v, decimal } => Expr::Num { v: -v, decimal },
+                                e => Expr::Neg(Box::new(e)),
+                            },
+                            e => e,
+                        };
+                        (w.letter, w.col, v)
+                    })
+                    .collect::<Vec<_>>(),
+            ),
+            other => (b.n, b.col, vec![('?', 0, Expr::Num { v: if other == Stmt::Empty { 0.0 } else { 1.0 }, decimal: false })]),
+        }
     }
 
     /// The block of `t` through the full parser (the fast path bypassed: a `(x)` comment
@@ -1141,7 +1160,29 @@ mod tests {
             let slow = slow_line(t).expect(t);
             assert_eq!(norm(fast), norm(slow), "{t}");
         }
-        for t in ["", "   ", "G-1", "X", "X.", "X1-2", "XX1", "O10", "N1.5", "G1 N10", "X123456789", "X1234567891.", "X1.2345678912345678", "/X1", "X1 (c)", "#1=2", "G1 ,C1", "X[1]", "X 10", "IF", "X1é"] {
+        for t in [
+            "",
+            "   ",
+            "G-1",
+            "X",
+            "X.",
+            "X1-2",
+            "XX1",
+            "O10",
+            "N1.5",
+            "G1 N10",
+            "X123456789",
+            "X1234567891.",
+            "X1.2345678912345678",
+            "/X1",
+            "X1 (c)",
+            "#1=2",
+            "G1 ,C1",
+            "X[1]",
+            "X 10",
+            "IF",
+            "X1é",
+        ] {
             assert!(fast_line(t).is_none(), "{t:?} must take the full parser");
         }
     }
@@ -1245,19 +1286,25 @@ mod tests {
         assert!(matches!(parse_line("#1=#2+3*SIN[30]").unwrap().stmt, Stmt::Assign { .. }));
         assert!(matches!(parse_line("IF [#1 EQ 2] GOTO 10").unwrap().stmt, Stmt::IfGoto { .. }));
         assert!(matches!(parse_line("IF[#1<>#2]THEN#3=1").unwrap().stmt, Stmt::IfThen { .. }));
-        assert_eq!(parse_line("WHILE [#1 LE 3] DO 2").unwrap().stmt, match parse_line("WHILE[#1LE3]DO2").unwrap().stmt {
-            s @ Stmt::Do { n: 2, .. } => s,
-            o => panic!("{o:?}"),
-        });
+        assert_eq!(
+            parse_line("WHILE [#1 LE 3] DO 2").unwrap().stmt,
+            match parse_line("WHILE[#1LE3]DO2").unwrap().stmt {
+                s @ Stmt::Do { n: 2, .. } => s,
+                o => panic!("{o:?}"),
+            }
+        );
         assert_eq!(parse_line("END 1").unwrap().stmt, Stmt::End(1));
         assert_eq!(parse_line("DO4").unwrap_err().number, 126);
         assert_eq!(parse_line("GOTO 0").unwrap_err().number, 128);
         let w = nc("G01 X#[#1+2] Z-#3 ,C1.");
         assert!(w[3].comma && w[3].letter == 'C');
-        assert_eq!(parse_line("#1=ATAN[1]/[2]").unwrap().stmt, Stmt::Assign {
-            var: Expr::Num { v: 1.0, decimal: false },
-            value: Expr::Call(Func::Atan, vec![Expr::Num { v: 1.0, decimal: false }, Expr::Num { v: 2.0, decimal: false }]),
-        });
+        assert_eq!(
+            parse_line("#1=ATAN[1]/[2]").unwrap().stmt,
+            Stmt::Assign {
+                var: Expr::Num { v: 1.0, decimal: false },
+                value: Expr::Call(Func::Atan, vec![Expr::Num { v: 1.0, decimal: false }, Expr::Num { v: 2.0, decimal: false }]),
+            }
+        );
     }
 
     #[test]

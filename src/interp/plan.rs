@@ -472,9 +472,7 @@ pub fn move_to_text(m: &Move) -> String {
             }
             feed(&mut s, f);
         }
-        MoveKind::Polygon(Some(p)) => {
-            s.push_str(&format!(" P{} Q{} R{} S{} tool {} rpm", p.p, p.q, r(p.phase), r(p.rpm), r(p.tool_rpm)))
-        }
+        MoveKind::Polygon(Some(p)) => s.push_str(&format!(" P{} Q{} R{} S{} tool {} rpm", p.p, p.q, r(p.phase), r(p.rpm), r(p.tool_rpm))),
         MoveKind::Polygon(None) => s.push_str(" G50.2"),
         MoveKind::StrokeCheck { area: Some(a) } => s.push_str(&format!(
             " forbid {} X{}…{} Z{}…{} (machine, X diameter)",

@@ -52,7 +52,9 @@ fn small_program_exact_moves() {
 #[test]
 fn manual_arc_example_fig_2_6() {
     // Manual §2.3, figure 2.6.
-    let m = run("N001 G0 X40 Z5\nN002 M03 S200\nN003 G01 X0 Z0 F900\nN005 G03 U24 W-24 R15\nN006 G02 X26 Z-31 R5\nN007 G01 Z-40;\nN008 X40 Z5;\nN009 M30;\n");
+    let m = run(
+        "N001 G0 X40 Z5\nN002 M03 S200\nN003 G01 X0 Z0 F900\nN005 G03 U24 W-24 R15\nN006 G02 X26 Z-31 R5\nN007 G01 Z-40;\nN008 X40 Z5;\nN009 M30;\n",
+    );
     let arcs: Vec<_> = m.iter().filter(|m| m.kind.name() == "arc").collect();
     assert_eq!(arcs.len(), 2);
     let K::Arc { end, center, cw, plane, .. } = &arcs[0].kind else { panic!() };
@@ -520,8 +522,7 @@ fn subprograms_from_the_program_directory() {
     // A syntax error in a called file is found before running; a missing program too.
     std::fs::write(&main, "M98 P300\nM98 P400\nM30\n").unwrap();
     let errs = Interpreter::from_file(&main, &cfg()).err().expect("static errors");
-    let mut got: Vec<(String, u32)> =
-        errs.iter().map(|a| (a.pos.as_ref().unwrap().file.to_string(), a.number)).collect();
+    let mut got: Vec<(String, u32)> = errs.iter().map(|a| (a.pos.as_ref().unwrap().file.to_string(), a.number)).collect();
     got.sort();
     assert!(got.iter().any(|(f, n)| f.ends_with("O0300.nc") && *n == 5), "{got:?}");
     assert!(got.iter().any(|(f, n)| f.ends_with("main.nc") && *n == 76), "{got:?}");
@@ -551,10 +552,8 @@ fn macro_grooves_example() {
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/macro_grooves.nc");
     let it = Interpreter::from_file(&path, &cfg()).unwrap_or_else(|e| panic!("{}", e[0]));
     let m: Vec<Move> = it.map(|m| m.unwrap_or_else(|a| panic!("{a}"))).collect();
-    let bottoms: Vec<(f64, f64)> = m
-        .iter()
-        .filter_map(|m| if let K::Feed { end, .. } = m.kind { Some((end.x * 2.0, end.z)) } else { None })
-        .collect();
+    let bottoms: Vec<(f64, f64)> =
+        m.iter().filter_map(|m| if let K::Feed { end, .. } = m.kind { Some((end.x * 2.0, end.z)) } else { None }).collect();
     assert_eq!(bottoms, [(32.0, -10.0), (32.0, -20.0), (32.0, -30.0)]);
     assert_eq!(m.iter().filter(|m| m.kind.name() == "dwell").count(), 3);
     assert_eq!(m.iter().rev().find_map(|m| m.kind.end()), Some(Pos::xz(50.0, 5.0)));
@@ -632,10 +631,7 @@ fn a_file_streams_like_the_same_text_in_memory() {
     let main = dir.join("main.nc");
     std::fs::write(&main, &text).unwrap();
     let from_file: Vec<Move> = Interpreter::from_file(&main, &cfg()).unwrap().map(|m| m.unwrap()).collect();
-    let in_mem: Vec<Move> = Interpreter::with_program_dir("main.nc", &text, &cfg(), Some(&dir))
-        .unwrap()
-        .map(|m| m.unwrap())
-        .collect();
+    let in_mem: Vec<Move> = Interpreter::with_program_dir("main.nc", &text, &cfg(), Some(&dir)).unwrap().map(|m| m.unwrap()).collect();
     let key = |m: &Move| (m.src.line, m.src.col, m.src.file.ends_with("O0007.nc"), format!("{:?}", m.kind));
     assert_eq!(from_file.iter().map(key).collect::<Vec<_>>(), in_mem.iter().map(key).collect::<Vec<_>>());
     assert_eq!(from_file.len(), 1 + 3 + 8_000 + 2 * 2 + 1 + 1, "G00, 3 U-1 moves, 8000 blocks, 2×(W-1, sub W-0.5), G00, M30");
@@ -646,7 +642,10 @@ fn a_file_streams_like_the_same_text_in_memory() {
     std::fs::write(&main, &bad).unwrap();
     let a1 = Interpreter::from_file(&main, &cfg()).unwrap().find_map(|m| m.err()).unwrap();
     let a2 = Interpreter::with_program_dir("main.nc", &bad, &cfg(), Some(&dir)).unwrap().find_map(|m| m.err()).unwrap();
-    assert_eq!((a1.number, a1.pos.as_ref().map(|p| (p.line, p.col)), a1.block.clone()), (a2.number, a2.pos.as_ref().map(|p| (p.line, p.col)), a2.block.clone()));
+    assert_eq!(
+        (a1.number, a1.pos.as_ref().map(|p| (p.line, p.col)), a1.block.clone()),
+        (a2.number, a2.pos.as_ref().map(|p| (p.line, p.col)), a2.block.clone())
+    );
     assert_eq!(a1.block.as_deref(), Some("#3=1/0"));
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -125,8 +125,7 @@ pub fn parse_tool_table(file: &str, text: &str) -> Result<ToolTable, Alarm> {
 
 /// [`parse_tool_table`] from a file.
 pub fn load_tool_table(path: &std::path::Path) -> Result<ToolTable, Alarm> {
-    let text = std::fs::read_to_string(path).map_err(|e| {
-        Alarm::new(crate::config::ConfigError::ALARM, format!("{}: cannot read: {e}", path.display()))
-    })?;
+    let text =
+        std::fs::read_to_string(path).map_err(|e| Alarm::new(crate::config::ConfigError::ALARM, format!("{}: cannot read: {e}", path.display())))?;
     parse_tool_table(&path.display().to_string(), &text)
 }

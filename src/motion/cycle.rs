@@ -7,14 +7,14 @@
 //! interpreter thread, the look-ahead queue and the statistics are fixed-size.
 
 use crate::canon::{Move, Pos};
+use crate::drives::scale_watch::{self, ScaleWatch};
 use crate::drives::DriveBus;
-use crate::motion::trace::{Trace, TraceRow, MAX_TRACE_AXES};
 use crate::motion::guard::Guard;
 use crate::motion::panel::{Panel, PanelReader};
 use crate::motion::polygon::ToolSpindle;
 use crate::motion::tapstate::TapWatch;
+use crate::motion::trace::{Trace, TraceRow, MAX_TRACE_AXES};
 use crate::motion::{Event, Feedback, Limits, Motion, AX_S, AX_X, AX_Y, AX_Z, N_AXES};
-use crate::drives::scale_watch::{self, ScaleWatch};
 use crate::Alarm;
 use cncgw_bus::Clock;
 use std::sync::mpsc::{Receiver, TryRecvError};
@@ -164,10 +164,11 @@ impl RunSummary {
     /// True if the program reached M02/M30 and every axis it moved ended within one count of
     /// the program's end point.
     pub fn at_program_end(&self) -> bool {
-        self.ended && self.axes.iter().all(|a| match a.program_end_counts {
-            Some(e) => (a.final_actual_counts - e).abs() <= 1,
-            None => true,
-        })
+        self.ended
+            && self.axes.iter().all(|a| match a.program_end_counts {
+                Some(e) => (a.final_actual_counts - e).abs() <= 1,
+                None => true,
+            })
     }
 }
 
@@ -317,9 +318,7 @@ impl<'a> CycleLoop<'a> {
     }
 
     fn map(&self) -> Vec<Option<usize>> {
-        (0..self.drives.axis_count())
-            .map(|d| motion_axis(self.drives.axis_name(d), Some(d) == self.spindle_drive))
-            .collect()
+        (0..self.drives.axis_count()).map(|d| motion_axis(self.drives.axis_name(d), Some(d) == self.spindle_drive)).collect()
     }
 
     /// Start the drives and enable them, holding position. Returns the machine position
@@ -433,7 +432,8 @@ impl<'a> CycleLoop<'a> {
         // actual at SYNC k reaches us at k+1, so compare with the target of two cycles ago.
         let mut hist = vec![[0i64; 2]; n];
         // The last line of defence against a feedback scaled differently from the set-points.
-        let mut scale: Vec<ScaleWatch> = (0..n).map(|d| ScaleWatch::new(self.drives.following_window(d).map(|w| w * self.drives.counts_per_unit(d)))).collect();
+        let mut scale: Vec<ScaleWatch> =
+            (0..n).map(|d| ScaleWatch::new(self.drives.following_window(d).map(|w| w * self.drives.counts_per_unit(d)))).collect();
         for (d, h) in hist.iter_mut().enumerate() {
             let c = self.drives.feedback(d).counts;
             *h = [c, c];
@@ -454,11 +454,7 @@ impl<'a> CycleLoop<'a> {
             // Feed the look-ahead queue. Under simulated time, block for the interpreter so
             // that every run is identical; in real time never block the cycle.
             while input_open && motion.has_room() {
-                let item = if simulated {
-                    rx.recv().map_err(|_| TryRecvError::Disconnected)
-                } else {
-                    rx.try_recv()
-                };
+                let item = if simulated { rx.recv().map_err(|_| TryRecvError::Disconnected) } else { rx.try_recv() };
                 match item {
                     Ok(Ok(m)) => {
                         summary.moves += 1;
@@ -580,7 +576,10 @@ impl<'a> CycleLoop<'a> {
                     self.halt_now(motion, spindle_rpm);
                     return Err(Alarm::new(
                         alarms::RESET,
-                        format!("{} at line {cur_line}: stopped as on reset, the program ended; start it again from the beginning or a safe block", name(sig)),
+                        format!(
+                            "{} at line {cur_line}: stopped as on reset, the program ended; start it again from the beginning or a safe block",
+                            name(sig)
+                        ),
                     ));
                 }
             }

@@ -46,7 +46,13 @@ pub(super) struct Follow {
 
 impl Follow {
     fn new(faulted: usize, x: f64, v: f64, f_v: f64) -> Follow {
-        let dir = if v > 0.0 { 1.0 } else if v < 0.0 { -1.0 } else { 0.0 };
+        let dir = if v > 0.0 {
+            1.0
+        } else if v < 0.0 {
+            -1.0
+        } else {
+            0.0
+        };
         Follow { faulted, x, v, dir, f_prev: None, f_v, still: 0, cycles: 0, driven: false }
     }
 
@@ -73,9 +79,7 @@ impl Follow {
 /// move along it).
 fn axis_progress(g: &Geom, a: usize, p: f64) -> Option<f64> {
     match *g {
-        Geom::Line { start, delta, len, .. } if a < 3 && len > 0.0 && delta[a].abs() > 1e-9 * len => {
-            Some((p - start[a]) * len / delta[a])
-        }
+        Geom::Line { start, delta, len, .. } if a < 3 && len > 0.0 && delta[a].abs() > 1e-9 * len => Some((p - start[a]) * len / delta[a]),
         _ => None,
     }
 }

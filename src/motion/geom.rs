@@ -107,13 +107,7 @@ impl Geom {
 /// third `ic`) and the sense. `cw` is clockwise seen from the positive third axis looking
 /// down on the (`ia`, `ib`) plane, i.e. a negative angle. Returns `None` for a degenerate arc
 /// (zero radius). A start equal to the end gives a full circle.
-pub fn arc(
-    start: [f64; 3],
-    end: [f64; 3],
-    center: [f64; 3],
-    (ia, ib, ic): (usize, usize, usize),
-    cw: bool,
-) -> Option<(Geom, f64, f64)> {
+pub fn arc(start: [f64; 3], end: [f64; 3], center: [f64; 3], (ia, ib, ic): (usize, usize, usize), cw: bool) -> Option<(Geom, f64, f64)> {
     let (ca, cb) = (center[ia], center[ib]);
     let (sa, sb) = (start[ia] - ca, start[ib] - cb);
     let (ea, eb) = (end[ia] - ca, end[ib] - cb);
@@ -143,21 +137,7 @@ pub fn arc(
     let dc = end[ic] - start[ic];
     let planar = 0.5 * (r0 + r1) * sweep.abs();
     let len = planar.hypot(dc);
-    let g = Geom::Arc {
-        ia,
-        ib,
-        ic,
-        ca,
-        cb,
-        r0,
-        dr: r1 - r0,
-        th0,
-        sweep,
-        c0: start[ic],
-        dc,
-        end,
-        len,
-    };
+    let g = Geom::Arc { ia, ib, ic, ca, cb, r0, dr: r1 - r0, th0, sweep, c0: start[ic], dc, end, len };
     Some((g, r0, r1))
 }
 

@@ -100,17 +100,17 @@ pub mod polygon;
 pub mod profile;
 pub mod rt;
 pub mod tapstate;
-pub mod trace;
 #[cfg(test)]
 mod tests;
+pub mod trace;
 
 use crate::canon::{Feed, Move, MoveKind, Plane, Pos, SpindleCmd, SpindleDir};
 use crate::config::{AxisKind, MachineConfig};
 use crate::sync::correction::SyncCorrection;
 use crate::sync::ThreadSync;
-use std::f64::consts::TAU;
 use crate::Alarm;
 use geom::Geom;
+use std::f64::consts::TAU;
 
 pub const AX_X: usize = 0;
 pub const AX_Y: usize = 1;
@@ -186,9 +186,14 @@ pub struct Feedback {
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Event {
     None,
-    Stop { optional: bool },
+    Stop {
+        optional: bool,
+    },
     End,
-    Aux { letter: char, value: f64 },
+    Aux {
+        letter: char,
+        value: f64,
+    },
     /// G22 (`Some`, the area, X a radius) or G23 (`None`) reached: the cycle loop switches its
     /// per-set-point guard ([`guard::Guard::set_stroke2`]) before it checks this set-point.
     Stroke2(Option<guard::Area>),
@@ -457,9 +462,8 @@ struct CycStep {
 
 /// The drilling and tapping cycles whose actions are numbered 1–6 (004 §2.21–2.22, 000, and
 /// the SINUMERIK drilling cycles, which the interpreter tags the same way).
-const DRILL_CYCLES: [&str; 13] = [
-    "G83", "G84", "G85", "G87", "G88", "G89", "CYCLE81", "CYCLE82", "CYCLE83", "CYCLE84", "CYCLE840", "CYCLE85", "CYCLE86",
-];
+const DRILL_CYCLES: [&str; 13] =
+    ["G83", "G84", "G85", "G87", "G88", "G89", "CYCLE81", "CYCLE82", "CYCLE83", "CYCLE84", "CYCLE840", "CYCLE85", "CYCLE86"];
 /// Of those, the tapping cycles (a flexible tap must not stop in the hole either).
 const TAP_CYCLES: [&str; 4] = ["G84", "G88", "CYCLE84", "CYCLE840"];
 
@@ -501,16 +505,41 @@ enum Run {
     None,
     /// `s` arc length done, `v` path speed of the last cycle; `landed` once on the end point
     /// (the next cycle holds it at rest, then the segment is done).
-    Move { seg: Seg, s: f64, v: f64, landed: bool },
-    Dwell { left: u64 },
+    Move {
+        seg: Seg,
+        s: f64,
+        v: f64,
+        landed: bool,
+    },
+    Dwell {
+        left: u64,
+    },
     /// Waiting for the spindle (`sync` None) or cutting, locked to the measured angle.
-    Thread { seg: ThreadSeg, sync: Option<ThreadSync>, s: f64, v: f64, landed: bool },
+    Thread {
+        seg: ThreadSeg,
+        sync: Option<ThreadSync>,
+        s: f64,
+        v: f64,
+        landed: bool,
+    },
     /// Waiting for the spindle to stop (`theta0` None), then the stroke; `theta0` is the tap
     /// reference (p_ref, θ_ref) on the tapping axis: spindle angle = θ_ref + 360·(p − p_ref)/lead.
-    Tap { seg: TapSeg, theta0: Option<(f64, f64)>, s: f64, v: f64, landed: bool },
+    Tap {
+        seg: TapSeg,
+        theta0: Option<(f64, f64)>,
+        s: f64,
+        v: f64,
+        landed: bool,
+    },
     /// G92.1: waiting for the spindle to stop (`theta0` None), then the stroke from the
     /// spindle angle `theta0`.
-    Rigid { seg: RigidSeg, theta0: Option<f64>, s: f64, v: f64, landed: bool },
+    Rigid {
+        seg: RigidSeg,
+        theta0: Option<f64>,
+        s: f64,
+        v: f64,
+        landed: bool,
+    },
     /// G12.1: braking the spindle, aligning C, then on the virtual path (see `polar.rs`).
     Polar(polar::PolarRun),
 }
@@ -720,23 +749,15 @@ impl Motion {
     pub fn push(&mut self, m: &Move) -> Result<(), Alarm> {
         let at = |a: Alarm| a.at(m.src.clone());
         if self.stopping {
-            return Err(at(Alarm::new(
-                alarms::STOPPING,
-                "controlled stop in progress: wait until the motion is idle, then restart the program",
-            )));
+            return Err(at(Alarm::new(alarms::STOPPING, "controlled stop in progress: wait until the motion is idle, then restart the program")));
         }
         if !self.has_room() {
-            return Err(at(Alarm::new(
-                alarms::QUEUE_FULL,
-                "motion queue full: the caller must wait for has_room() before pushing",
-            )));
+            return Err(at(Alarm::new(alarms::QUEUE_FULL, "motion queue full: the caller must wait for has_room() before pushing")));
         }
         let blend_in = self.last_blendable;
         let blended = blend_in || !m.exact_stop;
         let item = match &m.kind {
-            MoveKind::Rapid { end: e } if end_c_moves(self.plan_c, e) => {
-                Item::Rigid(self.c_rapid_seg(e, self.plan_c.unwrap_or(e.c)).map_err(at)?)
-            }
+            MoveKind::Rapid { end: e } if end_c_moves(self.plan_c, e) => Item::Rigid(self.c_rapid_seg(e, self.plan_c.unwrap_or(e.c)).map_err(at)?),
             MoveKind::Rapid { end } => {
                 let end = self.check_end(end).map_err(at)?;
                 let g = geom::line(self.plan_end, end);
@@ -762,7 +783,9 @@ impl Motion {
             MoveKind::Tap { spindle, .. } if *spindle != 1 => {
                 return Err(at(Alarm::new(
                     alarms::UNSUPPORTED,
-                    format!("rigid tap on spindle {spindle}: this machine drives one spindle (spindle 1); select it with E1 (or M24), or remove E / M25–M27"),
+                    format!(
+                    "rigid tap on spindle {spindle}: this machine drives one spindle (spindle 1); select it with E1 (or M24), or remove E / M25–M27"
+                ),
                 )))
             }
             MoveKind::Tap { end, lead, rpm, .. } => {
@@ -789,9 +812,9 @@ impl Motion {
                 hi: [a.hi.x, a.hi.y, a.hi.z],
                 outside: a.outside,
             }))),
-            MoveKind::Polar { end, from, to, center, cw, c_zero, feed } => Item::Polar(
-                self.polar_seg(end, *from, *to, *center, *cw, *c_zero, feed, m.work_offset.x, m.exact_stop).map_err(at)?,
-            ),
+            MoveKind::Polar { end, from, to, center, cw, c_zero, feed } => {
+                Item::Polar(self.polar_seg(end, *from, *to, *center, *cw, *c_zero, feed, m.work_offset.x, m.exact_stop).map_err(at)?)
+            }
             MoveKind::Polygon(cmd) => Item::Polygon(self.check_polygon(cmd).map_err(at)?),
         };
         let mut item = item;
@@ -806,8 +829,7 @@ impl Motion {
                 }
             }
             Item::Spindle(c) => {
-                self.plan_spindle_on =
-                    c.dir != SpindleDir::Stop && (c.rpm > 0.0 || c.css.is_some_and(|v| v > 0.0));
+                self.plan_spindle_on = c.dir != SpindleDir::Stop && (c.rpm > 0.0 || c.css.is_some_and(|v| v > 0.0));
                 self.plan_rpm = (self.plan_spindle_on && c.css.is_none()).then_some(c.rpm);
             }
             Item::Thread(t) => {
@@ -963,8 +985,7 @@ impl Motion {
     /// corner angle and the axis limits, then the backward pass.
     fn link_last(&mut self) {
         let dt = self.lim.cycle_s;
-        let Some(Item::Move(new)) = self.len.checked_sub(1).map(|k| self.queue[(self.head + k) % self.queue.len()].item)
-        else {
+        let Some(Item::Move(new)) = self.len.checked_sub(1).map(|k| self.queue[(self.head + k) % self.queue.len()].item) else {
             return;
         };
         let amax = self.lim.amax;
@@ -1171,10 +1192,7 @@ impl Motion {
         }
         if !self.lim.present[i] {
             if (v - self.plan_end[i]).abs() > 1e-9 {
-                return Err(Alarm::new(
-                    alarms::TRAVEL,
-                    format!("axis {name} is not configured on this machine; remove {name} from the program"),
-                ));
+                return Err(Alarm::new(alarms::TRAVEL, format!("axis {name} is not configured on this machine; remove {name} from the program")));
             }
             return Ok(());
         }
@@ -1183,9 +1201,7 @@ impl Motion {
             let radius = if i == AX_X { " (radius)" } else { "" };
             return Err(Alarm::new(
                 alarms::TRAVEL,
-                format!(
-                    "{name} {what} {v:.4} mm{radius} is beyond the travel limits [{lo}, {hi}]; correct the program or the work offset"
-                ),
+                format!("{name} {what} {v:.4} mm{radius} is beyond the travel limits [{lo}, {hi}]; correct the program or the work offset"),
             ));
         }
         Ok(())
@@ -1339,7 +1355,7 @@ impl Motion {
         // Out of the hole: the stroke runs against the direction of the hole's first stroke.
         let retract = self.plan_tap.is_some_and(|(a, _, din)| a == axis && (e[axis] - p0) * din < 0.0);
         let per_deg = lead.abs() / 360.0; // mm of the tapping axis per spindle degree
-        // Feasibility before anything moves: the axis must be able to follow the spindle at S.
+                                          // Feasibility before anything moves: the axis must be able to follow the spindle at S.
         let v = rpm * lead.abs() / 60.0;
         if !(v <= l.vmax[axis] * (1.0 + 1e-9)) {
             return Err(Alarm::new(
@@ -1460,9 +1476,7 @@ impl Motion {
     }
 
     fn check_spindle(&self, c: &SpindleCmd) -> Result<SpindleCmd, Alarm> {
-        let bad = |what: &str, v: f64| {
-            Alarm::new(alarms::BAD_VALUE, format!("spindle {what} must be a finite number ≥ 0, got {v}"))
-        };
+        let bad = |what: &str, v: f64| Alarm::new(alarms::BAD_VALUE, format!("spindle {what} must be a finite number ≥ 0, got {v}"));
         if !(c.rpm.is_finite() && c.rpm >= 0.0) {
             return Err(bad("speed S", c.rpm));
         }
@@ -1519,15 +1533,7 @@ impl Motion {
 
     /// An arc segment: tangential and centripetal acceleration share each plane axis' limit
     /// (0.5 + 0.45 with exact stops; 0.25 + 0.25 when blended, leaving 0.5 for the corner).
-    fn arc_seg(
-        &self,
-        end: [f64; 3],
-        center: [f64; 3],
-        cw: bool,
-        plane: Plane,
-        speed: Speed,
-        blended: bool,
-    ) -> Result<Seg, Alarm> {
+    fn arc_seg(&self, end: [f64; 3], center: [f64; 3], cw: bool, plane: Plane, speed: Speed, blended: bool) -> Result<Seg, Alarm> {
         let axes = match plane {
             Plane::Xy => (AX_X, AX_Y, AX_Z),
             Plane::Zx => (AX_Z, AX_X, AX_Y),
@@ -1537,10 +1543,7 @@ impl Motion {
             return Err(Alarm::new(alarms::BAD_VALUE, "arc centre is not a finite number"));
         }
         let Some((g, r0, r1)) = geom::arc(self.plan_end, end, center, axes, cw) else {
-            return Err(Alarm::new(
-                alarms::BAD_VALUE,
-                "arc with zero radius: the start or end point is the centre; correct R or I/J/K",
-            ));
+            return Err(Alarm::new(alarms::BAD_VALUE, "arc with zero radius: the start or end point is the centre; correct R or I/J/K"));
         };
         if (r0 - r1).abs() > self.lim.arc_radius_tol {
             return Err(Alarm::new(
@@ -1665,8 +1668,7 @@ impl Motion {
     fn flex_tap_defers_hold(&self) -> bool {
         let c = self.cur_cyc;
         c.flex_tap_in_hole()
-            && (self.run != Run::None
-                || self.peek().is_some_and(|e| e.cyc.flex_tap_in_hole() && e.cyc.code == c.code && e.cyc.step >= c.step))
+            && (self.run != Run::None || self.peek().is_some_and(|e| e.cyc.flex_tap_in_hole() && e.cyc.code == c.code && e.cyc.step >= c.step))
     }
 
     /// The commanded path speed (mm/s) of a segment this cycle.
@@ -1787,19 +1789,15 @@ impl Motion {
                 // Single block: end this block at rest if it can still brake for its end point
                 // from here (dropping the look-ahead extension is safe only then); otherwise
                 // blend on and stop at the end of a later block.
-                let can_stop = if jerk {
-                    profile::stop_dist(v, self.path_a, seg.alim, seg.jlim) <= d
-                } else {
-                    profile::v_allowed(d, dv, dt) >= v - dv
-                };
+                let can_stop =
+                    if jerk { profile::stop_dist(v, self.path_a, seg.alim, seg.jlim) <= d } else { profile::v_allowed(d, dv, dt) >= v - dv };
                 if self.single_block && seg.ext > 0.0 && can_stop {
                     seg.ext = 0.0;
                 }
                 // `adv`: the distance of this cycle (the trapezoid's `nv·dt`; the S-curve's
                 // integral of its speed over the cycle, `nv` being the speed at its end).
                 let (nv, adv) = if jerk {
-                    let (nv, na, adv) =
-                        profile::next_state(v, self.path_a, self.v_cmd(&seg, fb), d + seg.ext, seg.alim, seg.jlim, dt);
+                    let (nv, na, adv) = profile::next_state(v, self.path_a, self.v_cmd(&seg, fb), d + seg.ext, seg.alim, seg.jlim, dt);
                     self.path_a = na;
                     (nv, adv)
                 } else {
@@ -1821,11 +1819,7 @@ impl Motion {
                     self.pos[..3].copy_from_slice(&p);
                     path_v = if landed { d / dt } else { pv };
                     // Stopping and at rest (this cycle did not move): done.
-                    self.run = if self.stopping && nv == 0.0 && !landed {
-                        Run::None
-                    } else {
-                        Run::Move { seg, s: s2, v: nv, landed }
-                    };
+                    self.run = if self.stopping && nv == 0.0 && !landed { Run::None } else { Run::Move { seg, s: s2, v: nv, landed } };
                 }
             }
             Run::Dwell { left } => {
@@ -1925,8 +1919,7 @@ impl Motion {
                 let a = seg.axis;
                 let in_pos = self.in_hole
                     || self.inpos_wait >= INPOS_MAX_CYCLES
-                    || ((fb.pos[a] - sent[a]).abs() <= INPOS_MM
-                        && ((fb.pos[AX_S] - sent[AX_S]) * seg.lead / 360.0).abs() <= INPOS_MM);
+                    || ((fb.pos[a] - sent[a]).abs() <= INPOS_MM && ((fb.pos[AX_S] - sent[AX_S]) * seg.lead / 360.0).abs() <= INPOS_MM);
                 self.inpos_wait = if self.sp_cur == 0.0 { self.inpos_wait.saturating_add(1) } else { 0 };
                 self.tap_wait = None;
                 if self.stopping {
@@ -1935,8 +1928,7 @@ impl Motion {
                     // Held at R, spindle at rest, until the "in hole" state is durable.
                     let dir = (seg.p1 - seg.p0).signum();
                     let rpm = seg.v / seg.lead.abs().max(1e-12) * 60.0;
-                    self.tap_wait =
-                        Some(TapEntry { line: self.line, axis: a, r: seg.p0, dir, spindle_deg: self.pos[AX_S], lead: seg.lead, rpm });
+                    self.tap_wait = Some(TapEntry { line: self.line, axis: a, r: seg.p0, dir, spindle_deg: self.pos[AX_S], lead: seg.lead, rpm });
                 } else if self.sp_cur == 0.0 && in_pos {
                     self.inpos_wait = 0;
                     // The gate lets one hole in; the next waits again.
@@ -1944,11 +1936,7 @@ impl Motion {
                     // Keep the previous stroke's reference if the spindle is still exactly where
                     // that relation puts it (same hole, nothing turned it since).
                     let r = match self.tap_ref {
-                        Some((ax, pr, thr, lead))
-                            if ax == a && lead == seg.lead && thr + 360.0 * (seg.p0 - pr) / lead == self.pos[AX_S] =>
-                        {
-                            (pr, thr)
-                        }
+                        Some((ax, pr, thr, lead)) if ax == a && lead == seg.lead && thr + 360.0 * (seg.p0 - pr) / lead == self.pos[AX_S] => (pr, thr),
                         _ => (seg.p0, self.pos[AX_S]),
                     };
                     self.tap_ref = Some((a, r.0, r.1, seg.lead));
@@ -2010,15 +1998,7 @@ impl Motion {
         self.hist[self.hist_k] = out;
         vel[AX_S] = self.sp_cur * 6.0;
         self.fb_rpm_prev = if fb.spindle_rpm.is_finite() { fb.spindle_rpm } else { 0.0 };
-        Setpoint {
-            pos: out,
-            vel,
-            spindle_rpm: self.sp_cur,
-            path_feed: path_v * 60.0,
-            line: self.line,
-            event,
-            tool_spindle: self.tool.pos(),
-        }
+        Setpoint { pos: out, vel, spindle_rpm: self.sp_cur, path_feed: path_v * 60.0, line: self.line, event, tool_spindle: self.tool.pos() }
     }
 
     /// Blend: cross the junction at the end of the running segment within this cycle, onto
@@ -2099,11 +2079,7 @@ impl Motion {
         };
         if s == 0.0 && v == 0.0 && !seg.continuous && t.sync_speed() * seg.lead_path_max / seg.lead_path > seg.vlim {
             // The measured spindle speed is too fast for the lead: refuse before cutting.
-            self.fault = Some(Fault::ThreadTooFast {
-                v: t.sync_speed() * seg.lead_path_max / seg.lead_path,
-                vlim: seg.vlim,
-                line: self.line,
-            });
+            self.fault = Some(Fault::ThreadTooFast { v: t.sync_speed() * seg.lead_path_max / seg.lead_path, vlim: seg.vlim, line: self.line });
             self.stop();
             self.run = Run::None;
             return 0.0;
@@ -2121,12 +2097,7 @@ impl Motion {
         // does not leave the groove.
         let want = (target - s) / dt;
         let brake_len = len - s + next.map_or(0.0, |(n, _)| n.geom.len());
-        let nv = want
-            .max((v - dv).max(0.0))
-            .min(v + dv)
-            .min(seg.vlim)
-            .min(profile::v_allowed(brake_len, dv, dt))
-            .max(0.0);
+        let nv = want.max((v - dv).max(0.0)).min(v + dv).min(seg.vlim).min(profile::v_allowed(brake_len, dv, dt)).max(0.0);
         let d = len - s;
         if let Some((n, line)) = next.filter(|_| d - nv * dt <= 1e-9) {
             if let Some(t2) = t.continue_with(len, n.lead_path, n.k_path) {
@@ -2253,8 +2224,7 @@ impl Motion {
         self.sync_err = if err_um.is_finite() { err_um } else { f64::INFINITY };
         if !(self.sync_err.abs() <= self.lim.sync_err_limit_um) && !self.stopping {
             if self.fault.is_none() {
-                self.fault =
-                    Some(Fault::SyncError { err_um: self.sync_err, limit_um: self.lim.sync_err_limit_um, line: self.line });
+                self.fault = Some(Fault::SyncError { err_um: self.sync_err, limit_um: self.lim.sync_err_limit_um, line: self.line });
             }
             self.stop();
         }
@@ -2464,18 +2434,7 @@ fn corner_speed(du: f64, k: f64, h: f64, c: f64, dt: f64) -> f64 {
 
 fn seg(geom: Geom, speed: Speed, v: f64, a: f64) -> Seg {
     let (t0, t1) = geom.tangents();
-    Seg {
-        geom,
-        speed,
-        vlim: finite_or_zero(v),
-        alim: finite_or_zero(a),
-        jlim: 0.0,
-        t0,
-        t1,
-        blend_in: false,
-        vj: 0.0,
-        ext: 0.0,
-    }
+    Seg { geom, speed, vlim: finite_or_zero(v), alim: finite_or_zero(a), jlim: 0.0, t0, t1, blend_in: false, vj: 0.0, ext: 0.0 }
 }
 
 /// A rapid whose C differs from where the spindle was last programmed: Cs positioning.

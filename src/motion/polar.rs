@@ -275,7 +275,10 @@ impl Motion {
                 if (r0 - r1).abs() > l.arc_radius_tol {
                     return Err(Alarm::new(
                         alarms::ARC_RADIUS,
-                        format!("polar arc radius differs between start ({r0:.4}) and end ({r1:.4}) by more than {} mm; correct R or the end point", l.arc_radius_tol),
+                        format!(
+                            "polar arc radius differs between start ({r0:.4}) and end ({r1:.4}) by more than {} mm; correct R or the end point",
+                            l.arc_radius_tol
+                        ),
                     ));
                 }
                 let (a0, sweep) = crate::canon::arc_sweep(from, to, c, cw);
@@ -343,11 +346,8 @@ impl Motion {
             }
             Some((c, _, _, a0, sweep)) => {
                 let toward = (-c[1]).atan2(-c[0]);
-                let rel = if sweep >= 0.0 {
-                    (toward - a0).rem_euclid(std::f64::consts::TAU)
-                } else {
-                    (a0 - toward).rem_euclid(std::f64::consts::TAU)
-                };
+                let rel =
+                    if sweep >= 0.0 { (toward - a0).rem_euclid(std::f64::consts::TAU) } else { (a0 - toward).rem_euclid(std::f64::consts::TAU) };
                 if rel <= sweep.abs() {
                     probe(len * rel / sweep.abs());
                 }

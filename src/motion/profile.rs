@@ -229,7 +229,15 @@ mod tests {
     #[test]
     fn s_curve_plans_reach_their_target_exactly_within_the_limits() {
         let (amax, j) = (1500.0, 20_000.0);
-        for &(v, a, vt) in &[(0.0, 0.0, 100.0), (100.0, 0.0, 0.0), (50.0, 800.0, 20.0), (50.0, -800.0, 90.0), (10.0, 1500.0, 400.0), (400.0, -1500.0, 0.0), (30.0, 1900.0, 200.0)] {
+        for &(v, a, vt) in &[
+            (0.0, 0.0, 100.0),
+            (100.0, 0.0, 0.0),
+            (50.0, 800.0, 20.0),
+            (50.0, -800.0, 90.0),
+            (10.0, 1500.0, 400.0),
+            (400.0, -1500.0, 0.0),
+            (30.0, 1900.0, 200.0),
+        ] {
             let ph = plan(v, a, vt, amax, j);
             let total: f64 = ph.iter().map(|p| p.1).sum();
             // Walk the plan finely: jerk and acceleration within the limits (an acceleration

@@ -54,10 +54,7 @@ impl RtOptions {
 
     /// How the cycle thread's `RealClock` waits (`RealClock::with_wake`).
     pub fn wake(&self) -> WakeStrategy {
-        WakeStrategy {
-            max_sleep_ns: self.max_sleep_us.unwrap_or(0).saturating_mul(1000),
-            spin_ns: self.spin_us.unwrap_or(0).saturating_mul(1000),
-        }
+        WakeStrategy { max_sleep_ns: self.max_sleep_us.unwrap_or(0).saturating_mul(1000), spin_ns: self.spin_us.unwrap_or(0).saturating_mul(1000) }
     }
 }
 
@@ -211,9 +208,7 @@ fn affinity(cpu: usize) -> RtStep {
         return RtStep::Done(format!("cycle thread pinned to CPU {cpu}"));
     }
     let (_, msg) = errno_text();
-    RtStep::Refused(format!(
-        "cannot pin the cycle thread to CPU {cpu} ({msg}); this machine has {n} CPUs, or a cpuset forbids it. Running unpinned"
-    ))
+    RtStep::Refused(format!("cannot pin the cycle thread to CPU {cpu} ({msg}); this machine has {n} CPUs, or a cpuset forbids it. Running unpinned"))
 }
 
 #[cfg(target_os = "linux")]
@@ -273,7 +268,10 @@ mod tests {
     fn command_line_overrides_the_file_option_by_option() {
         let file = cfg("priority = 80\ncpu = 1").rt;
         // Nothing on the command line: the file.
-        assert_eq!(RtOptions::resolve(&file, &RtOptions::default()), RtOptions { priority: Some(80), mlock: false, cpu: Some(1), ..Default::default() });
+        assert_eq!(
+            RtOptions::resolve(&file, &RtOptions::default()),
+            RtOptions { priority: Some(80), mlock: false, cpu: Some(1), ..Default::default() }
+        );
         // Each flag replaces only its own option.
         let cli = RtOptions { priority: Some(20), mlock: true, cpu: None, ..Default::default() };
         assert_eq!(RtOptions::resolve(&file, &cli), RtOptions { priority: Some(20), mlock: true, cpu: Some(1), ..Default::default() });
@@ -292,9 +290,8 @@ mod tests {
     #[test]
     fn bad_requests_are_refused_with_a_reason_not_a_failure() {
         // Each on its own thread: a granted request must not change the test runner's.
-        let r = std::thread::spawn(|| apply(&RtOptions { priority: Some(150), mlock: false, cpu: Some(100_000), ..Default::default() }))
-            .join()
-            .unwrap();
+        let r =
+            std::thread::spawn(|| apply(&RtOptions { priority: Some(150), mlock: false, cpu: Some(100_000), ..Default::default() })).join().unwrap();
         assert_eq!(r.len(), 2);
         for s in &r {
             match s {
@@ -326,7 +323,13 @@ mod tests {
         let c = cfg("max_sleep_us = 500\nspin_us = 50\ncpu_dma_latency = true\ntimer_slack_ns = 1");
         assert_eq!(
             c.rt,
-            crate::config::RtConfig { max_sleep_us: Some(500), spin_us: Some(50), cpu_dma_latency: true, timer_slack_ns: Some(1), ..Default::default() }
+            crate::config::RtConfig {
+                max_sleep_us: Some(500),
+                spin_us: Some(50),
+                cpu_dma_latency: true,
+                timer_slack_ns: Some(1),
+                ..Default::default()
+            }
         );
         let o = RtOptions::resolve(&c.rt, &RtOptions::default());
         assert!(o.any());

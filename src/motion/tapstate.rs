@@ -476,7 +476,11 @@ impl TapPersister {
     pub fn finish(self) -> PersistStats {
         self.stop.store(true, Ordering::Release);
         self.handle.thread().unpark();
-        self.handle.join().unwrap_or_else(|_| PersistStats { failures: 1, last_error: Some("the tap-state writer panicked".into()), ..Default::default() })
+        self.handle.join().unwrap_or_else(|_| PersistStats {
+            failures: 1,
+            last_error: Some("the tap-state writer panicked".into()),
+            ..Default::default()
+        })
     }
 }
 
@@ -503,7 +507,10 @@ pub fn check_return_first(st: &TapState, moves: impl Iterator<Item = Result<Move
             MoveKind::Tap { .. } if m.tag.as_ref().is_some_and(|t| &*t.cycle == "G30 P99") => return Ok(()),
             MoveKind::Aux { .. } | MoveKind::Dwell { .. } | MoveKind::Stop { .. } => {}
             MoveKind::Spindle(c) if c.dir == crate::canon::SpindleDir::Stop => {}
-            k => return Err(refuse(format!("line {} would move first ({}); a program other than G30 P99 must not start", m.src.line, k.name())).at(m.src.clone())),
+            k => {
+                return Err(refuse(format!("line {} would move first ({}); a program other than G30 P99 must not start", m.src.line, k.name()))
+                    .at(m.src.clone()))
+            }
         }
     }
     Err(refuse("the program has no G30 P99".into()))

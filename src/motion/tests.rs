@@ -11,13 +11,7 @@ fn lim() -> Limits {
 }
 
 fn mv(line: u32, kind: MoveKind) -> Move {
-    Move {
-        src: SrcPos::new(Arc::from("t.nc"), line, 1),
-        kind,
-        exact_stop: true,
-        work_offset: Pos::ZERO,
-        tag: None::<CycleTag>,
-    }
+    Move { src: SrcPos::new(Arc::from("t.nc"), line, 1), kind, exact_stop: true, work_offset: Pos::ZERO, tag: None::<CycleTag> }
 }
 
 fn rapid(x: f64, z: f64) -> MoveKind {
@@ -137,13 +131,7 @@ fn feed_is_clamped_by_parameter_6023() {
 }
 
 fn arc_zx(x: f64, z: f64, cx: f64, cz: f64, cw: bool, f: f64) -> MoveKind {
-    MoveKind::Arc {
-        end: Pos::xz(x, z),
-        center: Pos::xz(cx, cz),
-        cw,
-        plane: Plane::Zx,
-        feed: Feed::PerMin(f),
-    }
+    MoveKind::Arc { end: Pos::xz(x, z), center: Pos::xz(cx, cz), cw, plane: Plane::Zx, feed: Feed::PerMin(f) }
 }
 
 #[test]
@@ -282,8 +270,7 @@ fn events_arrive_in_order_after_the_preceding_motion() {
     m.push(&mv(5, feed(30.0, -10.0, 500.0))).unwrap();
     m.push(&mv(6, MoveKind::End { code: 30 })).unwrap();
     let sps = run(&mut m, 10_000);
-    let evs: Vec<(Event, u32, f64)> =
-        sps.iter().filter(|s| s.event != Event::None).map(|s| (s.event, s.line, s.pos[AX_Z])).collect();
+    let evs: Vec<(Event, u32, f64)> = sps.iter().filter(|s| s.event != Event::None).map(|s| (s.event, s.line, s.pos[AX_Z])).collect();
     assert_eq!(
         evs,
         vec![
@@ -597,18 +584,9 @@ fn g64_tiny_segments_run_without_stopping() {
     // Several junctions per cycle: the feed (3000 mm/min, 0.1 mm per cycle, two segments of
     // ≈ 0.05 mm) is reached; one junction per cycle capped it at ≈ 1500 mm/min.
     let vmax = MAX_JUNCTIONS as f64 * longest / l.cycle_s * 60.0;
-    assert!(
-        sps.iter().all(|s| s.path_feed <= vmax + 1e-9),
-        "more than MAX_JUNCTIONS segments per cycle"
-    );
-    assert!(
-        sps.iter().any(|s| s.path_feed > 0.99 * 3000.0),
-        "tiny segments ran slower than the feed"
-    );
-    assert!(
-        sps.iter().all(|s| s.path_feed <= 3000.0 * (1.0 + 1e-9)),
-        "faster than the feed"
-    );
+    assert!(sps.iter().all(|s| s.path_feed <= vmax + 1e-9), "more than MAX_JUNCTIONS segments per cycle");
+    assert!(sps.iter().any(|s| s.path_feed > 0.99 * 3000.0), "tiny segments ran slower than the feed");
+    assert!(sps.iter().all(|s| s.path_feed <= 3000.0 * (1.0 + 1e-9)), "faster than the feed");
 }
 
 // ---- CAM contours: chains of tiny segments (issue 23) ----
@@ -616,18 +594,12 @@ fn g64_tiny_segments_run_without_stopping() {
 /// Pushes `moves` as the cycle loop does (whenever there is room, one step otherwise), then
 /// runs to idle: every setpoint, from `start` at rest.
 fn feed_and_run(m: &mut Motion, start: [f64; N_AXES], moves: &[Move]) -> Vec<Setpoint> {
-    let mut fb = Feedback {
-        pos: start,
-        spindle_rpm: 0.0,
-    };
+    let mut fb = Feedback { pos: start, spindle_rpm: 0.0 };
     let mut out = Vec::new();
     for k in moves {
         while !m.has_room() {
             let sp = m.step(&fb);
-            fb = Feedback {
-                pos: sp.pos,
-                spindle_rpm: sp.spindle_rpm,
-            };
+            fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm };
             out.push(sp);
         }
         m.push(k).unwrap();
@@ -639,12 +611,7 @@ fn feed_and_run(m: &mut Motion, start: [f64; N_AXES], moves: &[Move]) -> Vec<Set
 /// A half circle of radius `r` (centre X 30, Z −100, from its +Z end over +X) as `n` G1
 /// chords at feed `f` (G64, the last one an exact stop), run from its start.
 /// Returns the start, the end, the chain's length and the setpoints.
-fn run_chord_half_circle(
-    l: &Limits,
-    r: f64,
-    n: usize,
-    f: f64,
-) -> ([f64; N_AXES], [f64; 2], f64, Vec<Setpoint>) {
+fn run_chord_half_circle(l: &Limits, r: f64, n: usize, f: f64) -> ([f64; N_AXES], [f64; 2], f64, Vec<Setpoint>) {
     let pt = |k: usize| {
         let th = std::f64::consts::PI * k as f64 / n as f64;
         (30.0 + r * th.sin(), -100.0 + r * th.cos())
@@ -657,11 +624,7 @@ fn run_chord_half_circle(
         len += (x - prev.0).hypot(z - prev.1);
         prev = (x, z);
         let k32 = k as u32;
-        moves.push(if k == n {
-            mv(k32, feed(x, z, f))
-        } else {
-            mv_g64(k32, feed(x, z, f))
-        });
+        moves.push(if k == n { mv(k32, feed(x, z, f)) } else { mv_g64(k32, feed(x, z, f)) });
     }
     let (x0, z0) = pt(0);
     let start = [x0, 0.0, z0, 0.0];
@@ -700,16 +663,9 @@ fn chord_run(chord: f64, f: f64, j: f64) -> (f64, f64) {
     let n = (std::f64::consts::PI * 20.0 / chord).round() as usize;
     let (start, end, len, sps) = run_chord_half_circle(&l, 20.0, n, f);
     check_limits(&l, start, &sps).unwrap();
-    assert!(
-        sps.iter().all(|s| s.path_feed <= f * (1.0 + 1e-9)),
-        "faster than F{f}"
-    );
+    assert!(sps.iter().all(|s| s.path_feed <= f * (1.0 + 1e-9)), "faster than F{f}");
     let last = sps.last().unwrap();
-    assert_eq!(
-        (last.pos[AX_X], last.pos[AX_Z]),
-        (end[0], end[1]),
-        "not on the end point"
-    );
+    assert_eq!((last.pos[AX_X], last.pos[AX_Z]), (end[0], end[1]), "not on the end point");
     assert_eq!(last.vel[..3], [0.0; 3], "not at rest at the end");
     let v = f / 60.0;
     let (mut p, mut vel, mut acc, mut dacc) = (start, [0.0; 3], [0.0; 3], 0.0f64);
@@ -762,14 +718,8 @@ fn chord_chain_speed_is_limited_by_its_centripetal_acceleration() {
     let (start, _, _, sps) = run_chord_half_circle(&l, 1.0, n, 6000.0);
     check_limits(&l, start, &sps).unwrap();
     let top = sps.iter().map(|s| s.path_feed / 60.0).fold(0.0, f64::max);
-    assert!(
-        top <= (1000.0 * 2f64.sqrt()).sqrt() * 1.01,
-        "top speed {top} mm/s"
-    );
-    assert!(
-        top >= 0.9 * 1000f64.sqrt(),
-        "top speed {top} mm/s: slower than needed"
-    );
+    assert!(top <= (1000.0 * 2f64.sqrt()).sqrt() * 1.01, "top speed {top} mm/s");
+    assert!(top >= 0.9 * 1000f64.sqrt(), "top speed {top} mm/s: slower than needed");
 }
 
 #[test]
@@ -783,26 +733,17 @@ fn at_most_max_junctions_are_crossed_per_cycle() {
     let n = 3000;
     for i in 1..=n {
         let z = -0.001 * i as f64;
-        let k = if i == n {
-            mv(i, feed(50.0, z, 6000.0))
-        } else {
-            mv_g64(i, feed(50.0, z, 6000.0))
-        };
+        let k = if i == n { mv(i, feed(50.0, z, 6000.0)) } else { mv_g64(i, feed(50.0, z, 6000.0)) };
         m.push(&k).unwrap();
     }
     let sps = run(&mut m, 1_000_000);
     check_limits(&l, START, &sps).unwrap();
     let cap = MAX_JUNCTIONS as f64 * 0.001 / l.cycle_s * 60.0;
-    assert!(
-        sps.iter().all(|s| s.path_feed <= cap * (1.0 + 1e-6)),
-        "more than MAX_JUNCTIONS per cycle"
-    );
+    assert!(sps.iter().all(|s| s.path_feed <= cap * (1.0 + 1e-6)), "more than MAX_JUNCTIONS per cycle");
     let top = sps.iter().map(|s| s.path_feed).fold(0.0, f64::max);
     // The crossing speed stays a speed step (a·dt) below the junctions' limit.
     assert!(top >= 0.9 * cap, "never near the cap {cap}: {top}");
-    assert!(sps
-        .windows(2)
-        .all(|w| w[1].line - w[0].line <= MAX_JUNCTIONS as u32));
+    assert!(sps.windows(2).all(|w| w[1].line - w[0].line <= MAX_JUNCTIONS as u32));
     assert_eq!(sps.last().unwrap().pos[AX_Z], -0.001 * n as f64);
 }
 
@@ -826,10 +767,7 @@ fn a_starved_queue_limits_the_speed_to_what_it_can_stop_within() {
         assert_eq!(sps.last().unwrap().pos[AX_Z], z, "queue {q}");
         // Braking within the queued 0.05·q mm at the blended 1000 mm/s²: v ≤ √(2·1000·L).
         let top = sps.iter().map(|s| s.path_feed / 60.0).fold(0.0, f64::max);
-        assert!(
-            top <= (2.0 * 1000.0 * 0.05 * q as f64).sqrt() + 2.0,
-            "queue {q}: {top} mm/s"
-        );
+        assert!(top <= (2.0 * 1000.0 * 0.05 * q as f64).sqrt() + 2.0, "queue {q}: {top} mm/s");
     }
 }
 
@@ -837,10 +775,18 @@ fn a_starved_queue_limits_the_speed_to_what_it_can_stop_within() {
 /// direction (radians), the feed (mm/min); or a pause of the interpreter (cycles).
 #[derive(Clone, Debug)]
 enum Short {
-    Seg { len: f64, turn: f64, f: f64 },
+    Seg {
+        len: f64,
+        turn: f64,
+        f: f64,
+    },
     /// A G2/G3 of radius `r` turning by `phi` (radians, + = counter-clockwise seen from +Y),
     /// tangent to the direction so far.
-    Arc { r: f64, phi: f64, f: f64 },
+    Arc {
+        r: f64,
+        phi: f64,
+        f: f64,
+    },
     Starve(usize),
     /// Feed hold for that many cycles, then cycle start.
     Hold(usize),
@@ -951,10 +897,15 @@ enum Step {
 
 fn chain_strategy() -> impl Strategy<Value = Step> {
     prop_oneof![
-        (10.0..140.0f64, -390.0..-10.0f64, 10.0..6000.0f64, any::<bool>())
-            .prop_map(|(x, z, f, exact)| Step::Line { x, z, f, exact }),
-        (-8.0..8.0f64, -8.0..8.0f64, 0.0..6.3f64, any::<bool>(), 10.0..6000.0f64, any::<bool>())
-            .prop_map(|(dx, dz, ang, cw, f, exact)| Step::Arc { dx, dz, ang, cw, f, exact }),
+        (10.0..140.0f64, -390.0..-10.0f64, 10.0..6000.0f64, any::<bool>()).prop_map(|(x, z, f, exact)| Step::Line { x, z, f, exact }),
+        (-8.0..8.0f64, -8.0..8.0f64, 0.0..6.3f64, any::<bool>(), 10.0..6000.0f64, any::<bool>()).prop_map(|(dx, dz, ang, cw, f, exact)| Step::Arc {
+            dx,
+            dz,
+            ang,
+            cw,
+            f,
+            exact
+        }),
     ]
 }
 
@@ -1148,16 +1099,7 @@ fn feed_hold_waits_for_the_end_of_a_thread() {
 
 /// Arbitrary, including non-finite, numbers.
 fn any_f64() -> impl Strategy<Value = f64> + Clone {
-    prop_oneof![
-        -500.0..500.0f64,
-        Just(f64::NAN),
-        Just(f64::INFINITY),
-        Just(f64::NEG_INFINITY),
-        Just(0.0),
-        Just(-0.0),
-        Just(1e300),
-        Just(-1e-300),
-    ]
+    prop_oneof![-500.0..500.0f64, Just(f64::NAN), Just(f64::INFINITY), Just(f64::NEG_INFINITY), Just(0.0), Just(-0.0), Just(1e300), Just(-1e-300),]
 }
 
 fn any_move() -> impl Strategy<Value = MoveKind> {
@@ -1173,10 +1115,7 @@ fn any_move() -> impl Strategy<Value = MoveKind> {
     }
     prop_oneof![
         pos().prop_map(|end| MoveKind::Rapid { end }),
-        (pos(), any_f64(), any::<bool>()).prop_map(|(end, f, r)| MoveKind::Feed {
-            end,
-            feed: if r { Feed::PerRev(f) } else { Feed::PerMin(f) }
-        }),
+        (pos(), any_f64(), any::<bool>()).prop_map(|(end, f, r)| MoveKind::Feed { end, feed: if r { Feed::PerRev(f) } else { Feed::PerMin(f) } }),
         (pos(), pos(), any::<bool>(), 0..3u8, any_f64()).prop_map(|(end, center, cw, pl, f)| MoveKind::Arc {
             end,
             center,
@@ -1184,16 +1123,17 @@ fn any_move() -> impl Strategy<Value = MoveKind> {
             plane: [Plane::Xy, Plane::Zx, Plane::Yz][pl as usize],
             feed: Feed::PerMin(f)
         }),
-        (pos(), any_f64(), any_f64()).prop_map(|(end, lead, start_angle)| MoveKind::Thread { end, lead, start_angle, continuous: false, lead_inc: 0.0 }),
+        (pos(), any_f64(), any_f64()).prop_map(|(end, lead, start_angle)| MoveKind::Thread {
+            end,
+            lead,
+            start_angle,
+            continuous: false,
+            lead_inc: 0.0
+        }),
         (pos(), any_f64(), any_f64()).prop_map(|(end, lead, rpm)| MoveKind::Tap { end, lead, rpm, spindle: 1 }),
         any_f64().prop_map(|seconds| MoveKind::Dwell { seconds: seconds.abs().min(0.05) }),
         (0..3u8, any_f64(), prop::option::of(any_f64()), prop::option::of(any_f64())).prop_map(|(d, rpm, css, max_rpm)| {
-            MoveKind::Spindle(SpindleCmd {
-                dir: [SpindleDir::Cw, SpindleDir::Ccw, SpindleDir::Stop][d as usize],
-                rpm,
-                css,
-                max_rpm,
-            })
+            MoveKind::Spindle(SpindleCmd { dir: [SpindleDir::Cw, SpindleDir::Ccw, SpindleDir::Stop][d as usize], rpm, css, max_rpm })
         }),
         any::<bool>().prop_map(|optional| MoveKind::Stop { optional }),
     ]
@@ -1377,10 +1317,7 @@ fn single_block_stops_after_every_block_even_in_g64() {
             break;
         }
     }
-    assert_eq!(
-        stops,
-        vec![(50.0, -10.0, 0.0, 0.0), (55.0, -20.0, 0.0, 0.0), (55.0, -30.0, 0.0, 0.0), (55.0, -30.0, 0.0, 0.0)]
-    );
+    assert_eq!(stops, vec![(50.0, -10.0, 0.0, 0.0), (55.0, -20.0, 0.0, 0.0), (55.0, -30.0, 0.0, 0.0), (55.0, -30.0, 0.0, 0.0)]);
     check_limits(&l, START, &sps).unwrap();
 }
 
@@ -1843,10 +1780,7 @@ fn a_rigid_tap_too_fast_for_z_or_the_spindle_is_refused_at_push() {
 
 /// Largest |second difference| of axis `i` over setpoints of line `line`, units/s².
 fn peak_accel(sps: &[Setpoint], i: usize, line: u32, dt: f64) -> f64 {
-    sps.windows(3)
-        .filter(|w| w[1].line == line)
-        .map(|w| ((w[2].pos[i] - 2.0 * w[1].pos[i] + w[0].pos[i]) / (dt * dt)).abs())
-        .fold(0.0, f64::max)
+    sps.windows(3).filter(|w| w[1].line == line).map(|w| ((w[2].pos[i] - 2.0 * w[1].pos[i] + w[0].pos[i]) / (dt * dt)).abs()).fold(0.0, f64::max)
 }
 
 #[test]

@@ -136,15 +136,7 @@ impl Trace {
             res?;
             sink.finish()
         })?;
-        Ok(Trace {
-            n,
-            cur: Vec::with_capacity(CHUNK_ROWS),
-            full_tx: Some(full_tx),
-            free_rx,
-            rows: 0,
-            dropped: 0,
-            writer: Some(writer),
-        })
+        Ok(Trace { n, cur: Vec::with_capacity(CHUNK_ROWS), full_tx: Some(full_tx), free_rx, rows: 0, dropped: 0, writer: Some(writer) })
     }
 
     /// A CSV file at `path`.
@@ -319,12 +311,7 @@ pub fn plot_svg(data: &TraceData, out: &std::path::Path) -> Result<(), String> {
                 .label(name.as_str())
                 .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], style));
         }
-        chart
-            .configure_series_labels()
-            .background_style(WHITE.mix(0.8))
-            .border_style(BLACK)
-            .draw()
-            .map_err(|e| err(&e))?;
+        chart.configure_series_labels().background_style(WHITE.mix(0.8)).border_style(BLACK).draw().map_err(|e| err(&e))?;
     }
     root.present().map_err(|e| err(&e))
 }

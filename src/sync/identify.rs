@@ -175,7 +175,6 @@ fn fit_tau(v: &[f64], dy: &[f64], dt: f64, alpha_of: &dyn Fn(f64) -> f64) -> (f6
     (sse, tau, ff)
 }
 
-
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -124,15 +124,18 @@ mod tests {
         let mut c = LinkCheck::new(&axes, 100.0, Pos { x: 20.0, z: 2.0, ..Pos::default() });
         c.check(&mv(MoveKind::Spindle(SpindleCmd { dir: SpindleDir::Cw, rpm: 600.0, css: None, max_rpm: None }))).unwrap();
         // A straight thread along Z does not move X: accepted whatever the speed.
-        let straight = MoveKind::Thread { end: Pos { x: 20.0, z: -30.0, ..Pos::default() }, lead: 2.0, start_angle: 0.0, continuous: false, lead_inc: 0.0 };
+        let straight =
+            MoveKind::Thread { end: Pos { x: 20.0, z: -30.0, ..Pos::default() }, lead: 2.0, start_angle: 0.0, continuous: false, lead_inc: 0.0 };
         assert!(c.check(&mv(straight)).is_ok());
         // A taper moving X by 1 mm over 32 mm of Z: v_x = 20 mm/s / 32 → 12.5 µm per 20 ms: fine.
         let mut c = LinkCheck::new(&axes, 100.0, Pos { x: 20.0, z: 2.0, ..Pos::default() });
         c.check(&mv(MoveKind::Spindle(SpindleCmd { dir: SpindleDir::Cw, rpm: 600.0, css: None, max_rpm: None }))).unwrap();
-        let taper = MoveKind::Thread { end: Pos { x: 21.0, z: -30.0, ..Pos::default() }, lead: 2.0, start_angle: 0.0, continuous: false, lead_inc: 0.0 };
+        let taper =
+            MoveKind::Thread { end: Pos { x: 21.0, z: -30.0, ..Pos::default() }, lead: 2.0, start_angle: 0.0, continuous: false, lead_inc: 0.0 };
         assert!(c.check(&mv(taper.clone())).is_ok());
         // A face thread (X only) at the same speed: 20 mm/s × 20 ms = 400 µm: refused.
-        let face = MoveKind::Thread { end: Pos { x: 5.0, z: -30.0, ..Pos::default() }, lead: 2.0, start_angle: 0.0, continuous: false, lead_inc: 0.0 };
+        let face =
+            MoveKind::Thread { end: Pos { x: 5.0, z: -30.0, ..Pos::default() }, lead: 2.0, start_angle: 0.0, continuous: false, lead_inc: 0.0 };
         assert_eq!(c.check(&mv(face)).unwrap_err().number, 2203);
     }
 }

@@ -2,8 +2,7 @@
 //! embedded machine: what `examples/drive_matrix.rs` prints and `tests/drive_matrix.rs` bounds.
 
 use super::measure::{
-    g92_1_moves, monitor_stats, phase_spread, rigid_tap_moves, run_moves_on, tap_sync_error, thread_pass_moves, thread_phases,
-    CuttingLoad, SimRun,
+    g92_1_moves, monitor_stats, phase_spread, rigid_tap_moves, run_moves_on, tap_sync_error, thread_pass_moves, thread_phases, CuttingLoad, SimRun,
 };
 use crate::config::MachineConfig;
 use crate::motion::Limits;

@@ -89,8 +89,7 @@ impl Clock for Loaded<'_> {
 /// Run canonical moves (machine coordinates) on the embedded machine's emulated drives in
 /// simulated time, tracing every cycle.
 pub fn run_moves(cfg: &MachineConfig, limits: Limits, moves: Vec<Move>, load: Option<CuttingLoad>) -> Result<SimRun, Alarm> {
-    let sim_cfg = sim_drives::SimConfig::from_machine_toml(EMBEDDED_LATHE)
-        .map_err(|e| Alarm::new(2399, format!("emulated drives: {e}")))?;
+    let sim_cfg = sim_drives::SimConfig::from_machine_toml(EMBEDDED_LATHE).map_err(|e| Alarm::new(2399, format!("emulated drives: {e}")))?;
     run_moves_on(cfg, sim_cfg, limits, moves, load)
 }
 
@@ -117,8 +116,7 @@ pub fn run_moves_on(
     let cycle_ns = (cfg.machine.cycle_ms * 1e6).round() as u64;
     let mut lp = CycleLoop::new(&mut master, &mut clock, limits, spindle, cycle_ns);
     let names = lp.drive_names();
-    let trace = Trace::spawn(names.clone(), VecSink(rows.clone()))
-        .map_err(|e| Alarm::new(2399, format!("cannot start the trace writer: {e}")))?;
+    let trace = Trace::spawn(names.clone(), VecSink(rows.clone())).map_err(|e| Alarm::new(2399, format!("cannot start the trace writer: {e}")))?;
     lp.set_trace(trace);
     let result = match lp.start(&mut summary) {
         Err(a) => Err(a),
@@ -189,10 +187,7 @@ pub fn thread_pass_moves(x: f64, z_start: f64, z_end: f64, lead: f64, rpms: &[f6
         v.push(mv(line, MoveKind::Spindle(SpindleCmd { dir: SpindleDir::Cw, rpm, css: None, max_rpm: None })));
         v.push(mv(line + 1, MoveKind::Rapid { end: Pos::xz(x + 2.0, z_start) }));
         v.push(mv(line + 2, MoveKind::Rapid { end: Pos::xz(x, z_start) }));
-        v.push(mv(
-            line + 3,
-            MoveKind::Thread { end: Pos::xz(x, z_end), lead, start_angle: 0.0, continuous: false, lead_inc: 0.0 },
-        ));
+        v.push(mv(line + 3, MoveKind::Thread { end: Pos::xz(x, z_end), lead, start_angle: 0.0, continuous: false, lead_inc: 0.0 }));
         v.push(mv(line + 4, MoveKind::Rapid { end: Pos::xz(x + 2.0, z_end) }));
         line += 10;
     }
@@ -208,9 +203,8 @@ pub fn thread_phases(run: &SimRun, z_ref: f64, passes: usize) -> Option<Vec<f64>
     let mut out = Vec::new();
     for p in 0..passes {
         let line = 4 + 10 * p as u32;
-        let w = run.rows.windows(2).find(|w| {
-            w[1].line == line && (w[0].act[z] - z_ref) * (w[1].act[z] - z_ref) <= 0.0 && w[0].act[z] != w[1].act[z]
-        })?;
+        let w =
+            run.rows.windows(2).find(|w| w[1].line == line && (w[0].act[z] - z_ref) * (w[1].act[z] - z_ref) <= 0.0 && w[0].act[z] != w[1].act[z])?;
         let f = (z_ref - w[0].act[z]) / (w[1].act[z] - w[0].act[z]);
         let th = w[0].act[s] + f * (w[1].act[s] - w[0].act[s]);
         out.push(th.rem_euclid(360.0));

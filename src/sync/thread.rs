@@ -76,18 +76,7 @@ impl ThreadSync {
         let q = dir * theta + dtheta;
         let q0 = start_angle + 360.0 * ((q - start_angle) / 360.0).ceil();
         let theta0 = dir * q0;
-        Some(ThreadSync {
-            dir,
-            theta_start: theta0 - dir * dtheta,
-            theta0,
-            omega,
-            a,
-            v,
-            lead_path,
-            k,
-            n_start: 0.0,
-            ramp: true,
-        })
+        Some(ThreadSync { dir, theta_start: theta0 - dir * dtheta, theta0, omega, a, v, lead_path, k, n_start: 0.0, ramp: true })
     }
 
     /// The lock for the segment that directly follows this one (which is `len` mm long):
@@ -99,14 +88,7 @@ impl ThreadSync {
         if !(lead_path > 0.0 && lead_path.is_finite() && k.is_finite()) {
             return None;
         }
-        Some(ThreadSync {
-            n_start: self.n_start + n,
-            lead_path,
-            k,
-            ramp: false,
-            v: lead_path * self.omega / 360.0,
-            ..*self
-        })
+        Some(ThreadSync { n_start: self.n_start + n, lead_path, k, ramp: false, v: lead_path * self.omega / 360.0, ..*self })
     }
 
     /// Revolutions along this segment's synchronous line from its start to path position `len`:

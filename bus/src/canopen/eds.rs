@@ -270,7 +270,14 @@ impl Eds {
     }
 
     fn where_(&self, e: &EdsEntry) -> String {
-        format!("{}:{} [{:04X}{}] {:?}", self.file, e.line, e.index, if self.composites.contains_key(&e.index) { format!("sub{:X}", e.sub) } else { String::new() }, e.name)
+        format!(
+            "{}:{} [{:04X}{}] {:?}",
+            self.file,
+            e.line,
+            e.index,
+            if self.composites.contains_key(&e.index) { format!("sub{:X}", e.sub) } else { String::new() },
+            e.name
+        )
     }
 
     fn lookup(&self, index: u16, sub: u8) -> Result<&EdsEntry, String> {
@@ -385,7 +392,10 @@ PDOMapping=1
     fn checks_name_the_file_and_line() {
         let e = Eds::parse("x.eds", TEXT).unwrap();
         assert_eq!(e.check_write(0x6040, 0, 2), Ok(()));
-        assert_eq!(e.check_write(0x6040, 0, 4).unwrap_err(), "x.eds:37 [6040] \"Controlword\": DataType UNSIGNED16 is 2 bytes but the master writes 4");
+        assert_eq!(
+            e.check_write(0x6040, 0, 4).unwrap_err(),
+            "x.eds:37 [6040] \"Controlword\": DataType UNSIGNED16 is 2 bytes but the master writes 4"
+        );
         assert_eq!(e.check_write(0x1000, 0, 4).unwrap_err(), "x.eds:5 [1000] \"Device type\": AccessType=ro but the master writes 0x1000:00");
         assert_eq!(e.check_write(0x6060, 0, 1).unwrap_err(), "x.eds: object 0x6060:00 is not in the EDS");
         assert_eq!(e.check_write(0x1018, 7, 4).unwrap_err(), "x.eds:13: 0x1018 has no sub-index 7 in the EDS");
@@ -397,9 +407,15 @@ PDOMapping=1
     #[test]
     fn malformed_files_are_refused_with_the_line() {
         assert_eq!(Eds::parse("b.eds", "[1000\nX=1").unwrap_err(), "b.eds:1: section header without ']': [1000");
-        assert_eq!(Eds::parse("b.eds", "[1000]\nDataType=0x0007\nAccessType=xx").unwrap_err(), "b.eds:3: AccessType \"xx\" is not ro/wo/rw/rww/rwr/const");
+        assert_eq!(
+            Eds::parse("b.eds", "[1000]\nDataType=0x0007\nAccessType=xx").unwrap_err(),
+            "b.eds:3: AccessType \"xx\" is not ro/wo/rw/rww/rwr/const"
+        );
         assert_eq!(Eds::parse("b.eds", "[1000]\nAccessType=ro").unwrap_err(), "b.eds:1: [1000] has no DataType");
-        assert_eq!(Eds::parse("b.eds", "[2000]\nObjectType=0x9\nSubNumber=2").unwrap_err(), "b.eds:1: [2000] is an array/record without sub-index sections");
+        assert_eq!(
+            Eds::parse("b.eds", "[2000]\nObjectType=0x9\nSubNumber=2").unwrap_err(),
+            "b.eds:1: [2000] is an array/record without sub-index sections"
+        );
         assert!(Eds::parse("b.eds", "[1000]\nnot a key").unwrap_err().starts_with("b.eds:2: expected KEY=VALUE"));
     }
 }

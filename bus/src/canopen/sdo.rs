@@ -13,23 +13,63 @@ use crate::CanFrame;
 pub enum SdoRequest {
     /// Initiate download. Expedited when `size` ≤ 4 and `data` holds the value; otherwise
     /// segmented, and `size` (if indicated) is the total byte count.
-    InitiateDownload { index: u16, sub: u8, expedited: bool, size: Option<u32>, data: [u8; 4] },
+    InitiateDownload {
+        index: u16,
+        sub: u8,
+        expedited: bool,
+        size: Option<u32>,
+        data: [u8; 4],
+    },
     /// Download segment: toggle bit, up to 7 bytes, last-segment flag.
-    DownloadSegment { toggle: bool, len: u8, data: [u8; 7], last: bool },
-    InitiateUpload { index: u16, sub: u8 },
-    UploadSegment { toggle: bool },
-    Abort { index: u16, sub: u8, code: u32 },
+    DownloadSegment {
+        toggle: bool,
+        len: u8,
+        data: [u8; 7],
+        last: bool,
+    },
+    InitiateUpload {
+        index: u16,
+        sub: u8,
+    },
+    UploadSegment {
+        toggle: bool,
+    },
+    Abort {
+        index: u16,
+        sub: u8,
+        code: u32,
+    },
 }
 
 /// A server → client SDO frame.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum SdoResponse {
-    InitiateDownload { index: u16, sub: u8 },
-    DownloadSegment { toggle: bool },
+    InitiateDownload {
+        index: u16,
+        sub: u8,
+    },
+    DownloadSegment {
+        toggle: bool,
+    },
     /// Initiate upload response: expedited carries the data (`size` bytes of `data`).
-    InitiateUpload { index: u16, sub: u8, expedited: bool, size: Option<u32>, data: [u8; 4] },
-    UploadSegment { toggle: bool, len: u8, data: [u8; 7], last: bool },
-    Abort { index: u16, sub: u8, code: u32 },
+    InitiateUpload {
+        index: u16,
+        sub: u8,
+        expedited: bool,
+        size: Option<u32>,
+        data: [u8; 4],
+    },
+    UploadSegment {
+        toggle: bool,
+        len: u8,
+        data: [u8; 7],
+        last: bool,
+    },
+    Abort {
+        index: u16,
+        sub: u8,
+        code: u32,
+    },
 }
 
 fn mux(d: &[u8]) -> (u16, u8) {
@@ -112,12 +152,7 @@ impl SdoRequest {
             0 => {
                 let mut data = [0u8; 7];
                 data.copy_from_slice(&d[1..8]);
-                SdoRequest::DownloadSegment {
-                    toggle: cmd & 0x10 != 0,
-                    len: 7 - ((cmd >> 1) & 0x07),
-                    data,
-                    last: cmd & 0x01 != 0,
-                }
+                SdoRequest::DownloadSegment { toggle: cmd & 0x10 != 0, len: 7 - ((cmd >> 1) & 0x07), data, last: cmd & 0x01 != 0 }
             }
             2 => {
                 let (index, sub) = mux(d);
@@ -184,12 +219,7 @@ impl SdoResponse {
             0 => {
                 let mut data = [0u8; 7];
                 data.copy_from_slice(&d[1..8]);
-                SdoResponse::UploadSegment {
-                    toggle: cmd & 0x10 != 0,
-                    len: 7 - ((cmd >> 1) & 0x07),
-                    data,
-                    last: cmd & 0x01 != 0,
-                }
+                SdoResponse::UploadSegment { toggle: cmd & 0x10 != 0, len: 7 - ((cmd >> 1) & 0x07), data, last: cmd & 0x01 != 0 }
             }
             4 => {
                 let (index, sub) = mux(d);
@@ -240,13 +270,29 @@ pub enum BlockRequest {
 /// A server → client block transfer frame (not the data segments: `BlockSegment`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum BlockResponse {
-    InitiateDownload { index: u16, sub: u8, crc: bool, blksize: u8 },
+    InitiateDownload {
+        index: u16,
+        sub: u8,
+        crc: bool,
+        blksize: u8,
+    },
     /// Sub-block received up to `ackseq`; next sub-block of `blksize` segments.
-    Ack { ackseq: u8, blksize: u8 },
+    Ack {
+        ackseq: u8,
+        blksize: u8,
+    },
     EndDownloadResponse,
-    InitiateUpload { index: u16, sub: u8, crc: bool, size: Option<u32> },
+    InitiateUpload {
+        index: u16,
+        sub: u8,
+        crc: bool,
+        size: Option<u32>,
+    },
     /// End block upload: `unused` bytes of the last segment carry no data.
-    EndUpload { unused: u8, crc: u16 },
+    EndUpload {
+        unused: u8,
+        crc: u16,
+    },
 }
 
 /// One data segment of a sub-block, either direction: sequence number 1…127, 7 data bytes,

@@ -42,13 +42,7 @@ fn from_sc(f: &socketcan::CanFrame) -> Option<CanFrame> {
     if f.is_error_frame() {
         return None;
     }
-    let mut out = CanFrame {
-        id: f.raw_id(),
-        extended: f.is_extended(),
-        rtr: f.is_remote_frame(),
-        len: f.dlc().min(8) as u8,
-        data: [0; 8],
-    };
+    let mut out = CanFrame { id: f.raw_id(), extended: f.is_extended(), rtr: f.is_remote_frame(), len: f.dlc().min(8) as u8, data: [0; 8] };
     let d = f.data();
     out.data[..d.len().min(8)].copy_from_slice(&d[..d.len().min(8)]);
     if !out.rtr {
@@ -104,9 +98,10 @@ impl CanBus for SocketCan {
             Ok(()) => Ok(()),
             // ENOBUFS / EAGAIN: the interface's transmit queue is full (bus-off or unplugged
             // cable on a real controller).
-            Err(e) if e.kind() == ErrorKind::WouldBlock || e.raw_os_error() == Some(105) => {
-                Err(BusError::Io { bus: self.name.clone(), reason: "transmit queue full (bus-off, no other node acknowledging, or cable unplugged?)".into() })
-            }
+            Err(e) if e.kind() == ErrorKind::WouldBlock || e.raw_os_error() == Some(105) => Err(BusError::Io {
+                bus: self.name.clone(),
+                reason: "transmit queue full (bus-off, no other node acknowledging, or cable unplugged?)".into(),
+            }),
             Err(e) => Err(self.io(e)),
         }
     }

@@ -35,9 +35,7 @@ fn expect(stream: &mut TcpStream, sp: &mut Splitter, what: &str, bus: &str) -> R
         if let Some(m) = sp.next_msg() {
             return Ok(m);
         }
-        let n = stream
-            .read(&mut buf)
-            .map_err(|e| BusError::Open { bus: bus.into(), reason: format!("waiting for {what}: {e}") })?;
+        let n = stream.read(&mut buf).map_err(|e| BusError::Open { bus: bus.into(), reason: format!("waiting for {what}: {e}") })?;
         if n == 0 {
             return Err(BusError::Open { bus: bus.into(), reason: format!("server closed the connection waiting for {what}") });
         }
@@ -186,7 +184,11 @@ mod tests {
 
     #[test]
     fn send_format_matches_the_codec() {
-        for f in [CanFrame::new(0x80, &[]), CanFrame::new(0x601, &[0x40, 0, 0x10, 0, 0, 0, 0, 0]), CanFrame { id: 0x18FF_0001, extended: true, rtr: false, len: 2, data: [1, 2, 0, 0, 0, 0, 0, 0] }] {
+        for f in [
+            CanFrame::new(0x80, &[]),
+            CanFrame::new(0x601, &[0x40, 0, 0x10, 0, 0, 0, 0, 0]),
+            CanFrame { id: 0x18FF_0001, extended: true, rtr: false, len: 2, data: [1, 2, 0, 0, 0, 0, 0, 0] },
+        ] {
             let mut buf = [0u8; 64];
             let n = format_send(&f, &mut buf);
             assert_eq!(std::str::from_utf8(&buf[..n]).unwrap(), crate::socketcand::format(&Msg::Send(f)));

@@ -249,11 +249,7 @@ impl SimDrive {
             let a = self.od.int(ix::HOMING_ACCEL, 0) as f64;
             (f64::INFINITY, a, a)
         } else {
-            (
-                self.od.int(PROFILE_VELOCITY, 0) as f64,
-                self.od.int(PROFILE_ACCEL, 0) as f64,
-                self.od.int(super::PROFILE_DECEL, 0) as f64,
-            )
+            (self.od.int(PROFILE_VELOCITY, 0) as f64, self.od.int(PROFILE_ACCEL, 0) as f64, self.od.int(super::PROFILE_DECEL, 0) as f64)
         };
         if let Some(h) = self.prof.homing {
             let (neg, pos) = self.switches();
@@ -320,10 +316,7 @@ impl SimDrive {
                 s |= sw::OMS12;
             }
             let window = self.od.int(super::POSITION_WINDOW, 0) as f64 * self.hot.inc_per_unit;
-            if self.prof.traj.is_none()
-                && self.prof.pending.is_none()
-                && (self.demand - self.servo.position_counts() as f64).abs() <= window
-            {
+            if self.prof.traj.is_none() && self.prof.pending.is_none() && (self.demand - self.servo.position_counts() as f64).abs() <= window {
                 s |= sw::TARGET_REACHED;
             }
         }

@@ -40,9 +40,7 @@ pub(super) fn increments_per_unit(od: &crate::od::Od) -> f64 {
         g(ix::FEED_CONSTANT, 1),
         g(ix::FEED_CONSTANT, 2),
     ) {
-        (Some(inc), Some(rev), Some(gm), Some(gs), Some(feed), Some(frev))
-            if rev > 0.0 && gs > 0.0 && feed > 0.0 && frev > 0.0 =>
-        {
+        (Some(inc), Some(rev), Some(gm), Some(gs), Some(feed), Some(frev)) if rev > 0.0 && gs > 0.0 && feed > 0.0 && frev > 0.0 => {
             let f = inc / rev * gm / gs / (feed / frev);
             if f.is_finite() && f > 0.0 {
                 f
@@ -95,11 +93,8 @@ impl SimDrive {
             sh.mode_switch_ms,
             sh.mode_switch_syncs
         );
-        self.pending_mode = Some(PendingMode {
-            mode: m,
-            due_ns: now + (sh.mode_switch_ms * MS as f64).round() as u64,
-            syncs_left: sh.mode_switch_syncs,
-        });
+        self.pending_mode =
+            Some(PendingMode { mode: m, due_ns: now + (sh.mode_switch_ms * MS as f64).round() as u64, syncs_left: sh.mode_switch_syncs });
     }
 
     /// A SYNC or a timer: switch to the pending mode once both conditions are met.
@@ -119,9 +114,7 @@ impl SimDrive {
 
     /// When the pending mode's delay ends (a timer), if it is waiting for time.
     pub(super) fn pending_mode_due(&self) -> Option<u64> {
-        self.pending_mode
-            .filter(|p| p.syncs_left == 0)
-            .map(|p| p.due_ns)
+        self.pending_mode.filter(|p| p.syncs_left == 0).map(|p| p.due_ns)
     }
 
     /// SYNC producer (0x1005 bit 30 and a period in 0x1006): when the next SYNC is due.
@@ -131,9 +124,7 @@ impl SimDrive {
 
     pub(super) fn produces_sync(&self) -> bool {
         let c = self.od.int(ix::COB_ID_SYNC, 0) as u32;
-        c & 0x4000_0000 != 0
-            && self.od.int(ix::COMM_CYCLE_PERIOD, 0) > 0
-            && matches!(self.nmt, NmtState::PreOperational | NmtState::Operational)
+        c & 0x4000_0000 != 0 && self.od.int(ix::COMM_CYCLE_PERIOD, 0) > 0 && matches!(self.nmt, NmtState::PreOperational | NmtState::Operational)
     }
 
     /// Produce a SYNC when due (and act on it, as every SYNC consumer on the bus does).
@@ -146,10 +137,7 @@ impl SimDrive {
         match self.own_sync_next {
             None => self.own_sync_next = Some(now + period),
             Some(t) if now >= t => {
-                self.out.push(CanFrame::new(
-                    (self.od.int(ix::COB_ID_SYNC, 0) & 0x7FF) as u16,
-                    &[],
-                ));
+                self.out.push(CanFrame::new((self.od.int(ix::COB_ID_SYNC, 0) & 0x7FF) as u16, &[]));
                 self.on_sync(now);
                 self.own_sync_next = Some(t + period * ((now - t) / period + 1));
             }
@@ -160,10 +148,7 @@ impl SimDrive {
     /// A remote frame: a node-guarding request on 0x700 + node is answered with the NMT state
     /// and the toggle bit.
     pub(super) fn remote_frame(&mut self, f: &CanFrame, now: u64) {
-        if !self.cfg.shape.node_guarding
-            || f.cob_id() != cob::HEARTBEAT + self.cfg.node as u16
-            || self.nmt == NmtState::BootUp
-        {
+        if !self.cfg.shape.node_guarding || f.cob_id() != cob::HEARTBEAT + self.cfg.node as u16 || self.nmt == NmtState::BootUp {
             return;
         }
         let b = self.nmt as u8 | (self.guarding.toggle as u8) << 7;
@@ -183,10 +168,7 @@ impl SimDrive {
     /// When life guarding fires if no request comes.
     pub(super) fn life_guard_due(&self) -> Option<u64> {
         let life = self.life_time_ns();
-        (life > 0)
-            .then_some(())
-            .and(self.guarding.last_rtr)
-            .map(|t| t + life)
+        (life > 0).then_some(()).and(self.guarding.last_rtr).map(|t| t + life)
     }
 
     /// Life guarding event: the master stopped guarding (CiA 301: the 0x6007 action, as a
@@ -195,10 +177,7 @@ impl SimDrive {
         if let Some(due) = self.life_guard_due() {
             if now >= due && self.nmt != NmtState::BootUp {
                 self.guarding.last_rtr = None;
-                tracing::warn!(
-                    node = self.cfg.node,
-                    "life guarding: no guarding request within the life time"
-                );
+                tracing::warn!(node = self.cfg.node, "life guarding: no guarding request within the life time");
                 self.abort_connection(0x8130, now);
             }
         }

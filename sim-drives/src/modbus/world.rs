@@ -163,11 +163,8 @@ impl World {
         let mut units = Vec::new();
         for d in &cfg.drives {
             let p = d.modbus_profile;
-            let mut fields: Vec<Field> = d
-                .modbus_registers()
-                .into_iter()
-                .filter_map(|(name, addr, len)| Reg::of(p, name).map(|reg| Field { reg, addr, len }))
-                .collect();
+            let mut fields: Vec<Field> =
+                d.modbus_registers().into_iter().filter_map(|(name, addr, len)| Reg::of(p, name).map(|reg| Field { reg, addr, len })).collect();
             fields.sort_by_key(|f| f.addr);
             let order = match p {
                 Profile::Cia402 => d.cia402_map.word_order,
@@ -590,7 +587,9 @@ impl World {
     fn check_value(&self, u: &Unit, reg: Reg, v: &[u16]) -> Result<(), ExceptionCode> {
         let first = v.first().copied().unwrap_or(0);
         let ok = match reg {
-            Reg::Mode => [mode::PROFILE_POSITION, mode::HOMING, mode::CYCLIC_SYNC_POSITION, mode::CYCLIC_SYNC_VELOCITY].iter().any(|&m| m as u16 == first),
+            Reg::Mode => {
+                [mode::PROFILE_POSITION, mode::HOMING, mode::CYCLIC_SYNC_POSITION, mode::CYCLIC_SYNC_VELOCITY].iter().any(|&m| m as u16 == first)
+            }
             // 0x60C2:1 is one byte of ms.
             Reg::InterpolationMs => first <= u8::MAX as u16,
             Reg::ServoOn | Reg::AlarmReset => first <= 1,

@@ -259,10 +259,7 @@ enum Sdo<'a> {
 impl<B: CanBus> CanOpenMaster<B> {
     pub fn new(bus: B, cfg: &MachineConfig) -> Self {
         let timeout = cfg.bus.sdo_timeout_ms;
-        let nodes = NodeSpec::from_config(cfg)
-            .into_iter()
-            .map(|spec| Node::new(spec, timeout))
-            .collect();
+        let nodes = NodeSpec::from_config(cfg).into_iter().map(|spec| Node::new(spec, timeout)).collect();
         CanOpenMaster {
             bus,
             nodes,
@@ -339,8 +336,7 @@ impl<B: CanBus> CanOpenMaster<B> {
     /// Read `index:sub` of `node` over SDO (service tools, diagnostics).
     pub fn sdo_read(&mut self, clock: &mut dyn Clock, node: u8, index: u16, sub: u8) -> Result<Vec<u8>, Alarm> {
         let i = self.index_of(node).ok_or_else(|| Alarm::new(2003, format!("node {node} is not in the machine configuration")))?;
-        self.sdo(clock, i, Sdo::Up(index, sub))
-            .map_err(|e| self.node_alarm(i, 2003, format!("reading 0x{index:04X}:{sub:02X} failed: {e}")))
+        self.sdo(clock, i, Sdo::Up(index, sub)).map_err(|e| self.node_alarm(i, 2003, format!("reading 0x{index:04X}:{sub:02X} failed: {e}")))
     }
 
     /// Write `data` to `index:sub` of `node` over SDO.
@@ -755,8 +751,9 @@ impl<B: CanBus> CanOpenMaster<B> {
     fn check_node_eds(&mut self, i: usize) -> Result<(), Alarm> {
         let node = self.nodes[i].spec.node;
         let Some(path) = self.nodes[i].spec.eds.clone() else { return Ok(()) };
-        let eds = cncgw_bus::canopen::eds::Eds::load(std::path::Path::new(&path))
-            .map_err(|e| self.node_alarm(i, 2004, format!("EDS: {e} (axes.{}.eds; a relative path is from the working directory)", self.nodes[i].spec.axis)))?;
+        let eds = cncgw_bus::canopen::eds::Eds::load(std::path::Path::new(&path)).map_err(|e| {
+            self.node_alarm(i, 2004, format!("EDS: {e} (axes.{}.eds; a relative path is from the working directory)", self.nodes[i].spec.axis))
+        })?;
         let bad = self.check_eds(node, &eds);
         if !bad.is_empty() {
             return Err(self.node_alarm(
@@ -818,7 +815,10 @@ impl<B: CanBus> CanOpenMaster<B> {
         match self.try_write(clock, i, od::COMM_CYCLE_PERIOD, 0, &cycle_us.to_le_bytes()) {
             Ok(()) => {}
             Err(SdoError::Abort { code }) if explain::is_absent(code) => {
-                tracing::info!(node = self.nodes[i].spec.node, "no 0x1006 (communication cycle period): the drive takes the period from 0x60C2 and the SYNCs");
+                tracing::info!(
+                    node = self.nodes[i].spec.node,
+                    "no 0x1006 (communication cycle period): the drive takes the period from 0x60C2 and the SYNCs"
+                );
             }
             Err(e) => return Err(self.write_alarm(i, od::COMM_CYCLE_PERIOD, 0, &cycle_us.to_le_bytes(), &e)),
         }
@@ -842,7 +842,12 @@ impl<B: CanBus> CanOpenMaster<B> {
         let in_pdo = match self.try_map_pdo(clock, i, od::TPDO_COMM, od::TPDO_MAP, spec.tpdo_cob, spec.tpdo_tx, &tpdo) {
             Ok(()) => true,
             Err(e) if refused_third(&e) => {
-                tracing::warn!(node = spec.node, "the drive cannot map 0x6061 (mode display) into TPDO1 ({}): its mode is read by SDO every {} ms instead", e.3, mode_track::POLL_EVERY_NS / 1_000_000);
+                tracing::warn!(
+                    node = spec.node,
+                    "the drive cannot map 0x6061 (mode display) into TPDO1 ({}): its mode is read by SDO every {} ms instead",
+                    e.3,
+                    mode_track::POLL_EVERY_NS / 1_000_000
+                );
                 self.map_pdo(clock, i, od::TPDO_COMM, od::TPDO_MAP, spec.tpdo_cob, spec.tpdo_tx, &tpdo[..2])?;
                 false
             }
@@ -888,7 +893,10 @@ impl<B: CanBus> CanOpenMaster<B> {
         match self.try_write(clock, i, od::ABORT_CONNECTION, 0, &opt) {
             Ok(()) => Ok(()),
             Err(SdoError::Abort { code }) if explain::is_absent(code) => {
-                tracing::warn!(node = self.nodes[i].spec.node, "no 0x6007 (abort connection option): on a lost master the drive does what its manual says");
+                tracing::warn!(
+                    node = self.nodes[i].spec.node,
+                    "no 0x6007 (abort connection option): on a lost master the drive does what its manual says"
+                );
                 Ok(())
             }
             Err(e) => Err(self.write_alarm(i, od::ABORT_CONNECTION, 0, &opt, &e)),
@@ -903,7 +911,11 @@ impl<B: CanBus> CanOpenMaster<B> {
         let (node, axis) = (self.nodes[i].spec.node, self.nodes[i].spec.axis.clone());
         let has_guarding = self.read_u32(clock, i, od::GUARD_TIME, 0).is_ok() && self.read_u32(clock, i, od::LIFE_TIME_FACTOR, 0).is_ok();
         if !has_guarding || !self.bus.remote_frames() {
-            let why = if has_guarding { format!("{} carries no remote frames for node guarding", self.bus.name()) } else { "nor node guarding (0x100C/0x100D)".to_string() };
+            let why = if has_guarding {
+                format!("{} carries no remote frames for node guarding", self.bus.name())
+            } else {
+                "nor node guarding (0x100C/0x100D)".to_string()
+            };
             tracing::warn!(node, axis = %axis, "WARNING: the drive has no heartbeat consumer (0x1016) {why}: it will not stop by itself if this controller dies; use its own watchdog (SYNC or PDO timeout) if it has one");
             return Ok(());
         }
@@ -948,16 +960,7 @@ impl<B: CanBus> CanOpenMaster<B> {
     }
 
     #[allow(clippy::too_many_arguments)]
-    fn map_pdo(
-        &mut self,
-        clock: &mut dyn Clock,
-        i: usize,
-        comm: u16,
-        map: u16,
-        cob_id: u16,
-        tx_type: u8,
-        entries: &[MapEntry],
-    ) -> Result<(), Alarm> {
+    fn map_pdo(&mut self, clock: &mut dyn Clock, i: usize, comm: u16, map: u16, cob_id: u16, tx_type: u8, entries: &[MapEntry]) -> Result<(), Alarm> {
         self.try_map_pdo(clock, i, comm, map, cob_id, tx_type, entries).map_err(|(ix, sub, data, e)| self.write_alarm(i, ix, sub, &data, &e))
     }
 
@@ -1076,12 +1079,7 @@ impl<B: CanBus> CanOpenMaster<B> {
 
     /// Run the cycle (receive → `step` → transmit every `cycle_ms`) until `step` says done
     /// or `max_ns` of clock time pass. Ok(false) on the time limit.
-    fn run_cycles(
-        &mut self,
-        clock: &mut dyn Clock,
-        max_ns: u64,
-        mut step: impl FnMut(&mut Self) -> Result<bool, Alarm>,
-    ) -> Result<bool, Alarm> {
+    fn run_cycles(&mut self, clock: &mut dyn Clock, max_ns: u64, mut step: impl FnMut(&mut Self) -> Result<bool, Alarm>) -> Result<bool, Alarm> {
         let mut next = clock.now_ns();
         let end = next + max_ns;
         while next < end {
@@ -1167,7 +1165,11 @@ impl<B: CanBus> CanOpenMaster<B> {
             Ok(k >= FRESH_STATUS_CYCLES && m.nodes[i].status & sw::OMS12 != 0)
         })?;
         if !acked {
-            return Err(self.node_alarm(i, 2016, "profile position set-point not acknowledged (0x6041 bit 12) within 500 ms; does the drive support mode 1?"));
+            return Err(self.node_alarm(
+                i,
+                2016,
+                "profile position set-point not acknowledged (0x6041 bit 12) within 500 ms; does the drive support mode 1?",
+            ));
         }
         self.nodes[i].controlword = cw::ENABLE_OPERATION_CMD;
         let mut k = 0;
@@ -1180,7 +1182,11 @@ impl<B: CanBus> CanOpenMaster<B> {
             return Err(self.node_alarm(
                 i,
                 2016,
-                format!("profile move to {target} not finished within {:.1} s (position {:.4}); check the axis for a jam", max_ns as f64 * 1e-9, self.nodes[i].unwrapped as f64 / self.nodes[i].spec.counts_per_unit),
+                format!(
+                    "profile move to {target} not finished within {:.1} s (position {:.4}); check the axis for a jam",
+                    max_ns as f64 * 1e-9,
+                    self.nodes[i].unwrapped as f64 / self.nodes[i].spec.counts_per_unit
+                ),
             ));
         }
         // Only a target the drive is already near: never a jump.
@@ -1236,7 +1242,11 @@ impl<B: CanBus> CanOpenMaster<B> {
         self.nodes[i].controlword = cw::ENABLE_OPERATION_CMD;
         if error {
             let _ = self.back_to_csp(clock, i, None);
-            return Err(self.node_alarm(i, 2017, format!("homing method {method} failed (0x6041 bit 13 homing error); check the switch and its wiring")));
+            return Err(self.node_alarm(
+                i,
+                2017,
+                format!("homing method {method} failed (0x6041 bit 13 homing error); check the switch and its wiring"),
+            ));
         }
         if !done {
             let _ = self.back_to_csp(clock, i, None);
@@ -1343,7 +1353,8 @@ impl<B: CanBus> CanOpenMaster<B> {
     /// 0x1006, error control (heartbeat, or node guarding), 0x6007. Checked against an
     /// EDS only where the EDS lists them.
     fn optional_startup_objects(&self) -> Vec<ObjWrite> {
-        let mut w = vec![(od::COMM_CYCLE_PERIOD, 0, 4), (od::SHUTDOWN_OPTION, 0, 2), (od::DISABLE_OPERATION_OPTION, 0, 2), (od::FAULT_REACTION_OPTION, 0, 2)];
+        let mut w =
+            vec![(od::COMM_CYCLE_PERIOD, 0, 4), (od::SHUTDOWN_OPTION, 0, 2), (od::DISABLE_OPERATION_OPTION, 0, 2), (od::FAULT_REACTION_OPTION, 0, 2)];
         if self.hb_ms > 0 {
             w.extend([
                 (od::PRODUCER_HEARTBEAT, 0, 2),
@@ -1366,7 +1377,9 @@ impl<B: CanBus> CanOpenMaster<B> {
         let (writes, maps) = self.startup_objects(i);
         let mut out: Vec<String> = writes.iter().filter_map(|&(ix, sub, len)| eds.check_write(ix, sub, len).err()).collect();
         let optional = self.optional_startup_objects();
-        out.extend(optional.iter().filter(|&&(ix, sub, _)| eds.get(ix, sub).is_some()).filter_map(|&(ix, sub, len)| eds.check_write(ix, sub, len).err()));
+        out.extend(
+            optional.iter().filter(|&&(ix, sub, _)| eds.get(ix, sub).is_some()).filter_map(|&(ix, sub, len)| eds.check_write(ix, sub, len).err()),
+        );
         out.extend(maps.iter().filter_map(|&(ix, sub, bits, rpdo)| eds.check_map(ix, sub, bits, rpdo).err()));
         for (ix, sub) in [(od::DEVICE_TYPE, 0u8), (od::IDENTITY, 1)] {
             if eds.get(ix, sub).is_none() {
@@ -1394,9 +1407,12 @@ impl<B: CanBus> CanOpenMaster<B> {
             match (r, e.access) {
                 (Err(SdoError::Abort { code: abort::WRITE_ONLY }), EdsAccess::Wo) => {}
                 (Ok(_), EdsAccess::Wo) => out.push(format!("{at}: AccessType=wo but node {node} lets it be read")),
-                (Err(SdoError::Abort { code }), _) if code == abort::NO_OBJECT || code == abort::NO_SUBINDEX => {
-                    out.push(format!("{at}: node {node} does not have 0x{:04X}:{:02X} ({})", e.index, e.sub, cncgw_bus::canopen::sdo::abort_text(code)))
-                }
+                (Err(SdoError::Abort { code }), _) if code == abort::NO_OBJECT || code == abort::NO_SUBINDEX => out.push(format!(
+                    "{at}: node {node} does not have 0x{:04X}:{:02X} ({})",
+                    e.index,
+                    e.sub,
+                    cncgw_bus::canopen::sdo::abort_text(code)
+                )),
                 (Err(err), _) => out.push(format!("{at}: reading it from node {node} failed: {err}")),
                 (Ok(v), access) => {
                     if let Some(n) = e.size() {
@@ -1412,7 +1428,10 @@ impl<B: CanBus> CanOpenMaster<B> {
                             match self.sdo_download(clock, node, e.index, e.sub, &v) {
                                 Err(SdoError::Abort { code: abort::READ_ONLY }) => {}
                                 Ok(()) => out.push(format!("{at}: AccessType={} but node {node} accepts writes", access.name())),
-                                Err(err) => out.push(format!("{at}: AccessType={}: a write should abort 0x06010002 (read only), node {node} says: {err}", access.name())),
+                                Err(err) => out.push(format!(
+                                    "{at}: AccessType={}: a write should abort 0x06010002 (read only), node {node} says: {err}",
+                                    access.name()
+                                )),
                             }
                         }
                     }
@@ -1546,7 +1565,10 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
                 return Err(self.node_fault(
                     i,
                     2011,
-                    format!("heartbeat lost (none for {} ms); check the cable and the drive's power", now_ns.saturating_sub(n.last_hb_ns) / 1_000_000),
+                    format!(
+                        "heartbeat lost (none for {} ms); check the cable and the drive's power",
+                        now_ns.saturating_sub(n.last_hb_ns) / 1_000_000
+                    ),
                 ));
             }
             // Stale by time *and* by SYNCs left unanswered: after the cycle thread was late,
@@ -1670,7 +1692,11 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
             let n = &self.nodes[i];
             let st = State::from_statusword(n.status);
             let why = if !n.mode.ok() {
-                format!("; it does not show the mode asked for ({} asked, 0x6061 = {})", explain::mode_words(n.mode.want), n.mode.shown.map_or("unknown".into(), explain::mode_words))
+                format!(
+                    "; it does not show the mode asked for ({} asked, 0x6061 = {})",
+                    explain::mode_words(n.mode.want),
+                    n.mode.shown.map_or("unknown".into(), explain::mode_words)
+                )
             } else if !n.have_fb {
                 "; no position feedback (TPDO1) was received".to_string()
             } else {

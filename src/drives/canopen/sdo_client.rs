@@ -3,9 +3,7 @@
 //! One transfer at a time per server, as CiA 301 requires.
 
 use cncgw_bus::canopen::cob;
-use cncgw_bus::canopen::sdo::{
-    abort, abort_text, crc16, BlockRequest, BlockResponse, BlockSegment, SdoRequest, SdoResponse, BLOCK_MAX,
-};
+use cncgw_bus::canopen::sdo::{abort, abort_text, crc16, BlockRequest, BlockResponse, BlockSegment, SdoRequest, SdoResponse, BLOCK_MAX};
 use cncgw_bus::CanFrame;
 
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
@@ -22,17 +20,30 @@ pub enum SdoError {
 enum Phase {
     Idle,
     DownloadInit,
-    DownloadSeg { offset: usize, toggle: bool, last_sent: bool },
+    DownloadSeg {
+        offset: usize,
+        toggle: bool,
+        last_sent: bool,
+    },
     UploadInit,
-    UploadSeg { toggle: bool },
+    UploadSeg {
+        toggle: bool,
+    },
     BlockDownInit,
     /// Sub-block sent from `block_start`; `last_seq`: the segment that ends the data, if it
     /// was in this sub-block.
-    BlockDownSub { block_start: usize, last_seq: Option<u8> },
+    BlockDownSub {
+        block_start: usize,
+        last_seq: Option<u8>,
+    },
     BlockDownEnd,
     BlockUpInit,
     /// `ackseq`: last in-sequence segment of the sub-block being received.
-    BlockUpSub { ackseq: u8, blksize: u8, last_seen: bool },
+    BlockUpSub {
+        ackseq: u8,
+        blksize: u8,
+        last_seen: bool,
+    },
     BlockUpEnd,
     Done,
 }
@@ -98,11 +109,9 @@ impl SdoClient {
         if data.len() <= 4 && !data.is_empty() {
             let mut d = [0u8; 4];
             d[..data.len()].copy_from_slice(data);
-            SdoRequest::InitiateDownload { index, sub, expedited: true, size: Some(data.len() as u32), data: d }
-                .encode(self.node)
+            SdoRequest::InitiateDownload { index, sub, expedited: true, size: Some(data.len() as u32), data: d }.encode(self.node)
         } else {
-            SdoRequest::InitiateDownload { index, sub, expedited: false, size: Some(data.len() as u32), data: [0; 4] }
-                .encode(self.node)
+            SdoRequest::InitiateDownload { index, sub, expedited: false, size: Some(data.len() as u32), data: [0; 4] }.encode(self.node)
         }
     }
 
@@ -171,7 +180,12 @@ impl SdoClient {
     fn in_block(&self) -> bool {
         matches!(
             self.phase,
-            Phase::BlockDownInit | Phase::BlockDownSub { .. } | Phase::BlockDownEnd | Phase::BlockUpInit | Phase::BlockUpSub { .. } | Phase::BlockUpEnd
+            Phase::BlockDownInit
+                | Phase::BlockDownSub { .. }
+                | Phase::BlockDownEnd
+                | Phase::BlockUpInit
+                | Phase::BlockUpSub { .. }
+                | Phase::BlockUpEnd
         )
     }
 
@@ -294,11 +308,7 @@ impl SdoClient {
             }
             if seg.seqno >= *blksize || seg.last {
                 let (ack, done) = (*ackseq, *last_seen);
-                self.phase = if done {
-                    Phase::BlockUpEnd
-                } else {
-                    Phase::BlockUpSub { ackseq: 0, blksize: CLIENT_BLKSIZE, last_seen: false }
-                };
+                self.phase = if done { Phase::BlockUpEnd } else { Phase::BlockUpSub { ackseq: 0, blksize: CLIENT_BLKSIZE, last_seen: false } };
                 return vec![BlockRequest::Ack { ackseq: ack, blksize: CLIENT_BLKSIZE }.encode(self.node)];
             }
             return Vec::new();
@@ -469,7 +479,10 @@ mod tests {
     fn segmented_upload_with_toggles() {
         let mut c = SdoClient::new(1, 100);
         c.start_upload(0x1008, 0, 0);
-        let next = c.on_frame(&SdoResponse::InitiateUpload { index: 0x1008, sub: 0, expedited: false, size: Some(10), data: [10, 0, 0, 0] }.encode(1), 1).pop().unwrap();
+        let next = c
+            .on_frame(&SdoResponse::InitiateUpload { index: 0x1008, sub: 0, expedited: false, size: Some(10), data: [10, 0, 0, 0] }.encode(1), 1)
+            .pop()
+            .unwrap();
         assert_eq!(format!("{next:?}"), "601#6000000000000000");
         let next = c.on_frame(&SdoResponse::UploadSegment { toggle: false, len: 7, data: *b"cncgw s", last: false }.encode(1), 2).pop().unwrap();
         assert_eq!(format!("{next:?}"), "601#7000000000000000");

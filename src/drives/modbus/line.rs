@@ -65,11 +65,7 @@ impl Line {
 }
 
 impl AsyncRead for Line {
-    fn poll_read(
-        self: Pin<&mut Self>,
-        cx: &mut Context<'_>,
-        buf: &mut ReadBuf<'_>,
-    ) -> Poll<io::Result<()>> {
+    fn poll_read(self: Pin<&mut Self>, cx: &mut Context<'_>, buf: &mut ReadBuf<'_>) -> Poll<io::Result<()>> {
         match &mut *self.port() {
             Port::Tcp(s) => Pin::new(s).poll_read(cx, buf),
             Port::Serial(s) => Pin::new(s).poll_read(cx, buf),
@@ -78,11 +74,7 @@ impl AsyncRead for Line {
 }
 
 impl AsyncWrite for Line {
-    fn poll_write(
-        self: Pin<&mut Self>,
-        cx: &mut Context<'_>,
-        data: &[u8],
-    ) -> Poll<io::Result<usize>> {
+    fn poll_write(self: Pin<&mut Self>, cx: &mut Context<'_>, data: &[u8]) -> Poll<io::Result<usize>> {
         match &mut *self.port() {
             Port::Tcp(s) => Pin::new(s).poll_write(cx, data),
             Port::Serial(s) => Pin::new(s).poll_write(cx, data),

@@ -72,7 +72,9 @@ pub struct Slot {
 pub enum LinkState {
     Starting,
     /// Exchanging every `cycle`.
-    Running { cycle: Duration },
+    Running {
+        cycle: Duration,
+    },
     Failed(Alarm),
 }
 
@@ -426,7 +428,9 @@ impl LinkIo {
                 }
                 Err(Other(TxError::Transport(format!("{}: {e}", what()))))
             }
-            Ok(Ok(Err(code @ (ExceptionCode::ServerDeviceBusy | ExceptionCode::Acknowledge)))) => Err(Busy(format!("{}: {}", what(), exception_words(code)))),
+            Ok(Ok(Err(code @ (ExceptionCode::ServerDeviceBusy | ExceptionCode::Acknowledge)))) => {
+                Err(Busy(format!("{}: {}", what(), exception_words(code))))
+            }
             Ok(Ok(Err(code))) => Err(Other(TxError::Exception(format!("{}: {}", what(), exception_words(code))))),
             Ok(Ok(Ok(v))) => {
                 if let Exchange::Read { len, .. } | Exchange::ReadWrite { read_len: len, .. } = *x {
@@ -502,10 +506,7 @@ impl LinkIo {
             let writes = self.spec.drives[d].timing_writes(cycle_ms as u16, self.spec.cfg.timeout_ms);
             for (x, data) in writes {
                 self.exchange_at_startup(d, &x, &data).map_err(|e| {
-                    Alarm::new(
-                        if matches!(e, TxError::Exception(_)) { 2201 } else { 2202 },
-                        format!("configuring the drive failed: {}", e.text()),
-                    )
+                    Alarm::new(if matches!(e, TxError::Exception(_)) { 2201 } else { 2202 }, format!("configuring the drive failed: {}", e.text()))
                 })?;
             }
         }
@@ -581,7 +582,12 @@ impl LinkIo {
             }
             let mut reading = None;
             let mut err = None;
-            tracing::trace!(unit = self.spec.drives[d].unit, target = cmd.target, late_us = Instant::now().saturating_duration_since(sched).as_micros() as u64, "write");
+            tracing::trace!(
+                unit = self.spec.drives[d].unit,
+                target = cmd.target,
+                late_us = Instant::now().saturating_duration_since(sched).as_micros() as u64,
+                "write"
+            );
             let plan = self.spec.drives[d].cyclic_writes(&cmd);
             let mut done = 0u64;
             for (x, data) in plan {
@@ -614,7 +620,10 @@ impl LinkIo {
                     g.failures += 1;
                     g.slots[d].last_error = Some(m.clone());
                     if !std::mem::replace(&mut g.slots[d].exception_reported, true) && g.alarm.is_none() {
-                        g.alarm = Some((Some(d), Alarm::new(2201, format!("{m}; the drive refused the cyclic exchange: check its register map and its state"))));
+                        g.alarm = Some((
+                            Some(d),
+                            Alarm::new(2201, format!("{m}; the drive refused the cyclic exchange: check its register map and its state")),
+                        ));
                     }
                 }
                 Some(TxError::Transport(m)) => {

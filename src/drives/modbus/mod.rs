@@ -140,15 +140,8 @@ impl ModbusDrives {
                 }
             };
             let ferr = (a.following_error * a.counts_per_unit).round().clamp(1.0, i32::MAX as f64) as u32;
-            let plan = DrivePlan::new(
-                name,
-                a.node,
-                a.modbus_profile,
-                a.cia402_map.unwrap_or_default(),
-                a.pr_map.unwrap_or_default(),
-                lcfg.fc23,
-                ferr,
-            );
+            let plan =
+                DrivePlan::new(name, a.node, a.modbus_profile, a.cia402_map.unwrap_or_default(), a.pr_map.unwrap_or_default(), lcfg.fc23, ferr);
             let spec = links[li].spec.as_mut().expect("spec is present until startup");
             let slot = spec.drives.len();
             spec.drives.push(plan);
@@ -253,7 +246,9 @@ impl ModbusDrives {
             State::FaultReactionActive => {
                 format!("drive fault (Fault Reaction Active: the drive is braking on its own), error code 0x{code:04X} {}", error_text(code))
             }
-            State::QuickStopActive => "the drive went to Quick Stop Active on its own (a stop input or one of its limits); the others are stopped under control".into(),
+            State::QuickStopActive => {
+                "the drive went to Quick Stop Active on its own (a stop input or one of its limits); the others are stopped under control".into()
+            }
             _ if self.stopping => return None,
             st => format!("the drive left Operation Enabled on its own: now {}", st.name()),
         };
@@ -313,7 +308,8 @@ impl DriveBus for ModbusDrives {
         self.t0 = Instant::now();
         for l in &mut self.links {
             let Some(spec) = l.spec.take() else { continue };
-            let (shared, h) = link::spawn(spec).map_err(|e| Alarm::new(alarm::LINK, format!("Modbus link {}: cannot start its thread: {e}", l.name)))?;
+            let (shared, h) =
+                link::spawn(spec).map_err(|e| Alarm::new(alarm::LINK, format!("Modbus link {}: cannot start its thread: {e}", l.name)))?;
             l.shared = Some(shared);
             l.thread = Some(h);
         }
@@ -393,7 +389,11 @@ impl DriveBus for ModbusDrives {
                 return Err(self.report(
                     i,
                     2015,
-                    format!("no position feedback for {:.1} ms (link cycle {:.0} ms): {why}", age.as_secs_f64() * 1e3, self.links[li].cycle.as_secs_f64() * 1e3),
+                    format!(
+                        "no position feedback for {:.1} ms (link cycle {:.0} ms): {why}",
+                        age.as_secs_f64() * 1e3,
+                        self.links[li].cycle.as_secs_f64() * 1e3
+                    ),
                 ));
             }
             if let Some(a) = self.left_operation_enabled(i) {
@@ -405,10 +405,7 @@ impl DriveBus for ModbusDrives {
 
     fn feedback(&self, axis: usize) -> AxisFeedback {
         let a = &self.axes[axis];
-        let age = a
-            .fb_at
-            .map(|t| (Instant::now().saturating_duration_since(t).as_nanos() as u64 / self.cycle_ns.max(1)) as u32)
-            .unwrap_or(u32::MAX);
+        let age = a.fb_at.map(|t| (Instant::now().saturating_duration_since(t).as_nanos() as u64 / self.cycle_ns.max(1)) as u32).unwrap_or(u32::MAX);
         AxisFeedback {
             pos: a.unwrapped as f64 / a.counts_per_unit,
             counts: a.unwrapped,
@@ -509,7 +506,10 @@ impl DriveBus for ModbusDrives {
                             return Err(self.axis_alarm(
                                 i,
                                 2012,
-                                format!("fault reset did not clear the fault (error code 0x{code:04X} {}); fix the cause on the drive", error_text(code)),
+                                format!(
+                                    "fault reset did not clear the fault (error code 0x{code:04X} {}); fix the cause on the drive",
+                                    error_text(code)
+                                ),
                             ));
                         }
                     }
@@ -534,7 +534,11 @@ impl DriveBus for ModbusDrives {
                                 a.enabler.reset_attempts += 1;
                                 if a.enabler.reset_attempts > Enabler::MAX_RESETS {
                                     let code = a.error_code;
-                                    return Err(self.axis_alarm(i, 2012, format!("alarm reset did not clear alarm 0x{code:04X}; fix the cause on the drive")));
+                                    return Err(self.axis_alarm(
+                                        i,
+                                        2012,
+                                        format!("alarm reset did not clear alarm 0x{code:04X}; fix the cause on the drive"),
+                                    ));
                                 }
                                 a.cmd.alarm_reset_seq = a.cmd.alarm_reset_seq.wrapping_add(1);
                             }

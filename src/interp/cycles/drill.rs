@@ -405,7 +405,11 @@ impl Interpreter {
             rigid,
         };
         if rigid && self.drill.tap_s.is_none() {
-            return Err((RIGID_S_ALARM, Self::gcol(d), format!("{}: no tapping speed: give S with M{} (or in the G84/G88 block when No.5200#0 = 1)", name(g), self.rigid_m())));
+            return Err((
+                RIGID_S_ALARM,
+                Self::gcol(d),
+                format!("{}: no tapping speed: give S with M{} (or in the G84/G88 block when No.5200#0 = 1)", name(g), self.rigid_m()),
+            ));
         }
         if let Some(r) = d.get('R') {
             m.r = self.len(r);
@@ -501,7 +505,11 @@ impl Interpreter {
             Some(k) => {
                 let ok = k.v.fract() == 0.0 && ((0.0..=99.0).contains(&k.v) || (k.v == 198.0 && matches!(m.code, 840 | 880)));
                 if !ok {
-                    return Err((RANGE_ALARM, Some(k.col), format!("K{}: the repeat count is 0–99 (K198 stays at the bottom, rigid tapping only)", k.v)));
+                    return Err((
+                        RANGE_ALARM,
+                        Some(k.col),
+                        format!("K{}: the repeat count is 0–99 (K198 stays at the bottom, rigid tapping only)", k.v),
+                    ));
                 }
                 k.v as u32
             }
@@ -511,19 +519,15 @@ impl Interpreter {
         if m.q > 0.0 && holes > 0 {
             let per_hole = (self.drill_span(&m, d)? / m.q).ceil();
             if per_hole * holes as f64 > MAX_PECKS {
-                return Err((RANGE_ALARM, d.get('Q').map(|q| q.col).or(gc), format!("Q{}: {} pecks in this block; increase Q", m.q, per_hole * holes as f64)));
+                return Err((
+                    RANGE_ALARM,
+                    d.get('Q').map(|q| q.col).or(gc),
+                    format!("Q{}: {} pecks in this block; increase Q", m.q, per_hole * holes as f64),
+                ));
             }
         }
-        let depth = m.depth.ok_or((
-            RANGE_ALARM,
-            gc,
-            format!("{}: no hole bottom: program {abs}({inc}) once in the drilling mode", name(m.code)),
-        ))?;
-        let feed = if m.rigid {
-            self.feed(gc).map_err(|(_, c, msg)| (RIGID_F_ALARM, c, msg))?
-        } else {
-            self.feed(d.get('F').map(|f| f.col).or(gc))?
-        };
+        let depth = m.depth.ok_or((RANGE_ALARM, gc, format!("{}: no hole bottom: program {abs}({inc}) once in the drilling mode", name(m.code))))?;
+        let feed = if m.rigid { self.feed(gc).map_err(|(_, c, msg)| (RIGID_F_ALARM, c, msg))? } else { self.feed(d.get('F').map(|f| f.col).or(gc))? };
         let rpoint = m.initial + m.r;
         let bottom = match depth {
             Depth::Abs(b) => b,
@@ -603,7 +607,16 @@ impl Interpreter {
     /// ⑥/⑧ dwell P, ⑦/⑨ rapid to R (our actions 3 cut, 4 dwell, 5 R; the manual's ④⑤ of
     /// the peck cycle are tagged 3, being inside the hole).
     #[allow(clippy::too_many_arguments)]
-    fn drill_cut(&mut self, src: &SrcPos, tag: &Arc<str>, m: &DrillModal, rp: f64, bottom: f64, feed: Feed, at: &dyn Fn(f64) -> Pos) -> Result<(), CErr> {
+    fn drill_cut(
+        &mut self,
+        src: &SrcPos,
+        tag: &Arc<str>,
+        m: &DrillModal,
+        rp: f64,
+        bottom: f64,
+        feed: Feed,
+        at: &dyn Fn(f64) -> Pos,
+    ) -> Result<(), CErr> {
         let total = (bottom - rp).abs();
         let dir = (bottom - rp).signum();
         let q = m.q;
@@ -764,12 +777,25 @@ impl Interpreter {
     /// feed override: note 3), with the encoder lag No.5275 compensated and the retract
     /// waiting for the reversed spindle at No.5276 (see `Motion::flex_tap_v`).
     #[allow(clippy::too_many_arguments)]
-    fn flexible_tap(&mut self, src: &SrcPos, tag: &Arc<str>, m: &DrillModal, rp: f64, bottom: f64, feed: Feed, at: &dyn Fn(f64) -> Pos) -> Result<(), CErr> {
+    fn flexible_tap(
+        &mut self,
+        src: &SrcPos,
+        tag: &Arc<str>,
+        m: &DrillModal,
+        rp: f64,
+        bottom: f64,
+        feed: Feed,
+        at: &dyn Fn(f64) -> Pos,
+    ) -> Result<(), CErr> {
         let rpm = self.st.rpm;
         let lead = match feed {
             Feed::PerMin(f) => {
                 if rpm <= 0.0 {
-                    return Err((RANGE_ALARM, None, format!("{}: lead = F/S needs a spindle speed: program S before the tapping cycle", name(m.code))));
+                    return Err((
+                        RANGE_ALARM,
+                        None,
+                        format!("{}: lead = F/S needs a spindle speed: program S before the tapping cycle", name(m.code)),
+                    ));
                 }
                 f / rpm
             }
@@ -803,11 +829,7 @@ impl Interpreter {
         if self.drill.par.b5200[0] {
             return Err((RIGID_PROGRAM_ALARM, col, "G30 P99 needs No.5200#0 = 0 (note 1)".into()));
         }
-        let t = self.drill.tap_return.ok_or((
-            TAP_RETURN_ALARM,
-            col,
-            "G30 P99: there is no interrupted rigid tap to return from".to_string(),
-        ))?;
+        let t = self.drill.tap_return.ok_or((TAP_RETURN_ALARM, col, "G30 P99: there is no interrupted rigid tap to return from".to_string()))?;
         let rpm = match d.get('S') {
             Some(s) if s.v > 0.0 => s.v,
             Some(s) => return Err((RIGID_S_ALARM, Some(s.col), format!("G30 P99 S{}: the speed must be positive", s.v))),

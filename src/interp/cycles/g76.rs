@@ -218,8 +218,20 @@ impl Interpreter {
             None => zdir,
             Some(1) => -1.0,
             Some(2) => 1.0,
-            Some(3) => if j % 2 == 0 { 1.0 } else { 0.0 },
-            Some(4) => if j % 2 == 0 { -1.0 } else { 1.0 },
+            Some(3) => {
+                if j % 2 == 0 {
+                    1.0
+                } else {
+                    0.0
+                }
+            }
+            Some(4) => {
+                if j % 2 == 0 {
+                    -1.0
+                } else {
+                    1.0
+                }
+            }
             Some(_) => 0.0,
         }
     }

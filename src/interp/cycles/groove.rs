@@ -70,10 +70,18 @@ impl Interpreter {
         let (sp, sq) = ((bp - ap).signum(), (bq - aq).signum());
         let axis = |peck_axis: bool| if radial == peck_axis { 'X' } else { 'Z' };
         if ptot > 1e-9 && peck <= 0.0 {
-            return Err((G76_VALUE_ALARM, gc, format!("{name}: the peck amount along {} is zero (program {})", axis(true), if radial { 'P' } else { 'Q' })));
+            return Err((
+                G76_VALUE_ALARM,
+                gc,
+                format!("{name}: the peck amount along {} is zero (program {})", axis(true), if radial { 'P' } else { 'Q' }),
+            ));
         }
         if qtot > 1e-9 && step <= 0.0 {
-            return Err((G76_VALUE_ALARM, gc, format!("{name}: the step along {} is zero (program {})", axis(false), if radial { 'Q' } else { 'P' })));
+            return Err((
+                G76_VALUE_ALARM,
+                gc,
+                format!("{name}: the step along {} is zero (program {})", axis(false), if radial { 'Q' } else { 'P' }),
+            ));
         }
         let npeck = if ptot > 1e-9 { (ptot / peck).ceil() } else { 1.0 };
         let nstep = if qtot > 1e-9 { (qtot / step).ceil() + 1.0 } else { 1.0 };

@@ -266,7 +266,11 @@ impl Interpreter {
             return Err((10, Self::gcol(d), format!("{name} works in the ZX plane only: command G18 first")));
         }
         if let Some(l) = ['Y', 'V', 'C', 'H'].into_iter().find(|l| d.has(*l) && !(*l == 'H' && name == "G92")) {
-            return Err((21, d.get(l).map(|v| v.col), format!("{name}: address {l} moves an axis outside the ZX plane; only X/U and Z/W are allowed")));
+            return Err((
+                21,
+                d.get(l).map(|v| v.col),
+                format!("{name}: address {l} moves an axis outside the ZX plane; only X/U and Z/W are allowed"),
+            ));
         }
         Ok(())
     }
@@ -306,13 +310,7 @@ impl Interpreter {
             self.pos = end;
         }
         let exact_stop = exact || matches!(kind, MoveKind::Rapid { .. });
-        let m = Move {
-            src: src.clone(),
-            kind,
-            exact_stop,
-            work_offset: self.offset(),
-            tag: Some(CycleTag { cycle: cycle.clone(), step }),
-        };
+        let m = Move { src: src.clone(), kind, exact_stop, work_offset: self.offset(), tag: Some(CycleTag { cycle: cycle.clone(), step }) };
         if self.corner.is_some() {
             self.held.push(m);
         } else {

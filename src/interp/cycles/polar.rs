@@ -69,7 +69,14 @@ impl Interpreter {
         }
         if self.polar.is_some() {
             if let Some(&(g, col)) = d.g.iter().find(|g| !POLAR_OK.contains(&g.0)) {
-                return Err((10, Some(col), format!("{} is not allowed in polar coordinate interpolation (G12.1): only G01 G02 G03 G04 G40 G41 G42 G98 G99 (§2.7 note 4)", gcode::gname(g))));
+                return Err((
+                    10,
+                    Some(col),
+                    format!(
+                        "{} is not allowed in polar coordinate interpolation (G12.1): only G01 G02 G03 G04 G40 G41 G42 G98 G99 (§2.7 note 4)",
+                        gcode::gname(g)
+                    ),
+                ));
             }
         }
         if let Some(g) = d.group(20) {
@@ -77,7 +84,11 @@ impl Interpreter {
         }
         if self.cyc.polygon {
             if let Some(l) = ['C', 'H'].into_iter().find(|l| d.has(*l)) {
-                return Err((9, d.get(l).map(|v| v.col), format!("{l}: the spindles cannot be moved as axes during polygon turning (§2.8 note 11); cancel with G50.2 first")));
+                return Err((
+                    9,
+                    d.get(l).map(|v| v.col),
+                    format!("{l}: the spindles cannot be moved as axes during polygon turning (§2.8 note 11); cancel with G50.2 first"),
+                ));
             }
         }
         Ok(())
@@ -158,7 +169,11 @@ impl Interpreter {
             10 => None,
             20 | 30 => {
                 if let Some(l) = ['I', 'J', 'K'].into_iter().find(|l| d.has(*l)) {
-                    return Err((22, d.get(l).map(|v| v.col), format!("{l}: in polar coordinate interpolation an arc takes its radius R only (§2.7 note 6)")));
+                    return Err((
+                        22,
+                        d.get(l).map(|v| v.col),
+                        format!("{l}: in polar coordinate interpolation an arc takes its radius R only (§2.7 note 6)"),
+                    ));
                 }
                 match d.get('R') {
                     // §2.3 note 2 / No.3403#5 = 0: an arc without R is a straight line (this is
@@ -183,7 +198,13 @@ impl Interpreter {
                     }
                 }
             }
-            g => return Err((10, gc, format!("{} is not allowed in polar coordinate interpolation (G12.1): only G01 G02 G03 (§2.7 note 4)", gcode::gname(g)))),
+            g => {
+                return Err((
+                    10,
+                    gc,
+                    format!("{} is not allowed in polar coordinate interpolation (G12.1): only G01 G02 G03 (§2.7 note 4)", gcode::gname(g)),
+                ))
+            }
         };
         let cw = self.st.motion == 20;
         if from == to && (z - self.pos.z).abs() < 1e-12 {
@@ -232,19 +253,23 @@ pub(crate) fn sample(from: [f64; 2], to: [f64; 2], center: Option<[f64; 2]>, cw:
     match center {
         None => {
             let n = 64;
-            (0..=n).map(|i| {
-                let t = i as f64 / n as f64;
-                [from[0] + (to[0] - from[0]) * t, from[1] + (to[1] - from[1]) * t]
-            }).collect()
+            (0..=n)
+                .map(|i| {
+                    let t = i as f64 / n as f64;
+                    [from[0] + (to[0] - from[0]) * t, from[1] + (to[1] - from[1]) * t]
+                })
+                .collect()
         }
         Some(c) => {
             let (a0, sweep) = crate::canon::arc_sweep(from, to, c, cw);
             let r = (from[0] - c[0]).hypot(from[1] - c[1]);
             let n = ((sweep.abs() / 2f64.to_radians()).ceil() as usize).max(2);
-            let mut v: Vec<[f64; 2]> = (0..n).map(|i| {
-                let t = a0 + sweep * i as f64 / n as f64;
-                [c[0] + r * t.cos(), c[1] + r * t.sin()]
-            }).collect();
+            let mut v: Vec<[f64; 2]> = (0..n)
+                .map(|i| {
+                    let t = a0 + sweep * i as f64 / n as f64;
+                    [c[0] + r * t.cos(), c[1] + r * t.sin()]
+                })
+                .collect();
             v.push(to);
             v
         }

@@ -44,7 +44,8 @@ impl Interpreter {
             }
             self.cyc.rigid_lead = Some(if self.st.inch { f.v * 25.4 } else { f.v });
         }
-        let lead = self.cyc.rigid_lead.ok_or((11, gc, "G92.1: no lead: program F (mm/rev, negative = left hand) or I (threads per inch)".to_string()))?;
+        let lead =
+            self.cyc.rigid_lead.ok_or((11, gc, "G92.1: no lead: program F (mm/rev, negative = left hand) or I (threads per inch)".to_string()))?;
         if lead.abs() > MAX_LEAD {
             return Err((14, gc, format!("G92.1: lead {lead:.3} mm is more than {MAX_LEAD} mm")));
         }

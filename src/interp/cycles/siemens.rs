@@ -118,7 +118,14 @@ struct Geo {
 impl Interpreter {
     /// A cycle call statement: `CYCLE8x(…)`, `MCALL CYCLE8x(…)` or a bare `MCALL`.
     /// `cols`: the column of each parameter, for the alarms of this block.
-    pub(in crate::interp) fn siemens_stmt(&mut self, mcall: bool, name: Option<&str>, args: &[Option<f64>], cols: &[u32], src: &SrcPos) -> Result<(), CErr> {
+    pub(in crate::interp) fn siemens_stmt(
+        &mut self,
+        mcall: bool,
+        name: Option<&str>,
+        args: &[Option<f64>],
+        cols: &[u32],
+        src: &SrcPos,
+    ) -> Result<(), CErr> {
         let Some(name) = name else {
             self.drill.mcall = None;
             return Ok(());
@@ -197,7 +204,12 @@ impl Interpreter {
             return Err((
                 PLANE_ALARM,
                 col,
-                format!("the final depth Z{:.3} is not beyond the reference plane Z{:.3} seen from the retract plane Z{:.3}", depth - oz, rfp - oz, rtp - oz),
+                format!(
+                    "the final depth Z{:.3} is not beyond the reference plane Z{:.3} seen from the retract plane Z{:.3}",
+                    depth - oz,
+                    rfp - oz,
+                    rtp - oz
+                ),
             ));
         }
         Ok(Geo { rtp, safe: rfp - dir * sdis, rfp, depth, dir })
@@ -225,11 +237,11 @@ impl Interpreter {
         let table = match Self::sarg(a, mpit_i).filter(|v| *v != 0.0) {
             None => None,
             Some(m) => {
-                let p = METRIC_COARSE
-                    .iter()
-                    .find(|(size, _)| *size as f64 == m.abs())
-                    .map(|(_, p)| *p)
-                    .ok_or((PITCH_ALARM, self.pc(mpit_i), format!("MPIT {m}: not a metric coarse thread size (3–48: M3, M4, M5, M6, M8, M10 … M48)")))?;
+                let p = METRIC_COARSE.iter().find(|(size, _)| *size as f64 == m.abs()).map(|(_, p)| *p).ok_or((
+                    PITCH_ALARM,
+                    self.pc(mpit_i),
+                    format!("MPIT {m}: not a metric coarse thread size (3–48: M3, M4, M5, M6, M8, M10 … M48)"),
+                ))?;
                 Some(p.copysign(m))
             }
         };
@@ -251,7 +263,11 @@ impl Interpreter {
         } else if code == 5.0 && allow_stop {
             Ok(SpindleDir::Stop)
         } else {
-            Err((SPINDLE_DIR_ALARM, col, format!("{what} {code}: the spindle direction is 3 (M3) or 4 (M4){}", if allow_stop { " or 5 (M5)" } else { "" })))
+            Err((
+                SPINDLE_DIR_ALARM,
+                col,
+                format!("{what} {code}: the spindle direction is 3 (M3) or 4 (M4){}", if allow_stop { " or 5 (M5)" } else { "" }),
+            ))
         }
     }
 
@@ -484,7 +500,8 @@ impl Interpreter {
         let g = self.geo(a, None)?;
         let arg = |i| Self::sarg(a, i);
         let u = self.unit();
-        let pitch = self.pitch(a, 7, 8, u)?.ok_or((PITCH_ALARM, self.pc(8).or(self.pc(7)), "CYCLE84: no thread pitch: give PIT or MPIT".to_string()))?;
+        let pitch =
+            self.pitch(a, 7, 8, u)?.ok_or((PITCH_ALARM, self.pc(8).or(self.pc(7)), "CYCLE84: no thread pitch: give PIT or MPIT".to_string()))?;
         let sdac = arg(6).map(|v| Self::spindle_dir(v, "SDAC", true, self.pc(6))).transpose()?;
         let sst = arg(10).filter(|v| *v > 0.0).ok_or((FEED_ALARM, self.pc(10), "CYCLE84: no tapping speed SST".to_string()))?;
         let sst1 = arg(11).filter(|v| *v > 0.0).unwrap_or(sst);
@@ -497,7 +514,11 @@ impl Interpreter {
         let stages = if vari == 0.0 {
             vec![total]
         } else {
-            let dam = arg(16).filter(|v| *v > 0.0).ok_or((RANGE_ALARM, self.pc(16).or(self.pc(15)), "CYCLE84 chip breaking / removal needs the depth per cut _DAM (D)".to_string()))?;
+            let dam = arg(16).filter(|v| *v > 0.0).ok_or((
+                RANGE_ALARM,
+                self.pc(16).or(self.pc(15)),
+                "CYCLE84 chip breaking / removal needs the depth per cut _DAM (D)".to_string(),
+            ))?;
             Self::stages(dam * u, total, 0.0, 0.0)?
         };
         let vrt = arg(17).filter(|v| *v > 0.0).map(|v| v * u).unwrap_or(1.0);
@@ -521,7 +542,8 @@ impl Interpreter {
             }
             self.cpush(src, tag, 3, tap(at(*d), sst, self.pos), true);
         }
-        self.drill.last_tap = Some(crate::canon::TapReturn { axis: 'Z', r_plane: g.safe, lead, rpm: sst, override_pct: sst1 / sst * 100.0, spindle: 1 });
+        self.drill.last_tap =
+            Some(crate::canon::TapReturn { axis: 'Z', r_plane: g.safe, lead, rpm: sst, override_pct: sst1 / sst * 100.0, spindle: 1 });
         self.dwell_s(src, tag, 4, arg(5).unwrap_or(0.0).max(0.0));
         self.cpush(src, tag, 5, tap(g.safe, sst1, self.pos), true);
         self.cpush(src, tag, 6, MoveKind::Rapid { end: self.zpos(g.rtp) }, true);

@@ -28,7 +28,10 @@ impl Interpreter {
             return Err((
                 RANGE_ALARM,
                 d.get('R').map(|v| v.col).or(Self::gcol(d)),
-                format!("{name}: R{r:.3} and the cut have opposite signs and |R| > {what} ({:.3}): the taper would cross the start point", depth.abs()),
+                format!(
+                    "{name}: R{r:.3} and the cut have opposite signs and |R| > {what} ({:.3}): the taper would cross the start point",
+                    depth.abs()
+                ),
             ));
         }
         let tag: Arc<str> = Arc::from(name);

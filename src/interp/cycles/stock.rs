@@ -44,12 +44,8 @@ impl Interpreter {
         let p = d.get('P').ok_or((61, gc, format!("{name}: P(ns), the first block of the finishing contour, is missing")))?;
         let q = d.get('Q').ok_or((61, gc, format!("{name}: Q(nf), the last block of the finishing contour, is missing")))?;
         let (ns, nf) = (p.v.round() as u32, q.v.round() as u32);
-        let find = |n: u32, col| {
-            self.labels
-                .get(&(self.prog, n))
-                .copied()
-                .ok_or((63, Some(col), format!("{name}: there is no block N{n} in this program")))
-        };
+        let find =
+            |n: u32, col| self.labels.get(&(self.prog, n)).copied().ok_or((63, Some(col), format!("{name}: there is no block N{n} in this program")));
         let (l1, l2) = (find(ns, p.col)?, find(nf, q.col)?);
         if l2 < l1 {
             return Err((63, Some(q.col), format!("{name}: N{nf} comes before N{ns}; P must name the first block, Q the last")));
@@ -243,7 +239,11 @@ impl Interpreter {
         let (ap, aq) = pq(a);
         let (bpp, _) = pq(bp);
         if bpp == ap {
-            return Err((G76_VALUE_ALARM, gc, format!("{name}: N{ns} does not move {}, so the infeed direction is unknown", if facing { 'Z' } else { 'X' })));
+            return Err((
+                G76_VALUE_ALARM,
+                gc,
+                format!("{name}: N{ns} does not move {}, so the infeed direction is unknown", if facing { 'Z' } else { 'X' }),
+            ));
         }
         let dir = (bpp - ap).signum();
         let contour = &elems[1..];

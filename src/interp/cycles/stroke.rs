@@ -100,14 +100,7 @@ impl Stroke2 {
             (Some(lo), Some(hi)) => Some((lo, hi)),
             _ => None,
         };
-        Stroke2 {
-            on: false,
-            outside: cfg.param(1002).is_some_and(|v| (v as i64) & 1 == 1),
-            area: None,
-            param_area,
-            ref1: r1,
-            last: Pos::ZERO,
-        }
+        Stroke2 { on: false, outside: cfg.param(1002).is_some_and(|v| (v as i64) & 1 == 1), area: None, param_area, ref1: r1, last: Pos::ZERO }
     }
 
     pub fn set_start(&mut self, p: Pos) {

@@ -130,7 +130,11 @@ impl Interpreter {
         // Infeed direction: towards the deepest point of the contour.
         let far = pts.iter().map(|p| p.0).fold(ap, |m, p| if (p - ap).abs() > (m - ap).abs() { p } else { m });
         if (far - ap).abs() < EPS {
-            return Err((G76_VALUE_ALARM, gc, format!("{name} type II: the contour N{ns}–N{nf} never leaves the start level, so there is nothing to rough")));
+            return Err((
+                G76_VALUE_ALARM,
+                gc,
+                format!("{name} type II: the contour N{ns}–N{nf} never leaves the start level, so there is nothing to rough"),
+            ));
         }
         let dir = (far - ap).signum();
         let qdir = (cpq - aq).signum();
@@ -144,7 +148,11 @@ impl Interpreter {
                 return Err((
                     64,
                     gc,
-                    format!("{name} type II: the contour N{ns}–N{nf} must be monotonic in {axis_q} (note 4); it turns back near X{:.3} Z{:.3}", p.x * 2.0, p.z),
+                    format!(
+                        "{name} type II: the contour N{ns}–N{nf} must be monotonic in {axis_q} (note 4); it turns back near X{:.3} Z{:.3}",
+                        p.x * 2.0,
+                        p.z
+                    ),
                 ));
             }
         }

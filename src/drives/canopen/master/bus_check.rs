@@ -43,31 +43,15 @@ impl Heard {
             return;
         }
         self.master = if id == cob::HEARTBEAT + MASTER_NODE_ID as u16 && !f.rtr {
-            Some(format!(
-                "a master heartbeat (COB-ID 0x{id:03X}, node {MASTER_NODE_ID} — another cncgw?)"
-            ))
+            Some(format!("a master heartbeat (COB-ID 0x{id:03X}, node {MASTER_NODE_ID} — another cncgw?)"))
         } else if id == cob::NMT {
-            let what = NmtCommand::decode(f).map(|(c, n)| {
-                format!(
-                    "{c:?} for {}",
-                    if n == 0 {
-                        "every node".to_string()
-                    } else {
-                        format!("node {n}")
-                    }
-                )
-            });
-            Some(format!(
-                "an NMT command ({})",
-                what.unwrap_or_else(|| "undecoded".into())
-            ))
+            let what =
+                NmtCommand::decode(f).map(|(c, n)| format!("{c:?} for {}", if n == 0 { "every node".to_string() } else { format!("node {n}") }));
+            Some(format!("an NMT command ({})", what.unwrap_or_else(|| "undecoded".into())))
         } else if f.rtr && func == cob::HEARTBEAT {
             Some(format!("a node-guarding request to node {node}"))
         } else if let Some(n) = m.nodes.iter().find(|n| n.spec.rpdo_cob == id) {
-            Some(format!(
-                "set-points for node {} (RPDO COB-ID 0x{id:03X})",
-                n.spec.node
-            ))
+            Some(format!("set-points for node {} (RPDO COB-ID 0x{id:03X})", n.spec.node))
         } else if func == cob::SDO_RX && m.index_of(node).is_some() {
             Some(format!("SDO requests to node {node} (COB-ID 0x{id:03X})"))
         } else {
@@ -77,8 +61,7 @@ impl Heard {
 
     fn sync_period_text(&self) -> String {
         if self.syncs >= 2 {
-            let p =
-                (self.last_sync_ns - self.first_sync_ns) as f64 / (self.syncs - 1) as f64 * 1e-6;
+            let p = (self.last_sync_ns - self.first_sync_ns) as f64 / (self.syncs - 1) as f64 * 1e-6;
             format!(" every ≈ {} ms", fmt_num((p * 10.0).round() / 10.0))
         } else {
             String::new()
@@ -96,10 +79,7 @@ impl<B: CanBus> CanOpenMaster<B> {
     /// Listen for `listen_window_ms` without sending anything; Err: another master (or a
     /// SYNC-producing drive) is on the bus. Ok: the NMT states heard per node (for leaving
     /// the drives as they were if start-up fails).
-    pub(super) fn check_bus_free(
-        &mut self,
-        clock: &mut dyn Clock,
-    ) -> Result<Vec<Option<NmtState>>, Alarm> {
+    pub(super) fn check_bus_free(&mut self, clock: &mut dyn Clock) -> Result<Vec<Option<NmtState>>, Alarm> {
         let ms = self.listen_window_ms();
         let end = clock.now_ns() + ms * 1_000_000;
         let mut heard = Heard::default();
@@ -130,19 +110,7 @@ impl<B: CanBus> CanOpenMaster<B> {
         if heard.syncs > 0 {
             return Err(self.foreign_sync_alarm(clock, &heard, ms));
         }
-        Ok(self
-            .nodes
-            .iter()
-            .map(|n| {
-                n.nmt.map(|s| {
-                    if s == NmtState::BootUp {
-                        NmtState::PreOperational
-                    } else {
-                        s
-                    }
-                })
-            })
-            .collect())
+        Ok(self.nodes.iter().map(|n| n.nmt.map(|s| if s == NmtState::BootUp { NmtState::PreOperational } else { s })).collect())
     }
 
     /// SYNC was heard and nothing else of a master: which configured drive produces it?

@@ -39,9 +39,7 @@ impl Scaling {
     /// (without them) its encoder resolution, positions then being increments.
     pub fn units_per_rev(&self) -> Option<f64> {
         match (self.gear, self.feed, self.encoder) {
-            (Some((gm, gs)), Some((f, fr)), _) if gm > 0 && fr > 0 => {
-                Some(f as f64 / fr as f64 * gs as f64 / gm as f64)
-            }
+            (Some((gm, gs)), Some((f, fr)), _) if gm > 0 && fr > 0 => Some(f as f64 / fr as f64 * gs as f64 / gm as f64),
             (None, None, Some((inc, rev))) if rev > 0 => Some(inc as f64 / rev as f64),
             _ => None,
         }
@@ -153,16 +151,14 @@ pub fn check_scaling(
                     fmt_num(want)
                 ));
             }
-            Ok(format!(
-                "scaling checked: {} units / motor rev = {} × {}{unit}",
-                fmt_num(upr),
-                fmt_num(counts_per_unit),
-                fmt_num(t)
-            ))
+            Ok(format!("scaling checked: {} units / motor rev = {} × {}{unit}", fmt_num(upr), fmt_num(counts_per_unit), fmt_num(t)))
         }
         None => match s.increments_per_unit() {
             Some(f) if (f - 1.0).abs() > 1e-9 => {
-                let fix = s.feed_for_increments().map(|fi| format!(", or set the drive's feed constant 0x6092:1 = {} so that it counts increments", fmt_num(fi))).unwrap_or_default();
+                let fix = s
+                    .feed_for_increments()
+                    .map(|fi| format!(", or set the drive's feed constant 0x6092:1 = {} so that it counts increments", fmt_num(fi)))
+                    .unwrap_or_default();
                 let upr = s.units_per_rev().unwrap_or(0.0);
                 Err(format!(
                     "the drive scales positions: 1 position unit = {} encoder increments ({}), so its positions are not the encoder counts counts_per_unit = {} assumes; the axis would move {}× the programmed travel. Set axes.{axis}.counts_per_unit = {} (the drive's units per{unit}){fix}. If counts_per_unit is already in the drive's units, say so with axes.{axis}.travel_per_rev = {} ({}{unit} per motor revolution) and start-up checks it",
@@ -175,14 +171,8 @@ pub fn check_scaling(
                     fmt_num(upr / counts_per_unit)
                 ))
             }
-            Some(_) => Ok(format!(
-                "positions in encoder increments ({})",
-                s.describe()
-            )),
-            None => Ok(format!(
-                "position scaling not checkable ({}); counts_per_unit is taken as given",
-                s.describe()
-            )),
+            Some(_) => Ok(format!("positions in encoder increments ({})", s.describe())),
+            None => Ok(format!("position scaling not checkable ({}); counts_per_unit is taken as given", s.describe())),
         },
     }
 }
@@ -210,23 +200,13 @@ fn absent_or<T>(r: Result<T, SdoError>) -> Option<Result<T, String>> {
 }
 
 impl<B: CanBus> CanOpenMaster<B> {
-    fn read_uint(
-        &mut self,
-        clock: &mut dyn Clock,
-        i: usize,
-        ix: u16,
-        sub: u8,
-    ) -> Result<u32, SdoError> {
+    fn read_uint(&mut self, clock: &mut dyn Clock, i: usize, ix: u16, sub: u8) -> Result<u32, SdoError> {
         self.read_u32(clock, i, ix, sub)
     }
 
     /// The factor group and polarity of node `i`; absent objects stay `None`, other
     /// failures are errors.
-    pub(super) fn read_scaling(
-        &mut self,
-        clock: &mut dyn Clock,
-        i: usize,
-    ) -> Result<Scaling, (u16, u8, SdoError)> {
+    pub(super) fn read_scaling(&mut self, clock: &mut dyn Clock, i: usize) -> Result<Scaling, (u16, u8, SdoError)> {
         let mut s = Scaling::default();
         let mut pair = |m: &mut Self, ix: u16| -> Result<Option<(u32, u32)>, (u16, u8, SdoError)> {
             let a = match m.read_uint(clock, i, ix, 1) {
@@ -247,12 +227,7 @@ impl<B: CanBus> CanOpenMaster<B> {
     }
 
     /// Start-up: node `i` has the mode the master will ask for (0x6502, where present).
-    pub(super) fn check_supported_mode(
-        &mut self,
-        clock: &mut dyn Clock,
-        i: usize,
-        want: i8,
-    ) -> Result<(), Alarm> {
+    pub(super) fn check_supported_mode(&mut self, clock: &mut dyn Clock, i: usize, want: i8) -> Result<(), Alarm> {
         match self.read_uint(clock, i, od::SUPPORTED_MODES, 0) {
             Ok(bits) if !supports(bits, want) => Err(self.node_alarm(
                 i,
@@ -276,30 +251,17 @@ impl<B: CanBus> CanOpenMaster<B> {
     }
 
     /// Start-up: node `i` must not produce SYNC (0x1005 bit 30): this master does.
-    pub(super) fn check_not_sync_producer(
-        &mut self,
-        clock: &mut dyn Clock,
-        i: usize,
-    ) -> Result<(), Alarm> {
+    pub(super) fn check_not_sync_producer(&mut self, clock: &mut dyn Clock, i: usize) -> Result<(), Alarm> {
         match self.read_uint(clock, i, od::COB_ID_SYNC, 0) {
             Ok(v) if v & SYNC_PRODUCER_BIT != 0 => Err(self.sync_producer_alarm(clock, i, v)),
             Ok(_) => Ok(()),
             Err(SdoError::Abort { code }) if is_absent(code) => Ok(()),
-            Err(e) => Err(self.node_alarm(
-                i,
-                2003,
-                format!("reading 0x1005 (COB-ID SYNC: does the drive produce SYNC?) failed: {e}"),
-            )),
+            Err(e) => Err(self.node_alarm(i, 2003, format!("reading 0x1005 (COB-ID SYNC: does the drive produce SYNC?) failed: {e}"))),
         }
     }
 
     /// Alarm 2007 for node `i` that produces SYNC (0x1005 = `cob`), naming its period.
-    pub(super) fn sync_producer_alarm(
-        &mut self,
-        clock: &mut dyn Clock,
-        i: usize,
-        cob: u32,
-    ) -> Alarm {
+    pub(super) fn sync_producer_alarm(&mut self, clock: &mut dyn Clock, i: usize, cob: u32) -> Alarm {
         let period = self
             .read_uint(clock, i, od::COMM_CYCLE_PERIOD, 0)
             .ok()
@@ -318,27 +280,12 @@ impl<B: CanBus> CanOpenMaster<B> {
     }
 
     /// Start-up: the factor group and polarity of node `i` fit its axis config.
-    pub(super) fn check_node_scaling(
-        &mut self,
-        clock: &mut dyn Clock,
-        i: usize,
-    ) -> Result<Scaling, Alarm> {
-        let s = self.read_scaling(clock, i).map_err(|(ix, sub, e)| {
-            self.node_alarm(
-                i,
-                2003,
-                format!("reading the factor group 0x{ix:04X}:{sub:02X} failed: {e}"),
-            )
-        })?;
+    pub(super) fn check_node_scaling(&mut self, clock: &mut dyn Clock, i: usize) -> Result<Scaling, Alarm> {
+        let s = self
+            .read_scaling(clock, i)
+            .map_err(|(ix, sub, e)| self.node_alarm(i, 2003, format!("reading the factor group 0x{ix:04X}:{sub:02X} failed: {e}")))?;
         let spec = &self.nodes[i].spec;
-        match check_scaling(
-            &s,
-            &spec.axis,
-            spec.counts_per_unit,
-            spec.travel_per_rev,
-            spec.polarity,
-            spec.spindle,
-        ) {
+        match check_scaling(&s, &spec.axis, spec.counts_per_unit, spec.travel_per_rev, spec.polarity, spec.spindle) {
             Ok(note) => {
                 tracing::info!(node = spec.node, axis = %spec.axis, "{note}");
                 Ok(s)
@@ -356,23 +303,11 @@ impl<B: CanBus> CanOpenMaster<B> {
         };
         let mut p = DriveProbe {
             supported_modes: absent_or(self.read_uint(clock, i, od::SUPPORTED_MODES, 0)),
-            mode_display: absent_or(
-                self.read_uint(clock, i, od::MODES_DISPLAY, 0)
-                    .map(|v| v as u8 as i8),
-            ),
+            mode_display: absent_or(self.read_uint(clock, i, od::MODES_DISPLAY, 0).map(|v| v as u8 as i8)),
             sync_cob: absent_or(self.read_uint(clock, i, od::COB_ID_SYNC, 0)),
-            producer_heartbeat_ms: absent_or(
-                self.read_uint(clock, i, od::PRODUCER_HEARTBEAT, 0)
-                    .map(|v| v as u16),
-            ),
-            guard_time_ms: absent_or(
-                self.read_uint(clock, i, od::GUARD_TIME, 0)
-                    .map(|v| v as u16),
-            ),
-            life_time_factor: absent_or(
-                self.read_uint(clock, i, od::LIFE_TIME_FACTOR, 0)
-                    .map(|v| v as u8),
-            ),
+            producer_heartbeat_ms: absent_or(self.read_uint(clock, i, od::PRODUCER_HEARTBEAT, 0).map(|v| v as u16)),
+            guard_time_ms: absent_or(self.read_uint(clock, i, od::GUARD_TIME, 0).map(|v| v as u16)),
+            life_time_factor: absent_or(self.read_uint(clock, i, od::LIFE_TIME_FACTOR, 0).map(|v| v as u8)),
             ..DriveProbe::default()
         };
         p.scaling = self.read_scaling(clock, i).unwrap_or_default();
@@ -382,10 +317,7 @@ impl<B: CanBus> CanOpenMaster<B> {
             Ok(n) => {
                 let mut v = Vec::new();
                 for s in 1..=(n.min(127) as u8) {
-                    if let Ok(x) = self
-                        .sdo(clock, i, Sdo::Up(od::CONSUMER_HEARTBEAT, s))
-                        .map(|d| super::le_u32(&d))
-                    {
+                    if let Ok(x) = self.sdo(clock, i, Sdo::Up(od::CONSUMER_HEARTBEAT, s)).map(|d| super::le_u32(&d)) {
                         if x & 0xFFFF != 0 && (x >> 16) & 0xFF != 0 {
                             v.push((((x >> 16) & 0xFF) as u8, (x & 0xFFFF) as u16));
                         }
@@ -403,12 +335,7 @@ mod tests {
     use super::*;
 
     fn fg(inc: u32, gear: (u32, u32), feed: u32, pol: u8) -> Scaling {
-        Scaling {
-            encoder: Some((inc, 1)),
-            gear: Some(gear),
-            feed: Some((feed, 1)),
-            polarity: Some(pol),
-        }
+        Scaling { encoder: Some((inc, 1)), gear: Some(gear), feed: Some((feed, 1)), polarity: Some(pol) }
     }
 
     #[test]
@@ -421,10 +348,7 @@ mod tests {
         let um = fg(100_000, (1, 1), 10_000, 0);
         let e = check_scaling(&um, "x", 10_000.0, None, Polarity::Normal, false).unwrap_err();
         assert!(e.starts_with("the drive scales positions: 1 position unit = 10 encoder increments (0x608F 100000 inc / 1 rev, 0x6091 gear 1:1, 0x6092 feed 10000 / 1 rev, 0x607E 0x00)"), "{e}");
-        assert!(
-            e.contains("move 10× the programmed travel. Set axes.x.counts_per_unit = 1000"),
-            "{e}"
-        );
+        assert!(e.contains("move 10× the programmed travel. Set axes.x.counts_per_unit = 1000"), "{e}");
         assert!(e.contains("0x6092:1 = 100000"), "{e}");
         assert!(e.contains("axes.x.travel_per_rev = 1 "), "{e}");
         // With the travel per revolution the check is exact both ways.
@@ -432,56 +356,28 @@ mod tests {
         let e = check_scaling(&um, "x", 10_000.0, Some(10.0), Polarity::Normal, false).unwrap_err();
         assert!(
             e.contains("counts 10000 position units per motor revolution")
-                && e.contains(
-                    "move the axis 10× the programmed travel. Set axes.x.counts_per_unit = 1000"
-                ),
+                && e.contains("move the axis 10× the programmed travel. Set axes.x.counts_per_unit = 1000"),
             "{e}"
         );
         // A gearbox 3:1 in front of a 5 mm screw, positions in increments (feed = 3 × 131072
         // increments per shaft revolution): 131072 per motor revolution of 5/3 mm.
         let geared = fg(131_072, (3, 1), 393_216, 0);
         assert_eq!(geared.increments_per_unit(), Some(1.0));
-        assert!(check_scaling(
-            &geared,
-            "z",
-            131_072.0 * 3.0 / 5.0,
-            Some(5.0 / 3.0),
-            Polarity::Normal,
-            false
-        )
-        .is_ok());
+        assert!(check_scaling(&geared, "z", 131_072.0 * 3.0 / 5.0, Some(5.0 / 3.0), Polarity::Normal, false).is_ok());
         // The gear forgotten in counts_per_unit: 3× the travel.
-        let e = check_scaling(
-            &geared,
-            "z",
-            131_072.0 / 5.0,
-            Some(5.0 / 3.0),
-            Polarity::Normal,
-            false,
-        )
-        .unwrap_err();
-        assert!(
-            e.contains("move the axis 0.333333× the programmed travel"),
-            "{e}"
-        );
+        let e = check_scaling(&geared, "z", 131_072.0 / 5.0, Some(5.0 / 3.0), Polarity::Normal, false).unwrap_err();
+        assert!(e.contains("move the axis 0.333333× the programmed travel"), "{e}");
     }
 
     #[test]
     fn polarity_is_checked() {
         let inv = fg(100_000, (1, 1), 100_000, 0x80);
         let e = check_scaling(&inv, "z", 10_000.0, None, Polarity::Normal, false).unwrap_err();
-        assert!(
-            e.starts_with("the drive inverts positions (0x607E = 0x80, bit 7)"),
-            "{e}"
-        );
+        assert!(e.starts_with("the drive inverts positions (0x607E = 0x80, bit 7)"), "{e}");
         assert!(check_scaling(&inv, "z", 10_000.0, None, Polarity::Inverted, false).is_ok());
         let e = check_scaling(&inv, "s1", 1000.0, None, Polarity::Inverted, true).unwrap_err();
         assert!(e.contains("velocity polarity"), "{e}");
         let none = Scaling::default();
-        assert!(
-            check_scaling(&none, "x", 10_000.0, None, Polarity::Normal, false)
-                .unwrap()
-                .contains("not checkable")
-        );
+        assert!(check_scaling(&none, "x", 10_000.0, None, Polarity::Normal, false).unwrap().contains("not checkable"));
     }
 }

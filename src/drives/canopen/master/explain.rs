@@ -36,14 +36,8 @@ fn le_u32(data: &[u8]) -> u32 {
 /// What an abort `code` on a write of `data` to `index:sub` means at start-up, with what to
 /// do; `None` where the generic text says it all.
 pub fn explain_write(index: u16, sub: u8, code: u32, data: &[u8]) -> Option<String> {
-    let refused_value = matches!(
-        code,
-        abort::INVALID_VALUE
-            | abort::VALUE_TOO_HIGH
-            | abort::VALUE_TOO_LOW
-            | abort::GENERAL
-            | abort::PARAM_INCOMPATIBLE
-    );
+    let refused_value =
+        matches!(code, abort::INVALID_VALUE | abort::VALUE_TOO_HIGH | abort::VALUE_TOO_LOW | abort::GENERAL | abort::PARAM_INCOMPATIBLE);
     Some(match (index, code) {
         (od::MODES_OF_OPERATION, _) if refused_value => {
             let m = data.first().map(|&b| b as i8).unwrap_or(0);
@@ -123,10 +117,7 @@ pub fn mode_short(m: i8) -> String {
 /// the manufacturer's).
 pub fn supported_modes_text(bits: u32) -> String {
     let names = ["PP", "VL", "PV", "PT", "-", "HM", "IP", "CSP", "CSV", "CST"];
-    let mut v: Vec<String> = (0..10)
-        .filter(|b| bits & (1 << b) != 0 && *b != 4)
-        .map(|b| names[b as usize].to_string())
-        .collect();
+    let mut v: Vec<String> = (0..10).filter(|b| bits & (1 << b) != 0 && *b != 4).map(|b| names[b as usize].to_string()).collect();
     if bits & 0xFFFF_0000 != 0 {
         v.push(format!("manufacturer-specific (0x{:04X})", bits >> 16));
     }
@@ -159,33 +150,15 @@ mod tests {
     #[test]
     fn start_up_aborts_in_words() {
         let e = explain_write(0x6060, 0, abort::INVALID_VALUE, &[8]).unwrap();
-        assert!(
-            e.starts_with("this drive has no CSP (cyclic synchronous position) mode"),
-            "{e}"
-        );
+        assert!(e.starts_with("this drive has no CSP (cyclic synchronous position) mode"), "{e}");
         let e = explain_write(0x1600, 0, abort::READ_ONLY, &[0]).unwrap();
-        assert!(
-            e.starts_with("fixed PDO mapping: the drive does not let RPDO1 be remapped"),
-            "{e}"
-        );
-        let e = explain_write(
-            0x1600,
-            2,
-            abort::NOT_MAPPABLE,
-            &0x607A_0020u32.to_le_bytes(),
-        )
-        .unwrap();
-        assert!(
-            e.starts_with("the drive cannot map 0x607A into RPDO1"),
-            "{e}"
-        );
+        assert!(e.starts_with("fixed PDO mapping: the drive does not let RPDO1 be remapped"), "{e}");
+        let e = explain_write(0x1600, 2, abort::NOT_MAPPABLE, &0x607A_0020u32.to_le_bytes()).unwrap();
+        assert!(e.starts_with("the drive cannot map 0x607A into RPDO1"), "{e}");
         let e = explain_write(0x1A00, 0, abort::READ_ONLY, &[0]).unwrap();
         assert!(e.contains("TPDO1"), "{e}");
         let e = explain_write(0x1400, 1, abort::INVALID_VALUE, &0x201u32.to_le_bytes()).unwrap();
-        assert!(
-            e.contains("RPDO1's COB-ID be changed to 0x201") && e.contains("rpdo_cob_id"),
-            "{e}"
-        );
+        assert!(e.contains("RPDO1's COB-ID be changed to 0x201") && e.contains("rpdo_cob_id"), "{e}");
         let e = explain_write(0x60C2, 1, abort::NO_OBJECT, &[2]).unwrap();
         assert!(e.contains("no interpolation time period"), "{e}");
         assert!(explain_write(0x6065, 0, abort::TOGGLE, &[0; 4]).is_none());
@@ -195,10 +168,7 @@ mod tests {
     fn supported_modes() {
         assert_eq!(supported_modes_text(0x1A1), "PP, HM, CSP, CSV");
         assert_eq!(supported_modes_text(0x25), "PP, PV, HM");
-        assert_eq!(
-            supported_modes_text(0x0001_0000),
-            "manufacturer-specific (0x0001)"
-        );
+        assert_eq!(supported_modes_text(0x0001_0000), "manufacturer-specific (0x0001)");
         assert!(supports(0x1A1, 8) && !supports(0x25, 8) && !supports(0xFFFF, 0));
     }
 }

@@ -45,13 +45,7 @@ impl<B: CanBus> CanOpenMaster<B> {
                 continue;
             };
             if now_ns >= g.next_ns {
-                let f = CanFrame {
-                    id: (cob::HEARTBEAT + self.nodes[i].spec.node as u16) as u32,
-                    extended: false,
-                    rtr: true,
-                    len: 1,
-                    data: [0; 8],
-                };
+                let f = CanFrame { id: (cob::HEARTBEAT + self.nodes[i].spec.node as u16) as u32, extended: false, rtr: true, len: 1, data: [0; 8] };
                 self.send(&f)?;
                 if let Some(g) = self.nodes[i].guarding.as_mut() {
                     g.next_ns = next_on_grid(g.next_ns, g.period_ns, now_ns);
@@ -66,15 +60,8 @@ impl<B: CanBus> CanOpenMaster<B> {
     pub(super) fn stop_guarding(&mut self, clock: &mut dyn cncgw_bus::Clock) {
         for i in 0..self.nodes.len() {
             if self.nodes[i].guarding.take().is_some() {
-                if let Err(e) = self.sdo(
-                    clock,
-                    i,
-                    super::Sdo::Down(cncgw_bus::canopen::od::GUARD_TIME, 0, &0u16.to_le_bytes()),
-                ) {
-                    tracing::warn!(
-                        node = self.nodes[i].spec.node,
-                        "switching life guarding off (0x100C = 0) failed: {e}"
-                    );
+                if let Err(e) = self.sdo(clock, i, super::Sdo::Down(cncgw_bus::canopen::od::GUARD_TIME, 0, &0u16.to_le_bytes())) {
+                    tracing::warn!(node = self.nodes[i].spec.node, "switching life guarding off (0x100C = 0) failed: {e}");
                 }
             }
         }
@@ -82,10 +69,7 @@ impl<B: CanBus> CanOpenMaster<B> {
 
     /// Start guarding node `i` every `period_ms` (after 0x100C / 0x100D were written).
     pub(super) fn start_guarding(&mut self, i: usize, period_ms: u16, now_ns: u64) {
-        self.nodes[i].guarding = Some(Guarding {
-            period_ns: period_ms as u64 * 1_000_000,
-            next_ns: now_ns,
-        });
+        self.nodes[i].guarding = Some(Guarding { period_ns: period_ms as u64 * 1_000_000, next_ns: now_ns });
         // Its answers are its heartbeat from now on.
         self.nodes[i].last_hb_ns = now_ns.max(1);
     }

@@ -54,12 +54,7 @@ impl<B: CanBus> CanOpenMaster<B> {
     /// Ask node `i` for mode `m` (0x6060) and wait, running the cycle (SYNC, held targets),
     /// until it shows it in 0x6061; alarm 2005 naming the mode it shows after
     /// `MODE_TIMEOUT_MS`.
-    pub(super) fn change_mode(
-        &mut self,
-        clock: &mut dyn Clock,
-        i: usize,
-        m: i8,
-    ) -> Result<(), Alarm> {
+    pub(super) fn change_mode(&mut self, clock: &mut dyn Clock, i: usize, m: i8) -> Result<(), Alarm> {
         self.nodes[i].mode.want = m;
         self.nodes[i].mode.confirmed = false;
         self.write(clock, i, od::MODES_OF_OPERATION, 0, &[m as u8])?;
@@ -67,32 +62,19 @@ impl<B: CanBus> CanOpenMaster<B> {
     }
 
     /// Run the cycle until every node of `which` shows its wanted mode.
-    pub(super) fn wait_modes(
-        &mut self,
-        clock: &mut dyn Clock,
-        which: &[usize],
-    ) -> Result<(), Alarm> {
+    pub(super) fn wait_modes(&mut self, clock: &mut dyn Clock, which: &[usize]) -> Result<(), Alarm> {
         if which.iter().all(|&i| self.nodes[i].mode.ok()) {
             return Ok(());
         }
-        let done = self.run_cycles(clock, MODE_TIMEOUT_MS * 1_000_000, |m| {
-            Ok(which.iter().all(|&i| m.nodes[i].mode.ok()))
-        })?;
+        let done = self.run_cycles(clock, MODE_TIMEOUT_MS * 1_000_000, |m| Ok(which.iter().all(|&i| m.nodes[i].mode.ok())))?;
         if done {
             return Ok(());
         }
-        let i = which
-            .iter()
-            .copied()
-            .find(|&i| !self.nodes[i].mode.ok())
-            .unwrap_or(0);
+        let i = which.iter().copied().find(|&i| !self.nodes[i].mode.ok()).unwrap_or(0);
         let t = self.nodes[i].mode;
         let shown = match t.shown {
             Some(s) => format!("it still reports {} in 0x6061", mode_words(s)),
-            None => {
-                "its mode display 0x6061 was never heard (no TPDO1 and no answer to reading it)"
-                    .into()
-            }
+            None => "its mode display 0x6061 was never heard (no TPDO1 and no answer to reading it)".into(),
         };
         Err(self.node_alarm(
             i,
@@ -114,9 +96,7 @@ impl<B: CanBus> CanOpenMaster<B> {
         }
         if n.bad_len >= super::BAD_LEN_ALARM {
             let (cob, got, total) = (n.spec.tpdo_cob, n.bad_len_last, n.bad_len_total);
-            let want = n
-                .tpdo_len
-                .map_or("at least 6".to_string(), |l| l.to_string());
+            let want = n.tpdo_len.map_or("at least 6".to_string(), |l| l.to_string());
             let mapped = if n.mode.in_pdo {
                 "0x6041 statusword, 0x6064 position actual, 0x6061 mode display"
             } else {

@@ -30,22 +30,12 @@ impl<B: CanBus> CanOpenMaster<B> {
     /// write back if start-up fails. Objects the drive lacks or will not read are not kept
     /// (the write that follows says what is wrong with them).
     pub(super) fn keep_for_undo(&mut self, clock: &mut dyn Clock, i: usize, index: u16, sub: u8) {
-        if !survives_comm_reset(index)
-            || self.undo.as_ref().is_none_or(|u| {
-                u.iter()
-                    .any(|e| e.node == i && e.index == index && e.sub == sub)
-            })
-        {
+        if !survives_comm_reset(index) || self.undo.as_ref().is_none_or(|u| u.iter().any(|e| e.node == i && e.index == index && e.sub == sub)) {
             return;
         }
         if let Ok(old) = self.sdo(clock, i, Sdo::Up(index, sub)) {
             if let Some(u) = self.undo.as_mut() {
-                u.push(Undo {
-                    node: i,
-                    index,
-                    sub,
-                    old,
-                });
+                u.push(Undo { node: i, index, sub, old });
             }
         }
     }
@@ -72,22 +62,13 @@ impl<B: CanBus> CanOpenMaster<B> {
         }
         for u in self.undo.take().unwrap_or_default().into_iter().rev() {
             if let Err(e) = self.sdo(clock, u.node, Sdo::Down(u.index, u.sub, &u.old)) {
-                tracing::warn!(
-                    node = self.nodes[u.node].spec.node,
-                    "restoring 0x{:04X}:{:02X} failed: {e}",
-                    u.index,
-                    u.sub
-                );
+                tracing::warn!(node = self.nodes[u.node].spec.node, "restoring 0x{:04X}:{:02X} failed: {e}", u.index, u.sub);
             }
         }
         // Out of operational first: a reset straight from operational is a lost connection
         // to some drives (0x6007).
         // Only nodes that are there answer a reset with a boot-up.
-        let order: Vec<usize> = self
-            .by_node_id()
-            .into_iter()
-            .filter(|&i| self.nodes[i].booted)
-            .collect();
+        let order: Vec<usize> = self.by_node_id().into_iter().filter(|&i| self.nodes[i].booted).collect();
         for &i in &order {
             let node = self.nodes[i].spec.node;
             let _ = self.send(&NmtCommand::EnterPreOperational.frame(node));
