@@ -221,14 +221,16 @@ fn monitor_once_prints_one_table() {
     assert_eq!(o.code, 0, "{}", o.stderr);
     let lines: Vec<&str> = o.stdout.lines().collect();
     assert_eq!(lines.len(), 5, "{}", o.stdout);
-    assert!(lines[0].contains("state") && lines[0].contains("position") && lines[0].contains("ferr"));
+    assert!(lines[0].contains("state") && lines[0].contains("position") && lines[0].contains("speed") && lines[0].contains("follow. error"));
     for (l, (node, axis)) in lines[1..4].iter().zip([(1, "x"), (2, "z"), (3, "s1")]) {
         let cols: Vec<&str> = l.split_whitespace().collect();
         assert_eq!(cols[0], node.to_string(), "{l}");
         assert_eq!(cols[1], axis, "{l}");
         assert_eq!(cols[2], "0x0250", "{l}");
         assert!(l.contains("Switch On Disabled"), "{l}");
-        assert_eq!(&cols[cols.len() - 3..], ["0.0000", "0.0000", "0.0000"], "{l}");
+        // Each figure with its unit: mm and mm/min, degrees and rpm for the spindle.
+        let (pu, vu) = if axis == "s1" { ("deg", "rpm") } else { ("mm", "mm/min") };
+        assert_eq!(&cols[cols.len() - 6..], ["0.0000", pu, "0.0000", vu, "0.0000", pu], "{l}");
     }
     assert!(lines[4].starts_with("bus inproc load "), "{}", lines[4]);
     let load: f64 = lines[4]["bus inproc load ".len()..].split(' ').next().unwrap().parse().unwrap();

@@ -467,23 +467,24 @@ pub fn monitor(cfg: &MachineConfig, seconds: Option<f64>, once: bool, interval_m
     let mut out = std::io::stdout();
     loop {
         let tick = Instant::now();
-        let mut lines = vec![format!(
-            "{:>4} {:<5} {:<6} {:<22} {:<26} {:>12} {:>12} {:>8}",
-            "unit", "axis", "sw", "state", "mode", "position", "velocity/s", "error"
-        )];
+        let mut lines =
+            vec![format!("{:>4} {:<5} {:<6} {:<22} {:<26} {:>16} {:>16} {:>8}", "unit", "axis", "sw", "state", "mode", "position", "speed", "error")];
         let mut arr = Vec::new();
         for (name, a, link) in axes(cfg) {
             let Some(c) = cl.get_mut(&link) else { continue };
             match read_drive(c, &name, &a) {
                 Ok(d) => {
                     let mode = d.mode.map(|m| format!("{m} {}", cncgw_bus::cia402::mode::name(m))).unwrap_or_else(|| "-".into());
-                    let vel = d.velocity_per_s.map(|v| format!("{v:.4}")).unwrap_or_else(|| "-".into());
+                    // The operator's units: mm and mm/min, degrees and rpm for a spindle.
+                    let spindle = a.kind == crate::config::AxisKind::Spindle;
+                    let (pu, vu, per_min) = if spindle { ("deg", "rpm", 1.0 / 6.0) } else { ("mm", "mm/min", 60.0) };
+                    let vel = d.velocity_per_s.map(|v| format!("{:.4} {vu}", v * per_min)).unwrap_or_else(|| "-".into());
                     lines.push(format!(
-                        "{:>4} {name:<5} 0x{:04X} {:<22} {mode:<26} {:>12.4} {vel:>12} {:>8}",
+                        "{:>4} {name:<5} 0x{:04X} {:<22} {mode:<26} {:>16} {vel:>16} {:>8}",
                         a.node,
                         d.statusword,
                         State::from_statusword(d.statusword).name(),
-                        d.position,
+                        format!("{:.4} {pu}", d.position),
                         format!("0x{:04X}", d.error_code)
                     ));
                     arr.push(state_json(&d));

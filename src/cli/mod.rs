@@ -859,6 +859,36 @@ fn parse_since(s: &str) -> Result<std::time::SystemTime, String> {
     std::time::SystemTime::now().checked_sub(d).ok_or_else(|| format!("`{s}` reaches back before 1970"))
 }
 
+/// One axis in `config check`'s words and units: kind, where it is, scale, speed and
+/// acceleration in the units the configuration takes them in, the travel (X as a radius there).
+fn axis_line(name: &str, a: &crate::config::AxisConfig) -> String {
+    use crate::config::AxisKind;
+    let (kind, unit, speed, accel) = match a.kind {
+        AxisKind::Spindle => ("spindle", "degree", "rpm", "rpm/s"),
+        AxisKind::Linear => ("linear axis", "mm", "mm/min", "mm/s²"),
+    };
+    let at = match &a.modbus {
+        Some(l) => {
+            let profile = format!("{:?}", a.modbus_profile).to_lowercase().replace("cia402", "CiA 402");
+            format!("Modbus link {l} unit {} ({profile} register map)", a.node)
+        }
+        None => format!("CANopen node {}", a.node),
+    };
+    let travel = match (a.kind, a.min, a.max) {
+        (AxisKind::Spindle, ..) => String::new(),
+        (_, None, None) => ", no travel limits".to_string(),
+        (_, lo, hi) => {
+            let f = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v}"));
+            let radius = if name == "x" { " (radius)" } else { "" };
+            format!(", travel {} … {} mm{radius}", f(lo), f(hi))
+        }
+    };
+    format!(
+        "  axis {name}: {kind} on {at}, {} counts/{unit}, max speed {} {speed}, max accel {} {accel}{travel}",
+        a.counts_per_unit, a.max_speed, a.max_accel
+    )
+}
+
 /// Following-error windows below what an axis' identified response (`[axes.NAME.response]`)
 /// lags at its maximum speed: the drive would fault at full speed.
 fn response_warnings(cfg: &crate::config::MachineConfig) -> Vec<String> {
@@ -919,7 +949,11 @@ fn config_check(file: Option<&std::path::Path>, json: bool) -> i32 {
         text.extend(problems.iter().map(|p| format!("  {p}")));
     }
     text.extend(warnings.iter().map(|w| format!("  warning: {w}")));
-    text.push(format!("  cycle {} ms, bus {} at {} bit/s", cfg.machine.cycle_ms, cfg.bus.interface, cfg.bus.bitrate));
+    if cfg.has_canopen() {
+        text.push(format!("  cycle {} ms, CANopen bus {} at {} bit/s", cfg.machine.cycle_ms, cfg.bus.interface, cfg.bus.bitrate));
+    } else {
+        text.push(format!("  cycle {} ms, no CANopen bus (every drive on a Modbus link)", cfg.machine.cycle_ms));
+    }
     let n_can = cfg.axes.values().filter(|a| a.modbus.is_none()).count();
     let mut can_load = None;
     if n_can > 0 {
@@ -953,21 +987,14 @@ fn config_check(file: Option<&std::path::Path>, json: bool) -> i32 {
     }
     let mut axes = Vec::new();
     for (aname, a) in &cfg.axes {
-        text.push(format!(
-            "  axis {aname}: {:?} {} {} counts/unit, max speed {}, max accel {}",
-            a.kind,
-            match &a.modbus {
-                Some(l) => format!("Modbus link {l} unit {} ({:?} profile)", a.node, a.modbus_profile),
-                None => format!("CANopen node {}", a.node),
-            },
-            a.counts_per_unit,
-            a.max_speed,
-            a.max_accel
-        ));
+        text.push(axis_line(aname, a));
         axes.push(serde_json::json!({
             "axis": aname, "kind": format!("{:?}", a.kind).to_lowercase(), "node": a.node,
             "modbus_link": a.modbus, "counts_per_unit": a.counts_per_unit,
             "min": a.min, "max": a.max, "max_speed": a.max_speed, "max_accel": a.max_accel,
+            "position_unit": if a.kind == crate::config::AxisKind::Spindle { "deg" } else { "mm" },
+            "speed_unit": if a.kind == crate::config::AxisKind::Spindle { "rpm" } else { "mm/min" },
+            "accel_unit": if a.kind == crate::config::AxisKind::Spindle { "rpm/s" } else { "mm/s²" },
         }));
     }
     if json {

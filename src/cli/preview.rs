@@ -228,5 +228,7 @@ pub fn preview(
         eprintln!("error: cannot write {}: {e}", out.display());
         return super::exit::SETUP;
     }
+    let upto = if code == 0 { "" } else { " (up to the alarm)" };
+    eprintln!("{}: {} moves drawn{upto}", out.display(), moves.len());
     code
 }

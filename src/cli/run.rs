@@ -743,15 +743,31 @@ fn alarm_json(a: Option<&crate::Alarm>) -> serde_json::Value {
     }
 }
 
+/// An axis' positions in the operator's units: mm (X as a diameter, as the programs write it)
+/// or degrees for a spindle. (unit, diameter?, counts → that unit).
+fn axis_units(a: &crate::motion::cycle::AxisSummary) -> (&'static str, bool, impl Fn(i64) -> f64) {
+    let spindle = a.name.starts_with('s');
+    let diameter = a.name == "x";
+    let cpu = if a.counts_per_unit.is_finite() && a.counts_per_unit != 0.0 { a.counts_per_unit } else { 1.0 };
+    let scale = if diameter { 2.0 } else { 1.0 };
+    (if spindle { "deg" } else { "mm" }, diameter, move |c: i64| c as f64 / cpu * scale)
+}
+
 fn print_summary(s: &RunSummary, json: bool, alarm: Option<&crate::Alarm>) {
     if json {
         let axes: Vec<_> = s
             .axes
             .iter()
             .map(|a| {
+                let (unit, diameter, at) = axis_units(a);
                 serde_json::json!({
                     "axis": a.name,
+                    "unit": unit,
+                    "diameter": diameter,
                     "max_following_error": a.max_following_error,
+                    "final_actual": at(a.final_actual_counts),
+                    "final_target": at(a.final_target_counts),
+                    "program_end": a.program_end_counts.map(&at),
                     "final_actual_counts": a.final_actual_counts,
                     "final_target_counts": a.final_target_counts,
                     "program_end_counts": a.program_end_counts,
@@ -794,16 +810,32 @@ fn print_summary(s: &RunSummary, json: bool, alarm: Option<&crate::Alarm>) {
         s.overruns,
         s.enable_time_s
     );
-    println!("{:<5} {:>18} {:>14} {:>14} {:>14}  result", "axis", "max follow. error", "final actual", "final target", "program end");
+    println!(
+        "{:<5} {:>18} {:>18} {:>18} {:>18}  result (positions: X as a diameter)",
+        "axis", "max follow. error", "final actual", "final target", "program end"
+    );
     for a in &s.axes {
-        let unit = if a.name.starts_with('s') { "deg" } else { "mm" };
+        let (unit, _, at) = axis_units(a);
+        let pos = |c: i64| format!("{:.4} {unit}", at(c));
         let (end, ok) = match a.program_end_counts {
-            Some(e) => (e.to_string(), if (a.final_actual_counts - e).abs() <= 1 { "ok (within 1 count)" } else { "NOT AT END POINT" }),
-            None => ("-".to_string(), "-"),
+            Some(e) => (
+                pos(e),
+                if (a.final_actual_counts - e).abs() <= 1 {
+                    "ok (within 1 count)".to_string()
+                } else {
+                    format!("NOT AT END POINT ({} counts off)", a.final_actual_counts - e)
+                },
+            ),
+            None => ("-".to_string(), "-".to_string()),
         };
         println!(
-            "{:<5} {:>14.4} {:<3} {:>14} {:>14} {:>14}  {}",
-            a.name, a.max_following_error, unit, a.final_actual_counts, a.final_target_counts, end, ok
+            "{:<5} {:>18} {:>18} {:>18} {:>18}  {}",
+            a.name,
+            format!("{:.4} {unit}", a.max_following_error),
+            pos(a.final_actual_counts),
+            pos(a.final_target_counts),
+            end,
+            ok
         );
     }
 }

@@ -678,7 +678,11 @@ struct MonitorRow {
     /// Statusword, or why the node did not answer.
     sw: Result<u16, String>,
     mode: Option<i8>,
+    /// A spindle (degrees, rpm) rather than a feed axis (mm, mm/min).
+    spindle: bool,
+    /// Position and following error in mm or degrees (X as the drive counts it: a radius).
     pos: Option<f64>,
+    /// Speed in the operator's unit: mm/min, or rpm for a spindle.
     vel: Option<f64>,
     ferr: Option<f64>,
 }
@@ -687,7 +691,8 @@ fn monitor_read(s: &mut Session, node: u8) -> MonitorRow {
     let spec = s.master.node_spec(node).cloned();
     let axis = spec.as_ref().map(|n| n.axis.clone()).unwrap_or_else(|| "-".into());
     let cpu = spec.as_ref().map(|n| n.counts_per_unit).unwrap_or(1.0);
-    let mut row = MonitorRow { node, axis, sw: Ok(0), mode: None, pos: None, vel: None, ferr: None };
+    let spindle = spec.as_ref().is_some_and(|n| n.spindle);
+    let mut row = MonitorRow { node, axis, sw: Ok(0), spindle, pos: None, vel: None, ferr: None, mode: None };
     match read_int(s, node, od::STATUSWORD, 2) {
         Ok(v) => row.sw = Ok(v as u16),
         Err(e) => {
@@ -698,7 +703,8 @@ fn monitor_read(s: &mut Session, node: u8) -> MonitorRow {
     row.mode = read_int(s, node, od::MODES_DISPLAY, 1).ok().map(|m| m as i8);
     let mut units = |ix: u16| read_int(s, node, ix, 4).ok().map(|c| c as f64 / cpu);
     row.pos = units(od::POSITION_ACTUAL);
-    row.vel = units(od::VELOCITY_ACTUAL);
+    // Units per second from the drive → rpm (360°/rev, 60 s/min) or mm/min.
+    row.vel = units(od::VELOCITY_ACTUAL).map(|v| if spindle { v / 6.0 } else { v * 60.0 });
     row.ferr = units(od::FOLLOWING_ERROR_ACTUAL);
     row
 }
@@ -711,9 +717,10 @@ fn monitor_line(r: &MonitorRow) -> String {
         Err(e) => return format!("{node:>4} {axis:<5} no answer: {e}"),
     };
     let st = State::from_statusword(sw);
-    let f = |v: Option<f64>| v.map(|v| format!("{v:.4}")).unwrap_or_else(|| "-".into());
+    let (pu, vu) = if r.spindle { ("deg", "rpm") } else { ("mm", "mm/min") };
+    let f = |v: Option<f64>, u: &str| v.map(|v| format!("{v:.4} {u}")).unwrap_or_else(|| "-".into());
     let mode = r.mode.map(|m| format!("{m} {}", mode::name(m))).unwrap_or_else(|| "-".into());
-    format!("{node:>4} {axis:<5} 0x{sw:04X} {:<22} {mode:<26} {:>12} {:>12} {:>10}", st.name(), f(r.pos), f(r.vel), f(r.ferr))
+    format!("{node:>4} {axis:<5} 0x{sw:04X} {:<22} {mode:<26} {:>16} {:>16} {:>14}", st.name(), f(r.pos, pu), f(r.vel, vu), f(r.ferr, pu))
 }
 
 fn monitor_json(r: &MonitorRow) -> serde_json::Value {
@@ -721,7 +728,8 @@ fn monitor_json(r: &MonitorRow) -> serde_json::Value {
         Ok(sw) => serde_json::json!({
             "node": r.node, "axis": r.axis, "statusword": format!("0x{sw:04X}"),
             "state": State::from_statusword(*sw).name(), "mode": r.mode, "mode_name": r.mode.map(mode::name),
-            "position": r.pos, "velocity_per_s": r.vel, "following_error": r.ferr, "error": null,
+            "position": r.pos, "velocity": r.vel, "following_error": r.ferr, "error": null,
+            "position_unit": if r.spindle { "deg" } else { "mm" }, "velocity_unit": if r.spindle { "rpm" } else { "mm/min" },
         }),
         Err(e) => serde_json::json!({"node": r.node, "axis": r.axis, "error": e}),
     }
@@ -769,8 +777,8 @@ pub fn monitor(machine: &MachineArgs, seconds: Option<f64>, once: bool, interval
     s.master.listen(&mut *s.clock, 100);
     loop {
         let mut lines = vec![format!(
-            "{:>4} {:<5} {:<6} {:<22} {:<26} {:>12} {:>12} {:>10}",
-            "node", "axis", "sw", "state", "mode", "position", "velocity/s", "ferr"
+            "{:>4} {:<5} {:<6} {:<22} {:<26} {:>16} {:>16} {:>14}",
+            "node", "axis", "sw", "state", "mode", "position", "speed", "follow. error"
         )];
         let rows: Vec<MonitorRow> = nodes.iter().map(|&n| monitor_read(&mut s, n)).collect();
         lines.extend(rows.iter().map(monitor_line));
