@@ -342,3 +342,23 @@ fn tcp_link_reconnects_after_the_connection_drops() {
     stop.store(true, std::sync::atomic::Ordering::Relaxed);
     srv.join().unwrap();
 }
+
+/// `--rt-priority` covers the Modbus link threads too (issue 22.10): they run one below the
+/// cycle thread. Where the cycle thread may use SCHED_FIFO (root, CAP_SYS_NICE), so may they.
+#[test]
+fn rt_priority_covers_the_link_thread() {
+    let stop = Arc::new(AtomicBool::new(false));
+    let srv = tcp_server(MODBUS_LATHE, &stop);
+    let cfg = write("rt.toml", &tcp_machine(srv.local_addr().unwrap(), ""));
+    let prog = write("prt.nc", PROGRAM);
+    let o = cncgw(&["-v", "run", "--json", "--rt-priority", "5", "--config", &cfg, &prog]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    let link_line = t.lines().find(|l| l.contains("Modbus link thread")).unwrap_or_else(|| panic!("the link thread says how it runs: {t}"));
+    assert!(link_line.contains("priority=4"), "{link_line}");
+    if t.contains("cycle thread at SCHED_FIFO priority 5") {
+        assert!(link_line.contains("at SCHED_FIFO"), "{link_line}");
+    }
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    srv.join().unwrap();
+}

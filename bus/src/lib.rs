@@ -13,6 +13,7 @@ pub mod cia402;
 pub mod clock;
 pub mod frame;
 pub mod modbus;
+pub mod rt;
 pub mod socketcand;
 pub mod transport;
 

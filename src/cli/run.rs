@@ -328,6 +328,7 @@ pub fn run_job(
         }
     };
     let mut modbus = crate::drives::modbus::ModbusDrives::new(cfg);
+    modbus.set_rt_priority(opts.extras.rt.priority);
     let bus_name = machine.bus.clone().unwrap_or_else(|| cfg.bus.interface.clone());
     // The CANopen bus is opened only if an axis is on it.
     let mut can = None;

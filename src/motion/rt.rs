@@ -211,18 +211,13 @@ fn affinity(cpu: usize) -> RtStep {
     RtStep::Refused(format!("cannot pin the cycle thread to CPU {cpu} ({msg}); this machine has {n} CPUs, or a cpuset forbids it. Running unpinned"))
 }
 
-#[cfg(target_os = "linux")]
 fn fifo(priority: i32) -> RtStep {
     if !(1..=99).contains(&priority) {
         return RtStep::Refused(format!("SCHED_FIFO priority must be 1–99, got {priority}; running with normal scheduling"));
     }
-    let param = libc::sched_param { sched_priority: priority };
-    // SAFETY: pthread_self is always valid for the calling thread; param lives across the call.
-    let r = unsafe { libc::pthread_setschedparam(libc::pthread_self(), libc::SCHED_FIFO, &param) };
-    if r == 0 {
+    let Err(msg) = cncgw_bus::rt::fifo_current_thread(priority) else {
         return RtStep::Done(format!("cycle thread at SCHED_FIFO priority {priority}"));
-    }
-    let msg = std::io::Error::from_raw_os_error(r).to_string();
+    };
     RtStep::Refused(format!(
         "cannot run the cycle thread at SCHED_FIFO priority {priority} ({msg}); running with normal scheduling, expect more jitter. Run as root, grant CAP_SYS_NICE (`setcap cap_sys_nice+ep $(which cncgw)`), or allow it with rtprio in /etc/security/limits.conf"
     ))
@@ -236,11 +231,6 @@ fn mlock() -> RtStep {
 #[cfg(not(target_os = "linux"))]
 fn affinity(cpu: usize) -> RtStep {
     RtStep::Refused(format!("CPU pinning is implemented for Linux only; CPU {cpu} ignored"))
-}
-
-#[cfg(not(target_os = "linux"))]
-fn fifo(priority: i32) -> RtStep {
-    RtStep::Refused(format!("SCHED_FIFO is implemented for Linux only; priority {priority} ignored"))
 }
 
 #[cfg(test)]

@@ -106,6 +106,10 @@ pub struct LinkSpec {
     pub drives: Vec<DrivePlan>,
     /// The machine cycle: the link cycle is never shorter.
     pub machine_cycle: Duration,
+    /// SCHED_FIFO priority of the link thread (the cycle thread's `rt.priority` − 1: it feeds
+    /// the cycle and must not be preempted by normal threads, nor preempt the cycle); None =
+    /// normal scheduling.
+    pub rt_priority: Option<i32>,
 }
 
 impl LinkSpec {
@@ -164,6 +168,12 @@ pub fn spawn(spec: LinkSpec) -> std::io::Result<(SharedLink, std::thread::JoinHa
     ));
     let s2 = shared.clone();
     let h = std::thread::Builder::new().name(format!("modbus-{}", spec.name)).spawn(move || {
+        if let Some(p) = spec.rt_priority {
+            match cncgw_bus::rt::fifo_current_thread(p) {
+                Ok(()) => tracing::info!(link = %spec.name, priority = p, "Modbus link thread at SCHED_FIFO"),
+                Err(e) => tracing::warn!(link = %spec.name, priority = p, "Modbus link thread left at normal scheduling: {e}"),
+            }
+        }
         let rt = match tokio::runtime::Builder::new_current_thread().enable_all().build() {
             Ok(rt) => rt,
             Err(e) => {

@@ -117,6 +117,16 @@ pub struct ModbusDrives {
 }
 
 impl ModbusDrives {
+    /// The SCHED_FIFO priority of the cycle thread (`--rt-priority` or `[rt] priority`): the
+    /// link threads run one below it. Call before `startup`.
+    pub fn set_rt_priority(&mut self, cycle_priority: Option<i32>) {
+        for l in &mut self.links {
+            if let Some(s) = &mut l.spec {
+                s.rt_priority = cycle_priority.map(|p| (p - 1).max(1));
+            }
+        }
+    }
+
     /// The Modbus axes of `cfg`. Nothing is opened until `startup`.
     pub fn new(cfg: &MachineConfig) -> ModbusDrives {
         let mut links: Vec<Link> = Vec::new();
@@ -133,7 +143,13 @@ impl ModbusDrives {
                         what: String::new(),
                         shared: None,
                         thread: None,
-                        spec: Some(LinkSpec { name: lname.clone(), cfg: lcfg.clone(), drives: Vec::new(), machine_cycle: cycle }),
+                        spec: Some(LinkSpec {
+                            name: lname.clone(),
+                            cfg: lcfg.clone(),
+                            drives: Vec::new(),
+                            machine_cycle: cycle,
+                            rt_priority: cfg.rt.priority.map(|p| (p - 1).max(1)),
+                        }),
                         cycle: Duration::ZERO,
                     });
                     links.len() - 1
