@@ -16,6 +16,7 @@ pub const KNOWN: &[Param] = &[
     (1241, "reference point 2 (G30 P2), per axis", None),
     (1242, "reference point 3 (G30 P3), per axis", None),
     (1243, "reference point 4 (G30 P4), per axis", None),
+    (1421, "rapid rate at rapid override F0, mm/min (unset: rapids stand at F0)", Some((0.0, 1e6))),
     (1360, "stored stroke limit 2 (G22), + boundary X, 0.001 mm from the reference point", None),
     (1361, "stored stroke limit 2, + boundary Y", None),
     (1362, "stored stroke limit 2, + boundary Z", None),

@@ -67,10 +67,10 @@ fn interactive_run_feed_hold_resume_reset_in_tmux() {
 
     // It runs: the help line, the block in execution, Z going down.
     let s = t.wait_for("the feed block", |s| s.contains("G1 Z-100 F600") && z_of(s).is_some_and(|z| z < -2.0));
-    assert!(s.contains("keys: h hold  s start  b single block"), "{s}");
+    assert!(s.contains("h:hold s:start b:single"), "{s}");
     std::thread::sleep(Duration::from_millis(500));
     let s = t.screen();
-    assert_eq!(s.matches("keys: h hold").count(), 1, "the panel is redrawn in place, not down the screen:\n{s}");
+    assert_eq!(s.matches("h:hold s:start").count(), 1, "the panel is redrawn in place, not down the screen:\n{s}");
     assert!(s.lines().all(|l| l.chars().count() <= 80), "{s}");
     assert!(s.contains("line    4/7"), "{s}");
     assert!(!s.contains("HELD"), "{s}");
@@ -100,6 +100,10 @@ fn interactive_run_feed_hold_resume_reset_in_tmux() {
     t.keys("s");
     let s = t.wait_for("the move to go on", |s| !s.contains("HELD") && z_of(s).is_some_and(|z| z < z_held - 1.0));
     assert!(s.contains("line    4/7"), "{s}");
+
+    // Rapid override down two of Fanuc's steps, spindle override up one: on the status line.
+    t.keys("ff>");
+    t.wait_for("the overrides", |s| s.contains("rapid 25%") && s.contains("spindle 110%"));
 
     // Single block on and off shows on the status line.
     t.keys("b");

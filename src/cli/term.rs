@@ -68,11 +68,28 @@ pub fn press(panel: &Panel, key: u8) -> bool {
         }
         b'+' | b'=' => panel.set_feed_override((panel.feed_override() + 10).min(200)),
         b'-' | b'_' => panel.set_feed_override(panel.feed_override().saturating_sub(10)),
+        // Rapid override as a Fanuc panel's four steps, down and up: 100, 50, 25 %, F0.
+        b'f' => panel.set_rapid_override(rapid_step(panel.rapid_override(), false)),
+        b'F' => panel.set_rapid_override(rapid_step(panel.rapid_override(), true)),
+        // Spindle override in 10 % steps, 50–120 % (the panel clamps).
+        b'>' | b'.' => panel.set_spindle_override(panel.spindle_override() + 10),
+        b'<' | b',' => panel.set_spindle_override(panel.spindle_override().saturating_sub(10)),
         b'r' | b'R' | 0x03 => panel.press_reset(),
         b'e' | b'E' => panel.set_estop(true),
         _ => return false,
     }
     true
+}
+
+/// The rapid override's next step (Fanuc's F0, 25, 50, 100 %), up or down.
+fn rapid_step(now: u32, up: bool) -> u32 {
+    const STEPS: [u32; 4] = [0, 25, 50, 100];
+    let i = STEPS.iter().rposition(|&s| s <= now).unwrap_or(0);
+    if up {
+        STEPS[(i + 1).min(3)]
+    } else {
+        STEPS[i.saturating_sub(1)]
+    }
 }
 
 /// The panel has no getter for optional stop; the switch's position is kept here.
@@ -145,7 +162,8 @@ pub struct PanelDisplay {
 }
 
 /// The help line under the status.
-pub const HELP: &str = "keys: h hold  s start  b single block  o opt. stop  +/- feed  r reset  e E-stop";
+/// The keys, in 79 columns (an 80-column terminal cuts every line to its width).
+pub const HELP: &str = "h:hold s:start b:single o:opt +/-:feed f/F:rapid <>:spindle r:reset e:E-stop";
 
 impl PanelDisplay {
     pub fn new(panel: Panel, lines: &[&str]) -> Self {
@@ -167,15 +185,22 @@ impl PanelDisplay {
         if OPTIONAL_STOP.load(Ordering::Relaxed) {
             state.push_str("  OPT STOP");
         }
+        let rapid = match self.panel.rapid_override() {
+            0 => "F0".to_string(),
+            r => format!("{r}%"),
+        };
+        // The overrides on the first line, the state on the second: on an 80-column terminal
+        // every line is cut to its width, and HELD must never be what is cut.
         format!(
-            "line {line:>4}/{}  {block}\nX{:>9.3} Z{:>9.3} F{:>5.0} S{:>5.0} sync{:>6.1} µm feed {:>3} %{state}",
+            "line {line:>4}/{}  feed {}% rapid {rapid} spindle {}%  {block}\nX{:>9.3} Z{:>9.3} F{:>5.0} S{:>5.0} sync{:>6.1} µm{state}",
             self.lines.len(),
+            self.panel.feed_override(),
+            self.panel.spindle_override(),
             p.pos[AX_X] * 2.0,
             p.pos[AX_Z],
             p.feed,
             p.spindle_rpm,
             p.sync_err_um,
-            self.panel.feed_override(),
         )
     }
 
@@ -232,6 +257,25 @@ mod tests {
             press(&p, b'+');
         }
         assert_eq!(p.feed_override(), 200);
+        // Rapid override down through Fanuc's steps to F0 and back up; spindle 50–120 %.
+        for want in [50, 25, 0, 0] {
+            press(&p, b'f');
+            assert_eq!(p.rapid_override(), want);
+        }
+        for want in [25, 50, 100, 100] {
+            press(&p, b'F');
+            assert_eq!(p.rapid_override(), want);
+        }
+        for _ in 0..10 {
+            press(&p, b'<');
+        }
+        assert_eq!(p.spindle_override(), 50);
+        for _ in 0..10 {
+            press(&p, b'>');
+        }
+        assert_eq!(p.spindle_override(), 120);
+        let i = r.poll();
+        assert_eq!((i.rapid_ovr, i.spindle_ovr), (1.0, 1.2), "the cycle loop reads them");
         press(&p, 0x03);
         assert!(r.poll().reset, "Ctrl-C presses reset");
         assert!(!press(&p, b'z'));
@@ -249,7 +293,7 @@ mod tests {
         p.set_single_block(true);
         let prog = Progress { line: 2, feed: 120.0, spindle_rpm: 800.0, sync_err_um: 1.5, ..Progress::default() };
         let s = d.status(&prog);
-        assert!(s.contains("line    2/3  G1 Z-20 F0.2"), "{s}");
+        assert!(s.contains("line    2/3  feed 100% rapid 100% spindle 100%  G1 Z-20 F0.2"), "{s}");
         assert!(s.contains("HELD") && s.contains("SINGLE BLOCK") && s.contains("S  800") && s.contains("sync   1.5 µm"), "{s}");
         r.report(false, 3);
         p.set_single_block(false);

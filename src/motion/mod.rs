@@ -267,6 +267,9 @@ pub struct Limits {
     /// No.5276 (0.1 rpm units, here rpm): a flexible tap's retract starts once the encoder
     /// shows the reversed spindle at this speed; 0 = at once.
     pub flex_retract_rpm: f64,
+    /// No.1421: the rapid rate at rapid override F0, mm/s (Fanuc's F0 is this rate, not a
+    /// percentage); 0 (unset) = rapids stand at F0.
+    pub rapid_f0: f64,
 }
 
 impl Limits {
@@ -292,6 +295,7 @@ impl Limits {
             feedback_delay: FEEDBACK_DELAY,
             flex_lag_cycles: cfg.param(5275).filter(|n| n.is_finite() && *n > 0.0).unwrap_or(0.0),
             flex_retract_rpm: cfg.param(5276).filter(|n| n.is_finite() && *n > 0.0).map_or(0.0, |n| n * 0.1),
+            rapid_f0: cfg.param(1421).filter(|n| n.is_finite() && *n > 0.0).map_or(0.0, |n| n / 60.0),
         };
         for (name, a) in &cfg.axes {
             if a.role == Some(crate::config::AxisRole::ToolSpindle) {
@@ -1677,6 +1681,8 @@ impl Motion {
             return 0.0;
         }
         let v = match seg.speed {
+            // F0 (override 0) is No.1421's rate, as on a Fanuc; the other steps a share.
+            Speed::Rapid if self.rapid_ovr == 0.0 => self.lim.rapid_f0.min(seg.vlim),
             Speed::Rapid => seg.vlim * self.rapid_ovr,
             Speed::PerMin(f) => (f * self.feed_ovr).min(self.lim.feed_clamp),
             Speed::PerRev(r) if self.cur_cyc.flex_tap_in_hole() => self.flex_tap_v(r, fb),
@@ -2353,7 +2359,7 @@ impl Motion {
         self.spindle_ovr = if f.is_finite() { f.clamp(0.5, 1.2) } else { 1.0 };
     }
 
-    /// Rapid override, 0–1 (F0 … 100 %).
+    /// Rapid override, 0–1: 0 is F0 (No.1421's rate), else the share of the rapid rate.
     pub fn set_rapid_override(&mut self, f: f64) {
         self.rapid_ovr = if f.is_finite() { f.clamp(0.0, 1.0) } else { 0.0 };
     }

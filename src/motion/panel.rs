@@ -93,6 +93,12 @@ impl Panel {
     pub fn feed_override(&self) -> u32 {
         self.0.feed_ovr.load(Relaxed)
     }
+    pub fn rapid_override(&self) -> u32 {
+        self.0.rapid_ovr.load(Relaxed)
+    }
+    pub fn spindle_override(&self) -> u32 {
+        self.0.spindle_ovr.load(Relaxed)
+    }
     /// True while the program waits for cycle start (feed hold, single block, M00/M01), as
     /// last reported by the cycle loop.
     pub fn is_held(&self) -> bool {

@@ -1069,6 +1069,29 @@ fn rapid_override_scales_rapids_only() {
     assert!((top(2) - 1200.0).abs() < 1e-6, "feed at {}", top(2));
 }
 
+/// Rapid override F0 is No.1421's rate (Fanuc), not 0 % of the rapid rate; without No.1421
+/// rapids stand at F0 (and go on when the override is raised).
+#[test]
+fn rapid_override_f0_is_no_1421s_rate() {
+    let mut l = lim();
+    l.rapid_f0 = 600.0 / 60.0; // No.1421 = 600 mm/min
+    let mut m = Motion::new(l, START);
+    m.set_rapid_override(0.0);
+    m.push(&mv(1, rapid(50.0, -20.0))).unwrap();
+    let sps = run(&mut m, 100_000);
+    let top = sps.iter().filter(|s| s.line == 1).map(|s| s.path_feed).fold(0.0, f64::max);
+    assert!((top - 600.0).abs() < 1e-6, "F0 rapid at {top} mm/min");
+    // Unset: nothing moves at F0.
+    let mut m = Motion::new(lim(), START);
+    m.set_rapid_override(0.0);
+    m.push(&mv(1, rapid(50.0, -20.0))).unwrap();
+    let fb = Feedback { pos: START, spindle_rpm: 0.0 };
+    for _ in 0..500 {
+        let sp = m.step(&fb);
+        assert_eq!(sp.pos[AX_Z], 0.0, "moved at F0 without No.1421");
+    }
+}
+
 #[test]
 fn feed_hold_waits_for_the_end_of_a_thread() {
     let l = lim();
