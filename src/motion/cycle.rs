@@ -183,19 +183,30 @@ pub struct RunFailure {
 struct SpindleMeter {
     prev: f64,
     rpm: f64,
+    /// Time since the last fresh position, s (before this cycle).
+    since: f64,
 }
 
 impl SpindleMeter {
     fn new(pos: f64, rpm: f64) -> Self {
-        SpindleMeter { prev: pos, rpm }
+        SpindleMeter { prev: pos, rpm, since: 0.0 }
     }
 
-    /// rpm after this cycle's position: 1st-order filter, τ = 8 ms (one cycle's position
-    /// difference is quantised to a count).
-    fn update(&mut self, pos: f64, dt: f64) -> f64 {
-        let inst = (pos - self.prev) / 360.0 / dt * 60.0;
+    /// rpm after this cycle (`dt` s) with the spindle at `pos`, `fresh` if the drive reported
+    /// it this cycle: the speed over the time since the last fresh position, through a
+    /// 1st-order filter, τ = 8 ms (one cycle's difference is quantised to a count). A stale
+    /// position (a Modbus link slower than the cycle, a lost TPDO) holds the speed: read as
+    /// 0 rpm and then as a jump, it made a feed per revolution pulse at the link's rate.
+    fn update(&mut self, pos: f64, fresh: bool, dt: f64) -> f64 {
+        self.since += dt;
+        if !fresh {
+            return self.rpm;
+        }
+        let elapsed = self.since;
+        self.since = 0.0;
+        let inst = (pos - self.prev) / 360.0 / elapsed * 60.0;
         self.prev = pos;
-        self.rpm += (dt / 0.008).min(1.0) * (inst - self.rpm);
+        self.rpm += (elapsed / 0.008).min(1.0) * (inst - self.rpm);
         self.rpm
     }
 }
@@ -445,7 +456,7 @@ impl<'a> CycleLoop<'a> {
         let mut settle_cycles = 0u32;
         let mut late_prev = false;
         let mut spindle_rpm = 0.0f64;
-        let mut prev_spindle = self.spindle_drive.map(|d| self.drives.feedback(d).pos).unwrap_or(0.0);
+        let mut meter = SpindleMeter::new(self.spindle_drive.map(|d| self.drives.feedback(d).pos).unwrap_or(0.0), 0.0);
         let progress_every = ((0.05 / dt).round() as u64).max(1);
         let t_start = self.clock.now_ns();
         let mut next = t_start;
@@ -559,13 +570,8 @@ impl<'a> CycleLoop<'a> {
                 return Err(Alarm::new(scale_watch::ALARM, format!("{msg} (line {cur_line})")));
             }
             if let Some(sd) = self.spindle_drive {
-                let p = self.drives.feedback(sd).pos;
-                let inst = (p - prev_spindle) / 360.0 / dt * 60.0;
-                prev_spindle = p;
-                // 1st-order filter, τ = 8 ms: the position difference of one cycle is
-                // quantised to a count.
-                let k = (dt / 0.008).min(1.0);
-                spindle_rpm += k * (inst - spindle_rpm);
+                let f = self.drives.feedback(sd);
+                spindle_rpm = meter.update(f.pos, f.age_cycles == 0, dt);
                 fb.spindle_rpm = spindle_rpm;
                 self.rpm = spindle_rpm;
             }
@@ -775,7 +781,8 @@ impl<'a> CycleLoop<'a> {
             }
         }
         if let Some(sd) = self.spindle_drive {
-            fb.spindle_rpm = meter.update(self.drives.feedback(sd).pos, self.cycle_ns as f64 * 1e-9);
+            let f = self.drives.feedback(sd);
+            fb.spindle_rpm = meter.update(f.pos, f.age_cycles == 0, self.cycle_ns as f64 * 1e-9);
         }
         fb
     }
@@ -899,5 +906,37 @@ impl<'a> CycleLoop<'a> {
     /// Orderly end: disable drives.
     pub fn finish(&mut self) {
         self.drives.shutdown(self.clock);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::SpindleMeter;
+
+    /// A spindle at 600 rpm read every 5th cycle (a Modbus link slower than the machine
+    /// cycle): the speed holds at 600 rpm between readings instead of pulsing 0 / 3000 rpm,
+    /// so a feed per revolution does not pulse at the link's rate (issue 22.9).
+    #[test]
+    fn a_spindle_read_every_few_cycles_measures_its_speed_without_pulsing() {
+        let dt = 0.002;
+        let deg_per_cycle = 600.0 * 360.0 / 60.0 * dt;
+        let mut m = SpindleMeter::new(0.0, 600.0);
+        let mut seen = (f64::INFINITY, 0.0f64);
+        for k in 1..=500u32 {
+            let fresh = k % 5 == 0;
+            let pos = if fresh { deg_per_cycle * k as f64 } else { deg_per_cycle * (k - k % 5) as f64 };
+            let rpm = m.update(pos, fresh, dt);
+            if k > 50 {
+                seen = (seen.0.min(rpm), seen.1.max(rpm));
+            }
+        }
+        assert!((seen.0 - 600.0).abs() < 1e-6 && (seen.1 - 600.0).abs() < 1e-6, "speed between {} and {} rpm", seen.0, seen.1);
+        // Fresh every cycle (CANopen): as before, the filtered speed of each cycle's step.
+        let mut m = SpindleMeter::new(0.0, 0.0);
+        let mut rpm = 0.0;
+        for k in 1..=200u32 {
+            rpm = m.update(deg_per_cycle * k as f64, true, dt);
+        }
+        assert!((rpm - 600.0).abs() < 1e-6, "{rpm}");
     }
 }
