@@ -385,7 +385,12 @@ impl<'a> CycleLoop<'a> {
         let mut motion = Motion::new(limits, start);
         self.quick = false;
         self.rpm = 0.0;
-        let mut still = rest::Still::new(self.drives.axis_count());
+        // Each drive's feedback period in cycles (a Modbus link's cycle; 1 at SYNC), for the
+        // stop's silence test. Allocated here, before the first cycle.
+        let cycle_s = self.cycle_ns as f64 * 1e-9;
+        let periods: Vec<u32> =
+            (0..self.drives.axis_count()).map(|d| self.drives.link_cycle(d).map_or(1, |(_, _, s)| (s / cycle_s).ceil().max(1.0) as u32)).collect();
+        let mut still = rest::Still::new(&periods);
         let t0 = self.clock.now_ns();
         let r = self.run_program(&mut motion, start, rx, summary, progress);
         if summary.machining_time_s == 0.0 {

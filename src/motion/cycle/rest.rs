@@ -24,7 +24,8 @@ const STILL_COUNTS: i64 = 2;
 /// A drive under control that stands still but off its set-point (friction holding it short)
 /// counts as at rest after this many still cycles.
 const STILL_OFF_TARGET_CYCLES: u32 = 100;
-/// A drive without fresh feedback for this many cycles cannot be seen coming to rest.
+/// A drive without fresh feedback for this many of its feedback periods cannot be seen coming
+/// to rest.
 const SILENT_CYCLES: u32 = 10;
 /// Longest controlled stop before falling back to quick stop, ns of clock time (a spindle
 /// at 6000 rpm braking at 1000 rpm/s takes 6 s).
@@ -85,11 +86,21 @@ impl Rest {
 pub(super) struct Still {
     prev: Vec<Option<i64>>,
     cycles: Vec<u32>,
+    /// Cycles without fresh feedback after which a drive counts as silent: [`SILENT_CYCLES`]
+    /// of its own feedback period (a Modbus link reads a drive every few machine cycles).
+    silent_after: Vec<u32>,
 }
 
 impl Still {
-    pub(super) fn new(drives: usize) -> Still {
-        Still { prev: vec![None; drives], cycles: vec![0; drives] }
+    /// `period_cycles`: each drive's feedback period in machine cycles (1 at SYNC).
+    pub(super) fn new(period_cycles: &[u32]) -> Still {
+        let n = period_cycles.len();
+        let silent_after = period_cycles.iter().map(|p| SILENT_CYCLES * (*p).max(1)).collect();
+        Still { prev: vec![None; n], cycles: vec![0; n], silent_after }
+    }
+
+    fn silent_after(&self, d: usize) -> u32 {
+        self.silent_after.get(d).copied().unwrap_or(SILENT_CYCLES)
     }
 
     fn reset(&mut self) {
@@ -173,7 +184,7 @@ impl CycleLoop<'_> {
                 let f = self.drives.feedback(d);
                 still.update(d, f.counts, f.age_cycles == 0);
             }
-            let silent = |d: usize| self.drives.feedback(d).age_cycles > SILENT_CYCLES;
+            let silent = |d: usize| self.drives.feedback(d).age_cycles > still.silent_after(d);
             let settled = |d: usize| {
                 let c = still.cycles(d);
                 let f = self.drives.feedback(d);
