@@ -9,7 +9,7 @@
 //! are from the drives' *actual* positions: max and RMS in µm. Any alarm is shown.
 
 use cncgw::config::MachineConfig;
-use cncgw::sync::matrix::{measure_model, MatrixRow};
+use cncgw::control::embedded::matrix::{measure_model, MatrixRow};
 use std::path::PathBuf;
 
 fn main() {

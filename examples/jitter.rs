@@ -7,7 +7,7 @@
 //!       [--max-sleep-us US] [--spin-us US] [--cpu-dma-latency] [--timer-slack-ns NS] [--compare]`
 //!
 //! `--max-sleep-us`, `--spin-us`, `--cpu-dma-latency`, `--timer-slack-ns` are the `[rt]`
-//! keys of the same names (`cncgw_bus::WakeStrategy`, `motion::rt`). `--compare` runs each
+//! keys of the same names (`cncgw_bus::WakeStrategy`, `control::rt`). `--compare` runs each
 //! case twice back to back, first without those four (priority, CPU and mlock kept), then
 //! with them, so that both see the same load. Each run is on a fresh thread, so that one
 //! run's thread settings do not carry over to the next.
@@ -58,13 +58,13 @@
 //! hence the weaker p99. The cost is ≈ 8 % of a core instead of 2 % for the waiting
 //! (`examples/wake_latency.rs`, which also shows that /dev/cpu_dma_latency changes nothing here).
 
-use cncgw::canon::Pos;
 use cncgw::config::{AxisKind, MachineConfig, EMBEDDED_LATHE};
+use cncgw::control::cycle::{CycleLoop, RunSummary};
+use cncgw::control::job::Feed;
+use cncgw::control::rt::{RtOptions, RtStep};
 use cncgw::drives::canopen::CanOpenMaster;
 use cncgw::interp::Interpreter;
-use cncgw::motion::cycle::{CycleLoop, RunSummary};
-use cncgw::motion::rt::{RtOptions, RtStep};
-use cncgw::motion::{Limits, AX_S, AX_X, AX_Y, AX_Z};
+use cncgw::motion::Limits;
 use cncgw_bus::transport::inproc::InprocBus;
 use cncgw_bus::{CanBus, Clock, RealClock};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -149,7 +149,7 @@ fn run(bus: Box<dyn CanBus>, cycle_ms: f64, seconds: f64, rt: &RtOptions) -> Fig
     let rt = rt.clone();
     let steal0 = steal_ms();
     let r = std::thread::spawn(move || run_on_this_thread(bus, cycle_ms, seconds, &rt)).join();
-    cncgw::motion::rt::release_cpu_dma_latency();
+    cncgw::control::rt::release_cpu_dma_latency();
     let mut f = r.unwrap_or_else(|_| Figures {
         summary: RunSummary::default(),
         late: vec![],
@@ -188,7 +188,7 @@ fn run_on_this_thread(bus: Box<dyn CanBus>, cycle_ms: f64, seconds: f64, rt: &Rt
         late: Vec::with_capacity(cycles),
         jitter: Vec::with_capacity(cycles),
     };
-    let mut interp = match Interpreter::from_source("jitter.nc", &program(seconds), &cfg) {
+    let interp = match Interpreter::from_source("jitter.nc", &program(seconds), &cfg) {
         Ok(i) => i,
         Err(a) => return Figures { summary: RunSummary::default(), late: vec![], jitter: vec![], result: Err(format!("{a:?}")), steal_ms: 0 },
     };
@@ -198,26 +198,18 @@ fn run_on_this_thread(bus: Box<dyn CanBus>, cycle_ms: f64, seconds: f64, rt: &Rt
     let r = {
         let mut lp = CycleLoop::new(&mut master, &mut clock, Limits::from_config(&cfg), spindle, period);
         // As `cncgw run`: the watchdog limits from the config (relaxed above unless --strict).
-        lp.set_watchdog(cncgw::motion::cycle::Watchdog::from_config(&cfg));
+        lp.set_watchdog(cncgw::control::cycle::Watchdog::from_config(&cfg));
         let r = lp.start(&mut summary).and_then(|start| {
-            interp.set_start_position(Pos { x: start[AX_X], y: start[AX_Y], z: start[AX_Z], c: start[AX_S] });
-            let (tx, rx) = std::sync::mpsc::sync_channel(64);
-            std::thread::spawn(move || {
-                for m in interp {
-                    if tx.send(m).is_err() {
-                        break;
-                    }
-                }
-            });
+            let feed = Feed::spawn(interp, &start)?;
             // As `cncgw run`: the cycle thread only, after the interpreter thread started.
-            for s in cncgw::motion::rt::apply(rt) {
+            for s in cncgw::control::rt::apply(rt) {
                 match s {
                     RtStep::Done(m) => eprintln!("  {m}"),
                     RtStep::Refused(m) | RtStep::Warn(m) => eprintln!("  warning: {m}"),
                 }
             }
             armed.store(true, Ordering::Relaxed);
-            lp.run(start, rx, &mut summary, &mut |_| {})
+            feed.run(&mut lp, start, &mut summary, &mut |_| {}).0
         });
         lp.finish();
         r

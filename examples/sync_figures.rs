@@ -10,10 +10,10 @@
 //!    spindle angle at which the actual Z crosses Z−5, per pass, and the spread.
 
 use cncgw::config::MachineConfig;
-use cncgw::motion::Limits;
-use cncgw::sync::measure::{
+use cncgw::control::embedded::measure::{
     g92_1_moves, monitor_stats, phase_spread, rigid_tap_moves, run_moves, tap_sync_error, thread_pass_moves, thread_phases, CuttingLoad,
 };
+use cncgw::motion::Limits;
 
 fn main() {
     let cfg = MachineConfig::embedded();

@@ -4,7 +4,8 @@
 #   ./scripts/test.sh
 #
 # 1. installs what the tests need on a fresh Debian machine (idempotent, fast when present);
-# 2. checks the formatting (rustfmt.toml) and the lints (clippy, warnings are errors), then
+# 2. checks the formatting (rustfmt.toml) and the lints (clippy, warnings are errors; also
+#    the build without the emulator, --no-default-features), then
 #    builds every binary (process-level tests start `cncgw` and `sim-drives`);
 # 3. runs every test of the workspace on the host;
 # 4. runs each cargo-fuzz target for FUZZ_SECONDS (default 40 s each, 4 targets: under
@@ -41,6 +42,8 @@ step "installing test prerequisites"
 step "format and lints (cargo fmt --check, clippy -D warnings)"
 cargo fmt --all -- --check
 cargo clippy --workspace --all-targets --quiet -- -D warnings
+# A production build may leave the emulator out (feature `embedded`): it must still build.
+cargo clippy -p cncgw --lib --bins --no-default-features --quiet -- -D warnings
 
 step "building"
 cargo build --workspace --bins --quiet

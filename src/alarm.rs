@@ -7,6 +7,12 @@
 //! motion, 2400–2499 controller (watchdog, E-stop).
 
 use crate::canon::SrcPos;
+
+/// A thread of the controller (interpreter, state writer) could not be started.
+pub const NO_THREAD: u32 = 2406;
+/// G51.2/G50.2 on a machine without a tool spindle (Fanuc: PS0218-class "polygon axis not
+/// set"; ours in the motion range).
+pub const NO_TOOL_SPINDLE: u32 = 2308;
 use std::fmt;
 
 #[derive(Clone, Debug, PartialEq)]

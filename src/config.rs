@@ -46,7 +46,7 @@ pub struct MachineConfig {
 
 /// `[rt]`: real-time setup of the cycle thread on a real PC. All optional; absent = normal
 /// scheduling, no memory locking, no pinning. A request the system refuses is a warning when
-/// `cncgw run` starts (see `motion::rt`), not an error: the controller runs, with more jitter.
+/// `cncgw run` starts (see `control::rt`), not an error: the controller runs, with more jitter.
 #[derive(Clone, Debug, Default, Deserialize, PartialEq, Eq)]
 #[serde(deny_unknown_fields)]
 pub struct RtConfig {
@@ -652,6 +652,12 @@ impl MachineConfig {
 
     pub fn cycle_s(&self) -> f64 {
         self.machine.cycle_ms / 1000.0
+    }
+
+    /// The cycle period in ns, as the cycle loop and the drives' SYNC period take it (the one
+    /// conversion of `machine.cycle_ms`).
+    pub fn cycle_ns(&self) -> u64 {
+        (self.machine.cycle_ms * 1e6).round() as u64
     }
 
     /// A numeric parameter by its manual number.

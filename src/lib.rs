@@ -1,13 +1,15 @@
 //! cncgw: a CNC lathe / turn-mill controller core and fieldbus gateway.
 //!
 //! Data flow (see docs/ARCHITECTURE.md): part program → [`interp`] → [`canon::Move`] stream →
-//! [`motion`] planner and interpolator (+ [`sync`]) → per-cycle setpoints → [`drives`]
+//! [`motion`] planner and interpolator (+ [`sync`]) → per-cycle setpoints, sent by the
+//! [`control`] cycle loop → [`drives`]
 //! (CiA 402 over CANopen, Modbus) → bus.
 
 pub mod alarm;
 pub mod canon;
 pub mod cli;
 pub mod config;
+pub mod control;
 pub mod drives;
 pub mod interp;
 pub mod motion;

@@ -198,7 +198,7 @@ pub fn parse_common_vars(file: &str, text: &str) -> Result<HashMap<u32, f64>, Al
 /// The rigid-tap state (manual 000, "刚性攻丝返回"): what `G30 P99` needs to bring a tap out of
 /// a hole after an interruption — reset, E-stop, feed hold abort or the controller dying. It is
 /// on disk while the tool is in the hole (written at the entry and every few ms while the tap
-/// runs, see `motion::tapstate`), and says "not in a hole" once the tool is back at R.
+/// runs, see `control::tapstate`), and says "not in a hole" once the tool is back at R.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct TapState {
     /// The tool is inside a tapped hole: a program other than `G30 P99` must not start.

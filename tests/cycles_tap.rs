@@ -3,6 +3,7 @@
 mod cycles_common;
 use cncgw::canon::{Move, MoveKind, Pos, SpindleDir, TapReturn};
 use cncgw::config::{MachineConfig, EMBEDDED_LATHE};
+use cncgw::control::job::run_program_with;
 use cncgw::interp::Interpreter;
 use cycles_common::{run, run_cfg, run_err};
 
@@ -387,13 +388,13 @@ fn interrupted_tap_returns_with_g30_p99() {
 /// time: the tap moves Z and the spindle together and ends where it started.
 #[test]
 fn rigid_tap_runs_in_simulated_time() {
+    use cncgw::control::cycle::{CycleLoop, RunSummary};
     use cncgw::drives::canopen::CanOpenMaster;
-    use cncgw::motion::cycle::{CycleLoop, RunSummary};
-    use cncgw::motion::{Limits, AX_S, AX_X, AX_Y, AX_Z};
+    use cncgw::motion::{Limits, AX_Z};
     use cncgw_bus::transport::inproc::InprocBus;
     let cfg = MachineConfig::embedded();
     let src = "G98\nG0 X0 Z5\nM29 S600\nG84 Z-20 R-3 P500 F1200\nG80\nM30\n";
-    let mut interp = Interpreter::from_source("tap.nc", src, &cfg).unwrap();
+    let interp = Interpreter::from_source("tap.nc", src, &cfg).unwrap();
     let wire = InprocBus::new();
     let mut world = sim_drives::SimWorld::new(&wire, sim_drives::SimConfig::from_machine_toml(EMBEDDED_LATHE).unwrap());
     let mut master = CanOpenMaster::new(wire.endpoint(), &cfg);
@@ -403,17 +404,7 @@ fn rigid_tap_runs_in_simulated_time() {
     let mut min_z = f64::INFINITY;
     {
         let mut lp = CycleLoop::new(&mut master, &mut world, Limits::from_config(&cfg), spindle, 2_000_000);
-        let start = lp.start(&mut summary).unwrap();
-        interp.set_start_position(Pos { x: start[AX_X], y: start[AX_Y], z: start[AX_Z], c: start[AX_S] });
-        let (tx, rx) = std::sync::mpsc::sync_channel(64);
-        std::thread::spawn(move || {
-            for m in interp {
-                if tx.send(m).is_err() {
-                    break;
-                }
-            }
-        });
-        lp.run(start, rx, &mut summary, &mut |p| {
+        run_program_with(&mut lp, interp, &mut summary, &mut |p| {
             max_rpm = max_rpm.max(p.spindle_rpm.abs());
             min_z = min_z.min(p.pos[AX_Z]);
         })

@@ -8,7 +8,7 @@
 //! with what this law reaches on it today (the goal stays the issue's).
 
 use cncgw::config::MachineConfig;
-use cncgw::sync::matrix::measure_model;
+use cncgw::control::embedded::matrix::measure_model;
 
 /// (model, S3000 max µm, S6000 max µm, G92.1 max µm, phase spread °).
 const BOUNDS: [(&str, f64, f64, f64, f64); 9] = [

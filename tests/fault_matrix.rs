@@ -10,14 +10,14 @@
 //! actions due (a panel button, bus-off), so a test sees what the *drives* did, not what the
 //! controller thinks.
 
-use cncgw::canon::Pos;
 use cncgw::config::{MachineConfig, EMBEDDED_LATHE};
+use cncgw::control::cycle::{CycleLoop, RunSummary};
+use cncgw::control::job::run_program;
+use cncgw::control::panel::Panel;
 use cncgw::drives::canopen::CanOpenMaster;
 use cncgw::drives::{AxisFeedback, DriveBus};
 use cncgw::interp::Interpreter;
-use cncgw::motion::cycle::{CycleLoop, RunSummary};
-use cncgw::motion::panel::Panel;
-use cncgw::motion::{Limits, AX_S, AX_X, AX_Y, AX_Z};
+use cncgw::motion::Limits;
 use cncgw::Alarm;
 use cncgw_bus::cia402::State;
 use cncgw_bus::transport::inproc::{InprocBus, WireFaults};
@@ -174,7 +174,7 @@ struct Setup<'a> {
 
 fn run(program: &str, setup: Setup<'_>) -> Outcome {
     let cfg = MachineConfig::embedded();
-    let mut interp = Interpreter::from_source("fault.nc", program, &cfg).expect("program parses");
+    let interp = Interpreter::from_source("fault.nc", program, &cfg).expect("program parses");
     let wire = setup.bus.clone().unwrap_or_default();
     let mut world = SimWorld::new(&wire, sim_drives::SimConfig::from_machine_toml(EMBEDDED_LATHE).unwrap());
     let f: Vec<_> = setup.faults.iter().map(|s| sim_drives::parse_fault(s).unwrap()).collect();
@@ -192,21 +192,7 @@ fn run(program: &str, setup: Setup<'_>) -> Outcome {
         if let Some(p) = &setup.panel {
             lp.set_panel(p);
         }
-        match lp.start(&mut summary) {
-            Err(a) => Err(a),
-            Ok(start) => {
-                interp.set_start_position(Pos { x: start[AX_X], y: start[AX_Y], z: start[AX_Z], c: start[AX_S] });
-                let (tx, rx) = std::sync::mpsc::sync_channel(64);
-                std::thread::spawn(move || {
-                    for m in interp {
-                        if tx.send(m).is_err() {
-                            break;
-                        }
-                    }
-                });
-                lp.run(start, rx, &mut summary, &mut |_| {})
-            }
-        }
+        run_program(&mut lp, interp, &mut summary)
     };
     let end_ns = probe.now_ns();
     // Sample the drives on for a while, nobody commanding (less than the drives' 300 ms
@@ -381,7 +367,7 @@ fn estop_in(name: &str, program: &str, at_ms: u64, line: u32) {
     let (panel, actions) = panel_at(at_ms, true);
     let mut o = run(program, Setup { panel: Some(panel), actions, ..Setup::default() });
     let a = o.alarm().clone();
-    assert_eq!(a.number, cncgw::motion::cycle::alarms::ESTOP, "{a}");
+    assert_eq!(a.number, cncgw::control::cycle::alarms::ESTOP, "{a}");
     assert!(a.message.contains(&format!("line {line}")), "{a}");
     // Every drive leaves Operation Enabled (quick stop) within 2 cycles of the press.
     let t0 = at_ms * MS;
@@ -413,7 +399,7 @@ fn reset_in(name: &str, program: &str, at_ms: u64, line: u32, lead: f64, um: f64
     let (panel, actions) = panel_at(at_ms, false);
     let mut o = run(program, Setup { panel: Some(panel), actions, ..Setup::default() });
     let a = o.alarm().clone();
-    assert_eq!(a.number, cncgw::motion::cycle::alarms::RESET, "{a}");
+    assert_eq!(a.number, cncgw::control::cycle::alarms::RESET, "{a}");
     assert!(a.message.contains(&format!("line {line}")), "{a}");
     let t0 = at_ms * MS;
     // A controlled stop: every drive stays enabled, the pair stops together.
@@ -649,15 +635,8 @@ fn bus_off_stops_the_run_and_a_restart_recovers() {
     let mut master = CanOpenMaster::new(o.wire.endpoint(), &cfg);
     let mut summary = RunSummary::default();
     let mut lp = CycleLoop::new(&mut master, &mut o.probe, Limits::from_config(&cfg), Some(DS), 2_000_000);
-    let start = lp.start(&mut summary).unwrap_or_else(|a| panic!("restart after bus-off: {a}"));
-    let mut interp = Interpreter::from_source("again.nc", "G98 G00 X50 Z2\nM30\n", &cfg).unwrap();
-    interp.set_start_position(Pos { x: start[AX_X], y: start[AX_Y], z: start[AX_Z], c: start[AX_S] });
-    let (tx, rx) = std::sync::mpsc::sync_channel(64);
-    for m in interp {
-        tx.send(m).unwrap();
-    }
-    drop(tx);
-    lp.run(start, rx, &mut summary, &mut |_| {}).unwrap_or_else(|a| panic!("{a}"));
+    let interp = Interpreter::from_source("again.nc", "G98 G00 X50 Z2\nM30\n", &cfg).unwrap();
+    run_program(&mut lp, interp, &mut summary).unwrap_or_else(|a| panic!("restart after bus-off: {a}"));
     assert!(summary.at_program_end(), "{summary:?}");
 }
 

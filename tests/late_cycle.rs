@@ -8,11 +8,12 @@
 //! alarm 2403 naming the controller's own stall, spindle and axes at rest.
 
 use cncgw::config::{MachineConfig, EMBEDDED_LATHE};
+use cncgw::control::cycle::{CycleLoop, RunSummary, Watchdog};
+use cncgw::control::job::run_program;
 use cncgw::drives::canopen::CanOpenMaster;
 use cncgw::drives::{AxisFeedback, DriveBus};
 use cncgw::interp::Interpreter;
-use cncgw::motion::cycle::{CycleLoop, RunSummary, Watchdog};
-use cncgw::motion::{Limits, AX_S, AX_X, AX_Y, AX_Z};
+use cncgw::motion::{Limits, AX_S};
 use cncgw::Alarm;
 use cncgw_bus::transport::inproc::InprocBus;
 use cncgw_bus::Clock;
@@ -125,22 +126,11 @@ fn run(program: &str, stall_at_ms: u64, stall: u64) -> Outcome {
     let n = cfg.axes.len();
     let mut rec = Recorder { inner: &mut master, sent: Vec::new(), cur: vec![0.0; n] };
     let mut summary = RunSummary::default();
-    let mut interp = Interpreter::from_source("late.nc", program, &cfg).unwrap();
+    let interp = Interpreter::from_source("late.nc", program, &cfg).unwrap();
     let result = {
         let mut lp = CycleLoop::new(&mut rec, &mut clock, Limits::from_config(&cfg), cfg.spindle_index(), CYCLE);
         lp.set_watchdog(Watchdog::from_config(&cfg));
-        let r = lp.start(&mut summary).and_then(|start| {
-            interp.set_start_position(cncgw::canon::Pos { x: start[AX_X], y: start[AX_Y], z: start[AX_Z], c: start[AX_S] });
-            let (tx, rx) = std::sync::mpsc::sync_channel(64);
-            std::thread::spawn(move || {
-                for m in interp {
-                    if tx.send(m).is_err() {
-                        break;
-                    }
-                }
-            });
-            lp.run(start, rx, &mut summary, &mut |_| {})
-        });
+        let r = run_program(&mut lp, interp, &mut summary);
         lp.finish();
         r
     };

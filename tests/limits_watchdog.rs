@@ -3,12 +3,13 @@
 
 use cncgw::canon::Pos;
 use cncgw::config::{MachineConfig, EMBEDDED_LATHE};
+use cncgw::control::cycle::{alarms, CycleLoop, RunSummary, Watchdog};
+use cncgw::control::guard::Guard;
+use cncgw::control::job::run_program;
 use cncgw::drives::canopen::CanOpenMaster;
 use cncgw::drives::DriveBus;
 use cncgw::interp::Interpreter;
-use cncgw::motion::cycle::{alarms, CycleLoop, RunSummary, Watchdog};
-use cncgw::motion::guard::Guard;
-use cncgw::motion::{Limits, AX_S, AX_X, AX_Y, AX_Z};
+use cncgw::motion::{Limits, AX_Z};
 use cncgw::Alarm;
 use cncgw_bus::transport::inproc::InprocBus;
 use cncgw_bus::Clock;
@@ -59,7 +60,7 @@ const PROGRAM: &str = "G21\nG98 G97 M03 S800\nG00 X40 Z2\nG01 Z-150 F3000\nG00 X
 
 fn run(program: &str, from_ns: u64, late_ns: u64, count: u32, guard: Option<Guard>) -> Outcome {
     let cfg = MachineConfig::embedded();
-    let mut interp = Interpreter::from_source("wd.nc", program, &cfg).expect("program parses");
+    let interp = Interpreter::from_source("wd.nc", program, &cfg).expect("program parses");
     let wire = InprocBus::new();
     let world = sim_drives::SimWorld::new(&wire, sim_drives::SimConfig::from_machine_toml(EMBEDDED_LATHE).unwrap());
     let mut clock = JumpClock { world, from_ns, late_ns, count, jumps: 0, first_jump_ns: None };
@@ -72,21 +73,7 @@ fn run(program: &str, from_ns: u64, late_ns: u64, count: u32, guard: Option<Guar
         if let Some(g) = guard {
             lp.set_guard(g);
         }
-        match lp.start(&mut summary) {
-            Err(a) => Err(a),
-            Ok(start) => {
-                interp.set_start_position(Pos { x: start[AX_X], y: start[AX_Y], z: start[AX_Z], c: start[AX_S] });
-                let (tx, rx) = std::sync::mpsc::sync_channel(64);
-                std::thread::spawn(move || {
-                    for m in interp {
-                        if tx.send(m).is_err() {
-                            break;
-                        }
-                    }
-                });
-                lp.run(start, rx, &mut summary, &mut |_| {})
-            }
-        }
+        run_program(&mut lp, interp, &mut summary)
     };
     let targets = (0..master.axis_count()).map(|d| master.target_counts(d)).collect();
     Outcome { result: r.map(|_| summary), clock, targets }
@@ -179,7 +166,7 @@ fn a_setpoint_beyond_the_guard_is_never_sent() {
     g.set_travel(AX_Z, -100.0, 5.0);
     let mut o = run(PROGRAM, u64::MAX, 0, 0, Some(g));
     let a = o.result.as_ref().expect_err("the guard stops the run");
-    assert_eq!(a.number, cncgw::motion::guard::MINUS_OVERTRAVEL, "{a}");
+    assert_eq!(a.number, cncgw::control::guard::MINUS_OVERTRAVEL, "{a}");
     assert!(a.message.contains("line 4") && a.message.contains("set-point Z-100."), "{a}");
     // Drive order: s1, x, z (config order by name). The last Z target sent is inside.
     let z = cfg.axes.keys().position(|k| k == "z").unwrap();
@@ -202,15 +189,15 @@ fn a_program_whose_path_leaves_the_limits_is_refused_before_the_first_move() {
     let ccw = dir.join("ccw.nc");
     std::fs::write(&ccw, "G98 G00 X20 Z0\nG03 X60 Z0 R10 F100\nG00 X100\nM30\n").unwrap();
     let vars = Default::default();
-    let r1 = cncgw::motion::guard::check_program_file(&bad, &cfg, Pos::ZERO, &vars);
-    let r2 = cncgw::motion::guard::check_program_file(&ccw, &cfg, Pos::ZERO, &vars);
+    let r1 = cncgw::control::guard::check_program_file(&bad, &cfg, Pos::ZERO, &vars);
+    let r2 = cncgw::control::guard::check_program_file(&ccw, &cfg, Pos::ZERO, &vars);
     let e = r1.as_ref().err().or(r2.as_ref().err()).expect("one sense bulges past Z5");
     assert!(r1.is_ok() != r2.is_ok());
     assert_eq!(e.number, cncgw::motion::alarms::TRAVEL, "{e}");
     // A macro-computed path (the end point comes from a variable) is followed too.
     let mac = dir.join("macro.nc");
     std::fs::write(&mac, "#1=-390\nG98 G00 X20 Z0\n#1=#1-20\nG01 Z#1 F100\nM30\n").unwrap();
-    let e = cncgw::motion::guard::check_program_file(&mac, &cfg, Pos::ZERO, &vars).unwrap_err();
+    let e = cncgw::control::guard::check_program_file(&mac, &cfg, Pos::ZERO, &vars).unwrap_err();
     assert!(e.message.contains("-410.0000") && e.pos.as_ref().map(|p| p.line) == Some(4), "{e}");
     // `cncgw run` refuses it after enabling the drives, before the first move.
     let prog = if r1.is_err() { &bad } else { &ccw };

@@ -7,9 +7,9 @@
 
 use cncgw::canon::{Feed, Move, MoveKind, Plane, Pos, SpindleCmd, SpindleDir, SrcPos};
 use cncgw::config::{AxisKind, MachineConfig, EMBEDDED_LATHE};
+use cncgw::control::cycle::{CycleLoop, RunSummary};
+use cncgw::control::trace::{Trace, VecSink};
 use cncgw::drives::canopen::CanOpenMaster;
-use cncgw::motion::cycle::{CycleLoop, RunSummary};
-use cncgw::motion::trace::{Trace, VecSink};
 use cncgw::motion::Limits;
 use cncgw_bus::transport::inproc::InprocBus;
 use cncgw_bus::Clock;

@@ -4,9 +4,9 @@
 //! converted back to that plane, must lie on the programmed contour.
 
 use cncgw::config::MachineConfig;
+use cncgw::control::embedded::measure::{run_moves, SimRun};
 use cncgw::interp::Interpreter;
 use cncgw::motion::{Limits, AX_S};
-use cncgw::sync::measure::{run_moves, SimRun};
 
 fn moves(src: &str, cfg: &MachineConfig) -> Vec<cncgw::canon::Move> {
     let it = Interpreter::from_source("polar.nc", src, cfg).unwrap_or_else(|e| panic!("{e:?}"));

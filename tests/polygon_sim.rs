@@ -4,11 +4,11 @@
 //! (Q/P)·θ_work,actual + R.
 
 use cncgw::config::MachineConfig;
+use cncgw::control::cycle::{CycleLoop, RunSummary};
+use cncgw::control::trace::{Trace, TraceRow, VecSink};
 use cncgw::drives::canopen::CanOpenMaster;
 use cncgw::interp::Interpreter;
-use cncgw::motion::cycle::{CycleLoop, RunSummary};
 use cncgw::motion::polygon::ToolSpindle;
-use cncgw::motion::trace::{Trace, TraceRow, VecSink};
 use cncgw::motion::Limits;
 use cncgw_bus::transport::inproc::InprocBus;
 use cncgw_bus::Clock;
@@ -103,7 +103,7 @@ fn run_counting(src: &str) -> (Run, usize, u32) {
     let wire = InprocBus::new();
     let mut world = sim_drives::SimWorld::new(&wire, sim_cfg);
     let mut master = CanOpenMaster::new(wire.endpoint(), &cfg);
-    let cycle_ns = (cfg.machine.cycle_ms * 1e6).round() as u64;
+    let cycle_ns = cfg.cycle_ns();
     let mut clock = Uncounted(&mut world);
     let mut lp = CycleLoop::new(&mut master, &mut clock, Limits::from_config(&cfg), cfg.spindle_index(), cycle_ns);
     lp.set_tool_spindle(ToolSpindle::from_config(&cfg).expect("the config has a tool spindle"));

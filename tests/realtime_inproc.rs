@@ -2,12 +2,12 @@
 //! bus, the emulated drives served by `sim_drives::run_realtime` on their own thread — the
 //! same code as `cncgw run --bus vcan0` against `sim-drives --bus vcan0`, minus the kernel.
 
-use cncgw::canon::Pos;
 use cncgw::config::{AxisKind, MachineConfig, EMBEDDED_LATHE};
+use cncgw::control::cycle::{CycleLoop, RunSummary};
+use cncgw::control::job::run_program;
 use cncgw::drives::canopen::CanOpenMaster;
 use cncgw::interp::Interpreter;
-use cncgw::motion::cycle::{CycleLoop, RunSummary};
-use cncgw::motion::{Limits, AX_S, AX_X, AX_Y, AX_Z};
+use cncgw::motion::Limits;
 use cncgw_bus::transport::inproc::InprocBus;
 use cncgw_bus::RealClock;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -22,7 +22,7 @@ fn a_program_runs_in_real_time_against_drives_on_another_thread() {
     cfg.bus.feedback_timeout_ms = 100.0;
     cfg.axes.get_mut("s1").unwrap().following_error = 90.0;
     let prog = "G21\nG98\nM03 S1500\nG00 X40 Z2\nG01 Z-10 F1200\nG01 X60 Z-20\nG02 X80 Z-30 R10\nG00 X100 Z5\nM05\nM30\n";
-    let mut interp = Interpreter::from_source("rt.nc", prog, &cfg).unwrap();
+    let interp = Interpreter::from_source("rt.nc", prog, &cfg).unwrap();
     let wire = InprocBus::new();
     let stop = Arc::new(AtomicBool::new(false));
     let sim_bus: Box<dyn cncgw_bus::CanBus> = Box::new(wire.endpoint());
@@ -35,18 +35,7 @@ fn a_program_runs_in_real_time_against_drives_on_another_thread() {
     let mut summary = RunSummary::default();
     let r = {
         let mut lp = CycleLoop::new(&mut master, &mut clock, Limits::from_config(&cfg), spindle, 4_000_000);
-        let r = lp.start(&mut summary).and_then(|start| {
-            interp.set_start_position(Pos { x: start[AX_X], y: start[AX_Y], z: start[AX_Z], c: start[AX_S] });
-            let (tx, rx) = std::sync::mpsc::sync_channel(64);
-            std::thread::spawn(move || {
-                for m in interp {
-                    if tx.send(m).is_err() {
-                        break;
-                    }
-                }
-            });
-            lp.run(start, rx, &mut summary, &mut |_| {})
-        });
+        let r = run_program(&mut lp, interp, &mut summary);
         lp.finish();
         r
     };

@@ -1,12 +1,12 @@
 //! End to end on the embedded machine: part program → interpreter → motion → CANopen master
 //! → in-process bus → emulated CiA 402 drives (sim-drives) in simulated time.
 
-use cncgw::canon::Pos;
 use cncgw::config::{MachineConfig, EMBEDDED_LATHE};
+use cncgw::control::cycle::{CycleLoop, RunSummary};
+use cncgw::control::job::run_program;
 use cncgw::drives::canopen::CanOpenMaster;
 use cncgw::interp::Interpreter;
-use cncgw::motion::cycle::{CycleLoop, RunSummary};
-use cncgw::motion::{Limits, AX_S, AX_X, AX_Y, AX_Z};
+use cncgw::motion::Limits;
 use cncgw_bus::transport::inproc::InprocBus;
 use std::path::PathBuf;
 use std::process::Command;
@@ -23,7 +23,7 @@ fn run_source(name: &str, text: &str) -> RunResult {
 #[allow(clippy::result_large_err)]
 fn run_on(machine: &str, name: &str, text: &str) -> RunResult {
     let cfg = MachineConfig::from_toml("machine.toml", machine).expect("machine config");
-    let mut interp = Interpreter::from_source(name, text, &cfg).expect("program parses");
+    let interp = Interpreter::from_source(name, text, &cfg).expect("program parses");
     let wire = InprocBus::new();
     let mut world = sim_drives::SimWorld::new(&wire, sim_drives::SimConfig::from_machine_toml(machine).unwrap());
     let mut master = CanOpenMaster::new(wire.endpoint(), &cfg);
@@ -31,23 +31,9 @@ fn run_on(machine: &str, name: &str, text: &str) -> RunResult {
     let mut summary = RunSummary::default();
     let r = {
         let mut lp = CycleLoop::new(&mut master, &mut world, Limits::from_config(&cfg), spindle, 2_000_000);
-        match lp.start(&mut summary) {
-            Err(a) => Err(a),
-            Ok(start) => {
-                interp.set_start_position(Pos { x: start[AX_X], y: start[AX_Y], z: start[AX_Z], c: start[AX_S] });
-                let (tx, rx) = std::sync::mpsc::sync_channel(64);
-                std::thread::spawn(move || {
-                    for m in interp {
-                        if tx.send(m).is_err() {
-                            break;
-                        }
-                    }
-                });
-                let r = lp.run(start, rx, &mut summary, &mut |_| {});
-                lp.finish();
-                r
-            }
-        }
+        let r = run_program(&mut lp, interp, &mut summary);
+        lp.finish();
+        r
     };
     match r {
         Ok(()) => Ok((summary, Box::new(world))),

@@ -5,13 +5,13 @@
 //! bus, a failed start-up leaving the drives as found, the master heartbeat's period, a TPDO
 //! of the wrong length, node guarding.
 
-use cncgw::canon::Pos;
 use cncgw::config::{MachineConfig, EMBEDDED_LATHE};
+use cncgw::control::cycle::{CycleLoop, RunSummary};
+use cncgw::control::job::run_program;
 use cncgw::drives::canopen::CanOpenMaster;
 use cncgw::drives::DriveBus;
 use cncgw::interp::Interpreter;
-use cncgw::motion::cycle::{CycleLoop, RunSummary};
-use cncgw::motion::{Limits, AX_S, AX_X, AX_Y, AX_Z};
+use cncgw::motion::Limits;
 use cncgw::Alarm;
 use cncgw_bus::canopen::nmt::NmtState;
 use cncgw_bus::cia402::State;
@@ -46,7 +46,7 @@ struct Ran {
 
 /// `program` on `cfg`'s machine with the emulated drives of `sim`, as `cncgw run` does it.
 fn run(cfg: &MachineConfig, sim: SimConfig, program: &str) -> Ran {
-    let mut interp = Interpreter::from_source("first_part.nc", program, cfg).expect("program parses");
+    let interp = Interpreter::from_source("first_part.nc", program, cfg).expect("program parses");
     let wire = InprocBus::new();
     let mut world = SimWorld::new(&wire, sim);
     let start = [1, 2, 3].map(|n| world.drive(n).unwrap().position_unwrapped());
@@ -55,23 +55,9 @@ fn run(cfg: &MachineConfig, sim: SimConfig, program: &str) -> Ran {
     let mut summary = RunSummary::default();
     let r = {
         let mut lp = CycleLoop::new(&mut master, &mut world, Limits::from_config(cfg), spindle, 2_000_000);
-        match lp.start(&mut summary) {
-            Err(a) => Err(a),
-            Ok(st) => {
-                interp.set_start_position(Pos { x: st[AX_X], y: st[AX_Y], z: st[AX_Z], c: st[AX_S] });
-                let (tx, rx) = std::sync::mpsc::sync_channel(64);
-                std::thread::spawn(move || {
-                    for m in interp {
-                        if tx.send(m).is_err() {
-                            break;
-                        }
-                    }
-                });
-                let r = lp.run(st, rx, &mut summary, &mut |_| {});
-                lp.finish();
-                r
-            }
-        }
+        let r = run_program(&mut lp, interp, &mut summary);
+        lp.finish();
+        r
     };
     Ran { result: r.map(|_| summary), world, master, start }
 }

@@ -8,11 +8,12 @@
 //! Enabled, Quick Stop Active or Fault Reaction Active), which must be zero.
 
 use cncgw::config::{MachineConfig, EMBEDDED_LATHE};
+use cncgw::control::cycle::{CycleLoop, Rest, RunSummary};
+use cncgw::control::job::run_program;
+use cncgw::control::panel::Panel;
 use cncgw::drives::canopen::CanOpenMaster;
 use cncgw::interp::Interpreter;
-use cncgw::motion::cycle::{CycleLoop, Rest, RunSummary};
-use cncgw::motion::panel::Panel;
-use cncgw::motion::{Limits, AX_S, AX_X, AX_Y, AX_Z};
+use cncgw::motion::Limits;
 use cncgw::Alarm;
 use cncgw_bus::cia402::State;
 use cncgw_bus::transport::inproc::InprocBus;
@@ -124,7 +125,7 @@ struct Setup {
 
 fn run(program: &str, setup: Setup) -> Outcome {
     let cfg = MachineConfig::embedded();
-    let mut interp = Interpreter::from_source("stop.nc", program, &cfg).expect("program parses");
+    let interp = Interpreter::from_source("stop.nc", program, &cfg).expect("program parses");
     let sim = match setup.sim {
         Some(t) => sim_drives::SimConfig::from_toml(t).unwrap(),
         None => sim_drives::SimConfig::from_machine_toml(EMBEDDED_LATHE).unwrap(),
@@ -143,21 +144,7 @@ fn run(program: &str, setup: Setup) -> Outcome {
         if let Some(s) = setup.signal {
             lp.set_signal(s, |_| "SIGTERM");
         }
-        let r = match lp.start(&mut summary) {
-            Err(a) => Err(a),
-            Ok(start) => {
-                interp.set_start_position(cncgw::canon::Pos { x: start[AX_X], y: start[AX_Y], z: start[AX_Z], c: start[AX_S] });
-                let (tx, rx) = std::sync::mpsc::sync_channel(64);
-                std::thread::spawn(move || {
-                    for m in interp {
-                        if tx.send(m).is_err() {
-                            break;
-                        }
-                    }
-                });
-                lp.run(start, rx, &mut summary, &mut |_| {})
-            }
-        };
+        let r = run_program(&mut lp, interp, &mut summary);
         // What `cncgw run` does last: torque off.
         lp.finish();
         r

@@ -5,12 +5,12 @@
 
 use cncgw::canon::{Feed, Move, MoveKind, Pos, SrcPos, StrokeArea};
 use cncgw::config::{MachineConfig, EMBEDDED_LATHE};
+use cncgw::control::cycle::{CycleLoop, RunSummary};
 use cncgw::drives::canopen::CanOpenMaster;
 use cncgw::drives::DriveBus;
 use cncgw::interp::cycles::stroke::MINUS_ALARM;
 use cncgw::interp::plan::{move_to_json, move_to_text};
 use cncgw::interp::Interpreter;
-use cncgw::motion::cycle::{CycleLoop, RunSummary};
 use cncgw::motion::{Event, Feedback, Limits, Motion, AX_S, AX_X, AX_Y, AX_Z};
 use cncgw::Alarm;
 use cncgw_bus::transport::inproc::InprocBus;

@@ -3,10 +3,10 @@
 //! `cargo run --release --example sync_figures` prints the same figures.
 
 use cncgw::config::MachineConfig;
-use cncgw::motion::{alarms, Limits};
-use cncgw::sync::measure::{
+use cncgw::control::embedded::measure::{
     g92_1_moves, monitor_stats, phase_spread, rigid_tap_moves, run_moves, tap_sync_error, thread_pass_moves, thread_phases, CuttingLoad,
 };
+use cncgw::motion::{alarms, Limits};
 
 fn tap(rpm: f64, correction: bool) -> (f64, f64, f64) {
     let cfg = MachineConfig::embedded();

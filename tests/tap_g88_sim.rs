@@ -3,9 +3,9 @@
 //! (a radius), the spindle locked to X by the lead.
 
 use cncgw::config::MachineConfig;
+use cncgw::control::embedded::measure::{monitor_stats, run_moves, SimRun};
 use cncgw::interp::Interpreter;
 use cncgw::motion::Limits;
-use cncgw::sync::measure::{monitor_stats, run_moves, SimRun};
 
 fn moves(src: &str, cfg: &MachineConfig) -> Vec<cncgw::canon::Move> {
     let it = Interpreter::from_source("g88.nc", src, cfg).unwrap_or_else(|e| panic!("{e:?}"));

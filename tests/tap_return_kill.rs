@@ -343,8 +343,8 @@ fn tap_state_writer_child() {
     let Some(path) = std::env::var_os(CHILD_ENV) else { return };
     let file = TapStateFile { path: PathBuf::from(path) };
     let start = file.load().ok().flatten().and_then(|s| is_generation(&s)).unwrap_or(0);
-    let slot = cncgw::motion::tapstate::TapSlot::new(None);
-    let w = cncgw::motion::tapstate::TapPersister::spawn(file, slot.clone(), Duration::from_millis(1), None).unwrap();
+    let slot = cncgw::control::tapstate::TapSlot::new(None);
+    let w = cncgw::control::tapstate::TapPersister::spawn(file, slot.clone(), Duration::from_millis(1), None).unwrap();
     let wake = w.thread();
     let mut n = start;
     loop {
@@ -433,7 +433,7 @@ static GLOBAL: Counting = Counting;
 #[test]
 fn the_cycle_side_publishes_without_allocating_and_the_writer_follows() {
     use cncgw::canon::{CycleTag, Move, MoveKind, Pos, SrcPos};
-    use cncgw::motion::tapstate::{TapPersister, TapSlot, TapWatch};
+    use cncgw::control::tapstate::{TapPersister, TapSlot, TapWatch};
     let dir = tmp("noalloc");
     let _ = std::fs::remove_dir_all(&dir);
     let file = TapStateFile::new(&dir, "m");
@@ -480,7 +480,7 @@ fn the_cycle_side_publishes_without_allocating_and_the_writer_follows() {
 #[test]
 fn the_first_stroke_leaves_r_only_with_the_entry_on_disk() {
     use cncgw::canon::{CycleTag, Move, MoveKind, Pos, SrcPos};
-    use cncgw::motion::tapstate::{TapPersister, TapSlot, TapWatch};
+    use cncgw::control::tapstate::{TapPersister, TapSlot, TapWatch};
     use cncgw::motion::{Feedback, Limits, Motion};
     let dir = tmp("gate");
     let _ = std::fs::remove_dir_all(&dir);

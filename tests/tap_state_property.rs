@@ -7,12 +7,13 @@
 //! state directory, wired as `cncgw run` wires them.
 
 use cncgw::config::MachineConfig;
+use cncgw::control::cycle::{CycleLoop, RunSummary};
+use cncgw::control::job::Feed;
+use cncgw::control::panel::Panel;
+use cncgw::control::tapstate::{TapPersister, TapSlot, TapWatch};
 use cncgw::drives::canopen::CanOpenMaster;
 use cncgw::interp::Interpreter;
-use cncgw::motion::cycle::{CycleLoop, RunSummary};
-use cncgw::motion::panel::Panel;
-use cncgw::motion::tapstate::{TapPersister, TapSlot, TapWatch};
-use cncgw::motion::{Limits, AX_S, AX_X, AX_Y, AX_Z};
+use cncgw::motion::Limits;
 use cncgw::persist::{TapState, TapStateFile};
 use cncgw::Alarm;
 use cncgw_bus::transport::inproc::InprocBus;
@@ -80,17 +81,8 @@ fn run_counting(
         let mut lp = CycleLoop::new(&mut master, w, Limits::from_config(&cfg), cfg.spindle_index(), 2_000_000);
         lp.set_panel(&panel);
         let r = lp.start(&mut summary).and_then(|start| {
-            interp.set_start_position(cncgw::canon::Pos { x: start[AX_X], y: start[AX_Y], z: start[AX_Z], c: start[AX_S] });
             lp.set_tap_watch(TapWatch::new(slot, Some(writer.thread()), &start, loaded));
-            let (tx, rx) = std::sync::mpsc::sync_channel(64);
-            std::thread::spawn(move || {
-                for m in interp {
-                    if tx.send(m).is_err() {
-                        break;
-                    }
-                }
-            });
-            lp.run(start, rx, &mut summary, &mut |_| {})
+            Feed::spawn(interp, &start)?.run(&mut lp, start, &mut summary, &mut |_| {}).0
         });
         lp.finish();
         r

@@ -1,6 +1,6 @@
 //! `cncgw run --trace FILE.csv` and `cncgw trace plot FILE.csv -o FILE.svg`.
 
-use cncgw::motion::trace::TraceData;
+use cncgw::control::trace::TraceData;
 use std::process::Command;
 
 #[test]

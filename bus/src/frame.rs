@@ -32,6 +32,12 @@ impl CanFrame {
     }
 }
 
+/// One line of candump's log-file format (`candump -l`, replayable with `canplayer`), without
+/// the newline: `(1700000000.123456) vcan0 181#2700E8030000`. `t_us`: µs since the Unix epoch.
+pub fn candump_line(t_us: u64, iface: &str, f: &CanFrame) -> String {
+    format!("({}.{:06}) {iface} {f:?}", t_us / 1_000_000, t_us % 1_000_000)
+}
+
 impl fmt::Debug for CanFrame {
     /// candump style: `181#2700E8030000`.
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {

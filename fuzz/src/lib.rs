@@ -85,7 +85,7 @@ pub fn interp_moves(data: &[u8]) -> usize {
         it.set_endless_loop_limit(MAX_IDLE_BLOCKS);
         it.set_tool_table(tools().clone());
         let limits = cncgw::motion::Limits::from_config(cfg);
-        let _ = cncgw::motion::guard::check_program(it.by_ref().take(MAX_MOVES), &limits, cncgw::canon::Pos::ZERO);
+        let _ = cncgw::control::guard::check_program(it.by_ref().take(MAX_MOVES), &limits, cncgw::canon::Pos::ZERO);
     }
     n
 }
@@ -100,8 +100,8 @@ pub fn config(data: &[u8]) {
     let Ok(cfg) = MachineConfig::from_toml("fuzz.toml", &text) else { return };
     // A validated config must be usable by everything that reads it.
     let _ = cncgw::motion::Limits::from_config(&cfg);
-    let _ = cncgw::motion::guard::Guard::from_limits(&cncgw::motion::Limits::from_config(&cfg));
-    let _ = cncgw::motion::cycle::Watchdog::from_config(&cfg);
+    let _ = cncgw::control::guard::Guard::from_limits(&cncgw::motion::Limits::from_config(&cfg));
+    let _ = cncgw::control::cycle::Watchdog::from_config(&cfg);
     let _ = cncgw::drives::canopen::master::NodeSpec::from_config(&cfg);
     let _ = cfg.spindle();
     let _ = cfg.has_canopen();

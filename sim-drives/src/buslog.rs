@@ -9,10 +9,7 @@ use std::time::{Duration, Instant};
 /// Buffered output is flushed at least this often (and when the bus is idle, and on drop).
 const FLUSH_EVERY: Duration = Duration::from_millis(100);
 
-/// One candump log line (without the newline).
-pub fn candump_line(t_us: u64, iface: &str, f: &CanFrame) -> String {
-    format!("({}.{:06}) {iface} {f:?}", t_us / 1_000_000, t_us % 1_000_000)
-}
+pub use cncgw_bus::frame::candump_line;
 
 /// A `CanBus` that writes every frame it sends or receives to a candump log.
 pub struct LoggedBus {

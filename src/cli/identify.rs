@@ -8,8 +8,8 @@
 use super::run::{ExecOpts, Job, RunExtras};
 use super::MachineArgs;
 use crate::config::{AxisKind, MachineConfig};
+use crate::control::trace::TraceData;
 use crate::interp::Interpreter;
-use crate::motion::trace::TraceData;
 use crate::sync::identify::{identify, Response};
 use std::path::PathBuf;
 

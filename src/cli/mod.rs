@@ -575,11 +575,7 @@ pub fn open_raw(
         return Err("the configuration has no CANopen bus (bus.interface = \"none\"): give one with --bus, or use a Modbus command".into());
     }
     if bus == "inproc" {
-        let sim_cfg = emulated_drives(cfg, cfg_text, sim)?;
-        let wire = cncgw_bus::transport::inproc::InprocBus::new();
-        let world = sim_drives::SimWorld::new(&wire, sim_cfg);
-        let ep: Box<dyn cncgw_bus::CanBus> = Box::new(wire.endpoint());
-        Ok((ep, Box::new(world), bus, "inproc (embedded emulated drives, simulated time)".into()))
+        embedded_bus(cfg, cfg_text, sim).map(|(ep, clock)| (ep, clock, bus, "inproc (embedded emulated drives, simulated time)".into()))
     } else if let Some((addr, iface)) = socketcand::parse_url(&bus) {
         let sock = socketcand::Socketcand::connect(&addr, &iface).map_err(|e| format!("{e}; is socketcand running at {addr}?"))?;
         let what = format!("{bus} (socketcand over TCP, real time)");
@@ -597,51 +593,24 @@ pub fn open_raw(
     }
 }
 
-/// The emulated drives of the embedded machine: sim-drives' defaults for the machine's
-/// CANopen axes, or the sim-drives configuration `sim` (another drive model), which must
-/// have the machine's CANopen nodes with the same kinds and counts per unit.
-pub fn emulated_drives(cfg: &crate::config::MachineConfig, cfg_text: &str, sim: Option<&std::path::Path>) -> Result<sim_drives::SimConfig, String> {
-    let Some(path) = sim else {
-        return sim_drives::SimConfig::from_machine_toml_bus(cfg_text, Some(false)).map_err(|e| format!("emulated drives: {e}"));
-    };
-    let text = std::fs::read_to_string(path).map_err(|e| format!("--sim-config {}: {e}", path.display()))?;
-    let sim_cfg = sim_drives::SimConfig::from_toml(&text).map_err(|e| format!("--sim-config {}: {e}", path.display()))?;
-    let mut errs = Vec::new();
-    for (name, a) in cfg.axes.iter().filter(|(_, a)| a.modbus.is_none()) {
-        let kind = match a.kind {
-            crate::config::AxisKind::Linear => sim_drives::DriveKind::Linear,
-            crate::config::AxisKind::Spindle => sim_drives::DriveKind::Spindle,
-        };
-        match sim_cfg.drives.iter().find(|d| d.node == a.node) {
-            None => errs.push(format!("axis {name} is node {} in the machine, and no drive of the emulated ones has that node", a.node)),
-            Some(d) if d.kind != kind => {
-                errs.push(format!("axis {name} (node {}) is {:?} in the machine, {} in the emulated drives", a.node, a.kind, d.kind.name()))
-            }
-            // A drive with a `[drive.shape]` is there to try start-up's own checks (its
-            // scaling against counts_per_unit is alarm 2006, with the value that matches):
-            // its scaling is not refused here.
-            Some(d)
-                if d.shape == sim_drives::config::Shape::default()
-                    && (d.counts_per_unit - a.counts_per_unit).abs() > 1e-9 * a.counts_per_unit.abs().max(1.0) =>
-            {
-                errs.push(format!(
-                    "axis {name} (node {}): counts_per_unit {} in the machine, {} in the emulated drives",
-                    a.node, a.counts_per_unit, d.counts_per_unit
-                ))
-            }
-            Some(_) => {}
-        }
-    }
-    for d in &sim_cfg.drives {
-        if !cfg.axes.values().any(|a| a.modbus.is_none() && a.node == d.node) {
-            errs.push(format!("emulated drive node {} ({}) is not an axis of the machine", d.node, d.axis));
-        }
-    }
-    if errs.is_empty() {
-        Ok(sim_cfg)
-    } else {
-        Err(format!("--sim-config {} does not fit the machine: {}", path.display(), errs.join("; ")))
-    }
+#[cfg(feature = "embedded")]
+#[allow(clippy::type_complexity)]
+fn embedded_bus(
+    cfg: &crate::config::MachineConfig,
+    text: &str,
+    sim: Option<&std::path::Path>,
+) -> Result<(Box<dyn cncgw_bus::CanBus>, Box<dyn cncgw_bus::Clock>), String> {
+    crate::control::embedded::open(cfg, text, sim)
+}
+
+#[cfg(not(feature = "embedded"))]
+#[allow(clippy::type_complexity)]
+fn embedded_bus(
+    _: &crate::config::MachineConfig,
+    _: &str,
+    _: Option<&std::path::Path>,
+) -> Result<(Box<dyn cncgw_bus::CanBus>, Box<dyn cncgw_bus::Clock>), String> {
+    Err("this cncgw was built without the embedded emulated drives (cargo feature `embedded`): give the machine's bus with --bus (can0, socketcand://HOST:PORT/can0, modbus-tcp://HOST:PORT)".into())
 }
 
 /// Open the bus named by `bus` (default: the config's bus.interface) with its clock, and a

@@ -66,7 +66,7 @@ pub fn plan(a: &PlanArgs) -> i32 {
         return code;
     }
     if !sum.ended {
-        eprintln!("{}: {}", a.program.display(), crate::motion::guard::end_of_record(sum.moves == 0));
+        eprintln!("{}: {}", a.program.display(), crate::control::guard::end_of_record(sum.moves == 0));
         return exit::INPUT;
     }
     eprintln!("{}", sum.describe());
@@ -77,7 +77,7 @@ pub fn plan(a: &PlanArgs) -> i32 {
     let Ok(pre) = make() else { return exit::INPUT };
     let tool = crate::motion::polygon::ToolSpindle::from_config(&cfg);
     let limits = crate::motion::Limits::from_config(&cfg);
-    match crate::motion::guard::check_program_with(pre, &limits, Pos::ZERO, tool.as_ref(), 2_000_000) {
+    match crate::control::guard::check_program_with(pre, &limits, Pos::ZERO, tool.as_ref(), 2_000_000) {
         Ok(()) => {
             eprintln!("machine checks: ok for {} from machine zero (travel, G22, feeds, threads and taps against the axes)", cfg.machine.name);
             exit::OK

@@ -3,11 +3,11 @@
 use super::MachineArgs;
 use crate::canon::Pos;
 use crate::config::MachineConfig;
+use crate::control::cycle::{CycleLoop, RunSummary};
+use crate::control::rt::{RtOptions, RtStep};
+use crate::control::trace::{Trace, TraceData};
 use crate::drives::DriveBus;
 use crate::interp::Interpreter;
-use crate::motion::cycle::{CycleLoop, RunSummary};
-use crate::motion::rt::{RtOptions, RtStep};
-use crate::motion::trace::{Trace, TraceData};
 use crate::motion::{Limits, AX_S, AX_X, AX_Y, AX_Z};
 use cncgw_bus::Clock;
 use std::path::Path;
@@ -53,7 +53,7 @@ pub struct RtArgs {
 pub struct RunExtras<'a> {
     pub trace: Option<&'a Path>,
     pub rt: RtOptions,
-    /// The rigid-tap state file and what it held at start (`motion::tapstate`); None = not kept.
+    /// The rigid-tap state file and what it held at start (`control::tapstate`); None = not kept.
     pub tap: Option<TapSetup>,
     /// Where every alarm of the run is appended (`cncgw alarms`); None = not kept.
     pub history: Option<crate::persist::AlarmHistory>,
@@ -271,7 +271,7 @@ pub fn with_operator<R>(op: &OperatorArgs, opts: &mut ExecOpts, f: impl FnOnce(&
             return f(opts);
         }
     };
-    let panel = crate::motion::panel::Panel::new();
+    let panel = crate::control::panel::Panel::new();
     super::term::spawn_key_reader(panel.clone());
     super::term::catch_termination(false);
     opts.operator = Some(panel);
@@ -304,7 +304,7 @@ pub struct ExecOpts<'a> {
     pub print_summary: bool,
     pub extras: RunExtras<'a>,
     /// The operator panel the cycle loop reads (interactive run); None = batch.
-    pub operator: Option<crate::motion::panel::Panel>,
+    pub operator: Option<crate::control::panel::Panel>,
     /// Pace simulated time to the wall clock.
     pub pace: bool,
 }
@@ -440,7 +440,7 @@ pub fn trace_plot(file: &Path, out: &Path) -> i32 {
             return EXIT_PROGRAM_ERROR;
         }
     };
-    match crate::motion::trace::plot_svg(&data, out) {
+    match crate::control::trace::plot_svg(&data, out) {
         Ok(()) => {
             eprintln!("wrote {}", out.display());
             EXIT_OK
@@ -462,12 +462,7 @@ fn execute(
     let extras = &opts.extras;
     let json = opts.json;
     let spindle_drive = cfg.spindle_index();
-    let cycle_ns = (cfg.machine.cycle_ms * 1e6).round() as u64;
-    let mut lp = CycleLoop::new(drives, clock, Limits::from_config(cfg), spindle_drive, cycle_ns);
-    if let Some(t) = crate::motion::polygon::ToolSpindle::from_config(cfg) {
-        lp.set_tool_spindle(t);
-    }
-    lp.set_watchdog(crate::motion::cycle::Watchdog::from_config(cfg));
+    let mut lp = CycleLoop::from_config(drives, clock, cfg);
     if let Some(path) = extras.trace {
         match Trace::csv(path, lp.drive_names()) {
             Ok(t) => lp.set_trace(t),
@@ -492,8 +487,8 @@ fn execute(
             return (code, None, summary);
         }
     };
-    let start_pos = Pos { x: start[AX_X], y: start[AX_Y], z: start[AX_Z], c: start[AX_S] };
-    let mut interp = match job.first.take().map(Ok).unwrap_or_else(|| (job.make)(start_pos)) {
+    let start_pos = crate::control::job::start_pos(&start);
+    let interp = match job.first.take().map(Ok).unwrap_or_else(|| (job.make)(start_pos)) {
         Ok(i) => i,
         Err(alarms) => {
             lp.finish();
@@ -504,7 +499,6 @@ fn execute(
             return (EXIT_PROGRAM_ERROR, None, summary);
         }
     };
-    interp.set_start_position(start_pos);
     // The rigid-tap state: published by the cycle, written by its own thread (started
     // before the real-time setup below, so that it does not inherit it).
     let mut tap_writer = None;
@@ -525,11 +519,11 @@ fn execute(
                 st.phase_error_deg(start[ax], start[AX_S])
             );
         }
-        let slot = crate::motion::tapstate::TapSlot::new(loaded);
+        let slot = crate::control::tapstate::TapSlot::new(loaded);
         let file = crate::persist::TapStateFile { path: file };
-        match crate::motion::tapstate::TapPersister::spawn(file, slot.clone(), std::time::Duration::from_millis(TAP_STATE_PERIOD_MS), loaded) {
+        match crate::control::tapstate::TapPersister::spawn(file, slot.clone(), std::time::Duration::from_millis(TAP_STATE_PERIOD_MS), loaded) {
             Ok(w) => {
-                lp.set_tap_watch(crate::motion::tapstate::TapWatch::new(slot, Some(w.thread()), &start, loaded));
+                lp.set_tap_watch(crate::control::tapstate::TapWatch::new(slot, Some(w.thread()), &start, loaded));
                 tap_writer = Some(w);
             }
             Err(e) => {
@@ -570,7 +564,7 @@ fn execute(
         pre.set_common_vars(interp.common_vars().clone());
         pre.set_tap_return(interp.tap_return());
         let tool = crate::motion::polygon::ToolSpindle::from_config(cfg);
-        if let Err(a) = crate::motion::guard::check_program_with(pre, &Limits::from_config(cfg), start_pos, tool.as_ref(), 2_000_000) {
+        if let Err(a) = crate::control::guard::check_program_with(pre, &Limits::from_config(cfg), start_pos, tool.as_ref(), 2_000_000) {
             lp.finish();
             summary.rest.at_rest = true; // nothing was moved
             if opts.print_summary {
@@ -582,24 +576,10 @@ fn execute(
             return (EXIT_ALARM, None, summary);
         }
     }
-    let (tx, rx) = std::sync::mpsc::sync_channel(256);
-    // The interpreter runs ahead of motion, macro statements included (as on a Fanuc, where
-    // macro statements are executed while the blocks before them are buffered); it hands
-    // back the common variables when it ends, to be stored.
-    let producer = std::thread::Builder::new().name("interp".into()).spawn(move || {
-        let mut it = interp;
-        for m in it.by_ref() {
-            let stop = m.is_err();
-            if tx.send(m).is_err() || stop {
-                break;
-            }
-        }
-        it.common_vars().clone()
-    });
-    let producer = match producer {
-        Ok(h) => h,
-        Err(e) => {
-            eprintln!("error: cannot start the interpreter thread: {e}");
+    let feed = match crate::control::job::Feed::spawn(interp, &start) {
+        Ok(f) => f,
+        Err(a) => {
+            eprintln!("error: {a}");
             lp.finish();
             return (EXIT_SETUP, None, summary);
         }
@@ -618,13 +598,13 @@ fn execute(
     };
     // The cycle loop runs on this thread; set it up only now, so that the interpreter and
     // trace threads (already started) do not inherit the real-time policy or the pinning.
-    for step in crate::motion::rt::apply(&extras.rt) {
+    for step in crate::control::rt::apply(&extras.rt) {
         match step {
             RtStep::Done(m) => eprintln!("cncgw: {m}"),
             RtStep::Refused(m) | RtStep::Warn(m) => eprintln!("warning: {m}"),
         }
     }
-    let r = lp.run(start, rx, &mut summary, &mut |p| match &mut display {
+    let (r, vars) = feed.run(&mut lp, start, &mut summary, &mut |p| match &mut display {
         Display::Bar(bar) => {
             bar.set_position(p.line as u64);
             bar.set_message(format!(
@@ -659,7 +639,6 @@ fn execute(
             Err(e) => eprintln!("error: writing the trace: {e}"),
         }
     }
-    let vars = producer.join().ok();
     let mut code = match r {
         Err(a) => {
             if opts.print_summary {
@@ -695,10 +674,11 @@ fn execute(
 pub const TAP_STATE_PERIOD_MS: u64 = 20;
 
 /// With the tool in a tapped hole, the program's first motion must be the G30 P99 return
-/// (`motion::tapstate::check_return_first`).
+/// (`control::tapstate::check_return_first`).
 fn check_tap_return_program(program: &Path, cfg: &MachineConfig, st: &crate::persist::TapState) -> Result<(), crate::Alarm> {
-    let mut pre = Interpreter::from_file(program, cfg)
-        .map_err(|a| a.into_iter().next().unwrap_or_else(|| crate::Alarm::new(crate::motion::tapstate::TAP_IN_HOLE, "the program cannot be read")))?;
+    let mut pre = Interpreter::from_file(program, cfg).map_err(|a| {
+        a.into_iter().next().unwrap_or_else(|| crate::Alarm::new(crate::control::tapstate::TAP_IN_HOLE, "the program cannot be read"))
+    })?;
     pre.set_tap_return(Some(st.tap_return()));
     let mut p = Pos::ZERO;
     match st.axis {
@@ -707,7 +687,7 @@ fn check_tap_return_program(program: &Path, cfg: &MachineConfig, st: &crate::per
         _ => p.z = st.position,
     }
     pre.set_start_position(p);
-    crate::motion::tapstate::check_return_first(st, pre)
+    crate::control::tapstate::check_return_first(st, pre)
 }
 
 enum Display {
@@ -746,7 +726,7 @@ fn alarm_json(a: Option<&crate::Alarm>) -> serde_json::Value {
 
 /// An axis' positions in the operator's units: mm (X as a diameter, as the programs write it)
 /// or degrees for a spindle. (unit, diameter?, counts → that unit).
-fn axis_units(a: &crate::motion::cycle::AxisSummary) -> (&'static str, bool, impl Fn(i64) -> f64) {
+fn axis_units(a: &crate::control::cycle::AxisSummary) -> (&'static str, bool, impl Fn(i64) -> f64) {
     let spindle = a.name.starts_with('s');
     let diameter = a.name == "x";
     let cpu = if a.counts_per_unit.is_finite() && a.counts_per_unit != 0.0 { a.counts_per_unit } else { 1.0 };

@@ -606,7 +606,7 @@ pub fn buslog(machine: &MachineArgs, out: &std::path::Path, seconds: Option<f64>
             }
         };
         let t_us = unix0 + (clock.now_ns() - t0) / 1000;
-        let line = sim_drives::buslog::candump_line(t_us, &iface, &f);
+        let line = cncgw_bus::frame::candump_line(t_us, &iface, &f);
         let mut r = writeln!(w, "{line}");
         // Flush now and then so a log cut short by Ctrl-C keeps (almost) everything.
         if r.is_ok() && !simulated && clock.now_ns() - last_flush > 100 * MS {

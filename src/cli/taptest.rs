@@ -24,8 +24,8 @@ use super::run::{ExecOpts, Job, OperatorArgs, RunExtras};
 use super::MachineArgs;
 use crate::canon::{MoveKind, Pos};
 use crate::config::MachineConfig;
+use crate::control::trace::TraceData;
 use crate::interp::Interpreter;
-use crate::motion::trace::TraceData;
 use serde_json::json;
 use std::cell::RefCell;
 use std::path::{Path, PathBuf};
@@ -404,7 +404,7 @@ fn report(cfg: &MachineConfig, a: &TapArgs, p: &TapPlan, csv: &Path, run_code: i
             return EXIT_ALARM;
         }
     };
-    let plot = crate::motion::trace::plot_svg(&data, &a.out);
+    let plot = crate::control::trace::plot_svg(&data, &a.out);
     if let Err(e) = &plot {
         eprintln!("error: cannot draw {}: {e}", a.out.display());
     }

@@ -11,8 +11,8 @@
 //! the run ends through its controlled stop and the guard; SIGTERM and SIGHUP stop it as
 //! reset does too (`catch_termination`).
 
-use crate::motion::cycle::Progress;
-use crate::motion::panel::Panel;
+use crate::control::cycle::Progress;
+use crate::control::panel::Panel;
 use crate::motion::{AX_X, AX_Z};
 use std::io::Write;
 use std::sync::atomic::{AtomicBool, AtomicI32, Ordering};

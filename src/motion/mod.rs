@@ -90,19 +90,13 @@
 // Axis loops index several per-axis arrays at once.
 #![allow(clippy::needless_range_loop)]
 
-pub mod cycle;
 mod fault;
 pub mod geom;
-pub mod guard;
-pub mod panel;
 mod polar;
 pub mod polygon;
 pub mod profile;
-pub mod rt;
-pub mod tapstate;
 #[cfg(test)]
 mod tests;
-pub mod trace;
 
 use crate::canon::{Feed, Move, MoveKind, Plane, Pos, SpindleCmd, SpindleDir};
 use crate::config::{AxisKind, MachineConfig};
@@ -147,6 +141,16 @@ const C_MAX_DEG: f64 = 1e9;
 
 const AXIS_NAMES: [char; N_AXES] = ['X', 'Y', 'Z', 'S'];
 
+/// A G22-style box (machine coordinates, X as a radius); `outside`: No.1002#0 = 1, the
+/// outside is forbidden. The cycle's guard (`control::guard`) checks each
+/// set-point against it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct StrokeArea {
+    pub lo: [f64; 3],
+    pub hi: [f64; 3],
+    pub outside: bool,
+}
+
 /// Alarm numbers raised by the motion layer (2300–2399: sync and motion; Fanuc numbers where
 /// Fanuc has one).
 pub mod alarms {
@@ -173,7 +177,7 @@ pub mod alarms {
     /// PS0014: G34 lead change makes the lead ≤ 0 before the end of the thread.
     pub const ILLEGAL_LEAD: u32 = 14;
     /// G51.2/G50.2 on a machine without a tool spindle (see `polygon.rs`).
-    pub const NO_TOOL_SPINDLE: u32 = super::polygon::NO_TOOL_SPINDLE;
+    pub const NO_TOOL_SPINDLE: u32 = crate::alarm::NO_TOOL_SPINDLE;
 }
 
 /// Actual values from the drives (X radius).
@@ -195,8 +199,8 @@ pub enum Event {
         value: f64,
     },
     /// G22 (`Some`, the area, X a radius) or G23 (`None`) reached: the cycle loop switches its
-    /// per-set-point guard ([`guard::Guard::set_stroke2`]) before it checks this set-point.
-    Stroke2(Option<guard::Area>),
+    /// per-set-point guard (`control::guard::Guard::set_stroke2`) before it checks this set-point.
+    Stroke2(Option<StrokeArea>),
 }
 
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -811,7 +815,7 @@ impl Motion {
             MoveKind::Aux { letter, value } => Item::Event(Event::Aux { letter: *letter, value: *value }),
             MoveKind::Stop { optional } => Item::Event(Event::Stop { optional: *optional }),
             MoveKind::End { .. } => Item::Event(Event::End),
-            MoveKind::StrokeCheck { area } => Item::Event(Event::Stroke2(area.map(|a| guard::Area {
+            MoveKind::StrokeCheck { area } => Item::Event(Event::Stroke2(area.map(|a| StrokeArea {
                 lo: [a.lo.x, a.lo.y, a.lo.z],
                 hi: [a.hi.x, a.hi.y, a.hi.z],
                 outside: a.outside,

@@ -30,9 +30,7 @@ use crate::canon::PolygonCmd;
 use crate::config::MachineConfig;
 use crate::Alarm;
 
-/// G51.2 on a machine without a tool spindle (Fanuc: PS0218-class "polygon axis not set";
-/// ours in the motion range).
-pub const NO_TOOL_SPINDLE: u32 = 2308;
+use crate::alarm::NO_TOOL_SPINDLE;
 
 /// Gain of the horizon's integrator per cycle (fraction of the error's equivalent time).
 const H_GAIN: f64 = 0.05;

@@ -4,8 +4,6 @@ pub mod correction;
 pub mod identify;
 pub mod lag;
 pub mod link_check;
-pub mod matrix;
-pub mod measure;
 pub mod thread;
 
 pub use thread::ThreadSync;

@@ -263,7 +263,7 @@ impl<B: CanBus> CanOpenMaster<B> {
         CanOpenMaster {
             bus,
             nodes,
-            cycle_ns: (cfg.machine.cycle_ms * 1e6).round() as u64,
+            cycle_ns: cfg.cycle_ns(),
             cycle_ms: cfg.machine.cycle_ms,
             hb_ms: cfg.bus.heartbeat_ms,
             next_hb_ns: 0,

@@ -187,7 +187,7 @@ impl ModbusDrives {
         for l in &mut links {
             l.what = l.spec.as_ref().map(|s| s.what()).unwrap_or_default();
         }
-        let cycle_ns = (cfg.machine.cycle_ms * 1e6).round() as u64;
+        let cycle_ns = cfg.cycle_ns();
         ModbusDrives {
             axes,
             links,

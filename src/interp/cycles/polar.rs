@@ -105,7 +105,7 @@ impl Interpreter {
         }
         if !self.cyc.tool_spindle {
             return Err((
-                crate::motion::polygon::NO_TOOL_SPINDLE,
+                crate::alarm::NO_TOOL_SPINDLE,
                 col,
                 format!("{}: polygon turning needs a tool spindle, and this machine's config has none; add an axis with kind = \"spindle\" and role = \"tool_spindle\" (see config/lathe-polygon.toml) or remove the polygon turning blocks", gcode::gname(g)),
             ));

@@ -5,9 +5,9 @@
 
 use crate::canon::{Move, MoveKind, Pos, SpindleCmd, SpindleDir, SrcPos};
 use crate::config::{AxisKind, MachineConfig, EMBEDDED_LATHE};
+use crate::control::cycle::{CycleLoop, RunSummary};
+use crate::control::trace::{Trace, TraceRow, VecSink};
 use crate::drives::canopen::CanOpenMaster;
-use crate::motion::cycle::{CycleLoop, RunSummary};
-use crate::motion::trace::{Trace, TraceRow, VecSink};
 use crate::motion::Limits;
 use crate::Alarm;
 use cncgw_bus::transport::inproc::InprocBus;
@@ -113,22 +113,11 @@ pub fn run_moves_on(
     let mut clock = Loaded { world: &mut world, load, spindle_node, z_node, z_counts_per_mm: z_cpu };
     let rows = Arc::new(Mutex::new(Vec::new()));
     let mut summary = RunSummary::default();
-    let cycle_ns = (cfg.machine.cycle_ms * 1e6).round() as u64;
-    let mut lp = CycleLoop::new(&mut master, &mut clock, limits, spindle, cycle_ns);
+    let mut lp = CycleLoop::new(&mut master, &mut clock, limits, spindle, cfg.cycle_ns());
     let names = lp.drive_names();
     let trace = Trace::spawn(names.clone(), VecSink(rows.clone())).map_err(|e| Alarm::new(2399, format!("cannot start the trace writer: {e}")))?;
     lp.set_trace(trace);
-    let result = match lp.start(&mut summary) {
-        Err(a) => Err(a),
-        Ok(start) => {
-            let (tx, rx) = std::sync::mpsc::sync_channel(moves.len().max(1));
-            for m in moves {
-                let _ = tx.send(Ok(m));
-            }
-            drop(tx);
-            lp.run(start, rx, &mut summary, &mut |_| {})
-        }
-    };
+    let result = crate::control::job::run_moves(&mut lp, moves, &mut summary, &mut |_| {});
     if let Some(t) = lp.take_trace() {
         t.finish().map_err(|e| Alarm::new(2399, format!("trace: {e}")))?;
     }

@@ -31,7 +31,7 @@
 
 use crate::canon::{Move, MoveKind, Plane, Pos};
 use crate::motion::geom::{self, Geom};
-use crate::motion::{alarms, Limits, AX_X, AX_Y, AX_Z, N_AXES};
+use crate::motion::{alarms, Limits, StrokeArea as Area, AX_X, AX_Y, AX_Z, N_AXES};
 use crate::Alarm;
 
 /// Fanuc OT0500: + overtravel (soft 1).
@@ -42,15 +42,6 @@ pub const MINUS_OVERTRAVEL: u32 = 501;
 /// Set-points may exceed a limit by this much (rounding of the interpolation), mm.
 const TOL: f64 = 1e-6;
 const NAMES: [char; 3] = ['X', 'Y', 'Z'];
-
-/// A G22-style box (machine coordinates, X as a radius); `outside`: No.1002#0 = 1, the
-/// outside is forbidden.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Area {
-    pub lo: [f64; 3],
-    pub hi: [f64; 3],
-    pub outside: bool,
-}
 
 /// What a refused set-point did (no allocation; [`Violation::alarm`] makes the message).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -184,12 +175,12 @@ pub fn check_program_with(
     moves: impl Iterator<Item = Result<Move, Alarm>>,
     limits: &Limits,
     start: Pos,
-    tool: Option<&super::polygon::ToolSpindle>,
+    tool: Option<&crate::motion::polygon::ToolSpindle>,
     bound: usize,
 ) -> Result<(), Alarm> {
     let refuse = |a: Alarm| Alarm { message: format!("{} — refused before any motion", a.message), ..a };
     let mut pos = xyz(&start);
-    let mut plan = super::Motion::new(limits.clone(), [start.x, start.y, start.z, start.c]);
+    let mut plan = crate::motion::Motion::new(limits.clone(), [start.x, start.y, start.z, start.c]);
     if let Some(t) = tool {
         plan.set_tool_spindle(t, 0.0);
     }

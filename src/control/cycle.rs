@@ -7,13 +7,13 @@
 //! interpreter thread, the look-ahead queue and the statistics are fixed-size.
 
 use crate::canon::{Move, Pos};
+use crate::control::guard::Guard;
+use crate::control::panel::{Panel, PanelReader};
+use crate::control::tapstate::TapWatch;
+use crate::control::trace::{Trace, TraceRow, MAX_TRACE_AXES};
 use crate::drives::scale_watch::{self, ScaleWatch};
 use crate::drives::DriveBus;
-use crate::motion::guard::Guard;
-use crate::motion::panel::{Panel, PanelReader};
 use crate::motion::polygon::ToolSpindle;
-use crate::motion::tapstate::TapWatch;
-use crate::motion::trace::{Trace, TraceRow, MAX_TRACE_AXES};
 use crate::motion::{Event, Feedback, Limits, Motion, AX_S, AX_X, AX_Y, AX_Z, N_AXES};
 use crate::Alarm;
 use cncgw_bus::Clock;
@@ -238,7 +238,7 @@ pub struct CycleLoop<'a> {
     panel: Option<PanelReader>,
     /// The tool spindle of polygon turning (G51.2), driven from `Setpoint::tool_spindle`.
     tool: Option<ToolSpindle>,
-    /// Rigid-tap state publisher (`motion::tapstate`), fed every push and every cycle.
+    /// Rigid-tap state publisher (`control::tapstate`), fed every push and every cycle.
     tap: Option<TapWatch>,
     /// Overrun limits (default: `Watchdog::default()`).
     watchdog: Watchdog,
@@ -313,7 +313,7 @@ impl<'a> CycleLoop<'a> {
         self.trace = Some(trace);
     }
 
-    /// Publish the rigid-tap state every cycle of `run` (see `motion::tapstate`).
+    /// Publish the rigid-tap state every cycle of `run` (see `control::tapstate`).
     pub fn set_tap_watch(&mut self, w: TapWatch) {
         self.tap = Some(w);
     }
