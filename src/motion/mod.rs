@@ -1714,20 +1714,33 @@ impl Motion {
     }
 
     /// Advance one cycle. Never allocates; never panics; bounded (see the module doc).
+    ///
+    /// Order: relax and watch the sync error, run the spindle's own ramp (unless a stroke
+    /// drives it as a position axis), take the next queued item when nothing runs
+    /// ([`Motion::take_next`]), advance what runs ([`Motion::advance`]), drop the rest of the
+    /// program once a controlled stop is at rest, then the sync correction and the set-point.
     pub fn step(&mut self, fb: &Feedback) -> Setpoint {
-        let dt = self.lim.cycle_s;
         let prev = self.pos;
-        let mut event = Event::None;
-        let mut path_v = 0.0;
         self.relax();
         self.monitor_sync(fb);
         // In a rigid-tap stroke the spindle is a position axis driven by the tap profile.
         if !matches!(self.run, Run::Tap { theta0: Some(_), .. } | Run::Rigid { theta0: Some(_), .. })
             && !matches!(self.run, Run::Polar(r) if r.holds_spindle())
         {
-            self.step_spindle(dt);
+            self.step_spindle(self.lim.cycle_s);
         }
+        let event = self.take_next();
+        let path_v = self.advance(fb, &prev);
+        if self.stopping && self.run == Run::None {
+            self.stopped_at_rest();
+        }
+        self.setpoint(fb, &prev, path_v, event)
+    }
 
+    /// When nothing runs: the single-block stop, then the next queued item started (its
+    /// event, if it is one, returned for the set-point).
+    fn take_next(&mut self) -> Event {
+        let mut event = Event::None;
         if self.run == Run::None && self.sb_pending && !self.stopping && self.single_block_stop(self.peek()) {
             self.sb_pending = false;
             self.paused |= self.single_block;
@@ -1782,217 +1795,279 @@ impl Motion {
                 }
             }
         }
+        event
+    }
 
+    /// Advance what runs by one cycle; the path speed of the cycle, mm/s.
+    fn advance(&mut self, fb: &Feedback, prev: &[f64; N_AXES]) -> f64 {
         match self.run {
-            _ if self.follow.is_some() => path_v = self.step_follow(fb, &prev),
-            Run::None => {}
+            _ if self.follow.is_some() => self.step_follow(fb, prev),
+            Run::None => 0.0,
             Run::Move { landed: true, .. } => {
                 // Exact stop: one cycle at rest on the end point.
                 self.run = Run::None;
                 self.block_end();
+                0.0
             }
-            Run::Move { mut seg, s, v, landed: false } => {
-                let len = seg.geom.len();
-                let d = len - s;
-                let dv = seg.alim * dt;
-                let jerk = seg.jlim > 0.0 && seg.alim > 0.0;
-                // Single block: end this block at rest if it can still brake for its end point
-                // from here (dropping the look-ahead extension is safe only then); otherwise
-                // blend on and stop at the end of a later block.
-                let can_stop =
-                    if jerk { profile::stop_dist(v, self.path_a, seg.alim, seg.jlim) <= d } else { profile::v_allowed(d, dv, dt) >= v - dv };
-                if self.single_block && seg.ext > 0.0 && can_stop {
-                    seg.ext = 0.0;
-                }
-                // `adv`: the distance of this cycle (the trapezoid's `nv·dt`; the S-curve's
-                // integral of its speed over the cycle, `nv` being the speed at its end).
-                let (nv, adv) = if jerk {
-                    let (nv, na, adv) = profile::next_state(v, self.path_a, self.v_cmd(&seg, fb), d + seg.ext, seg.alim, seg.jlim, dt);
-                    self.path_a = na;
-                    (nv, adv)
-                } else {
-                    let nv = profile::next_speed(v, self.v_cmd(&seg, fb), d + seg.ext, dv, dt);
-                    self.path_a = 0.0;
-                    (nv, nv * dt)
-                };
-                let reach = d - adv <= 1e-9;
-                // The path speed of this cycle (the trapezoid's exactly `nv`).
-                let pv = if jerk { adv / dt } else { nv };
-                if let Some((next, s2)) = (reach && seg.ext > 0.0).then(|| self.cross(adv - d)).flatten() {
-                    let p = next.geom.at(s2);
-                    self.pos[..3].copy_from_slice(&p);
-                    path_v = pv;
-                    self.run = Run::Move { seg: next, s: s2, v: nv, landed: false };
-                } else {
-                    let (s2, landed) = if reach { (len, true) } else { (s + adv, false) };
-                    let p = seg.geom.at(s2);
-                    self.pos[..3].copy_from_slice(&p);
-                    path_v = if landed { d / dt } else { pv };
-                    // Stopping and at rest (this cycle did not move): done.
-                    self.run = if self.stopping && nv == 0.0 && !landed { Run::None } else { Run::Move { seg, s: s2, v: nv, landed } };
-                }
-            }
+            Run::Move { seg, s, v, landed: false } => self.step_move(seg, s, v, fb),
             Run::Dwell { left } => {
-                if self.stopping {
-                    self.run = Run::None;
-                } else if !self.hold_now() {
-                    let left = left.saturating_sub(1);
-                    self.run = if left == 0 { Run::None } else { Run::Dwell { left } };
-                    if left == 0 && self.cur_cyc.code > 0 {
-                        self.block_end();
-                    } else {
-                        self.paused |= self.single_block && left == 0 && !self.in_hole;
-                    }
-                }
+                self.step_dwell(left);
+                0.0
             }
             Run::Thread { landed: true, .. } => {
                 self.run = Run::None;
                 self.block_end();
+                0.0
             }
-            Run::Thread { seg, sync, s, v, landed: false } => path_v = self.step_thread(fb, seg, sync, s, v),
+            Run::Thread { seg, sync, s, v, landed: false } => self.step_thread(fb, seg, sync, s, v),
             Run::Rigid { landed: true, .. } => {
                 // At rest on the end, spindle stopped in position (no run-out).
                 self.sp_cur = 0.0;
                 self.run = Run::None;
                 self.block_end();
+                0.0
             }
             Run::Rigid { seg, theta0: None, .. } => {
-                // Like rigid tapping: brake the spindle, then take its angle as the origin.
-                self.sp_dir = 0.0;
-                self.sp_css = None;
-                // In position first, as before a rigid tap: a stroke that starts while the axes
-                // still settle from the positioning move begins with that error as sync error.
-                let sent = self.hist[self.hist_k];
-                let in_pos = self.inpos_wait >= INPOS_MAX_CYCLES
-                    || seg.u_long == 0.0
-                    || ((0..3).all(|i| !self.lim.present[i] || (fb.pos[i] - sent[i]).abs() <= INPOS_MM)
-                        && (fb.pos[AX_S] - sent[AX_S]).abs() * seg.plen / seg.dc.abs().max(1e-9) <= INPOS_MM);
-                self.inpos_wait = if self.sp_cur == 0.0 { self.inpos_wait.saturating_add(1) } else { 0 };
-                if self.stopping {
-                    self.run = Run::None;
-                } else if self.sp_cur == 0.0 && in_pos {
-                    self.inpos_wait = 0;
-                    self.run = Run::Rigid { seg, theta0: Some(self.pos[AX_S]), s: 0.0, v: 0.0, landed: false };
-                }
+                self.rigid_entry(seg, fb);
+                0.0
             }
-            Run::Rigid { seg, theta0: Some(th0), s, v, landed: false } => {
-                // One profile for path and spindle; feed hold and override do not apply (a
-                // thread), a controlled stop brakes both together on the same profile.
-                let len = seg.plen;
-                let d = len - s;
-                let v_cmd = if self.stopping { 0.0 } else { seg.v };
-                let nv = profile::next_speed(v, v_cmd, d, seg.alim * dt, dt);
-                let (s2, landed) = if d - nv * dt <= 1e-9 { (len, true) } else { (s + nv * dt, false) };
-                if seg.geom.len() > 0.0 {
-                    self.pos[..3].copy_from_slice(&seg.geom.at(s2));
-                }
-                self.pos[AX_S] = if landed { th0 + seg.dc } else { th0 + seg.dc * s2 / len };
-                // Only a thread is watched (a positioning rapid has no lead).
-                self.sync_watch = seg.u_long > 0.0;
-                self.sp_cur = (self.pos[AX_S] - prev[AX_S]) / dt / 6.0;
-                path_v = if landed { d / dt } else { nv };
-                self.run = if self.stopping && nv == 0.0 && !landed {
-                    self.sp_cur = 0.0;
-                    Run::None
-                } else {
-                    Run::Rigid { seg, theta0: Some(th0), s: s2, v: nv, landed }
-                };
-            }
-            Run::Polar(r) => path_v = self.step_polar(r),
+            Run::Rigid { seg, theta0: Some(th0), s, v, landed: false } => self.step_rigid(seg, th0, (s, v), prev),
+            Run::Polar(r) => self.step_polar(r),
             Run::Tap { seg, theta0, landed: true, .. } => {
-                // At rest on the stroke's end, spindle stopped in position.
-                self.sp_cur = 0.0;
-                self.run = Run::None;
-                // In the hole: landed past the reference point (the hole's R, or where a G30 P99
-                // return started) in the direction into the hole; a pull-out that ends on or
-                // beyond R (No.5282/No.5382 extra return) is out of it.
-                let into = (seg.p1 - seg.p0).signum() * if seg.retract { -1.0 } else { 1.0 };
-                self.in_hole = theta0.is_some_and(|(pr, _)| (seg.p1 - pr) * into > 0.0);
-                // Single block never stops inside a tap; after the hole only with No.5200#6
-                // (in a canned cycle by its actions, see `single_block_stop`).
-                if self.cur_cyc.code > 0 {
-                    self.block_end();
-                } else {
-                    self.paused |= self.single_block && !self.in_hole && self.lim.tap_hold_in_hole;
-                }
+                self.tap_landed(&seg, theta0);
+                0.0
             }
             Run::Tap { seg, theta0: None, .. } => {
-                // Rigid tapping starts from a stopped spindle: brake it (step_spindle), then
-                // take its angle as the stroke's origin.
-                self.sp_dir = 0.0;
-                self.sp_css = None;
-                // In-position check before a hole's first stroke: the tapping axis and the
-                // spindle at rest on their setpoints (a tap that starts while the axis still
-                // settles from the rapid to R begins with a sync error). Bounded, so bad
-                // feedback cannot hang the program.
-                let sent = self.hist[self.hist_k];
-                let a = seg.axis;
-                let in_pos = self.in_hole
-                    || self.inpos_wait >= INPOS_MAX_CYCLES
-                    || ((fb.pos[a] - sent[a]).abs() <= INPOS_MM && ((fb.pos[AX_S] - sent[AX_S]) * seg.lead / 360.0).abs() <= INPOS_MM);
-                self.inpos_wait = if self.sp_cur == 0.0 { self.inpos_wait.saturating_add(1) } else { 0 };
-                self.tap_wait = None;
-                if self.stopping {
-                    self.run = Run::None;
-                } else if self.sp_cur == 0.0 && in_pos && !self.in_hole && !seg.retract && self.tap_gate == Some(false) {
-                    // Held at R, spindle at rest, until the "in hole" state is durable.
-                    let dir = (seg.p1 - seg.p0).signum();
-                    let rpm = seg.v / seg.lead.abs().max(1e-12) * 60.0;
-                    self.tap_wait = Some(TapEntry { line: self.line, axis: a, r: seg.p0, dir, spindle_deg: self.pos[AX_S], lead: seg.lead, rpm });
-                } else if self.sp_cur == 0.0 && in_pos {
-                    self.inpos_wait = 0;
-                    // The gate lets one hole in; the next waits again.
-                    self.tap_gate = self.tap_gate.map(|_| false);
-                    // Keep the previous stroke's reference if the spindle is still exactly where
-                    // that relation puts it (same hole, nothing turned it since).
-                    let r = match self.tap_ref {
-                        Some((ax, pr, thr, lead)) if ax == a && lead == seg.lead && thr + 360.0 * (seg.p0 - pr) / lead == self.pos[AX_S] => (pr, thr),
-                        _ => (seg.p0, self.pos[AX_S]),
-                    };
-                    self.tap_ref = Some((a, r.0, r.1, seg.lead));
-                    self.run = Run::Tap { seg, theta0: Some(r), s: 0.0, v: 0.0, landed: false };
-                }
+                self.tap_entry(seg, fb);
+                0.0
             }
-            Run::Tap { seg, theta0: Some((pr, thr)), s, v, landed: false } => {
-                // Feed hold acts within the stroke only with No.5200#6 (see hold_now); a hold
-                // or a controlled stop brakes the axis and the spindle together on one profile.
-                let len = (seg.p1 - seg.p0).abs();
-                let d = len - s;
-                let v_cmd = if self.stopping || (self.held && self.lim.tap_hold_in_hole) { 0.0 } else { seg.v };
-                let nv = profile::next_speed(v, v_cmd, d, seg.alim * dt, dt);
-                let (s2, landed) = if d - nv * dt <= 1e-9 { (len, true) } else { (s + nv * dt, false) };
-                let p = if landed { seg.p1 } else { seg.p0 + s2.copysign(seg.p1 - seg.p0) };
-                self.pos[seg.axis] = p;
-                self.pos[AX_S] = thr + 360.0 * (p - pr) / seg.lead;
-                self.sync_watch = true;
-                self.sp_cur = (self.pos[AX_S] - prev[AX_S]) / dt / 6.0;
-                path_v = (p - prev[seg.axis]).abs() / dt;
-                self.run = if self.stopping && nv == 0.0 && !landed {
-                    self.sp_cur = 0.0;
-                    Run::None
-                } else {
-                    Run::Tap { seg, theta0: Some((pr, thr)), s: s2, v: nv, landed }
-                };
+            Run::Tap { seg, theta0: Some(r), s, v, landed: false } => self.step_tap(seg, r, (s, v), prev),
+        }
+    }
+
+    /// A feed or rapid move: one cycle of its speed profile (S-curve or trapezoid), across
+    /// junctions where the look-ahead blends.
+    fn step_move(&mut self, mut seg: Seg, s: f64, v: f64, fb: &Feedback) -> f64 {
+        let len = seg.geom.len();
+        let d = len - s;
+        let dt = self.lim.cycle_s;
+        let dv = seg.alim * dt;
+        let jerk = seg.jlim > 0.0 && seg.alim > 0.0;
+        // Single block: end this block at rest if it can still brake for its end point
+        // from here (dropping the look-ahead extension is safe only then); otherwise
+        // blend on and stop at the end of a later block.
+        let can_stop = if jerk { profile::stop_dist(v, self.path_a, seg.alim, seg.jlim) <= d } else { profile::v_allowed(d, dv, dt) >= v - dv };
+        if self.single_block && seg.ext > 0.0 && can_stop {
+            seg.ext = 0.0;
+        }
+        // `adv`: the distance of this cycle (the trapezoid's `nv·dt`; the S-curve's
+        // integral of its speed over the cycle, `nv` being the speed at its end).
+        let (nv, adv) = if jerk {
+            let (nv, na, adv) = profile::next_state(v, self.path_a, self.v_cmd(&seg, fb), d + seg.ext, seg.alim, seg.jlim, dt);
+            self.path_a = na;
+            (nv, adv)
+        } else {
+            let nv = profile::next_speed(v, self.v_cmd(&seg, fb), d + seg.ext, dv, dt);
+            self.path_a = 0.0;
+            (nv, nv * dt)
+        };
+        let reach = d - adv <= 1e-9;
+        // The path speed of this cycle (the trapezoid's exactly `nv`).
+        let pv = if jerk { adv / dt } else { nv };
+        if let Some((next, s2)) = (reach && seg.ext > 0.0).then(|| self.cross(adv - d)).flatten() {
+            let p = next.geom.at(s2);
+            self.pos[..3].copy_from_slice(&p);
+
+            self.run = Run::Move { seg: next, s: s2, v: nv, landed: false };
+            pv
+        } else {
+            let (s2, landed) = if reach { (len, true) } else { (s + adv, false) };
+            let p = seg.geom.at(s2);
+            self.pos[..3].copy_from_slice(&p);
+
+            // Stopping and at rest (this cycle did not move): done.
+            self.run = if self.stopping && nv == 0.0 && !landed { Run::None } else { Run::Move { seg, s: s2, v: nv, landed } };
+            if landed {
+                d / dt
+            } else {
+                pv
             }
         }
+    }
 
-        if self.stopping && self.run == Run::None {
-            // At rest: drop the rest of the program and plan from here.
-            self.len = 0;
-            self.stopping = false;
-            self.held = false;
-            self.paused = false;
-            self.plan_end = [self.pos[AX_X], self.pos[AX_Y], self.pos[AX_Z]];
-            self.plan_spindle_on = false;
-            self.last_blendable = false;
-            self.in_hole = false;
-            self.sb_pending = false;
-            self.cur_cyc = CycStep::default();
-            self.plan_cyc = CycStep::default();
-            self.sp_dir = 0.0;
-            self.sp_css = None;
+    /// A dwell (or a canned cycle's wait): counts down unless held; a stop ends it.
+    fn step_dwell(&mut self, left: u64) {
+        if self.stopping {
+            self.run = Run::None;
+        } else if !self.hold_now() {
+            let left = left.saturating_sub(1);
+            self.run = if left == 0 { Run::None } else { Run::Dwell { left } };
+            if left == 0 && self.cur_cyc.code > 0 {
+                self.block_end();
+            } else {
+                self.paused |= self.single_block && left == 0 && !self.in_hole;
+            }
         }
+    }
 
+    /// G92.1 before its stroke: brake the spindle and wait in position.
+    fn rigid_entry(&mut self, seg: RigidSeg, fb: &Feedback) {
+        // Like rigid tapping: brake the spindle, then take its angle as the origin.
+        self.sp_dir = 0.0;
+        self.sp_css = None;
+        // In position first, as before a rigid tap: a stroke that starts while the axes
+        // still settle from the positioning move begins with that error as sync error.
+        let sent = self.hist[self.hist_k];
+        let in_pos = self.inpos_wait >= INPOS_MAX_CYCLES
+            || seg.u_long == 0.0
+            || ((0..3).all(|i| !self.lim.present[i] || (fb.pos[i] - sent[i]).abs() <= INPOS_MM)
+                && (fb.pos[AX_S] - sent[AX_S]).abs() * seg.plen / seg.dc.abs().max(1e-9) <= INPOS_MM);
+        self.inpos_wait = if self.sp_cur == 0.0 { self.inpos_wait.saturating_add(1) } else { 0 };
+        if self.stopping {
+            self.run = Run::None;
+        } else if self.sp_cur == 0.0 && in_pos {
+            self.inpos_wait = 0;
+            self.run = Run::Rigid { seg, theta0: Some(self.pos[AX_S]), s: 0.0, v: 0.0, landed: false };
+        }
+    }
+
+    /// A G92.1 stroke: one profile for path and spindle (`sv`: arc length done, speed).
+    fn step_rigid(&mut self, seg: RigidSeg, th0: f64, sv: (f64, f64), prev: &[f64; N_AXES]) -> f64 {
+        // One profile for path and spindle; feed hold and override do not apply (a
+        // thread), a controlled stop brakes both together on the same profile.
+        let dt = self.lim.cycle_s;
+        let (s, v) = sv;
+        let len = seg.plen;
+        let d = len - s;
+        let v_cmd = if self.stopping { 0.0 } else { seg.v };
+        let nv = profile::next_speed(v, v_cmd, d, seg.alim * dt, dt);
+        let (s2, landed) = if d - nv * dt <= 1e-9 { (len, true) } else { (s + nv * dt, false) };
+        if seg.geom.len() > 0.0 {
+            self.pos[..3].copy_from_slice(&seg.geom.at(s2));
+        }
+        self.pos[AX_S] = if landed { th0 + seg.dc } else { th0 + seg.dc * s2 / len };
+        // Only a thread is watched (a positioning rapid has no lead).
+        self.sync_watch = seg.u_long > 0.0;
+        self.sp_cur = (self.pos[AX_S] - prev[AX_S]) / dt / 6.0;
+        self.run = if self.stopping && nv == 0.0 && !landed {
+            self.sp_cur = 0.0;
+            Run::None
+        } else {
+            Run::Rigid { seg, theta0: Some(th0), s: s2, v: nv, landed }
+        };
+        if landed {
+            d / dt
+        } else {
+            nv
+        }
+    }
+
+    /// A rigid-tap stroke at its end.
+    fn tap_landed(&mut self, seg: &TapSeg, theta0: Option<(f64, f64)>) {
+        // At rest on the stroke's end, spindle stopped in position.
+        self.sp_cur = 0.0;
+        self.run = Run::None;
+        // In the hole: landed past the reference point (the hole's R, or where a G30 P99
+        // return started) in the direction into the hole; a pull-out that ends on or
+        // beyond R (No.5282/No.5382 extra return) is out of it.
+        let into = (seg.p1 - seg.p0).signum() * if seg.retract { -1.0 } else { 1.0 };
+        self.in_hole = theta0.is_some_and(|(pr, _)| (seg.p1 - pr) * into > 0.0);
+        // Single block never stops inside a tap; after the hole only with No.5200#6
+        // (in a canned cycle by its actions, see `single_block_stop`).
+        if self.cur_cyc.code > 0 {
+            self.block_end();
+        } else {
+            self.paused |= self.single_block && !self.in_hole && self.lim.tap_hold_in_hole;
+        }
+    }
+
+    /// A rigid-tap stroke before it starts: brake the spindle, wait in position and for the
+    /// tap-state gate, take the tap reference.
+    fn tap_entry(&mut self, seg: TapSeg, fb: &Feedback) {
+        // Rigid tapping starts from a stopped spindle: brake it (step_spindle), then
+        // take its angle as the stroke's origin.
+        self.sp_dir = 0.0;
+        self.sp_css = None;
+        // In-position check before a hole's first stroke: the tapping axis and the
+        // spindle at rest on their setpoints (a tap that starts while the axis still
+        // settles from the rapid to R begins with a sync error). Bounded, so bad
+        // feedback cannot hang the program.
+        let sent = self.hist[self.hist_k];
+        let a = seg.axis;
+        let in_pos = self.in_hole
+            || self.inpos_wait >= INPOS_MAX_CYCLES
+            || ((fb.pos[a] - sent[a]).abs() <= INPOS_MM && ((fb.pos[AX_S] - sent[AX_S]) * seg.lead / 360.0).abs() <= INPOS_MM);
+        self.inpos_wait = if self.sp_cur == 0.0 { self.inpos_wait.saturating_add(1) } else { 0 };
+        self.tap_wait = None;
+        if self.stopping {
+            self.run = Run::None;
+        } else if self.sp_cur == 0.0 && in_pos && !self.in_hole && !seg.retract && self.tap_gate == Some(false) {
+            // Held at R, spindle at rest, until the "in hole" state is durable.
+            let dir = (seg.p1 - seg.p0).signum();
+            let rpm = seg.v / seg.lead.abs().max(1e-12) * 60.0;
+            self.tap_wait = Some(TapEntry { line: self.line, axis: a, r: seg.p0, dir, spindle_deg: self.pos[AX_S], lead: seg.lead, rpm });
+        } else if self.sp_cur == 0.0 && in_pos {
+            self.inpos_wait = 0;
+            // The gate lets one hole in; the next waits again.
+            self.tap_gate = self.tap_gate.map(|_| false);
+            // Keep the previous stroke's reference if the spindle is still exactly where
+            // that relation puts it (same hole, nothing turned it since).
+            let r = match self.tap_ref {
+                Some((ax, pr, thr, lead)) if ax == a && lead == seg.lead && thr + 360.0 * (seg.p0 - pr) / lead == self.pos[AX_S] => (pr, thr),
+                _ => (seg.p0, self.pos[AX_S]),
+            };
+            self.tap_ref = Some((a, r.0, r.1, seg.lead));
+            self.run = Run::Tap { seg, theta0: Some(r), s: 0.0, v: 0.0, landed: false };
+        }
+    }
+
+    /// A rigid-tap stroke: axis and spindle on one profile (`r`: the tap reference, `sv`: done, speed).
+    fn step_tap(&mut self, seg: TapSeg, r: (f64, f64), sv: (f64, f64), prev: &[f64; N_AXES]) -> f64 {
+        // Feed hold acts within the stroke only with No.5200#6 (see hold_now); a hold
+        // or a controlled stop brakes the axis and the spindle together on one profile.
+        let dt = self.lim.cycle_s;
+        let ((pr, thr), (s, v)) = (r, sv);
+        let len = (seg.p1 - seg.p0).abs();
+        let d = len - s;
+        let v_cmd = if self.stopping || (self.held && self.lim.tap_hold_in_hole) { 0.0 } else { seg.v };
+        let nv = profile::next_speed(v, v_cmd, d, seg.alim * dt, dt);
+        let (s2, landed) = if d - nv * dt <= 1e-9 { (len, true) } else { (s + nv * dt, false) };
+        let p = if landed { seg.p1 } else { seg.p0 + s2.copysign(seg.p1 - seg.p0) };
+        self.pos[seg.axis] = p;
+        self.pos[AX_S] = thr + 360.0 * (p - pr) / seg.lead;
+        self.sync_watch = true;
+        self.sp_cur = (self.pos[AX_S] - prev[AX_S]) / dt / 6.0;
+        let path_v = (p - prev[seg.axis]).abs() / dt;
+        self.run = if self.stopping && nv == 0.0 && !landed {
+            self.sp_cur = 0.0;
+            Run::None
+        } else {
+            Run::Tap { seg, theta0: Some((pr, thr)), s: s2, v: nv, landed }
+        };
+        path_v
+    }
+
+    /// A controlled stop at rest: drop the rest of the program and plan from here.
+    fn stopped_at_rest(&mut self) {
+        self.len = 0;
+        self.stopping = false;
+        self.held = false;
+        self.paused = false;
+        self.plan_end = [self.pos[AX_X], self.pos[AX_Y], self.pos[AX_Z]];
+        self.plan_spindle_on = false;
+        self.last_blendable = false;
+        self.in_hole = false;
+        self.sb_pending = false;
+        self.cur_cyc = CycStep::default();
+        self.plan_cyc = CycStep::default();
+        self.sp_dir = 0.0;
+        self.sp_css = None;
+    }
+
+    /// The set-point of this cycle: the interpolated position with the sync correction on
+    /// top, the velocities, the history the sync laws read.
+    fn setpoint(&mut self, fb: &Feedback, prev: &[f64; N_AXES], path_v: f64, event: Event) -> Setpoint {
+        let dt = self.lim.cycle_s;
         if !self.follow_corr() {
             self.sync_corr(fb);
         }
