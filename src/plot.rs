@@ -170,6 +170,9 @@ pub struct Panel {
     pub series: Vec<Series>,
     pub bands: Vec<Band>,
     pub spans: Vec<Span>,
+    /// Name the spans in this panel (label and legend); else they are only shaded, so that
+    /// a page names its phases once.
+    pub span_names: bool,
 }
 
 /// A header line: text, size, colour, class.
@@ -264,7 +267,9 @@ pub fn time_panels(t: &[f64], header: &[HeaderLine], panels: &[Panel], title: &s
                 (z - a).max(1.0),
                 hex(sp.colour)
             );
-            b += &text((a + z) / 2.0, top + 14.0, &sp.name, 12, sp.colour, "middle", "span-label");
+            if p.span_names {
+                b += &text((a + z) / 2.0, top + 14.0, &sp.name, 12, sp.colour, "middle", "span-label");
+            }
         }
         for band in &p.bands {
             let _ = writeln!(
@@ -321,7 +326,7 @@ pub fn time_panels(t: &[f64], header: &[HeaderLine], panels: &[Panel], title: &s
             b += &legend_entry(lx, ly, &band.name, band.colour, "", true);
             ly += 17.0;
         }
-        for sp in &p.spans {
+        for sp in p.spans.iter().filter(|_| p.span_names) {
             b += &legend_entry(lx, ly, &sp.name, sp.colour, "", true);
             ly += 17.0;
         }

@@ -8,7 +8,7 @@
 //! ([`colour`]); threads and taps red; G12.1 polar moves cyan (their Z–X shadow). The legend,
 //! right of the drawing, lists only the kinds the program has. `--stock DxL[+F]` draws the
 //! bar; a path under G41/G42 gets the tool nose circle (its radius from `--tools`) at every
-//! vertex, so the cut edge can be seen against the nose-centre offset. Paths are drawn by
+//! vertex and the nose centre's path dotted, so that the cut edge can be seen. Paths are drawn by
 //! `plotters`' SVG backend, everything else is plain SVG ([`crate::plot`]).
 
 use crate::canon::{Move, MoveKind, Pos};
@@ -61,32 +61,34 @@ impl View {
         let width = width.max(LEFT + RIGHT + 200);
         let plot_w = width - LEFT - RIGHT;
         let plot_h = (plot_w as f64 * (x1 - x0) / (z1 - z0)).clamp(160.0, 1000.0) as u32;
-        // One scale: widen whichever range is short for its pixels.
-        let s = ((z1 - z0) / plot_w as f64).max((x1 - x0) / plot_h as f64);
+        // One scale: widen whichever range is short for its pixels (plotters maps a range
+        // onto pixels 0 … n − 1).
+        let (pw, ph) = ((plot_w - 1) as f64, (plot_h - 1) as f64);
+        let s = ((z1 - z0) / pw).max((x1 - x0) / ph);
         let (cz, cx) = ((z0 + z1) / 2.0, (x0 + x1) / 2.0);
-        (z0, z1) = (cz - s * plot_w as f64 / 2.0, cz + s * plot_w as f64 / 2.0);
-        (x0, x1) = (cx - s * plot_h as f64 / 2.0, cx + s * plot_h as f64 / 2.0);
+        (z0, z1) = (cz - s * pw / 2.0, cz + s * pw / 2.0);
+        (x0, x1) = (cx - s * ph / 2.0, cx + s * ph / 2.0);
         View { width, height: TOP + plot_h + BOTTOM, left: LEFT, top: TOP, plot_w, plot_h, z: (z0, z1), x: (x0, x1) }
     }
 
     /// The pixel of workpiece point (z, x radius).
     pub fn map(&self, z: f64, x: f64) -> (f64, f64) {
         (
-            self.left as f64 + (z - self.z.0) / (self.z.1 - self.z.0) * self.plot_w as f64,
-            self.top as f64 + (self.x.1 - x) / (self.x.1 - self.x.0) * self.plot_h as f64,
+            self.left as f64 + (z - self.z.0) / (self.z.1 - self.z.0) * (self.plot_w - 1) as f64,
+            self.top as f64 + (self.x.1 - x) / (self.x.1 - self.x.0) * (self.plot_h - 1) as f64,
         )
     }
 
     /// The workpiece point of pixel (px, py), for checking a drawing.
     pub fn unmap(&self, px: f64, py: f64) -> (f64, f64) {
-        let z = self.z.0 + (px - self.left as f64) / self.plot_w as f64 * (self.z.1 - self.z.0);
-        let x = self.x.1 - (py - self.top as f64) / self.plot_h as f64 * (self.x.1 - self.x.0);
+        let z = self.z.0 + (px - self.left as f64) / (self.plot_w - 1) as f64 * (self.z.1 - self.z.0);
+        let x = self.x.1 - (py - self.top as f64) / (self.plot_h - 1) as f64 * (self.x.1 - self.x.0);
         (z, x)
     }
 
     /// mm per pixel.
     pub fn scale(&self) -> f64 {
-        (self.z.1 - self.z.0) / self.plot_w as f64
+        (self.z.1 - self.z.0) / (self.plot_w - 1) as f64
     }
 }
 
@@ -117,9 +119,9 @@ impl std::str::FromStr for Stock {
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Extras {
     pub stock: Option<Stock>,
-    /// Per move: the nose radius (mm) and imaginary tip when it is a compensated (G41/G42)
-    /// motion ([`compensated`]); empty = none.
-    pub nose: Vec<Option<(f64, u8)>>,
+    /// Per move: its nose when it is a compensated (G41/G42) motion ([`compensated`]);
+    /// empty = none.
+    pub nose: Vec<Option<Nose>>,
 }
 
 /// Colour of a move: (r, g, b), by kind and cycle.
@@ -161,31 +163,48 @@ fn path(start: Pos, m: &Move) -> Option<Vec<(f64, f64)>> {
     Some(v)
 }
 
-/// Which moves of `moves` (run with the tool table `table`) are nose-compensated: the
-/// motions whose end differs from every end of the same block in `plain`, the same program
-/// run with every nose radius set to 0 (offsets unchanged). Each gets the radius and tip of
-/// the offset its T code selected (a T code cannot come under G41/G42: alarm 3577).
-pub fn compensated(moves: &[Move], plain: &[Move], table: &crate::interp::ToolTable) -> Vec<Option<(f64, u8)>> {
+/// The nose of one compensated move: radius (mm) and the nose centre's path (workpiece
+/// Z, X radius).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Nose {
+    pub r: f64,
+    pub centre: Vec<(f64, f64)>,
+}
+
+/// Which moves of `moves` are nose-compensated (G41/G42), and where the nose centre goes.
+/// `centre` is the same program run with every tip set to 0 (the tool point is then the
+/// nose centre), `plain` with every radius set to 0 (the programmed path): a compensated
+/// motion of `centre` ends R off the programmed path, so at no end of the same block of
+/// `plain` (the tool point itself can lie on the programmed path: tip 3 along Z). The
+/// radius is that of the offset the last T code selected (a T code cannot come under
+/// G41/G42: alarm 3577). Empty when the runs do not pair move for move.
+pub fn compensated(moves: &[Move], centre: &[Move], plain: &[Move], table: &crate::interp::ToolTable) -> Vec<Option<Nose>> {
+    if centre.len() != moves.len() || centre.iter().zip(moves).any(|(a, b)| a.src.line != b.src.line) {
+        return Vec::new();
+    }
     let mut ends: std::collections::HashMap<(&str, u32), Vec<Pos>> = Default::default();
     for m in plain {
         if let Some(e) = m.kind.end() {
             ends.entry((&*m.src.file, m.src.line)).or_default().push(e);
         }
     }
-    let mut nose = None;
+    let mut r = 0.0;
+    let mut cur = Pos::ZERO;
     moves
         .iter()
-        .map(|m| {
+        .zip(centre)
+        .map(|(m, c)| {
             if let MoveKind::Aux { letter: 'T', value } = m.kind {
-                nose = table.get(value as u32 % 100).filter(|o| o.r > 0.0).map(|o| (o.r, o.tip));
+                r = table.get(value as u32 % 100).map_or(0.0, |o| o.r);
             }
-            let end = m.kind.end()?;
-            let same =
-                ends.get(&(&*m.src.file, m.src.line)).is_some_and(|v| v.iter().any(|p| (p.z - end.z).abs() < 1e-6 && (p.x - end.x).abs() < 1e-6));
-            if same {
+            let end = c.kind.end()?;
+            let start = std::mem::replace(&mut cur, end);
+            let on_path =
+                ends.get(&(&*c.src.file, c.src.line)).is_some_and(|v| v.iter().any(|p| (p.z - end.z).abs() < 1e-6 && (p.x - end.x).abs() < 1e-6));
+            if on_path || r <= 0.0 {
                 None
             } else {
-                nose
+                Some(Nose { r, centre: path(start, c)? })
             }
         })
         .collect()
@@ -197,7 +216,7 @@ pub fn render_svg(moves: &[Move], start: Pos, title: &str, width: u32, extras: &
     let mut cur = start;
     for (k, m) in moves.iter().enumerate() {
         if let Some(p) = path(cur, m) {
-            paths.push((p, m, extras.nose.get(k).copied().flatten()));
+            paths.push((p, m, extras.nose.get(k).cloned().flatten()));
             cur = m.kind.end().unwrap_or(cur);
         }
     }
@@ -275,13 +294,28 @@ pub fn render_svg(moves: &[Move], start: Pos, title: &str, width: u32, extras: &
     // The tool nose at every vertex of a compensated path: centre = tool point − R·tip vector.
     let nose_c: Rgb = (150, 0, 170);
     let mut noses = Vec::new();
-    for (p, m, n) in &paths {
-        let Some((rad, tip)) = n else { continue };
-        let (tz, tx) = crate::interp::nosecomp::tip_vector(*tip);
-        let ends: &[(f64, f64)] =
-            if matches!(m.kind, MoveKind::Arc { .. }) { &[p[0], p[p.len() / 2], p[p.len() - 1]] } else { &[p[0], p[p.len() - 1]] };
-        for &(z, x) in ends {
-            let (cz, cx) = (z - rad * tz, x - rad * tx);
+    let mut before = false;
+    for (_, m, n) in &paths {
+        let Some(Nose { r: rad, centre }) = n else {
+            before = false;
+            continue;
+        };
+        // A start-up move starts from an uncompensated point: its nose only at its end.
+        let from = if std::mem::replace(&mut before, true) { 0 } else { centre.len() - 1 };
+        let c = &centre[from..];
+        let at: Vec<(f64, f64)> =
+            if matches!(m.kind, MoveKind::Arc { .. }) { vec![c[0], c[c.len() / 2], c[c.len() - 1]] } else { vec![c[0], c[c.len() - 1]] };
+        // The nose-centre path, dotted.
+        if c.len() > 1 {
+            let pts: String = c.iter().map(|&(z, x)| view.map(z, x)).map(|(a, b)| format!("{a:.1},{b:.1} ")).collect();
+            let _ = writeln!(
+                over,
+                "<polyline class=\"nose-path\" fill=\"none\" stroke=\"{}\" stroke-width=\"1\" stroke-dasharray=\"2 3\" points=\"{}\"/>",
+                plot::hex(nose_c),
+                pts.trim_end()
+            );
+        }
+        for (cz, cx) in at {
             let (px, py) = view.map(cz, cx);
             let _ = writeln!(
                 over,
@@ -328,7 +362,7 @@ pub fn render_svg(moves: &[Move], start: Pos, title: &str, width: u32, extras: &
     }
     for rad in &noses {
         over += &format!("<circle cx=\"{:.1}\" cy=\"{:.1}\" r=\"5\" fill=\"none\" stroke=\"{}\"/>\n", lx + 12.0, ly - 4.0, plot::hex(nose_c));
-        over += &plot::text(lx + 30.0, ly, &format!("tool nose R{rad} (G41/G42)"), 12, (0, 0, 0), "start", "legend");
+        over += &plot::text(lx + 30.0, ly, &format!("tool nose R{rad} (centre dotted)"), 12, (0, 0, 0), "start", "legend");
         ly += 18.0;
     }
     if let Some(s) = extras.stock {
@@ -412,10 +446,11 @@ pub fn preview(
     // Which moves are nose-compensated: the same program with every radius 0 beside it.
     let mut extras = Extras { stock, nose: Vec::new() };
     if let Some(t) = table.as_ref().filter(|t| t.offsets.values().any(|o| o.r > 0.0)) {
-        let mut plain = t.clone();
+        let (mut centre, mut plain) = (t.clone(), t.clone());
+        centre.offsets.values_mut().for_each(|o| o.tip = 0);
         plain.offsets.values_mut().for_each(|o| o.r = 0.0);
-        if let Ok((p, _)) = moves_of(program, &cfg, Some(&plain), true) {
-            extras.nose = compensated(&moves, &p, t);
+        if let (Ok((c, _)), Ok((p, _))) = (moves_of(program, &cfg, Some(&centre), true), moves_of(program, &cfg, Some(&plain), true)) {
+            extras.nose = compensated(&moves, &c, &p, t);
         }
     }
     let (svg, _) = match render_svg(&moves, Pos::ZERO, &program.display().to_string(), width, &extras) {

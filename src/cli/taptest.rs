@@ -316,14 +316,17 @@ pub fn picture(data: &TraceData, s: &TapSeries, f: &TapFigures, heading: &str, l
             title: format!("sync error (Z − Z_R) − lead·(θ − θ_R)/360, µm, against the limit ±{limit_um} µm"),
             series: vec![e_line(1.5)],
             bands: vec![Band { lo: -limit_um, hi: limit_um, name: format!("limit ±{limit_um} µm"), colour: (0, 158, 115) }],
-            spans: spans.clone(),
+            ..Panel::default()
         },
-        Panel { title: "sync error, detail (µm)".into(), series: vec![e_line(1.2)], bands: vec![], spans: spans.clone() },
+        Panel {
+            title: "sync error, detail, by phase (µm)".into(), series: vec![e_line(1.2)], bands: vec![], spans: spans.clone(), span_names: true
+        },
         Panel {
             title: "spindle speed, measured (rpm)".into(),
             series: vec![Series { name: "spindle rpm".into(), v: rpm[a..=b].to_vec(), colour: PALETTE[2], dashed: false, width: 1.5 }],
             bands: vec![],
             spans: spans.clone(),
+            span_names: false,
         },
         Panel {
             title: "Z position (mm)".into(),
@@ -333,6 +336,7 @@ pub fn picture(data: &TraceData, s: &TapSeries, f: &TapFigures, heading: &str, l
             ],
             bands: vec![],
             spans,
+            span_names: false,
         },
     ];
     let (vc, detail) = match verdict {
