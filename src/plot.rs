@@ -267,7 +267,8 @@ pub fn time_panels(t: &[f64], header: &[HeaderLine], panels: &[Panel], title: &s
                 (z - a).max(1.0),
                 hex(sp.colour)
             );
-            if p.span_names {
+            // Named in place where the name fits (≈ 6.5 px a character at 12 px), always in the legend.
+            if p.span_names && z - a > 6.5 * sp.name.chars().count() as f64 {
                 b += &text((a + z) / 2.0, top + 14.0, &sp.name, 12, sp.colour, "middle", "span-label");
             }
         }

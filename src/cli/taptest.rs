@@ -204,6 +204,8 @@ pub struct TapSeries {
     pub last: usize,
     /// (Z − Z_R) − lead·(θ − θ_R)/360 from the actual positions, µm, per row `first..=last`.
     pub err_um: Vec<f64>,
+    /// The spindle turned back out (a tap stopped on the way in has no reversal or exit).
+    pub reversed: bool,
     /// Inclusive index ranges into `err_um`: entry, reversal, exit.
     pub entry: (usize, usize),
     pub reversal: (usize, usize),
@@ -243,6 +245,7 @@ pub fn series(data: &TraceData, spindle: &str, lead: f64, tap_lines: &[u32]) -> 
         first,
         last,
         err_um,
+        reversed: peak_out > 0.0,
         entry: (0, top_in_first.min(end)),
         reversal: (top_in_last.min(end), top_out_first.min(end)),
         exit: (top_out_last.min(end), end),
@@ -304,10 +307,12 @@ pub fn picture(data: &TraceData, s: &TapSeries, f: &TapFigures, heading: &str, l
     // The error is defined inside the tap only; outside it the line is left out (NaN).
     let err: Vec<f64> = (a..=b).map(|i| if (s.first..=s.last).contains(&i) { s.err_um[i - s.first] } else { f64::NAN }).collect();
     let stats = [&f.entry, &f.reversal, &f.exit];
+    let reached = if s.reversed { 3 } else { 1 };
     let spans: Vec<Span> = [s.entry, s.reversal, s.exit]
         .iter()
         .zip(PHASES)
         .zip(stats)
+        .take(reached)
         .map(|((&(i, j), (n, c)), st)| Span { t0: t[s.first + i], t1: t[s.first + j], name: format!("{n}: max {:.2} µm", st.max), colour: c })
         .collect();
     let e_line = |w: f64| Series { name: "sync error".into(), v: err.clone(), colour: (0, 0, 0), dashed: false, width: w };
@@ -344,9 +349,11 @@ pub fn picture(data: &TraceData, s: &TapSeries, f: &TapFigures, heading: &str, l
         Verdict::Fail => ((200, 0, 0), format!("max {:.2} µm ≥ limit {limit_um} µm", f.sync.max)),
         Verdict::Stopped => ((200, 0, 0), format!("figures up to the stop: max {:.2} µm, limit {limit_um} µm", f.sync.max)),
     };
+    let stopped_in = if s.reversed { "" } else { "; stopped on the way in: no reversal, no exit" };
     let header = vec![
-        (heading.to_string(), 15, (0, 0, 0), "title"),
-        (format!("{} — {detail}; RMS {:.2} µm over {} cycles", verdict.word(), f.sync.rms, f.sync.cycles), 20, vc, "verdict"),
+        (heading.to_string(), 14, (0, 0, 0), "title"),
+        (verdict.word().to_string(), 22, vc, "verdict"),
+        (format!("sync error {detail}; RMS {:.2} µm over {} cycles{stopped_in}", f.sync.rms, f.sync.cycles), 13, vc, "verdict-detail"),
     ];
     crate::plot::time_panels(tw, &header, &panels, heading)
 }
