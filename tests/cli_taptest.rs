@@ -88,7 +88,7 @@ fn tap_test_measures_the_sync_error_and_draws_it() {
     let svg = std::fs::read_to_string(dir.join("tap.svg")).unwrap();
     let limit = v["sync_error_limit_um"].as_f64().unwrap();
     let doc = parse(&svg);
-    check_picture(&doc, "PASS", limit, &se);
+    check_picture(&doc, "PASS", limit, se);
     assert!(svg_common::renders(&dir.join("tap.svg")));
     // The same trace against a 2 µm limit: FAIL, and the band where it was exceeded.
     let data = cncgw::motion::trace::TraceData::parse(&csv).unwrap();
@@ -97,7 +97,7 @@ fn tap_test_measures_the_sync_error_and_draws_it() {
     assert_eq!(f.sync.max, max, "the picture's series is the figures' series");
     let svg = cncgw::cli::taptest::picture(&data, &s, &f, "t", 2.0, cncgw::cli::taptest::Verdict::Fail).unwrap();
     let doc = parse(&svg);
-    check_picture(&doc, "FAIL", 2.0, &se);
+    check_picture(&doc, "FAIL", 2.0, se);
     let band = &by_class(&doc, "band")[0];
     let panel = band.parent().unwrap();
     // The error goes outside the band: the panel's scale runs past ±2 µm.
@@ -140,8 +140,7 @@ fn check_picture(doc: &roxmltree::Document, verdict: &str, limit: f64, se: &serd
         assert_eq!(texts(doc, "legend").iter().filter(|l| *l == n).count(), 1, "{n} named once in the legends");
     }
     for p in &panels {
-        let frame = p.children().filter(|n| n.has_tag_name("rect") && n.attribute("fill") == Some("none")).last().unwrap();
-        let right = num(&frame, "x") + num(&frame, "width");
+        let (_, right) = svg_common::frame_x(p);
         for l in p.descendants().filter(|n| n.attribute("class") == Some("legend")) {
             assert!(num(&l, "x") > right, "legend {:?} over the data", l.text());
         }

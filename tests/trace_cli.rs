@@ -112,8 +112,7 @@ fn check_plot(doc: &roxmltree::Document, d: &TraceData) {
     }
     // The box of each panel's data (the last rect of its group), and its legend to the right.
     for p in by_class(doc, "panel") {
-        let frame = p.children().filter(|n| n.has_tag_name("rect") && n.attribute("fill") == Some("none")).last().expect("panel frame");
-        let right = num(&frame, "x") + num(&frame, "width");
+        let (left, right) = svg_common::frame_x(&p);
         let legend: Vec<_> = p.descendants().filter(|n| n.attribute("class") == Some("legend")).collect();
         assert!(!legend.is_empty(), "panel {:?} without a legend", p.attribute("data-title"));
         for l in legend {
@@ -123,7 +122,7 @@ fn check_plot(doc: &roxmltree::Document, d: &TraceData) {
         for s in p.children().filter(|n| n.attribute("class") == Some("series")) {
             for pt in s.attribute("points").unwrap().split_whitespace() {
                 let x: f64 = pt.split(',').next().unwrap().parse().unwrap();
-                assert!(x >= num(&frame, "x") - 0.5 && x <= right + 0.5, "point {pt} outside the panel");
+                assert!(x >= left - 0.5 && x <= right + 0.5, "point {pt} outside the panel");
             }
         }
     }

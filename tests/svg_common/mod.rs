@@ -58,3 +58,9 @@ pub fn png_size(path: &std::path::Path) -> (u32, u32) {
     let be = |i: usize| u32::from_be_bytes([b[i], b[i + 1], b[i + 2], b[i + 3]]);
     (be(16), be(20))
 }
+
+/// The data box of a time panel (its last unfilled rect): left and right edge, px.
+pub fn frame_x(panel: &Node) -> (f64, f64) {
+    let f = panel.children().rfind(|n| n.has_tag_name("rect") && n.attribute("fill") == Some("none")).expect("panel frame");
+    (num(&f, "x"), num(&f, "x") + num(&f, "width"))
+}
