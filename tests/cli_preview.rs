@@ -192,7 +192,8 @@ fn preview_draws_the_stock_and_the_tool_nose_on_compensated_paths() {
     let prog = dir.path().join("comp.nc");
     std::fs::write(&prog, COMP).unwrap();
     let tools = dir.path().join("tools.toml");
-    std::fs::write(&tools, "[1]\nr = 0.8\ntip = 3\n").unwrap();
+    // Geometry offsets too: they move the turret, the picture is the tool tip's.
+    std::fs::write(&tools, "[1]\nx = -152.3\nz = -310.45\nr = 0.8\ntip = 3\n").unwrap();
     let out = dir.path().join("comp.svg");
     let o = cncgw(&[
         "preview".as_ref(),
@@ -233,6 +234,8 @@ fn preview_draws_the_stock_and_the_tool_nose_on_compensated_paths() {
     assert_eq!(by_class(&doc, "nose-path").len(), 5, "one dotted centre path per compensated move after the start-up");
     let legend = texts(&doc, "legend");
     assert!(legend.iter().any(|l| l.starts_with("tool nose R0.8")) && legend.iter().any(|l| l == "stock Ø40×40 mm"), "{legend:?}");
+    let extent = texts(&doc, "extent").join("");
+    assert!(extent.starts_with("path Z -30.000 … 2.000 mm, X Ø0.000 … Ø44.000 mm"), "{extent}");
     assert!(svg_common::renders(&out));
     // Without the tool table: no radius, no nose.
     let o = cncgw(&["preview".as_ref(), prog.as_os_str(), "-o".as_ref(), out.as_os_str()]);

@@ -1,8 +1,9 @@
 //! `cncgw preview PROGRAM -o part.svg`: the toolpath of a program in the Z–X plane as an SVG
 //! (or PNG), so that a programmer can see a cycle before cutting.
 //!
-//! Workpiece coordinates of each move (its own work offset), Z to the right, X up as a
-//! **radius** (the true shape, one scale on both axes), with mm ticks on both axes and the
+//! Workpiece coordinates of each move (its own work offset) of the tool tip (a `--tools`
+//! table's geometry and wear offsets are left out: they move the turret, not the tip), Z to
+//! the right, X up as a **radius** (the true shape, one scale on both axes), with mm ticks on both axes and the
 //! work zero marked (the usual quartered circle). Rapids are dashed grey; feeds, arcs (drawn
 //! as chords of at most 2°) solid, blue outside cycles and in each cycle's own colour
 //! ([`colour`]); threads and taps red; G12.1 polar moves cyan (their Z–X shadow). The legend,
@@ -438,6 +439,12 @@ pub fn preview(
             return super::exit::INPUT;
         }
     };
+    // The tool tip's path in workpiece coordinates: the table's geometry and wear offsets
+    // move the turret, not the tip, so they are left out here; radii and tips stay.
+    let table = table.map(|mut t| {
+        t.offsets.values_mut().for_each(|o| (o.x, o.z, o.wear_x, o.wear_z) = (0.0, 0.0, 0.0, 0.0));
+        t
+    });
     let (moves, complete) = match moves_of(program, &cfg, table.as_ref(), false) {
         Ok(m) => m,
         Err(code) => return code,
