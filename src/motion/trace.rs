@@ -314,7 +314,7 @@ pub fn plot_document(data: &TraceData, name: &str) -> Result<String, String> {
         notes.insert(0, format!("not moved: {}", still.join(", ")));
     }
     if panels.is_empty() {
-        return Err("nothing moved in this trace: no panel to draw".into());
+        notes.insert(0, "nothing moved: no panel to draw".into());
     }
     let dt = if t.len() > 1 { (t[t.len() - 1] - t[0]) / (t.len() - 1) as f64 } else { 0.0 };
     let mut header =
@@ -396,6 +396,27 @@ mod tests {
         let st = t.finish().unwrap();
         assert!(st.dropped > 0, "{st:?}");
         assert_eq!(st.rows + st.dropped, n as u64);
+    }
+
+    #[test]
+    fn the_plot_has_panels_only_for_what_moved() {
+        // x moves, z stands, the spindle never turns, nothing is synchronised.
+        let mut csv = String::from("t_s,line,x_cmd,x_act,x_ferr,z_cmd,z_act,z_ferr,s1_cmd,s1_act,s1_ferr,spindle_rpm,sync_err_um\n");
+        for k in 0..50 {
+            let x = k as f64 * 0.1;
+            csv += &format!("{},{},{x},{},0.001,5,5,0,0,0,0,0,0\n", k as f64 * 0.002, 3, x - 0.001);
+        }
+        let svg = plot_document(&TraceData::parse(&csv).unwrap(), "t").unwrap();
+        let titles: Vec<&str> = svg.split("data-title=\"").skip(1).map(|s| &s[..s.find('"').unwrap()]).collect();
+        assert_eq!(titles, ["feed axes: position (mm, X as a radius)", "feed axes: following error (µm)"]);
+        assert!(svg.contains("not moved: z; the spindle did not turn; no synchronised move"), "{svg}");
+        assert!(svg.contains("data-name=\"x command\"") && !svg.contains("data-name=\"z command\""));
+        // Nothing at all: a page that says so, no empty panel.
+        let still = csv.lines().take(1).chain(std::iter::repeat_n("0.1,1,0,0,0,5,5,0,0,0,0,0,0", 3)).collect::<Vec<_>>().join("\n");
+        let mut d = TraceData::parse(&still).unwrap();
+        d.values[0] = vec![0.0, 0.002, 0.004];
+        let svg = plot_document(&d, "t").unwrap();
+        assert!(!svg.contains("class=\"panel\"") && svg.contains("nothing moved"), "{svg}");
     }
 
     #[test]
