@@ -87,6 +87,9 @@ extra_test_deps() {
     # man-db (man -l) and groff: every manual page `cncgw man --dir` writes is rendered
     # (tests/cli_man.rs).
     need_pkg man-db groff-base
+    # librsvg2-bin (rsvg-convert): the pictures are rendered to PNG in their tests
+    # (tests/svg_common/) and `-o FILE.png` goes through it.
+    need_pkg librsvg2-bin
     install_missing
     if [ "$WANT_PYTHON" = 1 ]; then
         python_venv

@@ -15,6 +15,7 @@ pub mod interp;
 pub mod motion;
 pub mod params;
 pub mod persist;
+pub mod plot;
 pub mod sync;
 
 pub use alarm::Alarm;

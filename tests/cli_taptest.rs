@@ -1,7 +1,10 @@
 //! `cncgw tap-test` as a service engineer runs it, against the embedded emulated machine
 //! (default config, `inproc`, simulated time); and `--json` on the status commands, parsed.
 
+mod svg_common;
+
 use std::process::Command;
+use svg_common::{by_class, num, parse, texts};
 
 struct Out {
     code: i32,
@@ -83,8 +86,22 @@ fn tap_test_measures_the_sync_error_and_draws_it() {
     }
     assert!((worst - max).abs() < 1e-6, "CSV {worst} vs reported {max}");
     let svg = std::fs::read_to_string(dir.join("tap.svg")).unwrap();
-    assert!(svg.starts_with("<svg") || svg.contains("<svg"), "not an SVG");
-    assert!(svg.contains("<polyline") || svg.contains("<path"), "nothing drawn");
+    let limit = v["sync_error_limit_um"].as_f64().unwrap();
+    let doc = parse(&svg);
+    check_picture(&doc, "PASS", limit, se);
+    svg_common::renders(&dir.join("tap.svg"));
+    // The same trace against a 2 µm limit: FAIL, and the band where it was exceeded.
+    let data = cncgw::control::trace::TraceData::parse(&csv).unwrap();
+    let s = cncgw::cli::taptest::series(&data, "s1", -1.5, &[6]).unwrap();
+    let f = cncgw::cli::taptest::figures(&data, "s1", -1.5, &[6]).unwrap();
+    assert_eq!(f.sync.max, max, "the picture's series is the figures' series");
+    let svg = cncgw::cli::taptest::picture(&data, &s, &f, "t", 2.0, cncgw::cli::taptest::Verdict::Fail).unwrap();
+    let doc = parse(&svg);
+    check_picture(&doc, "FAIL", 2.0, se);
+    let band = &by_class(&doc, "band")[0];
+    let panel = band.parent().unwrap();
+    // The error goes outside the band: the panel's scale runs past ±2 µm.
+    assert!(num(&panel, "data-hi") > 2.0 + 1.0 && num(&panel, "data-lo") < -2.0 - 1.0, "{:?}", panel.attributes().collect::<Vec<_>>());
 
     // The table for a person says the same.
     let o = cncgw_in(&dir, &["tap-test", "--lead", "1.5", "--depth", "30", "--rpm", "3000"]);
@@ -92,6 +109,62 @@ fn tap_test_measures_the_sync_error_and_draws_it() {
     for w in ["whole tap", "entry", "reversal", "exit", "following error: spindle", "PASS", "tap-test.svg"] {
         assert!(o.stdout.contains(w), "{w}: {}", o.stdout);
     }
+}
+
+/// The tap-test picture: the verdict, the limit band at ±limit in the first panel (its scale
+/// covering the band), the three phases in order and named with the figures' maxima, and a
+/// legend right of every panel's data.
+fn check_picture(doc: &roxmltree::Document, verdict: &str, limit: f64, se: &serde_json::Value) {
+    assert_eq!(texts(doc, "verdict"), [verdict]);
+    let detail = texts(doc, "verdict-detail").join("");
+    assert!(detail.contains(&format!("max {:.2} µm", se["max_um"].as_f64().unwrap())) && detail.contains(&format!("limit {limit} µm")), "{detail}");
+    let panels = by_class(doc, "panel");
+    assert_eq!(panels.len(), 4);
+    let bands = by_class(doc, "band");
+    assert_eq!(bands.len(), 1);
+    assert_eq!((num(&bands[0], "data-lo"), num(&bands[0], "data-hi")), (-limit, limit));
+    assert_eq!(bands[0].parent(), Some(panels[0]));
+    assert!(num(&panels[0], "data-lo") < -limit && num(&panels[0], "data-hi") > limit);
+    assert!(texts(doc, "legend").contains(&format!("limit ±{limit} µm")));
+    // Phases: entry, reversal, exit in time order, shaded in the three lower panels, named once.
+    let spans: Vec<_> = by_class(doc, "span").into_iter().filter(|n| n.parent() == Some(panels[1])).collect();
+    let names: Vec<&str> = spans.iter().map(|n| n.attribute("data-name").unwrap()).collect();
+    assert_eq!(names.len(), 3, "{names:?}");
+    for ((n, phase), sp) in names.iter().zip(["entry", "reversal", "exit"]).zip(&spans) {
+        assert_eq!(*n, format!("{phase}: max {:.2} µm", se[phase]["max_um"].as_f64().unwrap()));
+        assert!(num(sp, "data-t0") < num(sp, "data-t1"), "{n}");
+    }
+    assert!(num(&spans[0], "data-t1") <= num(&spans[1], "data-t0") && num(&spans[1], "data-t1") <= num(&spans[2], "data-t0"));
+    assert_eq!(by_class(doc, "span").len(), 9, "phases shaded in the detail, speed and Z panels");
+    for n in names {
+        assert_eq!(texts(doc, "legend").iter().filter(|l| *l == n).count(), 1, "{n} named once in the legends");
+    }
+    for p in &panels {
+        let (_, right) = svg_common::frame_x(p);
+        for l in p.descendants().filter(|n| n.attribute("class") == Some("legend")) {
+            assert!(num(&l, "x") > right, "legend {:?} over the data", l.text());
+        }
+    }
+}
+
+#[test]
+fn tap_test_stopped_by_the_sync_monitor_says_so_in_the_picture() {
+    let dir = tmpdir("stopped");
+    // A 2 µm limit: the controller's monitor (alarm 2307) stops the tap on the way in.
+    let cfg = cncgw::config::EMBEDDED_LATHE.replace("[machine]", "[machine]\nsync_error_limit_um = 2");
+    std::fs::write(dir.join("tight.toml"), cfg).unwrap();
+    let o = cncgw_in(&dir, &["tap-test", "--config", "tight.toml", "--lead", "1.5", "--depth", "30", "--rpm", "3000", "-o", "t.svg"]);
+    assert_eq!(o.code, 3, "{}\n{}", o.stdout, o.stderr);
+    assert!(o.stderr.contains("2307") && o.stdout.contains("STOPPED BY AN ALARM"), "{}\n{}", o.stdout, o.stderr);
+    let svg = std::fs::read_to_string(dir.join("t.svg")).unwrap();
+    let doc = parse(&svg);
+    assert_eq!(texts(&doc, "verdict"), ["STOPPED BY AN ALARM"]);
+    assert!(texts(&doc, "verdict-detail").join("").contains("no reversal, no exit"));
+    // Only the phase the tap reached.
+    let names: Vec<String> = by_class(&doc, "span").iter().map(|n| n.attribute("data-name").unwrap().to_string()).collect();
+    assert!(!names.is_empty() && names.iter().all(|n| n.starts_with("entry")), "{names:?}");
+    let band = &by_class(&doc, "band")[0];
+    assert_eq!((num(band, "data-lo"), num(band, "data-hi")), (-2.0, 2.0));
 }
 
 #[test]

@@ -148,15 +148,18 @@ pub enum Command {
     Plan(plan::PlanArgs),
     /// Draw the toolpath of a program as an SVG, without running anything.
     ///
-    /// The Z–X plane (rapids dashed, feeds solid,
-    /// threads and each cycle in their own colour), without running anything. Exit code 2
-    /// after an alarm (the path up to it is drawn).
+    /// The Z–X plane in workpiece coordinates (X as a radius, one scale on both axes) with mm
+    /// ticks and the work zero; rapids dashed, feeds solid, threads and each cycle in their
+    /// own colour, a legend of only the kinds the program has; the stock with `--stock`, the
+    /// tool nose circle along G41/G42 paths with `--tools`. A name ending in .png is
+    /// rendered through rsvg-convert (librsvg2-bin). Exit code 2 after an alarm (the path up
+    /// to it is drawn).
     ///
-    /// Example: `cncgw preview examples/first_part.nc -o part.svg`
+    /// Example: `cncgw preview examples/first_part.nc -o part.svg --stock 60x80+1`
     Preview {
         /// The part program (Type A G code or SINUMERIK cycles).
         program: PathBuf,
-        /// The SVG file to write.
+        /// The picture to write: SVG, or PNG for a name ending in .png (needs rsvg-convert).
         #[arg(long, short = 'o', value_name = "FILE")]
         out: PathBuf,
         /// Machine configuration (TOML). Default: the embedded config/lathe.toml.
@@ -169,6 +172,10 @@ pub enum Command {
         /// and G41/G42. Without it every offset and radius is zero.
         #[arg(long, value_name = "FILE")]
         tools: Option<PathBuf>,
+        /// The bar to draw under the path: diameter × length in mm, the face stock after a +
+        /// (from Z = face down), e.g. `--stock 60x80` or `--stock 60x80+1`.
+        #[arg(long, value_name = "DxL[+F]")]
+        stock: Option<preview::Stock>,
     },
     /// Configuration commands.
     #[command(subcommand)]
@@ -327,11 +334,16 @@ pub enum Command {
 pub enum TraceCmd {
     /// Draw positions, following errors, spindle speed and sync error over time as SVG.
     ///
+    /// One panel per thing the run did: positions (command dashed dark over the actual) and
+    /// following errors of the feed axes that moved, the spindle speed if it turned, the sync
+    /// error if a move was synchronised; legends right of the data. A name ending in .png
+    /// is rendered through rsvg-convert (librsvg2-bin).
+    ///
     /// Example: `cncgw trace plot run.csv -o run.svg`
     Plot {
         /// A trace CSV from `cncgw run --trace`.
         file: PathBuf,
-        /// The SVG to write.
+        /// The picture to write: SVG, or PNG for a name ending in .png (needs rsvg-convert).
         #[arg(short = 'o', long, value_name = "FILE.svg")]
         out: PathBuf,
     },
@@ -731,7 +743,9 @@ pub fn main() -> i32 {
         Command::Identify { args, machine } => identify::run(&machine, &args),
         Command::Trace(TraceCmd::Plot { file, out }) => run::trace_plot(&file, &out),
         Command::Plan(args) => plan::plan(&args),
-        Command::Preview { program, out, config, width, tools } => preview::preview(&program, config.as_deref(), tools.as_deref(), &out, width),
+        Command::Preview { program, out, config, width, tools, stock } => {
+            preview::preview(&program, config.as_deref(), tools.as_deref(), &out, width, stock)
+        }
         Command::Config(ConfigCmd::Check { file, json }) => config_check(file.as_deref(), json),
         Command::Scan { machine, json } => diag::scan(&machine, json),
         Command::Sdo(SdoCmd::Read { node, index, sub, r#type, out, machine, json }) => {

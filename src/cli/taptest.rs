@@ -57,7 +57,8 @@ pub struct TapArgs {
     /// Plan and check only: nothing is enabled, nothing moves.
     #[arg(long)]
     pub dry: bool,
-    /// The plot to write (SVG); the trace goes next to it as .csv.
+    /// The plot to write (SVG, or PNG for a .png name through rsvg-convert); the trace goes
+    /// next to it as .csv.
     #[arg(long, short = 'o', default_value = "tap-test.svg", value_name = "FILE.svg")]
     pub out: PathBuf,
     /// Print the figures as JSON.
@@ -195,13 +196,27 @@ pub struct TapFigures {
     pub monitor_max_um: f64,
 }
 
-/// Figures from a trace of the tap (`spindle`: the spindle's drive name).
-pub fn figures(data: &TraceData, spindle: &str, lead: f64, tap_lines: &[u32]) -> Result<TapFigures, String> {
+/// The sync error of a tap over its cycles, and where its phases are.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct TapSeries {
+    /// Trace rows of the tap: from the first cycle the spindle turns to the last of the tap.
+    pub first: usize,
+    pub last: usize,
+    /// (Z − Z_R) − lead·(θ − θ_R)/360 from the actual positions, µm, per row `first..=last`.
+    pub err_um: Vec<f64>,
+    /// The spindle turned back out (a tap stopped on the way in has no reversal or exit).
+    pub reversed: bool,
+    /// Inclusive index ranges into `err_um`: entry, reversal, exit.
+    pub entry: (usize, usize),
+    pub reversal: (usize, usize),
+    pub exit: (usize, usize),
+}
+
+/// The tap's sync error and phases from a trace (`spindle`: the spindle's drive name).
+pub fn series(data: &TraceData, spindle: &str, lead: f64, tap_lines: &[u32]) -> Result<TapSeries, String> {
     let col = |n: &str| data.column(n).ok_or_else(|| format!("the trace has no column {n}"));
-    let (line, s_cmd, s_act, s_ferr) =
-        (col("line")?, col(&format!("{spindle}_cmd"))?, col(&format!("{spindle}_act"))?, col(&format!("{spindle}_ferr"))?);
-    let (z_cmd, z_act, z_ferr) = (col("z_cmd")?, col("z_act")?, col("z_ferr")?);
-    let (t, rpm, mon) = (col("t_s")?, col("spindle_rpm")?, col("sync_err_um")?);
+    let (line, s_cmd, s_act) = (col("line")?, col(&format!("{spindle}_cmd"))?, col(&format!("{spindle}_act"))?);
+    let (z_cmd, z_act, t) = (col("z_cmd")?, col("z_act")?, col("t_s")?);
     let in_tap = |i: usize| tap_lines.iter().any(|&l| line[i] as u32 == l);
     let first = (0..line.len()).find(|&i| in_tap(i)).ok_or("the trace holds no cycle of the tap: did it run?")?;
     let last = (0..line.len()).rfind(|&i| in_tap(i)).unwrap_or(first);
@@ -209,7 +224,7 @@ pub fn figures(data: &TraceData, spindle: &str, lead: f64, tap_lines: &[u32]) ->
     let r0 = first.checked_sub(1).ok_or("the trace starts inside the tap")?;
     let (z0, th0) = (z_cmd[r0], s_cmd[r0]);
     let first = (first..=last).find(|&i| s_cmd[i] != th0).ok_or("the spindle never turned in the tap")?;
-    let err: Vec<f64> = (first..=last).map(|i| ((z_act[i] - z0) - lead * (s_act[i] - th0) / 360.0) * 1000.0).collect();
+    let err_um: Vec<f64> = (first..=last).map(|i| ((z_act[i] - z0) - lead * (s_act[i] - th0) / 360.0) * 1000.0).collect();
     // Commanded spindle speed per cycle, rpm, signed.
     let v: Vec<f64> = (first..=last)
         .map(|i| {
@@ -225,18 +240,122 @@ pub fn figures(data: &TraceData, spindle: &str, lead: f64, tap_lines: &[u32]) ->
     let top_in_last = v.iter().rposition(|x| *x * dir > 0.0 && near(*x, peak_in)).unwrap_or(top_in_first);
     let top_out_first = v.iter().position(|x| *x * dir < 0.0 && near(*x, peak_out)).unwrap_or(v.len().saturating_sub(1));
     let top_out_last = v.iter().rposition(|x| *x * dir < 0.0 && near(*x, peak_out)).unwrap_or(top_out_first);
-    let seg = |a: usize, b: usize| stat(err.get(a..=b.min(err.len().saturating_sub(1))).unwrap_or(&[]));
-    let range = first..=last;
+    let end = err_um.len().saturating_sub(1);
+    Ok(TapSeries {
+        first,
+        last,
+        err_um,
+        reversed: peak_out > 0.0,
+        entry: (0, top_in_first.min(end)),
+        reversal: (top_in_last.min(end), top_out_first.min(end)),
+        exit: (top_out_last.min(end), end),
+    })
+}
+
+/// Figures from a trace of the tap (`spindle`: the spindle's drive name).
+pub fn figures(data: &TraceData, spindle: &str, lead: f64, tap_lines: &[u32]) -> Result<TapFigures, String> {
+    let s = series(data, spindle, lead, tap_lines)?;
+    let col = |n: &str| data.column(n).ok_or_else(|| format!("the trace has no column {n}"));
+    let (s_ferr, z_ferr, rpm, mon) = (col(&format!("{spindle}_ferr"))?, col("z_ferr")?, col("spindle_rpm")?, col("sync_err_um")?);
+    let seg = |(a, b): (usize, usize)| stat(s.err_um.get(a..=b).unwrap_or(&[]));
+    let range = s.first..=s.last;
     Ok(TapFigures {
-        sync: stat(&err),
-        entry: seg(0, top_in_first),
-        reversal: seg(top_in_last, top_out_first),
-        exit: seg(top_out_last, err.len().saturating_sub(1)),
+        sync: stat(&s.err_um),
+        entry: seg(s.entry),
+        reversal: seg(s.reversal),
+        exit: seg(s.exit),
         spindle_ferr_deg: range.clone().map(|i| s_ferr[i].abs()).fold(0.0, f64::max),
         z_ferr_um: range.clone().map(|i| z_ferr[i].abs() * 1000.0).fold(0.0, f64::max),
         peak_rpm: range.clone().map(|i| rpm[i].abs()).fold(0.0, f64::max),
         monitor_max_um: range.map(|i| mon[i].abs()).fold(0.0, f64::max),
     })
+}
+
+/// The verdict a tap-test shows and prints.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Verdict {
+    Pass,
+    Fail,
+    Stopped,
+}
+
+impl Verdict {
+    pub fn word(self) -> &'static str {
+        match self {
+            Verdict::Pass => "PASS",
+            Verdict::Fail => "FAIL",
+            Verdict::Stopped => "STOPPED BY AN ALARM",
+        }
+    }
+}
+
+/// Phase colours: entry, reversal, exit.
+const PHASES: [(&str, crate::plot::Rgb); 3] = [("entry", (0, 114, 178)), ("reversal", (230, 159, 0)), ("exit", (204, 121, 167))];
+
+/// The tap-test picture: the verdict on top; the sync error against the limit band; the
+/// same error at its own scale; spindle speed; Z command and actual — each with the entry,
+/// reversal and exit phases shaded, over the tap (plus 0.1 s either side).
+pub fn picture(data: &TraceData, s: &TapSeries, f: &TapFigures, heading: &str, limit_um: f64, verdict: Verdict) -> Result<String, String> {
+    use crate::plot::{Band, Panel, Series, Span, COMMAND, PALETTE};
+    let t = data.column("t_s").ok_or("the trace has no t_s column")?;
+    let col = |n: &str| data.column(n).ok_or_else(|| format!("the trace has no column {n}"));
+    let (z_cmd, z_act, rpm) = (col("z_cmd")?, col("z_act")?, col("spindle_rpm")?);
+    let (tf, tl) = (t[s.first], t[s.last]);
+    let a = t.iter().position(|x| *x >= tf - 0.1).unwrap_or(0);
+    let b = t.iter().rposition(|x| *x <= tl + 0.1).unwrap_or(t.len() - 1);
+    let tw = &t[a..=b];
+    // The error is defined inside the tap only; outside it the line is left out (NaN).
+    let err: Vec<f64> = (a..=b).map(|i| if (s.first..=s.last).contains(&i) { s.err_um[i - s.first] } else { f64::NAN }).collect();
+    let stats = [&f.entry, &f.reversal, &f.exit];
+    let reached = if s.reversed { 3 } else { 1 };
+    let spans: Vec<Span> = [s.entry, s.reversal, s.exit]
+        .iter()
+        .zip(PHASES)
+        .zip(stats)
+        .take(reached)
+        .map(|((&(i, j), (n, c)), st)| Span { t0: t[s.first + i], t1: t[s.first + j], name: format!("{n}: max {:.2} µm", st.max), colour: c })
+        .collect();
+    let e_line = |w: f64| Series { name: "sync error".into(), v: err.clone(), colour: (0, 0, 0), dashed: false, width: w };
+    let panels = vec![
+        Panel {
+            title: format!("sync error (Z − Z_R) − lead·(θ − θ_R)/360, µm, against the limit ±{limit_um} µm"),
+            series: vec![e_line(1.5)],
+            bands: vec![Band { lo: -limit_um, hi: limit_um, name: format!("limit ±{limit_um} µm"), colour: (0, 158, 115) }],
+            ..Panel::default()
+        },
+        Panel {
+            title: "sync error, detail, by phase (µm)".into(), series: vec![e_line(1.2)], bands: vec![], spans: spans.clone(), span_names: true
+        },
+        Panel {
+            title: "spindle speed, measured (rpm)".into(),
+            series: vec![Series { name: "spindle rpm".into(), v: rpm[a..=b].to_vec(), colour: PALETTE[2], dashed: false, width: 1.5 }],
+            bands: vec![],
+            spans: spans.clone(),
+            span_names: false,
+        },
+        Panel {
+            title: "Z position (mm)".into(),
+            series: vec![
+                Series { name: "z actual".into(), v: z_act[a..=b].to_vec(), colour: PALETTE[0], dashed: false, width: 2.5 },
+                Series { name: "z command".into(), v: z_cmd[a..=b].to_vec(), colour: COMMAND, dashed: true, width: 1.2 },
+            ],
+            bands: vec![],
+            spans,
+            span_names: false,
+        },
+    ];
+    let (vc, detail) = match verdict {
+        Verdict::Pass => ((0, 140, 60), format!("max {:.2} µm < limit {limit_um} µm ({:.0} % of it)", f.sync.max, 100.0 * f.sync.max / limit_um)),
+        Verdict::Fail => ((200, 0, 0), format!("max {:.2} µm ≥ limit {limit_um} µm", f.sync.max)),
+        Verdict::Stopped => ((200, 0, 0), format!("figures up to the stop: max {:.2} µm, limit {limit_um} µm", f.sync.max)),
+    };
+    let stopped_in = if s.reversed { "" } else { "; stopped on the way in: no reversal, no exit" };
+    let header = vec![
+        (heading.to_string(), 14, (0, 0, 0), "title"),
+        (verdict.word().to_string(), 22, vc, "verdict"),
+        (format!("sync error {detail}; RMS {:.2} µm over {} cycles{stopped_in}", f.sync.rms, f.sync.cycles), 13, vc, "verdict-detail"),
+    ];
+    crate::plot::time_panels(tw, &header, &panels, heading)
 }
 
 fn stat_json(s: &Stat) -> serde_json::Value {
@@ -404,12 +523,22 @@ fn report(cfg: &MachineConfig, a: &TapArgs, p: &TapPlan, csv: &Path, run_code: i
             return EXIT_ALARM;
         }
     };
-    let plot = crate::control::trace::plot_svg(&data, &a.out);
+    let limit = cfg.machine.sync_error_limit_um;
+    let ok = f.sync.max < limit;
+    let verdict = if run_code == EXIT_ALARM {
+        Verdict::Stopped
+    } else if ok {
+        Verdict::Pass
+    } else {
+        Verdict::Fail
+    };
+    let heading = format!("tap-test: rigid tap in the air, lead {} mm, depth {} mm, S{} — trace {}", a.lead, a.depth, a.rpm, csv.display());
+    let plot = series(&data, &spindle, p.signed_lead, &p.tap_lines)
+        .and_then(|s| picture(&data, &s, &f, &heading, limit, verdict))
+        .and_then(|svg| crate::plot::save(&a.out, &svg));
     if let Err(e) = &plot {
         eprintln!("error: cannot draw {}: {e}", a.out.display());
     }
-    let limit = cfg.machine.sync_error_limit_um;
-    let ok = f.sync.max < limit;
     let code = if plot.is_err() {
         EXIT_SETUP
     } else if run_code != EXIT_OK {
@@ -459,12 +588,10 @@ fn report(cfg: &MachineConfig, a: &TapArgs, p: &TapPlan, csv: &Path, run_code: i
         }
         println!(
             "{} (limit {limit} µm, machine.sync_error_limit_um); trace {}, plot {}",
-            if run_code == EXIT_ALARM {
-                "STOPPED BY AN ALARM (above): figures up to the stop"
-            } else if ok {
-                "PASS"
-            } else {
-                "FAIL: the sync error reached the limit — check the drives' tuning, or lower S"
+            match verdict {
+                Verdict::Stopped => format!("{} (above): figures up to the stop", verdict.word()),
+                Verdict::Pass => verdict.word().to_string(),
+                Verdict::Fail => format!("{}: the sync error reached the limit — check the drives' tuning, or lower S", verdict.word()),
             },
             csv.display(),
             a.out.display()

@@ -241,79 +241,88 @@ impl TraceData {
     }
 }
 
-/// Draw a trace as SVG (`cncgw trace plot`): feed-axis positions (command and actual),
-/// following errors, spindle speed and sync error over time, one panel each.
+/// Draw a trace (`cncgw trace plot`) to `out`: SVG, or PNG for a `.png` name
+/// ([`crate::plot::save`]).
 pub fn plot_svg(data: &TraceData, out: &std::path::Path) -> Result<(), String> {
-    use plotters::prelude::*;
+    let name = out.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+    crate::plot::save(out, &plot_document(data, &name)?)
+}
+
+/// Moved: the command changed by more than 1 µm (or 0.001°) over the run.
+fn moved(v: &[f64]) -> bool {
+    let (lo, hi) = v.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), x| (a.min(*x), b.max(*x)));
+    hi - lo > 1e-3
+}
+
+/// The picture of a trace: one panel per thing the run did — positions (command dashed dark
+/// over actual in the axis' colour) and following errors of the feed axes that moved, the
+/// spindle speed when it turned, the sync error when a move was synchronised; what stood
+/// still is named in the header instead of drawn flat.
+pub fn plot_document(data: &TraceData, name: &str) -> Result<String, String> {
+    use crate::plot::{Panel, Series, COMMAND, PALETTE};
     let t = data.column("t_s").ok_or("the trace has no t_s column")?;
     if t.len() < 2 {
         return Err("the trace has fewer than two cycles".into());
     }
-    let axes = data.axes();
-    let feed: Vec<&String> = axes.iter().filter(|a| !a.starts_with('s')).collect();
-    // At most ~4000 points per line: an SVG with every 2 ms cycle of a long run is unusable.
-    let stride = (t.len() / 4000).max(1);
-    let colors = [RGBColor(31, 119, 180), RGBColor(214, 39, 40), RGBColor(44, 160, 44), RGBColor(148, 103, 189)];
-    type Line = (String, Vec<f64>, RGBColor, bool);
-    let mut panels: Vec<(&str, Vec<Line>)> = Vec::new();
     let col = |n: &str| data.column(n).map(|c| c.to_vec());
-    let mut pos = Vec::new();
-    let mut ferr = Vec::new();
-    for (k, a) in feed.iter().enumerate() {
-        let c = colors[k % colors.len()];
-        if let (Some(cmd), Some(act)) = (col(&format!("{a}_cmd")), col(&format!("{a}_act"))) {
-            pos.push((format!("{a} cmd"), cmd, c, true));
-            pos.push((format!("{a} act"), act, c, false));
+    let mut pos = Panel { title: "feed axes: position (mm, X as a radius)".into(), ..Panel::default() };
+    let mut ferr = Panel { title: "feed axes: following error (µm)".into(), ..Panel::default() };
+    let mut still = Vec::new();
+    // Drives named s… are spindles (their angle is not a position to plot against mm).
+    for (k, a) in data.axes().iter().filter(|a| !a.starts_with('s')).enumerate() {
+        let c = PALETTE[k % PALETTE.len()];
+        let (Some(cmd), Some(act)) = (col(&format!("{a}_cmd")), col(&format!("{a}_act"))) else { continue };
+        if !moved(&cmd) && !moved(&act) {
+            still.push(a.clone());
+            continue;
         }
+        pos.series.push(Series { name: format!("{a} actual"), v: act, colour: c, dashed: false, width: 2.5 });
+        pos.series.push(Series { name: format!("{a} command"), v: cmd, colour: COMMAND, dashed: true, width: 1.2 });
         if let Some(f) = col(&format!("{a}_ferr")) {
-            ferr.push((format!("{a} ferr"), f.iter().map(|v| v * 1000.0).collect(), c, false));
+            ferr.series.push(Series {
+                name: format!("{a} following error"),
+                v: f.iter().map(|v| v * 1000.0).collect(),
+                colour: c,
+                dashed: false,
+                width: 1.2,
+            });
         }
     }
-    panels.push(("feed axes: position (mm, X radius)", pos));
-    panels.push(("feed axes: following error (µm)", ferr));
-    if let Some(r) = col("spindle_rpm") {
-        panels.push(("spindle speed (rpm)", vec![("rpm".into(), r, colors[0], false)]));
+    let mut panels = Vec::new();
+    if !pos.series.is_empty() {
+        panels.push(pos);
+        panels.push(ferr);
     }
-    if let Some(e) = col("sync_err_um") {
-        panels.push(("spindle–axis sync error (µm)", vec![("sync".into(), e, colors[1], false)]));
+    let mut notes = Vec::new();
+    match col("spindle_rpm") {
+        Some(r) if r.iter().any(|v| v.abs() >= 0.5) => panels.push(Panel {
+            title: "spindle speed, measured (rpm)".into(),
+            series: vec![Series { name: "spindle rpm".into(), v: r, colour: PALETTE[2], dashed: false, width: 1.5 }],
+            ..Panel::default()
+        }),
+        _ => notes.push("the spindle did not turn".to_string()),
     }
-    let root = SVGBackend::new(out, (1100, 280 * panels.len() as u32)).into_drawing_area();
-    let err = |e: &dyn std::fmt::Debug| format!("{e:?}");
-    root.fill(&WHITE).map_err(|e| err(&e))?;
-    let areas = root.split_evenly((panels.len(), 1));
-    let (t0, t1) = (t[0], t[t.len() - 1].max(t[0] + 1e-6));
-    for ((title, lines), area) in panels.iter().zip(areas.iter()) {
-        let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
-        for (_, v, _, _) in lines {
-            for x in v.iter().filter(|x| x.is_finite()) {
-                lo = lo.min(*x);
-                hi = hi.max(*x);
-            }
-        }
-        if !(lo.is_finite() && hi.is_finite()) {
-            (lo, hi) = (-1.0, 1.0);
-        }
-        let pad = ((hi - lo) * 0.05).max(1e-3);
-        let mut chart = ChartBuilder::on(area)
-            .caption(*title, ("sans-serif", 16))
-            .margin(8)
-            .x_label_area_size(28)
-            .y_label_area_size(70)
-            .build_cartesian_2d(t0..t1, (lo - pad)..(hi + pad))
-            .map_err(|e| err(&e))?;
-        chart.configure_mesh().x_desc("t (s)").light_line_style(WHITE.mix(0.0)).draw().map_err(|e| err(&e))?;
-        for (name, v, c, dashed) in lines {
-            let pts = t.iter().zip(v.iter()).step_by(stride).map(|(a, b)| (*a, *b));
-            let style = if *dashed { c.mix(0.45).stroke_width(1) } else { c.stroke_width(1) };
-            chart
-                .draw_series(LineSeries::new(pts, style))
-                .map_err(|e| err(&e))?
-                .label(name.as_str())
-                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], style));
-        }
-        chart.configure_series_labels().background_style(WHITE.mix(0.8)).border_style(BLACK).draw().map_err(|e| err(&e))?;
+    match col("sync_err_um") {
+        Some(e) if e.iter().any(|v| *v != 0.0) => panels.push(Panel {
+            title: "spindle–axis sync error (µm)".into(),
+            series: vec![Series { name: "sync error".into(), v: e, colour: PALETTE[1], dashed: false, width: 1.2 }],
+            ..Panel::default()
+        }),
+        _ => notes.push("no synchronised move".to_string()),
     }
-    root.present().map_err(|e| err(&e))
+    if !still.is_empty() {
+        notes.insert(0, format!("not moved: {}", still.join(", ")));
+    }
+    if panels.is_empty() {
+        notes.insert(0, "nothing moved: no panel to draw".into());
+    }
+    let dt = if t.len() > 1 { (t[t.len() - 1] - t[0]) / (t.len() - 1) as f64 } else { 0.0 };
+    let mut header =
+        vec![(format!("trace {name}: {} cycles over {:.2} s ({:.1} ms each)", t.len(), t[t.len() - 1] - t[0], dt * 1000.0), 16, (0, 0, 0), "title")];
+    if !notes.is_empty() {
+        header.push((notes.join("; "), 12, (90, 90, 90), "note"));
+    }
+    crate::plot::time_panels(t, &header, &panels, &format!("cncgw trace {name}"))
 }
 
 #[cfg(test)]
@@ -387,6 +396,27 @@ mod tests {
         let st = t.finish().unwrap();
         assert!(st.dropped > 0, "{st:?}");
         assert_eq!(st.rows + st.dropped, n as u64);
+    }
+
+    #[test]
+    fn the_plot_has_panels_only_for_what_moved() {
+        // x moves, z stands, the spindle never turns, nothing is synchronised.
+        let mut csv = String::from("t_s,line,x_cmd,x_act,x_ferr,z_cmd,z_act,z_ferr,s1_cmd,s1_act,s1_ferr,spindle_rpm,sync_err_um\n");
+        for k in 0..50 {
+            let x = k as f64 * 0.1;
+            csv += &format!("{},{},{x},{},0.001,5,5,0,0,0,0,0,0\n", k as f64 * 0.002, 3, x - 0.001);
+        }
+        let svg = plot_document(&TraceData::parse(&csv).unwrap(), "t").unwrap();
+        let titles: Vec<&str> = svg.split("data-title=\"").skip(1).map(|s| &s[..s.find('"').unwrap()]).collect();
+        assert_eq!(titles, ["feed axes: position (mm, X as a radius)", "feed axes: following error (µm)"]);
+        assert!(svg.contains("not moved: z; the spindle did not turn; no synchronised move"), "{svg}");
+        assert!(svg.contains("data-name=\"x command\"") && !svg.contains("data-name=\"z command\""));
+        // Nothing at all: a page that says so, no empty panel.
+        let still = csv.lines().take(1).chain(std::iter::repeat_n("0.1,1,0,0,0,5,5,0,0,0,0,0,0", 3)).collect::<Vec<_>>().join("\n");
+        let mut d = TraceData::parse(&still).unwrap();
+        d.values[0] = vec![0.0, 0.002, 0.004];
+        let svg = plot_document(&d, "t").unwrap();
+        assert!(!svg.contains("class=\"panel\"") && svg.contains("nothing moved"), "{svg}");
     }
 
     #[test]
