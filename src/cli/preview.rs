@@ -211,27 +211,9 @@ pub fn compensated(moves: &[Move], centre: &[Move], plain: &[Move], table: &crat
         .collect()
 }
 
-/// Render `moves` (starting from machine `start`) as SVG text; the view used comes back too.
-pub fn render_svg(moves: &[Move], start: Pos, title: &str, width: u32, extras: &Extras) -> Result<(String, View), String> {
-    let mut paths = Vec::new();
-    let mut cur = start;
-    for (k, m) in moves.iter().enumerate() {
-        if let Some(p) = path(cur, m) {
-            paths.push((p, m, extras.nose.get(k).cloned().flatten()));
-            cur = m.kind.end().unwrap_or(cur);
-        }
-    }
-    let mut all: Vec<(f64, f64)> = paths.iter().flat_map(|(p, _, _)| p.iter().copied()).collect();
-    let part = all.clone();
-    // The work zero is always in the picture.
-    all.push((0.0, 0.0));
-    if let Some(s) = extras.stock {
-        all.extend([(s.face, s.diameter / 2.0), (s.face - s.length, 0.0)]);
-    }
-    let view = View::fit(&all, width);
-    let mut under = String::new();
-    let mut over = String::new();
-    // Grid, under everything.
+/// The mm grid under the drawing, the ticks, their labels and the axis names over it.
+fn grid(view: &View) -> (String, String) {
+    let (mut under, mut over) = (String::new(), String::new());
     let (zt, zstep) = plot::ticks(view.z.0, view.z.1, (view.plot_w / 70).max(2) as usize);
     let (xt, xstep) = plot::ticks(view.x.0, view.x.1, (view.plot_h / 50).max(2) as usize);
     let (l, t, r, b) = (view.left as f64, view.top as f64, (view.left + view.plot_w) as f64, (view.top + view.plot_h) as f64);
@@ -257,6 +239,110 @@ pub fn render_svg(moves: &[Move], start: Pos, title: &str, width: u32, extras: &
         t
     );
     let _ = writeln!(over, "<rect x=\"{l}\" y=\"{t}\" width=\"{}\" height=\"{}\" fill=\"none\" stroke=\"#000000\"/>", view.plot_w, view.plot_h);
+    (under, over)
+}
+
+/// One move as drawn: its points (Z, X radius), the move, its tool nose if compensated.
+type Drawn<'m> = (Vec<(f64, f64)>, &'m Move, Option<Nose>);
+
+/// The colour of the tool nose marks.
+const NOSE_COLOUR: Rgb = (150, 0, 170);
+
+/// The tool nose at every vertex of a compensated path: centre = tool point − R·tip vector.
+/// Returns the radii drawn (for the legend).
+fn draw_noses(view: &View, paths: &[Drawn], over: &mut String) -> Vec<f64> {
+    let mut noses = Vec::new();
+    let mut before = false;
+    for (_, m, n) in paths {
+        let Some(Nose { r: rad, centre }) = n else {
+            before = false;
+            continue;
+        };
+        // A start-up move starts from an uncompensated point: its nose only at its end.
+        let from = if std::mem::replace(&mut before, true) { 0 } else { centre.len() - 1 };
+        let c = &centre[from..];
+        let at: Vec<(f64, f64)> =
+            if matches!(m.kind, MoveKind::Arc { .. }) { vec![c[0], c[c.len() / 2], c[c.len() - 1]] } else { vec![c[0], c[c.len() - 1]] };
+        // The nose-centre path, dotted.
+        if c.len() > 1 {
+            let pts: String = c.iter().map(|&(z, x)| view.map(z, x)).map(|(a, b)| format!("{a:.1},{b:.1} ")).collect();
+            let _ = writeln!(
+                over,
+                "<polyline class=\"nose-path\" fill=\"none\" stroke=\"{}\" stroke-width=\"1\" stroke-dasharray=\"2 3\" points=\"{}\"/>",
+                plot::hex(NOSE_COLOUR),
+                pts.trim_end()
+            );
+        }
+        for (cz, cx) in at {
+            let (px, py) = view.map(cz, cx);
+            let _ = writeln!(
+                over,
+                "<circle class=\"nose\" data-r=\"{rad}\" data-z=\"{cz:.4}\" data-x=\"{cx:.4}\" cx=\"{px:.1}\" cy=\"{py:.1}\" r=\"{:.2}\" fill=\"none\" stroke=\"{}\" stroke-width=\"1\"/>",
+                (rad / view.scale()).max(1.5),
+                plot::hex(NOSE_COLOUR)
+            );
+        }
+        if !noses.contains(rad) {
+            noses.push(*rad);
+        }
+    }
+    noses
+}
+
+/// The legend right of the drawing: only what the program has.
+fn legend(paths: &[Drawn], noses: &[f64], stock: Option<Stock>, (lx, top): (f64, f64)) -> String {
+    let mut over = String::new();
+    let mut entries: Vec<(String, Rgb, bool)> = Vec::new();
+    for (_, m, _) in paths {
+        let (n, c) = kind(m);
+        if !entries.iter().any(|e| e.0 == n) {
+            entries.push((n, c, matches!(m.kind, MoveKind::Rapid { .. })));
+        }
+    }
+    let mut ly = top + 14.0;
+    for (n, c, dashed) in &entries {
+        over += &plot::legend_entry(lx, ly, n, *c, if *dashed { "6 4" } else { "" }, false);
+        ly += 18.0;
+    }
+    for rad in noses {
+        over += &format!("<circle cx=\"{:.1}\" cy=\"{:.1}\" r=\"5\" fill=\"none\" stroke=\"{}\"/>\n", lx + 12.0, ly - 4.0, plot::hex(NOSE_COLOUR));
+        over += &plot::text(lx + 30.0, ly, &format!("tool nose R{rad} (centre dotted)"), 12, (0, 0, 0), "start", "legend");
+        ly += 18.0;
+    }
+    if let Some(s) = stock {
+        over += &plot::legend_entry(lx, ly, &format!("stock Ø{}×{} mm", s.diameter, s.length), (140, 109, 63), "", true);
+        ly += 18.0;
+    }
+    let _ = writeln!(
+        over,
+        "<g transform=\"translate({:.1} {:.1})\"><circle r=\"6\" fill=\"#FFFFFF\" stroke=\"#000000\"/><path d=\"M0,0 L6,0 A6,6 0 0,1 0,6 Z M0,0 L-6,0 A6,6 0 0,1 0,-6 Z\"/></g>",
+        lx + 12.0,
+        ly - 4.0
+    );
+    over += &plot::text(lx + 30.0, ly, "work zero W", 12, (0, 0, 0), "start", "legend");
+    over
+}
+
+/// Render `moves` (starting from machine `start`) as SVG text; the view used comes back too.
+pub fn render_svg(moves: &[Move], start: Pos, title: &str, width: u32, extras: &Extras) -> Result<(String, View), String> {
+    let mut paths = Vec::new();
+    let mut cur = start;
+    for (k, m) in moves.iter().enumerate() {
+        if let Some(p) = path(cur, m) {
+            paths.push((p, m, extras.nose.get(k).cloned().flatten()));
+            cur = m.kind.end().unwrap_or(cur);
+        }
+    }
+    let mut all: Vec<(f64, f64)> = paths.iter().flat_map(|(p, _, _)| p.iter().copied()).collect();
+    let part = all.clone();
+    // The work zero is always in the picture.
+    all.push((0.0, 0.0));
+    if let Some(s) = extras.stock {
+        all.extend([(s.face, s.diameter / 2.0), (s.face - s.length, 0.0)]);
+    }
+    let view = View::fit(&all, width);
+    let (mut under, mut over) = grid(&view);
+    let (l, t, r, _) = (view.left as f64, view.top as f64, (view.left + view.plot_w) as f64, (view.top + view.plot_h) as f64);
     if let Some(s) = extras.stock {
         let (a, c) = (view.map(s.face - s.length, s.diameter / 2.0), view.map(s.face, 0.0));
         let _ = writeln!(
@@ -292,43 +378,7 @@ pub fn render_svg(moves: &[Move], start: Pos, title: &str, width: u32, extras: &
         }
         area.present().map_err(|e| e.to_string())?;
     }
-    // The tool nose at every vertex of a compensated path: centre = tool point − R·tip vector.
-    let nose_c: Rgb = (150, 0, 170);
-    let mut noses = Vec::new();
-    let mut before = false;
-    for (_, m, n) in &paths {
-        let Some(Nose { r: rad, centre }) = n else {
-            before = false;
-            continue;
-        };
-        // A start-up move starts from an uncompensated point: its nose only at its end.
-        let from = if std::mem::replace(&mut before, true) { 0 } else { centre.len() - 1 };
-        let c = &centre[from..];
-        let at: Vec<(f64, f64)> =
-            if matches!(m.kind, MoveKind::Arc { .. }) { vec![c[0], c[c.len() / 2], c[c.len() - 1]] } else { vec![c[0], c[c.len() - 1]] };
-        // The nose-centre path, dotted.
-        if c.len() > 1 {
-            let pts: String = c.iter().map(|&(z, x)| view.map(z, x)).map(|(a, b)| format!("{a:.1},{b:.1} ")).collect();
-            let _ = writeln!(
-                over,
-                "<polyline class=\"nose-path\" fill=\"none\" stroke=\"{}\" stroke-width=\"1\" stroke-dasharray=\"2 3\" points=\"{}\"/>",
-                plot::hex(nose_c),
-                pts.trim_end()
-            );
-        }
-        for (cz, cx) in at {
-            let (px, py) = view.map(cz, cx);
-            let _ = writeln!(
-                over,
-                "<circle class=\"nose\" data-r=\"{rad}\" data-z=\"{cz:.4}\" data-x=\"{cx:.4}\" cx=\"{px:.1}\" cy=\"{py:.1}\" r=\"{:.2}\" fill=\"none\" stroke=\"{}\" stroke-width=\"1\"/>",
-                (rad / view.scale()).max(1.5),
-                plot::hex(nose_c)
-            );
-        }
-        if !noses.contains(rad) {
-            noses.push(*rad);
-        }
-    }
+    let noses = draw_noses(&view, &paths, &mut over);
     // The work zero: a quartered circle at Z0 X0.
     let (zx, zy) = view.map(0.0, 0.0);
     let _ = writeln!(
@@ -348,35 +398,7 @@ pub fn render_svg(moves: &[Move], start: Pos, title: &str, width: u32, extras: &
         format!("path Z {pz0:.3} … {pz1:.3} mm, X Ø{:.3} … Ø{:.3} mm (radius {px0:.3} … {px1:.3})", 2.0 * px0, 2.0 * px1)
     };
     over += &plot::text(l, 42.0, &format!("{extent}; scale {:.3} mm/px, workpiece coordinates", view.scale()), 12, (70, 70, 70), "start", "extent");
-    // The legend: only what the program has, right of the drawing.
-    let mut entries: Vec<(String, Rgb, bool)> = Vec::new();
-    for (_, m, _) in &paths {
-        let (n, c) = kind(m);
-        if !entries.iter().any(|e| e.0 == n) {
-            entries.push((n, c, matches!(m.kind, MoveKind::Rapid { .. })));
-        }
-    }
-    let (lx, mut ly) = (r + 18.0, t + 14.0);
-    for (n, c, dashed) in &entries {
-        over += &plot::legend_entry(lx, ly, n, *c, if *dashed { "6 4" } else { "" }, false);
-        ly += 18.0;
-    }
-    for rad in &noses {
-        over += &format!("<circle cx=\"{:.1}\" cy=\"{:.1}\" r=\"5\" fill=\"none\" stroke=\"{}\"/>\n", lx + 12.0, ly - 4.0, plot::hex(nose_c));
-        over += &plot::text(lx + 30.0, ly, &format!("tool nose R{rad} (centre dotted)"), 12, (0, 0, 0), "start", "legend");
-        ly += 18.0;
-    }
-    if let Some(s) = extras.stock {
-        over += &plot::legend_entry(lx, ly, &format!("stock Ø{}×{} mm", s.diameter, s.length), (140, 109, 63), "", true);
-        ly += 18.0;
-    }
-    let _ = writeln!(
-        over,
-        "<g transform=\"translate({:.1} {:.1})\"><circle r=\"6\" fill=\"#FFFFFF\" stroke=\"#000000\"/><path d=\"M0,0 L6,0 A6,6 0 0,1 0,6 Z M0,0 L-6,0 A6,6 0 0,1 0,-6 Z\"/></g>",
-        lx + 12.0,
-        ly - 4.0
-    );
-    over += &plot::text(lx + 30.0, ly, "work zero W", 12, (0, 0, 0), "start", "legend");
+    over += &legend(&paths, &noses, extras.stock, (r + 18.0, t));
     let svg = plot::document(view.width, view.height, title, &format!("{under}{}{over}", plot::inner(&body)?));
     Ok((svg, view))
 }

@@ -225,6 +225,74 @@ impl PolarSeg {
     }
 }
 
+/// A polar arc's centre, start radius, radius change, start angle and sweep; its radii must
+/// agree within `tol` (PS0020).
+fn polar_arc(from: [f64; 2], to: [f64; 2], c: [f64; 2], cw: bool, tol: f64) -> Result<([f64; 2], f64, f64, f64, f64), Alarm> {
+    let r0 = (from[0] - c[0]).hypot(from[1] - c[1]);
+    let r1 = (to[0] - c[0]).hypot(to[1] - c[1]);
+    if !(r0 > 0.0 && r1 > 0.0) {
+        return Err(Alarm::new(alarms::BAD_VALUE, "polar arc with zero radius: correct R"));
+    }
+    if (r0 - r1).abs() > tol {
+        return Err(Alarm::new(
+            alarms::ARC_RADIUS,
+            format!("polar arc radius differs between start ({r0:.4}) and end ({r1:.4}) by more than {tol} mm; correct R or the end point"),
+        ));
+    }
+    let (a0, sweep) = crate::canon::arc_sweep(from, to, c, cw);
+    Ok((c, r0, r1 - r0, a0, sweep))
+}
+
+/// How a polar path lies around the rotation centre.
+struct Extent {
+    rmin: f64,
+    rmax: f64,
+    /// Arc length at the closest approach.
+    s_close: f64,
+    /// The smallest r²/|p×t| (the tangential ramp's share of C's acceleration).
+    rc_min: f64,
+}
+
+/// Along the path: the radii X takes (travel), the closest approach to the centre, and the
+/// smallest r²/|p×t| — sampled, plus the exact closest point of a line or an arc.
+fn path_extent(seg: &PolarSeg) -> Extent {
+    let (len, len_v, from, to) = (seg.len, seg.len_v, seg.from, seg.to);
+    let mut x = Extent { rmin: f64::INFINITY, rmax: 0.0, s_close: 0.0, rc_min: f64::INFINITY };
+    let mut probe = |s: f64| {
+        let (p, t, _, _) = seg.eval(s);
+        let r = p[0].hypot(p[1]);
+        if r < x.rmin {
+            x.rmin = r;
+            x.s_close = s;
+        }
+        x.rmax = x.rmax.max(r);
+        let cr = cross(p, t).abs();
+        if cr > 0.0 {
+            x.rc_min = x.rc_min.min(r * r / cr);
+        }
+    };
+    for j in 0..=PUSH_SAMPLES {
+        probe(len * j as f64 / PUSH_SAMPLES as f64);
+    }
+    match seg.arc {
+        None => {
+            let d = [to[0] - from[0], to[1] - from[1]];
+            let u = -dot(from, d) / (len_v * len_v).max(1e-300);
+            if (0.0..=1.0).contains(&u) {
+                probe(u * len);
+            }
+        }
+        Some((c, _, _, a0, sweep)) => {
+            let toward = (-c[1]).atan2(-c[0]);
+            let rel = if sweep >= 0.0 { (toward - a0).rem_euclid(std::f64::consts::TAU) } else { (a0 - toward).rem_euclid(std::f64::consts::TAU) };
+            if rel <= sweep.abs() {
+                probe(len * rel / sweep.abs());
+            }
+        }
+    }
+    x
+}
+
 impl Motion {
     /// Plan a G12.1 segment. Refuses a machine without a Cs spindle, a feed per revolution
     /// (the spindle is the C axis), non-finite values, an arc whose radii differ, X beyond its
@@ -266,24 +334,7 @@ impl Motion {
         let (z0, z1) = (self.plan_end[AX_Z], e[AX_Z]);
         let arc = match center {
             None => None,
-            Some(c) => {
-                let r0 = (from[0] - c[0]).hypot(from[1] - c[1]);
-                let r1 = (to[0] - c[0]).hypot(to[1] - c[1]);
-                if !(r0 > 0.0 && r1 > 0.0) {
-                    return Err(Alarm::new(alarms::BAD_VALUE, "polar arc with zero radius: correct R"));
-                }
-                if (r0 - r1).abs() > l.arc_radius_tol {
-                    return Err(Alarm::new(
-                        alarms::ARC_RADIUS,
-                        format!(
-                            "polar arc radius differs between start ({r0:.4}) and end ({r1:.4}) by more than {} mm; correct R or the end point",
-                            l.arc_radius_tol
-                        ),
-                    ));
-                }
-                let (a0, sweep) = crate::canon::arc_sweep(from, to, c, cw);
-                Some((c, r0, r1 - r0, a0, sweep))
-            }
+            Some(c) => Some(polar_arc(from, to, c, cw, l.arc_radius_tol)?),
         };
         let len_v = match arc {
             None => (to[0] - from[0]).hypot(to[1] - from[1]),
@@ -316,43 +367,7 @@ impl Motion {
         if !(len > 0.0) {
             return Err(Alarm::new(alarms::BAD_VALUE, "polar interpolation move of zero length"));
         }
-        // Along the path: X within its travel, the closest approach to the centre, and the
-        // smallest r²/|p×t| (the tangential ramp's share of C's acceleration).
-        let (mut rmin, mut rmax, mut s_close, mut rc_min) = (f64::INFINITY, 0.0f64, 0.0, f64::INFINITY);
-        let mut probe = |s: f64| {
-            let (p, t, _, _) = seg.eval(s);
-            let r = p[0].hypot(p[1]);
-            if r < rmin {
-                rmin = r;
-                s_close = s;
-            }
-            rmax = rmax.max(r);
-            let cr = cross(p, t).abs();
-            if cr > 0.0 {
-                rc_min = rc_min.min(r * r / cr);
-            }
-        };
-        for j in 0..=PUSH_SAMPLES {
-            probe(len * j as f64 / PUSH_SAMPLES as f64);
-        }
-        // The exact closest point of a line, and of an arc (the point towards the origin).
-        match arc {
-            None => {
-                let d = [to[0] - from[0], to[1] - from[1]];
-                let u = -dot(from, d) / (len_v * len_v).max(1e-300);
-                if (0.0..=1.0).contains(&u) {
-                    probe(u * len);
-                }
-            }
-            Some((c, _, _, a0, sweep)) => {
-                let toward = (-c[1]).atan2(-c[0]);
-                let rel =
-                    if sweep >= 0.0 { (toward - a0).rem_euclid(std::f64::consts::TAU) } else { (a0 - toward).rem_euclid(std::f64::consts::TAU) };
-                if rel <= sweep.abs() {
-                    probe(len * rel / sweep.abs());
-                }
-            }
-        }
+        let Extent { rmin, rmax, s_close, rc_min } = path_extent(&seg);
         self.check_axis(AX_X, work_x + rmax, "polar path")?;
         self.check_axis(AX_X, work_x + rmin, "polar path")?;
         if len_v > 0.0 && rmin < MIN_CENTRE_MM {
