@@ -1,10 +1,8 @@
 //! The alarm history (issue 24.7): every alarm of `cncgw run` is appended to the machine's
 //! history in its state directory; `cncgw alarms` shows it, as text or JSON, since a time.
 
-use std::process::Command;
-
 fn cncgw(state: &std::path::Path, args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_cncgw")).env("CNCGW_STATE_DIR", state).args(args).output().unwrap()
+    testkit::cli!().state(state).output(args)
 }
 
 #[test]

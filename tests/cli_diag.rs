@@ -1,25 +1,10 @@
 //! The service commands, run as an operator would: the real binary against the embedded
 //! emulated drives (default config, `inproc` bus).
 
-use std::process::Command;
-
-struct Out {
-    code: i32,
-    stdout: String,
-    stderr: String,
-}
+use testkit::Out;
 
 fn cncgw(args: &[&str]) -> Out {
-    let o = Command::new(env!("CARGO_BIN_EXE_cncgw"))
-        .env("CNCGW_STATE_DIR", std::env::temp_dir().join(format!("cncgw-test-state-{}", std::process::id())))
-        .args(args)
-        .output()
-        .expect("run cncgw");
-    Out {
-        code: o.status.code().unwrap_or(-1),
-        stdout: String::from_utf8_lossy(&o.stdout).into_owned(),
-        stderr: String::from_utf8_lossy(&o.stderr).into_owned(),
-    }
+    testkit::cli!().run(args)
 }
 
 #[test]

@@ -2,15 +2,9 @@
 //! for what is wrong with them; a kernel without SocketCAN is said so; no colour codes go into
 //! a file or a pipe (and NO_COLOR switches them off on a terminal too).
 
-use std::process::Command;
-
 fn cncgw(args: &[&str]) -> (i32, String) {
-    let o = Command::new(env!("CARGO_BIN_EXE_cncgw"))
-        .env("CNCGW_STATE_DIR", std::env::temp_dir().join(format!("cncgw-test-state-{}", std::process::id())))
-        .args(args)
-        .output()
-        .unwrap();
-    (o.status.code().unwrap_or(-1), String::from_utf8_lossy(&o.stderr).into_owned())
+    let o = testkit::cli!().run(args);
+    (o.code, o.stderr)
 }
 
 #[test]

@@ -4,28 +4,14 @@
 //! `--json`. Real time: serialized in .config/nextest.toml. Needs the workspace's binaries
 //! (`cargo build --workspace --bins`).
 
-mod procs;
-use procs::Kill;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
+use testkit::Kill;
 
-struct Out {
-    code: i32,
-    stdout: String,
-    stderr: String,
-}
+use testkit::Out;
 
 fn cncgw(args: &[&str]) -> Out {
-    let o = Command::new(env!("CARGO_BIN_EXE_cncgw"))
-        .env("CNCGW_STATE_DIR", std::env::temp_dir().join(format!("cncgw-test-state-{}", std::process::id())))
-        .args(args)
-        .output()
-        .expect("run cncgw");
-    Out {
-        code: o.status.code().unwrap_or(-1),
-        stdout: String::from_utf8_lossy(&o.stdout).into_owned(),
-        stderr: String::from_utf8_lossy(&o.stderr).into_owned(),
-    }
+    testkit::cli!().run(args)
 }
 
 fn json(o: &Out) -> serde_json::Value {

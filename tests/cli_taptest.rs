@@ -3,27 +3,12 @@
 
 mod svg_common;
 
-use std::process::Command;
 use svg_common::{by_class, num, parse, texts};
 
-struct Out {
-    code: i32,
-    stdout: String,
-    stderr: String,
-}
+use testkit::Out;
 
 fn cncgw_in(dir: &std::path::Path, args: &[&str]) -> Out {
-    let o = Command::new(env!("CARGO_BIN_EXE_cncgw"))
-        .env("CNCGW_STATE_DIR", std::env::temp_dir().join(format!("cncgw-test-state-{}", std::process::id())))
-        .current_dir(dir)
-        .args(args)
-        .output()
-        .expect("run cncgw");
-    Out {
-        code: o.status.code().unwrap_or(-1),
-        stdout: String::from_utf8_lossy(&o.stdout).into_owned(),
-        stderr: String::from_utf8_lossy(&o.stderr).into_owned(),
-    }
+    testkit::cli!().dir(dir).run(args)
 }
 
 fn tmpdir(name: &str) -> std::path::PathBuf {

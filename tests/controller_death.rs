@@ -8,13 +8,12 @@
 //! (The CANopen case, heartbeat consumer, is in tests/tap_return_kill.rs.) Real time: runs
 //! alone (.config/nextest.toml).
 
-mod procs;
-use procs::{bin, Kill};
 use std::path::PathBuf;
 use std::process::{Command, Stdio};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
+use testkit::{bin, Kill};
 use tokio_modbus::prelude::*;
 
 const CYCLE_MS: f64 = 2.0;
@@ -23,7 +22,7 @@ const STATUSWORD: u16 = 10;
 const COMM_TIMEOUT: u16 = 23;
 
 fn tmp(name: &str) -> PathBuf {
-    procs::tmp("controller_death", name)
+    testkit::tmp!("controller_death", name)
 }
 
 /// One reading of a unit: (time, unit, statusword, position counts, error code).
@@ -45,7 +44,7 @@ fn realtime_modbus_drives_stop_when_the_controller_is_killed() {
     let cfg_s = cfg.display().to_string();
     let log = tmp("sim.log");
     let _sim = Kill(
-        Command::new(bin("sim-drives"))
+        Command::new(bin!("sim-drives"))
             .args(["--config", &cfg_s, "--modbus-tcp", &addr])
             .stderr(std::fs::File::create(&log).unwrap())
             .spawn()
@@ -87,7 +86,7 @@ fn realtime_modbus_drives_stop_when_the_controller_is_killed() {
     std::fs::write(&prog, "O1\nG21\nG98 G97\nM03 S120\nG00 X20 Z2\nG01 Z-150 F1500\nM05\nM30\n").unwrap();
     let run_log = tmp("run.log");
     let mut cnc = Kill(
-        Command::new(bin("cncgw"))
+        Command::new(bin!("cncgw"))
             .args(["run", "--config", &cfg_s, "--state-dir", &tmp("state").display().to_string()])
             .arg(&prog)
             .stdout(Stdio::null())

@@ -3,18 +3,13 @@
 //! matches the lag measured in a separate run at constant speed within 10 %.
 
 use std::path::PathBuf;
-use std::process::Command;
 
 fn model(name: &str) -> String {
     format!("{}/tests/drive_models/{name}.toml", env!("CARGO_MANIFEST_DIR"))
 }
 
 fn cncgw(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_cncgw"))
-        .env("CNCGW_STATE_DIR", std::env::temp_dir().join(format!("cncgw-test-state-{}", std::process::id())))
-        .args(args)
-        .output()
-        .unwrap()
+    testkit::cli!().output(args)
 }
 
 fn identify(axis: &str, m: &str) -> serde_json::Value {

@@ -3,19 +3,17 @@
 //! over RTU through a socat pseudo-terminal pair, and mixed with CANopen drives. Real time:
 //! these run alone (.config/nextest.toml).
 
-mod procs;
-use procs::Kill;
-use std::io::{BufRead, BufReader};
 use std::net::SocketAddr;
 use std::path::PathBuf;
-use std::process::{Command, Output, Stdio};
+use std::process::{Command, Output};
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
+use testkit::Kill;
 
 const MODBUS_LATHE: &str = include_str!("../config/lathe-modbus.toml");
 
 fn tmp(name: &str) -> PathBuf {
-    procs::tmp("modbus_run", name)
+    testkit::tmp!("modbus_run", name)
 }
 
 /// A server for the Modbus drives of `machine` on 127.0.0.1 (any port).
@@ -25,12 +23,7 @@ fn tcp_server(machine: &str, stop: &Arc<AtomicBool>) -> sim_drives::modbus::Modb
 }
 
 fn cncgw(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_cncgw"))
-        .env("CNCGW_STATE_DIR", std::env::temp_dir().join(format!("cncgw-test-state-{}", std::process::id())))
-        .args(args)
-        .env("CNCGW_STATE_DIR", tmp("state"))
-        .output()
-        .unwrap()
+    testkit::cli!().state(tmp("state")).output(args)
 }
 
 fn text(o: &Output) -> String {
@@ -148,44 +141,12 @@ fn unreachable_link_is_a_clear_alarm() {
     assert!(t.contains(&format!("alarm 2200: Modbus link tcp: cannot open Modbus TCP {port}")), "{t}");
 }
 
-/// Whether socat is installed; panics when it is missing unless skipping was asked for
-/// (never under CI=true).
-fn have_socat() -> bool {
-    let found = Command::new("sh").args(["-c", "command -v socat"]).stdout(Stdio::null()).status().is_ok_and(|s| s.success());
-    if found {
-        return true;
-    }
-    let ci = std::env::var("CI").as_deref() == Ok("true");
-    if std::env::var("CNCGW_SKIP_MODBUS_TOOLS").as_deref() == Ok("1") && !ci {
-        eprintln!("socat missing, CNCGW_SKIP_MODBUS_TOOLS=1: test skipped on request");
-        return false;
-    }
-    panic!("`socat` is not installed: run `scripts/install-test-deps.sh`");
-}
-
-fn pty_pair() -> (Kill, String, String) {
-    let mut c =
-        Command::new("socat").args(["-d", "-d", "pty,raw,echo=0", "pty,raw,echo=0"]).stdout(Stdio::null()).stderr(Stdio::piped()).spawn().unwrap();
-    let err = c.stderr.take().unwrap();
-    let k = Kill(c);
-    let mut lines = BufReader::new(err).lines();
-    let mut ptys = Vec::new();
-    while ptys.len() < 2 {
-        let l = lines.next().expect("socat named no pty").unwrap();
-        if let Some(p) = l.split("PTY is ").nth(1) {
-            ptys.push(p.trim().to_string());
-        }
-    }
-    std::thread::spawn(move || for _ in lines.by_ref() {});
-    (k, ptys[0].clone(), ptys[1].clone())
-}
-
 #[test]
 fn rtu_machine_runs_over_a_serial_line() {
-    if !have_socat() {
+    if !testkit::have_socat() {
         return;
     }
-    let (_socat, a, b) = pty_pair();
+    let (_socat, a, b) = testkit::pty_pair();
     let stop = Arc::new(AtomicBool::new(false));
     let cfg = sim_drives::SimConfig::from_machine_toml_bus(MODBUS_LATHE, Some(true)).unwrap();
     let srv = sim_drives::modbus::serve_rtu(&a, sim_drives::modbus::RtuLine::default(), cfg, stop.clone()).unwrap();

@@ -3,7 +3,6 @@
 //! that powers up away from 0, "busy" answers, late answers — over TCP and RTU. Real time:
 //! serialized in .config/nextest.toml.
 
-mod procs;
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::process::{Command, Output};
@@ -13,7 +12,7 @@ use std::sync::Arc;
 const MODBUS_LATHE: &str = include_str!("../config/lathe-modbus.toml");
 
 fn tmp(name: &str) -> PathBuf {
-    procs::tmp("modbus_vendor", name)
+    testkit::tmp!("modbus_vendor", name)
 }
 
 fn write(name: &str, s: &str) -> String {
@@ -23,7 +22,7 @@ fn write(name: &str, s: &str) -> String {
 }
 
 fn cncgw(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_cncgw")).env("CNCGW_STATE_DIR", tmp("state")).args(args).output().unwrap()
+    testkit::cli!().state(tmp("state")).output(args)
 }
 
 fn text(o: &Output) -> String {
@@ -245,43 +244,6 @@ fn pr_drive_away_from_zero_starts_without_a_huge_speed_or_following_error() {
     stop(srv, &flag);
 }
 
-/// Whether socat is installed; panics when it is missing unless skipping was asked for
-/// (never under CI=true), as tests/modbus_run.rs.
-fn have_socat() -> bool {
-    let found = Command::new("sh").args(["-c", "command -v socat"]).stdout(std::process::Stdio::null()).status().is_ok_and(|s| s.success());
-    if found {
-        return true;
-    }
-    let ci = std::env::var("CI").as_deref() == Ok("true");
-    if std::env::var("CNCGW_SKIP_MODBUS_TOOLS").as_deref() == Ok("1") && !ci {
-        eprintln!("socat missing, CNCGW_SKIP_MODBUS_TOOLS=1: test skipped on request");
-        return false;
-    }
-    panic!("`socat` is not installed: run `scripts/install-test-deps.sh`");
-}
-
-fn pty_pair() -> (procs::Kill, String, String) {
-    use std::io::BufRead;
-    let mut c = Command::new("socat")
-        .args(["-d", "-d", "pty,raw,echo=0", "pty,raw,echo=0"])
-        .stdout(std::process::Stdio::null())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
-    let err = c.stderr.take().unwrap();
-    let k = procs::Kill(c);
-    let mut lines = std::io::BufReader::new(err).lines();
-    let mut ptys = Vec::new();
-    while ptys.len() < 2 {
-        let l = lines.next().expect("socat named no pty").unwrap();
-        if let Some(p) = l.split("PTY is ").nth(1) {
-            ptys.push(p.trim().to_string());
-        }
-    }
-    std::thread::spawn(move || for _ in lines.by_ref() {});
-    (k, ptys[0].clone(), ptys[1].clone())
-}
-
 /// X answers one request in `every` 25 ms late: past the shipped 20 ms timeout, so that
 /// answer arrives while the master waits for the next one.
 fn late_x(every: u32) -> impl Fn(u8) -> sim_drives::ModbusQuirks {
@@ -313,10 +275,10 @@ fn late_answers_are_ridden_through_on_tcp_with_the_shipped_config() {
 /// later read was out of step ("mismatching function codes") for good.
 #[test]
 fn late_answers_are_ridden_through_on_rtu_with_the_shipped_config() {
-    if !have_socat() {
+    if !testkit::have_socat() {
         return;
     }
-    let (_socat, a, b) = pty_pair();
+    let (_socat, a, b) = testkit::pty_pair();
     let flag = Arc::new(AtomicBool::new(false));
     let mut cfg = sim_drives::SimConfig::from_machine_toml_bus(MODBUS_LATHE, Some(true)).unwrap();
     for d in &mut cfg.drives {

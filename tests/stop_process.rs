@@ -9,14 +9,13 @@
 //!
 //! Real time: runs alone (.config/nextest.toml).
 
-mod procs;
-use procs::{bin, Kill};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
+use testkit::{bin, Kill};
 
 fn tmp(name: &str) -> PathBuf {
-    procs::tmp("stop_process", name)
+    testkit::tmp!("stop_process", name)
 }
 
 /// The default machine with the margins a shared 2-core VM needs in real time (as the other
@@ -35,7 +34,7 @@ fn machine() -> PathBuf {
 fn start_sim(cfg: &Path, faults: &[&str]) -> (Kill, u16) {
     let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
     let log = tmp(&format!("sim-{port}.log"));
-    let mut c = Command::new(bin("sim-drives"));
+    let mut c = Command::new(bin!("sim-drives"));
     c.args(["--config", &cfg.display().to_string(), "--socketcand", &format!("127.0.0.1:{port}")]);
     for f in faults {
         c.args(["--fault", f]);
@@ -50,7 +49,7 @@ fn start_sim(cfg: &Path, faults: &[&str]) -> (Kill, u16) {
 }
 
 fn cncgw(args: &[&str], state: &Path) -> Command {
-    let mut c = Command::new(bin("cncgw"));
+    let mut c = Command::new(bin!("cncgw"));
     c.args(args).env("CNCGW_STATE_DIR", state).env("NO_COLOR", "1");
     c
 }

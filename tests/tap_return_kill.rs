@@ -17,24 +17,23 @@
 //! Plus: SIGKILL in the middle of tap-state writes leaves the old or the new state, never a
 //! torn one. Real time: these run alone (.config/nextest.toml).
 
-mod procs;
 use cncgw::persist::{TapState, TapStateFile};
 use cncgw_bus::canopen::emcy::Emcy;
 use cncgw_bus::canopen::sdo::{SdoRequest, SdoResponse};
 use cncgw_bus::transport::socketcand::Socketcand;
 use cncgw_bus::{CanBus, CanFrame};
-use procs::{bin, Kill};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
+use testkit::{bin, Kill};
 
 const HEARTBEAT_MS: u64 = 100;
 const CYCLE_MS: f64 = 2.0;
 
 fn tmp(name: &str) -> PathBuf {
-    procs::tmp("tap_return_kill", name)
+    testkit::tmp!("tap_return_kill", name)
 }
 
 /// The default lathe with the tolerances of a shared 2-core machine (as tests/modbus_run.rs):
@@ -56,7 +55,7 @@ fn start_sim(cfg: &Path) -> (Kill, u16, PathBuf) {
     let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
     let log = tmp("sim.log");
     let sim = Kill(
-        Command::new(bin("sim-drives"))
+        Command::new(bin!("sim-drives"))
             .args(["--config", &cfg.display().to_string(), "--socketcand", &format!("127.0.0.1:{port}")])
             .stderr(std::fs::File::create(&log).unwrap())
             .spawn()
@@ -179,7 +178,7 @@ fn realtime_sigkill_mid_tap_drives_stop_and_g30_p99_brings_the_tap_out() {
     let obs = Observer::start(port);
     let run_log = tmp("run1.log");
     let mut cnc = Kill(
-        Command::new(bin("cncgw"))
+        Command::new(bin!("cncgw"))
             .args(["run", "--config", &cfg_s, "--bus", &bus, "--state-dir", &sd])
             .arg(&prog)
             .stdout(Stdio::null())
@@ -263,7 +262,7 @@ fn realtime_sigkill_mid_tap_drives_stop_and_g30_p99_brings_the_tap_out() {
     // A program that is not G30 P99 is refused, and nothing moves.
     let other = tmp("other.nc");
     std::fs::write(&other, "O3\nG00 X20 Z50\nM30\n").unwrap();
-    let o = Command::new(bin("cncgw")).args(["run", "--config", &cfg_s, "--bus", &bus, "--state-dir", &sd]).arg(&other).output().unwrap();
+    let o = Command::new(bin!("cncgw")).args(["run", "--config", &cfg_s, "--bus", &bus, "--state-dir", &sd]).arg(&other).output().unwrap();
     let t = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(3), "{t}");
     assert!(t.contains("alarm 2410") && t.contains("G30 P99"), "{t}");
@@ -272,7 +271,7 @@ fn realtime_sigkill_mid_tap_drives_stop_and_g30_p99_brings_the_tap_out() {
     let ret = tmp("return.nc");
     std::fs::write(&ret, "O2\nG30 P99 S500\nM30\n").unwrap();
     let trace = tmp("return.csv");
-    let o = Command::new(bin("cncgw"))
+    let o = Command::new(bin!("cncgw"))
         .args(["run", "--json", "--config", &cfg_s, "--bus", &bus, "--state-dir", &sd, "--trace", &trace.display().to_string()])
         .arg(&ret)
         .output()
