@@ -13,16 +13,19 @@
 mod bus_check;
 mod drive_check;
 mod explain;
+mod ip_mode;
 mod life;
 mod mode_track;
 mod restore;
+mod startup_list;
 
 pub use drive_check::{check_scaling, DriveProbe, Scaling, ALARM_FOREIGN, ALARM_MODE, ALARM_SCALING};
 pub use explain::{mode_short, supported_modes_text};
 pub use mode_track::MODE_TIMEOUT_MS;
+pub use startup_list::{check_list_against_eds, ALARM_STARTUP_LIST};
 
 use super::sdo_client::{SdoClient, SdoError};
-use crate::config::{AxisKind, MachineConfig, Polarity};
+use crate::config::{AxisKind, CyclicMode, MachineConfig, Polarity, StartupSdo};
 use crate::drives::{AxisFeedback, DriveBus};
 use crate::Alarm;
 use cncgw_bus::canopen::emcy::{error_register_text, error_text, Emcy};
@@ -90,6 +93,10 @@ pub struct NodeSpec {
     pub travel_per_rev: Option<f64>,
     /// The drive's position polarity (`axes.NAME.polarity`), checked against 0x607E.
     pub polarity: Polarity,
+    /// Interpolated position (`axes.NAME.mode = "ip"`) instead of CSP.
+    pub ip: bool,
+    /// The start-up list (`[[axes.NAME.sdo]]`).
+    pub sdo: Vec<StartupSdo>,
 }
 
 impl NodeSpec {
@@ -113,8 +120,28 @@ impl NodeSpec {
                 tpdo_tx: a.tpdo_transmission,
                 travel_per_rev: a.travel_per_rev,
                 polarity: a.polarity,
+                ip: a.mode == CyclicMode::Ip,
+                sdo: a.sdo.clone(),
             })
             .collect()
+    }
+
+    /// The cyclic position mode: interpolated position (7) or CSP (8).
+    pub fn position_mode(&self) -> i8 {
+        if self.ip {
+            mode::INTERPOLATED_POSITION
+        } else {
+            mode::CYCLIC_SYNC_POSITION
+        }
+    }
+
+    /// Where the cyclic position set-point goes: 0x60C1:1 in IP, 0x607A in CSP.
+    pub fn target_object(&self) -> (u16, u8) {
+        if self.ip {
+            (od::INTERPOLATION_DATA, 1)
+        } else {
+            (od::TARGET_POSITION, 0)
+        }
     }
 }
 
@@ -186,6 +213,17 @@ struct Node {
     bad_len_last: u8,
     /// Node guarding by the master (a drive without a heartbeat consumer).
     guarding: Option<life::Guarding>,
+    /// IP: consecutive TPDO1s in Operation Enabled without statusword bit 12 (ip mode active).
+    ip_inactive: u32,
+    /// How start-up set the drive up, for the log line and `cncgw scan`-like reports.
+    chosen: Chosen,
+}
+
+/// What start-up chose for a drive and why, logged once per drive.
+#[derive(Clone, Debug, Default)]
+pub struct Chosen {
+    pub mapping: String,
+    pub error_control: String,
 }
 
 impl Node {
@@ -217,6 +255,8 @@ impl Node {
             bad_len_total: 0,
             bad_len_last: 0,
             guarding: None,
+            ip_inactive: 0,
+            chosen: Chosen::default(),
         }
     }
 }
@@ -376,6 +416,8 @@ impl<B: CanBus> CanOpenMaster<B> {
             tpdo_tx: 1,
             travel_per_rev: None,
             polarity: Polarity::Normal,
+            ip: false,
+            sdo: Vec::new(),
         };
         let timeout = self.boot_timeout_ms / 4;
         self.nodes.push(Node::new(spec, timeout.max(1)));
@@ -581,6 +623,8 @@ impl<B: CanBus> CanOpenMaster<B> {
             }
             n.status = get_u16(&f.data, 0);
             n.not_enabled = if State::from_statusword(n.status) == State::OperationEnabled { 0 } else { n.not_enabled.saturating_add(1) };
+            self.note_ip_status(i);
+            let n = &mut self.nodes[i];
             if n.have_fb {
                 // INTEGER32 positions wrap; a spindle passes 2^31 counts within minutes.
                 n.unwrapped += raw.wrapping_sub(n.raw_pos) as i64;
@@ -724,10 +768,16 @@ impl<B: CanBus> CanOpenMaster<B> {
         self.check_node_eds(i)?;
         self.identify_node(clock, i)?;
         self.check_not_sync_producer(clock, i)?;
-        let want = mode::CYCLIC_SYNC_POSITION;
+        let want = self.nodes[i].spec.position_mode();
         self.check_supported_mode(clock, i, want)?;
-        self.check_node_scaling(clock, i)?;
+        let scaling = self.check_node_scaling(clock, i)?;
         self.write_cycle_period(clock, i)?;
+        if self.nodes[i].spec.ip {
+            self.configure_ip(clock, i)?;
+        }
+        // The mode it booted in, for the start-up line (a drive in PP is switched below and
+        // confirmed through 0x6061 before it is enabled).
+        let booted_in = self.read_u32(clock, i, od::MODES_DISPLAY, 0).ok().map(|v| v as u8 as i8);
         self.nodes[i].mode.want = want;
         self.nodes[i].mode.confirmed = false;
         self.write(clock, i, od::MODES_OF_OPERATION, 0, &[want as u8])?;
@@ -744,7 +794,24 @@ impl<B: CanBus> CanOpenMaster<B> {
             self.write(clock, i, od::SOFTWARE_LIMIT, 2, &hi.to_le_bytes())?;
         }
         self.map_cyclic_pdos(clock, i)?;
-        self.configure_error_control(clock, i)
+        self.configure_error_control(clock, i)?;
+        self.write_startup_list(clock, i)?;
+        let n = &self.nodes[i];
+        let booted = match booted_in {
+            Some(b) if b != want => format!(", booted in {} and switched by 0x6060 (confirmed by 0x6061 before enabling)", explain::mode_words(b)),
+            _ => String::new(),
+        };
+        tracing::info!(
+            node = n.spec.node,
+            axis = %n.spec.axis,
+            "start-up: mode {}{booted}; mapping: {}; error control: {}; units: {}{}",
+            explain::mode_short(want),
+            n.chosen.mapping,
+            n.chosen.error_control,
+            scaling.unit_text(),
+            if n.spec.sdo.is_empty() { String::new() } else { format!("; start-up list: {} object(s) read back equal", n.spec.sdo.len()) }
+        );
+        Ok(())
     }
 
     /// The drive's own data sheet must allow what start-up writes (before anything is written).
@@ -831,7 +898,8 @@ impl<B: CanBus> CanOpenMaster<B> {
     /// display (or, where the drive cannot map 0x6061, without it: the mode is then polled).
     fn map_cyclic_pdos(&mut self, clock: &mut dyn Clock, i: usize) -> Result<(), Alarm> {
         let spec = self.nodes[i].spec.clone();
-        let rpdo = [MapEntry::new(od::CONTROLWORD, 0, 16), MapEntry::new(od::TARGET_POSITION, 0, 32)];
+        let (tix, tsub) = spec.target_object();
+        let rpdo = [MapEntry::new(od::CONTROLWORD, 0, 16), MapEntry::new(tix, tsub, 32)];
         let tpdo = [MapEntry::new(od::STATUSWORD, 0, 16), MapEntry::new(od::POSITION_ACTUAL, 0, 32), MapEntry::new(od::MODES_DISPLAY, 0, 8)];
         self.map_pdo(clock, i, od::RPDO_COMM, od::RPDO_MAP, spec.rpdo_cob, spec.rpdo_tx, &rpdo)?;
         let refused_third = |e: &(u16, u8, [u8; 4], SdoError)| {
@@ -857,6 +925,12 @@ impl<B: CanBus> CanOpenMaster<B> {
         n.mode.in_pdo = in_pdo;
         n.tpdo_len = Some(if in_pdo { TPDO1_LEN } else { TPDO1_LEN - 1 } as u8);
         n.bad_len = 0;
+        n.chosen.mapping = format!(
+            "remapped RPDO1 0x{:03X} = controlword + 0x{tix:04X}:{tsub:02X}, TPDO1 0x{:03X} = statusword + position actual{}",
+            spec.rpdo_cob,
+            spec.tpdo_cob,
+            if in_pdo { " + mode display" } else { " (0x6061 not mappable: polled by SDO)" }
+        );
         Ok(())
     }
 
@@ -865,6 +939,7 @@ impl<B: CanBus> CanOpenMaster<B> {
     /// controller dies. A drive without 0x1016 is guarded instead (`guard_node`).
     fn configure_error_control(&mut self, clock: &mut dyn Clock, i: usize) -> Result<(), Alarm> {
         if self.hb_ms == 0 {
+            self.nodes[i].chosen.error_control = "none (bus.heartbeat_ms = 0, unsafe_no_heartbeat)".into();
             return Ok(());
         }
         let absent = |r: &Result<(), SdoError>| matches!(r, Err(SdoError::Abort { code }) if explain::is_absent(*code));
@@ -888,6 +963,9 @@ impl<B: CanBus> CanOpenMaster<B> {
         }
         if producer.is_err() || consumed.is_err() {
             self.guard_node(clock, i, producer.is_ok())?;
+        } else {
+            self.nodes[i].chosen.error_control =
+                format!("heartbeat both ways (0x1017 = {} ms, 0x1016 consumes the master's at {} ms)", self.hb_ms, self.hb_ms as u32 * 3);
         }
         let opt = 1i16.to_le_bytes();
         match self.try_write(clock, i, od::ABORT_CONNECTION, 0, &opt) {
@@ -917,6 +995,7 @@ impl<B: CanBus> CanOpenMaster<B> {
                 "nor node guarding (0x100C/0x100D)".to_string()
             };
             tracing::warn!(node, axis = %axis, "WARNING: the drive has no heartbeat consumer (0x1016) {why}: it will not stop by itself if this controller dies; use its own watchdog (SYNC or PDO timeout) if it has one");
+            self.nodes[i].chosen.error_control = format!("none: no 0x1016 {why} (warning)");
             return Ok(());
         }
         if heartbeat_set {
@@ -926,6 +1005,8 @@ impl<B: CanBus> CanOpenMaster<B> {
         self.write(clock, i, od::GUARD_TIME, 0, &self.hb_ms.to_le_bytes())?;
         self.write(clock, i, od::LIFE_TIME_FACTOR, 0, &[3])?;
         self.start_guarding(i, self.hb_ms, clock.now_ns());
+        self.nodes[i].chosen.error_control =
+            format!("node guarding (no 0x1016 heartbeat consumer): 0x100C = {} ms, 0x100D = 3, remote frames every {} ms", self.hb_ms, self.hb_ms);
         tracing::warn!(
             node,
             axis = %axis,
@@ -1121,7 +1202,8 @@ impl<B: CanBus> CanOpenMaster<B> {
         let n = &mut self.nodes[i];
         n.controlword = cw::ENABLE_OPERATION_CMD;
         n.target = hold.unwrap_or(n.unwrapped);
-        self.change_mode(clock, i, mode::CYCLIC_SYNC_POSITION)?;
+        let m = n.spec.position_mode();
+        self.change_mode(clock, i, m)?;
         // One cycle so the target the drive latches is the held one.
         self.run_cycles(clock, self.cycle_ns, |_| Ok(true))?;
         if let Some(t) = hold {
@@ -1312,11 +1394,13 @@ impl<B: CanBus> CanOpenMaster<B> {
         // RPDO1 back to 0x607A before the mode: a drive in CSP must never latch a stale
         // 0x607A (the one from before the speed mode) for lack of a fresh one.
         self.nodes[i].target = self.nodes[i].unwrapped;
-        let rpdo = [MapEntry::new(od::CONTROLWORD, 0, 16), MapEntry::new(od::TARGET_POSITION, 0, 32)];
+        let (tix, tsub) = self.nodes[i].spec.target_object();
+        let rpdo = [MapEntry::new(od::CONTROLWORD, 0, 16), MapEntry::new(tix, tsub, 32)];
         let (rc, rt) = (self.nodes[i].spec.rpdo_cob, self.nodes[i].spec.rpdo_tx);
         self.map_pdo(clock, i, od::RPDO_COMM, od::RPDO_MAP, rc, rt, &rpdo)?;
         self.nodes[i].csv = false;
-        self.change_mode(clock, i, mode::CYCLIC_SYNC_POSITION)?;
+        let m = self.nodes[i].spec.position_mode();
+        self.change_mode(clock, i, m)?;
         self.nodes[i].target = self.nodes[i].unwrapped;
         Ok(())
     }
@@ -1340,21 +1424,23 @@ impl<B: CanBus> CanOpenMaster<B> {
         for (comm, map) in [(od::RPDO_COMM, od::RPDO_MAP), (od::TPDO_COMM, od::TPDO_MAP)] {
             w.extend([(comm, 1, 4), (comm, 2, 1), (map, 0, 1), (map, 1, 4), (map, 2, 4)]);
         }
-        let maps = vec![
-            (od::CONTROLWORD, 0, 16, true),
-            (od::TARGET_POSITION, 0, 32, true),
-            (od::STATUSWORD, 0, 16, false),
-            (od::POSITION_ACTUAL, 0, 32, false),
-        ];
+        let (tix, tsub) = spec.target_object();
+        let maps = vec![(od::CONTROLWORD, 0, 16, true), (tix, tsub, 32, true), (od::STATUSWORD, 0, 16, false), (od::POSITION_ACTUAL, 0, 32, false)];
+        for e in &spec.sdo {
+            w.push((e.index, e.sub, e.ty.size()));
+        }
         (w, maps)
     }
 
     /// Objects start-up writes where the drive has them (a fallback where it does not):
     /// 0x1006, error control (heartbeat, or node guarding), 0x6007. Checked against an
     /// EDS only where the EDS lists them.
-    fn optional_startup_objects(&self) -> Vec<ObjWrite> {
+    fn optional_startup_objects(&self, i: usize) -> Vec<ObjWrite> {
         let mut w =
             vec![(od::COMM_CYCLE_PERIOD, 0, 4), (od::SHUTDOWN_OPTION, 0, 2), (od::DISABLE_OPERATION_OPTION, 0, 2), (od::FAULT_REACTION_OPTION, 0, 2)];
+        if self.nodes[i].spec.ip {
+            w.extend([(od::INTERPOLATION_SUB_MODE, 0, 2), (od::INTERPOLATION_BUFFER, 6, 1)]);
+        }
         if self.hb_ms > 0 {
             w.extend([
                 (od::PRODUCER_HEARTBEAT, 0, 2),
@@ -1376,7 +1462,7 @@ impl<B: CanBus> CanOpenMaster<B> {
         };
         let (writes, maps) = self.startup_objects(i);
         let mut out: Vec<String> = writes.iter().filter_map(|&(ix, sub, len)| eds.check_write(ix, sub, len).err()).collect();
-        let optional = self.optional_startup_objects();
+        let optional = self.optional_startup_objects(i);
         out.extend(
             optional.iter().filter(|&&(ix, sub, _)| eds.get(ix, sub).is_some()).filter_map(|&(ix, sub, len)| eds.check_write(ix, sub, len).err()),
         );
@@ -1557,6 +1643,14 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
             if let Some(a) = self.check_tpdo_and_mode(i) {
                 return Err(a);
             }
+            if self.running && self.nodes[i].ip_inactive >= ip_mode::IP_INACTIVE_ALARM {
+                let st = self.nodes[i].status;
+                return Err(self.node_fault(
+                    i,
+                    ALARM_MODE,
+                    format!("statusword bit 12 (ip mode active) dropped while running (statusword 0x{st:04X}): the drive stopped taking set-points; its set-points were stopped. Check the drive's fault log and IP buffer settings"),
+                ));
+            }
             let n = &self.nodes[i];
             if self.running && matches!(n.nmt, Some(s) if s != NmtState::Operational) {
                 return Err(self.node_fault(i, 2014, "node left NMT operational (reset or stopped by someone else?)"));
@@ -1626,8 +1720,8 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
                 (false, true) => (n.unwrapped as i32).to_le_bytes(),
                 (false, false) => self.target_raw(i).to_le_bytes(),
             };
-            let c = n.controlword.to_le_bytes();
-            let f = CanFrame::new(n.spec.rpdo_cob, &[c[0], c[1], t[0], t[1], t[2], t[3]]);
+            let c = self.cyclic_controlword(i).to_le_bytes();
+            let f = CanFrame::new(self.nodes[i].spec.rpdo_cob, &[c[0], c[1], t[0], t[1], t[2], t[3]]);
             self.send(&f)?;
         }
         self.send(&sync_frame(None))?;
@@ -1659,7 +1753,14 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
             n.controlword = en.controlword;
             n.reset_attempts = en.reset_attempts;
             match progress {
-                EnableProgress::Enabled => n.enabled = true,
+                EnableProgress::Enabled => {
+                    n.enabled = true;
+                    // IP: enabled once the drive says "ip mode active" (bit 4 goes out
+                    // from the next RPDO1 on).
+                    if !self.ip_active(i) {
+                        all = false;
+                    }
+                }
                 EnableProgress::ResetFailed => {
                     let code = n.last_emcy.map(|e| e.code).unwrap_or(0);
                     return Err(self.node_alarm(
@@ -1699,6 +1800,11 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
                 )
             } else if !n.have_fb {
                 "; no position feedback (TPDO1) was received".to_string()
+            } else if n.enabled && !self.ip_active(i) {
+                format!(
+                    "; it is Operation Enabled in interpolated position but statusword bit 12 (ip mode active) never came with controlword bit 4 (enable ip mode) set (statusword 0x{:04X}); check the drive's IP settings (sub-mode 0x60C0, buffer 0x60C4) in its manual",
+                    n.status
+                )
             } else {
                 String::new()
             };
