@@ -161,3 +161,75 @@ fn a_drive_booting_in_profile_position_is_switched_to_ip_and_confirmed_before_it
     }
     assert!(r.summary().enable_time_s > 0.4, "waited for the mode: enabled after {} s", r.summary().enable_time_s);
 }
+
+/// The default lathe with `[[axes.x.sdo]]` entries appended (`(index, value, type)`, sub 0).
+fn with_list(entries: &[(u16, i64, &str)]) -> MachineConfig {
+    let mut t = EMBEDDED_LATHE.to_string();
+    for (ix, v, ty) in entries {
+        t.push_str(&format!("\n[[axes.x.sdo]]\nindex = 0x{ix:04X}\nsub = 0\nvalue = {v}\ntype = \"{ty}\"\n"));
+    }
+    MachineConfig::from_toml("list.toml", &t).unwrap_or_else(|e| panic!("{e}"))
+}
+
+const SHORT: &str = "G00 X20. Z2.\nM30\n";
+
+#[test]
+fn a_start_up_list_is_written_in_order_and_read_back() {
+    let cfg = with_list(&[(0x2003, 1200, "u16"), (0x2005, -250, "i32"), (0x2006, 1230, "u16")]);
+    let r = run(&cfg, profiled("plain", |_| {}), SHORT);
+    assert!(r.summary().at_program_end(), "{:#?}", r.summary());
+    let x = r.world.drive(1).unwrap();
+    assert_eq!((x.object(0x2003, 0), x.object(0x2005, 0), x.object(0x2006, 0)), (Some(1200), Some(-250), Some(1230)));
+    // Only axis x has a list.
+    assert_eq!(r.world.drive(2).unwrap().object(0x2003, 0), Some(0));
+}
+
+#[test]
+fn a_refused_start_up_write_stops_before_motion_and_leaves_the_drive_as_found() {
+    // 0x2003 is taken, then 0x2004 (read-only) is refused.
+    let cfg = with_list(&[(0x2003, 1200, "u16"), (0x2004, 1, "u8")]);
+    let r = run(&cfg, profiled("plain", |_| {}), SHORT);
+    let a = r.alarm();
+    assert_eq!(a.number, 2008, "{a}");
+    assert!(
+        a.message.starts_with("node 1 (axis x): start-up list axes.x.sdo[1] 0x2004:00 = 1 (u8): the drive refused the write (abort 0x06010002"),
+        "{a}"
+    );
+    assert!(a.message.contains("nothing was enabled"), "{a}");
+    r.assert_nothing_moved();
+    assert_eq!(r.world.drive(1).unwrap().object(0x2003, 0), Some(0), "0x2003 written back as found");
+    // Out of the drive's range: refused the same way, naming the value.
+    let r = run(&with_list(&[(0x2003, 2500, "u16")]), profiled("plain", |_| {}), SHORT);
+    let a = r.alarm();
+    assert_eq!(a.number, 2008, "{a}");
+    assert!(a.message.contains("sdo[0] 0x2003:00 = 2500 (u16): the drive refused the write (abort 0x06090031"), "{a}");
+}
+
+#[test]
+fn a_value_the_drive_keeps_otherwise_is_a_start_up_alarm_naming_both_values() {
+    // The drive keeps its current limit in whole amperes: 1234 (0.1 A) reads back 1230.
+    let r = run(&with_list(&[(0x2006, 1234, "u16")]), profiled("plain", |_| {}), SHORT);
+    let a = r.alarm();
+    assert_eq!(a.number, 2008, "{a}");
+    assert!(a.message.starts_with("node 1 (axis x): start-up list axes.x.sdo[0] 0x2006:00 = 1234 (u16): written 1234, read back 1230"), "{a}");
+    r.assert_nothing_moved();
+}
+
+#[test]
+fn config_check_checks_start_up_lists_against_the_eds() {
+    let eds = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/python/sim_drive.eds");
+    let mut cfg = with_list(&[(0x2003, 1200, "u16"), (0x2003, 2500, "u16"), (0x2004, 1, "u8"), (0x2005, 7, "u32"), (0x2999, 1, "u8")]);
+    cfg.axes.get_mut("x").unwrap().eds = Some(eds.to_string());
+    let m = CanOpenMaster::new(InprocBus::new().endpoint(), &cfg);
+    let p = m.offline_check(cfg.bus.bitrate);
+    assert_eq!(p.len(), 4, "{p:#?}");
+    assert!(p[0].starts_with("axes.x.eds: axes.x.sdo[1] 0x2003:00 = 2500 (u16): above the EDS's HighLimit 2000"), "{}", p[0]);
+    assert!(p[1].starts_with("axes.x.eds: axes.x.sdo[2] 0x2004:00 = 1 (u8): ") && p[1].contains("AccessType=ro"), "{}", p[1]);
+    assert!(p[2].contains("axes.x.sdo[3] 0x2005:00 = 7 (u32): the EDS gives DataType INTEGER32, the entry says u32"), "{}", p[2]);
+    assert!(p[3].contains("axes.x.sdo[4] 0x2999:00 = 1 (u8): ") && p[3].contains("0x2999:00 is not in the EDS"), "{}", p[3]);
+    // Values outside the type and objects start-up owns are refused when the file is read.
+    let t = format!("{EMBEDDED_LATHE}\n[[axes.z.sdo]]\nindex = 0x2003\nvalue = 70000\ntype = \"u16\"\n[[axes.z.sdo]]\nindex = 0x1600\nsub = 1\nvalue = 0\ntype = \"u32\"\n");
+    let e = MachineConfig::from_toml("t.toml", &t).unwrap_err().to_string();
+    assert!(e.contains("axes.z.sdo[0]: value 70000 does not fit type u16 (0 … 65535)"), "{e}");
+    assert!(e.contains("axes.z.sdo[1]: 0x1600 is configured by start-up itself"), "{e}");
+}

@@ -1426,9 +1426,6 @@ impl<B: CanBus> CanOpenMaster<B> {
         }
         let (tix, tsub) = spec.target_object();
         let maps = vec![(od::CONTROLWORD, 0, 16, true), (tix, tsub, 32, true), (od::STATUSWORD, 0, 16, false), (od::POSITION_ACTUAL, 0, 32, false)];
-        for e in &spec.sdo {
-            w.push((e.index, e.sub, e.ty.size()));
-        }
         (w, maps)
     }
 
@@ -1467,6 +1464,7 @@ impl<B: CanBus> CanOpenMaster<B> {
             optional.iter().filter(|&&(ix, sub, _)| eds.get(ix, sub).is_some()).filter_map(|&(ix, sub, len)| eds.check_write(ix, sub, len).err()),
         );
         out.extend(maps.iter().filter_map(|&(ix, sub, bits, rpdo)| eds.check_map(ix, sub, bits, rpdo).err()));
+        out.extend(check_list_against_eds(&self.nodes[i].spec.axis, &self.nodes[i].spec.sdo, eds));
         for (ix, sub) in [(od::DEVICE_TYPE, 0u8), (od::IDENTITY, 1)] {
             if eds.get(ix, sub).is_none() {
                 out.push(format!("{}: 0x{ix:04X}:{sub:02X}, read at start-up, is not in the EDS", eds.file));

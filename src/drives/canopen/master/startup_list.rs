@@ -7,7 +7,7 @@
 //! start-up leaves the drive as it found it (`restore` writes the old values back).
 
 use super::CanOpenMaster;
-use crate::config::StartupSdo;
+use crate::config::{SdoType, StartupSdo};
 use crate::drives::canopen::sdo_client::SdoError;
 use crate::Alarm;
 use cncgw_bus::canopen::sdo::abort_text;
@@ -84,6 +84,14 @@ pub fn check_list_against_eds(axis: &str, list: &[StartupSdo], eds: &cncgw_bus::
             continue;
         }
         if let Some(ent) = eds.get(e.index, e.sub) {
+            let eds_type = cncgw_bus::canopen::eds::data_type_name(ent.data_type);
+            if ent.size().is_some() && cia301_type(e.ty) != ent.data_type {
+                out.push(format!(
+                    "{at}: the EDS gives DataType {eds_type}, the entry says {} ({})",
+                    e.ty.name(),
+                    eds.describe(e.index, e.sub).unwrap_or_default()
+                ));
+            }
             if let Some(lo) = ent.low_limit.filter(|&lo| e.value < lo) {
                 out.push(format!("{at}: below the EDS's LowLimit {lo} ({})", eds.describe(e.index, e.sub).unwrap_or_default()));
             }
@@ -93,4 +101,16 @@ pub fn check_list_against_eds(axis: &str, list: &[StartupSdo], eds: &cncgw_bus::
         }
     }
     out
+}
+
+/// The CiA 301 data type number of a start-up list type.
+fn cia301_type(t: SdoType) -> u16 {
+    match t {
+        SdoType::I8 => 0x0002,
+        SdoType::I16 => 0x0003,
+        SdoType::I32 => 0x0004,
+        SdoType::U8 => 0x0005,
+        SdoType::U16 => 0x0006,
+        SdoType::U32 => 0x0007,
+    }
 }
