@@ -233,3 +233,67 @@ fn config_check_checks_start_up_lists_against_the_eds() {
     assert!(e.contains("axes.z.sdo[0]: value 70000 does not fit type u16 (0 … 65535)"), "{e}");
     assert!(e.contains("axes.z.sdo[1]: 0x1600 is configured by start-up itself"), "{e}");
 }
+
+#[test]
+fn drives_without_a_heartbeat_consumer_are_guarded_and_run_to_the_end_point() {
+    let r = run(&MachineConfig::embedded(), profiled("no-1016", |_| {}), &first_part());
+    r.assert_at_end_point();
+    for n in [1u8, 2, 3] {
+        // Guarded (life time factor 3, the heartbeat producer off: CiA 301 has one or the
+        // other); the exit switched the guard time off again (0x100C = 0).
+        let d = r.world.drive(n).unwrap();
+        assert_eq!((d.object(0x100D, 0), d.object(0x1017, 0), d.object(0x100C, 0)), (Some(3), Some(0), Some(0)), "node {n}");
+        assert!(!r.master.guarded(n), "node {n}: guarding ended with the run");
+    }
+}
+
+/// `cncgw -v run --batch` with `--config` = the default lathe with `extra` after each axis'
+/// node line, and a sim-drives file giving nodes 1–3 the named profiles. (code, stdout, stderr)
+fn cli_run(name: &str, modes: [&str; 3], profiles: [&str; 3]) -> (i32, String, String) {
+    let dir = std::env::temp_dir().join(format!("cncgw_drive_profiles_{name}_{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let mut sim = String::new();
+    let mut lathe = EMBEDDED_LATHE.to_string();
+    for (k, (kind, axis, cpu)) in [("linear", "x", 10000.0), ("linear", "z", 10000.0), ("spindle", "s1", 1000.0)].into_iter().enumerate() {
+        let node = k + 1;
+        sim.push_str(&format!(
+            "[[drive]]\nnode = {node}\nkind = \"{kind}\"\naxis = \"{axis}\"\ncounts_per_unit = {cpu:?}\nprofile = \"{}\"\n",
+            profiles[k]
+        ));
+        lathe = lathe.replacen(&format!("\nnode = {node}\n"), &format!("\nnode = {node}\nmode = \"{}\"\n", modes[k]), 1);
+    }
+    std::fs::write(dir.join("drives.toml"), sim).unwrap();
+    std::fs::write(dir.join("lathe.toml"), lathe).unwrap();
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_cncgw"))
+        .args(["-v", "run", "--batch", "--config"])
+        .arg(dir.join("lathe.toml"))
+        .arg("--sim-config")
+        .arg(dir.join("drives.toml"))
+        .arg(concat!(env!("CARGO_MANIFEST_DIR"), "/examples/first_part.nc"))
+        .env("CNCGW_STATE_DIR", &dir)
+        .env_remove("RUST_LOG")
+        .output()
+        .expect("run cncgw");
+    let _ = std::fs::remove_dir_all(&dir);
+    (o.status.code().unwrap_or(-1), String::from_utf8_lossy(&o.stdout).into_owned(), String::from_utf8_lossy(&o.stderr).into_owned())
+}
+
+#[test]
+fn cncgw_run_logs_per_drive_the_mode_mapping_and_error_control_it_chose_and_why() {
+    let (code, out, err) = cli_run("mix", ["ip", "csp", "csp"], ["ip-only", "no-1016", "pp-boot"]);
+    assert_eq!(code, 0, "{out}{err}");
+    assert_eq!(out.matches("ok (within 1 count)").count(), 2, "{out}");
+    let line = |node: u8| {
+        err.lines()
+            .find(|l| l.contains("start-up: mode") && l.contains(&format!("node={node}")))
+            .unwrap_or_else(|| panic!("no start-up line for node {node}: {err}"))
+    };
+    let x = line(1);
+    assert!(x.contains("start-up: mode IP (interpolated position) (axes.x.mode = \"ip\")"), "{x}");
+    assert!(x.contains("mapping: remapped RPDO1 0x201 = controlword + 0x60C1:01"), "{x}");
+    assert!(x.contains("error control: heartbeat both ways"), "{x}");
+    let z = line(2);
+    assert!(z.contains("error control: node guarding (no 0x1016 heartbeat consumer): 0x100C = 100 ms, 0x100D = 3"), "{z}");
+    let s = line(3);
+    assert!(s.contains("mode CSP (cyclic synchronous position) (the default), booted in profile position (1) and switched by 0x6060"), "{s}");
+}

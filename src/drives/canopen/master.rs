@@ -785,33 +785,60 @@ impl<B: CanBus> CanOpenMaster<B> {
         let win = (spec.following_error * spec.counts_per_unit).round().clamp(1.0, u32::MAX as f64) as u32;
         self.write(clock, i, od::FOLLOWING_ERROR_WINDOW, 0, &win.to_le_bytes())?;
         // Quick stop: decelerate on the quick-stop ramp, then Switch On Disabled.
-        self.write(clock, i, od::QUICK_STOP_OPTION, 0, &2i16.to_le_bytes())?;
+        self.prefer_write(
+            clock,
+            i,
+            od::QUICK_STOP_OPTION,
+            0,
+            &2i16.to_le_bytes(),
+            "quick stop option 0x605A: a quick stop does what its manual says",
+        )?;
         self.configure_stop_reactions(clock, i)?;
         if let (Some(lo), Some(hi), false) = (spec.min, spec.max, spec.spindle) {
             let lo = (lo * spec.counts_per_unit).floor() as i32;
             let hi = (hi * spec.counts_per_unit).ceil() as i32;
-            self.write(clock, i, od::SOFTWARE_LIMIT, 1, &lo.to_le_bytes())?;
-            self.write(clock, i, od::SOFTWARE_LIMIT, 2, &hi.to_le_bytes())?;
+            let what = "software position limits 0x607D: the travel is limited by this controller's limits alone";
+            if self.prefer_write(clock, i, od::SOFTWARE_LIMIT, 1, &lo.to_le_bytes(), what)? {
+                self.write(clock, i, od::SOFTWARE_LIMIT, 2, &hi.to_le_bytes())?;
+            }
         }
         self.map_cyclic_pdos(clock, i)?;
         self.configure_error_control(clock, i)?;
         self.write_startup_list(clock, i)?;
         let n = &self.nodes[i];
         let booted = match booted_in {
-            Some(b) if b != want => format!(", booted in {} and switched by 0x6060 (confirmed by 0x6061 before enabling)", explain::mode_words(b)),
+            Some(b) if b != want && b != 0 => {
+                format!(", booted in {} and switched by 0x6060 (confirmed by 0x6061 before enabling)", explain::mode_words(b))
+            }
             _ => String::new(),
         };
         tracing::info!(
             node = n.spec.node,
             axis = %n.spec.axis,
-            "start-up: mode {}{booted}; mapping: {}; error control: {}; units: {}{}",
+            "start-up: mode {} ({}){booted}; mapping: {}; error control: {}; units: {}{}",
             explain::mode_short(want),
+            if n.spec.ip { format!("axes.{}.mode = \"ip\"", n.spec.axis) } else { "the default".into() },
             n.chosen.mapping,
             n.chosen.error_control,
             scaling.unit_text(),
             if n.spec.sdo.is_empty() { String::new() } else { format!("; start-up list: {} object(s) read back equal", n.spec.sdo.len()) }
         );
         Ok(())
+    }
+
+    /// Write an object the master only prefers (CiA 402 makes it optional and the master has
+    /// its own safeguard): a drive without it gets a warning saying what that means, not a
+    /// refusal; other failures are alarms as for `write`. Ok(true) if written.
+    #[allow(clippy::too_many_arguments)]
+    fn prefer_write(&mut self, clock: &mut dyn Clock, i: usize, ix: u16, sub: u8, data: &[u8], without: &str) -> Result<bool, Alarm> {
+        match self.try_write(clock, i, ix, sub, data) {
+            Ok(()) => Ok(true),
+            Err(SdoError::Abort { code }) if explain::is_absent(code) => {
+                tracing::warn!(node = self.nodes[i].spec.node, axis = %self.nodes[i].spec.axis, "warning: the drive has no {without}");
+                Ok(false)
+            }
+            Err(e) => Err(self.write_alarm(i, ix, sub, data, &e)),
+        }
     }
 
     /// The drive's own data sheet must allow what start-up writes (before anything is written).
@@ -1416,11 +1443,7 @@ impl<B: CanBus> CanOpenMaster<B> {
             (od::INTERPOLATION_PERIOD, 2, 1),
             (od::MODES_OF_OPERATION, 0, 1),
             (od::FOLLOWING_ERROR_WINDOW, 0, 4),
-            (od::QUICK_STOP_OPTION, 0, 2),
         ];
-        if spec.min.is_some() && spec.max.is_some() && !spec.spindle {
-            w.extend([(od::SOFTWARE_LIMIT, 1, 4), (od::SOFTWARE_LIMIT, 2, 4)]);
-        }
         for (comm, map) in [(od::RPDO_COMM, od::RPDO_MAP), (od::TPDO_COMM, od::TPDO_MAP)] {
             w.extend([(comm, 1, 4), (comm, 2, 1), (map, 0, 1), (map, 1, 4), (map, 2, 4)]);
         }
@@ -1437,6 +1460,12 @@ impl<B: CanBus> CanOpenMaster<B> {
             vec![(od::COMM_CYCLE_PERIOD, 0, 4), (od::SHUTDOWN_OPTION, 0, 2), (od::DISABLE_OPERATION_OPTION, 0, 2), (od::FAULT_REACTION_OPTION, 0, 2)];
         if self.nodes[i].spec.ip {
             w.extend([(od::INTERPOLATION_SUB_MODE, 0, 2), (od::INTERPOLATION_BUFFER, 6, 1)]);
+        }
+        // Preferred, with a warning where absent (`prefer_write`).
+        w.push((od::QUICK_STOP_OPTION, 0, 2));
+        let spec = &self.nodes[i].spec;
+        if spec.min.is_some() && spec.max.is_some() && !spec.spindle {
+            w.extend([(od::SOFTWARE_LIMIT, 1, 4), (od::SOFTWARE_LIMIT, 2, 4)]);
         }
         if self.hb_ms > 0 {
             w.extend([
