@@ -297,3 +297,31 @@ fn cncgw_run_logs_per_drive_the_mode_mapping_and_error_control_it_chose_and_why(
     let s = line(3);
     assert!(s.contains("mode CSP (cyclic synchronous position) (the default), booted in profile position (1) and switched by 0x6060"), "{s}");
 }
+
+#[test]
+fn fixed_pdo_drives_run_on_their_own_mapping() {
+    let r = run(&MachineConfig::embedded(), profiled("fixed-pdo", |_| {}), &first_part());
+    r.assert_at_end_point();
+    for n in [1u8, 2, 3] {
+        let d = r.world.drive(n).unwrap();
+        // Their mapping as at power-on (statusword + position: 0x6061 polled by SDO).
+        assert_eq!((d.object(0x1A00, 0), d.object(0x1A00, 2)), (Some(2), Some(0x6064_0020)), "node {n}");
+        assert_eq!(r.master.mode_display(n), Some(8), "node {n}: its mode was read");
+    }
+}
+
+#[test]
+fn a_fixed_mapping_without_the_ip_target_stops_before_motion_naming_the_object() {
+    // IP but no CSP, and a fixed RPDO1 of controlword + 0x607A (CSP's target).
+    let r = run(&ip_machine(), profiled("ip-only", |s| s.fixed_pdo = true), &first_part());
+    let a = r.alarm();
+    assert_eq!(a.number, 2009, "{a}");
+    assert!(a.message.starts_with("node 1 (axis x): RPDO1 cannot be remapped (SDO abort 0x06010002"), "{a}");
+    assert!(
+        a.message.contains(
+            "the drive's own mapping [0x6040:00 (16 bit), 0x607A:00 (32 bit)] will not do: it carries 0x607A:00 (CSP's target), not 0x60C1:01"
+        ),
+        "{a}"
+    );
+    r.assert_nothing_moved();
+}

@@ -13,6 +13,7 @@
 mod bus_check;
 mod drive_check;
 mod explain;
+mod fixed_pdo;
 mod ip_mode;
 mod life;
 mod mode_track;
@@ -21,6 +22,7 @@ mod startup_list;
 
 pub use drive_check::{check_scaling, DriveProbe, Scaling, ALARM_FOREIGN, ALARM_MODE, ALARM_SCALING};
 pub use explain::{mode_short, supported_modes_text};
+pub use fixed_pdo::ALARM_MAPPING;
 pub use mode_track::MODE_TIMEOUT_MS;
 pub use startup_list::{check_list_against_eds, ALARM_STARTUP_LIST};
 
@@ -30,7 +32,7 @@ use crate::drives::{AxisFeedback, DriveBus};
 use crate::Alarm;
 use cncgw_bus::canopen::emcy::{error_register_text, error_text, Emcy};
 use cncgw_bus::canopen::nmt::{decode_heartbeat, NmtCommand, NmtState};
-use cncgw_bus::canopen::pdo::{get_i32, get_u16, MapEntry};
+use cncgw_bus::canopen::pdo::{get_i32, get_u16, put_u16, MapEntry};
 use cncgw_bus::canopen::sdo::abort;
 use cncgw_bus::canopen::{cob, od, sync_frame};
 use cncgw_bus::cia402::{cw, mode, sw, EnableProgress, Enabler, State};
@@ -215,6 +217,10 @@ struct Node {
     guarding: Option<life::Guarding>,
     /// IP: consecutive TPDO1s in Operation Enabled without statusword bit 12 (ip mode active).
     ip_inactive: u32,
+    /// Where the values sit in RPDO1 and TPDO1 (the master's own mapping, or a drive's
+    /// fixed one: `fixed_pdo`).
+    rpdo_at: fixed_pdo::RpdoLayout,
+    tpdo_at: fixed_pdo::TpdoLayout,
     /// How start-up set the drive up, for the log line and `cncgw scan`-like reports.
     chosen: Chosen,
 }
@@ -256,6 +262,8 @@ impl Node {
             bad_len_last: 0,
             guarding: None,
             ip_inactive: 0,
+            rpdo_at: fixed_pdo::RpdoLayout::default(),
+            tpdo_at: fixed_pdo::TpdoLayout::default(),
             chosen: Chosen::default(),
         }
     }
@@ -603,9 +611,10 @@ impl<B: CanBus> CanOpenMaster<B> {
                 return;
             }
             n.bad_len = 0;
-            if n.mode.in_pdo && f.len >= 7 {
+            let at = n.tpdo_at;
+            if let Some(mo) = at.mode.filter(|&mo| n.mode.in_pdo && (f.len as usize) > mo) {
                 // As the statusword: one frame with a flipped bit is not a mode change.
-                let m = f.data[6] as i8;
+                let m = f.data[mo] as i8;
                 if n.mode.shown != Some(m) && n.mode.confirmed && n.mode.odd_frames == 0 {
                     n.mode.odd_frames = 1;
                 } else {
@@ -613,7 +622,7 @@ impl<B: CanBus> CanOpenMaster<B> {
                     n.mode.shown = Some(m);
                 }
             }
-            let raw = get_i32(&f.data, 2);
+            let raw = get_i32(&f.data, at.pos);
             if n.have_fb && raw.wrapping_sub(n.raw_pos).unsigned_abs() >= 1 << 30 {
                 // No axis moves 2^30 counts between two TPDOs: a corrupt frame (a flipped top
                 // bit would otherwise shift the unwrapped position by 2^32 for good). Dropped;
@@ -621,7 +630,7 @@ impl<B: CanBus> CanOpenMaster<B> {
                 tracing::warn!(node = n.spec.node, "implausible position in TPDO1 ignored");
                 return;
             }
-            n.status = get_u16(&f.data, 0);
+            n.status = get_u16(&f.data, at.status);
             n.not_enabled = if State::from_statusword(n.status) == State::OperationEnabled { 0 } else { n.not_enabled.saturating_add(1) };
             self.note_ip_status(i);
             let n = &mut self.nodes[i];
@@ -928,37 +937,53 @@ impl<B: CanBus> CanOpenMaster<B> {
         let (tix, tsub) = spec.target_object();
         let rpdo = [MapEntry::new(od::CONTROLWORD, 0, 16), MapEntry::new(tix, tsub, 32)];
         let tpdo = [MapEntry::new(od::STATUSWORD, 0, 16), MapEntry::new(od::POSITION_ACTUAL, 0, 32), MapEntry::new(od::MODES_DISPLAY, 0, 8)];
-        self.map_pdo(clock, i, od::RPDO_COMM, od::RPDO_MAP, spec.rpdo_cob, spec.rpdo_tx, &rpdo)?;
+        self.nodes[i].rpdo_at = fixed_pdo::RpdoLayout::default();
+        self.nodes[i].tpdo_at = fixed_pdo::TpdoLayout::default();
+        let rpdo_text = match self.try_map_pdo(clock, i, od::RPDO_COMM, od::RPDO_MAP, spec.rpdo_cob, spec.rpdo_tx, &rpdo) {
+            Ok(()) => format!("remapped RPDO1 0x{:03X} = controlword + 0x{tix:04X}:{tsub:02X}", spec.rpdo_cob),
+            Err(e) if Self::fixed_fallback(od::RPDO_MAP, &e) => self.use_fixed_rpdo(clock, i, &e.3)?,
+            Err((ix, sub, data, e)) => return Err(self.write_alarm(i, ix, sub, &data, &e)),
+        };
         let refused_third = |e: &(u16, u8, [u8; 4], SdoError)| {
             e.0 == od::TPDO_MAP
                 && matches!(e.1, 0 | 3)
                 && matches!(e.3, SdoError::Abort { code } if matches!(code, abort::NOT_MAPPABLE | abort::PDO_TOO_LONG | abort::PARAM_INCOMPATIBLE | abort::INVALID_VALUE | abort::NO_SUBINDEX))
         };
-        let in_pdo = match self.try_map_pdo(clock, i, od::TPDO_COMM, od::TPDO_MAP, spec.tpdo_cob, spec.tpdo_tx, &tpdo) {
-            Ok(()) => true,
-            Err(e) if refused_third(&e) => {
-                tracing::warn!(
-                    node = spec.node,
-                    "the drive cannot map 0x6061 (mode display) into TPDO1 ({}): its mode is read by SDO every {} ms instead",
-                    e.3,
-                    mode_track::POLL_EVERY_NS / 1_000_000
-                );
-                self.map_pdo(clock, i, od::TPDO_COMM, od::TPDO_MAP, spec.tpdo_cob, spec.tpdo_tx, &tpdo[..2])?;
-                false
-            }
+        let (tc, tt) = (spec.tpdo_cob, spec.tpdo_tx);
+        let tpdo_text = match self.try_map_pdo(clock, i, od::TPDO_COMM, od::TPDO_MAP, tc, tt, &tpdo) {
+            Ok(()) => self.remapped_tpdo(i, true),
+            Err(e) if refused_third(&e) => match self.try_map_pdo(clock, i, od::TPDO_COMM, od::TPDO_MAP, tc, tt, &tpdo[..2]) {
+                Ok(()) => {
+                    tracing::warn!(
+                        node = spec.node,
+                        "the drive cannot map 0x6061 (mode display) into TPDO1 ({}): its mode is read by SDO every {} ms instead",
+                        e.3,
+                        mode_track::POLL_EVERY_NS / 1_000_000
+                    );
+                    self.remapped_tpdo(i, false)
+                }
+                Err(e2) if Self::fixed_fallback(od::TPDO_MAP, &e2) => self.use_fixed_tpdo(clock, i, &e2.3)?,
+                Err((ix, sub, data, e2)) => return Err(self.write_alarm(i, ix, sub, &data, &e2)),
+            },
+            Err(e) if Self::fixed_fallback(od::TPDO_MAP, &e) => self.use_fixed_tpdo(clock, i, &e.3)?,
             Err((ix, sub, data, e)) => return Err(self.write_alarm(i, ix, sub, &data, &e)),
         };
         let n = &mut self.nodes[i];
+        n.bad_len = 0;
+        n.chosen.mapping = format!("{rpdo_text}, {tpdo_text}");
+        Ok(())
+    }
+
+    /// TPDO1 mapped by the master (with 0x6061 or without): its length and the line's text.
+    fn remapped_tpdo(&mut self, i: usize, in_pdo: bool) -> String {
+        let n = &mut self.nodes[i];
         n.mode.in_pdo = in_pdo;
         n.tpdo_len = Some(if in_pdo { TPDO1_LEN } else { TPDO1_LEN - 1 } as u8);
-        n.bad_len = 0;
-        n.chosen.mapping = format!(
-            "remapped RPDO1 0x{:03X} = controlword + 0x{tix:04X}:{tsub:02X}, TPDO1 0x{:03X} = statusword + position actual{}",
-            spec.rpdo_cob,
-            spec.tpdo_cob,
+        format!(
+            "remapped TPDO1 0x{:03X} = statusword + position actual{}",
+            n.spec.tpdo_cob,
             if in_pdo { " + mode display" } else { " (0x6061 not mappable: polled by SDO)" }
-        );
-        Ok(())
+        )
     }
 
     /// Error control both ways: the drive's heartbeat (0x1017) and ours consumed by it
@@ -1747,8 +1772,18 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
                 (false, true) => (n.unwrapped as i32).to_le_bytes(),
                 (false, false) => self.target_raw(i).to_le_bytes(),
             };
-            let c = self.cyclic_controlword(i).to_le_bytes();
-            let f = CanFrame::new(self.nodes[i].spec.rpdo_cob, &[c[0], c[1], t[0], t[1], t[2], t[3]]);
+            let c = self.cyclic_controlword(i);
+            let n = &self.nodes[i];
+            let mut d = [0u8; 8];
+            for &(slot, off) in &n.rpdo_at.slots {
+                match slot {
+                    fixed_pdo::Slot::Controlword => put_u16(&mut d, off, c),
+                    fixed_pdo::Slot::Target => d[off..off + 4].copy_from_slice(&t),
+                    fixed_pdo::Slot::Mode => d[off] = n.mode.want as u8,
+                    fixed_pdo::Slot::Zero => {}
+                }
+            }
+            let f = CanFrame::new(n.spec.rpdo_cob, &d[..n.rpdo_at.len]);
             self.send(&f)?;
         }
         self.send(&sync_frame(None))?;

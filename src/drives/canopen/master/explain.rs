@@ -47,7 +47,7 @@ pub fn explain_write(index: u16, sub: u8, code: u32, data: &[u8]) -> Option<Stri
             )
         }
         (ix, abort::READ_ONLY | abort::UNSUPPORTED_ACCESS) if is_rpdo_map(ix) || is_tpdo_map(ix) => format!(
-            "fixed PDO mapping: the drive does not let {} be remapped (cncgw maps its own PDOs and does not support fixed maps yet); use a drive whose PDO mapping can be written",
+            "fixed PDO mapping: the drive does not let {} be remapped (start-up takes a fixed mapping that carries what the cycle needs, but this change of mapping — a spindle's speed mode — needs it written); map it in the drive's own tool, or use a drive whose PDO mapping can be written",
             pdo_name(ix)
         ),
         (ix, abort::NOT_MAPPABLE) if (is_rpdo_map(ix) || is_tpdo_map(ix)) && sub > 0 => {
