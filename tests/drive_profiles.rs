@@ -325,3 +325,42 @@ fn a_fixed_mapping_without_the_ip_target_stops_before_motion_naming_the_object()
     );
     r.assert_nothing_moved();
 }
+
+// ---- Over socketcand on loopback, in real time: sim-drives' server with shaped drives, and
+// `cncgw run --bus socketcand://…` as an operator runs it.
+
+#[test]
+fn ip_only_fixed_pdo_and_pp_boot_drives_over_socketcand_end_at_the_end_point() {
+    use std::sync::atomic::{AtomicBool, Ordering};
+    let server = sim_drives::socketcand::SocketcandServer::bind("127.0.0.1:0", "can0").expect("bind");
+    let addr = server.local_addr().to_string();
+    let mut sim = SimConfig::from_machine_toml(EMBEDDED_LATHE).unwrap();
+    for d in &mut sim.drives {
+        d.shape = Shape::profile(["ip-only", "fixed-pdo", "pp-boot"][d.node as usize - 1]).unwrap();
+    }
+    let stop = std::sync::Arc::new(AtomicBool::new(false));
+    let s = stop.clone();
+    let hub = std::thread::spawn(move || sim_drives::run_realtime(Box::new(server), sim, s));
+    let dir = std::env::temp_dir().join(format!("cncgw_drive_profiles_socketcand_{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let lathe = EMBEDDED_LATHE.replacen("\nnode = 1\n", "\nnode = 1\nmode = \"ip\"\n", 1);
+    std::fs::write(dir.join("lathe.toml"), lathe).unwrap();
+    std::fs::write(dir.join("short.nc"), "G98 G00 X40. Z2.\nG01 Z-10. F1200\nG00 X60. Z5.\nM30\n").unwrap();
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_cncgw"))
+        .args(["-v", "run", "--batch", "--bus", &format!("socketcand://{addr}/can0"), "--config"])
+        .arg(dir.join("lathe.toml"))
+        .arg(dir.join("short.nc"))
+        .env("CNCGW_STATE_DIR", &dir)
+        .env_remove("RUST_LOG")
+        .output()
+        .expect("run cncgw");
+    stop.store(true, Ordering::Relaxed);
+    let _ = hub.join();
+    let _ = std::fs::remove_dir_all(&dir);
+    let (out, err) = (String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+    assert_eq!(o.status.code(), Some(0), "{out}{err}");
+    assert_eq!(out.matches("ok (within 1 count)").count(), 2, "{out}");
+    assert!(err.contains("start-up: mode IP (interpolated position) (axes.x.mode = \"ip\")"), "{err}");
+    assert!(err.contains("fixed RPDO1 0x202 = [0x6040:00 (16 bit), 0x607A:00 (32 bit)]"), "{err}");
+    assert!(err.contains("booted in profile position (1) and switched by 0x6060"), "{err}");
+}
