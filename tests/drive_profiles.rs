@@ -364,3 +364,20 @@ fn ip_only_fixed_pdo_and_pp_boot_drives_over_socketcand_end_at_the_end_point() {
     assert!(err.contains("fixed RPDO1 0x202 = [0x6040:00 (16 bit), 0x607A:00 (32 bit)]"), "{err}");
     assert!(err.contains("booted in profile position (1) and switched by 0x6060"), "{err}");
 }
+
+#[test]
+fn every_example_profile_in_config_drives_runs_first_part_to_its_end_point() {
+    let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/config/drives");
+    let ip = MachineConfig::load(std::path::Path::new(&format!("{dir}/lathe-ip.toml"))).unwrap();
+    assert_eq!(ip.axes["z"].sdo.len(), 1);
+    let mut seen = 0;
+    for name in Shape::PROFILES.iter().filter(|&&p| p != "plain") {
+        let sim = SimConfig::from_file(std::path::Path::new(&format!("{dir}/{name}.toml"))).unwrap_or_else(|e| panic!("{name}: {e}"));
+        assert!(sim.drives.iter().all(|d| Some(&d.shape) == Shape::profile(name).as_ref()), "{name}: every drive of the profile");
+        let cfg = if *name == "ip-only" { ip.clone() } else { MachineConfig::embedded() };
+        let r = run(&cfg, sim, &first_part());
+        r.assert_at_end_point();
+        seen += 1;
+    }
+    assert_eq!(seen, 4);
+}

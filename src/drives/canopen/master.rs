@@ -7,7 +7,8 @@
 //! fault (with 0x603F and 0x1001 read and decoded), 2011 heartbeat lost, 2012 fault reset failed, 2013 enable timed out,
 //! 2004 EDS unreadable or disagreeing, 2005 mode missing / not confirmed / left while
 //! running, 2006 position scaling or polarity disagrees with the config, 2007 another master
-//! or SYNC producer on the bus, 2014 node left operational, 2015 stale feedback, 2016 profile
+//! or SYNC producer on the bus, 2008 start-up list entry refused or read back otherwise, 2009
+//! fixed PDO mapping that cannot carry the cycle, 2014 node left operational, 2015 stale feedback, 2016 profile
 //! move failed, 2017 homing failed, 2018 TPDO of the wrong length, 2020 bus error.
 
 mod bus_check;
