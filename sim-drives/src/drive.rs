@@ -1584,13 +1584,11 @@ impl SimDrive {
             }
             mode::CYCLIC_SYNC_POSITION => self.latch_position(self.od.int(ix::TARGET_POSITION, 0) as i32, fresh, sync, now),
             mode::INTERPOLATED_POSITION if self.ip_active() => self.latch_position(self.od.int(ix::INTERPOLATION_DATA, 1) as i32, fresh, sync, now),
-            mode::INTERPOLATED_POSITION => {
-                // Interpolation not enabled (controlword bit 4 low, or the buffer cleared):
-                // the drive holds where it is and takes no set-point.
-                if self.target_ref.is_some() || self.seg_len > 0 {
-                    self.rebase();
-                    self.seg_len = 0;
-                }
+            // Interpolation not enabled (controlword bit 4 low, or the buffer cleared): the
+            // drive holds where it is and takes no set-point.
+            mode::INTERPOLATED_POSITION if self.target_ref.is_some() || self.seg_len > 0 => {
+                self.rebase();
+                self.seg_len = 0;
             }
             _ => {}
         }
