@@ -374,10 +374,22 @@ fn every_example_profile_in_config_drives_runs_first_part_to_its_end_point() {
     for name in Shape::PROFILES.iter().filter(|&&p| p != "plain") {
         let sim = SimConfig::from_file(std::path::Path::new(&format!("{dir}/{name}.toml"))).unwrap_or_else(|e| panic!("{name}: {e}"));
         assert!(sim.drives.iter().all(|d| Some(&d.shape) == Shape::profile(name).as_ref()), "{name}: every drive of the profile");
-        let cfg = if *name == "ip-only" { ip.clone() } else { MachineConfig::embedded() };
+        let cfg = match *name {
+            "ip-only" => ip.clone(),
+            "user-units" => MachineConfig::load(std::path::Path::new(&format!("{dir}/lathe-user-units.toml"))).unwrap(),
+            _ => MachineConfig::embedded(),
+        };
         let r = run(&cfg, sim, &first_part());
-        r.assert_at_end_point();
+        if *name == "user-units" {
+            // On the drives' own positions in µm: X50 (radius) is 50000 units, 500000 increments.
+            let s = r.summary();
+            assert!(s.at_program_end(), "{s:#?}");
+            let (x, z) = (r.world.drive(1).unwrap(), r.world.drive(2).unwrap());
+            assert_eq!((x.position_actual(), z.position_actual()), (50_000, 5_000));
+        } else {
+            r.assert_at_end_point();
+        }
         seen += 1;
     }
-    assert_eq!(seen, 4);
+    assert_eq!(seen, 5);
 }

@@ -223,12 +223,14 @@ impl Shape {
 
     /// The named shapes of `[[drive]] profile = "…"` (issue 21), each imitating a kind of
     /// commercial drive; `[drive.shape]` keys change them further.
-    pub const PROFILES: [&'static str; 5] = ["plain", "ip-only", "pp-boot", "no-1016", "fixed-pdo"];
+    pub const PROFILES: [&'static str; 6] = ["plain", "ip-only", "pp-boot", "no-1016", "fixed-pdo", "user-units"];
 
     /// The shape of a named profile: "ip-only" has interpolated position (7) but no CSP
     /// (0x6060 = 8 aborts 0x06090030); "pp-boot" boots into profile position and takes a new
     /// mode only 200 SYNCs after it was asked for; "no-1016" has no heartbeat consumer but
-    /// node guarding; "fixed-pdo" has a read-only PDO mapping that cannot carry 0x6061.
+    /// node guarding; "fixed-pdo" has a read-only PDO mapping that cannot carry 0x6061;
+    /// "user-units" counts positions in user units, 10000 per shaft revolution (0x6092:1 =
+    /// 10000: µm on a 10 mm screw), not encoder increments.
     pub fn profile(name: &str) -> Option<Shape> {
         let mut s = Shape::default();
         match name {
@@ -240,6 +242,7 @@ impl Shape {
             }
             "no-1016" => s.heartbeat_consumer = false,
             "fixed-pdo" => s.fixed_pdo = true,
+            "user-units" => s.feed_constant = 10_000,
             _ => return None,
         }
         Some(s)
@@ -846,8 +849,8 @@ impl SimConfig {
         s.push_str("#   mode_display_pdo = false # 0x6061 cannot be mapped into a PDO\n");
         s.push_str("#   fixed_pdo = true         # PDO mapping read-only (RPDO1 controlword + 0x607A, TPDO1 statusword + 0x6064)\n");
         s.push_str("#   identity_subs = 0        # 0x1018 sub-indices present (4 = vendor…serial; 0: a vendor-id read aborts)\n");
-        s.push_str("# profile = \"ip-only\" | \"pp-boot\" | \"no-1016\" | \"fixed-pdo\" in a [[drive]] starts from that shape\n");
-        s.push_str("# (IP but no CSP; boots in PP, switches 200 SYNCs late; no 0x1016; fixed PDO map); [drive.shape] keys change it further.\n\n");
+        s.push_str("# profile = \"ip-only\" | \"pp-boot\" | \"no-1016\" | \"fixed-pdo\" | \"user-units\" in a [[drive]] starts from that shape\n");
+        s.push_str("# (IP but no CSP; boots in PP, switches 200 SYNCs late; no 0x1016; fixed PDO map; 10000 units/rev); [drive.shape] keys change it further.\n\n");
         s.push_str(&format!("step_us = {}                 # control loop / physics step, µs (≤ 100)\n", self.step_us));
         for d in &self.drives {
             let p = &d.physics;
