@@ -393,3 +393,32 @@ fn every_example_profile_in_config_drives_runs_first_part_to_its_end_point() {
     }
     assert_eq!(seen, 5);
 }
+
+#[test]
+fn an_ip_drive_that_stops_being_active_while_running_is_alarm_2005() {
+    let cfg = ip_machine();
+    let mut interp = Interpreter::from_source("first_part.nc", &first_part(), &cfg).unwrap();
+    let wire = InprocBus::new();
+    let mut world = SimWorld::new(&wire, profiled("ip-only", |_| {}));
+    // 3 s in (the run is under way): Z's IP buffer goes off, as on an underrun.
+    world.schedule_faults(vec![sim_drives::FaultAt { node: 2, sub: 10, value: 1, at_ns: 3_000_000_000 }]);
+    let mut master = CanOpenMaster::new(wire.endpoint(), &cfg);
+    let mut summary = RunSummary::default();
+    let mut lp = CycleLoop::new(&mut master, &mut world, Limits::from_config(&cfg), cfg.spindle_index(), 2_000_000);
+    let st = lp.start(&mut summary).unwrap_or_else(|a| panic!("{a}"));
+    interp.set_start_position(Pos { x: st[AX_X], y: st[AX_Y], z: st[AX_Z], c: st[AX_S] });
+    let (tx, rx) = std::sync::mpsc::sync_channel(64);
+    std::thread::spawn(move || {
+        for m in interp {
+            if tx.send(m).is_err() {
+                break;
+            }
+        }
+    });
+    let r = lp.run(st, rx, &mut summary, &mut |_| {});
+    lp.finish();
+    let a = r.expect_err("the run must stop");
+    assert_eq!(a.number, 2005, "{a}");
+    assert!(a.message.starts_with("node 2 (axis z): statusword bit 12 (ip mode active) dropped while running"), "{a}");
+    assert!(!summary.at_program_end());
+}

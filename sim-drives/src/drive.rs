@@ -66,6 +66,9 @@ pub mod fault_sub {
     pub const PDO_DROP_PERMILLE: u8 = 8;
     /// U32 0–1000000: TPDOs leave this many µs after their SYNC or event.
     pub const TPDO_DELAY_US: u8 = 9;
+    /// U8: write 1 to switch the IP buffer off (0x60C4:6 = 0), as a drive does on a buffer
+    /// underrun: statusword bit 12 "ip mode active" drops; reads 0.
+    pub const IP_DISABLE: u8 = 10;
 }
 const POSITION_DEMAND: u16 = 0x6062;
 const POSITION_WINDOW: u16 = 0x6067;
@@ -314,7 +317,7 @@ fn build_od(c: &DriveConfig) -> Od {
     od.add_domain(USER_DATA, 0, Rw, USER_DATA_LEN);
     {
         use fault_sub::*;
-        od.add(SIM_FAULTS, 0, U8, Const, false, 9);
+        od.add(SIM_FAULTS, 0, U8, Const, false, 10);
         od.add(SIM_FAULTS, RAISE, U16, Rw, false, 0);
         od.add_range(SIM_FAULTS, ENCODER_LOST, U8, Rw, false, 0, 0, 1);
         od.add_range(SIM_FAULTS, UNDERVOLTAGE, U8, Rw, false, 0, 0, 1);
@@ -324,6 +327,7 @@ fn build_od(c: &DriveConfig) -> Od {
         od.add(SIM_FAULTS, SILENT_MS, U32, Rw, false, 0);
         od.add_range(SIM_FAULTS, PDO_DROP_PERMILLE, U16, Rw, false, 0, 0, 1000);
         od.add_range(SIM_FAULTS, TPDO_DELAY_US, U32, Rw, false, 0, 0, 1_000_000);
+        od.add_range(SIM_FAULTS, IP_DISABLE, U8, Rw, false, 0, 0, 1);
     }
     if sh.abort_connection_object {
         od.add_range(ix::ABORT_CONNECTION, 0, I16, Rw, false, 1, 0, 3);
@@ -1338,6 +1342,13 @@ impl SimDrive {
                 self.fault(0x2310, now);
             }
             JAM_MNM => self.set_jam(x as f64 / 1000.0),
+            IP_DISABLE if x != 0 => {
+                self.od.set(SIM_FAULTS, IP_DISABLE, 0);
+                if self.od.get(ix::INTERPOLATION_BUFFER, 6).is_some() {
+                    tracing::warn!(node = self.cfg.node, "IP buffer switched off (injected): ip mode no longer active");
+                    self.od.set(ix::INTERPOLATION_BUFFER, 6, 0);
+                }
+            }
             SILENT_MS if x != 0 => {
                 self.od.set(SIM_FAULTS, SILENT_MS, 0);
                 let until = if x as u32 == u32::MAX { u64::MAX } else { now + x as u64 * MS };
