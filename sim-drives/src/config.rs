@@ -1134,8 +1134,8 @@ mod tests {
         assert_eq!(c.drives[0].increments_per_unit(), 10.0);
         assert_eq!(SimConfig::default_lathe().drives[0].increments_per_unit(), 1.0);
         assert_eq!(SimConfig::from_toml(&c.to_commented_toml()).unwrap(), c);
-        let e = SimConfig::from_toml("[[drive]]\nnode = 1\nkind = \"linear\"\n[drive.shape]\nmodes = [7]\n").unwrap_err();
-        assert!(e.contains("shape.modes: mode 7 is not emulated"), "{e}");
+        let e = SimConfig::from_toml("[[drive]]\nnode = 1\nkind = \"linear\"\n[drive.shape]\nmodes = [4]\n").unwrap_err();
+        assert!(e.contains("shape.modes: mode 4 is not emulated"), "{e}");
         let e = SimConfig::from_toml("[[drive]]\nnode = 1\nkind = \"linear\"\n[drive.shape]\nfeedback_factor = 0.0\n").unwrap_err();
         assert!(e.contains("shape.feedback_factor"), "{e}");
         let e = SimConfig::from_toml("[[drive]]\nnode = 1\nkind = \"linear\"\n[drive.shape]\nboot_mod = 1\n").unwrap_err();
