@@ -422,3 +422,12 @@ fn an_ip_drive_that_stops_being_active_while_running_is_alarm_2005() {
     assert!(a.message.starts_with("node 2 (axis z): statusword bit 12 (ip mode active) dropped while running"), "{a}");
     assert!(!summary.at_program_end());
 }
+
+#[test]
+fn drives_without_the_objects_the_master_only_prefers_are_warned_about_not_refused() {
+    // No 0x605A quick stop option, no stop reactions, no 0x607D software limits.
+    let r = run(&MachineConfig::embedded(), profiled("plain", |s| s.optional_402_objects = false), &first_part());
+    r.assert_at_end_point();
+    let x = r.world.drive(1).unwrap();
+    assert_eq!((x.object(0x605A, 0), x.object(0x607D, 1)), (None, None), "the drive really lacks them");
+}

@@ -187,6 +187,9 @@ pub struct Shape {
     /// their power-on contents (RPDO1 controlword + 0x607A, TPDO1 statusword + 0x6064);
     /// COB-IDs and transmission types stay writable.
     pub fixed_pdo: bool,
+    /// Whether the objects CiA 402 makes optional and a master only prefers exist: 0x605A
+    /// quick stop option, 0x605B/0x605C/0x605E stop reactions, 0x607D software limits.
+    pub optional_402_objects: bool,
     /// Sub-indices of 0x1018 the drive has (4: vendor, product, revision, serial; 0: none,
     /// a vendor-id read aborts).
     pub identity_subs: u8,
@@ -212,6 +215,7 @@ impl Default for Shape {
             abort_connection_object: true,
             mode_display_pdo: true,
             fixed_pdo: false,
+            optional_402_objects: true,
             identity_subs: 4,
         }
     }
@@ -714,6 +718,7 @@ impl SimConfig {
                 sets!(abort_connection_object);
                 sets!(mode_display_pdo);
                 sets!(fixed_pdo);
+                sets!(optional_402_objects);
                 sets!(identity_subs);
             }
             let _ = i;
@@ -848,6 +853,7 @@ impl SimConfig {
         s.push_str("#   abort_connection_object = false  # no 0x6007 (a lost master faults the drive)\n");
         s.push_str("#   mode_display_pdo = false # 0x6061 cannot be mapped into a PDO\n");
         s.push_str("#   fixed_pdo = true         # PDO mapping read-only (RPDO1 controlword + 0x607A, TPDO1 statusword + 0x6064)\n");
+        s.push_str("#   optional_402_objects = false  # no 0x605A/0x605B/0x605C/0x605E/0x607D\n");
         s.push_str("#   identity_subs = 0        # 0x1018 sub-indices present (4 = vendor…serial; 0: a vendor-id read aborts)\n");
         s.push_str("# profile = \"ip-only\" | \"pp-boot\" | \"no-1016\" | \"fixed-pdo\" | \"user-units\" in a [[drive]] starts from that shape\n");
         s.push_str("# (IP but no CSP; boots in PP, switches 200 SYNCs late; no 0x1016; fixed PDO map; 10000 units/rev); [drive.shape] keys change it further.\n\n");
@@ -907,7 +913,10 @@ impl SimConfig {
                     h.sync_producer, h.sync_period_us, h.heartbeat_consumer
                 ));
                 s.push_str(&format!("node_guarding = {}\nabort_connection_object = {}\n", h.node_guarding, h.abort_connection_object));
-                s.push_str(&format!("mode_display_pdo = {}\nfixed_pdo = {}\nidentity_subs = {}\n", h.mode_display_pdo, h.fixed_pdo, h.identity_subs));
+                s.push_str(&format!(
+                    "mode_display_pdo = {}\nfixed_pdo = {}\noptional_402_objects = {}\nidentity_subs = {}\n",
+                    h.mode_display_pdo, h.fixed_pdo, h.optional_402_objects, h.identity_subs
+                ));
             }
             if d.modbus_quirks != ModbusQuirks::default() {
                 s.push_str(&d.modbus_quirks.to_toml());
@@ -1040,6 +1049,7 @@ struct RawShape {
     abort_connection_object: Option<bool>,
     mode_display_pdo: Option<bool>,
     fixed_pdo: Option<bool>,
+    optional_402_objects: Option<bool>,
     identity_subs: Option<u8>,
 }
 

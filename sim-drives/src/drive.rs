@@ -335,10 +335,12 @@ fn build_od(c: &DriveConfig) -> Od {
     od.add(ix::ERROR_CODE, 0, U16, Ro, true, 0);
     od.add(ix::CONTROLWORD, 0, U16, Rw, true, 0);
     od.add(ix::STATUSWORD, 0, U16, Ro, true, 0);
-    od.add_range(ix::QUICK_STOP_OPTION, 0, I16, Rw, false, 2, 0, 8);
-    od.add_range(FAULT_REACTION, 0, I16, Rw, false, 2, 0, 4);
-    od.add_range(SHUTDOWN_OPTION, 0, I16, Rw, false, 0, 0, 1);
-    od.add_range(DISABLE_OPTION, 0, I16, Rw, false, 0, 0, 1);
+    if sh.optional_402_objects {
+        od.add_range(ix::QUICK_STOP_OPTION, 0, I16, Rw, false, 2, 0, 8);
+        od.add_range(FAULT_REACTION, 0, I16, Rw, false, 2, 0, 4);
+        od.add_range(SHUTDOWN_OPTION, 0, I16, Rw, false, 0, 0, 1);
+        od.add_range(DISABLE_OPTION, 0, I16, Rw, false, 0, 0, 1);
+    }
     od.add(ix::MODES_OF_OPERATION, 0, I8, Rw, true, sh.boot_mode as i64);
     od.add(ix::MODES_DISPLAY, 0, I8, Ro, sh.mode_display_pdo, sh.boot_mode as i64);
     od.add(POSITION_DEMAND, 0, I32, Ro, true, 0);
@@ -353,9 +355,11 @@ fn build_od(c: &DriveConfig) -> Od {
     od.add(TORQUE_ACTUAL, 0, I16, Ro, true, 0);
     od.add(ix::TARGET_POSITION, 0, I32, Rw, true, 0);
     od.add(CSP_EXTRAPOLATE, 0, U8, Rw, false, CSP_EXTRAPOLATE_DEFAULT);
-    od.add(ix::SOFTWARE_LIMIT, 0, U8, Const, false, 2);
-    od.add(ix::SOFTWARE_LIMIT, 1, I32, Rw, false, i32::MIN as i64);
-    od.add(ix::SOFTWARE_LIMIT, 2, I32, Rw, false, i32::MAX as i64);
+    if sh.optional_402_objects {
+        od.add(ix::SOFTWARE_LIMIT, 0, U8, Const, false, 2);
+        od.add(ix::SOFTWARE_LIMIT, 1, I32, Rw, false, i32::MIN as i64);
+        od.add(ix::SOFTWARE_LIMIT, 2, I32, Rw, false, i32::MAX as i64);
+    }
     od.add_range(PROFILE_DECEL, 0, U32, Rw, false, c.profile_decel as i64, 1, u32::MAX as i64);
     od.add_range(QUICK_STOP_DECEL, 0, U32, Rw, false, c.quick_stop_decel as i64, 1, u32::MAX as i64);
     od.add(ix::INTERPOLATION_PERIOD, 0, U8, Const, false, 2);
