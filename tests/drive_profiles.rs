@@ -431,3 +431,30 @@ fn drives_without_the_objects_the_master_only_prefers_are_warned_about_not_refus
     let x = r.world.drive(1).unwrap();
     assert_eq!((x.object(0x605A, 0), x.object(0x607D, 1)), (None, None), "the drive really lacks them");
 }
+
+#[test]
+fn a_profile_move_and_homing_on_an_ip_axis_come_back_to_ip_without_an_alarm() {
+    use cncgw::drives::DriveBus;
+    use cncgw_bus::Clock;
+    let cfg = ip_machine();
+    let bus = InprocBus::new();
+    let mut w = SimWorld::new(&bus, profiled("ip-only", |_| {}));
+    let mut m = CanOpenMaster::new(bus.endpoint(), &cfg);
+    m.startup(&mut w).unwrap_or_else(|a| panic!("{a}"));
+    m.profile_move(&mut w, 1, 10.0, 50.0, 500.0).unwrap_or_else(|a| panic!("{a}"));
+    assert_eq!(m.mode_display(1), Some(7), "back in IP");
+    m.home(&mut w, 2, 35, 10.0, 1.0, 100.0, 2000).unwrap_or_else(|a| panic!("{a}"));
+    assert_eq!(m.mode_display(2), Some(7), "back in IP");
+    // Half a second of cycles holding there: IP active again, no alarm 2005.
+    let mut t = w.now_ns();
+    for _ in 0..250 {
+        t += 2_000_000;
+        w.wait_until(t);
+        m.receive(t).unwrap_or_else(|a| panic!("{a}"));
+        m.transmit(t).unwrap_or_else(|a| panic!("{a}"));
+    }
+    let x = w.drive(1).unwrap();
+    assert!((x.position_unwrapped() - 100_000).abs() <= 10, "{}", x.position_unwrapped());
+    assert_eq!(x.statusword() & 0x1000, 0x1000, "ip mode active");
+    assert_eq!(x.enabled_modes(), 1 << 7 | 1 << 1, "IP and PP only");
+}

@@ -218,6 +218,8 @@ struct Node {
     guarding: Option<life::Guarding>,
     /// IP: consecutive TPDO1s in Operation Enabled without statusword bit 12 (ip mode active).
     ip_inactive: u32,
+    /// IP: consecutive RPDO1s sent with controlword bit 4 (enable ip mode) set.
+    ip_sent: u32,
     /// Where the values sit in RPDO1 and TPDO1 (the master's own mapping, or a drive's
     /// fixed one: `fixed_pdo`).
     rpdo_at: fixed_pdo::RpdoLayout,
@@ -263,6 +265,7 @@ impl Node {
             bad_len_last: 0,
             guarding: None,
             ip_inactive: 0,
+            ip_sent: 0,
             rpdo_at: fixed_pdo::RpdoLayout::default(),
             tpdo_at: fixed_pdo::TpdoLayout::default(),
             chosen: Chosen::default(),
@@ -1285,6 +1288,11 @@ impl<B: CanBus> CanOpenMaster<B> {
         self.write(clock, i, 0x6084, 0, &a.to_le_bytes())?;
         self.ensure_enabled(clock)?;
         self.change_mode(clock, i, mode::PROFILE_POSITION)?;
+        if self.nodes[i].spec.target_object() != (od::TARGET_POSITION, 0) {
+            // RPDO1 carries 0x60C1:1 (IP), not the profile target 0x607A: written by SDO
+            // before the set-point handshake takes it.
+            self.write(clock, i, od::TARGET_POSITION, 0, &(t as i32).to_le_bytes())?;
+        }
         let dist = (t - self.nodes[i].unwrapped as f64).abs();
         let est_s = dist / v as f64 + 2.0 * v as f64 / a as f64;
         let max_ns = ((2.0 * est_s + 2.0) * 1e9) as u64;
@@ -1786,6 +1794,8 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
             }
             let f = CanFrame::new(n.spec.rpdo_cob, &d[..n.rpdo_at.len]);
             self.send(&f)?;
+            let n = &mut self.nodes[i];
+            n.ip_sent = if c & cw::OMS4 != 0 && n.spec.ip { n.ip_sent.saturating_add(1) } else { 0 };
         }
         self.send(&sync_frame(None))?;
         for n in &mut self.nodes {

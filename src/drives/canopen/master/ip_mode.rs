@@ -69,7 +69,9 @@ impl<B: CanBus> CanOpenMaster<B> {
     /// Per TPDO1 of an IP drive: count frames in Operation Enabled without bit 12.
     pub(super) fn note_ip_status(&mut self, i: usize) {
         let n = &mut self.nodes[i];
-        let watch = n.spec.ip && n.enabled && n.mode.want == n.spec.position_mode() && n.mode.ok();
+        // Only once bit 4 has been out long enough to show in a statusword (after a profile
+        // move or homing the drive comes back to IP with bit 4 sent anew).
+        let watch = n.spec.ip && n.ip_sent > super::FRESH_STATUS_CYCLES && n.mode.want == n.spec.position_mode() && n.mode.ok();
         let inactive = watch && State::from_statusword(n.status) == State::OperationEnabled && n.status & sw::OMS12 == 0;
         n.ip_inactive = if inactive { n.ip_inactive.saturating_add(1) } else { 0 };
     }
