@@ -230,9 +230,9 @@ struct Node {
 
 /// What start-up chose for a drive and why, logged once per drive.
 #[derive(Clone, Debug, Default)]
-pub struct Chosen {
-    pub mapping: String,
-    pub error_control: String,
+struct Chosen {
+    mapping: String,
+    error_control: String,
 }
 
 impl Node {
