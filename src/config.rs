@@ -370,6 +370,116 @@ pub struct AxisConfig {
     /// warns when the following-error window is below what it lags at maximum speed.
     #[serde(default)]
     pub response: Option<DriveResponse>,
+    /// The cyclic position mode of a CANopen drive: `"csp"` (8, default) or `"ip"`
+    /// (interpolated position, 7, linear sub-mode) for drives without CSP.
+    #[serde(default)]
+    pub mode: CyclicMode,
+    /// Start-up list (`[[axes.NAME.sdo]]`): vendor parameters written in pre-operational after
+    /// the standard configuration and read back, in this order (CiA 306-3's concise DCF).
+    #[serde(default)]
+    pub sdo: Vec<StartupSdo>,
+}
+
+/// `axes.NAME.mode`: how a CANopen drive takes its cyclic position set-points.
+#[derive(Clone, Copy, Debug, Default, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "lowercase")]
+pub enum CyclicMode {
+    /// Cyclic synchronous position (CiA 402 mode 8): targets in 0x607A.
+    #[default]
+    Csp,
+    /// Interpolated position (mode 7): targets in 0x60C1:1, enabled by controlword bit 4.
+    Ip,
+}
+
+/// The CiA 301 type of a start-up list entry.
+#[derive(Clone, Copy, Debug, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "lowercase")]
+pub enum SdoType {
+    U8,
+    I8,
+    U16,
+    I16,
+    U32,
+    I32,
+}
+
+impl SdoType {
+    pub fn size(self) -> usize {
+        match self {
+            SdoType::U8 | SdoType::I8 => 1,
+            SdoType::U16 | SdoType::I16 => 2,
+            SdoType::U32 | SdoType::I32 => 4,
+        }
+    }
+
+    pub fn signed(self) -> bool {
+        matches!(self, SdoType::I8 | SdoType::I16 | SdoType::I32)
+    }
+
+    /// The values the type holds.
+    pub fn range(self) -> (i64, i64) {
+        let bits = self.size() as u32 * 8;
+        if self.signed() {
+            (-(1i64 << (bits - 1)), (1i64 << (bits - 1)) - 1)
+        } else {
+            (0, (1i64 << bits) - 1)
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            SdoType::U8 => "u8",
+            SdoType::I8 => "i8",
+            SdoType::U16 => "u16",
+            SdoType::I16 => "i16",
+            SdoType::U32 => "u32",
+            SdoType::I32 => "i32",
+        }
+    }
+
+    /// A value read back (little-endian, `size` bytes) as a number of this type.
+    pub fn decode(self, b: &[u8]) -> i64 {
+        let mut a = [0u8; 8];
+        let n = b.len().min(self.size());
+        a[..n].copy_from_slice(&b[..n]);
+        let u = u64::from_le_bytes(a) as i64;
+        if self.signed() {
+            let shift = 64 - self.size() as u32 * 8;
+            (u << shift) >> shift
+        } else {
+            u
+        }
+    }
+}
+
+/// One `[[axes.NAME.sdo]]` entry: `index = 0x2003, sub = 0, value = 1200, type = "u16"`.
+#[derive(Clone, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct StartupSdo {
+    pub index: u16,
+    #[serde(default)]
+    pub sub: u8,
+    pub value: i64,
+    #[serde(rename = "type")]
+    pub ty: SdoType,
+}
+
+impl StartupSdo {
+    /// The bytes written (little-endian, the type's size).
+    pub fn bytes(&self) -> Vec<u8> {
+        self.value.to_le_bytes()[..self.ty.size()].to_vec()
+    }
+
+    /// "0x2003:00 = 1200 (u16)".
+    pub fn describe(&self) -> String {
+        format!("0x{:04X}:{:02X} = {} ({})", self.index, self.sub, self.value, self.ty.name())
+    }
+
+    /// Objects start-up configures itself (PDOs, error control, mode, controlword): a
+    /// start-up list entry would be overwritten or would break the cycle.
+    pub fn owned_by_startup(&self) -> bool {
+        matches!(self.index, 0x1005 | 0x1006 | 0x100C | 0x100D | 0x1016 | 0x1017 | 0x1400..=0x1BFF | 0x6040 | 0x6060 | 0x607A | 0x60C1 | 0x60C2)
+    }
 }
 
 /// `[axes.NAME.response]`: what `cncgw identify NAME` prints.
@@ -556,6 +666,24 @@ impl MachineConfig {
             }
             if a.role == Some(AxisRole::ToolSpindle) && a.kind != AxisKind::Spindle {
                 e.push(format!("{p}.role: \"tool_spindle\" needs kind = \"spindle\""));
+            }
+            for (k, x) in a.sdo.iter().enumerate() {
+                let (lo, hi) = x.ty.range();
+                if !(lo..=hi).contains(&x.value) {
+                    e.push(format!("{p}.sdo[{k}]: value {} does not fit type {} ({lo} … {hi})", x.value, x.ty.name()));
+                }
+                if x.owned_by_startup() {
+                    e.push(format!(
+                        "{p}.sdo[{k}]: 0x{:04X} is configured by start-up itself (PDOs, error control, mode, SYNC, interpolation period); use the axis keys for it",
+                        x.index
+                    ));
+                }
+                if a.modbus.is_some() {
+                    e.push(format!(
+                        "{p}.sdo: start-up lists are for CANopen drives; this axis is on Modbus link {:?}",
+                        a.modbus.as_deref().unwrap_or("")
+                    ));
+                }
             }
             positive(&mut e, &format!("{p}.counts_per_unit"), a.counts_per_unit);
             positive(&mut e, &format!("{p}.max_speed"), a.max_speed);

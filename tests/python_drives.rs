@@ -41,6 +41,11 @@ struct Outcome {
 
 /// `cncgw run --batch examples/first_part.nc` against three python drives of `shape`.
 fn run(python: &PathBuf, shape: &str) -> Outcome {
+    run_cfg(python, shape, |c| c)
+}
+
+/// `run` with the machine configuration changed by `edit`.
+fn run_cfg(python: &PathBuf, shape: &str, edit: impl Fn(String) -> String) -> Outcome {
     let (addr, stop, hub) = hub();
     let port = addr.rsplit_once(':').unwrap().1.to_string();
     let mut py = Command::new(python)
@@ -61,6 +66,7 @@ fn run(python: &PathBuf, shape: &str) -> Outcome {
     let cfg =
         cncgw::config::EMBEDDED_LATHE.replace("cycle_ms = 2.0", "cycle_ms = 5.0").replace("feedback_timeout_ms = 20", "feedback_timeout_ms = 100");
     assert_ne!(cfg, cncgw::config::EMBEDDED_LATHE);
+    let cfg = edit(cfg);
     std::fs::write(dir.join("machine.toml"), cfg).unwrap();
     let started = Instant::now();
     let o = Command::new(env!("CARGO_BIN_EXE_cncgw"))
@@ -160,4 +166,37 @@ fn realtime_python_drives_shaped_like_commercial_ones() {
     let o = run(&python, "no_6502");
     assert_eq!(o.code, 0, "{}{}", o.stdout, o.stderr);
     assert_eq!((o.position(1), o.position(2)), (500_000, 50_000));
+}
+
+/// Issue 21: python drives with interpolated position and no CSP, a second opinion to
+/// sim-drives' "ip-only" profile: refused in CSP naming the key, run in IP to the end point.
+#[test]
+fn realtime_python_ip_only_drives() {
+    let ci = std::env::var("CI").as_deref() == Ok("true");
+    if std::env::var("CNCGW_SKIP_PYTHON").as_deref() == Ok("1") && !ci {
+        eprintln!("CNCGW_SKIP_PYTHON=1: python drives test skipped on request");
+        return;
+    }
+    let python = root().join("build/venv/bin/python");
+    assert!(
+        python.exists(),
+        "{} is missing: run `scripts/install-test-deps.sh --python`, or set CNCGW_SKIP_PYTHON=1 to skip this test on purpose",
+        python.display()
+    );
+    let o = run(&python, "ip_only");
+    assert_eq!(o.code, 3, "{}{}", o.stdout, o.stderr);
+    assert!(o.stderr.contains("alarm 2005: node 1 (axis x): this drive has no CSP") && o.stderr.contains("set axes.x.mode = \"ip\""), "{}", o.stderr);
+    o.nothing_moved();
+    let o = run_cfg(&python, "ip_only", |c| {
+        let mut c = c;
+        for n in 1..=3 {
+            c = c.replacen(&format!("\nnode = {n}\n"), &format!("\nnode = {n}\nmode = \"ip\"\n"), 1);
+        }
+        c
+    });
+    assert_eq!(o.code, 0, "{}{}", o.stdout, o.stderr);
+    for n in 1..=3 {
+        assert_eq!(o.enabled_modes(n), vec![7], "node {n} was enabled in another mode than IP");
+    }
+    assert_eq!((o.position(1), o.position(2)), (500_000, 50_000), "X100 Z5 on the drives' own positions");
 }

@@ -308,6 +308,9 @@ pub mod mode {
     pub const PROFILE_POSITION: i8 = 1;
     pub const PROFILE_VELOCITY: i8 = 3;
     pub const HOMING: i8 = 6;
+    /// Interpolated position (IP): targets in 0x60C1:1, controlword bit 4 "enable ip",
+    /// statusword bit 12 "ip mode active".
+    pub const INTERPOLATED_POSITION: i8 = 7;
     pub const CYCLIC_SYNC_POSITION: i8 = 8;
     pub const CYCLIC_SYNC_VELOCITY: i8 = 9;
     pub const CYCLIC_SYNC_TORQUE: i8 = 10;

@@ -183,6 +183,13 @@ pub struct Shape {
     pub abort_connection_object: bool,
     /// Whether 0x6061 may be mapped into a PDO (a restricted mapping when false).
     pub mode_display_pdo: bool,
+    /// Fixed PDO mapping: the mapping objects (0x1600…, 0x1A00…) are read-only and keep
+    /// their power-on contents (RPDO1 controlword + 0x607A, TPDO1 statusword + 0x6064);
+    /// COB-IDs and transmission types stay writable.
+    pub fixed_pdo: bool,
+    /// Whether the objects CiA 402 makes optional and a master only prefers exist: 0x605A
+    /// quick stop option, 0x605B/0x605C/0x605E stop reactions, 0x607D software limits.
+    pub optional_402_objects: bool,
     /// Sub-indices of 0x1018 the drive has (4: vendor, product, revision, serial; 0: none,
     /// a vendor-id read aborts).
     pub identity_subs: u8,
@@ -207,6 +214,8 @@ impl Default for Shape {
             node_guarding: true,
             abort_connection_object: true,
             mode_display_pdo: true,
+            fixed_pdo: false,
+            optional_402_objects: true,
             identity_subs: 4,
         }
     }
@@ -214,7 +223,34 @@ impl Default for Shape {
 
 impl Shape {
     /// Modes the emulated drive implements (and so may list).
-    pub const IMPLEMENTED_MODES: [i8; 4] = [1, 6, 8, 9];
+    pub const IMPLEMENTED_MODES: [i8; 5] = [1, 6, 7, 8, 9];
+
+    /// The named shapes of `[[drive]] profile = "…"` (issue 21), each imitating a kind of
+    /// commercial drive; `[drive.shape]` keys change them further.
+    pub const PROFILES: [&'static str; 6] = ["plain", "ip-only", "pp-boot", "no-1016", "fixed-pdo", "user-units"];
+
+    /// The shape of a named profile: "ip-only" has interpolated position (7) but no CSP
+    /// (0x6060 = 8 aborts 0x06090030); "pp-boot" boots into profile position and takes a new
+    /// mode only 200 SYNCs after it was asked for; "no-1016" has no heartbeat consumer but
+    /// node guarding; "fixed-pdo" has a read-only PDO mapping that cannot carry 0x6061;
+    /// "user-units" counts positions in user units, 10000 per shaft revolution (0x6092:1 =
+    /// 10000: µm on a 10 mm screw), not encoder increments.
+    pub fn profile(name: &str) -> Option<Shape> {
+        let mut s = Shape::default();
+        match name {
+            "plain" => {}
+            "ip-only" => s.modes = vec![1, 6, 7],
+            "pp-boot" => {
+                s.boot_mode = 1;
+                s.mode_switch_syncs = 200;
+            }
+            "no-1016" => s.heartbeat_consumer = false,
+            "fixed-pdo" => s.fixed_pdo = true,
+            "user-units" => s.feed_constant = 10_000,
+            _ => return None,
+        }
+        Some(s)
+    }
 
     /// 0x6502: bit m−1 for each standard mode m (1…10).
     pub fn supported_modes_bits(&self) -> u32 {
@@ -224,11 +260,11 @@ impl Shape {
     fn check(&self, k: &str, errs: &mut Vec<String>) {
         for &m in &self.modes {
             if !Self::IMPLEMENTED_MODES.contains(&m) {
-                errs.push(format!("{k}: shape.modes: mode {m} is not emulated (modes: 1 PP, 6 homing, 8 CSP, 9 CSV)"));
+                errs.push(format!("{k}: shape.modes: mode {m} is not emulated (modes: 1 PP, 6 homing, 7 IP, 8 CSP, 9 CSV)"));
             }
         }
         if !Self::IMPLEMENTED_MODES.contains(&self.boot_mode) && self.boot_mode != 0 {
-            errs.push(format!("{k}: shape.boot_mode must be 0, 1, 6, 8 or 9, got {}", self.boot_mode));
+            errs.push(format!("{k}: shape.boot_mode must be 0, 1, 6, 7, 8 or 9, got {}", self.boot_mode));
         }
         if !(self.mode_switch_ms.is_finite() && (0.0..=60_000.0).contains(&self.mode_switch_ms)) {
             errs.push(format!("{k}: shape.mode_switch_ms must be 0…60000, got {}", self.mode_switch_ms));
@@ -651,6 +687,11 @@ impl SimConfig {
                     e.backlash_deg = v;
                 }
             }
+            if let Some(name) = &d.profile {
+                c.shape = Shape::profile(name).ok_or_else(|| {
+                    format!("sim-drives config: drive node {}: profile = {name:?}: unknown; one of {}", d.node, Shape::PROFILES.join(", "))
+                })?;
+            }
             if let Some(sh) = &d.shape {
                 let q = &mut c.shape;
                 macro_rules! sets {
@@ -676,6 +717,8 @@ impl SimConfig {
                 sets!(node_guarding);
                 sets!(abort_connection_object);
                 sets!(mode_display_pdo);
+                sets!(fixed_pdo);
+                sets!(optional_402_objects);
                 sets!(identity_subs);
             }
             let _ = i;
@@ -796,7 +839,7 @@ impl SimConfig {
         s.push_str("#   boot_mode = 1            # 0x6061 at power-on (1 = profile position)\n");
         s.push_str("#   mode_switch_ms = 300.0   # a new 0x6060 shows in 0x6061 only after this long…\n");
         s.push_str("#   mode_switch_syncs = 50   # …and this many SYNCs\n");
-        s.push_str("#   modes = [1, 6, 8, 9]     # modes 0x6060 accepts and 0x6502 lists (1 PP, 6 homing, 8 CSP, 9 CSV)\n");
+        s.push_str("#   modes = [1, 6, 8, 9]     # modes 0x6060 accepts and 0x6502 lists (1 PP, 6 homing, 7 IP, 8 CSP, 9 CSV)\n");
         s.push_str("#   supported_modes_object = false  # no 0x6502\n");
         s.push_str("#   factor_group = false     # no 0x608F/0x6091/0x6092/0x607E\n");
         s.push_str("#   feed_constant = 10000    # 0x6092:1 position units per shaft rev (0: increments); 10000 on a 10 mm screw = 1 µm\n");
@@ -809,7 +852,11 @@ impl SimConfig {
         s.push_str("#   node_guarding = false    # no 0x100C/0x100D (no answers to guarding requests)\n");
         s.push_str("#   abort_connection_object = false  # no 0x6007 (a lost master faults the drive)\n");
         s.push_str("#   mode_display_pdo = false # 0x6061 cannot be mapped into a PDO\n");
-        s.push_str("#   identity_subs = 0        # 0x1018 sub-indices present (4 = vendor…serial; 0: a vendor-id read aborts)\n\n");
+        s.push_str("#   fixed_pdo = true         # PDO mapping read-only (RPDO1 controlword + 0x607A, TPDO1 statusword + 0x6064)\n");
+        s.push_str("#   optional_402_objects = false  # no 0x605A/0x605B/0x605C/0x605E/0x607D\n");
+        s.push_str("#   identity_subs = 0        # 0x1018 sub-indices present (4 = vendor…serial; 0: a vendor-id read aborts)\n");
+        s.push_str("# profile = \"ip-only\" | \"pp-boot\" | \"no-1016\" | \"fixed-pdo\" | \"user-units\" in a [[drive]] starts from that shape\n");
+        s.push_str("# (IP but no CSP; boots in PP, switches 200 SYNCs late; no 0x1016; fixed PDO map; 10000 units/rev); [drive.shape] keys change it further.\n\n");
         s.push_str(&format!("step_us = {}                 # control loop / physics step, µs (≤ 100)\n", self.step_us));
         for d in &self.drives {
             let p = &d.physics;
@@ -866,7 +913,10 @@ impl SimConfig {
                     h.sync_producer, h.sync_period_us, h.heartbeat_consumer
                 ));
                 s.push_str(&format!("node_guarding = {}\nabort_connection_object = {}\n", h.node_guarding, h.abort_connection_object));
-                s.push_str(&format!("mode_display_pdo = {}\nidentity_subs = {}\n", h.mode_display_pdo, h.identity_subs));
+                s.push_str(&format!(
+                    "mode_display_pdo = {}\nfixed_pdo = {}\noptional_402_objects = {}\nidentity_subs = {}\n",
+                    h.mode_display_pdo, h.fixed_pdo, h.optional_402_objects, h.identity_subs
+                ));
             }
             if d.modbus_quirks != ModbusQuirks::default() {
                 s.push_str(&d.modbus_quirks.to_toml());
@@ -974,6 +1024,8 @@ struct RawDrive {
     modbus_link: Option<String>,
     late_sync_extrapolation: Option<u32>,
     shape: Option<RawShape>,
+    /// A named shape (`Shape::profile`), before `shape`'s keys.
+    profile: Option<String>,
     modbus_quirks: Option<ModbusQuirks>,
 }
 
@@ -996,6 +1048,8 @@ struct RawShape {
     node_guarding: Option<bool>,
     abort_connection_object: Option<bool>,
     mode_display_pdo: Option<bool>,
+    fixed_pdo: Option<bool>,
+    optional_402_objects: Option<bool>,
     identity_subs: Option<u8>,
 }
 
@@ -1090,8 +1144,8 @@ mod tests {
         assert_eq!(c.drives[0].increments_per_unit(), 10.0);
         assert_eq!(SimConfig::default_lathe().drives[0].increments_per_unit(), 1.0);
         assert_eq!(SimConfig::from_toml(&c.to_commented_toml()).unwrap(), c);
-        let e = SimConfig::from_toml("[[drive]]\nnode = 1\nkind = \"linear\"\n[drive.shape]\nmodes = [7]\n").unwrap_err();
-        assert!(e.contains("shape.modes: mode 7 is not emulated"), "{e}");
+        let e = SimConfig::from_toml("[[drive]]\nnode = 1\nkind = \"linear\"\n[drive.shape]\nmodes = [4]\n").unwrap_err();
+        assert!(e.contains("shape.modes: mode 4 is not emulated"), "{e}");
         let e = SimConfig::from_toml("[[drive]]\nnode = 1\nkind = \"linear\"\n[drive.shape]\nfeedback_factor = 0.0\n").unwrap_err();
         assert!(e.contains("shape.feedback_factor"), "{e}");
         let e = SimConfig::from_toml("[[drive]]\nnode = 1\nkind = \"linear\"\n[drive.shape]\nboot_mod = 1\n").unwrap_err();

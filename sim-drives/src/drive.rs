@@ -34,6 +34,15 @@ pub const SIM_FAULTS: u16 = 0x2100;
 /// RPDO) the set-point goes on with the last increment before it holds (real CSP drives with
 /// interpolation bridge a lost set-point so; 0 = hold at once).
 pub const CSP_EXTRAPOLATE: u16 = 0x2102;
+/// Manufacturer-specific parameters a start-up list (`[[axes.NAME.sdo]]`) writes, like a
+/// vendor's gains and delays: 0x2003 U16 brake release delay (ms, 0…2000), 0x2005 I32
+/// velocity loop gain, 0x2006 U16 current limit in 0.1 A that the drive keeps in whole
+/// amperes (a written 1234 reads back 1230: what a read-back after writing must catch),
+/// 0x2004 U8 encoder type, read-only (a refused write).
+pub const VENDOR_BRAKE_DELAY: u16 = 0x2003;
+pub const VENDOR_ENCODER_TYPE: u16 = 0x2004;
+pub const VENDOR_VELOCITY_GAIN: u16 = 0x2005;
+pub const VENDOR_CURRENT_LIMIT: u16 = 0x2006;
 /// Default of `CSP_EXTRAPOLATE`: bridges up to 3 lost set-points (6 ms at 2 ms).
 pub const CSP_EXTRAPOLATE_DEFAULT: i64 = 3;
 /// Sub-indices of `SIM_FAULTS`.
@@ -57,6 +66,9 @@ pub mod fault_sub {
     pub const PDO_DROP_PERMILLE: u8 = 8;
     /// U32 0–1000000: TPDOs leave this many µs after their SYNC or event.
     pub const TPDO_DELAY_US: u8 = 9;
+    /// U8: write 1 to switch the IP buffer off (0x60C4:6 = 0), as a drive does on a buffer
+    /// underrun: statusword bit 12 "ip mode active" drops; reads 0.
+    pub const IP_DISABLE: u8 = 10;
 }
 const POSITION_DEMAND: u16 = 0x6062;
 const POSITION_WINDOW: u16 = 0x6067;
@@ -305,7 +317,7 @@ fn build_od(c: &DriveConfig) -> Od {
     od.add_domain(USER_DATA, 0, Rw, USER_DATA_LEN);
     {
         use fault_sub::*;
-        od.add(SIM_FAULTS, 0, U8, Const, false, 9);
+        od.add(SIM_FAULTS, 0, U8, Const, false, 10);
         od.add(SIM_FAULTS, RAISE, U16, Rw, false, 0);
         od.add_range(SIM_FAULTS, ENCODER_LOST, U8, Rw, false, 0, 0, 1);
         od.add_range(SIM_FAULTS, UNDERVOLTAGE, U8, Rw, false, 0, 0, 1);
@@ -315,6 +327,7 @@ fn build_od(c: &DriveConfig) -> Od {
         od.add(SIM_FAULTS, SILENT_MS, U32, Rw, false, 0);
         od.add_range(SIM_FAULTS, PDO_DROP_PERMILLE, U16, Rw, false, 0, 0, 1000);
         od.add_range(SIM_FAULTS, TPDO_DELAY_US, U32, Rw, false, 0, 0, 1_000_000);
+        od.add_range(SIM_FAULTS, IP_DISABLE, U8, Rw, false, 0, 0, 1);
     }
     if sh.abort_connection_object {
         od.add_range(ix::ABORT_CONNECTION, 0, I16, Rw, false, 1, 0, 3);
@@ -322,10 +335,12 @@ fn build_od(c: &DriveConfig) -> Od {
     od.add(ix::ERROR_CODE, 0, U16, Ro, true, 0);
     od.add(ix::CONTROLWORD, 0, U16, Rw, true, 0);
     od.add(ix::STATUSWORD, 0, U16, Ro, true, 0);
-    od.add_range(ix::QUICK_STOP_OPTION, 0, I16, Rw, false, 2, 0, 8);
-    od.add_range(FAULT_REACTION, 0, I16, Rw, false, 2, 0, 4);
-    od.add_range(SHUTDOWN_OPTION, 0, I16, Rw, false, 0, 0, 1);
-    od.add_range(DISABLE_OPTION, 0, I16, Rw, false, 0, 0, 1);
+    if sh.optional_402_objects {
+        od.add_range(ix::QUICK_STOP_OPTION, 0, I16, Rw, false, 2, 0, 8);
+        od.add_range(FAULT_REACTION, 0, I16, Rw, false, 2, 0, 4);
+        od.add_range(SHUTDOWN_OPTION, 0, I16, Rw, false, 0, 0, 1);
+        od.add_range(DISABLE_OPTION, 0, I16, Rw, false, 0, 0, 1);
+    }
     od.add(ix::MODES_OF_OPERATION, 0, I8, Rw, true, sh.boot_mode as i64);
     od.add(ix::MODES_DISPLAY, 0, I8, Ro, sh.mode_display_pdo, sh.boot_mode as i64);
     od.add(POSITION_DEMAND, 0, I32, Ro, true, 0);
@@ -340,9 +355,11 @@ fn build_od(c: &DriveConfig) -> Od {
     od.add(TORQUE_ACTUAL, 0, I16, Ro, true, 0);
     od.add(ix::TARGET_POSITION, 0, I32, Rw, true, 0);
     od.add(CSP_EXTRAPOLATE, 0, U8, Rw, false, CSP_EXTRAPOLATE_DEFAULT);
-    od.add(ix::SOFTWARE_LIMIT, 0, U8, Const, false, 2);
-    od.add(ix::SOFTWARE_LIMIT, 1, I32, Rw, false, i32::MIN as i64);
-    od.add(ix::SOFTWARE_LIMIT, 2, I32, Rw, false, i32::MAX as i64);
+    if sh.optional_402_objects {
+        od.add(ix::SOFTWARE_LIMIT, 0, U8, Const, false, 2);
+        od.add(ix::SOFTWARE_LIMIT, 1, I32, Rw, false, i32::MIN as i64);
+        od.add(ix::SOFTWARE_LIMIT, 2, I32, Rw, false, i32::MAX as i64);
+    }
     od.add_range(PROFILE_DECEL, 0, U32, Rw, false, c.profile_decel as i64, 1, u32::MAX as i64);
     od.add_range(QUICK_STOP_DECEL, 0, U32, Rw, false, c.quick_stop_decel as i64, 1, u32::MAX as i64);
     od.add(ix::INTERPOLATION_PERIOD, 0, U8, Const, false, 2);
@@ -382,6 +399,37 @@ fn build_od(c: &DriveConfig) -> Od {
         od.add(ix::FEED_CONSTANT, 0, U8, Const, false, 2);
         od.add_range(ix::FEED_CONSTANT, 1, U32, Rw, false, c.feed_constant() as i64, 1, u32::MAX as i64);
         od.add_range(ix::FEED_CONSTANT, 2, U32, Rw, false, 1, 1, u32::MAX as i64);
+    }
+    // Interpolated position (mode 7), where the drive has it: linear sub-mode only, one
+    // set-point record 0x60C1:1, a one-record buffer 0x60C4 (sub 6 clears and enables it).
+    if sh.modes.contains(&mode::INTERPOLATED_POSITION) {
+        od.add_range(ix::INTERPOLATION_SUB_MODE, 0, I16, Rw, false, 0, 0, 0);
+        od.add(ix::INTERPOLATION_DATA, 0, U8, Const, false, 1);
+        od.add(ix::INTERPOLATION_DATA, 1, I32, Rw, true, 0);
+        od.add(ix::INTERPOLATION_BUFFER, 0, U8, Const, false, 6);
+        od.add(ix::INTERPOLATION_BUFFER, 1, U32, Ro, false, 1);
+        od.add(ix::INTERPOLATION_BUFFER, 2, U32, Ro, false, 1);
+        od.add_range(ix::INTERPOLATION_BUFFER, 3, U8, Rw, false, 0, 0, 1);
+        od.add_range(ix::INTERPOLATION_BUFFER, 4, U16, Rw, false, 0, 0, 0);
+        od.add_range(ix::INTERPOLATION_BUFFER, 5, U8, Wo, false, 4, 4, 4);
+        od.add_range(ix::INTERPOLATION_BUFFER, 6, U8, Wo, false, 1, 0, 1);
+    }
+    od.add_range(VENDOR_BRAKE_DELAY, 0, U16, Rw, false, 0, 0, 2000);
+    od.add(VENDOR_ENCODER_TYPE, 0, U8, Ro, false, 3);
+    od.add(VENDOR_VELOCITY_GAIN, 0, I32, Rw, false, 100);
+    od.add_range(VENDOR_CURRENT_LIMIT, 0, U16, Rw, false, 100, 0, 5000);
+    if sh.fixed_pdo {
+        // The power-on mapping above, read-only: remapping aborts 0x06010002.
+        for i in 0..N_RPDO {
+            for s in 0..=8u8 {
+                od.make_read_only(ix::RPDO_MAP + i, s);
+            }
+        }
+        for i in 0..N_TPDO {
+            for s in 0..=8u8 {
+                od.make_read_only(ix::TPDO_MAP + i, s);
+            }
+        }
     }
     od
 }
@@ -1139,7 +1187,10 @@ impl SimDrive {
 
     /// An SDO download: generic checks, object rules, store, side effects.
     fn write_object(&mut self, index: u16, sub: u8, data: &[u8], now: u64) -> Result<(), u32> {
-        let v = self.od.check_write(index, sub, data)?;
+        let mut v = self.od.check_write(index, sub, data)?;
+        if let (VENDOR_CURRENT_LIMIT, Value::Int(x)) = (index, &v) {
+            v = Value::Int(x / 10 * 10); // kept in whole amperes
+        }
         if let Value::Int(x) = v {
             self.object_rules(index, sub, x)?;
             self.od.store(index, sub, v);
@@ -1270,7 +1321,7 @@ impl SimDrive {
             ix::CONTROLWORD => self.controlword(x as u16, now),
             ix::MODES_OF_OPERATION => self.request_mode(x as i8, now),
             ix::COB_ID_SYNC | ix::COMM_CYCLE_PERIOD => self.own_sync_next = None,
-            ix::TARGET_POSITION => self.target_fresh = true,
+            ix::TARGET_POSITION | ix::INTERPOLATION_DATA => self.target_fresh = true,
             SIM_FAULTS => self.sim_fault_written(sub, x, now),
             _ => {}
         }
@@ -1295,6 +1346,13 @@ impl SimDrive {
                 self.fault(0x2310, now);
             }
             JAM_MNM => self.set_jam(x as f64 / 1000.0),
+            IP_DISABLE if x != 0 => {
+                self.od.set(SIM_FAULTS, IP_DISABLE, 0);
+                if self.od.get(ix::INTERPOLATION_BUFFER, 6).is_some() {
+                    tracing::warn!(node = self.cfg.node, "IP buffer switched off (injected): ip mode no longer active");
+                    self.od.set(ix::INTERPOLATION_BUFFER, 6, 0);
+                }
+            }
             SILENT_MS if x != 0 => {
                 self.od.set(SIM_FAULTS, SILENT_MS, 0);
                 let until = if x as u32 == u32::MAX { u64::MAX } else { now + x as u64 * MS };
@@ -1346,6 +1404,9 @@ impl SimDrive {
                 let halt = self.prev_cw & cw::HALT != 0;
                 if !halt && self.stop.is_none() && (m == mode::CYCLIC_SYNC_POSITION || m == mode::CYCLIC_SYNC_VELOCITY) {
                     s |= sw::OMS12; // following the command value
+                }
+                if !halt && self.stop.is_none() && m == mode::INTERPOLATED_POSITION && self.ip_active() {
+                    s |= sw::OMS12; // ip mode active
                 }
                 let reached = if let Some(st) = self.stop {
                     st.v == 0.0 && self.servo.at_rest()
@@ -1536,81 +1597,97 @@ impl SimDrive {
             mode::CYCLIC_SYNC_VELOCITY => {
                 self.target_vel = self.od.int(ix::TARGET_VELOCITY, 0) as f64;
             }
-            mode::CYCLIC_SYNC_POSITION => {
-                let (raw, fresh) = self.delayed_target(self.od.int(ix::TARGET_POSITION, 0) as i32, fresh, sync);
-                // No new target for this SYNC (its RPDO was lost): go on with the last
-                // increment for up to `CSP_EXTRAPOLATE` SYNCs, then hold. A stop of one
-                // period would be a velocity step and, on the next target, twice the
-                // increment: a torque spike (10 % PDO loss tripped following error so).
-                let missed = !fresh && self.seg_len > 0 && self.target_ref.is_some();
-                self.csp_missed = if missed { self.csp_missed.saturating_add(1) } else { 0 };
-                let mut t = if missed {
-                    if self.csp_missed as i64 <= self.od.int(CSP_EXTRAPOLATE, 0) {
-                        self.seg_end + self.seg_v * (self.seg_len as f64 * 1e-9)
-                    } else {
-                        self.seg_end
-                    }
-                } else {
-                    // 0x607A is in position units; the loop runs in increments.
-                    let t = match self.target_ref {
-                        Some((r, u)) => u + self.user_to_inc(raw.wrapping_sub(r) as f64),
-                        None => {
-                            let a = self.servo.position_counts();
-                            let au = self.inc_to_user(a as f64).round() as i64 as i32;
-                            a as f64 + self.user_to_inc(raw.wrapping_sub(au) as f64)
-                        }
-                    };
-                    self.target_ref = Some((raw, t));
-                    t
-                };
-                self.limit_active = false;
-                if let Some((lo, hi)) = self.software_limits_inc() {
-                    let c = t.clamp(lo, hi);
-                    self.limit_active = c != t;
-                    t = c;
-                }
-                // Interpolate from where the demand is now to the new target over the
-                // interpolation period (0x60C2, else the measured SYNC period).
-                let ip = self.od.int(ix::INTERPOLATION_PERIOD, 1) as f64 * 10f64.powi(self.od.int(ix::INTERPOLATION_PERIOD, 2) as i32);
-                let len = if ip > 0.0 {
-                    (ip * 1e9).round() as u64
-                } else if self.sync_period > 0 {
-                    self.sync_period
-                } else {
-                    let c = self.od.int(ix::COMM_CYCLE_PERIOD, 0) as u64 * 1000;
-                    if c > 0 {
-                        c
-                    } else {
-                        MS
-                    }
-                };
-                // The set-point runs on a line through the new target, reaching it one
-                // interpolation period from now (a fixed one-period delay, as real drives
-                // interpolate). A late SYNC or a master that caught up several cycles at once
-                // then changes neither the velocity feed-forward nor the set-point by more
-                // than the lateness.
-                let len = len.max(1);
-                let since = now.saturating_sub(self.seg_t0);
-                let fresh = self.seg_len == 0 || since > self.seg_len * (1 + self.late_periods());
-                // The velocity is the target difference over whole interpolation periods:
-                // one normally (sub-period jitter of the SYNC does not modulate it — the
-                // spindle's inertia turns every percent of feed-forward noise into torque),
-                // n when the SYNC came n periods after the last one (a master that caught up
-                // after missing cycles sends n periods' worth of travel at once).
-                let v = if fresh {
-                    (t - self.demand) / (len as f64 * 1e-9)
-                } else {
-                    let n = ((since as f64 / len as f64).round() as u64).clamp(1, 1 + self.late_periods());
-                    (t - self.seg_end) / ((n * len) as f64 * 1e-9)
-                };
-                self.seg_v = v;
-                self.seg_start = t - v * (len as f64 * 1e-9);
-                self.seg_end = t;
-                self.seg_t0 = now;
-                self.seg_len = len;
+            mode::CYCLIC_SYNC_POSITION => self.latch_position(self.od.int(ix::TARGET_POSITION, 0) as i32, fresh, sync, now),
+            mode::INTERPOLATED_POSITION if self.ip_active() => self.latch_position(self.od.int(ix::INTERPOLATION_DATA, 1) as i32, fresh, sync, now),
+            // Interpolation not enabled (controlword bit 4 low, or the buffer cleared): the
+            // drive holds where it is and takes no set-point.
+            mode::INTERPOLATED_POSITION if self.target_ref.is_some() || self.seg_len > 0 => {
+                self.rebase();
+                self.seg_len = 0;
             }
             _ => {}
         }
+    }
+
+    /// IP: interpolation enabled by controlword bit 4, with the buffer enabled (0x60C4:6 = 1).
+    fn ip_active(&self) -> bool {
+        self.prev_cw & cw::OMS4 != 0 && self.od.get(ix::INTERPOLATION_BUFFER, 6).is_none_or(|_| self.od.int(ix::INTERPOLATION_BUFFER, 6) != 0)
+    }
+
+    /// CSP and IP at a SYNC: the next segment of linear interpolation towards `raw`
+    /// (position units), one interpolation period long.
+    fn latch_position(&mut self, raw: i32, fresh: bool, sync: bool, now: u64) {
+        let (raw, fresh) = self.delayed_target(raw, fresh, sync);
+        // No new target for this SYNC (its RPDO was lost): go on with the last
+        // increment for up to `CSP_EXTRAPOLATE` SYNCs, then hold. A stop of one
+        // period would be a velocity step and, on the next target, twice the
+        // increment: a torque spike (10 % PDO loss tripped following error so).
+        let missed = !fresh && self.seg_len > 0 && self.target_ref.is_some();
+        self.csp_missed = if missed { self.csp_missed.saturating_add(1) } else { 0 };
+        let mut t = if missed {
+            if self.csp_missed as i64 <= self.od.int(CSP_EXTRAPOLATE, 0) {
+                self.seg_end + self.seg_v * (self.seg_len as f64 * 1e-9)
+            } else {
+                self.seg_end
+            }
+        } else {
+            // 0x607A is in position units; the loop runs in increments.
+            let t = match self.target_ref {
+                Some((r, u)) => u + self.user_to_inc(raw.wrapping_sub(r) as f64),
+                None => {
+                    let a = self.servo.position_counts();
+                    let au = self.inc_to_user(a as f64).round() as i64 as i32;
+                    a as f64 + self.user_to_inc(raw.wrapping_sub(au) as f64)
+                }
+            };
+            self.target_ref = Some((raw, t));
+            t
+        };
+        self.limit_active = false;
+        if let Some((lo, hi)) = self.software_limits_inc() {
+            let c = t.clamp(lo, hi);
+            self.limit_active = c != t;
+            t = c;
+        }
+        // Interpolate from where the demand is now to the new target over the
+        // interpolation period (0x60C2, else the measured SYNC period).
+        let ip = self.od.int(ix::INTERPOLATION_PERIOD, 1) as f64 * 10f64.powi(self.od.int(ix::INTERPOLATION_PERIOD, 2) as i32);
+        let len = if ip > 0.0 {
+            (ip * 1e9).round() as u64
+        } else if self.sync_period > 0 {
+            self.sync_period
+        } else {
+            let c = self.od.int(ix::COMM_CYCLE_PERIOD, 0) as u64 * 1000;
+            if c > 0 {
+                c
+            } else {
+                MS
+            }
+        };
+        // The set-point runs on a line through the new target, reaching it one
+        // interpolation period from now (a fixed one-period delay, as real drives
+        // interpolate). A late SYNC or a master that caught up several cycles at once
+        // then changes neither the velocity feed-forward nor the set-point by more
+        // than the lateness.
+        let len = len.max(1);
+        let since = now.saturating_sub(self.seg_t0);
+        let fresh = self.seg_len == 0 || since > self.seg_len * (1 + self.late_periods());
+        // The velocity is the target difference over whole interpolation periods:
+        // one normally (sub-period jitter of the SYNC does not modulate it — the
+        // spindle's inertia turns every percent of feed-forward noise into torque),
+        // n when the SYNC came n periods after the last one (a master that caught up
+        // after missing cycles sends n periods' worth of travel at once).
+        let v = if fresh {
+            (t - self.demand) / (len as f64 * 1e-9)
+        } else {
+            let n = ((since as f64 / len as f64).round() as u64).clamp(1, 1 + self.late_periods());
+            (t - self.seg_end) / ((n * len) as f64 * 1e-9)
+        };
+        self.seg_v = v;
+        self.seg_start = t - v * (len as f64 * 1e-9);
+        self.seg_end = t;
+        self.seg_t0 = now;
+        self.seg_len = len;
     }
 
     /// How many interpolation periods a late SYNC is bridged by extrapolating the set-point

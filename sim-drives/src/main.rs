@@ -35,7 +35,8 @@ struct Args {
     socketcand_bus: String,
     /// Inject a fault: NODE:NAME[=VALUE][@MS], repeatable. NAME: raise=CODE,
     /// encoder-lost, undervoltage, overcurrent, jam-mnm=N, heartbeat-stop,
-    /// silent-ms[=N] (none: for good), pdo-drop-permille=N, tpdo-delay-us=N; @MS: that
+    /// silent-ms[=N] (none: for good), pdo-drop-permille=N, tpdo-delay-us=N, ip-disable
+    /// (an IP drive's buffer off: statusword bit 12 drops); @MS: that
     /// long after the start (default at once). Same effect as the SDO write to 0x2100.
     #[arg(long = "fault", value_name = "SPEC")]
     faults: Vec<String>,

@@ -125,6 +125,13 @@ impl Od {
         self.entries.insert(key(index, sub), e);
     }
 
+    /// Make an existing entry read-only (a fixed PDO mapping).
+    pub fn make_read_only(&mut self, index: u16, sub: u8) {
+        if let Some(e) = self.entries.get_mut(&key(index, sub)) {
+            e.access = Access::Ro;
+        }
+    }
+
     pub fn add_str(&mut self, index: u16, sub: u8, access: Access, s: &str) {
         let v = Value::Str(s.to_string());
         let e = Entry { dtype: DType::Str, access, pdo: false, min: 0, max: 0, value: v.clone(), default: v };

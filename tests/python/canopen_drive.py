@@ -6,7 +6,10 @@ to sim-drives' [drive.shape]; run by tests/python_drives.rs:
 
     build/venv/bin/python tests/python/canopen_drive.py HOST PORT SHAPE
 
-SHAPE: plain | pp_boot | user_units | sync_producer | no_1016 | no_6502.
+SHAPE: plain | pp_boot | user_units | sync_producer | no_1016 | no_6502 | ip_only.
+ip_only (issue 21): interpolated position (7) and no CSP — 0x6060 = 8 aborts 0x06090030,
+0x6502 lists PP, HM, IP; 0x60C0/0x60C1/0x60C4 added to the EDS; in IP the position follows
+0x60C1:1 at each SYNC while controlword bit 4 is set, and statusword bit 12 says so.
 Nodes 1 (X), 2 (Z) linear (100000 increments per motor revolution), 3 (S1) spindle
 (360000), all with the same shape. The position follows the CSP target at each SYNC (an
 ideal drive: no dynamics). Prints "ready" once on the bus; on SIGTERM/SIGINT prints one JSON
@@ -39,7 +42,47 @@ SHAPES = {
     "sync_producer": {"sync_producer": True},
     "no_1016": {"drop": ["1016"]},
     "no_6502": {"drop": ["6502"]},
+    "ip_only": {"modes": (0, 1, 6, 7), "ip": True},
 }
+
+IP_EDS = """
+[60C0]
+ParameterName=Interpolation sub mode select
+ObjectType=0x7
+DataType=0x0003
+AccessType=rw
+DefaultValue=0
+PDOMapping=0
+
+[60C1]
+ParameterName=Interpolation data record
+ObjectType=0x9
+SubNumber=2
+
+[60C1sub0]
+ParameterName=Highest sub-index supported
+ObjectType=0x7
+DataType=0x0005
+AccessType=ro
+DefaultValue=1
+PDOMapping=0
+
+[60C1sub1]
+ParameterName=Position set-point
+ObjectType=0x7
+DataType=0x0004
+AccessType=rw
+DefaultValue=0
+PDOMapping=1
+
+[60C4]
+ParameterName=Interpolation data configuration
+ObjectType=0x9
+SubNumber=7
+""" + "".join(
+    "\n[60C4sub%d]\nParameterName=Sub %d\nObjectType=0x7\nDataType=0x%04X\nAccessType=%s\nDefaultValue=%d\nPDOMapping=0\n" % (k, k, t, a, v)
+    for k, t, a, v in [(0, 5, "ro", 6), (1, 7, "ro", 1), (2, 7, "ro", 1), (3, 5, "rw", 0), (4, 6, "rw", 0), (5, 5, "wo", 4), (6, 5, "wo", 1)]
+)
 shape = SHAPES[SHAPE]
 
 
@@ -48,6 +91,8 @@ def shaped_eds():
     text = open(EDS).read()
     for ix in shape.get("drop", []):
         text = re.sub(r"\[%s(sub[0-9A-Fa-f]+)?\]\n(?:[^\[]*\n)*?\n" % ix, "", text)
+    if shape.get("ip"):
+        text = text.replace("DefaultValue=0x000001A1", "DefaultValue=0x00000061") + "\n" + IP_EDS
     f = tempfile.NamedTemporaryFile("w", suffix=".eds", delete=False)
     f.write(text)
     f.close()
@@ -138,8 +183,8 @@ class Drive:
             s |= 0x10
         if self.state == OE:
             s |= 0x0400
-            if self.mode in (8, 9):
-                s |= 0x1000
+            if self.mode in (8, 9) or (self.mode == 7 and self.cw & 0x10):
+                s |= 0x1000  # following the command value; in IP: ip mode active
         return s
 
     def on_read(self, index, subindex, od):
@@ -162,7 +207,7 @@ class Drive:
         v = int.from_bytes(data, "little", signed=od.data_type in (2, 3, 4)) if len(data) <= 4 else 0
         with self.lock:
             if index == 0x6060:
-                if v not in (0, 1, 6, 8, 9):
+                if v not in shape.get("modes", (0, 1, 6, 8, 9)):
                     raise SdoAbortedError(0x06090030)
                 self.request_mode(v)
             elif index == 0x1005 and v & 0x40000000 and not shape.get("sync_producer"):
@@ -280,11 +325,11 @@ class Drive:
                 pos += n
                 if e >> 16 == 0x6040:
                     self.controlword(int.from_bytes(chunk, "little"))
-                elif e >> 16 == 0x607A:
+                elif e >> 16 in (0x607A, 0x60C1):
                     self.target = int.from_bytes(chunk, "little", signed=True)
         if self.state == OE:
             self.enabled_modes.add(self.mode)
-            if self.mode == 8:
+            if self.mode == 8 or (self.mode == 7 and self.cw & 0x10):
                 self.pos_inc = self.target * self.inc_per_unit()
 
     def on_rpdo(self, can_id, data, ts):

@@ -97,6 +97,9 @@ pub struct EdsEntry {
     pub access: EdsAccess,
     pub pdo_mapping: bool,
     pub default: Option<String>,
+    /// LowLimit / HighLimit, where the file gives them as numbers.
+    pub low_limit: Option<i64>,
+    pub high_limit: Option<i64>,
     /// Line of the section header (1-based).
     pub line: usize,
 }
@@ -115,6 +118,15 @@ pub struct Eds {
     pub entries: BTreeMap<(u16, u8), EdsEntry>,
     /// Indices that exist as ARRAY / RECORD (their subs are in `entries`).
     pub composites: BTreeMap<u16, usize>,
+}
+
+/// A limit: decimal (possibly negative) or hex; `None` for what is neither (`$NODEID+…`).
+fn parse_limit(s: &str) -> Option<i64> {
+    let s = s.trim();
+    match s.strip_prefix('-') {
+        Some(r) => parse_num(r).and_then(|v| i64::try_from(v).ok()).map(|v| -v),
+        None => parse_num(s).and_then(|v| i64::try_from(v).ok()),
+    }
 }
 
 fn parse_num(s: &str) -> Option<u64> {
@@ -206,6 +218,8 @@ impl Eds {
                         access,
                         pdo_mapping: pdo,
                         default: get("defaultvalue").map(|v| v.0.clone()),
+                        low_limit: get("lowlimit").and_then(|v| parse_limit(&v.0)),
+                        high_limit: get("highlimit").and_then(|v| parse_limit(&v.0)),
                         line: s.line,
                     };
                     eds.entries.insert((e.index, e.sub), e);
@@ -226,6 +240,8 @@ impl Eds {
                             access,
                             pdo_mapping: pdo,
                             default: None,
+                            low_limit: None,
+                            high_limit: None,
                             line: s.line,
                         };
                         eds.entries.insert((s.index, 0), mk(0, 0x0005, EdsAccess::Ro, false));
@@ -249,6 +265,8 @@ impl Eds {
                             access,
                             pdo_mapping: false,
                             default: None,
+                            low_limit: None,
+                            high_limit: None,
                             line: s.line,
                         };
                         eds.entries.insert((e.index, e.sub), e);

@@ -89,7 +89,13 @@ pub mod od {
     pub const HOMING_METHOD: u16 = 0x6098;
     pub const HOMING_SPEEDS: u16 = 0x6099;
     pub const HOMING_ACCEL: u16 = 0x609A;
+    /// Interpolation sub-mode select (IP): 0 = linear.
+    pub const INTERPOLATION_SUB_MODE: u16 = 0x60C0;
+    /// Interpolation data record (IP): sub 1 = the position set-point.
+    pub const INTERPOLATION_DATA: u16 = 0x60C1;
     pub const INTERPOLATION_PERIOD: u16 = 0x60C2;
+    /// Interpolation data configuration (IP): sub 6 = buffer clear (0 clear, 1 enable).
+    pub const INTERPOLATION_BUFFER: u16 = 0x60C4;
     pub const FOLLOWING_ERROR_ACTUAL: u16 = 0x60F4;
     pub const TARGET_VELOCITY: u16 = 0x60FF;
     pub const SUPPORTED_MODES: u16 = 0x6502;

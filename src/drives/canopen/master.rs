@@ -7,27 +7,33 @@
 //! fault (with 0x603F and 0x1001 read and decoded), 2011 heartbeat lost, 2012 fault reset failed, 2013 enable timed out,
 //! 2004 EDS unreadable or disagreeing, 2005 mode missing / not confirmed / left while
 //! running, 2006 position scaling or polarity disagrees with the config, 2007 another master
-//! or SYNC producer on the bus, 2014 node left operational, 2015 stale feedback, 2016 profile
+//! or SYNC producer on the bus, 2008 start-up list entry refused or read back otherwise, 2009
+//! fixed PDO mapping that cannot carry the cycle, 2014 node left operational, 2015 stale feedback, 2016 profile
 //! move failed, 2017 homing failed, 2018 TPDO of the wrong length, 2020 bus error.
 
 mod bus_check;
 mod drive_check;
 mod explain;
+mod fixed_pdo;
+mod ip_mode;
 mod life;
 mod mode_track;
 mod restore;
+mod startup_list;
 
 pub use drive_check::{check_scaling, DriveProbe, Scaling, ALARM_FOREIGN, ALARM_MODE, ALARM_SCALING};
 pub use explain::{mode_short, supported_modes_text};
+pub use fixed_pdo::ALARM_MAPPING;
 pub use mode_track::MODE_TIMEOUT_MS;
+pub use startup_list::{check_list_against_eds, ALARM_STARTUP_LIST};
 
 use super::sdo_client::{SdoClient, SdoError};
-use crate::config::{AxisKind, MachineConfig, Polarity};
+use crate::config::{AxisKind, CyclicMode, MachineConfig, Polarity, StartupSdo};
 use crate::drives::{AxisFeedback, DriveBus};
 use crate::Alarm;
 use cncgw_bus::canopen::emcy::{error_register_text, error_text, Emcy};
 use cncgw_bus::canopen::nmt::{decode_heartbeat, NmtCommand, NmtState};
-use cncgw_bus::canopen::pdo::{get_i32, get_u16, MapEntry};
+use cncgw_bus::canopen::pdo::{get_i32, get_u16, put_u16, MapEntry};
 use cncgw_bus::canopen::sdo::abort;
 use cncgw_bus::canopen::{cob, od, sync_frame};
 use cncgw_bus::cia402::{cw, mode, sw, EnableProgress, Enabler, State};
@@ -90,6 +96,10 @@ pub struct NodeSpec {
     pub travel_per_rev: Option<f64>,
     /// The drive's position polarity (`axes.NAME.polarity`), checked against 0x607E.
     pub polarity: Polarity,
+    /// Interpolated position (`axes.NAME.mode = "ip"`) instead of CSP.
+    pub ip: bool,
+    /// The start-up list (`[[axes.NAME.sdo]]`).
+    pub sdo: Vec<StartupSdo>,
 }
 
 impl NodeSpec {
@@ -113,8 +123,28 @@ impl NodeSpec {
                 tpdo_tx: a.tpdo_transmission,
                 travel_per_rev: a.travel_per_rev,
                 polarity: a.polarity,
+                ip: a.mode == CyclicMode::Ip,
+                sdo: a.sdo.clone(),
             })
             .collect()
+    }
+
+    /// The cyclic position mode: interpolated position (7) or CSP (8).
+    pub fn position_mode(&self) -> i8 {
+        if self.ip {
+            mode::INTERPOLATED_POSITION
+        } else {
+            mode::CYCLIC_SYNC_POSITION
+        }
+    }
+
+    /// Where the cyclic position set-point goes: 0x60C1:1 in IP, 0x607A in CSP.
+    pub fn target_object(&self) -> (u16, u8) {
+        if self.ip {
+            (od::INTERPOLATION_DATA, 1)
+        } else {
+            (od::TARGET_POSITION, 0)
+        }
     }
 }
 
@@ -186,6 +216,23 @@ struct Node {
     bad_len_last: u8,
     /// Node guarding by the master (a drive without a heartbeat consumer).
     guarding: Option<life::Guarding>,
+    /// IP: consecutive TPDO1s in Operation Enabled without statusword bit 12 (ip mode active).
+    ip_inactive: u32,
+    /// IP: consecutive RPDO1s sent with controlword bit 4 (enable ip mode) set.
+    ip_sent: u32,
+    /// Where the values sit in RPDO1 and TPDO1 (the master's own mapping, or a drive's
+    /// fixed one: `fixed_pdo`).
+    rpdo_at: fixed_pdo::RpdoLayout,
+    tpdo_at: fixed_pdo::TpdoLayout,
+    /// How start-up set the drive up, for the log line and `cncgw scan`-like reports.
+    chosen: Chosen,
+}
+
+/// What start-up chose for a drive and why, logged once per drive.
+#[derive(Clone, Debug, Default)]
+struct Chosen {
+    mapping: String,
+    error_control: String,
 }
 
 impl Node {
@@ -217,6 +264,11 @@ impl Node {
             bad_len_total: 0,
             bad_len_last: 0,
             guarding: None,
+            ip_inactive: 0,
+            ip_sent: 0,
+            rpdo_at: fixed_pdo::RpdoLayout::default(),
+            tpdo_at: fixed_pdo::TpdoLayout::default(),
+            chosen: Chosen::default(),
         }
     }
 }
@@ -376,6 +428,8 @@ impl<B: CanBus> CanOpenMaster<B> {
             tpdo_tx: 1,
             travel_per_rev: None,
             polarity: Polarity::Normal,
+            ip: false,
+            sdo: Vec::new(),
         };
         let timeout = self.boot_timeout_ms / 4;
         self.nodes.push(Node::new(spec, timeout.max(1)));
@@ -561,9 +615,10 @@ impl<B: CanBus> CanOpenMaster<B> {
                 return;
             }
             n.bad_len = 0;
-            if n.mode.in_pdo && f.len >= 7 {
+            let at = n.tpdo_at;
+            if let Some(mo) = at.mode.filter(|&mo| n.mode.in_pdo && (f.len as usize) > mo) {
                 // As the statusword: one frame with a flipped bit is not a mode change.
-                let m = f.data[6] as i8;
+                let m = f.data[mo] as i8;
                 if n.mode.shown != Some(m) && n.mode.confirmed && n.mode.odd_frames == 0 {
                     n.mode.odd_frames = 1;
                 } else {
@@ -571,7 +626,7 @@ impl<B: CanBus> CanOpenMaster<B> {
                     n.mode.shown = Some(m);
                 }
             }
-            let raw = get_i32(&f.data, 2);
+            let raw = get_i32(&f.data, at.pos);
             if n.have_fb && raw.wrapping_sub(n.raw_pos).unsigned_abs() >= 1 << 30 {
                 // No axis moves 2^30 counts between two TPDOs: a corrupt frame (a flipped top
                 // bit would otherwise shift the unwrapped position by 2^32 for good). Dropped;
@@ -579,8 +634,10 @@ impl<B: CanBus> CanOpenMaster<B> {
                 tracing::warn!(node = n.spec.node, "implausible position in TPDO1 ignored");
                 return;
             }
-            n.status = get_u16(&f.data, 0);
+            n.status = get_u16(&f.data, at.status);
             n.not_enabled = if State::from_statusword(n.status) == State::OperationEnabled { 0 } else { n.not_enabled.saturating_add(1) };
+            self.note_ip_status(i);
+            let n = &mut self.nodes[i];
             if n.have_fb {
                 // INTEGER32 positions wrap; a spindle passes 2^31 counts within minutes.
                 n.unwrapped += raw.wrapping_sub(n.raw_pos) as i64;
@@ -724,10 +781,16 @@ impl<B: CanBus> CanOpenMaster<B> {
         self.check_node_eds(i)?;
         self.identify_node(clock, i)?;
         self.check_not_sync_producer(clock, i)?;
-        let want = mode::CYCLIC_SYNC_POSITION;
+        let want = self.nodes[i].spec.position_mode();
         self.check_supported_mode(clock, i, want)?;
-        self.check_node_scaling(clock, i)?;
+        let scaling = self.check_node_scaling(clock, i)?;
         self.write_cycle_period(clock, i)?;
+        if self.nodes[i].spec.ip {
+            self.configure_ip(clock, i)?;
+        }
+        // The mode it booted in, for the start-up line (a drive in PP is switched below and
+        // confirmed through 0x6061 before it is enabled).
+        let booted_in = self.read_u32(clock, i, od::MODES_DISPLAY, 0).ok().map(|v| v as u8 as i8);
         self.nodes[i].mode.want = want;
         self.nodes[i].mode.confirmed = false;
         self.write(clock, i, od::MODES_OF_OPERATION, 0, &[want as u8])?;
@@ -735,16 +798,60 @@ impl<B: CanBus> CanOpenMaster<B> {
         let win = (spec.following_error * spec.counts_per_unit).round().clamp(1.0, u32::MAX as f64) as u32;
         self.write(clock, i, od::FOLLOWING_ERROR_WINDOW, 0, &win.to_le_bytes())?;
         // Quick stop: decelerate on the quick-stop ramp, then Switch On Disabled.
-        self.write(clock, i, od::QUICK_STOP_OPTION, 0, &2i16.to_le_bytes())?;
+        self.prefer_write(
+            clock,
+            i,
+            od::QUICK_STOP_OPTION,
+            0,
+            &2i16.to_le_bytes(),
+            "quick stop option 0x605A: a quick stop does what its manual says",
+        )?;
         self.configure_stop_reactions(clock, i)?;
         if let (Some(lo), Some(hi), false) = (spec.min, spec.max, spec.spindle) {
             let lo = (lo * spec.counts_per_unit).floor() as i32;
             let hi = (hi * spec.counts_per_unit).ceil() as i32;
-            self.write(clock, i, od::SOFTWARE_LIMIT, 1, &lo.to_le_bytes())?;
-            self.write(clock, i, od::SOFTWARE_LIMIT, 2, &hi.to_le_bytes())?;
+            let what = "software position limits 0x607D: the travel is limited by this controller's limits alone";
+            if self.prefer_write(clock, i, od::SOFTWARE_LIMIT, 1, &lo.to_le_bytes(), what)? {
+                self.write(clock, i, od::SOFTWARE_LIMIT, 2, &hi.to_le_bytes())?;
+            }
         }
         self.map_cyclic_pdos(clock, i)?;
-        self.configure_error_control(clock, i)
+        self.configure_error_control(clock, i)?;
+        self.write_startup_list(clock, i)?;
+        let n = &self.nodes[i];
+        let booted = match booted_in {
+            Some(b) if b != want && b != 0 => {
+                format!(", booted in {} and switched by 0x6060 (confirmed by 0x6061 before enabling)", explain::mode_words(b))
+            }
+            _ => String::new(),
+        };
+        tracing::info!(
+            node = n.spec.node,
+            axis = %n.spec.axis,
+            "start-up: mode {} ({}){booted}; mapping: {}; error control: {}; units: {}{}",
+            explain::mode_short(want),
+            if n.spec.ip { format!("axes.{}.mode = \"ip\"", n.spec.axis) } else { "the default".into() },
+            n.chosen.mapping,
+            n.chosen.error_control,
+            scaling.unit_text(),
+            if n.spec.sdo.is_empty() { String::new() } else { format!("; start-up list: {} object(s) read back equal", n.spec.sdo.len()) }
+        );
+        Ok(())
+    }
+
+    /// Write an object the master only prefers (CiA 402 makes it optional and the master has
+    /// its own safeguard): a drive without it gets a warning saying what that means, not a
+    /// refusal; other failures are alarms as for `write`. Ok(true) if written.
+    #[allow(clippy::too_many_arguments)]
+    fn prefer_write(&mut self, clock: &mut dyn Clock, i: usize, ix: u16, sub: u8, data: &[u8], without: &str) -> Result<bool, Alarm> {
+        match self.try_write(clock, i, ix, sub, data) {
+            Ok(()) => Ok(true),
+            Err(SdoError::Abort { code }) if explain::is_absent(code) => {
+                tracing::warn!(node = self.nodes[i].spec.node, axis = %self.nodes[i].spec.axis, "warning: the drive has no {without}");
+                Ok(false)
+            }
+            Err(e) => Err(self.write_alarm(i, ix, sub, data, &e)),
+        }
     }
 
     /// The drive's own data sheet must allow what start-up writes (before anything is written).
@@ -831,33 +938,56 @@ impl<B: CanBus> CanOpenMaster<B> {
     /// display (or, where the drive cannot map 0x6061, without it: the mode is then polled).
     fn map_cyclic_pdos(&mut self, clock: &mut dyn Clock, i: usize) -> Result<(), Alarm> {
         let spec = self.nodes[i].spec.clone();
-        let rpdo = [MapEntry::new(od::CONTROLWORD, 0, 16), MapEntry::new(od::TARGET_POSITION, 0, 32)];
+        let (tix, tsub) = spec.target_object();
+        let rpdo = [MapEntry::new(od::CONTROLWORD, 0, 16), MapEntry::new(tix, tsub, 32)];
         let tpdo = [MapEntry::new(od::STATUSWORD, 0, 16), MapEntry::new(od::POSITION_ACTUAL, 0, 32), MapEntry::new(od::MODES_DISPLAY, 0, 8)];
-        self.map_pdo(clock, i, od::RPDO_COMM, od::RPDO_MAP, spec.rpdo_cob, spec.rpdo_tx, &rpdo)?;
+        self.nodes[i].rpdo_at = fixed_pdo::RpdoLayout::default();
+        self.nodes[i].tpdo_at = fixed_pdo::TpdoLayout::default();
+        let rpdo_text = match self.try_map_pdo(clock, i, od::RPDO_COMM, od::RPDO_MAP, spec.rpdo_cob, spec.rpdo_tx, &rpdo) {
+            Ok(()) => format!("remapped RPDO1 0x{:03X} = controlword + 0x{tix:04X}:{tsub:02X}", spec.rpdo_cob),
+            Err(e) if Self::fixed_fallback(od::RPDO_MAP, &e) => self.use_fixed_rpdo(clock, i, &e.3)?,
+            Err((ix, sub, data, e)) => return Err(self.write_alarm(i, ix, sub, &data, &e)),
+        };
         let refused_third = |e: &(u16, u8, [u8; 4], SdoError)| {
             e.0 == od::TPDO_MAP
                 && matches!(e.1, 0 | 3)
                 && matches!(e.3, SdoError::Abort { code } if matches!(code, abort::NOT_MAPPABLE | abort::PDO_TOO_LONG | abort::PARAM_INCOMPATIBLE | abort::INVALID_VALUE | abort::NO_SUBINDEX))
         };
-        let in_pdo = match self.try_map_pdo(clock, i, od::TPDO_COMM, od::TPDO_MAP, spec.tpdo_cob, spec.tpdo_tx, &tpdo) {
-            Ok(()) => true,
-            Err(e) if refused_third(&e) => {
-                tracing::warn!(
-                    node = spec.node,
-                    "the drive cannot map 0x6061 (mode display) into TPDO1 ({}): its mode is read by SDO every {} ms instead",
-                    e.3,
-                    mode_track::POLL_EVERY_NS / 1_000_000
-                );
-                self.map_pdo(clock, i, od::TPDO_COMM, od::TPDO_MAP, spec.tpdo_cob, spec.tpdo_tx, &tpdo[..2])?;
-                false
-            }
+        let (tc, tt) = (spec.tpdo_cob, spec.tpdo_tx);
+        let tpdo_text = match self.try_map_pdo(clock, i, od::TPDO_COMM, od::TPDO_MAP, tc, tt, &tpdo) {
+            Ok(()) => self.remapped_tpdo(i, true),
+            Err(e) if refused_third(&e) => match self.try_map_pdo(clock, i, od::TPDO_COMM, od::TPDO_MAP, tc, tt, &tpdo[..2]) {
+                Ok(()) => {
+                    tracing::warn!(
+                        node = spec.node,
+                        "the drive cannot map 0x6061 (mode display) into TPDO1 ({}): its mode is read by SDO every {} ms instead",
+                        e.3,
+                        mode_track::POLL_EVERY_NS / 1_000_000
+                    );
+                    self.remapped_tpdo(i, false)
+                }
+                Err(e2) if Self::fixed_fallback(od::TPDO_MAP, &e2) => self.use_fixed_tpdo(clock, i, &e2.3)?,
+                Err((ix, sub, data, e2)) => return Err(self.write_alarm(i, ix, sub, &data, &e2)),
+            },
+            Err(e) if Self::fixed_fallback(od::TPDO_MAP, &e) => self.use_fixed_tpdo(clock, i, &e.3)?,
             Err((ix, sub, data, e)) => return Err(self.write_alarm(i, ix, sub, &data, &e)),
         };
         let n = &mut self.nodes[i];
+        n.bad_len = 0;
+        n.chosen.mapping = format!("{rpdo_text}, {tpdo_text}");
+        Ok(())
+    }
+
+    /// TPDO1 mapped by the master (with 0x6061 or without): its length and the line's text.
+    fn remapped_tpdo(&mut self, i: usize, in_pdo: bool) -> String {
+        let n = &mut self.nodes[i];
         n.mode.in_pdo = in_pdo;
         n.tpdo_len = Some(if in_pdo { TPDO1_LEN } else { TPDO1_LEN - 1 } as u8);
-        n.bad_len = 0;
-        Ok(())
+        format!(
+            "remapped TPDO1 0x{:03X} = statusword + position actual{}",
+            n.spec.tpdo_cob,
+            if in_pdo { " + mode display" } else { " (0x6061 not mappable: polled by SDO)" }
+        )
     }
 
     /// Error control both ways: the drive's heartbeat (0x1017) and ours consumed by it
@@ -865,6 +995,7 @@ impl<B: CanBus> CanOpenMaster<B> {
     /// controller dies. A drive without 0x1016 is guarded instead (`guard_node`).
     fn configure_error_control(&mut self, clock: &mut dyn Clock, i: usize) -> Result<(), Alarm> {
         if self.hb_ms == 0 {
+            self.nodes[i].chosen.error_control = "none (bus.heartbeat_ms = 0, unsafe_no_heartbeat)".into();
             return Ok(());
         }
         let absent = |r: &Result<(), SdoError>| matches!(r, Err(SdoError::Abort { code }) if explain::is_absent(*code));
@@ -888,6 +1019,9 @@ impl<B: CanBus> CanOpenMaster<B> {
         }
         if producer.is_err() || consumed.is_err() {
             self.guard_node(clock, i, producer.is_ok())?;
+        } else {
+            self.nodes[i].chosen.error_control =
+                format!("heartbeat both ways (0x1017 = {} ms, 0x1016 consumes the master's at {} ms)", self.hb_ms, self.hb_ms as u32 * 3);
         }
         let opt = 1i16.to_le_bytes();
         match self.try_write(clock, i, od::ABORT_CONNECTION, 0, &opt) {
@@ -917,6 +1051,7 @@ impl<B: CanBus> CanOpenMaster<B> {
                 "nor node guarding (0x100C/0x100D)".to_string()
             };
             tracing::warn!(node, axis = %axis, "WARNING: the drive has no heartbeat consumer (0x1016) {why}: it will not stop by itself if this controller dies; use its own watchdog (SYNC or PDO timeout) if it has one");
+            self.nodes[i].chosen.error_control = format!("none: no 0x1016 {why} (warning)");
             return Ok(());
         }
         if heartbeat_set {
@@ -926,6 +1061,8 @@ impl<B: CanBus> CanOpenMaster<B> {
         self.write(clock, i, od::GUARD_TIME, 0, &self.hb_ms.to_le_bytes())?;
         self.write(clock, i, od::LIFE_TIME_FACTOR, 0, &[3])?;
         self.start_guarding(i, self.hb_ms, clock.now_ns());
+        self.nodes[i].chosen.error_control =
+            format!("node guarding (no 0x1016 heartbeat consumer): 0x100C = {} ms, 0x100D = 3, remote frames every {} ms", self.hb_ms, self.hb_ms);
         tracing::warn!(
             node,
             axis = %axis,
@@ -1121,7 +1258,8 @@ impl<B: CanBus> CanOpenMaster<B> {
         let n = &mut self.nodes[i];
         n.controlword = cw::ENABLE_OPERATION_CMD;
         n.target = hold.unwrap_or(n.unwrapped);
-        self.change_mode(clock, i, mode::CYCLIC_SYNC_POSITION)?;
+        let m = n.spec.position_mode();
+        self.change_mode(clock, i, m)?;
         // One cycle so the target the drive latches is the held one.
         self.run_cycles(clock, self.cycle_ns, |_| Ok(true))?;
         if let Some(t) = hold {
@@ -1150,6 +1288,11 @@ impl<B: CanBus> CanOpenMaster<B> {
         self.write(clock, i, 0x6084, 0, &a.to_le_bytes())?;
         self.ensure_enabled(clock)?;
         self.change_mode(clock, i, mode::PROFILE_POSITION)?;
+        if self.nodes[i].spec.target_object() != (od::TARGET_POSITION, 0) {
+            // RPDO1 carries 0x60C1:1 (IP), not the profile target 0x607A: written by SDO
+            // before the set-point handshake takes it.
+            self.write(clock, i, od::TARGET_POSITION, 0, &(t as i32).to_le_bytes())?;
+        }
         let dist = (t - self.nodes[i].unwrapped as f64).abs();
         let est_s = dist / v as f64 + 2.0 * v as f64 / a as f64;
         let max_ns = ((2.0 * est_s + 2.0) * 1e9) as u64;
@@ -1312,11 +1455,13 @@ impl<B: CanBus> CanOpenMaster<B> {
         // RPDO1 back to 0x607A before the mode: a drive in CSP must never latch a stale
         // 0x607A (the one from before the speed mode) for lack of a fresh one.
         self.nodes[i].target = self.nodes[i].unwrapped;
-        let rpdo = [MapEntry::new(od::CONTROLWORD, 0, 16), MapEntry::new(od::TARGET_POSITION, 0, 32)];
+        let (tix, tsub) = self.nodes[i].spec.target_object();
+        let rpdo = [MapEntry::new(od::CONTROLWORD, 0, 16), MapEntry::new(tix, tsub, 32)];
         let (rc, rt) = (self.nodes[i].spec.rpdo_cob, self.nodes[i].spec.rpdo_tx);
         self.map_pdo(clock, i, od::RPDO_COMM, od::RPDO_MAP, rc, rt, &rpdo)?;
         self.nodes[i].csv = false;
-        self.change_mode(clock, i, mode::CYCLIC_SYNC_POSITION)?;
+        let m = self.nodes[i].spec.position_mode();
+        self.change_mode(clock, i, m)?;
         self.nodes[i].target = self.nodes[i].unwrapped;
         Ok(())
     }
@@ -1332,29 +1477,30 @@ impl<B: CanBus> CanOpenMaster<B> {
             (od::INTERPOLATION_PERIOD, 2, 1),
             (od::MODES_OF_OPERATION, 0, 1),
             (od::FOLLOWING_ERROR_WINDOW, 0, 4),
-            (od::QUICK_STOP_OPTION, 0, 2),
         ];
-        if spec.min.is_some() && spec.max.is_some() && !spec.spindle {
-            w.extend([(od::SOFTWARE_LIMIT, 1, 4), (od::SOFTWARE_LIMIT, 2, 4)]);
-        }
         for (comm, map) in [(od::RPDO_COMM, od::RPDO_MAP), (od::TPDO_COMM, od::TPDO_MAP)] {
             w.extend([(comm, 1, 4), (comm, 2, 1), (map, 0, 1), (map, 1, 4), (map, 2, 4)]);
         }
-        let maps = vec![
-            (od::CONTROLWORD, 0, 16, true),
-            (od::TARGET_POSITION, 0, 32, true),
-            (od::STATUSWORD, 0, 16, false),
-            (od::POSITION_ACTUAL, 0, 32, false),
-        ];
+        let (tix, tsub) = spec.target_object();
+        let maps = vec![(od::CONTROLWORD, 0, 16, true), (tix, tsub, 32, true), (od::STATUSWORD, 0, 16, false), (od::POSITION_ACTUAL, 0, 32, false)];
         (w, maps)
     }
 
     /// Objects start-up writes where the drive has them (a fallback where it does not):
     /// 0x1006, error control (heartbeat, or node guarding), 0x6007. Checked against an
     /// EDS only where the EDS lists them.
-    fn optional_startup_objects(&self) -> Vec<ObjWrite> {
+    fn optional_startup_objects(&self, i: usize) -> Vec<ObjWrite> {
         let mut w =
             vec![(od::COMM_CYCLE_PERIOD, 0, 4), (od::SHUTDOWN_OPTION, 0, 2), (od::DISABLE_OPERATION_OPTION, 0, 2), (od::FAULT_REACTION_OPTION, 0, 2)];
+        if self.nodes[i].spec.ip {
+            w.extend([(od::INTERPOLATION_SUB_MODE, 0, 2), (od::INTERPOLATION_BUFFER, 6, 1)]);
+        }
+        // Preferred, with a warning where absent (`prefer_write`).
+        w.push((od::QUICK_STOP_OPTION, 0, 2));
+        let spec = &self.nodes[i].spec;
+        if spec.min.is_some() && spec.max.is_some() && !spec.spindle {
+            w.extend([(od::SOFTWARE_LIMIT, 1, 4), (od::SOFTWARE_LIMIT, 2, 4)]);
+        }
         if self.hb_ms > 0 {
             w.extend([
                 (od::PRODUCER_HEARTBEAT, 0, 2),
@@ -1376,11 +1522,12 @@ impl<B: CanBus> CanOpenMaster<B> {
         };
         let (writes, maps) = self.startup_objects(i);
         let mut out: Vec<String> = writes.iter().filter_map(|&(ix, sub, len)| eds.check_write(ix, sub, len).err()).collect();
-        let optional = self.optional_startup_objects();
+        let optional = self.optional_startup_objects(i);
         out.extend(
             optional.iter().filter(|&&(ix, sub, _)| eds.get(ix, sub).is_some()).filter_map(|&(ix, sub, len)| eds.check_write(ix, sub, len).err()),
         );
         out.extend(maps.iter().filter_map(|&(ix, sub, bits, rpdo)| eds.check_map(ix, sub, bits, rpdo).err()));
+        out.extend(check_list_against_eds(&self.nodes[i].spec.axis, &self.nodes[i].spec.sdo, eds));
         for (ix, sub) in [(od::DEVICE_TYPE, 0u8), (od::IDENTITY, 1)] {
             if eds.get(ix, sub).is_none() {
                 out.push(format!("{}: 0x{ix:04X}:{sub:02X}, read at start-up, is not in the EDS", eds.file));
@@ -1557,6 +1704,14 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
             if let Some(a) = self.check_tpdo_and_mode(i) {
                 return Err(a);
             }
+            if self.running && self.nodes[i].ip_inactive >= ip_mode::IP_INACTIVE_ALARM {
+                let st = self.nodes[i].status;
+                return Err(self.node_fault(
+                    i,
+                    ALARM_MODE,
+                    format!("statusword bit 12 (ip mode active) dropped while running (statusword 0x{st:04X}): the drive stopped taking set-points; its set-points were stopped. Check the drive's fault log and IP buffer settings"),
+                ));
+            }
             let n = &self.nodes[i];
             if self.running && matches!(n.nmt, Some(s) if s != NmtState::Operational) {
                 return Err(self.node_fault(i, 2014, "node left NMT operational (reset or stopped by someone else?)"));
@@ -1626,9 +1781,21 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
                 (false, true) => (n.unwrapped as i32).to_le_bytes(),
                 (false, false) => self.target_raw(i).to_le_bytes(),
             };
-            let c = n.controlword.to_le_bytes();
-            let f = CanFrame::new(n.spec.rpdo_cob, &[c[0], c[1], t[0], t[1], t[2], t[3]]);
+            let c = self.cyclic_controlword(i);
+            let n = &self.nodes[i];
+            let mut d = [0u8; 8];
+            for &(slot, off) in &n.rpdo_at.slots {
+                match slot {
+                    fixed_pdo::Slot::Controlword => put_u16(&mut d, off, c),
+                    fixed_pdo::Slot::Target => d[off..off + 4].copy_from_slice(&t),
+                    fixed_pdo::Slot::Mode => d[off] = n.mode.want as u8,
+                    fixed_pdo::Slot::Zero => {}
+                }
+            }
+            let f = CanFrame::new(n.spec.rpdo_cob, &d[..n.rpdo_at.len]);
             self.send(&f)?;
+            let n = &mut self.nodes[i];
+            n.ip_sent = if c & cw::OMS4 != 0 && n.spec.ip { n.ip_sent.saturating_add(1) } else { 0 };
         }
         self.send(&sync_frame(None))?;
         for n in &mut self.nodes {
@@ -1659,7 +1826,14 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
             n.controlword = en.controlword;
             n.reset_attempts = en.reset_attempts;
             match progress {
-                EnableProgress::Enabled => n.enabled = true,
+                EnableProgress::Enabled => {
+                    n.enabled = true;
+                    // IP: enabled once the drive says "ip mode active" (bit 4 goes out
+                    // from the next RPDO1 on).
+                    if !self.ip_active(i) {
+                        all = false;
+                    }
+                }
                 EnableProgress::ResetFailed => {
                     let code = n.last_emcy.map(|e| e.code).unwrap_or(0);
                     return Err(self.node_alarm(
@@ -1699,6 +1873,11 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
                 )
             } else if !n.have_fb {
                 "; no position feedback (TPDO1) was received".to_string()
+            } else if n.enabled && !self.ip_active(i) {
+                format!(
+                    "; it is Operation Enabled in interpolated position but statusword bit 12 (ip mode active) never came with controlword bit 4 (enable ip mode) set (statusword 0x{:04X}); check the drive's IP settings (sub-mode 0x60C0, buffer 0x60C4) in its manual",
+                    n.status
+                )
             } else {
                 String::new()
             };

@@ -177,6 +177,21 @@ pub fn check_scaling(
     }
 }
 
+/// What to do about a drive without the cyclic mode asked for: the other cyclic position
+/// mode where 0x6502 lists it, else another drive.
+fn mode_advice(axis: &str, bits: u32, want: i8) -> String {
+    use cncgw_bus::cia402::mode;
+    match want {
+        mode::CYCLIC_SYNC_POSITION if supports(bits, mode::INTERPOLATED_POSITION) => {
+            format!("it has interpolated position: set axes.{axis}.mode = \"ip\"")
+        }
+        mode::INTERPOLATED_POSITION if supports(bits, mode::CYCLIC_SYNC_POSITION) => {
+            format!("it has CSP: remove axes.{axis}.mode (or set \"csp\")")
+        }
+        _ => "cncgw runs a position axis in CSP (8) or IP (7, axes.NAME.mode = \"ip\"): use a drive (or firmware) with one of them".into(),
+    }
+}
+
 /// What `cncgw scan` shows of a node beyond its identity. `Err` texts are the failure in
 /// words ("absent" for a missing object).
 #[derive(Clone, Debug, Default)]
@@ -233,14 +248,18 @@ impl<B: CanBus> CanOpenMaster<B> {
                 i,
                 ALARM_MODE,
                 format!(
-                    "this drive has no {} mode: its supported drive modes 0x6502 = 0x{bits:08X} list {}; cncgw runs every axis in CSP (a spindle also in CSV): use a drive (or firmware) with that mode",
+                    "this drive has no {} mode: its supported drive modes 0x6502 = 0x{bits:08X} list {}; {}",
                     mode_short(want),
-                    supported_modes_text(bits)
+                    supported_modes_text(bits),
+                    mode_advice(&self.nodes[i].spec.axis, bits, want)
                 ),
             )),
             Ok(_) => Ok(()),
             Err(SdoError::Abort { code }) if is_absent(code) => {
-                tracing::info!(node = self.nodes[i].spec.node, "no 0x6502 (supported drive modes): the mode is checked by writing it and reading 0x6061");
+                tracing::info!(
+                    node = self.nodes[i].spec.node,
+                    "no 0x6502 (supported drive modes): the mode is checked by writing it and reading 0x6061"
+                );
                 Ok(())
             }
             Err(e) => {

@@ -42,12 +42,12 @@ pub fn explain_write(index: u16, sub: u8, code: u32, data: &[u8]) -> Option<Stri
         (od::MODES_OF_OPERATION, _) if refused_value => {
             let m = data.first().map(|&b| b as i8).unwrap_or(0);
             format!(
-                "this drive has no {} mode (it refuses 0x6060 = {m}); cncgw runs every axis in cyclic synchronous position (8), a spindle also in cyclic synchronous velocity (9): use a drive (or firmware) with that mode",
+                "this drive has no {} mode (it refuses 0x6060 = {m}); cncgw runs an axis in cyclic synchronous position (8) or, with axes.NAME.mode = \"ip\", in interpolated position (7), a spindle in speed mode also in cyclic synchronous velocity (9): set axes.NAME.mode to a mode the drive has (its 0x6502 or manual lists them), or use a drive (or firmware) with that mode",
                 mode_short(m)
             )
         }
         (ix, abort::READ_ONLY | abort::UNSUPPORTED_ACCESS) if is_rpdo_map(ix) || is_tpdo_map(ix) => format!(
-            "fixed PDO mapping: the drive does not let {} be remapped (cncgw maps its own PDOs and does not support fixed maps yet); use a drive whose PDO mapping can be written",
+            "fixed PDO mapping: the drive does not let {} be remapped (start-up takes a fixed mapping that carries what the cycle needs, but this change of mapping — a spindle's speed mode — needs it written); map it in the drive's own tool, or use a drive whose PDO mapping can be written",
             pdo_name(ix)
         ),
         (ix, abort::NOT_MAPPABLE) if (is_rpdo_map(ix) || is_tpdo_map(ix)) && sub > 0 => {
