@@ -4,12 +4,12 @@
 //! positions), or start-up stops before any motion with an alarm naming the object and
 //! what to configure. Also start-up lists (`[[axes.NAME.sdo]]`) written and read back.
 
-use cncgw::canon::Pos;
 use cncgw::config::{CyclicMode, MachineConfig, EMBEDDED_LATHE};
+use cncgw::control::cycle::{CycleLoop, RunSummary};
+use cncgw::control::job::run_program;
 use cncgw::drives::canopen::CanOpenMaster;
 use cncgw::interp::Interpreter;
-use cncgw::motion::cycle::{CycleLoop, RunSummary};
-use cncgw::motion::{Limits, AX_S, AX_X, AX_Y, AX_Z};
+use cncgw::motion::Limits;
 use cncgw::Alarm;
 use cncgw_bus::transport::inproc::{InprocBus, InprocEndpoint};
 use sim_drives::config::Shape;
@@ -50,7 +50,7 @@ struct Ran {
 
 /// `program` on `cfg`'s machine with the emulated drives of `sim`, as `cncgw run` does it.
 fn run(cfg: &MachineConfig, sim: SimConfig, program: &str) -> Ran {
-    let mut interp = Interpreter::from_source("first_part.nc", program, cfg).expect("program parses");
+    let interp = Interpreter::from_source("first_part.nc", program, cfg).expect("program parses");
     let wire = InprocBus::new();
     let mut world = SimWorld::new(&wire, sim);
     let start = [1, 2, 3].map(|n| world.drive(n).unwrap().position_unwrapped());
@@ -59,23 +59,9 @@ fn run(cfg: &MachineConfig, sim: SimConfig, program: &str) -> Ran {
     let mut summary = RunSummary::default();
     let r = {
         let mut lp = CycleLoop::new(&mut master, &mut world, Limits::from_config(cfg), spindle, 2_000_000);
-        match lp.start(&mut summary) {
-            Err(a) => Err(a),
-            Ok(st) => {
-                interp.set_start_position(Pos { x: st[AX_X], y: st[AX_Y], z: st[AX_Z], c: st[AX_S] });
-                let (tx, rx) = std::sync::mpsc::sync_channel(64);
-                std::thread::spawn(move || {
-                    for m in interp {
-                        if tx.send(m).is_err() {
-                            break;
-                        }
-                    }
-                });
-                let r = lp.run(st, rx, &mut summary, &mut |_| {});
-                lp.finish();
-                r
-            }
-        }
+        let r = run_program(&mut lp, interp, &mut summary);
+        lp.finish();
+        r
     };
     Ran { result: r.map(|_| summary), world, master, start }
 }
@@ -397,7 +383,7 @@ fn every_example_profile_in_config_drives_runs_first_part_to_its_end_point() {
 #[test]
 fn an_ip_drive_that_stops_being_active_while_running_is_alarm_2005() {
     let cfg = ip_machine();
-    let mut interp = Interpreter::from_source("first_part.nc", &first_part(), &cfg).unwrap();
+    let interp = Interpreter::from_source("first_part.nc", &first_part(), &cfg).unwrap();
     let wire = InprocBus::new();
     let mut world = SimWorld::new(&wire, profiled("ip-only", |_| {}));
     // 3 s in (the run is under way): Z's IP buffer goes off, as on an underrun.
@@ -405,17 +391,7 @@ fn an_ip_drive_that_stops_being_active_while_running_is_alarm_2005() {
     let mut master = CanOpenMaster::new(wire.endpoint(), &cfg);
     let mut summary = RunSummary::default();
     let mut lp = CycleLoop::new(&mut master, &mut world, Limits::from_config(&cfg), cfg.spindle_index(), 2_000_000);
-    let st = lp.start(&mut summary).unwrap_or_else(|a| panic!("{a}"));
-    interp.set_start_position(Pos { x: st[AX_X], y: st[AX_Y], z: st[AX_Z], c: st[AX_S] });
-    let (tx, rx) = std::sync::mpsc::sync_channel(64);
-    std::thread::spawn(move || {
-        for m in interp {
-            if tx.send(m).is_err() {
-                break;
-            }
-        }
-    });
-    let r = lp.run(st, rx, &mut summary, &mut |_| {});
+    let r = run_program(&mut lp, interp, &mut summary);
     lp.finish();
     let a = r.expect_err("the run must stop");
     assert_eq!(a.number, 2005, "{a}");
