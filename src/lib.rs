@@ -11,6 +11,7 @@ pub mod config;
 pub mod drives;
 pub mod interp;
 pub mod motion;
+pub mod offsets;
 pub mod params;
 pub mod persist;
 pub mod sync;

@@ -176,6 +176,7 @@ pub fn preview(
     program: &std::path::Path,
     config: Option<&std::path::Path>,
     tools: Option<&std::path::Path>,
+    state_dir: Option<&std::path::Path>,
     out: &std::path::Path,
     width: u32,
 ) -> i32 {
@@ -195,13 +196,16 @@ pub fn preview(
             return super::exit::INPUT;
         }
     };
-    if let Some(t) = tools {
-        match crate::interp::load_tool_table(t) {
-            Ok(t) => interp.set_tool_table(t),
-            Err(a) => {
-                eprintln!("{a}");
-                return super::exit::INPUT;
-            }
+    // The same offsets as `run`: --tools FILE, else the stored table; the stored work offsets.
+    let state_root = state_dir.map(std::path::Path::to_path_buf).or_else(crate::persist::default_state_dir);
+    match crate::offsets::resolve(state_root.as_deref(), &cfg.machine.name, tools) {
+        Ok(t) => {
+            eprintln!("{}", t.source);
+            t.apply(&mut interp);
+        }
+        Err(a) => {
+            eprintln!("{a}");
+            return super::exit::INPUT;
         }
     }
     let mut moves = Vec::new();

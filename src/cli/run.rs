@@ -109,8 +109,20 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, files: RunFiles, m
             return EXIT_SETUP;
         }
     };
+    // `run -`: the program comes on standard input, read whole (it is checked before motion).
+    let stdin_text = match super::mdi::program_from_stdin(program) {
+        Ok(t) => t,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return EXIT_PROGRAM_ERROR;
+        }
+    };
+    let open = |cfg: &MachineConfig| match &stdin_text {
+        Some(t) => Interpreter::with_program_dir("<stdin>", t, cfg, Some(Path::new("."))),
+        None => Interpreter::from_file(program, cfg),
+    };
     // The whole program is checked before anything moves.
-    let mut interp = match Interpreter::from_file(program, &cfg) {
+    let mut interp = match open(&cfg) {
         Ok(i) => i,
         Err(alarms) => {
             for a in &alarms {
@@ -121,25 +133,23 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, files: RunFiles, m
         }
     };
     interp.set_block_budget(max_blocks);
-    let table = match tools.map(crate::interp::load_tool_table).transpose() {
+    // The offsets: `--tools FILE` wins for the tool table, else the stored one (`cncgw offsets`).
+    let state_root = state_dir.map(Path::to_path_buf).or_else(crate::persist::default_state_dir);
+    let tables = match crate::offsets::resolve(state_root.as_deref(), &cfg.machine.name, tools) {
         Ok(t) => t,
         Err(a) => {
             eprintln!("{a}");
             eprintln!("nothing was moved");
-            return EXIT_PROGRAM_ERROR;
+            return if a.number == crate::persist::STATE_ALARM { EXIT_SETUP } else { EXIT_PROGRAM_ERROR };
         }
     };
-    if let Some(t) = &table {
-        interp.set_tool_table(t.clone());
-    }
-    let source = std::fs::read_to_string(program).unwrap_or_default();
+    eprintln!("cncgw: {}", tables.source);
+    tables.apply(&mut interp);
+    let source = stdin_text.clone().unwrap_or_else(|| std::fs::read_to_string(program).unwrap_or_default());
     // The machine's state (common variables #401–#600, the rigid-tap state), kept per machine
     // and per place it runs, under a lock so that no other run interleaves with this one.
     let place = run_place(&cfg, machine);
-    let state = state_dir
-        .map(Path::to_path_buf)
-        .or_else(crate::persist::default_state_dir)
-        .map(|d| crate::persist::StatePlace::new(&d, &cfg.machine.name, &place));
+    let state = state_root.as_ref().map(|d| crate::persist::StatePlace::new(d, &cfg.machine.name, &place));
     let mut _state_lock = None;
     if let Some(st) = &state {
         for n in &st.notes {
@@ -181,7 +191,7 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, files: RunFiles, m
         }
     };
     if let Some(st) = tap_state.filter(|s| s.in_hole) {
-        if let Err(a) = check_tap_return_program(program, &cfg, &st) {
+        if let Err(a) = check_tap_return_program(open(&cfg), &st) {
             eprintln!("{a}");
             eprintln!("nothing was moved");
             return EXIT_ALARM;
@@ -197,14 +207,13 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, files: RunFiles, m
         source,
         first: Some(interp),
         make: Box::new(|_| {
-            Interpreter::from_file(program, &cfg).map(|mut i| {
+            open(&cfg).map(|mut i| {
                 i.set_block_budget(max_blocks);
-                if let Some(t) = &table {
-                    i.set_tool_table(t.clone());
-                }
+                tables.apply(&mut i);
                 i
             })
         }),
+        feed: None,
     };
     let mut opts = ExecOpts {
         json,
@@ -229,6 +238,7 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, files: RunFiles, m
         },
         operator: None,
         pace: op.realtime,
+        live: false,
     };
     let (code, vars, _) = with_operator(op, &mut opts, |opts| run_job(&cfg, &cfg_text, machine, job, opts));
     if let (Some(f), Some(v)) = (&vars_file, vars) {
@@ -294,6 +304,22 @@ pub struct Job<'a> {
     pub first: Option<Interpreter>,
     #[allow(clippy::type_complexity)]
     pub make: Box<dyn Fn(Pos) -> Result<Interpreter, Vec<crate::Alarm>> + 'a>,
+    /// Where the moves come from instead of the interpreter itself (MDI: `cli::mdi`), made
+    /// from it and the start position; None = the interpreter.
+    #[allow(clippy::type_complexity)]
+    pub feed: Option<Box<dyn FnOnce(Interpreter, Pos) -> Box<dyn MoveFeed> + 'a>>,
+}
+
+/// A source of moves for the interpreter thread, which hands back the common variables at
+/// the end.
+pub trait MoveFeed: Iterator<Item = Result<crate::canon::Move, crate::Alarm>> + Send {
+    fn common_vars(&self) -> std::collections::HashMap<u32, f64>;
+}
+
+impl MoveFeed for Interpreter {
+    fn common_vars(&self) -> std::collections::HashMap<u32, f64> {
+        Interpreter::common_vars(self).clone()
+    }
 }
 
 /// Options of `run_job`.
@@ -307,6 +333,10 @@ pub struct ExecOpts<'a> {
     pub operator: Option<crate::motion::panel::Panel>,
     /// Pace simulated time to the wall clock.
     pub pace: bool,
+    /// The moves come as a person types them (MDI): the embedded machine is paced and never
+    /// waits for the next block in simulated time (it would hold the last one back), and no
+    /// progress bar is drawn over the prompt.
+    pub live: bool,
 }
 
 /// Open the machine's drives (`--config`, `--bus`) and run `job` on them. Returns the exit
@@ -380,10 +410,11 @@ pub fn run_job(
             return (EXIT_SETUP, None, RunSummary::default());
         }
     };
-    let paced = opts.pace && clock.is_simulated();
+    let paced = (opts.pace || opts.live) && clock.is_simulated();
     eprintln!("cncgw: {} on {}{}", job.name, what.join(" + "), if paced { ", simulated time paced to the wall clock" } else { "" });
     if paced {
         let mut p = Paced::new(&mut *clock);
+        p.live = opts.live;
         execute(&mut drives, &mut p, cfg, job, opts)
     } else {
         execute(&mut drives, &mut *clock, cfg, job, opts)
@@ -398,12 +429,15 @@ pub struct Paced<'c> {
     inner: &'c mut dyn Clock,
     wall0: std::time::Instant,
     sim0: u64,
+    /// Say "not simulated", so that the cycle loop takes moves as they come and holds the
+    /// machine between them as in real time (MDI).
+    pub live: bool,
 }
 
 impl<'c> Paced<'c> {
     pub fn new(inner: &'c mut dyn Clock) -> Self {
         let sim0 = inner.now_ns();
-        Paced { inner, wall0: std::time::Instant::now(), sim0 }
+        Paced { inner, wall0: std::time::Instant::now(), sim0, live: false }
     }
 }
 
@@ -420,7 +454,7 @@ impl Clock for Paced<'_> {
         self.inner.wait_until(t_ns)
     }
     fn is_simulated(&self) -> bool {
-        self.inner.is_simulated()
+        self.inner.is_simulated() && !self.live
     }
 }
 
@@ -586,15 +620,18 @@ fn execute(
     // The interpreter runs ahead of motion, macro statements included (as on a Fanuc, where
     // macro statements are executed while the blocks before them are buffered); it hands
     // back the common variables when it ends, to be stored.
+    let mut it: Box<dyn MoveFeed> = match job.feed.take() {
+        Some(f) => f(interp, start_pos),
+        None => Box::new(interp),
+    };
     let producer = std::thread::Builder::new().name("interp".into()).spawn(move || {
-        let mut it = interp;
         for m in it.by_ref() {
             let stop = m.is_err();
             if tx.send(m).is_err() || stop {
                 break;
             }
         }
-        it.common_vars().clone()
+        it.common_vars()
     });
     let producer = match producer {
         Ok(h) => h,
@@ -607,6 +644,7 @@ fn execute(
     let lines: Vec<&str> = job.source.lines().collect();
     let mut display = match &opts.operator {
         Some(p) => Display::Panel(super::term::PanelDisplay::new(p.clone(), &lines)),
+        None if opts.live => Display::Bar(indicatif::ProgressBar::hidden()),
         None => {
             let bar = indicatif::ProgressBar::new((lines.len() as u64).max(1));
             bar.set_style(
@@ -696,8 +734,8 @@ pub const TAP_STATE_PERIOD_MS: u64 = 20;
 
 /// With the tool in a tapped hole, the program's first motion must be the G30 P99 return
 /// (`motion::tapstate::check_return_first`).
-fn check_tap_return_program(program: &Path, cfg: &MachineConfig, st: &crate::persist::TapState) -> Result<(), crate::Alarm> {
-    let mut pre = Interpreter::from_file(program, cfg)
+fn check_tap_return_program(pre: Result<Interpreter, Vec<crate::Alarm>>, st: &crate::persist::TapState) -> Result<(), crate::Alarm> {
+    let mut pre = pre
         .map_err(|a| a.into_iter().next().unwrap_or_else(|| crate::Alarm::new(crate::motion::tapstate::TAP_IN_HOLE, "the program cannot be read")))?;
     pre.set_tap_return(Some(st.tap_return()));
     let mut p = Pos::ZERO;

@@ -360,6 +360,7 @@ pub fn tap_test(machine: &MachineArgs, a: &TapArgs, op: &OperatorArgs) -> i32 {
             planned.borrow_mut().get_or_insert(p);
             r
         }),
+        feed: None,
     };
     let mut opts = ExecOpts {
         json: false,
@@ -367,6 +368,7 @@ pub fn tap_test(machine: &MachineArgs, a: &TapArgs, op: &OperatorArgs) -> i32 {
         extras: RunExtras { trace: Some(&csv), ..RunExtras::default() },
         operator: None,
         pace: op.realtime,
+        live: false,
     };
     let (code, _, _) = super::run::with_operator(op, &mut opts, |o| super::run::run_job(&cfg, &cfg_text, machine, job, o));
     let Some(Ok(p)) = planned.into_inner() else {
