@@ -10,6 +10,7 @@ pub mod mdi;
 pub mod offsets;
 pub mod plan;
 pub mod preview;
+pub mod restart;
 pub mod run;
 pub mod service;
 pub mod taptest;
@@ -100,6 +101,8 @@ pub enum Command {
         rt: run::RtArgs,
         #[command(flatten)]
         op: run::OperatorArgs,
+        #[command(flatten)]
+        restart: restart::RestartArgs,
     },
     /// Run a rigid tap in the air and report its spindle–Z sync error (commissioning).
     ///
@@ -782,8 +785,8 @@ pub fn main() -> i32 {
         quiet_on_closed_pipe();
     }
     match cli.cmd {
-        Command::Run { program, machine, json, state_dir, trace, max_blocks, tools, rt, op } => {
-            let files = run::RunFiles { state_dir: state_dir.as_deref(), trace: trace.as_deref(), tools: tools.as_deref() };
+        Command::Run { program, machine, json, state_dir, trace, max_blocks, tools, rt, op, restart } => {
+            let files = run::RunFiles { state_dir: state_dir.as_deref(), trace: trace.as_deref(), tools: tools.as_deref(), restart: restart.at() };
             run::run(&program, &machine, json, files, max_blocks, &rt, &op)
         }
         Command::TapTest { tap, machine, op } => taptest::tap_test(&machine, &tap, &op),

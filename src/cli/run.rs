@@ -98,10 +98,12 @@ pub struct RunFiles<'a> {
     pub trace: Option<&'a Path>,
     /// The tool offset table.
     pub tools: Option<&'a Path>,
+    /// Restart at this block (`cli::restart`).
+    pub restart: Option<crate::interp::RestartAt>,
 }
 
 pub fn run(program: &Path, machine: &MachineArgs, json: bool, files: RunFiles, max_blocks: u64, rt: &RtArgs, op: &OperatorArgs) -> i32 {
-    let RunFiles { state_dir, trace, tools } = files;
+    let RunFiles { state_dir, trace, tools, restart } = files;
     let (cfg, cfg_text) = match super::machine_config(machine) {
         Ok(c) => c,
         Err(e) => {
@@ -202,6 +204,13 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, files: RunFiles, m
         );
         interp.set_tap_return(Some(st.tap_return()));
     }
+    // A restart is refused before the drives are enabled when the scan says so.
+    if let Some(a) =
+        restart.and_then(|at| super::restart::precheck(at, open(&cfg), &tables, interp.common_vars(), tap_state.is_some_and(|s| s.in_hole)))
+    {
+        eprintln!("{a}");
+        return EXIT_PROGRAM_ERROR;
+    }
     let job = Job {
         name: program.display().to_string(),
         source,
@@ -213,7 +222,8 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, files: RunFiles, m
                 i
             })
         }),
-        feed: None,
+        feed: restart
+            .map(|at| -> Box<dyn FnOnce(Interpreter, Pos) -> Box<dyn MoveFeed>> { Box::new(move |i, start| super::restart::feed(at, i, start)) }),
     };
     let mut opts = ExecOpts {
         json,
