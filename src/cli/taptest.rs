@@ -90,6 +90,8 @@ fn spindle_name(cfg: &MachineConfig) -> Option<String> {
 }
 
 /// Write the program for a tap from `start` (machine position, X a radius) and check it.
+/// The program is in machine coordinates — the tap is made where the tool stands — so no
+/// tool or work offset applies to it: the stored offsets (`cncgw offsets`) are not read.
 pub fn plan(cfg: &MachineConfig, a: &TapArgs, start: Pos) -> Result<TapPlan, String> {
     let pos = |v: f64| v.is_finite() && v > 0.0;
     if !(pos(a.lead) && pos(a.depth) && pos(a.rpm) && a.clearance.is_finite() && a.clearance >= 0.0) {
