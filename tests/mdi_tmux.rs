@@ -71,3 +71,35 @@ fn mdi_on_a_terminal_block_by_block() {
     // Final actual (third column pair) X 24 (diameter), Z −5.
     assert!(row("x").contains("24.0000 mm") && row("z").contains("-5.0000 mm"), "{s}");
 }
+
+#[test]
+fn ctrl_c_stops_a_block_and_ends_the_session_at_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path().display();
+    let sh = format!("cd {d} && {bin} mdi --state-dir {d}/state; echo EXIT=$?; sleep 60", bin = env!("CARGO_BIN_EXE_cncgw"));
+    let t = Tmux { socket: format!("cncgw-mdi-c-{}", std::process::id()) };
+    t.cmd(&["new-session", "-d", "-s", "mdi", "-x", "100", "-y", "40", &sh]);
+    t.wait_for("the prompt", |s| s.contains("MDI>"));
+    t.line("#500=7");
+    t.wait_for("the second prompt", |s| s.matches("MDI>").count() >= 2);
+    // 100 mm at 600 mm/min: 10 s, paced to the wall clock.
+    t.line("G21 G98 G1 Z-100 F600");
+    t.wait_for("the third prompt", |s| s.matches("MDI>").count() >= 3);
+    std::thread::sleep(Duration::from_millis(500));
+    let t0 = Instant::now();
+    t.cmd(&["send-keys", "-t", "mdi", "C-c"]);
+    // The machine stops under control and the session ends without another line typed
+    // (the input thread, waiting for one, is not waited for).
+    let s = t.wait_for("the end", |s| s.contains("EXIT="));
+    assert!(s.contains("EXIT=3"), "{s}");
+    assert!(t0.elapsed() < Duration::from_secs(5), "it took {:?}", t0.elapsed());
+    let z: f64 = s.lines().find(|l| l.split_whitespace().next() == Some("z")).and_then(|l| l.split_whitespace().nth(3)).unwrap().parse().unwrap();
+    assert!(z > -50.0 && z < 0.0, "stopped on the way: Z {z}\n{s}");
+    // #500 (kept through power-off) was stored although the session ended on a stop.
+    let vars = std::fs::read_dir(dir.path().join("state"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .find(|p| p.to_string_lossy().ends_with(".common-vars.toml"))
+        .unwrap();
+    assert!(std::fs::read_to_string(vars).unwrap().contains("\"#500\" = 7.0"));
+}

@@ -62,8 +62,10 @@ pub struct MdiFeed {
     /// Machine position and common variables at the session's start.
     start: Pos,
     vars0: HashMap<u32, f64>,
-    /// Common variables after the last block that ran.
-    vars: HashMap<u32, f64>,
+    /// Common variables after the last block that ran, shared with `mdi`, which stores them:
+    /// `run_job` does not wait for a feed that may be waiting for input (after an alarm or
+    /// Ctrl-C the session ends without another line).
+    vars: std::sync::Arc<std::sync::Mutex<HashMap<u32, f64>>>,
     pending: std::collections::VecDeque<Result<Move, Alarm>>,
     done: bool,
     prompt: bool,
@@ -139,7 +141,9 @@ impl MdiFeed {
                 }
             }
         }
-        self.vars = it.common_vars().clone();
+        if let Ok(mut v) = self.vars.lock() {
+            *v = it.common_vars().clone();
+        }
         self.history.push(line.to_string());
         if !self.prompt {
             eprintln!("MDI {n}: {line}");
@@ -179,7 +183,7 @@ impl Iterator for MdiFeed {
 
 impl MoveFeed for MdiFeed {
     fn common_vars(&self) -> HashMap<u32, f64> {
-        self.vars.clone()
+        self.vars.lock().map(|v| v.clone()).unwrap_or_default()
     }
 }
 
@@ -276,6 +280,8 @@ pub fn mdi(a: &MdiArgs) -> i32 {
     let history_file = state.as_ref().map(|s| s.alarm_history());
     let feed_cfg = cfg.clone();
     let feed_vars = vars0.clone();
+    let vars_now = std::sync::Arc::new(std::sync::Mutex::new(vars0.clone()));
+    let feed_vars_now = vars_now.clone();
     let feed_history = history_file.clone();
     let job = Job {
         name: "MDI".into(),
@@ -291,7 +297,7 @@ pub fn mdi(a: &MdiArgs) -> i32 {
                 cfg: feed_cfg,
                 tables,
                 start,
-                vars: feed_vars.clone(),
+                vars: feed_vars_now,
                 vars0: feed_vars,
                 pending: Default::default(),
                 done: false,
@@ -310,7 +316,9 @@ pub fn mdi(a: &MdiArgs) -> i32 {
     };
     // No panel: standard input carries the blocks, not keys (Ctrl-C stops the machine).
     let batch = run::OperatorArgs { batch: true, realtime: false };
-    let (code, vars, _) = run::with_operator(&batch, &mut opts, |o| run::run_job(&cfg, &cfg_text, machine, job, o));
+    let (code, _, summary) = run::with_operator(&batch, &mut opts, |o| run::run_job(&cfg, &cfg_text, machine, job, o));
+    // Nothing to store when the drives never started (the feed was never made).
+    let vars = if summary.cycles > 0 { vars_now.lock().ok().map(|v| v.clone()) } else { None };
     if let (Some(st), Some(v)) = (&state, vars) {
         if let Err(al) = st.common_vars().save(&v) {
             eprintln!("{al}");

@@ -53,7 +53,6 @@ pub fn plan(a: &PlanArgs) -> i32 {
             return exit::INPUT;
         }
     };
-    eprintln!("{}", tables.source);
     let make = || -> Result<crate::interp::Interpreter, i32> {
         let mut i = crate::interp::Interpreter::from_file(&a.program, &cfg).map_err(|alarms| {
             for al in &alarms {
@@ -78,6 +77,8 @@ pub fn plan(a: &PlanArgs) -> i32 {
         return exit::INPUT;
     }
     eprintln!("{}", sum.describe());
+    // After the listing's summary: an alarm's first lines stay the alarm and its echo.
+    eprintln!("{}", tables.source);
     if a.no_machine {
         eprintln!("machine checks: skipped (--no-machine)");
         return exit::OK;

@@ -707,7 +707,9 @@ fn execute(
             Err(e) => eprintln!("error: writing the trace: {e}"),
         }
     }
-    let vars = producer.join().ok();
+    // A live feed (MDI) may be waiting for a line that never comes: it is left behind, and
+    // its owner keeps the common variables itself.
+    let vars = if opts.live { None } else { producer.join().ok() };
     let mut code = match r {
         Err(a) => {
             if opts.print_summary {
