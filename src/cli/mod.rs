@@ -321,7 +321,7 @@ pub enum Command {
     /// nothing and the session goes on. M02/M30 or the end of input (Ctrl-D) ends it; Ctrl-C
     /// stops the machine. Exit codes as for `run`.
     ///
-    /// Example: `cncgw mdi`, `printf 'G0 X20 Z2\nG1 Z-5 F300\n' | cncgw mdi`
+    /// Example: `cncgw mdi`, `printf 'G98 G0 X20 Z2\nG1 Z-5 F300\n' | cncgw mdi`
     Mdi(mdi::MdiArgs),
     /// The offset pages kept in the state directory: tool offsets and work offsets.
     ///
