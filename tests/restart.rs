@@ -85,3 +85,23 @@ fn refused_restarts_say_why_and_move_nothing() {
     let o = cncgw(&state, &["run", "--restart-at", "3", "--restart-seq", "5", "x.nc"]);
     assert_eq!(o.status.code(), Some(2), "one restart point or the other");
 }
+
+#[test]
+fn restart_uses_the_stored_offsets_as_the_run_does() {
+    let dir = tempfile::tempdir().unwrap();
+    let state = dir.path().join("state");
+    for set in [["T01", "--x", "-4", "--z", "-3"], ["G54", "--z", "-10", "", ""]] {
+        let args: Vec<&str> = ["offsets", "set"].into_iter().chain(set.into_iter().filter(|a| !a.is_empty())).collect();
+        assert!(cncgw(&state, &args).status.success());
+    }
+    let prog = dir.path().join("o.nc");
+    std::fs::write(&prog, "G21 G98 T0101\nG0 X40 Z2\nG1 Z-10 F3000\nN40 G0 X50\nZ5\nM30\n").unwrap();
+    let o = cncgw(&state, &["run", "--batch", "--json", "--restart-seq", "40", prog.to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(0), "{err}");
+    // Before N40 the tool stands at work X40 Z-10: machine X 40 − 4 = 36, Z −10 − 3 − 10 = −23.
+    assert!(err.contains("to X 36.0000 Z -23.0000 (machine; work X 40.0000 Z -10.0000"), "{err}");
+    let s: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let at = |n: &str| s["axes"].as_array().unwrap().iter().find(|a| a["axis"] == n).unwrap()["final_actual"].as_f64().unwrap();
+    assert!((at("x") - 46.0).abs() < 2e-3 && (at("z") - -8.0).abs() < 1e-3, "{s}");
+}
