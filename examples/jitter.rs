@@ -200,7 +200,7 @@ fn run_on_this_thread(bus: Box<dyn CanBus>, cycle_ms: f64, seconds: f64, rt: &Rt
         // As `cncgw run`: the watchdog limits from the config (relaxed above unless --strict).
         lp.set_watchdog(cncgw::control::cycle::Watchdog::from_config(&cfg));
         let r = lp.start(&mut summary).and_then(|start| {
-            let feed = Feed::spawn(interp, &start)?;
+            let feed = Feed::interpreter(interp, &start)?;
             // As `cncgw run`: the cycle thread only, after the interpreter thread started.
             for s in cncgw::control::rt::apply(rt) {
                 match s {
@@ -209,7 +209,7 @@ fn run_on_this_thread(bus: Box<dyn CanBus>, cycle_ms: f64, seconds: f64, rt: &Rt
                 }
             }
             armed.store(true, Ordering::Relaxed);
-            feed.run(&mut lp, start, &mut summary, &mut |_| {}).0
+            feed.run(&mut lp, start, &mut summary, &mut |_| {}, false).0
         });
         lp.finish();
         r

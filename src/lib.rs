@@ -13,6 +13,7 @@ pub mod control;
 pub mod drives;
 pub mod interp;
 pub mod motion;
+pub mod offsets;
 pub mod params;
 pub mod persist;
 pub mod plot;

@@ -75,7 +75,13 @@ fn a_user_alarm_ahead_is_refused_before_motion() {
     let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!((v["moves"].as_u64(), v["alarm"]["number"].as_u64()), (Some(0), Some(3012)), "{v}");
     // In `plan` the listing stops there with the same alarm.
-    let o = std::process::Command::new(env!("CARGO_BIN_EXE_cncgw")).arg("plan").arg(&prog).output().unwrap();
+    // (`plan` reads the stored offsets: never the user's.)
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_cncgw"))
+        .env("CNCGW_STATE_DIR", dir.path().join("state"))
+        .arg("plan")
+        .arg(&prog)
+        .output()
+        .unwrap();
     assert_eq!(o.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&o.stderr).contains("alarm 3012"));
 }

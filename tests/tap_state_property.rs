@@ -82,7 +82,7 @@ fn run_counting(
         lp.set_panel(&panel);
         let r = lp.start(&mut summary).and_then(|start| {
             lp.set_tap_watch(TapWatch::new(slot, Some(writer.thread()), &start, loaded));
-            Feed::spawn(interp, &start)?.run(&mut lp, start, &mut summary, &mut |_| {}).0
+            Feed::interpreter(interp, &start)?.run(&mut lp, start, &mut summary, &mut |_| {}, false).0
         });
         lp.finish();
         r

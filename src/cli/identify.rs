@@ -112,6 +112,7 @@ pub fn run(machine: &MachineArgs, a: &IdentifyArgs) -> i32 {
             let prog = program(&cfg, &a.axis, a.travel, start).map_err(|e| vec![crate::Alarm::new(2451, format!("identify: {e}"))])?;
             Interpreter::from_source("identify.nc", &prog, &cfg)
         }),
+        feed: None,
     };
     let opts = ExecOpts { extras: RunExtras { trace: Some(&csv), ..RunExtras::default() }, ..ExecOpts::default() };
     let (code, _, _) = super::run::run_job(&cfg, &cfg_text, machine, job, &opts);

@@ -128,6 +128,10 @@ pub const FILES: &[(&str, &str)] = &[
     ),
     ("$CNCGW_STATE_DIR/MACHINE@PLACE.lock", "Held while a run uses that state: a second controller on it is refused (alarm 2405)."),
     (
+        "$CNCGW_STATE_DIR/MACHINE.tools.toml, MACHINE.work-offsets.toml",
+        "The tool offsets and the work offsets G54–G59 and EXT of a machine (`cncgw offsets`), written atomically; run, plan, preview and mdi use them unless --tools FILE.",
+    ),
+    (
         "/run/lock/cncgw-bus-NAME.lock",
         "Held by every command that moves or writes the drives of bus NAME: a second controller on the bus is refused (alarm 2404).",
     ),

@@ -6,8 +6,11 @@ pub mod identify;
 pub mod lock;
 pub mod manpages;
 pub mod mbus;
+pub mod mdi;
+pub mod offsets;
 pub mod plan;
 pub mod preview;
+pub mod restart;
 pub mod run;
 pub mod service;
 pub mod taptest;
@@ -69,7 +72,7 @@ pub enum Command {
     /// Example: `cncgw run examples/first_part.nc` (embedded emulated drives), or
     /// `cncgw run --bus vcan0 examples/first_part.nc` against `sim-drives --bus vcan0`.
     Run {
-        /// The part program.
+        /// The part program; `-` reads it from standard input.
         program: PathBuf,
         #[command(flatten)]
         machine: MachineArgs,
@@ -90,13 +93,16 @@ pub enum Command {
         #[arg(long, value_name = "N", default_value_t = crate::interp::DEFAULT_BLOCK_BUDGET)]
         max_blocks: u64,
         /// Tool offset table (docs/TOOL_TABLE.md, e.g. config/tools.toml): geometry, wear,
-        /// nose radius and tip per offset number for the T codes. Default: none (all zero).
+        /// nose radius and tip per offset number for the T codes. Default: the table stored
+        /// with `cncgw offsets` (none stored: all zero).
         #[arg(long, value_name = "FILE")]
         tools: Option<PathBuf>,
         #[command(flatten)]
         rt: run::RtArgs,
         #[command(flatten)]
         op: run::OperatorArgs,
+        #[command(flatten)]
+        restart: restart::RestartArgs,
     },
     /// Run a rigid tap in the air and report its spindle–Z sync error (commissioning).
     ///
@@ -169,13 +175,17 @@ pub enum Command {
         #[arg(long, default_value_t = 1000)]
         width: u32,
         /// Tool offset table (docs/TOOL_TABLE.md, e.g. config/tools.toml): offsets and nose radii for T codes
-        /// and G41/G42. Without it every offset and radius is zero.
+        /// and G41/G42. Default: the table stored with `cncgw offsets` (none stored: all zero).
         #[arg(long, value_name = "FILE")]
         tools: Option<PathBuf>,
         /// The bar to draw under the path: diameter × length in mm, the face stock after a +
         /// (from Z = face down), e.g. `--stock 60x80` or `--stock 60x80+1`.
         #[arg(long, value_name = "DxL[+F]")]
         stock: Option<preview::Stock>,
+        /// Where the stored offsets are (`cncgw offsets`; as for `run`). Default:
+        /// $CNCGW_STATE_DIR, else $XDG_STATE_HOME/cncgw, else ~/.local/state/cncgw.
+        #[arg(long, value_name = "DIR")]
+        state_dir: Option<PathBuf>,
     },
     /// Configuration commands.
     #[command(subcommand)]
@@ -310,6 +320,26 @@ pub enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// MDI: type blocks on the live machine, each Enter runs one.
+    ///
+    /// One block per line from standard input (a terminal or a pipe); the modal state (G codes,
+    /// F, S, T, offsets, macro variables) is kept between blocks and the drives stay enabled.
+    /// Each block is checked as `run` checks a program before motion: a refused block moves
+    /// nothing and the session goes on. M02/M30 or the end of input (Ctrl-D) ends it; Ctrl-C
+    /// stops the machine. Exit codes as for `run`.
+    ///
+    /// Example: `cncgw mdi`, `printf 'G98 G0 X20 Z2\nG1 Z-5 F300\n' | cncgw mdi`
+    Mdi(mdi::MdiArgs),
+    /// The offset pages kept in the state directory: tool offsets and work offsets.
+    ///
+    /// Tool offsets T01–T99 (geometry X/Z, wear X/Z, nose radius, tip) and work offsets
+    /// G54–G59 with EXT (the external offset), per machine (--config's name). `run`, `plan`
+    /// and `preview` use them when no --tools FILE is given.
+    ///
+    /// Example: `cncgw offsets list`, `cncgw offsets set T01 --wear-x 0.02 --add`,
+    /// `cncgw offsets set G54 --z -312.5`, `cncgw offsets import config/tools.toml`
+    #[command(subcommand)]
+    Offsets(offsets::OffsetsCmd),
     /// Print a shell completion script.
     ///
     /// Example: `cncgw completions bash > /etc/bash_completion.d/cncgw`
@@ -727,6 +757,7 @@ pub fn main() -> i32 {
             | Command::Monitor { .. }
             | Command::Config(ConfigCmd::Check { .. })
             | Command::Plan { .. }
+            | Command::Offsets(offsets::OffsetsCmd::List { .. })
             | Command::Sdo(SdoCmd::Read { .. })
             | Command::Od(_)
             | Command::Completions { .. }
@@ -735,16 +766,16 @@ pub fn main() -> i32 {
         quiet_on_closed_pipe();
     }
     match cli.cmd {
-        Command::Run { program, machine, json, state_dir, trace, max_blocks, tools, rt, op } => {
-            let files = run::RunFiles { state_dir: state_dir.as_deref(), trace: trace.as_deref(), tools: tools.as_deref() };
+        Command::Run { program, machine, json, state_dir, trace, max_blocks, tools, rt, op, restart } => {
+            let files = run::RunFiles { state_dir: state_dir.as_deref(), trace: trace.as_deref(), tools: tools.as_deref(), restart: restart.at() };
             run::run(&program, &machine, json, files, max_blocks, &rt, &op)
         }
         Command::TapTest { tap, machine, op } => taptest::tap_test(&machine, &tap, &op),
         Command::Identify { args, machine } => identify::run(&machine, &args),
         Command::Trace(TraceCmd::Plot { file, out }) => run::trace_plot(&file, &out),
         Command::Plan(args) => plan::plan(&args),
-        Command::Preview { program, out, config, width, tools, stock } => {
-            preview::preview(&program, config.as_deref(), tools.as_deref(), &out, width, stock)
+        Command::Preview { program, out, config, width, tools, stock, state_dir } => {
+            preview::preview(&program, config.as_deref(), tools.as_deref(), state_dir.as_deref(), &out, width, stock)
         }
         Command::Config(ConfigCmd::Check { file, json }) => config_check(file.as_deref(), json),
         Command::Scan { machine, json } => diag::scan(&machine, json),
@@ -766,6 +797,8 @@ pub fn main() -> i32 {
         Command::Od(OdCmd::Dump { node, eds, machine, json }) => diag::od_dump(&machine, node, eds.as_deref(), json),
         Command::Od(OdCmd::Check { node, eds, machine, json }) => diag::od_check(&machine, node, &eds, json),
         Command::Alarms { machine, state_dir, since, json } => alarms(&machine, state_dir.as_deref(), since.as_deref(), json),
+        Command::Offsets(cmd) => offsets::main(cmd),
+        Command::Mdi(a) => mdi::mdi(&a),
         Command::Completions { shell } => {
             use clap::CommandFactory;
             clap_complete::generate(shell, &mut Cli::command(), "cncgw", &mut std::io::stdout());

@@ -24,6 +24,10 @@ pub struct PlanArgs {
     /// Tool offset table (docs/TOOL_TABLE.md), as `run --tools` and `preview --tools`.
     #[arg(long, value_name = "FILE")]
     pub tools: Option<PathBuf>,
+    /// Where the stored offsets are (`cncgw offsets`; as for `run`). Default:
+    /// $CNCGW_STATE_DIR, else $XDG_STATE_HOME/cncgw, else ~/.local/state/cncgw.
+    #[arg(long, value_name = "DIR")]
+    pub state_dir: Option<PathBuf>,
     /// Only the moves: skip the machine checks `run` makes before motion (travel, G22,
     /// feeds, threads and taps against the axes and the spindle).
     #[arg(long)]
@@ -40,6 +44,15 @@ pub fn plan(a: &PlanArgs) -> i32 {
             return exit::SETUP;
         }
     };
+    // The same offsets as `run`: --tools FILE, else the stored table; the stored work offsets.
+    let state_root = a.state_dir.clone().or_else(crate::persist::default_state_dir);
+    let tables = match crate::offsets::resolve(state_root.as_deref(), &cfg.machine.name, a.tools.as_deref()) {
+        Ok(t) => t,
+        Err(al) => {
+            eprintln!("{al}");
+            return exit::INPUT;
+        }
+    };
     let make = || -> Result<crate::interp::Interpreter, i32> {
         let mut i = crate::interp::Interpreter::from_file(&a.program, &cfg).map_err(|alarms| {
             for al in &alarms {
@@ -48,13 +61,7 @@ pub fn plan(a: &PlanArgs) -> i32 {
             exit::INPUT
         })?;
         i.set_block_budget(a.max_blocks);
-        if let Some(t) = &a.tools {
-            let t = crate::interp::load_tool_table(t).map_err(|al| {
-                eprintln!("{al}");
-                exit::INPUT
-            })?;
-            i.set_tool_table(t);
-        }
+        tables.apply(&mut i);
         Ok(i)
     };
     let interp = match make() {
@@ -70,6 +77,8 @@ pub fn plan(a: &PlanArgs) -> i32 {
         return exit::INPUT;
     }
     eprintln!("{}", sum.describe());
+    // After the listing's summary: an alarm's first lines stay the alarm and its echo.
+    eprintln!("{}", tables.source);
     if a.no_machine {
         eprintln!("machine checks: skipped (--no-machine)");
         return exit::OK;

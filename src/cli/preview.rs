@@ -407,7 +407,7 @@ pub fn render_svg(moves: &[Move], start: Pos, title: &str, width: u32, extras: &
 fn moves_of(
     program: &std::path::Path,
     cfg: &crate::config::MachineConfig,
-    table: Option<&crate::interp::ToolTable>,
+    tables: &crate::offsets::Tables,
     quiet: bool,
 ) -> Result<(Vec<Move>, bool), i32> {
     let mut interp = match crate::interp::Interpreter::from_file(program, cfg) {
@@ -419,9 +419,7 @@ fn moves_of(
             return Err(super::exit::INPUT);
         }
     };
-    if let Some(t) = table {
-        interp.set_tool_table(t.clone());
-    }
+    tables.apply(&mut interp);
     let mut moves = Vec::new();
     for m in interp {
         match m {
@@ -443,6 +441,7 @@ pub fn preview(
     program: &std::path::Path,
     config: Option<&std::path::Path>,
     tools: Option<&std::path::Path>,
+    state_dir: Option<&std::path::Path>,
     out: &std::path::Path,
     width: u32,
     stock: Option<Stock>,
@@ -454,32 +453,34 @@ pub fn preview(
             return super::exit::SETUP;
         }
     };
-    let table = match tools.map(crate::interp::load_tool_table).transpose() {
+    // The same tables as `run`: --tools FILE, else the stored tool table; the stored work
+    // offsets.
+    let state_root = state_dir.map(std::path::Path::to_path_buf).or_else(crate::persist::default_state_dir);
+    let mut tables = match crate::offsets::resolve(state_root.as_deref(), &cfg.machine.name, tools) {
         Ok(t) => t,
         Err(a) => {
             eprintln!("{a}");
             return super::exit::INPUT;
         }
     };
-    // The tool tip's path in workpiece coordinates: the table's geometry and wear offsets
-    // move the turret, not the tip, so they are left out here; radii and tips stay.
-    let table = table.map(|mut t| {
-        t.offsets.values_mut().for_each(|o| (o.x, o.z, o.wear_x, o.wear_z) = (0.0, 0.0, 0.0, 0.0));
-        t
-    });
-    let (moves, complete) = match moves_of(program, &cfg, table.as_ref(), false) {
+    eprintln!("{}", tables.source);
+    // The tool tip's path in workpiece coordinates (as a Fanuc's path graphics draws it): the
+    // table's geometry and wear offsets move the turret, not the tip, so they are left out
+    // here; radii and tips stay.
+    tables.tools.offsets.values_mut().for_each(|o| (o.x, o.z, o.wear_x, o.wear_z) = (0.0, 0.0, 0.0, 0.0));
+    let (moves, complete) = match moves_of(program, &cfg, &tables, false) {
         Ok(m) => m,
         Err(code) => return code,
     };
     let code = if complete { 0 } else { super::exit::INPUT };
     // Which moves are nose-compensated: the same program with every radius 0 beside it.
     let mut extras = Extras { stock, nose: Vec::new() };
-    if let Some(t) = table.as_ref().filter(|t| t.offsets.values().any(|o| o.r > 0.0)) {
-        let (mut centre, mut plain) = (t.clone(), t.clone());
-        centre.offsets.values_mut().for_each(|o| o.tip = 0);
-        plain.offsets.values_mut().for_each(|o| o.r = 0.0);
-        if let (Ok((c, _)), Ok((p, _))) = (moves_of(program, &cfg, Some(&centre), true), moves_of(program, &cfg, Some(&plain), true)) {
-            extras.nose = compensated(&moves, &c, &p, t);
+    if tables.tools.offsets.values().any(|o| o.r > 0.0) {
+        let (mut centre, mut plain) = (tables.clone(), tables.clone());
+        centre.tools.offsets.values_mut().for_each(|o| o.tip = 0);
+        plain.tools.offsets.values_mut().for_each(|o| o.r = 0.0);
+        if let (Ok((c, _)), Ok((p, _))) = (moves_of(program, &cfg, &centre, true), moves_of(program, &cfg, &plain, true)) {
+            extras.nose = compensated(&moves, &c, &p, &tables.tools);
         }
     }
     let (svg, _) = match render_svg(&moves, Pos::ZERO, &program.display().to_string(), width, &extras) {

@@ -98,10 +98,12 @@ pub struct RunFiles<'a> {
     pub trace: Option<&'a Path>,
     /// The tool offset table.
     pub tools: Option<&'a Path>,
+    /// Restart at this block (`cli::restart`).
+    pub restart: Option<crate::interp::RestartAt>,
 }
 
 pub fn run(program: &Path, machine: &MachineArgs, json: bool, files: RunFiles, max_blocks: u64, rt: &RtArgs, op: &OperatorArgs) -> i32 {
-    let RunFiles { state_dir, trace, tools } = files;
+    let RunFiles { state_dir, trace, tools, restart } = files;
     let (cfg, cfg_text) = match super::machine_config(machine) {
         Ok(c) => c,
         Err(e) => {
@@ -109,8 +111,20 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, files: RunFiles, m
             return EXIT_SETUP;
         }
     };
+    // `run -`: the program comes on standard input, read whole (it is checked before motion).
+    let stdin_text = match super::mdi::program_from_stdin(program) {
+        Ok(t) => t,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return EXIT_PROGRAM_ERROR;
+        }
+    };
+    let open = |cfg: &MachineConfig| match &stdin_text {
+        Some(t) => Interpreter::with_program_dir("<stdin>", t, cfg, Some(Path::new("."))),
+        None => Interpreter::from_file(program, cfg),
+    };
     // The whole program is checked before anything moves.
-    let mut interp = match Interpreter::from_file(program, &cfg) {
+    let mut interp = match open(&cfg) {
         Ok(i) => i,
         Err(alarms) => {
             for a in &alarms {
@@ -121,25 +135,23 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, files: RunFiles, m
         }
     };
     interp.set_block_budget(max_blocks);
-    let table = match tools.map(crate::interp::load_tool_table).transpose() {
+    // The offsets: `--tools FILE` wins for the tool table, else the stored one (`cncgw offsets`).
+    let state_root = state_dir.map(Path::to_path_buf).or_else(crate::persist::default_state_dir);
+    let tables = match crate::offsets::resolve(state_root.as_deref(), &cfg.machine.name, tools) {
         Ok(t) => t,
         Err(a) => {
             eprintln!("{a}");
             eprintln!("nothing was moved");
-            return EXIT_PROGRAM_ERROR;
+            return if a.number == crate::persist::STATE_ALARM { EXIT_SETUP } else { EXIT_PROGRAM_ERROR };
         }
     };
-    if let Some(t) = &table {
-        interp.set_tool_table(t.clone());
-    }
-    let source = std::fs::read_to_string(program).unwrap_or_default();
+    eprintln!("cncgw: {}", tables.source);
+    tables.apply(&mut interp);
+    let source = stdin_text.clone().unwrap_or_else(|| std::fs::read_to_string(program).unwrap_or_default());
     // The machine's state (common variables #401–#600, the rigid-tap state), kept per machine
     // and per place it runs, under a lock so that no other run interleaves with this one.
     let place = run_place(&cfg, machine);
-    let state = state_dir
-        .map(Path::to_path_buf)
-        .or_else(crate::persist::default_state_dir)
-        .map(|d| crate::persist::StatePlace::new(&d, &cfg.machine.name, &place));
+    let state = state_root.as_ref().map(|d| crate::persist::StatePlace::new(d, &cfg.machine.name, &place));
     let mut _state_lock = None;
     if let Some(st) = &state {
         for n in &st.notes {
@@ -181,7 +193,7 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, files: RunFiles, m
         }
     };
     if let Some(st) = tap_state.filter(|s| s.in_hole) {
-        if let Err(a) = check_tap_return_program(program, &cfg, &st) {
+        if let Err(a) = check_tap_return_program(open(&cfg), &st) {
             eprintln!("{a}");
             eprintln!("nothing was moved");
             return EXIT_ALARM;
@@ -192,19 +204,26 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, files: RunFiles, m
         );
         interp.set_tap_return(Some(st.tap_return()));
     }
+    // A restart is refused before the drives are enabled when the scan says so.
+    if let Some(a) =
+        restart.and_then(|at| super::restart::precheck(at, open(&cfg), &tables, interp.common_vars(), tap_state.is_some_and(|s| s.in_hole)))
+    {
+        eprintln!("{a}");
+        return EXIT_PROGRAM_ERROR;
+    }
     let job = Job {
         name: program.display().to_string(),
         source,
         first: Some(interp),
         make: Box::new(|_| {
-            Interpreter::from_file(program, &cfg).map(|mut i| {
+            open(&cfg).map(|mut i| {
                 i.set_block_budget(max_blocks);
-                if let Some(t) = &table {
-                    i.set_tool_table(t.clone());
-                }
+                tables.apply(&mut i);
                 i
             })
         }),
+        feed: restart
+            .map(|at| -> Box<dyn FnOnce(Interpreter, Pos) -> Box<dyn MoveFeed>> { Box::new(move |i, start| super::restart::feed(at, i, start)) }),
     };
     let mut opts = ExecOpts {
         json,
@@ -229,6 +248,7 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, files: RunFiles, m
         },
         operator: None,
         pace: op.realtime,
+        live: false,
     };
     let (code, vars, _) = with_operator(op, &mut opts, |opts| run_job(&cfg, &cfg_text, machine, job, opts));
     if let (Some(f), Some(v)) = (&vars_file, vars) {
@@ -294,7 +314,15 @@ pub struct Job<'a> {
     pub first: Option<Interpreter>,
     #[allow(clippy::type_complexity)]
     pub make: Box<dyn Fn(Pos) -> Result<Interpreter, Vec<crate::Alarm>> + 'a>,
+    /// Where the moves come from instead of the interpreter itself (MDI: `cli::mdi`), made
+    /// from it and the start position; None = the interpreter.
+    #[allow(clippy::type_complexity)]
+    pub feed: Option<Box<dyn FnOnce(Interpreter, Pos) -> Box<dyn MoveFeed> + 'a>>,
 }
+
+/// A source of moves for the interpreter thread, which hands back the common variables at
+/// the end.
+pub use crate::control::job::MoveFeed;
 
 /// Options of `run_job`.
 #[derive(Default)]
@@ -307,6 +335,10 @@ pub struct ExecOpts<'a> {
     pub operator: Option<crate::control::panel::Panel>,
     /// Pace simulated time to the wall clock.
     pub pace: bool,
+    /// The moves come as a person types them (MDI): the embedded machine is paced and never
+    /// waits for the next block in simulated time (it would hold the last one back), and no
+    /// progress bar is drawn over the prompt.
+    pub live: bool,
 }
 
 /// Open the machine's drives (`--config`, `--bus`) and run `job` on them. Returns the exit
@@ -380,10 +412,11 @@ pub fn run_job(
             return (EXIT_SETUP, None, RunSummary::default());
         }
     };
-    let paced = opts.pace && clock.is_simulated();
+    let paced = (opts.pace || opts.live) && clock.is_simulated();
     eprintln!("cncgw: {} on {}{}", job.name, what.join(" + "), if paced { ", simulated time paced to the wall clock" } else { "" });
     if paced {
         let mut p = Paced::new(&mut *clock);
+        p.live = opts.live;
         execute(&mut drives, &mut p, cfg, job, opts)
     } else {
         execute(&mut drives, &mut *clock, cfg, job, opts)
@@ -398,12 +431,15 @@ pub struct Paced<'c> {
     inner: &'c mut dyn Clock,
     wall0: std::time::Instant,
     sim0: u64,
+    /// Say "not simulated", so that the cycle loop takes moves as they come and holds the
+    /// machine between them as in real time (MDI).
+    pub live: bool,
 }
 
 impl<'c> Paced<'c> {
     pub fn new(inner: &'c mut dyn Clock) -> Self {
         let sim0 = inner.now_ns();
-        Paced { inner, wall0: std::time::Instant::now(), sim0 }
+        Paced { inner, wall0: std::time::Instant::now(), sim0, live: false }
     }
 }
 
@@ -420,7 +456,7 @@ impl Clock for Paced<'_> {
         self.inner.wait_until(t_ns)
     }
     fn is_simulated(&self) -> bool {
-        self.inner.is_simulated()
+        self.inner.is_simulated() && !self.live
     }
 }
 
@@ -488,7 +524,7 @@ fn execute(
         }
     };
     let start_pos = crate::control::job::start_pos(&start);
-    let interp = match job.first.take().map(Ok).unwrap_or_else(|| (job.make)(start_pos)) {
+    let mut interp = match job.first.take().map(Ok).unwrap_or_else(|| (job.make)(start_pos)) {
         Ok(i) => i,
         Err(alarms) => {
             lp.finish();
@@ -499,6 +535,7 @@ fn execute(
             return (EXIT_PROGRAM_ERROR, None, summary);
         }
     };
+    interp.set_start_position(start_pos);
     // The rigid-tap state: published by the cycle, written by its own thread (started
     // before the real-time setup below, so that it does not inherit it).
     let mut tap_writer = None;
@@ -576,7 +613,13 @@ fn execute(
             return (EXIT_ALARM, None, summary);
         }
     }
-    let feed = match crate::control::job::Feed::spawn(interp, &start) {
+    // The interpreter runs ahead of motion, macro statements included (as on a Fanuc, where
+    // macro statements are executed while the blocks before them are buffered).
+    let it: Box<dyn MoveFeed> = match job.feed.take() {
+        Some(f) => f(interp, start_pos),
+        None => Box::new(interp),
+    };
+    let feed = match crate::control::job::Feed::spawn(it) {
         Ok(f) => f,
         Err(a) => {
             eprintln!("error: {a}");
@@ -587,6 +630,7 @@ fn execute(
     let lines: Vec<&str> = job.source.lines().collect();
     let mut display = match &opts.operator {
         Some(p) => Display::Panel(super::term::PanelDisplay::new(p.clone(), &lines)),
+        None if opts.live => Display::Bar(indicatif::ProgressBar::hidden()),
         None => {
             let bar = indicatif::ProgressBar::new((lines.len() as u64).max(1));
             bar.set_style(
@@ -604,20 +648,26 @@ fn execute(
             RtStep::Refused(m) | RtStep::Warn(m) => eprintln!("warning: {m}"),
         }
     }
-    let (r, vars) = feed.run(&mut lp, start, &mut summary, &mut |p| match &mut display {
-        Display::Bar(bar) => {
-            bar.set_position(p.line as u64);
-            bar.set_message(format!(
-                "X{:.3} Z{:.3} F{:.0} S{:.0} sync {:.1} µm",
-                p.pos[AX_X] * 2.0,
-                p.pos[AX_Z],
-                p.feed,
-                p.spindle_rpm,
-                p.sync_err_um
-            ));
-        }
-        Display::Panel(d) => d.show(p),
-    });
+    let (r, vars) = feed.run(
+        &mut lp,
+        start,
+        &mut summary,
+        &mut |p| match &mut display {
+            Display::Bar(bar) => {
+                bar.set_position(p.line as u64);
+                bar.set_message(format!(
+                    "X{:.3} Z{:.3} F{:.0} S{:.0} sync {:.1} µm",
+                    p.pos[AX_X] * 2.0,
+                    p.pos[AX_Z],
+                    p.feed,
+                    p.spindle_rpm,
+                    p.sync_err_um
+                ));
+            }
+            Display::Panel(d) => d.show(p),
+        },
+        opts.live,
+    );
     match display {
         Display::Bar(bar) => bar.finish_and_clear(),
         Display::Panel(mut d) => d.close(),
@@ -675,8 +725,8 @@ pub const TAP_STATE_PERIOD_MS: u64 = 20;
 
 /// With the tool in a tapped hole, the program's first motion must be the G30 P99 return
 /// (`control::tapstate::check_return_first`).
-fn check_tap_return_program(program: &Path, cfg: &MachineConfig, st: &crate::persist::TapState) -> Result<(), crate::Alarm> {
-    let mut pre = Interpreter::from_file(program, cfg).map_err(|a| {
+fn check_tap_return_program(pre: Result<Interpreter, Vec<crate::Alarm>>, st: &crate::persist::TapState) -> Result<(), crate::Alarm> {
+    let mut pre = pre.map_err(|a| {
         a.into_iter().next().unwrap_or_else(|| crate::Alarm::new(crate::control::tapstate::TAP_IN_HOLE, "the program cannot be read"))
     })?;
     pre.set_tap_return(Some(st.tap_return()));

@@ -494,6 +494,7 @@ fn jog_program(machine: &MachineArgs, cfg: &crate::config::MachineConfig, axis: 
             let word = if axis == "x" { format!("X{:.4}", t * 2.0) } else { format!("Z{t:.4}") };
             crate::interp::Interpreter::from_source("jog.nc", &format!("G21\nG98\nG1 {word} F{speed}\nM30\n"), cfg)
         }),
+        feed: None,
     };
     let opts = super::run::ExecOpts { print_summary: false, ..Default::default() };
     let (code, _, summary) = super::run::run_job(cfg, "", machine, job, &opts);

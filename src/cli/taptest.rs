@@ -91,6 +91,8 @@ fn spindle_name(cfg: &MachineConfig) -> Option<String> {
 }
 
 /// Write the program for a tap from `start` (machine position, X a radius) and check it.
+/// The program is in machine coordinates — the tap is made where the tool stands — so no
+/// tool or work offset applies to it: the stored offsets (`cncgw offsets`) are not read.
 pub fn plan(cfg: &MachineConfig, a: &TapArgs, start: Pos) -> Result<TapPlan, String> {
     let pos = |v: f64| v.is_finite() && v > 0.0;
     if !(pos(a.lead) && pos(a.depth) && pos(a.rpm) && a.clearance.is_finite() && a.clearance >= 0.0) {
@@ -479,6 +481,7 @@ pub fn tap_test(machine: &MachineArgs, a: &TapArgs, op: &OperatorArgs) -> i32 {
             planned.borrow_mut().get_or_insert(p);
             r
         }),
+        feed: None,
     };
     let mut opts = ExecOpts {
         json: false,
@@ -486,6 +489,7 @@ pub fn tap_test(machine: &MachineArgs, a: &TapArgs, op: &OperatorArgs) -> i32 {
         extras: RunExtras { trace: Some(&csv), ..RunExtras::default() },
         operator: None,
         pace: op.realtime,
+        live: false,
     };
     let (code, _, _) = super::run::with_operator(op, &mut opts, |o| super::run::run_job(&cfg, &cfg_text, machine, job, o));
     let Some(Ok(p)) = planned.into_inner() else {

@@ -43,47 +43,67 @@ pub fn start_pos(start: &[f64; N_AXES]) -> Pos {
     Pos { x: start[AX_X], y: start[AX_Y], z: start[AX_Z], c: start[AX_S] }
 }
 
-/// The interpreter on its own thread, [`LOOK_AHEAD_MOVES`] ahead of motion, started from
-/// where the axes stand. Start it before the cycle thread takes its real-time policy
-/// (`control::rt::apply`), so that it does not inherit it.
+/// A source of moves for the interpreter thread: the interpreter itself, or what wraps it
+/// (a program restart's approach, MDI's blocks as they are typed); it hands back the common
+/// variables at the end.
+pub trait MoveFeed: Iterator<Item = Result<Move, Alarm>> + Send {
+    fn common_vars(&self) -> CommonVars;
+}
+
+impl MoveFeed for Interpreter {
+    fn common_vars(&self) -> CommonVars {
+        Interpreter::common_vars(self).clone()
+    }
+}
+
+/// The moves on their own thread, [`LOOK_AHEAD_MOVES`] ahead of motion. Start it before the
+/// cycle thread takes its real-time policy (`control::rt::apply`), so that it does not
+/// inherit it.
 pub struct Feed {
     rx: Receiver<Result<Move, Alarm>>,
     handle: JoinHandle<CommonVars>,
 }
 
 impl Feed {
-    /// Set `interp`'s start position to `start` and start its thread; it stops at its first
-    /// alarm and hands back the common variables when it ends.
-    pub fn spawn(mut interp: Interpreter, start: &[f64; N_AXES]) -> Result<Feed, Alarm> {
+    /// The interpreter from where the axes stand (`start`).
+    pub fn interpreter(mut interp: Interpreter, start: &[f64; N_AXES]) -> Result<Feed, Alarm> {
         interp.set_start_position(start_pos(start));
+        Feed::spawn(Box::new(interp))
+    }
+
+    /// Start the thread; it stops at the first alarm and hands back the common variables
+    /// when it ends.
+    pub fn spawn(mut it: Box<dyn MoveFeed>) -> Result<Feed, Alarm> {
         let (tx, rx) = sync_channel(LOOK_AHEAD_MOVES);
         let handle = std::thread::Builder::new()
             .name("interp".into())
             .spawn(move || {
-                let mut it = interp;
                 for m in it.by_ref() {
                     let stop = m.is_err();
                     if tx.send(m).is_err() || stop {
                         break;
                     }
                 }
-                it.common_vars().clone()
+                it.common_vars()
             })
             .map_err(|e| Alarm::new(crate::alarm::NO_THREAD, format!("cannot start the interpreter thread: {e}")))?;
         Ok(Feed { rx, handle })
     }
 
     /// Run the loop (started at `start`) on these moves to the end or an alarm. Returns the
-    /// result and the common variables at the end (None if the interpreter's thread died).
+    /// result and the common variables at the end (None if the feed's thread died, or with
+    /// `live`: a feed that waits for a person's next line may never end, so it is left behind
+    /// and its owner keeps the variables).
     pub fn run(
         self,
         lp: &mut CycleLoop,
         start: [f64; N_AXES],
         summary: &mut RunSummary,
         progress: &mut dyn FnMut(&Progress),
+        live: bool,
     ) -> (Result<(), Alarm>, Option<CommonVars>) {
         let r = lp.run(start, self.rx, summary, progress);
-        (r, self.handle.join().ok())
+        (r, if live { None } else { self.handle.join().ok() })
     }
 }
 
@@ -96,7 +116,7 @@ pub fn run_program(lp: &mut CycleLoop, interp: Interpreter, summary: &mut RunSum
 /// [`run_program`] with a progress report every few cycles.
 pub fn run_program_with(lp: &mut CycleLoop, interp: Interpreter, summary: &mut RunSummary, progress: &mut dyn FnMut(&Progress)) -> Result<(), Alarm> {
     let start = lp.start(summary)?;
-    Feed::spawn(interp, &start)?.run(lp, start, summary, progress).0
+    Feed::interpreter(interp, &start)?.run(lp, start, summary, progress, false).0
 }
 
 /// Start the drives and run a list of moves made beforehand (tests, measurements): the

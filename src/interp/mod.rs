@@ -50,6 +50,7 @@ pub mod macros;
 pub mod nosecomp;
 pub mod parse;
 pub mod plan;
+pub mod restart;
 pub mod tools;
 pub mod vec2;
 
@@ -59,6 +60,7 @@ use crate::Alarm;
 use gcode::{Decoded, GCode, Val};
 use macros::{MErr, Vars};
 use parse::{Block, Expr, PErr, Stmt, Word};
+pub use restart::{RestartAt, RestartScan};
 use std::collections::{HashMap, VecDeque};
 use std::sync::Arc;
 pub use tools::{load_tool_table, parse_tool_table, ActiveTool, ToolOffset, ToolTable};
