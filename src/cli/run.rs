@@ -150,26 +150,13 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, files: RunFiles, m
     let source = stdin_text.clone().unwrap_or_else(|| std::fs::read_to_string(program).unwrap_or_default());
     // The machine's state (common variables #401–#600, the rigid-tap state), kept per machine
     // and per place it runs, under a lock so that no other run interleaves with this one.
-    let place = run_place(&cfg, machine);
-    let state = state_root.as_ref().map(|d| crate::persist::StatePlace::new(d, &cfg.machine.name, &place));
-    let mut _state_lock = None;
-    if let Some(st) = &state {
-        for n in &st.notes {
-            eprintln!("cncgw: {n}");
-        }
-        // Everything checkable before motion: the state can be written and is ours.
-        if let Err(a) = st.check_writable() {
+    let (state, _state_lock) = match lock_state(state_root.as_deref(), &cfg, &run_place(&cfg, machine)) {
+        Ok(s) => s,
+        Err(a) => {
             eprintln!("{a}");
             return EXIT_SETUP;
         }
-        match super::lock::state(&st.dir, &st.key) {
-            Ok(l) => _state_lock = Some(l),
-            Err(a) => {
-                eprintln!("{a}");
-                return EXIT_SETUP;
-            }
-        }
-    }
+    };
     // Common variables #401–#600 survive power-off: load them, store them after the run.
     let vars_file = state.as_ref().map(|s| s.common_vars());
     let mut interp = interp;
@@ -230,19 +217,7 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, files: RunFiles, m
         print_summary: true,
         extras: RunExtras {
             trace,
-            // The config's [rt], each option overridden by its command-line flag.
-            rt: RtOptions::resolve(
-                &cfg.rt,
-                &RtOptions {
-                    priority: rt.rt_priority,
-                    mlock: rt.mlock,
-                    cpu: rt.cpu,
-                    max_sleep_us: rt.max_sleep_us,
-                    spin_us: rt.spin_us,
-                    cpu_dma_latency: rt.cpu_dma_latency,
-                    timer_slack_ns: rt.timer_slack_ns,
-                },
-            ),
+            rt: rt.resolve(&cfg.rt),
             tap: tap_file.map(|f| TapSetup { file: f.path, loaded: tap_state }),
             history: state.as_ref().map(|s| s.alarm_history()),
         },
@@ -258,6 +233,40 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, files: RunFiles, m
         }
     }
     code
+}
+
+/// The machine's state (common variables #401–#600, the rigid-tap state), kept per machine
+/// and per place it runs, checked writable and locked so that no other run interleaves with
+/// this one. None without a state directory.
+fn lock_state(
+    root: Option<&Path>,
+    cfg: &MachineConfig,
+    place: &str,
+) -> Result<(Option<crate::persist::StatePlace>, Option<super::lock::Lock>), crate::Alarm> {
+    let Some(st) = root.map(|d| crate::persist::StatePlace::new(d, &cfg.machine.name, place)) else { return Ok((None, None)) };
+    for n in &st.notes {
+        eprintln!("cncgw: {n}");
+    }
+    // Everything checkable before motion: the state can be written and is ours.
+    st.check_writable()?;
+    let lock = super::lock::state(&st.dir, &st.key)?;
+    Ok((Some(st), Some(lock)))
+}
+
+impl RtArgs {
+    /// The config's [rt], each option overridden by its command-line flag.
+    pub fn resolve(&self, cfg: &crate::config::RtConfig) -> RtOptions {
+        let flags = RtOptions {
+            priority: self.rt_priority,
+            mlock: self.mlock,
+            cpu: self.cpu,
+            max_sleep_us: self.max_sleep_us,
+            spin_us: self.spin_us,
+            cpu_dma_latency: self.cpu_dma_latency,
+            timer_slack_ns: self.timer_slack_ns,
+        };
+        RtOptions::resolve(cfg, &flags)
+    }
 }
 
 /// Where a run runs, for its state files and its bus lock: `inproc` for the embedded
@@ -496,8 +505,6 @@ fn execute(
     opts: &ExecOpts,
 ) -> (i32, Option<std::collections::HashMap<u32, f64>>, RunSummary) {
     let extras = &opts.extras;
-    let json = opts.json;
-    let spindle_drive = cfg.spindle_index();
     let mut lp = CycleLoop::from_config(drives, clock, cfg);
     if let Some(path) = extras.trace {
         match Trace::csv(path, lp.drive_names()) {
@@ -538,80 +545,24 @@ fn execute(
     interp.set_start_position(start_pos);
     // The rigid-tap state: published by the cycle, written by its own thread (started
     // before the real-time setup below, so that it does not inherit it).
-    let mut tap_writer = None;
-    if let Some(TapSetup { file, loaded }) = extras.tap.clone() {
-        if let Some(st) = loaded.filter(|s| s.in_hole) {
-            let ax = match st.axis {
-                'X' => AX_X,
-                'Y' => AX_Y,
-                _ => AX_Z,
-            };
-            // On a real machine the thread holds tap and spindle together; a spindle turned
-            // against the axis since (by hand, or drives that stopped each on its own ramp)
-            // shows here. The return takes the angle it finds as the thread's reference.
-            eprintln!(
-                "cncgw: tap return from {} {:.4} mm: the spindle stands {:.2}° from the thread stored at the interruption",
-                st.axis,
-                start[ax],
-                st.phase_error_deg(start[ax], start[AX_S])
-            );
-        }
-        let slot = crate::control::tapstate::TapSlot::new(loaded);
-        let file = crate::persist::TapStateFile { path: file };
-        match crate::control::tapstate::TapPersister::spawn(file, slot.clone(), std::time::Duration::from_millis(TAP_STATE_PERIOD_MS), loaded) {
-            Ok(w) => {
-                lp.set_tap_watch(crate::control::tapstate::TapWatch::new(slot, Some(w.thread()), &start, loaded));
-                tap_writer = Some(w);
-            }
-            Err(e) => {
-                eprintln!("error: cannot start the rigid-tap state writer: {e}");
-                lp.finish();
-                return (EXIT_SETUP, None, summary);
-            }
-        }
-    }
-    // Axes on links with their own cycle (Modbus): every spindle-synchronised move of the
-    // program is checked against their cycle before anything moves.
-    let mut slow = Vec::new();
-    for d in 0..lp.drives.axis_count() {
-        if let Some((link, link_what, cycle_s)) = lp.drives.link_cycle(d) {
-            let name = lp.drives.axis_name(d).to_string();
-            eprintln!("cncgw: axis {name}: Modbus link {link} ({link_what}), link cycle {:.0} ms", cycle_s * 1e3);
-            let axis = if Some(d) == spindle_drive { "s".to_string() } else { name };
-            slow.push(crate::sync::link_check::SlowAxis { axis, link, cycle_s });
-        }
-    }
-    if !slow.is_empty() {
-        if let Err(a) = check_links(&job, cfg, &slow, start_pos) {
+    let tap_writer = match start_tap_writer(&mut lp, extras, &start) {
+        Ok(w) => w,
+        Err(e) => {
+            eprintln!("error: cannot start the rigid-tap state writer: {e}");
             lp.finish();
-            summary.rest.at_rest = true; // nothing was moved
-            if opts.print_summary {
-                print_summary(&summary, json, Some(&a));
-            }
-            record_alarm(extras, &job.name, &a);
-            eprintln!("{a}");
-            eprintln!("nothing was moved");
-            return (EXIT_ALARM, None, summary);
+            return (EXIT_SETUP, None, summary);
         }
-    }
-    // Limits before motion: a program whose path leaves the travel or enters the G22 area
-    // is refused before the first move.
-    if let Ok(mut pre) = (job.make)(start_pos) {
-        pre.set_start_position(start_pos);
-        pre.set_common_vars(interp.common_vars().clone());
-        pre.set_tap_return(interp.tap_return());
-        let tool = crate::motion::polygon::ToolSpindle::from_config(cfg);
-        if let Err(a) = crate::control::guard::check_program_with(pre, &Limits::from_config(cfg), start_pos, tool.as_ref(), 2_000_000) {
-            lp.finish();
-            summary.rest.at_rest = true; // nothing was moved
-            if opts.print_summary {
-                print_summary(&summary, json, Some(&a));
-            }
-            record_alarm(extras, &job.name, &a);
-            eprintln!("{a}");
-            eprintln!("nothing was moved");
-            return (EXIT_ALARM, None, summary);
+    };
+    if let Err(a) = checks_before_motion(&mut lp, &job, cfg, &interp, start_pos) {
+        lp.finish();
+        summary.rest.at_rest = true; // nothing was moved
+        if opts.print_summary {
+            print_summary(&summary, opts.json, Some(&a));
         }
+        record_alarm(extras, &job.name, &a);
+        eprintln!("{a}");
+        eprintln!("nothing was moved");
+        return (EXIT_ALARM, None, summary);
     }
     // The interpreter runs ahead of motion, macro statements included (as on a Fanuc, where
     // macro statements are executed while the blocks before them are buffered).
@@ -628,18 +579,7 @@ fn execute(
         }
     };
     let lines: Vec<&str> = job.source.lines().collect();
-    let mut display = match &opts.operator {
-        Some(p) => Display::Panel(super::term::PanelDisplay::new(p.clone(), &lines)),
-        None if opts.live => Display::Bar(indicatif::ProgressBar::hidden()),
-        None => {
-            let bar = indicatif::ProgressBar::new((lines.len() as u64).max(1));
-            bar.set_style(
-                indicatif::ProgressStyle::with_template("{spinner} {elapsed_precise} line {pos}/{len} {wide_bar} {msg}")
-                    .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
-            );
-            Display::Bar(bar)
-        }
-    };
+    let mut display = Display::new(opts, &lines);
     // The cycle loop runs on this thread; set it up only now, so that the interpreter and
     // trace threads (already started) do not inherit the real-time policy or the pinning.
     for step in crate::control::rt::apply(&extras.rt) {
@@ -648,31 +588,73 @@ fn execute(
             RtStep::Refused(m) | RtStep::Warn(m) => eprintln!("warning: {m}"),
         }
     }
-    let (r, vars) = feed.run(
-        &mut lp,
-        start,
-        &mut summary,
-        &mut |p| match &mut display {
-            Display::Bar(bar) => {
-                bar.set_position(p.line as u64);
-                bar.set_message(format!(
-                    "X{:.3} Z{:.3} F{:.0} S{:.0} sync {:.1} µm",
-                    p.pos[AX_X] * 2.0,
-                    p.pos[AX_Z],
-                    p.feed,
-                    p.spindle_rpm,
-                    p.sync_err_um
-                ));
-            }
-            Display::Panel(d) => d.show(p),
-        },
-        opts.live,
-    );
-    match display {
-        Display::Bar(bar) => bar.finish_and_clear(),
-        Display::Panel(mut d) => d.close(),
-    }
+    let (r, vars) = feed.run(&mut lp, start, &mut summary, &mut |p| display.show(p), opts.live);
+    display.close();
     lp.finish();
+    let tap_failed = close_writers(&mut lp, tap_writer);
+    let code = outcome(r, &summary, opts, &job.name);
+    (if tap_failed && code == EXIT_OK { EXIT_SETUP } else { code }, vars, summary)
+}
+
+/// The rigid-tap state writer of a run with a tap-state file (`extras.tap`), its watch set
+/// on the loop. A run that starts with the tool in a hole says how far the spindle stands
+/// from the stored thread.
+fn start_tap_writer(
+    lp: &mut CycleLoop,
+    extras: &RunExtras,
+    start: &[f64; crate::motion::N_AXES],
+) -> std::io::Result<Option<crate::control::tapstate::TapPersister>> {
+    let Some(TapSetup { file, loaded }) = extras.tap.clone() else { return Ok(None) };
+    if let Some(st) = loaded.filter(|s| s.in_hole) {
+        let ax = match st.axis {
+            'X' => AX_X,
+            'Y' => AX_Y,
+            _ => AX_Z,
+        };
+        // On a real machine the thread holds tap and spindle together; a spindle turned
+        // against the axis since (by hand, or drives that stopped each on its own ramp)
+        // shows here. The return takes the angle it finds as the thread's reference.
+        eprintln!(
+            "cncgw: tap return from {} {:.4} mm: the spindle stands {:.2}° from the thread stored at the interruption",
+            st.axis,
+            start[ax],
+            st.phase_error_deg(start[ax], start[AX_S])
+        );
+    }
+    let slot = crate::control::tapstate::TapSlot::new(loaded);
+    let file = crate::persist::TapStateFile { path: file };
+    let w = crate::control::tapstate::TapPersister::spawn(file, slot.clone(), std::time::Duration::from_millis(TAP_STATE_PERIOD_MS), loaded)?;
+    lp.set_tap_watch(crate::control::tapstate::TapWatch::new(slot, Some(w.thread()), start, loaded));
+    Ok(Some(w))
+}
+
+/// What is checked before anything moves: the spindle-synchronised moves against the cycle
+/// of every axis on a link with its own cycle (Modbus), then the program's whole path
+/// against the travel limits and the G22 area.
+fn checks_before_motion(lp: &mut CycleLoop, job: &Job, cfg: &MachineConfig, interp: &Interpreter, start_pos: Pos) -> Result<(), crate::Alarm> {
+    let mut slow = Vec::new();
+    for d in 0..lp.drives.axis_count() {
+        if let Some((link, link_what, cycle_s)) = lp.drives.link_cycle(d) {
+            let name = lp.drives.axis_name(d).to_string();
+            eprintln!("cncgw: axis {name}: Modbus link {link} ({link_what}), link cycle {:.0} ms", cycle_s * 1e3);
+            let axis = if Some(d) == cfg.spindle_index() { "s".to_string() } else { name };
+            slow.push(crate::sync::link_check::SlowAxis { axis, link, cycle_s });
+        }
+    }
+    if !slow.is_empty() {
+        check_links(job, cfg, &slow, start_pos)?;
+    }
+    let Ok(mut pre) = (job.make)(start_pos) else { return Ok(()) };
+    pre.set_start_position(start_pos);
+    pre.set_common_vars(interp.common_vars().clone());
+    pre.set_tap_return(interp.tap_return());
+    let tool = crate::motion::polygon::ToolSpindle::from_config(cfg);
+    crate::control::guard::check_program_with(pre, &Limits::from_config(cfg), start_pos, tool.as_ref(), 2_000_000)
+}
+
+/// Close the trace and the rigid-tap state writer, saying what they wrote; true if the tap
+/// state could not be stored.
+fn close_writers(lp: &mut CycleLoop, tap_writer: Option<crate::control::tapstate::TapPersister>) -> bool {
     let tap_failed = match tap_writer.map(|w| w.finish()) {
         Some(st) if st.failures > 0 => {
             eprintln!("error: the rigid-tap state could not be stored {} time(s): {}", st.failures, st.last_error.unwrap_or_default());
@@ -689,19 +671,24 @@ fn execute(
             Err(e) => eprintln!("error: writing the trace: {e}"),
         }
     }
-    let mut code = match r {
+    tap_failed
+}
+
+/// The run's end as the operator reads it (summary, alarm, rest) and its exit code.
+fn outcome(r: Result<(), crate::Alarm>, summary: &RunSummary, opts: &ExecOpts, name: &str) -> i32 {
+    match r {
         Err(a) => {
             if opts.print_summary {
-                print_summary(&summary, json, Some(&a));
+                print_summary(summary, opts.json, Some(&a));
             }
-            record_alarm(extras, &job.name, &a);
+            record_alarm(&opts.extras, name, &a);
             eprintln!("{a}");
             eprintln!("the program stopped at this alarm; {}", summary.rest.describe());
             EXIT_ALARM
         }
         Ok(()) => {
             if opts.print_summary {
-                print_summary(&summary, json, None);
+                print_summary(summary, opts.json, None);
             }
             if !summary.rest.at_rest || summary.rest.quick_stop {
                 eprintln!("warning: {}", summary.rest.describe());
@@ -713,11 +700,7 @@ fn execute(
                 EXIT_NOT_AT_END
             }
         }
-    };
-    if tap_failed && code == EXIT_OK {
-        code = EXIT_SETUP;
     }
-    (code, vars, summary)
 }
 
 /// How often the rigid-tap state is written while the tool moves in a hole (ms).
@@ -743,6 +726,43 @@ fn check_tap_return_program(pre: Result<Interpreter, Vec<crate::Alarm>>, st: &cr
 enum Display {
     Bar(indicatif::ProgressBar),
     Panel(super::term::PanelDisplay),
+}
+
+impl Display {
+    /// The operator panel's status lines, or a progress bar (hidden for MDI, where the
+    /// prompt is).
+    fn new(opts: &ExecOpts, lines: &[&str]) -> Display {
+        match &opts.operator {
+            Some(p) => Display::Panel(super::term::PanelDisplay::new(p.clone(), lines)),
+            None if opts.live => Display::Bar(indicatif::ProgressBar::hidden()),
+            None => {
+                let bar = indicatif::ProgressBar::new((lines.len() as u64).max(1));
+                bar.set_style(
+                    indicatif::ProgressStyle::with_template("{spinner} {elapsed_precise} line {pos}/{len} {wide_bar} {msg}")
+                        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+                );
+                Display::Bar(bar)
+            }
+        }
+    }
+
+    fn show(&mut self, p: &crate::control::cycle::Progress) {
+        match self {
+            Display::Bar(bar) => {
+                bar.set_position(p.line as u64);
+                let (x, z, f, s) = (p.pos[AX_X] * 2.0, p.pos[AX_Z], p.feed, p.spindle_rpm);
+                bar.set_message(format!("X{x:.3} Z{z:.3} F{f:.0} S{s:.0} sync {:.1} µm", p.sync_err_um));
+            }
+            Display::Panel(d) => d.show(p),
+        }
+    }
+
+    fn close(self) {
+        match self {
+            Display::Bar(bar) => bar.finish_and_clear(),
+            Display::Panel(mut d) => d.close(),
+        }
+    }
 }
 
 /// Run the interpreter over the whole program once and check each synchronised move
