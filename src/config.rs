@@ -553,6 +553,16 @@ impl MachineConfig {
     /// Every problem, each as `key.path: what is allowed, got value`.
     pub fn validate(&self) -> Vec<String> {
         let mut e = Vec::new();
+        self.validate_machine(&mut e);
+        self.validate_axes(&mut e);
+        self.validate_links(&mut e);
+        self.validate_parameters(&mut e);
+        e
+    }
+
+    /// The machine, bus, [rt] and parameter-range keys.
+    fn validate_machine(&self, e: &mut Vec<String>) {
+        let c = self.machine.cycle_ms;
         for (k, v) in &self.parameters {
             e.extend(crate::params::check(k, v));
         }
@@ -562,7 +572,6 @@ impl MachineConfig {
                     .into(),
             );
         }
-        let c = self.machine.cycle_ms;
         if !(c.is_finite() && (0.25..=100.0).contains(&c)) {
             e.push(format!("machine.cycle_ms: must be between 0.25 and 100, got {c}"));
         }
@@ -618,103 +627,15 @@ impl MachineConfig {
         if let Some(t) = self.param(1772).filter(|t| !(t.is_finite() && *t >= 0.0)) {
             e.push(format!("parameters.1772: the acceleration change time must be ≥ 0 ms, got {t}"));
         }
+    }
+
+    /// Every axis, node ids and PDO COB-IDs unique per bus, at most one tool spindle.
+    fn validate_axes(&self, e: &mut Vec<String>) {
         // Node ids are unique per bus: the CANopen bus, and each Modbus link.
         let mut nodes: BTreeMap<(Option<&str>, u8), &str> = BTreeMap::new();
         let mut cobs: BTreeMap<u16, String> = BTreeMap::new();
         for (name, a) in &self.axes {
-            let p = format!("axes.{name}");
-            if !name.chars().all(|ch| ch.is_ascii_alphanumeric()) || name.is_empty() {
-                e.push(format!("{p}: axis names are letters and digits (x, z, c, s1), got {name:?}"));
-            }
-            match &a.modbus {
-                None if !(1..=127).contains(&a.node) => e.push(format!("{p}.node: must be a CANopen node id 1..=127, got {}", a.node)),
-                Some(l) if !(1..=247).contains(&a.node) => {
-                    e.push(format!("{p}.node: must be a Modbus unit id 1..=247 on link {l:?}, got {}", a.node))
-                }
-                Some(l) if !self.modbus.contains_key(l) => {
-                    let known: Vec<&str> = self.modbus.keys().map(String::as_str).collect();
-                    e.push(format!(
-                        "{p}.modbus: no [modbus.{l}] link is configured (links: {})",
-                        if known.is_empty() { "none".into() } else { known.join(", ") }
-                    ))
-                }
-                bus => {
-                    if let Some(other) = nodes.insert((bus.as_deref(), a.node), name) {
-                        let on = bus.as_deref().map(|l| format!(" on Modbus link {l:?}")).unwrap_or_default();
-                        e.push(format!("{p}.node: node {}{on} is already used by axes.{other}", a.node));
-                    }
-                }
-            }
-            if a.modbus.is_none() {
-                let (r, t) = a.pdo_cob_ids();
-                for (key, id) in [("rpdo_cob_id", r), ("tpdo_cob_id", t)] {
-                    if restricted_cob_id(id) {
-                        e.push(format!("{p}.{key}: 0x{id:03X} is reserved by CiA 301 (NMT, SYNC, EMCY, SDO, heartbeat); use 0x181–0x57F"));
-                    } else if let Some(other) = cobs.insert(id, format!("{p}.{key}")) {
-                        e.push(format!("{p}.{key}: 0x{id:03X} is already used by {other}"));
-                    }
-                }
-                if !(a.rpdo_transmission <= 240 || a.rpdo_transmission >= 254) {
-                    e.push(format!("{p}.rpdo_transmission: must be 0–240 (synchronous) or 254/255 (event), got {}", a.rpdo_transmission));
-                }
-                if !(1..=240).contains(&a.tpdo_transmission) {
-                    e.push(format!("{p}.tpdo_transmission: must be 1–240 (every n-th SYNC), got {}", a.tpdo_transmission));
-                }
-            }
-            if a.modbus.is_none() && (a.cia402_map.is_some() || a.pr_map.is_some()) {
-                e.push(format!("{p}: cia402_map / pr_map apply to Modbus drives; set {p}.modbus to the link"));
-            }
-            if a.role == Some(AxisRole::ToolSpindle) && a.kind != AxisKind::Spindle {
-                e.push(format!("{p}.role: \"tool_spindle\" needs kind = \"spindle\""));
-            }
-            for (k, x) in a.sdo.iter().enumerate() {
-                let (lo, hi) = x.ty.range();
-                if !(lo..=hi).contains(&x.value) {
-                    e.push(format!("{p}.sdo[{k}]: value {} does not fit type {} ({lo} … {hi})", x.value, x.ty.name()));
-                }
-                if x.owned_by_startup() {
-                    e.push(format!(
-                        "{p}.sdo[{k}]: 0x{:04X} is configured by start-up itself (PDOs, error control, mode, SYNC, interpolation period); use the axis keys for it",
-                        x.index
-                    ));
-                }
-                if a.modbus.is_some() {
-                    e.push(format!(
-                        "{p}.sdo: start-up lists are for CANopen drives; this axis is on Modbus link {:?}",
-                        a.modbus.as_deref().unwrap_or("")
-                    ));
-                }
-            }
-            positive(&mut e, &format!("{p}.counts_per_unit"), a.counts_per_unit);
-            positive(&mut e, &format!("{p}.max_speed"), a.max_speed);
-            positive(&mut e, &format!("{p}.max_accel"), a.max_accel);
-            if let Some(j) = a.jerk.filter(|j| !(j.is_finite() && *j >= 0.0)) {
-                e.push(format!("{p}.jerk: must be ≥ 0 mm/s³ (0 = no jerk limit), got {j}"));
-            }
-            positive(&mut e, &format!("{p}.following_error"), a.following_error);
-            if let Some(t) = a.travel_per_rev {
-                positive(&mut e, &format!("{p}.travel_per_rev"), t);
-            }
-            if a.kind == AxisKind::Linear {
-                match (a.min, a.max) {
-                    (Some(lo), Some(hi)) if !(lo.is_finite() && hi.is_finite() && lo < hi) => {
-                        e.push(format!("{p}.max: must be > {p}.min ({lo}), got {hi}"))
-                    }
-                    (Some(_), Some(_)) => {}
-                    _ => e.push(format!("{p}.min/{p}.max: a linear axis needs both travel limits (mm)")),
-                }
-            }
-            // Counts must fit i32 over the whole travel (CiA 402 positions are INTEGER32).
-            if let (Some(lo), Some(hi)) = (a.min, a.max) {
-                let m = lo.abs().max(hi.abs()) * a.counts_per_unit;
-                if m > i32::MAX as f64 {
-                    e.push(format!(
-                        "{p}.counts_per_unit: travel ±{} × {} counts overflows INTEGER32; lower the resolution",
-                        lo.abs().max(hi.abs()),
-                        a.counts_per_unit
-                    ));
-                }
-            }
+            self.validate_axis(name, a, &mut nodes, &mut cobs, e);
         }
         let tools: Vec<&str> = self.axes.iter().filter(|(_, a)| a.role == Some(AxisRole::ToolSpindle)).map(|(n, _)| n.as_str()).collect();
         if tools.len() > 1 {
@@ -723,6 +644,113 @@ impl MachineConfig {
         if !tools.is_empty() && self.spindle().is_none() {
             e.push(format!("axes.{}.role: a tool spindle needs a work spindle (another axis with kind = \"spindle\")", tools[0]));
         }
+    }
+
+    /// One axis; `nodes` and `cobs` collect the ids taken so far.
+    fn validate_axis<'a>(
+        &self,
+        name: &'a str,
+        a: &'a AxisConfig,
+        nodes: &mut BTreeMap<(Option<&'a str>, u8), &'a str>,
+        cobs: &mut BTreeMap<u16, String>,
+        e: &mut Vec<String>,
+    ) {
+        let p = format!("axes.{name}");
+        if !name.chars().all(|ch| ch.is_ascii_alphanumeric()) || name.is_empty() {
+            e.push(format!("{p}: axis names are letters and digits (x, z, c, s1), got {name:?}"));
+        }
+        match &a.modbus {
+            None if !(1..=127).contains(&a.node) => e.push(format!("{p}.node: must be a CANopen node id 1..=127, got {}", a.node)),
+            Some(l) if !(1..=247).contains(&a.node) => e.push(format!("{p}.node: must be a Modbus unit id 1..=247 on link {l:?}, got {}", a.node)),
+            Some(l) if !self.modbus.contains_key(l) => {
+                let known: Vec<&str> = self.modbus.keys().map(String::as_str).collect();
+                e.push(format!(
+                    "{p}.modbus: no [modbus.{l}] link is configured (links: {})",
+                    if known.is_empty() { "none".into() } else { known.join(", ") }
+                ))
+            }
+            bus => {
+                if let Some(other) = nodes.insert((bus.as_deref(), a.node), name) {
+                    let on = bus.as_deref().map(|l| format!(" on Modbus link {l:?}")).unwrap_or_default();
+                    e.push(format!("{p}.node: node {}{on} is already used by axes.{other}", a.node));
+                }
+            }
+        }
+        if a.modbus.is_none() {
+            let (r, t) = a.pdo_cob_ids();
+            for (key, id) in [("rpdo_cob_id", r), ("tpdo_cob_id", t)] {
+                if restricted_cob_id(id) {
+                    e.push(format!("{p}.{key}: 0x{id:03X} is reserved by CiA 301 (NMT, SYNC, EMCY, SDO, heartbeat); use 0x181–0x57F"));
+                } else if let Some(other) = cobs.insert(id, format!("{p}.{key}")) {
+                    e.push(format!("{p}.{key}: 0x{id:03X} is already used by {other}"));
+                }
+            }
+            if !(a.rpdo_transmission <= 240 || a.rpdo_transmission >= 254) {
+                e.push(format!("{p}.rpdo_transmission: must be 0–240 (synchronous) or 254/255 (event), got {}", a.rpdo_transmission));
+            }
+            if !(1..=240).contains(&a.tpdo_transmission) {
+                e.push(format!("{p}.tpdo_transmission: must be 1–240 (every n-th SYNC), got {}", a.tpdo_transmission));
+            }
+        }
+        if a.modbus.is_none() && (a.cia402_map.is_some() || a.pr_map.is_some()) {
+            e.push(format!("{p}: cia402_map / pr_map apply to Modbus drives; set {p}.modbus to the link"));
+        }
+        if a.role == Some(AxisRole::ToolSpindle) && a.kind != AxisKind::Spindle {
+            e.push(format!("{p}.role: \"tool_spindle\" needs kind = \"spindle\""));
+        }
+        for (k, x) in a.sdo.iter().enumerate() {
+            let (lo, hi) = x.ty.range();
+            if !(lo..=hi).contains(&x.value) {
+                e.push(format!("{p}.sdo[{k}]: value {} does not fit type {} ({lo} … {hi})", x.value, x.ty.name()));
+            }
+            if x.owned_by_startup() {
+                e.push(format!(
+                    "{p}.sdo[{k}]: 0x{:04X} is configured by start-up itself (PDOs, error control, mode, SYNC, interpolation period); use the axis keys for it",
+                    x.index
+                ));
+            }
+            if a.modbus.is_some() {
+                e.push(format!(
+                    "{p}.sdo: start-up lists are for CANopen drives; this axis is on Modbus link {:?}",
+                    a.modbus.as_deref().unwrap_or("")
+                ));
+            }
+        }
+        positive(e, &format!("{p}.counts_per_unit"), a.counts_per_unit);
+        positive(e, &format!("{p}.max_speed"), a.max_speed);
+        positive(e, &format!("{p}.max_accel"), a.max_accel);
+        if let Some(j) = a.jerk.filter(|j| !(j.is_finite() && *j >= 0.0)) {
+            e.push(format!("{p}.jerk: must be ≥ 0 mm/s³ (0 = no jerk limit), got {j}"));
+        }
+        positive(e, &format!("{p}.following_error"), a.following_error);
+        if let Some(t) = a.travel_per_rev {
+            positive(e, &format!("{p}.travel_per_rev"), t);
+        }
+        if a.kind == AxisKind::Linear {
+            match (a.min, a.max) {
+                (Some(lo), Some(hi)) if !(lo.is_finite() && hi.is_finite() && lo < hi) => {
+                    e.push(format!("{p}.max: must be > {p}.min ({lo}), got {hi}"))
+                }
+                (Some(_), Some(_)) => {}
+                _ => e.push(format!("{p}.min/{p}.max: a linear axis needs both travel limits (mm)")),
+            }
+        }
+        // Counts must fit i32 over the whole travel (CiA 402 positions are INTEGER32).
+        if let (Some(lo), Some(hi)) = (a.min, a.max) {
+            let m = lo.abs().max(hi.abs()) * a.counts_per_unit;
+            if m > i32::MAX as f64 {
+                e.push(format!(
+                    "{p}.counts_per_unit: travel ±{} × {} counts overflows INTEGER32; lower the resolution",
+                    lo.abs().max(hi.abs()),
+                    a.counts_per_unit
+                ));
+            }
+        }
+    }
+
+    /// The Modbus links.
+    fn validate_links(&self, e: &mut Vec<String>) {
+        let c = self.machine.cycle_ms;
         for (name, l) in &self.modbus {
             let p = format!("modbus.{name}");
             match l.transport {
@@ -765,6 +793,10 @@ impl MachineConfig {
                 e.push(format!("{p}: no axis uses this link (set modbus = {name:?} on an axis, or remove it)"));
             }
         }
+    }
+
+    /// `[parameters]` keys and value shapes.
+    fn validate_parameters(&self, e: &mut Vec<String>) {
         for (k, v) in &self.parameters {
             if k.parse::<u32>().is_err() {
                 e.push(format!("parameters.{k}: parameter keys are the manuals' numbers (e.g. 5200), got {k:?}"));
@@ -775,7 +807,6 @@ impl MachineConfig {
                 e.push(format!("parameters.{k}: must be a number (or {{ x = …, z = … }} per axis), got {v}"));
             }
         }
-        e
     }
 
     pub fn cycle_s(&self) -> f64 {
