@@ -5,43 +5,12 @@
 //! Real time: serialized in .config/nextest.toml. tmux comes from
 //! scripts/install-test-deps.sh.
 
-use std::process::Command;
 use std::time::{Duration, Instant};
+use testkit::Tmux;
 
-struct Tmux {
-    socket: String,
-}
-
-impl Tmux {
-    fn cmd(&self, args: &[&str]) -> String {
-        let o = Command::new("tmux").args(["-L", &self.socket]).args(args).output().expect("tmux is not installed: run scripts/install-test-deps.sh");
-        assert!(o.status.success(), "tmux {args:?}: {}", String::from_utf8_lossy(&o.stderr));
-        String::from_utf8_lossy(&o.stdout).into_owned()
-    }
-    fn screen(&self) -> String {
-        self.cmd(&["capture-pane", "-p", "-t", "run"])
-    }
-    fn keys(&self, k: &str) {
-        self.cmd(&["send-keys", "-t", "run", k]);
-    }
-    /// Wait (up to 20 s) for the screen to satisfy `f`; the screen.
-    fn wait_for(&self, what: &str, f: impl Fn(&str) -> bool) -> String {
-        let t0 = Instant::now();
-        loop {
-            let s = self.screen();
-            if f(&s) {
-                return s;
-            }
-            assert!(t0.elapsed() < Duration::from_secs(20), "waited 20 s for {what}; the screen:\n{s}");
-            std::thread::sleep(Duration::from_millis(100));
-        }
-    }
-}
-
-impl Drop for Tmux {
-    fn drop(&mut self) {
-        let _ = Command::new("tmux").args(["-L", &self.socket, "kill-server"]).output();
-    }
+/// Wait (up to 20 s) for the screen to satisfy `f`; the screen.
+fn wait_for(t: &Tmux, what: &str, f: impl Fn(&str) -> bool) -> String {
+    t.wait_until(what, 20, Tmux::screen, f)
 }
 
 /// Z on the status line `X    20.000 Z   -26.040  F …`.
@@ -60,13 +29,12 @@ fn interactive_run_feed_hold_resume_reset_in_tmux() {
     std::fs::write(dir.join("long.nc"), "G21\nG98\nG0 X20 Z2\nG1 Z-100 F600\nG1 X40\nG0 Z2\nM30\n").unwrap();
     let sh =
         format!("cd {d} && {bin} run long.nc --state-dir {d}/state; echo EXIT=$?; sleep 60", d = dir.display(), bin = env!("CARGO_BIN_EXE_cncgw"));
-    let t = Tmux { socket: format!("cncgw-test-{}", std::process::id()) };
     // An 80 × 24 terminal (issue 19.11: the status used to need 119 columns and repeated down
     // the screen).
-    t.cmd(&["new-session", "-d", "-s", "run", "-x", "80", "-y", "24", &sh]);
+    let t = Tmux::start("run", (80, 24), &sh);
 
     // It runs: the help line, the block in execution, Z going down.
-    let s = t.wait_for("the feed block", |s| s.contains("G1 Z-100 F600") && z_of(s).is_some_and(|z| z < -2.0));
+    let s = wait_for(&t, "the feed block", |s| s.contains("G1 Z-100 F600") && z_of(s).is_some_and(|z| z < -2.0));
     assert!(s.contains("h:hold s:start b:single"), "{s}");
     std::thread::sleep(Duration::from_millis(500));
     let s = t.screen();
@@ -77,7 +45,7 @@ fn interactive_run_feed_hold_resume_reset_in_tmux() {
 
     // Feed hold: HELD on screen and Z stands still.
     t.keys("h");
-    t.wait_for("HELD", |s| s.contains("HELD"));
+    wait_for(&t, "HELD", |s| s.contains("HELD"));
     // HELD shows from the start of the deceleration: wait (up to 3 s) for Z to stand.
     let mut z_held = z_of(&t.screen()).unwrap();
     let t0 = Instant::now();
@@ -98,22 +66,22 @@ fn interactive_run_feed_hold_resume_reset_in_tmux() {
 
     // Cycle start: it moves on, down from where it stood.
     t.keys("s");
-    let s = t.wait_for("the move to go on", |s| !s.contains("HELD") && z_of(s).is_some_and(|z| z < z_held - 1.0));
+    let s = wait_for(&t, "the move to go on", |s| !s.contains("HELD") && z_of(s).is_some_and(|z| z < z_held - 1.0));
     assert!(s.contains("line    4/7"), "{s}");
 
     // Rapid override down two of Fanuc's steps, spindle override up one: on the status line.
     t.keys("ff>");
-    t.wait_for("the overrides", |s| s.contains("rapid 25%") && s.contains("spindle 110%"));
+    wait_for(&t, "the overrides", |s| s.contains("rapid 25%") && s.contains("spindle 110%"));
 
     // Single block on and off shows on the status line.
     t.keys("b");
-    t.wait_for("SINGLE BLOCK", |s| s.contains("SINGLE BLOCK"));
+    wait_for(&t, "SINGLE BLOCK", |s| s.contains("SINGLE BLOCK"));
     t.keys("b");
-    t.wait_for("single block off", |s| !s.contains("SINGLE BLOCK"));
+    wait_for(&t, "single block off", |s| !s.contains("SINGLE BLOCK"));
 
     // Reset: a controlled stop, alarm 2401 in words, exit code 3, terminal restored.
     t.keys("r");
-    let s = t.wait_for("the end of the run", |s| s.contains("EXIT="));
+    let s = wait_for(&t, "the end of the run", |s| s.contains("EXIT="));
     assert!(s.contains("alarm 2401: reset by the operator at line 4"), "{s}");
     assert!(s.contains("EXIT=3"), "{s}");
     let z_end = z_of(&s).unwrap();
@@ -126,7 +94,7 @@ fn interactive_run_feed_hold_resume_reset_in_tmux() {
     assert!((z_stop - z_end).abs() < 1.0, "Z stopped at {z_stop}, last shown {z_end}");
     // The shell echoes typed keys again (the terminal left raw mode).
     t.keys("echo-check");
-    t.wait_for("the echo of typed keys", |s| s.contains("echo-check"));
+    wait_for(&t, "the echo of typed keys", |s| s.contains("echo-check"));
 }
 
 /// Ctrl-C on an interactive run is reset (a controlled stop, not a kill): alarm 2401, exit
@@ -141,12 +109,11 @@ fn ctrl_c_is_reset_and_restores_the_terminal() {
         d = dir.display(),
         bin = env!("CARGO_BIN_EXE_cncgw")
     );
-    let t = Tmux { socket: format!("cncgw-test-c-{}", std::process::id()) };
-    t.cmd(&["new-session", "-d", "-s", "run", "-x", "160", "-y", "30", &sh]);
-    t.wait_for("the feed block", |s| s.contains("G1 Z-100 F600") && z_of(s).is_some_and(|z| z < -2.0));
+    let t = Tmux::start("run-c", (160, 30), &sh);
+    wait_for(&t, "the feed block", |s| s.contains("G1 Z-100 F600") && z_of(s).is_some_and(|z| z < -2.0));
     t.keys("C-c");
     // The end of the run and stty's report after it (two lines: icanon or -icanon, echo or -echo).
-    let s = t.wait_for("the end of the run and stty", |s| {
+    let s = wait_for(&t, "the end of the run and stty", |s| {
         s.find("EXIT=").is_some_and(|i| s[i..].lines().filter(|l| matches!(l.trim(), "icanon" | "-icanon" | "echo" | "-echo")).count() == 2)
     });
     assert!(s.contains("alarm 2401: reset by the operator at line 4"), "{s}");

@@ -8,65 +8,14 @@
 
 use cncgw_bus::cia402::{cw, State};
 use cncgw_bus::modbus::{Cia402Map, WordOrder};
-use std::io::{BufRead, BufReader};
 use std::net::{TcpListener, TcpStream};
 use std::path::PathBuf;
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-struct Kill(Child);
-
-impl Drop for Kill {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-/// Whether `tool` is on PATH; panics when it is missing unless skipping was asked for
-/// (never under CI=true).
-fn have(tool: &str) -> bool {
-    let found = Command::new("sh").args(["-c", &format!("command -v {tool}")]).stdout(Stdio::null()).status().is_ok_and(|s| s.success());
-    if found {
-        return true;
-    }
-    let ci = std::env::var("CI").as_deref() == Ok("true");
-    let skip = std::env::var("CNCGW_SKIP_MODBUS_TOOLS").as_deref() == Ok("1");
-    if skip && !ci {
-        eprintln!("{tool} missing, CNCGW_SKIP_MODBUS_TOOLS=1: test skipped on request");
-        return false;
-    }
-    panic!(
-        "`{tool}` is not installed: run `scripts/install-test-deps.sh` (installs socat and mbpoll){}",
-        if ci { "; CI=true: the Modbus tool tests never skip" } else { ", or set CNCGW_SKIP_MODBUS_TOOLS=1 to skip these tests on purpose" }
-    );
-}
-
-/// A `socat -d -d pty,raw,echo=0 pty,raw,echo=0` pair: (socat, end A, end B).
-fn pty_pair() -> (Kill, String, String) {
-    let mut c = Command::new("socat")
-        .args(["-d", "-d", "pty,raw,echo=0", "pty,raw,echo=0"])
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("start socat");
-    let err = c.stderr.take().expect("socat stderr");
-    let socat = Kill(c);
-    let mut lines = BufReader::new(err).lines();
-    let mut ptys = Vec::new();
-    // "… N PTY is /dev/pts/5" twice, then "starting data transfer loop".
-    while ptys.len() < 2 {
-        let l = lines.next().expect("socat ended before naming its ptys").expect("socat stderr");
-        if let Some(p) = l.split("PTY is ").nth(1) {
-            ptys.push(p.trim().to_string());
-        }
-    }
-    // Keep draining socat's log so that it never blocks on a full pipe.
-    std::thread::spawn(move || for _ in lines.by_ref() {});
-    (socat, ptys[0].clone(), ptys[1].clone())
-}
+use testkit::{have_tool as have, pty_pair, Kill};
 
 fn tmp(name: &str) -> PathBuf {
     PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(name)

@@ -125,20 +125,28 @@ pub fn scratch(root: &str, test: &str, name: &str) -> PathBuf {
     d.join(name)
 }
 
-/// Whether socat is here for the RTU tests. Missing: a failure (install it with
-/// `scripts/install-test-deps.sh`), unless `CNCGW_SKIP_MODBUS_TOOLS=1` outside CI, which
-/// skips the test and says so.
-pub fn have_socat() -> bool {
-    let found = Command::new("sh").args(["-c", "command -v socat"]).stdout(Stdio::null()).status().is_ok_and(|s| s.success());
+/// Whether `tool` (socat, mbpoll) is on PATH for the Modbus tests. Missing: a failure
+/// (install it with `scripts/install-test-deps.sh`), unless `CNCGW_SKIP_MODBUS_TOOLS=1`
+/// outside CI, which skips the test and says so.
+pub fn have_tool(tool: &str) -> bool {
+    let found = Command::new("sh").args(["-c", &format!("command -v {tool}")]).stdout(Stdio::null()).status().is_ok_and(|s| s.success());
     if found {
         return true;
     }
     let ci = std::env::var("CI").as_deref() == Ok("true");
     if std::env::var("CNCGW_SKIP_MODBUS_TOOLS").as_deref() == Ok("1") && !ci {
-        eprintln!("socat missing, CNCGW_SKIP_MODBUS_TOOLS=1: test skipped on request");
+        eprintln!("{tool} missing, CNCGW_SKIP_MODBUS_TOOLS=1: test skipped on request");
         return false;
     }
-    panic!("`socat` is not installed: run `scripts/install-test-deps.sh`");
+    panic!(
+        "`{tool}` is not installed: run `scripts/install-test-deps.sh` (installs socat and mbpoll){}",
+        if ci { "; CI=true: the Modbus tool tests never skip" } else { ", or set CNCGW_SKIP_MODBUS_TOOLS=1 to skip these tests on purpose" }
+    );
+}
+
+/// [`have_tool`] for socat (the RTU tests' serial line pair).
+pub fn have_socat() -> bool {
+    have_tool("socat")
 }
 
 /// A pair of connected pseudo-terminals (a null-modem serial line) from socat, alive while
@@ -163,4 +171,68 @@ pub fn pty_pair() -> (Kill, String, String) {
     // Keep draining socat's messages so that it never blocks on a full pipe.
     std::thread::spawn(move || for _ in lines.by_ref() {});
     (k, ptys[0].clone(), ptys[1].clone())
+}
+
+/// A detached tmux server of its own (Debian's tmux; `send-keys` types, `capture-pane` reads
+/// the screen) with one session running a shell command: a terminal driven as a person
+/// drives it. Killed when dropped.
+pub struct Tmux {
+    socket: String,
+    session: String,
+}
+
+impl Tmux {
+    /// A `width`×`height` terminal running `sh`; `name` keeps servers of parallel tests apart.
+    pub fn start(name: &str, (width, height): (u16, u16), sh: &str) -> Tmux {
+        let t = Tmux { socket: format!("cncgw-{name}-{}", std::process::id()), session: name.to_string() };
+        t.cmd(&["new-session", "-d", "-s", name, "-x", &width.to_string(), "-y", &height.to_string(), sh]);
+        t
+    }
+
+    /// A tmux command on this server; its output.
+    pub fn cmd(&self, args: &[&str]) -> String {
+        let o = Command::new("tmux").args(["-L", &self.socket]).args(args).output().expect("tmux is not installed: run scripts/install-test-deps.sh");
+        assert!(o.status.success(), "tmux {args:?}: {}", String::from_utf8_lossy(&o.stderr));
+        String::from_utf8_lossy(&o.stdout).into_owned()
+    }
+
+    /// The screen and up to `history` lines above it.
+    pub fn screen_with(&self, history: u32) -> String {
+        self.cmd(&["capture-pane", "-p", "-S", &format!("-{history}"), "-t", &self.session])
+    }
+
+    /// The visible screen.
+    pub fn screen(&self) -> String {
+        self.cmd(&["capture-pane", "-p", "-t", &self.session])
+    }
+
+    /// Keys as tmux names them (`h`, `C-c`, `Enter`).
+    pub fn keys(&self, k: &str) {
+        self.cmd(&["send-keys", "-t", &self.session, k]);
+    }
+
+    /// A line of text, then Enter.
+    pub fn line(&self, text: &str) {
+        self.cmd(&["send-keys", "-t", &self.session, "-l", text]);
+        self.keys("Enter");
+    }
+
+    /// Wait up to `secs` for `read()` (a screen) to satisfy `f`; that screen.
+    pub fn wait_until(&self, what: &str, secs: u64, read: impl Fn(&Tmux) -> String, f: impl Fn(&str) -> bool) -> String {
+        let t0 = std::time::Instant::now();
+        loop {
+            let s = read(self);
+            if f(&s) {
+                return s;
+            }
+            assert!(t0.elapsed() < std::time::Duration::from_secs(secs), "waited {secs} s for {what}; the screen:\n{s}");
+            std::thread::sleep(std::time::Duration::from_millis(100));
+        }
+    }
+}
+
+impl Drop for Tmux {
+    fn drop(&mut self) {
+        let _ = Command::new("tmux").args(["-L", &self.socket, "kill-server"]).output();
+    }
 }
