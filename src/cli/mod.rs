@@ -571,30 +571,57 @@ pub struct Session {
     pub simulated: bool,
 }
 
-/// What is wrong with a `--bus` value, before anything tries to open it: `inproc`, `none`, a
-/// SocketCAN interface name (1–15 characters, no `/`, `:` or white space),
-/// `socketcand://HOST:PORT/IFACE`, `modbus-tcp://…`, `modbus-rtu://…`.
+/// A `--bus` value (or `bus.interface`), parsed once: what kind of bus it names.
+#[derive(Clone, Debug, PartialEq)]
+pub enum BusKind {
+    /// The embedded emulated drives, in simulated time.
+    Inproc,
+    /// No CANopen bus (every drive on a Modbus link).
+    None,
+    /// A SocketCAN interface (can0, vcan0).
+    SocketCan(String),
+    /// A socketcand server: address and the interface on that host.
+    Socketcand { addr: String, iface: String },
+    /// `modbus-tcp://…` / `modbus-rtu://…`: every axis on that link (see `mbus`).
+    Modbus,
+}
+
+impl BusKind {
+    /// Parse `bus`, or say what is wrong with it before anything tries to open it: `inproc`,
+    /// `none`, a SocketCAN interface name (1–15 characters, no `/`, `:` or white space),
+    /// `socketcand://HOST:PORT/IFACE`, `modbus-tcp://…`, `modbus-rtu://…`.
+    pub fn parse(bus: &str) -> Result<BusKind, String> {
+        let schemes = "inproc, a SocketCAN interface (can0, vcan0), socketcand://HOST:PORT/IFACE, modbus-tcp://HOST:PORT, modbus-rtu://DEVICE?baud=…";
+        if let Some((scheme, _)) = bus.split_once("://") {
+            return match scheme {
+                "socketcand" => match cncgw_bus::transport::socketcand::parse_url(bus) {
+                    Some((addr, iface)) => Ok(BusKind::Socketcand { addr, iface }),
+                    None => Err(format!(
+                        "--bus {bus}: a socketcand bus is socketcand://HOST:PORT/IFACE, e.g. socketcand://192.168.1.20:29536/can0 (host, port and the interface on that host)"
+                    )),
+                },
+                "modbus-tcp" | "modbus-rtu" => Ok(BusKind::Modbus),
+                _ => Err(format!("--bus {bus}: unknown kind of bus `{scheme}://`; one of: {schemes}")),
+            };
+        }
+        match bus {
+            "inproc" => return Ok(BusKind::Inproc),
+            "none" => return Ok(BusKind::None),
+            _ => {}
+        }
+        let bad = bus.is_empty() || bus.len() > 15 || bus.chars().any(|c| c == '/' || c == ':' || c.is_whitespace());
+        if bad {
+            return Err(format!(
+                "--bus {bus}: not a SocketCAN interface name (1–15 characters without `/`, `:` or spaces, e.g. can0) nor any other kind of bus; one of: {schemes}"
+            ));
+        }
+        Ok(BusKind::SocketCan(bus.to_string()))
+    }
+}
+
+/// What is wrong with a `--bus` value, before anything tries to open it ([`BusKind::parse`]).
 pub fn check_bus_value(bus: &str) -> Result<(), String> {
-    let schemes = "inproc, a SocketCAN interface (can0, vcan0), socketcand://HOST:PORT/IFACE, modbus-tcp://HOST:PORT, modbus-rtu://DEVICE?baud=…";
-    if let Some((scheme, _)) = bus.split_once("://") {
-        return match scheme {
-            "socketcand" if cncgw_bus::transport::socketcand::parse_url(bus).is_none() => Err(format!(
-                "--bus {bus}: a socketcand bus is socketcand://HOST:PORT/IFACE, e.g. socketcand://192.168.1.20:29536/can0 (host, port and the interface on that host)"
-            )),
-            "socketcand" | "modbus-tcp" | "modbus-rtu" => Ok(()),
-            _ => Err(format!("--bus {bus}: unknown kind of bus `{scheme}://`; one of: {schemes}")),
-        };
-    }
-    if bus == "inproc" || bus == "none" {
-        return Ok(());
-    }
-    let bad = bus.is_empty() || bus.len() > 15 || bus.chars().any(|c| c == '/' || c == ':' || c.is_whitespace());
-    if bad {
-        return Err(format!(
-            "--bus {bus}: not a SocketCAN interface name (1–15 characters without `/`, `:` or spaces, e.g. can0) nor any other kind of bus; one of: {schemes}"
-        ));
-    }
-    Ok(())
+    BusKind::parse(bus).map(|_| ())
 }
 
 /// The bus named by `bus` (default: the config's bus.interface) with its clock: the bus
@@ -607,51 +634,43 @@ pub fn open_raw(
     bus: Option<&str>,
     sim: Option<&std::path::Path>,
 ) -> Result<(Box<dyn cncgw_bus::CanBus>, Box<dyn cncgw_bus::Clock>, String, String), String> {
-    use cncgw_bus::transport::socketcand;
+    use cncgw_bus::transport::socketcand::Socketcand;
     let bus = bus.map(str::to_string).unwrap_or_else(|| cfg.bus.interface.clone());
-    check_bus_value(&bus)?;
-    if bus.starts_with("modbus-") {
-        return Err(format!("{bus} is a Modbus bus: this is a CANopen command (Modbus drives: scan, drive status|enable|disable|fault-reset|home, monitor, jog, run, tap-test)"));
-    }
-    if bus == "none" {
-        return Err("the configuration has no CANopen bus (bus.interface = \"none\"): give one with --bus, or use a Modbus command".into());
-    }
-    if bus == "inproc" {
-        embedded_bus(cfg, cfg_text, sim).map(|(ep, clock)| (ep, clock, bus, "inproc (embedded emulated drives, simulated time)".into()))
-    } else if let Some((addr, iface)) = socketcand::parse_url(&bus) {
-        let sock = socketcand::Socketcand::connect(&addr, &iface).map_err(|e| format!("{e}; is socketcand running at {addr}?"))?;
-        let what = format!("{bus} (socketcand over TCP, real time)");
-        Ok((Box::new(sock), Box::new(cncgw_bus::RealClock::new()), bus, what))
-    } else {
-        let sock = cncgw_bus::transport::socketcan::SocketCan::open(&bus).map_err(|e| {
-            if e.to_string().contains("no SocketCAN") {
-                e.to_string()
-            } else {
-                format!("{e}; or use --bus inproc for the embedded emulated drives")
-            }
-        })?;
-        let what = format!("{bus} (SocketCAN, real time)");
-        Ok((Box::new(sock), Box::new(cncgw_bus::RealClock::new()), bus, what))
+    let real = || -> Box<dyn cncgw_bus::Clock> { Box::new(cncgw_bus::RealClock::new()) };
+    match BusKind::parse(&bus)? {
+        BusKind::Modbus => Err(format!(
+            "{bus} is a Modbus bus: this is a CANopen command (Modbus drives: scan, drive status|enable|disable|fault-reset|home, monitor, jog, run, tap-test)"
+        )),
+        BusKind::None => Err("the configuration has no CANopen bus (bus.interface = \"none\"): give one with --bus, or use a Modbus command".into()),
+        BusKind::Inproc => {
+            embedded_bus(cfg, cfg_text, sim).map(|(ep, clock)| (ep, clock, bus, "inproc (embedded emulated drives, simulated time)".into()))
+        }
+        BusKind::Socketcand { addr, iface } => {
+            let sock = Socketcand::connect(&addr, &iface).map_err(|e| format!("{e}; is socketcand running at {addr}?"))?;
+            let what = format!("{bus} (socketcand over TCP, real time)");
+            Ok((Box::new(sock), real(), bus, what))
+        }
+        BusKind::SocketCan(iface) => {
+            let sock = cncgw_bus::transport::socketcan::SocketCan::open(&iface).map_err(|e| {
+                if e.to_string().contains("no SocketCAN") {
+                    e.to_string()
+                } else {
+                    format!("{e}; or use --bus inproc for the embedded emulated drives")
+                }
+            })?;
+            let what = format!("{bus} (SocketCAN, real time)");
+            Ok((Box::new(sock), real(), bus, what))
+        }
     }
 }
 
 #[cfg(feature = "embedded")]
-#[allow(clippy::type_complexity)]
-fn embedded_bus(
-    cfg: &crate::config::MachineConfig,
-    text: &str,
-    sim: Option<&std::path::Path>,
-) -> Result<(Box<dyn cncgw_bus::CanBus>, Box<dyn cncgw_bus::Clock>), String> {
+fn embedded_bus(cfg: &crate::config::MachineConfig, text: &str, sim: Option<&std::path::Path>) -> Result<crate::control::BusClock, String> {
     crate::control::embedded::open(cfg, text, sim)
 }
 
 #[cfg(not(feature = "embedded"))]
-#[allow(clippy::type_complexity)]
-fn embedded_bus(
-    _: &crate::config::MachineConfig,
-    _: &str,
-    _: Option<&std::path::Path>,
-) -> Result<(Box<dyn cncgw_bus::CanBus>, Box<dyn cncgw_bus::Clock>), String> {
+fn embedded_bus(_: &crate::config::MachineConfig, _: &str, _: Option<&std::path::Path>) -> Result<crate::control::BusClock, String> {
     Err("this cncgw was built without the embedded emulated drives (cargo feature `embedded`): give the machine's bus with --bus (can0, socketcand://HOST:PORT/can0, modbus-tcp://HOST:PORT)".into())
 }
 
