@@ -35,9 +35,9 @@ use crate::motion::{alarms, Limits, StrokeArea as Area, AX_X, AX_Y, AX_Z, N_AXES
 use crate::Alarm;
 
 /// Fanuc OT0500: + overtravel (soft 1).
-pub const PLUS_OVERTRAVEL: u32 = 500;
+pub const PLUS_OVERTRAVEL: u32 = crate::alarm::PLUS_OVERTRAVEL;
 /// Fanuc OT0501: − overtravel (soft 1).
-pub const MINUS_OVERTRAVEL: u32 = 501;
+pub const MINUS_OVERTRAVEL: u32 = crate::alarm::MINUS_OVERTRAVEL;
 
 /// Set-points may exceed a limit by this much (rounding of the interpolation), mm.
 const TOL: f64 = 1e-6;
@@ -250,7 +250,7 @@ fn check_path(limits: &Limits, pos: &[f64; 3], m: &Move, end: [f64; 3]) -> Resul
 }
 
 /// Fanuc PS5010 "end of record": the program's text ended before M02/M30.
-pub const END_OF_RECORD: u32 = 5010;
+pub const END_OF_RECORD: u32 = crate::alarm::END_OF_RECORD;
 
 /// The PS5010 alarm of a program without M02/M30 (`empty`: it produced no move at all).
 pub fn end_of_record(empty: bool) -> Alarm {
