@@ -256,13 +256,13 @@ catalogue! {
     "3000 user alarms, nose compensation" {
         /// `#3000 = k (MESSAGE)`: user alarm 3000 + k.
         USER_ALARM = 3000;
-        /// Nose compensation: G41 ↔ G42 without G40.
+        /// Nose compensation (manual §2.18.4 note 2): G41 ↔ G42 without G40.
         NOSE_SWITCH = 3576;
-        /// Nose compensation: T code while compensating.
+        /// Nose compensation (manual §2.18.4 note 3): T code while compensating.
         NOSE_T_CODE = 3577;
-        /// Nose compensation: interference (overcut).
+        /// Nose compensation (manual §2.18.4): interference (overcut).
         NOSE_INTERFERENCE = 3605;
-        /// Nose compensation: corner angle under 0.1°.
+        /// Nose compensation (manual §2.18.4 note 1): corner angle under 0.1°.
         NOSE_CORNER_ANGLE = 3607;
     }
     "5010 end of record" {

@@ -63,7 +63,7 @@ impl Violation {
         let what = if self.stroke2 { "the G22 stored-stroke area" } else { "its software travel limit" };
         Alarm::new(
             if self.stroke2 {
-                if self.plus { crate::interp::cycles::stroke::PLUS_ALARM } else { crate::interp::cycles::stroke::MINUS_ALARM }
+                if self.plus { crate::alarm::PLUS_STROKE } else { crate::alarm::MINUS_STROKE }
             } else if self.plus {
                 PLUS_OVERTRAVEL
             } else {
@@ -340,7 +340,7 @@ mod tests {
         assert!(g.check(&[40.5, 0.0, -30.0, 0.0]).is_ok());
         let v = g.check(&[39.5, 0.0, -30.0, 0.0]).unwrap_err();
         assert!(v.stroke2 && !v.plus && v.axis == AX_X, "{v:?}");
-        assert_eq!(v.alarm(3).number, crate::interp::cycles::stroke::MINUS_ALARM);
+        assert_eq!(v.alarm(3).number, crate::alarm::MINUS_STROKE);
     }
 
     fn program(text: &str) -> Result<(), Alarm> {
