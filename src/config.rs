@@ -22,7 +22,7 @@ pub enum ConfigError {
 
 impl ConfigError {
     /// Alarm number for configuration errors.
-    pub const ALARM: u32 = 1000;
+    pub const ALARM: u32 = crate::alarm::CONFIG;
 }
 
 #[derive(Clone, Debug, Deserialize)]

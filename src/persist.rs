@@ -9,7 +9,7 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 
 /// Alarm for a state file that cannot be read or written.
-pub const STATE_ALARM: u32 = 1100;
+pub const STATE_ALARM: u32 = crate::alarm::STATE_FILE;
 
 /// Replace `path` with `data` atomically (see the module doc).
 pub fn atomic_write(path: &Path, data: &[u8]) -> std::io::Result<()> {

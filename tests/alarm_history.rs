@@ -37,3 +37,25 @@ fn run_alarms_are_kept_and_shown() {
     let v: serde_json::Value = serde_json::from_slice(&cncgw(&state, &["alarms", "--json"]).stdout).unwrap();
     assert_eq!(v.as_array().unwrap().len(), 2);
 }
+
+/// `cncgw alarms --list`: the catalogue a service engineer looks a number up in, without a
+/// machine configuration or state.
+#[test]
+fn list_prints_the_catalogue() {
+    let dir = tempfile::tempdir().unwrap();
+    let state = dir.path().join("state");
+    let o = cncgw(&state, &["alarms", "--list", "--json"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let entries = v.as_array().unwrap();
+    assert_eq!(entries.len(), cncgw::alarm::CATALOGUE.len());
+    let estop = entries.iter().find(|e| e["number"] == 2400).expect("2400 listed");
+    assert_eq!(estop["name"], "ESTOP");
+    assert!(estop["doc"].as_str().unwrap().contains("E-stop"), "{estop}");
+    let text = String::from_utf8_lossy(&cncgw(&state, &["alarms", "--list"]).stdout).into_owned();
+    let line = text.lines().find(|l| l.trim_start().starts_with("2015 ")).unwrap_or_else(|| panic!("2015 missing:\n{text}"));
+    assert!(line.contains("STALE_FEEDBACK") && line.contains(cncgw::alarm::CATALOGUE.iter().find(|e| e.number == 2015).unwrap().doc), "{line}");
+    assert!(text.contains("2200–2299 Modbus"), "groups are headed:\n{text}");
+    assert!(!state.exists(), "--list touches no state");
+    assert_eq!(cncgw(&state, &["alarms", "--list", "--since", "8h"]).status.code(), Some(2));
+}

@@ -109,7 +109,8 @@ pub fn run(machine: &MachineArgs, a: &IdentifyArgs) -> i32 {
         source: String::new(),
         first: None,
         make: Box::new(|start| {
-            let prog = program(&cfg, &a.axis, a.travel, start).map_err(|e| vec![crate::Alarm::new(2451, format!("identify: {e}"))])?;
+            let prog = program(&cfg, &a.axis, a.travel, start)
+                .map_err(|e| vec![crate::Alarm::new(crate::alarm::IDENTIFY_PLAN, format!("identify: {e}"))])?;
             Interpreter::from_source("identify.nc", &prog, &cfg)
         }),
         feed: None,

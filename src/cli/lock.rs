@@ -21,9 +21,9 @@ use std::os::fd::AsRawFd;
 use std::path::{Path, PathBuf};
 
 /// Alarm: another process holds the bus.
-pub const BUS_IN_USE: u32 = 2404;
+pub const BUS_IN_USE: u32 = crate::alarm::BUS_IN_USE;
 /// Alarm: another process holds the machine's state.
-pub const STATE_IN_USE: u32 = 2405;
+pub const STATE_IN_USE: u32 = crate::alarm::STATE_IN_USE;
 
 /// A lock held until dropped.
 #[derive(Debug)]

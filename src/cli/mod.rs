@@ -304,7 +304,11 @@ pub enum Command {
     /// Alarms are kept per machine and place (as the machine's state: `--config`, `--bus`) in
     /// the state directory, one line each with time, number, message, program and line.
     ///
-    /// Example: `cncgw alarms`, `cncgw alarms --since 8h`, `cncgw alarms --bus can0 --json`
+    /// `--list` prints the catalogue instead: every alarm number the controller raises, its
+    /// name and meaning (no machine or state needed).
+    ///
+    /// Example: `cncgw alarms`, `cncgw alarms --since 8h`, `cncgw alarms --bus can0 --json`,
+    /// `cncgw alarms --list`
     Alarms {
         #[command(flatten)]
         machine: MachineArgs,
@@ -316,9 +320,13 @@ pub enum Command {
         /// (`2026-11-25T06:00:00Z`).
         #[arg(long, value_name = "WHEN")]
         since: Option<String>,
-        /// Print JSON (an array of {time, number, message, file, line, program}).
+        /// Print JSON (an array of {time, number, message, file, line, program}; with `--list`
+        /// of {number, name, group, doc}).
         #[arg(long)]
         json: bool,
+        /// Print the alarm catalogue (number, name, meaning) instead of the history.
+        #[arg(long, conflicts_with = "since")]
+        list: bool,
     },
     /// MDI: type blocks on the live machine, each Enter runs one.
     ///
@@ -815,7 +823,8 @@ pub fn main() -> i32 {
         Command::Monitor { seconds, once, interval_ms, json, machine } => service::monitor(&machine, seconds, once, interval_ms, json),
         Command::Od(OdCmd::Dump { node, eds, machine, json }) => diag::od_dump(&machine, node, eds.as_deref(), json),
         Command::Od(OdCmd::Check { node, eds, machine, json }) => diag::od_check(&machine, node, &eds, json),
-        Command::Alarms { machine, state_dir, since, json } => alarms(&machine, state_dir.as_deref(), since.as_deref(), json),
+        Command::Alarms { list: true, json, .. } => alarm_catalogue(json),
+        Command::Alarms { machine, state_dir, since, json, list: false } => alarms(&machine, state_dir.as_deref(), since.as_deref(), json),
         Command::Offsets(cmd) => offsets::main(cmd),
         Command::Mdi(a) => mdi::mdi(&a),
         Command::Completions { shell } => {
@@ -840,6 +849,26 @@ pub fn main() -> i32 {
 }
 
 /// `cncgw alarms`: the alarm history of the machine and place `machine` names.
+/// `cncgw alarms --list`: the catalogue, grouped by range, for looking a number up.
+fn alarm_catalogue(json: bool) -> i32 {
+    if json {
+        println!("{}", serde_json::to_string_pretty(crate::alarm::CATALOGUE).unwrap_or_default());
+        return exit::OK;
+    }
+    let mut group = "";
+    for e in crate::alarm::CATALOGUE {
+        if e.group != group {
+            if !group.is_empty() {
+                println!();
+            }
+            group = e.group;
+            println!("{group}");
+        }
+        println!("{:>5}  {:<24} {}", e.number, e.name, e.doc);
+    }
+    exit::OK
+}
+
 fn alarms(machine: &MachineArgs, state_dir: Option<&std::path::Path>, since: Option<&str>, json: bool) -> i32 {
     let (cfg, _) = match machine_config(machine) {
         Ok(c) => c,

@@ -48,7 +48,7 @@ pub fn precheck(
 ) -> Option<Alarm> {
     if in_hole {
         return Some(Alarm::new(
-            crate::interp::restart::RESTART_ALARM,
+            crate::alarm::RESTART,
             "cannot restart: the tool is in a tapped hole; bring it out with a program that starts with G30 P99 first; nothing was moved",
         ));
     }

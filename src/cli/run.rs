@@ -526,7 +526,7 @@ fn execute(
             eprintln!("{a}");
             // A bus or Modbus link that cannot be opened is setup, as a CAN interface that
             // cannot be opened is; the drives' own refusals are alarms.
-            let code = if matches!(a.number, 2020 | 2200) { EXIT_SETUP } else { EXIT_ALARM };
+            let code = if matches!(a.number, crate::alarm::CAN_BUS | crate::alarm::MODBUS_LINK) { EXIT_SETUP } else { EXIT_ALARM };
             return (code, None, summary);
         }
     };

@@ -36,7 +36,7 @@ use std::path::{Path, PathBuf};
 pub const EXIT_OVER_LIMIT: i32 = super::exit::NOT_MET;
 
 /// The tap cannot be done from the position the drives report (controller range 2400–2499).
-pub const ALARM_TAP_PLAN: u32 = 2450;
+pub const ALARM_TAP_PLAN: u32 = crate::alarm::TAP_PLAN;
 
 /// The command line of `cncgw tap-test`.
 #[derive(clap::Args, Debug, Clone)]

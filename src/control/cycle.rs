@@ -26,13 +26,13 @@ pub use rest::Rest;
 /// Alarms of the controller itself (2400–2499).
 pub mod alarms {
     /// E-stop pressed: every drive was sent quick stop.
-    pub const ESTOP: u32 = 2400;
+    pub const ESTOP: u32 = crate::alarm::ESTOP;
     /// Reset by the operator: controlled stop, the program ended.
-    pub const RESET: u32 = 2401;
+    pub const RESET: u32 = crate::alarm::RESET;
     /// Too many cycle overruns (watchdog).
-    pub const WATCHDOG: u32 = 2402;
+    pub const WATCHDOG: u32 = crate::alarm::WATCHDOG;
     /// The controller stalled inside a thread or rigid tap longer than the drives bridge.
-    pub const STALL_IN_SYNC: u32 = 2403;
+    pub const STALL_IN_SYNC: u32 = crate::alarm::STALL_IN_SYNC;
 }
 
 /// At most this many missed cycles are caught up after an overrun (100 ms at 2 ms).
@@ -525,7 +525,9 @@ impl<'a> CycleLoop<'a> {
         self.quick_stop_all();
         let _ = self.drives.transmit(now);
         let name = self.drives.axis_name(d).to_string();
-        at_line(alarm.unwrap_or_else(|| Alarm::new(2010, format!("axis {name}: drive fault, not diagnosed; clear the cause, then reset"))))
+        at_line(alarm.unwrap_or_else(|| {
+            Alarm::new(crate::alarm::DRIVE_FAULT, format!("axis {name}: drive fault, not diagnosed; clear the cause, then reset"))
+        }))
     }
 
     /// Controlled stop on a program alarm: decelerate along the path (a thread or tap's pair

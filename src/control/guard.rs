@@ -35,9 +35,9 @@ use crate::motion::{alarms, Limits, StrokeArea as Area, AX_X, AX_Y, AX_Z, N_AXES
 use crate::Alarm;
 
 /// Fanuc OT0500: + overtravel (soft 1).
-pub const PLUS_OVERTRAVEL: u32 = 500;
+pub const PLUS_OVERTRAVEL: u32 = crate::alarm::PLUS_OVERTRAVEL;
 /// Fanuc OT0501: − overtravel (soft 1).
-pub const MINUS_OVERTRAVEL: u32 = 501;
+pub const MINUS_OVERTRAVEL: u32 = crate::alarm::MINUS_OVERTRAVEL;
 
 /// Set-points may exceed a limit by this much (rounding of the interpolation), mm.
 const TOL: f64 = 1e-6;
@@ -63,7 +63,7 @@ impl Violation {
         let what = if self.stroke2 { "the G22 stored-stroke area" } else { "its software travel limit" };
         Alarm::new(
             if self.stroke2 {
-                if self.plus { crate::interp::cycles::stroke::PLUS_ALARM } else { crate::interp::cycles::stroke::MINUS_ALARM }
+                if self.plus { crate::alarm::PLUS_STROKE } else { crate::alarm::MINUS_STROKE }
             } else if self.plus {
                 PLUS_OVERTRAVEL
             } else {
@@ -250,7 +250,7 @@ fn check_path(limits: &Limits, pos: &[f64; 3], m: &Move, end: [f64; 3]) -> Resul
 }
 
 /// Fanuc PS5010 "end of record": the program's text ended before M02/M30.
-pub const END_OF_RECORD: u32 = 5010;
+pub const END_OF_RECORD: u32 = crate::alarm::END_OF_RECORD;
 
 /// The PS5010 alarm of a program without M02/M30 (`empty`: it produced no move at all).
 pub fn end_of_record(empty: bool) -> Alarm {
@@ -340,7 +340,7 @@ mod tests {
         assert!(g.check(&[40.5, 0.0, -30.0, 0.0]).is_ok());
         let v = g.check(&[39.5, 0.0, -30.0, 0.0]).unwrap_err();
         assert!(v.stroke2 && !v.plus && v.axis == AX_X, "{v:?}");
-        assert_eq!(v.alarm(3).number, crate::interp::cycles::stroke::MINUS_ALARM);
+        assert_eq!(v.alarm(3).number, crate::alarm::MINUS_STROKE);
     }
 
     fn program(text: &str) -> Result<(), Alarm> {

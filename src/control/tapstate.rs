@@ -45,11 +45,11 @@ use std::time::{Duration, Instant};
 
 /// Our alarm: the tool is in a tapped hole (stored state) and the program does not start with
 /// `G30 P99`.
-pub const TAP_IN_HOLE: u32 = 2410;
+pub const TAP_IN_HOLE: u32 = crate::alarm::TAP_IN_HOLE;
 
 /// Our alarm: the tap-state writer did not acknowledge a hole's entry state within
 /// [`ACK_TIMEOUT`]; the tap did not start.
-pub const TAP_ACK_TIMEOUT: u32 = 2411;
+pub const TAP_ACK_TIMEOUT: u32 = crate::alarm::TAP_ACK_TIMEOUT;
 
 /// How long a hole's first stroke waits at R for the entry state to be on disk.
 pub const ACK_TIMEOUT: Duration = Duration::from_secs(2);

@@ -21,8 +21,8 @@ impl<'a> MultiBus<'a> {
                 parts.iter().enumerate().flat_map(|(p, b)| (0..b.axis_count()).filter(|&i| b.axis_name(i) == name).map(move |i| (p, i))).collect();
             match found.as_slice() {
                 [one] => map.push(*one),
-                [] => return Err(Alarm::new(1000, format!("axis {name} is on no bus"))),
-                _ => return Err(Alarm::new(1000, format!("axis {name} is on more than one bus"))),
+                [] => return Err(Alarm::new(crate::alarm::CONFIG, format!("axis {name} is on no bus"))),
+                _ => return Err(Alarm::new(crate::alarm::CONFIG, format!("axis {name} is on more than one bus"))),
             }
         }
         Ok(MultiBus { parts, map })

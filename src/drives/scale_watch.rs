@@ -13,7 +13,7 @@
 //! integers of state per axis.
 
 /// Alarm: position feedback disagrees with the commanded motion by a constant factor.
-pub const ALARM: u32 = 2019;
+pub const ALARM: u32 = crate::alarm::FEEDBACK_SCALE;
 /// Commanded travel per comparison, in following-error windows.
 pub const SPAN_WINDOWS: f64 = 10.0;
 pub const MIN_RATIO: f64 = 0.5;

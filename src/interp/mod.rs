@@ -70,12 +70,12 @@ pub use tools::{load_tool_table, parse_tool_table, ActiveTool, ToolOffset, ToolT
 pub type InputSource = Box<dyn FnMut(u16) -> bool + Send>;
 
 /// Our own alarm: this many blocks in a row without any move is taken as an endless loop.
-pub const ENDLESS_LOOP_ALARM: u32 = 2500;
+pub const ENDLESS_LOOP_ALARM: u32 = crate::alarm::ENDLESS_LOOP;
 /// Ours: the program ran more blocks than its budget (`--max-blocks`): a loop without end
 /// (M99 in the main program, DO without WHILE) or a budget set too low.
-pub const BLOCK_BUDGET_ALARM: u32 = 2501;
+pub const BLOCK_BUDGET_ALARM: u32 = crate::alarm::BLOCK_BUDGET;
 /// `#3000 = k (MESSAGE)`: user alarm 3000 + k.
-pub const USER_ALARM_VAR: u32 = 3000;
+pub const USER_ALARM_VAR: u32 = crate::alarm::USER_ALARM;
 /// The default block budget of `plan` and `run` (`--max-blocks`; 0 = none).
 pub const DEFAULT_BLOCK_BUDGET: u64 = 10_000_000;
 const ENDLESS_LOOP_BLOCKS: u64 = 2_000_000;

@@ -50,15 +50,15 @@ use crate::canon::{Move, MoveKind, Plane, Pos};
 use crate::Alarm;
 
 /// §2.18.4: interference (overcut).
-pub const INTERFERENCE_ALARM: u32 = 3605;
+pub const INTERFERENCE_ALARM: u32 = crate::alarm::NOSE_INTERFERENCE;
 /// §2.18.4 note 1: corner angle under 0.1°.
-pub const CORNER_ANGLE_ALARM: u32 = 3607;
+pub const CORNER_ANGLE_ALARM: u32 = crate::alarm::NOSE_CORNER_ANGLE;
 /// §2.18.4 note 2: G41 ↔ G42 without G40.
-pub const SWITCH_ALARM: u32 = 3576;
+pub const SWITCH_ALARM: u32 = crate::alarm::NOSE_SWITCH;
 /// §2.18.4 note 3: T code while compensating.
-pub const T_ALARM: u32 = 3577;
+pub const T_ALARM: u32 = crate::alarm::NOSE_T_CODE;
 /// Fanuc PS0034: start-up or cancel on an arc (the manual: "不允许").
-pub const ARC_STARTUP_ALARM: u32 = 34;
+pub const ARC_STARTUP_ALARM: u32 = crate::alarm::NOSE_ARC_STARTUP;
 
 use super::vec2::{add, cross, dot, left, mul, norm, sub, unit, P as P2};
 

@@ -18,7 +18,7 @@ use crate::canon::{Move, MoveKind, Pos};
 use crate::Alarm;
 
 /// Alarm: the program cannot be restarted at that block.
-pub const RESTART_ALARM: u32 = 2520;
+pub const RESTART_ALARM: u32 = crate::alarm::RESTART;
 
 /// Where to restart.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -155,27 +155,27 @@ pub struct StrokeArea {
 /// Fanuc has one).
 pub mod alarms {
     /// PS0011: feed zero (a feed move without a positive F).
-    pub const FEED_ZERO: u32 = 11;
+    pub const FEED_ZERO: u32 = crate::alarm::FEED_ZERO;
     /// PS0020: arc radius out of tolerance (start and end radii differ).
-    pub const ARC_RADIUS: u32 = 20;
+    pub const ARC_RADIUS: u32 = crate::alarm::ARC_RADIUS;
     /// The look-ahead queue is full (caller must check `has_room`).
-    pub const QUEUE_FULL: u32 = 2300;
+    pub const QUEUE_FULL: u32 = crate::alarm::QUEUE_FULL;
     /// End point outside the software travel limits, or on an axis that is not configured.
-    pub const TRAVEL: u32 = 2301;
+    pub const TRAVEL: u32 = crate::alarm::TRAVEL;
     /// Feed per revolution (G99) while the spindle is stopped.
-    pub const PER_REV_SPINDLE_STOPPED: u32 = 2302;
+    pub const PER_REV_SPINDLE_STOPPED: u32 = crate::alarm::PER_REV_SPINDLE_STOPPED;
     /// A value that is not a finite number, a negative dwell or speed, a degenerate arc.
-    pub const BAD_VALUE: u32 = 2303;
+    pub const BAD_VALUE: u32 = crate::alarm::BAD_VALUE;
     /// A move kind this motion layer does not execute yet.
-    pub const UNSUPPORTED: u32 = 2304;
+    pub const UNSUPPORTED: u32 = crate::alarm::UNSUPPORTED;
     /// A move pushed while a controlled stop is in progress.
-    pub const STOPPING: u32 = 2305;
+    pub const STOPPING: u32 = crate::alarm::STOPPING;
     /// Thread lead × spindle speed is faster than the feed axes can go.
-    pub const THREAD_TOO_FAST: u32 = 2306;
+    pub const THREAD_TOO_FAST: u32 = crate::alarm::THREAD_TOO_FAST;
     /// The measured spindle–axis sync error exceeded `machine.sync_error_limit_um`.
-    pub const SYNC_ERROR: u32 = 2307;
+    pub const SYNC_ERROR: u32 = crate::alarm::SYNC_ERROR;
     /// PS0014: G34 lead change makes the lead ≤ 0 before the end of the thread.
-    pub const ILLEGAL_LEAD: u32 = 14;
+    pub const ILLEGAL_LEAD: u32 = crate::alarm::ILLEGAL_LEAD;
     /// G51.2/G50.2 on a machine without a tool spindle (see `polygon.rs`).
     pub const NO_TOOL_SPINDLE: u32 = crate::alarm::NO_TOOL_SPINDLE;
 }

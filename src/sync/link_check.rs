@@ -110,7 +110,7 @@ mod tests {
         let mut c = LinkCheck::new(&axes, 100.0, Pos { z: 5.0, ..Pos::default() });
         // M10×1.5 at 1000 rpm: 25 mm/s; 10 ms → 250 µm > 100 µm.
         let err = c.check(&mv(MoveKind::Tap { end: Pos { z: -20.0, ..Pos::default() }, lead: 1.5, rpm: 1000.0, spindle: 1 })).unwrap_err();
-        assert_eq!(err.number, 2203);
+        assert_eq!(err.number, crate::alarm::MODBUS_SYNC_TOO_SLOW);
         assert!(err.message.contains("4.00 ms or less"), "{}", err.message);
         assert!(err.message.contains("at most 400 rpm"), "{}", err.message);
         // At 300 rpm it fits: 7.5 mm/s × 10 ms = 75 µm.
@@ -136,6 +136,6 @@ mod tests {
         // A face thread (X only) at the same speed: 20 mm/s × 20 ms = 400 µm: refused.
         let face =
             MoveKind::Thread { end: Pos { x: 5.0, z: -30.0, ..Pos::default() }, lead: 2.0, start_angle: 0.0, continuous: false, lead_inc: 0.0 };
-        assert_eq!(c.check(&mv(face)).unwrap_err().number, 2203);
+        assert_eq!(c.check(&mv(face)).unwrap_err().number, crate::alarm::MODBUS_SYNC_TOO_SLOW);
     }
 }

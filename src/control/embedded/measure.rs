@@ -89,7 +89,8 @@ impl Clock for Loaded<'_> {
 /// Run canonical moves (machine coordinates) on the embedded machine's emulated drives in
 /// simulated time, tracing every cycle.
 pub fn run_moves(cfg: &MachineConfig, limits: Limits, moves: Vec<Move>, load: Option<CuttingLoad>) -> Result<SimRun, Alarm> {
-    let sim_cfg = sim_drives::SimConfig::from_machine_toml(EMBEDDED_LATHE).map_err(|e| Alarm::new(2399, format!("emulated drives: {e}")))?;
+    let sim_cfg =
+        sim_drives::SimConfig::from_machine_toml(EMBEDDED_LATHE).map_err(|e| Alarm::new(crate::alarm::HARNESS, format!("emulated drives: {e}")))?;
     run_moves_on(cfg, sim_cfg, limits, moves, load)
 }
 
@@ -115,14 +116,15 @@ pub fn run_moves_on(
     let mut summary = RunSummary::default();
     let mut lp = CycleLoop::new(&mut master, &mut clock, limits, spindle, cfg.cycle_ns());
     let names = lp.drive_names();
-    let trace = Trace::spawn(names.clone(), VecSink(rows.clone())).map_err(|e| Alarm::new(2399, format!("cannot start the trace writer: {e}")))?;
+    let trace = Trace::spawn(names.clone(), VecSink(rows.clone()))
+        .map_err(|e| Alarm::new(crate::alarm::HARNESS, format!("cannot start the trace writer: {e}")))?;
     lp.set_trace(trace);
     let result = crate::control::job::run_moves(&mut lp, moves, &mut summary, &mut |_| {});
     if let Some(t) = lp.take_trace() {
-        t.finish().map_err(|e| Alarm::new(2399, format!("trace: {e}")))?;
+        t.finish().map_err(|e| Alarm::new(crate::alarm::HARNESS, format!("trace: {e}")))?;
     }
     lp.finish();
-    let rows = std::mem::take(&mut *rows.lock().map_err(|_| Alarm::new(2399, "trace buffer poisoned"))?);
+    let rows = std::mem::take(&mut *rows.lock().map_err(|_| Alarm::new(crate::alarm::HARNESS, "trace buffer poisoned"))?);
     Ok(SimRun { names, rows, summary, result })
 }
 

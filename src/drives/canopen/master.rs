@@ -349,7 +349,7 @@ impl<B: CanBus> CanOpenMaster<B> {
             let frames = cyclic_frames(self.nodes.len());
             let fits = cncgw_bus::busload::shortest_cycle_s(&frames, bitrate, 0.8);
             return Err(Alarm::new(
-                2021,
+                crate::alarm::BUS_LOAD,
                 format!(
                     "bus load {:.0} % at {} ms cycle and {} bit/s for {} drives is over 80 %; use machine.cycle_ms = {} or more (or a higher bitrate)",
                     load * 100.0,
@@ -387,13 +387,16 @@ impl<B: CanBus> CanOpenMaster<B> {
 
     /// Read `index:sub` of `node` over SDO (service tools, diagnostics).
     pub fn sdo_read(&mut self, clock: &mut dyn Clock, node: u8, index: u16, sub: u8) -> Result<Vec<u8>, Alarm> {
-        let i = self.index_of(node).ok_or_else(|| Alarm::new(2003, format!("node {node} is not in the machine configuration")))?;
-        self.sdo(clock, i, Sdo::Up(index, sub)).map_err(|e| self.node_alarm(i, 2003, format!("reading 0x{index:04X}:{sub:02X} failed: {e}")))
+        let i =
+            self.index_of(node).ok_or_else(|| Alarm::new(crate::alarm::SDO_CONFIG, format!("node {node} is not in the machine configuration")))?;
+        self.sdo(clock, i, Sdo::Up(index, sub))
+            .map_err(|e| self.node_alarm(i, crate::alarm::SDO_CONFIG, format!("reading 0x{index:04X}:{sub:02X} failed: {e}")))
     }
 
     /// Write `data` to `index:sub` of `node` over SDO.
     pub fn sdo_write(&mut self, clock: &mut dyn Clock, node: u8, index: u16, sub: u8, data: &[u8]) -> Result<(), Alarm> {
-        let i = self.index_of(node).ok_or_else(|| Alarm::new(2003, format!("node {node} is not in the machine configuration")))?;
+        let i =
+            self.index_of(node).ok_or_else(|| Alarm::new(crate::alarm::SDO_CONFIG, format!("node {node} is not in the machine configuration")))?;
         self.write(clock, i, index, sub, data)
     }
 
@@ -539,11 +542,11 @@ impl<B: CanBus> CanOpenMaster<B> {
     }
 
     fn bus_alarm(&self, e: impl std::fmt::Display) -> Alarm {
-        Alarm::new(2020, format!("{e}"))
+        Alarm::new(crate::alarm::CAN_BUS, format!("{e}"))
     }
 
     fn send(&mut self, f: &CanFrame) -> Result<(), Alarm> {
-        self.bus.send(f).map_err(|e| Alarm::new(2020, e.to_string()))
+        self.bus.send(f).map_err(|e| Alarm::new(crate::alarm::CAN_BUS, e.to_string()))
     }
 
     fn index_of(&self, node: u8) -> Option<usize> {
@@ -720,8 +723,8 @@ impl<B: CanBus> CanOpenMaster<B> {
             _ => None,
         };
         match why {
-            Some(w) => self.node_alarm(i, 2003, format!("{w} (writing 0x{ix:04X}:{sub:02X}{value} was refused: {e})")),
-            None => self.node_alarm(i, 2003, format!("writing 0x{ix:04X}:{sub:02X}{value} failed: {e}")),
+            Some(w) => self.node_alarm(i, crate::alarm::SDO_CONFIG, format!("{w} (writing 0x{ix:04X}:{sub:02X}{value} was refused: {e})")),
+            None => self.node_alarm(i, crate::alarm::SDO_CONFIG, format!("writing 0x{ix:04X}:{sub:02X}{value} failed: {e}")),
         }
     }
 
@@ -748,7 +751,7 @@ impl<B: CanBus> CanOpenMaster<B> {
                 let i = self.by_node_id().into_iter().find(|&i| !self.nodes[i].booted).unwrap_or(0);
                 return Err(self.node_alarm(
                     i,
-                    2001,
+                    crate::alarm::CANOPEN_BOOT,
                     format!(
                         "no boot-up message within {} ms after NMT reset communication; check power, wiring, bitrate and the node id",
                         self.boot_timeout_ms
@@ -859,13 +862,17 @@ impl<B: CanBus> CanOpenMaster<B> {
         let node = self.nodes[i].spec.node;
         let Some(path) = self.nodes[i].spec.eds.clone() else { return Ok(()) };
         let eds = cncgw_bus::canopen::eds::Eds::load(std::path::Path::new(&path)).map_err(|e| {
-            self.node_alarm(i, 2004, format!("EDS: {e} (axes.{}.eds; a relative path is from the working directory)", self.nodes[i].spec.axis))
+            self.node_alarm(
+                i,
+                crate::alarm::EDS,
+                format!("EDS: {e} (axes.{}.eds; a relative path is from the working directory)", self.nodes[i].spec.axis),
+            )
         })?;
         let bad = self.check_eds(node, &eds);
         if !bad.is_empty() {
             return Err(self.node_alarm(
                 i,
-                2004,
+                crate::alarm::EDS,
                 format!("the configuration does not fit the drive's EDS ({} problem(s)): {}", bad.len(), bad.join("; ")),
             ));
         }
@@ -877,11 +884,11 @@ impl<B: CanBus> CanOpenMaster<B> {
         let node = self.nodes[i].spec.node;
         let dt = self
             .read_u32(clock, i, od::DEVICE_TYPE, 0)
-            .map_err(|e| self.node_alarm(i, 2003, format!("reading the device type 0x1000 failed: {e}")))?;
+            .map_err(|e| self.node_alarm(i, crate::alarm::SDO_CONFIG, format!("reading the device type 0x1000 failed: {e}")))?;
         if dt & 0xFFFF != 402 {
             return Err(self.node_alarm(
                 i,
-                2002,
+                crate::alarm::DEVICE_TYPE,
                 format!("device type 0x1000 = 0x{dt:08X} is not a CiA 402 drive (low word must be 402 = 0x0192); check the node id"),
             ));
         }
@@ -1090,7 +1097,7 @@ impl<B: CanBus> CanOpenMaster<B> {
                     node = self.nodes[i].spec.node,
                     "the drive has no {what}: how it stops when switched off or faulted is its own default"
                 ),
-                Err(e) => return Err(self.node_alarm(i, 2003, format!("writing the {what} failed: {e}"))),
+                Err(e) => return Err(self.node_alarm(i, crate::alarm::SDO_CONFIG, format!("writing the {what} failed: {e}"))),
             }
         }
         Ok(())
@@ -1209,7 +1216,7 @@ impl<B: CanBus> CanOpenMaster<B> {
             Some(Err(e)) => format!("0x1001 unreadable ({e})"),
             None => "0x1001 not read".to_string(),
         };
-        Ok(Some(self.node_alarm(i, 2010, format!("{}; {code}; {reg}; clear the cause, then reset", d.seen))))
+        Ok(Some(self.node_alarm(i, crate::alarm::DRIVE_FAULT, format!("{}; {code}; {reg}; clear the cause, then reset", d.seen))))
     }
 
     // ---- Profile position and homing: synchronous, clock-driven (like `startup`). ----
@@ -1276,12 +1283,13 @@ impl<B: CanBus> CanOpenMaster<B> {
     /// when the drive reports the target reached (0x6041 bit 10), and leaves the drive in
     /// cyclic synchronous position holding there. The other drives hold their positions.
     pub fn profile_move(&mut self, clock: &mut dyn Clock, node: u8, target: f64, velocity: f64, accel: f64) -> Result<(), Alarm> {
-        let i = self.index_of(node).ok_or_else(|| Alarm::new(2016, format!("node {node} is not in the machine configuration")))?;
-        let v = self.counts(i, velocity, "profile velocity", 2016)?;
-        let a = self.counts(i, accel, "profile acceleration", 2016)?;
+        let i =
+            self.index_of(node).ok_or_else(|| Alarm::new(crate::alarm::PROFILE_MOVE, format!("node {node} is not in the machine configuration")))?;
+        let v = self.counts(i, velocity, "profile velocity", crate::alarm::PROFILE_MOVE)?;
+        let a = self.counts(i, accel, "profile acceleration", crate::alarm::PROFILE_MOVE)?;
         let t = (target * self.nodes[i].spec.counts_per_unit).round();
         if !t.is_finite() || t.abs() > i32::MAX as f64 {
-            return Err(self.node_alarm(i, 2016, format!("target {target} is out of the drive's INTEGER32 range")));
+            return Err(self.node_alarm(i, crate::alarm::PROFILE_MOVE, format!("target {target} is out of the drive's INTEGER32 range")));
         }
         self.write(clock, i, 0x6081, 0, &v.to_le_bytes())?;
         self.write(clock, i, 0x6083, 0, &a.to_le_bytes())?;
@@ -1310,7 +1318,7 @@ impl<B: CanBus> CanOpenMaster<B> {
         if !acked {
             return Err(self.node_alarm(
                 i,
-                2016,
+                crate::alarm::PROFILE_MOVE,
                 "profile position set-point not acknowledged (0x6041 bit 12) within 500 ms; does the drive support mode 1?",
             ));
         }
@@ -1324,7 +1332,7 @@ impl<B: CanBus> CanOpenMaster<B> {
         if !reached {
             return Err(self.node_alarm(
                 i,
-                2016,
+                crate::alarm::PROFILE_MOVE,
                 format!(
                     "profile move to {target} not finished within {:.1} s (position {:.4}); check the axis for a jam",
                     max_ns as f64 * 1e-9,
@@ -1354,12 +1362,15 @@ impl<B: CanBus> CanOpenMaster<B> {
         accel: f64,
         timeout_ms: u64,
     ) -> Result<(), Alarm> {
-        let i = self.index_of(node).ok_or_else(|| Alarm::new(2017, format!("node {node} is not in the machine configuration")))?;
-        let fast = self.counts(i, switch_speed, "homing switch-search speed", 2017)?;
-        let slow = self.counts(i, zero_speed, "homing zero-search speed", 2017)?;
-        let a = self.counts(i, accel, "homing acceleration", 2017)?;
+        let i = self.index_of(node).ok_or_else(|| Alarm::new(crate::alarm::HOMING, format!("node {node} is not in the machine configuration")))?;
+        let fast = self.counts(i, switch_speed, "homing switch-search speed", crate::alarm::HOMING)?;
+        let slow = self.counts(i, zero_speed, "homing zero-search speed", crate::alarm::HOMING)?;
+        let a = self.counts(i, accel, "homing acceleration", crate::alarm::HOMING)?;
         self.write(clock, i, od::HOMING_METHOD, 0, &[method as u8]).map_err(|e| {
-            Alarm::new(2017, format!("{}; homing method {method} is probably not supported by this drive (see 0x6098 in its manual)", e.message))
+            Alarm::new(
+                crate::alarm::HOMING,
+                format!("{}; homing method {method} is probably not supported by this drive (see 0x6098 in its manual)", e.message),
+            )
         })?;
         self.write(clock, i, od::HOMING_SPEEDS, 1, &fast.to_le_bytes())?;
         self.write(clock, i, od::HOMING_SPEEDS, 2, &slow.to_le_bytes())?;
@@ -1387,13 +1398,13 @@ impl<B: CanBus> CanOpenMaster<B> {
             let _ = self.back_to_csp(clock, i, None);
             return Err(self.node_alarm(
                 i,
-                2017,
+                crate::alarm::HOMING,
                 format!("homing method {method} failed (0x6041 bit 13 homing error); check the switch and its wiring"),
             ));
         }
         if !done {
             let _ = self.back_to_csp(clock, i, None);
-            return Err(self.node_alarm(i, 2017, format!("homing method {method} not finished within {timeout_ms} ms")));
+            return Err(self.node_alarm(i, crate::alarm::HOMING, format!("homing method {method} not finished within {timeout_ms} ms")));
         }
         self.back_to_csp(clock, i, None)
     }
@@ -1404,7 +1415,8 @@ impl<B: CanBus> CanOpenMaster<B> {
     /// target velocity 0x60FF (the CiA 301 way), mode 9, target velocity 0. From then on
     /// `set_velocity` sets what each cycle sends; the position feedback goes on as before.
     pub fn velocity_mode(&mut self, clock: &mut dyn Clock, node: u8) -> Result<(), Alarm> {
-        let i = self.index_of(node).ok_or_else(|| Alarm::new(2003, format!("node {node} is not in the machine configuration")))?;
+        let i =
+            self.index_of(node).ok_or_else(|| Alarm::new(crate::alarm::SDO_CONFIG, format!("node {node} is not in the machine configuration")))?;
         if self.nodes[i].csv {
             return Ok(());
         }
@@ -1432,7 +1444,8 @@ impl<B: CanBus> CanOpenMaster<B> {
     /// 0 and the master waits (up to `timeout_ms`) for the drive to report it reached
     /// (statusword bit 10), then mode 8, RPDO1 back to 0x607A, holding where the spindle stopped.
     pub fn position_mode(&mut self, clock: &mut dyn Clock, node: u8, timeout_ms: u64) -> Result<(), Alarm> {
-        let i = self.index_of(node).ok_or_else(|| Alarm::new(2003, format!("node {node} is not in the machine configuration")))?;
+        let i =
+            self.index_of(node).ok_or_else(|| Alarm::new(crate::alarm::SDO_CONFIG, format!("node {node} is not in the machine configuration")))?;
         if !self.nodes[i].csv {
             return Ok(());
         }
@@ -1449,7 +1462,11 @@ impl<B: CanBus> CanOpenMaster<B> {
                 Ok(still >= need)
             })?;
             if !stopped {
-                return Err(self.node_alarm(i, 2010, format!("did not stop within {timeout_ms} ms for the change to position mode")));
+                return Err(self.node_alarm(
+                    i,
+                    crate::alarm::DRIVE_FAULT,
+                    format!("did not stop within {timeout_ms} ms for the change to position mode"),
+                ));
             }
         }
         // RPDO1 back to 0x607A before the mode: a drive in CSP must never latch a stale
@@ -1714,12 +1731,12 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
             }
             let n = &self.nodes[i];
             if self.running && matches!(n.nmt, Some(s) if s != NmtState::Operational) {
-                return Err(self.node_fault(i, 2014, "node left NMT operational (reset or stopped by someone else?)"));
+                return Err(self.node_fault(i, crate::alarm::NODE_LEFT_OPERATIONAL, "node left NMT operational (reset or stopped by someone else?)"));
             }
             if self.hb_ms > 0 && n.last_hb_ns > 0 && now_ns.saturating_sub(n.last_hb_ns) > 3 * self.hb_ms as u64 * 1_000_000 {
                 return Err(self.node_fault(
                     i,
-                    2011,
+                    crate::alarm::HEARTBEAT_LOST,
                     format!(
                         "heartbeat lost (none for {} ms); check the cable and the drive's power",
                         now_ns.saturating_sub(n.last_hb_ns) / 1_000_000
@@ -1734,7 +1751,7 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
             if self.running && age > self.feedback_timeout_ns && n.syncs_unanswered > timeout_syncs {
                 return Err(self.node_fault(
                     i,
-                    2015,
+                    crate::alarm::STALE_FEEDBACK,
                     format!(
                         "no position feedback (TPDO1) for {:.1} ms: the drive answered none of the last {} SYNCs; check the drive's PDO configuration (TPDO1 mapping and transmission type) and the bus",
                         age as f64 * 1e-6,
@@ -1838,7 +1855,7 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
                     let code = n.last_emcy.map(|e| e.code).unwrap_or(0);
                     return Err(self.node_alarm(
                         i,
-                        2012,
+                        crate::alarm::FAULT_RESET,
                         format!("fault reset did not clear the fault (last EMCY 0x{code:04X} {}); fix the cause on the drive", error_text(code)),
                     ));
                 }
@@ -1881,7 +1898,11 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
             } else {
                 String::new()
             };
-            return Err(self.node_alarm(i, 2013, format!("did not reach Operation Enabled within 5 s (state {}){why}", st.name())));
+            return Err(self.node_alarm(
+                i,
+                crate::alarm::ENABLE_TIMEOUT,
+                format!("did not reach Operation Enabled within 5 s (state {}){why}", st.name()),
+            ));
         }
         Ok(all)
     }
@@ -1954,7 +1975,7 @@ mod tests {
         cfg.machine.cycle_ms = 0.5;
         let m = CanOpenMaster::new(bus.endpoint(), &cfg);
         let e = m.check_bus_load(1_000_000).unwrap_err();
-        assert_eq!(e.number, 2021);
+        assert_eq!(e.number, crate::alarm::BUS_LOAD);
         assert!(e.message.contains("machine.cycle_ms = 1 or more"), "{}", e.message);
     }
 

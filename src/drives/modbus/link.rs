@@ -177,7 +177,10 @@ pub fn spawn(spec: LinkSpec) -> std::io::Result<(SharedLink, std::thread::JoinHa
         let rt = match tokio::runtime::Builder::new_current_thread().enable_all().build() {
             Ok(rt) => rt,
             Err(e) => {
-                set_state(&s2, LinkState::Failed(Alarm::new(2200, format!("Modbus link {}: cannot start its runtime: {e}", spec.name))));
+                set_state(
+                    &s2,
+                    LinkState::Failed(Alarm::new(crate::alarm::MODBUS_LINK, format!("Modbus link {}: cannot start its runtime: {e}", spec.name))),
+                );
                 return;
             }
         };
@@ -234,7 +237,7 @@ impl Behind {
         let ms = |d: Duration| d.as_secs_f64() * 1e3;
         let avg = ms(self.sum) / self.in_a_row as f64;
         Some(Alarm::new(
-            2204,
+            crate::alarm::MODBUS_CYCLE,
             format!(
                 "Modbus link {} falls behind its cycle: {} link cycles in a row took {avg:.1} ms on average (longest {:.1} ms) against the {:.0} ms the drives were told to interpolate over ({} transactions per cycle on {}); set cycle_ms = {:.0} in [modbus.{}] or find what slows the drives' answers",
                 spec.name,
@@ -455,13 +458,14 @@ impl LinkIo {
 
     /// Connect, configure every drive, and find the cycle the link can carry.
     fn start(&mut self, s: &SharedLink) -> Result<Duration, Alarm> {
-        self.connect().map_err(|e| Alarm::new(2200, format!("Modbus link {}: cannot open {}: {e}", self.spec.name, self.spec.what())))?;
+        self.connect()
+            .map_err(|e| Alarm::new(crate::alarm::MODBUS_LINK, format!("Modbus link {}: cannot open {}: {e}", self.spec.name, self.spec.what())))?;
         for d in 0..self.spec.drives.len() {
             let writes = self.spec.drives[d].setup.clone();
             for (x, data) in writes {
                 self.exchange_at_startup(d, &x, &data).map_err(|e| {
                     Alarm::new(
-                        if matches!(e, TxError::Exception(_)) { 2201 } else { 2202 },
+                        if matches!(e, TxError::Exception(_)) { crate::alarm::MODBUS_EXCEPTION } else { crate::alarm::MODBUS_TIMEOUT },
                         format!("configuring the drive failed: {}; check the unit id, the profile and the register map", e.text()),
                     )
                 })?;
@@ -478,7 +482,7 @@ impl LinkIo {
                         let x = self.spec.drives[d].feedback_read();
                         self.exchange_at_startup(d, &x, &[]).map_err(|e| {
                             Alarm::new(
-                                if matches!(e, TxError::Exception(_)) { 2201 } else { 2202 },
+                                if matches!(e, TxError::Exception(_)) { crate::alarm::MODBUS_EXCEPTION } else { crate::alarm::MODBUS_TIMEOUT },
                                 format!("reading the drive's feedback failed: {}; check the unit id, the profile and the register map", e.text()),
                             )
                         })?;
@@ -499,7 +503,7 @@ impl LinkIo {
         if let Some(c) = self.spec.cfg.cycle_ms {
             if c < cycle_ms {
                 return Err(Alarm::new(
-                    2204,
+                    crate::alarm::MODBUS_CYCLE,
                     format!(
                         "Modbus link {}: cycle_ms = {c} is shorter than the {cycle_ms} ms its {} transactions per cycle need on {}; raise it or remove it",
                         self.spec.name,
@@ -516,7 +520,10 @@ impl LinkIo {
             let writes = self.spec.drives[d].timing_writes(cycle_ms as u16, self.spec.cfg.timeout_ms);
             for (x, data) in writes {
                 self.exchange_at_startup(d, &x, &data).map_err(|e| {
-                    Alarm::new(if matches!(e, TxError::Exception(_)) { 2201 } else { 2202 }, format!("configuring the drive failed: {}", e.text()))
+                    Alarm::new(
+                        if matches!(e, TxError::Exception(_)) { crate::alarm::MODBUS_EXCEPTION } else { crate::alarm::MODBUS_TIMEOUT },
+                        format!("configuring the drive failed: {}", e.text()),
+                    )
                 })?;
             }
         }
@@ -632,7 +639,10 @@ impl LinkIo {
                     if !std::mem::replace(&mut g.slots[d].exception_reported, true) && g.alarm.is_none() {
                         g.alarm = Some((
                             Some(d),
-                            Alarm::new(2201, format!("{m}; the drive refused the cyclic exchange: check its register map and its state")),
+                            Alarm::new(
+                                crate::alarm::MODBUS_EXCEPTION,
+                                format!("{m}; the drive refused the cyclic exchange: check its register map and its state"),
+                            ),
                         ));
                     }
                 }

@@ -27,15 +27,15 @@ use std::time::{Duration, Instant};
 /// Alarm numbers of the Modbus layer.
 pub mod alarm {
     /// The link cannot be opened (connection refused, no serial device).
-    pub const LINK: u32 = 2200;
+    pub const LINK: u32 = crate::alarm::MODBUS_LINK;
     /// A drive answered with an exception.
-    pub const EXCEPTION: u32 = 2201;
+    pub const EXCEPTION: u32 = crate::alarm::MODBUS_EXCEPTION;
     /// A drive did not answer.
-    pub const TIMEOUT: u32 = 2202;
+    pub const TIMEOUT: u32 = crate::alarm::MODBUS_TIMEOUT;
     /// A spindle-synchronised move needs a faster link than this one.
-    pub const SYNC_TOO_SLOW: u32 = 2203;
+    pub const SYNC_TOO_SLOW: u32 = crate::alarm::MODBUS_SYNC_TOO_SLOW;
     /// A configured link cycle is shorter than the link can carry.
-    pub const CYCLE: u32 = 2204;
+    pub const CYCLE: u32 = crate::alarm::MODBUS_CYCLE;
 }
 
 /// What a link has done.
@@ -268,7 +268,7 @@ impl ModbusDrives {
             _ if self.stopping => return None,
             st => format!("the drive left Operation Enabled on its own: now {}", st.name()),
         };
-        Some(self.report(i, 2010, what))
+        Some(self.report(i, crate::alarm::DRIVE_FAULT, what))
     }
 
     /// Alarm `number` for axis `i`, once: isolated (the first, when isolating) or every
@@ -404,7 +404,7 @@ impl DriveBus for ModbusDrives {
                 let why = self.axes[i].last_error.clone().unwrap_or_else(|| "no answer".into());
                 return Err(self.report(
                     i,
-                    2015,
+                    crate::alarm::STALE_FEEDBACK,
                     format!(
                         "no position feedback for {:.1} ms (link cycle {:.0} ms): {why}",
                         age.as_secs_f64() * 1e3,
@@ -521,7 +521,7 @@ impl DriveBus for ModbusDrives {
                             let code = a.error_code;
                             return Err(self.axis_alarm(
                                 i,
-                                2012,
+                                crate::alarm::FAULT_RESET,
                                 format!(
                                     "fault reset did not clear the fault (error code 0x{code:04X} {}); fix the cause on the drive",
                                     error_text(code)
@@ -552,7 +552,7 @@ impl DriveBus for ModbusDrives {
                                     let code = a.error_code;
                                     return Err(self.axis_alarm(
                                         i,
-                                        2012,
+                                        crate::alarm::FAULT_RESET,
                                         format!("alarm reset did not clear alarm 0x{code:04X}; fix the cause on the drive"),
                                     ));
                                 }
@@ -574,7 +574,11 @@ impl DriveBus for ModbusDrives {
         } else if self.t0.elapsed() > Duration::from_secs(10) && self.enable_cycles > 10 {
             let i = self.axes.iter().position(|a| !a.enabled).unwrap_or(0);
             let st = State::from_statusword(self.axes[i].statusword);
-            return Err(self.axis_alarm(i, 2013, format!("did not reach Operation Enabled within 10 s (state {})", st.name())));
+            return Err(self.axis_alarm(
+                i,
+                crate::alarm::ENABLE_TIMEOUT,
+                format!("did not reach Operation Enabled within 10 s (state {})", st.name()),
+            ));
         }
         Ok(all)
     }

@@ -71,15 +71,15 @@ use crate::interp::Interpreter;
 use std::sync::Arc;
 
 /// Our alarm: G30 P99 with no interrupted tap to return from.
-pub const TAP_RETURN_ALARM: u32 = 2511;
+pub const TAP_RETURN_ALARM: u32 = crate::alarm::TAP_RETURN;
 /// Fanuc PS0200: illegal S code in rigid tapping.
-pub const RIGID_S_ALARM: u32 = 200;
+pub const RIGID_S_ALARM: u32 = crate::alarm::RIGID_S;
 /// Fanuc PS0201: no feed rate in rigid tapping.
-pub const RIGID_F_ALARM: u32 = 201;
+pub const RIGID_F_ALARM: u32 = crate::alarm::RIGID_F;
 /// Fanuc PS0203: rigid tapping program error.
-pub const RIGID_PROGRAM_ALARM: u32 = 203;
+pub const RIGID_PROGRAM_ALARM: u32 = crate::alarm::RIGID_PROGRAM;
 /// Fanuc PS0204: illegal axis operation (a move between M29 and G84).
-pub const RIGID_AXIS_ALARM: u32 = 204;
+pub const RIGID_AXIS_ALARM: u32 = crate::alarm::RIGID_AXIS;
 /// Upper bound on the pecks of one block (all its K holes), so that a tiny Q cannot flood
 /// the move queue (a block's moves are queued at once).
 pub const MAX_PECKS: f64 = 20_000.0;

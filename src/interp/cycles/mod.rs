@@ -47,7 +47,7 @@ pub mod stroke;
 pub mod typeii;
 
 /// Our alarm for values outside the ranges the manual states (Fanuc has no number for them).
-pub const RANGE_ALARM: u32 = 2510;
+pub const RANGE_ALARM: u32 = crate::alarm::VALUE_RANGE;
 /// Fanuc PS0062: illegal value in a multiple repetitive cycle (G76 depth, Δdmin, d, m, W=0).
 pub const G76_VALUE_ALARM: u32 = 62;
 /// Largest thread lead (mm/rev): Fanuc's F range for threads, 0.0001–500 mm.

@@ -29,8 +29,8 @@ use crate::interp::gcode::Decoded;
 use crate::interp::Interpreter;
 use crate::Alarm;
 
-pub const PLUS_ALARM: u32 = 502;
-pub const MINUS_ALARM: u32 = 503;
+pub const PLUS_ALARM: u32 = crate::alarm::PLUS_STROKE;
+pub const MINUS_ALARM: u32 = crate::alarm::MINUS_STROKE;
 
 #[derive(Clone, Debug, Default)]
 pub struct Stroke2 {

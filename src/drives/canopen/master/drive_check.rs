@@ -12,11 +12,11 @@ use cncgw_bus::canopen::od;
 use cncgw_bus::{CanBus, Clock};
 
 /// Alarm: the drive lacks the mode, or did not confirm it (0x6061), or left it while running.
-pub const ALARM_MODE: u32 = 2005;
+pub const ALARM_MODE: u32 = crate::alarm::DRIVE_MODE;
 /// Alarm: the drive's position scaling or polarity disagrees with the axis config.
-pub const ALARM_SCALING: u32 = 2006;
+pub const ALARM_SCALING: u32 = crate::alarm::DRIVE_SCALING;
 /// Alarm: another SYNC producer or master on the bus.
-pub const ALARM_FOREIGN: u32 = 2007;
+pub const ALARM_FOREIGN: u32 = crate::alarm::FOREIGN_MASTER;
 
 /// 0x1005 bit 30: the node produces SYNC.
 pub const SYNC_PRODUCER_BIT: u32 = 0x4000_0000;
@@ -275,7 +275,9 @@ impl<B: CanBus> CanOpenMaster<B> {
             Ok(v) if v & SYNC_PRODUCER_BIT != 0 => Err(self.sync_producer_alarm(clock, i, v)),
             Ok(_) => Ok(()),
             Err(SdoError::Abort { code }) if is_absent(code) => Ok(()),
-            Err(e) => Err(self.node_alarm(i, 2003, format!("reading 0x1005 (COB-ID SYNC: does the drive produce SYNC?) failed: {e}"))),
+            Err(e) => {
+                Err(self.node_alarm(i, crate::alarm::SDO_CONFIG, format!("reading 0x1005 (COB-ID SYNC: does the drive produce SYNC?) failed: {e}")))
+            }
         }
     }
 
@@ -300,9 +302,9 @@ impl<B: CanBus> CanOpenMaster<B> {
 
     /// Start-up: the factor group and polarity of node `i` fit its axis config.
     pub(super) fn check_node_scaling(&mut self, clock: &mut dyn Clock, i: usize) -> Result<Scaling, Alarm> {
-        let s = self
-            .read_scaling(clock, i)
-            .map_err(|(ix, sub, e)| self.node_alarm(i, 2003, format!("reading the factor group 0x{ix:04X}:{sub:02X} failed: {e}")))?;
+        let s = self.read_scaling(clock, i).map_err(|(ix, sub, e)| {
+            self.node_alarm(i, crate::alarm::SDO_CONFIG, format!("reading the factor group 0x{ix:04X}:{sub:02X} failed: {e}"))
+        })?;
         let spec = &self.nodes[i].spec;
         match check_scaling(&s, &spec.axis, spec.counts_per_unit, spec.travel_per_rev, spec.polarity, spec.spindle) {
             Ok(note) => {

@@ -18,7 +18,7 @@ use cncgw_bus::canopen::sdo::abort;
 use cncgw_bus::{CanBus, Clock};
 
 /// Alarm: the drive's PDO mapping cannot be changed and does not carry what the cycle needs.
-pub const ALARM_MAPPING: u32 = 2009;
+pub const ALARM_MAPPING: u32 = crate::alarm::FIXED_PDO;
 
 /// What the master puts into one mapped object of RPDO1.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

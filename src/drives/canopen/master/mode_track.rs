@@ -104,7 +104,7 @@ impl<B: CanBus> CanOpenMaster<B> {
             };
             return Some(self.node_fault(
                 i,
-                2018,
+                crate::alarm::TPDO_LENGTH,
                 format!(
                     "TPDO1 (COB-ID 0x{cob:03X}) arrives with {got} bytes, start-up mapped {want} ({mapped}): the drive did not take the mapping, or another device sends on this COB-ID; {total} frame(s) of the wrong length so far. Check the drive's PDO configuration (axes.NAME.tpdo_cob_id)"
                 ),

@@ -14,7 +14,7 @@ use cncgw_bus::canopen::sdo::abort_text;
 use cncgw_bus::{CanBus, Clock};
 
 /// Alarm: a start-up list entry was refused or reads back another value.
-pub const ALARM_STARTUP_LIST: u32 = 2008;
+pub const ALARM_STARTUP_LIST: u32 = crate::alarm::STARTUP_LIST;
 
 impl<B: CanBus> CanOpenMaster<B> {
     /// Write node `i`'s start-up list and read every entry back.
