@@ -59,3 +59,14 @@ fn list_prints_the_catalogue() {
     assert!(!state.exists(), "--list touches no state");
     assert_eq!(cncgw(&state, &["alarms", "--list", "--since", "8h"]).status.code(), Some(2));
 }
+
+#[test]
+fn list_into_a_closed_pipe_ends_quietly() {
+    // `cncgw alarms --list | head -1`: the reader is gone before the list is written.
+    let mut child =
+        testkit::cli!().command(&["alarms", "--list"]).stdout(std::process::Stdio::piped()).stderr(std::process::Stdio::piped()).spawn().unwrap();
+    drop(child.stdout.take());
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!err.contains("panicked"), "{err}");
+}

@@ -785,6 +785,7 @@ pub fn main() -> i32 {
             | Command::Config(ConfigCmd::Check { .. })
             | Command::Plan { .. }
             | Command::Offsets(offsets::OffsetsCmd::List { .. })
+            | Command::Alarms { .. }
             | Command::Sdo(SdoCmd::Read { .. })
             | Command::Od(_)
             | Command::Completions { .. }
