@@ -740,36 +740,8 @@ impl Interpreter {
                 }
                 None => {}
             }
-            match stmt {
-                Some(Stmt::Do { n, .. }) => {
-                    if loop_stack.len() >= 3 {
-                        errors.push(Alarm::new(126, "DO loops nest at most 3 deep").at(at(bcol)).with_block(text.trim_end()));
-                    }
-                    loop_stack.push((*n, i));
-                }
-                Some(Stmt::End(n)) => match loop_stack.pop() {
-                    Some((m, d)) if m == *n => {
-                        self.do_end.insert((si, d.off), next);
-                        self.end_do.insert((si, i.off), d);
-                    }
-                    Some((m, d)) => {
-                        errors.push(
-                            Alarm::new(126, format!("END{n} does not match DO{m} of line {} (DO ranges may not cross)", d.line + 1))
-                                .at(at(bcol))
-                                .with_block(text.trim_end()),
-                        );
-                    }
-                    None => errors.push(Alarm::new(126, format!("END{n} without a DO{n}")).at(at(bcol)).with_block(text.trim_end())),
-                },
-                Some(Stmt::Call { name: Some(name), args, cols, .. }) => {
-                    if let Some((n, col, m)) = cycles::siemens::static_check(name, args.len(), cols) {
-                        errors.push(Alarm::new(n, m).at(at(col.unwrap_or(bcol))).with_block(text.trim_end()));
-                    }
-                }
-                Some(Stmt::Goto(Expr::Num { v, .. }) | Stmt::IfGoto { target: Expr::Num { v, .. }, .. }) => {
-                    gotos.push((p, i, *v as u32, bcol));
-                }
-                _ => {}
+            if let Some(stmt) = stmt {
+                self.index_stmt(stmt, (si, p), (i, next), (&at(bcol), text), &mut loop_stack, &mut gotos, errors);
             }
             // A backward reference is resolved now; only forward ones wait for the end.
             if gotos.len() > ngotos && gotos.last().is_some_and(|g| self.labels.contains_key(&(g.0, g.2))) {
@@ -787,6 +759,64 @@ impl Interpreter {
         self.line_buf = buf;
         self.dec = Some(dec);
         self.close_loops(si, &mut loop_stack, errors);
+        self.check_forward_refs(si, gotos, calls, errors);
+    }
+
+    /// [`Self::index_source`] for one statement: DO/END pairs, static checks of SINUMERIK
+    /// cycle calls, and GOTO targets (kept in `gotos` until the end of the pass). `pos` is
+    /// the block's position (its first column), `text` its line.
+    #[allow(clippy::too_many_arguments)]
+    fn index_stmt(
+        &mut self,
+        stmt: &Stmt,
+        (si, p): (usize, usize),
+        (i, next): (Loc, Loc),
+        (pos, text): (&SrcPos, &str),
+        loop_stack: &mut Vec<(u8, Loc)>,
+        gotos: &mut Vec<(usize, Loc, u32, u32)>,
+        errors: &mut Vec<Alarm>,
+    ) {
+        match stmt {
+            Stmt::Do { n, .. } => {
+                if loop_stack.len() >= 3 {
+                    errors.push(Alarm::new(126, "DO loops nest at most 3 deep").at(pos.clone()).with_block(text.trim_end()));
+                }
+                loop_stack.push((*n, i));
+            }
+            Stmt::End(n) => match loop_stack.pop() {
+                Some((m, d)) if m == *n => {
+                    self.do_end.insert((si, d.off), next);
+                    self.end_do.insert((si, i.off), d);
+                }
+                Some((m, d)) => {
+                    errors.push(
+                        Alarm::new(126, format!("END{n} does not match DO{m} of line {} (DO ranges may not cross)", d.line + 1))
+                            .at(pos.clone())
+                            .with_block(text.trim_end()),
+                    );
+                }
+                None => errors.push(Alarm::new(126, format!("END{n} without a DO{n}")).at(pos.clone()).with_block(text.trim_end())),
+            },
+            Stmt::Call { name: Some(name), args, cols, .. } => {
+                if let Some((n, col, m)) = cycles::siemens::static_check(name, args.len(), cols) {
+                    errors.push(
+                        Alarm::new(n, m)
+                            .at(col.map_or_else(|| pos.clone(), |c| SrcPos::new(pos.file.clone(), pos.line, c)))
+                            .with_block(text.trim_end()),
+                    );
+                }
+            }
+            Stmt::Goto(Expr::Num { v, .. }) | Stmt::IfGoto { target: Expr::Num { v, .. }, .. } => {
+                gotos.push((p, i, *v as u32, pos.col));
+            }
+            _ => {}
+        }
+    }
+
+    /// End of [`Self::index_source`]: the forward GOTO targets and subprogram calls that were
+    /// still unknown when met.
+    fn check_forward_refs(&mut self, si: usize, gotos: Vec<(usize, Loc, u32, u32)>, calls: Vec<(Loc, u32, u32)>, errors: &mut Vec<Alarm>) {
+        let file = self.sources[si].file.clone();
         for (p, i, n, col) in gotos {
             if !self.labels.contains_key(&(p, n)) {
                 let text = self.sources[si].line_at(i).0;
