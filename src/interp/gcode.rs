@@ -93,6 +93,36 @@ pub fn gname(g: GCode) -> String {
     }
 }
 
+// The codes the interpreter's block dispatcher (`Interp::exec_block`) tests by value.
+pub const G_DWELL: GCode = 40;
+pub const G_EXACT_STOP: GCode = 90;
+pub const G_PLANE_XY: GCode = 170;
+pub const G_PLANE_YZ: GCode = 190;
+pub const G_INCH: GCode = 200;
+pub const G_REF_RETURN: GCode = 280;
+pub const G_REF_RETURN_2: GCode = 300;
+pub const G_NRC_LEFT: GCode = 410;
+pub const G_NRC_RIGHT: GCode = 420;
+pub const G_SET_COORD: GCode = 500;
+pub const G_LOCAL_COORD: GCode = 520;
+pub const G_MACHINE_COORD: GCode = 530;
+/// G54; G55–G59 follow in steps of 10.
+pub const G_WCS_FIRST: GCode = 540;
+pub const G_EXACT_MODE: GCode = 610;
+pub const G_MACRO_CALL: GCode = 650;
+pub const G_FINISHING: GCode = 700;
+pub const G_STOCK_TURNING: GCode = 710;
+pub const G_STOCK_FACING: GCode = 720;
+pub const G_PATTERN_REPEAT: GCode = 730;
+pub const G_FACE_GROOVING: GCode = 740;
+pub const G_OD_GROOVING: GCode = 750;
+pub const G_THREAD_MULTI: GCode = 760;
+pub const G_THREAD_MULTI_ENH: GCode = 780;
+pub const G_RIGID_THREAD: GCode = 921;
+pub const G_CSS: GCode = 960;
+pub const G_CONST_RPM: GCode = 970;
+pub const G_PER_REV: GCode = 990;
+
 /// `x.round()` (half away from zero) without the libm call that `f64::round` compiles to
 /// on a baseline x86-64 target; the interpreter and `plan` round several times per block.
 #[inline]

@@ -740,36 +740,8 @@ impl Interpreter {
                 }
                 None => {}
             }
-            match stmt {
-                Some(Stmt::Do { n, .. }) => {
-                    if loop_stack.len() >= 3 {
-                        errors.push(Alarm::new(126, "DO loops nest at most 3 deep").at(at(bcol)).with_block(text.trim_end()));
-                    }
-                    loop_stack.push((*n, i));
-                }
-                Some(Stmt::End(n)) => match loop_stack.pop() {
-                    Some((m, d)) if m == *n => {
-                        self.do_end.insert((si, d.off), next);
-                        self.end_do.insert((si, i.off), d);
-                    }
-                    Some((m, d)) => {
-                        errors.push(
-                            Alarm::new(126, format!("END{n} does not match DO{m} of line {} (DO ranges may not cross)", d.line + 1))
-                                .at(at(bcol))
-                                .with_block(text.trim_end()),
-                        );
-                    }
-                    None => errors.push(Alarm::new(126, format!("END{n} without a DO{n}")).at(at(bcol)).with_block(text.trim_end())),
-                },
-                Some(Stmt::Call { name: Some(name), args, cols, .. }) => {
-                    if let Some((n, col, m)) = cycles::siemens::static_check(name, args.len(), cols) {
-                        errors.push(Alarm::new(n, m).at(at(col.unwrap_or(bcol))).with_block(text.trim_end()));
-                    }
-                }
-                Some(Stmt::Goto(Expr::Num { v, .. }) | Stmt::IfGoto { target: Expr::Num { v, .. }, .. }) => {
-                    gotos.push((p, i, *v as u32, bcol));
-                }
-                _ => {}
+            if let Some(stmt) = stmt {
+                self.index_stmt(stmt, (si, p), (i, next), (&at(bcol), text), &mut loop_stack, &mut gotos, errors);
             }
             // A backward reference is resolved now; only forward ones wait for the end.
             if gotos.len() > ngotos && gotos.last().is_some_and(|g| self.labels.contains_key(&(g.0, g.2))) {
@@ -787,6 +759,64 @@ impl Interpreter {
         self.line_buf = buf;
         self.dec = Some(dec);
         self.close_loops(si, &mut loop_stack, errors);
+        self.check_forward_refs(si, gotos, calls, errors);
+    }
+
+    /// [`Self::index_source`] for one statement: DO/END pairs, static checks of SINUMERIK
+    /// cycle calls, and GOTO targets (kept in `gotos` until the end of the pass). `pos` is
+    /// the block's position (its first column), `text` its line.
+    #[allow(clippy::too_many_arguments)]
+    fn index_stmt(
+        &mut self,
+        stmt: &Stmt,
+        (si, p): (usize, usize),
+        (i, next): (Loc, Loc),
+        (pos, text): (&SrcPos, &str),
+        loop_stack: &mut Vec<(u8, Loc)>,
+        gotos: &mut Vec<(usize, Loc, u32, u32)>,
+        errors: &mut Vec<Alarm>,
+    ) {
+        match stmt {
+            Stmt::Do { n, .. } => {
+                if loop_stack.len() >= 3 {
+                    errors.push(Alarm::new(126, "DO loops nest at most 3 deep").at(pos.clone()).with_block(text.trim_end()));
+                }
+                loop_stack.push((*n, i));
+            }
+            Stmt::End(n) => match loop_stack.pop() {
+                Some((m, d)) if m == *n => {
+                    self.do_end.insert((si, d.off), next);
+                    self.end_do.insert((si, i.off), d);
+                }
+                Some((m, d)) => {
+                    errors.push(
+                        Alarm::new(126, format!("END{n} does not match DO{m} of line {} (DO ranges may not cross)", d.line + 1))
+                            .at(pos.clone())
+                            .with_block(text.trim_end()),
+                    );
+                }
+                None => errors.push(Alarm::new(126, format!("END{n} without a DO{n}")).at(pos.clone()).with_block(text.trim_end())),
+            },
+            Stmt::Call { name: Some(name), args, cols, .. } => {
+                if let Some((n, col, m)) = cycles::siemens::static_check(name, args.len(), cols) {
+                    errors.push(
+                        Alarm::new(n, m)
+                            .at(col.map_or_else(|| pos.clone(), |c| SrcPos::new(pos.file.clone(), pos.line, c)))
+                            .with_block(text.trim_end()),
+                    );
+                }
+            }
+            Stmt::Goto(Expr::Num { v, .. }) | Stmt::IfGoto { target: Expr::Num { v, .. }, .. } => {
+                gotos.push((p, i, *v as u32, pos.col));
+            }
+            _ => {}
+        }
+    }
+
+    /// End of [`Self::index_source`]: the forward GOTO targets and subprogram calls that were
+    /// still unknown when met.
+    fn check_forward_refs(&mut self, si: usize, gotos: Vec<(usize, Loc, u32, u32)>, calls: Vec<(Loc, u32, u32)>, errors: &mut Vec<Alarm>) {
+        let file = self.sources[si].file.clone();
         for (p, i, n, col) in gotos {
             if !self.labels.contains_key(&(p, n)) {
                 let text = self.sources[si].line_at(i).0;
@@ -1465,62 +1495,97 @@ impl Interpreter {
         Ok(())
     }
 
+    /// Runs one decoded block. Order of effects (as LinuxCNC's `execute_block` documents
+    /// its own); every step sees the state the steps before it left:
+    /// 1. block start: tool-offset delta cleared, cycle block state;
+    /// 2. modal groups ([`Self::modal_groups`]): unit (G20/G21), plane, feed mode, work
+    ///    system G54–G59, G61/G64 (from the next block), G96/G97, motion group, G40–G42;
+    /// 3. special modes (polar, polygon) and G22/G23 (a G22 block ends here);
+    /// 4. F, then S (after the rigid tapping S is taken; G50 S = maximum speed);
+    /// 5. M codes before motion: spindle M03/M04 and aux M codes pushed, M00/M01/M02/M30,
+    ///    M05, M09 kept for after the motion; a changed spindle speed re-sent;
+    /// 6. T (tool selection, then the T code to the turret);
+    /// 7. drilling cycle modal state (G80–G89);
+    /// 8. one-shot group 00 (G04, G50, G52, G53, G28/G30, G65, G70–G78) or the motion
+    ///    ([`Self::one_shot_or_motion`]); G65 ends the block here;
+    /// 9. the M codes kept in 5 (an M02/M30 ends the program here);
+    /// 10. subprogram call / return and M91/M92 jumps last (§3.1.6).
     fn exec_block(&mut self, d: &Decoded, src: &SrcPos) -> Result<(), (u32, Option<u32>, String)> {
-        let gcol = |g: GCode| d.g.iter().find(|x| x.0 == g).map(|x| x.1);
         self.tool_delta = Pos::ZERO;
         self.cycle_block_start(d);
-        // Modal groups.
+        let (exact_mode, was_css) = self.modal_groups(d)?;
+        self.special_modes(d, src)?;
+        if self.stroke_block(d, src)? {
+            return Ok(());
+        }
+        self.feed_word(d)?;
+        let spindle_changed = self.spindle_word(d, src, was_css)?;
+        let after = self.m_codes_before_motion(d, src, spindle_changed);
+        self.tool_word(d, src)?;
+        let exact = exact_mode || d.has_g(gcode::G_EXACT_STOP);
+        self.drill_modal(d, src)?;
+        if !self.one_shot_or_motion(d, src, exact)? {
+            return Ok(());
+        }
+        if self.m_codes_after_motion(after, src) {
+            return Ok(());
+        }
+        self.program_flow_m_codes(d)
+    }
+
+    /// Step 2 of [`Self::exec_block`]: the modal groups. Returns the G61/G64 mode in force
+    /// for this block and whether G96 was on before it.
+    fn modal_groups(&mut self, d: &Decoded) -> Result<(bool, bool), (u32, Option<u32>, String)> {
         self.unit_block(d)?;
         if let Some(g) = d.group(16) {
             self.st.plane = match g {
-                170 => Plane::Xy,
-                190 => Plane::Yz,
+                gcode::G_PLANE_XY => Plane::Xy,
+                gcode::G_PLANE_YZ => Plane::Yz,
                 _ => Plane::Zx,
             };
         }
         if let Some(g) = d.group(5) {
-            self.st.per_rev = g == 990;
+            self.st.per_rev = g == gcode::G_PER_REV;
         }
         if let Some(g) = d.group(14) {
-            self.st.wcs = ((g - 540) / 10) as usize;
+            self.st.wcs = ((g - gcode::G_WCS_FIRST) / 10) as usize;
         }
         // §2.14 item 5: G61/G64 take effect from the next block.
         let exact_mode = self.st.exact;
         if let Some(g) = d.group(15) {
-            self.st.exact = g == 610;
+            self.st.exact = g == gcode::G_EXACT_MODE;
         }
         let was_css = self.st.css;
         if let Some(g) = d.group(2) {
-            if g == 970 && was_css && !d.has('S') {
+            if g == gcode::G_CONST_RPM && was_css && !d.has('S') {
                 // §2.19 note 3: G97 without S keeps the last G96 speed.
                 self.st.rpm = self.css_rpm(self.st.css_v.unwrap_or(0.0)).round();
             }
-            self.st.css = g == 960;
+            self.st.css = g == gcode::G_CSS;
         }
         if let Some(g) = d.group(1) {
             self.st.motion = g;
         }
         if let Some(g) = d.group(7) {
             let side = match g {
-                410 => Some(nosecomp::Side::Left),
-                420 => Some(nosecomp::Side::Right),
+                gcode::G_NRC_LEFT => Some(nosecomp::Side::Left),
+                gcode::G_NRC_RIGHT => Some(nosecomp::Side::Right),
                 _ => None,
             };
             let (r, tip) = (self.tool.nose_radius, self.tool.tip);
             // Tips 1–8 are for G18; in the polar plane the nose centre is offset (tip 0).
             let tip = if self.polar_active() { 0 } else { tip };
             let at = self.nrc.fed() + self.queue.len() as u64;
-            self.nrc.set_mode(side, r, tip, self.st.plane, at).map_err(|(n, m)| (n, gcol(g), m))?;
+            self.nrc.set_mode(side, r, tip, self.st.plane, at).map_err(|(n, m)| (n, gcol(d, g), m))?;
         }
-        self.special_modes(d, src)?;
-        if self.stroke_block(d, src)? {
-            return Ok(());
-        }
-        let one_shot = d.group(0);
-        // F.
+        Ok((exact_mode, was_css))
+    }
+
+    /// Step 4 of [`Self::exec_block`]: the F word, in mm (per minute or per revolution).
+    fn feed_word(&mut self, d: &Decoded) -> Result<(), (u32, Option<u32>, String)> {
         if let Some(f) = d.get('F') {
             // G92.1: a negative F is a left-hand lead (manual 001), not a feed rate.
-            if f.v < 0.0 && self.st.motion != 921 {
+            if f.v < 0.0 && self.st.motion != gcode::G_RIGID_THREAD {
                 return Err((6, Some(f.col), "F cannot be negative".into()));
             }
             let v = if self.st.inch { f.v * 25.4 } else { f.v }.abs();
@@ -1530,14 +1595,19 @@ impl Interpreter {
                 self.st.f_min = Some(v);
             }
         }
-        // S (G50 S = maximum spindle speed); rigid tapping takes its own S (M29 S, G84 S).
+        Ok(())
+    }
+
+    /// Step 4 of [`Self::exec_block`]: the S word (G50 S = maximum spindle speed); rigid
+    /// tapping takes its own S (M29 S, G84 S). Returns whether the spindle command changed.
+    fn spindle_word(&mut self, d: &Decoded, src: &SrcPos, was_css: bool) -> Result<bool, (u32, Option<u32>, String)> {
         let s_taken = self.tap_block_start(d, src)?;
         let mut spindle_changed = d.group(2).is_some() && self.st.css != was_css;
         if let Some(s) = d.get('S').filter(|_| !s_taken) {
             if s.v < 0.0 {
                 return Err((6, Some(s.col), "S cannot be negative".into()));
             }
-            if one_shot == Some(500) {
+            if d.group(0) == Some(gcode::G_SET_COORD) {
                 self.st.max_rpm = Some(s.v);
                 spindle_changed |= self.st.css;
             } else if self.st.css {
@@ -1549,7 +1619,12 @@ impl Interpreter {
                 spindle_changed = true;
             }
         }
-        // Spindle M codes and T, aux M before motion.
+        Ok(spindle_changed)
+    }
+
+    /// Step 5 of [`Self::exec_block`]: spindle and aux M codes before motion; returns the
+    /// moves that go after the motion (stops, ends, M05, M09).
+    fn m_codes_before_motion(&mut self, d: &Decoded, src: &SrcPos, spindle_changed: bool) -> Vec<MoveKind> {
         let mut after: Vec<MoveKind> = Vec::new();
         let mut started = false;
         // In a G83–G89 block the M code is the cycle's C-axis clamp code.
@@ -1579,6 +1654,11 @@ impl Interpreter {
             let c = self.spindle_cmd(self.st.dir);
             self.push(src, MoveKind::Spindle(c), false);
         }
+        after
+    }
+
+    /// Step 6 of [`Self::exec_block`]: the T word.
+    fn tool_word(&mut self, d: &Decoded, src: &SrcPos) -> Result<(), (u32, Option<u32>, String)> {
         if let Some(t) = d.get('T') {
             if self.nrc.active() {
                 return Err((
@@ -1591,29 +1671,16 @@ impl Interpreter {
             // The turret still sees the T code.
             self.push(src, MoveKind::Aux { letter: 'T', value: t.v }, false);
         }
-        let exact = exact_mode || d.has_g(90);
-        self.drill_modal(d, src)?;
-        // One-shot (group 00) codes and motion.
+        Ok(())
+    }
+
+    /// Step 8 of [`Self::exec_block`]: the one-shot (group 00) code, or else the motion of
+    /// the block. Returns false when the block ends here (G65).
+    fn one_shot_or_motion(&mut self, d: &Decoded, src: &SrcPos, exact: bool) -> Result<bool, (u32, Option<u32>, String)> {
+        let one_shot = d.group(0);
         match one_shot {
-            Some(40) => {
-                // §2.6: P in ms (no decimal point), X/U in seconds; none or zero = exact stop.
-                let secs = if let Some(p) = d.get('P') {
-                    p.v / 1000.0
-                } else if let Some(x) = d.get('X').or(d.get('U')) {
-                    if !self.calculator && !x.decimal {
-                        x.v / 1000.0
-                    } else {
-                        x.v
-                    }
-                } else {
-                    0.0
-                };
-                if secs < 0.0 {
-                    return Err((6, gcol(40), "G04: the dwell time cannot be negative".into()));
-                }
-                self.push(src, MoveKind::Dwell { seconds: secs }, true);
-            }
-            Some(500) => {
+            Some(gcode::G_DWELL) => self.g04(d, src)?,
+            Some(gcode::G_SET_COORD) => {
                 // G50 IP: set the current position's workpiece coordinates (§2.12.1). G50 S
                 // alone only sets the maximum spindle speed.
                 if self.target(d).is_some() {
@@ -1624,46 +1691,13 @@ impl Interpreter {
                     self.g50(d);
                 }
             }
-            Some(520) => {
-                // G52: local coordinate system origin in workpiece coordinates; U/W are the same
-                // origin written incrementally from the workpiece zero (G52 U0 W0 cancels).
-                let mut l = self.local;
-                for (a, u, scale, out) in [('X', 'U', 0.5, &mut l.x as &mut f64), ('Z', 'W', 1.0, &mut l.z)] {
-                    if let Some(v) = d.get(a).or(d.get(u)) {
-                        *out = self.len(v) * scale;
-                    }
-                }
-                self.local = l;
-                // §2.12.3 note 2: G52 cancels the nose radius offset for a moment.
-                let at = self.nrc.fed() + self.queue.len() as u64;
-                self.nrc.suspend(at);
+            Some(gcode::G_LOCAL_COORD) => self.g52(d),
+            Some(gcode::G_MACHINE_COORD) => self.g53(d, src)?,
+            Some(gcode::G_REF_RETURN_2) if d.get('P').is_some_and(|p| p.v == 99.0) => self.g30_p99(d, src, gcol(d, gcode::G_REF_RETURN_2))?,
+            Some(gcode::G_REF_RETURN) | Some(gcode::G_REF_RETURN_2) => {
+                self.reference_return(d, src, one_shot == Some(gcode::G_REF_RETURN_2), gcol(d, gcode::G_REF_RETURN_2))?
             }
-            Some(530) => {
-                // G53: rapid to machine coordinates, absolute words only.
-                if let Some(u) = d.letters().find(|l| matches!(l, 'U' | 'W' | 'V' | 'H')) {
-                    return Err((9, d.get(u).map(|v| v.col), format!("G53 takes absolute coordinates only, not {u}")));
-                }
-                let mut t = self.pos;
-                if let Some(v) = d.get('X') {
-                    t.x = self.len(v) * 0.5;
-                }
-                if let Some(v) = d.get('Z') {
-                    t.z = self.len(v);
-                }
-                if let Some(v) = d.get('Y') {
-                    t.y = self.len(v);
-                }
-                if let Some(v) = d.get('C') {
-                    t.c = v.v;
-                }
-                if t != self.pos {
-                    self.pos = t;
-                    self.push(src, MoveKind::Rapid { end: t }, true);
-                }
-            }
-            Some(300) if d.get('P').is_some_and(|p| p.v == 99.0) => self.g30_p99(d, src, gcol(300))?,
-            Some(280) | Some(300) => self.reference_return(d, src, one_shot == Some(300), gcol(300))?,
-            Some(90) | None => {
+            Some(gcode::G_EXACT_STOP) | None => {
                 self.take_up_tool_offset(d);
                 if self.drill_active(d) {
                     self.drill_block(d, src)?
@@ -1673,66 +1707,152 @@ impl Interpreter {
                     self.mcall_after(self.target(d).is_some(), src)?
                 }
             }
-            Some(650) => {
-                let p = d.get('P').ok_or((9, gcol(650), "G65 needs P (the macro program number)".to_string()))?;
-                let l = d.get('L').map(|l| l.v as u32).unwrap_or(1);
-                // Argument specification I (Fanuc): A→#1 B→#2 C→#3 I→#4 J→#5 K→#6 D→#7 E→#8
-                // F→#9 H→#11 M→#13 Q→#17 R→#18 S→#19 T→#20 U→#21 V→#22 W→#23 X→#24 Y→#25 Z→#26.
-                let mut locals = HashMap::new();
-                for (l, n) in [
-                    ('A', 1),
-                    ('B', 2),
-                    ('C', 3),
-                    ('I', 4),
-                    ('J', 5),
-                    ('K', 6),
-                    ('D', 7),
-                    ('E', 8),
-                    ('F', 9),
-                    ('H', 11),
-                    ('Q', 17),
-                    ('R', 18),
-                    ('S', 19),
-                    ('T', 20),
-                    ('U', 21),
-                    ('V', 22),
-                    ('W', 23),
-                    ('X', 24),
-                    ('Y', 25),
-                    ('Z', 26),
-                ] {
-                    if let Some(v) = d.get(l) {
-                        locals.insert(n, v.v);
-                    }
-                }
-                if let Some(&(m, _)) = d.m.first() {
-                    locals.insert(13, m as f64);
-                }
-                if self.call(p.v.round() as u32, l, true, p.col)? {
-                    self.vars.locals.push(locals);
-                }
-                return Ok(());
+            Some(gcode::G_MACRO_CALL) => {
+                self.g65(d)?;
+                return Ok(false);
             }
-            Some(g @ (700 | 710 | 720 | 730 | 740 | 750 | 760 | 780)) => {
-                if matches!(g, 760 | 780) {
+            Some(
+                g @ (gcode::G_FINISHING
+                | gcode::G_STOCK_TURNING
+                | gcode::G_STOCK_FACING
+                | gcode::G_PATTERN_REPEAT
+                | gcode::G_FACE_GROOVING
+                | gcode::G_OD_GROOVING
+                | gcode::G_THREAD_MULTI
+                | gcode::G_THREAD_MULTI_ENH),
+            ) => {
+                if matches!(g, gcode::G_THREAD_MULTI | gcode::G_THREAD_MULTI_ENH) {
                     Self::no_corner_in_thread(d, g)?;
                 }
                 self.cycle_oneshot(g, d, src)?
             }
             Some(g) => {
-                return Err((10, gcol(g), format!("{} is not supported yet", gcode::gname(g))));
+                return Err((10, gcol(d, g), format!("{} is not supported yet", gcode::gname(g))));
             }
         }
+        Ok(true)
+    }
+
+    /// G04: §2.6: P in ms (no decimal point), X/U in seconds; none or zero = exact stop.
+    fn g04(&mut self, d: &Decoded, src: &SrcPos) -> Result<(), (u32, Option<u32>, String)> {
+        let secs = if let Some(p) = d.get('P') {
+            p.v / 1000.0
+        } else if let Some(x) = d.get('X').or(d.get('U')) {
+            if !self.calculator && !x.decimal {
+                x.v / 1000.0
+            } else {
+                x.v
+            }
+        } else {
+            0.0
+        };
+        if secs < 0.0 {
+            return Err((6, gcol(d, gcode::G_DWELL), "G04: the dwell time cannot be negative".into()));
+        }
+        self.push(src, MoveKind::Dwell { seconds: secs }, true);
+        Ok(())
+    }
+
+    /// G52: local coordinate system origin in workpiece coordinates; U/W are the same
+    /// origin written incrementally from the workpiece zero (G52 U0 W0 cancels).
+    fn g52(&mut self, d: &Decoded) {
+        let mut l = self.local;
+        for (a, u, scale, out) in [('X', 'U', 0.5, &mut l.x as &mut f64), ('Z', 'W', 1.0, &mut l.z)] {
+            if let Some(v) = d.get(a).or(d.get(u)) {
+                *out = self.len(v) * scale;
+            }
+        }
+        self.local = l;
+        // §2.12.3 note 2: G52 cancels the nose radius offset for a moment.
+        let at = self.nrc.fed() + self.queue.len() as u64;
+        self.nrc.suspend(at);
+    }
+
+    /// G53: rapid to machine coordinates, absolute words only.
+    fn g53(&mut self, d: &Decoded, src: &SrcPos) -> Result<(), (u32, Option<u32>, String)> {
+        if let Some(u) = d.letters().find(|l| matches!(l, 'U' | 'W' | 'V' | 'H')) {
+            return Err((9, d.get(u).map(|v| v.col), format!("G53 takes absolute coordinates only, not {u}")));
+        }
+        let mut t = self.pos;
+        if let Some(v) = d.get('X') {
+            t.x = self.len(v) * 0.5;
+        }
+        if let Some(v) = d.get('Z') {
+            t.z = self.len(v);
+        }
+        if let Some(v) = d.get('Y') {
+            t.y = self.len(v);
+        }
+        if let Some(v) = d.get('C') {
+            t.c = v.v;
+        }
+        if t != self.pos {
+            self.pos = t;
+            self.push(src, MoveKind::Rapid { end: t }, true);
+        }
+        Ok(())
+    }
+
+    /// G65 P L: macro call with argument specification I (Fanuc): A→#1 B→#2 C→#3 I→#4 J→#5
+    /// K→#6 D→#7 E→#8 F→#9 H→#11 M→#13 Q→#17 R→#18 S→#19 T→#20 U→#21 V→#22 W→#23 X→#24
+    /// Y→#25 Z→#26.
+    fn g65(&mut self, d: &Decoded) -> Result<(), (u32, Option<u32>, String)> {
+        let p = d.get('P').ok_or((9, gcol(d, gcode::G_MACRO_CALL), "G65 needs P (the macro program number)".to_string()))?;
+        let l = d.get('L').map(|l| l.v as u32).unwrap_or(1);
+        let mut locals = HashMap::new();
+        for (l, n) in [
+            ('A', 1),
+            ('B', 2),
+            ('C', 3),
+            ('I', 4),
+            ('J', 5),
+            ('K', 6),
+            ('D', 7),
+            ('E', 8),
+            ('F', 9),
+            ('H', 11),
+            ('Q', 17),
+            ('R', 18),
+            ('S', 19),
+            ('T', 20),
+            ('U', 21),
+            ('V', 22),
+            ('W', 23),
+            ('X', 24),
+            ('Y', 25),
+            ('Z', 26),
+        ] {
+            if let Some(v) = d.get(l) {
+                locals.insert(n, v.v);
+            }
+        }
+        if let Some(&(m, _)) = d.m.first() {
+            locals.insert(13, m as f64);
+        }
+        if self.call(p.v.round() as u32, l, true, p.col)? {
+            self.vars.locals.push(locals);
+        }
+        Ok(())
+    }
+
+    /// Step 9 of [`Self::exec_block`]: the M codes kept for after the motion. Returns true
+    /// when the program ended (M02/M30).
+    fn m_codes_after_motion(&mut self, after: Vec<MoveKind>, src: &SrcPos) -> bool {
         for k in after {
             let exact = matches!(k, MoveKind::Stop { .. } | MoveKind::End { .. });
             let is_end = matches!(k, MoveKind::End { .. });
             self.push(src, k, exact);
             if is_end {
                 self.ended = true;
-                return Ok(());
+                return true;
             }
         }
-        // Subprogram call / return last: the block's other codes run first (§3.1.6).
+        false
+    }
+
+    /// Step 10 of [`Self::exec_block`]: subprogram call / return last, the block's other
+    /// codes run first (§3.1.6); M91/M92 jumps likewise.
+    fn program_flow_m_codes(&mut self, d: &Decoded) -> Result<(), (u32, Option<u32>, String)> {
         for &(m, col) in &d.m {
             if m == 98 {
                 let p = d.get('P').ok_or((9, Some(col), "M98 needs P (the subprogram number)".to_string()))?;
@@ -2135,3 +2255,8 @@ fn truth(v: macros::Value) -> bool {
 
 #[cfg(test)]
 mod tests;
+
+/// The column of G code `g` in block `d` (for alarms).
+fn gcol(d: &Decoded, g: GCode) -> Option<u32> {
+    d.g.iter().find(|x| x.0 == g).map(|x| x.1)
+}

@@ -249,38 +249,8 @@ pub fn move_to_json(m: &Move) -> String {
 
 /// [`move_to_json`] appended to `out` (bytes: numbers are written without UTF-8 checks).
 pub fn write_json(out: &mut Vec<u8>, m: &Move) {
-    // Straight lines without Y/C or a cycle tag (nearly every line of a CAM program): keys
-    // written in their sorted order directly.
-    if let (MoveKind::Rapid { end } | MoveKind::Feed { end, .. }, None) = (&m.kind, &m.tag) {
-        if end.y == 0.0 && m.work_offset.y == 0.0 && end.c == 0.0 && m.work_offset.c == 0.0 {
-            out.push(b'{');
-            match &m.kind {
-                MoveKind::Feed { feed: Feed::PerMin(v), .. } => {
-                    out.extend_from_slice("\"feed\":".as_bytes());
-                    num_r(out, *v);
-                    out.push(b',');
-                }
-                MoveKind::Feed { feed: Feed::PerRev(v), .. } => {
-                    out.extend_from_slice("\"feed_per_rev\":".as_bytes());
-                    num_r(out, *v);
-                    out.push(b',');
-                }
-                _ => {}
-            }
-            out.extend_from_slice("\"file\":".as_bytes());
-            json_file(out, &m.src.file);
-            out.extend_from_slice(",\"kind\":\"".as_bytes());
-            out.extend_from_slice(m.kind.name().as_bytes());
-            out.extend_from_slice("\",\"line\":".as_bytes());
-            uint(out, m.src.line as u64);
-            let w = work(m, *end);
-            out.extend_from_slice(",\"x\":".as_bytes());
-            num_r(out, w.x * 2.0);
-            out.extend_from_slice(",\"z\":".as_bytes());
-            num_r(out, w.z);
-            out.push(b'}');
-            return;
-        }
+    if write_json_straight(out, m) {
+        return;
     }
     let mut o = Obj { f: [("", J::Int(0)); 16], n: 0 };
     o.put("file", J::Str(&m.src.file));
@@ -369,6 +339,49 @@ pub fn write_json(out: &mut Vec<u8>, m: &Move) {
         o.put("cycle", J::Str(&t.cycle));
         o.put("step", J::Int(t.step as u32));
     }
+    write_obj(out, &o);
+}
+
+/// The fast path of [`write_json`]: straight lines without Y/C or a cycle tag (nearly
+/// every line of a CAM program), keys written in their sorted order directly. Returns
+/// false (nothing written) for any other move.
+fn write_json_straight(out: &mut Vec<u8>, m: &Move) -> bool {
+    if let (MoveKind::Rapid { end } | MoveKind::Feed { end, .. }, None) = (&m.kind, &m.tag) {
+        if end.y == 0.0 && m.work_offset.y == 0.0 && end.c == 0.0 && m.work_offset.c == 0.0 {
+            out.push(b'{');
+            match &m.kind {
+                MoveKind::Feed { feed: Feed::PerMin(v), .. } => {
+                    out.extend_from_slice("\"feed\":".as_bytes());
+                    num_r(out, *v);
+                    out.push(b',');
+                }
+                MoveKind::Feed { feed: Feed::PerRev(v), .. } => {
+                    out.extend_from_slice("\"feed_per_rev\":".as_bytes());
+                    num_r(out, *v);
+                    out.push(b',');
+                }
+                _ => {}
+            }
+            out.extend_from_slice("\"file\":".as_bytes());
+            json_file(out, &m.src.file);
+            out.extend_from_slice(",\"kind\":\"".as_bytes());
+            out.extend_from_slice(m.kind.name().as_bytes());
+            out.extend_from_slice("\",\"line\":".as_bytes());
+            uint(out, m.src.line as u64);
+            let w = work(m, *end);
+            out.extend_from_slice(",\"x\":".as_bytes());
+            num_r(out, w.x * 2.0);
+            out.extend_from_slice(",\"z\":".as_bytes());
+            num_r(out, w.z);
+            out.push(b'}');
+            return true;
+        }
+    }
+    false
+}
+
+/// The fields of `o` as a JSON object, keys in alphabetical order.
+fn write_obj(out: &mut Vec<u8>, o: &Obj) {
     let fields = &o.f[..o.n];
     // Alphabetical key order by a precomputed rank (string comparisons cost more than the
     // rest of the line).
