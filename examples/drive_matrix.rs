@@ -1,7 +1,9 @@
 //! The spindle–axis sync figures on every drive model of `tests/drive_models/` (or the sim-drives
 //! configurations given as arguments), in simulated time on the embedded machine: one table.
 //!
-//! Run: `cargo run --release --example drive_matrix [MODEL.toml …]`
+//! Run: `cargo run --release --example drive_matrix [--param NO=VALUE …] [MODEL.toml …]`
+//! (`--param 5365=20`: the embedded machine with that parameter set, e.g. a bell-shaped
+//! rigid-tap acceleration).
 //!
 //! Per model: rigid tap M10×1.5 at S3000, 35 mm (Z2 → Z−33), and at S6000 over 200 mm
 //! (Z2 → Z−198), cutting load on; a G92.1 rigid thread (lead 2, S1000, Z5 → Z−40); the same
@@ -13,7 +15,21 @@ use cncgw::control::embedded::matrix::{measure_model, MatrixRow};
 use std::path::PathBuf;
 
 fn main() {
-    let mut files: Vec<PathBuf> = std::env::args().skip(1).map(PathBuf::from).collect();
+    let mut cfg = MachineConfig::embedded();
+    let mut files: Vec<PathBuf> = Vec::new();
+    let mut args = std::env::args().skip(1);
+    while let Some(a) = args.next() {
+        if a != "--param" {
+            files.push(PathBuf::from(a));
+            continue;
+        }
+        let kv = args.next().unwrap_or_default();
+        let Some((no, v)) = kv.split_once('=').and_then(|(n, v)| Some((n.to_string(), v.parse::<f64>().ok()?))) else {
+            eprintln!("error: --param wants NO=VALUE, got {kv:?}");
+            std::process::exit(2);
+        };
+        cfg.parameters.insert(no, toml::Value::Float(v));
+    }
     if files.is_empty() {
         let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/drive_models");
         files = match std::fs::read_dir(&dir) {
@@ -25,7 +41,6 @@ fn main() {
         };
         files.sort();
     }
-    let cfg = MachineConfig::embedded();
     println!("| model | tap S3000 35 mm max / RMS µm | tap S6000 200 mm max / RMS µm | G92.1 S1000 max / RMS µm | thread phase spread S500–1500 | alarms |");
     println!("|---|---|---|---|---|---|");
     for f in &files {

@@ -256,6 +256,14 @@ pub struct Limits {
     /// Spindle acceleration of a rigid-tap retract stroke (out of the hole), deg/s² (No.5271:
     /// ms to 1000 rpm); infinity when not set (then `tap_accel` applies).
     pub tap_retract_accel: f64,
+    /// Bell-shaped acceleration of rigid taps: the time over which the acceleration ramps
+    /// (jerk = acceleration / this), s; 0 = linear (the manual's No.5261/5271 alone). The
+    /// manual is silent; Fanuc 0i-TF has it as No.5365 (T2 of bell-shaped acceleration/
+    /// deceleration for rigid tapping). An acceleration step makes every drive's lag turn
+    /// within one cycle, and the spindle's and the feed axis' lags turn differently; ramped,
+    /// both follow their set-points smoothly and the sync holds on drives with other delays,
+    /// compliance or friction.
+    pub tap_bell_s: f64,
     /// In rigid taps and G92.1, add the spindle's measured lag (times the lead) to the feed
     /// axes' setpoint, so that they follow the spindle's *actual* angle (see `sync_corr`).
     /// Needs `Feedback` as `CycleLoop` delivers it: the answer to the setpoint of
@@ -295,6 +303,7 @@ impl Limits {
             tap_hold_in_hole: cfg.param_bit(5200, 6),
             sync_err_limit_um: cfg.machine.sync_error_limit_um,
             tap_retract_accel: f64::INFINITY,
+            tap_bell_s: 0.0,
             sync_correction: true,
             feedback_delay: FEEDBACK_DELAY,
             flex_lag_cycles: cfg.param(5275).filter(|n| n.is_finite() && *n > 0.0).unwrap_or(0.0),
@@ -331,6 +340,9 @@ impl Limits {
         }
         if let Some(ms) = cfg.param(5271).filter(|t| t.is_finite() && *t > 0.0) {
             l.tap_retract_accel = 1000.0 / (ms / 1000.0) * 6.0;
+        }
+        if let Some(ms) = cfg.param(5365).filter(|t| t.is_finite() && *t > 0.0) {
+            l.tap_bell_s = ms / 1000.0;
         }
         // No.3410: arc radius error limit (here in mm).
         if let Some(t) = cfg.param(3410).filter(|t| t.is_finite() && *t > 0.0) {
@@ -410,6 +422,9 @@ struct TapSeg {
     v: f64,
     vlim: f64,
     alim: f64,
+    /// Jerk limit along the tapping axis (bell-shaped acceleration, `Limits::tap_bell_s`),
+    /// mm/s³; 0 = linear acceleration.
+    jlim: f64,
     /// Out of the hole (No.5271's time constant).
     retract: bool,
 }
@@ -1393,7 +1408,8 @@ impl Motion {
             ));
         }
         let vlim = l.vmax[axis].min(l.vmax[AX_S] * per_deg);
-        Ok(TapSeg { axis, p0, p1: e[axis], lead, v: v.min(vlim), vlim, alim, retract })
+        let jlim = if l.tap_bell_s > 0.0 { alim / l.tap_bell_s } else { 0.0 };
+        Ok(TapSeg { axis, p0, p1: e[axis], lead, v: v.min(vlim), vlim, alim, jlim, retract })
     }
 
     /// G92.1: the feed axes to `end` and the spindle through `end.c − c_start` on one profile.
@@ -2030,8 +2046,15 @@ impl Motion {
         let len = (seg.p1 - seg.p0).abs();
         let d = len - s;
         let v_cmd = if self.stopping || (self.held && self.lim.tap_hold_in_hole) { 0.0 } else { seg.v };
-        let nv = profile::next_speed(v, v_cmd, d, seg.alim * dt, dt);
-        let (s2, landed) = if d - nv * dt <= 1e-9 { (len, true) } else { (s + nv * dt, false) };
+        let (nv, adv) = if seg.jlim > 0.0 {
+            let (nv, na, adv) = profile::next_state(v, if s == 0.0 { 0.0 } else { self.path_a }, v_cmd, d, seg.alim, seg.jlim, dt);
+            self.path_a = na;
+            (nv, adv)
+        } else {
+            let nv = profile::next_speed(v, v_cmd, d, seg.alim * dt, dt);
+            (nv, nv * dt)
+        };
+        let (s2, landed) = if d - adv <= 1e-9 { (len, true) } else { (s + adv, false) };
         let p = if landed { seg.p1 } else { seg.p0 + s2.copysign(seg.p1 - seg.p0) };
         self.pos[seg.axis] = p;
         self.pos[AX_S] = thr + 360.0 * (p - pr) / seg.lead;

@@ -1828,6 +1828,40 @@ fn rigid_tap_matches_acceleration_with_5261_in_and_5271_out() {
 }
 
 #[test]
+fn rigid_tap_with_a_bell_shaped_acceleration_ramps_it_and_lands_exactly() {
+    let mut l = lim();
+    l.tap_accel = 1000.0 / 0.2 * 6.0;
+    // No.5365: the acceleration ramps over 40 ms (jerk = a / 0.04 s).
+    l.tap_bell_s = 0.04;
+    l.sync_correction = false;
+    let dt = l.cycle_s;
+    let mut m = Motion::new(l.clone(), [0.0; N_AXES]);
+    m.push(&mv(1, rapid(0.0, 2.0))).unwrap();
+    m.push(&mv(2, MoveKind::Tap { end: Pos::xz(0.0, -20.0), lead: 1.5, rpm: 2000.0, spindle: 1 })).unwrap();
+    m.push(&mv(3, MoveKind::Tap { end: Pos::xz(0.0, 2.0), lead: 1.5, rpm: 2000.0, spindle: 1 })).unwrap();
+    let sps = run(&mut m, 100_000);
+    let tap: Vec<&Setpoint> = sps.iter().filter(|s| s.line == 2).collect();
+    let a_max = l.tap_accel * 1.5 / 360.0;
+    let (mut peak_a, mut peak_j) = (0.0f64, 0.0f64);
+    for w in tap.windows(4) {
+        let a = |i: usize| (w[i + 1].pos[AX_Z] - 2.0 * w[i].pos[AX_Z] + w[i - 1].pos[AX_Z]) / (dt * dt);
+        peak_a = peak_a.max(a(1).abs());
+        peak_j = peak_j.max(((a(2) - a(1)) / dt).abs());
+    }
+    // Still the linear constant's acceleration at its peak, but reached through a ramp: no
+    // step of the acceleration bigger than the jerk allows (a linear profile steps by a_max).
+    assert!(peak_a <= a_max * 1.01 && peak_a > 0.9 * a_max, "peak accel {peak_a} of {a_max}");
+    assert!(peak_j <= a_max / 0.04 * 1.05, "peak jerk {peak_j} mm/s³, limit {}", a_max / 0.04);
+    // One profile: the spindle stays on the tap relation, and both land exactly.
+    for s in &tap {
+        let rel = 2.0 + 1.5 * s.pos[AX_S] / 360.0;
+        assert!((s.pos[AX_Z] - rel).abs() < 1e-9, "z {} spindle relation {rel}", s.pos[AX_Z]);
+    }
+    assert_eq!(tap.last().unwrap().pos[AX_Z], -20.0);
+    assert_eq!(sps.last().unwrap().pos[AX_Z], 2.0);
+}
+
+#[test]
 fn sync_correction_sends_z_after_the_spindle_actual_angle_and_fades_out_at_r() {
     let mut l = lim();
     l.feedback_delay = 2;
