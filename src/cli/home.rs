@@ -40,13 +40,7 @@ pub fn reference_file(cfg: &MachineConfig, machine: &MachineArgs, dir: Option<&P
 /// `homing` of an axis as `drive home`'s arguments.
 fn home_args(a: &AxisConfig) -> Option<HomeArgs> {
     let h = a.homing.as_ref()?;
-    Some(HomeArgs {
-        method: h.method,
-        switch_speed: h.speed,
-        zero_speed: h.zero_speed,
-        offset: h.offset,
-        timeout: h.timeout_s.unwrap_or(30.0),
-    })
+    Some(HomeArgs { method: h.method, switch_speed: h.speed, zero_speed: h.zero_speed, offset: h.offset, timeout: h.timeout_s.unwrap_or(30.0) })
 }
 
 /// The axes `which` names, each with its homing; Err = exit code (message printed).

@@ -73,7 +73,10 @@ pub struct RefSetup {
 impl RefSetup {
     /// For a run of `cfg` with state in `state` (None when no axis has `homing`).
     pub fn new(cfg: &MachineConfig, state: Option<&crate::persist::StatePlace>) -> Option<RefSetup> {
-        cfg.axes.values().any(|a| a.homing.is_some()).then(|| RefSetup { file: state.map(|s| s.reference()), required: crate::reference::required(cfg) })
+        cfg.axes
+            .values()
+            .any(|a| a.homing.is_some())
+            .then(|| RefSetup { file: state.map(|s| s.reference()), required: crate::reference::required(cfg) })
     }
 }
 
@@ -111,7 +114,8 @@ fn reference_at_start(lp: &CycleLoop, cfg: &MachineConfig, r: Option<&RefSetup>)
 fn reference_at_end(lp: &CycleLoop, cfg: &MachineConfig, r: Option<&RefSetup>) {
     let Some(f) = r.and_then(|r| r.file.as_ref()) else { return };
     let here = drive_positions(lp, cfg);
-    let lost: Vec<(String, String)> = (0..lp.drives.axis_count()).filter_map(|d| lp.drives.position_lost(d).map(|w| (lp.drives.axis_name(d).to_string(), w))).collect();
+    let lost: Vec<(String, String)> =
+        (0..lp.drives.axis_count()).filter_map(|d| lp.drives.position_lost(d).map(|w| (lp.drives.axis_name(d).to_string(), w))).collect();
     let r = f.update(|t| {
         for (axis, why) in &lost {
             if let Some(n) = t.lose(axis, &format!("its drive {why}")) {

@@ -97,7 +97,10 @@ enum Phase {
     LeaveSwitch,
     /// Moving on (at 0x6099:2, in this direction) to the next index pulse, last seen in
     /// period `k`.
-    SeekIndex { dir: f64, k: i64 },
+    SeekIndex {
+        dir: f64,
+        k: i64,
+    },
     /// Home found; ramping down.
     Stopping,
 }
