@@ -55,6 +55,15 @@ fn embedded_machine_run_refused_before_home_runs_after() {
     assert_eq!(o.code, 3, "{}{}", o.stdout, o.stderr);
     assert!(o.stderr.contains("alarm 0224") && o.stderr.contains("axis X, Z are not referenced"), "{}", o.stderr);
     assert!(o.stderr.contains("`cncgw home x`") && o.stderr.contains("nothing was moved"), "{}", o.stderr);
+    // MDI too.
+    let mut mdi = testkit::cli!().state(&state).command(&["mdi", "--config", &c]);
+    let mut child =
+        mdi.stdin(std::process::Stdio::piped()).stdout(std::process::Stdio::piped()).stderr(std::process::Stdio::piped()).spawn().unwrap();
+    child.stdin.take().unwrap().write_all(b"G0 X20 Z1\nM30\n").unwrap();
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(3), "{err}");
+    assert!(err.contains("alarm 0224") && err.contains("`cncgw home x`"), "{err}");
     // The alarm is in the history like any other.
     let o = cncgw(&state, &["alarms", "--config", &c]);
     assert!(o.stdout.contains("224"), "{}", o.stdout);
