@@ -122,6 +122,8 @@ catalogue! {
         RIGID_PROGRAM = 203;
         /// PS0204: illegal axis operation (a move between M29 and G84).
         RIGID_AXIS = 204;
+        /// PS0224: an axis that needs a reference is not referenced (home it: `cncgw home X`).
+        NOT_REFERENCED = 224;
         /// OT0500: + overtravel (soft limit 1).
         PLUS_OVERTRAVEL = 500;
         /// OT0501: − overtravel (soft limit 1).

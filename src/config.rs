@@ -186,6 +186,21 @@ pub struct Machine {
     /// is oriented as C) or `tool` (a driven tool; needs an axis with role = "tool_spindle").
     #[serde(default)]
     pub drilling_spindle: DrillingSpindle,
+    /// Refuse motion (`run`, `mdi`) while an axis that has a `homing` method is not
+    /// referenced (alarm 224, "home it with `cncgw home X`"). Default true.
+    ///
+    /// As a Fanuc 0i-TF: No.1005#0 ZRNx = 0 (its default) raises PS0224 "zero return not
+    /// finished" for a move command on an axis not yet referenced since power-on; ZRNx = 1
+    /// lets it move. An axis with an absolute encoder (No.1815#5 APCx) is referenced at power-on.
+    /// Here the check applies to the axes that declare `homing = { … }`: an axis with neither
+    /// `homing` nor `absolute` has no reference to manage (the embedded default machine and
+    /// the earlier configurations, whose positions are taken as valid from power-on).
+    #[serde(default = "default_true")]
+    pub require_reference: bool,
+}
+
+fn default_true() -> bool {
+    true
 }
 
 /// Which spindle turns the tool of a drilling cycle (see [`Machine::drilling_spindle`]).
@@ -378,6 +393,44 @@ pub struct AxisConfig {
     /// the standard configuration and read back, in this order (CiA 306-3's concise DCF).
     #[serde(default)]
     pub sdo: Vec<StartupSdo>,
+    /// How the axis finds its reference point (`cncgw home X`): CiA 402 homing mode 6.
+    #[serde(default)]
+    pub homing: Option<Homing>,
+    /// An absolute encoder: the axis is referenced at power-on and is never homed.
+    #[serde(default)]
+    pub absolute: bool,
+}
+
+/// `axes.NAME.homing = { method = 35, offset = 0.0, speed = 600, zero_speed = 60 }`: the
+/// CiA 402 homing of the axis (0x6098 method, 0x607C home offset, 0x6099 speeds, 0x609A
+/// acceleration).
+#[derive(Clone, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct Homing {
+    /// 0x6098: 35/37 the present position, 17/18 the negative/positive limit switch,
+    /// 1–14 switches with the index pulse, 33/34 the index pulse alone (the drive's manual
+    /// says which it has).
+    pub method: i8,
+    /// 0x607C: the machine position the home point gets (mm, X as a radius; degrees).
+    #[serde(default)]
+    pub offset: f64,
+    /// 0x6099:1, searching the switch: mm/min (rpm for a spindle). Default max_speed / 20.
+    #[serde(default)]
+    pub speed: Option<f64>,
+    /// 0x6099:2, searching zero (leaving the switch, to the index): default max_speed / 100.
+    #[serde(default)]
+    pub zero_speed: Option<f64>,
+    /// 0x609A: mm/s² (rpm/s); default the axis's max_accel.
+    #[serde(default)]
+    pub accel: Option<f64>,
+    /// Give up after this many seconds (default 30).
+    #[serde(default)]
+    pub timeout_s: Option<f64>,
+}
+
+/// The homing methods CiA 402 defines (0x6098): 1–35 and 37 (36 is reserved; 0 = none).
+pub fn homing_method_defined(m: i8) -> bool {
+    matches!(m, 1..=35 | 37)
 }
 
 /// `axes.NAME.mode`: how a CANopen drive takes its cyclic position set-points.
@@ -694,6 +747,22 @@ impl MachineConfig {
         }
         if a.modbus.is_none() && (a.cia402_map.is_some() || a.pr_map.is_some()) {
             e.push(format!("{p}: cia402_map / pr_map apply to Modbus drives; set {p}.modbus to the link"));
+        }
+        if let Some(h) = &a.homing {
+            if a.absolute {
+                e.push(format!("{p}: homing and absolute = true exclude each other (an absolute encoder is referenced at power-on)"));
+            }
+            if !homing_method_defined(h.method) {
+                e.push(format!("{p}.homing.method: CiA 402 homing methods are 1–35 and 37, got {}", h.method));
+            }
+            for (k, v) in [("speed", h.speed), ("zero_speed", h.zero_speed), ("accel", h.accel), ("timeout_s", h.timeout_s)] {
+                if let Some(v) = v.filter(|v| !(v.is_finite() && *v > 0.0)) {
+                    e.push(format!("{p}.homing.{k}: must be > 0, got {v}"));
+                }
+            }
+            if !h.offset.is_finite() || (h.offset * a.counts_per_unit).abs() > i32::MAX as f64 {
+                e.push(format!("{p}.homing.offset: must fit the drive's INTEGER32 home offset, got {}", h.offset));
+            }
         }
         if a.role == Some(AxisRole::ToolSpindle) && a.kind != AxisKind::Spindle {
             e.push(format!("{p}.role: \"tool_spindle\" needs kind = \"spindle\""));

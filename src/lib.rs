@@ -17,6 +17,7 @@ pub mod offsets;
 pub mod params;
 pub mod persist;
 pub mod plot;
+pub mod reference;
 pub mod sync;
 
 pub use alarm::Alarm;

@@ -107,6 +107,11 @@ impl StatePlace {
         TapStateFile { path: self.dir.join(format!("{}.tap-state.toml", self.key)) }
     }
 
+    /// The axes' reference (home) state (`reference`).
+    pub fn reference(&self) -> crate::reference::ReferenceFile {
+        crate::reference::ReferenceFile { path: self.dir.join(format!("{}.reference.toml", self.key)) }
+    }
+
     pub fn alarm_history(&self) -> AlarmHistory {
         AlarmHistory { path: self.dir.join(format!("{}.alarms.jsonl", self.key)) }
     }

@@ -240,6 +240,41 @@ fn homing_on_the_negative_limit_switch() {
 }
 
 #[test]
+fn homing_on_the_limit_switch_and_the_index_pulse() {
+    use cncgw_bus::CanBus;
+    let (_cfg, bus, mut w, mut m) = rig();
+    m.startup(&mut w).expect("startup");
+    // The switch edge 0.25 mm above an index pulse (one every 10000 counts = 1 mm), 4.75 mm below.
+    let z0 = w.drive(2).unwrap().position_unwrapped();
+    let sw = ((z0 - 50_000).div_euclid(10_000) * 10_000 + 2_500) as i32;
+    m.sdo_write(&mut w, 2, sim_drives::drive::profile::SIM_SWITCHES, 1, &sw.to_le_bytes()).unwrap();
+    // Method 1: the negative limit switch, left moving positive, then the next index pulse.
+    m.home(&mut w, 2, 1, 20.0, 1.0, 200.0, 8000).unwrap();
+    let p = w.drive(2).unwrap().position_unwrapped();
+    assert!((0..=200).contains(&p), "0x6064 = {p} counts after homing");
+    // Home is the index pulse 0.75 mm past the switch edge: -0.7 mm is off it, -0.8 on it.
+    let z = m.node_ids().iter().position(|&n| n == 2).unwrap();
+    for (to, on) in [(-0.7, 0), (-0.8, 1)] {
+        m.profile_move(&mut w, 2, to, 20.0, 200.0).unwrap();
+        let mut next = w.now_ns();
+        cycle_until_alarm(&mut w, &mut m, &mut next, 2);
+        assert_eq!(w.drive(2).unwrap().object(0x60FD, 0), Some(on), "at {to} mm");
+    }
+    assert!(m.position_lost(z).is_none());
+    // A boot-up the master did not cause (a third party's NMT reset node): the drive
+    // restarted, its homing is gone, and the master says the position is lost.
+    let mut other = bus.endpoint();
+    other.send(&cncgw_bus::CanFrame::new(0x000, &[0x81, 2])).unwrap();
+    let mut next = w.now_ns();
+    cycle_until_alarm(&mut w, &mut m, &mut next, 20);
+    let why = m.position_lost(z).expect("reboot seen");
+    assert!(why.contains("boot-up message") && why.contains("rebooted"), "{why}");
+    let p = w.drive(2).unwrap().position_unwrapped();
+    assert!((p - (sw as i64 + 7_500 - 8_000)).abs() <= 300, "0x6064 = {p}: the encoder's count again (the switch at {sw})");
+    assert!(m.position_lost(0).is_none(), "X did not reboot");
+}
+
+#[test]
 fn homing_errors_are_alarms() {
     let (_cfg, _bus, mut w, mut m) = rig();
     m.startup(&mut w).expect("startup");
@@ -248,7 +283,7 @@ fn homing_errors_are_alarms() {
     assert_eq!(e.number, 2017);
     assert!(e.message.contains("homing method 18 failed (0x6041 bit 13 homing error)"), "{}", e.message);
     // An unsupported method is refused by the drive.
-    let e = m.home(&mut w, 1, 19, 10.0, 1.0, 100.0, 2000).unwrap_err();
+    let e = m.home(&mut w, 1, 31, 10.0, 1.0, 100.0, 2000).unwrap_err();
     assert_eq!(e.number, 2017);
     assert!(e.message.contains("0x06090030") && e.message.contains("not supported"), "{}", e.message);
     // The drive is usable afterwards.

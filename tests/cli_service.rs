@@ -121,9 +121,13 @@ fn home_sets_the_position_read_back() {
     let o = cncgw(&["drive", "home", "2", "--method", "17"]);
     assert_eq!(o.code, 1);
     assert!(o.stderr.contains("alarm 2017") && o.stderr.contains("homing error"), "{}", o.stderr);
+    // Method 6 (home switch, index pulse): the emulated Z has no home switch either.
     let o = cncgw(&["drive", "home", "2", "--method", "6"]);
+    assert_eq!(o.code, 1);
+    assert!(o.stderr.contains("alarm 2017") && o.stderr.contains("homing error"), "{}", o.stderr);
+    let o = cncgw(&["drive", "home", "2", "--method", "36"]);
     assert_eq!(o.code, 2);
-    assert!(o.stderr.contains("homing method 6 is not offered"), "{}", o.stderr);
+    assert!(o.stderr.contains("homing method 36 is not a CiA 402 method"), "{}", o.stderr);
 }
 
 fn jog_end(stdout: &str) -> f64 {

@@ -380,9 +380,11 @@ fn build_od(c: &DriveConfig) -> Od {
         od.add_range(ix::HOMING_SPEEDS, 2, U32, Rw, false, (rev / 10).max(1), 1, u32::MAX as i64);
         od.add_range(ix::HOMING_ACCEL, 0, U32, Rw, false, c.profile_decel as i64, 1, u32::MAX as i64);
         od.add(DIGITAL_INPUTS, 0, U32, Ro, true, 0);
-        od.add(SIM_SWITCHES, 0, U8, Const, false, 2);
+        od.add(SIM_SWITCHES, 0, U8, Const, false, 4);
         od.add(SIM_SWITCHES, 1, I32, Rw, false, i32::MIN as i64);
         od.add(SIM_SWITCHES, 2, I32, Rw, false, i32::MAX as i64);
+        od.add(SIM_SWITCHES, 3, I32, Rw, false, i32::MAX as i64);
+        od.add(SIM_SWITCHES, 4, U32, Rw, false, 10_000);
     }
     // Supported modes: bit m−1 for mode m (default PP, homing, CSP, CSV = 0x1A1).
     if sh.supported_modes_object {
@@ -857,6 +859,7 @@ impl SimDrive {
                 self.od.reset_range(0x0000, SIM_FAULTS - 1);
                 self.od.reset_range(profile::SIM_SWITCHES + 1, 0xFFFF);
                 self.recache();
+                self.forget_homing();
                 self.prev_cw = 0;
                 self.stop = None;
                 self.pending_mode = None;
@@ -1296,7 +1299,7 @@ impl SimDrive {
                     return Err(abort::INVALID_VALUE);
                 }
                 ix::MODES_OF_OPERATION if !self.mode_allowed(x) => return Err(abort::INVALID_VALUE),
-                ix::HOMING_METHOD if !profile::HOMING_METHODS.contains(&x) => return Err(abort::INVALID_VALUE),
+                ix::HOMING_METHOD if !profile::homing_method_supported(x) => return Err(abort::INVALID_VALUE),
                 ix::SOFTWARE_LIMIT => {
                     let (lo, hi) = if sub == 1 { (x, self.od.int(index, 2)) } else { (self.od.int(index, 1), x) };
                     if lo > hi {

@@ -562,6 +562,10 @@ pub fn nmt(machine: &MachineArgs, cmd: NmtArg, target: u8, json_out: bool) -> i3
         eprintln!("{a}");
         return EXIT_SETUP;
     }
+    if matches!(cmd, NmtArg::Reset) {
+        // Reset node restarts the drive's application: its position, and the reference.
+        super::home::record_reset(machine, target);
+    }
     let reset = matches!(cmd, NmtArg::Reset | NmtArg::ResetComm);
     // A reset is confirmed by the boot-up message; other commands by the next heartbeat.
     let window_ms: u64 = if reset { 3000 } else { 1000 };

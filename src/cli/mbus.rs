@@ -782,15 +782,21 @@ pub fn drive_power(cfg: &MachineConfig, unit: u8, goal: super::service::PowerGoa
 /// ends it, bit 13 is a homing error. The drive is disabled after it, as on CANopen, and
 /// its previous mode restored. The PR map has no homing.
 pub fn drive_home(cfg: &MachineConfig, unit: u8, h: &super::service::HomeArgs) -> i32 {
-    use super::diag::{EXIT_NODE, EXIT_OK, EXIT_USAGE};
+    match home_unit(cfg, unit, h) {
+        Ok(_) => super::diag::EXIT_OK,
+        Err(code) => code,
+    }
+}
+
+/// `drive_home`'s work: the position after homing (machine units), or the exit code (the
+/// message printed).
+pub fn home_unit(cfg: &MachineConfig, unit: u8, h: &super::service::HomeArgs) -> Result<f64, i32> {
+    use super::diag::{EXIT_NODE, EXIT_USAGE};
     use cncgw_bus::cia402::{cw, mode, sw};
-    let (name, a, mut c) = match open_unit(cfg, unit) {
-        Ok(x) => x,
-        Err(code) => return code,
-    };
+    let (name, a, mut c) = open_unit(cfg, unit)?;
     if a.modbus_profile == Profile::Pr {
         eprintln!("error: unit {unit} (axis {name}) speaks the PR register map: homing is not supported by this register map (it has no mode or homing registers); home the axis with the drive's own software or panel, or set the position with a G92/G50 in the program");
-        return EXIT_USAGE;
+        return Err(EXIT_USAGE);
     }
     let mut missing = Vec::new();
     if h.method != 35 {
@@ -807,11 +813,11 @@ pub fn drive_home(cfg: &MachineConfig, unit: u8, h: &super::service::HomeArgs) -
             "error: unit {unit}: the Modbus CiA 402 register map has no register for the {}: set them in the drive's own parameters and home without those options (the drive homes with its configured method)",
             missing.join(", ")
         );
-        return EXIT_USAGE;
+        return Err(EXIT_USAGE);
     }
     if !(h.timeout.is_finite() && h.timeout > 0.0) {
         eprintln!("error: --timeout must be a positive number of seconds");
-        return EXIT_USAGE;
+        return Err(EXIT_USAGE);
     }
     let m = a.cia402_map.unwrap_or_default();
     let timeout = Duration::from_secs_f64(h.timeout.min(3600.0));
@@ -872,11 +878,11 @@ pub fn drive_home(cfg: &MachineConfig, unit: u8, h: &super::service::HomeArgs) -
     match run(&mut c) {
         Ok(pos) => {
             println!("unit {unit} (axis {name}) on {}: homed in mode 6 with the drive's own homing method; position now {pos:.4} {unit_s}", c.what);
-            EXIT_OK
+            Ok(pos)
         }
         Err(e) => {
             eprintln!("error: {e}");
-            EXIT_NODE
+            Err(EXIT_NODE)
         }
     }
 }

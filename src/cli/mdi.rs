@@ -309,7 +309,7 @@ pub fn mdi(a: &MdiArgs) -> i32 {
     let mut opts = ExecOpts {
         json: a.json,
         print_summary: true,
-        extras: RunExtras { tap, history: history_file, ..RunExtras::default() },
+        extras: RunExtras { tap, history: history_file, reference: run::RefSetup::new(&cfg, state.as_ref()), ..RunExtras::default() },
         operator: None,
         pace: true,
         live: true,

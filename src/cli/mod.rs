@@ -2,6 +2,7 @@
 
 pub mod diag;
 pub mod exit;
+pub mod home;
 pub mod identify;
 pub mod lock;
 pub mod manpages;
@@ -226,6 +227,15 @@ pub enum Command {
     /// CiA 402 drive commands.
     #[command(subcommand)]
     Drive(DriveCmd),
+    /// Reference return: home the axes with their configured homing (`homing = { … }`).
+    ///
+    /// Each axis is homed in its drive's CiA 402 homing mode (6) with the method, offset and
+    /// speeds of its `homing` table, and kept referenced in the state directory until its
+    /// drive reboots or loses its position. `run` refuses to move an axis that needs a
+    /// reference and has none (alarm 224). Needs --yes on a real bus.
+    ///
+    /// Example: `cncgw home`, `cncgw home x`, `cncgw home all --bus can0 --yes`
+    Home(home::HomeCmd),
     /// Move one axis to a position or by a distance (service).
     ///
     /// In the drive's profile position mode (1), to an absolute position or
@@ -819,6 +829,7 @@ pub fn main() -> i32 {
         Command::Drive(DriveCmd::Disable { node, machine }) => service::drive_power(&machine, node, service::PowerGoal::Disable, false),
         Command::Drive(DriveCmd::FaultReset { node, machine }) => service::drive_power(&machine, node, service::PowerGoal::FaultReset, false),
         Command::Drive(DriveCmd::Home { node, home, yes, machine }) => service::drive_home(&machine, node, &home, yes),
+        Command::Home(c) => home::home(&c),
         Command::Jog { axis, to, by, speed, yes, machine } => service::jog(&machine, &axis, to, by, speed, yes),
         Command::Buslog { out, seconds, machine } => service::buslog(&machine, &out, seconds),
         Command::Monitor { seconds, once, interval_ms, json, machine } => service::monitor(&machine, seconds, once, interval_ms, json),

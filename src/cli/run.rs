@@ -57,6 +57,76 @@ pub struct RunExtras<'a> {
     pub tap: Option<TapSetup>,
     /// Where every alarm of the run is appended (`cncgw alarms`); None = not kept.
     pub history: Option<crate::persist::AlarmHistory>,
+    /// The axes' reference state (`reference`): checked at start, kept up to date at the end.
+    /// None = no axis has a reference to manage.
+    pub reference: Option<RefSetup>,
+}
+
+/// The reference file of a run and the axes that must be referenced before anything moves.
+#[derive(Clone, Debug)]
+pub struct RefSetup {
+    /// None: no state directory, so nothing is referenced.
+    pub file: Option<crate::reference::ReferenceFile>,
+    pub required: Vec<String>,
+}
+
+impl RefSetup {
+    /// For a run of `cfg` with state in `state` (None when no axis has `homing`).
+    pub fn new(cfg: &MachineConfig, state: Option<&crate::persist::StatePlace>) -> Option<RefSetup> {
+        cfg.axes
+            .values()
+            .any(|a| a.homing.is_some())
+            .then(|| RefSetup { file: state.map(|s| s.reference()), required: crate::reference::required(cfg) })
+    }
+}
+
+/// Each drive's axis name, position and the tolerance the reference check allows it.
+fn drive_positions(lp: &CycleLoop, cfg: &MachineConfig) -> Vec<(String, f64, f64)> {
+    (0..lp.drives.axis_count())
+        .map(|d| {
+            let name = lp.drives.axis_name(d).to_string();
+            // A drive at rest holds within its window; one that counted afresh from power-on
+            // is off by where it stood (a coincidence within 0.1 mm is not caught).
+            let tol = cfg.axes.get(&name).map_or(0.01, |a| a.following_error.abs().min(0.1).max(1.0 / a.counts_per_unit.abs().max(1e-9)));
+            (name, lp.drives.feedback(d).pos, tol)
+        })
+        .collect()
+}
+
+/// At start (drives up, nothing moved): drop the references the drives' positions belie,
+/// then alarm 224 if an axis that needs one has none.
+fn reference_at_start(lp: &CycleLoop, cfg: &MachineConfig, r: Option<&RefSetup>) -> Result<(), crate::Alarm> {
+    let Some(r) = r else { return Ok(()) };
+    let here = drive_positions(lp, cfg);
+    let table = match &r.file {
+        Some(f) => f.update(|t| {
+            for n in t.check_start(&here) {
+                eprintln!("cncgw: {n}");
+            }
+        })?,
+        None => crate::reference::Table::default(),
+    };
+    table.check(cfg, &r.required)
+}
+
+/// At the end: the references the bus saw lost (a drive rebooted, an encoder fault) are
+/// dropped; the others remember where the axes stand.
+fn reference_at_end(lp: &CycleLoop, cfg: &MachineConfig, r: Option<&RefSetup>) {
+    let Some(f) = r.and_then(|r| r.file.as_ref()) else { return };
+    let here = drive_positions(lp, cfg);
+    let lost: Vec<(String, String)> =
+        (0..lp.drives.axis_count()).filter_map(|d| lp.drives.position_lost(d).map(|w| (lp.drives.axis_name(d).to_string(), w))).collect();
+    let r = f.update(|t| {
+        for (axis, why) in &lost {
+            if let Some(n) = t.lose(axis, &format!("its drive {why}")) {
+                eprintln!("cncgw: {n}");
+            }
+        }
+        t.update_positions(&here);
+    });
+    if let Err(a) = r {
+        eprintln!("{a}");
+    }
 }
 
 /// Append `a` to the run's alarm history, if it keeps one (a failure to write it is said,
@@ -220,6 +290,7 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, files: RunFiles, m
             rt: rt.resolve(&cfg.rt),
             tap: tap_file.map(|f| TapSetup { file: f.path, loaded: tap_state }),
             history: state.as_ref().map(|s| s.alarm_history()),
+            reference: RefSetup::new(&cfg, state.as_ref()),
         },
         operator: None,
         pace: op.realtime,
@@ -553,7 +624,8 @@ fn execute(
             return (EXIT_SETUP, None, summary);
         }
     };
-    if let Err(a) = checks_before_motion(&mut lp, &job, cfg, &interp, start_pos) {
+    let checked = reference_at_start(&lp, cfg, extras.reference.as_ref()).and_then(|()| checks_before_motion(&mut lp, &job, cfg, &interp, start_pos));
+    if let Err(a) = checked {
         lp.finish();
         summary.rest.at_rest = true; // nothing was moved
         if opts.print_summary {
@@ -591,6 +663,7 @@ fn execute(
     let (r, vars) = feed.run(&mut lp, start, &mut summary, &mut |p| display.show(p), opts.live);
     display.close();
     lp.finish();
+    reference_at_end(&lp, cfg, extras.reference.as_ref());
     let tap_failed = close_writers(&mut lp, tap_writer);
     let code = outcome(r, &summary, opts, &job.name);
     (if tap_failed && code == EXIT_OK { EXIT_SETUP } else { code }, vars, summary)

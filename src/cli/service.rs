@@ -267,14 +267,13 @@ fn with_started(s: &mut Session, node: u8, f: impl FnOnce(&mut Session) -> Resul
     pos.map(|c| c as f64 / cpu).map_err(|e| format!("node {node}: reading the position 0x6064 failed: {e}"))
 }
 
-/// The homing methods the command offers (those the master's homing walk handles).
+/// The homing methods CiA 402 defines (the drive refuses those it has not: 0x6098's abort).
 pub fn parse_method(s: &str) -> Result<i8, String> {
-    match s.trim() {
-        "35" => Ok(35),
-        "37" => Ok(37),
-        "17" => Ok(17),
-        "18" => Ok(18),
-        _ => Err(format!("homing method {s} is not offered: use 35 or 37 (here), 17 (negative limit switch) or 18 (positive)")),
+    match s.trim().parse::<i8>() {
+        Ok(m) if crate::config::homing_method_defined(m) => Ok(m),
+        _ => Err(format!(
+            "homing method {s} is not a CiA 402 method: 35 or 37 (here), 17 / 18 (negative / positive limit switch), 1–14 (switches and index pulse), 33 / 34 (index pulse); the drive's manual says which it has"
+        )),
     }
 }
 
@@ -325,28 +324,12 @@ pub fn drive_home(machine: &MachineArgs, node: u8, h: &HomeArgs, yes: bool) -> i
         eprintln!("error: node {node} is not a drive of the configuration; homing needs its scaling (`cncgw config check` lists the axes)");
         return EXIT_USAGE;
     };
-    let Some(ax) = s.cfg.axes.get(&spec.axis).cloned() else {
-        eprintln!("error: axis {} is not in the configuration", spec.axis);
-        return EXIT_SETUP;
-    };
-    let fast = per_s(spec.spindle, h.switch_speed.unwrap_or(ax.max_speed / 20.0));
-    let slow = per_s(spec.spindle, h.zero_speed.unwrap_or(ax.max_speed / 100.0));
-    let accel = if spec.spindle { ax.max_accel * 6.0 } else { ax.max_accel };
-    let offset = (h.offset * spec.counts_per_unit).round();
-    if !offset.is_finite() || offset.abs() > i32::MAX as f64 {
-        eprintln!("error: home offset {} is out of the drive's range", h.offset);
+    if let Err(e) = home_params(&s, node, h) {
+        eprintln!("error: {e}");
         return EXIT_USAGE;
     }
-    if !(h.timeout.is_finite() && h.timeout > 0.0) {
-        eprintln!("error: --timeout must be a positive number of seconds");
-        return EXIT_USAGE;
-    }
-    let timeout_ms = (h.timeout * 1000.0) as u64;
     let method = h.method;
-    let r = with_started(&mut s, node, |s| {
-        s.master.sdo_write(&mut *s.clock, node, 0x607C, 0, &(offset as i32).to_le_bytes())?;
-        s.master.home(&mut *s.clock, node, method, fast, slow, accel, timeout_ms)
-    });
+    let r = with_started(&mut s, node, |s| home_node(s, node, h).map_err(|e| crate::Alarm::new(crate::alarm::HOMING, e)));
     match r {
         Ok(pos) => {
             println!(
@@ -354,6 +337,7 @@ pub fn drive_home(machine: &MachineArgs, node: u8, h: &HomeArgs, yes: bool) -> i
                 spec.axis,
                 if spec.spindle { "deg" } else { "mm" }
             );
+            super::home::record_drive_home(machine, &spec.axis, node, method, pos);
             EXIT_OK
         }
         Err(e) => {
@@ -361,6 +345,32 @@ pub fn drive_home(machine: &MachineArgs, node: u8, h: &HomeArgs, yes: bool) -> i
             EXIT_NODE
         }
     }
+}
+
+/// The homing of `node` in the master's units: (switch speed, zero speed, acceleration in
+/// units/s and units/s², home offset in counts, timeout ms).
+fn home_params(s: &Session, node: u8, h: &HomeArgs) -> Result<(f64, f64, f64, i32, u64), String> {
+    let spec = s.master.node_spec(node).ok_or_else(|| format!("node {node} is not a drive of the configuration"))?;
+    let ax = s.cfg.axes.get(&spec.axis).ok_or_else(|| format!("axis {} is not in the configuration", spec.axis))?;
+    let fast = per_s(spec.spindle, h.switch_speed.unwrap_or(ax.max_speed / 20.0));
+    let slow = per_s(spec.spindle, h.zero_speed.unwrap_or(ax.max_speed / 100.0));
+    let accel = ax.homing.as_ref().and_then(|c| c.accel).unwrap_or(ax.max_accel);
+    let accel = if spec.spindle { accel * 6.0 } else { accel };
+    let offset = (h.offset * spec.counts_per_unit).round();
+    if !offset.is_finite() || offset.abs() > i32::MAX as f64 {
+        return Err(format!("home offset {} is out of the drive's range", h.offset));
+    }
+    if !(h.timeout.is_finite() && h.timeout > 0.0) {
+        return Err("--timeout must be a positive number of seconds".into());
+    }
+    Ok((fast, slow, accel, offset as i32, (h.timeout * 1000.0) as u64))
+}
+
+/// Home `node` of a started session (0x607C written, then the master's homing walk).
+pub fn home_node(s: &mut Session, node: u8, h: &HomeArgs) -> Result<(), String> {
+    let (fast, slow, accel, offset, timeout_ms) = home_params(s, node, h)?;
+    s.master.sdo_write(&mut *s.clock, node, 0x607C, 0, &offset.to_le_bytes()).map_err(|a| a.to_string())?;
+    s.master.home(&mut *s.clock, node, h.method, fast, slow, accel, timeout_ms).map_err(|a| a.to_string())
 }
 
 /// `cncgw jog AXIS --to POS | --by DIST`.

@@ -88,4 +88,9 @@ pub trait DriveBus {
     fn following_window(&self, _axis: usize) -> Option<f64> {
         None
     }
+    /// Why `axis`'s position can no longer be trusted, if the bus saw it (CANopen: a boot-up
+    /// message it did not cause, an encoder EMCY 0x73xx): its reference is lost.
+    fn position_lost(&self, _axis: usize) -> Option<String> {
+        None
+    }
 }

@@ -130,4 +130,8 @@ impl DriveBus for MultiBus<'_> {
         let (p, i) = self.map[axis];
         self.parts[p].following_window(i)
     }
+    fn position_lost(&self, axis: usize) -> Option<String> {
+        let (p, i) = self.map[axis];
+        self.parts[p].position_lost(i)
+    }
 }

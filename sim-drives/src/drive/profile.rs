@@ -13,6 +13,14 @@
 //! it releases becomes 0x607C; ramps on 0x609A. Bits 13/12/10 = error / attained / reached
 //! as CiA 402 tabulates them. The limit switches are emulated at the positions of 0x2101
 //! (physical counts, i.e. before any homing shift) and show in 0x60FD bits 0/1.
+//!
+//! Approximately the other CiA 402 methods: 19–30 the home switch (0x2101:3, active at and
+//! above that position: its edge is home, reached from below whichever side the axis
+//! starts), 1–14 the same switches followed by the next index pulse (one every 0x2101:4
+//! counts of physical position, the encoder's once-per-revolution mark) in the direction
+//! the switch was left, 33 / 34 the next index pulse moving negative / positive. The
+//! coordinate a homing sets is lost with an NMT reset node (the application restarts; an
+//! incremental encoder counts afresh from where it stands).
 
 use super::SimDrive;
 use crate::servo::Command;
@@ -25,10 +33,13 @@ pub(super) const PROFILE_ACCEL: u16 = 0x6083;
 pub(super) const DIGITAL_INPUTS: u16 = 0x60FD;
 /// Manufacturer record: emulated limit switches (hardware: they survive an NMT reset).
 /// Sub 1: negative limit switch, active at or below this position; sub 2: positive, at or
-/// above. Physical counts (the power-on coordinate); i32::MIN / i32::MAX = not fitted.
+/// above; sub 3: home switch, active at or above. Physical counts (the power-on
+/// coordinate); i32::MIN / i32::MAX = not fitted. Sub 4: index pulse period, counts.
 pub const SIM_SWITCHES: u16 = 0x2101;
 /// Homing methods this drive implements.
-pub const HOMING_METHODS: [i64; 5] = [0, 17, 18, 35, 37];
+pub fn homing_method_supported(m: i64) -> bool {
+    matches!(m, 0..=14 | 17..=30 | 33..=35 | 37)
+}
 
 #[derive(Clone, Copy, Debug)]
 enum Goal {
@@ -84,13 +95,30 @@ fn approach(v: f64, to: f64, dv: f64) -> f64 {
 enum Phase {
     SearchSwitch,
     LeaveSwitch,
+    /// Moving on (at 0x6099:2, in this direction) to the next index pulse, last seen in
+    /// period `k`.
+    SeekIndex {
+        dir: f64,
+        k: i64,
+    },
     /// Home found; ramping down.
     Stopping,
 }
 
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Switch {
+    Neg,
+    Pos,
+    Home,
+}
+
 #[derive(Clone, Copy, Debug)]
 struct Homing {
-    method: i8,
+    switch: Option<Switch>,
+    /// The direction searching the switch (the switch is left the other way).
+    dir: f64,
+    /// Whether an index pulse follows the switch.
+    index: bool,
     phase: Phase,
 }
 
@@ -128,6 +156,30 @@ impl Prof {
 impl SimDrive {
     fn physical(&self) -> f64 {
         self.servo.position_counts() as f64 - self.prof.shift
+    }
+
+    fn switch_on(&self, w: Switch) -> bool {
+        let (n, p) = self.switches();
+        match w {
+            Switch::Neg => n,
+            Switch::Pos => p,
+            Switch::Home => {
+                let h = self.od.int(SIM_SWITCHES, 3);
+                h != i32::MAX as i64 && self.physical() >= h as f64
+            }
+        }
+    }
+
+    fn index_period(&self) -> f64 {
+        (self.od.int(SIM_SWITCHES, 4) as f64).max(1.0)
+    }
+
+    /// The NMT reset node restarted the application: the coordinate of the last homing is
+    /// gone (the position is the physical count again) and so is its result.
+    pub(super) fn forget_homing(&mut self) {
+        let delta = -self.prof.shift;
+        self.shift_coords(delta);
+        self.prof = Prof::default();
     }
 
     /// (negative, positive) limit switch active.
@@ -202,32 +254,51 @@ impl SimDrive {
         let method = self.od.int(ix::HOMING_METHOD, 0) as i8;
         self.prof.traj = None;
         self.prof.homed = None;
-        match method {
-            35 | 37 => self.set_home(),
-            17 | 18 => {
-                let (neg, pos) = (self.od.int(SIM_SWITCHES, 1), self.od.int(SIM_SWITCHES, 2));
-                let fitted = if method == 17 { neg != i32::MIN as i64 } else { pos != i32::MAX as i64 };
-                if !fitted {
-                    // A real axis would run into its hard stop; this one reports it.
-                    tracing::warn!(node = self.cfg.node, "homing method {method}: no limit switch fitted (0x2101)");
-                    self.prof.homed = Some(false);
-                    return;
-                }
-                self.prof.homing = Some(Homing { method, phase: Phase::SearchSwitch });
-                self.prof.traj = Some(Traj { pos: self.demand, v: 0.0, goal: Goal::Velocity(0.0) });
-            }
+        let (switch, dir, index) = match method {
+            35 | 37 => return self.set_home(),
+            1 | 17 => (Some(Switch::Neg), -1.0, method == 1),
+            2 | 18 => (Some(Switch::Pos), 1.0, method == 2),
+            3..=14 | 19..=30 => (Some(Switch::Home), 1.0, method <= 14),
+            33 | 34 => (None, if method == 33 { -1.0 } else { 1.0 }, true),
             _ => {
                 tracing::warn!(node = self.cfg.node, "homing method {method} not supported");
                 self.prof.homed = Some(false);
+                return;
             }
+        };
+        let sub = match switch {
+            Some(Switch::Neg) => 1,
+            Some(Switch::Pos) => 2,
+            Some(Switch::Home) => 3,
+            None => 0,
+        };
+        let unfitted = if sub == 1 { i32::MIN as i64 } else { i32::MAX as i64 };
+        if sub != 0 && self.od.int(SIM_SWITCHES, sub) == unfitted {
+            // A real axis would run into its hard stop; this one reports it.
+            tracing::warn!(node = self.cfg.node, "homing method {method}: no switch fitted (0x2101:{sub})");
+            self.prof.homed = Some(false);
+            return;
         }
+        let phase = match switch {
+            None => Phase::SeekIndex { dir, k: (self.physical() / self.index_period()).floor() as i64 },
+            Some(w) if w == Switch::Home && self.switch_on(w) => Phase::LeaveSwitch,
+            Some(_) => Phase::SearchSwitch,
+        };
+        self.prof.homing = Some(Homing { switch, dir, index, phase });
+        self.prof.traj = Some(Traj { pos: self.demand, v: 0.0, goal: Goal::Velocity(0.0) });
     }
 
     /// The present position becomes the home offset 0x607C.
     fn set_home(&mut self) {
         let offset = self.od.int(HOME_OFFSET, 0) as f64;
         let here = self.servo.position_counts() as f64;
-        let delta = offset - here;
+        self.shift_coords(offset - here);
+        self.prof.homed = Some(true);
+        tracing::info!(node = self.cfg.node, "homed: position set to {offset} counts");
+    }
+
+    /// Move the coordinate system by `delta` counts (the axis stays where it is).
+    fn shift_coords(&mut self, delta: f64) {
         self.servo.set_position(self.servo.position_counts() as f64 + delta);
         self.prof.shift += delta;
         self.demand += delta;
@@ -238,8 +309,6 @@ impl SimDrive {
         }
         self.target_ref = None;
         self.prof.last_target = None;
-        self.prof.homed = Some(true);
-        tracing::info!(node = self.cfg.node, "homed: position set to {offset} counts");
     }
 
     /// One control tick in mode 1 or 6 (enabled, no stop under way).
@@ -252,14 +321,20 @@ impl SimDrive {
             (self.od.int(PROFILE_VELOCITY, 0) as f64, self.od.int(PROFILE_ACCEL, 0) as f64, self.od.int(super::PROFILE_DECEL, 0) as f64)
         };
         if let Some(h) = self.prof.homing {
-            let (neg, pos) = self.switches();
-            let on = if h.method == 17 { neg } else { pos };
-            let dir = if h.method == 17 { -1.0 } else { 1.0 };
+            let on = h.switch.is_some_and(|w| self.switch_on(w));
+            let dir = h.dir;
             let fast = self.od.int(ix::HOMING_SPEEDS, 1) as f64;
             let slow = self.od.int(ix::HOMING_SPEEDS, 2) as f64;
+            let period = self.index_period();
+            let k_now = (self.physical() / period).floor() as i64;
             let phase = match h.phase {
                 Phase::SearchSwitch if on => Phase::LeaveSwitch,
+                Phase::LeaveSwitch if !on && h.index => Phase::SeekIndex { dir: -dir, k: k_now },
                 Phase::LeaveSwitch if !on => {
+                    self.set_home();
+                    Phase::Stopping
+                }
+                Phase::SeekIndex { k, .. } if k != k_now => {
                     self.set_home();
                     Phase::Stopping
                 }
@@ -268,6 +343,7 @@ impl SimDrive {
             let goal = match phase {
                 Phase::SearchSwitch => Goal::Velocity(dir * fast),
                 Phase::LeaveSwitch => Goal::Velocity(-dir * slow),
+                Phase::SeekIndex { dir, .. } => Goal::Velocity(dir * slow),
                 Phase::Stopping => Goal::Velocity(0.0),
             };
             if let Some(t) = self.prof.traj.as_mut() {

@@ -226,6 +226,9 @@ struct Node {
     tpdo_at: fixed_pdo::TpdoLayout,
     /// How start-up set the drive up, for the log line and `cncgw scan`-like reports.
     chosen: Chosen,
+    /// Why the drive's position can no longer be trusted since start-up (a boot-up message
+    /// the master did not cause, an encoder EMCY): its reference is lost (`reference`).
+    position_lost: Option<String>,
 }
 
 /// What start-up chose for a drive and why, logged once per drive.
@@ -241,6 +244,7 @@ impl Node {
             sdo: SdoClient::new(spec.node, sdo_timeout_ms),
             spec,
             booted: false,
+            position_lost: None,
             nmt: None,
             last_hb_ns: 0,
             status: 0,
@@ -589,6 +593,11 @@ impl<B: CanBus> CanOpenMaster<B> {
         if let Some((_, st)) = decode_heartbeat(f).filter(|_| by_tpdo.is_none()) {
             let n = &mut self.nodes[i];
             if st == NmtState::BootUp {
+                // A second boot-up with no reset of ours in between: the drive rebooted
+                // (power, watchdog, its own reset) and its position starts afresh.
+                if n.booted && n.position_lost.is_none() {
+                    n.position_lost = Some("it sent a boot-up message (0x700 + id, 0x00): it rebooted".into());
+                }
                 n.booted = true;
                 n.have_fb = false;
             }
@@ -597,6 +606,10 @@ impl<B: CanBus> CanOpenMaster<B> {
             return;
         }
         if let Some((_, e)) = Emcy::decode(f).filter(|_| by_tpdo.is_none()) {
+            if (0x7300..=0x73FF).contains(&e.code) && self.nodes[i].position_lost.is_none() {
+                // CiA 402 0x73xx: sensor (encoder) fault: the position is lost.
+                self.nodes[i].position_lost = Some(format!("EMCY 0x{:04X} {}: an encoder fault", e.code, error_text(e.code)));
+            }
             self.nodes[i].last_emcy = if e.code == 0 { None } else { Some(e) };
             if e.code != 0 {
                 tracing::warn!(node, code = format!("0x{:04X}", e.code), "EMCY: {}", error_text(e.code));
@@ -1937,6 +1950,10 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
 
     fn axis_count(&self) -> usize {
         self.nodes.len()
+    }
+
+    fn position_lost(&self, axis: usize) -> Option<String> {
+        self.nodes.get(axis).and_then(|n| n.position_lost.clone())
     }
 
     fn isolate_faults(&mut self, on: bool) -> bool {
