@@ -104,8 +104,7 @@ fn a_sparse_map_runs_with_none_and_contiguous_reads() {
 #[test]
 fn the_link_cycle_follows_the_drives_interpolation_period() {
     let flag = Arc::new(AtomicBool::new(false));
-    let srv =
-        tcp_server(MODBUS_LATHE, |n| sim_drives::ModbusQuirks { interpolation_grid_ms: if n == 2 { 4 } else { 0 }, ..realistic(n) }, &flag);
+    let srv = tcp_server(MODBUS_LATHE, |n| sim_drives::ModbusQuirks { interpolation_grid_ms: if n == 2 { 4 } else { 0 }, ..realistic(n) }, &flag);
     let machine = on(MODBUS_LATHE, srv.local_addr().unwrap()).replace("\ntimeout_ms = 20 ", "\ncycle_ms = 5\ntimeout_ms = 20 ");
     let cfg = write("grid.toml", &machine);
     let prog = write("grid.nc", "O1\nG21\nG98\nG01 X10 Z-2 F600\nM30\n");
@@ -162,7 +161,7 @@ fn config_check_bus_reads_the_map_from_sim_drives() {
     let o = cncgw(&["config", "check", shipped, "--bus", &bus]);
     let t = text(&o);
     assert_eq!(o.status.code(), Some(1), "{t}");
-    assert!(t.contains("live: axis x (unit 1, cia402_map) on Modbus TCP"), "{t}");
+    assert!(t.contains("live: axis x (unit 1, cia402 map) on Modbus TCP"), "{t}");
     assert!(t.contains("12 register(s) read, 7 written back, none failed"), "x and the spindle have every register: {t}");
     assert!(
         t.contains("axis z (unit 2): interpolation_ms (register 20 = 0x0014, 1 register): cannot read: unit 2: exception 0x02 (Illegal data address) reading register 20 (1); so not written back — optional: if the drive has no such register, set interpolation_ms = \"none\" in [axes.z.cia402_map]"),
@@ -218,7 +217,10 @@ fn config_check_bus_finds_the_registers_a_pymodbus_drive_lacks() {
     let t = text(&o);
     assert_eq!(o.status.code(), Some(1), "{t}");
     for (axis, unit) in [("x", 1), ("z", 2), ("s1", 3)] {
-        assert!(t.contains(&format!("live: axis {axis} (unit {unit}, cia402_map) on Modbus TCP {addr}: 10 register(s) read, 5 written back, 2 failed:")), "{t}");
+        assert!(
+            t.contains(&format!("live: axis {axis} (unit {unit}, cia402 map) on Modbus TCP {addr}: 10 register(s) read, 5 written back, 2 failed:")),
+            "{t}"
+        );
         assert!(t.contains(&format!("axis {axis} (unit {unit}): interpolation_ms (register 20 = 0x0014, 1 register): cannot read: unit {unit}: exception 0x02 (Illegal data address)")), "{t}");
         assert!(t.contains(&format!("axis {axis} (unit {unit}): following_error_window (register 21 = 0x0015, 2 registers): cannot read")), "{t}");
     }

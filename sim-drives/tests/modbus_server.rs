@@ -467,7 +467,7 @@ async fn scheduled_faults_show_in_the_error_code() {
         sim_drives::modbus::serve_tcp_with_faults("127.0.0.1:0".parse().unwrap(), SimConfig::default_lathe(), vec![fault], stop.clone()).unwrap();
     let s = Srv { addr: srv.local_addr().unwrap(), srv: Some(srv), stop };
     let mut c = s.client(2).await;
-    let before = read(&mut c, M.error_code, 1).await[0];
+    let before = read(&mut c, M.error_code.unwrap(), 1).await[0];
     // (A loaded machine may have taken the 300 ms already.)
     if t0.elapsed() < Duration::from_millis(250) {
         assert_eq!(before, 0);

@@ -22,7 +22,7 @@ impl Finding {
     pub fn line(&self, map: &str) -> String {
         let r = &self.register;
         let hint = if r.optional {
-            format!(" — optional: if the drive has no such register, set {} = \"none\" in [axes.{}.{map}]", r.name, self.axis)
+            format!(" — optional: if the drive has no such register, set {} = \"none\" in [axes.{}.{map}_map]", r.name, self.axis)
         } else {
             String::new()
         };
@@ -86,8 +86,8 @@ impl AxisCheck {
 
 fn registers(a: &AxisConfig) -> (&'static str, Vec<MapRegister>) {
     match a.modbus_profile {
-        Profile::Cia402 => ("cia402_map", a.cia402_map.unwrap_or_default().registers()),
-        Profile::Pr => ("pr_map", a.pr_map.unwrap_or_default().registers()),
+        Profile::Cia402 => ("cia402", a.cia402_map.unwrap_or_default().registers()),
+        Profile::Pr => ("pr", a.pr_map.unwrap_or_default().registers()),
     }
 }
 
@@ -106,16 +106,11 @@ fn write_back(r: &MapRegister, read: Option<&[u16]>) -> Option<Vec<u16>> {
 /// Try every register of one axis.
 fn check_axis(c: &mut Client, name: &str, a: &AxisConfig) -> AxisCheck {
     let (map, regs) = registers(a);
-    let mut out =
-        AxisCheck { axis: name.into(), unit: a.node, map, link: c.what.clone(), read: 0, written: 0, findings: Vec::new(), error: None };
+    let mut out = AxisCheck { axis: name.into(), unit: a.node, map, link: c.what.clone(), read: 0, written: 0, findings: Vec::new(), error: None };
     for r in regs {
         let finding = |what: String| Finding { axis: name.into(), unit: a.node, register: r, what };
         // The alarm reset is a command register: many drives cannot read it.
-        let read = if r.name == "alarm_reset" {
-            Ok(None)
-        } else {
-            c.read(a.node, r.addr, r.len).map(Some)
-        };
+        let read = if r.name == "alarm_reset" { Ok(None) } else { c.read(a.node, r.addr, r.len).map(Some) };
         let read = match read {
             Ok(v) => {
                 out.read += v.is_some() as usize;

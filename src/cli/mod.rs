@@ -1109,6 +1109,9 @@ fn config_check(file: Option<&std::path::Path>, json: bool, bus: Option<&str>) -
         }
     }
     let live_failed = live.iter().flatten().any(|a| a.error.is_some() || !a.findings.is_empty());
+    if live_failed && !json {
+        println!("  the live drives do not have the registers listed above: run would stop at start-up; fix the maps (docs/MODBUS_MAPS.md)");
+    }
     if live_failed {
         exit::NOT_MET
     } else if problems.is_empty() {
