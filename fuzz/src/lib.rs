@@ -308,7 +308,8 @@ fn modbus_map(data: &[u8]) {
     let order = if flags & 1 == 0 { modbus::WordOrder::HighFirst } else { modbus::WordOrder::LowFirst };
     // The same bytes as before the split reads and the optional registers: the corpus
     // stays meaningful; 0xFFFF is an optional register's "none".
-    let reads = [modbus::ReadBlocks::Auto, modbus::ReadBlocks::Span, modbus::ReadBlocks::Contiguous, modbus::ReadBlocks::Single][(flags as usize >> 1) & 3];
+    let reads =
+        [modbus::ReadBlocks::Auto, modbus::ReadBlocks::Span, modbus::ReadBlocks::Contiguous, modbus::ReadBlocks::Single][(flags as usize >> 1) & 3];
     let opt = |v: u16| (v != u16::MAX).then_some(v);
     let cia = modbus::Cia402Map {
         controlword: b.u16(),

@@ -140,6 +140,33 @@ impl LinkSpec {
         (self.rtu_cycle_s() * RTU_MARGIN * 1e3).ceil().max((self.machine_cycle.as_secs_f64() * 1e3).ceil())
     }
 
+    /// RTU: when each drive's exchange starts in a link cycle, from its start: the line
+    /// time of the drives before it × `RTU_MARGIN` (the cycle has that margin over the
+    /// whole line time, so the last drive still ends within it). TCP: none (0).
+    pub fn rtu_write_offsets(&self) -> Vec<Duration> {
+        if self.cfg.transport != LinkTransport::Rtu {
+            return Vec::new();
+        }
+        let t = self.serial_timing();
+        let turn = self.cfg.turnaround_ms * 1e-3;
+        let mut at = 0.0;
+        self.drives
+            .iter()
+            .map(|d| {
+                let start = Duration::from_secs_f64(at * RTU_MARGIN);
+                at += d
+                    .cyclic
+                    .iter()
+                    .map(|x| {
+                        let (rq, rs) = x.rtu_bytes();
+                        t.transaction_s(rq, rs, turn)
+                    })
+                    .sum::<f64>();
+                start
+            })
+            .collect()
+    }
+
     pub fn transactions_per_cycle(&self) -> usize {
         self.drives.iter().map(|d| d.cyclic.len()).sum()
     }
@@ -452,8 +479,11 @@ impl LinkIo {
         match r {
             Err(_) => Err(Other(TxError::Transport(format!("{}: no answer within {} ms", what(), self.spec.cfg.timeout_ms)))),
             Ok(Err(e)) => {
-                if matches!(e, tokio_modbus::Error::Transport(_)) {
-                    self.ctx = None; // a broken connection: reconnect
+                // A broken connection; or on TCP an answer out of step (a late one that
+                // came after the drain, with the next one possibly buffered in the framing,
+                // out of the drain's reach): reconnect — a new connection starts in step.
+                if matches!(e, tokio_modbus::Error::Transport(_)) || self.spec.cfg.transport == LinkTransport::Tcp {
+                    self.ctx = None;
                     self.line = None;
                 }
                 Err(Other(TxError::Transport(format!("{}: {e}", what()))))
@@ -647,7 +677,19 @@ impl LinkIo {
     /// One exchange with every drive; an exception goes to `Shared::alarm`.
     /// `sched`: the instant this cycle was scheduled for (the set-points are for it).
     fn cycle_once(&mut self, s: &SharedLink, sched: Instant) {
+        let offsets = self.spec.rtu_write_offsets();
         for d in 0..self.spec.drives.len() {
+            // RTU: each drive's exchange starts at its fixed offset in the cycle, so that the
+            // drive receives its set-point one link cycle after the last one, not whenever
+            // the answers of the drives before it happened to end: a CSP drive interpolates
+            // from the receipt, and a spindle at 1500 rpm turns 9° per ms of jitter (its 30°
+            // window tripped on RTU). Its set-point is then taken and extrapolated for that
+            // instant.
+            let sched = sched + offsets.get(d).copied().unwrap_or_default();
+            let now = Instant::now();
+            if sched > now {
+                std::thread::sleep(sched - now);
+            }
             let cmd = match s.0.lock() {
                 Ok(g) => g.slots[d].command,
                 Err(_) => return,
