@@ -133,20 +133,33 @@ fn fault_reaction_active_stops_the_others_at_once() {
     let prog = write("fra.nc", "O1\nG21\nG98 G97\nM03 S3000\nG04 X0.6\nG01 Z-60 F1200\nM05\nM30\n");
     let (watch, done) = (srv.clone(), Arc::new(AtomicBool::new(false)));
     let d2 = done.clone();
-    // Z where the spindle is first seen in Fault Reaction Active.
+    // Z where the spindle is first seen in Fault Reaction Active, and Z's target (what cncgw
+    // writes) from then on, every 100 µs.
     let sampler = std::thread::spawn(move || {
+        let target = |w: &sim_drives::modbus::ModbusServer| w.with_drive(2, |d| d.object(0x607A, 0).unwrap_or(0)).unwrap();
+        let mut before = std::collections::VecDeque::new();
         while !d2.load(Ordering::Relaxed) {
             let (st, z) = (watch.with_drive(3, |d| d.state()).unwrap(), watch.with_drive(2, |d| d.position_unwrapped()).unwrap());
-            if st == cncgw_bus::cia402::State::FaultReactionActive {
-                return Some(z);
+            before.push_back((std::time::Instant::now(), target(&watch)));
+            if before.len() > 200 {
+                before.pop_front();
             }
-            std::thread::sleep(std::time::Duration::from_micros(200));
+            if st == cncgw_bus::cia402::State::FaultReactionActive {
+                let t0 = std::time::Instant::now();
+                let mut after = Vec::new();
+                while t0.elapsed() < std::time::Duration::from_millis(100) {
+                    after.push((t0.elapsed(), target(&watch)));
+                    std::thread::sleep(std::time::Duration::from_micros(100));
+                }
+                return Some((z, before, after));
+            }
+            std::thread::sleep(std::time::Duration::from_micros(100));
         }
         None
     });
     let o = cncgw(&["run", "--json", "--config", &cfg, &prog]);
     done.store(true, Ordering::Relaxed);
-    let z_at_fault = sampler.join().unwrap().expect("the spindle never was in Fault Reaction Active");
+    let (z_at_fault, before, after) = sampler.join().unwrap().expect("the spindle never was in Fault Reaction Active");
     let t = text(&o);
     assert_eq!(o.status.code(), Some(3), "{t}");
     assert!(t.contains("alarm 2010") && t.contains("axis s1") && t.contains("Fault Reaction Active"), "{t}");
@@ -154,7 +167,21 @@ fn fault_reaction_active_stops_the_others_at_once() {
     // 20 mm/s: the link cycle, two machine cycles and the braking distance are < 0.5 mm; a
     // fault seen only at Fault is a second of machining later (20 mm).
     let travel = (z - z_at_fault).abs() as f64 / 10_000.0;
-    eprintln!("Z travelled {travel:.3} mm after the spindle entered Fault Reaction Active");
+    // When the set-points cncgw writes to Z began to brake: Z's target speed (over 4 ms)
+    // below 90 % of its speed before the fault.
+    let (t_first, c_first) = (before.front().unwrap().0, before.front().unwrap().1);
+    let (t_last, c_last) = (before.back().unwrap().0, before.back().unwrap().1);
+    let v0 = (c_last - c_first) as f64 / (t_last - t_first).as_secs_f64();
+    let braking = after
+        .iter()
+        .zip(after.iter().skip_while(|(dt, _)| dt.as_micros() < 4000))
+        .find(|((t1, c1), (t2, c2))| ((c2 - c1) as f64 / (*t2 - *t1).as_secs_f64()).abs() < 0.9 * v0.abs())
+        .map(|(_, (t2, _))| t2.as_secs_f64() * 1e3);
+    eprintln!(
+        "Z at {:.1} mm/s travelled {travel:.3} mm after the spindle entered Fault Reaction Active; its set-points were braking {} ms after (4 ms window)",
+        v0 / 10_000.0,
+        braking.map_or("(not seen)".into(), |b| format!("{b:.1}"))
+    );
     assert!(travel < 0.5, "Z went on {travel:.3} mm after the spindle faulted: {t}");
     // The others came to rest under control (no quick stop of every drive).
     assert_eq!(summary(&o)["rest"]["quick_stop"], false, "{t}");
@@ -379,21 +406,118 @@ fn a_link_that_falls_behind_its_cycle_is_an_alarm_naming_the_figures() {
 
 /// Issue 22, "done means" (TCP, CiA 402 map): examples/first_part.nc with the shipped
 /// config and windows against drives that latch targets at any time and power up away from
-/// 0 ends within one count of its end point (X100 Z5: 500 000 and 50 000 counts).
+/// 0 ends within one count of its end point (X100 Z5: 500 000 and 50 000 counts), its G99
+/// facing move within 2 % of its feed per revolution.
 #[test]
 fn first_part_ends_within_one_count_on_realistic_drives_over_tcp() {
     let flag = Arc::new(AtomicBool::new(false));
     let srv = tcp_server(MODBUS_LATHE, away_from_zero, &flag);
     let cfg = write("first.toml", &tcp_machine(srv.local_addr().unwrap()));
+    first_part_ends_on_its_end_point(&srv, &cfg);
+    stop(srv, &flag);
+}
+
+/// `machine` with its feed axes on the `pr` map (position-register blocks, the default map:
+/// 100 000 counts per motor revolution, as sim-drives' linear axes). The spindle stays a
+/// CiA 402 drive: a PR block per link cycle is a position stream, which a spindle at speed
+/// cannot follow within its window (the block's ramps are in ms to the drive's rated speed);
+/// Modbus spindles run on the cia402 map.
+fn pr_feed_axes(machine: &str) -> String {
+    let m = machine
+        .replace("node = 1                    # Modbus unit id", "node = 1\nmodbus_profile = \"pr\"")
+        .replace("node = 2\nmodbus = \"tcp\"", "node = 2\nmodbus = \"tcp\"\nmodbus_profile = \"pr\"");
+    assert_eq!(m.matches("modbus_profile = \"pr\"").count(), 2, "{m}");
+    m
+}
+
+/// `first_part.nc` with the config `cfg`: at its end point X100 Z5 (500 000
+/// and 50 000 counts) within one count, and the summary says so.
+fn first_part_ends_on_its_end_point(srv: &sim_drives::modbus::ModbusServer, cfg: &str) {
     let prog = concat!(env!("CARGO_MANIFEST_DIR"), "/examples/first_part.nc");
-    let o = cncgw(&["-v", "run", "--json", "--config", &cfg, prog]);
+    let trace = tmp(&format!("{}.csv", std::path::Path::new(cfg).file_stem().unwrap().to_string_lossy()));
+    let o = cncgw(&["-v", "run", "--json", "--config", cfg, "--trace", &trace.display().to_string(), prog]);
     let t = text(&o);
     assert!(o.status.success(), "{t}");
     let s = summary(&o);
     assert_eq!(s["at_program_end"], true, "{t}");
-    eprintln!("machining {:.1} s", s["machining_time_s"].as_f64().unwrap_or(0.0));
+    let feed = facing_feed_per_rev(&trace);
+    let _ = std::fs::remove_file(&trace);
+    eprintln!(
+        "machining {:.1} s; N90 G99 facing at {feed:.4} mm/rev for F0.15 ({:+.2} %); {}",
+        s["machining_time_s"].as_f64().unwrap_or(0.0),
+        (feed / 0.15 - 1.0) * 100.0,
+        t.lines().filter(|l| l.contains("link cycle") || l.contains("round trip")).collect::<Vec<_>>().join(" / ")
+    );
     let x = srv.with_drive(1, |d| d.position_unwrapped()).unwrap();
     let z = srv.with_drive(2, |d| d.position_unwrapped()).unwrap();
     assert!((x - 500_000).abs() <= 1 && (z - 50_000).abs() <= 1, "x at {x}, z at {z} counts: {t}");
+    // Feed per revolution on a Modbus spindle: within 2 % of the program's.
+    assert!((feed / 0.15 - 1.0).abs() < 0.02, "N90 faced at {feed:.4} mm/rev for F0.15: {t}");
+}
+
+/// The feed per revolution of first_part's N90 (X54 → X0 at F0.15 mm/rev, line 15) from a
+/// run's trace: X's actual travel (a radius) over the spindle's actual turns, over the middle
+/// 80 % of the block (its ramps left out).
+fn facing_feed_per_rev(trace: &std::path::Path) -> f64 {
+    let text = std::fs::read_to_string(trace).unwrap();
+    let mut lines = text.lines();
+    let cols: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let col = |n: &str| cols.iter().position(|c| *c == n).unwrap_or_else(|| panic!("no {n} in {cols:?}"));
+    let (line, x, s) = (col("line"), col("x_act"), col("s1_act"));
+    let rows: Vec<Vec<f64>> =
+        lines.map(|l| l.split(',').map(|v| v.parse().unwrap_or(f64::NAN)).collect::<Vec<f64>>()).filter(|r| r[line] == 15.0).collect();
+    assert!(rows.len() > 100, "N90 has {} trace rows", rows.len());
+    let (a, b) = (&rows[rows.len() / 10], &rows[rows.len() * 9 / 10]);
+    (a[x] - b[x]).abs() / ((b[s] - a[s]).abs() / 360.0)
+}
+
+/// Issue 22.5: a PR drive behind its set-points closes the gap (the block's speed comes from
+/// what the drive has left, not only the set-point's step, which is 0 at the end of a move:
+/// the remainder crawled at 1 rpm and first_part ended X 0.3 mm short).
+#[test]
+fn first_part_ends_within_one_count_on_the_pr_map_over_tcp() {
+    let flag = Arc::new(AtomicBool::new(false));
+    let machine = pr_feed_axes(MODBUS_LATHE);
+    let srv = tcp_server(&machine, away_from_zero, &flag);
+    let cfg = write("first-pr.toml", &pr_feed_axes(&tcp_machine(srv.local_addr().unwrap())));
+    first_part_ends_on_its_end_point(&srv, &cfg);
     stop(srv, &flag);
+}
+
+/// `machine` (a TCP one) on the RTU line `dev` at 115 200 baud, everything else as shipped.
+fn rtu_machine(machine: &str, dev: &str) -> String {
+    let m = machine.replace("transport = \"tcp\"\naddress = \"127.0.0.1:5020\"", &format!("transport = \"rtu\"\ndevice = \"{dev}\"\nbaud = 115200"));
+    assert_ne!(m, machine);
+    m
+}
+
+/// first_part.nc over RTU (a socat pty pair) against realistic drives serving `machine`.
+fn first_part_over_rtu(machine: &str, name: &str) {
+    if !testkit::have_socat() {
+        return;
+    }
+    let (_socat, a, b) = testkit::pty_pair();
+    let flag = Arc::new(AtomicBool::new(false));
+    let mut cfg = sim_drives::SimConfig::from_machine_toml_bus(machine, Some(true)).unwrap();
+    for d in &mut cfg.drives {
+        d.modbus_quirks = away_from_zero(d.node);
+    }
+    let srv = sim_drives::modbus::serve_rtu(&a, sim_drives::modbus::RtuLine::default(), cfg, flag.clone()).unwrap();
+    let cfg = write(name, &rtu_machine(machine, &b));
+    first_part_ends_on_its_end_point(&srv, &cfg);
+    stop(srv, &flag);
+}
+
+/// Issue 22, "done means" (RTU, CiA 402 map, shipped config and windows).
+#[test]
+#[ignore = "not met yet: the CSP spindle (1500 rpm) over the 45 ms RTU link cycle (26 ms with fc23) trips its shipped 30° window (alarm 2010, 0x8611) part-way; see the report of issue 22"]
+fn first_part_ends_within_one_count_on_realistic_drives_over_rtu() {
+    first_part_over_rtu(MODBUS_LATHE, "first-rtu.toml");
+}
+
+/// Issue 22, "done means" (RTU, `pr` map, shipped config and windows).
+#[test]
+#[ignore = "not met yet: the CSP spindle (1500 rpm) over the 45 ms RTU link cycle (26 ms with fc23) trips its shipped 30° window (alarm 2010, 0x8611) part-way; see the report of issue 22"]
+fn first_part_ends_within_one_count_on_the_pr_map_over_rtu() {
+    first_part_over_rtu(&pr_feed_axes(MODBUS_LATHE), "first-pr-rtu.toml");
 }

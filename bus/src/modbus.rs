@@ -5,7 +5,83 @@
 //! holding registers — two profiles, every address configurable — and what a link can carry
 //! per cycle.
 
-use serde::Deserialize;
+use serde::{Deserialize, Deserializer};
+
+/// How the master reads the registers it needs every cycle (statusword / status, actual
+/// position, error / alarm code): a drive answers a read with exception 0x02 if any register
+/// in it does not exist, and many maps have holes between those three.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ReadBlocks {
+    /// One read over all of them when they lie within 16 registers (every register between
+    /// them must be readable), else one read per value.
+    #[default]
+    Auto,
+    /// One read from the lowest to the highest, holes included.
+    Span,
+    /// One read per run of adjacent registers the master needs: no register it does not
+    /// need is read.
+    Contiguous,
+    /// One read per value (a 32-bit value is still one read of its two registers).
+    Single,
+}
+
+impl ReadBlocks {
+    /// Its name in a configuration file.
+    pub fn name(self) -> &'static str {
+        match self {
+            ReadBlocks::Auto => "auto",
+            ReadBlocks::Span => "span",
+            ReadBlocks::Contiguous => "contiguous",
+            ReadBlocks::Single => "single",
+        }
+    }
+
+    /// The reads covering `regs` (each `(addr, len)`).
+    pub fn blocks(self, regs: &[(u16, u16)]) -> Vec<(u16, u16)> {
+        let (a, l) = span(regs);
+        match self {
+            ReadBlocks::Span => vec![(a, l)],
+            ReadBlocks::Auto if l <= 16 => vec![(a, l)],
+            ReadBlocks::Auto | ReadBlocks::Single => {
+                let mut v = regs.to_vec();
+                v.sort();
+                v
+            }
+            ReadBlocks::Contiguous => {
+                let mut v = regs.to_vec();
+                v.sort();
+                let mut out: Vec<(u16, u16)> = Vec::new();
+                for (a, l) in v {
+                    match out.last_mut() {
+                        Some(last) if last.0 as u32 + last.1 as u32 >= a as u32 => {
+                            let end = (last.0 as u32 + last.1 as u32).max(a as u32 + l as u32);
+                            last.1 = (end - last.0 as u32) as u16;
+                        }
+                        _ => out.push((a, l)),
+                    }
+                }
+                out
+            }
+        }
+    }
+}
+
+/// An optional register of a map: its address, or `"none"` where the drive has no such
+/// register (the master then skips it, with a warning where something is lost).
+fn optional_register<'de, D: Deserializer<'de>>(d: D) -> Result<Option<u16>, D::Error> {
+    #[derive(Deserialize)]
+    #[serde(untagged)]
+    enum R {
+        Addr(u16),
+        Word(String),
+    }
+    match R::deserialize(d)? {
+        R::Addr(a) => Ok(Some(a)),
+        R::Word(w) if w == "none" => Ok(None),
+        R::Word(w) => Err(serde::de::Error::custom(format!("a register address (0…65535) or \"none\", got \"{w}\""))),
+    }
+}
 
 /// Order of the two 16-bit registers of a 32-bit value.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize)]
@@ -69,16 +145,97 @@ pub struct Cia402Map {
     pub position_actual: u16,
     /// 0x606C velocity actual (2 registers), counts/s.
     pub velocity_actual: u16,
-    /// 0x603F error code.
-    pub error_code: u16,
-    /// 0x60C2 interpolation period in ms (the link cycle; the drive interpolates over it).
-    pub interpolation_ms: u16,
+    /// 0x603F error code; `"none"`: the drive has none (alarms then name no error code).
+    #[serde(deserialize_with = "optional_register")]
+    pub error_code: Option<u16>,
+    /// 0x60C2 interpolation period in ms (the link cycle; the drive interpolates over it);
+    /// `"none"`: the drive has a fixed one or takes it from elsewhere (the master warns).
+    #[serde(deserialize_with = "optional_register")]
+    pub interpolation_ms: Option<u16>,
     /// 0x6065 following-error window, counts (2 registers).
     pub following_error_window: u16,
     /// Communication timeout, ms (the Modbus analogue of 0x1016/0x6007: no write for this
-    /// long and the drive faults and stops by itself; 0 = off).
-    pub comm_timeout_ms: u16,
+    /// long and the drive faults and stops by itself; 0 = off); `"none"`: the drive has
+    /// none (the master warns: a dead controller is not noticed by the drive).
+    #[serde(deserialize_with = "optional_register")]
+    pub comm_timeout_ms: Option<u16>,
     pub word_order: WordOrder,
+    /// How the cyclic read is split (`ReadBlocks`).
+    pub reads: ReadBlocks,
+}
+
+/// One register (or 32-bit pair) of a map: `config check --bus` tries each on a live drive,
+/// sim-drives serves them.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct MapRegister {
+    /// Its key in the map.
+    pub name: &'static str,
+    pub addr: u16,
+    pub len: u16,
+    /// The master writes it (else it only reads it).
+    pub writable: bool,
+    /// May be `"none"` in the map.
+    pub optional: bool,
+}
+
+fn reg(name: &'static str, addr: Option<u16>, len: u16, writable: bool, optional: bool) -> Option<MapRegister> {
+    addr.map(|addr| MapRegister { name, addr, len, writable, optional })
+}
+
+impl Cia402Map {
+    /// Every register of the map the drive has (optional ones set to `"none"` left out).
+    pub fn registers(&self) -> Vec<MapRegister> {
+        [
+            reg("controlword", Some(self.controlword), 1, true, false),
+            reg("target_position", Some(self.target_position), 2, true, false),
+            reg("target_velocity", Some(self.target_velocity), 2, true, false),
+            reg("mode", Some(self.mode), 1, true, false),
+            reg("statusword", Some(self.statusword), 1, false, false),
+            reg("mode_display", Some(self.mode_display), 1, false, false),
+            reg("position_actual", Some(self.position_actual), 2, false, false),
+            reg("velocity_actual", Some(self.velocity_actual), 2, false, false),
+            reg("error_code", self.error_code, 1, false, true),
+            reg("interpolation_ms", self.interpolation_ms, 1, true, true),
+            reg("following_error_window", Some(self.following_error_window), 2, true, false),
+            reg("comm_timeout_ms", self.comm_timeout_ms, 1, true, true),
+        ]
+        .into_iter()
+        .flatten()
+        .collect()
+    }
+
+    /// The registers of the cyclic read: statusword, position actual, error code.
+    pub fn cyclic_reads(&self) -> Vec<(u16, u16)> {
+        let mut v = vec![(self.statusword, 1), (self.position_actual, 2)];
+        v.extend(self.error_code.map(|a| (a, 1)));
+        self.reads.blocks(&v)
+    }
+}
+
+impl PrMap {
+    /// Every register of the map the drive has (optional ones set to `"none"` left out).
+    pub fn registers(&self) -> Vec<MapRegister> {
+        [
+            reg("block", Some(self.block), PR_BLOCK_LEN, true, false),
+            reg("trigger", Some(self.trigger), 1, true, false),
+            reg("servo_on", Some(self.servo_on), 1, true, false),
+            reg("status", Some(self.status), 1, false, false),
+            reg("position_actual", Some(self.position_actual), 2, false, false),
+            reg("alarm_code", self.alarm_code, 1, false, true),
+            reg("alarm_reset", Some(self.alarm_reset), 1, true, false),
+            reg("comm_timeout_ms", self.comm_timeout_ms, 1, true, true),
+        ]
+        .into_iter()
+        .flatten()
+        .collect()
+    }
+
+    /// The registers of the cyclic read: status, position actual, alarm code.
+    pub fn cyclic_reads(&self) -> Vec<(u16, u16)> {
+        let mut v = vec![(self.status, 1), (self.position_actual, 2)];
+        v.extend(self.alarm_code.map(|a| (a, 1)));
+        self.reads.blocks(&v)
+    }
 }
 
 impl Default for Cia402Map {
@@ -94,11 +251,12 @@ impl Default for Cia402Map {
             mode_display: 11,
             position_actual: 12,
             velocity_actual: 14,
-            error_code: 16,
-            interpolation_ms: 20,
+            error_code: Some(16),
+            interpolation_ms: Some(20),
             following_error_window: 21,
-            comm_timeout_ms: 23,
+            comm_timeout_ms: Some(23),
             word_order: WordOrder::HighFirst,
+            reads: ReadBlocks::Auto,
         }
     }
 }
@@ -119,13 +277,17 @@ pub struct PrMap {
     pub status: u16,
     /// Actual position (2 registers).
     pub position_actual: u16,
-    /// Alarm code (0 = none).
-    pub alarm_code: u16,
+    /// Alarm code (0 = none); `"none"`: the drive has no such register.
+    #[serde(deserialize_with = "optional_register")]
+    pub alarm_code: Option<u16>,
     /// Write 1 to clear a latched alarm.
     pub alarm_reset: u16,
-    /// Communication timeout, ms (0 = off).
-    pub comm_timeout_ms: u16,
+    /// Communication timeout, ms (0 = off); `"none"`: the drive has none (the master warns).
+    #[serde(deserialize_with = "optional_register")]
+    pub comm_timeout_ms: Option<u16>,
     pub word_order: WordOrder,
+    /// How the cyclic read is split (`ReadBlocks`).
+    pub reads: ReadBlocks,
     /// Encoder counts per motor revolution: the block's speed is in motor rpm, so the master
     /// needs it to turn the streamed counts per cycle into rpm. Set it to the drive's.
     pub counts_per_rev: u32,
@@ -140,10 +302,11 @@ impl Default for PrMap {
             servo_on: 0x0405,
             status: 0x6003,
             position_actual: 0x602A,
-            alarm_code: 0x2203,
+            alarm_code: Some(0x2203),
             alarm_reset: 0x0033,
-            comm_timeout_ms: 0x0050,
+            comm_timeout_ms: Some(0x0050),
             word_order: WordOrder::HighFirst,
+            reads: ReadBlocks::Auto,
             // sim-drives' linear axis: 10 000 counts/mm on a 10 mm lead.
             counts_per_rev: 100_000,
         }
@@ -275,7 +438,34 @@ mod tests {
     fn default_cia402_cyclic_blocks_are_contiguous() {
         let m = Cia402Map::default();
         assert_eq!(span(&[(m.controlword, 1), (m.target_position, 2)]), (0, 3));
-        assert_eq!(span(&[(m.statusword, 1), (m.position_actual, 2), (m.error_code, 1)]), (10, 7));
+        assert_eq!(m.cyclic_reads(), vec![(10, 7)]);
+    }
+
+    #[test]
+    fn reads_split_into_blocks() {
+        let regs = [(16, 1), (10, 1), (12, 2), (13, 1)];
+        assert_eq!(ReadBlocks::Span.blocks(&regs), vec![(10, 7)]);
+        assert_eq!(ReadBlocks::Auto.blocks(&regs), vec![(10, 7)]);
+        assert_eq!(ReadBlocks::Contiguous.blocks(&regs), vec![(10, 1), (12, 2), (16, 1)]);
+        assert_eq!(ReadBlocks::Single.blocks(&[(16, 1), (10, 1), (12, 2)]), vec![(10, 1), (12, 2), (16, 1)]);
+        // The PR map's registers lie far apart: one read each.
+        assert_eq!(PrMap::default().cyclic_reads(), vec![(0x2203, 1), (0x6003, 1), (0x602A, 2)]);
+        // Adjacent ones are merged.
+        assert_eq!(ReadBlocks::Contiguous.blocks(&[(10, 1), (11, 2), (13, 1)]), vec![(10, 4)]);
+    }
+
+    #[test]
+    fn optional_registers_are_an_address_or_none() {
+        #[derive(Deserialize)]
+        struct W {
+            m: Cia402Map,
+        }
+        let w: W = toml::from_str("[m]\ninterpolation_ms = \"none\"\nerror_code = 30\nreads = \"contiguous\"\n").unwrap();
+        assert_eq!((w.m.interpolation_ms, w.m.error_code, w.m.comm_timeout_ms), (None, Some(30), Some(23)));
+        assert_eq!(w.m.reads, ReadBlocks::Contiguous);
+        assert_eq!(w.m.cyclic_reads(), vec![(10, 1), (12, 2), (30, 1)]);
+        let e = toml::from_str::<W>("[m]\ncomm_timeout_ms = \"off\"\n").err().unwrap().to_string();
+        assert!(e.contains("a register address (0…65535) or \"none\", got \"off\""), "{e}");
     }
 
     #[test]

@@ -304,7 +304,13 @@ fn modbus_map(data: &[u8]) {
     use cncgw::drives::modbus::link::Command;
     use cncgw::drives::modbus::plan::{pr_statusword, DrivePlan};
     let mut b = Bytes(data);
-    let order = if b.u8() & 1 == 0 { modbus::WordOrder::HighFirst } else { modbus::WordOrder::LowFirst };
+    let flags = b.u8();
+    let order = if flags & 1 == 0 { modbus::WordOrder::HighFirst } else { modbus::WordOrder::LowFirst };
+    // The same bytes as before the split reads and the optional registers: the corpus
+    // stays meaningful; 0xFFFF is an optional register's "none".
+    let reads =
+        [modbus::ReadBlocks::Auto, modbus::ReadBlocks::Span, modbus::ReadBlocks::Contiguous, modbus::ReadBlocks::Single][(flags as usize >> 1) & 3];
+    let opt = |v: u16| (v != u16::MAX).then_some(v);
     let cia = modbus::Cia402Map {
         controlword: b.u16(),
         target_position: b.u16(),
@@ -314,11 +320,12 @@ fn modbus_map(data: &[u8]) {
         mode_display: b.u16(),
         position_actual: b.u16(),
         velocity_actual: b.u16(),
-        error_code: b.u16(),
-        interpolation_ms: b.u16(),
+        error_code: opt(b.u16()),
+        interpolation_ms: opt(b.u16()),
         following_error_window: b.u16(),
-        comm_timeout_ms: b.u16(),
+        comm_timeout_ms: opt(b.u16()),
         word_order: order,
+        reads,
     };
     let pr = modbus::PrMap {
         block: b.u16(),
@@ -327,10 +334,11 @@ fn modbus_map(data: &[u8]) {
         servo_on: b.u16(),
         status: b.u16(),
         position_actual: b.u16(),
-        alarm_code: b.u16(),
+        alarm_code: opt(b.u16()),
         alarm_reset: b.u16(),
-        comm_timeout_ms: b.u16(),
+        comm_timeout_ms: opt(b.u16()),
         word_order: order,
+        reads,
         counts_per_rev: b.u32(),
     };
     let sel = b.u8();

@@ -4,7 +4,7 @@
 //! read; physics get realistic defaults per kind) or a sim-drives TOML file (what
 //! `--print-default-config` prints), where every physical parameter can be overridden.
 
-use cncgw_bus::modbus::{Cia402Map, PrMap, Profile, WordOrder, PR_BLOCK_LEN};
+use cncgw_bus::modbus::{Cia402Map, PrMap, Profile, WordOrder};
 use serde::Deserialize;
 use std::collections::BTreeMap;
 
@@ -311,6 +311,9 @@ pub struct ModbusQuirks {
     /// The first N requests (start-up) are answered `slow_first_ms` late.
     pub slow_first: u32,
     pub slow_first_ms: u32,
+    /// The drive interpolates only over whole multiples of this many ms: a written
+    /// interpolation period is rounded up to one (and reads back so); 0 = any.
+    pub interpolation_grid_ms: u16,
 }
 
 impl ModbusQuirks {
@@ -322,8 +325,17 @@ impl ModbusQuirks {
 
     fn to_toml(&self) -> String {
         format!(
-            "[drive.modbus_quirks]\nlatch_any_time = {}\npower_up_counts = {}\nbusy_every = {}\nrefuse_after = {}\nlate_after = {}\nlate_every = {}\nlate_ms = {}\nslow_first = {}\nslow_first_ms = {}\n",
-            self.latch_any_time, self.power_up_counts, self.busy_every, self.refuse_after, self.late_after, self.late_every, self.late_ms, self.slow_first, self.slow_first_ms
+            "[drive.modbus_quirks]\nlatch_any_time = {}\npower_up_counts = {}\nbusy_every = {}\nrefuse_after = {}\nlate_after = {}\nlate_every = {}\nlate_ms = {}\nslow_first = {}\nslow_first_ms = {}\ninterpolation_grid_ms = {}\n",
+            self.latch_any_time,
+            self.power_up_counts,
+            self.busy_every,
+            self.refuse_after,
+            self.late_after,
+            self.late_every,
+            self.late_ms,
+            self.slow_first,
+            self.slow_first_ms,
+            self.interpolation_grid_ms
         )
     }
 }
@@ -438,38 +450,13 @@ impl DriveConfig {
 impl DriveConfig {
     /// The Modbus registers of this drive's profile: (name, first address, registers).
     pub fn modbus_registers(&self) -> Vec<(&'static str, u16, u16)> {
-        match self.modbus_profile {
-            Profile::Cia402 => {
-                let m = &self.cia402_map;
-                vec![
-                    ("controlword", m.controlword, 1),
-                    ("target_position", m.target_position, 2),
-                    ("target_velocity", m.target_velocity, 2),
-                    ("mode", m.mode, 1),
-                    ("statusword", m.statusword, 1),
-                    ("mode_display", m.mode_display, 1),
-                    ("position_actual", m.position_actual, 2),
-                    ("velocity_actual", m.velocity_actual, 2),
-                    ("error_code", m.error_code, 1),
-                    ("interpolation_ms", m.interpolation_ms, 1),
-                    ("following_error_window", m.following_error_window, 2),
-                    ("comm_timeout_ms", m.comm_timeout_ms, 1),
-                ]
-            }
-            Profile::Pr => {
-                let m = &self.pr_map;
-                vec![
-                    ("block", m.block, PR_BLOCK_LEN),
-                    ("trigger", m.trigger, 1),
-                    ("servo_on", m.servo_on, 1),
-                    ("status", m.status, 1),
-                    ("position_actual", m.position_actual, 2),
-                    ("alarm_code", m.alarm_code, 1),
-                    ("alarm_reset", m.alarm_reset, 1),
-                    ("comm_timeout_ms", m.comm_timeout_ms, 1),
-                ]
-            }
-        }
+        // Optional registers set to "none" are not served (reads and writes of them are
+        // answered 0x02, as a drive without them does).
+        let regs = match self.modbus_profile {
+            Profile::Cia402 => self.cia402_map.registers(),
+            Profile::Pr => self.pr_map.registers(),
+        };
+        regs.into_iter().map(|r| (r.name, r.addr, r.len)).collect()
     }
 
     /// The served map must not overlap itself nor run past register 65535.
@@ -950,41 +937,41 @@ impl SimConfig {
                 let m = &d.cia402_map;
                 s.push_str("[drive.cia402_map]\n");
                 for (k, v) in [
-                    ("controlword", m.controlword),
-                    ("target_position", m.target_position),
-                    ("target_velocity", m.target_velocity),
-                    ("mode", m.mode),
-                    ("statusword", m.statusword),
-                    ("mode_display", m.mode_display),
-                    ("position_actual", m.position_actual),
-                    ("velocity_actual", m.velocity_actual),
+                    ("controlword", Some(m.controlword)),
+                    ("target_position", Some(m.target_position)),
+                    ("target_velocity", Some(m.target_velocity)),
+                    ("mode", Some(m.mode)),
+                    ("statusword", Some(m.statusword)),
+                    ("mode_display", Some(m.mode_display)),
+                    ("position_actual", Some(m.position_actual)),
+                    ("velocity_actual", Some(m.velocity_actual)),
                     ("error_code", m.error_code),
                     ("interpolation_ms", m.interpolation_ms),
-                    ("following_error_window", m.following_error_window),
+                    ("following_error_window", Some(m.following_error_window)),
                     ("comm_timeout_ms", m.comm_timeout_ms),
                 ] {
-                    s.push_str(&format!("{k} = {v}\n"));
+                    s.push_str(&format!("{k} = {}\n", v.map_or("\"none\"".to_string(), |v| v.to_string())));
                 }
-                s.push_str(&format!("word_order = \"{}\"\n", order(m.word_order)));
+                s.push_str(&format!("word_order = \"{}\"\nreads = \"{}\"\n", order(m.word_order), m.reads.name()));
             }
             if d.pr_map != PrMap::default() {
                 let m = &d.pr_map;
                 s.push_str("[drive.pr_map]\n");
                 for (k, v) in [
-                    ("block", m.block),
-                    ("trigger", m.trigger),
-                    ("trigger_value", m.trigger_value),
-                    ("servo_on", m.servo_on),
-                    ("status", m.status),
-                    ("position_actual", m.position_actual),
+                    ("block", Some(m.block)),
+                    ("trigger", Some(m.trigger)),
+                    ("trigger_value", Some(m.trigger_value)),
+                    ("servo_on", Some(m.servo_on)),
+                    ("status", Some(m.status)),
+                    ("position_actual", Some(m.position_actual)),
                     ("alarm_code", m.alarm_code),
-                    ("alarm_reset", m.alarm_reset),
+                    ("alarm_reset", Some(m.alarm_reset)),
                     ("comm_timeout_ms", m.comm_timeout_ms),
                 ] {
-                    s.push_str(&format!("{k} = 0x{v:04X}\n"));
+                    s.push_str(&format!("{k} = {}\n", v.map_or("\"none\"".to_string(), |v| format!("0x{v:04X}"))));
                 }
                 s.push_str(&format!("counts_per_rev = {}\n", m.counts_per_rev));
-                s.push_str(&format!("word_order = \"{}\"\n", order(m.word_order)));
+                s.push_str(&format!("word_order = \"{}\"\nreads = \"{}\"\n", order(m.word_order), m.reads.name()));
             }
         }
         s

@@ -52,11 +52,12 @@ const M: Cia402Map = Cia402Map {
     mode_display: 11,
     position_actual: 12,
     velocity_actual: 14,
-    error_code: 16,
-    interpolation_ms: 20,
+    error_code: Some(16),
+    interpolation_ms: Some(20),
     following_error_window: 21,
-    comm_timeout_ms: 23,
+    comm_timeout_ms: Some(23),
     word_order: WordOrder::HighFirst,
+    reads: cncgw_bus::modbus::ReadBlocks::Auto,
 };
 
 async fn read(c: &mut Context, addr: u16, n: u16) -> Vec<u16> {
@@ -100,7 +101,7 @@ async fn csp_streaming_for_one_second_is_followed() {
     let s = Srv::start(SimConfig::default_lathe());
     let mut c = s.client(1).await;
     write1(&mut c, M.mode, 8).await;
-    write1(&mut c, M.interpolation_ms, 4).await;
+    write1(&mut c, M.interpolation_ms.unwrap(), 4).await;
     assert_eq!(read(&mut c, M.mode_display, 1).await[0], 8);
     enable(&mut c).await;
     let p0 = read_i32(&mut c, M.position_actual, M.word_order).await;
@@ -194,8 +195,8 @@ async fn comm_timeout_faults_8130_and_stops_the_motor() {
     let s = Srv::start(SimConfig::default_lathe());
     let mut c = s.client(1).await;
     write1(&mut c, M.mode, 9).await;
-    write1(&mut c, M.comm_timeout_ms, 50).await;
-    assert_eq!(read(&mut c, M.comm_timeout_ms, 1).await[0], 50);
+    write1(&mut c, M.comm_timeout_ms.unwrap(), 50).await;
+    assert_eq!(read(&mut c, M.comm_timeout_ms.unwrap(), 1).await[0], 50);
     enable(&mut c).await;
     // 20 000 counts/s (2 mm/s), kept alive by writes every 20 ms for 300 ms.
     for _ in 0..15 {
@@ -261,7 +262,7 @@ async fn exceptions_cia402() {
     assert_eq!(exception(c.write_single_register(M.mode, 0).await).await, ExceptionCode::IllegalDataValue);
     assert_eq!(exception(c.write_multiple_registers(M.controlword, &[6, 0, 0, 0, 0, 7]).await).await, ExceptionCode::IllegalDataValue);
     assert_eq!(read(&mut c, M.controlword, 1).await[0], 0, "refused request wrote the controlword");
-    assert_eq!(exception(c.write_single_register(M.interpolation_ms, 256).await).await, ExceptionCode::IllegalDataValue);
+    assert_eq!(exception(c.write_single_register(M.interpolation_ms.unwrap(), 256).await).await, ExceptionCode::IllegalDataValue);
     // 0x03: quantity 0 or above 125 registers.
     assert_eq!(exception(c.read_holding_registers(0, 126).await).await, ExceptionCode::IllegalDataValue);
     assert_eq!(exception(c.read_holding_registers(0, 0).await).await, ExceptionCode::IllegalDataValue);
@@ -327,10 +328,11 @@ const P: PrMap = PrMap {
     servo_on: 0x0405,
     status: 0x6003,
     position_actual: 0x602A,
-    alarm_code: 0x2203,
+    alarm_code: Some(0x2203),
     alarm_reset: 0x0033,
-    comm_timeout_ms: 0x0050,
+    comm_timeout_ms: Some(0x0050),
     word_order: WordOrder::HighFirst,
+    reads: cncgw_bus::modbus::ReadBlocks::Auto,
     // Master side only (rpm ↔ counts); the drive uses its own counts per revolution.
     counts_per_rev: 100_000,
 };
@@ -394,30 +396,30 @@ async fn pr_profile_moves_retargets_and_times_out() {
     assert!((pb - (pe - 1000)).abs() <= 10, "at {pb}");
 
     // Comm timeout: no write for 50 ms while on → alarm 0x8130, power stage off.
-    write1(&mut c, P.comm_timeout_ms, 50).await;
+    write1(&mut c, P.comm_timeout_ms.unwrap(), 50).await;
     let st = pr_wait(&mut c, 500, "comm timeout alarm", |s| s & pr_status::FAULT != 0).await;
     assert_eq!(st & pr_status::ENABLED, 0);
-    assert_eq!(read(&mut c, P.alarm_code, 1).await[0], COMM_TIMEOUT_CODE);
+    assert_eq!(read(&mut c, P.alarm_code.unwrap(), 1).await[0], COMM_TIMEOUT_CODE);
     // A trigger while in alarm does nothing.
     pr_move(&mut c, pb + 10_000, 3000).await;
     assert_eq!(read(&mut c, P.status, 1).await[0] & pr_status::RUNNING, 0);
     // Servo-on is a level, as the servo-on input: still 1, it enables again after the reset.
     assert_eq!(read(&mut c, P.servo_on, 1).await[0], 1);
-    write1(&mut c, P.comm_timeout_ms, 0).await;
+    write1(&mut c, P.comm_timeout_ms.unwrap(), 0).await;
     tokio::time::sleep(Duration::from_millis(100)).await; // the fault reaction's stop
     write1(&mut c, P.alarm_reset, 1).await;
     let st = pr_wait(&mut c, 500, "alarm reset", |s| s & pr_status::FAULT == 0).await;
-    assert_eq!(read(&mut c, P.alarm_code, 1).await[0], 0);
+    assert_eq!(read(&mut c, P.alarm_code.unwrap(), 1).await[0], 0);
     pr_wait(&mut c, 100, "enabled again", |s| s & pr_status::ENABLED != 0).await;
     let _ = st;
     write1(&mut c, P.servo_on, 0).await;
     pr_wait(&mut c, 100, "servo off", |s| s & pr_status::ENABLED == 0).await;
     // Servo off while in alarm: the reset leaves it off.
-    write1(&mut c, P.comm_timeout_ms, 30).await;
+    write1(&mut c, P.comm_timeout_ms.unwrap(), 30).await;
     write1(&mut c, P.servo_on, 1).await;
     pr_wait(&mut c, 500, "alarm again", |s| s & pr_status::FAULT != 0).await;
     write1(&mut c, P.servo_on, 0).await;
-    write1(&mut c, P.comm_timeout_ms, 0).await;
+    write1(&mut c, P.comm_timeout_ms.unwrap(), 0).await;
     tokio::time::sleep(Duration::from_millis(100)).await;
     write1(&mut c, P.alarm_reset, 1).await;
     tokio::time::sleep(Duration::from_millis(20)).await;
@@ -445,7 +447,7 @@ async fn exceptions_pr() {
     assert_eq!(ex(c.write_multiple_registers(P.block, &b).await), ExceptionCode::IllegalDataValue);
     // Read-only and unmapped registers; the block plus one register past it.
     assert_eq!(ex(c.write_single_register(P.status, 0).await), ExceptionCode::IllegalDataAddress);
-    assert_eq!(ex(c.write_single_register(P.alarm_code, 0).await), ExceptionCode::IllegalDataAddress);
+    assert_eq!(ex(c.write_single_register(P.alarm_code.unwrap(), 0).await), ExceptionCode::IllegalDataAddress);
     assert_eq!(ex(c.write_multiple_registers(P.block, &[1, 0, 0, 100, 50, 50, 0, 0]).await), ExceptionCode::IllegalDataAddress);
     assert_eq!(exception(c.read_holding_registers(P.block, 8).await).await, ExceptionCode::IllegalDataAddress);
     // The CiA 402 addresses are not there on a PR drive.
@@ -465,7 +467,7 @@ async fn scheduled_faults_show_in_the_error_code() {
         sim_drives::modbus::serve_tcp_with_faults("127.0.0.1:0".parse().unwrap(), SimConfig::default_lathe(), vec![fault], stop.clone()).unwrap();
     let s = Srv { addr: srv.local_addr().unwrap(), srv: Some(srv), stop };
     let mut c = s.client(2).await;
-    let before = read(&mut c, M.error_code, 1).await[0];
+    let before = read(&mut c, M.error_code.unwrap(), 1).await[0];
     // (A loaded machine may have taken the 300 ms already.)
     if t0.elapsed() < Duration::from_millis(250) {
         assert_eq!(before, 0);
@@ -513,7 +515,7 @@ async fn csp_targets_far_apart_are_reached_without_runaway() {
     let s = Srv::start(SimConfig::default_lathe());
     let mut c = s.client(2).await;
     write1(&mut c, M.mode, 8).await;
-    write1(&mut c, M.interpolation_ms, 2).await;
+    write1(&mut c, M.interpolation_ms.unwrap(), 2).await;
     enable(&mut c).await;
     let p0 = read_i32(&mut c, M.position_actual, M.word_order).await;
     for k in 1..=6 {
@@ -557,7 +559,7 @@ async fn pr_streamed_every_cycle_is_followed() {
         write1(&mut c, P.trigger, P.trigger_value).await;
         last = target;
         let st = read(&mut c, P.status, 1).await[0];
-        assert_eq!(st & pr_status::FAULT, 0, "alarm {:#06x} at {t:.3} s", read(&mut c, P.alarm_code, 1).await[0]);
+        assert_eq!(st & pr_status::FAULT, 0, "alarm {:#06x} at {t:.3} s", read(&mut c, P.alarm_code.unwrap(), 1).await[0]);
         let a = read_i32(&mut c, P.position_actual, P.word_order).await;
         worst = worst.max((target as i64 - a as i64).abs());
         if t > 1.1 {

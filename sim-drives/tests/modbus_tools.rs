@@ -101,11 +101,12 @@ const M: Cia402Map = Cia402Map {
     mode_display: 11,
     position_actual: 12,
     velocity_actual: 14,
-    error_code: 16,
-    interpolation_ms: 20,
+    error_code: Some(16),
+    interpolation_ms: Some(20),
     following_error_window: 21,
-    comm_timeout_ms: 23,
+    comm_timeout_ms: Some(23),
     word_order: WordOrder::HighFirst,
+    reads: cncgw_bus::modbus::ReadBlocks::Auto,
 };
 
 /// What every link must show: registers read and written, the 402 machine driven by
@@ -231,7 +232,7 @@ fn tokio_modbus_rtu_client_through_a_socat_pty_pair() {
         assert_eq!(State::from_statusword(sw), State::SwitchOnDisabled);
         // Enable in CSP and move 1000 counts in 100 targets, 2 ms apart, each one FC23.
         c.write_single_register(M.mode, 8).await.unwrap().unwrap();
-        c.write_single_register(M.interpolation_ms, 2).await.unwrap().unwrap();
+        c.write_single_register(M.interpolation_ms.unwrap(), 2).await.unwrap().unwrap();
         for w in [cw::SHUTDOWN, cw::ENABLE_OPERATION_CMD] {
             c.write_single_register(M.controlword, w).await.unwrap().unwrap();
         }

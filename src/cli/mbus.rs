@@ -262,7 +262,9 @@ pub fn read_drive(c: &mut Client, axis: &str, a: &AxisConfig) -> Result<DriveRea
             d.position_counts = m.word_order.join_i32([p[0], p[1]]) as i64;
             let v = c.read(a.node, m.velocity_actual, 2)?;
             d.velocity_per_s = Some(m.word_order.join_i32([v[0], v[1]]) as f64 / a.counts_per_unit);
-            d.error_code = c.read(a.node, m.error_code, 1)?[0];
+            if let Some(e) = m.error_code {
+                d.error_code = c.read(a.node, e, 1)?[0];
+            }
         }
         Profile::Pr => {
             let m = a.pr_map.unwrap_or_default();
@@ -272,7 +274,9 @@ pub fn read_drive(c: &mut Client, axis: &str, a: &AxisConfig) -> Result<DriveRea
             d.statusword = crate::drives::modbus::plan::pr_statusword(st);
             let p = c.read(a.node, m.position_actual, 2)?;
             d.position_counts = m.word_order.join_i32([p[0], p[1]]) as i64;
-            d.error_code = c.read(a.node, m.alarm_code, 1)?[0];
+            if let Some(e) = m.alarm_code {
+                d.error_code = c.read(a.node, e, 1)?[0];
+            }
         }
     }
     d.position = d.position_counts as f64 / a.counts_per_unit;
@@ -568,13 +572,15 @@ fn read_state(c: &mut Client, a: &AxisConfig) -> Result<(u16, Option<u16>), Stri
 /// The drive's error code (0x603F) or alarm code (PR) in words, for messages.
 fn error_text(c: &mut Client, a: &AxisConfig) -> String {
     match a.modbus_profile {
-        Profile::Cia402 => match c.read(a.node, a.cia402_map.unwrap_or_default().error_code, 1) {
-            Ok(v) => format!("error code 0x{:04X} {}", v[0], cncgw_bus::canopen::emcy::error_text(v[0])),
-            Err(e) => format!("error code unreadable ({e})"),
+        Profile::Cia402 => match a.cia402_map.unwrap_or_default().error_code.map(|r| c.read(a.node, r, 1)) {
+            Some(Ok(v)) => format!("error code 0x{:04X} {}", v[0], cncgw_bus::canopen::emcy::error_text(v[0])),
+            Some(Err(e)) => format!("error code unreadable ({e})"),
+            None => "no error code register in the map".into(),
         },
-        Profile::Pr => match c.read(a.node, a.pr_map.unwrap_or_default().alarm_code, 1) {
-            Ok(v) => format!("alarm code 0x{:04X} (see the drive's manual)", v[0]),
-            Err(e) => format!("alarm code unreadable ({e})"),
+        Profile::Pr => match a.pr_map.unwrap_or_default().alarm_code.map(|r| c.read(a.node, r, 1)) {
+            Some(Ok(v)) => format!("alarm code 0x{:04X} (see the drive's manual)", v[0]),
+            Some(Err(e)) => format!("alarm code unreadable ({e})"),
+            None => "no alarm code register in the map".into(),
         },
     }
 }
@@ -588,6 +594,8 @@ fn watchdog_off(c: &mut Client, a: &AxisConfig) -> Result<(), String> {
         Profile::Cia402 => a.cia402_map.unwrap_or_default().comm_timeout_ms,
         Profile::Pr => a.pr_map.unwrap_or_default().comm_timeout_ms,
     };
+    // A drive without one has nothing to turn off.
+    let Some(addr) = addr else { return Ok(()) };
     c.write(a.node, addr, &[0]).map_err(|e| format!("turning the communication watchdog (register {addr}) off failed: {e}"))
 }
 

@@ -6,6 +6,7 @@ pub mod home;
 pub mod identify;
 pub mod lock;
 pub mod manpages;
+pub mod mapcheck;
 pub mod mbus;
 pub mod mdi;
 pub mod offsets;
@@ -727,13 +728,19 @@ pub fn open_session_with(m: &MachineArgs, wrap: impl FnOnce(Box<dyn cncgw_bus::C
 pub enum ConfigCmd {
     /// Validate a machine configuration and print what it describes.
     ///
-    /// Example: `cncgw config check config/lathe.toml`, `cncgw config check --json`
+    /// Example: `cncgw config check config/lathe.toml`, `cncgw config check --json`,
+    /// `cncgw config check config/lathe-modbus.toml --bus modbus-tcp://192.168.1.10:502`
     Check {
         /// The file (default: the embedded config/lathe.toml).
         file: Option<PathBuf>,
         /// Print JSON.
         #[arg(long)]
         json: bool,
+        /// A live Modbus link (`modbus-tcp://HOST:PORT`, `modbus-rtu://DEVICE?baud=…`): every
+        /// axis is put on it and every register of its map is read and each writable one
+        /// written back (nothing moves); each one that fails is listed (docs/MODBUS_MAPS.md).
+        #[arg(long)]
+        bus: Option<String>,
     },
 }
 
@@ -815,7 +822,7 @@ pub fn main() -> i32 {
         Command::Preview { program, out, config, width, tools, stock, state_dir } => {
             preview::preview(&program, config.as_deref(), tools.as_deref(), state_dir.as_deref(), &out, width, stock)
         }
-        Command::Config(ConfigCmd::Check { file, json }) => config_check(file.as_deref(), json),
+        Command::Config(ConfigCmd::Check { file, json, bus }) => config_check(file.as_deref(), json, bus.as_deref()),
         Command::Scan { machine, json } => diag::scan(&machine, json),
         Command::Sdo(SdoCmd::Read { node, index, sub, r#type, out, machine, json }) => {
             diag::sdo_read(&machine, node, index, sub, r#type, out.as_deref(), json)
@@ -993,7 +1000,20 @@ fn response_warnings(cfg: &crate::config::MachineConfig) -> Vec<String> {
     out
 }
 
-fn config_check(file: Option<&std::path::Path>, json: bool) -> i32 {
+/// `config check --bus modbus-…`: every axis on that link, and its map tried on the drives.
+fn config_check_live(
+    mut cfg: crate::config::MachineConfig,
+    bus: Option<&str>,
+) -> Result<(crate::config::MachineConfig, Option<Vec<mapcheck::AxisCheck>>), String> {
+    let Some(b) = bus else { return Ok((cfg, None)) };
+    if !mbus::apply_bus(&mut cfg, Some(b))? {
+        return Err(format!("config check --bus {b}: only a Modbus link (modbus-tcp://HOST:PORT, modbus-rtu://DEVICE) is checked live"));
+    }
+    let live = mapcheck::check_live(&cfg);
+    Ok((cfg, Some(live)))
+}
+
+fn config_check(file: Option<&std::path::Path>, json: bool, bus: Option<&str>) -> i32 {
     let name = file.map(|p| p.display().to_string()).unwrap_or_else(|| "embedded config/lathe.toml".into());
     if let Some(Err(e)) = file.map(std::fs::metadata) {
         eprintln!("error: cannot read {name}: {e}");
@@ -1010,13 +1030,21 @@ fn config_check(file: Option<&std::path::Path>, json: bool) -> i32 {
             return exit::NOT_MET;
         }
     };
+    let (cfg, live) = match config_check_live(cfg, bus) {
+        Ok(v) => v,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return exit::INPUT;
+        }
+    };
     // Everything `run` would refuse before it touches a drive, checked here too.
     let problems = if cfg.has_canopen() {
         crate::drives::canopen::CanOpenMaster::new(cncgw_bus::transport::inproc::InprocBus::new().endpoint(), &cfg).offline_check(cfg.bus.bitrate)
     } else {
         Vec::new()
     };
-    let warnings = response_warnings(&cfg);
+    let mut warnings = response_warnings(&cfg);
+    warnings.extend(mapcheck::map_warnings(&cfg));
     let mut text = Vec::new();
     if problems.is_empty() {
         text.push(format!("{name}: ok — {}", cfg.machine.name));
@@ -1080,14 +1108,24 @@ fn config_check(file: Option<&std::path::Path>, json: bool) -> i32 {
                 "file": name, "ok": problems.is_empty(), "problems": problems, "warnings": warnings, "machine": cfg.machine.name, "cycle_ms": cfg.machine.cycle_ms,
                 "bus": cfg.bus.interface, "bitrate": cfg.bus.bitrate, "canopen_bus_load": can_load,
                 "canopen_drives": n_can, "modbus_links": links, "axes": axes,
+                "live": live.as_ref().map(|l| l.iter().map(mapcheck::AxisCheck::json).collect::<Vec<_>>()),
             })
         );
     } else {
         for l in text {
             println!("{l}");
         }
+        for l in live.iter().flatten().flat_map(mapcheck::AxisCheck::lines) {
+            println!("  {l}");
+        }
     }
-    if problems.is_empty() {
+    let live_failed = live.iter().flatten().any(|a| a.error.is_some() || !a.findings.is_empty());
+    if live_failed && !json {
+        println!("  the live drives do not have the registers listed above: run would stop at start-up; fix the maps (docs/MODBUS_MAPS.md)");
+    }
+    if live_failed {
+        exit::NOT_MET
+    } else if problems.is_empty() {
         exit::OK
     } else {
         exit::NOT_MET

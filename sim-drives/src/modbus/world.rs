@@ -618,7 +618,11 @@ impl World {
         let obj_write = match reg {
             Reg::Controlword => Some((ix::CONTROLWORD, 0, first as i64)),
             Reg::Mode => Some((ix::MODES_OF_OPERATION, 0, first as i16 as i64)),
-            Reg::InterpolationMs => Some((ix::INTERPOLATION_PERIOD, 1, first as i64)),
+            Reg::InterpolationMs => {
+                // A drive with a coarser grid rounds the period up to it (a quirk).
+                let grid = u.quirks.interpolation_grid_ms.max(1);
+                Some((ix::INTERPOLATION_PERIOD, 1, first.div_ceil(grid).saturating_mul(grid) as i64))
+            }
             Reg::FerrWindow => Some((ix::FOLLOWING_ERROR_WINDOW, 0, val32() as u32 as i64)),
             Reg::TargetPosition => Some((ix::TARGET_POSITION, 0, val32())),
             Reg::TargetVelocity => Some((ix::TARGET_VELOCITY, 0, val32())),

@@ -140,6 +140,33 @@ impl LinkSpec {
         (self.rtu_cycle_s() * RTU_MARGIN * 1e3).ceil().max((self.machine_cycle.as_secs_f64() * 1e3).ceil())
     }
 
+    /// RTU: when each drive's exchange starts in a link cycle, from its start: the line
+    /// time of the drives before it × `RTU_MARGIN` (the cycle has that margin over the
+    /// whole line time, so the last drive still ends within it). TCP: none (0).
+    pub fn rtu_write_offsets(&self) -> Vec<Duration> {
+        if self.cfg.transport != LinkTransport::Rtu {
+            return Vec::new();
+        }
+        let t = self.serial_timing();
+        let turn = self.cfg.turnaround_ms * 1e-3;
+        let mut at = 0.0;
+        self.drives
+            .iter()
+            .map(|d| {
+                let start = Duration::from_secs_f64(at * RTU_MARGIN);
+                at += d
+                    .cyclic
+                    .iter()
+                    .map(|x| {
+                        let (rq, rs) = x.rtu_bytes();
+                        t.transaction_s(rq, rs, turn)
+                    })
+                    .sum::<f64>();
+                start
+            })
+            .collect()
+    }
+
     pub fn transactions_per_cycle(&self) -> usize {
         self.drives.iter().map(|d| d.cyclic.len()).sum()
     }
@@ -298,8 +325,25 @@ const BUSY_RETRIES: u32 = 3;
 const BUSY_PAUSE: Duration = Duration::from_millis(1);
 /// The RTU link cycle over the computed line time (`LinkSpec::rtu_link_cycle_ms`).
 pub const RTU_MARGIN: f64 = 1.10;
+/// TCP: start-up rounds of round-trip measurement (at most), and the link cycle over the p99
+/// round.
+const TCP_ROUNDS: usize = 300;
+pub const TCP_MARGIN: f64 = 1.25;
 /// Tries after the first of a start-up transaction that got no (or a garbled) answer.
 const STARTUP_RETRIES: u32 = 3;
+
+/// A start-up transaction that failed: 2201 for an exception (the map or the drive is
+/// wrong), 2202 for no answer.
+fn startup_alarm(e: &TxError, doing: &str) -> Alarm {
+    let (n, hint) = match e {
+        TxError::Exception(_) => (
+            crate::alarm::MODBUS_EXCEPTION,
+            "; check the unit id, the profile and the register map (a register the drive does not have: `cncgw config check --bus …` lists them; optional ones can be \"none\" in the map, docs/MODBUS_MAPS.md)",
+        ),
+        TxError::Transport(_) => (crate::alarm::MODBUS_TIMEOUT, ""),
+    };
+    Alarm::new(n, format!("{doing}: {}{hint}", e.text()))
+}
 
 /// `exception 0x06 (Server device busy)`: the code and tokio-modbus' name for it.
 pub fn exception_words(code: ExceptionCode) -> String {
@@ -435,8 +479,11 @@ impl LinkIo {
         match r {
             Err(_) => Err(Other(TxError::Transport(format!("{}: no answer within {} ms", what(), self.spec.cfg.timeout_ms)))),
             Ok(Err(e)) => {
-                if matches!(e, tokio_modbus::Error::Transport(_)) {
-                    self.ctx = None; // a broken connection: reconnect
+                // A broken connection; or on TCP an answer out of step (a late one that
+                // came after the drain, with the next one possibly buffered in the framing,
+                // out of the drain's reach): reconnect — a new connection starts in step.
+                if matches!(e, tokio_modbus::Error::Transport(_)) || self.spec.cfg.transport == LinkTransport::Tcp {
+                    self.ctx = None;
                     self.line = None;
                 }
                 Err(Other(TxError::Transport(format!("{}: {e}", what()))))
@@ -461,76 +508,128 @@ impl LinkIo {
         self.connect()
             .map_err(|e| Alarm::new(crate::alarm::MODBUS_LINK, format!("Modbus link {}: cannot open {}: {e}", self.spec.name, self.spec.what())))?;
         for d in 0..self.spec.drives.len() {
+            for w in self.spec.drives[d].map_warnings() {
+                tracing::warn!(link = %self.spec.name, "{w}");
+            }
             let writes = self.spec.drives[d].setup.clone();
             for (x, data) in writes {
-                self.exchange_at_startup(d, &x, &data).map_err(|e| {
-                    Alarm::new(
-                        if matches!(e, TxError::Exception(_)) { crate::alarm::MODBUS_EXCEPTION } else { crate::alarm::MODBUS_TIMEOUT },
-                        format!("configuring the drive failed: {}; check the unit id, the profile and the register map", e.text()),
-                    )
-                })?;
+                self.exchange_at_startup(d, &x, &data).map_err(|e| startup_alarm(&e, "configuring the drive failed"))?;
             }
         }
-        // The cycle: RTU from the line's timing; TCP from the measured round trip.
-        let needed = match self.spec.cfg.transport {
-            LinkTransport::Rtu => Duration::from_secs_f64(self.spec.rtu_link_cycle_ms() * 1e-3),
-            LinkTransport::Tcp => {
-                let mut rtts = Vec::with_capacity(50);
-                for _ in 0..50 {
-                    let t0 = Instant::now();
-                    for d in 0..self.spec.drives.len() {
-                        let x = self.spec.drives[d].feedback_read();
-                        self.exchange_at_startup(d, &x, &[]).map_err(|e| {
-                            Alarm::new(
-                                if matches!(e, TxError::Exception(_)) { crate::alarm::MODBUS_EXCEPTION } else { crate::alarm::MODBUS_TIMEOUT },
-                                format!("reading the drive's feedback failed: {}; check the unit id, the profile and the register map", e.text()),
-                            )
-                        })?;
-                    }
-                    rtts.push(t0.elapsed() / self.spec.drives.len().max(1) as u32);
-                }
-                rtts.sort();
-                // p90 of 50: one descheduled transaction must not decide the cycle, a slow
-                // network must.
-                let p90 = rtts[rtts.len() * 90 / 100];
-                tracing::info!(link = %self.spec.name, "round trip per drive: median {:?}, p90 {:?}, max {:?}", rtts[rtts.len() / 2], p90, rtts[rtts.len() - 1]);
-                // Margin ×2 for the round trip's tail.
-                p90 * self.spec.transactions_per_cycle() as u32 * 2
+        // The cycle: RTU from the line's timing; TCP from the measured round trips.
+        let (needed_ms, least_ms) = match self.spec.cfg.transport {
+            LinkTransport::Rtu => {
+                let c = self.spec.rtu_link_cycle_ms();
+                (c, c)
             }
+            LinkTransport::Tcp => self.measure_tcp_cycle()?,
         };
+        let machine_ms = (self.spec.machine_cycle.as_secs_f64() * 1e3).ceil();
         // Whole milliseconds: the drives' interpolation period register is in ms.
-        let mut cycle_ms = (needed.as_secs_f64() * 1e3).ceil().max(self.spec.machine_cycle.as_secs_f64() * 1e3).ceil();
+        let mut cycle_ms = needed_ms.ceil().max(machine_ms);
         if let Some(c) = self.spec.cfg.cycle_ms {
-            if c < cycle_ms {
+            // A configured cycle the link cannot carry even typically is refused; one below
+            // the measured tail with margin is the operator's choice, watched at run time
+            // (alarm 2204 if the link falls behind it).
+            if c < least_ms.ceil() {
                 return Err(Alarm::new(
                     crate::alarm::MODBUS_CYCLE,
                     format!(
-                        "Modbus link {}: cycle_ms = {c} is shorter than the {cycle_ms} ms its {} transactions per cycle need on {}; raise it or remove it",
+                        "Modbus link {}: cycle_ms = {c} is shorter than the {} ms its {} transactions per cycle need on {}; raise it or remove it",
                         self.spec.name,
+                        least_ms.ceil(),
                         self.spec.transactions_per_cycle(),
                         self.spec.what()
                     ),
                 ));
             }
-            cycle_ms = c.ceil();
-        }
-        let cycle = Duration::from_secs_f64(cycle_ms * 1e-3);
-        // Tell every drive its interpolation period (the link cycle) and the watchdog.
-        for d in 0..self.spec.drives.len() {
-            let writes = self.spec.drives[d].timing_writes(cycle_ms as u16, self.spec.cfg.timeout_ms);
-            for (x, data) in writes {
-                self.exchange_at_startup(d, &x, &data).map_err(|e| {
-                    Alarm::new(
-                        if matches!(e, TxError::Exception(_)) { crate::alarm::MODBUS_EXCEPTION } else { crate::alarm::MODBUS_TIMEOUT },
-                        format!("configuring the drive failed: {}", e.text()),
-                    )
-                })?;
+            if c < cycle_ms {
+                tracing::warn!(link = %self.spec.name, "cycle_ms = {c} is below the {cycle_ms} ms measured with margin: the run-time check (alarm 2204) watches it");
             }
+            cycle_ms = c.ceil().max(machine_ms);
         }
+        cycle_ms = self.tell_timing(cycle_ms)?;
+        let cycle = Duration::from_secs_f64(cycle_ms * 1e-3);
         // First readings, so that the cycle thread starts from real positions.
         self.cycle_once(s, Instant::now());
         tracing::info!(link = %self.spec.name, "{}: link cycle {cycle_ms} ms ({} transactions per cycle)", self.spec.what(), self.spec.transactions_per_cycle());
         Ok(cycle)
+    }
+
+    /// TCP: the link cycle from start-up rounds of as many transactions as a link cycle has
+    /// (the drives' feedback reads, in turn: reads move nothing): the p99 of the rounds'
+    /// durations × `TCP_MARGIN`, and the least the link carries (the median round), ms. A
+    /// cycle set by the tail of whole rounds, not by one sample (a single measurement came
+    /// out 3–23 ms between starts on one loopback link) nor by one transaction's tail times
+    /// the transactions (one descheduled transaction is not every one).
+    fn measure_tcp_cycle(&mut self) -> Result<(f64, f64), Alarm> {
+        let n = self.spec.drives.len();
+        let tx = self.spec.transactions_per_cycle().max(1);
+        let mut rounds = Vec::with_capacity(TCP_ROUNDS);
+        let t_start = Instant::now();
+        // At least 100 rounds (p99 is then the largest), up to TCP_ROUNDS within 0.5 s (p99
+        // of 300 leaves out the 3 longest).
+        while n > 0 && rounds.len() < TCP_ROUNDS && (rounds.len() < 100 || t_start.elapsed() < Duration::from_millis(500)) {
+            let t0 = Instant::now();
+            for k in 0..tx {
+                let d = k % n;
+                let x = self.spec.drives[d].feedback_read();
+                self.exchange_at_startup(d, &x, &[]).map_err(|e| startup_alarm(&e, "reading the drive's feedback failed"))?;
+            }
+            rounds.push(t0.elapsed().as_secs_f64() * 1e3);
+        }
+        if rounds.is_empty() {
+            return Ok((0.0, 0.0));
+        }
+        rounds.sort_by(f64::total_cmp);
+        let q = |p: usize| rounds[(rounds.len() * p / 100).min(rounds.len() - 1)];
+        let (median, p90, p99, max) = (q(50), q(90), q(99), rounds[rounds.len() - 1]);
+        let cycle = p99 * TCP_MARGIN;
+        tracing::info!(
+            link = %self.spec.name,
+            "{} start-up rounds of {tx} transactions (a link cycle's): median {median:.2} ms, p90 {p90:.2} ms, p99 {p99:.2} ms, max {max:.2} ms; p99 × {TCP_MARGIN} = {cycle:.2} ms",
+            rounds.len()
+        );
+        Ok((cycle, median))
+    }
+
+    /// Tell every drive its interpolation period (the link cycle) and the watchdog, and
+    /// follow the drives: one that holds a longer interpolation period than written (it has
+    /// a coarser grid or a minimum) sets the link's cycle — every drive is told again; one
+    /// that holds a shorter one cannot interpolate over the link's cycle (alarm 2204).
+    fn tell_timing(&mut self, mut cycle_ms: f64) -> Result<f64, Alarm> {
+        for _pass in 0..3 {
+            let mut longest = cycle_ms;
+            for d in 0..self.spec.drives.len() {
+                let writes = self.spec.drives[d].timing_writes(cycle_ms as u16, self.spec.cfg.timeout_ms);
+                for (x, data) in writes {
+                    self.exchange_at_startup(d, &x, &data).map_err(|e| startup_alarm(&e, "configuring the drive failed"))?;
+                }
+                let Some(addr) = self.spec.drives[d].interpolation_register() else { continue };
+                let x = Exchange::Read { addr, len: 1 };
+                let held = self.exchange_at_startup(d, &x, &[]).map_err(|e| startup_alarm(&e, "reading back the interpolation period failed"))?;
+                let held = held.first().copied().unwrap_or(0) as f64;
+                let axis = &self.spec.drives[d].axis;
+                if held < cycle_ms {
+                    return Err(Alarm::new(
+                        crate::alarm::MODBUS_CYCLE,
+                        format!(
+                            "Modbus link {}: axis {axis}'s drive holds an interpolation period of {held} ms after {cycle_ms} ms was written (register {addr}): it cannot interpolate over the link's cycle; see the drive's manual for the periods it takes",
+                            self.spec.name
+                        ),
+                    ));
+                }
+                if held > cycle_ms {
+                    tracing::warn!(link = %self.spec.name, "axis {axis}'s drive holds an interpolation period of {held} ms after {cycle_ms} ms was written: the link runs at {held} ms");
+                    longest = longest.max(held);
+                }
+            }
+            if longest == cycle_ms {
+                return Ok(cycle_ms);
+            }
+            cycle_ms = longest;
+        }
+        Ok(cycle_ms)
     }
 
     fn run(&mut self, s: &SharedLink, cycle: Duration) {
@@ -578,7 +677,19 @@ impl LinkIo {
     /// One exchange with every drive; an exception goes to `Shared::alarm`.
     /// `sched`: the instant this cycle was scheduled for (the set-points are for it).
     fn cycle_once(&mut self, s: &SharedLink, sched: Instant) {
+        let offsets = self.spec.rtu_write_offsets();
         for d in 0..self.spec.drives.len() {
+            // RTU: each drive's exchange starts at its fixed offset in the cycle, so that the
+            // drive receives its set-point one link cycle after the last one, not whenever
+            // the answers of the drives before it happened to end: a CSP drive interpolates
+            // from the receipt, and a spindle at 1500 rpm turns 9° per ms of jitter (its 30°
+            // window tripped on RTU). Its set-point is then taken and extrapolated for that
+            // instant.
+            let sched = sched + offsets.get(d).copied().unwrap_or_default();
+            let now = Instant::now();
+            if sched > now {
+                std::thread::sleep(sched - now);
+            }
             let cmd = match s.0.lock() {
                 Ok(g) => g.slots[d].command,
                 Err(_) => return,
@@ -661,6 +772,7 @@ impl LinkIo {
                         }
                     }
                     if let Some(mut r) = reading {
+                        self.spec.drives[d].last_actual = Some(r.position);
                         let seq = g.slots[d].reading.seq + 1;
                         r.seq = seq;
                         r.at = Some(Instant::now());

@@ -65,6 +65,16 @@ pub struct PlannedLink {
     pub rtu: Option<(f64, f64)>,
 }
 
+/// An axis speed (`max_speed`: mm/min, or rpm for a spindle) in motor rpm of a drive with
+/// `counts_per_rev` counts per motor revolution.
+fn motor_rpm(speed: f64, a: &crate::config::AxisConfig, counts_per_rev: u32) -> f64 {
+    let per_min = match a.kind {
+        crate::config::AxisKind::Linear => speed * a.counts_per_unit,
+        _ => speed * 360.0 * a.counts_per_unit,
+    };
+    per_min / counts_per_rev.max(1) as f64
+}
+
 struct Axis {
     name: String,
     link: usize,
@@ -156,8 +166,9 @@ impl ModbusDrives {
                 }
             };
             let ferr = (a.following_error * a.counts_per_unit).round().clamp(1.0, i32::MAX as f64) as u32;
-            let plan =
+            let mut plan =
                 DrivePlan::new(name, a.node, a.modbus_profile, a.cia402_map.unwrap_or_default(), a.pr_map.unwrap_or_default(), lcfg.fc23, ferr);
+            plan.max_rpm = motor_rpm(a.max_speed, a, plan.pr.counts_per_rev);
             let spec = links[li].spec.as_mut().expect("spec is present until startup");
             let slot = spec.drives.len();
             spec.drives.push(plan);

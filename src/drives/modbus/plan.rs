@@ -2,7 +2,7 @@
 //! profile and register map. Pure: no I/O, so the cycle computation and the tests use it.
 
 use super::link::{Command, Reading};
-use cncgw_bus::modbus::{pr_block, pr_status, rtu_size, span, Cia402Map, PrMap, Profile, PR_BLOCK_LEN};
+use cncgw_bus::modbus::{pr_block, pr_status, rtu_size, Cia402Map, PrMap, Profile, PR_BLOCK_LEN};
 
 /// One Modbus transaction.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -67,6 +67,11 @@ pub struct DrivePlan {
     written_reset_seq: u32,
     /// The link cycle, ms (PR speed computation).
     cycle_ms: f64,
+    /// PR: the position last read (counts, wire value), for the speed that closes what the
+    /// drive has left of earlier blocks.
+    pub last_actual: Option<i32>,
+    /// PR: the axis's maximum speed in motor rpm (the block's speed never asks for more).
+    pub max_rpm: f64,
 }
 
 impl DrivePlan {
@@ -85,6 +90,8 @@ impl DrivePlan {
             written_servo_on: None,
             written_reset_seq: 0,
             cycle_ms: 1.0,
+            last_actual: None,
+            max_rpm: u16::MAX as f64,
         };
         d.setup = match profile {
             Profile::Cia402 => vec![
@@ -95,8 +102,11 @@ impl DrivePlan {
             // cycle thread turns it on.
             Profile::Pr => Vec::new(),
         };
-        let probe = Command { stream: true, ..Command::default() };
+        // The steady state while streaming: the second cycle (the first also writes the PR
+        // servo-on, once).
+        let probe = Command { stream: true, servo_on: true, ..Command::default() };
         let mut tmp = d.clone();
+        tmp.cyclic_writes(&probe);
         d.cyclic = tmp.cyclic_writes(&probe).into_iter().map(|x| x.0).collect();
         d
     }
@@ -105,23 +115,38 @@ impl DrivePlan {
         self.cia.target_position == self.cia.controlword.wrapping_add(1)
     }
 
-    fn cia_read_span(&self) -> (u16, u16) {
-        let m = &self.cia;
-        span(&[(m.statusword, 1), (m.position_actual, 2), (m.error_code, 1)])
+    /// The cyclic reads: one per block of the map (`ReadBlocks`).
+    fn read_blocks(&self) -> Vec<Exchange> {
+        let blocks = match self.profile {
+            Profile::Cia402 => self.cia.cyclic_reads(),
+            Profile::Pr => self.pr.cyclic_reads(),
+        };
+        blocks.into_iter().map(|(addr, len)| Exchange::Read { addr, len }).collect()
     }
 
-    fn pr_read_span(&self) -> Vec<Exchange> {
-        let m = &self.pr;
-        let (a, l) = span(&[(m.status, 1), (m.position_actual, 2), (m.alarm_code, 1)]);
-        if l <= 16 {
-            vec![Exchange::Read { addr: a, len: l }]
-        } else {
-            vec![
-                Exchange::Read { addr: m.status, len: 1 },
-                Exchange::Read { addr: m.position_actual, len: 2 },
-                Exchange::Read { addr: m.alarm_code, len: 1 },
-            ]
+    /// What the map leaves out, in words, for the start-up log and `config check`: the
+    /// optional registers set to `"none"`.
+    pub fn map_warnings(&self) -> Vec<String> {
+        let mut w = Vec::new();
+        let (err, ipo, wd) = match self.profile {
+            Profile::Cia402 => (self.cia.error_code, self.cia.interpolation_ms, self.cia.comm_timeout_ms),
+            Profile::Pr => (self.pr.alarm_code, Some(0), self.pr.comm_timeout_ms),
+        };
+        let axis = &self.axis;
+        if err.is_none() {
+            w.push(format!("axis {axis}: the register map has no error code register: a drive fault is alarmed without its code"));
         }
+        if ipo.is_none() {
+            w.push(format!(
+                "axis {axis}: the register map has no interpolation period register: the drive is not told the link cycle; set it on the drive to the link cycle cncgw logs at start-up"
+            ));
+        }
+        if wd.is_none() {
+            w.push(format!(
+                "axis {axis}: the register map has no communication watchdog register: if cncgw dies the drive is not stopped by its own watchdog; set one on the drive"
+            ));
+        }
+        w
     }
 
     /// A cycle failed part-way: write servo-on and the alarm reset again next cycle.
@@ -133,11 +158,16 @@ impl DrivePlan {
     /// The read that returns the feedback (round-trip measurement).
     pub fn feedback_read(&self) -> Exchange {
         match self.profile {
-            Profile::Cia402 => {
-                let (a, l) = self.cia_read_span();
-                Exchange::Read { addr: a, len: l }
-            }
+            Profile::Cia402 => self.read_blocks().first().copied().unwrap_or(Exchange::Read { addr: self.cia.statusword, len: 1 }),
             Profile::Pr => Exchange::Read { addr: self.pr.status, len: 1 },
+        }
+    }
+
+    /// The interpolation period register, if the drive has one (read back after the write).
+    pub fn interpolation_register(&self) -> Option<u16> {
+        match self.profile {
+            Profile::Cia402 => self.cia.interpolation_ms,
+            Profile::Pr => None,
         }
     }
 
@@ -150,13 +180,15 @@ impl DrivePlan {
         // answer or a scheduling hiccup must not trip it, a dead controller must (the
         // CANopen side uses 3 × the 100 ms heartbeat).
         let watchdog = (cycle_ms as u32 * 10).max(timeout_ms.saturating_mul(2).saturating_add(cycle_ms as u32)).clamp(200, u16::MAX as u32) as u16;
-        match self.profile {
-            Profile::Cia402 => vec![
-                (Exchange::WriteSingle { addr: self.cia.interpolation_ms }, vec![cycle_ms]),
-                (Exchange::WriteSingle { addr: self.cia.comm_timeout_ms }, vec![watchdog]),
-            ],
-            Profile::Pr => vec![(Exchange::WriteSingle { addr: self.pr.comm_timeout_ms }, vec![watchdog])],
-        }
+        let (ipo, wd) = match self.profile {
+            Profile::Cia402 => (self.cia.interpolation_ms, self.cia.comm_timeout_ms),
+            Profile::Pr => (None, self.pr.comm_timeout_ms),
+        };
+        // Registers the map says the drive does not have are skipped (`map_warnings`).
+        let mut v = Vec::new();
+        v.extend(ipo.map(|addr| (Exchange::WriteSingle { addr }, vec![cycle_ms])));
+        v.extend(wd.map(|addr| (Exchange::WriteSingle { addr }, vec![watchdog])));
+        v
     }
 
     /// The transactions of one link cycle for `cmd`, with the data they write.
@@ -165,7 +197,7 @@ impl DrivePlan {
         match self.profile {
             Profile::Cia402 => {
                 let m = self.cia;
-                let (ra, rl) = self.cia_read_span();
+                let reads = self.read_blocks();
                 let mut data = vec![cmd.controlword];
                 let write = if cmd.stream && self.cia_write_contiguous() {
                     data.extend_from_slice(&m.word_order.split_i32(cmd.target));
@@ -176,14 +208,17 @@ impl DrivePlan {
                     }
                     Exchange::Write { addr: m.controlword, len: 1 }
                 };
-                if self.fc23 {
-                    let Exchange::Write { addr, len } = write else { unreachable!("built as Write above") };
-                    v.push((Exchange::ReadWrite { read_addr: ra, read_len: rl, write_addr: addr, write_len: len }, data));
-                } else {
-                    let x = if let Exchange::Write { addr, len: 1 } = write { Exchange::WriteSingle { addr } } else { write };
-                    v.push((x, data));
-                    v.push((Exchange::Read { addr: ra, len: rl }, Vec::new()));
+                let mut rest = reads.as_slice();
+                match (self.fc23, write, reads.first()) {
+                    (true, Exchange::Write { addr, len }, Some(&Exchange::Read { addr: ra, len: rl })) => {
+                        // The first read block rides on the write; the others are read alone.
+                        v.push((Exchange::ReadWrite { read_addr: ra, read_len: rl, write_addr: addr, write_len: len }, data));
+                        rest = &reads[1..];
+                    }
+                    (_, Exchange::Write { addr, len: 1 }, _) => v.push((Exchange::WriteSingle { addr }, data)),
+                    (_, x, _) => v.push((x, data)),
                 }
+                v.extend(rest.iter().map(|x| (*x, Vec::new())));
             }
             Profile::Pr => {
                 let m = self.pr;
@@ -196,22 +231,41 @@ impl DrivePlan {
                     self.written_reset_seq = cmd.alarm_reset_seq;
                 }
                 if cmd.stream && cmd.servo_on {
-                    // Speed so that the move to the new target takes one link cycle: the
-                    // drive is retargeted every cycle and keeps moving.
-                    let delta = (cmd.target as i64 - self.last_target as i64).unsigned_abs() as f64;
-                    let rpm = delta / m.counts_per_rev.max(1) as f64 / (self.cycle_ms * 1e-3) * 60.0;
-                    let rpm = (rpm.ceil() + 1.0).min(u16::MAX as f64) as u16;
+                    let rpm = self.pr_speed_rpm(cmd.target);
                     let ramp = self.cycle_ms.round().clamp(1.0, u16::MAX as f64) as u16;
                     let block = pr_block(cmd.target, rpm, ramp, ramp, 0, m.word_order);
                     v.push((Exchange::Write { addr: m.block, len: PR_BLOCK_LEN }, block.to_vec()));
                     v.push((Exchange::WriteSingle { addr: m.trigger }, vec![m.trigger_value]));
                 }
-                for x in self.pr_read_span() {
+                for x in self.read_blocks() {
                     v.push((x, Vec::new()));
                 }
             }
         }
         v
+    }
+
+    /// PR: the block's speed (motor rpm) for the move to `target`. The drive is retargeted
+    /// every link cycle and moves at the block's speed until it is there, so the speed is
+    /// the larger of
+    /// - the set-point's own step over one link cycle (+1 rpm for the rounding), the speed
+    ///   of the path, and
+    /// - what the drive has left to go from the position last read, over two link cycles:
+    ///   a drive behind its set-points (a link cycle shorter than told, a late write, its
+    ///   own ramp) closes the gap within a few cycles. Without it a set-point that stands
+    ///   (the end of a move) was sent at 1 rpm and the remainder crawled (issue 22.5:
+    ///   first_part ended X 0.3 mm short). Over two cycles because the reading is a cycle
+    ///   old: the drive has since moved about one cycle's step toward the last target.
+    ///
+    /// Bounded by the axis's maximum speed (a drive refuses a block above its own rated
+    /// speed with 0x03) and at least 1 rpm (0 is no move on many drives).
+    pub fn pr_speed_rpm(&self, target: i32) -> u16 {
+        let rpm_per_count_s = 60.0 / self.pr.counts_per_rev.max(1) as f64;
+        let cycle_s = self.cycle_ms.max(0.001) * 1e-3;
+        let step = (target as i64 - self.last_target as i64).unsigned_abs() as f64 / cycle_s * rpm_per_count_s;
+        let left = self.last_actual.map_or(0.0, |p| (target as i64 - p as i64).unsigned_abs() as f64) / (2.0 * cycle_s) * rpm_per_count_s;
+        let rpm = if step > 0.0 { step.ceil() + 1.0 } else { 0.0 }.max(left.ceil());
+        rpm.min(self.max_rpm.floor()).clamp(1.0, u16::MAX as f64) as u16
     }
 
     /// Fold the registers `regs` read by `x` into `prev`.
@@ -239,7 +293,7 @@ impl DrivePlan {
                 if let (Some(a), Some(b)) = (get(m.position_actual), get(m.position_actual.wrapping_add(1))) {
                     r.position = m.word_order.join_i32([a, b]);
                 }
-                if let Some(e) = get(m.error_code) {
+                if let Some(e) = m.error_code.and_then(get) {
                     r.error_code = e;
                 }
             }
@@ -251,7 +305,7 @@ impl DrivePlan {
                 if let (Some(a), Some(b)) = (get(m.position_actual), get(m.position_actual.wrapping_add(1))) {
                     r.position = m.word_order.join_i32([a, b]);
                 }
-                if let Some(e) = get(m.alarm_code) {
+                if let Some(e) = m.alarm_code.and_then(get) {
                     r.error_code = e;
                 }
             }
@@ -333,6 +387,56 @@ mod tests {
         // Servo-on is written once.
         let w = d.cyclic_writes(&Command { servo_on: true, target: 1000, stream: true, ..Command::default() });
         assert!(w.iter().all(|(x, _)| *x != Exchange::WriteSingle { addr: 0x0405 }));
+    }
+
+    #[test]
+    fn pr_speed_closes_what_the_drive_has_left() {
+        let mut d = DrivePlan::new("w", 4, Profile::Pr, Cia402Map::default(), PrMap::default(), false, 1);
+        d.timing_writes(10, 100);
+        d.max_rpm = 1000.0;
+        // The set-point stands at 50 000 and the drive was read 3 000 counts short of it:
+        // 3 000 counts over two 10 ms cycles = 150 000 counts/s = 90 rpm (was 1 rpm).
+        d.last_target = 50_000;
+        d.last_actual = Some(47_000);
+        assert_eq!(d.pr_speed_rpm(50_000), 90);
+        // Moving: the step's speed when the drive keeps up (1 000 counts per cycle = 60 rpm).
+        d.last_actual = Some(49_500);
+        assert_eq!(d.pr_speed_rpm(51_000), 61);
+        // Far behind: never above the axis's maximum speed.
+        d.last_actual = Some(0);
+        assert_eq!(d.pr_speed_rpm(500_000), 1000);
+        // At the target: the slowest speed, not 0.
+        d.last_actual = Some(50_000);
+        assert_eq!(d.pr_speed_rpm(50_000), 1);
+    }
+
+    #[test]
+    fn pr_cycle_counts_the_block_trigger_and_reads() {
+        let d = DrivePlan::new("w", 4, Profile::Pr, Cia402Map::default(), PrMap::default(), false, 1);
+        assert_eq!(
+            d.cyclic,
+            vec![
+                Exchange::Write { addr: 0x6200, len: 7 },
+                Exchange::WriteSingle { addr: 0x6002 },
+                Exchange::Read { addr: 0x2203, len: 1 },
+                Exchange::Read { addr: 0x6003, len: 1 },
+                Exchange::Read { addr: 0x602A, len: 2 },
+            ]
+        );
+    }
+
+    #[test]
+    fn split_reads_with_fc23_carry_the_first_block() {
+        let m = Cia402Map { error_code: Some(18), reads: cncgw_bus::modbus::ReadBlocks::Contiguous, ..Cia402Map::default() };
+        let d = DrivePlan::new("z", 2, Profile::Cia402, m, PrMap::default(), true, 1);
+        assert_eq!(
+            d.cyclic,
+            vec![
+                Exchange::ReadWrite { read_addr: 10, read_len: 1, write_addr: 0, write_len: 3 },
+                Exchange::Read { addr: 12, len: 2 },
+                Exchange::Read { addr: 18, len: 1 },
+            ]
+        );
     }
 
     #[test]

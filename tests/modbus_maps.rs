@@ -1,0 +1,229 @@
+//! Register maps as vendors have them (issue 22, docs/MODBUS_MAPS.md): holes between the
+//! registers of the cyclic read (`reads`), optional registers a drive does not have
+//! (`"none"`), a drive that only takes a coarser interpolation period than written, and
+//! `cncgw config check --bus` finding the registers a live drive cannot read or write —
+//! against sim-drives (in the test and as a process) and against a pymodbus drive (someone
+//! else's register store and exceptions). Real time where `run` is used: serialized in
+//! .config/nextest.toml.
+
+use std::net::{SocketAddr, TcpListener, TcpStream};
+use std::path::PathBuf;
+use std::process::{Command, Output, Stdio};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use testkit::Kill;
+
+const MODBUS_LATHE: &str = include_str!("../config/lathe-modbus.toml");
+
+fn tmp(name: &str) -> PathBuf {
+    testkit::tmp!("modbus_maps", name)
+}
+
+fn write(name: &str, s: &str) -> String {
+    let p = tmp(name);
+    std::fs::write(&p, s).unwrap();
+    p.display().to_string()
+}
+
+fn cncgw(args: &[&str]) -> Output {
+    testkit::cli!().state(tmp("state")).output(args)
+}
+
+fn text(o: &Output) -> String {
+    format!("{}\n{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr))
+}
+
+fn on(machine: &str, addr: SocketAddr) -> String {
+    machine.replace("address = \"127.0.0.1:5020\"", &format!("address = \"{addr}\""))
+}
+
+/// `machine`'s drives with `quirks(node)` on each, served over TCP on 127.0.0.1.
+fn tcp_server(machine: &str, quirks: impl Fn(u8) -> sim_drives::ModbusQuirks, stop: &Arc<AtomicBool>) -> sim_drives::modbus::ModbusServer {
+    let mut cfg = sim_drives::SimConfig::from_machine_toml_bus(machine, Some(true)).unwrap();
+    for d in &mut cfg.drives {
+        d.modbus_quirks = quirks(d.node);
+    }
+    sim_drives::modbus::serve_tcp("127.0.0.1:0".parse().unwrap(), cfg, stop.clone()).unwrap()
+}
+
+fn realistic(node: u8) -> sim_drives::ModbusQuirks {
+    sim_drives::ModbusQuirks::realistic(if node == 2 { -8_000 } else { 0 })
+}
+
+/// Z's map as a drive without an interpolation period or watchdog register and with its
+/// error code at 18: a hole at 17 between the statusword (10) and the error code.
+const SPARSE_Z: &str = "[axes.z.cia402_map]\nerror_code = 18\ninterpolation_ms = \"none\"\ncomm_timeout_ms = \"none\"\n";
+
+fn with_z_map(machine: &str, map: &str) -> String {
+    let m = machine.replace("\n[axes.s1]", &format!("\n{map}\n[axes.s1]"));
+    assert_ne!(m, machine);
+    m
+}
+
+/// A drive without the optional registers runs when its map says `"none"` (skipped with a
+/// warning, not refused); the hole in its feedback registers is read around with
+/// `reads = "contiguous"`, while the default one-block read over it is refused naming the
+/// read.
+#[test]
+fn a_sparse_map_runs_with_none_and_contiguous_reads() {
+    let flag = Arc::new(AtomicBool::new(false));
+    let served = with_z_map(MODBUS_LATHE, SPARSE_Z);
+    let srv = tcp_server(&served, realistic, &flag);
+    let addr = srv.local_addr().unwrap();
+    let prog = write("sparse.nc", "O1\nG21\nG98\nG01 Z-2 F600\nM30\n");
+
+    // The default read (one block 10–18 over the hole at 17): refused at start-up.
+    let cfg = write("sparse-span.toml", &on(&served, addr));
+    let o = cncgw(&["run", "--config", &cfg, &prog]);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(3), "{t}");
+    assert!(t.contains("axis z (unit 2) on link tcp: function 03 (read holding registers) at register 10 (0x000A), 9 registers"), "{t}");
+    assert!(t.contains("exception 0x02 (Illegal data address)"), "{t}");
+
+    let cfg = write("sparse.toml", &on(&with_z_map(MODBUS_LATHE, &format!("{SPARSE_Z}reads = \"contiguous\"\n")), addr));
+    let o = cncgw(&["-v", "run", "--json", "--config", &cfg, &prog]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    assert!(t.contains("axis z: the register map has no interpolation period register"), "{t}");
+    assert!(t.contains("axis z: the register map has no communication watchdog register"), "{t}");
+    let z = srv.with_drive(2, |d| d.position_unwrapped()).unwrap();
+    assert!((z + 20_000).abs() <= 1, "z at {z} counts: {t}");
+    // config check says what the map leaves out too.
+    let o = cncgw(&["config", "check", &cfg]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    assert!(t.contains("warning: axis z: the register map has no interpolation period register"), "{t}");
+    flag.store(true, Ordering::Relaxed);
+    srv.join().unwrap();
+}
+
+/// A drive that interpolates only over multiples of 4 ms holds 8 ms after 5 ms is written:
+/// the link follows it (every drive is told 8 ms and the link runs at 8 ms), and the program
+/// ends on its end point.
+#[test]
+fn the_link_cycle_follows_the_drives_interpolation_period() {
+    let flag = Arc::new(AtomicBool::new(false));
+    let srv = tcp_server(MODBUS_LATHE, |n| sim_drives::ModbusQuirks { interpolation_grid_ms: if n == 2 { 4 } else { 0 }, ..realistic(n) }, &flag);
+    let machine = on(MODBUS_LATHE, srv.local_addr().unwrap()).replace("\ntimeout_ms = 20 ", "\ncycle_ms = 5\ntimeout_ms = 20 ");
+    let cfg = write("grid.toml", &machine);
+    let prog = write("grid.nc", "O1\nG21\nG98\nG01 X10 Z-2 F600\nM30\n");
+    let o = cncgw(&["-v", "run", "--json", "--config", &cfg, &prog]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    assert!(t.contains("axis z's drive holds an interpolation period of 8 ms after 5 ms was written: the link runs at 8 ms"), "{t}");
+    assert!(t.contains("link cycle 8 ms"), "{t}");
+    for n in 1..=3 {
+        let held = srv.with_drive(n, |d| d.object(0x60C2, 1).unwrap_or(0)).unwrap();
+        assert_eq!(held, 8, "unit {n} interpolates over {held} ms: {t}");
+    }
+    let (x, z) = (srv.with_drive(1, |d| d.position_unwrapped()).unwrap(), srv.with_drive(2, |d| d.position_unwrapped()).unwrap());
+    assert!((x - 50_000).abs() <= 1 && (z + 20_000).abs() <= 1, "x {x}, z {z}: {t}");
+    flag.store(true, Ordering::Relaxed);
+    srv.join().unwrap();
+}
+
+/// A free port's address on 127.0.0.1, and a wait until something listens there.
+fn free_addr() -> String {
+    format!("127.0.0.1:{}", TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port())
+}
+
+fn wait_listening(addr: &str, child: &mut Kill, log: &std::path::Path) {
+    let deadline = Instant::now() + Duration::from_secs(15);
+    while TcpStream::connect(addr).is_err() {
+        if let Ok(Some(st)) = child.0.try_wait() {
+            panic!("the server exited ({st}) before listening on {addr}: {}", std::fs::read_to_string(log).unwrap_or_default());
+        }
+        assert!(Instant::now() < deadline, "nothing listens on {addr} after 15 s: {}", std::fs::read_to_string(log).unwrap_or_default());
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// `config check --bus` against `sim-drives` as a process: with the map the drives have,
+/// every register reads and writes back (exit 0); a drive without the interpolation period
+/// register (Z here) is reported by name, address and exception, as optional (exit 1).
+#[test]
+fn config_check_bus_reads_the_map_from_sim_drives() {
+    let addr = free_addr();
+    let served = write("sim-served.toml", &with_z_map(MODBUS_LATHE, "[axes.z.cia402_map]\ninterpolation_ms = \"none\"\n"));
+    let log = tmp("sim-drives.log");
+    let mut sim = Kill(
+        Command::new(testkit::bin!("sim-drives"))
+            .args(["--config", &served, "--modbus-tcp", &addr])
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(&log).unwrap())
+            .spawn()
+            .unwrap(),
+    );
+    wait_listening(&addr, &mut sim, &log);
+    let bus = format!("modbus-tcp://{addr}");
+    let shipped = concat!(env!("CARGO_MANIFEST_DIR"), "/config/lathe-modbus.toml");
+    let o = cncgw(&["config", "check", shipped, "--bus", &bus]);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(t.contains("live: axis x (unit 1, cia402 map) on Modbus TCP"), "{t}");
+    assert!(t.contains("12 register(s) read, 7 written back, none failed"), "x and the spindle have every register: {t}");
+    assert!(
+        t.contains("axis z (unit 2): interpolation_ms (register 20 = 0x0014, 1 register): cannot read: unit 2: exception 0x02 (Illegal data address) reading register 20 (1); so not written back — optional: if the drive has no such register, set interpolation_ms = \"none\" in [axes.z.cia402_map]"),
+        "{t}"
+    );
+    // With the map the drive has: nothing fails.
+    let o = cncgw(&["config", "check", &served, "--bus", &bus, "--json"]);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(0), "{t}");
+    let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap_or_else(|e| panic!("{e}: {t}"));
+    let live = j["live"].as_array().unwrap();
+    assert_eq!(live.len(), 3, "{t}");
+    assert!(live.iter().all(|a| a["failed"].as_array().unwrap().is_empty()), "{t}");
+    // The PR map, checked against the cia402 drives: every PR register is missing.
+    let pr = write("pr-check.toml", &MODBUS_LATHE.replace("node = 1                    # Modbus unit id", "node = 1\nmodbus_profile = \"pr\""));
+    let o = cncgw(&["config", "check", &pr, "--bus", &bus]);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(t.contains("axis x (unit 1): block (register 25088 = 0x6200, 7 registers): cannot read"), "{t}");
+}
+
+/// `config check --bus` against a drive someone else built from the docs (pymodbus'
+/// simulator device, tests/python/modbus_drive.py) that lacks the interpolation period and
+/// the following-error window: both are named for each axis; the rest reads and writes.
+#[test]
+fn config_check_bus_finds_the_registers_a_pymodbus_drive_lacks() {
+    let ci = std::env::var("CI").as_deref() == Ok("true");
+    if std::env::var("CNCGW_SKIP_PYTHON").as_deref() == Ok("1") && !ci {
+        eprintln!("CNCGW_SKIP_PYTHON=1: pymodbus drive test skipped on request");
+        return;
+    }
+    let python = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("build/venv/bin/python");
+    assert!(
+        python.exists(),
+        "{} is missing: run `scripts/install-test-deps.sh --python`, or set CNCGW_SKIP_PYTHON=1 to skip this test on purpose",
+        python.display()
+    );
+    let addr = free_addr();
+    let port = addr.rsplit(':').next().unwrap().to_string();
+    let log = tmp("pymodbus.log");
+    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/python/modbus_drive.py");
+    let mut py = Kill(
+        Command::new(&python)
+            .args([script, &port, "1,2,3", "interpolation_ms", "following_error_window"])
+            .stdout(std::fs::File::create(&log).unwrap())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap(),
+    );
+    wait_listening(&addr, &mut py, &log);
+    let shipped = concat!(env!("CARGO_MANIFEST_DIR"), "/config/lathe-modbus.toml");
+    let o = cncgw(&["config", "check", shipped, "--bus", &format!("modbus-tcp://{addr}")]);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    for (axis, unit) in [("x", 1), ("z", 2), ("s1", 3)] {
+        assert!(
+            t.contains(&format!("live: axis {axis} (unit {unit}, cia402 map) on Modbus TCP {addr}: 10 register(s) read, 5 written back, 2 failed:")),
+            "{t}"
+        );
+        assert!(t.contains(&format!("axis {axis} (unit {unit}): interpolation_ms (register 20 = 0x0014, 1 register): cannot read: unit {unit}: exception 0x02 (Illegal data address)")), "{t}");
+        assert!(t.contains(&format!("axis {axis} (unit {unit}): following_error_window (register 21 = 0x0015, 2 registers): cannot read")), "{t}");
+    }
+    // The window is not optional: no "none" hint for it.
+    assert!(!t.contains("set following_error_window = \"none\""), "{t}");
+}
