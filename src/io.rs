@@ -29,7 +29,7 @@ pub const MAX_DEVICES: usize = 8;
 pub const MAX_PER_CODE: usize = 8;
 
 /// `[io]`.
-#[derive(Clone, Debug, Default, Deserialize, PartialEq)]
+#[derive(Clone, Debug, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct IoConfig {
     /// Default FIN timeout of a code that waits for a confirmation, ms.
@@ -52,6 +52,20 @@ pub struct IoConfig {
     pub m: BTreeMap<String, MCode>,
     /// The turret's index handshake on a T code.
     pub turret: Option<Turret>,
+}
+
+impl Default for IoConfig {
+    fn default() -> Self {
+        IoConfig {
+            fin_timeout_ms: default_fin_timeout(),
+            devices: BTreeMap::new(),
+            inputs: BTreeMap::new(),
+            outputs: BTreeMap::new(),
+            safety: Safety::default(),
+            m: BTreeMap::new(),
+            turret: None,
+        }
+    }
 }
 
 fn default_fin_timeout() -> u32 {
@@ -354,7 +368,7 @@ impl IoConfig {
         if names > 0 && r.devices.is_empty() {
             e.push("io.safety: inputs without a device".into());
         }
-        if self.fin_timeout_ms == 0 || r.m.iter().any(|(_, a)| a.timeout_ms == 0) {
+        if self.fin_timeout_ms == 0 || r.m.iter().any(|(_, a)| a.timeout_ms == 0) || r.turret.is_some_and(|t| t.timeout_ms == 0) {
             e.push("io: fin_timeout_ms / timeout_ms must be > 0".into());
         }
     }
@@ -406,6 +420,13 @@ mod tests {
         assert_eq!(r.turret.unwrap().in_position, Bit { dev: 1, bit: 3 });
         assert_eq!(r.estop.as_ref().unwrap().0, Bit { dev: 0, bit: 0 });
         assert_eq!(r.canopen_modules(), vec![(10, 8, 8)]);
+    }
+
+    #[test]
+    fn no_io_table_is_no_io() {
+        let c: IoConfig = toml::from_str("").unwrap();
+        assert_eq!(c, IoConfig::default());
+        assert!(c.resolve().unwrap().is_empty());
     }
 
     #[test]
