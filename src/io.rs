@@ -261,7 +261,13 @@ impl IoConfig {
                     if d.poll_ms == 0 {
                         e.push(format!("{key}.poll_ms: must be > 0"));
                     }
-                    DeviceKind::ModbusTcp { address: a.clone(), unit: d.unit, first_input: d.first_input, first_output: d.first_output, poll_ms: d.poll_ms }
+                    DeviceKind::ModbusTcp {
+                        address: a.clone(),
+                        unit: d.unit,
+                        first_input: d.first_input,
+                        first_output: d.first_output,
+                        poll_ms: d.poll_ms,
+                    }
                 }
                 (None, Some(a)) => {
                     e.push(format!("{key}.modbus: host:port of a Modbus TCP I/O unit, got {a:?}"));
@@ -360,7 +366,8 @@ impl IoConfig {
                 r.turret = Some(TurretBits { code, strobe, in_position, timeout_ms: t.timeout_ms.unwrap_or(self.fin_timeout_ms) });
             }
         }
-        let safety = |e: &mut Vec<String>, key: &str, n: &Option<String>| n.as_ref().and_then(|n| find(&ins, e, key, n, "input").map(|b| (b, n.clone())));
+        let safety =
+            |e: &mut Vec<String>, key: &str, n: &Option<String>| n.as_ref().and_then(|n| find(&ins, e, key, n, "input").map(|b| (b, n.clone())));
         r.estop = safety(e, "io.safety.estop", &self.safety.estop);
         r.door = safety(e, "io.safety.door", &self.safety.door);
         r.chuck = safety(e, "io.safety.chuck", &self.safety.chuck);

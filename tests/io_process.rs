@@ -3,9 +3,9 @@
 //! turret, and `cncgw run --bus socketcand://…` as an operator runs it. The wiring is the
 //! machine config's `[io.devices.*.emulate]`; the E-stop chain opens by a timed event.
 
+use std::path::PathBuf;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
-use std::path::PathBuf;
 use testkit::{bin, Kill};
 
 fn tmp(name: &str) -> PathBuf {
@@ -116,7 +116,11 @@ fn a_chuck_that_never_reports_clamped_is_alarm_2600_over_socketcand() {
 
 #[test]
 fn the_e_stop_chain_opening_mid_program_is_alarm_2400_over_socketcand() {
-    let (code, out) = run("estop", &format!("{WIRED}\nevents = [{{ input = 0, at_ms = 2500, value = false }}]"), "G21 G98\nM10\nG00 X40 Z2\nG01 Z-100 F1200\nM30\n");
+    let (code, out) = run(
+        "estop",
+        &format!("{WIRED}\nevents = [{{ input = 0, at_ms = 2500, value = false }}]"),
+        "G21 G98\nM10\nG00 X40 Z2\nG01 Z-100 F1200\nM30\n",
+    );
     assert_ne!(code, Some(0), "{out}");
     assert!(out.contains("2400") && out.contains("estop_ok"), "{out}");
 }

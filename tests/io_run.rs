@@ -260,3 +260,21 @@ fn a_t_code_indexes_the_turret_and_waits_for_in_position() {
     assert!(off >= strobe.t + 200 * MS);
     assert!(o.first_motion().unwrap() >= off);
 }
+
+#[test]
+fn the_example_config_runs_a_program_with_chuck_coolant_and_turret_from_the_cli() {
+    let dir = testkit::tmp!("io_run", "example");
+    std::fs::create_dir_all(&dir).unwrap();
+    let prog = dir.join("io.nc");
+    std::fs::write(&prog, "G21 G98 G97\nM10\nT0303\nM03 S500\nM08\nG00 X40 Z2\nG01 Z-5 F600\nG00 X60 Z5\nM09\nM05\nM30\n").unwrap();
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_cncgw"))
+        .args(["run", "--batch", "--config", concat!(env!("CARGO_MANIFEST_DIR"), "/config/lathe-io.toml")])
+        .arg(&prog)
+        .env("CNCGW_STATE_DIR", dir.join("state"))
+        .env_remove("RUST_LOG")
+        .output()
+        .unwrap();
+    let text = format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+    assert_eq!(o.status.code(), Some(0), "{text}");
+    assert_eq!(text.matches("ok (within 1 count)").count(), 2, "{text}");
+}

@@ -132,8 +132,11 @@ pub struct IoModuleConfig {
     pub emu: IoEmulation,
 }
 
-/// The CiA 401 modules (and Modbus units: `modbus` address, unit) of a cncgw machine config.
-pub fn from_machine_toml(text: &str) -> Result<(Vec<IoModuleConfig>, Vec<(String, u8, IoEmulation)>), String> {
+/// A Modbus I/O unit of a machine config: address, unit id, wiring.
+pub type ModbusUnit = (String, u8, IoEmulation);
+
+/// The CiA 401 modules (and Modbus units) of a cncgw machine config.
+pub fn from_machine_toml(text: &str) -> Result<(Vec<IoModuleConfig>, Vec<ModbusUnit>), String> {
     #[derive(Deserialize)]
     struct Dev {
         canopen_node: Option<u8>,
@@ -182,7 +185,8 @@ pub struct SimIo {
 
 impl SimIo {
     pub fn new(cfg: IoModuleConfig) -> SimIo {
-        let mut m = SimIo { node: cfg.node, nmt: NmtState::BootUp, od: BTreeMap::new(), wiring: Wiring::new(cfg.emu), last_sent: None, out: Vec::new() };
+        let mut m =
+            SimIo { node: cfg.node, nmt: NmtState::BootUp, od: BTreeMap::new(), wiring: Wiring::new(cfg.emu), last_sent: None, out: Vec::new() };
         m.reset_comm();
         // Powered up: boot-up message.
         m.boot();
@@ -301,7 +305,12 @@ impl SimIo {
                 };
                 match v {
                     Some(v) => {
-                        let size = if sub == 0 && index != 0x1000 || matches!(index, 0x6000 | 0x6200) || sub == 2 && matches!(index, 0x1400 | 0x1800) { 1 } else { 4 };
+                        let size = if sub == 0 && index != 0x1000 || matches!(index, 0x6000 | 0x6200) || sub == 2 && matches!(index, 0x1400 | 0x1800)
+                        {
+                            1
+                        } else {
+                            4
+                        };
                         SdoResponse::InitiateUpload { index, sub, expedited: true, size: Some(size), data: v.to_le_bytes() }
                     }
                     None => SdoResponse::Abort { index, sub, code: abort::NO_OBJECT },

@@ -151,7 +151,10 @@ fn main() -> ExitCode {
     }
     let mut io_servers = Vec::new();
     if args.modbus_io {
-        let units = args.config.as_deref().map(|p| std::fs::read_to_string(p).map_err(|e| e.to_string()).and_then(|t| sim_drives::io401::from_machine_toml(&t)));
+        let units = args
+            .config
+            .as_deref()
+            .map(|p| std::fs::read_to_string(p).map_err(|e| e.to_string()).and_then(|t| sim_drives::io401::from_machine_toml(&t)));
         for (addr, _unit, emu) in units.and_then(|r| r.ok()).map(|r| r.1).unwrap_or_default() {
             match sim_drives::modbus_io::serve(&addr, emu, stop.clone()) {
                 Ok(s) => io_servers.push(s),
@@ -187,7 +190,11 @@ fn main() -> ExitCode {
         }
     }
     // A machine config's CiA 401 I/O modules ([io.devices.*] canopen_node) on the same bus.
-    let io = match args.config.as_deref().map(|p| std::fs::read_to_string(p).map_err(|e| e.to_string()).and_then(|t| sim_drives::io401::from_machine_toml(&t))) {
+    let io = match args
+        .config
+        .as_deref()
+        .map(|p| std::fs::read_to_string(p).map_err(|e| e.to_string()).and_then(|t| sim_drives::io401::from_machine_toml(&t)))
+    {
         Some(Ok((can, _))) => can,
         Some(Err(e)) => {
             eprintln!("sim-drives: {e}");

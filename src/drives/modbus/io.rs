@@ -75,7 +75,10 @@ impl ModbusIo {
                         }
                         let io = async {
                             ctx.write_multiple_coils(first_output, &coils).await.map_err(|e| e.to_string())?.map_err(|e| format!("exception {e}"))?;
-                            ctx.read_discrete_inputs(first_input, inputs as u16).await.map_err(|e| e.to_string())?.map_err(|e| format!("exception {e}"))
+                            ctx.read_discrete_inputs(first_input, inputs as u16)
+                                .await
+                                .map_err(|e| e.to_string())?
+                                .map_err(|e| format!("exception {e}"))
                         };
                         let bits = tokio::time::timeout(timeout, io).await.map_err(|_| format!("no answer within {} ms", timeout.as_millis()))??;
                         let v = bits.iter().take(32).enumerate().fold(0u32, |v, (k, b)| v | (*b as u32) << k);
@@ -119,6 +122,9 @@ impl ModbusIo {
             }
             std::thread::sleep(Duration::from_millis(2));
         }
-        Err(Alarm::new(crate::alarm::IO_DEVICE, format!("I/O unit {}: no answer within {ms} ms of start-up; check its power, network and address", self.name)))
+        Err(Alarm::new(
+            crate::alarm::IO_DEVICE,
+            format!("I/O unit {}: no answer within {ms} ms of start-up; check its power, network and address", self.name),
+        ))
     }
 }

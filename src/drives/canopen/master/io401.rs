@@ -130,9 +130,9 @@ impl<B: CanBus> CanOpenMaster<B> {
     }
 
     fn io_write(&mut self, clock: &mut dyn Clock, k: usize, ix: u16, sub: u8, data: &[u8]) -> Result<(), Alarm> {
-        self.io_sdo(clock, k, ix, sub, Some(data))
-            .map(|_| ())
-            .map_err(|e| self.io_alarm(k, format_args!("writing 0x{ix:04X}:{sub:02X} failed: {e}; is it a CiA 401 module with changeable PDO mapping?")))
+        self.io_sdo(clock, k, ix, sub, Some(data)).map(|_| ()).map_err(|e| {
+            self.io_alarm(k, format_args!("writing 0x{ix:04X}:{sub:02X} failed: {e}; is it a CiA 401 module with changeable PDO mapping?"))
+        })
     }
 
     /// Boot-up, device type, PDO mapping of every I/O module.
@@ -142,13 +142,19 @@ impl<B: CanBus> CanOpenMaster<B> {
             if clock.now_ns() >= deadline {
                 return Err(self.io_alarm(
                     k,
-                    format_args!("no boot-up message within {} ms after NMT reset communication; check its power, wiring, bitrate and node id", self.boot_timeout_ms),
+                    format_args!(
+                        "no boot-up message within {} ms after NMT reset communication; check its power, wiring, bitrate and node id",
+                        self.boot_timeout_ms
+                    ),
                 ));
             }
             self.settle(clock, 1);
         }
         for k in 0..self.io.len() {
-            let dt = self.io_sdo(clock, k, od::DEVICE_TYPE, 0, None).map(|v: Vec<u8>| le_u32(&v)).map_err(|e| self.io_alarm(k, format_args!("reading device type 0x1000 failed: {e}")))?;
+            let dt = self
+                .io_sdo(clock, k, od::DEVICE_TYPE, 0, None)
+                .map(|v: Vec<u8>| le_u32(&v))
+                .map_err(|e| self.io_alarm(k, format_args!("reading device type 0x1000 failed: {e}")))?;
             if dt & 0xFFFF != 401 {
                 return Err(self.io_alarm(
                     k,
