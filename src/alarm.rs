@@ -255,6 +255,16 @@ catalogue! {
         /// The program cannot be restarted at that block.
         RESTART = 2520;
     }
+    "2600–2699 machine I/O" {
+        /// An M or T code was not confirmed (FIN) within its timeout: no later block ran.
+        IO_FIN_TIMEOUT = 2600;
+        /// The door-closed input opened while a program ran: controlled stop.
+        IO_DOOR_OPEN = 2601;
+        /// The chuck-clamped input dropped while the spindle turned or the chuck was clamped.
+        IO_CHUCK_UNCLAMPED = 2602;
+        /// An I/O device did not start, is not what the config says, or went silent.
+        IO_DEVICE = 2603;
+    }
     "3000 user alarms, nose compensation" {
         /// `#3000 = k (MESSAGE)`: user alarm 3000 + k.
         USER_ALARM = 3000;

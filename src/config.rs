@@ -42,6 +42,9 @@ pub struct MachineConfig {
     /// override it.
     #[serde(default)]
     pub rt: RtConfig,
+    /// Discrete I/O: devices, M codes, turret, safety inputs (`[io]`, see `crate::io`).
+    #[serde(default)]
+    pub io: crate::io::IoConfig,
 }
 
 /// `[rt]`: real-time setup of the cycle thread on a real PC. All optional; absent = normal
@@ -610,7 +613,22 @@ impl MachineConfig {
         self.validate_axes(&mut e);
         self.validate_links(&mut e);
         self.validate_parameters(&mut e);
+        self.validate_io(&mut e);
         e
+    }
+
+    /// `[io]`: see `crate::io`; a CiA 401 module's node id is not a drive's.
+    fn validate_io(&self, e: &mut Vec<String>) {
+        match self.io.resolve() {
+            Ok(r) => {
+                for (node, _, _) in r.canopen_modules() {
+                    if let Some((name, _)) = self.axes.iter().find(|(_, a)| a.modbus.is_none() && a.node == node) {
+                        e.push(format!("io.devices: CANopen node {node} is axis {name}'s drive"));
+                    }
+                }
+            }
+            Err(mut x) => e.append(&mut x),
+        }
     }
 
     /// The machine, bus, [rt] and parameter-range keys.

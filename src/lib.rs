@@ -12,6 +12,7 @@ pub mod config;
 pub mod control;
 pub mod drives;
 pub mod interp;
+pub mod io;
 pub mod motion;
 pub mod offsets;
 pub mod params;

@@ -11,7 +11,9 @@
 pub mod buslog;
 pub mod config;
 pub mod drive;
+pub mod io401;
 pub mod modbus;
+pub mod modbus_io;
 pub mod od;
 pub mod report;
 pub mod servo;
@@ -90,6 +92,8 @@ struct Core {
     out: Vec<CanFrame>,
     /// Faults still to inject, latest first.
     faults: Vec<FaultAt>,
+    /// CiA 401 I/O modules (`io401`).
+    io: Vec<io401::SimIo>,
 }
 
 impl Core {
@@ -97,10 +101,13 @@ impl Core {
         let step_us = cfg.step_us.clamp(1, 100);
         let mut drives: Vec<SimDrive> = cfg.drives.into_iter().map(|d| SimDrive::new(d, step_us)).collect();
         drives.sort_by_key(|d| d.node());
-        Core { drives, now: 0, step_ns: step_us as u64 * 1000, last_tick: None, out: Vec::new(), faults: Vec::new() }
+        Core { drives, now: 0, step_ns: step_us as u64 * 1000, last_tick: None, out: Vec::new(), faults: Vec::new(), io: Vec::new() }
     }
 
     fn collect(&mut self) {
+        for m in &mut self.io {
+            m.take_output(&mut self.out);
+        }
         for k in 0..self.drives.len() {
             let from = self.out.len();
             self.drives[k].take_output(&mut self.out);
@@ -122,6 +129,9 @@ impl Core {
     fn handle(&mut self, f: &CanFrame) {
         for d in &mut self.drives {
             d.handle_frame(f, self.now);
+        }
+        for m in &mut self.io {
+            m.handle_frame(f, self.now);
         }
         self.collect();
     }
@@ -145,6 +155,9 @@ impl Core {
             self.last_tick = Some(now);
             for d in &mut self.drives {
                 d.tick(now);
+            }
+            for m in &mut self.io {
+                m.tick(now);
             }
         }
         self.collect();
@@ -235,6 +248,21 @@ impl SimWorld {
         &self.core.drives
     }
 
+    /// Add an emulated CiA 401 I/O module (it sends its boot-up now).
+    pub fn add_io_module(&mut self, cfg: io401::IoModuleConfig) {
+        self.core.io.push(io401::SimIo::new(cfg));
+    }
+
+    /// Force input `bit` of I/O module `node` (`None`: back to its wiring). False: no such module.
+    pub fn set_io_input(&mut self, node: u8, bit: u8, v: Option<bool>) -> bool {
+        self.core.io.iter_mut().find(|m| m.node() == node).map(|m| m.wiring.force(bit, v)).is_some()
+    }
+
+    /// The outputs of I/O module `node`.
+    pub fn io_outputs(&self, node: u8) -> Option<u32> {
+        self.core.io.iter().find(|m| m.node() == node).map(|m| m.wiring.outputs())
+    }
+
     /// Raise a fault on `node` now (EMCY, 0x603F, fault reaction). False if no such node.
     pub fn inject_fault(&mut self, node: u8, code: u16) -> bool {
         let now = self.core.now;
@@ -316,9 +344,21 @@ pub fn run_realtime(bus: Box<dyn CanBus>, cfg: SimConfig, stop: Arc<AtomicBool>)
 }
 
 /// `run_realtime`, injecting `faults` at their times after the start (`--fault`).
-pub fn run_realtime_with_faults(mut bus: Box<dyn CanBus>, cfg: SimConfig, stop: Arc<AtomicBool>, faults: Vec<FaultAt>) -> Result<(), String> {
+pub fn run_realtime_with_faults(bus: Box<dyn CanBus>, cfg: SimConfig, stop: Arc<AtomicBool>, faults: Vec<FaultAt>) -> Result<(), String> {
+    run_realtime_with_io(bus, cfg, stop, faults, Vec::new())
+}
+
+/// `run_realtime_with_faults` with emulated CiA 401 I/O modules on the bus.
+pub fn run_realtime_with_io(
+    mut bus: Box<dyn CanBus>,
+    cfg: SimConfig,
+    stop: Arc<AtomicBool>,
+    faults: Vec<FaultAt>,
+    io: Vec<io401::IoModuleConfig>,
+) -> Result<(), String> {
     cfg.validate()?;
     let mut core = Core::new(cfg);
+    core.io = io.into_iter().map(io401::SimIo::new).collect();
     core.schedule(faults);
     let start = Instant::now();
     let now = |s: &Instant| s.elapsed().as_nanos() as u64;

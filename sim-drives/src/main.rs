@@ -68,6 +68,10 @@ struct Args {
     /// (its [axes.*] tables). Default: the drives of config/lathe.toml.
     #[arg(long)]
     config: Option<std::path::PathBuf>,
+    /// Also serve the Modbus TCP I/O units of the --config machine config (`[io.devices.*]
+    /// modbus = "ADDR:PORT"`, wired as its `emulate` table says), each on its address.
+    #[arg(long, requires = "config")]
+    modbus_io: bool,
     /// Print the default configuration as commented TOML and exit.
     #[arg(long)]
     print_default_config: bool,
@@ -145,6 +149,22 @@ fn main() -> ExitCode {
             return ExitCode::FAILURE;
         }
     }
+    let mut io_servers = Vec::new();
+    if args.modbus_io {
+        let units = args
+            .config
+            .as_deref()
+            .map(|p| std::fs::read_to_string(p).map_err(|e| e.to_string()).and_then(|t| sim_drives::io401::from_machine_toml(&t)));
+        for (addr, _unit, emu) in units.and_then(|r| r.ok()).map(|r| r.1).unwrap_or_default() {
+            match sim_drives::modbus_io::serve(&addr, emu, stop.clone()) {
+                Ok(s) => io_servers.push(s),
+                Err(e) => {
+                    eprintln!("sim-drives: --modbus-io {addr}: {e}");
+                    return ExitCode::FAILURE;
+                }
+            }
+        }
+    }
     if args.modbus_tcp.is_some() || args.modbus_rtu.is_some() {
         return serve_modbus(&args, cfg, faults, stop);
     }
@@ -169,7 +189,20 @@ fn main() -> ExitCode {
             }
         }
     }
-    match sim_drives::run_realtime_with_faults(bus, cfg, stop, faults) {
+    // A machine config's CiA 401 I/O modules ([io.devices.*] canopen_node) on the same bus.
+    let io = match args
+        .config
+        .as_deref()
+        .map(|p| std::fs::read_to_string(p).map_err(|e| e.to_string()).and_then(|t| sim_drives::io401::from_machine_toml(&t)))
+    {
+        Some(Ok((can, _))) => can,
+        Some(Err(e)) => {
+            eprintln!("sim-drives: {e}");
+            return ExitCode::from(2);
+        }
+        None => Vec::new(),
+    };
+    match sim_drives::run_realtime_with_io(bus, cfg, stop, faults, io) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("sim-drives: {e}");

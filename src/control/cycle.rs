@@ -254,6 +254,9 @@ pub struct CycleLoop<'a> {
     /// Set (to the signal's number) by SIGTERM/SIGINT/SIGHUP: stop as on reset. With the
     /// signal's name for the message.
     signal: Option<SignalSource>,
+    /// The machine's I/O (`[io]`): M/T codes, safety inputs (`control::io`); an Err is
+    /// raised by `start`.
+    pub io: Result<Option<super::io::IoRun>, Alarm>,
 }
 
 /// The flag a signal handler sets (to the signal's number) and the signal's name.
@@ -277,6 +280,7 @@ impl<'a> CycleLoop<'a> {
             quick: false,
             rpm: 0.0,
             signal: None,
+            io: Ok(None),
         }
     }
 
@@ -338,6 +342,9 @@ impl<'a> CycleLoop<'a> {
     pub fn start(&mut self, summary: &mut RunSummary) -> Result<[f64; N_AXES], Alarm> {
         let t0 = self.clock.now_ns();
         summary.simulated = self.clock.is_simulated();
+        if let Err(a) = &self.io {
+            return Err(a.clone());
+        }
         self.drives.startup(self.clock)?;
         let mut next = self.clock.now_ns();
         loop {
@@ -359,6 +366,7 @@ impl<'a> CycleLoop<'a> {
             }
         }
         summary.enable_time_s = (self.clock.now_ns() - t0) as f64 * 1e-9;
+        self.io_start()?;
         let mut start = [0.0; N_AXES];
         for (d, ax) in self.map().iter().enumerate() {
             if let Some(a) = ax {
@@ -423,7 +431,16 @@ impl<'a> CycleLoop<'a> {
                 }
                 false
             }
-            Event::Aux { .. } | Event::Stroke2(_) | Event::None => false,
+            Event::Aux { letter, value } => {
+                // An I/O code: its outputs now, the next item after its completion (FIN).
+                if let Ok(Some(io)) = self.io.as_mut() {
+                    if io.on_aux(letter, value, sp.line) {
+                        motion.wait_fin(true);
+                    }
+                }
+                false
+            }
+            Event::Stroke2(_) | Event::None => false,
         }
     }
 
@@ -435,6 +452,58 @@ impl<'a> CycleLoop<'a> {
             alarms::ESTOP,
             format!("emergency stop at line {line}: every drive was sent quick stop; release the E-stop, find the cause, reset the drives (`cncgw drive fault-reset`) and restart the program"),
         )
+    }
+
+    /// The hardware E-stop input opened: the panel's E-stop path, naming the input.
+    fn estop_input(&mut self, line: u32, input: &str) -> Alarm {
+        let mut a = self.estop(line);
+        a.message = format!(
+            "emergency stop at line {line}: the E-stop input {input} opened and every drive was sent quick stop; find why the E-stop chain opened, close it, reset the drives (`cncgw drive fault-reset`) and restart the program"
+        );
+        a
+    }
+
+    /// The panel's E-stop or the E-stop input (read fresh: the stop loops call it after the
+    /// bus's `receive`).
+    fn estop_now(&mut self) -> bool {
+        let panel = self.panel.as_mut().is_some_and(|r| r.poll().estop);
+        let input = match self.io.as_mut() {
+            Ok(Some(io)) => io.read(&*self.drives).is_err() || io.estop_open(),
+            _ => false,
+        };
+        panel || input
+    }
+
+    /// Start the I/O: wait for every device's first inputs (at most 1 s of clock time), then
+    /// the safety inputs must be closed before anything moves.
+    fn io_start(&mut self) -> Result<(), Alarm> {
+        let Ok(Some(io)) = self.io.as_mut() else { return Ok(()) };
+        io.wait_modbus(1000)?;
+        let mut next = self.clock.now_ns();
+        for _ in 0..(1_000_000_000 / self.cycle_ns.max(1)) {
+            if io.all_seen() {
+                break;
+            }
+            next += self.cycle_ns;
+            self.clock.wait_until(next);
+            let now = self.clock.now_ns();
+            let r = self.drives.receive(now).and_then(|_| io.read(&*self.drives)).and_then(|_| {
+                io.write(&mut *self.drives);
+                self.drives.transmit(now)
+            });
+            if let Err(a) = r {
+                self.quick_stop_all();
+                return Err(a);
+            }
+        }
+        match io.check_safety(false, 0) {
+            None => Ok(()),
+            Some(stop) => {
+                self.quick_stop_all();
+                let _ = self.drives.transmit(self.clock.now_ns());
+                Err(super::io::IoStop::refused(stop))
+            }
+        }
     }
 
     /// Quick stop on every drive at once, then `a`.
@@ -496,7 +565,7 @@ impl<'a> CycleLoop<'a> {
                     }
                 }
             }
-            if self.panel.as_mut().is_some_and(|r| r.poll().estop) {
+            if self.estop_now() {
                 self.quick_stop_all();
                 let _ = self.drives.transmit(now);
                 return at_line(alarm.unwrap_or_else(|| Alarm::new(alarms::ESTOP, "emergency stop during a drive fault stop")));
@@ -564,7 +633,7 @@ impl<'a> CycleLoop<'a> {
             }
             let fb = self.read_feedback(&mut meter);
             // E-stop overrides a controlled stop in progress.
-            if self.panel.as_mut().is_some_and(|r| r.poll().estop) {
+            if self.estop_now() {
                 self.quick_stop_all();
                 let _ = self.drives.transmit(now);
                 return;

@@ -34,6 +34,7 @@ impl<'a> CycleLoop<'a> {
             lp.set_tool_spindle(t);
         }
         lp.set_watchdog(Watchdog::from_config(cfg));
+        lp.io = super::io::IoRun::new(cfg);
         lp
     }
 }

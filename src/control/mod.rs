@@ -9,6 +9,7 @@ pub mod cycle;
 #[cfg(feature = "embedded")]
 pub mod embedded;
 pub mod guard;
+pub mod io;
 pub mod job;
 pub mod panel;
 pub mod rt;

@@ -93,4 +93,12 @@ pub trait DriveBus {
     fn position_lost(&self, _axis: usize) -> Option<String> {
         None
     }
+    /// A CiA 401 I/O module on this bus (`[io.devices.*] canopen_node`): its digital inputs
+    /// (0x6000, bit 0 = input 1) as last received; `None` when the bus has no such module or
+    /// has heard nothing from it yet.
+    fn io_inputs(&self, _node: u8) -> Option<u32> {
+        None
+    }
+    /// The module's digital outputs (0x6200), sent with every `transmit` from now on.
+    fn set_io_outputs(&mut self, _node: u8, _bits: u32) {}
 }

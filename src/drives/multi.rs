@@ -126,6 +126,14 @@ impl DriveBus for MultiBus<'_> {
             p.abandon_startup(clock);
         }
     }
+    fn io_inputs(&self, node: u8) -> Option<u32> {
+        self.parts.iter().find_map(|p| p.io_inputs(node))
+    }
+    fn set_io_outputs(&mut self, node: u8, bits: u32) {
+        for p in self.parts.iter_mut() {
+            p.set_io_outputs(node, bits);
+        }
+    }
     fn following_window(&self, axis: usize) -> Option<f64> {
         let (p, i) = self.map[axis];
         self.parts[p].following_window(i)

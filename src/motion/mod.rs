@@ -607,6 +607,8 @@ pub struct Motion {
     spindle_ovr: f64,
     held: bool,
     paused: bool,
+    /// An M/T code's completion (FIN) is awaited: no next item (see [`Motion::wait_fin`]).
+    fin_wait: bool,
     optional_stop: bool,
     single_block: bool,
     stopping: bool,
@@ -750,6 +752,7 @@ impl Motion {
             spindle_ovr: 1.0,
             held: false,
             paused: false,
+            fin_wait: false,
             optional_stop: false,
             single_block: false,
             stopping: false,
@@ -1761,7 +1764,7 @@ impl Motion {
             self.sb_pending = false;
             self.paused |= self.single_block;
         }
-        if self.run == Run::None && !self.stopping && !self.hold_now() && !self.paused {
+        if self.run == Run::None && !self.stopping && !self.hold_now() && !self.paused && !self.fin_wait {
             if let Some(e) = self.pop() {
                 self.line = e.line;
                 self.cur_cyc = e.cyc;
@@ -2076,6 +2079,7 @@ impl Motion {
         self.stopping = false;
         self.held = false;
         self.paused = false;
+        self.fin_wait = false;
         self.plan_end = [self.pos[AX_X], self.pos[AX_Y], self.pos[AX_Z]];
         self.plan_spindle_on = false;
         self.last_blendable = false;
@@ -2364,7 +2368,20 @@ impl Motion {
     /// spindle may still turn: see `Setpoint::spindle_rpm`.)
     pub fn is_idle(&self) -> bool {
         // Not while a sync correction is still fading out: what is sent is not the end yet.
-        self.len == 0 && self.run == Run::None && !self.stopping && self.corr.is_zero() && self.tool.at_rest()
+        self.len == 0 && self.run == Run::None && !self.stopping && !self.fin_wait && self.corr.is_zero() && self.tool.at_rest()
+    }
+
+    /// Hold the next item until the auxiliary code just reached (`Event::Aux`) is complete:
+    /// the cycle loop calls `wait_fin(true)` in the cycle the event came out of `step` and
+    /// `wait_fin(false)` on FIN (Fanuc: the next block waits for the completion signal of an
+    /// M/S/T code). What runs goes on; a controlled stop clears it.
+    pub fn wait_fin(&mut self, on: bool) {
+        self.fin_wait = on;
+    }
+
+    /// True while an auxiliary code's completion is awaited.
+    pub fn fin_pending(&self) -> bool {
+        self.fin_wait
     }
 
     /// A spindle-synchronised move is running (a thread pass on its lock, a rigid tap or

@@ -15,6 +15,7 @@
 use super::{alarms, stall_in_sync, AxisSummary, CycleLoop, Progress, RunSummary, SpindleMeter, MAX_CATCH_UP};
 use crate::canon::{Move, Pos};
 use crate::control::guard::Guard;
+use crate::control::io::IoStop;
 use crate::control::trace::{TraceRow, MAX_TRACE_AXES};
 use crate::drives::scale_watch::{self, ScaleWatch};
 use crate::motion::{Event, Feedback, Motion, Setpoint, AX_X, AX_Y, AX_Z, N_AXES};
@@ -278,6 +279,7 @@ impl CycleLoop<'_> {
                 return Err(Alarm::new(alarms::RESET, format!("{what}; start it again from the beginning or a safe block")));
             }
         }
+        self.io_cycle(motion, run)?;
         let Some(r) = self.panel.as_mut() else { return Ok(()) };
         let i = r.poll();
         if i.estop {
@@ -301,6 +303,33 @@ impl CycleLoop<'_> {
         motion.set_rapid_override(i.rapid_ovr);
         motion.set_spindle_override(i.spindle_ovr);
         Ok(())
+    }
+
+    /// The I/O of this cycle: inputs read, safety inputs (E-stop as the panel's; door and
+    /// chuck a controlled stop), the pending code's completion or timeout.
+    fn io_cycle(&mut self, motion: &mut Motion, run: &Run) -> Result<(), Alarm> {
+        let Ok(Some(io)) = self.io.as_mut() else { return Ok(()) };
+        if let Err(a) = io.read(&*self.drives) {
+            return Err(self.quick_stop_with(a));
+        }
+        let stop = io.check_safety(run.spindle_rpm.abs() > 1.0, run.cur_line);
+        let fin = if stop.is_none() { io.step_fin() } else { Ok(false) };
+        match (stop, fin) {
+            (Some(IoStop::Estop(name)), _) => Err(self.estop_input(run.cur_line, &name)),
+            (Some(IoStop::Device(a)), _) => Err(self.quick_stop_with(a)),
+            (Some(IoStop::Halt(a)), _) | (None, Err(a)) => {
+                // This cycle's set-points are not sent yet: the stop starts with them.
+                motion.wait_fin(false);
+                self.halt_now(motion, run.spindle_rpm);
+                Err(a)
+            }
+            (None, Ok(done)) => {
+                if done {
+                    motion.wait_fin(false);
+                }
+                Ok(())
+            }
+        }
     }
 
     /// Interpolate this cycle's set-point (and the cycles missed), switch the G22 area where
@@ -336,6 +365,9 @@ impl CycleLoop<'_> {
             }
             run.hist[d][0] = run.hist[d][1];
             run.hist[d][1] = self.drives.target_counts(d);
+        }
+        if let Ok(Some(io)) = self.io.as_ref() {
+            io.write(&mut *self.drives);
         }
         if let Err(a) = self.drives.transmit(tick.now) {
             self.quick_stop_all();

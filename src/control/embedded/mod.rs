@@ -14,7 +14,11 @@ use cncgw_bus::transport::inproc::InprocBus;
 pub fn open(cfg: &crate::config::MachineConfig, cfg_text: &str, sim: Option<&std::path::Path>) -> Result<super::BusClock, String> {
     let sim_cfg = emulated_drives(cfg, cfg_text, sim)?;
     let wire = InprocBus::new();
-    let world = sim_drives::SimWorld::new(&wire, sim_cfg);
+    let mut world = sim_drives::SimWorld::new(&wire, sim_cfg);
+    // The machine's CiA 401 I/O modules, emulated as `[io.devices.*.emulate]` says.
+    for m in sim_drives::io401::from_machine_toml(cfg_text).map_err(|e| format!("emulated I/O: {e}"))?.0 {
+        world.add_io_module(m);
+    }
     Ok((Box::new(wire.endpoint()), Box::new(world)))
 }
 

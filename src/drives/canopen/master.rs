@@ -15,6 +15,7 @@ mod bus_check;
 mod drive_check;
 mod explain;
 mod fixed_pdo;
+mod io401;
 mod ip_mode;
 mod life;
 mod mode_track;
@@ -303,6 +304,8 @@ pub struct CanOpenMaster<B: CanBus> {
     undo: Option<Vec<restore::Undo>>,
     /// The NMT state of each node before start-up reset it.
     found: Vec<Option<NmtState>>,
+    /// CiA 401 I/O modules on this bus (`io401`).
+    io: Vec<io401::IoModule>,
 }
 
 enum Sdo<'a> {
@@ -336,6 +339,7 @@ impl<B: CanBus> CanOpenMaster<B> {
             faulted: None,
             undo: None,
             found: Vec::new(),
+            io: cfg.io.resolve().unwrap_or_default().canopen_modules().into_iter().map(|(n, i, o)| io401::IoModule::new(n, i, o, timeout)).collect(),
         }
     }
 
@@ -583,6 +587,9 @@ impl<B: CanBus> CanOpenMaster<B> {
     /// Handle a frame that is not the answer being waited for: boot-ups, heartbeats,
     /// EMCY and TPDOs.
     fn on_background(&mut self, f: &CanFrame, now_ns: u64) {
+        if !self.io.is_empty() && self.io_frame(f, now_ns) {
+            return;
+        }
         let (func, node) = cob::split(f.cob_id());
         // TPDO1 by its configured COB-ID first (it need not be 0x180 + node).
         let by_tpdo = self.nodes.iter().position(|n| n.spec.tpdo_cob == f.cob_id());
@@ -1665,6 +1672,7 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
             for i in self.by_node_id() {
                 self.configure_node(clock, i)?;
             }
+            self.start_io_modules(clock)?;
             self.start_and_confirm_modes(clock)
         });
         if let Err(a) = r {
@@ -1706,6 +1714,7 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
             return Err(a);
         }
         self.poll_modes(now_ns)?;
+        self.check_io(now_ns)?;
         for i in 0..self.nodes.len() {
             if self.running && self.faulted == Some(i) {
                 // Isolated in its fault reaction: already reported.
@@ -1827,6 +1836,7 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
             let n = &mut self.nodes[i];
             n.ip_sent = if c & cw::OMS4 != 0 && n.spec.ip { n.ip_sent.saturating_add(1) } else { 0 };
         }
+        self.transmit_io()?;
         self.send(&sync_frame(None))?;
         for n in &mut self.nodes {
             n.syncs_unanswered = n.syncs_unanswered.saturating_add(1);
@@ -1932,6 +1942,11 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
         for n in &mut self.nodes {
             n.controlword = cw::SHUTDOWN;
         }
+        // Outputs off with torque (coolant, turret strobe); CiA 401 0x6206 decides what the
+        // module does once the master is gone.
+        for m in 0..self.io.len() {
+            self.io[m].clear_outputs();
+        }
         for _ in 0..5 {
             let t = clock.now_ns() + self.cycle_ns;
             clock.wait_until(t);
@@ -1954,6 +1969,14 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
 
     fn position_lost(&self, axis: usize) -> Option<String> {
         self.nodes.get(axis).and_then(|n| n.position_lost.clone())
+    }
+
+    fn io_inputs(&self, node: u8) -> Option<u32> {
+        self.io_inputs_of(node)
+    }
+
+    fn set_io_outputs(&mut self, node: u8, bits: u32) {
+        self.set_io_outputs_of(node, bits)
     }
 
     fn isolate_faults(&mut self, on: bool) -> bool {

@@ -9,6 +9,7 @@
 //! planner's path is sampled at the link's cycle for those axes. The CiA 402 state machine
 //! is the CANopen layer's (`cncgw_bus::cia402::Enabler`).
 
+pub mod io;
 pub mod line;
 pub mod link;
 pub mod plan;
