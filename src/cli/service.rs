@@ -670,6 +670,9 @@ impl CanBus for CountingBus {
     fn remote_frames(&self) -> bool {
         self.inner.remote_frames()
     }
+    fn controller(&self) -> Option<cncgw_bus::can_error::ControllerStatus> {
+        self.inner.controller()
+    }
 }
 
 /// One drive's values as the monitor reads them.
@@ -796,6 +799,7 @@ pub fn monitor(machine: &MachineArgs, seconds: Option<f64>, once: bool, interval
                 "bus_load": load,
                 "bitrate": bitrate,
                 "load_window_s": dt,
+                "controller": s.master.controller(),
                 "drives": rows.iter().map(monitor_json).collect::<Vec<_>>(),
             });
             if writeln!(out, "{v}").and_then(|_| out.flush()).is_err() {
@@ -818,6 +822,11 @@ pub fn monitor(machine: &MachineArgs, seconds: Option<f64>, once: bool, interval
             bitrate,
             dt
         ));
+        // The CAN controller's own state, as `ip -details -statistics link show` has it.
+        lines.push(match s.master.controller() {
+            Some(c) => format!("CAN controller: {}", c.line()),
+            None => "CAN controller: state not reported by this transport (SocketCAN error frames only)".into(),
+        });
         let mut text = String::new();
         if tty && shown > 0 {
             // Back to the top of the previous table and overwrite it.

@@ -12,8 +12,10 @@
 //! move failed, 2017 homing failed, 2018 TPDO of the wrong length, 2020 bus error.
 
 mod bus_check;
+mod can_state;
 mod drive_check;
 mod explain;
+mod ext_sync;
 mod fixed_pdo;
 mod ip_mode;
 mod life;
@@ -299,6 +301,10 @@ pub struct CanOpenMaster<B: CanBus> {
     undo: Option<Vec<restore::Undo>>,
     /// The NMT state of each node before start-up reset it.
     found: Vec<Option<NmtState>>,
+    /// `bus.sync = "external"`: the SYNC the cycle runs on comes from elsewhere.
+    ext_sync: ext_sync::ExtSync,
+    /// The CAN controller's state as last reported (see `can_state`).
+    ctrl_seen: cncgw_bus::can_error::ControllerStatus,
 }
 
 enum Sdo<'a> {
@@ -332,6 +338,8 @@ impl<B: CanBus> CanOpenMaster<B> {
             faulted: None,
             undo: None,
             found: Vec::new(),
+            ext_sync: ext_sync::ExtSync::from_config(cfg),
+            ctrl_seen: Default::default(),
         }
     }
 
@@ -579,6 +587,9 @@ impl<B: CanBus> CanOpenMaster<B> {
     /// Handle a frame that is not the answer being waited for: boot-ups, heartbeats,
     /// EMCY and TPDOs.
     fn on_background(&mut self, f: &CanFrame, now_ns: u64) {
+        if self.on_sync_heard(f, now_ns) {
+            return;
+        }
         let (func, node) = cob::split(f.cob_id());
         // TPDO1 by its configured COB-ID first (it need not be 0x180 + node).
         let by_tpdo = self.nodes.iter().position(|n| n.spec.tpdo_cob == f.cob_id());
@@ -783,7 +794,11 @@ impl<B: CanBus> CanOpenMaster<B> {
     fn configure_node(&mut self, clock: &mut dyn Clock, i: usize) -> Result<(), Alarm> {
         self.check_node_eds(i)?;
         self.identify_node(clock, i)?;
-        self.check_not_sync_producer(clock, i)?;
+        if self.ext_sync.on {
+            self.note_sync_producer(clock, i);
+        } else {
+            self.check_not_sync_producer(clock, i)?;
+        }
         let want = self.nodes[i].spec.position_mode();
         self.check_supported_mode(clock, i, want)?;
         let scaling = self.check_node_scaling(clock, i)?;
@@ -1692,6 +1707,8 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
         if let Some(a) = self.step_diag(now_ns)? {
             return Err(a);
         }
+        self.check_sync_loss(now_ns)?;
+        self.watch_controller()?;
         self.poll_modes(now_ns)?;
         for i in 0..self.nodes.len() {
             if self.running && self.faulted == Some(i) {
@@ -1814,9 +1831,12 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
             let n = &mut self.nodes[i];
             n.ip_sent = if c & cw::OMS4 != 0 && n.spec.ip { n.ip_sent.saturating_add(1) } else { 0 };
         }
-        self.send(&sync_frame(None))?;
-        for n in &mut self.nodes {
-            n.syncs_unanswered = n.syncs_unanswered.saturating_add(1);
+        // An external SYNC (bus.sync): the set-points act on the producer's next SYNC.
+        if !self.ext_sync.on {
+            self.send(&sync_frame(None))?;
+            for n in &mut self.nodes {
+                n.syncs_unanswered = n.syncs_unanswered.saturating_add(1);
+            }
         }
         self.tick_life(now_ns)
     }
