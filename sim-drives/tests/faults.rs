@@ -353,7 +353,7 @@ fn a_sync_producer_stops_producing_when_muted() {
     d.shape.sync_producer = true;
     d.shape.sync_period_us = 2000;
     let mut w = SimWorld::new(&bus, SimConfig { drives: vec![d], step_us: 50 });
-    let mut count = |w: &mut SimWorld, m: &mut InprocEndpoint, ms: u64| {
+    let count = |w: &mut SimWorld, m: &mut InprocEndpoint, ms: u64| {
         let t = w.now_ns() + ms * MS;
         w.wait_until(t);
         let mut n = 0;
