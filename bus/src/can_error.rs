@@ -324,7 +324,8 @@ mod tests {
         let e = s.apply(&k(0x2000_0088, [0, 0, 0x04, 0x0A, 0, 0, 0, 0]));
         assert!(e.has(Events::PROTOCOL) && !e.warn());
         assert_eq!(s.state, CanState::ErrorActive);
-        assert_eq!(s.protocol_errors, 1);
+        // The no-ACK frame above was a protocol error too (location: ACK slot).
+        assert_eq!(s.protocol_errors, 2);
         // Counters stay unknown until a frame carries them.
         assert_eq!(s.tx_errors, None);
         assert!(s.line().starts_with("error-active, tx errors ?, rx errors ?;"), "{}", s.line());

@@ -142,7 +142,7 @@ fn raise_any_fault_code_and_overcurrent() {
     // Values outside an object's range abort like any other object.
     assert_eq!(r.write(SIM_FAULTS, fs::OVERCURRENT, 2, 1), Some(Err(0x0609_0031)));
     assert_eq!(r.write(SIM_FAULTS, fs::PDO_DROP_PERMILLE, 1001, 2), Some(Err(0x0609_0031)));
-    assert_eq!(r.write(SIM_FAULTS, 11, 0, 1), Some(Err(0x0609_0011)));
+    assert_eq!(r.write(SIM_FAULTS, 12, 0, 1), Some(Err(0x0609_0011)));
 }
 
 #[test]
