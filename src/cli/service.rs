@@ -822,11 +822,11 @@ pub fn monitor(machine: &MachineArgs, seconds: Option<f64>, once: bool, interval
             bitrate,
             dt
         ));
-        // The CAN controller's own state, as `ip -details -statistics link show` has it.
-        lines.push(match s.master.controller() {
-            Some(c) => format!("CAN controller: {}", c.line()),
-            None => "CAN controller: state not reported by this transport (SocketCAN error frames only)".into(),
-        });
+        // The CAN controller's own state, as `ip -details -statistics link show` has it
+        // (SocketCAN's error frames; the emulated bus and socketcand do not report it).
+        if let Some(c) = s.master.controller() {
+            lines.push(format!("CAN controller: {}", c.line()));
+        }
         let mut text = String::new();
         if tty && shown > 0 {
             // Back to the top of the previous table and overwrite it.
