@@ -184,6 +184,10 @@ catalogue! {
         CAN_BUS = 2020;
         /// The bus load at this cycle and bitrate is over 80 %.
         BUS_LOAD = 2021;
+        /// `bus.sync = "external"`: no SYNC heard, or none for more than bus.sync_loss_cycles.
+        SYNC_LOST = 2022;
+        /// The CAN controller went bus-off (or its bus was lost): nothing can be sent.
+        CAN_BUS_OFF = 2023;
     }
     "2200–2299 Modbus" {
         /// The Modbus link cannot be opened (connection refused, no serial device).

@@ -246,6 +246,30 @@ pub struct Bus {
     /// alarm 2015 and stops the machine, ms.
     #[serde(default = "default_feedback_timeout")]
     pub feedback_timeout_ms: f64,
+    /// Who produces SYNC: this master (the default), or a device elsewhere on the bus (a
+    /// drive with 0x1005 bit 30, a separate SYNC producer). `external`: the cycle runs on the
+    /// SYNC received and the master sends none.
+    #[serde(default)]
+    pub sync: SyncSource,
+    /// `sync = "external"`: no SYNC for more than this many cycles is alarm 2022 (the axes are
+    /// stopped under control).
+    #[serde(default = "default_sync_loss_cycles")]
+    pub sync_loss_cycles: u32,
+}
+
+/// `bus.sync`: where the SYNC the cycle runs on comes from.
+#[derive(Clone, Copy, Debug, Default, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "lowercase")]
+pub enum SyncSource {
+    /// This master produces SYNC every cycle.
+    #[default]
+    Master,
+    /// Another device produces SYNC; the master consumes it and runs its cycle on it.
+    External,
+}
+
+fn default_sync_loss_cycles() -> u32 {
+    5
 }
 
 fn default_feedback_timeout() -> f64 {
@@ -679,6 +703,9 @@ impl MachineConfig {
         }
         if self.bus.sdo_timeout_ms == 0 {
             e.push("bus.sdo_timeout_ms: must be > 0, got 0".into());
+        }
+        if !(2..=1000).contains(&self.bus.sync_loss_cycles) {
+            e.push(format!("bus.sync_loss_cycles: must be 2…1000, got {}", self.bus.sync_loss_cycles));
         }
         if self.axes.is_empty() {
             e.push("axes: at least one axis is required".into());

@@ -8,6 +8,7 @@
 //! used by both sides.
 
 pub mod busload;
+pub mod can_error;
 pub mod canopen;
 pub mod cia402;
 pub mod clock;
@@ -15,6 +16,7 @@ pub mod frame;
 pub mod modbus;
 pub mod rt;
 pub mod socketcand;
+pub mod sync_source;
 pub mod transport;
 
 pub use clock::{Clock, RealClock, WakeStep, WakeStrategy};

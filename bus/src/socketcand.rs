@@ -101,6 +101,18 @@ pub fn parse(body: &str) -> Msg {
     }
 }
 
+/// An error frame as socketcand's raw mode forwards it: `< error CLASS SEC.USEC >` (the
+/// error class of the CAN ID in hex; the data bytes — controller status, error counters —
+/// are not carried). Stock socketcand never subscribes to error frames (no
+/// CAN_RAW_ERR_FILTER on its raw socket), so only a daemon that does sends these. Other
+/// `< error … >` messages are the server's own complaints: None.
+pub fn error_frame_class(error_body: &str) -> Option<u32> {
+    let mut w = error_body.split_whitespace();
+    let class = w.next().filter(|c| c.len() >= 3 && c.bytes().all(|b| b.is_ascii_hexdigit()))?;
+    let ts = w.next().filter(|t| t.contains('.') && t.bytes().all(|b| b.is_ascii_digit() || b == b'.'))?;
+    (w.next().is_none() && !ts.is_empty()).then(|| u32::from_str_radix(class, 16).ok()).flatten()
+}
+
 /// Format a message, including the angle brackets.
 pub fn format(m: &Msg) -> String {
     match m {
@@ -166,6 +178,19 @@ impl Splitter {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn error_frames_as_socketcand_forwards_them_are_told_from_its_complaints() {
+        // state_raw.c: sprintf("< error %03X %ld.%06ld >", can_id & CAN_EFF_MASK, …)
+        match parse("error 040 1700000000.123456") {
+            Msg::Error(e) => assert_eq!(error_frame_class(&e), Some(0x040)),
+            m => panic!("{m:?}"),
+        }
+        assert_eq!(error_frame_class("20000004 1.000001"), Some(0x2000_0004));
+        assert_eq!(error_frame_class("unknown command"), None);
+        assert_eq!(error_frame_class("040"), None);
+        assert_eq!(error_frame_class("040 12.5 x"), None);
+    }
 
     #[test]
     fn frames_format_exactly_like_socketcand() {

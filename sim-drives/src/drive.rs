@@ -69,6 +69,9 @@ pub mod fault_sub {
     /// U8: write 1 to switch the IP buffer off (0x60C4:6 = 0), as a drive does on a buffer
     /// underrun: statusword bit 12 "ip mode active" drops; reads 0.
     pub const IP_DISABLE: u8 = 10;
+    /// U8 0/1: a SYNC-producing drive (0x1005 bit 30) stops producing SYNC (the node
+    /// otherwise alive): an external SYNC lost.
+    pub const SYNC_MUTED: u8 = 11;
 }
 const POSITION_DEMAND: u16 = 0x6062;
 const POSITION_WINDOW: u16 = 0x6067;
@@ -317,7 +320,7 @@ fn build_od(c: &DriveConfig) -> Od {
     od.add_domain(USER_DATA, 0, Rw, USER_DATA_LEN);
     {
         use fault_sub::*;
-        od.add(SIM_FAULTS, 0, U8, Const, false, 10);
+        od.add(SIM_FAULTS, 0, U8, Const, false, 11);
         od.add(SIM_FAULTS, RAISE, U16, Rw, false, 0);
         od.add_range(SIM_FAULTS, ENCODER_LOST, U8, Rw, false, 0, 0, 1);
         od.add_range(SIM_FAULTS, UNDERVOLTAGE, U8, Rw, false, 0, 0, 1);
@@ -328,6 +331,7 @@ fn build_od(c: &DriveConfig) -> Od {
         od.add_range(SIM_FAULTS, PDO_DROP_PERMILLE, U16, Rw, false, 0, 0, 1000);
         od.add_range(SIM_FAULTS, TPDO_DELAY_US, U32, Rw, false, 0, 0, 1_000_000);
         od.add_range(SIM_FAULTS, IP_DISABLE, U8, Rw, false, 0, 0, 1);
+        od.add_range(SIM_FAULTS, SYNC_MUTED, U8, Rw, false, 0, 0, 1);
     }
     if sh.abort_connection_object {
         od.add_range(ix::ABORT_CONNECTION, 0, I16, Rw, false, 1, 0, 3);

@@ -50,6 +50,7 @@ pub const FAULT_NAMES: &[(&str, u8, Option<u32>)] = &[
     ("pdo-drop-permille", drive::fault_sub::PDO_DROP_PERMILLE, None),
     ("tpdo-delay-us", drive::fault_sub::TPDO_DELAY_US, None),
     ("ip-disable", drive::fault_sub::IP_DISABLE, Some(1)),
+    ("sync-stop", drive::fault_sub::SYNC_MUTED, Some(1)),
 ];
 
 /// Parse `NODE:NAME[=VALUE][@MS]`, e.g. `1:encoder-lost@2000`, `2:pdo-drop-permille=50`,

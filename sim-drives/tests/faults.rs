@@ -142,7 +142,7 @@ fn raise_any_fault_code_and_overcurrent() {
     // Values outside an object's range abort like any other object.
     assert_eq!(r.write(SIM_FAULTS, fs::OVERCURRENT, 2, 1), Some(Err(0x0609_0031)));
     assert_eq!(r.write(SIM_FAULTS, fs::PDO_DROP_PERMILLE, 1001, 2), Some(Err(0x0609_0031)));
-    assert_eq!(r.write(SIM_FAULTS, 11, 0, 1), Some(Err(0x0609_0011)));
+    assert_eq!(r.write(SIM_FAULTS, 12, 0, 1), Some(Err(0x0609_0011)));
 }
 
 #[test]
@@ -343,4 +343,34 @@ fn a_lost_csp_set_point_is_bridged_with_the_last_increment_then_held() {
         }
         assert_eq!(r.state(), State::OperationEnabled);
     }
+}
+
+#[test]
+fn a_sync_producer_stops_producing_when_muted() {
+    let bus = InprocBus::new();
+    let mut m = bus.endpoint();
+    let mut d = DriveConfig::new(1, DriveKind::Linear, "x", 10000.0);
+    d.shape.sync_producer = true;
+    d.shape.sync_period_us = 2000;
+    let mut w = SimWorld::new(&bus, SimConfig { drives: vec![d], step_us: 50 });
+    let count = |w: &mut SimWorld, m: &mut InprocEndpoint, ms: u64| {
+        let t = w.now_ns() + ms * MS;
+        w.wait_until(t);
+        let mut n = 0;
+        while let Ok(Some(f)) = m.try_recv() {
+            n += (f.cob_id() == 0x080) as u32;
+        }
+        n
+    };
+    count(&mut w, &mut m, 50);
+    let before = count(&mut w, &mut m, 100);
+    assert!((45..=55).contains(&before), "{before} SYNCs in 100 ms");
+    // As `sim-drives --fault 1:sync-stop@MS` schedules it.
+    let mut f = sim_drives::parse_fault("1:sync-stop@200").unwrap();
+    assert_eq!((f.sub, f.value), (fs::SYNC_MUTED, 1));
+    f.at_ns = w.now_ns() + 5 * MS;
+    w.schedule_faults(vec![f]);
+    count(&mut w, &mut m, 10);
+    assert_eq!(count(&mut w, &mut m, 100), 0, "SYNC went on after 0x2100:{} = 1", fs::SYNC_MUTED);
+    assert_eq!(w.drive(1).unwrap().object(SIM_FAULTS, fs::SYNC_MUTED), Some(1));
 }

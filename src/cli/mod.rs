@@ -653,6 +653,22 @@ pub fn open_raw(
     bus: Option<&str>,
     sim: Option<&std::path::Path>,
 ) -> Result<(Box<dyn cncgw_bus::CanBus>, Box<dyn cncgw_bus::Clock>, String, String), String> {
+    let (ep, clock, bus, what) = open_plain(cfg, cfg_text, bus, sim)?;
+    if cfg.bus.sync == crate::config::SyncSource::External {
+        // The cycle runs on the SYNC another device produces (issue 21 item 6).
+        let (ep, clock) = cncgw_bus::sync_source::external_sync(ep, clock, cfg.cycle_ns());
+        return Ok((Box::new(ep), Box::new(clock), bus, format!("{what}, cycle on the external SYNC")));
+    }
+    Ok((ep, clock, bus, what))
+}
+
+#[allow(clippy::type_complexity)]
+fn open_plain(
+    cfg: &crate::config::MachineConfig,
+    cfg_text: &str,
+    bus: Option<&str>,
+    sim: Option<&std::path::Path>,
+) -> Result<(Box<dyn cncgw_bus::CanBus>, Box<dyn cncgw_bus::Clock>, String, String), String> {
     use cncgw_bus::transport::socketcand::Socketcand;
     let bus = bus.map(str::to_string).unwrap_or_else(|| cfg.bus.interface.clone());
     let real = || -> Box<dyn cncgw_bus::Clock> { Box::new(cncgw_bus::RealClock::new()) };

@@ -459,7 +459,8 @@ pub fn run_job(
             Ok((m, c, _, w)) => {
                 can = Some(m);
                 // Not used yet: a real one is replaced by one that waits as configured.
-                clock = if c.is_simulated() { c } else { real_clock() };
+                // An external SYNC's clock waits on the bus, not as [rt] says.
+                clock = if c.is_simulated() || cfg.bus.sync == crate::config::SyncSource::External { c } else { real_clock() };
                 what.push(w);
             }
             Err(e) => {

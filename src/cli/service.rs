@@ -680,6 +680,9 @@ impl CanBus for CountingBus {
     fn remote_frames(&self) -> bool {
         self.inner.remote_frames()
     }
+    fn controller(&self) -> Option<cncgw_bus::can_error::ControllerStatus> {
+        self.inner.controller()
+    }
 }
 
 /// One drive's values as the monitor reads them.
@@ -806,6 +809,7 @@ pub fn monitor(machine: &MachineArgs, seconds: Option<f64>, once: bool, interval
                 "bus_load": load,
                 "bitrate": bitrate,
                 "load_window_s": dt,
+                "controller": s.master.controller(),
                 "drives": rows.iter().map(monitor_json).collect::<Vec<_>>(),
             });
             if writeln!(out, "{v}").and_then(|_| out.flush()).is_err() {
@@ -828,6 +832,11 @@ pub fn monitor(machine: &MachineArgs, seconds: Option<f64>, once: bool, interval
             bitrate,
             dt
         ));
+        // The CAN controller's own state, as `ip -details -statistics link show` has it
+        // (SocketCAN's error frames; the emulated bus and socketcand do not report it).
+        if let Some(c) = s.master.controller() {
+            lines.push(format!("CAN controller: {}", c.line()));
+        }
         let mut text = String::new();
         if tty && shown > 0 {
             // Back to the top of the previous table and overwrite it.

@@ -45,6 +45,12 @@ pub trait CanBus: Send {
     fn remote_frames(&self) -> bool {
         true
     }
+    /// The CAN controller's own state from its error frames (error-warning, error-passive,
+    /// bus-off, …, counters), where the transport receives them (SocketCAN with
+    /// CAN_RAW_ERR_FILTER). None: this transport does not tell.
+    fn controller(&self) -> Option<crate::can_error::ControllerStatus> {
+        None
+    }
 }
 
 impl<T: CanBus + ?Sized> CanBus for Box<T> {
@@ -65,5 +71,8 @@ impl<T: CanBus + ?Sized> CanBus for Box<T> {
     }
     fn remote_frames(&self) -> bool {
         (**self).remote_frames()
+    }
+    fn controller(&self) -> Option<crate::can_error::ControllerStatus> {
+        (**self).controller()
     }
 }

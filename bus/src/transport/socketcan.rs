@@ -4,6 +4,7 @@
 //! wake-ups between the socket and the cycle loop cost more than the frames themselves.
 
 use super::{BusError, CanBus};
+use crate::can_error::{ControllerStatus, ErrorFrame};
 use crate::frame::CanFrame;
 use socketcan::Socket;
 use std::io::ErrorKind;
@@ -16,6 +17,9 @@ pub struct SocketCan {
     /// SO_TIMESTAMPNS is on: frames carry their kernel arrival time.
     timestamps: bool,
     last_age: Option<Duration>,
+    /// The controller's state from the error frames (CAN_RAW_ERR_FILTER); None when the
+    /// kernel refused the subscription.
+    status: Option<ControllerStatus>,
 }
 
 fn to_sc(f: &CanFrame) -> Option<socketcan::CanFrame> {
@@ -81,7 +85,18 @@ impl SocketCan {
         })?;
         sock.set_nonblocking(true).map_err(|e| BusError::Open { bus: name.clone(), reason: e.to_string() })?;
         let timestamps = socketcan::SocketOptions::set_recv_timestamp(&sock, true).is_ok();
-        Ok(SocketCan { name, sock, timestamps, last_age: None })
+        // Error frames: the controller's state changes, missing ACK, overflows (issue 21).
+        let status = socketcan::SocketOptions::set_error_filter_accept_all(&sock).is_ok().then(ControllerStatus::default);
+        Ok(SocketCan { name, sock, timestamps, last_age: None, status })
+    }
+
+    /// Send an error frame (CAN_ERR_FLAG) as a controller would report it: for tests and
+    /// emulators on a virtual bus (vcan delivers it to every other socket subscribed to
+    /// error frames). A real controller's driver sends these itself.
+    pub fn inject_error(&mut self, e: &ErrorFrame) -> Result<(), BusError> {
+        let (id, data) = e.encode();
+        let f = socketcan::CanErrorFrame::new_error(id, &data).map_err(|x| BusError::Io { bus: self.name.clone(), reason: x.to_string() })?;
+        self.sock.write_frame(&socketcan::CanFrame::Error(f)).map_err(|x| self.io(x))
     }
 
     fn io(&self, e: std::io::Error) -> BusError {
@@ -114,12 +129,18 @@ impl CanBus for SocketCan {
                 self.sock.read_frame().map(|f| (f, None))
             };
             match r {
+                Ok((socketcan::CanFrame::Error(e), _)) => {
+                    // Not data: the controller's report, kept for `controller`.
+                    if let Some(st) = &mut self.status {
+                        st.apply(&ErrorFrame::decode(e.error_bits(), socketcan::EmbeddedFrame::data(&e)));
+                    }
+                }
                 Ok((f, age)) => match from_sc(&f) {
                     Some(f) => {
                         self.last_age = age;
                         return Ok(Some(f));
                     }
-                    None => continue, // error frames are not data
+                    None => continue,
                 },
                 Err(e) if e.kind() == ErrorKind::WouldBlock => return Ok(None),
                 Err(e) => return Err(self.io(e)),
@@ -156,5 +177,9 @@ impl CanBus for SocketCan {
 
     fn last_rx_age(&self) -> Option<Duration> {
         self.last_age
+    }
+
+    fn controller(&self) -> Option<ControllerStatus> {
+        self.status
     }
 }

@@ -6,6 +6,7 @@
 //! nothing. TCP_NODELAY is set: without it a 2 ms SYNC/RPDO stream arrives in bursts.
 
 use super::{BusError, CanBus};
+use crate::can_error::{ControllerStatus, ErrorFrame};
 use crate::socketcand::{Msg, Splitter};
 use crate::CanFrame;
 use std::io::{Read, Write};
@@ -17,6 +18,9 @@ pub struct Socketcand {
     name: String,
     stream: TcpStream,
     rx: mpsc::Receiver<Result<CanFrame, BusError>>,
+    /// Error frames forwarded by the server (`< error CLASS TIME >`): class only, and only a
+    /// daemon subscribed to error frames sends them (stock socketcand is not).
+    status: std::sync::Arc<std::sync::Mutex<Option<ControllerStatus>>>,
 }
 
 /// Parse `socketcand://HOST:PORT/IFACE` into (`HOST:PORT`, `IFACE`).
@@ -97,6 +101,8 @@ impl Socketcand {
         let mut reader = stream.try_clone().map_err(|e| open_err(e.to_string()))?;
         let (tx, rx) = mpsc::sync_channel(4096);
         let bus = name.clone();
+        let status = std::sync::Arc::new(std::sync::Mutex::new(None));
+        let seen = status.clone();
         std::thread::Builder::new()
             .name("socketcand-rx".into())
             .spawn(move || {
@@ -125,6 +131,12 @@ impl Socketcand {
                     while let Some(m) = sp.next_msg() {
                         let item = match m {
                             Msg::Frame(f, _) => Ok(f),
+                            Msg::Error(e) if crate::socketcand::error_frame_class(&e).is_some() => {
+                                let class = crate::socketcand::error_frame_class(&e).unwrap_or(0);
+                                let mut g = seen.lock().unwrap_or_else(|p| p.into_inner());
+                                g.get_or_insert_with(ControllerStatus::default).apply(&ErrorFrame::decode(class, &[]));
+                                continue;
+                            }
                             Msg::Error(e) => Err(BusError::Io { bus: bus.clone(), reason: format!("server error: {e}") }),
                             _ => continue,
                         };
@@ -135,7 +147,7 @@ impl Socketcand {
                 }
             })
             .map_err(|e| open_err(e.to_string()))?;
-        Ok(Socketcand { name, stream, rx })
+        Ok(Socketcand { name, stream, rx, status })
     }
 }
 
@@ -168,6 +180,10 @@ impl CanBus for Socketcand {
 
     fn remote_frames(&self) -> bool {
         false
+    }
+
+    fn controller(&self) -> Option<ControllerStatus> {
+        *self.status.lock().unwrap_or_else(|p| p.into_inner())
     }
 }
 

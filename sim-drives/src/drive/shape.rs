@@ -124,7 +124,10 @@ impl SimDrive {
 
     pub(super) fn produces_sync(&self) -> bool {
         let c = self.od.int(ix::COB_ID_SYNC, 0) as u32;
-        c & 0x4000_0000 != 0 && self.od.int(ix::COMM_CYCLE_PERIOD, 0) > 0 && matches!(self.nmt, NmtState::PreOperational | NmtState::Operational)
+        c & 0x4000_0000 != 0
+            && self.od.int(ix::COMM_CYCLE_PERIOD, 0) > 0
+            && self.od.int(super::SIM_FAULTS, super::fault_sub::SYNC_MUTED) == 0
+            && matches!(self.nmt, NmtState::PreOperational | NmtState::Operational)
     }
 
     /// Produce a SYNC when due (and act on it, as every SYNC consumer on the bus does).

@@ -218,6 +218,12 @@ impl CycleLoop<'_> {
             return Err(self.fault_stop(motion, d, received.err(), run.spindle_rpm, run.cur_line));
         }
         if let Err(a) = received {
+            if a.number == crate::alarm::SYNC_LOST {
+                // The external SYNC stopped: the path is stopped under control (quick stop
+                // would be no faster — without SYNC the drives take no set-point either way).
+                self.halt_now(motion, run.spindle_rpm);
+                return Err(a);
+            }
             self.quick_stop_all();
             let _ = self.drives.transmit(tick.now);
             return Err(a);

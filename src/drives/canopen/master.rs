@@ -12,8 +12,10 @@
 //! move failed, 2017 homing failed, 2018 TPDO of the wrong length, 2020 bus error.
 
 mod bus_check;
+mod can_state;
 mod drive_check;
 mod explain;
+mod ext_sync;
 mod fixed_pdo;
 mod io401;
 mod ip_mode;
@@ -306,6 +308,10 @@ pub struct CanOpenMaster<B: CanBus> {
     found: Vec<Option<NmtState>>,
     /// CiA 401 I/O modules on this bus (`io401`).
     io: Vec<io401::IoModule>,
+    /// `bus.sync = "external"`: the SYNC the cycle runs on comes from elsewhere.
+    ext_sync: ext_sync::ExtSync,
+    /// The CAN controller's state as last reported (see `can_state`).
+    ctrl_seen: cncgw_bus::can_error::ControllerStatus,
 }
 
 enum Sdo<'a> {
@@ -340,6 +346,8 @@ impl<B: CanBus> CanOpenMaster<B> {
             undo: None,
             found: Vec::new(),
             io: cfg.io.resolve().unwrap_or_default().canopen_modules().into_iter().map(|(n, i, o)| io401::IoModule::new(n, i, o, timeout)).collect(),
+            ext_sync: ext_sync::ExtSync::from_config(cfg),
+            ctrl_seen: Default::default(),
         }
     }
 
@@ -587,7 +595,7 @@ impl<B: CanBus> CanOpenMaster<B> {
     /// Handle a frame that is not the answer being waited for: boot-ups, heartbeats,
     /// EMCY and TPDOs.
     fn on_background(&mut self, f: &CanFrame, now_ns: u64) {
-        if !self.io.is_empty() && self.io_frame(f, now_ns) {
+        if self.on_sync_heard(f, now_ns) || (!self.io.is_empty() && self.io_frame(f, now_ns)) {
             return;
         }
         let (func, node) = cob::split(f.cob_id());
@@ -803,7 +811,11 @@ impl<B: CanBus> CanOpenMaster<B> {
     fn configure_node(&mut self, clock: &mut dyn Clock, i: usize) -> Result<(), Alarm> {
         self.check_node_eds(i)?;
         self.identify_node(clock, i)?;
-        self.check_not_sync_producer(clock, i)?;
+        if self.ext_sync.on {
+            self.note_sync_producer(clock, i);
+        } else {
+            self.check_not_sync_producer(clock, i)?;
+        }
         let want = self.nodes[i].spec.position_mode();
         self.check_supported_mode(clock, i, want)?;
         let scaling = self.check_node_scaling(clock, i)?;
@@ -1713,6 +1725,8 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
         if let Some(a) = self.step_diag(now_ns)? {
             return Err(a);
         }
+        self.check_sync_loss(now_ns)?;
+        self.watch_controller()?;
         self.poll_modes(now_ns)?;
         self.check_io(now_ns)?;
         for i in 0..self.nodes.len() {
@@ -1837,9 +1851,12 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
             n.ip_sent = if c & cw::OMS4 != 0 && n.spec.ip { n.ip_sent.saturating_add(1) } else { 0 };
         }
         self.transmit_io()?;
-        self.send(&sync_frame(None))?;
-        for n in &mut self.nodes {
-            n.syncs_unanswered = n.syncs_unanswered.saturating_add(1);
+        // An external SYNC (bus.sync): the set-points act on the producer's next SYNC.
+        if !self.ext_sync.on {
+            self.send(&sync_frame(None))?;
+            for n in &mut self.nodes {
+                n.syncs_unanswered = n.syncs_unanswered.saturating_add(1);
+            }
         }
         self.tick_life(now_ns)
     }

@@ -107,7 +107,9 @@ impl<B: CanBus> CanOpenMaster<B> {
                 ),
             ));
         }
-        if heard.syncs > 0 {
+        if self.ext_sync.on {
+            self.check_external_sync_heard(heard.syncs, heard.first_sync_ns, heard.last_sync_ns, ms)?;
+        } else if heard.syncs > 0 {
             return Err(self.foreign_sync_alarm(clock, &heard, ms));
         }
         Ok(self.nodes.iter().map(|n| n.nmt.map(|s| if s == NmtState::BootUp { NmtState::PreOperational } else { s })).collect())
