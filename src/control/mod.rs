@@ -12,6 +12,7 @@ pub mod guard;
 pub mod job;
 pub mod panel;
 pub mod rt;
+pub mod snapshot;
 pub mod tapstate;
 pub mod trace;
 
