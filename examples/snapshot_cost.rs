@@ -58,10 +58,7 @@ fn main() {
         for h in hs {
             let _ = h.join();
         }
-        println!(
-            "publish with {readers:2} reader(s): {mean:6.1} ns mean, {p99:6.1} ns p99; {} reads meanwhile",
-            reads.load(Ordering::Relaxed)
-        );
+        println!("publish with {readers:2} reader(s): {mean:6.1} ns mean, {p99:6.1} ns p99; {} reads meanwhile", reads.load(Ordering::Relaxed));
     }
     println!("MachineSnap: {} bytes", std::mem::size_of::<MachineSnap>());
 }

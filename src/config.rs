@@ -1157,12 +1157,17 @@ mod tests {
     fn opcua_none_only_on_loopback_and_when_allowed() {
         let user = format!("[[opcua.users]]\nname = \"mes\"\npassword_hash = \"{HASH}\"");
         let e = opcua(&format!("enabled = true\nsecurity_policies = [\"none\"]\n{user}")).unwrap_err().to_string();
-        assert!(e.contains("\"none\" (unsigned, unencrypted) is allowed only on a loopback host") && e.contains("without allow_none_on_loopback"), "{e}");
+        assert!(
+            e.contains("\"none\" (unsigned, unencrypted) is allowed only on a loopback host") && e.contains("without allow_none_on_loopback"),
+            "{e}"
+        );
         let e = opcua(&format!("enabled = true\nhost = \"0.0.0.0\"\nallow_none_on_loopback = true\nsecurity_policies = [\"none\"]\n{user}"))
             .unwrap_err()
             .to_string();
         assert!(e.contains("got host \"0.0.0.0\""), "{e}");
-        let c = opcua(&format!("enabled = true\nhost = \"::1\"\nallow_none_on_loopback = true\nsecurity_policies = [\"none\", \"basic256sha256\"]\n{user}"));
+        let c = opcua(&format!(
+            "enabled = true\nhost = \"::1\"\nallow_none_on_loopback = true\nsecurity_policies = [\"none\", \"basic256sha256\"]\n{user}"
+        ));
         assert!(c.is_ok(), "{c:?}");
     }
 

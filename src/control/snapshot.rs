@@ -249,7 +249,8 @@ mod tests {
 
     #[test]
     fn a_record_round_trips_through_the_words() {
-        let mut s = MachineSnap { cycle: 7, state: MachineState::Held, line: 123_456, blocks: 9, n_axes: 3, alarm: 2010, parts: 2, ..Default::default() };
+        let mut s =
+            MachineSnap { cycle: 7, state: MachineState::Held, line: 123_456, blocks: 9, n_axes: 3, alarm: 2010, parts: 2, ..Default::default() };
         s.elapsed_s = 1.5;
         s.spindle_override = 1.2;
         s.axes[2] = AxisSnap { cmd: -3.25, act: -3.5, ferr: 0.001, statusword: 0x1237 };

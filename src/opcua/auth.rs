@@ -44,7 +44,12 @@ impl AuthManager for Users {
         }
     }
 
-    async fn authenticate_username_identity_token(&self, _endpoint: &ServerEndpoint, username: &str, password: &Password) -> Result<UserToken, Error> {
+    async fn authenticate_username_identity_token(
+        &self,
+        _endpoint: &ServerEndpoint,
+        username: &str,
+        password: &Password,
+    ) -> Result<UserToken, Error> {
         let hash = self.users.iter().find(|(n, _)| n == username).map(|(_, h)| h.clone());
         let known = hash.is_some();
         let hash = hash.unwrap_or_else(|| DUMMY_HASH.to_string());

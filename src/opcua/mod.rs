@@ -66,7 +66,8 @@ impl OpcUaServer {
             .spawn(move || {
                 // The builder is not Send: made here, on the server's thread.
                 let b = builder(&cfg, &pki);
-                let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().map_err(|e| format!("opcua: cannot start its runtime: {e}"));
+                let rt =
+                    tokio::runtime::Builder::new_current_thread().enable_all().build().map_err(|e| format!("opcua: cannot start its runtime: {e}"));
                 match (b, rt) {
                     (Ok(b), Ok(rt)) => rt.block_on(serve(b, bind, cfg.machine.name.clone(), config_name, snapshot, tx)),
                     (Err(e), _) | (_, Err(e)) => {
@@ -118,7 +119,11 @@ fn builder(cfg: &MachineConfig, pki: &Path) -> Result<ServerBuilder, String> {
     let ids: Vec<&str> = ids.iter().map(String::as_str).collect();
     let uri = machine_uri(&cfg.machine.name);
     let mut b = ServerBuilder::new()
-        .application_name(format!("cncgw {}", cfg.machine.name))
+        // The certificate's subject is made from it: no RDN syntax (`+`, `,`, `/`, `=`) in it.
+        .application_name(format!(
+            "cncgw {}",
+            cfg.machine.name.chars().map(|c| if c.is_ascii_alphanumeric() || " -_.".contains(c) { c } else { '_' }).collect::<String>()
+        ))
         .application_uri(uri)
         .product_uri("urn:cncgw")
         .host(oc.host.clone())
@@ -159,7 +164,14 @@ pub(crate) fn machine_uri(name: &str) -> String {
 
 /// The server's thread: build, bind, say ready, run until cancelled, with the task that
 /// copies the snapshot in.
-async fn serve(builder: ServerBuilder, bind: String, machine: String, config_name: String, snapshot: Arc<Snapshot>, tx: std::sync::mpsc::Sender<Ready>) {
+async fn serve(
+    builder: ServerBuilder,
+    bind: String,
+    machine: String,
+    config_name: String,
+    snapshot: Arc<Snapshot>,
+    tx: std::sync::mpsc::Sender<Ready>,
+) {
     let (server, handle) = match builder.build() {
         Ok(s) => s,
         Err(e) => {
@@ -167,6 +179,17 @@ async fn serve(builder: ServerBuilder, bind: String, machine: String, config_nam
             return;
         }
     };
+    // async-opcua only warns when it has no certificate; encrypted endpoints would then fail
+    // every client: refuse instead.
+    if handle.info().config.endpoints.values().any(|e| e.security_policy.parse::<SecurityPolicy>() != Ok(SecurityPolicy::None)) {
+        let pki = &handle.info().config.pki_dir;
+        for f in ["own/cert.der", "private/private.pem"] {
+            if !pki.join(f).is_file() {
+                let _ = tx.send(Err(format!("opcua: no server certificate: {} could not be made (see the log)", pki.join(f).display())));
+                return;
+            }
+        }
+    }
     let listener = match tokio::net::TcpListener::bind(&bind).await {
         Ok(l) => l,
         Err(e) => {

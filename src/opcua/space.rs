@@ -27,8 +27,8 @@ use opcua::server::address_space::{AccessLevel, AddressSpace, EventNotifier, Obj
 use opcua::server::node_manager::memory::SimpleNodeManager;
 use opcua::server::{EventField, ServerHandle};
 use opcua::types::{
-    AttributeId, ByteString, DataTypeId, DataValue, DateTime, NodeClass, NodeId, NumericRange, ObjectId, ObjectTypeId, QualifiedName,
-    UAString, VariableTypeId, Variant,
+    AttributeId, ByteString, DataTypeId, DataValue, DateTime, NodeClass, NodeId, NumericRange, ObjectId, ObjectTypeId, QualifiedName, UAString,
+    VariableTypeId, Variant,
 };
 
 /// The variables the task writes, by what feeds them.
@@ -67,7 +67,10 @@ fn program_state(s: MachineState, cycle: u64) -> i32 {
 fn add_object(a: &mut AddressSpace, ns: u16, path: &str, parent: &NodeId) -> NodeId {
     let name = path.rsplit('.').next().unwrap_or(path);
     let id = NodeId::new(ns, path.to_string());
-    ObjectBuilder::new(&id, QualifiedName::new(ns, name), name).component_of(parent.clone()).has_type_definition(ObjectTypeId::BaseObjectType).insert(a);
+    ObjectBuilder::new(&id, QualifiedName::new(ns, name), name)
+        .component_of(parent.clone())
+        .has_type_definition(ObjectTypeId::BaseObjectType)
+        .insert(a);
     id
 }
 
@@ -208,7 +211,8 @@ impl Space {
             let now = DateTime::now();
             let r = nm.set_values(
                 handle.subscriptions(),
-                ids.iter().map(|(id, v)| (id, None, DataValue { value: Some(v.clone()), status: None, source_timestamp: Some(now), ..Default::default() })),
+                ids.iter()
+                    .map(|(id, v)| (id, None, DataValue { value: Some(v.clone()), status: None, source_timestamp: Some(now), ..Default::default() })),
             );
             if let Err(e) = r {
                 tracing::warn!("opcua: cannot update the variables: {e}");
@@ -275,7 +279,11 @@ impl Space {
         let mut id = [0u8; 16];
         id[..8].copy_from_slice(&info.alarm_seq.to_le_bytes());
         id[8..].copy_from_slice(&(std::process::id() as u64).to_le_bytes());
-        let mut base = BaseEventType::new_now(self.event_type.clone(), ByteString::from(id.to_vec()), format!("alarm {}: {}", info.alarm_number, info.alarm_text));
+        let mut base = BaseEventType::new_now(
+            self.event_type.clone(),
+            ByteString::from(id.to_vec()),
+            format!("alarm {}: {}", info.alarm_number, info.alarm_text),
+        );
         base.severity = severity;
         base.source_node = self.machine.clone();
         base.source_name = UAString::from(self.machine_name.as_str());
@@ -298,14 +306,22 @@ struct AlarmEvent {
 impl EventField for AlarmEvent {
     fn get_value(&self, attribute_id: AttributeId, index_range: &NumericRange, remaining_path: &[QualifiedName]) -> Variant {
         match remaining_path {
-            [f] if attribute_id == AttributeId::Value && f.namespace_index == self.ns && f.name.as_ref() == "AlarmNumber" => Variant::UInt32(self.number),
+            [f] if attribute_id == AttributeId::Value && f.namespace_index == self.ns && f.name.as_ref() == "AlarmNumber" => {
+                Variant::UInt32(self.number)
+            }
             _ => self.base.get_value(attribute_id, index_range, remaining_path),
         }
     }
 }
 
 impl Event for AlarmEvent {
-    fn get_field(&self, type_definition_id: &NodeId, attribute_id: AttributeId, index_range: &NumericRange, browse_path: &[QualifiedName]) -> Variant {
+    fn get_field(
+        &self,
+        type_definition_id: &NodeId,
+        attribute_id: AttributeId,
+        index_range: &NumericRange,
+        browse_path: &[QualifiedName],
+    ) -> Variant {
         if type_definition_id == &self.own {
             self.get_value(attribute_id, index_range, browse_path)
         } else {

@@ -127,7 +127,12 @@ async def main():
     sub = await client.create_subscription(100, h)
     await sub.subscribe_data_change([z, state])
     cnc_alarm = client.get_node(ua.NodeId("CncAlarmEventType", ns))
-    await sub.subscribe_events(client.nodes.server, cnc_alarm)
+    # The events as a generic client takes them (BaseEventType on the Server object) and
+    # filtered by our type (CncAlarmEventType, with AlarmNumber).
+    await sub.subscribe_events(client.nodes.server)
+    h2 = Handler()
+    sub2 = await client.create_subscription(100, h2)
+    await sub2.subscribe_events(client.nodes.server, cnc_alarm)
     # Until the server goes away after the run (linger), at most 60 s.
     end = time.time() + 60
     try:
@@ -147,6 +152,7 @@ async def main():
             pass
     out["changes"] = h.changes
     out["events"] = h.events
+    out["typed_events"] = h2.events
     print(json.dumps(out, default=str), flush=True)
 
 

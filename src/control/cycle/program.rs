@@ -13,9 +13,9 @@
 //! run returns the alarm, with the controlled stop it needs already started.
 
 use super::{alarms, stall_in_sync, AxisSummary, CycleLoop, Progress, RunSummary, SpindleMeter, MAX_CATCH_UP};
-use crate::control::snapshot::{MachineState, SNAP_AXES};
 use crate::canon::{Move, Pos};
 use crate::control::guard::Guard;
+use crate::control::snapshot::{MachineState, SNAP_AXES};
 use crate::control::trace::{TraceRow, MAX_TRACE_AXES};
 use crate::drives::scale_watch::{self, ScaleWatch};
 use crate::motion::{Event, Feedback, Motion, Setpoint, AX_X, AX_Y, AX_Z, N_AXES};
