@@ -104,7 +104,7 @@ const HEAD_WORDS: usize = 12;
 const WORDS: usize = HEAD_WORDS + 4 * SNAP_AXES;
 
 impl MachineSnap {
-    fn to_words(&self) -> [u64; WORDS] {
+    fn to_words(self) -> [u64; WORDS] {
         let mut w = [0u64; WORDS];
         w[0] = self.cycle;
         w[1] = self.state as u64 | (self.n_axes as u64) << 8 | (self.line as u64) << 32;
