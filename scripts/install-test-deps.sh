@@ -3,8 +3,8 @@
 #
 #   scripts/install-test-deps.sh [--python] [--qemu]
 #
-#   --python  (or TEST_DEPS_PYTHON=1): also make build/venv with python-can, canopen, pymodbus
-#             (the python peers of the CANopen and Modbus tests)
+#   --python  (or TEST_DEPS_PYTHON=1): also make build/venv with python-can, canopen, pymodbus,
+#             asyncua (the python peers of the CANopen, Modbus and OPC UA tests)
 #   --qemu    (or VMRUN_BACKEND=qemu): also install the QEMU fallback backend of scripts/vmrun
 #
 # Idempotent: every step checks first, and `apt-get update` runs only when something
@@ -99,7 +99,8 @@ extra_test_deps() {
 # Python peers for the protocol tests (a CANopen/Modbus implementation written elsewhere).
 # Uses Debian's /usr/bin/python3, not a pyenv shim (slow under the guest, see notes).
 # Floors: the versions the socketcand peer test (tests/python/) was written against.
-PY_REQS=("python-can>=4.6" "canopen>=2.4" pymodbus)
+# asyncua: the OPC UA client of tests/opcua_server.rs.
+PY_REQS=("python-can>=4.6" "canopen>=2.4" pymodbus "asyncua>=1.1")
 python_venv() {
     local venv=$ROOT/build/venv
     if [ -x "$venv/bin/python" ] && [ "$(cat "$venv/.installed" 2>/dev/null)" = "${PY_REQS[*]}" ]; then

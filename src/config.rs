@@ -45,6 +45,10 @@ pub struct MachineConfig {
     /// Discrete I/O: devices, M codes, turret, safety inputs (`[io]`, see `crate::io`).
     #[serde(default)]
     pub io: crate::io::IoConfig,
+    /// The read-only OPC UA server of `cncgw run` (`[opcua]`); absent or `enabled = false`:
+    /// no socket is opened.
+    #[serde(default)]
+    pub opcua: OpcUaConfig,
 }
 
 /// `[rt]`: real-time setup of the cycle thread on a real PC. All optional; absent = normal
@@ -638,6 +642,7 @@ impl MachineConfig {
         self.validate_links(&mut e);
         self.validate_parameters(&mut e);
         self.validate_io(&mut e);
+        self.opcua.validate(&mut e);
         e
     }
 
@@ -996,6 +1001,133 @@ fn positive(e: &mut Vec<String>, path: &str, v: f64) {
     }
 }
 
+/// `[opcua]`: the read-only OPC UA server of `cncgw run` (src/opcua/). Off unless
+/// `enabled = true`; secure by default: Sign&Encrypt, users with passwords, no anonymous.
+#[derive(Clone, Debug, Deserialize, PartialEq, Eq)]
+#[serde(deny_unknown_fields)]
+pub struct OpcUaConfig {
+    #[serde(default)]
+    pub enabled: bool,
+    /// The address the server binds and names in its endpoint URL.
+    #[serde(default = "default_opcua_host")]
+    pub host: String,
+    /// TCP port; 4840 is OPC UA's registered port.
+    #[serde(default = "default_opcua_port")]
+    pub port: u16,
+    /// Security policies offered, each with Sign&Encrypt: `basic256sha256` (default),
+    /// `aes128sha256rsaoaep`, `aes256sha256rsapss`; `none` (no signing, no encryption) only
+    /// on a loopback `host` with `allow_none_on_loopback = true`.
+    #[serde(default = "default_opcua_policies")]
+    pub security_policies: Vec<String>,
+    /// Allow the `none` policy when the server is bound to loopback (a local dashboard).
+    #[serde(default)]
+    pub allow_none_on_loopback: bool,
+    /// Accept clients without a user name (anonymous). Off by default.
+    #[serde(default)]
+    pub anonymous: bool,
+    /// Users with a password (`[[opcua.users]]`): `name` and `password_hash`, an Argon2 PHC
+    /// string (`cncgw opcua-hash` makes one).
+    #[serde(default)]
+    pub users: Vec<OpcUaUser>,
+    /// After the run the server stays up this long so that subscribed clients receive the
+    /// final state and the last alarm, ms (0 … 60000; default 1500).
+    #[serde(default = "default_opcua_linger")]
+    pub linger_ms: u32,
+}
+
+/// One `[[opcua.users]]` entry.
+#[derive(Clone, Debug, Deserialize, PartialEq, Eq)]
+#[serde(deny_unknown_fields)]
+pub struct OpcUaUser {
+    pub name: String,
+    /// Argon2 PHC string (`$argon2id$v=19$m=…,t=…,p=…$salt$hash`); never the password itself.
+    pub password_hash: String,
+}
+
+/// The security policies `[opcua] security_policies` accepts.
+pub const OPCUA_POLICIES: [&str; 4] = ["basic256sha256", "aes128sha256rsaoaep", "aes256sha256rsapss", "none"];
+
+impl Default for OpcUaConfig {
+    fn default() -> Self {
+        OpcUaConfig {
+            enabled: false,
+            host: default_opcua_host(),
+            port: default_opcua_port(),
+            security_policies: default_opcua_policies(),
+            allow_none_on_loopback: false,
+            anonymous: false,
+            users: Vec::new(),
+            linger_ms: default_opcua_linger(),
+        }
+    }
+}
+
+fn default_opcua_host() -> String {
+    "127.0.0.1".into()
+}
+fn default_opcua_port() -> u16 {
+    4840
+}
+fn default_opcua_policies() -> Vec<String> {
+    vec!["basic256sha256".into()]
+}
+fn default_opcua_linger() -> u32 {
+    1500
+}
+
+impl OpcUaConfig {
+    /// `host` is a loopback address (127.0.0.0/8, ::1, `localhost`): only this machine can
+    /// connect.
+    pub fn is_loopback(&self) -> bool {
+        self.host == "localhost" || self.host.parse::<std::net::IpAddr>().is_ok_and(|a| a.is_loopback())
+    }
+
+    fn validate(&self, e: &mut Vec<String>) {
+        if self.host.trim().is_empty() {
+            e.push("opcua.host: must name an address to bind, got an empty string".into());
+        }
+        if self.port == 0 {
+            e.push("opcua.port: must be 1 … 65535, got 0".into());
+        }
+        if self.security_policies.is_empty() {
+            e.push(format!("opcua.security_policies: must name at least one of {}", OPCUA_POLICIES.join(", ")));
+        }
+        for p in &self.security_policies {
+            if !OPCUA_POLICIES.contains(&p.as_str()) {
+                e.push(format!("opcua.security_policies: unknown policy {p:?}; known: {}", OPCUA_POLICIES.join(", ")));
+            }
+        }
+        if self.security_policies.iter().any(|p| p == "none") && !(self.is_loopback() && self.allow_none_on_loopback) {
+            e.push(format!(
+                "opcua.security_policies: \"none\" (unsigned, unencrypted) is allowed only on a loopback host with allow_none_on_loopback = true, got host {:?}{}",
+                self.host,
+                if self.is_loopback() { " without allow_none_on_loopback" } else { "" }
+            ));
+        }
+        if self.enabled && !self.anonymous && self.users.is_empty() {
+            e.push("opcua.users: no user could connect: add [[opcua.users]] (name, password_hash) or set anonymous = true".into());
+        }
+        for (i, u) in self.users.iter().enumerate() {
+            if u.name.trim().is_empty() {
+                e.push(format!("opcua.users[{i}].name: must not be empty"));
+            }
+            if self.users[..i].iter().any(|v| v.name == u.name) {
+                e.push(format!("opcua.users[{i}].name: {:?} is given twice", u.name));
+            }
+            // The full parse is the server's (feature `opcua`); here the form, so that a
+            // password written in clear is refused by `config check` too.
+            if !["$argon2id$", "$argon2i$", "$argon2d$"].iter().any(|p| u.password_hash.starts_with(p)) || u.password_hash.split('$').count() != 6 {
+                e.push(format!(
+                    "opcua.users[{i}].password_hash: must be an Argon2 PHC string ($argon2id$v=19$m=…$salt$hash; `cncgw opcua-hash` makes one), not the password itself"
+                ));
+            }
+        }
+        if self.linger_ms > 60_000 {
+            e.push(format!("opcua.linger_ms: must be 0 … 60000, got {}", self.linger_ms));
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1118,5 +1250,49 @@ mod tests {
         let c = MachineConfig::from_toml("t.toml", &t).unwrap();
         assert_eq!(c.axes["z"].pdo_cob_ids(), (0x222, 0x1A2));
         assert_eq!(c.axes["x"].pdo_cob_ids(), (0x201, 0x181));
+    }
+
+    fn opcua(extra: &str) -> Result<MachineConfig, ConfigError> {
+        MachineConfig::from_toml("m.toml", &format!("{EMBEDDED_LATHE}\n[opcua]\n{extra}"))
+    }
+
+    const HASH: &str = "$argon2id$v=19$m=19456,t=2,p=1$c2FsdHNhbHQ$ZmFrZWhhc2hmYWtlaGFzaGZha2VoYXNoZmFrZQ";
+
+    #[test]
+    fn opcua_is_off_by_default_and_secure_when_on() {
+        let c = MachineConfig::embedded();
+        assert!(!c.opcua.enabled);
+        let c = opcua(&format!("enabled = true\nport = 4841\n[[opcua.users]]\nname = \"mes\"\npassword_hash = \"{HASH}\"")).unwrap();
+        assert!(c.opcua.enabled && !c.opcua.anonymous && c.opcua.port == 4841);
+        assert_eq!(c.opcua.security_policies, vec!["basic256sha256".to_string()]);
+    }
+
+    #[test]
+    fn opcua_none_only_on_loopback_and_when_allowed() {
+        let user = format!("[[opcua.users]]\nname = \"mes\"\npassword_hash = \"{HASH}\"");
+        let e = opcua(&format!("enabled = true\nsecurity_policies = [\"none\"]\n{user}")).unwrap_err().to_string();
+        assert!(
+            e.contains("\"none\" (unsigned, unencrypted) is allowed only on a loopback host") && e.contains("without allow_none_on_loopback"),
+            "{e}"
+        );
+        let e = opcua(&format!("enabled = true\nhost = \"0.0.0.0\"\nallow_none_on_loopback = true\nsecurity_policies = [\"none\"]\n{user}"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("got host \"0.0.0.0\""), "{e}");
+        let c = opcua(&format!(
+            "enabled = true\nhost = \"::1\"\nallow_none_on_loopback = true\nsecurity_policies = [\"none\", \"basic256sha256\"]\n{user}"
+        ));
+        assert!(c.is_ok(), "{c:?}");
+    }
+
+    #[test]
+    fn opcua_users_need_hashes_and_someone_must_be_able_to_connect() {
+        let e = opcua("enabled = true").unwrap_err().to_string();
+        assert!(e.contains("opcua.users: no user could connect"), "{e}");
+        assert!(opcua("enabled = true\nanonymous = true").is_ok());
+        let e = opcua("enabled = true\n[[opcua.users]]\nname = \"mes\"\npassword_hash = \"secret\"").unwrap_err().to_string();
+        assert!(e.contains("opcua.users[0].password_hash: must be an Argon2 PHC string"), "{e}");
+        let e = opcua("enabled = true\nport = 0\nsecurity_policies = [\"basic128rsa15\"]\nanonymous = true").unwrap_err().to_string();
+        assert!(e.contains("opcua.port: must be 1 … 65535") && e.contains("unknown policy \"basic128rsa15\""), "{e}");
     }
 }

@@ -15,6 +15,9 @@ pub mod interp;
 pub mod io;
 pub mod motion;
 pub mod offsets;
+/// The read-only OPC UA server of `cncgw run` (feature `opcua`; between `cli` and `control`).
+#[cfg(feature = "opcua")]
+pub mod opcua;
 pub mod params;
 pub mod persist;
 pub mod plot;

@@ -8,6 +8,7 @@
 use cncgw::canon::{Feed, Move, MoveKind, Plane, Pos, SpindleCmd, SpindleDir, SrcPos};
 use cncgw::config::{AxisKind, MachineConfig, EMBEDDED_LATHE};
 use cncgw::control::cycle::{CycleLoop, RunSummary};
+use cncgw::control::snapshot::{MachineState, Snapshot};
 use cncgw::control::trace::{Trace, VecSink};
 use cncgw::drives::canopen::CanOpenMaster;
 use cncgw::motion::Limits;
@@ -15,7 +16,7 @@ use cncgw_bus::transport::inproc::InprocBus;
 use cncgw_bus::Clock;
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 
 struct Counting;
@@ -111,6 +112,37 @@ fn program() -> Vec<Move> {
 
 #[test]
 fn the_cycle_loop_allocates_nothing_after_start() {
+    run_counted(None);
+}
+
+/// The same with the OPC UA server's snapshot published every cycle, and a reader on another
+/// thread copying it all the while (as the server's task does).
+#[test]
+fn publishing_the_snapshot_allocates_nothing() {
+    let snap = Arc::new(Snapshot::new());
+    let stop = Arc::new(AtomicBool::new(false));
+    let (r, s) = (snap.clone(), stop.clone());
+    let reader = std::thread::spawn(move || {
+        let mut seen = 0u64;
+        while !s.load(Ordering::Relaxed) {
+            seen = seen.max(r.read().cycle);
+            std::thread::sleep(std::time::Duration::from_micros(200));
+        }
+        seen
+    });
+    run_counted(Some(snap.clone()));
+    stop.store(true, Ordering::Relaxed);
+    let seen = reader.join().unwrap();
+    let last = snap.read();
+    assert!(last.cycle > 5000 && seen > 0, "published {} records, the reader saw up to {seen}", last.cycle);
+    assert_eq!((last.state, last.parts, last.alarm), (MachineState::Idle, 1, 0), "{last:?}");
+}
+
+/// The tests of this binary share the counter: one at a time.
+static SERIAL: Mutex<()> = Mutex::new(());
+
+fn run_counted(snapshot: Option<Arc<Snapshot>>) {
+    let _one = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     // The counter itself works: one allocation while armed is one count.
     ARMED.with(|a| a.set(true));
     let b = std::hint::black_box(Box::new(7u64));
@@ -128,6 +160,9 @@ fn the_cycle_loop_allocates_nothing_after_start() {
     let mut lp = CycleLoop::new(&mut master, &mut clock, Limits::from_config(&cfg), spindle, 2_000_000);
     let trace = Trace::spawn(lp.drive_names(), VecSink(rows.clone())).unwrap();
     lp.set_trace(trace);
+    if let Some(s) = snapshot {
+        lp.set_snapshot(s);
+    }
     let start = lp.start(&mut summary).unwrap();
     let moves = program();
     let (tx, rx) = std::sync::mpsc::sync_channel(moves.len());

@@ -339,6 +339,14 @@ pub enum Command {
         #[arg(long, conflicts_with = "since")]
         list: bool,
     },
+    /// Print the Argon2 hash of an OPC UA user's password, for `[[opcua.users]] password_hash`.
+    ///
+    /// The password is read from the first line of standard input (not an argument: it
+    /// would stay in the shell's history and the process list). Each run salts anew.
+    ///
+    /// Example: `printf '%s\n' "$PW" | cncgw opcua-hash`
+    #[command(name = "opcua-hash")]
+    OpcuaHash,
     /// MDI: type blocks on the live machine, each Enter runs one.
     ///
     /// One block per line from standard input (a terminal or a pipe); the modal state (G codes,
@@ -806,6 +814,36 @@ fn quiet_on_closed_pipe() {
     }
 }
 
+/// `cncgw opcua-hash`: the password on standard input's first line → its PHC string.
+fn opcua_hash() -> i32 {
+    let mut line = String::new();
+    if let Err(e) = std::io::stdin().read_line(&mut line) {
+        eprintln!("error: cannot read the password from standard input: {e}");
+        return exit::SETUP;
+    }
+    let pw = line.trim_end_matches(['\r', '\n']);
+    if pw.is_empty() {
+        eprintln!("error: give the password on standard input (an empty password is refused)");
+        return exit::INPUT;
+    }
+    #[cfg(feature = "opcua")]
+    match crate::opcua::hash_password(pw) {
+        Ok(h) => {
+            println!("{h}");
+            exit::OK
+        }
+        Err(e) => {
+            eprintln!("error: {e}");
+            exit::SETUP
+        }
+    }
+    #[cfg(not(feature = "opcua"))]
+    {
+        eprintln!("error: this cncgw was built without the OPC UA server (cargo feature `opcua`)");
+        exit::SETUP
+    }
+}
+
 /// Entry point; returns the process exit code.
 pub fn main() -> i32 {
     let cli = Cli::parse();
@@ -862,6 +900,7 @@ pub fn main() -> i32 {
         Command::Alarms { machine, state_dir, since, json, list: false } => alarms(&machine, state_dir.as_deref(), since.as_deref(), json),
         Command::Offsets(cmd) => offsets::main(cmd),
         Command::Mdi(a) => mdi::mdi(&a),
+        Command::OpcuaHash => opcua_hash(),
         Command::Completions { shell } => {
             use clap::CommandFactory;
             clap_complete::generate(shell, &mut Cli::command(), "cncgw", &mut std::io::stdout());

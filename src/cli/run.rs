@@ -60,6 +60,8 @@ pub struct RunExtras<'a> {
     /// The axes' reference state (`reference`): checked at start, kept up to date at the end.
     /// None = no axis has a reference to manage.
     pub reference: Option<RefSetup>,
+    /// The OPC UA server of `cncgw run` (`[opcua] enabled`); None = no server.
+    pub opcua: Option<OpcUaSetup>,
 }
 
 /// The reference file of a run and the axes that must be referenced before anything moves.
@@ -126,6 +128,62 @@ fn reference_at_end(lp: &CycleLoop, cfg: &MachineConfig, r: Option<&RefSetup>) {
     });
     if let Err(a) = r {
         eprintln!("{a}");
+    }
+}
+
+/// What the OPC UA server of a run needs besides the configuration.
+#[derive(Clone, Debug)]
+pub struct OpcUaSetup {
+    /// The state directory (its certificates go under `opcua/pki`).
+    pub state_dir: std::path::PathBuf,
+    /// The configuration file's name (Identification.ConfigFile).
+    pub config_name: String,
+}
+
+/// The run's OPC UA server (`[opcua] enabled`), reading the cycle loop's snapshot.
+struct Observer {
+    #[cfg(feature = "opcua")]
+    inner: Option<(std::sync::Arc<crate::control::snapshot::Snapshot>, crate::opcua::OpcUaServer)>,
+}
+
+impl Observer {
+    /// Start the server before the drives (a client may watch start-up too), the snapshot set
+    /// on `lp`. An enabled server that cannot start refuses the run.
+    fn start(cfg: &MachineConfig, setup: Option<&OpcUaSetup>, lp: &mut CycleLoop, job: &Job) -> Result<Observer, String> {
+        #[cfg(feature = "opcua")]
+        {
+            let Some(setup) = setup.filter(|_| cfg.opcua.enabled) else { return Ok(Observer { inner: None }) };
+            let snap = std::sync::Arc::new(crate::control::snapshot::Snapshot::new());
+            snap.set_program(&job.name, job.source.lines().count() as u32, lp.drive_names());
+            let server = crate::opcua::OpcUaServer::start(cfg, &setup.config_name, snap.clone(), &setup.state_dir)?;
+            eprintln!("cncgw: OPC UA server (read-only) on opc.tcp://{}/", server.addr);
+            lp.set_snapshot(snap.clone());
+            Ok(Observer { inner: Some((snap, server)) })
+        }
+        #[cfg(not(feature = "opcua"))]
+        {
+            let _ = (lp, job);
+            match setup.filter(|_| cfg.opcua.enabled) {
+                Some(_) => Err("this cncgw was built without the OPC UA server (cargo feature `opcua`): set [opcua] enabled = false, or build it with the feature".into()),
+                None => Ok(Observer {}),
+            }
+        }
+    }
+
+    /// The alarm that ended the run, for the server's event (its text is not in the snapshot).
+    fn alarm(&self, _a: &crate::Alarm) {
+        #[cfg(feature = "opcua")]
+        if let Some((s, _)) = &self.inner {
+            s.set_alarm(_a);
+        }
+    }
+
+    /// Let subscribed clients see the end, then stop the server.
+    fn finish(self) {
+        #[cfg(feature = "opcua")]
+        if let Some((_, server)) = self.inner {
+            server.finish();
+        }
     }
 }
 
@@ -207,6 +265,10 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, files: RunFiles, m
     interp.set_block_budget(max_blocks);
     // The offsets: `--tools FILE` wins for the tool table, else the stored one (`cncgw offsets`).
     let state_root = state_dir.map(Path::to_path_buf).or_else(crate::persist::default_state_dir);
+    if cfg.opcua.enabled && state_root.is_none() {
+        eprintln!("error: [opcua] needs a state directory for its certificates: give --state-dir or set CNCGW_STATE_DIR");
+        return EXIT_SETUP;
+    }
     let tables = match crate::offsets::resolve(state_root.as_deref(), &cfg.machine.name, tools) {
         Ok(t) => t,
         Err(a) => {
@@ -291,6 +353,10 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, files: RunFiles, m
             tap: tap_file.map(|f| TapSetup { file: f.path, loaded: tap_state }),
             history: state.as_ref().map(|s| s.alarm_history()),
             reference: RefSetup::new(&cfg, state.as_ref()),
+            opcua: state_root.clone().filter(|_| cfg.opcua.enabled).map(|state_dir| OpcUaSetup {
+                state_dir,
+                config_name: machine.config.as_ref().map_or_else(|| "<embedded config/lathe.toml>".to_string(), |p| p.display().to_string()),
+            }),
         },
         operator: None,
         pace: op.realtime,
@@ -591,10 +657,19 @@ fn execute(
         lp.set_panel(p);
     }
     lp.set_signal(&super::term::SIGNAL, super::term::signal_name);
+    let observer = match Observer::start(cfg, extras.opcua.as_ref(), &mut lp, &job) {
+        Ok(o) => o,
+        Err(e) => {
+            eprintln!("error: {e}; nothing was moved");
+            return (EXIT_SETUP, None, RunSummary::default());
+        }
+    };
     let mut summary = RunSummary::default();
     let start = match lp.start(&mut summary) {
         Ok(s) => s,
         Err(a) => {
+            observer.alarm(&a);
+            observer.finish();
             eprintln!("{a}");
             // A bus or Modbus link that cannot be opened is setup, as a CAN interface that
             // cannot be opened is; the drives' own refusals are alarms.
@@ -627,6 +702,7 @@ fn execute(
     };
     let checked = reference_at_start(&lp, cfg, extras.reference.as_ref()).and_then(|()| checks_before_motion(&mut lp, &job, cfg, &interp, start_pos));
     if let Err(a) = checked {
+        observer.alarm(&a);
         lp.finish();
         summary.rest.at_rest = true; // nothing was moved
         if opts.print_summary {
@@ -635,6 +711,7 @@ fn execute(
         record_alarm(extras, &job.name, &a);
         eprintln!("{a}");
         eprintln!("nothing was moved");
+        observer.finish();
         return (EXIT_ALARM, None, summary);
     }
     // The interpreter runs ahead of motion, macro statements included (as on a Fanuc, where
@@ -665,8 +742,12 @@ fn execute(
     display.close();
     lp.finish();
     reference_at_end(&lp, cfg, extras.reference.as_ref());
+    if let Err(a) = &r {
+        observer.alarm(a);
+    }
     let tap_failed = close_writers(&mut lp, tap_writer);
     let code = outcome(r, &summary, opts, &job.name);
+    observer.finish();
     (if tap_failed && code == EXIT_OK { EXIT_SETUP } else { code }, vars, summary)
 }
 

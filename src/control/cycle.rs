@@ -9,6 +9,7 @@
 use crate::canon::Move;
 use crate::control::guard::Guard;
 use crate::control::panel::{Panel, PanelReader};
+use crate::control::snapshot::{MachineSnap, MachineState, Snapshot, SNAP_AXES};
 use crate::control::tapstate::TapWatch;
 use crate::control::trace::Trace;
 
@@ -257,6 +258,10 @@ pub struct CycleLoop<'a> {
     /// The machine's I/O (`[io]`): M/T codes, safety inputs (`control::io`); an Err is
     /// raised by `start`.
     pub io: Result<Option<super::io::IoRun>, Alarm>,
+    /// The lock-free state record observers read (`control::snapshot`, the OPC UA server),
+    /// published every cycle of `run`, and the record as this loop last filled it.
+    snapshot: Option<std::sync::Arc<Snapshot>>,
+    snap: MachineSnap,
 }
 
 /// The flag a signal handler sets (to the signal's number) and the signal's name.
@@ -281,6 +286,21 @@ impl<'a> CycleLoop<'a> {
             rpm: 0.0,
             signal: None,
             io: Ok(None),
+            snapshot: None,
+            snap: MachineSnap::default(),
+        }
+    }
+
+    /// Publish the machine's state into `s` every cycle of `run` (`control::snapshot`).
+    pub fn set_snapshot(&mut self, s: std::sync::Arc<Snapshot>) {
+        self.snap = s.read();
+        self.snapshot = Some(s);
+    }
+
+    /// Publish this loop's record, if it has a snapshot: a few dozen atomic stores.
+    fn publish(&self) {
+        if let Some(s) = &self.snapshot {
+            s.publish(&self.snap);
         }
     }
 
@@ -412,7 +432,27 @@ impl<'a> CycleLoop<'a> {
             a.final_actual_counts = self.drives.feedback(d).counts;
             a.final_target_counts = self.drives.target_counts(d);
         }
+        self.publish_end(&r);
         r
+    }
+
+    /// The record once at rest: where the drives stand, and idle or the alarm that ended it.
+    fn publish_end(&mut self, r: &Result<(), Alarm>) {
+        for d in 0..self.drives.axis_count().min(SNAP_AXES) {
+            let f = self.drives.feedback(d);
+            self.snap.axes[d].act = f.pos;
+            self.snap.axes[d].statusword = f.statusword;
+        }
+        self.snap.spindle_act_rpm = 0.0;
+        self.snap.spindle_cmd_rpm = 0.0;
+        self.snap.feed = 0.0;
+        (self.snap.state, self.snap.alarm) = match r {
+            Ok(()) => (MachineState::Idle, 0),
+            Err(a) if a.number == alarms::ESTOP => (MachineState::EStop, a.number),
+            Err(a) => (MachineState::Alarm, a.number),
+        };
+        self.snap.cycle += 1;
+        self.publish();
     }
 
     /// Act on the event of a set-point; true at the program end.

@@ -13,6 +13,7 @@ pub mod io;
 pub mod job;
 pub mod panel;
 pub mod rt;
+pub mod snapshot;
 pub mod tapstate;
 pub mod trace;
 

@@ -2478,6 +2478,16 @@ impl Motion {
         self.spindle_ovr = if f.is_finite() { f.clamp(0.5, 1.2) } else { 1.0 };
     }
 
+    /// The spindle speed override in effect (0.5–1.2).
+    pub fn spindle_override(&self) -> f64 {
+        self.spindle_ovr
+    }
+
+    /// The feed override in effect (0–2).
+    pub fn feed_override(&self) -> f64 {
+        self.feed_ovr
+    }
+
     /// Rapid override, 0–1: 0 is F0 (No.1421's rate), else the share of the rapid rate.
     pub fn set_rapid_override(&mut self, f: f64) {
         self.rapid_ovr = if f.is_finite() { f.clamp(0.0, 1.0) } else { 0.0 };

@@ -16,6 +16,7 @@ use super::{alarms, stall_in_sync, AxisSummary, CycleLoop, Progress, RunSummary,
 use crate::canon::{Move, Pos};
 use crate::control::guard::Guard;
 use crate::control::io::IoStop;
+use crate::control::snapshot::{MachineState, SNAP_AXES};
 use crate::control::trace::{TraceRow, MAX_TRACE_AXES};
 use crate::drives::scale_watch::{self, ScaleWatch};
 use crate::motion::{Event, Feedback, Motion, Setpoint, AX_X, AX_Y, AX_Z, N_AXES};
@@ -238,6 +239,10 @@ impl CycleLoop<'_> {
             if d < MAX_TRACE_AXES {
                 row.act[d] = f.pos;
             }
+            if d < SNAP_AXES {
+                self.snap.axes[d].act = f.pos;
+                self.snap.axes[d].statusword = f.statusword;
+            }
             // Only fresh feedback in a cycle that followed its predecessor on time pairs
             // with the demand of two cycles ago; anything else would measure the jitter.
             // A bus that knows the drive's demand at the feedback's instant (Modbus, on
@@ -253,6 +258,9 @@ impl CycleLoop<'_> {
                 let err = (demand - f.counts) as f64 / a.counts_per_unit;
                 if d < MAX_TRACE_AXES {
                     row.ferr[d] = err;
+                }
+                if d < SNAP_AXES {
+                    self.snap.axes[d].ferr = err;
                 }
                 a.max_following_error = a.max_following_error.max(err.abs());
             }
@@ -439,6 +447,7 @@ impl CycleLoop<'_> {
             self.halt(motion, run.spindle_rpm);
             return Err(a);
         }
+        let ended_before = run.ended;
         run.ended |= self.on_event(motion, sp);
         if sp.line != run.cur_line && sp.line != 0 {
             summary.blocks += 1;
@@ -449,6 +458,7 @@ impl CycleLoop<'_> {
             r.report(motion.is_held(), sp.line);
         }
         let t_s = (now - run.t_start) as f64 * 1e-9;
+        self.publish_cycle(motion, run, summary, sp, t_s, run.ended && !ended_before);
         if summary.cycles % run.progress_every == 0 {
             let feed = sp.path_feed;
             progress(&Progress { t_s, line: sp.line, pos: sp.pos, feed, spindle_rpm: sp.spindle_rpm, sync_err_um: motion.sync_error() });
@@ -466,6 +476,38 @@ impl CycleLoop<'_> {
         });
         run.settle_cycles += 1;
         Ok(settled || run.settle_cycles > run.max_settle)
+    }
+
+    /// This cycle into the snapshot (`control::snapshot`): copies of what the cycle has
+    /// computed, then the seqlock's stores. Nothing when no observer asked for it.
+    /// `new_end`: the program's end (M02/M30) was reached in this cycle, one more part.
+    fn publish_cycle(&mut self, motion: &Motion, run: &Run, summary: &RunSummary, sp: &Setpoint, t_s: f64, new_end: bool) {
+        if self.snapshot.is_none() {
+            return;
+        }
+        let s = &mut self.snap;
+        s.parts += new_end as u64;
+        for (d, ax) in run.map.iter().enumerate().take(SNAP_AXES) {
+            s.axes[d].cmd = match ax {
+                Some(a) => sp.pos[*a],
+                None if self.tool.is_some_and(|t| t.drive == d) => sp.tool_spindle,
+                None => s.axes[d].act,
+            };
+        }
+        s.n_axes = run.map.len().min(SNAP_AXES) as u8;
+        s.cycle += 1;
+        s.state = if motion.is_held() { MachineState::Held } else { MachineState::Running };
+        s.line = sp.line;
+        s.blocks = summary.blocks;
+        s.elapsed_s = t_s;
+        s.spindle_cmd_rpm = sp.spindle_rpm;
+        s.spindle_act_rpm = run.spindle_rpm;
+        s.spindle_override = motion.spindle_override();
+        s.feed_override = motion.feed_override();
+        s.feed = sp.path_feed;
+        s.sync_err_um = motion.sync_error();
+        s.alarm = 0;
+        self.publish();
     }
 
     /// Where each axis stands at the program's end, and where the program said it would.

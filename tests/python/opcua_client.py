@@ -1,0 +1,159 @@
+"""The OPC UA peer we did not write: python asyncua against `cncgw run`'s server.
+
+    opcua_client.py URL PKI_DIR WORK_DIR USER PASSWORD MACHINE_NAME
+
+Run by tests/opcua_server.rs while `cncgw run --realtime` runs a program on the embedded
+machine whose X drive faults. In order:
+  1. an unsigned (None) connection is refused (no such endpoint);
+  2. Basic256Sha256 Sign&Encrypt with a fresh client certificate is refused until the
+     certificate is moved from PKI_DIR/rejected to PKI_DIR/trusted (the administrator's step);
+  3. a wrong password is refused;
+  4. with the right one: browse the machine, read identification, subscribe to the Z axis'
+     actual position, the machine state and the alarm events, until the server closes.
+Prints one JSON object on stdout with what it saw.
+"""
+
+import asyncio
+import json
+import shutil
+import socket
+import sys
+import time
+from pathlib import Path
+
+from asyncua import Client, ua
+from asyncua.crypto.cert_gen import setup_self_signed_certificate
+from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
+from cryptography.x509.oid import ExtendedKeyUsageOID
+
+URL, PKI, WORK, USER, PASSWORD, MACHINE = sys.argv[1:7]
+APP_URI = "urn:cncgw-test:opcua-client"
+NS = "urn:cncgw:machine-tool"
+
+
+def log(*a):
+    print(*a, file=sys.stderr, flush=True)
+
+
+def wait_for_port(url, seconds=60):
+    host, port = url.split("//", 1)[1].rstrip("/").rsplit(":", 1)
+    end = time.time() + seconds
+    while time.time() < end:
+        try:
+            socket.create_connection((host, int(port)), timeout=0.5).close()
+            return
+        except OSError:
+            time.sleep(0.05)
+    raise SystemExit(f"nothing listens on {url}")
+
+
+async def make_cert():
+    key, cert = Path(WORK) / "client_key.pem", Path(WORK) / "client_cert.der"
+    await setup_self_signed_certificate(key, cert, APP_URI, socket.gethostname(), [ExtendedKeyUsageOID.CLIENT_AUTH], {"commonName": "cncgw-test-client"})
+    return cert, key
+
+
+async def secure_client(cert, key, user, password):
+    c = Client(URL, timeout=5)
+    c.application_uri = APP_URI
+    await c.set_security(SecurityPolicyBasic256Sha256, str(cert), str(key), mode=ua.MessageSecurityMode.SignAndEncrypt)
+    c.set_user(user)
+    c.set_password(password)
+    return c
+
+
+async def refused(client):
+    """The error connecting, or None if it connected (then disconnected)."""
+    try:
+        await client.connect()
+    except Exception as e:  # noqa: BLE001 - any refusal counts, its name is reported
+        return f"{type(e).__name__}: {e}"
+    await client.disconnect()
+    return None
+
+
+class Handler:
+    def __init__(self):
+        self.t0 = time.time()
+        self.changes = []
+        self.events = []
+
+    def datachange_notification(self, node, val, data):
+        self.changes.append({"node": node.nodeid.to_string(), "value": val, "t": round(time.time() - self.t0, 3)})
+
+    def event_notification(self, event):
+        f = event.get_event_props_as_fields_dict()
+        self.events.append({k: (v.Value.Text if k == "Message" else v.Value) for k, v in f.items() if k in ("Message", "Severity", "AlarmNumber", "SourceName")})
+
+
+async def main():
+    out = {}
+    wait_for_port(URL)
+    # 1. No None endpoint: an unsigned connection is refused.
+    c = Client(URL, timeout=5)
+    c.set_user(USER)
+    c.set_password(PASSWORD)
+    out["none_refused"] = await refused(c)
+    cert, key = await make_cert()
+    # 2. An unknown client certificate is refused, and lands in rejected/.
+    out["untrusted_refused"] = await refused(await secure_client(cert, key, USER, PASSWORD))
+    rejected = list((Path(PKI) / "rejected").glob("*.der"))
+    out["rejected_files"] = len(rejected)
+    (Path(PKI) / "trusted").mkdir(parents=True, exist_ok=True)
+    for f in rejected:
+        shutil.move(str(f), str(Path(PKI) / "trusted" / f.name))
+    # 3. Trusted now, but a wrong password.
+    out["wrong_password_refused"] = await refused(await secure_client(cert, key, USER, PASSWORD + "x"))
+    # 4. The right one.
+    client = await secure_client(cert, key, USER, PASSWORD)
+    await client.connect()
+    ns = await client.get_namespace_index(NS)
+    machine = await client.nodes.objects.get_child([f"{ns}:Machines", f"{ns}:{MACHINE}"])
+    out["machine_children"] = sorted([(await n.read_browse_name()).Name for n in await machine.get_children()])
+    out["axes"] = sorted([(await n.read_browse_name()).Name for n in await (await machine.get_child(f"{ns}:Axes")).get_children()])
+    ident = await machine.get_child(f"{ns}:Identification")
+    out["identification"] = {(await n.read_browse_name()).Name: await n.read_value() for n in await ident.get_children()}
+    state = await machine.get_child([f"{ns}:Monitoring", f"{ns}:MachineTool", f"{ns}:MachineState"])
+    z = await machine.get_child([f"{ns}:Axes", f"{ns}:Z", f"{ns}:ActualPosition"])
+    program = await machine.get_child([f"{ns}:Production", f"{ns}:ActiveProgram", f"{ns}:Name"])
+    out["program"] = await program.read_value()
+    out["state_at_connect"] = await state.read_value()
+    try:
+        await z.write_value(ua.DataValue(ua.Variant(1.0, ua.VariantType.Double)))
+        out["write_refused"] = None
+    except Exception as e:  # noqa: BLE001
+        out["write_refused"] = f"{type(e).__name__}: {e}"
+    h = Handler()
+    sub = await client.create_subscription(100, h)
+    await sub.subscribe_data_change([z, state])
+    cnc_alarm = client.get_node(ua.NodeId("CncAlarmEventType", ns))
+    # The events as a generic client takes them (BaseEventType on the Server object) and
+    # filtered by our type (CncAlarmEventType, with AlarmNumber).
+    await sub.subscribe_events(client.nodes.server)
+    h2 = Handler()
+    sub2 = await client.create_subscription(100, h2)
+    await sub2.subscribe_events(client.nodes.server, cnc_alarm)
+    # Until the server goes away after the run (linger), at most 60 s.
+    end = time.time() + 60
+    try:
+        while time.time() < end:
+            await asyncio.sleep(0.2)
+            try:
+                await client.check_connection()
+            except Exception:  # noqa: BLE001 - the server closed: the run is over
+                break
+            if h.events and any(c["value"] in ("Alarm", "EStop") for c in h.changes):
+                await asyncio.sleep(0.5)
+                break
+    finally:
+        try:
+            await client.disconnect()
+        except Exception:  # noqa: BLE001
+            pass
+    out["changes"] = h.changes
+    out["events"] = h.events
+    out["typed_events"] = h2.events
+    print(json.dumps(out, default=str), flush=True)
+
+
+asyncio.run(main())
