@@ -226,7 +226,7 @@ fn sdo_aborts_are_the_ones_a_drive_sends() {
     assert_eq!(r.download(1, 0x605A, 0, &[0xFF, 0xFF]), Err(abort::VALUE_TOO_LOW));
     assert_eq!(r.download(1, 0x605A, 0, &[5, 0]), Ok(()));
     assert_eq!(r.download(1, 0x6060, 0, &[3]), Err(abort::INVALID_VALUE), "profile velocity is not supported");
-    assert_eq!(r.download(1, 0x6098, 0, &[19]), Err(abort::INVALID_VALUE), "homing method 19 is not supported");
+    assert_eq!(r.download(1, 0x6098, 0, &[31]), Err(abort::INVALID_VALUE), "homing method 31 is not supported");
     assert_eq!(r.download(1, 0x6007, 0, &[4, 0]), Err(abort::VALUE_TOO_HIGH));
     assert_eq!(r.download(1, 0x60C2, 2, &[0xF9]), Err(abort::VALUE_TOO_LOW)); // 10^-7 s
     assert_eq!(r.w32(1, 0x607D, 1, 1000), Ok(()));

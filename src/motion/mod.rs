@@ -1238,15 +1238,7 @@ impl Motion {
         for (i, v) in e.iter().enumerate() {
             self.check_axis(i, *v, "end point")?;
         }
-        if !end.c.is_finite() {
-            return Err(Alarm::new(alarms::BAD_VALUE, format!("C end point is not a finite number ({})", end.c)));
-        }
-        if end.c.abs() > C_MAX_DEG {
-            return Err(Alarm::new(
-                alarms::BAD_VALUE,
-                format!("C end point {:e}° is beyond what the spindle axis resolves (±{C_MAX_DEG:e}°, 2.8 million turns); check the macro variable that gives it", end.c),
-            ));
-        }
+        check_c(end.c)?;
         if self.plan_c.is_some_and(|c| c != end.c) {
             return Err(Alarm::new(
                 alarms::UNSUPPORTED,
@@ -1487,6 +1479,7 @@ impl Motion {
         for (i, v) in e.iter().enumerate() {
             self.check_axis(i, *v, "end point")?;
         }
+        check_c(end.c)?;
         let dc = end.c - c0;
         let g = geom::line(self.plan_end, e);
         let line = self.line_seg(g, Speed::Rapid, false);
@@ -2570,6 +2563,20 @@ fn corner_speed(du: f64, k: f64, h: f64, c: f64, dt: f64) -> f64 {
 fn seg(geom: Geom, speed: Speed, v: f64, a: f64) -> Seg {
     let (t0, t1) = geom.tangents();
     Seg { geom, speed, vlim: finite_or_zero(v), alim: finite_or_zero(a), jlim: 0.0, t0, t1, blend_in: false, vj: 0.0, ext: 0.0 }
+}
+
+/// A C end point the spindle axis can resolve: finite and within ±[`C_MAX_DEG`].
+fn check_c(c: f64) -> Result<(), Alarm> {
+    if !c.is_finite() {
+        return Err(Alarm::new(alarms::BAD_VALUE, format!("C end point is not a finite number ({c})")));
+    }
+    if c.abs() > C_MAX_DEG {
+        return Err(Alarm::new(
+            alarms::BAD_VALUE,
+            format!("C end point {c:e}° is beyond what the spindle axis resolves (±{C_MAX_DEG:e}°, 2.8 million turns); check the macro variable that gives it"),
+        ));
+    }
+    Ok(())
 }
 
 /// A rapid whose C differs from where the spindle was last programmed: Cs positioning.
