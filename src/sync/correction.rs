@@ -20,19 +20,37 @@
 //!    the models miss (friction, load, a model still learning) is removed within a few
 //!    cycles without ringing.
 //!
+//! The spindle's measured lag reaches step 1 through [`LagTracker`]: on a real-time PC the
+//! SYNC's jitter puts noise into the sampled angle, which the tracker measures and filters;
+//! the part of the lag fed forward fades out as that noise (in µm of the axis) rises from
+//! [`FF_NOISE_FULL_UM`] to [`FF_NOISE_OFF_UM`] — past it the trim alone holds the relation,
+//! which measures actual against actual at one SYNC and so sees no jitter. (Measured in
+//! simulated time with the SYNC sent 0–0.3 ms late at random: every model of the matrix
+//! stopped by alarm 2307 before, none after; `drive_matrix --jitter-us 300`.)
+//!
 //! The correction's change per cycle is bounded by the axis' acceleration (implausible
-//! feedback must not kick it), its size by [`CORR_MAX`]. It stays on through the strokes
+//! feedback must not kick it), its size by [`CORR_MAX`]; the bound brakes in time (the step
+//! never exceeds what can still stop at the target), so a target that jumps back and forth
+//! does not wind the offset up into an oscillation. It stays on through the strokes
 //! and dwells of one hole and fades out afterwards. This is the Yaskawa Σ-V-SD scheme
 //! (host-interpolated tapping: the feed axis follows the spindle's actual position) with
 //! Siemens' idea of matched dynamics (the feed axis commanded ahead by its own lag). O(1),
 //! no allocation.
 
 use super::lag::LagModel;
+use super::lag_tracker::LagTracker;
 
 /// Largest sync correction, mm (beyond it the sync monitor stops the machine anyway).
 pub const CORR_MAX: f64 = 5.0;
 /// Integral gain of the trim on the measured sync error, per cycle (at most; see `trim`).
 const TRIM_GAIN: f64 = 0.15;
+/// Noise of the fed-forward spindle lag (µm at the axis) up to which it is fed forward whole
+/// and taken as measured (no filtering): quantisation of a fine encoder, an ideal bus.
+pub const FF_NOISE_FULL_UM: f64 = 0.4;
+/// Noise at which none of it is fed forward any more: beyond ≈ 2 µm the noise, amplified by
+/// the extrapolation over the feedback delay and the axis' lead, costs more than the lag it
+/// removes (measured across the drive matrix with 0.3 and 0.8 ms of SYNC jitter).
+pub const FF_NOISE_OFF_UM: f64 = 2.0;
 /// After a tapped hole or G92.1 stroke the correction fades out by at most this per cycle, mm.
 const CORR_FADE: f64 = 0.0005;
 
@@ -51,8 +69,8 @@ pub struct SyncCorrection {
     corr: [f64; 3],
     prev: [f64; 3],
     prev2: [f64; 3],
-    /// The spindle's measured lag of the last cycle (None: no previous sample).
-    spindle_lag_prev: Option<f64>,
+    /// The spindle's measured lag, filtered, with its noise.
+    tracker: LagTracker,
     /// The axes' target (actual position wanted) of the last two cycles.
     want_prev: [[f64; 3]; 2],
     /// The trim's integral, mm.
@@ -74,7 +92,7 @@ impl SyncCorrection {
             corr: [0.0; 3],
             prev: [0.0; 3],
             prev2: [0.0; 3],
-            spindle_lag_prev: None,
+            tracker: LagTracker::default(),
             want_prev: [start; 2],
             trim: [0.0; 3],
             err: [0.0; 3],
@@ -134,16 +152,24 @@ impl SyncCorrection {
             return;
         };
         self.gain = g;
-        let p = self.spindle_lag_prev.unwrap_or(spindle_lag);
-        self.spindle_lag_prev = Some(spindle_lag);
-        // Extrapolated by (delay − 1) cycles: one cycle less than the feedback delay tracks
-        // best on the emulated drives (the actual is sampled at the SYNC the demand acts on).
-        let e_s = spindle_lag + (self.fd as f64 - 1.0) * (spindle_lag - p);
+        let e_s = self.fed_forward(&g, spindle_lag);
         for i in 0..3 {
             if g[i] != 0.0 {
                 self.corr[i] = self.axis(i, nominal[i] + g[i] * e_s, nominal[i]);
             }
         }
+    }
+
+    /// The spindle lag to follow (degrees): the tracked lag extrapolated by (delay − 1)
+    /// cycles — one cycle less than the feedback delay tracks best (the actual is sampled at
+    /// the SYNC the demand acts on) — weighted down as its noise rises (module doc).
+    fn fed_forward(&mut self, g: &[f64; 3], spindle_lag: f64) -> f64 {
+        let mm_per_deg = g.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        let exact_below = if mm_per_deg > 0.0 { FF_NOISE_FULL_UM * 1e-3 / mm_per_deg } else { f64::INFINITY };
+        let (x, v) = self.tracker.update(spindle_lag, exact_below);
+        let noise_um = self.tracker.noise() * mm_per_deg * 1e3;
+        let w = ((FF_NOISE_OFF_UM - noise_um) / (FF_NOISE_OFF_UM - FF_NOISE_FULL_UM)).clamp(0.0, 1.0);
+        w * (x + (self.fd as f64 - 1.0) * v)
     }
 
     /// The offset of locked axis `i` whose actual position must be `want`.
@@ -156,7 +182,11 @@ impl SyncCorrection {
         let c = (want - nominal + self.lag[i].lead(dv, da) + self.trim[i]).clamp(-CORR_MAX, CORR_MAX);
         let amax = self.amax[i] * self.dt * self.dt;
         let step_prev = self.prev[i] - self.prev2[i];
-        let step = (c - self.prev[i]).clamp(step_prev - amax, step_prev + amax);
+        // Toward the target no faster than can still stop there (else a target jumping to and
+        // fro winds the offset up), and the step changed by at most the acceleration.
+        let d = c - self.prev[i];
+        let stoppable = 0.5 * ((amax * amax + 8.0 * amax * d.abs()).sqrt() - amax);
+        let step = (d.signum() * d.abs().min(stoppable)).clamp(step_prev - amax, step_prev + amax);
         self.prev[i] + step
     }
 
@@ -173,7 +203,7 @@ impl SyncCorrection {
     /// Nothing locked: fade the offset out, forget the lock.
     fn release(&mut self, nominal: &[f64; 3]) {
         self.gain = [0.0; 3];
-        self.spindle_lag_prev = None;
+        self.tracker.restart();
         self.trim = [0.0; 3];
         for i in 0..3 {
             let at = nominal[i] + self.corr[i];
@@ -189,7 +219,7 @@ impl SyncCorrection {
         self.prev = self.corr;
         self.corr = [0.0; 3];
         self.gain = [0.0; 3];
-        self.spindle_lag_prev = None;
+        self.tracker.restart();
     }
 }
 

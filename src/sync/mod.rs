@@ -3,6 +3,7 @@
 pub mod correction;
 pub mod identify;
 pub mod lag;
+pub mod lag_tracker;
 pub mod link_check;
 pub mod thread;
 

@@ -2,7 +2,8 @@
 //! embedded machine: what `examples/drive_matrix.rs` prints and `tests/drive_matrix.rs` bounds.
 
 use super::measure::{
-    g92_1_moves, monitor_stats, phase_spread, rigid_tap_moves, run_moves_on, tap_sync_error, thread_pass_moves, thread_phases, CuttingLoad, SimRun,
+    g92_1_moves, monitor_stats, phase_spread, rigid_tap_moves, run_moves_jittered, tap_sync_error, thread_pass_moves, thread_phases, CuttingLoad,
+    SimRun,
 };
 use crate::config::MachineConfig;
 use crate::motion::Limits;
@@ -22,11 +23,16 @@ pub struct MatrixRow {
 /// Run the matrix's programs on the drives of `sim_toml` (a sim-drives configuration). The
 /// sync monitor's limit is left as configured: an alarm 2307 shows as an alarm.
 pub fn measure_model(cfg: &MachineConfig, sim_toml: &str) -> Result<MatrixRow, String> {
+    measure_model_jittered(cfg, sim_toml, 0)
+}
+
+/// `measure_model` with every SYNC sent up to `jitter_ns` late (`run_moves_jittered`).
+pub fn measure_model_jittered(cfg: &MachineConfig, sim_toml: &str, jitter_ns: u64) -> Result<MatrixRow, String> {
     let sim = sim_drives::SimConfig::from_toml(sim_toml)?;
     let limits = Limits::from_config(cfg);
     let mut row = MatrixRow::default();
     let mut run = |what: &str, moves| -> Result<SimRun, String> {
-        let r = run_moves_on(cfg, sim.clone(), limits.clone(), moves, load(what)).map_err(|a| a.to_string())?;
+        let r = run_moves_jittered(cfg, sim.clone(), limits.clone(), moves, load(what), jitter_ns).map_err(|a| a.to_string())?;
         if let Err(a) = &r.result {
             row.alarms.push(format!("{what}: alarm {}", a.number));
         }

@@ -57,6 +57,11 @@ struct Loaded<'w> {
     spindle_node: u8,
     z_node: u8,
     z_counts_per_mm: f64,
+    /// Each cycle wakes (and sends its SYNC) up to this late, uniformly at random (a real-time
+    /// PC's wake-up jitter), ns; 0 = on the dot.
+    jitter_ns: u64,
+    /// xorshift64 state of the jitter (fixed seed: runs are reproducible).
+    rng: u64,
 }
 
 impl Clock for Loaded<'_> {
@@ -78,11 +83,27 @@ impl Clock for Loaded<'_> {
                 d.set_load_torque(against(v, l.z_nm));
             }
         }
-        self.world.wait_until(t_ns)
+        let late = self.jitter();
+        self.world.wait_until(t_ns + late)
     }
 
     fn is_simulated(&self) -> bool {
         true
+    }
+}
+
+impl Loaded<'_> {
+    fn jitter(&mut self) -> u64 {
+        if self.jitter_ns > 0 {
+            let mut x = self.rng;
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            self.rng = x;
+            x % self.jitter_ns
+        } else {
+            0
+        }
     }
 }
 
@@ -102,6 +123,19 @@ pub fn run_moves_on(
     moves: Vec<Move>,
     load: Option<CuttingLoad>,
 ) -> Result<SimRun, Alarm> {
+    run_moves_jittered(cfg, sim_cfg, limits, moves, load, 0)
+}
+
+/// `run_moves_on` with every cycle's SYNC sent up to `jitter_ns` late (uniform, reproducible):
+/// a real-time PC's wake-up jitter, in simulated time.
+pub fn run_moves_jittered(
+    cfg: &MachineConfig,
+    sim_cfg: sim_drives::SimConfig,
+    limits: Limits,
+    moves: Vec<Move>,
+    load: Option<CuttingLoad>,
+    jitter_ns: u64,
+) -> Result<SimRun, Alarm> {
     let wire = InprocBus::new();
     let mut world = sim_drives::SimWorld::new(&wire, sim_cfg);
     let mut master = CanOpenMaster::new(wire.endpoint(), cfg);
@@ -111,7 +145,7 @@ pub fn run_moves_on(
     };
     let (spindle_node, _) = node_of(AxisKind::Spindle, None).unwrap_or((0, 1.0));
     let (z_node, z_cpu) = node_of(AxisKind::Linear, Some("z")).unwrap_or((0, 1.0));
-    let mut clock = Loaded { world: &mut world, load, spindle_node, z_node, z_counts_per_mm: z_cpu };
+    let mut clock = Loaded { world: &mut world, load, spindle_node, z_node, z_counts_per_mm: z_cpu, jitter_ns, rng: 0x1234_5678_9ABC_DEF1 };
     let rows = Arc::new(Mutex::new(Vec::new()));
     let mut summary = RunSummary::default();
     let mut lp = CycleLoop::new(&mut master, &mut clock, limits, spindle, cfg.cycle_ns());
