@@ -21,6 +21,11 @@
 /// Weight of one sample in the noise statistics (≈ 64 cycles of memory).
 const STAT_W: f64 = 1.0 / 64.0;
 
+/// How fast the gain in use follows its estimate, per cycle.
+const ALPHA_W: f64 = 1.0 / 32.0;
+/// The least gain: the lag must still be followed through a tap's acceleration.
+const ALPHA_MIN: f64 = 0.2;
+
 /// The tracker's state.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct LagTracker {
@@ -37,6 +42,9 @@ pub struct LagTracker {
     dd1: f64,
     /// The measurement noise's standard deviation, in the samples' unit.
     noise: f64,
+    /// The gain in use: follows Kalata's α slowly (its estimate scatters with the
+    /// correlation's; switching the gain abruptly costs more than a gain a little off).
+    alpha: f64,
 }
 
 impl LagTracker {
@@ -59,7 +67,9 @@ impl LagTracker {
             (self.x, self.v) = (l, 0.0);
             return (l, 0.0);
         }
-        let a = if self.noise <= exact_below { 1.0 } else { self.alpha() };
+        let target = if self.noise <= exact_below { 1.0 } else { self.kalata_alpha() };
+        self.alpha = if self.n == 2 && self.alpha == 0.0 { target } else { self.alpha + ALPHA_W * (target - self.alpha) };
+        let a = if self.noise <= exact_below { 1.0 } else { self.alpha };
         let b = a * a / (2.0 - a);
         let xp = self.x + self.v;
         let r = l - xp;
@@ -71,25 +81,30 @@ impl LagTracker {
     fn learn_noise(&mut self, l: f64) {
         if self.n >= 3 {
             let d = l - 2.0 * self.l1 + self.l2;
+            // The first products start the means (the noise is the machine's: a lock that
+            // is not the first keeps them).
             if d.is_finite() {
+                let first = self.dd == 0.0;
                 if self.n >= 4 {
-                    self.dd1 += STAT_W * (d * self.d1 - self.dd1);
+                    let w = if self.dd1 == 0.0 { 1.0 } else { STAT_W };
+                    self.dd1 += w * (d * self.d1 - self.dd1);
                 }
-                self.dd += STAT_W * (d * d - self.dd);
+                self.dd += if first { d * d } else { STAT_W * (d * d - self.dd) };
                 self.d1 = d;
             }
         }
         (self.l2, self.l1) = (self.l1, l);
-        let rho = if self.dd > 0.0 { (self.dd1 / self.dd).clamp(-2.0 / 3.0, 1.0) } else { 1.0 };
+        // No correlation measured yet: no evidence of noise.
+        let rho = if self.dd > 0.0 && self.dd1 != 0.0 { (self.dd1 / self.dd).clamp(-2.0 / 3.0, 1.0) } else { 1.0 };
         self.noise = ((1.0 - rho) * 0.6 * self.dd / 6.0).max(0.0).sqrt();
     }
 
     /// Kalata's steady-state α for the measured process and noise.
-    fn alpha(&self) -> f64 {
+    fn kalata_alpha(&self) -> f64 {
         let process = (self.dd - 6.0 * self.noise * self.noise).max(0.0);
         let lam = process.sqrt() / self.noise.max(1e-300);
         let r = (4.0 + lam - (8.0 * lam + lam * lam).sqrt()) / 4.0;
-        (1.0 - r * r).clamp(0.05, 1.0)
+        (1.0 - r * r).clamp(ALPHA_MIN, 1.0)
     }
 }
 
@@ -138,6 +153,6 @@ mod tests {
         }
         let n = t.noise();
         assert!((n / sigma - 1.0).abs() < 0.3, "noise measured {n}, true {sigma}");
-        assert!(filt_err < 0.5 * raw_err, "filtered {filt_err} vs raw {raw_err}");
+        assert!(filt_err < 0.4 * raw_err, "filtered {filt_err} vs raw {raw_err}");
     }
 }
