@@ -508,16 +508,15 @@ fn first_part_over_rtu(machine: &str, name: &str) {
     stop(srv, &flag);
 }
 
-/// Issue 22, "done means" (RTU, CiA 402 map, shipped config and windows).
+/// Issue 22, "done means" (RTU, CiA 402 map, shipped config and windows). The spindle runs
+/// in speed (CSV): in position at 1500 rpm over the 45 ms link cycle it tripped its window.
 #[test]
-#[ignore = "not met yet: the CSP spindle (1500 rpm) over the 45 ms RTU link cycle (26 ms with fc23) trips its shipped 30° window (alarm 2010, 0x8611) part-way; see the report of issue 22"]
 fn first_part_ends_within_one_count_on_realistic_drives_over_rtu() {
     first_part_over_rtu(MODBUS_LATHE, "first-rtu.toml");
 }
 
 /// Issue 22, "done means" (RTU, `pr` map, shipped config and windows).
 #[test]
-#[ignore = "not met yet: the CSP spindle (1500 rpm) over the 45 ms RTU link cycle (26 ms with fc23) trips its shipped 30° window (alarm 2010, 0x8611) part-way; see the report of issue 22"]
 fn first_part_ends_within_one_count_on_the_pr_map_over_rtu() {
     first_part_over_rtu(&pr_feed_axes(MODBUS_LATHE), "first-pr-rtu.toml");
 }
