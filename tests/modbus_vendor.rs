@@ -515,6 +515,28 @@ fn first_part_ends_within_one_count_on_realistic_drives_over_rtu() {
     first_part_over_rtu(MODBUS_LATHE, "first-rtu.toml");
 }
 
+/// A program with a C word steers the spindle's angle: it stays in position (mode 8), its
+/// following-error window written again as the configured 30° + two link cycles at the
+/// spindle's maximum (a Cs rapid's speed), and the C moves end on their angle.
+#[test]
+fn a_cs_program_keeps_the_spindle_in_position_with_a_window_from_the_link_cycle() {
+    let flag = Arc::new(AtomicBool::new(false));
+    let srv = tcp_server(MODBUS_LATHE, away_from_zero, &flag);
+    let cfg = write("cs.toml", &tcp_machine(srv.local_addr().unwrap()));
+    let prog = write("cs.nc", "O1\nG21 G98\nG00 X60\nG00 C90\nG00 C180\nM30\n");
+    let o = cncgw(&["run", "--json", "--config", &cfg, &prog]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    let cycle_ms: f64 = t.split("link cycle ").nth(1).and_then(|r| r.split(" ms").next()).and_then(|v| v.parse().ok()).unwrap_or_else(|| panic!("{t}"));
+    let window = 30.0 + 2.0 * 6000.0 * 6.0 * cycle_ms * 1e-3;
+    assert!(t.contains(&format!("spindle s1: in position over link tcp (Cs positioning (a C word) at {prog}:4 steers its angle), following-error window {window:.0}°")), "{t}");
+    assert_eq!(srv.with_drive(3, |d| d.object(0x6065, 0)).unwrap(), Some((window * 1000.0).round() as i64), "{t}");
+    assert_eq!(srv.with_drive(3, |d| d.mode_display()).unwrap(), 8, "{t}");
+    let s = srv.with_drive(3, |d| d.position_unwrapped()).unwrap();
+    assert!((s - 180_000).abs() <= 1, "spindle at {s} counts: {t}");
+    stop(srv, &flag);
+}
+
 /// Issue 22, "done means" (RTU, `pr` map, shipped config and windows).
 #[test]
 fn first_part_ends_within_one_count_on_the_pr_map_over_rtu() {

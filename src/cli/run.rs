@@ -953,27 +953,23 @@ fn spindle_control(lp: &mut CycleLoop, job: &Job, cfg: &MachineConfig, start: Po
     let u = crate::sync::link_check::SpindleUse::scan(pre.take(2_000_000).map_while(Result::ok), axis.max_speed);
     let name = lp.drives.axis_name(sd).to_string();
     let window = u.position_window(axis.following_error, cycle_s);
-    let position = SpindleControl::Position { window };
-    let in_position = |why: &str| {
+    let why = match &u.position {
+        None if lp.drives.set_spindle_control(sd, SpindleControl::Speed) => {
+            eprintln!("cncgw: spindle {name}: in speed (cyclic synchronous velocity) over link {link}: the program does not steer its angle");
+            return;
+        }
+        None => "its drive has no speed mode (a pr map)".to_string(),
+        Some(what) => format!("{what} steers its angle"),
+    };
+    if lp.drives.set_spindle_control(sd, SpindleControl::Position { window }) {
         eprintln!(
             "cncgw: spindle {name}: in position over link {link} ({why}), following-error window {window:.0}° (configured {:.0}° + two {:.0} ms link cycles at {:.0} rpm)",
             axis.following_error,
             cycle_s * 1e3,
             u.max_rpm
-        )
-    };
-    match &u.position {
-        None if lp.drives.set_spindle_control(sd, SpindleControl::Speed) => {
-            eprintln!("cncgw: spindle {name}: in speed (cyclic synchronous velocity) over link {link}: the program does not steer its angle");
-        }
-        None => {
-            lp.drives.set_spindle_control(sd, position);
-            in_position("its drive has no speed mode here");
-        }
-        Some(what) => {
-            lp.drives.set_spindle_control(sd, position);
-            in_position(&format!("{what} steers its angle"));
-        }
+        );
+    } else {
+        eprintln!("cncgw: spindle {name}: in position over link {link} ({why}); its drive has no following-error window register");
     }
 }
 

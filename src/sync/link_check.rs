@@ -124,9 +124,12 @@ impl SpindleUse {
                 }
                 MoveKind::Tap { rpm, .. } => (Some("a rigid tap"), *rpm),
                 MoveKind::RigidThread { rpm, .. } => (Some("a G92.1 rigid thread"), *rpm),
-                MoveKind::Polar { .. } => (Some("polar interpolation (G12.1)"), 0.0),
+                // The C axis' own moves run up to the spindle's maximum (a Cs rapid does).
+                MoveKind::Polar { .. } => (Some("polar interpolation (G12.1)"), max_speed),
                 MoveKind::Polygon(Some(p)) => (Some("polygon turning (G51.2)"), p.rpm),
-                MoveKind::Rapid { end } if prev_c.is_some_and(|c| c != end.c && end.c.is_finite()) => (Some("Cs positioning (a C word)"), 0.0),
+                MoveKind::Rapid { end } if prev_c.is_some_and(|c| c != end.c && end.c.is_finite()) => {
+                    (Some("Cs positioning (a C word)"), max_speed)
+                }
                 _ => (None, 0.0),
             };
             if let Some(e) = m.kind.end() {
@@ -159,6 +162,25 @@ mod tests {
 
     fn mv(kind: MoveKind) -> Move {
         Move { src: SrcPos::new("t.nc".into(), 1, 1), kind, exact_stop: false, work_offset: Pos::default(), tag: None }
+    }
+
+    /// Turning and threading leave the spindle in speed; a C word or a rigid tap put it in
+    /// position, with a window of two link cycles at the highest speed over the configured.
+    #[test]
+    fn spindle_use_finds_the_moves_that_steer_its_angle() {
+        let spin = |rpm| MoveKind::Spindle(SpindleCmd { dir: SpindleDir::Cw, rpm, css: None, max_rpm: None });
+        let thread = MoveKind::Thread { end: Pos::xz(10.0, -20.0), lead: 1.5, start_angle: 0.0, continuous: false, lead_inc: 0.0 };
+        let u = SpindleUse::scan([mv(spin(1500.0)), mv(MoveKind::Rapid { end: Pos::xz(10.0, 5.0) }), mv(thread)], 6000.0);
+        assert_eq!(u, SpindleUse { position: None, max_rpm: 1500.0 });
+        let cs = MoveKind::Rapid { end: Pos { c: 90.0, ..Pos::xz(10.0, 5.0) } };
+        let u = SpindleUse::scan([mv(spin(800.0)), mv(MoveKind::Rapid { end: Pos::xz(10.0, 5.0) }), mv(cs)], 6000.0);
+        assert_eq!(u.position.as_deref(), Some("Cs positioning (a C word) at t.nc:1"));
+        assert_eq!(u.max_rpm, 6000.0);
+        // 30° + 2 × 4 ms × 36 000°/s.
+        assert!((u.position_window(30.0, 0.004) - 318.0).abs() < 1e-9);
+        let tap = MoveKind::Tap { end: Pos::xz(0.0, -10.0), lead: 1.5, rpm: 500.0, spindle: 1 };
+        let u = SpindleUse::scan([mv(tap)], 6000.0);
+        assert_eq!((u.position.is_some(), u.max_rpm), (true, 500.0));
     }
 
     #[test]
