@@ -212,7 +212,8 @@ fn a_pymodbus_spindle_turns_in_speed_at_its_feed_per_revolution() {
     let port = addr.rsplit(':').next().unwrap().to_string();
     let log = tmp("servo.log");
     let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/python/modbus_servo.py");
-    let mut py = Kill(Command::new(&python).args([script, &port]).stdout(std::fs::File::create(&log).unwrap()).stderr(Stdio::null()).spawn().unwrap());
+    let mut py =
+        Kill(Command::new(&python).args([script, &port]).stdout(std::fs::File::create(&log).unwrap()).stderr(Stdio::null()).spawn().unwrap());
     wait_listening(&addr, &mut py, &log);
     let cfg = write("servo.toml", &on(MODBUS_LATHE, addr.parse().unwrap()));
     let prog = write("servo.nc", "O1\nG21 G99 G97\nM03 S1500\nG04 X1\nG01 Z-4 F0.15\nM05\nM30\n");
@@ -230,7 +231,8 @@ fn a_pymodbus_spindle_turns_in_speed_at_its_feed_per_revolution() {
     let cols: Vec<&str> = lines.next().unwrap().split(',').collect();
     let col = |n: &str| cols.iter().position(|c| *c == n).unwrap();
     let (line, z, s) = (col("line"), col("z_act"), col("s1_act"));
-    let rows: Vec<Vec<f64>> = lines.map(|l| l.split(',').map(|v| v.parse().unwrap_or(f64::NAN)).collect::<Vec<f64>>()).filter(|r| r[line] == 5.0).collect();
+    let rows: Vec<Vec<f64>> =
+        lines.map(|l| l.split(',').map(|v| v.parse().unwrap_or(f64::NAN)).collect::<Vec<f64>>()).filter(|r| r[line] == 5.0).collect();
     assert!(rows.len() > 100, "line 5 has {} trace rows: {t}", rows.len());
     let (a, b) = (&rows[rows.len() / 10], &rows[rows.len() * 9 / 10]);
     let feed = (a[z] - b[z]).abs() / ((b[s] - a[s]).abs() / 360.0);

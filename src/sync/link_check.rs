@@ -127,9 +127,7 @@ impl SpindleUse {
                 // The C axis' own moves run up to the spindle's maximum (a Cs rapid does).
                 MoveKind::Polar { .. } => (Some("polar interpolation (G12.1)"), max_speed),
                 MoveKind::Polygon(Some(p)) => (Some("polygon turning (G51.2)"), p.rpm),
-                MoveKind::Rapid { end } if prev_c.is_some_and(|c| c != end.c && end.c.is_finite()) => {
-                    (Some("Cs positioning (a C word)"), max_speed)
-                }
+                MoveKind::Rapid { end } if prev_c.is_some_and(|c| c != end.c && end.c.is_finite()) => (Some("Cs positioning (a C word)"), max_speed),
                 _ => (None, 0.0),
             };
             if let Some(e) = m.kind.end() {

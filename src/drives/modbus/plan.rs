@@ -523,10 +523,7 @@ mod tests {
         let m = Cia402Map { target_velocity: 0x30, ..Cia402Map::default() };
         let mut d = DrivePlan::new("s1", 3, Profile::Cia402, m, PrMap::default(), false, 30_000);
         d.allow_speed_mode();
-        assert_eq!(
-            d.cyclic,
-            vec![Exchange::Write { addr: 0x30, len: 2 }, Exchange::WriteSingle { addr: 0 }, Exchange::Read { addr: 10, len: 7 }]
-        );
+        assert_eq!(d.cyclic, vec![Exchange::Write { addr: 0x30, len: 2 }, Exchange::WriteSingle { addr: 0 }, Exchange::Read { addr: 10, len: 7 }]);
     }
 
     #[test]
