@@ -183,15 +183,13 @@ fn config_check_bus_reads_the_map_from_sim_drives() {
     assert!(t.contains("axis x (unit 1): block (register 25088 = 0x6200, 7 registers): cannot read"), "{t}");
 }
 
-/// `config check --bus` against a drive someone else built from the docs (pymodbus'
-/// simulator device, tests/python/modbus_drive.py) that lacks the interpolation period and
-/// the following-error window: both are named for each axis; the rest reads and writes.
-#[test]
-fn config_check_bus_finds_the_registers_a_pymodbus_drive_lacks() {
+/// build/venv's python, or None when the test is skipped on request (`CNCGW_SKIP_PYTHON=1`
+/// outside CI).
+fn venv_python() -> Option<PathBuf> {
     let ci = std::env::var("CI").as_deref() == Ok("true");
     if std::env::var("CNCGW_SKIP_PYTHON").as_deref() == Ok("1") && !ci {
         eprintln!("CNCGW_SKIP_PYTHON=1: pymodbus drive test skipped on request");
-        return;
+        return None;
     }
     let python = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("build/venv/bin/python");
     assert!(
@@ -199,6 +197,55 @@ fn config_check_bus_finds_the_registers_a_pymodbus_drive_lacks() {
         "{} is missing: run `scripts/install-test-deps.sh --python`, or set CNCGW_SKIP_PYTHON=1 to skip this test on purpose",
         python.display()
     );
+    Some(python)
+}
+
+/// A Modbus spindle in speed against servos someone else built from the docs (pymodbus,
+/// tests/python/modbus_servo.py: its own CiA 402 machine with 20 ms switch-on delays, a 60 ms
+/// spindle, 15 ms feed axes, fault 0x8611 on its window in position): M03 S1500 and a
+/// G99 turning pass run with the spindle in mode 9 and no fault, the feed per revolution
+/// within 2 % of F0.15 from the spindle's measured speed.
+#[test]
+fn a_pymodbus_spindle_turns_in_speed_at_its_feed_per_revolution() {
+    let Some(python) = venv_python() else { return };
+    let addr = free_addr();
+    let port = addr.rsplit(':').next().unwrap().to_string();
+    let log = tmp("servo.log");
+    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/python/modbus_servo.py");
+    let mut py =
+        Kill(Command::new(&python).args([script, &port]).stdout(std::fs::File::create(&log).unwrap()).stderr(Stdio::null()).spawn().unwrap());
+    wait_listening(&addr, &mut py, &log);
+    let cfg = write("servo.toml", &on(MODBUS_LATHE, addr.parse().unwrap()));
+    let prog = write("servo.nc", "O1\nG21 G99 G97\nM03 S1500\nG04 X1\nG01 Z-4 F0.15\nM05\nM30\n");
+    let trace = tmp("servo.csv");
+    let o = cncgw(&["run", "--json", "--config", &cfg, "--trace", &trace.display().to_string(), &prog]);
+    drop(py);
+    let t = format!("{}\n{}", text(&o), std::fs::read_to_string(&log).unwrap_or_default());
+    assert!(o.status.success(), "{t}");
+    assert!(t.contains("spindle s1: in speed"), "{t}");
+    assert!(t.contains("unit 3: mode 9") && !t.contains("fault"), "{t}");
+    // Z's travel over the spindle's turns, the middle 80 % of line 5.
+    let csv = std::fs::read_to_string(&trace).unwrap();
+    let _ = std::fs::remove_file(&trace);
+    let mut lines = csv.lines();
+    let cols: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let col = |n: &str| cols.iter().position(|c| *c == n).unwrap();
+    let (line, z, s) = (col("line"), col("z_act"), col("s1_act"));
+    let rows: Vec<Vec<f64>> =
+        lines.map(|l| l.split(',').map(|v| v.parse().unwrap_or(f64::NAN)).collect::<Vec<f64>>()).filter(|r| r[line] == 5.0).collect();
+    assert!(rows.len() > 100, "line 5 has {} trace rows: {t}", rows.len());
+    let (a, b) = (&rows[rows.len() / 10], &rows[rows.len() * 9 / 10]);
+    let feed = (a[z] - b[z]).abs() / ((b[s] - a[s]).abs() / 360.0);
+    eprintln!("pymodbus servos: G99 F0.15 turned at {feed:.4} mm/rev ({:+.2} %)", (feed / 0.15 - 1.0) * 100.0);
+    assert!((feed / 0.15 - 1.0).abs() < 0.02, "turned at {feed:.4} mm/rev for F0.15: {t}");
+}
+
+/// `config check --bus` against a drive someone else built from the docs (pymodbus'
+/// simulator device, tests/python/modbus_drive.py) that lacks the interpolation period and
+/// the following-error window: both are named for each axis; the rest reads and writes.
+#[test]
+fn config_check_bus_finds_the_registers_a_pymodbus_drive_lacks() {
+    let Some(python) = venv_python() else { return };
     let addr = free_addr();
     let port = addr.rsplit(':').next().unwrap().to_string();
     let log = tmp("pymodbus.log");

@@ -457,7 +457,7 @@ fn first_part_ends_on_its_end_point(srv: &sim_drives::modbus::ModbusServer, cfg:
 
 /// The feed per revolution of first_part's N90 (X54 → X0 at F0.15 mm/rev, line 15) from a
 /// run's trace: X's actual travel (a radius) over the spindle's actual turns, over the middle
-/// 80 % of the block (its ramps left out).
+/// 80 % of the block (its ramps left out), between two fresh readings of X.
 fn facing_feed_per_rev(trace: &std::path::Path) -> f64 {
     let text = std::fs::read_to_string(trace).unwrap();
     let mut lines = text.lines();
@@ -467,7 +467,11 @@ fn facing_feed_per_rev(trace: &std::path::Path) -> f64 {
     let rows: Vec<Vec<f64>> =
         lines.map(|l| l.split(',').map(|v| v.parse().unwrap_or(f64::NAN)).collect::<Vec<f64>>()).filter(|r| r[line] == 15.0).collect();
     assert!(rows.len() > 100, "N90 has {} trace rows", rows.len());
-    let (a, b) = (&rows[rows.len() / 10], &rows[rows.len() * 9 / 10]);
+    // At a row where X's reading is new: the trace holds each reading for a link cycle (83 ms
+    // on RTU with the pr map, ±1.4 % of the block's middle), taken at the same phase of the
+    // link cycle at both ends the staleness cancels.
+    let fresh = |from: usize| (from.max(1)..rows.len()).find(|&k| rows[k][x] != rows[k - 1][x]).unwrap_or(from);
+    let (a, b) = (&rows[fresh(rows.len() / 10)], &rows[fresh(rows.len() * 9 / 10)]);
     (a[x] - b[x]).abs() / ((b[s] - a[s]).abs() / 360.0)
 }
 
@@ -508,16 +512,43 @@ fn first_part_over_rtu(machine: &str, name: &str) {
     stop(srv, &flag);
 }
 
-/// Issue 22, "done means" (RTU, CiA 402 map, shipped config and windows).
+/// Issue 22, "done means" (RTU, CiA 402 map, shipped config and windows). The spindle runs
+/// in speed (CSV): in position at 1500 rpm over the 45 ms link cycle it tripped its window.
 #[test]
-#[ignore = "not met yet: the CSP spindle (1500 rpm) over the 45 ms RTU link cycle (26 ms with fc23) trips its shipped 30° window (alarm 2010, 0x8611) part-way; see the report of issue 22"]
 fn first_part_ends_within_one_count_on_realistic_drives_over_rtu() {
     first_part_over_rtu(MODBUS_LATHE, "first-rtu.toml");
 }
 
+/// A program with a C word steers the spindle's angle: it stays in position (mode 8), its
+/// following-error window written again as the configured 30° + two link cycles at the
+/// spindle's maximum (a Cs rapid's speed), and the C moves end on their angle.
+#[test]
+fn a_cs_program_keeps_the_spindle_in_position_with_a_window_from_the_link_cycle() {
+    let flag = Arc::new(AtomicBool::new(false));
+    let srv = tcp_server(MODBUS_LATHE, away_from_zero, &flag);
+    let cfg = write("cs.toml", &tcp_machine(srv.local_addr().unwrap()));
+    let prog = write("cs.nc", "O1\nG21 G98\nG00 X60\nG00 C90\nG00 C180\nM30\n");
+    let o = cncgw(&["run", "--json", "--config", &cfg, &prog]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    let cycle_ms: f64 =
+        t.split("link cycle ").nth(1).and_then(|r| r.split(" ms").next()).and_then(|v| v.parse().ok()).unwrap_or_else(|| panic!("{t}"));
+    let window = 30.0 + 2.0 * 6000.0 * 6.0 * cycle_ms * 1e-3;
+    assert!(
+        t.contains(&format!(
+            "spindle s1: in position over link tcp (Cs positioning (a C word) at {prog}:4 steers its angle), following-error window {window:.0}°"
+        )),
+        "{t}"
+    );
+    assert_eq!(srv.with_drive(3, |d| d.object(0x6065, 0)).unwrap(), Some((window * 1000.0).round() as i64), "{t}");
+    assert_eq!(srv.with_drive(3, |d| d.mode_display()).unwrap(), 8, "{t}");
+    let s = srv.with_drive(3, |d| d.position_unwrapped()).unwrap();
+    assert!((s - 180_000).abs() <= 1, "spindle at {s} counts: {t}");
+    stop(srv, &flag);
+}
+
 /// Issue 22, "done means" (RTU, `pr` map, shipped config and windows).
 #[test]
-#[ignore = "not met yet: the CSP spindle (1500 rpm) over the 45 ms RTU link cycle (26 ms with fc23) trips its shipped 30° window (alarm 2010, 0x8611) part-way; see the report of issue 22"]
 fn first_part_ends_within_one_count_on_the_pr_map_over_rtu() {
     first_part_over_rtu(&pr_feed_axes(MODBUS_LATHE), "first-pr-rtu.toml");
 }

@@ -798,6 +798,7 @@ fn checks_before_motion(lp: &mut CycleLoop, job: &Job, cfg: &MachineConfig, inte
     }
     if !slow.is_empty() {
         check_links(job, cfg, &slow, start_pos)?;
+        spindle_control(lp, job, cfg, start_pos);
     }
     let Ok(mut pre) = (job.make)(start_pos) else { return Ok(()) };
     pre.set_start_position(start_pos);
@@ -934,6 +935,42 @@ fn check_links(job: &Job, cfg: &MachineConfig, slow: &[crate::sync::link_check::
         }
     }
     Ok(())
+}
+
+/// A work spindle on a link with its own cycle (Modbus) runs in speed unless the program
+/// steers its angle (Cs, rigid tap, G92.1, polar, polygon): a position set-point once per
+/// link cycle (45 ms on RTU) at 1500 rpm is 400° of travel per cycle, which no honest
+/// following-error window holds. In position, the window follows from the link cycle and
+/// the program's highest speed (`SpindleUse::position_window`); the taps and G92.1 threads
+/// the link cannot hold in sync were refused just before (alarm 2203, `check_links`).
+fn spindle_control(lp: &mut CycleLoop, job: &Job, cfg: &MachineConfig, start: Pos) {
+    use crate::drives::SpindleControl;
+    let Some(sd) = cfg.spindle_index() else { return };
+    let Some((link, _, cycle_s)) = lp.drives.link_cycle(sd) else { return };
+    let Some(axis) = cfg.axes.values().nth(sd) else { return };
+    let Ok(mut pre) = (job.make)(start) else { return };
+    pre.set_start_position(start);
+    let u = crate::sync::link_check::SpindleUse::scan(pre.take(2_000_000).map_while(Result::ok), axis.max_speed);
+    let name = lp.drives.axis_name(sd).to_string();
+    let window = u.position_window(axis.following_error, cycle_s);
+    let why = match &u.position {
+        None if lp.drives.set_spindle_control(sd, SpindleControl::Speed) => {
+            eprintln!("cncgw: spindle {name}: in speed (cyclic synchronous velocity) over link {link}: the program does not steer its angle");
+            return;
+        }
+        None => "its drive has no speed mode (a pr map)".to_string(),
+        Some(what) => format!("{what} steers its angle"),
+    };
+    if lp.drives.set_spindle_control(sd, SpindleControl::Position { window }) {
+        eprintln!(
+            "cncgw: spindle {name}: in position over link {link} ({why}), following-error window {window:.0}° (configured {:.0}° + two {:.0} ms link cycles at {:.0} rpm)",
+            axis.following_error,
+            cycle_s * 1e3,
+            u.max_rpm
+        );
+    } else {
+        eprintln!("cncgw: spindle {name}: in position over link {link} ({why}); its drive has no following-error window register");
+    }
 }
 
 /// The alarm that ended a run, for the summary: number, text, and the line it names.

@@ -25,6 +25,10 @@ pub struct AxisFeedback {
     /// the link's own cycle); `None`: the cycle loop pairs the feedback with the target it
     /// sent two cycles before (CANopen CSP timing).
     pub demand_counts: Option<i64>,
+    /// When `counts` was read, ns on the bus's own monotonic clock, for a bus that reads at
+    /// its own rate (Modbus: the link's cycle, with its jitter); `None`: at the cycle
+    /// (`age_cycles` says how old). The spindle's speed is measured over it.
+    pub sampled_ns: Option<u64>,
 }
 
 impl AxisFeedback {
@@ -101,4 +105,22 @@ pub trait DriveBus {
     }
     /// The module's digital outputs (0x6200), sent with every `transmit` from now on.
     fn set_io_outputs(&mut self, _node: u8, _bits: u32) {}
+    /// How the spindle `axis` on a link with its own cycle (Modbus) is driven from now on,
+    /// asked with the drives enabled and at rest, before a run's first motion. Returns whether
+    /// the bus did it; one that returns false keeps position control and its window.
+    fn set_spindle_control(&mut self, _axis: usize, _control: SpindleControl) -> bool {
+        false
+    }
+}
+
+/// How a spindle on a slow link is driven (`DriveBus::set_spindle_control`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum SpindleControl {
+    /// In speed (CiA 402 cyclic synchronous velocity): the drive turns at the set-point's
+    /// speed, written every link cycle, and watches no following error; feed per revolution
+    /// follows its measured speed. Turning and threading.
+    Speed,
+    /// In position (cyclic synchronous position) with a following-error window of `window`
+    /// machine units (degrees): Cs, rigid tapping, polar and polygon turning.
+    Position { window: f64 },
 }

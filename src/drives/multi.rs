@@ -142,4 +142,8 @@ impl DriveBus for MultiBus<'_> {
         let (p, i) = self.map[axis];
         self.parts[p].position_lost(i)
     }
+    fn set_spindle_control(&mut self, axis: usize, control: super::SpindleControl) -> bool {
+        let (p, i) = self.map[axis];
+        self.parts[p].set_spindle_control(i, control)
+    }
 }

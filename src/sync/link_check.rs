@@ -95,6 +95,64 @@ impl<'a> LinkCheck<'a> {
     }
 }
 
+/// What a program asks of a spindle on a slow link (a Modbus drive, whose set-point
+/// arrives once per link cycle): whether any move needs it in position, and how fast it
+/// turns at most.
+///
+/// Turning and threading only need its speed and its measured angle (a thread follows the
+/// angle the spindle reports): it runs in speed, and a late set-point is a late speed, not
+/// a following error. Cs positioning (a C word), rigid tapping, G92.1, polar and polygon
+/// turning steer its angle: position control, whose following-error window must hold what
+/// a link cycle leaves the drive behind (`position_window`).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct SpindleUse {
+    /// The first move that needs position control, in words with its line.
+    pub position: Option<String>,
+    /// The highest speed the program asks (G96: its clamp, else the axis's maximum), rpm.
+    pub max_rpm: f64,
+}
+
+impl SpindleUse {
+    /// Scan a program's moves; `max_speed`: the spindle axis's maximum, rpm.
+    pub fn scan(moves: impl IntoIterator<Item = Move>, max_speed: f64) -> SpindleUse {
+        let mut u = SpindleUse::default();
+        let mut prev_c: Option<f64> = None;
+        for m in moves {
+            let (need, rpm) = match &m.kind {
+                MoveKind::Spindle(s) if s.dir != crate::canon::SpindleDir::Stop => {
+                    (None, if s.css.is_some() { s.max_rpm.unwrap_or(max_speed) } else { s.rpm })
+                }
+                MoveKind::Tap { rpm, .. } => (Some("a rigid tap"), *rpm),
+                MoveKind::RigidThread { rpm, .. } => (Some("a G92.1 rigid thread"), *rpm),
+                // The C axis' own moves run up to the spindle's maximum (a Cs rapid does).
+                MoveKind::Polar { .. } => (Some("polar interpolation (G12.1)"), max_speed),
+                MoveKind::Polygon(Some(p)) => (Some("polygon turning (G51.2)"), p.rpm),
+                MoveKind::Rapid { end } if prev_c.is_some_and(|c| c != end.c && end.c.is_finite()) => (Some("Cs positioning (a C word)"), max_speed),
+                _ => (None, 0.0),
+            };
+            if let Some(e) = m.kind.end() {
+                prev_c = Some(e.c);
+            }
+            if rpm.is_finite() {
+                u.max_rpm = u.max_rpm.max(rpm.min(max_speed));
+            }
+            if let (None, Some(what)) = (&u.position, need) {
+                u.position = Some(format!("{what} at {}:{}", m.src.file, m.src.line));
+            }
+        }
+        u
+    }
+
+    /// The following-error window (degrees) of a spindle in position control over a link of
+    /// cycle `cycle_s`: the configured window (the drive's own lag) plus two link cycles of
+    /// travel at the program's highest speed — the drive's demand trails the set-point by up
+    /// to one cycle, and a set-point one cycle late (jitter; a drive that holds) adds one.
+    /// A fixed window (30°) is 3 ms of travel at 1500 rpm: one late write on a 5 ms link.
+    pub fn position_window(&self, configured_deg: f64, cycle_s: f64) -> f64 {
+        configured_deg + 2.0 * self.max_rpm * 6.0 * cycle_s
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -102,6 +160,25 @@ mod tests {
 
     fn mv(kind: MoveKind) -> Move {
         Move { src: SrcPos::new("t.nc".into(), 1, 1), kind, exact_stop: false, work_offset: Pos::default(), tag: None }
+    }
+
+    /// Turning and threading leave the spindle in speed; a C word or a rigid tap put it in
+    /// position, with a window of two link cycles at the highest speed over the configured.
+    #[test]
+    fn spindle_use_finds_the_moves_that_steer_its_angle() {
+        let spin = |rpm| MoveKind::Spindle(SpindleCmd { dir: SpindleDir::Cw, rpm, css: None, max_rpm: None });
+        let thread = MoveKind::Thread { end: Pos::xz(10.0, -20.0), lead: 1.5, start_angle: 0.0, continuous: false, lead_inc: 0.0 };
+        let u = SpindleUse::scan([mv(spin(1500.0)), mv(MoveKind::Rapid { end: Pos::xz(10.0, 5.0) }), mv(thread)], 6000.0);
+        assert_eq!(u, SpindleUse { position: None, max_rpm: 1500.0 });
+        let cs = MoveKind::Rapid { end: Pos { c: 90.0, ..Pos::xz(10.0, 5.0) } };
+        let u = SpindleUse::scan([mv(spin(800.0)), mv(MoveKind::Rapid { end: Pos::xz(10.0, 5.0) }), mv(cs)], 6000.0);
+        assert_eq!(u.position.as_deref(), Some("Cs positioning (a C word) at t.nc:1"));
+        assert_eq!(u.max_rpm, 6000.0);
+        // 30° + 2 × 4 ms × 36 000°/s.
+        assert!((u.position_window(30.0, 0.004) - 318.0).abs() < 1e-9);
+        let tap = MoveKind::Tap { end: Pos::xz(0.0, -10.0), lead: 1.5, rpm: 500.0, spindle: 1 };
+        let u = SpindleUse::scan([mv(tap)], 6000.0);
+        assert_eq!((u.position.is_some(), u.max_rpm), (true, 500.0));
     }
 
     #[test]

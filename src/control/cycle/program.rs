@@ -274,7 +274,7 @@ impl CycleLoop<'_> {
         }
         if let Some(sd) = self.spindle_drive {
             let f = self.drives.feedback(sd);
-            run.spindle_rpm = run.meter.update(f.pos, f.age_cycles == 0, run.dt);
+            run.spindle_rpm = run.meter.update_fb(&f, run.dt);
             fb.spindle_rpm = run.spindle_rpm;
             self.rpm = run.spindle_rpm;
         }

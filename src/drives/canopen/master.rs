@@ -1807,6 +1807,7 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
             statusword: n.status,
             age_cycles: (self.now_ns.saturating_sub(n.fb_ns) / self.cycle_ns.max(1)) as u32,
             demand_counts: None,
+            sampled_ns: None,
         }
     }
 

@@ -38,6 +38,11 @@ pub struct Command {
     /// Write the target register (CiA 402: also while enabling, holding the actual position,
     /// so that the drive has it before the controlword that enables it; off at shutdown).
     pub stream: bool,
+    /// CiA 402 spindle in speed: cyclic synchronous velocity (mode 9), `velocity` written to
+    /// the target velocity register every link cycle (`DriveBus::set_spindle_control`).
+    pub speed_mode: bool,
+    /// CiA 402: the following-error window to hold, counts (0: the one written at start-up).
+    pub ferr_window: u32,
 }
 
 /// What the link read from one drive.
@@ -777,7 +782,8 @@ impl LinkIo {
                         r.seq = seq;
                         r.at = Some(Instant::now());
                         r.command = cmd;
-                        r.demand = if cmd.stream { prev_target } else { r.position };
+                        // In speed (CSV) the drive follows no position: nothing lags.
+                        r.demand = if cmd.stream && !cmd.speed_mode { prev_target } else { r.position };
                         g.slots[d].reading = r;
                         g.slots[d].last_error = None;
                     }

@@ -15,7 +15,7 @@ pub mod link;
 pub mod plan;
 
 use crate::config::MachineConfig;
-use crate::drives::{AxisFeedback, DriveBus};
+use crate::drives::{AxisFeedback, DriveBus, SpindleControl};
 use crate::Alarm;
 use cncgw_bus::canopen::emcy::error_text;
 use cncgw_bus::cia402::{cw, EnableProgress, Enabler, State};
@@ -83,6 +83,8 @@ struct Axis {
     unit: u8,
     profile: Profile,
     counts_per_unit: f64,
+    /// A CiA 402 spindle: may run in speed (`set_spindle_control`).
+    speed_capable: bool,
     // The cycle thread's view.
     cmd: Command,
     enabler: Enabler,
@@ -170,6 +172,10 @@ impl ModbusDrives {
             let mut plan =
                 DrivePlan::new(name, a.node, a.modbus_profile, a.cia402_map.unwrap_or_default(), a.pr_map.unwrap_or_default(), lcfg.fc23, ferr);
             plan.max_rpm = motor_rpm(a.max_speed, a, plan.pr.counts_per_rev);
+            if a.kind == crate::config::AxisKind::Spindle {
+                plan.allow_speed_mode();
+            }
+            let speed_capable = plan.speed_capable;
             let spec = links[li].spec.as_mut().expect("spec is present until startup");
             let slot = spec.drives.len();
             spec.drives.push(plan);
@@ -180,6 +186,7 @@ impl ModbusDrives {
                 unit: a.node,
                 profile: a.modbus_profile,
                 counts_per_unit: a.counts_per_unit,
+                speed_capable,
                 cmd: Command::default(),
                 enabler: Enabler::default(),
                 enabled: false,
@@ -440,6 +447,7 @@ impl DriveBus for ModbusDrives {
             statusword: a.statusword,
             age_cycles: age,
             demand_counts: Some(a.demand),
+            sampled_ns: a.fb_at.map(|t| t.saturating_duration_since(self.t0).as_nanos() as u64),
         }
     }
 
@@ -658,5 +666,27 @@ impl DriveBus for ModbusDrives {
     fn link_cycle(&self, axis: usize) -> Option<(String, String, f64)> {
         let l = &self.links[self.axes.get(axis)?.link];
         Some((l.name.clone(), l.what.clone(), l.cycle.as_secs_f64()))
+    }
+
+    /// Speed: mode 9 and the target velocity from the next link cycle on (a CiA 402 drive;
+    /// a PR drive has no speed mode). Position: mode 8 and the window, in counts.
+    fn set_spindle_control(&mut self, axis: usize, control: SpindleControl) -> bool {
+        let Some(a) = self.axes.get_mut(axis) else { return false };
+        let done = match control {
+            SpindleControl::Speed if a.speed_capable => {
+                a.cmd.speed_mode = true;
+                true
+            }
+            SpindleControl::Speed => false,
+            SpindleControl::Position { window } => {
+                a.cmd.speed_mode = false;
+                if a.profile == Profile::Cia402 {
+                    a.cmd.ferr_window = (window * a.counts_per_unit).round().clamp(1.0, i32::MAX as f64) as u32;
+                }
+                a.profile == Profile::Cia402
+            }
+        };
+        let _ = self.transmit(0);
+        done
     }
 }

@@ -72,6 +72,12 @@ pub struct DrivePlan {
     pub last_actual: Option<i32>,
     /// PR: the axis's maximum speed in motor rpm (the block's speed never asks for more).
     pub max_rpm: f64,
+    /// CiA 402 spindle: may run in speed (cyclic synchronous velocity, `Command::speed_mode`).
+    pub speed_capable: bool,
+    /// CiA 402: the mode (speed?) and following-error window last written; `None`: write it
+    /// again (a cycle failed part-way).
+    written_speed: Option<bool>,
+    written_window: Option<u32>,
 }
 
 impl DrivePlan {
@@ -92,6 +98,10 @@ impl DrivePlan {
             cycle_ms: 1.0,
             last_actual: None,
             max_rpm: u16::MAX as f64,
+            speed_capable: false,
+            // Start-up writes mode 8 and the window.
+            written_speed: Some(false),
+            written_window: Some(ferr_window),
         };
         d.setup = match profile {
             Profile::Cia402 => vec![
@@ -102,13 +112,32 @@ impl DrivePlan {
             // cycle thread turns it on.
             Profile::Pr => Vec::new(),
         };
-        // The steady state while streaming: the second cycle (the first also writes the PR
-        // servo-on, once).
-        let probe = Command { stream: true, servo_on: true, ..Command::default() };
-        let mut tmp = d.clone();
-        tmp.cyclic_writes(&probe);
-        d.cyclic = tmp.cyclic_writes(&probe).into_iter().map(|x| x.0).collect();
+        d.cyclic = d.steady_cycle();
         d
+    }
+
+    /// The exchanges of one link cycle while streaming, in the steady state (the second
+    /// cycle: the first also writes the PR servo-on or a change of mode, once). A spindle
+    /// that may run in speed counts its longer write (controlword, target position and
+    /// target velocity), so that the link cycle holds in either mode.
+    fn steady_cycle(&self) -> Vec<Exchange> {
+        let probe = Command { stream: true, servo_on: true, speed_mode: self.speed_capable, ..Command::default() };
+        let mut tmp = self.clone();
+        tmp.cyclic_writes(&probe);
+        tmp.cyclic_writes(&probe).into_iter().map(|x| x.0).collect()
+    }
+
+    /// Let this CiA 402 drive (a spindle) run in speed when asked (`Command::speed_mode`).
+    pub fn allow_speed_mode(&mut self) {
+        if self.profile == Profile::Cia402 {
+            self.speed_capable = true;
+            self.cyclic = self.steady_cycle();
+        }
+    }
+
+    /// Controlword, target position and target velocity in one write (the default map).
+    fn cia_speed_write_contiguous(&self) -> bool {
+        self.cia_write_contiguous() && self.cia.target_velocity == self.cia.controlword.wrapping_add(3)
     }
 
     fn cia_write_contiguous(&self) -> bool {
@@ -152,6 +181,8 @@ impl DrivePlan {
     /// A cycle failed part-way: write servo-on and the alarm reset again next cycle.
     pub fn forget_writes(&mut self) {
         self.written_servo_on = None;
+        self.written_speed = None;
+        self.written_window = None;
         self.written_reset_seq = self.written_reset_seq.wrapping_sub(1);
     }
 
@@ -198,8 +229,30 @@ impl DrivePlan {
             Profile::Cia402 => {
                 let m = self.cia;
                 let reads = self.read_blocks();
+                let speed = cmd.speed_mode && self.speed_capable;
+                // A change of mode (speed ↔ position) or of the window goes first, so that
+                // this cycle's targets are taken in the new mode.
+                if self.written_speed != Some(speed) {
+                    use cncgw_bus::cia402::mode;
+                    let mo = if speed { mode::CYCLIC_SYNC_VELOCITY } else { mode::CYCLIC_SYNC_POSITION };
+                    v.push((Exchange::WriteSingle { addr: m.mode }, vec![mo as u16]));
+                    self.written_speed = Some(speed);
+                }
+                let window = if cmd.ferr_window > 0 { cmd.ferr_window } else { self.ferr_window };
+                if self.written_window != Some(window) {
+                    v.push((Exchange::Write { addr: m.following_error_window, len: 2 }, m.word_order.split_i32(window as i32).to_vec()));
+                    self.written_window = Some(window);
+                }
+                let vel = m.word_order.split_i32(cmd.velocity.round().clamp(i32::MIN as f64, i32::MAX as f64) as i32);
                 let mut data = vec![cmd.controlword];
-                let write = if cmd.stream && self.cia_write_contiguous() {
+                let write = if cmd.stream && speed && self.cia_speed_write_contiguous() {
+                    data.extend_from_slice(&m.word_order.split_i32(cmd.target));
+                    data.extend_from_slice(&vel);
+                    Exchange::Write { addr: m.controlword, len: 5 }
+                } else if cmd.stream && speed {
+                    v.push((Exchange::Write { addr: m.target_velocity, len: 2 }, vel.to_vec()));
+                    Exchange::Write { addr: m.controlword, len: 1 }
+                } else if cmd.stream && self.cia_write_contiguous() {
                     data.extend_from_slice(&m.word_order.split_i32(cmd.target));
                     Exchange::Write { addr: m.controlword, len: 3 }
                 } else {
@@ -445,6 +498,32 @@ mod tests {
         assert_eq!(State::from_statusword(pr_statusword(pr_status::FAULT)), State::Fault);
         assert_eq!(State::from_statusword(pr_statusword(pr_status::ENABLED)), State::OperationEnabled);
         assert_eq!(State::from_statusword(pr_statusword(0)), State::SwitchOnDisabled);
+    }
+
+    /// A spindle in speed: mode 9 once, then controlword, target position and target
+    /// velocity in one FC16 every cycle; back in position: mode 8 and the new window first.
+    #[test]
+    fn cia402_spindle_in_speed_writes_mode_9_and_the_target_velocity() {
+        let mut d = DrivePlan::new("s1", 3, Profile::Cia402, Cia402Map::default(), PrMap::default(), false, 30_000);
+        d.allow_speed_mode();
+        // The cycle is counted with the longer write.
+        assert_eq!(d.cyclic, vec![Exchange::Write { addr: 0, len: 5 }, Exchange::Read { addr: 10, len: 7 }]);
+        let cmd = Command { controlword: 0x0F, target: 7, velocity: 9.0e6, stream: true, speed_mode: true, ..Command::default() };
+        let w = d.cyclic_writes(&cmd);
+        assert_eq!(w[0], (Exchange::WriteSingle { addr: 5 }, vec![9]));
+        let v = WordOrder::HighFirst.split_i32(9_000_000);
+        assert_eq!(w[1], (Exchange::Write { addr: 0, len: 5 }, vec![0x0F, 0, 7, v[0], v[1]]));
+        assert_eq!(d.cyclic_writes(&cmd)[0].0, Exchange::Write { addr: 0, len: 5 });
+        let cmd = Command { speed_mode: false, ferr_window: 500_000, ..cmd };
+        let w = d.cyclic_writes(&cmd);
+        assert_eq!(w[0], (Exchange::WriteSingle { addr: 5 }, vec![8]));
+        assert_eq!(w[1], (Exchange::Write { addr: 21, len: 2 }, WordOrder::HighFirst.split_i32(500_000).to_vec()));
+        assert_eq!(w[2], (Exchange::Write { addr: 0, len: 3 }, vec![0x0F, 0, 7]));
+        // A map whose target velocity is elsewhere: its own FC16, then the controlword.
+        let m = Cia402Map { target_velocity: 0x30, ..Cia402Map::default() };
+        let mut d = DrivePlan::new("s1", 3, Profile::Cia402, m, PrMap::default(), false, 30_000);
+        d.allow_speed_mode();
+        assert_eq!(d.cyclic, vec![Exchange::Write { addr: 0x30, len: 2 }, Exchange::WriteSingle { addr: 0 }, Exchange::Read { addr: 10, len: 7 }]);
     }
 
     #[test]
