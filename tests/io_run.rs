@@ -78,6 +78,8 @@ struct Sample {
     outputs: u32,
     x: i64,
     z: i64,
+    /// The spindle's position, counts (1000 per degree).
+    s: i64,
     state: Vec<State>,
 }
 
@@ -107,6 +109,7 @@ impl Clock for Probe {
             outputs: self.world.io_outputs(NODE).unwrap_or(0),
             x: d[0].position_unwrapped(),
             z: d[1].position_unwrapped(),
+            s: d[2].position_unwrapped(),
             state: d.iter().map(|d| d.state()).collect(),
         });
     }
@@ -125,6 +128,16 @@ impl Outcome {
     /// The first sample (after `from`) where `f` holds.
     fn first(&self, from: u64, f: impl Fn(&Sample) -> bool) -> Option<&Sample> {
         self.samples.iter().find(|s| s.t >= from && f(s))
+    }
+    /// The spindle's speed over the 10 ms before `t`, rpm (1000 counts per degree).
+    fn rpm_at(&self, t: u64) -> f64 {
+        let a = self.samples.iter().rev().find(|s| s.t <= t.saturating_sub(10 * MS)).unwrap();
+        let b = self.samples.iter().rev().find(|s| s.t <= t).unwrap();
+        (b.s - a.s) as f64 / 1000.0 / 360.0 / ((b.t - a.t) as f64 * 1e-9) * 60.0
+    }
+    /// When X and Z last moved.
+    fn last_motion(&self) -> u64 {
+        self.samples.windows(2).filter(|w| (w[1].x - w[0].x).abs() > 1 || (w[1].z - w[0].z).abs() > 1).last().map_or(0, |w| w[1].t)
     }
     /// When the program's motion first moved X or Z (counts away from the start).
     fn first_motion(&self) -> Option<u64> {
@@ -277,4 +290,32 @@ fn the_example_config_runs_a_program_with_chuck_coolant_and_turret_from_the_cli(
     let text = format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
     assert_eq!(o.status.code(), Some(0), "{text}");
     assert_eq!(text.matches("ok (within 1 count)").count(), 2, "{text}");
+}
+
+/// M30 / M02 without M09 and M05 before them: the coolant goes off and the spindle starts
+/// braking at the program's end, as a Fanuc 0i-TF's ladder does (manual 004 §2.19:
+/// "M30; 程序结束, 关主轴、冷却液") — not seconds later when the run takes torque off.
+#[test]
+fn m30_and_m02_switch_the_coolant_off_and_stop_the_spindle() {
+    for end in ["M30", "M02"] {
+        let prog = format!("G21 G98 G97\nM10\nM03 S600\nM08\nG00 X40 Z2\nG01 Z-20 F1200\n{end}\n");
+        let o = run(&machine(WIRED, ""), &prog, Vec::new());
+        o.result.as_ref().unwrap();
+        assert!(o.summary.ended, "{end}");
+        let on = o.first(0, |s| s.outputs & COOLANT != 0).expect("coolant on").t;
+        let off = o.first(on, |s| s.outputs & COOLANT == 0).expect("coolant off").t;
+        let stop = o.last_motion();
+        eprintln!("{end}: last axis motion {} ms, coolant off {} ms", stop / MS, off / MS);
+        // The end comes after the last move; nothing waits for the drives to settle first.
+        assert!(off >= stop && off <= stop + 20 * MS, "{end}: coolant off at {} ms, last motion at {} ms", off / MS, stop / MS);
+        let before = o.rpm_at(off - 4 * MS);
+        assert!((before - 600.0).abs() < 5.0, "{end}: {before} rpm before the end");
+        // 6000 rpm/s: 600 rpm to rest in 100 ms.
+        let after = o.rpm_at(off + 60 * MS);
+        assert!(after < 300.0 && after >= 0.0, "{end}: {after} rpm 60 ms after the end");
+        // At rest after its position loop's overshoot (≈ 15 rpm, settled by 200 ms).
+        assert!(o.rpm_at(off + 250 * MS).abs() < 1.0, "{end}: the spindle did not stop");
+        // The chuck stays clamped: the part is still in it.
+        assert!(o.samples.iter().filter(|s| s.t >= off && s.t <= off + 150 * MS).all(|s| s.outputs & CLAMP != 0));
+    }
 }

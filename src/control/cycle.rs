@@ -458,7 +458,13 @@ impl<'a> CycleLoop<'a> {
     /// Act on the event of a set-point; true at the program end.
     fn on_event(&mut self, motion: &mut Motion, sp: &crate::motion::Setpoint) -> bool {
         match sp.event {
-            Event::End => true,
+            Event::End => {
+                // Coolant off with the spindle stop (motion), as a 0i-TF at M02/M30.
+                if let Ok(Some(io)) = self.io.as_mut() {
+                    io.on_end();
+                }
+                true
+            }
             Event::Stop { optional } => {
                 if self.panel.is_some() {
                     // The motion layer waits for the panel's cycle start.

@@ -218,6 +218,31 @@ impl IoRun {
         true
     }
 
+    /// The program's end (M02/M30): the coolant off, as a Fanuc 0i-TF's standard ladder does
+    /// (manual 004 §2.19's example: "M30; 程序结束, 关主轴、冷却液"; the spindle stop is
+    /// motion's): M09's outputs are switched as M09 would (without its FIN wait — nothing
+    /// follows), or, without an `[io.m.9]`, the outputs M08 sets are cleared. Other outputs
+    /// (the chuck) keep their state: the part stays clamped.
+    pub fn on_end(&mut self) {
+        let code = |n: u16| self.cfg.m.iter().find(|(m, _)| *m == n).map(|(_, a)| *a);
+        match (code(9), code(8)) {
+            (Some(m9), _) => {
+                for b in m9.set.iter() {
+                    self.put(*b, true);
+                }
+                for b in m9.clear.iter() {
+                    self.put(*b, false);
+                }
+            }
+            (None, Some(m8)) => {
+                for b in m8.set.iter() {
+                    self.put(*b, false);
+                }
+            }
+            (None, None) => {}
+        }
+    }
+
     /// Every device has answered at least once.
     pub fn all_seen(&self) -> bool {
         self.seen[..self.devices.len()].iter().all(|s| *s)
