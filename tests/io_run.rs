@@ -319,3 +319,42 @@ fn m30_and_m02_switch_the_coolant_off_and_stop_the_spindle() {
         assert!(o.samples.iter().filter(|s| s.t >= off && s.t <= off + 150 * MS).all(|s| s.outputs & CLAMP != 0));
     }
 }
+
+/// M11 (chuck unclamp) while M03 is in force is refused before its valve switches (alarm
+/// 2604): the chuck stays clamped, the spindle and the axes stop under control.
+#[test]
+fn m11_while_the_spindle_turns_is_refused_and_the_chuck_stays_clamped() {
+    let prog = "G21 G98 G97\nM10\nM03 S600\nG00 X40 Z2\nM11\nG00 X60\nM30\n";
+    let o = run(&machine(WIRED, ""), prog, Vec::new());
+    let a = o.result.as_ref().unwrap_err();
+    assert_eq!(a.number, 2604, "{a}");
+    assert!(a.message.contains("M11") && a.message.contains("line 5") && a.message.contains("M05"), "{a}");
+    let clamp = o.first(0, |s| s.outputs & CLAMP != 0).expect("clamp valve on").t;
+    // Until the run takes torque off (the master clears every output then).
+    let on = |s: &&Sample| s.state.iter().all(|st| *st == State::OperationEnabled);
+    assert!(o.samples.iter().filter(|s| s.t > clamp).take_while(on).all(|s| s.outputs & CLAMP != 0), "the unclamp valve switched");
+    let r = o.summary.rest;
+    assert!(!r.quick_stop && r.at_rest, "a controlled stop: {r:?}");
+    let end = o.samples.last().unwrap().t;
+    assert!(o.rpm_at(end).abs() < 1.0, "the spindle still turns");
+    // X never went on to 60 mm (diameter: 30 mm radius = 300 000 counts).
+    assert!(o.samples.iter().all(|s| s.x <= 200_000 + 10), "the block after M11 ran");
+}
+
+/// M05 then M11: the unclamp waits for the spindle to stand (it coasts ~100 ms), then
+/// switches and waits for the chuck switch to open; the program ends normally.
+#[test]
+fn m11_after_m05_waits_for_the_spindle_to_stand() {
+    let prog = "G21 G98 G97\nM10\nM03 S600\nG00 X40 Z2\nM05\nM11\nM30\n";
+    let o = run(&machine(WIRED, ""), prog, Vec::new());
+    o.result.as_ref().unwrap();
+    let clamp = o.first(0, |s| s.outputs & CLAMP != 0).unwrap().t;
+    let unclamp = o.first(clamp, |s| s.outputs & CLAMP == 0).expect("unclamp valve").t;
+    let rpm = o.rpm_at(unclamp);
+    eprintln!("unclamp at {} ms, spindle {rpm:.2} rpm, {:.0} rpm 40 ms before", unclamp / MS, o.rpm_at(unclamp - 40 * MS));
+    assert!(rpm.abs() < 1.0, "unclamped while the spindle turned at {rpm} rpm");
+    // M05 came just before M11: the spindle took ≥ 100 ms (6000 rpm/s) to stop first.
+    let full = o.first(clamp, |s| s.t > 20 * MS && o.rpm_at(s.t) > 590.0).expect("spindle at speed").t;
+    let braking = o.first(full, |s| o.rpm_at(s.t) < 590.0).expect("M05").t;
+    assert!(unclamp >= braking + 100 * MS, "unclamp {} ms after M05", (unclamp - braking) / MS);
+}

@@ -2400,6 +2400,11 @@ impl Motion {
         self.last_blendable = false;
     }
 
+    /// M03/M04 is in force (M05, M30 or a stop clear it; the speed may still be ramping).
+    pub fn spindle_commanded(&self) -> bool {
+        self.sp_dir != 0.0
+    }
+
     /// The spindle (and the tool spindle) is commanded to stand still.
     pub fn spindle_at_rest(&self) -> bool {
         self.sp_cur == 0.0 && self.tool.at_rest()
