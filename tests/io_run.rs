@@ -8,6 +8,7 @@
 use cncgw::config::{MachineConfig, EMBEDDED_LATHE};
 use cncgw::control::cycle::{CycleLoop, RunSummary};
 use cncgw::control::job::run_program;
+use cncgw::control::panel::{Panel, SafetyInputs};
 use cncgw::drives::canopen::CanOpenMaster;
 use cncgw::interp::Interpreter;
 use cncgw::Alarm;
@@ -147,6 +148,10 @@ impl Outcome {
 }
 
 fn run(cfg_text: &str, prog: &str, actions: Vec<(u64, Action)>) -> Outcome {
+    run_panel(cfg_text, prog, actions, None)
+}
+
+fn run_panel(cfg_text: &str, prog: &str, actions: Vec<(u64, Action)>, panel: Option<&Panel>) -> Outcome {
     let cfg = MachineConfig::from_toml("io.toml", cfg_text).expect("machine config");
     let interp = Interpreter::from_source("io.nc", prog, &cfg).expect("program parses");
     let wire = InprocBus::new();
@@ -159,6 +164,9 @@ fn run(cfg_text: &str, prog: &str, actions: Vec<(u64, Action)>) -> Outcome {
     let mut summary = RunSummary::default();
     let result = {
         let mut lp = CycleLoop::from_config(&mut master, &mut probe, &cfg);
+        if let Some(p) = panel {
+            lp.set_panel(p);
+        }
         let r = run_program(&mut lp, interp, &mut summary);
         lp.finish();
         r
@@ -357,4 +365,21 @@ fn m11_after_m05_waits_for_the_spindle_to_stand() {
     let full = o.first(clamp, |s| s.t > 20 * MS && o.rpm_at(s.t) > 590.0).expect("spindle at speed").t;
     let braking = o.first(full, |s| o.rpm_at(s.t) < 590.0).expect("M05").t;
     assert!(unclamp >= braking + 100 * MS, "unclamp {} ms after M05", (unclamp - braking) / MS);
+}
+
+/// The operator panel shows the safety inputs as the cycle loop reads them; the door that
+/// stopped the run is still shown open afterwards.
+#[test]
+fn the_panel_shows_e_stop_door_and_chuck() {
+    let panel = Panel::new();
+    assert_eq!(panel.safety(), SafetyInputs::default(), "nothing read yet");
+    let open: Action = Box::new(|w: &mut SimWorld| assert!(w.set_io_input(NODE, 1, Some(false))));
+    let o = run_panel(&machine(WIRED, ""), CUT, vec![(1500, open)], Some(&panel));
+    assert_eq!(o.result.as_ref().unwrap_err().number, 2601);
+    assert_eq!(panel.safety(), SafetyInputs { estop: Some(true), door: Some(false), chuck: Some(true) });
+    // Refused at the start (door open, chuck not clamped yet): shown too.
+    let panel = Panel::new();
+    let o = run_panel(&machine("inputs_on = [0]", ""), CUT, Vec::new(), Some(&panel));
+    assert_eq!(o.result.as_ref().unwrap_err().number, 2601);
+    assert_eq!(panel.safety(), SafetyInputs { estop: Some(true), door: Some(false), chuck: Some(false) });
 }

@@ -543,6 +543,9 @@ impl<'a> CycleLoop<'a> {
                 return Err(a);
             }
         }
+        if let Some(r) = self.panel.as_ref() {
+            r.report_safety(io.safety_inputs());
+        }
         match io.check_safety(false, 0) {
             None => Ok(()),
             Some(stop) => {

@@ -165,6 +165,12 @@ impl IoRun {
         }
     }
 
+    /// The safety inputs as read (for the panel's display).
+    pub fn safety_inputs(&self) -> super::panel::SafetyInputs {
+        let read = |x: &Option<(Bit, String)>| x.as_ref().map(|(b, _)| self.get(*b));
+        super::panel::SafetyInputs { estop: read(&self.cfg.estop), door: read(&self.cfg.door), chuck: read(&self.cfg.chuck) }
+    }
+
     /// The E-stop input is open (read by the stop loops, which have no other I/O).
     pub fn estop_open(&self) -> bool {
         self.cfg.estop.as_ref().is_some_and(|(b, _)| !self.get(*b))

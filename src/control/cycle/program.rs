@@ -326,6 +326,10 @@ impl CycleLoop<'_> {
         if let Err(a) = io.read(&*self.drives) {
             return Err(self.quick_stop_with(a));
         }
+        // Shown before they are acted on: the display keeps the input that stopped the run.
+        if let Some(r) = self.panel.as_ref() {
+            r.report_safety(io.safety_inputs());
+        }
         let stop = io.check_safety(run.spindle_rpm.abs() > 1.0, run.cur_line);
         let fin = if stop.is_none() { io.step_fin(run.spindle_rpm) } else { Ok(false) };
         match (stop, fin) {
