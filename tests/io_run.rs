@@ -138,7 +138,7 @@ impl Outcome {
     }
     /// When X and Z last moved.
     fn last_motion(&self) -> u64 {
-        self.samples.windows(2).filter(|w| (w[1].x - w[0].x).abs() > 1 || (w[1].z - w[0].z).abs() > 1).last().map_or(0, |w| w[1].t)
+        self.samples.windows(2).rfind(|w| (w[1].x - w[0].x).abs() > 1 || (w[1].z - w[0].z).abs() > 1).map_or(0, |w| w[1].t)
     }
     /// When the program's motion first moved X or Z (counts away from the start).
     fn first_motion(&self) -> Option<u64> {
@@ -320,7 +320,7 @@ fn m30_and_m02_switch_the_coolant_off_and_stop_the_spindle() {
         assert!((before - 600.0).abs() < 5.0, "{end}: {before} rpm before the end");
         // 6000 rpm/s: 600 rpm to rest in 100 ms.
         let after = o.rpm_at(off + 60 * MS);
-        assert!(after < 300.0 && after >= 0.0, "{end}: {after} rpm 60 ms after the end");
+        assert!((0.0..300.0).contains(&after), "{end}: {after} rpm 60 ms after the end");
         // At rest after its position loop's overshoot (≈ 15 rpm, settled by 200 ms).
         assert!(o.rpm_at(off + 250 * MS).abs() < 1.0, "{end}: the spindle did not stop");
         // The chuck stays clamped: the part is still in it.
