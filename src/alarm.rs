@@ -268,6 +268,8 @@ catalogue! {
         IO_CHUCK_UNCLAMPED = 2602;
         /// An I/O device did not start, is not what the config says, or went silent.
         IO_DEVICE = 2603;
+        /// A chuck unclamp code (M11) while the spindle was commanded to turn: refused, controlled stop.
+        IO_UNCLAMP_TURNING = 2604;
     }
     "3000 user alarms, nose compensation" {
         /// `#3000 = k (MESSAGE)`: user alarm 3000 + k.

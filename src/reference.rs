@@ -172,7 +172,8 @@ impl ReferenceFile {
             .map_err(|e| Alarm::new(crate::persist::STATE_ALARM, format!("{}: cannot be written ({e})", self.path.display())))
     }
 
-    /// Load, change with `f`, save if it changed; the notes `f` returns are printed.
+    /// Load, change with `f`, save if it changed. The caller holds the machine's state lock
+    /// (`cli::lock::state`): two processes' read-change-writes must not interleave.
     pub fn update(&self, f: impl FnOnce(&mut Table)) -> Result<Table, Alarm> {
         let mut t = self.load()?;
         let before = t.clone();

@@ -8,6 +8,7 @@
 use cncgw::config::{MachineConfig, EMBEDDED_LATHE};
 use cncgw::control::cycle::{CycleLoop, RunSummary};
 use cncgw::control::job::run_program;
+use cncgw::control::panel::{Panel, SafetyInputs};
 use cncgw::drives::canopen::CanOpenMaster;
 use cncgw::interp::Interpreter;
 use cncgw::Alarm;
@@ -78,6 +79,8 @@ struct Sample {
     outputs: u32,
     x: i64,
     z: i64,
+    /// The spindle's position, counts (1000 per degree).
+    s: i64,
     state: Vec<State>,
 }
 
@@ -107,6 +110,7 @@ impl Clock for Probe {
             outputs: self.world.io_outputs(NODE).unwrap_or(0),
             x: d[0].position_unwrapped(),
             z: d[1].position_unwrapped(),
+            s: d[2].position_unwrapped(),
             state: d.iter().map(|d| d.state()).collect(),
         });
     }
@@ -126,6 +130,16 @@ impl Outcome {
     fn first(&self, from: u64, f: impl Fn(&Sample) -> bool) -> Option<&Sample> {
         self.samples.iter().find(|s| s.t >= from && f(s))
     }
+    /// The spindle's speed over the 10 ms before `t`, rpm (1000 counts per degree).
+    fn rpm_at(&self, t: u64) -> f64 {
+        let a = self.samples.iter().rev().find(|s| s.t <= t.saturating_sub(10 * MS)).unwrap();
+        let b = self.samples.iter().rev().find(|s| s.t <= t).unwrap();
+        (b.s - a.s) as f64 / 1000.0 / 360.0 / ((b.t - a.t) as f64 * 1e-9) * 60.0
+    }
+    /// When X and Z last moved.
+    fn last_motion(&self) -> u64 {
+        self.samples.windows(2).rfind(|w| (w[1].x - w[0].x).abs() > 1 || (w[1].z - w[0].z).abs() > 1).map_or(0, |w| w[1].t)
+    }
     /// When the program's motion first moved X or Z (counts away from the start).
     fn first_motion(&self) -> Option<u64> {
         let s0 = self.samples.first()?;
@@ -134,6 +148,10 @@ impl Outcome {
 }
 
 fn run(cfg_text: &str, prog: &str, actions: Vec<(u64, Action)>) -> Outcome {
+    run_panel(cfg_text, prog, actions, None)
+}
+
+fn run_panel(cfg_text: &str, prog: &str, actions: Vec<(u64, Action)>, panel: Option<&Panel>) -> Outcome {
     let cfg = MachineConfig::from_toml("io.toml", cfg_text).expect("machine config");
     let interp = Interpreter::from_source("io.nc", prog, &cfg).expect("program parses");
     let wire = InprocBus::new();
@@ -146,6 +164,9 @@ fn run(cfg_text: &str, prog: &str, actions: Vec<(u64, Action)>) -> Outcome {
     let mut summary = RunSummary::default();
     let result = {
         let mut lp = CycleLoop::from_config(&mut master, &mut probe, &cfg);
+        if let Some(p) = panel {
+            lp.set_panel(p);
+        }
         let r = run_program(&mut lp, interp, &mut summary);
         lp.finish();
         r
@@ -277,4 +298,88 @@ fn the_example_config_runs_a_program_with_chuck_coolant_and_turret_from_the_cli(
     let text = format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
     assert_eq!(o.status.code(), Some(0), "{text}");
     assert_eq!(text.matches("ok (within 1 count)").count(), 2, "{text}");
+}
+
+/// M30 / M02 without M09 and M05 before them: the coolant goes off and the spindle starts
+/// braking at the program's end, as a Fanuc 0i-TF's ladder does (manual 004 §2.19:
+/// "M30; 程序结束, 关主轴、冷却液") — not seconds later when the run takes torque off.
+#[test]
+fn m30_and_m02_switch_the_coolant_off_and_stop_the_spindle() {
+    for end in ["M30", "M02"] {
+        let prog = format!("G21 G98 G97\nM10\nM03 S600\nM08\nG00 X40 Z2\nG01 Z-20 F1200\n{end}\n");
+        let o = run(&machine(WIRED, ""), &prog, Vec::new());
+        o.result.as_ref().unwrap();
+        assert!(o.summary.ended, "{end}");
+        let on = o.first(0, |s| s.outputs & COOLANT != 0).expect("coolant on").t;
+        let off = o.first(on, |s| s.outputs & COOLANT == 0).expect("coolant off").t;
+        let stop = o.last_motion();
+        eprintln!("{end}: last axis motion {} ms, coolant off {} ms", stop / MS, off / MS);
+        // The end comes after the last move; nothing waits for the drives to settle first.
+        assert!(off >= stop && off <= stop + 20 * MS, "{end}: coolant off at {} ms, last motion at {} ms", off / MS, stop / MS);
+        let before = o.rpm_at(off - 4 * MS);
+        assert!((before - 600.0).abs() < 5.0, "{end}: {before} rpm before the end");
+        // 6000 rpm/s: 600 rpm to rest in 100 ms.
+        let after = o.rpm_at(off + 60 * MS);
+        assert!((0.0..300.0).contains(&after), "{end}: {after} rpm 60 ms after the end");
+        // At rest after its position loop's overshoot (≈ 15 rpm, settled by 200 ms).
+        assert!(o.rpm_at(off + 250 * MS).abs() < 1.0, "{end}: the spindle did not stop");
+        // The chuck stays clamped: the part is still in it.
+        assert!(o.samples.iter().filter(|s| s.t >= off && s.t <= off + 150 * MS).all(|s| s.outputs & CLAMP != 0));
+    }
+}
+
+/// M11 (chuck unclamp) while M03 is in force is refused before its valve switches (alarm
+/// 2604): the chuck stays clamped, the spindle and the axes stop under control.
+#[test]
+fn m11_while_the_spindle_turns_is_refused_and_the_chuck_stays_clamped() {
+    let prog = "G21 G98 G97\nM10\nM03 S600\nG00 X40 Z2\nM11\nG00 X60\nM30\n";
+    let o = run(&machine(WIRED, ""), prog, Vec::new());
+    let a = o.result.as_ref().unwrap_err();
+    assert_eq!(a.number, 2604, "{a}");
+    assert!(a.message.contains("M11") && a.message.contains("line 5") && a.message.contains("M05"), "{a}");
+    let clamp = o.first(0, |s| s.outputs & CLAMP != 0).expect("clamp valve on").t;
+    // Until the run takes torque off (the master clears every output then).
+    let on = |s: &&Sample| s.state.iter().all(|st| *st == State::OperationEnabled);
+    assert!(o.samples.iter().filter(|s| s.t > clamp).take_while(on).all(|s| s.outputs & CLAMP != 0), "the unclamp valve switched");
+    let r = o.summary.rest;
+    assert!(!r.quick_stop && r.at_rest, "a controlled stop: {r:?}");
+    let end = o.samples.last().unwrap().t;
+    assert!(o.rpm_at(end).abs() < 1.0, "the spindle still turns");
+    // X never went on to 60 mm (diameter: 30 mm radius = 300 000 counts).
+    assert!(o.samples.iter().all(|s| s.x <= 200_000 + 10), "the block after M11 ran");
+}
+
+/// M05 then M11: the unclamp waits for the spindle to stand (it coasts ~100 ms), then
+/// switches and waits for the chuck switch to open; the program ends normally.
+#[test]
+fn m11_after_m05_waits_for_the_spindle_to_stand() {
+    let prog = "G21 G98 G97\nM10\nM03 S600\nG00 X40 Z2\nM05\nM11\nM30\n";
+    let o = run(&machine(WIRED, ""), prog, Vec::new());
+    o.result.as_ref().unwrap();
+    let clamp = o.first(0, |s| s.outputs & CLAMP != 0).unwrap().t;
+    let unclamp = o.first(clamp, |s| s.outputs & CLAMP == 0).expect("unclamp valve").t;
+    let rpm = o.rpm_at(unclamp);
+    eprintln!("unclamp at {} ms, spindle {rpm:.2} rpm, {:.0} rpm 40 ms before", unclamp / MS, o.rpm_at(unclamp - 40 * MS));
+    assert!(rpm.abs() < 1.0, "unclamped while the spindle turned at {rpm} rpm");
+    // M05 came just before M11: the spindle took ≥ 100 ms (6000 rpm/s) to stop first.
+    let full = o.first(clamp, |s| s.t > 20 * MS && o.rpm_at(s.t) > 590.0).expect("spindle at speed").t;
+    let braking = o.first(full, |s| o.rpm_at(s.t) < 590.0).expect("M05").t;
+    assert!(unclamp >= braking + 100 * MS, "unclamp {} ms after M05", (unclamp - braking) / MS);
+}
+
+/// The operator panel shows the safety inputs as the cycle loop reads them; the door that
+/// stopped the run is still shown open afterwards.
+#[test]
+fn the_panel_shows_e_stop_door_and_chuck() {
+    let panel = Panel::new();
+    assert_eq!(panel.safety(), SafetyInputs::default(), "nothing read yet");
+    let open: Action = Box::new(|w: &mut SimWorld| assert!(w.set_io_input(NODE, 1, Some(false))));
+    let o = run_panel(&machine(WIRED, ""), CUT, vec![(1500, open)], Some(&panel));
+    assert_eq!(o.result.as_ref().unwrap_err().number, 2601);
+    assert_eq!(panel.safety(), SafetyInputs { estop: Some(true), door: Some(false), chuck: Some(true) });
+    // Refused at the start (door open, chuck not clamped yet): shown too.
+    let panel = Panel::new();
+    let o = run_panel(&machine("inputs_on = [0]", ""), CUT, Vec::new(), Some(&panel));
+    assert_eq!(o.result.as_ref().unwrap_err().number, 2601);
+    assert_eq!(panel.safety(), SafetyInputs { estop: Some(true), door: Some(false), chuck: Some(false) });
 }

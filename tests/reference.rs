@@ -202,3 +202,58 @@ fn realtime_sim_drives_process_home_run_and_reboot() {
     assert_eq!(o.code, 3, "{}", o.stderr);
     assert!(o.stderr.contains("axis Z is not referenced"), "{}", o.stderr);
 }
+
+/// The reference file is the machine's state: `home` takes the state lock before anything
+/// moves (a run holding it refuses the homing, and the file is untouched), and concurrent
+/// `home`s of the same machine never interleave their read-change-writes — every one either
+/// homed and recorded or was refused, the file always a whole table.
+#[test]
+fn home_holds_the_state_lock_and_concurrent_homes_never_corrupt_the_file() {
+    let cfg = machine("lock.toml", "{ method = 35 }", "{ method = 37, offset = 0.0 }", false);
+    let state = tmp("state-lock");
+    let _ = std::fs::remove_dir_all(&state);
+    let c = cfg.display().to_string();
+    let place = cncgw::persist::StatePlace::new(&state, "cncgw default lathe (X/Z + Cs spindle)", "inproc");
+    let file = place.reference().path;
+    // Another process's run holds the state (here: this test process holds its lock).
+    let held = cncgw::cli::lock::state(&place.dir, &place.key).unwrap();
+    let o = cncgw(&state, &["home", "x", "--config", &c]);
+    assert_eq!(o.code, cncgw::cli::exit::SETUP, "{}{}", o.stdout, o.stderr);
+    assert!(o.stderr.contains("in use by another run") && o.stderr.contains(&format!("pid {}", std::process::id())), "{}", o.stderr);
+    assert!(o.stderr.contains("nothing was moved"), "{}", o.stderr);
+    assert!(!file.exists(), "the reference file was written without the lock");
+    drop(held);
+
+    let bin = testkit::cli!().state(&state);
+    let children: Vec<_> = (0..4)
+        .map(|k| {
+            let axis = ["x", "z", "all", "x"][k];
+            bin.command(&["home", axis, "--config", &c]).stdout(std::process::Stdio::piped()).stderr(std::process::Stdio::piped()).spawn().unwrap()
+        })
+        .collect();
+    let mut homed = 0;
+    for ch in children {
+        let o = ch.wait_with_output().unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        match o.status.code() {
+            Some(0) => homed += 1,
+            Some(code) => {
+                assert_eq!(code, cncgw::cli::exit::SETUP, "{err}");
+                assert!(err.contains("in use by another run"), "{err}");
+            }
+            None => panic!("killed: {err}"),
+        }
+    }
+    assert!(homed >= 1, "none homed");
+    let text = std::fs::read_to_string(&file).unwrap();
+    let t: cncgw::reference::Table = toml::from_str(&text).unwrap_or_else(|e| panic!("{e}: {text}"));
+    assert!(!t.axes.is_empty(), "{text}");
+    // No temporary file left behind.
+    let stray: Vec<_> = std::fs::read_dir(&state).unwrap().flatten().filter(|e| e.file_name().to_string_lossy().ends_with(".tmp")).collect();
+    assert!(stray.is_empty(), "{stray:?}");
+    // And one after the other: both axes referenced.
+    let o = cncgw(&state, &["home", "--config", &c]);
+    assert_eq!(o.code, 0, "{}", o.stderr);
+    let t: cncgw::reference::Table = toml::from_str(&std::fs::read_to_string(&file).unwrap()).unwrap();
+    assert_eq!(t.axes.keys().collect::<Vec<_>>(), ["x", "z"]);
+}

@@ -5,6 +5,13 @@
 //! `cncgw drive home NODE`, with the parameters from the configuration. An axis is written
 //! referenced (`reference`) only once its drive reported homing attained; the axes about to
 //! be homed lose their old reference first (an interrupted homing leaves them unreferenced).
+//!
+//! The reference file is part of the machine's state: every read-change-write of it holds
+//! the state lock (`lock::state`, as `run` and `mdi` do for the whole run), so a `home` and
+//! a run — or two `home`s, or a `drive home` and an `nmt reset-node` — of the same machine
+//! never interleave their updates (one would write back a table read before the other's
+//! change: a reference kept that was lost, or one lost that was won). `home` holds it from
+//! before the first motion to the last write; a run holding it refuses `home`.
 
 use super::diag::{EXIT_NODE, EXIT_OK, EXIT_SETUP, EXIT_USAGE};
 use super::service::{confirm_motion, HomeArgs};
@@ -33,8 +40,31 @@ pub struct HomeCmd {
 
 /// The reference file of this machine on this bus, in `dir` (default state dir when None).
 pub fn reference_file(cfg: &MachineConfig, machine: &MachineArgs, dir: Option<&Path>) -> Option<ReferenceFile> {
+    state_place(cfg, machine, dir).map(|s| s.reference())
+}
+
+fn state_place(cfg: &MachineConfig, machine: &MachineArgs, dir: Option<&Path>) -> Option<crate::persist::StatePlace> {
     let root = dir.map(Path::to_path_buf).or_else(crate::persist::default_state_dir)?;
-    Some(crate::persist::StatePlace::new(&root, &cfg.machine.name, &super::run::run_place(cfg, machine)).reference())
+    Some(crate::persist::StatePlace::new(&root, &cfg.machine.name, &super::run::run_place(cfg, machine)))
+}
+
+/// The reference file with the machine's state lock held (see the module's doc); `wait`:
+/// retry that long while another process holds it (a service command's short update).
+fn locked_reference(
+    cfg: &MachineConfig,
+    machine: &MachineArgs,
+    dir: Option<&Path>,
+    wait: std::time::Duration,
+) -> Option<Result<(ReferenceFile, super::lock::Lock), crate::Alarm>> {
+    let st = state_place(cfg, machine, dir)?;
+    let t0 = std::time::Instant::now();
+    loop {
+        match super::lock::state(&st.dir, &st.key) {
+            Ok(l) => return Some(Ok((st.reference(), l))),
+            Err(a) if t0.elapsed() >= wait => return Some(Err(a)),
+            Err(_) => std::thread::sleep(std::time::Duration::from_millis(50)),
+        }
+    }
 }
 
 /// `homing` of an axis as `drive home`'s arguments.
@@ -88,14 +118,23 @@ pub fn home(c: &HomeCmd) -> i32 {
         Ok(l) => l,
         Err(code) => return code,
     };
+    // The state lock before anything moves: a run of this machine refuses the homing.
+    let (file, _state_lock) = match locked_reference(&cfg, &c.machine, c.state_dir.as_deref(), std::time::Duration::ZERO) {
+        Some(Ok(f)) => f,
+        Some(Err(a)) => {
+            eprintln!("{a}");
+            eprintln!("nothing was moved");
+            return EXIT_SETUP;
+        }
+        None => {
+            eprintln!("error: no state directory (set $CNCGW_STATE_DIR or give --state-dir): the reference could not be kept");
+            return EXIT_SETUP;
+        }
+    };
     let names: Vec<String> = axes.iter().map(|(n, _)| n.to_uppercase()).collect();
     if let Err(code) = confirm_motion(&c.machine, c.yes, &format!("homing axis {}", names.join(", "))) {
         return code;
     }
-    let Some(file) = reference_file(&cfg, &c.machine, c.state_dir.as_deref()) else {
-        eprintln!("error: no state directory (set $CNCGW_STATE_DIR or give --state-dir): the reference could not be kept");
-        return EXIT_SETUP;
-    };
     // Homing moves the axes and resets their coordinates: the old reference is void from here.
     if let Err(a) = file.update(|t| {
         for (n, _) in &axes {
@@ -174,14 +213,21 @@ fn home_canopen(machine: &MachineArgs, axes: &[(String, AxisConfig)], homed: &mu
     Ok(ok)
 }
 
+/// How long a service command waits for another process's short reference update.
+const SERVICE_WAIT: std::time::Duration = std::time::Duration::from_secs(5);
+
 /// After `cncgw drive home NODE`: the axis of that drive is referenced (with the method the
 /// command used), kept in the default state directory.
 pub fn record_drive_home(machine: &MachineArgs, axis: &str, node: u8, method: i8, pos: f64) {
     let Ok((cfg, _)) = super::machine_config(machine) else { return };
-    if let Some(f) = reference_file(&cfg, machine, None) {
-        if let Err(a) = f.update(|t| t.set_homed(axis, node, method, pos)) {
-            eprintln!("warning: {a}");
+    match locked_reference(&cfg, machine, None, SERVICE_WAIT) {
+        Some(Ok((f, _lock))) => {
+            if let Err(a) = f.update(|t| t.set_homed(axis, node, method, pos)) {
+                eprintln!("warning: {a}");
+            }
         }
+        Some(Err(a)) => eprintln!("warning: axis {} homed but not recorded referenced: {a}", axis.to_uppercase()),
+        None => {}
     }
 }
 
@@ -189,7 +235,15 @@ pub fn record_drive_home(machine: &MachineArgs, axis: &str, node: u8, method: i8
 /// application, so the axes on them lose their reference.
 pub fn record_reset(machine: &MachineArgs, node: u8) {
     let Ok((cfg, _)) = super::machine_config(machine) else { return };
-    let Some(f) = reference_file(&cfg, machine, None) else { return };
+    // The run that holds the state sees the boot-up itself and drops the reference at its end.
+    let (f, _lock) = match locked_reference(&cfg, machine, None, SERVICE_WAIT) {
+        Some(Ok(f)) => f,
+        Some(Err(a)) => {
+            eprintln!("warning: the reference of the reset drives could not be dropped now: {a}");
+            return;
+        }
+        None => return,
+    };
     let axes: Vec<String> = cfg.axes.iter().filter(|(_, a)| a.modbus.is_none() && (node == 0 || a.node == node)).map(|(n, _)| n.clone()).collect();
     let r = f.update(|t| {
         for a in &axes {

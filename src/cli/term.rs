@@ -185,6 +185,17 @@ impl PanelDisplay {
         if OPTIONAL_STOP.load(Ordering::Relaxed) {
             state.push_str("  OPT STOP");
         }
+        // The [io.safety] inputs, after HELD (which must never be cut): an open one in
+        // capitals.
+        let io = self.panel.safety();
+        for (input, ok, open) in
+            [(io.estop, "E-stop ok", "E-STOP OPEN"), (io.door, "door shut", "DOOR OPEN"), (io.chuck, "chuck clamped", "CHUCK OPEN")]
+        {
+            if let Some(closed) = input {
+                state.push_str("  ");
+                state.push_str(if closed { ok } else { open });
+            }
+        }
         let rapid = match self.panel.rapid_override() {
             0 => "F0".to_string(),
             r => format!("{r}%"),
@@ -299,5 +310,13 @@ mod tests {
         p.set_single_block(false);
         let s = d.status(&prog);
         assert!(!s.contains("HELD") && !s.contains("SINGLE"), "{s}");
+        assert!(!s.contains("door") && !s.contains("E-stop"), "no [io.safety]: nothing shown: {s}");
+        use crate::control::panel::SafetyInputs;
+        r.report_safety(SafetyInputs { estop: Some(true), door: Some(false), chuck: Some(true) });
+        let s = d.status(&prog);
+        assert!(s.contains("E-stop ok  DOOR OPEN  chuck clamped"), "{s}");
+        r.report_safety(SafetyInputs { estop: Some(false), door: None, chuck: Some(false) });
+        let s = d.status(&prog);
+        assert!(s.contains("E-STOP OPEN  CHUCK OPEN") && !s.contains("door"), "{s}");
     }
 }

@@ -490,10 +490,17 @@ impl<'a> CycleLoop<'a> {
         self.publish();
     }
 
-    /// Act on the event of a set-point; true at the program end.
-    fn on_event(&mut self, motion: &mut Motion, sp: &crate::motion::Setpoint) -> bool {
+    /// Act on the event of a set-point; true at the program end. Err: an I/O code refused
+    /// (the caller stops).
+    fn on_event(&mut self, motion: &mut Motion, sp: &crate::motion::Setpoint) -> Result<bool, Alarm> {
         match sp.event {
-            Event::End => true,
+            Event::End => {
+                // Coolant off with the spindle stop (motion), as a 0i-TF at M02/M30.
+                if let Ok(Some(io)) = self.io.as_mut() {
+                    io.on_end();
+                }
+                Ok(true)
+            }
             Event::Stop { optional } => {
                 if self.panel.is_some() {
                     // The motion layer waits for the panel's cycle start.
@@ -504,18 +511,18 @@ impl<'a> CycleLoop<'a> {
                     tracing::info!(line = sp.line, "M0{} program stop (batch run: cycle start)", optional as u8);
                     motion.cycle_start();
                 }
-                false
+                Ok(false)
             }
             Event::Aux { letter, value } => {
                 // An I/O code: its outputs now, the next item after its completion (FIN).
                 if let Ok(Some(io)) = self.io.as_mut() {
-                    if io.on_aux(letter, value, sp.line) {
+                    if io.on_aux(letter, value, sp.line, motion.spindle_commanded(), self.rpm)? {
                         motion.wait_fin(true);
                     }
                 }
-                false
+                Ok(false)
             }
-            Event::Stroke2(_) | Event::None => false,
+            Event::Stroke2(_) | Event::None => Ok(false),
         }
     }
 
@@ -570,6 +577,9 @@ impl<'a> CycleLoop<'a> {
                 self.quick_stop_all();
                 return Err(a);
             }
+        }
+        if let Some(r) = self.panel.as_ref() {
+            r.report_safety(io.safety_inputs());
         }
         match io.check_safety(false, 0) {
             None => Ok(()),

@@ -11,7 +11,14 @@
 //!   confirmation until an unclamp code: controlled stop, alarm 2602;
 //! - a code not confirmed within its timeout: controlled stop (nothing after the code ran),
 //!   alarm 2600;
-//! - a device that went silent: alarm 2603 (the CANopen master's, or a Modbus unit's here).
+//! - a device that went silent: alarm 2603 (the CANopen master's, or a Modbus unit's here);
+//! - a chuck unclamp code while M03/M04 is in force: refused before its outputs switch,
+//!   controlled stop, alarm 2604. An unclamp code reached while the spindle still coasts
+//!   down after M05 waits (within its timeout) until the spindle stands, then switches. The
+//!   interlock a lathe's ladder has on the unclamp valve (Fanuc 0i-TF: the chuck's M code is
+//!   the machine builder's; the standard ladder unclamps only at spindle zero speed). No
+//!   interlock on the axes: motion takes an auxiliary code only after the move before it has
+//!   ended (no blending across it), so no axis is commanded to move while M10/M11 switch.
 //!
 //! An input that has not been read yet (a device still starting) reads as open: a safety
 //! input must be seen closed.
@@ -20,6 +27,12 @@ use crate::drives::modbus::io::ModbusIo;
 use crate::drives::DriveBus;
 use crate::io::{Action, Bit, Bits, DeviceKind, Resolved, MAX_DEVICES};
 use crate::Alarm;
+
+/// A spindle slower than this (rpm, measured) for [`STILL_MS`] stands: the chuck may be
+/// unclamped. (Not the first zero crossing: a position-controlled spindle overshoots by a
+/// few rpm as it stops.)
+const STILL_RPM: f64 = 1.0;
+const STILL_MS: f64 = 50.0;
 
 /// What the cycle loop must do about the inputs of this cycle.
 #[derive(Debug)]
@@ -63,6 +76,8 @@ struct Pending {
     after: Bits,
     cycles_left: u64,
     line: u32,
+    /// Its outputs are switched (an unclamp code waits for the spindle to stand first).
+    armed: bool,
 }
 
 enum Device {
@@ -79,6 +94,8 @@ pub struct IoRun {
     pending: Option<Pending>,
     /// The clamp code was confirmed and no unclamp code came since.
     clamped: bool,
+    /// Cycles the spindle has stood (measured) while an unclamp code waits.
+    still: u32,
     cycle_ms: f64,
 }
 
@@ -105,6 +122,7 @@ impl IoRun {
             seen: [false; MAX_DEVICES],
             pending: None,
             clamped: false,
+            still: 0,
             cycle_ms: cfg.machine.cycle_ms,
         }))
     }
@@ -147,6 +165,12 @@ impl IoRun {
         }
     }
 
+    /// The safety inputs as read (for the panel's display).
+    pub fn safety_inputs(&self) -> super::panel::SafetyInputs {
+        let read = |x: &Option<(Bit, String)>| x.as_ref().map(|(b, _)| self.get(*b));
+        super::panel::SafetyInputs { estop: read(&self.cfg.estop), door: read(&self.cfg.door), chuck: read(&self.cfg.chuck) }
+    }
+
     /// The E-stop input is open (read by the stop loops, which have no other I/O).
     pub fn estop_open(&self) -> bool {
         self.cfg.estop.as_ref().is_some_and(|(b, _)| !self.get(*b))
@@ -173,17 +197,41 @@ impl IoRun {
         None
     }
 
-    /// The code reached by execution (`Event::Aux`): switch its outputs; true when the
-    /// program must wait for its completion (`Motion::wait_fin`).
-    pub fn on_aux(&mut self, letter: char, value: f64, line: u32) -> bool {
+    /// A code that unclamps the chuck: M11 (manual 004 §3.1: 卡盘松开), one that waits for
+    /// the chuck input to drop, or one that clears an output the clamp code (M10) sets.
+    fn unclamps(&self, m: u16, a: &Action) -> bool {
+        let chuck_in = self.cfg.chuck.as_ref().map(|(b, _)| *b);
+        let clamp_outs = self.cfg.m.iter().find(|(n, _)| *n == 10).map(|(_, a)| a.set).unwrap_or_default();
+        m == 11 || a.wait_off.iter().any(|b| Some(*b) == chuck_in) || a.clear.iter().any(|b| clamp_outs.iter().any(|c| c == b))
+    }
+
+    /// The code reached by execution (`Event::Aux`): switch its outputs; Ok(true) when the
+    /// program must wait for its completion (`Motion::wait_fin`). `turning`: M03/M04 in
+    /// force; `rpm`: the spindle's measured speed. Err: an unclamp code refused (nothing
+    /// switched).
+    pub fn on_aux(&mut self, letter: char, value: f64, line: u32, turning: bool, rpm: f64) -> Result<bool, Alarm> {
         let (code, action, after) = match letter {
             'M' => {
                 let m = value as u16;
-                let Some(a) = self.cfg.m.iter().find(|(n, _)| *n == m).map(|(_, a)| *a) else { return false };
+                let Some(a) = self.cfg.m.iter().find(|(n, _)| *n == m).map(|(_, a)| *a) else { return Ok(false) };
+                if self.unclamps(m, &a) {
+                    if turning {
+                        return Err(Alarm::new(
+                            crate::alarm::IO_UNCLAMP_TURNING,
+                            format!("M{m:02} (chuck unclamp) at line {line} while the spindle is commanded to turn (M03/M04): refused, the chuck stayed clamped and the machine was stopped under control; program M05 before M{m:02} (the unclamp waits for the spindle to stand), then start again from a safe block"),
+                        ));
+                    }
+                    // Switched once the spindle has stood for STILL_MS (after M05 it may
+                    // still coast down).
+                    self.still = u32::from(rpm.abs() <= STILL_RPM);
+                    let cycles_left = (a.timeout_ms as f64 / self.cycle_ms).ceil() as u64;
+                    self.pending = Some(Pending { code: Code::M(m), action: a, after: Bits::default(), cycles_left, line, armed: false });
+                    return Ok(true);
+                }
                 (Code::M(m), a, Bits::default())
             }
             'T' => {
-                let Some(t) = self.cfg.turret else { return false };
+                let Some(t) = self.cfg.turret else { return Ok(false) };
                 let station = value as u32 / 100;
                 let mut a = Action { timeout_ms: t.timeout_ms, ..Action::default() };
                 for (k, b) in t.code.iter().enumerate() {
@@ -198,8 +246,19 @@ impl IoRun {
                 after.n = 1;
                 (Code::T(station), a, after)
             }
-            _ => return false,
+            _ => return Ok(false),
         };
+        self.switch(&action);
+        if !action.waits() {
+            return Ok(false);
+        }
+        let cycles_left = (action.timeout_ms as f64 / self.cycle_ms).ceil() as u64;
+        self.pending = Some(Pending { code, action, after, cycles_left, line, armed: true });
+        Ok(true)
+    }
+
+    /// Switch a code's outputs.
+    fn switch(&mut self, action: &Action) {
         for b in action.set.iter() {
             self.put(*b, true);
         }
@@ -210,12 +269,31 @@ impl IoRun {
         if self.cfg.chuck.as_ref().is_some_and(|(c, _)| action.wait_off.iter().any(|b| b == c)) {
             self.clamped = false;
         }
-        if !action.waits() {
-            return false;
+    }
+
+    /// The program's end (M02/M30): the coolant off, as a Fanuc 0i-TF's standard ladder does
+    /// (manual 004 §2.19's example: "M30; 程序结束, 关主轴、冷却液"; the spindle stop is
+    /// motion's): M09's outputs are switched as M09 would (without its FIN wait — nothing
+    /// follows), or, without an `[io.m.9]`, the outputs M08 sets are cleared. Other outputs
+    /// (the chuck) keep their state: the part stays clamped.
+    pub fn on_end(&mut self) {
+        let code = |n: u16| self.cfg.m.iter().find(|(m, _)| *m == n).map(|(_, a)| *a);
+        match (code(9), code(8)) {
+            (Some(m9), _) => {
+                for b in m9.set.iter() {
+                    self.put(*b, true);
+                }
+                for b in m9.clear.iter() {
+                    self.put(*b, false);
+                }
+            }
+            (None, Some(m8)) => {
+                for b in m8.set.iter() {
+                    self.put(*b, false);
+                }
+            }
+            (None, None) => {}
         }
-        let cycles_left = (action.timeout_ms as f64 / self.cycle_ms).ceil() as u64;
-        self.pending = Some(Pending { code, action, after, cycles_left, line });
-        true
     }
 
     /// Every device has answered at least once.
@@ -238,11 +316,20 @@ impl IoRun {
         self.pending.is_some()
     }
 
-    /// One cycle of the pending code: `Ok(true)` at FIN (call `Motion::wait_fin(false)`),
-    /// Err: not confirmed in time.
-    pub fn step_fin(&mut self) -> Result<bool, Alarm> {
+    /// One cycle of the pending code (`rpm`: the spindle's measured speed): `Ok(true)` at FIN
+    /// (call `Motion::wait_fin(false)`), Err: not confirmed in time.
+    pub fn step_fin(&mut self, rpm: f64) -> Result<bool, Alarm> {
         let Some(mut p) = self.pending else { return Ok(false) };
-        let done = p.action.wait_on.iter().all(|b| self.get(*b)) && p.action.wait_off.iter().all(|b| !self.get(*b));
+        if !p.armed {
+            self.still = if rpm.abs() <= STILL_RPM { self.still + 1 } else { 0 };
+            if self.still as f64 * self.cycle_ms >= STILL_MS {
+                self.switch(&p.action);
+                p.armed = true;
+                // The confirmation's own timeout starts with its valve.
+                p.cycles_left = (p.action.timeout_ms as f64 / self.cycle_ms).ceil() as u64;
+            }
+        }
+        let done = p.armed && p.action.wait_on.iter().all(|b| self.get(*b)) && p.action.wait_off.iter().all(|b| !self.get(*b));
         if done {
             for b in p.after.iter() {
                 self.put(*b, false);
@@ -271,6 +358,7 @@ impl IoRun {
             .map(|b| format!("{} on", self.cfg.input_name(*b)))
             .chain(p.action.wait_off.iter().filter(|b| self.get(**b)).map(|b| format!("{} off", self.cfg.input_name(*b))))
             .collect();
+        let missing = if p.armed { missing } else { vec!["the spindle to stand before the unclamp".to_string()] };
         let what = match p.code {
             Code::M(m) => format!("M{m:02}"),
             Code::T(t) => format!("T{t:02} (turret index)"),
@@ -303,19 +391,19 @@ mod tests {
     #[test]
     fn a_clamp_code_waits_for_its_input_then_times_out() {
         let mut io = run("[io.m.10]\nset = [\"clamp\"]\nwait_on = [\"clamped\"]\ntimeout_ms = 10\n[io.safety]\nchuck = \"clamped\"");
-        assert!(io.on_aux('M', 10.0, 7));
+        assert!(io.on_aux('M', 10.0, 7, false, 0.0).unwrap());
         assert_eq!(io.out[0], 0b10);
         io.seen[0] = true;
         for _ in 0..5 {
-            assert!(!io.step_fin().unwrap());
+            assert!(!io.step_fin(0.0).unwrap());
         }
-        let a = io.step_fin().unwrap_err();
+        let a = io.step_fin(0.0).unwrap_err();
         assert_eq!(a.number, crate::alarm::IO_FIN_TIMEOUT);
         assert!(a.message.contains("M10 at line 7") && a.message.contains("clamped on"), "{}", a.message);
         // Confirmed: FIN, and from then on the chuck input is watched.
-        assert!(io.on_aux('M', 10.0, 8));
+        assert!(io.on_aux('M', 10.0, 8, false, 0.0).unwrap());
         io.inp[0] = 0b100;
-        assert!(io.step_fin().unwrap());
+        assert!(io.step_fin(0.0).unwrap());
         assert!(io.check_safety(false, 9).is_none());
         io.inp[0] = 0;
         assert!(matches!(io.check_safety(false, 9), Some(IoStop::Halt(a)) if a.number == crate::alarm::IO_CHUCK_UNCLAMPED));

@@ -25,6 +25,28 @@ struct Inner {
     // What the loop reports back (for the display).
     held: AtomicBool,
     line: AtomicU32,
+    /// The safety inputs ([`SafetyInputs::word`]).
+    safety: AtomicU32,
+}
+
+/// The `[io.safety]` inputs as the cycle loop last read them, for the display: `None` = not
+/// configured, `Some(true)` = closed (E-stop chain closed, door shut, chuck clamped).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct SafetyInputs {
+    pub estop: Option<bool>,
+    pub door: Option<bool>,
+    pub chuck: Option<bool>,
+}
+
+impl SafetyInputs {
+    /// Two bits per input (configured, closed), in one word the loop stores without a lock.
+    pub fn word(&self) -> u32 {
+        [self.estop, self.door, self.chuck].iter().enumerate().fold(0, |w, (k, v)| w | v.map_or(0, |c| (1 | (c as u32) << 1) << (2 * k)))
+    }
+    pub fn from_word(w: u32) -> SafetyInputs {
+        let get = |k: u32| (w >> (2 * k) & 1 == 1).then_some(w >> (2 * k + 1) & 1 == 1);
+        SafetyInputs { estop: get(0), door: get(1), chuck: get(2) }
+    }
 }
 
 /// The panel's handle; clones share one panel.
@@ -45,6 +67,7 @@ impl Default for Panel {
             spindle_ovr: AtomicU32::new(100),
             held: AtomicBool::new(false),
             line: AtomicU32::new(0),
+            safety: AtomicU32::new(0),
         }))
     }
 }
@@ -109,6 +132,11 @@ impl Panel {
         self.0.line.load(Relaxed)
     }
 
+    /// The safety inputs as last reported by the cycle loop.
+    pub fn safety(&self) -> SafetyInputs {
+        SafetyInputs::from_word(self.0.safety.load(Relaxed))
+    }
+
     /// The loop's reader (remembers which presses it has acted on).
     pub fn reader(&self) -> PanelReader {
         PanelReader {
@@ -171,6 +199,11 @@ impl PanelReader {
         self.panel.0.held.store(held, Relaxed);
         self.panel.0.line.store(line, Relaxed);
     }
+
+    /// Report the safety inputs read this cycle (for the display).
+    pub fn report_safety(&self, s: SafetyInputs) {
+        self.panel.0.safety.store(s.word(), Relaxed);
+    }
 }
 
 #[cfg(test)]
@@ -205,5 +238,19 @@ mod tests {
         r.report(true, 42);
         assert!(p.is_held());
         assert_eq!(p.line(), 42);
+    }
+
+    #[test]
+    fn safety_inputs_round_trip_through_the_word() {
+        let p = Panel::new();
+        assert_eq!(p.safety(), SafetyInputs::default());
+        for s in [
+            SafetyInputs { estop: Some(true), door: Some(false), chuck: None },
+            SafetyInputs { estop: None, door: Some(true), chuck: Some(false) },
+            SafetyInputs { estop: Some(false), door: None, chuck: Some(true) },
+        ] {
+            p.reader().report_safety(s);
+            assert_eq!(p.safety(), s);
+        }
     }
 }

@@ -1799,8 +1799,14 @@ impl Motion {
                         match ev {
                             Event::Stop { optional: false } => self.paused = true,
                             Event::Stop { optional: true } => self.paused = self.optional_stop,
-                            // M30/M02 reset polygon turning (G50.2 is the reset state).
-                            Event::End => self.tool.unlock(),
+                            // M30/M02 reset polygon turning (G50.2 is the reset state) and
+                            // stop the spindle, as a Fanuc 0i-TF's standard ladder does at
+                            // the program's end (manual 004 §2.19 example: "M30; 程序结束,
+                            // 关主轴、冷却液"); the coolant is the cycle loop's (`control::io`).
+                            Event::End => {
+                                self.tool.unlock();
+                                self.sp_dir = 0.0;
+                            }
                             _ => {}
                         }
                     }
@@ -2392,6 +2398,11 @@ impl Motion {
     pub fn discard_queue(&mut self) {
         self.len = 0;
         self.last_blendable = false;
+    }
+
+    /// M03/M04 is in force (M05, M30 or a stop clear it; the speed may still be ramping).
+    pub fn spindle_commanded(&self) -> bool {
+        self.sp_dir != 0.0
     }
 
     /// The spindle (and the tool spindle) is commanded to stand still.

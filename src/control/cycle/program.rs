@@ -326,8 +326,12 @@ impl CycleLoop<'_> {
         if let Err(a) = io.read(&*self.drives) {
             return Err(self.quick_stop_with(a));
         }
+        // Shown before they are acted on: the display keeps the input that stopped the run.
+        if let Some(r) = self.panel.as_ref() {
+            r.report_safety(io.safety_inputs());
+        }
         let stop = io.check_safety(run.spindle_rpm.abs() > 1.0, run.cur_line);
-        let fin = if stop.is_none() { io.step_fin() } else { Ok(false) };
+        let fin = if stop.is_none() { io.step_fin(run.spindle_rpm) } else { Ok(false) };
         match (stop, fin) {
             (Some(IoStop::Estop(name)), _) => Err(self.estop_input(run.cur_line, &name)),
             (Some(IoStop::Device(a)), _) => Err(self.quick_stop_with(a)),
@@ -357,7 +361,14 @@ impl CycleLoop<'_> {
             if let Event::Stroke2(a) = sp.event {
                 run.guard.set_stroke2(a);
             }
-            run.ended |= self.on_event(motion, &sp);
+            match self.on_event(motion, &sp) {
+                Ok(end) => run.ended |= end,
+                Err(a) => {
+                    // This cycle's set-points are not sent yet: the stop starts with them.
+                    self.halt_now(motion, run.spindle_rpm);
+                    return Err(a);
+                }
+            }
             sp = motion.step(fb);
         }
         // G22/G23 reached in program order: the guard switches before this set-point.
@@ -448,7 +459,13 @@ impl CycleLoop<'_> {
             return Err(a);
         }
         let ended_before = run.ended;
-        run.ended |= self.on_event(motion, sp);
+        match self.on_event(motion, sp) {
+            Ok(end) => run.ended |= end,
+            Err(a) => {
+                self.halt(motion, run.spindle_rpm);
+                return Err(a);
+            }
+        }
         if sp.line != run.cur_line && sp.line != 0 {
             summary.blocks += 1;
         }

@@ -168,6 +168,10 @@ impl CycleLoop<'_> {
             if !self.quick {
                 self.send(&sp);
             }
+            // The outputs as the run left them (M02/M30 switched the coolant off).
+            if let Ok(Some(io)) = self.io.as_ref() {
+                io.write(&mut *self.drives);
+            }
             if self.drives.transmit(now).is_err() {
                 // The bus is gone: nothing can be seen any more; the drives stop by themselves
                 // when they miss the heartbeat.

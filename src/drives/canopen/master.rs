@@ -64,6 +64,18 @@ pub fn cyclic_frames(drives: usize) -> Vec<usize> {
     cncgw_bus::busload::csp_frames(drives, RPDO1_LEN, TPDO1_LEN)
 }
 
+/// [`cyclic_frames`] and each CiA 401 module's (`(node, inputs, outputs)`, bits as
+/// `io::Resolved::canopen_modules` gives them): its outputs (RPDO1, every cycle) and inputs
+/// (TPDO1, every SYNC), a byte per 8 bits (`io401`).
+pub fn cyclic_frames_io(drives: usize, modules: &[(u8, u8, u8)]) -> Vec<usize> {
+    let mut v = cyclic_frames(drives);
+    for (_, i, o) in modules {
+        v.push(io401::pdo_bytes(*o) as usize);
+        v.push(io401::pdo_bytes(*i) as usize);
+    }
+    v
+}
+
 fn le_u32(d: &[u8]) -> u32 {
     let mut b = [0u8; 4];
     let n = d.len().min(4);
@@ -351,23 +363,28 @@ impl<B: CanBus> CanOpenMaster<B> {
         }
     }
 
-    /// Worst-case bus load of the cyclic traffic (one 6-byte RPDO and TPDO per drive and the
-    /// SYNC every cycle), 0…1.
+    /// Worst-case bus load of the cyclic traffic (one 6-byte RPDO and TPDO per drive, each
+    /// I/O module's outputs and inputs, and the SYNC every cycle), 0…1.
     pub fn bus_load(&self, bitrate: u32) -> f64 {
-        let frames = cyclic_frames(self.nodes.len());
-        cncgw_bus::busload::load(&frames, self.cycle_ns as f64 * 1e-9, bitrate)
+        cncgw_bus::busload::load(&self.frames(), self.cycle_ns as f64 * 1e-9, bitrate)
+    }
+
+    fn frames(&self) -> Vec<usize> {
+        let mut v = cyclic_frames(self.nodes.len());
+        v.extend(self.io.iter().flat_map(|m| m.pdo_lens()));
+        v
     }
 
     /// Refuse a cycle the bus cannot carry (over 80 % worst-case load), naming one that fits.
     pub fn check_bus_load(&self, bitrate: u32) -> Result<f64, Alarm> {
         let load = self.bus_load(bitrate);
         if load > 0.8 {
-            let frames = cyclic_frames(self.nodes.len());
-            let fits = cncgw_bus::busload::shortest_cycle_s(&frames, bitrate, 0.8);
+            let fits = cncgw_bus::busload::shortest_cycle_s(&self.frames(), bitrate, 0.8);
+            let io = if self.io.is_empty() { String::new() } else { format!(" and {} I/O modules", self.io.len()) };
             return Err(Alarm::new(
                 crate::alarm::BUS_LOAD,
                 format!(
-                    "bus load {:.0} % at {} ms cycle and {} bit/s for {} drives is over 80 %; use machine.cycle_ms = {} or more (or a higher bitrate)",
+                    "bus load {:.0} % at {} ms cycle and {} bit/s for {} drives{io} is over 80 %; use machine.cycle_ms = {} or more (or a higher bitrate)",
                     load * 100.0,
                     self.cycle_ms,
                     bitrate,
@@ -2035,6 +2052,22 @@ mod tests {
         let e = m.check_bus_load(1_000_000).unwrap_err();
         assert_eq!(e.number, crate::alarm::BUS_LOAD);
         assert!(e.message.contains("machine.cycle_ms = 1 or more"), "{}", e.message);
+    }
+
+    /// A CiA 401 module's frames count: 16 inputs and 8 outputs add a 2-byte TPDO (75 bits)
+    /// and a 1-byte RPDO (65 bits) per cycle to the drives' 775.
+    #[test]
+    fn bus_load_counts_the_io_modules() {
+        let bus = cncgw_bus::transport::inproc::InprocBus::new();
+        let text = format!("{}\n[io.devices.io1]\ncanopen_node = 10\ninputs = 16\noutputs = 8\n", crate::config::EMBEDDED_LATHE);
+        let mut cfg = MachineConfig::from_toml("io.toml", &text).unwrap();
+        let m = CanOpenMaster::new(bus.endpoint(), &cfg);
+        assert!((m.bus_load(1_000_000) - (775.0 + 75.0 + 65.0) / 2000.0).abs() < 1e-6, "{}", m.bus_load(1_000_000));
+        assert_eq!(cyclic_frames_io(3, &cfg.io.resolve().unwrap().canopen_modules()), m.frames());
+        cfg.machine.cycle_ms = 1.0;
+        let m = CanOpenMaster::new(bus.endpoint(), &cfg);
+        let e = m.check_bus_load(1_000_000).unwrap_err();
+        assert!(e.message.contains("3 drives and 1 I/O modules") && e.message.contains("machine.cycle_ms = 1.25 or more"), "{}", e.message);
     }
 
     #[test]

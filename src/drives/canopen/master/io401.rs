@@ -41,8 +41,8 @@ impl IoModule {
         IoModule {
             node,
             sdo: SdoClient::new(node, sdo_timeout_ms),
-            in_bytes: inputs.div_ceil(8).clamp(1, 4),
-            out_bytes: outputs.div_ceil(8).clamp(1, 4),
+            in_bytes: pdo_bytes(inputs),
+            out_bytes: pdo_bytes(outputs),
             booted: false,
             inputs: 0,
             have_in: false,
@@ -54,9 +54,19 @@ impl IoModule {
     }
 }
 
+/// Bytes of a module's PDO for `bits` inputs or outputs (8 per sub-index of 0x6000/0x6200).
+pub(crate) fn pdo_bytes(bits: u8) -> u8 {
+    bits.div_ceil(8).clamp(1, 4)
+}
+
 impl IoModule {
     pub(super) fn clear_outputs(&mut self) {
         self.outputs = 0;
+    }
+
+    /// Its cyclic frames' data lengths: outputs (RPDO1) and inputs (TPDO1).
+    pub(super) fn pdo_lens(&self) -> [usize; 2] {
+        [self.out_bytes as usize, self.in_bytes as usize]
     }
 }
 
