@@ -158,6 +158,10 @@ fn a_python_client_watches_a_run_and_receives_the_drive_fault_as_an_event() {
     let states: Vec<&str> = changes.iter().filter_map(|c| c["value"].as_str()).collect();
     assert!(z.len() >= 10 && z.iter().any(|p| *p < -10.0), "Z seen at {z:?}");
     assert!(states.contains(&"Running") && states.last() == Some(&"Alarm"), "states seen: {states:?}");
+    // The spindle's load: its drive's torque actual 0x6077 (read by SDO), percent of rated.
+    let load: Vec<f64> =
+        changes.iter().filter(|c| c["node"].as_str().unwrap().contains("Spindle1.Load")).filter_map(|c| c["value"].as_f64()).collect();
+    assert!(load.iter().any(|l| *l != 0.0) && load.iter().all(|l| l.abs() <= 300.0), "spindle load seen: {load:?}");
     // The drive's fault arrives as an event with its number and text.
     let ev = v["events"].as_array().unwrap();
     assert_eq!(ev.len(), 1, "{ev:?}");

@@ -101,4 +101,9 @@ pub trait DriveBus {
     }
     /// The module's digital outputs (0x6200), sent with every `transmit` from now on.
     fn set_io_outputs(&mut self, _node: u8, _bits: u32) {}
+    /// The torque actual value 0x6077 (per mille of the rated torque) `axis` last reported,
+    /// where the bus reads it (CANopen: a spindle's, by SDO while running); `None` otherwise.
+    fn torque_permille(&self, _axis: usize) -> Option<i16> {
+        None
+    }
 }

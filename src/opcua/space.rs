@@ -7,7 +7,7 @@
 //!   Monitoring
 //!     MachineTool     OperationMode, MachineState, MachineStateCode, PowerOnDuration
 //!     Channel1        ChannelState, FeedOverride, Feed, SyncError
-//!     Spindle1        IsRotating, Override, RotationSpeed, CommandedSpeed
+//!     Spindle1        IsRotating, Override, RotationSpeed, CommandedSpeed, Load (% rated torque)
 //!   Production
 //!     ActiveProgram   Name, State, Line, BlockCount, Progress, ElapsedTime, EstimatedRemainingTime
 //!     ProductionPlan  PartsCompleted
@@ -141,7 +141,7 @@ impl Space {
             }
             let sp = add_object(a, ns, "Monitoring.Spindle1", &mon);
             add_variable(a, ns, "Monitoring.Spindle1.IsRotating", &sp, Variant::Boolean(false), DataTypeId::Boolean);
-            for n in ["Override", "RotationSpeed", "CommandedSpeed"] {
+            for n in ["Override", "RotationSpeed", "CommandedSpeed", "Load"] {
                 add_variable(a, ns, &format!("Monitoring.Spindle1.{n}"), &sp, Variant::Double(0.0), DataTypeId::Double);
             }
             let prod = add_object(a, ns, "Production", &machine);
@@ -250,6 +250,7 @@ impl Space {
             ("Monitoring.Spindle1.Override".into(), Variant::Double(s.spindle_override * 100.0)),
             ("Monitoring.Spindle1.RotationSpeed".into(), Variant::Double(s.spindle_act_rpm)),
             ("Monitoring.Spindle1.CommandedSpeed".into(), Variant::Double(s.spindle_cmd_rpm)),
+            ("Monitoring.Spindle1.Load".into(), Variant::Double(s.spindle_load_pct)),
             ("Production.ActiveProgram.Name".into(), str_(&info.program)),
             ("Production.ActiveProgram.State".into(), Variant::Int32(program_state(s.state, s.cycle))),
             ("Production.ActiveProgram.Line".into(), Variant::UInt32(s.line)),

@@ -18,6 +18,7 @@ Prints one JSON object on stdout with what it saw.
 
 import asyncio
 import json
+import math
 import shutil
 import socket
 import sys
@@ -82,6 +83,8 @@ class Handler:
         self.events = []
 
     def datachange_notification(self, node, val, data):
+        if isinstance(val, float) and math.isnan(val):
+            val = None  # (Spindle1/Load before the drive's first answer; JSON has no NaN)
         self.changes.append({"node": node.nodeid.to_string(), "value": val, "t": round(time.time() - self.t0, 3)})
 
     def event_notification(self, event):
@@ -200,6 +203,7 @@ async def main():
     out["identification"] = {(await n.read_browse_name()).Name: await n.read_value() for n in await ident.get_children()}
     state = await machine.get_child([f"{ns}:Monitoring", f"{ns}:MachineTool", f"{ns}:MachineState"])
     z = await machine.get_child([f"{ns}:Axes", f"{ns}:Z", f"{ns}:ActualPosition"])
+    load = await machine.get_child([f"{ns}:Monitoring", f"{ns}:Spindle1", f"{ns}:Load"])
     program = await machine.get_child([f"{ns}:Production", f"{ns}:ActiveProgram", f"{ns}:Name"])
     out["program"] = await program.read_value()
     out["state_at_connect"] = await state.read_value()
@@ -210,7 +214,7 @@ async def main():
         out["write_refused"] = f"{type(e).__name__}: {e}"
     h = Handler()
     sub = await client.create_subscription(100, h)
-    await sub.subscribe_data_change([z, state])
+    await sub.subscribe_data_change([z, state, load])
     cnc_alarm = client.get_node(ua.NodeId("CncAlarmConditionType", ns))
     # The events as a generic client takes them (BaseEventType on the Server object) and
     # filtered by our condition type (CncAlarmConditionType: AlarmConditionType's fields and
