@@ -2,8 +2,9 @@
 //! python asyncua (tests/python/opcua_client.py) in the project venv. A run of the embedded
 //! machine, paced to the wall clock, whose X drive has no torque to spare:
 //! the client sees the Z axis move and the state change during the run, and receives the
-//! drive's fault (alarm 2010) as an event; an unsigned connection, an untrusted client
-//! certificate and a wrong password are refused. Without `[opcua]` no port is opened.
+//! drive's fault (alarm 2010) as an event and as an alarm condition (its number, active,
+//! unacknowledged; ConditionRefresh for a client that comes later; no acknowledging); an
+//! unsigned connection, an untrusted client certificate and a wrong password are refused. Without `[opcua]` no port is opened.
 //!
 //! Needs build/venv with asyncua (`scripts/install-test-deps.sh --python`): without the venv
 //! the test FAILS naming that command (as tests/python_drives.rs); a venv without asyncua
@@ -103,7 +104,7 @@ fn a_python_client_watches_a_run_and_receives_the_drive_fault_as_an_event() {
     let dir = testkit::tmp!("opcua_server", "watched");
     let port = free_port();
     let hash = cncgw_hash("s3cret-spindle");
-    let opcua = format!("[opcua]\nenabled = true\nhost = \"127.0.0.1\"\nport = {port}\nlinger_ms = 3000\n[[opcua.users]]\nname = \"mes\"\npassword_hash = \"{hash}\"\n");
+    let opcua = format!("[opcua]\nenabled = true\nhost = \"127.0.0.1\"\nport = {port}\nlinger_ms = 8000\n[[opcua.users]]\nname = \"mes\"\npassword_hash = \"{hash}\"\n");
     let (cfg, sim, prog) = write_setup(&dir, &opcua);
     let state = dir.join("state");
     let run = Command::new(env!("CARGO_BIN_EXE_cncgw"))
@@ -157,13 +158,40 @@ fn a_python_client_watches_a_run_and_receives_the_drive_fault_as_an_event() {
     let states: Vec<&str> = changes.iter().filter_map(|c| c["value"].as_str()).collect();
     assert!(z.len() >= 10 && z.iter().any(|p| *p < -10.0), "Z seen at {z:?}");
     assert!(states.contains(&"Running") && states.last() == Some(&"Alarm"), "states seen: {states:?}");
+    // The spindle's load: its drive's torque actual 0x6077 (read by SDO), percent of rated.
+    let load: Vec<f64> =
+        changes.iter().filter(|c| c["node"].as_str().unwrap().contains("Spindle1.Load")).filter_map(|c| c["value"].as_f64()).collect();
+    assert!(load.iter().any(|l| *l != 0.0) && load.iter().all(|l| l.abs() <= 300.0), "spindle load seen: {load:?}");
     // The drive's fault arrives as an event with its number and text.
     let ev = v["events"].as_array().unwrap();
     assert_eq!(ev.len(), 1, "{ev:?}");
     assert!(ev[0]["Message"].as_str().unwrap().starts_with("alarm 2010: node 1 (axis x): drive fault"), "{ev:?}");
     assert_eq!((ev[0]["Severity"].as_u64(), ev[0]["SourceName"].as_str()), (Some(800), Some("cncgw default lathe (X/Z + Cs spindle)")), "{ev:?}");
-    // (Filtered by CncAlarmEventType, to get its AlarmNumber field, asyncua receives nothing
-    // yet: `typed_events` is printed above, not asserted.)
+    // Filtered on our condition type, its own field and the condition's state arrive too.
+    let typed = v["typed_events"].as_array().unwrap();
+    assert_eq!(typed.len(), 1, "{typed:?}");
+    let t = &typed[0];
+    assert_eq!(t["AlarmNumber"], 2010, "{t}");
+    assert!(t["Message"].as_str().unwrap().starts_with("alarm 2010: node 1 (axis x): drive fault"), "{t}");
+    assert_eq!(
+        (&t["Severity"], &t["ActiveState"], &t["ActiveState/Id"], &t["AckedState/Id"], &t["Retain"]),
+        (&800.into(), &"Active".into(), &true.into(), &false.into(), &true.into()),
+        "{t}"
+    );
+    assert_eq!((&t["ConditionName"], &t["NodeId"]), (&"Alarm2010".into(), &"ns=2;s=Machine.Alarm.2010".into()), "{t}");
+    // A client that comes after the alarm gets it by ConditionRefresh; acknowledging is refused.
+    let late = &v["late"];
+    assert_eq!(late["before_refresh"], serde_json::json!([]), "{late}");
+    let refreshed = late["refreshed"].as_array().unwrap();
+    assert_eq!(refreshed.len(), 1, "{late}");
+    assert_eq!(
+        (&refreshed[0]["AlarmNumber"], &refreshed[0]["ActiveState/Id"], &refreshed[0]["Retain"]),
+        (&2010.into(), &true.into(), &true.into()),
+        "{late}"
+    );
+    assert_ne!(refreshed[0]["EventId"], t["EventId"], "a refresh's event has its own EventId: {late}");
+    assert!(late["refresh_bad_subscription"].as_str().is_some_and(|e| e.contains("BadSubscriptionIdInvalid")), "{late}");
+    assert!(late["ack_refused"].is_string(), "an acknowledgement was accepted: {late}");
     assert!(out.contains("alarm 2010"), "{out}");
     let _ = std::fs::remove_dir_all(&dir);
 }

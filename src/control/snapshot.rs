@@ -85,6 +85,9 @@ pub struct MachineSnap {
     /// Spindle speed commanded (override applied) and measured, rpm.
     pub spindle_cmd_rpm: f64,
     pub spindle_act_rpm: f64,
+    /// Spindle load: torque actual 0x6077 of the spindle drive in percent of its rated
+    /// torque, as the bus last read it (NaN: not reported).
+    pub spindle_load_pct: f64,
     /// Spindle override, 0.5 … 1.2.
     pub spindle_override: f64,
     /// Feed override, 0 … 2.
@@ -100,7 +103,7 @@ pub struct MachineSnap {
 }
 
 /// Words of a [`MachineSnap`] in the seqlock.
-const HEAD_WORDS: usize = 12;
+const HEAD_WORDS: usize = 13;
 const WORDS: usize = HEAD_WORDS + 4 * SNAP_AXES;
 
 impl MachineSnap {
@@ -118,6 +121,7 @@ impl MachineSnap {
         w[9] = self.sync_err_um.to_bits();
         w[10] = self.parts;
         w[11] = self.alarm as u64;
+        w[12] = self.spindle_load_pct.to_bits();
         for (k, a) in self.axes.iter().enumerate() {
             let b = HEAD_WORDS + 4 * k;
             w[b] = a.cmd.to_bits();
@@ -144,6 +148,7 @@ impl MachineSnap {
             sync_err_um: f64::from_bits(w[9]),
             parts: w[10],
             alarm: w[11] as u32,
+            spindle_load_pct: f64::from_bits(w[12]),
             axes: [AxisSnap::default(); SNAP_AXES],
         };
         for (k, a) in s.axes.iter_mut().enumerate() {
@@ -253,6 +258,7 @@ mod tests {
             MachineSnap { cycle: 7, state: MachineState::Held, line: 123_456, blocks: 9, n_axes: 3, alarm: 2010, parts: 2, ..Default::default() };
         s.elapsed_s = 1.5;
         s.spindle_override = 1.2;
+        s.spindle_load_pct = -12.5;
         s.axes[2] = AxisSnap { cmd: -3.25, act: -3.5, ferr: 0.001, statusword: 0x1237 };
         assert_eq!(MachineSnap::from_words(&s.to_words()), s);
     }

@@ -111,6 +111,12 @@ pub trait DriveBus {
     fn set_spindle_control(&mut self, _axis: usize, _control: SpindleControl) -> bool {
         false
     }
+
+    /// The torque actual value 0x6077 (per mille of the rated torque) `axis` last reported,
+    /// where the bus reads it (CANopen: a spindle's, by SDO while running); `None` otherwise.
+    fn torque_permille(&self, _axis: usize) -> Option<i16> {
+        None
+    }
 }
 
 /// How a spindle on a slow link is driven (`DriveBus::set_spindle_control`).

@@ -138,6 +138,10 @@ impl DriveBus for MultiBus<'_> {
         let (p, i) = self.map[axis];
         self.parts[p].following_window(i)
     }
+    fn torque_permille(&self, axis: usize) -> Option<i16> {
+        let (p, i) = self.map[axis];
+        self.parts[p].torque_permille(i)
+    }
     fn position_lost(&self, axis: usize) -> Option<String> {
         let (p, i) = self.map[axis];
         self.parts[p].position_lost(i)

@@ -4,7 +4,8 @@
 //! `alarm`); only `cli::run` starts it. It runs on its own thread with its own tokio runtime,
 //! started before the cycle thread takes its real-time policy, and never touches the cycle:
 //! a task copies the lock-free snapshot every [`UPDATE_MS`] into the address space
-//! (`space`), and sends the alarm the run stopped on as an event.
+//! (`space`), and sends the alarm the run stopped on as an event of an alarm condition
+//! (`condition`, with ConditionRefresh).
 //!
 //! Secure by default (`config::OpcUaConfig`): Sign&Encrypt endpoints only unless `none` is
 //! allowed on loopback; the server's certificate is made on first start under
@@ -14,6 +15,7 @@
 //! configured. Nothing is writable and no method is callable.
 
 mod auth;
+mod condition;
 mod space;
 
 pub use auth::{hash_password, verify_password};
@@ -21,8 +23,8 @@ pub use auth::{hash_password, verify_password};
 use crate::config::MachineConfig;
 use crate::control::snapshot::Snapshot;
 use opcua::crypto::SecurityPolicy;
-use opcua::server::diagnostics::NamespaceMetadata;
-use opcua::server::node_manager::memory::{simple_node_manager, SimpleNodeManager};
+use opcua::server::diagnostics::{DiagnosticsNodeManagerBuilder, NamespaceMetadata};
+use opcua::server::node_manager::memory::{simple_node_manager, CoreNodeManagerBuilder, InMemoryNodeManagerBuilder, SimpleNodeManager};
 use opcua::server::{ServerBuilder, ServerHandle, ServerUserToken, ANONYMOUS_USER_TOKEN_ID};
 use opcua::types::MessageSecurityMode;
 use std::net::SocketAddr;
@@ -61,15 +63,16 @@ impl OpcUaServer {
         let config_name = config_name.to_string();
         let cfg = cfg.clone();
         let (tx, rx) = std::sync::mpsc::channel::<Ready>();
+        let conditions = condition::Shared::default();
         let thread = std::thread::Builder::new()
             .name("opcua".into())
             .spawn(move || {
                 // The builder is not Send: made here, on the server's thread.
-                let b = builder(&cfg, &pki);
+                let b = builder(&cfg, &pki, conditions.clone());
                 let rt =
                     tokio::runtime::Builder::new_current_thread().enable_all().build().map_err(|e| format!("opcua: cannot start its runtime: {e}"));
                 match (b, rt) {
-                    (Ok(b), Ok(rt)) => rt.block_on(serve(b, bind, cfg.machine.name.clone(), config_name, snapshot, tx)),
+                    (Ok(b), Ok(rt)) => rt.block_on(serve(b, bind, cfg.machine.name.clone(), config_name, snapshot, conditions, tx)),
                     (Err(e), _) | (_, Err(e)) => {
                         let _ = tx.send(Err(e));
                     }
@@ -110,7 +113,7 @@ impl Drop for OpcUaServer {
 
 /// The server's configuration: endpoints (one per policy, Sign&Encrypt, or None), users,
 /// certificates.
-fn builder(cfg: &MachineConfig, pki: &Path) -> Result<ServerBuilder, String> {
+fn builder(cfg: &MachineConfig, pki: &Path, conditions: condition::Shared) -> Result<ServerBuilder, String> {
     let oc = &cfg.opcua;
     let mut ids: Vec<String> = oc.users.iter().map(|u| format!("user:{}", u.name)).collect();
     if oc.anonymous {
@@ -118,7 +121,13 @@ fn builder(cfg: &MachineConfig, pki: &Path) -> Result<ServerBuilder, String> {
     }
     let ids: Vec<&str> = ids.iter().map(String::as_str).collect();
     let uri = machine_uri(&cfg.machine.name);
+    // The default node managers (core, diagnostics) with, first, the one that answers
+    // ConditionRefresh (a core method the core manager does not implement).
     let mut b = ServerBuilder::new()
+        .without_node_managers()
+        .with_node_manager(condition::RefreshMethods::builder(conditions))
+        .with_node_manager(InMemoryNodeManagerBuilder::new(CoreNodeManagerBuilder))
+        .with_node_manager(DiagnosticsNodeManagerBuilder)
         // The certificate's subject is made from it: no RDN syntax (`+`, `,`, `/`, `=`) in it.
         .application_name(format!(
             "cncgw {}",
@@ -170,6 +179,7 @@ async fn serve(
     machine: String,
     config_name: String,
     snapshot: Arc<Snapshot>,
+    conditions: condition::Shared,
     tx: std::sync::mpsc::Sender<Ready>,
 ) {
     let (server, handle) = match builder.build() {
@@ -204,6 +214,7 @@ async fn serve(
     };
     let ns = handle.get_namespace_index(NAMESPACE).unwrap_or(1);
     let mut space = space::Space::build(&nm, &handle, ns, &machine, &config_name, &snapshot.info().axes);
+    let _ = conditions.set(space.conditions());
     let h = handle.clone();
     let updater = async move {
         let mut tick = tokio::time::interval(Duration::from_millis(UPDATE_MS));

@@ -2,12 +2,12 @@
 //! namespace for the rest, and the task's copy of the snapshot into it.
 //!
 //! ```text
-//! Objects/Machines/<machine name>             (events: alarms, CncAlarmEventType)
+//! Objects/Machines/<machine name>             (events: alarms as CncAlarmConditionType, see `condition`)
 //!   Identification    Manufacturer, Model, SoftwareRevision, ProductInstanceUri, ConfigFile
 //!   Monitoring
 //!     MachineTool     OperationMode, MachineState, MachineStateCode, PowerOnDuration
 //!     Channel1        ChannelState, FeedOverride, Feed, SyncError
-//!     Spindle1        IsRotating, Override, RotationSpeed, CommandedSpeed
+//!     Spindle1        IsRotating, Override, RotationSpeed, CommandedSpeed, Load (% rated torque)
 //!   Production
 //!     ActiveProgram   Name, State, Line, BlockCount, Progress, ElapsedTime, EstimatedRemainingTime
 //!     ProductionPlan  PartsCompleted
@@ -20,23 +20,22 @@
 //! BaseDataVariableType in our namespace, because the companion nodesets (DI, Machinery, IA,
 //! MachineTool) are not loaded into the server. Every variable is read-only.
 
+use super::condition::{AlarmCondition, Conditions};
 use super::UPDATE_MS;
 use crate::control::snapshot::{MachineSnap, MachineState, RunInfo, Snapshot};
-use opcua::nodes::{BaseEventType, Event};
+use opcua::nodes::Event;
 use opcua::server::address_space::{AccessLevel, AddressSpace, EventNotifier, ObjectBuilder, ObjectTypeBuilder, VariableBuilder};
 use opcua::server::node_manager::memory::SimpleNodeManager;
-use opcua::server::{EventField, ServerHandle};
-use opcua::types::{
-    AttributeId, ByteString, DataTypeId, DataValue, DateTime, NodeClass, NodeId, NumericRange, ObjectId, ObjectTypeId, QualifiedName, UAString,
-    VariableTypeId, Variant,
-};
+use opcua::server::ServerHandle;
+use opcua::types::{DataTypeId, DataValue, DateTime, NodeClass, NodeId, ObjectId, ObjectTypeId, QualifiedName, UAString, VariableTypeId, Variant};
+use std::sync::Arc;
 
 /// The variables the task writes, by what feeds them.
 pub struct Space {
     ns: u16,
     machine: NodeId,
-    machine_name: String,
-    event_type: NodeId,
+    /// The alarm conditions (`condition`), shared with the refresh methods.
+    conditions: Arc<Conditions>,
     /// The last snapshot cycle and alarm written (nothing new: nothing to do).
     last_cycle: u64,
     last_alarm_seq: u64,
@@ -108,8 +107,9 @@ impl Space {
     pub fn build(nm: &SimpleNodeManager, handle: &ServerHandle, ns: u16, machine_name: &str, config_name: &str, axes: &[String]) -> Space {
         let id = |s: &str| NodeId::new(ns, s.to_string());
         let machine = id("Machine");
-        let event_type = id("CncAlarmEventType");
-        let alarm_number_prop = id("CncAlarmEventType.AlarmNumber");
+        let conditions = Arc::new(Conditions::new(ns, machine.clone(), machine_name));
+        let event_type = conditions.event_type.clone();
+        let alarm_number_prop = id("CncAlarmConditionType.AlarmNumber");
         {
             let mut guard = nm.address_space().write();
             let a = &mut *guard;
@@ -141,7 +141,7 @@ impl Space {
             }
             let sp = add_object(a, ns, "Monitoring.Spindle1", &mon);
             add_variable(a, ns, "Monitoring.Spindle1.IsRotating", &sp, Variant::Boolean(false), DataTypeId::Boolean);
-            for n in ["Override", "RotationSpeed", "CommandedSpeed"] {
+            for n in ["Override", "RotationSpeed", "CommandedSpeed", "Load"] {
                 add_variable(a, ns, &format!("Monitoring.Spindle1.{n}"), &sp, Variant::Double(0.0), DataTypeId::Double);
             }
             let prod = add_object(a, ns, "Production", &machine);
@@ -168,9 +168,9 @@ impl Space {
             let note = add_object(a, ns, "Notification", &machine);
             add_variable(a, ns, "Notification.AlarmNumber", &note, Variant::UInt32(0), DataTypeId::UInt32);
             add_variable(a, ns, "Notification.AlarmText", &note, s(""), DataTypeId::String);
-            // The alarm event type: BaseEventType with the alarm's number.
-            ObjectTypeBuilder::new(&event_type, QualifiedName::new(ns, "CncAlarmEventType"), "CncAlarmEventType")
-                .subtype_of(ObjectTypeId::BaseEventType)
+            // The alarm condition type: AlarmConditionType with the alarm's number.
+            ObjectTypeBuilder::new(&event_type, QualifiedName::new(ns, "CncAlarmConditionType"), "CncAlarmConditionType")
+                .subtype_of(ObjectTypeId::AlarmConditionType)
                 .is_abstract(false)
                 .insert(a);
             VariableBuilder::new(&alarm_number_prop, QualifiedName::new(ns, "AlarmNumber"), "AlarmNumber")
@@ -186,18 +186,19 @@ impl Space {
         {
             // Event filters resolve types and their fields through the type tree.
             let mut tt = handle.type_tree().write();
-            tt.add_type_node(&event_type, &ObjectTypeId::BaseEventType.into(), NodeClass::ObjectType);
+            tt.add_type_node(&event_type, &ObjectTypeId::AlarmConditionType.into(), NodeClass::ObjectType);
             tt.add_type_property(&alarm_number_prop, &event_type, &[&QualifiedName::new(ns, "AlarmNumber")], NodeClass::Variable);
+            // A select clause for the ConditionId (ConditionType, NodeId attribute, no path:
+            // what asyncua and others add to a condition filter) must validate, or async-opcua
+            // drops it and the event's fields no longer line up with the client's clauses.
+            tt.add_type_property(&id("ConditionType.ConditionId"), &ObjectTypeId::ConditionType.into(), &[], NodeClass::Object);
         }
-        Space {
-            ns,
-            machine,
-            machine_name: machine_name.to_string(),
-            event_type,
-            last_cycle: u64::MAX,
-            last_alarm_seq: 0,
-            started: std::time::Instant::now(),
-        }
+        Space { ns, machine, conditions, last_cycle: u64::MAX, last_alarm_seq: 0, started: std::time::Instant::now() }
+    }
+
+    /// The alarm conditions (the refresh methods read them).
+    pub fn conditions(&self) -> Arc<Conditions> {
+        self.conditions.clone()
     }
 
     /// Copy the snapshot into the variables (when it changed) and send a new alarm as an event.
@@ -249,6 +250,7 @@ impl Space {
             ("Monitoring.Spindle1.Override".into(), Variant::Double(s.spindle_override * 100.0)),
             ("Monitoring.Spindle1.RotationSpeed".into(), Variant::Double(s.spindle_act_rpm)),
             ("Monitoring.Spindle1.CommandedSpeed".into(), Variant::Double(s.spindle_cmd_rpm)),
+            ("Monitoring.Spindle1.Load".into(), Variant::Double(s.spindle_load_pct)),
             ("Production.ActiveProgram.Name".into(), str_(&info.program)),
             ("Production.ActiveProgram.State".into(), Variant::Int32(program_state(s.state, s.cycle))),
             ("Production.ActiveProgram.Line".into(), Variant::UInt32(s.line)),
@@ -272,68 +274,15 @@ impl Space {
         v
     }
 
-    /// The alarm as an event of the machine (and of the Server object, where generic
-    /// clients subscribe): number, text, severity.
+    /// The alarm as a condition (`condition`), reported as an event of the machine and of
+    /// the Server object (where generic clients subscribe): number, text, severity.
     fn alarm_event(&self, handle: &ServerHandle, info: &RunInfo) {
         let severity = if info.alarm_number == crate::alarm::ESTOP { 1000 } else { 800 };
-        let mut id = [0u8; 16];
-        id[..8].copy_from_slice(&info.alarm_seq.to_le_bytes());
-        id[8..].copy_from_slice(&(std::process::id() as u64).to_le_bytes());
-        let mut base = BaseEventType::new_now(
-            self.event_type.clone(),
-            ByteString::from(id.to_vec()),
-            format!("alarm {}: {}", info.alarm_number, info.alarm_text),
-        );
-        base.severity = severity;
-        base.source_node = self.machine.clone();
-        base.source_name = UAString::from(self.machine_name.as_str());
-        let ev = AlarmEvent { base, number: info.alarm_number, own: self.event_type.clone(), ns: self.ns };
+        let c =
+            AlarmCondition { number: info.alarm_number, text: info.alarm_text.clone(), severity, time: DateTime::now(), active: true, acked: false };
+        let ev = self.conditions.raise(c);
         let server: NodeId = ObjectId::Server.into();
         handle.subscriptions().notify_events([(&ev as &dyn Event, &server), (&ev as &dyn Event, &self.machine)].into_iter());
         tracing::info!(number = info.alarm_number, "opcua: alarm event sent");
-    }
-}
-
-/// `CncAlarmEventType`: BaseEventType's fields and `AlarmNumber`.
-#[derive(Debug)]
-struct AlarmEvent {
-    base: BaseEventType,
-    number: u32,
-    own: NodeId,
-    ns: u16,
-}
-
-impl EventField for AlarmEvent {
-    fn get_value(&self, attribute_id: AttributeId, index_range: &NumericRange, remaining_path: &[QualifiedName]) -> Variant {
-        match remaining_path {
-            [f] if attribute_id == AttributeId::Value && f.namespace_index == self.ns && f.name.as_ref() == "AlarmNumber" => {
-                Variant::UInt32(self.number)
-            }
-            _ => self.base.get_value(attribute_id, index_range, remaining_path),
-        }
-    }
-}
-
-impl Event for AlarmEvent {
-    fn get_field(
-        &self,
-        type_definition_id: &NodeId,
-        attribute_id: AttributeId,
-        index_range: &NumericRange,
-        browse_path: &[QualifiedName],
-    ) -> Variant {
-        if type_definition_id == &self.own {
-            self.get_value(attribute_id, index_range, browse_path)
-        } else {
-            self.base.get_field(type_definition_id, attribute_id, index_range, browse_path)
-        }
-    }
-
-    fn time(&self) -> &DateTime {
-        self.base.time()
-    }
-
-    fn event_type_id(&self) -> &NodeId {
-        &self.own
     }
 }

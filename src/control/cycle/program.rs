@@ -502,7 +502,9 @@ impl CycleLoop<'_> {
         if self.snapshot.is_none() {
             return;
         }
+        let load = self.spindle_drive.and_then(|d| self.drives.torque_permille(d)).map_or(f64::NAN, |t| t as f64 / 10.0);
         let s = &mut self.snap;
+        s.spindle_load_pct = load;
         s.parts += new_end as u64;
         for (d, ax) in run.map.iter().enumerate().take(SNAP_AXES) {
             s.axes[d].cmd = match ax {

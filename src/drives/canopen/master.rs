@@ -23,6 +23,7 @@ mod life;
 mod mode_track;
 mod restore;
 mod startup_list;
+mod torque;
 
 pub use drive_check::{check_scaling, DriveProbe, Scaling, ALARM_FOREIGN, ALARM_MODE, ALARM_SCALING};
 pub use explain::{mode_short, supported_modes_text};
@@ -222,6 +223,8 @@ struct Node {
     target_vel: i32,
     /// The mode asked for and the mode the drive shows (0x6061).
     mode: mode_track::ModeTrack,
+    /// Torque actual 0x6077 of a spindle drive, polled by SDO while running (`torque`).
+    torque: torque::TorquePoll,
     /// TPDO1's length since start-up mapped it (`None`: not configured by this master; any
     /// frame of at least 6 bytes is taken).
     tpdo_len: Option<u8>,
@@ -278,6 +281,7 @@ impl Node {
             target_vel: 0,
             not_enabled: 0,
             mode: mode_track::ModeTrack::default(),
+            torque: torque::TorquePoll::default(),
             tpdo_len: None,
             bad_len: 0,
             bad_len_total: 0,
@@ -1220,6 +1224,8 @@ impl<B: CanBus> CanOpenMaster<B> {
     fn start_diag(&mut self, i: usize, seen: String, now_ns: u64) -> Result<(), Alarm> {
         tracing::warn!(node = self.nodes[i].spec.node, "{seen}: quick stop, reading 0x603F and 0x1001");
         self.fault_reaction(i);
+        // (The diagnosis takes the SDO channel: a torque read under way is given up.)
+        self.nodes[i].torque.polling = false;
         let f = self.nodes[i].sdo.start_upload(od::ERROR_CODE, 0, now_ns);
         self.send(&f)?;
         self.diag = Some(Diag { node: i, seen, reading: od::ERROR_CODE, code: None, register: None });
@@ -1745,6 +1751,7 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
         self.check_sync_loss(now_ns)?;
         self.watch_controller()?;
         self.poll_modes(now_ns)?;
+        self.poll_torque(now_ns)?;
         self.check_io(now_ns)?;
         for i in 0..self.nodes.len() {
             if self.running && self.faulted == Some(i) {
@@ -2033,6 +2040,10 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
 
     fn following_window(&self, axis: usize) -> Option<f64> {
         Some(self.nodes[axis].spec.following_error).filter(|w| w.is_finite() && *w > 0.0)
+    }
+
+    fn torque_permille(&self, axis: usize) -> Option<i16> {
+        self.nodes.get(axis).and_then(|n| n.torque.value)
     }
 }
 

@@ -1,0 +1,66 @@
+//! A spindle drive's torque actual value (0x6077, CiA 402: per mille of the rated torque
+//! 0x6076), the spindle's load for observers (the OPC UA server's `Spindle1/Load`).
+//!
+//! Read by SDO every [`POLL_EVERY_NS`] while running, not mapped: TPDO1 has no room left
+//! (statusword, position actual, mode display: 7 of 8 bytes), and a load shown ten times a
+//! second needs no PDO of its own. The poll runs in `receive` as the mode poll does
+//! (`mode_track`): expedited answers only, no allocation, never waiting; it yields the SDO
+//! channel to the fault diagnosis and to the mode poll. A drive that answers with an abort
+//! (no 0x6077) is not asked again.
+
+use super::CanOpenMaster;
+use crate::Alarm;
+use cncgw_bus::CanBus;
+
+/// How often 0x6077 is read from a spindle drive.
+pub(super) const POLL_EVERY_NS: u64 = 100_000_000;
+
+/// Torque actual.
+pub const TORQUE_ACTUAL: u16 = 0x6077;
+
+/// The poll of one drive.
+#[derive(Clone, Copy, Debug, Default)]
+pub(super) struct TorquePoll {
+    /// The last value read, per mille of the rated torque.
+    pub value: Option<i16>,
+    pub next_ns: u64,
+    /// A read is under way.
+    pub polling: bool,
+    /// The drive answered with an abort: not asked again.
+    pub absent: bool,
+}
+
+impl<B: CanBus> CanOpenMaster<B> {
+    /// In `receive`: read 0x6077 from spindle drives while running. Allocation-free.
+    pub(super) fn poll_torque(&mut self, now_ns: u64) -> Result<(), Alarm> {
+        if !self.running || self.diag.is_some() {
+            return Ok(());
+        }
+        for i in 0..self.nodes.len() {
+            let n = &mut self.nodes[i];
+            if !n.spec.spindle || n.torque.absent || n.mode.polling {
+                continue;
+            }
+            if n.torque.polling {
+                let out = n.sdo.poll(now_ns);
+                if let Some(r) = n.sdo.take_expedited() {
+                    n.torque.polling = false;
+                    match r {
+                        Ok(v) => n.torque.value = Some(v as u16 as i16),
+                        Err(super::SdoError::Abort { .. }) => n.torque.absent = true,
+                        Err(_) => {}
+                    }
+                }
+                if let Some(f) = out {
+                    self.send(&f)?;
+                }
+            } else if now_ns >= n.torque.next_ns && !n.sdo.busy() {
+                n.torque.polling = true;
+                n.torque.next_ns = now_ns + POLL_EVERY_NS;
+                let f = n.sdo.start_upload_small(TORQUE_ACTUAL, 0, now_ns);
+                self.send(&f)?;
+            }
+        }
+        Ok(())
+    }
+}
