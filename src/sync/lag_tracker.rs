@@ -81,15 +81,13 @@ impl LagTracker {
     fn learn_noise(&mut self, l: f64) {
         if self.n >= 3 {
             let d = l - 2.0 * self.l1 + self.l2;
-            // The first products start the means (the noise is the machine's: a lock that
-            // is not the first keeps them).
+            // Running means from zero: one step of the lag (a spindle starting) weighs 1/64,
+            // only noise that lasts counts (the noise is the machine's: a new lock keeps them).
             if d.is_finite() {
-                let first = self.dd == 0.0;
                 if self.n >= 4 {
-                    let w = if self.dd1 == 0.0 { 1.0 } else { STAT_W };
-                    self.dd1 += w * (d * self.d1 - self.dd1);
+                    self.dd1 += STAT_W * (d * self.d1 - self.dd1);
                 }
-                self.dd += if first { d * d } else { STAT_W * (d * d - self.dd) };
+                self.dd += STAT_W * (d * d - self.dd);
                 self.d1 = d;
             }
         }
