@@ -10,6 +10,8 @@
 //! actions due (a panel button, bus-off), so a test sees what the *drives* did, not what the
 //! controller thinks.
 
+mod sim_probe;
+
 use cncgw::config::{MachineConfig, EMBEDDED_LATHE};
 use cncgw::control::cycle::{CycleLoop, RunSummary};
 use cncgw::control::job::run_program;
@@ -24,6 +26,7 @@ use cncgw_bus::transport::inproc::{InprocBus, WireFaults};
 use cncgw_bus::{CanBus, CanFrame, Clock};
 use sim_drives::report::Scenario;
 use sim_drives::SimWorld;
+use sim_probe::{Action, Probe, Sample, MS};
 
 /// A long Z feed at 3000 mm/min with the spindle turning, then a thread pass.
 const PROGRAM: &str = "O1\nG21\nG98 G97 M03 S800\nG00 X40 Z2\nG01 Z-150 F3000\nG00 X50\nZ2\nM30\n";
@@ -36,7 +39,6 @@ const THREAD: &str = "O3\nG97 M03 S800\nG00 X45 Z5\nG92 X38 Z-60 F2\nG00 X50\nM3
 const THREAD_LINE: u32 = 4;
 const THREAD_LEAD: f64 = 2.0;
 
-const MS: u64 = 1_000_000;
 /// Cycles every stop now takes beyond what it took when the spindle was left to the drive's
 /// own hold: the run brings the turning spindle to rest under control on its ramp before it
 /// ends (≈ 70 cycles from S800 at 6000 rpm/s) and the spindle's soft position loop then creeps
@@ -45,66 +47,6 @@ const SPINDLE_STOP: u64 = 250;
 const CYCLE: u64 = 2 * MS;
 /// Velocity below which a drive counts as at rest, counts/s (5 µm/s, 0.05°/s).
 const REST: i32 = 50;
-
-#[derive(Clone, Debug)]
-struct Sample {
-    t: u64,
-    pos: Vec<i64>,
-    vel: Vec<i32>,
-    state: Vec<State>,
-}
-
-type Action = Box<dyn FnMut(&mut SimWorld)>;
-
-/// The simulated world as the cycle loop's clock, sampling every drive after every wait.
-struct Probe {
-    world: SimWorld,
-    samples: Vec<Sample>,
-    /// (time, action), fired once at the first wait that reaches the time.
-    actions: Vec<(u64, Option<Action>)>,
-}
-
-impl Probe {
-    fn sample(&mut self) {
-        let d = self.world.drives();
-        self.samples.push(Sample {
-            t: self.world.now_ns(),
-            pos: d.iter().map(|d| d.position_unwrapped()).collect(),
-            vel: d.iter().map(|d| d.velocity_actual()).collect(),
-            state: d.iter().map(|d| d.state()).collect(),
-        });
-    }
-
-    /// Run the world on (nobody commanding) for `ms`, sampling.
-    fn idle(&mut self, ms: u64) {
-        let end = self.now_ns() + ms * MS;
-        while self.now_ns() < end {
-            let t = self.now_ns() + CYCLE;
-            self.wait_until(t);
-        }
-    }
-}
-
-impl Clock for Probe {
-    fn now_ns(&self) -> u64 {
-        self.world.now_ns()
-    }
-    fn wait_until(&mut self, t: u64) {
-        self.world.wait_until(t);
-        let now = self.world.now_ns();
-        for (at, a) in self.actions.iter_mut() {
-            if *at <= now {
-                if let Some(mut f) = a.take() {
-                    f(&mut self.world);
-                }
-            }
-        }
-        self.sample();
-    }
-    fn is_simulated(&self) -> bool {
-        true
-    }
-}
 
 /// The master as the loop sees it, but without fault isolation: every fault quick-stops
 /// every drive, as before the coordinated stop (for the before/after figure).
@@ -179,7 +121,7 @@ fn run(program: &str, setup: Setup<'_>) -> Outcome {
     let mut world = SimWorld::new(&wire, sim_drives::SimConfig::from_machine_toml(EMBEDDED_LATHE).unwrap());
     let f: Vec<_> = setup.faults.iter().map(|s| sim_drives::parse_fault(s).unwrap()).collect();
     world.schedule_faults(f);
-    let mut probe = Probe { world, samples: Vec::new(), actions: setup.actions.into_iter().map(|(ms, a)| (ms * MS, Some(a))).collect() };
+    let mut probe = Probe::new(world, setup.actions, Sample::of);
     let mut master = CanOpenMaster::new(wire.endpoint(), &cfg);
     wire.set_faults(setup.wire.clone());
     let mut plain = NoIsolation(&mut master);
@@ -197,7 +139,7 @@ fn run(program: &str, setup: Setup<'_>) -> Outcome {
     let end_ns = probe.now_ns();
     // Sample the drives on for a while, nobody commanding (less than the drives' 300 ms
     // heartbeat timeout after the master's last heartbeat).
-    probe.idle(150);
+    probe.idle(150, CYCLE);
     match &r {
         Ok(()) => eprintln!("{:?}: ran to the end at {:.1} ms", setup.faults, end_ns as f64 / 1e6),
         Err(a) => eprintln!("{:?}: stopped at {:.1} ms: {a}", setup.faults, end_ns as f64 / 1e6),
@@ -217,7 +159,7 @@ impl Outcome {
 
     /// Let the world run on for `ms` with nobody commanding, then: which motors still move?
     fn moving_after(&mut self, ms: u64) -> Vec<(u8, i32)> {
-        self.probe.idle(ms);
+        self.probe.idle(ms, CYCLE);
         self.probe.world.drives().iter().map(|d| (d.node(), d.velocity_actual())).filter(|(_, v)| v.abs() > REST).collect()
     }
 
@@ -229,7 +171,7 @@ impl Outcome {
     /// Cycles from `t0` until every drive is at rest for good (over the samples taken, which
     /// include `settle_ms` of idling after the run).
     fn stop_cycles(&mut self, t0: u64, settle_ms: u64) -> u64 {
-        self.probe.idle(settle_ms);
+        self.probe.idle(settle_ms, CYCLE);
         let last_moving = self.probe.samples.iter().rev().find(|s| s.vel.iter().any(|v| v.abs() > REST)).map_or(t0, |s| s.t);
         last_moving.saturating_sub(t0).div_ceil(CYCLE)
     }

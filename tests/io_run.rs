@@ -5,6 +5,8 @@
 //! The clock samples the module's outputs and every drive after every wait, so each test
 //! sees what the *devices* did.
 
+mod sim_probe;
+
 use cncgw::config::{MachineConfig, EMBEDDED_LATHE};
 use cncgw::control::cycle::{CycleLoop, RunSummary};
 use cncgw::control::job::run_program;
@@ -16,8 +18,8 @@ use cncgw_bus::cia402::State;
 use cncgw_bus::transport::inproc::InprocBus;
 use cncgw_bus::Clock;
 use sim_drives::SimWorld;
+use sim_probe::{Action, Probe, MS};
 
-const MS: u64 = 1_000_000;
 const NODE: u8 = 10;
 const COOLANT: u32 = 1 << 0;
 const CLAMP: u32 = 1 << 1;
@@ -72,8 +74,6 @@ in_position = "turret_in_position"
 const WIRED: &str = r#"inputs_on = [0, 1]
 follow = [{ input = 2, output = 1, delay_ms = 300 }, { input = 3, output = 2, delay_ms = 200 }]"#;
 
-type Action = Box<dyn FnMut(&mut SimWorld)>;
-
 struct Sample {
     t: u64,
     outputs: u32,
@@ -84,38 +84,18 @@ struct Sample {
     state: Vec<State>,
 }
 
-struct Probe {
-    world: SimWorld,
-    samples: Vec<Sample>,
-    actions: Vec<(u64, Option<Action>)>,
-}
-
-impl Clock for Probe {
-    fn now_ns(&self) -> u64 {
-        self.world.now_ns()
-    }
-    fn wait_until(&mut self, t: u64) {
-        self.world.wait_until(t);
-        let now = self.world.now_ns();
-        for (at, a) in self.actions.iter_mut() {
-            if *at <= now {
-                if let Some(mut f) = a.take() {
-                    f(&mut self.world);
-                }
-            }
-        }
-        let d = self.world.drives();
-        self.samples.push(Sample {
-            t: now,
-            outputs: self.world.io_outputs(NODE).unwrap_or(0),
+impl Sample {
+    /// The module's outputs and every drive.
+    fn of(world: &SimWorld) -> Sample {
+        let d = world.drives();
+        Sample {
+            t: world.now_ns(),
+            outputs: world.io_outputs(NODE).unwrap_or(0),
             x: d[0].position_unwrapped(),
             z: d[1].position_unwrapped(),
             s: d[2].position_unwrapped(),
             state: d.iter().map(|d| d.state()).collect(),
-        });
-    }
-    fn is_simulated(&self) -> bool {
-        true
+        }
     }
 }
 
@@ -159,7 +139,7 @@ fn run_panel(cfg_text: &str, prog: &str, actions: Vec<(u64, Action)>, panel: Opt
     for m in sim_drives::io401::from_machine_toml(cfg_text).unwrap().0 {
         world.add_io_module(m);
     }
-    let mut probe = Probe { world, samples: Vec::new(), actions: actions.into_iter().map(|(t, a)| (t * MS, Some(a))).collect() };
+    let mut probe = Probe::new(world, actions, Sample::of);
     let mut master = CanOpenMaster::new(wire.endpoint(), &cfg);
     let mut summary = RunSummary::default();
     let result = {

@@ -7,6 +7,8 @@
 //! the speed of every motor at the instant its power stage went off (leaving Operation
 //! Enabled, Quick Stop Active or Fault Reaction Active), which must be zero.
 
+mod sim_probe;
+
 use cncgw::config::{MachineConfig, EMBEDDED_LATHE};
 use cncgw::control::cycle::{CycleLoop, Rest, RunSummary};
 use cncgw::control::job::run_program;
@@ -17,11 +19,10 @@ use cncgw::motion::Limits;
 use cncgw::Alarm;
 use cncgw_bus::cia402::State;
 use cncgw_bus::transport::inproc::InprocBus;
-use cncgw_bus::Clock;
 use sim_drives::SimWorld;
+use sim_probe::{Action, Probe, Sample, MS};
 use std::sync::atomic::{AtomicI32, Ordering};
 
-const MS: u64 = 1_000_000;
 /// Below this a motor counts as at rest, counts/s: 1 rpm of the spindle (6°/s at 1000
 /// counts/°), 0.2 mm/s of a feed axis (at 10 000 counts/mm) — the drives' own standstill
 /// windows (sim-drives: 0.1 rad/s of the motor).
@@ -30,49 +31,6 @@ fn rest_limit(node: u8) -> i32 {
         6000
     } else {
         2000
-    }
-}
-
-type Action = Box<dyn FnMut(&mut SimWorld)>;
-
-#[derive(Clone, Debug)]
-struct Sample {
-    t: u64,
-    pos: Vec<i64>,
-    vel: Vec<i32>,
-    state: Vec<State>,
-}
-
-struct Probe {
-    world: SimWorld,
-    samples: Vec<Sample>,
-    actions: Vec<(u64, Option<Action>)>,
-}
-
-impl Clock for Probe {
-    fn now_ns(&self) -> u64 {
-        self.world.now_ns()
-    }
-    fn wait_until(&mut self, t: u64) {
-        self.world.wait_until(t);
-        let now = self.world.now_ns();
-        for (at, a) in self.actions.iter_mut() {
-            if *at <= now {
-                if let Some(mut f) = a.take() {
-                    f(&mut self.world);
-                }
-            }
-        }
-        let d = self.world.drives();
-        self.samples.push(Sample {
-            t: now,
-            pos: d.iter().map(|d| d.position_unwrapped()).collect(),
-            vel: d.iter().map(|d| d.velocity_actual()).collect(),
-            state: d.iter().map(|d| d.state()).collect(),
-        });
-    }
-    fn is_simulated(&self) -> bool {
-        true
     }
 }
 
@@ -133,7 +91,7 @@ fn run(program: &str, setup: Setup) -> Outcome {
     let wire = InprocBus::new();
     let world = SimWorld::new(&wire, sim);
     let nodes = world.drives().iter().map(|d| d.node()).collect();
-    let mut probe = Probe { world, samples: Vec::new(), actions: setup.actions.into_iter().map(|(ms, a)| (ms * MS, Some(a))).collect() };
+    let mut probe = Probe::new(world, setup.actions, Sample::of);
     let mut master = CanOpenMaster::new(wire.endpoint(), &cfg);
     let mut summary = RunSummary::default();
     let result = {
