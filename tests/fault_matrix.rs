@@ -243,7 +243,7 @@ fn sync_fault(name: &str, program: &str, line: u32, lead: f64, fault: &str, node
     let _ = node;
     let mut o = run(program, Setup { faults: &[fault], ..Setup::default() });
     let a = o.alarm().clone();
-    assert_eq!(a.number, 2010, "{a}");
+    assert_eq!(a.number, cncgw::alarm::DRIVE_FAULT, "{a}");
     assert!(a.message.contains(node_text), "names the node: {a}");
     assert!(a.message.contains("0x603F error code 0x"), "the error in words: {a}");
     assert!(a.message.contains(&format!("stopped at line {line}")), "stops at its block: {a}");
@@ -378,7 +378,7 @@ fn overcurrent_on_x_during_a_feed_move_stops_everything() {
     // Fault at 1.5 s of drive time: mid-way through the Z feed.
     let mut o = run(PROGRAM, Setup { faults: &["1:overcurrent@1500"], ..Setup::default() });
     let a = o.alarm().clone();
-    assert_eq!(a.number, 2010, "{a}");
+    assert_eq!(a.number, cncgw::alarm::DRIVE_FAULT, "{a}");
     assert!(a.message.contains("node 1 (axis x)"), "{a}");
     assert!(a.message.contains("0x2310") && a.message.contains("overcurrent"), "the error in words: {a}");
     assert!(a.message.contains("stopped at line 5"), "{a}");
@@ -402,7 +402,7 @@ fn heartbeat_loss_of_z_is_alarm_2011_within_three_periods() {
     // for another master (≈ 130 ms longer start-up).
     let mut o = run(PROGRAM, Setup { faults: &["2:heartbeat-stop@1330"], ..Setup::default() });
     let a = o.alarm().clone();
-    assert_eq!(a.number, 2011, "{a}");
+    assert_eq!(a.number, cncgw::alarm::HEARTBEAT_LOST, "{a}");
     assert!(a.message.contains("node 2 (axis z)"), "{a}");
     // Heartbeat 100 ms: consumer timeout 3 periods after the last one heard; then Z (isolated,
     // quick stop) and X stop.
@@ -426,7 +426,7 @@ fn heartbeat_loss_of_z_is_alarm_2011_within_three_periods() {
 fn a_node_falling_silent_is_stale_feedback_within_the_feedback_timeout() {
     let mut o = run(PROGRAM, Setup { faults: &["1:silent-ms@1300"], ..Setup::default() });
     let a = o.alarm().clone();
-    assert_eq!(a.number, 2015, "{a}");
+    assert_eq!(a.number, cncgw::alarm::STALE_FEEDBACK, "{a}");
     assert!(a.message.contains("node 1 (axis x)"), "{a}");
     let after = o.end_ns - (1300 * MS);
     // feedback_timeout_ms = 20 in config/lathe.toml, checked every 2 ms cycle; then the
@@ -484,7 +484,7 @@ fn late_tpdos_of_one_node_are_stale_feedback() {
     // timeout and stops (alarm 2015 naming Z) — it never runs on positions that old.
     let mut o = run(PROGRAM, Setup { faults: &["2:tpdo-delay-us=25000@1400"], ..Setup::default() });
     let a = o.alarm().clone();
-    assert_eq!(a.number, 2015, "{a}");
+    assert_eq!(a.number, cncgw::alarm::STALE_FEEDBACK, "{a}");
     assert!(a.message.contains("node 2 (axis z)"), "{a}");
     let t0 = 1400 * MS;
     let detect = o.probe.samples.iter().find(|s| s.t > t0 && s.state[DZ] != State::OperationEnabled).map(|s| s.t - t0).unwrap();
@@ -562,7 +562,7 @@ fn bus_off_stops_the_run_and_a_restart_recovers() {
     let actions: Vec<(u64, Action)> = vec![(1400, Box::new(move |_| w.set_bus_off(true)))];
     let mut o = run(PROGRAM, Setup { actions, bus: Some(wire), ..Setup::default() });
     let a = o.alarm().clone();
-    assert_eq!(a.number, 2020, "{a}");
+    assert_eq!(a.number, cncgw::alarm::CAN_BUS, "{a}");
     assert!(o.end_ns - 1400 * MS <= 2 * CYCLE, "{} ms", (o.end_ns - 1400 * MS) / MS);
     let t0 = 1400 * MS;
     let cycles = o.stop_cycles(t0, 1500);
@@ -587,7 +587,7 @@ fn a_jammed_slide_trips_following_error_and_the_machine_stops() {
     // 60 N·m of dry friction on Z: far beyond its torque.
     let mut o = run(PROGRAM, Setup { faults: &["2:jam-mnm=60000@1400"], ..Setup::default() });
     let a = o.alarm().clone();
-    assert_eq!(a.number, 2010, "{a}");
+    assert_eq!(a.number, cncgw::alarm::DRIVE_FAULT, "{a}");
     assert!(a.message.contains("node 2 (axis z)"), "{a}");
     assert!(a.message.contains("0x8611") || a.message.contains("following error") || a.message.contains("0x2310"), "{a}");
     let cycles = o.stop_cycles(1400 * MS, 1000);
@@ -604,7 +604,7 @@ fn following_error_over_the_window_is_a_drive_fault_naming_the_axis() {
     let prog = "O1\nG98 G97 M03 S800\nG00 X40 Z2\nG01 X120 Z-100 F3000\nM30\n";
     let mut o = run(prog, Setup { faults: &["1:jam-mnm=20000@1300"], ..Setup::default() });
     let a = o.alarm().clone();
-    assert_eq!(a.number, 2010, "{a}");
+    assert_eq!(a.number, cncgw::alarm::DRIVE_FAULT, "{a}");
     assert!(a.message.contains("node 1 (axis x)") && a.message.contains("0x8611"), "{a}");
     let cycles = o.stop_cycles(1300 * MS, 1000);
     let bound = 300 + SPINDLE_STOP;
@@ -622,7 +622,7 @@ fn sync_error_over_its_limit_stops_spindle_and_z_together() {
     l.sync_err_limit_um = 1.0;
     let mut o = run(TAP, Setup { limits: Some(l), ..Setup::default() });
     let a = o.alarm().clone();
-    assert_eq!(a.number, 2307, "{a}");
+    assert_eq!(a.number, cncgw::alarm::SYNC_ERROR, "{a}");
     let end = o.end_ns;
     let first_enabled = o.probe.samples.iter().find(|s| s.state.iter().all(|st| *st == State::OperationEnabled)).unwrap().t;
     assert!(o.enabled_throughout(first_enabled, end), "a controlled stop, no drive quick-stopped");
@@ -639,7 +639,7 @@ fn sync_error_over_its_limit_stops_spindle_and_z_together() {
 fn encoder_loss_on_the_spindle_is_a_fault_that_reset_cannot_clear() {
     let mut o = run(PROGRAM, Setup { faults: &["3:encoder-lost@1600"], ..Setup::default() });
     let a = o.alarm().clone();
-    assert_eq!(a.number, 2010, "{a}");
+    assert_eq!(a.number, cncgw::alarm::DRIVE_FAULT, "{a}");
     assert!(a.message.contains("node 3 (axis s1)"), "{a}");
     assert!(a.message.contains("0x7305"), "{a}");
     assert!(o.moving_after(2000).is_empty());

@@ -186,7 +186,7 @@ fn a_missing_confirmation_is_a_timeout_alarm_and_nothing_moves() {
     // The chuck switch is not wired: M10 is never confirmed.
     let o = run(&machine("inputs_on = [0, 1]", ""), CUT, Vec::new());
     let a = o.result.as_ref().unwrap_err();
-    assert_eq!(a.number, 2600, "{a}");
+    assert_eq!(a.number, cncgw::alarm::IO_FIN_TIMEOUT, "{a}");
     assert!(a.message.contains("M10") && a.message.contains("chuck_clamped on") && a.message.contains("500 ms"), "{a}");
     assert_eq!(o.first_motion(), None, "an axis moved");
     assert!(o.samples.iter().all(|s| s.outputs & COOLANT == 0), "M08 after the unconfirmed M10 ran");
@@ -198,7 +198,7 @@ fn the_e_stop_input_takes_every_drive_out_of_operation_enabled_within_2_cycles()
     let open: Action = Box::new(|w: &mut SimWorld| assert!(w.set_io_input(NODE, 0, Some(false))));
     let o = run(&machine(WIRED, ""), CUT, vec![(drop_at, open)]);
     let a = o.result.as_ref().unwrap_err();
-    assert_eq!(a.number, 2400, "{a}");
+    assert_eq!(a.number, cncgw::alarm::ESTOP, "{a}");
     assert!(a.message.contains("estop_ok"), "{a}");
     assert!(o.summary.rest.quick_stop, "{:?}", o.summary.rest);
     let t = drop_at * MS;
@@ -213,7 +213,7 @@ fn the_e_stop_input_takes_every_drive_out_of_operation_enabled_within_2_cycles()
 #[test]
 fn the_e_stop_input_dropped_by_a_timed_config_event_stops_the_machine() {
     let o = run(&machine(&format!("{WIRED}\nevents = [{{ input = 0, at_ms = 1500, value = false }}]"), ""), CUT, Vec::new());
-    assert_eq!(o.result.as_ref().unwrap_err().number, 2400);
+    assert_eq!(o.result.as_ref().unwrap_err().number, cncgw::alarm::ESTOP);
     let out = o.first(1500 * MS, |s| s.state.iter().all(|st| *st != State::OperationEnabled)).unwrap();
     assert!(out.t - 1500 * MS <= 3 * 2 * MS, "{} ms", (out.t - 1500 * MS) / MS);
 }
@@ -223,7 +223,7 @@ fn the_door_opening_is_a_controlled_stop_with_an_alarm() {
     let open: Action = Box::new(|w: &mut SimWorld| assert!(w.set_io_input(NODE, 1, Some(false))));
     let o = run(&machine(WIRED, ""), CUT, vec![(1500, open)]);
     let a = o.result.as_ref().unwrap_err();
-    assert_eq!(a.number, 2601, "{a}");
+    assert_eq!(a.number, cncgw::alarm::IO_DOOR_OPEN, "{a}");
     assert!(a.message.contains("door_closed") && a.message.contains("close the door"), "{a}");
     let r = o.summary.rest;
     assert!(!r.quick_stop && r.at_rest, "a controlled stop: {r:?}");
@@ -236,7 +236,7 @@ fn the_door_opening_is_a_controlled_stop_with_an_alarm() {
 fn the_chuck_opening_while_the_spindle_turns_stops_the_machine() {
     let open: Action = Box::new(|w: &mut SimWorld| assert!(w.set_io_input(NODE, 2, Some(false))));
     let o = run(&machine(WIRED, ""), CUT, vec![(1500, open)]);
-    assert_eq!(o.result.as_ref().unwrap_err().number, 2602);
+    assert_eq!(o.result.as_ref().unwrap_err().number, cncgw::alarm::IO_CHUCK_UNCLAMPED);
     assert!(!o.summary.rest.quick_stop && o.summary.rest.at_rest);
 }
 
@@ -244,7 +244,7 @@ fn the_chuck_opening_while_the_spindle_turns_stops_the_machine() {
 fn a_program_does_not_start_with_the_door_open() {
     let o = run(&machine("inputs_on = [0]", ""), CUT, Vec::new());
     let a = o.result.as_ref().unwrap_err();
-    assert_eq!(a.number, 2601, "{a}");
+    assert_eq!(a.number, cncgw::alarm::IO_DOOR_OPEN, "{a}");
     assert!(a.message.starts_with("before the start"), "{a}");
     assert_eq!(o.first_motion(), None);
 }
@@ -315,7 +315,7 @@ fn m11_while_the_spindle_turns_is_refused_and_the_chuck_stays_clamped() {
     let prog = "G21 G98 G97\nM10\nM03 S600\nG00 X40 Z2\nM11\nG00 X60\nM30\n";
     let o = run(&machine(WIRED, ""), prog, Vec::new());
     let a = o.result.as_ref().unwrap_err();
-    assert_eq!(a.number, 2604, "{a}");
+    assert_eq!(a.number, cncgw::alarm::IO_UNCLAMP_TURNING, "{a}");
     assert!(a.message.contains("M11") && a.message.contains("line 5") && a.message.contains("M05"), "{a}");
     let clamp = o.first(0, |s| s.outputs & CLAMP != 0).expect("clamp valve on").t;
     // Until the run takes torque off (the master clears every output then).
@@ -355,11 +355,11 @@ fn the_panel_shows_e_stop_door_and_chuck() {
     assert_eq!(panel.safety(), SafetyInputs::default(), "nothing read yet");
     let open: Action = Box::new(|w: &mut SimWorld| assert!(w.set_io_input(NODE, 1, Some(false))));
     let o = run_panel(&machine(WIRED, ""), CUT, vec![(1500, open)], Some(&panel));
-    assert_eq!(o.result.as_ref().unwrap_err().number, 2601);
+    assert_eq!(o.result.as_ref().unwrap_err().number, cncgw::alarm::IO_DOOR_OPEN);
     assert_eq!(panel.safety(), SafetyInputs { estop: Some(true), door: Some(false), chuck: Some(true) });
     // Refused at the start (door open, chuck not clamped yet): shown too.
     let panel = Panel::new();
     let o = run_panel(&machine("inputs_on = [0]", ""), CUT, Vec::new(), Some(&panel));
-    assert_eq!(o.result.as_ref().unwrap_err().number, 2601);
+    assert_eq!(o.result.as_ref().unwrap_err().number, cncgw::alarm::IO_DOOR_OPEN);
     assert_eq!(panel.safety(), SafetyInputs { estop: Some(true), door: Some(false), chuck: Some(false) });
 }

@@ -144,7 +144,7 @@ fn a_feed_axis_fault_stops_the_turning_spindle_under_control() {
     ));
     let o = run(TURNING, s);
     let a = o.result.as_ref().expect_err("the fault stops the run");
-    assert_eq!(a.number, 2010, "{a}");
+    assert_eq!(a.number, cncgw::alarm::DRIVE_FAULT, "{a}");
     check_rest(&o.summary.rest);
     o.assert_rest_before_torque_off();
     // The spindle was not quick-stopped: it ramped down under control (never left Operation
@@ -162,7 +162,7 @@ fn reset_stops_spindle_and_axes_before_torque_off() {
     s.panel = Some(p);
     s.actions.push((1300, Box::new(move |_: &mut SimWorld| pr.press_reset())));
     let o = run(TURNING, s);
-    assert_eq!(o.result.as_ref().unwrap_err().number, 2401);
+    assert_eq!(o.result.as_ref().unwrap_err().number, cncgw::alarm::RESET);
     check_rest(&o.summary.rest);
     o.assert_rest_before_torque_off();
 }
@@ -175,7 +175,7 @@ fn e_stop_brakes_every_drive_on_its_ramp_to_standstill() {
     s.panel = Some(p);
     s.actions.push((1300, Box::new(move |_: &mut SimWorld| pr.set_estop(true))));
     let o = run(TURNING, s);
-    assert_eq!(o.result.as_ref().unwrap_err().number, 2400);
+    assert_eq!(o.result.as_ref().unwrap_err().number, cncgw::alarm::ESTOP);
     let r = o.summary.rest;
     assert!(r.quick_stop && r.at_rest, "{r:?}");
     o.assert_rest_before_torque_off();
@@ -189,7 +189,7 @@ fn e_stop_brakes_every_drive_on_its_ramp_to_standstill() {
 fn a_program_alarm_stops_spindle_and_axes_before_torque_off() {
     // X500 is beyond X's travel: refused as it reaches motion (alarm 2301), a controlled stop.
     let o = run("G21\nG98 G97\nM03 S1200\nG00 X40 Z2\nG01 Z-40 F3000\nG00 X500\nM30\n", setup());
-    assert_eq!(o.result.as_ref().unwrap_err().number, 2301);
+    assert_eq!(o.result.as_ref().unwrap_err().number, cncgw::alarm::TRAVEL);
     check_rest(&o.summary.rest);
     o.assert_rest_before_torque_off();
 }
@@ -202,7 +202,7 @@ fn a_termination_signal_is_a_reset() {
     s.actions.push((1300, Box::new(|_: &mut SimWorld| SIG.store(15, Ordering::Relaxed))));
     let o = run(TURNING, s);
     let a = o.result.as_ref().unwrap_err();
-    assert_eq!(a.number, 2401, "{a}");
+    assert_eq!(a.number, cncgw::alarm::RESET, "{a}");
     assert!(a.message.contains("SIGTERM"), "{a}");
     check_rest(&o.summary.rest);
     o.assert_rest_before_torque_off();
@@ -223,7 +223,7 @@ fn a_slow_axis_stands_on_its_stop_point_before_torque_off() {
     s.actions.push((700, Box::new(move |_: &mut SimWorld| pr.press_reset())));
     let o = run("G21\nG98\nG00 X100 Z2\nG00 X10\nM30\n", s);
     let a = o.result.as_ref().unwrap_err();
-    assert_eq!(a.number, 2401, "{a}");
+    assert_eq!(a.number, cncgw::alarm::RESET, "{a}");
     check_rest(&o.summary.rest);
     o.assert_rest_before_torque_off();
     // X stands on the commanded stop point (the last set-point) within a micrometre.
