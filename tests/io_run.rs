@@ -5,6 +5,7 @@
 //! The clock samples the module's outputs and every drive after every wait, so each test
 //! sees what the *devices* did.
 
+mod io_common;
 mod sim_probe;
 
 use cncgw::config::{MachineConfig, EMBEDDED_LATHE};
@@ -17,6 +18,7 @@ use cncgw::Alarm;
 use cncgw_bus::cia402::State;
 use cncgw_bus::transport::inproc::InprocBus;
 use cncgw_bus::Clock;
+use io_common::SAFETY_AND_M_CODES;
 use sim_drives::SimWorld;
 use sim_probe::{Action, Probe, MS};
 
@@ -46,17 +48,7 @@ chuck_clamp = "io1.1"
 turret_index = "io1.2"
 t1 = "io1.3"
 t2 = "io1.4"
-[io.safety]
-estop = "estop_ok"
-door = "door_closed"
-chuck = "chuck_clamped"
-[io.m.8]
-set = ["coolant"]
-[io.m.9]
-clear = ["coolant"]
-[io.m.10]
-set = ["chuck_clamp"]
-wait_on = ["chuck_clamped"]
+{SAFETY_AND_M_CODES}
 [io.m.11]
 clear = ["chuck_clamp"]
 wait_off = ["chuck_clamped"]
