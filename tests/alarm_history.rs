@@ -54,7 +54,11 @@ fn list_prints_the_catalogue() {
     assert!(estop["doc"].as_str().unwrap().contains("E-stop"), "{estop}");
     let text = String::from_utf8_lossy(&cncgw(&state, &["alarms", "--list"]).stdout).into_owned();
     let line = text.lines().find(|l| l.trim_start().starts_with("2015 ")).unwrap_or_else(|| panic!("2015 missing:\n{text}"));
-    assert!(line.contains("STALE_FEEDBACK") && line.contains(cncgw::alarm::CATALOGUE.iter().find(|e| e.number == 2015).unwrap().doc), "{line}");
+    assert!(
+        line.contains("STALE_FEEDBACK")
+            && line.contains(cncgw::alarm::CATALOGUE.iter().find(|e| e.number == cncgw::alarm::STALE_FEEDBACK).unwrap().doc),
+        "{line}"
+    );
     assert!(text.contains("2200–2299 Modbus"), "groups are headed:\n{text}");
     assert!(!state.exists(), "--list touches no state");
     assert_eq!(cncgw(&state, &["alarms", "--list", "--since", "8h"]).status.code(), Some(2));

@@ -125,7 +125,7 @@ fn a_drive_fault_names_error_code_and_register_in_words() {
     assert!(cycle_until_alarm(&mut w, &mut m, &mut next, 5).is_none());
     assert!(w.inject_fault(2, 0x3210));
     let (a, k) = cycle_until_alarm(&mut w, &mut m, &mut next, 50).expect("alarm 2010");
-    assert_eq!(a.number, 2010, "{}", a.message);
+    assert_eq!(a.number, cncgw::alarm::DRIVE_FAULT, "{}", a.message);
     // EMCY seen, then 0x603F and 0x1001 read over SDO: within a few cycles.
     assert!(k <= 4, "alarm after {k} cycles");
     assert!(a.message.starts_with("node 2 (axis z): drive fault EMCY 0x3210 DC-link overvoltage"), "{}", a.message);
@@ -146,7 +146,7 @@ fn a_fault_without_emcy_is_diagnosed_too() {
     let mut next = w.now_ns();
     assert!(w.set_sim_fault(1, sim_drives::drive::fault_sub::RAISE, 0x7305).is_ok());
     let (a, _) = cycle_until_alarm(&mut w, &mut m, &mut next, 50).expect("alarm 2010");
-    assert_eq!(a.number, 2010, "{}", a.message);
+    assert_eq!(a.number, cncgw::alarm::DRIVE_FAULT, "{}", a.message);
     assert!(a.message.contains("drive left Operation Enabled"), "{}", a.message);
     assert!(a.message.contains("0x603F error code 0x7305 incremental encoder 1 broken"), "{}", a.message);
     assert!(a.message.contains("0x1001 error register 0x01 generic error;"), "{}", a.message);
@@ -186,7 +186,7 @@ fn profile_move_outside_the_software_limits_stops_at_the_limit_and_says_so() {
     m.profile_move(&mut w, 1, 170.0, 400.0, 4000.0).unwrap();
     assert!((w.drive(1).unwrap().position_unwrapped() as f64 / 1e4 - 150.0).abs() < 0.002);
     let e = m.profile_move(&mut w, 1, 1.0, 0.0, 100.0).unwrap_err();
-    assert_eq!(e.number, 2016);
+    assert_eq!(e.number, cncgw::alarm::PROFILE_MOVE);
     assert!(e.message.contains("profile velocity 0 is out of range"), "{}", e.message);
 }
 
@@ -280,11 +280,11 @@ fn homing_errors_are_alarms() {
     m.startup(&mut w).expect("startup");
     // No positive limit switch fitted: the drive reports a homing error (bit 13).
     let e = m.home(&mut w, 1, 18, 10.0, 1.0, 100.0, 2000).unwrap_err();
-    assert_eq!(e.number, 2017);
+    assert_eq!(e.number, cncgw::alarm::HOMING);
     assert!(e.message.contains("homing method 18 failed (0x6041 bit 13 homing error)"), "{}", e.message);
     // An unsupported method is refused by the drive.
     let e = m.home(&mut w, 1, 31, 10.0, 1.0, 100.0, 2000).unwrap_err();
-    assert_eq!(e.number, 2017);
+    assert_eq!(e.number, cncgw::alarm::HOMING);
     assert!(e.message.contains("0x06090030") && e.message.contains("not supported"), "{}", e.message);
     // The drive is usable afterwards.
     m.profile_move(&mut w, 1, 1.0, 10.0, 100.0).unwrap();
@@ -304,7 +304,7 @@ fn lost_or_late_feedback_is_alarm_2015() {
     let (_cfg, bus, mut w, mut m, mut next) = enabled();
     bus.set_faults(Some(WireFaults { drop: 1.0, ..only(0x182, 0x182, 1) }));
     let (a, k) = cycle_until_alarm(&mut w, &mut m, &mut next, 100).expect("alarm");
-    assert_eq!(a.number, 2015, "{}", a.message);
+    assert_eq!(a.number, cncgw::alarm::STALE_FEEDBACK, "{}", a.message);
     assert!(a.message.starts_with("node 2 (axis z): no position feedback"), "{}", a.message);
     assert!((9..=12).contains(&k), "after {k} cycles (feedback timeout 20 ms)");
 
@@ -312,7 +312,7 @@ fn lost_or_late_feedback_is_alarm_2015() {
     let (_cfg, bus, mut w, mut m, mut next) = enabled();
     bus.set_faults(Some(WireFaults { delay: 1.0, delay_ns: 30 * MS, ..only(0x181, 0x181, 1) }));
     let (a, _) = cycle_until_alarm(&mut w, &mut m, &mut next, 100).expect("alarm");
-    assert_eq!(a.number, 2015, "{}", a.message);
+    assert_eq!(a.number, cncgw::alarm::STALE_FEEDBACK, "{}", a.message);
     assert!(a.message.starts_with("node 1 (axis x)"), "{}", a.message);
 
     // Delayed by 5 ms: the master runs on. A constant latency cannot be seen by the age
@@ -408,7 +408,7 @@ fn a_drive_booting_after_the_boot_wait_is_alarm_2001_naming_it() {
     // The master waits 4 × sdo_timeout_ms = 2000 ms for every boot-up after its NMT reset.
     let (mut w, mut m) = rig_with_boot_delay(3, 2500.0);
     let e = m.startup(&mut w).unwrap_err();
-    assert_eq!(e.number, 2001, "{}", e.message);
+    assert_eq!(e.number, cncgw::alarm::CANOPEN_BOOT, "{}", e.message);
     assert!(e.message.starts_with("node 3 (axis s1): no boot-up message within 2000 ms"), "{}", e.message);
     assert!(m.booted(1) && m.booted(2) && !m.booted(3));
     // After listening 120 ms for another master (1.2 × heartbeat_ms), then 2000 ms for the
@@ -553,7 +553,7 @@ fn startup_checks_the_eds_named_in_the_config() {
     let mut m = CanOpenMaster::new(bus.endpoint(), &cfg);
     let e = m.startup(&mut w).unwrap_err();
     let _ = std::fs::remove_file(&bad);
-    assert_eq!(e.number, 2004, "{}", e.message);
+    assert_eq!(e.number, cncgw::alarm::EDS, "{}", e.message);
     assert!(e.message.starts_with("node 2 (axis z): the configuration does not fit the drive's EDS (1 problem(s))"), "{}", e.message);
     assert!(
         e.message.contains(&format!(

@@ -207,7 +207,7 @@ fn modal_rules_and_cancel() {
     // After G00 the block X30 is an ordinary rapid.
     assert_eq!((r.last().unwrap().kind, r.last().unwrap().x), ("rapid", 30.0));
     let a = run_err("G98\nG0 X0 Z5\nG83 Z-5 R-2 F100\nG80\nG83 X10\n");
-    assert_eq!(a.number, 2510);
+    assert_eq!(a.number, cncgw::alarm::VALUE_RANGE);
     assert_eq!(a.pos.as_ref().map(|p| (p.line, p.col)), Some((5, 1)));
     assert!(a.message.contains("no hole bottom"), "{a}");
 }
@@ -253,16 +253,16 @@ fn drilling_axis_by_plane_and_5209() {
 #[test]
 fn drilling_alarms() {
     let a = run_err("G98\nG0 X0 Z5\nG83 Z-5 R-2 F100 K100\n");
-    assert_eq!((a.number, a.pos.as_ref().unwrap().col), (2510, 18));
+    assert_eq!((a.number, a.pos.as_ref().unwrap().col), (cncgw::alarm::VALUE_RANGE, 18));
     let a = run_err("G99\nG0 X0 Z5\nG83 Z-5 R-2\n");
-    assert_eq!(a.number, 11, "{a}");
+    assert_eq!(a.number, cncgw::alarm::FEED_ZERO, "{a}");
     let a = run_err("G98\nG0 X0 Z5\nG83 Z-5 R-2 Q-1 F100\n");
-    assert_eq!(a.number, 2510);
+    assert_eq!(a.number, cncgw::alarm::VALUE_RANGE);
     // A tiny Q cannot flood the queue: at most 20000 pecks per block.
     let a = run_err("G98\nG0 X0 Z5\nG83 Z-1000 R-1 Q0.01 F100 K9\n");
-    assert_eq!((a.number, a.pos.as_ref().unwrap().col), (2510, 16));
+    assert_eq!((a.number, a.pos.as_ref().unwrap().col), (cncgw::alarm::VALUE_RANGE, 16));
     // K198 is for rigid tapping only.
-    assert_eq!(run_err("G98\nG0 X0 Z5\nG83 Z-5 R-2 F100 K198\n").number, 2510);
+    assert_eq!(run_err("G98\nG0 X0 Z5\nG83 Z-5 R-2 F100 K198\n").number, cncgw::alarm::VALUE_RANGE);
 }
 
 /// No.5155: the drilling mode kept through a reset, or not.

@@ -70,11 +70,11 @@ fn g92_1_left_hand_and_alarms() {
     let r = rows(&run("G0 X65 Z5 C10\nG92.1 X58.7 Z-0.5 F-3 S600\n"));
     // 5.5 / 3 rev = 660° back to -650, then ④ on down to -710 ≡ 10 (mod 360).
     row(&r[4], "rapid", 65.0, 5.0, -710.0, 4);
-    assert_eq!(run_err("G0 X65 Z5\nG92.1 X58.7 Z-28 F3\n").number, 2510); // no S
-    assert_eq!(run_err("G0 X65 Z5\nG92.1 X58.7 Z5 F3 S600\n").number, 2510); // face
-    assert_eq!(run_err("G0 X65 Z5\nG92.1 X58.7 Z-28 S600\n").number, 11); // no lead
-    assert_eq!(run_err("G0 X65 Z5\nG92.1 X58.7 Z-28 F3 L100 S600\n").number, 2510);
-    assert_eq!(run_err("G0 X60 Z5\nG92.1 X64 Z-28 R-3 F3 S600\n").number, 2510);
+    assert_eq!(run_err("G0 X65 Z5\nG92.1 X58.7 Z-28 F3\n").number, cncgw::alarm::VALUE_RANGE); // no S
+    assert_eq!(run_err("G0 X65 Z5\nG92.1 X58.7 Z5 F3 S600\n").number, cncgw::alarm::VALUE_RANGE); // face
+    assert_eq!(run_err("G0 X65 Z5\nG92.1 X58.7 Z-28 S600\n").number, cncgw::alarm::FEED_ZERO); // no lead
+    assert_eq!(run_err("G0 X65 Z5\nG92.1 X58.7 Z-28 F3 L100 S600\n").number, cncgw::alarm::VALUE_RANGE);
+    assert_eq!(run_err("G0 X60 Z5\nG92.1 X64 Z-28 R-3 F3 S600\n").number, cncgw::alarm::VALUE_RANGE);
     // Inch threads: I8 → 3.175 mm.
     let r = rows(&run("G0 X65 Z5\nG92.1 X58.7 Z-28 I8 S600\n"));
     assert!((r[2].4 - 3.175).abs() < 1e-12);

@@ -79,8 +79,8 @@ fn g90_four_sign_cases() {
         check(&w[4], "rapid", 50.0, 5.0, 0.0, 4);
     }
     // |R| > |U/2| with opposite signs.
-    assert_eq!(run_err("G98 G00 X50 Z5\nG90 U20 W-20 R-11 F100\n").number, 2510);
-    assert_eq!(run_err("G98 G00 X50 Z5\nG94 U-20 W-5 R6 F100\n").number, 2510);
+    assert_eq!(run_err("G98 G00 X50 Z5\nG90 U20 W-20 R-11 F100\n").number, cncgw::alarm::VALUE_RANGE);
+    assert_eq!(run_err("G98 G00 X50 Z5\nG94 U-20 W-5 R6 F100\n").number, cncgw::alarm::VALUE_RANGE);
 }
 
 #[test]
@@ -115,5 +115,5 @@ fn retained_values_survive_g04_and_clear_on_other_codes() {
 fn cycles_need_the_zx_plane_and_a_feed() {
     assert_eq!(run_err("G98 G00 X50 Z5\nG17\nG90 X40 Z-30 F100\n").number, 10);
     assert_eq!(run_err("G98 G00 X50 Z5\nG90 X40 Z-30 C10 F100\n").number, 21);
-    assert_eq!(run_err("G00 X50 Z5\nG98\nG90 X40 Z-30\n").number, 11);
+    assert_eq!(run_err("G00 X50 Z5\nG98\nG90 X40 Z-30\n").number, cncgw::alarm::FEED_ZERO);
 }

@@ -15,11 +15,24 @@ use cncgw_bus::transport::inproc::{InprocBus, InprocEndpoint};
 use cncgw_bus::Clock;
 use sim_drives::config::Shape;
 use sim_drives::{SimConfig, SimWorld};
+use std::ffi::OsStr;
+use std::path::Path;
+use std::process::Output;
 
 const IP: u32 = 1 << 7;
 
+const FIRST_PART: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/examples/first_part.nc");
+
+/// `cncgw -v run --batch FLAGS --config DIR/lathe.toml REST`, its state in `dir`, RUST_LOG
+/// unset (the tests read the `-v` lines).
+fn run_verbose(dir: &Path, flags: &[&str], rest: &[&OsStr]) -> Output {
+    let mut c = testkit::cli!().state(dir).command(&["-v", "run", "--batch"]);
+    c.args(flags).arg("--config").arg(dir.join("lathe.toml")).args(rest).env_remove("RUST_LOG");
+    c.output().expect("run cncgw")
+}
+
 fn first_part() -> String {
-    std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/examples/first_part.nc")).unwrap()
+    std::fs::read_to_string(FIRST_PART).unwrap()
 }
 
 /// The default lathe's drives, every one of the named profile, then changed by `f`.
@@ -121,14 +134,14 @@ fn ip_only_drives_run_first_part_in_interpolated_position_to_its_end_point() {
 fn csp_on_an_ip_only_drive_stops_before_motion_and_names_the_ip_key() {
     let r = run(&MachineConfig::embedded(), profiled("ip-only", |_| {}), &first_part());
     let a = r.alarm();
-    assert_eq!(a.number, 2005, "{a}");
+    assert_eq!(a.number, cncgw::alarm::DRIVE_MODE, "{a}");
     assert!(a.message.starts_with("node 1 (axis x): this drive has no CSP (cyclic synchronous position) mode"), "{a}");
     assert!(a.message.contains("set axes.x.mode = \"ip\""), "{a}");
     r.assert_nothing_moved();
     // Without 0x6502 the refusal of 0x6060 = 8 (abort 0x06090030) says the same.
     let r = run(&MachineConfig::embedded(), profiled("ip-only", |s| s.supported_modes_object = false), &first_part());
     let a = r.alarm();
-    assert_eq!(a.number, 2003, "{a}");
+    assert_eq!(a.number, cncgw::alarm::SDO_CONFIG, "{a}");
     assert!(a.message.contains("it refuses 0x6060 = 8") && a.message.contains("axes.NAME.mode = \"ip\""), "{a}");
     assert!(a.message.contains("0x06090030"), "{a}");
     r.assert_nothing_moved();
@@ -177,7 +190,7 @@ fn a_refused_start_up_write_stops_before_motion_and_leaves_the_drive_as_found() 
     let cfg = with_list(&[(0x2003, 1200, "u16"), (0x2004, 1, "u8")]);
     let r = run(&cfg, profiled("plain", |_| {}), SHORT);
     let a = r.alarm();
-    assert_eq!(a.number, 2008, "{a}");
+    assert_eq!(a.number, cncgw::alarm::STARTUP_LIST, "{a}");
     assert!(
         a.message.starts_with("node 1 (axis x): start-up list axes.x.sdo[1] 0x2004:00 = 1 (u8): the drive refused the write (abort 0x06010002"),
         "{a}"
@@ -188,7 +201,7 @@ fn a_refused_start_up_write_stops_before_motion_and_leaves_the_drive_as_found() 
     // Out of the drive's range: refused the same way, naming the value.
     let r = run(&with_list(&[(0x2003, 2500, "u16")]), profiled("plain", |_| {}), SHORT);
     let a = r.alarm();
-    assert_eq!(a.number, 2008, "{a}");
+    assert_eq!(a.number, cncgw::alarm::STARTUP_LIST, "{a}");
     assert!(a.message.contains("sdo[0] 0x2003:00 = 2500 (u16): the drive refused the write (abort 0x06090031"), "{a}");
 }
 
@@ -197,7 +210,7 @@ fn a_value_the_drive_keeps_otherwise_is_a_start_up_alarm_naming_both_values() {
     // The drive keeps its current limit in whole amperes: 1234 (0.1 A) reads back 1230.
     let r = run(&with_list(&[(0x2006, 1234, "u16")]), profiled("plain", |_| {}), SHORT);
     let a = r.alarm();
-    assert_eq!(a.number, 2008, "{a}");
+    assert_eq!(a.number, cncgw::alarm::STARTUP_LIST, "{a}");
     assert!(a.message.starts_with("node 1 (axis x): start-up list axes.x.sdo[0] 0x2006:00 = 1234 (u16): written 1234, read back 1230"), "{a}");
     r.assert_nothing_moved();
 }
@@ -251,16 +264,8 @@ fn cli_run(name: &str, modes: [&str; 3], profiles: [&str; 3]) -> (i32, String, S
     }
     std::fs::write(dir.join("drives.toml"), sim).unwrap();
     std::fs::write(dir.join("lathe.toml"), lathe).unwrap();
-    let o = std::process::Command::new(env!("CARGO_BIN_EXE_cncgw"))
-        .args(["-v", "run", "--batch", "--config"])
-        .arg(dir.join("lathe.toml"))
-        .arg("--sim-config")
-        .arg(dir.join("drives.toml"))
-        .arg(concat!(env!("CARGO_MANIFEST_DIR"), "/examples/first_part.nc"))
-        .env("CNCGW_STATE_DIR", &dir)
-        .env_remove("RUST_LOG")
-        .output()
-        .expect("run cncgw");
+    let drives = dir.join("drives.toml");
+    let o = run_verbose(&dir, &[], &[OsStr::new("--sim-config"), drives.as_os_str(), OsStr::new(FIRST_PART)]);
     let _ = std::fs::remove_dir_all(&dir);
     (o.status.code().unwrap_or(-1), String::from_utf8_lossy(&o.stdout).into_owned(), String::from_utf8_lossy(&o.stderr).into_owned())
 }
@@ -302,7 +307,7 @@ fn a_fixed_mapping_without_the_ip_target_stops_before_motion_naming_the_object()
     // IP but no CSP, and a fixed RPDO1 of controlword + 0x607A (CSP's target).
     let r = run(&ip_machine(), profiled("ip-only", |s| s.fixed_pdo = true), &first_part());
     let a = r.alarm();
-    assert_eq!(a.number, 2009, "{a}");
+    assert_eq!(a.number, cncgw::alarm::FIXED_PDO, "{a}");
     assert!(a.message.starts_with("node 1 (axis x): RPDO1 cannot be remapped (SDO abort 0x06010002"), "{a}");
     assert!(
         a.message.contains(
@@ -333,14 +338,7 @@ fn ip_only_fixed_pdo_and_pp_boot_drives_over_socketcand_end_at_the_end_point() {
     let lathe = EMBEDDED_LATHE.replacen("\nnode = 1\n", "\nnode = 1\nmode = \"ip\"\n", 1);
     std::fs::write(dir.join("lathe.toml"), lathe).unwrap();
     std::fs::write(dir.join("short.nc"), "G98 G00 X40. Z2.\nG01 Z-10. F1200\nG00 X60. Z5.\nM30\n").unwrap();
-    let o = std::process::Command::new(env!("CARGO_BIN_EXE_cncgw"))
-        .args(["-v", "run", "--batch", "--bus", &format!("socketcand://{addr}/can0"), "--config"])
-        .arg(dir.join("lathe.toml"))
-        .arg(dir.join("short.nc"))
-        .env("CNCGW_STATE_DIR", &dir)
-        .env_remove("RUST_LOG")
-        .output()
-        .expect("run cncgw");
+    let o = run_verbose(&dir, &["--bus", &format!("socketcand://{addr}/can0")], &[dir.join("short.nc").as_os_str()]);
     stop.store(true, Ordering::Relaxed);
     let _ = hub.join();
     let _ = std::fs::remove_dir_all(&dir);
@@ -395,7 +393,7 @@ fn an_ip_drive_that_stops_being_active_while_running_is_alarm_2005() {
     let r = run_program(&mut lp, interp, &mut summary);
     lp.finish();
     let a = r.expect_err("the run must stop");
-    assert_eq!(a.number, 2005, "{a}");
+    assert_eq!(a.number, cncgw::alarm::DRIVE_MODE, "{a}");
     assert!(a.message.starts_with("node 2 (axis z): statusword bit 12 (ip mode active) dropped while running"), "{a}");
     assert!(!summary.at_program_end());
 }
@@ -584,14 +582,7 @@ fn first_part_over_socketcand_runs_on_the_sync_drive_1_produces_and_ends_within_
     let lathe = lathe.join("\n") + "\n";
     assert_eq!(lathe.matches("= 4.0\n").count() + lathe.matches("= 90.0\n").count() + lathe.matches("sync = \"external\"").count(), 3);
     std::fs::write(dir.join("lathe.toml"), lathe).unwrap();
-    let o = std::process::Command::new(env!("CARGO_BIN_EXE_cncgw"))
-        .args(["-v", "run", "--batch", "--json", "--bus", &format!("socketcand://{addr}/can0"), "--config"])
-        .arg(dir.join("lathe.toml"))
-        .arg(concat!(env!("CARGO_MANIFEST_DIR"), "/examples/first_part.nc"))
-        .env("CNCGW_STATE_DIR", &dir)
-        .env_remove("RUST_LOG")
-        .output()
-        .expect("run cncgw");
+    let o = run_verbose(&dir, &["--json", "--bus", &format!("socketcand://{addr}/can0")], &[OsStr::new(FIRST_PART)]);
     stop.store(true, Ordering::Relaxed);
     let _ = hub.join();
     let _ = std::fs::remove_dir_all(&dir);

@@ -10,6 +10,8 @@
 //! actions due (a panel button, bus-off), so a test sees what the *drives* did, not what the
 //! controller thinks.
 
+mod sim_probe;
+
 use cncgw::config::{MachineConfig, EMBEDDED_LATHE};
 use cncgw::control::cycle::{CycleLoop, RunSummary};
 use cncgw::control::job::run_program;
@@ -24,6 +26,7 @@ use cncgw_bus::transport::inproc::{InprocBus, WireFaults};
 use cncgw_bus::{CanBus, CanFrame, Clock};
 use sim_drives::report::Scenario;
 use sim_drives::SimWorld;
+use sim_probe::{Action, Probe, Sample, MS};
 
 /// A long Z feed at 3000 mm/min with the spindle turning, then a thread pass.
 const PROGRAM: &str = "O1\nG21\nG98 G97 M03 S800\nG00 X40 Z2\nG01 Z-150 F3000\nG00 X50\nZ2\nM30\n";
@@ -36,7 +39,6 @@ const THREAD: &str = "O3\nG97 M03 S800\nG00 X45 Z5\nG92 X38 Z-60 F2\nG00 X50\nM3
 const THREAD_LINE: u32 = 4;
 const THREAD_LEAD: f64 = 2.0;
 
-const MS: u64 = 1_000_000;
 /// Cycles every stop now takes beyond what it took when the spindle was left to the drive's
 /// own hold: the run brings the turning spindle to rest under control on its ramp before it
 /// ends (≈ 70 cycles from S800 at 6000 rpm/s) and the spindle's soft position loop then creeps
@@ -45,66 +47,6 @@ const SPINDLE_STOP: u64 = 250;
 const CYCLE: u64 = 2 * MS;
 /// Velocity below which a drive counts as at rest, counts/s (5 µm/s, 0.05°/s).
 const REST: i32 = 50;
-
-#[derive(Clone, Debug)]
-struct Sample {
-    t: u64,
-    pos: Vec<i64>,
-    vel: Vec<i32>,
-    state: Vec<State>,
-}
-
-type Action = Box<dyn FnMut(&mut SimWorld)>;
-
-/// The simulated world as the cycle loop's clock, sampling every drive after every wait.
-struct Probe {
-    world: SimWorld,
-    samples: Vec<Sample>,
-    /// (time, action), fired once at the first wait that reaches the time.
-    actions: Vec<(u64, Option<Action>)>,
-}
-
-impl Probe {
-    fn sample(&mut self) {
-        let d = self.world.drives();
-        self.samples.push(Sample {
-            t: self.world.now_ns(),
-            pos: d.iter().map(|d| d.position_unwrapped()).collect(),
-            vel: d.iter().map(|d| d.velocity_actual()).collect(),
-            state: d.iter().map(|d| d.state()).collect(),
-        });
-    }
-
-    /// Run the world on (nobody commanding) for `ms`, sampling.
-    fn idle(&mut self, ms: u64) {
-        let end = self.now_ns() + ms * MS;
-        while self.now_ns() < end {
-            let t = self.now_ns() + CYCLE;
-            self.wait_until(t);
-        }
-    }
-}
-
-impl Clock for Probe {
-    fn now_ns(&self) -> u64 {
-        self.world.now_ns()
-    }
-    fn wait_until(&mut self, t: u64) {
-        self.world.wait_until(t);
-        let now = self.world.now_ns();
-        for (at, a) in self.actions.iter_mut() {
-            if *at <= now {
-                if let Some(mut f) = a.take() {
-                    f(&mut self.world);
-                }
-            }
-        }
-        self.sample();
-    }
-    fn is_simulated(&self) -> bool {
-        true
-    }
-}
 
 /// The master as the loop sees it, but without fault isolation: every fault quick-stops
 /// every drive, as before the coordinated stop (for the before/after figure).
@@ -179,7 +121,7 @@ fn run(program: &str, setup: Setup<'_>) -> Outcome {
     let mut world = SimWorld::new(&wire, sim_drives::SimConfig::from_machine_toml(EMBEDDED_LATHE).unwrap());
     let f: Vec<_> = setup.faults.iter().map(|s| sim_drives::parse_fault(s).unwrap()).collect();
     world.schedule_faults(f);
-    let mut probe = Probe { world, samples: Vec::new(), actions: setup.actions.into_iter().map(|(ms, a)| (ms * MS, Some(a))).collect() };
+    let mut probe = Probe::new(world, setup.actions, Sample::of);
     let mut master = CanOpenMaster::new(wire.endpoint(), &cfg);
     wire.set_faults(setup.wire.clone());
     let mut plain = NoIsolation(&mut master);
@@ -197,7 +139,7 @@ fn run(program: &str, setup: Setup<'_>) -> Outcome {
     let end_ns = probe.now_ns();
     // Sample the drives on for a while, nobody commanding (less than the drives' 300 ms
     // heartbeat timeout after the master's last heartbeat).
-    probe.idle(150);
+    probe.idle(150, CYCLE);
     match &r {
         Ok(()) => eprintln!("{:?}: ran to the end at {:.1} ms", setup.faults, end_ns as f64 / 1e6),
         Err(a) => eprintln!("{:?}: stopped at {:.1} ms: {a}", setup.faults, end_ns as f64 / 1e6),
@@ -217,7 +159,7 @@ impl Outcome {
 
     /// Let the world run on for `ms` with nobody commanding, then: which motors still move?
     fn moving_after(&mut self, ms: u64) -> Vec<(u8, i32)> {
-        self.probe.idle(ms);
+        self.probe.idle(ms, CYCLE);
         self.probe.world.drives().iter().map(|d| (d.node(), d.velocity_actual())).filter(|(_, v)| v.abs() > REST).collect()
     }
 
@@ -229,7 +171,7 @@ impl Outcome {
     /// Cycles from `t0` until every drive is at rest for good (over the samples taken, which
     /// include `settle_ms` of idling after the run).
     fn stop_cycles(&mut self, t0: u64, settle_ms: u64) -> u64 {
-        self.probe.idle(settle_ms);
+        self.probe.idle(settle_ms, CYCLE);
         let last_moving = self.probe.samples.iter().rev().find(|s| s.vel.iter().any(|v| v.abs() > REST)).map_or(t0, |s| s.t);
         last_moving.saturating_sub(t0).div_ceil(CYCLE)
     }
@@ -301,7 +243,7 @@ fn sync_fault(name: &str, program: &str, line: u32, lead: f64, fault: &str, node
     let _ = node;
     let mut o = run(program, Setup { faults: &[fault], ..Setup::default() });
     let a = o.alarm().clone();
-    assert_eq!(a.number, 2010, "{a}");
+    assert_eq!(a.number, cncgw::alarm::DRIVE_FAULT, "{a}");
     assert!(a.message.contains(node_text), "names the node: {a}");
     assert!(a.message.contains("0x603F error code 0x"), "the error in words: {a}");
     assert!(a.message.contains(&format!("stopped at line {line}")), "stops at its block: {a}");
@@ -436,7 +378,7 @@ fn overcurrent_on_x_during_a_feed_move_stops_everything() {
     // Fault at 1.5 s of drive time: mid-way through the Z feed.
     let mut o = run(PROGRAM, Setup { faults: &["1:overcurrent@1500"], ..Setup::default() });
     let a = o.alarm().clone();
-    assert_eq!(a.number, 2010, "{a}");
+    assert_eq!(a.number, cncgw::alarm::DRIVE_FAULT, "{a}");
     assert!(a.message.contains("node 1 (axis x)"), "{a}");
     assert!(a.message.contains("0x2310") && a.message.contains("overcurrent"), "the error in words: {a}");
     assert!(a.message.contains("stopped at line 5"), "{a}");
@@ -460,7 +402,7 @@ fn heartbeat_loss_of_z_is_alarm_2011_within_three_periods() {
     // for another master (≈ 130 ms longer start-up).
     let mut o = run(PROGRAM, Setup { faults: &["2:heartbeat-stop@1330"], ..Setup::default() });
     let a = o.alarm().clone();
-    assert_eq!(a.number, 2011, "{a}");
+    assert_eq!(a.number, cncgw::alarm::HEARTBEAT_LOST, "{a}");
     assert!(a.message.contains("node 2 (axis z)"), "{a}");
     // Heartbeat 100 ms: consumer timeout 3 periods after the last one heard; then Z (isolated,
     // quick stop) and X stop.
@@ -484,7 +426,7 @@ fn heartbeat_loss_of_z_is_alarm_2011_within_three_periods() {
 fn a_node_falling_silent_is_stale_feedback_within_the_feedback_timeout() {
     let mut o = run(PROGRAM, Setup { faults: &["1:silent-ms@1300"], ..Setup::default() });
     let a = o.alarm().clone();
-    assert_eq!(a.number, 2015, "{a}");
+    assert_eq!(a.number, cncgw::alarm::STALE_FEEDBACK, "{a}");
     assert!(a.message.contains("node 1 (axis x)"), "{a}");
     let after = o.end_ns - (1300 * MS);
     // feedback_timeout_ms = 20 in config/lathe.toml, checked every 2 ms cycle; then the
@@ -542,7 +484,7 @@ fn late_tpdos_of_one_node_are_stale_feedback() {
     // timeout and stops (alarm 2015 naming Z) — it never runs on positions that old.
     let mut o = run(PROGRAM, Setup { faults: &["2:tpdo-delay-us=25000@1400"], ..Setup::default() });
     let a = o.alarm().clone();
-    assert_eq!(a.number, 2015, "{a}");
+    assert_eq!(a.number, cncgw::alarm::STALE_FEEDBACK, "{a}");
     assert!(a.message.contains("node 2 (axis z)"), "{a}");
     let t0 = 1400 * MS;
     let detect = o.probe.samples.iter().find(|s| s.t > t0 && s.state[DZ] != State::OperationEnabled).map(|s| s.t - t0).unwrap();
@@ -620,7 +562,7 @@ fn bus_off_stops_the_run_and_a_restart_recovers() {
     let actions: Vec<(u64, Action)> = vec![(1400, Box::new(move |_| w.set_bus_off(true)))];
     let mut o = run(PROGRAM, Setup { actions, bus: Some(wire), ..Setup::default() });
     let a = o.alarm().clone();
-    assert_eq!(a.number, 2020, "{a}");
+    assert_eq!(a.number, cncgw::alarm::CAN_BUS, "{a}");
     assert!(o.end_ns - 1400 * MS <= 2 * CYCLE, "{} ms", (o.end_ns - 1400 * MS) / MS);
     let t0 = 1400 * MS;
     let cycles = o.stop_cycles(t0, 1500);
@@ -645,7 +587,7 @@ fn a_jammed_slide_trips_following_error_and_the_machine_stops() {
     // 60 N·m of dry friction on Z: far beyond its torque.
     let mut o = run(PROGRAM, Setup { faults: &["2:jam-mnm=60000@1400"], ..Setup::default() });
     let a = o.alarm().clone();
-    assert_eq!(a.number, 2010, "{a}");
+    assert_eq!(a.number, cncgw::alarm::DRIVE_FAULT, "{a}");
     assert!(a.message.contains("node 2 (axis z)"), "{a}");
     assert!(a.message.contains("0x8611") || a.message.contains("following error") || a.message.contains("0x2310"), "{a}");
     let cycles = o.stop_cycles(1400 * MS, 1000);
@@ -662,7 +604,7 @@ fn following_error_over_the_window_is_a_drive_fault_naming_the_axis() {
     let prog = "O1\nG98 G97 M03 S800\nG00 X40 Z2\nG01 X120 Z-100 F3000\nM30\n";
     let mut o = run(prog, Setup { faults: &["1:jam-mnm=20000@1300"], ..Setup::default() });
     let a = o.alarm().clone();
-    assert_eq!(a.number, 2010, "{a}");
+    assert_eq!(a.number, cncgw::alarm::DRIVE_FAULT, "{a}");
     assert!(a.message.contains("node 1 (axis x)") && a.message.contains("0x8611"), "{a}");
     let cycles = o.stop_cycles(1300 * MS, 1000);
     let bound = 300 + SPINDLE_STOP;
@@ -680,7 +622,7 @@ fn sync_error_over_its_limit_stops_spindle_and_z_together() {
     l.sync_err_limit_um = 1.0;
     let mut o = run(TAP, Setup { limits: Some(l), ..Setup::default() });
     let a = o.alarm().clone();
-    assert_eq!(a.number, 2307, "{a}");
+    assert_eq!(a.number, cncgw::alarm::SYNC_ERROR, "{a}");
     let end = o.end_ns;
     let first_enabled = o.probe.samples.iter().find(|s| s.state.iter().all(|st| *st == State::OperationEnabled)).unwrap().t;
     assert!(o.enabled_throughout(first_enabled, end), "a controlled stop, no drive quick-stopped");
@@ -697,7 +639,7 @@ fn sync_error_over_its_limit_stops_spindle_and_z_together() {
 fn encoder_loss_on_the_spindle_is_a_fault_that_reset_cannot_clear() {
     let mut o = run(PROGRAM, Setup { faults: &["3:encoder-lost@1600"], ..Setup::default() });
     let a = o.alarm().clone();
-    assert_eq!(a.number, 2010, "{a}");
+    assert_eq!(a.number, cncgw::alarm::DRIVE_FAULT, "{a}");
     assert!(a.message.contains("node 3 (axis s1)"), "{a}");
     assert!(a.message.contains("0x7305"), "{a}");
     assert!(o.moving_after(2000).is_empty());

@@ -111,7 +111,7 @@ fn acute_outer_corner_inserts_a_line() {
 #[test]
 fn groove_narrower_than_the_nose_is_interference_3605() {
     let a = alarm("T0101\nG0 X20 Z2\nG42 G1 Z0 F0.1\nZ-10\nX18\nZ-10.5\nX20\nZ-20\nG40 G0 X30\nM30\n");
-    assert_eq!(a.number, 3605, "{a}");
+    assert_eq!(a.number, cncgw::alarm::NOSE_INTERFERENCE, "{a}");
     assert_eq!(a.pos.as_ref().map(|p| p.line), Some(6), "{a}");
 }
 
@@ -122,15 +122,15 @@ fn the_manual_alarms() {
     assert_eq!((a.number, a.pos.as_ref().map(|p| (p.line, p.col))), (3576, Some((4, 1))), "{a}");
     // Note 3: T during compensation.
     let a = alarm("T0101\nG0 X20 Z2\nG42 G1 Z0 F0.1\nT0202\nM30\n");
-    assert_eq!(a.number, 3577, "{a}");
+    assert_eq!(a.number, cncgw::alarm::NOSE_T_CODE, "{a}");
     // Note 1: the path turns back (corner angle under 0.1°).
     let a = alarm("T0101\nG0 X20 Z2\nG42 G1 Z0 F0.1\nZ-10\nZ0\nG40 G0 X30\nM30\n");
     assert_eq!((a.number, a.pos.as_ref().map(|p| p.line)), (3607, Some(5)), "{a}");
     // Start-up and cancel on an arc (Fanuc PS0034).
     let a = alarm("T0101\nG0 X20 Z2\nG42 G2 X22 Z1 R1 F0.1\nM30\n");
-    assert_eq!(a.number, 34, "{a}");
+    assert_eq!(a.number, cncgw::alarm::NOSE_ARC_STARTUP, "{a}");
     let a = alarm("T0101\nG0 X20 Z2\nG42 G1 Z0 F0.1\nG40 G2 X22 Z-1 R1\nM30\n");
-    assert_eq!(a.number, 34, "{a}");
+    assert_eq!(a.number, cncgw::alarm::NOSE_ARC_STARTUP, "{a}");
 }
 
 #[test]

@@ -130,7 +130,7 @@ fn polar_alarms() {
     let a = alarm("G98 G00 X150 C0 Z0\nG12.1 X60\nM30\n");
     assert_eq!((a.number, a.pos.as_ref().map(|p| (p.line, p.col))), (10, Some((2, 1))), "{a}");
     // Note 9: through the centre, or too close at this F for the C axis' speed.
-    assert_eq!(alarm(&format!("{pre}G01 X-60 F200\nM30\n")).number, 2510);
+    assert_eq!(alarm(&format!("{pre}G01 X-60 F200\nM30\n")).number, cncgw::alarm::VALUE_RANGE);
     // A spindle of 10 rpm max = 3600°/min = 62.8 rad/min: F200 needs d ≥ 3.18 mm.
     let text = EMBEDDED_LATHE.replace("max_speed = 6000.0", "max_speed = 10.0");
     assert!(text.contains("max_speed = 10.0"));
@@ -141,7 +141,7 @@ fn polar_alarms() {
         assert!(interp(&format!("{ok}M30\n"), &cfg, None).all(|m| m.is_ok()));
         // (−10, 5) → (10, −2) passes 1.42 mm from it: 8100°/min, refused.
         let a = alarm_cfg(&format!("{ok}X20 C-2\nM30\n"), &cfg);
-        assert_eq!(a.number, 2510, "{a}");
+        assert_eq!(a.number, cncgw::alarm::VALUE_RANGE, "{a}");
         assert_eq!(a.pos.as_ref().map(|p| p.line), Some(6), "{a}");
     }
 }
@@ -176,8 +176,8 @@ fn polygon_clamp_and_alarms() {
     let m: Vec<Move> = interp("G51.2 P1 Q3 S1000\nM30\n", &cfg, None).map(|m| m.unwrap()).collect();
     // Note 3: S × Q / P = 3000 rpm clamped to No.721.
     assert_eq!(polygons(&m)[0].map(|p| p.tool_rpm), Some(2500.0));
-    assert_eq!(alarm_cfg("G51.2 P0 Q2 S1000\nM30\n", &cfg).number, 2510);
-    assert_eq!(alarm_cfg("G51.2 P1 Q2 R360 S1000\nM30\n", &cfg).number, 2510);
+    assert_eq!(alarm_cfg("G51.2 P0 Q2 S1000\nM30\n", &cfg).number, cncgw::alarm::VALUE_RANGE);
+    assert_eq!(alarm_cfg("G51.2 P1 Q2 R360 S1000\nM30\n", &cfg).number, cncgw::alarm::VALUE_RANGE);
     assert_eq!(alarm_cfg("G51.2 P1 Q2 S1000 X20\nM30\n", &cfg).number, 10);
     assert_eq!(alarm_cfg("G51.2 P1 Q2 S1000\nG0 C90\nM30\n", &cfg).number, 9);
 }
@@ -188,7 +188,7 @@ fn polygon_clamp_and_alarms() {
 fn polygon_without_a_tool_spindle_is_refused() {
     let cfg = MachineConfig::from_toml("lathe.toml", EMBEDDED_LATHE).expect("config");
     let a = alarm_cfg("G98\nM03 S500\nG51.2 P1 Q2 S1000\nG0 X50\nM30\n", &cfg);
-    assert_eq!(a.number, 2308, "{a}");
+    assert_eq!(a.number, cncgw::alarm::NO_TOOL_SPINDLE, "{a}");
     assert!(a.message.contains("tool spindle") && a.message.contains("role = \"tool_spindle\""), "{a}");
     assert_eq!(a.pos.as_ref().map(|p| p.line), Some(3), "{a}");
 }

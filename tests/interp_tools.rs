@@ -64,7 +64,7 @@ fn tool_table_parses_and_rejects_bad_entries() {
     assert_eq!(t.get(2).expect("offset 2").r, 0.0);
     for (bad, key) in [("[1]\ntip = 12", "tip"), ("[1]\nr = -1", "r"), ("[abc]\nx = 1", "[abc]"), ("[1]\nq = 1", "q")] {
         let e = parse_tool_table("tools.toml", bad).expect_err(bad);
-        assert_eq!(e.number, 1000);
+        assert_eq!(e.number, cncgw::alarm::CONFIG);
         assert!(e.message.contains(key), "{bad}: {}", e.message);
     }
 }

@@ -3,6 +3,9 @@
 //! turret, and `cncgw run --bus socketcand://…` as an operator runs it. The wiring is the
 //! machine config's `[io.devices.*.emulate]`; the E-stop chain opens by a timed event.
 
+mod io_common;
+
+use io_common::SAFETY_AND_M_CODES;
 use std::path::PathBuf;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
@@ -38,17 +41,7 @@ turret_in_position = "turret.0"
 coolant = "io1.0"
 chuck_clamp = "io1.1"
 turret_index = "turret.0"
-[io.safety]
-estop = "estop_ok"
-door = "door_closed"
-chuck = "chuck_clamped"
-[io.m.8]
-set = ["coolant"]
-[io.m.9]
-clear = ["coolant"]
-[io.m.10]
-set = ["chuck_clamp"]
-wait_on = ["chuck_clamped"]
+{SAFETY_AND_M_CODES}
 [io.turret]
 strobe = "turret_index"
 in_position = "turret_in_position"

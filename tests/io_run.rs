@@ -5,6 +5,9 @@
 //! The clock samples the module's outputs and every drive after every wait, so each test
 //! sees what the *devices* did.
 
+mod io_common;
+mod sim_probe;
+
 use cncgw::config::{MachineConfig, EMBEDDED_LATHE};
 use cncgw::control::cycle::{CycleLoop, RunSummary};
 use cncgw::control::job::run_program;
@@ -15,9 +18,10 @@ use cncgw::Alarm;
 use cncgw_bus::cia402::State;
 use cncgw_bus::transport::inproc::InprocBus;
 use cncgw_bus::Clock;
+use io_common::SAFETY_AND_M_CODES;
 use sim_drives::SimWorld;
+use sim_probe::{Action, Probe, MS};
 
-const MS: u64 = 1_000_000;
 const NODE: u8 = 10;
 const COOLANT: u32 = 1 << 0;
 const CLAMP: u32 = 1 << 1;
@@ -44,17 +48,7 @@ chuck_clamp = "io1.1"
 turret_index = "io1.2"
 t1 = "io1.3"
 t2 = "io1.4"
-[io.safety]
-estop = "estop_ok"
-door = "door_closed"
-chuck = "chuck_clamped"
-[io.m.8]
-set = ["coolant"]
-[io.m.9]
-clear = ["coolant"]
-[io.m.10]
-set = ["chuck_clamp"]
-wait_on = ["chuck_clamped"]
+{SAFETY_AND_M_CODES}
 [io.m.11]
 clear = ["chuck_clamp"]
 wait_off = ["chuck_clamped"]
@@ -72,8 +66,6 @@ in_position = "turret_in_position"
 const WIRED: &str = r#"inputs_on = [0, 1]
 follow = [{ input = 2, output = 1, delay_ms = 300 }, { input = 3, output = 2, delay_ms = 200 }]"#;
 
-type Action = Box<dyn FnMut(&mut SimWorld)>;
-
 struct Sample {
     t: u64,
     outputs: u32,
@@ -84,38 +76,18 @@ struct Sample {
     state: Vec<State>,
 }
 
-struct Probe {
-    world: SimWorld,
-    samples: Vec<Sample>,
-    actions: Vec<(u64, Option<Action>)>,
-}
-
-impl Clock for Probe {
-    fn now_ns(&self) -> u64 {
-        self.world.now_ns()
-    }
-    fn wait_until(&mut self, t: u64) {
-        self.world.wait_until(t);
-        let now = self.world.now_ns();
-        for (at, a) in self.actions.iter_mut() {
-            if *at <= now {
-                if let Some(mut f) = a.take() {
-                    f(&mut self.world);
-                }
-            }
-        }
-        let d = self.world.drives();
-        self.samples.push(Sample {
-            t: now,
-            outputs: self.world.io_outputs(NODE).unwrap_or(0),
+impl Sample {
+    /// The module's outputs and every drive.
+    fn of(world: &SimWorld) -> Sample {
+        let d = world.drives();
+        Sample {
+            t: world.now_ns(),
+            outputs: world.io_outputs(NODE).unwrap_or(0),
             x: d[0].position_unwrapped(),
             z: d[1].position_unwrapped(),
             s: d[2].position_unwrapped(),
             state: d.iter().map(|d| d.state()).collect(),
-        });
-    }
-    fn is_simulated(&self) -> bool {
-        true
+        }
     }
 }
 
@@ -159,7 +131,7 @@ fn run_panel(cfg_text: &str, prog: &str, actions: Vec<(u64, Action)>, panel: Opt
     for m in sim_drives::io401::from_machine_toml(cfg_text).unwrap().0 {
         world.add_io_module(m);
     }
-    let mut probe = Probe { world, samples: Vec::new(), actions: actions.into_iter().map(|(t, a)| (t * MS, Some(a))).collect() };
+    let mut probe = Probe::new(world, actions, Sample::of);
     let mut master = CanOpenMaster::new(wire.endpoint(), &cfg);
     let mut summary = RunSummary::default();
     let result = {
@@ -206,7 +178,7 @@ fn a_missing_confirmation_is_a_timeout_alarm_and_nothing_moves() {
     // The chuck switch is not wired: M10 is never confirmed.
     let o = run(&machine("inputs_on = [0, 1]", ""), CUT, Vec::new());
     let a = o.result.as_ref().unwrap_err();
-    assert_eq!(a.number, 2600, "{a}");
+    assert_eq!(a.number, cncgw::alarm::IO_FIN_TIMEOUT, "{a}");
     assert!(a.message.contains("M10") && a.message.contains("chuck_clamped on") && a.message.contains("500 ms"), "{a}");
     assert_eq!(o.first_motion(), None, "an axis moved");
     assert!(o.samples.iter().all(|s| s.outputs & COOLANT == 0), "M08 after the unconfirmed M10 ran");
@@ -218,7 +190,7 @@ fn the_e_stop_input_takes_every_drive_out_of_operation_enabled_within_2_cycles()
     let open: Action = Box::new(|w: &mut SimWorld| assert!(w.set_io_input(NODE, 0, Some(false))));
     let o = run(&machine(WIRED, ""), CUT, vec![(drop_at, open)]);
     let a = o.result.as_ref().unwrap_err();
-    assert_eq!(a.number, 2400, "{a}");
+    assert_eq!(a.number, cncgw::alarm::ESTOP, "{a}");
     assert!(a.message.contains("estop_ok"), "{a}");
     assert!(o.summary.rest.quick_stop, "{:?}", o.summary.rest);
     let t = drop_at * MS;
@@ -233,7 +205,7 @@ fn the_e_stop_input_takes_every_drive_out_of_operation_enabled_within_2_cycles()
 #[test]
 fn the_e_stop_input_dropped_by_a_timed_config_event_stops_the_machine() {
     let o = run(&machine(&format!("{WIRED}\nevents = [{{ input = 0, at_ms = 1500, value = false }}]"), ""), CUT, Vec::new());
-    assert_eq!(o.result.as_ref().unwrap_err().number, 2400);
+    assert_eq!(o.result.as_ref().unwrap_err().number, cncgw::alarm::ESTOP);
     let out = o.first(1500 * MS, |s| s.state.iter().all(|st| *st != State::OperationEnabled)).unwrap();
     assert!(out.t - 1500 * MS <= 3 * 2 * MS, "{} ms", (out.t - 1500 * MS) / MS);
 }
@@ -243,7 +215,7 @@ fn the_door_opening_is_a_controlled_stop_with_an_alarm() {
     let open: Action = Box::new(|w: &mut SimWorld| assert!(w.set_io_input(NODE, 1, Some(false))));
     let o = run(&machine(WIRED, ""), CUT, vec![(1500, open)]);
     let a = o.result.as_ref().unwrap_err();
-    assert_eq!(a.number, 2601, "{a}");
+    assert_eq!(a.number, cncgw::alarm::IO_DOOR_OPEN, "{a}");
     assert!(a.message.contains("door_closed") && a.message.contains("close the door"), "{a}");
     let r = o.summary.rest;
     assert!(!r.quick_stop && r.at_rest, "a controlled stop: {r:?}");
@@ -256,7 +228,7 @@ fn the_door_opening_is_a_controlled_stop_with_an_alarm() {
 fn the_chuck_opening_while_the_spindle_turns_stops_the_machine() {
     let open: Action = Box::new(|w: &mut SimWorld| assert!(w.set_io_input(NODE, 2, Some(false))));
     let o = run(&machine(WIRED, ""), CUT, vec![(1500, open)]);
-    assert_eq!(o.result.as_ref().unwrap_err().number, 2602);
+    assert_eq!(o.result.as_ref().unwrap_err().number, cncgw::alarm::IO_CHUCK_UNCLAMPED);
     assert!(!o.summary.rest.quick_stop && o.summary.rest.at_rest);
 }
 
@@ -264,7 +236,7 @@ fn the_chuck_opening_while_the_spindle_turns_stops_the_machine() {
 fn a_program_does_not_start_with_the_door_open() {
     let o = run(&machine("inputs_on = [0]", ""), CUT, Vec::new());
     let a = o.result.as_ref().unwrap_err();
-    assert_eq!(a.number, 2601, "{a}");
+    assert_eq!(a.number, cncgw::alarm::IO_DOOR_OPEN, "{a}");
     assert!(a.message.starts_with("before the start"), "{a}");
     assert_eq!(o.first_motion(), None);
 }
@@ -335,7 +307,7 @@ fn m11_while_the_spindle_turns_is_refused_and_the_chuck_stays_clamped() {
     let prog = "G21 G98 G97\nM10\nM03 S600\nG00 X40 Z2\nM11\nG00 X60\nM30\n";
     let o = run(&machine(WIRED, ""), prog, Vec::new());
     let a = o.result.as_ref().unwrap_err();
-    assert_eq!(a.number, 2604, "{a}");
+    assert_eq!(a.number, cncgw::alarm::IO_UNCLAMP_TURNING, "{a}");
     assert!(a.message.contains("M11") && a.message.contains("line 5") && a.message.contains("M05"), "{a}");
     let clamp = o.first(0, |s| s.outputs & CLAMP != 0).expect("clamp valve on").t;
     // Until the run takes torque off (the master clears every output then).
@@ -375,11 +347,11 @@ fn the_panel_shows_e_stop_door_and_chuck() {
     assert_eq!(panel.safety(), SafetyInputs::default(), "nothing read yet");
     let open: Action = Box::new(|w: &mut SimWorld| assert!(w.set_io_input(NODE, 1, Some(false))));
     let o = run_panel(&machine(WIRED, ""), CUT, vec![(1500, open)], Some(&panel));
-    assert_eq!(o.result.as_ref().unwrap_err().number, 2601);
+    assert_eq!(o.result.as_ref().unwrap_err().number, cncgw::alarm::IO_DOOR_OPEN);
     assert_eq!(panel.safety(), SafetyInputs { estop: Some(true), door: Some(false), chuck: Some(true) });
     // Refused at the start (door open, chuck not clamped yet): shown too.
     let panel = Panel::new();
     let o = run_panel(&machine("inputs_on = [0]", ""), CUT, Vec::new(), Some(&panel));
-    assert_eq!(o.result.as_ref().unwrap_err().number, 2601);
+    assert_eq!(o.result.as_ref().unwrap_err().number, cncgw::alarm::IO_DOOR_OPEN);
     assert_eq!(panel.safety(), SafetyInputs { estop: Some(true), door: Some(false), chuck: Some(false) });
 }

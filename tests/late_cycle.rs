@@ -181,7 +181,7 @@ fn a_stall_inside_a_thread_or_tap_is_a_controlled_stop_naming_it() {
             let o = run(prog, at, stall);
             let w = format!("{what}, stall of {stall} cycles");
             let a = o.result.as_ref().expect_err(&w);
-            assert_eq!(a.number, 2403, "{w}: {a}");
+            assert_eq!(a.number, cncgw::alarm::STALL_IN_SYNC, "{w}: {a}");
             assert!(a.message.contains("stall of this computer, not of a drive"), "{a}");
             assert!(o.summary.rest.at_rest, "{w}: {:?}", o.summary.rest);
             assert_no_jump(&o, &w);

@@ -6,46 +6,16 @@
 //! else's register store and exceptions). Real time where `run` is used: serialized in
 //! .config/nextest.toml.
 
-use std::net::{SocketAddr, TcpListener, TcpStream};
+mod modbus_common;
+
+use modbus_common::{cncgw, on, tcp_server, text, tmp, write, MODBUS_LATHE};
+use std::net::{TcpListener, TcpStream};
 use std::path::PathBuf;
-use std::process::{Command, Output, Stdio};
+use std::process::{Command, Stdio};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use testkit::Kill;
-
-const MODBUS_LATHE: &str = include_str!("../config/lathe-modbus.toml");
-
-fn tmp(name: &str) -> PathBuf {
-    testkit::tmp!("modbus_maps", name)
-}
-
-fn write(name: &str, s: &str) -> String {
-    let p = tmp(name);
-    std::fs::write(&p, s).unwrap();
-    p.display().to_string()
-}
-
-fn cncgw(args: &[&str]) -> Output {
-    testkit::cli!().state(tmp("state")).output(args)
-}
-
-fn text(o: &Output) -> String {
-    format!("{}\n{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr))
-}
-
-fn on(machine: &str, addr: SocketAddr) -> String {
-    machine.replace("address = \"127.0.0.1:5020\"", &format!("address = \"{addr}\""))
-}
-
-/// `machine`'s drives with `quirks(node)` on each, served over TCP on 127.0.0.1.
-fn tcp_server(machine: &str, quirks: impl Fn(u8) -> sim_drives::ModbusQuirks, stop: &Arc<AtomicBool>) -> sim_drives::modbus::ModbusServer {
-    let mut cfg = sim_drives::SimConfig::from_machine_toml_bus(machine, Some(true)).unwrap();
-    for d in &mut cfg.drives {
-        d.modbus_quirks = quirks(d.node);
-    }
-    sim_drives::modbus::serve_tcp("127.0.0.1:0".parse().unwrap(), cfg, stop.clone()).unwrap()
-}
 
 fn realistic(node: u8) -> sim_drives::ModbusQuirks {
     sim_drives::ModbusQuirks::realistic(if node == 2 { -8_000 } else { 0 })

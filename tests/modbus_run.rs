@@ -3,31 +3,20 @@
 //! over RTU through a socat pseudo-terminal pair, and mixed with CANopen drives. Real time:
 //! these run alone (.config/nextest.toml).
 
+mod modbus_common;
+
+use modbus_common::{cncgw, summary, text, tmp, write, MODBUS_LATHE};
 use std::net::SocketAddr;
 use std::path::PathBuf;
-use std::process::{Command, Output};
+use std::process::Command;
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 use testkit::Kill;
-
-const MODBUS_LATHE: &str = include_str!("../config/lathe-modbus.toml");
-
-fn tmp(name: &str) -> PathBuf {
-    testkit::tmp!("modbus_run", name)
-}
 
 /// A server for the Modbus drives of `machine` on 127.0.0.1 (any port).
 fn tcp_server(machine: &str, stop: &Arc<AtomicBool>) -> sim_drives::modbus::ModbusServer {
     let cfg = sim_drives::SimConfig::from_machine_toml_bus(machine, Some(true)).unwrap();
     sim_drives::modbus::serve_tcp("127.0.0.1:0".parse().unwrap(), cfg, stop.clone()).unwrap()
-}
-
-fn cncgw(args: &[&str]) -> Output {
-    testkit::cli!().state(tmp("state")).output(args)
-}
-
-fn text(o: &Output) -> String {
-    format!("{}\n{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr))
 }
 
 /// The machine of config/lathe-modbus.toml on `addr`, with a feedback timeout that a shared
@@ -41,16 +30,6 @@ fn tcp_machine(addr: SocketAddr, extra_link: &str) -> String {
 
 /// X/Z moves with the spindle turning slowly: every Modbus axis moves.
 const PROGRAM: &str = "O1\nG21\nG98 G97\nM03 S120\nG00 X20 Z2\nG01 Z-10 F600\nX30 Z-15\nG02 X40 Z-20 R5\nG00 X60 Z5\nM05\nM30\n";
-
-fn write(name: &str, s: &str) -> String {
-    let p = tmp(name);
-    std::fs::write(&p, s).unwrap();
-    p.display().to_string()
-}
-
-fn summary(o: &Output) -> serde_json::Value {
-    serde_json::from_slice(&o.stdout).unwrap_or_else(|e| panic!("{e}: {}", text(o)))
-}
 
 #[test]
 fn tcp_machine_runs_a_program_to_its_end_point() {

@@ -3,49 +3,13 @@
 //! that powers up away from 0, "busy" answers, late answers — over TCP and RTU. Real time:
 //! serialized in .config/nextest.toml.
 
-use std::net::SocketAddr;
-use std::path::PathBuf;
-use std::process::{Command, Output};
+mod modbus_common;
+
+use std::process::Command;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
-const MODBUS_LATHE: &str = include_str!("../config/lathe-modbus.toml");
-
-fn tmp(name: &str) -> PathBuf {
-    testkit::tmp!("modbus_vendor", name)
-}
-
-fn write(name: &str, s: &str) -> String {
-    let p = tmp(name);
-    std::fs::write(&p, s).unwrap();
-    p.display().to_string()
-}
-
-fn cncgw(args: &[&str]) -> Output {
-    testkit::cli!().state(tmp("state")).output(args)
-}
-
-fn text(o: &Output) -> String {
-    format!("{}\n{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr))
-}
-
-fn summary(o: &Output) -> serde_json::Value {
-    serde_json::from_slice(&o.stdout).unwrap_or_else(|e| panic!("{e}: {}", text(o)))
-}
-
-/// The drives of `machine` with `quirks(node)` on each, served over TCP on 127.0.0.1.
-fn tcp_server(machine: &str, quirks: impl Fn(u8) -> sim_drives::ModbusQuirks, stop: &Arc<AtomicBool>) -> sim_drives::modbus::ModbusServer {
-    let mut cfg = sim_drives::SimConfig::from_machine_toml_bus(machine, Some(true)).unwrap();
-    for d in &mut cfg.drives {
-        d.modbus_quirks = quirks(d.node);
-    }
-    sim_drives::modbus::serve_tcp("127.0.0.1:0".parse().unwrap(), cfg, stop.clone()).unwrap()
-}
-
-/// config/lathe-modbus.toml on `addr`: the shipped link settings and windows.
-fn tcp_machine(addr: SocketAddr) -> String {
-    MODBUS_LATHE.replace("address = \"127.0.0.1:5020\"", &format!("address = \"{addr}\""))
-}
+use modbus_common::{cncgw, on, summary, tcp_server, text, tmp, write, MODBUS_LATHE};
 
 /// X powered up 1.6 mm (16 000 counts) from 0, Z 0.8 mm below: both latch at any time.
 fn away_from_zero(node: u8) -> sim_drives::ModbusQuirks {
@@ -67,7 +31,7 @@ fn stop(srv: sim_drives::modbus::ModbusServer, flag: &Arc<AtomicBool>) {
 fn run_enables_without_a_jump_on_a_drive_that_latches_targets_any_time() {
     let flag = Arc::new(AtomicBool::new(false));
     let srv = Arc::new(tcp_server(MODBUS_LATHE, away_from_zero, &flag));
-    let cfg = write("latch.toml", &tcp_machine(srv.local_addr().unwrap()));
+    let cfg = write("latch.toml", &on(MODBUS_LATHE, srv.local_addr().unwrap()));
     // Stand still for 0.3 s, then move X and Z further from 0: any step toward 0 is a jump.
     let prog = write("latch.nc", "O1\nG21\nG98\nG04 X0.3\nG01 X5 Z-1.5 F300\nM30\n");
     let (watch, done) = (srv.clone(), Arc::new(AtomicBool::new(false)));
@@ -103,7 +67,7 @@ fn run_enables_without_a_jump_on_a_drive_that_latches_targets_any_time() {
 fn jog_enables_without_a_jump_on_a_drive_that_latches_targets_any_time() {
     let flag = Arc::new(AtomicBool::new(false));
     let srv = tcp_server(MODBUS_LATHE, away_from_zero, &flag);
-    let cfg = write("jog.toml", &tcp_machine(srv.local_addr().unwrap()));
+    let cfg = write("jog.toml", &on(MODBUS_LATHE, srv.local_addr().unwrap()));
     let o = cncgw(&["jog", "z", "--by", "-0.5", "--speed", "300", "--yes", "--config", &cfg]);
     let t = text(&o);
     eprintln!("{t}");
@@ -129,7 +93,7 @@ fn fault_reaction_active_stops_the_others_at_once() {
     // Overcurrent on the spindle 2 s after the server starts: Z is cutting by then.
     let fault = sim_drives::parse_fault("3:raise=0x2310@2000").unwrap();
     let srv = Arc::new(sim_drives::modbus::serve_tcp_with_faults("127.0.0.1:0".parse().unwrap(), cfg, vec![fault], flag.clone()).unwrap());
-    let cfg = write("fra.toml", &tcp_machine(srv.local_addr().unwrap()));
+    let cfg = write("fra.toml", &on(MODBUS_LATHE, srv.local_addr().unwrap()));
     let prog = write("fra.nc", "O1\nG21\nG98 G97\nM03 S3000\nG04 X0.6\nG01 Z-60 F1200\nM05\nM30\n");
     let (watch, done) = (srv.clone(), Arc::new(AtomicBool::new(false)));
     let d2 = done.clone();
@@ -195,7 +159,7 @@ fn fault_reaction_active_stops_the_others_at_once() {
 fn busy_answers_are_retried() {
     let flag = Arc::new(AtomicBool::new(false));
     let srv = tcp_server(MODBUS_LATHE, |n| sim_drives::ModbusQuirks { busy_every: if n == 1 { 7 } else { 0 }, ..away_from_zero(n) }, &flag);
-    let cfg = write("busy.toml", &tcp_machine(srv.local_addr().unwrap()));
+    let cfg = write("busy.toml", &on(MODBUS_LATHE, srv.local_addr().unwrap()));
     let prog = write("busy.nc", "O1\nG21\nG98 G97\nM03 S300\nG01 X10 Z-5 F600\nG00 X20 Z2\nM05\nM30\n");
     let o = cncgw(&["run", "--json", "--config", &cfg, &prog]);
     let t = text(&o);
@@ -213,7 +177,7 @@ fn busy_answers_are_retried() {
 fn a_link_slower_than_the_machine_cycle_sees_the_drives_at_rest() {
     let flag = Arc::new(AtomicBool::new(false));
     let srv = tcp_server(MODBUS_LATHE, away_from_zero, &flag);
-    let cfg = write("slowlink.toml", &tcp_machine(srv.local_addr().unwrap()).replace("\ntimeout_ms = 20 ", "\ncycle_ms = 10\ntimeout_ms = 20 "));
+    let cfg = write("slowlink.toml", &on(MODBUS_LATHE, srv.local_addr().unwrap()).replace("\ntimeout_ms = 20 ", "\ncycle_ms = 10\ntimeout_ms = 20 "));
     let prog = write("slowlink.nc", "O1\nG21\nG98\nG01 X10 Z-5 F600\nM30\n");
     let o = cncgw(&["run", "--json", "--config", &cfg, &prog]);
     let t = text(&o);
@@ -233,7 +197,7 @@ fn an_exception_from_one_drive_stops_the_others_under_control() {
     let flag = Arc::new(AtomicBool::new(false));
     // Z refuses everything from its 1500th request (about 0.7 s into the program).
     let srv = tcp_server(MODBUS_LATHE, |n| sim_drives::ModbusQuirks { refuse_after: if n == 2 { 1500 } else { 0 }, ..away_from_zero(n) }, &flag);
-    let cfg = write("refuse.toml", &tcp_machine(srv.local_addr().unwrap()));
+    let cfg = write("refuse.toml", &on(MODBUS_LATHE, srv.local_addr().unwrap()));
     let prog = write("refuse.nc", "O1\nG21\nG98 G97\nG01 X40 Z-40 F600\nM30\n");
     let o = cncgw(&["run", "--json", "--config", &cfg, &prog]);
     let t = text(&o);
@@ -258,7 +222,7 @@ fn pr_drive_away_from_zero_starts_without_a_huge_speed_or_following_error() {
     let srv = tcp_server(&machine, away_from_zero, &flag);
     let cfg = write(
         "pr.toml",
-        &tcp_machine(srv.local_addr().unwrap()).replace("node = 1                    # Modbus unit id", "node = 1\nmodbus_profile = \"pr\""),
+        &on(MODBUS_LATHE, srv.local_addr().unwrap()).replace("node = 1                    # Modbus unit id", "node = 1\nmodbus_profile = \"pr\""),
     );
     let prog = write("pr.nc", "O1\nG21\nG98\nG04 X0.2\nG01 X10 F300\nG04 X0.5\nM30\n");
     let o = cncgw(&["run", "--json", "--config", &cfg, &prog]);
@@ -286,7 +250,7 @@ const LATE_PROGRAM: &str = "O1\nG21\nG98\nG01 X20 Z-10 F600\nG01 X6 Z-2 F600\nM3
 fn late_answers_are_ridden_through_on_tcp_with_the_shipped_config() {
     let flag = Arc::new(AtomicBool::new(false));
     let srv = tcp_server(MODBUS_LATHE, late_x(300), &flag);
-    let cfg = write("late-tcp.toml", &tcp_machine(srv.local_addr().unwrap()));
+    let cfg = write("late-tcp.toml", &on(MODBUS_LATHE, srv.local_addr().unwrap()));
     let prog = write("late-tcp.nc", LATE_PROGRAM);
     let o = cncgw(&["-v", "run", "--json", "--config", &cfg, &prog]);
     let t = text(&o);
@@ -338,7 +302,7 @@ fn a_slow_answer_at_start_up_is_retried() {
         |n| sim_drives::ModbusQuirks { slow_first: if n == 2 { 1 } else { 0 }, slow_first_ms: 30, ..away_from_zero(n) },
         &flag,
     );
-    let cfg = write("slowstart.toml", &tcp_machine(srv.local_addr().unwrap()));
+    let cfg = write("slowstart.toml", &on(MODBUS_LATHE, srv.local_addr().unwrap()));
     let prog = write("slowstart.nc", "O1\nG21\nG98\nG01 X10 Z-2 F600\nM30\n");
     let o = cncgw(&["run", "--json", "--config", &cfg, &prog]);
     let t = text(&o);
@@ -351,7 +315,7 @@ fn a_slow_answer_at_start_up_is_retried() {
 /// CANopen interface of a machine without CANopen axes).
 #[test]
 fn motion_confirmation_names_the_modbus_link() {
-    let cfg = write("confirm.toml", &tcp_machine("10.0.0.9:502".parse().unwrap()));
+    let cfg = write("confirm.toml", &on(MODBUS_LATHE, "10.0.0.9:502".parse().unwrap()));
     let o = Command::new(env!("CARGO_BIN_EXE_cncgw"))
         .env("CNCGW_STATE_DIR", tmp("state"))
         .args(["jog", "z", "--by", "1", "--config", &cfg])
@@ -369,7 +333,7 @@ fn motion_confirmation_names_the_modbus_link() {
 fn drive_status_into_a_closed_pipe_does_not_panic() {
     let flag = Arc::new(AtomicBool::new(false));
     let srv = tcp_server(MODBUS_LATHE, |_| sim_drives::ModbusQuirks::default(), &flag);
-    let cfg = write("pipe.toml", &tcp_machine(srv.local_addr().unwrap()));
+    let cfg = write("pipe.toml", &on(MODBUS_LATHE, srv.local_addr().unwrap()));
     let mut c = Command::new(env!("CARGO_BIN_EXE_cncgw"))
         .env("CNCGW_STATE_DIR", tmp("state"))
         .args(["drive", "status", "1", "--config", &cfg])
@@ -394,7 +358,7 @@ fn a_link_that_falls_behind_its_cycle_is_an_alarm_naming_the_figures() {
     let flag = Arc::new(AtomicBool::new(false));
     let srv =
         tcp_server(MODBUS_LATHE, |n| sim_drives::ModbusQuirks { late_after: if n == 2 { 1500 } else { 0 }, late_ms: 5, ..away_from_zero(n) }, &flag);
-    let cfg = write("behind.toml", &tcp_machine(srv.local_addr().unwrap()));
+    let cfg = write("behind.toml", &on(MODBUS_LATHE, srv.local_addr().unwrap()));
     let prog = write("behind.nc", "O1\nG21\nG98\nG01 X30 Z-20 F600\nM30\n");
     let o = cncgw(&["run", "--config", &cfg, &prog]);
     let t = text(&o);
@@ -412,7 +376,7 @@ fn a_link_that_falls_behind_its_cycle_is_an_alarm_naming_the_figures() {
 fn first_part_ends_within_one_count_on_realistic_drives_over_tcp() {
     let flag = Arc::new(AtomicBool::new(false));
     let srv = tcp_server(MODBUS_LATHE, away_from_zero, &flag);
-    let cfg = write("first.toml", &tcp_machine(srv.local_addr().unwrap()));
+    let cfg = write("first.toml", &on(MODBUS_LATHE, srv.local_addr().unwrap()));
     first_part_ends_on_its_end_point(&srv, &cfg);
     stop(srv, &flag);
 }
@@ -483,7 +447,7 @@ fn first_part_ends_within_one_count_on_the_pr_map_over_tcp() {
     let flag = Arc::new(AtomicBool::new(false));
     let machine = pr_feed_axes(MODBUS_LATHE);
     let srv = tcp_server(&machine, away_from_zero, &flag);
-    let cfg = write("first-pr.toml", &pr_feed_axes(&tcp_machine(srv.local_addr().unwrap())));
+    let cfg = write("first-pr.toml", &pr_feed_axes(&on(MODBUS_LATHE, srv.local_addr().unwrap())));
     first_part_ends_on_its_end_point(&srv, &cfg);
     stop(srv, &flag);
 }
@@ -526,7 +490,7 @@ fn first_part_ends_within_one_count_on_realistic_drives_over_rtu() {
 fn a_cs_program_keeps_the_spindle_in_position_with_a_window_from_the_link_cycle() {
     let flag = Arc::new(AtomicBool::new(false));
     let srv = tcp_server(MODBUS_LATHE, away_from_zero, &flag);
-    let cfg = write("cs.toml", &tcp_machine(srv.local_addr().unwrap()));
+    let cfg = write("cs.toml", &on(MODBUS_LATHE, srv.local_addr().unwrap()));
     let prog = write("cs.nc", "O1\nG21 G98\nG00 X60\nG00 C90\nG00 C180\nM30\n");
     let o = cncgw(&["run", "--json", "--config", &cfg, &prog]);
     let t = text(&o);

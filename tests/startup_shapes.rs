@@ -132,7 +132,7 @@ fn a_drive_that_never_shows_the_mode_stops_before_motion_naming_the_mode_it_show
     });
     let r = run(&MachineConfig::embedded(), sim.clone(), &first_part());
     let a = r.alarm();
-    assert_eq!(a.number, 2005, "{a}");
+    assert_eq!(a.number, cncgw::alarm::DRIVE_MODE, "{a}");
     assert!(
         a.message.starts_with("node 1 (axis x): asked for cyclic synchronous position (8) (0x6060), it still reports profile position (1) in 0x6061 after 2000 ms; nothing was enabled"),
         "{a}"
@@ -147,7 +147,7 @@ fn user_unit_drives_are_refused_before_motion_with_the_counts_per_unit_that_matc
     let sim = shaped(|s, node| s.feed_constant = if node == 3 { 36_000 } else { 10_000 });
     let r = run(&MachineConfig::embedded(), sim.clone(), &first_part());
     let a = r.alarm();
-    assert_eq!(a.number, 2006, "{a}");
+    assert_eq!(a.number, cncgw::alarm::DRIVE_SCALING, "{a}");
     assert!(a.message.starts_with("node 1 (axis x): the drive scales positions: 1 position unit = 10 encoder increments"), "{a}");
     assert!(a.message.contains("the axis would move 10× the programmed travel. Set axes.x.counts_per_unit = 1000"), "{a}");
     r.assert_nothing_moved();
@@ -176,7 +176,7 @@ fn user_unit_drives_run_on_their_own_positions_with_counts_per_unit_in_their_uni
     cfg.axes.get_mut("x").unwrap().travel_per_rev = Some(5.0);
     let r = run(&cfg, sim, &first_part());
     let a = r.alarm();
-    assert_eq!(a.number, 2006, "{a}");
+    assert_eq!(a.number, cncgw::alarm::DRIVE_SCALING, "{a}");
     assert!(a.message.contains("that is 2000 per mm with axes.x.travel_per_rev = 5 mm; counts_per_unit = 1000 would move the axis 0.5× the programmed travel. Set axes.x.counts_per_unit = 2000"), "{a}");
 }
 
@@ -185,7 +185,7 @@ fn an_inverted_drive_is_refused_unless_the_config_says_so() {
     let sim = shaped(|s, node| s.polarity = if node == 2 { 0x80 } else { 0 });
     let r = run(&MachineConfig::embedded(), sim.clone(), &first_part());
     let a = r.alarm();
-    assert_eq!(a.number, 2006, "{a}");
+    assert_eq!(a.number, cncgw::alarm::DRIVE_SCALING, "{a}");
     assert!(a.message.starts_with("node 2 (axis z): the drive inverts positions (0x607E = 0x80, bit 7)"), "{a}");
     assert!(a.message.contains("axes.z.polarity = \"inverted\""), "{a}");
     r.assert_nothing_moved();
@@ -203,7 +203,7 @@ fn a_drive_producing_sync_is_named_and_nothing_is_reset() {
     let sim = shaped(|s, node| s.sync_producer = node == 2);
     let r = run(&MachineConfig::embedded(), sim, &first_part());
     let a = r.alarm();
-    assert_eq!(a.number, 2007, "{a}");
+    assert_eq!(a.number, cncgw::alarm::FOREIGN_MASTER, "{a}");
     assert!(
         a.message.starts_with("node 2 (axis z): the drive produces SYNC itself (0x1005 = 0x40000080, bit 30, every 2 ms (0x1006)); with this master's SYNC the drives would see two and fault"),
         "{a}"
@@ -222,7 +222,7 @@ fn drives_without_0x6502_are_checked_by_0x6061_and_drives_without_csp_are_refuse
     // No CSP, with 0x6502: refused before the mode is asked for.
     let r = run(&MachineConfig::embedded(), shaped(|s, _| s.modes = vec![1, 6]), &first_part());
     let a = r.alarm();
-    assert_eq!(a.number, 2005, "{a}");
+    assert_eq!(a.number, cncgw::alarm::DRIVE_MODE, "{a}");
     assert!(
         a.message.starts_with(
             "node 1 (axis x): this drive has no CSP (cyclic synchronous position) mode: its supported drive modes 0x6502 = 0x00000021 list PP, HM"
@@ -240,7 +240,7 @@ fn drives_without_0x6502_are_checked_by_0x6061_and_drives_without_csp_are_refuse
         &first_part(),
     );
     let a = r.alarm();
-    assert_eq!(a.number, 2003, "{a}");
+    assert_eq!(a.number, cncgw::alarm::SDO_CONFIG, "{a}");
     assert!(a.message.starts_with("node 1 (axis x): this drive has no CSP (cyclic synchronous position) mode (it refuses 0x6060 = 8)"), "{a}");
     assert!(a.message.contains("(writing 0x6060:00 = 8 was refused: SDO abort 0x06090030"), "{a}");
     r.assert_nothing_moved();
@@ -267,7 +267,7 @@ fn a_hidden_feedback_scaling_stops_the_run_instead_of_ok() {
         });
         let r = run(&MachineConfig::embedded(), sim, &first_part());
         let a = r.alarm();
-        assert_eq!(a.number, 2019, "{a}");
+        assert_eq!(a.number, cncgw::alarm::FEEDBACK_SCALE, "{a}");
         // The ratio in the message is measured, lag included: 10× within a few per mille.
         let said = a.message.split_once("moves ").and_then(|(_, r)| r.split_once('×')).and_then(|(r, _)| r.parse::<f64>().ok());
         match said {
@@ -389,7 +389,7 @@ fn a_second_master_is_refused_before_it_resets_anything() {
     let mut b = CanOpenMaster::new(bus.endpoint(), &cfg);
     let mut clock = BesideA { world: &mut w, a: &mut a, next: next + 2 * MS };
     let e = b.startup(&mut clock).unwrap_err();
-    assert_eq!(e.number, 2007, "{e}");
+    assert_eq!(e.number, cncgw::alarm::FOREIGN_MASTER, "{e}");
     assert!(e.message.starts_with("another CANopen master is active on bus inproc: heard "), "{e}");
     assert!(e.message.contains("Nothing was reset"), "{e}");
     // Master A's machine runs on: no reset, every drive still enabled.
@@ -420,7 +420,7 @@ fn a_failed_start_up_restores_the_nmt_state_it_found() {
     m.nmt_command(0, cncgw_bus::canopen::nmt::NmtCommand::Start).unwrap();
     m.listen(&mut w, 10);
     let e = m.startup(&mut w).unwrap_err();
-    assert_eq!(e.number, 2005, "{e}");
+    assert_eq!(e.number, cncgw::alarm::DRIVE_MODE, "{e}");
     assert!(e.message.starts_with("node 3 (axis s1): this drive has no CSP"), "{e}");
     for n in [1u8, 2, 3] {
         let d = w.drive(n).unwrap();
@@ -497,7 +497,7 @@ fn a_tpdo_of_the_wrong_length_is_alarm_2018_naming_both_lengths() {
         }
     }
     let (a, k) = alarm.expect("an alarm");
-    assert_eq!(a.number, 2018, "{a}");
+    assert_eq!(a.number, cncgw::alarm::TPDO_LENGTH, "{a}");
     assert!(a.message.starts_with("node 2 (axis z): TPDO1 (COB-ID 0x182) arrives with 3 bytes, start-up mapped 7 (0x6041 statusword, 0x6064 position actual, 0x6061 mode display)"), "{a}");
     assert!(k <= 4, "after {k} cycles");
     assert!(m.pdo_length_errors(2) >= 3);

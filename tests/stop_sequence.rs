@@ -7,6 +7,8 @@
 //! the speed of every motor at the instant its power stage went off (leaving Operation
 //! Enabled, Quick Stop Active or Fault Reaction Active), which must be zero.
 
+mod sim_probe;
+
 use cncgw::config::{MachineConfig, EMBEDDED_LATHE};
 use cncgw::control::cycle::{CycleLoop, Rest, RunSummary};
 use cncgw::control::job::run_program;
@@ -17,11 +19,10 @@ use cncgw::motion::Limits;
 use cncgw::Alarm;
 use cncgw_bus::cia402::State;
 use cncgw_bus::transport::inproc::InprocBus;
-use cncgw_bus::Clock;
 use sim_drives::SimWorld;
+use sim_probe::{Action, Probe, Sample, MS};
 use std::sync::atomic::{AtomicI32, Ordering};
 
-const MS: u64 = 1_000_000;
 /// Below this a motor counts as at rest, counts/s: 1 rpm of the spindle (6°/s at 1000
 /// counts/°), 0.2 mm/s of a feed axis (at 10 000 counts/mm) — the drives' own standstill
 /// windows (sim-drives: 0.1 rad/s of the motor).
@@ -30,49 +31,6 @@ fn rest_limit(node: u8) -> i32 {
         6000
     } else {
         2000
-    }
-}
-
-type Action = Box<dyn FnMut(&mut SimWorld)>;
-
-#[derive(Clone, Debug)]
-struct Sample {
-    t: u64,
-    pos: Vec<i64>,
-    vel: Vec<i32>,
-    state: Vec<State>,
-}
-
-struct Probe {
-    world: SimWorld,
-    samples: Vec<Sample>,
-    actions: Vec<(u64, Option<Action>)>,
-}
-
-impl Clock for Probe {
-    fn now_ns(&self) -> u64 {
-        self.world.now_ns()
-    }
-    fn wait_until(&mut self, t: u64) {
-        self.world.wait_until(t);
-        let now = self.world.now_ns();
-        for (at, a) in self.actions.iter_mut() {
-            if *at <= now {
-                if let Some(mut f) = a.take() {
-                    f(&mut self.world);
-                }
-            }
-        }
-        let d = self.world.drives();
-        self.samples.push(Sample {
-            t: now,
-            pos: d.iter().map(|d| d.position_unwrapped()).collect(),
-            vel: d.iter().map(|d| d.velocity_actual()).collect(),
-            state: d.iter().map(|d| d.state()).collect(),
-        });
-    }
-    fn is_simulated(&self) -> bool {
-        true
     }
 }
 
@@ -133,7 +91,7 @@ fn run(program: &str, setup: Setup) -> Outcome {
     let wire = InprocBus::new();
     let world = SimWorld::new(&wire, sim);
     let nodes = world.drives().iter().map(|d| d.node()).collect();
-    let mut probe = Probe { world, samples: Vec::new(), actions: setup.actions.into_iter().map(|(ms, a)| (ms * MS, Some(a))).collect() };
+    let mut probe = Probe::new(world, setup.actions, Sample::of);
     let mut master = CanOpenMaster::new(wire.endpoint(), &cfg);
     let mut summary = RunSummary::default();
     let result = {
@@ -186,7 +144,7 @@ fn a_feed_axis_fault_stops_the_turning_spindle_under_control() {
     ));
     let o = run(TURNING, s);
     let a = o.result.as_ref().expect_err("the fault stops the run");
-    assert_eq!(a.number, 2010, "{a}");
+    assert_eq!(a.number, cncgw::alarm::DRIVE_FAULT, "{a}");
     check_rest(&o.summary.rest);
     o.assert_rest_before_torque_off();
     // The spindle was not quick-stopped: it ramped down under control (never left Operation
@@ -204,7 +162,7 @@ fn reset_stops_spindle_and_axes_before_torque_off() {
     s.panel = Some(p);
     s.actions.push((1300, Box::new(move |_: &mut SimWorld| pr.press_reset())));
     let o = run(TURNING, s);
-    assert_eq!(o.result.as_ref().unwrap_err().number, 2401);
+    assert_eq!(o.result.as_ref().unwrap_err().number, cncgw::alarm::RESET);
     check_rest(&o.summary.rest);
     o.assert_rest_before_torque_off();
 }
@@ -217,7 +175,7 @@ fn e_stop_brakes_every_drive_on_its_ramp_to_standstill() {
     s.panel = Some(p);
     s.actions.push((1300, Box::new(move |_: &mut SimWorld| pr.set_estop(true))));
     let o = run(TURNING, s);
-    assert_eq!(o.result.as_ref().unwrap_err().number, 2400);
+    assert_eq!(o.result.as_ref().unwrap_err().number, cncgw::alarm::ESTOP);
     let r = o.summary.rest;
     assert!(r.quick_stop && r.at_rest, "{r:?}");
     o.assert_rest_before_torque_off();
@@ -231,7 +189,7 @@ fn e_stop_brakes_every_drive_on_its_ramp_to_standstill() {
 fn a_program_alarm_stops_spindle_and_axes_before_torque_off() {
     // X500 is beyond X's travel: refused as it reaches motion (alarm 2301), a controlled stop.
     let o = run("G21\nG98 G97\nM03 S1200\nG00 X40 Z2\nG01 Z-40 F3000\nG00 X500\nM30\n", setup());
-    assert_eq!(o.result.as_ref().unwrap_err().number, 2301);
+    assert_eq!(o.result.as_ref().unwrap_err().number, cncgw::alarm::TRAVEL);
     check_rest(&o.summary.rest);
     o.assert_rest_before_torque_off();
 }
@@ -244,7 +202,7 @@ fn a_termination_signal_is_a_reset() {
     s.actions.push((1300, Box::new(|_: &mut SimWorld| SIG.store(15, Ordering::Relaxed))));
     let o = run(TURNING, s);
     let a = o.result.as_ref().unwrap_err();
-    assert_eq!(a.number, 2401, "{a}");
+    assert_eq!(a.number, cncgw::alarm::RESET, "{a}");
     assert!(a.message.contains("SIGTERM"), "{a}");
     check_rest(&o.summary.rest);
     o.assert_rest_before_torque_off();
@@ -265,7 +223,7 @@ fn a_slow_axis_stands_on_its_stop_point_before_torque_off() {
     s.actions.push((700, Box::new(move |_: &mut SimWorld| pr.press_reset())));
     let o = run("G21\nG98\nG00 X100 Z2\nG00 X10\nM30\n", s);
     let a = o.result.as_ref().unwrap_err();
-    assert_eq!(a.number, 2401, "{a}");
+    assert_eq!(a.number, cncgw::alarm::RESET, "{a}");
     check_rest(&o.summary.rest);
     o.assert_rest_before_torque_off();
     // X stands on the commanded stop point (the last set-point) within a micrometre.

@@ -18,29 +18,24 @@ pub trait Clock {
     }
 }
 
-impl<C: Clock + ?Sized> Clock for Box<C> {
-    fn now_ns(&self) -> u64 {
-        (**self).now_ns()
-    }
-    fn wait_until(&mut self, t_ns: u64) {
-        (**self).wait_until(t_ns)
-    }
-    fn is_simulated(&self) -> bool {
-        (**self).is_simulated()
-    }
+/// A clock behind a box or a mutable reference is that clock (written once for both).
+macro_rules! forward_clock {
+    ($($ptr:ty),*) => {$(
+        impl<C: Clock + ?Sized> Clock for $ptr {
+            fn now_ns(&self) -> u64 {
+                (**self).now_ns()
+            }
+            fn wait_until(&mut self, t_ns: u64) {
+                (**self).wait_until(t_ns)
+            }
+            fn is_simulated(&self) -> bool {
+                (**self).is_simulated()
+            }
+        }
+    )*};
 }
 
-impl<C: Clock + ?Sized> Clock for &mut C {
-    fn now_ns(&self) -> u64 {
-        (**self).now_ns()
-    }
-    fn wait_until(&mut self, t_ns: u64) {
-        (**self).wait_until(t_ns)
-    }
-    fn is_simulated(&self) -> bool {
-        (**self).is_simulated()
-    }
-}
+forward_clock!(Box<C>, &mut C);
 
 /// How [`RealClock`] waits for a deadline: sleep, in steps of at most `max_sleep_ns`, until
 /// `spin_ns` before it, then busy-wait. The default (both 0) is one sleep to the deadline.

@@ -90,22 +90,22 @@ fn arc_with_i_k_and_negative_r() {
 #[test]
 fn arc_radius_mismatch_and_missing_centre() {
     let a = run_err("G99 G00 X30 Z50\nG02 X50 Z30 I20 F0.1\nM30");
-    assert_eq!(a.number, 20);
+    assert_eq!(a.number, crate::alarm::ARC_RADIUS);
     assert_eq!(a.pos.as_ref().unwrap().line, 2);
     let a = run_err("G99 G00 X30 Z50\nG02 X50 Z30 F0.1\nM30");
     assert_eq!(a.number, 22);
     let a = run_err("G99 G00 X0 Z0\nG02 X0 Z-30 R10 F0.1\nM30");
-    assert_eq!(a.number, 20);
+    assert_eq!(a.number, crate::alarm::ARC_RADIUS);
 }
 
 #[test]
 fn no_feed_rate_is_alarm_11() {
     let a = run_err("G00 X10 Z0\nG01 Z-10\nM30");
-    assert_eq!(a.number, 11);
+    assert_eq!(a.number, crate::alarm::FEED_ZERO);
     assert_eq!(a.pos.unwrap().line, 2);
     // G98/G99 keep separate F values (§2.20 note 4): F under G99 does not carry to G98.
     let a = run_err("G99 G01 X10 F0.2\nG98 Z-5\nM30");
-    assert_eq!(a.number, 11);
+    assert_eq!(a.number, crate::alarm::FEED_ZERO);
 }
 
 #[test]
@@ -536,7 +536,7 @@ fn work_offset_table_from_toml() {
     assert_eq!(t[2], Pos::xz(0.0, -100.5));
     assert_eq!(t[1], Pos::ZERO);
     let e = parse_work_offsets("wo.toml", "[G60]\nx = 1\n").unwrap_err();
-    assert_eq!(e.number, 1000);
+    assert_eq!(e.number, crate::alarm::CONFIG);
     assert!(e.message.contains("G60"), "{}", e.message);
     assert!(parse_work_offsets("wo.toml", "[G54]\nq = 1\n").is_err());
     let mut it = Interpreter::from_source("t", "G54 G00 X20 Z0\nM30", &cfg()).unwrap();

@@ -1802,6 +1802,15 @@ fn a_rigid_tap_too_fast_for_z_or_the_spindle_is_refused_at_push() {
     assert!(sps.iter().all(|s| s.pos[AX_S] == 0.0 && s.pos[AX_Z] >= 0.0));
 }
 
+/// A rigid tap at lead 1.5, S2000 under `l`: in from Z2 to Z-20 (line 2), out to Z2 (line 3).
+fn rigid_tap_in_and_out(l: &Limits) -> Vec<Setpoint> {
+    let mut m = Motion::new(l.clone(), [0.0; N_AXES]);
+    m.push(&mv(1, rapid(0.0, 2.0))).unwrap();
+    m.push(&mv(2, MoveKind::Tap { end: Pos::xz(0.0, -20.0), lead: 1.5, rpm: 2000.0, spindle: 1 })).unwrap();
+    m.push(&mv(3, MoveKind::Tap { end: Pos::xz(0.0, 2.0), lead: 1.5, rpm: 2000.0, spindle: 1 })).unwrap();
+    run(&mut m, 100_000)
+}
+
 /// Largest |second difference| of axis `i` over setpoints of line `line`, units/s².
 fn peak_accel(sps: &[Setpoint], i: usize, line: u32, dt: f64) -> f64 {
     sps.windows(3).filter(|w| w[1].line == line).map(|w| ((w[2].pos[i] - 2.0 * w[1].pos[i] + w[0].pos[i]) / (dt * dt)).abs()).fold(0.0, f64::max)
@@ -1814,11 +1823,7 @@ fn rigid_tap_matches_acceleration_with_5261_in_and_5271_out() {
     l.tap_accel = 1000.0 / 0.2 * 6.0;
     l.tap_retract_accel = 1000.0 / 0.4 * 6.0;
     let dt = l.cycle_s;
-    let mut m = Motion::new(l.clone(), [0.0; N_AXES]);
-    m.push(&mv(1, rapid(0.0, 2.0))).unwrap();
-    m.push(&mv(2, MoveKind::Tap { end: Pos::xz(0.0, -20.0), lead: 1.5, rpm: 2000.0, spindle: 1 })).unwrap();
-    m.push(&mv(3, MoveKind::Tap { end: Pos::xz(0.0, 2.0), lead: 1.5, rpm: 2000.0, spindle: 1 })).unwrap();
-    let sps = run(&mut m, 100_000);
+    let sps = rigid_tap_in_and_out(&l);
     // Spindle and Z on one profile: the spindle's limit sets Z's (the lower of the two).
     let (s_in, s_out) = (peak_accel(&sps, AX_S, 2, dt), peak_accel(&sps, AX_S, 3, dt));
     assert!((s_in - l.tap_accel).abs() < 0.01 * l.tap_accel, "in: {s_in} deg/s²");
@@ -1836,11 +1841,7 @@ fn rigid_tap_with_a_bell_shaped_acceleration_ramps_it_and_lands_exactly() {
     l.tap_bell_s = 0.04;
     l.sync_correction = false;
     let dt = l.cycle_s;
-    let mut m = Motion::new(l.clone(), [0.0; N_AXES]);
-    m.push(&mv(1, rapid(0.0, 2.0))).unwrap();
-    m.push(&mv(2, MoveKind::Tap { end: Pos::xz(0.0, -20.0), lead: 1.5, rpm: 2000.0, spindle: 1 })).unwrap();
-    m.push(&mv(3, MoveKind::Tap { end: Pos::xz(0.0, 2.0), lead: 1.5, rpm: 2000.0, spindle: 1 })).unwrap();
-    let sps = run(&mut m, 100_000);
+    let sps = rigid_tap_in_and_out(&l);
     let tap: Vec<&Setpoint> = sps.iter().filter(|s| s.line == 2).collect();
     let a_max = l.tap_accel * 1.5 / 360.0;
     let (mut peak_a, mut peak_j) = (0.0f64, 0.0f64);
