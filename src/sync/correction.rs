@@ -185,7 +185,7 @@ impl SyncCorrection {
         // Toward the target no faster than can still stop there (else a target jumping to and
         // fro winds the offset up), and the step changed by at most the acceleration.
         let d = c - self.prev[i];
-        let stoppable = 0.5 * ((amax * amax + 8.0 * amax * d.abs()).sqrt() - amax);
+        let stoppable = if amax.is_finite() { 0.5 * ((amax * amax + 8.0 * amax * d.abs()).sqrt() - amax) } else { f64::INFINITY };
         let step = (d.signum() * d.abs().min(stoppable)).clamp(step_prev - amax, step_prev + amax);
         self.prev[i] + step
     }

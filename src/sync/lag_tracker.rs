@@ -83,11 +83,13 @@ impl LagTracker {
             let d = l - 2.0 * self.l1 + self.l2;
             // Running means from zero: one step of the lag (a spindle starting) weighs 1/64,
             // only noise that lasts counts (the noise is the machine's: a new lock keeps them).
+            // Both means over the same samples (else their ratio, the correlation, is biased
+            // while they fill).
             if d.is_finite() {
                 if self.n >= 4 {
                     self.dd1 += STAT_W * (d * self.d1 - self.dd1);
+                    self.dd += STAT_W * (d * d - self.dd);
                 }
-                self.dd += STAT_W * (d * d - self.dd);
                 self.d1 = d;
             }
         }
