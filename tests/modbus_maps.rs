@@ -310,6 +310,7 @@ fn home_writes_method_offset_and_speeds_into_the_homing_registers() {
     let obj = |i: u16, s: u8| srv.with_drive(2, |d| d.object(i, s).unwrap_or(0)).unwrap();
     assert_eq!((obj(0x6098, 0), obj(0x607C, 0), obj(0x6099, 1), obj(0x6099, 2), obj(0x609A, 0)), (34, -25_000, 50_000, 10_000, 5_000_000), "{t}");
     let z = srv.with_drive(2, |d| d.position_unwrapped()).unwrap();
+    eprintln!("Modbus home, method 34, offset -2.5 mm: Z at {z} counts");
     assert!((z + 25_000).abs() <= 50, "Z at {z} counts after homing onto -2.5 mm: {t}");
     let file = std::fs::read_dir(&state).unwrap().flatten().map(|e| e.path()).find(|p| p.display().to_string().ends_with(".reference.toml"));
     let text = std::fs::read_to_string(file.expect("reference file in the state dir")).unwrap();

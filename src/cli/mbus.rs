@@ -796,16 +796,15 @@ pub fn drive_home(cfg: &MachineConfig, unit: u8, h: &super::service::HomeArgs) -
     }
 }
 
+/// One write of the homing: (first register, words, what it is).
+type RegisterWrite = (u16, Vec<u16>, &'static str);
+
 /// The homing parameters as register writes (address, words, what) for the registers the
 /// map has — the same figures the CANopen homing writes (`service::home_params`): speeds
 /// default to max_speed / 20 and / 100, the acceleration to max_accel. A value set to other
 /// than what a drive without the register does (method 35, offset 0, no speeds or
 /// acceleration given) on a map without that register: Err naming the register.
-fn homing_writes(
-    a: &AxisConfig,
-    m: &cncgw_bus::modbus::Cia402Map,
-    h: &super::service::HomeArgs,
-) -> Result<Vec<(u16, Vec<u16>, &'static str)>, String> {
+fn homing_writes(a: &AxisConfig, m: &cncgw_bus::modbus::Cia402Map, h: &super::service::HomeArgs) -> Result<Vec<RegisterWrite>, String> {
     let accel = a.homing.as_ref().and_then(|c| c.accel);
     let missing: Vec<&str> = [
         (h.method != 35 && m.homing_method.is_none(), "homing method 0x6098 (homing_method; --method / homing.method)"),
