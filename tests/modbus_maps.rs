@@ -132,7 +132,7 @@ fn config_check_bus_reads_the_map_from_sim_drives() {
     let t = text(&o);
     assert_eq!(o.status.code(), Some(1), "{t}");
     assert!(t.contains("live: axis x (unit 1, cia402 map) on Modbus TCP"), "{t}");
-    assert!(t.contains("12 register(s) read, 7 written back, none failed"), "x and the spindle have every register: {t}");
+    assert!(t.contains("17 register(s) read, 12 written back, none failed"), "x and the spindle have every register: {t}");
     assert!(
         t.contains("axis z (unit 2): interpolation_ms (register 20 = 0x0014, 1 register): cannot read: unit 2: exception 0x02 (Illegal data address) reading register 20 (1); so not written back — optional: if the drive has no such register, set interpolation_ms = \"none\" in [axes.z.cia402_map]"),
         "{t}"
@@ -235,7 +235,7 @@ fn config_check_bus_finds_the_registers_a_pymodbus_drive_lacks() {
     assert_eq!(o.status.code(), Some(1), "{t}");
     for (axis, unit) in [("x", 1), ("z", 2), ("s1", 3)] {
         assert!(
-            t.contains(&format!("live: axis {axis} (unit {unit}, cia402 map) on Modbus TCP {addr}: 10 register(s) read, 5 written back, 2 failed:")),
+            t.contains(&format!("live: axis {axis} (unit {unit}, cia402 map) on Modbus TCP {addr}: 15 register(s) read, 10 written back, 2 failed:")),
             "{t}"
         );
         assert!(t.contains(&format!("axis {axis} (unit {unit}): interpolation_ms (register 20 = 0x0014, 1 register): cannot read: unit {unit}: exception 0x02 (Illegal data address)")), "{t}");
@@ -243,4 +243,49 @@ fn config_check_bus_finds_the_registers_a_pymodbus_drive_lacks() {
     }
     // The window is not optional: no "none" hint for it.
     assert!(!t.contains("set following_error_window = \"none\""), "{t}");
+}
+
+/// Issue 24: `cncgw home` on a Modbus axis writes the axis's homing (method, offset, speeds,
+/// acceleration) into the map's homing registers before mode 6. Z homes with method 34 (the
+/// next index pulse moving positive, at the zero speed) and the home offset -2.5 mm: it
+/// stands at -2.5 mm (plus the few counts it takes to stop) and the reference file says so.
+/// A map without the method register refuses method 34 naming the register, moving nothing.
+#[test]
+fn home_writes_method_offset_and_speeds_into_the_homing_registers() {
+    let flag = Arc::new(AtomicBool::new(false));
+    let srv = tcp_server(MODBUS_LATHE, |_| sim_drives::ModbusQuirks::default(), &flag);
+    let homing = "homing = { method = 34, offset = -2.5, speed = 300.0, zero_speed = 60.0, accel = 500.0 }\n";
+    let machine = on(MODBUS_LATHE, srv.local_addr().unwrap())
+        .replace("following_error = 1.0\n\n[axes.s1]", &format!("following_error = 1.0\n{homing}\n[axes.s1]"));
+    assert!(machine.contains(homing), "lathe-modbus.toml's Z block changed");
+    let state = tmp("state-home");
+    let _ = std::fs::remove_dir_all(&state);
+    let home = |cfg: &str| testkit::cli!().state(&state).output(&["home", "z", "--config", cfg, "--yes"]);
+
+    // Without the method register: refused before anything is written (exit 1: an axis
+    // of `cncgw home` failed).
+    let cfg = write("home-nomethod.toml", &with_z_map(&machine, "[axes.z.cia402_map]\nhoming_method = \"none\"\n"));
+    let o = home(&cfg);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(t.contains("no register for the homing method 0x6098 (homing_method"), "{t}");
+    assert_eq!(srv.with_drive(2, |d| d.object(0x6098, 0).unwrap_or(0)).unwrap(), 35, "{t}");
+
+    let cfg = write("home.toml", &machine);
+    let o = home(&cfg);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(0), "{t}");
+    assert!(t.contains("homed in mode 6 with homing method 34") && t.contains("axis Z: referenced (homing method 34)"), "{t}");
+    // What the drive was given, in counts (10 000 per mm): 300 and 60 mm/min, 500 mm/s².
+    let obj = |i: u16, s: u8| srv.with_drive(2, |d| d.object(i, s).unwrap_or(0)).unwrap();
+    assert_eq!((obj(0x6098, 0), obj(0x607C, 0), obj(0x6099, 1), obj(0x6099, 2), obj(0x609A, 0)), (34, -25_000, 50_000, 10_000, 5_000_000), "{t}");
+    let z = srv.with_drive(2, |d| d.position_unwrapped()).unwrap();
+    eprintln!("Modbus home, method 34, offset -2.5 mm: Z at {z} counts");
+    assert!((z + 25_000).abs() <= 50, "Z at {z} counts after homing onto -2.5 mm: {t}");
+    let file = std::fs::read_dir(&state).unwrap().flatten().map(|e| e.path()).find(|p| p.display().to_string().ends_with(".reference.toml"));
+    let text = std::fs::read_to_string(file.expect("reference file in the state dir")).unwrap();
+    let pos: f64 = text.lines().find_map(|l| l.strip_prefix("position = ")).expect("a position in the reference").parse().unwrap();
+    assert!(text.contains("[axes.z]") && text.contains("method = 34") && (pos + 2.5).abs() <= 0.005, "{text}");
+    flag.store(true, Ordering::Relaxed);
+    srv.join().unwrap();
 }

@@ -159,6 +159,22 @@ pub struct Cia402Map {
     /// none (the master warns: a dead controller is not noticed by the drive).
     #[serde(deserialize_with = "optional_register")]
     pub comm_timeout_ms: Option<u16>,
+    /// 0x6098 homing method (INTEGER8 in one register); `"none"`: the drive homes with the
+    /// method of its own parameters (`cncgw home` then refuses any method but 35).
+    #[serde(deserialize_with = "optional_register")]
+    pub homing_method: Option<u16>,
+    /// 0x607C home offset, counts (2 registers); optional.
+    #[serde(deserialize_with = "optional_register")]
+    pub home_offset: Option<u16>,
+    /// 0x6099:1 homing speed searching the switch, counts/s (2 registers); optional.
+    #[serde(deserialize_with = "optional_register")]
+    pub homing_switch_speed: Option<u16>,
+    /// 0x6099:2 homing speed searching zero, counts/s (2 registers); optional.
+    #[serde(deserialize_with = "optional_register")]
+    pub homing_zero_speed: Option<u16>,
+    /// 0x609A homing acceleration, counts/s² (2 registers); optional.
+    #[serde(deserialize_with = "optional_register")]
+    pub homing_accel: Option<u16>,
     pub word_order: WordOrder,
     /// How the cyclic read is split (`ReadBlocks`).
     pub reads: ReadBlocks,
@@ -198,6 +214,11 @@ impl Cia402Map {
             reg("interpolation_ms", self.interpolation_ms, 1, true, true),
             reg("following_error_window", Some(self.following_error_window), 2, true, false),
             reg("comm_timeout_ms", self.comm_timeout_ms, 1, true, true),
+            reg("homing_method", self.homing_method, 1, true, true),
+            reg("home_offset", self.home_offset, 2, true, true),
+            reg("homing_switch_speed", self.homing_switch_speed, 2, true, true),
+            reg("homing_zero_speed", self.homing_zero_speed, 2, true, true),
+            reg("homing_accel", self.homing_accel, 2, true, true),
         ]
         .into_iter()
         .flatten()
@@ -255,6 +276,11 @@ impl Default for Cia402Map {
             interpolation_ms: Some(20),
             following_error_window: 21,
             comm_timeout_ms: Some(23),
+            homing_method: Some(24),
+            home_offset: Some(25),
+            homing_switch_speed: Some(27),
+            homing_zero_speed: Some(29),
+            homing_accel: Some(31),
             word_order: WordOrder::HighFirst,
             reads: ReadBlocks::Auto,
         }

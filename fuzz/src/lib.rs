@@ -326,6 +326,9 @@ fn modbus_map(data: &[u8]) {
         comm_timeout_ms: opt(b.u16()),
         word_order: order,
         reads,
+        // The homing registers are not in the cycle: the default ones (no bytes taken, so
+        // the corpus keeps its meaning).
+        ..modbus::Cia402Map::default()
     };
     let pr = modbus::PrMap {
         block: b.u16(),

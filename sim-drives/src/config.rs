@@ -949,6 +949,11 @@ impl SimConfig {
                     ("interpolation_ms", m.interpolation_ms),
                     ("following_error_window", Some(m.following_error_window)),
                     ("comm_timeout_ms", m.comm_timeout_ms),
+                    ("homing_method", m.homing_method),
+                    ("home_offset", m.home_offset),
+                    ("homing_switch_speed", m.homing_switch_speed),
+                    ("homing_zero_speed", m.homing_zero_speed),
+                    ("homing_accel", m.homing_accel),
                 ] {
                     s.push_str(&format!("{k} = {}\n", v.map_or("\"none\"".to_string(), |v| v.to_string())));
                 }

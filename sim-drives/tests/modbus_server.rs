@@ -56,6 +56,11 @@ const M: Cia402Map = Cia402Map {
     interpolation_ms: Some(20),
     following_error_window: 21,
     comm_timeout_ms: Some(23),
+    homing_method: Some(24),
+    home_offset: Some(25),
+    homing_switch_speed: Some(27),
+    homing_zero_speed: Some(29),
+    homing_accel: Some(31),
     word_order: WordOrder::HighFirst,
     reads: cncgw_bus::modbus::ReadBlocks::Auto,
 };
@@ -248,7 +253,7 @@ async fn exceptions_cia402() {
     // 0x02: a register outside the map (the gaps 6–9, 17–19, past 23), alone or in a block.
     assert_eq!(exception(c.read_holding_registers(6, 1).await).await, ExceptionCode::IllegalDataAddress);
     assert_eq!(exception(c.read_holding_registers(0, 24).await).await, ExceptionCode::IllegalDataAddress);
-    assert_eq!(exception(c.read_holding_registers(24, 1).await).await, ExceptionCode::IllegalDataAddress);
+    assert_eq!(exception(c.read_holding_registers(33, 1).await).await, ExceptionCode::IllegalDataAddress);
     assert_eq!(exception(c.read_input_registers(17, 2).await).await, ExceptionCode::IllegalDataAddress);
     assert_eq!(exception(c.read_holding_registers(65535, 2).await).await, ExceptionCode::IllegalDataAddress);
     assert_eq!(exception(c.write_single_register(7, 1).await).await, ExceptionCode::IllegalDataAddress);
@@ -263,6 +268,18 @@ async fn exceptions_cia402() {
     assert_eq!(exception(c.write_multiple_registers(M.controlword, &[6, 0, 0, 0, 0, 7]).await).await, ExceptionCode::IllegalDataValue);
     assert_eq!(read(&mut c, M.controlword, 1).await[0], 0, "refused request wrote the controlword");
     assert_eq!(exception(c.write_single_register(M.interpolation_ms.unwrap(), 256).await).await, ExceptionCode::IllegalDataValue);
+    // The homing registers are the drive's 0x6098 / 0x607C / 0x6099 / 0x609A: a method it
+    // has reads back, one it lacks (36, reserved) or outside INTEGER8 is refused.
+    let hm = M.homing_method.unwrap();
+    assert_eq!(read(&mut c, hm, 1).await, [35]);
+    write1(&mut c, hm, 17).await;
+    assert_eq!(read(&mut c, hm, 1).await, [17]);
+    assert_eq!(exception(c.write_single_register(hm, 36).await).await, ExceptionCode::IllegalDataValue);
+    assert_eq!(exception(c.write_single_register(hm, 200).await).await, ExceptionCode::IllegalDataValue);
+    write(&mut c, M.home_offset.unwrap(), &M.word_order.split_i32(-20_000)).await;
+    let r = read(&mut c, M.home_offset.unwrap(), 2).await;
+    assert_eq!(M.word_order.join_i32([r[0], r[1]]), -20_000);
+    assert_eq!(exception(c.write_multiple_registers(M.homing_zero_speed.unwrap(), &[0, 0]).await).await, ExceptionCode::IllegalDataValue);
     // 0x03: quantity 0 or above 125 registers.
     assert_eq!(exception(c.read_holding_registers(0, 126).await).await, ExceptionCode::IllegalDataValue);
     assert_eq!(exception(c.read_holding_registers(0, 0).await).await, ExceptionCode::IllegalDataValue);

@@ -105,6 +105,11 @@ const M: Cia402Map = Cia402Map {
     interpolation_ms: Some(20),
     following_error_window: 21,
     comm_timeout_ms: Some(23),
+    homing_method: Some(24),
+    home_offset: Some(25),
+    homing_switch_speed: Some(27),
+    homing_zero_speed: Some(29),
+    homing_accel: Some(31),
     word_order: WordOrder::HighFirst,
     reads: cncgw_bus::modbus::ReadBlocks::Auto,
 };

@@ -796,6 +796,67 @@ pub fn drive_home(cfg: &MachineConfig, unit: u8, h: &super::service::HomeArgs) -
     }
 }
 
+/// One write of the homing: (first register, words, what it is).
+type RegisterWrite = (u16, Vec<u16>, &'static str);
+
+/// The homing parameters as register writes (address, words, what) for the registers the
+/// map has — the same figures the CANopen homing writes (`service::home_params`): speeds
+/// default to max_speed / 20 and / 100, the acceleration to max_accel. A value set to other
+/// than what a drive without the register does (method 35, offset 0, no speeds or
+/// acceleration given) on a map without that register: Err naming the register.
+fn homing_writes(a: &AxisConfig, m: &cncgw_bus::modbus::Cia402Map, h: &super::service::HomeArgs) -> Result<Vec<RegisterWrite>, String> {
+    let accel = a.homing.as_ref().and_then(|c| c.accel);
+    let missing: Vec<&str> = [
+        (h.method != 35 && m.homing_method.is_none(), "homing method 0x6098 (homing_method; --method / homing.method)"),
+        (h.offset != 0.0 && m.home_offset.is_none(), "home offset 0x607C (home_offset; --offset / homing.offset)"),
+        (h.switch_speed.is_some() && m.homing_switch_speed.is_none(), "switch speed 0x6099:1 (homing_switch_speed; --switch-speed / homing.speed)"),
+        (h.zero_speed.is_some() && m.homing_zero_speed.is_none(), "zero speed 0x6099:2 (homing_zero_speed; --zero-speed / homing.zero_speed)"),
+        (accel.is_some() && m.homing_accel.is_none(), "homing acceleration 0x609A (homing_accel; homing.accel)"),
+    ]
+    .into_iter()
+    .filter_map(|(absent, what)| absent.then_some(what))
+    .collect();
+    if !missing.is_empty() {
+        return Err(format!(
+            "the axis's CiA 402 register map has no register for the {}: it is \"none\" in the axis's cia402_map. Give the register's address in the map if the drive has it, else set the value in the drive's own parameters and home without it (the drive then homes with its configured method)",
+            missing.join(", ")
+        ));
+    }
+    let spindle = a.kind == crate::config::AxisKind::Spindle;
+    let cpu = a.counts_per_unit;
+    // mm/min → mm/s, rpm → deg/s; mm/s² as is, rpm/s → deg/s².
+    let speed = |v: f64| if spindle { v * 6.0 } else { v / 60.0 };
+    let counts = |units: f64, what: &str| -> Result<[u16; 2], String> {
+        let c = (units * cpu).abs().round();
+        if !c.is_finite() || c < 1.0 || c > u32::MAX as f64 {
+            return Err(format!("the {what} {units} is out of the drive's range (1 to 2^32-1 counts)"));
+        }
+        Ok(m.word_order.split_i32(c as u32 as i32))
+    };
+    let offset = (h.offset * cpu).round();
+    if !offset.is_finite() || offset.abs() > i32::MAX as f64 {
+        return Err(format!("home offset {} is out of the drive's range", h.offset));
+    }
+    let mut w = Vec::new();
+    if let Some(r) = m.homing_method {
+        w.push((r, vec![h.method as i16 as u16], "homing method 0x6098"));
+    }
+    if let Some(r) = m.home_offset {
+        w.push((r, m.word_order.split_i32(offset as i32).to_vec(), "home offset 0x607C"));
+    }
+    if let Some(r) = m.homing_switch_speed {
+        w.push((r, counts(speed(h.switch_speed.unwrap_or(a.max_speed / 20.0)), "homing switch speed")?.to_vec(), "switch speed 0x6099:1"));
+    }
+    if let Some(r) = m.homing_zero_speed {
+        w.push((r, counts(speed(h.zero_speed.unwrap_or(a.max_speed / 100.0)), "homing zero speed")?.to_vec(), "zero speed 0x6099:2"));
+    }
+    if let Some(r) = m.homing_accel {
+        let acc = accel.unwrap_or(a.max_accel) * if spindle { 6.0 } else { 1.0 };
+        w.push((r, counts(acc, "homing acceleration")?.to_vec(), "homing acceleration 0x609A"));
+    }
+    Ok(w)
+}
+
 /// `drive_home`'s work: the position after homing (machine units), or the exit code (the
 /// message printed).
 pub fn home_unit(cfg: &MachineConfig, unit: u8, h: &super::service::HomeArgs) -> Result<f64, i32> {
@@ -806,32 +867,26 @@ pub fn home_unit(cfg: &MachineConfig, unit: u8, h: &super::service::HomeArgs) ->
         eprintln!("error: unit {unit} (axis {name}) speaks the PR register map: homing is not supported by this register map (it has no mode or homing registers); home the axis with the drive's own software or panel, or set the position with a G92/G50 in the program");
         return Err(EXIT_USAGE);
     }
-    let mut missing = Vec::new();
-    if h.method != 35 {
-        missing.push("homing method 0x6098 (--method)");
-    }
-    if h.offset != 0.0 {
-        missing.push("home offset 0x607C (--offset)");
-    }
-    if h.switch_speed.is_some() || h.zero_speed.is_some() {
-        missing.push("homing speeds 0x6099 (--switch-speed, --zero-speed)");
-    }
-    if !missing.is_empty() {
-        eprintln!(
-            "error: unit {unit}: the Modbus CiA 402 register map has no register for the {}: set them in the drive's own parameters and home without those options (the drive homes with its configured method)",
-            missing.join(", ")
-        );
-        return Err(EXIT_USAGE);
-    }
+    let m = a.cia402_map.unwrap_or_default();
+    let writes = match homing_writes(&a, &m, h) {
+        Ok(w) => w,
+        Err(e) => {
+            eprintln!("error: unit {unit}: {e}");
+            return Err(EXIT_USAGE);
+        }
+    };
     if !(h.timeout.is_finite() && h.timeout > 0.0) {
         eprintln!("error: --timeout must be a positive number of seconds");
         return Err(EXIT_USAGE);
     }
-    let m = a.cia402_map.unwrap_or_default();
     let timeout = Duration::from_secs_f64(h.timeout.min(3600.0));
     let run = |c: &mut Client| -> Result<f64, String> {
         let before = c.read(unit, m.mode_display, 1)?[0];
         watchdog_off(c, &a)?;
+        // The homing parameters before the mode: a drive may take them as homing starts.
+        for (addr, words, what) in &writes {
+            c.write(unit, *addr, words).map_err(|e| format!("{e}: writing the {what} (register {addr})"))?;
+        }
         c.write(unit, m.mode, &[mode::HOMING as u16]).map_err(|e| format!("{e}: the drive refused homing mode 6 in its mode register {}", m.mode))?;
         let homed = (|| {
             cia402_enable(c, &a, WALK_TIMEOUT)?;
@@ -885,7 +940,8 @@ pub fn home_unit(cfg: &MachineConfig, unit: u8, h: &super::service::HomeArgs) ->
     let unit_s = if a.kind == crate::config::AxisKind::Spindle { "deg" } else { "mm" };
     match run(&mut c) {
         Ok(pos) => {
-            println!("unit {unit} (axis {name}) on {}: homed in mode 6 with the drive's own homing method; position now {pos:.4} {unit_s}", c.what);
+            let how = if m.homing_method.is_some() { format!("homing method {}", h.method) } else { "the drive's own homing method".into() };
+            println!("unit {unit} (axis {name}) on {}: homed in mode 6 with {how}; position now {pos:.4} {unit_s}", c.what);
             Ok(pos)
         }
         Err(e) => {

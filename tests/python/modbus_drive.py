@@ -27,6 +27,11 @@ CIA402 = {
     "interpolation_ms": (20, 1),
     "following_error_window": (21, 2),
     "comm_timeout_ms": (23, 1),
+    "homing_method": (24, 1),
+    "home_offset": (25, 2),
+    "homing_switch_speed": (27, 2),
+    "homing_zero_speed": (29, 2),
+    "homing_accel": (31, 2),
 }
 
 

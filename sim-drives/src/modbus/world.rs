@@ -22,6 +22,8 @@ pub const MAX_RW_WRITE: u16 = 121;
 pub const COMM_TIMEOUT_CODE: u16 = 0x8130;
 /// 0x6067 position window: the PR profile's in-position window.
 const POSITION_WINDOW: u16 = 0x6067;
+/// 0x607C home offset.
+const HOME_OFFSET: u16 = 0x607C;
 /// The PR profile's internal profile generator period.
 const PR_PERIOD: u64 = MS;
 
@@ -45,6 +47,11 @@ enum Reg {
     AlarmCode,
     AlarmReset,
     CommTimeout,
+    HomingMethod,
+    HomeOffset,
+    HomingSwitchSpeed,
+    HomingZeroSpeed,
+    HomingAccel,
 }
 
 impl Reg {
@@ -69,6 +76,11 @@ impl Reg {
             (Profile::Pr, "alarm_code") => AlarmCode,
             (Profile::Pr, "alarm_reset") => AlarmReset,
             (_, "comm_timeout_ms") => CommTimeout,
+            (Profile::Cia402, "homing_method") => HomingMethod,
+            (Profile::Cia402, "home_offset") => HomeOffset,
+            (Profile::Cia402, "homing_switch_speed") => HomingSwitchSpeed,
+            (Profile::Cia402, "homing_zero_speed") => HomingZeroSpeed,
+            (Profile::Cia402, "homing_accel") => HomingAccel,
             _ => return None,
         })
     }
@@ -86,7 +98,7 @@ impl Reg {
             AlarmReset => 0,
             Controlword | ServoOn => 1,
             Mode => 2,
-            InterpolationMs | FerrWindow | CommTimeout => 3,
+            InterpolationMs | FerrWindow | CommTimeout | HomingMethod | HomeOffset | HomingSwitchSpeed | HomingZeroSpeed | HomingAccel => 3,
             Block => 4,
             TargetVelocity => 5,
             TargetPosition | Trigger => 6,
@@ -225,8 +237,8 @@ impl World {
                         .and_then(|_| d.modbus_write(ix::INTERPOLATION_PERIOD, 1, (PR_PERIOD / MS) as i64, 0))
                         .and_then(|_| d.modbus_write(ix::MODES_OF_OPERATION, 0, mode::CYCLIC_SYNC_POSITION as i64, 0));
                 } else {
-                    // The map has no 0x6098: homing (mode 6) uses the method set in the
-                    // drive's parameters, here 35 (the present position becomes home).
+                    // The drive's own homing method until the master writes one (a map
+                    // without `homing_method` keeps it): 35, the present position is home.
                     r = r.and_then(|_| d.modbus_write(ix::HOMING_METHOD, 0, 35, 0));
                 }
                 r.map_err(|c| format!("drive node {node}: setting up its Modbus profile failed (SDO abort 0x{c:08X})"))?;
@@ -503,6 +515,11 @@ impl World {
             Reg::InterpolationMs => vec![obj(ix::INTERPOLATION_PERIOD, 1) as u16],
             Reg::FerrWindow => two(obj(ix::FOLLOWING_ERROR_WINDOW, 0)),
             Reg::CommTimeout => vec![u.comm_timeout_ms],
+            Reg::HomingMethod => vec![obj(ix::HOMING_METHOD, 0) as i16 as u16],
+            Reg::HomeOffset => two(obj(HOME_OFFSET, 0)),
+            Reg::HomingSwitchSpeed => two(obj(ix::HOMING_SPEEDS, 1)),
+            Reg::HomingZeroSpeed => two(obj(ix::HOMING_SPEEDS, 2)),
+            Reg::HomingAccel => two(obj(ix::HOMING_ACCEL, 0)),
             Reg::Block => u.pr.as_ref().map(|p| p.block.to_vec()).unwrap_or_default(),
             Reg::Trigger => vec![u.pr.as_ref().map_or(0, |p| p.trigger)],
             Reg::ServoOn => vec![u.pr.as_ref().map_or(0, |p| p.servo_on as u16)],
@@ -626,6 +643,18 @@ impl World {
             Reg::FerrWindow => Some((ix::FOLLOWING_ERROR_WINDOW, 0, val32() as u32 as i64)),
             Reg::TargetPosition => Some((ix::TARGET_POSITION, 0, val32())),
             Reg::TargetVelocity => Some((ix::TARGET_VELOCITY, 0, val32())),
+            // INTEGER8 in a register: a value outside -128…127 is refused (0x03), not cut.
+            Reg::HomingMethod => {
+                let m = first as i16;
+                if i8::try_from(m).is_err() {
+                    return Err(ExceptionCode::IllegalDataValue);
+                }
+                Some((ix::HOMING_METHOD, 0, m as i64))
+            }
+            Reg::HomeOffset => Some((HOME_OFFSET, 0, val32())),
+            Reg::HomingSwitchSpeed => Some((ix::HOMING_SPEEDS, 1, val32() as u32 as i64)),
+            Reg::HomingZeroSpeed => Some((ix::HOMING_SPEEDS, 2, val32() as u32 as i64)),
+            Reg::HomingAccel => Some((ix::HOMING_ACCEL, 0, val32() as u32 as i64)),
             _ => None,
         };
         if let Some((index, sub, x)) = obj_write {
