@@ -99,7 +99,7 @@ fn check_no_alloc(scurve: bool) -> (usize, Duration) {
     let mut worst = Duration::ZERO;
     let mut next = 0;
     feed(&mut m, &prog, &mut next);
-    let mut fb = Feedback { pos: START, spindle_rpm: 0.0 };
+    let mut fb = Feedback { pos: START, spindle_rpm: 0.0, ..Default::default() };
     let mut n = 0;
     while !m.is_idle() {
         let before = ALLOCS.load(Ordering::Relaxed);
@@ -108,7 +108,7 @@ fn check_no_alloc(scurve: bool) -> (usize, Duration) {
         worst = worst.max(t.elapsed());
         let after = ALLOCS.load(Ordering::Relaxed);
         assert_eq!(before, after, "step() allocated at cycle {n}");
-        fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm };
+        fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm, ..Default::default() };
         n += 1;
         assert!(n < 10_000_000, "program does not finish");
     }
@@ -134,7 +134,7 @@ fn bench_one(c: &mut Criterion, scurve: bool) {
     c.bench_function(name, |b| {
         let mut m = fresh(scurve);
         let mut next = 0;
-        let mut fb = Feedback { pos: START, spindle_rpm: 0.0 };
+        let mut fb = Feedback { pos: START, spindle_rpm: 0.0, ..Default::default() };
         b.iter_custom(|iters| {
             let mut total = Duration::ZERO;
             let mut done = 0u64;
@@ -143,7 +143,7 @@ fn bench_one(c: &mut Criterion, scurve: bool) {
                     // Restart the program (outside the timed part).
                     m = fresh(scurve);
                     next = 0;
-                    fb = Feedback { pos: START, spindle_rpm: 0.0 };
+                    fb = Feedback { pos: START, spindle_rpm: 0.0, ..Default::default() };
                     feed(&mut m, &prog, &mut next);
                 }
                 let t = Instant::now();

@@ -74,10 +74,10 @@ fn run(lim: &Limits, prog: impl Iterator<Item = Move>, end: Pos) -> Fig {
     if let Some(r) = prog.next() {
         m.push(&r).expect("rapid");
     }
-    let mut fb = Feedback { pos: m.position(), spindle_rpm: 0.0 };
+    let mut fb = Feedback { pos: m.position(), spindle_rpm: 0.0, ..Default::default() };
     while !m.is_idle() {
         let sp = m.step(&fb);
-        fb = Feedback { pos: sp.pos, spindle_rpm: 0.0 };
+        fb = Feedback { pos: sp.pos, spindle_rpm: 0.0, ..Default::default() };
     }
     let (mut p, mut v, mut a) = (m.position(), [0.0; N_AXES], [0.0; N_AXES]);
     let mut f = Fig {
@@ -111,7 +111,7 @@ fn run(lim: &Limits, prog: impl Iterator<Item = Move>, end: Pos) -> Fig {
         step_total += step_us;
         f.step_us.push(step_us);
         f.cycle_us.push(cyc_us);
-        fb = Feedback { pos: sp.pos, spindle_rpm: 0.0 };
+        fb = Feedback { pos: sp.pos, spindle_rpm: 0.0, ..Default::default() };
         cycles += 1;
         let moved = sp.pos != p;
         moving |= moved;

@@ -2,25 +2,31 @@
 //! configurations given as arguments), in simulated time on the embedded machine: one table.
 //!
 //! Run: `cargo run --release --example drive_matrix [--param NO=VALUE …] [--jitter-us N]
-//! [MODEL.toml …]` (`--param 5365=20`: the embedded machine with that parameter set, e.g. a
+//! [--air] [MODEL.toml …]` (`--air`: the taps without the cutting load, as `cncgw run
+//! --sim-config` runs them; `--param 5365=20`: the embedded machine with that parameter set, e.g. a
 //! bell-shaped rigid-tap acceleration; `--jitter-us 300`: every SYNC sent 0–300 µs late at
 //! random, a real-time PC's wake-up jitter, still in simulated time).
 //!
 //! Per model: rigid tap M10×1.5 at S3000, 35 mm (Z2 → Z−33), and at S6000 over 200 mm
-//! (Z2 → Z−198), cutting load on; a G92.1 rigid thread (lead 2, S1000, Z5 → Z−40); the same
+//! (Z2 → Z−198), cutting load on (unless `--air`); a G92.1 rigid thread (lead 2, S1000, Z5 → Z−40); the same
 //! G92 thread (lead 1.5) at S500, S1000 and S1500 and the spread of its phase. Sync errors
 //! are from the drives' *actual* positions: max and RMS in µm. Any alarm is shown.
 
 use cncgw::config::MachineConfig;
-use cncgw::control::embedded::matrix::{measure_model_jittered, MatrixRow};
+use cncgw::control::embedded::matrix::{measure_model_with, MatrixRow};
 use std::path::PathBuf;
 
 fn main() {
     let mut cfg = MachineConfig::embedded();
     let mut files: Vec<PathBuf> = Vec::new();
     let mut jitter_ns = 0u64;
+    let mut cut = true;
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
+        if a == "--air" {
+            cut = false;
+            continue;
+        }
         if a == "--jitter-us" {
             let v = args.next().unwrap_or_default();
             let Ok(us) = v.parse::<u64>() else {
@@ -63,7 +69,7 @@ fn main() {
                 std::process::exit(2);
             }
         };
-        match measure_model_jittered(&cfg, &text, jitter_ns) {
+        match measure_model_with(&cfg, &text, jitter_ns, cut) {
             Ok(r) => println!("{}", row(&name, &r)),
             Err(e) => {
                 eprintln!("error: {}: {e}", f.display());

@@ -26,7 +26,7 @@ fn run(cfg: &MachineConfig, text: &str, cycle_ms: f64) -> Result<Fig, String> {
     let dt = lim.cycle_s;
     let mut m = Motion::new(lim, [50.0, 0.0, 0.0, 0.0]);
     let mut moves = interp.into_iter().peekable();
-    let mut fb = Feedback { pos: m.position(), spindle_rpm: 0.0 };
+    let mut fb = Feedback { pos: m.position(), spindle_rpm: 0.0, ..Default::default() };
     let (mut p, mut v, mut a) = (m.position(), [0.0; N_AXES], [0.0; N_AXES]);
     let mut f = Fig { time_s: 0.0, max_acc: [0.0; 2], max_dacc: [0.0; 2], max_dacc_in_block: [0.0; 2] };
     let mut cycles = 0u64;
@@ -44,7 +44,7 @@ fn run(cfg: &MachineConfig, text: &str, cycle_ms: f64) -> Result<Fig, String> {
             break;
         }
         let sp = m.step(&fb);
-        fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm };
+        fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm, ..Default::default() };
         started |= sp.pos != p;
         if started {
             cycles += 1;

@@ -320,7 +320,7 @@ fn lims() -> cncgw::motion::Limits {
 /// Feed `m` into motion and step it with perfect feedback until idle or `max` cycles
 /// (`stop_at`: request a controlled stop — a reset — at that cycle). Returns the setpoints.
 fn drive(mo: &mut cncgw::motion::Motion, m: &[Move], max: usize, stop_at: Option<usize>) -> Vec<cncgw::motion::Setpoint> {
-    let mut fb = cncgw::motion::Feedback { pos: mo.position(), spindle_rpm: 0.0 };
+    let mut fb = cncgw::motion::Feedback { pos: mo.position(), spindle_rpm: 0.0, ..Default::default() };
     let mut out = Vec::new();
     let mut k = 0;
     for x in m {
@@ -331,7 +331,7 @@ fn drive(mo: &mut cncgw::motion::Motion, m: &[Move], max: usize, stop_at: Option
             mo.stop();
         }
         let sp = mo.step(&fb);
-        fb = cncgw::motion::Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm };
+        fb = cncgw::motion::Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm, ..Default::default() };
         out.push(sp);
         k += 1;
         if mo.is_idle() && k > 2 {

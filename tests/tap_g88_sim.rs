@@ -57,7 +57,9 @@ fn g88_taps_along_x_locked_to_the_spindle_and_ends_on_r() {
     // The spindle turned 10 revolutions (−X is forward, M03: the angle grows) and back.
     let s = run.drive("s1").unwrap();
     let top = run.rows.iter().map(|r| r.act[s]).fold(f64::NEG_INFINITY, f64::max);
-    assert!((top - (90.0 + 3600.0)).abs() < 1.0, "deepest spindle angle {top}");
+    // Within 1.5°: the spindle turns back up to 1.2° short of the command on the bell-shaped
+    // profile (its dry friction; X follows it).
+    assert!((top - (90.0 + 3600.0)).abs() < 1.5, "deepest spindle angle {top}");
     // X ends exactly on R (radius 30 = 300000 counts): the correction has faded out.
     let x = run.summary.axes.iter().find(|a| a.name == "x").unwrap();
     assert_eq!(x.final_target_counts, 300_000);

@@ -504,14 +504,14 @@ fn the_first_stroke_leaves_r_only_with_the_entry_on_disk() {
         m.push(t).unwrap();
         watch.on_push(t);
     }
-    let mut fb = Feedback { pos: m.position(), spindle_rpm: 0.0 };
+    let mut fb = Feedback { pos: m.position(), spindle_rpm: 0.0, ..Default::default() };
     let mut on_disk_at_entry = None;
     let mut cycles_at_r = 0;
     let t0 = Instant::now();
     ARMED.with(|a| a.set(true));
     while !m.is_idle() && t0.elapsed() < Duration::from_secs(20) {
         let sp = m.step(&fb);
-        fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm };
+        fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm, ..Default::default() };
         watch.on_cycle(sp.line, &sp.pos, &fb.pos);
         if sp.pos[2] < 2.0 && on_disk_at_entry.is_none() {
             ARMED.with(|a| a.set(false));

@@ -604,7 +604,9 @@ impl<'a> CycleLoop<'a> {
         let mut fb = Feedback::default();
         for d in 0..self.drives.axis_count() {
             if let Some(a) = motion_axis(self.drives.axis_name(d), Some(d) == self.spindle_drive) {
-                fb.pos[a] = self.drives.feedback(d).pos;
+                let f = self.drives.feedback(d);
+                fb.pos[a] = f.pos;
+                fb.age[a] = f.age_cycles;
             }
         }
         if let Some(sd) = self.spindle_drive {

@@ -634,14 +634,14 @@ mod tests {
             m.push(&t).unwrap();
             w.on_push(&t);
         }
-        let mut fb = Feedback { pos: m.position(), spindle_rpm: 0.0 };
+        let mut fb = Feedback { pos: m.position(), spindle_rpm: 0.0, ..Default::default() };
         let (mut sps, mut disk) = (Vec::new(), Vec::new());
         for k in 0..20_000 {
             if m.is_idle() {
                 break;
             }
             let sp = m.step(&fb);
-            fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm };
+            fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm, ..Default::default() };
             w.on_cycle(sp.line, &sp.pos, &fb.pos);
             if ack_at.is_some_and(|c| k >= c) {
                 // The simulated writer: everything published so far is on disk.

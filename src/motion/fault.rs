@@ -277,7 +277,7 @@ mod tests {
         let dt = l.cycle_s;
         let mut m = Motion::new(l, [0.0, 0.0, 2.0, 0.0]);
         m.push(&mv(kind)).unwrap();
-        let mut fb = Feedback { pos: m.position(), spindle_rpm: 0.0 };
+        let mut fb = Feedback { pos: m.position(), spindle_rpm: 0.0, ..Default::default() };
         let mut prev = fb.pos;
         for _ in 0..at {
             let sp = m.step(&fb);

@@ -125,6 +125,9 @@ const INPOS_MM: f64 = 0.001;
 const INPOS_MAX_CYCLES: u32 = 150;
 /// Memory of the feed axes' lag models (see `sync_corr`), s.
 const LAG_MEMORY_S: f64 = 2.0;
+/// The rigid tap's bell-shaped acceleration when No.5365 is not set, cycles (see
+/// `Limits::from_config`).
+const TAP_BELL_CYCLES: f64 = 10.0;
 /// Gain with which a thread's measured phase error corrects the long axis' lag, per cycle.
 const THREAD_TRIM_GAIN: f64 = 0.1;
 /// Most junctions of a blended chain crossed within one cycle. Keeps `step` bounded: a
@@ -185,6 +188,10 @@ pub mod alarms {
 pub struct Feedback {
     pub pos: [f64; N_AXES],
     pub spindle_rpm: f64,
+    /// Cycles since each drive's position was sampled (0: at this cycle's SYNC). The sync
+    /// monitor and correction pair a spindle angle only with a feed-axis position of the same
+    /// age, that is, from one SYNC: a late TPDO must not be read as a sync error.
+    pub age: [u32; N_AXES],
 }
 
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -341,9 +348,16 @@ impl Limits {
         if let Some(ms) = cfg.param(5271).filter(|t| t.is_finite() && *t > 0.0) {
             l.tap_retract_accel = 1000.0 / (ms / 1000.0) * 6.0;
         }
-        if let Some(ms) = cfg.param(5365).filter(|t| t.is_finite() && *t > 0.0) {
-            l.tap_bell_s = ms / 1000.0;
-        }
+        // No.5365 = 0 is linear on Fanuc, whose servos are matched to its CNC. Here the
+        // spindle and the feed axes are anyone's drives: an acceleration step turns their lags
+        // differently within a cycle, and across a transport delay the correction learns of
+        // it cycles late. So unset, the acceleration ramps over TAP_BELL_CYCLES (drive matrix,
+        // no load: 7.9 → 3.2 µm with 2 cycles of delay, all others ≤ 4.1 µm); an explicit
+        // value is kept (0: linear, as on Fanuc).
+        l.tap_bell_s = match cfg.param(5365).filter(|t| t.is_finite() && *t >= 0.0) {
+            Some(ms) => ms / 1000.0,
+            None => TAP_BELL_CYCLES * l.cycle_s,
+        };
         // No.3410: arc radius error limit (here in mm).
         if let Some(t) = cfg.param(3410).filter(|t| t.is_finite() && *t > 0.0) {
             l.arc_radius_tol = t;
@@ -620,6 +634,9 @@ pub struct Motion {
     sync_err_vec: [f64; 3],
     /// A thread's phase error measured this cycle (path mm; + = the axes ahead).
     thread_err: Option<f64>,
+    /// Cycles of a synchronised move whose spindle and axis feedback came from different
+    /// SYNCs (a late TPDO), so were not compared (see `Feedback::age`).
+    unpaired: u32,
     /// Each feed axis' effective lag on a thread's synchronous line, s, learnt from the
     /// threads' own measured phase error (None: not yet threaded; the lag model's τ₁ then).
     thread_tau: [Option<f64>; 3],
@@ -714,6 +731,7 @@ impl Motion {
             sync_err: 0.0,
             sync_err_vec: [0.0; 3],
             thread_err: None,
+            unpaired: 0,
             thread_tau: [None; 3],
             sync_watch: false,
             thread_chain: None,
@@ -2172,7 +2190,9 @@ impl Motion {
         } else {
             tau = 0.0;
         }
-        let theta = fb.pos[AX_S] + rpm * 6.0 * (dt * self.lim.feedback_delay as f64 + tau);
+        // A late spindle TPDO brings an angle `age` cycles older: predict over those too.
+        let late = dt * fb.age[AX_S].min(8) as f64;
+        let theta = fb.pos[AX_S] + rpm * 6.0 * (dt * self.lim.feedback_delay as f64 + late + tau);
         // The lead-in ramp uses 80 % of the path acceleration, leaving the tracker headroom.
         let sync = match sync {
             Some(t) => Some(t),
@@ -2272,10 +2292,16 @@ impl Motion {
         let before2 = self.hist[(self.hist_k + HIST - fd - 1) % HIST];
         // Every feed axis' lag model learns from all its motion (the rapid to R teaches it
         // before the tap begins).
-        self.corr.learn(&xyz3(&sent), &xyz3(&before), &xyz3(&before2), &xyz3(&fb.pos));
+        // Feedback from a late TPDO answers an older set-point: learn nothing from it, and
+        // let the spindle's lag coast on its tracked rate.
+        let fresh = fb.age[AX_S] == 0 && self.one_sync(fb);
+        if fresh {
+            self.corr.learn(&xyz3(&sent), &xyz3(&before), &xyz3(&before2), &xyz3(&fb.pos));
+        }
         self.corr.set_error(self.sync_err_vec);
         let gain = gain.filter(|_| self.lim.sync_correction);
-        self.corr.update(gain, &xyz3(&self.pos), fb.pos[AX_S] - sent[AX_S]);
+        let lag = if fresh { fb.pos[AX_S] - sent[AX_S] } else { f64::NAN };
+        self.corr.update(gain, &xyz3(&self.pos), lag);
     }
 
     /// The learnt velocity lag τ₁ of feed axis `i` (actual ≈ sent − τ₁·v), s.
@@ -2296,13 +2322,32 @@ impl Motion {
         self.sync_err
     }
 
+    /// Synchronised cycles whose feedback could not be paired from one SYNC (a late TPDO of
+    /// the spindle or a feed axis): the monitor held its last value over them.
+    pub fn unpaired_cycles(&self) -> u32 {
+        self.unpaired
+    }
+
+    /// The spindle's angle and every configured feed axis' position were sampled at the same
+    /// SYNC.
+    fn one_sync(&self, fb: &Feedback) -> bool {
+        (0..3).all(|i| !self.lim.present[i] || fb.age[i] == fb.age[AX_S])
+    }
+
     /// The sync-error monitor (see `sync_error`), at the start of a cycle, for the setpoint
     /// the last cycle sent. O(1).
     fn monitor_sync(&mut self, fb: &Feedback) {
         let watch = std::mem::take(&mut self.sync_watch);
+        self.thread_err = None;
+        if watch && !self.one_sync(fb) {
+            // A late TPDO: this spindle angle and these axis positions are from different
+            // SYNCs. Hold the last error (the trim skips this cycle), count it.
+            self.unpaired = self.unpaired.saturating_add(1);
+            self.sync_err_vec = [f64::NAN; 3];
+            return;
+        }
         self.sync_err = 0.0;
         self.sync_err_vec = [0.0; 3];
-        self.thread_err = None;
         if !watch {
             return;
         }

@@ -573,12 +573,12 @@ mod tests {
         // y = 1: passes 1 mm from the centre; F3000 would turn C at 2865 °/s there.
         m.push(&polar([20.0, 0.0], [20.0, 1.0], None, false, 3000.0, 1)).unwrap();
         m.push(&polar([20.0, 1.0], [-20.0, 1.0], None, false, 3000.0, 2)).unwrap();
-        let mut fb = Feedback { pos: m.position(), spindle_rpm: 0.0 };
+        let mut fb = Feedback { pos: m.position(), spindle_rpm: 0.0, ..Default::default() };
         let mut prev = m.position();
         let (mut worst, mut wmax, mut vmax_far) = (0.0f64, 0.0f64, 0.0f64);
         for _ in 0..20000 {
             let sp = m.step(&fb);
-            fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm };
+            fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm, ..Default::default() };
             let a = sp.pos[AX_S].to_radians();
             let p = [sp.pos[AX_X] * a.cos(), sp.pos[AX_X] * a.sin()];
             if sp.line == 2 {
@@ -613,7 +613,7 @@ mod tests {
             let mut m = Motion::new(l.clone(), [30.0, 0.0, 0.0, 0.0]);
             m.push(&polar([30.0, 0.0], [30.0, 5.0], None, false, 3000.0, 1)).unwrap();
             m.push(&polar([30.0, 5.0], [-30.0, 5.0], None, false, 3000.0, 2)).unwrap();
-            let mut fb = Feedback { pos: m.position(), spindle_rpm: 0.0 };
+            let mut fb = Feedback { pos: m.position(), spindle_rpm: 0.0, ..Default::default() };
             let (mut prev, mut v_prev) = (m.position(), 0.0);
             let (mut worst, mut held_at, mut amax) = (0.0f64, None, 0.0f64);
             for k in 0..20000 {
@@ -630,7 +630,7 @@ mod tests {
                     m.cycle_start();
                 }
                 let sp = m.step(&fb);
-                fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm };
+                fb = Feedback { pos: sp.pos, spindle_rpm: sp.spindle_rpm, ..Default::default() };
                 let p = [sp.pos[AX_X] * sp.pos[AX_S].to_radians().cos(), sp.pos[AX_X] * sp.pos[AX_S].to_radians().sin()];
                 if sp.line == 2 {
                     worst = worst.max((p[1] - 5.0).abs());

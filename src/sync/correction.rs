@@ -143,11 +143,12 @@ impl SyncCorrection {
 
     /// One cycle. `gain`: mm per spindle degree of the locked stroke, None when nothing is
     /// locked (the correction fades out); `nominal`: this cycle's nominal set-point;
-    /// `spindle_lag`: the spindle's actual − sent, paired over the feedback delay.
+    /// `spindle_lag`: the spindle's actual − sent, paired over the feedback delay; NaN when
+    /// this cycle brought no fresh sample (the lag then coasts on its tracked rate).
     pub fn update(&mut self, gain: Option<[f64; 3]>, nominal: &[f64; 3], spindle_lag: f64) {
         self.prev2 = self.prev;
         self.prev = self.corr;
-        let Some(g) = gain.filter(|_| spindle_lag.is_finite()) else {
+        let Some(g) = gain else {
             self.release(nominal);
             return;
         };
@@ -166,7 +167,8 @@ impl SyncCorrection {
     fn fed_forward(&mut self, g: &[f64; 3], spindle_lag: f64) -> f64 {
         let mm_per_deg = g.iter().fold(0.0f64, |m, v| m.max(v.abs()));
         let exact_below = if mm_per_deg > 0.0 { FF_NOISE_FULL_UM * 1e-3 / mm_per_deg } else { f64::INFINITY };
-        let (x, v) = self.tracker.update(spindle_lag, exact_below);
+        // No fresh sample this cycle (a late TPDO): coast on the tracked rate.
+        let (x, v) = if spindle_lag.is_finite() { self.tracker.update(spindle_lag, exact_below) } else { self.tracker.coast() };
         let noise_um = self.tracker.noise() * mm_per_deg * 1e3;
         let w = ((FF_NOISE_OFF_UM - noise_um) / (FF_NOISE_OFF_UM - FF_NOISE_FULL_UM)).clamp(0.0, 1.0);
         w * (x + (self.fd as f64 - 1.0) * v)

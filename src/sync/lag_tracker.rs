@@ -78,6 +78,17 @@ impl LagTracker {
         (self.x, self.v)
     }
 
+    /// A cycle without a sample (a late TPDO): the lag moves on at its tracked rate; the
+    /// noise statistics skip it. Before the first sample there is nothing to coast on: 0.
+    pub fn coast(&mut self) -> (f64, f64) {
+        if self.n == 0 {
+            return (0.0, 0.0);
+        }
+        self.x += self.v;
+        (self.l2, self.l1) = (self.l1, self.x);
+        (self.x, self.v)
+    }
+
     fn learn_noise(&mut self, l: f64) {
         if self.n >= 3 {
             let d = l - 2.0 * self.l1 + self.l2;

@@ -28,11 +28,18 @@ pub fn measure_model(cfg: &MachineConfig, sim_toml: &str) -> Result<MatrixRow, S
 
 /// `measure_model` with every SYNC sent up to `jitter_ns` late (`run_moves_jittered`).
 pub fn measure_model_jittered(cfg: &MachineConfig, sim_toml: &str, jitter_ns: u64) -> Result<MatrixRow, String> {
+    measure_model_with(cfg, sim_toml, jitter_ns, true)
+}
+
+/// `measure_model_jittered`, the taps cut (`cut`: an M10 tap's torque from Z0 down) or in
+/// the air, as `cncgw run --sim-config` runs them (the emulator has no cutting load there).
+pub fn measure_model_with(cfg: &MachineConfig, sim_toml: &str, jitter_ns: u64, cut: bool) -> Result<MatrixRow, String> {
     let sim = sim_drives::SimConfig::from_toml(sim_toml)?;
     let limits = Limits::from_config(cfg);
     let mut row = MatrixRow::default();
     let mut run = |what: &str, moves| -> Result<SimRun, String> {
-        let r = run_moves_jittered(cfg, sim.clone(), limits.clone(), moves, load(what), jitter_ns).map_err(|a| a.to_string())?;
+        let load = load(what).filter(|_| cut);
+        let r = run_moves_jittered(cfg, sim.clone(), limits.clone(), moves, load, jitter_ns).map_err(|a| a.to_string())?;
         if let Err(a) = &r.result {
             row.alarms.push(format!("{what}: alarm {}", a.number));
         }
