@@ -24,7 +24,9 @@ interpolated linearly over the interpolation period 0x60C2 and integrated in 20 
 SYNC, behind `delay` extra SYNCs of transport delay. Spindle: τ = N ms, ff 1.0 (no lag at
 steady speed, a·τ² while accelerating), one extra cycle of delay. Z: τ 6 ms, ff 0.97 (a lag of
 0.06·τ·v at steady speed), no extra delay. The following-error window 0x6065 is checked
-against the delayed set-point (fault 0x8611, as a commercial drive does).
+against the delayed set-point (fault 0x8611, as a commercial drive does). The drives run on
+the SYNCs they receive (a late SYNC is not bridged: late_sync_extrapolation = 0 in cncgw's
+configuration); a SYNC that finds no new RPDO continues the last set-point step.
 """
 
 import json
