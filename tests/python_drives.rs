@@ -8,7 +8,7 @@
 //! FAILS naming that command; CNCGW_SKIP_PYTHON=1 skips it deliberately.
 
 use std::io::{BufRead, BufReader};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -245,7 +245,7 @@ const TAP_CYCLE_MS: f64 = 5.0;
 
 /// `program` under SCHED_FIFO `prio` where this machine lets us (`chrt`), else as it is: a
 /// python drive that keeps its cycle only with real-time priority on a loaded machine.
-fn realtime(program: &std::path::Path, prio: u8) -> Command {
+fn realtime(program: &Path, prio: u8) -> Command {
     let allowed = Command::new("chrt").args(["-f", "1", "true"]).status().is_ok_and(|s| s.success());
     if allowed {
         let mut c = Command::new("chrt");
@@ -256,7 +256,7 @@ fn realtime(program: &std::path::Path, prio: u8) -> Command {
     }
 }
 
-fn tap(python: &PathBuf, shape: &str, spindle_window_deg: f64) -> Tap {
+fn tap(python: &Path, shape: &str, spindle_window_deg: f64) -> Tap {
     let (addr, stop, hub) = hub_at(Some(45));
     let port = addr.rsplit_once(':').unwrap().1.to_string();
     let mut py = realtime(python, 40)
@@ -281,7 +281,7 @@ fn tap(python: &PathBuf, shape: &str, spindle_window_deg: f64) -> Tap {
     assert!(cfg.contains(&format!("following_error = {spindle_window_deg:.1} ")) && cfg.contains("cycle_ms = 5.0"));
     assert!(!cfg.contains("late_sync_extrapolation = 10"));
     std::fs::write(dir.join("machine.toml"), cfg).unwrap();
-    let o = realtime(std::path::Path::new(env!("CARGO_BIN_EXE_cncgw")), 50)
+    let o = realtime(Path::new(env!("CARGO_BIN_EXE_cncgw")), 50)
         .args(["tap-test", "--bus", &format!("socketcand://{addr}/can0"), "--yes", "--lead", "1.5", "--depth", "35", "--rpm", "3000", "--json"])
         .arg("--config")
         .arg(dir.join("machine.toml"))
