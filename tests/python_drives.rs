@@ -8,7 +8,7 @@
 //! FAILS naming that command; CNCGW_SKIP_PYTHON=1 skips it deliberately.
 
 use std::io::{BufRead, BufReader};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -20,12 +20,33 @@ fn root() -> PathBuf {
 
 /// A socketcand bus with no emulated drive on it (sim-drives' server as the hub).
 fn hub() -> (String, Arc<AtomicBool>, std::thread::JoinHandle<()>) {
+    hub_at(None)
+}
+
+/// `hub`, its thread under SCHED_FIFO `priority` where this machine allows it (a hub that
+/// forwards frames late makes every drive's TPDO late).
+fn hub_at(priority: Option<i32>) -> (String, Arc<AtomicBool>, std::thread::JoinHandle<()>) {
+    // The server's accept and client threads start in `bind` and inherit this thread's policy.
+    let fifo = |p: i32| {
+        let param = libc::sched_param { sched_priority: p };
+        // SAFETY: sets the calling thread's own scheduling; a refusal (no permission) is ignored.
+        unsafe { libc::sched_setscheduler(0, if p > 0 { libc::SCHED_FIFO } else { libc::SCHED_OTHER }, &param) };
+    };
+    if let Some(p) = priority {
+        fifo(p);
+    }
     let server = sim_drives::socketcand::SocketcandServer::bind("127.0.0.1:0", "can0").expect("bind");
+    if priority.is_some() {
+        fifo(0);
+    }
     let addr = server.local_addr().to_string();
     let stop = Arc::new(AtomicBool::new(false));
     let s = stop.clone();
     let cfg = sim_drives::SimConfig { drives: Vec::new(), step_us: 50 };
     let t = std::thread::spawn(move || {
+        if let Some(p) = priority {
+            fifo(p);
+        }
         let _ = sim_drives::run_realtime(Box::new(server), cfg, s);
     });
     (addr, stop, t)
@@ -199,4 +220,165 @@ fn realtime_python_ip_only_drives() {
         assert_eq!(o.enabled_modes(n), vec![7], "node {n} was enabled in another mode than IP");
     }
     assert_eq!((o.position(1), o.position(2)), (500_000, 50_000), "X100 Z5 on the drives' own positions");
+}
+
+/// One `cncgw tap-test` against python drives of `shape` (tap_sN: a spindle of time constant
+/// N ms with one extra cycle of transport delay, a Z with its own dynamics; see
+/// tests/python/canopen_drive.py).
+struct Tap {
+    code: i32,
+    stderr: String,
+    /// The figures tap-test printed (`--json`), Null when it printed none.
+    json: serde_json::Value,
+    /// Longest time between two cycles of the controller's trace, ms (a host stall).
+    gap_ms: f64,
+    /// Cycles in which a moving drive's feedback did not change while its command did: its
+    /// TPDO came a cycle late (python did not keep the cycle).
+    late_tpdo: usize,
+    drives: Vec<serde_json::Value>,
+}
+
+/// The cycle the python drives keep: at 2 ms one interpreter handling three drives' SYNC,
+/// RPDO and TPDO sends the spindle's TPDO a cycle late a few times per tap (measured
+/// 2026-11-28, README "Spindle sync on drives we did not tune for").
+const TAP_CYCLE_MS: f64 = 5.0;
+
+/// `program` under SCHED_FIFO `prio` where this machine lets us (`chrt`), else as it is: a
+/// python drive that keeps its cycle only with real-time priority on a loaded machine.
+fn realtime(program: &Path, prio: u8) -> Command {
+    let allowed = Command::new("chrt").args(["-f", "1", "true"]).status().is_ok_and(|s| s.success());
+    if allowed {
+        let mut c = Command::new("chrt");
+        c.args(["-f", &prio.to_string()]).arg(program);
+        c
+    } else {
+        Command::new(program)
+    }
+}
+
+fn tap(python: &Path, shape: &str, spindle_window_deg: f64) -> Tap {
+    let (addr, stop, hub) = hub_at(Some(45));
+    let port = addr.rsplit_once(':').unwrap().1.to_string();
+    let mut py = realtime(python, 40)
+        .arg(root().join("tests/python/canopen_drive.py"))
+        .args(["127.0.0.1", &port, shape])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("start python");
+    let mut out = BufReader::new(py.stdout.take().unwrap());
+    let mut line = String::new();
+    out.read_line(&mut line).unwrap();
+    assert_eq!(line.trim(), "ready", "python drives did not start");
+    let dir = std::env::temp_dir().join(format!("cncgw_python_tap_{shape}_{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let cfg = cncgw::config::EMBEDDED_LATHE
+        .replace("cycle_ms = 2.0", &format!("cycle_ms = {TAP_CYCLE_MS:.1}"))
+        .replace("feedback_timeout_ms = 20", "feedback_timeout_ms = 100")
+        .replace("following_error = 30.0 ", &format!("following_error = {spindle_window_deg:.1} "))
+        // The python drives run on the SYNCs they receive: a late SYNC is not bridged.
+        .replace("late_sync_extrapolation = 10", "late_sync_extrapolation = 0");
+    assert!(cfg.contains(&format!("following_error = {spindle_window_deg:.1} ")) && cfg.contains("cycle_ms = 5.0"));
+    assert!(!cfg.contains("late_sync_extrapolation = 10"));
+    std::fs::write(dir.join("machine.toml"), cfg).unwrap();
+    let o = realtime(Path::new(env!("CARGO_BIN_EXE_cncgw")), 50)
+        .args(["tap-test", "--bus", &format!("socketcand://{addr}/can0"), "--yes", "--lead", "1.5", "--depth", "35", "--rpm", "3000", "--json"])
+        .arg("--config")
+        .arg(dir.join("machine.toml"))
+        .arg("-o")
+        .arg(dir.join("tap.svg"))
+        .env("CNCGW_STATE_DIR", &dir)
+        .output()
+        .expect("run cncgw");
+    // SAFETY: a signal to our own child process.
+    unsafe {
+        libc::kill(py.id() as i32, libc::SIGTERM);
+    }
+    let drives: Vec<serde_json::Value> = out.lines().map_while(Result::ok).filter_map(|l| serde_json::from_str(&l).ok()).collect();
+    let _ = py.wait();
+    stop.store(true, Ordering::Relaxed);
+    let _ = hub.join();
+    let stdout = String::from_utf8_lossy(&o.stdout).into_owned();
+    let json = stdout.lines().rev().find_map(|l| serde_json::from_str(l).ok()).unwrap_or(serde_json::Value::Null);
+    let trace = std::fs::read_to_string(dir.join("tap.csv")).unwrap_or_default();
+    let gap_ms = cncgw::control::trace::TraceData::parse(&trace).map_or(f64::INFINITY, |d| {
+        let t = d.column("t_s").unwrap_or_default();
+        t.windows(2).map(|w| (w[1] - w[0]) * 1e3).fold(0.0, f64::max)
+    });
+    let late_tpdo = cncgw::control::trace::TraceData::parse(&trace).map_or(usize::MAX, |d| {
+        ["s1", "z"]
+            .iter()
+            .map(|n| {
+                let (c, a) = (d.column(&format!("{n}_cmd")).unwrap_or_default(), d.column(&format!("{n}_act")).unwrap_or_default());
+                (2..a.len().min(c.len())).filter(|&i| a[i] == a[i - 1] && a[i - 1] != a[i - 2] && c[i] != c[i - 1]).count()
+            })
+            .sum()
+    });
+    let _ = std::fs::remove_dir_all(&dir);
+    assert_eq!(drives.len(), 3, "python drives' report missing");
+    Tap { code: o.status.code().unwrap_or(-1), stderr: String::from_utf8_lossy(&o.stderr).into_owned(), json, gap_ms, late_tpdo, drives }
+}
+
+/// Issue 17: the rigid tap M10×1.5, 35 mm, S3000 (`cncgw tap-test`) on CiA 402 drives we did
+/// not write, whose dynamics are not sim-drives': python drives with a second-order spindle
+/// (τ 15 ms and 40 ms, velocity feed-forward, one extra cycle of transport delay) and a Z of
+/// its own (τ 6 ms, 97 % feed-forward), in real time over socketcand at a 5 ms cycle, the
+/// drives holding on a late SYNC (`late_sync_extrapolation = 0`).
+///
+/// Measured 2026-11-28 on a loaded 2-core VM (release build, chrt; README): a tap in which no
+/// frame is late gives the same figures every time — max 16.4 µm / RMS 2.1 µm (τ 15 ms),
+/// 19.9 / 3.5 µm (τ 40 ms). The bound, 50 µm, is half the machine's sync limit (100 µm, alarm
+/// 2307) and 2.5 × the worst of those: scheduling noise within a cycle (python and a debug
+/// build here, no real-time priority) must not fail it, a sync law that does not follow the
+/// drives does. Only a tap in which every TPDO came on time (no moving drive's feedback a
+/// cycle old) and the controller did not stall is judged; another is run again, up to 8
+/// times: a host stall inside the tap is alarm 2403 (the drives do not bridge it), and one
+/// spindle TPDO a cycle late can end in alarm 2307 with the sync law of 2026-11-28 (its stale
+/// angle paired with Z's fresh position). Python, cncgw and the hub run under SCHED_FIFO where allowed.
+#[test]
+fn realtime_rigid_tap_on_python_drives() {
+    const BOUND_UM: f64 = 50.0;
+    let ci = std::env::var("CI").as_deref() == Ok("true");
+    if std::env::var("CNCGW_SKIP_PYTHON").as_deref() == Ok("1") && !ci {
+        eprintln!("CNCGW_SKIP_PYTHON=1: python drives test skipped on request");
+        return;
+    }
+    let python = root().join("build/venv/bin/python");
+    assert!(
+        python.exists(),
+        "{} is missing: run `scripts/install-test-deps.sh --python`, or set CNCGW_SKIP_PYTHON=1 to skip this test on purpose",
+        python.display()
+    );
+    // (shape, the spindle's following-error window 0x6065: 3 × its lag a·τ² at the tap's
+    // 5000 rpm/s — 6.8° and 48° — as `cncgw identify` proposes; the lathe's 30° for τ 15 ms)
+    for (shape, window) in [("tap_s15", 30.0), ("tap_s40", 150.0)] {
+        let mut judged = None;
+        for attempt in 1..=8 {
+            let t = tap(&python, shape, window);
+            let s = &t.json["sync_error"];
+            eprintln!(
+                "{shape} attempt {attempt}: exit {}, sync error max {} µm RMS {} µm, longest cycle {:.1} ms, late TPDOs {}",
+                t.code, s["max_um"], s["rms_um"], t.gap_ms, t.late_tpdo
+            );
+            if t.late_tpdo > 0 || t.stderr.contains("alarm 2403") {
+                eprintln!("  a late TPDO or a stall: not judged ({})", t.stderr.lines().find(|l| l.contains("alarm")).unwrap_or("no alarm"));
+                continue;
+            }
+            judged = Some(t);
+            break;
+        }
+        let t = judged.unwrap_or_else(|| panic!("{shape}: in every tap of 8 a TPDO came late or the controller stalled: nothing to judge"));
+        assert!(!t.stderr.contains("alarm 2307"), "{shape}: the sync monitor stopped the tap: {}", t.stderr);
+        assert_eq!(t.code, 0, "{shape}: {}", t.stderr);
+        let max = t.json["sync_error"]["max_um"].as_f64().expect("figures");
+        assert!(max <= BOUND_UM, "{shape}: sync error max {max} µm > {BOUND_UM} µm: {}", t.json);
+        assert!(t.json["sync_error"]["cycles"].as_u64().unwrap() > 300, "{shape}: the whole tap was measured: {}", t.json);
+        for (d, node) in t.drives.iter().zip(1..) {
+            assert_eq!(d["error"], 0, "node {node} faulted: {d}");
+            assert_eq!(d["enabled_modes"], serde_json::json!([8]), "node {node}: {d}");
+        }
+        // Z came back to R (2 mm above where it stood) on the drive's own position, within
+        // its dynamics' settling (the spindle turned back to where it started).
+        assert!((t.drives[1]["position"].as_i64().unwrap() - 20_000).abs() <= 10, "{:?}", t.drives);
+    }
 }

@@ -85,6 +85,14 @@ pub struct TapPlan {
     pub feed_mm_min: f64,
 }
 
+/// How far above its + travel limit Z may stand for the tap to start at the limit: the
+/// in-position width before a rigid tap (1 µm, `INPOS_MM` in src/motion/mod.rs) or one count
+/// where a count is coarser; a small margin for the count's own rounding.
+fn at_limit_width(counts_per_unit: f64) -> f64 {
+    let count = 1.0 / counts_per_unit.abs().max(1e-9);
+    count.max(0.001) * (1.0 + 1e-6)
+}
+
 fn spindle_name(cfg: &MachineConfig) -> Option<String> {
     // The work spindle (a polygon machine's tool spindle is a spindle too).
     cfg.spindle_index().and_then(|i| cfg.axes.keys().nth(i).cloned())
@@ -124,6 +132,21 @@ pub fn plan(cfg: &MachineConfig, a: &TapArgs, start: Pos) -> Result<TapPlan, Str
     }
     // Never below the present position: the tool only goes up before the tap.
     r_z = r_z.max(start.z);
+    if let Some(hi) = z.max {
+        // A drive comes to rest within a count or so of its set-point: after a tap that ended
+        // at the + limit Z may stand just above it. Within the in-position width R is the
+        // limit itself (a move of that width down); further out nothing moves.
+        let width = at_limit_width(z.counts_per_unit);
+        if r_z > hi && start.z - hi <= width {
+            r_z = hi;
+        } else if r_z > hi {
+            return Err(format!(
+                "Z stands at Z{:.4}, {:.4} mm above its travel limit {hi} (axes.z.max; the tap may start up to {width:.4} mm above it): the tool only goes up before a tap; jog Z into the travel (`cncgw jog z --to {hi}`) and run the tap-test again",
+                start.z,
+                start.z - hi
+            ));
+        }
+    }
     let bottom = r_z - a.depth;
     if let Some(lo) = z.min {
         if bottom < lo {
@@ -630,5 +653,27 @@ mod tests {
         let e = plan(&cfg, &args(1.5, 30.0, 1000.0), Pos::xz(0.0, -390.0)).unwrap_err();
         assert!(e.contains("below Z's travel -400") && e.contains("at most 12.000"), "{e}");
         assert!(plan(&cfg, &args(-1.5, 30.0, 1000.0), Pos::ZERO).is_err());
+    }
+
+    /// Z at rest one count above its + limit (5.0001 against 5) after a tap that ended there:
+    /// the tap starts at the limit; further above it is refused before anything moves.
+    #[test]
+    fn plan_from_just_above_the_travel_limit() {
+        let cfg = MachineConfig::embedded();
+        assert_eq!(cfg.axes["z"].max, Some(5.0));
+        for z in [5.0001, 5.001] {
+            let p = plan(&cfg, &args(1.5, 30.0, 3000.0), Pos::xz(10.0, z)).unwrap_or_else(|e| panic!("Z{z}: {e}"));
+            assert_eq!((p.r_z, p.bottom_z), (5.0, -25.0), "Z{z}");
+            assert!(p.program.contains("G0 X20.0000 Z5.0000\n"), "{}", p.program);
+        }
+        for z in [5.0012, 5.1] {
+            let e = plan(&cfg, &args(1.5, 30.0, 3000.0), Pos::xz(10.0, z)).unwrap_err();
+            assert!(e.contains("above its travel limit 5 (axes.z.max") && e.contains("cncgw jog z --to 5"), "Z{z}: {e}");
+        }
+        // A coarse axis (100 counts per mm): one count is the width.
+        let mut coarse = cfg.clone();
+        coarse.axes.get_mut("z").unwrap().counts_per_unit = 100.0;
+        assert_eq!(plan(&coarse, &args(1.5, 30.0, 3000.0), Pos::xz(10.0, 5.01)).unwrap().r_z, 5.0);
+        assert!(plan(&coarse, &args(1.5, 30.0, 3000.0), Pos::xz(10.0, 5.02)).is_err());
     }
 }

@@ -6,7 +6,8 @@ to sim-drives' [drive.shape]; run by tests/python_drives.rs:
 
     build/venv/bin/python tests/python/canopen_drive.py HOST PORT SHAPE
 
-SHAPE: plain | pp_boot | user_units | sync_producer | no_1016 | no_6502 | ip_only.
+SHAPE: plain | pp_boot | user_units | sync_producer | no_1016 | no_6502 | ip_only |
+tap_sN (N: the spindle's time constant in ms, e.g. tap_s15, tap_s40).
 ip_only (issue 21): interpolated position (7) and no CSP — 0x6060 = 8 aborts 0x06090030,
 0x6502 lists PP, HM, IP; 0x60C0/0x60C1/0x60C4 added to the EDS; in IP the position follows
 0x60C1:1 at each SYNC while controlword bit 4 is set, and statusword bit 12 says so.
@@ -14,6 +15,18 @@ Nodes 1 (X), 2 (Z) linear (100000 increments per motor revolution), 3 (S1) spind
 (360000), all with the same shape. The position follows the CSP target at each SYNC (an
 ideal drive: no dynamics). Prints "ready" once on the bus; on SIGTERM/SIGINT prints one JSON
 line per node (modes it was enabled in, position in increments, NMT resets) and exits.
+
+tap_sN (issue 17, the rigid tap on drives we did not write): the spindle (3) and Z (2) are not
+ideal. Each follows its CSP set-point through dynamics of our own choosing, not sim-drives'
+(no kv/ff position loop, no inertia or friction model): a critically damped second-order
+response with velocity feed-forward, τ²·ÿ + 2τ·ẏ + y = r + 2τ·ff·ṙ, the set-point r
+interpolated linearly over the interpolation period 0x60C2 and integrated in 20 steps per
+SYNC, behind `delay` extra SYNCs of transport delay. Spindle: τ = N ms, ff 1.0 (no lag at
+steady speed, a·τ² while accelerating), one extra cycle of delay. Z: τ 6 ms, ff 0.97 (a lag of
+0.06·τ·v at steady speed), no extra delay. The following-error window 0x6065 is checked
+against the delayed set-point (fault 0x8611, as a commercial drive does). The drives run on
+the SYNCs they receive (a late SYNC is not bridged: late_sync_extrapolation = 0 in cncgw's
+configuration); a SYNC that finds no new RPDO continues the last set-point step.
 """
 
 import json
@@ -44,6 +57,10 @@ SHAPES = {
     "no_6502": {"drop": ["6502"]},
     "ip_only": {"modes": (0, 1, 6, 7), "ip": True},
 }
+_tap = re.fullmatch(r"tap_s(\d+)", SHAPE)
+if _tap:
+    # node: (τ s, velocity feed-forward, extra SYNCs of transport delay)
+    SHAPES[SHAPE] = {"dyn": {3: (int(_tap.group(1)) / 1000.0, 1.0, 1), 2: (0.006, 0.97, 0)}}
 
 IP_EDS = """
 [60C0]
@@ -125,6 +142,12 @@ class Drive:
         self.resets = 0
         self.rpdo = None
         self.master_hb = None
+        self.dyn = shape.get("dyn", {}).get(nid)
+        self.cmds = []  # set-points in increments, newest last (transport delay)
+        self.vel = 0.0  # increments/s (dynamics)
+        self.ferr_max = 0.0
+        self.due = None
+        self.late, self.step = 0, 0
         self.app_defaults()
         self.boot()
 
@@ -315,7 +338,14 @@ class Drive:
                 e = self.get(0x1A00, k, "<I")
                 out += self.node.get_data(e >> 16, (e >> 8) & 0xFF)[: (e & 0xFF) // 8]
             self.send(cob & 0x7FF, out[:8])
+        before = self.target
+        if self.rpdo is None and self.dyn and self.state == OE and self.mode == 8 and self.late < 10:
+            # No set-point for this SYNC (the RPDO is late): continue the last step, as drives
+            # that bridge a late SYNC do (axes.NAME.late_sync_extrapolation = 10 of the lathe).
+            self.late += 1
+            self.target += self.step
         if self.rpdo is not None:
+            self.late = 0
             data, self.rpdo = self.rpdo, None
             pos = 0
             for k in range(1, self.get(0x1600, 0, "<B") + 1):
@@ -327,10 +357,50 @@ class Drive:
                     self.controlword(int.from_bytes(chunk, "little"))
                 elif e >> 16 in (0x607A, 0x60C1):
                     self.target = int.from_bytes(chunk, "little", signed=True)
+        self.step = self.target - before
         if self.state == OE:
             self.enabled_modes.add(self.mode)
             if self.mode == 8 or (self.mode == 7 and self.cw & 0x10):
-                self.pos_inc = self.target * self.inc_per_unit()
+                if self.dyn:
+                    self.due = self.target * self.inc_per_unit()  # after every drive's TPDO: after_sync
+                else:
+                    self.pos_inc = self.target * self.inc_per_unit()
+
+    def after_sync(self, can_id, data, ts):
+        """The dynamics' step, once every drive on this interpreter has sent its TPDO (python
+        runs the drives one after another: a step computed first would delay the others)."""
+        with self.lock:
+            if self.due is not None:
+                r, self.due = self.due, None
+                self.follow(r)
+
+    def period(self):
+        """The interpolation period 0x60C2 in s (the master sets it to its cycle)."""
+        v, ix = self.get(0x60C2, 1, "<B"), self.get(0x60C2, 2, "<b")
+        return v * 10.0**ix if v else 0.002
+
+    def follow(self, r):
+        """One SYNC of the dynamics towards set-point r (increments), behind the delay."""
+        tau, ff, delay = self.dyn
+        self.cmds.append(r)
+        if len(self.cmds) > delay + 2:
+            del self.cmds[0]
+        c1 = self.cmds[max(0, len(self.cmds) - 1 - delay)]
+        c0 = self.cmds[max(0, len(self.cmds) - 2 - delay)]
+        dt = self.period()
+        n = 20
+        h, rv = dt / n, (c1 - c0) / dt
+        y, v = self.pos_inc, self.vel
+        for k in range(1, n + 1):
+            rk = c0 + (c1 - c0) * k / n
+            a = (rk + 2 * tau * ff * rv - y - 2 * tau * v) / (tau * tau)
+            v += a * h
+            y += v * h
+        self.pos_inc, self.vel = y, v
+        self.ferr_max = max(self.ferr_max, abs(c1 - y))
+        window = self.get(0x6065, 0, "<I") if 0x6065 in self.node.data_store else 0
+        if window and abs(c1 - y) > window and self.state == OE:
+            self.fault(0x8611)
 
     def on_rpdo(self, can_id, data, ts):
         with self.lock:
@@ -354,6 +424,7 @@ class Drive:
             self.state = OE
             # Hold where it is: the next target is relative to this position.
             self.target = int(round(self.pos_inc / self.inc_per_unit()))
+            self.cmds, self.vel, self.step = [], 0.0, 0
 
 
 def main():
@@ -363,6 +434,8 @@ def main():
     send_lock = threading.Lock()
     time.sleep(0.05)
     drives = [Drive(net, n, a, cpr, eds, send_lock) for n, a, cpr in [(1, "x", 100000), (2, "z", 100000), (3, "s1", 360000)]]
+    for d in drives:
+        net.subscribe(0x80, d.after_sync)
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
@@ -372,7 +445,7 @@ def main():
             d.tick()
         time.sleep(0.001)
     for d in drives:
-        print(json.dumps({"node": d.nid, "enabled_modes": sorted(d.enabled_modes), "position": round(d.pos_inc), "resets": d.resets, "mode": d.mode, "state": d.state}), flush=True)
+        print(json.dumps({"node": d.nid, "enabled_modes": sorted(d.enabled_modes), "position": round(d.pos_inc), "resets": d.resets, "mode": d.mode, "state": d.state, "ferr_max": round(d.ferr_max), "error": d.error}), flush=True)
     net.disconnect()
     os.unlink(eds)
 
