@@ -235,7 +235,7 @@ fn config_check_bus_finds_the_registers_a_pymodbus_drive_lacks() {
     assert_eq!(o.status.code(), Some(1), "{t}");
     for (axis, unit) in [("x", 1), ("z", 2), ("s1", 3)] {
         assert!(
-            t.contains(&format!("live: axis {axis} (unit {unit}, cia402 map) on Modbus TCP {addr}: 15 register(s) read, 10 written back, 2 failed:")),
+            t.contains(&format!("live: axis {axis} (unit {unit}, cia402 map) on Modbus TCP {addr}: 16 register(s) read, 10 written back, 2 failed:")),
             "{t}"
         );
         assert!(t.contains(&format!("axis {axis} (unit {unit}): interpolation_ms (register 20 = 0x0014, 1 register): cannot read: unit {unit}: exception 0x02 (Illegal data address)")), "{t}");
