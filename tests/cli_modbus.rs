@@ -262,11 +262,18 @@ fn home_onto_the_negative_limit_switch_over_modbus_tcp() {
     let vcfg = dir.join("vendor.toml");
     std::fs::write(&vcfg, &vendor).unwrap();
     let o = cli().run(&["config", "check", vcfg.to_str().unwrap()]);
-    assert!(o.stdout.contains("axis z: its homing (method 17) needs the homing method 0x6098") && o.stdout.contains("`cncgw home` refuses it (alarm 2017)"), "{}{}", o.stdout, o.stderr);
+    assert!(
+        o.stdout.contains("axis z: its homing (method 17) needs the homing method 0x6098")
+            && o.stdout.contains("`cncgw home` refuses it (alarm 2017)"),
+        "{}{}",
+        o.stdout,
+        o.stderr
+    );
     let o = cli().run(&["home", "z", "--config", vcfg.to_str().unwrap(), "--yes"]);
     assert_eq!(o.code, 1, "{}{}", o.stdout, o.stderr);
     assert!(
-        o.stderr.contains("alarm 2017: unit 2: homing method 17 refused before any motion") && o.stderr.contains("homing method 0x6098 (homing_method"),
+        o.stderr.contains("alarm 2017: unit 2: homing method 17 refused before any motion")
+            && o.stderr.contains("homing method 0x6098 (homing_method"),
         "{}",
         o.stderr
     );

@@ -22,10 +22,10 @@ fn io_unit(stop: &Arc<AtomicBool>) -> sim_drives::modbus_io::IoServer {
 fn with_unit(machine: &str, addr: std::net::SocketAddr, io_names: bool) -> String {
     let dev = format!("\n[io.devices.unit2]\nmodbus = \"{addr}\"\ninputs = 4\noutputs = 4\n");
     if io_names {
-        machine.replace("turret_in_position = \"io1.3\"\n", "turret_in_position = \"io1.3\"\nspare_in = \"unit2.1\"\n").replace(
-            "coolant = \"io1.0\"\n",
-            "coolant = \"io1.0\"\nspare_out = \"unit2.0\"\n",
-        ) + &dev
+        machine
+            .replace("turret_in_position = \"io1.3\"\n", "turret_in_position = \"io1.3\"\nspare_in = \"unit2.1\"\n")
+            .replace("coolant = \"io1.0\"\n", "coolant = \"io1.0\"\nspare_out = \"unit2.0\"\n")
+            + &dev
     } else {
         format!("{machine}\n[io]\n[io.inputs]\nspare_in = \"unit2.1\"\n[io.outputs]\nspare_out = \"unit2.0\"\n{dev}")
     }

@@ -448,7 +448,10 @@ mod tests {
         let d = Cia402Map::default();
         assert_eq!((d.homing_method, d.home_offset, d.homing_accel, d.digital_inputs), (Some(24), Some(25), Some(31), Some(33)));
         let m: Cia402Map = toml::from_str("error_code = 18").unwrap();
-        assert_eq!((m.homing_method, m.home_offset, m.homing_switch_speed, m.homing_zero_speed, m.homing_accel, m.digital_inputs), (None, None, None, None, None, None));
+        assert_eq!(
+            (m.homing_method, m.home_offset, m.homing_switch_speed, m.homing_zero_speed, m.homing_accel, m.digital_inputs),
+            (None, None, None, None, None, None)
+        );
         assert_eq!((m.error_code, m.interpolation_ms, m.comm_timeout_ms, m.statusword), (Some(18), Some(20), Some(23), 10));
         let m: Cia402Map = toml::from_str("homing_method = 0x100\nhome_offset = \"none\"\ndigital_inputs = 0x200").unwrap();
         assert_eq!((m.homing_method, m.home_offset, m.digital_inputs), (Some(0x100), None, Some(0x200)));

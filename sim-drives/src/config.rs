@@ -941,7 +941,12 @@ impl SimConfig {
             if d.switches != Switches::default() {
                 let w = &d.switches;
                 s.push_str("[drive.switches]\n");
-                for (k, v) in [("negative", w.negative.map(i64::from)), ("positive", w.positive.map(i64::from)), ("home", w.home.map(i64::from)), ("index_period", w.index_period.map(i64::from))] {
+                for (k, v) in [
+                    ("negative", w.negative.map(i64::from)),
+                    ("positive", w.positive.map(i64::from)),
+                    ("home", w.home.map(i64::from)),
+                    ("index_period", w.index_period.map(i64::from)),
+                ] {
                     if let Some(v) = v {
                         s.push_str(&format!("{k} = {v}\n"));
                     }

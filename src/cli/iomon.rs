@@ -118,7 +118,9 @@ impl IoMonitor {
             .map(|((name, kind, _, _), got)| {
                 let mut d = match kind {
                     DeviceKind::Cia401 { node } => serde_json::json!({"name": name, "kind": "cia401", "node": node}),
-                    DeviceKind::ModbusTcp { address, unit, .. } => serde_json::json!({"name": name, "kind": "modbus_tcp", "address": address, "unit": unit}),
+                    DeviceKind::ModbusTcp { address, unit, .. } => {
+                        serde_json::json!({"name": name, "kind": "modbus_tcp", "address": address, "unit": unit})
+                    }
                 };
                 let (i, o, e) = match got {
                     Ok((i, o)) => (Some(*i), Some(*o), None),
@@ -172,7 +174,8 @@ async fn read_modbus(
 ) -> Result<(u32, u32), String> {
     let t = |what: &str| format!("{what}: no answer within {} ms", MODBUS_TIMEOUT.as_millis());
     if ctx.is_none() {
-        let sa = tokio::net::lookup_host(address).await.map_err(|e| format!("{address}: {e}"))?.next().ok_or_else(|| format!("{address}: no address"))?;
+        let sa =
+            tokio::net::lookup_host(address).await.map_err(|e| format!("{address}: {e}"))?.next().ok_or_else(|| format!("{address}: no address"))?;
         let mut c = tokio::time::timeout(MODBUS_TIMEOUT, tokio_modbus::client::tcp::connect(sa))
             .await
             .map_err(|_| t("connect"))?
