@@ -998,6 +998,7 @@ impl SimConfig {
                     ("homing_switch_speed", m.homing_switch_speed),
                     ("homing_zero_speed", m.homing_zero_speed),
                     ("homing_accel", m.homing_accel),
+                    ("digital_inputs", m.digital_inputs),
                 ] {
                     s.push_str(&format!("{k} = {}\n", v.map_or("\"none\"".to_string(), |v| v.to_string())));
                 }
