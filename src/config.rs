@@ -430,6 +430,10 @@ pub struct AxisConfig {
     /// An absolute encoder: the axis is referenced at power-on and is never homed.
     #[serde(default)]
     pub absolute: bool,
+    /// How sim-drives emulates the drive's surroundings, e.g. `[axes.z.emulate] switches =
+    /// { negative = -20000 }` (cncgw itself ignores it; see sim-drives' README).
+    #[serde(default)]
+    pub emulate: Option<toml::Value>,
 }
 
 /// `axes.NAME.homing = { method = 35, offset = 0.0, speed = 600, zero_speed = 60 }`: the

@@ -209,3 +209,77 @@ fn pr_drive_power_on_modbus_tcp() {
     assert!(o.stderr.contains("not supported by this register map"), "{}", o.stderr);
     let _ = std::fs::remove_file(&path);
 }
+
+/// Issue 24: homing onto a limit switch over Modbus. sim-drives (the process) serves Z's
+/// negative limit switch at -3 mm (physical counts, `[axes.z.emulate] switches`), seen in the
+/// map's `digital_inputs` (0x60FD) as on CANopen. `cncgw home z` with method 17 (search the
+/// negative switch, home where it releases) and offset 1.5 mm: Z stands at 1.5 mm and the
+/// reference file says method 17 at that position. Then a vendor map table that does not
+/// name the homing registers (the drive has none): method 17 is alarm 2017 before anything
+/// is written or moved, and `config check` says so first.
+#[test]
+fn home_onto_the_negative_limit_switch_over_modbus_tcp() {
+    let lathe = include_str!("../config/lathe-modbus.toml");
+    let homing = "homing = { method = 17, offset = 1.5, speed = 600.0, zero_speed = 60.0 }\n[axes.z.emulate]\nswitches = { negative = -30000 }\n";
+    let machine = lathe.replace("following_error = 1.0\n\n[axes.s1]", &format!("following_error = 1.0\n{homing}\n[axes.s1]"));
+    assert!(machine.contains(homing), "lathe-modbus.toml's Z block changed");
+    let dir = testkit::tmp!("cli_modbus", "home-switch");
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let cfg = dir.join("machine.toml");
+    std::fs::write(&cfg, &machine).unwrap();
+    let (_sim, bus) = sim_drives_with(&["--config", cfg.to_str().unwrap()]);
+    let addr = bus.trim_start_matches("modbus-tcp://").to_string();
+    let machine = machine.replace("address = \"127.0.0.1:5020\"", &format!("address = \"{addr}\""));
+    std::fs::write(&cfg, &machine).unwrap();
+    let state = dir.join("state");
+    let cli = || testkit::cli!().state(&state);
+
+    let o = cli().run(&["home", "z", "--config", cfg.to_str().unwrap(), "--yes"]);
+    assert_eq!(o.code, 0, "{}{}", o.stdout, o.stderr);
+    assert!(o.stdout.contains("homed in mode 6 with homing method 17") && o.stdout.contains("axis Z: referenced (homing method 17)"), "{}", o.stdout);
+    let o = cli().run(&["drive", "status", "2", "--config", cfg.to_str().unwrap(), "--json"]);
+    assert_eq!(o.code, 0, "{}", o.stderr);
+    let v = json(&o);
+    let z = v["position"].as_f64().or_else(|| v[0]["position"].as_f64()).unwrap_or_else(|| panic!("{v}"));
+    eprintln!("Modbus home, method 17, switch at -3 mm, offset 1.5 mm: Z at {z:.4} mm");
+    assert!((z - 1.5).abs() <= 0.005, "Z at {z} mm after homing onto 1.5 mm: {v}");
+    // Homed at the switch's edge and stopped just past it: off the switch (bit 0 clear).
+    assert_eq!(v["digital_inputs"], 0, "{v}");
+    // 0.5 mm further negative it is on the switch: bit 0 of 0x60FD.
+    let o = cli().run(&["jog", "z", "--to", "1.0", "--config", cfg.to_str().unwrap(), "--yes"]);
+    assert_eq!(o.code, 0, "{}{}", o.stdout, o.stderr);
+    let v = json(&cli().run(&["drive", "status", "2", "--config", cfg.to_str().unwrap(), "--json"]));
+    assert_eq!(v["digital_inputs"], 1, "{v}");
+    let z = v["position"].as_f64().unwrap();
+    let file = std::fs::read_dir(&state).unwrap().flatten().map(|e| e.path()).find(|p| p.display().to_string().ends_with(".reference.toml"));
+    let text = std::fs::read_to_string(file.expect("reference file in the state dir")).unwrap();
+    let pos: f64 = text.lines().find_map(|l| l.strip_prefix("position = ")).expect("a position in the reference").parse().unwrap();
+    assert!(text.contains("[axes.z]") && text.contains("method = 17") && (pos - 1.5).abs() <= 0.005, "{text}");
+
+    // A vendor's map for Z that names no homing register.
+    let vendor = machine.replace("[axes.z.emulate]", "[axes.z.cia402_map]\nerror_code = 16\n\n[axes.z.emulate]");
+    let vcfg = dir.join("vendor.toml");
+    std::fs::write(&vcfg, &vendor).unwrap();
+    let o = cli().run(&["config", "check", vcfg.to_str().unwrap()]);
+    assert!(
+        o.stdout.contains("axis z: its homing (method 17) needs the homing method 0x6098")
+            && o.stdout.contains("`cncgw home` refuses it (alarm 2017)"),
+        "{}{}",
+        o.stdout,
+        o.stderr
+    );
+    let o = cli().run(&["home", "z", "--config", vcfg.to_str().unwrap(), "--yes"]);
+    assert_eq!(o.code, 1, "{}{}", o.stdout, o.stderr);
+    assert!(
+        o.stderr.contains("alarm 2017: unit 2: homing method 17 refused before any motion")
+            && o.stderr.contains("homing method 0x6098 (homing_method"),
+        "{}",
+        o.stderr
+    );
+    assert!(o.stderr.contains("nothing was written or moved"), "{}", o.stderr);
+    let o = cli().run(&["drive", "status", "2", "--config", cfg.to_str().unwrap(), "--json"]);
+    let v = json(&o);
+    let z2 = v["position"].as_f64().or_else(|| v[0]["position"].as_f64()).unwrap();
+    assert!((z2 - z).abs() < 1e-3, "Z moved from {z} to {z2}");
+}

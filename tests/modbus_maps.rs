@@ -132,7 +132,11 @@ fn config_check_bus_reads_the_map_from_sim_drives() {
     let t = text(&o);
     assert_eq!(o.status.code(), Some(1), "{t}");
     assert!(t.contains("live: axis x (unit 1, cia402 map) on Modbus TCP"), "{t}");
-    assert!(t.contains("17 register(s) read, 12 written back, none failed"), "x and the spindle have every register: {t}");
+    assert!(t.contains("18 register(s) read, 12 written back, none failed"), "x and the spindle have every register: {t}");
+    // Z's served map table names no homing register nor the digital inputs: sim-drives
+    // serves none of them (issue 24: a map table names every register its drive has).
+    assert!(t.contains("axis z (unit 2): homing_method (register 24 = 0x0018, 1 register): cannot read"), "{t}");
+    assert!(t.contains("axis z (unit 2): digital_inputs (register 33 = 0x0021, 2 registers): cannot read"), "{t}");
     assert!(
         t.contains("axis z (unit 2): interpolation_ms (register 20 = 0x0014, 1 register): cannot read: unit 2: exception 0x02 (Illegal data address) reading register 20 (1); so not written back — optional: if the drive has no such register, set interpolation_ms = \"none\" in [axes.z.cia402_map]"),
         "{t}"
@@ -235,7 +239,7 @@ fn config_check_bus_finds_the_registers_a_pymodbus_drive_lacks() {
     assert_eq!(o.status.code(), Some(1), "{t}");
     for (axis, unit) in [("x", 1), ("z", 2), ("s1", 3)] {
         assert!(
-            t.contains(&format!("live: axis {axis} (unit {unit}, cia402 map) on Modbus TCP {addr}: 15 register(s) read, 10 written back, 2 failed:")),
+            t.contains(&format!("live: axis {axis} (unit {unit}, cia402 map) on Modbus TCP {addr}: 16 register(s) read, 10 written back, 2 failed:")),
             "{t}"
         );
         assert!(t.contains(&format!("axis {axis} (unit {unit}): interpolation_ms (register 20 = 0x0014, 1 register): cannot read: unit {unit}: exception 0x02 (Illegal data address)")), "{t}");

@@ -159,22 +159,32 @@ pub struct Cia402Map {
     /// none (the master warns: a dead controller is not noticed by the drive).
     #[serde(deserialize_with = "optional_register")]
     pub comm_timeout_ms: Option<u16>,
-    /// 0x6098 homing method (INTEGER8 in one register); `"none"`: the drive homes with the
-    /// method of its own parameters (`cncgw home` then refuses any method but 35).
-    #[serde(deserialize_with = "optional_register")]
+    // The homing registers and the digital inputs came after the first maps: a map table
+    // written for a drive (any `cia402_map` in a config) that does not name them means the
+    // drive has none (`#[serde(default)]` on the field: absent = None) — else cncgw would write
+    // the homing into whatever registers 24–32 are on that drive. Only the built-in map (no
+    // table: `Cia402Map::default()`, what sim-drives serves) has them.
+    /// 0x6098 homing method (INTEGER8 in one register); `"none"` or absent from a map
+    /// table: the drive homes with the method of its own parameters (`cncgw home` then
+    /// refuses any method but 35).
+    #[serde(default, deserialize_with = "optional_register")]
     pub homing_method: Option<u16>,
-    /// 0x607C home offset, counts (2 registers); optional.
-    #[serde(deserialize_with = "optional_register")]
+    /// 0x607C home offset, counts (2 registers); optional, absent = none.
+    #[serde(default, deserialize_with = "optional_register")]
     pub home_offset: Option<u16>,
-    /// 0x6099:1 homing speed searching the switch, counts/s (2 registers); optional.
-    #[serde(deserialize_with = "optional_register")]
+    /// 0x6099:1 homing speed searching the switch, counts/s (2 registers); optional, absent = none.
+    #[serde(default, deserialize_with = "optional_register")]
     pub homing_switch_speed: Option<u16>,
-    /// 0x6099:2 homing speed searching zero, counts/s (2 registers); optional.
-    #[serde(deserialize_with = "optional_register")]
+    /// 0x6099:2 homing speed searching zero, counts/s (2 registers); optional, absent = none.
+    #[serde(default, deserialize_with = "optional_register")]
     pub homing_zero_speed: Option<u16>,
-    /// 0x609A homing acceleration, counts/s² (2 registers); optional.
-    #[serde(deserialize_with = "optional_register")]
+    /// 0x609A homing acceleration, counts/s² (2 registers); optional, absent = none.
+    #[serde(default, deserialize_with = "optional_register")]
     pub homing_accel: Option<u16>,
+    /// 0x60FD digital inputs (2 registers, read): bit 0 negative limit switch, bit 1
+    /// positive, bit 2 home switch (CiA 402); optional, absent = none. `cncgw monitor` shows it.
+    #[serde(default, deserialize_with = "optional_register")]
+    pub digital_inputs: Option<u16>,
     pub word_order: WordOrder,
     /// How the cyclic read is split (`ReadBlocks`).
     pub reads: ReadBlocks,
@@ -219,6 +229,7 @@ impl Cia402Map {
             reg("homing_switch_speed", self.homing_switch_speed, 2, true, true),
             reg("homing_zero_speed", self.homing_zero_speed, 2, true, true),
             reg("homing_accel", self.homing_accel, 2, true, true),
+            reg("digital_inputs", self.digital_inputs, 2, false, true),
         ]
         .into_iter()
         .flatten()
@@ -281,6 +292,7 @@ impl Default for Cia402Map {
             homing_switch_speed: Some(27),
             homing_zero_speed: Some(29),
             homing_accel: Some(31),
+            digital_inputs: Some(33),
             word_order: WordOrder::HighFirst,
             reads: ReadBlocks::Auto,
         }
@@ -426,6 +438,25 @@ pub fn span(regs: &[(u16, u16)]) -> (u16, u16) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Issue 24: the homing registers and the digital inputs are in the built-in map only; a
+    /// map table written for a drive that does not name them means the drive has none (so
+    /// that no homing is written into what registers 24–34 are on that drive). The older
+    /// registers keep their defaults.
+    #[test]
+    fn a_map_table_without_the_homing_registers_has_none() {
+        let d = Cia402Map::default();
+        assert_eq!((d.homing_method, d.home_offset, d.homing_accel, d.digital_inputs), (Some(24), Some(25), Some(31), Some(33)));
+        let m: Cia402Map = toml::from_str("error_code = 18").unwrap();
+        assert_eq!(
+            (m.homing_method, m.home_offset, m.homing_switch_speed, m.homing_zero_speed, m.homing_accel, m.digital_inputs),
+            (None, None, None, None, None, None)
+        );
+        assert_eq!((m.error_code, m.interpolation_ms, m.comm_timeout_ms, m.statusword), (Some(18), Some(20), Some(23), 10));
+        let m: Cia402Map = toml::from_str("homing_method = 0x100\nhome_offset = \"none\"\ndigital_inputs = 0x200").unwrap();
+        assert_eq!((m.homing_method, m.home_offset, m.digital_inputs), (Some(0x100), None, Some(0x200)));
+        assert!(m.registers().iter().any(|r| r.name == "digital_inputs" && r.len == 2 && !r.writable));
+    }
 
     #[test]
     fn word_order_round_trip() {

@@ -340,6 +340,23 @@ impl ModbusQuirks {
     }
 }
 
+/// The drive's emulated limit switches, home switch and index pulse as it powers on
+/// (`profile::SIM_SWITCHES`, 0x2101; physical counts, the power-on coordinate; absent: not
+/// fitted). The switches show in 0x60FD bits 0/1 — over CANopen, and over Modbus in the
+/// CiA 402 map's `digital_inputs` — and homing methods 1–30 use them.
+#[derive(Clone, Copy, Debug, Default, Deserialize, PartialEq, Eq)]
+#[serde(deny_unknown_fields)]
+pub struct Switches {
+    /// Negative limit switch: active at or below this position.
+    pub negative: Option<i32>,
+    /// Positive limit switch: active at or above.
+    pub positive: Option<i32>,
+    /// Home switch: active at or above.
+    pub home: Option<i32>,
+    /// Counts between index pulses (default 10 000).
+    pub index_period: Option<u32>,
+}
+
 #[derive(Clone, Debug, PartialEq)]
 pub struct DriveConfig {
     pub node: u8,
@@ -385,6 +402,8 @@ pub struct DriveConfig {
     pub shape: Shape,
     /// How its Modbus server differs from the plain one (`[drive.modbus_quirks]`).
     pub modbus_quirks: ModbusQuirks,
+    /// Its switches (`[drive.switches]`; in a machine config `[axes.NAME.emulate.switches]`).
+    pub switches: Switches,
 }
 
 /// sim-drives' own default of `late_sync_extrapolation` (its configuration format): 10
@@ -427,6 +446,7 @@ impl DriveConfig {
             late_sync_extrapolation: LATE_SYNC_EXTRAPOLATION,
             shape: Shape::default(),
             modbus_quirks: ModbusQuirks::default(),
+            switches: Switches::default(),
         }
     }
 
@@ -524,6 +544,14 @@ impl SimConfig {
             // assumes).
             #[serde(default)]
             late_sync_extrapolation: u32,
+            // How sim-drives emulates the drive's surroundings (cncgw ignores it).
+            emulate: Option<AxisEmulate>,
+        }
+        #[derive(Deserialize)]
+        #[serde(deny_unknown_fields)]
+        struct AxisEmulate {
+            #[serde(default)]
+            switches: Switches,
         }
         #[derive(Deserialize)]
         struct Machine {
@@ -540,6 +568,7 @@ impl SimConfig {
             d.pr_map = a.pr_map.unwrap_or_default();
             d.modbus_link = a.modbus.clone();
             d.late_sync_extrapolation = a.late_sync_extrapolation;
+            d.switches = a.emulate.as_ref().map(|e| e.switches).unwrap_or_default();
             drives.push(d);
         }
         let cfg = SimConfig { drives, step_us: 50 };
@@ -629,6 +658,7 @@ impl SimConfig {
             set!(cia402_map);
             set!(pr_map);
             set!(modbus_quirks);
+            set!(switches);
             if d.modbus_link.is_some() {
                 c.modbus_link = d.modbus_link.clone();
             }
@@ -908,6 +938,20 @@ impl SimConfig {
             if d.modbus_quirks != ModbusQuirks::default() {
                 s.push_str(&d.modbus_quirks.to_toml());
             }
+            if d.switches != Switches::default() {
+                let w = &d.switches;
+                s.push_str("[drive.switches]\n");
+                for (k, v) in [
+                    ("negative", w.negative.map(i64::from)),
+                    ("positive", w.positive.map(i64::from)),
+                    ("home", w.home.map(i64::from)),
+                    ("index_period", w.index_period.map(i64::from)),
+                ] {
+                    if let Some(v) = v {
+                        s.push_str(&format!("{k} = {v}\n"));
+                    }
+                }
+            }
             s.push_str("[drive.physics]\n");
             s.push_str(&format!("motor_inertia = {:?}     # kg·m²\n", p.motor_inertia));
             s.push_str(&format!("load_inertia = {:?}      # kg·m², reflected to the motor\n", p.load_inertia));
@@ -954,6 +998,7 @@ impl SimConfig {
                     ("homing_switch_speed", m.homing_switch_speed),
                     ("homing_zero_speed", m.homing_zero_speed),
                     ("homing_accel", m.homing_accel),
+                    ("digital_inputs", m.digital_inputs),
                 ] {
                     s.push_str(&format!("{k} = {}\n", v.map_or("\"none\"".to_string(), |v| v.to_string())));
                 }
@@ -1019,6 +1064,7 @@ struct RawDrive {
     /// A named shape (`Shape::profile`), before `shape`'s keys.
     profile: Option<String>,
     modbus_quirks: Option<ModbusQuirks>,
+    switches: Option<Switches>,
 }
 
 #[derive(Deserialize)]

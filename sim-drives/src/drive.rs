@@ -385,10 +385,11 @@ fn build_od(c: &DriveConfig) -> Od {
         od.add_range(ix::HOMING_ACCEL, 0, U32, Rw, false, c.profile_decel as i64, 1, u32::MAX as i64);
         od.add(DIGITAL_INPUTS, 0, U32, Ro, true, 0);
         od.add(SIM_SWITCHES, 0, U8, Const, false, 4);
-        od.add(SIM_SWITCHES, 1, I32, Rw, false, i32::MIN as i64);
-        od.add(SIM_SWITCHES, 2, I32, Rw, false, i32::MAX as i64);
-        od.add(SIM_SWITCHES, 3, I32, Rw, false, i32::MAX as i64);
-        od.add(SIM_SWITCHES, 4, U32, Rw, false, 10_000);
+        let sw = &c.switches;
+        od.add(SIM_SWITCHES, 1, I32, Rw, false, sw.negative.unwrap_or(i32::MIN) as i64);
+        od.add(SIM_SWITCHES, 2, I32, Rw, false, sw.positive.unwrap_or(i32::MAX) as i64);
+        od.add(SIM_SWITCHES, 3, I32, Rw, false, sw.home.unwrap_or(i32::MAX) as i64);
+        od.add(SIM_SWITCHES, 4, U32, Rw, false, sw.index_period.unwrap_or(10_000) as i64);
     }
     // Supported modes: bit m−1 for mode m (default PP, homing, CSP, CSV = 0x1A1).
     if sh.supported_modes_object {

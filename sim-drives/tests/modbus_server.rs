@@ -61,6 +61,7 @@ const M: Cia402Map = Cia402Map {
     homing_switch_speed: Some(27),
     homing_zero_speed: Some(29),
     homing_accel: Some(31),
+    digital_inputs: Some(33),
     word_order: WordOrder::HighFirst,
     reads: cncgw_bus::modbus::ReadBlocks::Auto,
 };
@@ -250,10 +251,12 @@ async fn exceptions_cia402() {
     let s = Srv::start(SimConfig::default_lathe());
     let mut c = s.client(1).await;
     tokio::time::sleep(Duration::from_millis(10)).await;
-    // 0x02: a register outside the map (the gaps 6–9, 17–19, past 23), alone or in a block.
+    // 0x02: a register outside the map (the gaps 6–9, 17–19, past 34), alone or in a block.
     assert_eq!(exception(c.read_holding_registers(6, 1).await).await, ExceptionCode::IllegalDataAddress);
     assert_eq!(exception(c.read_holding_registers(0, 24).await).await, ExceptionCode::IllegalDataAddress);
-    assert_eq!(exception(c.read_holding_registers(33, 1).await).await, ExceptionCode::IllegalDataAddress);
+    assert_eq!(exception(c.read_holding_registers(35, 1).await).await, ExceptionCode::IllegalDataAddress);
+    // 0x60FD (digital inputs) is read only.
+    assert_eq!(exception(c.write_multiple_registers(33, &[0, 0]).await).await, ExceptionCode::IllegalDataAddress);
     assert_eq!(exception(c.read_input_registers(17, 2).await).await, ExceptionCode::IllegalDataAddress);
     assert_eq!(exception(c.read_holding_registers(65535, 2).await).await, ExceptionCode::IllegalDataAddress);
     assert_eq!(exception(c.write_single_register(7, 1).await).await, ExceptionCode::IllegalDataAddress);

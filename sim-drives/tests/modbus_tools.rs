@@ -110,6 +110,7 @@ const M: Cia402Map = Cia402Map {
     homing_switch_speed: Some(27),
     homing_zero_speed: Some(29),
     homing_accel: Some(31),
+    digital_inputs: Some(33),
     word_order: WordOrder::HighFirst,
     reads: cncgw_bus::modbus::ReadBlocks::Auto,
 };

@@ -68,7 +68,7 @@ fn locked_reference(
 }
 
 /// `homing` of an axis as `drive home`'s arguments.
-fn home_args(a: &AxisConfig) -> Option<HomeArgs> {
+pub fn home_args(a: &AxisConfig) -> Option<HomeArgs> {
     let h = a.homing.as_ref()?;
     Some(HomeArgs { method: h.method, switch_speed: h.speed, zero_speed: h.zero_speed, offset: h.offset, timeout: h.timeout_s.unwrap_or(30.0) })
 }

@@ -177,6 +177,17 @@ pub fn map_warnings(cfg: &MachineConfig) -> Vec<String> {
     for (n, a) in cfg.axes.iter().filter(|(_, a)| a.modbus.is_some()) {
         let pr = a.pr_map.unwrap_or_default();
         w.extend(DrivePlan::new(n, a.node, a.modbus_profile, a.cia402_map.unwrap_or_default(), pr, false, 1).map_warnings());
+        // A homing the map cannot carry: `cncgw home` refuses it (alarm 2017), said here first.
+        if let (Profile::Cia402, Some(h)) = (a.modbus_profile, super::home::home_args(a)) {
+            let missing = super::mbus::homing_missing(&a.cia402_map.unwrap_or_default(), &h, a.homing.as_ref().and_then(|c| c.accel));
+            if !missing.is_empty() {
+                w.push(format!(
+                    "axis {n}: its homing (method {}) needs the {}, which its cia402_map does not have (\"none\" or not named): `cncgw home` refuses it (alarm 2017)",
+                    h.method,
+                    missing.join(", ")
+                ));
+            }
+        }
         if let (Profile::Pr, Some(t)) = (a.modbus_profile, a.travel_per_rev) {
             let per_rev = t * a.counts_per_unit;
             if (per_rev / pr.counts_per_rev.max(1) as f64 - 1.0).abs() > 1e-3 {

@@ -245,6 +245,9 @@ pub struct DriveRead {
     pub velocity_per_s: Option<f64>,
     /// 0x603F (CiA 402) or the alarm code (PR).
     pub error_code: u16,
+    /// 0x60FD digital inputs (bit 0 negative, bit 1 positive limit switch, bit 2 home switch),
+    /// where the map has the register.
+    pub digital_inputs: Option<u32>,
     pub round_trip_ms: f64,
 }
 
@@ -264,6 +267,10 @@ pub fn read_drive(c: &mut Client, axis: &str, a: &AxisConfig) -> Result<DriveRea
             d.velocity_per_s = Some(m.word_order.join_i32([v[0], v[1]]) as f64 / a.counts_per_unit);
             if let Some(e) = m.error_code {
                 d.error_code = c.read(a.node, e, 1)?[0];
+            }
+            // Shown, never needed: a drive that lacks it still answers the rest.
+            if let Some(r) = m.digital_inputs {
+                d.digital_inputs = c.read(a.node, r, 2).ok().map(|w| m.word_order.join_i32([w[0], w[1]]) as u32);
             }
         }
         Profile::Pr => {
@@ -311,6 +318,7 @@ fn state_json(d: &DriveRead) -> serde_json::Value {
         "position_counts": d.position_counts, "position": d.position, "velocity_per_s": d.velocity_per_s,
         "error_code": format!("0x{:04X}", d.error_code),
         "error_text": if d.profile == "cia402" { Some(cncgw_bus::canopen::emcy::error_text(d.error_code)) } else { None },
+        "digital_inputs": d.digital_inputs,
         "round_trip_ms": d.round_trip_ms,
     })
 }
@@ -456,13 +464,17 @@ pub fn drive_status(cfg: &MachineConfig, unit: u8, json: bool) -> i32 {
 
 /// `cncgw monitor` on Modbus: the same table from the registers, refreshed in place.
 pub fn monitor(cfg: &MachineConfig, seconds: Option<f64>, once: bool, interval_ms: u64, json: bool) -> i32 {
-    use std::io::{IsTerminal, Write};
+    use std::io::IsTerminal;
     let mut cl = match clients(cfg) {
         Ok(c) => c,
         Err(e) => {
             eprintln!("error: {e}");
             return super::diag::EXIT_SETUP;
         }
+    };
+    let mut io = match super::service::io_monitor(cfg) {
+        Ok(m) => m,
+        Err(code) => return code,
     };
     let tty = std::io::stdout().is_terminal() && !json;
     let t0 = Instant::now();
@@ -501,29 +513,20 @@ pub fn monitor(cfg: &MachineConfig, seconds: Option<f64>, once: bool, interval_m
         }
         let rtt = tick.elapsed().as_secs_f64() * 1e3;
         lines.push(format!("Modbus: {} register reads took {rtt:.1} ms", arr.len() * 5));
-        let text = if json {
-            format!("{}\n", serde_json::json!({"t_s": t0.elapsed().as_secs_f64(), "bus": "modbus", "drives": arr, "poll_ms": rtt}))
+        let io = io.as_mut().map(|m| {
+            let r = m.read(None);
+            (m.json(&r), m.lines(&r))
+        });
+        let lines = if json {
+            let io = io.map(|(j, _)| j);
+            vec![serde_json::json!({"t_s": t0.elapsed().as_secs_f64(), "bus": "modbus", "drives": arr, "poll_ms": rtt, "io": io}).to_string()]
         } else {
-            let mut t = String::new();
-            if tty && shown > 0 {
-                t.push_str(&format!("\x1b[{shown}A"));
-            }
-            for l in &lines {
-                if tty {
-                    t.push_str("\x1b[2K");
-                }
-                t.push_str(l);
-                t.push('\n');
-            }
-            if !tty && !once {
-                t.push('\n');
-            }
-            t
+            lines.extend(io.into_iter().flat_map(|(_, l)| l));
+            lines
         };
-        if out.write_all(text.as_bytes()).and_then(|_| out.flush()).is_err() {
+        if !super::service::monitor_draw(&mut out, &lines, tty, &mut shown, once || json) {
             return 0;
         }
-        shown = lines.len();
         if once || seconds.is_some_and(|s| (t0.elapsed() + interval).as_secs_f64() > s) {
             return 0;
         }
@@ -799,14 +802,12 @@ pub fn drive_home(cfg: &MachineConfig, unit: u8, h: &super::service::HomeArgs) -
 /// One write of the homing: (first register, words, what it is).
 type RegisterWrite = (u16, Vec<u16>, &'static str);
 
-/// The homing parameters as register writes (address, words, what) for the registers the
-/// map has — the same figures the CANopen homing writes (`service::home_params`): speeds
-/// default to max_speed / 20 and / 100, the acceleration to max_accel. A value set to other
-/// than what a drive without the register does (method 35, offset 0, no speeds or
-/// acceleration given) on a map without that register: Err naming the register.
-fn homing_writes(a: &AxisConfig, m: &cncgw_bus::modbus::Cia402Map, h: &super::service::HomeArgs) -> Result<Vec<RegisterWrite>, String> {
-    let accel = a.homing.as_ref().and_then(|c| c.accel);
-    let missing: Vec<&str> = [
+/// What the homing `h` (with the axis's `homing.accel`) would set that the map `m` has no
+/// register for — each "what (map key; where it is set)". The drive does without such a
+/// register what its own parameters say: method 35 is then assumed, offset 0, its own
+/// speeds and acceleration; anything else asked for cannot be done. Empty: nothing missing.
+pub fn homing_missing(m: &cncgw_bus::modbus::Cia402Map, h: &super::service::HomeArgs, accel: Option<f64>) -> Vec<&'static str> {
+    [
         (h.method != 35 && m.homing_method.is_none(), "homing method 0x6098 (homing_method; --method / homing.method)"),
         (h.offset != 0.0 && m.home_offset.is_none(), "home offset 0x607C (home_offset; --offset / homing.offset)"),
         (h.switch_speed.is_some() && m.homing_switch_speed.is_none(), "switch speed 0x6099:1 (homing_switch_speed; --switch-speed / homing.speed)"),
@@ -815,27 +816,43 @@ fn homing_writes(a: &AxisConfig, m: &cncgw_bus::modbus::Cia402Map, h: &super::se
     ]
     .into_iter()
     .filter_map(|(absent, what)| absent.then_some(what))
-    .collect();
+    .collect()
+}
+
+/// The homing parameters as register writes (address, words, what) for the registers the
+/// map has — the same figures the CANopen homing writes (`service::home_params`): speeds
+/// default to max_speed / 20 and / 100, the acceleration to max_accel. Something asked for
+/// that the map has no register for (`homing_missing`): alarm 2017, before anything is
+/// written or moved.
+fn homing_writes(a: &AxisConfig, m: &cncgw_bus::modbus::Cia402Map, h: &super::service::HomeArgs) -> Result<Vec<RegisterWrite>, crate::Alarm> {
+    let accel = a.homing.as_ref().and_then(|c| c.accel);
+    let missing = homing_missing(m, h, accel);
     if !missing.is_empty() {
-        return Err(format!(
-            "the axis's CiA 402 register map has no register for the {}: it is \"none\" in the axis's cia402_map. Give the register's address in the map if the drive has it, else set the value in the drive's own parameters and home without it (the drive then homes with its configured method)",
-            missing.join(", ")
+        return Err(crate::Alarm::new(
+            crate::alarm::HOMING,
+            format!(
+                "unit {}: homing method {} refused before any motion: the axis's CiA 402 register map has no register for the {} (\"none\" or not named in its cia402_map table: a map table names every register its drive has). Give the register's address in the map if the drive has it, else set the value in the drive's own parameters and home with what the drive does by itself (method 35, offset 0, no speeds given)",
+                a.node,
+                h.method,
+                missing.join(", ")
+            ),
         ));
     }
     let spindle = a.kind == crate::config::AxisKind::Spindle;
     let cpu = a.counts_per_unit;
     // mm/min → mm/s, rpm → deg/s; mm/s² as is, rpm/s → deg/s².
     let speed = |v: f64| if spindle { v * 6.0 } else { v / 60.0 };
-    let counts = |units: f64, what: &str| -> Result<[u16; 2], String> {
+    let bad = |e: String| crate::Alarm::new(crate::alarm::HOMING, format!("unit {}: {e}", a.node));
+    let counts = |units: f64, what: &str| -> Result<[u16; 2], crate::Alarm> {
         let c = (units * cpu).abs().round();
         if !c.is_finite() || c < 1.0 || c > u32::MAX as f64 {
-            return Err(format!("the {what} {units} is out of the drive's range (1 to 2^32-1 counts)"));
+            return Err(bad(format!("the {what} {units} is out of the drive's range (1 to 2^32-1 counts)")));
         }
         Ok(m.word_order.split_i32(c as u32 as i32))
     };
     let offset = (h.offset * cpu).round();
     if !offset.is_finite() || offset.abs() > i32::MAX as f64 {
-        return Err(format!("home offset {} is out of the drive's range", h.offset));
+        return Err(bad(format!("home offset {} is out of the drive's range", h.offset)));
     }
     let mut w = Vec::new();
     if let Some(r) = m.homing_method {
@@ -870,8 +887,9 @@ pub fn home_unit(cfg: &MachineConfig, unit: u8, h: &super::service::HomeArgs) ->
     let m = a.cia402_map.unwrap_or_default();
     let writes = match homing_writes(&a, &m, h) {
         Ok(w) => w,
-        Err(e) => {
-            eprintln!("error: unit {unit}: {e}");
+        Err(alarm) => {
+            eprintln!("{alarm}");
+            eprintln!("nothing was written or moved");
             return Err(EXIT_USAGE);
         }
     };

@@ -4,6 +4,7 @@ pub mod diag;
 pub mod exit;
 pub mod home;
 pub mod identify;
+pub mod iomon;
 pub mod lock;
 pub mod manpages;
 pub mod mapcheck;

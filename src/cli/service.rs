@@ -749,6 +749,85 @@ fn monitor_json(r: &MonitorRow) -> serde_json::Value {
     }
 }
 
+/// One refresh of the monitor: the drives, the bus load and the machine's I/O.
+struct MonitorFrame {
+    rows: Vec<MonitorRow>,
+    io: Option<(super::iomon::IoRead, serde_json::Value, Vec<String>)>,
+    t_s: f64,
+    load: f64,
+    dt: f64,
+}
+
+/// The monitor's table as text lines.
+fn monitor_text(s: &Session, f: &MonitorFrame) -> Vec<String> {
+    let mut lines = vec![format!(
+        "{:>4} {:<5} {:<6} {:<22} {:<26} {:>16} {:>16} {:>14}",
+        "node", "axis", "sw", "state", "mode", "position", "speed", "follow. error"
+    )];
+    lines.extend(f.rows.iter().map(monitor_line));
+    lines.push(format!(
+        "bus {} load {:.2} % ({} bit/s; frames sent and heard by this tool over the last {:.2} s)",
+        s.bus,
+        f.load * 100.0,
+        s.cfg.bus.bitrate.max(1),
+        f.dt
+    ));
+    // The CAN controller's own state, as `ip -details -statistics link show` has it
+    // (SocketCAN's error frames; the emulated bus and socketcand do not report it).
+    if let Some(c) = s.master.controller() {
+        lines.push(format!("CAN controller: {}", c.line()));
+    }
+    if let Some((_, _, io)) = &f.io {
+        lines.extend(io.iter().cloned());
+    }
+    lines
+}
+
+/// The monitor's JSON object of one refresh (one line of JSON lines).
+fn monitor_frame_json(s: &Session, f: &MonitorFrame) -> serde_json::Value {
+    serde_json::json!({
+        "t_s": f.t_s,
+        "bus": s.bus,
+        "simulated": s.simulated,
+        "bus_load": f.load,
+        "bitrate": s.cfg.bus.bitrate.max(1),
+        "load_window_s": f.dt,
+        "controller": s.master.controller(),
+        "drives": f.rows.iter().map(monitor_json).collect::<Vec<_>>(),
+        "io": f.io.as_ref().map(|(_, j, _)| j),
+    })
+}
+
+/// Write one refresh: JSON lines, or the table redrawn in place on a terminal. `shown`: the
+/// lines drawn last time (updated). False: stdout is closed.
+pub(super) fn monitor_draw(out: &mut impl Write, lines: &[String], tty: bool, shown: &mut usize, once: bool) -> bool {
+    let mut text = String::new();
+    if tty && *shown > 0 {
+        // Back to the top of the previous table and overwrite it.
+        text.push_str(&format!("\x1b[{shown}A"));
+    }
+    for l in lines {
+        if tty {
+            text.push_str("\x1b[2K");
+        }
+        text.push_str(l);
+        text.push('\n');
+    }
+    if !tty && !once {
+        text.push('\n');
+    }
+    *shown = lines.len();
+    out.write_all(text.as_bytes()).and_then(|_| out.flush()).is_ok()
+}
+
+/// The machine's I/O monitor of `cfg` (None: no `[io]`); Err = exit code (said).
+pub(super) fn io_monitor(cfg: &crate::config::MachineConfig) -> Result<Option<super::iomon::IoMonitor>, i32> {
+    super::iomon::IoMonitor::new(cfg).map_err(|e| {
+        eprintln!("error: [io]: {e}");
+        EXIT_SETUP
+    })
+}
+
 /// `cncgw monitor`.
 pub fn monitor(machine: &MachineArgs, seconds: Option<f64>, once: bool, interval_ms: u64, json: bool) -> i32 {
     use std::io::IsTerminal;
@@ -775,7 +854,11 @@ pub fn monitor(machine: &MachineArgs, seconds: Option<f64>, once: bool, interval
             return EXIT_SETUP;
         }
     };
-    let tty = std::io::stdout().is_terminal();
+    let mut io = match io_monitor(&s.cfg) {
+        Ok(m) => m,
+        Err(code) => return code,
+    };
+    let tty = std::io::stdout().is_terminal() && !json;
     let mut nodes = s.master.node_ids();
     nodes.sort_unstable();
     let bitrate = s.cfg.bus.bitrate.max(1);
@@ -790,85 +873,39 @@ pub fn monitor(machine: &MachineArgs, seconds: Option<f64>, once: bool, interval
     let mut since = s.clock.now_ns();
     s.master.listen(&mut *s.clock, 100);
     loop {
-        let mut lines = vec![format!(
-            "{:>4} {:<5} {:<6} {:<22} {:<26} {:>16} {:>16} {:>14}",
-            "node", "axis", "sw", "state", "mode", "position", "speed", "follow. error"
-        )];
         let rows: Vec<MonitorRow> = nodes.iter().map(|&n| monitor_read(&mut s, n)).collect();
-        lines.extend(rows.iter().map(monitor_line));
+        let io = io.as_mut().map(|m| {
+            let r = m.read(Some(&mut |node, index, sub| sdo_byte(&mut s, node, index, sub)));
+            let (j, l) = (m.json(&r), m.lines(&r));
+            (r, j, l)
+        });
         let now = s.clock.now_ns();
         let dt = (now - since).max(1) as f64 * 1e-9;
         let load = bits.swap(0, Ordering::Relaxed) as f64 / (bitrate as f64 * dt);
         since = now;
-        if json {
-            // One JSON object per refresh (JSON lines), never redrawn in place.
-            let v = serde_json::json!({
-                "t_s": (now - t0) as f64 * 1e-9,
-                "bus": s.bus,
-                "simulated": s.simulated,
-                "bus_load": load,
-                "bitrate": bitrate,
-                "load_window_s": dt,
-                "controller": s.master.controller(),
-                "drives": rows.iter().map(monitor_json).collect::<Vec<_>>(),
-            });
-            if writeln!(out, "{v}").and_then(|_| out.flush()).is_err() {
-                return EXIT_OK;
-            }
-            if once {
-                return EXIT_OK;
-            }
-            let next = s.clock.now_ns() + interval;
-            if end.is_some_and(|e| next > e) {
-                return EXIT_OK;
-            }
-            s.master.listen(&mut *s.clock, interval / MS);
-            continue;
-        }
-        lines.push(format!(
-            "bus {} load {:.2} % ({} bit/s; frames sent and heard by this tool over the last {:.2} s)",
-            s.bus,
-            load * 100.0,
-            bitrate,
-            dt
-        ));
-        // The CAN controller's own state, as `ip -details -statistics link show` has it
-        // (SocketCAN's error frames; the emulated bus and socketcand do not report it).
-        if let Some(c) = s.master.controller() {
-            lines.push(format!("CAN controller: {}", c.line()));
-        }
-        let mut text = String::new();
-        if tty && shown > 0 {
-            // Back to the top of the previous table and overwrite it.
-            text.push_str(&format!("\x1b[{shown}A"));
-        }
-        for l in &lines {
-            if tty {
-                text.push_str("\x1b[2K");
-            }
-            text.push_str(l);
-            text.push('\n');
-        }
-        if !tty && !once {
-            text.push('\n');
-        }
-        if out.write_all(text.as_bytes()).and_then(|_| out.flush()).is_err() {
-            return EXIT_OK; // stdout closed
-        }
-        shown = lines.len();
-        if once {
-            return EXIT_OK;
+        let frame = MonitorFrame { rows, io, t_s: (now - t0) as f64 * 1e-9, load, dt };
+        // JSON: one object per refresh (JSON lines), never redrawn in place.
+        let lines = if json { vec![monitor_frame_json(&s, &frame).to_string()] } else { monitor_text(&s, &frame) };
+        if !monitor_draw(&mut out, &lines, tty, &mut shown, once || json) || once {
+            return EXIT_OK; // stdout closed, or one table asked for
         }
         let next = s.clock.now_ns() + interval;
         if end.is_some_and(|e| next > e) {
             return EXIT_OK;
         }
-        if s.simulated {
+        if s.simulated && tty {
             // Simulated time runs as fast as the CPU: pace the display for a human.
-            if tty {
-                std::thread::sleep(Duration::from_nanos(interval));
-            }
+            std::thread::sleep(Duration::from_nanos(interval));
         }
         s.master.listen(&mut *s.clock, interval / MS);
     }
+}
+
+/// One byte of an object by SDO (a CiA 401 module's 8 inputs or outputs of a sub-index).
+fn sdo_byte(s: &mut Session, node: u8, index: u16, sub: u8) -> Result<u8, String> {
+    // A module is no drive of the master's: its SDO channel is opened here (the monitor's
+    // drive list was taken before).
+    s.master.ensure_node(node);
+    let d = s.master.sdo_upload(&mut *s.clock, node, index, sub).map_err(|e| sdo_error_text(&e))?;
+    d.first().copied().ok_or_else(|| format!("0x{index:04X}:{sub} answered no data"))
 }

@@ -187,14 +187,9 @@ impl PanelDisplay {
         }
         // The [io.safety] inputs, after HELD (which must never be cut): an open one in
         // capitals.
-        let io = self.panel.safety();
-        for (input, ok, open) in
-            [(io.estop, "E-stop ok", "E-STOP OPEN"), (io.door, "door shut", "DOOR OPEN"), (io.chuck, "chuck clamped", "CHUCK OPEN")]
-        {
-            if let Some(closed) = input {
-                state.push_str("  ");
-                state.push_str(if closed { ok } else { open });
-            }
+        for label in self.panel.safety().labels() {
+            state.push_str("  ");
+            state.push_str(label);
         }
         let rapid = match self.panel.rapid_override() {
             0 => "F0".to_string(),

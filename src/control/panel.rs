@@ -47,6 +47,13 @@ impl SafetyInputs {
         let get = |k: u32| (w >> (2 * k) & 1 == 1).then_some(w >> (2 * k + 1) & 1 == 1);
         SafetyInputs { estop: get(0), door: get(1), chuck: get(2) }
     }
+    /// How the operator sees each configured input (the panel's status line, `cncgw monitor`):
+    /// an open one in capitals.
+    pub fn labels(&self) -> impl Iterator<Item = &'static str> {
+        [(self.estop, "E-stop ok", "E-STOP OPEN"), (self.door, "door shut", "DOOR OPEN"), (self.chuck, "chuck clamped", "CHUCK OPEN")]
+            .into_iter()
+            .filter_map(|(input, ok, open)| input.map(|closed| if closed { ok } else { open }))
+    }
 }
 
 /// The panel's handle; clones share one panel.

@@ -32,6 +32,7 @@ CIA402 = {
     "homing_switch_speed": (27, 2),
     "homing_zero_speed": (29, 2),
     "homing_accel": (31, 2),
+    "digital_inputs": (33, 2),
 }
 
 

@@ -191,7 +191,7 @@ impl SimDrive {
     }
 
     /// 0x60FD: bit 0 negative limit switch, bit 1 positive limit switch.
-    pub(super) fn digital_inputs(&self) -> i64 {
+    pub fn digital_inputs(&self) -> i64 {
         let (n, p) = self.switches();
         n as i64 | (p as i64) << 1
     }

@@ -52,6 +52,7 @@ enum Reg {
     HomingSwitchSpeed,
     HomingZeroSpeed,
     HomingAccel,
+    DigitalInputs,
 }
 
 impl Reg {
@@ -81,13 +82,14 @@ impl Reg {
             (Profile::Cia402, "homing_switch_speed") => HomingSwitchSpeed,
             (Profile::Cia402, "homing_zero_speed") => HomingZeroSpeed,
             (Profile::Cia402, "homing_accel") => HomingAccel,
+            (Profile::Cia402, "digital_inputs") => DigitalInputs,
             _ => return None,
         })
     }
 
     fn writable(self) -> bool {
         use Reg::*;
-        !matches!(self, Statusword | ModeDisplay | PositionActual | VelocityActual | ErrorCode | Status | AlarmCode)
+        !matches!(self, Statusword | ModeDisplay | PositionActual | VelocityActual | ErrorCode | Status | AlarmCode | DigitalInputs)
     }
 
     /// The order writes of one request take effect: state first, then parameters, then the
@@ -520,6 +522,9 @@ impl World {
             Reg::HomingSwitchSpeed => two(obj(ix::HOMING_SPEEDS, 1)),
             Reg::HomingZeroSpeed => two(obj(ix::HOMING_SPEEDS, 2)),
             Reg::HomingAccel => two(obj(ix::HOMING_ACCEL, 0)),
+            // The emulated limit switches (`DriveConfig::switches`), as on CANopen.
+            // (Computed now: the object dictionary's copy is refreshed only for CANopen.)
+            Reg::DigitalInputs => two(d.digital_inputs()),
             Reg::Block => u.pr.as_ref().map(|p| p.block.to_vec()).unwrap_or_default(),
             Reg::Trigger => vec![u.pr.as_ref().map_or(0, |p| p.trigger)],
             Reg::ServoOn => vec![u.pr.as_ref().map_or(0, |p| p.servo_on as u16)],
