@@ -86,11 +86,11 @@ pub struct TapPlan {
 }
 
 /// How far above its + travel limit Z may stand for the tap to start at the limit: the
-/// in-position width before a rigid tap (1 µm, `INPOS_MM` in src/motion/mod.rs) or one count
+/// in-position width before a rigid tap ([`crate::motion::INPOS_MM`]) or one count
 /// where a count is coarser; a small margin for the count's own rounding.
 fn at_limit_width(counts_per_unit: f64) -> f64 {
     let count = 1.0 / counts_per_unit.abs().max(1e-9);
-    count.max(0.001) * (1.0 + 1e-6)
+    count.max(crate::motion::INPOS_MM) * (1.0 + 1e-6)
 }
 
 fn spindle_name(cfg: &MachineConfig) -> Option<String> {

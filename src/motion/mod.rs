@@ -120,7 +120,7 @@ pub const FEEDBACK_DELAY: usize = 2;
 /// Setpoint history kept for the sync correction (≥ the largest feedback delay + 3).
 const HIST: usize = 6;
 /// In-position width before a rigid tap (Z, and the spindle times the lead), mm.
-const INPOS_MM: f64 = 0.001;
+pub const INPOS_MM: f64 = 0.001;
 /// Longest wait for the in-position check, cycles (then the tap starts anyway).
 const INPOS_MAX_CYCLES: u32 = 150;
 /// Memory of the feed axes' lag models (see `sync_corr`), s.
