@@ -78,7 +78,8 @@ counts_per_rev = 360000
 
 /// A dwell for the client to connect, a spindle, a Z feed it watches, then an X rapid the
 /// stuck drive faults on.
-const PROGRAM: &str = "%\nO0026 (OPC UA TEST)\nN10 G21 G99 G97\nN20 G04 X15.0\nN30 M03 S600\nN40 G00 Z2\nN50 G01 Z-15 F0.5\nN60 G00 X40\nN70 M30\n%\n";
+const PROGRAM: &str =
+    "%\nO0026 (OPC UA TEST)\nN10 G21 G99 G97\nN20 G04 X15.0\nN30 M03 S600\nN40 G00 Z2\nN50 G01 Z-15 F0.5\nN60 G00 X40\nN70 M30\n%\n";
 
 fn cncgw_hash(password: &str) -> String {
     let mut c = Command::new(env!("CARGO_BIN_EXE_cncgw")).arg("opcua-hash").stdin(Stdio::piped()).stdout(Stdio::piped()).spawn().unwrap();

@@ -5,9 +5,9 @@
 use argon2::password_hash::{PasswordHash, PasswordHasher, PasswordVerifier, SaltString};
 use argon2::Argon2;
 use async_trait::async_trait;
+use opcua::crypto::{SecurityPolicy, Thumbprint};
 use opcua::server::address_space::AccessLevel;
 use opcua::server::authenticator::{user_pass_security_policy_id, AuthManager, Password, UserToken};
-use opcua::crypto::{SecurityPolicy, Thumbprint};
 use opcua::server::ServerEndpoint;
 use opcua::types::{Error, NodeId, StatusCode, UAString, UserTokenPolicy, UserTokenType};
 

@@ -292,7 +292,9 @@ impl Space {
         let now = DateTime::now();
         let r = nm.set_values(
             handle.subscriptions(),
-            values.iter().map(|(id, v)| (id, None, DataValue { value: Some(v.clone()), status: None, source_timestamp: Some(now), ..Default::default() })),
+            values
+                .iter()
+                .map(|(id, v)| (id, None, DataValue { value: Some(v.clone()), status: None, source_timestamp: Some(now), ..Default::default() })),
         );
         if let Err(e) = r {
             tracing::warn!("opcua: cannot update the condition's node: {e}");
