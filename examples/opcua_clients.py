@@ -3,8 +3,8 @@
     opcua_clients.py URL N SECONDS MACHINE_NAME [PKI_DIR]
 
 Each client (its own session, anonymous; policy None, which the example's server allows on
-loopback, or with PKI_DIR Basic256Sha256 Sign&Encrypt: one client certificate, made here and
-put into PKI_DIR/trusted, for all) makes a subscription at 100 ms publishing with the machine state, every axis'
+loopback, or with PKI_DIR Basic256Sha256 Sign&Encrypt: one client certificate, made here,
+refused once and moved from PKI_DIR/rejected to PKI_DIR/trusted, for all) makes a subscription at 100 ms publishing with the machine state, every axis'
 commanded and actual position and following error, the spindle's speeds and load, the
 program's line and progress, and the alarm events; prints "subscribed" once all are, then
 after SECONDS the notifications each received, as JSON, and leaves.
@@ -33,9 +33,23 @@ async def trusted_cert(work):
     """A client certificate the server trusts (copied into PKI/trusted: the administrator's step)."""
     key, cert = Path(work) / "key.pem", Path(work) / "cert.der"
     await setup_self_signed_certificate(key, cert, APP_URI, socket.gethostname(), [ExtendedKeyUsageOID.CLIENT_AUTH], {"commonName": "cncgw-cost-client"})
+    # As an administrator does: the first attempt is refused and leaves the certificate in
+    # PKI/rejected; move it to PKI/trusted (tests/python/opcua_client.py does the same).
+    try:
+        await (await one_client(cert, key)).connect()
+    except Exception:  # noqa: BLE001 - refused, as expected
+        pass
     (Path(PKI) / "trusted").mkdir(parents=True, exist_ok=True)
-    shutil.copy(cert, Path(PKI) / "trusted" / "cncgw-cost-client.der")
+    for f in (Path(PKI) / "rejected").glob("*.der"):
+        shutil.move(str(f), str(Path(PKI) / "trusted" / f.name))
     return cert, key
+
+
+async def one_client(cert, key):
+    c = Client(URL, timeout=10)
+    c.application_uri = APP_URI
+    await c.set_security(SecurityPolicyBasic256Sha256, str(cert), str(key), mode=ua.MessageSecurityMode.SignAndEncrypt)
+    return c
 
 
 class Count:
@@ -50,10 +64,7 @@ class Count:
 
 
 async def one(k, secure):
-    c = Client(URL, timeout=10)
-    if secure:
-        c.application_uri = APP_URI
-        await c.set_security(SecurityPolicyBasic256Sha256, str(secure[0]), str(secure[1]), mode=ua.MessageSecurityMode.SignAndEncrypt)
+    c = await one_client(*secure) if secure else Client(URL, timeout=10)
     await c.connect()
     ns = await c.get_namespace_index(NS)
     m = await c.nodes.objects.get_child([f"{ns}:Machines", f"{ns}:{MACHINE}"])
