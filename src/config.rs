@@ -1029,8 +1029,9 @@ pub struct OpcUaConfig {
     /// Accept clients without a user name (anonymous). Off by default.
     #[serde(default)]
     pub anonymous: bool,
-    /// Users with a password (`[[opcua.users]]`): `name` and `password_hash`, an Argon2 PHC
-    /// string (`cncgw opcua-hash` makes one).
+    /// Users (`[[opcua.users]]`): `name` and either `password_hash`, an Argon2 PHC string
+    /// (`cncgw opcua-hash` makes one), or an X.509 user certificate (`certificate`, a file, or
+    /// `certificate_thumbprint`, its SHA-1).
     #[serde(default)]
     pub users: Vec<OpcUaUser>,
     /// After the run the server stays up this long so that subscribed clients receive the
@@ -1039,13 +1040,37 @@ pub struct OpcUaConfig {
     pub linger_ms: u32,
 }
 
-/// One `[[opcua.users]]` entry.
-#[derive(Clone, Debug, Deserialize, PartialEq, Eq)]
+/// One `[[opcua.users]]` entry: a name and exactly one way to prove it.
+#[derive(Clone, Debug, Default, Deserialize, PartialEq, Eq)]
 #[serde(deny_unknown_fields)]
 pub struct OpcUaUser {
     pub name: String,
     /// Argon2 PHC string (`$argon2id$v=19$m=…,t=…,p=…$salt$hash`); never the password itself.
-    pub password_hash: String,
+    #[serde(default)]
+    pub password_hash: Option<String>,
+    /// The user's X.509 certificate (DER or PEM), which the client presents as its identity
+    /// token (signed with its key); relative: to the configuration file's folder.
+    #[serde(default)]
+    pub certificate: Option<String>,
+    /// The same, by the certificate's SHA-1 thumbprint (40 hex digits, `:` allowed: what
+    /// `openssl x509 -noout -fingerprint -sha1` prints).
+    #[serde(default)]
+    pub certificate_thumbprint: Option<String>,
+}
+
+impl OpcUaUser {
+    /// `certificate_thumbprint` as 20 bytes, if it is 40 hex digits (with or without `:`).
+    pub fn thumbprint_bytes(&self) -> Option<[u8; 20]> {
+        let hex: String = self.certificate_thumbprint.as_deref()?.chars().filter(|c| *c != ':').collect();
+        let mut b = [0u8; 20];
+        if hex.len() != 40 || !hex.is_ascii() {
+            return None;
+        }
+        for (k, byte) in b.iter_mut().enumerate() {
+            *byte = u8::from_str_radix(&hex[2 * k..2 * k + 2], 16).ok()?;
+        }
+        Some(b)
+    }
 }
 
 /// The security policies `[opcua] security_policies` accepts.
@@ -1109,7 +1134,7 @@ impl OpcUaConfig {
             ));
         }
         if self.enabled && !self.anonymous && self.users.is_empty() {
-            e.push("opcua.users: no user could connect: add [[opcua.users]] (name, password_hash) or set anonymous = true".into());
+            e.push("opcua.users: no user could connect: add [[opcua.users]] (name, password_hash or certificate) or set anonymous = true".into());
         }
         for (i, u) in self.users.iter().enumerate() {
             if u.name.trim().is_empty() {
@@ -1118,12 +1143,24 @@ impl OpcUaConfig {
             if self.users[..i].iter().any(|v| v.name == u.name) {
                 e.push(format!("opcua.users[{i}].name: {:?} is given twice", u.name));
             }
+            let ways = [u.password_hash.is_some(), u.certificate.is_some(), u.certificate_thumbprint.is_some()];
+            if ways.iter().filter(|w| **w).count() != 1 {
+                e.push(format!("opcua.users[{i}]: give exactly one of password_hash, certificate, certificate_thumbprint"));
+            }
             // The full parse is the server's (feature `opcua`); here the form, so that a
             // password written in clear is refused by `config check` too.
-            if !["$argon2id$", "$argon2i$", "$argon2d$"].iter().any(|p| u.password_hash.starts_with(p)) || u.password_hash.split('$').count() != 6 {
-                e.push(format!(
-                    "opcua.users[{i}].password_hash: must be an Argon2 PHC string ($argon2id$v=19$m=…$salt$hash; `cncgw opcua-hash` makes one), not the password itself"
-                ));
+            if let Some(h) = &u.password_hash {
+                if !["$argon2id$", "$argon2i$", "$argon2d$"].iter().any(|p| h.starts_with(p)) || h.split('$').count() != 6 {
+                    e.push(format!(
+                        "opcua.users[{i}].password_hash: must be an Argon2 PHC string ($argon2id$v=19$m=…$salt$hash; `cncgw opcua-hash` makes one), not the password itself"
+                    ));
+                }
+            }
+            if u.certificate.as_deref().is_some_and(|c| c.trim().is_empty()) {
+                e.push(format!("opcua.users[{i}].certificate: must name a certificate file"));
+            }
+            if u.certificate_thumbprint.is_some() && u.thumbprint_bytes().is_none() {
+                e.push(format!("opcua.users[{i}].certificate_thumbprint: must be the certificate's SHA-1, 40 hex digits (\":\" allowed)"));
             }
         }
         if self.linger_ms > 60_000 {
@@ -1296,6 +1333,17 @@ mod tests {
         assert!(opcua("enabled = true\nanonymous = true").is_ok());
         let e = opcua("enabled = true\n[[opcua.users]]\nname = \"mes\"\npassword_hash = \"secret\"").unwrap_err().to_string();
         assert!(e.contains("opcua.users[0].password_hash: must be an Argon2 PHC string"), "{e}");
+        let cert = opcua("enabled = true\n[[opcua.users]]\nname = \"cell\"\ncertificate_thumbprint = \"3F:9A:00:11:22:33:44:55:66:77:88:99:aa:bb:cc:dd:ee:ff:01:02\"");
+        assert_eq!(cert.unwrap().opcua.users[0].thumbprint_bytes().map(|b| (b[0], b[19])), Some((0x3f, 0x02)));
+        assert!(opcua("enabled = true\n[[opcua.users]]\nname = \"cell\"\ncertificate = \"cell.der\"").is_ok());
+        let e = opcua(&format!("enabled = true\n[[opcua.users]]\nname = \"cell\"\ncertificate = \"c.der\"\npassword_hash = \"{HASH}\""))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("opcua.users[0]: give exactly one of"), "{e}");
+        let e = opcua("enabled = true\n[[opcua.users]]\nname = \"cell\"").unwrap_err().to_string();
+        assert!(e.contains("opcua.users[0]: give exactly one of"), "{e}");
+        let e = opcua("enabled = true\n[[opcua.users]]\nname = \"cell\"\ncertificate_thumbprint = \"3f9a\"").unwrap_err().to_string();
+        assert!(e.contains("certificate_thumbprint: must be the certificate's SHA-1"), "{e}");
         let e = opcua("enabled = true\nport = 0\nsecurity_policies = [\"basic128rsa15\"]\nanonymous = true").unwrap_err().to_string();
         assert!(e.contains("opcua.port: must be 1 … 65535") && e.contains("unknown policy \"basic128rsa15\""), "{e}");
     }

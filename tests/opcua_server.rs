@@ -3,8 +3,10 @@
 //! machine, paced to the wall clock, whose X drive has no torque to spare:
 //! the client sees the Z axis move and the state change during the run, and receives the
 //! drive's fault (alarm 2010) as an event and as an alarm condition (its number, active,
-//! unacknowledged; ConditionRefresh for a client that comes later; no acknowledging); an
-//! unsigned connection, an untrusted client certificate and a wrong password are refused. Without `[opcua]` no port is opened.
+//! unacknowledged; ConditionRefresh for a client that comes later; no acknowledging; the
+//! condition a node it browses to); an unsigned connection, an untrusted client certificate, a
+//! wrong password and an unknown X.509 user certificate are refused, the configured one signs
+//! in. Without `[opcua]` no port is opened.
 //!
 //! Needs build/venv with asyncua (`scripts/install-test-deps.sh --python`): without the venv
 //! the test FAILS naming that command (as tests/python_drives.rs); a venv without asyncua
@@ -76,7 +78,8 @@ counts_per_rev = 360000
 
 /// A dwell for the client to connect, a spindle, a Z feed it watches, then an X rapid the
 /// stuck drive faults on.
-const PROGRAM: &str = "%\nO0026 (OPC UA TEST)\nN10 G21 G99 G97\nN20 G04 X8.0\nN30 M03 S600\nN40 G00 Z2\nN50 G01 Z-15 F0.5\nN60 G00 X40\nN70 M30\n%\n";
+const PROGRAM: &str =
+    "%\nO0026 (OPC UA TEST)\nN10 G21 G99 G97\nN20 G04 X15.0\nN30 M03 S600\nN40 G00 Z2\nN50 G01 Z-15 F0.5\nN60 G00 X40\nN70 M30\n%\n";
 
 fn cncgw_hash(password: &str) -> String {
     let mut c = Command::new(env!("CARGO_BIN_EXE_cncgw")).arg("opcua-hash").stdin(Stdio::piped()).stdout(Stdio::piped()).spawn().unwrap();
@@ -104,7 +107,14 @@ fn a_python_client_watches_a_run_and_receives_the_drive_fault_as_an_event() {
     let dir = testkit::tmp!("opcua_server", "watched");
     let port = free_port();
     let hash = cncgw_hash("s3cret-spindle");
-    let opcua = format!("[opcua]\nenabled = true\nhost = \"127.0.0.1\"\nport = {port}\nlinger_ms = 8000\n[[opcua.users]]\nname = \"mes\"\npassword_hash = \"{hash}\"\n");
+    // The X.509 user "cell": its certificate (made by the client script, asyncua's generator)
+    // named relative to the configuration file.
+    std::fs::create_dir_all(&dir).unwrap();
+    let made = Command::new(&python).arg(root().join("tests/python/opcua_client.py")).arg("--user-certs").arg(&dir).output().unwrap();
+    assert!(made.status.success(), "{}", String::from_utf8_lossy(&made.stderr));
+    let opcua = format!(
+        "[opcua]\nenabled = true\nhost = \"127.0.0.1\"\nport = {port}\nlinger_ms = 8000\n[[opcua.users]]\nname = \"mes\"\npassword_hash = \"{hash}\"\n[[opcua.users]]\nname = \"cell\"\ncertificate = \"cell_user.der\"\n"
+    );
     let (cfg, sim, prog) = write_setup(&dir, &opcua);
     let state = dir.join("state");
     let run = Command::new(env!("CARGO_BIN_EXE_cncgw"))
@@ -144,6 +154,9 @@ fn a_python_client_watches_a_run_and_receives_the_drive_fault_as_an_event() {
     assert_eq!(v["rejected_files"], 1, "the refused certificate was not kept in pki/rejected: {v}");
     assert!(v["wrong_password_refused"].is_string(), "a wrong password was accepted: {v}");
     assert!(v["write_refused"].is_string(), "a write was accepted: {v}");
+    // X.509 user identities: the configured certificate signs in, another is refused.
+    assert!(v["unknown_user_cert_refused"].as_str().is_some_and(|e| e.contains("BadIdentityTokenRejected")), "{v}");
+    assert!(v["cert_user_state"].is_string(), "the configured user certificate was refused: {v}");
     // The address space.
     for child in ["Identification", "Monitoring", "Production", "Axes", "Notification"] {
         assert!(v["machine_children"].as_array().unwrap().iter().any(|c| c == child), "no {child}: {v}");
@@ -192,6 +205,18 @@ fn a_python_client_watches_a_run_and_receives_the_drive_fault_as_an_event() {
     assert_ne!(refreshed[0]["EventId"], t["EventId"], "a refresh's event has its own EventId: {late}");
     assert!(late["refresh_bad_subscription"].as_str().is_some_and(|e| e.contains("BadSubscriptionIdInvalid")), "{late}");
     assert!(late["ack_refused"].is_string(), "an acknowledgement was accepted: {late}");
+    // The condition is a node: in Notification/Messages, HasCondition from the machine, its
+    // state readable.
+    let node = &late["condition_node"];
+    let cid = "ns=2;s=Machine.Alarm.2010";
+    assert_eq!((&node["in_messages"], &node["has_condition"]), (&serde_json::json!([cid]), &serde_json::json!([cid])), "{node}");
+    assert_eq!((&node["browse_name"], &node["type"]), (&"2:Alarm2010".into(), &"ns=2;s=CncAlarmConditionType".into()), "{node}");
+    assert_eq!(
+        (&node["ActiveState"], &node["ActiveState/Id"], &node["AlarmNumber"], &node["Retain"]),
+        (&"Active".into(), &true.into(), &2010.into(), &true.into()),
+        "{node}"
+    );
+    assert!(node["Message"].as_str().is_some_and(|m| m.starts_with("alarm 2010: node 1 (axis x): drive fault")), "{node}");
     assert!(out.contains("alarm 2010"), "{out}");
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -1,9 +1,11 @@
-//! Who may connect: the `[opcua]` users (Argon2 password hashes, never the passwords) and,
-//! only when configured, anonymous clients. Every user reads; nobody writes or calls a method.
+//! Who may connect: the `[opcua]` users (Argon2 password hashes, never the passwords; or an
+//! X.509 user certificate, known by its SHA-1 thumbprint) and, only when configured,
+//! anonymous clients. Every user reads; nobody writes or calls a method.
 
 use argon2::password_hash::{PasswordHash, PasswordHasher, PasswordVerifier, SaltString};
 use argon2::Argon2;
 use async_trait::async_trait;
+use opcua::crypto::{SecurityPolicy, Thumbprint};
 use opcua::server::address_space::AccessLevel;
 use opcua::server::authenticator::{user_pass_security_policy_id, AuthManager, Password, UserToken};
 use opcua::server::ServerEndpoint;
@@ -32,7 +34,13 @@ pub struct Users {
     pub anonymous: bool,
     /// (name, PHC hash).
     pub users: Vec<(String, String)>,
+    /// (name, SHA-1 thumbprint of the user's certificate).
+    pub certificates: Vec<(String, [u8; 20])>,
 }
+
+/// async-opcua's policy id of X.509 user tokens: it refuses a token that names another
+/// (its constant is crate-private).
+const POLICY_ID_X509: &str = "x509";
 
 #[async_trait]
 impl AuthManager for Users {
@@ -65,6 +73,21 @@ impl AuthManager for Users {
         }
     }
 
+    /// Called once async-opcua has checked the token's signature (the client holds the
+    /// certificate's private key, OPC 10000-4 7.36.5); here only: is it a configured user's.
+    async fn authenticate_x509_identity_token(&self, _endpoint: &ServerEndpoint, signing_thumbprint: &Thumbprint) -> Result<UserToken, Error> {
+        match self.certificates.iter().find(|(_, t)| t[..] == *signing_thumbprint.value()) {
+            Some((name, _)) => {
+                tracing::info!(user = name.as_str(), "opcua: certificate user signed in");
+                Ok(UserToken(name.clone()))
+            }
+            None => {
+                tracing::warn!(thumbprint = signing_thumbprint.as_hex_string(), "opcua: unknown user certificate");
+                Err(Error::new(StatusCode::BadIdentityTokenRejected, "unknown user certificate"))
+            }
+        }
+    }
+
     /// Read-only: whatever a node says, a user may only read it.
     fn effective_user_access_level(&self, _token: &UserToken, user_access_level: AccessLevel, _node_id: &NodeId) -> AccessLevel {
         user_access_level & (AccessLevel::CURRENT_READ | AccessLevel::HISTORY_READ)
@@ -93,6 +116,22 @@ impl AuthManager for Users {
                 issued_token_type: UAString::null(),
                 issuer_endpoint_url: UAString::null(),
                 security_policy_uri: UAString::null(),
+            });
+        }
+        if !self.certificates.is_empty() {
+            // The policy the client signs its token with (async-opcua verifies with this one):
+            // the endpoint's, and on a None endpoint Basic256Sha256 (the token is signed even
+            // when the channel is not).
+            let sp = match endpoint.security_policy() {
+                SecurityPolicy::None | SecurityPolicy::Unknown => SecurityPolicy::Basic256Sha256,
+                sp => sp,
+            };
+            p.push(UserTokenPolicy {
+                policy_id: UAString::from(POLICY_ID_X509),
+                token_type: UserTokenType::Certificate,
+                issued_token_type: UAString::null(),
+                issuer_endpoint_url: UAString::null(),
+                security_policy_uri: UAString::from(sp.to_uri()),
             });
         }
         p

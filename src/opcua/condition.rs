@@ -7,17 +7,21 @@
 //! field of BaseEventType, ConditionType, AcknowledgeableConditionType and AlarmConditionType
 //! a select clause names, by browse path), and so is the refresh ([`RefreshMethods`], a node
 //! manager that owns only the two refresh methods of ConditionType and sits before the core
-//! one). What is missing: the condition is not a node of the address space (its ConditionId
-//! does not browse), there are no branches, no shelving, and `Acknowledge`/`Confirm`/`Enable`/
+//! one). The condition is also a node ([`ConditionEvent::insert_node`]): its ConditionId
+//! `Machine.Alarm.NNNN`, in `Notification/Messages` (40501-1's folder for a machine's
+//! conditions), referenced from the machine by HasCondition, its fields the event's as
+//! properties and state variables (one implementation: the node reads what the event says).
+//! What is missing: no branches, no shelving, and `Acknowledge`/`Confirm`/`Enable`/
 //! `Disable`/`AddComment` are refused (`BadNotSupported`, the core node manager's answer):
 //! the server is read-only, acknowledging an alarm happens at the machine.
 
 use opcua::nodes::{BaseEventType, Event};
+use opcua::server::address_space::{AccessLevel, AddressSpace, ObjectBuilder, VariableBuilder};
 use opcua::server::node_manager::{BrowseNode, BrowsePathItem, MethodCall, NodeManager, ReadNode, RequestContext, ServerContext};
 use opcua::server::EventField;
 use opcua::types::{
-    AttributeId, ByteString, DateTime, LocalizedText, MethodId, NodeId, NumericRange, ObjectId, ObjectTypeId, QualifiedName, StatusCode,
-    TimestampsToReturn, UAString, Variant, VariantScalarTypeId,
+    AttributeId, ByteString, DataTypeId, DateTime, LocalizedText, MethodId, NodeId, NumericRange, ObjectId, ObjectTypeId, QualifiedName,
+    ReferenceTypeId, StatusCode, TimestampsToReturn, UAString, VariableTypeId, Variant, VariantScalarTypeId,
 };
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -95,6 +99,7 @@ impl Conditions {
             c: c.clone(),
             own: self.event_type.clone(),
             ns: self.ns,
+            // (Its fields' nodes: `ConditionEvent::field_id`.)
             condition_id: NodeId::new(self.ns, format!("Machine.Alarm.{}", c.number)),
             input_node: self.input_node.clone(),
         }
@@ -154,6 +159,101 @@ impl ConditionEvent {
             ["SuppressedOrShelved"] => false.into(),
             _ => return None,
         })
+    }
+}
+
+/// The condition's fields its node shows: (name, variable type, sub-fields). PropertyType
+/// ones are properties; state variables (TwoStateVariableType, ConditionVariableType) are
+/// components with their own properties. AlarmNumber (our namespace) comes with them.
+const NODE_FIELDS: [(&str, VariableTypeId, &[&str]); 22] = [
+    ("EventId", VariableTypeId::PropertyType, &[]),
+    ("EventType", VariableTypeId::PropertyType, &[]),
+    ("SourceNode", VariableTypeId::PropertyType, &[]),
+    ("SourceName", VariableTypeId::PropertyType, &[]),
+    ("Time", VariableTypeId::PropertyType, &[]),
+    ("ReceiveTime", VariableTypeId::PropertyType, &[]),
+    ("Message", VariableTypeId::PropertyType, &[]),
+    ("Severity", VariableTypeId::PropertyType, &[]),
+    ("ConditionClassId", VariableTypeId::PropertyType, &[]),
+    ("ConditionClassName", VariableTypeId::PropertyType, &[]),
+    ("ConditionName", VariableTypeId::PropertyType, &[]),
+    ("BranchId", VariableTypeId::PropertyType, &[]),
+    ("Retain", VariableTypeId::PropertyType, &[]),
+    ("ClientUserId", VariableTypeId::PropertyType, &[]),
+    ("InputNode", VariableTypeId::PropertyType, &[]),
+    ("SuppressedOrShelved", VariableTypeId::PropertyType, &[]),
+    ("EnabledState", VariableTypeId::TwoStateVariableType, &["Id"]),
+    ("ActiveState", VariableTypeId::TwoStateVariableType, &["Id", "TransitionTime"]),
+    ("AckedState", VariableTypeId::TwoStateVariableType, &["Id"]),
+    ("Quality", VariableTypeId::ConditionVariableType, &["SourceTimestamp"]),
+    ("LastSeverity", VariableTypeId::ConditionVariableType, &["SourceTimestamp"]),
+    ("Comment", VariableTypeId::ConditionVariableType, &["SourceTimestamp"]),
+];
+
+/// A read-only variable of the condition node, typed after its value.
+fn condition_variable(a: &mut AddressSpace, id: &NodeId, name: QualifiedName, v: Variant, t: VariableTypeId, parent: &NodeId, property: bool) {
+    let dt: NodeId = v.data_type().map_or_else(|| DataTypeId::BaseDataType.into(), |e| e.node_id);
+    let display = name.name.to_string();
+    let b = VariableBuilder::new(id, name, display)
+        .value(v)
+        .data_type(dt)
+        .access_level(AccessLevel::CURRENT_READ)
+        .user_access_level(AccessLevel::CURRENT_READ)
+        .has_type_definition(t);
+    if property {
+        b.property_of(parent.clone()).insert(a);
+    } else {
+        b.component_of(parent.clone()).insert(a);
+    }
+}
+
+impl ConditionEvent {
+    /// Every field [`NODE_FIELDS`] names (and AlarmNumber), by its node's id: what the node
+    /// shows is what this event says.
+    pub fn node_values(&self) -> Vec<(NodeId, Variant)> {
+        let q = |n: &str| QualifiedName::new(0, n);
+        let mut out = Vec::new();
+        for (name, _, subs) in NODE_FIELDS {
+            out.push((self.field_id(&[name]), self.get_value(AttributeId::Value, &NumericRange::None, &[q(name)])));
+            for sub in subs {
+                out.push((self.field_id(&[name, sub]), self.get_value(AttributeId::Value, &NumericRange::None, &[q(name), q(sub)])));
+            }
+        }
+        out.push((self.field_id(&["AlarmNumber"]), Variant::UInt32(self.c.number)));
+        out
+    }
+
+    fn field_id(&self, path: &[&str]) -> NodeId {
+        NodeId::new(self.ns, format!("Machine.Alarm.{}.{}", self.c.number, path.join(".")))
+    }
+
+    /// Make the condition's node (once per alarm number; later raises only change its values,
+    /// see [`Self::node_values`]): a `CncAlarmConditionType` object organized by `folder`,
+    /// HasCondition from the machine (its source), its fields as variables.
+    pub fn insert_node(&self, a: &mut AddressSpace, folder: &NodeId, machine: &NodeId) {
+        let cid = &self.condition_id;
+        if a.node_exists(cid) {
+            return;
+        }
+        let name = format!("Alarm{}", self.c.number);
+        ObjectBuilder::new(cid, QualifiedName::new(self.ns, name.as_str()), format!("alarm {}: {}", self.c.number, self.c.text))
+            .organized_by(folder.clone())
+            .has_type_definition(self.own.clone())
+            .insert(a);
+        a.insert_reference(machine, cid, ReferenceTypeId::HasCondition);
+        let values: std::collections::HashMap<NodeId, Variant> = self.node_values().into_iter().collect();
+        let value = |id: &NodeId| values.get(id).cloned().unwrap_or(Variant::Empty);
+        for (field, t, subs) in NODE_FIELDS {
+            let id = self.field_id(&[field]);
+            let property = t == VariableTypeId::PropertyType;
+            condition_variable(a, &id, QualifiedName::new(0, field), value(&id), t, cid, property);
+            for sub in subs {
+                let sid = self.field_id(&[field, sub]);
+                condition_variable(a, &sid, QualifiedName::new(0, *sub), value(&sid), VariableTypeId::PropertyType, &id, true);
+            }
+        }
+        let id = self.field_id(&["AlarmNumber"]);
+        condition_variable(a, &id, QualifiedName::new(self.ns, "AlarmNumber"), value(&id), VariableTypeId::PropertyType, cid, true);
     }
 }
 

@@ -11,8 +11,8 @@
 //! allowed on loopback; the server's certificate is made on first start under
 //! `STATE_DIR/opcua/pki/own/` (kept, so that clients trust it once); a client's certificate
 //! is refused into `pki/rejected/` until an administrator moves it to `pki/trusted/`; users
-//! sign in with passwords checked against Argon2 hashes (`auth`); anonymous only if
-//! configured. Nothing is writable and no method is callable.
+//! sign in with passwords checked against Argon2 hashes or with a configured X.509 user
+//! certificate (`auth`); anonymous only if configured. Nothing is writable and no method is callable.
 
 mod auth;
 mod condition;
@@ -58,6 +58,7 @@ impl OpcUaServer {
     pub fn start(cfg: &MachineConfig, config_name: &str, snapshot: Arc<Snapshot>, state_dir: &Path) -> Result<OpcUaServer, String> {
         let oc = &cfg.opcua;
         let pki = state_dir.join("opcua").join("pki");
+        let certificates = user_certificates(oc, Path::new(config_name).parent())?;
         std::fs::create_dir_all(&pki).map_err(|e| format!("opcua: cannot create {}: {e}", pki.display()))?;
         let bind = format!("{}:{}", oc.host, oc.port);
         let config_name = config_name.to_string();
@@ -68,7 +69,7 @@ impl OpcUaServer {
             .name("opcua".into())
             .spawn(move || {
                 // The builder is not Send: made here, on the server's thread.
-                let b = builder(&cfg, &pki, conditions.clone());
+                let b = builder(&cfg, &pki, conditions.clone(), certificates);
                 let rt =
                     tokio::runtime::Builder::new_current_thread().enable_all().build().map_err(|e| format!("opcua: cannot start its runtime: {e}"));
                 match (b, rt) {
@@ -113,9 +114,10 @@ impl Drop for OpcUaServer {
 
 /// The server's configuration: endpoints (one per policy, Sign&Encrypt, or None), users,
 /// certificates.
-fn builder(cfg: &MachineConfig, pki: &Path, conditions: condition::Shared) -> Result<ServerBuilder, String> {
+fn builder(cfg: &MachineConfig, pki: &Path, conditions: condition::Shared, certificates: Vec<(String, [u8; 20])>) -> Result<ServerBuilder, String> {
     let oc = &cfg.opcua;
-    let mut ids: Vec<String> = oc.users.iter().map(|u| format!("user:{}", u.name)).collect();
+    let password_users: Vec<(&str, &str)> = oc.users.iter().filter_map(|u| Some((u.name.as_str(), u.password_hash.as_deref()?))).collect();
+    let mut ids: Vec<String> = password_users.iter().map(|(n, _)| format!("user:{n}")).collect();
     if oc.anonymous {
         ids.push(ANONYMOUS_USER_TOKEN_ID.to_string());
     }
@@ -145,12 +147,14 @@ fn builder(cfg: &MachineConfig, pki: &Path, conditions: condition::Shared) -> Re
         .diagnostics_enabled(false)
         .with_authenticator(Arc::new(auth::Users {
             anonymous: oc.anonymous,
-            users: oc.users.iter().map(|u| (u.name.clone(), u.password_hash.clone())).collect(),
+            users: password_users.iter().map(|(n, h)| (n.to_string(), h.to_string())).collect(),
+            certificates,
         }));
-    for u in &oc.users {
+    for (name, hash) in &password_users {
         // async-opcua wants a token per user; `auth::Users` checks the password, against the
-        // hash (the token's own password is never compared).
-        b = b.add_user_token(format!("user:{}", u.name), ServerUserToken::user_pass(u.name.as_str(), u.password_hash.as_str()));
+        // hash (the token's own password is never compared). Certificate users need none:
+        // `auth::Users` offers their token policy itself.
+        b = b.add_user_token(format!("user:{name}"), ServerUserToken::user_pass(*name, *hash));
     }
     for p in &oc.security_policies {
         let (policy, mode) = match p.as_str() {
@@ -163,6 +167,29 @@ fn builder(cfg: &MachineConfig, pki: &Path, conditions: condition::Shared) -> Re
         b = b.add_endpoint(p.as_str(), ("/", policy, mode, &ids as &[&str]));
     }
     Ok(b.with_node_manager(simple_node_manager(NamespaceMetadata { namespace_uri: NAMESPACE.into(), ..Default::default() }, "cncgw")))
+}
+
+/// The certificate users' (name, SHA-1 thumbprint): given, or of their certificate file
+/// (relative: to `config_dir`), which must be readable and valid now.
+fn user_certificates(oc: &crate::config::OpcUaConfig, config_dir: Option<&Path>) -> Result<Vec<(String, [u8; 20])>, String> {
+    let mut out = Vec::new();
+    for (i, u) in oc.users.iter().enumerate() {
+        if let Some(t) = u.thumbprint_bytes() {
+            out.push((u.name.clone(), t));
+        } else if let Some(file) = &u.certificate {
+            let path = config_dir.map_or_else(|| Path::new(file).to_path_buf(), |d| d.join(file));
+            let bytes = std::fs::read(&path).map_err(|e| format!("opcua.users[{i}].certificate: cannot read {}: {e}", path.display()))?;
+            let cert = opcua::crypto::X509::from_der(&bytes)
+                .or_else(|_| opcua::crypto::X509::from_pem(&bytes))
+                .map_err(|e| format!("opcua.users[{i}].certificate: {} is no X.509 certificate (DER or PEM): {e}", path.display()))?;
+            cert.is_time_valid(&opcua::types::DateTime::now().as_chrono())
+                .map_err(|e| format!("opcua.users[{i}].certificate: {} is not valid now: {e}", path.display()))?;
+            let mut t = [0u8; 20];
+            t.copy_from_slice(cert.thumbprint().value());
+            out.push((u.name.clone(), t));
+        }
+    }
+    Ok(out)
 }
 
 /// `urn:cncgw:NAME`, the machine's name with what a URN does not take as `_`.

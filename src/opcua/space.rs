@@ -13,6 +13,8 @@
 //!     ProductionPlan  PartsCompleted
 //!   Axes/<X, Z, …>    CommandedPosition, ActualPosition, FollowingError, DriveState, Statusword
 //!   Notification      AlarmNumber, AlarmText
+//!     Messages        Alarm<NNNN>: the alarm's condition (CncAlarmConditionType; HasCondition
+//!                     from the machine), its fields readable (ActiveState/Id, AlarmNumber, …)
 //! ```
 //!
 //! The browse names, folders and enumerations (ChannelState, MachineOperationMode,
@@ -168,6 +170,8 @@ impl Space {
             let note = add_object(a, ns, "Notification", &machine);
             add_variable(a, ns, "Notification.AlarmNumber", &note, Variant::UInt32(0), DataTypeId::UInt32);
             add_variable(a, ns, "Notification.AlarmText", &note, s(""), DataTypeId::String);
+            // 40501-1's folder of the machine's conditions: each alarm's condition node.
+            a.add_folder(&id("Notification.Messages"), QualifiedName::new(ns, "Messages"), "Messages", &note);
             // The alarm condition type: AlarmConditionType with the alarm's number.
             ObjectTypeBuilder::new(&event_type, QualifiedName::new(ns, "CncAlarmConditionType"), "CncAlarmConditionType")
                 .subtype_of(ObjectTypeId::AlarmConditionType)
@@ -225,7 +229,7 @@ impl Space {
         }
         if info.alarm_seq != self.last_alarm_seq {
             self.last_alarm_seq = info.alarm_seq;
-            self.alarm_event(handle, &info);
+            self.alarm_event(nm, handle, &info);
         }
     }
 
@@ -276,11 +280,25 @@ impl Space {
 
     /// The alarm as a condition (`condition`), reported as an event of the machine and of
     /// the Server object (where generic clients subscribe): number, text, severity.
-    fn alarm_event(&self, handle: &ServerHandle, info: &RunInfo) {
+    /// The condition is also a node under Notification/Messages, made before the event goes
+    /// out (a client that gets the event can browse to its ConditionId).
+    fn alarm_event(&self, nm: &SimpleNodeManager, handle: &ServerHandle, info: &RunInfo) {
         let severity = if info.alarm_number == crate::alarm::ESTOP { 1000 } else { 800 };
         let c =
             AlarmCondition { number: info.alarm_number, text: info.alarm_text.clone(), severity, time: DateTime::now(), active: true, acked: false };
         let ev = self.conditions.raise(c);
+        ev.insert_node(&mut nm.address_space().write(), &NodeId::new(self.ns, "Notification.Messages".to_string()), &self.machine);
+        let values = ev.node_values();
+        let now = DateTime::now();
+        let r = nm.set_values(
+            handle.subscriptions(),
+            values
+                .iter()
+                .map(|(id, v)| (id, None, DataValue { value: Some(v.clone()), status: None, source_timestamp: Some(now), ..Default::default() })),
+        );
+        if let Err(e) = r {
+            tracing::warn!("opcua: cannot update the condition's node: {e}");
+        }
         let server: NodeId = ObjectId::Server.into();
         handle.subscriptions().notify_events([(&ev as &dyn Event, &server), (&ev as &dyn Event, &self.machine)].into_iter());
         tracing::info!(number = info.alarm_number, "opcua: alarm event sent");

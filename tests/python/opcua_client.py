@@ -1,18 +1,22 @@
 """The OPC UA peer we did not write: python asyncua against `cncgw run`'s server.
 
     opcua_client.py URL PKI_DIR WORK_DIR USER PASSWORD MACHINE_NAME
+    opcua_client.py --user-certs WORK_DIR     (before the run: the X.509 users' certificates)
 
 Run by tests/opcua_server.rs while `cncgw run --realtime` runs a program on the embedded
 machine whose X drive faults. In order:
   1. an unsigned (None) connection is refused (no such endpoint);
   2. Basic256Sha256 Sign&Encrypt with a fresh client certificate is refused until the
      certificate is moved from PKI_DIR/rejected to PKI_DIR/trusted (the administrator's step);
-  3. a wrong password is refused;
+  3. a wrong password is refused; an X.509 user certificate that is not configured is
+     refused, the configured one (WORK_DIR/cell_user.der, user "cell") signs in;
   4. with the right one: browse the machine, read identification, subscribe to the Z axis'
      actual position, the machine state and the alarm events (as a generic client takes them,
      BaseEventType, and filtered on our condition type CncAlarmConditionType), until the alarm;
   5. a second client, connecting after the alarm, calls ConditionRefresh and receives the
-     condition (still active, unacknowledged); acknowledging it is refused (read-only).
+     condition (still active, unacknowledged); acknowledging it is refused (read-only); it
+     browses to the condition's node (Notification/Messages, and HasCondition from the
+     machine) and reads its ActiveState and AlarmNumber.
 Prints one JSON object on stdout with what it saw.
 """
 
@@ -30,7 +34,6 @@ from asyncua.crypto.cert_gen import setup_self_signed_certificate
 from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
-URL, PKI, WORK, USER, PASSWORD, MACHINE = sys.argv[1:7]
 APP_URI = "urn:cncgw-test:opcua-client"
 NS = "urn:cncgw:machine-tool"
 
@@ -55,6 +58,25 @@ async def make_cert():
     key, cert = Path(WORK) / "client_key.pem", Path(WORK) / "client_cert.der"
     await setup_self_signed_certificate(key, cert, APP_URI, socket.gethostname(), [ExtendedKeyUsageOID.CLIENT_AUTH], {"commonName": "cncgw-test-client"})
     return cert, key
+
+
+async def make_user_certs(work):
+    """The X.509 user identities: "cell" (configured in the test's [[opcua.users]]) and
+    "stranger" (not), each a self-signed certificate with its key (asyncua's generator)."""
+    for who in ("cell", "stranger"):
+        await setup_self_signed_certificate(Path(work) / f"{who}_user_key.pem", Path(work) / f"{who}_user.der", f"urn:cncgw-test:user:{who}",
+                                            socket.gethostname(), [ExtendedKeyUsageOID.CLIENT_AUTH], {"commonName": f"cncgw-test-user-{who}"})
+
+
+async def cert_user_client(cert, key, who):
+    """Sign&Encrypt with the application certificate, and as identity the user certificate
+    WORK/<who>_user.der, the token signed with its key."""
+    c = Client(URL, timeout=5)
+    c.application_uri = APP_URI
+    await c.set_security(SecurityPolicyBasic256Sha256, str(cert), str(key), mode=ua.MessageSecurityMode.SignAndEncrypt)
+    await c.load_client_certificate(str(Path(WORK) / f"{who}_user.der"))
+    await c.load_private_key(Path(WORK) / f"{who}_user_key.pem")
+    return c
 
 
 async def secure_client(cert, key, user, password):
@@ -157,6 +179,7 @@ async def late_client(cert, key, ns):
             out["refresh_bad_subscription"] = None
         except Exception as e:  # noqa: BLE001
             out["refresh_bad_subscription"] = f"{type(e).__name__}: {e}"
+        out["condition_node"] = await condition_node(client, ns)
         if h.events:
             ev = h.events[0]
             cond = client.get_node(ua.NodeId.from_string(ev["NodeId"]))
@@ -171,6 +194,28 @@ async def late_client(cert, key, ns):
             await client.disconnect()
         except Exception:  # noqa: BLE001
             pass
+    return out
+
+
+async def condition_node(client, ns):
+    """The alarm's condition as a node: in Notification/Messages, and HasCondition from the
+    machine; its type, ActiveState (and Id), AlarmNumber, Retain."""
+    machine = await client.nodes.objects.get_child([f"{ns}:Machines", f"{ns}:{MACHINE}"])
+    messages = await machine.get_child([f"{ns}:Notification", f"{ns}:Messages"])
+    found = await messages.get_children()
+    out = {"in_messages": [n.nodeid.to_string() for n in found]}
+    refs = await machine.get_referenced_nodes(refs=ua.ObjectIds.HasCondition, direction=ua.BrowseDirection.Forward)
+    out["has_condition"] = [n.nodeid.to_string() for n in refs]
+    if found:
+        cond = found[0]
+        out["browse_name"] = (await cond.read_browse_name()).to_string()
+        out["type"] = (await cond.read_type_definition()).to_string()
+        active = await cond.get_child("0:ActiveState")
+        out["ActiveState"] = (await active.read_value()).Text
+        out["ActiveState/Id"] = await (await active.get_child("0:Id")).read_value()
+        out["AlarmNumber"] = await (await cond.get_child(f"{ns}:AlarmNumber")).read_value()
+        out["Retain"] = await (await cond.get_child("0:Retain")).read_value()
+        out["Message"] = (await (await cond.get_child("0:Message")).read_value()).Text
     return out
 
 
@@ -192,6 +237,17 @@ async def main():
         shutil.move(str(f), str(Path(PKI) / "trusted" / f.name))
     # 3. Trusted now, but a wrong password.
     out["wrong_password_refused"] = await refused(await secure_client(cert, key, USER, PASSWORD + "x"))
+    # 3b. X.509 user identities: an unknown certificate is refused, the configured one is in.
+    out["unknown_user_cert_refused"] = await refused(await cert_user_client(cert, key, "stranger"))
+    try:
+        c = await cert_user_client(cert, key, "cell")
+        await c.connect()
+        ns = await c.get_namespace_index(NS)
+        out["cert_user_state"] = await c.get_node(ua.NodeId("Monitoring.MachineTool.MachineState", ns)).read_value()
+        await c.disconnect()
+    except Exception as e:  # noqa: BLE001 - reported, the test says what it expected
+        out["cert_user_state"] = None
+        out["cert_user_error"] = f"{type(e).__name__}: {e}"
     # 4. The right one.
     client = await secure_client(cert, key, USER, PASSWORD)
     await client.connect()
@@ -248,4 +304,8 @@ async def main():
     print(json.dumps(out, default=str), flush=True)
 
 
-asyncio.run(main())
+if sys.argv[1] == "--user-certs":
+    asyncio.run(make_user_certs(sys.argv[2]))
+else:
+    URL, PKI, WORK, USER, PASSWORD, MACHINE = sys.argv[1:7]
+    asyncio.run(main())
