@@ -8,11 +8,11 @@ use cncgw::config::EMBEDDED_LATHE;
 use sim_drives::config::Shape;
 use sim_drives::SimConfig;
 
-/// The profile sets the real-time tiers run `examples/first_part.nc` against: every profile
-/// of `Shape::PROFILES` but "plain" on a linear axis (X, Z: checked within one count), the
+/// The profile sets the vcan tier runs `examples/first_part.nc` against: every profile of
+/// `Shape::PROFILES` but "plain" on a linear axis (X, Z: checked within one count), the
 /// spindle on one too; `true` = node 1 produces the SYNC the cycle runs on
-/// (`bus.sync = "external"`). Two sim-drives sets instead of six: a first_part is ~35 s.
-pub const MIXED_SETS: [([&str; 3], bool); 2] = [(["ip-only", "fixed-pdo", "pp-boot"], false), (["no-1016", "user-units", "no-1016"], true)];
+/// (`bus.sync = "external"`). Two sim-drives sets instead of five: a first_part is ~35 s.
+pub const MIXED_SETS: [([&str; 3], bool); 2] = [(["ip-only", "fixed-pdo", "pp-boot"], false), (["no-1016", "user-units", "no-1016"], false)];
 
 /// The default lathe's drives, every one of the named profile, then changed by `f`.
 pub fn profiled(name: &str, f: impl Fn(&mut Shape)) -> SimConfig {
