@@ -176,11 +176,12 @@ fn first_part_over_vcan_against_drives_without_0x1016_and_one_in_user_units() {
 }
 
 // Not in this tier: first_part on an external SYNC (a drive producing it). Tried here on
-// 2026-11-28 with these sets, at a host load of ~10: it failed 3 runs of 3 on the spindle's
-// following error (0x8611; at a 4 ms cycle, and at 8 ms) — a set-point that misses the SYNC
+// 2026-11-28 with these sets, at a host load of ~10: it failed 4 runs of 4 on the spindle's
+// following error (0x8611; two at a 4 ms cycle, two at 8 ms) — a set-point that misses the SYNC
 // after its own is taken a SYNC late, and if the next is late too the drive gets a target a
 // period behind where it extrapolated to. The master-SYNC runs above passed in the same
-// guest. It runs over socketcand on the host and in simulated time (tests/drive_profiles.rs).
+// guest (4 of 10 at that load, with the default run). It runs over socketcand on the host
+// and in simulated time (tests/drive_profiles.rs).
 
 #[test]
 #[ignore = "needs vcan0: run through scripts/run-vcan-tier.sh (scripts/test.sh does)"]
