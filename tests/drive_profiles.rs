@@ -19,6 +19,9 @@ use std::ffi::OsStr;
 use std::path::Path;
 use std::process::Output;
 
+mod profiles_common;
+use profiles_common::{machine_for, mixed, profiled, relaxed};
+
 const IP: u32 = 1 << 7;
 
 const FIRST_PART: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/examples/first_part.nc");
@@ -33,16 +36,6 @@ fn run_verbose(dir: &Path, flags: &[&str], rest: &[&OsStr]) -> Output {
 
 fn first_part() -> String {
     std::fs::read_to_string(FIRST_PART).unwrap()
-}
-
-/// The default lathe's drives, every one of the named profile, then changed by `f`.
-fn profiled(name: &str, f: impl Fn(&mut Shape)) -> SimConfig {
-    let mut sim = SimConfig::from_machine_toml(EMBEDDED_LATHE).unwrap();
-    for d in &mut sim.drives {
-        d.shape = Shape::profile(name).unwrap();
-        f(&mut d.shape);
-    }
-    sim
 }
 
 /// The default lathe with every axis in interpolated position.
@@ -326,16 +319,13 @@ fn ip_only_fixed_pdo_and_pp_boot_drives_over_socketcand_end_at_the_end_point() {
     use std::sync::atomic::{AtomicBool, Ordering};
     let server = sim_drives::socketcand::SocketcandServer::bind("127.0.0.1:0", "can0").expect("bind");
     let addr = server.local_addr().to_string();
-    let mut sim = SimConfig::from_machine_toml(EMBEDDED_LATHE).unwrap();
-    for d in &mut sim.drives {
-        d.shape = Shape::profile(["ip-only", "fixed-pdo", "pp-boot"][d.node as usize - 1]).unwrap();
-    }
+    let sim = mixed(["ip-only", "fixed-pdo", "pp-boot"], None);
     let stop = std::sync::Arc::new(AtomicBool::new(false));
     let s = stop.clone();
     let hub = std::thread::spawn(move || sim_drives::run_realtime(Box::new(server), sim, s));
     let dir = std::env::temp_dir().join(format!("cncgw_drive_profiles_socketcand_{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
-    let lathe = EMBEDDED_LATHE.replacen("\nnode = 1\n", "\nnode = 1\nmode = \"ip\"\n", 1);
+    let lathe = machine_for(EMBEDDED_LATHE, ["ip-only", "fixed-pdo", "pp-boot"]);
     std::fs::write(dir.join("lathe.toml"), lathe).unwrap();
     std::fs::write(dir.join("short.nc"), "G98 G00 X40. Z2.\nG01 Z-10. F1200\nG00 X60. Z5.\nM30\n").unwrap();
     let o = run_verbose(&dir, &["--bus", &format!("socketcand://{addr}/can0")], &[dir.join("short.nc").as_os_str()]);
@@ -463,11 +453,7 @@ impl<B: cncgw_bus::CanBus> cncgw_bus::CanBus for CountSyncs<B> {
 
 /// The default lathe's drives with node 1 producing SYNC every 2 ms.
 fn sync_from_node_1() -> SimConfig {
-    let mut sim = SimConfig::from_machine_toml(EMBEDDED_LATHE).unwrap();
-    let d = sim.drives.iter_mut().find(|d| d.node == 1).unwrap();
-    d.shape.sync_producer = true;
-    d.shape.sync_period_us = 2000;
-    sim
+    mixed(["plain"; 3], Some(2000))
 }
 
 struct RanExt {
@@ -480,7 +466,11 @@ struct RanExt {
 
 /// `program` with `bus.sync = "external"`, the cycle waiting on the SYNC node 1 produces.
 fn run_external(sim: SimConfig, program: &str, faults: Vec<sim_drives::FaultAt>) -> RanExt {
-    let mut cfg = MachineConfig::embedded();
+    run_external_on(MachineConfig::embedded(), sim, program, faults)
+}
+
+/// `run_external` on the machine `cfg`.
+fn run_external_on(mut cfg: MachineConfig, sim: SimConfig, program: &str, faults: Vec<sim_drives::FaultAt>) -> RanExt {
     cfg.bus.sync = cncgw::config::SyncSource::External;
     let interp = Interpreter::from_source("first_part.nc", program, &cfg).expect("program parses");
     let wire = InprocBus::new();
@@ -561,26 +551,14 @@ fn first_part_over_socketcand_runs_on_the_sync_drive_1_produces_and_ends_within_
     let addr = server.local_addr().to_string();
     let stop = std::sync::Arc::new(AtomicBool::new(false));
     let s = stop.clone();
-    // The vcan tier's relaxed timing (tests/vcan_tier.rs): on this shared machine the cycle
-    // thread wakes late now and then, and with an external SYNC a late set-point misses its
-    // SYNC (the master's own SYNC would wait for it). A 4 ms cycle, a 90° spindle window.
-    let mut sim = sync_from_node_1();
-    sim.drives.iter_mut().find(|d| d.node == 1).unwrap().shape.sync_period_us = 4000;
+    // The vcan tier's relaxed timing (profiles_common::relaxed): on this shared machine the
+    // cycle thread wakes late now and then, and with an external SYNC a late set-point misses
+    // its SYNC (the master's own SYNC would wait for it). A 4 ms cycle, a 90° spindle window.
+    let sim = mixed(["plain"; 3], Some(4000));
     let hub = std::thread::spawn(move || sim_drives::run_realtime(Box::new(server), sim, s));
     let dir = std::env::temp_dir().join(format!("cncgw_drive_profiles_extsync_{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
-    assert!(EMBEDDED_LATHE.contains("\n[bus]\n"));
-    let lathe: Vec<String> = EMBEDDED_LATHE
-        .lines()
-        .map(|l| match l {
-            l if l.starts_with("cycle_ms = ") => "cycle_ms = 4.0".into(),
-            l if l.starts_with("feedback_timeout_ms = ") => "feedback_timeout_ms = 100\nsync = \"external\"".into(),
-            l if l.starts_with("following_error = ") && l.contains("degrees") => "following_error = 90.0".into(),
-            l => l.to_string(),
-        })
-        .collect();
-    let lathe = lathe.join("\n") + "\n";
-    assert_eq!(lathe.matches("= 4.0\n").count() + lathe.matches("= 90.0\n").count() + lathe.matches("sync = \"external\"").count(), 3);
+    let lathe = relaxed(EMBEDDED_LATHE, true);
     std::fs::write(dir.join("lathe.toml"), lathe).unwrap();
     let o = run_verbose(&dir, &["--json", "--bus", &format!("socketcand://{addr}/can0")], &[OsStr::new(FIRST_PART)]);
     stop.store(true, Ordering::Relaxed);
@@ -590,12 +568,36 @@ fn first_part_over_socketcand_runs_on_the_sync_drive_1_produces_and_ends_within_
     assert_eq!(o.status.code(), Some(0), "{out}{err}");
     assert!(err.contains("cycle on the external SYNC") && err.contains("external SYNC heard"), "{err}");
     assert!(err.contains("the drive produces the SYNC the cycle runs on"), "{err}");
-    let v: serde_json::Value = serde_json::from_str(out.lines().last().unwrap_or("")).expect("JSON summary");
-    assert_eq!(v["at_program_end"], true, "{out}");
-    for a in v["axes"].as_array().unwrap() {
-        if let Some(end) = a["program_end_counts"].as_i64() {
-            let fin = a["final_actual_counts"].as_i64().unwrap();
-            assert!((fin - end).abs() <= 1, "axis {} ended at {fin}, program end {end}", a["axis"]);
+    profiles_common::assert_json_at_end_point(&out);
+}
+
+/// The vcan tier's profile sets (profiles_common::MIXED_SETS), here in simulated time: the
+/// combination itself (which the vcan tier then runs in real time between two processes)
+/// ends first_part at its end point, on the drives' own positions; the second set on the
+/// SYNC of its node 1 too (which the vcan tier leaves out, see tests/vcan_tier.rs).
+#[test]
+fn the_vcan_tiers_mixed_profile_sets_run_first_part_to_its_end_point() {
+    let (b, _) = profiles_common::MIXED_SETS[1];
+    for (profiles, external) in profiles_common::MIXED_SETS.into_iter().chain([(b, true)]) {
+        let cfg = MachineConfig::from_toml("mixed.toml", &machine_for(EMBEDDED_LATHE, profiles)).unwrap_or_else(|e| panic!("{e}"));
+        let (summary, world) = if external {
+            let r = run_external_on(cfg, mixed(profiles, Some(2000)), &first_part(), Vec::new());
+            assert!(r.result.is_ok(), "{profiles:?}: {:?}", r.result);
+            assert_eq!(r.master_syncs, 0);
+            (r.summary, r.world)
+        } else {
+            let r = run(&cfg, mixed(profiles, None), &first_part());
+            (r.summary().clone(), r.world)
+        };
+        assert!(summary.at_program_end(), "{profiles:?}: {summary:#?}");
+        // X100 (a diameter: radius 50 mm) Z5, in increments (10000/mm) or user units (1000/mm).
+        for (k, want) in [500_000i64, 50_000].into_iter().enumerate() {
+            let d = world.drive(k as u8 + 1).unwrap();
+            let (p, want) = if profiles[k] == "user-units" { (d.position_actual() as i64, want / 10) } else { (d.position_unwrapped(), want) };
+            assert!((p - want).abs() <= 1, "{profiles:?}: node {} at {p}, end point {want}", k + 1);
+        }
+        if profiles[0] == "ip-only" {
+            assert_eq!(world.drive(1).unwrap().enabled_modes(), IP, "X ran in IP");
         }
     }
 }

@@ -338,6 +338,44 @@ fn without_a_heartbeat_consumer_the_drive_is_guarded_and_stops_by_itself_when_th
     assert!(!r.master.guarded(1));
 }
 
+#[test]
+fn start_up_sets_0x1029_so_that_a_drive_losing_the_master_leaves_operational() {
+    // Nodes 1 and 2 have 0x1029 (shipped as 1, no state change), node 3 has none.
+    let sim = shaped(|s, n| s.error_behaviour_object = n != 3);
+    let cfg = MachineConfig::embedded();
+    let bus = InprocBus::new();
+    let mut w = SimWorld::new(&bus, sim);
+    assert_eq!(w.drive(1).unwrap().object(0x1029, 1), Some(1));
+    let mut m = CanOpenMaster::new(bus.endpoint(), &cfg);
+    m.startup(&mut w).expect("start-up: a drive without 0x1029 is not refused");
+    assert_eq!((w.drive(1).unwrap().object(0x1029, 1), w.drive(2).unwrap().object(0x1029, 1)), (Some(0), Some(0)));
+    assert_eq!(w.drive(3).unwrap().object(0x1029, 1), None);
+    let mut next = w.now_ns();
+    for _ in 0..500 {
+        next += 2 * MS;
+        w.wait_until(next);
+        m.receive(next).unwrap();
+        if m.enable_step().unwrap() {
+            break;
+        }
+        m.transmit(next).unwrap();
+    }
+    for _ in 0..50 {
+        next += 2 * MS;
+        w.wait_until(next);
+        m.receive(next).unwrap();
+        m.transmit(next).unwrap();
+    }
+    assert_eq!((w.drive(1).unwrap().state(), w.drive(1).unwrap().nmt_state()), (State::OperationEnabled, NmtState::Operational));
+    // The master dies: every drive's heartbeat consumer (3 × 100 ms) times out; 0x6007 = 1
+    // faults it, and 0x1029:1 = 0 takes it to pre-operational (no more PDOs taken).
+    w.wait_until(next + 400 * MS);
+    for (n, nmt) in [(1u8, NmtState::PreOperational), (2, NmtState::PreOperational), (3, NmtState::Operational)] {
+        let d = w.drive(n).unwrap();
+        assert_eq!((d.state(), d.error_code(), d.nmt_state()), (State::Fault, 0x8130, nmt), "node {n}");
+    }
+}
+
 /// Master A runs its cycle on `world` whenever master B waits on this clock.
 struct BesideA<'a> {
     world: &'a mut SimWorld,

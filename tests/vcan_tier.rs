@@ -9,6 +9,9 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
+mod profiles_common;
+use profiles_common::{assert_json_at_end_point, machine_for, mixed, relaxed, MIXED_SETS};
+
 fn bin(name: &str) -> PathBuf {
     // sim-drives is another package of the workspace; its binary lands beside ours.
     let cncgw = PathBuf::from(env!("CARGO_BIN_EXE_cncgw"));
@@ -55,46 +58,35 @@ fn unsafe_kill(pid: u32) {
 }
 
 fn start_sim() -> Killer {
+    start_sim_with(None)
+}
+
+/// sim-drives on vcan0 with the drives of `config` (a sim-drives config file), else the
+/// default lathe's.
+fn start_sim_with(config: Option<&Path>) -> Killer {
     let sim = bin("sim-drives");
     assert!(sim.exists(), "{} is missing: run `cargo build --workspace --bins` first", sim.display());
-    let child = Command::new(&sim).args(["--bus", "vcan0"]).stdout(Stdio::inherit()).stderr(Stdio::inherit()).spawn().expect("start sim-drives");
+    let mut cmd = Command::new(&sim);
+    if let Some(c) = config {
+        cmd.arg("--config").arg(c);
+    }
+    let child = cmd.args(["--bus", "vcan0"]).stdout(Stdio::inherit()).stderr(Stdio::inherit()).spawn().expect("start sim-drives");
     // Give it time to open the socket; the master resets communication anyway.
     std::thread::sleep(Duration::from_millis(300));
     Killer(child)
 }
 
-/// The default machine with timing tolerances for a kernel that is not real-time.
-///
-/// Where this tier runs in a User-Mode Linux (or QEMU) guest, the guest's timers were
-/// measured 1–18 ms late at p99 under load (scripts/vmrun, notes/vcan-vm.md): a 2 ms cycle
-/// with a 30° spindle window and a 20 ms feedback timeout then faults on the scheduler, not on
-/// the bus. This tier proves the SocketCAN path between two processes; the timing figures
-/// come from the cycle-timing benchmarks. Only three values change: the cycle (4 ms), the
-/// spindle's following-error window (90°) and the feedback timeout (100 ms).
+/// The default machine with the timing tolerances of a kernel that is not real-time
+/// (profiles_common::relaxed), as a file.
 fn relaxed_config() -> PathBuf {
-    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
-    let text = std::fs::read_to_string(root.join("config/lathe.toml")).unwrap();
-    let mut out = String::new();
-    let mut changed = 0;
-    for line in text.lines() {
-        let l = if line.starts_with("cycle_ms = ") {
-            changed += 1;
-            "cycle_ms = 4.0".to_string()
-        } else if line.starts_with("feedback_timeout_ms = ") {
-            changed += 1;
-            "feedback_timeout_ms = 100".to_string()
-        } else if line.starts_with("following_error = ") && line.contains("degrees") {
-            changed += 1;
-            "following_error = 90.0".to_string()
-        } else {
-            line.to_string()
-        };
-        out.push_str(&l);
-        out.push('\n');
-    }
-    assert_eq!(changed, 3, "config/lathe.toml changed shape; update relaxed_config()");
-    let p = std::env::temp_dir().join(format!("cncgw-vcan-{}.toml", std::process::id()));
-    std::fs::write(&p, out).unwrap();
+    let text = std::fs::read_to_string(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("config/lathe.toml")).unwrap();
+    write_temp("lathe.toml", &relaxed(&text, false))
+}
+
+/// `text` in a file of this process's in the temp dir.
+fn write_temp(name: &str, text: &str) -> PathBuf {
+    let p = std::env::temp_dir().join(format!("cncgw-vcan-{}-{name}", std::process::id()));
+    std::fs::write(&p, text).unwrap();
     p
 }
 
@@ -119,17 +111,77 @@ fn first_part_runs_over_vcan_against_sim_drives_process() {
     let stderr = String::from_utf8_lossy(&out.stderr);
     eprintln!("cncgw run --bus vcan0 took {:.1} s\nstdout: {stdout}\nstderr: {stderr}", t.elapsed().as_secs_f64());
     assert!(out.status.success(), "cncgw run failed: {:?}", out.status);
-    let v: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap_or("")).expect("JSON summary");
-    assert_eq!(v["simulated"], false, "this run must be in real time over SocketCAN");
-    assert_eq!(v["at_program_end"], true);
-    for a in v["axes"].as_array().unwrap() {
-        if let Some(end) = a["program_end_counts"].as_i64() {
-            let fin = a["final_actual_counts"].as_i64().unwrap();
-            assert!((fin - end).abs() <= 1, "axis {} ended at {fin}, program end {end}", a["axis"]);
-        }
-    }
-    assert!(v["moves"].as_u64().unwrap() > 10);
+    assert_json_at_end_point(&stdout);
 }
+
+// Issue 21's "done means" in this tier: first_part against every emulated drive profile
+// (IP only, fixed mapping, no 0x1016, boots into PP, user units), in two sim-drives
+// processes of mixed profiles (profiles_common::MIXED_SETS, also run in simulated time by
+// tests/drive_profiles.rs) rather than five: a first_part is ~35 s.
+
+/// first_part with `cncgw -v run --bus vcan0 --json` against sim-drives of `profiles`
+/// (X, Z, S1), node 1 producing the SYNC if `external`; the start-up log.
+fn first_part_against(profiles: [&str; 3], external: bool) -> String {
+    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    let tag = if external { "b" } else { "a" };
+    // An external SYNC every 4 ms: the relaxed cycle.
+    let sim = write_temp(&format!("sim-{tag}.toml"), &mixed(profiles, external.then_some(4000)).to_commented_toml());
+    let base = std::fs::read_to_string(root.join("config/lathe.toml")).unwrap();
+    let cfg = write_temp(&format!("lathe-{tag}.toml"), &machine_for(&relaxed(&base, external), profiles));
+    let _sim = start_sim_with(Some(&sim));
+    let t = Instant::now();
+    let out = Command::new(bin("cncgw"))
+        .env("CNCGW_STATE_DIR", std::env::temp_dir().join(format!("cncgw-test-state-{}", std::process::id())))
+        .env_remove("RUST_LOG")
+        .args(["-v", "run", "--bus", "vcan0", "--json", "--config"])
+        .arg(&cfg)
+        .arg(root.join("examples/first_part.nc"))
+        .output()
+        .expect("run cncgw");
+    let _ = (std::fs::remove_file(&sim), std::fs::remove_file(&cfg));
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let stderr = String::from_utf8_lossy(&out.stderr).to_string();
+    eprintln!(
+        "{profiles:?} external SYNC {external}: cncgw run --bus vcan0 took {:.1} s\nstdout: {stdout}\nstderr: {stderr}",
+        t.elapsed().as_secs_f64()
+    );
+    assert!(out.status.success(), "{profiles:?}: cncgw run failed: {:?}", out.status);
+    assert_json_at_end_point(&stdout);
+    stderr
+}
+
+#[test]
+#[ignore = "needs vcan0: run through scripts/run-vcan-tier.sh (scripts/test.sh does)"]
+fn first_part_over_vcan_against_ip_only_fixed_pdo_and_pp_boot_drives() {
+    if !require_vcan() {
+        return;
+    }
+    let (profiles, external) = MIXED_SETS[0];
+    let err = first_part_against(profiles, external);
+    assert!(err.contains("start-up: mode IP (interpolated position) (axes.x.mode = \"ip\")"), "{err}");
+    assert!(err.contains("fixed RPDO1 0x202 = [0x6040:00 (16 bit), 0x607A:00 (32 bit)]"), "{err}");
+    assert!(err.contains("booted in profile position (1) and switched by 0x6060"), "{err}");
+}
+
+#[test]
+#[ignore = "needs vcan0: run through scripts/run-vcan-tier.sh (scripts/test.sh does)"]
+fn first_part_over_vcan_against_drives_without_0x1016_and_one_in_user_units() {
+    if !require_vcan() {
+        return;
+    }
+    let (profiles, external) = MIXED_SETS[1];
+    let err = first_part_against(profiles, external);
+    assert!(err.contains("node guarding (no 0x1016 heartbeat consumer)"), "{err}");
+    assert!(err.contains("units: 1 unit = 10 increments"), "{err}");
+}
+
+// Not in this tier: first_part on an external SYNC (a drive producing it). Tried here on
+// 2026-11-28 with these sets, at a host load of ~10: it failed 4 runs of 4 on the spindle's
+// following error (0x8611; two at a 4 ms cycle, two at 8 ms) — a set-point that misses the SYNC
+// after its own is taken a SYNC late, and if the next is late too the drive gets a target a
+// period behind where it extrapolated to. The master-SYNC runs above passed in the same
+// guest (4 of 10 at that load, with the default run). It runs over socketcand on the host
+// and in simulated time (tests/drive_profiles.rs).
 
 #[test]
 #[ignore = "needs vcan0: run through scripts/run-vcan-tier.sh (scripts/test.sh does)"]
@@ -152,12 +204,6 @@ fn missing_drive_is_an_alarm_not_a_hang() {
     assert!(stderr.contains("no boot-up message"), "{stderr}");
     assert!(t.elapsed() < Duration::from_secs(10));
 }
-
-// Issue 21: a drive profile (IP only) and an external SYNC over vcan were tried here and
-// fail in the User-Mode Linux guest (under host load) on the spindle's following error (0x8611) — with an
-// external SYNC a set-point that misses the next SYNC is not taken, and the guest's timers
-// are 1–18 ms late at p99 under load; both run over socketcand on the host
-// (tests/drive_profiles.rs).
 
 // Issue 21 item 8: the CAN controller's error frames, injected on vcan0 as a controller's
 // driver sends them (linux/can/error.h), reach the master through CAN_RAW_ERR_FILTER.

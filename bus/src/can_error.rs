@@ -190,6 +190,17 @@ pub struct ControllerStatus {
     pub no_ack: u64,
     pub rx_overflows: u64,
     pub protocol_errors: u64,
+    /// CAN_ERR_TX_TIMEOUT: a frame the controller could not send in time.
+    pub tx_timeouts: u64,
+    /// CAN_ERR_LOSTARB: arbitration lost (another node sent a lower ID at once).
+    pub lost_arbitrations: u64,
+    /// CAN_ERR_TRX: the transceiver reported a wire fault (CAN-H/CAN-L open or shorted).
+    pub transceiver_errors: u64,
+    /// CAN_ERR_CRTL_TX_OVERFLOW: the controller's TX buffer overflowed.
+    pub tx_overflows: u64,
+    /// CAN_ERR_CRTL without a status byte: "a controller problem", which one unknown (socketcand
+    /// forwards the class, not the data).
+    pub controller_unspecified: u64,
 }
 
 impl ControllerStatus {
@@ -234,6 +245,10 @@ impl ControllerStatus {
         }
         if f.ctrl(crtl::TX_OVERFLOW) {
             ev |= Events::TX_OVERFLOW;
+            self.tx_overflows += 1;
+        }
+        if f.has(class::CRTL) && f.data[1] == 0 {
+            self.controller_unspecified += 1;
         }
         if f.has(class::ACK) {
             ev |= Events::NO_ACK;
@@ -241,6 +256,7 @@ impl ControllerStatus {
         }
         if f.has(class::TX_TIMEOUT) {
             ev |= Events::TX_TIMEOUT;
+            self.tx_timeouts += 1;
         }
         if f.has(class::PROT | class::BUSERROR) {
             ev |= Events::PROTOCOL;
@@ -248,9 +264,11 @@ impl ControllerStatus {
         }
         if f.has(class::LOSTARB) {
             ev |= Events::LOST_ARBITRATION;
+            self.lost_arbitrations += 1;
         }
         if f.has(class::TRX) {
             ev |= Events::TRANSCEIVER;
+            self.transceiver_errors += 1;
         }
         Events(ev)
     }
@@ -329,6 +347,24 @@ mod tests {
         // Counters stay unknown until a frame carries them.
         assert_eq!(s.tx_errors, None);
         assert!(s.line().starts_with("error-active, tx errors ?, rx errors ?;"), "{}", s.line());
+    }
+
+    #[test]
+    fn tx_timeout_lost_arbitration_transceiver_tx_overflow_and_an_unspecified_controller_problem() {
+        let mut s = ControllerStatus::default();
+        assert!(s.apply(&k(0x2000_0001, [0; 8])).has(Events::TX_TIMEOUT));
+        // Lost arbitration in bit 5 (data[0]).
+        assert!(s.apply(&k(0x2000_0002, [5, 0, 0, 0, 0, 0, 0, 0])).has(Events::LOST_ARBITRATION));
+        // Transceiver: CAN-H shorted to ground (CAN_ERR_TRX_CANH_SHORT_TO_GND 0x07).
+        assert!(s.apply(&k(0x2000_0010, [0, 0, 0, 0, 0x07, 0, 0, 0])).has(Events::TRANSCEIVER));
+        assert!(s.apply(&k(0x2000_0004, [0, 0x02, 0, 0, 0, 0, 0, 0])).has(Events::TX_OVERFLOW));
+        // CRTL with no status byte (as socketcand forwards it): counted, the state unchanged.
+        assert!(s.apply(&k(0x2000_0004, [0; 8])).is_empty());
+        assert_eq!(
+            (s.tx_timeouts, s.lost_arbitrations, s.transceiver_errors, s.tx_overflows, s.controller_unspecified, s.error_frames),
+            (1, 1, 1, 1, 1, 5)
+        );
+        assert_eq!(s.state, CanState::ErrorActive);
     }
 
     #[test]

@@ -181,6 +181,9 @@ pub struct Shape {
     /// Whether 0x6007 (abort connection option) exists; without it a lost master faults
     /// the drive, as most drives do.
     pub abort_connection_object: bool,
+    /// Whether 0x1029 (error behaviour, CiA 301) exists; without it a communication error
+    /// leaves the NMT state as it is.
+    pub error_behaviour_object: bool,
     /// Whether 0x6061 may be mapped into a PDO (a restricted mapping when false).
     pub mode_display_pdo: bool,
     /// Fixed PDO mapping: the mapping objects (0x1600…, 0x1A00…) are read-only and keep
@@ -213,6 +216,7 @@ impl Default for Shape {
             heartbeat_consumer: true,
             node_guarding: true,
             abort_connection_object: true,
+            error_behaviour_object: true,
             mode_display_pdo: true,
             fixed_pdo: false,
             optional_402_objects: true,
@@ -733,6 +737,7 @@ impl SimConfig {
                 sets!(heartbeat_consumer);
                 sets!(node_guarding);
                 sets!(abort_connection_object);
+                sets!(error_behaviour_object);
                 sets!(mode_display_pdo);
                 sets!(fixed_pdo);
                 sets!(optional_402_objects);
@@ -868,6 +873,7 @@ impl SimConfig {
         s.push_str("#   heartbeat_consumer = false  # no 0x1016\n");
         s.push_str("#   node_guarding = false    # no 0x100C/0x100D (no answers to guarding requests)\n");
         s.push_str("#   abort_connection_object = false  # no 0x6007 (a lost master faults the drive)\n");
+        s.push_str("#   error_behaviour_object = false  # no 0x1029 (a communication error leaves the NMT state as it is)\n");
         s.push_str("#   mode_display_pdo = false # 0x6061 cannot be mapped into a PDO\n");
         s.push_str("#   fixed_pdo = true         # PDO mapping read-only (RPDO1 controlword + 0x607A, TPDO1 statusword + 0x6064)\n");
         s.push_str("#   optional_402_objects = false  # no 0x605A/0x605B/0x605C/0x605E/0x607D\n");
@@ -929,7 +935,10 @@ impl SimConfig {
                     "sync_producer = {}\nsync_period_us = {}\nheartbeat_consumer = {}\n",
                     h.sync_producer, h.sync_period_us, h.heartbeat_consumer
                 ));
-                s.push_str(&format!("node_guarding = {}\nabort_connection_object = {}\n", h.node_guarding, h.abort_connection_object));
+                s.push_str(&format!(
+                    "node_guarding = {}\nabort_connection_object = {}\nerror_behaviour_object = {}\n",
+                    h.node_guarding, h.abort_connection_object, h.error_behaviour_object
+                ));
                 s.push_str(&format!(
                     "mode_display_pdo = {}\nfixed_pdo = {}\noptional_402_objects = {}\nidentity_subs = {}\n",
                     h.mode_display_pdo, h.fixed_pdo, h.optional_402_objects, h.identity_subs
@@ -1085,6 +1094,7 @@ struct RawShape {
     heartbeat_consumer: Option<bool>,
     node_guarding: Option<bool>,
     abort_connection_object: Option<bool>,
+    error_behaviour_object: Option<bool>,
     mode_display_pdo: Option<bool>,
     fixed_pdo: Option<bool>,
     optional_402_objects: Option<bool>,

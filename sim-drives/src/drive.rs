@@ -336,6 +336,13 @@ fn build_od(c: &DriveConfig) -> Od {
     if sh.abort_connection_object {
         od.add_range(ix::ABORT_CONNECTION, 0, I16, Rw, false, 1, 0, 3);
     }
+    if sh.error_behaviour_object {
+        // Sub 1, a communication error's NMT reaction: 0 pre-operational (CiA 301's default),
+        // 1 no change, 2 stopped. Shipped as 1, as a vendor may, so that a master's start-up
+        // write is seen (the master writes 0).
+        od.add(ix::ERROR_BEHAVIOUR, 0, U8, Const, false, 1);
+        od.add_range(ix::ERROR_BEHAVIOUR, 1, U8, Rw, false, 1, 0, 2);
+    }
     od.add(ix::ERROR_CODE, 0, U16, Ro, true, 0);
     od.add(ix::CONTROLWORD, 0, U16, Rw, true, 0);
     od.add(ix::STATUSWORD, 0, U16, Ro, true, 0);
@@ -764,7 +771,7 @@ impl SimDrive {
                         // Monitoring stops until the producer is heard again (CiA 301).
                         self.hb_seen.remove(&node);
                         tracing::warn!(node = self.cfg.node, producer = node, "heartbeat consumer timeout");
-                        self.abort_connection(0x8130, now);
+                        self.communication_error(0x8130, now);
                     }
                 }
             }
@@ -1572,6 +1579,20 @@ impl SimDrive {
         self.od.set(ix::ERROR_REGISTER, 0, reg as i64);
         self.emcy(code, reg);
         self.set_state(State::FaultReactionActive, now);
+    }
+
+    /// A communication error (heartbeat consumer timeout, life guarding event): the power
+    /// stage per 0x6007, then the NMT state per 0x1029:1 (CiA 301: only out of operational).
+    pub(super) fn communication_error(&mut self, code: u16, now: u64) {
+        self.abort_connection(code, now);
+        if !self.cfg.shape.error_behaviour_object || self.nmt != NmtState::Operational {
+            return;
+        }
+        match self.od.int(ix::ERROR_BEHAVIOUR, 1) {
+            0 => self.set_nmt(NmtState::PreOperational),
+            2 => self.set_nmt(NmtState::Stopped),
+            _ => {}
+        }
     }
 
     /// Loss of the connection to the master (heartbeat timeout, NMT stop or reset while

@@ -56,6 +56,10 @@ pub mod od {
     pub const CONSUMER_HEARTBEAT: u16 = 0x1016;
     pub const PRODUCER_HEARTBEAT: u16 = 0x1017;
     pub const IDENTITY: u16 = 0x1018;
+    /// Error behaviour (CiA 301 §7.5.2.32): sub 1, the NMT state a communication error
+    /// (heartbeat or life guarding event, bus-off) takes the node to: 0 pre-operational
+    /// (if it was operational), 1 no change, 2 stopped.
+    pub const ERROR_BEHAVIOUR: u16 = 0x1029;
     pub const RPDO_COMM: u16 = 0x1400;
     pub const RPDO_MAP: u16 = 0x1600;
     pub const TPDO_COMM: u16 = 0x1800;

@@ -252,4 +252,46 @@ mod tests {
         let got = server.join().unwrap();
         assert_eq!(got, vec![Msg::Open("can0".into()), Msg::RawMode, Msg::Send(CanFrame::new(0x80, &[]))]);
     }
+
+    #[test]
+    fn error_frames_of_every_class_update_the_controller_status() {
+        use crate::can_error::CanState;
+        let l = TcpListener::bind("127.0.0.1:0").unwrap();
+        let addr = l.local_addr().unwrap().to_string();
+        let server = std::thread::spawn(move || {
+            let (mut s, _) = l.accept().unwrap();
+            s.write_all(b"< hi >").unwrap();
+            let (mut sp, mut oks, mut buf) = (Splitter::default(), 0, [0u8; 256]);
+            while oks < 2 {
+                let n = s.read(&mut buf).unwrap();
+                sp.push(&buf[..n]);
+                while let Some(m) = sp.next_msg() {
+                    if matches!(m, Msg::Open(_) | Msg::RawMode) {
+                        s.write_all(b"< ok >").unwrap();
+                        oks += 1;
+                    }
+                }
+            }
+            // linux/can/error.h: TX timeout, lost arbitration, controller, protocol,
+            // transceiver, no ACK, bus-off, bus error, restarted — then a frame.
+            for class in ["001", "002", "004", "008", "010", "020", "040", "080", "100"] {
+                s.write_all(format!("< error {class} 1700000000.000100 >").as_bytes()).unwrap();
+            }
+            s.write_all(b"< frame 181 1700000000.000200 27 >").unwrap();
+            std::thread::sleep(Duration::from_millis(200));
+        });
+        let mut c = Socketcand::connect(&addr, "can0").unwrap();
+        assert_eq!(c.controller(), None, "nothing heard yet");
+        // Error frames are not frames: the first frame received is the one after them.
+        let f = c.recv_timeout(Duration::from_secs(2)).unwrap().unwrap();
+        assert_eq!(format!("{f:?}"), "181#27");
+        let st = c.controller().expect("error frames seen");
+        server.join().unwrap();
+        assert_eq!(st.error_frames, 9);
+        assert_eq!((st.tx_timeouts, st.lost_arbitrations, st.controller_unspecified, st.transceiver_errors), (1, 1, 1, 1));
+        // PROT and BUSERROR are protocol errors, ACK its own count.
+        assert_eq!((st.protocol_errors, st.no_ack), (2, 1));
+        // Bus-off, then restarted: error-active again.
+        assert_eq!((st.bus_offs, st.restarts, st.state), (1, 1, CanState::ErrorActive));
+    }
 }

@@ -181,7 +181,7 @@ impl SimDrive {
             if now >= due && self.nmt != NmtState::BootUp {
                 self.guarding.last_rtr = None;
                 tracing::warn!(node = self.cfg.node, "life guarding: no guarding request within the life time");
-                self.abort_connection(0x8130, now);
+                self.communication_error(0x8130, now);
             }
         }
     }

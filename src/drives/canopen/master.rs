@@ -88,6 +88,11 @@ fn le_u32(d: &[u8]) -> u32 {
 const FRESH_STATUS_CYCLES: u32 = 3;
 /// How often SDO waits look at the bus.
 const POLL_NS: u64 = 200_000;
+/// 0x1029:1 = 0: a communication error takes the drive to pre-operational (`configure_error_behaviour`).
+const ERROR_BEHAVIOUR_PRE_OPERATIONAL: u8 = 0;
+/// Aborts of a 0x1029:1 write that mean the drive's reaction is fixed (read-only, or 0 not
+/// among its choices): a fact to log, not a reason to refuse the drive.
+const FIXED_ERROR_BEHAVIOUR: [u32; 4] = [abort::READ_ONLY, abort::UNSUPPORTED_ACCESS, abort::INVALID_VALUE, abort::VALUE_TOO_LOW];
 
 /// One drive as the configuration describes it.
 #[derive(Clone, Debug)]
@@ -1085,15 +1090,42 @@ impl<B: CanBus> CanOpenMaster<B> {
         }
         let opt = 1i16.to_le_bytes();
         match self.try_write(clock, i, od::ABORT_CONNECTION, 0, &opt) {
-            Ok(()) => Ok(()),
+            Ok(()) => {}
             Err(SdoError::Abort { code }) if explain::is_absent(code) => {
                 tracing::warn!(
                     node = self.nodes[i].spec.node,
                     "no 0x6007 (abort connection option): on a lost master the drive does what its manual says"
                 );
+            }
+            Err(e) => return Err(self.write_alarm(i, od::ABORT_CONNECTION, 0, &opt, &e)),
+        }
+        self.configure_error_behaviour(clock, i)
+    }
+
+    /// 0x1029:1 (error behaviour, CiA 301) = 0: on a communication error (our heartbeat or
+    /// guarding lost, bus-off) the drive leaves operational for pre-operational. Why 0 and
+    /// not 1 (no change) or 2 (stopped): operational would go on taking PDOs — a set-point a
+    /// dying or restarting controller still sends, or a stale one — after 0x6007 has stopped
+    /// the motor; stopped takes no SDO, so the restarted controller could not read the
+    /// drive's fault (0x603F) before it resets communication. Pre-operational takes no PDOs
+    /// and still answers SDOs; it is also CiA 301's default, so the write only undoes a
+    /// vendor or earlier setting. Absent (many drives) or read-only (a fixed reaction): said
+    /// in the log, not refused.
+    fn configure_error_behaviour(&mut self, clock: &mut dyn Clock, i: usize) -> Result<(), Alarm> {
+        let value = [ERROR_BEHAVIOUR_PRE_OPERATIONAL];
+        match self.try_write(clock, i, od::ERROR_BEHAVIOUR, 1, &value) {
+            Ok(()) => {
+                self.nodes[i].chosen.error_control.push_str("; 0x1029:1 = 0 (pre-operational on a communication error)");
                 Ok(())
             }
-            Err(e) => Err(self.write_alarm(i, od::ABORT_CONNECTION, 0, &opt, &e)),
+            Err(SdoError::Abort { code }) if explain::is_absent(code) || FIXED_ERROR_BEHAVIOUR.contains(&code) => {
+                tracing::info!(
+                    node = self.nodes[i].spec.node,
+                    "0x1029:1 (error behaviour) not set (abort 0x{code:08X}): on a communication error the drive's NMT state does what its manual says"
+                );
+                Ok(())
+            }
+            Err(e) => Err(self.write_alarm(i, od::ERROR_BEHAVIOUR, 1, &value, &e)),
         }
     }
 
@@ -1580,6 +1612,7 @@ impl<B: CanBus> CanOpenMaster<B> {
                 (od::GUARD_TIME, 0, 2),
                 (od::LIFE_TIME_FACTOR, 0, 1),
                 (od::ABORT_CONNECTION, 0, 2),
+                (od::ERROR_BEHAVIOUR, 1, 1),
             ]);
         }
         w
