@@ -637,6 +637,9 @@ pub struct Motion {
     /// Cycles of a synchronised move whose spindle and axis feedback came from different
     /// SYNCs (a late TPDO), so were not compared (see `Feedback::age`).
     unpaired: u32,
+    /// This cycle's feedback is not from one SYNC, or the last cycle's was not.
+    fb_suspect: bool,
+    late_before: bool,
     /// Each feed axis' effective lag on a thread's synchronous line, s, learnt from the
     /// threads' own measured phase error (None: not yet threaded; the lag model's τ₁ then).
     thread_tau: [Option<f64>; 3],
@@ -732,6 +735,8 @@ impl Motion {
             sync_err_vec: [0.0; 3],
             thread_err: None,
             unpaired: 0,
+            fb_suspect: false,
+            late_before: false,
             thread_tau: [None; 3],
             sync_watch: false,
             thread_chain: None,
@@ -2294,7 +2299,7 @@ impl Motion {
         // before the tap begins).
         // Feedback from a late TPDO answers an older set-point: learn nothing from it, and
         // let the spindle's lag coast on its tracked rate.
-        let fresh = fb.age[AX_S] == 0 && self.one_sync(fb);
+        let fresh = fb.age[AX_S] == 0 && !self.fb_suspect;
         if fresh {
             self.corr.learn(&xyz3(&sent), &xyz3(&before), &xyz3(&before2), &xyz3(&fb.pos));
         }
@@ -2339,9 +2344,14 @@ impl Motion {
     fn monitor_sync(&mut self, fb: &Feedback) {
         let watch = std::mem::take(&mut self.sync_watch);
         self.thread_err = None;
-        if watch && !self.one_sync(fb) {
-            // A late TPDO: this spindle angle and these axis positions are from different
-            // SYNCs. Hold the last error (the trim skips this cycle), count it.
+        // A late TPDO: this spindle angle and these axis positions are from different SYNCs.
+        // And the cycle after one: the late frame itself may arrive then, as fresh as the
+        // others by its arrival, but answering the SYNC before theirs.
+        let paired = self.one_sync(fb);
+        self.fb_suspect = !paired || self.late_before;
+        self.late_before = !paired;
+        if watch && self.fb_suspect {
+            // Hold the last error (the trim skips this cycle), count it.
             self.unpaired = self.unpaired.saturating_add(1);
             self.sync_err_vec = [f64::NAN; 3];
             return;
