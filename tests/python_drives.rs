@@ -65,13 +65,12 @@ fn run(python: &PathBuf, shape: &str) -> Outcome {
     run_cfg(python, shape, |c| c)
 }
 
-/// `run` with the machine configuration changed by `edit`.
-fn run_cfg(python: &PathBuf, shape: &str, edit: impl Fn(String) -> String) -> Outcome {
-    let (addr, stop, hub) = hub();
-    let port = addr.rsplit_once(':').unwrap().1.to_string();
-    let mut py = Command::new(python)
+/// `python` running tests/python/canopen_drive.py's `shape` on the hub at `port`, once it
+/// said it is ready; its standard output (the drives' final state, one JSON line each).
+fn start_drives(mut python: Command, port: &str, shape: &str) -> (std::process::Child, BufReader<std::process::ChildStdout>) {
+    let mut py = python
         .arg(root().join("tests/python/canopen_drive.py"))
-        .args(["127.0.0.1", &port, shape])
+        .args(["127.0.0.1", port, shape])
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
@@ -80,6 +79,14 @@ fn run_cfg(python: &PathBuf, shape: &str, edit: impl Fn(String) -> String) -> Ou
     let mut line = String::new();
     out.read_line(&mut line).unwrap();
     assert_eq!(line.trim(), "ready", "python drives did not start");
+    (py, out)
+}
+
+/// `run` with the machine configuration changed by `edit`.
+fn run_cfg(python: &PathBuf, shape: &str, edit: impl Fn(String) -> String) -> Outcome {
+    let (addr, stop, hub) = hub();
+    let port = addr.rsplit_once(':').unwrap().1.to_string();
+    let (mut py, out) = start_drives(Command::new(python), &port, shape);
     let dir = std::env::temp_dir().join(format!("cncgw_python_drives_{shape}_{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     // Python handles every SYNC and PDO in one interpreter: a 5 ms cycle, and feedback may
@@ -259,17 +266,7 @@ fn realtime(program: &Path, prio: u8) -> Command {
 fn tap(python: &Path, shape: &str, spindle_window_deg: f64) -> Tap {
     let (addr, stop, hub) = hub_at(Some(45));
     let port = addr.rsplit_once(':').unwrap().1.to_string();
-    let mut py = realtime(python, 40)
-        .arg(root().join("tests/python/canopen_drive.py"))
-        .args(["127.0.0.1", &port, shape])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("start python");
-    let mut out = BufReader::new(py.stdout.take().unwrap());
-    let mut line = String::new();
-    out.read_line(&mut line).unwrap();
-    assert_eq!(line.trim(), "ready", "python drives did not start");
+    let (mut py, out) = start_drives(realtime(python, 40), &port, shape);
     let dir = std::env::temp_dir().join(format!("cncgw_python_tap_{shape}_{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let cfg = cncgw::config::EMBEDDED_LATHE

@@ -280,6 +280,21 @@ fn a_hidden_feedback_scaling_stops_the_run_instead_of_ok() {
     }
 }
 
+/// Cycle at 2 ms until every drive is enabled (at most 1 s); the time of the last cycle.
+fn enable(w: &mut SimWorld, m: &mut CanOpenMaster<InprocEndpoint>) -> u64 {
+    let mut next = w.now_ns();
+    for _ in 0..500 {
+        next += 2 * MS;
+        w.wait_until(next);
+        m.receive(next).unwrap();
+        if m.enable_step().unwrap() {
+            break;
+        }
+        m.transmit(next).unwrap();
+    }
+    next
+}
+
 #[test]
 fn without_a_heartbeat_consumer_the_drive_is_guarded_and_stops_by_itself_when_the_master_dies() {
     let sim = shaped(|s, _| s.heartbeat_consumer = false);
@@ -303,16 +318,7 @@ fn without_a_heartbeat_consumer_the_drive_is_guarded_and_stops_by_itself_when_th
     assert!([1, 2, 3].iter().all(|&n| m.guarded(n)), "node guarding instead of the heartbeat");
     let d = w.drive(1).unwrap();
     assert_eq!((d.object(0x100C, 0), d.object(0x100D, 0), d.object(0x1017, 0)), (Some(100), Some(3), Some(0)));
-    let mut next = w.now_ns();
-    for _ in 0..500 {
-        next += 2 * MS;
-        w.wait_until(next);
-        m.receive(next).unwrap();
-        if m.enable_step().unwrap() {
-            break;
-        }
-        m.transmit(next).unwrap();
-    }
+    let mut next = enable(&mut w, &mut m);
     for _ in 0..100 {
         next += 2 * MS;
         w.wait_until(next);
@@ -350,16 +356,7 @@ fn start_up_sets_0x1029_so_that_a_drive_losing_the_master_leaves_operational() {
     m.startup(&mut w).expect("start-up: a drive without 0x1029 is not refused");
     assert_eq!((w.drive(1).unwrap().object(0x1029, 1), w.drive(2).unwrap().object(0x1029, 1)), (Some(0), Some(0)));
     assert_eq!(w.drive(3).unwrap().object(0x1029, 1), None);
-    let mut next = w.now_ns();
-    for _ in 0..500 {
-        next += 2 * MS;
-        w.wait_until(next);
-        m.receive(next).unwrap();
-        if m.enable_step().unwrap() {
-            break;
-        }
-        m.transmit(next).unwrap();
-    }
+    let mut next = enable(&mut w, &mut m);
     for _ in 0..50 {
         next += 2 * MS;
         w.wait_until(next);
