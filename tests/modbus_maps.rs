@@ -293,3 +293,60 @@ fn home_writes_method_offset_and_speeds_into_the_homing_registers() {
     flag.store(true, Ordering::Relaxed);
     srv.join().unwrap();
 }
+
+/// Issue 24: method 35 ("the present position is home") on a map without `homing_method`.
+/// It was let through as "the drive's own homing": mode 6 ran whatever method the drive had
+/// in its parameters (a switch search is motion nobody asked for) and the reference said
+/// "method 35". cncgw keeps no controller-side reference shift (`mbus::homing_missing`), so
+/// it is refused with alarm 2017 before anything is written or moved — by `cncgw home` and by
+/// `drive home --method 35` — and `config check` says so first; no reference is recorded.
+#[test]
+fn method_35_on_a_map_without_the_method_register_is_refused_before_anything_moves() {
+    let flag = Arc::new(AtomicBool::new(false));
+    let srv = tcp_server(MODBUS_LATHE, |_| sim_drives::ModbusQuirks::default(), &flag);
+    let homing = "homing = { method = 35, offset = 4.0 }\n";
+    let machine = on(MODBUS_LATHE, srv.local_addr().unwrap())
+        .replace("following_error = 1.0\n\n[axes.s1]", &format!("following_error = 1.0\n{homing}\n[axes.s1]"));
+    assert!(machine.contains(homing), "lathe-modbus.toml's Z block changed");
+    let cfg = write("home35-nomethod.toml", &with_z_map(&machine, "[axes.z.cia402_map]\nhoming_method = \"none\"\n"));
+    let state = tmp("state-home35");
+    let _ = std::fs::remove_dir_all(&state);
+    let obj = |i: u16, s: u8| srv.with_drive(2, |d| d.object(i, s).unwrap_or(i64::MIN)).unwrap();
+    let before = (obj(0x6060, 0), obj(0x6061, 0), obj(0x607C, 0), obj(0x6098, 0), srv.with_drive(2, |d| d.position_unwrapped()).unwrap());
+    let untouched = |t: &str| {
+        let now = (obj(0x6060, 0), obj(0x6061, 0), obj(0x607C, 0), obj(0x6098, 0), srv.with_drive(2, |d| d.position_unwrapped()).unwrap());
+        assert_eq!(now, before, "the drive was written or moved (mode, mode shown, home offset, method, position): {t}");
+        assert_ne!(now.1, 6, "the drive went into homing mode: {t}");
+    };
+
+    let o = testkit::cli!().state(&state).output(&["config", "check", &cfg]);
+    let t = text(&o);
+    assert!(t.contains("axis z: its homing (method 35) needs the homing method 0x6098 (homing_method"), "{t}");
+
+    let o = testkit::cli!().state(&state).output(&["home", "z", "--config", &cfg, "--yes"]);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(t.contains("alarm 2017") && t.contains("homing method 35 refused before any motion"), "{t}");
+    assert!(t.contains("not even 35") && t.contains("nothing was written or moved"), "{t}");
+    assert!(!t.contains("referenced"), "{t}");
+    untouched(&t);
+    let refs: Vec<_> = std::fs::read_dir(&state)
+        .into_iter()
+        .flatten()
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| p.display().to_string().ends_with(".reference.toml"))
+        .collect();
+    for p in refs {
+        let r = std::fs::read_to_string(&p).unwrap();
+        assert!(!r.contains("[axes.z]"), "Z recorded referenced: {r}");
+    }
+
+    let o = testkit::cli!().state(&state).output(&["drive", "home", "2", "--method", "35", "--config", &cfg, "--yes"]);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(2), "{t}");
+    assert!(t.contains("alarm 2017") && t.contains("homing method 0x6098 (homing_method"), "{t}");
+    untouched(&t);
+    flag.store(true, Ordering::Relaxed);
+    srv.join().unwrap();
+}

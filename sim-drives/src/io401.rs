@@ -1,8 +1,10 @@
 //! An emulated CiA 401 digital I/O module (and the input behaviour a Modbus I/O unit
 //! shares): NMT slave with boot-up, an expedited SDO server for 0x1000 (device type 401),
-//! the PDO parameters (0x1400/0x1600 RPDO1, 0x1800/0x1A00 TPDO1) and the digital inputs
-//! 0x6000 / outputs 0x6200; RPDO1 sets the outputs, TPDO1 goes out on every SYNC
-//! (transmission type 1–240) or on an input change (254/255).
+//! the CiA 301 mandatory error register 0x1001 and identity 0x1018, the heartbeat producer
+//! 0x1017, the PDO parameters (0x1400/0x1600 RPDO1, 0x1800/0x1A00 TPDO1) and the digital
+//! inputs 0x6000 / outputs 0x6200; RPDO1 sets the outputs, TPDO1 goes out on every SYNC
+//! (transmission type 1–240) or on an input change (254/255). tests/python/io401.eds
+//! describes it; python `canopen` drives it in tests/io_python.rs.
 //!
 //! The inputs are what a machine's wiring would make them ([`IoEmulation`]): bits that
 //! are on from the start (an E-stop chain, a closed door), inputs that follow an output after
@@ -180,13 +182,22 @@ pub struct SimIo {
     od: BTreeMap<(u16, u8), u32>,
     pub wiring: Wiring,
     last_sent: Option<u32>,
+    /// When the next heartbeat is due (ns), while 0x1017 is not 0.
+    next_heartbeat: u64,
     out: Vec<CanFrame>,
 }
 
 impl SimIo {
     pub fn new(cfg: IoModuleConfig) -> SimIo {
-        let mut m =
-            SimIo { node: cfg.node, nmt: NmtState::BootUp, od: BTreeMap::new(), wiring: Wiring::new(cfg.emu), last_sent: None, out: Vec::new() };
+        let mut m = SimIo {
+            node: cfg.node,
+            nmt: NmtState::BootUp,
+            od: BTreeMap::new(),
+            wiring: Wiring::new(cfg.emu),
+            last_sent: None,
+            next_heartbeat: 0,
+            out: Vec::new(),
+        };
         m.reset_comm();
         // Powered up: boot-up message.
         m.boot();
@@ -205,6 +216,15 @@ impl SimIo {
     fn reset_comm(&mut self) {
         let n = self.node as u32;
         self.od.insert((0x1000, 0), 0x000F_0191);
+        // CiA 301 mandatory: error register, identity (vendor as sim-drives' drives).
+        self.od.insert((0x1001, 0), 0);
+        self.od.insert((0x1017, 0), 0);
+        for (s, v) in [4, 0x0000_0CA7, 0x0401_0001, 0x0001_0000, 0x5200_0000 + n].into_iter().enumerate() {
+            self.od.insert((0x1018, s as u8), v);
+        }
+        // Highest sub-index of the PDO communication records (no inhibit time, event timer).
+        self.od.insert((0x1400, 0), 2);
+        self.od.insert((0x1800, 0), 2);
         self.od.insert((0x1400, 1), 0x200 + n);
         self.od.insert((0x1400, 2), 255);
         self.od.insert((0x1600, 0), 1);
@@ -276,8 +296,14 @@ impl SimIo {
         }
     }
 
-    /// Event-driven TPDO (254/255): on an input change, checked every control tick.
+    /// Event-driven TPDO (254/255): on an input change, checked every control tick; the
+    /// heartbeat every 0x1017 ms.
     pub fn tick(&mut self, now: u64) {
+        let hb_ms = self.od.get(&(0x1017, 0)).copied().unwrap_or(0) as u64;
+        if hb_ms > 0 && now >= self.next_heartbeat {
+            self.out.push(heartbeat_frame(self.node, self.nmt));
+            self.next_heartbeat = now + hb_ms * 1_000_000;
+        }
         let tx = self.od.get(&(0x1800, 2)).copied().unwrap_or(255);
         if tx >= 254 && self.last_sent != Some(self.wiring.inputs(now)) {
             self.send_inputs(now);
@@ -299,21 +325,25 @@ impl SimIo {
         match req {
             SdoRequest::InitiateUpload { index, sub } => {
                 let v = match index {
-                    0x6000 if sub > 0 => Some(self.wiring.inputs(now) >> (8 * (sub as u32 - 1)) & 0xFF),
-                    0x6200 if sub > 0 => Some(self.wiring.outputs() >> (8 * (sub as u32 - 1)) & 0xFF),
+                    0x6000 if (1..=4).contains(&sub) => Some(self.wiring.inputs(now) >> (8 * (sub as u32 - 1)) & 0xFF),
+                    0x6200 if (1..=4).contains(&sub) => Some(self.wiring.outputs() >> (8 * (sub as u32 - 1)) & 0xFF),
                     _ => self.od.get(&(index, sub)).copied(),
                 };
                 match v {
                     Some(v) => {
-                        let size = if sub == 0 && index != 0x1000 || matches!(index, 0x6000 | 0x6200) || sub == 2 && matches!(index, 0x1400 | 0x1800)
+                        let size = if sub == 0 && !matches!(index, 0x1000 | 0x1017)
+                            || matches!(index, 0x6000 | 0x6200)
+                            || sub == 2 && matches!(index, 0x1400 | 0x1800)
                         {
                             1
+                        } else if index == 0x1017 {
+                            2
                         } else {
                             4
                         };
                         SdoResponse::InitiateUpload { index, sub, expedited: true, size: Some(size), data: v.to_le_bytes() }
                     }
-                    None => SdoResponse::Abort { index, sub, code: abort::NO_OBJECT },
+                    None => SdoResponse::Abort { index, sub, code: self.missing(index) },
                 }
             }
             SdoRequest::InitiateDownload { index, sub, expedited: true, data, size } => {
@@ -321,9 +351,13 @@ impl SimIo {
                 let mut b = [0u8; 4];
                 b[..n].copy_from_slice(&data[..n]);
                 let v = u32::from_le_bytes(b);
-                if !self.od.contains_key(&(index, sub)) || index == 0x1000 || index == 0x6000 {
-                    let code = if self.od.contains_key(&(index, sub)) { abort::READ_ONLY } else { abort::NO_OBJECT };
+                let read_only = matches!(index, 0x1000 | 0x1001 | 0x1018 | 0x6000) || sub == 0 && matches!(index, 0x1400 | 0x1800 | 0x6200);
+                if !self.od.contains_key(&(index, sub)) || read_only {
+                    let code = if self.od.contains_key(&(index, sub)) { abort::READ_ONLY } else { self.missing(index) };
                     return SdoResponse::Abort { index, sub, code };
+                }
+                if index == 0x1017 {
+                    self.next_heartbeat = now;
                 }
                 if index == 0x6200 && sub > 0 {
                     let sh = 8 * (sub as u32 - 1);
@@ -338,6 +372,17 @@ impl SimIo {
                 SdoResponse::Abort { index, sub, code: abort::GENERAL }
             }
             _ => SdoResponse::Abort { index: 0, sub: 0, code: abort::GENERAL },
+        }
+    }
+}
+
+impl SimIo {
+    /// The abort for an object that is not there: the sub-index of one that is (CiA 301).
+    fn missing(&self, index: u16) -> u32 {
+        if self.od.keys().any(|(i, _)| *i == index) {
+            abort::NO_SUBINDEX
+        } else {
+            abort::NO_OBJECT
         }
     }
 }

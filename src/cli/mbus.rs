@@ -803,12 +803,27 @@ pub fn drive_home(cfg: &MachineConfig, unit: u8, h: &super::service::HomeArgs) -
 type RegisterWrite = (u16, Vec<u16>, &'static str);
 
 /// What the homing `h` (with the axis's `homing.accel`) would set that the map `m` has no
-/// register for — each "what (map key; where it is set)". The drive does without such a
-/// register what its own parameters say: method 35 is then assumed, offset 0, its own
-/// speeds and acceleration; anything else asked for cannot be done. Empty: nothing missing.
+/// register for — each "what (map key; where it is set)". Empty: nothing missing. The
+/// speeds, acceleration and a zero offset may be left to the drive's own parameters; the
+/// method never is, not even 35 ("the present position is home"):
+///
+/// - Mode 6 on a drive whose method cncgw cannot write runs whatever method the drive has
+///   in its own parameters — a switch or index search (17, 1–14, 33/34) is motion nobody
+///   asked for, and the reference would be recorded "method 35" when it is not.
+/// - A Fanuc (reference setting without dogs, No.1815 APZ) or an 828D ("set reference
+///   point", MD34210) makes "here is home" a controller-side operation when the drive cannot:
+///   the control keeps the shift between the encoder and machine coordinates. cncgw keeps
+///   none — a machine position is the drive's position over `counts_per_unit`, in one place
+///   for the run, jog, the stroke limits and the reference check at start — so a
+///   controller-side 35 would leave the drive's coordinates and the machine's apart.
+///
+/// So a map without `homing_method` refuses every homing with alarm 2017 before anything is
+/// written or moved; the operator gives the register, or takes the axis out of the reference
+/// requirement (`absolute = true` when the drive keeps its position, else
+/// `machine.require_reference = false`).
 pub fn homing_missing(m: &cncgw_bus::modbus::Cia402Map, h: &super::service::HomeArgs, accel: Option<f64>) -> Vec<&'static str> {
     [
-        (h.method != 35 && m.homing_method.is_none(), "homing method 0x6098 (homing_method; --method / homing.method)"),
+        (m.homing_method.is_none(), "homing method 0x6098 (homing_method; --method / homing.method)"),
         (h.offset != 0.0 && m.home_offset.is_none(), "home offset 0x607C (home_offset; --offset / homing.offset)"),
         (h.switch_speed.is_some() && m.homing_switch_speed.is_none(), "switch speed 0x6099:1 (homing_switch_speed; --switch-speed / homing.speed)"),
         (h.zero_speed.is_some() && m.homing_zero_speed.is_none(), "zero speed 0x6099:2 (homing_zero_speed; --zero-speed / homing.zero_speed)"),
@@ -831,7 +846,7 @@ fn homing_writes(a: &AxisConfig, m: &cncgw_bus::modbus::Cia402Map, h: &super::se
         return Err(crate::Alarm::new(
             crate::alarm::HOMING,
             format!(
-                "unit {}: homing method {} refused before any motion: the axis's CiA 402 register map has no register for the {} (\"none\" or not named in its cia402_map table: a map table names every register its drive has). Give the register's address in the map if the drive has it, else set the value in the drive's own parameters and home with what the drive does by itself (method 35, offset 0, no speeds given)",
+                "unit {}: homing method {} refused before any motion: the axis's CiA 402 register map has no register for the {} (\"none\" or not named in its cia402_map table: a map table names every register its drive has). Give the register's address in the map if the drive has it, else leave the value to the drive's own parameters (speeds, acceleration, offset 0). The method cannot be left, not even 35: mode 6 would run whatever method the drive has (its own may search a switch), and cncgw keeps no controller-side shift to make \"here is home\" itself; without a method register, home the drive with its own software and set `absolute = true` on the axis if it keeps its position, else `machine.require_reference = false`",
                 a.node,
                 h.method,
                 missing.join(", ")
@@ -958,8 +973,7 @@ pub fn home_unit(cfg: &MachineConfig, unit: u8, h: &super::service::HomeArgs) ->
     let unit_s = if a.kind == crate::config::AxisKind::Spindle { "deg" } else { "mm" };
     match run(&mut c) {
         Ok(pos) => {
-            let how = if m.homing_method.is_some() { format!("homing method {}", h.method) } else { "the drive's own homing method".into() };
-            println!("unit {unit} (axis {name}) on {}: homed in mode 6 with {how}; position now {pos:.4} {unit_s}", c.what);
+            println!("unit {unit} (axis {name}) on {}: homed in mode 6 with homing method {}; position now {pos:.4} {unit_s}", c.what, h.method);
             Ok(pos)
         }
         Err(e) => {
