@@ -6,9 +6,18 @@
 //! NMT start (on change and on SYNC), the heartbeat and the Stopped state; this test checks
 //! it passed and the module's final state it printed.
 //!
+//! The reverse too: a python `canopen` LocalNode as the CiA 401 module
+//! (tests/python/canopen_io401_node.py, same EDS) on sim-drives' socketcand bus with its
+//! drives, driven by `cncgw run` through `[io]`: M10 clamps the chuck and waits for the
+//! python module's "clamped" input, M08/M09 switch its coolant output.
+//!
 //! Needs the project venv (`scripts/install-test-deps.sh --python`); without it this test
 //! FAILS naming that command; CNCGW_SKIP_PYTHON=1 skips it deliberately.
 
+mod io_common;
+
+use io_common::SAFETY_AND_M_CODES;
+use std::io::{BufRead, BufReader};
 use std::path::PathBuf;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
@@ -96,4 +105,111 @@ fn python_canopen_master_drives_the_emulated_cia401_module() {
     {
         assert!(out.contains(n), "{n}: {out}");
     }
+}
+
+/// The lathe at a 5 ms cycle with feedback 200 ms old before it counts as lost: one python
+/// interpreter answers every SYNC of the module.
+fn slow_lathe() -> String {
+    let l = include_str!("../config/lathe.toml")
+        .replace("cycle_ms = 2.0", "cycle_ms = 5.0")
+        .replace("feedback_timeout_ms = 20", "feedback_timeout_ms = 200");
+    assert!(l.contains("cycle_ms = 5.0") && l.contains("feedback_timeout_ms = 200"), "config/lathe.toml changed");
+    l
+}
+
+#[test]
+fn cncgw_drives_a_python_canopen_cia401_module_over_socketcand() {
+    let Some(python) = python() else { return };
+    let can = free_addr();
+    let drives = tmp("drives.toml");
+    std::fs::write(&drives, slow_lathe()).unwrap();
+    let log = tmp("sim-rev.log");
+    let mut sim = Kill(
+        Command::new(bin!("sim-drives"))
+            .args(["--socketcand", &can, "--config"])
+            .arg(&drives)
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(&log).unwrap())
+            .spawn()
+            .unwrap(),
+    );
+    let t0 = Instant::now();
+    while std::net::TcpStream::connect(&can).is_err() {
+        if let Ok(Some(st)) = sim.0.try_wait() {
+            panic!("sim-drives exited ({st}): {}", std::fs::read_to_string(&log).unwrap_or_default());
+        }
+        assert!(t0.elapsed().as_secs() < 10, "sim-drives did not start");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let port = can.rsplit_once(':').unwrap().1;
+    let mut py = Kill(
+        Command::new(&python)
+            .arg(root().join("tests/python/canopen_io401_node.py"))
+            .args(["127.0.0.1", port, "10"])
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(std::fs::File::create(tmp("py-rev.log")).unwrap())
+            .spawn()
+            .expect("start python"),
+    );
+    let mut out = BufReader::new(py.0.stdout.take().unwrap());
+    let mut line = String::new();
+    out.read_line(&mut line).unwrap();
+    assert_eq!(line.trim(), "ready", "python module did not start: {}", std::fs::read_to_string(tmp("py-rev.log")).unwrap_or_default());
+
+    let cfg = tmp("machine-rev.toml");
+    std::fs::write(
+        &cfg,
+        format!(
+            r#"{}
+[io]
+fin_timeout_ms = 2000
+[io.devices.io1]
+canopen_node = 10
+[io.inputs]
+estop_ok = "io1.0"
+door_closed = "io1.1"
+chuck_clamped = "io1.2"
+[io.outputs]
+coolant = "io1.0"
+chuck_clamp = "io1.1"
+{SAFETY_AND_M_CODES}
+"#,
+            slow_lathe()
+        ),
+    )
+    .unwrap();
+    let prog = tmp("rev.nc");
+    std::fs::write(&prog, "G21 G98\nM10\nM08\nG00 X40 Z2\nG01 Z-10 F1200\nM09\nG00 X60 Z5\nM30\n").unwrap();
+    let o = Command::new(bin!("cncgw"))
+        .args(["run", "--batch", "--bus", &format!("socketcand://{can}/can0"), "--config"])
+        .arg(&cfg)
+        .arg(&prog)
+        .env("CNCGW_STATE_DIR", tmp("state-rev"))
+        .env_remove("RUST_LOG")
+        .stdin(Stdio::null())
+        .output()
+        .expect("run cncgw");
+    // SAFETY: a signal to our own child process.
+    unsafe {
+        libc::kill(py.0.id() as i32, libc::SIGTERM);
+    }
+    let report: Vec<serde_json::Value> = out.lines().map_while(Result::ok).filter_map(|l| serde_json::from_str(&l).ok()).collect();
+    let _ = py.0.wait();
+    let text = format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+    let pylog = std::fs::read_to_string(tmp("py-rev.log")).unwrap_or_default();
+    assert_eq!(o.status.code(), Some(0), "{text}\npython: {report:?}\n{pylog}");
+    let r = report.first().unwrap_or_else(|| panic!("python module's report missing: {pylog}"));
+    eprintln!("python CiA 401 module: {r}");
+    // cncgw reset it, checked its device type and mapped its PDOs; it answered SYNCs.
+    assert!(r["resets"].as_u64().unwrap() >= 1 && r["type_reads"].as_u64().unwrap() >= 1, "{r}");
+    assert!(r["tpdos"].as_u64().unwrap() > 10, "{r}");
+    // M10 (clamp, bit 1), M08 (coolant, bit 0) with the clamp kept, M09 (coolant off).
+    let seen: Vec<u64> = r["outputs_seen"].as_array().unwrap().iter().map(|v| v.as_u64().unwrap()).collect();
+    let at = |v: u64, from: usize| seen[from..].iter().position(|&x| x == v).map(|i| i + from);
+    let clamp = at(0b10, 0).unwrap_or_else(|| panic!("M10 never set the clamp output: {seen:?}"));
+    let coolant = at(0b11, clamp).unwrap_or_else(|| panic!("M08 never set the coolant output with the clamp on: {seen:?}"));
+    assert!(at(0b10, coolant).is_some(), "M09 never cleared the coolant output: {seen:?}");
+    // M10 was confirmed by the module's input 2 (else alarm 2600 and a non-zero exit).
+    assert!(!text.contains("2600"), "{text}");
 }

@@ -407,4 +407,35 @@ mod tests {
         w.force(2, Some(false));
         assert_eq!(w.inputs(500_000_000), 0);
     }
+
+    /// CiA 301 aborts: a sub-index past 0x6000's four (it once shifted a u32 by 32), a
+    /// missing object, the read-only identity; the heartbeat 0x1017 once written.
+    #[test]
+    fn sdo_aborts_and_heartbeat() {
+        let mut m = SimIo::new(IoModuleConfig { node: 10, emu: IoEmulation::default() });
+        let abort_of = |r: SdoResponse| match r {
+            SdoResponse::Abort { code, .. } => code,
+            other => panic!("{other:?}"),
+        };
+        assert_eq!(abort_of(m.sdo(SdoRequest::InitiateUpload { index: 0x6000, sub: 5 }, 0)), abort::NO_SUBINDEX);
+        assert_eq!(abort_of(m.sdo(SdoRequest::InitiateUpload { index: 0x6401, sub: 1 }, 0)), abort::NO_OBJECT);
+        let write = |index, sub, v: u32| SdoRequest::InitiateDownload { index, sub, expedited: true, size: Some(4), data: v.to_le_bytes() };
+        assert_eq!(abort_of(m.sdo(write(0x1018, 1, 7), 0)), abort::READ_ONLY);
+        assert!(
+            matches!(m.sdo(SdoRequest::InitiateUpload { index: 0x1018, sub: 1 }, 0), SdoResponse::InitiateUpload { data, .. } if data == 0x0CA7u32.to_le_bytes())
+        );
+        let mut out = Vec::new();
+        m.take_output(&mut out);
+        assert_eq!(out.len(), 1, "the boot-up alone: {out:?}");
+        m.tick(1_000_000);
+        m.take_output(&mut out);
+        assert_eq!(out.len(), 1, "no heartbeat while 0x1017 = 0");
+        assert!(matches!(m.sdo(write(0x1017, 0, 50), 2_000_000), SdoResponse::InitiateDownload { .. }));
+        for t in [2_000_000, 30_000_000, 52_000_000] {
+            m.tick(t);
+        }
+        m.take_output(&mut out);
+        assert_eq!(out.len(), 3, "heartbeats at 2 and 52 ms: {out:?}");
+        assert_eq!((out[2].cob_id(), out[2].data[0]), (0x70A, NmtState::PreOperational as u8));
+    }
 }
