@@ -178,7 +178,7 @@ impl Motion {
                     self.pos[seg.axis] = act;
                     path_v = fv.abs();
                 }
-                self.sync_watch = true;
+                self.monitor.watch(true);
             }
             Run::Rigid { seg, theta0: Some(th0), .. } => {
                 if a == AX_S {
@@ -201,7 +201,7 @@ impl Motion {
                 } else {
                     abandon = true;
                 }
-                self.sync_watch = true;
+                self.monitor.watch(true);
             }
             Run::Thread { seg, sync: Some(t), .. } => {
                 let len = seg.geom.len();
@@ -231,7 +231,7 @@ impl Motion {
                 } else {
                     abandon = true;
                 }
-                self.sync_watch = true;
+                self.monitor.watch(true);
             }
             _ => abandon = true,
         }

@@ -101,6 +101,7 @@ mod tests;
 use crate::canon::{Feed, Move, MoveKind, Plane, Pos, SpindleCmd, SpindleDir};
 use crate::config::{AxisKind, MachineConfig};
 use crate::sync::correction::SyncCorrection;
+use crate::sync::monitor::{Sample, SyncMonitor};
 use crate::sync::ThreadSync;
 use crate::Alarm;
 use geom::Geom;
@@ -627,25 +628,11 @@ pub struct Motion {
     single_block: bool,
     stopping: bool,
     fault: Option<Fault>,
-    /// Measured sync error of this cycle, µm (see `sync_error`).
-    sync_err: f64,
-    /// The same error as a vector of the feed axes (mm; + = the axis ahead of the spindle's
-    /// relation), for the sync correction's trim.
-    sync_err_vec: [f64; 3],
-    /// A thread's phase error measured this cycle (path mm; + = the axes ahead).
-    thread_err: Option<f64>,
-    /// Cycles of a synchronised move whose spindle and axis feedback came from different
-    /// SYNCs (a late TPDO), so were not compared (see `Feedback::age`).
-    unpaired: u32,
-    /// This cycle's feedback is not from one SYNC, or the last cycle's was not.
-    fb_suspect: bool,
-    late_before: bool,
+    /// The sync-error monitor's state (see `sync_error`).
+    monitor: SyncMonitor,
     /// Each feed axis' effective lag on a thread's synchronous line, s, learnt from the
     /// threads' own measured phase error (None: not yet threaded; the lag model's τ₁ then).
     thread_tau: [Option<f64>; 3],
-    /// The last cycle commanded a setpoint locked to the spindle, so this cycle's actual
-    /// positions can be compared with the spindle's.
-    sync_watch: bool,
     /// The lock of the thread segment that ended last and its length, for a continuous
     /// segment that follows it (cleared by any other item).
     thread_chain: Option<(ThreadSync, f64)>,
@@ -731,14 +718,8 @@ impl Motion {
             plan_rpm: None,
             last_blendable: false,
             fault: None,
-            sync_err: 0.0,
-            sync_err_vec: [0.0; 3],
-            thread_err: None,
-            unpaired: 0,
-            fb_suspect: false,
-            late_before: false,
+            monitor: SyncMonitor::default(),
             thread_tau: [None; 3],
-            sync_watch: false,
             thread_chain: None,
             tap_ref: None,
             in_hole: false,
@@ -1988,7 +1969,7 @@ impl Motion {
         }
         self.pos[AX_S] = if landed { th0 + seg.dc } else { th0 + seg.dc * s2 / len };
         // Only a thread is watched (a positioning rapid has no lead).
-        self.sync_watch = seg.u_long > 0.0;
+        self.monitor.watch(seg.u_long > 0.0);
         self.sp_cur = (self.pos[AX_S] - prev[AX_S]) / dt / 6.0;
         self.run = if self.stopping && nv == 0.0 && !landed {
             self.sp_cur = 0.0;
@@ -2083,7 +2064,7 @@ impl Motion {
         let p = if landed { seg.p1 } else { seg.p0 + s2.copysign(seg.p1 - seg.p0) };
         self.pos[seg.axis] = p;
         self.pos[AX_S] = thr + 360.0 * (p - pr) / seg.lead;
-        self.sync_watch = true;
+        self.monitor.watch(true);
         self.sp_cur = (self.pos[AX_S] - prev[AX_S]) / dt / 6.0;
         let path_v = (p - prev[seg.axis]).abs() / dt;
         self.run = if self.stopping && nv == 0.0 && !landed {
@@ -2184,7 +2165,7 @@ impl Motion {
         let mut tau = self.thread_tau[la].unwrap_or_else(|| self.axis_lag(la));
         // Learn the lag from the phase error itself on the synchronous line (steady speed):
         // an error e at path speed v is a lag misjudged by e/v.
-        if let (Some(e), Some(t)) = (self.thread_err.take(), sync) {
+        if let (Some(e), Some(t)) = (self.monitor.take_thread_err(), sync) {
             let vs = t.sync_speed();
             if e.is_finite() && vs > 1e-3 && (v - vs).abs() <= 0.01 * vs {
                 tau = (tau - THREAD_TRIM_GAIN * e / vs).clamp(0.0, 0.1);
@@ -2255,7 +2236,7 @@ impl Motion {
         self.pos[..3].copy_from_slice(&seg.geom.at(s2));
         // Watched next cycle while the command is on the lock (lead-in ramp and synchronous
         // line), not while braking for the end.
-        self.sync_watch = nv == want && !landed;
+        self.monitor.watch(nv == want && !landed);
         let spindle_stopped = self.sp_cur == 0.0;
         self.run = if self.stopping && nv == 0.0 && !landed && spindle_stopped {
             Run::None
@@ -2299,11 +2280,11 @@ impl Motion {
         // before the tap begins).
         // Feedback from a late TPDO answers an older set-point: learn nothing from it, and
         // let the spindle's lag coast on its tracked rate.
-        let fresh = fb.age[AX_S] == 0 && !self.fb_suspect;
+        let fresh = fb.age[AX_S] == 0 && !self.monitor.suspect();
         if fresh {
             self.corr.learn(&xyz3(&sent), &xyz3(&before), &xyz3(&before2), &xyz3(&fb.pos));
         }
-        self.corr.set_error(self.sync_err_vec);
+        self.corr.set_error(self.monitor.error_vec());
         let gain = gain.filter(|_| self.lim.sync_correction);
         let lag = if fresh { fb.pos[AX_S] - sent[AX_S] } else { f64::NAN };
         self.corr.update(gain, &xyz3(&self.pos), lag);
@@ -2324,13 +2305,13 @@ impl Motion {
     /// other moves). Beyond `Limits::sync_err_limit_um` it raises alarm
     /// [`alarms::SYNC_ERROR`] and a controlled stop in which spindle and axes stop together.
     pub fn sync_error(&self) -> f64 {
-        self.sync_err
+        self.monitor.error_um()
     }
 
     /// Synchronised cycles whose feedback could not be paired from one SYNC (a late TPDO of
     /// the spindle or a feed axis): the monitor held its last value over them.
     pub fn unpaired_cycles(&self) -> u32 {
-        self.unpaired
+        self.monitor.unpaired()
     }
 
     /// The spindle's angle and every configured feed axis' position were sampled at the same
@@ -2340,38 +2321,25 @@ impl Motion {
     }
 
     /// The sync-error monitor (see `sync_error`), at the start of a cycle, for the setpoint
-    /// the last cycle sent. O(1).
+    /// the last cycle sent: the error of the running relation from the actual positions
+    /// (pairing and holding: `crate::sync::monitor`). O(1).
     fn monitor_sync(&mut self, fb: &Feedback) {
-        let watch = std::mem::take(&mut self.sync_watch);
-        self.thread_err = None;
-        // A late TPDO: this spindle angle and these axis positions are from different SYNCs.
-        // And the cycle after one: the late frame itself may arrive then, as fresh as the
-        // others by its arrival, but answering the SYNC before theirs.
-        let paired = self.one_sync(fb);
-        self.fb_suspect = !paired || self.late_before;
-        self.late_before = !paired;
-        if watch && self.fb_suspect {
-            // Hold the last error (the trim skips this cycle), count it.
-            self.unpaired = self.unpaired.saturating_add(1);
-            self.sync_err_vec = [f64::NAN; 3];
-            return;
-        }
-        self.sync_err = 0.0;
-        self.sync_err_vec = [0.0; 3];
-        if !watch {
+        if self.monitor.begin(self.one_sync(fb)) != Sample::Measure {
             return;
         }
         let th = fb.pos[AX_S];
+        let mut vec = [0.0; 3];
+        let mut thread = None;
         let err_mm = match self.run {
             Run::Thread { seg, sync: Some(t), .. } => {
                 let e = line_progress(&seg.geom, &fb.pos) - t.target(th);
-                self.thread_err = Some(e);
+                thread = Some(e);
                 e * seg.u_long
             }
             Run::Tap { seg, theta0: Some((pr, thr)), .. } => {
                 // Along the stroke's direction: + = the tapping axis ahead of the spindle.
                 let e = (fb.pos[seg.axis] - pr) - seg.lead * (th - thr) / 360.0;
-                self.sync_err_vec[seg.axis.min(2)] = e;
+                vec[seg.axis.min(2)] = e;
                 e * (seg.p1 - seg.p0).signum()
             }
             Run::Rigid { seg, theta0: Some(th0), .. } => {
@@ -2379,18 +2347,16 @@ impl Motion {
                 let e = line_progress(&seg.geom, &fb.pos) - (th - th0) * len / seg.dc;
                 let (p0, p1) = (geom_start(&seg.geom), seg.geom.end());
                 for i in 0..3 {
-                    self.sync_err_vec[i] = e * (p1[i] - p0[i]) / len.max(1e-12);
+                    vec[i] = e * (p1[i] - p0[i]) / len.max(1e-12);
                 }
                 e * seg.u_long
             }
             _ => return,
         };
-        let err_um = err_mm * 1000.0;
-        // Non-finite feedback is a fault too.
-        self.sync_err = if err_um.is_finite() { err_um } else { f64::INFINITY };
-        if !(self.sync_err.abs() <= self.lim.sync_err_limit_um) && !self.stopping {
+        let limit_um = self.lim.sync_err_limit_um;
+        if self.monitor.record(err_mm, vec, thread, limit_um) && !self.stopping {
             if self.fault.is_none() {
-                self.fault = Some(Fault::SyncError { err_um: self.sync_err, limit_um: self.lim.sync_err_limit_um, line: self.line });
+                self.fault = Some(Fault::SyncError { err_um: self.monitor.error_um(), limit_um, line: self.line });
             }
             self.stop();
         }

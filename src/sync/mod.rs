@@ -5,6 +5,7 @@ pub mod identify;
 pub mod lag;
 pub mod lag_tracker;
 pub mod link_check;
+pub mod monitor;
 pub mod thread;
 
 pub use thread::ThreadSync;
