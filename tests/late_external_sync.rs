@@ -185,11 +185,13 @@ fn run(stalls: u32, hold: bool) -> Outcome {
 /// (Z between -10 and -90 mm).
 fn steady_steps(o: &Outcome) -> Vec<i64> {
     let in_feed = |t: i64| (-900_000..=-100_000).contains(&t);
-    o.taken.windows(2).filter_map(|w| match (w[0], w[1]) {
-        (Some(a), Some(b)) if in_feed(a) && in_feed(b) => Some(b - a),
-        _ => None,
-    })
-    .collect()
+    o.taken
+        .windows(2)
+        .filter_map(|w| match (w[0], w[1]) {
+            (Some(a), Some(b)) if in_feed(a) && in_feed(b) => Some(b - a),
+            _ => None,
+        })
+        .collect()
 }
 
 #[test]
