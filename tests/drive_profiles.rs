@@ -574,7 +574,7 @@ fn first_part_over_socketcand_runs_on_the_sync_drive_1_produces_and_ends_within_
 /// The vcan tier's profile sets (profiles_common::MIXED_SETS), here in simulated time: the
 /// combination itself (which the vcan tier then runs in real time between two processes)
 /// ends first_part at its end point, on the drives' own positions; the second set on the
-/// SYNC of its node 1 too (which the vcan tier leaves out, see tests/vcan_tier.rs).
+/// SYNC of its node 1 too, as the vcan tier also runs it.
 #[test]
 fn the_vcan_tiers_mixed_profile_sets_run_first_part_to_its_end_point() {
     let (b, _) = profiles_common::MIXED_SETS[1];

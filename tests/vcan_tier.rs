@@ -115,7 +115,7 @@ fn first_part_runs_over_vcan_against_sim_drives_process() {
 }
 
 // Issue 21's "done means" in this tier: first_part against every emulated drive profile
-// (IP only, fixed mapping, no 0x1016, boots into PP, user units), in two sim-drives
+// (IP only, fixed mapping, no 0x1016, boots into PP, user units, external SYNC), in two sim-drives
 // processes of mixed profiles (profiles_common::MIXED_SETS, also run in simulated time by
 // tests/drive_profiles.rs) rather than five: a first_part is ~35 s.
 
@@ -175,13 +175,23 @@ fn first_part_over_vcan_against_drives_without_0x1016_and_one_in_user_units() {
     assert!(err.contains("units: 1 unit = 10 increments"), "{err}");
 }
 
-// Not in this tier: first_part on an external SYNC (a drive producing it). Tried here on
-// 2026-11-28 with these sets, at a host load of ~10: it failed 4 runs of 4 on the spindle's
-// following error (0x8611; two at a 4 ms cycle, two at 8 ms) — a set-point that misses the SYNC
-// after its own is taken a SYNC late, and if the next is late too the drive gets a target a
-// period behind where it extrapolated to. The master-SYNC runs above passed in the same
-// guest (4 of 10 at that load, with the default run). It runs over socketcand on the host
-// and in simulated time (tests/drive_profiles.rs).
+// The external SYNC profile (`bus.sync = "external"`): the second set's drives again, node 1
+// producing the SYNC every 4 ms and the master's cycle running on it (as tests/drive_profiles.rs
+// does in simulated time). A cycle held up past the next SYNC is caught up, not sent stale
+// (tests/late_external_sync.rs); before that it failed here 4 runs of 4 on the spindle's
+// following error.
+#[test]
+#[ignore = "needs vcan0: run through scripts/run-vcan-tier.sh (scripts/test.sh does)"]
+fn first_part_over_vcan_on_the_sync_drive_1_produces() {
+    if !require_vcan() {
+        return;
+    }
+    let (profiles, _) = MIXED_SETS[1];
+    let err = first_part_against(profiles, true);
+    assert!(err.contains("cycle on the external SYNC") && err.contains("external SYNC heard"), "{err}");
+    assert!(err.contains("the drive produces the SYNC the cycle runs on"), "{err}");
+    assert!(err.contains("node guarding (no 0x1016 heartbeat consumer)"), "{err}");
+}
 
 #[test]
 #[ignore = "needs vcan0: run through scripts/run-vcan-tier.sh (scripts/test.sh does)"]

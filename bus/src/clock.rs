@@ -16,6 +16,15 @@ pub trait Clock {
     fn is_simulated(&self) -> bool {
         false
     }
+    /// A clock paced by received SYNCs (`bus.sync = "external"`, [`crate::sync_source`]):
+    /// take in what has arrived, without waiting, and return the time now — one period on
+    /// for every SYNC that came since the wake-up. The cycle asks just before it sends its
+    /// set-points: a SYNC that came meanwhile was not waited for, and the set-points would be
+    /// taken a SYNC later than computed. `None`: a timer clock (its SYNC is sent by the cycle
+    /// itself, after the set-points).
+    fn poll_sync(&mut self) -> Option<u64> {
+        None
+    }
 }
 
 /// A clock behind a box or a mutable reference is that clock (written once for both).
@@ -30,6 +39,9 @@ macro_rules! forward_clock {
             }
             fn is_simulated(&self) -> bool {
                 (**self).is_simulated()
+            }
+            fn poll_sync(&mut self) -> Option<u64> {
+                (**self).poll_sync()
             }
         }
     )*};

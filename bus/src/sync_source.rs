@@ -55,13 +55,17 @@ impl SyncTrack {
 
     /// A SYNC arrived at inner time `inner`, while a wait for `deadline` (virtual) may be
     /// pending. Locked, the SYNC is the next slot; unlocked, it locks the clock where it
-    /// stands. A pending deadline within half a period of the SYNC's slot becomes the slot:
-    /// the waiter's grid and the SYNCs line up (the shift is never observed, it happens inside
-    /// the wait).
+    /// stands. A pending deadline from half a period before the SYNC's slot to a period after
+    /// it becomes the slot: the waiter's grid and the SYNCs line up (the shift is never
+    /// observed, it happens inside the wait). A deadline up to a period *after* the slot is
+    /// this SYNC's too: were it left where it is, the cycle would wake on the timer that far
+    /// after every SYNC from then on (its deadlines falling inside the period), not on the
+    /// SYNC — and with its set-points sent late in the period, every bit of lateness would
+    /// make a drive take them a SYNC late.
     pub fn on_sync(&mut self, inner: u64, deadline: Option<u64>) {
         let v = if self.locked { self.anchor_v + self.period } else { self.now(inner) };
         self.anchor_v = match deadline {
-            Some(t) if t.abs_diff(v) < self.period / 2 => t,
+            Some(t) if t + self.period / 2 > v && t < v + self.period => t,
             _ => v,
         };
         self.anchor_inner = inner;
@@ -297,6 +301,16 @@ impl<C: Clock> Clock for SyncClock<C> {
     fn is_simulated(&self) -> bool {
         self.simulated
     }
+
+    /// The SYNCs on the bus now, taken in without waiting (see [`Clock::poll_sync`]).
+    fn poll_sync(&mut self) -> Option<u64> {
+        let inner = self.inner.now_ns();
+        let mut s = lock(&self.shared);
+        s.inner_hint = inner;
+        // A failing bus is the master's to report (its next read fails too).
+        let _ = s.pump(inner);
+        Some(s.track.now(inner))
+    }
 }
 
 #[cfg(test)]
@@ -340,6 +354,27 @@ mod tests {
         // A deadline far from the slot (a loop that overran) does not move it.
         t.on_sync(3 * P, Some(10 * P));
         assert_eq!(t.now(3 * P), 3 * P + 3 * P / 10);
+    }
+
+    #[test]
+    fn a_deadline_late_in_the_period_after_the_slot_is_that_syncs_too() {
+        // The cycle's first deadline fell 0.7 periods after a SYNC slot (start-up ended
+        // there): the next SYNC takes it, and from then on the cycle wakes on every SYNC,
+        // not on a timer 0.7 periods after it.
+        let mut t = SyncTrack::new(P);
+        t.on_sync(0, None);
+        assert_eq!(t.inner_at(7 * P / 10), Some(7 * P / 10), "inside the period: a timer wait");
+        t.on_sync(P, Some(P + 7 * P / 10));
+        assert_eq!(t.now(P), P + 7 * P / 10);
+        assert_eq!(t.inner_at(2 * P + 7 * P / 10), None, "the next deadline is the next SYNC's");
+        t.on_sync(2 * P, Some(2 * P + 7 * P / 10));
+        assert_eq!(t.now(2 * P), 2 * P + 7 * P / 10);
+        // Half a period before the slot still snaps; a whole period after it does not.
+        t.on_sync(3 * P, Some(3 * P + 7 * P / 10 - P / 2 + 1));
+        assert_eq!(t.now(3 * P), 3 * P + 7 * P / 10 - P / 2 + 1);
+        let v = t.now(4 * P - 1) + 1;
+        t.on_sync(4 * P, Some(v + P));
+        assert_eq!(t.now(4 * P), v);
     }
 
     #[test]

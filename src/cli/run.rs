@@ -605,6 +605,9 @@ impl Clock for Paced<'_> {
     fn is_simulated(&self) -> bool {
         self.inner.is_simulated() && !self.live
     }
+    fn poll_sync(&mut self) -> Option<u64> {
+        self.inner.poll_sync()
+    }
 }
 
 /// `cncgw trace plot FILE.csv -o FILE.svg`.

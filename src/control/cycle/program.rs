@@ -57,6 +57,8 @@ struct Tick {
     now: u64,
     /// Whole cycles missed (caught up by the interpolator, at most the watchdog's bridge).
     missed: u64,
+    /// Whole cycles missed as woken (before that bound).
+    late: u64,
     /// The cycle before this one woke late: its feedback does not pair with its demand.
     late_before: bool,
 }
@@ -132,7 +134,7 @@ impl CycleLoop<'_> {
             let mut row = TraceRow { t_s: (tick.now - run.t_start) as f64 * 1e-9, ..TraceRow::default() };
             let fb = self.read_drives(motion, &mut run, summary, &tick, isolate, &mut row)?;
             self.operator(motion, &run)?;
-            let sp = self.command(motion, &mut run, &fb, &tick)?;
+            let sp = self.command(motion, &mut run, summary, &fb, &tick)?;
             if self.after_send(motion, &mut run, summary, &sp, &fb, &mut row, tick.now, progress)? {
                 break;
             }
@@ -199,7 +201,7 @@ impl CycleLoop<'_> {
             self.halt(motion, run.spindle_rpm);
             return Err(stall_in_sync(run.cur_line, missed, self.watchdog.catch_up, self.cycle_ns));
         }
-        Ok(Tick { now, missed: missed.min(self.watchdog.catch_up), late_before })
+        Ok(Tick { now, missed: missed.min(self.watchdog.catch_up), late: missed, late_before })
     }
 
     /// Receive the drives' answers; a faulted drive or a lost bus ends the run. Returns the
@@ -352,25 +354,14 @@ impl CycleLoop<'_> {
 
     /// Interpolate this cycle's set-point (and the cycles missed), switch the G22 area where
     /// the program does, refuse a set-point beyond the limits, send the targets.
-    fn command(&mut self, motion: &mut Motion, run: &mut Run, fb: &Feedback, tick: &Tick) -> Result<Setpoint, Alarm> {
+    fn command(&mut self, motion: &mut Motion, run: &mut Run, summary: &mut RunSummary, fb: &Feedback, tick: &Tick) -> Result<Setpoint, Alarm> {
         if let Some(t) = self.tool {
             motion.set_tool_feedback(self.drives.feedback(t.drive).pos);
         }
-        let mut sp = motion.step(fb);
-        for _ in 0..tick.missed {
-            if let Event::Stroke2(a) = sp.event {
-                run.guard.set_stroke2(a);
-            }
-            match self.on_event(motion, &sp) {
-                Ok(end) => run.ended |= end,
-                Err(a) => {
-                    // This cycle's set-points are not sent yet: the stop starts with them.
-                    self.halt_now(motion, run.spindle_rpm);
-                    return Err(a);
-                }
-            }
-            sp = motion.step(fb);
-        }
+        let sp = motion.step(fb);
+        let sp = self.advance(motion, run, fb, sp, tick.missed)?;
+        let passed = self.syncs_passed(motion, run, summary, tick)?;
+        let sp = self.advance(motion, run, fb, sp, passed)?;
         // G22/G23 reached in program order: the guard switches before this set-point.
         if let Event::Stroke2(a) = sp.event {
             run.guard.set_stroke2(a);
@@ -399,6 +390,61 @@ impl CycleLoop<'_> {
             return Err(a);
         }
         Ok(sp)
+    }
+
+    /// `n` more interpolation steps after `sp` (cycles missed), each step's event acted on
+    /// in program order.
+    fn advance(&mut self, motion: &mut Motion, run: &mut Run, fb: &Feedback, mut sp: Setpoint, n: u64) -> Result<Setpoint, Alarm> {
+        for _ in 0..n {
+            if let Event::Stroke2(a) = sp.event {
+                run.guard.set_stroke2(a);
+            }
+            match self.on_event(motion, &sp) {
+                Ok(end) => run.ended |= end,
+                Err(a) => {
+                    // This cycle's set-points are not sent yet: the stop starts with them.
+                    self.halt_now(motion, run.spindle_rpm);
+                    return Err(a);
+                }
+            }
+            sp = motion.step(fb);
+        }
+        Ok(sp)
+    }
+
+    /// An external SYNC (`bus.sync = "external"`) does not wait for this cycle: SYNCs that
+    /// came after the one it woke on, before its set-points go out (the thread was held up
+    /// after its wake-up), make it a late cycle. Its set-points would act a SYNC later than
+    /// computed — behind a drive that bridged the SYNC by extrapolating, a step back — so the
+    /// cycle is counted, watched and caught up as one that woke that late (`keep_time`): the
+    /// interpolator advances by the SYNCs the drives bridged, the rest holds the time base
+    /// back, and in a thread or tap it is alarm 2403. Returns the further steps to take.
+    /// (A SYNC between this look and the send still comes first; the window is the send.)
+    fn syncs_passed(&mut self, motion: &mut Motion, run: &mut Run, summary: &mut RunSummary, tick: &Tick) -> Result<u64, Alarm> {
+        let Some(now) = self.clock.poll_sync() else { return Ok(0) };
+        if now < run.next + self.cycle_ns {
+            return Ok(0);
+        }
+        let passed = (now - run.next) / self.cycle_ns;
+        run.next += passed * self.cycle_ns;
+        run.late_prev = true;
+        if tick.late == 0 {
+            summary.overruns += 1;
+        } else {
+            // `keep_time` counted this cycle already: the watchdog sees it once, as late as it
+            // turned out to be.
+            run.overruns_in_a_row = run.overruns_in_a_row.saturating_sub(1);
+        }
+        let late = (tick.late + passed).min(MAX_CATCH_UP);
+        if let Some(a) = self.watchdog.cycle(late, &mut run.overruns_in_a_row, run.cur_line, self.cycle_ns) {
+            self.halt_now(motion, run.spindle_rpm);
+            return Err(a);
+        }
+        if late > self.watchdog.catch_up && motion.is_synchronised() {
+            self.halt_now(motion, run.spindle_rpm);
+            return Err(stall_in_sync(run.cur_line, late, self.watchdog.catch_up, self.cycle_ns));
+        }
+        Ok(late.min(self.watchdog.catch_up) - tick.missed)
     }
 
     /// The rigid-tap state gate: a hole's first stroke waits until its entry is on disk.
