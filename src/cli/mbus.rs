@@ -10,9 +10,10 @@
 
 use super::MachineArgs;
 use crate::config::{AxisConfig, LinkTransport, MachineConfig, ModbusLink, Parity};
+use crate::drives::access::{self, DriveAccess, ObjType};
 use crate::drives::modbus::link::exception_words;
 use cncgw_bus::cia402::State;
-use cncgw_bus::modbus::{pr_status, Profile};
+use cncgw_bus::modbus::{pr_status, Profile, WordOrder};
 use std::time::{Duration, Instant};
 use tokio_modbus::client::{Context, Reader, Writer};
 use tokio_modbus::prelude::SlaveContext;
@@ -557,21 +558,6 @@ fn open_unit(cfg: &MachineConfig, unit: u8) -> Result<(String, AxisConfig, Clien
     }
 }
 
-/// The drive's state as a CiA 402 statusword (a PR drive's status register mapped as the
-/// master maps it), with the PR status register as read.
-fn read_state(c: &mut Client, a: &AxisConfig) -> Result<(u16, Option<u16>), String> {
-    match a.modbus_profile {
-        Profile::Cia402 => {
-            let m = a.cia402_map.unwrap_or_default();
-            Ok((c.read(a.node, m.statusword, 1)?[0], None))
-        }
-        Profile::Pr => {
-            let st = c.read(a.node, a.pr_map.unwrap_or_default().status, 1)?[0];
-            Ok((crate::drives::modbus::plan::pr_statusword(st), Some(st)))
-        }
-    }
-}
-
 /// The drive's error code (0x603F) or alarm code (PR) in words, for messages.
 fn error_text(c: &mut Client, a: &AxisConfig) -> String {
     match a.modbus_profile {
@@ -602,186 +588,103 @@ fn watchdog_off(c: &mut Client, a: &AxisConfig) -> Result<(), String> {
     c.write(a.node, addr, &[0]).map_err(|e| format!("turning the communication watchdog (register {addr}) off failed: {e}"))
 }
 
-/// Step period and default time limit of the walks.
+/// Step period of the homing's wait.
 const STEP: Duration = Duration::from_millis(10);
-const WALK_TIMEOUT: Duration = Duration::from_millis(2000);
 
-/// Walk a CiA 402 drive to Operation Enabled over its controlword register (the Enabler
-/// reading the statusword register, fault resets included). Returns the state reached.
-fn cia402_enable(c: &mut Client, a: &AxisConfig, timeout: Duration) -> Result<State, String> {
-    let (unit, m) = (a.node, a.cia402_map.unwrap_or_default());
-    let end = Instant::now() + timeout;
-    let mut enabler = cncgw_bus::cia402::Enabler::default();
-    loop {
-        let sw = c.read(unit, m.statusword, 1)?[0];
-        let st = State::from_statusword(sw);
-        match enabler.step(sw) {
-            cncgw_bus::cia402::EnableProgress::Enabled => return Ok(st),
-            cncgw_bus::cia402::EnableProgress::ResetFailed => {
-                return Err(format!(
-                    "unit {unit} stays in Fault after {} fault resets: {}; clear the cause first",
-                    cncgw_bus::cia402::Enabler::MAX_RESETS,
-                    error_text(c, a)
-                ))
+/// A Modbus drive's CiA 402 objects through its register map: the `cia402_map`'s registers
+/// (`Cia402Map::register`; 4-byte objects in two registers, in the map's word order), or a
+/// PR drive's status register as a statusword (0x6041), its position (0x6064) and alarm
+/// code (0x603F), with the controlword (0x6040) as servo on (voltage enabled and no quick
+/// stop: bits 1 and 2) and alarm reset (bit 7).
+pub struct ModbusDrive {
+    pub c: Client,
+    pub a: AxisConfig,
+    pub name: String,
+    epoch: Instant,
+}
+
+impl ModbusDrive {
+    /// The axis with unit id `unit` and a client on its link. Err = the exit code (message
+    /// printed).
+    pub fn open(cfg: &MachineConfig, unit: u8) -> Result<ModbusDrive, i32> {
+        let (name, a, c) = open_unit(cfg, unit)?;
+        Ok(ModbusDrive { c, a, name, epoch: Instant::now() })
+    }
+
+    /// The register and its length in registers that carry `index`:`sub` of type `ty`.
+    fn register(&self, index: u16, sub: u8, ty: ObjType) -> Result<(u16, u16, WordOrder), String> {
+        let len = if ty.bytes() == 4 { 2 } else { 1 };
+        let r = match self.a.modbus_profile {
+            Profile::Cia402 => {
+                let m = self.a.cia402_map.unwrap_or_default();
+                m.register(index, sub).map(|r| (r, m.word_order))
             }
-            cncgw_bus::cia402::EnableProgress::Walking => {}
-        }
-        if Instant::now() >= end {
-            return Err(format!("unit {unit} stuck in {} for {} ms; `cncgw drive status {unit}` shows why", st.name(), timeout.as_millis()));
-        }
-        c.write(unit, m.controlword, &[enabler.controlword])?;
-        std::thread::sleep(STEP);
+            Profile::Pr => {
+                let m = self.a.pr_map.unwrap_or_default();
+                match (index, sub) {
+                    (0x6041, 0) => Some(m.status),
+                    (0x6064, 0) => Some(m.position_actual),
+                    (0x603F, 0) => m.alarm_code,
+                    _ => None,
+                }
+                .map(|r| (r, m.word_order))
+            }
+        };
+        r.map(|(r, o)| (r, len, o)).ok_or_else(|| format!("unit {}: the register map has no register for 0x{index:04X}:{sub}", self.a.node))
     }
 }
 
-/// Walk unit `a` towards `goal`. Returns (state before, state reached).
-fn power_walk(c: &mut Client, a: &AxisConfig, goal: super::service::PowerGoal) -> Result<(State, State), String> {
-    use super::service::PowerGoal;
-    use cncgw_bus::cia402::cw;
-    let unit = a.node;
-    let first = State::from_statusword(read_state(c, a)?.0);
-    let end = Instant::now() + WALK_TIMEOUT;
-    let stuck = |st: State| format!("unit {unit} stuck in {} for {} ms; `cncgw drive status {unit}` shows why", st.name(), WALK_TIMEOUT.as_millis());
-    match a.modbus_profile {
-        Profile::Cia402 => {
-            let m = a.cia402_map.unwrap_or_default();
-            match goal {
-                PowerGoal::Enable => {
-                    if first != State::OperationEnabled {
-                        watchdog_off(c, a)?;
-                        // A stale target would be jumped to in a position mode the moment the
-                        // drive enables: make it the present position.
-                        let p = c.read(unit, m.position_actual, 2)?;
-                        c.write(unit, m.target_position, &p)?;
-                    }
-                    Ok((first, cia402_enable(c, a, WALK_TIMEOUT)?))
-                }
-                PowerGoal::Disable => loop {
-                    let st = State::from_statusword(c.read(unit, m.statusword, 1)?[0]);
-                    match st {
-                        State::SwitchOnDisabled | State::NotReadyToSwitchOn => return Ok((first, st)),
-                        State::Fault | State::FaultReactionActive => {
-                            return Err(format!(
-                                "unit {unit} is in {} (no torque): {}; `cncgw drive fault-reset {unit}` clears it once the cause is gone",
-                                st.name(),
-                                error_text(c, a)
-                            ))
-                        }
-                        _ if Instant::now() >= end => return Err(stuck(st)),
-                        _ => c.write(unit, m.controlword, &[cw::DISABLE_VOLTAGE])?,
-                    }
-                    std::thread::sleep(STEP);
-                },
-                PowerGoal::FaultReset => {
-                    let mut sent = false;
-                    loop {
-                        let st = State::from_statusword(c.read(unit, m.statusword, 1)?[0]);
-                        if !matches!(st, State::Fault | State::FaultReactionActive) {
-                            if sent {
-                                // Bit 7 back down so the next reset is an edge again.
-                                c.write(unit, m.controlword, &[cw::DISABLE_VOLTAGE])?;
-                            }
-                            return Ok((first, st));
-                        }
-                        if Instant::now() >= end {
-                            return Err(format!("unit {unit} still in {} after a fault reset: the cause persists: {}", st.name(), error_text(c, a)));
-                        }
-                        // A rising edge of bit 7: low first, then high.
-                        c.write(unit, m.controlword, &[cw::DISABLE_VOLTAGE])?;
-                        c.write(unit, m.controlword, &[cw::FAULT_RESET_CMD])?;
-                        sent = true;
-                        std::thread::sleep(STEP);
-                    }
-                }
-            }
-        }
-        Profile::Pr => {
-            let m = a.pr_map.unwrap_or_default();
-            let mut resets = 0;
-            if goal == PowerGoal::Enable && first != State::OperationEnabled {
-                watchdog_off(c, a)?;
-            }
-            loop {
-                let (sw, _) = read_state(c, a)?;
-                let st = State::from_statusword(sw);
-                let fault = st == State::Fault;
-                let done = match goal {
-                    PowerGoal::Enable => st == State::OperationEnabled,
-                    PowerGoal::Disable => st == State::SwitchOnDisabled,
-                    PowerGoal::FaultReset => !fault,
-                };
-                if done {
-                    return Ok((first, st));
-                }
-                if fault && goal == PowerGoal::Disable {
-                    return Err(format!(
-                        "unit {unit} is in alarm (no torque): {}; `cncgw drive fault-reset {unit}` clears it once the cause is gone",
-                        error_text(c, a)
-                    ));
-                }
-                if Instant::now() >= end {
-                    return Err(match goal {
-                        PowerGoal::FaultReset => format!("unit {unit} still in alarm after an alarm reset: the cause persists: {}", error_text(c, a)),
-                        _ => stuck(st),
-                    });
-                }
-                if fault {
-                    resets += 1;
-                    if goal == PowerGoal::Enable && resets > cncgw_bus::cia402::Enabler::MAX_RESETS {
-                        return Err(format!(
-                            "unit {unit} stays in alarm after {} alarm resets: {}; clear the cause first",
-                            resets - 1,
-                            error_text(c, a)
-                        ));
-                    }
-                    c.write(unit, m.alarm_reset, &[1])?;
-                } else {
-                    c.write(unit, m.servo_on, &[(goal == PowerGoal::Enable) as u16])?;
-                }
-                std::thread::sleep(STEP);
-            }
-        }
+impl DriveAccess for ModbusDrive {
+    fn noun(&self) -> &'static str {
+        "unit"
     }
-}
-
-/// `cncgw drive enable|disable|fault-reset UNIT` on Modbus (confirmation already given).
-pub fn drive_power(cfg: &MachineConfig, unit: u8, goal: super::service::PowerGoal) -> i32 {
-    use super::diag::{EXIT_NODE, EXIT_OK};
-    use super::service::PowerGoal;
-    let (name, a, mut c) = match open_unit(cfg, unit) {
-        Ok(x) => x,
-        Err(code) => return code,
-    };
-    match power_walk(&mut c, &a, goal) {
-        Ok((from, to)) => {
-            let sw = match read_state(&mut c, &a) {
-                Ok((_, Some(st))) => format!(" (status register 0x{st:04X})"),
-                Ok((w, None)) => format!(" (statusword 0x{w:04X})"),
-                Err(_) => String::new(),
-            };
-            if from == to {
-                let why = if goal == PowerGoal::FaultReset { "not in fault, nothing to reset" } else { "already there" };
-                println!("unit {unit} (axis {name}) on {}: {}{sw}; {why}", c.what, to.name());
+    fn id(&self) -> u8 {
+        self.a.node
+    }
+    fn label(&self) -> String {
+        format!("unit {} (axis {}) on {}", self.a.node, self.name, self.c.what)
+    }
+    fn read(&mut self, index: u16, sub: u8, ty: ObjType) -> Result<i64, String> {
+        let (r, len, order) = self.register(index, sub, ty)?;
+        let w = self.c.read(self.a.node, r, len)?;
+        let raw = if len == 2 { order.join_i32([w[0], w[1]]) as u32 as u64 } else { w[0] as u64 };
+        if self.a.modbus_profile == Profile::Pr && index == 0x6041 {
+            return Ok(crate::drives::modbus::plan::pr_statusword(raw as u16) as i64);
+        }
+        Ok(ty.extend(raw))
+    }
+    fn write(&mut self, index: u16, sub: u8, ty: ObjType, value: i64) -> Result<(), String> {
+        if self.a.modbus_profile == Profile::Pr && (index, sub) == (0x6040, 0) {
+            let (m, c) = (self.a.pr_map.unwrap_or_default(), value as u16);
+            return if c & cncgw_bus::cia402::cw::FAULT_RESET != 0 {
+                self.c.write(self.a.node, m.alarm_reset, &[1])
             } else {
-                println!("unit {unit} (axis {name}) on {}: {} → {}{sw}", c.what, from.name(), to.name());
-            }
-            if goal == PowerGoal::Enable {
-                match a.modbus_profile {
-                    Profile::Cia402 => {
-                        if let Ok(v) = c.read(unit, a.cia402_map.unwrap_or_default().mode_display, 1) {
-                            let m = v[0] as i16 as i8;
-                            println!("  mode {m} ({}): the drive holds its position until it gets a set-point", cncgw_bus::cia402::mode::name(m));
-                        }
-                    }
-                    Profile::Pr => println!("  servo on: the drive holds its position until a PR block is triggered"),
-                }
-                println!("  communication watchdog off: the controller sets it again when it starts");
-            }
-            EXIT_OK
+                self.c.write(self.a.node, m.servo_on, &[(c & 0x06 == 0x06) as u16])
+            };
         }
-        Err(e) => {
-            eprintln!("error: {e}");
-            EXIT_NODE
+        let (r, len, order) = self.register(index, sub, ty)?;
+        let words = if len == 2 { order.split_i32(value as i32).to_vec() } else { vec![value as u16] };
+        self.c.write(self.a.node, r, &words)
+    }
+    fn error_text(&mut self) -> String {
+        error_text(&mut self.c, &self.a)
+    }
+    fn now_ns(&mut self) -> u64 {
+        self.epoch.elapsed().as_nanos() as u64
+    }
+    fn wait_ns(&mut self, t: u64) {
+        let now = self.now_ns();
+        if t > now {
+            std::thread::sleep(Duration::from_nanos(t - now));
+        }
+    }
+    fn before_enable(&mut self) -> Result<(), String> {
+        watchdog_off(&mut self.c, &self.a)
+    }
+    fn status_register(&mut self) -> Option<(&'static str, u16)> {
+        match self.a.modbus_profile {
+            Profile::Pr => self.c.read(self.a.node, self.a.pr_map.unwrap_or_default().status, 1).ok().map(|v| ("status register", v[0])),
+            Profile::Cia402 => None,
         }
     }
 }
@@ -879,7 +782,8 @@ fn homing_writes(a: &AxisConfig, m: &cncgw_bus::modbus::Cia402Map, h: &super::se
 pub fn home_unit(cfg: &MachineConfig, unit: u8, h: &super::service::HomeArgs) -> Result<f64, i32> {
     use super::diag::{EXIT_NODE, EXIT_USAGE};
     use cncgw_bus::cia402::{cw, mode, sw};
-    let (name, a, mut c) = open_unit(cfg, unit)?;
+    let mut d = ModbusDrive::open(cfg, unit)?;
+    let (name, a) = (d.name.clone(), d.a.clone());
     if a.modbus_profile == Profile::Pr {
         eprintln!("error: unit {unit} (axis {name}) speaks the PR register map: homing is not supported by this register map (it has no mode or homing registers); home the axis with the drive's own software or panel, or set the position with a G92/G50 in the program");
         return Err(EXIT_USAGE);
@@ -898,39 +802,40 @@ pub fn home_unit(cfg: &MachineConfig, unit: u8, h: &super::service::HomeArgs) ->
         return Err(EXIT_USAGE);
     }
     let timeout = Duration::from_secs_f64(h.timeout.min(3600.0));
-    let run = |c: &mut Client| -> Result<f64, String> {
-        let before = c.read(unit, m.mode_display, 1)?[0];
-        watchdog_off(c, &a)?;
+    let run = |d: &mut ModbusDrive| -> Result<f64, String> {
+        let before = d.c.read(unit, m.mode_display, 1)?[0];
+        watchdog_off(&mut d.c, &a)?;
         // The homing parameters before the mode: a drive may take them as homing starts.
         for (addr, words, what) in &writes {
-            c.write(unit, *addr, words).map_err(|e| format!("{e}: writing the {what} (register {addr})"))?;
+            d.c.write(unit, *addr, words).map_err(|e| format!("{e}: writing the {what} (register {addr})"))?;
         }
-        c.write(unit, m.mode, &[mode::HOMING as u16]).map_err(|e| format!("{e}: the drive refused homing mode 6 in its mode register {}", m.mode))?;
+        d.c.write(unit, m.mode, &[mode::HOMING as u16])
+            .map_err(|e| format!("{e}: the drive refused homing mode 6 in its mode register {}", m.mode))?;
         let homed = (|| {
-            cia402_enable(c, &a, WALK_TIMEOUT)?;
-            let shown = c.read(unit, m.mode_display, 1)?[0] as i16 as i8;
+            access::power_walk(d, access::PowerGoal::Enable, 2000)?;
+            let shown = d.c.read(unit, m.mode_display, 1)?[0] as i16 as i8;
             if shown != mode::HOMING {
                 return Err(format!(
                     "unit {unit} shows mode {shown} ({}) after mode 6 was written: it has no homing mode over Modbus",
                     mode::name(shown)
                 ));
             }
-            c.write(unit, m.controlword, &[cw::ENABLE_OPERATION_CMD])?;
-            c.write(unit, m.controlword, &[cw::ENABLE_OPERATION_CMD | cw::OMS4])?;
+            d.c.write(unit, m.controlword, &[cw::ENABLE_OPERATION_CMD])?;
+            d.c.write(unit, m.controlword, &[cw::ENABLE_OPERATION_CMD | cw::OMS4])?;
             let end = Instant::now() + timeout;
             loop {
-                let s = c.read(unit, m.statusword, 1)?[0];
+                let s = d.c.read(unit, m.statusword, 1)?[0];
                 if s & sw::OMS13 != 0 {
                     return Err(format!(
                         "unit {unit} reports a homing error (statusword 0x{s:04X} bit 13): {}; check the drive's homing method and switches",
-                        error_text(c, &a)
+                        error_text(&mut d.c, &a)
                     ));
                 }
                 if State::from_statusword(s) != State::OperationEnabled {
                     return Err(format!(
                         "unit {unit} left Operation Enabled while homing ({}): {}",
                         State::from_statusword(s).name(),
-                        error_text(c, &a)
+                        error_text(&mut d.c, &a)
                     ));
                 }
                 if s & sw::OMS12 != 0 && s & sw::TARGET_REACHED != 0 {
@@ -946,20 +851,20 @@ pub fn home_unit(cfg: &MachineConfig, unit: u8, h: &super::service::HomeArgs) ->
             }
         })();
         // Bit 4 down, torque off, the mode it had: whatever happened.
-        let _ = c.write(unit, m.controlword, &[cw::ENABLE_OPERATION_CMD]);
-        let _ = c.write(unit, m.controlword, &[cw::DISABLE_VOLTAGE]);
+        let _ = d.c.write(unit, m.controlword, &[cw::ENABLE_OPERATION_CMD]);
+        let _ = d.c.write(unit, m.controlword, &[cw::DISABLE_VOLTAGE]);
         if before as i16 as i8 != mode::HOMING && before != 0 {
-            let _ = c.write(unit, m.mode, &[before]);
+            let _ = d.c.write(unit, m.mode, &[before]);
         }
         homed?;
-        let p = c.read(unit, m.position_actual, 2)?;
+        let p = d.c.read(unit, m.position_actual, 2)?;
         Ok(m.word_order.join_i32([p[0], p[1]]) as f64 / a.counts_per_unit)
     };
     let unit_s = if a.kind == crate::config::AxisKind::Spindle { "deg" } else { "mm" };
-    match run(&mut c) {
+    match run(&mut d) {
         Ok(pos) => {
             let how = if m.homing_method.is_some() { format!("homing method {}", h.method) } else { "the drive's own homing method".into() };
-            println!("unit {unit} (axis {name}) on {}: homed in mode 6 with {how}; position now {pos:.4} {unit_s}", c.what);
+            println!("unit {unit} (axis {name}) on {}: homed in mode 6 with {how}; position now {pos:.4} {unit_s}", d.c.what);
             Ok(pos)
         }
         Err(e) => {

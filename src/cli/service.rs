@@ -6,11 +6,14 @@
 //! refused before the bus is opened (as `sdo write` does).
 
 use super::diag::{sdo_error_text, EXIT_NODE, EXIT_OK, EXIT_SETUP, EXIT_USAGE};
+use super::exit;
 use super::{load_config, open_session, open_session_with, MachineArgs, Session};
+pub use crate::drives::access::PowerGoal;
+use crate::drives::access::{self, DriveAccess, ObjType};
 use crate::drives::DriveBus;
 use cncgw_bus::canopen::emcy::error_text;
 use cncgw_bus::canopen::od;
-use cncgw_bus::cia402::{cw, mode, EnableProgress, Enabler, State};
+use cncgw_bus::cia402::{mode, State};
 use cncgw_bus::{BusError, CanBus, CanFrame};
 use std::io::Write;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -89,12 +92,6 @@ fn read_statusword(s: &mut Session, node: u8) -> Result<u16, String> {
         .map_err(|e| format!("node {node}: reading the statusword 0x6041 failed: {e}; is it a CiA 402 drive? `cncgw scan` shows what answers"))
 }
 
-fn write_controlword(s: &mut Session, node: u8, c: u16) -> Result<(), String> {
-    s.master
-        .sdo_download(&mut *s.clock, node, od::CONTROLWORD, 0, &c.to_le_bytes())
-        .map_err(|e| format!("node {node}: writing the controlword 0x6040 = 0x{c:04X} failed: {}", sdo_error_text(&e)))
-}
-
 /// The drive's error code 0x603F in words, for messages.
 fn error_code_text(s: &mut Session, node: u8) -> String {
     match read_int(s, node, od::ERROR_CODE, 2) {
@@ -103,92 +100,69 @@ fn error_code_text(s: &mut Session, node: u8) -> String {
     }
 }
 
-/// What `drive enable|disable|fault-reset` walks towards.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum PowerGoal {
-    /// Operation Enabled (fault resets included, as the master's own walk does).
-    Enable,
-    /// Switch On Disabled: no torque (disable voltage, CiA 402 transitions 7, 9, 10, 12).
-    Disable,
-    /// Out of Fault (rising edge of controlword bit 7), to Switch On Disabled.
-    FaultReset,
-}
-
-/// Walk `node` towards `goal` over SDO (0x6041 read, 0x6040 written), one step per 10 ms,
-/// giving up after `timeout_ms`. Returns (state before, state reached).
+/// Walk `node` towards `goal` over SDO (0x6041 read, 0x6040 written): `drives::access`'s
+/// walk, the same for every bus. Returns (state before, state reached).
 pub fn power_walk(s: &mut Session, node: u8, goal: PowerGoal, timeout_ms: u64) -> Result<(State, State), String> {
-    s.master.ensure_node(node);
-    let first = State::from_statusword(read_statusword(s, node)?);
-    if goal == PowerGoal::Enable && first != State::OperationEnabled {
-        // A stale target position (0x607A) would be jumped to in a position mode the moment
-        // the drive enables: make it the present position. Drives without 0x607A skip this.
-        if let Ok(p) = read_int(s, node, od::POSITION_ACTUAL, 4) {
-            let _ = s.master.sdo_download(&mut *s.clock, node, od::TARGET_POSITION, 0, &(p as i32).to_le_bytes());
-        }
-    }
-    let end = s.clock.now_ns() + timeout_ms * MS;
-    let mut enabler = Enabler::default();
-    let mut sent_reset = false;
-    loop {
-        let st = State::from_statusword(read_statusword(s, node)?);
-        let c = match goal {
-            PowerGoal::Enable => match enabler.step(st.statusword_bits()) {
-                EnableProgress::Enabled => return Ok((first, st)),
-                EnableProgress::ResetFailed => {
-                    return Err(format!(
-                        "node {node} stays in Fault after {} fault resets: {}; clear the cause first",
-                        Enabler::MAX_RESETS,
-                        error_code_text(s, node)
-                    ))
-                }
-                EnableProgress::Walking => enabler.controlword,
-            },
-            PowerGoal::Disable => match st {
-                State::SwitchOnDisabled | State::NotReadyToSwitchOn => return Ok((first, st)),
-                State::Fault | State::FaultReactionActive => {
-                    return Err(format!(
-                        "node {node} is in {} (no torque): {}; `cncgw drive fault-reset {node}` clears it once the cause is gone",
-                        st.name(),
-                        error_code_text(s, node)
-                    ))
-                }
-                _ => cw::DISABLE_VOLTAGE,
-            },
-            PowerGoal::FaultReset => match st {
-                State::Fault | State::FaultReactionActive => {
-                    // A rising edge of bit 7: low first, then high.
-                    if sent_reset {
-                        cw::DISABLE_VOLTAGE
-                    } else {
-                        write_controlword(s, node, cw::DISABLE_VOLTAGE)?;
-                        sent_reset = true;
-                        cw::FAULT_RESET_CMD
-                    }
-                }
-                _ => {
-                    if sent_reset {
-                        // Bit 7 back down so the next reset is an edge again.
-                        write_controlword(s, node, cw::DISABLE_VOLTAGE)?;
-                    }
-                    return Ok((first, st));
-                }
-            },
-        };
-        if s.clock.now_ns() >= end {
-            return Err(match goal {
-                PowerGoal::FaultReset => {
-                    format!("node {node} still in {} after a fault reset: the cause persists: {}", st.name(), error_code_text(s, node))
-                }
-                _ => format!("node {node} stuck in {} for {timeout_ms} ms; `cncgw drive status {node}` shows why", st.name()),
-            });
-        }
-        write_controlword(s, node, c)?;
-        let t = s.clock.now_ns() + 10 * MS;
-        s.clock.wait_until(t);
+    access::power_walk(&mut SdoDrive::new(s, node), goal, timeout_ms)
+}
+
+/// A CANopen drive's objects by SDO (SocketCAN, socketcand or the embedded emulator).
+pub struct SdoDrive<'a> {
+    pub s: &'a mut Session,
+    pub node: u8,
+}
+
+impl<'a> SdoDrive<'a> {
+    pub fn new(s: &'a mut Session, node: u8) -> SdoDrive<'a> {
+        s.master.ensure_node(node);
+        SdoDrive { s, node }
     }
 }
 
-/// `cncgw drive enable|disable|fault-reset NODE`.
+impl DriveAccess for SdoDrive<'_> {
+    fn noun(&self) -> &'static str {
+        "node"
+    }
+    fn id(&self) -> u8 {
+        self.node
+    }
+    fn label(&self) -> String {
+        let axis = self.s.master.node_spec(self.node).map(|n| format!(" (axis {})", n.axis)).unwrap_or_default();
+        format!("node {}{axis}", self.node)
+    }
+    fn read(&mut self, index: u16, sub: u8, ty: ObjType) -> Result<i64, String> {
+        let n = ty.bytes();
+        let d = self.s.master.sdo_upload(&mut *self.s.clock, self.node, index, sub).map_err(|e| sdo_error_text(&e))?;
+        if d.len() < n {
+            return Err(format!("0x{index:04X} answered {} byte(s), expected {n}", d.len()));
+        }
+        let mut b = [0u8; 8];
+        b[..n].copy_from_slice(&d[..n]);
+        Ok(ty.extend(u64::from_le_bytes(b)))
+    }
+    fn write(&mut self, index: u16, sub: u8, ty: ObjType, value: i64) -> Result<(), String> {
+        let b = value.to_le_bytes();
+        self.s.master.sdo_download(&mut *self.s.clock, self.node, index, sub, &b[..ty.bytes()]).map_err(|e| sdo_error_text(&e))
+    }
+    fn statusword(&mut self) -> Result<u16, String> {
+        read_statusword(self.s, self.node)
+    }
+    fn controlword(&mut self, c: u16) -> Result<(), String> {
+        self.write(od::CONTROLWORD, 0, ObjType::U16, c as i64)
+            .map_err(|e| format!("node {}: writing the controlword 0x6040 = 0x{c:04X} failed: {e}", self.node))
+    }
+    fn error_text(&mut self) -> String {
+        error_code_text(self.s, self.node)
+    }
+    fn now_ns(&mut self) -> u64 {
+        self.s.clock.now_ns()
+    }
+    fn wait_ns(&mut self, t: u64) {
+        self.s.clock.wait_until(t)
+    }
+}
+
+/// `cncgw drive enable|disable|fault-reset NODE`: the same walk for every bus.
 pub fn drive_power(machine: &MachineArgs, node: u8, goal: PowerGoal, yes: bool) -> i32 {
     let _bus_lock = match super::lock::for_writing(machine) {
         Ok(l) => l,
@@ -200,41 +174,60 @@ pub fn drive_power(machine: &MachineArgs, node: u8, goal: PowerGoal, yes: bool) 
         }
     }
     match super::mbus::modbus_machine(machine) {
-        Ok(Some(cfg)) => return super::mbus::drive_power(&cfg, node, goal),
+        Ok(Some(cfg)) => {
+            return match super::mbus::ModbusDrive::open(&cfg, node) {
+                Ok(mut d) => power_report(&mut d, goal),
+                Err(code) => code,
+            }
+        }
         Ok(None) => {}
         Err(e) => {
             eprintln!("error: {e}");
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
     }
     let mut s = match open(machine) {
         Ok(s) => s,
         Err(c) => return c,
     };
-    let axis = s.master.node_spec(node).map(|n| format!(" (axis {})", n.axis)).unwrap_or_default();
-    match power_walk(&mut s, node, goal, 2000) {
+    let simulated = s.simulated;
+    let code = power_report(&mut SdoDrive::new(&mut s, node), goal);
+    if code == exit::OK && simulated {
+        println!("  (embedded emulated drives: they start fresh with every command)");
+    }
+    code
+}
+
+/// Walk `d` to `goal` and say what happened.
+fn power_report(d: &mut dyn DriveAccess, goal: PowerGoal) -> i32 {
+    match access::power_walk(d, goal, 2000) {
         Ok((from, to)) => {
-            let sw = read_statusword(&mut s, node).map(|w| format!(" (statusword 0x{w:04X})")).unwrap_or_default();
+            let sw = match d.status_register() {
+                Some((what, v)) => format!(" ({what} 0x{v:04X})"),
+                None => d.statusword().map(|w| format!(" (statusword 0x{w:04X})")).unwrap_or_default(),
+            };
+            let label = d.label();
             if from == to {
                 let why = if goal == PowerGoal::FaultReset { "not in fault, nothing to reset" } else { "already there" };
-                println!("node {node}{axis}: {}{sw}; {why}", to.name());
+                println!("{label}: {}{sw}; {why}", to.name());
             } else {
-                println!("node {node}{axis}: {} → {}{sw}", from.name(), to.name());
+                println!("{label}: {} → {}{sw}", from.name(), to.name());
             }
             if goal == PowerGoal::Enable {
-                let m = read_int(&mut s, node, od::MODES_DISPLAY, 1).map(|m| m as i8);
-                if let Ok(m) = m {
-                    println!("  mode {m} ({}): the drive holds its position until it gets a set-point", mode::name(m));
+                match d.read(od::MODES_DISPLAY, 0, ObjType::I8) {
+                    Ok(m) => println!("  mode {m} ({}): the drive holds its position until it gets a set-point", mode::name(m as i8)),
+                    Err(_) if d.status_register().is_some() => println!("  servo on: the drive holds its position until a PR block is triggered"),
+                    Err(_) => {}
+                }
+                if d.noun() == "unit" {
+                    println!("  communication watchdog off: the controller sets it again when it starts");
                 }
             }
-            if s.simulated {
-                println!("  (embedded emulated drives: they start fresh with every command)");
-            }
-            EXIT_OK
+            exit::OK
         }
         Err(e) => {
             eprintln!("error: {e}");
-            EXIT_NODE
+            exit::NOT_MET
         }
     }
 }
