@@ -13,7 +13,7 @@ use crate::config::{AxisConfig, LinkTransport, MachineConfig, ModbusLink, Parity
 use crate::drives::access::{self, DriveAccess, ObjType};
 use crate::drives::modbus::link::exception_words;
 use cncgw_bus::cia402::State;
-use cncgw_bus::modbus::{pr_status, Profile, WordOrder};
+use cncgw_bus::modbus::{Profile, WordOrder};
 use std::time::{Duration, Instant};
 use tokio_modbus::client::{Context, Reader, Writer};
 use tokio_modbus::prelude::SlaveContext;
@@ -387,82 +387,6 @@ pub fn scan(cfg: &MachineConfig, json: bool) -> i32 {
     }
 }
 
-/// `cncgw drive status UNIT` on Modbus.
-pub fn drive_status(cfg: &MachineConfig, unit: u8, json: bool) -> i32 {
-    use super::diag::{EXIT_NODE, EXIT_OK, EXIT_SETUP, EXIT_USAGE};
-    let Some((name, a, link)) = axes(cfg).into_iter().find(|(_, a, _)| a.node == unit) else {
-        eprintln!("error: no axis of the configuration has Modbus unit id {unit} (`cncgw config check` lists them); Modbus registers are read through an axis's map");
-        return EXIT_USAGE;
-    };
-    let mut c = match cfg.modbus.get(&link).ok_or_else(|| format!("no link {link}")).and_then(Client::connect) {
-        Ok(c) => c,
-        Err(e) => {
-            eprintln!("error: Modbus link {link}: {e}");
-            return EXIT_SETUP;
-        }
-    };
-    let d = match read_drive(&mut c, &name, &a) {
-        Ok(d) => d,
-        Err(e) => {
-            eprintln!("error: axis {name}: {e}; `cncgw scan` shows which units answer");
-            return EXIT_NODE;
-        }
-    };
-    let state = State::from_statusword(d.statusword);
-    let unit_s = if a.kind == crate::config::AxisKind::Spindle { "deg" } else { "mm" };
-    let bits = super::diag::statusword_bits(d.statusword, d.mode.unwrap_or(0));
-    if json {
-        let mut v = state_json(&d);
-        v["node"] = serde_json::json!(unit);
-        v["bus"] = serde_json::json!(c.what);
-        v["unit_of_position"] = serde_json::json!(unit_s);
-        v["bits"] = bits.iter().map(|(b, n, s)| serde_json::json!({"bit": b, "name": n, "set": s})).collect();
-        println!("{v}");
-    } else {
-        println!("unit {unit} (axis {name}) on {}: {}", c.what, state.name());
-        match d.pr_status {
-            Some(st) => {
-                println!("status register = 0x{st:04X} (PR profile), as a CiA 402 statusword 0x{:04X}", d.statusword);
-                for (bit, n) in [
-                    (pr_status::FAULT, "alarm latched"),
-                    (pr_status::ENABLED, "servo on"),
-                    (pr_status::RUNNING, "PR move running"),
-                    (pr_status::IN_POSITION, "in position"),
-                ] {
-                    println!("  {} {n}", if st & bit != 0 { "1" } else { "0" });
-                }
-            }
-            None => {
-                println!("statusword = 0x{:04X}", d.statusword);
-                for (b, n, set) in &bits {
-                    println!("  bit {b:>2} {} {n}", if *set { "1" } else { "0" });
-                }
-            }
-        }
-        if let Some(m) = d.mode {
-            println!("mode = {m} ({})", cncgw_bus::cia402::mode::name(m));
-        }
-        println!("position = {} counts = {:.4} {unit_s}", d.position_counts, d.position);
-        if let Some(v) = d.velocity_per_s {
-            println!("velocity = {v:.4} {unit_s}/s");
-        }
-        if d.profile == "cia402" {
-            println!("error code = 0x{:04X} {}", d.error_code, cncgw_bus::canopen::emcy::error_text(d.error_code));
-        } else {
-            println!("alarm code = 0x{:04X}{}", d.error_code, if d.error_code == 0 { " (none)" } else { " (see the drive's manual)" });
-        }
-        println!("round trip {:.1} ms for {} register reads", d.round_trip_ms, if d.profile == "cia402" { 5 } else { 3 });
-        if matches!(state, State::Fault | State::FaultReactionActive) {
-            println!("the drive is in fault: clear the cause shown above, then reset the fault");
-        }
-    }
-    if matches!(state, State::Fault | State::FaultReactionActive) {
-        EXIT_NODE
-    } else {
-        EXIT_OK
-    }
-}
-
 /// `cncgw monitor` on Modbus: the same table from the registers, refreshed in place.
 pub fn monitor(cfg: &MachineConfig, seconds: Option<f64>, once: bool, interval_ms: u64, json: bool) -> i32 {
     use std::io::IsTerminal;
@@ -643,6 +567,9 @@ impl DriveAccess for ModbusDrive {
     }
     fn label(&self) -> String {
         format!("unit {} (axis {}) on {}", self.a.node, self.name, self.c.what)
+    }
+    fn axis(&self) -> Option<(String, f64, bool)> {
+        Some((self.name.clone(), self.a.counts_per_unit, self.a.kind == crate::config::AxisKind::Spindle))
     }
     fn read(&mut self, index: u16, sub: u8, ty: ObjType) -> Result<i64, String> {
         let (r, len, order) = self.register(index, sub, ty)?;

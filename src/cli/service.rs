@@ -130,6 +130,9 @@ impl DriveAccess for SdoDrive<'_> {
         let axis = self.s.master.node_spec(self.node).map(|n| format!(" (axis {})", n.axis)).unwrap_or_default();
         format!("node {}{axis}", self.node)
     }
+    fn axis(&self) -> Option<(String, f64, bool)> {
+        self.s.master.node_spec(self.node).map(|n| (n.axis.clone(), n.counts_per_unit, n.spindle))
+    }
     fn read(&mut self, index: u16, sub: u8, ty: ObjType) -> Result<i64, String> {
         let n = ty.bytes();
         let d = self.s.master.sdo_upload(&mut *self.s.clock, self.node, index, sub).map_err(|e| sdo_error_text(&e))?;

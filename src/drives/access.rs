@@ -52,6 +52,8 @@ pub trait DriveAccess {
     /// The drive in messages, with its axis and bus where known: "node 1 (axis x)",
     /// "unit 2 (axis z) on Modbus TCP 127.0.0.1:5020".
     fn label(&self) -> String;
+    /// The drive's axis in the configuration: (name, counts per machine unit, a spindle).
+    fn axis(&self) -> Option<(String, f64, bool)>;
     fn read(&mut self, index: u16, sub: u8, ty: ObjType) -> Result<i64, String>;
     fn write(&mut self, index: u16, sub: u8, ty: ObjType, value: i64) -> Result<(), String>;
     fn statusword(&mut self) -> Result<u16, String> {
@@ -75,6 +77,45 @@ pub trait DriveAccess {
     fn status_register(&mut self) -> Option<(&'static str, u16)> {
         None
     }
+}
+
+/// One drive's state as `drive status` and `monitor` show it: the statusword and what the
+/// drive has of the rest (absent or unreadable objects are `None`).
+#[derive(Clone, Debug, Default)]
+pub struct DriveStatus {
+    pub statusword: u16,
+    /// The status register as read, where it is no CiA 402 statusword (a PR drive's).
+    pub status_register: Option<(&'static str, u16)>,
+    pub mode: Option<i8>,
+    pub position: Option<i64>,
+    pub velocity: Option<i64>,
+    pub following_error: Option<i64>,
+    pub error_code: Option<u16>,
+    /// 0x60FD: bit 0 negative, bit 1 positive limit switch, bit 2 home switch.
+    pub digital_inputs: Option<u32>,
+}
+
+impl DriveStatus {
+    pub fn state(&self) -> State {
+        State::from_statusword(self.statusword)
+    }
+}
+
+/// Read `d`'s status: the statusword (an error when it does not answer), then the rest.
+pub fn read_status(d: &mut dyn DriveAccess) -> Result<DriveStatus, String> {
+    let statusword = d.statusword()?;
+    let status_register = d.status_register();
+    let mut int = |ix: u16, ty: ObjType| d.read(ix, 0, ty).ok();
+    Ok(DriveStatus {
+        statusword,
+        status_register,
+        mode: int(od::MODES_DISPLAY, ObjType::I8).map(|m| m as i8),
+        position: int(od::POSITION_ACTUAL, ObjType::I32),
+        velocity: int(od::VELOCITY_ACTUAL, ObjType::I32),
+        following_error: int(od::FOLLOWING_ERROR_ACTUAL, ObjType::I32),
+        error_code: int(od::ERROR_CODE, ObjType::U16).map(|e| e as u16),
+        digital_inputs: int(0x60FD, ObjType::U32).map(|v| v as u32),
+    })
 }
 
 /// What `drive enable|disable|fault-reset` walks towards.
@@ -178,6 +219,9 @@ mod tests {
         }
         fn label(&self) -> String {
             "node 1".into()
+        }
+        fn axis(&self) -> Option<(String, f64, bool)> {
+            None
         }
         fn read(&mut self, index: u16, _: u8, _: ObjType) -> Result<i64, String> {
             match index {
