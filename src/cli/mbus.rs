@@ -408,36 +408,19 @@ pub fn monitor(cfg: &MachineConfig, seconds: Option<f64>, once: bool, interval_m
     let mut out = std::io::stdout();
     loop {
         let tick = Instant::now();
-        let mut lines =
-            vec![format!("{:>4} {:<5} {:<6} {:<22} {:<26} {:>16} {:>16} {:>8}", "unit", "axis", "sw", "state", "mode", "position", "speed", "error")];
+        let mut lines = vec![super::service::monitor_header("unit")];
         let mut arr = Vec::new();
         for (name, a, link) in axes(cfg) {
-            let Some(c) = cl.get_mut(&link) else { continue };
-            match read_drive(c, &name, &a) {
-                Ok(d) => {
-                    let mode = d.mode.map(|m| format!("{m} {}", cncgw_bus::cia402::mode::name(m))).unwrap_or_else(|| "-".into());
-                    // The operator's units: mm and mm/min, degrees and rpm for a spindle.
-                    let spindle = a.kind == crate::config::AxisKind::Spindle;
-                    let (pu, vu, per_min) = if spindle { ("deg", "rpm", 1.0 / 6.0) } else { ("mm", "mm/min", 60.0) };
-                    let vel = d.velocity_per_s.map(|v| format!("{:.4} {vu}", v * per_min)).unwrap_or_else(|| "-".into());
-                    lines.push(format!(
-                        "{:>4} {name:<5} 0x{:04X} {:<22} {mode:<26} {:>16} {vel:>16} {:>8}",
-                        a.node,
-                        d.statusword,
-                        State::from_statusword(d.statusword).name(),
-                        format!("{:.4} {pu}", d.position),
-                        format!("0x{:04X}", d.error_code)
-                    ));
-                    arr.push(state_json(&d));
-                }
-                Err(e) => {
-                    lines.push(format!("{:>4} {name:<5} no answer: {e}", a.node));
-                    arr.push(serde_json::json!({"unit": a.node, "axis": name, "error": e}));
-                }
-            }
+            // The link's one client lent to the unit's drive for its row (an RTU line opens once).
+            let Some(c) = cl.remove(&link) else { continue };
+            let mut d = ModbusDrive { c, a, name, epoch: t0 };
+            let row = super::service::monitor_read(&mut d);
+            cl.insert(link, d.c);
+            lines.push(super::service::monitor_line(&row));
+            arr.push(super::service::monitor_json(&row));
         }
         let rtt = tick.elapsed().as_secs_f64() * 1e3;
-        lines.push(format!("Modbus: {} register reads took {rtt:.1} ms", arr.len() * 5));
+        lines.push(format!("Modbus: the register reads of {} unit(s) took {rtt:.1} ms", arr.len()));
         let io = io.as_mut().map(|m| {
             let r = m.read(None);
             (m.json(&r), m.lines(&r))

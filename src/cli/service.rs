@@ -9,7 +9,7 @@ use super::diag::{sdo_error_text, EXIT_NODE, EXIT_OK, EXIT_SETUP, EXIT_USAGE};
 use super::exit;
 use super::{load_config, open_session, open_session_with, MachineArgs, Session};
 pub use crate::drives::access::PowerGoal;
-use crate::drives::access::{self, DriveAccess, ObjType};
+use crate::drives::access::{self, DriveAccess, DriveStatus, ObjType};
 use crate::drives::DriveBus;
 use cncgw_bus::canopen::emcy::error_text;
 use cncgw_bus::canopen::od;
@@ -681,66 +681,75 @@ impl CanBus for CountingBus {
     }
 }
 
-/// One drive's values as the monitor reads them.
-struct MonitorRow {
+/// One drive's row of the monitor, read through `DriveAccess`: the same for every bus.
+pub(super) struct MonitorRow {
     node: u8,
     axis: String,
-    /// Statusword, or why the node did not answer.
-    sw: Result<u16, String>,
-    mode: Option<i8>,
     /// A spindle (degrees, rpm) rather than a feed axis (mm, mm/min).
     spindle: bool,
-    /// Position and following error in mm or degrees (X as the drive counts it: a radius).
-    pos: Option<f64>,
-    /// Speed in the operator's unit: mm/min, or rpm for a spindle.
-    vel: Option<f64>,
-    ferr: Option<f64>,
+    cpu: f64,
+    /// The drive's status, or why it did not answer.
+    st: Result<DriveStatus, String>,
 }
 
-fn monitor_read(s: &mut Session, node: u8) -> MonitorRow {
-    let spec = s.master.node_spec(node).cloned();
-    let axis = spec.as_ref().map(|n| n.axis.clone()).unwrap_or_else(|| "-".into());
-    let cpu = spec.as_ref().map(|n| n.counts_per_unit).unwrap_or(1.0);
-    let spindle = spec.as_ref().is_some_and(|n| n.spindle);
-    let mut row = MonitorRow { node, axis, sw: Ok(0), spindle, pos: None, vel: None, ferr: None, mode: None };
-    match read_int(s, node, od::STATUSWORD, 2) {
-        Ok(v) => row.sw = Ok(v as u16),
-        Err(e) => {
-            row.sw = Err(e);
-            return row;
-        }
+pub(super) fn monitor_read(d: &mut dyn DriveAccess) -> MonitorRow {
+    let axis = d.axis();
+    let (name, cpu, spindle) = axis.unwrap_or_else(|| ("-".into(), 1.0, false));
+    MonitorRow { node: d.id(), axis: name, spindle, cpu, st: access::read_status(d) }
+}
+
+impl MonitorRow {
+    /// Position, speed (rpm or mm/min: 360°/rev, 60 s/min) and following error in the
+    /// operator's units (X as the drive counts it: a radius).
+    fn figures(&self, st: &DriveStatus) -> (Option<f64>, Option<f64>, Option<f64>) {
+        let units = |c: Option<i64>| c.map(|c| c as f64 / self.cpu);
+        let vel = units(st.velocity).map(|v| if self.spindle { v / 6.0 } else { v * 60.0 });
+        (units(st.position), vel, units(st.following_error))
     }
-    row.mode = read_int(s, node, od::MODES_DISPLAY, 1).ok().map(|m| m as i8);
-    let mut units = |ix: u16| read_int(s, node, ix, 4).ok().map(|c| c as f64 / cpu);
-    row.pos = units(od::POSITION_ACTUAL);
-    // Units per second from the drive → rpm (360°/rev, 60 s/min) or mm/min.
-    row.vel = units(od::VELOCITY_ACTUAL).map(|v| if spindle { v / 6.0 } else { v * 60.0 });
-    row.ferr = units(od::FOLLOWING_ERROR_ACTUAL);
-    row
+}
+
+/// The monitor table's header, the drives addressed as `noun` ("node", "unit").
+pub(super) fn monitor_header(noun: &str) -> String {
+    format!(
+        "{noun:>4} {:<5} {:<6} {:<22} {:<26} {:>8} {:>16} {:>16} {:>14}",
+        "axis", "sw", "state", "mode", "error", "position", "speed", "follow. error"
+    )
 }
 
 /// One drive's line of the monitor table.
-fn monitor_line(r: &MonitorRow) -> String {
+pub(super) fn monitor_line(r: &MonitorRow) -> String {
     let (node, axis) = (r.node, &r.axis);
-    let sw = match &r.sw {
-        Ok(v) => *v,
+    let st = match &r.st {
+        Ok(st) => st,
         Err(e) => return format!("{node:>4} {axis:<5} no answer: {e}"),
     };
-    let st = State::from_statusword(sw);
+    let (pos, vel, ferr) = r.figures(st);
     let (pu, vu) = if r.spindle { ("deg", "rpm") } else { ("mm", "mm/min") };
     let f = |v: Option<f64>, u: &str| v.map(|v| format!("{v:.4} {u}")).unwrap_or_else(|| "-".into());
-    let mode = r.mode.map(|m| format!("{m} {}", mode::name(m))).unwrap_or_else(|| "-".into());
-    format!("{node:>4} {axis:<5} 0x{sw:04X} {:<22} {mode:<26} {:>16} {:>16} {:>14}", st.name(), f(r.pos, pu), f(r.vel, vu), f(r.ferr, pu))
+    let mode = st.mode.map(|m| format!("{m} {}", mode::name(m))).unwrap_or_else(|| "-".into());
+    let err = st.error_code.map(|e| format!("0x{e:04X}")).unwrap_or_else(|| "-".into());
+    format!(
+        "{node:>4} {axis:<5} 0x{:04X} {:<22} {mode:<26} {err:>8} {:>16} {:>16} {:>14}",
+        st.statusword,
+        st.state().name(),
+        f(pos, pu),
+        f(vel, vu),
+        f(ferr, pu)
+    )
 }
 
-fn monitor_json(r: &MonitorRow) -> serde_json::Value {
-    match &r.sw {
-        Ok(sw) => serde_json::json!({
-            "node": r.node, "axis": r.axis, "statusword": format!("0x{sw:04X}"),
-            "state": State::from_statusword(*sw).name(), "mode": r.mode, "mode_name": r.mode.map(mode::name),
-            "position": r.pos, "velocity": r.vel, "following_error": r.ferr, "error": null,
-            "position_unit": if r.spindle { "deg" } else { "mm" }, "velocity_unit": if r.spindle { "rpm" } else { "mm/min" },
-        }),
+pub(super) fn monitor_json(r: &MonitorRow) -> serde_json::Value {
+    match &r.st {
+        Ok(st) => {
+            let (pos, vel, ferr) = r.figures(st);
+            serde_json::json!({
+                "node": r.node, "axis": r.axis, "statusword": format!("0x{:04X}", st.statusword),
+                "state": st.state().name(), "mode": st.mode, "mode_name": st.mode.map(mode::name),
+                "position": pos, "velocity": vel, "following_error": ferr, "error": null,
+                "error_code": st.error_code.map(|e| format!("0x{e:04X}")),
+                "position_unit": if r.spindle { "deg" } else { "mm" }, "velocity_unit": if r.spindle { "rpm" } else { "mm/min" },
+            })
+        }
         Err(e) => serde_json::json!({"node": r.node, "axis": r.axis, "error": e}),
     }
 }
@@ -756,10 +765,7 @@ struct MonitorFrame {
 
 /// The monitor's table as text lines.
 fn monitor_text(s: &Session, f: &MonitorFrame) -> Vec<String> {
-    let mut lines = vec![format!(
-        "{:>4} {:<5} {:<6} {:<22} {:<26} {:>16} {:>16} {:>14}",
-        "node", "axis", "sw", "state", "mode", "position", "speed", "follow. error"
-    )];
+    let mut lines = vec![monitor_header("node")];
     lines.extend(f.rows.iter().map(monitor_line));
     lines.push(format!(
         "bus {} load {:.2} % ({} bit/s; frames sent and heard by this tool over the last {:.2} s)",
@@ -869,7 +875,7 @@ pub fn monitor(machine: &MachineArgs, seconds: Option<f64>, once: bool, interval
     let mut since = s.clock.now_ns();
     s.master.listen(&mut *s.clock, 100);
     loop {
-        let rows: Vec<MonitorRow> = nodes.iter().map(|&n| monitor_read(&mut s, n)).collect();
+        let rows: Vec<MonitorRow> = nodes.iter().map(|&n| monitor_read(&mut SdoDrive::new(&mut s, n))).collect();
         let io = io.as_mut().map(|m| {
             let r = m.read(Some(&mut |node, index, sub| sdo_byte(&mut s, node, index, sub)));
             let (j, l) = (m.json(&r), m.lines(&r));
