@@ -10,14 +10,6 @@ use cncgw_bus::canopen::nmt::{NmtCommand, NmtState};
 use cncgw_bus::cia402::{mode, State};
 use serde_json::json;
 
-/// Exit codes of the service commands (`cli::exit`): a node aborted the transfer, did not
-/// answer, or is in a state that needs attention = `NOT_MET`; a command line that cannot be
-/// carried out as written = `INPUT`.
-pub const EXIT_OK: i32 = super::exit::OK;
-pub const EXIT_NODE: i32 = super::exit::NOT_MET;
-pub const EXIT_USAGE: i32 = super::exit::INPUT;
-pub const EXIT_SETUP: i32 = super::exit::SETUP;
-
 /// Parse a number written in decimal or as 0x… hex (an optional leading '-' for decimal).
 pub fn parse_int(s: &str) -> Result<i64, String> {
     let t = s.trim().replace('_', "");
@@ -197,7 +189,7 @@ pub fn sdo_error_text(e: &SdoError) -> String {
 fn open(machine: &MachineArgs) -> Result<Session, i32> {
     open_session(machine).map_err(|e| {
         eprintln!("error: {e}");
-        EXIT_SETUP
+        exit::SETUP
     })
 }
 
@@ -218,7 +210,7 @@ pub fn scan(machine: &MachineArgs, json_out: bool) -> i32 {
         Ok(None) => {}
         Err(e) => {
             eprintln!("error: {e}");
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
     }
     let mut s = match open(machine) {
@@ -319,9 +311,9 @@ pub fn scan(machine: &MachineArgs, json_out: bool) -> i32 {
         }
     }
     if failed > 0 {
-        EXIT_NODE
+        exit::NOT_MET
     } else {
-        EXIT_OK
+        exit::OK
     }
 }
 
@@ -421,13 +413,13 @@ pub fn sdo_read(machine: &MachineArgs, node: u8, index: u16, sub: u8, ty: Option
         Ok(d) => d,
         Err(e) => {
             eprintln!("error: node {node} 0x{index:04X}:{sub:02X}: {}", sdo_error_text(&e));
-            return EXIT_NODE;
+            return exit::NOT_MET;
         }
     };
     if let Some(path) = out {
         if let Err(e) = std::fs::write(path, &data) {
             eprintln!("error: {}: cannot write: {e}", path.display());
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
     }
     let (text, val, tname) = match ty {
@@ -435,7 +427,7 @@ pub fn sdo_read(machine: &MachineArgs, node: u8, index: u16, sub: u8, ty: Option
             Ok((a, b)) => (a, b, t.name()),
             Err(e) => {
                 eprintln!("error: node {node} 0x{index:04X}:{sub:02X}: {e}");
-                return EXIT_USAGE;
+                return exit::INPUT;
             }
         },
         None => guess(&data),
@@ -446,7 +438,7 @@ pub fn sdo_read(machine: &MachineArgs, node: u8, index: u16, sub: u8, ty: Option
         let saved = out.map(|p| format!(" → {}", p.display())).unwrap_or_default();
         println!("node {node} 0x{index:04X}:{sub:02X} = {text} [{tname}]{saved}");
     }
-    EXIT_OK
+    exit::OK
 }
 
 /// Objects whose write can set a motor in motion: they need `--yes` on a real bus.
@@ -464,7 +456,7 @@ pub fn sdo_write(machine: &MachineArgs, node: u8, index: u16, sub: u8, ty: SdoTy
         Ok(d) => d,
         Err(e) => {
             eprintln!("error: {e}");
-            return EXIT_USAGE;
+            return exit::INPUT;
         }
     };
     // Refuse before touching the bus: the effective bus is --bus, else the config's.
@@ -474,13 +466,13 @@ pub fn sdo_write(machine: &MachineArgs, node: u8, index: u16, sub: u8, ty: SdoTy
             Ok((c, _)) => c.bus.interface,
             Err(e) => {
                 eprintln!("error: {e}");
-                return EXIT_SETUP;
+                return exit::SETUP;
             }
         },
     };
     if moves_iron(index) && bus != "inproc" && !yes {
         eprintln!("error: writing 0x{index:04X} can set a motor in motion on {bus}; make sure the axis is free to move, then repeat with --yes");
-        return EXIT_USAGE;
+        return exit::INPUT;
     }
     let mut s = match open(machine) {
         Ok(s) => s,
@@ -491,11 +483,11 @@ pub fn sdo_write(machine: &MachineArgs, node: u8, index: u16, sub: u8, ty: SdoTy
         Ok(()) => {
             let shown = if ty == SdoType::Domain { format!("{} byte(s) from {value}", data.len()) } else { value.to_string() };
             println!("node {node} 0x{index:04X}:{sub:02X} ← {shown} [{}]: ok", ty.name());
-            EXIT_OK
+            exit::OK
         }
         Err(e) => {
             eprintln!("error: node {node} 0x{index:04X}:{sub:02X}: {}", sdo_error_text(&e));
-            EXIT_NODE
+            exit::NOT_MET
         }
     }
 }
@@ -560,7 +552,7 @@ pub fn nmt(machine: &MachineArgs, cmd: NmtArg, target: u8, json_out: bool) -> i3
     nodes.sort_unstable();
     if let Err(a) = s.master.nmt_command(target, cmd.command()) {
         eprintln!("{a}");
-        return EXIT_SETUP;
+        return exit::SETUP;
     }
     if matches!(cmd, NmtArg::Reset) {
         // Reset node restarts the drive's application: its position, and the reference.
@@ -614,9 +606,9 @@ pub fn nmt(machine: &MachineArgs, cmd: NmtArg, target: u8, json_out: bool) -> i3
         }
     }
     if bad > 0 {
-        EXIT_NODE
+        exit::NOT_MET
     } else {
-        EXIT_OK
+        exit::OK
     }
 }
 
@@ -801,7 +793,7 @@ pub fn od_check(machine: &MachineArgs, node: u8, eds_path: &std::path::Path, jso
         Ok(e) => e,
         Err(e) => {
             eprintln!("error: {e}");
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
     };
     let mut s = match open(machine) {
@@ -891,7 +883,7 @@ pub fn od_dump(machine: &MachineArgs, node: u8, eds_path: Option<&std::path::Pat
         Ok(e) => e,
         Err(e) => {
             eprintln!("error: {e}");
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
     };
     let mut s = match open(machine) {
@@ -987,8 +979,8 @@ pub fn od_dump(machine: &MachineArgs, node: u8, eds_path: Option<&std::path::Pat
         }
     }
     if bad > 0 {
-        EXIT_NODE
+        exit::NOT_MET
     } else {
-        EXIT_OK
+        exit::OK
     }
 }

@@ -8,6 +8,7 @@
 //! transaction at a time (read-only); `jog`, `run` and `tap-test` go through the controller's
 //! own Modbus master (`drives::modbus`) and cycle loop.
 
+use super::exit;
 use super::MachineArgs;
 use crate::config::{AxisConfig, LinkTransport, MachineConfig, ModbusLink, Parity};
 use crate::drives::access::{self, DriveAccess, ObjType};
@@ -330,7 +331,7 @@ pub fn scan(cfg: &MachineConfig, json: bool) -> i32 {
         Ok(c) => c,
         Err(e) => {
             eprintln!("error: {e}");
-            return super::diag::EXIT_SETUP;
+            return exit::SETUP;
         }
     };
     let mut failed = 0;
@@ -381,9 +382,9 @@ pub fn scan(cfg: &MachineConfig, json: bool) -> i32 {
         }
     }
     if failed > 0 {
-        super::diag::EXIT_NODE
+        exit::NOT_MET
     } else {
-        super::diag::EXIT_OK
+        exit::OK
     }
 }
 
@@ -394,7 +395,7 @@ pub fn monitor(cfg: &MachineConfig, seconds: Option<f64>, once: bool, interval_m
         Ok(c) => c,
         Err(e) => {
             eprintln!("error: {e}");
-            return super::diag::EXIT_SETUP;
+            return exit::SETUP;
         }
     };
     let mut io = match super::service::io_monitor(cfg) {
@@ -451,16 +452,15 @@ pub fn monitor(cfg: &MachineConfig, seconds: Option<f64>, once: bool, interval_m
 /// The axis with Modbus unit id `unit` and a client on its link. Err = the exit code
 /// (message printed).
 fn open_unit(cfg: &MachineConfig, unit: u8) -> Result<(String, AxisConfig, Client), i32> {
-    use super::diag::{EXIT_SETUP, EXIT_USAGE};
     let Some((name, a, link)) = axes(cfg).into_iter().find(|(_, a, _)| a.node == unit) else {
         eprintln!("error: no axis of the configuration has Modbus unit id {unit} (`cncgw config check` lists them); Modbus registers are addressed through an axis's map");
-        return Err(EXIT_USAGE);
+        return Err(exit::INPUT);
     };
     match cfg.modbus.get(&link).ok_or_else(|| format!("no link {link}")).and_then(Client::connect) {
         Ok(c) => Ok((name, a, c)),
         Err(e) => {
             eprintln!("error: Modbus link {link}: {e}");
-            Err(EXIT_SETUP)
+            Err(exit::SETUP)
         }
     }
 }
@@ -607,7 +607,7 @@ impl DriveAccess for ModbusDrive {
 /// its previous mode restored. The PR map has no homing.
 pub fn drive_home(cfg: &MachineConfig, unit: u8, h: &super::service::HomeArgs) -> i32 {
     match home_unit(cfg, unit, h) {
-        Ok(_) => super::diag::EXIT_OK,
+        Ok(_) => exit::OK,
         Err(code) => code,
     }
 }
@@ -690,13 +690,12 @@ fn homing_writes(a: &AxisConfig, m: &cncgw_bus::modbus::Cia402Map, h: &super::se
 /// `drive_home`'s work: the position after homing (machine units), or the exit code (the
 /// message printed).
 pub fn home_unit(cfg: &MachineConfig, unit: u8, h: &super::service::HomeArgs) -> Result<f64, i32> {
-    use super::diag::{EXIT_NODE, EXIT_USAGE};
     use cncgw_bus::cia402::{cw, mode, sw};
     let mut d = ModbusDrive::open(cfg, unit)?;
     let (name, a) = (d.name.clone(), d.a.clone());
     if a.modbus_profile == Profile::Pr {
         eprintln!("error: unit {unit} (axis {name}) speaks the PR register map: homing is not supported by this register map (it has no mode or homing registers); home the axis with the drive's own software or panel, or set the position with a G92/G50 in the program");
-        return Err(EXIT_USAGE);
+        return Err(exit::INPUT);
     }
     let m = a.cia402_map.unwrap_or_default();
     let writes = match homing_writes(&a, &m, h) {
@@ -704,12 +703,12 @@ pub fn home_unit(cfg: &MachineConfig, unit: u8, h: &super::service::HomeArgs) ->
         Err(alarm) => {
             eprintln!("{alarm}");
             eprintln!("nothing was written or moved");
-            return Err(EXIT_USAGE);
+            return Err(exit::INPUT);
         }
     };
     if !(h.timeout.is_finite() && h.timeout > 0.0) {
         eprintln!("error: --timeout must be a positive number of seconds");
-        return Err(EXIT_USAGE);
+        return Err(exit::INPUT);
     }
     let timeout = Duration::from_secs_f64(h.timeout.min(3600.0));
     let run = |d: &mut ModbusDrive| -> Result<f64, String> {
@@ -779,7 +778,7 @@ pub fn home_unit(cfg: &MachineConfig, unit: u8, h: &super::service::HomeArgs) ->
         }
         Err(e) => {
             eprintln!("error: {e}");
-            Err(EXIT_NODE)
+            Err(exit::NOT_MET)
         }
     }
 }

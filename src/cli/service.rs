@@ -5,7 +5,7 @@
 //! anything but `inproc` — needs `--yes`, or the operator's typed `yes` on a terminal; it is
 //! refused before the bus is opened (as `sdo write` does).
 
-use super::diag::{sdo_error_text, EXIT_NODE, EXIT_OK, EXIT_SETUP, EXIT_USAGE};
+use super::diag::sdo_error_text;
 use super::exit;
 use super::{load_config, open_session, open_session_with, MachineArgs, Session};
 pub use crate::drives::access::PowerGoal;
@@ -47,7 +47,7 @@ pub(crate) fn confirm_motion(machine: &MachineArgs, yes: bool, what: &str) -> Re
     use std::io::{BufRead, IsTerminal};
     let bus = effective_bus(machine).map_err(|e| {
         eprintln!("error: {e}");
-        EXIT_SETUP
+        exit::SETUP
     })?;
     if bus == "inproc" || yes {
         return Ok(());
@@ -61,16 +61,16 @@ pub(crate) fn confirm_motion(machine: &MachineArgs, yes: bool, what: &str) -> Re
             return Ok(());
         }
         eprintln!("not confirmed: nothing was moved");
-        return Err(EXIT_USAGE);
+        return Err(exit::INPUT);
     }
     eprintln!("error: {what} can set a motor in motion on {bus}; make sure the axis is free to move and nobody is near it, then repeat with --yes");
-    Err(EXIT_USAGE)
+    Err(exit::INPUT)
 }
 
 fn open(machine: &MachineArgs) -> Result<Session, i32> {
     open_session(machine).map_err(|e| {
         eprintln!("error: {e}");
-        EXIT_SETUP
+        exit::SETUP
     })
 }
 
@@ -309,7 +309,7 @@ pub fn drive_home(machine: &MachineArgs, node: u8, h: &HomeArgs, yes: bool) -> i
         Ok(None) => {}
         Err(e) => {
             eprintln!("error: {e}");
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
     }
     let mut s = match open(machine) {
@@ -318,11 +318,11 @@ pub fn drive_home(machine: &MachineArgs, node: u8, h: &HomeArgs, yes: bool) -> i
     };
     let Some(spec) = s.master.node_spec(node).cloned() else {
         eprintln!("error: node {node} is not a drive of the configuration; homing needs its scaling (`cncgw config check` lists the axes)");
-        return EXIT_USAGE;
+        return exit::INPUT;
     };
     if let Err(e) = home_params(&s, node, h) {
         eprintln!("error: {e}");
-        return EXIT_USAGE;
+        return exit::INPUT;
     }
     let method = h.method;
     let r = with_started(&mut s, node, |s| home_node(s, node, h).map_err(|e| crate::Alarm::new(crate::alarm::HOMING, e)));
@@ -334,11 +334,11 @@ pub fn drive_home(machine: &MachineArgs, node: u8, h: &HomeArgs, yes: bool) -> i
                 if spec.spindle { "deg" } else { "mm" }
             );
             super::home::record_drive_home(machine, &spec.axis, node, method, pos);
-            EXIT_OK
+            exit::OK
         }
         Err(e) => {
             eprintln!("error: {e}");
-            EXIT_NODE
+            exit::NOT_MET
         }
     }
 }
@@ -383,7 +383,7 @@ pub fn jog(machine: &MachineArgs, axis: &str, to: Option<f64>, by: Option<f64>, 
         Ok(None) => {}
         Err(e) => {
             eprintln!("error: {e}");
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
     }
     let mut s = match open(machine) {
@@ -393,33 +393,33 @@ pub fn jog(machine: &MachineArgs, axis: &str, to: Option<f64>, by: Option<f64>, 
     let Some(ax) = s.cfg.axes.get(axis).cloned() else {
         let names: Vec<&str> = s.cfg.axes.keys().map(String::as_str).collect();
         eprintln!("error: no axis `{axis}` in the configuration (axes: {})", names.join(", "));
-        return EXIT_USAGE;
+        return exit::INPUT;
     };
     if ax.modbus.is_some() {
         match super::machine_config(machine) {
             Ok((cfg, _)) => return jog_program(machine, &cfg, axis, to, by, speed),
             Err(e) => {
                 eprintln!("error: {e}");
-                return EXIT_SETUP;
+                return exit::SETUP;
             }
         }
     }
     let node = ax.node;
     let Some(spec) = s.master.node_spec(node).cloned() else {
         eprintln!("error: axis {axis} (node {node}) is not a CANopen drive of the configuration");
-        return EXIT_SETUP;
+        return exit::SETUP;
     };
     let unit = if spec.spindle { "deg" } else { "mm" };
     let speed = speed.unwrap_or(ax.max_speed / 10.0);
     if !(speed.is_finite() && speed > 0.0 && speed <= ax.max_speed) {
         eprintln!("error: --speed {speed} must be above 0 and at most the axis's max_speed {}", ax.max_speed);
-        return EXIT_USAGE;
+        return exit::INPUT;
     }
     let start = match read_int(&mut s, node, od::POSITION_ACTUAL, 4) {
         Ok(c) => c as f64 / spec.counts_per_unit,
         Err(e) => {
             eprintln!("error: node {node}: reading the position 0x6064 failed: {e}");
-            return EXIT_NODE;
+            return exit::NOT_MET;
         }
     };
     let target = match (to, by) {
@@ -427,18 +427,18 @@ pub fn jog(machine: &MachineArgs, axis: &str, to: Option<f64>, by: Option<f64>, 
         (None, Some(d)) => start + d,
         _ => {
             eprintln!("error: give exactly one of --to POS and --by DIST");
-            return EXIT_USAGE;
+            return exit::INPUT;
         }
     };
     if !target.is_finite() {
         eprintln!("error: the target is not a number");
-        return EXIT_USAGE;
+        return exit::INPUT;
     }
     if !spec.spindle {
         if let (Some(lo), Some(hi)) = (spec.min, spec.max) {
             if target < lo || target > hi {
                 eprintln!("error: {target} {unit} is outside axis {axis}'s travel {lo} … {hi} {unit} (axes.{axis}.min/max)");
-                return EXIT_USAGE;
+                return exit::INPUT;
             }
         }
     }
@@ -447,11 +447,11 @@ pub fn jog(machine: &MachineArgs, axis: &str, to: Option<f64>, by: Option<f64>, 
     match with_started(&mut s, node, |s| s.master.profile_move(&mut *s.clock, node, target, v, a)) {
         Ok(pos) => {
             println!("axis {axis} (node {node}): {start:.4} → {pos:.4} {unit} (target {target:.4})");
-            EXIT_OK
+            exit::OK
         }
         Err(e) => {
             eprintln!("error: {e}");
-            EXIT_NODE
+            exit::NOT_MET
         }
     }
 }
@@ -464,16 +464,16 @@ fn jog_program(machine: &MachineArgs, cfg: &crate::config::MachineConfig, axis: 
     let Some(ax) = cfg.axes.get(axis).cloned() else {
         let names: Vec<&str> = cfg.axes.keys().map(String::as_str).collect();
         eprintln!("error: no axis `{axis}` in the configuration (axes: {})", names.join(", "));
-        return EXIT_USAGE;
+        return exit::INPUT;
     };
     if !matches!(axis, "x" | "z") || ax.kind != crate::config::AxisKind::Linear {
         eprintln!("error: axis {axis}: a jog through the controller moves X or Z; turn a spindle with a program (M03 S…)");
-        return EXIT_USAGE;
+        return exit::INPUT;
     }
     let speed = speed.unwrap_or(ax.max_speed / 10.0);
     if !(speed.is_finite() && speed > 0.0 && speed <= ax.max_speed) {
         eprintln!("error: --speed {speed} must be above 0 and at most the axis's max_speed {}", ax.max_speed);
-        return EXIT_USAGE;
+        return exit::INPUT;
     }
     let from = std::cell::Cell::new(None::<f64>);
     let target = std::cell::Cell::new(None::<f64>);
@@ -508,9 +508,9 @@ fn jog_program(machine: &MachineArgs, cfg: &crate::config::MachineConfig, axis: 
     match (code, from.get(), target.get(), end) {
         (0, Some(f), Some(t), Some(e)) => {
             println!("axis {axis} (unit {}): {f:.4} → {e:.4} mm (target {t:.4})", ax.node);
-            EXIT_OK
+            exit::OK
         }
-        (0, ..) => EXIT_NODE,
+        (0, ..) => exit::NOT_MET,
         (c, ..) => c,
     }
 }
@@ -530,28 +530,28 @@ pub fn buslog(machine: &MachineArgs, out: &std::path::Path, seconds: Option<f64>
     if let Some(n) = seconds {
         if !(n.is_finite() && n > 0.0) {
             eprintln!("error: --seconds must be a positive number");
-            return EXIT_USAGE;
+            return exit::INPUT;
         }
     }
     let (cfg, text) = match load_config(machine.config.as_deref()) {
         Ok(c) => c,
         Err(e) => {
             eprintln!("error: {e}");
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
     };
     let (mut bus, mut clock, name, what) = match super::open_raw(&cfg, &text, machine.bus.as_deref(), machine.sim_config.as_deref()) {
         Ok(b) => b,
         Err(e) => {
             eprintln!("error: {e}");
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
     };
     let file = match std::fs::File::create(out) {
         Ok(f) => f,
         Err(e) => {
             eprintln!("error: {}: cannot create: {e}", out.display());
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
     };
     let mut w = std::io::BufWriter::new(file);
@@ -601,7 +601,7 @@ pub fn buslog(machine: &MachineArgs, out: &std::path::Path, seconds: Option<f64>
                 if !simulated {
                     if let Err(e) = w.flush() {
                         eprintln!("error: {}: cannot write: {e}", out.display());
-                        return EXIT_SETUP;
+                        return exit::SETUP;
                     }
                 }
                 continue;
@@ -609,7 +609,7 @@ pub fn buslog(machine: &MachineArgs, out: &std::path::Path, seconds: Option<f64>
             Err(e) => {
                 let _ = w.flush();
                 eprintln!("error: reading {name}: {e}");
-                return EXIT_SETUP;
+                return exit::SETUP;
             }
         };
         let t_us = unix0 + (clock.now_ns() - t0) / 1000;
@@ -622,16 +622,16 @@ pub fn buslog(machine: &MachineArgs, out: &std::path::Path, seconds: Option<f64>
         }
         if let Err(e) = r {
             eprintln!("error: {}: cannot write: {e}", out.display());
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
         frames += 1;
     }
     if let Err(e) = w.flush() {
         eprintln!("error: {}: cannot write: {e}", out.display());
-        return EXIT_SETUP;
+        return exit::SETUP;
     }
     println!("{frames} frame(s) logged to {}", out.display());
-    EXIT_OK
+    exit::OK
 }
 
 // ---------------------------------------------------------------- monitor
@@ -826,7 +826,7 @@ pub(super) fn monitor_draw(out: &mut impl Write, lines: &[String], tty: bool, sh
 pub(super) fn io_monitor(cfg: &crate::config::MachineConfig) -> Result<Option<super::iomon::IoMonitor>, i32> {
     super::iomon::IoMonitor::new(cfg).map_err(|e| {
         eprintln!("error: [io]: {e}");
-        EXIT_SETUP
+        exit::SETUP
     })
 }
 
@@ -836,7 +836,7 @@ pub fn monitor(machine: &MachineArgs, seconds: Option<f64>, once: bool, interval
     if let Some(n) = seconds {
         if !(n.is_finite() && n > 0.0) {
             eprintln!("error: --seconds must be a positive number");
-            return EXIT_USAGE;
+            return exit::INPUT;
         }
     }
     match super::mbus::modbus_machine(machine) {
@@ -844,7 +844,7 @@ pub fn monitor(machine: &MachineArgs, seconds: Option<f64>, once: bool, interval
         Ok(None) => {}
         Err(e) => {
             eprintln!("error: {e}");
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
     }
     let bits = Arc::new(AtomicU64::new(0));
@@ -853,7 +853,7 @@ pub fn monitor(machine: &MachineArgs, seconds: Option<f64>, once: bool, interval
         Ok(s) => s,
         Err(e) => {
             eprintln!("error: {e}");
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
     };
     let mut io = match io_monitor(&s.cfg) {
@@ -889,11 +889,11 @@ pub fn monitor(machine: &MachineArgs, seconds: Option<f64>, once: bool, interval
         // JSON: one object per refresh (JSON lines), never redrawn in place.
         let lines = if json { vec![monitor_frame_json(&s, &frame).to_string()] } else { monitor_text(&s, &frame) };
         if !monitor_draw(&mut out, &lines, tty, &mut shown, once || json) || once {
-            return EXIT_OK; // stdout closed, or one table asked for
+            return exit::OK; // stdout closed, or one table asked for
         }
         let next = s.clock.now_ns() + interval;
         if end.is_some_and(|e| next > e) {
-            return EXIT_OK;
+            return exit::OK;
         }
         if s.simulated && tty {
             // Simulated time runs as fast as the CPU: pace the display for a human.
