@@ -303,6 +303,69 @@ impl Enabler {
     }
 }
 
+/// Master side: walks one drive to Switch On Disabled (no torque: disable voltage, CiA 402
+/// transitions 7, 9, 10, 12), one controlword per step. A drive in Fault has no torque
+/// either, but is not taken out of it: that is `FaultResetter`'s (a disable must not clear
+/// an alarm the operator has not seen).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Disabler {
+    /// The controlword to send this step.
+    pub controlword: u16,
+}
+
+/// What `Disabler::step` found.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum DisableProgress {
+    Disabled,
+    Walking,
+    /// In Fault (or its reaction): no torque, and left there.
+    InFault,
+}
+
+impl Disabler {
+    /// Next controlword for the drive's `statusword`.
+    pub fn step(&mut self, statusword: u16) -> DisableProgress {
+        self.controlword = cw::DISABLE_VOLTAGE;
+        match State::from_statusword(statusword) {
+            State::SwitchOnDisabled | State::NotReadyToSwitchOn => DisableProgress::Disabled,
+            State::Fault | State::FaultReactionActive => DisableProgress::InFault,
+            _ => DisableProgress::Walking,
+        }
+    }
+}
+
+/// Master side: takes one drive out of Fault to Switch On Disabled. Every step in Fault
+/// sends a whole rising edge of bit 7 (low, then high: the controlword the drive holds may
+/// have bit 7 high already); once out of it, bit 7 goes back down so that the next reset
+/// is an edge again.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct FaultResetter {
+    /// Resets sent.
+    pub resets: u32,
+}
+
+/// What `FaultResetter::step` found.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ResetProgress {
+    /// Not (or no longer) in Fault.
+    Cleared,
+    Walking,
+}
+
+impl FaultResetter {
+    /// The controlwords to send this step, in order, for the drive's `statusword`.
+    pub fn step(&mut self, statusword: u16) -> (ResetProgress, &'static [u16]) {
+        match State::from_statusword(statusword) {
+            State::Fault | State::FaultReactionActive => {
+                self.resets += 1;
+                (ResetProgress::Walking, &[cw::DISABLE_VOLTAGE, cw::FAULT_RESET_CMD])
+            }
+            _ if self.resets > 0 => (ResetProgress::Cleared, &[cw::DISABLE_VOLTAGE]),
+            _ => (ResetProgress::Cleared, &[]),
+        }
+    }
+}
+
 /// Modes of operation (0x6060 / 0x6061).
 pub mod mode {
     pub const PROFILE_POSITION: i8 = 1;

@@ -236,6 +236,33 @@ impl Cia402Map {
         .collect()
     }
 
+    /// The register that carries CiA 402 object `index`:`sub` on this map, if the map has
+    /// one: how the service commands read and write a drive's objects over Modbus as they
+    /// do over SDO (`drives::access`). 0x6065 and the homing objects take 2 registers, the
+    /// rest as their type.
+    pub fn register(&self, index: u16, sub: u8) -> Option<u16> {
+        match (index, sub) {
+            (0x6040, 0) => Some(self.controlword),
+            (0x6041, 0) => Some(self.statusword),
+            (0x6060, 0) => Some(self.mode),
+            (0x6061, 0) => Some(self.mode_display),
+            (0x6064, 0) => Some(self.position_actual),
+            (0x606C, 0) => Some(self.velocity_actual),
+            (0x607A, 0) => Some(self.target_position),
+            (0x60FF, 0) => Some(self.target_velocity),
+            (0x6065, 0) => Some(self.following_error_window),
+            (0x603F, 0) => self.error_code,
+            (0x60C2, 1) => self.interpolation_ms,
+            (0x6098, 0) => self.homing_method,
+            (0x607C, 0) => self.home_offset,
+            (0x6099, 1) => self.homing_switch_speed,
+            (0x6099, 2) => self.homing_zero_speed,
+            (0x609A, 0) => self.homing_accel,
+            (0x60FD, 0) => self.digital_inputs,
+            _ => None,
+        }
+    }
+
     /// The registers of the cyclic read: statusword, position actual, error code.
     pub fn cyclic_reads(&self) -> Vec<(u16, u16)> {
         let mut v = vec![(self.statusword, 1), (self.position_actual, 2)];

@@ -1,22 +1,14 @@
 //! Service commands: `scan`, `sdo read|write`, `nmt`, `drive status`. Read-only unless the
 //! command itself is a write; nothing here enables a drive.
 
-use super::{open_session, MachineArgs, Session};
+use super::{exit, open_session, MachineArgs, Session};
+use crate::drives::access::{read_status, DriveAccess, DriveStatus};
 use crate::drives::canopen::master::{mode_short, supported_modes_text, DriveProbe};
 use crate::drives::canopen::sdo_client::SdoError;
 use cncgw_bus::canopen::emcy::error_text;
 use cncgw_bus::canopen::nmt::{NmtCommand, NmtState};
-use cncgw_bus::canopen::od;
 use cncgw_bus::cia402::{mode, State};
 use serde_json::json;
-
-/// Exit codes of the service commands (`cli::exit`): a node aborted the transfer, did not
-/// answer, or is in a state that needs attention = `NOT_MET`; a command line that cannot be
-/// carried out as written = `INPUT`.
-pub const EXIT_OK: i32 = super::exit::OK;
-pub const EXIT_NODE: i32 = super::exit::NOT_MET;
-pub const EXIT_USAGE: i32 = super::exit::INPUT;
-pub const EXIT_SETUP: i32 = super::exit::SETUP;
 
 /// Parse a number written in decimal or as 0x… hex (an optional leading '-' for decimal).
 pub fn parse_int(s: &str) -> Result<i64, String> {
@@ -197,7 +189,7 @@ pub fn sdo_error_text(e: &SdoError) -> String {
 fn open(machine: &MachineArgs) -> Result<Session, i32> {
     open_session(machine).map_err(|e| {
         eprintln!("error: {e}");
-        EXIT_SETUP
+        exit::SETUP
     })
 }
 
@@ -218,7 +210,7 @@ pub fn scan(machine: &MachineArgs, json_out: bool) -> i32 {
         Ok(None) => {}
         Err(e) => {
             eprintln!("error: {e}");
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
     }
     let mut s = match open(machine) {
@@ -319,9 +311,9 @@ pub fn scan(machine: &MachineArgs, json_out: bool) -> i32 {
         }
     }
     if failed > 0 {
-        EXIT_NODE
+        exit::NOT_MET
     } else {
-        EXIT_OK
+        exit::OK
     }
 }
 
@@ -421,13 +413,13 @@ pub fn sdo_read(machine: &MachineArgs, node: u8, index: u16, sub: u8, ty: Option
         Ok(d) => d,
         Err(e) => {
             eprintln!("error: node {node} 0x{index:04X}:{sub:02X}: {}", sdo_error_text(&e));
-            return EXIT_NODE;
+            return exit::NOT_MET;
         }
     };
     if let Some(path) = out {
         if let Err(e) = std::fs::write(path, &data) {
             eprintln!("error: {}: cannot write: {e}", path.display());
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
     }
     let (text, val, tname) = match ty {
@@ -435,7 +427,7 @@ pub fn sdo_read(machine: &MachineArgs, node: u8, index: u16, sub: u8, ty: Option
             Ok((a, b)) => (a, b, t.name()),
             Err(e) => {
                 eprintln!("error: node {node} 0x{index:04X}:{sub:02X}: {e}");
-                return EXIT_USAGE;
+                return exit::INPUT;
             }
         },
         None => guess(&data),
@@ -446,7 +438,7 @@ pub fn sdo_read(machine: &MachineArgs, node: u8, index: u16, sub: u8, ty: Option
         let saved = out.map(|p| format!(" → {}", p.display())).unwrap_or_default();
         println!("node {node} 0x{index:04X}:{sub:02X} = {text} [{tname}]{saved}");
     }
-    EXIT_OK
+    exit::OK
 }
 
 /// Objects whose write can set a motor in motion: they need `--yes` on a real bus.
@@ -464,7 +456,7 @@ pub fn sdo_write(machine: &MachineArgs, node: u8, index: u16, sub: u8, ty: SdoTy
         Ok(d) => d,
         Err(e) => {
             eprintln!("error: {e}");
-            return EXIT_USAGE;
+            return exit::INPUT;
         }
     };
     // Refuse before touching the bus: the effective bus is --bus, else the config's.
@@ -474,13 +466,13 @@ pub fn sdo_write(machine: &MachineArgs, node: u8, index: u16, sub: u8, ty: SdoTy
             Ok((c, _)) => c.bus.interface,
             Err(e) => {
                 eprintln!("error: {e}");
-                return EXIT_SETUP;
+                return exit::SETUP;
             }
         },
     };
     if moves_iron(index) && bus != "inproc" && !yes {
         eprintln!("error: writing 0x{index:04X} can set a motor in motion on {bus}; make sure the axis is free to move, then repeat with --yes");
-        return EXIT_USAGE;
+        return exit::INPUT;
     }
     let mut s = match open(machine) {
         Ok(s) => s,
@@ -491,11 +483,11 @@ pub fn sdo_write(machine: &MachineArgs, node: u8, index: u16, sub: u8, ty: SdoTy
         Ok(()) => {
             let shown = if ty == SdoType::Domain { format!("{} byte(s) from {value}", data.len()) } else { value.to_string() };
             println!("node {node} 0x{index:04X}:{sub:02X} ← {shown} [{}]: ok", ty.name());
-            EXIT_OK
+            exit::OK
         }
         Err(e) => {
             eprintln!("error: node {node} 0x{index:04X}:{sub:02X}: {}", sdo_error_text(&e));
-            EXIT_NODE
+            exit::NOT_MET
         }
     }
 }
@@ -560,7 +552,7 @@ pub fn nmt(machine: &MachineArgs, cmd: NmtArg, target: u8, json_out: bool) -> i3
     nodes.sort_unstable();
     if let Err(a) = s.master.nmt_command(target, cmd.command()) {
         eprintln!("{a}");
-        return EXIT_SETUP;
+        return exit::SETUP;
     }
     if matches!(cmd, NmtArg::Reset) {
         // Reset node restarts the drive's application: its position, and the reference.
@@ -614,9 +606,9 @@ pub fn nmt(machine: &MachineArgs, cmd: NmtArg, target: u8, json_out: bool) -> i3
         }
     }
     if bad > 0 {
-        EXIT_NODE
+        exit::NOT_MET
     } else {
-        EXIT_OK
+        exit::OK
     }
 }
 
@@ -668,78 +660,96 @@ pub fn statusword_bits(sw: u16, mode_code: i8) -> Vec<(u8, String, bool)> {
     names.iter().enumerate().map(|(b, n)| (b as u8, n.to_string(), sw & (1 << b) != 0)).collect()
 }
 
+/// `cncgw drive status NODE`: one drive's state, the same for every bus.
 pub fn drive_status(machine: &MachineArgs, node: u8, json_out: bool) -> i32 {
     match super::mbus::modbus_machine(machine) {
-        Ok(Some(cfg)) => return super::mbus::drive_status(&cfg, node, json_out),
+        Ok(Some(cfg)) => {
+            let mut d = match super::mbus::ModbusDrive::open(&cfg, node) {
+                Ok(d) => d,
+                Err(code) => return code,
+            };
+            let t0 = std::time::Instant::now();
+            let st = read_status(&mut d);
+            let rtt = t0.elapsed().as_secs_f64() * 1e3;
+            let profile = if st.as_ref().is_ok_and(|s| s.status_register.is_some()) { "pr" } else { "cia402" };
+            let extra = json!({"unit": node, "profile": profile, "bus": d.c.what, "round_trip_ms": rtt});
+            return status_report(&mut d, st, json_out, extra, vec![format!("round trip {rtt:.1} ms for the register reads")]);
+        }
         Ok(None) => {}
         Err(e) => {
             eprintln!("error: {e}");
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
     }
     let mut s = match open(machine) {
         Ok(s) => s,
         Err(c) => return c,
     };
-    s.master.ensure_node(node);
-    let spec = s.master.node_spec(node).cloned();
-    let mut read = |ix: u16, n: usize| -> Result<i64, SdoError> {
-        let d = s.master.sdo_upload(&mut *s.clock, node, ix, 0)?;
-        if d.len() < n {
-            return Err(SdoError::Protocol("answer shorter than the object's type"));
-        }
-        let mut b = [0u8; 8];
-        b[..n].copy_from_slice(&d[..n]);
-        let shift = 64 - 8 * n as u32;
-        Ok(((u64::from_le_bytes(b) << shift) as i64) >> shift) // sign-extended
+    let mut d = super::service::SdoDrive::new(&mut s, node);
+    let st = read_status(&mut d);
+    let emcy = d.s.master.last_emcy(node);
+    let extra = json!({
+        "last_emcy": emcy.map(|e| json!({"code": format!("0x{:04X}", e.code), "text": error_text(e.code), "register": e.register})),
+    });
+    let line = match emcy {
+        Some(e) => format!("last EMCY: 0x{:04X} {} (error register 0x{:02X})", e.code, error_text(e.code), e.register),
+        None => "last EMCY: none heard".into(),
     };
-    let sw = match read(od::STATUSWORD, 2) {
-        Ok(v) => v as u16,
+    status_report(&mut d, st, json_out, extra, vec![line])
+}
+
+/// Print a drive's status (`extra`: the bus's own JSON fields and lines) and return the exit
+/// code: `NOT_MET` for a drive that does not answer or is in fault.
+fn status_report(d: &mut dyn DriveAccess, st: Result<DriveStatus, String>, json_out: bool, extra: serde_json::Value, lines: Vec<String>) -> i32 {
+    let st = match st {
+        Ok(st) => st,
         Err(e) => {
-            eprintln!("error: node {node}: reading the statusword 0x6041 failed: {}", sdo_error_text(&e));
-            eprintln!("is it a CiA 402 drive? `cncgw scan` shows what answers");
-            return EXIT_NODE;
+            eprintln!("error: {e}");
+            return exit::NOT_MET;
         }
     };
-    // The rest is optional on some drives: absent objects show as "-".
-    let mode_code = read(od::MODES_DISPLAY, 1).ok().map(|v| v as i8);
-    let pos = read(od::POSITION_ACTUAL, 4).ok();
-    let vel = read(od::VELOCITY_ACTUAL, 4).ok();
-    let ferr = read(od::FOLLOWING_ERROR_ACTUAL, 4).ok();
-    let err = read(od::ERROR_CODE, 2).ok().map(|v| v as u16);
-    let emcy = s.master.last_emcy(node);
-    let state = State::from_statusword(sw);
-    let bits = statusword_bits(sw, mode_code.unwrap_or(0));
-    let (cpu, unit) = match &spec {
-        Some(sp) => (Some(sp.counts_per_unit), if sp.spindle { "deg" } else { "mm" }),
+    let (sw, state) = (st.statusword, st.state());
+    let bits = statusword_bits(sw, st.mode.unwrap_or(0));
+    let axis = d.axis();
+    let (cpu, unit) = match &axis {
+        Some((_, k, spindle)) => (Some(*k), if *spindle { "deg" } else { "mm" }),
         None => (None, ""),
     };
     let units = |c: Option<i64>| c.and_then(|c| cpu.map(|k| c as f64 / k));
+    // A PR drive's alarm code is the vendor's, not a CiA 301 error code.
+    let cia402 = st.status_register.is_none();
     if json_out {
-        let v = json!({
-            "node": node,
-            "axis": spec.as_ref().map(|s| s.axis.clone()),
+        let mut v = json!({
+            "node": d.id(),
+            "axis": axis.as_ref().map(|a| a.0.clone()),
             "statusword": format!("0x{sw:04X}"),
             "state": state.name(),
+            "pr_status": st.status_register.map(|(_, r)| format!("0x{r:04X}")),
             "bits": bits.iter().map(|(b, n, set)| json!({"bit": b, "name": n, "set": set})).collect::<Vec<_>>(),
-            "mode": mode_code,
-            "mode_name": mode_code.map(mode::name),
-            "position_counts": pos,
-            "position": units(pos),
-            "velocity_counts_per_s": vel,
-            "velocity_per_s": units(vel),
-            "following_error_counts": ferr,
-            "following_error": units(ferr),
+            "mode": st.mode,
+            "mode_name": st.mode.map(mode::name),
+            "position_counts": st.position,
+            "position": units(st.position),
+            "velocity_counts_per_s": st.velocity,
+            "velocity_per_s": units(st.velocity),
+            "following_error_counts": st.following_error,
+            "following_error": units(st.following_error),
             "unit": if unit.is_empty() { None } else { Some(unit) },
-            "error_code": err.map(|e| format!("0x{e:04X}")),
-            "error_text": err.map(error_text),
-            "last_emcy": emcy.map(|e| json!({"code": format!("0x{:04X}", e.code), "text": error_text(e.code), "register": e.register})),
+            "unit_of_position": if unit.is_empty() { None } else { Some(unit) },
+            "error_code": st.error_code.map(|e| format!("0x{e:04X}")),
+            "error_text": st.error_code.filter(|_| cia402).map(error_text),
+            "digital_inputs": st.digital_inputs,
         });
+        if let (Some(v), serde_json::Value::Object(extra)) = (v.as_object_mut(), extra) {
+            v.extend(extra);
+        }
         println!("{v}");
     } else {
-        let axis = spec.as_ref().map(|s| format!(" (axis {})", s.axis)).unwrap_or_default();
-        println!("node {node}{axis}: {}", state.name());
-        println!("statusword 0x6041 = 0x{sw:04X}");
+        println!("{}: {}", d.label(), state.name());
+        match st.status_register {
+            Some((what, r)) => println!("{what} = 0x{r:04X}, as a CiA 402 statusword 0x{sw:04X}"),
+            None => println!("statusword 0x6041 = 0x{sw:04X}"),
+        }
         for (b, n, set) in &bits {
             println!("  bit {b:>2} {} {n}", if *set { "1" } else { "0" });
         }
@@ -748,29 +758,32 @@ pub fn drive_status(machine: &MachineArgs, node: u8, json_out: bool) -> i32 {
             (Some(c), None) => format!("{c} {what}"),
             (None, _) => "- (not readable)".to_string(),
         };
-        match mode_code {
+        match st.mode {
             Some(m) => println!("mode 0x6061 = {m} ({})", mode::name(m)),
             None => println!("mode 0x6061 = - (not readable)"),
         }
-        println!("position 0x6064 = {}", show(pos, "counts"));
-        println!("velocity 0x606C = {}", show(vel, "counts/s").replace(&format!(" {unit}"), &format!(" {unit}/s")));
-        println!("following error 0x60F4 = {}", show(ferr, "counts"));
-        match err {
-            Some(e) => println!("error code 0x603F = 0x{e:04X} {}", error_text(e)),
-            None => println!("error code 0x603F = - (not readable)"),
+        println!("position 0x6064 = {}", show(st.position, "counts"));
+        println!("velocity 0x606C = {}", show(st.velocity, "counts/s").replace(&format!(" {unit}"), &format!(" {unit}/s")));
+        println!("following error 0x60F4 = {}", show(st.following_error, "counts"));
+        match (st.error_code, cia402) {
+            (Some(e), true) => println!("error code 0x603F = 0x{e:04X} {}", error_text(e)),
+            (Some(e), false) => println!("alarm code = 0x{e:04X}{}", if e == 0 { " (none)" } else { " (see the drive's manual)" }),
+            (None, _) => println!("error code 0x603F = - (not readable)"),
         }
-        match emcy {
-            Some(e) => println!("last EMCY: 0x{:04X} {} (error register 0x{:02X})", e.code, error_text(e.code), e.register),
-            None => println!("last EMCY: none heard"),
+        if let Some(i) = st.digital_inputs {
+            println!("digital inputs 0x60FD = 0x{i:08X}");
+        }
+        for l in lines {
+            println!("{l}");
         }
         if matches!(state, State::Fault | State::FaultReactionActive) {
             println!("the drive is in fault: clear the cause shown above, then reset the fault");
         }
     }
     if matches!(state, State::Fault | State::FaultReactionActive) {
-        EXIT_NODE
+        exit::NOT_MET
     } else {
-        EXIT_OK
+        exit::OK
     }
 }
 
@@ -780,7 +793,7 @@ pub fn od_check(machine: &MachineArgs, node: u8, eds_path: &std::path::Path, jso
         Ok(e) => e,
         Err(e) => {
             eprintln!("error: {e}");
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
     };
     let mut s = match open(machine) {
@@ -870,7 +883,7 @@ pub fn od_dump(machine: &MachineArgs, node: u8, eds_path: Option<&std::path::Pat
         Ok(e) => e,
         Err(e) => {
             eprintln!("error: {e}");
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
     };
     let mut s = match open(machine) {
@@ -966,8 +979,8 @@ pub fn od_dump(machine: &MachineArgs, node: u8, eds_path: Option<&std::path::Pat
         }
     }
     if bad > 0 {
-        EXIT_NODE
+        exit::NOT_MET
     } else {
-        EXIT_OK
+        exit::OK
     }
 }

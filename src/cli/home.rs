@@ -13,7 +13,7 @@
 //! change: a reference kept that was lost, or one lost that was won). `home` holds it from
 //! before the first motion to the last write; a run holding it refuses `home`.
 
-use super::diag::{EXIT_NODE, EXIT_OK, EXIT_SETUP, EXIT_USAGE};
+use super::exit;
 use super::service::{confirm_motion, HomeArgs};
 use super::MachineArgs;
 use crate::config::{AxisConfig, MachineConfig};
@@ -80,14 +80,14 @@ fn select(cfg: &MachineConfig, which: &str) -> Result<Vec<(String, AxisConfig)>,
         let v: Vec<_> = cfg.axes.iter().filter(|(_, a)| a.homing.is_some()).map(|(n, a)| (n.clone(), a.clone())).collect();
         if v.is_empty() {
             eprintln!("error: no axis of the configuration has a homing method: give one `homing = {{ method = 35, offset = 0.0 }}` in [axes.NAME] (or `absolute = true` for an absolute encoder)");
-            return Err(EXIT_USAGE);
+            return Err(exit::INPUT);
         }
         return Ok(v);
     }
     let Some(a) = cfg.axes.get(&which) else {
         let names: Vec<&str> = cfg.axes.keys().map(String::as_str).collect();
         eprintln!("error: no axis {which} in the configuration (axes: {})", names.join(", "));
-        return Err(EXIT_USAGE);
+        return Err(exit::INPUT);
     };
     if a.absolute {
         println!("axis {}: absolute encoder, referenced at power-on; nothing to home", which.to_uppercase());
@@ -95,7 +95,7 @@ fn select(cfg: &MachineConfig, which: &str) -> Result<Vec<(String, AxisConfig)>,
     }
     if a.homing.is_none() {
         eprintln!("error: axis {which} has no homing method: give it `homing = {{ method = 35, offset = 0.0 }}` in [axes.{which}] (35 = the present position is home)");
-        return Err(EXIT_USAGE);
+        return Err(exit::INPUT);
     }
     Ok(vec![(which, a.clone())])
 }
@@ -106,11 +106,11 @@ pub fn home(c: &HomeCmd) -> i32 {
         Ok(x) => x,
         Err(e) => {
             eprintln!("error: {e}");
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
     };
     let axes = match select(&cfg, &c.axis) {
-        Ok(v) if v.is_empty() => return EXIT_OK,
+        Ok(v) if v.is_empty() => return exit::OK,
         Ok(v) => v,
         Err(code) => return code,
     };
@@ -124,11 +124,11 @@ pub fn home(c: &HomeCmd) -> i32 {
         Some(Err(a)) => {
             eprintln!("{a}");
             eprintln!("nothing was moved");
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
         None => {
             eprintln!("error: no state directory (set $CNCGW_STATE_DIR or give --state-dir): the reference could not be kept");
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
     };
     let names: Vec<String> = axes.iter().map(|(n, _)| n.to_uppercase()).collect();
@@ -142,7 +142,7 @@ pub fn home(c: &HomeCmd) -> i32 {
         }
     }) {
         eprintln!("{a}");
-        return EXIT_SETUP;
+        return exit::SETUP;
     }
     let (bus_axes, modbus_axes): (Vec<_>, Vec<_>) = axes.into_iter().partition(|(_, a)| a.modbus.is_none());
     let mut homed: Vec<(String, u8, i8, f64)> = Vec::new();
@@ -166,15 +166,15 @@ pub fn home(c: &HomeCmd) -> i32 {
         }
     }) {
         eprintln!("{a}");
-        return EXIT_SETUP;
+        return exit::SETUP;
     }
     for (n, _, method, pos) in &homed {
         println!("axis {}: referenced (homing method {method}), position {pos:.4}", n.to_uppercase());
     }
     if failed {
-        EXIT_NODE
+        exit::NOT_MET
     } else {
-        EXIT_OK
+        exit::OK
     }
 }
 
@@ -183,12 +183,12 @@ pub fn home(c: &HomeCmd) -> i32 {
 fn home_canopen(machine: &MachineArgs, axes: &[(String, AxisConfig)], homed: &mut Vec<(String, u8, i8, f64)>) -> Result<bool, i32> {
     let mut s = super::open_session(machine).map_err(|e| {
         eprintln!("error: {e}");
-        EXIT_SETUP
+        exit::SETUP
     })?;
     if let Err(a) = DriveBus::startup(&mut s.master, &mut *s.clock) {
         DriveBus::shutdown(&mut s.master, &mut *s.clock);
         eprintln!("{a}");
-        return Err(EXIT_NODE);
+        return Err(exit::NOT_MET);
     }
     let mut ok = true;
     for (n, a) in axes {

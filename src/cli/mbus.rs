@@ -8,11 +8,13 @@
 //! transaction at a time (read-only); `jog`, `run` and `tap-test` go through the controller's
 //! own Modbus master (`drives::modbus`) and cycle loop.
 
+use super::exit;
 use super::MachineArgs;
 use crate::config::{AxisConfig, LinkTransport, MachineConfig, ModbusLink, Parity};
+use crate::drives::access::{self, DriveAccess, ObjType};
 use crate::drives::modbus::link::exception_words;
 use cncgw_bus::cia402::State;
-use cncgw_bus::modbus::{pr_status, Profile};
+use cncgw_bus::modbus::{Profile, WordOrder};
 use std::time::{Duration, Instant};
 use tokio_modbus::client::{Context, Reader, Writer};
 use tokio_modbus::prelude::SlaveContext;
@@ -329,7 +331,7 @@ pub fn scan(cfg: &MachineConfig, json: bool) -> i32 {
         Ok(c) => c,
         Err(e) => {
             eprintln!("error: {e}");
-            return super::diag::EXIT_SETUP;
+            return exit::SETUP;
         }
     };
     let mut failed = 0;
@@ -380,85 +382,9 @@ pub fn scan(cfg: &MachineConfig, json: bool) -> i32 {
         }
     }
     if failed > 0 {
-        super::diag::EXIT_NODE
+        exit::NOT_MET
     } else {
-        super::diag::EXIT_OK
-    }
-}
-
-/// `cncgw drive status UNIT` on Modbus.
-pub fn drive_status(cfg: &MachineConfig, unit: u8, json: bool) -> i32 {
-    use super::diag::{EXIT_NODE, EXIT_OK, EXIT_SETUP, EXIT_USAGE};
-    let Some((name, a, link)) = axes(cfg).into_iter().find(|(_, a, _)| a.node == unit) else {
-        eprintln!("error: no axis of the configuration has Modbus unit id {unit} (`cncgw config check` lists them); Modbus registers are read through an axis's map");
-        return EXIT_USAGE;
-    };
-    let mut c = match cfg.modbus.get(&link).ok_or_else(|| format!("no link {link}")).and_then(Client::connect) {
-        Ok(c) => c,
-        Err(e) => {
-            eprintln!("error: Modbus link {link}: {e}");
-            return EXIT_SETUP;
-        }
-    };
-    let d = match read_drive(&mut c, &name, &a) {
-        Ok(d) => d,
-        Err(e) => {
-            eprintln!("error: axis {name}: {e}; `cncgw scan` shows which units answer");
-            return EXIT_NODE;
-        }
-    };
-    let state = State::from_statusword(d.statusword);
-    let unit_s = if a.kind == crate::config::AxisKind::Spindle { "deg" } else { "mm" };
-    let bits = super::diag::statusword_bits(d.statusword, d.mode.unwrap_or(0));
-    if json {
-        let mut v = state_json(&d);
-        v["node"] = serde_json::json!(unit);
-        v["bus"] = serde_json::json!(c.what);
-        v["unit_of_position"] = serde_json::json!(unit_s);
-        v["bits"] = bits.iter().map(|(b, n, s)| serde_json::json!({"bit": b, "name": n, "set": s})).collect();
-        println!("{v}");
-    } else {
-        println!("unit {unit} (axis {name}) on {}: {}", c.what, state.name());
-        match d.pr_status {
-            Some(st) => {
-                println!("status register = 0x{st:04X} (PR profile), as a CiA 402 statusword 0x{:04X}", d.statusword);
-                for (bit, n) in [
-                    (pr_status::FAULT, "alarm latched"),
-                    (pr_status::ENABLED, "servo on"),
-                    (pr_status::RUNNING, "PR move running"),
-                    (pr_status::IN_POSITION, "in position"),
-                ] {
-                    println!("  {} {n}", if st & bit != 0 { "1" } else { "0" });
-                }
-            }
-            None => {
-                println!("statusword = 0x{:04X}", d.statusword);
-                for (b, n, set) in &bits {
-                    println!("  bit {b:>2} {} {n}", if *set { "1" } else { "0" });
-                }
-            }
-        }
-        if let Some(m) = d.mode {
-            println!("mode = {m} ({})", cncgw_bus::cia402::mode::name(m));
-        }
-        println!("position = {} counts = {:.4} {unit_s}", d.position_counts, d.position);
-        if let Some(v) = d.velocity_per_s {
-            println!("velocity = {v:.4} {unit_s}/s");
-        }
-        if d.profile == "cia402" {
-            println!("error code = 0x{:04X} {}", d.error_code, cncgw_bus::canopen::emcy::error_text(d.error_code));
-        } else {
-            println!("alarm code = 0x{:04X}{}", d.error_code, if d.error_code == 0 { " (none)" } else { " (see the drive's manual)" });
-        }
-        println!("round trip {:.1} ms for {} register reads", d.round_trip_ms, if d.profile == "cia402" { 5 } else { 3 });
-        if matches!(state, State::Fault | State::FaultReactionActive) {
-            println!("the drive is in fault: clear the cause shown above, then reset the fault");
-        }
-    }
-    if matches!(state, State::Fault | State::FaultReactionActive) {
-        EXIT_NODE
-    } else {
-        EXIT_OK
+        exit::OK
     }
 }
 
@@ -469,7 +395,7 @@ pub fn monitor(cfg: &MachineConfig, seconds: Option<f64>, once: bool, interval_m
         Ok(c) => c,
         Err(e) => {
             eprintln!("error: {e}");
-            return super::diag::EXIT_SETUP;
+            return exit::SETUP;
         }
     };
     let mut io = match super::service::io_monitor(cfg) {
@@ -483,36 +409,19 @@ pub fn monitor(cfg: &MachineConfig, seconds: Option<f64>, once: bool, interval_m
     let mut out = std::io::stdout();
     loop {
         let tick = Instant::now();
-        let mut lines =
-            vec![format!("{:>4} {:<5} {:<6} {:<22} {:<26} {:>16} {:>16} {:>8}", "unit", "axis", "sw", "state", "mode", "position", "speed", "error")];
+        let mut lines = vec![super::service::monitor_header("unit")];
         let mut arr = Vec::new();
         for (name, a, link) in axes(cfg) {
-            let Some(c) = cl.get_mut(&link) else { continue };
-            match read_drive(c, &name, &a) {
-                Ok(d) => {
-                    let mode = d.mode.map(|m| format!("{m} {}", cncgw_bus::cia402::mode::name(m))).unwrap_or_else(|| "-".into());
-                    // The operator's units: mm and mm/min, degrees and rpm for a spindle.
-                    let spindle = a.kind == crate::config::AxisKind::Spindle;
-                    let (pu, vu, per_min) = if spindle { ("deg", "rpm", 1.0 / 6.0) } else { ("mm", "mm/min", 60.0) };
-                    let vel = d.velocity_per_s.map(|v| format!("{:.4} {vu}", v * per_min)).unwrap_or_else(|| "-".into());
-                    lines.push(format!(
-                        "{:>4} {name:<5} 0x{:04X} {:<22} {mode:<26} {:>16} {vel:>16} {:>8}",
-                        a.node,
-                        d.statusword,
-                        State::from_statusword(d.statusword).name(),
-                        format!("{:.4} {pu}", d.position),
-                        format!("0x{:04X}", d.error_code)
-                    ));
-                    arr.push(state_json(&d));
-                }
-                Err(e) => {
-                    lines.push(format!("{:>4} {name:<5} no answer: {e}", a.node));
-                    arr.push(serde_json::json!({"unit": a.node, "axis": name, "error": e}));
-                }
-            }
+            // The link's one client lent to the unit's drive for its row (an RTU line opens once).
+            let Some(c) = cl.remove(&link) else { continue };
+            let mut d = ModbusDrive { c, a, name, epoch: t0 };
+            let row = super::service::monitor_read(&mut d);
+            cl.insert(link, d.c);
+            lines.push(super::service::monitor_line(&row));
+            arr.push(super::service::monitor_json(&row));
         }
         let rtt = tick.elapsed().as_secs_f64() * 1e3;
-        lines.push(format!("Modbus: {} register reads took {rtt:.1} ms", arr.len() * 5));
+        lines.push(format!("Modbus: the register reads of {} unit(s) took {rtt:.1} ms", arr.len()));
         let io = io.as_mut().map(|m| {
             let r = m.read(None);
             (m.json(&r), m.lines(&r))
@@ -543,31 +452,15 @@ pub fn monitor(cfg: &MachineConfig, seconds: Option<f64>, once: bool, interval_m
 /// The axis with Modbus unit id `unit` and a client on its link. Err = the exit code
 /// (message printed).
 fn open_unit(cfg: &MachineConfig, unit: u8) -> Result<(String, AxisConfig, Client), i32> {
-    use super::diag::{EXIT_SETUP, EXIT_USAGE};
     let Some((name, a, link)) = axes(cfg).into_iter().find(|(_, a, _)| a.node == unit) else {
         eprintln!("error: no axis of the configuration has Modbus unit id {unit} (`cncgw config check` lists them); Modbus registers are addressed through an axis's map");
-        return Err(EXIT_USAGE);
+        return Err(exit::INPUT);
     };
     match cfg.modbus.get(&link).ok_or_else(|| format!("no link {link}")).and_then(Client::connect) {
         Ok(c) => Ok((name, a, c)),
         Err(e) => {
             eprintln!("error: Modbus link {link}: {e}");
-            Err(EXIT_SETUP)
-        }
-    }
-}
-
-/// The drive's state as a CiA 402 statusword (a PR drive's status register mapped as the
-/// master maps it), with the PR status register as read.
-fn read_state(c: &mut Client, a: &AxisConfig) -> Result<(u16, Option<u16>), String> {
-    match a.modbus_profile {
-        Profile::Cia402 => {
-            let m = a.cia402_map.unwrap_or_default();
-            Ok((c.read(a.node, m.statusword, 1)?[0], None))
-        }
-        Profile::Pr => {
-            let st = c.read(a.node, a.pr_map.unwrap_or_default().status, 1)?[0];
-            Ok((crate::drives::modbus::plan::pr_statusword(st), Some(st)))
+            Err(exit::SETUP)
         }
     }
 }
@@ -602,186 +495,106 @@ fn watchdog_off(c: &mut Client, a: &AxisConfig) -> Result<(), String> {
     c.write(a.node, addr, &[0]).map_err(|e| format!("turning the communication watchdog (register {addr}) off failed: {e}"))
 }
 
-/// Step period and default time limit of the walks.
+/// Step period of the homing's wait.
 const STEP: Duration = Duration::from_millis(10);
-const WALK_TIMEOUT: Duration = Duration::from_millis(2000);
 
-/// Walk a CiA 402 drive to Operation Enabled over its controlword register (the Enabler
-/// reading the statusword register, fault resets included). Returns the state reached.
-fn cia402_enable(c: &mut Client, a: &AxisConfig, timeout: Duration) -> Result<State, String> {
-    let (unit, m) = (a.node, a.cia402_map.unwrap_or_default());
-    let end = Instant::now() + timeout;
-    let mut enabler = cncgw_bus::cia402::Enabler::default();
-    loop {
-        let sw = c.read(unit, m.statusword, 1)?[0];
-        let st = State::from_statusword(sw);
-        match enabler.step(sw) {
-            cncgw_bus::cia402::EnableProgress::Enabled => return Ok(st),
-            cncgw_bus::cia402::EnableProgress::ResetFailed => {
-                return Err(format!(
-                    "unit {unit} stays in Fault after {} fault resets: {}; clear the cause first",
-                    cncgw_bus::cia402::Enabler::MAX_RESETS,
-                    error_text(c, a)
-                ))
+/// A Modbus drive's CiA 402 objects through its register map: the `cia402_map`'s registers
+/// (`Cia402Map::register`; 4-byte objects in two registers, in the map's word order), or a
+/// PR drive's status register as a statusword (0x6041), its position (0x6064) and alarm
+/// code (0x603F), with the controlword (0x6040) as servo on (voltage enabled and no quick
+/// stop: bits 1 and 2) and alarm reset (bit 7).
+pub struct ModbusDrive {
+    pub c: Client,
+    pub a: AxisConfig,
+    pub name: String,
+    epoch: Instant,
+}
+
+impl ModbusDrive {
+    /// The axis with unit id `unit` and a client on its link. Err = the exit code (message
+    /// printed).
+    pub fn open(cfg: &MachineConfig, unit: u8) -> Result<ModbusDrive, i32> {
+        let (name, a, c) = open_unit(cfg, unit)?;
+        Ok(ModbusDrive { c, a, name, epoch: Instant::now() })
+    }
+
+    /// The register and its length in registers that carry `index`:`sub` of type `ty`.
+    fn register(&self, index: u16, sub: u8, ty: ObjType) -> Result<(u16, u16, WordOrder), String> {
+        let len = if ty.bytes() == 4 { 2 } else { 1 };
+        let r = match self.a.modbus_profile {
+            Profile::Cia402 => {
+                let m = self.a.cia402_map.unwrap_or_default();
+                m.register(index, sub).map(|r| (r, m.word_order))
             }
-            cncgw_bus::cia402::EnableProgress::Walking => {}
-        }
-        if Instant::now() >= end {
-            return Err(format!("unit {unit} stuck in {} for {} ms; `cncgw drive status {unit}` shows why", st.name(), timeout.as_millis()));
-        }
-        c.write(unit, m.controlword, &[enabler.controlword])?;
-        std::thread::sleep(STEP);
+            Profile::Pr => {
+                let m = self.a.pr_map.unwrap_or_default();
+                match (index, sub) {
+                    (0x6041, 0) => Some(m.status),
+                    (0x6064, 0) => Some(m.position_actual),
+                    (0x603F, 0) => m.alarm_code,
+                    _ => None,
+                }
+                .map(|r| (r, m.word_order))
+            }
+        };
+        r.map(|(r, o)| (r, len, o)).ok_or_else(|| format!("unit {}: the register map has no register for 0x{index:04X}:{sub}", self.a.node))
     }
 }
 
-/// Walk unit `a` towards `goal`. Returns (state before, state reached).
-fn power_walk(c: &mut Client, a: &AxisConfig, goal: super::service::PowerGoal) -> Result<(State, State), String> {
-    use super::service::PowerGoal;
-    use cncgw_bus::cia402::cw;
-    let unit = a.node;
-    let first = State::from_statusword(read_state(c, a)?.0);
-    let end = Instant::now() + WALK_TIMEOUT;
-    let stuck = |st: State| format!("unit {unit} stuck in {} for {} ms; `cncgw drive status {unit}` shows why", st.name(), WALK_TIMEOUT.as_millis());
-    match a.modbus_profile {
-        Profile::Cia402 => {
-            let m = a.cia402_map.unwrap_or_default();
-            match goal {
-                PowerGoal::Enable => {
-                    if first != State::OperationEnabled {
-                        watchdog_off(c, a)?;
-                        // A stale target would be jumped to in a position mode the moment the
-                        // drive enables: make it the present position.
-                        let p = c.read(unit, m.position_actual, 2)?;
-                        c.write(unit, m.target_position, &p)?;
-                    }
-                    Ok((first, cia402_enable(c, a, WALK_TIMEOUT)?))
-                }
-                PowerGoal::Disable => loop {
-                    let st = State::from_statusword(c.read(unit, m.statusword, 1)?[0]);
-                    match st {
-                        State::SwitchOnDisabled | State::NotReadyToSwitchOn => return Ok((first, st)),
-                        State::Fault | State::FaultReactionActive => {
-                            return Err(format!(
-                                "unit {unit} is in {} (no torque): {}; `cncgw drive fault-reset {unit}` clears it once the cause is gone",
-                                st.name(),
-                                error_text(c, a)
-                            ))
-                        }
-                        _ if Instant::now() >= end => return Err(stuck(st)),
-                        _ => c.write(unit, m.controlword, &[cw::DISABLE_VOLTAGE])?,
-                    }
-                    std::thread::sleep(STEP);
-                },
-                PowerGoal::FaultReset => {
-                    let mut sent = false;
-                    loop {
-                        let st = State::from_statusword(c.read(unit, m.statusword, 1)?[0]);
-                        if !matches!(st, State::Fault | State::FaultReactionActive) {
-                            if sent {
-                                // Bit 7 back down so the next reset is an edge again.
-                                c.write(unit, m.controlword, &[cw::DISABLE_VOLTAGE])?;
-                            }
-                            return Ok((first, st));
-                        }
-                        if Instant::now() >= end {
-                            return Err(format!("unit {unit} still in {} after a fault reset: the cause persists: {}", st.name(), error_text(c, a)));
-                        }
-                        // A rising edge of bit 7: low first, then high.
-                        c.write(unit, m.controlword, &[cw::DISABLE_VOLTAGE])?;
-                        c.write(unit, m.controlword, &[cw::FAULT_RESET_CMD])?;
-                        sent = true;
-                        std::thread::sleep(STEP);
-                    }
-                }
-            }
-        }
-        Profile::Pr => {
-            let m = a.pr_map.unwrap_or_default();
-            let mut resets = 0;
-            if goal == PowerGoal::Enable && first != State::OperationEnabled {
-                watchdog_off(c, a)?;
-            }
-            loop {
-                let (sw, _) = read_state(c, a)?;
-                let st = State::from_statusword(sw);
-                let fault = st == State::Fault;
-                let done = match goal {
-                    PowerGoal::Enable => st == State::OperationEnabled,
-                    PowerGoal::Disable => st == State::SwitchOnDisabled,
-                    PowerGoal::FaultReset => !fault,
-                };
-                if done {
-                    return Ok((first, st));
-                }
-                if fault && goal == PowerGoal::Disable {
-                    return Err(format!(
-                        "unit {unit} is in alarm (no torque): {}; `cncgw drive fault-reset {unit}` clears it once the cause is gone",
-                        error_text(c, a)
-                    ));
-                }
-                if Instant::now() >= end {
-                    return Err(match goal {
-                        PowerGoal::FaultReset => format!("unit {unit} still in alarm after an alarm reset: the cause persists: {}", error_text(c, a)),
-                        _ => stuck(st),
-                    });
-                }
-                if fault {
-                    resets += 1;
-                    if goal == PowerGoal::Enable && resets > cncgw_bus::cia402::Enabler::MAX_RESETS {
-                        return Err(format!(
-                            "unit {unit} stays in alarm after {} alarm resets: {}; clear the cause first",
-                            resets - 1,
-                            error_text(c, a)
-                        ));
-                    }
-                    c.write(unit, m.alarm_reset, &[1])?;
-                } else {
-                    c.write(unit, m.servo_on, &[(goal == PowerGoal::Enable) as u16])?;
-                }
-                std::thread::sleep(STEP);
-            }
-        }
+impl DriveAccess for ModbusDrive {
+    fn noun(&self) -> &'static str {
+        "unit"
     }
-}
-
-/// `cncgw drive enable|disable|fault-reset UNIT` on Modbus (confirmation already given).
-pub fn drive_power(cfg: &MachineConfig, unit: u8, goal: super::service::PowerGoal) -> i32 {
-    use super::diag::{EXIT_NODE, EXIT_OK};
-    use super::service::PowerGoal;
-    let (name, a, mut c) = match open_unit(cfg, unit) {
-        Ok(x) => x,
-        Err(code) => return code,
-    };
-    match power_walk(&mut c, &a, goal) {
-        Ok((from, to)) => {
-            let sw = match read_state(&mut c, &a) {
-                Ok((_, Some(st))) => format!(" (status register 0x{st:04X})"),
-                Ok((w, None)) => format!(" (statusword 0x{w:04X})"),
-                Err(_) => String::new(),
-            };
-            if from == to {
-                let why = if goal == PowerGoal::FaultReset { "not in fault, nothing to reset" } else { "already there" };
-                println!("unit {unit} (axis {name}) on {}: {}{sw}; {why}", c.what, to.name());
+    fn id(&self) -> u8 {
+        self.a.node
+    }
+    fn label(&self) -> String {
+        format!("unit {} (axis {}) on {}", self.a.node, self.name, self.c.what)
+    }
+    fn axis(&self) -> Option<(String, f64, bool)> {
+        Some((self.name.clone(), self.a.counts_per_unit, self.a.kind == crate::config::AxisKind::Spindle))
+    }
+    fn read(&mut self, index: u16, sub: u8, ty: ObjType) -> Result<i64, String> {
+        let (r, len, order) = self.register(index, sub, ty)?;
+        let w = self.c.read(self.a.node, r, len)?;
+        let raw = if len == 2 { order.join_i32([w[0], w[1]]) as u32 as u64 } else { w[0] as u64 };
+        if self.a.modbus_profile == Profile::Pr && index == 0x6041 {
+            return Ok(crate::drives::modbus::plan::pr_statusword(raw as u16) as i64);
+        }
+        Ok(ty.extend(raw))
+    }
+    fn write(&mut self, index: u16, sub: u8, ty: ObjType, value: i64) -> Result<(), String> {
+        if self.a.modbus_profile == Profile::Pr && (index, sub) == (0x6040, 0) {
+            let (m, c) = (self.a.pr_map.unwrap_or_default(), value as u16);
+            return if c & cncgw_bus::cia402::cw::FAULT_RESET != 0 {
+                self.c.write(self.a.node, m.alarm_reset, &[1])
             } else {
-                println!("unit {unit} (axis {name}) on {}: {} → {}{sw}", c.what, from.name(), to.name());
-            }
-            if goal == PowerGoal::Enable {
-                match a.modbus_profile {
-                    Profile::Cia402 => {
-                        if let Ok(v) = c.read(unit, a.cia402_map.unwrap_or_default().mode_display, 1) {
-                            let m = v[0] as i16 as i8;
-                            println!("  mode {m} ({}): the drive holds its position until it gets a set-point", cncgw_bus::cia402::mode::name(m));
-                        }
-                    }
-                    Profile::Pr => println!("  servo on: the drive holds its position until a PR block is triggered"),
-                }
-                println!("  communication watchdog off: the controller sets it again when it starts");
-            }
-            EXIT_OK
+                self.c.write(self.a.node, m.servo_on, &[(c & 0x06 == 0x06) as u16])
+            };
         }
-        Err(e) => {
-            eprintln!("error: {e}");
-            EXIT_NODE
+        let (r, len, order) = self.register(index, sub, ty)?;
+        let words = if len == 2 { order.split_i32(value as i32).to_vec() } else { vec![value as u16] };
+        self.c.write(self.a.node, r, &words)
+    }
+    fn error_text(&mut self) -> String {
+        error_text(&mut self.c, &self.a)
+    }
+    fn now_ns(&mut self) -> u64 {
+        self.epoch.elapsed().as_nanos() as u64
+    }
+    fn wait_ns(&mut self, t: u64) {
+        let now = self.now_ns();
+        if t > now {
+            std::thread::sleep(Duration::from_nanos(t - now));
+        }
+    }
+    fn before_enable(&mut self) -> Result<(), String> {
+        watchdog_off(&mut self.c, &self.a)
+    }
+    fn status_register(&mut self) -> Option<(&'static str, u16)> {
+        match self.a.modbus_profile {
+            Profile::Pr => self.c.read(self.a.node, self.a.pr_map.unwrap_or_default().status, 1).ok().map(|v| ("status register", v[0])),
+            Profile::Cia402 => None,
         }
     }
 }
@@ -794,7 +607,7 @@ pub fn drive_power(cfg: &MachineConfig, unit: u8, goal: super::service::PowerGoa
 /// its previous mode restored. The PR map has no homing.
 pub fn drive_home(cfg: &MachineConfig, unit: u8, h: &super::service::HomeArgs) -> i32 {
     match home_unit(cfg, unit, h) {
-        Ok(_) => super::diag::EXIT_OK,
+        Ok(_) => exit::OK,
         Err(code) => code,
     }
 }
@@ -892,12 +705,12 @@ fn homing_writes(a: &AxisConfig, m: &cncgw_bus::modbus::Cia402Map, h: &super::se
 /// `drive_home`'s work: the position after homing (machine units), or the exit code (the
 /// message printed).
 pub fn home_unit(cfg: &MachineConfig, unit: u8, h: &super::service::HomeArgs) -> Result<f64, i32> {
-    use super::diag::{EXIT_NODE, EXIT_USAGE};
     use cncgw_bus::cia402::{cw, mode, sw};
-    let (name, a, mut c) = open_unit(cfg, unit)?;
+    let mut d = ModbusDrive::open(cfg, unit)?;
+    let (name, a) = (d.name.clone(), d.a.clone());
     if a.modbus_profile == Profile::Pr {
         eprintln!("error: unit {unit} (axis {name}) speaks the PR register map: homing is not supported by this register map (it has no mode or homing registers); home the axis with the drive's own software or panel, or set the position with a G92/G50 in the program");
-        return Err(EXIT_USAGE);
+        return Err(exit::INPUT);
     }
     let m = a.cia402_map.unwrap_or_default();
     let writes = match homing_writes(&a, &m, h) {
@@ -905,47 +718,48 @@ pub fn home_unit(cfg: &MachineConfig, unit: u8, h: &super::service::HomeArgs) ->
         Err(alarm) => {
             eprintln!("{alarm}");
             eprintln!("nothing was written or moved");
-            return Err(EXIT_USAGE);
+            return Err(exit::INPUT);
         }
     };
     if !(h.timeout.is_finite() && h.timeout > 0.0) {
         eprintln!("error: --timeout must be a positive number of seconds");
-        return Err(EXIT_USAGE);
+        return Err(exit::INPUT);
     }
     let timeout = Duration::from_secs_f64(h.timeout.min(3600.0));
-    let run = |c: &mut Client| -> Result<f64, String> {
-        let before = c.read(unit, m.mode_display, 1)?[0];
-        watchdog_off(c, &a)?;
+    let run = |d: &mut ModbusDrive| -> Result<f64, String> {
+        let before = d.c.read(unit, m.mode_display, 1)?[0];
+        watchdog_off(&mut d.c, &a)?;
         // The homing parameters before the mode: a drive may take them as homing starts.
         for (addr, words, what) in &writes {
-            c.write(unit, *addr, words).map_err(|e| format!("{e}: writing the {what} (register {addr})"))?;
+            d.c.write(unit, *addr, words).map_err(|e| format!("{e}: writing the {what} (register {addr})"))?;
         }
-        c.write(unit, m.mode, &[mode::HOMING as u16]).map_err(|e| format!("{e}: the drive refused homing mode 6 in its mode register {}", m.mode))?;
+        d.c.write(unit, m.mode, &[mode::HOMING as u16])
+            .map_err(|e| format!("{e}: the drive refused homing mode 6 in its mode register {}", m.mode))?;
         let homed = (|| {
-            cia402_enable(c, &a, WALK_TIMEOUT)?;
-            let shown = c.read(unit, m.mode_display, 1)?[0] as i16 as i8;
+            access::power_walk(d, access::PowerGoal::Enable, 2000)?;
+            let shown = d.c.read(unit, m.mode_display, 1)?[0] as i16 as i8;
             if shown != mode::HOMING {
                 return Err(format!(
                     "unit {unit} shows mode {shown} ({}) after mode 6 was written: it has no homing mode over Modbus",
                     mode::name(shown)
                 ));
             }
-            c.write(unit, m.controlword, &[cw::ENABLE_OPERATION_CMD])?;
-            c.write(unit, m.controlword, &[cw::ENABLE_OPERATION_CMD | cw::OMS4])?;
+            d.c.write(unit, m.controlword, &[cw::ENABLE_OPERATION_CMD])?;
+            d.c.write(unit, m.controlword, &[cw::ENABLE_OPERATION_CMD | cw::OMS4])?;
             let end = Instant::now() + timeout;
             loop {
-                let s = c.read(unit, m.statusword, 1)?[0];
+                let s = d.c.read(unit, m.statusword, 1)?[0];
                 if s & sw::OMS13 != 0 {
                     return Err(format!(
                         "unit {unit} reports a homing error (statusword 0x{s:04X} bit 13): {}; check the drive's homing method and switches",
-                        error_text(c, &a)
+                        error_text(&mut d.c, &a)
                     ));
                 }
                 if State::from_statusword(s) != State::OperationEnabled {
                     return Err(format!(
                         "unit {unit} left Operation Enabled while homing ({}): {}",
                         State::from_statusword(s).name(),
-                        error_text(c, &a)
+                        error_text(&mut d.c, &a)
                     ));
                 }
                 if s & sw::OMS12 != 0 && s & sw::TARGET_REACHED != 0 {
@@ -961,24 +775,24 @@ pub fn home_unit(cfg: &MachineConfig, unit: u8, h: &super::service::HomeArgs) ->
             }
         })();
         // Bit 4 down, torque off, the mode it had: whatever happened.
-        let _ = c.write(unit, m.controlword, &[cw::ENABLE_OPERATION_CMD]);
-        let _ = c.write(unit, m.controlword, &[cw::DISABLE_VOLTAGE]);
+        let _ = d.c.write(unit, m.controlword, &[cw::ENABLE_OPERATION_CMD]);
+        let _ = d.c.write(unit, m.controlword, &[cw::DISABLE_VOLTAGE]);
         if before as i16 as i8 != mode::HOMING && before != 0 {
-            let _ = c.write(unit, m.mode, &[before]);
+            let _ = d.c.write(unit, m.mode, &[before]);
         }
         homed?;
-        let p = c.read(unit, m.position_actual, 2)?;
+        let p = d.c.read(unit, m.position_actual, 2)?;
         Ok(m.word_order.join_i32([p[0], p[1]]) as f64 / a.counts_per_unit)
     };
     let unit_s = if a.kind == crate::config::AxisKind::Spindle { "deg" } else { "mm" };
-    match run(&mut c) {
+    match run(&mut d) {
         Ok(pos) => {
-            println!("unit {unit} (axis {name}) on {}: homed in mode 6 with homing method {}; position now {pos:.4} {unit_s}", c.what, h.method);
+            println!("unit {unit} (axis {name}) on {}: homed in mode 6 with homing method {}; position now {pos:.4} {unit_s}", d.c.what, h.method);
             Ok(pos)
         }
         Err(e) => {
             eprintln!("error: {e}");
-            Err(EXIT_NODE)
+            Err(exit::NOT_MET)
         }
     }
 }

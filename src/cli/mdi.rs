@@ -14,6 +14,7 @@
 //! nose radius compensation sees no next block (the last block ends as at a program end).
 //! M02/M30 ends the session; so does the end of input (Ctrl-D).
 
+use super::exit;
 use super::run::{self, ExecOpts, Job, MoveFeed, RunExtras, TapSetup};
 use super::MachineArgs;
 use crate::canon::{Move, MoveKind, Pos};
@@ -203,13 +204,12 @@ fn stdin_lines() -> Receiver<String> {
 
 /// `cncgw mdi`.
 pub fn mdi(a: &MdiArgs) -> i32 {
-    use run::{EXIT_ALARM, EXIT_PROGRAM_ERROR, EXIT_SETUP};
     let machine = &a.machine;
     let (cfg, cfg_text) = match super::machine_config(machine) {
         Ok(c) => c,
         Err(e) => {
             eprintln!("error: {e}");
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
     };
     let state_root = a.state_dir.clone().or_else(crate::persist::default_state_dir);
@@ -217,7 +217,7 @@ pub fn mdi(a: &MdiArgs) -> i32 {
         Ok(t) => t,
         Err(al) => {
             eprintln!("{al}");
-            return if al.number == crate::persist::STATE_ALARM { EXIT_SETUP } else { EXIT_PROGRAM_ERROR };
+            return if al.number == crate::persist::STATE_ALARM { exit::SETUP } else { exit::INPUT };
         }
     };
     eprintln!("cncgw: {}", tables.source);
@@ -229,7 +229,7 @@ pub fn mdi(a: &MdiArgs) -> i32 {
     if let Some(st) = &state {
         if let Err(al) = st.check_writable() {
             eprintln!("{al}");
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
         match super::lock::state(&st.dir, &st.key).and_then(|l| st.common_vars().load().map(|v| (l, v))) {
             Ok((l, v)) => {
@@ -238,7 +238,7 @@ pub fn mdi(a: &MdiArgs) -> i32 {
             }
             Err(al) => {
                 eprintln!("{al}");
-                return EXIT_SETUP;
+                return exit::SETUP;
             }
         }
         let f = st.tap_state();
@@ -251,12 +251,12 @@ pub fn mdi(a: &MdiArgs) -> i32 {
                         format!("the tool is in the hole of the rigid tap of line {}: bring it out with a program that starts with G30 P99 (`cncgw run`) before MDI; nothing was moved", t.line)
                     )
                 );
-                return EXIT_ALARM;
+                return exit::ALARM;
             }
             Ok(loaded) => tap = Some(TapSetup { file: f.path, loaded }),
             Err(al) => {
                 eprintln!("{al}");
-                return EXIT_SETUP;
+                return exit::SETUP;
             }
         }
     }
@@ -270,7 +270,7 @@ pub fn mdi(a: &MdiArgs) -> i32 {
             for x in &al {
                 eprintln!("{x}");
             }
-            return EXIT_PROGRAM_ERROR;
+            return exit::INPUT;
         }
     };
     let prompt = std::io::stdin().is_terminal() && std::io::stderr().is_terminal();
@@ -322,7 +322,7 @@ pub fn mdi(a: &MdiArgs) -> i32 {
     if let (Some(st), Some(v)) = (&state, vars) {
         if let Err(al) = st.common_vars().save(&v) {
             eprintln!("{al}");
-            return if code == run::EXIT_OK { EXIT_SETUP } else { code };
+            return if code == exit::OK { exit::SETUP } else { code };
         }
     }
     code

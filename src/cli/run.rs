@@ -1,5 +1,6 @@
 //! `cncgw run`: run a part program on the embedded emulated machine or on a real bus.
 
+use super::exit;
 use super::MachineArgs;
 use crate::canon::Pos;
 use crate::config::MachineConfig;
@@ -11,13 +12,6 @@ use crate::interp::Interpreter;
 use crate::motion::{Limits, AX_S, AX_X, AX_Y, AX_Z};
 use cncgw_bus::Clock;
 use std::path::Path;
-
-/// Exit codes (`cli::exit`).
-pub const EXIT_OK: i32 = super::exit::OK;
-pub const EXIT_NOT_AT_END: i32 = super::exit::NOT_MET;
-pub const EXIT_PROGRAM_ERROR: i32 = super::exit::INPUT;
-pub const EXIT_ALARM: i32 = super::exit::ALARM;
-pub const EXIT_SETUP: i32 = super::exit::SETUP;
 
 /// Real-time setup of the cycle thread (real drives on a real PC). Each is optional; one the
 /// system refuses is a warning, not an error. Each flag overrides the config's `[rt]` option.
@@ -236,7 +230,7 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, files: RunFiles, m
         Ok(c) => c,
         Err(e) => {
             eprintln!("error: {e}");
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
     };
     // `run -`: the program comes on standard input, read whole (it is checked before motion).
@@ -244,7 +238,7 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, files: RunFiles, m
         Ok(t) => t,
         Err(e) => {
             eprintln!("error: {e}");
-            return EXIT_PROGRAM_ERROR;
+            return exit::INPUT;
         }
     };
     let open = |cfg: &MachineConfig| match &stdin_text {
@@ -259,7 +253,7 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, files: RunFiles, m
                 eprintln!("{a}");
             }
             eprintln!("{} error(s); nothing was moved", alarms.len());
-            return EXIT_PROGRAM_ERROR;
+            return exit::INPUT;
         }
     };
     interp.set_block_budget(max_blocks);
@@ -267,14 +261,14 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, files: RunFiles, m
     let state_root = state_dir.map(Path::to_path_buf).or_else(crate::persist::default_state_dir);
     if cfg.opcua.enabled && state_root.is_none() {
         eprintln!("error: [opcua] needs a state directory for its certificates: give --state-dir or set CNCGW_STATE_DIR");
-        return EXIT_SETUP;
+        return exit::SETUP;
     }
     let tables = match crate::offsets::resolve(state_root.as_deref(), &cfg.machine.name, tools) {
         Ok(t) => t,
         Err(a) => {
             eprintln!("{a}");
             eprintln!("nothing was moved");
-            return if a.number == crate::persist::STATE_ALARM { EXIT_SETUP } else { EXIT_PROGRAM_ERROR };
+            return if a.number == crate::persist::STATE_ALARM { exit::SETUP } else { exit::INPUT };
         }
     };
     eprintln!("cncgw: {}", tables.source);
@@ -286,7 +280,7 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, files: RunFiles, m
         Ok(s) => s,
         Err(a) => {
             eprintln!("{a}");
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
     };
     // Common variables #401–#600 survive power-off: load them, store them after the run.
@@ -297,7 +291,7 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, files: RunFiles, m
             Ok(v) => interp.set_common_vars(v),
             Err(a) => {
                 eprintln!("{a}");
-                return EXIT_SETUP;
+                return exit::SETUP;
             }
         }
     }
@@ -308,14 +302,14 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, files: RunFiles, m
         Ok(s) => s.flatten(),
         Err(a) => {
             eprintln!("{a}");
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
     };
     if let Some(st) = tap_state.filter(|s| s.in_hole) {
         if let Err(a) = check_tap_return_program(open(&cfg), &st) {
             eprintln!("{a}");
             eprintln!("nothing was moved");
-            return EXIT_ALARM;
+            return exit::ALARM;
         }
         eprintln!(
             "cncgw: the tool is in the hole of the rigid tap of line {} ({} {:.4} mm, R plane {:.4}, lead {}): G30 P99 returns along it",
@@ -328,7 +322,7 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, files: RunFiles, m
         restart.and_then(|at| super::restart::precheck(at, open(&cfg), &tables, interp.common_vars(), tap_state.is_some_and(|s| s.in_hole)))
     {
         eprintln!("{a}");
-        return EXIT_PROGRAM_ERROR;
+        return exit::INPUT;
     }
     let job = Job {
         name: program.display().to_string(),
@@ -366,7 +360,7 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, files: RunFiles, m
     if let (Some(f), Some(v)) = (&vars_file, vars) {
         if let Err(a) = f.save(&v) {
             eprintln!("{a}");
-            return if code == EXIT_OK { EXIT_SETUP } else { code };
+            return if code == exit::OK { exit::SETUP } else { code };
         }
     }
     code
@@ -502,7 +496,7 @@ pub fn run_job(
         Ok(l) => l,
         Err(a) => {
             eprintln!("{a}");
-            return (EXIT_SETUP, None, RunSummary::default());
+            return (exit::SETUP, None, RunSummary::default());
         }
     };
     let mut modbus = crate::drives::modbus::ModbusDrives::new(cfg);
@@ -519,7 +513,7 @@ pub fn run_job(
             eprintln!(
                 "error: the embedded emulated bus (inproc) is CANopen only and runs in simulated time; a machine with Modbus axes runs in real time: give the CANopen axes a real bus (--bus vcan0, --bus socketcand://HOST:PORT/can0) and start the Modbus drives (e.g. sim-drives --modbus-tcp ADDR)"
             );
-            return (EXIT_SETUP, None, RunSummary::default());
+            return (exit::SETUP, None, RunSummary::default());
         }
         match super::open_bus(cfg, cfg_text, machine.bus.as_deref(), machine.sim_config.as_deref()) {
             Ok((m, c, _, w)) => {
@@ -531,7 +525,7 @@ pub fn run_job(
             }
             Err(e) => {
                 eprintln!("error: {e}");
-                return (EXIT_SETUP, None, RunSummary::default());
+                return (exit::SETUP, None, RunSummary::default());
             }
         }
     }
@@ -556,7 +550,7 @@ pub fn run_job(
         Ok(d) => d,
         Err(a) => {
             eprintln!("{a}");
-            return (EXIT_SETUP, None, RunSummary::default());
+            return (exit::SETUP, None, RunSummary::default());
         }
     };
     let paced = (opts.pace || opts.live) && clock.is_simulated();
@@ -616,24 +610,24 @@ pub fn trace_plot(file: &Path, out: &Path) -> i32 {
         Ok(t) => t,
         Err(e) => {
             eprintln!("error: cannot read {}: {e}", file.display());
-            return EXIT_PROGRAM_ERROR;
+            return exit::INPUT;
         }
     };
     let data = match TraceData::parse(&text) {
         Ok(d) => d,
         Err(e) => {
             eprintln!("error: {}: {e}", file.display());
-            return EXIT_PROGRAM_ERROR;
+            return exit::INPUT;
         }
     };
     match crate::control::trace::plot_svg(&data, out) {
         Ok(()) => {
             eprintln!("wrote {}", out.display());
-            EXIT_OK
+            exit::OK
         }
         Err(e) => {
             eprintln!("error: cannot draw {}: {e}", out.display());
-            EXIT_SETUP
+            exit::SETUP
         }
     }
 }
@@ -652,7 +646,7 @@ fn execute(
             Ok(t) => lp.set_trace(t),
             Err(e) => {
                 eprintln!("error: cannot write the trace {}: {e}", path.display());
-                return (EXIT_SETUP, None, RunSummary::default());
+                return (exit::SETUP, None, RunSummary::default());
             }
         }
     }
@@ -664,7 +658,7 @@ fn execute(
         Ok(o) => o,
         Err(e) => {
             eprintln!("error: {e}; nothing was moved");
-            return (EXIT_SETUP, None, RunSummary::default());
+            return (exit::SETUP, None, RunSummary::default());
         }
     };
     let mut summary = RunSummary::default();
@@ -676,7 +670,7 @@ fn execute(
             eprintln!("{a}");
             // A bus or Modbus link that cannot be opened is setup, as a CAN interface that
             // cannot be opened is; the drives' own refusals are alarms.
-            let code = if matches!(a.number, crate::alarm::CAN_BUS | crate::alarm::MODBUS_LINK) { EXIT_SETUP } else { EXIT_ALARM };
+            let code = if matches!(a.number, crate::alarm::CAN_BUS | crate::alarm::MODBUS_LINK) { exit::SETUP } else { exit::ALARM };
             return (code, None, summary);
         }
     };
@@ -689,7 +683,7 @@ fn execute(
                 eprintln!("{a}");
             }
             eprintln!("{} error(s); nothing was moved", alarms.len());
-            return (EXIT_PROGRAM_ERROR, None, summary);
+            return (exit::INPUT, None, summary);
         }
     };
     interp.set_start_position(start_pos);
@@ -700,7 +694,7 @@ fn execute(
         Err(e) => {
             eprintln!("error: cannot start the rigid-tap state writer: {e}");
             lp.finish();
-            return (EXIT_SETUP, None, summary);
+            return (exit::SETUP, None, summary);
         }
     };
     let checked = reference_at_start(&lp, cfg, extras.reference.as_ref()).and_then(|()| checks_before_motion(&mut lp, &job, cfg, &interp, start_pos));
@@ -715,7 +709,7 @@ fn execute(
         eprintln!("{a}");
         eprintln!("nothing was moved");
         observer.finish();
-        return (EXIT_ALARM, None, summary);
+        return (exit::ALARM, None, summary);
     }
     // The interpreter runs ahead of motion, macro statements included (as on a Fanuc, where
     // macro statements are executed while the blocks before them are buffered).
@@ -728,7 +722,7 @@ fn execute(
         Err(a) => {
             eprintln!("error: {a}");
             lp.finish();
-            return (EXIT_SETUP, None, summary);
+            return (exit::SETUP, None, summary);
         }
     };
     let lines: Vec<&str> = job.source.lines().collect();
@@ -751,7 +745,7 @@ fn execute(
     let tap_failed = close_writers(&mut lp, tap_writer);
     let code = outcome(r, &summary, opts, &job.name);
     observer.finish();
-    (if tap_failed && code == EXIT_OK { EXIT_SETUP } else { code }, vars, summary)
+    (if tap_failed && code == exit::OK { exit::SETUP } else { code }, vars, summary)
 }
 
 /// The rigid-tap state writer of a run with a tap-state file (`extras.tap`), its watch set
@@ -843,7 +837,7 @@ fn outcome(r: Result<(), crate::Alarm>, summary: &RunSummary, opts: &ExecOpts, n
             record_alarm(&opts.extras, name, &a);
             eprintln!("{a}");
             eprintln!("the program stopped at this alarm; {}", summary.rest.describe());
-            EXIT_ALARM
+            exit::ALARM
         }
         Ok(()) => {
             if opts.print_summary {
@@ -853,10 +847,10 @@ fn outcome(r: Result<(), crate::Alarm>, summary: &RunSummary, opts: &ExecOpts, n
                 eprintln!("warning: {}", summary.rest.describe());
             }
             if summary.at_program_end() {
-                EXIT_OK
+                exit::OK
             } else {
                 eprintln!("error: an axis did not reach the program's end point within one count");
-                EXIT_NOT_AT_END
+                exit::NOT_MET
             }
         }
     }

@@ -5,12 +5,15 @@
 //! anything but `inproc` — needs `--yes`, or the operator's typed `yes` on a terminal; it is
 //! refused before the bus is opened (as `sdo write` does).
 
-use super::diag::{sdo_error_text, EXIT_NODE, EXIT_OK, EXIT_SETUP, EXIT_USAGE};
+use super::diag::sdo_error_text;
+use super::exit;
 use super::{load_config, open_session, open_session_with, MachineArgs, Session};
+pub use crate::drives::access::PowerGoal;
+use crate::drives::access::{self, DriveAccess, DriveStatus, ObjType};
 use crate::drives::DriveBus;
 use cncgw_bus::canopen::emcy::error_text;
 use cncgw_bus::canopen::od;
-use cncgw_bus::cia402::{cw, mode, EnableProgress, Enabler, State};
+use cncgw_bus::cia402::{mode, State};
 use cncgw_bus::{BusError, CanBus, CanFrame};
 use std::io::Write;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -44,7 +47,7 @@ pub(crate) fn confirm_motion(machine: &MachineArgs, yes: bool, what: &str) -> Re
     use std::io::{BufRead, IsTerminal};
     let bus = effective_bus(machine).map_err(|e| {
         eprintln!("error: {e}");
-        EXIT_SETUP
+        exit::SETUP
     })?;
     if bus == "inproc" || yes {
         return Ok(());
@@ -58,16 +61,16 @@ pub(crate) fn confirm_motion(machine: &MachineArgs, yes: bool, what: &str) -> Re
             return Ok(());
         }
         eprintln!("not confirmed: nothing was moved");
-        return Err(EXIT_USAGE);
+        return Err(exit::INPUT);
     }
     eprintln!("error: {what} can set a motor in motion on {bus}; make sure the axis is free to move and nobody is near it, then repeat with --yes");
-    Err(EXIT_USAGE)
+    Err(exit::INPUT)
 }
 
 fn open(machine: &MachineArgs) -> Result<Session, i32> {
     open_session(machine).map_err(|e| {
         eprintln!("error: {e}");
-        EXIT_SETUP
+        exit::SETUP
     })
 }
 
@@ -89,12 +92,6 @@ fn read_statusword(s: &mut Session, node: u8) -> Result<u16, String> {
         .map_err(|e| format!("node {node}: reading the statusword 0x6041 failed: {e}; is it a CiA 402 drive? `cncgw scan` shows what answers"))
 }
 
-fn write_controlword(s: &mut Session, node: u8, c: u16) -> Result<(), String> {
-    s.master
-        .sdo_download(&mut *s.clock, node, od::CONTROLWORD, 0, &c.to_le_bytes())
-        .map_err(|e| format!("node {node}: writing the controlword 0x6040 = 0x{c:04X} failed: {}", sdo_error_text(&e)))
-}
-
 /// The drive's error code 0x603F in words, for messages.
 fn error_code_text(s: &mut Session, node: u8) -> String {
     match read_int(s, node, od::ERROR_CODE, 2) {
@@ -103,92 +100,72 @@ fn error_code_text(s: &mut Session, node: u8) -> String {
     }
 }
 
-/// What `drive enable|disable|fault-reset` walks towards.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum PowerGoal {
-    /// Operation Enabled (fault resets included, as the master's own walk does).
-    Enable,
-    /// Switch On Disabled: no torque (disable voltage, CiA 402 transitions 7, 9, 10, 12).
-    Disable,
-    /// Out of Fault (rising edge of controlword bit 7), to Switch On Disabled.
-    FaultReset,
-}
-
-/// Walk `node` towards `goal` over SDO (0x6041 read, 0x6040 written), one step per 10 ms,
-/// giving up after `timeout_ms`. Returns (state before, state reached).
+/// Walk `node` towards `goal` over SDO (0x6041 read, 0x6040 written): `drives::access`'s
+/// walk, the same for every bus. Returns (state before, state reached).
 pub fn power_walk(s: &mut Session, node: u8, goal: PowerGoal, timeout_ms: u64) -> Result<(State, State), String> {
-    s.master.ensure_node(node);
-    let first = State::from_statusword(read_statusword(s, node)?);
-    if goal == PowerGoal::Enable && first != State::OperationEnabled {
-        // A stale target position (0x607A) would be jumped to in a position mode the moment
-        // the drive enables: make it the present position. Drives without 0x607A skip this.
-        if let Ok(p) = read_int(s, node, od::POSITION_ACTUAL, 4) {
-            let _ = s.master.sdo_download(&mut *s.clock, node, od::TARGET_POSITION, 0, &(p as i32).to_le_bytes());
-        }
-    }
-    let end = s.clock.now_ns() + timeout_ms * MS;
-    let mut enabler = Enabler::default();
-    let mut sent_reset = false;
-    loop {
-        let st = State::from_statusword(read_statusword(s, node)?);
-        let c = match goal {
-            PowerGoal::Enable => match enabler.step(st.statusword_bits()) {
-                EnableProgress::Enabled => return Ok((first, st)),
-                EnableProgress::ResetFailed => {
-                    return Err(format!(
-                        "node {node} stays in Fault after {} fault resets: {}; clear the cause first",
-                        Enabler::MAX_RESETS,
-                        error_code_text(s, node)
-                    ))
-                }
-                EnableProgress::Walking => enabler.controlword,
-            },
-            PowerGoal::Disable => match st {
-                State::SwitchOnDisabled | State::NotReadyToSwitchOn => return Ok((first, st)),
-                State::Fault | State::FaultReactionActive => {
-                    return Err(format!(
-                        "node {node} is in {} (no torque): {}; `cncgw drive fault-reset {node}` clears it once the cause is gone",
-                        st.name(),
-                        error_code_text(s, node)
-                    ))
-                }
-                _ => cw::DISABLE_VOLTAGE,
-            },
-            PowerGoal::FaultReset => match st {
-                State::Fault | State::FaultReactionActive => {
-                    // A rising edge of bit 7: low first, then high.
-                    if sent_reset {
-                        cw::DISABLE_VOLTAGE
-                    } else {
-                        write_controlword(s, node, cw::DISABLE_VOLTAGE)?;
-                        sent_reset = true;
-                        cw::FAULT_RESET_CMD
-                    }
-                }
-                _ => {
-                    if sent_reset {
-                        // Bit 7 back down so the next reset is an edge again.
-                        write_controlword(s, node, cw::DISABLE_VOLTAGE)?;
-                    }
-                    return Ok((first, st));
-                }
-            },
-        };
-        if s.clock.now_ns() >= end {
-            return Err(match goal {
-                PowerGoal::FaultReset => {
-                    format!("node {node} still in {} after a fault reset: the cause persists: {}", st.name(), error_code_text(s, node))
-                }
-                _ => format!("node {node} stuck in {} for {timeout_ms} ms; `cncgw drive status {node}` shows why", st.name()),
-            });
-        }
-        write_controlword(s, node, c)?;
-        let t = s.clock.now_ns() + 10 * MS;
-        s.clock.wait_until(t);
+    access::power_walk(&mut SdoDrive::new(s, node), goal, timeout_ms)
+}
+
+/// A CANopen drive's objects by SDO (SocketCAN, socketcand or the embedded emulator).
+pub struct SdoDrive<'a> {
+    pub s: &'a mut Session,
+    pub node: u8,
+}
+
+impl<'a> SdoDrive<'a> {
+    pub fn new(s: &'a mut Session, node: u8) -> SdoDrive<'a> {
+        s.master.ensure_node(node);
+        SdoDrive { s, node }
     }
 }
 
-/// `cncgw drive enable|disable|fault-reset NODE`.
+impl DriveAccess for SdoDrive<'_> {
+    fn noun(&self) -> &'static str {
+        "node"
+    }
+    fn id(&self) -> u8 {
+        self.node
+    }
+    fn label(&self) -> String {
+        let axis = self.s.master.node_spec(self.node).map(|n| format!(" (axis {})", n.axis)).unwrap_or_default();
+        format!("node {}{axis}", self.node)
+    }
+    fn axis(&self) -> Option<(String, f64, bool)> {
+        self.s.master.node_spec(self.node).map(|n| (n.axis.clone(), n.counts_per_unit, n.spindle))
+    }
+    fn read(&mut self, index: u16, sub: u8, ty: ObjType) -> Result<i64, String> {
+        let n = ty.bytes();
+        let d = self.s.master.sdo_upload(&mut *self.s.clock, self.node, index, sub).map_err(|e| sdo_error_text(&e))?;
+        if d.len() < n {
+            return Err(format!("0x{index:04X} answered {} byte(s), expected {n}", d.len()));
+        }
+        let mut b = [0u8; 8];
+        b[..n].copy_from_slice(&d[..n]);
+        Ok(ty.extend(u64::from_le_bytes(b)))
+    }
+    fn write(&mut self, index: u16, sub: u8, ty: ObjType, value: i64) -> Result<(), String> {
+        let b = value.to_le_bytes();
+        self.s.master.sdo_download(&mut *self.s.clock, self.node, index, sub, &b[..ty.bytes()]).map_err(|e| sdo_error_text(&e))
+    }
+    fn statusword(&mut self) -> Result<u16, String> {
+        read_statusword(self.s, self.node)
+    }
+    fn controlword(&mut self, c: u16) -> Result<(), String> {
+        self.write(od::CONTROLWORD, 0, ObjType::U16, c as i64)
+            .map_err(|e| format!("node {}: writing the controlword 0x6040 = 0x{c:04X} failed: {e}", self.node))
+    }
+    fn error_text(&mut self) -> String {
+        error_code_text(self.s, self.node)
+    }
+    fn now_ns(&mut self) -> u64 {
+        self.s.clock.now_ns()
+    }
+    fn wait_ns(&mut self, t: u64) {
+        self.s.clock.wait_until(t)
+    }
+}
+
+/// `cncgw drive enable|disable|fault-reset NODE`: the same walk for every bus.
 pub fn drive_power(machine: &MachineArgs, node: u8, goal: PowerGoal, yes: bool) -> i32 {
     let _bus_lock = match super::lock::for_writing(machine) {
         Ok(l) => l,
@@ -200,41 +177,60 @@ pub fn drive_power(machine: &MachineArgs, node: u8, goal: PowerGoal, yes: bool) 
         }
     }
     match super::mbus::modbus_machine(machine) {
-        Ok(Some(cfg)) => return super::mbus::drive_power(&cfg, node, goal),
+        Ok(Some(cfg)) => {
+            return match super::mbus::ModbusDrive::open(&cfg, node) {
+                Ok(mut d) => power_report(&mut d, goal),
+                Err(code) => code,
+            }
+        }
         Ok(None) => {}
         Err(e) => {
             eprintln!("error: {e}");
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
     }
     let mut s = match open(machine) {
         Ok(s) => s,
         Err(c) => return c,
     };
-    let axis = s.master.node_spec(node).map(|n| format!(" (axis {})", n.axis)).unwrap_or_default();
-    match power_walk(&mut s, node, goal, 2000) {
+    let simulated = s.simulated;
+    let code = power_report(&mut SdoDrive::new(&mut s, node), goal);
+    if code == exit::OK && simulated {
+        println!("  (embedded emulated drives: they start fresh with every command)");
+    }
+    code
+}
+
+/// Walk `d` to `goal` and say what happened.
+fn power_report(d: &mut dyn DriveAccess, goal: PowerGoal) -> i32 {
+    match access::power_walk(d, goal, 2000) {
         Ok((from, to)) => {
-            let sw = read_statusword(&mut s, node).map(|w| format!(" (statusword 0x{w:04X})")).unwrap_or_default();
+            let sw = match d.status_register() {
+                Some((what, v)) => format!(" ({what} 0x{v:04X})"),
+                None => d.statusword().map(|w| format!(" (statusword 0x{w:04X})")).unwrap_or_default(),
+            };
+            let label = d.label();
             if from == to {
                 let why = if goal == PowerGoal::FaultReset { "not in fault, nothing to reset" } else { "already there" };
-                println!("node {node}{axis}: {}{sw}; {why}", to.name());
+                println!("{label}: {}{sw}; {why}", to.name());
             } else {
-                println!("node {node}{axis}: {} → {}{sw}", from.name(), to.name());
+                println!("{label}: {} → {}{sw}", from.name(), to.name());
             }
             if goal == PowerGoal::Enable {
-                let m = read_int(&mut s, node, od::MODES_DISPLAY, 1).map(|m| m as i8);
-                if let Ok(m) = m {
-                    println!("  mode {m} ({}): the drive holds its position until it gets a set-point", mode::name(m));
+                match d.read(od::MODES_DISPLAY, 0, ObjType::I8) {
+                    Ok(m) => println!("  mode {m} ({}): the drive holds its position until it gets a set-point", mode::name(m as i8)),
+                    Err(_) if d.status_register().is_some() => println!("  servo on: the drive holds its position until a PR block is triggered"),
+                    Err(_) => {}
+                }
+                if d.noun() == "unit" {
+                    println!("  communication watchdog off: the controller sets it again when it starts");
                 }
             }
-            if s.simulated {
-                println!("  (embedded emulated drives: they start fresh with every command)");
-            }
-            EXIT_OK
+            exit::OK
         }
         Err(e) => {
             eprintln!("error: {e}");
-            EXIT_NODE
+            exit::NOT_MET
         }
     }
 }
@@ -313,7 +309,7 @@ pub fn drive_home(machine: &MachineArgs, node: u8, h: &HomeArgs, yes: bool) -> i
         Ok(None) => {}
         Err(e) => {
             eprintln!("error: {e}");
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
     }
     let mut s = match open(machine) {
@@ -322,11 +318,11 @@ pub fn drive_home(machine: &MachineArgs, node: u8, h: &HomeArgs, yes: bool) -> i
     };
     let Some(spec) = s.master.node_spec(node).cloned() else {
         eprintln!("error: node {node} is not a drive of the configuration; homing needs its scaling (`cncgw config check` lists the axes)");
-        return EXIT_USAGE;
+        return exit::INPUT;
     };
     if let Err(e) = home_params(&s, node, h) {
         eprintln!("error: {e}");
-        return EXIT_USAGE;
+        return exit::INPUT;
     }
     let method = h.method;
     let r = with_started(&mut s, node, |s| home_node(s, node, h).map_err(|e| crate::Alarm::new(crate::alarm::HOMING, e)));
@@ -338,11 +334,11 @@ pub fn drive_home(machine: &MachineArgs, node: u8, h: &HomeArgs, yes: bool) -> i
                 if spec.spindle { "deg" } else { "mm" }
             );
             super::home::record_drive_home(machine, &spec.axis, node, method, pos);
-            EXIT_OK
+            exit::OK
         }
         Err(e) => {
             eprintln!("error: {e}");
-            EXIT_NODE
+            exit::NOT_MET
         }
     }
 }
@@ -387,7 +383,7 @@ pub fn jog(machine: &MachineArgs, axis: &str, to: Option<f64>, by: Option<f64>, 
         Ok(None) => {}
         Err(e) => {
             eprintln!("error: {e}");
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
     }
     let mut s = match open(machine) {
@@ -397,33 +393,33 @@ pub fn jog(machine: &MachineArgs, axis: &str, to: Option<f64>, by: Option<f64>, 
     let Some(ax) = s.cfg.axes.get(axis).cloned() else {
         let names: Vec<&str> = s.cfg.axes.keys().map(String::as_str).collect();
         eprintln!("error: no axis `{axis}` in the configuration (axes: {})", names.join(", "));
-        return EXIT_USAGE;
+        return exit::INPUT;
     };
     if ax.modbus.is_some() {
         match super::machine_config(machine) {
             Ok((cfg, _)) => return jog_program(machine, &cfg, axis, to, by, speed),
             Err(e) => {
                 eprintln!("error: {e}");
-                return EXIT_SETUP;
+                return exit::SETUP;
             }
         }
     }
     let node = ax.node;
     let Some(spec) = s.master.node_spec(node).cloned() else {
         eprintln!("error: axis {axis} (node {node}) is not a CANopen drive of the configuration");
-        return EXIT_SETUP;
+        return exit::SETUP;
     };
     let unit = if spec.spindle { "deg" } else { "mm" };
     let speed = speed.unwrap_or(ax.max_speed / 10.0);
     if !(speed.is_finite() && speed > 0.0 && speed <= ax.max_speed) {
         eprintln!("error: --speed {speed} must be above 0 and at most the axis's max_speed {}", ax.max_speed);
-        return EXIT_USAGE;
+        return exit::INPUT;
     }
     let start = match read_int(&mut s, node, od::POSITION_ACTUAL, 4) {
         Ok(c) => c as f64 / spec.counts_per_unit,
         Err(e) => {
             eprintln!("error: node {node}: reading the position 0x6064 failed: {e}");
-            return EXIT_NODE;
+            return exit::NOT_MET;
         }
     };
     let target = match (to, by) {
@@ -431,18 +427,18 @@ pub fn jog(machine: &MachineArgs, axis: &str, to: Option<f64>, by: Option<f64>, 
         (None, Some(d)) => start + d,
         _ => {
             eprintln!("error: give exactly one of --to POS and --by DIST");
-            return EXIT_USAGE;
+            return exit::INPUT;
         }
     };
     if !target.is_finite() {
         eprintln!("error: the target is not a number");
-        return EXIT_USAGE;
+        return exit::INPUT;
     }
     if !spec.spindle {
         if let (Some(lo), Some(hi)) = (spec.min, spec.max) {
             if target < lo || target > hi {
                 eprintln!("error: {target} {unit} is outside axis {axis}'s travel {lo} … {hi} {unit} (axes.{axis}.min/max)");
-                return EXIT_USAGE;
+                return exit::INPUT;
             }
         }
     }
@@ -451,11 +447,11 @@ pub fn jog(machine: &MachineArgs, axis: &str, to: Option<f64>, by: Option<f64>, 
     match with_started(&mut s, node, |s| s.master.profile_move(&mut *s.clock, node, target, v, a)) {
         Ok(pos) => {
             println!("axis {axis} (node {node}): {start:.4} → {pos:.4} {unit} (target {target:.4})");
-            EXIT_OK
+            exit::OK
         }
         Err(e) => {
             eprintln!("error: {e}");
-            EXIT_NODE
+            exit::NOT_MET
         }
     }
 }
@@ -468,16 +464,16 @@ fn jog_program(machine: &MachineArgs, cfg: &crate::config::MachineConfig, axis: 
     let Some(ax) = cfg.axes.get(axis).cloned() else {
         let names: Vec<&str> = cfg.axes.keys().map(String::as_str).collect();
         eprintln!("error: no axis `{axis}` in the configuration (axes: {})", names.join(", "));
-        return EXIT_USAGE;
+        return exit::INPUT;
     };
     if !matches!(axis, "x" | "z") || ax.kind != crate::config::AxisKind::Linear {
         eprintln!("error: axis {axis}: a jog through the controller moves X or Z; turn a spindle with a program (M03 S…)");
-        return EXIT_USAGE;
+        return exit::INPUT;
     }
     let speed = speed.unwrap_or(ax.max_speed / 10.0);
     if !(speed.is_finite() && speed > 0.0 && speed <= ax.max_speed) {
         eprintln!("error: --speed {speed} must be above 0 and at most the axis's max_speed {}", ax.max_speed);
-        return EXIT_USAGE;
+        return exit::INPUT;
     }
     let from = std::cell::Cell::new(None::<f64>);
     let target = std::cell::Cell::new(None::<f64>);
@@ -512,9 +508,9 @@ fn jog_program(machine: &MachineArgs, cfg: &crate::config::MachineConfig, axis: 
     match (code, from.get(), target.get(), end) {
         (0, Some(f), Some(t), Some(e)) => {
             println!("axis {axis} (unit {}): {f:.4} → {e:.4} mm (target {t:.4})", ax.node);
-            EXIT_OK
+            exit::OK
         }
-        (0, ..) => EXIT_NODE,
+        (0, ..) => exit::NOT_MET,
         (c, ..) => c,
     }
 }
@@ -534,28 +530,28 @@ pub fn buslog(machine: &MachineArgs, out: &std::path::Path, seconds: Option<f64>
     if let Some(n) = seconds {
         if !(n.is_finite() && n > 0.0) {
             eprintln!("error: --seconds must be a positive number");
-            return EXIT_USAGE;
+            return exit::INPUT;
         }
     }
     let (cfg, text) = match load_config(machine.config.as_deref()) {
         Ok(c) => c,
         Err(e) => {
             eprintln!("error: {e}");
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
     };
     let (mut bus, mut clock, name, what) = match super::open_raw(&cfg, &text, machine.bus.as_deref(), machine.sim_config.as_deref()) {
         Ok(b) => b,
         Err(e) => {
             eprintln!("error: {e}");
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
     };
     let file = match std::fs::File::create(out) {
         Ok(f) => f,
         Err(e) => {
             eprintln!("error: {}: cannot create: {e}", out.display());
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
     };
     let mut w = std::io::BufWriter::new(file);
@@ -605,7 +601,7 @@ pub fn buslog(machine: &MachineArgs, out: &std::path::Path, seconds: Option<f64>
                 if !simulated {
                     if let Err(e) = w.flush() {
                         eprintln!("error: {}: cannot write: {e}", out.display());
-                        return EXIT_SETUP;
+                        return exit::SETUP;
                     }
                 }
                 continue;
@@ -613,7 +609,7 @@ pub fn buslog(machine: &MachineArgs, out: &std::path::Path, seconds: Option<f64>
             Err(e) => {
                 let _ = w.flush();
                 eprintln!("error: reading {name}: {e}");
-                return EXIT_SETUP;
+                return exit::SETUP;
             }
         };
         let t_us = unix0 + (clock.now_ns() - t0) / 1000;
@@ -626,16 +622,16 @@ pub fn buslog(machine: &MachineArgs, out: &std::path::Path, seconds: Option<f64>
         }
         if let Err(e) = r {
             eprintln!("error: {}: cannot write: {e}", out.display());
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
         frames += 1;
     }
     if let Err(e) = w.flush() {
         eprintln!("error: {}: cannot write: {e}", out.display());
-        return EXIT_SETUP;
+        return exit::SETUP;
     }
     println!("{frames} frame(s) logged to {}", out.display());
-    EXIT_OK
+    exit::OK
 }
 
 // ---------------------------------------------------------------- monitor
@@ -685,66 +681,75 @@ impl CanBus for CountingBus {
     }
 }
 
-/// One drive's values as the monitor reads them.
-struct MonitorRow {
+/// One drive's row of the monitor, read through `DriveAccess`: the same for every bus.
+pub(super) struct MonitorRow {
     node: u8,
     axis: String,
-    /// Statusword, or why the node did not answer.
-    sw: Result<u16, String>,
-    mode: Option<i8>,
     /// A spindle (degrees, rpm) rather than a feed axis (mm, mm/min).
     spindle: bool,
-    /// Position and following error in mm or degrees (X as the drive counts it: a radius).
-    pos: Option<f64>,
-    /// Speed in the operator's unit: mm/min, or rpm for a spindle.
-    vel: Option<f64>,
-    ferr: Option<f64>,
+    cpu: f64,
+    /// The drive's status, or why it did not answer.
+    st: Result<DriveStatus, String>,
 }
 
-fn monitor_read(s: &mut Session, node: u8) -> MonitorRow {
-    let spec = s.master.node_spec(node).cloned();
-    let axis = spec.as_ref().map(|n| n.axis.clone()).unwrap_or_else(|| "-".into());
-    let cpu = spec.as_ref().map(|n| n.counts_per_unit).unwrap_or(1.0);
-    let spindle = spec.as_ref().is_some_and(|n| n.spindle);
-    let mut row = MonitorRow { node, axis, sw: Ok(0), spindle, pos: None, vel: None, ferr: None, mode: None };
-    match read_int(s, node, od::STATUSWORD, 2) {
-        Ok(v) => row.sw = Ok(v as u16),
-        Err(e) => {
-            row.sw = Err(e);
-            return row;
-        }
+pub(super) fn monitor_read(d: &mut dyn DriveAccess) -> MonitorRow {
+    let axis = d.axis();
+    let (name, cpu, spindle) = axis.unwrap_or_else(|| ("-".into(), 1.0, false));
+    MonitorRow { node: d.id(), axis: name, spindle, cpu, st: access::read_status(d) }
+}
+
+impl MonitorRow {
+    /// Position, speed (rpm or mm/min: 360°/rev, 60 s/min) and following error in the
+    /// operator's units (X as the drive counts it: a radius).
+    fn figures(&self, st: &DriveStatus) -> (Option<f64>, Option<f64>, Option<f64>) {
+        let units = |c: Option<i64>| c.map(|c| c as f64 / self.cpu);
+        let vel = units(st.velocity).map(|v| if self.spindle { v / 6.0 } else { v * 60.0 });
+        (units(st.position), vel, units(st.following_error))
     }
-    row.mode = read_int(s, node, od::MODES_DISPLAY, 1).ok().map(|m| m as i8);
-    let mut units = |ix: u16| read_int(s, node, ix, 4).ok().map(|c| c as f64 / cpu);
-    row.pos = units(od::POSITION_ACTUAL);
-    // Units per second from the drive → rpm (360°/rev, 60 s/min) or mm/min.
-    row.vel = units(od::VELOCITY_ACTUAL).map(|v| if spindle { v / 6.0 } else { v * 60.0 });
-    row.ferr = units(od::FOLLOWING_ERROR_ACTUAL);
-    row
+}
+
+/// The monitor table's header, the drives addressed as `noun` ("node", "unit").
+pub(super) fn monitor_header(noun: &str) -> String {
+    format!(
+        "{noun:>4} {:<5} {:<6} {:<22} {:<26} {:>8} {:>16} {:>16} {:>14}",
+        "axis", "sw", "state", "mode", "error", "position", "speed", "follow. error"
+    )
 }
 
 /// One drive's line of the monitor table.
-fn monitor_line(r: &MonitorRow) -> String {
+pub(super) fn monitor_line(r: &MonitorRow) -> String {
     let (node, axis) = (r.node, &r.axis);
-    let sw = match &r.sw {
-        Ok(v) => *v,
+    let st = match &r.st {
+        Ok(st) => st,
         Err(e) => return format!("{node:>4} {axis:<5} no answer: {e}"),
     };
-    let st = State::from_statusword(sw);
+    let (pos, vel, ferr) = r.figures(st);
     let (pu, vu) = if r.spindle { ("deg", "rpm") } else { ("mm", "mm/min") };
     let f = |v: Option<f64>, u: &str| v.map(|v| format!("{v:.4} {u}")).unwrap_or_else(|| "-".into());
-    let mode = r.mode.map(|m| format!("{m} {}", mode::name(m))).unwrap_or_else(|| "-".into());
-    format!("{node:>4} {axis:<5} 0x{sw:04X} {:<22} {mode:<26} {:>16} {:>16} {:>14}", st.name(), f(r.pos, pu), f(r.vel, vu), f(r.ferr, pu))
+    let mode = st.mode.map(|m| format!("{m} {}", mode::name(m))).unwrap_or_else(|| "-".into());
+    let err = st.error_code.map(|e| format!("0x{e:04X}")).unwrap_or_else(|| "-".into());
+    format!(
+        "{node:>4} {axis:<5} 0x{:04X} {:<22} {mode:<26} {err:>8} {:>16} {:>16} {:>14}",
+        st.statusword,
+        st.state().name(),
+        f(pos, pu),
+        f(vel, vu),
+        f(ferr, pu)
+    )
 }
 
-fn monitor_json(r: &MonitorRow) -> serde_json::Value {
-    match &r.sw {
-        Ok(sw) => serde_json::json!({
-            "node": r.node, "axis": r.axis, "statusword": format!("0x{sw:04X}"),
-            "state": State::from_statusword(*sw).name(), "mode": r.mode, "mode_name": r.mode.map(mode::name),
-            "position": r.pos, "velocity": r.vel, "following_error": r.ferr, "error": null,
-            "position_unit": if r.spindle { "deg" } else { "mm" }, "velocity_unit": if r.spindle { "rpm" } else { "mm/min" },
-        }),
+pub(super) fn monitor_json(r: &MonitorRow) -> serde_json::Value {
+    match &r.st {
+        Ok(st) => {
+            let (pos, vel, ferr) = r.figures(st);
+            serde_json::json!({
+                "node": r.node, "axis": r.axis, "statusword": format!("0x{:04X}", st.statusword),
+                "state": st.state().name(), "mode": st.mode, "mode_name": st.mode.map(mode::name),
+                "position": pos, "velocity": vel, "following_error": ferr, "error": null,
+                "error_code": st.error_code.map(|e| format!("0x{e:04X}")),
+                "position_unit": if r.spindle { "deg" } else { "mm" }, "velocity_unit": if r.spindle { "rpm" } else { "mm/min" },
+            })
+        }
         Err(e) => serde_json::json!({"node": r.node, "axis": r.axis, "error": e}),
     }
 }
@@ -760,10 +765,7 @@ struct MonitorFrame {
 
 /// The monitor's table as text lines.
 fn monitor_text(s: &Session, f: &MonitorFrame) -> Vec<String> {
-    let mut lines = vec![format!(
-        "{:>4} {:<5} {:<6} {:<22} {:<26} {:>16} {:>16} {:>14}",
-        "node", "axis", "sw", "state", "mode", "position", "speed", "follow. error"
-    )];
+    let mut lines = vec![monitor_header("node")];
     lines.extend(f.rows.iter().map(monitor_line));
     lines.push(format!(
         "bus {} load {:.2} % ({} bit/s; frames sent and heard by this tool over the last {:.2} s)",
@@ -824,7 +826,7 @@ pub(super) fn monitor_draw(out: &mut impl Write, lines: &[String], tty: bool, sh
 pub(super) fn io_monitor(cfg: &crate::config::MachineConfig) -> Result<Option<super::iomon::IoMonitor>, i32> {
     super::iomon::IoMonitor::new(cfg).map_err(|e| {
         eprintln!("error: [io]: {e}");
-        EXIT_SETUP
+        exit::SETUP
     })
 }
 
@@ -834,7 +836,7 @@ pub fn monitor(machine: &MachineArgs, seconds: Option<f64>, once: bool, interval
     if let Some(n) = seconds {
         if !(n.is_finite() && n > 0.0) {
             eprintln!("error: --seconds must be a positive number");
-            return EXIT_USAGE;
+            return exit::INPUT;
         }
     }
     match super::mbus::modbus_machine(machine) {
@@ -842,7 +844,7 @@ pub fn monitor(machine: &MachineArgs, seconds: Option<f64>, once: bool, interval
         Ok(None) => {}
         Err(e) => {
             eprintln!("error: {e}");
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
     }
     let bits = Arc::new(AtomicU64::new(0));
@@ -851,7 +853,7 @@ pub fn monitor(machine: &MachineArgs, seconds: Option<f64>, once: bool, interval
         Ok(s) => s,
         Err(e) => {
             eprintln!("error: {e}");
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
     };
     let mut io = match io_monitor(&s.cfg) {
@@ -873,7 +875,7 @@ pub fn monitor(machine: &MachineArgs, seconds: Option<f64>, once: bool, interval
     let mut since = s.clock.now_ns();
     s.master.listen(&mut *s.clock, 100);
     loop {
-        let rows: Vec<MonitorRow> = nodes.iter().map(|&n| monitor_read(&mut s, n)).collect();
+        let rows: Vec<MonitorRow> = nodes.iter().map(|&n| monitor_read(&mut SdoDrive::new(&mut s, n))).collect();
         let io = io.as_mut().map(|m| {
             let r = m.read(Some(&mut |node, index, sub| sdo_byte(&mut s, node, index, sub)));
             let (j, l) = (m.json(&r), m.lines(&r));
@@ -887,11 +889,11 @@ pub fn monitor(machine: &MachineArgs, seconds: Option<f64>, once: bool, interval
         // JSON: one object per refresh (JSON lines), never redrawn in place.
         let lines = if json { vec![monitor_frame_json(&s, &frame).to_string()] } else { monitor_text(&s, &frame) };
         if !monitor_draw(&mut out, &lines, tty, &mut shown, once || json) || once {
-            return EXIT_OK; // stdout closed, or one table asked for
+            return exit::OK; // stdout closed, or one table asked for
         }
         let next = s.clock.now_ns() + interval;
         if end.is_some_and(|e| next > e) {
-            return EXIT_OK;
+            return exit::OK;
         }
         if s.simulated && tty {
             // Simulated time runs as fast as the CPU: pace the display for a human.

@@ -20,6 +20,7 @@
 //! read over SDO, the program is written and run through the interpreter, and the travel,
 //! the speeds and the feed are checked.
 
+use super::exit;
 use super::run::{ExecOpts, Job, OperatorArgs, RunExtras};
 use super::MachineArgs;
 use crate::canon::{MoveKind, Pos};
@@ -29,11 +30,6 @@ use crate::interp::Interpreter;
 use serde_json::json;
 use std::cell::RefCell;
 use std::path::{Path, PathBuf};
-
-/// Exit codes: 0 = the tap ran and the sync error stayed under the machine's limit;
-/// 1 = it ran but the error reached the limit; 2 = the test cannot be done as asked (out of
-/// travel, too fast…); 3 = an alarm stopped it; 4 = configuration or bus.
-pub const EXIT_OVER_LIMIT: i32 = super::exit::NOT_MET;
 
 /// The tap cannot be done from the position the drives report (controller range 2400–2499).
 pub const ALARM_TAP_PLAN: u32 = crate::alarm::TAP_PLAN;
@@ -440,25 +436,24 @@ fn print_plan(p: &TapPlan, a: &TapArgs) {
 
 /// `cncgw tap-test`.
 pub fn tap_test(machine: &MachineArgs, a: &TapArgs, op: &OperatorArgs) -> i32 {
-    use super::run::{EXIT_OK, EXIT_PROGRAM_ERROR, EXIT_SETUP};
     let (cfg, cfg_text) = match super::machine_config(machine) {
         Ok(c) => c,
         Err(e) => {
             eprintln!("error: {e}");
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
     };
     // The arguments are checked against the machine before anything is opened.
     if let Err(e) = plan(&cfg, a, Pos::ZERO).map(|_| ()).or_else(|e| if e.contains("travel") { Ok(()) } else { Err(e) }) {
         eprintln!("error: {e}");
-        return EXIT_PROGRAM_ERROR;
+        return exit::INPUT;
     }
     if a.dry {
         let start = match present_position(machine, &cfg) {
             Ok(p) => p,
             Err(e) => {
                 eprintln!("error: {e}");
-                return EXIT_SETUP;
+                return exit::SETUP;
             }
         };
         return match plan(&cfg, a, start) {
@@ -474,7 +469,7 @@ pub fn tap_test(machine: &MachineArgs, a: &TapArgs, op: &OperatorArgs) -> i32 {
                     print!("{}", p.program);
                     println!("(dry run: nothing was enabled or moved)");
                 }
-                EXIT_OK
+                exit::OK
             }
             Err(e) => {
                 if a.json {
@@ -482,7 +477,7 @@ pub fn tap_test(machine: &MachineArgs, a: &TapArgs, op: &OperatorArgs) -> i32 {
                 } else {
                     eprintln!("error: {e}");
                 }
-                EXIT_PROGRAM_ERROR
+                exit::INPUT
             }
         };
     }
@@ -516,11 +511,11 @@ pub fn tap_test(machine: &MachineArgs, a: &TapArgs, op: &OperatorArgs) -> i32 {
     };
     let (code, _, _) = super::run::with_operator(op, &mut opts, |o| super::run::run_job(&cfg, &cfg_text, machine, job, o));
     let Some(Ok(p)) = planned.into_inner() else {
-        return if code == EXIT_OK { EXIT_PROGRAM_ERROR } else { code };
+        return if code == exit::OK { exit::INPUT } else { code };
     };
     // After an alarm in the tap (the sync monitor's 2307, typically) the figures up to the
     // stop are what the engineer needs most: report them too.
-    if !matches!(code, EXIT_OK | super::run::EXIT_NOT_AT_END | super::run::EXIT_ALARM) {
+    if !matches!(code, exit::OK | exit::NOT_MET | exit::ALARM) {
         if a.json {
             println!("{}", json!({"dry": false, "plan": plan_json(&p), "exit_code": code, "trace": csv}));
         }
@@ -531,28 +526,27 @@ pub fn tap_test(machine: &MachineArgs, a: &TapArgs, op: &OperatorArgs) -> i32 {
 
 /// Figures from the trace, the plot, the verdict.
 fn report(cfg: &MachineConfig, a: &TapArgs, p: &TapPlan, csv: &Path, run_code: i32) -> i32 {
-    use super::run::{EXIT_ALARM, EXIT_OK, EXIT_SETUP};
     let data = match std::fs::read_to_string(csv).map_err(|e| e.to_string()).and_then(|t| TraceData::parse(&t)) {
         Ok(d) => d,
         Err(e) => {
             eprintln!("error: the trace {}: {e}", csv.display());
-            return EXIT_SETUP;
+            return exit::SETUP;
         }
     };
     let spindle = spindle_name(cfg).unwrap_or_default();
     let f = match figures(&data, &spindle, p.signed_lead, &p.tap_lines) {
         Ok(f) => f,
         Err(e) => {
-            if run_code != EXIT_OK {
+            if run_code != exit::OK {
                 return run_code; // stopped before the tap: the alarm said why
             }
             eprintln!("error: {}: {e}", csv.display());
-            return EXIT_ALARM;
+            return exit::ALARM;
         }
     };
     let limit = cfg.machine.sync_error_limit_um;
     let ok = f.sync.max < limit;
-    let verdict = if run_code == EXIT_ALARM {
+    let verdict = if run_code == exit::ALARM {
         Verdict::Stopped
     } else if ok {
         Verdict::Pass
@@ -567,13 +561,13 @@ fn report(cfg: &MachineConfig, a: &TapArgs, p: &TapPlan, csv: &Path, run_code: i
         eprintln!("error: cannot draw {}: {e}", a.out.display());
     }
     let code = if plot.is_err() {
-        EXIT_SETUP
-    } else if run_code != EXIT_OK {
+        exit::SETUP
+    } else if run_code != exit::OK {
         run_code
     } else if ok {
-        EXIT_OK
+        exit::OK
     } else {
-        EXIT_OVER_LIMIT
+        exit::NOT_MET
     };
     if a.json {
         println!(
@@ -590,7 +584,7 @@ fn report(cfg: &MachineConfig, a: &TapArgs, p: &TapPlan, csv: &Path, run_code: i
                 "monitor_max_um": f.monitor_max_um,
                 "sync_error_limit_um": limit,
                 "within_limit": ok,
-                "stopped_by_alarm": run_code == EXIT_ALARM,
+                "stopped_by_alarm": run_code == exit::ALARM,
                 "trace": csv,
                 "plot": a.out,
                 "exit_code": code,

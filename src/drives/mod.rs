@@ -2,6 +2,7 @@
 //! implementation. Positions cross this boundary in machine units (mm, X as a radius;
 //! degrees for a spindle); counts exist only below it.
 
+pub mod access;
 pub mod canopen;
 pub mod modbus;
 pub mod multi;
