@@ -71,12 +71,18 @@ fn program(cfg: &MachineConfig, axis: &str, travel: f64, start: crate::canon::Po
             // X is programmed as a diameter: U moves twice the radius.
             let d = sign * if axis == "x" { travel * 2.0 } else { travel };
             let f = |k: f64| (a.max_speed * k).round();
+            // Speed steps within a stroke as well as from rest: the position loop's lag shows
+            // in both, the dry friction only where the axis starts, stops or reverses.
             Ok(format!(
-                "G21\nG98\nG1 {word}{} F{}\nG4 P200\nG1 {word}{} F{}\nG4 P200\nG0 {word}{}\nG4 P200\nG0 {word}{}\nG4 P300\nM30\n",
-                -d,
+                "G21\nG98\nG1 {word}{} F{}\nG1 {word}{} F{}\nG4 P200\nG1 {word}{} F{}\nG1 {word}{} F{}\nG4 P200\nG0 {word}{}\nG4 P200\nG0 {word}{}\nG4 P300\nM30\n",
+                -d / 2.0,
                 f(0.1),
-                d,
+                -d / 2.0,
                 f(0.3),
+                d / 2.0,
+                f(0.3),
+                d / 2.0,
+                f(0.1),
                 -d,
                 d
             ))
