@@ -62,6 +62,29 @@ inputs_on = [0, 1]
 follow = [{ input = 2, output = 1, delay_ms = 200 }]
 "#;
 
+/// sim-drives on a socketcand server at `can` with the config `cfg`, its log in `log`, once
+/// it listens.
+fn start_sim(can: &str, cfg: &std::path::Path, log: &std::path::Path) -> Kill {
+    let mut sim = Kill(
+        Command::new(bin!("sim-drives"))
+            .args(["--socketcand", can, "--config"])
+            .arg(cfg)
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(log).unwrap())
+            .spawn()
+            .unwrap(),
+    );
+    let t0 = Instant::now();
+    while std::net::TcpStream::connect(can).is_err() {
+        if let Ok(Some(st)) = sim.0.try_wait() {
+            panic!("sim-drives exited ({st}): {}", std::fs::read_to_string(log).unwrap_or_default());
+        }
+        assert!(t0.elapsed().as_secs() < 10, "sim-drives did not start: {}", std::fs::read_to_string(log).unwrap_or_default());
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    sim
+}
+
 #[test]
 fn python_canopen_master_drives_the_emulated_cia401_module() {
     let Some(python) = python() else { return };
@@ -69,23 +92,7 @@ fn python_canopen_master_drives_the_emulated_cia401_module() {
     let cfg = tmp("machine.toml");
     std::fs::write(&cfg, format!("{}{MACHINE_IO}", include_str!("../config/lathe.toml"))).unwrap();
     let log = tmp("sim.log");
-    let mut sim = Kill(
-        Command::new(bin!("sim-drives"))
-            .args(["--socketcand", &can, "--config"])
-            .arg(&cfg)
-            .stdout(Stdio::null())
-            .stderr(std::fs::File::create(&log).unwrap())
-            .spawn()
-            .unwrap(),
-    );
-    let t0 = Instant::now();
-    while std::net::TcpStream::connect(&can).is_err() {
-        if let Ok(Some(st)) = sim.0.try_wait() {
-            panic!("sim-drives exited ({st}): {}", std::fs::read_to_string(&log).unwrap_or_default());
-        }
-        assert!(t0.elapsed().as_secs() < 10, "sim-drives did not start: {}", std::fs::read_to_string(&log).unwrap_or_default());
-        std::thread::sleep(Duration::from_millis(20));
-    }
+    let _sim = start_sim(&can, &cfg, &log);
     let port = can.rsplit_once(':').unwrap().1;
     let o = Command::new(&python)
         .arg(root().join("tests/python/canopen_io401.py"))
@@ -124,23 +131,7 @@ fn cncgw_drives_a_python_canopen_cia401_module_over_socketcand() {
     let drives = tmp("drives.toml");
     std::fs::write(&drives, slow_lathe()).unwrap();
     let log = tmp("sim-rev.log");
-    let mut sim = Kill(
-        Command::new(bin!("sim-drives"))
-            .args(["--socketcand", &can, "--config"])
-            .arg(&drives)
-            .stdout(Stdio::null())
-            .stderr(std::fs::File::create(&log).unwrap())
-            .spawn()
-            .unwrap(),
-    );
-    let t0 = Instant::now();
-    while std::net::TcpStream::connect(&can).is_err() {
-        if let Ok(Some(st)) = sim.0.try_wait() {
-            panic!("sim-drives exited ({st}): {}", std::fs::read_to_string(&log).unwrap_or_default());
-        }
-        assert!(t0.elapsed().as_secs() < 10, "sim-drives did not start");
-        std::thread::sleep(Duration::from_millis(20));
-    }
+    let _sim = start_sim(&can, &drives, &log);
     let port = can.rsplit_once(':').unwrap().1;
     let mut py = Kill(
         Command::new(&python)
