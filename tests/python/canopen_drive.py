@@ -7,7 +7,20 @@ to sim-drives' [drive.shape]; run by tests/python_drives.rs:
     build/venv/bin/python tests/python/canopen_drive.py HOST PORT SHAPE
 
 SHAPE: plain | pp_boot | user_units | sync_producer | no_1016 | no_6502 | ip_only |
-tap_sN (N: the spindle's time constant in ms, e.g. tap_s15, tap_s40).
+fixed_pdo | ext_sync | tap_sN (N: the spindle's time constant in ms, e.g. tap_s15, tap_s40).
+fixed_pdo (issue 21): PDO mappings that cannot be changed. The drives' own sets are in their
+EDS (edited at start: DefaultValue of 0x1600/0x1601/0x1A00/0x1A01) and at power-on, not in the
+master's order: RPDO1 = 0x607A + controlword, TPDO1 = 0x6064 + statusword + 0x6061. A write
+of a mapping object's own value is taken, any other refused as vendors do, one per node: RPDO
+/ TPDO abort 0x06040041 / 0x08000022 (node 1), 0x06040043 / 0x06040041 (2), 0x08000022 /
+0x06040043 (3). COB-IDs and transmission types stay writable.
+user_units: 0x6092:1 = a tenth of the increments per revolution (1 µm, 0.01°); the machine
+configuration must declare the axes in those units (counts_per_unit, travel_per_rev).
+ext_sync (issue 21, bus.sync = "external"): node 1 produces SYNC (0x1005 = 0x40000080, 0x1006
+= 5000 µs at power-on; the master sets 0x1006 to its cycle); the others consume it. The
+interpreter's own SYNC reaches all three drives (notify), as a frame on the bus would.
+The final JSON line per node also gives position_actual (0x6064, in the drive's units) and
+the SYNCs the node produced and heard.
 ip_only (issue 21): interpolated position (7) and no CSP — 0x6060 = 8 aborts 0x06090030,
 0x6502 lists PP, HM, IP; 0x60C0/0x60C1/0x60C4 added to the EDS; in IP the position follows
 0x60C1:1 at each SYNC while controlword bit 4 is set, and statusword bit 12 says so.
@@ -56,6 +69,17 @@ SHAPES = {
     "no_1016": {"drop": ["1016"]},
     "no_6502": {"drop": ["6502"]},
     "ip_only": {"modes": (0, 1, 6, 7), "ip": True},
+    # node: (abort on a remapping of RPDO1/2, of TPDO1/2): each drive answers as one vendor does.
+    "fixed_pdo": {"fixed": {1: (0x06040041, 0x08000022), 2: (0x06040043, 0x06040041), 3: (0x08000022, 0x06040043)}},
+    "ext_sync": {"sync_nodes": (1,), "sync_us": 5000},
+}
+# fixed_pdo: the drives' own PDO sets (mapping entries), in their EDS and at power-on; not the
+# master's order (target before controlword; mode display after position and statusword).
+FIXED_MAPS = {
+    0x1600: [0x607A0020, 0x60400010],
+    0x1601: [0x60400010, 0x60FF0020],
+    0x1A00: [0x60640020, 0x60410010, 0x60610008],
+    0x1A01: [0x60410010, 0x606C0020],
 }
 _tap = re.fullmatch(r"tap_s(\d+)", SHAPE)
 if _tap:
@@ -110,6 +134,12 @@ def shaped_eds():
         text = re.sub(r"\[%s(sub[0-9A-Fa-f]+)?\]\n(?:[^\[]*\n)*?\n" % ix, "", text)
     if shape.get("ip"):
         text = text.replace("DefaultValue=0x000001A1", "DefaultValue=0x00000061") + "\n" + IP_EDS
+    if shape.get("fixed"):
+        # The fixed sets as the EDS's defaults (AccessType stays rw, as in many vendors' EDS
+        # files: the drive takes its own value back and refuses any other at run time).
+        for ix, entries in FIXED_MAPS.items():
+            for sub, v in enumerate([len(entries)] + entries):
+                text = re.sub(r"(\[%Xsub%d\]\n(?:[^\[\n]*\n)*?DefaultValue=)[^\n]*" % (ix, sub), lambda m: m.group(1) + "0x%X" % v, text, count=1)
     f = tempfile.NamedTemporaryFile("w", suffix=".eds", delete=False)
     f.write(text)
     f.close()
@@ -121,6 +151,7 @@ class Drive:
         self.net, self.nid, self.axis, self.cpr = net, nid, axis, counts_per_rev
         self.lock = threading.RLock()
         self.send_lock = send_lock
+        self.producer = shape.get("sync_producer", False) or nid in shape.get("sync_nodes", ())
         self.node = canopen.LocalNode(nid, eds)
         net.add_node(self.node)
         # Our own NMT (boot-up after a reset, comm objects to their defaults).
@@ -140,6 +171,7 @@ class Drive:
         self.error = 0
         self.enabled_modes = set()
         self.resets = 0
+        self.syncs_sent = self.syncs_heard = 0
         self.rpdo = None
         self.master_hb = None
         self.dyn = shape.get("dyn", {}).get(nid)
@@ -164,8 +196,8 @@ class Drive:
         for ix in [k for k in self.node.data_store if 0x1000 <= k <= 0x1FFF]:
             del self.node.data_store[ix]
         n = self.nid
-        self.put(0x1005, 0, "<I", 0x40000080 if shape.get("sync_producer") else 0x80)
-        self.put(0x1006, 0, "<I", 2000 if shape.get("sync_producer") else 0)
+        self.put(0x1005, 0, "<I", 0x40000080 if self.producer else 0x80)
+        self.put(0x1006, 0, "<I", shape.get("sync_us", 2000) if self.producer else 0)
         self.put(0x1017, 0, "<H", 0)
         for sub, v in [(1, 0x00000CA8), (2, 0x04020100 + n), (3, 0x00020001), (4, 0x7A000000 + n)]:
             self.put(0x1018, sub, "<I", v)
@@ -179,6 +211,11 @@ class Drive:
         self.put(0x1A00, 0, "<B", 2)
         self.put(0x1A00, 1, "<I", 0x60410010)
         self.put(0x1A00, 2, "<I", 0x60640020)
+        if shape.get("fixed"):
+            for ix in (0x1600, 0x1A00):
+                self.put(ix, 0, "<B", len(FIXED_MAPS[ix]))
+                for k, e in enumerate(FIXED_MAPS[ix]):
+                    self.put(ix, k + 1, "<I", e)
         if "1016" not in shape.get("drop", []):
             self.put(0x1016, 1, "<I", 0)
         self.hb_period, self.hb_next = 0.0, None
@@ -233,7 +270,10 @@ class Drive:
                 if v not in shape.get("modes", (0, 1, 6, 8, 9)):
                     raise SdoAbortedError(0x06090030)
                 self.request_mode(v)
-            elif index == 0x1005 and v & 0x40000000 and not shape.get("sync_producer"):
+            elif index in FIXED_MAPS and shape.get("fixed") and bytes(data) != self.node.get_data(index, subindex):
+                # A fixed mapping: its own value is taken back, any other refused.
+                raise SdoAbortedError(shape["fixed"][self.nid][0 if index < 0x1A00 else 1])
+            elif index == 0x1005 and v & 0x40000000 and not self.producer:
                 raise SdoAbortedError(0x06090030)
             elif index == 0x1017:
                 self.hb_period = v / 1000.0
@@ -302,6 +342,7 @@ class Drive:
     def tick(self):
         """Timers, every millisecond: heartbeat, SYNC production, mode switch, consumer."""
         now = time.monotonic()
+        fire = False
         with self.lock:
             if self.hb_next is not None and now >= self.hb_next and self.nmt != 0:
                 self.send(0x700 + self.nid, [self.nmt])
@@ -312,9 +353,10 @@ class Drive:
                 if self.sync_next is None:
                     self.sync_next = now + period
                 elif now >= self.sync_next:
-                    self.sync_next += period
-                    self.send(0x80, [])
-                    self.sync()
+                    # After a stall of this interpreter: on the period again, no burst of
+                    # SYNCs to catch up (a producer's timer does not queue them).
+                    self.sync_next = max(self.sync_next + period, now + period / 2)
+                    fire = True
             self.step_pending(False)
             consumer = self.get(0x1016, 1, "<I") if "1016" not in shape.get("drop", []) else 0
             timeout = (consumer & 0xFFFF) / 1000.0
@@ -322,9 +364,16 @@ class Drive:
                 self.master_hb = None
                 if self.nmt == OP or self.state == OE:
                     self.fault(0x8130)
+        if fire:
+            # Our own frames do not come back to us: every drive of this interpreter (this one
+            # too) gets the SYNC as if received, outside this drive's lock.
+            self.send(0x80, [])
+            self.syncs_sent += 1
+            self.net.notify(0x80, b"", time.time())
 
     def on_sync(self, can_id, data, ts):
         with self.lock:
+            self.syncs_heard += 1
             self.sync()
 
     def sync(self):
@@ -445,7 +494,7 @@ def main():
             d.tick()
         time.sleep(0.001)
     for d in drives:
-        print(json.dumps({"node": d.nid, "enabled_modes": sorted(d.enabled_modes), "position": round(d.pos_inc), "resets": d.resets, "mode": d.mode, "state": d.state, "ferr_max": round(d.ferr_max), "error": d.error}), flush=True)
+        print(json.dumps({"node": d.nid, "enabled_modes": sorted(d.enabled_modes), "position": round(d.pos_inc), "position_actual": d.get(0x6064, 0, "<i"), "resets": d.resets, "syncs_sent": d.syncs_sent, "syncs_heard": d.syncs_heard, "mode": d.mode, "state": d.state, "ferr_max": round(d.ferr_max), "error": d.error}), flush=True)
     net.disconnect()
     os.unlink(eds)
 
