@@ -18,6 +18,23 @@ fn root() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
 }
 
+/// The project venv's python, or None when CNCGW_SKIP_PYTHON=1 skips python tests on
+/// purpose (never on CI); a missing venv fails naming the command that makes it.
+fn venv_python() -> Option<PathBuf> {
+    let ci = std::env::var("CI").as_deref() == Ok("true");
+    if std::env::var("CNCGW_SKIP_PYTHON").as_deref() == Ok("1") && !ci {
+        eprintln!("CNCGW_SKIP_PYTHON=1: python drives test skipped on request");
+        return None;
+    }
+    let python = root().join("build/venv/bin/python");
+    assert!(
+        python.exists(),
+        "{} is missing: run `scripts/install-test-deps.sh --python`, or set CNCGW_SKIP_PYTHON=1 to skip this test on purpose",
+        python.display()
+    );
+    Some(python)
+}
+
 /// A socketcand bus with no emulated drive on it (sim-drives' server as the hub).
 fn hub() -> (String, Arc<AtomicBool>, std::thread::JoinHandle<()>) {
     hub_at(None)
@@ -163,17 +180,7 @@ impl Outcome {
 
 #[test]
 fn realtime_python_drives_shaped_like_commercial_ones() {
-    let ci = std::env::var("CI").as_deref() == Ok("true");
-    if std::env::var("CNCGW_SKIP_PYTHON").as_deref() == Ok("1") && !ci {
-        eprintln!("CNCGW_SKIP_PYTHON=1: python drives test skipped on request");
-        return;
-    }
-    let python = root().join("build/venv/bin/python");
-    assert!(
-        python.exists(),
-        "{} is missing: run `scripts/install-test-deps.sh --python`, or set CNCGW_SKIP_PYTHON=1 to skip this test on purpose",
-        python.display()
-    );
+    let Some(python) = venv_python() else { return };
 
     // Boots in profile position, switches 300 ms and 50 SYNCs after being asked.
     let o = run(&python, "pp_boot");
@@ -215,7 +222,10 @@ fn realtime_python_drives_shaped_like_commercial_ones() {
     for n in 1..=3 {
         let l = o.startup_line(n);
         assert!(l.contains("start-up: mode CSP (cyclic synchronous position) (the default);"), "{l}");
-        assert!(l.contains("error control: none: no 0x1016 socketcand://") && l.contains("carries no remote frames for node guarding (warning)"), "{l}");
+        assert!(
+            l.contains("error control: none: no 0x1016 socketcand://") && l.contains("carries no remote frames for node guarding (warning)"),
+            "{l}"
+        );
     }
 
     // No 0x6502: the mode is checked in 0x6061.
@@ -228,17 +238,7 @@ fn realtime_python_drives_shaped_like_commercial_ones() {
 /// sim-drives' "ip-only" profile: refused in CSP naming the key, run in IP to the end point.
 #[test]
 fn realtime_python_ip_only_drives() {
-    let ci = std::env::var("CI").as_deref() == Ok("true");
-    if std::env::var("CNCGW_SKIP_PYTHON").as_deref() == Ok("1") && !ci {
-        eprintln!("CNCGW_SKIP_PYTHON=1: python drives test skipped on request");
-        return;
-    }
-    let python = root().join("build/venv/bin/python");
-    assert!(
-        python.exists(),
-        "{} is missing: run `scripts/install-test-deps.sh --python`, or set CNCGW_SKIP_PYTHON=1 to skip this test on purpose",
-        python.display()
-    );
+    let Some(python) = venv_python() else { return };
     let o = run(&python, "ip_only");
     assert_eq!(o.code, 3, "{}{}", o.stdout, o.stderr);
     assert!(o.stderr.contains("alarm 2005: node 1 (axis x): this drive has no CSP") && o.stderr.contains("set axes.x.mode = \"ip\""), "{}", o.stderr);
@@ -255,23 +255,6 @@ fn realtime_python_ip_only_drives() {
         assert_eq!(o.enabled_modes(n), vec![7], "node {n} was enabled in another mode than IP");
     }
     assert_eq!((o.position(1), o.position(2)), (500_000, 50_000), "X100 Z5 on the drives' own positions");
-}
-
-/// The project venv's python, or None when CNCGW_SKIP_PYTHON=1 skips python tests on
-/// purpose (never on CI); a missing venv fails naming the command that makes it.
-fn venv_python() -> Option<PathBuf> {
-    let ci = std::env::var("CI").as_deref() == Ok("true");
-    if std::env::var("CNCGW_SKIP_PYTHON").as_deref() == Ok("1") && !ci {
-        eprintln!("CNCGW_SKIP_PYTHON=1: python drives test skipped on request");
-        return None;
-    }
-    let python = root().join("build/venv/bin/python");
-    assert!(
-        python.exists(),
-        "{} is missing: run `scripts/install-test-deps.sh --python`, or set CNCGW_SKIP_PYTHON=1 to skip this test on purpose",
-        python.display()
-    );
-    Some(python)
 }
 
 /// Issue 21: python drives with fixed PDO mappings, a second opinion to sim-drives'
@@ -292,10 +275,8 @@ fn realtime_python_fixed_pdo_drives() {
     assert_eq!((o.position(1), o.position(2)), (500_000, 50_000), "X100 Z5 on the drives' own positions");
     for (n, rpdo_abort, tpdo_abort) in [(1usize, "0x06040041", "0x08000022"), (2, "0x06040043", "0x06040041"), (3, "0x08000022", "0x06040043")] {
         let l = o.startup_line(n);
-        let rpdo = format!(
-            "mapping: fixed RPDO1 0x{:03X} = [0x607A:00 (32 bit), 0x6040:00 (16 bit)] (remapping refused: SDO abort {rpdo_abort}",
-            0x200 + n
-        );
+        let rpdo =
+            format!("mapping: fixed RPDO1 0x{:03X} = [0x607A:00 (32 bit), 0x6040:00 (16 bit)] (remapping refused: SDO abort {rpdo_abort}", 0x200 + n);
         assert!(l.contains(&rpdo), "node {n}: {l}");
         // The mode display is in the drive's TPDO: not polled by SDO.
         let tpdo = format!("fixed TPDO1 0x{:03X} = [0x6064:00 (32 bit), 0x6041:00 (16 bit), 0x6061:00 (8 bit)];", 0x180 + n);
@@ -456,17 +437,7 @@ fn tap(python: &Path, shape: &str, spindle_window_deg: f64) -> Tap {
 #[test]
 fn realtime_rigid_tap_on_python_drives() {
     const BOUND_UM: f64 = 50.0;
-    let ci = std::env::var("CI").as_deref() == Ok("true");
-    if std::env::var("CNCGW_SKIP_PYTHON").as_deref() == Ok("1") && !ci {
-        eprintln!("CNCGW_SKIP_PYTHON=1: python drives test skipped on request");
-        return;
-    }
-    let python = root().join("build/venv/bin/python");
-    assert!(
-        python.exists(),
-        "{} is missing: run `scripts/install-test-deps.sh --python`, or set CNCGW_SKIP_PYTHON=1 to skip this test on purpose",
-        python.display()
-    );
+    let Some(python) = venv_python() else { return };
     // (shape, the spindle's following-error window 0x6065: 3 × its lag a·τ² at the tap's
     // 5000 rpm/s — 6.8° and 48° — as `cncgw identify` proposes; the lathe's 30° for τ 15 ms)
     for (shape, window) in [("tap_s15", 30.0), ("tap_s40", 150.0)] {
