@@ -825,6 +825,25 @@ mod tests {
         assert_eq!(cfg.modbus[BUS_LINK].timeout_ms, 16);
     }
 
+    /// Issue 18.5: `--bus` is parsed once; a Modbus URL's link and the parameters it gives
+    /// come out of that one parse, with the same errors.
+    #[test]
+    fn a_modbus_bus_is_parsed_once_with_its_link() {
+        use super::super::BusKind;
+        let BusKind::Modbus(b) = bus("modbus-rtu:///dev/ttyUSB0?baud=57600&timeout_ms=30") else { panic!("not a Modbus bus") };
+        assert_eq!(
+            (b.link.device.as_deref(), b.link.baud, b.given.as_slice()),
+            (Some("/dev/ttyUSB0"), 57600, &["baud".to_string(), "timeout_ms".to_string()][..])
+        );
+        assert!(BusKind::parse("modbus-rtu:///dev/x?baud=fast").unwrap_err().contains("not a number"));
+        assert!(BusKind::parse("modbus-tcp://").unwrap_err().contains("give the drive's address"));
+        let mut cfg = MachineConfig::embedded();
+        assert!(!apply_bus(&mut cfg, Some(&bus("can0"))) && !apply_bus(&mut cfg, None) && cfg.has_canopen());
+        let m = |b: Option<&str>| MachineArgs { config: None, bus: b.map(str::to_string), sim_config: None };
+        assert!(m(None).on_embedded_bus(&cfg) && m(Some("inproc")).on_embedded_bus(&cfg));
+        assert!(!m(Some("vcan0")).on_embedded_bus(&cfg) && !m(Some("modbus-tcp://127.0.0.1:5020")).on_embedded_bus(&cfg));
+    }
+
     /// Issue 22: the service commands' RTU silence follows the line (a fixed 4 ms was short
     /// of 3.5 characters at 9600 baud with parity: 11 bits × 3.5 / 9600 = 4.01 ms).
     #[test]
