@@ -366,6 +366,32 @@ impl FaultResetter {
     }
 }
 
+/// What a drive's statusword says of a homing under way (mode 6, controlword bit 4 up):
+/// bit 13 is a homing error, bits 12 (homing attained) and 10 (target reached) together its
+/// end. Shared by the CANopen master's cyclic homing and the Modbus drives' homing.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum HomingProgress {
+    Homing,
+    Attained,
+    /// Bit 13: before attained, as a drive may show both.
+    Error,
+}
+
+impl HomingProgress {
+    /// The controlword that starts the homing (and holds it): enable operation with bit 4.
+    pub const START: u16 = cw::ENABLE_OPERATION_CMD | cw::OMS4;
+
+    pub fn of(statusword: u16) -> HomingProgress {
+        if statusword & sw::OMS13 != 0 {
+            HomingProgress::Error
+        } else if statusword & sw::OMS12 != 0 && statusword & sw::TARGET_REACHED != 0 {
+            HomingProgress::Attained
+        } else {
+            HomingProgress::Homing
+        }
+    }
+}
+
 /// Modes of operation (0x6060 / 0x6061).
 pub mod mode {
     pub const PROFILE_POSITION: i8 = 1;
@@ -397,6 +423,15 @@ pub mod mode {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn homing_ends_on_attained_with_target_reached_and_an_error_comes_first() {
+        let oe = State::OperationEnabled.statusword_bits();
+        assert_eq!(HomingProgress::of(oe | sw::TARGET_REACHED), HomingProgress::Homing);
+        assert_eq!(HomingProgress::of(oe | sw::OMS12), HomingProgress::Homing);
+        assert_eq!(HomingProgress::of(oe | sw::OMS12 | sw::TARGET_REACHED), HomingProgress::Attained);
+        assert_eq!(HomingProgress::of(oe | sw::OMS13 | sw::OMS12 | sw::TARGET_REACHED), HomingProgress::Error);
+    }
 
     #[test]
     fn statusword_decodes_every_state_and_round_trips() {

@@ -460,17 +460,14 @@ pub fn sdo_write(machine: &MachineArgs, node: u8, index: u16, sub: u8, ty: SdoTy
         }
     };
     // Refuse before touching the bus: the effective bus is --bus, else the config's.
-    let bus = match &machine.bus {
-        Some(b) => b.clone(),
-        None => match super::load_config(machine.config.as_deref()) {
-            Ok((c, _)) => c.bus.interface,
-            Err(e) => {
-                eprintln!("error: {e}");
-                return exit::SETUP;
-            }
-        },
+    let (bus, embedded) = match super::load_config(machine.config.as_deref()) {
+        Ok((c, _)) => (machine.bus.clone().unwrap_or_else(|| c.bus.interface.clone()), machine.on_embedded_bus(&c)),
+        Err(e) => {
+            eprintln!("error: {e}");
+            return exit::SETUP;
+        }
     };
-    if moves_iron(index) && bus != "inproc" && !yes {
+    if moves_iron(index) && !embedded && !yes {
         eprintln!("error: writing 0x{index:04X} can set a motor in motion on {bus}; make sure the axis is free to move, then repeat with --yes");
         return exit::INPUT;
     }

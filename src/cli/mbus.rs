@@ -62,16 +62,15 @@ pub fn parse_bus_url(bus: &str) -> Option<Result<ModbusLink, String>> {
     Some(toml::Value::Table(t).try_into::<ModbusLink>().map_err(|e| format!("{bus}: {e}")))
 }
 
-/// Put every axis of `cfg` on the link of a `modbus-…` bus. Ok(true) if `bus` was one.
+/// Put every axis of `cfg` on the link of a `modbus-…` bus. True if `bus` was one.
 /// The URL says where the drives are; how to talk to them (timeout, function 23, link
 /// cycle, turnaround, and the line settings the URL does not give) stays the
 /// configuration's first Modbus link's. Without one, the timeout is held to what rides
 /// through one lost answer within `bus.feedback_timeout_ms`.
-pub fn apply_bus(cfg: &mut MachineConfig, bus: Option<&str>) -> Result<bool, String> {
-    let Some(link) = bus.and_then(parse_bus_url) else { return Ok(false) };
-    let mut link = link?;
-    let given: Vec<&str> =
-        bus.and_then(|b| b.split_once('?')).map(|(_, q)| q.split('&').map(|kv| kv.split('=').next().unwrap_or("")).collect()).unwrap_or_default();
+pub fn apply_bus(cfg: &mut MachineConfig, bus: Option<&super::BusKind>) -> bool {
+    let Some(super::BusKind::Modbus(b)) = bus else { return false };
+    let mut link = b.link.clone();
+    let given: Vec<&str> = b.given.iter().map(String::as_str).collect();
     let base = cfg.modbus.iter().find(|(n, _)| cfg.axes.values().any(|a| a.modbus.as_deref() == Some(n.as_str()))).map(|(_, l)| l.clone());
     match base {
         Some(b) => {
@@ -106,14 +105,14 @@ pub fn apply_bus(cfg: &mut MachineConfig, bus: Option<&str>) -> Result<bool, Str
         a.modbus = Some(BUS_LINK.into());
     }
     cfg.bus.interface = "none".into();
-    Ok(true)
+    true
 }
 
 /// The configuration for the service commands' Modbus path: Some when `--bus` is a Modbus
 /// bus or every axis of the configuration is on a Modbus link.
 pub fn modbus_machine(m: &MachineArgs) -> Result<Option<MachineConfig>, String> {
     let (mut cfg, _) = super::load_config(m.config.as_deref())?;
-    let bus_given = apply_bus(&mut cfg, m.bus.as_deref())?;
+    let bus_given = apply_bus(&mut cfg, m.bus_kind()?.as_ref());
     Ok((bus_given || (!cfg.has_canopen() && !cfg.modbus.is_empty() && m.bus.is_none())).then_some(cfg))
 }
 
@@ -390,59 +389,59 @@ pub fn scan(cfg: &MachineConfig, json: bool) -> i32 {
 
 /// `cncgw monitor` on Modbus: the same table from the registers, refreshed in place.
 pub fn monitor(cfg: &MachineConfig, seconds: Option<f64>, once: bool, interval_ms: u64, json: bool) -> i32 {
-    use std::io::IsTerminal;
-    let mut cl = match clients(cfg) {
+    let links = match clients(cfg) {
         Ok(c) => c,
         Err(e) => {
             eprintln!("error: {e}");
             return exit::SETUP;
         }
     };
-    let mut io = match super::service::io_monitor(cfg) {
+    let io = match super::service::io_monitor(cfg) {
         Ok(m) => m,
         Err(code) => return code,
     };
-    let tty = std::io::stdout().is_terminal() && !json;
-    let t0 = Instant::now();
-    let interval = Duration::from_millis(interval_ms.max(50));
-    let mut shown = 0usize;
-    let mut out = std::io::stdout();
-    loop {
-        let tick = Instant::now();
-        let mut lines = vec![super::service::monitor_header("unit")];
-        let mut arr = Vec::new();
-        for (name, a, link) in axes(cfg) {
+    let mut bus = ModbusMonitor { axes: axes(cfg), links, epoch: Instant::now() };
+    super::service::monitor_loop(&mut bus, io, seconds, once, interval_ms, json)
+}
+
+/// The Modbus links of the monitor: each unit's row read through its `ModbusDrive`.
+struct ModbusMonitor {
+    axes: Vec<(String, AxisConfig, String)>,
+    links: std::collections::BTreeMap<String, Client>,
+    epoch: Instant,
+}
+
+impl super::service::MonitorBus for ModbusMonitor {
+    fn noun(&self) -> &'static str {
+        "unit"
+    }
+    fn now_ns(&mut self) -> u64 {
+        self.epoch.elapsed().as_nanos() as u64
+    }
+    fn rows(&mut self) -> Vec<super::service::MonitorRow> {
+        let mut rows = Vec::new();
+        for (name, a, link) in &self.axes {
             // The link's one client lent to the unit's drive for its row (an RTU line opens once).
-            let Some(c) = cl.remove(&link) else { continue };
-            let mut d = ModbusDrive { c, a, name, epoch: t0 };
-            let row = super::service::monitor_read(&mut d);
-            cl.insert(link, d.c);
-            lines.push(super::service::monitor_line(&row));
-            arr.push(super::service::monitor_json(&row));
+            let Some(c) = self.links.remove(link) else { continue };
+            let mut d = ModbusDrive { c, a: a.clone(), name: name.clone(), epoch: self.epoch };
+            rows.push(super::service::monitor_read(&mut d));
+            self.links.insert(link.clone(), d.c);
         }
-        let rtt = tick.elapsed().as_secs_f64() * 1e3;
-        lines.push(format!("Modbus: the register reads of {} unit(s) took {rtt:.1} ms", arr.len()));
-        let io = io.as_mut().map(|m| {
-            let r = m.read(None);
-            (m.json(&r), m.lines(&r))
-        });
-        let lines = if json {
-            let io = io.map(|(j, _)| j);
-            vec![serde_json::json!({"t_s": t0.elapsed().as_secs_f64(), "bus": "modbus", "drives": arr, "poll_ms": rtt, "io": io}).to_string()]
-        } else {
-            lines.extend(io.into_iter().flat_map(|(_, l)| l));
-            lines
-        };
-        if !super::service::monitor_draw(&mut out, &lines, tty, &mut shown, once || json) {
-            return 0;
-        }
-        if once || seconds.is_some_and(|s| (t0.elapsed() + interval).as_secs_f64() > s) {
-            return 0;
-        }
-        let next = tick + interval;
-        let now = Instant::now();
-        if next > now {
-            std::thread::sleep(next - now);
+        rows
+    }
+    fn read_io(&mut self, m: &mut super::iomon::IoMonitor) -> super::iomon::IoRead {
+        m.read(None)
+    }
+    fn status(&mut self, tick: u64, rows_done: u64, _: u64, n_rows: usize) -> (Vec<String>, serde_json::Map<String, serde_json::Value>) {
+        let rtt = rows_done.saturating_sub(tick) as f64 * 1e-6;
+        let line = format!("Modbus: the register reads of {n_rows} unit(s) took {rtt:.1} ms");
+        let fields = serde_json::json!({"bus": "modbus", "poll_ms": rtt});
+        (vec![line], fields.as_object().cloned().unwrap_or_default())
+    }
+    fn wait(&mut self, tick: u64, interval: u64, _: bool) {
+        let now = self.now_ns();
+        if tick + interval > now {
+            std::thread::sleep(Duration::from_nanos(tick + interval - now));
         }
     }
 }
@@ -648,8 +647,8 @@ pub fn homing_missing(m: &cncgw_bus::modbus::Cia402Map, h: &super::service::Home
 }
 
 /// The homing parameters as register writes (address, words, what) for the registers the
-/// map has — the same figures the CANopen homing writes (`service::home_params`): speeds
-/// default to max_speed / 20 and / 100, the acceleration to max_accel. Something asked for
+/// map has — the figures the CANopen homing writes (`service::homing_figures`), in counts.
+/// Something asked for
 /// that the map has no register for (`homing_missing`): alarm 2017, before anything is
 /// written or moved.
 fn homing_writes(a: &AxisConfig, m: &cncgw_bus::modbus::Cia402Map, h: &super::service::HomeArgs) -> Result<Vec<RegisterWrite>, crate::Alarm> {
@@ -666,38 +665,30 @@ fn homing_writes(a: &AxisConfig, m: &cncgw_bus::modbus::Cia402Map, h: &super::se
             ),
         ));
     }
-    let spindle = a.kind == crate::config::AxisKind::Spindle;
-    let cpu = a.counts_per_unit;
-    // mm/min → mm/s, rpm → deg/s; mm/s² as is, rpm/s → deg/s².
-    let speed = |v: f64| if spindle { v * 6.0 } else { v / 60.0 };
     let bad = |e: String| crate::Alarm::new(crate::alarm::HOMING, format!("unit {}: {e}", a.node));
+    let f = super::service::homing_figures(a, h).map_err(bad)?;
     let counts = |units: f64, what: &str| -> Result<[u16; 2], crate::Alarm> {
-        let c = (units * cpu).abs().round();
+        let c = (units * a.counts_per_unit).abs().round();
         if !c.is_finite() || c < 1.0 || c > u32::MAX as f64 {
             return Err(bad(format!("the {what} {units} is out of the drive's range (1 to 2^32-1 counts)")));
         }
         Ok(m.word_order.split_i32(c as u32 as i32))
     };
-    let offset = (h.offset * cpu).round();
-    if !offset.is_finite() || offset.abs() > i32::MAX as f64 {
-        return Err(bad(format!("home offset {} is out of the drive's range", h.offset)));
-    }
     let mut w = Vec::new();
     if let Some(r) = m.homing_method {
         w.push((r, vec![h.method as i16 as u16], "homing method 0x6098"));
     }
     if let Some(r) = m.home_offset {
-        w.push((r, m.word_order.split_i32(offset as i32).to_vec(), "home offset 0x607C"));
+        w.push((r, m.word_order.split_i32(f.offset).to_vec(), "home offset 0x607C"));
     }
     if let Some(r) = m.homing_switch_speed {
-        w.push((r, counts(speed(h.switch_speed.unwrap_or(a.max_speed / 20.0)), "homing switch speed")?.to_vec(), "switch speed 0x6099:1"));
+        w.push((r, counts(f.switch_speed, "homing switch speed")?.to_vec(), "switch speed 0x6099:1"));
     }
     if let Some(r) = m.homing_zero_speed {
-        w.push((r, counts(speed(h.zero_speed.unwrap_or(a.max_speed / 100.0)), "homing zero speed")?.to_vec(), "zero speed 0x6099:2"));
+        w.push((r, counts(f.zero_speed, "homing zero speed")?.to_vec(), "zero speed 0x6099:2"));
     }
     if let Some(r) = m.homing_accel {
-        let acc = accel.unwrap_or(a.max_accel) * if spindle { 6.0 } else { 1.0 };
-        w.push((r, counts(acc, "homing acceleration")?.to_vec(), "homing acceleration 0x609A"));
+        w.push((r, counts(f.accel, "homing acceleration")?.to_vec(), "homing acceleration 0x609A"));
     }
     Ok(w)
 }
@@ -705,7 +696,7 @@ fn homing_writes(a: &AxisConfig, m: &cncgw_bus::modbus::Cia402Map, h: &super::se
 /// `drive_home`'s work: the position after homing (machine units), or the exit code (the
 /// message printed).
 pub fn home_unit(cfg: &MachineConfig, unit: u8, h: &super::service::HomeArgs) -> Result<f64, i32> {
-    use cncgw_bus::cia402::{cw, mode, sw};
+    use cncgw_bus::cia402::{cw, mode, HomingProgress};
     let mut d = ModbusDrive::open(cfg, unit)?;
     let (name, a) = (d.name.clone(), d.a.clone());
     if a.modbus_profile == Profile::Pr {
@@ -721,11 +712,13 @@ pub fn home_unit(cfg: &MachineConfig, unit: u8, h: &super::service::HomeArgs) ->
             return Err(exit::INPUT);
         }
     };
-    if !(h.timeout.is_finite() && h.timeout > 0.0) {
-        eprintln!("error: --timeout must be a positive number of seconds");
-        return Err(exit::INPUT);
-    }
-    let timeout = Duration::from_secs_f64(h.timeout.min(3600.0));
+    let timeout = match super::service::home_timeout_ms(h) {
+        Ok(ms) => Duration::from_millis(ms.min(3_600_000)),
+        Err(e) => {
+            eprintln!("error: {e}");
+            return Err(exit::INPUT);
+        }
+    };
     let run = |d: &mut ModbusDrive| -> Result<f64, String> {
         let before = d.c.read(unit, m.mode_display, 1)?[0];
         watchdog_off(&mut d.c, &a)?;
@@ -745,25 +738,26 @@ pub fn home_unit(cfg: &MachineConfig, unit: u8, h: &super::service::HomeArgs) ->
                 ));
             }
             d.c.write(unit, m.controlword, &[cw::ENABLE_OPERATION_CMD])?;
-            d.c.write(unit, m.controlword, &[cw::ENABLE_OPERATION_CMD | cw::OMS4])?;
+            d.c.write(unit, m.controlword, &[HomingProgress::START])?;
             let end = Instant::now() + timeout;
             loop {
                 let s = d.c.read(unit, m.statusword, 1)?[0];
-                if s & sw::OMS13 != 0 {
-                    return Err(format!(
-                        "unit {unit} reports a homing error (statusword 0x{s:04X} bit 13): {}; check the drive's homing method and switches",
-                        error_text(&mut d.c, &a)
-                    ));
-                }
-                if State::from_statusword(s) != State::OperationEnabled {
-                    return Err(format!(
-                        "unit {unit} left Operation Enabled while homing ({}): {}",
-                        State::from_statusword(s).name(),
-                        error_text(&mut d.c, &a)
-                    ));
-                }
-                if s & sw::OMS12 != 0 && s & sw::TARGET_REACHED != 0 {
-                    return Ok(());
+                match HomingProgress::of(s) {
+                    HomingProgress::Error => {
+                        return Err(format!(
+                            "unit {unit} reports a homing error (statusword 0x{s:04X} bit 13): {}; check the drive's homing method and switches",
+                            error_text(&mut d.c, &a)
+                        ))
+                    }
+                    _ if State::from_statusword(s) != State::OperationEnabled => {
+                        return Err(format!(
+                            "unit {unit} left Operation Enabled while homing ({}): {}",
+                            State::from_statusword(s).name(),
+                            error_text(&mut d.c, &a)
+                        ))
+                    }
+                    HomingProgress::Attained => return Ok(()),
+                    HomingProgress::Homing => {}
                 }
                 if Instant::now() >= end {
                     return Err(format!(
@@ -801,6 +795,10 @@ pub fn home_unit(cfg: &MachineConfig, unit: u8, h: &super::service::HomeArgs) ->
 mod tests {
     use super::*;
 
+    fn bus(url: &str) -> super::super::BusKind {
+        super::super::BusKind::parse(url).unwrap()
+    }
+
     #[test]
     fn bus_urls() {
         let l = parse_bus_url("modbus-tcp://127.0.0.1:5020").unwrap().unwrap();
@@ -819,12 +817,31 @@ mod tests {
         assert!(parse_bus_url("modbus-rtu:///dev/x?parity=mark").unwrap().is_err());
         assert!(parse_bus_url("can0").is_none() && parse_bus_url("inproc").is_none());
         let mut cfg = MachineConfig::embedded();
-        assert!(apply_bus(&mut cfg, Some("modbus-tcp://127.0.0.1:5020")).unwrap());
+        assert!(apply_bus(&mut cfg, Some(&bus("modbus-tcp://127.0.0.1:5020"))));
         assert!(!cfg.has_canopen());
         assert!(cfg.axes.values().all(|a| a.modbus.as_deref() == Some(BUS_LINK)));
         // No link in the configuration: the default timeout is held within the feedback
         // timeout (20 ms at a 2 ms cycle → at most 16 ms).
         assert_eq!(cfg.modbus[BUS_LINK].timeout_ms, 16);
+    }
+
+    /// Issue 18.5: `--bus` is parsed once; a Modbus URL's link and the parameters it gives
+    /// come out of that one parse, with the same errors.
+    #[test]
+    fn a_modbus_bus_is_parsed_once_with_its_link() {
+        use super::super::BusKind;
+        let BusKind::Modbus(b) = bus("modbus-rtu:///dev/ttyUSB0?baud=57600&timeout_ms=30") else { panic!("not a Modbus bus") };
+        assert_eq!(
+            (b.link.device.as_deref(), b.link.baud, b.given.as_slice()),
+            (Some("/dev/ttyUSB0"), 57600, &["baud".to_string(), "timeout_ms".to_string()][..])
+        );
+        assert!(BusKind::parse("modbus-rtu:///dev/x?baud=fast").unwrap_err().contains("not a number"));
+        assert!(BusKind::parse("modbus-tcp://").unwrap_err().contains("give the drive's address"));
+        let mut cfg = MachineConfig::embedded();
+        assert!(!apply_bus(&mut cfg, Some(&bus("can0"))) && !apply_bus(&mut cfg, None) && cfg.has_canopen());
+        let m = |b: Option<&str>| MachineArgs { config: None, bus: b.map(str::to_string), sim_config: None };
+        assert!(m(None).on_embedded_bus(&cfg) && m(Some("inproc")).on_embedded_bus(&cfg));
+        assert!(!m(Some("vcan0")).on_embedded_bus(&cfg) && !m(Some("modbus-tcp://127.0.0.1:5020")).on_embedded_bus(&cfg));
     }
 
     /// Issue 22: the service commands' RTU silence follows the line (a fixed 4 ms was short
@@ -843,11 +860,11 @@ mod tests {
     fn bus_url_keeps_the_configured_link_settings() {
         let text = include_str!("../../config/lathe-modbus.toml").replace("# fc23 = true", "fc23 = true\ncycle_ms = 8");
         let mut cfg: MachineConfig = crate::config::MachineConfig::from_toml("lathe-modbus.toml", &text).unwrap();
-        assert!(apply_bus(&mut cfg, Some("modbus-tcp://10.0.0.9:502")).unwrap());
+        assert!(apply_bus(&mut cfg, Some(&bus("modbus-tcp://10.0.0.9:502"))));
         let l = &cfg.modbus[BUS_LINK];
         assert_eq!((l.address.as_deref(), l.timeout_ms, l.fc23, l.cycle_ms), (Some("10.0.0.9:502"), 20, true, Some(8.0)));
         let mut cfg: MachineConfig = crate::config::MachineConfig::from_toml("lathe-modbus.toml", &text).unwrap();
-        assert!(apply_bus(&mut cfg, Some("modbus-rtu:///dev/ttyS1?timeout_ms=30")).unwrap());
+        assert!(apply_bus(&mut cfg, Some(&bus("modbus-rtu:///dev/ttyS1?timeout_ms=30"))));
         assert_eq!(cfg.modbus[BUS_LINK].timeout_ms, 30);
     }
 }

@@ -600,7 +600,7 @@ pub struct Session {
 }
 
 /// A `--bus` value (or `bus.interface`), parsed once: what kind of bus it names.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug)]
 pub enum BusKind {
     /// The embedded emulated drives, in simulated time.
     Inproc,
@@ -611,7 +611,15 @@ pub enum BusKind {
     /// A socketcand server: address and the interface on that host.
     Socketcand { addr: String, iface: String },
     /// `modbus-tcp://…` / `modbus-rtu://…`: every axis on that link (see `mbus`).
-    Modbus,
+    Modbus(ModbusBus),
+}
+
+/// A `modbus-tcp://…` / `modbus-rtu://…` bus: the link it names, and which of the URL's
+/// parameters were given (the others stay the configuration's, `mbus::apply_bus`).
+#[derive(Clone, Debug)]
+pub struct ModbusBus {
+    pub link: crate::config::ModbusLink,
+    pub given: Vec<String>,
 }
 
 impl BusKind {
@@ -628,7 +636,13 @@ impl BusKind {
                         "--bus {bus}: a socketcand bus is socketcand://HOST:PORT/IFACE, e.g. socketcand://192.168.1.20:29536/can0 (host, port and the interface on that host)"
                     )),
                 },
-                "modbus-tcp" | "modbus-rtu" => Ok(BusKind::Modbus),
+                "modbus-tcp" | "modbus-rtu" => match mbus::parse_bus_url(bus) {
+                    Some(link) => {
+                        let given = bus.split_once('?').map(|(_, q)| q.split('&').map(|kv| kv.split('=').next().unwrap_or("").to_string()).collect());
+                        Ok(BusKind::Modbus(ModbusBus { link: link?, given: given.unwrap_or_default() }))
+                    }
+                    None => Err(format!("--bus {bus}: unknown kind of bus `{scheme}://`; one of: {schemes}")),
+                },
                 _ => Err(format!("--bus {bus}: unknown kind of bus `{scheme}://`; one of: {schemes}")),
             };
         }
@@ -644,6 +658,20 @@ impl BusKind {
             ));
         }
         Ok(BusKind::SocketCan(bus.to_string()))
+    }
+}
+
+impl MachineArgs {
+    /// `--bus` parsed ([`BusKind::parse`]); None without one (the configuration's bus).
+    pub fn bus_kind(&self) -> Result<Option<BusKind>, String> {
+        self.bus.as_deref().map(BusKind::parse).transpose()
+    }
+
+    /// The bus this command runs on — `--bus`, else the configuration's `bus.interface` —
+    /// is the embedded emulated one (nothing real can move).
+    pub fn on_embedded_bus(&self, cfg: &crate::config::MachineConfig) -> bool {
+        let bus = self.bus.as_deref().unwrap_or(&cfg.bus.interface);
+        matches!(BusKind::parse(bus), Ok(BusKind::Inproc))
     }
 }
 
@@ -682,7 +710,7 @@ fn open_plain(
     let bus = bus.map(str::to_string).unwrap_or_else(|| cfg.bus.interface.clone());
     let real = || -> Box<dyn cncgw_bus::Clock> { Box::new(cncgw_bus::RealClock::new()) };
     match BusKind::parse(&bus)? {
-        BusKind::Modbus => Err(format!(
+        BusKind::Modbus(_) => Err(format!(
             "{bus} is a Modbus bus: this is a CANopen command (Modbus drives: scan, drive status|enable|disable|fault-reset|home, monitor, jog, run, tap-test)"
         )),
         BusKind::None => Err("the configuration has no CANopen bus (bus.interface = \"none\"): give one with --bus, or use a Modbus command".into()),
@@ -773,7 +801,7 @@ pub enum ConfigCmd {
 /// axis on that link (see `mbus`). Other buses are opened by `open_raw`.
 pub fn machine_config(m: &MachineArgs) -> Result<(crate::config::MachineConfig, String), String> {
     let (mut cfg, text) = load_config(m.config.as_deref())?;
-    mbus::apply_bus(&mut cfg, m.bus.as_deref())?;
+    mbus::apply_bus(&mut cfg, m.bus_kind()?.as_ref());
     Ok((cfg, text))
 }
 
@@ -1062,7 +1090,7 @@ fn config_check_live(
     bus: Option<&str>,
 ) -> Result<(crate::config::MachineConfig, Option<Vec<mapcheck::AxisCheck>>), String> {
     let Some(b) = bus else { return Ok((cfg, None)) };
-    if !mbus::apply_bus(&mut cfg, Some(b))? {
+    if !mbus::apply_bus(&mut cfg, Some(&BusKind::parse(b)?)) {
         return Err(format!("config check --bus {b}: only a Modbus link (modbus-tcp://HOST:PORT, modbus-rtu://DEVICE) is checked live"));
     }
     let live = mapcheck::check_live(&cfg);

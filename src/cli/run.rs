@@ -501,7 +501,6 @@ pub fn run_job(
     };
     let mut modbus = crate::drives::modbus::ModbusDrives::new(cfg);
     modbus.set_rt_priority(opts.extras.rt.priority);
-    let bus_name = machine.bus.clone().unwrap_or_else(|| cfg.bus.interface.clone());
     // The CANopen bus is opened only if an axis is on it.
     let mut can = None;
     // A real bus waits as [rt] says (max_sleep_us, spin_us).
@@ -509,7 +508,7 @@ pub fn run_job(
     let mut clock: Box<dyn Clock> = real_clock();
     let mut what = Vec::new();
     if cfg.has_canopen() {
-        if !modbus.is_empty() && bus_name == "inproc" {
+        if !modbus.is_empty() && machine.on_embedded_bus(cfg) {
             eprintln!(
                 "error: the embedded emulated bus (inproc) is CANopen only and runs in simulated time; a machine with Modbus axes runs in real time: give the CANopen axes a real bus (--bus vcan0, --bus socketcand://HOST:PORT/can0) and start the Modbus drives (e.g. sim-drives --modbus-tcp ADDR)"
             );

@@ -22,11 +22,12 @@ use std::time::Duration;
 
 const MS: u64 = 1_000_000;
 
-/// The bus(es) the command will use, in words: `--bus`, else the config's CANopen interface
-/// (if an axis is on it) and its Modbus links ("Modbus link tcp (Modbus TCP 10.0.0.9:502)").
-fn effective_bus(machine: &MachineArgs) -> Result<String, String> {
+/// The bus(es) the command will use, in words — `--bus`, else the config's CANopen interface
+/// (if an axis is on it) and its Modbus links ("Modbus link tcp (Modbus TCP 10.0.0.9:502)")
+/// — and whether that is the embedded emulated bus alone (nothing real can move).
+fn effective_bus(machine: &MachineArgs) -> Result<(String, bool), String> {
     if let Some(b) = &machine.bus {
-        return Ok(b.clone());
+        return Ok((b.clone(), matches!(machine.bus_kind(), Ok(Some(super::BusKind::Inproc)))));
     }
     let (c, _) = load_config(machine.config.as_deref())?;
     let mut on: Vec<String> = Vec::new();
@@ -38,18 +39,19 @@ fn effective_bus(machine: &MachineArgs) -> Result<String, String> {
             on.push(format!("Modbus link {name} ({})", l.describe()));
         }
     }
-    Ok(if on.is_empty() { c.bus.interface } else { on.join(" and ") })
+    let embedded = (on.is_empty() || (on.len() == 1 && c.has_canopen())) && machine.on_embedded_bus(&c);
+    Ok((if on.is_empty() { c.bus.interface } else { on.join(" and ") }, embedded))
 }
 
 /// On a real bus, `what` goes ahead only with `--yes` or, on a terminal, after the operator
 /// types `yes`; without a terminal it is refused. Err = the exit code (message printed).
 pub(crate) fn confirm_motion(machine: &MachineArgs, yes: bool, what: &str) -> Result<(), i32> {
     use std::io::{BufRead, IsTerminal};
-    let bus = effective_bus(machine).map_err(|e| {
+    let (bus, embedded) = effective_bus(machine).map_err(|e| {
         eprintln!("error: {e}");
         exit::SETUP
     })?;
-    if bus == "inproc" || yes {
+    if embedded || yes {
         return Ok(());
     }
     if std::io::stdin().is_terminal() && std::io::stderr().is_terminal() {
@@ -343,30 +345,54 @@ pub fn drive_home(machine: &MachineArgs, node: u8, h: &HomeArgs, yes: bool) -> i
     }
 }
 
-/// The homing of `node` in the master's units: (switch speed, zero speed, acceleration in
-/// units/s and units/s², home offset in counts, timeout ms).
-fn home_params(s: &Session, node: u8, h: &HomeArgs) -> Result<(f64, f64, f64, i32, u64), String> {
-    let spec = s.master.node_spec(node).ok_or_else(|| format!("node {node} is not a drive of the configuration"))?;
-    let ax = s.cfg.axes.get(&spec.axis).ok_or_else(|| format!("axis {} is not in the configuration", spec.axis))?;
-    let fast = per_s(spec.spindle, h.switch_speed.unwrap_or(ax.max_speed / 20.0));
-    let slow = per_s(spec.spindle, h.zero_speed.unwrap_or(ax.max_speed / 100.0));
+/// A homing in the drive's units, the same figures on every bus: switch and zero speed
+/// (units/s; degrees/s for a spindle), acceleration (units/s², degrees/s²), home offset
+/// (counts). Speeds default to max_speed / 20 and / 100, the acceleration to
+/// `homing.accel`, else max_accel.
+pub struct HomingFigures {
+    pub switch_speed: f64,
+    pub zero_speed: f64,
+    pub accel: f64,
+    pub offset: i32,
+}
+
+/// `h` on axis `ax` as its `HomingFigures`; Err: the offset is out of the drive's range.
+pub fn homing_figures(ax: &crate::config::AxisConfig, h: &HomeArgs) -> Result<HomingFigures, String> {
+    let spindle = ax.kind == crate::config::AxisKind::Spindle;
     let accel = ax.homing.as_ref().and_then(|c| c.accel).unwrap_or(ax.max_accel);
-    let accel = if spec.spindle { accel * 6.0 } else { accel };
-    let offset = (h.offset * spec.counts_per_unit).round();
+    let offset = (h.offset * ax.counts_per_unit).round();
     if !offset.is_finite() || offset.abs() > i32::MAX as f64 {
         return Err(format!("home offset {} is out of the drive's range", h.offset));
     }
+    Ok(HomingFigures {
+        switch_speed: per_s(spindle, h.switch_speed.unwrap_or(ax.max_speed / 20.0)),
+        zero_speed: per_s(spindle, h.zero_speed.unwrap_or(ax.max_speed / 100.0)),
+        accel: if spindle { accel * 6.0 } else { accel },
+        offset: offset as i32,
+    })
+}
+
+/// `--timeout` (seconds) in ms, checked.
+pub fn home_timeout_ms(h: &HomeArgs) -> Result<u64, String> {
     if !(h.timeout.is_finite() && h.timeout > 0.0) {
         return Err("--timeout must be a positive number of seconds".into());
     }
-    Ok((fast, slow, accel, offset as i32, (h.timeout * 1000.0) as u64))
+    Ok((h.timeout * 1000.0) as u64)
+}
+
+/// The homing of `node` in the master's units and its timeout (ms).
+fn home_params(s: &Session, node: u8, h: &HomeArgs) -> Result<(HomingFigures, u64), String> {
+    let spec = s.master.node_spec(node).ok_or_else(|| format!("node {node} is not a drive of the configuration"))?;
+    let ax = s.cfg.axes.get(&spec.axis).ok_or_else(|| format!("axis {} is not in the configuration", spec.axis))?;
+    let f = homing_figures(ax, h)?;
+    Ok((f, home_timeout_ms(h)?))
 }
 
 /// Home `node` of a started session (0x607C written, then the master's homing walk).
 pub fn home_node(s: &mut Session, node: u8, h: &HomeArgs) -> Result<(), String> {
-    let (fast, slow, accel, offset, timeout_ms) = home_params(s, node, h)?;
-    s.master.sdo_write(&mut *s.clock, node, 0x607C, 0, &offset.to_le_bytes()).map_err(|a| a.to_string())?;
-    s.master.home(&mut *s.clock, node, h.method, fast, slow, accel, timeout_ms).map_err(|a| a.to_string())
+    let (f, timeout_ms) = home_params(s, node, h)?;
+    s.master.sdo_write(&mut *s.clock, node, 0x607C, 0, &f.offset.to_le_bytes()).map_err(|a| a.to_string())?;
+    s.master.home(&mut *s.clock, node, h.method, f.switch_speed, f.zero_speed, f.accel, timeout_ms).map_err(|a| a.to_string())
 }
 
 /// `cncgw jog AXIS --to POS | --by DIST`.
@@ -754,52 +780,6 @@ pub(super) fn monitor_json(r: &MonitorRow) -> serde_json::Value {
     }
 }
 
-/// One refresh of the monitor: the drives, the bus load and the machine's I/O.
-struct MonitorFrame {
-    rows: Vec<MonitorRow>,
-    io: Option<(super::iomon::IoRead, serde_json::Value, Vec<String>)>,
-    t_s: f64,
-    load: f64,
-    dt: f64,
-}
-
-/// The monitor's table as text lines.
-fn monitor_text(s: &Session, f: &MonitorFrame) -> Vec<String> {
-    let mut lines = vec![monitor_header("node")];
-    lines.extend(f.rows.iter().map(monitor_line));
-    lines.push(format!(
-        "bus {} load {:.2} % ({} bit/s; frames sent and heard by this tool over the last {:.2} s)",
-        s.bus,
-        f.load * 100.0,
-        s.cfg.bus.bitrate.max(1),
-        f.dt
-    ));
-    // The CAN controller's own state, as `ip -details -statistics link show` has it
-    // (SocketCAN's error frames; the emulated bus and socketcand do not report it).
-    if let Some(c) = s.master.controller() {
-        lines.push(format!("CAN controller: {}", c.line()));
-    }
-    if let Some((_, _, io)) = &f.io {
-        lines.extend(io.iter().cloned());
-    }
-    lines
-}
-
-/// The monitor's JSON object of one refresh (one line of JSON lines).
-fn monitor_frame_json(s: &Session, f: &MonitorFrame) -> serde_json::Value {
-    serde_json::json!({
-        "t_s": f.t_s,
-        "bus": s.bus,
-        "simulated": s.simulated,
-        "bus_load": f.load,
-        "bitrate": s.cfg.bus.bitrate.max(1),
-        "load_window_s": f.dt,
-        "controller": s.master.controller(),
-        "drives": f.rows.iter().map(monitor_json).collect::<Vec<_>>(),
-        "io": f.io.as_ref().map(|(_, j, _)| j),
-    })
-}
-
 /// Write one refresh: JSON lines, or the table redrawn in place on a terminal. `shown`: the
 /// lines drawn last time (updated). False: stdout is closed.
 pub(super) fn monitor_draw(out: &mut impl Write, lines: &[String], tty: bool, shown: &mut usize, once: bool) -> bool {
@@ -830,9 +810,138 @@ pub(super) fn io_monitor(cfg: &crate::config::MachineConfig) -> Result<Option<su
     })
 }
 
+/// One bus as the monitor sees it: its drives, each read through `DriveAccess`, its clock,
+/// its lines under the table and its fields of the JSON object, and how it waits for the
+/// next refresh. `monitor_loop` is the one refresh loop over it.
+pub(super) trait MonitorBus {
+    /// How the drives are addressed ("node", "unit").
+    fn noun(&self) -> &'static str;
+    fn now_ns(&mut self) -> u64;
+    /// Before the first refresh.
+    fn prepare(&mut self) {}
+    /// Each drive's row.
+    fn rows(&mut self) -> Vec<MonitorRow>;
+    fn read_io(&mut self, m: &mut super::iomon::IoMonitor) -> super::iomon::IoRead;
+    /// The lines under the drives' rows and this bus's fields of the JSON object; the
+    /// refresh began at `tick`, its drives were read by `rows_done`, `now` is its end.
+    fn status(&mut self, tick: u64, rows_done: u64, now: u64, n_rows: usize) -> (Vec<String>, serde_json::Map<String, serde_json::Value>);
+    /// Until the next refresh, `interval_ns` after the one that began at `tick`.
+    fn wait(&mut self, tick: u64, interval_ns: u64, tty: bool);
+}
+
+/// The monitor's refresh loop, the same for every bus: a table (or one JSON object per
+/// refresh) every `interval_ms`, for `seconds` (None: until stdout closes) or `once`.
+pub(super) fn monitor_loop(
+    bus: &mut dyn MonitorBus,
+    mut io: Option<super::iomon::IoMonitor>,
+    seconds: Option<f64>,
+    once: bool,
+    interval_ms: u64,
+    json: bool,
+) -> i32 {
+    use std::io::IsTerminal;
+    let tty = std::io::stdout().is_terminal() && !json;
+    let t0 = bus.now_ns();
+    let end = seconds.map(|x| t0 + (x * 1e9) as u64);
+    let interval = interval_ms.max(50) * MS;
+    let mut shown = 0usize;
+    let mut out = std::io::stdout();
+    bus.prepare();
+    loop {
+        let tick = bus.now_ns();
+        let rows = bus.rows();
+        let rows_done = bus.now_ns();
+        let io = io.as_mut().map(|m| {
+            let r = bus.read_io(m);
+            (m.json(&r), m.lines(&r))
+        });
+        let now = bus.now_ns();
+        let (status, fields) = bus.status(tick, rows_done, now, rows.len());
+        let lines = if json {
+            let mut o = fields;
+            o.insert("t_s".into(), ((now - t0) as f64 * 1e-9).into());
+            o.insert("drives".into(), rows.iter().map(monitor_json).collect::<Vec<_>>().into());
+            o.insert("io".into(), io.map(|(j, _)| j).unwrap_or(serde_json::Value::Null));
+            vec![serde_json::Value::Object(o).to_string()]
+        } else {
+            let mut lines = vec![monitor_header(bus.noun())];
+            lines.extend(rows.iter().map(monitor_line));
+            lines.extend(status);
+            lines.extend(io.into_iter().flat_map(|(_, l)| l));
+            lines
+        };
+        // JSON: one object per refresh (JSON lines), never redrawn in place.
+        if !monitor_draw(&mut out, &lines, tty, &mut shown, once || json) || once {
+            return exit::OK; // stdout closed, or one table asked for
+        }
+        if end.is_some_and(|e| bus.now_ns() + interval > e) {
+            return exit::OK;
+        }
+        bus.wait(tick, interval, tty);
+    }
+}
+
+/// The CANopen bus of the monitor: the drives by SDO, the bus load from the frames this
+/// tool sent and heard.
+struct CanMonitor {
+    s: Session,
+    nodes: Vec<u8>,
+    bits: Arc<AtomicU64>,
+    /// Start of the bus load's window.
+    since: u64,
+}
+
+impl MonitorBus for CanMonitor {
+    fn noun(&self) -> &'static str {
+        "node"
+    }
+    fn now_ns(&mut self) -> u64 {
+        self.s.clock.now_ns()
+    }
+    fn prepare(&mut self) {
+        // Load over the previous period: the first table measures a short listen.
+        self.bits.store(0, Ordering::Relaxed);
+        self.since = self.s.clock.now_ns();
+        self.s.master.listen(&mut *self.s.clock, 100);
+    }
+    fn rows(&mut self) -> Vec<MonitorRow> {
+        let s = &mut self.s;
+        self.nodes.iter().map(|&n| monitor_read(&mut SdoDrive::new(s, n))).collect()
+    }
+    fn read_io(&mut self, m: &mut super::iomon::IoMonitor) -> super::iomon::IoRead {
+        let s = &mut self.s;
+        m.read(Some(&mut |node, index, sub| sdo_byte(s, node, index, sub)))
+    }
+    fn status(&mut self, _: u64, _: u64, now: u64, _: usize) -> (Vec<String>, serde_json::Map<String, serde_json::Value>) {
+        let s = &self.s;
+        let bitrate = s.cfg.bus.bitrate.max(1);
+        let dt = (now - self.since).max(1) as f64 * 1e-9;
+        let load = self.bits.swap(0, Ordering::Relaxed) as f64 / (bitrate as f64 * dt);
+        self.since = now;
+        let mut lines =
+            vec![format!("bus {} load {:.2} % ({bitrate} bit/s; frames sent and heard by this tool over the last {dt:.2} s)", s.bus, load * 100.0)];
+        // The CAN controller's own state, as `ip -details -statistics link show` has it
+        // (SocketCAN's error frames; the emulated bus and socketcand do not report it).
+        if let Some(c) = s.master.controller() {
+            lines.push(format!("CAN controller: {}", c.line()));
+        }
+        let fields = serde_json::json!({
+            "bus": s.bus, "simulated": s.simulated, "bus_load": load, "bitrate": bitrate,
+            "load_window_s": dt, "controller": s.master.controller(),
+        });
+        (lines, fields.as_object().cloned().unwrap_or_default())
+    }
+    fn wait(&mut self, _: u64, interval: u64, tty: bool) {
+        if self.s.simulated && tty {
+            // Simulated time runs as fast as the CPU: pace the display for a human.
+            std::thread::sleep(Duration::from_nanos(interval));
+        }
+        self.s.master.listen(&mut *self.s.clock, interval / MS);
+    }
+}
+
 /// `cncgw monitor`.
 pub fn monitor(machine: &MachineArgs, seconds: Option<f64>, once: bool, interval_ms: u64, json: bool) -> i32 {
-    use std::io::IsTerminal;
     if let Some(n) = seconds {
         if !(n.is_finite() && n > 0.0) {
             eprintln!("error: --seconds must be a positive number");
@@ -849,58 +958,21 @@ pub fn monitor(machine: &MachineArgs, seconds: Option<f64>, once: bool, interval
     }
     let bits = Arc::new(AtomicU64::new(0));
     let counter = bits.clone();
-    let mut s = match open_session_with(machine, move |inner| Box::new(CountingBus { inner, bits: counter })) {
+    let s = match open_session_with(machine, move |inner| Box::new(CountingBus { inner, bits: counter })) {
         Ok(s) => s,
         Err(e) => {
             eprintln!("error: {e}");
             return exit::SETUP;
         }
     };
-    let mut io = match io_monitor(&s.cfg) {
+    let io = match io_monitor(&s.cfg) {
         Ok(m) => m,
         Err(code) => return code,
     };
-    let tty = std::io::stdout().is_terminal() && !json;
     let mut nodes = s.master.node_ids();
     nodes.sort_unstable();
-    let bitrate = s.cfg.bus.bitrate.max(1);
     let seconds = seconds.or(s.simulated.then_some(INPROC_DEFAULT_S));
-    let t0 = s.clock.now_ns();
-    let end = seconds.map(|x| t0 + (x * 1e9) as u64);
-    let interval = interval_ms.max(50) * MS;
-    let mut shown = 0usize;
-    let mut out = std::io::stdout();
-    // Load over the previous period: the first table measures a short listen.
-    bits.store(0, Ordering::Relaxed);
-    let mut since = s.clock.now_ns();
-    s.master.listen(&mut *s.clock, 100);
-    loop {
-        let rows: Vec<MonitorRow> = nodes.iter().map(|&n| monitor_read(&mut SdoDrive::new(&mut s, n))).collect();
-        let io = io.as_mut().map(|m| {
-            let r = m.read(Some(&mut |node, index, sub| sdo_byte(&mut s, node, index, sub)));
-            let (j, l) = (m.json(&r), m.lines(&r));
-            (r, j, l)
-        });
-        let now = s.clock.now_ns();
-        let dt = (now - since).max(1) as f64 * 1e-9;
-        let load = bits.swap(0, Ordering::Relaxed) as f64 / (bitrate as f64 * dt);
-        since = now;
-        let frame = MonitorFrame { rows, io, t_s: (now - t0) as f64 * 1e-9, load, dt };
-        // JSON: one object per refresh (JSON lines), never redrawn in place.
-        let lines = if json { vec![monitor_frame_json(&s, &frame).to_string()] } else { monitor_text(&s, &frame) };
-        if !monitor_draw(&mut out, &lines, tty, &mut shown, once || json) || once {
-            return exit::OK; // stdout closed, or one table asked for
-        }
-        let next = s.clock.now_ns() + interval;
-        if end.is_some_and(|e| next > e) {
-            return exit::OK;
-        }
-        if s.simulated && tty {
-            // Simulated time runs as fast as the CPU: pace the display for a human.
-            std::thread::sleep(Duration::from_nanos(interval));
-        }
-        s.master.listen(&mut *s.clock, interval / MS);
-    }
+    monitor_loop(&mut CanMonitor { s, nodes, bits, since: 0 }, io, seconds, once, interval_ms, json)
 }
 
 /// One byte of an object by SDO (a CiA 401 module's 8 inputs or outputs of a sub-index).

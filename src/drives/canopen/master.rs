@@ -40,7 +40,7 @@ use cncgw_bus::canopen::nmt::{decode_heartbeat, NmtCommand, NmtState};
 use cncgw_bus::canopen::pdo::{get_i32, get_u16, put_u16, MapEntry};
 use cncgw_bus::canopen::sdo::abort;
 use cncgw_bus::canopen::{cob, od, sync_frame};
-use cncgw_bus::cia402::{cw, mode, sw, EnableProgress, Enabler, State};
+use cncgw_bus::cia402::{cw, mode, sw, EnableProgress, Enabler, HomingProgress, State};
 use cncgw_bus::{CanBus, CanFrame, Clock};
 
 /// The master's own node id for its heartbeat (consumed by the drives through 0x1016).
@@ -1464,21 +1464,18 @@ impl<B: CanBus> CanOpenMaster<B> {
         self.write(clock, i, od::HOMING_ACCEL, 0, &a.to_le_bytes())?;
         self.ensure_enabled(clock)?;
         self.change_mode(clock, i, mode::HOMING)?;
-        self.nodes[i].controlword = cw::ENABLE_OPERATION_CMD | cw::OMS4;
+        self.nodes[i].controlword = HomingProgress::START;
         // Bits 13/12/10 of a fresh statusword (see profile_move).
         let mut k = 0;
-        let mut started = false;
         let mut error = false;
         let done = self.run_cycles(clock, timeout_ms * 1_000_000, |m| {
             k += 1;
             if k < FRESH_STATUS_CYCLES {
                 return Ok(false);
             }
-            let s = m.nodes[i].status;
-            let (err, attained, reached) = (s & sw::OMS13 != 0, s & sw::OMS12 != 0, s & sw::TARGET_REACHED != 0);
-            started |= !reached || attained || err;
-            error = err;
-            Ok(started && (err || (attained && reached)))
+            let p = HomingProgress::of(m.nodes[i].status);
+            error = p == HomingProgress::Error;
+            Ok(p != HomingProgress::Homing)
         })?;
         self.nodes[i].controlword = cw::ENABLE_OPERATION_CMD;
         if error {
