@@ -1,6 +1,6 @@
 //! G80–G89 drilling and boring (manual 004 §2.21) and the shared hole-cycle rules.
 
-mod cycles_common;
+use crate::cycles_common;
 use cncgw::canon::{Feed, Move, MoveKind, SpindleDir};
 use cncgw::config::MachineConfig;
 use cncgw::interp::Interpreter;

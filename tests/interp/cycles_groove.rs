@@ -1,6 +1,6 @@
 //! G74 and G75 (manual 004 §2.16.5, §2.16.6).
 
-mod cycles_common;
+use crate::cycles_common;
 use cycles_common::*;
 
 /// §2.16.5 example, G98 added (F50 is mm/min; the machine powers on in G99). P and Q take no

@@ -1,6 +1,6 @@
 //! G32, G92 and G76 (manual 004 §2.17).
 
-mod cycles_common;
+use crate::cycles_common;
 use cycles_common::*;
 
 #[test]

@@ -1,6 +1,6 @@
 //! G92.1 rigid thread cycle (manual 001 §3.24.10).
 
-mod cycles_common;
+use crate::cycles_common;
 use cncgw::canon::{Move, MoveKind};
 use cycles_common::*;
 

@@ -5,7 +5,7 @@
 //! Corpora: fuzz/corpus/TARGET/ (seeds and what fuzzing found, minimized); crash inputs:
 //! fuzz/crashes/TARGET/ (scripts/fuzz.sh copies them there).
 
-#[path = "../fuzz/src/lib.rs"]
+#[path = "../../fuzz/src/lib.rs"]
 #[allow(dead_code)]
 mod entries;
 

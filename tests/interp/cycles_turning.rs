@@ -1,6 +1,6 @@
 //! G90 and G94 (manual 004 §2.15).
 
-mod cycles_common;
+use crate::cycles_common;
 use cycles_common::*;
 
 /// §2.15.1 example (blank Φ125×110). The printed text lost the G90 words in extraction and

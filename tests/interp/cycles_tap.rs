@@ -1,6 +1,6 @@
 //! Rigid tapping G84/G88 (manual 000), flexible tapping (004 §2.22.3) and G30 P99.
 
-mod cycles_common;
+use crate::cycles_common;
 use cncgw::canon::{Move, MoveKind, Pos, SpindleDir, TapReturn};
 use cncgw::config::{MachineConfig, EMBEDDED_LATHE};
 use cncgw::control::job::run_program_with;

@@ -20,7 +20,7 @@ fn interp(src: &str, cfg: &MachineConfig, tools: Option<&str>) -> Interpreter {
 }
 
 /// The lathe with a tool spindle (polygon turning needs one).
-const POLYGON_LATHE: &str = include_str!("../config/lathe-polygon.toml");
+const POLYGON_LATHE: &str = include_str!("../../config/lathe-polygon.toml");
 
 /// No.3403#5 = 0: G02/G03 without R is a straight line (§2.3 note 2), which fig. 2.12 relies
 /// on: its N210 C0 is modal G03 without R.

@@ -1,6 +1,6 @@
 //! G71 and G70 (manual 004 §2.16.1, §2.16.4).
 
-mod cycles_common;
+use crate::cycles_common;
 use cycles_common::*;
 
 /// §2.16.1 example as printed, with G98 first (the machine powers on in G99; F200 is mm/min).

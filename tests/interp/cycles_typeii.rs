@@ -1,7 +1,7 @@
 //! G71/G72 type II (manual 004 §2.16.1 "连续凹槽加工", notes 1–7): a contour with two
 //! pockets, every pass worked out by hand.
 
-mod cycles_common;
+use crate::cycles_common;
 use cycles_common::*;
 
 /// A at X60 Z2 (radius 30); the contour X50 → pocket 1 down to X30 → back to X50 → pocket 2
