@@ -45,7 +45,7 @@ fn monitor_shows_the_cia401_module_and_a_modbus_unit() {
     let stop = Arc::new(AtomicBool::new(false));
     let unit = io_unit(&stop);
     let cfg = tmp("lathe-io.toml");
-    std::fs::write(&cfg, with_unit(include_str!("../config/lathe-io.toml"), unit.addr, true)).unwrap();
+    std::fs::write(&cfg, with_unit(include_str!("../../config/lathe-io.toml"), unit.addr, true)).unwrap();
 
     let o = monitor(&cfg, false);
     assert_eq!(o.code, 0, "{}{}", o.stdout, o.stderr);
@@ -100,7 +100,7 @@ fn monitor_without_io_says_nothing_of_it() {
 fn the_modbus_monitor_shows_a_modbus_unit() {
     let stop = Arc::new(AtomicBool::new(false));
     let unit = io_unit(&stop);
-    let lathe = include_str!("../config/lathe-modbus.toml");
+    let lathe = include_str!("../../config/lathe-modbus.toml");
     let drives = sim_drives::SimConfig::from_machine_toml_bus(lathe, Some(true)).unwrap();
     let srv = sim_drives::modbus::serve_tcp("127.0.0.1:0".parse().unwrap(), drives, stop.clone()).unwrap();
     let machine = lathe.replace("address = \"127.0.0.1:5020\"", &format!("address = \"{}\"", srv.local_addr().unwrap()));

@@ -2,7 +2,7 @@
 //! path (through the view's pixel ↔ workpiece mapping); its ticks, work zero, legend, stock
 //! and nose circles read back with an XML parser.
 
-mod svg_common;
+use crate::svg_common;
 
 use cncgw::canon::{Move, Pos};
 use cncgw::cli::preview::{render_svg, Extras, Stock, View};

@@ -1,6 +1,6 @@
 //! `cncgw run --trace FILE.csv` and `cncgw trace plot FILE.csv -o FILE.svg`.
 
-mod svg_common;
+use crate::svg_common;
 
 use cncgw::control::trace::TraceData;
 use std::process::Command;

@@ -1,7 +1,7 @@
 //! Drives we did not write in Rust: python `canopen` LocalNodes (tests/python/canopen_drive.py)
 //! shaped like commercial drives, on a socketcand bus on loopback, driven by `cncgw run
 //! examples/first_part.nc` in real time — a second opinion to sim-drives' `[drive.shape]`
-//! (tests/startup_shapes.rs). Either the program runs to its end point on the drives' own
+//! (tests/sim/startup_shapes.rs). Either the program runs to its end point on the drives' own
 //! positions, or it stops before any motion with an alarm that says what the drive is.
 //!
 //! Needs the project venv (`scripts/install-test-deps.sh --python`); without it this test

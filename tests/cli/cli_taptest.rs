@@ -1,7 +1,7 @@
 //! `cncgw tap-test` as a service engineer runs it, against the embedded emulated machine
 //! (default config, `inproc`, simulated time); and `--json` on the status commands, parsed.
 
-mod svg_common;
+use crate::svg_common;
 
 use svg_common::{by_class, num, parse, texts};
 

@@ -9,7 +9,7 @@
 //! in. Without `[opcua]` no port is opened.
 //!
 //! Needs build/venv with asyncua (`scripts/install-test-deps.sh --python`): without the venv
-//! the test FAILS naming that command (as tests/python_drives.rs); a venv without asyncua
+//! the test FAILS naming that command (as tests/cli/python_drives.rs); a venv without asyncua
 //! skips it and says so; CNCGW_SKIP_PYTHON=1 skips it deliberately.
 #![cfg(feature = "opcua")]
 

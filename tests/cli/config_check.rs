@@ -5,7 +5,7 @@
 
 use std::process::{Command, Output};
 
-const LATHE: &str = include_str!("../config/lathe.toml");
+const LATHE: &str = include_str!("../../config/lathe.toml");
 
 fn check(name: &str, toml: &str) -> (Output, serde_json::Value) {
     let dir = std::env::temp_dir().join(format!("cncgw-config-check-{}", std::process::id()));

@@ -39,7 +39,7 @@ fn sigkill_mid_write_leaves_old_or_new_state() {
     let rounds = 25;
     for round in 0..rounds {
         let mut child = Command::new(&exe)
-            .args(["--exact", "writer_child", "--nocapture", "--test-threads=1"])
+            .args(["--exact", "persist_kill::writer_child", "--nocapture", "--test-threads=1"])
             .env(CHILD_ENV, &path)
             .stdout(std::process::Stdio::null())
             .spawn()
