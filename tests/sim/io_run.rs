@@ -5,8 +5,8 @@
 //! The clock samples the module's outputs and every drive after every wait, so each test
 //! sees what the *devices* did.
 
-mod io_common;
-mod sim_probe;
+use crate::io_common;
+use crate::sim_probe;
 
 use cncgw::config::{MachineConfig, EMBEDDED_LATHE};
 use cncgw::control::cycle::{CycleLoop, RunSummary};
@@ -197,7 +197,7 @@ fn the_e_stop_input_takes_every_drive_out_of_operation_enabled_within_2_cycles()
     assert!(o.first_motion().unwrap() < t, "the drop came before any motion");
     let out = o.first(t, |s| s.state.iter().all(|st| *st != State::OperationEnabled)).expect("every drive left Operation Enabled");
     eprintln!("out of Operation Enabled {} µs after the E-stop input opened", (out.t - t) / 1000);
-    // As the panel's E-stop (tests/stop_sequence.rs): within 2 cycles of 2 ms, plus the
+    // As the panel's E-stop (tests/sim/stop_sequence.rs): within 2 cycles of 2 ms, plus the
     // sample's own cycle.
     assert!(out.t - t <= 3 * 2 * MS, "{} ms", (out.t - t) / MS);
 }

@@ -9,7 +9,7 @@
 //! from the wire: the target each SYNC made the drive take (the last RPDO before it, or the
 //! drive's extrapolation when none came) must advance by the feed's step at every SYNC.
 
-mod profiles_common;
+use crate::profiles_common;
 
 use cncgw::config::{MachineConfig, SyncSource};
 use cncgw::control::cycle::{CycleLoop, RunSummary, Watchdog};

@@ -143,7 +143,7 @@ fn identify_finds_the_delay_and_the_velocity_lag() {
 /// M10×1.5 run in the air in simulated time (S3000 over 35 mm, S6000 over 200 mm), the sync
 /// error from the actual positions. Today the sync law does not read the response (it learns
 /// the lags online, `sync::lag`); this holds the bounds with the sections in place. Four times
-/// the dry friction keeps its own bound (Z sticks as the tap starts), as in tests/drive_matrix.rs.
+/// the dry friction keeps its own bound (Z sticks as the tap starts), as in tests/sim/drive_matrix.rs.
 #[test]
 fn the_tap_with_the_identified_responses_meets_the_bounds() {
     for m in MODELS {

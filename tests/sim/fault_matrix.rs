@@ -10,7 +10,7 @@
 //! actions due (a panel button, bus-off), so a test sees what the *drives* did, not what the
 //! controller thinks.
 
-mod sim_probe;
+use crate::sim_probe;
 
 use cncgw::config::{MachineConfig, EMBEDDED_LATHE};
 use cncgw::control::cycle::{CycleLoop, RunSummary};

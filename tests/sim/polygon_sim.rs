@@ -73,7 +73,7 @@ impl Clock for Uncounted<'_> {
     }
 }
 
-const POLYGON_LATHE: &str = include_str!("../config/lathe-polygon.toml");
+const POLYGON_LATHE: &str = include_str!("../../config/lathe-polygon.toml");
 
 struct Run {
     names: Vec<String>,

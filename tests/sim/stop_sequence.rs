@@ -7,7 +7,7 @@
 //! the speed of every motor at the instant its power stage went off (leaving Operation
 //! Enabled, Quick Stop Active or Fault Reaction Active), which must be zero.
 
-mod sim_probe;
+use crate::sim_probe;
 
 use cncgw::config::{MachineConfig, EMBEDDED_LATHE};
 use cncgw::control::cycle::{CycleLoop, Rest, RunSummary};

@@ -19,7 +19,7 @@ use std::ffi::OsStr;
 use std::path::Path;
 use std::process::Output;
 
-mod profiles_common;
+use crate::profiles_common;
 use profiles_common::{machine_for, mixed, profiled, relaxed};
 
 const IP: u32 = 1 << 7;
