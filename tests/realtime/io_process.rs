@@ -3,7 +3,7 @@
 //! turret, and `cncgw run --bus socketcand://…` as an operator runs it. The wiring is the
 //! machine config's `[io.devices.*.emulate]`; the E-stop chain opens by a timed event.
 
-mod io_common;
+use crate::io_common;
 
 use io_common::SAFETY_AND_M_CODES;
 use std::path::PathBuf;
@@ -16,7 +16,7 @@ fn tmp(name: &str) -> PathBuf {
 }
 
 fn machine(modbus: &str, emulate_io1: &str) -> String {
-    let lathe = include_str!("../config/lathe.toml").replace("feedback_timeout_ms = 20", "feedback_timeout_ms = 200");
+    let lathe = include_str!("../../config/lathe.toml").replace("feedback_timeout_ms = 20", "feedback_timeout_ms = 200");
     format!(
         r#"{lathe}
 [io]

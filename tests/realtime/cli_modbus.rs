@@ -219,7 +219,7 @@ fn pr_drive_power_on_modbus_tcp() {
 /// is written or moved, and `config check` says so first.
 #[test]
 fn home_onto_the_negative_limit_switch_over_modbus_tcp() {
-    let lathe = include_str!("../config/lathe-modbus.toml");
+    let lathe = include_str!("../../config/lathe-modbus.toml");
     let homing = "homing = { method = 17, offset = 1.5, speed = 600.0, zero_speed = 60.0 }\n[axes.z.emulate]\nswitches = { negative = -30000 }\n";
     let machine = lathe.replace("following_error = 1.0\n\n[axes.s1]", &format!("following_error = 1.0\n{homing}\n[axes.s1]"));
     assert!(machine.contains(homing), "lathe-modbus.toml's Z block changed");

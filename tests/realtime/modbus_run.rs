@@ -3,7 +3,7 @@
 //! over RTU through a socat pseudo-terminal pair, and mixed with CANopen drives. Real time:
 //! these run alone (.config/nextest.toml).
 
-mod modbus_common;
+use crate::modbus_common;
 
 use modbus_common::{cncgw, summary, text, tmp, write, MODBUS_LATHE};
 use std::net::SocketAddr;

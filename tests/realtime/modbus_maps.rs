@@ -6,7 +6,7 @@
 //! else's register store and exceptions). Real time where `run` is used: serialized in
 //! .config/nextest.toml.
 
-mod modbus_common;
+use crate::modbus_common;
 
 use modbus_common::{cncgw, on, tcp_server, text, tmp, write, MODBUS_LATHE};
 use std::net::{TcpListener, TcpStream};

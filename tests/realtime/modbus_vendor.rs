@@ -3,7 +3,7 @@
 //! that powers up away from 0, "busy" answers, late answers — over TCP and RTU. Real time:
 //! serialized in .config/nextest.toml.
 
-mod modbus_common;
+use crate::modbus_common;
 
 use std::process::Command;
 use std::sync::atomic::{AtomicBool, Ordering};

@@ -5,7 +5,7 @@
 //! drive's communication timeout (register 23, the Modbus analogue of 0x1016/0x6007): with no
 //! write for that long an enabled drive faults (error code 0x8130) and stops. A second Modbus
 //! client (this test) reads statusword, position and error code of every unit and times it.
-//! (The CANopen case, heartbeat consumer, is in tests/tap_return_kill.rs.) Real time: runs
+//! (The CANopen case, heartbeat consumer, is in tests/realtime/tap_return_kill.rs.) Real time: runs
 //! alone (.config/nextest.toml).
 
 use std::path::PathBuf;
@@ -34,7 +34,7 @@ fn realtime_modbus_drives_stop_when_the_controller_is_killed() {
     let addr = format!("127.0.0.1:{port}");
     let lathe = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/config/lathe-modbus.toml")).unwrap();
     // A shared 2-core machine: feedback age and transaction timeout with room for the
-    // scheduler (as tests/modbus_run.rs).
+    // scheduler (as tests/realtime/modbus_run.rs).
     let machine = lathe
         .replace("address = \"127.0.0.1:5020\"", &format!("address = \"{addr}\""))
         .replace("feedback_timeout_ms = 50", "feedback_timeout_ms = 300")

@@ -14,7 +14,7 @@
 //! Needs the project venv (`scripts/install-test-deps.sh --python`); without it this test
 //! FAILS naming that command; CNCGW_SKIP_PYTHON=1 skips it deliberately.
 
-mod io_common;
+use crate::io_common;
 
 use io_common::SAFETY_AND_M_CODES;
 use std::io::{BufRead, BufReader};
@@ -90,7 +90,7 @@ fn python_canopen_master_drives_the_emulated_cia401_module() {
     let Some(python) = python() else { return };
     let can = free_addr();
     let cfg = tmp("machine.toml");
-    std::fs::write(&cfg, format!("{}{MACHINE_IO}", include_str!("../config/lathe.toml"))).unwrap();
+    std::fs::write(&cfg, format!("{}{MACHINE_IO}", include_str!("../../config/lathe.toml"))).unwrap();
     let log = tmp("sim.log");
     let _sim = start_sim(&can, &cfg, &log);
     let port = can.rsplit_once(':').unwrap().1;
@@ -117,7 +117,7 @@ fn python_canopen_master_drives_the_emulated_cia401_module() {
 /// The lathe at a 5 ms cycle with feedback 200 ms old before it counts as lost: one python
 /// interpreter answers every SYNC of the module.
 fn slow_lathe() -> String {
-    let l = include_str!("../config/lathe.toml")
+    let l = include_str!("../../config/lathe.toml")
         .replace("cycle_ms = 2.0", "cycle_ms = 5.0")
         .replace("feedback_timeout_ms = 20", "feedback_timeout_ms = 200");
     assert!(l.contains("cycle_ms = 5.0") && l.contains("feedback_timeout_ms = 200"), "config/lathe.toml changed");

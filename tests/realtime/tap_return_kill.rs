@@ -36,7 +36,7 @@ fn tmp(name: &str) -> PathBuf {
     testkit::tmp!("tap_return_kill", name)
 }
 
-/// The default lathe with the tolerances of a shared 2-core machine (as tests/modbus_run.rs):
+/// The default lathe with the tolerances of a shared 2-core machine (as tests/realtime/modbus_run.rs):
 /// a descheduled process must not fault the run on its feedback age or following error.
 /// The sync error limit (100 µm) is the default.
 fn machine() -> PathBuf {
@@ -367,7 +367,7 @@ fn sigkill_mid_tap_state_write_leaves_old_or_new_state() {
     let rounds = 25;
     for round in 0..rounds {
         let mut child = Command::new(&exe)
-            .args(["--exact", "tap_state_writer_child", "--nocapture", "--test-threads=1"])
+            .args(["--exact", "tap_return_kill::tap_state_writer_child", "--nocapture", "--test-threads=1"])
             .env(CHILD_ENV, &path)
             .stdout(Stdio::null())
             .spawn()
