@@ -13,7 +13,7 @@
 //! run's thread settings do not carry over to the next.
 //!
 //! By default the following-error windows are 720° (spindle) and 5 mm (axes), the feedback
-//! timeout 100 ms (as tests/realtime_inproc.rs does for the spindle) and the cycle watchdog
+//! timeout 100 ms (as tests/realtime/realtime_inproc.rs does for the spindle) and the cycle watchdog
 //! relaxed (`watchdog_overruns = 0`: off; `watchdog_missed_cycles = 50`: the most allowed), so that a stall on a loaded
 //! host is measured instead of ending the run with a fault; `--strict` keeps the config's.
 //!
@@ -72,7 +72,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 /// `--strict`: the configured following-error windows and feedback timeout (default: the
-/// shared-host tolerances of tests/realtime_inproc.rs).
+/// shared-host tolerances of tests/realtime/realtime_inproc.rs).
 static TOLERANT: AtomicBool = AtomicBool::new(true);
 
 /// The wall clock, timing every wake-up once `armed` (into buffers allocated up front, so
@@ -167,7 +167,7 @@ fn run_on_this_thread(bus: Box<dyn CanBus>, cycle_ms: f64, seconds: f64, rt: &Rt
     if TOLERANT.load(Ordering::Relaxed) {
         // A shared host is not a real-time one: a stall of tens of ms would fault the spindle
         // drive (following error) or the feedback watchdog and end the run. The same
-        // tolerances as tests/realtime_inproc.rs, so that the run goes on and is measured.
+        // tolerances as tests/realtime/realtime_inproc.rs, so that the run goes on and is measured.
         cfg.bus.feedback_timeout_ms = 100.0;
         // The cycle watchdog stops the run at a host stall of 25 periods (a vCPU
         // descheduled for 25 ms at 1 ms): relaxed to the most allowed, so that the stall is counted.

@@ -12,7 +12,7 @@
 #
 # Corpora: fuzz/corpus/TARGET (committed, read here) and build/fuzz-corpus/TARGET (where
 # libFuzzer writes new inputs; not committed). A crash input is copied to
-# fuzz/crashes/TARGET/, which tests/fuzz_regress.rs replays in the normal suite: commit it
+# fuzz/crashes/TARGET/, which tests/interp/fuzz_regress.rs replays in the normal suite: commit it
 # with the fix. With CNCGW_REPORT_DIR set, one line per target goes to
 # $CNCGW_REPORT_DIR/fuzz.jsonl: {"target", "seconds", "executions", "crashes"}.
 #

@@ -82,10 +82,10 @@ extra_test_deps() {
     # pseudo-terminal pair an RTU line runs over; mbpoll is a Modbus RTU/TCP master.
     need_pkg socat mbpoll
     # tmux: the interactive `cncgw run` is typed at and read back in a terminal
-    # (tests/cli_tmux.rs: send-keys, capture-pane).
+    # (tests/realtime/cli_tmux.rs: send-keys, capture-pane).
     need_pkg tmux
     # man-db (man -l) and groff: every manual page `cncgw man --dir` writes is rendered
-    # (tests/cli_man.rs).
+    # (tests/cli/cli_man.rs).
     need_pkg man-db groff-base
     # librsvg2-bin (rsvg-convert): the pictures are rendered to PNG in their tests
     # (tests/svg_common/) and `-o FILE.png` goes through it.
@@ -99,7 +99,7 @@ extra_test_deps() {
 # Python peers for the protocol tests (a CANopen/Modbus implementation written elsewhere).
 # Uses Debian's /usr/bin/python3, not a pyenv shim (slow under the guest, see notes).
 # Floors: the versions the socketcand peer test (tests/python/) was written against.
-# asyncua: the OPC UA client of tests/opcua_server.rs.
+# asyncua: the OPC UA client of tests/cli/opcua_server.rs.
 PY_REQS=("python-can>=4.6" "canopen>=2.4" pymodbus "asyncua>=1.1")
 python_venv() {
     local venv=$ROOT/build/venv

@@ -117,7 +117,7 @@ fn first_part_runs_over_vcan_against_sim_drives_process() {
 // Issue 21's "done means" in this tier: first_part against every emulated drive profile
 // (IP only, fixed mapping, no 0x1016, boots into PP, user units, external SYNC), in two sim-drives
 // processes of mixed profiles (profiles_common::MIXED_SETS, also run in simulated time by
-// tests/drive_profiles.rs) rather than five: a first_part is ~35 s.
+// tests/sim/drive_profiles.rs) rather than five: a first_part is ~35 s.
 
 /// first_part with `cncgw -v run --bus vcan0 --json` against sim-drives of `profiles`
 /// (X, Z, S1), node 1 producing the SYNC if `external`; the start-up log.
@@ -176,9 +176,9 @@ fn first_part_over_vcan_against_drives_without_0x1016_and_one_in_user_units() {
 }
 
 // The external SYNC profile (`bus.sync = "external"`): the second set's drives again, node 1
-// producing the SYNC every 4 ms and the master's cycle running on it (as tests/drive_profiles.rs
+// producing the SYNC every 4 ms and the master's cycle running on it (as tests/sim/drive_profiles.rs
 // does in simulated time). A cycle held up past the next SYNC is caught up, not sent stale
-// (tests/late_external_sync.rs); before that it failed here 4 runs of 4 on the spindle's
+// (tests/sim/late_external_sync.rs); before that it failed here 4 runs of 4 on the spindle's
 // following error.
 #[test]
 #[ignore = "needs vcan0: run through scripts/run-vcan-tier.sh (scripts/test.sh does)"]

@@ -1,5 +1,5 @@
 //! cargo-fuzz target `frames`: see `cncgw_fuzz::frames` (fuzz/src/lib.rs), which
-//! tests/fuzz_regress.rs replays over the corpus in the normal test suite.
+//! tests/interp/fuzz_regress.rs replays over the corpus in the normal test suite.
 #![no_main]
 
 libfuzzer_sys::fuzz_target!(|data: &[u8]| cncgw_fuzz::frames(data));

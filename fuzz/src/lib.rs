@@ -1,6 +1,6 @@
 //! The fuzz entry functions: one per cargo-fuzz target (fuzz/fuzz_targets/*.rs) and the
 //! same functions replayed over every corpus and crash input by the normal test suite
-//! (tests/fuzz_regress.rs includes this file with `#[path]`), so the harness exists once.
+//! (tests/interp/fuzz_regress.rs includes this file with `#[path]`), so the harness exists once.
 //!
 //! Each takes arbitrary bytes and must return without panicking; errors (alarms, parse
 //! errors) are the expected outcome for most inputs. Every entry bounds its own work, so no

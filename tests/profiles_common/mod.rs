@@ -1,4 +1,4 @@
-//! Issue 21's drive profiles as the tests set them up, shared by tests/drive_profiles.rs
+//! Issue 21's drive profiles as the tests set them up, shared by tests/sim/drive_profiles.rs
 //! (in simulated time and over socketcand) and tests/vcan_tier.rs (sim-drives as a process on
 //! vcan0): the emulated drives of each profile, the machine configuration that fits them, the
 //! timing the real-time tiers relax, and the end-point check on `cncgw run --json`.

@@ -2,7 +2,7 @@
 object dictionary from tests/python/sim_drive.eds) over python-can's `socketcand` interface,
 with a CiA 402 state machine, SYNC/PDO handling, heartbeat producer and consumer, and the
 shapes of commercial drives that trouble a master at start-up (issue 27). A second opinion
-to sim-drives' [drive.shape]; run by tests/python_drives.rs:
+to sim-drives' [drive.shape]; run by tests/cli/python_drives.rs:
 
     build/venv/bin/python tests/python/canopen_drive.py HOST PORT SHAPE
 

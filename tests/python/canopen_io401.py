@@ -1,6 +1,6 @@
 """An independent CANopen master (python `canopen` over python-can's `socketcand`
 interface) against the CiA 401 I/O module `sim-drives --socketcand --config M` emulates
-(sim-drives/src/io401.rs). Run by tests/io_python.rs:
+(sim-drives/src/io401.rs). Run by tests/realtime/io_python.rs:
 
     build/venv/bin/python tests/python/canopen_io401.py HOST PORT NODE
 

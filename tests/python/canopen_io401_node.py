@@ -1,7 +1,7 @@
 """A CiA 401 digital I/O module we did not write in Rust: a python `canopen` LocalNode (SDO
 server and object dictionary from tests/python/io401.eds) over python-can's `socketcand`
 interface, for cncgw's own master to drive (`[io.devices.*] canopen_node`). Run by
-tests/io_python.rs:
+tests/realtime/io_python.rs:
 
     build/venv/bin/python tests/python/canopen_io401_node.py HOST PORT NODE
 

@@ -3,7 +3,7 @@
     opcua_client.py URL PKI_DIR WORK_DIR USER PASSWORD MACHINE_NAME
     opcua_client.py --user-certs WORK_DIR     (before the run: the X.509 users' certificates)
 
-Run by tests/opcua_server.rs while `cncgw run --realtime` runs a program on the embedded
+Run by tests/cli/opcua_server.rs while `cncgw run --realtime` runs a program on the embedded
 machine whose X drive faults. In order:
   1. an unsigned (None) connection is refused (no such endpoint);
   2. Basic256Sha256 Sign&Encrypt with a fresh client certificate is refused until the

@@ -1,0 +1,167 @@
+//! `cncgw identify` (issue 17.2) on the emulated drives of `tests/drive_models/`, in simulated
+//! time (`--sim-config`, the embedded machine): the delay and the time constant it finds
+//! against the truth of each model, the velocity lag it predicts against a lag measured in a
+//! separate run, and the tap with the identified responses in the machine configuration.
+//!
+//! `cargo test --test identify -- --nocapture identified_vs_truth` prints the table that the
+//! README's commissioning section shows.
+//!
+//! The truth, computed here independently of the fit:
+//! - **delay** = 2 + `transport_delay_cycles` cycles, from the emulator's structure: a CSP
+//!   target written in cycle k is latched at the next SYNC and reached by the drive's linear
+//!   interpolation one period later, where the actual position the controller reads in cycle
+//!   k + 2 is sampled; a model's transport delay queues the target that many SYNCs more. The
+//!   inner loops add no delay in this sense (the delay is the part of the constant-speed lag
+//!   the position loop does not explain, and a PI velocity loop has no lag at constant speed).
+//! - **τ** = the dominant (slowest) pole of the drive's own closed cascade — position loop Kv
+//!   with the velocity loop, current loop, speed filter and (belt) two-mass mechanics inside —
+//!   measured on sim-drives' `Servo` itself: a small position step, no friction, no encoder
+//!   quantisation (a 1000× finer position unit and a 40-bit speed encoder), no backlash, and
+//!   the log-slope of the remaining error between 30 % and 3 % of the step. It is ≈ 1/Kv (the
+//!   velocity loop and the speed filter shift it by 1–5 %): the table shows both.
+
+use cncgw::config::{DriveResponse, MachineConfig};
+use cncgw::control::embedded::matrix::measure_model_with;
+use sim_drives::servo::step_trace;
+use std::path::PathBuf;
+
+const MODELS: [&str; 9] =
+    ["default", "soft_spindle", "heavy_spindle", "coarse_spindle_encoder", "lowff_z", "delay1", "delay2", "belt_z", "high_friction"];
+
+fn model(name: &str) -> String {
+    format!("{}/tests/drive_models/{name}.toml", env!("CARGO_MANIFEST_DIR"))
+}
+
+fn cncgw(args: &[&str]) -> std::process::Output {
+    testkit::cli!().output(args)
+}
+
+fn identify(axis: &str, m: &str) -> serde_json::Value {
+    let o = cncgw(&["identify", axis, "--json", "--sim-config", &model(m)]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    serde_json::from_slice(&o.stdout).unwrap()
+}
+
+/// The truth of `axis` in model `m`: (delay in cycles, τ in s, 1/Kv in s, Kv's feed-forward).
+fn truth(axis: &str, m: &str) -> (f64, f64, f64, f64) {
+    let sim = sim_drives::SimConfig::from_toml(&std::fs::read_to_string(model(m)).unwrap()).unwrap();
+    let d = sim.drives.iter().find(|d| d.axis == axis).unwrap();
+    let mut p = d.physics.clone();
+    p.coulomb_friction = 0.0;
+    p.viscous_friction = 0.0;
+    p.speed_encoder_bits = 40;
+    p.extra.encoder_counts_per_rev = 0;
+    p.extra.backlash_deg = 0.0;
+    let cpr = d.counts_per_rev * 1000;
+    // 0.01 rad: far from the speed and torque limits on every kind of drive.
+    let step = 0.01 / (2.0 * std::f64::consts::PI) * cpr as f64;
+    let tr = step_trace(&p, cpr, step, 50e-6, 3.0, 50e-6);
+    let at = |frac: f64| tr.iter().find(|(_, x)| step - x <= frac * step).map(|(t, x)| (*t, step - x)).unwrap();
+    let ((t1, e1), (t2, e2)) = (at(0.3), at(0.03));
+    let tau = (t2 - t1) / (e1 / e2).ln();
+    (2.0 + p.extra.transport_delay_cycles as f64, tau, 1.0 / p.kv, p.velocity_ff)
+}
+
+/// Where the model's structure is what the fit assumes (delay + inner loops + a dominant
+/// position-loop pole). Not so: four times the dry friction on the linear axis, whose
+/// identification run stops and reverses (Z sticks for cycles each time; the stick dominates
+/// the following error the poles are fitted on: delay 1 cycle, ff 0.90) — there only
+/// the velocity lag is meaningful (the tap test below holds it); its spindle, which only
+/// changes speed, is checked.
+fn has_the_structure(axis: &str, m: &str) -> bool {
+    !(m == "high_friction" && axis == "z")
+}
+
+#[test]
+fn identified_vs_truth() {
+    let mut bad = vec![];
+    eprintln!("| model | axis | delay identified / truth (cycles) | τ identified / truth (ms) | 1/Kv (ms) | ff identified / Kv's | VAF % |");
+    eprintln!("| --- | --- | --- | --- | --- | --- | --- |");
+    for m in MODELS {
+        for axis in ["z", "s1"] {
+            let r = identify(axis, m);
+            let (d0, tau0, inv_kv, ff0) = truth(axis, m);
+            let d = r["delay_cycles"].as_f64().unwrap();
+            let tau = r["time_constant_ms"].as_f64().unwrap() * 1e-3;
+            let ff = r["feed_forward"].as_f64().unwrap();
+            let ok = has_the_structure(axis, m);
+            eprintln!(
+                "| {m} | {axis} | {d:.2} / {d0:.0} | {:.1} / {:.1} | {:.1} | {ff:.4} / {ff0} | {:.2} |{}",
+                tau * 1e3,
+                tau0 * 1e3,
+                inv_kv * 1e3,
+                r["vaf_pct"].as_f64().unwrap(),
+                if ok { "" } else { " (not asserted: see below)" }
+            );
+            if ok && ((d / d0 - 1.0).abs() > 0.1 || (tau / tau0 - 1.0).abs() > 0.1 || (ff - ff0).abs() > 0.005) {
+                bad.push(format!("{m} {axis}: delay {d:.2} vs {d0}, τ {:.1} ms vs {:.1} ms", tau * 1e3, tau0 * 1e3));
+            }
+        }
+    }
+    assert!(bad.is_empty(), "identified beyond 10 % of the truth: {bad:#?}");
+}
+
+/// The lag of Z's actual behind its command in the middle of a 60 mm move at F1500, ms.
+fn measured_lag_ms(m: &str) -> f64 {
+    let dir = std::env::temp_dir().join(format!("cncgw-identify-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let prog = dir.join("lag.nc");
+    std::fs::write(&prog, "G21\nG98\nG1 W-60 F1500\nM30\n").unwrap();
+    let trace: PathBuf = dir.join(format!("{m}.csv"));
+    let o = cncgw(&["run", "--batch", "--sim-config", &model(m), "--trace", trace.to_str().unwrap(), prog.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let text = std::fs::read_to_string(&trace).unwrap();
+    let _ = std::fs::remove_dir_all(&dir);
+    let head: Vec<&str> = text.lines().next().unwrap().split(',').collect();
+    let (c, a) = (head.iter().position(|h| *h == "z_cmd").unwrap(), head.iter().position(|h| *h == "z_act").unwrap());
+    let rows: Vec<Vec<f64>> = text.lines().skip(1).map(|l| l.split(',').map(|x| x.parse().unwrap_or(0.0)).collect()).collect();
+    let mid = rows.len() / 2;
+    let v = 1500.0 / 60.0;
+    (rows[mid][c] - rows[mid][a]).abs() / v * 1e3
+}
+
+#[test]
+fn identify_finds_the_delay_and_the_velocity_lag() {
+    let base = identify("z", "default");
+    for (m, extra) in [("delay1", 1.0), ("delay2", 2.0)] {
+        let r = identify("z", m);
+        let d = r["delay_cycles"].as_f64().unwrap() - base["delay_cycles"].as_f64().unwrap();
+        assert!((d - extra).abs() < 0.15, "{m}: delay {} vs default {}", r["delay_cycles"], base["delay_cycles"]);
+    }
+    for m in ["default", "lowff_z", "belt_z", "delay2"] {
+        let r = identify("z", m);
+        let lag = r["velocity_lag_ms"].as_f64().unwrap();
+        let meas = measured_lag_ms(m);
+        eprintln!("{m}: identified velocity lag {lag:.2} ms, measured {meas:.2} ms, {r}");
+        assert!((lag / meas - 1.0).abs() < 0.1, "{m}: identified {lag:.2} ms, measured {meas:.2} ms");
+        assert!(r["vaf_pct"].as_f64().unwrap() > 99.0, "{r}");
+    }
+}
+
+/// "The tap with the identified model": z and s1 identified on each model, their responses
+/// put into the machine configuration as `[axes.NAME.response]` does, and the rigid tap
+/// M10×1.5 run in the air in simulated time (S3000 over 35 mm, S6000 over 200 mm), the sync
+/// error from the actual positions. Today the sync law does not read the response (it learns
+/// the lags online, `sync::lag`); this holds the bounds with the sections in place. Four times
+/// the dry friction keeps its own bound (Z sticks as the tap starts), as in tests/sim/drive_matrix.rs.
+#[test]
+fn the_tap_with_the_identified_responses_meets_the_bounds() {
+    for m in MODELS {
+        let mut cfg = MachineConfig::embedded();
+        for axis in ["z", "s1"] {
+            let r = identify(axis, m);
+            cfg.axes.get_mut(axis).unwrap().response = Some(DriveResponse {
+                delay_cycles: r["delay_cycles"].as_f64().unwrap(),
+                feed_forward: r["feed_forward"].as_f64().unwrap(),
+                time_constant_ms: r["time_constant_ms"].as_f64().unwrap(),
+            });
+        }
+        let text = std::fs::read_to_string(model(m)).unwrap();
+        let row = measure_model_with(&cfg, &text, 0, false).unwrap();
+        assert!(row.alarms.is_empty(), "{m}: {:?}", row.alarms);
+        let (b3, b6) = if m == "high_friction" { (13.5, 13.5) } else { (5.0, 10.0) };
+        let (m3, m6) = (row.tap_3000.unwrap().0, row.tap_6000.unwrap().0);
+        eprintln!("{m}: tap with the identified responses S3000 {m3:.2} µm, S6000 {m6:.2} µm");
+        assert!(m3 <= b3 && m6 <= b6, "{m}: tap S3000 {m3:.2} µm (bound {b3}), S6000 {m6:.2} µm (bound {b6})");
+    }
+}
