@@ -2,7 +2,7 @@
 # Run the vcan test tier: CMD must find vcan0 (and vcan1) up, and must fail rather than
 # skip when it does not (CNCGW_VCAN_REQUIRED=1).
 #
-#   scripts/run-vcan-tier.sh CMD [ARGS...]      e.g. scripts/run-vcan-tier.sh cargo test --test vcan
+#   scripts/run-vcan-tier.sh CMD [ARGS...]      e.g. scripts/run-vcan-tier.sh cargo test --test vcan_tier
 #
 # Decides where, and says so in one line starting with "vcan tier:":
 #   - natively, if vcan0 exists or can be created on the host kernel;

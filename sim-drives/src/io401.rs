@@ -4,7 +4,7 @@
 //! 0x1017, the PDO parameters (0x1400/0x1600 RPDO1, 0x1800/0x1A00 TPDO1) and the digital
 //! inputs 0x6000 / outputs 0x6200; RPDO1 sets the outputs, TPDO1 goes out on every SYNC
 //! (transmission type 1–240) or on an input change (254/255). tests/python/io401.eds
-//! describes it; python `canopen` drives it in tests/io_python.rs.
+//! describes it; python `canopen` drives it in tests/realtime/io_python.rs.
 //!
 //! The inputs are what a machine's wiring would make them ([`IoEmulation`]): bits that
 //! are on from the start (an E-stop chain, a closed door), inputs that follow an output after

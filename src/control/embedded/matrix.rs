@@ -1,5 +1,5 @@
 //! The sync figures of one drive model (a sim-drives configuration), in simulated time on the
-//! embedded machine: what `examples/drive_matrix.rs` prints and `tests/drive_matrix.rs` bounds.
+//! embedded machine: what `examples/drive_matrix.rs` prints and `tests/sim/drive_matrix.rs` bounds.
 
 use super::measure::{
     g92_1_moves, monitor_stats, phase_spread, rigid_tap_moves, run_moves_jittered, tap_sync_error, thread_pass_moves, thread_phases, CuttingLoad,
