@@ -10,7 +10,9 @@
 //! controlled stops — wakes on the SYNC without knowing it. Waits inside a period (SDO polls)
 //! are plain timer waits. A SYNC overdue by half a period unlocks the clock: it runs free on
 //! the timer (the master raises its alarm on the missing SYNC, see `bus.sync_loss_cycles`),
-//! and the next SYNC locks it again without a jump.
+//! and the next SYNC locks it again without a jump — unless that SYNC is one whose slot the
+//! timer already served (it came late, or in a burst after the path it came by stalled): its
+//! cycle has run and sent its set-points, so it moves nothing (see [`SyncTrack::on_sync`]).
 //!
 //! The time keeping is [`SyncTrack`], sans-I/O (times in, times out) and unit-tested.
 
@@ -22,6 +24,11 @@ use std::time::Duration;
 
 /// Frames the clock may hold for the bus while it waits (a few cycles of a full bus).
 const QUEUE: usize = 1024;
+
+/// A SYNC whose slot the free-running clock passed at most this many periods ago is taken as
+/// that slot's, late; one further behind is a SYNC that stopped and came back (start-up's NMT
+/// reset reboots a producing drive): it locks the clock where it stands.
+const SERVED_PERIODS: u64 = 8;
 
 /// Whether `f` is a SYNC (COB-ID 0x080, no data or the 1-byte counter).
 pub fn is_sync(f: &CanFrame) -> bool {
@@ -39,11 +46,29 @@ pub struct SyncTrack {
     locked: bool,
     syncs: u64,
     unlocks: u64,
+    /// Virtual time of the slot the last SYNC stood for, and its inner arrival time.
+    sync_v: u64,
+    sync_inner: u64,
+    /// No SYNC since the clock unlocked.
+    since_unlock: bool,
+    /// SYNCs that came for slots the timer had already served.
+    served_late: u64,
 }
 
 impl SyncTrack {
     pub fn new(period_ns: u64) -> Self {
-        SyncTrack { period: period_ns.max(2), anchor_v: 0, anchor_inner: 0, locked: false, syncs: 0, unlocks: 0 }
+        SyncTrack {
+            period: period_ns.max(2),
+            anchor_v: 0,
+            anchor_inner: 0,
+            locked: false,
+            syncs: 0,
+            unlocks: 0,
+            sync_v: 0,
+            sync_inner: 0,
+            since_unlock: false,
+            served_late: 0,
+        }
     }
 
     /// Virtual time at inner time `inner`. Locked, it stops one ns short of the next slot:
@@ -62,7 +87,23 @@ impl SyncTrack {
     /// after every SYNC from then on (its deadlines falling inside the period), not on the
     /// SYNC — and with its set-points sent late in the period, every bit of lateness would
     /// make a drive take them a SYNC late.
+    ///
+    /// Unlocked, a SYNC whose slot (one period after the last SYNC's) the clock has already
+    /// passed on its timer, the first since the unlock or one of a burst (less than half a
+    /// period after the one before), is that slot's, late: the cycle it stood for ran on the
+    /// timer and sent its set-points, and the drives take them at this SYNC. It moves
+    /// nothing. Counted as a new slot, it would run the next cycle at once — a second
+    /// set-point before the drives' next SYNC, which they take instead: a double step (a
+    /// burst of n such SYNCs: an n-fold one).
     pub fn on_sync(&mut self, inner: u64, deadline: Option<u64>) {
+        if self.served(inner) {
+            self.sync_v += self.period;
+            self.sync_inner = inner;
+            self.since_unlock = false;
+            self.syncs += 1;
+            self.served_late += 1;
+            return;
+        }
         let v = if self.locked { self.anchor_v + self.period } else { self.now(inner) };
         self.anchor_v = match deadline {
             Some(t) if t + self.period / 2 > v && t < v + self.period => t,
@@ -71,6 +112,20 @@ impl SyncTrack {
         self.anchor_inner = inner;
         self.locked = true;
         self.syncs += 1;
+        self.sync_v = self.anchor_v;
+        self.sync_inner = inner;
+        self.since_unlock = false;
+    }
+
+    /// Whether a SYNC arriving at `inner` stands for a slot the unlocked clock has served.
+    fn served(&self, inner: u64) -> bool {
+        if self.locked || self.syncs == 0 {
+            return false;
+        }
+        let slot = self.sync_v + self.period;
+        let now = self.now(inner);
+        let burst = inner.saturating_sub(self.sync_inner) < self.period / 2;
+        slot <= now && now - slot < SERVED_PERIODS * self.period && (self.since_unlock || burst)
     }
 
     /// At inner time `inner` with no SYNC: unlock when it is half a period overdue. True when
@@ -81,6 +136,7 @@ impl SyncTrack {
             self.anchor_inner = inner;
             self.locked = false;
             self.unlocks += 1;
+            self.since_unlock = true;
             return true;
         }
         false
@@ -108,6 +164,11 @@ impl SyncTrack {
     /// How often SYNC went missing long enough to unlock the clock.
     pub fn unlocks(&self) -> u64 {
         self.unlocks
+    }
+
+    /// SYNCs that came for a slot the unlocked clock had already served (late, or in a burst).
+    pub fn served_late(&self) -> u64 {
+        self.served_late
     }
 }
 
@@ -395,6 +456,47 @@ mod tests {
         t.on_sync(10 * P, None);
         assert!(t.locked());
         assert_eq!(t.now(10 * P), before, "no jump when SYNC comes back");
+    }
+
+    #[test]
+    fn a_sync_later_than_half_a_period_is_the_slot_the_timer_served_not_the_next() {
+        // SYNC k+1 reaches the master 0.6 periods late: the clock unlocked at 1.5 periods and
+        // the cycle of slot P ran on the timer. That SYNC must not start the cycle of slot 2P
+        // at once (two set-points before the drives' SYNC at 2P: a double step).
+        let mut t = SyncTrack::new(P);
+        t.on_sync(0, None);
+        assert!(t.check(P + P / 2));
+        assert!(t.now(P + P / 2 + 1) >= P, "the cycle of slot P ran on the timer");
+        t.on_sync(P + 6 * P / 10, Some(2 * P));
+        assert!(!t.locked());
+        assert_eq!(t.served_late(), 1);
+        assert!(t.now(P + 6 * P / 10) < 2 * P, "the next cycle waits");
+        // SYNC k+2 on time: slot 2P, locked there.
+        t.on_sync(2 * P, Some(2 * P));
+        assert!(t.locked());
+        assert_eq!(t.now(2 * P), 2 * P);
+        assert_eq!(t.syncs(), 3);
+    }
+
+    #[test]
+    fn a_burst_of_late_syncs_pays_for_the_slots_the_timer_served_and_locks_on_the_current_one() {
+        // The path stalled for 4.2 periods, the clock ran free and its cycles served slots P..4P
+        // on the timer: the burst's SYNCs k+1..k+4 are those slots'; k+5 is the one waited for.
+        let mut t = SyncTrack::new(P);
+        t.on_sync(0, None);
+        assert!(t.check(P + P / 2));
+        let at = 4 * P + P / 5 + P / 2;
+        let before = t.now(at);
+        assert!(before > 4 * P && before < 5 * P);
+        for k in 0..4 {
+            t.on_sync(at + k, Some(5 * P));
+        }
+        assert!(!t.locked(), "{t:?}");
+        assert_eq!(t.now(at + 4), before + 4, "no slot counted twice");
+        t.on_sync(at + 5, Some(5 * P));
+        assert!(t.locked());
+        assert_eq!(t.now(at + 5), 5 * P);
+        assert_eq!((t.syncs(), t.served_late()), (6, 4));
     }
 
     #[test]

@@ -102,6 +102,20 @@ impl Watchdog {
     }
 }
 
+/// Whole periods from the slot `*next` to `now`, `*next` moved on by them (onto the slot of
+/// the period `now` is in). 0: `now` is still in the slot's period. Every loop that sends
+/// cyclic set-points counts by it the SYNCs that passed: a wake-up that late, or SYNCs that
+/// came after it (an external SYNC, `Clock::poll_sync`).
+fn periods_passed(next: &mut u64, now: u64, cycle_ns: u64) -> u64 {
+    let cycle_ns = cycle_ns.max(1);
+    if now < *next + cycle_ns {
+        return 0;
+    }
+    let n = (now - *next) / cycle_ns;
+    *next += n * cycle_ns;
+    n
+}
+
 /// Alarm 2403: the controller stalled inside a thread or rigid tap for longer than the
 /// drives bridge (their time base cannot be shifted: the spindle turns on).
 fn stall_in_sync(line: u32, missed: u64, bridged: u64, cycle_ns: u64) -> Alarm {
@@ -658,7 +672,7 @@ impl<'a> CycleLoop<'a> {
                 return at_line(alarm.unwrap_or_else(|| Alarm::new(alarms::ESTOP, "emergency stop during a drive fault stop")));
             }
             let fb = self.read_feedback(&mut meter);
-            let sp = motion.step(&fb);
+            let sp = self.stop_step(motion, &fb, &mut next, now);
             self.send(&sp);
             // The faulted drive ignores it in its fault reaction; after a fault reset it holds.
             let p = self.drives.feedback(d).pos;
@@ -725,13 +739,31 @@ impl<'a> CycleLoop<'a> {
                 let _ = self.drives.transmit(now);
                 return;
             }
-            let sp = motion.step(&fb);
+            let sp = self.stop_step(motion, &fb, &mut next, now);
             self.send(&sp);
             let _ = self.drives.transmit(now);
             if motion.is_idle() {
                 return;
             }
         }
+    }
+
+    /// The set-point of a stop's cycle woken at `now` for the slot `*next`: one interpolation
+    /// step for every SYNC since the last set-point went out, as the program's cycle takes
+    /// them (`keep_time`, `syncs_passed`) — the whole periods the wake-up was late, and on an
+    /// external SYNC those that came after it, before the send — at most as many more as the
+    /// drives bridge (`Watchdog::catch_up`). The drives, having extrapolated over those SYNCs,
+    /// get the stop's next step, not one they have passed (a step back, and the next one
+    /// double); `*next` moves onto the period `now` is in, so no cycles are run back to back.
+    /// The events of the steps skipped are not acted on: a stop runs no program.
+    fn stop_step(&mut self, motion: &mut Motion, fb: &Feedback, next: &mut u64, now: u64) -> crate::motion::Setpoint {
+        let late = periods_passed(next, now, self.cycle_ns);
+        let passed = self.clock.poll_sync().map_or(0, |t| periods_passed(next, t, self.cycle_ns));
+        let mut sp = motion.step(fb);
+        for _ in 0..(late + passed).min(self.watchdog.catch_up) {
+            sp = motion.step(fb);
+        }
+        sp
     }
 
     /// Orderly end: disable drives.

@@ -12,7 +12,7 @@
 //! Every allocation is made in [`Run::new`], before the first cycle. A phase that ends the
 //! run returns the alarm, with the controlled stop it needs already started.
 
-use super::{alarms, stall_in_sync, AxisSummary, CycleLoop, Progress, RunSummary, SpindleMeter, MAX_CATCH_UP};
+use super::{alarms, periods_passed, stall_in_sync, AxisSummary, CycleLoop, Progress, RunSummary, SpindleMeter, MAX_CATCH_UP};
 use crate::canon::{Move, Pos};
 use crate::control::guard::Guard;
 use crate::control::io::IoStop;
@@ -188,10 +188,10 @@ impl CycleLoop<'_> {
         let late_before = run.late_prev;
         let mut missed = 0u64;
         run.late_prev = now >= run.next + self.cycle_ns / 2;
-        if now >= run.next + self.cycle_ns {
+        let late = periods_passed(&mut run.next, now, self.cycle_ns);
+        if late > 0 {
             summary.overruns += 1;
-            missed = ((now - run.next) / self.cycle_ns).min(MAX_CATCH_UP);
-            run.next = now - (now - run.next) % self.cycle_ns;
+            missed = late.min(MAX_CATCH_UP);
         }
         if let Some(a) = self.watchdog.cycle(missed, &mut run.overruns_in_a_row, run.cur_line, self.cycle_ns) {
             self.halt(motion, run.spindle_rpm);
@@ -422,11 +422,10 @@ impl CycleLoop<'_> {
     /// (A SYNC between this look and the send still comes first; the window is the send.)
     fn syncs_passed(&mut self, motion: &mut Motion, run: &mut Run, summary: &mut RunSummary, tick: &Tick) -> Result<u64, Alarm> {
         let Some(now) = self.clock.poll_sync() else { return Ok(0) };
-        if now < run.next + self.cycle_ns {
+        let passed = periods_passed(&mut run.next, now, self.cycle_ns);
+        if passed == 0 {
             return Ok(0);
         }
-        let passed = (now - run.next) / self.cycle_ns;
-        run.next += passed * self.cycle_ns;
         run.late_prev = true;
         if tick.late == 0 {
             summary.overruns += 1;

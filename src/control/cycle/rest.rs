@@ -158,7 +158,7 @@ impl CycleLoop<'_> {
                 deadline = now + QUICK_TIMEOUT_NS;
             }
             let fb = self.read_feedback(&mut meter);
-            let sp = motion.step(&fb);
+            let sp = self.stop_step(motion, &fb, &mut next, now);
             // A set-point beyond the limits is never sent, while stopping either; quick-
             // stopped drives keep their last target.
             if !self.quick && self.active_guard.as_mut().is_some_and(|g| g.check(&motion.position()).is_err()) {
