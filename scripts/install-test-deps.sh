@@ -88,8 +88,11 @@ extra_test_deps() {
     # (tests/cli/cli_man.rs).
     need_pkg man-db groff-base
     # librsvg2-bin (rsvg-convert): the pictures are rendered to PNG in their tests
-    # (tests/svg_common/) and `-o FILE.png` goes through it.
+    # (tests/cli/svg_common.rs) and `-o FILE.png` goes through it.
     need_pkg librsvg2-bin
+    # systemd (systemd-sysusers, systemd-tmpfiles, systemd-analyze): the deploy files are
+    # installed into a scratch root and verified (tests/cli/deploy.rs).
+    need_pkg systemd
     install_missing
     if [ "$WANT_PYTHON" = 1 ]; then
         python_venv
