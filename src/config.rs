@@ -412,6 +412,13 @@ pub struct AxisConfig {
     /// steps by more than one cycle's travel (0 … 50).
     #[serde(default)]
     pub late_sync_extrapolation: u32,
+    /// Friction feed-forward (CANopen CSP feed axes): the master sends the friction the axis
+    /// needs in the drive's torque offset 0x60B2 with each set-point, learnt from its torque
+    /// actual 0x6077 while it moves (`drives::friction`), so that the slide does not stick
+    /// where it starts or reverses. A drive that cannot map 0x60B2 into RPDO1 runs without
+    /// (said at start-up). Default off.
+    #[serde(default)]
+    pub friction_compensation: bool,
     /// The drive's response as `cncgw identify` measured it (commissioning); `config check`
     /// warns when the following-error window is below what it lags at maximum speed.
     #[serde(default)]

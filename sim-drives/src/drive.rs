@@ -75,7 +75,9 @@ pub mod fault_sub {
 }
 const POSITION_DEMAND: u16 = 0x6062;
 const POSITION_WINDOW: u16 = 0x6067;
-const TORQUE_ACTUAL: u16 = 0x6077;
+const TORQUE_ACTUAL: u16 = ix::TORQUE_ACTUAL;
+/// CSP's torque offset: a controller's friction or gravity feed-forward.
+const TORQUE_OFFSET: u16 = ix::TORQUE_OFFSET;
 const PROFILE_DECEL: u16 = 0x6084;
 const QUICK_STOP_DECEL: u16 = 0x6085;
 const FAULT_REACTION: u16 = ix::FAULT_REACTION_OPTION;
@@ -214,8 +216,12 @@ pub struct SimDrive {
     encoder_frozen: Option<i64>,
     /// TPDOs waiting for their injected delay: (due, frame).
     delayed: VecDeque<(u64, CanFrame)>,
-    /// CSP set-points waiting in the drive (`Extra::transport_delay_cycles`): (raw, fresh).
-    transport: VecDeque<(i32, bool)>,
+    /// CSP set-points waiting in the drive (`Extra::transport_delay_cycles`): (raw, fresh,
+    /// torque offset 0x60B2).
+    transport: VecDeque<(i32, bool, i16)>,
+    /// The torque offset (0x60B2, per mille of the rated torque) of the set-point being
+    /// followed: it acts with its target, after the same transport delay.
+    torque_offset: i16,
     /// PDO-loss draws (xorshift64; seeded by the node id, so runs are reproducible).
     rng: u64,
     /// Objects read every control tick, copied out of the dictionary after each write.
@@ -364,6 +370,7 @@ fn build_od(c: &DriveConfig) -> Od {
     od.add(POSITION_WINDOW, 0, U32, Rw, false, 10);
     od.add(ix::VELOCITY_ACTUAL, 0, I32, Ro, true, 0);
     od.add(TORQUE_ACTUAL, 0, I16, Ro, true, 0);
+    od.add(TORQUE_OFFSET, 0, I16, Rw, true, 0);
     od.add(ix::TARGET_POSITION, 0, I32, Rw, true, 0);
     od.add(CSP_EXTRAPOLATE, 0, U8, Rw, false, CSP_EXTRAPOLATE_DEFAULT);
     if sh.optional_402_objects {
@@ -493,6 +500,7 @@ impl SimDrive {
             encoder_frozen: None,
             delayed: VecDeque::new(),
             transport: VecDeque::new(),
+            torque_offset: 0,
             rng: 0x9E37_79B9_7F4A_7C15 ^ cfg.node as u64,
             hot: Hot::default(),
             prof: profile::Prof::default(),
@@ -1470,6 +1478,7 @@ impl SimDrive {
         self.target_ref = None;
         self.ferr_since = None;
         self.transport.clear();
+        self.torque_offset = 0;
         self.prof.cancel();
     }
 
@@ -1731,14 +1740,18 @@ impl SimDrive {
     /// (a drive that buffers its set-points), else the latest.
     fn delayed_target(&mut self, raw: i32, fresh: bool, sync: bool) -> (i32, bool) {
         let n = self.cfg.physics.extra.transport_delay_cycles as usize;
+        let toff = self.od.int(TORQUE_OFFSET, 0) as i16;
         if n == 0 || !sync {
+            self.torque_offset = toff;
             return (raw, fresh);
         }
-        self.transport.push_back((raw, fresh));
+        self.transport.push_back((raw, fresh, toff));
         while self.transport.len() > n + 1 {
             self.transport.pop_front();
         }
-        self.transport.front().copied().unwrap_or((raw, fresh))
+        let (raw, fresh, toff) = self.transport.front().copied().unwrap_or((raw, fresh, toff));
+        self.torque_offset = toff;
+        (raw, fresh)
     }
 
     /// One control tick at `now` (every `step_us`).
@@ -1803,6 +1816,10 @@ impl SimDrive {
             }
             Command::Position { demand: self.demand, vff: self.vff }
         };
+        // The torque offset acts only while the drive follows the master's set-points.
+        let following = self.stop.is_none() && matches!(self.mode_display(), mode::CYCLIC_SYNC_POSITION | mode::INTERPOLATED_POSITION);
+        let rated = self.servo.physics().torque_limit * RATED_OF_PEAK;
+        self.servo.torque_offset = if following { self.torque_offset as f64 * 1e-3 * rated } else { 0.0 };
         self.servo.control(cmd, dt);
 
         // Motor overload (I²t): a jammed or overloaded axis trips like a real amplifier.

@@ -44,6 +44,9 @@ pub struct Servo {
     pub load_torque: f64,
     /// Extra dry friction (fault injection: a jammed slide, a crashed tool), N·m.
     pub jam_friction: f64,
+    /// Torque offset the master sends with its position set-points (CSP's 0x60B2), N·m:
+    /// added to what the velocity loop asks for, in position control only.
+    pub torque_offset: f64,
     /// Position quantum of a coarse encoder, counts (1 = the position unit's own count).
     quantum: f64,
     /// Behind a compliance (`Extra::load_stiffness`): the load's position (counts, motor
@@ -72,6 +75,7 @@ impl Servo {
             omega_est: 0.0,
             load_torque: 0.0,
             jam_friction: 0.0,
+            torque_offset: 0.0,
         }
     }
 
@@ -159,18 +163,19 @@ impl Servo {
             }
             Command::Velocity { v } => v,
         };
+        let toff = if matches!(cmd, Command::Position { .. }) { self.torque_offset } else { 0.0 };
         let vref = (vref_counts * self.rad_per_count).clamp(-vmax, vmax);
         self.vref = vref;
         let err = vref - self.omega_est;
         let ki = self.p.vel_kp / (self.p.vel_ti_ms * 1e-3);
         let lim = self.p.torque_limit;
-        let unsat = self.p.vel_kp * err + self.integ;
+        let unsat = self.p.vel_kp * err + self.integ + toff;
         // Conditional integration (anti-windup): stop integrating into the limit.
         let saturating = (unsat >= lim && err > 0.0) || (unsat <= -lim && err < 0.0);
         if !saturating {
             self.integ = (self.integ + ki * err * dt).clamp(-lim, lim);
         }
-        self.torque_cmd = (self.p.vel_kp * err + self.integ).clamp(-lim, lim);
+        self.torque_cmd = (self.p.vel_kp * err + self.integ + toff).clamp(-lim, lim);
     }
 
     /// Integrate the mechanics over `dt` seconds with the held torque.
@@ -380,6 +385,37 @@ mod tests {
                 assert!(worst <= 1.0, "{kind:?} target {target}: error up to {worst} counts");
             }
         }
+    }
+
+    /// Cycles (2 ms) before a linear axis at rest leaves its count when its set-point starts
+    /// to creep (0.25 counts per cycle) with four times the default dry friction.
+    fn breakaway_cycles(offset: f64) -> usize {
+        let mut p = Physics::default_for(DriveKind::Linear);
+        p.coulomb_friction *= 4.0;
+        let tc = p.coulomb_friction;
+        let mut s = Servo::new(p, 100_000);
+        s.torque_offset = offset * tc;
+        let dt = 50e-6;
+        for cycle in 0..200 {
+            for _ in 0..40 {
+                let demand = 0.25 * (cycle as f64 + 1.0);
+                s.control(Command::Position { demand, vff: 125.0 }, dt);
+                s.integrate(dt);
+            }
+            if s.position_exact() > 0.5 {
+                return cycle;
+            }
+        }
+        200
+    }
+
+    #[test]
+    fn a_torque_offset_the_size_of_the_dry_friction_breaks_the_stiction_at_once() {
+        // CSP's 0x60B2 (the master's friction feed-forward): the velocity loop's integrator no
+        // longer has to wind up through the friction before the slide moves.
+        let (without, with) = (breakaway_cycles(0.0), breakaway_cycles(1.0));
+        eprintln!("breakaway after {with} cycles with the offset, {without} without");
+        assert!(with + 3 <= without, "breakaway after {with} cycles with the offset, {without} without");
     }
 
     #[test]

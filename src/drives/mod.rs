@@ -4,6 +4,7 @@
 
 pub mod access;
 pub mod canopen;
+pub mod friction;
 pub mod modbus;
 pub mod multi;
 pub mod scale_watch;

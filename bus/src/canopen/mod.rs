@@ -81,6 +81,10 @@ pub mod od {
     pub const FOLLOWING_ERROR_TIMEOUT: u16 = 0x6066;
     pub const VELOCITY_ACTUAL: u16 = 0x606C;
     pub const TARGET_POSITION: u16 = 0x607A;
+    /// Torque actual value, per mille of the rated torque (0x6076).
+    pub const TORQUE_ACTUAL: u16 = 0x6077;
+    /// CSP's torque offset, per mille of the rated torque: added to the drive's torque command.
+    pub const TORQUE_OFFSET: u16 = 0x60B2;
     pub const SOFTWARE_LIMIT: u16 = 0x607D;
     /// Polarity: bit 7 inverts positions (demand and actual), bit 6 velocities.
     pub const POLARITY: u16 = 0x607E;

@@ -121,6 +121,9 @@ pub struct NodeSpec {
     pub ip: bool,
     /// The start-up list (`[[axes.NAME.sdo]]`).
     pub sdo: Vec<StartupSdo>,
+    /// Friction feed-forward through 0x60B2 (`axes.NAME.friction_compensation`; CSP feed
+    /// axes only): RPDO1 carries the torque offset and 0x6077 is read every cycle.
+    pub friction: bool,
 }
 
 impl NodeSpec {
@@ -146,6 +149,7 @@ impl NodeSpec {
                 polarity: a.polarity,
                 ip: a.mode == CyclicMode::Ip,
                 sdo: a.sdo.clone(),
+                friction: a.friction_compensation && a.kind != AxisKind::Spindle && a.mode != CyclicMode::Ip,
             })
             .collect()
     }
@@ -249,6 +253,11 @@ struct Node {
     tpdo_at: fixed_pdo::TpdoLayout,
     /// How start-up set the drive up, for the log line and `cncgw scan`-like reports.
     chosen: Chosen,
+    /// Friction feed-forward (`NodeSpec::friction`, on once RPDO1 carries 0x60B2), the
+    /// set-point as asked (counts, unrounded) and the torque offset sent with it (‰).
+    friction: Option<crate::drives::friction::FrictionComp>,
+    target_exact: f64,
+    torque_offset: i16,
     /// Why the drive's position can no longer be trusted since start-up (a boot-up message
     /// the master did not cause, an encoder EMCY): its reference is lost (`reference`).
     position_lost: Option<String>,
@@ -297,6 +306,9 @@ impl Node {
             rpdo_at: fixed_pdo::RpdoLayout::default(),
             tpdo_at: fixed_pdo::TpdoLayout::default(),
             chosen: Chosen::default(),
+            friction: None,
+            target_exact: 0.0,
+            torque_offset: 0,
         }
     }
 }
@@ -380,6 +392,12 @@ impl<B: CanBus> CanOpenMaster<B> {
 
     fn frames(&self) -> Vec<usize> {
         let mut v = cyclic_frames(self.nodes.len());
+        // Friction feed-forward: RPDO1 carries 0x60B2 too, and the torque is read every cycle
+        // (an SDO request and its answer, 8 bytes each). `cyclic_frames` is RPDO, TPDO per node.
+        for (i, _) in self.nodes.iter().enumerate().filter(|(_, n)| n.spec.friction) {
+            v[2 * i] = RPDO1_LEN + 2;
+            v.extend([8, 8]);
+        }
         v.extend(self.io.iter().flat_map(|m| m.pdo_lens()));
         v
     }
@@ -475,6 +493,7 @@ impl<B: CanBus> CanOpenMaster<B> {
             polarity: Polarity::Normal,
             ip: false,
             sdo: Vec::new(),
+            friction: false,
         };
         let timeout = self.boot_timeout_ms / 4;
         self.nodes.push(Node::new(spec, timeout.max(1)));
@@ -703,6 +722,9 @@ impl<B: CanBus> CanOpenMaster<B> {
             }
             n.raw_pos = raw;
             n.have_fb = true;
+            if let Some(f) = n.friction.as_mut() {
+                f.observe_actual(n.unwrapped);
+            }
             n.fb_ns = now_ns;
             n.syncs_unanswered = 0;
         }
@@ -1004,22 +1026,56 @@ impl<B: CanBus> CanOpenMaster<B> {
     fn map_cyclic_pdos(&mut self, clock: &mut dyn Clock, i: usize) -> Result<(), Alarm> {
         let spec = self.nodes[i].spec.clone();
         let (tix, tsub) = spec.target_object();
-        let rpdo = [MapEntry::new(od::CONTROLWORD, 0, 16), MapEntry::new(tix, tsub, 32)];
+        let rpdo = [MapEntry::new(od::CONTROLWORD, 0, 16), MapEntry::new(tix, tsub, 32), MapEntry::new(od::TORQUE_OFFSET, 0, 16)];
         let tpdo = [MapEntry::new(od::STATUSWORD, 0, 16), MapEntry::new(od::POSITION_ACTUAL, 0, 32), MapEntry::new(od::MODES_DISPLAY, 0, 8)];
         self.nodes[i].rpdo_at = fixed_pdo::RpdoLayout::default();
         self.nodes[i].tpdo_at = fixed_pdo::TpdoLayout::default();
-        let rpdo_text = match self.try_map_pdo(clock, i, od::RPDO_COMM, od::RPDO_MAP, spec.rpdo_cob, spec.rpdo_tx, &rpdo) {
+        self.nodes[i].friction = None;
+        if let Some(text) = self.map_friction_rpdo(clock, i, &rpdo) {
+            return self.map_tpdo1(clock, i, &tpdo, text);
+        }
+        let rpdo = &rpdo[..2];
+        let rpdo_text = match self.try_map_pdo(clock, i, od::RPDO_COMM, od::RPDO_MAP, spec.rpdo_cob, spec.rpdo_tx, rpdo) {
             Ok(()) => format!("remapped RPDO1 0x{:03X} = controlword + 0x{tix:04X}:{tsub:02X}", spec.rpdo_cob),
             Err(e) if Self::fixed_fallback(od::RPDO_MAP, &e) => self.use_fixed_rpdo(clock, i, &e.3)?,
             Err((ix, sub, data, e)) => return Err(self.write_alarm(i, ix, sub, &data, &e)),
         };
+        self.map_tpdo1(clock, i, &tpdo, rpdo_text)
+    }
+
+    /// With friction compensation asked for: RPDO1 = controlword + target + torque offset.
+    /// `None` when not asked for, or the drive refused it (said, and mapped without).
+    fn map_friction_rpdo(&mut self, clock: &mut dyn Clock, i: usize, rpdo: &[MapEntry; 3]) -> Option<String> {
+        let spec = &self.nodes[i].spec;
+        if !spec.friction {
+            return None;
+        }
+        let (node, cob, tx) = (spec.node, spec.rpdo_cob, spec.rpdo_tx);
+        match self.try_map_pdo(clock, i, od::RPDO_COMM, od::RPDO_MAP, cob, tx, rpdo) {
+            Ok(()) => {
+                let n = &mut self.nodes[i];
+                n.rpdo_at = fixed_pdo::RpdoLayout::with_torque_offset();
+                n.friction = Some(Default::default());
+                Some(format!("remapped RPDO1 0x{cob:03X} = controlword + target + torque offset 0x60B2 (friction feed-forward)"))
+            }
+            Err(e) => {
+                tracing::warn!(node, "friction compensation off: the drive does not take the torque offset 0x60B2 in RPDO1 ({})", e.3);
+                None
+            }
+        }
+    }
+
+    /// TPDO1 = statusword + position actual + mode display (without it where the drive
+    /// cannot map 0x6061), or the drive's fixed one; then the start-up line.
+    fn map_tpdo1(&mut self, clock: &mut dyn Clock, i: usize, tpdo: &[MapEntry; 3], rpdo_text: String) -> Result<(), Alarm> {
+        let spec = self.nodes[i].spec.clone();
         let refused_third = |e: &(u16, u8, [u8; 4], SdoError)| {
             e.0 == od::TPDO_MAP
                 && matches!(e.1, 0 | 3)
                 && matches!(e.3, SdoError::Abort { code } if matches!(code, abort::NOT_MAPPABLE | abort::PDO_TOO_LONG | abort::PARAM_INCOMPATIBLE | abort::INVALID_VALUE | abort::NO_SUBINDEX))
         };
         let (tc, tt) = (spec.tpdo_cob, spec.tpdo_tx);
-        let tpdo_text = match self.try_map_pdo(clock, i, od::TPDO_COMM, od::TPDO_MAP, tc, tt, &tpdo) {
+        let tpdo_text = match self.try_map_pdo(clock, i, od::TPDO_COMM, od::TPDO_MAP, tc, tt, tpdo) {
             Ok(()) => self.remapped_tpdo(i, true),
             Err(e) if refused_third(&e) => match self.try_map_pdo(clock, i, od::TPDO_COMM, od::TPDO_MAP, tc, tt, &tpdo[..2]) {
                 Ok(()) => {
@@ -1867,9 +1923,11 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
 
     fn set_target(&mut self, axis: usize, pos: f64) {
         let n = &mut self.nodes[axis];
-        let c = (pos * n.spec.counts_per_unit).round();
+        let exact = pos * n.spec.counts_per_unit;
+        let c = exact.round();
         if c.is_finite() {
             n.target = c as i64;
+            n.target_exact = exact;
         }
     }
 
@@ -1890,6 +1948,15 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
                 (false, false) => self.target_raw(i).to_le_bytes(),
             };
             let c = self.cyclic_controlword(i);
+            let n = &mut self.nodes[i];
+            n.torque_offset = match n.friction.as_mut() {
+                Some(f) if !hold && !n.csv => f.offset(n.target_exact),
+                Some(f) => {
+                    f.reset_motion();
+                    0
+                }
+                None => 0,
+            };
             let n = &self.nodes[i];
             let mut d = [0u8; 8];
             for &(slot, off) in &n.rpdo_at.slots {
@@ -1897,6 +1964,7 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
                     fixed_pdo::Slot::Controlword => put_u16(&mut d, off, c),
                     fixed_pdo::Slot::Target => d[off..off + 4].copy_from_slice(&t),
                     fixed_pdo::Slot::Mode => d[off] = n.mode.want as u8,
+                    fixed_pdo::Slot::TorqueOffset => put_u16(&mut d, off, n.torque_offset as u16),
                     fixed_pdo::Slot::Zero => {}
                 }
             }

@@ -30,6 +30,8 @@ pub(super) enum Slot {
     Mode,
     /// Velocity / torque offset (0x60B1 / 0x60B2): none, 0.
     Zero,
+    /// The torque offset 0x60B2 of the friction feed-forward (`friction`), per mille.
+    TorqueOffset,
 }
 
 /// RPDO1 as the drive maps it: each slot's offset in bytes, and the length.
@@ -37,6 +39,13 @@ pub(super) enum Slot {
 pub(super) struct RpdoLayout {
     pub len: usize,
     pub slots: Vec<(Slot, usize)>,
+}
+
+impl RpdoLayout {
+    /// The master's mapping with friction feed-forward: controlword, target, torque offset.
+    pub fn with_torque_offset() -> Self {
+        RpdoLayout { len: super::RPDO1_LEN + 2, slots: vec![(Slot::Controlword, 0), (Slot::Target, 2), (Slot::TorqueOffset, 6)] }
+    }
 }
 
 impl Default for RpdoLayout {

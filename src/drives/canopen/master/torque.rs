@@ -16,7 +16,7 @@ use cncgw_bus::CanBus;
 pub(super) const POLL_EVERY_NS: u64 = 100_000_000;
 
 /// Torque actual.
-pub const TORQUE_ACTUAL: u16 = 0x6077;
+pub const TORQUE_ACTUAL: u16 = cncgw_bus::canopen::od::TORQUE_ACTUAL;
 
 /// The poll of one drive.
 #[derive(Clone, Copy, Debug, Default)]
@@ -31,14 +31,16 @@ pub(super) struct TorquePoll {
 }
 
 impl<B: CanBus> CanOpenMaster<B> {
-    /// In `receive`: read 0x6077 from spindle drives while running. Allocation-free.
+    /// In `receive`: read 0x6077 from spindle drives while running, and every cycle from a
+    /// feed axis with friction feed-forward (its fit learns from it). Allocation-free.
     pub(super) fn poll_torque(&mut self, now_ns: u64) -> Result<(), Alarm> {
         if !self.running || self.diag.is_some() {
             return Ok(());
         }
         for i in 0..self.nodes.len() {
             let n = &mut self.nodes[i];
-            if !n.spec.spindle || n.torque.absent || n.mode.polling {
+            let learn = n.friction.is_some();
+            if !(n.spec.spindle || learn) || n.torque.absent || n.mode.polling {
                 continue;
             }
             if n.torque.polling {
@@ -46,8 +48,21 @@ impl<B: CanBus> CanOpenMaster<B> {
                 if let Some(r) = n.sdo.take_expedited() {
                     n.torque.polling = false;
                     match r {
-                        Ok(v) => n.torque.value = Some(v as u16 as i16),
-                        Err(super::SdoError::Abort { .. }) => n.torque.absent = true,
+                        Ok(v) => {
+                            n.torque.value = Some(v as u16 as i16);
+                            if let Some(f) = n.friction.as_mut() {
+                                f.torque_sample(v as u16 as i16);
+                            }
+                        }
+                        Err(super::SdoError::Abort { .. }) => {
+                            n.torque.absent = true;
+                            if learn {
+                                tracing::warn!(
+                                    node = n.spec.node,
+                                    "the drive has no torque actual 0x6077: friction feed-forward cannot learn and stays 0"
+                                );
+                            }
+                        }
                         Err(_) => {}
                     }
                 }
@@ -56,7 +71,7 @@ impl<B: CanBus> CanOpenMaster<B> {
                 }
             } else if now_ns >= n.torque.next_ns && !n.sdo.busy() {
                 n.torque.polling = true;
-                n.torque.next_ns = now_ns + POLL_EVERY_NS;
+                n.torque.next_ns = if learn { now_ns } else { now_ns + POLL_EVERY_NS };
                 let f = n.sdo.start_upload_small(TORQUE_ACTUAL, 0, now_ns);
                 self.send(&f)?;
             }
