@@ -77,6 +77,19 @@ pub fn cyclic_frames_io(drives: usize, modules: &[(u8, u8, u8)]) -> Vec<usize> {
     v
 }
 
+/// Friction feed-forward (`NodeSpec::friction`, per drive in order) in a frame list that
+/// starts with [`cyclic_frames`]' RPDO, TPDO per drive: RPDO1 carries 0x60B2 too, and the
+/// torque is read all the time (an SDO request and its answer, 8 bytes each, one every other
+/// cycle: a new read starts the cycle after an answer).
+pub fn add_friction_frames(frames: &mut Vec<usize>, friction: impl Iterator<Item = bool>) {
+    for (i, on) in friction.enumerate() {
+        if on {
+            frames[2 * i] = RPDO1_LEN + 2;
+            frames.push(8);
+        }
+    }
+}
+
 fn le_u32(d: &[u8]) -> u32 {
     let mut b = [0u8; 4];
     let n = d.len().min(4);
@@ -392,12 +405,7 @@ impl<B: CanBus> CanOpenMaster<B> {
 
     fn frames(&self) -> Vec<usize> {
         let mut v = cyclic_frames(self.nodes.len());
-        // Friction feed-forward: RPDO1 carries 0x60B2 too, and the torque is read every cycle
-        // (an SDO request and its answer, 8 bytes each). `cyclic_frames` is RPDO, TPDO per node.
-        for (i, _) in self.nodes.iter().enumerate().filter(|(_, n)| n.spec.friction) {
-            v[2 * i] = RPDO1_LEN + 2;
-            v.extend([8, 8]);
-        }
+        add_friction_frames(&mut v, self.nodes.iter().map(|n| n.spec.friction));
         v.extend(self.io.iter().flat_map(|m| m.pdo_lens()));
         v
     }
@@ -408,10 +416,12 @@ impl<B: CanBus> CanOpenMaster<B> {
         if load > 0.8 {
             let fits = cncgw_bus::busload::shortest_cycle_s(&self.frames(), bitrate, 0.8);
             let io = if self.io.is_empty() { String::new() } else { format!(" and {} I/O modules", self.io.len()) };
+            let ff = self.nodes.iter().filter(|n| n.spec.friction).count();
+            let ff = if ff == 0 { String::new() } else { format!(", or friction_compensation off on {ff} axes (each reads its torque every cycle)") };
             return Err(Alarm::new(
                 crate::alarm::BUS_LOAD,
                 format!(
-                    "bus load {:.0} % at {} ms cycle and {} bit/s for {} drives{io} is over 80 %; use machine.cycle_ms = {} or more (or a higher bitrate)",
+                    "bus load {:.0} % at {} ms cycle and {} bit/s for {} drives{io} is over 80 %; use machine.cycle_ms = {} or more (or a higher bitrate{ff})",
                     load * 100.0,
                     self.cycle_ms,
                     bitrate,
@@ -732,6 +742,7 @@ impl<B: CanBus> CanOpenMaster<B> {
 
     /// One SDO transfer with node `i`, waiting with `clock`. Retries once on timeout.
     fn sdo(&mut self, clock: &mut dyn Clock, i: usize, req: Sdo<'_>) -> Result<Vec<u8>, SdoError> {
+        self.settle_background_sdo(clock, i);
         let mut tries = 0;
         loop {
             tries += 1;
@@ -746,23 +757,7 @@ impl<B: CanBus> CanOpenMaster<B> {
                 return Err(SdoError::Protocol("cannot send on the bus"));
             }
             let r = loop {
-                let t = clock.now_ns() + POLL_NS;
-                clock.wait_until(t);
-                let now = clock.now_ns();
-                while let Ok(Some(fr)) = self.bus.try_recv() {
-                    let (func, node) = cob::split(fr.cob_id());
-                    if func == cob::SDO_TX && node == self.nodes[i].spec.node {
-                        for out in self.nodes[i].sdo.on_frame(&fr, now) {
-                            let _ = self.bus.send(&out);
-                        }
-                    } else {
-                        self.on_background(&fr, now);
-                    }
-                }
-                if let Some(out) = self.nodes[i].sdo.poll(now) {
-                    let _ = self.bus.send(&out);
-                }
-                let _ = self.tick_life(now);
+                self.pump_sdo(clock, i);
                 if let Some(r) = self.nodes[i].sdo.take_result() {
                     break r;
                 }
@@ -772,6 +767,41 @@ impl<B: CanBus> CanOpenMaster<B> {
                 r => return r,
             }
         }
+    }
+
+    /// Wait one poll step and serve node `i`'s SDO channel (the rest of the bus in the
+    /// background), for a blocking transfer.
+    fn pump_sdo(&mut self, clock: &mut dyn Clock, i: usize) {
+        let t = clock.now_ns() + POLL_NS;
+        clock.wait_until(t);
+        let now = clock.now_ns();
+        while let Ok(Some(fr)) = self.bus.try_recv() {
+            let (func, node) = cob::split(fr.cob_id());
+            if func == cob::SDO_TX && node == self.nodes[i].spec.node {
+                for out in self.nodes[i].sdo.on_frame(&fr, now) {
+                    let _ = self.bus.send(&out);
+                }
+            } else {
+                self.on_background(&fr, now);
+            }
+        }
+        if let Some(out) = self.nodes[i].sdo.poll(now) {
+            let _ = self.bus.send(&out);
+        }
+        let _ = self.tick_life(now);
+    }
+
+    /// A background read still in flight on node `i`'s SDO channel (the mode or torque poll
+    /// of the cycle) is let finish first and its answer dropped: a transfer started over it
+    /// would take that answer for its own ("unexpected SDO response").
+    fn settle_background_sdo(&mut self, clock: &mut dyn Clock, i: usize) {
+        while self.nodes[i].sdo.busy() {
+            self.pump_sdo(clock, i);
+        }
+        let n = &mut self.nodes[i];
+        let _ = n.sdo.take_expedited();
+        n.torque.polling = false;
+        n.mode.polling = false;
     }
 
     fn read_u32(&mut self, clock: &mut dyn Clock, i: usize, ix: u16, sub: u8) -> Result<u32, SdoError> {
@@ -1051,12 +1081,13 @@ impl<B: CanBus> CanOpenMaster<B> {
             return None;
         }
         let (node, cob, tx) = (spec.node, spec.rpdo_cob, spec.rpdo_tx);
+        let (tix, tsub) = spec.target_object();
         match self.try_map_pdo(clock, i, od::RPDO_COMM, od::RPDO_MAP, cob, tx, rpdo) {
             Ok(()) => {
                 let n = &mut self.nodes[i];
                 n.rpdo_at = fixed_pdo::RpdoLayout::with_torque_offset();
                 n.friction = Some(Default::default());
-                Some(format!("remapped RPDO1 0x{cob:03X} = controlword + target + torque offset 0x60B2 (friction feed-forward)"))
+                Some(format!("remapped RPDO1 0x{cob:03X} = controlword + 0x{tix:04X}:{tsub:02X} + torque offset 0x60B2 (friction feed-forward)"))
             }
             Err(e) => {
                 tracing::warn!(node, "friction compensation off: the drive does not take the torque offset 0x60B2 in RPDO1 ({})", e.3);
@@ -1964,6 +1995,7 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
                     fixed_pdo::Slot::Controlword => put_u16(&mut d, off, c),
                     fixed_pdo::Slot::Target => d[off..off + 4].copy_from_slice(&t),
                     fixed_pdo::Slot::Mode => d[off] = n.mode.want as u8,
+                    // 0 unless friction feed-forward runs (`torque_offset` is set only then).
                     fixed_pdo::Slot::TorqueOffset => put_u16(&mut d, off, n.torque_offset as u16),
                     fixed_pdo::Slot::Zero => {}
                 }
@@ -2154,24 +2186,35 @@ mod tests {
         let bus = cncgw_bus::transport::inproc::InprocBus::new();
         let mut cfg = MachineConfig::embedded();
         let m = CanOpenMaster::new(bus.endpoint(), &cfg);
-        // 3 × (6-byte RPDO + 7-byte TPDO) + SYNC = 775 bits every 2 ms.
-        assert!((m.bus_load(1_000_000) - 0.3875).abs() < 1e-3);
+        // 3 × (6-byte RPDO + 7-byte TPDO) + SYNC = 775 bits every 2 ms; X and Z with friction
+        // feed-forward: 8-byte RPDOs (+20 bits each) and a torque read (135 bits each).
+        assert!((m.bus_load(1_000_000) - 1085.0 / 2000.0).abs() < 1e-6, "{}", m.bus_load(1_000_000));
         cfg.machine.cycle_ms = 0.5;
         let m = CanOpenMaster::new(bus.endpoint(), &cfg);
         let e = m.check_bus_load(1_000_000).unwrap_err();
         assert_eq!(e.number, crate::alarm::BUS_LOAD);
-        assert!(e.message.contains("machine.cycle_ms = 1 or more"), "{}", e.message);
+        assert!(e.message.contains("machine.cycle_ms = 1.5 or more") && e.message.contains("friction_compensation off on 2 axes"), "{}", e.message);
+        for a in cfg.axes.values_mut() {
+            a.friction_compensation = false;
+        }
+        let m = CanOpenMaster::new(bus.endpoint(), &cfg);
+        assert!(m.check_bus_load(1_000_000).unwrap_err().message.contains("machine.cycle_ms = 1 or more"));
     }
 
     /// A CiA 401 module's frames count: 16 inputs and 8 outputs add a 2-byte TPDO (75 bits)
-    /// and a 1-byte RPDO (65 bits) per cycle to the drives' 775.
+    /// and a 1-byte RPDO (65 bits) per cycle to the drives' 1085 (775 without friction
+    /// feed-forward).
     #[test]
     fn bus_load_counts_the_io_modules() {
         let bus = cncgw_bus::transport::inproc::InprocBus::new();
         let text = format!("{}\n[io.devices.io1]\ncanopen_node = 10\ninputs = 16\noutputs = 8\n", crate::config::EMBEDDED_LATHE);
         let mut cfg = MachineConfig::from_toml("io.toml", &text).unwrap();
         let m = CanOpenMaster::new(bus.endpoint(), &cfg);
-        assert!((m.bus_load(1_000_000) - (775.0 + 75.0 + 65.0) / 2000.0).abs() < 1e-6, "{}", m.bus_load(1_000_000));
+        assert!((m.bus_load(1_000_000) - (1085.0 + 75.0 + 65.0) / 2000.0).abs() < 1e-6, "{}", m.bus_load(1_000_000));
+        for a in cfg.axes.values_mut() {
+            a.friction_compensation = false;
+        }
+        let m = CanOpenMaster::new(bus.endpoint(), &cfg);
         assert_eq!(cyclic_frames_io(3, &cfg.io.resolve().unwrap().canopen_modules()), m.frames());
         cfg.machine.cycle_ms = 1.0;
         let m = CanOpenMaster::new(bus.endpoint(), &cfg);

@@ -28,7 +28,7 @@ pub(super) enum Slot {
     Target,
     /// 0x6060 in a fixed RPDO: the mode the master asks for, every cycle.
     Mode,
-    /// Velocity / torque offset (0x60B1 / 0x60B2): none, 0.
+    /// Velocity offset (0x60B1): none, 0.
     Zero,
     /// The torque offset 0x60B2 of the friction feed-forward (`friction`), per mille.
     TorqueOffset,
@@ -97,7 +97,7 @@ pub(super) fn rpdo_layout(entries: &[MapEntry], target: (u16, u8)) -> Result<Rpd
             (ix, sub) if (ix, sub) == target => Some((Slot::Target, 32)),
             (od::MODES_OF_OPERATION, 0) => Some((Slot::Mode, 8)),
             (0x60B1, 0) => Some((Slot::Zero, 32)),
-            (0x60B2, 0) => Some((Slot::Zero, 16)),
+            (od::TORQUE_OFFSET, 0) => Some((Slot::TorqueOffset, 16)),
             _ => None,
         };
         match want_bits {
@@ -197,7 +197,12 @@ impl<B: CanBus> CanOpenMaster<B> {
         })?;
         self.revalidate(clock, i, od::RPDO_COMM, spec.rpdo_cob, spec.rpdo_tx)?;
         tracing::warn!(node = spec.node, axis = %spec.axis, "RPDO1 cannot be remapped ({why}): using the drive's fixed mapping [{}]", describe(&entries));
-        self.nodes[i].rpdo_at = lay;
+        // A fixed 0x60B2 carries the friction feed-forward where it is asked for (else 0).
+        let n = &mut self.nodes[i];
+        if spec.friction && lay.slots.iter().any(|&(s, _)| s == Slot::TorqueOffset) {
+            n.friction = Some(Default::default());
+        }
+        n.rpdo_at = lay;
         Ok(format!("fixed RPDO1 0x{:03X} = [{}] (remapping refused: {why})", spec.rpdo_cob, describe(&entries)))
     }
 
