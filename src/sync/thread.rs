@@ -12,6 +12,9 @@
 //! early, at `θ0 − Δθ` with `Δθ = ω·v/(2a)`, and ramps at `a`: a constant-acceleration ramp
 //! from rest meets the synchronous line `lead_path·(θ − θ0)/360` exactly when it reaches `v`. The
 //! lead is short only within the ramp (the programmer's δ1 zone), and the phase is exact.
+//! With [`ThreadSync::arm_smooth`] the ramp's acceleration rises and falls over `tj` (the
+//! constant-acceleration ramp averaged over `tj`): a symmetric profile meets the line at its
+//! centroid, so it starts `ω·tj/2` earlier still and the line is the same.
 //!
 //! G34 variable lead: the lead grows by `k` per revolution, so after `n` revolutions from θ0
 //! the path position is `L0·n + k·n²/2` (the sum of the leads, in closed form). The quadratic
