@@ -12,6 +12,9 @@
 //! early, at `θ0 − Δθ` with `Δθ = ω·v/(2a)`, and ramps at `a`: a constant-acceleration ramp
 //! from rest meets the synchronous line `lead_path·(θ − θ0)/360` exactly when it reaches `v`. The
 //! lead is short only within the ramp (the programmer's δ1 zone), and the phase is exact.
+//! With [`ThreadSync::arm_smooth`] the ramp's acceleration rises and falls over `tj` (the
+//! constant-acceleration ramp averaged over `tj`): a symmetric profile meets the line at its
+//! centroid, so it starts `ω·tj/2` earlier still and the line is the same.
 //!
 //! G34 variable lead: the lead grows by `k` per revolution, so after `n` revolutions from θ0
 //! the path position is `L0·n + k·n²/2` (the sum of the leads, in closed form). The quadratic
@@ -52,6 +55,9 @@ pub struct ThreadSync {
     n_start: f64,
     /// This segment was armed (has the lead-in ramp); false for a continuation.
     ramp: bool,
+    /// Time over which the lead-in's acceleration rises and falls (moving average of the
+    /// constant-acceleration ramp), s; 0 = a step in acceleration.
+    tj: f64,
 }
 
 impl ThreadSync {
@@ -61,6 +67,14 @@ impl ThreadSync {
     /// `a` the lead-in acceleration (mm/s²).
     /// `None` when the spindle is (nearly) stopped or an argument is not usable.
     pub fn arm(theta: f64, rpm: f64, start_angle: f64, lead_path: f64, k: f64, a: f64) -> Option<ThreadSync> {
+        ThreadSync::arm_smooth(theta, rpm, start_angle, lead_path, k, a, 0.0)
+    }
+
+    /// `arm` with a lead-in whose acceleration rises and falls over `tj` seconds (the
+    /// constant-acceleration ramp averaged over `tj`; 0 = a step). A step in acceleration
+    /// where the ramp meets the synchronous line sets a compliant axis ringing and its lag
+    /// settling; the phase is measured, and learnt from, while it does.
+    pub fn arm_smooth(theta: f64, rpm: f64, start_angle: f64, lead_path: f64, k: f64, a: f64, tj: f64) -> Option<ThreadSync> {
         if !(theta.is_finite() && rpm.is_finite() && start_angle.is_finite() && k.is_finite()) {
             return None;
         }
@@ -70,13 +84,15 @@ impl ThreadSync {
         let dir = rpm.signum();
         let omega = rpm.abs() * 6.0;
         let v = lead_path * rpm.abs() / 60.0;
-        let dtheta = omega * v / (2.0 * a);
+        let tj = if tj.is_finite() { tj.max(0.0) } else { 0.0 };
+        // A symmetric acceleration profile meets the line at its centroid: half its length.
+        let dtheta = omega * (v / a + tj) / 2.0;
         // The first θ0 ≡ dir·start_angle (mod 360) at least Δθ ahead in the direction of
         // rotation, so the ramp starts in the future. In "forward" coordinates q = dir·θ.
         let q = dir * theta + dtheta;
         let q0 = start_angle + 360.0 * ((q - start_angle) / 360.0).ceil();
         let theta0 = dir * q0;
-        Some(ThreadSync { dir, theta_start: theta0 - dir * dtheta, theta0, omega, a, v, lead_path, k, n_start: 0.0, ramp: true })
+        Some(ThreadSync { dir, theta_start: theta0 - dir * dtheta, theta0, omega, a, v, lead_path, k, n_start: 0.0, ramp: true, tj })
     }
 
     /// The lock for the segment that directly follows this one (which is `len` mm long):
@@ -122,6 +138,19 @@ impl ThreadSync {
         Some(self.theta0 + self.dir * 360.0 * (n + self.n_start))
     }
 
+    /// ∫₀ᵗ of the constant-acceleration ramp-then-line profile (mm·s).
+    fn ramp_integral(&self, t: f64) -> f64 {
+        let t1 = self.v / self.a;
+        if !(t > 0.0) {
+            0.0
+        } else if t <= t1 {
+            self.a * t * t * t / 6.0
+        } else {
+            let h = 0.5 * t1;
+            self.a * t1 * t1 * t1 / 6.0 + 0.5 * self.v * ((t - h) * (t - h) - h * h)
+        }
+    }
+
     /// Path position (mm from the segment's start) where the axes belong at spindle angle
     /// `theta`: 0 before the start angle, the ramp, then the synchronous line (for a
     /// continuation: the synchronous line from its start on).
@@ -138,7 +167,13 @@ impl ThreadSync {
         }
         let tau = p / self.omega;
         let t_ramp = self.v / self.a;
-        let base = if tau <= t_ramp { 0.5 * self.a * tau * tau } else { self.lead_path * n };
+        let base = if tau >= t_ramp + self.tj {
+            self.lead_path * n
+        } else if self.tj > 0.0 {
+            (self.ramp_integral(tau) - self.ramp_integral(tau - self.tj)) / self.tj
+        } else {
+            0.5 * self.a * tau * tau
+        };
         base + g34
     }
 }
@@ -230,5 +265,31 @@ mod tests {
         let s = ThreadSync::arm(0.0, 300.0, 0.0, 2.0, -0.5, 1000.0).unwrap();
         assert!(s.revs_to(4.0).is_some());
         assert!(s.revs_to(4.1).is_none());
+    }
+
+    #[test]
+    fn a_smoothed_lead_in_ramps_its_acceleration_and_keeps_the_phase() {
+        // 1000 rpm, lead 1.5 (25 mm/s), a = 800 mm/s², acceleration rising and falling over 40 ms.
+        let (a, tj) = (800.0, 0.04);
+        let t = ThreadSync::arm_smooth(10.0, 1000.0, 45.0, 1.5, 0.0, a, tj).unwrap();
+        let step_s = 1e-4;
+        let dth = step_s * t.omega;
+        let at = |k: i32| t.target(t.theta_start + k as f64 * dth);
+        let (mut v_prev, mut a_prev) = (0.0, 0.0);
+        for k in 1..20_000 {
+            let v = (at(k) - at(k - 1)) / step_s;
+            let acc = (v - v_prev) / step_s;
+            assert!(acc <= a + 1.0 && acc >= -1.0 && v <= 25.0 + 1e-6, "a {acc} v {v} at {k}");
+            // Jerk bounded by a / tj (no acceleration step).
+            assert!(k < 3 || (acc - a_prev).abs() / step_s <= 1.01 * a / tj, "jerk at {k}");
+            (v_prev, a_prev) = (v, acc);
+        }
+        // Past the ramp: exactly the same synchronous line as the unsmoothed lead-in.
+        let plain = ThreadSync::arm(10.0, 1000.0, 45.0, 1.5, 0.0, a).unwrap();
+        assert_eq!(t.theta0(), plain.theta0());
+        let th = t.theta0() + 3600.0;
+        assert!((t.target(th) - plain.target(th)).abs() < 1e-9 && (t.target(th) - 15.0).abs() < 1e-9);
+        // It starts earlier, by half the smoothing time.
+        assert!((plain.theta_start - t.theta_start - 0.5 * tj * t.omega).abs() < 1e-9);
     }
 }

@@ -23,9 +23,10 @@ const BOUNDS: [(&str, f64, f64, f64, f64); 9] = [
     ("delay1", 6.0, 10.0, 5.0, 0.1),
     // Two cycles of transport delay on every drive (6.4 µm cut, 1.7 µm in the air).
     ("delay2", 7.0, 10.0, 7.5, 0.1),
-    // The belt's lost motion and compliance: 6.2 µm at the strokes' starts, the thread phase
-    // 0.17°.
-    ("belt_z", 7.0, 10.0, 5.0, 0.2),
+    // The belt's lost motion and compliance: 6.4 µm at the strokes' starts. The thread phase
+    // 0.03° with the smoothed lead-in (0.17° with an acceleration step, see
+    // `THREAD_LEADIN_SMOOTH_S`).
+    ("belt_z", 7.0, 10.0, 5.0, 0.1),
     // Four times the dry friction: with the friction fed forward (0x60B2) Z breaks away as
     // the tap starts while the spindle still sticks (6.6 µm; 12.4 µm without).
     ("high_friction", 7.5, 10.0, 7.5, 0.1),
