@@ -20,12 +20,18 @@
 //!
 //! The offset follows the direction of the commanded speed, ramped over the first
 //! [`BAND_COUNTS`] counts per cycle so that a set-point that barely moves (a tap creeping out
-//! of its start) does not kick the slide, and is 0 at rest: standing still, friction holds.
+//! of its start) does not kick the slide. Where the command comes to rest it fades out over
+//! some ten cycles in the last direction (or follows the measured speed while the slide still
+//! runs in faster than [`CREEP_COUNTS`]), so that the integrator takes the friction over as
+//! the slide comes in; at rest it is 0: standing still, friction holds.
 
 use nalgebra::{Matrix3, Vector3};
 
 /// Commanded speed (counts per cycle) over which the offset ramps to its full value.
 pub const BAND_COUNTS: f64 = 1.0;
+/// Measured speed (counts per cycle) up to which a slide whose command stands still gets no
+/// offset (it settles onto its count), ramping to the full offset at twice this.
+pub const CREEP_COUNTS: f64 = 2.0;
 /// Largest offset ever sent, per mille of the rated torque: a friction larger than a third
 /// of the rated torque is a mechanical fault, not something to feed forward.
 pub const MAX_PERMILLE: f64 = 300.0;
@@ -54,9 +60,15 @@ pub struct FrictionComp {
     act: Option<i64>,
     v_act: Option<f64>,
     a_act: f64,
-    /// The previous set-point (counts, unrounded).
+    /// The previous set-point (counts, unrounded), and the share of the friction last sent.
     prev_cmd: Option<f64>,
+    w: f64,
 }
+
+/// Where the command has come to rest, the offset fades by this per cycle (in the direction
+/// of the last motion, never towards the other): the integrator takes the friction over while
+/// the slide comes in, instead of stopping short and creeping the last counts in.
+const FADE: f64 = 0.85;
 
 impl FrictionComp {
     /// A fresh position feedback (counts, once per cycle).
@@ -104,7 +116,24 @@ impl FrictionComp {
         let v = self.prev_cmd.map_or(0.0, |p| cmd - p);
         self.prev_cmd = Some(cmd);
         let Some((up, down)) = self.c else { return 0 };
-        let w = (v / BAND_COUNTS).clamp(-1.0, 1.0);
+        // The command leads (it breaks the stiction where the axis starts or reverses); where
+        // it stands still the slide may still be coming in: friction acts while it moves, so
+        // the offset follows the measured motion until it stops (else the slide stops short
+        // and the integrator must creep it in). Not below [`CREEP_COUNTS`]: a slide settling
+        // onto its count is let settle — pushed there, it hunts (measured: ±1 count for seconds).
+        let w = if v != 0.0 {
+            (v / BAND_COUNTS).clamp(-1.0, 1.0)
+        } else {
+            let va = self.v_act.unwrap_or(0.0);
+            let follow = va.signum() * ((va.abs() - CREEP_COUNTS) / CREEP_COUNTS).clamp(0.0, 1.0);
+            let fade = self.w * FADE;
+            if follow.abs() > fade.abs() {
+                follow
+            } else {
+                fade
+            }
+        };
+        self.w = w;
         let t = if w > 0.0 { up * w } else { -down * w };
         t.round() as i16
     }
@@ -113,6 +142,7 @@ impl FrictionComp {
     /// new speed, and the position history is stale.
     pub fn reset_motion(&mut self) {
         self.prev_cmd = None;
+        self.w = 0.0;
         self.act = None;
         self.v_act = None;
         self.a_act = 0.0;
@@ -175,13 +205,30 @@ mod tests {
         assert_eq!(fc.offset(0.0), 0);
         assert_eq!(fc.offset(10.0), 0, "not learnt yet");
         run(&mut fc, &ramp(400.0, 16), 60.0, -60.0, 3.0);
-        fc.offset(0.0);
+        // (A last step of −10 counts, then at rest: the offset fades to 0.)
+        for _ in 0..40 {
+            fc.offset(0.0);
+        }
         assert_eq!(fc.offset(0.0), 0, "at rest: friction holds");
         let (up, down) = fc.learnt().unwrap();
         assert_eq!(fc.offset(0.5), (up * 0.5).round() as i16, "half the band: half the friction");
         assert_eq!(fc.offset(10.5), up.round() as i16);
         assert_eq!(fc.offset(5.0), down.round() as i16, "reversed");
         assert!((55.0..65.0).contains(&up) && (-65.0..-55.0).contains(&down), "{up} {down}");
+    }
+
+    #[test]
+    fn where_the_command_stops_the_offset_fades_and_never_turns() {
+        let mut fc = FrictionComp::default();
+        run(&mut fc, &ramp(400.0, 16), 60.0, -60.0, 3.0);
+        let up = fc.learnt().unwrap().0;
+        fc.offset(0.0);
+        assert_eq!(fc.offset(10.0), up.round() as i16);
+        // Command at rest, the slide already stopped (its last speed 0): the offset fades.
+        let sent: Vec<i16> = (0..30).map(|_| fc.offset(10.0)).collect();
+        assert_eq!(sent[0], (up * FADE).round() as i16);
+        assert!(sent.windows(2).all(|w| w[1] <= w[0] && w[1] >= 0), "{sent:?}");
+        assert_eq!(*sent.last().unwrap(), 0);
     }
 
     #[test]

@@ -1980,8 +1980,12 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
             };
             let c = self.cyclic_controlword(i);
             let n = &mut self.nodes[i];
+            // The set-point as asked where it is the one sent (a target set in counts — a hold,
+            // back to CSP after a profile move — has no finer value).
+            let exact = if n.target_exact.round() as i64 == n.target { n.target_exact } else { n.target as f64 };
+            let csp = n.mode.want == mode::CYCLIC_SYNC_POSITION;
             n.torque_offset = match n.friction.as_mut() {
-                Some(f) if !hold && !n.csv => f.offset(n.target_exact),
+                Some(f) if !hold && !n.csv && csp => f.offset(exact),
                 Some(f) => {
                     f.reset_motion();
                     0

@@ -69,6 +69,10 @@ pub struct SdoClient {
     /// polls with it and must not allocate).
     want_small: bool,
     small: Option<u32>,
+    /// The object of a transfer given up in its initiate phase for this one (a background
+    /// read the cycle was doing when a fault diagnosis or a blocking transfer took the
+    /// channel): its late answer or abort is dropped once, not taken for this transfer's.
+    abandoned: Option<(u16, u8)>,
 }
 
 impl SdoClient {
@@ -86,6 +90,7 @@ impl SdoClient {
             size: None,
             want_small: false,
             small: None,
+            abandoned: None,
         }
     }
 
@@ -141,6 +146,8 @@ impl SdoClient {
     }
 
     fn begin(&mut self, index: u16, sub: u8, now_ns: u64) {
+        self.abandoned =
+            matches!(self.phase, Phase::UploadInit | Phase::DownloadInit).then_some((self.index, self.sub)).filter(|&o| o != (index, sub));
         self.want_small = false;
         self.small = None;
         self.index = index;
@@ -194,6 +201,16 @@ impl SdoClient {
             self.finish(Err(SdoError::Protocol("malformed SDO response")));
             return Some(self.abort_frame(abort::BAD_COMMAND));
         };
+        let about = match resp {
+            SdoResponse::InitiateUpload { index, sub, .. } | SdoResponse::InitiateDownload { index, sub } | SdoResponse::Abort { index, sub, .. } => {
+                Some((index, sub))
+            }
+            _ => None,
+        };
+        if about.is_some() && about == self.abandoned {
+            self.abandoned = None;
+            return None;
+        }
         self.deadline_ns = now_ns + self.timeout_ns;
         if let SdoResponse::Abort { code, .. } = resp {
             self.finish(Err(SdoError::Abort { code }));
@@ -462,6 +479,24 @@ mod tests {
         c.start_upload_small(0x6061, 0, 20);
         assert_eq!(c.poll(200_000_000).map(|f| f.data[0]), Some(0x80));
         assert!(matches!(c.take_expedited(), Some(Err(SdoError::Timeout { .. }))));
+    }
+
+    #[test]
+    fn the_late_answer_of_a_read_given_up_is_not_taken_for_the_next_transfer() {
+        // The cycle's torque read (0x6077) is under way when a fault diagnosis reads 0x603F.
+        let mut c = SdoClient::new(3, 100);
+        c.start_upload_small(0x6077, 0, 0);
+        c.start_upload(0x603F, 0, 1);
+        let late = SdoResponse::InitiateUpload { index: 0x6077, sub: 0, expedited: true, size: Some(2), data: [5, 0, 0, 0] }.encode(3);
+        assert_eq!(c.on_frame(&late, 2), vec![], "dropped, no abort sent");
+        assert!(c.busy() && c.take_result().is_none());
+        let answer = SdoResponse::InitiateUpload { index: 0x603F, sub: 0, expedited: true, size: Some(2), data: [0x10, 0x23, 0, 0] }.encode(3);
+        assert_eq!(c.on_frame(&answer, 3), vec![]);
+        assert_eq!(c.take_result(), Some(Ok(vec![0x10, 0x23])));
+        // Only once: a second answer for another object is still a protocol error.
+        c.start_upload(0x603F, 0, 4);
+        assert!(!c.on_frame(&late, 5).is_empty());
+        assert!(matches!(c.take_result(), Some(Err(SdoError::Protocol(_)))));
     }
 
     #[test]
