@@ -2189,6 +2189,9 @@ mod tests {
     fn bus_load_is_checked_against_80_percent() {
         let bus = cncgw_bus::transport::inproc::InprocBus::new();
         let mut cfg = MachineConfig::embedded();
+        for n in ["x", "z"] {
+            cfg.axes.get_mut(n).unwrap().friction_compensation = true;
+        }
         let m = CanOpenMaster::new(bus.endpoint(), &cfg);
         // 3 × (6-byte RPDO + 7-byte TPDO) + SYNC = 775 bits every 2 ms; X and Z with friction
         // feed-forward: 8-byte RPDOs (+20 bits each) and a torque read (135 bits each).
@@ -2213,6 +2216,9 @@ mod tests {
         let bus = cncgw_bus::transport::inproc::InprocBus::new();
         let text = format!("{}\n[io.devices.io1]\ncanopen_node = 10\ninputs = 16\noutputs = 8\n", crate::config::EMBEDDED_LATHE);
         let mut cfg = MachineConfig::from_toml("io.toml", &text).unwrap();
+        for n in ["x", "z"] {
+            cfg.axes.get_mut(n).unwrap().friction_compensation = true;
+        }
         let m = CanOpenMaster::new(bus.endpoint(), &cfg);
         assert!((m.bus_load(1_000_000) - (1085.0 + 75.0 + 65.0) / 2000.0).abs() < 1e-6, "{}", m.bus_load(1_000_000));
         for a in cfg.axes.values_mut() {
