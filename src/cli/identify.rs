@@ -93,13 +93,19 @@ fn program(cfg: &MachineConfig, axis: &str, travel: f64, start: crate::canon::Po
 /// `cncgw identify`.
 pub fn run(machine: &MachineArgs, a: &IdentifyArgs) -> i32 {
     use super::exit;
-    let (cfg, cfg_text) = match super::machine_config(machine) {
+    let (mut cfg, cfg_text) = match super::machine_config(machine) {
         Ok(c) => c,
         Err(e) => {
             eprintln!("error: {e}");
             return exit::SETUP;
         }
     };
+    // The drive's own CSP response is what is identified: the friction feed-forward (a
+    // torque added where the axis starts and reverses) is off for the run, as a drive's
+    // autotuning turns its compensations off.
+    for ax in cfg.axes.values_mut() {
+        ax.friction_compensation = false;
+    }
     // Checked before anything is opened (from the travel's middle: the start is not known).
     if let Err(e) = program(&cfg, &a.axis, a.travel, crate::canon::Pos::ZERO).or_else(|e| if e.contains("room") { Ok(String::new()) } else { Err(e) })
     {

@@ -62,13 +62,28 @@ pub struct FrictionComp {
     a_act: f64,
     /// The previous set-point (counts, unrounded), and the share of the friction last sent.
     prev_cmd: Option<f64>,
-    w: f64,
+    /// The last offset sent; the drive's torque where the slide last stood (filtered).
+    sent: i16,
+    t_rest: f64,
+    /// The direction of the command's motion (0 at rest), the cycles it has stood still.
+    dir: f64,
+    still: u32,
+    /// Since the last start or reversal: what the drive's integrator held then, the friction
+    /// to overcome now (per mille) and the share of it the offset still carries.
+    i0: f64,
+    f: f64,
+    env: f64,
 }
 
 /// Where the command has come to rest, the offset fades by this per cycle (in the direction
 /// of the last motion, never towards the other): the integrator takes the friction over while
 /// the slide comes in, instead of stopping short and creeping the last counts in.
 const FADE: f64 = 0.85;
+/// While the command moves on in one direction the offset hands over to the drive's
+/// integrator by this per cycle (some 100 ms): the offset breaks the slide away where it
+/// starts or reverses, the integrator carries the friction of the motion, so that where the
+/// command stops the slide comes in exactly as without the offset.
+const DECAY: f64 = 0.98;
 
 impl FrictionComp {
     /// A fresh position feedback (counts, once per cycle).
@@ -85,6 +100,8 @@ impl FrictionComp {
 
     /// A torque actual value 0x6077 read from the drive (per mille of the rated torque).
     pub fn torque_sample(&mut self, permille: i16) {
+        // The drive's own torque (ours taken out), averaged over a few cycles (a belt rings).
+        self.t_rest += (f64::from(permille) - f64::from(self.sent) - self.t_rest) * 0.25;
         let Some(v) = self.v_act.filter(|v| v.abs() >= MIN_SAMPLE_SPEED) else { return };
         let phi = Vector3::new(f64::from(u8::from(v > 0.0)), f64::from(u8::from(v < 0.0)), self.a_act);
         self.s = self.s * FORGET + phi * phi.transpose();
@@ -116,33 +133,45 @@ impl FrictionComp {
         let v = self.prev_cmd.map_or(0.0, |p| cmd - p);
         self.prev_cmd = Some(cmd);
         let Some((up, down)) = self.c else { return 0 };
-        // The command leads (it breaks the stiction where the axis starts or reverses); where
-        // it stands still the slide may still be coming in: friction acts while it moves, so
-        // the offset follows the measured motion until it stops (else the slide stops short
-        // and the integrator must creep it in). Not below [`CREEP_COUNTS`]: a slide settling
-        // onto its count is let settle — pushed there, it hunts (measured: ±1 count for seconds).
-        let w = if v != 0.0 {
-            (v / BAND_COUNTS).clamp(-1.0, 1.0)
-        } else {
-            let va = self.v_act.unwrap_or(0.0);
-            let follow = va.signum() * ((va.abs() - CREEP_COUNTS) / CREEP_COUNTS).clamp(0.0, 1.0);
-            let fade = self.w * FADE;
-            if follow.abs() > fade.abs() {
-                follow
-            } else {
-                fade
+        if v == 0.0 {
+            // The command at rest: the offset fades, the slide comes in as without it.
+            self.still = self.still.saturating_add(1);
+            if self.still >= 2 {
+                self.dir = 0.0;
             }
-        };
-        self.w = w;
-        let t = if w > 0.0 { up * w } else { -down * w };
-        t.round() as i16
+            self.sent = (f64::from(self.sent) * FADE).trunc() as i16;
+            return self.sent;
+        }
+        let lim = up.abs().max(down.abs());
+        if v.signum() != self.dir {
+            // A start or a reversal: what the drive's integrator holds now — measured where
+            // the slide stood, else what it has taken over of the last motion's offset.
+            let held = if self.dir == 0.0 { self.t_rest } else { self.i0 + (1.0 - self.env) * (self.f - self.i0) };
+            self.i0 = held.clamp(-lim, lim);
+            self.dir = v.signum();
+            self.env = 1.0;
+        } else if self.v_act.is_some_and(|va| va * self.dir >= 1.0) {
+            // Broken away: hand over. (Not before: a command creeping out of its start
+            // must find the whole offset when it gets going.)
+            self.env *= DECAY;
+        }
+        self.still = 0;
+        let w = (v / BAND_COUNTS).clamp(-1.0, 1.0);
+        self.f = if w > 0.0 { up * w } else { -down * w };
+        self.sent = (self.env * (self.f - self.i0)).clamp(-MAX_PERMILLE, MAX_PERMILLE).round() as i16;
+        self.sent
     }
 
     /// The drive stopped following set-points (disabled, a stop): the next set-point starts a
     /// new speed, and the position history is stale.
     pub fn reset_motion(&mut self) {
         self.prev_cmd = None;
-        self.w = 0.0;
+        self.sent = 0;
+        self.dir = 0.0;
+        self.still = 0;
+        self.i0 = 0.0;
+        self.f = 0.0;
+        self.env = 0.0;
         self.act = None;
         self.v_act = None;
         self.a_act = 0.0;
@@ -199,21 +228,26 @@ mod tests {
         assert!((up - 100.0).abs() < 4.0 && (down + 20.0).abs() < 4.0, "{up} {down}");
     }
 
+    /// The slide stands still and the drive holds `t` (per mille): settle the filter.
+    fn stand(fc: &mut FrictionComp, t: i16) {
+        for _ in 0..60 {
+            fc.torque_sample(t);
+            fc.offset(fc.prev_cmd.unwrap_or(0.0));
+        }
+    }
+
     #[test]
     fn sends_nothing_until_learnt_nothing_at_rest_and_ramps_in() {
         let mut fc = FrictionComp::default();
         assert_eq!(fc.offset(0.0), 0);
         assert_eq!(fc.offset(10.0), 0, "not learnt yet");
         run(&mut fc, &ramp(400.0, 16), 60.0, -60.0, 3.0);
-        // (A last step of −10 counts, then at rest: the offset fades to 0.)
-        for _ in 0..40 {
-            fc.offset(0.0);
-        }
-        assert_eq!(fc.offset(0.0), 0, "at rest: friction holds");
+        stand(&mut fc, 0);
+        assert_eq!(fc.offset(10.0), 0, "at rest: friction holds");
         let (up, down) = fc.learnt().unwrap();
-        assert_eq!(fc.offset(0.5), (up * 0.5).round() as i16, "half the band: half the friction");
-        assert_eq!(fc.offset(10.5), up.round() as i16);
-        assert_eq!(fc.offset(5.0), down.round() as i16, "reversed");
+        assert_eq!(fc.offset(10.5), (up * 0.5).round() as i16, "half the band: half the friction");
+        assert_eq!(fc.offset(20.5), up.round() as i16);
+        assert_eq!(fc.offset(15.0), down.round() as i16, "reversed");
         assert!((55.0..65.0).contains(&up) && (-65.0..-55.0).contains(&down), "{up} {down}");
     }
 
@@ -221,22 +255,67 @@ mod tests {
     fn where_the_command_stops_the_offset_fades_and_never_turns() {
         let mut fc = FrictionComp::default();
         run(&mut fc, &ramp(400.0, 16), 60.0, -60.0, 3.0);
+        stand(&mut fc, 0);
         let up = fc.learnt().unwrap().0;
-        fc.offset(0.0);
         assert_eq!(fc.offset(10.0), up.round() as i16);
-        // Command at rest, the slide already stopped (its last speed 0): the offset fades.
+        // Command at rest: the offset fades to 0, never past it.
         let sent: Vec<i16> = (0..30).map(|_| fc.offset(10.0)).collect();
-        assert_eq!(sent[0], (up * FADE).round() as i16);
+        assert_eq!(sent[0], (f64::from(up.round() as i16) * FADE).trunc() as i16);
         assert!(sent.windows(2).all(|w| w[1] <= w[0] && w[1] >= 0), "{sent:?}");
         assert_eq!(*sent.last().unwrap(), 0);
+    }
+
+    #[test]
+    fn a_start_from_rest_takes_out_what_the_drive_holds_and_hands_over_once_moving() {
+        let mut fc = FrictionComp::default();
+        run(&mut fc, &ramp(400.0, 16), 60.0, -60.0, 3.0);
+        let up = fc.learnt().unwrap().0;
+        // Stuck with the integrator pushing the other way (−20 ‰): the start sends up + 20.
+        stand(&mut fc, -20);
+        let first = fc.offset(5.0);
+        assert!((f64::from(first) - (up + 20.0)).abs() <= 1.0, "{first} vs {up} + 20");
+        // Not moving yet: the whole offset stays.
+        fc.observe_actual(1000);
+        fc.observe_actual(1000);
+        assert_eq!(fc.offset(10.0), first);
+        // Broken away: it hands over to the drive, cycle by cycle.
+        let mut pos = 1000;
+        let mut sent = Vec::new();
+        for k in 0..200 {
+            pos += 5;
+            fc.observe_actual(pos);
+            sent.push(fc.offset(15.0 + 5.0 * k as f64));
+        }
+        assert!(sent.windows(2).all(|w| w[1] <= w[0]), "{sent:?}");
+        assert!(sent[0] < first && sent[199].abs() <= 1, "{sent:?}");
+    }
+
+    #[test]
+    fn a_reversal_swings_the_whole_friction() {
+        let mut fc = FrictionComp::default();
+        run(&mut fc, &ramp(400.0, 16), 60.0, -60.0, 3.0);
+        stand(&mut fc, 0);
+        let (up, down) = fc.learnt().unwrap();
+        // Long enough up that the drive carries the friction; then the command turns back.
+        let mut pos = 0;
+        for k in 1..=300 {
+            pos += 5;
+            fc.observe_actual(pos);
+            fc.offset(5.0 * f64::from(k));
+        }
+        let back = fc.offset(5.0 * 300.0 - 5.0);
+        // The offset takes out what the integrator holds (≈ up) and adds the friction down.
+        assert!((f64::from(back) - (down - up)).abs() <= 2.0, "{back} vs {down} − {up}");
     }
 
     #[test]
     fn never_sends_more_than_the_bound() {
         let mut fc = FrictionComp::default();
         run(&mut fc, &ramp(400.0, 16), 900.0, -900.0, 0.0);
-        fc.offset(0.0);
+        stand(&mut fc, 0);
         assert_eq!(fc.offset(5.0), MAX_PERMILLE as i16);
+        stand(&mut fc, -500);
+        assert_eq!(fc.offset(10.0), MAX_PERMILLE as i16, "with what the drive holds taken out too");
     }
 
     #[test]

@@ -122,6 +122,9 @@ pub const FEEDBACK_DELAY: usize = 2;
 const HIST: usize = 6;
 /// In-position width before a rigid tap (Z, and the spindle times the lead), mm.
 pub const INPOS_MM: f64 = 0.001;
+/// Largest motion between two cycles of a slide taken as in position, mm (a quarter of the
+/// window: creeping onto its count is still, running through the window is not).
+const INPOS_STILL_MM: f64 = INPOS_MM / 4.0;
 /// Longest wait for the in-position check, cycles (then the tap starts anyway).
 const INPOS_MAX_CYCLES: u32 = 150;
 /// Memory of the feed axes' lag models (see `sync_corr`), s.
@@ -668,6 +671,8 @@ pub struct Motion {
     corr: SyncCorrection,
     /// Cycles waited for the in-position check before a rigid tap.
     inpos_wait: u32,
+    /// The feedback at the last in-position check: in position means still there too.
+    inpos_prev: [f64; N_AXES],
     /// The cycle action of the item running or last taken from the queue.
     cur_cyc: CycStep,
     /// The cycle action of the last pushed item (planning).
@@ -751,6 +756,7 @@ impl Motion {
             ),
 
             inpos_wait: 0,
+            inpos_prev: [f64::NAN; N_AXES],
             cur_cyc: CycStep::default(),
             plan_cyc: CycStep::default(),
             sb_pending: false,
@@ -1948,6 +1954,13 @@ impl Motion {
         }
     }
 
+    /// Axis `i` in position on its set-point and still: a slide that passes through the
+    /// window while it runs in (a drive with more delay overshoots) is not yet in position —
+    /// a stroke started then begins with its overshoot as sync error.
+    fn settled(&self, fb: &Feedback, sent: &[f64; N_AXES], i: usize) -> bool {
+        (fb.pos[i] - sent[i]).abs() <= INPOS_MM && (fb.pos[i] - self.inpos_prev[i]).abs() <= INPOS_STILL_MM
+    }
+
     /// G92.1 before its stroke: brake the spindle and wait in position.
     fn rigid_entry(&mut self, seg: RigidSeg, fb: &Feedback) {
         // Like rigid tapping: brake the spindle, then take its angle as the origin.
@@ -1958,8 +1971,9 @@ impl Motion {
         let sent = self.hist[self.hist_k];
         let in_pos = self.inpos_wait >= INPOS_MAX_CYCLES
             || seg.u_long == 0.0
-            || ((0..3).all(|i| !self.lim.present[i] || (fb.pos[i] - sent[i]).abs() <= INPOS_MM)
+            || ((0..3).all(|i| !self.lim.present[i] || self.settled(fb, &sent, i))
                 && (fb.pos[AX_S] - sent[AX_S]).abs() * seg.plen / seg.dc.abs().max(1e-9) <= INPOS_MM);
+        self.inpos_prev = fb.pos;
         self.inpos_wait = if self.sp_cur == 0.0 { self.inpos_wait.saturating_add(1) } else { 0 };
         if self.stopping {
             self.run = Run::None;
@@ -2034,7 +2048,8 @@ impl Motion {
         let a = seg.axis;
         let in_pos = self.in_hole
             || self.inpos_wait >= INPOS_MAX_CYCLES
-            || ((fb.pos[a] - sent[a]).abs() <= INPOS_MM && ((fb.pos[AX_S] - sent[AX_S]) * seg.lead / 360.0).abs() <= INPOS_MM);
+            || (self.settled(fb, &sent, a) && ((fb.pos[AX_S] - sent[AX_S]) * seg.lead / 360.0).abs() <= INPOS_MM);
+        self.inpos_prev = fb.pos;
         self.inpos_wait = if self.sp_cur == 0.0 { self.inpos_wait.saturating_add(1) } else { 0 };
         self.tap_wait = None;
         if self.stopping {
