@@ -16,25 +16,28 @@
 //! inertia apart. Each direction keeps its own figure (a vertical axis' weight makes them
 //! differ); a direction not yet travelled is taken as the mirror of the other (a soft prior,
 //! outweighed by the first few samples of its own). Nothing is sent before the fit has
-//! enough samples, and never more than [`MAX_PERMILLE`].
+//! enough samples; no friction above [`MAX_PERMILLE`] is fed forward.
 //!
-//! The offset follows the direction of the commanded speed, ramped over the first
-//! [`BAND_COUNTS`] counts per cycle so that a set-point that barely moves (a tap creeping out
-//! of its start) does not kick the slide. Where the command comes to rest it fades out over
-//! some ten cycles in the last direction (or follows the measured speed while the slide still
-//! runs in faster than [`CREEP_COUNTS`]), so that the integrator takes the friction over as
-//! the slide comes in; at rest it is 0: standing still, friction holds.
+//! When: where the command starts from rest or reverses — that is where the integrator is
+//! late — in the direction of the commanded speed, ramped over the first [`BAND_COUNTS`]
+//! counts per cycle (a set-point that barely moves does not kick the slide). What the drive's
+//! integrator holds at that moment is taken out (measured from 0x6077 where the slide stood —
+//! a slide stuck against its set-point, or creeping in, holds up to its friction either way;
+//! at a reversal, what it has taken over of the last offset), so that drive and offset together
+//! give the friction: the slide breaks away at once, neither sticking nor jumping. Once the
+//! slide moves in the new direction the offset hands over to the integrator (some 100 ms), and
+//! where the command comes to rest what is left fades in ten cycles: stops, and the slide
+//! settling onto its count, are the drive's own, as without the offset (an offset that
+//! followed the slide into its stop made it hunt, and stop short or past).
 
 use nalgebra::{Matrix3, Vector3};
 
 /// Commanded speed (counts per cycle) over which the offset ramps to its full value.
 pub const BAND_COUNTS: f64 = 1.0;
-/// Measured speed (counts per cycle) up to which a slide whose command stands still gets no
-/// offset (it settles onto its count), ramping to the full offset at twice this.
-pub const CREEP_COUNTS: f64 = 2.0;
-/// Largest offset ever sent, per mille of the rated torque: a friction larger than a third
-/// of the rated torque is a mechanical fault, not something to feed forward.
-pub const MAX_PERMILLE: f64 = 300.0;
+/// Largest friction fed forward, per mille of the rated torque: box ways under a heavy table
+/// can take a third of it (eight times the emulator's friction, 380 ‰, is fed forward whole);
+/// more than half is a mechanical fault, not something to feed forward.
+pub const MAX_PERMILLE: f64 = 500.0;
 /// Actual speed (counts per cycle) below which a torque sample says nothing about friction
 /// (stiction and the velocity loop's settling dominate there).
 const MIN_SAMPLE_SPEED: f64 = 4.0;
@@ -132,7 +135,14 @@ impl FrictionComp {
     pub fn offset(&mut self, cmd: f64) -> i16 {
         let v = self.prev_cmd.map_or(0.0, |p| cmd - p);
         self.prev_cmd = Some(cmd);
-        let Some((up, down)) = self.c else { return 0 };
+        let Some((up, down)) = self.c else {
+            // Not learnt yet: follow the command's direction only, so that a fit that comes
+            // in mid-move does not start there (the drive carries this motion's friction;
+            // at its reversal the integrator holds it whole: `f`, with nothing handed over).
+            self.dir = if v == 0.0 { 0.0 } else { v.signum() };
+            (self.env, self.i0, self.f) = (0.0, 0.0, 0.0);
+            return 0;
+        };
         if v == 0.0 {
             // The command at rest: the offset fades, the slide comes in as without it.
             self.still = self.still.saturating_add(1);
@@ -158,7 +168,9 @@ impl FrictionComp {
         self.still = 0;
         let w = (v / BAND_COUNTS).clamp(-1.0, 1.0);
         self.f = if w > 0.0 { up * w } else { -down * w };
-        self.sent = (self.env * (self.f - self.i0)).clamp(-MAX_PERMILLE, MAX_PERMILLE).round() as i16;
+        // Bounded by twice the largest friction: with what the drive holds taken out, the
+        // torque the two give together is the friction (≤ MAX_PERMILLE).
+        self.sent = (self.env * (self.f - self.i0)).clamp(-2.0 * MAX_PERMILLE, 2.0 * MAX_PERMILLE).round() as i16;
         self.sent
     }
 
@@ -309,13 +321,35 @@ mod tests {
     }
 
     #[test]
+    fn a_fit_that_comes_in_mid_move_waits_for_the_next_start() {
+        // The first move of a run teaches the fit: nothing is sent within it (the drive
+        // carries its friction), the reversal after it swings the whole friction.
+        let mut fc = FrictionComp::default();
+        let (mut pos, mut cmd) = (0i64, 0.0);
+        let mut sent = Vec::new();
+        for k in 0..40 {
+            let v = if k < 8 { 50.0 * f64::from(k) } else { 400.0 };
+            cmd += v;
+            sent.push(fc.offset(cmd));
+            pos += v as i64;
+            fc.observe_actual(pos);
+            fc.torque_sample(60);
+        }
+        let (up, down) = fc.learnt().expect("learnt within the move");
+        assert!(sent.iter().all(|&t| t == 0), "{sent:?}");
+        let back = fc.offset(cmd - 10.0);
+        assert!((f64::from(back) - (down - up)).abs() <= 2.0, "{back} vs {down} − {up}");
+    }
+
+    #[test]
     fn never_sends_more_than_the_bound() {
         let mut fc = FrictionComp::default();
         run(&mut fc, &ramp(400.0, 16), 900.0, -900.0, 0.0);
         stand(&mut fc, 0);
         assert_eq!(fc.offset(5.0), MAX_PERMILLE as i16);
+        // The drive holding −500 ‰ is taken for −300 at most: together they give the bound.
         stand(&mut fc, -500);
-        assert_eq!(fc.offset(10.0), MAX_PERMILLE as i16, "with what the drive holds taken out too");
+        assert_eq!(fc.offset(10.0), 2 * MAX_PERMILLE as i16, "with what the drive holds taken out");
     }
 
     #[test]
