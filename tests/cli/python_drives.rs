@@ -405,11 +405,14 @@ fn tap(python: &Path, shape: &str, spindle_window_deg: f64) -> Tap {
         t.windows(2).map(|w| (w[1] - w[0]) * 1e3).fold(0.0, f64::max)
     });
     let late_tpdo = cncgw::control::trace::TraceData::parse(&trace).map_or(usize::MAX, |d| {
-        ["s1", "z"]
+        // An actual that stands for a cycle after moving more than one count, while its
+        // command moves on (a slide settling onto its count in 1-count steps as the tap
+        // starts is not one). One count: 0.1 µm on Z, 0.001° on the spindle.
+        [("s1", 1e-3), ("z", 1e-4)]
             .iter()
-            .map(|n| {
+            .map(|&(n, count)| {
                 let (c, a) = (d.column(&format!("{n}_cmd")).unwrap_or_default(), d.column(&format!("{n}_act")).unwrap_or_default());
-                (2..a.len().min(c.len())).filter(|&i| a[i] == a[i - 1] && a[i - 1] != a[i - 2] && c[i] != c[i - 1]).count()
+                (2..a.len().min(c.len())).filter(|&i| a[i] == a[i - 1] && (a[i - 1] - a[i - 2]).abs() > 1.5 * count && c[i] != c[i - 1]).count()
             })
             .sum()
     });
