@@ -429,8 +429,10 @@ fn tap(python: &Path, shape: &str, spindle_window_deg: f64) -> Tap {
 ///
 /// Measured 2026-11-28 on a loaded 2-core VM (release build, chrt; README): a tap in which no
 /// frame is late gives the same figures every time — max 16.4 µm / RMS 2.1 µm (τ 15 ms),
-/// 19.9 / 3.5 µm (τ 40 ms). The bound, 50 µm, is half the machine's sync limit (100 µm, alarm
-/// 2307) and 2.5 × the worst of those: scheduling noise within a cycle (python and a debug
+/// 19.9 / 3.5 µm (τ 40 ms); with the bell-shaped tap and one-SYNC pairing 4.21 and 8.01 µm
+/// (2026-11-28 12:53; the same on 2026-11-29 with the tap starting on a still Z). The bound,
+/// 50 µm, is half the machine's sync limit (100 µm, alarm 2307) and 2.5 × the worst of the
+/// first figures: scheduling noise within a cycle (python and a debug
 /// build here, no real-time priority) must not fail it, a sync law that does not follow the
 /// drives does. Only a tap in which every TPDO came on time (no moving drive's feedback a
 /// cycle old) and the controller did not stall is judged; another is run again, up to 8
