@@ -63,7 +63,7 @@ pub struct FrictionComp {
     act: Option<i64>,
     v_act: Option<f64>,
     a_act: f64,
-    /// The previous set-point (counts, unrounded), and the share of the friction last sent.
+    /// The previous set-point (counts, unrounded).
     prev_cmd: Option<f64>,
     /// The last offset sent; the drive's torque where the slide last stood (filtered).
     sent: i16,
@@ -78,9 +78,8 @@ pub struct FrictionComp {
     env: f64,
 }
 
-/// Where the command has come to rest, the offset fades by this per cycle (in the direction
-/// of the last motion, never towards the other): the integrator takes the friction over while
-/// the slide comes in, instead of stopping short and creeping the last counts in.
+/// Where the command has come to rest, what is left of the offset fades by this per cycle
+/// (towards 0, never past it): the slide comes in on the drive's own loops.
 const FADE: f64 = 0.85;
 /// While the command moves on in one direction the offset hands over to the drive's
 /// integrator by this per cycle (some 100 ms): the offset breaks the slide away where it
