@@ -374,7 +374,7 @@ fn tap(python: &Path, shape: &str, spindle_window_deg: f64) -> Tap {
     let cfg = cncgw::config::EMBEDDED_LATHE
         .replace("cycle_ms = 2.0", &format!("cycle_ms = {TAP_CYCLE_MS:.1}"))
         .replace("feedback_timeout_ms = 20", "feedback_timeout_ms = 100")
-        .replace("following_error = 30.0 ", &format!("following_error = {spindle_window_deg:.1} "))
+        .replace("following_error = 180.0 ", &format!("following_error = {spindle_window_deg:.1} "))
         // The python drives run on the SYNCs they receive: a late SYNC is not bridged.
         .replace("late_sync_extrapolation = 10", "late_sync_extrapolation = 0");
     assert!(cfg.contains(&format!("following_error = {spindle_window_deg:.1} ")) && cfg.contains("cycle_ms = 5.0"));

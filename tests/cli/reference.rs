@@ -25,8 +25,7 @@ fn machine(name: &str, x: &str, z: &str, realtime: bool) -> PathBuf {
         m = m
             .replace("feedback_timeout_ms = 20", "feedback_timeout_ms = 300")
             .replace("following_error = 1.0       # mm", "following_error = 5.0       # mm")
-            .replace("following_error = 1.0\n\n[axes.s1]", "following_error = 5.0\n\n[axes.s1]")
-            .replace("following_error = 30.0", "following_error = 90.0");
+            .replace("following_error = 1.0\n\n[axes.s1]", "following_error = 5.0\n\n[axes.s1]");
     }
     let m = m.replacen("0x6065\n", &format!("0x6065\nhoming = {x}\n"), 1).replacen("\n\n[axes.s1]", &format!("\nhoming = {z}\n\n[axes.s1]"), 1);
     assert_eq!(m.matches("homing = ").count(), 2, "the lathe's X and Z blocks changed: {m}");

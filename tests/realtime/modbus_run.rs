@@ -162,8 +162,7 @@ fn mixed_machine_canopen_and_modbus_runs_one_program() {
         // Two real-time buses and two emulators share this machine's two cores with the
         // test runner: a 100 ms deschedule of the Modbus link thread is a 1 mm lag at F600.
         // The window is for the run to finish; the following error is reported regardless.
-        .replace("following_error = 1.0\n\n[axes.s1]", "following_error = 5.0\n\n[axes.s1]")
-        .replace("following_error = 30.0", "following_error = 90.0");
+        .replace("following_error = 1.0\n\n[axes.s1]", "following_error = 5.0\n\n[axes.s1]");
     let srv = tcp_server(&format!("{machine0}\n[modbus.tcp]\ntransport = \"tcp\"\naddress = \"127.0.0.1:1\"\n"), &stop);
     let machine = format!("{machine0}\n[modbus.tcp]\ntransport = \"tcp\"\naddress = \"{}\"\ntimeout_ms = 200\n", srv.local_addr().unwrap());
     let cfg = write("mixed.toml", &machine);

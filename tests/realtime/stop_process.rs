@@ -24,8 +24,7 @@ fn machine() -> PathBuf {
     let lathe = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/config/lathe.toml")).unwrap();
     let m = lathe
         .replace("feedback_timeout_ms = 20", "feedback_timeout_ms = 300")
-        .replace("following_error = 1.0\n\n[axes.s1]", "following_error = 5.0\n\n[axes.s1]")
-        .replace("following_error = 30.0", "following_error = 90.0");
+        .replace("following_error = 1.0\n\n[axes.s1]", "following_error = 5.0\n\n[axes.s1]");
     let p = tmp("machine.toml");
     std::fs::write(&p, m).unwrap();
     p
