@@ -44,7 +44,12 @@ fn identify(axis: &str, m: &str) -> serde_json::Value {
 
 /// The truth of `axis` in model `m`: (delay in cycles, τ in s, 1/Kv in s, Kv's feed-forward).
 fn truth(axis: &str, m: &str) -> (f64, f64, f64, f64) {
-    let sim = sim_drives::SimConfig::from_toml(&std::fs::read_to_string(model(m)).unwrap()).unwrap();
+    truth_of(axis, &model(m))
+}
+
+/// The same for the model in `file`.
+fn truth_of(axis: &str, file: &str) -> (f64, f64, f64, f64) {
+    let sim = sim_drives::SimConfig::from_toml(&std::fs::read_to_string(file).unwrap()).unwrap();
     let d = sim.drives.iter().find(|d| d.axis == axis).unwrap();
     let mut p = d.physics.clone();
     p.coulomb_friction = 0.0;
@@ -87,6 +92,38 @@ fn identified_vs_truth() {
         }
     }
     assert!(bad.is_empty(), "identified beyond 10 % of the truth: {bad:#?}");
+}
+
+/// The variants outside the matrix (`tests/drive_models/variants/`: Z with 0–8-fold friction,
+/// other gains, feed-forward, inertia, encoder, backlash, velocity loop, a belt with friction;
+/// spindles on Kv 8/s, with eight-fold friction, with delay): the delay and τ within 10 % of
+/// the truth. One is not: on a slow velocity loop (Kp 0.15 N·m·s/rad, Ti 15 ms) with the
+/// emulator's friction τ reads 25.5 against 22.2 ms (+15 %; the same loop without friction
+/// +8 %) — held to 20 % so that it does not get worse unseen.
+#[test]
+fn identified_vs_truth_on_the_variants() {
+    let dir = format!("{}/tests/drive_models/variants", env!("CARGO_MANIFEST_DIR"));
+    let mut names: Vec<String> =
+        std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().path().file_stem().unwrap().to_string_lossy().into_owned()).collect();
+    names.sort();
+    assert_eq!(names.len(), 17, "{names:?}");
+    let mut bad = vec![];
+    for m in &names {
+        let axis = if m.starts_with('s') { "s1" } else { "z" };
+        let file = format!("{dir}/{m}.toml");
+        let o = cncgw(&["identify", axis, "--json", "--sim-config", &file]);
+        assert!(o.status.success(), "{m}: {}", String::from_utf8_lossy(&o.stderr));
+        let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        let (d0, tau0, ..) = truth_of(axis, &file);
+        let d = r["delay_cycles"].as_f64().unwrap();
+        let tau = r["time_constant_ms"].as_f64().unwrap() * 1e-3;
+        let bound = if m == "zvelslow" { 0.2 } else { 0.1 };
+        eprintln!("{m} {axis}: delay {d:.2} / {d0}, τ {:.1} / {:.1} ms", tau * 1e3, tau0 * 1e3);
+        if (d / d0 - 1.0).abs() > 0.1 || (tau / tau0 - 1.0).abs() > bound {
+            bad.push(format!("{m} {axis}: delay {d:.2} vs {d0}, τ {:.1} ms vs {:.1} ms", tau * 1e3, tau0 * 1e3));
+        }
+    }
+    assert!(bad.is_empty(), "identified beyond the bounds: {bad:#?}");
 }
 
 /// The lag of Z's actual behind its command in the middle of a 60 mm move at F1500, ms.
