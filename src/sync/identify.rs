@@ -21,8 +21,9 @@
 //! sign of the demand's speed (dry friction: a torque step wherever the axis starts, stops or
 //! reverses, as large in the error of a stiff feed axis as the position loop's own part) —
 //! on every row and again without the rows where friction makes the response non-linear
-//! (`linear_rows`), the shorter τ kept. Fitting `e` rather than the increments matters: with ff ≈ 0.995 the position loop carries
-//! half a percent of the motion but all of the following error. (3) `ff` from the
+//! (`linear_rows`), the shorter τ kept. Fitting `e` rather than the increments matters: with
+//! ff ≈ 0.995 the position loop carries half a percent of the motion but all of the following
+//! error. (3) `ff` from the
 //! error's gain at constant speed, `e = (1 − ff)·τ·v`; (4) `T` in the first-moment sense: the
 //! velocity lag regressed on the data minus `(1 − ff)·τ`. A delay that is not a whole number of
 //! cycles shows in the velocity lag (exactly) but is attributed to `ff` (by `f·dt/τ`), not to
@@ -91,11 +92,15 @@ const ANSWER: f64 = 0.04;
 /// The least corner, in encoder counts per cycle per cycle, whose 4 % stands above one count.
 const RESOLVED: f64 = 25.0;
 
+/// The encoder's quantum: the least step the actual position makes (`steps` its increments).
+fn quantum(steps: impl Iterator<Item = f64>) -> f64 {
+    steps.map(f64::abs).filter(|v| *v > 0.0).fold(f64::INFINITY, f64::min)
+}
+
 /// The answer's lag at each clean corner of the demand's speed (see `dead_time`).
 fn corners(du: &[f64], dy: &[f64], max_delay: usize) -> Vec<usize> {
     let n = du.len().min(dy.len());
-    // The encoder's quantum: the least step the actual position makes.
-    let q = dy.iter().map(|v| v.abs()).filter(|v| *v > 0.0).fold(f64::INFINITY, f64::min);
+    let q = quantum(dy.iter().copied());
     let mut lags = vec![];
     for k in 4..n.saturating_sub(max_delay + 1) {
         let c = du[k] - du[k - 1];
@@ -116,8 +121,8 @@ fn corners(du: &[f64], dy: &[f64], max_delay: usize) -> Vec<usize> {
     lags
 }
 
-/// The dead time in whole cycles from the data as a whole (where `corners` has too few): the first lag at which the actual answers a speed step
-/// with at least 4 % of it, on the step response of a plain ARX model of the increments (four
+/// The dead time in whole cycles from the data as a whole (where `corners` has too few): the
+/// first lag at which the actual answers a speed step with at least 4 % of it, on the step response of a plain ARX model of the increments (four
 /// poles, inputs at lags 0 … `max_delay + 6`). A drive that interpolates its set-point over
 /// the period answers in the first period it acts (the emulator: ≈ 10–20 % of the step), so
 /// the threshold sits well above the noise and below that.
@@ -220,7 +225,7 @@ const AFTER_BREAKAWAY_S: f64 = 0.04;
 /// still (no friction, unquantised data) every row is kept.
 fn linear_rows(cmd: &[f64], act: &[f64], after: usize) -> Vec<bool> {
     let n = cmd.len().min(act.len());
-    let q = (1..n).map(|k| (act[k] - act[k - 1]).abs()).filter(|v| *v > 0.0).fold(f64::INFINITY, f64::min);
+    let q = quantum((1..n).map(|k| act[k] - act[k - 1]));
     let still = |k: usize| (act[k] - act[k - 1]).abs() < 0.5 * q;
     let (mut keep, mut at_rest, mut moved) = (vec![true; n], false, None);
     for k in 1..n {
