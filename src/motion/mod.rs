@@ -1961,6 +1961,19 @@ impl Motion {
         (fb.pos[i] - sent[i]).abs() <= INPOS_MM && (fb.pos[i] - self.inpos_prev[i]).abs() <= INPOS_STILL_MM
     }
 
+    /// Before a thread arms (not a continuation): the feed axes in position on their
+    /// set-points and still, bounded. The manual is silent; a Fanuc 0i-TF checks in position at
+    /// the end of the positioning G00 (No.1601#5 NCI = 0) before G32 waits for the one-turn
+    /// signal. A slow or compliant Z that still runs in from the rapid (Kv 15 behind a belt:
+    /// 0.16 mm) otherwise begins the thread with that error, and the sync monitor stops it.
+    fn thread_in_position(&mut self, fb: &Feedback) -> bool {
+        let sent = self.hist[self.hist_k];
+        let ok = self.inpos_wait >= INPOS_MAX_CYCLES || (0..3).all(|i| !self.lim.present[i] || self.settled(fb, &sent, i));
+        self.inpos_prev = fb.pos;
+        self.inpos_wait = if ok { 0 } else { self.inpos_wait.saturating_add(1) };
+        ok
+    }
+
     /// G92.1 before its stroke: brake the spindle and wait in position.
     fn rigid_entry(&mut self, seg: RigidSeg, fb: &Feedback) {
         // Like rigid tapping: brake the spindle, then take its angle as the origin.
@@ -2216,6 +2229,7 @@ impl Motion {
             None if self.stopping => None,
             // Arm only once the spindle is at its commanded speed (speed arrival).
             None if self.sp_cur != self.sp_target || self.sp_target == 0.0 => None,
+            None if !seg.continuous && !self.thread_in_position(fb) => None,
             None => ThreadSync::arm_smooth(theta, rpm, seg.start_angle, seg.lead_path, seg.k_path, 0.8 * seg.alim, self.lim.thread_leadin_s),
         };
         let Some(t) = sync else {
