@@ -11,6 +11,11 @@
 //! captures the acceleration phases, where a first-moment model alone leaves an error that
 //! grows with the acceleration.
 
+/// τ₁ (cycles) below which the velocity lag is too small for its settling to matter.
+const LEAD_LAG_MIN_TAU1: f64 = 0.25;
+/// Longest settling of the lead filter, cycles.
+const LEAD_LAG_MAX: f64 = 100.0;
+
 /// RLS estimate of (τ₁, τ₂) in cycles / cycles².
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct LagModel {
@@ -19,12 +24,46 @@ pub struct LagModel {
     lambda: f64,
     /// Samples taken.
     pub samples: u32,
+    /// The lag's own settling: lag = ρ·lag₋₁ + b·Δd, fitted alongside (ρ, b).
+    settle: [f64; 2],
+    sp: [[f64; 2]; 2],
+    lag_prev: Option<f64>,
+}
+
+/// One step of a two-parameter recursive least squares with forgetting `lambda`; the
+/// covariance kept bounded where nothing excites it. False when the sample was not taken.
+fn rls2(theta: &mut [f64; 2], p: &mut [[f64; 2]; 2], lambda: f64, phi: [f64; 2], y: f64) -> bool {
+    let pphi = [p[0][0] * phi[0] + p[0][1] * phi[1], p[1][0] * phi[0] + p[1][1] * phi[1]];
+    let den = lambda + phi[0] * pphi[0] + phi[1] * pphi[1];
+    if !(den > 1e-12) {
+        return false;
+    }
+    let k = [pphi[0] / den, pphi[1] / den];
+    let e = y - (phi[0] * theta[0] + phi[1] * theta[1]);
+    theta[0] += k[0] * e;
+    theta[1] += k[1] * e;
+    for i in 0..2 {
+        for j in 0..2 {
+            p[i][j] = (p[i][j] - k[i] * pphi[j]) / lambda;
+        }
+    }
+    // Keep P bounded when there is no excitation (covariance wind-up).
+    let tr = p[0][0] + p[1][1];
+    if tr > 1e4 {
+        for r in p.iter_mut() {
+            for x in r {
+                *x *= 1e4 / tr;
+            }
+        }
+    }
+    true
 }
 
 impl LagModel {
     /// `memory_cycles`: the forgetting horizon (λ = 1 − 1/memory).
     pub fn new(memory_cycles: f64) -> LagModel {
-        LagModel { theta: [0.0; 2], p: [[1e2, 0.0], [0.0, 1e2]], lambda: 1.0 - 1.0 / memory_cycles.max(2.0), samples: 0 }
+        let p = [[1e2, 0.0], [0.0, 1e2]];
+        LagModel { theta: [0.0; 2], p, lambda: 1.0 - 1.0 / memory_cycles.max(2.0), samples: 0, settle: [0.0; 2], sp: p, lag_prev: None }
     }
 
     /// One sample: the lag (command − actual) and the command's increments `dv` (this cycle's
@@ -33,31 +72,13 @@ impl LagModel {
         if !(dv.is_finite() && da.is_finite() && lag.is_finite()) {
             return;
         }
-        let phi = [dv, da];
-        let pphi = [self.p[0][0] * phi[0] + self.p[0][1] * phi[1], self.p[1][0] * phi[0] + self.p[1][1] * phi[1]];
-        let den = self.lambda + phi[0] * pphi[0] + phi[1] * pphi[1];
-        if !(den > 1e-12) {
+        if !rls2(&mut self.theta, &mut self.p, self.lambda, [dv, da], lag) {
             return;
         }
-        let k = [pphi[0] / den, pphi[1] / den];
-        let e = lag - (phi[0] * self.theta[0] + phi[1] * self.theta[1]);
-        self.theta[0] += k[0] * e;
-        self.theta[1] += k[1] * e;
-        for i in 0..2 {
-            for j in 0..2 {
-                self.p[i][j] = (self.p[i][j] - k[i] * pphi[j]) / self.lambda;
-            }
+        if let Some(l1) = self.lag_prev {
+            rls2(&mut self.settle, &mut self.sp, self.lambda, [l1, dv], lag);
         }
-        // Keep P bounded when there is no excitation (covariance wind-up).
-        let tr = self.p[0][0] + self.p[1][1];
-        if tr > 1e4 {
-            let s = 1e4 / tr;
-            for r in &mut self.p {
-                for x in r {
-                    *x *= s;
-                }
-            }
-        }
+        self.lag_prev = Some(lag);
         self.samples = self.samples.saturating_add(1);
     }
 
@@ -71,6 +92,20 @@ impl LagModel {
     pub fn lead(&self, dv: f64, da: f64) -> f64 {
         let (t1, t2) = self.params();
         t1 * dv + (t1 * t1 + t2) * da
+    }
+
+    /// Where the lag settles on its own — a position loop with feed-forward: lag =
+    /// τ₁·v/(1 + T·s), T = 1/Kv; the settling fit's ρ = e^(−1/T) per cycle — the time constant
+    /// (cycles) of the lead that inverts it exactly: τ₁·v/(1 + (T − τ₁)·s). None where
+    /// `lead`'s two terms are the better model: a transport delay (T ≤ τ₁ + 1), τ₁ ≈ 0.
+    /// Why a fit of its own: the two-term fit's τ₂ = −τ₁·T holds only where the acceleration
+    /// changes slowly against T; through a tap's acceleration steps it read T ≈ 1 cycle on a
+    /// Kv 25/s drive (truth 20).
+    pub fn lead_lag(&self) -> Option<f64> {
+        let t1 = self.params().0;
+        let rho = self.settle[0].clamp(0.0, 0.99);
+        let tf = rho / (1.0 - rho) - t1;
+        (t1 >= LEAD_LAG_MIN_TAU1 && tf >= 1.0).then(|| tf.min(LEAD_LAG_MAX))
     }
 }
 
@@ -107,5 +142,23 @@ mod tests {
         let (t1, _) = m.params();
         let want = (1.0 - ff) / kv / dt;
         assert!((t1 - want).abs() < 0.1 * want, "τ1 {t1} cycles, want {want}");
+        // Its lag settles over 1/kv (20 cycles): the lead through it, 20 − τ₁ cycles.
+        let tf = m.lead_lag().expect("a settling lag");
+        let want_tf = 1.0 / kv / dt - want;
+        assert!((tf - want_tf).abs() < 0.15 * want_tf, "lead filter {tf} cycles, want {want_tf}");
+    }
+
+    #[test]
+    fn a_transport_delay_keeps_the_two_term_lead() {
+        // The actual is the set-point of three cycles before: nothing settles.
+        let mut m = LagModel::new(500.0);
+        let u = |k: f64| 10.0 * (1.0 - (k * 0.006).cos()) + 0.004 * k;
+        for k in 5..3000 {
+            let k = k as f64;
+            let (dv, dv1) = (u(k) - u(k - 1.0), u(k - 1.0) - u(k - 2.0));
+            m.update(dv, dv - dv1, u(k) - u(k - 3.0));
+        }
+        assert!((m.params().0 - 3.0).abs() < 0.1, "{:?}", m.params());
+        assert_eq!(m.lead_lag(), None);
     }
 }

