@@ -59,7 +59,7 @@ const FORGET: f64 = 0.995;
 /// Weight of the prior "the unseen direction mirrors the seen one" (samples).
 const MIRROR_PRIOR: f64 = 1.0;
 /// Motion of the motor (counts) that shows it has started at its first start.
-const PROBE_MOVED_COUNTS: i64 = 2;
+const PROBE_MOVED_COUNTS: f64 = 2.0;
 /// Share of the friction the drive's torque has risen by when a rigid slide moves (all of
 /// it, less what one cycle's sampling misses); a motor behind a belt moves with far less.
 const PROBE_RIGID_SHARE: f64 = 0.5;
@@ -146,7 +146,7 @@ impl FrictionComp {
         // The drive's own torque (ours taken out), averaged over a few cycles (a belt rings).
         self.t_rest += (f64::from(permille) - f64::from(self.sent) - self.t_rest) * 0.25;
         if let (Probe::Started { from, dir, t0 }, Some(p)) = (self.probe, self.act) {
-            if (p - from) as f64 * dir >= PROBE_MOVED_COUNTS as f64 {
+            if (p - from) as f64 * dir >= PROBE_MOVED_COUNTS {
                 self.probe = Probe::Moved { dir, t0, rise: (f64::from(permille) - t0) * dir };
             }
         }

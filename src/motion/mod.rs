@@ -1961,6 +1961,11 @@ impl Motion {
         (fb.pos[i] - sent[i]).abs() <= INPOS_MM && (fb.pos[i] - self.inpos_prev[i]).abs() <= INPOS_STILL_MM
     }
 
+    /// Every feed axis the machine has `settled`.
+    fn feed_axes_settled(&self, fb: &Feedback, sent: &[f64; N_AXES]) -> bool {
+        (0..3).all(|i| !self.lim.present[i] || self.settled(fb, sent, i))
+    }
+
     /// Before a thread arms (not a continuation): the feed axes in position on their
     /// set-points and still, bounded. The manual is silent; a Fanuc 0i-TF checks in position at
     /// the end of the positioning G00 (No.1601#5 NCI = 0) before G32 waits for the one-turn
@@ -1968,7 +1973,7 @@ impl Motion {
     /// 0.16 mm) otherwise begins the thread with that error, and the sync monitor stops it.
     fn thread_in_position(&mut self, fb: &Feedback) -> bool {
         let sent = self.hist[self.hist_k];
-        let ok = self.inpos_wait >= INPOS_MAX_CYCLES || (0..3).all(|i| !self.lim.present[i] || self.settled(fb, &sent, i));
+        let ok = self.inpos_wait >= INPOS_MAX_CYCLES || self.feed_axes_settled(fb, &sent);
         self.inpos_prev = fb.pos;
         self.inpos_wait = if ok { 0 } else { self.inpos_wait.saturating_add(1) };
         ok
@@ -1984,8 +1989,7 @@ impl Motion {
         let sent = self.hist[self.hist_k];
         let in_pos = self.inpos_wait >= INPOS_MAX_CYCLES
             || seg.u_long == 0.0
-            || ((0..3).all(|i| !self.lim.present[i] || self.settled(fb, &sent, i))
-                && (fb.pos[AX_S] - sent[AX_S]).abs() * seg.plen / seg.dc.abs().max(1e-9) <= INPOS_MM);
+            || (self.feed_axes_settled(fb, &sent) && (fb.pos[AX_S] - sent[AX_S]).abs() * seg.plen / seg.dc.abs().max(1e-9) <= INPOS_MM);
         self.inpos_prev = fb.pos;
         self.inpos_wait = if self.sp_cur == 0.0 { self.inpos_wait.saturating_add(1) } else { 0 };
         if self.stopping {

@@ -122,10 +122,11 @@ fn corners(du: &[f64], dy: &[f64], max_delay: usize) -> Vec<usize> {
 }
 
 /// The dead time in whole cycles from the data as a whole (where `corners` has too few): the
-/// first lag at which the actual answers a speed step with at least 4 % of it, on the step response of a plain ARX model of the increments (four
-/// poles, inputs at lags 0 … `max_delay + 6`). A drive that interpolates its set-point over
-/// the period answers in the first period it acts (the emulator: ≈ 10–20 % of the step), so
-/// the threshold sits well above the noise and below that.
+/// first lag at which the actual answers a speed step with at least 4 % of it, on the step
+/// response of a plain ARX model of the increments (four poles, inputs at lags 0 …
+/// `max_delay + 6`). A drive that interpolates its set-point over the period answers in the
+/// first period it acts (the emulator: ≈ 10–20 % of the step), so the threshold sits well
+/// above the noise and below that.
 fn dead_time_arx(du: &[f64], dy: &[f64], max_delay: usize) -> Option<usize> {
     let (na, nb) = (4, max_delay + 6);
     let n = du.len().min(dy.len());

@@ -50,10 +50,9 @@ fn rls2(theta: &mut [f64; 2], p: &mut [[f64; 2]; 2], lambda: f64, phi: [f64; 2],
     // Keep P bounded when there is no excitation (covariance wind-up).
     let tr = p[0][0] + p[1][1];
     if tr > 1e4 {
-        for r in p.iter_mut() {
-            for x in r {
-                *x *= 1e4 / tr;
-            }
+        let s = 1e4 / tr;
+        for x in p.iter_mut().flatten() {
+            *x *= s;
         }
     }
     true
