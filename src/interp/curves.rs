@@ -4,6 +4,21 @@
 
 type P = (f64, f64);
 
+/// Most points one curve block may become: 100 000 chords are over 20 m of parabola at the
+/// chord tolerance. A block asking for more has a coordinate out of all proportion (a
+/// fuzzed X9352710 asked for 16 million and ran the interpreter out of memory): refused
+/// before anything is allocated.
+pub const MAX_POINTS: usize = 100_000;
+
+/// `n` points, or the refusal that says why.
+fn bounded(n: f64, what: &str) -> Result<usize, String> {
+    if n.is_finite() && n <= MAX_POINTS as f64 {
+        Ok((n as usize).max(1))
+    } else {
+        Err(format!("the {what} would need more than {MAX_POINTS} points at the chord tolerance: check its coordinates and parameters"))
+    }
+}
+
 fn rot(p: P, a: f64) -> P {
     let (s, c) = a.sin_cos();
     (c * p.0 - s * p.1, s * p.0 + c * p.1)
@@ -56,7 +71,7 @@ pub fn ellipse(s: P, e: P, a: f64, b: f64, phi: f64, cw: bool, tol: f64) -> Resu
         }
     }
     let step = if tol >= a { std::f64::consts::FRAC_PI_2 } else { 2.0 * (1.0 - tol / a).acos() };
-    let n = ((sweep.abs() / step).ceil() as usize).max(1);
+    let n = bounded((sweep.abs() / step).ceil(), "ellipse")?;
     let mut out = Vec::with_capacity(n);
     for i in 1..n {
         let t = ts + sweep * i as f64 / n as f64;
@@ -89,7 +104,7 @@ pub fn parabola(s: P, e: P, p: f64, phi: f64, cw: bool, tol: f64) -> Result<Vec<
     let t0 = t2 / 2.0 - sign * p * s2 / t2;
     let s0 = -sign * t0 * t0 / (2.0 * p);
     let dt = (8.0 * p * tol).sqrt();
-    let n = ((t2.abs() / dt).ceil() as usize).max(1);
+    let n = bounded((t2.abs() / dt).ceil(), "parabola")?;
     let mut out = Vec::with_capacity(n);
     for i in 1..n {
         let t = t2 * i as f64 / n as f64;
@@ -104,6 +119,17 @@ pub fn parabola(s: P, e: P, p: f64, phi: f64, cw: bool, tol: f64) -> Result<Vec<
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_curve_of_absurd_size_is_refused_before_it_is_built() {
+        // The fuzzer's G3.2 from X9352710 to X60 (radius, mm), P10: 16 million chords.
+        let e = parabola((0.0, 4_676_355.0), (-40.0, 30.0), 10.0, 0.0, false, 0.002).unwrap_err();
+        assert!(e.contains("more than 100000 points"), "{e}");
+        let e = ellipse((0.0, 0.0), (1.0, 1.0), 1e12, 1e12, 0.0, false, 1e-9).unwrap_err();
+        assert!(e.contains("ellipse"), "{e}");
+        // The manual's own example is far below the bound.
+        assert!(parabola((0.0, 15.0), (-40.0, 30.0), 10.0, 0.0, false, 0.002).is_ok());
+    }
 
     #[test]
     fn ellipse_points_lie_on_the_ellipse_within_tolerance() {
