@@ -122,6 +122,36 @@ fn belt_variants_hold_the_tap_in_the_air() {
         let b3 = if name == "belt_friction4" { 7.0 } else { 5.0 };
         let (m3, m6, mg) = (r.tap_3000.unwrap().0, r.tap_6000.unwrap().0, r.g92_1.unwrap().0);
         assert!(m3 <= b3 && m6 <= 10.0, "{name}: tap S3000 {m3:.2} µm (bound {b3}), S6000 {m6:.2} µm (bound 10)");
-        assert!(mg <= 7.0, "{name}: G92.1 {mg:.2} µm (bound 7)");
+        // Four-fold friction behind the belt: 7.0 µm since the lag fits learn faster (6.5
+        // before, `LAG_FIT_FLOOR_MM_S`).
+        let bg = if name == "belt_friction4" { 7.5 } else { 7.0 };
+        assert!(mg <= bg, "{name}: G92.1 {mg:.2} µm (bound {bg})");
+    }
+}
+
+/// Z with less velocity feed-forward than lowff_z (`tests/drive_models/lowff_variants/`: 80 %
+/// at Kv 50/s, 85 % at 30 and 40/s, 90 % at 25/s), in the air: every bound of the issue, no
+/// alarm. Before the lag fits weighed their samples alike (2026-11-29) the first tap began
+/// with half the lag learnt: 85 % at Kv 30 gave 4.1 / 4.1 / 5.4 µm (S3000 / S6000 / G92.1),
+/// now 2.7 / 2.7 / 2.6. (Below ≈ 75 % at Kv 50 the lag at rapid passes the embedded config's
+/// 1 mm window: alarm 2010, a window to size from `cncgw identify`.)
+#[test]
+fn lowff_variants_hold_the_tap_and_the_thread_in_the_air() {
+    let cfg = MachineConfig::embedded();
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/drive_models/lowff_variants");
+    let mut files: Vec<_> =
+        std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().path()).filter(|p| p.extension().is_some_and(|x| x == "toml")).collect();
+    files.sort();
+    assert!(files.len() >= 4, "{files:?}");
+    for f in files {
+        let name = f.file_stem().unwrap().to_string_lossy().into_owned();
+        let r = measure_model_with(&cfg, &std::fs::read_to_string(&f).unwrap(), 0, false).unwrap();
+        eprintln!("{name} in the air: {r:?}");
+        assert!(r.alarms.is_empty(), "{name}: {:?}", r.alarms);
+        let (m3, m6, mg) = (r.tap_3000.unwrap().0, r.tap_6000.unwrap().0, r.g92_1.unwrap().0);
+        assert!(m3 <= 5.0 && m6 <= 10.0, "{name}: tap S3000 {m3:.2} µm (bound 5), S6000 {m6:.2} µm (bound 10)");
+        assert!(mg <= 5.0, "{name}: G92.1 {mg:.2} µm (bound 5)");
+        let p = r.phase_spread.unwrap();
+        assert!(p <= 0.1, "{name}: thread phase spread {p:.3}° (bound 0.1)");
     }
 }
