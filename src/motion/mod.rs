@@ -101,6 +101,7 @@ mod tests;
 use crate::canon::{Feed, Move, MoveKind, Plane, Pos, SpindleCmd, SpindleDir};
 use crate::config::{AxisKind, MachineConfig};
 use crate::sync::correction::SyncCorrection;
+use crate::sync::governor::SpindleGovernor;
 use crate::sync::monitor::{Sample, SyncMonitor};
 use crate::sync::ThreadSync;
 use crate::Alarm;
@@ -141,6 +142,14 @@ const TAP_BELL_CYCLES: f64 = 10.0;
 /// phase spread S500–1500: 0.166° with a step, 0.142° at 20 ms, 0.088° at 30 ms, 0.033° at
 /// 40 ms, 0.024° at 50 ms (drive matrix, air, 2026-11-28).
 const THREAD_LEADIN_SMOOTH_S: f64 = 0.04;
+/// Share of the spindle's following-error window (0x6065) its lag must reach before the
+/// governor judges it (`sync::governor`): below it a lag is the loop's own. 9° of 180°: at a
+/// quarter of the window the spindle of 0.12 kg·m² was found too late — 130° behind by then,
+/// it overshot by 180° where the tap braked.
+const SP_LAG_JUDGE_SHARE: f64 = 0.05;
+/// Share of what a spindle out of torque was seen to manage that is planned with from then
+/// on (`Motion::govern_spindle`).
+const SP_ACCEL_MARGIN: f64 = 0.9;
 /// Gain with which a thread's measured phase error corrects the long axis' lag, per cycle.
 const THREAD_TRIM_GAIN: f64 = 0.1;
 /// Most junctions of a blended chain crossed within one cycle. Keeps `step` bounded: a
@@ -289,6 +298,9 @@ pub struct Limits {
     /// time constant; here a moving average that keeps the phase exact), else
     /// THREAD_LEADIN_SMOOTH_S.
     pub thread_leadin_s: f64,
+    /// Spindle lag (degrees) from which on the governor judges whether it falls behind
+    /// (`SP_LAG_JUDGE_SHARE` of its following-error window); ∞ = never.
+    pub sp_lag_judge: f64,
     /// In rigid taps and G92.1, add the spindle's measured lag (times the lead) to the feed
     /// axes' setpoint, so that they follow the spindle's *actual* angle (see `sync_corr`).
     /// Needs `Feedback` as `CycleLoop` delivers it: the answer to the setpoint of
@@ -330,6 +342,7 @@ impl Limits {
             tap_retract_accel: f64::INFINITY,
             tap_bell_s: 0.0,
             thread_leadin_s: 0.0,
+            sp_lag_judge: f64::INFINITY,
             sync_correction: true,
             feedback_delay: FEEDBACK_DELAY,
             flex_lag_cycles: cfg.param(5275).filter(|n| n.is_finite() && *n > 0.0).unwrap_or(0.0),
@@ -351,6 +364,7 @@ impl Limits {
             if i == AX_S {
                 l.vmax[i] = a.max_speed * 6.0;
                 l.amax[i] = a.max_accel * 6.0;
+                l.sp_lag_judge = SP_LAG_JUDGE_SHARE * a.following_error;
             } else {
                 l.vmax[i] = a.max_speed / 60.0;
                 l.amax[i] = a.max_accel;
@@ -633,6 +647,10 @@ pub struct Motion {
     sp_css: Option<f64>,
     sp_max: f64,
     sp_cur: f64,
+    /// Whether the spindle manages its acceleration (`sync::governor`), and the acceleration
+    /// it was found to manage (deg/s², ∞ until it fell behind once).
+    sp_gov: SpindleGovernor,
+    sp_accel_cap: f64,
     /// The speed the ramp is heading for this cycle (rpm, signed).
     sp_target: f64,
     // Operator controls.
@@ -772,6 +790,8 @@ impl Motion {
             sp_css: None,
             sp_max: f64::INFINITY,
             sp_cur: 0.0,
+            sp_gov: SpindleGovernor::default(),
+            sp_accel_cap: f64::INFINITY,
             sp_target: 0.0,
             feed_ovr: 1.0,
             rapid_ovr: 1.0,
@@ -1697,7 +1717,7 @@ impl Motion {
         let target = if self.stopping { 0.0 } else { self.sp_dir * mag.min(machine_max) };
         self.sp_target = target;
         // In polygon turning the tool spindle must keep up with the ratio (polygon.rs).
-        let step = self.lim.amax[AX_S].min(self.tool.work_accel_cap()) / 6.0 * dt;
+        let step = self.lim.amax[AX_S].min(self.tool.work_accel_cap()).min(self.sp_accel_cap) / 6.0 * dt;
         let d = target - self.sp_cur;
         self.sp_cur = if d.abs() <= step { target } else { self.sp_cur + step.copysign(d) };
         self.pos[AX_S] += self.sp_cur * 6.0 * dt;
@@ -1761,6 +1781,7 @@ impl Motion {
         let prev = self.pos;
         self.relax();
         self.monitor_sync(fb);
+        self.govern_spindle(fb);
         // In a rigid-tap stroke the spindle is a position axis driven by the tap profile.
         if !matches!(self.run, Run::Tap { theta0: Some(_), .. } | Run::Rigid { theta0: Some(_), .. })
             && !matches!(self.run, Run::Polar(r) if r.holds_spindle())
@@ -1773,6 +1794,34 @@ impl Motion {
             self.stopped_at_rest();
         }
         self.setpoint(fb, &prev, path_v, event)
+    }
+
+    /// A spindle out of torque (`sync::governor`): from then on every ramp, tap and G92.1
+    /// stroke plans with 90 % of what it managed — the running stroke too, where it can still
+    /// brake at that rate. The manual is silent; a SINUMERIK 828D plans a rigid tap within
+    /// the spindle's acceleration characteristic (MD35200), which is found here at run time; a
+    /// Fanuc 0i-TF would stop with SV0411 (excess error in motion).
+    fn govern_spindle(&mut self, fb: &Feedback) {
+        if fb.age[AX_S] != 0 {
+            return;
+        }
+        let fd = self.lim.feedback_delay.clamp(1, HIST - 3);
+        let sent = self.hist[(self.hist_k + HIST - (fd - 1)) % HIST][AX_S];
+        if let Some(a) = self.sp_gov.update(sent, fb.pos[AX_S], self.lim.cycle_s, self.lim.sp_lag_judge) {
+            self.sp_accel_cap = self.sp_accel_cap.min(SP_ACCEL_MARGIN * a);
+        }
+    }
+
+    /// A stroke's path acceleration `alim` (and jerk `jlim`) within what the spindle was found
+    /// to manage, `per_deg` path units per spindle degree — where it can still brake at the
+    /// lower rate from speed `v` within `d` (else it keeps its plan).
+    fn capped_accel(&self, alim: f64, jlim: f64, per_deg: f64, v: f64, d: f64) -> (f64, f64) {
+        let a = alim.min(self.sp_accel_cap * per_deg);
+        if a < alim && a > 0.0 && v * v / (2.0 * a) <= d {
+            (a, jlim * a / alim)
+        } else {
+            (alim, jlim)
+        }
     }
 
     /// When nothing runs: the single-block stop, then the next queued item started (its
@@ -2001,13 +2050,16 @@ impl Motion {
     }
 
     /// A G92.1 stroke: one profile for path and spindle (`sv`: arc length done, speed).
-    fn step_rigid(&mut self, seg: RigidSeg, th0: f64, sv: (f64, f64), prev: &[f64; N_AXES]) -> f64 {
+    fn step_rigid(&mut self, mut seg: RigidSeg, th0: f64, sv: (f64, f64), prev: &[f64; N_AXES]) -> f64 {
         // One profile for path and spindle; feed hold and override do not apply (a
         // thread), a controlled stop brakes both together on the same profile.
         let dt = self.lim.cycle_s;
         let (s, v) = sv;
         let len = seg.plen;
         let d = len - s;
+        if seg.dc != 0.0 {
+            (seg.alim, _) = self.capped_accel(seg.alim, 0.0, len / seg.dc.abs(), v, d);
+        }
         let v_cmd = if self.stopping { 0.0 } else { seg.v };
         let nv = profile::next_speed(v, v_cmd, d, seg.alim * dt, dt);
         let (s2, landed) = if d - nv * dt <= 1e-9 { (len, true) } else { (s + nv * dt, false) };
@@ -2092,13 +2144,14 @@ impl Motion {
     }
 
     /// A rigid-tap stroke: axis and spindle on one profile (`r`: the tap reference, `sv`: done, speed).
-    fn step_tap(&mut self, seg: TapSeg, r: (f64, f64), sv: (f64, f64), prev: &[f64; N_AXES]) -> f64 {
+    fn step_tap(&mut self, mut seg: TapSeg, r: (f64, f64), sv: (f64, f64), prev: &[f64; N_AXES]) -> f64 {
         // Feed hold acts within the stroke only with No.5200#6 (see hold_now); a hold
         // or a controlled stop brakes the axis and the spindle together on one profile.
         let dt = self.lim.cycle_s;
         let ((pr, thr), (s, v)) = (r, sv);
         let len = (seg.p1 - seg.p0).abs();
         let d = len - s;
+        (seg.alim, seg.jlim) = self.capped_accel(seg.alim, seg.jlim, seg.lead.abs() / 360.0, v, d);
         let v_cmd = if self.stopping || (self.held && self.lim.tap_hold_in_hole) { 0.0 } else { seg.v };
         let (nv, adv) = if seg.jlim > 0.0 {
             let (nv, na, adv) = profile::next_state(v, if s == 0.0 { 0.0 } else { self.path_a }, v_cmd, d, seg.alim, seg.jlim, dt);

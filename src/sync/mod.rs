@@ -1,6 +1,7 @@
 //! Spindle–axis synchronization (threading, rigid tapping) and its error monitor.
 
 pub mod correction;
+pub mod governor;
 pub mod identify;
 pub mod lag;
 pub mod lag_tracker;
