@@ -1031,6 +1031,7 @@ fn print_summary(s: &RunSummary, json: bool, alarm: Option<&crate::Alarm>) {
                 "time_s": s.rest.time_s,
                 "spindle_rpm_at_torque_off": s.rest.spindle_rpm_at_off,
             },
+            "spindle_accel_managed_rpm_s": s.spindle_accel_rpm_s,
             "axes": axes,
         });
         println!("{v}");
@@ -1049,6 +1050,11 @@ fn print_summary(s: &RunSummary, json: bool, alarm: Option<&crate::Alarm>) {
         s.overruns,
         s.enable_time_s
     );
+    if let Some(a) = s.spindle_accel_rpm_s {
+        println!(
+            "spindle: it managed only {a:.0} rpm/s of the acceleration asked of it; the run planned with 90 % of that from then on — set the spindle's max_accel (and No.5261/5271) to what it can do, or check its drive's torque limit"
+        );
+    }
     println!(
         "{:<5} {:>18} {:>18} {:>18} {:>18}  result (positions: X as a diameter)",
         "axis", "max follow. error", "final actual", "final target", "program end"

@@ -174,6 +174,9 @@ pub struct RunSummary {
     pub simulated: bool,
     /// How spindle and axes came to rest at the end (every cause).
     pub rest: Rest,
+    /// The spindle could not give its configured acceleration: what it managed (rpm/s), which
+    /// the run planned with 90 % of from then on (`Motion::spindle_accel_found`).
+    pub spindle_accel_rpm_s: Option<f64>,
 }
 
 impl RunSummary {
@@ -476,6 +479,7 @@ impl<'a> CycleLoop<'a> {
             summary.machining_time_s = self.clock.now_ns().saturating_sub(t0) as f64 * 1e-9;
         }
         summary.rest = self.to_rest(&mut motion, &mut still);
+        summary.spindle_accel_rpm_s = motion.spindle_accel_found();
         // Where every drive stands once at rest (after an alarm too, not zeros).
         for (d, a) in summary.axes.iter_mut().enumerate() {
             a.final_actual_counts = self.drives.feedback(d).counts;

@@ -2605,6 +2605,12 @@ impl Motion {
         self.spindle_ovr = if f.is_finite() { f.clamp(0.5, 1.2) } else { 1.0 };
     }
 
+    /// The acceleration the spindle was found to manage, rpm/s, where it could not give the
+    /// configured one (`govern_spindle`); None while it could.
+    pub fn spindle_accel_found(&self) -> Option<f64> {
+        self.sp_accel_cap.is_finite().then(|| self.sp_accel_cap / SP_ACCEL_MARGIN / 6.0)
+    }
+
     /// The spindle speed override in effect (0.5–1.2).
     pub fn spindle_override(&self) -> f64 {
         self.spindle_ovr
