@@ -1805,11 +1805,17 @@ impl Motion {
         if fb.age[AX_S] != 0 {
             return;
         }
-        let fd = self.lim.feedback_delay.clamp(1, HIST - 3);
-        let sent = self.hist[(self.hist_k + HIST - (fd - 1)) % HIST][AX_S];
+        let sent = self.answered(0)[AX_S];
         if let Some(a) = self.sp_gov.update(sent, fb.pos[AX_S], self.lim.cycle_s, self.lim.sp_lag_judge) {
             self.sp_accel_cap = self.sp_accel_cap.min(SP_ACCEL_MARGIN * a);
         }
+    }
+
+    /// The set-point this cycle's feedback answers (paired over the feedback delay), or the
+    /// one `back` cycles before it.
+    fn answered(&self, back: usize) -> [f64; N_AXES] {
+        let fd = self.lim.feedback_delay.clamp(1, HIST - 3);
+        self.hist[(self.hist_k + HIST - (fd - 1) - back) % HIST]
     }
 
     /// A stroke's path acceleration `alim` (and jerk `jlim`) within what the spindle was found
@@ -2374,10 +2380,7 @@ impl Motion {
             _ if self.in_hole => Some(self.corr.gain()),
             _ => None,
         };
-        let fd = self.lim.feedback_delay.clamp(1, HIST - 3);
-        let sent = self.hist[(self.hist_k + HIST - (fd - 1)) % HIST];
-        let before = self.hist[(self.hist_k + HIST - fd) % HIST];
-        let before2 = self.hist[(self.hist_k + HIST - fd - 1) % HIST];
+        let (sent, before, before2) = (self.answered(0), self.answered(1), self.answered(2));
         // Every feed axis' lag model learns from all its motion (the rapid to R teaches it
         // before the tap begins).
         // Feedback from a late TPDO answers an older set-point: learn nothing from it, and

@@ -108,16 +108,7 @@ fn the_tap_and_the_thread_ride_a_jittery_sync() {
 /// damped belt (0.44°) is not bounded here: the 0.1° is not met there (README).
 #[test]
 fn belt_variants_hold_the_tap_in_the_air() {
-    let cfg = MachineConfig::embedded();
-    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/drive_models/belt_variants");
-    let mut files: Vec<_> =
-        std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().path()).filter(|p| p.extension().is_some_and(|x| x == "toml")).collect();
-    files.sort();
-    assert!(files.len() >= 10, "{files:?}");
-    for f in files {
-        let name = f.file_stem().unwrap().to_string_lossy().into_owned();
-        let r = measure_model_with(&cfg, &std::fs::read_to_string(&f).unwrap(), 0, false).unwrap();
-        eprintln!("{name} in the air: {r:?}");
+    for (name, r) in in_the_air("belt_variants", 10) {
         assert!(r.alarms.is_empty(), "{name}: {:?}", r.alarms);
         let b3 = if name == "belt_friction4" { 7.0 } else { 5.0 };
         let (m3, m6, mg) = (r.tap_3000.unwrap().0, r.tap_6000.unwrap().0, r.g92_1.unwrap().0);
@@ -137,16 +128,7 @@ fn belt_variants_hold_the_tap_in_the_air() {
 /// 1 mm window: alarm 2010, a window to size from `cncgw identify`.)
 #[test]
 fn lowff_variants_hold_the_tap_and_the_thread_in_the_air() {
-    let cfg = MachineConfig::embedded();
-    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/drive_models/lowff_variants");
-    let mut files: Vec<_> =
-        std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().path()).filter(|p| p.extension().is_some_and(|x| x == "toml")).collect();
-    files.sort();
-    assert!(files.len() >= 4, "{files:?}");
-    for f in files {
-        let name = f.file_stem().unwrap().to_string_lossy().into_owned();
-        let r = measure_model_with(&cfg, &std::fs::read_to_string(&f).unwrap(), 0, false).unwrap();
-        eprintln!("{name} in the air: {r:?}");
+    for (name, r) in in_the_air("lowff_variants", 4) {
         assert!(r.alarms.is_empty(), "{name}: {:?}", r.alarms);
         let (m3, m6, mg) = (r.tap_3000.unwrap().0, r.tap_6000.unwrap().0, r.g92_1.unwrap().0);
         assert!(m3 <= 5.0 && m6 <= 10.0, "{name}: tap S3000 {m3:.2} µm (bound 5), S6000 {m6:.2} µm (bound 10)");
@@ -180,4 +162,23 @@ fn heavy_variants_are_governed_in_the_air() {
         let p = r.phase_spread.unwrap();
         assert!(p <= bp, "{name}: thread phase spread {p:.3}° (bound {bp})");
     }
+}
+
+/// Every model of `tests/drive_models/SUB` (at least `min`), measured in the air: (name, row).
+fn in_the_air(sub: &str, min: usize) -> Vec<(String, cncgw::control::embedded::matrix::MatrixRow)> {
+    let cfg = MachineConfig::embedded();
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/drive_models").join(sub);
+    let mut files: Vec<_> =
+        std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().path()).filter(|p| p.extension().is_some_and(|x| x == "toml")).collect();
+    files.sort();
+    assert!(files.len() >= min, "{files:?}");
+    files
+        .iter()
+        .map(|f| {
+            let name = f.file_stem().unwrap().to_string_lossy().into_owned();
+            let r = measure_model_with(&cfg, &std::fs::read_to_string(f).unwrap(), 0, false).unwrap();
+            eprintln!("{name} in the air: {r:?}");
+            (name, r)
+        })
+        .collect()
 }
