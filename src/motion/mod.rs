@@ -670,6 +670,11 @@ pub struct Motion {
     /// Each feed axis' effective lag on a thread's synchronous line, s, learnt from the
     /// threads' own measured phase error (None: not yet threaded; the lag model's τ₁ then).
     thread_tau: [Option<f64>; 3],
+    /// A thread's ideal path step per cycle through the settling lead's filter (see
+    /// `thread_shortfall`), mm.
+    thread_vf: f64,
+    /// The long axis' settling (`SyncCorrection::settling`) as it was when the pass armed.
+    thread_settle: Option<(f64, f64)>,
     /// The lock of the thread segment that ended last and its length, for a continuous
     /// segment that follows it (cleared by any other item).
     thread_chain: Option<(ThreadSync, f64)>,
@@ -759,6 +764,8 @@ impl Motion {
             fault: None,
             monitor: SyncMonitor::default(),
             thread_tau: [None; 3],
+            thread_vf: 0.0,
+            thread_settle: None,
             thread_chain: None,
             tap_ref: None,
             in_hole: false,
@@ -2270,11 +2277,11 @@ impl Motion {
         // phase would move with the rpm by ω·τ.
         let la = seg.long_axis.min(2);
         let mut tau = self.thread_tau[la].unwrap_or_else(|| self.axis_lag(la));
-        // Learn the lag from the phase error itself on the synchronous line (steady speed):
-        // an error e at path speed v is a lag misjudged by e/v.
+        // Learn the lag from the phase error itself on the synchronous line (the lead-in
+        // over): an error e at path speed v is a lag misjudged by e/v.
         if let (Some(e), Some(t)) = (self.monitor.take_thread_err(), sync) {
             let vs = t.sync_speed();
-            if e.is_finite() && vs > 1e-3 && (v - vs).abs() <= 0.01 * vs {
+            if e.is_finite() && vs > 1e-3 && t.on_line(fb.pos[AX_S]) {
                 tau = (tau - THREAD_TRIM_GAIN * e / vs).clamp(0.0, 0.1);
             }
         }
@@ -2287,6 +2294,7 @@ impl Motion {
         let late = dt * fb.age[AX_S].min(8) as f64;
         let theta = fb.pos[AX_S] + rpm * 6.0 * (dt * self.lim.feedback_delay as f64 + late + tau);
         // The lead-in ramp uses 80 % of the path acceleration, leaving the tracker headroom.
+        let armed_now = sync.is_none();
         let sync = match sync {
             Some(t) => Some(t),
             None if self.stopping => None,
@@ -2316,7 +2324,11 @@ impl Motion {
             _ => None,
         };
         let dv = seg.alim * dt;
-        let target = t.target(theta);
+        if armed_now {
+            self.thread_vf = 0.0;
+            self.thread_settle = self.corr.settling(la);
+        }
+        let target = t.target(theta) - self.thread_shortfall(&t, theta, rpm);
         // Feed hold and override do not apply while threading (Fanuc). A controlled stop keeps
         // the axes on the thread while the spindle brakes (they stop together), so the tool
         // does not leave the groove.
@@ -2357,6 +2369,25 @@ impl Motion {
         } else {
             nv
         }
+    }
+
+    /// What of a thread's lead τ·v the long axis' lag has not built up yet, path mm. A loop
+    /// with feed-forward lags by τ·v/(1 + T·s) (`LagModel::lead_lag`): after the lead-in its
+    /// lag builds up over T (67 ms at Kv 15/s), so the lead τ·v sent at once ran the axis
+    /// ahead of the thread (a belt at Kv 20/s with 90 % feed-forward: alarm 2307 in the
+    /// lead-in). The exact inverse leads by τ·v/(1 + (T − τ)·s): the shortfall is
+    /// τ·(v − that filtered v), with the model as it was when the pass armed (the fit moves
+    /// through the lead-in it is excited by). Zero on the line, and where the lag does not
+    /// settle on its own (a delay, a stiff loop).
+    fn thread_shortfall(&mut self, t: &ThreadSync, theta: f64, rpm: f64) -> f64 {
+        let step = t.target(theta) - t.target(theta - rpm * 6.0 * self.lim.cycle_s);
+        let settling = self.thread_settle.filter(|_| self.lim.sync_correction);
+        let Some((lag, tf)) = settling.filter(|_| step.is_finite()) else {
+            self.thread_vf = if step.is_finite() { step } else { 0.0 };
+            return 0.0;
+        };
+        self.thread_vf += (step - self.thread_vf) / (1.0 + tf);
+        lag * (step - self.thread_vf)
     }
 
     /// The sync correction of rigid taps and G92.1 (with `Limits::sync_correction`): the

@@ -140,6 +140,13 @@ impl SyncCorrection {
         self.lag[i.min(2)].params().0 * self.dt
     }
 
+    /// Feed axis `i`'s lag where it settles on its own (`LagModel::lead_lag`): its settled
+    /// lag and the time constant of the lead that inverts the settling, both in cycles.
+    pub fn settling(&self, i: usize) -> Option<(f64, f64)> {
+        let m = &self.lag[i.min(2)];
+        m.lead_lag().map(|tf| (m.settled_lag(), tf))
+    }
+
     /// Learn from the feedback: `sent`, `before`, `before2` the set-points the feedback answers
     /// and the two before it, `actual` the feed axes' actual positions.
     pub fn learn(&mut self, sent: &[f64; 3], before: &[f64; 3], before2: &[f64; 3], actual: &[f64; 3]) {

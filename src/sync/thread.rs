@@ -138,6 +138,11 @@ impl ThreadSync {
         Some(self.theta0 + self.dir * 360.0 * (n + self.n_start))
     }
 
+    /// The lead-in is over at measured angle `theta`: the target is on the synchronous line.
+    pub fn on_line(&self, theta: f64) -> bool {
+        !self.ramp || self.dir * (theta - self.theta_start) / self.omega >= self.v / self.a + self.tj
+    }
+
     /// ∫₀ᵗ of the constant-acceleration ramp-then-line profile (mm·s).
     fn ramp_integral(&self, t: f64) -> f64 {
         let t1 = self.v / self.a;

@@ -104,11 +104,13 @@ fn the_tap_and_the_thread_ride_a_jittery_sync() {
 /// as `cncgw run --batch --sim-config MODEL` runs the tap: within the bounds and no
 /// alarm, but four-fold friction behind the belt, 6.4 µm at S3000 (held to 7). Before
 /// 2026-11-29: 10.0 µm there, 8.3 µm on ff 0.90, 7.6 µm on Kv 15 and its G92 thread stopped
-/// by alarm 2307 (it began while Z still ran in from the rapid). The thread phase on a barely
-/// damped belt (0.44°) is not bounded here: the 0.1° is not met there (README).
+/// by alarm 2307 (it began while Z still ran in from the rapid); a lightly damped belt at Kv
+/// 20/s with 90 % feed-forward stopped its G92 by alarm 2307 in the lead-in until the thread
+/// led through its lag's settling. The thread phase on lightly damped belts (0.2–0.4°) is not
+/// bounded here: the 0.1° is not met there (README).
 #[test]
 fn belt_variants_hold_the_tap_in_the_air() {
-    for (name, r) in in_the_air("belt_variants", 10) {
+    for (name, r) in in_the_air("belt_variants", 11) {
         assert!(r.alarms.is_empty(), "{name}: {:?}", r.alarms);
         let b3 = if name == "belt_friction4" { 7.0 } else { 5.0 };
         let (m3, m6, mg) = (r.tap_3000.unwrap().0, r.tap_6000.unwrap().0, r.g92_1.unwrap().0);
