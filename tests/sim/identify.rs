@@ -95,18 +95,18 @@ fn identified_vs_truth() {
 }
 
 /// The variants outside the matrix (`tests/drive_models/variants/`: Z with 0–8-fold friction,
-/// other gains, feed-forward, inertia, encoder, backlash, velocity loop, a belt with friction;
-/// spindles on Kv 8/s, with eight-fold friction, with delay): the delay and τ within 10 % of
-/// the truth. One is not: on a slow velocity loop (Kp 0.15 N·m·s/rad, Ti 15 ms) with the
-/// emulator's friction τ reads 25.5 against 22.2 ms (+15 %; the same loop without friction
-/// +8 %) — held to 20 % so that it does not get worse unseen.
+/// other gains (Kv 15 to 90/s), feed-forward, inertia, encoder, backlash, velocity loop, a
+/// belt with friction, Kv 20/s with four-fold friction; spindles on Kv 8/s, with eight-fold
+/// friction, with delay): the delay and τ within 10 % of the truth. Until 2026-11-29
+/// (evening) Kv 15/s read τ 15 % short, Kv 20/s with four-fold friction 24 % (the fit
+/// through the breakaways' transients), and the slow velocity loop 15 % long.
 #[test]
 fn identified_vs_truth_on_the_variants() {
     let dir = format!("{}/tests/drive_models/variants", env!("CARGO_MANIFEST_DIR"));
     let mut names: Vec<String> =
         std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().path().file_stem().unwrap().to_string_lossy().into_owned()).collect();
     names.sort();
-    assert_eq!(names.len(), 17, "{names:?}");
+    assert_eq!(names.len(), 19, "{names:?}");
     let mut bad = vec![];
     for m in &names {
         let axis = if m.starts_with('s') { "s1" } else { "z" };
@@ -117,9 +117,8 @@ fn identified_vs_truth_on_the_variants() {
         let (d0, tau0, ..) = truth_of(axis, &file);
         let d = r["delay_cycles"].as_f64().unwrap();
         let tau = r["time_constant_ms"].as_f64().unwrap() * 1e-3;
-        let bound = if m == "zvelslow" { 0.2 } else { 0.1 };
         eprintln!("{m} {axis}: delay {d:.2} / {d0}, τ {:.1} / {:.1} ms", tau * 1e3, tau0 * 1e3);
-        if (d / d0 - 1.0).abs() > 0.1 || (tau / tau0 - 1.0).abs() > bound {
+        if (d / d0 - 1.0).abs() > 0.1 || (tau / tau0 - 1.0).abs() > 0.1 {
             bad.push(format!("{m} {axis}: delay {d:.2} vs {d0}, τ {:.1} ms vs {:.1} ms", tau * 1e3, tau0 * 1e3));
         }
     }
