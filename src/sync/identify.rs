@@ -76,18 +76,15 @@ impl Response {
 /// So the dead time is read first at the corners of the demand's speed where the axis is
 /// moving one way throughout (the friction is then a constant torque the integrator holds):
 /// the first lag at which the actual speed departs from its own trend by `ANSWER` of the
-/// corner — the latest over the corners. A corner reads early where the actual speed wobbles
-/// about its trend before the drive acts (a belt ringing, a loop still settling: a lag of 0 or
-/// 1 at one or two of three corners on 13 of 70 models, which put the median a cycle short
-/// behind a belt with 0.5° of lost motion), never late: the drive's first answer is 10–20 %
-/// of the corner, well over `ANSWER`. Where the encoder is too coarse for a corner to show
+/// corner — the median over the corners. Where the encoder is too coarse for a corner to show
 /// that (the corner under `RESOLVED` counts) or there are fewer than two, the ARX fit decides.
 fn dead_time(du: &[f64], dy: &[f64], max_delay: usize) -> Option<usize> {
-    let lags = corners(du, dy, max_delay);
+    let mut lags = corners(du, dy, max_delay);
     if lags.len() < 2 {
         return dead_time_arx(du, dy, max_delay);
     }
-    lags.into_iter().max()
+    lags.sort_unstable();
+    Some(lags[lags.len() / 2])
 }
 
 /// The share of a corner the actual speed must show (as the ARX step threshold).
