@@ -102,6 +102,7 @@ use crate::canon::{Feed, Move, MoveKind, Plane, Pos, SpindleCmd, SpindleDir};
 use crate::config::{AxisKind, MachineConfig};
 use crate::sync::correction::SyncCorrection;
 use crate::sync::governor::SpindleGovernor;
+use crate::sync::lag::settle_lead;
 use crate::sync::monitor::{Sample, SyncMonitor};
 use crate::sync::ThreadSync;
 use crate::Alarm;
@@ -2328,7 +2329,8 @@ impl Motion {
             self.thread_vf = 0.0;
             self.thread_settle = self.corr.settling(la);
         }
-        let target = t.target(theta) - self.thread_shortfall(&t, theta, rpm);
+        let target = t.target(theta);
+        let target = target - self.thread_shortfall(&t, target, theta, rpm);
         // Feed hold and override do not apply while threading (Fanuc). A controlled stop keeps
         // the axes on the thread while the spindle brakes (they stop together), so the tool
         // does not leave the groove.
@@ -2379,14 +2381,15 @@ impl Motion {
     /// τ·(v − that filtered v), with the model as it was when the pass armed (the fit moves
     /// through the lead-in it is excited by). Zero on the line, and where the lag does not
     /// settle on its own (a delay, a stiff loop).
-    fn thread_shortfall(&mut self, t: &ThreadSync, theta: f64, rpm: f64) -> f64 {
-        let step = t.target(theta) - t.target(theta - rpm * 6.0 * self.lim.cycle_s);
+    fn thread_shortfall(&mut self, t: &ThreadSync, target: f64, theta: f64, rpm: f64) -> f64 {
+        let step = target - t.target(theta - rpm * 6.0 * self.lim.cycle_s);
         let settling = self.thread_settle.filter(|_| self.lim.sync_correction);
         let Some((lag, tf)) = settling.filter(|_| step.is_finite()) else {
             self.thread_vf = if step.is_finite() { step } else { 0.0 };
             return 0.0;
         };
-        self.thread_vf += (step - self.thread_vf) / (1.0 + tf);
+        // The filter is linear: lag · (filtered step) is the lead `settle_lead` gives.
+        self.thread_vf = settle_lead(self.thread_vf, step, tf);
         lag * (step - self.thread_vf)
     }
 

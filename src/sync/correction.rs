@@ -37,7 +37,7 @@
 //! Siemens' idea of matched dynamics (the feed axis commanded ahead by its own lag). O(1),
 //! no allocation.
 
-use super::lag::LagModel;
+use super::lag::{settle_lead, LagModel};
 use super::lag_tracker::LagTracker;
 
 /// Largest sync correction, mm (beyond it the sync monitor stops the machine anyway).
@@ -225,7 +225,7 @@ impl SyncCorrection {
             return self.lead[i];
         };
         let (t1, t2) = m.params();
-        self.lead[i] += (m.settled_lag() * dv - self.lead[i]) / (1.0 + tf);
+        self.lead[i] = settle_lead(self.lead[i], m.settled_lag() * dv, tf);
         self.lead[i] + (t1 * t1 + t2).max(0.0) * da
     }
 

@@ -321,16 +321,9 @@ pub fn identify(cmd: &[f64], act: &[f64], dt: f64, max_delay: usize) -> Option<R
     let linear = linear_rows(cmd, act, (AFTER_BREAKAWAY_S / dt).ceil() as usize);
     let (fa, fl) = (fit_poles(cmd, act, d, dt, &all), fit_poles(cmd, act, d, dt, &linear));
     let (keep, (tau, w, zeta)) = match (fa, fl) {
-        (Some(a), Some(l)) if (LINEAR_AGREES..=1.0 / LINEAR_AGREES).contains(&(l.0 / a.0)) => (&linear, l),
-        (Some(a), Some(l)) => {
-            if l.0 < a.0 {
-                (&linear, l)
-            } else {
-                (&all, a)
-            }
-        }
+        (Some(a), Some(l)) if !(LINEAR_AGREES..=1.0 / LINEAR_AGREES).contains(&(l.0 / a.0)) && a.0 < l.0 => (&all, a),
+        (_, Some(l)) => (&linear, l),
         (Some(a), None) => (&all, a),
-        (None, Some(l)) => (&linear, l),
         (None, None) => return None,
     };
     let alpha = (-dt / tau).exp();

@@ -134,6 +134,12 @@ impl LagModel {
     }
 }
 
+/// One cycle of the lead that inverts a settling lag (`LagModel::lead_lag`): `lead` moves
+/// toward `target` (the settled lag times this cycle's step) with time constant `tf` cycles.
+pub fn settle_lead(lead: f64, target: f64, tf: f64) -> f64 {
+    lead + (target - lead) / (1.0 + tf)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
