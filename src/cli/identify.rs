@@ -39,25 +39,49 @@ pub struct IdentifyArgs {
 /// coarse spindle encoder's delay read a cycle short: too little motion per cycle.)
 const SPINDLE_ACCEL_SHARE: f64 = 0.5;
 
-/// The excitation program of `axis`: speed steps that show the delay, the jump of the
-/// feed-forward and the lag's time constant.
-fn program(cfg: &MachineConfig, axis: &str, travel: f64, start: crate::canon::Pos) -> Result<String, String> {
+/// Share of its maximum speed at which the probe run moves (`probe_program`): slow enough
+/// that a drive with no velocity feed-forward and a soft loop (Kv 30/s) stays well inside a
+/// spindle's 180° following-error window, fast enough to read its lag.
+const PROBE_SPEED_SHARE: f64 = 0.05;
+/// Share of the following-error window the identification's fastest move may use up,
+/// judged from the probe's lag.
+const WINDOW_SHARE: f64 = 0.4;
+
+/// Which run of the identification: the slow probe that reads the lag, or the excitation.
+#[derive(Clone, Copy, PartialEq)]
+enum Stage {
+    Probe,
+    Excite,
+}
+
+/// The G-code word that moves linear `axis` incrementally.
+fn word(axis: &str) -> Result<&'static str, String> {
+    match axis {
+        "x" => Ok("U"),
+        "z" => Ok("W"),
+        "y" => Ok("V"),
+        _ => Err(format!("axis {axis}: identify moves x, y, z or a spindle")),
+    }
+}
+
+/// The program of `stage` for `axis`. The excitation: speed steps that show the delay, the
+/// jump of the feed-forward and the lag's time constant. The probe: one slow move (or
+/// spindle speed) and back, from which the lag at speed is read before the excitation's
+/// speeds are chosen.
+fn program(cfg: &MachineConfig, axis: &str, travel: f64, start: crate::canon::Pos, stage: Stage) -> Result<String, String> {
     let a = cfg
         .axes
         .get(axis)
         .ok_or_else(|| format!("no axis {axis} in the configuration (axes: {})", cfg.axes.keys().cloned().collect::<Vec<_>>().join(", ")))?;
+    let probe = (PROBE_SPEED_SHARE * a.max_speed).round().max(1.0);
     match a.kind {
+        AxisKind::Spindle if stage == Stage::Probe => Ok(format!("G21\nG97 M03 S{probe}\nG4 P500\nM05\nG4 P400\nM30\n")),
         AxisKind::Spindle => {
             let s = |f: f64| (a.max_speed * f).round();
             Ok(format!("G21\nG97 M03 S{}\nG4 P600\nS{}\nG4 P600\nS{}\nG4 P400\nM05\nG4 P600\nM30\n", s(0.2), s(0.5), s(0.15)))
         }
         AxisKind::Linear => {
-            let word = match axis {
-                "x" => "U",
-                "z" => "W",
-                "y" => "V",
-                _ => return Err(format!("axis {axis}: identify moves x, y, z or a spindle")),
-            };
+            let word = word(axis)?;
             // First towards whichever side has the room (within the travel limits).
             let at = match axis {
                 "x" => start.x,
@@ -77,6 +101,9 @@ fn program(cfg: &MachineConfig, axis: &str, travel: f64, start: crate::canon::Po
             };
             // X is programmed as a diameter: U moves twice the radius.
             let d = sign * if axis == "x" { travel * 2.0 } else { travel };
+            if stage == Stage::Probe {
+                return Ok(format!("G21\nG98\nG1 {word}{} F{probe}\nG4 P200\nG1 {word}{} F{probe}\nG4 P200\nM30\n", -d / 2.0, d / 2.0));
+            }
             let f = |k: f64| (a.max_speed * k).round();
             // Speed steps within a stroke as well as from rest: the position loop's lag shows
             // in both, the dry friction only where the axis starts, stops or reverses.
@@ -107,6 +134,8 @@ pub fn run(machine: &MachineArgs, a: &IdentifyArgs) -> i32 {
             return exit::SETUP;
         }
     };
+    // The window is proposed for the configured maximum speed, whatever the run kept to.
+    let nominal = cfg.clone();
     // The drive's own CSP response is what is identified: the friction feed-forward (a
     // torque added where the axis starts and reverses) is off for the run, as a drive's
     // autotuning turns its compensations off; a spindle ramps at `SPINDLE_ACCEL_SHARE`.
@@ -117,50 +146,32 @@ pub fn run(machine: &MachineArgs, a: &IdentifyArgs) -> i32 {
         }
     }
     // Checked before anything is opened (from the travel's middle: the start is not known).
-    if let Err(e) = program(&cfg, &a.axis, a.travel, crate::canon::Pos::ZERO).or_else(|e| if e.contains("room") { Ok(String::new()) } else { Err(e) })
-    {
+    let check = program(&cfg, &a.axis, a.travel, crate::canon::Pos::ZERO, Stage::Excite);
+    if let Err(e) = check.or_else(|e| if e.contains("room") { Ok(String::new()) } else { Err(e) }) {
         eprintln!("error: {e}");
         return exit::INPUT;
     }
     if let Err(c) = super::service::confirm_motion(machine, a.yes, &format!("an identification run of axis {}", a.axis)) {
         return c;
     }
-    let csv = a.trace.clone().unwrap_or_else(|| std::env::temp_dir().join(format!("cncgw-identify-{}.csv", std::process::id())));
-    let job = Job {
-        name: format!("identify {}", a.axis),
-        source: String::new(),
-        first: None,
-        make: Box::new(|start| {
-            let prog = program(&cfg, &a.axis, a.travel, start)
-                .map_err(|e| vec![crate::Alarm::new(crate::alarm::IDENTIFY_PLAN, format!("identify: {e}"))])?;
-            Interpreter::from_source("identify.nc", &prog, &cfg)
-        }),
-        feed: None,
+    // The probe first: a drive that lags far (no feed-forward, a soft loop) would leave its
+    // following-error window at the excitation's speeds before anything was learnt.
+    let (cmd, act) = match record(&cfg, &cfg_text, machine, a, Stage::Probe) {
+        Ok(r) => r,
+        Err(c) => return c,
     };
-    let opts = ExecOpts { extras: RunExtras { trace: Some(&csv), ..RunExtras::default() }, ..ExecOpts::default() };
-    let (code, _, _) = super::run::run_job(&cfg, &cfg_text, machine, job, &opts);
-    if code != exit::OK {
-        return code;
+    if let Some(r) = identify(&cmd, &act, cfg.cycle_s(), 10) {
+        keep_within_window(&mut cfg, &a.axis, &r);
     }
-    let data = match std::fs::read_to_string(&csv).map_err(|e| e.to_string()).and_then(|t| TraceData::parse(&t)) {
-        Ok(d) => d,
-        Err(e) => {
-            eprintln!("error: the trace {}: {e}", csv.display());
-            return exit::SETUP;
-        }
+    let (cmd, act) = match record(&cfg, &cfg_text, machine, a, Stage::Excite) {
+        Ok(r) => r,
+        Err(c) => return c,
     };
-    if a.trace.is_none() {
-        let _ = std::fs::remove_file(&csv);
-    }
-    let (Some(cmd), Some(act)) = (data.column(&format!("{}_cmd", a.axis)), data.column(&format!("{}_act", a.axis))) else {
-        eprintln!("error: the trace has no columns of axis {}", a.axis);
-        return exit::SETUP;
-    };
-    let Some(r) = identify(cmd, act, cfg.cycle_s(), 10) else {
+    let Some(r) = identify(&cmd, &act, cfg.cycle_s(), 10) else {
         eprintln!("error: axis {} did not move enough to identify it", a.axis);
         return exit::NOT_MET;
     };
-    report(&cfg, &a.axis, &r, a.json);
+    report(&nominal, &a.axis, &r, a.json);
     if r.vaf < 0.9 {
         eprintln!(
             "warning: the model accounts for only {:.1} % of the motion: the drive is not first-order-like (check its tuning, a resonance, friction)",
@@ -168,6 +179,71 @@ pub fn run(machine: &MachineArgs, a: &IdentifyArgs) -> i32 {
         );
     }
     exit::OK
+}
+
+/// Run `stage`'s program and return the axis' commanded and actual positions, every cycle.
+/// The excitation's trace is kept where `--trace` says.
+fn record(cfg: &MachineConfig, cfg_text: &str, machine: &MachineArgs, a: &IdentifyArgs, stage: Stage) -> Result<(Vec<f64>, Vec<f64>), i32> {
+    use super::exit;
+    let keep = a.trace.clone().filter(|_| stage == Stage::Excite);
+    let csv = keep.clone().unwrap_or_else(|| std::env::temp_dir().join(format!("cncgw-identify-{}.csv", std::process::id())));
+    let job = Job {
+        name: format!("identify {}", a.axis),
+        source: String::new(),
+        first: None,
+        make: Box::new(|start| {
+            let prog = program(cfg, &a.axis, a.travel, start, stage)
+                .map_err(|e| vec![crate::Alarm::new(crate::alarm::IDENTIFY_PLAN, format!("identify: {e}"))])?;
+            Interpreter::from_source("identify.nc", &prog, cfg)
+        }),
+        feed: None,
+    };
+    let opts = ExecOpts { extras: RunExtras { trace: Some(&csv), ..RunExtras::default() }, ..ExecOpts::default() };
+    let (code, _, _) = super::run::run_job(cfg, cfg_text, machine, job, &opts);
+    if code != exit::OK {
+        return Err(code);
+    }
+    let data = std::fs::read_to_string(&csv).map_err(|e| e.to_string()).and_then(|t| TraceData::parse(&t));
+    if keep.is_none() {
+        let _ = std::fs::remove_file(&csv);
+    }
+    let data = data.map_err(|e| {
+        eprintln!("error: the trace {}: {e}", csv.display());
+        exit::SETUP
+    })?;
+    match (data.column(&format!("{}_cmd", a.axis)), data.column(&format!("{}_act", a.axis))) {
+        (Some(c), Some(x)) => Ok((c.to_vec(), x.to_vec())),
+        _ => {
+            eprintln!("error: the trace has no columns of axis {}", a.axis);
+            Err(exit::SETUP)
+        }
+    }
+}
+
+/// Lower `axis`' maximum speed for the excitation so that the drive's own lag, as the probe
+/// `r` read it, stays within `WINDOW_SHARE` of its following-error window at the fastest
+/// speed the excitation asks for (a spindle's half speed, a linear axis' rapid).
+fn keep_within_window(cfg: &mut MachineConfig, axis: &str, r: &Response) {
+    let lag = own_lag_s(r, cfg.cycle_s());
+    let Some(ax) = cfg.axes.get_mut(axis) else { return };
+    if !(lag > 0.0 && ax.following_error > 0.0) {
+        return;
+    }
+    // The speed (units/s) at which the lag uses up the share, as the axis' max_speed.
+    let v = WINDOW_SHARE * ax.following_error / lag;
+    let (allowed, unit) = match ax.kind {
+        AxisKind::Spindle => (v / 6.0 / 0.5, "rpm"),
+        AxisKind::Linear => (v * 60.0, "mm/min"),
+    };
+    if allowed < ax.max_speed {
+        eprintln!(
+            "cncgw: identify {axis}: the drive lags {:.1} ms of its own at speed: the run keeps to {:.0} % of max_speed ({allowed:.0} {unit}) to stay within its following-error window {}",
+            lag * 1e3,
+            100.0 * allowed / ax.max_speed,
+            ax.following_error
+        );
+        ax.max_speed = allowed;
+    }
 }
 
 /// The lag the drive itself sees between its demand and its actual position at constant
