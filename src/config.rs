@@ -612,6 +612,15 @@ impl AxisConfig {
         }
     }
 
+    /// `max_speed` in the axis' position units per second: mm/s from mm/min, degrees/s from
+    /// rpm.
+    pub fn max_speed_units_s(&self) -> f64 {
+        match self.kind {
+            AxisKind::Spindle => self.max_speed * 6.0,
+            AxisKind::Linear => self.max_speed / 60.0,
+        }
+    }
+
     /// (RPDO1, TPDO1) COB-IDs of a CANopen drive.
     pub fn pdo_cob_ids(&self) -> (u16, u16) {
         (self.rpdo_cob_id.unwrap_or(0x200 + self.node as u16), self.tpdo_cob_id.unwrap_or(0x180 + self.node as u16))

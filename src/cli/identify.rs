@@ -39,6 +39,9 @@ pub struct IdentifyArgs {
 /// coarse spindle encoder's delay read a cycle short: too little motion per cycle.)
 const SPINDLE_ACCEL_SHARE: f64 = 0.5;
 
+/// The spindle's speed steps, as shares of its maximum speed (the second is the fastest).
+const SPINDLE_STEPS: [f64; 3] = [0.2, 0.5, 0.15];
+
 /// Share of its maximum speed at which the probe run moves (`probe_program`): slow enough
 /// that a drive with no velocity feed-forward and a soft loop (Kv 30/s) stays well inside a
 /// spindle's 180° following-error window, fast enough to read its lag.
@@ -77,8 +80,8 @@ fn program(cfg: &MachineConfig, axis: &str, travel: f64, start: crate::canon::Po
     match a.kind {
         AxisKind::Spindle if stage == Stage::Probe => Ok(format!("G21\nG97 M03 S{probe}\nG4 P500\nM05\nG4 P400\nM30\n")),
         AxisKind::Spindle => {
-            let s = |f: f64| (a.max_speed * f).round();
-            Ok(format!("G21\nG97 M03 S{}\nG4 P600\nS{}\nG4 P600\nS{}\nG4 P400\nM05\nG4 P600\nM30\n", s(0.2), s(0.5), s(0.15)))
+            let [s1, s2, s3] = SPINDLE_STEPS.map(|f| (a.max_speed * f).round());
+            Ok(format!("G21\nG97 M03 S{s1}\nG4 P600\nS{s2}\nG4 P600\nS{s3}\nG4 P400\nM05\nG4 P600\nM30\n"))
         }
         AxisKind::Linear => {
             let word = word(axis)?;
@@ -229,12 +232,14 @@ fn keep_within_window(cfg: &mut MachineConfig, axis: &str, r: &Response) {
     if !(lag > 0.0 && ax.following_error > 0.0) {
         return;
     }
-    // The speed (units/s) at which the lag uses up the share, as the axis' max_speed.
-    let v = WINDOW_SHARE * ax.following_error / lag;
-    let (allowed, unit) = match ax.kind {
-        AxisKind::Spindle => (v / 6.0 / 0.5, "rpm"),
-        AxisKind::Linear => (v * 60.0, "mm/min"),
+    // The fastest speed asked for, as a share of max_speed, and the units/s at which the lag
+    // uses up its share of the window.
+    let (top, unit) = match ax.kind {
+        AxisKind::Spindle => (SPINDLE_STEPS[1], "rpm"),
+        AxisKind::Linear => (1.0, "mm/min"),
     };
+    let v = WINDOW_SHARE * ax.following_error / lag;
+    let allowed = ax.max_speed * v / (top * ax.max_speed_units_s());
     if allowed < ax.max_speed {
         eprintln!(
             "cncgw: identify {axis}: the drive lags {:.1} ms of its own at speed: the run keeps to {:.0} % of max_speed ({allowed:.0} {unit}) to stay within its following-error window {}",
@@ -256,12 +261,7 @@ pub fn own_lag_s(r: &Response, dt: f64) -> f64 {
 /// The following-error window (0x6065) the response asks for at the axis' maximum speed:
 /// three times the drive's own lag there, in the axis' units (mm, degrees).
 pub fn proposed_window(cfg: &MachineConfig, axis: &str, r: &Response) -> f64 {
-    let a = &cfg.axes[axis];
-    let vmax = match a.kind {
-        AxisKind::Spindle => a.max_speed * 6.0,
-        AxisKind::Linear => a.max_speed / 60.0,
-    };
-    3.0 * own_lag_s(r, cfg.cycle_s()) * vmax
+    3.0 * own_lag_s(r, cfg.cycle_s()) * cfg.axes[axis].max_speed_units_s()
 }
 
 fn report(cfg: &MachineConfig, axis: &str, r: &Response, json: bool) {

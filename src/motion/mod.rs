@@ -363,11 +363,11 @@ impl Limits {
             };
             l.present[i] = true;
             if i == AX_S {
-                l.vmax[i] = a.max_speed * 6.0;
+                l.vmax[i] = a.max_speed_units_s();
                 l.amax[i] = a.max_accel * 6.0;
                 l.sp_lag_judge = SP_LAG_JUDGE_SHARE * a.following_error;
             } else {
-                l.vmax[i] = a.max_speed / 60.0;
+                l.vmax[i] = a.max_speed_units_s();
                 l.amax[i] = a.max_accel;
                 l.jmax[i] = a.jerk_limit(cfg.param(1772));
                 l.travel[i] = (a.min.unwrap_or(0.0), a.max.unwrap_or(0.0));
