@@ -114,7 +114,11 @@ fn corners(du: &[f64], dy: &[f64], max_delay: usize) -> Vec<usize> {
         // last speed): the answer is what departs from it.
         let slope = (dy[k - 1] - dy[k - 3]) / 2.0;
         let answer = |j: usize| (dy[k + j] - dy[k - 1] - slope * (j + 1) as f64) * c.signum();
-        if let Some(j) = (0..=max_delay).find(|j| answer(*j) >= (ANSWER * c.abs()).max(q)) {
+        // Held for two cycles: a lightly damped belt still ringing from the last speed change
+        // crosses the threshold for a cycle before the drive answers (lags 1, 0, 2 on a belt
+        // with 0.5° of lost motion: the median read 1 cycle for 2).
+        let thr = (ANSWER * c.abs()).max(q);
+        if let Some(j) = (0..=max_delay).find(|j| answer(*j) >= thr && answer(*j + 1) >= thr) {
             lags.push(j);
         }
     }
@@ -346,6 +350,13 @@ pub fn identify(cmd: &[f64], act: &[f64], dt: f64, max_delay: usize) -> Option<R
     })
 }
 
+/// The resolution the set-points are recorded with, units (`cncgw identify` reads them from
+/// its trace, which writes six decimals): a cruise's increments differ by up to two of it.
+/// Asked to agree within 10⁻⁶ of themselves, a Z cruise at 19.87 mm/s (39.74 µm per cycle,
+/// rounded to 1 nm: 2.5·10⁻⁵) had no steady row, and the fallback over every row read the lag
+/// of a belt or of a Kv 15/s loop 0.6–1.5 ms short: a delay of 1.2–1.7 cycles for 2.
+pub const RECORD_QUANTUM: f64 = 1e-6;
+
 /// The lag at constant speed from the data, s: least squares of (command − actual) on the
 /// command's speed over the cycles where that speed has been steady for `STEADY` cycles (the
 /// drive's transient after a speed change has died out); where the run has too few of them,
@@ -354,7 +365,8 @@ fn regress_lag(cmd: &[f64], act: &[f64], dt: f64) -> Option<f64> {
     const STEADY: usize = 60;
     let n = cmd.len().min(act.len());
     let v = |k: usize| (cmd[k] - cmd[k - 1]) / dt;
-    let steady: Vec<usize> = (STEADY + 1..n).filter(|&k| v(k) != 0.0 && (k - STEADY..k).all(|j| (v(j) - v(k)).abs() <= 1e-6 * v(k).abs())).collect();
+    let same = |a: f64, b: f64| ((a - b) * dt).abs() <= (1e-6 * (b * dt).abs()).max(2.0 * RECORD_QUANTUM);
+    let steady: Vec<usize> = (STEADY + 1..n).filter(|&k| v(k) != 0.0 && (k - STEADY..k).all(|j| same(v(j), v(k)))).collect();
     let (rows, cols) = if steady.len() >= 20 { (steady, 1) } else { ((2..n).collect(), 2) };
     let phi = DMatrix::from_fn(rows.len(), cols, |r, c| {
         let k = rows[r];

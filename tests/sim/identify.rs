@@ -125,6 +125,37 @@ fn identified_vs_truth_on_the_variants() {
     assert!(bad.is_empty(), "identified beyond the bounds: {bad:#?}");
 }
 
+/// The belts (`tests/drive_models/belt_variants/`: belt_z with lost motion, more or less
+/// damping, stiffness, friction, Kv 15/s, 90 % feed-forward): Z's delay and τ within 10 % of
+/// the truth. Until 2026-11-29 (late) six of them read a delay of 1.0–1.7 cycles for 2: the
+/// excitation's cruises, recorded to the trace's 1 nm, never counted as steady, and the lag
+/// regressed over every row came out short (`identify::RECORD_QUANTUM`); with 0.5° of lost
+/// motion the belt still ringing at a speed corner crossed the answer's threshold a cycle
+/// early.
+#[test]
+fn identified_vs_truth_on_the_belts() {
+    let dir = format!("{}/tests/drive_models/belt_variants", env!("CARGO_MANIFEST_DIR"));
+    let mut names: Vec<String> =
+        std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().path().file_stem().unwrap().to_string_lossy().into_owned()).collect();
+    names.sort();
+    assert_eq!(names.len(), 11, "{names:?}");
+    let mut bad = vec![];
+    for m in &names {
+        let file = format!("{dir}/{m}.toml");
+        let o = cncgw(&["identify", "z", "--json", "--sim-config", &file]);
+        assert!(o.status.success(), "{m}: {}", String::from_utf8_lossy(&o.stderr));
+        let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        let (d0, tau0, ..) = truth_of("z", &file);
+        let d = r["delay_cycles"].as_f64().unwrap();
+        let tau = r["time_constant_ms"].as_f64().unwrap() * 1e-3;
+        eprintln!("{m}: delay {d:.2} / {d0}, τ {:.1} / {:.1} ms", tau * 1e3, tau0 * 1e3);
+        if (d / d0 - 1.0).abs() > 0.1 || (tau / tau0 - 1.0).abs() > 0.1 {
+            bad.push(format!("{m}: delay {d:.2} vs {d0}, τ {:.1} ms vs {:.1} ms", tau * 1e3, tau0 * 1e3));
+        }
+    }
+    assert!(bad.is_empty(), "identified beyond the bounds: {bad:#?}");
+}
+
 /// A spindle with more load than its motor was sized for (`heavy_variants/sp_j12`: 0.12 kg·m²
 /// on 70 N·m) saturated its torque in the identification's speed steps at the configured
 /// acceleration and read τ tenfold (2 s against 58 ms); they ramp at half of it now
