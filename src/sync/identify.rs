@@ -12,7 +12,8 @@
 //! position loop's lag `τ` (≈ 1/Kv: the dominant pole of the closed cascade).
 //!
 //! How: (1) the dead time `d` (whole cycles) where the demand's speed turns a corner while the
-//! axis moves one way (or from the step response of a plain ARX model; see `dead_time`);
+//! axis moves one way (or from the step response of a plain ARX model, or where that is the
+//! encoder's noise from the output-error fit's residual over whole delays; see `dead_time`);
 //! (2) the following error `e = u(k−d) − y(k)` is fitted *output-error* (no measured output
 //! among the regressors, so encoder quantisation does not bias it) as the command increments
 //! through a slow pole τ and a fast second-order section (the velocity loop, oscillatory or
@@ -77,7 +78,8 @@ impl Response {
 /// moving one way throughout (the friction is then a constant torque the integrator holds):
 /// the first lag at which the actual speed departs from its own trend by `ANSWER` of the
 /// corner — the median over the corners. Where the encoder is too coarse for a corner to show
-/// that (the corner under `RESOLVED` counts) or there are fewer than two, the ARX fit decides.
+/// that (the corner under `RESOLVED` counts) or there are fewer than two, the ARX fit decides;
+/// None where its step response is noise (then `dead_time_oe`).
 fn dead_time(du: &[f64], dy: &[f64], max_delay: usize) -> Option<usize> {
     let mut lags = corners(du, dy, max_delay);
     if lags.len() < 2 {
@@ -152,7 +154,37 @@ fn dead_time_arx(du: &[f64], dy: &[f64], max_delay: usize) -> Option<usize> {
     if !(fin.abs() > 0.0) {
         return None;
     }
-    Some(step.iter().position(|v| *v / fin >= 0.04)?.min(max_delay))
+    let at = step.iter().position(|v| *v / fin >= ANSWER)?;
+    // A step response that swings below zero first is the encoder's noise, not the drive.
+    let clean = step[..(at + 2).min(step.len())].iter().all(|v| *v / fin >= -ANSWER);
+    clean.then_some(at.min(max_delay))
+}
+
+/// Above the least residual by this factor, a whole delay does not fit (see `dead_time_oe`).
+const DELAY_FITS: f64 = 1.5;
+
+/// The dead time where neither the corners nor the ARX step response show it (a spindle
+/// encoder of 4096 counts: its speed corners, hundredths of a degree per cycle², are far
+/// below a count, and the ARX step swings ±70 % in its first cycles): the output-error fit
+/// (`fit_poles`) for each whole delay from 0 up, the longest whose residual is within
+/// `DELAY_FITS` of the least. One cycle less than the drive's fits as well (ff takes it up:
+/// 0.961 for 0.998), one more does not (it asks for an answer before the drive acts:
+/// residual ×2–12 on 4096–16384 counts). Not the rule where the data are clean: a soft
+/// spindle (Kv 8–12/s) fits a cycle more within 1–20 %.
+fn dead_time_oe(cmd: &[f64], act: &[f64], dt: f64, max_delay: usize, keep: &[bool]) -> Option<usize> {
+    let mut sse: Vec<f64> = vec![];
+    for d in 0..=max_delay {
+        let fit = fit_poles(cmd, act, d, dt, keep).and_then(|(t, w, z)| oe(cmd, act, d, (-dt / t).exp(), second_order(w, z, dt), keep));
+        let e = fit.map_or(f64::INFINITY, |r| r.0);
+        let least = sse.iter().copied().fold(f64::INFINITY, f64::min);
+        sse.push(e);
+        // Past the drive's delay the residual only grows.
+        if e > DELAY_FITS * least {
+            break;
+        }
+    }
+    let least = sse.iter().copied().fold(f64::INFINITY, f64::min);
+    least.is_finite().then(|| sse.iter().rposition(|e| *e <= DELAY_FITS * least)).flatten()
 }
 
 /// FIR taps on the filtered command in the output-error fit (the fast part's zeros).
@@ -314,7 +346,11 @@ pub fn identify(cmd: &[f64], act: &[f64], dt: f64, max_delay: usize) -> Option<R
     if !(var > 0.0) || du.iter().all(|v| *v == 0.0) {
         return None;
     }
-    let d = dead_time(&du, &dy, max_delay)?;
+    let linear = linear_rows(cmd, act, (AFTER_BREAKAWAY_S / dt).ceil() as usize);
+    let d = match dead_time(&du, &dy, max_delay) {
+        Some(d) => d,
+        None => dead_time_oe(cmd, act, dt, max_delay, &linear)?,
+    };
     // Fitted twice: on every row, and on the rows where the response is linear (see
     // `linear_rows`). Friction bends the fit through every row either way (a stick holds the
     // error up; the breakaway's transient, which the friction input models only in part,
@@ -322,7 +358,6 @@ pub fn identify(cmd: &[f64], act: &[f64], dt: f64, max_delay: usize) -> Option<R
     // rows' fit stands — unless it is far from the other: where the linear rows are too few
     // to show the decay (a 2000-line encoder: τ 20× too long), the shorter of the two.
     let all = vec![true; n];
-    let linear = linear_rows(cmd, act, (AFTER_BREAKAWAY_S / dt).ceil() as usize);
     let (fa, fl) = (fit_poles(cmd, act, d, dt, &all), fit_poles(cmd, act, d, dt, &linear));
     let (keep, (tau, w, zeta)) = match (fa, fl) {
         (Some(a), Some(l)) if !(LINEAR_AGREES..=1.0 / LINEAR_AGREES).contains(&(l.0 / a.0)) && a.0 < l.0 => (&all, a),
