@@ -107,14 +107,21 @@ fn identified_vs_truth() {
 /// through the breakaways' transients), and the slow velocity loop 15 % long.
 #[test]
 fn identified_vs_truth_on_the_variants() {
-    let dir = format!("{}/tests/drive_models/variants", env!("CARGO_MANIFEST_DIR"));
+    let bad = beyond_bounds_in("variants", 19, |m| if m.starts_with('s') { "s1" } else { "z" });
+    assert!(bad.is_empty(), "identified beyond the bounds: {bad:#?}");
+}
+
+/// Identify every model of `tests/drive_models/DIR` (there must be `count`) on the axis
+/// `axis_of` names for it: those whose delay or τ is beyond 10 % of the truth.
+fn beyond_bounds_in(dir: &str, count: usize, axis_of: fn(&str) -> &'static str) -> Vec<String> {
+    let dir = format!("{}/tests/drive_models/{dir}", env!("CARGO_MANIFEST_DIR"));
     let mut names: Vec<String> =
         std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().path().file_stem().unwrap().to_string_lossy().into_owned()).collect();
     names.sort();
-    assert_eq!(names.len(), 19, "{names:?}");
+    assert_eq!(names.len(), count, "{names:?}");
     let mut bad = vec![];
     for m in &names {
-        let axis = if m.starts_with('s') { "s1" } else { "z" };
+        let axis = axis_of(m);
         let file = format!("{dir}/{m}.toml");
         let r = identify_file(axis, &file);
         let (d0, tau0, ..) = truth_of(axis, &file);
@@ -125,7 +132,7 @@ fn identified_vs_truth_on_the_variants() {
             bad.push(format!("{m} {axis}: delay {d:.2} vs {d0}, τ {:.1} ms vs {:.1} ms", tau * 1e3, tau0 * 1e3));
         }
     }
-    assert!(bad.is_empty(), "identified beyond the bounds: {bad:#?}");
+    bad
 }
 
 /// The belts (`tests/drive_models/belt_variants/`: belt_z with lost motion, more or less
@@ -137,23 +144,7 @@ fn identified_vs_truth_on_the_variants() {
 /// early.
 #[test]
 fn identified_vs_truth_on_the_belts() {
-    let dir = format!("{}/tests/drive_models/belt_variants", env!("CARGO_MANIFEST_DIR"));
-    let mut names: Vec<String> =
-        std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().path().file_stem().unwrap().to_string_lossy().into_owned()).collect();
-    names.sort();
-    assert_eq!(names.len(), 11, "{names:?}");
-    let mut bad = vec![];
-    for m in &names {
-        let file = format!("{dir}/{m}.toml");
-        let r = identify_file("z", &file);
-        let (d0, tau0, ..) = truth_of("z", &file);
-        let d = r["delay_cycles"].as_f64().unwrap();
-        let tau = r["time_constant_ms"].as_f64().unwrap() * 1e-3;
-        eprintln!("{m}: delay {d:.2} / {d0}, τ {:.1} / {:.1} ms", tau * 1e3, tau0 * 1e3);
-        if (d / d0 - 1.0).abs() > 0.1 || (tau / tau0 - 1.0).abs() > 0.1 {
-            bad.push(format!("{m}: delay {d:.2} vs {d0}, τ {:.1} ms vs {:.1} ms", tau * 1e3, tau0 * 1e3));
-        }
-    }
+    let bad = beyond_bounds_in("belt_variants", 11, |_| "z");
     assert!(bad.is_empty(), "identified beyond the bounds: {bad:#?}");
 }
 
