@@ -588,6 +588,10 @@ pub struct DriveResponse {
     pub feed_forward: f64,
     /// Time constant of the rest, ms.
     pub time_constant_ms: f64,
+    /// The drive's own lag per unit of acceleration, ms² (a·τ² of a second-order drive with
+    /// full feed-forward, which lags nothing at constant speed). Absent: 0.
+    #[serde(default)]
+    pub accel_lag_ms2: f64,
 }
 
 fn default_tx_type() -> u8 {
@@ -618,6 +622,14 @@ impl AxisConfig {
         match self.kind {
             AxisKind::Spindle => self.max_speed * 6.0,
             AxisKind::Linear => self.max_speed / 60.0,
+        }
+    }
+
+    /// `max_accel` in the axis' position units per second²: mm/s², degrees/s² from rpm/s.
+    pub fn max_accel_units_s2(&self) -> f64 {
+        match self.kind {
+            AxisKind::Spindle => self.max_accel * 6.0,
+            AxisKind::Linear => self.max_accel,
         }
     }
 

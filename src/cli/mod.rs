@@ -1057,7 +1057,7 @@ fn axis_line(name: &str, a: &crate::config::AxisConfig) -> String {
 }
 
 /// Following-error windows below what an axis' identified response (`[axes.NAME.response]`)
-/// lags at its maximum speed: the drive would fault at full speed.
+/// lags at its maximum speed and acceleration: the drive would fault at full speed.
 fn response_warnings(cfg: &crate::config::MachineConfig) -> Vec<String> {
     let mut out = Vec::new();
     for (name, a) in &cfg.axes {
@@ -1070,13 +1070,14 @@ fn response_warnings(cfg: &crate::config::MachineConfig) -> Vec<String> {
             vaf: 1.0,
             samples: 0,
             velocity_lag: 0.0,
+            accel_lag: r.accel_lag_ms2 * 1e-6,
         };
         let resp = crate::sync::identify::Response { velocity_lag: resp.velocity_lag_model(cfg.cycle_s()), ..resp };
         // (The configured response carries the model; its lag is the model's.)
         let need = identify::proposed_window(cfg, name, &resp);
         if a.following_error < need {
             out.push(format!(
-                "axes.{name}.following_error = {} is below 3 × the lag its response predicts at max_speed; set at least {need:.4}",
+                "axes.{name}.following_error = {} is below 3 × the lag its response predicts at max_speed and max_accel; set at least {need:.4}",
                 a.following_error
             ));
         }
@@ -1219,5 +1220,27 @@ fn config_check(file: Option<&std::path::Path>, json: bool, bus: Option<&str>) -
         exit::OK
     } else {
         exit::NOT_MET
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::response_warnings;
+    use crate::config::{MachineConfig, EMBEDDED_LATHE};
+
+    /// A spindle drive with full feed-forward (no lag at constant speed) that lags a·τ² while
+    /// it accelerates (τ 40 ms: 1600 ms², 57.6° at the lathe's 6000 rpm/s): a 150° window is
+    /// below 3 × that, 180° is not; without `accel_lag_ms2` nothing is predicted.
+    #[test]
+    fn a_window_below_the_lag_while_accelerating_is_warned() {
+        let warned = |window: &str, accel: &str| {
+            let text = EMBEDDED_LATHE.replace("following_error = 180.0 ", &format!("following_error = {window} "));
+            let text = format!("{text}\n[axes.s1.response]\ndelay_cycles = 3.0\nfeed_forward = 1.0\ntime_constant_ms = 80.0\n{accel}");
+            let cfg = MachineConfig::from_toml("t.toml", &text).unwrap();
+            response_warnings(&cfg).iter().any(|w| w.starts_with("axes.s1.following_error"))
+        };
+        assert!(warned("150.0", "accel_lag_ms2 = 1600.0\n"));
+        assert!(!warned("180.0", "accel_lag_ms2 = 1600.0\n"));
+        assert!(!warned("150.0", ""));
     }
 }

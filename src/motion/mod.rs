@@ -364,7 +364,7 @@ impl Limits {
             l.present[i] = true;
             if i == AX_S {
                 l.vmax[i] = a.max_speed_units_s();
-                l.amax[i] = a.max_accel * 6.0;
+                l.amax[i] = a.max_accel_units_s2();
                 l.sp_lag_judge = SP_LAG_JUDGE_SHARE * a.following_error;
             } else {
                 l.vmax[i] = a.max_speed_units_s();

@@ -252,6 +252,7 @@ fn the_tap_with_the_identified_responses_meets_the_bounds() {
                 delay_cycles: r["delay_cycles"].as_f64().unwrap(),
                 feed_forward: r["feed_forward"].as_f64().unwrap(),
                 time_constant_ms: r["time_constant_ms"].as_f64().unwrap(),
+                accel_lag_ms2: r["accel_lag_ms2"].as_f64().unwrap(),
             });
         }
         let text = std::fs::read_to_string(model(m)).unwrap();
