@@ -360,6 +360,13 @@ pub struct CanOpenMaster<B: CanBus> {
     ctrl_seen: cncgw_bus::can_error::ControllerStatus,
 }
 
+/// Who a blocking SDO transfer is with: drive `i` or I/O module `k`.
+#[derive(Clone, Copy)]
+enum Peer {
+    Drive(usize),
+    Io(usize),
+}
+
 enum Sdo<'a> {
     Up(u16, u8),
     Down(u16, u8, &'a [u8]),
@@ -743,22 +750,40 @@ impl<B: CanBus> CanOpenMaster<B> {
     /// One SDO transfer with node `i`, waiting with `clock`. Retries once on timeout.
     fn sdo(&mut self, clock: &mut dyn Clock, i: usize, req: Sdo<'_>) -> Result<Vec<u8>, SdoError> {
         self.settle_background_sdo(clock, i);
+        self.transfer(clock, Peer::Drive(i), req)
+    }
+
+    /// The SDO client of `peer` and its node id.
+    fn peer_sdo(&mut self, peer: Peer) -> (&mut SdoClient, u8) {
+        match peer {
+            Peer::Drive(i) => {
+                let n = &mut self.nodes[i];
+                (&mut n.sdo, n.spec.node)
+            }
+            Peer::Io(k) => self.io[k].sdo_channel(),
+        }
+    }
+
+    /// One SDO transfer with `peer`, waiting with `clock`, the rest of the bus served in the
+    /// background. Retries once on timeout.
+    fn transfer(&mut self, clock: &mut dyn Clock, peer: Peer, req: Sdo<'_>) -> Result<Vec<u8>, SdoError> {
         let mut tries = 0;
         loop {
             tries += 1;
             let now = clock.now_ns();
+            let (c, _) = self.peer_sdo(peer);
             let f = match req {
-                Sdo::Up(ix, sub) => self.nodes[i].sdo.start_upload(ix, sub, now),
-                Sdo::Down(ix, sub, d) => self.nodes[i].sdo.start_download(ix, sub, d, now),
-                Sdo::BlockUp(ix, sub) => self.nodes[i].sdo.start_block_upload(ix, sub, now),
-                Sdo::BlockDown(ix, sub, d) => self.nodes[i].sdo.start_block_download(ix, sub, d, now),
+                Sdo::Up(ix, sub) => c.start_upload(ix, sub, now),
+                Sdo::Down(ix, sub, d) => c.start_download(ix, sub, d, now),
+                Sdo::BlockUp(ix, sub) => c.start_block_upload(ix, sub, now),
+                Sdo::BlockDown(ix, sub, d) => c.start_block_download(ix, sub, d, now),
             };
             if self.bus.send(&f).is_err() {
                 return Err(SdoError::Protocol("cannot send on the bus"));
             }
             let r = loop {
-                self.pump_sdo(clock, i);
-                if let Some(r) = self.nodes[i].sdo.take_result() {
+                self.pump_sdo(clock, peer);
+                if let Some(r) = self.peer_sdo(peer).0.take_result() {
                     break r;
                 }
             };
@@ -769,23 +794,24 @@ impl<B: CanBus> CanOpenMaster<B> {
         }
     }
 
-    /// Wait one poll step and serve node `i`'s SDO channel (the rest of the bus in the
+    /// Wait one poll step and serve `peer`'s SDO channel (the rest of the bus in the
     /// background), for a blocking transfer.
-    fn pump_sdo(&mut self, clock: &mut dyn Clock, i: usize) {
+    fn pump_sdo(&mut self, clock: &mut dyn Clock, peer: Peer) {
         let t = clock.now_ns() + POLL_NS;
         clock.wait_until(t);
         let now = clock.now_ns();
         while let Ok(Some(fr)) = self.bus.try_recv() {
             let (func, node) = cob::split(fr.cob_id());
-            if func == cob::SDO_TX && node == self.nodes[i].spec.node {
-                for out in self.nodes[i].sdo.on_frame(&fr, now) {
+            let (c, id) = self.peer_sdo(peer);
+            if func == cob::SDO_TX && node == id {
+                for out in c.on_frame(&fr, now) {
                     let _ = self.bus.send(&out);
                 }
             } else {
                 self.on_background(&fr, now);
             }
         }
-        if let Some(out) = self.nodes[i].sdo.poll(now) {
+        if let Some(out) = self.peer_sdo(peer).0.poll(now) {
             let _ = self.bus.send(&out);
         }
         let _ = self.tick_life(now);
@@ -796,7 +822,7 @@ impl<B: CanBus> CanOpenMaster<B> {
     /// would take that answer for its own ("unexpected SDO response").
     fn settle_background_sdo(&mut self, clock: &mut dyn Clock, i: usize) {
         while self.nodes[i].sdo.busy() {
-            self.pump_sdo(clock, i);
+            self.pump_sdo(clock, Peer::Drive(i));
         }
         let n = &mut self.nodes[i];
         let _ = n.sdo.take_expedited();

@@ -9,7 +9,7 @@
 //! `receive` takes the inputs; a module that answers no SYNC for `bus.feedback_timeout_ms`
 //! is alarm 2603 (the cycle loop cannot tell an E-stop chain from a module that is gone).
 
-use super::{le_u32, CanOpenMaster, POLL_NS};
+use super::{le_u32, CanOpenMaster};
 use crate::drives::canopen::sdo_client::{SdoClient, SdoError};
 use crate::Alarm;
 use cncgw_bus::canopen::nmt::{decode_heartbeat, NmtState};
@@ -37,6 +37,11 @@ pub(super) struct IoModule {
 }
 
 impl IoModule {
+    /// Its SDO client and node id, for the master's blocking transfers.
+    pub(super) fn sdo_channel(&mut self) -> (&mut SdoClient, u8) {
+        (&mut self.sdo, self.node)
+    }
+
     pub(super) fn new(node: u8, inputs: u8, outputs: u8, sdo_timeout_ms: u32) -> IoModule {
         IoModule {
             node,
@@ -98,45 +103,13 @@ impl<B: CanBus> CanOpenMaster<B> {
         Alarm::new(crate::alarm::IO_DEVICE, format!("I/O module (CiA 401) node {} on {}: {msg}", self.io[k].node, self.bus.name()))
     }
 
-    /// One SDO transfer with I/O module `k` (a simpler `sdo`: expedited only, one retry).
+    /// One expedited SDO transfer with I/O module `k`.
     fn io_sdo(&mut self, clock: &mut dyn Clock, k: usize, ix: u16, sub: u8, data: Option<&[u8]>) -> Result<Vec<u8>, SdoError> {
-        let mut tries = 0;
-        loop {
-            tries += 1;
-            let now = clock.now_ns();
-            let f = match data {
-                Some(d) => self.io[k].sdo.start_download(ix, sub, d, now),
-                None => self.io[k].sdo.start_upload(ix, sub, now),
-            };
-            if self.bus.send(&f).is_err() {
-                return Err(SdoError::Protocol("cannot send on the bus"));
-            }
-            let r = loop {
-                clock.wait_until(clock.now_ns() + POLL_NS);
-                let now = clock.now_ns();
-                while let Ok(Some(fr)) = self.bus.try_recv() {
-                    let (func, node) = cob::split(fr.cob_id());
-                    if func == cob::SDO_TX && node == self.io[k].node {
-                        for out in self.io[k].sdo.on_frame(&fr, now) {
-                            let _ = self.bus.send(&out);
-                        }
-                    } else {
-                        self.on_background(&fr, now);
-                    }
-                }
-                if let Some(out) = self.io[k].sdo.poll(now) {
-                    let _ = self.bus.send(&out);
-                }
-                let _ = self.tick_life(now);
-                if let Some(r) = self.io[k].sdo.take_result() {
-                    break r;
-                }
-            };
-            match r {
-                Err(SdoError::Timeout { .. }) if tries < 2 => continue,
-                r => return r,
-            }
-        }
+        let req = match data {
+            Some(d) => super::Sdo::Down(ix, sub, d),
+            None => super::Sdo::Up(ix, sub),
+        };
+        self.transfer(clock, super::Peer::Io(k), req)
     }
 
     fn io_write(&mut self, clock: &mut dyn Clock, k: usize, ix: u16, sub: u8, data: &[u8]) -> Result<(), Alarm> {
