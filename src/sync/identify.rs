@@ -84,17 +84,19 @@ impl Response {
 /// the first lag at which the actual speed departs from its own trend by `ANSWER` of the
 /// corner — the median over the corners. Where the encoder is too coarse for a corner to show
 /// that (the corner under `RESOLVED` counts) or there are fewer than two, the ARX fit decides;
-/// None where its step response is noise (then `dead_time_oe`). The ARX fit decides too
-/// where the corners disagree by more than a cycle: a lightly damped belt at Kv 15/s, still
-/// ringing from the last speed change, answered two of four corners at once (lags 0, 0, 1, 2:
-/// the median read 1 cycle for 2 at a 3 % faster excitation).
+/// None where its step response is noise (then `dead_time_oe`). Where both read, the later
+/// of the two: each fails early, never late — friction the ARX step (above), and a belt
+/// still ringing from the last speed change the corners (belt_kv15: lags 0, 0, 1, 2, median
+/// 1 for 2; on probe belts and a random mix 1, 1, 2 and 3, 3, 4 — the ARX step read 2 and 4
+/// in each; which corners answer early moved with a 3 % faster excitation).
 fn dead_time(du: &[f64], dy: &[f64], max_delay: usize) -> Option<usize> {
     let mut lags = corners(du, dy, max_delay);
     lags.sort_unstable();
-    match (lags.first(), lags.last()) {
-        (Some(lo), Some(hi)) if lags.len() >= 2 && hi - lo <= 1 => Some(lags[lags.len() / 2]),
-        _ => dead_time_arx(du, dy, max_delay),
+    let arx = dead_time_arx(du, dy, max_delay);
+    if lags.len() < 2 {
+        return arx;
     }
+    Some(lags[lags.len() / 2].max(arx.unwrap_or(0)))
 }
 
 /// The share of a corner the actual speed must show (as the ARX step threshold).
