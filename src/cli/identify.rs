@@ -46,6 +46,10 @@ const SPINDLE_STEPS: [f64; 3] = [0.2, 0.5, 0.15];
 /// that a drive with no velocity feed-forward and a soft loop (Kv 30/s) stays well inside a
 /// spindle's 180° following-error window, fast enough to read its lag.
 const PROBE_SPEED_SHARE: f64 = 0.05;
+/// Share of its (already halved) acceleration a spindle's probe ramps with: a second-order
+/// spindle with full feed-forward lags a·τ² while it ramps (τ 40 ms: 29° at 3000 rpm/s), so
+/// the probe, which knows nothing yet, ramps gently and reads that lag too.
+const PROBE_ACCEL_SHARE: f64 = 0.2;
 /// Share of the following-error window the identification's fastest move may use up,
 /// judged from the probe's lag.
 const WINDOW_SHARE: f64 = 0.4;
@@ -78,7 +82,7 @@ fn program(cfg: &MachineConfig, axis: &str, travel: f64, start: crate::canon::Po
         .ok_or_else(|| format!("no axis {axis} in the configuration (axes: {})", cfg.axes.keys().cloned().collect::<Vec<_>>().join(", ")))?;
     let probe = (PROBE_SPEED_SHARE * a.max_speed).round().max(1.0);
     match a.kind {
-        AxisKind::Spindle if stage == Stage::Probe => Ok(format!("G21\nG97 M03 S{probe}\nG4 P500\nM05\nG4 P400\nM30\n")),
+        AxisKind::Spindle if stage == Stage::Probe => Ok(format!("G21\nG97 M03 S{probe}\nG4 P800\nM05\nG4 P700\nM30\n")),
         AxisKind::Spindle => {
             let [s1, s2, s3] = SPINDLE_STEPS.map(|f| (a.max_speed * f).round());
             Ok(format!("G21\nG97 M03 S{s1}\nG4 P600\nS{s2}\nG4 P600\nS{s3}\nG4 P400\nM05\nG4 P600\nM30\n"))
@@ -159,7 +163,11 @@ pub fn run(machine: &MachineArgs, a: &IdentifyArgs) -> i32 {
     }
     // The probe first: a drive that lags far (no feed-forward, a soft loop) would leave its
     // following-error window at the excitation's speeds before anything was learnt.
-    let (cmd, act) = match record(&cfg, &cfg_text, machine, a, Stage::Probe) {
+    let mut probe = cfg.clone();
+    for ax in probe.axes.values_mut().filter(|ax| ax.kind == AxisKind::Spindle) {
+        ax.max_accel *= PROBE_ACCEL_SHARE;
+    }
+    let (cmd, act) = match record(&probe, &cfg_text, machine, a, Stage::Probe) {
         Ok(r) => r,
         Err(c) => return c,
     };
@@ -225,29 +233,45 @@ fn record(cfg: &MachineConfig, cfg_text: &str, machine: &MachineArgs, a: &Identi
 
 /// Lower `axis`' maximum speed for the excitation so that the drive's own lag, as the probe
 /// `r` read it, stays within `WINDOW_SHARE` of its following-error window at the fastest
-/// speed the excitation asks for (a spindle's half speed, a linear axis' rapid).
+/// speed the excitation asks for (a spindle's half speed, a linear axis' rapid); and its
+/// acceleration so that the lag while accelerating (`Response::accel_lag`) does too: a
+/// second-order spindle with full feed-forward (python peer, τ 40 ms) lags nothing at speed
+/// and 29° at 3000 rpm/s, and faulted a 30° window (0x8611) until 2026-11-30.
 fn keep_within_window(cfg: &mut MachineConfig, axis: &str, r: &Response) {
     let lag = own_lag_s(r, cfg.cycle_s());
     let Some(ax) = cfg.axes.get_mut(axis) else { return };
-    if !(lag > 0.0 && ax.following_error > 0.0) {
+    if !(ax.following_error > 0.0) {
         return;
     }
+    let budget = WINDOW_SHARE * ax.following_error;
     // The fastest speed asked for, as a share of max_speed, and the units/s at which the lag
     // uses up its share of the window.
-    let (top, unit) = match ax.kind {
-        AxisKind::Spindle => (SPINDLE_STEPS[1], "rpm"),
-        AxisKind::Linear => (1.0, "mm/min"),
+    let (top, unit, accel_unit) = match ax.kind {
+        AxisKind::Spindle => (SPINDLE_STEPS[1], "rpm", "rpm/s"),
+        AxisKind::Linear => (1.0, "mm/min", "mm/s²"),
     };
-    let v = WINDOW_SHARE * ax.following_error / lag;
-    let allowed = ax.max_speed * v / (top * ax.max_speed_units_s());
-    if allowed < ax.max_speed {
-        eprintln!(
-            "cncgw: identify {axis}: the drive lags {:.1} ms of its own at speed: the run keeps to {:.0} % of max_speed ({allowed:.0} {unit}) to stay within its following-error window {}",
-            lag * 1e3,
-            100.0 * allowed / ax.max_speed,
-            ax.following_error
-        );
-        ax.max_speed = allowed;
+    if lag > 0.0 {
+        let allowed = ax.max_speed * (budget / lag) / (top * ax.max_speed_units_s());
+        if allowed < ax.max_speed {
+            eprintln!(
+                "cncgw: identify {axis}: the drive lags {:.1} ms of its own at speed: the run keeps to {:.0} % of max_speed ({allowed:.0} {unit}) to stay within its following-error window {}",
+                lag * 1e3,
+                100.0 * allowed / ax.max_speed,
+                ax.following_error
+            );
+            ax.max_speed = allowed;
+        }
+    }
+    if r.accel_lag > 0.0 {
+        let allowed = ax.max_accel * (budget / r.accel_lag) / ax.max_accel_units_s2();
+        if allowed < ax.max_accel {
+            eprintln!(
+                "cncgw: identify {axis}: the drive lags {:.0} ms² of its own per unit of acceleration: the run keeps to {allowed:.0} {accel_unit} to stay within its following-error window {}",
+                r.accel_lag * 1e6,
+                ax.following_error
+            );
+            ax.max_accel = allowed;
+        }
     }
 }
 
