@@ -171,13 +171,17 @@ fn a_coarse_spindle_encoder_s_delay_is_identified() {
 #[test]
 fn a_ringing_belt_s_delay_is_identified() {
     for m in ["belt_k4_ringing", "belt_k5_ringing"] {
-        let file = format!("{}/tests/drive_models/identify_only/{m}.toml", env!("CARGO_MANIFEST_DIR"));
-        let r = identify_file("z", &file);
-        let (d0, tau0, ..) = truth_of("z", &file);
-        let (d, tau) = (r["delay_cycles"].as_f64().unwrap(), r["time_constant_ms"].as_f64().unwrap() * 1e-3);
-        assert!((d / d0 - 1.0).abs() <= 0.1, "{m}: delay {d:.2} vs {d0}");
-        assert!((tau / tau0 - 1.0).abs() <= 0.1, "{m}: τ {:.1} ms vs {:.1} ms", tau * 1e3, tau0 * 1e3);
+        assert_delay_and_tau("z", &format!("{}/tests/drive_models/identify_only/{m}.toml", env!("CARGO_MANIFEST_DIR")));
     }
+}
+
+/// `cncgw identify axis` on model `file`: delay and τ within 10 % of the truth.
+fn assert_delay_and_tau(axis: &str, file: &str) {
+    let r = identify_file(axis, file);
+    let (d0, tau0, ..) = truth_of(axis, file);
+    let (d, tau) = (r["delay_cycles"].as_f64().unwrap(), r["time_constant_ms"].as_f64().unwrap() * 1e-3);
+    assert!((d / d0 - 1.0).abs() <= 0.1, "{file}: delay {d:.2} vs {d0}");
+    assert!((tau / tau0 - 1.0).abs() <= 0.1, "{file}: τ {:.1} ms vs {:.1} ms", tau * 1e3, tau0 * 1e3);
 }
 
 /// A spindle with more load than its motor was sized for (`heavy_variants/sp_j12`: 0.12 kg·m²
@@ -186,12 +190,7 @@ fn a_ringing_belt_s_delay_is_identified() {
 /// (`SPINDLE_ACCEL_SHARE`): within 10 %. (0.24 kg·m² on 120 N·m still reads 13 % short.)
 #[test]
 fn a_spindle_beyond_its_torque_is_identified() {
-    let file = format!("{}/tests/drive_models/heavy_variants/sp_j12.toml", env!("CARGO_MANIFEST_DIR"));
-    let r = identify_file("s1", &file);
-    let (d0, tau0, ..) = truth_of("s1", &file);
-    let (d, tau) = (r["delay_cycles"].as_f64().unwrap(), r["time_constant_ms"].as_f64().unwrap() * 1e-3);
-    assert!((d / d0 - 1.0).abs() <= 0.1, "delay {d:.2} vs {d0}");
-    assert!((tau / tau0 - 1.0).abs() <= 0.1, "τ {:.1} ms vs {:.1} ms", tau * 1e3, tau0 * 1e3);
+    assert_delay_and_tau("s1", &format!("{}/tests/drive_models/heavy_variants/sp_j12.toml", env!("CARGO_MANIFEST_DIR")));
 }
 
 /// A spindle drive with no velocity feed-forward (`identify_only/spindle_no_ff`: Kv 30/s,
