@@ -395,19 +395,28 @@ fn late_tpdos(trace: &str) -> usize {
     })
 }
 
-fn tap(python: &Path, shape: &str, spindle_window_deg: f64) -> Tap {
+/// `cncgw ARGS --bus socketcand://… --yes --config …` on the python drives of `shape` (hub,
+/// drives and cncgw under SCHED_FIFO where allowed), the lathe's spindle window
+/// `spindle_window_deg`: cncgw's output, the drives' final reports (after SIGTERM) and the
+/// run's directory (CNCGW_STATE_DIR; the caller reads what it wrote there and removes it).
+fn on_python_drives(
+    python: &Path,
+    shape: &str,
+    spindle_window_deg: f64,
+    tag: &str,
+    args: impl FnOnce(&Path) -> Vec<std::ffi::OsString>,
+) -> (std::process::Output, Vec<serde_json::Value>, PathBuf) {
     let (addr, stop, hub) = hub_at(Some(45));
     let port = addr.rsplit_once(':').unwrap().1.to_string();
     let (mut py, out) = start_drives(realtime(python, 40), &port, shape);
-    let dir = std::env::temp_dir().join(format!("cncgw_python_tap_{shape}_{}", std::process::id()));
+    let dir = std::env::temp_dir().join(format!("cncgw_python_{tag}_{shape}_{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     std::fs::write(dir.join("machine.toml"), python_lathe(spindle_window_deg)).unwrap();
     let o = realtime(Path::new(env!("CARGO_BIN_EXE_cncgw")), 50)
-        .args(["tap-test", "--bus", &format!("socketcand://{addr}/can0"), "--yes", "--lead", "1.5", "--depth", "35", "--rpm", "3000", "--json"])
+        .args(args(&dir))
+        .args(["--bus", &format!("socketcand://{addr}/can0"), "--yes"])
         .arg("--config")
         .arg(dir.join("machine.toml"))
-        .arg("-o")
-        .arg(dir.join("tap.svg"))
         .env("CNCGW_STATE_DIR", &dir)
         .output()
         .expect("run cncgw");
@@ -419,8 +428,22 @@ fn tap(python: &Path, shape: &str, spindle_window_deg: f64) -> Tap {
     let _ = py.wait();
     stop.store(true, Ordering::Relaxed);
     let _ = hub.join();
-    let stdout = String::from_utf8_lossy(&o.stdout).into_owned();
-    let json = stdout.lines().rev().find_map(|l| serde_json::from_str(l).ok()).unwrap_or(serde_json::Value::Null);
+    (o, drives, dir)
+}
+
+/// The last JSON line of `o`'s standard output, Null when it printed none.
+fn last_json(o: &std::process::Output) -> serde_json::Value {
+    String::from_utf8_lossy(&o.stdout).lines().rev().find_map(|l| serde_json::from_str(l).ok()).unwrap_or(serde_json::Value::Null)
+}
+
+fn tap(python: &Path, shape: &str, spindle_window_deg: f64) -> Tap {
+    let (o, drives, dir) = on_python_drives(python, shape, spindle_window_deg, "tap", |dir| {
+        let mut a: Vec<std::ffi::OsString> =
+            ["tap-test", "--lead", "1.5", "--depth", "35", "--rpm", "3000", "--json", "-o"].iter().map(Into::into).collect();
+        a.push(dir.join("tap.svg").into());
+        a
+    });
+    let json = last_json(&o);
     let trace = std::fs::read_to_string(dir.join("tap.csv")).unwrap_or_default();
     let gap_ms = cncgw::control::trace::TraceData::parse(&trace).map_or(f64::INFINITY, |d| {
         let t = d.column("t_s").unwrap_or_default();
@@ -493,30 +516,14 @@ fn realtime_rigid_tap_on_python_drives() {
 /// its JSON (Null when it printed none), its standard error, and the late TPDOs of the
 /// excitation's trace.
 fn identify_on(python: &Path, shape: &str, axis: &str, spindle_window_deg: f64) -> (serde_json::Value, String, usize) {
-    let (addr, stop, hub) = hub_at(Some(45));
-    let port = addr.rsplit_once(':').unwrap().1.to_string();
-    let (mut py, _out) = start_drives(realtime(python, 40), &port, shape);
-    let dir = std::env::temp_dir().join(format!("cncgw_python_identify_{shape}_{axis}_{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    std::fs::write(dir.join("machine.toml"), python_lathe(spindle_window_deg)).unwrap();
-    let o = realtime(Path::new(env!("CARGO_BIN_EXE_cncgw")), 50)
-        .args(["identify", axis, "--bus", &format!("socketcand://{addr}/can0"), "--yes", "--json"])
-        .arg("--config")
-        .arg(dir.join("machine.toml"))
-        .arg("--trace")
-        .arg(dir.join("identify.csv"))
-        .env("CNCGW_STATE_DIR", &dir)
-        .output()
-        .expect("run cncgw");
-    let _ = py.kill();
-    let _ = py.wait();
-    stop.store(true, Ordering::Relaxed);
-    let _ = hub.join();
+    let (o, _, dir) = on_python_drives(python, shape, spindle_window_deg, &format!("identify_{axis}"), |dir| {
+        let mut a: Vec<std::ffi::OsString> = ["identify", axis, "--json", "--trace"].iter().map(Into::into).collect();
+        a.push(dir.join("identify.csv").into());
+        a
+    });
     let late = late_tpdos(&std::fs::read_to_string(dir.join("identify.csv")).unwrap_or_default());
     let _ = std::fs::remove_dir_all(&dir);
-    let stdout = String::from_utf8_lossy(&o.stdout).into_owned();
-    let json = stdout.lines().rev().find_map(|l| serde_json::from_str(l).ok()).unwrap_or(serde_json::Value::Null);
-    (json, String::from_utf8_lossy(&o.stderr).into_owned(), late)
+    (last_json(&o), String::from_utf8_lossy(&o.stderr).into_owned(), late)
 }
 
 /// Issue 17, "identify works on real drives": `cncgw identify` on CiA 402 drives we did not
