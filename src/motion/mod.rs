@@ -2374,23 +2374,23 @@ impl Motion {
     }
 
     /// What of a thread's lead τ·v the long axis' lag has not built up yet, path mm. A loop
-    /// with feed-forward lags by τ·v/(1 + T·s) (`LagModel::lead_lag`): after the lead-in its
-    /// lag builds up over T (67 ms at Kv 15/s), so the lead τ·v sent at once ran the axis
-    /// ahead of the thread (a belt at Kv 20/s with 90 % feed-forward: alarm 2307 in the
-    /// lead-in). The exact inverse leads by τ·v/(1 + (T − τ)·s): the shortfall is
-    /// τ·(v − that filtered v), with the model as it was when the pass armed (the fit moves
-    /// through the lead-in it is excited by). Zero on the line, and where the lag does not
-    /// settle on its own (a delay, a stiff loop).
+    /// with feed-forward lags by c·v/(1 + T·s) beyond its delay (`LagModel::split`): after
+    /// the lead-in that share builds up over T (67 ms at Kv 15/s), so the lead τ·v sent at
+    /// once ran the axis ahead of the thread (a belt at Kv 20/s with 90 % feed-forward:
+    /// alarm 2307 in the lead-in). The exact inverse leads by c·v/(1 + (T − c)·s): the
+    /// shortfall is c·(v − that filtered v), with the model as it was when the pass armed
+    /// (the fit moves through the lead-in it is excited by). Zero on the line, and where
+    /// the lag does not settle on its own (a delay, a stiff loop).
     fn thread_shortfall(&mut self, t: &ThreadSync, target: f64, theta: f64, rpm: f64) -> f64 {
         let step = target - t.target(theta - rpm * 6.0 * self.lim.cycle_s);
         let settling = self.thread_settle.filter(|_| self.lim.sync_correction);
-        let Some((lag, tf)) = settling.filter(|_| step.is_finite()) else {
+        let Some((c, tf)) = settling.filter(|_| step.is_finite()) else {
             self.thread_vf = if step.is_finite() { step } else { 0.0 };
             return 0.0;
         };
-        // The filter is linear: lag · (filtered step) is the lead `settle_lead` gives.
+        // The filter is linear: c · (filtered step) is the lead `settle_lead` gives.
         self.thread_vf = settle_lead(self.thread_vf, step, tf);
-        lag * (step - self.thread_vf)
+        c * (step - self.thread_vf)
     }
 
     /// The sync correction of rigid taps and G92.1 (with `Limits::sync_correction`): the

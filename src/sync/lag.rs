@@ -11,10 +11,26 @@
 //! captures the acceleration phases, where a first-moment model alone leaves an error that
 //! grows with the acceleration.
 
-/// τ₁ (cycles) below which the velocity lag is too small for its settling to matter.
+/// Settling lag (cycles) below which it is too small to matter.
 const LEAD_LAG_MIN_TAU1: f64 = 0.25;
 /// Longest settling of the lead filter, cycles.
 const LEAD_LAG_MAX: f64 = 100.0;
+
+/// Delays (cycles, in half cycles) the settling fit tries (`LagModel::split`).
+const DELAYS: usize = 8;
+/// Another settling fit replaces the one in use when its error is below this share of it.
+const SWITCH_RATIO: f64 = 0.97;
+/// Command increments kept: enough for the longest delay tried and the cycle before it.
+const HIST: usize = DELAYS / 2 + 1;
+
+/// One candidate of the settling fit: the lag beyond a delay of `DELAYS`[i] settles as
+/// e = ρ·e₋₁ + b·Δd(delayed), (ρ, b) fitted by RLS, with its a-priori squared error.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct SettleFit {
+    theta: [f64; 2],
+    p: [[f64; 2]; 2],
+    sse: f64,
+}
 
 /// RLS estimate of (τ₁, τ₂) in cycles / cycles².
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -24,13 +40,40 @@ pub struct LagModel {
     lambda: f64,
     /// Samples taken.
     pub samples: u32,
-    /// The lag's own settling: lag = ρ·lag₋₁ + b·Δd, fitted alongside (ρ, b).
-    settle: [f64; 2],
-    sp: [[f64; 2]; 2],
+    /// The lag's own settling beyond each delay tried (`split`).
+    settle: [SettleFit; DELAYS],
+    /// The settling fit in use (`best_settling`).
+    chosen: usize,
     lag_prev: Option<f64>,
+    /// The command's increments, this cycle's first.
+    hist: [f64; HIST],
     /// Size of a sample's regressors (units per cycle) from which on it counts whole
     /// (`weigh`).
     floor: f64,
+}
+
+/// A drive's lag split into what answers late and what settles (`LagModel::split`), cycles.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LagSplit {
+    /// The share that is a delay (transport, inner loops): the lead predicts it.
+    pub delay: f64,
+    /// The share that settles on its own (a position loop with feed-forward): c·v/(1 + T·s).
+    pub settle: f64,
+    /// The time constant (cycles) of the lead that inverts the settling exactly:
+    /// c·v/(1 + (T − c)·s) of the speed `delay` cycles ahead.
+    pub tf: f64,
+}
+
+impl LagSplit {
+    /// Large enough a settling, slow enough, that inverting it beats `LagModel::lead`.
+    pub fn settles(&self) -> bool {
+        self.settle >= LEAD_LAG_MIN_TAU1 && self.tf >= 1.0
+    }
+
+    /// The delay's share of the lead: the target's travel over the next `delay` cycles.
+    pub fn delay_lead(&self, dv: f64, da: f64) -> f64 {
+        self.delay * dv + 0.5 * self.delay * (self.delay + 1.0) * da
+    }
 }
 
 /// A sample scaled by its size, at least `floor`: above the floor every sample counts alike,
@@ -38,30 +81,30 @@ pub struct LagModel {
 /// approach the fit learnt little, and a Z with 80 % feed-forward began its first tap with
 /// half its lag learnt, τ₁ 2.1 cycles for 4, lagging the spindle by 7–8 µm until the fit
 /// caught up). y is scaled with φ: the same model, its samples weighed differently.
-fn weigh(phi: [f64; 2], y: f64, floor: f64) -> ([f64; 2], f64) {
-    let n = phi[0].abs().max(phi[1].abs()).max(floor);
-    ([phi[0] / n, phi[1] / n], y / n)
+fn weigh<const N: usize>(phi: [f64; N], y: f64, floor: f64) -> ([f64; N], f64) {
+    let n = phi.iter().fold(floor, |m, v| m.max(v.abs()));
+    (phi.map(|v| v / n), y / n)
 }
 
-/// One step of a two-parameter recursive least squares with forgetting `lambda`; the
-/// covariance kept bounded where nothing excites it. False when the sample was not taken.
-fn rls2(theta: &mut [f64; 2], p: &mut [[f64; 2]; 2], lambda: f64, phi: [f64; 2], y: f64) -> bool {
-    let pphi = [p[0][0] * phi[0] + p[0][1] * phi[1], p[1][0] * phi[0] + p[1][1] * phi[1]];
-    let den = lambda + phi[0] * pphi[0] + phi[1] * pphi[1];
+/// One step of a recursive least squares with forgetting `lambda`; the covariance kept
+/// bounded where nothing excites it. False when the sample was not taken.
+fn rls<const N: usize>(theta: &mut [f64; N], p: &mut [[f64; N]; N], lambda: f64, phi: [f64; N], y: f64) -> bool {
+    let pphi: [f64; N] = std::array::from_fn(|i| (0..N).map(|j| p[i][j] * phi[j]).sum());
+    let den = lambda + (0..N).map(|i| phi[i] * pphi[i]).sum::<f64>();
     if !(den > 1e-12) {
         return false;
     }
-    let k = [pphi[0] / den, pphi[1] / den];
-    let e = y - (phi[0] * theta[0] + phi[1] * theta[1]);
-    theta[0] += k[0] * e;
-    theta[1] += k[1] * e;
-    for i in 0..2 {
-        for j in 0..2 {
-            p[i][j] = (p[i][j] - k[i] * pphi[j]) / lambda;
+    let e = y - (0..N).map(|i| phi[i] * theta[i]).sum::<f64>();
+    for i in 0..N {
+        theta[i] += pphi[i] / den * e;
+    }
+    for i in 0..N {
+        for j in 0..N {
+            p[i][j] = (p[i][j] - pphi[i] / den * pphi[j]) / lambda;
         }
     }
     // Keep P bounded when there is no excitation (covariance wind-up).
-    let tr = p[0][0] + p[1][1];
+    let tr: f64 = (0..N).map(|i| p[i][i]).sum();
     if tr > 1e4 {
         let s = 1e4 / tr;
         for x in p.iter_mut().flatten() {
@@ -77,7 +120,17 @@ impl LagModel {
     pub fn new(memory_cycles: f64, floor: f64) -> LagModel {
         let p = [[1e2, 0.0], [0.0, 1e2]];
         let lambda = 1.0 - 1.0 / memory_cycles.max(2.0);
-        LagModel { theta: [0.0; 2], p, lambda, samples: 0, settle: [0.0; 2], sp: p, lag_prev: None, floor: floor.max(1e-12) }
+        LagModel {
+            theta: [0.0; 2],
+            p,
+            lambda,
+            samples: 0,
+            settle: [SettleFit { theta: [0.0; 2], p, sse: 0.0 }; DELAYS],
+            chosen: 0,
+            lag_prev: None,
+            hist: [0.0; HIST],
+            floor: floor.max(1e-12),
+        }
     }
 
     /// One sample: the lag (command − actual) and the command's increments `dv` (this cycle's
@@ -87,12 +140,16 @@ impl LagModel {
             return;
         }
         let (phi, y) = weigh([dv, da], lag, self.floor);
-        if !rls2(&mut self.theta, &mut self.p, self.lambda, phi, y) {
+        if !rls(&mut self.theta, &mut self.p, self.lambda, phi, y) {
             return;
         }
+        self.hist.rotate_right(1);
+        self.hist[0] = dv;
         if let Some(l1) = self.lag_prev {
-            let (phi, y) = weigh([l1, dv], lag, self.floor);
-            rls2(&mut self.settle, &mut self.sp, self.lambda, phi, y);
+            for i in 0..DELAYS {
+                self.fit_settling(i, l1, lag);
+            }
+            self.choose_settling();
         }
         self.lag_prev = Some(lag);
         self.samples = self.samples.saturating_add(1);
@@ -110,31 +167,74 @@ impl LagModel {
         t1 * dv + (t1 * t1 + t2) * da
     }
 
-    /// Where the lag settles on its own — a position loop with feed-forward: lag =
-    /// τ₁·v/(1 + T·s), T = 1/Kv; the settling fit's ρ = e^(−1/T) per cycle — the time constant
-    /// (cycles) of the lead that inverts it exactly: τ₁·v/(1 + (T − τ₁)·s). None where
-    /// `lead`'s two terms are the better model: a transport delay (T ≤ τ₁ + 1), τ₁ ≈ 0.
-    /// Why a fit of its own: the two-term fit's τ₂ = −τ₁·T holds only where the acceleration
-    /// changes slowly against T; through a tap's acceleration steps it read T ≈ 1 cycle on a
-    /// Kv 25/s drive (truth 20).
-    pub fn lead_lag(&self) -> Option<f64> {
-        let t1 = self.params().0;
-        let rho = self.settle[0].clamp(0.0, 0.99);
-        let tf = rho / (1.0 - rho) - t1;
-        (t1 >= LEAD_LAG_MIN_TAU1 && tf >= 1.0).then(|| tf.min(LEAD_LAG_MAX))
+    /// One sample of the settling fit beyond delay `i`/2 cycles (n whole, f a half): the lag
+    /// less the delay's share S = Σ_{j<n} Δd₋ⱼ + f·Δd₋ₙ is e = ρ·e₋₁ + b·Δd delayed.
+    fn fit_settling(&mut self, i: usize, l1: f64, lag: f64) {
+        let (n, f) = (i / 2, 0.5 * (i % 2) as f64);
+        let h = &self.hist;
+        let s0: f64 = h[..n].iter().sum::<f64>() + f * h[n];
+        let s1: f64 = h[1..=n].iter().sum::<f64>() + f * h[n + 1];
+        let u = (1.0 - f) * h[n] + f * h[n + 1];
+        let (phi, y) = weigh([l1 - s1, u], lag - s0, self.floor);
+        let fit = &mut self.settle[i];
+        let e = y - phi[0] * fit.theta[0] - phi[1] * fit.theta[1];
+        if rls(&mut fit.theta, &mut fit.p, self.lambda, phi, y) {
+            fit.sse = self.lambda * fit.sse + e * e;
+        }
     }
 
-    /// The velocity lag (cycles) as the settling fit has it: b/(1 − ρ), the lag it settles
-    /// to at constant speed. Where the lag settles slowly this is the better estimate: the
-    /// two-term fit spreads the settling over τ₁ and τ₂ (8 µm → 6 µm at a tap's start on a
-    /// Z with 80 % feed-forward and Kv 25/s).
+    /// Keep the settling fit that describes the lag best; another only once it is clearly
+    /// better (two fits a half cycle apart describe a smooth lag almost alike, and every
+    /// change moves the lead's split).
+    fn choose_settling(&mut self) {
+        let best = (0..DELAYS).fold(0, |b, i| if self.settle[i].sse < self.settle[b].sse { i } else { b });
+        if self.settle[best].sse < SWITCH_RATIO * self.settle[self.chosen].sse {
+            self.chosen = best;
+        }
+    }
+
+    /// The settling fit in use: (delay, ρ, b).
+    fn best_settling(&self) -> (f64, f64, f64) {
+        let i = self.chosen;
+        let [rho, b] = self.settle[i].theta;
+        (0.5 * i as f64, rho.clamp(0.0, 0.99), b)
+    }
+
+    /// The lag split into a delay and a settling (`LagSplit`; a position loop with
+    /// feed-forward: lag = c·v/(1 + T·s), the settling fit's ρ = e^(−1/T) per cycle). Where
+    /// the settling is small or fast (`LagSplit::settles` false: a pure delay, a stiff loop,
+    /// τ₁ ≈ 0) `lead`'s two terms are the better model. Why a fit of its own: the two-term fit's
+    /// τ₂ = −c·T holds only where the acceleration changes slowly against T; through a tap's
+    /// acceleration steps it read T ≈ 1 cycle on a Kv 25/s drive (truth 20).
+    ///
+    ///
+    /// How the delay is told from the settling: one settling fit per delay D tried (0 to 3.5
+    /// cycles in halves), each fitting e = lag − (the command's travel over the last D cycles)
+    /// as e = ρ·e₋₁ + b·Δd D cycles back; the fit whose a-priori error is least is used, so
+    /// c = b/(1 − ρ) and T follow from the settling alone. A single fit of lag = ρ·lag₋₁ +
+    /// b·Δd read ρ short behind a delay (T 4.5 cycles for 10 on a Z with two cycles of
+    /// transport delay and 85 % feed-forward: the lead then stayed on the two terms and
+    /// missed where the tap's acceleration ends, 6.7 µm); one fit with several past
+    /// increments as inputs found the static lag but not its parts (its inputs move almost
+    /// alike on a smooth path).
+    pub fn split(&self) -> LagSplit {
+        let (delay, rho, b) = self.best_settling();
+        let settle = (b / (1.0 - rho)).clamp(0.0, 50.0);
+        let tf = (rho / (1.0 - rho) - settle).min(LEAD_LAG_MAX);
+        LagSplit { delay, settle, tf }
+    }
+
+    /// The velocity lag (cycles) as the settling fit has it: the delay and b/(1 − ρ), the
+    /// lag it settles to at constant speed. Where the lag settles slowly this is the better
+    /// estimate: the two-term fit spreads the settling over τ₁ and τ₂ (8 µm → 6 µm at a
+    /// tap's start on a Z with 80 % feed-forward and Kv 25/s).
     pub fn settled_lag(&self) -> f64 {
-        let rho = self.settle[0].clamp(0.0, 0.99);
-        (self.settle[1] / (1.0 - rho)).clamp(0.0, 50.0)
+        let s = self.split();
+        (s.delay + s.settle).clamp(0.0, 50.0)
     }
 }
 
-/// One cycle of the lead that inverts a settling lag (`LagModel::lead_lag`): `lead` moves
+/// One cycle of the lead that inverts a settling lag (`LagModel::split`): `lead` moves
 /// toward `target` (the settled lag times this cycle's step) with time constant `tf` cycles.
 pub fn settle_lead(lead: f64, target: f64, tf: f64) -> f64 {
     lead + (target - lead) / (1.0 + tf)
@@ -174,7 +274,9 @@ mod tests {
         let want = (1.0 - ff) / kv / dt;
         assert!((t1 - want).abs() < 0.1 * want, "τ1 {t1} cycles, want {want}");
         // Its lag settles over 1/kv (20 cycles): the lead through it, 20 − τ₁ cycles.
-        let tf = m.lead_lag().expect("a settling lag");
+        let split = m.split();
+        assert!(split.settles() && split.delay <= 0.5, "{split:?}");
+        let tf = split.tf;
         let want_tf = 1.0 / kv / dt - want;
         assert!((tf - want_tf).abs() < 0.15 * want_tf, "lead filter {tf} cycles, want {want_tf}");
     }
@@ -201,7 +303,7 @@ mod tests {
         let want = (1.0 - ff) / kv / dt;
         let got = m.settled_lag();
         assert!((got - want).abs() < 0.1 * want, "settled lag {got} cycles, want {want}");
-        assert!(m.lead_lag().is_some(), "a settling lag");
+        assert!(m.split().settles(), "a settling lag: {:?}", m.split());
     }
 
     #[test]
@@ -215,6 +317,37 @@ mod tests {
             m.update(dv, dv - dv1, u(k) - u(k - 3.0));
         }
         assert!((m.params().0 - 3.0).abs() < 0.1, "{:?}", m.params());
-        assert_eq!(m.lead_lag(), None);
+        let split = m.split();
+        assert!(!split.settles() && (split.delay - 3.0).abs() <= 0.5, "{split:?}");
+    }
+
+    /// A first-order drive with feed-forward behind two cycles of transport delay (Kv 50/s,
+    /// ff 0.85 at 2 ms: c = 1.5 cycles settling over T = 10): the split finds the delay and
+    /// the settling apart. A single settling fit without the delay read T 4.5 cycles.
+    #[test]
+    fn a_delayed_settling_is_split_into_its_delay_and_its_settling() {
+        let (kv, ff, dt, delay) = (50.0, 0.85, 0.002, 2);
+        let mut m = LagModel::new(500.0, 1e-3);
+        let u = |k: usize| {
+            let t = k as f64 * dt;
+            10.0 * (1.0 - (t * 3.0).cos()) + 2.0 * t + 0.5 * (t * 17.0).sin()
+        };
+        let mut y = 0.0f64;
+        for k in delay + 2..4000 {
+            // The drive acts on the set-point of `delay` cycles before, interpolated.
+            let (r0, r1) = (u(k - delay - 1), u(k - delay));
+            let v = (r1 - r0) / dt;
+            for i in 0..20 {
+                let rs = r0 + (r1 - r0) * (i + 1) as f64 / 20.0;
+                y += dt / 20.0 * (ff * v + kv * (rs - y));
+            }
+            let (dv, dv1) = (u(k) - u(k - 1), u(k - 1) - u(k - 2));
+            m.update(dv, dv - dv1, u(k) - y);
+        }
+        let s = m.split();
+        let (c, t) = ((1.0 - ff) / kv / dt, 1.0 / kv / dt);
+        assert!(s.settles() && (s.delay - delay as f64).abs() <= 0.5, "{s:?}");
+        assert!((s.settle - c).abs() < 0.1 * c, "settling {} cycles, want {c}: {s:?}", s.settle);
+        assert!((s.tf - (t - c)).abs() < 0.15 * (t - c), "lead filter {} cycles, want {}: {s:?}", s.tf, t - c);
     }
 }

@@ -140,6 +140,25 @@ fn lowff_variants_hold_the_tap_and_the_thread_in_the_air() {
     }
 }
 
+/// Mixes of a transport delay and a low velocity feed-forward on Z
+/// (`tests/drive_models/delay_lowff_variants/`: 85 % and 90 % with every drive two cycles
+/// late, 85 % with Z alone two cycles late), in the air: the tap's bounds, no alarm. Before
+/// the lag's split into a delay and a settling (`sync::lag`, 2026-11-30) the lead filtered
+/// the delay's share too and missed where the tap's acceleration ends: 7.4, 5.1 and 6.7 µm
+/// at S3000, now 2.5, 2.2 and 1.9. The G92.1 stroke with every drive two cycles late is
+/// held to delay2's 7.5 µm (6.2–6.3; delay2 itself 6.6).
+#[test]
+fn delay_lowff_variants_hold_the_tap_and_the_thread_in_the_air() {
+    for (name, r) in in_the_air("delay_lowff_variants", 3) {
+        assert!(r.alarms.is_empty(), "{name}: {:?}", r.alarms);
+        let (m3, m6, mg) = (r.tap_3000.unwrap().0, r.tap_6000.unwrap().0, r.g92_1.unwrap().0);
+        assert!(m3 <= 5.0 && m6 <= 10.0, "{name}: tap S3000 {m3:.2} µm (bound 5), S6000 {m6:.2} µm (bound 10)");
+        assert!(mg <= 7.5, "{name}: G92.1 {mg:.2} µm (bound 7.5)");
+        let p = r.phase_spread.unwrap();
+        assert!(p <= 0.1, "{name}: thread phase spread {p:.3}° (bound 0.1)");
+    }
+}
+
 /// Spindles whose torque cannot give the configured acceleration
 /// (`tests/drive_models/heavy_variants/`: load 0.12 kg·m² on 70 N·m; 0.24 on 120 N·m): the
 /// governor (`sync::governor`) finds what the spindle manages and plans with 90 % of it. In
