@@ -145,8 +145,8 @@ fn lowff_variants_hold_the_tap_and_the_thread_in_the_air() {
 /// late, 85 % with Z alone two cycles late), in the air: the tap's bounds, no alarm. Before
 /// the lag's split into a delay and a settling (`sync::lag`, 2026-11-30) the lead filtered
 /// the delay's share too and missed where the tap's acceleration ends: 7.4, 5.1 and 6.7 µm
-/// at S3000, now 2.5, 2.2 and 1.9. The G92.1 stroke with every drive two cycles late is
-/// held to delay2's 7.5 µm (6.2–6.3; delay2 itself 6.6).
+/// at S3000, now 1.9, 1.4 and 1.9. The G92.1 stroke is held to delay2's 7.5 µm (4.8, 4.8,
+/// 1.9; before 9.3, 7.9, 6.4; delay2 itself 6.6).
 #[test]
 fn delay_lowff_variants_hold_the_tap_and_the_thread_in_the_air() {
     for (name, r) in in_the_air("delay_lowff_variants", 3) {
