@@ -226,6 +226,15 @@ impl LagModel {
         let (delay, rho, b) = self.best_settling();
         let settle = (b / (1.0 - rho)).clamp(0.0, 50.0);
         let tf = (rho / (1.0 - rho) - settle).min(LEAD_LAG_MAX);
+        // A settling fit far from the two-term fit's velocity lag is no model of this drive:
+        // under a jittery SYNC's noise the fit drifted to ρ → 1 (e = e₋₁ predicts noise well)
+        // and read a 50-cycle lag on a Z that lags 0.5, its thread's lead-in then stopped by
+        // alarm 2307. The bounds leave room for a settling the two-term fit spreads over τ₂
+        // (τ₁ 2.1 cycles for 4 at a first tap's start).
+        let t1 = self.params().0;
+        if !(delay + settle).is_finite() || delay + settle > 2.0 * t1 + 1.0 || delay + settle < 0.5 * t1 - 1.0 {
+            return LagSplit { delay: t1, settle: 0.0, tf: 0.0 };
+        }
         LagSplit { delay, settle, tf }
     }
 
