@@ -12,7 +12,7 @@
 //! grows with the acceleration.
 
 /// Settling lag (cycles) below which it is too small to matter.
-const LEAD_LAG_MIN_TAU1: f64 = 0.25;
+const SETTLE_MIN: f64 = 0.25;
 /// Longest settling of the lead filter, cycles.
 const LEAD_LAG_MAX: f64 = 100.0;
 
@@ -23,7 +23,7 @@ const SWITCH_RATIO: f64 = 0.97;
 /// Command increments kept: enough for the longest delay tried and the cycle before it.
 const HIST: usize = DELAYS / 2 + 1;
 
-/// One candidate of the settling fit: the lag beyond a delay of `DELAYS`[i] settles as
+/// One candidate of the settling fit: the lag beyond a delay of i/2 cycles settles as
 /// e = ρ·e₋₁ + b·Δd(delayed), (ρ, b) fitted by RLS, with its a-priori squared error.
 #[derive(Clone, Copy, Debug, PartialEq)]
 struct SettleFit {
@@ -67,7 +67,7 @@ pub struct LagSplit {
 impl LagSplit {
     /// Large enough a settling, slow enough, that inverting it beats `LagModel::lead`.
     pub fn settles(&self) -> bool {
-        self.settle >= LEAD_LAG_MIN_TAU1 && self.tf >= 1.0
+        self.settle >= SETTLE_MIN && self.tf >= 1.0
     }
 
     /// The delay's share of the lead: the target's travel over the next `delay` cycles,
@@ -212,7 +212,6 @@ impl LagModel {
     /// τ₂ = −c·T holds only where the acceleration changes slowly against T; through a tap's
     /// acceleration steps it read T ≈ 1 cycle on a Kv 25/s drive (truth 20).
     ///
-    ///
     /// How the delay is told from the settling: one settling fit per delay D tried (0 to 3.5
     /// cycles in halves), each fitting e = lag − (the command's travel over the last D cycles)
     /// as e = ρ·e₋₁ + b·Δd D cycles back; the fit whose a-priori error is least is used, so
@@ -236,15 +235,6 @@ impl LagModel {
             return LagSplit { delay: t1, settle: 0.0, tf: 0.0 };
         }
         LagSplit { delay, settle, tf }
-    }
-
-    /// The velocity lag (cycles) as the settling fit has it: the delay and b/(1 − ρ), the
-    /// lag it settles to at constant speed. Where the lag settles slowly this is the better
-    /// estimate: the two-term fit spreads the settling over τ₁ and τ₂ (8 µm → 6 µm at a
-    /// tap's start on a Z with 80 % feed-forward and Kv 25/s).
-    pub fn settled_lag(&self) -> f64 {
-        let s = self.split();
-        (s.delay + s.settle).clamp(0.0, 50.0)
     }
 }
 
@@ -315,7 +305,10 @@ mod tests {
             v_prev = v;
         }
         let want = (1.0 - ff) / kv / dt;
-        let got = m.settled_lag();
+        // Where the lag settles slowly the settling fit reads it better than the two-term fit,
+        // which spreads the settling over τ₁ and τ₂.
+        let s = m.split();
+        let got = s.delay + s.settle;
         assert!((got - want).abs() < 0.1 * want, "settled lag {got} cycles, want {want}");
         assert!(m.split().settles(), "a settling lag: {:?}", m.split());
     }
