@@ -780,7 +780,8 @@ fn words_from_bytes<const VALUES: bool>(line: &[u8], out: &mut [FastWord; FAST_W
         }
         i += 1;
         let mut neg = false;
-        if i < end && (b[i] == b'-' || b[i] == b'+') {
+        let signed = i < end && (b[i] == b'-' || b[i] == b'+');
+        if signed {
             neg = b[i] == b'-';
             i += 1;
         }
@@ -808,7 +809,9 @@ fn words_from_bytes<const VALUES: bool>(line: &[u8], out: &mut [FastWord; FAST_W
         if nd == 0 || nd > 15 || (i < end && !(b[i].is_ascii_alphabetic() || ws(b[i]) || b[i] == b';')) {
             return None;
         }
-        if neg && matches!(letter, b'G' | b'M' | b'N' | b'T' | b'L') {
+        // A sign on a code or a sequence number is the full parser's to judge (N+0 is no
+        // sequence number there).
+        if signed && matches!(letter, b'G' | b'M' | b'N' | b'T' | b'L') {
             return None;
         }
         // As in `number`: significant digits exclude leading zeros and, with a point,
@@ -1170,6 +1173,8 @@ mod tests {
             "XX1",
             "O10",
             "N1.5",
+            "N+0",
+            "G+1",
             "G1 N10",
             "X123456789",
             "X1234567891.",
