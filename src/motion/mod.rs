@@ -215,6 +215,32 @@ pub struct Feedback {
     /// monitor and correction pair a spindle angle only with a feed-axis position of the same
     /// age, that is, from one SYNC: a late TPDO must not be read as a sync error.
     pub age: [u32; N_AXES],
+    /// How late after its slot the SYNC these positions were latched at went out, s (the
+    /// cycle's own SYNC, woken late by the PC; 0 on an external SYNC or a bus that samples on
+    /// its own). Each position is where its axis was that much after the nominal instant
+    /// the set-points are timed for: the spindle's lag measured against them must be taken
+    /// back to that instant, or the PC's wake-up jitter reads as lag (`Motion::sync_corr`).
+    pub late_s: f64,
+    /// The spindle's speed over the interval that ends at that SYNC, deg/s (with `late_s`).
+    pub spindle_w: f64,
+}
+
+/// `fb.late_s` where it applies (fresh spindle feedback), within a cycle, s.
+fn sample_late(fb: &Feedback, cycle_s: f64) -> f64 {
+    if fb.age[AX_S] == 0 && fb.late_s.is_finite() {
+        fb.late_s.clamp(0.0, cycle_s)
+    } else {
+        0.0
+    }
+}
+
+/// The spindle's measured angle taken back, by its measured speed, to the instant its
+/// set-points are timed for (`Feedback::late_s`), degrees. At S3000 a SYNC 0.3 ms late puts
+/// the angle 5.4° on: read as lag it stopped heavy spindles' taps by alarm 2307, and read as
+/// speed it kept the governor from seeing a spindle out of torque (alarm 2010).
+fn spindle_at_slot(fb: &Feedback, cycle_s: f64) -> f64 {
+    let w = if fb.spindle_w.is_finite() { fb.spindle_w } else { 0.0 };
+    fb.pos[AX_S] - w * sample_late(fb, cycle_s)
 }
 
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -1814,7 +1840,8 @@ impl Motion {
             return;
         }
         let sent = self.answered(0)[AX_S];
-        if let Some(a) = self.sp_gov.update(sent, fb.pos[AX_S], self.lim.cycle_s, self.lim.sp_lag_judge) {
+        let actual = spindle_at_slot(fb, self.lim.cycle_s);
+        if let Some(a) = self.sp_gov.update(sent, actual, self.lim.cycle_s, self.lim.sp_lag_judge) {
             self.sp_accel_cap = self.sp_accel_cap.min(SP_ACCEL_MARGIN * a);
         }
     }
@@ -1828,11 +1855,19 @@ impl Motion {
 
     /// A stroke's path acceleration `alim` (and jerk `jlim`) within what the spindle was found
     /// to manage, `per_deg` path units per spindle degree — where it can still brake at the
-    /// lower rate from speed `v` within `d` (else it keeps its plan).
-    fn capped_accel(&self, alim: f64, jlim: f64, per_deg: f64, v: f64, d: f64) -> (f64, f64) {
+    /// lower rate from speed `v` and acceleration `a0` within `d` (else it keeps its plan).
+    /// With a jerk limit the braking takes its jerk phases too: judged on v²/2a alone, a cap
+    /// found while still accelerating (S3000, a 0.24 kg·m² spindle, the SYNC 0.3 ms late)
+    /// left the stroke unable to stop and it reached the bottom at 750 rpm.
+    fn capped_accel(&self, alim: f64, jlim: f64, per_deg: f64, v: f64, a0: f64, d: f64) -> (f64, f64) {
         let a = alim.min(self.sp_accel_cap * per_deg);
-        if a < alim && a > 0.0 && v * v / (2.0 * a) <= d {
-            (a, jlim * a / alim)
+        if !(a < alim && a > 0.0) {
+            return (alim, jlim);
+        }
+        let j = jlim * a / alim;
+        let brake = if j > 0.0 { profile::stop_dist(v, a0, a, j) } else { v * v / (2.0 * a) };
+        if brake <= d {
+            (a, j)
         } else {
             (alim, jlim)
         }
@@ -2072,7 +2107,7 @@ impl Motion {
         let len = seg.plen;
         let d = len - s;
         if seg.dc != 0.0 {
-            (seg.alim, _) = self.capped_accel(seg.alim, 0.0, len / seg.dc.abs(), v, d);
+            (seg.alim, _) = self.capped_accel(seg.alim, 0.0, len / seg.dc.abs(), v, 0.0, d);
         }
         let v_cmd = if self.stopping { 0.0 } else { seg.v };
         let nv = profile::next_speed(v, v_cmd, d, seg.alim * dt, dt);
@@ -2165,10 +2200,11 @@ impl Motion {
         let ((pr, thr), (s, v)) = (r, sv);
         let len = (seg.p1 - seg.p0).abs();
         let d = len - s;
-        (seg.alim, seg.jlim) = self.capped_accel(seg.alim, seg.jlim, seg.lead.abs() / 360.0, v, d);
+        let a0 = if s == 0.0 { 0.0 } else { self.path_a };
+        (seg.alim, seg.jlim) = self.capped_accel(seg.alim, seg.jlim, seg.lead.abs() / 360.0, v, a0, d);
         let v_cmd = if self.stopping || (self.held && self.lim.tap_hold_in_hole) { 0.0 } else { seg.v };
         let (nv, adv) = if seg.jlim > 0.0 {
-            let (nv, na, adv) = profile::next_state(v, if s == 0.0 { 0.0 } else { self.path_a }, v_cmd, d, seg.alim, seg.jlim, dt);
+            let (nv, na, adv) = profile::next_state(v, a0, v_cmd, d, seg.alim, seg.jlim, dt);
             self.path_a = na;
             (nv, adv)
         } else {
@@ -2293,7 +2329,7 @@ impl Motion {
         }
         // A late spindle TPDO brings an angle `age` cycles older: predict over those too.
         let late = dt * fb.age[AX_S].min(8) as f64;
-        let theta = fb.pos[AX_S] + rpm * 6.0 * (dt * self.lim.feedback_delay as f64 + late + tau);
+        let theta = spindle_at_slot(fb, dt) + rpm * 6.0 * (dt * self.lim.feedback_delay as f64 + late + tau);
         // The lead-in ramp uses 80 % of the path acceleration, leaving the tracker headroom.
         let armed_now = sync.is_none();
         let sync = match sync {
@@ -2420,12 +2456,20 @@ impl Motion {
         // Feedback from a late TPDO answers an older set-point: learn nothing from it, and
         // let the spindle's lag coast on its tracked rate.
         let fresh = fb.age[AX_S] == 0 && !self.monitor.suspect();
+        // Positions taken back to the instant their set-points are timed for (`late_s`):
+        // the spindle by its measured speed, a feed axis by its commanded step.
+        let late = sample_late(fb, self.lim.cycle_s);
+        let mut pos = fb.pos;
+        for i in 0..3 {
+            pos[i] -= (sent[i] - before[i]) / self.lim.cycle_s * late;
+        }
+        pos[AX_S] = spindle_at_slot(fb, self.lim.cycle_s);
         if fresh {
-            self.corr.learn(&xyz3(&sent), &xyz3(&before), &xyz3(&before2), &xyz3(&fb.pos));
+            self.corr.learn(&xyz3(&sent), &xyz3(&before), &xyz3(&before2), &xyz3(&pos));
         }
         self.corr.set_error(self.monitor.error_vec());
         let gain = gain.filter(|_| self.lim.sync_correction);
-        let lag = if fresh { fb.pos[AX_S] - sent[AX_S] } else { f64::NAN };
+        let lag = if fresh { pos[AX_S] - sent[AX_S] } else { f64::NAN };
         self.corr.update(gain, &xyz3(&self.pos), lag);
     }
 

@@ -2406,3 +2406,27 @@ fn a_c_target_beyond_the_axis_resolution_is_refused_at_push() {
     assert_eq!(e.number, alarms::BAD_VALUE, "{e}");
     assert!(e.message.contains("beyond what the spindle axis resolves"), "{e}");
 }
+
+/// A spindle found out of torque while the stroke still accelerates: the lower acceleration
+/// (and its jerk) is taken only where the stroke can still stop within what is left, jerk
+/// phases included. Judged on v²/2a alone, a cap found at 50.7 mm/s still accelerating at
+/// 97 mm/s² with 21.9 mm to go (S3000, the 0.24 kg·m² spindle, a jittery SYNC) was taken, and
+/// the stroke reached the bottom at 750 rpm.
+#[test]
+fn a_spindle_cap_is_taken_only_where_the_stroke_can_still_stop() {
+    let mut m = Motion::new(lim(), START);
+    // 60.6 mm/s² at 1.5 mm per revolution.
+    m.sp_accel_cap = 60.557 / (1.5 / 360.0);
+    let (alim, jlim) = (97.15, 1000.0);
+    let per_deg = 1.5 / 360.0;
+    let braking = |a: f64, j: f64| profile::stop_dist(50.746, 97.15, a, j);
+    // v²/2a fits (21.26 mm) but the jerk phases do not.
+    assert!(50.746f64.powi(2) / (2.0 * 60.557) <= 21.919 && braking(60.557, jlim * 60.557 / alim) > 21.919);
+    assert_eq!(m.capped_accel(alim, jlim, per_deg, 50.746, 97.15, 21.919), (alim, jlim));
+    // Early in the stroke it fits: taken, the jerk scaled with it.
+    let (a, j) = m.capped_accel(alim, jlim, per_deg, 12.0, 97.15, 34.4);
+    assert!((a - 60.557).abs() < 1e-9 && (j - jlim * a / alim).abs() < 1e-9, "{a} {j}");
+    // Without a jerk limit (G92.1's profile) v²/2a is the braking distance: taken.
+    let (a, _) = m.capped_accel(alim, 0.0, per_deg, 50.746, 0.0, 21.919);
+    assert!((a - 60.557).abs() < 1e-9, "{a}");
+}

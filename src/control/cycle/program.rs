@@ -20,6 +20,7 @@ use crate::control::snapshot::{MachineState, SNAP_AXES};
 use crate::control::trace::{TraceRow, MAX_TRACE_AXES};
 use crate::drives::scale_watch::{self, ScaleWatch};
 use crate::motion::{Event, Feedback, Motion, Setpoint, AX_X, AX_Y, AX_Z, N_AXES};
+use crate::sync::sample_time::SampleTiming;
 use crate::Alarm;
 use std::sync::mpsc::{Receiver, TryRecvError};
 
@@ -50,6 +51,13 @@ pub(super) struct Run {
     progress_every: u64,
     t_start: u64,
     next: u64,
+    /// How late after its slot this cycle woke and so sent its own SYNC, ns (`None`: the SYNC
+    /// is external); the next cycle's feedback was latched at that SYNC (`Feedback::late_s`).
+    sync_late_ns: Option<u64>,
+    /// The spindle's last fresh position taken back to its slot (`spindle_to_slot`).
+    spindle_slot: Option<f64>,
+    /// How much of a SYNC's lateness the spindle's drive shows in its angle.
+    timing: SampleTiming,
 }
 
 /// What [`CycleLoop::keep_time`] found about this cycle.
@@ -103,6 +111,9 @@ impl Run {
             progress_every: ((0.05 / dt).round() as u64).max(1),
             t_start,
             next: t_start,
+            sync_late_ns: None,
+            spindle_slot: None,
+            timing: SampleTiming::default(),
         }
     }
 }
@@ -274,13 +285,53 @@ impl CycleLoop<'_> {
             self.halt_now(motion, run.spindle_rpm);
             return Err(Alarm::new(scale_watch::ALARM, format!("{msg} (line {})", run.cur_line)));
         }
+        self.learn_sample_timing(run, tick);
         if let Some(sd) = self.spindle_drive {
-            let f = self.drives.feedback(sd);
+            let mut f = self.drives.feedback(sd);
+            if f.sampled_ns.is_none() {
+                Self::spindle_to_slot(run, tick, &mut f, &mut fb);
+            }
             run.spindle_rpm = run.meter.update_fb(&f, run.dt);
             fb.spindle_rpm = run.spindle_rpm;
             self.rpm = run.spindle_rpm;
         }
         Ok(fb)
+    }
+
+    /// The spindle's position as latched at the SYNC this loop sent last cycle, after its slot
+    /// (a timer clock wakes late), taken back to the slot at its speed over the last interval
+    /// (slot to late SYNC: exact at a constant speed), so the speed is measured between slots.
+    /// Only for drives that show the lateness (`sync::sample_time`: a servo latches in time, a
+    /// drive that steps per SYNC does not; for those `Feedback::late_s` stays 0).
+    fn spindle_to_slot(run: &mut Run, tick: &Tick, f: &mut crate::drives::AxisFeedback, fb: &mut Feedback) {
+        // A stale position, or one after a late cycle, is of another SYNC: left as it is.
+        if f.age_cycles != 0 || tick.missed > 0 || tick.late_before {
+            run.spindle_slot = None;
+            return;
+        }
+        let late = if run.timing.latches_in_time() { run.sync_late_ns.map_or(0.0, |ns| ns as f64 * 1e-9) } else { 0.0 };
+        fb.late_s = late;
+        let w = run.spindle_slot.map_or(run.spindle_rpm * 6.0, |p| (f.pos - p) / (run.dt + late));
+        f.pos -= w * late;
+        fb.spindle_w = w;
+        run.spindle_slot = Some(f.pos);
+    }
+
+    /// Every drive's fresh position, latched at the SYNC this loop sent, into the regression of
+    /// how much of that SYNC's lateness the drives show (`sync::sample_time`).
+    fn learn_sample_timing(&self, run: &mut Run, tick: &Tick) {
+        let Some(ns) = run.sync_late_ns else { return };
+        if tick.missed > 0 || tick.late_before {
+            run.timing.restart();
+            return;
+        }
+        run.timing.lateness(ns as f64 * 1e-9);
+        for d in 0..run.map.len() {
+            let f = self.drives.feedback(d);
+            let fresh = f.age_cycles == 0 && f.sampled_ns.is_none();
+            let v = (run.hist[d][1] - run.hist[d][0]) as f64 / run.dt;
+            run.timing.sample(d, fresh.then_some(f.counts as f64), v);
+        }
     }
 
     /// A signal (SIGTERM, SIGINT, SIGHUP) stops as reset does; the panel's keys.
@@ -421,7 +472,11 @@ impl CycleLoop<'_> {
     /// back, and in a thread or tap it is alarm 2403. Returns the further steps to take.
     /// (A SYNC between this look and the send still comes first; the window is the send.)
     fn syncs_passed(&mut self, motion: &mut Motion, run: &mut Run, summary: &mut RunSummary, tick: &Tick) -> Result<u64, Alarm> {
-        let Some(now) = self.clock.poll_sync() else { return Ok(0) };
+        let Some(now) = self.clock.poll_sync() else {
+            run.sync_late_ns = Some(tick.now.saturating_sub(run.next));
+            return Ok(0);
+        };
+        run.sync_late_ns = None;
         let passed = periods_passed(&mut run.next, now, self.cycle_ns);
         if passed == 0 {
             return Ok(0);
