@@ -30,14 +30,16 @@ pub struct SampleTiming {
     n: [u8; MAX_DRIVES],
     /// The last three latenesses, s, newest first (common to the bus).
     late: [f64; 3],
-    /// Σx·y and Σx² with forgetting (x = v·Δ²δ, y = Δ²p), counts².
+    /// Σx·y, Σx², Σy² (x = v·Δ²δ, y = Δ²p, counts²) and the samples' weight, with forgetting.
     sxy: f64,
     sxx: f64,
+    syy: f64,
+    sw: f64,
 }
 
 impl Default for SampleTiming {
     fn default() -> Self {
-        SampleTiming { pos: [[0.0; 2]; MAX_DRIVES], n: [0; MAX_DRIVES], late: [0.0; 3], sxy: 0.0, sxx: 0.0 }
+        SampleTiming { pos: [[0.0; 2]; MAX_DRIVES], n: [0; MAX_DRIVES], late: [0.0; 3], sxy: 0.0, sxx: 0.0, syy: 0.0, sw: 0.0 }
     }
 }
 
@@ -62,6 +64,8 @@ impl SampleTiming {
             let x = v * (self.late[0] - 2.0 * self.late[1] + self.late[2]);
             self.sxy = FORGET * self.sxy + x * y;
             self.sxx = FORGET * self.sxx + x * x;
+            self.syy = FORGET * self.syy + y * y;
+            self.sw = FORGET * self.sw + 1.0;
         }
         *q = [p, q[0]];
         *n = (*n + 1).min(2);
@@ -77,14 +81,19 @@ impl SampleTiming {
         (self.sxy / (self.sxx + PRIOR_W)).clamp(0.0, 1.0)
     }
 
-    /// The drives latch their positions when the SYNC arrives (k = 1), not at its slot (k = 0).
-    /// The slope is a vote, not a gain: the regressor takes the *commanded* speed, which leads
-    /// the actual one through a drive's lag, so the slope of a drive that latches in time
-    /// comes out 0.9–0.97 while the spindle accelerates behind 2 cycles of transport delay —
-    /// and taking out 90 % of the lateness left delay2's tap at 9.2 µm where all of it gives
-    /// 5.3 (0–0.3 ms jitter, simulated time).
+    /// The drives latch their positions when the SYNC arrives (k = 1), not at its slot (k = 0):
+    /// the slope lies above ½ by two standard errors. A vote, not a gain: the regressor takes
+    /// the *commanded* speed, which leads the actual one through a drive's lag, so the slope of
+    /// a drive that latches in time comes out 0.9–0.97 while the spindle accelerates behind 2
+    /// cycles of transport delay (taking out 90 % of the lateness left delay2's tap at 9.2 µm
+    /// where all of it gives 5.3); and the standard error, because a profile's own
+    /// acceleration in y can outweigh a small jitter in x (a python drive read as latching in
+    /// time by chance: tap_s40 at 54 µm).
     pub fn latches_in_time(&self) -> bool {
-        self.share() >= 0.5
+        let k = self.share();
+        let resid = (self.syy - k * self.sxy).max(0.0) / (self.sw - 1.0).max(1.0);
+        let se = (resid / (self.sxx + PRIOR_W)).sqrt();
+        k - 2.0 * se >= 0.5
     }
 }
 

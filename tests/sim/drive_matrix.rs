@@ -87,15 +87,15 @@ fn in_the_air_every_tap_is_within_the_issues_bounds() {
 /// 50-cycle settling out of the noise (2026-11-30, `LagModel::split` now checks it against
 /// the two-term fit). Since the loop takes each sampled position back to its slot
 /// (`Feedback::late_s`, 2026-11-30) the noise is gone at the source: delay2 went from 69 to
-/// 5.3 µm, the G92.1 stroke from 5–40 µm to 1.5–7.6, the thread's phase spread from 0.9–3.4°
+/// 6.4 µm, the G92.1 stroke from 5–40 µm to 1.5–7.6, the thread's phase spread from 0.9–3.4°
 /// to 0.04–0.32°, and sp_heavy6 (0.24 kg·m²), stopped by alarm 2307 in every tap before —
 /// its governor read the noise as speed and never saw it out of torque — taps within 4.3 µm.
 #[test]
 fn the_tap_and_the_thread_ride_a_jittery_sync() {
     let cfg = MachineConfig::embedded();
     let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/drive_models");
-    // (model, tap S3000 and S6000 max µm) — measured 4.5/4.8, 3.7/5.2, 5.5/5.8, 5.3/7.4,
-    // 5.7/5.3, 10.1/9.8, 3.8/4.3 µm; G92.1 1.5–7.6 µm, phase spread 0.04–0.32°.
+    // (model, tap S3000 and S6000 max µm) — measured 5.4/4.9, 3.7/5.1, 5.5/5.8, 6.4/7.4,
+    // 5.6/5.2, 10.2/9.8, 3.8/4.4 µm; G92.1 1.5–7.6 µm, phase spread 0.04–0.32°.
     let models = [
         ("default", 7.0),
         ("soft_spindle", 7.0),

@@ -51,8 +51,8 @@ pub(super) struct Run {
     progress_every: u64,
     t_start: u64,
     next: u64,
-    /// How late after its slot this cycle woke and so sent its own SYNC, ns (`None`: the SYNC
-    /// is external); the next cycle's feedback was latched at that SYNC (`Feedback::late_s`).
+    /// How late after its slot this cycle sent its own SYNC, ns (`None`: the SYNC is
+    /// external); the next cycle's feedback was latched at that SYNC (`Feedback::late_s`).
     sync_late_ns: Option<u64>,
     /// The spindle's last fresh position taken back to its slot (`spindle_to_slot`).
     spindle_slot: Option<f64>,
@@ -440,6 +440,11 @@ impl CycleLoop<'_> {
             self.quick_stop_all();
             return Err(a);
         }
+        // The SYNC goes out last: now, after the set-points (later than the wake-up by the
+        // cycle's work and whatever held the thread up meanwhile).
+        if run.sync_late_ns.is_some() {
+            run.sync_late_ns = Some(self.clock.now_ns().saturating_sub(run.next));
+        }
         Ok(sp)
     }
 
@@ -473,7 +478,8 @@ impl CycleLoop<'_> {
     /// (A SYNC between this look and the send still comes first; the window is the send.)
     fn syncs_passed(&mut self, motion: &mut Motion, run: &mut Run, summary: &mut RunSummary, tick: &Tick) -> Result<u64, Alarm> {
         let Some(now) = self.clock.poll_sync() else {
-            run.sync_late_ns = Some(tick.now.saturating_sub(run.next));
+            // A timer clock: this loop sends the SYNC (`command` says when it went out).
+            run.sync_late_ns = Some(0);
             return Ok(0);
         };
         run.sync_late_ns = None;
