@@ -221,8 +221,9 @@ pub struct Feedback {
     /// the set-points are timed for: the spindle's lag measured against them must be taken
     /// back to that instant, or the PC's wake-up jitter reads as lag (`Motion::sync_corr`).
     pub late_s: f64,
-    /// The spindle's speed over the interval that ends at that SYNC, deg/s (with `late_s`).
-    pub spindle_w: f64,
+    /// With `late_s`: the spindle's angle taken back to the slot by its speed over the
+    /// interval that ends at that SYNC, degrees (`CycleLoop::spindle_to_slot`).
+    pub spindle_at_slot: f64,
 }
 
 /// `fb.late_s` where it applies (fresh spindle feedback), within a cycle, s.
@@ -234,13 +235,16 @@ fn sample_late(fb: &Feedback, cycle_s: f64) -> f64 {
     }
 }
 
-/// The spindle's measured angle taken back, by its measured speed, to the instant its
-/// set-points are timed for (`Feedback::late_s`), degrees. At S3000 a SYNC 0.3 ms late puts
-/// the angle 5.4° on: read as lag it stopped heavy spindles' taps by alarm 2307, and read as
-/// speed it kept the governor from seeing a spindle out of torque (alarm 2010).
+/// The spindle's measured angle at the instant its set-points are timed for
+/// (`Feedback::late_s`), degrees. At S3000 a SYNC 0.3 ms late puts the angle 5.4° on: read as
+/// lag it stopped heavy spindles' taps by alarm 2307, and read as speed it kept the governor
+/// from seeing a spindle out of torque (alarm 2010).
 fn spindle_at_slot(fb: &Feedback, cycle_s: f64) -> f64 {
-    let w = if fb.spindle_w.is_finite() { fb.spindle_w } else { 0.0 };
-    fb.pos[AX_S] - w * sample_late(fb, cycle_s)
+    if sample_late(fb, cycle_s) > 0.0 && fb.spindle_at_slot.is_finite() {
+        fb.spindle_at_slot
+    } else {
+        fb.pos[AX_S]
+    }
 }
 
 #[derive(Clone, Copy, Debug, PartialEq)]

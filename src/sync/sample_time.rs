@@ -12,7 +12,8 @@
 //! and the wake-up jitter random, so k is their regression — a least-squares slope over every
 //! drive of the bus, in counts (the rapid to a tap's R point teaches it before the spindle
 //! turns), with a long memory, from k = 0 (nothing taken out) until the data say otherwise;
-//! a slope past ½ is a drive that latches in time (`SampleTiming::latches_in_time`).
+//! a slope past ½ by two standard errors is drives that latch in time
+//! (`SampleTiming::latches_in_time`).
 //! O(1), no allocation.
 
 /// Drives followed (the cycle loop's trace and snapshot hold as many).

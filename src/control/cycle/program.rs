@@ -56,7 +56,7 @@ pub(super) struct Run {
     sync_late_ns: Option<u64>,
     /// The spindle's last fresh position taken back to its slot (`spindle_to_slot`).
     spindle_slot: Option<f64>,
-    /// How much of a SYNC's lateness the spindle's drive shows in its angle.
+    /// Whether the drives' positions show a SYNC's lateness (they latch when it arrives).
     timing: SampleTiming,
 }
 
@@ -244,8 +244,15 @@ impl CycleLoop<'_> {
         }
         let mut fb = Feedback::default();
         let mut scaled: Option<(usize, f64)> = None;
+        let timing = Self::sample_timing_lateness(run, tick);
         for (d, ax) in run.map.iter().enumerate() {
             let f = self.drives.feedback(d);
+            if timing {
+                // Latched at the SYNC this loop sent (`sync::sample_time`).
+                let fresh = f.age_cycles == 0 && f.sampled_ns.is_none();
+                let v = (run.hist[d][1] - run.hist[d][0]) as f64 / run.dt;
+                run.timing.sample(d, fresh.then_some(f.counts as f64), v);
+            }
             if let Some(a) = ax {
                 fb.pos[*a] = f.pos;
             }
@@ -285,7 +292,6 @@ impl CycleLoop<'_> {
             self.halt_now(motion, run.spindle_rpm);
             return Err(Alarm::new(scale_watch::ALARM, format!("{msg} (line {})", run.cur_line)));
         }
-        self.learn_sample_timing(run, tick);
         if let Some(sd) = self.spindle_drive {
             let mut f = self.drives.feedback(sd);
             if f.sampled_ns.is_none() {
@@ -310,28 +316,25 @@ impl CycleLoop<'_> {
             return;
         }
         let late = if run.timing.latches_in_time() { run.sync_late_ns.map_or(0.0, |ns| ns as f64 * 1e-9) } else { 0.0 };
+        let late = late.min(run.dt);
         fb.late_s = late;
         let w = run.spindle_slot.map_or(run.spindle_rpm * 6.0, |p| (f.pos - p) / (run.dt + late));
         f.pos -= w * late;
-        fb.spindle_w = w;
+        fb.spindle_at_slot = f.pos;
         run.spindle_slot = Some(f.pos);
     }
 
-    /// Every drive's fresh position, latched at the SYNC this loop sent, into the regression of
-    /// how much of that SYNC's lateness the drives show (`sync::sample_time`).
-    fn learn_sample_timing(&self, run: &mut Run, tick: &Tick) {
-        let Some(ns) = run.sync_late_ns else { return };
+    /// The lateness of the SYNC this loop sent last cycle into the regression of how much of
+    /// it the drives show (`sync::sample_time`); false when there is none to learn from (an
+    /// external SYNC, or a late cycle: the differences would span more than one period).
+    fn sample_timing_lateness(run: &mut Run, tick: &Tick) -> bool {
+        let Some(ns) = run.sync_late_ns else { return false };
         if tick.missed > 0 || tick.late_before {
             run.timing.restart();
-            return;
+            return false;
         }
         run.timing.lateness(ns as f64 * 1e-9);
-        for d in 0..run.map.len() {
-            let f = self.drives.feedback(d);
-            let fresh = f.age_cycles == 0 && f.sampled_ns.is_none();
-            let v = (run.hist[d][1] - run.hist[d][0]) as f64 / run.dt;
-            run.timing.sample(d, fresh.then_some(f.counts as f64), v);
-        }
+        true
     }
 
     /// A signal (SIGTERM, SIGINT, SIGHUP) stops as reset does; the panel's keys.
