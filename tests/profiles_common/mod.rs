@@ -79,7 +79,9 @@ pub fn machine_for(base: &str, profiles: [&str; 3]) -> String {
 /// 20 ms feedback timeout faults on the scheduler, not on the bus. These tiers prove the path
 /// between two processes; the timing figures come from the cycle-timing benchmarks. Only three
 /// values change — the cycle (4 ms), the feedback timeout (100 ms), the spindle's
-/// following-error window (90°) — and with `external_sync` the [bus] table gets
+/// following-error window (360°: an 18 ms stall at first_part's S1500 is 162°; at 90° the
+/// spindle faulted 0x8611 in plain turning in two CI runs of six, 2026-11-29 and -30, the
+/// guest's scheduler, not the law) — and with `external_sync` the [bus] table gets
 /// `sync = "external"`.
 pub fn relaxed(base: &str, external_sync: bool) -> String {
     let mut out = String::new();
@@ -97,7 +99,7 @@ pub fn relaxed(base: &str, external_sync: bool) -> String {
             }
         } else if line.starts_with("following_error = ") && line.contains("degrees") {
             changed += 1;
-            "following_error = 90.0".to_string()
+            "following_error = 360.0".to_string()
         } else {
             line.to_string()
         };
