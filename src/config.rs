@@ -423,6 +423,14 @@ pub struct AxisConfig {
     /// warns when the following-error window is below what it lags at maximum speed.
     #[serde(default)]
     pub response: Option<DriveResponse>,
+    /// The amplifier's overload rating as its manual states it: `overload_pct` % of its rated
+    /// torque for `overload_s` seconds (default 300 % for 3 s, a common servo and spindle
+    /// amplifier's I²t). A spindle's acceleration is capped before its amplifier would trip
+    /// (`sync::overload`, from the drive's torque actual 0x6077).
+    #[serde(default = "default_overload_pct")]
+    pub overload_pct: f64,
+    #[serde(default = "default_overload_s")]
+    pub overload_s: f64,
     /// The cyclic position mode of a CANopen drive: `"csp"` (8, default) or `"ip"`
     /// (interpolated position, 7, linear sub-mode) for drives without CSP.
     #[serde(default)]
@@ -641,6 +649,14 @@ impl AxisConfig {
 
 fn default_ferr() -> f64 {
     1.0
+}
+
+fn default_overload_pct() -> f64 {
+    300.0
+}
+
+fn default_overload_s() -> f64 {
+    3.0
 }
 
 impl MachineConfig {
@@ -874,6 +890,10 @@ impl MachineConfig {
             e.push(format!("{p}.jerk: must be ≥ 0 mm/s³ (0 = no jerk limit), got {j}"));
         }
         positive(e, &format!("{p}.following_error"), a.following_error);
+        if !(a.overload_pct.is_finite() && a.overload_pct > 100.0) {
+            e.push(format!("{p}.overload_pct: the peak torque the amplifier allows, % of its rated torque, must be > 100, got {}", a.overload_pct));
+        }
+        positive(e, &format!("{p}.overload_s"), a.overload_s);
         if let Some(t) = a.travel_per_rev {
             positive(e, &format!("{p}.travel_per_rev"), t);
         }

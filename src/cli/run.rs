@@ -1032,6 +1032,7 @@ fn print_summary(s: &RunSummary, json: bool, alarm: Option<&crate::Alarm>) {
                 "spindle_rpm_at_torque_off": s.rest.spindle_rpm_at_off,
             },
             "spindle_accel_managed_rpm_s": s.spindle_accel_rpm_s,
+            "spindle_overload_accel_rpm_s": s.spindle_overload_rpm_s,
             "axes": axes,
         });
         println!("{v}");
@@ -1053,6 +1054,11 @@ fn print_summary(s: &RunSummary, json: bool, alarm: Option<&crate::Alarm>) {
     if let Some(a) = s.spindle_accel_rpm_s {
         println!(
             "spindle: it managed only {a:.0} rpm/s of the acceleration asked of it; the run planned with 90 % of that from then on — set the spindle's max_accel (and No.5261/5271) to what it can do, or check its drive's torque limit"
+        );
+    }
+    if let Some(a) = s.spindle_overload_rpm_s {
+        println!(
+            "spindle: its amplifier's overload load (I²t, axes.NAME.overload_pct/overload_s) passed a quarter of its rating; the run planned with {a:.0} rpm/s from then on, near 150 % of its rated torque — set the spindle's max_accel (and No.5261/5271) lower, or give taps time to cool"
         );
     }
     println!(

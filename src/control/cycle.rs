@@ -177,6 +177,9 @@ pub struct RunSummary {
     /// The spindle could not give its configured acceleration: what it managed (rpm/s), which
     /// the run planned with 90 % of from then on (`Motion::spindle_accel_found`).
     pub spindle_accel_rpm_s: Option<f64>,
+    /// The spindle amplifier's overload load passed a quarter of its rating: the acceleration
+    /// (rpm/s) the run planned with from then on (`Motion::spindle_overload_found`).
+    pub spindle_overload_rpm_s: Option<f64>,
 }
 
 impl RunSummary {
@@ -480,6 +483,7 @@ impl<'a> CycleLoop<'a> {
         }
         summary.rest = self.to_rest(&mut motion, &mut still);
         summary.spindle_accel_rpm_s = motion.spindle_accel_found();
+        summary.spindle_overload_rpm_s = motion.spindle_overload_found().map(|(a, _)| a);
         // Where every drive stands once at rest (after an alarm too, not zeros).
         for (d, a) in summary.axes.iter_mut().enumerate() {
             a.final_actual_counts = self.drives.feedback(d).counts;

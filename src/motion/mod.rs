@@ -104,6 +104,7 @@ use crate::sync::correction::SyncCorrection;
 use crate::sync::governor::SpindleGovernor;
 use crate::sync::lag::settle_lead;
 use crate::sync::monitor::{Sample, SyncMonitor};
+use crate::sync::overload::SpindleOverload;
 use crate::sync::ThreadSync;
 use crate::Alarm;
 use geom::Geom;
@@ -224,6 +225,9 @@ pub struct Feedback {
     /// With `late_s`: the spindle's angle taken back to the slot by its speed over the
     /// interval that ends at that SYNC, degrees (`CycleLoop::spindle_to_slot`).
     pub spindle_at_slot: f64,
+    /// The spindle drive's torque as last read (torque actual 0x6077), in units of its rated
+    /// torque; NaN when it gives none (`sync::overload`).
+    pub spindle_torque: f64,
 }
 
 /// `fb.late_s` where it applies (fresh spindle feedback), within a cycle, s.
@@ -332,6 +336,9 @@ pub struct Limits {
     /// Spindle lag (degrees) from which on the governor judges whether it falls behind
     /// (`SP_LAG_JUDGE_SHARE` of its following-error window); ∞ = never.
     pub sp_lag_judge: f64,
+    /// The spindle amplifier's overload rating: % of rated torque, for seconds
+    /// (`axes.NAME.overload_pct`, `overload_s`).
+    pub sp_overload: (f64, f64),
     /// In rigid taps and G92.1, add the spindle's measured lag (times the lead) to the feed
     /// axes' setpoint, so that they follow the spindle's *actual* angle (see `sync_corr`).
     /// Needs `Feedback` as `CycleLoop` delivers it: the answer to the setpoint of
@@ -374,6 +381,7 @@ impl Limits {
             tap_bell_s: 0.0,
             thread_leadin_s: 0.0,
             sp_lag_judge: f64::INFINITY,
+            sp_overload: (f64::INFINITY, 0.0),
             sync_correction: true,
             feedback_delay: FEEDBACK_DELAY,
             flex_lag_cycles: cfg.param(5275).filter(|n| n.is_finite() && *n > 0.0).unwrap_or(0.0),
@@ -396,6 +404,7 @@ impl Limits {
                 l.vmax[i] = a.max_speed_units_s();
                 l.amax[i] = a.max_accel_units_s2();
                 l.sp_lag_judge = SP_LAG_JUDGE_SHARE * a.following_error;
+                l.sp_overload = (a.overload_pct, a.overload_s);
             } else {
                 l.vmax[i] = a.max_speed_units_s();
                 l.amax[i] = a.max_accel;
@@ -682,6 +691,12 @@ pub struct Motion {
     /// it was found to manage (deg/s², ∞ until it fell behind once).
     sp_gov: SpindleGovernor,
     sp_accel_cap: f64,
+    /// The spindle amplifier's overload (`sync::overload`) and the acceleration it allows
+    /// (deg/s², ∞ until its load passed its share).
+    sp_overload: SpindleOverload,
+    sp_heat_cap: f64,
+    /// The same, found during a stroke: taken when the next one starts.
+    sp_heat_next: f64,
     /// The speed the ramp is heading for this cycle (rpm, signed).
     sp_target: f64,
     // Operator controls.
@@ -830,6 +845,9 @@ impl Motion {
             sp_cur: 0.0,
             sp_gov: SpindleGovernor::default(),
             sp_accel_cap: f64::INFINITY,
+            sp_overload: SpindleOverload::new(limits.sp_overload.0, limits.sp_overload.1),
+            sp_heat_cap: f64::INFINITY,
+            sp_heat_next: f64::INFINITY,
             sp_target: 0.0,
             feed_ovr: 1.0,
             rapid_ovr: 1.0,
@@ -1755,7 +1773,7 @@ impl Motion {
         let target = if self.stopping { 0.0 } else { self.sp_dir * mag.min(machine_max) };
         self.sp_target = target;
         // In polygon turning the tool spindle must keep up with the ratio (polygon.rs).
-        let step = self.lim.amax[AX_S].min(self.tool.work_accel_cap()).min(self.sp_accel_cap) / 6.0 * dt;
+        let step = self.lim.amax[AX_S].min(self.tool.work_accel_cap()).min(self.sp_cap()) / 6.0 * dt;
         let d = target - self.sp_cur;
         self.sp_cur = if d.abs() <= step { target } else { self.sp_cur + step.copysign(d) };
         self.pos[AX_S] += self.sp_cur * 6.0 * dt;
@@ -1848,6 +1866,26 @@ impl Motion {
         if let Some(a) = self.sp_gov.update(sent, actual, self.lim.cycle_s, self.lim.sp_lag_judge) {
             self.sp_accel_cap = self.sp_accel_cap.min(SP_ACCEL_MARGIN * a);
         }
+        if let Some(a) = self.sp_overload.update(sent, fb.spindle_torque, self.lim.cycle_s) {
+            self.sp_heat_next = self.sp_heat_next.min(a);
+            // A tap or G92.1 stroke under way keeps its plan (a change of acceleration within
+            // it turns the spindle's and the axis' lags differently) unless the amplifier is
+            // near its trip; the next stroke plans with it.
+            if self.sp_overload.urgent() || !self.in_sync_stroke() {
+                self.sp_heat_cap = self.sp_heat_next;
+            }
+        }
+    }
+
+    /// A rigid tap or G92.1 stroke drives the spindle as a position axis.
+    fn in_sync_stroke(&self) -> bool {
+        matches!(self.run, Run::Tap { theta0: Some(_), .. } | Run::Rigid { theta0: Some(_), .. })
+    }
+
+    /// The spindle acceleration every ramp, tap and G92.1 stroke plans within (deg/s²): what
+    /// its torque managed and what its amplifier's overload allows.
+    fn sp_cap(&self) -> f64 {
+        self.sp_accel_cap.min(self.sp_heat_cap)
     }
 
     /// The set-point this cycle's feedback answers (paired over the feedback delay), or the
@@ -1864,7 +1902,7 @@ impl Motion {
     /// found while still accelerating (S3000, a 0.24 kg·m² spindle, the SYNC 0.3 ms late)
     /// left the stroke unable to stop and it reached the bottom at 750 rpm.
     fn capped_accel(&self, alim: f64, jlim: f64, per_deg: f64, v: f64, a0: f64, d: f64) -> (f64, f64) {
-        let a = alim.min(self.sp_accel_cap * per_deg);
+        let a = alim.min(self.sp_cap() * per_deg);
         if !(a < alim && a > 0.0) {
             return (alim, jlim);
         }
@@ -2098,6 +2136,7 @@ impl Motion {
             self.run = Run::None;
         } else if self.sp_cur == 0.0 && in_pos {
             self.inpos_wait = 0;
+            self.sp_heat_cap = self.sp_heat_next;
             self.run = Run::Rigid { seg, theta0: Some(self.pos[AX_S]), s: 0.0, v: 0.0, landed: false };
         }
     }
@@ -2192,6 +2231,7 @@ impl Motion {
                 _ => (seg.p0, self.pos[AX_S]),
             };
             self.tap_ref = Some((a, r.0, r.1, seg.lead));
+            self.sp_heat_cap = self.sp_heat_next;
             self.run = Run::Tap { seg, theta0: Some(r), s: 0.0, v: 0.0, landed: false };
         }
     }
@@ -2694,6 +2734,13 @@ impl Motion {
     /// configured one (`govern_spindle`); None while it could.
     pub fn spindle_accel_found(&self) -> Option<f64> {
         self.sp_accel_cap.is_finite().then(|| self.sp_accel_cap / SP_ACCEL_MARGIN / 6.0)
+    }
+
+    /// The spindle acceleration (rpm/s) its amplifier's overload was found to allow
+    /// (`sync::overload`) and the load then (share of the rating); None while it was never
+    /// near it.
+    pub fn spindle_overload_found(&self) -> Option<(f64, f64)> {
+        self.sp_heat_next.is_finite().then(|| (self.sp_heat_next / 6.0, self.sp_overload.share()))
     }
 
     /// The spindle speed override in effect (0.5–1.2).

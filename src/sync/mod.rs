@@ -7,6 +7,7 @@ pub mod lag;
 pub mod lag_tracker;
 pub mod link_check;
 pub mod monitor;
+pub mod overload;
 pub mod sample_time;
 pub mod thread;
 
