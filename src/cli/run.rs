@@ -1053,7 +1053,7 @@ fn print_summary(s: &RunSummary, json: bool, alarm: Option<&crate::Alarm>) {
     );
     if let Some(a) = s.spindle_accel_rpm_s {
         println!(
-            "spindle: it managed only {a:.0} rpm/s of the acceleration asked of it; the run planned with 90 % of that from then on — set the spindle's max_accel (and No.5261/5271) to what it can do, or check its drive's torque limit"
+            "spindle: it managed only {a:.0} rpm/s of the acceleration asked of it; the run planned with 80 % of that from then on — set the spindle's max_accel (and No.5261/5271) to what it can do, or check its drive's torque limit"
         );
     }
     if let Some(a) = s.spindle_overload_rpm_s {

@@ -175,7 +175,7 @@ pub struct RunSummary {
     /// How spindle and axes came to rest at the end (every cause).
     pub rest: Rest,
     /// The spindle could not give its configured acceleration: what it managed (rpm/s), which
-    /// the run planned with 90 % of from then on (`Motion::spindle_accel_found`).
+    /// the run planned with 80 % of from then on (`Motion::spindle_accel_found`).
     pub spindle_accel_rpm_s: Option<f64>,
     /// The spindle amplifier's overload load passed a quarter of its rating: the acceleration
     /// (rpm/s) the run planned with from then on (`Motion::spindle_overload_found`).

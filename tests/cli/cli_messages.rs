@@ -83,3 +83,27 @@ fn a_spindle_out_of_torque_is_named_in_the_summary() {
         }
     }
 }
+
+/// A spindle whose amplifier would trip on overload in a long tap (`sync::overload`: the S6000
+/// tap over 200 mm, 0.12 kg·m² on 70 N·m, tripped its I²t before) runs it, and the summary
+/// says with what acceleration and what to set; on the default spindle nothing is said.
+#[test]
+fn a_spindle_near_its_overload_is_named_in_the_summary() {
+    let dir = tempfile::tempdir().unwrap();
+    let prog = dir.path().join("tap.nc");
+    std::fs::write(&prog, "O1\nG99 G00 X0 Z2\nM29 S6000\nG84 X0 Z-198 F1.5\nG80\nM30\n").unwrap();
+    let models = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/drive_models");
+    for (model, says) in [("heavy_variants/sp_j12.toml", true), ("default.toml", false)] {
+        let sim = models.join(model);
+        let o = testkit::cli!().run(&["run", "--batch", "--sim-config", sim.to_str().unwrap(), prog.to_str().unwrap()]);
+        assert_eq!(o.code, 0, "{model}: {}{}", o.stdout, o.stderr);
+        let line = o.stdout.lines().find(|l| l.starts_with("spindle: its amplifier's overload"));
+        assert_eq!(line.is_some(), says, "{model}: {}", o.stdout);
+        if let Some(l) = line {
+            let rpm_s: f64 = l.split("planned with ").nth(1).and_then(|r| r.split_whitespace().next()).and_then(|w| w.parse().ok()).unwrap_or(0.0);
+            // Near 1.5× its rated torque (70/3 N·m) on 0.14 kg·m²: some 2000 rpm/s.
+            assert!(rpm_s > 1000.0 && rpm_s < 3500.0, "{l}");
+            assert!(l.contains("overload_pct") && l.contains("max_accel"), "{l}");
+        }
+    }
+}
