@@ -82,9 +82,9 @@ impl Response {
 /// So the dead time is read first at the corners of the demand's speed where the axis is
 /// moving one way throughout (the friction is then a constant torque the integrator holds):
 /// the first lag at which the actual speed departs from its own trend by `ANSWER` of the
-/// corner — the median over the corners. Where the encoder is too coarse for a corner to show
-/// that (the corner under `RESOLVED` counts) or there are fewer than two, the ARX fit decides;
-/// None where its step response is noise (then `dead_time_oe`). Where both read, the later
+/// corner — the median over the corners. Where there are fewer than two, None: `identify`
+/// asks the ARX fit or the output-error fit (`corners_resolved` says which first). Where the
+/// corners and the ARX step both read, the later
 /// of the two: each fails early, never late — friction the ARX step (above), and a belt
 /// still ringing from the last speed change the corners (belt_kv15: lags 0, 0, 1, 2, median
 /// 1 for 2; on probe belts and a random mix 1, 1, 2 and 3, 3, 4 — the ARX step read 2 and 4
@@ -92,11 +92,10 @@ impl Response {
 fn dead_time(du: &[f64], dy: &[f64], max_delay: usize) -> Option<usize> {
     let mut lags = corners(du, dy, max_delay);
     lags.sort_unstable();
-    let arx = dead_time_arx(du, dy, max_delay);
     if lags.len() < 2 {
-        return arx;
+        return None;
     }
-    Some(lags[lags.len() / 2].max(arx.unwrap_or(0)))
+    Some(lags[lags.len() / 2].max(dead_time_arx(du, dy, max_delay).unwrap_or(0)))
 }
 
 /// The share of a corner the actual speed must show (as the ARX step threshold).
@@ -107,6 +106,17 @@ const RESOLVED: f64 = 25.0;
 /// The encoder's quantum: the least step the actual position makes (`steps` its increments).
 fn quantum(steps: impl Iterator<Item = f64>) -> f64 {
     steps.map(f64::abs).filter(|v| *v > 0.0).fold(f64::INFINITY, f64::min)
+}
+
+/// Whether the encoder resolves the demand's sharpest corner (see `RESOLVED`). Where it does
+/// not (a spindle encoder of 4096–16384 counts), the ARX step read the delay a cycle or two
+/// early in three spindles of 28 (16384 counts, 0.059 kg·m²: 1 for 2; with two cycles of
+/// transport delay 1 for 4) where the output-error fit read it right; where it does (a belt
+/// with 90 % feed-forward, its corners ringing) the ARX step is right and the output-error
+/// fit a cycle late.
+fn corners_resolved(du: &[f64], dy: &[f64]) -> bool {
+    let q = quantum(dy.iter().copied());
+    du.windows(2).any(|w| (w[1] - w[0]).abs() >= RESOLVED * q)
 }
 
 /// The answer's lag at each clean corner of the demand's speed (see `dead_time`).
@@ -171,7 +181,7 @@ fn dead_time_arx(du: &[f64], dy: &[f64], max_delay: usize) -> Option<usize> {
 }
 
 /// Above the least residual by this factor, a whole delay does not fit (see `dead_time_oe`).
-const DELAY_FITS: f64 = 1.5;
+const DELAY_FITS: f64 = 1.2;
 
 /// The dead time where neither the corners nor the ARX step response show it (a spindle
 /// encoder of 4096 counts: its speed corners, hundredths of a degree per cycle², are far
@@ -179,8 +189,10 @@ const DELAY_FITS: f64 = 1.5;
 /// (`fit_poles`) for each whole delay from 0 up, the longest whose residual is within
 /// `DELAY_FITS` of the least. One cycle less than the drive's fits as well (ff takes it up:
 /// 0.961 for 0.998), one more does not (it asks for an answer before the drive acts:
-/// residual ×2–12 on 4096–16384 counts). Not the rule where the data are clean: a soft
-/// spindle (Kv 8–12/s) fits a cycle more within 1–20 %.
+/// residual ×2–12 on 4096–16384 counts; at 1.5 a Kv 21/s spindle with 96 % feed-forward read
+/// a cycle late at 1.31). Not the rule where the data are clean: a soft spindle (Kv 8–12/s)
+/// fits a cycle more within 1–20 % — and on a coarse encoder too (Kv 11–13/s, 97 %
+/// feed-forward, 16384 counts: within 1 %, read a cycle late; not resolved).
 fn dead_time_oe(cmd: &[f64], act: &[f64], dt: f64, max_delay: usize, keep: &[bool]) -> Option<usize> {
     let mut sse: Vec<f64> = vec![];
     for d in 0..=max_delay {
@@ -359,7 +371,8 @@ pub fn identify(cmd: &[f64], act: &[f64], dt: f64, max_delay: usize) -> Option<R
     let linear = linear_rows(cmd, act, (AFTER_BREAKAWAY_S / dt).ceil() as usize);
     let d = match dead_time(&du, &dy, max_delay) {
         Some(d) => d,
-        None => dead_time_oe(cmd, act, dt, max_delay, &linear)?,
+        None if corners_resolved(&du, &dy) => dead_time_arx(&du, &dy, max_delay).or_else(|| dead_time_oe(cmd, act, dt, max_delay, &linear))?,
+        None => dead_time_oe(cmd, act, dt, max_delay, &linear).or_else(|| dead_time_arx(&du, &dy, max_delay))?,
     };
     // Fitted twice: on every row, and on the rows where the response is linear (see
     // `linear_rows`). Friction bends the fit through every row either way (a stick holds the
