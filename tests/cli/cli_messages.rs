@@ -60,21 +60,27 @@ fn a_missing_file_is_exit_2_for_every_command() {
     }
 }
 
+/// `cncgw run --batch --sim-config tests/drive_models/MODEL` on `program`: the summary line
+/// that starts with `starts`, if any (the run must end well).
+fn summary_line(program: &str, model: &str, starts: &str) -> Option<String> {
+    let dir = tempfile::tempdir().unwrap();
+    let prog = dir.path().join("tap.nc");
+    std::fs::write(&prog, program).unwrap();
+    let sim = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/drive_models").join(model);
+    let o = testkit::cli!().run(&["run", "--batch", "--sim-config", sim.to_str().unwrap(), prog.to_str().unwrap()]);
+    assert_eq!(o.code, 0, "{model}: {}{}", o.stdout, o.stderr);
+    o.stdout.lines().find(|l| l.starts_with(starts)).map(str::to_string)
+}
+
 /// A spindle whose torque cannot give the configured acceleration is governed
 /// (`sync::governor`), and the run's summary says what it managed and what to set; on a
 /// spindle that manages it, nothing is said.
 #[test]
 fn a_spindle_out_of_torque_is_named_in_the_summary() {
-    let dir = tempfile::tempdir().unwrap();
-    let prog = dir.path().join("tap.nc");
-    std::fs::write(&prog, "O1\nG99 G00 X0 Z2\nM29 S3000\nG84 X0 Z-33 F1.5\nG80\nM30\n").unwrap();
-    let models = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/drive_models");
+    let prog = "O1\nG99 G00 X0 Z2\nM29 S3000\nG84 X0 Z-33 F1.5\nG80\nM30\n";
     for (model, says) in [("heavy_variants/sp_j12.toml", true), ("default.toml", false)] {
-        let sim = models.join(model);
-        let o = testkit::cli!().run(&["run", "--batch", "--sim-config", sim.to_str().unwrap(), prog.to_str().unwrap()]);
-        assert_eq!(o.code, 0, "{model}: {}{}", o.stdout, o.stderr);
-        let line = o.stdout.lines().find(|l| l.starts_with("spindle: it managed only"));
-        assert_eq!(line.is_some(), says, "{model}: {}", o.stdout);
+        let line = summary_line(prog, model, "spindle: it managed only");
+        assert_eq!(line.is_some(), says, "{model}: {line:?}");
         if let Some(l) = line {
             let rpm_s: f64 = l.split_whitespace().nth(4).and_then(|w| w.parse().ok()).unwrap_or(0.0);
             // Configured 5000 rpm/s in the tap (No.5261); this spindle manages some 94 %.
@@ -89,16 +95,10 @@ fn a_spindle_out_of_torque_is_named_in_the_summary() {
 /// says with what acceleration and what to set; on the default spindle nothing is said.
 #[test]
 fn a_spindle_near_its_overload_is_named_in_the_summary() {
-    let dir = tempfile::tempdir().unwrap();
-    let prog = dir.path().join("tap.nc");
-    std::fs::write(&prog, "O1\nG99 G00 X0 Z2\nM29 S6000\nG84 X0 Z-198 F1.5\nG80\nM30\n").unwrap();
-    let models = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/drive_models");
+    let prog = "O1\nG99 G00 X0 Z2\nM29 S6000\nG84 X0 Z-198 F1.5\nG80\nM30\n";
     for (model, says) in [("heavy_variants/sp_j12.toml", true), ("default.toml", false)] {
-        let sim = models.join(model);
-        let o = testkit::cli!().run(&["run", "--batch", "--sim-config", sim.to_str().unwrap(), prog.to_str().unwrap()]);
-        assert_eq!(o.code, 0, "{model}: {}{}", o.stdout, o.stderr);
-        let line = o.stdout.lines().find(|l| l.starts_with("spindle: its amplifier's overload"));
-        assert_eq!(line.is_some(), says, "{model}: {}", o.stdout);
+        let line = summary_line(prog, model, "spindle: its amplifier's overload");
+        assert_eq!(line.is_some(), says, "{model}: {line:?}");
         if let Some(l) = line {
             let rpm_s: f64 = l.split("planned with ").nth(1).and_then(|r| r.split_whitespace().next()).and_then(|w| w.parse().ok()).unwrap_or(0.0);
             // Near 1.5× its rated torque (70/3 N·m) on 0.14 kg·m²: some 2000 rpm/s.
