@@ -107,3 +107,34 @@ fn a_spindle_near_its_overload_is_named_in_the_summary() {
         }
     }
 }
+
+/// A soft spindle (`window_variants/sp_kv9_ff95`: Kv 8.7/s, 95 % feed-forward) lags some 200°
+/// at S6000 and faults the embedded machine's 180° window (alarm 2010, 0x8611): the run says
+/// how far behind it was and what to do; `cncgw identify s1` proposes a window, and with it
+/// the same tap runs.
+#[test]
+fn a_spindle_beyond_its_window_is_named_with_what_to_do() {
+    let dir = tempfile::tempdir().unwrap();
+    let prog = dir.path().join("tap.nc");
+    std::fs::write(&prog, "O1\nG99 G00 X0 Z2\nM29 S6000\nG84 X0 Z-198 F1.5\nG80\nM30\n").unwrap();
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let sim = root.join("tests/drive_models/window_variants/sp_kv9_ff95.toml");
+    let (sim, prog) = (sim.to_str().unwrap(), prog.to_str().unwrap());
+    let o = testkit::cli!().run(&["run", "--batch", "--sim-config", sim, prog]);
+    assert_eq!(o.code, 3, "{}{}", o.stdout, o.stderr);
+    assert!(o.stderr.contains("alarm 2010") && o.stderr.contains("0x8611"), "{}", o.stderr);
+    let hint = o.stderr.lines().find(|l| l.starts_with("hint: axis s1 was up to")).unwrap_or_else(|| panic!("{}", o.stderr));
+    assert!(hint.contains("axes.s1.following_error") && hint.contains("cncgw identify s1"), "{hint}");
+    let id = testkit::cli!().run(&["identify", "s1", "--json", "--sim-config", sim]);
+    assert_eq!(id.code, 0, "{}", id.stderr);
+    let v: serde_json::Value = serde_json::from_str(&id.stdout).unwrap();
+    let window = v["proposed_following_error"].as_f64().unwrap();
+    assert!(window > 180.0, "{window}");
+    let lathe = std::fs::read_to_string(root.join("config/lathe.toml")).unwrap();
+    let at = lathe.find("following_error = 180.0").expect("the spindle's window in config/lathe.toml");
+    let cfg = dir.path().join("lathe.toml");
+    std::fs::write(&cfg, format!("{}following_error = {window:.1}{}", &lathe[..at], &lathe[at + "following_error = 180.0".len()..])).unwrap();
+    let o = testkit::cli!().run(&["run", "--batch", "-c", cfg.to_str().unwrap(), "--sim-config", sim, prog]);
+    assert_eq!(o.code, 0, "with the proposed window {window:.1}°: {}{}", o.stdout, o.stderr);
+    assert!(!o.stderr.contains("hint:"), "{}", o.stderr);
+}
