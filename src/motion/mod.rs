@@ -142,7 +142,8 @@ const TAP_BELL_CYCLES: f64 = 10.0;
 /// moving average of this length nulls 25 Hz and attenuates every mode above it by
 /// 1/(π·f·T); it costs v·T/2 of lead-in path (0.75 mm at 37.5 mm/s). Belt-driven Z, thread
 /// phase spread S500–1500: 0.166° with a step, 0.142° at 20 ms, 0.088° at 30 ms, 0.033° at
-/// 40 ms, 0.024° at 50 ms (drive matrix, air, 2026-11-28).
+/// 40 ms, 0.024° at 50 ms (drive matrix, air, 2026-11-28). A second average of 1.5 × this
+/// follows it (`sync::thread::SECOND_SMOOTH`: a null at 16.7 Hz for softer belts).
 const THREAD_LEADIN_SMOOTH_S: f64 = 0.04;
 /// Share of the spindle's following-error window (0x6065) its lag must reach before the
 /// governor judges it (`sync::governor`): below it a lag is the loop's own. 9° of 180°: at a

@@ -12,9 +12,10 @@
 //! early, at `θ0 − Δθ` with `Δθ = ω·v/(2a)`, and ramps at `a`: a constant-acceleration ramp
 //! from rest meets the synchronous line `lead_path·(θ − θ0)/360` exactly when it reaches `v`. The
 //! lead is short only within the ramp (the programmer's δ1 zone), and the phase is exact.
-//! With [`ThreadSync::arm_smooth`] the ramp's acceleration rises and falls over `tj` (the
-//! constant-acceleration ramp averaged over `tj`): a symmetric profile meets the line at its
-//! centroid, so it starts `ω·tj/2` earlier still and the line is the same.
+//! With [`ThreadSync::arm_smooth`] the ramp's acceleration rises and falls over `tj` and
+//! `1.5·tj` (the constant-acceleration ramp averaged over `tj`, then over `1.5·tj`,
+//! [`SECOND_SMOOTH`]): a symmetric profile meets the line at its centroid, so it starts
+//! `ω·2.5·tj/2` earlier still and the line is the same.
 //!
 //! G34 variable lead: the lead grows by `k` per revolution, so after `n` revolutions from θ0
 //! the path position is `L0·n + k·n²/2` (the sum of the leads, in closed form). The quadratic
@@ -58,7 +59,17 @@ pub struct ThreadSync {
     /// Time over which the lead-in's acceleration rises and falls (moving average of the
     /// constant-acceleration ramp), s; 0 = a step in acceleration.
     tj: f64,
+    /// A second moving average after the first, [`SECOND_SMOOTH`] times as long (0 with `tj`).
+    tj2: f64,
 }
+
+/// Length of the lead-in's second moving average, in units of the first. One average of
+/// length T nulls T⁻¹, 2T⁻¹ … and lets through half of what lies at 0.6/T: a belt that rings
+/// at 14–18 Hz behind 40 ms (its damping 2–3 %) moved the thread's phase 0.47–0.78° between
+/// S500 and S1500. A second one of 1.5 T nulls (1.5 T)⁻¹ — 16.7 Hz for T = 40 ms — and the
+/// product attenuates all between; it costs v·0.75 T more of lead-in path (1.1 mm at
+/// 37.5 mm/s).
+pub const SECOND_SMOOTH: f64 = 1.5;
 
 impl ThreadSync {
     /// Arm a pass at measured angle `theta` (deg) and speed `rpm` (signed). `start_angle`
@@ -85,14 +96,15 @@ impl ThreadSync {
         let omega = rpm.abs() * 6.0;
         let v = lead_path * rpm.abs() / 60.0;
         let tj = if tj.is_finite() { tj.max(0.0) } else { 0.0 };
+        let tj2 = SECOND_SMOOTH * tj;
         // A symmetric acceleration profile meets the line at its centroid: half its length.
-        let dtheta = omega * (v / a + tj) / 2.0;
+        let dtheta = omega * (v / a + tj + tj2) / 2.0;
         // The first θ0 ≡ dir·start_angle (mod 360) at least Δθ ahead in the direction of
         // rotation, so the ramp starts in the future. In "forward" coordinates q = dir·θ.
         let q = dir * theta + dtheta;
         let q0 = start_angle + 360.0 * ((q - start_angle) / 360.0).ceil();
         let theta0 = dir * q0;
-        Some(ThreadSync { dir, theta_start: theta0 - dir * dtheta, theta0, omega, a, v, lead_path, k, n_start: 0.0, ramp: true, tj })
+        Some(ThreadSync { dir, theta_start: theta0 - dir * dtheta, theta0, omega, a, v, lead_path, k, n_start: 0.0, ramp: true, tj, tj2 })
     }
 
     /// The lock for the segment that directly follows this one (which is `len` mm long):
@@ -140,7 +152,7 @@ impl ThreadSync {
 
     /// The lead-in is over at measured angle `theta`: the target is on the synchronous line.
     pub fn on_line(&self, theta: f64) -> bool {
-        !self.ramp || self.dir * (theta - self.theta_start) / self.omega >= self.v / self.a + self.tj
+        !self.ramp || self.dir * (theta - self.theta_start) / self.omega >= self.v / self.a + self.tj + self.tj2
     }
 
     /// ∫₀ᵗ of the constant-acceleration ramp-then-line profile (mm·s).
@@ -153,6 +165,31 @@ impl ThreadSync {
         } else {
             let h = 0.5 * t1;
             self.a * t1 * t1 * t1 / 6.0 + 0.5 * self.v * ((t - h) * (t - h) - h * h)
+        }
+    }
+
+    /// ∫₀ᵗ `ramp_integral` (mm·s²): the second average takes differences of it.
+    fn ramp_integral2(&self, t: f64) -> f64 {
+        let t1 = self.v / self.a;
+        if !(t > 0.0) {
+            0.0
+        } else if t <= t1 {
+            self.a * t.powi(4) / 24.0
+        } else {
+            let h = 0.5 * t1;
+            let d = t - t1;
+            self.a * t1.powi(4) / 24.0 + self.a * t1.powi(3) / 6.0 * d + 0.5 * self.v * (((t - h).powi(3) - h.powi(3)) / 3.0 - h * h * d)
+        }
+    }
+
+    /// The ramp averaged over `tj`, then over `tj2`, at time `tau` from its start.
+    fn smoothed(&self, tau: f64) -> f64 {
+        let (t1, t2) = (self.tj, self.tj2);
+        if t2 > 0.0 {
+            let f = |t: f64| self.ramp_integral2(t);
+            (f(tau) - f(tau - t1) - f(tau - t2) + f(tau - t1 - t2)) / (t1 * t2)
+        } else {
+            (self.ramp_integral(tau) - self.ramp_integral(tau - t1)) / t1
         }
     }
 
@@ -172,10 +209,10 @@ impl ThreadSync {
         }
         let tau = p / self.omega;
         let t_ramp = self.v / self.a;
-        let base = if tau >= t_ramp + self.tj {
+        let base = if tau >= t_ramp + self.tj + self.tj2 {
             self.lead_path * n
         } else if self.tj > 0.0 {
-            (self.ramp_integral(tau) - self.ramp_integral(tau - self.tj)) / self.tj
+            self.smoothed(tau)
         } else {
             0.5 * self.a * tau * tau
         };
@@ -285,8 +322,8 @@ mod tests {
             let v = (at(k) - at(k - 1)) / step_s;
             let acc = (v - v_prev) / step_s;
             assert!(acc <= a + 1.0 && acc >= -1.0 && v <= 25.0 + 1e-6, "a {acc} v {v} at {k}");
-            // Jerk bounded by a / tj (no acceleration step).
-            assert!(k < 3 || (acc - a_prev).abs() / step_s <= 1.01 * a / tj, "jerk at {k}");
+            // Jerk bounded by a over the longer average (no acceleration step).
+            assert!(k < 3 || (acc - a_prev).abs() / step_s <= 1.01 * a / (SECOND_SMOOTH * tj), "jerk at {k}");
             (v_prev, a_prev) = (v, acc);
         }
         // Past the ramp: exactly the same synchronous line as the unsmoothed lead-in.
@@ -294,7 +331,7 @@ mod tests {
         assert_eq!(t.theta0(), plain.theta0());
         let th = t.theta0() + 3600.0;
         assert!((t.target(th) - plain.target(th)).abs() < 1e-9 && (t.target(th) - 15.0).abs() < 1e-9);
-        // It starts earlier, by half the smoothing time.
-        assert!((plain.theta_start - t.theta_start - 0.5 * tj * t.omega).abs() < 1e-9);
+        // It starts earlier, by half the two averages' length.
+        assert!((plain.theta_start - t.theta_start - 0.5 * (1.0 + SECOND_SMOOTH) * tj * t.omega).abs() < 1e-9);
     }
 }
