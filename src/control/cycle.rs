@@ -483,7 +483,7 @@ impl<'a> CycleLoop<'a> {
         }
         summary.rest = self.to_rest(&mut motion, &mut still);
         summary.spindle_accel_rpm_s = motion.spindle_accel_found();
-        summary.spindle_overload_rpm_s = motion.spindle_overload_found().map(|(a, _)| a);
+        summary.spindle_overload_rpm_s = motion.spindle_overload_found();
         // Where every drive stands once at rest (after an alarm too, not zeros).
         for (d, a) in summary.axes.iter_mut().enumerate() {
             a.final_actual_counts = self.drives.feedback(d).counts;

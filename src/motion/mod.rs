@@ -1843,9 +1843,7 @@ impl Motion {
         self.monitor_sync(fb);
         self.govern_spindle(fb);
         // In a rigid-tap stroke the spindle is a position axis driven by the tap profile.
-        if !matches!(self.run, Run::Tap { theta0: Some(_), .. } | Run::Rigid { theta0: Some(_), .. })
-            && !matches!(self.run, Run::Polar(r) if r.holds_spindle())
-        {
+        if !self.in_sync_stroke() && !matches!(self.run, Run::Polar(r) if r.holds_spindle()) {
             self.step_spindle(self.lim.cycle_s);
         }
         let event = self.take_next();
@@ -2741,10 +2739,9 @@ impl Motion {
     }
 
     /// The spindle acceleration (rpm/s) its amplifier's overload was found to allow
-    /// (`sync::overload`) and the load then (share of the rating); None while it was never
-    /// near it.
-    pub fn spindle_overload_found(&self) -> Option<(f64, f64)> {
-        self.sp_heat_next.is_finite().then(|| (self.sp_heat_next / 6.0, self.sp_overload.share()))
+    /// (`sync::overload`); None while it was never near it.
+    pub fn spindle_overload_found(&self) -> Option<f64> {
+        self.sp_heat_next.is_finite().then(|| self.sp_heat_next / 6.0)
     }
 
     /// The spindle speed override in effect (0.5–1.2).
