@@ -38,9 +38,19 @@ impl From<Output> for Out {
     }
 }
 
-/// The state directory of this test process: never the user's (`CNCGW_STATE_DIR`).
-pub fn state_dir() -> PathBuf {
-    std::env::temp_dir().join(format!("cncgw-test-state-{}", std::process::id()))
+/// The state directory of this test process under `root` (the test crate's
+/// `CARGO_TARGET_TMPDIR`, see [`state_dir!`]): never the user's (`CNCGW_STATE_DIR`), and inside
+/// the build's target directory, not left behind in the system's /tmp (one per test process).
+pub fn state_dir_in(root: &str) -> PathBuf {
+    Path::new(root).join(format!("state_{}", std::process::id()))
+}
+
+/// The state directory of the calling test process ([`state_dir_in`]).
+#[macro_export]
+macro_rules! state_dir {
+    () => {
+        $crate::state_dir_in(env!("CARGO_TARGET_TMPDIR"))
+    };
 }
 
 /// `cncgw` as a test runs it: [`cli!`] makes one for the test crate's binary.
@@ -52,11 +62,12 @@ pub struct Cli {
 }
 
 impl Cli {
-    pub fn new(bin: impl Into<PathBuf>) -> Cli {
-        Cli { bin: bin.into(), state: state_dir(), dir: None }
+    /// `bin` with its power-off state in `state` (a test's own, see [`state_dir!`]).
+    pub fn new(bin: impl Into<PathBuf>, state: impl Into<PathBuf>) -> Cli {
+        Cli { bin: bin.into(), state: state.into(), dir: None }
     }
 
-    /// Keep the power-off state here instead of [`state_dir`].
+    /// Keep the power-off state here instead.
     pub fn state(mut self, dir: impl Into<PathBuf>) -> Cli {
         self.state = dir.into();
         self
@@ -91,7 +102,7 @@ impl Cli {
 #[macro_export]
 macro_rules! cli {
     () => {
-        $crate::Cli::new(env!("CARGO_BIN_EXE_cncgw"))
+        $crate::Cli::new(env!("CARGO_BIN_EXE_cncgw"), $crate::state_dir!())
     };
 }
 

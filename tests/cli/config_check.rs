@@ -8,8 +8,7 @@ use std::process::{Command, Output};
 const LATHE: &str = include_str!("../../config/lathe.toml");
 
 fn check(name: &str, toml: &str) -> (Output, serde_json::Value) {
-    let dir = std::env::temp_dir().join(format!("cncgw-config-check-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = testkit::tmp!("config_check", "");
     let f = dir.join(format!("{name}.toml"));
     std::fs::write(&f, toml).unwrap();
     let o = Command::new(env!("CARGO_BIN_EXE_cncgw")).args(["config", "check", "--json"]).arg(&f).output().unwrap();
@@ -53,8 +52,7 @@ fn unknown_parameters_and_values_out_of_range_are_named() {
 
 #[test]
 fn an_eds_that_does_not_fit_is_refused_before_run_meets_it() {
-    let dir = std::env::temp_dir().join(format!("cncgw-config-check-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = testkit::tmp!("config_check", "");
     let eds = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/python/sim_drive.eds")).unwrap();
     // A drive whose EDS has no following-error window (0x6065): start-up writes one.
     let cut = eds.find("[6065]").unwrap();

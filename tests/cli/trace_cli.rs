@@ -15,7 +15,7 @@ fn run_writes_a_trace_of_every_cycle_and_plot_draws_it() {
     std::fs::write(&prog, "G21\nG98\nM03 S800\nG00 X30 Z5\nG32 Z-15 F1.5\nG00 X40\nZ5\nM05\nM30\n").unwrap();
     let csv = dir.join("t.csv");
     let out = Command::new(env!("CARGO_BIN_EXE_cncgw"))
-        .env("CNCGW_STATE_DIR", std::env::temp_dir().join(format!("cncgw-test-state-{}", std::process::id())))
+        .env("CNCGW_STATE_DIR", testkit::state_dir!())
         .args(["run", "--json", "--trace"])
         .arg(&csv)
         .arg(&prog)
@@ -44,7 +44,7 @@ fn run_writes_a_trace_of_every_cycle_and_plot_draws_it() {
     assert!(sync.iter().all(|e| e.abs() < 20.0));
     let svg = dir.join("t.svg");
     let st = Command::new(env!("CARGO_BIN_EXE_cncgw"))
-        .env("CNCGW_STATE_DIR", std::env::temp_dir().join(format!("cncgw-test-state-{}", std::process::id())))
+        .env("CNCGW_STATE_DIR", testkit::state_dir!())
         .args(["trace", "plot"])
         .arg(&csv)
         .arg("-o")
@@ -70,7 +70,7 @@ fn run_writes_a_trace_of_every_cycle_and_plot_draws_it() {
     // Feed moves only, no spindle: no spindle panel, no sync panel, and the header says so.
     std::fs::write(&prog, "G21\nG98\nG00 X30 Z5\nG01 Z-15 F600\nG00 X40\nM30\n").unwrap();
     let st = Command::new(env!("CARGO_BIN_EXE_cncgw"))
-        .env("CNCGW_STATE_DIR", std::env::temp_dir().join(format!("cncgw-test-state-{}", std::process::id())))
+        .env("CNCGW_STATE_DIR", testkit::state_dir!())
         .args(["run", "--trace"])
         .arg(&csv)
         .arg(&prog)
@@ -88,7 +88,7 @@ fn run_writes_a_trace_of_every_cycle_and_plot_draws_it() {
     check_plot(&doc, &TraceData::parse(&std::fs::read_to_string(&csv).unwrap()).unwrap());
     // A file that is not a trace is an error, not a panic.
     let st = Command::new(env!("CARGO_BIN_EXE_cncgw"))
-        .env("CNCGW_STATE_DIR", std::env::temp_dir().join(format!("cncgw-test-state-{}", std::process::id())))
+        .env("CNCGW_STATE_DIR", testkit::state_dir!())
         .args(["trace", "plot"])
         .arg(&prog)
         .arg("-o")

@@ -6,8 +6,7 @@
 use std::process::Command;
 
 fn run(name: &str, text: &str) -> (i32, String, String) {
-    let dir = std::env::temp_dir().join(format!("cncgw-before-motion-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = testkit::tmp!("before_motion", "");
     let f = dir.join(format!("{name}.nc"));
     std::fs::write(&f, text).unwrap();
     let o = Command::new(env!("CARGO_BIN_EXE_cncgw"))

@@ -128,7 +128,7 @@ fn check(prog: &str, reset_after_ms: Option<u64>) {
 }
 
 fn tempdir() -> std::path::PathBuf {
-    let d = std::env::temp_dir().join(format!("cncgw-tapprop-{}-{:?}", std::process::id(), std::thread::current().id()));
+    let d = testkit::tmp!("tap_state_property", &format!("{:?}", std::thread::current().id()));
     let _ = std::fs::remove_dir_all(&d);
     std::fs::create_dir_all(&d).unwrap();
     d
