@@ -103,12 +103,14 @@ fn identified_vs_truth() {
 /// other gains (Kv 15 to 90/s), feed-forward, inertia, encoder, backlash, velocity loop, a
 /// belt with friction, Kv 20/s with four-fold friction; spindles on Kv 8/s, with eight-fold
 /// friction, with delay; three on a 4096-line encoder, `senc_*`, whose delay the ARX step read
-/// a cycle or two early until 2026-11-30): the delay and τ within 10 % of the truth. Until 2026-11-29
-/// (evening) Kv 15/s read τ 15 % short, Kv 20/s with four-fold friction 24 % (the fit
-/// through the breakaways' transients), and the slow velocity loop 15 % long.
+/// a cycle or two early until 2026-11-30; a spindle of 0.13 kg·m² on 85 N·m, `sj13`): the
+/// delay and τ within 10 % of the truth. Until 2026-11-29 (evening) Kv 15/s read τ 15 % short,
+/// Kv 20/s with four-fold friction 24 % (the fit through the breakaways' transients), and the
+/// slow velocity loop 15 % long; until 2026-11-30 (late) `sj13` 16 % long (68 ms for 58.5: its
+/// velocity loop is barely faster than its position loop, `identify::FAST_OVER_SLOW_RELAXED`).
 #[test]
 fn identified_vs_truth_on_the_variants() {
-    let bad = beyond_bounds_in("variants", 22, |m| if m.starts_with('s') { "s1" } else { "z" });
+    let bad = beyond_bounds_in("variants", 23, |m| if m.starts_with('s') { "s1" } else { "z" });
     assert!(bad.is_empty(), "identified beyond the bounds: {bad:#?}");
 }
 
