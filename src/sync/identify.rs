@@ -330,8 +330,7 @@ const RESOLVED_RMS: f64 = 10.0 * RECORD_QUANTUM;
 /// or [`FAST_OVER_SLOW_RELAXED`] where that fits [`RELAXED_FITS`] times closer than a
 /// residual beyond [`RESOLVED_RMS`]. (τ, ω, ζ).
 fn fit_poles(cmd: &[f64], act: &[f64], d: usize, dt: f64, keep: &[bool]) -> Option<(f64, f64, f64)> {
-    let strict = search_poles(cmd, act, d, dt, keep, FAST_OVER_SLOW);
-    let relaxed = search_poles(cmd, act, d, dt, keep, FAST_OVER_SLOW_RELAXED);
+    let [strict, relaxed] = search_poles(cmd, act, d, dt, keep, [FAST_OVER_SLOW, FAST_OVER_SLOW_RELAXED]);
     let rows = keep.iter().filter(|k| **k).count().max(1) as f64;
     match (strict, relaxed) {
         (Some(s), Some(r)) if r.0 * RELAXED_FITS <= s.0 && (s.0 / rows).sqrt() > RESOLVED_RMS => Some(r.1),
@@ -340,46 +339,59 @@ fn fit_poles(cmd: &[f64], act: &[f64], d: usize, dt: f64, keep: &[bool]) -> Opti
     }
 }
 
-/// The best poles with the fast section at least `ratio` times faster than the slow pole: a
-/// grid (τ from one cycle to 2 s; the fast section up to the Nyquist frequency, damping
-/// 0.4 … 2.5), then a pattern search in (log τ, log ω, ζ). (residual, (τ, ω, ζ)).
-fn search_poles(cmd: &[f64], act: &[f64], d: usize, dt: f64, keep: &[bool], ratio: f64) -> Option<(f64, (f64, f64, f64))> {
-    let sse = |lt: f64, lw: f64, z: f64| {
+/// A pole fit: (residual, (τ s, ω rad/s, ζ)).
+type PoleFit = (f64, (f64, f64, f64));
+
+/// The best poles with the fast section at least `ratios[i]` times faster than the slow pole
+/// (the second the looser): a grid (τ from one cycle to 2 s; the fast section up to the
+/// Nyquist frequency, damping 0.4 … 2.5), each point's residual computed once for both, then
+/// a pattern search in (log τ, log ω, ζ) for each. (residual, (τ, ω, ζ)) per ratio.
+fn search_poles(cmd: &[f64], act: &[f64], d: usize, dt: f64, keep: &[bool], ratios: [f64; 2]) -> [Option<PoleFit>; 2] {
+    // How much faster the fast section's slowest mode decays than the slow pole; None
+    // outside the search's bounds.
+    let speedup = |lt: f64, lw: f64, z: f64| {
         let rate = if z < 1.0 { z } else { z - (z * z - 1.0).sqrt() } * lw.exp();
-        if !(0.2..=4.0).contains(&z) || rate * lt.exp() < ratio || !(dt..=2.0).contains(&lt.exp()) {
-            return f64::INFINITY;
-        }
-        oe(cmd, act, d, (-dt / lt.exp()).exp(), second_order(lw.exp(), z, dt), keep).map_or(f64::INFINITY, |r| r.0)
+        ((0.2..=4.0).contains(&z) && (dt..=2.0).contains(&lt.exp())).then(|| rate * lt.exp())
+    };
+    let fit = |lt: f64, lw: f64, z: f64| oe(cmd, act, d, (-dt / lt.exp()).exp(), second_order(lw.exp(), z, dt), keep).map_or(f64::INFINITY, |r| r.0);
+    let sse = |lt: f64, lw: f64, z: f64, ratio: f64| match speedup(lt, lw, z) {
+        Some(r) if !(r < ratio) => fit(lt, lw, z),
+        _ => f64::INFINITY,
     };
     const NT: usize = 30;
     const NW: usize = 14;
     let taus: Vec<f64> = (0..NT).map(|i| (dt * (2.0 / dt).powf(i as f64 / (NT - 1) as f64)).ln()).collect();
     let (wlo, whi) = (0.5f64, std::f64::consts::PI / dt);
     let ws: Vec<f64> = (0..NW).map(|i| (wlo * (whi / wlo).powf(i as f64 / (NW - 1) as f64)).ln()).collect();
-    let mut best = (f64::INFINITY, taus[0], ws[0], 1.0);
+    let mut best = [(f64::INFINITY, taus[0], ws[0], 1.0); 2];
     for t in &taus {
         for w in &ws {
             for z in [0.4, 0.7, 1.0, 1.6, 2.5] {
-                let e = sse(*t, *w, z);
-                if e < best.0 {
-                    best = (e, *t, *w, z);
+                let Some(r) = speedup(*t, *w, z).filter(|r| ratios.iter().any(|q| !(*r < *q))) else { continue };
+                let e = fit(*t, *w, z);
+                for (b, q) in best.iter_mut().zip(ratios) {
+                    if !(r < q) && e < b.0 {
+                        *b = (e, *t, *w, z);
+                    }
                 }
             }
         }
     }
-    let (mut cur, mut t, mut w, mut z) = best;
-    let mut st = taus[1] - taus[0];
-    while st > 1e-4 {
-        let next = [(st, 0.0, 0.0), (-st, 0.0, 0.0), (0.0, st, 0.0), (0.0, -st, 0.0), (0.0, 0.0, st), (0.0, 0.0, -st)]
-            .into_iter()
-            .map(|(a, b, c)| (sse(t + a, w + b, z + c), t + a, w + b, z + c))
-            .find(|c| c.0 < cur);
-        match next {
-            Some(c) => (cur, t, w, z) = c,
-            None => st *= 0.5,
+    let refine = |(mut cur, mut t, mut w, mut z): (f64, f64, f64, f64), ratio: f64| {
+        let mut st = taus[1] - taus[0];
+        while st > 1e-4 {
+            let next = [(st, 0.0, 0.0), (-st, 0.0, 0.0), (0.0, st, 0.0), (0.0, -st, 0.0), (0.0, 0.0, st), (0.0, 0.0, -st)]
+                .into_iter()
+                .map(|(a, b, c)| (sse(t + a, w + b, z + c, ratio), t + a, w + b, z + c))
+                .find(|c| c.0 < cur);
+            match next {
+                Some(c) => (cur, t, w, z) = c,
+                None => st *= 0.5,
+            }
         }
-    }
-    cur.is_finite().then(|| (cur, (t.exp(), w.exp(), z)))
+        cur.is_finite().then(|| (cur, (t.exp(), w.exp(), z)))
+    };
+    [refine(best[0], ratios[0]), refine(best[1], ratios[1])]
 }
 
 /// Identify from the commanded and the actual positions of the same cycles (`dt` the cycle,

@@ -98,21 +98,13 @@ fn cli_writes_the_file() {
     let prog = dir.join("p.nc");
     std::fs::write(&prog, PROG).unwrap();
     let out = dir.join("p.svg");
-    let st = std::process::Command::new(env!("CARGO_BIN_EXE_cncgw"))
-        .env("CNCGW_STATE_DIR", testkit::state_dir!())
-        .args(["preview", prog.to_str().unwrap(), "-o", out.to_str().unwrap()])
-        .status()
-        .expect("run cncgw");
+    let st = testkit::cli!().command::<&str>(&[]).args(["preview", prog.to_str().unwrap(), "-o", out.to_str().unwrap()]).status().expect("run cncgw");
     assert!(st.success());
     let svg = std::fs::read_to_string(&out).expect("svg written");
     assert!(polylines(&svg).iter().any(|l| l.0 == "#1E50DC"));
     // An alarm: exit code 2, the path up to it still drawn.
     std::fs::write(&prog, "G98 G00 X40 Z2\nG01 Z-20 F100\nG41 Z-30\nG42 Z-40\nM30\n").unwrap();
-    let st = std::process::Command::new(env!("CARGO_BIN_EXE_cncgw"))
-        .env("CNCGW_STATE_DIR", testkit::state_dir!())
-        .args(["preview", prog.to_str().unwrap(), "-o", out.to_str().unwrap()])
-        .output()
-        .expect("run cncgw");
+    let st = testkit::cli!().command::<&str>(&[]).args(["preview", prog.to_str().unwrap(), "-o", out.to_str().unwrap()]).output().expect("run cncgw");
     assert_eq!(st.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&st.stderr).contains("3576"));
     assert!(std::fs::read_to_string(&out).unwrap().contains("<polyline"));
@@ -179,7 +171,7 @@ fn preview_has_mm_ticks_over_the_part_the_work_zero_and_a_legend_of_what_occurs(
 const COMP: &str = "G21\nG99\nT0101\nG0 X16 Z2\nG42 G1 Z0 F0.1\nG1 X20 Z-2\nZ-12\nG2 X30 Z-17 R5\nG1 X36\nZ-30\nG40 G0 X44\nZ2\nM30\n";
 
 fn cncgw(args: &[&std::ffi::OsStr]) -> std::process::Output {
-    std::process::Command::new(env!("CARGO_BIN_EXE_cncgw")).env("CNCGW_STATE_DIR", testkit::state_dir!()).args(args).output().expect("run cncgw")
+    testkit::cli!().command::<&str>(&[]).args(args).output().expect("run cncgw")
 }
 
 #[test]

@@ -14,13 +14,7 @@ fn run_writes_a_trace_of_every_cycle_and_plot_draws_it() {
     // A thread pass, so the sync error column has something in it.
     std::fs::write(&prog, "G21\nG98\nM03 S800\nG00 X30 Z5\nG32 Z-15 F1.5\nG00 X40\nZ5\nM05\nM30\n").unwrap();
     let csv = dir.join("t.csv");
-    let out = Command::new(env!("CARGO_BIN_EXE_cncgw"))
-        .env("CNCGW_STATE_DIR", testkit::state_dir!())
-        .args(["run", "--json", "--trace"])
-        .arg(&csv)
-        .arg(&prog)
-        .output()
-        .unwrap();
+    let out = testkit::cli!().command::<&str>(&[]).args(["run", "--json", "--trace"]).arg(&csv).arg(&prog).output().unwrap();
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(out.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
     let v: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
@@ -43,14 +37,7 @@ fn run_writes_a_trace_of_every_cycle_and_plot_draws_it() {
     assert!(sync.iter().any(|e| *e != 0.0), "the thread's sync error is traced");
     assert!(sync.iter().all(|e| e.abs() < 20.0));
     let svg = dir.join("t.svg");
-    let st = Command::new(env!("CARGO_BIN_EXE_cncgw"))
-        .env("CNCGW_STATE_DIR", testkit::state_dir!())
-        .args(["trace", "plot"])
-        .arg(&csv)
-        .arg("-o")
-        .arg(&svg)
-        .status()
-        .unwrap();
+    let st = testkit::cli!().command::<&str>(&[]).args(["trace", "plot"]).arg(&csv).arg("-o").arg(&svg).status().unwrap();
     assert!(st.success());
     let text = std::fs::read_to_string(&svg).unwrap();
     let doc = parse(&text);
@@ -69,13 +56,7 @@ fn run_writes_a_trace_of_every_cycle_and_plot_draws_it() {
     svg_common::renders(&svg);
     // Feed moves only, no spindle: no spindle panel, no sync panel, and the header says so.
     std::fs::write(&prog, "G21\nG98\nG00 X30 Z5\nG01 Z-15 F600\nG00 X40\nM30\n").unwrap();
-    let st = Command::new(env!("CARGO_BIN_EXE_cncgw"))
-        .env("CNCGW_STATE_DIR", testkit::state_dir!())
-        .args(["run", "--trace"])
-        .arg(&csv)
-        .arg(&prog)
-        .output()
-        .unwrap();
+    let st = testkit::cli!().command::<&str>(&[]).args(["run", "--trace"]).arg(&csv).arg(&prog).output().unwrap();
     assert!(st.status.success(), "{}", String::from_utf8_lossy(&st.stderr));
     let st = Command::new(env!("CARGO_BIN_EXE_cncgw")).args(["trace", "plot"]).arg(&csv).arg("-o").arg(&svg).status().unwrap();
     assert!(st.success());
@@ -87,14 +68,7 @@ fn run_writes_a_trace_of_every_cycle_and_plot_draws_it() {
     assert!(note.contains("the spindle did not turn") && note.contains("no synchronised move"), "{note}");
     check_plot(&doc, &TraceData::parse(&std::fs::read_to_string(&csv).unwrap()).unwrap());
     // A file that is not a trace is an error, not a panic.
-    let st = Command::new(env!("CARGO_BIN_EXE_cncgw"))
-        .env("CNCGW_STATE_DIR", testkit::state_dir!())
-        .args(["trace", "plot"])
-        .arg(&prog)
-        .arg("-o")
-        .arg(&svg)
-        .status()
-        .unwrap();
+    let st = testkit::cli!().command::<&str>(&[]).args(["trace", "plot"]).arg(&prog).arg("-o").arg(&svg).status().unwrap();
     assert_eq!(st.code(), Some(2));
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -74,12 +74,7 @@ fn runs_are_deterministic_in_simulated_time() {
 #[test]
 fn first_part_example_runs_from_the_cli() {
     let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
-    let out = Command::new(env!("CARGO_BIN_EXE_cncgw"))
-        .env("CNCGW_STATE_DIR", testkit::state_dir!())
-        .args(["run", "--json"])
-        .arg(root.join("examples/first_part.nc"))
-        .output()
-        .unwrap();
+    let out = testkit::cli!().command::<&str>(&[]).args(["run", "--json"]).arg(root.join("examples/first_part.nc")).output().unwrap();
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(out.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
     let v: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
@@ -95,7 +90,7 @@ fn a_syntax_error_is_reported_with_position_and_nothing_moves() {
     std::fs::create_dir_all(&dir).unwrap();
     let p = dir.join("bad.nc");
     std::fs::write(&p, "G21\nG00 X10 Z5\nG01 Z-5 F100\nG01 X20 Z-10 Q?\nM30\n").unwrap();
-    let out = Command::new(env!("CARGO_BIN_EXE_cncgw")).env("CNCGW_STATE_DIR", testkit::state_dir!()).arg("run").arg(&p).output().unwrap();
+    let out = testkit::cli!().command::<&str>(&[]).arg("run").arg(&p).output().unwrap();
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(2), "{stderr}");
     assert!(stderr.contains("bad.nc:4:"), "{stderr}");
