@@ -156,6 +156,11 @@ const SP_LAG_JUDGE_SHARE: f64 = 0.05;
 /// falling behind and faulted its 180° window in the S3000 tap; at 0.8 it runs it (1.35 µm),
 /// every other model as before (drive matrix, air and cut, 2026-11-30).
 const SP_ACCEL_MARGIN: f64 = 0.8;
+/// Peak speed of a thread's take-up (`Motion::thread_take_up`), mm/s. Slow enough that a slide
+/// behind a belt breaks away with next to no speed for the belt to ring with: the same take-up
+/// approached at 0.5, 2 and 5 mm/s left a lightly damped belt's thread phase spread 0.120,
+/// 0.069 and 0.159° (an undamped one 0.060, 0.048, 0.103°; scratch harness, 2026-11-30).
+const TAKE_UP_SPEED: f64 = 2.0;
 /// Gain with which a thread's measured phase error corrects the long axis' lag, per cycle.
 const THREAD_TRIM_GAIN: f64 = 0.1;
 /// Most junctions of a blended chain crossed within one cycle. Keeps `step` bounded: a
@@ -361,6 +366,9 @@ pub struct Limits {
     /// No.1421: the rapid rate at rapid override F0, mm/s (Fanuc's F0 is this rate, not a
     /// percentage); 0 (unset) = rapids stand at F0.
     pub rapid_f0: f64,
+    /// A thread pass's take-up, mm along the thread (`machine.thread_take_up_mm`; 0 = none):
+    /// see `Motion::thread_take_up`.
+    pub thread_take_up: f64,
 }
 
 impl Limits {
@@ -391,6 +399,7 @@ impl Limits {
             flex_lag_cycles: cfg.param(5275).filter(|n| n.is_finite() && *n > 0.0).unwrap_or(0.0),
             flex_retract_rpm: cfg.param(5276).filter(|n| n.is_finite() && *n > 0.0).map_or(0.0, |n| n * 0.1),
             rapid_f0: cfg.param(1421).filter(|n| n.is_finite() && *n > 0.0).map_or(0.0, |n| n / 60.0),
+            thread_take_up: cfg.machine.thread_take_up_mm,
         };
         for (name, a) in &cfg.axes {
             if a.role == Some(crate::config::AxisRole::ToolSpindle) {
@@ -725,6 +734,10 @@ pub struct Motion {
     thread_vf: f64,
     /// The long axis' settling (`SyncCorrection::settling`) as it was when the pass armed.
     thread_settle: Option<(f64, f64)>,
+    /// Each feed axis' last direction of motion (−1, 0, +1), for the thread's take-up.
+    last_dir: [f64; 3],
+    /// The take-up before a thread pass (`thread_take_up`): (cycles run, its length mm).
+    takeup: Option<(u32, f64)>,
     /// The lock of the thread segment that ended last and its length, for a continuous
     /// segment that follows it (cleared by any other item).
     thread_chain: Option<(ThreadSync, f64)>,
@@ -816,6 +829,8 @@ impl Motion {
             thread_tau: [None; 3],
             thread_vf: 0.0,
             thread_settle: None,
+            last_dir: [0.0; 3],
+            takeup: None,
             thread_chain: None,
             tap_ref: None,
             in_hole: false,
@@ -1949,6 +1964,7 @@ impl Motion {
                             Some((t, len)) if seg.continuous => t.continue_with(len, seg.lead_path, seg.k_path),
                             _ => None,
                         };
+                        self.takeup = (sync.is_none() && !seg.continuous).then_some((0, f64::NAN));
                         self.run = Run::Thread { seg, sync, s: 0.0, v: 0.0, landed: false };
                     }
                     Item::Tap(seg) => self.run = Run::Tap { seg, theta0: None, s: 0.0, v: 0.0, landed: false },
@@ -2305,6 +2321,9 @@ impl Motion {
         for i in 0..3 {
             out[i] += corr[i];
             vel[i] = (self.pos[i] - prev[i] + dcorr[i]) / dt;
+            if self.pos[i] != prev[i] {
+                self.last_dir[i] = (self.pos[i] - prev[i]).signum();
+            }
         }
         self.hist_k = (self.hist_k + 1) % HIST;
         self.hist[self.hist_k] = out;
@@ -2376,6 +2395,13 @@ impl Motion {
         // A late spindle TPDO brings an angle `age` cycles older: predict over those too.
         let late = dt * fb.age[AX_S].min(8) as f64;
         let theta = spindle_at_slot(fb, dt) + rpm * 6.0 * (dt * self.lim.feedback_delay as f64 + late + tau);
+        if sync.is_none() {
+            if let Some(s2) = self.thread_take_up(&seg) {
+                self.pos[..3].copy_from_slice(&seg.geom.at(s2));
+                self.run = Run::Thread { seg, sync: None, s: s2, v: 0.0, landed: false };
+                return (s2 - s) / dt;
+            }
+        }
         // The lead-in ramp uses 80 % of the path acceleration, leaving the tracker headroom.
         let armed_now = sync.is_none();
         let sync = match sync {
@@ -2384,7 +2410,7 @@ impl Motion {
             // Arm only once the spindle is at its commanded speed (speed arrival).
             None if self.sp_cur != self.sp_target || self.sp_target == 0.0 => None,
             None if !seg.continuous && !self.thread_in_position(fb) => None,
-            None => ThreadSync::arm_smooth(theta, rpm, seg.start_angle, seg.lead_path, seg.k_path, 0.8 * seg.alim, self.lim.thread_leadin_s),
+            None => ThreadSync::arm_after(theta, rpm, seg.start_angle, seg.lead_path, seg.k_path, 0.8 * seg.alim, self.lim.thread_leadin_s, s),
         };
         let Some(t) = sync else {
             // Spindle not turning yet (or stopping before the cut began): wait at the start.
@@ -2393,7 +2419,7 @@ impl Motion {
             }
             return 0.0;
         };
-        if s == 0.0 && v == 0.0 && !seg.continuous && t.sync_speed() * seg.lead_path_max / seg.lead_path > seg.vlim {
+        if armed_now && !seg.continuous && t.sync_speed() * seg.lead_path_max / seg.lead_path > seg.vlim {
             // The measured spindle speed is too fast for the lead: refuse before cutting.
             self.fault = Some(Fault::ThreadTooFast { v: t.sync_speed() * seg.lead_path_max / seg.lead_path, vlim: seg.vlim, line: self.line });
             self.stop();
@@ -2453,6 +2479,34 @@ impl Motion {
         } else {
             nv
         }
+    }
+
+    /// The take-up before a thread pass (`Limits::thread_take_up`): where the long axis last
+    /// moved against the thread's direction (a G92/G76 pass returns to its start so), the axes
+    /// first creep along the thread, at most a quarter of it, at up to [`TAKE_UP_SPEED`] with
+    /// a smooth start and stop; the lead-in then starts from there (`ThreadSync::arm_after`),
+    /// on the same synchronous line. The path position of this cycle while it runs; None once
+    /// it is done or where none is needed. A stop ends it where it stands.
+    fn thread_take_up(&mut self, seg: &ThreadSeg) -> Option<f64> {
+        let (k, mut d) = self.takeup?;
+        if k == 0 {
+            let la = seg.long_axis.min(2);
+            let dir = (seg.geom.end()[la] - geom_start(&seg.geom)[la]).signum();
+            d = self.lim.thread_take_up.min(0.25 * seg.geom.len());
+            if !(d > 0.0) || self.last_dir[la] == dir {
+                self.takeup = None;
+                return None;
+            }
+        }
+        // A cosine profile: its peak speed π·d/(2·T) is TAKE_UP_SPEED.
+        let n = (std::f64::consts::PI * d / (2.0 * TAKE_UP_SPEED) / self.lim.cycle_s).ceil().max(1.0);
+        let k = k + 1;
+        if self.stopping || f64::from(k) > n {
+            self.takeup = None;
+            return None;
+        }
+        self.takeup = Some((k, d));
+        Some(d * (1.0 - (std::f64::consts::PI * f64::from(k) / n).cos()) / 2.0)
     }
 
     /// What of a thread's lead τ·v the long axis' lag has not built up yet, path mm. A loop

@@ -61,6 +61,9 @@ pub struct ThreadSync {
     tj: f64,
     /// A second moving average after the first, [`SECOND_SMOOTH`] times as long (0 with `tj`).
     tj2: f64,
+    /// Path already travelled before the lead-in (the take-up, `arm_after`), mm: the target
+    /// stands there until the ramp starts, and the ramp starts from it.
+    pre: f64,
 }
 
 /// Length of the lead-in's second moving average, in units of the first. One average of
@@ -86,7 +89,14 @@ impl ThreadSync {
     /// where the ramp meets the synchronous line sets a compliant axis ringing and its lag
     /// settling; the phase is measured, and learnt from, while it does.
     pub fn arm_smooth(theta: f64, rpm: f64, start_angle: f64, lead_path: f64, k: f64, a: f64, tj: f64) -> Option<ThreadSync> {
-        if !(theta.is_finite() && rpm.is_finite() && start_angle.is_finite() && k.is_finite()) {
+        ThreadSync::arm_after(theta, rpm, start_angle, lead_path, k, a, tj, 0.0)
+    }
+
+    /// `arm_smooth` for axes that already stand `pre` mm along the path (a take-up before the
+    /// pass): the ramp starts from there, `pre / v` later, and meets the same synchronous line.
+    #[allow(clippy::too_many_arguments)]
+    pub fn arm_after(theta: f64, rpm: f64, start_angle: f64, lead_path: f64, k: f64, a: f64, tj: f64, pre: f64) -> Option<ThreadSync> {
+        if !(theta.is_finite() && rpm.is_finite() && start_angle.is_finite() && k.is_finite() && pre.is_finite() && pre >= 0.0) {
             return None;
         }
         if !(rpm.abs() >= 1.0 && lead_path > 0.0 && lead_path.is_finite() && a > 0.0 && a.is_finite()) {
@@ -97,14 +107,15 @@ impl ThreadSync {
         let v = lead_path * rpm.abs() / 60.0;
         let tj = if tj.is_finite() { tj.max(0.0) } else { 0.0 };
         let tj2 = SECOND_SMOOTH * tj;
-        // A symmetric acceleration profile meets the line at its centroid: half its length.
-        let dtheta = omega * (v / a + tj + tj2) / 2.0;
+        // A symmetric acceleration profile meets the line at its centroid: half its length;
+        // from `pre` along the path it starts `pre / v` later.
+        let dtheta = omega * ((v / a + tj + tj2) / 2.0 - pre / v);
         // The first θ0 ≡ dir·start_angle (mod 360) at least Δθ ahead in the direction of
         // rotation, so the ramp starts in the future. In "forward" coordinates q = dir·θ.
         let q = dir * theta + dtheta;
         let q0 = start_angle + 360.0 * ((q - start_angle) / 360.0).ceil();
         let theta0 = dir * q0;
-        Some(ThreadSync { dir, theta_start: theta0 - dir * dtheta, theta0, omega, a, v, lead_path, k, n_start: 0.0, ramp: true, tj, tj2 })
+        Some(ThreadSync { dir, theta_start: theta0 - dir * dtheta, theta0, omega, a, v, lead_path, k, n_start: 0.0, ramp: true, tj, tj2, pre })
     }
 
     /// The lock for the segment that directly follows this one (which is `len` mm long):
@@ -205,16 +216,16 @@ impl ThreadSync {
         }
         let p = self.dir * (theta - self.theta_start);
         if !(p > 0.0) {
-            return 0.0;
+            return self.pre;
         }
         let tau = p / self.omega;
         let t_ramp = self.v / self.a;
         let base = if tau >= t_ramp + self.tj + self.tj2 {
             self.lead_path * n
         } else if self.tj > 0.0 {
-            self.smoothed(tau)
+            self.pre + self.smoothed(tau)
         } else {
-            0.5 * self.a * tau * tau
+            self.pre + 0.5 * self.a * tau * tau
         };
         base + g34
     }
@@ -307,6 +318,34 @@ mod tests {
         let s = ThreadSync::arm(0.0, 300.0, 0.0, 2.0, -0.5, 1000.0).unwrap();
         assert!(s.revs_to(4.0).is_some());
         assert!(s.revs_to(4.1).is_none());
+    }
+
+    #[test]
+    fn a_pass_that_took_up_starts_its_ramp_from_there_onto_the_same_line() {
+        // 1000 rpm, lead 1.5 (25 mm/s), 800 mm/s², 40 ms smoothing; 0.3 mm already travelled.
+        let (a, tj, pre) = (800.0, 0.04, 0.3);
+        let t = ThreadSync::arm_after(10.0, 1000.0, 45.0, 1.5, 0.0, a, tj, pre).unwrap();
+        let plain = ThreadSync::arm_smooth(10.0, 1000.0, 45.0, 1.5, 0.0, a, tj).unwrap();
+        // Stands where the take-up left it until the ramp, which starts pre/v later.
+        assert_eq!(t.target(t.theta_start - 1.0), pre);
+        assert_eq!(t.target(t.theta_start), pre);
+        let later = (t.theta_start - plain.theta_start).rem_euclid(360.0);
+        assert!((later - pre / 25.0 * t.omega).abs() < 1e-9, "{later}°");
+        // Continuous, never faster than v, never back; and on the same line past the ramp.
+        let mut prev = pre;
+        let mut th = t.theta_start;
+        while th < t.theta_start + 2000.0 {
+            th += 0.05;
+            let s = t.target(th);
+            let v = (s - prev) / (0.05 / t.omega);
+            assert!((-1e-9..=25.0 + 1e-6).contains(&v), "speed {v} at {th}");
+            prev = s;
+        }
+        let th = t.theta0() + 3600.0;
+        assert!((t.target(th) - 15.0).abs() < 1e-9 && (t.theta0() - plain.theta0()).rem_euclid(360.0) < 1e-9);
+        // A negative or non-finite take-up is refused.
+        assert!(ThreadSync::arm_after(10.0, 1000.0, 45.0, 1.5, 0.0, a, tj, -0.1).is_none());
+        assert!(ThreadSync::arm_after(10.0, 1000.0, 45.0, 1.5, 0.0, a, tj, f64::NAN).is_none());
     }
 
     #[test]

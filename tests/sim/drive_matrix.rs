@@ -127,12 +127,19 @@ fn the_tap_and_the_thread_ride_a_jittery_sync() {
 /// 2026-11-29: 10.0 µm there, 8.3 µm on ff 0.90, 7.6 µm on Kv 15 and its G92 thread stopped
 /// by alarm 2307 (it began while Z still ran in from the rapid); a lightly damped belt at Kv
 /// 20/s with 90 % feed-forward stopped its G92 by alarm 2307 in the lead-in until the thread
-/// led through its lag's settling. The thread phase on lightly damped belts (0.13–0.36° since
-/// the lead-in's second average, 2026-11-30; 0.2–0.45° before) is not bounded here: the
-/// issue's 0.1° is not met there (README).
+/// led through its lag's settling. The thread phase on lightly damped belts: 0.13–0.36° since
+/// the lead-in's second average (2026-11-30; 0.2–0.45° before), 0.05–0.10° since each pass
+/// takes up the belt in the cutting direction before its lead-in (`machine.thread_take_up_mm`,
+/// 2026-11-30, evening). belt_kv15 is held to 0.25°: its lag settles over 67 ms and the online
+/// fit reads that time short (27 cycles for 33), so Z runs ahead where S1500's line begins
+/// (0.100° before the take-up, 0.207° with it: the slide's stick at the start had held Z
+/// back; with the settling's true time 0.036°, README).
 #[test]
 fn belt_variants_hold_the_tap_in_the_air() {
     for (name, r) in in_the_air("belt_variants", 11) {
+        let bp = if name == "belt_kv15" { 0.25 } else { 0.1 };
+        let p = r.phase_spread.unwrap();
+        assert!(p <= bp, "{name}: thread phase spread {p:.3}° (bound {bp})");
         assert!(r.alarms.is_empty(), "{name}: {:?}", r.alarms);
         let b3 = if name == "belt_friction4" { 7.0 } else { 5.0 };
         let (m3, m6, mg) = (r.tap_3000.unwrap().0, r.tap_6000.unwrap().0, r.g92_1.unwrap().0);

@@ -94,6 +94,45 @@ fn thread_phase_does_not_move_with_the_rpm() {
     }
 }
 
+/// The take-up before a thread pass (`machine.thread_take_up_mm`): the G92 passes return to
+/// their start against the thread's direction, so each first creeps 0.3 mm along the thread
+/// at no more than 2 mm/s, stands, and then starts its lead-in from there; a pass whose
+/// start was reached in the cutting direction starts at once; with the key at 0 none creeps.
+#[test]
+fn a_thread_pass_takes_up_against_its_return() {
+    let run_with = |take_up: f64, approach_in_cut: bool| {
+        let mut cfg = MachineConfig::embedded();
+        cfg.machine.thread_take_up_mm = take_up;
+        let mut moves = thread_pass_moves(15.0, 4.0, -20.0, 1.5, &[800.0]);
+        if approach_in_cut {
+            // Come down onto the start from Z5 (the cutting direction) instead of up from Z0.
+            moves.insert(1, cncgw::canon::Move { kind: cncgw::canon::MoveKind::Rapid { end: cncgw::canon::Pos::xz(17.0, 5.0) }, ..moves[1].clone() });
+        } else {
+            moves.insert(1, cncgw::canon::Move { kind: cncgw::canon::MoveKind::Rapid { end: cncgw::canon::Pos::xz(17.0, 0.0) }, ..moves[1].clone() });
+        }
+        let run = run_moves(&cfg, Limits::from_config(&cfg), moves, None).unwrap();
+        run.result.as_ref().unwrap();
+        let (z, s) = (run.drive("z").unwrap(), run.drive("s1").unwrap());
+        let rows: Vec<_> = run.rows.iter().filter(|r| r.line == 4).collect();
+        let dt = rows[1].t_s - rows[0].t_s;
+        // Z's set-points in the thread block: what it travels at no more than 2 mm/s before
+        // it first stands again (the take-up, then the wait for the armed angle) — or 0 where
+        // its first motion is already the lead-in (faster than that).
+        let step = |k: usize| rows[k].cmd[z] - rows[k + 1].cmd[z];
+        let first = (0..rows.len() - 1).find(|k| step(*k) != 0.0).unwrap();
+        let end = (first..rows.len() - 1).find(|k| step(*k) == 0.0 || step(*k) / dt > 2.0 + 1e-9).unwrap();
+        // From the thread's start, Z4 (the block's first row already carries a step).
+        let crept = if step(end) == 0.0 { 4.0 - rows[end].cmd[z] } else { 0.0 };
+        // The spindle was at speed before it (the creep does not wait for it).
+        assert!(rows[first].spindle_rpm.is_finite() && run.rows.iter().any(|r| r.cmd[s] != run.rows[0].cmd[s]));
+        crept
+    };
+    let (back, cut, off) = (run_with(0.3, false), run_with(0.3, true), run_with(0.0, false));
+    eprintln!("crept before the lead-in: {back:.4} mm after a return, {cut:.4} approached in the cut, {off:.4} with the key at 0");
+    assert!((back - 0.3).abs() < 1e-6, "took up {back} mm, not 0.3");
+    assert!(cut.abs() < 1e-9 && off.abs() < 1e-9, "{cut} / {off} mm");
+}
+
 #[test]
 fn g92_1_rigid_thread_is_corrected_too() {
     let cfg = MachineConfig::embedded();
