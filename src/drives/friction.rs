@@ -237,8 +237,13 @@ impl FrictionComp {
         let lim = up.abs().max(down.abs());
         if v.signum() != self.dir {
             // A start or a reversal: what the drive's integrator holds now — measured where
-            // the slide stood, else what it has taken over of the last motion's offset.
-            let held = if self.dir == 0.0 { self.t_rest } else { self.i0 + (1.0 - self.env) * (self.f - self.i0) };
+            // the slide stood, else what it has taken over of the last motion's offset. Of the
+            // last motion's whole friction, not of the last step's ramped share: a command
+            // that slows to a creep before it reverses (a sync correction at a tap's bottom)
+            // leaves the integrator holding the friction of the motion, and a kick sized on
+            // the creep's share left a slide with a slow velocity loop stuck for 8 cycles.
+            let last = if self.dir > 0.0 { up } else { down };
+            let held = if self.dir == 0.0 { self.t_rest } else { self.i0 + (1.0 - self.env) * (last - self.i0) };
             self.i0 = held.clamp(-lim, lim);
             self.dir = v.signum();
             self.env = 1.0;
@@ -402,6 +407,26 @@ mod tests {
         }
         let back = fc.offset(5.0 * 300.0 - 5.0);
         // The offset takes out what the integrator holds (≈ up) and adds the friction down.
+        assert!((f64::from(back) - (down - up)).abs() <= 2.0, "{back} vs {down} − {up}");
+    }
+
+    #[test]
+    fn a_reversal_after_a_creep_still_swings_the_whole_friction() {
+        let mut fc = FrictionComp::default();
+        run(&mut fc, &ramp(400.0, 16), 60.0, -60.0, 3.0);
+        stand(&mut fc, 0);
+        let (up, down) = fc.learnt().unwrap();
+        let (mut pos, mut cmd) = (0, 0.0);
+        for _ in 0..300 {
+            pos += 5;
+            cmd += 5.0;
+            fc.observe_actual(pos);
+            fc.offset(cmd);
+        }
+        // The command slows to a creep (a twentieth of the band) and turns back at once: the
+        // drive's integrator still holds the motion's friction, not the creep's share of it.
+        fc.offset(cmd + 0.05);
+        let back = fc.offset(cmd - 5.0);
         assert!((f64::from(back) - (down - up)).abs() <= 2.0, "{back} vs {down} − {up}");
     }
 
