@@ -13,6 +13,12 @@
 //! of transport delay on every drive, high friction (spindle 2–6 N·m, X and Z 0.3–0.8 N·m), and
 //! a mix of two of them. Everything else is sim-drives' default. The same seed writes the same
 //! models.
+//!
+//! `--loops`: each model's spindle, Z or both also get other inner loops than sim-drives' —
+//! velocity loop gain 0.35–1.6× and integral time 0.6–4× the default, speed filter 1–5× and
+//! current loop 1–4× as slow (sim-drives' defaults: spindle Kp 12.57 N·m·s/rad, Ti 20 ms,
+//! 0.5 ms, 0.4 ms; feed axes 0.377, 5 ms, 0.2 ms, 0.15 ms): the "other gains" of drives we did
+//! not write.
 
 use std::fmt::Write as _;
 use std::path::PathBuf;
@@ -95,6 +101,21 @@ fn add(m: &mut Model, kind: &str, r: &mut Rng) {
     }
 }
 
+/// Other velocity and current loops on the spindle, Z or both (`--loops`; module doc).
+fn vary_loops(m: &mut Model, r: &mut Rng) -> &'static str {
+    let which = r.pick(&["s1", "z", "both"]);
+    for (axis, keys) in [("s1", &mut m.s1), ("z", &mut m.z)] {
+        if which != axis && which != "both" {
+            continue;
+        }
+        let (kp, ti, filt, cur) = if axis == "s1" { (12.566, 20.0, 0.5, 0.4) } else { (0.377, 5.0, 0.2, 0.15) };
+        let mut scaled = |base: f64, a: f64, b: f64| (base * r.uniform(a, b, 3) * 1e4).round() / 1e4;
+        let v = [scaled(kp, 0.35, 1.6), scaled(ti, 0.6, 4.0), scaled(filt, 1.0, 5.0), scaled(cur, 1.0, 4.0)];
+        keys.extend([("vel_kp", v[0]), ("vel_ti_ms", v[1]), ("speed_filter_ms", v[2]), ("current_loop_tc_ms", v[3])]);
+    }
+    which
+}
+
 fn toml_of(m: &Model, note: &str) -> String {
     let mut s = format!("# {note}\n");
     let drives =
@@ -125,9 +146,13 @@ fn toml_of(m: &Model, note: &str) -> String {
 }
 
 fn main() {
-    let (mut seed, mut count, mut out) = (20261201u64, 48usize, None::<PathBuf>);
+    let (mut seed, mut count, mut out, mut loops) = (20261201u64, 48usize, None::<PathBuf>, false);
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
+        if a == "--loops" {
+            loops = true;
+            continue;
+        }
         let v = args.next().unwrap_or_default();
         match a.as_str() {
             "--seed" => seed = v.parse().unwrap_or_else(|_| usage(&format!("--seed wants a number, got {v:?}"))),
@@ -145,7 +170,9 @@ fn main() {
         let kind = KINDS[i % KINDS.len()];
         let mut m = Model::default();
         add(&mut m, kind, &mut r);
-        let note = format!("Random drive model {i} ({kind}), seed {seed}: examples/random_drive_models.rs.");
+        let kind = if loops { format!("{kind}_loops_{}", vary_loops(&mut m, &mut r)) } else { kind.to_string() };
+        let flag = if loops { " --loops" } else { "" };
+        let note = format!("Random drive model {i} ({kind}), seed {seed}{flag}: examples/random_drive_models.rs.");
         let path = out.join(format!("m{i:02}_{kind}.toml"));
         if let Err(e) = std::fs::write(&path, toml_of(&m, &note)) {
             usage(&format!("{}: {e}", path.display()));
@@ -155,6 +182,6 @@ fn main() {
 }
 
 fn usage(why: &str) -> ! {
-    eprintln!("error: {why}\nusage: random_drive_models --out DIR [--seed N] [--count N]");
+    eprintln!("error: {why}\nusage: random_drive_models --out DIR [--seed N] [--count N] [--loops]");
     std::process::exit(2);
 }
