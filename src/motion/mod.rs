@@ -736,7 +736,8 @@ pub struct Motion {
     thread_settle: Option<(f64, f64)>,
     /// Each feed axis' last direction of motion (−1, 0, +1), for the thread's take-up.
     last_dir: [f64; 3],
-    /// The take-up before a thread pass (`thread_take_up`): (cycles run, its length mm).
+    /// The take-up before a thread pass (`thread_take_up`): (cycles run, its length mm), set
+    /// where the pass starts (`take_up_len`).
     takeup: Option<(u32, f64)>,
     /// The lock of the thread segment that ended last and its length, for a continuous
     /// segment that follows it (cleared by any other item).
@@ -1964,7 +1965,7 @@ impl Motion {
                             Some((t, len)) if seg.continuous => t.continue_with(len, seg.lead_path, seg.k_path),
                             _ => None,
                         };
-                        self.takeup = (sync.is_none() && !seg.continuous).then_some((0, f64::NAN));
+                        self.takeup = if sync.is_none() && !seg.continuous { self.take_up_len(&seg).map(|d| (0, d)) } else { None };
                         self.run = Run::Thread { seg, sync, s: 0.0, v: 0.0, landed: false };
                     }
                     Item::Tap(seg) => self.run = Run::Tap { seg, theta0: None, s: 0.0, v: 0.0, landed: false },
@@ -2396,7 +2397,7 @@ impl Motion {
         let late = dt * fb.age[AX_S].min(8) as f64;
         let theta = spindle_at_slot(fb, dt) + rpm * 6.0 * (dt * self.lim.feedback_delay as f64 + late + tau);
         if sync.is_none() {
-            if let Some(s2) = self.thread_take_up(&seg) {
+            if let Some(s2) = self.thread_take_up() {
                 self.pos[..3].copy_from_slice(&seg.geom.at(s2));
                 self.run = Run::Thread { seg, sync: None, s: s2, v: 0.0, landed: false };
                 return (s2 - s) / dt;
@@ -2487,17 +2488,8 @@ impl Motion {
     /// a smooth start and stop; the lead-in then starts from there (`ThreadSync::arm_after`),
     /// on the same synchronous line. The path position of this cycle while it runs; None once
     /// it is done or where none is needed. A stop ends it where it stands.
-    fn thread_take_up(&mut self, seg: &ThreadSeg) -> Option<f64> {
-        let (k, mut d) = self.takeup?;
-        if k == 0 {
-            let la = seg.long_axis.min(2);
-            let dir = (seg.geom.end()[la] - geom_start(&seg.geom)[la]).signum();
-            d = self.lim.thread_take_up.min(0.25 * seg.geom.len());
-            if !(d > 0.0) || self.last_dir[la] == dir {
-                self.takeup = None;
-                return None;
-            }
-        }
+    fn thread_take_up(&mut self) -> Option<f64> {
+        let (k, d) = self.takeup?;
         // A cosine profile: its peak speed π·d/(2·T) is TAKE_UP_SPEED.
         let n = (std::f64::consts::PI * d / (2.0 * TAKE_UP_SPEED) / self.lim.cycle_s).ceil().max(1.0);
         let k = k + 1;
@@ -2507,6 +2499,15 @@ impl Motion {
         }
         self.takeup = Some((k, d));
         Some(d * (1.0 - (std::f64::consts::PI * f64::from(k) / n).cos()) / 2.0)
+    }
+
+    /// The take-up's length before the pass `seg` (`thread_take_up`): None where the long axis
+    /// last moved along the thread already, or the key is 0.
+    fn take_up_len(&self, seg: &ThreadSeg) -> Option<f64> {
+        let la = seg.long_axis.min(2);
+        let dir = (seg.geom.end()[la] - geom_start(&seg.geom)[la]).signum();
+        let d = self.lim.thread_take_up.min(0.25 * seg.geom.len());
+        (d > 0.0 && self.last_dir[la] != dir).then_some(d)
     }
 
     /// What of a thread's lead τ·v the long axis' lag has not built up yet, path mm. A loop
