@@ -392,37 +392,31 @@ mod tests {
         assert!(sent[0] < first && sent[199].abs() <= 1, "{sent:?}");
     }
 
-    #[test]
-    fn a_reversal_swings_the_whole_friction() {
+    /// A learnt axis moved up long enough that the drive carries the friction (300 cycles at 5
+    /// counts): the axis, its learnt (up, down) and where the command stands.
+    fn moved_up() -> (FrictionComp, (f64, f64), f64) {
         let mut fc = FrictionComp::default();
         run(&mut fc, &ramp(400.0, 16), 60.0, -60.0, 3.0);
         stand(&mut fc, 0);
-        let (up, down) = fc.learnt().unwrap();
-        // Long enough up that the drive carries the friction; then the command turns back.
-        let mut pos = 0;
+        let learnt = fc.learnt().unwrap();
         for k in 1..=300 {
-            pos += 5;
-            fc.observe_actual(pos);
-            fc.offset(5.0 * f64::from(k));
+            fc.observe_actual(5 * k);
+            fc.offset(5.0 * k as f64);
         }
-        let back = fc.offset(5.0 * 300.0 - 5.0);
+        (fc, learnt, 1500.0)
+    }
+
+    #[test]
+    fn a_reversal_swings_the_whole_friction() {
+        let (mut fc, (up, down), cmd) = moved_up();
+        let back = fc.offset(cmd - 5.0);
         // The offset takes out what the integrator holds (≈ up) and adds the friction down.
         assert!((f64::from(back) - (down - up)).abs() <= 2.0, "{back} vs {down} − {up}");
     }
 
     #[test]
     fn a_reversal_after_a_creep_still_swings_the_whole_friction() {
-        let mut fc = FrictionComp::default();
-        run(&mut fc, &ramp(400.0, 16), 60.0, -60.0, 3.0);
-        stand(&mut fc, 0);
-        let (up, down) = fc.learnt().unwrap();
-        let (mut pos, mut cmd) = (0, 0.0);
-        for _ in 0..300 {
-            pos += 5;
-            cmd += 5.0;
-            fc.observe_actual(pos);
-            fc.offset(cmd);
-        }
+        let (mut fc, (up, down), cmd) = moved_up();
         // The command slows to a creep (a twentieth of the band) and turns back at once: the
         // drive's integrator still holds the motion's friction, not the creep's share of it.
         fc.offset(cmd + 0.05);
