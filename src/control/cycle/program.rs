@@ -45,6 +45,9 @@ pub(super) struct Run {
     ended: bool,
     settle_cycles: u32,
     max_settle: u32,
+    /// Each drive's actual position (counts) the last cycle it was within a count of its
+    /// target (`after_send`'s settling; `None`: it was not).
+    settle_prev: Vec<Option<i64>>,
     late_prev: bool,
     spindle_rpm: f64,
     meter: SpindleMeter,
@@ -105,6 +108,7 @@ impl Run {
             ended: false,
             settle_cycles: 0,
             max_settle: (2.0 / dt) as u32,
+            settle_prev: vec![None; n],
             late_prev: false,
             spindle_rpm: 0.0,
             meter: SpindleMeter::new(lp.spindle_drive.map(|d| lp.drives.feedback(d).pos).unwrap_or(0.0), 0.0),
@@ -596,11 +600,17 @@ impl CycleLoop<'_> {
         if summary.machining_time_s == 0.0 {
             summary.machining_time_s = t_s;
         }
-        // Let the drives settle onto the last setpoint (within one count), bounded.
-        let settled = (0..run.map.len()).all(|d| {
+        // Let the drives settle onto the last setpoint (within one count), bounded — and come
+        // to rest there: within a count on two cycles running, having moved at most a count
+        // between them. A spindle passing through its C angle at 1 °/s is within a count for
+        // one sample; torque went off there and it coasted 0.04° past (a loaded host, Modbus).
+        let mut settled = true;
+        for d in 0..run.map.len() {
             let f = self.drives.feedback(d);
-            (f.counts - self.drives.target_counts(d)).abs() <= 1 && f.age_cycles <= 1
-        });
+            let on = (f.counts - self.drives.target_counts(d)).abs() <= 1 && f.age_cycles <= 1;
+            let prev = std::mem::replace(&mut run.settle_prev[d], on.then_some(f.counts));
+            settled &= on && prev.is_some_and(|p| (f.counts - p).abs() <= 1);
+        }
         run.settle_cycles += 1;
         Ok(settled || run.settle_cycles > run.max_settle)
     }
