@@ -603,7 +603,7 @@ impl CycleLoop<'_> {
         // Let the drives settle onto the last setpoint (within one count), bounded — and come
         // to rest there: within a count on two cycles running, having moved at most a count
         // between them. A spindle passing through its C angle at 1 °/s is within a count for
-        // one sample; torque went off there and it coasted 0.04° past (a loaded host, Modbus).
+        // one sample; torque went off there and it coasted 0.04° off it (a loaded host, Modbus).
         let mut settled = true;
         for d in 0..run.map.len() {
             let f = self.drives.feedback(d);
