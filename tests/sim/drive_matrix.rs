@@ -174,6 +174,18 @@ fn delay_lowff_variants_hold_the_tap_and_the_thread_in_the_air() {
     hold_the_tap_and_the_thread_in_the_air("delay_lowff_variants", 3, 7.5);
 }
 
+/// Mixes of a coarse spindle encoder and a transport delay
+/// (`tests/drive_models/coarse_delay_variants/`: 4096 and 8192 counts per revolution, every
+/// drive two cycles late), in the air: the tap's bounds, no alarm, G92.1 held to delay2's
+/// 7.5 µm. The delay lead's acceleration term multiplied the quantised spindle lag's second
+/// difference by 6 into ±5 µm of Z set-point noise: 9.08 and 3.41 µm at S3000 before
+/// 2026-12-01 (G92.1 16.5 and 8.8), now 3.78 and 2.28 (6.7, 7.0;
+/// `sync::correction::LAG_ACCEL_SMOOTHING`).
+#[test]
+fn coarse_delay_variants_hold_the_tap_and_the_thread_in_the_air() {
+    hold_the_tap_and_the_thread_in_the_air("coarse_delay_variants", 2, 7.5);
+}
+
 /// Velocity loops other than sim-drives' (`tests/drive_models/velocity_loop_variants/`: Kp,
 /// integral time, speed filter and current loop varied on spindle and Z, with high friction or
 /// a heavy spindle), in the air: every bound of the issue, no alarm. Where the sync correction
