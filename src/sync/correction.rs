@@ -226,7 +226,6 @@ impl SyncCorrection {
 
     /// The offset of locked axis `i` whose actual position must be `want`. The lead's
     /// acceleration is the nominal's plus the spindle lag's smoothed (`LAG_ACCEL_SMOOTHING`).
-
     fn axis(&mut self, i: usize, want: f64, nominal: f64) -> f64 {
         let dv = want - self.want_prev[0][i];
         let da_nominal = Self::push(&mut self.nominal_prev, i, nominal);

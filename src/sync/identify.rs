@@ -312,10 +312,11 @@ fn linear_rows(cmd: &[f64], act: &[f64], after: usize) -> Vec<bool> {
 /// regime and left out. Behind a belt, dry friction holds the slide where the demand stops
 /// while the motor still settles — against the wound belt, a stiffer and slower loop than the
 /// one that moves the slide: 8 of 48 random belts with the default friction read τ 10–18 %
-/// long through those rows (within 8 % with no friction). Their moving rows alone read within
-/// 3 % where they are 1.6–5 times better explained by their own fit; where the two explain
-/// them about as well (ratio 0.65–1.45) the moving rows are too few to place τ (−25 … +8 %,
-/// the breakaways' 200 ms left out) and the fit through every row stands.
+/// long through those rows (within 8 % with no friction). Where the moving rows are
+/// explained 1.6–8.5 times better by their own fit (18 of the 48) that fit reads −1.3 …
+/// +3.2 % (−0.5 … +14.8 % before); where the two explain them about as well (ratio
+/// 0.65–1.45) the moving rows are too few to place τ (−25 … +8 %, the breakaways' 200 ms left
+/// out) and the fit through every row stands (4 of the 48 still 11–18 % long).
 const SETTLES_APART: f64 = 1.5;
 
 /// `keep` less the rows where the demand (delayed by `d`) stands still: the settling after
