@@ -278,13 +278,16 @@ fn a_controller_going_bus_off_while_running_is_alarm_2023() {
     if !require_vcan() {
         return;
     }
-    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    // A slow feed (5 mm/s) is moving when the bus goes off: a stall of the guest cannot
+    // push an axis out of its 1 mm window first (at first_part's 55 mm/s rapid, 40 ms did:
+    // alarm 2010 before the bus-off).
+    let prog = write_temp("bus-off.nc", "O1\nG21 G98\nG01 X20 F300\nX0\nM30\n");
     let _sim = start_sim();
     let mut child = Command::new(bin("cncgw"))
         .env("CNCGW_STATE_DIR", std::env::temp_dir().join(format!("cncgw-test-state-{}", std::process::id())))
         .args(["-v", "run", "--bus", "vcan0", "--config"])
         .arg(relaxed_config())
-        .arg(root.join("examples/first_part.nc"))
+        .arg(prog)
         .stdout(Stdio::null())
         .stderr(Stdio::piped())
         .spawn()

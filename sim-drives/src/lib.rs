@@ -366,6 +366,11 @@ pub fn run_realtime_with_io(
     let name = bus.name().to_string();
     tracing::info!("sim-drives on {name}: nodes {:?}", core.drives.iter().map(|d| d.node()).collect::<Vec<_>>());
     while !stop.load(Ordering::Relaxed) {
+        // Frames that queued up while this process was descheduled act at their arrival
+        // times first: integrating to now before them would extrapolate past SYNCs the master
+        // did send (a drive 10 periods ahead of the set-point it then reads: 0x8611).
+        let first = bus.try_recv();
+        handle_queued(&mut bus, &mut core, &start, first, &name)?;
         let t = now(&start);
         core.advance_to(t, |out, _| send_all(&mut bus, out));
         // Frames wake us; otherwise wake for the next timer, just before the next SYNC is
@@ -383,36 +388,42 @@ pub fn run_realtime_with_io(
                 wait = wait.min(Duration::from_nanos(pre - t));
             }
         }
-        match bus.recv_timeout(wait) {
-            Ok(Some(f)) => {
-                let mut f = Some(f);
-                while let Some(fr) = f {
-                    // Act at the frame's arrival time where the transport knows it: after
-                    // this process was descheduled, queued SYNCs are still handled at the
-                    // instants the master sent them, as a real drive would have.
-                    let t_now = now(&start);
-                    let t = match bus.last_rx_age() {
-                        Some(age) => t_now.saturating_sub(age.as_nanos() as u64).max(core.now),
-                        None => t_now,
-                    };
-                    core.advance_to(t, |out, _| send_all(&mut bus, out));
-                    core.handle(&fr);
-                    send_all(&mut bus, &mut core.out);
-                    f = match bus.try_recv() {
-                        Ok(x) => x,
-                        Err(BusError::Overflow { dropped, .. }) => {
-                            tracing::warn!("{name}: receive overflow, {dropped} frames lost");
-                            None
-                        }
-                        Err(e) => return Err(e.to_string()),
-                    };
-                }
-            }
-            Ok(None) => {}
-            Err(BusError::Overflow { dropped, .. }) => tracing::warn!("{name}: receive overflow, {dropped} frames lost"),
-            Err(e) => return Err(e.to_string()),
-        }
+        let first = bus.recv_timeout(wait);
+        handle_queued(&mut bus, &mut core, &start, first, &name)?;
     }
     tracing::info!("sim-drives on {name}: stopped");
     Ok(())
+}
+
+/// Handle `first` and every frame queued behind it, each at its arrival time where the
+/// transport knows it: after this process was descheduled, queued SYNCs are still handled at
+/// the instants the master sent them, as a real drive would have. Err: the bus failed.
+fn handle_queued(
+    bus: &mut Box<dyn CanBus>,
+    core: &mut Core,
+    start: &Instant,
+    first: Result<Option<CanFrame>, BusError>,
+    name: &str,
+) -> Result<(), String> {
+    let mut next = first;
+    loop {
+        let f = match next {
+            Ok(Some(f)) => f,
+            Ok(None) => return Ok(()),
+            Err(BusError::Overflow { dropped, .. }) => {
+                tracing::warn!("{name}: receive overflow, {dropped} frames lost");
+                return Ok(());
+            }
+            Err(e) => return Err(e.to_string()),
+        };
+        let t_now = start.elapsed().as_nanos() as u64;
+        let t = match bus.last_rx_age() {
+            Some(age) => t_now.saturating_sub(age.as_nanos() as u64).max(core.now),
+            None => t_now,
+        };
+        core.advance_to(t, |out, _| send_all(&mut **bus, out));
+        core.handle(&f);
+        send_all(&mut **bus, &mut core.out);
+        next = bus.try_recv();
+    }
 }

@@ -22,6 +22,7 @@ use std::sync::mpsc::Receiver;
 
 mod program;
 mod rest;
+mod settle;
 pub use rest::Rest;
 
 /// Alarms of the controller itself (2400–2499).

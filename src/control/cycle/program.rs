@@ -12,6 +12,7 @@
 //! Every allocation is made in [`Run::new`], before the first cycle. A phase that ends the
 //! run returns the alarm, with the controlled stop it needs already started.
 
+use super::settle::EndSettle;
 use super::{alarms, periods_passed, stall_in_sync, AxisSummary, CycleLoop, Progress, RunSummary, SpindleMeter, MAX_CATCH_UP};
 use crate::canon::{Move, Pos};
 use crate::control::guard::Guard;
@@ -45,9 +46,8 @@ pub(super) struct Run {
     ended: bool,
     settle_cycles: u32,
     max_settle: u32,
-    /// Each drive's actual position (counts) the last cycle it was within a count of its
-    /// target (`after_send`'s settling; `None`: it was not).
-    settle_prev: Vec<Option<i64>>,
+    /// Each drive settling onto its last set-point at the program's end.
+    settle: EndSettle,
     late_prev: bool,
     spindle_rpm: f64,
     meter: SpindleMeter,
@@ -108,7 +108,7 @@ impl Run {
             ended: false,
             settle_cycles: 0,
             max_settle: (2.0 / dt) as u32,
-            settle_prev: vec![None; n],
+            settle: EndSettle::new(n),
             late_prev: false,
             spindle_rpm: 0.0,
             meter: SpindleMeter::new(lp.spindle_drive.map(|d| lp.drives.feedback(d).pos).unwrap_or(0.0), 0.0),
@@ -601,15 +601,11 @@ impl CycleLoop<'_> {
             summary.machining_time_s = t_s;
         }
         // Let the drives settle onto the last setpoint (within one count), bounded — and come
-        // to rest there: within a count on two cycles running, having moved at most a count
-        // between them. A spindle passing through its C angle at 1 °/s is within a count for
-        // one sample; torque went off there and it coasted 0.04° off it (a loaded host, Modbus).
+        // to rest there (`settle`). A spindle passing through its C angle at 1 °/s is within
+        // a count for one sample; torque went off there and it coasted 0.04° off it.
         let mut settled = true;
         for d in 0..run.map.len() {
-            let f = self.drives.feedback(d);
-            let on = (f.counts - self.drives.target_counts(d)).abs() <= 1 && f.age_cycles <= 1;
-            let prev = std::mem::replace(&mut run.settle_prev[d], on.then_some(f.counts));
-            settled &= on && prev.is_some_and(|p| (f.counts - p).abs() <= 1);
+            settled &= run.settle.update(d, &self.drives.feedback(d), self.drives.target_counts(d));
         }
         run.settle_cycles += 1;
         Ok(settled || run.settle_cycles > run.max_settle)
