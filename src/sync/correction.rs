@@ -218,7 +218,7 @@ impl SyncCorrection {
 
     /// Axis `i`'s value `x` of this cycle into `hist` (the last two); its second difference.
     fn push(hist: &mut [[f64; 3]; 2], i: usize, x: f64) -> f64 {
-        let da = x - 2.0 * hist[0][i] + hist[1][i];
+        let da = (x - hist[0][i]) - (hist[0][i] - hist[1][i]);
         hist[1][i] = hist[0][i];
         hist[0][i] = x;
         da
@@ -229,11 +229,9 @@ impl SyncCorrection {
     fn axis(&mut self, i: usize, want: f64, nominal: f64) -> f64 {
         let dv = want - self.want_prev[0][i];
         let da_nominal = Self::push(&mut self.nominal_prev, i, nominal);
-        let da_lag = dv - (self.want_prev[0][i] - self.want_prev[1][i]) - da_nominal;
+        let da_lag = Self::push(&mut self.want_prev, i, want) - da_nominal;
         self.lag_accel[i] += LAG_ACCEL_SMOOTHING * (da_lag - self.lag_accel[i]);
         let da = da_nominal + self.lag_accel[i];
-        self.want_prev[1][i] = self.want_prev[0][i];
-        self.want_prev[0][i] = want;
         self.trim(i);
         let c = (want - nominal + self.lead_of(i, dv, da) + self.trim[i]).clamp(-CORR_MAX, CORR_MAX);
         let amax = self.amax[i] * self.dt * self.dt;

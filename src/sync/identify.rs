@@ -234,7 +234,7 @@ fn second_order(w: f64, zeta: f64, dt: f64) -> (f64, f64) {
 /// speed, the residuals).
 fn oe(cmd: &[f64], act: &[f64], d: usize, alpha: f64, fast: (f64, f64), keep: &[bool]) -> Option<(f64, f64, DVector<f64>)> {
     let n = cmd.len().min(act.len());
-    let dd = |k: usize| if k >= d { cmd[k - d] } else { cmd[0] };
+    let dd = |k: usize| delayed(cmd, d, k);
     let (a1, a2) = fast;
     let (mut s1, mut s) = (vec![0.0; n], vec![0.0; n]);
     for k in 2..n {
@@ -323,8 +323,16 @@ const SETTLES_APART: f64 = 1.5;
 /// the stops.
 fn moving_rows(cmd: &[f64], d: usize, keep: &[bool]) -> Vec<bool> {
     let n = keep.len().min(cmd.len());
-    let dd = |k: usize| if k >= d { cmd[k - d] } else { cmd[0] };
-    (0..n).map(|k| keep[k] && k > 0 && dd(k) != dd(k - 1)).collect()
+    (0..n).map(|k| keep[k] && k > 0 && delayed(cmd, d, k) != delayed(cmd, d, k - 1)).collect()
+}
+
+/// The command delayed by `d` rows at row `k` (the first row's before the recording).
+fn delayed(cmd: &[f64], d: usize, k: usize) -> f64 {
+    if k >= d {
+        cmd[k - d]
+    } else {
+        cmd[0]
+    }
 }
 
 /// The output-error residual of the poles `(τ, ω, ζ)` over the rows `keep` holds (∞ where
