@@ -835,7 +835,8 @@ fn outcome(r: Result<(), crate::Alarm>, summary: &RunSummary, opts: &ExecOpts, n
             }
             record_alarm(&opts.extras, name, &a);
             eprintln!("{a}");
-            eprintln!("the program stopped at this alarm; {}", summary.rest.describe());
+            let when = if summary.ended { "the program had reached its end" } else { "the program stopped at this alarm" };
+            eprintln!("{when}; {}", summary.rest.describe());
             if let Some(h) = following_error_hint(&a, summary) {
                 eprintln!("{h}");
             }

@@ -482,7 +482,13 @@ impl<'a> CycleLoop<'a> {
             // Stopped before the end: the time until the stop.
             summary.machining_time_s = self.clock.now_ns().saturating_sub(t0) as f64 * 1e-9;
         }
-        summary.rest = self.to_rest(&mut motion, &mut still);
+        let (rest, raised) = self.to_rest(&mut motion, &mut still);
+        summary.rest = rest;
+        let r = match (r, raised) {
+            // The program ended, then a drive faulted while coming to rest: that is the run's end.
+            (Ok(()), Some(a)) => Err(Alarm { message: format!("after the program's end, while the drives came to rest: {}", a.message), ..a }),
+            (r, _) => r,
+        };
         summary.spindle_accel_rpm_s = motion.spindle_accel_found();
         summary.spindle_overload_rpm_s = motion.spindle_overload_found();
         // Where every drive stands once at rest (after an alarm too, not zeros).
@@ -643,13 +649,15 @@ impl<'a> CycleLoop<'a> {
     /// reaction while the others stop under control — in a thread or tap the survivor of the
     /// pair follows the faulted drive's actual position (`Motion::fault_stop`). Returns the
     /// drive's alarm (2010 once its 0x603F is read; 2011, 2014, 2015 at once) with the line
-    /// the program stopped at. Anything else going wrong meanwhile (a second drive, the bus,
-    /// E-stop) quick-stops every drive.
-    fn fault_stop(&mut self, motion: &mut Motion, d: usize, first: Option<Alarm>, rpm: f64, line: u32) -> Alarm {
+    /// the program stopped at (`ended`: it had reached its end there, the drives settling).
+    /// Anything else going wrong meanwhile (a second drive, the bus, E-stop) quick-stops
+    /// every drive.
+    fn fault_stop(&mut self, motion: &mut Motion, d: usize, first: Option<Alarm>, rpm: f64, line: u32, ended: bool) -> Alarm {
         motion.fault_stop(motion_axis(self.drives.axis_name(d), Some(d) == self.spindle_drive));
         tracing::warn!(axis = self.drives.axis_name(d), line, "drive fault: controlled stop of the other drives");
         let at_line = |mut a: Alarm| {
-            a.message.push_str(&format!("; the program stopped at line {line}, the other axes under control"));
+            let when = if ended { "had reached its end" } else { "stopped" };
+            a.message.push_str(&format!("; the program {when} at line {line}, the other axes under control"));
             a
         };
         let mut alarm = first;

@@ -154,6 +154,55 @@ fn a_feed_axis_fault_stops_the_turning_spindle_under_control() {
     assert!(first_off.vel[ds].abs() <= rest_limit(3), "{first_off:?}");
 }
 
+/// A drive that faults after the program's end, while the drives settle onto their end
+/// point, is the run's alarm and says the program had ended.
+#[test]
+fn a_fault_while_settling_at_the_program_end_says_the_program_had_ended() {
+    const ENDS_TURNING: &str = "G21\nG98 G97\nM03 S1500\nG00 X40 Z2\nG01 Z-20 F3000\nM30\n";
+    let clean = run(ENDS_TURNING, setup());
+    clean.result.as_ref().unwrap();
+    // The same run, X faulting 0.3 s after the end (program time; the probe's clock also
+    // counts the drives' start-up): the spindle still creeping onto its angle.
+    let end_ms = (clean.summary.machining_time_s * 1000.0) as u64;
+    let mut s = setup();
+    s.actions.push((
+        end_ms + 300,
+        Box::new(|w: &mut SimWorld| {
+            w.inject_fault(1, 0x2310);
+        }),
+    ));
+    let o = run(ENDS_TURNING, s);
+    assert!(o.summary.ended, "the program reached its end");
+    let a = o.result.as_ref().expect_err("the fault is the run's alarm");
+    assert_eq!(a.number, cncgw::alarm::DRIVE_FAULT, "{a}");
+    assert!(a.message.contains("0x2310") && a.message.contains("the program had reached its end at line 6"), "{a}");
+    check_rest(&o.summary.rest);
+    o.assert_rest_before_torque_off();
+}
+
+/// A Z that hunts on its own after the program's end (a belt with lost motion, a slow speed
+/// filter: ±28 µm at 1 Hz on a constant set-point) never settles; coming to rest it trips its
+/// overcurrent (0x2310). That fault is the run's alarm, not just "quick stop was sent"
+/// (found on a random model of `random_drive_models --loops`, 2026-12-01).
+#[test]
+fn a_fault_while_coming_to_rest_after_the_program_end_is_the_run_s_alarm() {
+    const HUNTING_Z: &str = "[[drive]]\nnode = 3\nkind = \"spindle\"\naxis = \"s1\"\ncounts_per_unit = 1000.0\ncounts_per_rev = 360000\n\n\
+        [[drive]]\nnode = 1\nkind = \"linear\"\naxis = \"x\"\ncounts_per_unit = 10000.0\ncounts_per_rev = 100000\n\n\
+        [[drive]]\nnode = 2\nkind = \"linear\"\naxis = \"z\"\ncounts_per_unit = 10000.0\ncounts_per_rev = 100000\n[drive.physics]\n\
+        kv = 29.6\nvelocity_ff = 0.983\nload_stiffness = 17.9\nload_damping = 0.0153\nbacklash_deg = 0.1\n\
+        vel_kp = 0.5942\nvel_ti_ms = 7.56\nspeed_filter_ms = 0.837\ncurrent_loop_tc_ms = 0.4124\n";
+    let mut s = setup();
+    s.sim = Some(HUNTING_Z);
+    let o = run("G21\nG98\nG1 W-5 F300\nG4 P200\nG1 W5 F300\nG4 P200\nM30\n", s);
+    assert!(o.summary.ended, "the program reached its end");
+    let a = o.result.as_ref().expect_err("the fault is the run's alarm");
+    assert_eq!(a.number, cncgw::alarm::DRIVE_FAULT, "{a}");
+    assert!(a.message.starts_with("after the program's end, while the drives came to rest") && a.message.contains("0x2310"), "{a}");
+    // Z's own fault reaction takes its torque (a drive's overcurrent trip is its own); the
+    // others were quick-stopped and stood still.
+    assert!(o.summary.rest.quick_stop && o.summary.rest.at_rest, "{:?}", o.summary.rest);
+}
+
 #[test]
 fn reset_stops_spindle_and_axes_before_torque_off() {
     let p = Panel::new();

@@ -233,7 +233,7 @@ impl CycleLoop<'_> {
     ) -> Result<Feedback, Alarm> {
         let received = self.drives.receive(tick.now);
         if let Some(d) = if isolate { self.drives.faulted() } else { None } {
-            return Err(self.fault_stop(motion, d, received.err(), run.spindle_rpm, run.cur_line));
+            return Err(self.fault_stop(motion, d, received.err(), run.spindle_rpm, run.cur_line, run.ended));
         }
         if let Err(a) = received {
             if a.number == crate::alarm::SYNC_LOST {

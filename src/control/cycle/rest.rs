@@ -15,6 +15,7 @@
 
 use super::{CycleLoop, SpindleMeter};
 use crate::motion::Motion;
+use crate::Alarm;
 
 /// A drive counts as standing still after this many cycles of fresh feedback within
 /// [`STILL_COUNTS`] of the cycle before.
@@ -132,13 +133,16 @@ impl CycleLoop<'_> {
         self.drives.quick_stop();
     }
 
-    /// Bring spindle and axes to rest (see the module doc). Allocates nothing. (A verb, not a
+    /// Bring spindle and axes to rest (see the module doc), and the first alarm the drives
+    /// raised while stopping (a drive that faulted after the program's end: the run must say
+    /// so, not just that quick stop was sent). Allocates nothing but that alarm. (A verb, not a
     /// conversion: the `to_*` naming lint does not apply.)
     #[allow(clippy::wrong_self_convention)]
-    pub(super) fn to_rest(&mut self, motion: &mut Motion, still: &mut Still) -> Rest {
+    pub(super) fn to_rest(&mut self, motion: &mut Motion, still: &mut Still) -> (Rest, Option<Alarm>) {
         let t0 = self.clock.now_ns();
         let dt = self.cycle_ns.max(1);
         let mut rest = Rest::default();
+        let mut raised = None;
         motion.stop();
         let mut meter = SpindleMeter::new(self.spindle_pos(), self.rpm);
         still.reset();
@@ -148,10 +152,13 @@ impl CycleLoop<'_> {
             next += dt;
             self.clock.wait_until(next);
             let now = self.clock.now_ns();
-            if self.drives.receive(now).is_err() && !self.quick {
-                // Something new went wrong while stopping: every drive brakes on its own.
-                self.quick_stop_all();
-                deadline = now + QUICK_TIMEOUT_NS;
+            if let Err(a) = self.drives.receive(now) {
+                if !self.quick {
+                    // Something new went wrong while stopping: every drive brakes on its own.
+                    self.quick_stop_all();
+                    deadline = now + QUICK_TIMEOUT_NS;
+                }
+                raised.get_or_insert(a);
             }
             if !self.quick && self.panel.as_mut().is_some_and(|r| r.poll().estop) {
                 self.quick_stop_all();
@@ -219,7 +226,7 @@ impl CycleLoop<'_> {
         }
         rest.quick_stop = self.quick;
         rest.spindle_rpm_at_off = meter.rpm;
-        rest
+        (rest, raised)
     }
 
     /// This cycle's set-points to every drive motion commands.
