@@ -539,20 +539,21 @@ fn identify_on(python: &Path, shape: &str, axis: &str, spindle_window_deg: f64) 
 /// 184° (3 × (0.11 ms × 36000°/s + 1594 ms² × 36000°/s²)); z delay 2.04, velocity lag
 /// 10.33 ms, own lag 0.33 ms. Until then the spindle's proposal was 0° ("no lag of its own"). Only a run whose
 /// excitation had no late TPDO is judged (a late one is a frame python sent late, not the
-/// drive's response); up to 4 runs.
+/// drive's response); up to 8 runs (in a fresh-clone CI run, 2026-12-01, Z's first four runs
+/// all saw one to three late TPDOs: this host's stalls).
 #[test]
 fn realtime_identify_on_python_drives() {
     let Some(python) = venv_python() else { return };
     let dt = TAP_CYCLE_MS * 1e-3;
     // (axis, delay in cycles, velocity lag s, own lag s, accel lag s²: None where not judged)
     for (axis, delay, lag, own, accel) in [("s1", 3.0, 3.0 * dt, 0.0, Some(0.04f64 * 0.04)), ("z", 2.0, 2.0 * dt + 0.36e-3, 0.36e-3, None)] {
-        let judged = (1..=4).find_map(|attempt| {
+        let judged = (1..=8).find_map(|attempt| {
             let (r, err, late) = identify_on(&python, "tap_s40", axis, 180.0);
             eprintln!("{axis} attempt {attempt}: late TPDOs {late}: {r}");
             assert!(!r.is_null(), "{axis}: identify printed nothing: {err}");
             (late == 0).then_some(r)
         });
-        let r = judged.unwrap_or_else(|| panic!("{axis}: a TPDO came late in every run of 4: nothing to judge"));
+        let r = judged.unwrap_or_else(|| panic!("{axis}: a TPDO came late in every run of 8: nothing to judge"));
         let got = |k: &str| r[k].as_f64().unwrap_or(f64::NAN);
         assert!((got("delay_cycles") / delay - 1.0).abs() <= 0.1, "{axis}: delay {} cycles for {delay}", got("delay_cycles"));
         assert!((got("velocity_lag_ms") * 1e-3 / lag - 1.0).abs() <= 0.1, "{axis}: velocity lag {} ms for {:.2}", got("velocity_lag_ms"), lag * 1e3);
