@@ -853,6 +853,9 @@ fn outcome(r: Result<(), crate::Alarm>, summary: &RunSummary, opts: &ExecOpts, n
                 exit::OK
             } else {
                 eprintln!("error: an axis did not reach the program's end point within one count");
+                for t in summary.axes.iter().filter_map(|a| a.settle_text()) {
+                    eprintln!("  {t}");
+                }
                 exit::NOT_MET
             }
         }
@@ -1003,14 +1006,11 @@ fn alarm_json(a: Option<&crate::Alarm>) -> serde_json::Value {
     }
 }
 
-/// An axis' positions in the operator's units: mm (X as a diameter, as the programs write it)
-/// or degrees for a spindle. (unit, diameter?, counts → that unit).
+/// An axis' positions in the operator's units (`AxisSummary::units`): (unit, diameter?,
+/// counts → that unit).
 fn axis_units(a: &crate::control::cycle::AxisSummary) -> (&'static str, bool, impl Fn(i64) -> f64) {
-    let spindle = a.name.starts_with('s');
-    let diameter = a.name == "x";
-    let cpu = if a.counts_per_unit.is_finite() && a.counts_per_unit != 0.0 { a.counts_per_unit } else { 1.0 };
-    let scale = if diameter { 2.0 } else { 1.0 };
-    (if spindle { "deg" } else { "mm" }, diameter, move |c: i64| c as f64 / cpu * scale)
+    let (unit, diameter, k) = a.units();
+    (unit, diameter, move |c: i64| c as f64 * k)
 }
 
 fn print_summary(s: &RunSummary, json: bool, alarm: Option<&crate::Alarm>) {
@@ -1031,6 +1031,10 @@ fn print_summary(s: &RunSummary, json: bool, alarm: Option<&crate::Alarm>) {
                     "final_actual_counts": a.final_actual_counts,
                     "final_target_counts": a.final_target_counts,
                     "program_end_counts": a.program_end_counts,
+                    "settle_miss": a.settle_miss.map(|m| serde_json::json!({
+                        "off_counts": m.off_counts, "step_counts": m.step_counts, "crossings": m.crossings,
+                        "peak_counts": m.peak_counts, "hunt_hz": m.hunt_hz, "resolved": m.resolved, "waited_s": m.waited_s, "hunts": m.hunts(),
+                    })),
                 })
             })
             .collect();

@@ -24,6 +24,7 @@ mod program;
 mod rest;
 mod settle;
 pub use rest::Rest;
+pub use settle::SettleMiss;
 
 /// Alarms of the controller itself (2400–2499).
 pub mod alarms {
@@ -152,6 +153,9 @@ pub struct AxisSummary {
     pub final_target_counts: i64,
     /// The program's end point for this axis, in counts, where the program moved it.
     pub program_end_counts: Option<i64>,
+    /// How it moved about its last set-point where it had not settled on it when the run
+    /// stopped waiting at the program's end.
+    pub settle_miss: Option<SettleMiss>,
 }
 
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -181,6 +185,47 @@ pub struct RunSummary {
     /// The spindle amplifier's overload load passed a quarter of its rating: the acceleration
     /// (rpm/s) the run planned with from then on (`Motion::spindle_overload_found`).
     pub spindle_overload_rpm_s: Option<f64>,
+}
+
+impl AxisSummary {
+    /// The operator's units: mm (X as a diameter, as the programs write it) or degrees for a
+    /// spindle — (unit, diameter?, units per count).
+    pub fn units(&self) -> (&'static str, bool, f64) {
+        let spindle = self.name.starts_with('s');
+        let diameter = self.name == "x";
+        let cpu = if self.counts_per_unit.is_finite() && self.counts_per_unit != 0.0 { self.counts_per_unit } else { 1.0 };
+        (if spindle { "deg" } else { "mm" }, diameter, if diameter { 2.0 } else { 1.0 } / cpu)
+    }
+
+    /// How it missed its last set-point at the program's end, in words, where it had not
+    /// settled on it (`SettleMiss`).
+    pub fn settle_text(&self) -> Option<String> {
+        let m = self.settle_miss?;
+        let (unit, diameter, k) = self.units();
+        let on = if diameter { " on the diameter" } else { "" };
+        let name = &self.name;
+        let w = m.waited_s;
+        Some(if m.hunts() {
+            format!(
+                "axis {name} hunted about its end point and had not settled after {w:.1} s: ±{:.4} {unit}{on} ({} counts), through it {} times ({}) on a set-point that stood still — the drive's own loops do not settle (as a Fanuc's SV0410, excess error at stop): lower its velocity-loop gain, lengthen its integral time or speed filter, look for lost motion (belt, coupling), then run `cncgw identify {name}`",
+                m.peak_counts as f64 * k,
+                m.peak_counts,
+                m.crossings,
+                if m.resolved { format!("≈ {:.1} Hz", m.hunt_hz) } else { "faster than the bus cycle resolves: its velocity loop".to_string() }
+            )
+        } else if m.step_counts != 0 {
+            format!(
+                "axis {name} was still moving onto its end point after {w:.1} s, {:.4} {unit}{on} ({} counts) from it",
+                m.off_counts as f64 * k,
+                m.off_counts
+            )
+        } else {
+            format!(
+                "axis {name} stood {:.4} {unit}{on} ({} counts) from its end point after {w:.1} s: the drive does not close its last counts (friction against its integral action, a dead band or a position window of its own)",
+                m.off_counts as f64 * k, m.off_counts
+            )
+        })
+    }
 }
 
 impl RunSummary {
@@ -486,7 +531,16 @@ impl<'a> CycleLoop<'a> {
         summary.rest = rest;
         let r = match (r, raised) {
             // The program ended, then a drive faulted while coming to rest: that is the run's end.
-            (Ok(()), Some(a)) => Err(Alarm { message: format!("after the program's end, while the drives came to rest: {}", a.message), ..a }),
+            (Ok(()), Some(a)) => {
+                // What the axes did while the run waited for them to settle: a drive that hunts
+                // on its own trips coming to rest, and the hunt is the cause.
+                let mut message = format!("after the program's end, while the drives came to rest: {}", a.message);
+                for t in summary.axes.iter().filter_map(AxisSummary::settle_text) {
+                    message.push_str("; before that, ");
+                    message.push_str(&t);
+                }
+                Err(Alarm { message, ..a })
+            }
             (r, _) => r,
         };
         summary.spindle_accel_rpm_s = motion.spindle_accel_found();

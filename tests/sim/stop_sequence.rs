@@ -181,9 +181,11 @@ fn a_fault_while_settling_at_the_program_end_says_the_program_had_ended() {
 }
 
 /// A Z that hunts on its own after the program's end (a belt with lost motion, a slow speed
-/// filter: ±28 µm at 1 Hz on a constant set-point) never settles; coming to rest it trips its
+/// filter: ±28 µm on a constant set-point, its velocity loop through the target on nearly every
+/// 2 ms cycle) never settles; coming to rest it trips its
 /// overcurrent (0x2310). That fault is the run's alarm, not just "quick stop was sent"
-/// (found on a random model of `random_drive_models --loops`, 2026-12-01).
+/// (found on a random model of `random_drive_models --loops`, 2026-12-01), and the alarm
+/// names the hunt before it.
 #[test]
 fn a_fault_while_coming_to_rest_after_the_program_end_is_the_run_s_alarm() {
     const HUNTING_Z: &str = "[[drive]]\nnode = 3\nkind = \"spindle\"\naxis = \"s1\"\ncounts_per_unit = 1000.0\ncounts_per_rev = 360000\n\n\
@@ -198,6 +200,11 @@ fn a_fault_while_coming_to_rest_after_the_program_end_is_the_run_s_alarm() {
     let a = o.result.as_ref().expect_err("the fault is the run's alarm");
     assert_eq!(a.number, cncgw::alarm::DRIVE_FAULT, "{a}");
     assert!(a.message.starts_with("after the program's end, while the drives came to rest") && a.message.contains("0x2310"), "{a}");
+    // And the cause is named: Z hunted about its end point while the run waited for it.
+    let z = o.summary.axes.iter().find(|a| a.name == "z").unwrap();
+    let m = z.settle_miss.expect("Z had not settled");
+    assert!(m.hunts() && m.peak_counts > 100, "{m:?}");
+    assert!(a.message.contains("before that, axis z hunted about its end point"), "{a}");
     // Z's own fault reaction takes its torque (a drive's overcurrent trip is its own); the
     // others were quick-stopped and stood still.
     assert!(o.summary.rest.quick_stop && o.summary.rest.at_rest, "{:?}", o.summary.rest);

@@ -44,7 +44,6 @@ pub(super) struct Run {
     cur_line: u32,
     input_open: bool,
     ended: bool,
-    settle_cycles: u32,
     max_settle: u32,
     /// Each drive settling onto its last set-point at the program's end.
     settle: EndSettle,
@@ -89,6 +88,7 @@ impl Run {
                 final_actual_counts: 0,
                 final_target_counts: 0,
                 program_end_counts: None,
+                settle_miss: None,
             })
             .collect();
         let hist = (0..n).map(|d| [lp.drives.feedback(d).counts; 2]).collect();
@@ -106,7 +106,6 @@ impl Run {
             cur_line: 0,
             input_open: true,
             ended: false,
-            settle_cycles: 0,
             max_settle: (2.0 / dt) as u32,
             settle: EndSettle::new(n),
             late_prev: false,
@@ -607,8 +606,8 @@ impl CycleLoop<'_> {
         for d in 0..run.map.len() {
             settled &= run.settle.update(d, &self.drives.feedback(d), self.drives.target_counts(d));
         }
-        run.settle_cycles += 1;
-        Ok(settled || run.settle_cycles > run.max_settle)
+        run.settle.tick();
+        Ok(settled || run.settle.cycles() > run.max_settle)
     }
 
     /// This cycle into the snapshot (`control::snapshot`): copies of what the cycle has
@@ -652,6 +651,7 @@ impl CycleLoop<'_> {
             let a = &mut summary.axes[d];
             a.final_actual_counts = f.counts;
             a.final_target_counts = self.drives.target_counts(d);
+            a.settle_miss = run.settle.miss(d, run.dt);
             a.program_end_counts = match (ax, run.end_pos) {
                 (Some(AX_X), Some(e)) => Some((e.x * a.counts_per_unit).round() as i64),
                 (Some(AX_Z), Some(e)) => Some((e.z * a.counts_per_unit).round() as i64),
