@@ -73,7 +73,10 @@ impl Clock for Loaded<'_> {
         if let Some(l) = self.load {
             let z = self.world.drive(self.z_node).map(|d| d.position_unwrapped() as f64 / self.z_counts_per_mm);
             let cutting = z.is_some_and(|z| z < l.surface_z);
-            let against = |v: i32, nm: f64| if cutting && v != 0 { -nm * (v as f64).signum() } else { 0.0 };
+            // sim-drives' load torque opposes positive motion (its drive torque less the
+            // load): a load against the motion has the sign of the speed. (Until 2026-12-01
+            // this was the other way round: the "cutting load" pushed the tool on.)
+            let against = |v: i32, nm: f64| if cutting && v != 0 { nm * (v as f64).signum() } else { 0.0 };
             if let Some(d) = self.world.drive_mut(self.spindle_node) {
                 let v = d.velocity_actual();
                 d.set_load_torque(against(v, l.spindle_nm));
