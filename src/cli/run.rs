@@ -840,6 +840,10 @@ fn outcome(r: Result<(), crate::Alarm>, summary: &RunSummary, opts: &ExecOpts, n
             if let Some(h) = following_error_hint(&a, summary) {
                 eprintln!("{h}");
             }
+            // Hunts before the alarm (one still going on at it is in its message).
+            for t in summary.axes.iter().filter(|x| x.hunt.is_some_and(|h| !h.at_alarm)).filter_map(|x| x.hunt_text()) {
+                eprintln!("warning: {t}");
+            }
             exit::ALARM
         }
         Ok(()) => {
@@ -848,6 +852,9 @@ fn outcome(r: Result<(), crate::Alarm>, summary: &RunSummary, opts: &ExecOpts, n
             }
             if !summary.rest.at_rest || summary.rest.quick_stop {
                 eprintln!("warning: {}", summary.rest.describe());
+            }
+            for t in summary.axes.iter().filter_map(|a| a.hunt_text()) {
+                eprintln!("warning: {t}");
             }
             if summary.at_program_end() {
                 exit::OK
@@ -872,6 +879,10 @@ fn following_error_hint(a: &crate::Alarm, summary: &RunSummary) -> Option<String
     }
     let name = a.message.split("(axis ").nth(1)?.split(')').next()?;
     let ax = summary.axes.iter().find(|x| x.name == name)?;
+    // A hunt that tripped it is named in the alarm (`AxisSummary::hunt_text`): not lag.
+    if ax.hunt.is_some_and(|h| h.at_alarm) {
+        return None;
+    }
     let (unit, ..) = axis_units(ax);
     Some(format!(
         "hint: axis {name} was up to {:.3} {unit} behind its set-points in this run (as the controller reads it, the feedback's delay included); if that is its lag at speed rather than a jam, its window (0x6065, axes.{name}.following_error) is too small for its drive — `cncgw identify {name}` measures the lag and proposes a window, `cncgw config check` warns below it",
@@ -1034,6 +1045,10 @@ fn print_summary(s: &RunSummary, json: bool, alarm: Option<&crate::Alarm>) {
                     "settle_miss": a.settle_miss.map(|m| serde_json::json!({
                         "off_counts": m.off_counts, "step_counts": m.step_counts, "crossings": m.crossings,
                         "peak_counts": m.peak_counts, "hunt_hz": m.hunt_hz, "resolved": m.resolved, "waited_s": m.waited_s, "hunts": m.hunts(),
+                    })),
+                    "hunt": a.hunt.map(|h| serde_json::json!({
+                        "line": h.line, "at_alarm": h.at_alarm, "crossings": h.miss.crossings, "peak_counts": h.miss.peak_counts,
+                        "hunt_hz": h.miss.hunt_hz, "resolved": h.miss.resolved, "stood_s": h.miss.waited_s,
                     })),
                 })
             })

@@ -24,7 +24,7 @@ mod program;
 mod rest;
 mod settle;
 pub use rest::Rest;
-pub use settle::SettleMiss;
+pub use settle::{Hunt, SettleMiss};
 
 /// Alarms of the controller itself (2400–2499).
 pub mod alarms {
@@ -156,6 +156,9 @@ pub struct AxisSummary {
     /// How it moved about its last set-point where it had not settled on it when the run
     /// stopped waiting at the program's end.
     pub settle_miss: Option<SettleMiss>,
+    /// A hunt about a set-point that stood still mid-program (the largest, or the one still
+    /// going on when an alarm stopped the run).
+    pub hunt: Option<Hunt>,
 }
 
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -187,6 +190,9 @@ pub struct RunSummary {
     pub spindle_overload_rpm_s: Option<f64>,
 }
 
+/// What to do about a drive that hunts on a set-point that stands still.
+const HUNT_ADVICE: &str = "the drive's own loops do not settle (as a Fanuc's SV0410, excess error at stop): lower its velocity-loop gain, lengthen its integral time or speed filter, look for lost motion (belt, coupling), then run";
+
 impl AxisSummary {
     /// The operator's units: mm (X as a diameter, as the programs write it) or degrees for a
     /// spindle — (unit, diameter?, units per count).
@@ -207,11 +213,8 @@ impl AxisSummary {
         let w = m.waited_s;
         Some(if m.hunts() {
             format!(
-                "axis {name} hunted about its end point and had not settled after {w:.1} s: ±{:.4} {unit}{on} ({} counts), through it {} times ({}) on a set-point that stood still — the drive's own loops do not settle (as a Fanuc's SV0410, excess error at stop): lower its velocity-loop gain, lengthen its integral time or speed filter, look for lost motion (belt, coupling), then run `cncgw identify {name}`",
-                m.peak_counts as f64 * k,
-                m.peak_counts,
-                m.crossings,
-                if m.resolved { format!("≈ {:.1} Hz", m.hunt_hz) } else { "faster than the bus cycle resolves: its velocity loop".to_string() }
+                "axis {name} hunted about its end point and had not settled after {w:.1} s: {} — {HUNT_ADVICE} `cncgw identify {name}`",
+                self.swing_words(&m)
             )
         } else if m.step_counts != 0 {
             format!(
@@ -225,6 +228,32 @@ impl AxisSummary {
                 m.off_counts as f64 * k, m.off_counts
             )
         })
+    }
+
+    /// How it swung about a set-point: "±… (… counts), through it n times (≈ f Hz)".
+    fn swing_words(&self, m: &SettleMiss) -> String {
+        let (unit, diameter, k) = self.units();
+        let on = if diameter { " on the diameter" } else { "" };
+        format!(
+            "±{:.4} {unit}{on} ({} counts), through it {} times ({}) on a set-point that stood still",
+            m.peak_counts as f64 * k,
+            m.peak_counts,
+            m.crossings,
+            if m.resolved { format!("≈ {:.1} Hz", m.hunt_hz) } else { "faster than the bus cycle resolves: its velocity loop".to_string() }
+        )
+    }
+
+    /// Its hunt mid-program, in words (`Hunt`).
+    pub fn hunt_text(&self) -> Option<String> {
+        let h = self.hunt?;
+        let name = &self.name;
+        let when = if h.at_alarm { "was hunting when the run stopped" } else { "hunted" };
+        Some(format!(
+            "axis {name} {when} at line {} ({:.2} s on its set-point): {} — {HUNT_ADVICE} `cncgw identify {name}`",
+            h.line,
+            h.miss.waited_s,
+            self.swing_words(&h.miss)
+        ))
     }
 }
 
@@ -540,6 +569,15 @@ impl<'a> CycleLoop<'a> {
                     message.push_str(&t);
                 }
                 Err(Alarm { message, ..a })
+            }
+            // Stopped mid-program: a drive that was hunting on a set-point that stood is named
+            // (a 0x8611 that a hunt tripped reads as lag otherwise).
+            (Err(mut a), _) => {
+                for h in summary.axes.iter().filter(|x| x.hunt.is_some_and(|h| h.at_alarm)).filter_map(AxisSummary::hunt_text) {
+                    a.message.push_str("; ");
+                    a.message.push_str(&h);
+                }
+                Err(a)
             }
             (r, _) => r,
         };

@@ -180,6 +180,15 @@ fn a_fault_while_settling_at_the_program_end_says_the_program_had_ended() {
     o.assert_rest_before_torque_off();
 }
 
+/// A Z that hunts on its own on a set-point that stands still (a belt with lost motion, a slow
+/// speed filter: ±28 µm on a constant set-point, its velocity loop through the target on nearly
+/// every 2 ms cycle; a random model of `random_drive_models --loops`, 2026-12-01).
+const HUNTING_Z: &str = "[[drive]]\nnode = 3\nkind = \"spindle\"\naxis = \"s1\"\ncounts_per_unit = 1000.0\ncounts_per_rev = 360000\n\n\
+        [[drive]]\nnode = 1\nkind = \"linear\"\naxis = \"x\"\ncounts_per_unit = 10000.0\ncounts_per_rev = 100000\n\n\
+        [[drive]]\nnode = 2\nkind = \"linear\"\naxis = \"z\"\ncounts_per_unit = 10000.0\ncounts_per_rev = 100000\n[drive.physics]\n\
+        kv = 29.6\nvelocity_ff = 0.983\nload_stiffness = 17.9\nload_damping = 0.0153\nbacklash_deg = 0.1\n\
+        vel_kp = 0.5942\nvel_ti_ms = 7.56\nspeed_filter_ms = 0.837\ncurrent_loop_tc_ms = 0.4124\n";
+
 /// A Z that hunts on its own after the program's end (a belt with lost motion, a slow speed
 /// filter: ±28 µm on a constant set-point, its velocity loop through the target on nearly every
 /// 2 ms cycle) never settles; coming to rest it trips its
@@ -188,11 +197,6 @@ fn a_fault_while_settling_at_the_program_end_says_the_program_had_ended() {
 /// names the hunt before it.
 #[test]
 fn a_fault_while_coming_to_rest_after_the_program_end_is_the_run_s_alarm() {
-    const HUNTING_Z: &str = "[[drive]]\nnode = 3\nkind = \"spindle\"\naxis = \"s1\"\ncounts_per_unit = 1000.0\ncounts_per_rev = 360000\n\n\
-        [[drive]]\nnode = 1\nkind = \"linear\"\naxis = \"x\"\ncounts_per_unit = 10000.0\ncounts_per_rev = 100000\n\n\
-        [[drive]]\nnode = 2\nkind = \"linear\"\naxis = \"z\"\ncounts_per_unit = 10000.0\ncounts_per_rev = 100000\n[drive.physics]\n\
-        kv = 29.6\nvelocity_ff = 0.983\nload_stiffness = 17.9\nload_damping = 0.0153\nbacklash_deg = 0.1\n\
-        vel_kp = 0.5942\nvel_ti_ms = 7.56\nspeed_filter_ms = 0.837\ncurrent_loop_tc_ms = 0.4124\n";
     let mut s = setup();
     s.sim = Some(HUNTING_Z);
     let o = run("G21\nG98\nG1 W-5 F300\nG4 P200\nG1 W5 F300\nG4 P200\nM30\n", s);
@@ -208,6 +212,42 @@ fn a_fault_while_coming_to_rest_after_the_program_end_is_the_run_s_alarm() {
     // Z's own fault reaction takes its torque (a drive's overcurrent trip is its own); the
     // others were quick-stopped and stood still.
     assert!(o.summary.rest.quick_stop && o.summary.rest.at_rest, "{:?}", o.summary.rest);
+}
+
+/// The same Z hunting through a dwell mid-program is named with the dwell's line, and where
+/// it faults while at it (here 0x8611, injected mid-dwell), the alarm says it was hunting —
+/// a following-error fault reads as lag at speed otherwise.
+#[test]
+fn a_drive_that_hunts_on_a_dwell_is_named_with_its_line() {
+    const DWELL: &str = "G21\nG98\nG1 W-5 F300\nG4 P1500\nG1 W5 F300\nM30\n";
+    let mut s = setup();
+    s.sim = Some(HUNTING_Z);
+    let o = run(DWELL, s);
+    let z = o.summary.axes.iter().find(|a| a.name == "z").unwrap();
+    let h = z.hunt.expect("Z hunted through the dwell");
+    assert!(h.line == 4 && !h.at_alarm && h.miss.peak_counts > 100 && h.miss.crossings > 100, "{h:?}");
+    assert!((h.miss.waited_s - 1.5).abs() < 0.05, "{h:?}");
+    let t = z.hunt_text().unwrap();
+    assert!(t.starts_with("axis z hunted at line 4 (1.50 s on its set-point): ±0.0") && t.contains("`cncgw identify z`"), "{t}");
+    // X stood still too, and settled.
+    assert_eq!(o.summary.axes.iter().find(|a| a.name == "x").unwrap().hunt, None);
+
+    // The dwell runs from about 1.2 s (the drives' start-up included): Z faults at 2 s.
+    let mut s = setup();
+    s.sim = Some(HUNTING_Z);
+    s.actions.push((
+        2000,
+        Box::new(|w: &mut SimWorld| {
+            w.inject_fault(2, 0x8611);
+        }),
+    ));
+    let o = run(DWELL, s);
+    let a = o.result.as_ref().expect_err("the fault is the run's alarm");
+    assert_eq!(a.number, cncgw::alarm::DRIVE_FAULT, "{a}");
+    assert!(a.message.contains("0x8611") && a.message.contains("; axis z was hunting when the run stopped at line 4 ("), "{a}");
+    let h = o.summary.axes.iter().find(|a| a.name == "z").unwrap().hunt.unwrap();
+    assert!(h.at_alarm && h.line == 4, "{h:?}");
+    check_rest(&o.summary.rest);
 }
 
 #[test]

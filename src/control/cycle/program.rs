@@ -12,7 +12,7 @@
 //! Every allocation is made in [`Run::new`], before the first cycle. A phase that ends the
 //! run returns the alarm, with the controlled stop it needs already started.
 
-use super::settle::EndSettle;
+use super::settle::{EndSettle, HuntWatch};
 use super::{alarms, periods_passed, stall_in_sync, AxisSummary, CycleLoop, Progress, RunSummary, SpindleMeter, MAX_CATCH_UP};
 use crate::canon::{Move, Pos};
 use crate::control::guard::Guard;
@@ -38,6 +38,8 @@ pub(super) struct Run {
     /// Demand history: the drive's demand at SYNC k is the target sent at k−1, and its
     /// actual at SYNC k reaches us at k+1, so compare with the target of two cycles ago.
     hist: Vec<[i64; 2]>,
+    /// The line of each of those two set-points.
+    line_hist: [u32; 2],
     /// The last line of defence against a feedback scaled differently from the set-points.
     scale: Vec<ScaleWatch>,
     /// The line of the block in execution (the last set-point's).
@@ -47,6 +49,8 @@ pub(super) struct Run {
     max_settle: u32,
     /// Each drive settling onto its last set-point at the program's end.
     settle: EndSettle,
+    /// Each feed axis on a set-point that stands still mid-program, watched for a hunt.
+    hunt: HuntWatch,
     late_prev: bool,
     spindle_rpm: f64,
     meter: SpindleMeter,
@@ -89,6 +93,7 @@ impl Run {
                 final_target_counts: 0,
                 program_end_counts: None,
                 settle_miss: None,
+                hunt: None,
             })
             .collect();
         let hist = (0..n).map(|d| [lp.drives.feedback(d).counts; 2]).collect();
@@ -102,12 +107,14 @@ impl Run {
             overruns_in_a_row: 0,
             end_pos: None,
             hist,
+            line_hist: [0; 2],
             scale,
             cur_line: 0,
             input_open: true,
             ended: false,
             max_settle: (2.0 / dt) as u32,
             settle: EndSettle::new(n),
+            hunt: HuntWatch::new(n, dt),
             late_prev: false,
             spindle_rpm: 0.0,
             meter: SpindleMeter::new(lp.spindle_drive.map(|d| lp.drives.feedback(d).pos).unwrap_or(0.0), 0.0),
@@ -142,19 +149,40 @@ impl CycleLoop<'_> {
         if let Some(t) = self.tool {
             motion.set_tool_spindle(&t, self.drives.feedback(t.drive).pos);
         }
-        loop {
-            self.feed(motion, &rx, &mut run, summary)?;
-            let tick = self.keep_time(motion, &mut run, summary)?;
-            let mut row = TraceRow { t_s: (tick.now - run.t_start) as f64 * 1e-9, ..TraceRow::default() };
-            let fb = self.read_drives(motion, &mut run, summary, &tick, isolate, &mut row)?;
-            self.operator(motion, &run)?;
-            let sp = self.command(motion, &mut run, summary, &fb, &tick)?;
-            if self.after_send(motion, &mut run, summary, &sp, &fb, &mut row, tick.now, progress)? {
-                break;
-            }
+        let r = self.cycles(motion, &rx, &mut run, summary, isolate, progress);
+        // A drive still swinging on a set-point that stood is the likely cause of the alarm.
+        if r.is_err() {
+            run.hunt.at_alarm();
         }
+        for (d, a) in summary.axes.iter_mut().enumerate() {
+            a.hunt = run.hunt.hunt(d);
+        }
+        r?;
         self.program_end_counts(&run, &start, summary);
         Ok(())
+    }
+
+    /// The cycles of the run, to the program's end or an alarm.
+    fn cycles(
+        &mut self,
+        motion: &mut Motion,
+        rx: &Receiver<Result<Move, Alarm>>,
+        run: &mut Run,
+        summary: &mut RunSummary,
+        isolate: bool,
+        progress: &mut dyn FnMut(&Progress),
+    ) -> Result<(), Alarm> {
+        loop {
+            self.feed(motion, rx, run, summary)?;
+            let tick = self.keep_time(motion, run, summary)?;
+            let mut row = TraceRow { t_s: (tick.now - run.t_start) as f64 * 1e-9, ..TraceRow::default() };
+            let fb = self.read_drives(motion, run, summary, &tick, isolate, &mut row)?;
+            self.operator(motion, run)?;
+            let sp = self.command(motion, run, summary, &fb, &tick)?;
+            if self.after_send(motion, run, summary, &sp, &fb, &mut row, tick.now, progress)? {
+                return Ok(());
+            }
+        }
     }
 
     /// Feed the look-ahead queue. Under simulated time, block for the interpreter so that
@@ -258,6 +286,7 @@ impl CycleLoop<'_> {
             }
             if let Some(a) = ax {
                 fb.pos[*a] = f.pos;
+                run.hunt.update(d, &f, run.hist[d][0], run.line_hist[0]);
             }
             if d < MAX_TRACE_AXES {
                 row.act[d] = f.pos;
@@ -440,6 +469,7 @@ impl CycleLoop<'_> {
             run.hist[d][0] = run.hist[d][1];
             run.hist[d][1] = self.drives.target_counts(d);
         }
+        run.line_hist = [run.line_hist[1], sp.line];
         if let Ok(Some(io)) = self.io.as_ref() {
             io.write(&mut *self.drives);
         }

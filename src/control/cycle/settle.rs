@@ -92,22 +92,8 @@ impl EndSettle {
     /// Drive `d`'s reading this cycle against its target; true once it has settled. A
     /// reading seen before (no new sample) changes nothing.
     pub(super) fn update(&mut self, d: usize, f: &AxisFeedback, target: i64) -> bool {
-        let cycle = self.cycles;
         let t = &mut self.tracks[d];
-        let new = match f.sampled_ns {
-            Some(s) => t.sample.replace(s) != Some(s),
-            None => f.age_cycles == 0,
-        };
-        if new {
-            let off = f.counts - target;
-            let on = off.abs() <= SETTLED_COUNTS;
-            let prev = std::mem::replace(&mut t.on, on.then_some(f.counts));
-            t.settled = on && prev.is_some_and(|p| (f.counts - p).abs() <= SETTLED_COUNTS);
-            t.step = t.last.map_or(0, |l| f.counts - l);
-            t.last = Some(f.counts);
-            t.off = off;
-            t.swing(off, cycle);
-        }
+        t.read(f, target, self.cycles);
         t.settled
     }
 
@@ -126,21 +112,133 @@ impl EndSettle {
         if t.settled || t.last.is_none() {
             return None;
         }
-        let span = t.at.saturating_sub(t.first) as f64 * dt;
-        let hunt_hz = if t.crossings >= 2 && span > 0.0 { (t.crossings - 1) as f64 / (2.0 * span) } else { 0.0 };
-        Some(SettleMiss {
-            off_counts: t.off,
-            step_counts: t.step,
-            crossings: t.crossings,
-            peak_counts: t.peak,
-            hunt_hz,
-            resolved: hunt_hz * 2.0 * RESOLVED_READINGS * dt <= 1.0,
-            waited_s: self.cycles as f64 * dt,
-        })
+        Some(t.miss(self.cycles, dt))
+    }
+}
+
+/// A set-point that stood this long (s) is one a drive had to settle on: mid-program, a drive
+/// still swinging through it by then hunts, and one whose overshoot rang out within it does
+/// not. The manuals are silent; a Fanuc 0i-TF arms its stop check (SV0410) once the command
+/// has stood and the drive has had its in-position time — this is that time, generous.
+const HUNT_MIN_S: f64 = 0.3;
+
+/// A hunt mid-program: how a drive swung about a set-point that stood still, at which line,
+/// and whether it was still at it when an alarm stopped the run (then it is the likely cause).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Hunt {
+    pub miss: SettleMiss,
+    pub line: u32,
+    pub at_alarm: bool,
+}
+
+/// One drive on its current set-point.
+#[derive(Clone, Copy, Default)]
+struct Stand {
+    target: Option<i64>,
+    line: u32,
+    cycles: u32,
+    track: Track,
+}
+
+/// Mid-program: each feed axis on a set-point that stands still (a dwell, an exact stop, the
+/// wait for the spindle), watched for a hunt; each drive's largest is kept.
+pub(super) struct HuntWatch {
+    stands: Vec<Stand>,
+    worst: Vec<Option<Hunt>>,
+    dt: f64,
+}
+
+impl HuntWatch {
+    /// Allocated once, before the run's first cycle.
+    pub(super) fn new(n: usize, dt: f64) -> HuntWatch {
+        HuntWatch { stands: vec![Stand::default(); n], worst: vec![None; n], dt }
+    }
+
+    /// Drive `d`'s reading this cycle against the set-point it answers, in block `line`.
+    pub(super) fn update(&mut self, d: usize, f: &AxisFeedback, target: i64, line: u32) {
+        if self.stands[d].target != Some(target) {
+            self.close(d, (HUNT_MIN_S / self.dt) as u32, false);
+            self.stands[d] = Stand { target: Some(target), ..Stand::default() };
+        }
+        let s = &mut self.stands[d];
+        s.cycles += 1;
+        s.line = line;
+        s.track.read(f, target, s.cycles);
+    }
+
+    /// The run stopped at an alarm: every drive still swinging counts, however short its
+    /// stand — a hunt that tripped its drive (0x8611) is the alarm's cause.
+    pub(super) fn at_alarm(&mut self) {
+        for d in 0..self.stands.len() {
+            self.close(d, 0, true);
+        }
+    }
+
+    /// Drive `d`'s hunt: the one at the alarm, else the largest.
+    pub(super) fn hunt(&self, d: usize) -> Option<Hunt> {
+        self.worst.get(d).copied().flatten()
+    }
+
+    /// Drive `d`'s stand ends (it lasted at least `min` cycles): kept if it was a hunt.
+    fn close(&mut self, d: usize, min: u32, at_alarm: bool) {
+        let s = &self.stands[d];
+        if s.target.is_none() || s.cycles < min || !s.track.swinging(s.cycles) {
+            return;
+        }
+        let h = Hunt { miss: s.track.miss(s.cycles, self.dt), line: s.line, at_alarm };
+        let w = &mut self.worst[d];
+        if at_alarm || w.is_none_or(|w| !w.at_alarm && w.miss.peak_counts < h.miss.peak_counts) {
+            *w = Some(h);
+        }
     }
 }
 
 impl Track {
+    /// The reading `f` against `target` in settle cycle `cycle`. A reading seen before (no
+    /// new sample) changes nothing.
+    fn read(&mut self, f: &AxisFeedback, target: i64, cycle: u32) {
+        let new = match f.sampled_ns {
+            Some(s) => self.sample.replace(s) != Some(s),
+            None => f.age_cycles == 0,
+        };
+        if !new {
+            return;
+        }
+        let off = f.counts - target;
+        let on = off.abs() <= SETTLED_COUNTS;
+        let prev = std::mem::replace(&mut self.on, on.then_some(f.counts));
+        self.settled = on && prev.is_some_and(|p| (f.counts - p).abs() <= SETTLED_COUNTS);
+        self.step = self.last.map_or(0, |l| f.counts - l);
+        self.last = Some(f.counts);
+        self.off = off;
+        self.swing(off, cycle);
+    }
+
+    /// The description after `cycles` cycles of `dt` s.
+    fn miss(&self, cycles: u32, dt: f64) -> SettleMiss {
+        let span = self.at.saturating_sub(self.first) as f64 * dt;
+        let hunt_hz = if self.crossings >= 2 && span > 0.0 { (self.crossings - 1) as f64 / (2.0 * span) } else { 0.0 };
+        SettleMiss {
+            off_counts: self.off,
+            step_counts: self.step,
+            crossings: self.crossings,
+            peak_counts: self.peak,
+            hunt_hz,
+            resolved: hunt_hz * 2.0 * RESOLVED_READINGS * dt <= 1.0,
+            waited_s: cycles as f64 * dt,
+        }
+    }
+
+    /// Still swinging after `cycles`: its last crossing no longer ago than two of its
+    /// half-periods (one where the cycle does not resolve them).
+    fn swinging(&self, cycles: u32) -> bool {
+        if self.crossings < HUNT_CROSSINGS {
+            return false;
+        }
+        let half = (self.at - self.first) / (self.crossings - 1);
+        cycles.saturating_sub(self.at) <= 2 * half.max(1)
+    }
+
     /// The reading `off` counts from the target in settle cycle `cycle`: crossings and swing.
     fn swing(&mut self, off: i64, cycle: u32) {
         let side = if off > SETTLED_COUNTS {
@@ -233,5 +331,43 @@ mod tests {
         assert_eq!((standing.off_counts, standing.step_counts), (-5, 0));
         // Noise of a count about the target is no crossing.
         assert_eq!(settle(&[1, -1, 1, -1, 2, -2]).unwrap().crossings, 1);
+    }
+
+    /// Readings `offs` from a set-point of 0 that stands, one a cycle of 2 ms, after a move
+    /// (targets 100, 50); then `after` (None: an alarm stops the run there).
+    fn stand(offs: &[i64], after: Option<i64>) -> Option<Hunt> {
+        let mut w = HuntWatch::new(1, 0.002);
+        w.update(0, &at(120, None, 0), 100, 4);
+        w.update(0, &at(70, None, 0), 50, 4);
+        for o in offs {
+            w.update(0, &at(*o, None, 0), 0, 5);
+        }
+        match after {
+            Some(t) => w.update(0, &at(t, None, 0), t, 6),
+            None => w.at_alarm(),
+        }
+        w.hunt(0)
+    }
+
+    #[test]
+    fn a_swing_that_goes_on_through_a_dwell_is_a_hunt_at_its_line() {
+        // ±28 counts at 25 Hz through a 0.4 s dwell (line 5), then the next move.
+        let offs: Vec<i64> = (0..200).map(|k| (28.0 * (k as f64 * std::f64::consts::TAU / 20.0).sin()).round() as i64).collect();
+        let h = stand(&offs, Some(40)).expect("a hunt");
+        assert_eq!((h.line, h.at_alarm, h.miss.peak_counts), (5, false, 28), "{h:?}");
+        assert!((h.miss.hunt_hz - 25.0).abs() < 1.0 && h.miss.resolved, "{h:?}");
+        assert!((h.miss.waited_s - 0.4).abs() < 0.01, "{h:?}");
+        // Too short a stand to tell, unless an alarm stops it there.
+        assert_eq!(stand(&offs[..100], Some(40)), None);
+        assert!(stand(&offs[..100], None).is_some_and(|h| h.at_alarm));
+    }
+
+    #[test]
+    fn an_overshoot_that_rings_out_within_the_stand_is_no_hunt() {
+        // Three crossings in the first 30 ms, then on target for the rest of 0.4 s.
+        let mut offs = vec![-40, -10, 12, 9, -6, -3, 4, 2, 1];
+        offs.resize(200, 0);
+        assert_eq!(stand(&offs, Some(40)), None);
+        assert_eq!(stand(&offs, None), None, "nor at an alarm");
     }
 }
