@@ -65,7 +65,21 @@ exe=$(cargo test --test vcan_tier --no-run --message-format=json 2>/dev/null \
       | grep '"name":"vcan_tier"' | grep '"test":true' \
       | sed -n 's/.*"executable":"\([^"]*\)".*/\1/p' | tail -n 1)
 [ -x "$exe" ] || { echo "vcan tier: could not build tests/vcan_tier.rs" >&2; exit 1; }
-./scripts/run-vcan-tier.sh "$exe" --ignored --nocapture --test-threads=1
+# One retry of the tests that failed, as nextest gives the host's real-time tests
+# (.config/nextest.toml): the guest runs master and drives in real time on a VM whose host
+# deschedules it now and then — one fresh-clone run (2026-12-02) lost 4 of 7 to one such
+# episode (heartbeat timeouts, 0x8611, a node leaving operational), the next three runs 1 of 7,
+# 0, 0. A test that fails twice fails the run; one that passes on its retry is named FLAKY.
+vcan_log=$(mktemp)
+if ! ./scripts/run-vcan-tier.sh "$exe" --ignored --nocapture --test-threads=1 2>&1 | tee "$vcan_log"; then
+    failed=$(sed -n '/^test result/q; s/^    \([a-z0-9_]*\)$/\1/p' "$vcan_log" | sort -u)
+    [ -n "$failed" ] || { echo "vcan tier: failed, and no failed test is named: not retried" >&2; exit 1; }
+    printf '\nvcan tier: retrying once: %s\n' "$(echo $failed)"
+    # shellcheck disable=SC2086 # one argument per test name
+    ./scripts/run-vcan-tier.sh "$exe" --ignored --nocapture --test-threads=1 --exact $failed
+    printf '\nvcan tier: FLAKY (failed, then passed on its retry): %s\n' "$(echo $failed)"
+fi
+rm -f "$vcan_log"
 
 step "reliability report"
 report
