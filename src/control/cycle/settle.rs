@@ -146,18 +146,20 @@ pub(super) struct HuntWatch {
     stands: Vec<Stand>,
     worst: Vec<Option<Hunt>>,
     dt: f64,
+    /// `HUNT_MIN_S` in cycles.
+    min_cycles: u32,
 }
 
 impl HuntWatch {
     /// Allocated once, before the run's first cycle.
     pub(super) fn new(n: usize, dt: f64) -> HuntWatch {
-        HuntWatch { stands: vec![Stand::default(); n], worst: vec![None; n], dt }
+        HuntWatch { stands: vec![Stand::default(); n], worst: vec![None; n], dt, min_cycles: (HUNT_MIN_S / dt) as u32 }
     }
 
     /// Drive `d`'s reading this cycle against the set-point it answers, in block `line`.
     pub(super) fn update(&mut self, d: usize, f: &AxisFeedback, target: i64, line: u32) {
         if self.stands[d].target != Some(target) {
-            self.close(d, (HUNT_MIN_S / self.dt) as u32, false);
+            self.close(d, self.min_cycles, false);
             self.stands[d] = Stand { target: Some(target), ..Stand::default() };
         }
         let s = &mut self.stands[d];
