@@ -75,38 +75,49 @@ pub fn machine_for(base: &str, profiles: [&str; 3]) -> String {
 
 /// `base` with the timing tolerances of a kernel that is not real-time (the vcan tier in a
 /// User-Mode Linux guest, socketcand on a shared machine): timers there were measured 1–18 ms
-/// late at p99 under load (notes/vcan-vm.md), so a 2 ms cycle with a 30° spindle window and a
-/// 20 ms feedback timeout faults on the scheduler, not on the bus. These tiers prove the path
-/// between two processes; the timing figures come from the cycle-timing benchmarks. Only three
-/// values change — the cycle (4 ms), the feedback timeout (100 ms), the spindle's
-/// following-error window (360°: an 18 ms stall at first_part's S1500 is 162°; at 90° the
-/// spindle faulted 0x8611 in plain turning in two CI runs of six, 2026-11-29 and -30, the
-/// guest's scheduler, not the law) — and with `external_sync` the [bus] table gets
-/// `sync = "external"`.
+/// late at p99 under load (notes/vcan-vm.md), and the VM's host deschedules the whole machine
+/// for 5–90 ms now and then (more in bursts: a fresh-clone CI run on 2026-12-02 lost the
+/// external-SYNC first_part on two tries). A stalled guest stops both processes, and whichever
+/// wakes first finds every deadline shorter than the stall gone: a 150 ms stall of both cores
+/// (SCHED_FIFO hogs) made 2402 (50 periods late), 0x8611 on the spindle (403° ahead) and
+/// 0x8130 on all three drives. These tiers prove the path between two processes; the timing
+/// figures come from the cycle-timing benchmarks. So the supervision here outlasts a 200 ms
+/// stall: the cycle 4 ms with the watchdog at its most lenient (50 periods; 100 late cycles in
+/// a row: under 100 ms stalls every 3 s, 5 in a row tripped it once), the feedback
+/// timeout 250 ms, the master's heartbeat 250 ms (drives stop 750 ms after it goes silent),
+/// X/Z windows of 25 mm and the spindle's of 3600° (200 ms at first_part's S1500 is 1800°).
+/// With `external_sync` the [bus] table gets `sync = "external"` and a SYNC loss after 50
+/// cycles (a 100 ms host stall was 157 ms without SYNC in the guest: alarm 2022).
 pub fn relaxed(base: &str, external_sync: bool) -> String {
     let mut out = String::new();
     let mut changed = 0;
     for line in base.lines() {
         let l = if line.starts_with("cycle_ms = ") {
             changed += 1;
-            "cycle_ms = 4.0".to_string()
+            "cycle_ms = 4.0\nwatchdog_missed_cycles = 50\nwatchdog_overruns = 100".to_string()
+        } else if line.starts_with("heartbeat_ms = ") {
+            changed += 1;
+            "heartbeat_ms = 250".to_string()
         } else if line.starts_with("feedback_timeout_ms = ") {
             changed += 1;
             if external_sync {
-                "feedback_timeout_ms = 100\nsync = \"external\"".to_string()
+                "feedback_timeout_ms = 250\nsync = \"external\"\nsync_loss_cycles = 50".to_string()
             } else {
-                "feedback_timeout_ms = 100".to_string()
+                "feedback_timeout_ms = 250".to_string()
             }
         } else if line.starts_with("following_error = ") && line.contains("degrees") {
             changed += 1;
-            "following_error = 360.0".to_string()
+            "following_error = 3600.0".to_string()
+        } else if line.starts_with("following_error = ") {
+            changed += 1;
+            "following_error = 25.0".to_string()
         } else {
             line.to_string()
         };
         out.push_str(&l);
         out.push('\n');
     }
-    assert_eq!(changed, 3, "config/lathe.toml changed shape; update profiles_common::relaxed()");
+    assert_eq!(changed, 6, "config/lathe.toml changed shape; update profiles_common::relaxed()");
     out
 }
 
