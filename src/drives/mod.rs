@@ -113,6 +113,12 @@ pub trait DriveBus {
     fn set_spindle_control(&mut self, _axis: usize, _control: SpindleControl) -> bool {
         false
     }
+    /// Whether `axis` follows its position set-point (false: a spindle the bus drives in
+    /// speed, whose position target means nothing — at the program's end it settles by
+    /// coming to rest, not onto a count).
+    fn holds_position(&self, _axis: usize) -> bool {
+        true
+    }
 
     /// The torque actual value 0x6077 (per mille of the rated torque) `axis` last reported,
     /// where the bus reads it (CANopen: a spindle's, by SDO while running); `None` otherwise.

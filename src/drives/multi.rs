@@ -150,4 +150,9 @@ impl DriveBus for MultiBus<'_> {
         let (p, i) = self.map[axis];
         self.parts[p].set_spindle_control(i, control)
     }
+
+    fn holds_position(&self, axis: usize) -> bool {
+        let (p, i) = self.map[axis];
+        self.parts[p].holds_position(i)
+    }
 }

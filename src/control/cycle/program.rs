@@ -631,9 +631,12 @@ impl CycleLoop<'_> {
         }
         // Let the drives settle onto the last setpoint (within one count), bounded — and come
         // to rest there (`settle`). A spindle passing through its C angle at 1 °/s is within
-        // a count for one sample; torque went off there and it coasted 0.04° off it.
+        // a count for one sample; torque went off there and it coasted 0.04° off it. A spindle
+        // driven in speed has no position to settle on, and its ramp down is the stop's
+        // (`to_rest`): every Modbus run waited out the 2 s bound on it, 1.5° from an angle it
+        // was never steered to, and reported it as not settled.
         let mut settled = true;
-        for d in 0..run.map.len() {
+        for d in (0..run.map.len()).filter(|&d| self.drives.holds_position(d)) {
             settled &= run.settle.update(d, &self.drives.feedback(d), self.drives.target_counts(d));
         }
         run.settle.tick();

@@ -202,8 +202,11 @@ impl CycleLoop<'_> {
                 if silent(d) {
                     return true;
                 }
-                // A drive not in Operation Enabled (its own fault reaction) has no set-point.
-                let under_control = f.state() == cncgw_bus::cia402::State::OperationEnabled;
+                // A drive not in Operation Enabled (its own fault reaction) has no set-point,
+                // nor has a spindle driven in speed (at rest is standing still: on a link read
+                // every 83 ms, the 100 still readings off target took 8.3 s and the stop fell
+                // back to quick stop at its 10 s).
+                let under_control = f.state() == cncgw_bus::cia402::State::OperationEnabled && self.drives.holds_position(d);
                 let on_target = !under_control || (f.counts - self.drives.target_counts(d)).abs() <= self.in_position_counts(d);
                 c >= STILL_CYCLES && (self.quick || on_target || c >= STILL_OFF_TARGET_CYCLES)
             };

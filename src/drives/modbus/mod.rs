@@ -689,4 +689,8 @@ impl DriveBus for ModbusDrives {
         let _ = self.transmit(0);
         done
     }
+
+    fn holds_position(&self, axis: usize) -> bool {
+        self.axes.get(axis).is_none_or(|a| !a.cmd.speed_mode)
+    }
 }
