@@ -114,8 +114,8 @@ pub trait DriveBus {
         false
     }
     /// Whether `axis` follows its position set-point (false: a spindle the bus drives in
-    /// speed, whose position target means nothing — at the program's end it settles by
-    /// coming to rest, not onto a count).
+    /// speed, whose position target means nothing — the program's end does not wait for it
+    /// to settle on one, and the stop counts it at rest when it stands still).
     fn holds_position(&self, _axis: usize) -> bool {
         true
     }
