@@ -406,6 +406,14 @@ pub struct AxisConfig {
     /// Following-error window written to 0x6065 (mm or degrees).
     #[serde(default = "default_ferr")]
     pub following_error: f64,
+    /// In-position width (mm): an axis that stands within it of the program's end point has
+    /// reached it (`cncgw run` exits 0; the summary still shows the counts it stands off).
+    /// Default 0.01 mm, SINUMERIK 828D's exact-stop fine window (MD36010 STOP_LIMIT_FINE);
+    /// Fanuc's No.1826 is the same check. A drive with high dry friction closes its last
+    /// counts slowly through its integral action: 2–3 counts (0.2–0.3 µm) after 2 s on four-fold
+    /// friction, which a check to the count called not at the end point.
+    #[serde(default = "default_in_position")]
+    pub in_position: f64,
     /// Optional EDS file describing the drive.
     #[serde(default)]
     pub eds: Option<String>,
@@ -669,6 +677,10 @@ fn default_ferr() -> f64 {
     1.0
 }
 
+fn default_in_position() -> f64 {
+    0.01
+}
+
 fn default_overload_pct() -> f64 {
     300.0
 }
@@ -912,6 +924,7 @@ impl MachineConfig {
             e.push(format!("{p}.jerk: must be ≥ 0 mm/s³ (0 = no jerk limit), got {j}"));
         }
         positive(e, &format!("{p}.following_error"), a.following_error);
+        positive(e, &format!("{p}.in_position"), a.in_position);
         if !(a.overload_pct.is_finite() && a.overload_pct > 100.0) {
             e.push(format!("{p}.overload_pct: the peak torque the amplifier allows, % of its rated torque, must be > 100, got {}", a.overload_pct));
         }

@@ -22,7 +22,7 @@ pub const SETUP: i32 = 4;
 /// show.
 pub const CODES: [(i32, &str); 5] = [
     (OK, "done, with the result asked for"),
-    (NOT_MET, "done, result not met: run — an axis not within one count of the end point; tap-test — sync error over the limit; scan, sdo, nmt, drive — a node aborted or did not answer; config check — run would refuse this configuration"),
+    (NOT_MET, "done, result not met: run — an axis not within its in-position width of the end point; tap-test — sync error over the limit; scan, sdo, nmt, drive — a node aborted or did not answer; config check — run would refuse this configuration"),
     (INPUT, "input cannot be used: missing or unreadable file, program or trace errors, bad arguments; nothing was moved"),
     (ALARM, "an alarm stopped the machine or refused motion at the machine"),
     (SETUP, "setup: invalid configuration; the bus, a Modbus link, the state directory or an output file cannot be opened"),

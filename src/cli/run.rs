@@ -4,7 +4,7 @@ use super::exit;
 use super::MachineArgs;
 use crate::canon::Pos;
 use crate::config::MachineConfig;
-use crate::control::cycle::{CycleLoop, RunSummary};
+use crate::control::cycle::{AxisSummary, CycleLoop, RunSummary};
 use crate::control::rt::{RtOptions, RtStep};
 use crate::control::trace::{Trace, TraceData};
 use crate::drives::DriveBus;
@@ -859,7 +859,7 @@ fn outcome(r: Result<(), crate::Alarm>, summary: &RunSummary, opts: &ExecOpts, n
             if summary.at_program_end() {
                 exit::OK
             } else {
-                eprintln!("error: an axis did not reach the program's end point within one count");
+                eprintln!("error: an axis did not reach the program's end point within its in-position width (axes.NAME.in_position)");
                 for t in summary.axes.iter().filter_map(|a| a.settle_text()) {
                     eprintln!("  {t}");
                 }
@@ -867,6 +867,13 @@ fn outcome(r: Result<(), crate::Alarm>, summary: &RunSummary, opts: &ExecOpts, n
             }
         }
     }
+}
+
+/// An axis' in-position width in its operator units, e.g. "0.0100 mm" (`AxisSummary::units`).
+fn pos_width(a: &AxisSummary) -> String {
+    let (unit, diameter, k) = a.units();
+    let on = if diameter { " on the diameter" } else { "" };
+    format!("{:.4} {unit}{on}", a.in_position_counts as f64 * k)
 }
 
 /// A drive that faulted its following-error window (EMCY 0x8611): how far behind the run saw
@@ -1019,7 +1026,7 @@ fn alarm_json(a: Option<&crate::Alarm>) -> serde_json::Value {
 
 /// An axis' positions in the operator's units (`AxisSummary::units`): (unit, diameter?,
 /// counts → that unit).
-fn axis_units(a: &crate::control::cycle::AxisSummary) -> (&'static str, bool, impl Fn(i64) -> f64) {
+fn axis_units(a: &AxisSummary) -> (&'static str, bool, impl Fn(i64) -> f64) {
     let (unit, diameter, k) = a.units();
     (unit, diameter, move |c: i64| c as f64 * k)
 }
@@ -1042,6 +1049,8 @@ fn print_summary(s: &RunSummary, json: bool, alarm: Option<&crate::Alarm>) {
                     "final_actual_counts": a.final_actual_counts,
                     "final_target_counts": a.final_target_counts,
                     "program_end_counts": a.program_end_counts,
+                    "in_position_counts": a.in_position_counts,
+                    "in_position": a.in_position(),
                     "settle_miss": a.settle_miss.map(|m| serde_json::json!({
                         "off_counts": m.off_counts, "step_counts": m.step_counts, "crossings": m.crossings,
                         "peak_counts": m.peak_counts, "hunt_hz": m.hunt_hz, "resolved": m.resolved, "waited_s": m.waited_s, "hunts": m.hunts(),
@@ -1111,10 +1120,10 @@ fn print_summary(s: &RunSummary, json: bool, alarm: Option<&crate::Alarm>) {
         let (end, ok) = match a.program_end_counts {
             Some(e) => (
                 pos(e),
-                if (a.final_actual_counts - e).abs() <= 1 {
-                    "ok (within 1 count)".to_string()
-                } else {
-                    format!("NOT AT END POINT ({} counts off)", a.final_actual_counts - e)
+                match a.final_actual_counts - e {
+                    off if off.abs() <= 1 => "ok (within 1 count)".to_string(),
+                    off if a.in_position() => format!("ok ({off} counts off, in position: within {})", pos_width(a)),
+                    off => format!("NOT AT END POINT ({off} counts off, in-position width {})", pos_width(a)),
                 },
             ),
             None => ("-".to_string(), "-".to_string()),

@@ -149,6 +149,9 @@ pub struct AxisSummary {
     /// Largest |demand − actual| seen while running, machine units.
     pub max_following_error: f64,
     pub counts_per_unit: f64,
+    /// The in-position width (`axes.NAME.in_position`) in counts, at least one: standing
+    /// within it of the program's end point is having reached it.
+    pub in_position_counts: i64,
     pub final_actual_counts: i64,
     pub final_target_counts: i64,
     /// The program's end point for this axis, in counts, where the program moved it.
@@ -194,6 +197,12 @@ pub struct RunSummary {
 const HUNT_ADVICE: &str = "the drive's own loops do not settle (as a Fanuc's SV0410, excess error at stop): lower its velocity-loop gain, lengthen its integral time or speed filter, look for lost motion (belt, coupling), then run";
 
 impl AxisSummary {
+    /// Within its in-position width of the program's end point (true where the program did
+    /// not move it).
+    pub fn in_position(&self) -> bool {
+        self.program_end_counts.is_none_or(|e| (self.final_actual_counts - e).abs() <= self.in_position_counts.max(1))
+    }
+
     /// The operator's units: mm (X as a diameter, as the programs write it) or degrees for a
     /// spindle — (unit, diameter?, units per count).
     pub fn units(&self) -> (&'static str, bool, f64) {
@@ -258,14 +267,10 @@ impl AxisSummary {
 }
 
 impl RunSummary {
-    /// True if the program reached M02/M30 and every axis it moved ended within one count of
-    /// the program's end point.
+    /// True if the program reached M02/M30 and every axis it moved ended within its
+    /// in-position width of the program's end point.
     pub fn at_program_end(&self) -> bool {
-        self.ended
-            && self.axes.iter().all(|a| match a.program_end_counts {
-                Some(e) => (a.final_actual_counts - e).abs() <= 1,
-                None => true,
-            })
+        self.ended && self.axes.iter().all(AxisSummary::in_position)
     }
 }
 
@@ -883,7 +888,31 @@ impl<'a> CycleLoop<'a> {
 
 #[cfg(test)]
 mod tests {
-    use super::SpindleMeter;
+    use super::{AxisSummary, RunSummary, SpindleMeter};
+
+    /// The program's end is reached within each axis' in-position width, at least a count;
+    /// an axis the program did not move is not judged.
+    #[test]
+    fn the_program_end_is_reached_within_the_in_position_width() {
+        let axis = |name: &str, off: i64, width: i64, end: Option<i64>| AxisSummary {
+            name: name.into(),
+            max_following_error: 0.0,
+            counts_per_unit: 10_000.0,
+            in_position_counts: width,
+            final_actual_counts: 5000 + off,
+            final_target_counts: 5000,
+            program_end_counts: end,
+            settle_miss: None,
+            hunt: None,
+        };
+        let run = |axes| RunSummary { ended: true, axes, ..Default::default() };
+        assert!(run(vec![axis("x", 2, 100, Some(5000)), axis("z", -100, 100, Some(5000))]).at_program_end());
+        assert!(!run(vec![axis("z", 101, 100, Some(5000))]).at_program_end());
+        assert!(run(vec![axis("z", 1, 0, Some(5000))]).at_program_end(), "at least one count");
+        assert!(!run(vec![axis("z", 2, 0, Some(5000))]).at_program_end());
+        assert!(run(vec![axis("y", 9999, 1, None)]).at_program_end(), "not moved by the program");
+        assert!(!RunSummary { ended: false, ..run(vec![]) }.at_program_end(), "M30 not reached");
+    }
 
     /// A spindle at 600 rpm read every 5th cycle (a Modbus link slower than the machine
     /// cycle): the speed holds at 600 rpm between readings instead of pulsing 0 / 3000 rpm,

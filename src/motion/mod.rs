@@ -306,6 +306,8 @@ pub struct Limits {
     pub jmax: [f64; N_AXES],
     /// Software travel limits (min, max) of X (radius), Y, Z in mm.
     pub travel: [(f64, f64); 3],
+    /// Per-axis in-position width (`axes.NAME.in_position`), units; 0 where not configured.
+    pub in_position: [f64; N_AXES],
     /// Whether each axis is configured.
     pub present: [bool; N_AXES],
     /// Cycle (interpolation) period, s.
@@ -380,6 +382,7 @@ impl Limits {
             amax: [0.0; N_AXES],
             jmax: [0.0; N_AXES],
             travel: [(0.0, 0.0); 3],
+            in_position: [0.0; N_AXES],
             present: [false; N_AXES],
             cycle_s: cfg.cycle_s(),
             feed_clamp: f64::INFINITY,
@@ -423,6 +426,7 @@ impl Limits {
                 l.amax[i] = a.max_accel;
                 l.jmax[i] = a.jerk_limit(cfg.param(1772));
                 l.travel[i] = (a.min.unwrap_or(0.0), a.max.unwrap_or(0.0));
+                l.in_position[i] = a.in_position;
             }
         }
         if let Some(f) = cfg.param(6023).filter(|f| f.is_finite() && *f > 0.0) {
@@ -748,6 +752,9 @@ pub struct Motion {
     tap_ref: Option<(usize, f64, f64, f64)>,
     /// The tool is inside a tapped hole (a tap stroke ended away from the hole's R point).
     in_hole: bool,
+    /// Direction (±1) of the tap stroke that landed last: the sign of the sync error at rest
+    /// in the hole.
+    hole_dir: f64,
     /// Planning: the hole the last pushed tap strokes are in (tapping axis, R point on it,
     /// direction into it).
     plan_tap: Option<(usize, f64, f64)>,
@@ -835,6 +842,7 @@ impl Motion {
             thread_chain: None,
             tap_ref: None,
             in_hole: false,
+            hole_dir: 1.0,
             plan_tap: None,
             hist: [start; HIST],
             hist_k: 0,
@@ -1864,6 +1872,12 @@ impl Motion {
         }
         let event = self.take_next();
         let path_v = self.advance(fb, &prev);
+        // At rest in the hole: measured too (`monitor_sync`). A stroke's first cycle stays
+        // unmeasured as before — trimmed on, the return's start was worse cut (delay1 5.2 → 7.4 µm).
+        let resting = matches!(self.run, Run::None | Run::Dwell { .. } | Run::Tap { theta0: None, .. });
+        if self.in_hole && resting && self.tap_ref.is_some() {
+            self.monitor.watch(true);
+        }
         if self.stopping && self.run == Run::None {
             self.stopped_at_rest();
         }
@@ -2204,6 +2218,7 @@ impl Motion {
         // beyond R (No.5282/No.5382 extra return) is out of it.
         let into = (seg.p1 - seg.p0).signum() * if seg.retract { -1.0 } else { 1.0 };
         self.in_hole = theta0.is_some_and(|(pr, _)| (seg.p1 - pr) * into > 0.0);
+        self.hole_dir = (seg.p1 - seg.p0).signum();
         // Single block never stops inside a tap; after the hole only with No.5200#6
         // (in a canned cycle by its actions, see `single_block_stop`).
         if self.cur_cyc.code > 0 {
@@ -2551,6 +2566,10 @@ impl Motion {
             _ if self.in_hole => Some(self.corr.gain()),
             _ => None,
         };
+        // A dwell in the hole (G84 … P): what the trim integrated in the stroke was a lag that
+        // is gone at rest — held, Z stood that far off its set-point when the return began
+        // (4.7 µm on a Kv 15/s Z after `G84 … P500`).
+        self.corr.rest(self.in_hole && matches!(self.run, Run::Dwell { .. }));
         let (sent, before, before2) = (self.answered(0), self.answered(1), self.answered(2));
         // Every feed axis' lag model learns from all its motion (the rapid to R teaches it
         // before the tap begins).
@@ -2634,6 +2653,16 @@ impl Motion {
                     vec[i] = e * (p1[i] - p0[i]) / len.max(1e-12);
                 }
                 e * seg.u_long
+            }
+            // At rest in the hole (the dwell at the bottom, between the strokes) the tap is
+            // engaged all the same: the hole's relation is measured (shown, and held to the
+            // limit). Not trimmed on: against a slide's stiction the trim's integral winds the
+            // set-point away from a slide that stands on its count (1.1 µm over a 0.5 s dwell on
+            // the default Z), and the return then starts from a wound-up drive (NaN: skipped).
+            _ if self.in_hole => {
+                let Some((ax, pr, thr, lead)) = self.tap_ref else { return };
+                vec = [f64::NAN; 3];
+                ((fb.pos[ax] - pr) - lead * (th - thr) / 360.0) * self.hole_dir
             }
             _ => return,
         };

@@ -20,7 +20,7 @@ use crate::control::io::IoStop;
 use crate::control::snapshot::{MachineState, SNAP_AXES};
 use crate::control::trace::{TraceRow, MAX_TRACE_AXES};
 use crate::drives::scale_watch::{self, ScaleWatch};
-use crate::motion::{Event, Feedback, Motion, Setpoint, AX_X, AX_Y, AX_Z, N_AXES};
+use crate::motion::{Event, Feedback, Limits, Motion, Setpoint, AX_X, AX_Y, AX_Z, N_AXES};
 use crate::sync::sample_time::SampleTiming;
 use crate::Alarm;
 use std::sync::mpsc::{Receiver, TryRecvError};
@@ -77,6 +77,16 @@ struct Tick {
     late_before: bool,
 }
 
+/// An axis' in-position width in whole counts, at least one (`Limits::in_position`).
+fn in_position_counts(lim: &Limits, axis: Option<usize>, counts_per_unit: f64) -> i64 {
+    let w = axis.and_then(|a| lim.in_position.get(a).copied()).unwrap_or(0.0) * counts_per_unit.abs();
+    if w.is_finite() {
+        (w.floor() as i64).max(1)
+    } else {
+        1
+    }
+}
+
 impl Run {
     pub(super) fn new(lp: &mut CycleLoop, motion: &Motion, start: &[f64; N_AXES], summary: &mut RunSummary) -> Run {
         let map = lp.map();
@@ -89,6 +99,7 @@ impl Run {
                 name: lp.drives.axis_name(d).to_string(),
                 max_following_error: 0.0,
                 counts_per_unit: lp.drives.counts_per_unit(d),
+                in_position_counts: in_position_counts(motion.limits(), map[d], lp.drives.counts_per_unit(d)),
                 final_actual_counts: 0,
                 final_target_counts: 0,
                 program_end_counts: None,
