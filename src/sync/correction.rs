@@ -171,7 +171,7 @@ impl SyncCorrection {
     /// share of its lag and the time constant of the lead that inverts it, both in cycles.
     pub fn settling(&self, i: usize) -> Option<(f64, f64)> {
         let m = &self.lag[i.min(2)];
-        Some(m.split()).filter(|s| s.settles()).map(|s| (s.settle, s.tf))
+        Some(m.thread_split()).filter(|s| s.settles()).map(|s| (s.settle, s.tf))
     }
 
     /// Learn from the feedback: `sent`, `before`, `before2` the set-points the feedback answers
