@@ -15,6 +15,8 @@ ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 WANT_PYTHON=${TEST_DEPS_PYTHON:-0}
 WANT_QEMU=0
 [ "${VMRUN_BACKEND:-uml}" = qemu ] && WANT_QEMU=1
+# A host with AMX cannot run User-Mode Linux 6.1 (scripts/vmrun): the QEMU backend is its default.
+[ -z "${VMRUN_BACKEND:-}" ] && grep -qw amx_tile /proc/cpuinfo 2>/dev/null && WANT_QEMU=1
 for a in "$@"; do
     case $a in
         --python) WANT_PYTHON=1 ;;
