@@ -8,6 +8,7 @@ pub mod lag_tracker;
 pub mod link_check;
 pub mod monitor;
 pub mod overload;
+pub mod ring_guard;
 pub mod sample_time;
 pub mod thread;
 
