@@ -348,6 +348,18 @@ impl SpindleMeter {
     }
 }
 
+/// The alarm a fault stop ends on: the drive's own (`first`), with `then` — what went wrong
+/// while the others were stopping and made it a quick stop of every drive — named after it.
+fn then(first: Option<Alarm>, then: Alarm) -> Alarm {
+    match first {
+        None => then,
+        Some(mut a) => {
+            a.message.push_str(&format!("; while the others stopped, alarm {}: {}, so every drive was sent quick stop", then.number, then.message));
+            a
+        }
+    }
+}
+
 /// Which motion axis each drive follows (by the config's axis names: x, y, z; the spindle).
 fn motion_axis(name: &str, spindle: bool) -> Option<usize> {
     if spindle {
@@ -752,9 +764,11 @@ impl<'a> CycleLoop<'a> {
     fn fault_stop(&mut self, motion: &mut Motion, d: usize, first: Option<Alarm>, rpm: f64, line: u32, ended: bool) -> Alarm {
         motion.fault_stop(motion_axis(self.drives.axis_name(d), Some(d) == self.spindle_drive));
         tracing::warn!(axis = self.drives.axis_name(d), line, "drive fault: controlled stop of the other drives");
-        let at_line = |mut a: Alarm| {
+        // `quick`: every drive was sent quick stop after all (the others are not under control).
+        let at_line = |mut a: Alarm, quick: bool| {
             let when = if ended { "had reached its end" } else { "stopped" };
-            a.message.push_str(&format!("; the program {when} at line {line}, the other axes under control"));
+            let others = if quick { "" } else { ", the other axes under control" };
+            a.message.push_str(&format!("; the program {when} at line {line}{others}"));
             a
         };
         let mut alarm = first;
@@ -770,10 +784,11 @@ impl<'a> CycleLoop<'a> {
                 now = self.clock.now_ns();
                 if let Err(a) = self.drives.receive(now) {
                     if self.drives.faulted() != Some(d) {
-                        // Not about the isolated drive: stop everything now.
+                        // Not about the isolated drive: stop everything now, and say why
+                        // the others were not stopped under control after all.
                         self.quick_stop_all();
                         let _ = self.drives.transmit(now);
-                        return at_line(alarm.unwrap_or(a));
+                        return at_line(then(alarm, a), true);
                     }
                     if alarm.is_none() {
                         alarm = Some(a);
@@ -783,7 +798,7 @@ impl<'a> CycleLoop<'a> {
             if self.estop_now() {
                 self.quick_stop_all();
                 let _ = self.drives.transmit(now);
-                return at_line(alarm.unwrap_or_else(|| Alarm::new(alarms::ESTOP, "emergency stop during a drive fault stop")));
+                return at_line(then(alarm, Alarm::new(alarms::ESTOP, "emergency stop during a drive fault stop")), true);
             }
             let fb = self.read_feedback(&mut meter);
             let sp = self.stop_step(motion, &fb, &mut next, now);
@@ -793,11 +808,11 @@ impl<'a> CycleLoop<'a> {
             self.drives.set_target(d, p);
             if let Err(a) = self.drives.transmit(now) {
                 self.quick_stop_all();
-                return at_line(alarm.unwrap_or(a));
+                return at_line(then(alarm, a), true);
             }
             if motion.is_idle() {
                 if let Some(a) = alarm.take() {
-                    return at_line(a);
+                    return at_line(a, false);
                 }
                 // Wait a little for the faulted drive's diagnosis (0x603F over SDO).
                 idle += 1;
@@ -809,9 +824,12 @@ impl<'a> CycleLoop<'a> {
         self.quick_stop_all();
         let _ = self.drives.transmit(now);
         let name = self.drives.axis_name(d).to_string();
-        at_line(alarm.unwrap_or_else(|| {
-            Alarm::new(crate::alarm::DRIVE_FAULT, format!("axis {name}: drive fault, not diagnosed; clear the cause, then reset"))
-        }))
+        at_line(
+            alarm.unwrap_or_else(|| {
+                Alarm::new(crate::alarm::DRIVE_FAULT, format!("axis {name}: drive fault, not diagnosed; clear the cause, then reset"))
+            }),
+            false,
+        )
     }
 
     /// Controlled stop on a program alarm: decelerate along the path (a thread or tap's pair

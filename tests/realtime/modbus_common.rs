@@ -64,7 +64,9 @@ pub fn tcp_server(machine: &str, quirks: impl Fn(u8) -> sim_drives::ModbusQuirks
 /// 250 ms, X/Z windows of 25 mm, on TCP a link cycle of 4 ms instead of the one the start-up
 /// rounds choose. The spindle's window and everything else stay as shipped; the watchdog, the
 /// feedback timeout, the windows and the link cycle's check have tests of their own
-/// (modbus_vendor::a_link_that_falls_behind…, fault_reaction_active…, cycle.rs).
+/// (tests/sim: limits_watchdog, late_cycle; cycle.rs; the link cycle chosen at start-up by the
+/// other tests here). The link cycle's run-time check is tested at 4 ms
+/// (modbus_vendor::a_link_that_falls_behind…).
 pub fn on_a_shared_host(machine: &str) -> String {
     let m = machine
         .replace("[machine]\n", "[machine]\nwatchdog_missed_cycles = 50\nwatchdog_overruns = 50\n")

@@ -154,6 +154,33 @@ fn a_feed_axis_fault_stops_the_turning_spindle_under_control() {
     assert!(first_off.vel[ds].abs() <= rest_limit(3), "{first_off:?}");
 }
 
+/// A second drive faulting while the others stop under control after the first: every drive
+/// is sent quick stop, and the alarm names both faults and does not claim the others stopped
+/// under control.
+#[test]
+fn a_second_fault_during_a_fault_stop_is_named_and_quick_stops_every_drive() {
+    let mut s = setup();
+    s.actions.push((
+        1400,
+        Box::new(|w: &mut SimWorld| {
+            w.inject_fault(1, 0x2310);
+        }),
+    ));
+    s.actions.push((
+        1420,
+        Box::new(|w: &mut SimWorld| {
+            w.inject_fault(2, 0x7500);
+        }),
+    ));
+    let o = run(TURNING, s);
+    let a = o.result.as_ref().expect_err("the faults stop the run");
+    assert_eq!(a.number, cncgw::alarm::DRIVE_FAULT, "{a}");
+    assert!(a.message.contains("0x2310") && a.message.contains("while the others stopped, alarm"), "{a}");
+    assert!(a.message.contains("every drive was sent quick stop"), "{a}");
+    assert!(!a.message.contains("under control"), "{a}");
+    assert!(o.summary.rest.quick_stop, "{:?}", o.summary.rest);
+}
+
 /// A drive that faults after the program's end, while the drives settle onto their end
 /// point, is the run's alarm and says the program had ended.
 #[test]
