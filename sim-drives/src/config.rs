@@ -876,7 +876,7 @@ impl SimConfig {
         s.push_str("#   error_behaviour_object = false  # no 0x1029 (a communication error leaves the NMT state as it is)\n");
         s.push_str("#   mode_display_pdo = false # 0x6061 cannot be mapped into a PDO\n");
         s.push_str("#   fixed_pdo = true         # PDO mapping read-only (RPDO1 controlword + 0x607A, TPDO1 statusword + 0x6064)\n");
-        s.push_str("#   optional_402_objects = false  # no 0x605A/0x605B/0x605C/0x605E/0x607D\n");
+        s.push_str("#   optional_402_objects = false  # no 0x605A/0x605B/0x605C/0x605E/0x607D/0x6072\n");
         s.push_str("#   identity_subs = 0        # 0x1018 sub-indices present (4 = vendor…serial; 0: a vendor-id read aborts)\n");
         s.push_str("# profile = \"ip-only\" | \"pp-boot\" | \"no-1016\" | \"fixed-pdo\" | \"user-units\" in a [[drive]] starts from that shape\n");
         s.push_str("# (IP but no CSP; boots in PP, switches 200 SYNCs late; no 0x1016; fixed PDO map; 10000 units/rev); [drive.shape] keys change it further.\n\n");

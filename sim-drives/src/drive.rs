@@ -377,6 +377,8 @@ fn build_od(c: &DriveConfig) -> Od {
         od.add(ix::SOFTWARE_LIMIT, 0, U8, Const, false, 2);
         od.add(ix::SOFTWARE_LIMIT, 1, I32, Rw, false, i32::MIN as i64);
         od.add(ix::SOFTWARE_LIMIT, 2, I32, Rw, false, i32::MAX as i64);
+        // The torque limit the physics' peak torque is, in the unit of 0x6077.
+        od.add(ix::MAX_TORQUE, 0, U16, Ro, false, (1000.0 / RATED_OF_PEAK).round() as i64);
     }
     od.add_range(PROFILE_DECEL, 0, U32, Rw, false, c.profile_decel as i64, 1, u32::MAX as i64);
     od.add_range(QUICK_STOP_DECEL, 0, U32, Rw, false, c.quick_stop_decel as i64, 1, u32::MAX as i64);

@@ -1150,14 +1150,16 @@ fn config_check(file: Option<&std::path::Path>, json: bool, bus: Option<&str>) -
         let mut frames = crate::drives::canopen::master::cyclic_frames_io(n_can, &modules);
         let specs = crate::drives::canopen::master::NodeSpec::from_config(&cfg);
         let ff = specs.iter().filter(|s| s.friction).count();
-        crate::drives::canopen::master::add_friction_frames(&mut frames, specs.iter().map(|s| s.friction));
+        let sp = specs.iter().filter(|s| s.spindle && !s.friction).count();
+        crate::drives::canopen::master::add_torque_frames(&mut frames, specs.iter());
         let load = crate::bus::busload::load(&frames, cfg.cycle_s(), cfg.bus.bitrate);
         can_load = Some(load);
         text.push(format!(
-            "  worst-case CANopen bus load {:.1} % ({} drives, one 6-byte RPDO and TPDO each + SYNC per cycle{}{}){}",
+            "  worst-case CANopen bus load {:.1} % ({} drives, one 6-byte RPDO and TPDO each + SYNC per cycle{}{}{}){}",
             load * 100.0,
             n_can,
             if ff == 0 { String::new() } else { format!(", {ff} with friction feed-forward (8-byte RPDO, a torque read)") },
+            if sp == 0 { String::new() } else { format!(", {sp} spindle torque read") },
             if modules.is_empty() { String::new() } else { format!(", {} CiA 401 I/O module(s)' outputs and inputs", modules.len()) },
             if load > 0.8 { " — OVER 80 %: lengthen the cycle" } else { "" }
         ));

@@ -1081,6 +1081,7 @@ fn print_summary(s: &RunSummary, json: bool, alarm: Option<&crate::Alarm>) {
                 "spindle_rpm_at_torque_off": s.rest.spindle_rpm_at_off,
             },
             "spindle_accel_managed_rpm_s": s.spindle_accel_rpm_s,
+            "spindle_accel_at_torque_limit": s.spindle_accel_at_torque_limit,
             "spindle_overload_accel_rpm_s": s.spindle_overload_rpm_s,
             "axes": axes,
         });
@@ -1100,7 +1101,11 @@ fn print_summary(s: &RunSummary, json: bool, alarm: Option<&crate::Alarm>) {
         s.overruns,
         s.enable_time_s
     );
-    if let Some(a) = s.spindle_accel_rpm_s {
+    if let Some(a) = s.spindle_accel_rpm_s.filter(|_| s.spindle_accel_at_torque_limit) {
+        println!(
+            "spindle: its drive reached its torque limit (max torque 0x6072) accelerating it, with nothing left to follow its set-points: about {a:.0} rpm/s at the limit; the run planned with 80 % of that from then on — set the spindle's max_accel (and No.5261/5271) lower, or give it more torque"
+        );
+    } else if let Some(a) = s.spindle_accel_rpm_s {
         println!(
             "spindle: it managed only {a:.0} rpm/s of the acceleration asked of it; the run planned with 80 % of that from then on — set the spindle's max_accel (and No.5261/5271) to what it can do, or check its drive's torque limit"
         );

@@ -188,6 +188,9 @@ pub struct RunSummary {
     /// The spindle could not give its configured acceleration: what it managed (rpm/s), which
     /// the run planned with 80 % of from then on (`Motion::spindle_accel_found`).
     pub spindle_accel_rpm_s: Option<f64>,
+    /// That acceleration is what it gave at its drive's torque limit (`sync::torque_margin`),
+    /// not short of the one asked.
+    pub spindle_accel_at_torque_limit: bool,
     /// The spindle amplifier's overload load passed a quarter of its rating: the acceleration
     /// (rpm/s) the run planned with from then on (`Motion::spindle_overload_found`).
     pub spindle_overload_rpm_s: Option<f64>,
@@ -599,6 +602,7 @@ impl<'a> CycleLoop<'a> {
             (r, _) => r,
         };
         summary.spindle_accel_rpm_s = motion.spindle_accel_found();
+        summary.spindle_accel_at_torque_limit = motion.spindle_accel_at_torque_limit();
         summary.spindle_overload_rpm_s = motion.spindle_overload_found();
         // Where every drive stands once at rest (after an alarm too, not zeros).
         for (d, a) in summary.axes.iter_mut().enumerate() {

@@ -125,6 +125,12 @@ pub trait DriveBus {
     fn torque_permille(&self, _axis: usize) -> Option<i16> {
         None
     }
+
+    /// The drive's torque limit, in the unit of `torque_permille` (CANopen: a spindle's max
+    /// torque 0x6072, read at start-up); `None` where it is not known.
+    fn max_torque_permille(&self, _axis: usize) -> Option<u16> {
+        None
+    }
 }
 
 /// How a spindle on a slow link is driven (`DriveBus::set_spindle_control`).

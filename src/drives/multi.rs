@@ -142,6 +142,10 @@ impl DriveBus for MultiBus<'_> {
         let (p, i) = self.map[axis];
         self.parts[p].torque_permille(i)
     }
+    fn max_torque_permille(&self, axis: usize) -> Option<u16> {
+        let (p, i) = self.map[axis];
+        self.parts[p].max_torque_permille(i)
+    }
     fn position_lost(&self, axis: usize) -> Option<String> {
         let (p, i) = self.map[axis];
         self.parts[p].position_lost(i)

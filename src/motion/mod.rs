@@ -105,6 +105,7 @@ use crate::sync::governor::SpindleGovernor;
 use crate::sync::lag::settle_lead;
 use crate::sync::monitor::{Sample, SyncMonitor};
 use crate::sync::overload::SpindleOverload;
+use crate::sync::torque_margin::TorqueMargin;
 use crate::sync::ThreadSync;
 use crate::Alarm;
 use geom::Geom;
@@ -237,6 +238,9 @@ pub struct Feedback {
     /// The spindle drive's torque as last read (torque actual 0x6077), in units of its rated
     /// torque; NaN when it gives none (`sync::overload`).
     pub spindle_torque: f64,
+    /// Its torque limit (max torque 0x6072) in the same unit; NaN or 0 when not known
+    /// (`sync::torque_margin`).
+    pub spindle_torque_max: f64,
 }
 
 /// `fb.late_s` where it applies (fresh spindle feedback), within a cycle, s.
@@ -708,6 +712,10 @@ pub struct Motion {
     /// it was found to manage (deg/s², ∞ until it fell behind once).
     sp_gov: SpindleGovernor,
     sp_accel_cap: f64,
+    /// Whether the spindle has torque to spare (`sync::torque_margin`); whether that set
+    /// `sp_accel_cap` last (it gave the acceleration, at its torque limit).
+    sp_margin: TorqueMargin,
+    sp_cap_by_torque: bool,
     /// The spindle amplifier's overload (`sync::overload`) and the acceleration it allows
     /// (deg/s², ∞ until its load passed its share).
     sp_overload: SpindleOverload,
@@ -873,6 +881,8 @@ impl Motion {
             sp_cur: 0.0,
             sp_gov: SpindleGovernor::default(),
             sp_accel_cap: f64::INFINITY,
+            sp_margin: TorqueMargin::default(),
+            sp_cap_by_torque: false,
             sp_overload: SpindleOverload::new(limits.sp_overload.0, limits.sp_overload.1),
             sp_heat_cap: f64::INFINITY,
             sp_heat_next: f64::INFINITY,
@@ -1890,13 +1900,17 @@ impl Motion {
     /// the spindle's acceleration characteristic (MD35200), which is found here at run time; a
     /// Fanuc 0i-TF would stop with SV0411 (excess error in motion).
     fn govern_spindle(&mut self, fb: &Feedback) {
+        let sent = self.answered(0)[AX_S];
+        // Every cycle: it takes the commanded acceleration from consecutive set-points.
+        if let Some(a) = self.sp_margin.update(sent, fb.spindle_torque, fb.spindle_torque_max, self.lim.cycle_s) {
+            self.cap_spindle_accel(a, true);
+        }
         if fb.age[AX_S] != 0 {
             return;
         }
-        let sent = self.answered(0)[AX_S];
         let actual = spindle_at_slot(fb, self.lim.cycle_s);
         if let Some(a) = self.sp_gov.update(sent, actual, self.lim.cycle_s, self.lim.sp_lag_judge) {
-            self.sp_accel_cap = self.sp_accel_cap.min(SP_ACCEL_MARGIN * a);
+            self.cap_spindle_accel(a, false);
         }
         if let Some(a) = self.sp_overload.update(sent, fb.spindle_torque, self.lim.cycle_s) {
             self.sp_heat_next = self.sp_heat_next.min(a);
@@ -1906,6 +1920,15 @@ impl Motion {
             if self.sp_overload.urgent() || !self.in_sync_stroke() {
                 self.sp_heat_cap = self.sp_heat_next;
             }
+        }
+    }
+
+    /// Plan the spindle with `SP_ACCEL_MARGIN` of `a` (deg/s²) from now on, where that is
+    /// lower than before; `by_torque`: it gave `a` at its torque limit (else: it managed `a`).
+    fn cap_spindle_accel(&mut self, a: f64, by_torque: bool) {
+        if SP_ACCEL_MARGIN * a < self.sp_accel_cap {
+            self.sp_accel_cap = SP_ACCEL_MARGIN * a;
+            self.sp_cap_by_torque = by_torque;
         }
     }
 
@@ -2820,6 +2843,12 @@ impl Motion {
     /// configured one (`govern_spindle`); None while it could.
     pub fn spindle_accel_found(&self) -> Option<f64> {
         self.sp_accel_cap.is_finite().then(|| self.sp_accel_cap / SP_ACCEL_MARGIN / 6.0)
+    }
+
+    /// Whether `spindle_accel_found` is the acceleration the spindle gave at its drive's
+    /// torque limit (`sync::torque_margin`) rather than all it managed (`sync::governor`).
+    pub fn spindle_accel_at_torque_limit(&self) -> bool {
+        self.sp_accel_cap.is_finite() && self.sp_cap_by_torque
     }
 
     /// The spindle acceleration (rpm/s) its amplifier's overload was found to allow

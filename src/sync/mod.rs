@@ -11,5 +11,6 @@ pub mod overload;
 pub mod ring_guard;
 pub mod sample_time;
 pub mod thread;
+pub mod torque_margin;
 
 pub use thread::ThreadSync;

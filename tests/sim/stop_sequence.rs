@@ -114,6 +114,18 @@ fn setup() -> Setup {
     Setup { sim: None, actions: Vec::new(), panel: None, signal: None }
 }
 
+impl Setup {
+    /// Drive `node` faults with EMCY `code` at `ms` (the probe's clock).
+    fn fault_at(&mut self, ms: u64, node: u8, code: u16) {
+        self.actions.push((
+            ms,
+            Box::new(move |w: &mut SimWorld| {
+                w.inject_fault(node, code);
+            }),
+        ));
+    }
+}
+
 /// The spindle turning at S1000 and X, Z moving.
 const TURNING: &str = "G21\nG98 G97\nM03 S1000\nG00 X40 Z2\nG01 Z-150 F3000\nG00 X50\nZ2\nM30\n";
 
@@ -136,12 +148,7 @@ fn a_program_that_ends_without_m05_stops_the_spindle_before_torque_off() {
 #[test]
 fn a_feed_axis_fault_stops_the_turning_spindle_under_control() {
     let mut s = setup();
-    s.actions.push((
-        1400,
-        Box::new(|w: &mut SimWorld| {
-            w.inject_fault(1, 0x2310);
-        }),
-    ));
+    s.fault_at(1400, 1, 0x2310);
     let o = run(TURNING, s);
     let a = o.result.as_ref().expect_err("the fault stops the run");
     assert_eq!(a.number, cncgw::alarm::DRIVE_FAULT, "{a}");
@@ -160,18 +167,8 @@ fn a_feed_axis_fault_stops_the_turning_spindle_under_control() {
 #[test]
 fn a_second_fault_during_a_fault_stop_is_named_and_quick_stops_every_drive() {
     let mut s = setup();
-    s.actions.push((
-        1400,
-        Box::new(|w: &mut SimWorld| {
-            w.inject_fault(1, 0x2310);
-        }),
-    ));
-    s.actions.push((
-        1420,
-        Box::new(|w: &mut SimWorld| {
-            w.inject_fault(2, 0x7500);
-        }),
-    ));
+    s.fault_at(1400, 1, 0x2310);
+    s.fault_at(1420, 2, 0x7500);
     let o = run(TURNING, s);
     let a = o.result.as_ref().expect_err("the faults stop the run");
     assert_eq!(a.number, cncgw::alarm::DRIVE_FAULT, "{a}");
@@ -192,12 +189,7 @@ fn a_fault_while_settling_at_the_program_end_says_the_program_had_ended() {
     // counts the drives' start-up): the spindle still creeping onto its angle.
     let end_ms = (clean.summary.machining_time_s * 1000.0) as u64;
     let mut s = setup();
-    s.actions.push((
-        end_ms + 300,
-        Box::new(|w: &mut SimWorld| {
-            w.inject_fault(1, 0x2310);
-        }),
-    ));
+    s.fault_at(end_ms + 300, 1, 0x2310);
     let o = run(ENDS_TURNING, s);
     assert!(o.summary.ended, "the program reached its end");
     let a = o.result.as_ref().expect_err("the fault is the run's alarm");
@@ -262,12 +254,7 @@ fn a_drive_that_hunts_on_a_dwell_is_named_with_its_line() {
     // The dwell runs from about 1.2 s (the drives' start-up included): Z faults at 2 s.
     let mut s = setup();
     s.sim = Some(HUNTING_Z);
-    s.actions.push((
-        2000,
-        Box::new(|w: &mut SimWorld| {
-            w.inject_fault(2, 0x8611);
-        }),
-    ));
+    s.fault_at(2000, 2, 0x8611);
     let o = run(DWELL, s);
     let a = o.result.as_ref().expect_err("the fault is the run's alarm");
     assert_eq!(a.number, cncgw::alarm::DRIVE_FAULT, "{a}");

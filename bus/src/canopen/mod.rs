@@ -83,6 +83,9 @@ pub mod od {
     pub const TARGET_POSITION: u16 = 0x607A;
     /// Torque actual value, per mille of the rated torque (0x6076).
     pub const TORQUE_ACTUAL: u16 = 0x6077;
+    /// Max torque, per mille of the rated torque (CiA 402 §6.9, optional): the drive's torque
+    /// limit.
+    pub const MAX_TORQUE: u16 = 0x6072;
     /// CSP's torque offset, per mille of the rated torque: added to the drive's torque command.
     pub const TORQUE_OFFSET: u16 = 0x60B2;
     pub const SOFTWARE_LIMIT: u16 = 0x607D;

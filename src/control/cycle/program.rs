@@ -343,6 +343,7 @@ impl CycleLoop<'_> {
             run.spindle_rpm = run.meter.update_fb(&f, run.dt);
             fb.spindle_rpm = run.spindle_rpm;
             fb.spindle_torque = self.drives.torque_permille(sd).map_or(f64::NAN, |t| f64::from(t) / 1000.0);
+            fb.spindle_torque_max = self.drives.max_torque_permille(sd).map_or(f64::NAN, |t| f64::from(t) / 1000.0);
             self.rpm = run.spindle_rpm;
         }
         Ok(fb)

@@ -77,14 +77,18 @@ pub fn cyclic_frames_io(drives: usize, modules: &[(u8, u8, u8)]) -> Vec<usize> {
     v
 }
 
-/// Friction feed-forward (`NodeSpec::friction`, per drive in order) in a frame list that
-/// starts with [`cyclic_frames`]' RPDO, TPDO per drive: RPDO1 carries 0x60B2 too, and the
-/// torque is read all the time (an SDO request and its answer, 8 bytes each, one every other
-/// cycle: a new read starts the cycle after an answer).
-pub fn add_friction_frames(frames: &mut Vec<usize>, friction: impl Iterator<Item = bool>) {
-    for (i, on) in friction.enumerate() {
-        if on {
+/// The torque reads (`NodeSpec` per drive in order) in a frame list that starts with
+/// [`cyclic_frames`]' RPDO, TPDO per drive: friction feed-forward (`NodeSpec::friction`)
+/// carries 0x60B2 in RPDO1 too and reads the torque all the time; a spindle reads it all the
+/// time where its drive gives its max torque 0x6072 (`torque`; not known before start-up:
+/// counted) — an SDO request and its answer, 8 bytes each, one every other cycle (a new read
+/// starts the cycle after an answer).
+pub fn add_torque_frames<'a>(frames: &mut Vec<usize>, specs: impl Iterator<Item = &'a NodeSpec>) {
+    for (i, s) in specs.enumerate() {
+        if s.friction {
             frames[2 * i] = RPDO1_LEN + 2;
+        }
+        if s.friction || s.spindle {
             frames.push(8);
         }
     }
@@ -412,7 +416,7 @@ impl<B: CanBus> CanOpenMaster<B> {
 
     fn frames(&self) -> Vec<usize> {
         let mut v = cyclic_frames(self.nodes.len());
-        add_friction_frames(&mut v, self.nodes.iter().map(|n| n.spec.friction));
+        add_torque_frames(&mut v, self.nodes.iter().map(|n| &n.spec));
         v.extend(self.io.iter().flat_map(|m| m.pdo_lens()));
         v
     }
@@ -936,6 +940,10 @@ impl<B: CanBus> CanOpenMaster<B> {
         let spec = self.nodes[i].spec.clone();
         let win = (spec.following_error * spec.counts_per_unit).round().clamp(1.0, u32::MAX as f64) as u32;
         self.write(clock, i, od::FOLLOWING_ERROR_WINDOW, 0, &win.to_le_bytes())?;
+        if spec.spindle {
+            // Optional (CiA 402): a drive without it is not judged on its torque margin.
+            self.nodes[i].torque.max = self.read_u32(clock, i, od::MAX_TORQUE, 0).ok().map(|v| v as u16).filter(|v| *v > 0);
+        }
         // Quick stop: decelerate on the quick-stop ramp, then Switch On Disabled.
         self.prefer_write(
             clock,
@@ -2205,6 +2213,10 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
     fn torque_permille(&self, axis: usize) -> Option<i16> {
         self.nodes.get(axis).and_then(|n| n.torque.value)
     }
+
+    fn max_torque_permille(&self, axis: usize) -> Option<u16> {
+        self.nodes.get(axis).and_then(|n| n.torque.max)
+    }
 }
 
 #[cfg(test)]
@@ -2220,22 +2232,23 @@ mod tests {
         }
         let m = CanOpenMaster::new(bus.endpoint(), &cfg);
         // 3 × (6-byte RPDO + 7-byte TPDO) + SYNC = 775 bits every 2 ms; X and Z with friction
-        // feed-forward: 8-byte RPDOs (+20 bits each) and a torque read (135 bits each).
-        assert!((m.bus_load(1_000_000) - 1085.0 / 2000.0).abs() < 1e-6, "{}", m.bus_load(1_000_000));
+        // feed-forward: 8-byte RPDOs (+20 bits each) and a torque read (135 bits each); the
+        // spindle's torque read (135 bits).
+        assert!((m.bus_load(1_000_000) - 1220.0 / 2000.0).abs() < 1e-6, "{}", m.bus_load(1_000_000));
         cfg.machine.cycle_ms = 0.5;
         let m = CanOpenMaster::new(bus.endpoint(), &cfg);
         let e = m.check_bus_load(1_000_000).unwrap_err();
         assert_eq!(e.number, crate::alarm::BUS_LOAD);
-        assert!(e.message.contains("machine.cycle_ms = 1.5 or more") && e.message.contains("friction_compensation off on 2 axes"), "{}", e.message);
+        assert!(e.message.contains("machine.cycle_ms = 1.75 or more") && e.message.contains("friction_compensation off on 2 axes"), "{}", e.message);
         for a in cfg.axes.values_mut() {
             a.friction_compensation = false;
         }
         let m = CanOpenMaster::new(bus.endpoint(), &cfg);
-        assert!(m.check_bus_load(1_000_000).unwrap_err().message.contains("machine.cycle_ms = 1 or more"));
+        assert!(m.check_bus_load(1_000_000).unwrap_err().message.contains("machine.cycle_ms = 1.25 or more"));
     }
 
     /// A CiA 401 module's frames count: 16 inputs and 8 outputs add a 2-byte TPDO (75 bits)
-    /// and a 1-byte RPDO (65 bits) per cycle to the drives' 1085 (775 without friction
+    /// and a 1-byte RPDO (65 bits) per cycle to the drives' 1220 (910 without friction
     /// feed-forward).
     #[test]
     fn bus_load_counts_the_io_modules() {
@@ -2246,16 +2259,20 @@ mod tests {
             cfg.axes.get_mut(n).unwrap().friction_compensation = true;
         }
         let m = CanOpenMaster::new(bus.endpoint(), &cfg);
-        assert!((m.bus_load(1_000_000) - (1085.0 + 75.0 + 65.0) / 2000.0).abs() < 1e-6, "{}", m.bus_load(1_000_000));
+        assert!((m.bus_load(1_000_000) - (1220.0 + 75.0 + 65.0) / 2000.0).abs() < 1e-6, "{}", m.bus_load(1_000_000));
         for a in cfg.axes.values_mut() {
             a.friction_compensation = false;
         }
         let m = CanOpenMaster::new(bus.endpoint(), &cfg);
-        assert_eq!(cyclic_frames_io(3, &cfg.io.resolve().unwrap().canopen_modules()), m.frames());
+        let (mut want, mut got) = (cyclic_frames_io(3, &cfg.io.resolve().unwrap().canopen_modules()), m.frames());
+        want.push(8);
+        want.sort();
+        got.sort();
+        assert_eq!(want, got);
         cfg.machine.cycle_ms = 1.0;
         let m = CanOpenMaster::new(bus.endpoint(), &cfg);
         let e = m.check_bus_load(1_000_000).unwrap_err();
-        assert!(e.message.contains("3 drives and 1 I/O modules") && e.message.contains("machine.cycle_ms = 1.25 or more"), "{}", e.message);
+        assert!(e.message.contains("3 drives and 1 I/O modules") && e.message.contains("machine.cycle_ms = 1.5 or more"), "{}", e.message);
     }
 
     #[test]

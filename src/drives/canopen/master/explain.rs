@@ -2,6 +2,7 @@
 //! machine builder and what to configure. The generic abort text (CiA 301) says what the
 //! drive refused; this says why it matters here.
 
+use super::le_u32;
 use cncgw_bus::canopen::od;
 use cncgw_bus::canopen::sdo::abort;
 use cncgw_bus::cia402::mode;
@@ -24,13 +25,6 @@ fn pdo_name(ix: u16) -> String {
         0x1800..=0x19FF => format!("TPDO{}", ix - 0x1800 + 1),
         _ => format!("TPDO{}", ix.wrapping_sub(0x1A00) + 1),
     }
-}
-
-fn le_u32(data: &[u8]) -> u32 {
-    let mut b = [0u8; 4];
-    let n = data.len().min(4);
-    b[..n].copy_from_slice(&data[..n]);
-    u32::from_le_bytes(b)
 }
 
 /// What an abort `code` on a write of `data` to `index:sub` means at start-up, with what to

@@ -3,9 +3,12 @@
 //!
 //! Read by SDO every [`POLL_EVERY_NS`] while running, not mapped: TPDO1 has no room left
 //! (statusword, position actual, mode display: 7 of 8 bytes), and a load shown ten times a
-//! second needs no PDO of its own. The poll runs in `receive` as the mode poll does
-//! (`mode_track`): expedited answers only, no allocation, never waiting; it yields the SDO
-//! channel to the fault diagnosis and to the mode poll. A drive that answers with an abort
+//! second needs no PDO of its own. A spindle drive that gives its torque limit (max torque
+//! 0x6072, read at start-up) is read every other cycle instead: the torque margin
+//! (`sync::torque_margin`) must see a tap's ramp at the limit within its first tens of ms.
+//! The poll runs in `receive` as the mode poll does (`mode_track`): expedited answers only,
+//! no allocation, never waiting; it yields the SDO channel to the fault diagnosis and to the
+//! mode poll. A drive that answers with an abort
 //! (no 0x6077) is not asked again.
 
 use super::CanOpenMaster;
@@ -28,6 +31,9 @@ pub(super) struct TorquePoll {
     pub polling: bool,
     /// The drive answered with an abort: not asked again.
     pub absent: bool,
+    /// Max torque 0x6072 (per mille of the rated torque) as read at start-up, if the drive
+    /// has it.
+    pub max: Option<u16>,
 }
 
 impl<B: CanBus> CanOpenMaster<B> {
@@ -71,7 +77,7 @@ impl<B: CanBus> CanOpenMaster<B> {
                 }
             } else if now_ns >= n.torque.next_ns && !n.sdo.busy() {
                 n.torque.polling = true;
-                n.torque.next_ns = if learn { now_ns } else { now_ns + POLL_EVERY_NS };
+                n.torque.next_ns = if learn || n.torque.max.is_some() { now_ns } else { now_ns + POLL_EVERY_NS };
                 let f = n.sdo.start_upload_small(TORQUE_ACTUAL, 0, now_ns);
                 self.send(&f)?;
             }
