@@ -130,7 +130,9 @@ shape = SHAPES[SHAPE]
 def shaped_eds():
     """sim_drive.eds without the objects this shape lacks."""
     text = open(EDS).read()
-    for ix in shape.get("drop", []):
+    # Every shape lacks max torque 0x6072: this drive models no torque (0x6077 stays 0), and a
+    # limit would only have the master read that zero every other cycle.
+    for ix in ["6072"] + shape.get("drop", []):
         text = re.sub(r"\[%s(sub[0-9A-Fa-f]+)?\]\n(?:[^\[]*\n)*?\n" % ix, "", text)
     if shape.get("ip"):
         text = text.replace("DefaultValue=0x000001A1", "DefaultValue=0x00000061") + "\n" + IP_EDS
