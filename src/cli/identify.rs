@@ -10,7 +10,7 @@ use super::MachineArgs;
 use crate::config::{AxisKind, MachineConfig};
 use crate::control::trace::TraceData;
 use crate::interp::Interpreter;
-use crate::sync::identify::{identify, Response};
+use crate::sync::identify::{fill_late, fresh_samples, identify, Response};
 use std::path::PathBuf;
 
 /// The command line of `cncgw identify`.
@@ -53,6 +53,9 @@ const PROBE_ACCEL_SHARE: f64 = 0.2;
 /// Share of the following-error window the identification's fastest move may use up,
 /// judged from the probe's lag.
 const WINDOW_SHARE: f64 = 0.4;
+/// Beyond one late actual position in this many the record is called unclean (a warning): a
+/// gap filled over a host's stall (18 cycles at 5 ms) misses the ramp's corners it spans.
+const LATE_SHARE_WARN: usize = 20;
 
 /// Which run of the identification: the slow probe that reads the lag, or the excitation.
 #[derive(Clone, Copy, PartialEq)]
@@ -167,14 +170,14 @@ pub fn run(machine: &MachineArgs, a: &IdentifyArgs) -> i32 {
     for ax in probe.axes.values_mut().filter(|ax| ax.kind == AxisKind::Spindle) {
         ax.max_accel *= PROBE_ACCEL_SHARE;
     }
-    let (cmd, act) = match record(&probe, &cfg_text, machine, a, Stage::Probe) {
+    let (cmd, act, _) = match record(&probe, &cfg_text, machine, a, Stage::Probe) {
         Ok(r) => r,
         Err(c) => return c,
     };
     if let Some(r) = identify(&cmd, &act, cfg.cycle_s(), 10) {
         keep_within_window(&mut cfg, &a.axis, &r);
     }
-    let (cmd, act) = match record(&cfg, &cfg_text, machine, a, Stage::Excite) {
+    let (cmd, act, late) = match record(&cfg, &cfg_text, machine, a, Stage::Excite) {
         Ok(r) => r,
         Err(c) => return c,
     };
@@ -182,7 +185,13 @@ pub fn run(machine: &MachineArgs, a: &IdentifyArgs) -> i32 {
         eprintln!("error: axis {} did not move enough to identify it", a.axis);
         return exit::NOT_MET;
     };
-    report(&nominal, &a.axis, &r, a.json);
+    report(&nominal, &a.axis, &r, late, a.json);
+    if late * LATE_SHARE_WARN > r.samples {
+        eprintln!(
+            "warning: {late} of {} actual positions came late and were interpolated: the bus or this computer was too busy for a clean record; run it again on a quiet machine",
+            r.samples
+        );
+    }
     if r.vaf < 0.9 {
         eprintln!(
             "warning: the model accounts for only {:.1} % of the motion: the drive is not first-order-like (check its tuning, a resonance, friction)",
@@ -192,9 +201,10 @@ pub fn run(machine: &MachineArgs, a: &IdentifyArgs) -> i32 {
     exit::OK
 }
 
-/// Run `stage`'s program and return the axis' commanded and actual positions, every cycle.
-/// The excitation's trace is kept where `--trace` says.
-fn record(cfg: &MachineConfig, cfg_text: &str, machine: &MachineArgs, a: &IdentifyArgs, stage: Stage) -> Result<(Vec<f64>, Vec<f64>), i32> {
+/// Run `stage`'s program and return the axis' commanded and actual positions, every cycle,
+/// the actuals that came late filled from the fresh ones around them (`fill_late`), and how
+/// many were. The excitation's trace is kept where `--trace` says (as recorded).
+fn record(cfg: &MachineConfig, cfg_text: &str, machine: &MachineArgs, a: &IdentifyArgs, stage: Stage) -> Result<(Vec<f64>, Vec<f64>, usize), i32> {
     use super::exit;
     let keep = a.trace.clone().filter(|_| stage == Stage::Excite);
     let csv = keep.clone().unwrap_or_else(|| std::env::temp_dir().join(format!("cncgw-identify-{}.csv", std::process::id())));
@@ -223,7 +233,13 @@ fn record(cfg: &MachineConfig, cfg_text: &str, machine: &MachineArgs, a: &Identi
         exit::SETUP
     })?;
     match (data.column(&format!("{}_cmd", a.axis)), data.column(&format!("{}_act", a.axis))) {
-        (Some(c), Some(x)) => Ok((c.to_vec(), x.to_vec())),
+        (Some(c), Some(x)) => {
+            let mut act = x.to_vec();
+            let col = |k: &str| data.column(&format!("{}_{k}", a.axis)).map_or(vec![0.0; act.len()], <[f64]>::to_vec);
+            let (ferr, age) = (col("ferr"), col("age"));
+            let late = fill_late(&mut act, &fresh_samples(c, x, &ferr, &age));
+            Ok((c.to_vec(), act, late))
+        }
         _ => {
             eprintln!("error: the trace has no columns of axis {}", a.axis);
             Err(exit::SETUP)
@@ -299,7 +315,7 @@ pub fn proposed_window(cfg: &MachineConfig, axis: &str, r: &Response) -> f64 {
     3.0 * own_lag_at_max(cfg, axis, r)
 }
 
-fn report(cfg: &MachineConfig, axis: &str, r: &Response, json: bool) {
+fn report(cfg: &MachineConfig, axis: &str, r: &Response, late: usize, json: bool) {
     let dt = cfg.cycle_s();
     let unit = if cfg.axes[axis].kind == AxisKind::Spindle { "degrees" } else { "mm" };
     let window = proposed_window(cfg, axis, r);
@@ -310,13 +326,16 @@ fn report(cfg: &MachineConfig, axis: &str, r: &Response, json: bool) {
                 "axis": axis, "delay_cycles": r.delay_cycles as f64 + r.delay_fraction, "feed_forward": r.feed_forward,
                 "time_constant_ms": r.time_constant_s * 1e3, "velocity_lag_ms": r.velocity_lag_s(dt) * 1e3,
                 "own_lag_ms": own_lag_s(r, dt) * 1e3, "accel_lag_ms2": r.accel_lag * 1e6,
-                "vaf_pct": r.vaf * 100.0, "samples": r.samples,
+                "vaf_pct": r.vaf * 100.0, "samples": r.samples, "late_samples": late,
                 "proposed_following_error": window, "following_error": cfg.axes[axis].following_error, "unit": unit,
             })
         );
         return;
     }
     println!("# cncgw identify {axis}: {} cycles of {} ms, the model accounts for {:.1} % of the motion", r.samples, dt * 1e3, r.vaf * 100.0);
+    if late > 0 {
+        println!("# {late} actual positions came late (a frame after its SYNC) and were interpolated from the fresh ones around them");
+    }
     println!("[axes.{axis}.response]");
     println!(
         "delay_cycles = {:.1}        # set-point to the first change of the actual position the controller reads",

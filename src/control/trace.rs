@@ -1,5 +1,6 @@
-//! Per-cycle trace of a run (`cncgw run --trace FILE.csv`): setpoint, actual position and
-//! following error of every drive, spindle speed, sync error and block line.
+//! Per-cycle trace of a run (`cncgw run --trace FILE.csv`): setpoint, actual position,
+//! following error and the actual's age of every drive, spindle speed, sync error and block
+//! line.
 //!
 //! The cycle thread must not allocate after start, so rows go into preallocated chunks: a
 //! full chunk is handed to a writer thread over a bounded channel and comes back empty over
@@ -32,6 +33,9 @@ pub struct TraceRow {
     /// Following error: the demand this actual belongs to minus the actual (0 when the
     /// feedback was stale or the cycle late, see `CycleLoop`).
     pub ferr: [f64; MAX_TRACE_AXES],
+    /// Age of the actual position in SYNC cycles: 0 fresh, n when the drive's frame of this
+    /// SYNC had not come and the actual is the one of n cycles before (a late TPDO).
+    pub age: [u32; MAX_TRACE_AXES],
     /// Measured spindle speed, rpm.
     pub spindle_rpm: f64,
     /// Spindle–axis sync error, µm (0 outside synchronised moves).
@@ -45,14 +49,14 @@ pub trait TraceSink: Send + 'static {
     fn finish(&mut self) -> io::Result<()>;
 }
 
-/// CSV: `t_s,line,NAME_cmd,NAME_act,NAME_ferr,…,spindle_rpm,sync_err_um`.
+/// CSV: `t_s,line,NAME_cmd,NAME_act,NAME_ferr,NAME_age,…,spindle_rpm,sync_err_um`.
 pub struct CsvSink<W: Write + Send + 'static>(pub W);
 
 impl<W: Write + Send + 'static> TraceSink for CsvSink<W> {
     fn header(&mut self, names: &[String]) -> io::Result<()> {
         write!(self.0, "t_s,line")?;
         for n in names {
-            write!(self.0, ",{n}_cmd,{n}_act,{n}_ferr")?;
+            write!(self.0, ",{n}_cmd,{n}_act,{n}_ferr,{n}_age")?;
         }
         writeln!(self.0, ",spindle_rpm,sync_err_um")
     }
@@ -61,7 +65,7 @@ impl<W: Write + Send + 'static> TraceSink for CsvSink<W> {
         for r in rows {
             write!(self.0, "{:.6},{}", r.t_s, r.line)?;
             for d in 0..names.len() {
-                write!(self.0, ",{:.6},{:.6},{:.6}", r.cmd[d], r.act[d], r.ferr[d])?;
+                write!(self.0, ",{:.6},{:.6},{:.6},{}", r.cmd[d], r.act[d], r.ferr[d], r.age[d])?;
             }
             writeln!(self.0, ",{:.3},{:.3}", r.spindle_rpm, r.sync_err_um)?;
         }
@@ -351,6 +355,7 @@ mod tests {
             let mut r = TraceRow { t_s: k as f64 * 0.002, line: k as u32 / 100, ..Default::default() };
             r.cmd[0] = k as f64;
             r.act[1] = -(k as f64);
+            r.age[1] = (k % 3) as u32;
             r.sync_err_um = 0.5;
             t.record(&r);
             // Give the writer time now and then, as the cycle period does.
@@ -362,11 +367,12 @@ mod tests {
         assert_eq!(st, TraceStats { rows: n as u64, dropped: 0 });
         let text = String::from_utf8(buf.0.lock().unwrap().clone()).unwrap();
         let d = TraceData::parse(&text).unwrap();
-        assert_eq!(d.columns[..5], ["t_s", "line", "x_cmd", "x_act", "x_ferr"]);
+        assert_eq!(d.columns[..6], ["t_s", "line", "x_cmd", "x_act", "x_ferr", "x_age"]);
         assert_eq!(d.axes(), ["x", "s1"]);
         assert_eq!(d.column("x_cmd").unwrap().len(), n);
         assert_eq!(d.column("x_cmd").unwrap()[n - 1], (n - 1) as f64);
         assert_eq!(d.column("s1_act").unwrap()[5], -5.0);
+        assert_eq!(d.column("s1_age").unwrap()[5], 2.0);
         assert_eq!(d.column("sync_err_um").unwrap()[7], 0.5);
     }
 

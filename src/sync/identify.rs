@@ -430,6 +430,77 @@ fn search_poles(cmd: &[f64], act: &[f64], d: usize, dt: f64, keep: &[bool], rati
     [refine(best[0], ratios[0]), refine(best[1], ratios[1])]
 }
 
+/// Which actual positions answer their own SYNC (`fill_late` fills the others). Not one:
+/// the frame came late (`age` > 0, the trace's `NAME_age`); it follows one that was not and
+/// the cycle loop could not pair it with its demand (`ferr` exactly 0 while the demand moves:
+/// the late frame arriving a cycle on — alone, a 0 is a drive with full feed-forward that
+/// lags nothing, zff100); or it repeats the one before to the count while the demand moves — a drive
+/// that stalled sends its last position again (python peers on a stalling host) — after a
+/// step of more than one and a half of the smallest the record shows (a coarse encoder at a
+/// crawl repeats its count rightly). Each of the last two goes on through the run of such
+/// samples.
+pub fn fresh_samples(cmd: &[f64], act: &[f64], ferr: &[f64], age: &[f64]) -> Vec<bool> {
+    let n = cmd.len().min(act.len()).min(ferr.len()).min(age.len());
+    let quantum = (1..n).map(|k| (act[k] - act[k - 1]).abs()).filter(|d| *d > 0.0).fold(f64::INFINITY, f64::min);
+    let mut fresh = vec![true; n];
+    for k in 0..n {
+        let moving = k >= 1 && cmd[k] != cmd[k - 1];
+        let step = if k >= 2 { (act[k - 1] - act[k - 2]).abs() } else { 0.0 };
+        // The actual was moving before this sample, or the one before was not fresh.
+        let was_moving = k >= 2 && (step > 0.0 || !fresh[k - 1]);
+        let held = k >= 2 && act[k] == act[k - 1] && (step > 1.5 * quantum || !fresh[k - 1]);
+        let unpaired = k >= 1 && ferr[k] == 0.0 && !fresh[k - 1];
+        fresh[k] = !(age[k] > 0.0 || (moving && was_moving && (unpaired || held)));
+    }
+    fresh
+}
+
+/// Fill the actual positions that came late (`fresh[k]` false: the drive's frame of SYNC k
+/// had not come, `act[k]` holds an older one) from the fresh ones around them: a cubic
+/// through the two fresh samples before and the two after (exact for a constant
+/// acceleration; a line where fewer are fresh). A held value read as the drive's response
+/// is a stop and a jump — the fit then bends its delay and time constant to them (python
+/// peers under a stalling host: delay 2.0 → 3.8 cycles with 8 of 395 frames late). Runs at
+/// either end are left as they are. Returns the samples filled.
+pub fn fill_late(act: &mut [f64], fresh: &[bool]) -> usize {
+    let n = act.len().min(fresh.len());
+    let ok = |k: usize| k < n && fresh[k];
+    let mut filled = 0;
+    let mut k = 0;
+    while k < n {
+        if ok(k) {
+            k += 1;
+            continue;
+        }
+        let a = k;
+        while k < n && !fresh[k] {
+            k += 1;
+        }
+        if a == 0 || k == n {
+            continue;
+        }
+        // Fresh at a − 1 and at k; with a − 2 and k + 1 too, a cubic.
+        let (cubic, line) = ([a.saturating_sub(2), a - 1, k, k + 1], [a - 1, k]);
+        let pts: &[usize] = if a >= 2 && ok(a - 2) && ok(k + 1) { &cubic } else { &line };
+        for j in a..k {
+            act[j] = lagrange(pts, act, j);
+        }
+        filled += k - a;
+    }
+    filled
+}
+
+/// The polynomial through `(i, y[i])` for `i` in `pts`, at `x`.
+fn lagrange(pts: &[usize], y: &[f64], x: usize) -> f64 {
+    let x = x as f64;
+    pts.iter()
+        .map(|&i| {
+            let w: f64 = pts.iter().filter(|&&j| j != i).map(|&j| (x - j as f64) / (i as f64 - j as f64)).product();
+            w * y[i]
+        })
+        .sum()
+}
+
 /// Identify from the commanded and the actual positions of the same cycles (`dt` the cycle,
 /// s). `None`: too few samples or no motion.
 pub fn identify(cmd: &[f64], act: &[f64], dt: f64, max_delay: usize) -> Option<Response> {
@@ -623,5 +694,47 @@ mod tests {
             assert!((r.time_constant_s / tau - 1.0).abs() < 0.05, "{r:?}");
             assert!(r.vaf > 0.999, "{r:?}");
         }
+    }
+    /// Late samples of a constant acceleration come back exactly; a line where a neighbour
+    /// is late too; runs at the ends stay held.
+    #[test]
+    fn late_actuals_are_filled_from_the_fresh_around_them() {
+        let truth: Vec<f64> = (0..30).map(|k| 0.5 * 0.3 * (k as f64).powi(2) + 2.0 * k as f64).collect();
+        let mut act = truth.clone();
+        let mut fresh = vec![true; 30];
+        for k in [0, 1, 7, 12, 13, 14, 20, 22, 29] {
+            fresh[k] = false;
+            act[k] = if k == 0 { -1.0 } else { act[k - 1] };
+        }
+        let held = act.clone();
+        assert_eq!(fill_late(&mut act, &fresh), 6);
+        for k in [7, 12, 13, 14] {
+            assert!((act[k] - truth[k]).abs() < 1e-9, "sample {k}: {} for {}", act[k], truth[k]);
+        }
+        // 20 and 22 have only one fresh neighbour between them: a line, off by a·dt²/2.
+        for k in [20, 22] {
+            assert!((act[k] - truth[k]).abs() <= 0.5 * 0.3 + 1e-9, "sample {k}: {} for {}", act[k], truth[k]);
+        }
+        assert_eq!((act[0], act[1], act[29]), (held[0], held[1], held[29]));
+    }
+    /// A late frame, the unpaired frame after it and a held position while the demand moves
+    /// are not fresh; standing still or starting from rest (the following error 0 while
+    /// the delay passes) is.
+    #[test]
+    fn late_unpaired_and_held_actuals_are_not_fresh() {
+        let cmd = [0.0, 0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 8.0, 8.0];
+        let act = [0.0, 0.0, 0.0, 0.0, 1.0, 2.0, 2.0, 2.0, 5.0, 6.0, 8.0, 8.0];
+        let ferr = [0.0, 0.0, 0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 1.0, 1.0, 0.0, 0.0];
+        let age = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0];
+        let f = fresh_samples(&cmd, &act, &ferr, &age);
+        assert_eq!(f, [true, true, true, true, true, true, false, false, true, true, true, true]);
+        // A drive that stalled answers its demand with its last position (paired all the same).
+        let ferr = [0.0, 0.0, 0.0, 0.0, 1.0, 1.0, 2.0, 3.0, 1.0, 1.0, 0.0, 0.0];
+        let age = [0.0; 12];
+        let act = [0.0, 0.0, 0.0, 0.0, 1.0, 3.0, 3.0, 3.0, 5.0, 6.0, 8.0, 8.0];
+        assert_eq!(fresh_samples(&cmd, &act, &ferr, &age)[5..8], [true, false, false]);
+        // A coarse encoder at a crawl: its count repeats, one step at a time.
+        let act = [0.0, 0.0, 0.0, 0.0, 1.0, 1.0, 2.0, 2.0, 3.0, 3.0, 4.0, 4.0];
+        assert!(fresh_samples(&cmd, &act, &ferr, &age).iter().all(|f| *f));
     }
 }

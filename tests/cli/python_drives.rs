@@ -537,10 +537,20 @@ fn identify_on(python: &Path, shape: &str, axis: &str, spindle_window_deg: f64) 
 /// Measured 2026-11-30 (release build, chrt, the machine otherwise idle): s1 delay 3.07
 /// cycles, velocity lag 15.11 ms (0.11 of it its own), accel lag 1594 ms², window proposed
 /// 184° (3 × (0.11 ms × 36000°/s + 1594 ms² × 36000°/s²)); z delay 2.04, velocity lag
-/// 10.33 ms, own lag 0.33 ms. Until then the spindle's proposal was 0° ("no lag of its own"). Only a run whose
-/// excitation had no late TPDO is judged (a late one is a frame python sent late, not the
-/// drive's response); up to 8 runs (in a fresh-clone CI run, 2026-12-01, Z's first four runs
-/// all saw one to three late TPDOs: this host's stalls).
+/// The fit (variance accounted for, %) from which a run whose late actuals were filled is
+/// judged: with a hog stalling one core (`chrt -f 99`, 30 ms every 75–225 ms), 6 of 9 such
+/// runs filled to 100.0 %, 5 of them within this test's bounds (the sixth ran slower: its
+/// probe, not filled then, had read a stall as lag); the 3 whose drive had stalled itself
+/// stayed at 99.0–99.9 % (delay 6.5, 9.1, 1.5 cycles for 3 and 2). Unfilled, 8 of the 9 were
+/// off.
+const CLEAN_FIT_PCT: f64 = 99.9;
+
+/// 10.33 ms, own lag 0.33 ms. Until then the spindle's proposal was 0° ("no lag of its own"). A run
+/// is judged whose excitation had no late TPDO, or whose late actuals, at most one in 20 (where
+/// identify warns), it filled (`fill_late`) to a fit of at least [`CLEAN_FIT_PCT`] (a drive
+/// that stalled itself answers with a response no model holds: 33 of 548 filled to 99.9 % read
+/// a delay of 8.07 cycles for 3 on a host stalling on its own); up to 8 runs. In a fresh-clone CI run (2026-12-03) all 8 of
+/// Z's runs saw 1–162 late TPDOs and the test failed; identify did not fill them then.
 #[test]
 fn realtime_identify_on_python_drives() {
     let Some(python) = venv_python() else { return };
@@ -551,9 +561,11 @@ fn realtime_identify_on_python_drives() {
             let (r, err, late) = identify_on(&python, "tap_s40", axis, 180.0);
             eprintln!("{axis} attempt {attempt}: late TPDOs {late}: {r}");
             assert!(!r.is_null(), "{axis}: identify printed nothing: {err}");
-            (late == 0).then_some(r)
+            let (filled, samples) = (r["late_samples"].as_u64().unwrap_or(u64::MAX), r["samples"].as_u64().unwrap_or(0));
+            let clean = filled > 0 && filled * 20 <= samples && r["vaf_pct"].as_f64().unwrap_or(0.0) >= CLEAN_FIT_PCT;
+            (late == 0 || clean).then_some(r)
         });
-        let r = judged.unwrap_or_else(|| panic!("{axis}: a TPDO came late in every run of 8: nothing to judge"));
+        let r = judged.unwrap_or_else(|| panic!("{axis}: in every run of 8 a TPDO came late and the fit was not clean: nothing to judge"));
         let got = |k: &str| r[k].as_f64().unwrap_or(f64::NAN);
         assert!((got("delay_cycles") / delay - 1.0).abs() <= 0.1, "{axis}: delay {} cycles for {delay}", got("delay_cycles"));
         assert!((got("velocity_lag_ms") * 1e-3 / lag - 1.0).abs() <= 0.1, "{axis}: velocity lag {} ms for {:.2}", got("velocity_lag_ms"), lag * 1e3);

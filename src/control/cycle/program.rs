@@ -301,6 +301,7 @@ impl CycleLoop<'_> {
             }
             if d < MAX_TRACE_AXES {
                 row.act[d] = f.pos;
+                row.age[d] = f.age_cycles;
             }
             if d < SNAP_AXES {
                 self.snap.axes[d].act = f.pos;
