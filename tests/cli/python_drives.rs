@@ -537,35 +537,36 @@ fn identify_on(python: &Path, shape: &str, axis: &str, spindle_window_deg: f64) 
 /// Measured 2026-11-30 (release build, chrt, the machine otherwise idle): s1 delay 3.07
 /// cycles, velocity lag 15.11 ms (0.11 of it its own), accel lag 1594 ms², window proposed
 /// 184° (3 × (0.11 ms × 36000°/s + 1594 ms² × 36000°/s²)); z delay 2.04, velocity lag
-/// The fit (variance accounted for, %) from which a run whose late actuals were filled is
-/// judged: with a hog stalling one core (`chrt -f 99`, 30 ms every 75–225 ms), 6 of 9 such
-/// runs filled to 100.0 %, 5 of them within this test's bounds (the sixth ran slower: its
-/// probe, not filled then, had read a stall as lag); the 3 whose drive had stalled itself
-/// stayed at 99.0–99.9 % (delay 6.5, 9.1, 1.5 cycles for 3 and 2). Unfilled, 8 of the 9 were
-/// off.
-const CLEAN_FIT_PCT: f64 = 99.9;
-
-/// 10.33 ms, own lag 0.33 ms. Until then the spindle's proposal was 0° ("no lag of its own"). A run
-/// is judged whose excitation had no late TPDO, or whose late actuals, at most one in 20 (where
-/// identify warns), it filled (`fill_late`) to a fit of at least [`CLEAN_FIT_PCT`] (a drive
-/// that stalled itself answers with a response no model holds: 33 of 548 filled to 99.9 % read
-/// a delay of 8.07 cycles for 3 on a host stalling on its own); up to 8 runs. In a fresh-clone CI run (2026-12-03) all 8 of
-/// Z's runs saw 1–162 late TPDOs and the test failed; identify did not fill them then.
+/// 10.33 ms, own lag 0.33 ms. Until then the spindle's proposal was 0° ("no lag of its own"). Judged
+/// is only a run in which no actual came late — none filled by identify (`late_samples`), none
+/// held by the test's own count — and which ran at full speed (a probe that read a stall as
+/// lag slows the excitation, "the run keeps to …", and the spindle's lag per unit of
+/// acceleration then reads half: 797 and 812 ms² for 1600 in two CI runs); a run that printed
+/// nothing (a python drive that stalled left NMT operational, alarm 2014) is not judged either.
+/// Up to 10 runs. Filled runs are not judged: on a host stalling on its own (fresh-clone CI,
+/// 2026-12-03) one with 6 of 395 filled read Z's own lag 0.11 ms for 0.36 at a fit of 100 %,
+/// and one with 33 of 548 the spindle's delay 8.07 cycles for 3 — the drive process had stalled
+/// itself, which no filling recovers (README "Late frames").
 #[test]
 fn realtime_identify_on_python_drives() {
     let Some(python) = venv_python() else { return };
     let dt = TAP_CYCLE_MS * 1e-3;
     // (axis, delay in cycles, velocity lag s, own lag s, accel lag s²: None where not judged)
     for (axis, delay, lag, own, accel) in [("s1", 3.0, 3.0 * dt, 0.0, Some(0.04f64 * 0.04)), ("z", 2.0, 2.0 * dt + 0.36e-3, 0.36e-3, None)] {
-        let judged = (1..=8).find_map(|attempt| {
+        let mut printed = 0;
+        let judged = (1..=10).find_map(|attempt| {
             let (r, err, late) = identify_on(&python, "tap_s40", axis, 180.0);
             eprintln!("{axis} attempt {attempt}: late TPDOs {late}: {r}");
-            assert!(!r.is_null(), "{axis}: identify printed nothing: {err}");
-            let (filled, samples) = (r["late_samples"].as_u64().unwrap_or(u64::MAX), r["samples"].as_u64().unwrap_or(0));
-            let clean = filled > 0 && filled * 20 <= samples && r["vaf_pct"].as_f64().unwrap_or(0.0) >= CLEAN_FIT_PCT;
-            (late == 0 || clean).then_some(r)
+            if r.is_null() {
+                eprintln!("  identify printed nothing: {err}");
+                return None;
+            }
+            printed += 1;
+            let clean = late == 0 && r["late_samples"].as_u64() == Some(0) && !err.contains("the run keeps to");
+            clean.then_some(r)
         });
-        let r = judged.unwrap_or_else(|| panic!("{axis}: in every run of 8 a TPDO came late and the fit was not clean: nothing to judge"));
+        assert!(printed > 0, "{axis}: identify printed nothing in any of 10 runs");
+        let r = judged.unwrap_or_else(|| panic!("{axis}: in every run of 10 an actual came late or the run was slowed: nothing to judge"));
         let got = |k: &str| r[k].as_f64().unwrap_or(f64::NAN);
         assert!((got("delay_cycles") / delay - 1.0).abs() <= 0.1, "{axis}: delay {} cycles for {delay}", got("delay_cycles"));
         assert!((got("velocity_lag_ms") * 1e-3 / lag - 1.0).abs() <= 0.1, "{axis}: velocity lag {} ms for {:.2}", got("velocity_lag_ms"), lag * 1e3);
