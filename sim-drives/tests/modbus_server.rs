@@ -43,28 +43,7 @@ impl Srv {
     }
 }
 
-const M: Cia402Map = Cia402Map {
-    controlword: 0,
-    target_position: 1,
-    target_velocity: 3,
-    mode: 5,
-    statusword: 10,
-    mode_display: 11,
-    position_actual: 12,
-    velocity_actual: 14,
-    error_code: Some(16),
-    interpolation_ms: Some(20),
-    following_error_window: 21,
-    comm_timeout_ms: Some(23),
-    homing_method: Some(24),
-    home_offset: Some(25),
-    homing_switch_speed: Some(27),
-    homing_zero_speed: Some(29),
-    homing_accel: Some(31),
-    digital_inputs: Some(33),
-    word_order: WordOrder::HighFirst,
-    reads: cncgw_bus::modbus::ReadBlocks::Auto,
-};
+const M: Cia402Map = Cia402Map::SIM_DRIVES;
 
 async fn read(c: &mut Context, addr: u16, n: u16) -> Vec<u16> {
     c.read_holding_registers(addr, n).await.expect("transport").unwrap_or_else(|e| panic!("read {addr}+{n}: {e:?}"))

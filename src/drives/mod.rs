@@ -131,7 +131,20 @@ pub trait DriveBus {
     fn max_torque_permille(&self, _axis: usize) -> Option<u16> {
         None
     }
+
+    /// `torque_permille` as a share of the rated torque (1.0 = rated); NaN where not read.
+    fn torque_rated(&self, axis: usize) -> f64 {
+        self.torque_permille(axis).map_or(f64::NAN, |t| f64::from(t) / PER_MILLE)
+    }
+
+    /// `max_torque_permille` as a share of the rated torque; NaN where not known.
+    fn max_torque_rated(&self, axis: usize) -> f64 {
+        self.max_torque_permille(axis).map_or(f64::NAN, |t| f64::from(t) / PER_MILLE)
+    }
 }
+
+/// Torque objects (0x6072, 0x6077) count in thousandths of the rated torque (CiA 402).
+const PER_MILLE: f64 = 1000.0;
 
 /// How a spindle on a slow link is driven (`DriveBus::set_spindle_control`).
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -430,15 +430,17 @@ fn search_poles(cmd: &[f64], act: &[f64], d: usize, dt: f64, keep: &[bool], rati
     [refine(best[0], ratios[0]), refine(best[1], ratios[1])]
 }
 
-/// Which actual positions answer their own SYNC (`fill_late` fills the others). Not one:
-/// the frame came late (`age` > 0, the trace's `NAME_age`); it follows one that was not and
-/// the cycle loop could not pair it with its demand (`ferr` exactly 0 while the demand moves:
-/// the late frame arriving a cycle on — alone, a 0 is a drive with full feed-forward that
-/// lags nothing, zff100); or it repeats the one before to the count while the demand moves — a drive
-/// that stalled sends its last position again (python peers on a stalling host) — after a
-/// step of more than one and a half of the smallest the record shows (a coarse encoder at a
-/// crawl repeats its count rightly). Each of the last two goes on through the run of such
-/// samples.
+/// Which actual positions answer their own SYNC (`fill_late` fills the others). An actual is
+/// not its SYNC's own when:
+/// - its frame came late (`age` > 0, the trace's `NAME_age`);
+/// - it follows one that was not and the cycle loop could not pair it with its demand:
+///   `ferr` exactly 0 while the demand moves (alone, a 0 is a drive with full feed-forward
+///   that lags nothing: zff100);
+/// - it repeats the previous count while the demand moves, after a step of more than 1.5× the
+///   record's smallest: a drive that stalled sends its last position again (python peers on
+///   a stalling host); a coarse encoder at a crawl repeats its count rightly.
+///
+/// The last two go on through the run of such samples.
 pub fn fresh_samples(cmd: &[f64], act: &[f64], ferr: &[f64], age: &[f64]) -> Vec<bool> {
     let n = cmd.len().min(act.len()).min(ferr.len()).min(age.len());
     let quantum = (1..n).map(|k| (act[k] - act[k - 1]).abs()).filter(|d| *d > 0.0).fold(f64::INFINITY, f64::min);

@@ -11,7 +11,7 @@ use cncgw::drives::canopen::CanOpenMaster;
 use cncgw::interp::Interpreter;
 use cncgw::motion::Limits;
 use cncgw::Alarm;
-use cncgw_bus::transport::inproc::{InprocBus, InprocEndpoint};
+use cncgw_bus::transport::inproc::InprocBus;
 use cncgw_bus::Clock;
 use sim_drives::config::Shape;
 use sim_drives::{SimConfig, SimWorld};
@@ -19,6 +19,7 @@ use std::ffi::OsStr;
 use std::path::Path;
 use std::process::Output;
 
+use crate::inproc_run::{run, Ran};
 use crate::profiles_common;
 use profiles_common::{machine_for, mixed, profiled, relaxed};
 
@@ -47,52 +48,7 @@ fn ip_machine() -> MachineConfig {
     cfg
 }
 
-struct Ran {
-    result: Result<RunSummary, Alarm>,
-    world: SimWorld,
-    #[allow(dead_code)]
-    master: CanOpenMaster<InprocEndpoint>,
-    start: [i64; 3],
-}
-
-/// `program` on `cfg`'s machine with the emulated drives of `sim`, as `cncgw run` does it.
-fn run(cfg: &MachineConfig, sim: SimConfig, program: &str) -> Ran {
-    let interp = Interpreter::from_source("first_part.nc", program, cfg).expect("program parses");
-    let wire = InprocBus::new();
-    let mut world = SimWorld::new(&wire, sim);
-    let start = [1, 2, 3].map(|n| world.drive(n).unwrap().position_unwrapped());
-    let mut master = CanOpenMaster::new(wire.endpoint(), cfg);
-    let spindle = cfg.spindle_index();
-    let mut summary = RunSummary::default();
-    let r = {
-        let mut lp = CycleLoop::new(&mut master, &mut world, Limits::from_config(cfg), spindle, 2_000_000);
-        let r = run_program(&mut lp, interp, &mut summary);
-        lp.finish();
-        r
-    };
-    Ran { result: r.map(|_| summary), world, master, start }
-}
-
 impl Ran {
-    fn alarm(&self) -> &Alarm {
-        match &self.result {
-            Err(a) => a,
-            Ok(s) => panic!("expected an alarm, the run ended: {s:?}"),
-        }
-    }
-
-    fn summary(&self) -> &RunSummary {
-        self.result.as_ref().unwrap_or_else(|a| panic!("{a}"))
-    }
-
-    fn assert_nothing_moved(&self) {
-        for (k, n) in [1u8, 2, 3].into_iter().enumerate() {
-            let d = self.world.drive(n).unwrap();
-            assert_eq!(d.enabled_modes(), 0, "node {n} was enabled");
-            assert_eq!(d.position_unwrapped(), self.start[k], "node {n} moved");
-        }
-    }
-
     /// At the end point of first_part (X100 Z5, X a diameter), within one count, on the
     /// drives' own positions.
     fn assert_at_end_point(&self) {

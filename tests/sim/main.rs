@@ -16,6 +16,7 @@ mod drive_matrix;
 mod drive_profiles;
 mod fault_matrix;
 mod identify;
+mod inproc_run;
 mod io_run;
 mod late_cycle;
 mod late_external_sync;

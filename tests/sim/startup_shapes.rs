@@ -6,12 +6,8 @@
 //! of the wrong length, node guarding.
 
 use cncgw::config::{MachineConfig, EMBEDDED_LATHE};
-use cncgw::control::cycle::{CycleLoop, RunSummary};
-use cncgw::control::job::run_program;
 use cncgw::drives::canopen::CanOpenMaster;
 use cncgw::drives::DriveBus;
-use cncgw::interp::Interpreter;
-use cncgw::motion::Limits;
 use cncgw::Alarm;
 use cncgw_bus::canopen::nmt::NmtState;
 use cncgw_bus::cia402::State;
@@ -19,6 +15,8 @@ use cncgw_bus::transport::inproc::{InprocBus, InprocEndpoint};
 use cncgw_bus::{CanBus, Clock};
 use sim_drives::config::Shape;
 use sim_drives::{SimConfig, SimWorld};
+
+use crate::inproc_run::{run, Ran};
 
 const MS: u64 = 1_000_000;
 const CSP: u32 = 1 << 8;
@@ -36,49 +34,7 @@ fn shaped(f: impl Fn(&mut Shape, u8)) -> SimConfig {
     sim
 }
 
-struct Ran {
-    result: Result<RunSummary, Alarm>,
-    world: SimWorld,
-    master: CanOpenMaster<InprocEndpoint>,
-    /// Power-on position (increments) of each drive, by node 1…3.
-    start: [i64; 3],
-}
-
-/// `program` on `cfg`'s machine with the emulated drives of `sim`, as `cncgw run` does it.
-fn run(cfg: &MachineConfig, sim: SimConfig, program: &str) -> Ran {
-    let interp = Interpreter::from_source("first_part.nc", program, cfg).expect("program parses");
-    let wire = InprocBus::new();
-    let mut world = SimWorld::new(&wire, sim);
-    let start = [1, 2, 3].map(|n| world.drive(n).unwrap().position_unwrapped());
-    let mut master = CanOpenMaster::new(wire.endpoint(), cfg);
-    let spindle = cfg.spindle_index();
-    let mut summary = RunSummary::default();
-    let r = {
-        let mut lp = CycleLoop::new(&mut master, &mut world, Limits::from_config(cfg), spindle, 2_000_000);
-        let r = run_program(&mut lp, interp, &mut summary);
-        lp.finish();
-        r
-    };
-    Ran { result: r.map(|_| summary), world, master, start }
-}
-
 impl Ran {
-    fn alarm(&self) -> &Alarm {
-        match &self.result {
-            Err(a) => a,
-            Ok(s) => panic!("expected an alarm, the run ended: {s:?}"),
-        }
-    }
-
-    /// Before any motion: no drive was ever enabled, and every one stands where it powered on.
-    fn assert_nothing_moved(&self) {
-        for (k, n) in [1u8, 2, 3].into_iter().enumerate() {
-            let d = self.world.drive(n).unwrap();
-            assert_eq!(d.enabled_modes(), 0, "node {n} was enabled");
-            assert_eq!(d.position_unwrapped(), self.start[k], "node {n} moved");
-        }
-    }
-
     /// Start-up left the drives as it found them: PDOs valid with their power-on mapping, the
     /// application objects written back, pre-operational (as they booted).
     fn assert_left_as_found(&self, sim: &SimConfig) {

@@ -343,8 +343,8 @@ impl CycleLoop<'_> {
             }
             run.spindle_rpm = run.meter.update_fb(&f, run.dt);
             fb.spindle_rpm = run.spindle_rpm;
-            fb.spindle_torque = self.drives.torque_permille(sd).map_or(f64::NAN, |t| f64::from(t) / 1000.0);
-            fb.spindle_torque_max = self.drives.max_torque_permille(sd).map_or(f64::NAN, |t| f64::from(t) / 1000.0);
+            fb.spindle_torque = self.drives.torque_rated(sd);
+            fb.spindle_torque_max = self.drives.max_torque_rated(sd);
             self.rpm = run.spindle_rpm;
         }
         Ok(fb)
@@ -663,7 +663,7 @@ impl CycleLoop<'_> {
         if self.snapshot.is_none() {
             return;
         }
-        let load = self.spindle_drive.and_then(|d| self.drives.torque_permille(d)).map_or(f64::NAN, |t| t as f64 / 10.0);
+        let load = self.spindle_drive.map_or(f64::NAN, |d| 100.0 * self.drives.torque_rated(d));
         let s = &mut self.snap;
         s.spindle_load_pct = load;
         s.parts += new_end as u64;
