@@ -88,7 +88,9 @@ pub enum Command {
         state_dir: Option<PathBuf>,
         /// Record every cycle to this CSV file: t_s, line, NAME_cmd/NAME_act/NAME_ferr per
         /// drive (mm, X as a radius; the spindle in degrees) and NAME_age (SYNC cycles the
-        /// actual is old: 0 fresh, more after a late frame), spindle_rpm, sync_err_um.
+        /// actual is old: 0 fresh, more after a late frame), spindle_rpm, sync_err_um. After
+        /// an alarm, reset or a drive fault it goes on until the drives stand still (NAME_ferr
+        /// 0 there).
         #[arg(long, value_name = "FILE.csv")]
         trace: Option<PathBuf>,
         /// Stop with alarm 2501 (a controlled stop) after this many blocks: a program that

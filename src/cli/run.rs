@@ -1078,6 +1078,7 @@ fn print_summary(s: &RunSummary, json: bool, alarm: Option<&crate::Alarm>) {
                 "quick_stop": s.rest.quick_stop,
                 "timed_out": s.rest.timed_out,
                 "time_s": s.rest.time_s,
+                "fault_reaction": s.rest.fault_reaction,
                 "spindle_rpm_at_torque_off": s.rest.spindle_rpm_at_off,
             },
             "spindle_accel_managed_rpm_s": s.spindle_accel_rpm_s,

@@ -11,7 +11,7 @@ use crate::control::guard::Guard;
 use crate::control::panel::{Panel, PanelReader};
 use crate::control::snapshot::{MachineSnap, MachineState, Snapshot, SNAP_AXES};
 use crate::control::tapstate::TapWatch;
-use crate::control::trace::Trace;
+use crate::control::trace::{Trace, TraceRow, MAX_TRACE_AXES};
 
 use crate::drives::DriveBus;
 use crate::motion::polygon::ToolSpindle;
@@ -385,6 +385,8 @@ pub struct CycleLoop<'a> {
     pub cycle_ns: u64,
     /// Per-cycle trace (`--trace`), recorded without allocating.
     trace: Option<Trace>,
+    /// Clock time of the program's start: the trace's time origin.
+    trace_t0: u64,
     /// The operator panel; without one (a batch run) M00/M01 go on as if cycle start had
     /// been pressed.
     panel: Option<PanelReader>,
@@ -400,6 +402,11 @@ pub struct CycleLoop<'a> {
     active_guard: Option<Guard>,
     /// Every drive was sent quick stop (E-stop, a bus error, a second fault, a limit).
     quick: bool,
+    /// Clock time the run's stop began (a controlled stop on an alarm or reset, a drive
+    /// fault's stop), if one did: `to_rest` counts the time to standstill from there.
+    stop_t0: Option<u64>,
+    /// A drive ran its own fault reaction in the stop (`fault_stop`).
+    fault_reaction: bool,
     /// The spindle speed measured last, rpm.
     rpm: f64,
     /// Set (to the signal's number) by SIGTERM/SIGINT/SIGHUP: stop as on reset. With the
@@ -426,6 +433,7 @@ impl<'a> CycleLoop<'a> {
             spindle_drive,
             cycle_ns,
             trace: None,
+            trace_t0: 0,
             panel: None,
             tool: None,
             tap: None,
@@ -433,6 +441,8 @@ impl<'a> CycleLoop<'a> {
             guard: None,
             active_guard: None,
             quick: false,
+            stop_t0: None,
+            fault_reaction: false,
             rpm: 0.0,
             signal: None,
             io: Ok(None),
@@ -563,6 +573,8 @@ impl<'a> CycleLoop<'a> {
         limits.sync_correction &= (0..self.drives.axis_count()).all(|d| self.drives.link_cycle(d).is_none());
         let mut motion = Motion::new(limits, start);
         self.quick = false;
+        self.stop_t0 = None;
+        self.fault_reaction = false;
         self.rpm = 0.0;
         // Each drive's feedback period in cycles (a Modbus link's cycle; 1 at SYNC), for the
         // stop's silence test. Allocated here, before the first cycle.
@@ -766,6 +778,8 @@ impl<'a> CycleLoop<'a> {
     /// Anything else going wrong meanwhile (a second drive, the bus, E-stop) quick-stops
     /// every drive.
     fn fault_stop(&mut self, motion: &mut Motion, d: usize, first: Option<Alarm>, rpm: f64, line: u32, ended: bool) -> Alarm {
+        self.stop_t0.get_or_insert(self.clock.now_ns());
+        self.fault_reaction = true;
         motion.fault_stop(motion_axis(self.drives.axis_name(d), Some(d) == self.spindle_drive));
         tracing::warn!(axis = self.drives.axis_name(d), line, "drive fault: controlled stop of the other drives");
         // `quick`: every drive was sent quick stop after all (the others are not under control).
@@ -851,6 +865,7 @@ impl<'a> CycleLoop<'a> {
     }
 
     fn halt_from(&mut self, motion: &mut Motion, rpm: f64, this_cycle: bool) {
+        self.stop_t0.get_or_insert(self.clock.now_ns());
         motion.stop_following();
         let mut meter = SpindleMeter::new(self.spindle_drive.map(|s| self.drives.feedback(s).pos).unwrap_or(0.0), rpm);
         let dt_ns = self.cycle_ns;
@@ -899,7 +914,36 @@ impl<'a> CycleLoop<'a> {
         for _ in 0..(late + passed).min(self.watchdog.catch_up) {
             sp = motion.step(fb);
         }
+        // The speed the next stop loop's meter starts from (`to_rest` after a fault stop).
+        self.rpm = fb.spindle_rpm;
+        self.trace_stop(motion, &sp, fb, now);
         sp
+    }
+
+    /// A stop loop's cycle into the trace, once a stop began (an alarm, reset, a drive
+    /// fault): how the drives came to rest after it is what its diagnosis needs — a faulted
+    /// spindle braking on its own, the feed axis following it. (The settling after a program's
+    /// end is not traced: the program's cycles are the record.) The following error is not
+    /// paired here (0).
+    fn trace_stop(&mut self, motion: &Motion, sp: &crate::motion::Setpoint, fb: &Feedback, now: u64) {
+        if self.trace.is_none() || self.stop_t0.is_none() {
+            return;
+        }
+        let t_s = now.saturating_sub(self.trace_t0) as f64 * 1e-9;
+        let mut row = TraceRow { t_s, line: sp.line, spindle_rpm: fb.spindle_rpm, sync_err_um: motion.sync_error(), ..TraceRow::default() };
+        for d in 0..self.drives.axis_count().min(MAX_TRACE_AXES) {
+            let f = self.drives.feedback(d);
+            row.act[d] = f.pos;
+            row.age[d] = f.age_cycles;
+            row.cmd[d] = match motion_axis(self.drives.axis_name(d), Some(d) == self.spindle_drive) {
+                Some(a) => sp.pos[a],
+                None if self.tool.is_some_and(|t| t.drive == d) => sp.tool_spindle,
+                None => f.pos,
+            };
+        }
+        if let Some(t) = self.trace.as_mut() {
+            t.record(&row);
+        }
     }
 
     /// Orderly end: disable drives.

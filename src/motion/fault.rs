@@ -23,6 +23,10 @@ const REST_CYCLES: u32 = 10;
 /// Longest follow, cycles (a faulted drive that coasts for ever must not hold the loop).
 const MAX_FOLLOW_CYCLES: u32 = 10_000;
 
+/// No end to keep within (a spindle following a faulted feed axis: the axis' own actual
+/// bounds it).
+const UNBOUNDED: (f64, f64) = (f64::NEG_INFINITY, f64::INFINITY);
+
 /// The survivor of a synchronised pair following the faulted partner.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub(super) struct Follow {
@@ -56,8 +60,9 @@ impl Follow {
         Follow { faulted, x, v, dir, f_prev: None, f_v, still: 0, cycles: 0, driven: false }
     }
 
-    /// One cycle towards `target` (moving at `vt`), within `a` per s², never against `dir`.
-    fn track(&mut self, target: f64, vt: f64, a: f64, dt: f64) {
+    /// One cycle towards `target` (moving at `vt`), within `a` per s², never against `dir`,
+    /// and never past the move's ends `lo`..`hi` (survivor coordinates; infinite: none).
+    fn track(&mut self, target: f64, vt: f64, a: f64, dt: f64, (lo, hi): (f64, f64)) {
         let dv = (a * dt).max(1e-12);
         let d = target - self.x;
         let vb = profile::v_allowed(d.abs(), dv, dt).copysign(d);
@@ -66,6 +71,15 @@ impl Follow {
             nv = nv.max(0.0);
         } else if self.dir < 0.0 {
             nv = nv.min(0.0);
+        }
+        // The target is clamped to the move, but a survivor at speed needs its braking
+        // distance: from the speed that still stops at the end. A spindle braking slowly on its
+        // fault reaction took a tap's Z 1.7 mm past the hole's bottom before this.
+        if hi.is_finite() {
+            nv = nv.min(profile::v_allowed(hi - self.x, dv, dt));
+        }
+        if lo.is_finite() {
+            nv = nv.max(-profile::v_allowed(self.x - lo, dv, dt));
         }
         if !nv.is_finite() {
             nv = 0.0;
@@ -165,15 +179,16 @@ impl Motion {
                 if a == AX_S {
                     let tau = if self.lim.sync_correction { self.axis_lag(seg.axis) } else { 0.0 };
                     let raw = pr + seg.lead * (pred + fv * tau - thr) / 360.0;
-                    let tgt = raw.clamp(seg.p0.min(seg.p1), seg.p0.max(seg.p1));
+                    let ends = (seg.p0.min(seg.p1), seg.p0.max(seg.p1));
+                    let tgt = raw.clamp(ends.0, ends.1);
                     let vt = if tgt == raw { seg.lead * fv / 360.0 } else { 0.0 };
-                    f.track(tgt, vt, self.lim.amax[seg.axis], dt);
+                    f.track(tgt, vt, self.lim.amax[seg.axis], dt, ends);
                     self.pos[seg.axis] = f.x;
                     self.pos[AX_S] = act;
                     path_v = f.v.abs();
                 } else {
                     let tgt = thr + 360.0 * (pred - pr) / seg.lead;
-                    f.track(tgt, 360.0 * fv / seg.lead, self.lim.amax[AX_S], dt);
+                    f.track(tgt, 360.0 * fv / seg.lead, self.lim.amax[AX_S], dt, UNBOUNDED);
                     self.pos[AX_S] = f.x;
                     self.pos[seg.axis] = act;
                     path_v = fv.abs();
@@ -185,7 +200,7 @@ impl Motion {
                     let raw = (pred - th0) * seg.plen / seg.dc;
                     let tgt = raw.clamp(0.0, seg.plen);
                     let vt = if tgt == raw { fv * seg.plen / seg.dc } else { 0.0 };
-                    f.track(tgt, vt, seg.alim, dt);
+                    f.track(tgt, vt, seg.alim, dt, (0.0, seg.plen));
                     if seg.geom.len() > 0.0 {
                         self.pos[..3].copy_from_slice(&seg.geom.at(f.x.clamp(0.0, seg.plen)));
                     }
@@ -193,7 +208,7 @@ impl Motion {
                     path_v = f.v.abs();
                 } else if let (Some(s), Some(s1)) = (axis_progress(&seg.geom, a, pred), axis_progress(&seg.geom, a, pred + fv * dt)) {
                     let s = s.clamp(0.0, seg.plen);
-                    f.track(th0 + seg.dc * s / seg.plen, seg.dc * (s1 - s) / dt / seg.plen, self.lim.amax[AX_S], dt);
+                    f.track(th0 + seg.dc * s / seg.plen, seg.dc * (s1 - s) / dt / seg.plen, self.lim.amax[AX_S], dt, UNBOUNDED);
                     self.pos[..3].copy_from_slice(&seg.geom.at(s));
                     self.pos[a] = act;
                     self.pos[AX_S] = f.x;
@@ -211,7 +226,7 @@ impl Motion {
                     let raw = t.target(th);
                     let tgt = raw.clamp(0.0, len);
                     let vt = if tgt == raw { (t.target(th + fv * dt) - raw) / dt } else { 0.0 };
-                    f.track(tgt, vt, seg.alim, dt);
+                    f.track(tgt, vt, seg.alim, dt, (0.0, len));
                     self.pos[..3].copy_from_slice(&seg.geom.at(f.x.clamp(0.0, len)));
                     if !f.driven {
                         self.pos[AX_S] = act;
@@ -220,9 +235,9 @@ impl Motion {
                 } else if let (Some(s), Some(s1)) = (axis_progress(&seg.geom, a, pred), axis_progress(&seg.geom, a, pred + fv * dt)) {
                     let s = s.clamp(0.0, len);
                     if let (Some(th), Some(th1)) = (t.angle_at(s), t.angle_at(s1.clamp(0.0, len))) {
-                        f.track(th, (th1 - th) / dt, self.lim.amax[AX_S], dt);
+                        f.track(th, (th1 - th) / dt, self.lim.amax[AX_S], dt, UNBOUNDED);
                     } else {
-                        f.track(f.x, 0.0, self.lim.amax[AX_S], dt);
+                        f.track(f.x, 0.0, self.lim.amax[AX_S], dt, UNBOUNDED);
                     }
                     self.pos[..3].copy_from_slice(&seg.geom.at(s));
                     self.pos[a] = act;
@@ -319,6 +334,16 @@ mod tests {
         }
         assert!(worst < 0.002, "Z kept to the spindle within {:.1} µm", worst * 1000.0);
         assert!(cycles < 400, "{cycles} cycles");
+    }
+
+    #[test]
+    fn z_stops_at_the_holes_bottom_when_a_faulted_spindle_brakes_past_it() {
+        // S1000 at lead 1.5 is 25 mm/s of Z; a spindle that brakes at 600°/s² on its fault
+        // reaction turns 30000° more (125 mm of Z) — far past the 32 mm stroke's bottom.
+        let (trace, _) = fault_in(MoveKind::Tap { end: Pos::xz(0.0, -30.0), lead: 1.5, rpm: 1000.0, spindle: 1 }, 400, AX_S, 2, 600.0);
+        let deepest = trace.iter().map(|t| t.1).fold(f64::INFINITY, f64::min);
+        assert!(deepest >= -30.0 - 1e-9, "Z went {:.4} mm past the hole's bottom", -30.0 - deepest);
+        assert!(deepest < -29.99, "Z stopped at {deepest} mm, short of the bottom the spindle's turns take it to");
     }
 
     #[test]

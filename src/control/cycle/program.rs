@@ -110,6 +110,7 @@ impl Run {
         let hist = (0..n).map(|d| [lp.drives.feedback(d).counts; 2]).collect();
         let scale = (0..n).map(|d| ScaleWatch::new(lp.drives.following_window(d).map(|w| w * lp.drives.counts_per_unit(d)))).collect();
         let t_start = lp.clock.now_ns();
+        lp.trace_t0 = t_start;
         Run {
             map,
             simulated: lp.clock.is_simulated(),

@@ -45,8 +45,11 @@ pub struct Rest {
     pub quick_stop: bool,
     /// The controlled stop did not come to rest within its time and quick stop was sent.
     pub timed_out: bool,
-    /// From the end of the program or the stop's start to standstill, s of clock time.
+    /// From the end of the program or the stop's start (the alarm, reset or drive fault that
+    /// began it) to standstill, s of clock time.
     pub time_s: f64,
+    /// A faulted drive braked on its own fault reaction (the others under control).
+    pub fault_reaction: bool,
     /// The spindle's measured speed when the run handed the drives back for torque off, rpm.
     pub spindle_rpm_at_off: f64,
     /// Drives that sent no feedback while stopping (a silent node, a lost bus): not seen at
@@ -58,6 +61,10 @@ impl Rest {
     /// The machine's state in words, for the run's message.
     pub fn describe(&self) -> String {
         match (self.at_rest, self.quick_stop, self.timed_out) {
+            (true, false, _) if self.fault_reaction => format!(
+                "the faulted drive braked on its own fault reaction, the others under control; all stood still {:.2} s after the stop began; torque was removed at standstill",
+                self.time_s
+            ),
             (true, false, _) => format!(
                 "spindle and axes came to rest under control in {:.2} s; torque was removed at standstill",
                 self.time_s
@@ -139,15 +146,17 @@ impl CycleLoop<'_> {
     /// conversion: the `to_*` naming lint does not apply.)
     #[allow(clippy::wrong_self_convention)]
     pub(super) fn to_rest(&mut self, motion: &mut Motion, still: &mut Still) -> (Rest, Option<Alarm>) {
-        let t0 = self.clock.now_ns();
+        let entry = self.clock.now_ns();
+        // The time to standstill counts from the stop's start where a stop loop ran before.
+        let t0 = self.stop_t0.unwrap_or(entry).min(entry);
         let dt = self.cycle_ns.max(1);
-        let mut rest = Rest::default();
+        let mut rest = Rest { fault_reaction: self.fault_reaction, ..Rest::default() };
         let mut raised = None;
         motion.stop();
         let mut meter = SpindleMeter::new(self.spindle_pos(), self.rpm);
         still.reset();
-        let mut deadline = t0 + if self.quick { QUICK_TIMEOUT_NS } else { REST_TIMEOUT_NS };
-        let mut next = t0;
+        let mut deadline = entry + if self.quick { QUICK_TIMEOUT_NS } else { REST_TIMEOUT_NS };
+        let mut next = entry;
         loop {
             next += dt;
             self.clock.wait_until(next);
