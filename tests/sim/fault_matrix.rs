@@ -97,6 +97,11 @@ struct Outcome {
     /// Simulated time when the run returned, ns since power-on.
     end_ns: u64,
     wire: InprocBus,
+    /// How the run came to rest (`RunSummary::rest`): its time from the stop's start, whether
+    /// a faulted drive braked on its own, and the line the run prints.
+    rest_s: f64,
+    fault_reaction: bool,
+    rest_text: String,
 }
 
 #[derive(Default)]
@@ -144,7 +149,8 @@ fn run(program: &str, setup: Setup<'_>) -> Outcome {
         Ok(()) => eprintln!("{:?}: ran to the end at {:.1} ms", setup.faults, end_ns as f64 / 1e6),
         Err(a) => eprintln!("{:?}: stopped at {:.1} ms: {a}", setup.faults, end_ns as f64 / 1e6),
     }
-    Outcome { result: r.map(|_| summary), probe, end_ns, wire }
+    let (rest_s, fault_reaction, rest_text) = (summary.rest.time_s, summary.rest.fault_reaction, summary.rest.describe());
+    Outcome { result: r.map(|_| summary), probe, end_ns, wire, rest_s, fault_reaction, rest_text }
 }
 
 /// Drive index (node order: X 1, Z 2, S1 3).
@@ -259,6 +265,11 @@ fn sync_fault(name: &str, program: &str, line: u32, lead: f64, fault: &str, node
     );
     assert!(worst <= um, "{name}: relation broke by {worst:.1} µm (> {um})");
     assert!(cycles <= bound, "{name}: at rest after {cycles} cycles (> {bound})");
+    // The rest line tells the stop as it was: a drive braked on its own, and the time counts
+    // from the stop's start (it once counted only the settle after the follow: 0.02 s).
+    assert!(o.fault_reaction && o.rest_text.contains("own fault reaction"), "{name}: {}", o.rest_text);
+    let stop_s = cycles as f64 * CYCLE as f64 * 1e-9;
+    assert!(o.rest_s > 0.5 * stop_s && o.rest_s < stop_s + 0.1, "{name}: rest {:.3} s for a {stop_s:.3} s stop", o.rest_s);
     assert!(o.moving_after(100).is_empty());
     record(name, 1, Some((cycles, bound)));
 }
