@@ -1,7 +1,8 @@
 //! Service commands: `scan`, `sdo read|write`, `nmt`, `drive status`. Read-only unless the
 //! command itself is a write; nothing here enables a drive.
 
-use super::{exit, open_session, MachineArgs, Session};
+use super::OrSetup;
+use super::{exit, open_or_exit, open_service_bus, MachineArgs, ServiceBus};
 use crate::drives::access::{read_status, DriveAccess, DriveStatus};
 use crate::drives::canopen::master::{mode_short, supported_modes_text, DriveProbe};
 use crate::drives::canopen::sdo_client::SdoError;
@@ -186,13 +187,6 @@ pub fn sdo_error_text(e: &SdoError) -> String {
     }
 }
 
-fn open(machine: &MachineArgs) -> Result<Session, i32> {
-    open_session(machine).map_err(|e| {
-        eprintln!("error: {e}");
-        exit::SETUP
-    })
-}
-
 fn nmt_name(st: Option<NmtState>) -> &'static str {
     match st {
         // A boot-up message means the node is now pre-operational (CiA 301).
@@ -205,17 +199,10 @@ fn nmt_name(st: Option<NmtState>) -> &'static str {
 // ---------------------------------------------------------------- scan
 
 pub fn scan(machine: &MachineArgs, json_out: bool) -> i32 {
-    match super::mbus::modbus_machine(machine) {
-        Ok(Some(cfg)) => return super::mbus::scan(&cfg, json_out),
-        Ok(None) => {}
-        Err(e) => {
-            eprintln!("error: {e}");
-            return exit::SETUP;
-        }
-    }
-    let mut s = match open(machine) {
-        Ok(s) => s,
-        Err(c) => return c,
+    let mut s = match open_service_bus(machine) {
+        Ok(ServiceBus::Modbus(cfg)) => return super::mbus::scan(&cfg, json_out),
+        Ok(ServiceBus::CanOpen(s)) => s,
+        Err(code) => return code,
     };
     let mut nodes = s.master.node_ids();
     nodes.sort_unstable();
@@ -404,7 +391,7 @@ fn probe_json(p: &DriveProbe) -> serde_json::Value {
 // ---------------------------------------------------------------- sdo
 
 pub fn sdo_read(machine: &MachineArgs, node: u8, index: u16, sub: u8, ty: Option<SdoType>, out: Option<&std::path::Path>, json_out: bool) -> i32 {
-    let mut s = match open(machine) {
+    let mut s = match open_or_exit(machine) {
         Ok(s) => s,
         Err(c) => return c,
     };
@@ -471,7 +458,7 @@ pub fn sdo_write(machine: &MachineArgs, node: u8, index: u16, sub: u8, ty: SdoTy
         eprintln!("error: writing 0x{index:04X} can set a motor in motion on {bus}; make sure the axis is free to move, then repeat with --yes");
         return exit::INPUT;
     }
-    let mut s = match open(machine) {
+    let mut s = match open_or_exit(machine) {
         Ok(s) => s,
         Err(c) => return c,
     };
@@ -538,7 +525,7 @@ pub fn nmt(machine: &MachineArgs, cmd: NmtArg, target: u8, json_out: bool) -> i3
         Ok(l) => l,
         Err(code) => return code,
     };
-    let mut s = match open(machine) {
+    let mut s = match open_or_exit(machine) {
         Ok(s) => s,
         Err(c) => return c,
     };
@@ -659,8 +646,8 @@ pub fn statusword_bits(sw: u16, mode_code: i8) -> Vec<(u8, String, bool)> {
 
 /// `cncgw drive status NODE`: one drive's state, the same for every bus.
 pub fn drive_status(machine: &MachineArgs, node: u8, json_out: bool) -> i32 {
-    match super::mbus::modbus_machine(machine) {
-        Ok(Some(cfg)) => {
+    let mut s = match open_service_bus(machine) {
+        Ok(ServiceBus::Modbus(cfg)) => {
             let mut d = match super::mbus::ModbusDrive::open(&cfg, node) {
                 Ok(d) => d,
                 Err(code) => return code,
@@ -672,15 +659,8 @@ pub fn drive_status(machine: &MachineArgs, node: u8, json_out: bool) -> i32 {
             let extra = json!({"unit": node, "profile": profile, "bus": d.c.what, "round_trip_ms": rtt});
             return status_report(&mut d, st, json_out, extra, vec![format!("round trip {rtt:.1} ms for the register reads")]);
         }
-        Ok(None) => {}
-        Err(e) => {
-            eprintln!("error: {e}");
-            return exit::SETUP;
-        }
-    }
-    let mut s = match open(machine) {
-        Ok(s) => s,
-        Err(c) => return c,
+        Ok(ServiceBus::CanOpen(s)) => s,
+        Err(code) => return code,
     };
     let mut d = super::service::SdoDrive::new(&mut s, node);
     let st = read_status(&mut d);
@@ -786,14 +766,11 @@ fn status_report(d: &mut dyn DriveAccess, st: Result<DriveStatus, String>, json_
 
 /// `cncgw od check NODE --eds FILE`.
 pub fn od_check(machine: &MachineArgs, node: u8, eds_path: &std::path::Path, json_out: bool) -> i32 {
-    let eds = match cncgw_bus::canopen::eds::Eds::load(eds_path) {
+    let eds = match cncgw_bus::canopen::eds::Eds::load(eds_path).or_setup() {
         Ok(e) => e,
-        Err(e) => {
-            eprintln!("error: {e}");
-            return exit::SETUP;
-        }
+        Err(code) => return code,
     };
-    let mut s = match open(machine) {
+    let mut s = match open_or_exit(machine) {
         Ok(s) => s,
         Err(c) => return c,
     };
@@ -876,14 +853,11 @@ fn sdo_type_of(dt: u16) -> Option<SdoType> {
 /// objects, checked against it (present, size of the type, write-only not readable), or
 /// without an EDS the standard objects. Read-only.
 pub fn od_dump(machine: &MachineArgs, node: u8, eds_path: Option<&std::path::Path>, json_out: bool) -> i32 {
-    let eds = match eds_path.map(cncgw_bus::canopen::eds::Eds::load).transpose() {
+    let eds = match eds_path.map(cncgw_bus::canopen::eds::Eds::load).transpose().or_setup() {
         Ok(e) => e,
-        Err(e) => {
-            eprintln!("error: {e}");
-            return exit::SETUP;
-        }
+        Err(code) => return code,
     };
-    let mut s = match open(machine) {
+    let mut s = match open_or_exit(machine) {
         Ok(s) => s,
         Err(c) => return c,
     };

@@ -16,6 +16,7 @@
 use super::exit;
 use super::service::{confirm_motion, HomeArgs};
 use super::MachineArgs;
+use super::OrSetup;
 use crate::config::{AxisConfig, MachineConfig};
 use crate::drives::DriveBus;
 use crate::reference::ReferenceFile;
@@ -102,12 +103,9 @@ fn select(cfg: &MachineConfig, which: &str) -> Result<Vec<(String, AxisConfig)>,
 
 /// `cncgw home`.
 pub fn home(c: &HomeCmd) -> i32 {
-    let (cfg, _) = match super::machine_config(&c.machine) {
+    let (cfg, _) = match super::machine_config(&c.machine).or_setup() {
         Ok(x) => x,
-        Err(e) => {
-            eprintln!("error: {e}");
-            return exit::SETUP;
-        }
+        Err(code) => return code,
     };
     let axes = match select(&cfg, &c.axis) {
         Ok(v) if v.is_empty() => return exit::OK,

@@ -7,6 +7,7 @@
 
 use super::run::{ExecOpts, Job, RunExtras};
 use super::MachineArgs;
+use super::OrSetup;
 use crate::config::{AxisKind, MachineConfig};
 use crate::control::trace::TraceData;
 use crate::interp::Interpreter;
@@ -137,12 +138,9 @@ fn program(cfg: &MachineConfig, axis: &str, travel: f64, start: crate::canon::Po
 /// `cncgw identify`.
 pub fn run(machine: &MachineArgs, a: &IdentifyArgs) -> i32 {
     use super::exit;
-    let (mut cfg, cfg_text) = match super::machine_config(machine) {
+    let (mut cfg, cfg_text) = match super::machine_config(machine).or_setup() {
         Ok(c) => c,
-        Err(e) => {
-            eprintln!("error: {e}");
-            return exit::SETUP;
-        }
+        Err(code) => return code,
     };
     // The window is proposed for the configured maximum speed, whatever the run kept to.
     let nominal = cfg.clone();

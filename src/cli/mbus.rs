@@ -10,6 +10,7 @@
 
 use super::exit;
 use super::MachineArgs;
+use super::OrSetup;
 use crate::config::{AxisConfig, LinkTransport, MachineConfig, ModbusLink, Parity};
 use crate::drives::access::{self, DriveAccess, ObjType};
 use crate::drives::modbus::link::exception_words;
@@ -326,12 +327,9 @@ fn state_json(d: &DriveRead) -> serde_json::Value {
 
 /// `cncgw scan` on Modbus: every configured unit, whether it answers, its state.
 pub fn scan(cfg: &MachineConfig, json: bool) -> i32 {
-    let mut cl = match clients(cfg) {
+    let mut cl = match clients(cfg).or_setup() {
         Ok(c) => c,
-        Err(e) => {
-            eprintln!("error: {e}");
-            return exit::SETUP;
-        }
+        Err(code) => return code,
     };
     let mut failed = 0;
     let mut rows = Vec::new();
@@ -389,12 +387,9 @@ pub fn scan(cfg: &MachineConfig, json: bool) -> i32 {
 
 /// `cncgw monitor` on Modbus: the same table from the registers, refreshed in place.
 pub fn monitor(cfg: &MachineConfig, seconds: Option<f64>, once: bool, interval_ms: u64, json: bool) -> i32 {
-    let links = match clients(cfg) {
+    let links = match clients(cfg).or_setup() {
         Ok(c) => c,
-        Err(e) => {
-            eprintln!("error: {e}");
-            return exit::SETUP;
-        }
+        Err(code) => return code,
     };
     let io = match super::service::io_monitor(cfg) {
         Ok(m) => m,

@@ -17,6 +17,7 @@
 use super::exit;
 use super::run::{self, ExecOpts, Job, MoveFeed, RunExtras, TapSetup};
 use super::MachineArgs;
+use super::OrSetup;
 use crate::canon::{Move, MoveKind, Pos};
 use crate::config::MachineConfig;
 use crate::interp::Interpreter;
@@ -205,20 +206,14 @@ fn stdin_lines() -> Receiver<String> {
 /// `cncgw mdi`.
 pub fn mdi(a: &MdiArgs) -> i32 {
     let machine = &a.machine;
-    let (cfg, cfg_text) = match super::machine_config(machine) {
+    let (cfg, cfg_text) = match super::machine_config(machine).or_setup() {
         Ok(c) => c,
-        Err(e) => {
-            eprintln!("error: {e}");
-            return exit::SETUP;
-        }
+        Err(code) => return code,
     };
     let state_root = a.state_dir.clone().or_else(crate::persist::default_state_dir);
-    let tables = match crate::offsets::resolve(state_root.as_deref(), &cfg.machine.name, a.tools.as_deref()) {
+    let tables = match super::resolve_tables(state_root.as_deref(), &cfg.machine.name, a.tools.as_deref()) {
         Ok(t) => t,
-        Err(al) => {
-            eprintln!("{al}");
-            return if al.number == crate::persist::STATE_ALARM { exit::SETUP } else { exit::INPUT };
-        }
+        Err(code) => return code,
     };
     eprintln!("cncgw: {}", tables.source);
     // The machine's state as for a run: locked, common variables loaded, alarms kept.

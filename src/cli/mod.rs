@@ -780,6 +780,67 @@ pub fn open_session_with(m: &MachineArgs, wrap: impl FnOnce(Box<dyn cncgw_bus::C
     Ok(Session { cfg, master, clock, bus, what, simulated })
 }
 
+/// The bus a service command talks to: every drive on Modbus (the configuration's links or
+/// `--bus modbus-…`), or an open CANopen session. One per command, matched at once: its
+/// size does not matter.
+#[allow(clippy::large_enum_variant)]
+pub enum ServiceBus {
+    Modbus(crate::config::MachineConfig),
+    CanOpen(Session),
+}
+
+/// `open_session`, the error printed: Err is the exit code.
+pub fn open_or_exit(m: &MachineArgs) -> Result<Session, i32> {
+    open_session(m).or_setup()
+}
+
+/// The machine's bus for a service command; an error is printed, Err is the exit code.
+pub fn open_service_bus(m: &MachineArgs) -> Result<ServiceBus, i32> {
+    open_service_bus_with(m, |b| b)
+}
+
+/// `open_service_bus` with a CANopen endpoint passed through `wrap` (`open_session_with`).
+pub fn open_service_bus_with(
+    m: &MachineArgs,
+    wrap: impl FnOnce(Box<dyn cncgw_bus::CanBus>) -> Box<dyn cncgw_bus::CanBus>,
+) -> Result<ServiceBus, i32> {
+    if let Some(cfg) = mbus::modbus_machine(m).or_setup()? {
+        return Ok(ServiceBus::Modbus(cfg));
+    }
+    open_session_with(m, wrap).map(ServiceBus::CanOpen).or_setup()
+}
+
+/// The offset tables of a run, plan, preview or MDI (`offsets::resolve`); an alarm is
+/// printed, Err is its exit code: a state directory that cannot be read is the set-up's
+/// fault, a bad --tools file the input's.
+pub fn resolve_tables(state_root: Option<&std::path::Path>, machine: &str, tools: Option<&std::path::Path>) -> Result<crate::offsets::Tables, i32> {
+    crate::offsets::resolve(state_root, machine, tools).map_err(|a| {
+        eprintln!("{a}");
+        if a.number == crate::persist::STATE_ALARM {
+            exit::SETUP
+        } else {
+            exit::INPUT
+        }
+    })
+}
+
+/// A bus, configuration or file that could not be opened: said, and its exit code.
+fn setup_failed(e: &dyn std::fmt::Display) -> i32 {
+    eprintln!("error: {e}");
+    exit::SETUP
+}
+
+/// A set-up step's result for a command: its error said (`error: …`), Err the exit code.
+pub trait OrSetup<T> {
+    fn or_setup(self) -> Result<T, i32>;
+}
+
+impl<T, E: std::fmt::Display> OrSetup<T> for Result<T, E> {
+    fn or_setup(self) -> Result<T, i32> {
+        self.map_err(|e| setup_failed(&e))
+    }
+}
+
 #[derive(Subcommand, Debug)]
 pub enum ConfigCmd {
     /// Validate a machine configuration and print what it describes.
@@ -976,12 +1037,9 @@ fn alarm_catalogue(json: bool) -> i32 {
 }
 
 fn alarms(machine: &MachineArgs, state_dir: Option<&std::path::Path>, since: Option<&str>, json: bool) -> i32 {
-    let (cfg, _) = match machine_config(machine) {
+    let (cfg, _) = match machine_config(machine).or_setup() {
         Ok(c) => c,
-        Err(e) => {
-            eprintln!("error: {e}");
-            return exit::SETUP;
-        }
+        Err(code) => return code,
     };
     let since = match since.map(parse_since).transpose() {
         Ok(s) => s,

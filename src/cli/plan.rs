@@ -1,6 +1,7 @@
 //! `cncgw plan`: the canonical moves of a program without running anything, then the checks
 //! `run` makes before motion (unless `--no-machine`) and a closing summary on stderr.
 
+use super::OrSetup;
 use super::{exit, load_config};
 use crate::canon::{Move, MoveKind, Pos};
 use std::io::Write;
@@ -37,21 +38,15 @@ pub struct PlanArgs {
 /// Exit 0, 2 for a program error (5010 without M02/M30, 2501 over the budget), 3 when the
 /// machine would refuse it (as `run` does before motion).
 pub fn plan(a: &PlanArgs) -> i32 {
-    let (cfg, _) = match load_config(a.config.as_deref()) {
+    let (cfg, _) = match load_config(a.config.as_deref()).or_setup() {
         Ok(c) => c,
-        Err(e) => {
-            eprintln!("error: {e}");
-            return exit::SETUP;
-        }
+        Err(code) => return code,
     };
     // The same offsets as `run`: --tools FILE, else the stored table; the stored work offsets.
     let state_root = a.state_dir.clone().or_else(crate::persist::default_state_dir);
-    let tables = match crate::offsets::resolve(state_root.as_deref(), &cfg.machine.name, a.tools.as_deref()) {
+    let tables = match super::resolve_tables(state_root.as_deref(), &cfg.machine.name, a.tools.as_deref()) {
         Ok(t) => t,
-        Err(al) => {
-            eprintln!("{al}");
-            return exit::INPUT;
-        }
+        Err(code) => return code,
     };
     let make = || -> Result<crate::interp::Interpreter, i32> {
         let mut i = crate::interp::Interpreter::from_file(&a.program, &cfg).map_err(|alarms| {

@@ -12,6 +12,7 @@
 //! vertex and the nose centre's path dotted, so that the cut edge can be seen. Paths are drawn by
 //! `plotters`' SVG backend, everything else is plain SVG ([`crate::plot`]).
 
+use super::OrSetup;
 use crate::canon::{Move, MoveKind, Pos};
 use crate::plot::{self, Rgb};
 use plotters::prelude::*;
@@ -446,22 +447,16 @@ pub fn preview(
     width: u32,
     stock: Option<Stock>,
 ) -> i32 {
-    let (cfg, _) = match super::load_config(config) {
+    let (cfg, _) = match super::load_config(config).or_setup() {
         Ok(c) => c,
-        Err(e) => {
-            eprintln!("error: {e}");
-            return super::exit::SETUP;
-        }
+        Err(code) => return code,
     };
     // The same tables as `run`: --tools FILE, else the stored tool table; the stored work
     // offsets.
     let state_root = state_dir.map(std::path::Path::to_path_buf).or_else(crate::persist::default_state_dir);
-    let mut tables = match crate::offsets::resolve(state_root.as_deref(), &cfg.machine.name, tools) {
+    let mut tables = match super::resolve_tables(state_root.as_deref(), &cfg.machine.name, tools) {
         Ok(t) => t,
-        Err(a) => {
-            eprintln!("{a}");
-            return super::exit::INPUT;
-        }
+        Err(code) => return code,
     };
     eprintln!("{}", tables.source);
     // The tool tip's path in workpiece coordinates (as a Fanuc's path graphics draws it): the

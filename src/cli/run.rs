@@ -2,6 +2,7 @@
 
 use super::exit;
 use super::MachineArgs;
+use super::OrSetup;
 use crate::canon::Pos;
 use crate::config::MachineConfig;
 use crate::control::cycle::{AxisSummary, CycleLoop, RunSummary};
@@ -226,12 +227,9 @@ pub struct RunFiles<'a> {
 
 pub fn run(program: &Path, machine: &MachineArgs, json: bool, files: RunFiles, max_blocks: u64, rt: &RtArgs, op: &OperatorArgs) -> i32 {
     let RunFiles { state_dir, trace, tools, restart } = files;
-    let (cfg, cfg_text) = match super::machine_config(machine) {
+    let (cfg, cfg_text) = match super::machine_config(machine).or_setup() {
         Ok(c) => c,
-        Err(e) => {
-            eprintln!("error: {e}");
-            return exit::SETUP;
-        }
+        Err(code) => return code,
     };
     // `run -`: the program comes on standard input, read whole (it is checked before motion).
     let stdin_text = match super::mdi::program_from_stdin(program) {
@@ -263,12 +261,11 @@ pub fn run(program: &Path, machine: &MachineArgs, json: bool, files: RunFiles, m
         eprintln!("error: [opcua] needs a state directory for its certificates: give --state-dir or set CNCGW_STATE_DIR");
         return exit::SETUP;
     }
-    let tables = match crate::offsets::resolve(state_root.as_deref(), &cfg.machine.name, tools) {
+    let tables = match super::resolve_tables(state_root.as_deref(), &cfg.machine.name, tools) {
         Ok(t) => t,
-        Err(a) => {
-            eprintln!("{a}");
+        Err(code) => {
             eprintln!("nothing was moved");
-            return if a.number == crate::persist::STATE_ALARM { exit::SETUP } else { exit::INPUT };
+            return code;
         }
     };
     eprintln!("cncgw: {}", tables.source);

@@ -7,7 +7,8 @@
 
 use super::diag::sdo_error_text;
 use super::exit;
-use super::{load_config, open_session, open_session_with, MachineArgs, Session};
+use super::OrSetup;
+use super::{load_config, open_service_bus, open_service_bus_with, MachineArgs, ServiceBus, Session};
 pub use crate::drives::access::PowerGoal;
 use crate::drives::access::{self, DriveAccess, DriveStatus, ObjType};
 use crate::drives::DriveBus;
@@ -67,13 +68,6 @@ pub(crate) fn confirm_motion(machine: &MachineArgs, yes: bool, what: &str) -> Re
     }
     eprintln!("error: {what} can set a motor in motion on {bus}; make sure the axis is free to move and nobody is near it, then repeat with --yes");
     Err(exit::INPUT)
-}
-
-fn open(machine: &MachineArgs) -> Result<Session, i32> {
-    open_session(machine).map_err(|e| {
-        eprintln!("error: {e}");
-        exit::SETUP
-    })
 }
 
 /// Read a signed integer object of `n` bytes (sign-extended).
@@ -178,22 +172,15 @@ pub fn drive_power(machine: &MachineArgs, node: u8, goal: PowerGoal, yes: bool) 
             return c;
         }
     }
-    match super::mbus::modbus_machine(machine) {
-        Ok(Some(cfg)) => {
+    let mut s = match open_service_bus(machine) {
+        Ok(ServiceBus::Modbus(cfg)) => {
             return match super::mbus::ModbusDrive::open(&cfg, node) {
                 Ok(mut d) => power_report(&mut d, goal),
                 Err(code) => code,
             }
         }
-        Ok(None) => {}
-        Err(e) => {
-            eprintln!("error: {e}");
-            return exit::SETUP;
-        }
-    }
-    let mut s = match open(machine) {
-        Ok(s) => s,
-        Err(c) => return c,
+        Ok(ServiceBus::CanOpen(s)) => s,
+        Err(code) => return code,
     };
     let simulated = s.simulated;
     let code = power_report(&mut SdoDrive::new(&mut s, node), goal);
@@ -306,17 +293,10 @@ pub fn drive_home(machine: &MachineArgs, node: u8, h: &HomeArgs, yes: bool) -> i
     if let Err(c) = confirm_motion(machine, yes, &format!("homing node {node}")) {
         return c;
     }
-    match super::mbus::modbus_machine(machine) {
-        Ok(Some(cfg)) => return super::mbus::drive_home(&cfg, node, h),
-        Ok(None) => {}
-        Err(e) => {
-            eprintln!("error: {e}");
-            return exit::SETUP;
-        }
-    }
-    let mut s = match open(machine) {
-        Ok(s) => s,
-        Err(c) => return c,
+    let mut s = match open_service_bus(machine) {
+        Ok(ServiceBus::Modbus(cfg)) => return super::mbus::drive_home(&cfg, node, h),
+        Ok(ServiceBus::CanOpen(s)) => s,
+        Err(code) => return code,
     };
     let Some(spec) = s.master.node_spec(node).cloned() else {
         eprintln!("error: node {node} is not a drive of the configuration; homing needs its scaling (`cncgw config check` lists the axes)");
@@ -404,17 +384,10 @@ pub fn jog(machine: &MachineArgs, axis: &str, to: Option<f64>, by: Option<f64>, 
     if let Err(c) = confirm_motion(machine, yes, &format!("jogging axis {axis}")) {
         return c;
     }
-    match super::mbus::modbus_machine(machine) {
-        Ok(Some(cfg)) => return jog_program(machine, &cfg, axis, to, by, speed),
-        Ok(None) => {}
-        Err(e) => {
-            eprintln!("error: {e}");
-            return exit::SETUP;
-        }
-    }
-    let mut s = match open(machine) {
-        Ok(s) => s,
-        Err(c) => return c,
+    let mut s = match open_service_bus(machine) {
+        Ok(ServiceBus::Modbus(cfg)) => return jog_program(machine, &cfg, axis, to, by, speed),
+        Ok(ServiceBus::CanOpen(s)) => s,
+        Err(code) => return code,
     };
     let Some(ax) = s.cfg.axes.get(axis).cloned() else {
         let names: Vec<&str> = s.cfg.axes.keys().map(String::as_str).collect();
@@ -559,19 +532,13 @@ pub fn buslog(machine: &MachineArgs, out: &std::path::Path, seconds: Option<f64>
             return exit::INPUT;
         }
     }
-    let (cfg, text) = match load_config(machine.config.as_deref()) {
+    let (cfg, text) = match load_config(machine.config.as_deref()).or_setup() {
         Ok(c) => c,
-        Err(e) => {
-            eprintln!("error: {e}");
-            return exit::SETUP;
-        }
+        Err(code) => return code,
     };
-    let (mut bus, mut clock, name, what) = match super::open_raw(&cfg, &text, machine.bus.as_deref(), machine.sim_config.as_deref()) {
+    let (mut bus, mut clock, name, what) = match super::open_raw(&cfg, &text, machine.bus.as_deref(), machine.sim_config.as_deref()).or_setup() {
         Ok(b) => b,
-        Err(e) => {
-            eprintln!("error: {e}");
-            return exit::SETUP;
-        }
+        Err(code) => return code,
     };
     let file = match std::fs::File::create(out) {
         Ok(f) => f,
@@ -948,22 +915,12 @@ pub fn monitor(machine: &MachineArgs, seconds: Option<f64>, once: bool, interval
             return exit::INPUT;
         }
     }
-    match super::mbus::modbus_machine(machine) {
-        Ok(Some(cfg)) => return super::mbus::monitor(&cfg, seconds, once, interval_ms, json),
-        Ok(None) => {}
-        Err(e) => {
-            eprintln!("error: {e}");
-            return exit::SETUP;
-        }
-    }
     let bits = Arc::new(AtomicU64::new(0));
     let counter = bits.clone();
-    let s = match open_session_with(machine, move |inner| Box::new(CountingBus { inner, bits: counter })) {
-        Ok(s) => s,
-        Err(e) => {
-            eprintln!("error: {e}");
-            return exit::SETUP;
-        }
+    let s = match open_service_bus_with(machine, move |inner| Box::new(CountingBus { inner, bits: counter })) {
+        Ok(ServiceBus::Modbus(cfg)) => return super::mbus::monitor(&cfg, seconds, once, interval_ms, json),
+        Ok(ServiceBus::CanOpen(s)) => s,
+        Err(code) => return code,
     };
     let io = match io_monitor(&s.cfg) {
         Ok(m) => m,

@@ -23,6 +23,7 @@
 use super::exit;
 use super::run::{ExecOpts, Job, OperatorArgs, RunExtras};
 use super::MachineArgs;
+use super::OrSetup;
 use crate::canon::{MoveKind, Pos};
 use crate::config::MachineConfig;
 use crate::control::trace::TraceData;
@@ -436,12 +437,9 @@ fn print_plan(p: &TapPlan, a: &TapArgs) {
 
 /// `cncgw tap-test`.
 pub fn tap_test(machine: &MachineArgs, a: &TapArgs, op: &OperatorArgs) -> i32 {
-    let (cfg, cfg_text) = match super::machine_config(machine) {
+    let (cfg, cfg_text) = match super::machine_config(machine).or_setup() {
         Ok(c) => c,
-        Err(e) => {
-            eprintln!("error: {e}");
-            return exit::SETUP;
-        }
+        Err(code) => return code,
     };
     // The arguments are checked against the machine before anything is opened.
     if let Err(e) = plan(&cfg, a, Pos::ZERO).map(|_| ()).or_else(|e| if e.contains("travel") { Ok(()) } else { Err(e) }) {
@@ -449,12 +447,9 @@ pub fn tap_test(machine: &MachineArgs, a: &TapArgs, op: &OperatorArgs) -> i32 {
         return exit::INPUT;
     }
     if a.dry {
-        let start = match present_position(machine, &cfg) {
+        let start = match present_position(machine, &cfg).or_setup() {
             Ok(p) => p,
-            Err(e) => {
-                eprintln!("error: {e}");
-                return exit::SETUP;
-            }
+            Err(code) => return code,
         };
         return match plan(&cfg, a, start) {
             Ok(p) => {

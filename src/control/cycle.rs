@@ -363,6 +363,16 @@ fn then(first: Option<Alarm>, then: Alarm) -> Alarm {
     }
 }
 
+/// What drive `d` was sent this cycle, for the trace: its motion axis' set-point, the tool
+/// spindle's (`tool_drive`), or its actual position (a drive the program does not move).
+fn traced_cmd(d: usize, axis: Option<usize>, tool_drive: Option<usize>, sp: &crate::motion::Setpoint, act: f64) -> f64 {
+    match axis {
+        Some(a) => sp.pos[a],
+        None if tool_drive == Some(d) => sp.tool_spindle,
+        None => act,
+    }
+}
+
 /// Which motion axis each drive follows (by the config's axis names: x, y, z; the spindle).
 fn motion_axis(name: &str, spindle: bool) -> Option<usize> {
     if spindle {
@@ -935,11 +945,8 @@ impl<'a> CycleLoop<'a> {
             let f = self.drives.feedback(d);
             row.act[d] = f.pos;
             row.age[d] = f.age_cycles;
-            row.cmd[d] = match motion_axis(self.drives.axis_name(d), Some(d) == self.spindle_drive) {
-                Some(a) => sp.pos[a],
-                None if self.tool.is_some_and(|t| t.drive == d) => sp.tool_spindle,
-                None => f.pos,
-            };
+            let axis = motion_axis(self.drives.axis_name(d), Some(d) == self.spindle_drive);
+            row.cmd[d] = traced_cmd(d, axis, self.tool.map(|t| t.drive), sp, f.pos);
         }
         if let Some(t) = self.trace.as_mut() {
             t.record(&row);

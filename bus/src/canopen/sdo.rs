@@ -104,33 +104,53 @@ fn initiate_cmd(base: u8, expedited: bool, size: Option<u32>) -> u8 {
     }
 }
 
+/// An initiate frame (download request, upload response): command, multiplexer, and the
+/// value (expedited) or the indicated size.
+fn put_initiate(d: &mut [u8; 8], base: u8, index: u16, sub: u8, expedited: bool, size: Option<u32>, data: [u8; 4]) {
+    d[0] = initiate_cmd(base, expedited, size);
+    put_mux(d, index, sub);
+    if expedited {
+        d[4..8].copy_from_slice(&data);
+    } else if let Some(n) = size {
+        d[4..8].copy_from_slice(&n.to_le_bytes());
+    }
+}
+
+/// A data segment (download request, upload response): toggle, n (bytes unused), c (last).
+fn put_segment(d: &mut [u8; 8], toggle: bool, len: u8, data: [u8; 7], last: bool) {
+    d[0] = ((toggle as u8) << 4) | ((7 - len.min(7)) << 1) | last as u8;
+    d[1..8].copy_from_slice(&data);
+}
+
+/// A data segment's (toggle, len, data, last).
+fn segment_bits(cmd: u8, d: &[u8; 8]) -> (bool, u8, [u8; 7], bool) {
+    let mut data = [0u8; 7];
+    data.copy_from_slice(&d[1..8]);
+    (cmd & 0x10 != 0, 7 - ((cmd >> 1) & 0x07), data, cmd & 0x01 != 0)
+}
+
+fn put_abort(d: &mut [u8; 8], index: u16, sub: u8, code: u32) {
+    d[0] = 0x80;
+    put_mux(d, index, sub);
+    d[4..8].copy_from_slice(&code.to_le_bytes());
+}
+
+fn abort_code(d: &[u8; 8]) -> u32 {
+    u32::from_le_bytes([d[4], d[5], d[6], d[7]])
+}
+
 impl SdoRequest {
     pub fn encode(&self, node: u8) -> CanFrame {
         let mut d = [0u8; 8];
         match *self {
-            SdoRequest::InitiateDownload { index, sub, expedited, size, data } => {
-                d[0] = initiate_cmd(0x20, expedited, size);
-                put_mux(&mut d, index, sub);
-                if expedited {
-                    d[4..8].copy_from_slice(&data);
-                } else if let Some(n) = size {
-                    d[4..8].copy_from_slice(&n.to_le_bytes());
-                }
-            }
-            SdoRequest::DownloadSegment { toggle, len, data, last } => {
-                d[0] = ((toggle as u8) << 4) | ((7 - len.min(7)) << 1) | last as u8;
-                d[1..8].copy_from_slice(&data);
-            }
+            SdoRequest::InitiateDownload { index, sub, expedited, size, data } => put_initiate(&mut d, 0x20, index, sub, expedited, size, data),
+            SdoRequest::DownloadSegment { toggle, len, data, last } => put_segment(&mut d, toggle, len, data, last),
             SdoRequest::InitiateUpload { index, sub } => {
                 d[0] = 0x40;
                 put_mux(&mut d, index, sub);
             }
             SdoRequest::UploadSegment { toggle } => d[0] = 0x60 | ((toggle as u8) << 4),
-            SdoRequest::Abort { index, sub, code } => {
-                d[0] = 0x80;
-                put_mux(&mut d, index, sub);
-                d[4..8].copy_from_slice(&code.to_le_bytes());
-            }
+            SdoRequest::Abort { index, sub, code } => put_abort(&mut d, index, sub, code),
         }
         CanFrame::new(cob::SDO_RX + node as u16, &d)
     }
@@ -150,9 +170,8 @@ impl SdoRequest {
                 SdoRequest::InitiateDownload { index, sub, expedited, size, data }
             }
             0 => {
-                let mut data = [0u8; 7];
-                data.copy_from_slice(&d[1..8]);
-                SdoRequest::DownloadSegment { toggle: cmd & 0x10 != 0, len: 7 - ((cmd >> 1) & 0x07), data, last: cmd & 0x01 != 0 }
+                let (toggle, len, data, last) = segment_bits(cmd, d);
+                SdoRequest::DownloadSegment { toggle, len, data, last }
             }
             2 => {
                 let (index, sub) = mux(d);
@@ -161,7 +180,7 @@ impl SdoRequest {
             3 => SdoRequest::UploadSegment { toggle: cmd & 0x10 != 0 },
             4 => {
                 let (index, sub) = mux(d);
-                SdoRequest::Abort { index, sub, code: u32::from_le_bytes([d[4], d[5], d[6], d[7]]) }
+                SdoRequest::Abort { index, sub, code: abort_code(d) }
             }
             _ => return None,
         })
@@ -177,24 +196,9 @@ impl SdoResponse {
                 put_mux(&mut d, index, sub);
             }
             SdoResponse::DownloadSegment { toggle } => d[0] = 0x20 | ((toggle as u8) << 4),
-            SdoResponse::InitiateUpload { index, sub, expedited, size, data } => {
-                d[0] = initiate_cmd(0x40, expedited, size);
-                put_mux(&mut d, index, sub);
-                if expedited {
-                    d[4..8].copy_from_slice(&data);
-                } else if let Some(n) = size {
-                    d[4..8].copy_from_slice(&n.to_le_bytes());
-                }
-            }
-            SdoResponse::UploadSegment { toggle, len, data, last } => {
-                d[0] = ((toggle as u8) << 4) | ((7 - len.min(7)) << 1) | last as u8;
-                d[1..8].copy_from_slice(&data);
-            }
-            SdoResponse::Abort { index, sub, code } => {
-                d[0] = 0x80;
-                put_mux(&mut d, index, sub);
-                d[4..8].copy_from_slice(&code.to_le_bytes());
-            }
+            SdoResponse::InitiateUpload { index, sub, expedited, size, data } => put_initiate(&mut d, 0x40, index, sub, expedited, size, data),
+            SdoResponse::UploadSegment { toggle, len, data, last } => put_segment(&mut d, toggle, len, data, last),
+            SdoResponse::Abort { index, sub, code } => put_abort(&mut d, index, sub, code),
         }
         CanFrame::new(cob::SDO_TX + node as u16, &d)
     }
@@ -217,13 +221,12 @@ impl SdoResponse {
                 SdoResponse::InitiateUpload { index, sub, expedited, size, data }
             }
             0 => {
-                let mut data = [0u8; 7];
-                data.copy_from_slice(&d[1..8]);
-                SdoResponse::UploadSegment { toggle: cmd & 0x10 != 0, len: 7 - ((cmd >> 1) & 0x07), data, last: cmd & 0x01 != 0 }
+                let (toggle, len, data, last) = segment_bits(cmd, d);
+                SdoResponse::UploadSegment { toggle, len, data, last }
             }
             4 => {
                 let (index, sub) = mux(d);
-                SdoResponse::Abort { index, sub, code: u32::from_le_bytes([d[4], d[5], d[6], d[7]]) }
+                SdoResponse::Abort { index, sub, code: abort_code(d) }
             }
             _ => return None,
         })

@@ -13,7 +13,7 @@
 //! run returns the alarm, with the controlled stop it needs already started.
 
 use super::settle::{EndSettle, HuntWatch};
-use super::{alarms, periods_passed, stall_in_sync, AxisSummary, CycleLoop, Progress, RunSummary, SpindleMeter, MAX_CATCH_UP};
+use super::{alarms, periods_passed, stall_in_sync, traced_cmd, AxisSummary, CycleLoop, Progress, RunSummary, SpindleMeter, MAX_CATCH_UP};
 use crate::canon::{Move, Pos};
 use crate::control::guard::Guard;
 use crate::control::io::IoStop;
@@ -599,11 +599,7 @@ impl CycleLoop<'_> {
         self.tap_gate(motion, run, sp, fb)?;
         if let Some(t) = self.trace.as_mut() {
             for (d, ax) in run.map.iter().enumerate().take(MAX_TRACE_AXES) {
-                row.cmd[d] = match ax {
-                    Some(a) => sp.pos[*a],
-                    None if self.tool.is_some_and(|t| t.drive == d) => sp.tool_spindle,
-                    None => row.act[d],
-                };
+                row.cmd[d] = traced_cmd(d, *ax, self.tool.map(|t| t.drive), sp, row.act[d]);
             }
             row.line = sp.line;
             row.spindle_rpm = run.spindle_rpm;

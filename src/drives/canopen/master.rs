@@ -2157,13 +2157,7 @@ impl<B: CanBus> DriveBus for CanOpenMaster<B> {
         for m in 0..self.io.len() {
             self.io[m].clear_outputs();
         }
-        for _ in 0..5 {
-            let t = clock.now_ns() + self.cycle_ns;
-            clock.wait_until(t);
-            let now = clock.now_ns();
-            let _ = self.receive(now);
-            let _ = self.transmit(now);
-        }
+        self.power_off_cycles(clock);
         // Stop the drives expecting our heartbeat before we go silent.
         for i in 0..self.nodes.len() {
             let _ = self.sdo(clock, i, Sdo::Down(od::CONSUMER_HEARTBEAT, 1, &0u32.to_le_bytes()));

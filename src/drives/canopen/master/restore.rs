@@ -40,6 +40,18 @@ impl<B: CanBus> CanOpenMaster<B> {
         }
     }
 
+    /// Five cycles under our SYNC with the control words as set (shutdown): enough for a
+    /// drive to see them and switch off before the master stops talking or reconfigures.
+    pub(super) fn power_off_cycles(&mut self, clock: &mut dyn Clock) {
+        for _ in 0..5 {
+            let t = clock.now_ns() + self.cycle_ns;
+            clock.wait_until(t);
+            let now = clock.now_ns();
+            let _ = self.receive(now);
+            let _ = self.transmit(now);
+        }
+    }
+
     /// Leave every drive as start-up found it (see the module doc). `found`: the NMT state
     /// each node was heard in before start-up. Best effort: failures are logged, the alarm
     /// that caused this is what the operator sees.
@@ -52,13 +64,7 @@ impl<B: CanBus> CanOpenMaster<B> {
                 n.controlword = cw::SHUTDOWN;
                 n.target = n.unwrapped;
             }
-            for _ in 0..5 {
-                let t = clock.now_ns() + self.cycle_ns;
-                clock.wait_until(t);
-                let now = clock.now_ns();
-                let _ = self.receive(now);
-                let _ = self.transmit(now);
-            }
+            self.power_off_cycles(clock);
         }
         for u in self.undo.take().unwrap_or_default().into_iter().rev() {
             if let Err(e) = self.sdo(clock, u.node, Sdo::Down(u.index, u.sub, &u.old)) {
