@@ -470,7 +470,13 @@ fn first_part_ends_within_one_count_on_the_pr_map_over_tcp() {
     let flag = Arc::new(AtomicBool::new(false));
     let machine = pr_feed_axes(MODBUS_LATHE);
     let srv = tcp_server(&machine, away_from_zero, &flag);
-    let cfg = write("first-pr.toml", &on_a_shared_host(&pr_feed_axes(&on(MODBUS_LATHE, srv.local_addr().unwrap()))));
+    // The shared host's supervision at a 10 ms link cycle, not its 4 ms: the pr map's 12
+    // transactions a cycle took 5.3 ms for 10 cycles in a row under a host stall (alarm
+    // 2204, 2 of 3 tries in one CI run, 1 of 3 here); what this checks is the block's speed
+    // from what the drive has left, at any link cycle.
+    let cfg = on_a_shared_host(&pr_feed_axes(&on(MODBUS_LATHE, srv.local_addr().unwrap()))).replace("cycle_ms = 4\n", "cycle_ms = 10\n");
+    assert!(cfg.contains("cycle_ms = 10\n"), "{cfg}");
+    let cfg = write("first-pr.toml", &cfg);
     first_part_ends_on_its_end_point(&srv, &cfg);
     stop(srv, &flag);
 }
