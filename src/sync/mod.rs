@@ -1,5 +1,6 @@
 //! Spindle–axis synchronization (threading, rigid tapping) and its error monitor.
 
+pub mod angle_filter;
 pub mod correction;
 pub mod governor;
 pub mod identify;
